@@ -1,0 +1,6 @@
+//! surfstream-common: what two or more surfstream crates share: the frame, graph files,
+//! channels and transport, recording, file formats and previews.
+
+pub mod frame;
+
+pub use frame::{flags, FrameHeader, FrameKind, FrameView, HeightMap, TileRegistration};
