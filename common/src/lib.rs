@@ -2,5 +2,6 @@
 //! channels and transport, recording, file formats and previews.
 
 pub mod frame;
+pub mod fsutil;
 
 pub use frame::{flags, FrameHeader, FrameKind, FrameView, HeightMap, TileRegistration};
