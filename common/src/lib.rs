@@ -3,5 +3,14 @@
 
 pub mod frame;
 pub mod fsutil;
+pub mod graph;
+pub mod inproc;
+pub mod ipc;
+pub mod latency;
+pub mod node;
+pub mod npy;
+pub mod preview;
+pub mod recording;
+pub mod shell;
 
 pub use frame::{flags, FrameHeader, FrameKind, FrameView, HeightMap, TileRegistration};

@@ -1,0 +1,228 @@
+//! `surfstream run`: the whole graph in one process, nodes as threads joined by crossbeam
+//! channels, calling the same [`NodeLogic`] as the processes do.
+//!
+//! Channels are bounded (backpressure) and a send that waits longer than the graph's
+//! backpressure timeout fails loudly, as over iceoryx2. A node whose upstream disappears
+//! without an end-of-scan marker fails; the first failure is reported with its node.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, bail, Result};
+use crossbeam_channel::{bounded, Receiver, Select, SendTimeoutError, Sender, TrySendError};
+
+use crate::frame::monotonic_ns;
+use crate::graph::{Delivery, NodeContext};
+use crate::node::{deliver, Input, NodeLogic, NodeReport, NodeStats, Outbox, Output};
+
+/// Queue depth of a lossless in-process channel.
+const LOSSLESS_DEPTH: usize = 16;
+/// How often an idle node without timers looks up (sources need their wake-ups only).
+const HOUSEKEEPING: Duration = Duration::from_millis(500);
+
+type Message = Arc<Output>;
+
+struct InputChannel {
+    port: String,
+    topic: String,
+    rx: Receiver<Message>,
+    ended: bool,
+}
+
+struct OutputChannel {
+    port: String,
+    delivery: Delivery,
+    txs: Vec<(String, Sender<Message>)>,
+    sequence: u64,
+}
+
+/// Marks failures that are consequences of another node's failure (a closed channel), so the
+/// root cause is what gets reported.
+#[derive(Debug)]
+struct Consequence(String);
+impl std::fmt::Display for Consequence {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+impl std::error::Error for Consequence {}
+
+/// A node ready to run as a thread.
+pub struct InProcessNode {
+    pub context: NodeContext,
+    pub logic: Box<dyn NodeLogic + Send>,
+}
+
+/// Runs every node on its own thread until all finish; returns their reports in graph order.
+pub fn run_graph(nodes: Vec<InProcessNode>) -> Result<Vec<NodeReport>> {
+    // One channel per (consumer, input port); producers keep the senders.
+    let mut senders: BTreeMap<(String, String), Vec<(String, Sender<Message>)>> = BTreeMap::new();
+    let mut receivers: Vec<Vec<InputChannel>> = Vec::new();
+    for n in &nodes {
+        let mut ins = Vec::new();
+        for i in &n.context.inputs {
+            let depth = match i.delivery {
+                Delivery::Lossless => LOSSLESS_DEPTH,
+                Delivery::LatestWins => 1,
+            };
+            let (tx, rx) = bounded(depth);
+            senders
+                .entry((i.from_node.clone(), i.from_port.clone()))
+                .or_default()
+                .push((n.context.node_id.clone(), tx));
+            ins.push(InputChannel { port: i.port.clone(), topic: i.topic(), rx, ended: false });
+        }
+        receivers.push(ins);
+    }
+    let mut handles = Vec::new();
+    for (n, inputs) in nodes.into_iter().zip(receivers) {
+        let outputs = n
+            .context
+            .outputs
+            .iter()
+            .map(|o| OutputChannel {
+                port: o.port.clone(),
+                delivery: o.delivery,
+                txs: senders.remove(&(n.context.node_id.clone(), o.port.clone())).unwrap_or_default(),
+                sequence: 0,
+            })
+            .collect();
+        let id = n.context.node_id.clone();
+        let handle = std::thread::Builder::new()
+            .name(id.clone())
+            .spawn(move || run_node(n.context, n.logic, inputs, outputs))
+            .map_err(|e| anyhow!("cannot start thread for node '{id}': {e}"))?;
+        handles.push((id, handle));
+    }
+    let mut reports = Vec::new();
+    let mut errors: Vec<(String, anyhow::Error)> = Vec::new();
+    for (id, h) in handles {
+        match h.join() {
+            Ok(Ok(r)) => reports.push(r),
+            Ok(Err(e)) => errors.push((id, e)),
+            Err(_) => errors.push((id, anyhow!("panicked"))),
+        }
+    }
+    if !errors.is_empty() {
+        let root = errors
+            .iter()
+            .position(|(_, e)| e.downcast_ref::<Consequence>().is_none())
+            .unwrap_or(0);
+        let (id, e) = errors.swap_remove(root);
+        bail!("node '{id}' failed: {e:#}");
+    }
+    Ok(reports)
+}
+
+fn run_node(
+    ctx: NodeContext,
+    mut logic: Box<dyn NodeLogic + Send>,
+    mut inputs: Vec<InputChannel>,
+    mut outputs: Vec<OutputChannel>,
+) -> Result<NodeReport> {
+    let mut stats = NodeStats::default();
+    let mut outbox = Outbox::default();
+    let timeout = Duration::from_secs_f64(ctx.backpressure_timeout_s);
+    while !logic.finished() {
+        // Wait for input or the next timer, without spinning.
+        let wake = logic.next_wakeup();
+        let wait = wake
+            .map(|w| w.saturating_duration_since(Instant::now()))
+            .unwrap_or(HOUSEKEEPING)
+            .min(HOUSEKEEPING);
+        let open: Vec<usize> = (0..inputs.len()).filter(|&i| !inputs[i].ended).collect();
+        if open.is_empty() {
+            if !wait.is_zero() && wake.is_some() {
+                std::thread::sleep(wait);
+            } else if wake.is_none() && !inputs.is_empty() {
+                bail!("node '{}': all inputs ended but the node did not finish", ctx.node_id);
+            }
+        } else {
+            let mut sel = Select::new();
+            for &i in &open {
+                sel.recv(&inputs[i].rx);
+            }
+            let _ = sel.ready_timeout(wait);
+        }
+        // Receive eagerly: drain every queue.
+        for ch in inputs.iter_mut().filter(|c| !c.ended) {
+            loop {
+                match ch.rx.try_recv() {
+                    Ok(msg) => {
+                        let input = match msg.as_ref() {
+                            Output::Frame(f) => Input::Frame(f.view()),
+                            Output::Registration(r) => Input::Registration(r),
+                        };
+                        let end = input.is_end_of_scan();
+                        deliver(logic.as_mut(), &mut stats, &ch.port, input, &mut outbox)?;
+                        if end {
+                            ch.ended = true;
+                            break;
+                        }
+                    }
+                    Err(crossbeam_channel::TryRecvError::Empty) => break,
+                    Err(crossbeam_channel::TryRecvError::Disconnected) => {
+                        return Err(anyhow!(Consequence(format!(
+                            "input '{}' ({}) closed before end of scan: its producer stopped",
+                            ch.port, ch.topic
+                        ))));
+                    }
+                }
+            }
+        }
+        if logic.next_wakeup().is_some_and(|w| w <= Instant::now()) {
+            logic.on_timer(&mut outbox)?;
+        }
+        // Compute lazily, once on the coalesced state.
+        logic.on_drained(&mut outbox)?;
+        send_all(&ctx, &mut outputs, &mut outbox, &mut stats, timeout)?;
+    }
+    Ok(NodeReport {
+        node_id: ctx.node_id.clone(),
+        node_kind: ctx.node_kind.clone(),
+        stats,
+        report: logic.report(),
+        t_finished_ns: monotonic_ns(),
+    })
+}
+
+fn send_all(
+    ctx: &NodeContext,
+    outputs: &mut [OutputChannel],
+    outbox: &mut Outbox,
+    stats: &mut NodeStats,
+    timeout: Duration,
+) -> Result<()> {
+    for (port, mut msg) in outbox.take() {
+        let ch = outputs.iter_mut().find(|c| c.port == port).ok_or_else(|| {
+            anyhow!("node '{}' sent on unknown output port '{port}'", ctx.node_id)
+        })?;
+        msg.stamp(ch.sequence, ctx.scan_id);
+        ch.sequence += 1;
+        let msg = Arc::new(msg);
+        let mut delivered = 0;
+        for (consumer, tx) in &ch.txs {
+            match ch.delivery {
+                Delivery::Lossless => match tx.send_timeout(msg.clone(), timeout) {
+                    Ok(()) => delivered += 1,
+                    Err(SendTimeoutError::Timeout(_)) => bail!(
+                        "output '{port}' -> '{consumer}': downstream queue full for {:.1} s (backpressure timeout)",
+                        timeout.as_secs_f64()
+                    ),
+                    Err(SendTimeoutError::Disconnected(_)) => {
+                        return Err(anyhow!(Consequence(format!(
+                            "output '{port}' -> '{consumer}': the consumer is gone; message would be lost"
+                        ))))
+                    }
+                },
+                Delivery::LatestWins => match tx.try_send(msg.clone()) {
+                    Ok(()) => delivered += 1,
+                    Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => {}
+                },
+            }
+        }
+        stats.on_sent(&port, &msg, delivered);
+    }
+    Ok(())
+}

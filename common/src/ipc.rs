@@ -1,0 +1,634 @@
+//! `surfstream launch`: one node per process, frames over iceoryx2 shared memory (DESIGN §3).
+//!
+//! Per output port: a publish-subscribe service `surfstream/<graph>/<node>/<port>`, an event
+//! service of the same name for wake-ups, and `<name>/ready` for the startup handshake.
+//! Lossless ports never overflow: the publisher waits for one "ready" per expected subscriber
+//! before its first send (iceoryx2 drops samples for subscribers that have not attached yet),
+//! every `send()` must reach that many receivers, and a full queue fails loudly after the
+//! graph's backpressure timeout. Latest-wins ports overwrite (buffer 1, history 1).
+//! Each node waits on one WaitSet (inputs + a housekeeping tick), never busy-polls, and at the
+//! end keeps its publishers alive until every subscriber has left, so nothing in flight is lost
+//! when a process exits. Runs are isolated by an iceoryx2 prefix (a "domain").
+
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, bail, Result};
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::port::update_connections::UpdateConnections;
+use iceoryx2::port::{BackpressureAction, BackpressureInfo};
+use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::{event as event_factory, publish_subscribe as ps_factory};
+
+use crate::frame::{monotonic_ns, FrameHeader, FrameView, TileRegistration};
+use crate::graph::{service_name, Delivery, NodeContext, PortKind};
+use crate::node::{deliver, Input, NodeLogic, NodeReport, NodeStats, Outbox, Output};
+
+/// Lossless queue depth per subscriber. Nodes drain eagerly, so this only absorbs bursts.
+const LOSSLESS_BUFFER: usize = 8;
+/// Housekeeping: dead-node cleanup and upstream liveness checks.
+const HOUSEKEEPING: Duration = Duration::from_millis(250);
+/// Event ids on a port's event service.
+const EVENT_DATA: usize = 1;
+
+type FrameFactory = ps_factory::PortFactory<ipc::Service, [f32], FrameHeader>;
+type RegFactory = ps_factory::PortFactory<ipc::Service, TileRegistration, ()>;
+type EventFactory = event_factory::PortFactory<ipc::Service>;
+
+/// The iceoryx2 configuration of one isolated domain (a fixed prefix per launcher slot).
+pub fn domain_config(prefix: &str) -> Result<Config> {
+    let mut cfg = Config::default();
+    cfg.global.prefix = FileName::new(prefix.as_bytes())
+        .map_err(|e| anyhow!("invalid iceoryx2 domain prefix {prefix:?}: {e:?}"))?;
+    Ok(cfg)
+}
+
+/// Creates an iceoryx2 node in `domain` with signal handling left to us.
+pub fn create_node(cfg: &Config, name: &str) -> Result<Node<ipc::Service>> {
+    let node_name: NodeName =
+        name.try_into().map_err(|e| anyhow!("invalid node name {name:?}: {e:?}"))?;
+    NodeBuilder::new()
+        .name(&node_name)
+        .config(cfg)
+        .signal_handling_mode(SignalHandlingMode::Disabled)
+        .create::<ipc::Service>()
+        .map_err(|e| anyhow!("cannot create iceoryx2 node {name:?}: {e:?}"))
+}
+
+/// Removes what dead processes left behind in a domain; returns how many nodes were cleaned.
+pub fn cleanup_dead_nodes(cfg: &Config) -> Result<usize> {
+    let mut cleaned = 0;
+    Node::<ipc::Service>::list(cfg, |state| {
+        if let NodeState::Dead(view) = state {
+            if view.try_remove_stale_resources().is_ok() {
+                cleaned += 1;
+            }
+        }
+        CallbackProgression::Continue
+    })
+    .map_err(|e| anyhow!("cannot list iceoryx2 nodes: {e:?}"))?;
+    Ok(cleaned)
+}
+
+/// Counts the nodes (alive or dead) registered in a domain.
+pub fn count_nodes(cfg: &Config) -> Result<usize> {
+    let mut n = 0;
+    Node::<ipc::Service>::list(cfg, |_| {
+        n += 1;
+        CallbackProgression::Continue
+    })
+    .map_err(|e| anyhow!("cannot list iceoryx2 nodes: {e:?}"))?;
+    Ok(n)
+}
+
+fn svc_name(name: &str) -> Result<ServiceName> {
+    name.try_into().map_err(|e| anyhow!("invalid service name {name:?}: {e:?}"))
+}
+
+/// Opens a service, retrying while another process is creating the same one.
+fn retry<T, E: std::fmt::Debug>(
+    what: &str,
+    deadline: Instant,
+    mut f: impl FnMut() -> std::result::Result<T, E>,
+) -> Result<T> {
+    loop {
+        match f() {
+            Ok(v) => return Ok(v),
+            Err(e) => {
+                if Instant::now() > deadline {
+                    bail!("{what}: {e:?}");
+                }
+                std::thread::sleep(Duration::from_millis(5));
+            }
+        }
+    }
+}
+
+/// Quality of service per delivery: both ends pass the same values (iceoryx2 verifies them).
+fn open_frames(
+    node: &Node<ipc::Service>,
+    name: &str,
+    delivery: Delivery,
+    subscribers: usize,
+    deadline: Instant,
+) -> Result<FrameFactory> {
+    let sname = svc_name(name)?;
+    retry(&format!("cannot open frame service {name}"), deadline, || {
+        let b = node.service_builder(&sname).publish_subscribe::<[f32]>().user_header::<FrameHeader>();
+        match delivery {
+            Delivery::Lossless => b
+                .enable_safe_overflow(false)
+                .subscriber_max_buffer_size(LOSSLESS_BUFFER)
+                .subscriber_max_borrowed_samples(1)
+                .history_size(0)
+                .max_publishers(1)
+                .max_subscribers(subscribers.max(1))
+                .max_nodes(subscribers + 2)
+                .open_or_create(),
+            Delivery::LatestWins => b
+                .enable_safe_overflow(true)
+                .subscriber_max_buffer_size(1)
+                .subscriber_max_borrowed_samples(1)
+                .history_size(1)
+                .max_publishers(1)
+                .max_subscribers(4)
+                .max_nodes(6)
+                .open_or_create(),
+        }
+    })
+}
+
+fn open_registrations(
+    node: &Node<ipc::Service>,
+    name: &str,
+    subscribers: usize,
+    deadline: Instant,
+) -> Result<RegFactory> {
+    let sname = svc_name(name)?;
+    retry(&format!("cannot open registration service {name}"), deadline, || {
+        node.service_builder(&sname)
+            .publish_subscribe::<TileRegistration>()
+            .enable_safe_overflow(false)
+            .subscriber_max_buffer_size(64)
+            .subscriber_max_borrowed_samples(1)
+            .history_size(0)
+            .max_publishers(1)
+            .max_subscribers(subscribers.max(1))
+            .max_nodes(subscribers + 2)
+            .open_or_create()
+    })
+}
+
+fn open_events(node: &Node<ipc::Service>, name: &str, deadline: Instant) -> Result<EventFactory> {
+    let sname = svc_name(name)?;
+    retry(&format!("cannot open event service {name}"), deadline, || {
+        node.service_builder(&sname)
+            .event()
+            .max_listeners(16)
+            .max_notifiers(16)
+            .max_nodes(20)
+            .open_or_create()
+    })
+}
+
+enum Sender {
+    Frames(FrameFactory, Publisher<ipc::Service, [f32], FrameHeader>),
+    Registrations(RegFactory, Publisher<ipc::Service, TileRegistration, ()>),
+}
+
+struct OutPort {
+    port: String,
+    delivery: Delivery,
+    expected: usize,
+    sender: Sender,
+    wake: iceoryx2::port::notifier::Notifier<ipc::Service>,
+    ready_listener: Option<iceoryx2::port::listener::Listener<ipc::Service>>,
+    _ready_service: EventFactory,
+    _wake_service: EventFactory,
+    sequence: u64,
+}
+
+impl OutPort {
+    fn subscribers_now(&self) -> usize {
+        match &self.sender {
+            Sender::Frames(f, _) => f.dynamic_config().number_of_subscribers(),
+            Sender::Registrations(f, _) => f.dynamic_config().number_of_subscribers(),
+        }
+    }
+}
+
+enum Receiver {
+    Frames(FrameFactory, Subscriber<ipc::Service, [f32], FrameHeader>),
+    Registrations(RegFactory, Subscriber<ipc::Service, TileRegistration, ()>),
+}
+
+struct InPort {
+    port: String,
+    topic: String,
+    receiver: Receiver,
+    listener: iceoryx2::port::listener::Listener<ipc::Service>,
+    _wake_service: EventFactory,
+}
+
+impl InPort {
+    fn publishers_now(&self) -> usize {
+        match &self.receiver {
+            Receiver::Frames(f, _) => f.dynamic_config().number_of_publishers(),
+            Receiver::Registrations(f, _) => f.dynamic_config().number_of_publishers(),
+        }
+    }
+    fn update_connections(&self) -> Result<()> {
+        match &self.receiver {
+            Receiver::Frames(_, s) => s.update_connections(),
+            Receiver::Registrations(_, s) => s.update_connections(),
+        }
+        .map_err(|e| anyhow!("input '{}': cannot connect to {}: {e:?}", self.port, self.topic))
+    }
+}
+
+/// How the process learns it may start and tells it is ready (only under the launcher).
+pub struct LauncherLink {
+    pub ready_service: String,
+    pub go_service: String,
+}
+
+/// Names of the launcher's control services of a graph.
+pub fn launcher_link(graph: &str) -> LauncherLink {
+    LauncherLink {
+        ready_service: service_name(graph, "launcher", "ready"),
+        go_service: service_name(graph, "launcher", "go"),
+    }
+}
+
+/// Runs one node as this process's only iceoryx2 node until it finishes.
+pub fn run_node(
+    ctx: &NodeContext,
+    logic: &mut dyn NodeLogic,
+    cfg: &Config,
+    launcher: Option<&LauncherLink>,
+) -> Result<NodeReport> {
+    let node = create_node(cfg, &format!("{}/{}", ctx.graph_name, ctx.node_id))?;
+    let startup = Duration::from_secs_f64(ctx.startup_timeout_s);
+    let deadline = Instant::now() + startup;
+    let backpressure = Duration::from_secs_f64(ctx.backpressure_timeout_s);
+
+    // 1. Outputs: the ready listener exists before the publisher, so no "ready" is missed.
+    let mut outs = Vec::new();
+    for o in &ctx.outputs {
+        let name = ctx.service_name(&ctx.node_id, &o.port);
+        let ready_service = open_events(&node, &format!("{name}/ready"), deadline)?;
+        let ready_listener = match o.delivery {
+            Delivery::Lossless => Some(
+                ready_service
+                    .listener_builder()
+                    .create()
+                    .map_err(|e| anyhow!("{name}/ready: cannot create listener: {e:?}"))?,
+            ),
+            Delivery::LatestWins => None,
+        };
+        let handler = move |info: &BackpressureInfo| {
+            if info.elapsed_time > backpressure {
+                BackpressureAction::DiscardDataAndFail
+            } else {
+                BackpressureAction::Retry
+            }
+        };
+        let sender = match o.kind {
+            PortKind::Frames => {
+                let f = open_frames(&node, &name, o.delivery, o.subscribers, deadline)?;
+                let p = f
+                    .publisher_builder()
+                    .initial_max_slice_len(1 << 20)
+                    .allocation_strategy(AllocationStrategy::PowerOfTwo)
+                    .max_loaned_samples(1)
+                    .backpressure_strategy(match o.delivery {
+                        Delivery::Lossless => BackpressureStrategy::RetryUntilDelivered,
+                        Delivery::LatestWins => BackpressureStrategy::DiscardData,
+                    })
+                    .set_backpressure_handler(handler)
+                    .create()
+                    .map_err(|e| anyhow!("{name}: cannot create publisher: {e:?}"))?;
+                Sender::Frames(f, p)
+            }
+            PortKind::Registrations => {
+                let f = open_registrations(&node, &name, o.subscribers, deadline)?;
+                let p = f
+                    .publisher_builder()
+                    .max_loaned_samples(1)
+                    .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
+                    .set_backpressure_handler(handler)
+                    .create()
+                    .map_err(|e| anyhow!("{name}: cannot create publisher: {e:?}"))?;
+                Sender::Registrations(f, p)
+            }
+        };
+        let wake_service = open_events(&node, &name, deadline)?;
+        let wake = wake_service
+            .notifier_builder()
+            .create()
+            .map_err(|e| anyhow!("{name}: cannot create notifier: {e:?}"))?;
+        outs.push(OutPort {
+            port: o.port.clone(),
+            delivery: o.delivery,
+            expected: match o.delivery {
+                Delivery::Lossless => o.subscribers,
+                Delivery::LatestWins => 0,
+            },
+            sender,
+            wake,
+            ready_listener,
+            _ready_service: ready_service,
+            _wake_service: wake_service,
+            sequence: 0,
+        });
+    }
+
+    // 2. Inputs: attach once the producer's publisher exists, then tell it we are ready.
+    let mut ins = Vec::new();
+    for i in &ctx.inputs {
+        let name = ctx.service_name(&i.from_node, &i.from_port);
+        let receiver = match i.kind {
+            PortKind::Frames => {
+                let f = open_frames(&node, &name, i.delivery, i.producer_subscribers, deadline)?;
+                let s = f
+                    .subscriber_builder()
+                    .create()
+                    .map_err(|e| anyhow!("{name}: cannot create subscriber: {e:?}"))?;
+                Receiver::Frames(f, s)
+            }
+            PortKind::Registrations => {
+                let f = open_registrations(&node, &name, i.producer_subscribers, deadline)?;
+                let s = f
+                    .subscriber_builder()
+                    .create()
+                    .map_err(|e| anyhow!("{name}: cannot create subscriber: {e:?}"))?;
+                Receiver::Registrations(f, s)
+            }
+        };
+        let wake_service = open_events(&node, &name, deadline)?;
+        let listener = wake_service
+            .listener_builder()
+            .create()
+            .map_err(|e| anyhow!("{name}: cannot create listener: {e:?}"))?;
+        let port = InPort {
+            port: i.port.clone(),
+            topic: i.topic(),
+            receiver,
+            listener,
+            _wake_service: wake_service,
+        };
+        // Startup only: wait (politely) for the producer's publisher to exist.
+        while port.publishers_now() == 0 {
+            if Instant::now() > deadline {
+                bail!(
+                    "input '{}': producer {} did not appear within {:.0} s",
+                    i.port,
+                    i.topic(),
+                    startup.as_secs_f64()
+                );
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        port.update_connections()?;
+        if i.delivery == Delivery::Lossless {
+            let ready = open_events(&node, &format!("{name}/ready"), deadline)?;
+            let n = ready
+                .notifier_builder()
+                .create()
+                .map_err(|e| anyhow!("{name}/ready: cannot create notifier: {e:?}"))?;
+            n.notify().map_err(|e| anyhow!("{name}/ready: notify failed: {e:?}"))?;
+        }
+        ins.push(port);
+    }
+
+    // 3. Handshake: every lossless output has heard from all its subscribers.
+    for o in &mut outs {
+        let Some(listener) = o.ready_listener.take() else { continue };
+        let mut ready = 0u64;
+        while ready < o.expected as u64 {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                bail!(
+                    "output '{}': only {ready} of {} subscribers attached within {:.0} s",
+                    o.port,
+                    o.expected,
+                    startup.as_secs_f64()
+                );
+            }
+            listener
+                .timed_wait(|e| ready += e.count as u64, left.min(Duration::from_millis(100)))
+                .map_err(|e| anyhow!("output '{}': ready wait failed: {e:?}", o.port))?;
+        }
+    }
+
+    // 4. Under the launcher: report ready, and sources wait for "go".
+    if let Some(link) = launcher {
+        let go_service = open_events(&node, &link.go_service, deadline)?;
+        let go = go_service
+            .listener_builder()
+            .create()
+            .map_err(|e| anyhow!("{}: cannot create listener: {e:?}", link.go_service))?;
+        let ready_service = open_events(&node, &link.ready_service, deadline)?;
+        ready_service
+            .notifier_builder()
+            .create()
+            .map_err(|e| anyhow!("{}: cannot create notifier: {e:?}", link.ready_service))?
+            .notify()
+            .map_err(|e| anyhow!("{}: notify failed: {e:?}", link.ready_service))?;
+        if ctx.inputs.is_empty() {
+            let mut started = false;
+            while !started {
+                if Instant::now() > deadline {
+                    bail!("the launcher did not say 'go' within {:.0} s", startup.as_secs_f64());
+                }
+                go.timed_wait(|_| started = true, Duration::from_millis(100))
+                    .map_err(|e| anyhow!("go wait failed: {e:?}"))?;
+            }
+        }
+    }
+
+    // 5. The event loop.
+    let waitset = WaitSetBuilder::new()
+        .signal_handling_mode(SignalHandlingMode::Disabled)
+        .create::<ipc::Service>()
+        .map_err(|e| anyhow!("cannot create WaitSet: {e:?}"))?;
+    let mut guards = Vec::new();
+    for p in &ins {
+        guards.push(
+            waitset
+                .attach_notification(&p.listener)
+                .map_err(|e| anyhow!("cannot attach input '{}': {e:?}", p.port))?,
+        );
+    }
+    let tick = waitset
+        .attach_interval(HOUSEKEEPING)
+        .map_err(|e| anyhow!("cannot attach housekeeping tick: {e:?}"))?;
+    let mut stats = NodeStats::default();
+    let mut outbox = Outbox::default();
+    let mut housekeeping_due = false;
+    let mut ended = vec![false; ins.len()];
+    while !logic.finished() {
+        let timeout = logic
+            .next_wakeup()
+            .map(|w| w.saturating_duration_since(Instant::now()))
+            .unwrap_or(HOUSEKEEPING)
+            .min(HOUSEKEEPING);
+        waitset
+            .wait_and_process_once_with_timeout(
+                |id| {
+                    if id.has_event_from(&tick) {
+                        housekeeping_due = true;
+                    }
+                    CallbackProgression::Continue
+                },
+                timeout,
+            )
+            .map_err(|e| anyhow!("WaitSet wait failed: {e:?}"))?;
+        // Receive eagerly: clear wake-ups, then drain every queue.
+        for (p, ended) in ins.iter().zip(ended.iter_mut()).filter(|(_, e)| !**e) {
+            p.listener
+                .try_wait(|_| {})
+                .map_err(|e| anyhow!("input '{}': listener failed: {e:?}", p.port))?;
+            *ended = drain(p, logic, &mut stats, &mut outbox)?;
+        }
+        if logic.next_wakeup().is_some_and(|w| w <= Instant::now()) {
+            logic.on_timer(&mut outbox)?;
+        }
+        logic.on_drained(&mut outbox)?;
+        send_all(ctx, &mut outs, &mut outbox, &mut stats)?;
+        if housekeeping_due {
+            housekeeping_due = false;
+            node.try_cleanup_dead_nodes();
+            for (p, _) in ins.iter().zip(&ended).filter(|(_, e)| !**e) {
+                if p.publishers_now() == 0 && !has_pending(p)? {
+                    bail!(
+                        "input '{}': producer {} is gone before end of scan (it died or exited early)",
+                        p.port,
+                        p.topic
+                    );
+                }
+            }
+        }
+    }
+    drop(guards);
+    drop(tick);
+    drop(waitset);
+    // 6. Leave inputs, then hold outputs until every subscriber has left: samples in flight
+    // (and a panorama in a freshly grown segment) stay readable until consumed.
+    drop(ins);
+    for o in outs.iter().filter(|o| o.delivery == Delivery::Lossless) {
+        while o.subscribers_now() > 0 {
+            node.try_cleanup_dead_nodes();
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
+    Ok(NodeReport {
+        node_id: ctx.node_id.clone(),
+        node_kind: ctx.node_kind.clone(),
+        stats,
+        report: logic.report(),
+        t_finished_ns: monotonic_ns(),
+    })
+}
+
+fn has_pending(p: &InPort) -> Result<bool> {
+    match &p.receiver {
+        Receiver::Frames(_, s) => s.has_samples(),
+        Receiver::Registrations(_, s) => s.has_samples(),
+    }
+    .map_err(|e| anyhow!("input '{}': {e:?}", p.port))
+}
+
+/// Drains one input; returns true once its end-of-scan marker was delivered.
+fn drain(
+    p: &InPort,
+    logic: &mut dyn NodeLogic,
+    stats: &mut NodeStats,
+    outbox: &mut Outbox,
+) -> Result<bool> {
+    loop {
+        let end = match &p.receiver {
+            Receiver::Frames(_, s) => {
+                let Some(sample) = s
+                    .receive()
+                    .map_err(|e| anyhow!("input '{}' ({}): receive failed: {e:?}", p.port, p.topic))?
+                else {
+                    return Ok(false);
+                };
+                let header = sample.user_header();
+                let heights: &[f32] = sample.payload();
+                if heights.len() != header.len() {
+                    bail!(
+                        "input '{}' ({}): frame {} has {} heights, header says {} x {}",
+                        p.port,
+                        p.topic,
+                        header.sequence,
+                        heights.len(),
+                        header.width,
+                        header.height
+                    );
+                }
+                let input = Input::Frame(FrameView { header, heights });
+                let end = input.is_end_of_scan();
+                deliver(logic, stats, &p.port, input, outbox)?;
+                end
+            }
+            Receiver::Registrations(_, s) => {
+                let Some(sample) = s
+                    .receive()
+                    .map_err(|e| anyhow!("input '{}' ({}): receive failed: {e:?}", p.port, p.topic))?
+                else {
+                    return Ok(false);
+                };
+                let input = Input::Registration(sample.payload());
+                let end = input.is_end_of_scan();
+                deliver(logic, stats, &p.port, input, outbox)?;
+                end
+            }
+        };
+        if end {
+            return Ok(true);
+        }
+    }
+}
+
+fn send_all(
+    ctx: &NodeContext,
+    outs: &mut [OutPort],
+    outbox: &mut Outbox,
+    stats: &mut NodeStats,
+) -> Result<()> {
+    for (port, mut msg) in outbox.take() {
+        let o = outs.iter_mut().find(|o| o.port == port).ok_or_else(|| {
+            anyhow!("node '{}' sent on unknown output port '{port}'", ctx.node_id)
+        })?;
+        msg.stamp(o.sequence, ctx.scan_id);
+        o.sequence += 1;
+        let receivers = match (&o.sender, &msg) {
+            (Sender::Frames(_, publisher), Output::Frame(f)) => {
+                let mut sample = publisher.loan_slice_uninit(f.heights.len()).map_err(|e| {
+                    anyhow!("output '{port}': cannot loan {} heights: {e:?}", f.heights.len())
+                })?;
+                *sample.user_header_mut() = f.header;
+                let sample = sample.write_from_slice(&f.heights);
+                sample.send()
+            }
+            (Sender::Registrations(_, publisher), Output::Registration(r)) => {
+                let sample = publisher
+                    .loan_uninit()
+                    .map_err(|e| anyhow!("output '{port}': cannot loan: {e:?}"))?;
+                sample.write_payload(*r).send()
+            }
+            _ => bail!("node '{}': wrong message kind for output '{port}'", ctx.node_id),
+        }
+        .map_err(|e| {
+            anyhow!(
+                "output '{port}': send failed (a subscriber's queue stayed full for {:.0} s, or it died): {e:?}",
+                ctx.backpressure_timeout_s
+            )
+        })?;
+        if receivers < o.expected {
+            bail!(
+                "output '{port}': message {} reached {receivers} of {} subscribers: a lossless channel must not drop",
+                o.sequence - 1,
+                o.expected
+            );
+        }
+        o.wake.notify_with_custom_event_id(EventId::new(EVENT_DATA)).map_err(|e| {
+            anyhow!("output '{port}': wake-up notify failed: {e:?}")
+        })?;
+        stats.on_sent(&port, &msg, receivers);
+    }
+    Ok(())
+}
+
+/// Convenience for a node binary: context check of the domain prefix format.
+pub fn validate_prefix(prefix: &str) -> Result<()> {
+    if prefix.is_empty()
+        || prefix.len() > 32
+        || !prefix.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+    {
+        bail!("--domain {prefix:?}: expected 1-32 characters of [A-Za-z0-9_]");
+    }
+    Ok(())
+}

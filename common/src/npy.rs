@@ -1,0 +1,1034 @@
+//! NumPy `.npy` files: 2-D height maps in and out.
+//!
+//! Reading accepts format versions 1.0, 2.0 and 3.0 (the header is a Python dict literal with
+//! `descr`, `fortran_order` and `shape`), 2-D arrays only, of dtype float32 or float64 in either
+//! byte order, and the integer types int8/16/32/64 and uint8/16/32/64 (converted to floating
+//! point). Fortran-order (column-major) arrays are transposed on the way in, so the result is
+//! always row-major: `data[row * cols + col]`, row index = first axis of the NumPy array.
+//!
+//! Writing produces exactly what `numpy.save` writes for a C-order little-endian array: format
+//! 1.0 (2.0 only if the header would not fit a 1.0 header), the header padded with spaces to a
+//! multiple of 64 bytes and ended by `\n`. Files are written atomically
+//! ([`crate::fsutil::write_atomic`]): a reader never sees a half-written file.
+//!
+//! Every error names the file and what was wrong with it.
+
+use std::io::Write;
+use std::path::Path;
+
+use anyhow::{anyhow, bail, Context, Result};
+
+/// The magic string every `.npy` file starts with.
+const MAGIC: &[u8; 6] = b"\x93NUMPY";
+/// Header blocks (magic + version + length + dict) are padded to a multiple of this.
+const HEADER_ALIGN: usize = 64;
+
+/// A 2-D array read from a `.npy` file, row-major: element (row, col) is
+/// `data[row * cols + col]`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NpyArray<T = f32> {
+    pub data: Vec<T>,
+    pub rows: usize,
+    pub cols: usize,
+}
+
+impl<T: Copy> NpyArray<T> {
+    /// Element (row, col). Panics when out of bounds, like slice indexing.
+    pub fn get(&self, row: usize, col: usize) -> T {
+        assert!(
+            row < self.rows && col < self.cols,
+            "index ({row}, {col}) out of bounds"
+        );
+        self.data[row * self.cols + col]
+    }
+}
+
+/// Reads a 2-D `.npy` array as f32 (float64 and integer data are converted).
+pub fn read_npy(path: impl AsRef<Path>) -> Result<NpyArray<f32>> {
+    read_as(path.as_ref())
+}
+
+/// Reads a 2-D `.npy` array as f64: float64 data stay exact, float32 and integers are widened.
+pub fn read_npy_f64(path: impl AsRef<Path>) -> Result<NpyArray<f64>> {
+    read_as(path.as_ref())
+}
+
+/// Writes `data` (row-major, `rows * cols` values) as a little-endian float32 `.npy` file.
+pub fn write_npy_f32(path: impl AsRef<Path>, data: &[f32], rows: usize, cols: usize) -> Result<()> {
+    write_npy(path.as_ref(), data, rows, cols, "<f4", |v, out| {
+        out.extend_from_slice(&v.to_le_bytes())
+    })
+}
+
+/// Writes `data` (row-major, `rows * cols` values) as a little-endian float64 `.npy` file.
+pub fn write_npy_f64(path: impl AsRef<Path>, data: &[f64], rows: usize, cols: usize) -> Result<()> {
+    write_npy(path.as_ref(), data, rows, cols, "<f8", |v, out| {
+        out.extend_from_slice(&v.to_le_bytes())
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// Writing
+
+fn write_npy<T: Copy>(
+    path: &Path,
+    data: &[T],
+    rows: usize,
+    cols: usize,
+    descr: &str,
+    put: impl Fn(T, &mut Vec<u8>),
+) -> Result<()> {
+    let expected = rows.checked_mul(cols);
+    if expected != Some(data.len()) {
+        bail!(
+            "{}: cannot write {rows} x {cols} array: got {} values, expected {}",
+            path.display(),
+            data.len(),
+            rows as u128 * cols as u128
+        );
+    }
+    let header = header_block(&format!(
+        "{{'descr': '{descr}', 'fortran_order': False, 'shape': ({rows}, {cols}), }}"
+    ));
+    crate::fsutil::write_atomic(path, |w| {
+        w.write_all(&header)
+            .with_context(|| format!("{}: write failed", path.display()))?;
+        let mut buf = Vec::with_capacity(8192 * 8);
+        for chunk in data.chunks(8192) {
+            buf.clear();
+            for &v in chunk {
+                put(v, &mut buf);
+            }
+            w.write_all(&buf)
+                .with_context(|| format!("{}: write failed", path.display()))?;
+        }
+        Ok(())
+    })
+}
+
+/// Magic, version, header length and the padded dict: version 1.0 when the header fits its
+/// 16-bit length field, 2.0 otherwise (as numpy does).
+fn header_block(dict: &str) -> Vec<u8> {
+    let padded_len = |prefix: usize| {
+        let unpadded = prefix + dict.len() + 1; // + '\n'
+        unpadded.div_ceil(HEADER_ALIGN) * HEADER_ALIGN - prefix
+    };
+    let v1_len = padded_len(MAGIC.len() + 2 + 2);
+    let (version, header_len) = if v1_len <= u16::MAX as usize {
+        (1u8, v1_len)
+    } else {
+        (2u8, padded_len(MAGIC.len() + 4 + 2))
+    };
+    let mut out = Vec::with_capacity(header_len + 12);
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&[version, 0]);
+    if version == 1 {
+        out.extend_from_slice(&(header_len as u16).to_le_bytes());
+    } else {
+        out.extend_from_slice(&(header_len as u32).to_le_bytes());
+    }
+    out.extend_from_slice(dict.as_bytes());
+    out.resize(out.len() + header_len - dict.len() - 1, b' ');
+    out.push(b'\n');
+    out
+}
+
+// ---------------------------------------------------------------------------------------------
+// Reading
+
+/// Element types a file can be read into.
+trait Element: Copy {
+    fn from_f32(v: f32) -> Self;
+    fn from_f64(v: f64) -> Self;
+    fn from_i64(v: i64) -> Self;
+    fn from_u64(v: u64) -> Self;
+}
+
+impl Element for f32 {
+    fn from_f32(v: f32) -> Self {
+        v
+    }
+    fn from_f64(v: f64) -> Self {
+        v as f32
+    }
+    fn from_i64(v: i64) -> Self {
+        v as f32
+    }
+    fn from_u64(v: u64) -> Self {
+        v as f32
+    }
+}
+
+impl Element for f64 {
+    fn from_f32(v: f32) -> Self {
+        v as f64
+    }
+    fn from_f64(v: f64) -> Self {
+        v
+    }
+    fn from_i64(v: i64) -> Self {
+        v as f64
+    }
+    fn from_u64(v: u64) -> Self {
+        v as f64
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Kind {
+    Float,
+    Int,
+    Uint,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Dtype {
+    kind: Kind,
+    size: usize,
+    big_endian: bool,
+}
+
+/// What the header says.
+#[derive(Debug)]
+struct Header {
+    dtype: Dtype,
+    fortran_order: bool,
+    rows: usize,
+    cols: usize,
+    /// Offset of the first data byte.
+    data_offset: usize,
+}
+
+fn read_as<T: Element>(path: &Path) -> Result<NpyArray<T>> {
+    let bytes = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
+    let header = parse_header(&bytes).map_err(|e| anyhow!("{}: {e}", path.display()))?;
+    let Header {
+        dtype,
+        fortran_order,
+        rows,
+        cols,
+        data_offset,
+    } = header;
+    let n = rows * cols; // checked in parse_header
+    let expected_bytes = n * dtype.size;
+    let found = bytes.len() - data_offset;
+    if found < expected_bytes {
+        bail!(
+            "{}: truncated: expected {expected_bytes} bytes of data for a {rows} x {cols} array, \
+             found {found}",
+            path.display()
+        );
+    }
+    if found > expected_bytes {
+        bail!(
+            "{}: {} unexpected bytes after the data of a {rows} x {cols} array \
+             (expected {expected_bytes} bytes of data, found {found})",
+            path.display(),
+            found - expected_bytes
+        );
+    }
+    let raw = &bytes[data_offset..];
+    let values: Vec<T> = decode(raw, dtype);
+    let data = if fortran_order && rows > 1 && cols > 1 {
+        // Column-major storage: element (r, c) sits at c * rows + r.
+        let mut out = Vec::with_capacity(n);
+        for r in 0..rows {
+            out.extend((0..cols).map(|c| values[c * rows + r]));
+        }
+        out
+    } else {
+        values
+    };
+    Ok(NpyArray { data, rows, cols })
+}
+
+fn decode<T: Element>(raw: &[u8], dtype: Dtype) -> Vec<T> {
+    fn conv<T, const N: usize>(raw: &[u8], big: bool, f: impl Fn([u8; N], bool) -> T) -> Vec<T> {
+        raw.chunks_exact(N)
+            .map(|c| {
+                let mut a = [0u8; N];
+                a.copy_from_slice(c);
+                f(a, big)
+            })
+            .collect()
+    }
+    macro_rules! num {
+        ($t:ty, $into:ident, $via:ty) => {
+            conv(raw, dtype.big_endian, |a, big| {
+                let v = if big {
+                    <$t>::from_be_bytes(a)
+                } else {
+                    <$t>::from_le_bytes(a)
+                };
+                T::$into(v as $via)
+            })
+        };
+    }
+    match (dtype.kind, dtype.size) {
+        (Kind::Float, 4) => num!(f32, from_f32, f32),
+        (Kind::Float, 8) => num!(f64, from_f64, f64),
+        (Kind::Int, 1) => num!(i8, from_i64, i64),
+        (Kind::Int, 2) => num!(i16, from_i64, i64),
+        (Kind::Int, 4) => num!(i32, from_i64, i64),
+        (Kind::Int, 8) => num!(i64, from_i64, i64),
+        (Kind::Uint, 1) => num!(u8, from_u64, u64),
+        (Kind::Uint, 2) => num!(u16, from_u64, u64),
+        (Kind::Uint, 4) => num!(u32, from_u64, u64),
+        (Kind::Uint, 8) => num!(u64, from_u64, u64),
+        // parse_dtype only lets the combinations above through.
+        _ => unreachable!("unsupported dtype passed parse_dtype"),
+    }
+}
+
+/// Parses magic, version and the header dict; the error text is prefixed with the path by the
+/// caller.
+fn parse_header(bytes: &[u8]) -> std::result::Result<Header, String> {
+    if bytes.len() < MAGIC.len() || &bytes[..MAGIC.len()] != MAGIC {
+        return Err("not a .npy file (bad magic: expected \\x93NUMPY at the start)".into());
+    }
+    let (major, minor) = match bytes.get(6..8) {
+        Some(&[major, minor]) => (major, minor),
+        _ => return Err("truncated: the file ends inside the .npy preamble".into()),
+    };
+    let (len_size, utf8) = match major {
+        1 => (2, false),
+        2 => (4, false),
+        3 => (4, true),
+        _ => {
+            return Err(format!(
+                "unsupported .npy format version {major}.{minor} (expected 1.0, 2.0 or 3.0)"
+            ))
+        }
+    };
+    let len_bytes = bytes
+        .get(8..8 + len_size)
+        .ok_or_else(|| "truncated: the file ends inside the .npy preamble".to_string())?;
+    let header_len = if len_size == 2 {
+        u16::from_le_bytes([len_bytes[0], len_bytes[1]]) as usize
+    } else {
+        u32::from_le_bytes([len_bytes[0], len_bytes[1], len_bytes[2], len_bytes[3]]) as usize
+    };
+    let start = 8 + len_size;
+    let data_offset = start + header_len;
+    let raw = bytes.get(start..data_offset).ok_or_else(|| {
+        format!(
+            "truncated: the header says it is {header_len} bytes long but the file ends after {}",
+            bytes.len().saturating_sub(start)
+        )
+    })?;
+    let text: String = if utf8 {
+        String::from_utf8(raw.to_vec())
+            .map_err(|_| "the version 3.0 header is not valid UTF-8".to_string())?
+    } else {
+        raw.iter().map(|&b| b as char).collect() // latin-1
+    };
+    let dict = match PyParser::new(&text).parse_top() {
+        Ok(PyValue::Dict(d)) => d,
+        Ok(_) => return Err(format!("the header is not a dict: {:?}", text.trim())),
+        Err(e) => return Err(format!("cannot parse the header {:?}: {e}", text.trim())),
+    };
+    let get = |key: &str| {
+        dict.iter()
+            .find(|(k, _)| matches!(k, PyValue::Str(s) if s == key))
+            .map(|(_, v)| v)
+    };
+    let descr = get("descr").ok_or("the header has no 'descr' key")?;
+    let dtype = match descr {
+        PyValue::Str(s) => parse_dtype(s)?,
+        other => {
+            return Err(format!(
+                "unsupported dtype {} (expected float32 or float64)",
+                other.to_python()
+            ))
+        }
+    };
+    let fortran_order = match get("fortran_order").ok_or("the header has no 'fortran_order' key")? {
+        PyValue::Bool(b) => *b,
+        other => {
+            return Err(format!(
+                "'fortran_order' is {} (expected True or False)",
+                other.to_python()
+            ))
+        }
+    };
+    let shape_value = get("shape").ok_or("the header has no 'shape' key")?;
+    let shape: Vec<u64> = match shape_value {
+        PyValue::Tuple(items) => items
+            .iter()
+            .map(|v| match v {
+                PyValue::Int(n) => Ok(*n),
+                _ => Err(format!(
+                    "'shape' is {} (expected a tuple of integers)",
+                    shape_value.to_python()
+                )),
+            })
+            .collect::<std::result::Result<_, _>>()?,
+        _ => {
+            return Err(format!(
+                "'shape' is {} (expected a tuple)",
+                shape_value.to_python()
+            ))
+        }
+    };
+    if shape.len() != 2 {
+        return Err(format!(
+            "not 2-D (shape {}): a height map needs a 2-D array (rows, cols)",
+            shape_value.to_python()
+        ));
+    }
+    let too_big = || format!("shape {} is too large", shape_value.to_python());
+    let rows = usize::try_from(shape[0]).map_err(|_| too_big())?;
+    let cols = usize::try_from(shape[1]).map_err(|_| too_big())?;
+    rows.checked_mul(cols)
+        .and_then(|n| n.checked_mul(dtype.size))
+        .ok_or_else(too_big)?;
+    Ok(Header {
+        dtype,
+        fortran_order,
+        rows,
+        cols,
+        data_offset,
+    })
+}
+
+fn parse_dtype(descr: &str) -> std::result::Result<Dtype, String> {
+    let unsupported = || {
+        format!(
+            "unsupported dtype \"{descr}\" (expected float32 or float64; \
+             8- to 64-bit integer types are converted too)"
+        )
+    };
+    let (order, rest) = match descr.chars().next() {
+        Some(c @ ('<' | '>' | '|' | '=')) => (c, &descr[1..]),
+        _ => ('=', descr),
+    };
+    let mut chars = rest.chars();
+    let kind = match chars.next() {
+        Some('f') => Kind::Float,
+        Some('i') => Kind::Int,
+        Some('u') => Kind::Uint,
+        _ => return Err(unsupported()),
+    };
+    let size: usize = chars.as_str().parse().map_err(|_| unsupported())?;
+    let ok = match kind {
+        Kind::Float => matches!(size, 4 | 8),
+        Kind::Int | Kind::Uint => matches!(size, 1 | 2 | 4 | 8),
+    };
+    if !ok || (order == '|' && size != 1) {
+        return Err(unsupported());
+    }
+    let big_endian = match order {
+        '>' => true,
+        '<' | '|' => false,
+        _ => cfg!(target_endian = "big"),
+    };
+    Ok(Dtype {
+        kind,
+        size,
+        big_endian,
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// The header dict: a small parser for the Python literals numpy writes.
+
+#[derive(Debug, Clone, PartialEq)]
+enum PyValue {
+    Str(String),
+    Int(u64),
+    Bool(bool),
+    None,
+    Tuple(Vec<PyValue>),
+    List(Vec<PyValue>),
+    Dict(Vec<(PyValue, PyValue)>),
+}
+
+impl PyValue {
+    /// Python-like text, for error messages.
+    fn to_python(&self) -> String {
+        let join = |items: &[PyValue]| items.iter().map(|v| v.to_python()).collect::<Vec<_>>();
+        match self {
+            PyValue::Str(s) => format!("'{s}'"),
+            PyValue::Int(n) => n.to_string(),
+            PyValue::Bool(true) => "True".into(),
+            PyValue::Bool(false) => "False".into(),
+            PyValue::None => "None".into(),
+            PyValue::Tuple(items) if items.len() == 1 => format!("({},)", items[0].to_python()),
+            PyValue::Tuple(items) => format!("({})", join(items).join(", ")),
+            PyValue::List(items) => format!("[{}]", join(items).join(", ")),
+            PyValue::Dict(items) => format!(
+                "{{{}}}",
+                items
+                    .iter()
+                    .map(|(k, v)| format!("{}: {}", k.to_python(), v.to_python()))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        }
+    }
+}
+
+struct PyParser<'a> {
+    s: &'a [u8],
+    pos: usize,
+    depth: usize,
+}
+
+impl<'a> PyParser<'a> {
+    fn new(text: &'a str) -> Self {
+        Self {
+            s: text.as_bytes(),
+            pos: 0,
+            depth: 0,
+        }
+    }
+
+    fn parse_top(&mut self) -> std::result::Result<PyValue, String> {
+        let v = self.value()?;
+        self.skip_ws();
+        if self.pos != self.s.len() {
+            return Err(format!("unexpected text at byte {}", self.pos));
+        }
+        Ok(v)
+    }
+
+    fn skip_ws(&mut self) {
+        while self.pos < self.s.len() && self.s[self.pos].is_ascii_whitespace() {
+            self.pos += 1;
+        }
+    }
+
+    fn peek(&mut self) -> Option<u8> {
+        self.skip_ws();
+        self.s.get(self.pos).copied()
+    }
+
+    fn expect(&mut self, c: u8) -> std::result::Result<(), String> {
+        if self.peek() == Some(c) {
+            self.pos += 1;
+            Ok(())
+        } else {
+            Err(format!("expected '{}' at byte {}", c as char, self.pos))
+        }
+    }
+
+    fn value(&mut self) -> std::result::Result<PyValue, String> {
+        self.depth += 1;
+        if self.depth > 32 {
+            return Err("nested too deeply".into());
+        }
+        let v = match self.peek() {
+            Some(b'{') => self.dict(),
+            Some(b'(') => self.sequence(b'(', b')').map(PyValue::Tuple),
+            Some(b'[') => self.sequence(b'[', b']').map(PyValue::List),
+            Some(q @ (b'\'' | b'"')) => self.string(q),
+            Some(c) if c.is_ascii_digit() => self.int(),
+            Some(c) if c.is_ascii_alphabetic() => self.word(),
+            Some(c) => Err(format!("unexpected '{}' at byte {}", c as char, self.pos)),
+            None => Err("unexpected end of header".into()),
+        };
+        self.depth -= 1;
+        v
+    }
+
+    fn dict(&mut self) -> std::result::Result<PyValue, String> {
+        self.expect(b'{')?;
+        let mut items = Vec::new();
+        loop {
+            if self.peek() == Some(b'}') {
+                self.pos += 1;
+                return Ok(PyValue::Dict(items));
+            }
+            let k = self.value()?;
+            self.expect(b':')?;
+            let v = self.value()?;
+            items.push((k, v));
+            match self.peek() {
+                Some(b',') => self.pos += 1,
+                Some(b'}') => {}
+                _ => return Err(format!("expected ',' or '}}' at byte {}", self.pos)),
+            }
+        }
+    }
+
+    fn sequence(&mut self, open: u8, close: u8) -> std::result::Result<Vec<PyValue>, String> {
+        self.expect(open)?;
+        let mut items = Vec::new();
+        loop {
+            if self.peek() == Some(close) {
+                self.pos += 1;
+                return Ok(items);
+            }
+            items.push(self.value()?);
+            match self.peek() {
+                Some(b',') => self.pos += 1,
+                Some(c) if c == close => {}
+                _ => {
+                    return Err(format!(
+                        "expected ',' or '{}' at byte {}",
+                        close as char, self.pos
+                    ))
+                }
+            }
+        }
+    }
+
+    fn string(&mut self, quote: u8) -> std::result::Result<PyValue, String> {
+        self.pos += 1;
+        let mut out = Vec::new();
+        while let Some(&c) = self.s.get(self.pos) {
+            self.pos += 1;
+            if c == quote {
+                return Ok(PyValue::Str(String::from_utf8_lossy(&out).into_owned()));
+            }
+            if c == b'\\' {
+                match self.s.get(self.pos) {
+                    Some(&e) => {
+                        out.push(e);
+                        self.pos += 1;
+                    }
+                    None => break,
+                }
+            } else {
+                out.push(c);
+            }
+        }
+        Err("unterminated string".into())
+    }
+
+    fn int(&mut self) -> std::result::Result<PyValue, String> {
+        let start = self.pos;
+        while self.pos < self.s.len() && self.s[self.pos].is_ascii_digit() {
+            self.pos += 1;
+        }
+        let digits = std::str::from_utf8(&self.s[start..self.pos]).map_err(|e| e.to_string())?;
+        let n: u64 = digits
+            .parse()
+            .map_err(|_| format!("integer {digits} is too large"))?;
+        // Python 2 era files write longs as `3L`.
+        if matches!(self.s.get(self.pos), Some(b'L' | b'l')) {
+            self.pos += 1;
+        }
+        Ok(PyValue::Int(n))
+    }
+
+    fn word(&mut self) -> std::result::Result<PyValue, String> {
+        let start = self.pos;
+        while self.pos < self.s.len()
+            && (self.s[self.pos].is_ascii_alphanumeric() || self.s[self.pos] == b'_')
+        {
+            self.pos += 1;
+        }
+        match &self.s[start..self.pos] {
+            b"True" => Ok(PyValue::Bool(true)),
+            b"False" => Ok(PyValue::Bool(false)),
+            b"None" => Ok(PyValue::None),
+            w => Err(format!(
+                "unexpected word '{}' at byte {start}",
+                String::from_utf8_lossy(w)
+            )),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tmp() -> tempfile::TempDir {
+        tempfile::tempdir().expect("tempdir")
+    }
+
+    /// A .npy file built by hand (version, dict, raw data bytes), padded like numpy does.
+    fn raw_npy(version: u8, dict: &str, data: &[u8]) -> Vec<u8> {
+        let prefix = if version == 1 { 10 } else { 12 };
+        let total = (prefix + dict.len() + 1).div_ceil(64) * 64;
+        let hlen = total - prefix;
+        let mut out = MAGIC.to_vec();
+        out.extend_from_slice(&[version, 0]);
+        if version == 1 {
+            out.extend_from_slice(&(hlen as u16).to_le_bytes());
+        } else {
+            out.extend_from_slice(&(hlen as u32).to_le_bytes());
+        }
+        out.extend_from_slice(dict.as_bytes());
+        out.resize(out.len() + hlen - dict.len() - 1, b' ');
+        out.push(b'\n');
+        out.extend_from_slice(data);
+        out
+    }
+
+    fn write(dir: &tempfile::TempDir, name: &str, bytes: &[u8]) -> std::path::PathBuf {
+        let p = dir.path().join(name);
+        std::fs::write(&p, bytes).expect("write fixture");
+        p
+    }
+
+    fn err_text(r: Result<impl std::fmt::Debug>) -> String {
+        format!("{:#}", r.expect_err("expected an error"))
+    }
+
+    #[test]
+    fn f32_round_trip_is_bit_exact_and_matches_numpy_layout() {
+        let dir = tmp();
+        let p = dir.path().join("a.npy");
+        let data: Vec<f32> = vec![
+            0.0,
+            -1.5,
+            f32::NAN,
+            f32::INFINITY,
+            1e-38,
+            3.25,
+            f32::MIN_POSITIVE,
+            -0.0,
+            7.0,
+        ];
+        write_npy_f32(&p, &data, 3, 3).expect("write");
+        let bytes = std::fs::read(&p).expect("read back");
+        // What numpy.save writes for np.zeros((3, 3), '<f4'): a 128-byte header block.
+        let dict = b"{'descr': '<f4', 'fortran_order': False, 'shape': (3, 3), }";
+        assert_eq!(&bytes[..8], b"\x93NUMPY\x01\x00");
+        assert_eq!(u16::from_le_bytes([bytes[8], bytes[9]]), 118);
+        assert_eq!(&bytes[10..10 + dict.len()], dict);
+        assert_eq!(bytes[127], b'\n');
+        assert_eq!(bytes.len(), 128 + 9 * 4);
+        let a = read_npy(&p).expect("read");
+        assert_eq!((a.rows, a.cols), (3, 3));
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&a.data), bits(&data));
+        assert!(!dir.path().join("a.npy.partial").exists());
+    }
+
+    #[test]
+    fn f64_round_trip_is_exact() {
+        let dir = tmp();
+        let p = dir.path().join("b.npy");
+        let data: Vec<f64> = (0..12).map(|i| 1.0e4 + i as f64 * 0.1 + 1e-9).collect();
+        write_npy_f64(&p, &data, 4, 3).expect("write");
+        let a = read_npy_f64(&p).expect("read");
+        assert_eq!((a.rows, a.cols), (4, 3));
+        assert_eq!(a.data, data);
+        assert_eq!(a.get(3, 2), data[11]);
+        // The f32 reader converts.
+        let b = read_npy(&p).expect("read f32");
+        assert_eq!(b.data, data.iter().map(|&v| v as f32).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn write_rejects_wrong_length() {
+        let dir = tmp();
+        let p = dir.path().join("c.npy");
+        let e = err_text(write_npy_f32(&p, &[1.0; 5], 2, 3));
+        assert!(
+            e.contains("c.npy") && e.contains("got 5 values, expected 6"),
+            "{e}"
+        );
+        assert!(!p.exists());
+    }
+
+    #[test]
+    fn fortran_order_is_transposed_to_row_major() {
+        let dir = tmp();
+        // The 2 x 3 array [[1, 2, 3], [4, 5, 6]] stored column by column.
+        let cols_major: Vec<u8> = [1.0f32, 4.0, 2.0, 5.0, 3.0, 6.0]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        let p = write(
+            &dir,
+            "f.npy",
+            &raw_npy(
+                1,
+                "{'descr': '<f4', 'fortran_order': True, 'shape': (2, 3), }",
+                &cols_major,
+            ),
+        );
+        let a = read_npy(&p).expect("read");
+        assert_eq!((a.rows, a.cols), (2, 3));
+        assert_eq!(a.data, vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0]);
+    }
+
+    #[test]
+    fn big_endian_floats() {
+        let dir = tmp();
+        let v = [1.5f32, -2.25, 1e10, f32::NAN];
+        let be: Vec<u8> = v.iter().flat_map(|x| x.to_be_bytes()).collect();
+        let p = write(
+            &dir,
+            "be4.npy",
+            &raw_npy(
+                1,
+                "{'descr': '>f4', 'fortran_order': False, 'shape': (2, 2), }",
+                &be,
+            ),
+        );
+        let a = read_npy(&p).expect("read >f4");
+        assert_eq!(
+            a.data.iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
+            v.iter().map(|x| x.to_bits()).collect::<Vec<_>>()
+        );
+
+        let v8 = [1.0e-300f64, 12345.678901234, -3.0];
+        let be8: Vec<u8> = v8.iter().flat_map(|x| x.to_be_bytes()).collect();
+        let p = write(
+            &dir,
+            "be8.npy",
+            &raw_npy(
+                1,
+                "{'descr': '>f8', 'fortran_order': False, 'shape': (1, 3), }",
+                &be8,
+            ),
+        );
+        assert_eq!(read_npy_f64(&p).expect("read >f8").data, v8.to_vec());
+    }
+
+    #[test]
+    fn integer_dtypes_are_converted() {
+        let dir = tmp();
+        let i2: Vec<u8> = [-3i16, 300].iter().flat_map(|x| x.to_le_bytes()).collect();
+        let p = write(
+            &dir,
+            "i2.npy",
+            &raw_npy(
+                1,
+                "{'descr': '<i2', 'fortran_order': False, 'shape': (1, 2), }",
+                &i2,
+            ),
+        );
+        assert_eq!(read_npy(&p).expect("<i2").data, vec![-3.0, 300.0]);
+        let i4: Vec<u8> = [-70000i32, 5]
+            .iter()
+            .flat_map(|x| x.to_le_bytes())
+            .collect();
+        let p = write(
+            &dir,
+            "i4.npy",
+            &raw_npy(
+                1,
+                "{'descr': '<i4', 'fortran_order': False, 'shape': (2, 1), }",
+                &i4,
+            ),
+        );
+        let a = read_npy(&p).expect("<i4");
+        assert_eq!((a.rows, a.cols, a.data), (2, 1, vec![-70000.0, 5.0]));
+        let u2: Vec<u8> = [65535u16, 1].iter().flat_map(|x| x.to_le_bytes()).collect();
+        let p = write(
+            &dir,
+            "u2.npy",
+            &raw_npy(
+                1,
+                "{'descr': '<u2', 'fortran_order': False, 'shape': (1, 2), }",
+                &u2,
+            ),
+        );
+        assert_eq!(read_npy_f64(&p).expect("<u2").data, vec![65535.0, 1.0]);
+        let p = write(
+            &dir,
+            "u1.npy",
+            &raw_npy(
+                1,
+                "{'descr': '|u1', 'fortran_order': False, 'shape': (1, 2), }",
+                &[7, 255],
+            ),
+        );
+        assert_eq!(read_npy(&p).expect("|u1").data, vec![7.0, 255.0]);
+    }
+
+    #[test]
+    fn versions_2_and_3_and_python2_longs() {
+        let dir = tmp();
+        let d: Vec<u8> = [1.0f32, 2.0].iter().flat_map(|x| x.to_le_bytes()).collect();
+        let p = write(
+            &dir,
+            "v2.npy",
+            &raw_npy(
+                2,
+                "{'descr': '<f4', 'fortran_order': False, 'shape': (1, 2), }",
+                &d,
+            ),
+        );
+        assert_eq!(read_npy(&p).expect("v2").data, vec![1.0, 2.0]);
+        let p = write(
+            &dir,
+            "v3.npy",
+            &raw_npy(
+                3,
+                "{\"descr\": \"<f4\", \"fortran_order\": False, \"shape\": (2, 1)}",
+                &d,
+            ),
+        );
+        let a = read_npy(&p).expect("v3");
+        assert_eq!((a.rows, a.cols), (2, 1));
+        let p = write(
+            &dir,
+            "py2.npy",
+            &raw_npy(
+                1,
+                "{'descr': '<f4', 'fortran_order': False, 'shape': (1L, 2L), }",
+                &d,
+            ),
+        );
+        assert_eq!(read_npy(&p).expect("py2 longs").cols, 2);
+    }
+
+    #[test]
+    fn long_headers_use_version_2() {
+        let dict = format!(
+            "{{'descr': '<f4', 'fortran_order': False, 'shape': (1, 1), 'x': '{}', }}",
+            "y".repeat(70000)
+        );
+        let block = header_block(&dict);
+        assert_eq!(&block[6..8], &[2, 0]);
+        assert_eq!(block.len() % 64, 0);
+        let mut file = block.clone();
+        file.extend_from_slice(&4.0f32.to_le_bytes());
+        let h = parse_header(&file).expect("parse v2 header");
+        assert_eq!((h.rows, h.cols, h.data_offset), (1, 1, block.len()));
+    }
+
+    #[test]
+    fn truncated_data_is_reported_with_sizes() {
+        let dir = tmp();
+        let p = dir.path().join("t.npy");
+        write_npy_f32(&p, &[1.0; 6], 2, 3).expect("write");
+        let bytes = std::fs::read(&p).expect("read");
+        let q = write(&dir, "trunc.npy", &bytes[..bytes.len() - 5]);
+        let e = err_text(read_npy(&q));
+        assert!(
+            e.contains("trunc.npy")
+                && e.contains("truncated: expected 24 bytes of data")
+                && e.contains("found 19"),
+            "{e}"
+        );
+        // Cut inside the header and inside the preamble.
+        let q = write(&dir, "trunc_header.npy", &bytes[..40]);
+        let e = err_text(read_npy(&q));
+        assert!(
+            e.contains("trunc_header.npy") && e.contains("truncated"),
+            "{e}"
+        );
+        let q = write(&dir, "trunc_pre.npy", &bytes[..7]);
+        assert!(err_text(read_npy(&q)).contains("truncated"));
+        // Trailing garbage.
+        let mut longer = bytes.clone();
+        longer.extend_from_slice(&[0; 3]);
+        let q = write(&dir, "long.npy", &longer);
+        assert!(err_text(read_npy(&q)).contains("3 unexpected bytes after the data"));
+    }
+
+    #[test]
+    fn bad_magic_and_missing_file() {
+        let dir = tmp();
+        let p = write(
+            &dir,
+            "x.npy",
+            b"PK\x03\x04 this is a zip file, not an array",
+        );
+        let e = err_text(read_npy(&p));
+        assert!(
+            e.contains("x.npy") && e.contains("not a .npy file (bad magic"),
+            "{e}"
+        );
+        let p = write(&dir, "empty.npy", b"");
+        assert!(err_text(read_npy(&p)).contains("bad magic"));
+        let e = err_text(read_npy(dir.path().join("missing.npy")));
+        assert!(
+            e.contains("missing.npy") && e.contains("cannot read"),
+            "{e}"
+        );
+        let p = write(&dir, "v9.npy", b"\x93NUMPY\x09\x00\x00\x00");
+        assert!(err_text(read_npy(&p)).contains("unsupported .npy format version 9.0"));
+    }
+
+    #[test]
+    fn non_2d_arrays_are_rejected() {
+        let dir = tmp();
+        let d: Vec<u8> = [1.0f32; 8].iter().flat_map(|x| x.to_le_bytes()).collect();
+        let p = write(
+            &dir,
+            "one.npy",
+            &raw_npy(
+                1,
+                "{'descr': '<f4', 'fortran_order': False, 'shape': (8,), }",
+                &d,
+            ),
+        );
+        let e = err_text(read_npy(&p));
+        assert!(
+            e.contains("one.npy") && e.contains("not 2-D (shape (8,))"),
+            "{e}"
+        );
+        let p = write(
+            &dir,
+            "three.npy",
+            &raw_npy(
+                1,
+                "{'descr': '<f4', 'fortran_order': False, 'shape': (2, 2, 2), }",
+                &d,
+            ),
+        );
+        assert!(err_text(read_npy(&p)).contains("not 2-D (shape (2, 2, 2))"));
+        let p = write(
+            &dir,
+            "zero.npy",
+            &raw_npy(
+                1,
+                "{'descr': '<f4', 'fortran_order': False, 'shape': (), }",
+                &d[..4],
+            ),
+        );
+        assert!(err_text(read_npy(&p)).contains("not 2-D (shape ())"));
+    }
+
+    #[test]
+    fn unsupported_dtypes_and_bad_headers() {
+        let dir = tmp();
+        for descr in ["<c8", "<f2", "|b1", "<U10", "|i2"] {
+            let dict = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': (1, 1), }}");
+            let p = write(&dir, "d.npy", &raw_npy(1, &dict, &[0; 16]));
+            let e = err_text(read_npy(&p));
+            assert!(
+                e.contains(&format!(
+                    "unsupported dtype \"{descr}\" (expected float32 or float64"
+                )),
+                "{e}"
+            );
+        }
+        let p = write(
+            &dir,
+            "s.npy",
+            &raw_npy(
+                1,
+                "{'descr': [('a', '<f4')], 'fortran_order': False, 'shape': (1, 1), }",
+                &[0; 4],
+            ),
+        );
+        assert!(err_text(read_npy(&p)).contains("unsupported dtype [('a', '<f4')]"));
+        let p = write(
+            &dir,
+            "k.npy",
+            &raw_npy(1, "{'descr': '<f4', 'shape': (1, 1), }", &[0; 4]),
+        );
+        assert!(err_text(read_npy(&p)).contains("no 'fortran_order' key"));
+        let p = write(
+            &dir,
+            "g.npy",
+            &raw_npy(
+                1,
+                "{'descr': '<f4', 'fortran_order': Nope, 'shape': (1, 1), }",
+                &[0; 4],
+            ),
+        );
+        assert!(err_text(read_npy(&p)).contains("cannot parse the header"));
+        let p = write(
+            &dir,
+            "h.npy",
+            &raw_npy(
+                1,
+                "{'descr': '<f4', 'fortran_order': False, 'shape': (99999999999, 99999999999), }",
+                &[0; 4],
+            ),
+        );
+        assert!(err_text(read_npy(&p)).contains("too large"));
+    }
+}

@@ -1,0 +1,1 @@
+//! PNG previews of height maps (in progress).
