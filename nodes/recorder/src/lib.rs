@@ -1,1 +1,5 @@
-//! placeholder
+//! surfstream-recorder: records the channels wired to it into one MCAP file
+//! (see `surfstream_common::recording` for the layout), finished atomically when every input
+//! has ended, so a recording on disk is always complete.
+
+pub mod node;

@@ -1,0 +1,62 @@
+//! The one error type of the mesher: every way a height field, a parameter or a mesh can be
+//! refused, each with a message that says what was found and what was expected.
+
+/// `Result` with [`MeshError`].
+pub type Result<T, E = MeshError> = std::result::Result<T, E>;
+
+/// Why a height field could not be meshed or a mesh could not be written.
+#[derive(Debug, thiserror::Error)]
+pub enum MeshError {
+    /// The grid is too small to enclose a volume (a solid needs at least one grid cell).
+    #[error(
+        "height field is {width} x {height} samples (width x height); a solid needs at least \
+         2 x 2 samples"
+    )]
+    TooSmall { width: usize, height: usize },
+
+    /// The payload length disagrees with the declared size.
+    #[error(
+        "height field declares {width} x {height} samples but its payload holds {actual} values"
+    )]
+    SizeMismatch {
+        width: usize,
+        height: usize,
+        actual: usize,
+    },
+
+    /// A numeric parameter is out of its domain.
+    #[error("{name} = {value}: expected {expected}")]
+    InvalidParameter {
+        name: &'static str,
+        value: f64,
+        expected: &'static str,
+    },
+
+    /// Every sample is NaN: there is no surface to mesh.
+    #[error("height field has no measured sample: all {samples} samples are NaN")]
+    NoValidSample { samples: usize },
+
+    /// A sample is +/-infinity: only NaN may mark a missing sample, so this is corrupt input.
+    #[error(
+        "height sample at row {row}, column {col} is {value}; expected a finite height in um \
+         (NaN marks a missing sample)"
+    )]
+    InfiniteSample { row: usize, col: usize, value: f32 },
+
+    /// The mesh would need more vertices or triangles than 32-bit indices (or STL's 32-bit
+    /// triangle count) can address.
+    #[error("mesh too large: {what} = {count}, the limit is {limit}")]
+    TooLarge {
+        what: &'static str,
+        count: usize,
+        limit: usize,
+    },
+
+    /// A mesh handed to a writer or to [`crate::close_top_surface`] is malformed.
+    #[error("invalid mesh: {0}")]
+    InvalidMesh(String),
+
+    /// Writing the STL stream failed.
+    #[error("writing STL: {0}")]
+    Io(#[from] std::io::Error),
+}

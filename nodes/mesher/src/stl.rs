@@ -1,0 +1,371 @@
+//! STL writers: binary (compact; EDEM, Yade, MercuryDPM, recent LIGGGHTS) and ASCII (what older
+//! LIGGGHTS releases read).
+//!
+//! STL stores f32 coordinates and no unit: both writers state the unit and the recentring
+//! offset in the header (binary) or on the `solid` line (ASCII), see [`stl_header`]. Normals are
+//! computed per face in f64 from the f64 vertices and only then rounded to f32. Triangles are
+//! encoded in parallel blocks and handed to the writer in large `write_all` calls, so an
+//! unbuffered `File` is fine and the memory used stays bounded whatever the mesh size.
+
+use std::io::Write;
+
+use rayon::prelude::*;
+
+use crate::error::Result;
+use crate::solid::SolidMesh;
+
+/// Bytes of a binary STL record: normal, three vertices (12 f32) and a 2-byte attribute.
+const RECORD_BYTES: usize = 50;
+/// Triangles encoded per block (~1.6 MB binary, ~8 MB ASCII): enough work for rayon to share out
+/// per block, while the memory the writers hold stays bounded whatever the mesh size.
+const BLOCK_TRIANGLES: usize = 1 << 15;
+/// Triangles formatted per rayon task in the ASCII writer.
+const ASCII_TASK_TRIANGLES: usize = 1 << 10;
+
+/// Size in bytes of a binary STL holding `triangles` triangles: 80-byte header, u32 count,
+/// 50 bytes per triangle.
+pub fn binary_stl_len(triangles: usize) -> u64 {
+    84 + RECORD_BYTES as u64 * triangles as u64
+}
+
+/// The self-description written into an STL: `"<label>, units=<unit>, offset_um=<x>,<y>,<z>"`
+/// (the offset to 1 nm), at most 80 ASCII bytes. The unit and offset fit for any offset below
+/// 1e15 um; the label is shortened if needed, non-printable or non-ASCII characters in it become '?', and a label
+/// that starts with "solid" is prefixed with "binary " because readers take a binary file whose
+/// header starts with "solid" for ASCII.
+pub fn stl_header(mesh: &SolidMesh, label: &str) -> String {
+    let mut label = clean_label(label);
+    if label.len() >= 5 && label[..5].eq_ignore_ascii_case("solid") {
+        label.insert_str(0, "binary ");
+    }
+    let suffix = format!(
+        "units={}, offset_um={}",
+        mesh.units.symbol(),
+        offset_text(mesh)
+    );
+    label.truncate(80usize.saturating_sub(suffix.len() + 2)); // ASCII: bytes are chars
+    let mut header = if label.is_empty() {
+        suffix
+    } else {
+        format!("{label}, {suffix}")
+    };
+    header.truncate(80);
+    header
+}
+
+/// The label as printable ASCII, trimmed.
+fn clean_label(label: &str) -> String {
+    let cleaned: String = label
+        .chars()
+        .map(|c| {
+            if c == ' ' || c.is_ascii_graphic() {
+                c
+            } else {
+                '?'
+            }
+        })
+        .collect();
+    cleaned.trim().to_string()
+}
+
+fn offset_text(mesh: &SolidMesh) -> String {
+    let [x, y, z] = mesh.offset_um;
+    format!("{x:.3},{y:.3},{z:.3}")
+}
+
+/// Writes `mesh` as binary STL: an 80-byte header holding [`stl_header`] (zero padded), the
+/// triangle count, and per triangle its f64-computed unit normal and its corners as f32 in the
+/// mesh's units. Exactly [`binary_stl_len`] bytes. Errors if the mesh is malformed (see
+/// [`SolidMesh::validate`]) or the writer fails.
+pub fn write_stl_binary<W: Write>(mut w: W, mesh: &SolidMesh, header_text: &str) -> Result<()> {
+    mesh.validate()?;
+    let mut header = [0u8; 80];
+    let text = stl_header(mesh, header_text);
+    header[..text.len()].copy_from_slice(text.as_bytes());
+    w.write_all(&header)?;
+    // validate() checked that the count fits in u32.
+    w.write_all(&(mesh.triangles.len() as u32).to_le_bytes())?;
+
+    let mut buf = vec![0u8; BLOCK_TRIANGLES.min(mesh.triangles.len()) * RECORD_BYTES];
+    for (block, tris) in mesh.triangles.chunks(BLOCK_TRIANGLES).enumerate() {
+        let out = &mut buf[..tris.len() * RECORD_BYTES];
+        let first = block * BLOCK_TRIANGLES;
+        out.par_chunks_mut(RECORD_BYTES)
+            .enumerate()
+            .for_each(|(k, record)| {
+                let corners = mesh.triangle_corners(first + k);
+                let normal = mesh.face_normal(first + k);
+                let values = [normal, corners[0], corners[1], corners[2]];
+                for (slot, c) in record[..48]
+                    .chunks_exact_mut(4)
+                    .zip(values.iter().flatten())
+                {
+                    slot.copy_from_slice(&(*c as f32).to_le_bytes());
+                }
+                record[48..].fill(0); // attribute byte count: unused
+            });
+        w.write_all(out)?;
+    }
+    w.flush()?;
+    Ok(())
+}
+
+/// Writes `mesh` as ASCII STL. The `solid` line carries the label (spaces replaced by '_') and
+/// the unit and offset as `key=value` words, which readers ignore or keep as the name.
+/// Coordinates and normals are the same f32 values as in the binary file, printed in scientific
+/// notation with nine significant digits (trailing zeros dropped, e.g. `-5e-1`,
+/// `1.24999997e-3`), which reads
+/// back to exactly the same f32, so both formats describe the same triangles. Errors as
+/// [`write_stl_binary`].
+pub fn write_stl_ascii<W: Write>(mut w: W, mesh: &SolidMesh, header_text: &str) -> Result<()> {
+    mesh.validate()?;
+    // The first word is the solid's name; the rest says units and offset. No length limit here.
+    let name = match clean_label(header_text).replace(' ', "_") {
+        n if n.is_empty() => "surfstream".to_string(),
+        n => n,
+    };
+    let details = format!(
+        "units={} offset_um={}",
+        mesh.units.symbol(),
+        offset_text(mesh)
+    );
+    writeln!(w, "solid {name} {details}")?;
+
+    for (block, tris) in mesh.triangles.chunks(BLOCK_TRIANGLES).enumerate() {
+        let first = block * BLOCK_TRIANGLES;
+        let texts: Vec<Vec<u8>> = tris
+            .par_chunks(ASCII_TASK_TRIANGLES)
+            .enumerate()
+            .map(|(task, part)| {
+                // ~250 bytes per facet with 9-digit numbers.
+                let mut s = Vec::with_capacity(part.len() * 256);
+                for k in 0..part.len() {
+                    let t = first + task * ASCII_TASK_TRIANGLES + k;
+                    s.extend_from_slice(b"facet normal");
+                    push_xyz(&mut s, mesh.face_normal(t));
+                    s.extend_from_slice(b"\n outer loop\n");
+                    for corner in mesh.triangle_corners(t) {
+                        s.extend_from_slice(b"  vertex");
+                        push_xyz(&mut s, corner);
+                        s.push(b'\n');
+                    }
+                    s.extend_from_slice(b" endloop\nendfacet\n");
+                }
+                s
+            })
+            .collect();
+        for text in &texts {
+            w.write_all(text)?;
+        }
+    }
+    writeln!(w, "endsolid {name}")?;
+    w.flush()?;
+    Ok(())
+}
+
+/// Appends " x y z" (each rounded to f32, see [`push_f32`]).
+fn push_xyz(out: &mut Vec<u8>, v: [f64; 3]) {
+    for c in v {
+        out.push(b' ');
+        push_f32(out, c as f32);
+    }
+}
+
+/// 10^k for k = 0..=40 (exact up to 10^22; beyond, within a few ulps, far below the 1e-9 that
+/// nine digits need).
+const POW10: [f64; 41] = {
+    let mut table = [1.0f64; 41];
+    let mut k = 1;
+    while k < table.len() {
+        table[k] = table[k - 1] * 10.0;
+        k += 1;
+    }
+    table
+};
+
+/// Appends `v` as `d.dddddddde-X`: nine significant digits, trailing zeros dropped.
+///
+/// Why not `{:e}`: std's shortest round-trip formatting is several times slower, and an ASCII
+/// STL of a 1024 x 1024 field holds 25 M numbers. Nine significant digits always identify an
+/// f32 (f32 needs at most 9), and the f64 arithmetic below is accurate to ~1e-14 relative, so
+/// even a last digit rounded the wrong way at a tie (1e-8 relative at worst) stays well inside
+/// half an f32 ulp (>= 3e-8 relative): the text reads back to the very same f32.
+fn push_f32(out: &mut Vec<u8>, v: f32) {
+    let a = f64::from(v).abs();
+    // Zero, and magnitudes a mesh never has (f32 subnormals, > 1e30): std's exact formatting.
+    if !(1e-30..=1e30).contains(&a) {
+        let _ = write!(out, "{v:e}"); // writing into a Vec cannot fail
+        return;
+    }
+    // a = m * 10^(e - 8) with m a 9-digit integer; log10 may be off by one at powers of 10.
+    // |e - 8| <= 39 in the range above, so the table covers it.
+    let scaled = |e: i32| {
+        let k = e - 8;
+        let m = if k >= 0 {
+            a / POW10[k as usize]
+        } else {
+            a * POW10[k.unsigned_abs() as usize]
+        };
+        m.round() as u64
+    };
+    let mut e = a.log10().floor() as i32;
+    let mut m = scaled(e);
+    if m >= 1_000_000_000 {
+        e += 1;
+        m = scaled(e);
+    } else if m < 100_000_000 {
+        e -= 1;
+        m = scaled(e);
+    }
+    if m >= 1_000_000_000 {
+        // 9.999999999..e(e) rounded up to 10.00000000e(e): renormalise.
+        m /= 10;
+        e += 1;
+    }
+    // Sign, first digit, '.', 8 digits, 'e', '-', 2 exponent digits: at most 15 bytes.
+    let mut buf = [0u8; 16];
+    let mut n = 0;
+    if v < 0.0 {
+        buf[0] = b'-';
+        n = 1;
+    }
+    let mut digits = [b'0'; 9];
+    for d in digits.iter_mut().rev() {
+        *d += (m % 10) as u8;
+        m /= 10;
+    }
+    let mut end = 9;
+    while end > 1 && digits[end - 1] == b'0' {
+        end -= 1;
+    }
+    buf[n] = digits[0];
+    n += 1;
+    if end > 1 {
+        buf[n] = b'.';
+        buf[n + 1..n + end].copy_from_slice(&digits[1..end]);
+        n += end;
+    }
+    buf[n] = b'e';
+    n += 1;
+    if e < 0 {
+        buf[n] = b'-';
+        n += 1;
+    }
+    let e = e.unsigned_abs();
+    if e >= 10 {
+        buf[n] = b'0' + (e / 10) as u8;
+        n += 1;
+    }
+    buf[n] = b'0' + (e % 10) as u8;
+    n += 1;
+    out.extend_from_slice(&buf[..n]);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::solid::LengthUnit;
+
+    fn mesh(offset_um: [f64; 3]) -> SolidMesh {
+        SolidMesh {
+            vertices: vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
+            triangles: vec![[0, 1, 2]],
+            offset_um,
+            units: LengthUnit::Mm,
+            filled_samples: 0,
+            top_triangles: 1,
+            base_depth_um: 10.0,
+        }
+    }
+
+    #[test]
+    fn header_keeps_units_and_offset_and_never_starts_with_solid() {
+        let m = mesh([123456789.0, -98765.4321, 0.5]);
+        let h = stl_header(
+            &m,
+            "solid surfstream with a very long label that cannot fit at all",
+        );
+        assert!(h.len() <= 80, "{h}");
+        assert!(h.starts_with("binary solid"), "{h}");
+        assert!(
+            h.ends_with("units=mm, offset_um=123456789.000,-98765.432,0.500"),
+            "{h}"
+        );
+        assert_eq!(
+            stl_header(&m, ""),
+            "units=mm, offset_um=123456789.000,-98765.432,0.500"
+        );
+        assert!(stl_header(&m, "naïve\ttab").starts_with("na?ve?tab, "));
+    }
+
+    #[test]
+    fn ascii_numbers_read_back_to_the_same_f32() {
+        let check = |v: f32| {
+            let mut s = Vec::new();
+            push_f32(&mut s, v);
+            let s = String::from_utf8(s).unwrap();
+            let back = s.parse::<f32>().ok().map(f32::to_bits);
+            assert_eq!(back, Some(v.to_bits()), "{v:e} -> {s}");
+        };
+        // A spread over every binade of both signs, including subnormals and extremes.
+        for bits in (0..0x7f80_0000u32).step_by(7919) {
+            check(f32::from_bits(bits));
+            check(-f32::from_bits(bits));
+        }
+        // Around powers of ten, where the exponent estimate and the rounding carry can slip.
+        for k in -30..=30 {
+            let p = 10f32.powi(k);
+            let (mut below, mut above) = (p, p);
+            for _ in 0..50 {
+                below = f32::from_bits(below.to_bits() - 1);
+                check(below);
+                check(above);
+                above = f32::from_bits(above.to_bits() + 1);
+            }
+        }
+        for v in [
+            0.0,
+            -0.0,
+            1.0,
+            0.5,
+            -1.25e-3,
+            0.8148e-3,
+            f32::MAX,
+            f32::MIN_POSITIVE,
+        ] {
+            check(v);
+        }
+        let mut s = Vec::new();
+        for v in [1.0f32, -0.5, -1.25e-3, 123456.79, 0.0] {
+            push_f32(&mut s, v);
+            s.push(b' ');
+        }
+        let s = String::from_utf8(s).unwrap();
+        // -1.25e-3 is not exact in f32: nine digits show its true value.
+        assert_eq!(s, "1e0 -5e-1 -1.24999997e-3 1.23456789e5 0e0 ");
+    }
+
+    #[test]
+    fn refuses_out_of_range_indices() {
+        let mut m = mesh([0.0; 3]);
+        m.triangles[0][2] = 7;
+        let mut out = Vec::new();
+        assert!(write_stl_binary(&mut out, &m, "x").is_err());
+        assert!(write_stl_ascii(&mut out, &m, "x").is_err());
+    }
+
+    #[test]
+    fn ascii_solid_line_names_the_solid_and_states_units() {
+        let m = mesh([1.0, 2.0, 3.0]);
+        let mut out = Vec::new();
+        write_stl_ascii(&mut out, &m, "surfstream solid").unwrap();
+        let text = String::from_utf8(out).unwrap();
+        let mut lines = text.lines();
+        assert_eq!(
+            lines.next(),
+            Some("solid surfstream_solid units=mm offset_um=1.000,2.000,3.000")
+        );
+        assert_eq!(lines.next(), Some("facet normal 0e0 0e0 1e0"));
+        assert_eq!(text.lines().last(), Some("endsolid surfstream_solid"));
+    }
+}
