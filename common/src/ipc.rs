@@ -171,6 +171,11 @@ fn open_events(node: &Node<ipc::Service>, name: &str, deadline: Instant) -> Resu
     })
 }
 
+/// Opens (or creates) an event service, e.g. the launcher's ready / go services.
+pub fn open_event_service(node: &Node<ipc::Service>, name: &str) -> Result<EventFactory> {
+    open_events(node, name, Instant::now() + Duration::from_secs(10))
+}
+
 enum Sender {
     Frames(FrameFactory, Publisher<ipc::Service, [f32], FrameHeader>),
     Registrations(RegFactory, Publisher<ipc::Service, TileRegistration, ()>),

@@ -228,7 +228,8 @@ fn read_as<T: Element>(path: &Path) -> Result<NpyArray<T>> {
         );
     }
     let raw = &bytes[data_offset..];
-    let values: Vec<T> = decode(raw, dtype);
+    let values: Vec<T> = decode(raw, dtype)
+        .ok_or_else(|| anyhow!("{}: unsupported dtype {dtype:?}", path.display()))?;
     let data = if fortran_order && rows > 1 && cols > 1 {
         // Column-major storage: element (r, c) sits at c * rows + r.
         let mut out = Vec::with_capacity(n);
@@ -242,7 +243,7 @@ fn read_as<T: Element>(path: &Path) -> Result<NpyArray<T>> {
     Ok(NpyArray { data, rows, cols })
 }
 
-fn decode<T: Element>(raw: &[u8], dtype: Dtype) -> Vec<T> {
+fn decode<T: Element>(raw: &[u8], dtype: Dtype) -> Option<Vec<T>> {
     fn conv<T, const N: usize>(raw: &[u8], big: bool, f: impl Fn([u8; N], bool) -> T) -> Vec<T> {
         raw.chunks_exact(N)
             .map(|c| {
@@ -264,7 +265,7 @@ fn decode<T: Element>(raw: &[u8], dtype: Dtype) -> Vec<T> {
             })
         };
     }
-    match (dtype.kind, dtype.size) {
+    Some(match (dtype.kind, dtype.size) {
         (Kind::Float, 4) => num!(f32, from_f32, f32),
         (Kind::Float, 8) => num!(f64, from_f64, f64),
         (Kind::Int, 1) => num!(i8, from_i64, i64),
@@ -276,8 +277,8 @@ fn decode<T: Element>(raw: &[u8], dtype: Dtype) -> Vec<T> {
         (Kind::Uint, 4) => num!(u32, from_u64, u64),
         (Kind::Uint, 8) => num!(u64, from_u64, u64),
         // parse_dtype only lets the combinations above through.
-        _ => unreachable!("unsupported dtype passed parse_dtype"),
-    }
+        _ => return None,
+    })
 }
 
 /// Parses magic, version and the header dict; the error text is prefixed with the path by the

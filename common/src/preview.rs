@@ -1,1 +1,818 @@
-//! PNG previews of height maps (in progress).
+//! PNG previews of height maps with a colour scale.
+//!
+//! [`write_preview_png`] draws a row-major height map (micrometres, NaN = not measured) as an RGB
+//! PNG: row 0 at the top, column 0 at the left (scan y grows downwards, x to the right), heights
+//! coloured with the viridis colour map, not-measured pixels in a neutral grey
+//! ([`NAN_RGB`]), a vertical colour bar on the right labelled in micrometres, and an optional
+//! title at the top. Text uses a small built-in 5 x 7 bitmap font, so previews need no system
+//! fonts.
+//!
+//! - Colour range: given explicitly ([`PreviewOptions::range_um`]) or, by default, robust
+//!   percentiles of the valid (finite) heights: the [`ROBUST_LOW_PERCENT`] = 0.5 % and
+//!   [`ROBUST_HIGH_PERCENT`] = 99.5 % points (linear interpolation between order statistics),
+//!   so a few spikes or dropout artefacts do not wash out the picture. Heights outside the range
+//!   saturate to the end colours. For maps with more than [`PERCENTILE_SAMPLE_LIMIT`] values the
+//!   percentiles are taken over an evenly strided subsample of that size. A map without valid
+//!   heights gets the range 0..1 um; a flat map gets its value +- 0.5 um.
+//! - Size: a map whose longer side exceeds [`PreviewOptions::max_side_px`] (default 1024) is
+//!   reduced by block averaging (an integer factor; NaN-aware: a block is the mean of its valid
+//!   heights and NaN only if it has none). A map whose longer side is below
+//!   [`PreviewOptions::min_side_px`] (default 256) is enlarged by an integer factor (nearest
+//!   neighbour), so tiny maps stay visible.
+//! - The file is written atomically ([`crate::fsutil::write_atomic`]).
+
+use std::io::Write;
+use std::path::Path;
+
+use anyhow::{bail, Context, Result};
+
+/// Lower robust percentile of the default colour range, in percent.
+pub const ROBUST_LOW_PERCENT: f64 = 0.5;
+/// Upper robust percentile of the default colour range, in percent.
+pub const ROBUST_HIGH_PERCENT: f64 = 99.5;
+/// At most this many heights are sorted for the percentiles (a strided subsample beyond).
+pub const PERCENTILE_SAMPLE_LIMIT: usize = 1 << 22;
+/// Colour of not-measured (non-finite) heights.
+pub const NAN_RGB: [u8; 3] = [128, 128, 128];
+
+const BACKGROUND_RGB: [u8; 3] = [255, 255, 255];
+const TEXT_RGB: [u8; 3] = [0, 0, 0];
+const FRAME_RGB: [u8; 3] = [64, 64, 64];
+/// Margin around everything, px.
+const MARGIN_PX: usize = 8;
+/// Width of the colour bar, px.
+const BAR_WIDTH_PX: usize = 16;
+/// Length of a tick mark, px.
+const TICK_PX: usize = 4;
+
+/// How to draw a preview.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PreviewOptions {
+    /// The longer side of the map area is at most this many pixels (larger maps are block
+    /// averaged). Default 1024.
+    pub max_side_px: usize,
+    /// Maps whose longer side is shorter than this are enlarged by an integer factor. Default 256;
+    /// 0 or 1 disables enlarging.
+    pub min_side_px: usize,
+    /// Colour range (low, high) in micrometres; `None` = robust percentiles of the data.
+    pub range_um: Option<(f64, f64)>,
+    /// Text drawn above the map (printable ASCII; other characters show as '?').
+    pub title: Option<String>,
+    /// Draw the colour bar with its labels. Default true.
+    pub colour_bar: bool,
+}
+
+impl Default for PreviewOptions {
+    fn default() -> Self {
+        Self {
+            max_side_px: 1024,
+            min_side_px: 256,
+            range_um: None,
+            title: None,
+            colour_bar: true,
+        }
+    }
+}
+
+/// What was drawn.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PreviewInfo {
+    /// Height drawn in the first viridis colour (dark purple), um.
+    pub min_um: f64,
+    /// Height drawn in the last viridis colour (yellow), um.
+    pub max_um: f64,
+    /// Size of the whole image.
+    pub width_px: u32,
+    pub height_px: u32,
+    /// Where the map sits in the image (its top-left pixel) and its size in pixels.
+    pub map_left_px: u32,
+    pub map_top_px: u32,
+    pub map_width_px: u32,
+    pub map_height_px: u32,
+    /// Each map pixel is the mean of a `block x block` block of heights (1 = no reduction).
+    pub block: u32,
+    /// Each (reduced) height is drawn as `zoom x zoom` pixels (1 = no enlargement).
+    pub zoom: u32,
+}
+
+/// An RGB image in memory (row-major, 3 bytes per pixel).
+#[derive(Debug, Clone, PartialEq)]
+pub struct PreviewImage {
+    pub rgb: Vec<u8>,
+    pub info: PreviewInfo,
+}
+
+/// Renders the preview of a `rows x cols` row-major height map and writes it as a PNG.
+pub fn write_preview_png(
+    path: impl AsRef<Path>,
+    heights: &[f32],
+    rows: usize,
+    cols: usize,
+    opts: &PreviewOptions,
+) -> Result<PreviewInfo> {
+    let path = path.as_ref();
+    let image = render_preview(heights, rows, cols, opts)
+        .with_context(|| format!("{}: cannot draw preview", path.display()))?;
+    let info = image.info;
+    crate::fsutil::write_atomic(path, |w| {
+        let mut enc = png::Encoder::new(&mut *w, info.width_px, info.height_px);
+        enc.set_color(png::ColorType::Rgb);
+        enc.set_depth(png::BitDepth::Eight);
+        enc.add_text_chunk("Software".into(), "surfstream".into())
+            .and_then(|()| {
+                enc.add_text_chunk(
+                    "Comment".into(),
+                    format!("viridis colour range {} .. {} um", info.min_um, info.max_um),
+                )
+            })
+            .with_context(|| format!("{}: PNG encoding failed", path.display()))?;
+        let mut writer = enc
+            .write_header()
+            .with_context(|| format!("{}: PNG encoding failed", path.display()))?;
+        writer
+            .write_image_data(&image.rgb)
+            .with_context(|| format!("{}: PNG encoding failed", path.display()))?;
+        writer
+            .finish()
+            .with_context(|| format!("{}: PNG encoding failed", path.display()))?;
+        w.flush()
+            .with_context(|| format!("{}: write failed", path.display()))?;
+        Ok(())
+    })?;
+    Ok(info)
+}
+
+/// Renders the preview into memory (what [`write_preview_png`] writes).
+pub fn render_preview(
+    heights: &[f32],
+    rows: usize,
+    cols: usize,
+    opts: &PreviewOptions,
+) -> Result<PreviewImage> {
+    if rows == 0 || cols == 0 {
+        bail!("empty height map ({rows} x {cols})");
+    }
+    if rows.checked_mul(cols) != Some(heights.len()) {
+        bail!(
+            "height map is {rows} x {cols} but has {} values (expected {})",
+            heights.len(),
+            rows as u128 * cols as u128
+        );
+    }
+    if opts.max_side_px == 0 {
+        bail!("max_side_px must be at least 1");
+    }
+    let (min_um, max_um) = match opts.range_um {
+        Some((lo, hi)) => {
+            if !(lo.is_finite() && hi.is_finite() && lo < hi) {
+                bail!("colour range {lo} .. {hi} um is not an increasing pair of finite numbers");
+            }
+            (lo, hi)
+        }
+        None => robust_range_um(heights).unwrap_or((0.0, 1.0)),
+    };
+
+    // Reduce or enlarge.
+    let longer = rows.max(cols);
+    let block = longer.div_ceil(opts.max_side_px).max(1);
+    let (small, s_rows, s_cols) = if block > 1 {
+        let (m, r, c) = block_mean(heights, rows, cols, block);
+        (std::borrow::Cow::Owned(m), r, c)
+    } else {
+        (std::borrow::Cow::Borrowed(heights), rows, cols)
+    };
+    let zoom = if block == 1 && opts.min_side_px > longer {
+        (opts.min_side_px / longer)
+            .min(opts.max_side_px / longer)
+            .max(1)
+    } else {
+        1
+    };
+    let map_w = s_cols * zoom;
+    let map_h = s_rows * zoom;
+
+    // Layout.
+    let scale = if map_h >= 320 { 2 } else { 1 };
+    let glyph_h = 7 * scale;
+    let map_left = MARGIN_PX;
+    let map_top = MARGIN_PX
+        + if opts.title.is_some() {
+            glyph_h + MARGIN_PX
+        } else {
+            0
+        };
+    let ticks = if opts.colour_bar {
+        nice_ticks(min_um, max_um)
+    } else {
+        Vec::new()
+    };
+    let labels: Vec<String> = ticks.iter().map(|t| t.1.clone()).collect();
+    let label_w = labels
+        .iter()
+        .map(|l| text_width(l, scale))
+        .max()
+        .unwrap_or(0)
+        .max(text_width("um", scale));
+    let bar_left = map_left + map_w + 2 * MARGIN_PX;
+    let (content_w, content_h) = if opts.colour_bar {
+        let bar_area_h = map_h.max(96 * scale);
+        (
+            bar_left + BAR_WIDTH_PX + TICK_PX + 3 + label_w + MARGIN_PX,
+            bar_area_h,
+        )
+    } else {
+        (map_left + map_w + MARGIN_PX, map_h)
+    };
+    let title_w = opts
+        .title
+        .as_deref()
+        .map(|t| 2 * MARGIN_PX + text_width(t, scale))
+        .unwrap_or(0);
+    let width = content_w.max(title_w);
+    let height = map_top + content_h + MARGIN_PX;
+    if width > u32::MAX as usize
+        || height > u32::MAX as usize
+        || width
+            .checked_mul(height)
+            .and_then(|n| n.checked_mul(3))
+            .is_none()
+    {
+        bail!("preview of {width} x {height} px is too large");
+    }
+    let mut canvas = Canvas::new(width, height);
+
+    // The map.
+    let span = max_um - min_um;
+    for r in 0..s_rows {
+        for c in 0..s_cols {
+            let v = small[r * s_cols + c];
+            let rgb = if v.is_finite() {
+                viridis((v as f64 - min_um) / span)
+            } else {
+                NAN_RGB
+            };
+            canvas.fill(map_left + c * zoom, map_top + r * zoom, zoom, zoom, rgb);
+        }
+    }
+    canvas.frame(map_left, map_top, map_w, map_h, FRAME_RGB);
+
+    // The colour bar: top = max, bottom = min.
+    if opts.colour_bar {
+        let bar_top = map_top + 12 * scale;
+        let bar_bottom = map_top + content_h - 4 * scale; // inclusive
+        let bar_h = bar_bottom - bar_top;
+        for y in bar_top..=bar_bottom {
+            let t = (bar_bottom - y) as f64 / bar_h as f64;
+            canvas.fill(bar_left, y, BAR_WIDTH_PX, 1, viridis(t));
+        }
+        canvas.frame(bar_left, bar_top, BAR_WIDTH_PX, bar_h + 1, FRAME_RGB);
+        canvas.text(bar_left, map_top, "um", scale, TEXT_RGB);
+        for (value, label) in &ticks {
+            let frac = (value - min_um) / span;
+            let y = bar_bottom - (frac * bar_h as f64).round() as usize;
+            canvas.fill(bar_left + BAR_WIDTH_PX, y, TICK_PX, 1, TEXT_RGB);
+            let ty = (y + 1).saturating_sub(glyph_h / 2 + 1);
+            canvas.text(
+                bar_left + BAR_WIDTH_PX + TICK_PX + 3,
+                ty,
+                label,
+                scale,
+                TEXT_RGB,
+            );
+        }
+    }
+    if let Some(title) = &opts.title {
+        canvas.text(MARGIN_PX, MARGIN_PX, title, scale, TEXT_RGB);
+    }
+
+    let info = PreviewInfo {
+        min_um,
+        max_um,
+        width_px: width as u32,
+        height_px: height as u32,
+        map_left_px: map_left as u32,
+        map_top_px: map_top as u32,
+        map_width_px: map_w as u32,
+        map_height_px: map_h as u32,
+        block: block as u32,
+        zoom: zoom as u32,
+    };
+    Ok(PreviewImage {
+        rgb: canvas.rgb,
+        info,
+    })
+}
+
+/// The default colour range: the [`ROBUST_LOW_PERCENT`] and [`ROBUST_HIGH_PERCENT`] percentiles
+/// of the finite heights, widened to +- 0.5 um around a flat map. `None` if no height is finite.
+pub fn robust_range_um(heights: &[f32]) -> Option<(f64, f64)> {
+    let stride = heights.len().div_ceil(PERCENTILE_SAMPLE_LIMIT).max(1);
+    let mut sample: Vec<f32> = heights
+        .iter()
+        .step_by(stride)
+        .copied()
+        .filter(|v| v.is_finite())
+        .collect();
+    if sample.is_empty() {
+        return None;
+    }
+    let lo = percentile(&mut sample, ROBUST_LOW_PERCENT / 100.0);
+    let hi = percentile(&mut sample, ROBUST_HIGH_PERCENT / 100.0);
+    if hi > lo {
+        Some((lo, hi))
+    } else {
+        Some((lo - 0.5, lo + 0.5))
+    }
+}
+
+/// The `p` (0..1) quantile with linear interpolation between order statistics (numpy's default).
+fn percentile(values: &mut [f32], p: f64) -> f64 {
+    let pos = p * (values.len() - 1) as f64;
+    let k = pos.floor() as usize;
+    let frac = pos - k as f64;
+    let (_, &mut at_k, above) = values.select_nth_unstable_by(k, |a, b| a.total_cmp(b));
+    let at_k = at_k as f64;
+    if frac == 0.0 || above.is_empty() {
+        return at_k;
+    }
+    let next = above.iter().copied().fold(f32::INFINITY, f32::min) as f64;
+    at_k + frac * (next - at_k)
+}
+
+/// Means of `block x block` blocks of finite values (NaN where a block has none); edge blocks
+/// average what they hold.
+fn block_mean(heights: &[f32], rows: usize, cols: usize, block: usize) -> (Vec<f32>, usize, usize) {
+    let out_rows = rows.div_ceil(block);
+    let out_cols = cols.div_ceil(block);
+    let mut out = Vec::with_capacity(out_rows * out_cols);
+    let mut sum = vec![0.0f64; out_cols];
+    let mut count = vec![0u32; out_cols];
+    for br in 0..out_rows {
+        sum.iter_mut().for_each(|s| *s = 0.0);
+        count.iter_mut().for_each(|n| *n = 0);
+        for r in br * block..((br + 1) * block).min(rows) {
+            let row = &heights[r * cols..(r + 1) * cols];
+            for (c, &v) in row.iter().enumerate() {
+                if v.is_finite() {
+                    sum[c / block] += v as f64;
+                    count[c / block] += 1;
+                }
+            }
+        }
+        out.extend(sum.iter().zip(&count).map(|(&s, &n)| {
+            if n > 0 {
+                (s / n as f64) as f32
+            } else {
+                f32::NAN
+            }
+        }));
+    }
+    (out, out_rows, out_cols)
+}
+
+/// At most about eight "nice" tick values (1, 2 or 5 times a power of ten) inside `lo..=hi`,
+/// with their labels.
+fn nice_ticks(lo: f64, hi: f64) -> Vec<(f64, String)> {
+    let raw = (hi - lo) / 8.0;
+    if !(raw > 0.0 && raw.is_finite()) {
+        return Vec::new();
+    }
+    let mag = 10f64.powf(raw.log10().floor());
+    let step = [1.0, 2.0, 5.0, 10.0]
+        .iter()
+        .map(|m| m * mag)
+        .find(|s| *s >= raw * (1.0 - 1e-9))
+        .unwrap_or(10.0 * mag);
+    let decimals = (-(step.log10().floor())).clamp(0.0, 9.0) as usize;
+    let first = (lo / step).ceil() as i64;
+    let last = (hi / step).floor() as i64;
+    (first..=last)
+        .map(|i| {
+            let v = i as f64 * step;
+            let mut label = format!("{v:.decimals$}");
+            if label.starts_with('-') && label[1..].chars().all(|c| c == '0' || c == '.') {
+                label.remove(0); // "-0.0" -> "0.0"
+            }
+            (v, label)
+        })
+        .collect()
+}
+
+/// Viridis colour of `t` in 0..1 (clamped; NaN gives the first colour).
+pub fn viridis(t: f64) -> [u8; 3] {
+    let i = if t.is_nan() {
+        0.0
+    } else {
+        (t.clamp(0.0, 1.0) * 255.0).round()
+    };
+    VIRIDIS[i as usize]
+}
+
+// ---------------------------------------------------------------------------------------------
+// Drawing
+
+struct Canvas {
+    w: usize,
+    h: usize,
+    rgb: Vec<u8>,
+}
+
+impl Canvas {
+    fn new(w: usize, h: usize) -> Self {
+        let mut rgb = Vec::with_capacity(w * h * 3);
+        for _ in 0..w * h {
+            rgb.extend_from_slice(&BACKGROUND_RGB);
+        }
+        Self { w, h, rgb }
+    }
+
+    fn fill(&mut self, x: usize, y: usize, w: usize, h: usize, rgb: [u8; 3]) {
+        for yy in y..(y + h).min(self.h) {
+            let row = &mut self.rgb[yy * self.w * 3..(yy + 1) * self.w * 3];
+            for xx in x..(x + w).min(self.w) {
+                row[xx * 3..xx * 3 + 3].copy_from_slice(&rgb);
+            }
+        }
+    }
+
+    /// A 1-px frame just outside the rectangle (x, y, w, h).
+    fn frame(&mut self, x: usize, y: usize, w: usize, h: usize, rgb: [u8; 3]) {
+        if x == 0 || y == 0 {
+            return;
+        }
+        self.fill(x - 1, y - 1, w + 2, 1, rgb);
+        self.fill(x - 1, y + h, w + 2, 1, rgb);
+        self.fill(x - 1, y, 1, h, rgb);
+        self.fill(x + w, y, 1, h, rgb);
+    }
+
+    fn text(&mut self, x: usize, y: usize, text: &str, scale: usize, rgb: [u8; 3]) {
+        for (i, ch) in text.chars().enumerate() {
+            let g = glyph(ch);
+            let gx = x + i * 6 * scale;
+            for (row, bits) in g.iter().enumerate() {
+                for col in 0..5 {
+                    if bits & (0b10000 >> col) != 0 {
+                        self.fill(gx + col * scale, y + row * scale, scale, scale, rgb);
+                    }
+                }
+            }
+        }
+    }
+}
+
+fn text_width(text: &str, scale: usize) -> usize {
+    let n = text.chars().count();
+    if n == 0 {
+        0
+    } else {
+        (6 * n - 1) * scale
+    }
+}
+
+/// The 5 x 7 glyph of `ch`: seven rows, bit 4 = leftmost column. Unknown characters draw as '?'.
+fn glyph(ch: char) -> [u8; 7] {
+    let ch = if ch == '\u{b5}' || ch == '\u{3bc}' {
+        'u'
+    } else {
+        ch
+    }; // micro sign
+    FONT.iter()
+        .find(|(c, _)| *c == ch)
+        .map(|(_, g)| *g)
+        .unwrap_or(QUESTION)
+}
+
+const QUESTION: [u8; 7] = [
+    0b01110, 0b10001, 0b00001, 0b00010, 0b00100, 0b00000, 0b00100,
+];
+
+#[rustfmt::skip]
+const FONT: &[(char, [u8; 7])] = &[
+    (' ', [0b00000, 0b00000, 0b00000, 0b00000, 0b00000, 0b00000, 0b00000]),
+    ('0', [0b01110, 0b10001, 0b10011, 0b10101, 0b11001, 0b10001, 0b01110]),
+    ('1', [0b00100, 0b01100, 0b00100, 0b00100, 0b00100, 0b00100, 0b01110]),
+    ('2', [0b01110, 0b10001, 0b00001, 0b00010, 0b00100, 0b01000, 0b11111]),
+    ('3', [0b11111, 0b00010, 0b00100, 0b00010, 0b00001, 0b10001, 0b01110]),
+    ('4', [0b00010, 0b00110, 0b01010, 0b10010, 0b11111, 0b00010, 0b00010]),
+    ('5', [0b11111, 0b10000, 0b11110, 0b00001, 0b00001, 0b10001, 0b01110]),
+    ('6', [0b00110, 0b01000, 0b10000, 0b11110, 0b10001, 0b10001, 0b01110]),
+    ('7', [0b11111, 0b00001, 0b00010, 0b00100, 0b01000, 0b01000, 0b01000]),
+    ('8', [0b01110, 0b10001, 0b10001, 0b01110, 0b10001, 0b10001, 0b01110]),
+    ('9', [0b01110, 0b10001, 0b10001, 0b01111, 0b00001, 0b00010, 0b01100]),
+    ('.', [0b00000, 0b00000, 0b00000, 0b00000, 0b00000, 0b01100, 0b01100]),
+    (',', [0b00000, 0b00000, 0b00000, 0b00000, 0b01100, 0b00100, 0b01000]),
+    (':', [0b00000, 0b01100, 0b01100, 0b00000, 0b01100, 0b01100, 0b00000]),
+    ('-', [0b00000, 0b00000, 0b00000, 0b11111, 0b00000, 0b00000, 0b00000]),
+    ('+', [0b00000, 0b00100, 0b00100, 0b11111, 0b00100, 0b00100, 0b00000]),
+    ('=', [0b00000, 0b00000, 0b11111, 0b00000, 0b11111, 0b00000, 0b00000]),
+    ('_', [0b00000, 0b00000, 0b00000, 0b00000, 0b00000, 0b00000, 0b11111]),
+    ('/', [0b00000, 0b00001, 0b00010, 0b00100, 0b01000, 0b10000, 0b00000]),
+    ('(', [0b00010, 0b00100, 0b01000, 0b01000, 0b01000, 0b00100, 0b00010]),
+    (')', [0b01000, 0b00100, 0b00010, 0b00010, 0b00010, 0b00100, 0b01000]),
+    ('%', [0b11000, 0b11001, 0b00010, 0b00100, 0b01000, 0b10011, 0b00011]),
+    ('#', [0b01010, 0b01010, 0b11111, 0b01010, 0b11111, 0b01010, 0b01010]),
+    ('\'', [0b00100, 0b00100, 0b01000, 0b00000, 0b00000, 0b00000, 0b00000]),
+    ('?', QUESTION),
+    ('A', [0b01110, 0b10001, 0b10001, 0b11111, 0b10001, 0b10001, 0b10001]),
+    ('B', [0b11110, 0b10001, 0b10001, 0b11110, 0b10001, 0b10001, 0b11110]),
+    ('C', [0b01110, 0b10001, 0b10000, 0b10000, 0b10000, 0b10001, 0b01110]),
+    ('D', [0b11100, 0b10010, 0b10001, 0b10001, 0b10001, 0b10010, 0b11100]),
+    ('E', [0b11111, 0b10000, 0b10000, 0b11110, 0b10000, 0b10000, 0b11111]),
+    ('F', [0b11111, 0b10000, 0b10000, 0b11110, 0b10000, 0b10000, 0b10000]),
+    ('G', [0b01110, 0b10001, 0b10000, 0b10111, 0b10001, 0b10001, 0b01111]),
+    ('H', [0b10001, 0b10001, 0b10001, 0b11111, 0b10001, 0b10001, 0b10001]),
+    ('I', [0b01110, 0b00100, 0b00100, 0b00100, 0b00100, 0b00100, 0b01110]),
+    ('J', [0b00111, 0b00010, 0b00010, 0b00010, 0b00010, 0b10010, 0b01100]),
+    ('K', [0b10001, 0b10010, 0b10100, 0b11000, 0b10100, 0b10010, 0b10001]),
+    ('L', [0b10000, 0b10000, 0b10000, 0b10000, 0b10000, 0b10000, 0b11111]),
+    ('M', [0b10001, 0b11011, 0b10101, 0b10101, 0b10001, 0b10001, 0b10001]),
+    ('N', [0b10001, 0b10001, 0b11001, 0b10101, 0b10011, 0b10001, 0b10001]),
+    ('O', [0b01110, 0b10001, 0b10001, 0b10001, 0b10001, 0b10001, 0b01110]),
+    ('P', [0b11110, 0b10001, 0b10001, 0b11110, 0b10000, 0b10000, 0b10000]),
+    ('Q', [0b01110, 0b10001, 0b10001, 0b10001, 0b10101, 0b10010, 0b01101]),
+    ('R', [0b11110, 0b10001, 0b10001, 0b11110, 0b10100, 0b10010, 0b10001]),
+    ('S', [0b01111, 0b10000, 0b10000, 0b01110, 0b00001, 0b00001, 0b11110]),
+    ('T', [0b11111, 0b00100, 0b00100, 0b00100, 0b00100, 0b00100, 0b00100]),
+    ('U', [0b10001, 0b10001, 0b10001, 0b10001, 0b10001, 0b10001, 0b01110]),
+    ('V', [0b10001, 0b10001, 0b10001, 0b10001, 0b10001, 0b01010, 0b00100]),
+    ('W', [0b10001, 0b10001, 0b10001, 0b10101, 0b10101, 0b10101, 0b01010]),
+    ('X', [0b10001, 0b10001, 0b01010, 0b00100, 0b01010, 0b10001, 0b10001]),
+    ('Y', [0b10001, 0b10001, 0b10001, 0b01010, 0b00100, 0b00100, 0b00100]),
+    ('Z', [0b11111, 0b00001, 0b00010, 0b00100, 0b01000, 0b10000, 0b11111]),
+    ('a', [0b00000, 0b00000, 0b01110, 0b00001, 0b01111, 0b10001, 0b01111]),
+    ('b', [0b10000, 0b10000, 0b10110, 0b11001, 0b10001, 0b10001, 0b11110]),
+    ('c', [0b00000, 0b00000, 0b01110, 0b10000, 0b10000, 0b10001, 0b01110]),
+    ('d', [0b00001, 0b00001, 0b01101, 0b10011, 0b10001, 0b10001, 0b01111]),
+    ('e', [0b00000, 0b00000, 0b01110, 0b10001, 0b11111, 0b10000, 0b01110]),
+    ('f', [0b00110, 0b01001, 0b01000, 0b11100, 0b01000, 0b01000, 0b01000]),
+    ('g', [0b00000, 0b01111, 0b10001, 0b10001, 0b01111, 0b00001, 0b01110]),
+    ('h', [0b10000, 0b10000, 0b10110, 0b11001, 0b10001, 0b10001, 0b10001]),
+    ('i', [0b00100, 0b00000, 0b01100, 0b00100, 0b00100, 0b00100, 0b01110]),
+    ('j', [0b00010, 0b00000, 0b00110, 0b00010, 0b00010, 0b10010, 0b01100]),
+    ('k', [0b10000, 0b10000, 0b10010, 0b10100, 0b11000, 0b10100, 0b10010]),
+    ('l', [0b01100, 0b00100, 0b00100, 0b00100, 0b00100, 0b00100, 0b01110]),
+    ('m', [0b00000, 0b00000, 0b11010, 0b10101, 0b10101, 0b10001, 0b10001]),
+    ('n', [0b00000, 0b00000, 0b10110, 0b11001, 0b10001, 0b10001, 0b10001]),
+    ('o', [0b00000, 0b00000, 0b01110, 0b10001, 0b10001, 0b10001, 0b01110]),
+    ('p', [0b00000, 0b00000, 0b11110, 0b10001, 0b11110, 0b10000, 0b10000]),
+    ('q', [0b00000, 0b00000, 0b01101, 0b10011, 0b01111, 0b00001, 0b00001]),
+    ('r', [0b00000, 0b00000, 0b10110, 0b11001, 0b10000, 0b10000, 0b10000]),
+    ('s', [0b00000, 0b00000, 0b01110, 0b10000, 0b01110, 0b00001, 0b11110]),
+    ('t', [0b01000, 0b01000, 0b11100, 0b01000, 0b01000, 0b01001, 0b00110]),
+    ('u', [0b00000, 0b00000, 0b10001, 0b10001, 0b10001, 0b10011, 0b01101]),
+    ('v', [0b00000, 0b00000, 0b10001, 0b10001, 0b10001, 0b01010, 0b00100]),
+    ('w', [0b00000, 0b00000, 0b10001, 0b10001, 0b10101, 0b10101, 0b01010]),
+    ('x', [0b00000, 0b00000, 0b10001, 0b01010, 0b00100, 0b01010, 0b10001]),
+    ('y', [0b00000, 0b00000, 0b10001, 0b10001, 0b01111, 0b00001, 0b01110]),
+    ('z', [0b00000, 0b00000, 0b11111, 0b00010, 0b00100, 0b01000, 0b11111]),
+];
+
+/// Viridis, 256 entries (matplotlib's colour map by Nathaniel J. Smith, Stefan van der Walt and
+/// Eric Firing, released under CC0; rounded to 8 bits).
+#[rustfmt::skip]
+const VIRIDIS: [[u8; 3]; 256] = [
+    [68, 1, 84], [68, 2, 86], [69, 4, 87], [69, 5, 89],
+    [70, 7, 90], [70, 8, 92], [70, 10, 93], [70, 11, 94],
+    [71, 13, 96], [71, 14, 97], [71, 16, 99], [71, 17, 100],
+    [71, 19, 101], [72, 20, 103], [72, 22, 104], [72, 23, 105],
+    [72, 24, 106], [72, 26, 108], [72, 27, 109], [72, 28, 110],
+    [72, 29, 111], [72, 31, 112], [72, 32, 113], [72, 33, 115],
+    [72, 35, 116], [72, 36, 117], [72, 37, 118], [72, 38, 119],
+    [72, 40, 120], [72, 41, 121], [71, 42, 122], [71, 44, 122],
+    [71, 45, 123], [71, 46, 124], [71, 47, 125], [70, 48, 126],
+    [70, 50, 126], [70, 51, 127], [70, 52, 128], [69, 53, 129],
+    [69, 55, 129], [69, 56, 130], [68, 57, 131], [68, 58, 131],
+    [68, 59, 132], [67, 61, 132], [67, 62, 133], [66, 63, 133],
+    [66, 64, 134], [66, 65, 134], [65, 66, 135], [65, 68, 135],
+    [64, 69, 136], [64, 70, 136], [63, 71, 136], [63, 72, 137],
+    [62, 73, 137], [62, 74, 137], [62, 76, 138], [61, 77, 138],
+    [61, 78, 138], [60, 79, 138], [60, 80, 139], [59, 81, 139],
+    [59, 82, 139], [58, 83, 139], [58, 84, 140], [57, 85, 140],
+    [57, 86, 140], [56, 88, 140], [56, 89, 140], [55, 90, 140],
+    [55, 91, 141], [54, 92, 141], [54, 93, 141], [53, 94, 141],
+    [53, 95, 141], [52, 96, 141], [52, 97, 141], [51, 98, 141],
+    [51, 99, 141], [50, 100, 142], [50, 101, 142], [49, 102, 142],
+    [49, 103, 142], [49, 104, 142], [48, 105, 142], [48, 106, 142],
+    [47, 107, 142], [47, 108, 142], [46, 109, 142], [46, 110, 142],
+    [46, 111, 142], [45, 112, 142], [45, 113, 142], [44, 113, 142],
+    [44, 114, 142], [44, 115, 142], [43, 116, 142], [43, 117, 142],
+    [42, 118, 142], [42, 119, 142], [42, 120, 142], [41, 121, 142],
+    [41, 122, 142], [41, 123, 142], [40, 124, 142], [40, 125, 142],
+    [39, 126, 142], [39, 127, 142], [39, 128, 142], [38, 129, 142],
+    [38, 130, 142], [38, 130, 142], [37, 131, 142], [37, 132, 142],
+    [37, 133, 142], [36, 134, 142], [36, 135, 142], [35, 136, 142],
+    [35, 137, 142], [35, 138, 141], [34, 139, 141], [34, 140, 141],
+    [34, 141, 141], [33, 142, 141], [33, 143, 141], [33, 144, 141],
+    [33, 145, 140], [32, 146, 140], [32, 146, 140], [32, 147, 140],
+    [31, 148, 140], [31, 149, 139], [31, 150, 139], [31, 151, 139],
+    [31, 152, 139], [31, 153, 138], [31, 154, 138], [30, 155, 138],
+    [30, 156, 137], [30, 157, 137], [31, 158, 137], [31, 159, 136],
+    [31, 160, 136], [31, 161, 136], [31, 161, 135], [31, 162, 135],
+    [32, 163, 134], [32, 164, 134], [33, 165, 133], [33, 166, 133],
+    [34, 167, 133], [34, 168, 132], [35, 169, 131], [36, 170, 131],
+    [37, 171, 130], [37, 172, 130], [38, 173, 129], [39, 173, 129],
+    [40, 174, 128], [41, 175, 127], [42, 176, 127], [44, 177, 126],
+    [45, 178, 125], [46, 179, 124], [47, 180, 124], [49, 181, 123],
+    [50, 182, 122], [52, 182, 121], [53, 183, 121], [55, 184, 120],
+    [56, 185, 119], [58, 186, 118], [59, 187, 117], [61, 188, 116],
+    [63, 188, 115], [64, 189, 114], [66, 190, 113], [68, 191, 112],
+    [70, 192, 111], [72, 193, 110], [74, 193, 109], [76, 194, 108],
+    [78, 195, 107], [80, 196, 106], [82, 197, 105], [84, 197, 104],
+    [86, 198, 103], [88, 199, 101], [90, 200, 100], [92, 200, 99],
+    [94, 201, 98], [96, 202, 96], [99, 203, 95], [101, 203, 94],
+    [103, 204, 92], [105, 205, 91], [108, 205, 90], [110, 206, 88],
+    [112, 207, 87], [115, 208, 86], [117, 208, 84], [119, 209, 83],
+    [122, 209, 81], [124, 210, 80], [127, 211, 78], [129, 211, 77],
+    [132, 212, 75], [134, 213, 73], [137, 213, 72], [139, 214, 70],
+    [142, 214, 69], [144, 215, 67], [147, 215, 65], [149, 216, 64],
+    [152, 216, 62], [155, 217, 60], [157, 217, 59], [160, 218, 57],
+    [162, 218, 55], [165, 219, 54], [168, 219, 52], [170, 220, 50],
+    [173, 220, 48], [176, 221, 47], [178, 221, 45], [181, 222, 43],
+    [184, 222, 41], [186, 222, 40], [189, 223, 38], [192, 223, 37],
+    [194, 223, 35], [197, 224, 33], [200, 224, 32], [202, 225, 31],
+    [205, 225, 29], [208, 225, 28], [210, 226, 27], [213, 226, 26],
+    [216, 226, 25], [218, 227, 25], [221, 227, 24], [223, 227, 24],
+    [226, 228, 24], [229, 228, 25], [231, 228, 25], [234, 229, 26],
+    [236, 229, 27], [239, 229, 28], [241, 229, 29], [244, 230, 30],
+    [246, 230, 32], [248, 230, 33], [251, 231, 35], [253, 231, 37],
+];
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn decode_png(path: &Path) -> (u32, u32, Vec<u8>) {
+        let file = std::fs::File::open(path).expect("open png");
+        let decoder = png::Decoder::new(std::io::BufReader::new(file));
+        let mut reader = decoder.read_info().expect("png header");
+        let mut buf = vec![0; reader.output_buffer_size()];
+        let info = reader.next_frame(&mut buf).expect("png frame");
+        assert_eq!(info.color_type, png::ColorType::Rgb);
+        assert_eq!(info.bit_depth, png::BitDepth::Eight);
+        buf.truncate(info.buffer_size());
+        (info.width, info.height, buf)
+    }
+
+    fn pixel(rgb: &[u8], width: u32, x: u32, y: u32) -> [u8; 3] {
+        let i = (y as usize * width as usize + x as usize) * 3;
+        [rgb[i], rgb[i + 1], rgb[i + 2]]
+    }
+
+    #[test]
+    fn small_preview_decodes_with_nan_grey_and_viridis_ends() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("p.png");
+        // 4 x 6 ramp, with the min at (0, 0), the max at (3, 5) and a NaN at (1, 2).
+        let (rows, cols) = (4usize, 6usize);
+        let mut h: Vec<f32> = (0..rows * cols).map(|i| i as f32 * 0.1).collect();
+        h[cols + 2] = f32::NAN;
+        let opts = PreviewOptions {
+            range_um: Some((0.0, 2.3)),
+            title: Some("Tile 0: Sa 1.3 um".into()),
+            ..Default::default()
+        };
+        let info = write_preview_png(&path, &h, rows, cols, &opts).expect("write");
+        assert!(!dir.path().join("p.png.partial").exists());
+        let (w, hgt, rgb) = decode_png(&path);
+        assert_eq!((w, hgt), (info.width_px, info.height_px));
+        // Enlarged to at least min_side_px on the longer side, by an integer factor.
+        assert_eq!(info.zoom, 256 / 6);
+        assert_eq!(
+            (info.map_width_px, info.map_height_px),
+            (6 * info.zoom, 4 * info.zoom)
+        );
+        assert!(
+            w > info.map_left_px + info.map_width_px + BAR_WIDTH_PX as u32,
+            "room for the colour bar"
+        );
+        let at = |r: u32, c: u32| {
+            let z = info.zoom;
+            pixel(
+                &rgb,
+                w,
+                info.map_left_px + c * z + z / 2,
+                info.map_top_px + r * z + z / 2,
+            )
+        };
+        assert_eq!(at(0, 0), VIRIDIS[0]);
+        assert_eq!(at(3, 5), VIRIDIS[255]);
+        assert_eq!(at(1, 2), NAN_RGB);
+        assert_eq!(VIRIDIS[0], [68, 1, 84]);
+        assert_eq!(VIRIDIS[255], [253, 231, 37]);
+        // Title text is drawn (some black pixels above the map).
+        let title_rows = &rgb[..(info.map_top_px as usize * w as usize * 3)];
+        assert!(title_rows.chunks(3).any(|p| p == TEXT_RGB));
+    }
+
+    #[test]
+    fn robust_range_ignores_outliers_and_nan() {
+        let mut h: Vec<f32> = (0..1000).map(|i| i as f32 / 999.0).collect();
+        h[10] = 1e6;
+        h[20] = -1e6;
+        h[30] = f32::NAN;
+        let (lo, hi) = robust_range_um(&h).expect("range");
+        assert!(lo > -0.01 && lo < 0.02, "{lo}");
+        assert!(hi > 0.98 && hi < 1.01, "{hi}");
+        assert_eq!(robust_range_um(&[f32::NAN; 4]), None);
+        assert_eq!(robust_range_um(&[2.0; 4]), Some((1.5, 2.5)));
+        // numpy.percentile([0, 1, 2, 3], [0.5, 99.5]) = [0.015, 2.985]
+        let (lo, hi) = robust_range_um(&[3.0, 0.0, 2.0, 1.0]).expect("range");
+        assert!(
+            (lo - 0.015).abs() < 1e-9 && (hi - 2.985).abs() < 1e-9,
+            "{lo} {hi}"
+        );
+    }
+
+    #[test]
+    fn large_maps_are_block_averaged_nan_aware() {
+        let (rows, cols) = (300usize, 500usize);
+        let mut h = vec![1.0f32; rows * cols];
+        // Top-left 100 x 100 block: half NaN, half 3.0 -> mean 3.0; a fully NaN block stays NaN.
+        for r in 0..100 {
+            for c in 0..100 {
+                h[r * cols + c] = if c % 2 == 0 { f32::NAN } else { 3.0 };
+            }
+            for c in 100..200 {
+                h[r * cols + c] = f32::NAN;
+            }
+        }
+        let opts = PreviewOptions {
+            max_side_px: 5,
+            range_um: Some((1.0, 3.0)),
+            colour_bar: false,
+            ..Default::default()
+        };
+        let img = render_preview(&h, rows, cols, &opts).expect("render");
+        let info = img.info;
+        assert_eq!(
+            (info.block, info.zoom, info.map_width_px, info.map_height_px),
+            (100, 1, 5, 3)
+        );
+        let px = |c: u32, r: u32| {
+            pixel(
+                &img.rgb,
+                info.width_px,
+                info.map_left_px + c,
+                info.map_top_px + r,
+            )
+        };
+        assert_eq!(px(0, 0), VIRIDIS[255]);
+        assert_eq!(px(1, 0), NAN_RGB);
+        assert_eq!(px(2, 0), VIRIDIS[0]);
+        assert_eq!(px(4, 2), VIRIDIS[0]);
+    }
+
+    #[test]
+    fn block_mean_handles_ragged_edges() {
+        let h = [1.0, 2.0, 3.0, 4.0, 5.0, f32::NAN, 7.0, 8.0, 9.0];
+        let (m, r, c) = block_mean(&h, 3, 3, 2);
+        assert_eq!((r, c), (2, 2));
+        assert_eq!(m[0], (1.0 + 2.0 + 4.0 + 5.0) / 4.0);
+        assert_eq!(m[1], 3.0); // (3, NaN) -> 3
+        assert_eq!(m[2], 7.5);
+        assert_eq!(m[3], 9.0);
+    }
+
+    #[test]
+    fn ticks_are_nice_and_inside_the_range() {
+        let t = nice_ticks(-0.37, 1.23);
+        let labels: Vec<&str> = t.iter().map(|x| x.1.as_str()).collect();
+        assert_eq!(
+            labels,
+            ["-0.2", "0.0", "0.2", "0.4", "0.6", "0.8", "1.0", "1.2"]
+        );
+        let t = nice_ticks(12.0, 130.0);
+        assert_eq!(
+            t.iter().map(|x| x.1.as_str()).collect::<Vec<_>>(),
+            ["20", "40", "60", "80", "100", "120"]
+        );
+        assert!(nice_ticks(1.0, 1.0).is_empty());
+    }
+
+    #[test]
+    fn bad_inputs_are_errors() {
+        let o = PreviewOptions::default();
+        assert!(render_preview(&[1.0; 5], 2, 3, &o).is_err());
+        assert!(render_preview(&[], 0, 3, &o).is_err());
+        let bad = PreviewOptions {
+            range_um: Some((2.0, 1.0)),
+            ..Default::default()
+        };
+        assert!(render_preview(&[1.0; 6], 2, 3, &bad).is_err());
+        let dir = tempfile::tempdir().expect("tempdir");
+        let e =
+            write_preview_png(dir.path().join("x.png"), &[1.0; 5], 2, 3, &o).expect_err("error");
+        assert!(format!("{e:#}").contains("x.png"), "{e:#}");
+        assert!(!dir.path().join("x.png").exists());
+    }
+
+    #[test]
+    fn every_font_glyph_fits_five_columns() {
+        for (c, g) in FONT {
+            assert!(g.iter().all(|row| *row < 32), "glyph {c:?}");
+        }
+        assert_eq!(glyph('\u{b5}'), glyph('u'));
+        assert_eq!(glyph('\u{263a}'), QUESTION);
+    }
+}
