@@ -1,0 +1,263 @@
+//! The fusion node: places each tile at its registered position as soon as both the tile and
+//! its registration are in, publishes the changed region as a panorama patch, and at end of
+//! scan publishes (and writes) the whole panorama once.
+//!
+//! Tiles are placed strictly in acquisition order, whatever order the two inputs arrive in,
+//! so the panorama is the same under `launch` and `run`.
+
+use std::collections::BTreeMap;
+
+use anyhow::{anyhow, bail, Result};
+use serde::Deserialize;
+use serde_json::json;
+use surfstream_common::frame::{flags, FrameHeader, FrameKind, HeightMap, TileRegistration};
+use surfstream_common::graph::NodeContext;
+use surfstream_common::node::{Input, NodeLogic, Outbox};
+use surfstream_common::preview::{write_preview_png, PreviewOptions};
+
+use crate::{BlendParams, Panorama, PlaneCorrection, TileInput};
+
+const PANORAMA: &str = "panorama";
+const PREVIEW: &str = "preview";
+/// Decimation of the latest-wins preview patches.
+const PREVIEW_STEP: usize = 4;
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Params {
+    /// "gradual" (the paper's gradual in-and-out, eq. 5) or "average" (eq. 4).
+    #[serde(default = "gradual")]
+    method: String,
+    /// Weight ramp length from a tile's border, px. Default: half the tile, so the weights are
+    /// exactly linear across any overlap up to 50 % (the paper's gradual in-and-out).
+    ramp_px: Option<f64>,
+    /// Write panorama.npy and panorama.png into the out dir.
+    #[serde(default = "yes")]
+    write_files: bool,
+}
+
+fn gradual() -> String {
+    "gradual".into()
+}
+fn yes() -> bool {
+    true
+}
+
+pub struct FusionNode {
+    method: String,
+    ramp_px: Option<f64>,
+    write_files: bool,
+    out_dir: std::path::PathBuf,
+    tiles: BTreeMap<u32, HeightMap>,
+    registrations: BTreeMap<u32, TileRegistration>,
+    next: u32,
+    panorama: Option<Panorama>,
+    tiles_ended: bool,
+    registrations_ended: bool,
+    done: bool,
+    last: (u32, u64),
+    patches: u64,
+    files: Vec<String>,
+    summary: serde_json::Value,
+}
+
+pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
+    let p: Params = ctx.params()?;
+    if !matches!(p.method.as_str(), "gradual" | "average") {
+        bail!(
+            "graph '{}', node '{}': method = {:?}: expected \"gradual\" or \"average\"",
+            ctx.graph_name,
+            ctx.node_id,
+            p.method
+        );
+    }
+    if let Some(r) = p.ramp_px {
+        if !(r.is_finite() && r > 0.0) {
+            bail!("graph '{}', node '{}': ramp_px = {r}: expected > 0 px", ctx.graph_name, ctx.node_id);
+        }
+    }
+    Ok(Box::new(FusionNode {
+        method: p.method,
+        ramp_px: p.ramp_px,
+        write_files: p.write_files,
+        out_dir: ctx.out_dir.clone(),
+        tiles: BTreeMap::new(),
+        registrations: BTreeMap::new(),
+        next: 0,
+        panorama: None,
+        tiles_ended: false,
+        registrations_ended: false,
+        done: false,
+        last: (0, 0),
+        patches: 0,
+        files: Vec::new(),
+        summary: serde_json::Value::Null,
+    }))
+}
+
+impl FusionNode {
+    fn blend_params(&self, tile: &FrameHeader) -> BlendParams {
+        match (self.method.as_str(), self.ramp_px) {
+            ("average", _) => BlendParams::average(),
+            (_, Some(r)) => BlendParams::from_overlap_px(r, r),
+            _ => BlendParams::from_overlap_px(tile.width as f64 / 2.0, tile.height as f64 / 2.0),
+        }
+    }
+
+    /// Places every tile whose registration is in, in index order.
+    fn place_ready(&mut self, out: &mut Outbox) -> Result<()> {
+        while let (Some(tile), Some(reg)) =
+            (self.tiles.get(&self.next), self.registrations.get(&self.next))
+        {
+            let h = tile.header;
+            if self.panorama.is_none() {
+                self.panorama = Some(Panorama::new(h.pitch_x_um, h.pitch_y_um, self.blend_params(&h))?);
+            }
+            let pano = self.panorama.as_mut().ok_or_else(|| anyhow!("no panorama"))?;
+            let region = pano.place(TileInput {
+                index: h.tile_index,
+                heights: &tile.heights,
+                width: h.width as usize,
+                height: h.height as usize,
+                x_um: reg.x_um,
+                y_um: reg.y_um,
+                plane: PlaneCorrection {
+                    piston_um: reg.piston_um,
+                    tilt_x_um_per_px: reg.tilt_x_um_per_px,
+                    tilt_y_um_per_px: reg.tilt_y_um_per_px,
+                },
+                z_offset_um: h.z_offset_um,
+            })?;
+            let (ox, oy) = pano.region_origin_um(&region);
+            let heights = pano.extract(region);
+            let (px, py) = pano.pitch_um();
+            let header = FrameHeader {
+                kind: FrameKind::PanoramaPatch as u32,
+                flags: reg.flags & flags::PLACED_BY_STAGE,
+                tile_index: h.tile_index,
+                tile_row: h.tile_row,
+                tile_col: h.tile_col,
+                width: region.width as u32,
+                height: region.height as u32,
+                pitch_x_um: px,
+                pitch_y_um: py,
+                origin_x_um: ox,
+                origin_y_um: oy,
+                z_offset_um: pano.z_offset_um(),
+                t_acquired_ns: h.t_acquired_ns,
+                ..Default::default()
+            };
+            out.send_frame(PREVIEW, decimate(&header, &heights, PREVIEW_STEP));
+            out.send_frame(PANORAMA, HeightMap { header, heights });
+            self.patches += 1;
+            self.last = (h.tile_index, h.t_acquired_ns);
+            self.tiles.remove(&self.next);
+            self.registrations.remove(&self.next);
+            self.next += 1;
+        }
+        Ok(())
+    }
+
+    fn finish(&mut self, out: &mut Outbox) -> Result<()> {
+        if let Some(k) = self.tiles.keys().next() {
+            bail!("fusion: tile {k} never received its registration (registrations ended)");
+        }
+        if let Some(k) = self.registrations.keys().next() {
+            bail!("fusion: registration for tile {k} has no tile (tiles ended)");
+        }
+        let pano = self.panorama.as_ref().ok_or_else(|| anyhow!("fusion: the scan had no tiles"))?;
+        let r = pano.to_raster();
+        if self.write_files {
+            let npy = self.out_dir.join("panorama.npy");
+            surfstream_common::npy::write_npy_f32(&npy, &r.heights, r.height, r.width)?;
+            let png = self.out_dir.join("panorama.png");
+            let opts = PreviewOptions { title: Some("panorama (um)".into()), ..Default::default() };
+            write_preview_png(&png, &r.heights, r.height, r.width, &opts)?;
+            self.files = vec!["panorama.npy".into(), "panorama.png".into()];
+        }
+        let invalid = r.heights.iter().filter(|z| z.is_nan()).count();
+        self.summary = json!({
+            "width_px": r.width, "height_px": r.height,
+            "origin_x_um": r.origin_x_um, "origin_y_um": r.origin_y_um,
+            "pitch_x_um": r.pitch_x_um, "pitch_y_um": r.pitch_y_um,
+            "z_offset_um": r.z_offset_um, "invalid_px": invalid,
+        });
+        let header = FrameHeader {
+            kind: FrameKind::Panorama as u32,
+            flags: flags::FINAL,
+            tile_index: self.last.0,
+            width: r.width as u32,
+            height: r.height as u32,
+            pitch_x_um: r.pitch_x_um,
+            pitch_y_um: r.pitch_y_um,
+            origin_x_um: r.origin_x_um,
+            origin_y_um: r.origin_y_um,
+            z_offset_um: r.z_offset_um,
+            t_acquired_ns: self.last.1,
+            ..Default::default()
+        };
+        out.send_frame(PANORAMA, HeightMap { header, heights: r.heights });
+        out.end_frames(PANORAMA, self.last.0, self.last.1);
+        out.end_frames(PREVIEW, self.last.0, self.last.1);
+        self.done = true;
+        Ok(())
+    }
+}
+
+/// Every `step`-th pixel of a patch: a cheap live view for latest-wins subscribers.
+fn decimate(header: &FrameHeader, heights: &[f32], step: usize) -> HeightMap {
+    let (w, h) = (header.width as usize, header.height as usize);
+    let (dw, dh) = (w.div_ceil(step), h.div_ceil(step));
+    let mut out = Vec::with_capacity(dw * dh);
+    for r in (0..h).step_by(step) {
+        out.extend(heights[r * w..(r + 1) * w].iter().step_by(step));
+    }
+    let mut hd = *header;
+    hd.width = dw as u32;
+    hd.height = dh as u32;
+    hd.pitch_x_um *= step as f64;
+    hd.pitch_y_um *= step as f64;
+    hd.flags |= flags::PREVIEW;
+    HeightMap { header: hd, heights: out }
+}
+
+impl NodeLogic for FusionNode {
+    fn on_input(&mut self, port: &str, input: Input<'_>, _: &mut Outbox) -> Result<()> {
+        match (port, input) {
+            ("tiles", Input::Frame(f)) => {
+                if f.header.has(flags::END_OF_SCAN) {
+                    self.tiles_ended = true;
+                } else if f.header.kind() == Some(FrameKind::Tile) {
+                    self.tiles.insert(f.header.tile_index, f.to_owned());
+                } else {
+                    bail!("fusion: input 'tiles' carries {:?} frames, expected tiles", f.header.kind());
+                }
+            }
+            ("registrations", Input::Registration(r)) => {
+                if r.has(flags::END_OF_SCAN) {
+                    self.registrations_ended = true;
+                } else {
+                    self.registrations.insert(r.tile_index, *r);
+                }
+            }
+            _ => bail!("fusion: unexpected message on input '{port}'"),
+        }
+        Ok(())
+    }
+
+    fn on_drained(&mut self, out: &mut Outbox) -> Result<()> {
+        self.place_ready(out)?;
+        if self.tiles_ended && self.registrations_ended && !self.done {
+            self.finish(out)?;
+        }
+        Ok(())
+    }
+
+    fn finished(&self) -> bool {
+        self.done
+    }
+
+    fn report(&self) -> serde_json::Value {
+        json!({ "method": self.method, "patches": self.patches, "panorama": self.summary, "files": self.files })
+    }
+}

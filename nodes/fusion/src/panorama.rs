@@ -1,0 +1,603 @@
+//! The growing panorama: a canvas on a fixed grid that tiles are resampled onto and blended
+//! into, one at a time, as the scan proceeds.
+
+use std::collections::HashSet;
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::error::{FusionError, Result};
+use crate::input::{validate_pitch, BlendParams, TileInput};
+use crate::resample::{AxisPlan, Resampler, MAX_OFFSET_PX};
+
+/// A rectangle of canvas pixels: columns `x0 .. x0 + width`, rows `y0 .. y0 + height`.
+///
+/// Canvas pixel coordinates are indices into the current canvas. When the canvas grows left
+/// or up, existing content moves to larger indices, so a `Region` is valid until the next
+/// [`Panorama::place`]; to locate it for good, take [`Panorama::region_origin_um`] at once.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct Region {
+    pub x0: usize,
+    pub y0: usize,
+    pub width: usize,
+    pub height: usize,
+}
+
+impl Region {
+    /// Number of pixels, `width * height`.
+    pub fn len(&self) -> usize {
+        self.width * self.height
+    }
+
+    /// True when the region holds no pixel.
+    pub fn is_empty(&self) -> bool {
+        self.width == 0 || self.height == 0
+    }
+}
+
+/// A height raster with its place in scan coordinates: the whole panorama.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Raster {
+    /// Row-major, `width * height` heights in um relative to `z_offset_um`; NaN = no data.
+    pub heights: Vec<f32>,
+    pub width: usize,
+    pub height: usize,
+    /// Scan position (um) of the centre of pixel (0, 0).
+    pub origin_x_um: f64,
+    pub origin_y_um: f64,
+    pub pitch_x_um: f64,
+    pub pitch_y_um: f64,
+    /// Absolute height (um) that `heights` are relative to.
+    pub z_offset_um: f64,
+}
+
+/// Grid indices, half-open: columns `x0 .. x1`, rows `y0 .. y1`. Grid index `k` along x is the
+/// pixel centred at `anchor_x_um + k * pitch_x_um`; it may be negative (left of the anchor).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct GridRect {
+    x0: i64,
+    y0: i64,
+    x1: i64,
+    y1: i64,
+}
+
+impl GridRect {
+    fn width(&self) -> usize {
+        (self.x1 - self.x0) as usize
+    }
+
+    fn height(&self) -> usize {
+        (self.y1 - self.y0) as usize
+    }
+
+    fn contains(&self, other: &GridRect) -> bool {
+        other.x0 >= self.x0 && other.x1 <= self.x1 && other.y0 >= self.y0 && other.y1 <= self.y1
+    }
+
+    fn union(&self, other: &GridRect) -> GridRect {
+        GridRect {
+            x0: self.x0.min(other.x0),
+            y0: self.y0.min(other.y0),
+            x1: self.x1.max(other.x1),
+            y1: self.y1.max(other.y1),
+        }
+    }
+
+    /// Pixel count, `None` if it does not fit in usize.
+    fn area(&self) -> Option<usize> {
+        self.width().checked_mul(self.height())
+    }
+}
+
+/// The first tile's origin and z offset: the canvas grid and the canvas z are anchored there.
+#[derive(Debug, Clone, Copy)]
+struct Anchor {
+    x_um: f64,
+    y_um: f64,
+    z_offset_um: f64,
+}
+
+impl Anchor {
+    fn of(tile: &TileInput<'_>) -> Self {
+        Self {
+            x_um: tile.x_um,
+            y_um: tile.y_um,
+            z_offset_um: tile.z_offset_um,
+        }
+    }
+}
+
+/// Default limit on the canvas size: 2^31 px (16 GiB of accumulators when fully touched). A
+/// 30 x 30 scan of 1024 px tiles at 10 % overlap with growth headroom fits; a position given
+/// in the wrong unit does not, and fails with an error instead of exhausting memory.
+pub const DEFAULT_MAX_CANVAS_PX: usize = 1 << 31;
+
+/// The growing panorama.
+///
+/// Per canvas pixel it keeps two f32 accumulators: the weight sum `sum(w)` and the running
+/// weighted mean `sum(w z) / sum(w)` (updated as `m += w / (W + w) * (z - m)` in f64, stored
+/// in f32). That is the blend of the paper's eq. (5) with the same 8 bytes per pixel as a pair
+/// of f32 sums, but a constant surface stays exactly constant and heights keep full f32
+/// precision however many tiles overlap. Pixels with weight 0 have no data (NaN on output).
+///
+/// Memory: 8 bytes per canvas pixel. The buffers are zero-initialised, so the headroom that
+/// amortised growth reserves costs address space, not RAM, until a tile lands there.
+#[derive(Debug, Clone)]
+pub struct Panorama {
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+    params: BlendParams,
+    max_canvas_px: usize,
+    /// Set by the first placed tile.
+    anchor: Option<Anchor>,
+    /// Grid extent of the allocated canvas (empty before the first tile).
+    canvas: GridRect,
+    /// Running weighted mean per canvas pixel, row-major over `canvas`.
+    mean: Vec<f32>,
+    /// Weight sum per canvas pixel; 0 = no data.
+    weight: Vec<f32>,
+    /// Union of the footprints of all placed tiles.
+    content: Option<GridRect>,
+    placed: HashSet<u32>,
+    /// `reserve_um` hint [x_min, y_min, x_max, y_max] waiting for the anchor.
+    reserved_um: Option<[f64; 4]>,
+}
+
+impl Panorama {
+    /// An empty panorama on a grid of the given pitch (um). The grid is anchored by the first
+    /// placed tile: canvas pixel centres lie at `x = first.x_um + k * pitch_x_um` (likewise y).
+    pub fn new(pitch_x_um: f64, pitch_y_um: f64, params: BlendParams) -> Result<Self> {
+        validate_pitch("pitch_x_um", pitch_x_um)?;
+        validate_pitch("pitch_y_um", pitch_y_um)?;
+        params.validate()?;
+        Ok(Self {
+            pitch_x_um,
+            pitch_y_um,
+            params,
+            max_canvas_px: DEFAULT_MAX_CANVAS_PX,
+            anchor: None,
+            canvas: GridRect {
+                x0: 0,
+                y0: 0,
+                x1: 0,
+                y1: 0,
+            },
+            mean: Vec::new(),
+            weight: Vec::new(),
+            content: None,
+            placed: HashSet::new(),
+            reserved_um: None,
+        })
+    }
+
+    /// Change the limit on the canvas size in pixels (default [`DEFAULT_MAX_CANVAS_PX`]).
+    pub fn set_max_canvas_px(&mut self, max_px: usize) {
+        self.max_canvas_px = max_px;
+    }
+
+    /// The limit on the canvas size in pixels.
+    pub fn max_canvas_px(&self) -> usize {
+        self.max_canvas_px
+    }
+
+    /// The blend parameters.
+    pub fn params(&self) -> &BlendParams {
+        &self.params
+    }
+
+    /// Grid pitch (x, y) in um.
+    pub fn pitch_um(&self) -> (f64, f64) {
+        (self.pitch_x_um, self.pitch_y_um)
+    }
+
+    /// Absolute height (um) that the canvas heights are relative to: the first tile's
+    /// `z_offset_um`; 0 before any tile is placed.
+    pub fn z_offset_um(&self) -> f64 {
+        self.anchor.map_or(0.0, |a| a.z_offset_um)
+    }
+
+    /// Canvas width in pixels (allocated extent, including growth headroom).
+    pub fn width(&self) -> usize {
+        self.canvas.width()
+    }
+
+    /// Canvas height in pixels (allocated extent, including growth headroom).
+    pub fn height(&self) -> usize {
+        self.canvas.height()
+    }
+
+    /// Number of tiles placed so far.
+    pub fn tiles_placed(&self) -> usize {
+        self.placed.len()
+    }
+
+    /// Scan position (um) of the centre of canvas pixel (0, 0); (0, 0) before any tile.
+    pub fn canvas_origin_um(&self) -> (f64, f64) {
+        self.grid_to_um(self.canvas.x0, self.canvas.y0)
+    }
+
+    /// Scan position (um) of the centre of a region's first pixel in the current canvas.
+    pub fn region_origin_um(&self, region: &Region) -> (f64, f64) {
+        let (x, y) = self.canvas_origin_um();
+        (
+            x + region.x0 as f64 * self.pitch_x_um,
+            y + region.y0 as f64 * self.pitch_y_um,
+        )
+    }
+
+    /// The bounding box of all placed tiles' footprints in canvas pixels; `None` when empty.
+    pub fn content_region(&self) -> Option<Region> {
+        self.content.map(|c| self.to_region(&c))
+    }
+
+    /// Pre-size the canvas to cover pixel centres in `[x_min_um, x_max_um] x [y_min_um,
+    /// y_max_um]` (scan coordinates), e.g. the nominal extent of the whole scan, so that a scan
+    /// staying inside never reallocates (no latency spike from growth). Called before the
+    /// first tile, it takes effect when that tile anchors the grid. It is a hint: a rectangle
+    /// beyond the size limit is ignored, and tiles outside it still grow the canvas.
+    pub fn reserve_um(
+        &mut self,
+        x_min_um: f64,
+        y_min_um: f64,
+        x_max_um: f64,
+        y_max_um: f64,
+    ) -> Result<()> {
+        for (field, value) in [
+            ("x_min_um", x_min_um),
+            ("y_min_um", y_min_um),
+            ("x_max_um", x_max_um),
+            ("y_max_um", y_max_um),
+        ] {
+            if !value.is_finite() {
+                return Err(FusionError::InvalidParameter {
+                    field,
+                    value,
+                    expected: "a finite scan position in um",
+                });
+            }
+        }
+        if x_max_um < x_min_um || y_max_um < y_min_um {
+            let (field, value) = if x_max_um < x_min_um {
+                ("x_max_um", x_max_um)
+            } else {
+                ("y_max_um", y_max_um)
+            };
+            return Err(FusionError::InvalidParameter {
+                field,
+                value,
+                expected: "max >= min",
+            });
+        }
+        let rect = [x_min_um, y_min_um, x_max_um, y_max_um];
+        if self.mean.is_empty() {
+            self.reserved_um = Some(rect);
+            return Ok(());
+        }
+        if let Some(g) = self.grid_rect_um(&rect) {
+            if !self.canvas.contains(&g) {
+                let wanted = self.canvas.union(&g);
+                if wanted.area().is_some_and(|a| a <= self.max_canvas_px) {
+                    // Cannot fail: `wanted` fits the limit.
+                    self.reallocate(wanted, wanted, 0)?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Grid pixels whose centres lie in an um rectangle [x_min, y_min, x_max, y_max]; `None`
+    /// before the anchor is known or when it is absurdly far from it.
+    fn grid_rect_um(&self, r: &[f64; 4]) -> Option<GridRect> {
+        let a = self.anchor?;
+        let to_grid = |um: f64, origin: f64, pitch: f64, up: bool| {
+            let px = (um - origin) / pitch;
+            let px = if up { px.ceil() } else { px.floor() };
+            (-MAX_OFFSET_PX..=MAX_OFFSET_PX)
+                .contains(&px)
+                .then_some(px as i64)
+        };
+        Some(GridRect {
+            x0: to_grid(r[0], a.x_um, self.pitch_x_um, true)?,
+            y0: to_grid(r[1], a.y_um, self.pitch_y_um, true)?,
+            x1: to_grid(r[2], a.x_um, self.pitch_x_um, false)? + 1,
+            y1: to_grid(r[3], a.y_um, self.pitch_y_um, false)? + 1,
+        })
+        .filter(|g| g.x1 > g.x0 && g.y1 > g.y0)
+    }
+
+    fn grid_to_um(&self, gx: i64, gy: i64) -> (f64, f64) {
+        match self.anchor {
+            Some(a) => (
+                a.x_um + gx as f64 * self.pitch_x_um,
+                a.y_um + gy as f64 * self.pitch_y_um,
+            ),
+            None => (0.0, 0.0),
+        }
+    }
+
+    /// Grid rectangle (inside the canvas) to canvas pixel coordinates.
+    fn to_region(&self, r: &GridRect) -> Region {
+        Region {
+            x0: (r.x0 - self.canvas.x0) as usize,
+            y0: (r.y0 - self.canvas.y0) as usize,
+            width: r.width(),
+            height: r.height(),
+        }
+    }
+
+    /// Where a (validated) tile lands on the grid anchored at `anchor`.
+    fn plan(&self, tile: &TileInput<'_>, anchor: &Anchor) -> Result<(AxisPlan, AxisPlan)> {
+        let offset_x_px = (tile.x_um - anchor.x_um) / self.pitch_x_um;
+        let offset_y_px = (tile.y_um - anchor.y_um) / self.pitch_y_um;
+        for (field, value, offset_px) in [
+            ("x_um", tile.x_um, offset_x_px),
+            ("y_um", tile.y_um, offset_y_px),
+        ] {
+            // Also refuses an infinite offset (a huge finite position over a small pitch).
+            if !(-MAX_OFFSET_PX..=MAX_OFFSET_PX).contains(&offset_px) {
+                return Err(FusionError::PositionOutOfRange {
+                    index: tile.index,
+                    field,
+                    value,
+                    offset_px,
+                    max_px: MAX_OFFSET_PX,
+                });
+            }
+        }
+        Ok((
+            AxisPlan::new(offset_x_px, tile.width, self.params.effective_ramp_x_px()),
+            AxisPlan::new(offset_y_px, tile.height, self.params.effective_ramp_y_px()),
+        ))
+    }
+
+    fn footprint(x: &AxisPlan, y: &AxisPlan) -> GridRect {
+        GridRect {
+            x0: x.start,
+            y0: y.start,
+            x1: x.start + x.len as i64,
+            y1: y.start + y.len as i64,
+        }
+    }
+
+    /// Make the canvas cover `need`, keeping its content. Growth is amortised: a side that must
+    /// move out moves by at least the tile's size or half the canvas, whichever is more, so a
+    /// scan of n tiles reallocates O(log n) times and never copies more than a constant
+    /// multiple of the final canvas in total.
+    fn ensure_covers(&mut self, need: GridRect, index: u32) -> Result<()> {
+        if self.mean.is_empty() {
+            let wanted = match self.reserved_um {
+                Some(r) => self.grid_rect_um(&r).map_or(need, |g| g.union(&need)),
+                None => need,
+            };
+            self.reallocate(wanted, need, index)?;
+            self.reserved_um = None;
+            return Ok(());
+        }
+        let cur = self.canvas;
+        if cur.contains(&need) {
+            return Ok(());
+        }
+        let step_x = (need.width().max(cur.width() / 2)) as i64;
+        let step_y = (need.height().max(cur.height() / 2)) as i64;
+        let padded = GridRect {
+            x0: if need.x0 < cur.x0 {
+                need.x0.min(cur.x0 - step_x)
+            } else {
+                cur.x0
+            },
+            x1: if need.x1 > cur.x1 {
+                need.x1.max(cur.x1 + step_x)
+            } else {
+                cur.x1
+            },
+            y0: if need.y0 < cur.y0 {
+                need.y0.min(cur.y0 - step_y)
+            } else {
+                cur.y0
+            },
+            y1: if need.y1 > cur.y1 {
+                need.y1.max(cur.y1 + step_y)
+            } else {
+                cur.y1
+            },
+        };
+        self.reallocate(padded, cur.union(&need), index)
+    }
+
+    /// Move the canvas to `wanted`, or to `minimal` if `wanted` exceeds the size limit.
+    fn reallocate(&mut self, wanted: GridRect, minimal: GridRect, index: u32) -> Result<()> {
+        let fits = |r: &GridRect| r.area().is_some_and(|a| a <= self.max_canvas_px);
+        let new = if fits(&wanted) {
+            wanted
+        } else if fits(&minimal) {
+            minimal
+        } else {
+            return Err(FusionError::CanvasTooLarge {
+                index,
+                width: minimal.width(),
+                height: minimal.height(),
+                max_px: self.max_canvas_px,
+            });
+        };
+        let area = new.width() * new.height();
+        // Zeroed allocations are lazy: untouched headroom costs no RAM.
+        let mut mean = vec![0.0f32; area];
+        let mut weight = vec![0.0f32; area];
+        let old = self.canvas;
+        if !self.mean.is_empty() {
+            let (ow, nw) = (old.width(), new.width());
+            let dx = (old.x0 - new.x0) as usize;
+            let dy = (old.y0 - new.y0) as usize;
+            for r in 0..old.height() {
+                let src = r * ow..(r + 1) * ow;
+                let dst = (r + dy) * nw + dx;
+                mean[dst..dst + ow].copy_from_slice(&self.mean[src.clone()]);
+                weight[dst..dst + ow].copy_from_slice(&self.weight[src]);
+            }
+        }
+        self.canvas = new;
+        self.mean = mean;
+        self.weight = weight;
+        Ok(())
+    }
+
+    /// Resample a tile onto the canvas at its final position, correct its plane, move it into
+    /// the canvas's z and blend it in. Returns the canvas pixels it changed (its footprint).
+    ///
+    /// The footprint is the canvas pixels whose centres lie inside the hull of the tile's pixel
+    /// centres: `width x height` pixels when the tile sits on the grid, one fewer column (row)
+    /// when its x (y) offset has a fractional part.
+    ///
+    /// On error the panorama is unchanged.
+    pub fn place(&mut self, tile: TileInput<'_>) -> Result<Region> {
+        tile.validate()?;
+        if self.placed.contains(&tile.index) {
+            return Err(FusionError::DuplicateTile { index: tile.index });
+        }
+        let anchor = self.anchor.unwrap_or_else(|| Anchor::of(&tile));
+        let (x, y) = self.plan(&tile, &anchor)?;
+        let footprint = Self::footprint(&x, &y);
+        if x.len == 0 || y.len == 0 {
+            // A one-pixel-wide tile at a fractional offset covers no canvas pixel centre.
+            self.anchor = Some(anchor);
+            self.placed.insert(tile.index);
+            return Ok(Region::default());
+        }
+        // The anchor is committed only together with the canvas: on error nothing changes.
+        let previous_anchor = self.anchor.replace(anchor);
+        if let Err(e) = self.ensure_covers(footprint, tile.index) {
+            self.anchor = previous_anchor;
+            return Err(e);
+        }
+        self.placed.insert(tile.index);
+        self.content = Some(match self.content {
+            Some(c) => c.union(&footprint),
+            None => footprint,
+        });
+
+        let centre_x = (tile.width - 1) as f64 / 2.0;
+        let tilt_x = tile.plane.tilt_x_um_per_px;
+        let resampler = Resampler {
+            heights: tile.heights,
+            width: tile.width,
+            height: tile.height,
+            col_term_um: (0..tile.width)
+                .map(|c| -(tilt_x * (c as f64 - centre_x)))
+                .collect(),
+            piston_um: tile.plane.piston_um,
+            tilt_y_um_per_px: tile.plane.tilt_y_um_per_px,
+            dz_um: tile.z_offset_um - anchor.z_offset_um,
+            x,
+            y,
+        };
+        let region = self.to_region(&footprint);
+        let stride = self.canvas.width();
+        let rows = region.y0 * stride..(region.y0 + region.height) * stride;
+        let cols = region.x0..region.x0 + region.width;
+        // One task per canvas row: rows are independent, so the result does not depend on the
+        // thread count or schedule (bit for bit), and only the tile's rows are visited.
+        self.mean[rows.clone()]
+            .par_chunks_mut(stride)
+            .zip(self.weight[rows].par_chunks_mut(stride))
+            .enumerate()
+            .with_min_len(8)
+            .for_each(|(j, (mean_row, weight_row))| {
+                resampler.blend_row(
+                    j,
+                    &mut mean_row[cols.clone()],
+                    &mut weight_row[cols.clone()],
+                )
+            });
+        Ok(region)
+    }
+
+    /// Blended heights of a region (um relative to [`Panorama::z_offset_um`]), row-major;
+    /// NaN where no tile has data and for pixels outside the canvas.
+    pub fn extract(&self, region: Region) -> Vec<f32> {
+        let mut out = vec![f32::NAN; region.len()];
+        let (cw, ch) = (self.canvas.width(), self.canvas.height());
+        if region.is_empty() || region.x0 >= cw || region.y0 >= ch {
+            return out;
+        }
+        let x_end = region.x0.saturating_add(region.width).min(cw);
+        let y_end = region.y0.saturating_add(region.height).min(ch);
+        for (r, out_row) in (region.y0..y_end).zip(out.chunks_mut(region.width)) {
+            let src = r * cw + region.x0..r * cw + x_end;
+            for ((o, &m), &w) in out_row
+                .iter_mut()
+                .zip(&self.mean[src.clone()])
+                .zip(&self.weight[src])
+            {
+                if w > 0.0 {
+                    *o = m;
+                }
+            }
+        }
+        out
+    }
+
+    /// The whole panorama, trimmed to the bounding box of the placed tiles' footprints. An
+    /// empty panorama gives a 0 x 0 raster.
+    pub fn to_raster(&self) -> Raster {
+        let (region, origin) = match self.content {
+            Some(c) => (self.to_region(&c), self.grid_to_um(c.x0, c.y0)),
+            None => (Region::default(), (0.0, 0.0)),
+        };
+        Raster {
+            heights: self.extract(region),
+            width: region.width,
+            height: region.height,
+            origin_x_um: origin.0,
+            origin_y_um: origin.1,
+            pitch_x_um: self.pitch_x_um,
+            pitch_y_um: self.pitch_y_um,
+            z_offset_um: self.z_offset_um(),
+        }
+    }
+}
+
+/// Re-render a panorama from final tile positions (end of scan, after a global solve moved
+/// tiles). Tiles are placed in increasing `index` order (the slice order does not matter), so
+/// the result equals placing them one by one in that order and taking
+/// [`Panorama::to_raster`], bit for bit. The canvas is sized once from all footprints instead
+/// of growing.
+pub fn render(
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+    tiles: &[TileInput<'_>],
+    params: BlendParams,
+) -> Result<Raster> {
+    let mut pano = Panorama::new(pitch_x_um, pitch_y_um, params)?;
+    let mut order: Vec<&TileInput<'_>> = tiles.iter().collect();
+    // Stable: equal indices keep their slice order (and then fail as duplicates in place()).
+    order.sort_by_key(|t| t.index);
+    let first = order.first().ok_or(FusionError::NoTiles)?;
+    // Validated (with all the others) in the loop below, before anything is planned.
+    let anchor = Anchor::of(first);
+    let mut need: Option<GridRect> = None;
+    for tile in &order {
+        tile.validate()?;
+        let (x, y) = pano.plan(tile, &anchor)?;
+        if x.len == 0 || y.len == 0 {
+            continue;
+        }
+        let fp = Panorama::footprint(&x, &y);
+        let union = need.map_or(fp, |n| n.union(&fp));
+        if union.area().is_none_or(|a| a > pano.max_canvas_px) {
+            return Err(FusionError::CanvasTooLarge {
+                index: tile.index,
+                width: union.width(),
+                height: union.height(),
+                max_px: pano.max_canvas_px,
+            });
+        }
+        need = Some(union);
+    }
+    if let Some(need) = need {
+        pano.ensure_covers(need, first.index)?;
+    }
+    for tile in order {
+        pano.place(*tile)?;
+    }
+    Ok(pano.to_raster())
+}
