@@ -1,1 +1,108 @@
-//! e2e helpers
+//! Helpers for the end-to-end tests: find the built binaries, run commands, read outputs.
+//!
+//! The tests start the release binaries (`cargo build --release` first; `scripts/test.sh`
+//! does both), as a user would.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// The directory holding `surfstream` and the `surfstream-<node>` binaries.
+pub fn bin_dir() -> PathBuf {
+    // target/<profile>/deps/<test> -> target/<profile>; prefer release binaries.
+    let exe = std::env::current_exe().expect("test executable path");
+    let target = exe.parent().and_then(Path::parent).and_then(Path::parent).expect("target dir");
+    for profile in ["release", "debug"] {
+        let dir = target.join(profile);
+        if dir.join("surfstream").exists() && dir.join("surfstream-replay").exists() {
+            return dir;
+        }
+    }
+    panic!(
+        "surfstream binaries not found under {}: build them first with `cargo build --release` \
+         (scripts/test.sh builds and tests)",
+        target.display()
+    );
+}
+
+/// The repository root (graphs live in launch/graphs).
+pub fn repo_root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().expect("repo root").to_path_buf()
+}
+
+pub fn surfstream() -> Command {
+    let mut c = Command::new(bin_dir().join("surfstream"));
+    c.current_dir(repo_root());
+    c
+}
+
+/// Runs and returns the output; prints stderr for the test log.
+pub fn run(mut cmd: Command) -> Output {
+    let out = cmd.output().expect("start surfstream");
+    eprintln!("--- {:?} -> {:?}\n{}", cmd, out.status, String::from_utf8_lossy(&out.stderr));
+    out
+}
+
+pub fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).to_string()
+}
+
+pub fn read_json(path: &Path) -> serde_json::Value {
+    let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    serde_json::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+/// The Python with `mcap`, `numpy` and `trimesh` that scripts/test.sh prepares.
+pub fn python() -> PathBuf {
+    if let Ok(p) = std::env::var("SURFSTREAM_PYTHON") {
+        return PathBuf::from(p);
+    }
+    let venv = repo_root().join(".test-venv/bin/python");
+    assert!(
+        venv.exists(),
+        "no Python test environment: run scripts/test.sh (it creates .test-venv with mcap, numpy, trimesh)"
+    );
+    venv
+}
+
+/// The files that every pipeline run must produce identically in `launch` and `run`.
+pub const OUTPUTS: &[&str] = &[
+    "panorama.npy",
+    "datum.npy",
+    "roughness.npy",
+    "pooled.npy",
+    "surface.stl",
+    "panorama.png",
+    "datum.png",
+    "roughness.png",
+    "pooled.png",
+];
+
+/// Asserts two out dirs hold byte-identical outputs.
+pub fn assert_same_outputs(a: &Path, b: &Path) {
+    for f in OUTPUTS {
+        let x = std::fs::read(a.join(f)).unwrap_or_else(|e| panic!("{}: {e}", a.join(f).display()));
+        let y = std::fs::read(b.join(f)).unwrap_or_else(|e| panic!("{}: {e}", b.join(f).display()));
+        assert!(x == y, "{f} differs between {} and {}", a.display(), b.display());
+    }
+}
+
+/// The iceoryx2 domain a launch used, from its stderr ("domain ssN_").
+pub fn domain_of(stderr: &str) -> Option<String> {
+    let at = stderr.find("domain ")? + "domain ".len();
+    let rest = &stderr[at..];
+    let end = rest.find(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))?;
+    Some(rest[..end].to_string())
+}
+
+/// Shared-memory files of a domain, except the 16-byte per-prefix management file that
+/// iceoryx2 keeps by design.
+pub fn shm_leftovers(domain: &str) -> Vec<String> {
+    std::fs::read_dir("/dev/shm")
+        .map(|d| {
+            d.flatten()
+                .map(|e| e.file_name().to_string_lossy().to_string())
+                .filter(|n| n.starts_with(domain) && !n.ends_with("global_mgmt"))
+                .collect()
+        })
+        .unwrap_or_default()
+}

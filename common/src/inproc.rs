@@ -22,6 +22,8 @@ const LOSSLESS_DEPTH: usize = 16;
 const HOUSEKEEPING: Duration = Duration::from_millis(500);
 
 type Message = Arc<Output>;
+/// (producer id, output port) -> the consumers' (id, sender).
+type Fanout = BTreeMap<(String, String), Vec<(String, Sender<Message>)>>;
 
 struct InputChannel {
     port: String,
@@ -57,7 +59,7 @@ pub struct InProcessNode {
 /// Runs every node on its own thread until all finish; returns their reports in graph order.
 pub fn run_graph(nodes: Vec<InProcessNode>) -> Result<Vec<NodeReport>> {
     // One channel per (consumer, input port); producers keep the senders.
-    let mut senders: BTreeMap<(String, String), Vec<(String, Sender<Message>)>> = BTreeMap::new();
+    let mut senders: Fanout = BTreeMap::new();
     let mut receivers: Vec<Vec<InputChannel>> = Vec::new();
     for n in &nodes {
         let mut ins = Vec::new();

@@ -401,7 +401,7 @@ pub fn run_node(
                 );
             }
             listener
-                .timed_wait(|e| ready += e.count as u64, left.min(Duration::from_millis(100)))
+                .timed_wait(|e| ready += e.count, left.min(Duration::from_millis(100)))
                 .map_err(|e| anyhow!("output '{}': ready wait failed: {e:?}", o.port))?;
         }
     }

@@ -46,9 +46,11 @@ const STAGES: &[(&str, &str, &str)] = &[
 /// Latency figures for run.json.
 #[derive(Debug, Clone, Serialize, Default)]
 pub struct LatencySummary {
-    /// "tile_to_<stage>": acquisition of the causing tile -> the stage's frame sent.
+    /// "tile_to_<stage>": acquisition of the causing tile -> the stage's live frame sent.
     #[serde(flatten)]
     pub end_to_end: BTreeMap<String, Percentiles>,
+    /// "last_tile_to_final_<stage>": acquisition of the last tile -> the stage's final frame.
+    pub final_frames: BTreeMap<String, Percentiles>,
     /// "<stage>_to_<stage>": between consecutive stages, for the same causing tile.
     pub hops: BTreeMap<String, Percentiles>,
     /// "<node>/<port> -> <node>": send -> receive of every channel.
@@ -63,24 +65,33 @@ pub fn summarize(reports: &[NodeReport], mesh_done: Option<(u64, u64)>) -> Laten
     let mut first_sent: BTreeMap<&str, BTreeMap<u32, u64>> = BTreeMap::new();
     for (stage, kind, port) in STAGES {
         let mut samples = Vec::new();
+        let mut finals = Vec::new();
         let mut first = BTreeMap::new();
         for r in reports.iter().filter(|r| r.node_kind == *kind) {
             for e in r.stats.sent.get(*port).into_iter().flatten() {
                 if e.flags & flags::END_OF_SCAN != 0 || e.t_acquired_ns == 0 {
                     continue;
                 }
-                samples.push(e.t_sent_ns.saturating_sub(e.t_acquired_ns));
+                let latency = e.t_sent_ns.saturating_sub(e.t_acquired_ns);
+                if e.flags & flags::FINAL != 0 {
+                    finals.push(latency);
+                    continue;
+                }
+                samples.push(latency);
                 first.entry(e.tile_index).or_insert(e.t_sent_ns);
             }
         }
         if let Some(p) = percentiles_ms(&samples) {
             s.end_to_end.insert(format!("tile_to_{stage}"), p);
         }
+        if let Some(p) = percentiles_ms(&finals) {
+            s.final_frames.insert(format!("last_tile_to_final_{stage}"), p);
+        }
         first_sent.insert(stage, first);
     }
     if let Some((t_acq, t_done)) = mesh_done {
         if let Some(p) = percentiles_ms(&[t_done.saturating_sub(t_acq)]) {
-            s.end_to_end.insert("tile_to_mesh".into(), p);
+            s.final_frames.insert("last_tile_to_mesh".into(), p);
         }
     }
     for pair in [("registration", "panorama"), ("panorama", "datum"), ("datum", "pooled")] {

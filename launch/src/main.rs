@@ -1,1 +1,157 @@
-fn main() {}
+//! `surfstream`: start a node graph as processes (`launch`) or threads (`run`), or stitch a
+//! scan directory or recording in one go (`stitch`).
+
+mod launcher;
+mod nodes;
+mod runjson;
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::{anyhow, bail, Context, Result};
+use clap::{Args, Parser, Subcommand};
+use surfstream_common::graph::GraphFile;
+
+#[derive(Parser)]
+#[command(
+    name = "surfstream",
+    version,
+    about = "Optical-profiler tiles in, a stitched surface model out: panorama, datum, roughness, pooled map, STL.",
+    long_about = "surfstream streams overlapping height-map tiles from a (simulated or recorded) profiler \
+stage through registration, fusion, wavelet separation and meshing.\n\n\
+  surfstream launch launch/graphs/demo.toml     every node its own process, frames over shared memory\n\
+  surfstream run launch/graphs/demo.toml        the same graph in one process (identical outputs)\n\
+  surfstream stitch scan.toml --out out/scan    the default pipeline for a scan directory or recording"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Args, Clone)]
+struct GraphArgs {
+    /// Graph file (TOML): nodes, parameters, wiring. See launch/graphs/demo.toml.
+    graph: PathBuf,
+    /// Output directory (overrides [graph] out_dir).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Override one node parameter, e.g. --set stage.rows=3 (VALUE is read as TOML).
+    #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
+    set: Vec<String>,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Start every node of GRAPH as its own process, supervise, and write run.json.
+    Launch(GraphArgs),
+    /// Run GRAPH in this process, nodes as threads (bit-identical outputs to `launch`).
+    Run(GraphArgs),
+    /// Stitch a scan directory (scan.toml) or an MCAP recording with the default pipeline.
+    Stitch {
+        /// scan.toml (or its directory), or a .mcap recording made by the recorder.
+        scan: PathBuf,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// Override one node parameter (nodes: stage, matcher, fusion, wavelet, mesher).
+        #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
+        set: Vec<String>,
+    },
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match dispatch(cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("surfstream: error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn dispatch(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Launch(a) => {
+            let graph = load_graph(&a)?;
+            launcher::launch(graph, &a.graph)
+        }
+        Command::Run(a) => {
+            let graph = load_graph(&a)?;
+            launcher::run_in_process(graph, &a.graph)
+        }
+        Command::Stitch { scan, out, set } => {
+            let graph = stitch_graph(&scan, out, &set)?;
+            launcher::run_in_process(graph, &scan)
+        }
+    }
+}
+
+/// Reads a graph file and applies `--out` and `--set`.
+fn load_graph(a: &GraphArgs) -> Result<GraphFile> {
+    let mut graph = GraphFile::load(&a.graph)?;
+    for s in &a.set {
+        graph.apply_override(s)?;
+    }
+    if let Some(out) = &a.out {
+        graph.graph.out_dir = out.clone();
+    }
+    graph.validate(&a.graph.display().to_string())?;
+    Ok(graph)
+}
+
+/// The default pipeline for a scan directory or a recording.
+fn stitch_graph(scan: &std::path::Path, out: PathBuf, set: &[String]) -> Result<GraphFile> {
+    let source = if scan.extension().is_some_and(|e| e == "mcap") {
+        toml::Value::String("mcap".into())
+    } else {
+        toml::Value::String("scan".into())
+    };
+    let path = if scan.is_dir() { scan.join("scan.toml") } else { scan.to_path_buf() };
+    if !path.exists() {
+        bail!("{}: no such file (expected a scan.toml, its directory, or a .mcap recording)", path.display());
+    }
+    let path = path
+        .canonicalize()
+        .with_context(|| format!("{}: cannot resolve path", path.display()))?;
+    let path_str = path.to_str().ok_or_else(|| anyhow!("{}: path is not UTF-8", path.display()))?;
+    let text = format!(
+        r#"
+[graph]
+name = "stitch"
+
+[[node]]
+id = "stage"
+node = "replay"
+params = {{ source = {source}, path = {path:?}, pacing = "fast" }}
+
+[[node]]
+id = "matcher"
+node = "matcher"
+inputs = {{ tiles = "stage/tiles" }}
+
+[[node]]
+id = "fusion"
+node = "fusion"
+inputs = {{ tiles = "stage/tiles", registrations = "matcher/registrations" }}
+
+[[node]]
+id = "wavelet"
+node = "wavelet"
+inputs = {{ panorama = "fusion/panorama" }}
+
+[[node]]
+id = "mesher"
+node = "mesher"
+inputs = {{ surface = "wavelet/pooled" }}
+"#,
+        path = path_str
+    );
+    let mut graph = GraphFile::parse(&text, "stitch pipeline")?;
+    for s in set {
+        graph.apply_override(s)?;
+    }
+    graph.graph.out_dir = out;
+    graph.validate("stitch pipeline")?;
+    Ok(graph)
+}

@@ -20,7 +20,7 @@ const PORT: &str = "tiles";
 
 /// Where tiles come from.
 enum Source {
-    Simulated { specimen: Specimen, plan: ScanPlan },
+    Simulated { specimen: Specimen, plan: Box<ScanPlan> },
     /// Tiles already in memory (scan directory, recording), with their headers.
     Frames(Vec<HeightMap>),
 }
@@ -242,7 +242,7 @@ fn simulated(ctx: &NodeContext) -> Result<ReplayNode> {
         .collect();
     Ok(ReplayNode {
         pacing: pacing_from(&pacing, field_time_s, ctx)?,
-        source: Source::Simulated { specimen, plan },
+        source: Source::Simulated { specimen, plan: Box::new(plan) },
         offsets_ns: Vec::new(),
         started: None,
         next: 0,

@@ -1,0 +1,399 @@
+//! Starting graphs: as supervised processes over iceoryx2 (`launch`) or as threads (`run`).
+//!
+//! `launch` takes a free domain slot (a fixed set of iceoryx2 prefixes guarded by file locks, so
+//! concurrent runs never see each other's services and no prefix files pile up), removes what
+//! dead processes of an earlier run of that slot left behind, starts every node with its stderr
+//! captured, waits until all report ready, says "go" to the sources, and supervises: a node that
+//! exits non-zero or dies stops the graph, is named with the tail of its stderr, and makes the
+//! launcher exit non-zero. Ctrl-C stops every node. Children die with the launcher
+//! (PR_SET_PDEATHSIG), and the slot is cleaned again at the end.
+
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::os::unix::process::{CommandExt, ExitStatusExt};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, bail, Context, Result};
+use crossbeam_channel::{unbounded, Receiver, RecvTimeoutError};
+use surfstream_common::graph::{GraphFile, NodeContext};
+use surfstream_common::inproc::{self, InProcessNode};
+use surfstream_common::node::NodeReport;
+use surfstream_common::{fsutil, ipc, shell};
+
+use crate::{nodes, runjson};
+
+/// Concurrent launches supported on one machine (one iceoryx2 prefix each).
+const SLOTS: usize = 32;
+/// How long stopped nodes get to exit after SIGTERM before SIGKILL.
+const STOP_GRACE: Duration = Duration::from_secs(3);
+
+mod iceoryx2_free {
+    //! Small process helpers that need no iceoryx2.
+    pub fn signal(pid: u32, sig: i32) {
+        // SAFETY: kill(2) on a pid we started; a stale pid at worst gets ESRCH.
+        unsafe {
+            libc::kill(pid as libc::pid_t, sig);
+        }
+    }
+}
+
+/// Prepares the out dir, resolves the graph and writes the resolved form beside the outputs.
+fn prepare(graph: &mut GraphFile) -> Result<Vec<NodeContext>> {
+    let out = &graph.graph.out_dir;
+    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create out dir", out.display()))?;
+    let out = out
+        .canonicalize()
+        .with_context(|| format!("{}: cannot resolve out dir", out.display()))?;
+    graph.graph.out_dir = out.clone();
+    // Reports of an earlier run must not be mistaken for this run's.
+    let nodes_dir = out.join("nodes");
+    if nodes_dir.exists() {
+        std::fs::remove_dir_all(&nodes_dir)
+            .with_context(|| format!("{}: cannot clear old node reports", nodes_dir.display()))?;
+    }
+    let _ = std::fs::remove_file(out.join("run.json"));
+    let scan_id = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_nanos() as u64)
+        .unwrap_or(0);
+    let contexts = graph.resolve(scan_id)?;
+    let resolved = out.join(shell::RESOLVED_GRAPH);
+    fsutil::write_atomic(&resolved, |w| {
+        serde_json::to_writer_pretty(w, &contexts).map_err(|e| anyhow!("{}: {e}", resolved.display()))
+    })?;
+    Ok(contexts)
+}
+
+/// `surfstream run`: the graph in this process.
+pub fn run_in_process(mut graph: GraphFile, origin: &Path) -> Result<()> {
+    let contexts = prepare(&mut graph)?;
+    let started = Instant::now();
+    let mut threads = Vec::new();
+    for c in &contexts {
+        let logic = nodes::build(c).with_context(|| format!("node '{}'", c.node_id))?;
+        threads.push(InProcessNode { context: c.clone(), logic });
+    }
+    eprintln!(
+        "surfstream: running graph '{}' in one process ({} nodes) -> {}",
+        graph.graph.name,
+        contexts.len(),
+        graph.graph.out_dir.display()
+    );
+    let reports = inproc::run_graph(threads)?;
+    for r in &reports {
+        shell::write_report(&graph.graph.out_dir, r)?;
+    }
+    finish(&graph, origin, &reports, "run", started)
+}
+
+/// Writes run.json and prints the summary.
+fn finish(
+    graph: &GraphFile,
+    origin: &Path,
+    reports: &[NodeReport],
+    mode: &str,
+    started: Instant,
+) -> Result<()> {
+    let summary = runjson::write(graph, origin, reports, mode, started.elapsed())?;
+    eprintln!("{summary}");
+    Ok(())
+}
+
+struct Slot {
+    _lock: File,
+    prefix: String,
+}
+
+/// Takes the first free slot; the lock is held for the life of the launch.
+fn take_slot() -> Result<Slot> {
+    let dir = std::env::temp_dir().join("surfstream-slots");
+    std::fs::create_dir_all(&dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+    for k in 0..SLOTS {
+        let path = dir.join(format!("slot-{k}.lock"));
+        let file = File::options()
+            .create(true)
+            .truncate(false)
+            .write(true)
+            .open(&path)
+            .with_context(|| format!("{}: cannot open", path.display()))?;
+        use std::os::fd::AsRawFd;
+        // SAFETY: flock on a file descriptor we own.
+        if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } == 0 {
+            return Ok(Slot { _lock: file, prefix: format!("ss{k}_") });
+        }
+    }
+    bail!("all {SLOTS} launch slots are busy: too many graphs running at once")
+}
+
+enum Event {
+    Exited { id: String, status: std::process::ExitStatus },
+    Interrupted,
+}
+
+struct Running {
+    id: String,
+    kind: String,
+    pid: u32,
+    log: PathBuf,
+    exited: bool,
+}
+
+fn node_binary(kind: &str) -> Result<PathBuf> {
+    let exe = std::env::current_exe().context("cannot locate the surfstream binary")?;
+    let dir = exe.parent().ok_or_else(|| anyhow!("surfstream binary has no directory"))?;
+    let bin = dir.join(format!("surfstream-{kind}"));
+    if !bin.exists() {
+        bail!(
+            "{}: node binary not found (build all binaries: cargo build --release)",
+            bin.display()
+        );
+    }
+    Ok(bin)
+}
+
+fn stderr_tail(path: &Path, lines: usize) -> String {
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    let all: Vec<&str> = text.lines().collect();
+    let tail = all[all.len().saturating_sub(lines)..].join("\n    ");
+    if tail.is_empty() {
+        "(no output on stderr)".into()
+    } else {
+        format!("\n    {tail}")
+    }
+}
+
+fn describe_exit(status: &std::process::ExitStatus) -> String {
+    match (status.code(), status.signal()) {
+        (Some(c), _) => format!("exited with status {c}"),
+        (None, Some(s)) => format!("was killed by signal {s}"),
+        _ => "ended".into(),
+    }
+}
+
+/// `surfstream launch`: every node its own process.
+pub fn launch(mut graph: GraphFile, origin: &Path) -> Result<()> {
+    let contexts = prepare(&mut graph)?;
+    let started = Instant::now();
+    let out = graph.graph.out_dir.clone();
+    let slot = take_slot()?;
+    let cfg = ipc::domain_config(&slot.prefix)?;
+    let stale = ipc::cleanup_dead_nodes(&cfg)?;
+    if stale > 0 {
+        eprintln!("surfstream: removed stale resources of {stale} dead node(s) of an earlier run");
+    }
+    let logs = out.join("logs");
+    std::fs::create_dir_all(&logs).with_context(|| format!("{}: cannot create", logs.display()))?;
+    let binaries: Vec<PathBuf> =
+        contexts.iter().map(|c| node_binary(&c.node_kind)).collect::<Result<_>>()?;
+
+    let result = {
+        let launcher = ipc::create_node(&cfg, &format!("{}/launcher", graph.graph.name))?;
+        let link = ipc::launcher_link(&graph.graph.name);
+        let ready_events = ipc::open_event_service(&launcher, &link.ready_service)?;
+        let ready = ready_events
+            .listener_builder()
+            .create()
+            .map_err(|e| anyhow!("cannot create the launcher's ready listener: {e:?}"))?;
+        let go_events = ipc::open_event_service(&launcher, &link.go_service)?;
+        let go = go_events
+            .notifier_builder()
+            .create()
+            .map_err(|e| anyhow!("cannot create the launcher's go notifier: {e:?}"))?;
+
+        let (tx, rx) = unbounded();
+        let ctrlc_tx = tx.clone();
+        // A second Ctrl-C handler registration fails in tests that launch twice: ignore.
+        let _ = ctrlc::set_handler(move || {
+            let _ = ctrlc_tx.send(Event::Interrupted);
+        });
+        let resolved = out.join(shell::RESOLVED_GRAPH);
+        let mut running = Vec::new();
+        let mut spawn_error = None;
+        for (c, bin) in contexts.iter().zip(&binaries) {
+            let log = logs.join(format!("{}.stderr", c.node_id));
+            match spawn(bin, &resolved, c, &slot.prefix, &log) {
+                Ok(mut child) => {
+                    let pid = child.id();
+                    let id = c.node_id.clone();
+                    let tx = tx.clone();
+                    std::thread::spawn(move || {
+                        if let Ok(status) = child.wait() {
+                            let _ = tx.send(Event::Exited { id, status });
+                        }
+                    });
+                    running.push(Running {
+                        id: c.node_id.clone(),
+                        kind: c.node_kind.clone(),
+                        pid,
+                        log,
+                        exited: false,
+                    });
+                }
+                Err(e) => {
+                    spawn_error = Some(e.context(format!("cannot start node '{}'", c.node_id)));
+                    break;
+                }
+            }
+        }
+        eprintln!(
+            "surfstream: launched graph '{}' ({} processes, domain {}) -> {}",
+            graph.graph.name,
+            running.len(),
+            slot.prefix,
+            out.display()
+        );
+        let outcome = match spawn_error {
+            Some(e) => Err(e),
+            None => supervise(&graph, &contexts, &mut running, &rx, &ready, &go),
+        };
+        if outcome.is_err() {
+            stop_all(&mut running, &rx);
+        }
+        drop(go);
+        drop(ready);
+        drop(launcher);
+        outcome
+    };
+    // Whatever happened, leave the slot clean.
+    let cleaned = ipc::cleanup_dead_nodes(&cfg).unwrap_or(0);
+    if cleaned > 0 {
+        eprintln!("surfstream: removed stale shared memory of {cleaned} dead node(s)");
+    }
+    result?;
+    let reports = read_reports(&out, &contexts)?;
+    finish(&graph, origin, &reports, "launch", started)
+}
+
+fn spawn(
+    bin: &Path,
+    resolved: &Path,
+    c: &NodeContext,
+    prefix: &str,
+    log: &Path,
+) -> Result<std::process::Child> {
+    let stderr = File::create(log).with_context(|| format!("{}: cannot create", log.display()))?;
+    let mut cmd = Command::new(bin);
+    cmd.arg("--graph")
+        .arg(resolved)
+        .arg("--node")
+        .arg(&c.node_id)
+        .arg("--domain")
+        .arg(prefix)
+        .arg("--launched")
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(stderr);
+    // SAFETY: only async-signal-safe calls between fork and exec.
+    unsafe {
+        cmd.pre_exec(|| {
+            // Own process group: a terminal's Ctrl-C reaches the launcher, which stops nodes in order.
+            libc::setpgid(0, 0);
+            // A node never outlives its launcher.
+            libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL);
+            Ok(())
+        });
+    }
+    cmd.spawn().with_context(|| format!("{}: cannot start", bin.display()))
+}
+
+fn supervise(
+    graph: &GraphFile,
+    contexts: &[NodeContext],
+    running: &mut [Running],
+    rx: &Receiver<Event>,
+    ready: &iceoryx2::port::listener::Listener<iceoryx2::prelude::ipc::Service>,
+    go: &iceoryx2::port::notifier::Notifier<iceoryx2::prelude::ipc::Service>,
+) -> Result<()> {
+    // Readiness: every node attached all its channels.
+    let deadline = Instant::now() + Duration::from_secs_f64(graph.graph.startup_timeout_s + 5.0);
+    let mut ready_count = 0u64;
+    while ready_count < contexts.len() as u64 {
+        if Instant::now() > deadline {
+            bail!(
+                "only {ready_count} of {} nodes became ready within {:.0} s",
+                contexts.len(),
+                graph.graph.startup_timeout_s + 5.0
+            );
+        }
+        ready
+            .timed_wait(|e| ready_count += e.count, Duration::from_millis(50))
+            .map_err(|e| anyhow!("ready wait failed: {e:?}"))?;
+        while let Ok(ev) = rx.try_recv() {
+            handle(ev, running)?;
+        }
+    }
+    go.notify().map_err(|e| anyhow!("cannot tell the sources to start: {e:?}"))?;
+    eprintln!("surfstream: all {} nodes ready; scan started", contexts.len());
+    while running.iter().any(|r| !r.exited) {
+        match rx.recv_timeout(Duration::from_secs(3600)) {
+            Ok(ev) => handle(ev, running)?,
+            Err(RecvTimeoutError::Timeout) => continue,
+            Err(RecvTimeoutError::Disconnected) => bail!("lost track of the node processes"),
+        }
+    }
+    Ok(())
+}
+
+fn handle(ev: Event, running: &mut [Running]) -> Result<()> {
+    match ev {
+        Event::Interrupted => bail!("interrupted (Ctrl-C): stopping every node"),
+        Event::Exited { id, status } => {
+            let r = running
+                .iter_mut()
+                .find(|r| r.id == id)
+                .ok_or_else(|| anyhow!("unknown node '{id}' exited"))?;
+            r.exited = true;
+            if !status.success() {
+                bail!(
+                    "node '{}' (surfstream-{}) {}; last lines of its stderr ({}):{}",
+                    r.id,
+                    r.kind,
+                    describe_exit(&status),
+                    r.log.display(),
+                    stderr_tail(&r.log, 12)
+                );
+            }
+            Ok(())
+        }
+    }
+}
+
+/// SIGTERM to every node still running, SIGKILL after a grace period.
+fn stop_all(running: &mut [Running], rx: &Receiver<Event>) {
+    for r in running.iter().filter(|r| !r.exited) {
+        iceoryx2_free::signal(r.pid, libc::SIGTERM);
+    }
+    let deadline = Instant::now() + STOP_GRACE;
+    while running.iter().any(|r| !r.exited) {
+        let left = deadline.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            break;
+        }
+        if let Ok(Event::Exited { id, .. }) = rx.recv_timeout(left) {
+            if let Some(r) = running.iter_mut().find(|r| r.id == id) {
+                r.exited = true;
+            }
+        }
+    }
+    for r in running.iter_mut().filter(|r| !r.exited) {
+        iceoryx2_free::signal(r.pid, libc::SIGKILL);
+        r.exited = true;
+    }
+    // Give the kernel a moment to drop the killed processes' file locks before cleanup.
+    std::thread::sleep(Duration::from_millis(50));
+}
+
+fn read_reports(out: &Path, contexts: &[NodeContext]) -> Result<Vec<NodeReport>> {
+    let mut reports = BTreeMap::new();
+    for c in contexts {
+        let path = shell::report_path(out, &c.node_id);
+        let text = std::fs::read_to_string(&path)
+            .with_context(|| format!("{}: node '{}' left no report", path.display(), c.node_id))?;
+        let r: NodeReport = serde_json::from_str(&text)
+            .map_err(|e| anyhow!("{}: malformed node report: {e}", path.display()))?;
+        reports.insert(c.node_id.clone(), r);
+    }
+    Ok(contexts.iter().filter_map(|c| reports.remove(&c.node_id)).collect())
+}

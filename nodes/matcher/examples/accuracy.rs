@@ -1,0 +1,190 @@
+//! Accuracy survey of the registration on synthetic pairs: the default parameters against the
+//! alternatives (sub-pixel estimators, window, spectral Gaussian, dropout fill), all on the
+//! same pairs (10, 20 and 30 % overlap, horizontal and vertical neighbours). This is how the
+//! defaults were chosen.
+//!
+//! `cargo run --release -p surfstream-matcher --example accuracy -- [TILE_PX] [PAIRS_PER_CASE]
+//! [NOISE_UM] [NAN_FRACTION]`
+
+#[path = "../tests/support/mod.rs"]
+mod support;
+
+use surfstream_matcher::{PhaseCorrelator, PhaseParams, RasterRef, SubPixel, Window};
+use support::{make_pair, surface_size, PairSpec, Surface};
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let arg = |i: usize, d: f64| -> f64 { args.get(i).and_then(|s| s.parse().ok()).unwrap_or(d) };
+    let tile = arg(1, 256.0) as usize;
+    let per_case = arg(2, 6.0) as usize;
+    let noise = arg(3, 0.05);
+    let nan = arg(4, 0.05);
+
+    let d = PhaseParams::default();
+    let configs: Vec<(&str, PhaseParams)> = vec![
+        ("default (Gaussian fit)", d.clone()),
+        (
+            "parabolic fit",
+            PhaseParams {
+                subpixel: SubPixel::Parabolic,
+                ..d.clone()
+            },
+        ),
+        (
+            "Foroosh",
+            PhaseParams {
+                subpixel: SubPixel::Foroosh,
+                ..d.clone()
+            },
+        ),
+        (
+            "Foroosh, no spectral Gaussian",
+            PhaseParams {
+                subpixel: SubPixel::Foroosh,
+                peak_sigma_px: 0.0,
+                ..d.clone()
+            },
+        ),
+        (
+            "phase-plane fit",
+            PhaseParams {
+                subpixel: SubPixel::PhasePlane,
+                ..d.clone()
+            },
+        ),
+        (
+            "no spectral Gaussian",
+            PhaseParams {
+                peak_sigma_px: 0.0,
+                ..d.clone()
+            },
+        ),
+        (
+            "spectral Gaussian 1.5 px",
+            PhaseParams {
+                peak_sigma_px: 1.5,
+                ..d.clone()
+            },
+        ),
+        (
+            "whitening floor 0.1",
+            PhaseParams {
+                whitening_floor: 0.1,
+                ..d.clone()
+            },
+        ),
+        (
+            "whitening floor 0.3",
+            PhaseParams {
+                whitening_floor: 0.3,
+                ..d.clone()
+            },
+        ),
+        (
+            "whitening floor 1",
+            PhaseParams {
+                whitening_floor: 1.0,
+                ..d.clone()
+            },
+        ),
+        (
+            "whitening floor 3",
+            PhaseParams {
+                whitening_floor: 3.0,
+                ..d.clone()
+            },
+        ),
+        (
+            "whitening floor 1, no gaussian",
+            PhaseParams {
+                whitening_floor: 1.0,
+                peak_sigma_px: 0.0,
+                ..d.clone()
+            },
+        ),
+        (
+            "whitening floor 1, phase plane",
+            PhaseParams {
+                whitening_floor: 1.0,
+                subpixel: SubPixel::PhasePlane,
+                ..d.clone()
+            },
+        ),
+        (
+            "Hann window",
+            PhaseParams {
+                window: Window::Hann,
+                ..d.clone()
+            },
+        ),
+        (
+            "dropouts zero-filled",
+            PhaseParams {
+                fill_dropouts: false,
+                ..d.clone()
+            },
+        ),
+    ];
+    // errs[config][overlap index]
+    let mut errs: Vec<[Vec<f64>; 3]> = vec![Default::default(); configs.len()];
+    let mut rejected = vec![0usize; configs.len()];
+    let mut corr = PhaseCorrelator::new();
+    let mut seed = 1u64;
+    for (oi, overlap) in [0.1, 0.2, 0.3].into_iter().enumerate() {
+        let n = surface_size(tile, overlap);
+        for k in 0..per_case {
+            let surface = Surface::rough(n, 1000 + seed, 40.0, 0.8, 0.25);
+            for horizontal in [true, false] {
+                let spec = PairSpec {
+                    noise_um: noise,
+                    nan_fraction: nan,
+                    ..PairSpec::new(tile, overlap, horizontal, seed * 7 + k as u64)
+                };
+                seed += 1;
+                let pair = make_pair(&surface, &spec);
+                let a = RasterRef {
+                    heights: &pair.a,
+                    width: pair.w,
+                    height: pair.h,
+                };
+                let b = RasterRef {
+                    heights: &pair.b,
+                    width: pair.w,
+                    height: pair.h,
+                };
+                for (i, (_, p)) in configs.iter().enumerate() {
+                    let r = corr.register(a, b, pair.nominal_offset_px, p);
+                    match r.offset_px {
+                        Some(o) => errs[i][oi].push(
+                            (o[0] - pair.true_offset_px[0])
+                                .abs()
+                                .max((o[1] - pair.true_offset_px[1]).abs()),
+                        ),
+                        None => rejected[i] += 1,
+                    }
+                }
+            }
+        }
+    }
+    println!(
+        "tile {tile} px, noise {noise} um, NaN {nan}, {} pairs; error = max over x, y of |measured - true| (px)",
+        6 * per_case
+    );
+    println!(
+        "{:32} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}",
+        "configuration", "rms", "max 10%", "max 20%", "max 30%", "max all", "rejected"
+    );
+    for (i, (name, _)) in configs.iter().enumerate() {
+        let all: Vec<f64> = errs[i].iter().flatten().copied().collect();
+        let rms = (all.iter().map(|v| v * v).sum::<f64>() / all.len().max(1) as f64).sqrt();
+        let max = |v: &[f64]| v.iter().copied().fold(0.0f64, f64::max);
+        println!(
+            "{name:32} {rms:8.4} {:8.4} {:8.4} {:8.4} {:8.4} {:>8}",
+            max(&errs[i][0]),
+            max(&errs[i][1]),
+            max(&errs[i][2]),
+            max(&all),
+            rejected[i]
+        );
+    }
+}

@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# The whole test suite, on a fresh machine: a small Python environment for the checks that use
+# the standard readers (mcap, trimesh), the release binaries the end-to-end tests start, then
+# every test of the workspace.
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+
+VENV=.test-venv
+if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import mcap, trimesh, numpy' 2>/dev/null; then
+    echo "test.sh: creating $VENV (mcap, trimesh, numpy)"
+    python3 -m venv "$VENV"
+    "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check -r scripts/test-requirements.txt
+fi
+export SURFSTREAM_PYTHON="$PWD/$VENV/bin/python"
+
+cargo build --release --workspace --bins
+cargo test --release --workspace

@@ -1,0 +1,362 @@
+//! Real graphs, really started: the demo as processes and as threads, record -> replay,
+//! a scan directory, a node killed mid-run, two launches at once.
+
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+use surfstream_e2e::*;
+
+/// Tile positions relative to tile 0 against the truth: max error in px.
+fn max_position_error_px(run: &Value, truth: &Value) -> f64 {
+    let pitch = truth["pixel_pitch_um"]["x"].as_f64().unwrap();
+    let tiles = run["tiles"].as_array().unwrap();
+    let t_tiles = truth["tiles"].as_array().unwrap();
+    assert_eq!(tiles.len(), t_tiles.len());
+    let pos = |t: &Value| [t["x_um"].as_f64().unwrap(), t["y_um"].as_f64().unwrap()];
+    let tru = |i: usize| {
+        let t = &t_tiles[i]["true_origin_px"];
+        [t[0].as_f64().unwrap(), t[1].as_f64().unwrap()]
+    };
+    let (p0, t0) = (pos(&tiles[0]), tru(0));
+    let mut worst: f64 = 0.0;
+    for (i, t) in tiles.iter().enumerate() {
+        assert_eq!(t["index"].as_u64(), Some(i as u64));
+        let p = pos(t);
+        let tr = tru(i);
+        for k in 0..2 {
+            let err = ((p[k] - p0[k]) / pitch - (tr[k] - t0[k])).abs();
+            worst = worst.max(err);
+        }
+    }
+    worst
+}
+
+/// Bilinear sample of a row-major map at fractional (x, y) px.
+fn bilinear(map: &[f32], w: usize, h: usize, x: f64, y: f64) -> Option<f64> {
+    let (x0, y0) = (x.floor(), y.floor());
+    if x0 < 0.0 || y0 < 0.0 || x0 as usize + 1 >= w || y0 as usize + 1 >= h {
+        return None;
+    }
+    let (fx, fy) = (x - x0, y - y0);
+    let (i, j) = (y0 as usize, x0 as usize);
+    let v = |r: usize, c: usize| map[r * w + c] as f64;
+    Some(
+        v(i, j) * (1.0 - fx) * (1.0 - fy)
+            + v(i, j + 1) * fx * (1.0 - fy)
+            + v(i + 1, j) * (1.0 - fx) * fy
+            + v(i + 1, j + 1) * fx * fy,
+    )
+}
+
+/// RMS of panorama - specimen after removing the best-fit plane of the difference (tile 0's
+/// own piston and tilt are the panorama's reference).
+fn height_rms_vs_specimen(out: &Path, run: &Value, truth: &Value) -> (f64, usize) {
+    let pano = surfstream_common::npy::read_npy(out.join("panorama.npy")).unwrap();
+    let spec = surfstream_common::npy::read_npy(out.join("specimen.npy")).unwrap();
+    let pitch = truth["pixel_pitch_um"]["x"].as_f64().unwrap();
+    let p = &run["stages"]["fusion"]["panorama"];
+    let (ox, oy) = (p["origin_x_um"].as_f64().unwrap(), p["origin_y_um"].as_f64().unwrap());
+    // The panorama's frame is tile 0's stage position; the specimen's is the truth.
+    let t0 = &truth["tiles"][0];
+    let dx = t0["true_origin_px"][0].as_f64().unwrap() - t0["stage_position_um"][0].as_f64().unwrap() / pitch;
+    let dy = t0["true_origin_px"][1].as_f64().unwrap() - t0["stage_position_um"][1].as_f64().unwrap() / pitch;
+    let mut rows = Vec::new();
+    // Skip a 4 px border (bilinear sampling and resampling at canvas edges).
+    for i in (4..pano.rows.saturating_sub(4)).step_by(3) {
+        for j in (4..pano.cols.saturating_sub(4)).step_by(3) {
+            let z = pano.data[i * pano.cols + j];
+            if z.is_nan() {
+                continue;
+            }
+            let sx = ox / pitch + j as f64 + dx;
+            let sy = oy / pitch + i as f64 + dy;
+            if let Some(s) = bilinear(&spec.data, spec.cols, spec.rows, sx, sy) {
+                rows.push((j as f64, i as f64, z as f64 - s));
+            }
+        }
+    }
+    // Least-squares plane of the difference: normal equations, 3x3.
+    let mut a = [[0.0f64; 3]; 3];
+    let mut b = [0.0f64; 3];
+    for (x, y, d) in &rows {
+        let v = [1.0, *x, *y];
+        for r in 0..3 {
+            for c in 0..3 {
+                a[r][c] += v[r] * v[c];
+            }
+            b[r] += v[r] * d;
+        }
+    }
+    let coef = solve3(a, b);
+    let n = rows.len();
+    let ss: f64 = rows.iter().map(|(x, y, d)| (d - coef[0] - coef[1] * x - coef[2] * y).powi(2)).sum();
+    ((ss / n as f64).sqrt(), n)
+}
+
+fn solve3(mut a: [[f64; 3]; 3], mut b: [f64; 3]) -> [f64; 3] {
+    for k in 0..3 {
+        let p = (k..3).max_by(|&i, &j| a[i][k].abs().total_cmp(&a[j][k].abs())).unwrap();
+        a.swap(k, p);
+        b.swap(k, p);
+        for i in k + 1..3 {
+            let f = a[i][k] / a[k][k];
+            for j in k..3 {
+                a[i][j] -= f * a[k][j];
+            }
+            b[i] -= f * b[k];
+        }
+    }
+    let mut x = [0.0; 3];
+    for k in (0..3).rev() {
+        x[k] = (b[k] - (k + 1..3).map(|j| a[k][j] * x[j]).sum::<f64>()) / a[k][k];
+    }
+    x
+}
+
+fn check_python_reads(recording: &Path, stl: &Path) {
+    let script = r#"
+import sys, struct
+from mcap.reader import make_reader
+counts, schemas = {}, set()
+with open(sys.argv[1], "rb") as f:
+    reader = make_reader(f)
+    for schema, channel, message in reader.iter_messages():
+        counts[channel.topic] = counts.get(channel.topic, 0) + 1
+        schemas.add(schema.name)
+        if channel.topic == "stage/tiles" and counts[channel.topic] == 1:
+            (hlen,) = struct.unpack_from("<I", message.data, 0)
+            payload = len(message.data) - 4 - hlen
+            assert payload == 1024 * 1024 * 4, payload
+assert counts.get("stage/tiles") == 5, counts
+assert counts.get("matcher/registrations") == 5, counts
+assert "surfstream.FrameHeader.v1" in schemas and "surfstream.TileRegistration.v1" in schemas, schemas
+import trimesh
+m = trimesh.load(sys.argv[2])
+assert m.is_watertight, "not watertight"
+assert m.is_winding_consistent, "winding"
+assert m.volume > 0, m.volume
+print("python ok", counts, len(m.faces))
+"#;
+    let out = run({
+        let mut c = Command::new(python());
+        c.arg("-c").arg(script).arg(recording).arg(stl);
+        c
+    });
+    assert!(out.status.success(), "python check failed:\n{}", stderr(&out));
+}
+
+#[test]
+fn demo_launch_run_and_replay_agree_and_match_the_truth() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b, c) = (dir.path().join("launch"), dir.path().join("run"), dir.path().join("replay"));
+
+    // 1. The demo graph as processes, exactly as the README runs it (plus the specimen).
+    let out = run({
+        let mut cmd = surfstream();
+        cmd.args(["launch", "launch/graphs/demo.toml", "--set", "stage.save_specimen=true", "--out"]).arg(&a);
+        cmd
+    });
+    assert!(out.status.success(), "demo launch failed:\n{}", stderr(&out));
+    let run_json = read_json(&a.join("run.json"));
+    let truth = read_json(&a.join("truth.json"));
+
+    // Every tile reached every subscriber: 4 tiles + end of scan, to matcher, fusion, recorder.
+    let msgs = &run_json["messages"];
+    assert_eq!(msgs["stage"]["sent"]["tiles"], 5);
+    assert_eq!(msgs["stage"]["deliveries"]["tiles"], 15);
+    for node in ["matcher", "fusion", "recorder"] {
+        assert_eq!(msgs[node]["received"]["tiles"], 5, "{node}");
+    }
+    assert_eq!(msgs["fusion"]["received"]["registrations"], 5);
+    assert_eq!(msgs["recorder"]["received"]["registrations"], 5);
+    assert_eq!(msgs["wavelet"]["received"]["panorama"], msgs["fusion"]["sent"]["panorama"]);
+    assert_eq!(msgs["mesher"]["received"]["surface"], msgs["wavelet"]["sent"]["pooled"]);
+
+    // Tile positions within 0.5 px of the truth, all registered.
+    let err = max_position_error_px(&run_json, &truth);
+    eprintln!("max tile position error: {err:.3} px");
+    assert!(err < 0.5, "tile position error {err} px");
+    for t in run_json["tiles"].as_array().unwrap() {
+        assert_eq!(t["placed_by"], "registration", "{t}");
+    }
+    // Heights within the noise (0.02 um) plus sub-pixel resampling of a rough surface.
+    let (rms, n) = height_rms_vs_specimen(&a, &run_json, &truth);
+    eprintln!("panorama vs specimen: rms {rms:.4} um over {n} samples");
+    assert!(n > 100_000 && rms < 0.1, "height rms {rms} um");
+
+    // Latency of every stage is known.
+    let lat = &run_json["latency_ms"];
+    assert_eq!(lat["tile_to_registration"]["n"], 4);
+    assert_eq!(lat["tile_to_panorama"]["n"], 4);
+    assert!(lat["final_frames"]["last_tile_to_mesh"]["max"].as_f64().unwrap() > 0.0);
+    assert_eq!(lat["final_frames"]["last_tile_to_final_panorama"]["n"], 1);
+    assert!(lat["hops"]["registration_to_panorama"]["p50"].as_f64().is_some());
+
+    // 2. The same graph in one process: bit-identical outputs.
+    let out = run({
+        let mut cmd = surfstream();
+        cmd.args(["run", "launch/graphs/demo.toml", "--set", "stage.pacing=fast", "--out"]).arg(&b);
+        cmd
+    });
+    assert!(out.status.success(), "demo run failed:\n{}", stderr(&out));
+    assert_same_outputs(&a, &b);
+
+    // 3. The recording opens in Python's mcap reader; the STL in trimesh.
+    check_python_reads(&a.join("recording.mcap"), &a.join("surface.stl"));
+
+    // 4. Record -> replay reproduces identical outputs.
+    let rec = a.join("recording.mcap");
+    let out = run({
+        let mut cmd = surfstream();
+        cmd.args(["launch", "launch/graphs/replay.toml", "--set"])
+            .arg(format!("stage.path={:?}", rec.to_str().unwrap()))
+            .args(["--set", "stage.pacing=fast", "--out"])
+            .arg(&c);
+        cmd
+    });
+    assert!(out.status.success(), "replay launch failed:\n{}", stderr(&out));
+    assert_same_outputs(&a, &c);
+
+    // Nothing left in shared memory by either launch.
+    let domain = domain_of(&stderr(&out)).expect("launch names its domain");
+    assert!(shm_leftovers(&domain).is_empty(), "{:?}", shm_leftovers(&domain));
+}
+
+/// Writes a scan directory (scan.toml + .npy tiles) from the simulated stage.
+fn write_scan_dir(dir: &Path, rows: usize, cols: usize, tile_px: usize) -> surfstream_replay::ScanPlan {
+    use surfstream_replay::*;
+    let stage = StageParams { rows, cols, tile_px, overlap: 0.2, seed: 7, ..Default::default() };
+    let plan = plan_scan(&stage).unwrap();
+    let spec = generate_specimen(&plan.specimen_params(&SpecimenParams { seed: 7, ..Default::default() })).unwrap();
+    let mut toml = format!(
+        "[scan]\nname = \"fixture\"\npitch_x_um = {p}\npitch_y_um = {p}\nheight_unit = \"um\"\nrows = {rows}\ncols = {cols}\n",
+        p = stage.pitch_um
+    );
+    for t in &plan.tiles {
+        let heights = acquire_tile(&spec, t, &stage);
+        let name = format!("tile_{:03}.npy", t.index);
+        surfstream_common::npy::write_npy_f32(dir.join(&name), &heights, tile_px, tile_px).unwrap();
+        toml += &format!(
+            "\n[[tile]]\nfile = \"{name}\"\nrow = {}\ncol = {}\nstage_x_um = {}\nstage_y_um = {}\n",
+            t.row, t.col, t.stage_position_um[0], t.stage_position_um[1]
+        );
+    }
+    std::fs::write(dir.join("scan.toml"), toml).unwrap();
+    let truth = truth_for(&plan);
+    std::fs::write(dir.join("ground_truth.json"), serde_json::to_string(&truth).unwrap()).unwrap();
+    plan
+}
+
+#[test]
+fn stitch_scans_a_scan_directory() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = dir.path().join("scan");
+    std::fs::create_dir(&scan).unwrap();
+    write_scan_dir(&scan, 2, 3, 256);
+    let out_dir = dir.path().join("out");
+    let out = run({
+        let mut cmd = surfstream();
+        cmd.arg("stitch").arg(&scan).arg("--out").arg(&out_dir);
+        cmd
+    });
+    assert!(out.status.success(), "stitch failed:\n{}", stderr(&out));
+    let run_json = read_json(&out_dir.join("run.json"));
+    let truth = read_json(&scan.join("ground_truth.json"));
+    let err = max_position_error_px(&run_json, &truth);
+    eprintln!("max tile position error: {err:.3} px");
+    assert!(err < 0.5, "tile position error {err} px");
+    for f in OUTPUTS {
+        assert!(out_dir.join(f).exists(), "{f} missing");
+    }
+    assert_eq!(run_json["tiles"][4]["stage_x_um"], read_json(&scan.join("ground_truth.json"))["tiles"][4]["stage_position_um"][0]);
+}
+
+fn find_pid(binary: &str, marker: &str) -> Option<i32> {
+    for e in std::fs::read_dir("/proc").ok()?.flatten() {
+        let Ok(pid) = e.file_name().to_string_lossy().parse::<i32>() else { continue };
+        let Ok(cmd) = std::fs::read(e.path().join("cmdline")) else { continue };
+        let cmd = String::from_utf8_lossy(&cmd);
+        if cmd.contains(binary) && cmd.contains(marker) {
+            return Some(pid);
+        }
+    }
+    None
+}
+
+#[test]
+fn a_killed_node_fails_the_launch_and_leaves_no_shared_memory() {
+    let dir = tempfile::tempdir().unwrap();
+    let out_dir = dir.path().join("killed");
+    let log = dir.path().join("launcher.stderr");
+    let mut child = surfstream()
+        .args(["launch", "launch/graphs/demo.toml", "--set", "stage.rows=3", "--set", "stage.field_time_s=1.0", "--out"])
+        .arg(&out_dir)
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let marker = out_dir.to_str().unwrap().to_string();
+    let t0 = Instant::now();
+    let pid = loop {
+        if let Some(pid) = find_pid("surfstream-matcher", &marker) {
+            break pid;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(60), "matcher never started");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    // Mid-run: the scan has started and some tiles went through.
+    while !std::fs::read_to_string(&log).unwrap_or_default().contains("scan started") {
+        assert!(t0.elapsed() < Duration::from_secs(60), "scan never started");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    std::thread::sleep(Duration::from_millis(1500));
+    // SAFETY: signalling a process this test found by its command line.
+    unsafe { libc_kill(pid) };
+    let status = child.wait().unwrap();
+    let err = std::fs::read_to_string(&log).unwrap();
+    eprintln!("{err}");
+    assert!(!status.success(), "launch must fail when a node dies");
+    assert!(err.contains("node 'matcher'") && err.contains("signal 9"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+    let domain = domain_of(&err).unwrap();
+    assert!(shm_leftovers(&domain).is_empty(), "{:?}", shm_leftovers(&domain));
+    let cfg = surfstream_common::ipc::domain_config(&domain).unwrap();
+    assert_eq!(surfstream_common::ipc::count_nodes(&cfg).unwrap(), 0, "nodes left registered");
+    // Nothing half-written: no final outputs, no partial files.
+    assert!(!out_dir.join("panorama.npy").exists());
+    assert!(!out_dir.join("run.json").exists());
+    let partial = std::fs::read_dir(&out_dir).unwrap().flatten().any(|e| e.file_name().to_string_lossy().ends_with(".partial"));
+    assert!(!partial);
+}
+
+unsafe fn libc_kill(pid: i32) {
+    extern "C" {
+        fn kill(pid: i32, sig: i32) -> i32;
+    }
+    kill(pid, 9);
+}
+
+#[test]
+fn two_launches_at_once_are_isolated() {
+    let dir = tempfile::tempdir().unwrap();
+    let spawn = |name: &str| {
+        surfstream()
+            .args(["launch", "launch/graphs/demo.toml", "--set", "stage.pacing=fast", "--set", "stage.tile_px=256", "--out"])
+            .arg(dir.path().join(name))
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    let (x, y) = (spawn("x"), spawn("y"));
+    for (name, child) in [("x", x), ("y", y)] {
+        let out = child.wait_with_output().unwrap();
+        assert!(out.status.success(), "{name}: {}", String::from_utf8_lossy(&out.stderr));
+        let run_json = read_json(&dir.path().join(name).join("run.json"));
+        assert_eq!(run_json["messages"]["fusion"]["received"]["tiles"], 5, "{name}");
+    }
+    // Same graph, same seed: the same surface, although they ran side by side.
+    assert_same_outputs(&dir.path().join("x"), &dir.path().join("y"));
+}
