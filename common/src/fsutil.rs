@@ -37,3 +37,14 @@ pub fn partial_path(path: &Path) -> PathBuf {
     name.push(".partial");
     path.with_file_name(name)
 }
+
+/// Removes `*.partial` files directly in `dir` (left by a process that was killed while
+/// writing): after a failed run, no half-written output may remain.
+pub fn remove_partials(dir: &Path) -> usize {
+    let Ok(entries) = std::fs::read_dir(dir) else { return 0 };
+    entries
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().ends_with(".partial"))
+        .filter(|e| std::fs::remove_file(e.path()).is_ok())
+        .count()
+}

@@ -186,13 +186,12 @@ pub struct NodeContext {
 impl NodeContext {
     /// Deserialises the node's parameters, naming the node and the field on error.
     pub fn params<T: serde::de::DeserializeOwned>(&self) -> Result<T> {
-        toml::Value::Table(self.params.clone()).try_into().map_err(|e: toml::de::Error| {
+        params_from_table(&self.params).map_err(|e| {
             anyhow!(
-                "graph '{}', node '{}' ({}): bad params: {}",
+                "graph '{}', node '{}' ({}): bad params: {e}",
                 self.graph_name,
                 self.node_id,
-                self.node_kind,
-                e.message()
+                self.node_kind
             )
         })
     }
@@ -201,6 +200,25 @@ impl NodeContext {
     pub fn service_name(&self, node_id: &str, port: &str) -> String {
         service_name(&self.graph_name, node_id, port)
     }
+}
+
+/// Deserialises a parameter table; the error names the offending key where TOML knows it.
+pub fn params_from_table<T: serde::de::DeserializeOwned>(
+    table: &toml::Table,
+) -> std::result::Result<T, String> {
+    // Through text, so the error carries a span that points at the key.
+    let text = toml::to_string(table).map_err(|e| e.to_string())?;
+    toml::from_str(&text).map_err(|e: toml::de::Error| {
+        let key = e.span().and_then(|span| {
+            let start = text[..span.start.min(text.len())].rfind('\n').map_or(0, |i| i + 1);
+            let line = &text[start..];
+            line.split_once('=').map(|(k, _)| k.trim().to_string())
+        });
+        match key {
+            Some(k) if !k.is_empty() && !k.starts_with('[') => format!("{k}: {}", e.message()),
+            _ => e.message().to_string(),
+        }
+    })
 }
 
 /// `surfstream/<graph>/<node>/<port>` (DESIGN §3).

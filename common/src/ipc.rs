@@ -24,6 +24,17 @@ use crate::frame::{monotonic_ns, FrameHeader, FrameView, TileRegistration};
 use crate::graph::{service_name, Delivery, NodeContext, PortKind};
 use crate::node::{deliver, Input, NodeLogic, NodeReport, NodeStats, Outbox, Output};
 
+/// Set by a termination request (SIGTERM / SIGINT, see [`crate::shell`]): the event loop stops
+/// with an error, so ports are dropped and partial files removed on the way out.
+pub static STOP_REQUESTED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+fn check_stop() -> Result<()> {
+    if STOP_REQUESTED.load(std::sync::atomic::Ordering::Relaxed) {
+        bail!("stopped by a termination request");
+    }
+    Ok(())
+}
+
 /// Lossless queue depth per subscriber. Nodes drain eagerly, so this only absorbs bursts.
 const LOSSLESS_BUFFER: usize = 8;
 /// Housekeeping: dead-node cleanup and upstream liveness checks.
@@ -364,6 +375,7 @@ pub fn run_node(
         };
         // Startup only: wait (politely) for the producer's publisher to exist.
         while port.publishers_now() == 0 {
+            check_stop()?;
             if Instant::now() > deadline {
                 bail!(
                     "input '{}': producer {} did not appear within {:.0} s",
@@ -391,6 +403,7 @@ pub fn run_node(
         let Some(listener) = o.ready_listener.take() else { continue };
         let mut ready = 0u64;
         while ready < o.expected as u64 {
+            check_stop()?;
             let left = deadline.saturating_duration_since(Instant::now());
             if left.is_zero() {
                 bail!(
@@ -423,6 +436,7 @@ pub fn run_node(
         if ctx.inputs.is_empty() {
             let mut started = false;
             while !started {
+                check_stop()?;
                 if Instant::now() > deadline {
                     bail!("the launcher did not say 'go' within {:.0} s", startup.as_secs_f64());
                 }
@@ -453,6 +467,7 @@ pub fn run_node(
     let mut housekeeping_due = false;
     let mut ended = vec![false; ins.len()];
     while !logic.finished() {
+        check_stop()?;
         let timeout = logic
             .next_wakeup()
             .map(|w| w.saturating_duration_since(Instant::now()))
@@ -503,6 +518,7 @@ pub fn run_node(
     drop(ins);
     for o in outs.iter().filter(|o| o.delivery == Delivery::Lossless) {
         while o.subscribers_now() > 0 {
+            check_stop()?;
             node.try_cleanup_dead_nodes();
             std::thread::sleep(Duration::from_millis(10));
         }

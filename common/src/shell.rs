@@ -94,12 +94,15 @@ pub fn node_main(
 
 fn run(kind: &str, build: fn(&NodeContext) -> Result<Box<dyn NodeLogic + Send>>) -> Result<()> {
     let args = parse_args(kind)?;
+    // SIGTERM / SIGINT: finish the current step, then leave through the normal error path.
+    ctrlc::set_handler(|| ipc::STOP_REQUESTED.store(true, std::sync::atomic::Ordering::Relaxed))
+        .map_err(|e| anyhow!("cannot install the termination handler: {e}"))?;
     ipc::validate_prefix(&args.domain)?;
     let ctx = load_context(&args.graph, &args.node)?;
     if ctx.node_kind != kind {
         bail!("node '{}' is a {} node, not {kind}", ctx.node_id, ctx.node_kind);
     }
-    let mut logic = build(&ctx).with_context(|| format!("node '{}'", ctx.node_id))?;
+    let mut logic = build(&ctx)?;
     let cfg = ipc::domain_config(&args.domain)?;
     let link = ipc::launcher_link(&ctx.graph_name);
     let report = ipc::run_node(&ctx, logic.as_mut(), &cfg, args.launched.then_some(&link))

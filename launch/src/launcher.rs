@@ -72,7 +72,7 @@ pub fn run_in_process(mut graph: GraphFile, origin: &Path) -> Result<()> {
     let started = Instant::now();
     let mut threads = Vec::new();
     for c in &contexts {
-        let logic = nodes::build(c).with_context(|| format!("node '{}'", c.node_id))?;
+        let logic = nodes::build(c)?;
         threads.push(InProcessNode { context: c.clone(), logic });
     }
     eprintln!(
@@ -81,7 +81,9 @@ pub fn run_in_process(mut graph: GraphFile, origin: &Path) -> Result<()> {
         contexts.len(),
         graph.graph.out_dir.display()
     );
-    let reports = inproc::run_graph(threads)?;
+    let reports = inproc::run_graph(threads).inspect_err(|_| {
+        fsutil::remove_partials(&graph.graph.out_dir);
+    })?;
     for r in &reports {
         shell::write_report(&graph.graph.out_dir, r)?;
     }
@@ -256,10 +258,13 @@ pub fn launch(mut graph: GraphFile, origin: &Path) -> Result<()> {
         drop(launcher);
         outcome
     };
-    // Whatever happened, leave the slot clean.
+    // Whatever happened, leave the slot clean, and no half-written file behind.
     let cleaned = ipc::cleanup_dead_nodes(&cfg).unwrap_or(0);
     if cleaned > 0 {
         eprintln!("surfstream: removed stale shared memory of {cleaned} dead node(s)");
+    }
+    if result.is_err() {
+        fsutil::remove_partials(&out);
     }
     result?;
     let reports = read_reports(&out, &contexts)?;

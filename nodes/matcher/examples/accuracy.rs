@@ -4,7 +4,8 @@
 //! defaults were chosen.
 //!
 //! `cargo run --release -p surfstream-matcher --example accuracy -- [TILE_PX] [PAIRS_PER_CASE]
-//! [NOISE_UM] [NAN_FRACTION]`
+//! [NOISE_UM] [NAN_FRACTION] [NAN_BLOBS]
+//! [CORR_LEN_PX] [CUTOFF_CYCLES_PER_PX]`
 
 #[path = "../tests/support/mod.rs"]
 mod support;
@@ -19,108 +20,68 @@ fn main() {
     let per_case = arg(2, 6.0) as usize;
     let noise = arg(3, 0.05);
     let nan = arg(4, 0.05);
+    let blobs = arg(5, 3.0) as usize;
+    let corr_len = arg(6, 40.0);
+    let cutoff = arg(7, 0.25);
 
     let d = PhaseParams::default();
     let configs: Vec<(&str, PhaseParams)> = vec![
-        ("default (Gaussian fit)", d.clone()),
+        ("default (NCC Gaussian)", d.clone()),
         (
-            "parabolic fit",
+            "NCC parabola",
             PhaseParams {
-                subpixel: SubPixel::Parabolic,
+                subpixel: SubPixel::NccParabolic,
                 ..d.clone()
             },
         ),
         (
-            "Foroosh",
+            "phase pass 2, Gaussian",
             PhaseParams {
-                subpixel: SubPixel::Foroosh,
+                subpixel: SubPixel::PhaseGaussian,
                 ..d.clone()
             },
         ),
         (
-            "Foroosh, no spectral Gaussian",
+            "phase pass 2, parabola",
             PhaseParams {
-                subpixel: SubPixel::Foroosh,
+                subpixel: SubPixel::PhaseParabolic,
+                ..d.clone()
+            },
+        ),
+        (
+            "phase pass 2, Foroosh",
+            PhaseParams {
+                subpixel: SubPixel::PhaseForoosh,
+                ..d.clone()
+            },
+        ),
+        (
+            "phase pass 2, Foroosh, sigma 0",
+            PhaseParams {
+                subpixel: SubPixel::PhaseForoosh,
                 peak_sigma_px: 0.0,
                 ..d.clone()
             },
         ),
         (
-            "phase-plane fit",
+            "phase pass 2, Gaussian, no fill",
             PhaseParams {
-                subpixel: SubPixel::PhasePlane,
+                subpixel: SubPixel::PhaseGaussian,
+                fill_dropouts: false,
                 ..d.clone()
             },
         ),
         (
-            "no spectral Gaussian",
+            "NCC Gaussian, sigma 0",
             PhaseParams {
                 peak_sigma_px: 0.0,
                 ..d.clone()
             },
         ),
         (
-            "spectral Gaussian 1.5 px",
-            PhaseParams {
-                peak_sigma_px: 1.5,
-                ..d.clone()
-            },
-        ),
-        (
-            "whitening floor 0.1",
-            PhaseParams {
-                whitening_floor: 0.1,
-                ..d.clone()
-            },
-        ),
-        (
-            "whitening floor 0.3",
-            PhaseParams {
-                whitening_floor: 0.3,
-                ..d.clone()
-            },
-        ),
-        (
-            "whitening floor 1",
-            PhaseParams {
-                whitening_floor: 1.0,
-                ..d.clone()
-            },
-        ),
-        (
-            "whitening floor 3",
-            PhaseParams {
-                whitening_floor: 3.0,
-                ..d.clone()
-            },
-        ),
-        (
-            "whitening floor 1, no gaussian",
-            PhaseParams {
-                whitening_floor: 1.0,
-                peak_sigma_px: 0.0,
-                ..d.clone()
-            },
-        ),
-        (
-            "whitening floor 1, phase plane",
-            PhaseParams {
-                whitening_floor: 1.0,
-                subpixel: SubPixel::PhasePlane,
-                ..d.clone()
-            },
-        ),
-        (
-            "Hann window",
+            "NCC Gaussian, Hann window",
             PhaseParams {
                 window: Window::Hann,
-                ..d.clone()
-            },
-        ),
-        (
-            "dropouts zero-filled",
-            PhaseParams {
-                fill_dropouts: false,
                 ..d.clone()
             },
         ),
@@ -133,11 +94,12 @@ fn main() {
     for (oi, overlap) in [0.1, 0.2, 0.3].into_iter().enumerate() {
         let n = surface_size(tile, overlap);
         for k in 0..per_case {
-            let surface = Surface::rough(n, 1000 + seed, 40.0, 0.8, 0.25);
+            let surface = Surface::rough(n, 1000 + seed, corr_len, 0.8, cutoff);
             for horizontal in [true, false] {
                 let spec = PairSpec {
                     noise_um: noise,
                     nan_fraction: nan,
+                    nan_blobs: blobs,
                     ..PairSpec::new(tile, overlap, horizontal, seed * 7 + k as u64)
                 };
                 seed += 1;
@@ -167,7 +129,7 @@ fn main() {
         }
     }
     println!(
-        "tile {tile} px, noise {noise} um, NaN {nan}, {} pairs; error = max over x, y of |measured - true| (px)",
+        "tile {tile} px, surface corr. length {corr_len} px cutoff {cutoff}/px, noise {noise} um, NaN {nan} + {blobs} blobs, {} pairs; error = max over x, y of |measured - true| (px)",
         6 * per_case
     );
     println!(

@@ -48,6 +48,7 @@
 //! integration tests and `examples/bench_pair.rs`.
 
 mod fft2;
+mod ncc;
 pub mod plane;
 pub mod raster;
 pub mod register;

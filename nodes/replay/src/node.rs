@@ -9,7 +9,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use serde::Deserialize;
 use serde_json::json;
 use surfstream_common::frame::{monotonic_ns, FrameHeader, FrameKind, HeightMap};
-use surfstream_common::graph::NodeContext;
+use surfstream_common::graph::{params_from_table, NodeContext};
 use surfstream_common::node::{Input, NodeLogic, Outbox};
 use surfstream_common::recording::{read_recording, Recorded};
 
@@ -186,15 +186,13 @@ fn simulated(ctx: &NodeContext) -> Result<ReplayNode> {
             spec_t.insert(k.to_string(), v);
         }
     }
-    let stage: StageParams = toml::Value::Table(stage_t)
-        .try_into()
-        .map_err(|e: toml::de::Error| err_in(ctx, format!("bad params: {}", e.message())))?;
+    let stage: StageParams =
+        params_from_table(&stage_t).map_err(|e| err_in(ctx, format!("bad params: {e}")))?;
     if let Some(seed) = ctx.params.get("seed") {
         spec_t.entry("seed").or_insert(seed.clone());
     }
-    let base: SpecimenParams = toml::Value::Table(spec_t)
-        .try_into()
-        .map_err(|e: toml::de::Error| err_in(ctx, format!("bad params: {}", e.message())))?;
+    let base: SpecimenParams =
+        params_from_table(&spec_t).map_err(|e| err_in(ctx, format!("bad params: {e}")))?;
     let plan = plan_scan(&stage).map_err(|e| err_in(ctx, e))?;
     let specimen = match &specimen_file {
         Some(path) => {

@@ -1,0 +1,173 @@
+//! Normalised cross-correlation of levelled heights over the actual overlap of two tiles,
+//! valid pixel pairs only.
+
+use crate::plane::PlaneCorrection;
+use crate::raster::RasterRef;
+
+/// A tile levelled on the fly by the plane fitted to its crop: the plane at (row, col) is
+/// `row_term[row] + col_term[col]`.
+pub(crate) struct LevelledTile<'a> {
+    tile: RasterRef<'a>,
+    row_term: Vec<f32>,
+    col_term: Vec<f32>,
+}
+
+impl<'a> LevelledTile<'a> {
+    /// `plane` as fitted on the crop `rect` (crop-centred coordinates), extended to the tile.
+    pub(crate) fn new(tile: RasterRef<'a>, rect: (usize, usize, usize, usize), plane: &PlaneCorrection) -> Self {
+        let (x0, y0, w, h) = rect;
+        let cx = x0 as f64 + (w as f64 - 1.0) * 0.5;
+        let cy = y0 as f64 + (h as f64 - 1.0) * 0.5;
+        LevelledTile {
+            tile,
+            row_term: (0..tile.height)
+                .map(|r| (plane.piston_um + plane.tilt_y_um_per_px * (r as f64 - cy)) as f32)
+                .collect(),
+            col_term: (0..tile.width)
+                .map(|c| (plane.tilt_x_um_per_px * (c as f64 - cx)) as f32)
+                .collect(),
+        }
+    }
+}
+
+/// NCC of the levelled heights of a and b over their actual overlap when b's origin sits at
+/// `(dx, dy)` in a's coordinates; valid pairs only. Returns (ncc, pairs).
+pub(crate) fn ncc_at(a: &LevelledTile<'_>, b: &LevelledTile<'_>, dx: i64, dy: i64) -> (f64, usize) {
+    ncc_in(a, b, dx, dy, overlap_in_a(a, b, dx, dy))
+}
+
+/// The overlap `[x0, x1) x [y0, y1)` in a's coordinates when b's origin sits at (dx, dy).
+pub(crate) fn overlap_in_a(a: &LevelledTile<'_>, b: &LevelledTile<'_>, dx: i64, dy: i64) -> [i64; 4] {
+    let (wa, ha) = (a.tile.width as i64, a.tile.height as i64);
+    let (wb, hb) = (b.tile.width as i64, b.tile.height as i64);
+    [dx.max(0), (dx + wb).min(wa), dy.max(0), (dy + hb).min(ha)]
+}
+
+/// [`ncc_at`] restricted to the pixels of a in `region` (`[x0, x1, y0, y1]`, a's coordinates).
+pub(crate) fn ncc_in(
+    a: &LevelledTile<'_>,
+    b: &LevelledTile<'_>,
+    dx: i64,
+    dy: i64,
+    region: [i64; 4],
+) -> (f64, usize) {
+    let ov = overlap_in_a(a, b, dx, dy);
+    let x0 = ov[0].max(region[0]);
+    let x1 = ov[1].min(region[1]);
+    let y0 = ov[2].max(region[2]);
+    let y1 = ov[3].min(region[3]);
+    if x1 <= x0 || y1 <= y0 {
+        return (0.0, 0);
+    }
+    let (xa0, xa1) = (x0 as usize, x1 as usize);
+    let (xb0, xb1) = ((x0 - dx) as usize, (x1 - dx) as usize);
+    let mut acc = [0.0f64; 6];
+    for ya in y0..y1 {
+        let yb = (ya - dy) as usize;
+        let ya = ya as usize;
+        let row = row_sums(
+            &a.tile.row(ya)[xa0..xa1],
+            &a.col_term[xa0..xa1],
+            a.row_term[ya],
+            &b.tile.row(yb)[xb0..xb1],
+            &b.col_term[xb0..xb1],
+            b.row_term[yb],
+        );
+        for (t, v) in acc.iter_mut().zip(row) {
+            *t += v as f64;
+        }
+    }
+    let [n, sa, sb, saa, sbb, sab] = acc;
+    if n < 2.0 {
+        return (0.0, n as usize);
+    }
+    let va = saa - sa * sa / n;
+    let vb = sbb - sb * sb / n;
+    let cov = sab - sa * sb / n;
+    let den = (va * vb).sqrt();
+    let ncc = if den > 0.0 && den.is_finite() {
+        (cov / den).clamp(-1.0, 1.0)
+    } else {
+        0.0
+    };
+    (ncc, n as usize)
+}
+
+/// [n, sum a, sum b, sum a^2, sum b^2, sum ab] of the levelled rows `a = za - (ra + ca)`,
+/// `b = zb - (rb + cb)` over pairs valid (finite) in both; branch-free lanes so the compiler
+/// vectorises it.
+#[inline]
+fn row_sums(za: &[f32], ca: &[f32], ra: f32, zb: &[f32], cb: &[f32], rb: f32) -> [f32; 6] {
+    const L: usize = 8;
+    let mut acc = [[0.0f32; L]; 6];
+    let lane = |acc: &mut [[f32; L]; 6], l: usize, za: f32, ca: f32, zb: f32, cb: f32| {
+        let a = za - (ra + ca);
+        let b = zb - (rb + cb);
+        // x - x is 0 exactly for finite x, NaN otherwise.
+        let oka = (a - a) == 0.0;
+        let okb = (b - b) == 0.0;
+        let ma = if oka { 1.0 } else { 0.0 };
+        let mb = if okb { 1.0 } else { 0.0 };
+        let a = if oka { a } else { 0.0 };
+        let b = if okb { b } else { 0.0 };
+        let am = a * mb;
+        let bm = b * ma;
+        acc[0][l] += ma * mb;
+        acc[1][l] += am;
+        acc[2][l] += bm;
+        acc[3][l] += a * am;
+        acc[4][l] += b * bm;
+        acc[5][l] += a * b;
+    };
+    let n = za.len();
+    let chunks = n / L;
+    for k in 0..chunks {
+        let o = k * L;
+        let (za, ca, zb, cb) = (&za[o..o + L], &ca[o..o + L], &zb[o..o + L], &cb[o..o + L]);
+        for l in 0..L {
+            lane(&mut acc, l, za[l], ca[l], zb[l], cb[l]);
+        }
+    }
+    for i in chunks * L..n {
+        lane(&mut acc, 0, za[i], ca[i], zb[i], cb[i]);
+    }
+    let mut out = [0.0f32; 6];
+    for (o, a) in out.iter_mut().zip(&acc) {
+        *o = a.iter().sum();
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ncc_of_identical_tiles_is_one_and_ignores_plane_and_nan() {
+        let (w, h) = (40, 30);
+        let mut za: Vec<f32> = (0..w * h).map(|i| ((i * 37) % 17) as f32).collect();
+        let mut zb: Vec<f32> = za
+            .iter()
+            .enumerate()
+            .map(|(i, v)| v + 3.0 + 0.01 * (i % w) as f32)
+            .collect();
+        za[5] = f32::NAN;
+        zb[77] = f32::NAN;
+        let ta = RasterRef::new(&za, w, h).expect("valid");
+        let tb = RasterRef::new(&zb, w, h).expect("valid");
+        let rect = (0, 0, w, h);
+        let la = LevelledTile::new(ta, rect, &PlaneCorrection::ZERO);
+        let plane_b = PlaneCorrection {
+            piston_um: 3.0 + 0.01 * (w as f64 - 1.0) / 2.0,
+            tilt_x_um_per_px: 0.01,
+            tilt_y_um_per_px: 0.0,
+        };
+        let lb = LevelledTile::new(tb, rect, &plane_b);
+        let (ncc, n) = ncc_at(&la, &lb, 0, 0);
+        assert_eq!(n, w * h - 2);
+        assert!((ncc - 1.0).abs() < 1e-6, "{ncc}");
+        // Shifted by 3 px: overlap shrinks accordingly.
+        let (_, n3) = ncc_at(&la, &lb, 3, -2);
+        assert!(n3 <= (w - 3) * (h - 2));
+    }
+}
