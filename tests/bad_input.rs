@@ -14,7 +14,11 @@ fn fails(args: &[&str], out_dir: &Path) -> String {
     });
     let err = stderr(&out);
     assert!(!out.status.success(), "expected failure for {args:?}");
-    assert_eq!(out.status.code(), Some(1), "a clean error exit, not a crash: {err}");
+    assert_eq!(
+        out.status.code(),
+        Some(1),
+        "a clean error exit, not a crash: {err}"
+    );
     assert!(!err.contains("panicked"), "{err}");
     if out_dir.exists() {
         for f in OUTPUTS.iter().chain(&["run.json"]) {
@@ -58,7 +62,9 @@ stage_y_um = 0.0
 "#;
 
 fn tile(dir: &Path, name: &str, rows: usize, cols: usize) {
-    let data: Vec<f32> = (0..rows * cols).map(|i| ((i * 7919) % 101) as f32 * 0.01).collect();
+    let data: Vec<f32> = (0..rows * cols)
+        .map(|i| ((i * 7919) % 101) as f32 * 0.01)
+        .collect();
     surfstream_common::npy::write_npy_f32(dir.join(name), &data, rows, cols).unwrap();
 }
 
@@ -68,23 +74,87 @@ fn malformed_graph_files_are_named() {
     let out = d.path().join("out");
     let g = d.path().join("broken.toml");
     write(&g, "[graph]\nname = \"x\"\n[[node]\nid = \"a\"\n");
-    let err = fails(&["launch", g.to_str().unwrap(), "--out", out.to_str().unwrap()], &out);
-    assert!(err.contains("broken.toml") && err.contains("not a valid graph file"), "{err}");
+    let err = fails(
+        &[
+            "launch",
+            g.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &out,
+    );
+    assert!(
+        err.contains("broken.toml") && err.contains("not a valid graph file"),
+        "{err}"
+    );
 
     let g = d.path().join("wiring.toml");
     let demo = std::fs::read_to_string(repo_root().join("launch/graphs/demo.toml")).unwrap();
-    write(&g, &demo.replace("tiles = \"stage/tiles\" }\n\n[[node]]\nid = \"fusion\"", "tiles = \"stage/tile\" }\n\n[[node]]\nid = \"fusion\""));
-    let err = fails(&["run", g.to_str().unwrap(), "--out", out.to_str().unwrap()], &out);
-    assert!(err.contains("wiring.toml") && err.contains("inputs.tiles") && err.contains("no output \"tile\""), "{err}");
+    write(
+        &g,
+        &demo.replace(
+            "tiles = \"stage/tiles\" }\n\n[[node]]\nid = \"fusion\"",
+            "tiles = \"stage/tile\" }\n\n[[node]]\nid = \"fusion\"",
+        ),
+    );
+    let err = fails(
+        &["run", g.to_str().unwrap(), "--out", out.to_str().unwrap()],
+        &out,
+    );
+    assert!(
+        err.contains("wiring.toml")
+            && err.contains("inputs.tiles")
+            && err.contains("no output \"tile\""),
+        "{err}"
+    );
 
-    let err = fails(&["run", "launch/graphs/demo.toml", "--set", "stage.rows=\"two\"", "--out", out.to_str().unwrap()], &out);
-    assert!(err.contains("node 'stage'") && err.contains("rows"), "{err}");
+    let err = fails(
+        &[
+            "run",
+            "launch/graphs/demo.toml",
+            "--set",
+            "stage.rows=\"two\"",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &out,
+    );
+    assert!(
+        err.contains("node 'stage'") && err.contains("rows"),
+        "{err}"
+    );
 
-    let err = fails(&["launch", "launch/graphs/demo.toml", "--set", "stage.colz=3", "--out", out.to_str().unwrap()], &out);
-    assert!(err.contains("node 'stage'") && err.contains("colz"), "{err}");
+    let err = fails(
+        &[
+            "launch",
+            "launch/graphs/demo.toml",
+            "--set",
+            "stage.colz=3",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &out,
+    );
+    assert!(
+        err.contains("node 'stage'") && err.contains("colz"),
+        "{err}"
+    );
 
-    let err = fails(&["run", "launch/graphs/demo.toml", "--set", "wavelet.wavelet=\"haar9\"", "--out", out.to_str().unwrap()], &out);
-    assert!(err.contains("node 'wavelet'") && err.contains("haar9"), "{err}");
+    let err = fails(
+        &[
+            "run",
+            "launch/graphs/demo.toml",
+            "--set",
+            "wavelet.wavelet=\"haar9\"",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &out,
+    );
+    assert!(
+        err.contains("node 'wavelet'") && err.contains("haar9"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -95,7 +165,15 @@ fn bad_scan_directories_are_named() {
     std::fs::create_dir(&scan).unwrap();
     let s = scan.join("scan.toml");
     let stitch = |err_hint: &str| {
-        let err = fails(&["stitch", s.to_str().unwrap(), "--out", out.to_str().unwrap()], &out);
+        let err = fails(
+            &[
+                "stitch",
+                s.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+            ],
+            &out,
+        );
         assert!(err.contains(err_hint), "expected {err_hint:?} in: {err}");
         err
     };
@@ -121,7 +199,15 @@ fn bad_scan_directories_are_named() {
     stitch("tile_001.npy");
 
     // A missing scan.
-    let err = fails(&["stitch", d.path().join("nowhere").to_str().unwrap(), "--out", out.to_str().unwrap()], &out);
+    let err = fails(
+        &[
+            "stitch",
+            d.path().join("nowhere").to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &out,
+    );
     assert!(err.contains("nowhere"), "{err}");
 }
 
@@ -133,7 +219,9 @@ fn corrupt_and_truncated_recordings_are_named() {
     let out = d.path().join("out");
     let good = d.path().join("good.mcap");
     let mut rec = Recorder::create(&good).unwrap();
-    let ch = rec.add_frame_channel("stage/tiles", Default::default()).unwrap();
+    let ch = rec
+        .add_frame_channel("stage/tiles", Default::default())
+        .unwrap();
     for i in 0..3u32 {
         let h = FrameHeader {
             kind: FrameKind::Tile as u32,
@@ -153,12 +241,32 @@ fn corrupt_and_truncated_recordings_are_named() {
 
     let truncated = d.path().join("truncated.mcap");
     std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();
-    let err = fails(&["stitch", truncated.to_str().unwrap(), "--out", out.to_str().unwrap()], &out);
+    let err = fails(
+        &[
+            "stitch",
+            truncated.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &out,
+    );
     assert!(err.contains("truncated.mcap"), "{err}");
 
     let garbage = d.path().join("garbage.mcap");
-    std::fs::write(&garbage, b"\x89MCAP0\r\n not really a recording at all, just text").unwrap();
-    let err = fails(&["stitch", garbage.to_str().unwrap(), "--out", out.to_str().unwrap()], &out);
+    std::fs::write(
+        &garbage,
+        b"\x89MCAP0\r\n not really a recording at all, just text",
+    )
+    .unwrap();
+    let err = fails(
+        &[
+            "stitch",
+            garbage.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &out,
+    );
     assert!(err.contains("garbage.mcap"), "{err}");
 
     let mut flipped = bytes.clone();
@@ -168,6 +276,14 @@ fn corrupt_and_truncated_recordings_are_named() {
     }
     let corrupt = d.path().join("corrupt.mcap");
     std::fs::write(&corrupt, &flipped).unwrap();
-    let err = fails(&["stitch", corrupt.to_str().unwrap(), "--out", out.to_str().unwrap()], &out);
+    let err = fails(
+        &[
+            "stitch",
+            corrupt.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &out,
+    );
     assert!(err.contains("corrupt.mcap"), "{err}");
 }

@@ -57,11 +57,16 @@ fn height_rms_vs_specimen(out: &Path, run: &Value, truth: &Value) -> (f64, usize
     let spec = surfstream_common::npy::read_npy(out.join("specimen.npy")).unwrap();
     let pitch = truth["pixel_pitch_um"]["x"].as_f64().unwrap();
     let p = &run["stages"]["fusion"]["panorama"];
-    let (ox, oy) = (p["origin_x_um"].as_f64().unwrap(), p["origin_y_um"].as_f64().unwrap());
+    let (ox, oy) = (
+        p["origin_x_um"].as_f64().unwrap(),
+        p["origin_y_um"].as_f64().unwrap(),
+    );
     // The panorama's frame is tile 0's stage position; the specimen's is the truth.
     let t0 = &truth["tiles"][0];
-    let dx = t0["true_origin_px"][0].as_f64().unwrap() - t0["stage_position_um"][0].as_f64().unwrap() / pitch;
-    let dy = t0["true_origin_px"][1].as_f64().unwrap() - t0["stage_position_um"][1].as_f64().unwrap() / pitch;
+    let dx = t0["true_origin_px"][0].as_f64().unwrap()
+        - t0["stage_position_um"][0].as_f64().unwrap() / pitch;
+    let dy = t0["true_origin_px"][1].as_f64().unwrap()
+        - t0["stage_position_um"][1].as_f64().unwrap() / pitch;
     let mut rows = Vec::new();
     // Skip a 4 px border (bilinear sampling and resampling at canvas edges).
     for i in (4..pano.rows.saturating_sub(4)).step_by(3) {
@@ -91,13 +96,18 @@ fn height_rms_vs_specimen(out: &Path, run: &Value, truth: &Value) -> (f64, usize
     }
     let coef = solve3(a, b);
     let n = rows.len();
-    let ss: f64 = rows.iter().map(|(x, y, d)| (d - coef[0] - coef[1] * x - coef[2] * y).powi(2)).sum();
+    let ss: f64 = rows
+        .iter()
+        .map(|(x, y, d)| (d - coef[0] - coef[1] * x - coef[2] * y).powi(2))
+        .sum();
     ((ss / n as f64).sqrt(), n)
 }
 
 fn solve3(mut a: [[f64; 3]; 3], mut b: [f64; 3]) -> [f64; 3] {
     for k in 0..3 {
-        let p = (k..3).max_by(|&i, &j| a[i][k].abs().total_cmp(&a[j][k].abs())).unwrap();
+        let p = (k..3)
+            .max_by(|&i, &j| a[i][k].abs().total_cmp(&a[j][k].abs()))
+            .unwrap();
         a.swap(k, p);
         b.swap(k, p);
         for i in k + 1..3 {
@@ -144,21 +154,40 @@ print("python ok", counts, len(m.faces))
         c.arg("-c").arg(script).arg(recording).arg(stl);
         c
     });
-    assert!(out.status.success(), "python check failed:\n{}", stderr(&out));
+    assert!(
+        out.status.success(),
+        "python check failed:\n{}",
+        stderr(&out)
+    );
 }
 
 #[test]
 fn demo_launch_run_and_replay_agree_and_match_the_truth() {
     let dir = tempfile::tempdir().unwrap();
-    let (a, b, c) = (dir.path().join("launch"), dir.path().join("run"), dir.path().join("replay"));
+    let (a, b, c) = (
+        dir.path().join("launch"),
+        dir.path().join("run"),
+        dir.path().join("replay"),
+    );
 
     // 1. The demo graph as processes, exactly as the README runs it (plus the specimen).
     let out = run({
         let mut cmd = surfstream();
-        cmd.args(["launch", "launch/graphs/demo.toml", "--set", "stage.save_specimen=true", "--out"]).arg(&a);
+        cmd.args([
+            "launch",
+            "launch/graphs/demo.toml",
+            "--set",
+            "stage.save_specimen=true",
+            "--out",
+        ])
+        .arg(&a);
         cmd
     });
-    assert!(out.status.success(), "demo launch failed:\n{}", stderr(&out));
+    assert!(
+        out.status.success(),
+        "demo launch failed:\n{}",
+        stderr(&out)
+    );
     let run_json = read_json(&a.join("run.json"));
     let truth = read_json(&a.join("truth.json"));
 
@@ -171,8 +200,14 @@ fn demo_launch_run_and_replay_agree_and_match_the_truth() {
     }
     assert_eq!(msgs["fusion"]["received"]["registrations"], 5);
     assert_eq!(msgs["recorder"]["received"]["registrations"], 5);
-    assert_eq!(msgs["wavelet"]["received"]["panorama"], msgs["fusion"]["sent"]["panorama"]);
-    assert_eq!(msgs["mesher"]["received"]["surface"], msgs["wavelet"]["sent"]["pooled"]);
+    assert_eq!(
+        msgs["wavelet"]["received"]["panorama"],
+        msgs["fusion"]["sent"]["panorama"]
+    );
+    assert_eq!(
+        msgs["mesher"]["received"]["surface"],
+        msgs["wavelet"]["sent"]["pooled"]
+    );
 
     // Tile positions within 0.5 px of the truth, all registered.
     let err = max_position_error_px(&run_json, &truth);
@@ -190,14 +225,28 @@ fn demo_launch_run_and_replay_agree_and_match_the_truth() {
     let lat = &run_json["latency_ms"];
     assert_eq!(lat["tile_to_registration"]["n"], 4);
     assert_eq!(lat["tile_to_panorama"]["n"], 4);
-    assert!(lat["final_frames"]["last_tile_to_mesh"]["max"].as_f64().unwrap() > 0.0);
+    assert!(
+        lat["final_frames"]["last_tile_to_mesh"]["max"]
+            .as_f64()
+            .unwrap()
+            > 0.0
+    );
     assert_eq!(lat["final_frames"]["last_tile_to_final_panorama"]["n"], 1);
-    assert!(lat["hops"]["registration_to_panorama"]["p50"].as_f64().is_some());
+    assert!(lat["hops"]["registration_to_panorama"]["p50"]
+        .as_f64()
+        .is_some());
 
     // 2. The same graph in one process: bit-identical outputs.
     let out = run({
         let mut cmd = surfstream();
-        cmd.args(["run", "launch/graphs/demo.toml", "--set", "stage.pacing=fast", "--out"]).arg(&b);
+        cmd.args([
+            "run",
+            "launch/graphs/demo.toml",
+            "--set",
+            "stage.pacing=fast",
+            "--out",
+        ])
+        .arg(&b);
         cmd
     });
     assert!(out.status.success(), "demo run failed:\n{}", stderr(&out));
@@ -216,20 +265,44 @@ fn demo_launch_run_and_replay_agree_and_match_the_truth() {
             .arg(&c);
         cmd
     });
-    assert!(out.status.success(), "replay launch failed:\n{}", stderr(&out));
+    assert!(
+        out.status.success(),
+        "replay launch failed:\n{}",
+        stderr(&out)
+    );
     assert_same_outputs(&a, &c);
 
     // Nothing left in shared memory by either launch.
     let domain = domain_of(&stderr(&out)).expect("launch names its domain");
-    assert!(shm_leftovers(&domain).is_empty(), "{:?}", shm_leftovers(&domain));
+    assert!(
+        shm_leftovers(&domain).is_empty(),
+        "{:?}",
+        shm_leftovers(&domain)
+    );
 }
 
 /// Writes a scan directory (scan.toml + .npy tiles) from the simulated stage.
-fn write_scan_dir(dir: &Path, rows: usize, cols: usize, tile_px: usize) -> surfstream_replay::ScanPlan {
+fn write_scan_dir(
+    dir: &Path,
+    rows: usize,
+    cols: usize,
+    tile_px: usize,
+) -> surfstream_replay::ScanPlan {
     use surfstream_replay::*;
-    let stage = StageParams { rows, cols, tile_px, overlap: 0.2, seed: 7, ..Default::default() };
+    let stage = StageParams {
+        rows,
+        cols,
+        tile_px,
+        overlap: 0.2,
+        seed: 7,
+        ..Default::default()
+    };
     let plan = plan_scan(&stage).unwrap();
-    let spec = generate_specimen(&plan.specimen_params(&SpecimenParams { seed: 7, ..Default::default() })).unwrap();
+    let spec = generate_specimen(&plan.specimen_params(&SpecimenParams {
+        seed: 7,
+        ..Default::default()
+    }))
+    .unwrap();
     let mut toml = format!(
         "[scan]\nname = \"fixture\"\npitch_x_um = {p}\npitch_y_um = {p}\nheight_unit = \"um\"\nrows = {rows}\ncols = {cols}\n",
         p = stage.pitch_um
@@ -245,7 +318,11 @@ fn write_scan_dir(dir: &Path, rows: usize, cols: usize, tile_px: usize) -> surfs
     }
     std::fs::write(dir.join("scan.toml"), toml).unwrap();
     let truth = truth_for(&plan);
-    std::fs::write(dir.join("ground_truth.json"), serde_json::to_string(&truth).unwrap()).unwrap();
+    std::fs::write(
+        dir.join("ground_truth.json"),
+        serde_json::to_string(&truth).unwrap(),
+    )
+    .unwrap();
     plan
 }
 
@@ -270,13 +347,20 @@ fn stitch_scans_a_scan_directory() {
     for f in OUTPUTS {
         assert!(out_dir.join(f).exists(), "{f} missing");
     }
-    assert_eq!(run_json["tiles"][4]["stage_x_um"], read_json(&scan.join("ground_truth.json"))["tiles"][4]["stage_position_um"][0]);
+    assert_eq!(
+        run_json["tiles"][4]["stage_x_um"],
+        read_json(&scan.join("ground_truth.json"))["tiles"][4]["stage_position_um"][0]
+    );
 }
 
 fn find_pid(binary: &str, marker: &str) -> Option<i32> {
     for e in std::fs::read_dir("/proc").ok()?.flatten() {
-        let Ok(pid) = e.file_name().to_string_lossy().parse::<i32>() else { continue };
-        let Ok(cmd) = std::fs::read(e.path().join("cmdline")) else { continue };
+        let Ok(pid) = e.file_name().to_string_lossy().parse::<i32>() else {
+            continue;
+        };
+        let Ok(cmd) = std::fs::read(e.path().join("cmdline")) else {
+            continue;
+        };
         let cmd = String::from_utf8_lossy(&cmd);
         if cmd.contains(binary) && cmd.contains(marker) {
             return Some(pid);
@@ -291,7 +375,15 @@ fn a_killed_node_fails_the_launch_and_leaves_no_shared_memory() {
     let out_dir = dir.path().join("killed");
     let log = dir.path().join("launcher.stderr");
     let mut child = surfstream()
-        .args(["launch", "launch/graphs/demo.toml", "--set", "stage.rows=3", "--set", "stage.field_time_s=1.0", "--out"])
+        .args([
+            "launch",
+            "launch/graphs/demo.toml",
+            "--set",
+            "stage.rows=3",
+            "--set",
+            "stage.field_time_s=1.0",
+            "--out",
+        ])
         .arg(&out_dir)
         .stdout(Stdio::null())
         .stderr(std::fs::File::create(&log).unwrap())
@@ -303,11 +395,17 @@ fn a_killed_node_fails_the_launch_and_leaves_no_shared_memory() {
         if let Some(pid) = find_pid("surfstream-matcher", &marker) {
             break pid;
         }
-        assert!(t0.elapsed() < Duration::from_secs(60), "matcher never started");
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "matcher never started"
+        );
         std::thread::sleep(Duration::from_millis(20));
     };
     // Mid-run: the scan has started and some tiles went through.
-    while !std::fs::read_to_string(&log).unwrap_or_default().contains("scan started") {
+    while !std::fs::read_to_string(&log)
+        .unwrap_or_default()
+        .contains("scan started")
+    {
         assert!(t0.elapsed() < Duration::from_secs(60), "scan never started");
         std::thread::sleep(Duration::from_millis(20));
     }
@@ -318,16 +416,30 @@ fn a_killed_node_fails_the_launch_and_leaves_no_shared_memory() {
     let err = std::fs::read_to_string(&log).unwrap();
     eprintln!("{err}");
     assert!(!status.success(), "launch must fail when a node dies");
-    assert!(err.contains("node 'matcher'") && err.contains("signal 9"), "{err}");
+    assert!(
+        err.contains("node 'matcher'") && err.contains("signal 9"),
+        "{err}"
+    );
     assert!(!err.contains("panicked"), "{err}");
     let domain = domain_of(&err).unwrap();
-    assert!(shm_leftovers(&domain).is_empty(), "{:?}", shm_leftovers(&domain));
+    assert!(
+        shm_leftovers(&domain).is_empty(),
+        "{:?}",
+        shm_leftovers(&domain)
+    );
     let cfg = surfstream_common::ipc::domain_config(&domain).unwrap();
-    assert_eq!(surfstream_common::ipc::count_nodes(&cfg).unwrap(), 0, "nodes left registered");
+    assert_eq!(
+        surfstream_common::ipc::count_nodes(&cfg).unwrap(),
+        0,
+        "nodes left registered"
+    );
     // Nothing half-written: no final outputs, no partial files.
     assert!(!out_dir.join("panorama.npy").exists());
     assert!(!out_dir.join("run.json").exists());
-    let partial = std::fs::read_dir(&out_dir).unwrap().flatten().any(|e| e.file_name().to_string_lossy().ends_with(".partial"));
+    let partial = std::fs::read_dir(&out_dir)
+        .unwrap()
+        .flatten()
+        .any(|e| e.file_name().to_string_lossy().ends_with(".partial"));
     assert!(!partial);
 }
 
@@ -343,7 +455,15 @@ fn two_launches_at_once_are_isolated() {
     let dir = tempfile::tempdir().unwrap();
     let spawn = |name: &str| {
         surfstream()
-            .args(["launch", "launch/graphs/demo.toml", "--set", "stage.pacing=fast", "--set", "stage.tile_px=256", "--out"])
+            .args([
+                "launch",
+                "launch/graphs/demo.toml",
+                "--set",
+                "stage.pacing=fast",
+                "--set",
+                "stage.tile_px=256",
+                "--out",
+            ])
             .arg(dir.path().join(name))
             .stdout(Stdio::null())
             .stderr(Stdio::piped())
@@ -353,9 +473,16 @@ fn two_launches_at_once_are_isolated() {
     let (x, y) = (spawn("x"), spawn("y"));
     for (name, child) in [("x", x), ("y", y)] {
         let out = child.wait_with_output().unwrap();
-        assert!(out.status.success(), "{name}: {}", String::from_utf8_lossy(&out.stderr));
+        assert!(
+            out.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
         let run_json = read_json(&dir.path().join(name).join("run.json"));
-        assert_eq!(run_json["messages"]["fusion"]["received"]["tiles"], 5, "{name}");
+        assert_eq!(
+            run_json["messages"]["fusion"]["received"]["tiles"], 5,
+            "{name}"
+        );
     }
     // Same graph, same seed: the same surface, although they ran side by side.
     assert_same_outputs(&dir.path().join("x"), &dir.path().join("y"));

@@ -10,7 +10,11 @@ use std::process::{Command, Output};
 pub fn bin_dir() -> PathBuf {
     // target/<profile>/deps/<test> -> target/<profile>; prefer release binaries.
     let exe = std::env::current_exe().expect("test executable path");
-    let target = exe.parent().and_then(Path::parent).and_then(Path::parent).expect("target dir");
+    let target = exe
+        .parent()
+        .and_then(Path::parent)
+        .and_then(Path::parent)
+        .expect("target dir");
     for profile in ["release", "debug"] {
         let dir = target.join(profile);
         if dir.join("surfstream").exists() && dir.join("surfstream-replay").exists() {
@@ -26,7 +30,10 @@ pub fn bin_dir() -> PathBuf {
 
 /// The repository root (graphs live in launch/graphs).
 pub fn repo_root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().expect("repo root").to_path_buf()
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("repo root")
+        .to_path_buf()
 }
 
 pub fn surfstream() -> Command {
@@ -38,7 +45,12 @@ pub fn surfstream() -> Command {
 /// Runs and returns the output; prints stderr for the test log.
 pub fn run(mut cmd: Command) -> Output {
     let out = cmd.output().expect("start surfstream");
-    eprintln!("--- {:?} -> {:?}\n{}", cmd, out.status, String::from_utf8_lossy(&out.stderr));
+    eprintln!(
+        "--- {:?} -> {:?}\n{}",
+        cmd,
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
     out
 }
 
@@ -82,7 +94,12 @@ pub fn assert_same_outputs(a: &Path, b: &Path) {
     for f in OUTPUTS {
         let x = std::fs::read(a.join(f)).unwrap_or_else(|e| panic!("{}: {e}", a.join(f).display()));
         let y = std::fs::read(b.join(f)).unwrap_or_else(|e| panic!("{}: {e}", b.join(f).display()));
-        assert!(x == y, "{f} differs between {} and {}", a.display(), b.display());
+        assert!(
+            x == y,
+            "{f} differs between {} and {}",
+            a.display(),
+            b.display()
+        );
     }
 }
 

@@ -136,7 +136,10 @@ pub struct HeightMap {
 
 impl HeightMap {
     pub fn view(&self) -> FrameView<'_> {
-        FrameView { header: &self.header, heights: &self.heights }
+        FrameView {
+            header: &self.header,
+            heights: &self.heights,
+        }
     }
 }
 
@@ -149,7 +152,10 @@ pub struct FrameView<'a> {
 
 impl FrameView<'_> {
     pub fn to_owned(&self) -> HeightMap {
-        HeightMap { header: *self.header, heights: self.heights.to_vec() }
+        HeightMap {
+            header: *self.header,
+            heights: self.heights.to_vec(),
+        }
     }
 }
 
@@ -201,7 +207,10 @@ impl TileRegistration {
 /// Monotonic clock (CLOCK_MONOTONIC, ns): shared by all processes on the machine, so latencies
 /// across processes are differences of these.
 pub fn monotonic_ns() -> u64 {
-    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
     // SAFETY: clock_gettime writes into the timespec we own.
     unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
     ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64

@@ -16,8 +16,11 @@ where
             .map_err(|e| anyhow::anyhow!("{}: cannot create: {e}", tmp.display()))?;
         let mut w = BufWriter::new(file);
         fill(&mut w)?;
-        w.flush().map_err(|e| anyhow::anyhow!("{}: write failed: {e}", tmp.display()))?;
-        let file = w.into_inner().map_err(|e| anyhow::anyhow!("{}: {e}", tmp.display()))?;
+        w.flush()
+            .map_err(|e| anyhow::anyhow!("{}: write failed: {e}", tmp.display()))?;
+        let file = w
+            .into_inner()
+            .map_err(|e| anyhow::anyhow!("{}: {e}", tmp.display()))?;
         file.sync_all().ok();
         Ok(())
     })();
@@ -33,7 +36,10 @@ where
 
 /// The temporary name used while `path` is being written.
 pub fn partial_path(path: &Path) -> PathBuf {
-    let mut name = path.file_name().map(|n| n.to_os_string()).unwrap_or_default();
+    let mut name = path
+        .file_name()
+        .map(|n| n.to_os_string())
+        .unwrap_or_default();
     name.push(".partial");
     path.with_file_name(name)
 }
@@ -41,7 +47,9 @@ pub fn partial_path(path: &Path) -> PathBuf {
 /// Removes `*.partial` files directly in `dir` (left by a process that was killed while
 /// writing): after a failed run, no half-written output may remain.
 pub fn remove_partials(dir: &Path) -> usize {
-    let Ok(entries) = std::fs::read_dir(dir) else { return 0 };
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
     entries
         .flatten()
         .filter(|e| e.file_name().to_string_lossy().ends_with(".partial"))

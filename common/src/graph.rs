@@ -49,10 +49,18 @@ pub struct InputDef {
 }
 
 const fn out(name: &'static str, kind: PortKind, delivery: Delivery) -> PortDef {
-    PortDef { name, kind, delivery }
+    PortDef {
+        name,
+        kind,
+        delivery,
+    }
 }
 const fn inp(name: &'static str, kind: Option<PortKind>, required: bool) -> InputDef {
-    InputDef { name, kind, required }
+    InputDef {
+        name,
+        kind,
+        required,
+    }
 }
 
 /// The node kinds, their binaries' ports. One table, so the launcher and every node agree.
@@ -62,10 +70,14 @@ pub fn node_kind_ports(kind: &str) -> Option<(&'static [InputDef], &'static [Por
     const REPLAY_OUT: &[PortDef] = &[out("tiles", Frames, Lossless)];
     const MATCHER_IN: &[InputDef] = &[inp("tiles", Some(Frames), true)];
     const MATCHER_OUT: &[PortDef] = &[out("registrations", Registrations, Lossless)];
-    const FUSION_IN: &[InputDef] =
-        &[inp("tiles", Some(Frames), true), inp("registrations", Some(Registrations), true)];
-    const FUSION_OUT: &[PortDef] =
-        &[out("panorama", Frames, Lossless), out("preview", Frames, LatestWins)];
+    const FUSION_IN: &[InputDef] = &[
+        inp("tiles", Some(Frames), true),
+        inp("registrations", Some(Registrations), true),
+    ];
+    const FUSION_OUT: &[PortDef] = &[
+        out("panorama", Frames, Lossless),
+        out("preview", Frames, LatestWins),
+    ];
     const WAVELET_IN: &[InputDef] = &[inp("panorama", Some(Frames), true)];
     const WAVELET_OUT: &[PortDef] = &[
         out("datum", Frames, Lossless),
@@ -86,7 +98,9 @@ pub fn node_kind_ports(kind: &str) -> Option<(&'static [InputDef], &'static [Por
 }
 
 /// The node kinds a graph may use.
-pub const NODE_KINDS: &[&str] = &["replay", "matcher", "fusion", "wavelet", "mesher", "recorder"];
+pub const NODE_KINDS: &[&str] = &[
+    "replay", "matcher", "fusion", "wavelet", "mesher", "recorder",
+];
 
 /// `[graph]` section.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -210,7 +224,9 @@ pub fn params_from_table<T: serde::de::DeserializeOwned>(
     let text = toml::to_string(table).map_err(|e| e.to_string())?;
     toml::from_str(&text).map_err(|e: toml::de::Error| {
         let key = e.span().and_then(|span| {
-            let start = text[..span.start.min(text.len())].rfind('\n').map_or(0, |i| i + 1);
+            let start = text[..span.start.min(text.len())]
+                .rfind('\n')
+                .map_or(0, |i| i + 1);
             let line = &text[start..];
             line.split_once('=').map(|(k, _)| k.trim().to_string())
         });
@@ -247,7 +263,8 @@ impl GraphFile {
         let valid_name = |s: &str| {
             !s.is_empty()
                 && s.len() <= 64
-                && s.chars().all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+                && s.chars()
+                    .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
         };
         if !valid_name(&self.graph.name) {
             bail!(
@@ -255,9 +272,12 @@ impl GraphFile {
                 self.graph.name
             );
         }
-        if !(self.graph.backpressure_timeout_s > 0.0 && self.graph.backpressure_timeout_s.is_finite())
+        if !(self.graph.backpressure_timeout_s > 0.0
+            && self.graph.backpressure_timeout_s.is_finite())
         {
-            bail!("{origin}: [graph] backpressure_timeout_s: expected a positive number of seconds");
+            bail!(
+                "{origin}: [graph] backpressure_timeout_s: expected a positive number of seconds"
+            );
         }
         if !(self.graph.startup_timeout_s > 0.0 && self.graph.startup_timeout_s.is_finite()) {
             bail!("{origin}: [graph] startup_timeout_s: expected a positive number of seconds");
@@ -268,10 +288,17 @@ impl GraphFile {
         let mut ids = BTreeMap::new();
         for (i, n) in self.nodes.iter().enumerate() {
             if !valid_name(&n.id) {
-                bail!("{origin}: node #{} id = {:?}: expected 1-64 characters of [A-Za-z0-9_-]", i + 1, n.id);
+                bail!(
+                    "{origin}: node #{} id = {:?}: expected 1-64 characters of [A-Za-z0-9_-]",
+                    i + 1,
+                    n.id
+                );
             }
             if ids.insert(n.id.as_str(), n).is_some() {
-                bail!("{origin}: node id {:?} is used twice: ids must be unique", n.id);
+                bail!(
+                    "{origin}: node id {:?} is used twice: ids must be unique",
+                    n.id
+                );
             }
             if node_kind_ports(&n.node).is_none() {
                 bail!(
@@ -304,7 +331,11 @@ impl GraphFile {
                         n.id,
                         n.node,
                         port,
-                        if names.is_empty() { "no inputs".to_string() } else { names.join(", ") }
+                        if names.is_empty() {
+                            "no inputs".to_string()
+                        } else {
+                            names.join(", ")
+                        }
                     );
                 };
                 let (from_node, from_port) = source.split_once('/').ok_or_else(|| {
@@ -341,7 +372,10 @@ impl GraphFile {
                     }
                 }
                 if from_node == n.id {
-                    bail!("{origin}: node '{}': inputs.{port}: a node cannot read its own output", n.id);
+                    bail!(
+                        "{origin}: node '{}': inputs.{port}: a node cannot read its own output",
+                        n.id
+                    );
                 }
                 let _ = any;
             }
@@ -357,9 +391,13 @@ impl GraphFile {
         let (node_id, param) = key
             .split_once('.')
             .ok_or_else(|| anyhow!("--set {assignment:?}: expected NODE.PARAM=VALUE"))?;
-        let node = self.nodes.iter_mut().find(|n| n.id == node_id).ok_or_else(|| {
-            anyhow!("--set {assignment:?}: the graph has no node with id {node_id:?}")
-        })?;
+        let node = self
+            .nodes
+            .iter_mut()
+            .find(|n| n.id == node_id)
+            .ok_or_else(|| {
+                anyhow!("--set {assignment:?}: the graph has no node with id {node_id:?}")
+            })?;
         let parsed: toml::Value = toml::from_str::<toml::Table>(&format!("v = {value}"))
             .ok()
             .and_then(|mut t| t.remove("v"))
@@ -371,7 +409,11 @@ impl GraphFile {
     /// How many inputs read `node/port`.
     pub fn subscribers_of(&self, node_id: &str, port: &str) -> usize {
         let topic = format!("{node_id}/{port}");
-        self.nodes.iter().flat_map(|c| c.inputs.values()).filter(|s| **s == topic).count()
+        self.nodes
+            .iter()
+            .flat_map(|c| c.inputs.values())
+            .filter(|s| **s == topic)
+            .count()
     }
 
     /// Resolves every node's wiring. `out_dir` must already be final (absolute for processes).
@@ -389,13 +431,14 @@ impl GraphFile {
                     .nodes
                     .iter()
                     .find(|p| p.id == from_node)
-                    .ok_or_else(|| anyhow!("node '{}': inputs.{port}: no node {from_node}", n.id))?;
+                    .ok_or_else(|| {
+                        anyhow!("node '{}': inputs.{port}: no node {from_node}", n.id)
+                    })?;
                 let (_, pouts) = node_kind_ports(&producer.node)
                     .ok_or_else(|| anyhow!("node '{}': unknown kind", producer.id))?;
-                let def = pouts
-                    .iter()
-                    .find(|o| o.name == from_port)
-                    .ok_or_else(|| anyhow!("node '{}': inputs.{port}: no port {from_port}", n.id))?;
+                let def = pouts.iter().find(|o| o.name == from_port).ok_or_else(|| {
+                    anyhow!("node '{}': inputs.{port}: no port {from_port}", n.id)
+                })?;
                 inputs.push(InputSpec {
                     port: port.clone(),
                     from_node: from_node.to_string(),
@@ -470,21 +513,43 @@ inputs = { tiles = "stage/tiles", panorama = "fusion/panorama" }
         assert_eq!(stage.outputs[0].subscribers, 3);
         let fusion = &ctx[2];
         assert_eq!(fusion.inputs.len(), 2);
-        assert_eq!(fusion.outputs.iter().find(|o| o.port == "panorama").unwrap().subscribers, 1);
+        assert_eq!(
+            fusion
+                .outputs
+                .iter()
+                .find(|o| o.port == "panorama")
+                .unwrap()
+                .subscribers,
+            1
+        );
     }
 
     #[test]
     fn errors_name_file_and_field() {
-        let bad = DEMO.replace("stage/tiles\" }\n\n[[node]]\nid = \"fusion\"", "stage/tile\" }\n\n[[node]]\nid = \"fusion\"");
+        let bad = DEMO.replace(
+            "stage/tiles\" }\n\n[[node]]\nid = \"fusion\"",
+            "stage/tile\" }\n\n[[node]]\nid = \"fusion\"",
+        );
         let e = GraphFile::parse(&bad, "g.toml").unwrap_err().to_string();
-        assert!(e.contains("g.toml") && e.contains("inputs.tiles") && e.contains("no output"), "{e}");
+        assert!(
+            e.contains("g.toml") && e.contains("inputs.tiles") && e.contains("no output"),
+            "{e}"
+        );
 
-        let e = GraphFile::parse("[graph]\nname = \"x\"\n[[node]]\nid=\"a\"\nnode=\"warp\"\n", "h.toml")
+        let e = GraphFile::parse(
+            "[graph]\nname = \"x\"\n[[node]]\nid=\"a\"\nnode=\"warp\"\n",
+            "h.toml",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("h.toml") && e.contains("warp") && e.contains("expected one of"),
+            "{e}"
+        );
+
+        let e = GraphFile::parse("[graph]\nnam = \"x\"\n", "i.toml")
             .unwrap_err()
             .to_string();
-        assert!(e.contains("h.toml") && e.contains("warp") && e.contains("expected one of"), "{e}");
-
-        let e = GraphFile::parse("[graph]\nnam = \"x\"\n", "i.toml").unwrap_err().to_string();
         assert!(e.contains("i.toml") && e.contains("nam"), "{e}");
 
         let e = GraphFile::parse(

@@ -73,7 +73,12 @@ pub fn run_graph(nodes: Vec<InProcessNode>) -> Result<Vec<NodeReport>> {
                 .entry((i.from_node.clone(), i.from_port.clone()))
                 .or_default()
                 .push((n.context.node_id.clone(), tx));
-            ins.push(InputChannel { port: i.port.clone(), topic: i.topic(), rx, ended: false });
+            ins.push(InputChannel {
+                port: i.port.clone(),
+                topic: i.topic(),
+                rx,
+                ended: false,
+            });
         }
         receivers.push(ins);
     }
@@ -86,7 +91,9 @@ pub fn run_graph(nodes: Vec<InProcessNode>) -> Result<Vec<NodeReport>> {
             .map(|o| OutputChannel {
                 port: o.port.clone(),
                 delivery: o.delivery,
-                txs: senders.remove(&(n.context.node_id.clone(), o.port.clone())).unwrap_or_default(),
+                txs: senders
+                    .remove(&(n.context.node_id.clone(), o.port.clone()))
+                    .unwrap_or_default(),
                 sequence: 0,
             })
             .collect();
@@ -132,13 +139,20 @@ fn run_node(
         let wait = wake
             .map(|w| w.saturating_duration_since(Instant::now()))
             .unwrap_or(HOUSEKEEPING)
-            .min(HOUSEKEEPING);
+            .min(if logic.has_pending_work() {
+                Duration::ZERO
+            } else {
+                HOUSEKEEPING
+            });
         let open: Vec<usize> = (0..inputs.len()).filter(|&i| !inputs[i].ended).collect();
         if open.is_empty() {
             if !wait.is_zero() && wake.is_some() {
                 std::thread::sleep(wait);
-            } else if wake.is_none() && !inputs.is_empty() {
-                bail!("node '{}': all inputs ended but the node did not finish", ctx.node_id);
+            } else if wake.is_none() && !inputs.is_empty() && !logic.has_pending_work() {
+                bail!(
+                    "node '{}': all inputs ended but the node did not finish",
+                    ctx.node_id
+                );
             }
         } else {
             let mut sel = Select::new();
@@ -198,7 +212,10 @@ fn send_all(
 ) -> Result<()> {
     for (port, mut msg) in outbox.take() {
         let ch = outputs.iter_mut().find(|c| c.port == port).ok_or_else(|| {
-            anyhow!("node '{}' sent on unknown output port '{port}'", ctx.node_id)
+            anyhow!(
+                "node '{}' sent on unknown output port '{port}'",
+                ctx.node_id
+            )
         })?;
         msg.stamp(ch.sequence, ctx.scan_id);
         ch.sequence += 1;

@@ -26,7 +26,8 @@ use crate::node::{deliver, Input, NodeLogic, NodeReport, NodeStats, Outbox, Outp
 
 /// Set by a termination request (SIGTERM / SIGINT, see [`crate::shell`]): the event loop stops
 /// with an error, so ports are dropped and partial files removed on the way out.
-pub static STOP_REQUESTED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+pub static STOP_REQUESTED: std::sync::atomic::AtomicBool =
+    std::sync::atomic::AtomicBool::new(false);
 
 fn check_stop() -> Result<()> {
     if STOP_REQUESTED.load(std::sync::atomic::Ordering::Relaxed) {
@@ -48,6 +49,8 @@ type EventFactory = event_factory::PortFactory<ipc::Service>;
 
 /// The iceoryx2 configuration of one isolated domain (a fixed prefix per launcher slot).
 pub fn domain_config(prefix: &str) -> Result<Config> {
+    // iceoryx2 warns on stderr that no config file was loaded: we configure it in code.
+    set_log_level(LogLevel::Error);
     let mut cfg = Config::default();
     cfg.global.prefix = FileName::new(prefix.as_bytes())
         .map_err(|e| anyhow!("invalid iceoryx2 domain prefix {prefix:?}: {e:?}"))?;
@@ -56,8 +59,9 @@ pub fn domain_config(prefix: &str) -> Result<Config> {
 
 /// Creates an iceoryx2 node in `domain` with signal handling left to us.
 pub fn create_node(cfg: &Config, name: &str) -> Result<Node<ipc::Service>> {
-    let node_name: NodeName =
-        name.try_into().map_err(|e| anyhow!("invalid node name {name:?}: {e:?}"))?;
+    let node_name: NodeName = name
+        .try_into()
+        .map_err(|e| anyhow!("invalid node name {name:?}: {e:?}"))?;
     NodeBuilder::new()
         .name(&node_name)
         .config(cfg)
@@ -81,6 +85,49 @@ pub fn cleanup_dead_nodes(cfg: &Config) -> Result<usize> {
     Ok(cleaned)
 }
 
+/// Removes every file of a domain that nobody can be using any more: shared memory, node and
+/// service records, including half-removed records of a node killed mid-cleanup (iceoryx2
+/// lists those as `Undefined` and cannot remove them). Only for a domain whose owner holds it
+/// exclusively (the launcher's slot lock) with no process of it alive. Keeps the per-prefix
+/// management file, which iceoryx2 expects to stay. Returns how many entries were removed.
+pub fn wipe_domain(cfg: &Config) -> usize {
+    let prefix = String::from_utf8_lossy(cfg.global.prefix.as_bytes()).to_string();
+    let root = std::path::PathBuf::from(
+        String::from_utf8_lossy(cfg.global.root_path().as_bytes()).to_string(),
+    );
+    let mut removed = 0;
+    let mut remove_prefixed = |dir: &std::path::Path, ids: &mut Vec<String>| {
+        let Ok(entries) = std::fs::read_dir(dir) else {
+            return;
+        };
+        for e in entries.flatten() {
+            let name = e.file_name().to_string_lossy().to_string();
+            if !name.starts_with(&prefix) || name.ends_with("global_mgmt") || !e.path().is_file() {
+                continue;
+            }
+            if let Some(id) = name[prefix.len()..].split('.').next() {
+                ids.push(id.to_string());
+            }
+            if std::fs::remove_file(e.path()).is_ok() {
+                removed += 1;
+            }
+        }
+    };
+    let mut ids = Vec::new();
+    remove_prefixed(std::path::Path::new("/dev/shm"), &mut Vec::new());
+    remove_prefixed(&root.join("services"), &mut Vec::new());
+    remove_prefixed(&root.join("nodes"), &mut ids);
+    // A node's directory is named by its id and holds only prefixed records.
+    for id in ids {
+        let dir = root.join("nodes").join(&id);
+        if dir.is_dir() {
+            remove_prefixed(&dir, &mut Vec::new());
+            let _ = std::fs::remove_dir(&dir);
+        }
+    }
+    removed
+}
+
 /// Counts the nodes (alive or dead) registered in a domain.
 pub fn count_nodes(cfg: &Config) -> Result<usize> {
     let mut n = 0;
@@ -93,7 +140,8 @@ pub fn count_nodes(cfg: &Config) -> Result<usize> {
 }
 
 fn svc_name(name: &str) -> Result<ServiceName> {
-    name.try_into().map_err(|e| anyhow!("invalid service name {name:?}: {e:?}"))
+    name.try_into()
+        .map_err(|e| anyhow!("invalid service name {name:?}: {e:?}"))
 }
 
 /// Opens a service, retrying while another process is creating the same one.
@@ -124,29 +172,36 @@ fn open_frames(
     deadline: Instant,
 ) -> Result<FrameFactory> {
     let sname = svc_name(name)?;
-    retry(&format!("cannot open frame service {name}"), deadline, || {
-        let b = node.service_builder(&sname).publish_subscribe::<[f32]>().user_header::<FrameHeader>();
-        match delivery {
-            Delivery::Lossless => b
-                .enable_safe_overflow(false)
-                .subscriber_max_buffer_size(LOSSLESS_BUFFER)
-                .subscriber_max_borrowed_samples(1)
-                .history_size(0)
-                .max_publishers(1)
-                .max_subscribers(subscribers.max(1))
-                .max_nodes(subscribers + 2)
-                .open_or_create(),
-            Delivery::LatestWins => b
-                .enable_safe_overflow(true)
-                .subscriber_max_buffer_size(1)
-                .subscriber_max_borrowed_samples(1)
-                .history_size(1)
-                .max_publishers(1)
-                .max_subscribers(4)
-                .max_nodes(6)
-                .open_or_create(),
-        }
-    })
+    retry(
+        &format!("cannot open frame service {name}"),
+        deadline,
+        || {
+            let b = node
+                .service_builder(&sname)
+                .publish_subscribe::<[f32]>()
+                .user_header::<FrameHeader>();
+            match delivery {
+                Delivery::Lossless => b
+                    .enable_safe_overflow(false)
+                    .subscriber_max_buffer_size(LOSSLESS_BUFFER)
+                    .subscriber_max_borrowed_samples(1)
+                    .history_size(0)
+                    .max_publishers(1)
+                    .max_subscribers(subscribers.max(1))
+                    .max_nodes(subscribers + 2)
+                    .open_or_create(),
+                Delivery::LatestWins => b
+                    .enable_safe_overflow(true)
+                    .subscriber_max_buffer_size(1)
+                    .subscriber_max_borrowed_samples(1)
+                    .history_size(1)
+                    .max_publishers(1)
+                    .max_subscribers(4)
+                    .max_nodes(6)
+                    .open_or_create(),
+            }
+        },
+    )
 }
 
 fn open_registrations(
@@ -156,30 +211,38 @@ fn open_registrations(
     deadline: Instant,
 ) -> Result<RegFactory> {
     let sname = svc_name(name)?;
-    retry(&format!("cannot open registration service {name}"), deadline, || {
-        node.service_builder(&sname)
-            .publish_subscribe::<TileRegistration>()
-            .enable_safe_overflow(false)
-            .subscriber_max_buffer_size(64)
-            .subscriber_max_borrowed_samples(1)
-            .history_size(0)
-            .max_publishers(1)
-            .max_subscribers(subscribers.max(1))
-            .max_nodes(subscribers + 2)
-            .open_or_create()
-    })
+    retry(
+        &format!("cannot open registration service {name}"),
+        deadline,
+        || {
+            node.service_builder(&sname)
+                .publish_subscribe::<TileRegistration>()
+                .enable_safe_overflow(false)
+                .subscriber_max_buffer_size(64)
+                .subscriber_max_borrowed_samples(1)
+                .history_size(0)
+                .max_publishers(1)
+                .max_subscribers(subscribers.max(1))
+                .max_nodes(subscribers + 2)
+                .open_or_create()
+        },
+    )
 }
 
 fn open_events(node: &Node<ipc::Service>, name: &str, deadline: Instant) -> Result<EventFactory> {
     let sname = svc_name(name)?;
-    retry(&format!("cannot open event service {name}"), deadline, || {
-        node.service_builder(&sname)
-            .event()
-            .max_listeners(16)
-            .max_notifiers(16)
-            .max_nodes(20)
-            .open_or_create()
-    })
+    retry(
+        &format!("cannot open event service {name}"),
+        deadline,
+        || {
+            node.service_builder(&sname)
+                .event()
+                .max_listeners(16)
+                .max_notifiers(16)
+                .max_nodes(20)
+                .open_or_create()
+        },
+    )
 }
 
 /// Opens (or creates) an event service, e.g. the launcher's ready / go services.
@@ -238,7 +301,13 @@ impl InPort {
             Receiver::Frames(_, s) => s.update_connections(),
             Receiver::Registrations(_, s) => s.update_connections(),
         }
-        .map_err(|e| anyhow!("input '{}': cannot connect to {}: {e:?}", self.port, self.topic))
+        .map_err(|e| {
+            anyhow!(
+                "input '{}': cannot connect to {}: {e:?}",
+                self.port,
+                self.topic
+            )
+        })
     }
 }
 
@@ -393,14 +462,17 @@ pub fn run_node(
                 .notifier_builder()
                 .create()
                 .map_err(|e| anyhow!("{name}/ready: cannot create notifier: {e:?}"))?;
-            n.notify().map_err(|e| anyhow!("{name}/ready: notify failed: {e:?}"))?;
+            n.notify()
+                .map_err(|e| anyhow!("{name}/ready: notify failed: {e:?}"))?;
         }
         ins.push(port);
     }
 
     // 3. Handshake: every lossless output has heard from all its subscribers.
     for o in &mut outs {
-        let Some(listener) = o.ready_listener.take() else { continue };
+        let Some(listener) = o.ready_listener.take() else {
+            continue;
+        };
         let mut ready = 0u64;
         while ready < o.expected as u64 {
             check_stop()?;
@@ -438,7 +510,10 @@ pub fn run_node(
             while !started {
                 check_stop()?;
                 if Instant::now() > deadline {
-                    bail!("the launcher did not say 'go' within {:.0} s", startup.as_secs_f64());
+                    bail!(
+                        "the launcher did not say 'go' within {:.0} s",
+                        startup.as_secs_f64()
+                    );
                 }
                 go.timed_wait(|_| started = true, Duration::from_millis(100))
                     .map_err(|e| anyhow!("go wait failed: {e:?}"))?;
@@ -472,7 +547,11 @@ pub fn run_node(
             .next_wakeup()
             .map(|w| w.saturating_duration_since(Instant::now()))
             .unwrap_or(HOUSEKEEPING)
-            .min(HOUSEKEEPING);
+            .min(if logic.has_pending_work() {
+                Duration::ZERO
+            } else {
+                HOUSEKEEPING
+            });
         waitset
             .wait_and_process_once_with_timeout(
                 |id| {
@@ -550,9 +629,9 @@ fn drain(
     loop {
         let end = match &p.receiver {
             Receiver::Frames(_, s) => {
-                let Some(sample) = s
-                    .receive()
-                    .map_err(|e| anyhow!("input '{}' ({}): receive failed: {e:?}", p.port, p.topic))?
+                let Some(sample) = s.receive().map_err(|e| {
+                    anyhow!("input '{}' ({}): receive failed: {e:?}", p.port, p.topic)
+                })?
                 else {
                     return Ok(false);
                 };
@@ -575,9 +654,9 @@ fn drain(
                 end
             }
             Receiver::Registrations(_, s) => {
-                let Some(sample) = s
-                    .receive()
-                    .map_err(|e| anyhow!("input '{}' ({}): receive failed: {e:?}", p.port, p.topic))?
+                let Some(sample) = s.receive().map_err(|e| {
+                    anyhow!("input '{}' ({}): receive failed: {e:?}", p.port, p.topic)
+                })?
                 else {
                     return Ok(false);
                 };
@@ -601,7 +680,10 @@ fn send_all(
 ) -> Result<()> {
     for (port, mut msg) in outbox.take() {
         let o = outs.iter_mut().find(|o| o.port == port).ok_or_else(|| {
-            anyhow!("node '{}' sent on unknown output port '{port}'", ctx.node_id)
+            anyhow!(
+                "node '{}' sent on unknown output port '{port}'",
+                ctx.node_id
+            )
         })?;
         msg.stamp(o.sequence, ctx.scan_id);
         o.sequence += 1;
@@ -635,9 +717,9 @@ fn send_all(
                 o.expected
             );
         }
-        o.wake.notify_with_custom_event_id(EventId::new(EVENT_DATA)).map_err(|e| {
-            anyhow!("output '{port}': wake-up notify failed: {e:?}")
-        })?;
+        o.wake
+            .notify_with_custom_event_id(EventId::new(EVENT_DATA))
+            .map_err(|e| anyhow!("output '{port}': wake-up notify failed: {e:?}"))?;
         stats.on_sent(&port, &msg, receivers);
     }
     Ok(())
@@ -647,7 +729,9 @@ fn send_all(
 pub fn validate_prefix(prefix: &str) -> Result<()> {
     if prefix.is_empty()
         || prefix.len() > 32
-        || !prefix.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+        || !prefix
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_')
     {
         bail!("--domain {prefix:?}: expected 1-32 characters of [A-Za-z0-9_]");
     }

@@ -31,7 +31,12 @@ pub fn percentiles_ms(samples_ns: &[u64]) -> Option<Percentiles> {
         let idx = ((p / 100.0) * v.len() as f64).ceil() as usize;
         v[idx.clamp(1, v.len()) - 1] as f64 / 1e6
     };
-    Some(Percentiles { p50: rank(50.0), p95: rank(95.0), max: rank(100.0), n: v.len() })
+    Some(Percentiles {
+        p50: rank(50.0),
+        p95: rank(95.0),
+        max: rank(100.0),
+        n: v.len(),
+    })
 }
 
 /// The stage outputs of the default pipeline, in order, as (name, node kind, port).
@@ -85,7 +90,8 @@ pub fn summarize(reports: &[NodeReport], mesh_done: Option<(u64, u64)>) -> Laten
             s.end_to_end.insert(format!("tile_to_{stage}"), p);
         }
         if let Some(p) = percentiles_ms(&finals) {
-            s.final_frames.insert(format!("last_tile_to_final_{stage}"), p);
+            s.final_frames
+                .insert(format!("last_tile_to_final_{stage}"), p);
         }
         first_sent.insert(stage, first);
     }
@@ -94,10 +100,16 @@ pub fn summarize(reports: &[NodeReport], mesh_done: Option<(u64, u64)>) -> Laten
             s.final_frames.insert("last_tile_to_mesh".into(), p);
         }
     }
-    for pair in [("registration", "panorama"), ("panorama", "datum"), ("datum", "pooled")] {
+    for pair in [
+        ("registration", "panorama"),
+        ("panorama", "datum"),
+        ("datum", "pooled"),
+    ] {
         let (a, b) = (&first_sent[pair.0], &first_sent[pair.1]);
-        let samples: Vec<u64> =
-            b.iter().filter_map(|(t, tb)| a.get(t).map(|ta| tb.saturating_sub(*ta))).collect();
+        let samples: Vec<u64> = b
+            .iter()
+            .filter_map(|(t, tb)| a.get(t).map(|ta| tb.saturating_sub(*ta)))
+            .collect();
         if let Some(p) = percentiles_ms(&samples) {
             s.hops.insert(format!("{}_to_{}", pair.0, pair.1), p);
         }

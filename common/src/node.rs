@@ -97,7 +97,8 @@ impl Outbox {
         self.items.push((port.to_string(), Output::Frame(frame)));
     }
     pub fn send_registration(&mut self, port: &str, reg: TileRegistration) {
-        self.items.push((port.to_string(), Output::Registration(reg)));
+        self.items
+            .push((port.to_string(), Output::Registration(reg)));
     }
     /// Closes a frame port: the END_OF_SCAN marker.
     pub fn end_frames(&mut self, port: &str, tile_index: u32, t_acquired_ns: u64) {
@@ -148,6 +149,12 @@ pub trait NodeLogic {
         Ok(())
     }
 
+    /// More to do without new input (e.g. the final pass after the last live outputs went
+    /// out): the runtime calls [`NodeLogic::on_drained`] again without waiting.
+    fn has_pending_work(&self) -> bool {
+        false
+    }
+
     /// Everything final is out, every output port closed: the node may exit.
     fn finished(&self) -> bool;
 
@@ -184,25 +191,31 @@ pub struct NodeStats {
 impl NodeStats {
     pub fn on_received(&mut self, port: &str, input: &Input<'_>) {
         let (tile_index, t_acquired_ns, t_sent_ns, kind, flags) = input.trace();
-        self.received.entry(port.to_string()).or_default().push(TraceEvent {
-            tile_index,
-            kind,
-            flags,
-            t_acquired_ns,
-            t_sent_ns,
-            t_received_ns: Some(monotonic_ns()),
-        });
+        self.received
+            .entry(port.to_string())
+            .or_default()
+            .push(TraceEvent {
+                tile_index,
+                kind,
+                flags,
+                t_acquired_ns,
+                t_sent_ns,
+                t_received_ns: Some(monotonic_ns()),
+            });
     }
     pub fn on_sent(&mut self, port: &str, output: &Output, receivers: usize) {
         let (tile_index, t_acquired_ns, t_sent_ns, kind, flags) = output.trace();
-        self.sent.entry(port.to_string()).or_default().push(TraceEvent {
-            tile_index,
-            kind,
-            flags,
-            t_acquired_ns,
-            t_sent_ns,
-            t_received_ns: None,
-        });
+        self.sent
+            .entry(port.to_string())
+            .or_default()
+            .push(TraceEvent {
+                tile_index,
+                kind,
+                flags,
+                t_acquired_ns,
+                t_sent_ns,
+                t_received_ns: None,
+            });
         *self.deliveries.entry(port.to_string()).or_default() += receivers as u64;
     }
 }

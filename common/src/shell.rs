@@ -22,7 +22,8 @@ pub fn report_path(out_dir: &Path, node_id: &str) -> PathBuf {
 pub fn write_report(out_dir: &Path, report: &NodeReport) -> Result<()> {
     let path = report_path(out_dir, &report.node_id);
     if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("{}: cannot create", dir.display()))?;
     }
     crate::fsutil::write_atomic(&path, |w| {
         serde_json::to_writer(w, report).map_err(|e| anyhow!("{}: {e}", path.display()))
@@ -40,7 +41,8 @@ pub fn load_context(graph: &Path, node_id: &str) -> Result<NodeContext> {
         .ok_or_else(|| anyhow!("{}: no node with id {node_id:?}", graph.display()))
 }
 
-const USAGE: &str = "usage: surfstream-<node> --graph RESOLVED_GRAPH.json --node ID --domain PREFIX [--launched]\n\
+const USAGE: &str =
+    "usage: surfstream-<node> --graph RESOLVED_GRAPH.json --node ID --domain PREFIX [--launched]\n\
   Started by `surfstream launch`; run `surfstream --help` for the user-facing commands.";
 
 struct Args {
@@ -78,10 +80,7 @@ fn parse_args(kind: &str) -> Result<Args> {
 }
 
 /// The whole `main` of a node binary.
-pub fn node_main(
-    kind: &str,
-    build: fn(&NodeContext) -> Result<Box<dyn NodeLogic + Send>>,
-) -> ! {
+pub fn node_main(kind: &str, build: fn(&NodeContext) -> Result<Box<dyn NodeLogic + Send>>) -> ! {
     let code = match run(kind, build) {
         Ok(()) => 0,
         Err(e) => {
@@ -100,7 +99,11 @@ fn run(kind: &str, build: fn(&NodeContext) -> Result<Box<dyn NodeLogic + Send>>)
     ipc::validate_prefix(&args.domain)?;
     let ctx = load_context(&args.graph, &args.node)?;
     if ctx.node_kind != kind {
-        bail!("node '{}' is a {} node, not {kind}", ctx.node_id, ctx.node_kind);
+        bail!(
+            "node '{}' is a {} node, not {kind}",
+            ctx.node_id,
+            ctx.node_kind
+        );
     }
     let mut logic = build(&ctx)?;
     let cfg = ipc::domain_config(&args.domain)?;

@@ -64,7 +64,11 @@ impl NodeLogic for Sink {
             } else {
                 let i = f.header.tile_index;
                 assert_eq!(f.heights.len(), (SIDE * SIDE) as usize);
-                assert!(f.heights.iter().enumerate().all(|(k, v)| *v == ((k as u32) ^ i) as f32));
+                assert!(f
+                    .heights
+                    .iter()
+                    .enumerate()
+                    .all(|(k, v)| *v == ((k as u32) ^ i) as f32));
                 self.seen.push(i);
             }
         }
@@ -105,7 +109,12 @@ inputs = {{ tiles = "src/tiles" }}
 fn check(reports: &[surfstream_common::node::NodeReport]) {
     let expect: Vec<u32> = (0..N).collect();
     for r in reports.iter().filter(|r| r.node_id != "src") {
-        assert_eq!(r.report["seen"], serde_json::json!(expect), "node {}", r.node_id);
+        assert_eq!(
+            r.report["seen"],
+            serde_json::json!(expect),
+            "node {}",
+            r.node_id
+        );
     }
     let src = reports.iter().find(|r| r.node_id == "src").unwrap();
     assert_eq!(src.stats.sent["tiles"].len(), N as usize + 1);
@@ -119,7 +128,10 @@ fn in_process_is_lossless_and_ordered() {
         .into_iter()
         .map(|c| {
             let logic: Box<dyn NodeLogic + Send> = if c.node_id == "src" {
-                Box::new(Source { next: 0, done: false })
+                Box::new(Source {
+                    next: 0,
+                    done: false,
+                })
             } else {
                 Box::new(Sink::default())
             };
@@ -140,7 +152,10 @@ fn iceoryx2_is_lossless_and_ordered_with_two_subscribers() {
             let cfg = cfg.clone();
             std::thread::spawn(move || {
                 let mut logic: Box<dyn NodeLogic + Send> = if c.node_id == "src" {
-                    Box::new(Source { next: 0, done: false })
+                    Box::new(Source {
+                        next: 0,
+                        done: false,
+                    })
                 } else {
                     Box::new(Sink::default())
                 };
@@ -148,8 +163,15 @@ fn iceoryx2_is_lossless_and_ordered_with_two_subscribers() {
             })
         })
         .collect();
-    let reports: Vec<_> = handles.into_iter().map(|h| h.join().unwrap().unwrap()).collect();
+    let reports: Vec<_> = handles
+        .into_iter()
+        .map(|h| h.join().unwrap().unwrap())
+        .collect();
     check(&reports);
-    assert_eq!(ipc::count_nodes(&cfg).unwrap(), 0, "every node removed its resources");
+    assert_eq!(
+        ipc::count_nodes(&cfg).unwrap(),
+        0,
+        "every node removed its resources"
+    );
     let _ = std::fs::remove_file(format!("/dev/shm/{domain}global_mgmt"));
 }

@@ -42,7 +42,8 @@ mod iceoryx2_free {
 /// Prepares the out dir, resolves the graph and writes the resolved form beside the outputs.
 fn prepare(graph: &mut GraphFile) -> Result<Vec<NodeContext>> {
     let out = &graph.graph.out_dir;
-    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create out dir", out.display()))?;
+    std::fs::create_dir_all(out)
+        .with_context(|| format!("{}: cannot create out dir", out.display()))?;
     let out = out
         .canonicalize()
         .with_context(|| format!("{}: cannot resolve out dir", out.display()))?;
@@ -61,7 +62,8 @@ fn prepare(graph: &mut GraphFile) -> Result<Vec<NodeContext>> {
     let contexts = graph.resolve(scan_id)?;
     let resolved = out.join(shell::RESOLVED_GRAPH);
     fsutil::write_atomic(&resolved, |w| {
-        serde_json::to_writer_pretty(w, &contexts).map_err(|e| anyhow!("{}: {e}", resolved.display()))
+        serde_json::to_writer_pretty(w, &contexts)
+            .map_err(|e| anyhow!("{}: {e}", resolved.display()))
     })?;
     Ok(contexts)
 }
@@ -73,7 +75,10 @@ pub fn run_in_process(mut graph: GraphFile, origin: &Path) -> Result<()> {
     let mut threads = Vec::new();
     for c in &contexts {
         let logic = nodes::build(c)?;
-        threads.push(InProcessNode { context: c.clone(), logic });
+        threads.push(InProcessNode {
+            context: c.clone(),
+            logic,
+        });
     }
     eprintln!(
         "surfstream: running graph '{}' in one process ({} nodes) -> {}",
@@ -123,14 +128,20 @@ fn take_slot() -> Result<Slot> {
         use std::os::fd::AsRawFd;
         // SAFETY: flock on a file descriptor we own.
         if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } == 0 {
-            return Ok(Slot { _lock: file, prefix: format!("ss{k}_") });
+            return Ok(Slot {
+                _lock: file,
+                prefix: format!("ss{k}_"),
+            });
         }
     }
     bail!("all {SLOTS} launch slots are busy: too many graphs running at once")
 }
 
 enum Event {
-    Exited { id: String, status: std::process::ExitStatus },
+    Exited {
+        id: String,
+        status: std::process::ExitStatus,
+    },
     Interrupted,
 }
 
@@ -144,7 +155,9 @@ struct Running {
 
 fn node_binary(kind: &str) -> Result<PathBuf> {
     let exe = std::env::current_exe().context("cannot locate the surfstream binary")?;
-    let dir = exe.parent().ok_or_else(|| anyhow!("surfstream binary has no directory"))?;
+    let dir = exe
+        .parent()
+        .ok_or_else(|| anyhow!("surfstream binary has no directory"))?;
     let bin = dir.join(format!("surfstream-{kind}"));
     if !bin.exists() {
         bail!(
@@ -181,14 +194,20 @@ pub fn launch(mut graph: GraphFile, origin: &Path) -> Result<()> {
     let out = graph.graph.out_dir.clone();
     let slot = take_slot()?;
     let cfg = ipc::domain_config(&slot.prefix)?;
-    let stale = ipc::cleanup_dead_nodes(&cfg)?;
+    // The slot is ours alone and its processes died with their launcher: start from nothing.
+    let stale = ipc::cleanup_dead_nodes(&cfg)? + ipc::wipe_domain(&cfg);
     if stale > 0 {
-        eprintln!("surfstream: removed stale resources of {stale} dead node(s) of an earlier run");
+        eprintln!(
+            "surfstream: removed {stale} stale resource(s) left in slot {} by an earlier run",
+            slot.prefix
+        );
     }
     let logs = out.join("logs");
     std::fs::create_dir_all(&logs).with_context(|| format!("{}: cannot create", logs.display()))?;
-    let binaries: Vec<PathBuf> =
-        contexts.iter().map(|c| node_binary(&c.node_kind)).collect::<Result<_>>()?;
+    let binaries: Vec<PathBuf> = contexts
+        .iter()
+        .map(|c| node_binary(&c.node_kind))
+        .collect::<Result<_>>()?;
 
     let result = {
         let launcher = ipc::create_node(&cfg, &format!("{}/launcher", graph.graph.name))?;
@@ -259,9 +278,9 @@ pub fn launch(mut graph: GraphFile, origin: &Path) -> Result<()> {
         outcome
     };
     // Whatever happened, leave the slot clean, and no half-written file behind.
-    let cleaned = ipc::cleanup_dead_nodes(&cfg).unwrap_or(0);
+    let cleaned = ipc::cleanup_dead_nodes(&cfg).unwrap_or(0) + ipc::wipe_domain(&cfg);
     if cleaned > 0 {
-        eprintln!("surfstream: removed stale shared memory of {cleaned} dead node(s)");
+        eprintln!("surfstream: removed {cleaned} stale resource(s) of stopped nodes");
     }
     if result.is_err() {
         fsutil::remove_partials(&out);
@@ -300,7 +319,8 @@ fn spawn(
             Ok(())
         });
     }
-    cmd.spawn().with_context(|| format!("{}: cannot start", bin.display()))
+    cmd.spawn()
+        .with_context(|| format!("{}: cannot start", bin.display()))
 }
 
 fn supervise(
@@ -329,8 +349,12 @@ fn supervise(
             handle(ev, running)?;
         }
     }
-    go.notify().map_err(|e| anyhow!("cannot tell the sources to start: {e:?}"))?;
-    eprintln!("surfstream: all {} nodes ready; scan started", contexts.len());
+    go.notify()
+        .map_err(|e| anyhow!("cannot tell the sources to start: {e:?}"))?;
+    eprintln!(
+        "surfstream: all {} nodes ready; scan started",
+        contexts.len()
+    );
     while running.iter().any(|r| !r.exited) {
         match rx.recv_timeout(Duration::from_secs(3600)) {
             Ok(ev) => handle(ev, running)?,
@@ -382,12 +406,23 @@ fn stop_all(running: &mut [Running], rx: &Receiver<Event>) {
             }
         }
     }
-    for r in running.iter_mut().filter(|r| !r.exited) {
+    for r in running.iter().filter(|r| !r.exited) {
         iceoryx2_free::signal(r.pid, libc::SIGKILL);
-        r.exited = true;
     }
-    // Give the kernel a moment to drop the killed processes' file locks before cleanup.
-    std::thread::sleep(Duration::from_millis(50));
+    // Reap them: cleanup must not race a process that still holds its node's lock.
+    let deadline = Instant::now() + STOP_GRACE;
+    while running.iter().any(|r| !r.exited) {
+        let left = deadline.saturating_duration_since(Instant::now());
+        match rx.recv_timeout(left) {
+            Ok(Event::Exited { id, .. }) => {
+                if let Some(r) = running.iter_mut().find(|r| r.id == id) {
+                    r.exited = true;
+                }
+            }
+            Ok(Event::Interrupted) => {}
+            Err(_) => break,
+        }
+    }
 }
 
 fn read_reports(out: &Path, contexts: &[NodeContext]) -> Result<Vec<NodeReport>> {
@@ -400,5 +435,8 @@ fn read_reports(out: &Path, contexts: &[NodeContext]) -> Result<Vec<NodeReport>>
             .map_err(|e| anyhow!("{}: malformed node report: {e}", path.display()))?;
         reports.insert(c.node_id.clone(), r);
     }
-    Ok(contexts.iter().filter_map(|c| reports.remove(&c.node_id)).collect())
+    Ok(contexts
+        .iter()
+        .filter_map(|c| reports.remove(&c.node_id))
+        .collect())
 }

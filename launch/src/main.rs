@@ -107,14 +107,23 @@ fn stitch_graph(scan: &std::path::Path, out: PathBuf, set: &[String]) -> Result<
     } else {
         toml::Value::String("scan".into())
     };
-    let path = if scan.is_dir() { scan.join("scan.toml") } else { scan.to_path_buf() };
+    let path = if scan.is_dir() {
+        scan.join("scan.toml")
+    } else {
+        scan.to_path_buf()
+    };
     if !path.exists() {
-        bail!("{}: no such file (expected a scan.toml, its directory, or a .mcap recording)", path.display());
+        bail!(
+            "{}: no such file (expected a scan.toml, its directory, or a .mcap recording)",
+            path.display()
+        );
     }
     let path = path
         .canonicalize()
         .with_context(|| format!("{}: cannot resolve path", path.display()))?;
-    let path_str = path.to_str().ok_or_else(|| anyhow!("{}: path is not UTF-8", path.display()))?;
+    let path_str = path
+        .to_str()
+        .ok_or_else(|| anyhow!("{}: path is not UTF-8", path.display()))?;
     let text = format!(
         r#"
 [graph]

@@ -28,14 +28,19 @@ pub fn write(
     for kind in ["replay", "matcher"] {
         if let Some(Value::Array(list)) = by_kind(kind).and_then(|r| r.get("tiles")) {
             for t in list {
-                if let (Some(i), Some(obj)) = (t.get("index").and_then(Value::as_u64), t.as_object()) {
+                if let (Some(i), Some(obj)) =
+                    (t.get("index").and_then(Value::as_u64), t.as_object())
+                {
                     tiles.entry(i).or_default().extend(obj.clone());
                 }
             }
         }
     }
     let mesh_done = by_kind("mesher").and_then(|m| {
-        Some((m.get("t_acquired_ns")?.as_u64()?, m.get("t_written_ns")?.as_u64()?))
+        Some((
+            m.get("t_acquired_ns")?.as_u64()?,
+            m.get("t_written_ns")?.as_u64()?,
+        ))
     });
     let lat = latency::summarize(reports, mesh_done);
     let messages: Map<String, Value> = reports
@@ -54,12 +59,19 @@ pub fn write(
             )
         })
         .collect();
-    let stages: Map<String, Value> =
-        reports.iter().map(|r| (r.node_id.clone(), r.report.clone())).collect();
+    let stages: Map<String, Value> = reports
+        .iter()
+        .map(|r| (r.node_id.clone(), r.report.clone()))
+        .collect();
     let parameters: Map<String, Value> = graph
         .nodes
         .iter()
-        .map(|n| (n.id.clone(), serde_json::to_value(&n.params).unwrap_or(Value::Null)))
+        .map(|n| {
+            (
+                n.id.clone(),
+                serde_json::to_value(&n.params).unwrap_or(Value::Null),
+            )
+        })
         .collect();
     let mut files = list_files(out)?;
     files.push("run.json".into());
@@ -117,10 +129,21 @@ fn summary(run: &Value, lat: &latency::LatencySummary, out: &Path) -> String {
         "surfstream: done in {:.2} s: {tiles} tiles ({by_stage} placed by stage position)",
         run["elapsed_s"].as_f64().unwrap_or(0.0)
     );
-    let _ = writeln!(s, "latency (ms)                 p50       p95       max     n");
-    let rows = lat.end_to_end.iter().chain(lat.hops.iter()).chain(lat.final_frames.iter());
+    let _ = writeln!(
+        s,
+        "latency (ms)                 p50       p95       max     n"
+    );
+    let rows = lat
+        .end_to_end
+        .iter()
+        .chain(lat.hops.iter())
+        .chain(lat.final_frames.iter());
     for (name, p) in rows {
-        let _ = writeln!(s, "  {name:<24} {:>8.2}  {:>8.2}  {:>8.2}  {:>4}", p.p50, p.p95, p.max, p.n);
+        let _ = writeln!(
+            s,
+            "  {name:<24} {:>8.2}  {:>8.2}  {:>8.2}  {:>4}",
+            p.p50, p.p95, p.max, p.n
+        );
     }
     let _ = write!(s, "outputs in {} (run.json lists them)", out.display());
     s

@@ -73,7 +73,11 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
     }
     if let Some(r) = p.ramp_px {
         if !(r.is_finite() && r > 0.0) {
-            bail!("graph '{}', node '{}': ramp_px = {r}: expected > 0 px", ctx.graph_name, ctx.node_id);
+            bail!(
+                "graph '{}', node '{}': ramp_px = {r}: expected > 0 px",
+                ctx.graph_name,
+                ctx.node_id
+            );
         }
     }
     Ok(Box::new(FusionNode {
@@ -96,6 +100,10 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
 }
 
 impl FusionNode {
+    fn ended(&self) -> bool {
+        self.tiles_ended && self.registrations_ended
+    }
+
     fn blend_params(&self, tile: &FrameHeader) -> BlendParams {
         match (self.method.as_str(), self.ramp_px) {
             ("average", _) => BlendParams::average(),
@@ -104,16 +112,25 @@ impl FusionNode {
         }
     }
 
-    /// Places every tile whose registration is in, in index order.
-    fn place_ready(&mut self, out: &mut Outbox) -> Result<()> {
-        while let (Some(tile), Some(reg)) =
-            (self.tiles.get(&self.next), self.registrations.get(&self.next))
-        {
+    /// Places every tile whose registration is in, in index order; returns how many.
+    fn place_ready(&mut self, out: &mut Outbox) -> Result<usize> {
+        let mut placed = 0;
+        while let (Some(tile), Some(reg)) = (
+            self.tiles.get(&self.next),
+            self.registrations.get(&self.next),
+        ) {
             let h = tile.header;
             if self.panorama.is_none() {
-                self.panorama = Some(Panorama::new(h.pitch_x_um, h.pitch_y_um, self.blend_params(&h))?);
+                self.panorama = Some(Panorama::new(
+                    h.pitch_x_um,
+                    h.pitch_y_um,
+                    self.blend_params(&h),
+                )?);
             }
-            let pano = self.panorama.as_mut().ok_or_else(|| anyhow!("no panorama"))?;
+            let pano = self
+                .panorama
+                .as_mut()
+                .ok_or_else(|| anyhow!("no panorama"))?;
             let region = pano.place(TileInput {
                 index: h.tile_index,
                 heights: &tile.heights,
@@ -154,8 +171,9 @@ impl FusionNode {
             self.tiles.remove(&self.next);
             self.registrations.remove(&self.next);
             self.next += 1;
+            placed += 1;
         }
-        Ok(())
+        Ok(placed)
     }
 
     fn finish(&mut self, out: &mut Outbox) -> Result<()> {
@@ -165,13 +183,19 @@ impl FusionNode {
         if let Some(k) = self.registrations.keys().next() {
             bail!("fusion: registration for tile {k} has no tile (tiles ended)");
         }
-        let pano = self.panorama.as_ref().ok_or_else(|| anyhow!("fusion: the scan had no tiles"))?;
+        let pano = self
+            .panorama
+            .as_ref()
+            .ok_or_else(|| anyhow!("fusion: the scan had no tiles"))?;
         let r = pano.to_raster();
         if self.write_files {
             let npy = self.out_dir.join("panorama.npy");
             surfstream_common::npy::write_npy_f32(&npy, &r.heights, r.height, r.width)?;
             let png = self.out_dir.join("panorama.png");
-            let opts = PreviewOptions { title: Some("panorama (um)".into()), ..Default::default() };
+            let opts = PreviewOptions {
+                title: Some("panorama (um)".into()),
+                ..Default::default()
+            };
             write_preview_png(&png, &r.heights, r.height, r.width, &opts)?;
             self.files = vec!["panorama.npy".into(), "panorama.png".into()];
         }
@@ -196,7 +220,13 @@ impl FusionNode {
             t_acquired_ns: self.last.1,
             ..Default::default()
         };
-        out.send_frame(PANORAMA, HeightMap { header, heights: r.heights });
+        out.send_frame(
+            PANORAMA,
+            HeightMap {
+                header,
+                heights: r.heights,
+            },
+        );
         out.end_frames(PANORAMA, self.last.0, self.last.1);
         out.end_frames(PREVIEW, self.last.0, self.last.1);
         self.done = true;
@@ -218,7 +248,10 @@ fn decimate(header: &FrameHeader, heights: &[f32], step: usize) -> HeightMap {
     hd.pitch_x_um *= step as f64;
     hd.pitch_y_um *= step as f64;
     hd.flags |= flags::PREVIEW;
-    HeightMap { header: hd, heights: out }
+    HeightMap {
+        header: hd,
+        heights: out,
+    }
 }
 
 impl NodeLogic for FusionNode {
@@ -230,7 +263,10 @@ impl NodeLogic for FusionNode {
                 } else if f.header.kind() == Some(FrameKind::Tile) {
                     self.tiles.insert(f.header.tile_index, f.to_owned());
                 } else {
-                    bail!("fusion: input 'tiles' carries {:?} frames, expected tiles", f.header.kind());
+                    bail!(
+                        "fusion: input 'tiles' carries {:?} frames, expected tiles",
+                        f.header.kind()
+                    );
                 }
             }
             ("registrations", Input::Registration(r)) => {
@@ -246,11 +282,15 @@ impl NodeLogic for FusionNode {
     }
 
     fn on_drained(&mut self, out: &mut Outbox) -> Result<()> {
-        self.place_ready(out)?;
-        if self.tiles_ended && self.registrations_ended && !self.done {
+        // The last tiles' patches go out first; the final pass runs on the next call.
+        if self.place_ready(out)? == 0 && self.ended() && !self.done {
             self.finish(out)?;
         }
         Ok(())
+    }
+
+    fn has_pending_work(&self) -> bool {
+        self.ended() && !self.done
     }
 
     fn finished(&self) -> bool {

@@ -10,8 +10,8 @@
 #[path = "../tests/support/mod.rs"]
 mod support;
 
+use support::{make_pair, PairSpec, Surface};
 use surfstream_matcher::{PhaseCorrelator, PhaseParams, RasterRef, SubPixel, Window};
-use support::{make_pair, surface_size, PairSpec, Surface};
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
@@ -92,9 +92,7 @@ fn main() {
     let mut corr = PhaseCorrelator::new();
     let mut seed = 1u64;
     for (oi, overlap) in [0.1, 0.2, 0.3].into_iter().enumerate() {
-        let n = surface_size(tile, overlap);
         for k in 0..per_case {
-            let surface = Surface::rough(n, 1000 + seed, corr_len, 0.8, cutoff);
             for horizontal in [true, false] {
                 let spec = PairSpec {
                     noise_um: noise,
@@ -102,6 +100,8 @@ fn main() {
                     nan_blobs: blobs,
                     ..PairSpec::new(tile, overlap, horizontal, seed * 7 + k as u64)
                 };
+                let (nx, ny) = spec.surface_dims();
+                let surface = Surface::rough(nx, ny, 1000 + seed, corr_len, 0.8, cutoff);
                 seed += 1;
                 let pair = make_pair(&surface, &spec);
                 let a = RasterRef {

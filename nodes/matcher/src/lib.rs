@@ -54,12 +54,12 @@ pub mod raster;
 pub mod register;
 
 pub use plane::{
-    estimate_plane, estimate_plane_report, fit_plane, PlaneCorrection, PlaneError,
-    PlaneEstimate, PlaneModel,
+    estimate_plane, estimate_plane_report, fit_plane, PlaneCorrection, PlaneError, PlaneEstimate,
+    PlaneModel,
 };
 pub use raster::{InputError, RasterRef};
 pub use register::{
-    register_pair, Candidate, PairRegistration, PhaseCorrelator, PhaseParams, Rejection,
-    SubPixel, Window,
+    register_pair, Candidate, PairRegistration, PhaseCorrelator, PhaseParams, Rejection, SubPixel,
+    Window,
 };
 pub mod node;

@@ -14,7 +14,11 @@ pub(crate) struct LevelledTile<'a> {
 
 impl<'a> LevelledTile<'a> {
     /// `plane` as fitted on the crop `rect` (crop-centred coordinates), extended to the tile.
-    pub(crate) fn new(tile: RasterRef<'a>, rect: (usize, usize, usize, usize), plane: &PlaneCorrection) -> Self {
+    pub(crate) fn new(
+        tile: RasterRef<'a>,
+        rect: (usize, usize, usize, usize),
+        plane: &PlaneCorrection,
+    ) -> Self {
         let (x0, y0, w, h) = rect;
         let cx = x0 as f64 + (w as f64 - 1.0) * 0.5;
         let cy = y0 as f64 + (h as f64 - 1.0) * 0.5;
@@ -37,7 +41,12 @@ pub(crate) fn ncc_at(a: &LevelledTile<'_>, b: &LevelledTile<'_>, dx: i64, dy: i6
 }
 
 /// The overlap `[x0, x1) x [y0, y1)` in a's coordinates when b's origin sits at (dx, dy).
-pub(crate) fn overlap_in_a(a: &LevelledTile<'_>, b: &LevelledTile<'_>, dx: i64, dy: i64) -> [i64; 4] {
+pub(crate) fn overlap_in_a(
+    a: &LevelledTile<'_>,
+    b: &LevelledTile<'_>,
+    dx: i64,
+    dy: i64,
+) -> [i64; 4] {
     let (wa, ha) = (a.tile.width as i64, a.tile.height as i64);
     let (wb, hb) = (b.tile.width as i64, b.tile.height as i64);
     [dx.max(0), (dx + wb).min(wa), dy.max(0), (dy + hb).min(ha)]
@@ -77,6 +86,47 @@ pub(crate) fn ncc_in(
             *t += v as f64;
         }
     }
+    finish(acc)
+}
+
+/// NCC of a and b at the 3 x 3 offsets `off + (dx, dy)`, `dx, dy` in -1..=1, all over the
+/// pixels of a in `region`, which must lie inside the overlap at every one of the nine
+/// offsets (e.g. the overlap at `off` shrunk by 1 px). `c[1 + dy][1 + dx]`. One pass over the
+/// rows: a row of a and the three rows of b stay in cache for the nine sums.
+pub(crate) fn ncc_stencil(
+    a: &LevelledTile<'_>,
+    b: &LevelledTile<'_>,
+    off: [i64; 2],
+    region: [i64; 4],
+) -> [[f64; 3]; 3] {
+    let [x0, x1, y0, y1] = region;
+    let mut acc = [[[0.0f64; 6]; 3]; 3];
+    if x1 <= x0 || y1 <= y0 {
+        return [[0.0; 3]; 3];
+    }
+    let (xa0, xa1) = (x0 as usize, x1 as usize);
+    for ya in y0..y1 {
+        let za = &a.tile.row(ya as usize)[xa0..xa1];
+        let ca = &a.col_term[xa0..xa1];
+        let ra = a.row_term[ya as usize];
+        for (sy, acc_row) in acc.iter_mut().enumerate() {
+            let yb = (ya - off[1] - (sy as i64 - 1)) as usize;
+            let (zb_row, rb) = (b.tile.row(yb), b.row_term[yb]);
+            for (sx, t) in acc_row.iter_mut().enumerate() {
+                let xb0 = (x0 - off[0] - (sx as i64 - 1)) as usize;
+                let xb1 = xb0 + (xa1 - xa0);
+                let row = row_sums(za, ca, ra, &zb_row[xb0..xb1], &b.col_term[xb0..xb1], rb);
+                for (u, v) in t.iter_mut().zip(row) {
+                    *u += v as f64;
+                }
+            }
+        }
+    }
+    acc.map(|r| r.map(|t| finish(t).0))
+}
+
+/// NCC and pair count from [n, sum a, sum b, sum a^2, sum b^2, sum ab].
+fn finish(acc: [f64; 6]) -> (f64, usize) {
     let [n, sa, sb, saa, sbb, sab] = acc;
     if n < 2.0 {
         return (0.0, n as usize);
@@ -98,14 +148,14 @@ pub(crate) fn ncc_in(
 /// vectorises it.
 #[inline]
 fn row_sums(za: &[f32], ca: &[f32], ra: f32, zb: &[f32], cb: &[f32], rb: f32) -> [f32; 6] {
-    const L: usize = 8;
+    // Four lanes: the six accumulators then fit the SSE registers without spilling.
+    const L: usize = 4;
     let mut acc = [[0.0f32; L]; 6];
     let lane = |acc: &mut [[f32; L]; 6], l: usize, za: f32, ca: f32, zb: f32, cb: f32| {
         let a = za - (ra + ca);
         let b = zb - (rb + cb);
-        // x - x is 0 exactly for finite x, NaN otherwise.
-        let oka = (a - a) == 0.0;
-        let okb = (b - b) == 0.0;
+        let oka = a.is_finite();
+        let okb = b.is_finite();
         let ma = if oka { 1.0 } else { 0.0 };
         let mb = if okb { 1.0 } else { 0.0 };
         let a = if oka { a } else { 0.0 };
@@ -166,6 +216,16 @@ mod tests {
         let (ncc, n) = ncc_at(&la, &lb, 0, 0);
         assert_eq!(n, w * h - 2);
         assert!((ncc - 1.0).abs() < 1e-6, "{ncc}");
+        // The stencil agrees with single evaluations over the same region.
+        let region = [2, w as i64 - 2, 2, h as i64 - 2];
+        let st = ncc_stencil(&la, &lb, [0, 0], region);
+        for dy in -1..=1i64 {
+            for dx in -1..=1i64 {
+                let single = ncc_in(&la, &lb, dx, dy, region).0;
+                let s = st[(dy + 1) as usize][(dx + 1) as usize];
+                assert!((single - s).abs() < 1e-9, "{dx} {dy}: {single} vs {s}");
+            }
+        }
         // Shifted by 3 px: overlap shrinks accordingly.
         let (_, n3) = ncc_at(&la, &lb, 3, -2);
         assert!(n3 <= (w - 3) * (h - 2));

@@ -90,9 +90,9 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
     if let Some(v) = p.max_shift_px {
         params.max_shift_px = v;
     }
-    params.validate().map_err(|e| {
-        anyhow::anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id)
-    })?;
+    params
+        .validate()
+        .map_err(|e| anyhow::anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id))?;
     Ok(Box::new(MatcherNode {
         params,
         method: "phase".into(),
@@ -110,7 +110,11 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
 impl MatcherNode {
     fn register(&mut self, t: PendingTile) -> TileRegistration {
         let pitch = t.pitch_um;
-        let b = RasterRef { heights: &t.heights, width: t.width, height: t.height };
+        let b = RasterRef {
+            heights: &t.heights,
+            width: t.width,
+            height: t.height,
+        };
         // Grid neighbours already placed: left/right, up/down.
         let keys = [
             (t.row, t.col.wrapping_sub(1)),
@@ -122,15 +126,25 @@ impl MatcherNode {
         let mut stage_votes = Vec::new();
         let mut tried = 0;
         for key in keys {
-            let Some(a) = self.placed.get(&key) else { continue };
+            let Some(a) = self.placed.get(&key) else {
+                continue;
+            };
             tried += 1;
             let nominal = [
                 (t.stage_um[0] - a.stage_um[0]) / pitch[0],
                 (t.stage_um[1] - a.stage_um[1]) / pitch[1],
             ];
-            let ar = RasterRef { heights: &a.heights, width: a.width, height: a.height };
+            let ar = RasterRef {
+                heights: &a.heights,
+                width: a.width,
+                height: a.height,
+            };
             let r = self.correlator.register(ar, b, nominal, &self.params);
-            let direction = if a.row == t.row { "horizontal" } else { "vertical" };
+            let direction = if a.row == t.row {
+                "horizontal"
+            } else {
+                "vertical"
+            };
             self.pairs_report.push(json!({
                 "a": a.index, "b": t.index, "direction": direction,
                 "nominal_offset_px": nominal,
@@ -139,16 +153,34 @@ impl MatcherNode {
                 "accepted": r.offset_px.is_some(),
                 "reason": r.rejection.as_ref().map(|e| e.to_string()),
             }));
-            stage_votes.push([a.position_um[0] + nominal[0] * pitch[0], a.position_um[1] + nominal[1] * pitch[1]]);
+            stage_votes.push([
+                a.position_um[0] + nominal[0] * pitch[0],
+                a.position_um[1] + nominal[1] * pitch[1],
+            ]);
             if let Some(off) = r.offset_px {
                 let w = r.ncc.max(1e-3);
-                votes.push((w, [a.position_um[0] + off[0] * pitch[0], a.position_um[1] + off[1] * pitch[1]]));
+                votes.push((
+                    w,
+                    [
+                        a.position_um[0] + off[0] * pitch[0],
+                        a.position_um[1] + off[1] * pitch[1],
+                    ],
+                ));
             }
         }
         let (position_um, how) = if let Some(p) = weighted_mean(&votes) {
             (p, placed_by::REGISTRATION)
-        } else if let Some(p) = weighted_mean(&stage_votes.iter().map(|p| (1.0, *p)).collect::<Vec<_>>()) {
-            (p, if tried == 0 { placed_by::REGISTRATION } else { placed_by::STAGE })
+        } else if let Some(p) =
+            weighted_mean(&stage_votes.iter().map(|p| (1.0, *p)).collect::<Vec<_>>())
+        {
+            (
+                p,
+                if tried == 0 {
+                    placed_by::REGISTRATION
+                } else {
+                    placed_by::STAGE
+                },
+            )
         } else {
             // The first tile defines the scan frame: its stage position.
             (t.stage_um, placed_by::REGISTRATION)
@@ -159,7 +191,11 @@ impl MatcherNode {
             .filter_map(|k| self.placed.get(k))
             .map(|a| {
                 (
-                    RasterRef { heights: &a.heights, width: a.width, height: a.height },
+                    RasterRef {
+                        heights: &a.heights,
+                        width: a.width,
+                        height: a.height,
+                    },
                     [
                         (position_um[0] - a.position_um[0]) / pitch[0],
                         (position_um[1] - a.position_um[1]) / pitch[1],
@@ -177,7 +213,11 @@ impl MatcherNode {
         let reg = TileRegistration {
             tile_index: t.index,
             placed_by: how,
-            flags: if how == placed_by::STAGE { flags::PLACED_BY_STAGE } else { 0 },
+            flags: if how == placed_by::STAGE {
+                flags::PLACED_BY_STAGE
+            } else {
+                0
+            },
             links_accepted: votes.len() as u32,
             links_tried: tried,
             x_um: position_um[0],
@@ -228,14 +268,19 @@ fn weighted_mean(votes: &[(f64, [f64; 2])]) -> Option<[f64; 2]> {
 
 impl NodeLogic for MatcherNode {
     fn on_input(&mut self, port: &str, input: Input<'_>, _: &mut Outbox) -> Result<()> {
-        let Input::Frame(f) = input else { bail!("matcher: input '{port}' carries registrations, expected tiles") };
+        let Input::Frame(f) = input else {
+            bail!("matcher: input '{port}' carries registrations, expected tiles")
+        };
         if f.header.has(flags::END_OF_SCAN) {
             self.ended = true;
             self.last = (f.header.tile_index, f.header.t_acquired_ns);
             return Ok(());
         }
         if f.header.kind() != Some(FrameKind::Tile) {
-            bail!("matcher: input '{port}' carries {:?} frames, expected tiles", f.header.kind());
+            bail!(
+                "matcher: input '{port}' carries {:?} frames, expected tiles",
+                f.header.kind()
+            );
         }
         let h = f.header;
         self.pending.push(PendingTile {

@@ -35,7 +35,12 @@ impl PlaneCorrection {
     }
 
     /// Subtracts the correction in place from a row-major `width x height` raster (NaN stays NaN).
-    pub fn apply(&self, heights: &mut [f32], width: usize, height: usize) -> Result<(), InputError> {
+    pub fn apply(
+        &self,
+        heights: &mut [f32],
+        width: usize,
+        height: usize,
+    ) -> Result<(), InputError> {
         RasterRef {
             heights,
             width,
@@ -73,10 +78,7 @@ impl PlaneCorrection {
 
 #[inline]
 pub(crate) fn centre_px(width: usize, height: usize) -> (f64, f64) {
-    (
-        (width as f64 - 1.0) * 0.5,
-        (height as f64 - 1.0) * 0.5,
-    )
+    ((width as f64 - 1.0) * 0.5, (height as f64 - 1.0) * 0.5)
 }
 
 /// Which model the least-squares fit could support.
@@ -166,8 +168,7 @@ impl PlaneSums {
         for ch in chunks.by_ref() {
             for l in 0..L {
                 let v = ch[l] - z_ref;
-                // v - v is 0 exactly for finite v, NaN otherwise.
-                let ok = (v - v) == 0.0;
+                let ok = v.is_finite();
                 let m = if ok { 1.0 } else { 0.0 };
                 let v = if ok { v } else { 0.0 };
                 let x = xs[l];
@@ -405,9 +406,13 @@ pub fn estimate_plane_report(
         let [ox, oy] = *off;
         // b pixel (r, c) sits at neighbour position (c + ox, r + oy).
         let c_lo = (-ox).ceil().max(0.0);
-        let c_hi = ((nb.width - 1) as f64 - ox).floor().min((b.width - 1) as f64);
+        let c_hi = ((nb.width - 1) as f64 - ox)
+            .floor()
+            .min((b.width - 1) as f64);
         let r_lo = (-oy).ceil().max(0.0);
-        let r_hi = ((nb.height - 1) as f64 - oy).floor().min((b.height - 1) as f64);
+        let r_hi = ((nb.height - 1) as f64 - oy)
+            .floor()
+            .min((b.height - 1) as f64);
         if c_lo > c_hi || r_lo > r_hi {
             continue;
         }

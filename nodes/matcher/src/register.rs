@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::fft2::{fast_len, Fft2};
-use crate::ncc::{ncc_at, ncc_in, overlap_in_a, LevelledTile};
+use crate::ncc::{ncc_at, ncc_stencil, overlap_in_a, LevelledTile};
 use crate::plane::{PlaneCorrection, PlaneSums};
 use crate::raster::{validate_offset, InputError, RasterRef};
 
@@ -90,6 +90,11 @@ pub struct PhaseParams {
     /// See `ambiguity_margin`. The peak condition keeps noise maxima that happen to sit on the
     /// broad NCC hill of a smooth surface from counting as rivals.
     pub rival_peak_fraction: f64,
+    /// Smallest accepted roundness of the NCC peak: the ratio of the smaller to the larger
+    /// curvature (eigenvalues of the Hessian from the 3 x 3 NCC samples around the chosen
+    /// offset). A ridge (roundness near 0) means the texture does not fix the offset along it
+    /// (1-D textures such as gratings or a strong lay); rough surfaces measure 0.3-1.
+    pub min_peak_roundness: f64,
     /// Window applied to each crop before the FFT.
     pub window: Window,
     /// Gaussian weighting of the normalised cross-power spectrum, expressed as the standard
@@ -116,6 +121,7 @@ impl Default for PhaseParams {
             candidates: 5,
             ambiguity_margin: 0.1,
             rival_peak_fraction: 0.5,
+            min_peak_roundness: 0.05,
             window: Window::Tukey { alpha: 0.5 },
             peak_sigma_px: 1.0,
             subpixel: SubPixel::NccGaussian,
@@ -157,6 +163,9 @@ impl PhaseParams {
         if !(self.rival_peak_fraction.is_finite() && self.rival_peak_fraction >= 0.0) {
             return bad("rival_peak_fraction", "must be finite and >= 0");
         }
+        if !(self.min_peak_roundness.is_finite() && self.min_peak_roundness <= 1.0) {
+            return bad("min_peak_roundness", "must be a finite number <= 1");
+        }
         if !(self.peak_sigma_px.is_finite() && (0.0..=100.0).contains(&self.peak_sigma_px)) {
             return bad("peak_sigma_px", "must be in [0, 100]");
         }
@@ -196,6 +205,11 @@ pub enum Rejection {
         /// The rival's shift from the nominal offset, px.
         rival_shift_px: [f64; 2],
     },
+    #[error(
+        "the NCC peak is a ridge (roundness {roundness:.3} < {min_roundness:.3}): the texture \
+         does not fix the offset along it"
+    )]
+    NotLocalized { roundness: f64, min_roundness: f64 },
     #[error("shift from nominal {shift_px:?} px exceeds the limit {limit_px:?} px")]
     ShiftTooLarge {
         shift_px: [f64; 2],
@@ -226,6 +240,9 @@ pub struct PairRegistration {
     /// Correlation peak of the chosen candidate over the best other peak (0 when none was
     /// measured, capped at 1000).
     pub peak_ratio: f64,
+    /// Roundness of the NCC peak at the chosen offset (see
+    /// [`PhaseParams::min_peak_roundness`]; 0 when not measured).
+    pub peak_roundness: f64,
     /// The best candidate's offset minus the nominal offset, px, also when it was rejected.
     pub shift_from_nominal_px: Option<[f64; 2]>,
     /// Width and height of the nominal overlap rectangle, px.
@@ -244,6 +261,7 @@ impl PairRegistration {
             offset_px: None,
             ncc: 0.0,
             peak_ratio: 0.0,
+            peak_roundness: 0.0,
             shift_from_nominal_px: None,
             overlap_px,
             valid_overlap_px: 0,
@@ -451,19 +469,20 @@ impl PhaseCorrelator {
             1000.0
         };
 
-        // Sub-pixel refinement.
+        // The NCC peak around the best candidate, then the sub-pixel refinement.
+        let peak = ncc_peak(&lev_a, &lev_b, best.offset_px);
         let (int_offset, frac) = match params.subpixel {
-            SubPixel::None => (best.offset_px, [0.0, 0.0]),
-            SubPixel::NccGaussian => refine_ncc(&lev_a, &lev_b, best.offset_px, PeakFit::Gaussian),
-            SubPixel::NccParabolic => {
-                refine_ncc(&lev_a, &lev_b, best.offset_px, PeakFit::Parabolic)
+            SubPixel::None => (peak.offset_px, [0.0, 0.0]),
+            SubPixel::NccGaussian => (peak.offset_px, peak.fit(PeakFit::Gaussian)),
+            SubPixel::NccParabolic => (peak.offset_px, peak.fit(PeakFit::Parabolic)),
+            SubPixel::PhaseGaussian => {
+                self.refine_phase(&a, &b, peak.offset_px, PeakFit::Gaussian, params)
             }
-            SubPixel::PhaseGaussian => self.refine_phase(&a, &b, best.offset_px, PeakFit::Gaussian, params),
             SubPixel::PhaseParabolic => {
-                self.refine_phase(&a, &b, best.offset_px, PeakFit::Parabolic, params)
+                self.refine_phase(&a, &b, peak.offset_px, PeakFit::Parabolic, params)
             }
             SubPixel::PhaseForoosh => {
-                self.refine_phase(&a, &b, best.offset_px, PeakFit::Foroosh, params)
+                self.refine_phase(&a, &b, peak.offset_px, PeakFit::Foroosh, params)
             }
         };
         let (ncc, valid_overlap_px) = if int_offset == best.offset_px {
@@ -483,6 +502,7 @@ impl PhaseCorrelator {
             offset_px: None,
             ncc,
             peak_ratio,
+            peak_roundness: peak.roundness,
             shift_from_nominal_px: Some(shift),
             overlap_px,
             valid_overlap_px,
@@ -514,6 +534,13 @@ impl PhaseCorrelator {
                     r.offset_px[0] as f64 - nominal_offset_px[0],
                     r.offset_px[1] as f64 - nominal_offset_px[1],
                 ],
+            });
+            return out;
+        }
+        if peak.roundness.is_nan() || peak.roundness < params.min_peak_roundness {
+            out.rejection = Some(Rejection::NotLocalized {
+                roundness: peak.roundness,
+                min_roundness: params.min_peak_roundness,
             });
             return out;
         }
@@ -634,38 +661,75 @@ impl PhaseCorrelator {
     }
 }
 
-/// NCC refinement around the integer `offset_px`: climbs (at most 3 steps) to the offset whose
-/// NCC beats its four neighbours, then fits the three samples along x and along y. All
-/// samples of one fit use the same pixels of a (the overlap shrunk by 1 px), so the change of
-/// the overlap with the shift does not leak into the peak shape.
-fn refine_ncc(
-    a: &LevelledTile<'_>,
-    b: &LevelledTile<'_>,
+/// The NCC peak near a candidate: the integer offset and the 3 x 3 NCC samples around it.
+struct NccPeak {
     offset_px: [i64; 2],
-    fit: PeakFit,
-) -> ([i64; 2], [f64; 2]) {
+    /// `c[1 + dy][1 + dx]` = NCC at `offset_px + (dx, dy)`.
+    c: [[f64; 3]; 3],
+    /// Smaller over larger curvature of the peak, in [0, 1]; 0 unless both are concave.
+    roundness: f64,
+}
+
+impl NccPeak {
+    /// Sub-pixel offset from the three samples along x and along y.
+    fn fit(&self, fit: PeakFit) -> [f64; 2] {
+        let c = &self.c;
+        [
+            fit_peak(c[1][0], c[1][1], c[1][2], fit),
+            fit_peak(c[0][1], c[1][1], c[2][1], fit),
+        ]
+    }
+}
+
+/// Climbs (at most 3 steps) from the integer `offset_px` to the offset whose NCC beats its
+/// four neighbours and samples the NCC on the 3 x 3 offsets around it. All samples use the
+/// same pixels of a (the overlap shrunk by 1 px), so the change of the overlap with the shift
+/// does not leak into the peak shape.
+fn ncc_peak(a: &LevelledTile<'_>, b: &LevelledTile<'_>, offset_px: [i64; 2]) -> NccPeak {
     let mut off = offset_px;
     let mut steps = 0;
     loop {
         let ov = overlap_in_a(a, b, off[0], off[1]);
         let region = [ov[0] + 1, ov[1] - 1, ov[2] + 1, ov[3] - 1];
         if region[1] <= region[0] || region[3] <= region[2] {
-            return (off, [0.0, 0.0]);
+            return NccPeak {
+                offset_px: off,
+                c: [[0.0; 3]; 3],
+                roundness: 0.0,
+            };
         }
-        let n = |dx: i64, dy: i64| ncc_in(a, b, off[0] + dx, off[1] + dy, region).0;
-        let c0 = n(0, 0);
-        let (xm, xp, ym, yp) = (n(-1, 0), n(1, 0), n(0, -1), n(0, 1));
+        let c = ncc_stencil(a, b, off, region);
+        let c0 = c[1][1];
+        let (xm, xp, ym, yp) = (c[1][0], c[1][2], c[0][1], c[2][1]);
         let step = [(xm, -1, 0), (xp, 1, 0), (ym, 0, -1), (yp, 0, 1)]
             .into_iter()
             .filter(|s| s.0 > c0)
             .max_by(|p, q| p.0.total_cmp(&q.0));
-        match step {
-            Some((_, dx, dy)) if steps < 3 => {
+        if let Some((_, dx, dy)) = step {
+            if steps < 3 {
                 off = [off[0] + dx, off[1] + dy];
                 steps += 1;
+                continue;
             }
-            _ => return (off, [fit_peak(xm, c0, xp, fit), fit_peak(ym, c0, yp, fit)]),
         }
+        // Curvatures: eigenvalues of minus the Hessian (second differences).
+        let hxx = xm - 2.0 * c0 + xp;
+        let hyy = ym - 2.0 * c0 + yp;
+        let hxy = (c[2][2] + c[0][0] - c[0][2] - c[2][0]) * 0.25;
+        let (p, q, r) = (-hxx, -hyy, -hxy);
+        let mean = 0.5 * (p + q);
+        let disc = (0.25 * (p - q) * (p - q) + r * r).sqrt();
+        let (l_max, l_min) = (mean + disc, mean - disc);
+        let roundness = if l_max > 0.0 && l_min > 0.0 {
+            l_min / l_max
+        } else {
+            0.0
+        };
+        return NccPeak {
+            offset_px: off,
+            c,
+            roundness,
+        };
     }
 }
 
@@ -740,8 +804,8 @@ fn prepare_crop(
         let wr = wy[r];
         for (((o, &z), &t), &wc) in line.iter_mut().zip(row).zip(&txc).zip(wx) {
             let v = (z - base - t) * (wr * wc);
-            // NaN stays NaN through the arithmetic: v - v is 0 only for finite values.
-            *o = if (v - v) == 0.0 { v } else { 0.0 };
+            // NaN stays NaN through the arithmetic.
+            *o = if v.is_finite() { v } else { 0.0 };
         }
         let out = &mut buf[r * stride..r * stride + w];
         if imag {
@@ -834,7 +898,11 @@ fn cross_power(z: &[Complex32], out: &mut [Complex32], pw: usize, ph: usize, eps
                 if sigma <= 0.0 {
                     return 1.0;
                 }
-                let kk = if k <= n / 2 { k as f64 } else { k as f64 - n as f64 };
+                let kk = if k <= n / 2 {
+                    k as f64
+                } else {
+                    k as f64 - n as f64
+                };
                 let f = kk / n as f64;
                 (-2.0 * std::f64::consts::PI.powi(2) * sigma * sigma * f * f).exp() as f32
             })
@@ -907,7 +975,7 @@ fn local_maxima(
         for tx in -range_x..=range_x {
             let c = wrap(tx, pw);
             let v = s[r * pw + c];
-            if !(v > floor) {
+            if v.is_nan() || v <= floor {
                 continue;
             }
             let cm = wrap(tx - 1, pw);
@@ -1031,5 +1099,4 @@ mod tests {
             assert!((est - d).abs() < 1e-9, "{est} vs {d}");
         }
     }
-
 }

@@ -54,8 +54,14 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
             ctx.node_id
         ),
     };
-    let params = SolidParams { units: p.units, base_depth_um: p.base_depth_um, recentre: true };
-    params.validate().map_err(|e| anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id))?;
+    let params = SolidParams {
+        units: p.units,
+        base_depth_um: p.base_depth_um,
+        recentre: true,
+    };
+    params
+        .validate()
+        .map_err(|e| anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id))?;
     Ok(Box::new(MesherNode {
         params,
         ascii,
@@ -70,7 +76,10 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
 
 impl MesherNode {
     fn mesh(&mut self) -> Result<()> {
-        let s = self.final_surface.take().ok_or_else(|| anyhow!("mesher: end of scan without a final surface"))?;
+        let s = self
+            .final_surface
+            .take()
+            .ok_or_else(|| anyhow!("mesher: end of scan without a final surface"))?;
         let h = s.header;
         let field = HeightFieldRef {
             heights_um: &s.heights,
@@ -118,7 +127,9 @@ impl MesherNode {
 
 impl NodeLogic for MesherNode {
     fn on_input(&mut self, port: &str, input: Input<'_>, _: &mut Outbox) -> Result<()> {
-        let Input::Frame(f) = input else { bail!("mesher: input '{port}' must carry frames") };
+        let Input::Frame(f) = input else {
+            bail!("mesher: input '{port}' must carry frames")
+        };
         if f.header.has(flags::END_OF_SCAN) {
             self.mesh()?;
             self.done = true;
@@ -142,7 +153,8 @@ impl NodeLogic for MesherNode {
         let mut r = self.summary.clone();
         if let Some(o) = r.as_object_mut() {
             // Latency trace: lifted into run.json's latency_ms by the launcher.
-            o.entry("live_frames_skipped").or_insert(json!(self.live_frames));
+            o.entry("live_frames_skipped")
+                .or_insert(json!(self.live_frames));
         }
         r
     }

@@ -39,11 +39,16 @@ pub struct RecorderNode {
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
     let p: Params = ctx.params()?;
     if ctx.inputs.is_empty() {
-        bail!("graph '{}', node '{}': a recorder needs at least one input", ctx.graph_name, ctx.node_id);
+        bail!(
+            "graph '{}', node '{}': a recorder needs at least one input",
+            ctx.graph_name,
+            ctx.node_id
+        );
     }
     let path = ctx.out_dir.join(&p.path);
     if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).map_err(|e| anyhow!("{}: cannot create: {e}", dir.display()))?;
+        std::fs::create_dir_all(dir)
+            .map_err(|e| anyhow!("{}: cannot create: {e}", dir.display()))?;
     }
     let mut recorder = Recorder::create(&path)?;
     let mut channels = BTreeMap::new();
@@ -61,9 +66,22 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
             PortKind::Frames => recorder.add_frame_channel(&topic, meta)?,
             PortKind::Registrations => recorder.add_registration_channel(&topic, meta)?,
         };
-        channels.insert(i.port.clone(), Channel { id, topic, ended: false, messages: 0 });
+        channels.insert(
+            i.port.clone(),
+            Channel {
+                id,
+                topic,
+                ended: false,
+                messages: 0,
+            },
+        );
     }
-    Ok(Box::new(RecorderNode { recorder: Some(recorder), path, channels, finished: false }))
+    Ok(Box::new(RecorderNode {
+        recorder: Some(recorder),
+        path,
+        channels,
+        finished: false,
+    }))
 }
 
 fn wall_clock_ns() -> u64 {
@@ -79,7 +97,10 @@ impl NodeLogic for RecorderNode {
             .channels
             .get_mut(port)
             .ok_or_else(|| anyhow!("recorder: message on unknown input '{port}'"))?;
-        let rec = self.recorder.as_mut().ok_or_else(|| anyhow!("recorder already finished"))?;
+        let rec = self
+            .recorder
+            .as_mut()
+            .ok_or_else(|| anyhow!("recorder already finished"))?;
         let t = wall_clock_ns();
         match input {
             Input::Frame(f) => rec.write_frame(ch.id, f.header, f.heights, t)?,
@@ -107,8 +128,11 @@ impl NodeLogic for RecorderNode {
     }
 
     fn report(&self) -> serde_json::Value {
-        let topics: BTreeMap<_, _> =
-            self.channels.values().map(|c| (c.topic.clone(), c.messages)).collect();
+        let topics: BTreeMap<_, _> = self
+            .channels
+            .values()
+            .map(|c| (c.topic.clone(), c.messages))
+            .collect();
         json!({ "file": self.path.file_name().map(|f| f.to_string_lossy().to_string()), "messages": topics })
     }
 }

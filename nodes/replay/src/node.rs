@@ -14,13 +14,19 @@ use surfstream_common::node::{Input, NodeLogic, Outbox};
 use surfstream_common::recording::{read_recording, Recorded};
 
 use crate::scan_dir::load_scan;
-use crate::{acquire_tile, generate_specimen, plan_scan, truth_for, ScanPlan, Specimen, SpecimenParams, StageParams};
+use crate::{
+    acquire_tile, generate_specimen, plan_scan, truth_for, ScanPlan, Specimen, SpecimenParams,
+    StageParams,
+};
 
 const PORT: &str = "tiles";
 
 /// Where tiles come from.
 enum Source {
-    Simulated { specimen: Specimen, plan: Box<ScanPlan> },
+    Simulated {
+        specimen: Specimen,
+        plan: Box<ScanPlan>,
+    },
     /// Tiles already in memory (scan directory, recording), with their headers.
     Frames(Vec<HeightMap>),
 }
@@ -157,7 +163,9 @@ fn simulated(ctx: &NodeContext) -> Result<ReplayNode> {
     // Split the flat parameter table: node keys, specimen keys, and the stage's own.
     let mut stage_t = ctx.params.clone();
     stage_t.remove("source");
-    let pacing = stage_t.remove("pacing").map(|v| v.as_str().map(str::to_string));
+    let pacing = stage_t
+        .remove("pacing")
+        .map(|v| v.as_str().map(str::to_string));
     let pacing = match pacing {
         None => default_pacing(),
         Some(Some(s)) => s,
@@ -178,7 +186,10 @@ fn simulated(ctx: &NodeContext) -> Result<ReplayNode> {
     let specimen_file = match stage_t.remove("specimen") {
         None => None,
         Some(toml::Value::String(s)) => Some(PathBuf::from(s)),
-        Some(_) => bail!(err_in(ctx, "specimen: expected a path to a .npy height map (um)")),
+        Some(_) => bail!(err_in(
+            ctx,
+            "specimen: expected a path to a .npy height map (um)"
+        )),
     };
     let mut spec_t = toml::Table::new();
     for k in SPECIMEN_KEYS {
@@ -209,12 +220,18 @@ fn simulated(ctx: &NodeContext) -> Result<ReplayNode> {
     let truth_path = ctx.out_dir.join("truth.json");
     let truth = truth_for(&plan);
     surfstream_common::fsutil::write_atomic(&truth_path, |w| {
-        serde_json::to_writer_pretty(w, &truth).map_err(|e| anyhow!("{}: {e}", truth_path.display()))
+        serde_json::to_writer_pretty(w, &truth)
+            .map_err(|e| anyhow!("{}: {e}", truth_path.display()))
     })?;
     if save_specimen {
         // The whole virtual part, so a test or a user can compare the panorama with it.
         let path = ctx.out_dir.join("specimen.npy");
-        surfstream_common::npy::write_npy_f32(&path, &specimen.heights, specimen.height, specimen.width)?;
+        surfstream_common::npy::write_npy_f32(
+            &path,
+            &specimen.heights,
+            specimen.height,
+            specimen.width,
+        )?;
     }
     let (tw, th) = (plan.tile_width_px, plan.tile_height_px);
     let scan = json!({
@@ -240,7 +257,10 @@ fn simulated(ctx: &NodeContext) -> Result<ReplayNode> {
         .collect();
     Ok(ReplayNode {
         pacing: pacing_from(&pacing, field_time_s, ctx)?,
-        source: Source::Simulated { specimen, plan: Box::new(plan) },
+        source: Source::Simulated {
+            specimen,
+            plan: Box::new(plan),
+        },
         offsets_ns: Vec::new(),
         started: None,
         next: 0,
@@ -268,9 +288,14 @@ fn scan(ctx: &NodeContext, p: ScanParams) -> Result<ReplayNode> {
             origin_y_um: t.entry.stage_y_um,
             ..Default::default()
         };
-        tiles.push(json!({ "index": k, "row": t.entry.row, "col": t.entry.col, "file": t.entry.file,
-                           "stage_x_um": t.entry.stage_x_um, "stage_y_um": t.entry.stage_y_um }));
-        frames.push(HeightMap { header, heights: t.heights_um });
+        tiles.push(
+            json!({ "index": k, "row": t.entry.row, "col": t.entry.col, "file": t.entry.file,
+                           "stage_x_um": t.entry.stage_x_um, "stage_y_um": t.entry.stage_y_um }),
+        );
+        frames.push(HeightMap {
+            header,
+            heights: t.heights_um,
+        });
     }
     let scan = json!({
         "name": dir.scan.name,
@@ -390,7 +415,10 @@ impl ReplayNode {
             // Move the tile out: it is sent once.
             Source::Frames(f) => std::mem::replace(
                 &mut f[k],
-                HeightMap { header: FrameHeader::default(), heights: Vec::new() },
+                HeightMap {
+                    header: FrameHeader::default(),
+                    heights: Vec::new(),
+                },
             ),
         }
     }
@@ -409,7 +437,9 @@ impl NodeLogic for ReplayNode {
         if self.done {
             return None;
         }
-        let Some(t0) = self.started else { return Some(Instant::now()) };
+        let Some(t0) = self.started else {
+            return Some(Instant::now());
+        };
         Some(match self.pacing {
             Pacing::Fast => Instant::now(),
             Pacing::Fixed(d) => t0 + d * self.next as u32,

@@ -76,23 +76,37 @@ fn unit_scale(unit: &str) -> Option<f64> {
 
 /// Reads `scan.toml` (or a directory holding one) and every tile it lists.
 pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
-    let manifest_path = if path.is_dir() { path.join("scan.toml") } else { path.to_path_buf() };
+    let manifest_path = if path.is_dir() {
+        path.join("scan.toml")
+    } else {
+        path.to_path_buf()
+    };
     let m = manifest_path.display();
     let text = std::fs::read_to_string(&manifest_path)
         .with_context(|| format!("{m}: cannot read scan manifest"))?;
     let file: ManifestFile =
         toml::from_str(&text).map_err(|e| anyhow!("{m}: not a valid scan manifest: {e}"))?;
     let scan = file.scan;
-    for (field, v) in [("pitch_x_um", scan.pitch_x_um), ("pitch_y_um", scan.pitch_y_um)] {
+    for (field, v) in [
+        ("pitch_x_um", scan.pitch_x_um),
+        ("pitch_y_um", scan.pitch_y_um),
+    ] {
         if !(v.is_finite() && v > 0.0) {
             bail!("{m}: [scan] {field} = {v}: expected a positive pitch in micrometres");
         }
     }
     let scale = unit_scale(&scan.height_unit).ok_or_else(|| {
-        anyhow!("{m}: [scan] height_unit = {:?}: expected one of um, nm, mm, m", scan.height_unit)
+        anyhow!(
+            "{m}: [scan] height_unit = {:?}: expected one of um, nm, mm, m",
+            scan.height_unit
+        )
     })?;
     if scan.rows == 0 || scan.cols == 0 {
-        bail!("{m}: [scan] rows = {}, cols = {}: expected at least 1 each", scan.rows, scan.cols);
+        bail!(
+            "{m}: [scan] rows = {}, cols = {}: expected at least 1 each",
+            scan.rows,
+            scan.cols
+        );
     }
     if file.tile.is_empty() {
         bail!("{m}: no [[tile]] entries: expected one per field, in acquisition order");
@@ -141,12 +155,23 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         }
         let mut heights_um = arr.data;
         if scale != 1.0 {
-            heights_um.iter_mut().for_each(|z| *z = (*z as f64 * scale) as f32);
+            heights_um
+                .iter_mut()
+                .for_each(|z| *z = (*z as f64 * scale) as f32);
         }
-        tiles.push(LoadedTile { entry: t, heights_um });
+        tiles.push(LoadedTile {
+            entry: t,
+            heights_um,
+        });
     }
     let (rows, cols, _) = shape.ok_or_else(|| anyhow!("{m}: no tiles"))?;
-    Ok(ScanDirectory { manifest_path, scan, tiles, tile_width_px: cols, tile_height_px: rows })
+    Ok(ScanDirectory {
+        manifest_path,
+        scan,
+        tiles,
+        tile_width_px: cols,
+        tile_height_px: rows,
+    })
 }
 
 #[cfg(test)]
@@ -201,13 +226,20 @@ stage_y_um = 0.0
         let e = format!("{:#}", load_scan(d.path()).unwrap_err());
         assert!(e.contains("b.npy") && e.contains("expected 3 x 4"), "{e}");
 
-        write_scan(d.path(), &OK.replace("stage_y_um = 0.0\n\n[[tile]]", "\n[[tile]]"), &[]);
+        write_scan(
+            d.path(),
+            &OK.replace("stage_y_um = 0.0\n\n[[tile]]", "\n[[tile]]"),
+            &[],
+        );
         let e = format!("{:#}", load_scan(d.path()).unwrap_err());
         assert!(e.contains("scan.toml") && e.contains("stage_y_um"), "{e}");
 
         write_scan(d.path(), &OK.replace("b.npy", "missing.npy"), &[]);
         let e = format!("{:#}", load_scan(d.path()).unwrap_err());
-        assert!(e.contains("missing.npy") && e.contains("no such tile file"), "{e}");
+        assert!(
+            e.contains("missing.npy") && e.contains("no such tile file"),
+            "{e}"
+        );
 
         write_scan(d.path(), &OK.replace("pitch_x_um = 0.5\n", ""), &[]);
         let e = format!("{:#}", load_scan(d.path()).unwrap_err());

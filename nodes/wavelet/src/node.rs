@@ -77,17 +77,32 @@ impl Rect {
         let y0 = self.y0.min(o.y0);
         let x1 = (self.x0 + self.w as i64).max(o.x0 + o.w as i64);
         let y1 = (self.y0 + self.h as i64).max(o.y0 + o.h as i64);
-        Rect { x0, y0, w: (x1 - x0) as usize, h: (y1 - y0) as usize }
+        Rect {
+            x0,
+            y0,
+            w: (x1 - x0) as usize,
+            h: (y1 - y0) as usize,
+        }
     }
     fn intersect(self, o: Rect) -> Option<Rect> {
         let x0 = self.x0.max(o.x0);
         let y0 = self.y0.max(o.y0);
         let x1 = (self.x0 + self.w as i64).min(o.x0 + o.w as i64);
         let y1 = (self.y0 + self.h as i64).min(o.y0 + o.h as i64);
-        (x1 > x0 && y1 > y0).then(|| Rect { x0, y0, w: (x1 - x0) as usize, h: (y1 - y0) as usize })
+        (x1 > x0 && y1 > y0).then(|| Rect {
+            x0,
+            y0,
+            w: (x1 - x0) as usize,
+            h: (y1 - y0) as usize,
+        })
     }
     fn expand(self, m: i64) -> Rect {
-        Rect { x0: self.x0 - m, y0: self.y0 - m, w: self.w + 2 * m as usize, h: self.h + 2 * m as usize }
+        Rect {
+            x0: self.x0 - m,
+            y0: self.y0 - m,
+            w: self.w + 2 * m as usize,
+            h: self.h + 2 * m as usize,
+        }
     }
 }
 
@@ -106,7 +121,12 @@ impl Mirror {
             anchor_um: [h.origin_x_um, h.origin_y_um],
             pitch_um: [h.pitch_x_um, h.pitch_y_um],
             z_offset_um: h.z_offset_um,
-            extent: Rect { x0: 0, y0: 0, w: 0, h: 0 },
+            extent: Rect {
+                x0: 0,
+                y0: 0,
+                w: 0,
+                h: 0,
+            },
             data: Vec::new(),
         }
     }
@@ -125,14 +145,24 @@ impl Mirror {
         if (h.pitch_x_um - self.pitch_um[0]).abs() > 1e-9 * self.pitch_um[0]
             || (h.z_offset_um - self.z_offset_um).abs() > 0.0
         {
-            bail!("wavelet: panorama patch {} changes pitch or z offset mid-scan", h.sequence);
+            bail!(
+                "wavelet: panorama patch {} changes pitch or z offset mid-scan",
+                h.sequence
+            );
         }
         let r = self.rect_of(h);
-        let need = if self.data.is_empty() { r } else { self.extent.union(r) };
+        let need = if self.data.is_empty() {
+            r
+        } else {
+            self.extent.union(r)
+        };
         if need != self.extent {
             let mut grown = vec![f32::NAN; need.w * need.h];
             if !self.data.is_empty() {
-                let (dx, dy) = ((self.extent.x0 - need.x0) as usize, (self.extent.y0 - need.y0) as usize);
+                let (dx, dy) = (
+                    (self.extent.x0 - need.x0) as usize,
+                    (self.extent.y0 - need.y0) as usize,
+                );
                 for row in 0..self.extent.h {
                     let src = &self.data[row * self.extent.w..(row + 1) * self.extent.w];
                     let at = (row + dy) * need.w + dx;
@@ -142,7 +172,10 @@ impl Mirror {
             self.data = grown;
             self.extent = need;
         }
-        let (dx, dy) = ((r.x0 - self.extent.x0) as usize, (r.y0 - self.extent.y0) as usize);
+        let (dx, dy) = (
+            (r.x0 - self.extent.x0) as usize,
+            (r.y0 - self.extent.y0) as usize,
+        );
         for row in 0..r.h {
             let at = (row + dy) * self.extent.w + dx;
             self.data[at..at + r.w].copy_from_slice(&heights[row * r.w..(row + 1) * r.w]);
@@ -151,7 +184,10 @@ impl Mirror {
     }
 
     fn extract(&self, r: Rect) -> Vec<f32> {
-        let (dx, dy) = ((r.x0 - self.extent.x0) as usize, (r.y0 - self.extent.y0) as usize);
+        let (dx, dy) = (
+            (r.x0 - self.extent.x0) as usize,
+            (r.y0 - self.extent.y0) as usize,
+        );
         let mut out = Vec::with_capacity(r.w * r.h);
         for row in 0..r.h {
             let at = (row + dy) * self.extent.w + dx;
@@ -200,20 +236,35 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
     let p: Params = ctx.params()?;
     let at = || format!("graph '{}', node '{}'", ctx.graph_name, ctx.node_id);
     let wavelet = Wavelet::by_name(&p.wavelet).ok_or_else(|| {
-        anyhow!("{}: wavelet = {:?}: expected db1..db10, sym2..sym10 or coif1..coif5", at(), p.wavelet)
+        anyhow!(
+            "{}: wavelet = {:?}: expected db1..db10, sym2..sym10 or coif1..coif5",
+            at(),
+            p.wavelet
+        )
     })?;
-    let mode = Mode::by_name(&p.mode)
-        .ok_or_else(|| anyhow!("{}: mode = {:?}: expected \"symmetric\" or \"periodization\"", at(), p.mode))?;
+    let mode = Mode::by_name(&p.mode).ok_or_else(|| {
+        anyhow!(
+            "{}: mode = {:?}: expected \"symmetric\" or \"periodization\"",
+            at(),
+            p.mode
+        )
+    })?;
     let pool_op = match p.pool_op.as_str() {
         "max" => PoolOp::Max,
         "mean" => PoolOp::Mean,
-        other => bail!("{}: pool_op = {other:?}: expected \"max\" or \"mean\"", at()),
+        other => bail!(
+            "{}: pool_op = {other:?}: expected \"max\" or \"mean\"",
+            at()
+        ),
     };
     if p.pool == 0 {
         bail!("{}: pool = 0: expected a block size of at least 1 px", at());
     }
     if p.level == Some(0) {
-        bail!("{}: level = 0: expected a decomposition level of at least 1", at());
+        bail!(
+            "{}: level = 0: expected a decomposition level of at least 1",
+            at()
+        );
     }
     Ok(Box::new(WaveletNode {
         wavelet,
@@ -239,20 +290,35 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
 impl WaveletNode {
     /// One live pass over the changed region (plus margin) of the mirror.
     fn live_pass(&mut self, out: &mut Outbox) -> Result<()> {
-        let (Some(m), Some(dirty), Some((tile, t_acq))) = (&self.mirror, self.dirty.take(), self.trace.take())
+        let (Some(m), Some(dirty), Some((tile, t_acq))) =
+            (&self.mirror, self.dirty.take(), self.trace.take())
         else {
             return Ok(());
         };
-        let Some(window) = dirty.expand(self.live_margin_px as i64).intersect(m.extent) else { return Ok(()) };
+        let Some(window) = dirty.expand(self.live_margin_px as i64).intersect(m.extent) else {
+            return Ok(());
+        };
         let heights = m.extract(window);
         if heights.iter().all(|z| z.is_nan()) {
             return Ok(());
         }
         // A window too small for even level 1 gets no live update; the final pass covers it.
-        let Ok(level) = default_level(window.h, window.w, &self.wavelet, self.level) else { return Ok(()) };
-        let sep = separate(&heights, window.h, window.w, &self.wavelet, self.mode, Some(level))?;
+        let Ok(level) = default_level(window.h, window.w, &self.wavelet, self.level) else {
+            return Ok(());
+        };
+        let sep = separate(
+            &heights,
+            window.h,
+            window.w,
+            &self.wavelet,
+            self.mode,
+            Some(level),
+        )?;
         let crop = |v: &[f32]| -> Vec<f32> {
-            let (dx, dy) = ((dirty.x0 - window.x0) as usize, (dirty.y0 - window.y0) as usize);
+            let (dx, dy) = (
+                (dirty.x0 - window.x0) as usize,
+                (dirty.y0 - window.y0) as usize,
+            );
             let mut c = Vec::with_capacity(dirty.w * dirty.h);
             for row in 0..dirty.h {
                 let at = (row + dy) * window.w + dx;
@@ -266,10 +332,19 @@ impl WaveletNode {
             h.t_acquired_ns = t_acq;
             h
         };
-        out.send_frame("datum", HeightMap { header: stamp(m.header_for(dirty, FrameKind::Datum, 1)), heights: crop(&sep.datum) });
+        out.send_frame(
+            "datum",
+            HeightMap {
+                header: stamp(m.header_for(dirty, FrameKind::Datum, 1)),
+                heights: crop(&sep.datum),
+            },
+        );
         out.send_frame(
             "roughness",
-            HeightMap { header: stamp(m.header_for(dirty, FrameKind::Roughness, 1)), heights: crop(&sep.roughness) },
+            HeightMap {
+                header: stamp(m.header_for(dirty, FrameKind::Roughness, 1)),
+                heights: crop(&sep.roughness),
+            },
         );
         // Pooled blocks stay aligned to the mirror's grid so live patches tile seamlessly.
         let b = self.pool as i64;
@@ -286,7 +361,13 @@ impl WaveletNode {
             let mut h = stamp(m.header_for(a, FrameKind::Pooled, self.pool));
             h.width = p.cols as u32;
             h.height = p.rows as u32;
-            out.send_frame("pooled", HeightMap { header: h, heights: p.heights });
+            out.send_frame(
+                "pooled",
+                HeightMap {
+                    header: h,
+                    heights: p.heights,
+                },
+            );
         }
         self.live_patches += 1;
         Ok(())
@@ -300,9 +381,20 @@ impl WaveletNode {
             .ok_or_else(|| anyhow!("wavelet: end of scan without a final panorama"))?;
         let h = pano.header;
         let (rows, cols) = (h.height as usize, h.width as usize);
-        let sep = separate(&pano.heights, rows, cols, &self.wavelet, self.mode, self.level)?;
+        let sep = separate(
+            &pano.heights,
+            rows,
+            cols,
+            &self.wavelet,
+            self.mode,
+            self.level,
+        )?;
         let pooled = pool(&pano.heights, rows, cols, self.pool, self.pool_op)?;
-        let mk = |kind: FrameKind| FrameHeader { kind: kind as u32, flags: flags::FINAL, ..h };
+        let mk = |kind: FrameKind| FrameHeader {
+            kind: kind as u32,
+            flags: flags::FINAL,
+            ..h
+        };
         let mut ph = mk(FrameKind::Pooled);
         ph.width = pooled.cols as u32;
         ph.height = pooled.rows as u32;
@@ -312,17 +404,55 @@ impl WaveletNode {
         if self.write_files {
             use surfstream_common::npy::write_npy_f32;
             write_npy_f32(self.out_dir.join("datum.npy"), &sep.datum, rows, cols)?;
-            write_npy_f32(self.out_dir.join("roughness.npy"), &sep.roughness, rows, cols)?;
-            write_npy_f32(self.out_dir.join("pooled.npy"), &pooled.heights, pooled.rows, pooled.cols)?;
+            write_npy_f32(
+                self.out_dir.join("roughness.npy"),
+                &sep.roughness,
+                rows,
+                cols,
+            )?;
+            write_npy_f32(
+                self.out_dir.join("pooled.npy"),
+                &pooled.heights,
+                pooled.rows,
+                pooled.cols,
+            )?;
             for (name, data, r, c, title) in [
-                ("datum.png", &sep.datum, rows, cols, format!("datum, {} level {} (um)", self.wavelet.name(), sep.level)),
-                ("roughness.png", &sep.roughness, rows, cols, "roughness (um)".to_string()),
-                ("pooled.png", &pooled.heights, pooled.rows, pooled.cols, format!("pooled {0}x{0} (um)", self.pool)),
+                (
+                    "datum.png",
+                    &sep.datum,
+                    rows,
+                    cols,
+                    format!("datum, {} level {} (um)", self.wavelet.name(), sep.level),
+                ),
+                (
+                    "roughness.png",
+                    &sep.roughness,
+                    rows,
+                    cols,
+                    "roughness (um)".to_string(),
+                ),
+                (
+                    "pooled.png",
+                    &pooled.heights,
+                    pooled.rows,
+                    pooled.cols,
+                    format!("pooled {0}x{0} (um)", self.pool),
+                ),
             ] {
-                let opts = PreviewOptions { title: Some(title), ..Default::default() };
+                let opts = PreviewOptions {
+                    title: Some(title),
+                    ..Default::default()
+                };
                 write_preview_png(self.out_dir.join(name), data, r, c, &opts)?;
             }
-            files = vec!["datum.npy", "roughness.npy", "pooled.npy", "datum.png", "roughness.png", "pooled.png"];
+            files = vec![
+                "datum.npy",
+                "roughness.npy",
+                "pooled.npy",
+                "datum.png",
+                "roughness.png",
+                "pooled.png",
+            ];
         }
         self.summary = json!({
             "wavelet": self.wavelet.name(), "mode": self.mode.name(),
@@ -331,9 +461,27 @@ impl WaveletNode {
             "panorama_px": [cols, rows], "pooled_px": [pooled.cols, pooled.rows],
             "files": files,
         });
-        out.send_frame("datum", HeightMap { header: mk(FrameKind::Datum), heights: sep.datum });
-        out.send_frame("roughness", HeightMap { header: mk(FrameKind::Roughness), heights: sep.roughness });
-        out.send_frame("pooled", HeightMap { header: ph, heights: pooled.heights });
+        out.send_frame(
+            "datum",
+            HeightMap {
+                header: mk(FrameKind::Datum),
+                heights: sep.datum,
+            },
+        );
+        out.send_frame(
+            "roughness",
+            HeightMap {
+                header: mk(FrameKind::Roughness),
+                heights: sep.roughness,
+            },
+        );
+        out.send_frame(
+            "pooled",
+            HeightMap {
+                header: ph,
+                heights: pooled.heights,
+            },
+        );
         for port in ["datum", "roughness", "pooled"] {
             out.end_frames(port, h.tile_index, h.t_acquired_ns);
         }
@@ -344,7 +492,9 @@ impl WaveletNode {
 
 impl NodeLogic for WaveletNode {
     fn on_input(&mut self, port: &str, input: Input<'_>, _: &mut Outbox) -> Result<()> {
-        let Input::Frame(f) = input else { bail!("wavelet: input '{port}' must carry frames") };
+        let Input::Frame(f) = input else {
+            bail!("wavelet: input '{port}' must carry frames")
+        };
         let h = f.header;
         if h.has(flags::END_OF_SCAN) {
             self.ended = true;
@@ -355,24 +505,31 @@ impl NodeLogic for WaveletNode {
                 let m = self.mirror.get_or_insert_with(|| Mirror::new(h));
                 let r = m.apply(h, f.heights)?;
                 self.dirty = Some(self.dirty.map_or(r, |d| d.union(r)));
-                let t = self.trace.map_or(h.t_acquired_ns, |(_, t)| t.min(h.t_acquired_ns));
+                let t = self
+                    .trace
+                    .map_or(h.t_acquired_ns, |(_, t)| t.min(h.t_acquired_ns));
                 self.trace = Some((h.tile_index, t));
             }
             Some(FrameKind::Panorama) => self.final_panorama = Some(f.to_owned()),
-            other => bail!("wavelet: input '{port}' carries {other:?} frames, expected panorama patches"),
+            other => {
+                bail!("wavelet: input '{port}' carries {other:?} frames, expected panorama patches")
+            }
         }
         Ok(())
     }
 
     fn on_drained(&mut self, out: &mut Outbox) -> Result<()> {
-        if self.ended {
-            if !self.done {
-                self.final_pass(out)?;
-            }
-        } else if self.live {
+        // Live patches of the last tiles go out first; the final pass runs on the next call.
+        if self.live && self.dirty.is_some() {
             self.live_pass(out)?;
+        } else if self.ended && !self.done {
+            self.final_pass(out)?;
         }
         Ok(())
+    }
+
+    fn has_pending_work(&self) -> bool {
+        self.ended && !self.done
     }
 
     fn finished(&self) -> bool {
