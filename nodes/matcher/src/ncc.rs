@@ -148,8 +148,7 @@ fn finish(acc: [f64; 6]) -> (f64, usize) {
 /// vectorises it.
 #[inline]
 fn row_sums(za: &[f32], ca: &[f32], ra: f32, zb: &[f32], cb: &[f32], rb: f32) -> [f32; 6] {
-    // Four lanes: the six accumulators then fit the SSE registers without spilling.
-    const L: usize = 4;
+    const L: usize = 8;
     let mut acc = [[0.0f32; L]; 6];
     let lane = |acc: &mut [[f32; L]; 6], l: usize, za: f32, ca: f32, zb: f32, cb: f32| {
         let a = za - (ra + ca);

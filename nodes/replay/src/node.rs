@@ -255,19 +255,16 @@ fn simulated(ctx: &NodeContext) -> Result<ReplayNode> {
                     "stage_x_um": t.stage_position_um[0], "stage_y_um": t.stage_position_um[1] })
         })
         .collect();
-    Ok(ReplayNode {
-        pacing: pacing_from(&pacing, field_time_s, ctx)?,
-        source: Source::Simulated {
+    Ok(ReplayNode::new(
+        Source::Simulated {
             specimen,
             plan: Box::new(plan),
         },
-        offsets_ns: Vec::new(),
-        started: None,
-        next: 0,
-        done: false,
+        pacing_from(&pacing, field_time_s, ctx)?,
+        Vec::new(),
         scan,
         tiles,
-    })
+    ))
 }
 
 fn scan(ctx: &NodeContext, p: ScanParams) -> Result<ReplayNode> {
@@ -309,16 +306,13 @@ fn scan(ctx: &NodeContext, p: ScanParams) -> Result<ReplayNode> {
         "pitch_y_um": dir.scan.pitch_y_um,
         "height_unit": dir.scan.height_unit,
     });
-    Ok(ReplayNode {
-        pacing: pacing_from(&p.pacing, p.field_time_s, ctx)?,
-        source: Source::Frames(frames),
-        offsets_ns: Vec::new(),
-        started: None,
-        next: 0,
-        done: false,
+    Ok(ReplayNode::new(
+        Source::Frames(frames),
+        pacing_from(&p.pacing, p.field_time_s, ctx)?,
+        Vec::new(),
         scan,
         tiles,
-    })
+    ))
 }
 
 fn mcap(ctx: &NodeContext, p: McapParams) -> Result<ReplayNode> {
@@ -372,19 +366,36 @@ fn mcap(ctx: &NodeContext, p: McapParams) -> Result<ReplayNode> {
         "pitch_x_um": first.pitch_x_um,
         "pitch_y_um": first.pitch_y_um,
     });
-    Ok(ReplayNode {
-        pacing: pacing_from(&p.pacing, 1.0, ctx)?,
-        source: Source::Frames(frames),
+    let pacing = pacing_from(&p.pacing, 1.0, ctx)?;
+    Ok(ReplayNode::new(
+        Source::Frames(frames),
+        pacing,
         offsets_ns,
-        started: None,
-        next: 0,
-        done: false,
         scan,
         tiles,
-    })
+    ))
 }
 
 impl ReplayNode {
+    fn new(
+        source: Source,
+        pacing: Pacing,
+        offsets_ns: Vec<u64>,
+        scan: serde_json::Value,
+        tiles: Vec<serde_json::Value>,
+    ) -> Self {
+        ReplayNode {
+            source,
+            pacing,
+            offsets_ns,
+            started: None,
+            next: 0,
+            done: false,
+            scan,
+            tiles,
+        }
+    }
+
     fn tile_count(&self) -> usize {
         match &self.source {
             Source::Simulated { plan, .. } => plan.tiles.len(),
