@@ -103,6 +103,7 @@ fn height_rms_vs_specimen(out: &Path, run: &Value, truth: &Value) -> (f64, usize
     ((ss / n as f64).sqrt(), n)
 }
 
+#[allow(clippy::needless_range_loop)] // Gaussian elimination reads best with indices.
 fn solve3(mut a: [[f64; 3]; 3], mut b: [f64; 3]) -> [f64; 3] {
     for k in 0..3 {
         let p = (k..3)

@@ -100,22 +100,38 @@ pub(crate) fn ncc_stencil(
     region: [i64; 4],
 ) -> [[f64; 3]; 3] {
     let [x0, x1, y0, y1] = region;
-    let mut acc = [[[0.0f64; 6]; 3]; 3];
     if x1 <= x0 || y1 <= y0 {
         return [[0.0; 3]; 3];
     }
-    let (xa0, xa1) = (x0 as usize, x1 as usize);
+    let w = (x1 - x0) as usize;
+    let xa0 = x0 as usize;
+    // b's columns for dx = +1 .. -1: [xb0, xb0 + w + 2).
+    let xb0 = (x0 - off[0] - 1) as usize;
+    let (mut va, mut ma) = (vec![0.0f32; w], vec![0.0f32; w]);
+    let (mut vb, mut mb) = (vec![0.0f32; w + 2], vec![0.0f32; w + 2]);
+    let mut acc = [[[0.0f64; 6]; 3]; 3];
     for ya in y0..y1 {
-        let za = &a.tile.row(ya as usize)[xa0..xa1];
-        let ca = &a.col_term[xa0..xa1];
-        let ra = a.row_term[ya as usize];
+        let ya_u = ya as usize;
+        level_row(
+            &a.tile.row(ya_u)[xa0..xa0 + w],
+            &a.col_term[xa0..xa0 + w],
+            a.row_term[ya_u],
+            &mut va,
+            &mut ma,
+        );
         for (sy, acc_row) in acc.iter_mut().enumerate() {
             let yb = (ya - off[1] - (sy as i64 - 1)) as usize;
-            let (zb_row, rb) = (b.tile.row(yb), b.row_term[yb]);
+            level_row(
+                &b.tile.row(yb)[xb0..xb0 + w + 2],
+                &b.col_term[xb0..xb0 + w + 2],
+                b.row_term[yb],
+                &mut vb,
+                &mut mb,
+            );
             for (sx, t) in acc_row.iter_mut().enumerate() {
-                let xb0 = (x0 - off[0] - (sx as i64 - 1)) as usize;
-                let xb1 = xb0 + (xa1 - xa0);
-                let row = row_sums(za, ca, ra, &zb_row[xb0..xb1], &b.col_term[xb0..xb1], rb);
+                // dx = sx - 1 reads b from index 1 - dx = 2 - sx.
+                let k = 2 - sx;
+                let row = levelled_sums(&va, &ma, &vb[k..k + w], &mb[k..k + w]);
                 for (u, v) in t.iter_mut().zip(row) {
                     *u += v as f64;
                 }
@@ -123,6 +139,56 @@ pub(crate) fn ncc_stencil(
         }
     }
     acc.map(|r| r.map(|t| finish(t).0))
+}
+
+/// `v = z - (r + c)` where finite (mask 1), else 0 (mask 0).
+#[inline]
+fn level_row(z: &[f32], c: &[f32], r: f32, v: &mut [f32], m: &mut [f32]) {
+    for (((v, m), &z), &c) in v.iter_mut().zip(m.iter_mut()).zip(z).zip(c) {
+        let x = z - (r + c);
+        let ok = x.is_finite();
+        *v = if ok { x } else { 0.0 };
+        *m = if ok { 1.0 } else { 0.0 };
+    }
+}
+
+/// [n, sum a, sum b, sum a^2, sum b^2, sum ab] over pairs valid in both of two levelled rows
+/// (values 0 where invalid, masks 0/1).
+#[inline]
+fn levelled_sums(va: &[f32], ma: &[f32], vb: &[f32], mb: &[f32]) -> [f32; 6] {
+    const L: usize = 4;
+    let (mut n, mut sa, mut sb) = ([0.0f32; L], [0.0f32; L], [0.0f32; L]);
+    let (mut saa, mut sbb, mut sab) = ([0.0f32; L], [0.0f32; L], [0.0f32; L]);
+    let (va8, _) = va.as_chunks::<L>();
+    let (ma8, _) = ma.as_chunks::<L>();
+    let (vb8, _) = vb.as_chunks::<L>();
+    let (mb8, _) = mb.as_chunks::<L>();
+    for (((va, ma), vb), mb) in va8.iter().zip(ma8).zip(vb8).zip(mb8) {
+        for l in 0..L {
+            let am = va[l] * mb[l];
+            let bm = vb[l] * ma[l];
+            n[l] += ma[l] * mb[l];
+            sa[l] += am;
+            sb[l] += bm;
+            saa[l] += va[l] * am;
+            sbb[l] += vb[l] * bm;
+            sab[l] += va[l] * vb[l];
+        }
+    }
+    let sum = |x: [f32; L]| x.iter().sum::<f32>();
+    let mut out = [sum(n), sum(sa), sum(sb), sum(saa), sum(sbb), sum(sab)];
+    let tail = va.len() - va.len() % L;
+    for i in tail..va.len() {
+        let am = va[i] * mb[i];
+        let bm = vb[i] * ma[i];
+        out[0] += ma[i] * mb[i];
+        out[1] += am;
+        out[2] += bm;
+        out[3] += va[i] * am;
+        out[4] += vb[i] * bm;
+        out[5] += va[i] * vb[i];
+    }
+    out
 }
 
 /// NCC and pair count from [n, sum a, sum b, sum a^2, sum b^2, sum ab].
