@@ -111,8 +111,21 @@ struct Mirror {
     anchor_um: [f64; 2],
     pitch_um: [f64; 2],
     z_offset_um: f64,
+    /// What patches have covered so far.
     extent: Rect,
+    /// What `data` holds: the extent plus slack, so growth is amortised and the work per
+    /// tile does not grow with the panorama.
+    alloc: Rect,
     data: Vec<f32>,
+}
+
+impl Rect {
+    fn contains(&self, o: &Rect) -> bool {
+        o.x0 >= self.x0
+            && o.y0 >= self.y0
+            && o.x0 + o.w as i64 <= self.x0 + self.w as i64
+            && o.y0 + o.h as i64 <= self.y0 + self.h as i64
+    }
 }
 
 impl Mirror {
@@ -122,6 +135,12 @@ impl Mirror {
             pitch_um: [h.pitch_x_um, h.pitch_y_um],
             z_offset_um: h.z_offset_um,
             extent: Rect {
+                x0: 0,
+                y0: 0,
+                w: 0,
+                h: 0,
+            },
+            alloc: Rect {
                 x0: 0,
                 y0: 0,
                 w: 0,
@@ -151,33 +170,58 @@ impl Mirror {
             );
         }
         let r = self.rect_of(h);
-        let need = if self.data.is_empty() {
+        self.extent = if self.data.is_empty() {
             r
         } else {
             self.extent.union(r)
         };
-        if need != self.extent {
-            let mut grown = vec![f32::NAN; need.w * need.h];
+        if !self.alloc.contains(&self.extent) {
+            // Grow by half of the current size (at least the patch) on every side that needs it.
+            let need = self.extent;
+            let (sx, sy) = ((need.w / 2).max(r.w) as i64, (need.h / 2).max(r.h) as i64);
+            let old = self.alloc;
+            let mut grown_rect = if self.data.is_empty() {
+                need
+            } else {
+                old.union(need)
+            };
+            if !self.data.is_empty() {
+                if need.x0 < old.x0 {
+                    grown_rect.x0 -= sx;
+                    grown_rect.w += sx as usize;
+                }
+                if need.y0 < old.y0 {
+                    grown_rect.y0 -= sy;
+                    grown_rect.h += sy as usize;
+                }
+                if need.x0 + need.w as i64 > old.x0 + old.w as i64 {
+                    grown_rect.w += sx as usize;
+                }
+                if need.y0 + need.h as i64 > old.y0 + old.h as i64 {
+                    grown_rect.h += sy as usize;
+                }
+            }
+            let mut grown = vec![f32::NAN; grown_rect.w * grown_rect.h];
             if !self.data.is_empty() {
                 let (dx, dy) = (
-                    (self.extent.x0 - need.x0) as usize,
-                    (self.extent.y0 - need.y0) as usize,
+                    (old.x0 - grown_rect.x0) as usize,
+                    (old.y0 - grown_rect.y0) as usize,
                 );
-                for row in 0..self.extent.h {
-                    let src = &self.data[row * self.extent.w..(row + 1) * self.extent.w];
-                    let at = (row + dy) * need.w + dx;
-                    grown[at..at + self.extent.w].copy_from_slice(src);
+                for row in 0..old.h {
+                    let src = &self.data[row * old.w..(row + 1) * old.w];
+                    let at = (row + dy) * grown_rect.w + dx;
+                    grown[at..at + old.w].copy_from_slice(src);
                 }
             }
             self.data = grown;
-            self.extent = need;
+            self.alloc = grown_rect;
         }
         let (dx, dy) = (
-            (r.x0 - self.extent.x0) as usize,
-            (r.y0 - self.extent.y0) as usize,
+            (r.x0 - self.alloc.x0) as usize,
+            (r.y0 - self.alloc.y0) as usize,
         );
         for row in 0..r.h {
-            let at = (row + dy) * self.extent.w + dx;
+            let at = (row + dy) * self.alloc.w + dx;
             self.data[at..at + r.w].copy_from_slice(&heights[row * r.w..(row + 1) * r.w]);
         }
         Ok(r)
@@ -185,12 +229,12 @@ impl Mirror {
 
     fn extract(&self, r: Rect) -> Vec<f32> {
         let (dx, dy) = (
-            (r.x0 - self.extent.x0) as usize,
-            (r.y0 - self.extent.y0) as usize,
+            (r.x0 - self.alloc.x0) as usize,
+            (r.y0 - self.alloc.y0) as usize,
         );
         let mut out = Vec::with_capacity(r.w * r.h);
         for row in 0..r.h {
-            let at = (row + dy) * self.extent.w + dx;
+            let at = (row + dy) * self.alloc.w + dx;
             out.extend_from_slice(&self.data[at..at + r.w]);
         }
         out
@@ -538,5 +582,41 @@ impl NodeLogic for WaveletNode {
 
     fn report(&self) -> serde_json::Value {
         json!({ "live_patches": self.live_patches, "final": self.summary })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn patch(x0: i64, y0: i64, w: u32, h: u32, v: f32) -> (FrameHeader, Vec<f32>) {
+        let hd = FrameHeader {
+            kind: FrameKind::PanoramaPatch as u32,
+            width: w,
+            height: h,
+            pitch_x_um: 0.5,
+            pitch_y_um: 0.5,
+            origin_x_um: 10.0 + x0 as f64 * 0.5,
+            origin_y_um: 20.0 + y0 as f64 * 0.5,
+            ..Default::default()
+        };
+        (hd, vec![v; (w * h) as usize])
+    }
+
+    #[test]
+    fn mirror_grows_in_every_direction_and_keeps_content() {
+        let (h0, z0) = patch(0, 0, 4, 3, 1.0);
+        let mut m = Mirror::new(&h0);
+        m.apply(&h0, &z0).unwrap();
+        for (x0, y0, v) in [(-5, 0, 2.0), (0, -4, 3.0), (6, 5, 4.0), (2, 1, 5.0)] {
+            let (h, z) = patch(x0, y0, 4, 3, v);
+            let r = m.apply(&h, &z).unwrap();
+            assert_eq!(m.extract(r), z);
+        }
+        assert_eq!(m.extent, Rect { x0: -5, y0: -4, w: 15, h: 12 });
+        assert!(m.alloc.contains(&m.extent));
+        // The first patch survives where nothing overwrote it; untouched pixels stay NaN.
+        assert_eq!(m.extract(Rect { x0: 0, y0: 0, w: 2, h: 1 }), vec![1.0, 1.0]);
+        assert!(m.extract(Rect { x0: 9, y0: -4, w: 1, h: 1 })[0].is_nan());
     }
 }
