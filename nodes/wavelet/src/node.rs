@@ -613,10 +613,32 @@ mod tests {
             let r = m.apply(&h, &z).unwrap();
             assert_eq!(m.extract(r), z);
         }
-        assert_eq!(m.extent, Rect { x0: -5, y0: -4, w: 15, h: 12 });
+        assert_eq!(
+            m.extent,
+            Rect {
+                x0: -5,
+                y0: -4,
+                w: 15,
+                h: 12
+            }
+        );
         assert!(m.alloc.contains(&m.extent));
         // The first patch survives where nothing overwrote it; untouched pixels stay NaN.
-        assert_eq!(m.extract(Rect { x0: 0, y0: 0, w: 2, h: 1 }), vec![1.0, 1.0]);
-        assert!(m.extract(Rect { x0: 9, y0: -4, w: 1, h: 1 })[0].is_nan());
+        assert_eq!(
+            m.extract(Rect {
+                x0: 0,
+                y0: 0,
+                w: 2,
+                h: 1
+            }),
+            vec![1.0, 1.0]
+        );
+        assert!(m.extract(Rect {
+            x0: 9,
+            y0: -4,
+            w: 1,
+            h: 1
+        })[0]
+            .is_nan());
     }
 }
