@@ -412,7 +412,7 @@ fn a_killed_node_fails_the_launch_and_leaves_no_shared_memory() {
     }
     std::thread::sleep(Duration::from_millis(1500));
     // SAFETY: signalling a process this test found by its command line.
-    unsafe { libc_kill(pid) };
+    unsafe { libc_signal(pid, 9) };
     let status = child.wait().unwrap();
     let err = std::fs::read_to_string(&log).unwrap();
     eprintln!("{err}");
@@ -442,13 +442,6 @@ fn a_killed_node_fails_the_launch_and_leaves_no_shared_memory() {
         .flatten()
         .any(|e| e.file_name().to_string_lossy().ends_with(".partial"));
     assert!(!partial);
-}
-
-unsafe fn libc_kill(pid: i32) {
-    extern "C" {
-        fn kill(pid: i32, sig: i32) -> i32;
-    }
-    kill(pid, 9);
 }
 
 #[test]
@@ -487,4 +480,70 @@ fn two_launches_at_once_are_isolated() {
     }
     // Same graph, same seed: the same surface, although they ran side by side.
     assert_same_outputs(&dir.path().join("x"), &dir.path().join("y"));
+}
+
+#[test]
+fn ctrl_c_stops_every_node_and_leaves_nothing_behind() {
+    let dir = tempfile::tempdir().unwrap();
+    let out_dir = dir.path().join("interrupted");
+    let log = dir.path().join("launcher.stderr");
+    let mut child = surfstream()
+        .args([
+            "launch",
+            "launch/graphs/demo.toml",
+            "--set",
+            "stage.rows=3",
+            "--out",
+        ])
+        .arg(&out_dir)
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let t0 = Instant::now();
+    while !std::fs::read_to_string(&log)
+        .unwrap_or_default()
+        .contains("scan started")
+    {
+        assert!(t0.elapsed() < Duration::from_secs(60), "scan never started");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    std::thread::sleep(Duration::from_millis(1200));
+    // SAFETY: signalling the launcher this test started.
+    unsafe { libc_signal(child.id() as i32, 2) };
+    let status = child.wait().unwrap();
+    let err = std::fs::read_to_string(&log).unwrap();
+    assert!(
+        !status.success(),
+        "an interrupted launch must not report success"
+    );
+    assert!(err.contains("interrupted"), "{err}");
+    let marker = out_dir.to_str().unwrap().to_string();
+    for node in [
+        "replay", "matcher", "fusion", "wavelet", "mesher", "recorder",
+    ] {
+        assert!(
+            find_pid(&format!("surfstream-{node}"), &marker).is_none(),
+            "{node} still running"
+        );
+    }
+    let domain = domain_of(&err).unwrap();
+    assert!(
+        shm_leftovers(&domain).is_empty(),
+        "{:?}",
+        shm_leftovers(&domain)
+    );
+    assert!(!out_dir.join("recording.mcap").exists() && !out_dir.join("run.json").exists());
+    let partial = std::fs::read_dir(&out_dir)
+        .unwrap()
+        .flatten()
+        .any(|e| e.file_name().to_string_lossy().ends_with(".partial"));
+    assert!(!partial);
+}
+
+unsafe fn libc_signal(pid: i32, sig: i32) {
+    extern "C" {
+        fn kill(pid: i32, sig: i32) -> i32;
+    }
+    kill(pid, sig);
 }
