@@ -370,12 +370,10 @@ fn find_pid(binary: &str, marker: &str) -> Option<i32> {
     None
 }
 
-#[test]
-fn a_killed_node_fails_the_launch_and_leaves_no_shared_memory() {
-    let dir = tempfile::tempdir().unwrap();
-    let out_dir = dir.path().join("killed");
-    let log = dir.path().join("launcher.stderr");
-    let mut child = surfstream()
+/// Starts the demo graph (3 x 2 fields, one per second) in the background and returns once the
+/// scan has started and ~1 s of it ran; stderr goes to `log`.
+fn launch_mid_scan(out_dir: &Path, log: &Path) -> std::process::Child {
+    let child = surfstream()
         .args([
             "launch",
             "launch/graphs/demo.toml",
@@ -385,44 +383,36 @@ fn a_killed_node_fails_the_launch_and_leaves_no_shared_memory() {
             "stage.field_time_s=1.0",
             "--out",
         ])
-        .arg(&out_dir)
+        .arg(out_dir)
         .stdout(Stdio::null())
-        .stderr(std::fs::File::create(&log).unwrap())
+        .stderr(std::fs::File::create(log).unwrap())
         .spawn()
         .unwrap();
-    let marker = out_dir.to_str().unwrap().to_string();
     let t0 = Instant::now();
-    let pid = loop {
-        if let Some(pid) = find_pid("surfstream-matcher", &marker) {
-            break pid;
-        }
-        assert!(
-            t0.elapsed() < Duration::from_secs(60),
-            "matcher never started"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    };
-    // Mid-run: the scan has started and some tiles went through.
-    while !std::fs::read_to_string(&log)
+    while !std::fs::read_to_string(log)
         .unwrap_or_default()
         .contains("scan started")
     {
         assert!(t0.elapsed() < Duration::from_secs(60), "scan never started");
         std::thread::sleep(Duration::from_millis(20));
     }
-    std::thread::sleep(Duration::from_millis(1500));
-    // SAFETY: signalling a process this test found by its command line.
-    unsafe { libc_signal(pid, 9) };
-    let status = child.wait().unwrap();
-    let err = std::fs::read_to_string(&log).unwrap();
-    eprintln!("{err}");
-    assert!(!status.success(), "launch must fail when a node dies");
-    assert!(
-        err.contains("node 'matcher'") && err.contains("signal 9"),
-        "{err}"
-    );
+    std::thread::sleep(Duration::from_millis(1200));
+    child
+}
+
+/// After a failed launch: no node alive, no shared memory, no node records, no outputs.
+fn assert_nothing_left_behind(err: &str, out_dir: &Path) {
     assert!(!err.contains("panicked"), "{err}");
-    let domain = domain_of(&err).unwrap();
+    let marker = out_dir.to_str().unwrap();
+    for node in [
+        "replay", "matcher", "fusion", "wavelet", "mesher", "recorder",
+    ] {
+        assert!(
+            find_pid(&format!("surfstream-{node}"), marker).is_none(),
+            "{node} still running"
+        );
+    }
+    let domain = domain_of(err).expect("launch names its domain");
     assert!(
         shm_leftovers(&domain).is_empty(),
         "{:?}",
@@ -434,14 +424,35 @@ fn a_killed_node_fails_the_launch_and_leaves_no_shared_memory() {
         0,
         "nodes left registered"
     );
-    // Nothing half-written: no final outputs, no partial files.
-    assert!(!out_dir.join("panorama.npy").exists());
-    assert!(!out_dir.join("run.json").exists());
-    let partial = std::fs::read_dir(&out_dir)
+    for f in ["panorama.npy", "recording.mcap", "run.json"] {
+        assert!(!out_dir.join(f).exists(), "{f} written by a failed launch");
+    }
+    let partial = std::fs::read_dir(out_dir)
         .unwrap()
         .flatten()
         .any(|e| e.file_name().to_string_lossy().ends_with(".partial"));
-    assert!(!partial);
+    assert!(!partial, "a .partial file was left behind");
+}
+
+#[test]
+fn a_killed_node_fails_the_launch_and_leaves_no_shared_memory() {
+    let dir = tempfile::tempdir().unwrap();
+    let (out_dir, log) = (
+        dir.path().join("killed"),
+        dir.path().join("launcher.stderr"),
+    );
+    let mut child = launch_mid_scan(&out_dir, &log);
+    let pid = find_pid("surfstream-matcher", out_dir.to_str().unwrap()).expect("matcher runs");
+    // SAFETY: signalling a process this test found by its command line.
+    unsafe { libc_signal(pid, 9) };
+    let status = child.wait().unwrap();
+    let err = std::fs::read_to_string(&log).unwrap();
+    assert!(!status.success(), "launch must fail when a node dies");
+    assert!(
+        err.contains("node 'matcher'") && err.contains("signal 9"),
+        "{err}"
+    );
+    assert_nothing_left_behind(&err, &out_dir);
 }
 
 #[test]
@@ -485,30 +496,11 @@ fn two_launches_at_once_are_isolated() {
 #[test]
 fn ctrl_c_stops_every_node_and_leaves_nothing_behind() {
     let dir = tempfile::tempdir().unwrap();
-    let out_dir = dir.path().join("interrupted");
-    let log = dir.path().join("launcher.stderr");
-    let mut child = surfstream()
-        .args([
-            "launch",
-            "launch/graphs/demo.toml",
-            "--set",
-            "stage.rows=3",
-            "--out",
-        ])
-        .arg(&out_dir)
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(&log).unwrap())
-        .spawn()
-        .unwrap();
-    let t0 = Instant::now();
-    while !std::fs::read_to_string(&log)
-        .unwrap_or_default()
-        .contains("scan started")
-    {
-        assert!(t0.elapsed() < Duration::from_secs(60), "scan never started");
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    std::thread::sleep(Duration::from_millis(1200));
+    let (out_dir, log) = (
+        dir.path().join("interrupted"),
+        dir.path().join("launcher.stderr"),
+    );
+    let mut child = launch_mid_scan(&out_dir, &log);
     // SAFETY: signalling the launcher this test started.
     unsafe { libc_signal(child.id() as i32, 2) };
     let status = child.wait().unwrap();
@@ -518,27 +510,7 @@ fn ctrl_c_stops_every_node_and_leaves_nothing_behind() {
         "an interrupted launch must not report success"
     );
     assert!(err.contains("interrupted"), "{err}");
-    let marker = out_dir.to_str().unwrap().to_string();
-    for node in [
-        "replay", "matcher", "fusion", "wavelet", "mesher", "recorder",
-    ] {
-        assert!(
-            find_pid(&format!("surfstream-{node}"), &marker).is_none(),
-            "{node} still running"
-        );
-    }
-    let domain = domain_of(&err).unwrap();
-    assert!(
-        shm_leftovers(&domain).is_empty(),
-        "{:?}",
-        shm_leftovers(&domain)
-    );
-    assert!(!out_dir.join("recording.mcap").exists() && !out_dir.join("run.json").exists());
-    let partial = std::fs::read_dir(&out_dir)
-        .unwrap()
-        .flatten()
-        .any(|e| e.file_name().to_string_lossy().ends_with(".partial"));
-    assert!(!partial);
+    assert_nothing_left_behind(&err, &out_dir);
 }
 
 unsafe fn libc_signal(pid: i32, sig: i32) {

@@ -12,7 +12,6 @@ use std::time::{Duration, Instant};
 use anyhow::{anyhow, bail, Result};
 use crossbeam_channel::{bounded, Receiver, Select, SendTimeoutError, Sender, TrySendError};
 
-use crate::frame::monotonic_ns;
 use crate::graph::{Delivery, NodeContext};
 use crate::node::{deliver, Input, NodeLogic, NodeReport, NodeStats, Outbox, Output};
 
@@ -194,13 +193,7 @@ fn run_node(
         logic.on_drained(&mut outbox)?;
         send_all(&ctx, &mut outputs, &mut outbox, &mut stats, timeout)?;
     }
-    Ok(NodeReport {
-        node_id: ctx.node_id.clone(),
-        node_kind: ctx.node_kind.clone(),
-        stats,
-        report: logic.report(),
-        t_finished_ns: monotonic_ns(),
-    })
+    Ok(NodeReport::finished(&ctx, stats, logic.as_ref()))
 }
 
 fn send_all(

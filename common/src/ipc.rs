@@ -20,7 +20,7 @@ use iceoryx2::port::{BackpressureAction, BackpressureInfo};
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::{event as event_factory, publish_subscribe as ps_factory};
 
-use crate::frame::{monotonic_ns, FrameHeader, FrameView, TileRegistration};
+use crate::frame::{FrameHeader, FrameView, TileRegistration};
 use crate::graph::{service_name, Delivery, NodeContext, PortKind};
 use crate::node::{deliver, Input, NodeLogic, NodeReport, NodeStats, Outbox, Output};
 
@@ -602,13 +602,7 @@ pub fn run_node(
             std::thread::sleep(Duration::from_millis(10));
         }
     }
-    Ok(NodeReport {
-        node_id: ctx.node_id.clone(),
-        node_kind: ctx.node_kind.clone(),
-        stats,
-        report: logic.report(),
-        t_finished_ns: monotonic_ns(),
-    })
+    Ok(NodeReport::finished(ctx, stats, logic))
 }
 
 fn has_pending(p: &InPort) -> Result<bool> {

@@ -190,34 +190,36 @@ pub struct NodeStats {
 
 impl NodeStats {
     pub fn on_received(&mut self, port: &str, input: &Input<'_>) {
-        let (tile_index, t_acquired_ns, t_sent_ns, kind, flags) = input.trace();
-        self.received
-            .entry(port.to_string())
-            .or_default()
-            .push(TraceEvent {
-                tile_index,
-                kind,
-                flags,
-                t_acquired_ns,
-                t_sent_ns,
-                t_received_ns: Some(monotonic_ns()),
-            });
+        record(
+            &mut self.received,
+            port,
+            input.trace(),
+            Some(monotonic_ns()),
+        );
     }
     pub fn on_sent(&mut self, port: &str, output: &Output, receivers: usize) {
-        let (tile_index, t_acquired_ns, t_sent_ns, kind, flags) = output.trace();
-        self.sent
-            .entry(port.to_string())
-            .or_default()
-            .push(TraceEvent {
-                tile_index,
-                kind,
-                flags,
-                t_acquired_ns,
-                t_sent_ns,
-                t_received_ns: None,
-            });
+        record(&mut self.sent, port, output.trace(), None);
         *self.deliveries.entry(port.to_string()).or_default() += receivers as u64;
     }
+}
+
+fn record(
+    events: &mut BTreeMap<String, Vec<TraceEvent>>,
+    port: &str,
+    (tile_index, t_acquired_ns, t_sent_ns, kind, flags): (u32, u64, u64, u32, u32),
+    t_received_ns: Option<u64>,
+) {
+    events
+        .entry(port.to_string())
+        .or_default()
+        .push(TraceEvent {
+            tile_index,
+            kind,
+            flags,
+            t_acquired_ns,
+            t_sent_ns,
+            t_received_ns,
+        });
 }
 
 /// What a node leaves behind for the launcher: written to `<out>/nodes/<id>.json` by a process,
@@ -230,6 +232,23 @@ pub struct NodeReport {
     pub report: serde_json::Value,
     /// CLOCK_MONOTONIC when the node finished.
     pub t_finished_ns: u64,
+}
+
+impl NodeReport {
+    /// The report of a node that has just finished.
+    pub fn finished(
+        ctx: &crate::graph::NodeContext,
+        stats: NodeStats,
+        logic: &dyn NodeLogic,
+    ) -> Self {
+        NodeReport {
+            node_id: ctx.node_id.clone(),
+            node_kind: ctx.node_kind.clone(),
+            stats,
+            report: logic.report(),
+            t_finished_ns: monotonic_ns(),
+        }
+    }
 }
 
 /// Feeds one message to the logic and records it.
