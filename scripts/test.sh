@@ -6,10 +6,11 @@ set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
 VENV=.test-venv
-if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import mcap, trimesh, numpy' 2>/dev/null; then
-    echo "test.sh: creating $VENV (mcap, trimesh, numpy)"
+if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import mcap, trimesh, numpy, pywt, surfalize, h5py' 2>/dev/null; then
+    echo "test.sh: creating $VENV (mcap, trimesh, numpy, PyWavelets, surfalize, h5py)"
     python3 -m venv "$VENV"
-    "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check -r scripts/test-requirements.txt
+    "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check --only-binary=:all: \
+        -r scripts/test-requirements.txt
 fi
 export SURFSTREAM_PYTHON="$PWD/$VENV/bin/python"
 

@@ -2,6 +2,7 @@
 //! channels and transport, recording, file formats and previews.
 
 pub mod frame;
+pub mod formats;
 pub mod fsutil;
 pub mod graph;
 pub mod inproc;

@@ -4,6 +4,7 @@
 mod launcher;
 mod nodes;
 mod runjson;
+mod verbs;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -57,6 +58,18 @@ enum Command {
         #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
         set: Vec<String>,
     },
+    /// Show a height-map file's metadata, shape, pitch and invalid count.
+    Inspect(verbs::metrology::InspectArgs),
+    /// ISO 25178 height and hybrid parameters of a height-map file.
+    Params(verbs::metrology::ParamsArgs),
+    /// Convert a height-map file to another format (by extension).
+    Convert(verbs::metrology::ConvertArgs),
+    /// Compare two height maps or images: SIM, SSIM, RMS difference.
+    Compare(verbs::metrology::CompareArgs),
+    /// Separate one height map into datum and roughness (2-D wavelet decomposition).
+    Separate(verbs::separate::SeparateArgs),
+    /// Mesh one height map with a bounded vertical error and write STL.
+    Mesh(verbs::mesh::MeshArgs),
 }
 
 fn main() -> ExitCode {
@@ -84,6 +97,12 @@ fn dispatch(cli: Cli) -> Result<()> {
             let graph = stitch_graph(&scan, out, &set)?;
             launcher::run_in_process(graph, &scan)
         }
+        Command::Inspect(a) => verbs::metrology::inspect(a),
+        Command::Params(a) => verbs::metrology::params(a),
+        Command::Convert(a) => verbs::metrology::convert(a),
+        Command::Compare(a) => verbs::metrology::compare(a),
+        Command::Separate(a) => verbs::separate::run(a),
+        Command::Mesh(a) => verbs::mesh::run(a),
     }
 }
 
