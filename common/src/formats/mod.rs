@@ -1,8 +1,22 @@
 //! Height-map files: every reader returns a [`Surface`] (f64 heights in micrometres, NaN =
 //! not measured, row index grows with y, pitch in micrometres) and every writer takes one.
 //!
-//! [`read_surface`] picks the reader from the file's extension.
+//! [`read_surface`] picks the reader from the file's extension; [`parse_surface`] reads bytes
+//! already in memory (what the fuzz targets call). Rows keep the order in which the file
+//! stores them (first stored row = row 0 = smallest y) for every format, so a file read here
+//! and written back as .x3p / .npy keeps its orientation, and parameters match surfalize.
+//!
+//! Readers never panic on input: every size, count and offset from a header is checked against
+//! the file, and errors name the file, the field and what was expected.
 
+mod bytes;
+pub mod datx;
+pub mod metropro;
+pub mod sur;
+pub mod x3p;
+pub mod xyz;
+
+use std::collections::BTreeMap;
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
@@ -33,6 +47,8 @@ pub struct Metadata {
     pub serial: Option<String>,
     pub date: Option<String>,
     pub wavelength_um: Option<f64>,
+    /// Further format-specific header fields, by name (e.g. MetroPro "phase_res").
+    pub extra: BTreeMap<String, String>,
 }
 
 impl Surface {
@@ -41,17 +57,78 @@ impl Surface {
     }
 }
 
+/// The height-map formats read here.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Format {
+    Npy,
+    Datx,
+    MetroPro,
+    X3p,
+    Sur,
+    Xyz,
+}
+
+impl Format {
+    /// The format for a file name's extension (case-insensitive).
+    pub fn from_path(path: &Path) -> Result<Format> {
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(|e| e.to_ascii_lowercase())
+            .unwrap_or_default();
+        Ok(match ext.as_str() {
+            "npy" => Format::Npy,
+            "datx" => Format::Datx,
+            "dat" => Format::MetroPro,
+            "x3p" => Format::X3p,
+            "sur" => Format::Sur,
+            "xyz" | "txt" | "csv" | "asc" => Format::Xyz,
+            other => bail!(
+                "{}: unsupported height-map format '.{other}' (expected .npy, .datx, .dat, .x3p, .sur, .xyz/.txt/.csv/.asc)",
+                path.display()
+            ),
+        })
+    }
+}
+
+/// True when `path` has an extension [`read_surface`] reads.
+pub fn is_surface_file(path: &Path) -> bool {
+    Format::from_path(path).is_ok()
+}
+
 /// Reads any supported height-map file, chosen by extension.
 pub fn read_surface(path: &Path) -> Result<Surface> {
-    let ext = path
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(|e| e.to_ascii_lowercase())
-        .unwrap_or_default();
-    match ext.as_str() {
-        "npy" => read_npy_surface(path),
+    let format = Format::from_path(path)?;
+    if format == Format::Npy {
+        return read_npy_surface(path);
+    }
+    let data = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
+    parse_surface(&data, format).with_context(|| format!("{}", path.display()))
+}
+
+/// Parses a file image already in memory. `.npy` goes through [`crate::npy`], which reads
+/// from a path: use [`read_surface`] for it.
+pub fn parse_surface(data: &[u8], format: Format) -> Result<Surface> {
+    let s = match format {
+        Format::Datx => datx::parse(data)?,
+        Format::MetroPro => metropro::parse(data)?,
+        Format::X3p => x3p::parse(data)?,
+        Format::Sur => sur::parse(data)?,
+        Format::Xyz => xyz::parse(data)?,
+        Format::Npy => bail!(".npy is read from a path (read_surface)"),
+    };
+    debug_assert_eq!(s.heights_um.len(), s.width * s.height);
+    Ok(s)
+}
+
+/// Writes `s` by the extension of `path`: `.x3p` (float64, valid.bin for NaN) or `.npy`
+/// (float64, NaN kept).
+pub fn write_surface(path: &Path, s: &Surface) -> Result<()> {
+    match Format::from_path(path)? {
+        Format::X3p => x3p::write(path, s),
+        Format::Npy => crate::npy::write_npy_f64(path, &s.heights_um, s.height, s.width),
         other => bail!(
-            "{}: unsupported height-map format '.{other}' (expected .npy)",
+            "{}: writing {other:?} is not supported (write .x3p or .npy)",
             path.display()
         ),
     }

@@ -1,5 +1,12 @@
 //! Scan directories (DESIGN §5): `scan.toml` plus one height-map file per field, in
-//! acquisition order — the format `bench/make_tiles.py` writes.
+//! acquisition order — the format `bench/make_tiles.py` writes. Tiles may be any format
+//! `surfstream_common::formats::read_surface` reads (.npy, .datx, .dat, .x3p, .sur, .xyz).
+//!
+//! Pitch: `pitch_x_um` / `pitch_y_um` may be left out of `[scan]` when every tile file carries
+//! its own lateral calibration; when both say something they must agree (within 1e-6
+//! relative), and all tiles must agree with each other, else it is an error. `height_unit`
+//! applies to files without a height unit (.npy, .xyz); instrument files carry theirs, and a
+//! `height_unit` other than um beside them is an error.
 //!
 //! Everything is validated before the first tile is sent: every error names the manifest or
 //! tile file, the field, and what was expected.
@@ -8,22 +15,35 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, bail, Context, Result};
 use serde::Deserialize;
+use surfstream_common::formats;
 
-/// `[scan]`.
+/// Pitches agree when within 1e-6 relative (files store f32 calibrations).
+fn same_pitch(a: f64, b: f64) -> bool {
+    (a - b).abs() <= 1e-6 * a.abs().max(b.abs())
+}
+
+/// `[scan]` as written: pitch and unit optional.
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
+struct RawScanSection {
+    name: String,
+    pitch_x_um: Option<f64>,
+    pitch_y_um: Option<f64>,
+    height_unit: Option<String>,
+    rows: usize,
+    cols: usize,
+}
+
+/// `[scan]`, resolved: the pitch from the manifest or the tile files.
+#[derive(Debug, Clone)]
 pub struct ScanSection {
     pub name: String,
     pub pitch_x_um: f64,
     pub pitch_y_um: f64,
-    #[serde(default = "default_unit")]
+    /// Height unit of files without one (.npy, .xyz); "um" when not given.
     pub height_unit: String,
     pub rows: usize,
     pub cols: usize,
-}
-
-fn default_unit() -> String {
-    "um".into()
 }
 
 /// One `[[tile]]`.
@@ -41,7 +61,7 @@ pub struct TileEntry {
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct ManifestFile {
-    scan: ScanSection,
+    scan: RawScanSection,
     #[serde(default)]
     tile: Vec<TileEntry>,
 }
@@ -86,15 +106,26 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         .with_context(|| format!("{m}: cannot read scan manifest"))?;
     let file: ManifestFile =
         toml::from_str(&text).map_err(|e| anyhow!("{m}: not a valid scan manifest: {e}"))?;
-    let scan = file.scan;
+    let raw = file.scan;
     for (field, v) in [
-        ("pitch_x_um", scan.pitch_x_um),
-        ("pitch_y_um", scan.pitch_y_um),
+        ("pitch_x_um", raw.pitch_x_um),
+        ("pitch_y_um", raw.pitch_y_um),
     ] {
-        if !(v.is_finite() && v > 0.0) {
-            bail!("{m}: [scan] {field} = {v}: expected a positive pitch in micrometres");
+        if let Some(v) = v {
+            if !(v.is_finite() && v > 0.0) {
+                bail!("{m}: [scan] {field} = {v}: expected a positive pitch in micrometres");
+            }
         }
     }
+    let unit_given = raw.height_unit.is_some();
+    let mut scan = ScanSection {
+        name: raw.name,
+        pitch_x_um: raw.pitch_x_um.unwrap_or(f64::NAN),
+        pitch_y_um: raw.pitch_y_um.unwrap_or(f64::NAN),
+        height_unit: raw.height_unit.unwrap_or_else(|| "um".into()),
+        rows: raw.rows,
+        cols: raw.cols,
+    };
     let scale = unit_scale(&scan.height_unit).ok_or_else(|| {
         anyhow!(
             "{m}: [scan] height_unit = {:?}: expected one of um, nm, mm, m",
@@ -115,6 +146,8 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
     let mut seen = std::collections::BTreeSet::new();
     let mut tiles = Vec::with_capacity(file.tile.len());
     let mut shape: Option<(usize, usize, String)> = None;
+    // (pitch x, pitch y, file) of the first tile that carries a lateral calibration.
+    let mut file_pitch: Option<(f64, f64, String)> = None;
     for (k, t) in file.tile.into_iter().enumerate() {
         let at = format!("{m}: [[tile]] #{} (file {:?})", k + 1, t.file);
         if t.row >= scan.rows || t.col >= scan.cols {
@@ -138,33 +171,68 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         if !tile_path.exists() {
             bail!("{at}: {}: no such tile file", tile_path.display());
         }
-        let ext = tile_path.extension().and_then(|e| e.to_str()).unwrap_or("");
-        if ext != "npy" {
-            bail!("{at}: unsupported tile format {ext:?}: expected .npy");
+        if !formats::is_surface_file(&tile_path) {
+            bail!("{at}: unsupported tile format: expected .npy, .datx, .dat, .x3p, .sur or .xyz");
         }
-        let arr = surfstream_common::npy::read_npy(&tile_path)?;
+        let surface = formats::read_surface(&tile_path).with_context(|| at.clone())?;
+        let (rows, cols) = (surface.height, surface.width);
         match &shape {
-            None => shape = Some((arr.rows, arr.cols, t.file.clone())),
-            Some((r, c, first)) if (*r, *c) != (arr.rows, arr.cols) => bail!(
+            None => shape = Some((rows, cols, t.file.clone())),
+            Some((r, c, first)) if (*r, *c) != (rows, cols) => bail!(
                 "{}: shape {} x {} (rows x cols), expected {r} x {c} like {first}: all tiles of a scan have one shape",
                 tile_path.display(),
-                arr.rows,
-                arr.cols
+                rows,
+                cols
             ),
             Some(_) => {}
         }
-        let mut heights_um = arr.data;
-        if scale != 1.0 {
-            heights_um
-                .iter_mut()
-                .for_each(|z| *z = (*z as f64 * scale) as f32);
+        let carries_units = surface.metadata.pitch_known;
+        if carries_units && unit_given && scale != 1.0 {
+            bail!(
+                "{at}: [scan] height_unit = {:?}, but a {} file carries its own height unit: leave height_unit out",
+                scan.height_unit,
+                surface.metadata.format
+            );
         }
+        if carries_units {
+            let (px, py) = (surface.pitch_x_um, surface.pitch_y_um);
+            for (field, manifest, file) in [
+                ("pitch_x_um", scan.pitch_x_um, px),
+                ("pitch_y_um", scan.pitch_y_um, py),
+            ] {
+                if manifest.is_finite() && !same_pitch(manifest, file) {
+                    bail!("{at}: [scan] {field} = {manifest} but the file says {file} um: manifest and file disagree");
+                }
+            }
+            match &file_pitch {
+                None => file_pitch = Some((px, py, t.file.clone())),
+                Some((fx, fy, first)) if !same_pitch(*fx, px) || !same_pitch(*fy, py) => bail!(
+                    "{at}: pitch {px} x {py} um, but {first} says {fx} x {fy} um: all tiles of a scan have one pitch"
+                ),
+                Some(_) => {}
+            }
+        } else if !(scan.pitch_x_um.is_finite() && scan.pitch_y_um.is_finite()) {
+            bail!(
+                "{m}: [scan] pitch_x_um / pitch_y_um missing, and {} carries no pitch: give the pitch in micrometres",
+                t.file
+            );
+        }
+        let file_scale = if carries_units { 1.0 } else { scale };
+        let heights_um: Vec<f32> = surface
+            .heights_um
+            .iter()
+            .map(|&z| (z * file_scale) as f32)
+            .collect();
         tiles.push(LoadedTile {
             entry: t,
             heights_um,
         });
     }
     let (rows, cols, _) = shape.ok_or_else(|| anyhow!("{m}: no tiles"))?;
+    if let Some((px, py, _)) = file_pitch {
+        scan.pitch_x_um = px;
+        scan.pitch_y_um = py;
+    }
     Ok(ScanDirectory {
         manifest_path,
         scan,
@@ -244,5 +312,62 @@ stage_y_um = 0.0
         write_scan(d.path(), &OK.replace("pitch_x_um = 0.5\n", ""), &[]);
         let e = format!("{:#}", load_scan(d.path()).unwrap_err());
         assert!(e.contains("scan.toml") && e.contains("pitch_x_um"), "{e}");
+    }
+
+    fn x3p_tile(dir: &Path, name: &str, pitch_um: f64) {
+        let s = formats::Surface {
+            width: 4,
+            height: 3,
+            pitch_x_um: pitch_um,
+            pitch_y_um: pitch_um,
+            heights_um: (0..12).map(|i| i as f64 * 0.25).collect(),
+            metadata: formats::Metadata::default(),
+        };
+        formats::write_surface(&dir.join(name), &s).unwrap();
+    }
+
+    #[test]
+    fn instrument_tiles_carry_their_pitch() {
+        let d = tempfile::tempdir().unwrap();
+        let manifest = OK
+            .replace("a.npy", "a.x3p")
+            .replace("b.npy", "b.x3p")
+            .replace("height_unit = \"nm\"\n", "");
+        // Pitch omitted from the manifest: taken from the files.
+        std::fs::write(
+            d.path().join("scan.toml"),
+            manifest.replace("pitch_x_um = 0.5\npitch_y_um = 0.5\n", ""),
+        )
+        .unwrap();
+        x3p_tile(d.path(), "a.x3p", 0.8148);
+        x3p_tile(d.path(), "b.x3p", 0.8148);
+        let s = load_scan(d.path()).unwrap();
+        assert!((s.scan.pitch_x_um - 0.8148).abs() < 1e-12);
+        assert_eq!(s.tiles[1].heights_um[5], 1.25);
+        // Manifest says 0.5, files say 0.8148: an error naming both.
+        std::fs::write(d.path().join("scan.toml"), &manifest).unwrap();
+        let e = format!("{:#}", load_scan(d.path()).unwrap_err());
+        assert!(e.contains("a.x3p") && e.contains("disagree"), "{e}");
+        // Files disagree with each other.
+        std::fs::write(
+            d.path().join("scan.toml"),
+            manifest.replace("pitch_x_um = 0.5\npitch_y_um = 0.5\n", ""),
+        )
+        .unwrap();
+        x3p_tile(d.path(), "b.x3p", 0.9);
+        let e = format!("{:#}", load_scan(d.path()).unwrap_err());
+        assert!(e.contains("b.x3p") && e.contains("one pitch"), "{e}");
+        // A height unit beside instrument files.
+        x3p_tile(d.path(), "b.x3p", 0.8148);
+        std::fs::write(
+            d.path().join("scan.toml"),
+            manifest.replace(
+                "pitch_x_um = 0.5\npitch_y_um = 0.5\n",
+                "height_unit = \"nm\"\n",
+            ),
+        )
+        .unwrap();
+        let e = format!("{:#}", load_scan(d.path()).unwrap_err());
+        assert!(e.contains("height_unit"), "{e}");
     }
 }

@@ -1,0 +1,74 @@
+//! Times the nine ISO 25178 parameters on a .npy height map and reading height-map files, for
+//! side-by-side runs with ../shared/bench/params_anchor.py (same input via --save-inputs).
+//!
+//!     cargo run --release -p surfstream-common --example metrology_bench -- params FILE.npy [REPS]
+//!     cargo run --release -p surfstream-common --example metrology_bench -- read FILE... [REPS via SURFSTREAM_REPS]
+//!
+//! Prints one JSON line per measurement: median / min / max seconds over the repeats (the
+//! first, warm-up run is not counted), and the rayon thread count.
+
+use std::path::Path;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use surfstream_common::formats::read_surface;
+use surfstream_common::metrology::{level_plane, params, Grid};
+
+fn stats(mut t: Vec<f64>) -> serde_json::Value {
+    t.sort_by(f64::total_cmp);
+    serde_json::json!({"median_s": t[t.len() / 2], "min_s": t[0], "max_s": t[t.len() - 1], "n": t.len()})
+}
+
+fn time<T>(reps: usize, mut f: impl FnMut() -> Result<T>) -> Result<(serde_json::Value, T)> {
+    let mut last = f()?;
+    let mut ts = Vec::with_capacity(reps);
+    for _ in 0..reps {
+        let t0 = Instant::now();
+        last = f()?;
+        ts.push(t0.elapsed().as_secs_f64());
+    }
+    Ok((stats(ts), last))
+}
+
+fn main() -> Result<()> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let threads = rayon::current_num_threads();
+    match args.first().map(String::as_str) {
+        Some("params") => {
+            let file = args.get(1).context("params FILE.npy [REPS]")?;
+            let reps: usize = args.get(2).map(|r| r.parse()).transpose()?.unwrap_or(7);
+            let s = read_surface(Path::new(file))?;
+            let g = Grid::new(&s.heights_um, s.height, s.width, s.pitch_x_um, s.pitch_y_um)?;
+            let (all9, p) = time(reps, || Ok(params(&g)?))?;
+            let (lev, _) = time(reps, || {
+                let l = level_plane(&g)?;
+                Ok(params(&Grid {
+                    heights_um: &l,
+                    ..g
+                })?)
+            })?;
+            println!(
+                "{}",
+                serde_json::json!({"what": "params", "file": file, "rows": s.height, "cols": s.width,
+                    "rayon_threads": threads, "all_9_params": all9, "level_and_all_9": lev, "params": p})
+            );
+        }
+        Some("read") => {
+            let reps: usize = std::env::var("SURFSTREAM_REPS")
+                .ok()
+                .map(|r| r.parse())
+                .transpose()?
+                .unwrap_or(9);
+            for file in &args[1..] {
+                let (t, s) = time(reps, || read_surface(Path::new(file)))?;
+                println!(
+                    "{}",
+                    serde_json::json!({"what": "read", "file": file, "rows": s.height, "cols": s.width,
+                        "rayon_threads": threads, "read": t})
+                );
+            }
+        }
+        _ => bail!("usage: metrology_bench params FILE.npy [REPS] | read FILE..."),
+    }
+    Ok(())
+}

@@ -1,0 +1,456 @@
+//! ISO 25178-72 X3P: a zip of `main.xml` (the description), `md5checksum.hex` (MD5 of
+//! main.xml), `bindata/data.bin` (little-endian points, x fastest, then y) and optionally
+//! `bindata/valid.bin` (one bit per point, least significant bit first, 1 = valid).
+//!
+//! Row index = y index of the file (the first stored line is row 0), so a panorama written by
+//! [`write`] reads back identically. Both MD5 checksums are verified (upper or lower case hex);
+//! the error says which one failed. Integer z = Offset + int * Increment (metres).
+
+use std::io::{Cursor, Read, Seek, Write};
+use std::path::Path;
+
+use anyhow::{anyhow, bail, Context, Result};
+use md5::{Digest, Md5};
+
+use super::bytes::checked_size;
+use super::{Metadata, Surface};
+
+const NAMESPACE: &str = "http://www.opengps.eu/2008/ISO5436_2";
+/// main.xml larger than this is not a description but an attack.
+const MAX_XML_BYTES: u64 = 16 << 20;
+
+fn md5_hex(data: &[u8]) -> String {
+    Md5::digest(data)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// Reads `name` from the archive, refusing more than `limit` bytes (zip sizes are untrusted).
+fn read_entry<R: Read + Seek>(
+    zip: &mut zip::ZipArchive<R>,
+    name: &str,
+    limit: u64,
+) -> Result<Vec<u8>> {
+    let entry = zip
+        .by_name(name)
+        .with_context(|| format!("zip entry '{name}'"))?;
+    let mut out = Vec::new();
+    entry
+        .take(limit + 1)
+        .read_to_end(&mut out)
+        .with_context(|| format!("zip entry '{name}': cannot decompress"))?;
+    if out.len() as u64 > limit {
+        bail!("zip entry '{name}' is larger than the {limit} bytes expected");
+    }
+    Ok(out)
+}
+
+/// Child element of `node` with local name `name` (children are unqualified in X3P).
+fn child<'a, 'i>(node: roxmltree::Node<'a, 'i>, name: &str) -> Option<roxmltree::Node<'a, 'i>> {
+    node.children()
+        .find(|c| c.is_element() && c.tag_name().name() == name)
+}
+
+fn need<'a, 'i>(node: roxmltree::Node<'a, 'i>, path: &[&str]) -> Result<roxmltree::Node<'a, 'i>> {
+    let mut n = node;
+    for (i, p) in path.iter().enumerate() {
+        n = child(n, p)
+            .with_context(|| format!("main.xml: element '{}' missing", path[..=i].join("/")))?;
+    }
+    Ok(n)
+}
+
+fn text_of(node: roxmltree::Node, path: &[&str]) -> Option<String> {
+    let mut n = node;
+    for p in path {
+        n = child(n, p)?;
+    }
+    n.text()
+        .map(|t| t.trim().to_string())
+        .filter(|t| !t.is_empty())
+}
+
+fn number(node: roxmltree::Node, path: &[&str]) -> Result<Option<f64>> {
+    match text_of(node, path) {
+        None => Ok(None),
+        Some(t) => {
+            let v: f64 = t.parse().map_err(|_| {
+                anyhow!("main.xml: '{}' is '{t}', expected a number", path.join("/"))
+            })?;
+            if !v.is_finite() {
+                bail!(
+                    "main.xml: '{}' is {v}, expected a finite number",
+                    path.join("/")
+                );
+            }
+            Ok(Some(v))
+        }
+    }
+}
+
+#[derive(Clone, Copy)]
+enum ZType {
+    I16,
+    I32,
+    F32,
+    F64,
+}
+
+impl ZType {
+    fn bytes(self) -> usize {
+        match self {
+            ZType::I16 => 2,
+            ZType::I32 | ZType::F32 => 4,
+            ZType::F64 => 8,
+        }
+    }
+}
+
+pub fn parse(data: &[u8]) -> Result<Surface> {
+    let mut zip = zip::ZipArchive::new(Cursor::new(data)).context("not a zip archive")?;
+    let names: Vec<String> = zip
+        .file_names()
+        .filter_map(|n| n.ok())
+        .map(|n| n.into_owned())
+        .collect();
+    // main.xml may sit in a sub-folder: take the shallowest one.
+    let main_name = names
+        .iter()
+        .filter(|n| *n == "main.xml" || n.ends_with("/main.xml"))
+        .min_by_key(|n| n.matches('/').count())
+        .cloned()
+        .context("no main.xml in the archive")?;
+    let folder = &main_name[..main_name.len() - "main.xml".len()];
+    let xml_bytes = read_entry(&mut zip, &main_name, MAX_XML_BYTES)?;
+    let sum_name = format!("{folder}md5checksum.hex");
+    if names.contains(&sum_name) {
+        let sum_file = read_entry(&mut zip, &sum_name, 4096)?;
+        let sum_text = String::from_utf8_lossy(&sum_file);
+        let expected = sum_text.split_whitespace().next().unwrap_or("");
+        let actual = md5_hex(&xml_bytes);
+        if !expected.eq_ignore_ascii_case(&actual) {
+            bail!("MD5 checksum of main.xml fails: md5checksum.hex says '{expected}', main.xml hashes to {actual}");
+        }
+    }
+    let xml = std::str::from_utf8(&xml_bytes).context("main.xml is not UTF-8")?;
+    let doc = roxmltree::Document::parse(xml).context("main.xml is not well-formed XML")?;
+    let root = doc.root_element();
+    if root.tag_name().name() != "ISO5436_2" {
+        bail!(
+            "main.xml: root element is '{}', expected ISO5436_2",
+            root.tag_name().name()
+        );
+    }
+    if root
+        .tag_name()
+        .namespace()
+        .is_some_and(|ns| ns != NAMESPACE)
+    {
+        bail!("main.xml: root namespace is not {NAMESPACE}");
+    }
+    let r1 = need(root, &["Record1"])?;
+    let feature = text_of(r1, &["FeatureType"]).unwrap_or_default();
+    if feature != "SUR" {
+        bail!("main.xml: Record1/FeatureType is '{feature}', expected SUR (profiles and point clouds are not read)");
+    }
+    let axes = need(r1, &["Axes"])?;
+    for ax in ["CX", "CY"] {
+        let t = text_of(axes, &[ax, "AxisType"]).unwrap_or_default();
+        if t != "I" {
+            bail!("main.xml: Axes/{ax}/AxisType is '{t}', expected I (incremental); absolute lateral axes are not read");
+        }
+    }
+    let pitch_x_m =
+        number(axes, &["CX", "Increment"])?.context("main.xml: Axes/CX/Increment missing")?;
+    let pitch_y_m =
+        number(axes, &["CY", "Increment"])?.context("main.xml: Axes/CY/Increment missing")?;
+    if pitch_x_m <= 0.0 || pitch_y_m <= 0.0 {
+        bail!("main.xml: Axes CX/CY Increment are {pitch_x_m} / {pitch_y_m}, expected positive");
+    }
+    let ztype = match text_of(axes, &["CZ", "DataType"]).as_deref() {
+        Some("I") => ZType::I16,
+        Some("L") => ZType::I32,
+        Some("F") => ZType::F32,
+        Some("D") => ZType::F64,
+        other => bail!("main.xml: Axes/CZ/DataType is {other:?}, expected I, L, F or D"),
+    };
+    let z_increment = number(axes, &["CZ", "Increment"])?.unwrap_or(1.0);
+    let z_offset = number(axes, &["CZ", "Offset"])?.unwrap_or(0.0);
+    let r3 = need(root, &["Record3"])?;
+    let dims = need(r3, &["MatrixDimension"])?;
+    let size = |n: &str| -> Result<usize> {
+        let t = text_of(dims, &[n])
+            .with_context(|| format!("main.xml: MatrixDimension/{n} missing"))?;
+        t.parse::<usize>().map_err(|_| {
+            anyhow!("main.xml: MatrixDimension/{n} is '{t}', expected a non-negative integer")
+        })
+    };
+    let (width, height, layers) = (size("SizeX")?, size("SizeY")?, size("SizeZ")?);
+    if width == 0 || height == 0 || layers != 1 {
+        bail!("main.xml: MatrixDimension is {width} x {height} x {layers}, expected SizeX, SizeY > 0 and SizeZ = 1");
+    }
+    let n = checked_size(&[width, height], "SizeX * SizeY")?;
+    let data_bytes = checked_size(&[n, ztype.bytes()], "point data size")?;
+    let link = need(r3, &["DataLink"])?;
+    let point_link =
+        text_of(link, &["PointDataLink"]).context("main.xml: DataLink/PointDataLink missing")?;
+    let entry_name = |l: &str| -> Result<String> {
+        let with_folder = format!("{folder}{l}");
+        let found = [with_folder.as_str(), l]
+            .into_iter()
+            .find(|c| names.iter().any(|n| n == c))
+            .map(|c| c.to_string());
+        found.with_context(|| format!("main.xml names '{l}', which is not in the archive"))
+    };
+    let data_name = entry_name(&point_link)?;
+    let raw = read_entry(&mut zip, &data_name, data_bytes as u64)?;
+    if raw.len() != data_bytes {
+        bail!(
+            "{data_name} has {} bytes, expected {width} x {height} x {} = {data_bytes}",
+            raw.len(),
+            ztype.bytes()
+        );
+    }
+    if let Some(sum) = text_of(link, &["MD5ChecksumPointData"]) {
+        let actual = md5_hex(&raw);
+        if !sum.eq_ignore_ascii_case(&actual) {
+            bail!("MD5 checksum of the point data ({data_name}) fails: main.xml says '{sum}', the data hashes to {actual}");
+        }
+    }
+    let valid = match text_of(link, &["ValidPointsLink"]) {
+        None => None,
+        Some(l) => {
+            let name = entry_name(&l)?;
+            let bits = read_entry(&mut zip, &name, n.div_ceil(8) as u64)?;
+            if bits.len() != n.div_ceil(8) {
+                bail!(
+                    "{name} has {} bytes, expected {} (one bit per point)",
+                    bits.len(),
+                    n.div_ceil(8)
+                );
+            }
+            if let Some(sum) = text_of(link, &["MD5ChecksumValidPoints"]) {
+                let actual = md5_hex(&bits);
+                if !sum.eq_ignore_ascii_case(&actual) {
+                    bail!("MD5 checksum of the valid points ({name}) fails: main.xml says '{sum}', the data hashes to {actual}");
+                }
+            }
+            Some(bits)
+        }
+    };
+    let to_um = |v: f64| (z_offset + v * z_increment) * 1e6;
+    let mut heights_um: Vec<f64> = match ztype {
+        ZType::I16 => raw
+            .chunks_exact(2)
+            .map(|c| to_um(i16::from_le_bytes([c[0], c[1]]) as f64))
+            .collect(),
+        ZType::I32 => raw
+            .chunks_exact(4)
+            .map(|c| to_um(i32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64))
+            .collect(),
+        ZType::F32 => raw
+            .chunks_exact(4)
+            .map(|c| to_um(f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64))
+            .collect(),
+        ZType::F64 => raw
+            .chunks_exact(8)
+            .map(|c| {
+                let mut a = [0u8; 8];
+                a.copy_from_slice(c);
+                to_um(f64::from_le_bytes(a))
+            })
+            .collect(),
+    };
+    if let Some(bits) = valid {
+        for (i, z) in heights_um.iter_mut().enumerate() {
+            if bits[i / 8] >> (i % 8) & 1 == 0 {
+                *z = f64::NAN;
+            }
+        }
+    }
+    let r2 = child(root, "Record2");
+    let instrument = r2.and_then(|r| {
+        let parts: Vec<String> = ["Manufacturer", "Model", "Version"]
+            .iter()
+            .filter_map(|p| text_of(r, &["Instrument", p]))
+            .collect();
+        (!parts.is_empty()).then(|| parts.join(" "))
+    });
+    let mut metadata = Metadata {
+        format: "x3p".into(),
+        pitch_known: true,
+        instrument,
+        serial: r2.and_then(|r| text_of(r, &["Instrument", "Serial"])),
+        date: r2.and_then(|r| text_of(r, &["Date"])),
+        ..Metadata::default()
+    };
+    if let Some(r) = r2 {
+        for (key, path) in [
+            ("creator", &["Creator"][..]),
+            ("comment", &["Comment"][..]),
+            ("calibration_date", &["CalibrationDate"][..]),
+        ] {
+            if let Some(t) = text_of(r, path) {
+                metadata.extra.insert(key.into(), t);
+            }
+        }
+    }
+    if let Some(rev) = text_of(r1, &["Revision"]) {
+        metadata.extra.insert("revision".into(), rev);
+    }
+    Ok(Surface {
+        width,
+        height,
+        pitch_x_um: pitch_x_m * 1e6,
+        pitch_y_um: pitch_y_m * 1e6,
+        heights_um,
+        metadata,
+    })
+}
+
+fn xml_escape(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
+}
+
+/// The X3P byte image of `s`: float64 heights in metres, NaN points marked invalid in
+/// `bindata/valid.bin` (and left NaN in data.bin), ISO5436 - 2000 revision (what every reader
+/// accepts).
+pub fn encode(s: &Surface) -> Result<Vec<u8>> {
+    let n = checked_size(&[s.width, s.height], "width * height")?;
+    if s.heights_um.len() != n || n == 0 {
+        bail!(
+            "surface has {} heights, expected {} x {} > 0",
+            s.heights_um.len(),
+            s.width,
+            s.height
+        );
+    }
+    let data: Vec<u8> = s
+        .heights_um
+        .iter()
+        .flat_map(|z| (z * 1e-6).to_le_bytes())
+        .collect();
+    let any_invalid = s.heights_um.iter().any(|z| z.is_nan());
+    let mut valid = vec![0u8; n.div_ceil(8)];
+    for (i, z) in s.heights_um.iter().enumerate() {
+        if !z.is_nan() {
+            valid[i / 8] |= 1 << (i % 8);
+        }
+    }
+    let valid_link = if any_invalid {
+        format!(
+            "\n      <ValidPointsLink>bindata/valid.bin</ValidPointsLink>\n      <MD5ChecksumValidPoints>{}</MD5ChecksumValidPoints>",
+            md5_hex(&valid)
+        )
+    } else {
+        String::new()
+    };
+    let m = &s.metadata;
+    let date = m
+        .date
+        .clone()
+        .unwrap_or_else(|| "1970-01-01T00:00:00".into());
+    let instrument = xml_escape(m.instrument.as_deref().unwrap_or("surfstream"));
+    let serial = xml_escape(m.serial.as_deref().unwrap_or("not available"));
+    let xml = format!(
+        r#"<?xml version="1.0" encoding="UTF-8" standalone="no" ?>
+<p:ISO5436_2 xmlns:p="{NAMESPACE}" xmlns:xsi="http://www.w3.org/2001/XMLSchema-instance" xsi:schemaLocation="{NAMESPACE} {NAMESPACE}/ISO5436_2.xsd">
+  <Record1>
+    <Revision>ISO5436 - 2000</Revision>
+    <FeatureType>SUR</FeatureType>
+    <Axes>
+      <CX>
+        <AxisType>I</AxisType>
+        <DataType>D</DataType>
+        <Increment>{px:e}</Increment>
+        <Offset>0</Offset>
+      </CX>
+      <CY>
+        <AxisType>I</AxisType>
+        <DataType>D</DataType>
+        <Increment>{py:e}</Increment>
+        <Offset>0</Offset>
+      </CY>
+      <CZ>
+        <AxisType>A</AxisType>
+        <DataType>D</DataType>
+        <Increment>1</Increment>
+        <Offset>0</Offset>
+      </CZ>
+    </Axes>
+  </Record1>
+  <Record2>
+    <Date>{date}</Date>
+    <Creator>surfstream {version}</Creator>
+    <Instrument>
+      <Manufacturer>{instrument}</Manufacturer>
+      <Model>surfstream</Model>
+      <Serial>{serial}</Serial>
+      <Version>{version}</Version>
+    </Instrument>
+    <CalibrationDate>{date}</CalibrationDate>
+    <ProbingSystem>
+      <Type>NonContacting</Type>
+      <Identification>not available</Identification>
+    </ProbingSystem>
+    <Comment>written by surfstream</Comment>
+  </Record2>
+  <Record3>
+    <MatrixDimension>
+      <SizeX>{w}</SizeX>
+      <SizeY>{h}</SizeY>
+      <SizeZ>1</SizeZ>
+    </MatrixDimension>
+    <DataLink>
+      <PointDataLink>bindata/data.bin</PointDataLink>
+      <MD5ChecksumPointData>{md5}</MD5ChecksumPointData>{valid_link}
+    </DataLink>
+  </Record3>
+  <Record4>
+    <ChecksumFile>md5checksum.hex</ChecksumFile>
+  </Record4>
+</p:ISO5436_2>
+"#,
+        px = s.pitch_x_um * 1e-6,
+        py = s.pitch_y_um * 1e-6,
+        date = xml_escape(&date),
+        version = env!("CARGO_PKG_VERSION"),
+        w = s.width,
+        h = s.height,
+        md5 = md5_hex(&data),
+    );
+    let mut zw = zip::ZipWriter::new(Cursor::new(Vec::new()));
+    let opts = zip::write::SimpleFileOptions::default()
+        .compression_method(zip::CompressionMethod::Deflated)
+        .compression_level(Some(1));
+    let mut put = |name: &str, bytes: &[u8]| -> Result<()> {
+        zw.start_file(name, opts)
+            .with_context(|| format!("zip entry {name}"))?;
+        zw.write_all(bytes)
+            .with_context(|| format!("zip entry {name}"))?;
+        Ok(())
+    };
+    put("main.xml", xml.as_bytes())?;
+    put(
+        "md5checksum.hex",
+        format!("{} *main.xml\n", md5_hex(xml.as_bytes())).as_bytes(),
+    )?;
+    put("bindata/data.bin", &data)?;
+    if any_invalid {
+        put("bindata/valid.bin", &valid)?;
+    }
+    Ok(zw.finish().context("finishing the zip")?.into_inner())
+}
+
+/// Writes `s` as an X3P file, atomically.
+pub fn write(path: &Path, s: &Surface) -> Result<()> {
+    let bytes = encode(s).with_context(|| format!("{}", path.display()))?;
+    crate::fsutil::write_atomic(path, |w| {
+        w.write_all(&bytes)
+            .with_context(|| format!("{}: write failed", path.display()))
+    })
+}

@@ -1,0 +1,664 @@
+//! Readers on the real specimens (../shared/specimens, reference values in its README), on
+//! DATX files written by ../shared/bench/make_synthetic_datx.py, and on every trap of
+//! ../shared/notes/formats.md; corrupt, truncated and lying files give clear errors.
+
+use std::io::{Cursor, Write};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use surfstream_common::formats::{self, parse_surface, read_surface, Format, Metadata, Surface};
+use surfstream_common::metrology::{params, Grid};
+
+fn repo_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("common/ has a parent")
+        .to_path_buf()
+}
+
+fn specimen(name: &str) -> PathBuf {
+    let dir = std::env::var_os("SURFSTREAM_SPECIMENS")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| repo_root().join("../shared/specimens"));
+    let p = dir.join(name);
+    assert!(
+        p.exists(),
+        "specimen {} missing: the golden tests need ../shared/specimens",
+        p.display()
+    );
+    p
+}
+
+/// The test venv's Python (scripts/test.sh makes it); fails loudly when missing.
+fn python() -> PathBuf {
+    if let Some(p) = std::env::var_os("SURFSTREAM_PYTHON") {
+        return PathBuf::from(p);
+    }
+    let venv = repo_root().join(".test-venv/bin/python");
+    assert!(
+        venv.exists(),
+        "no Python test environment: run scripts/test.sh (it creates .test-venv with h5py)"
+    );
+    venv
+}
+
+/// Population Sq of the valid heights about their mean, from the reader's f64 data.
+fn sq_valid(z: &[f64]) -> f64 {
+    let v: Vec<f64> = z.iter().copied().filter(|z| !z.is_nan()).collect();
+    let n = v.len() as f64;
+    let mean = v.iter().sum::<f64>() / n;
+    (v.iter().map(|z| (z - mean).powi(2)).sum::<f64>() / n).sqrt()
+}
+
+fn rel(a: f64, b: f64) -> f64 {
+    (a - b).abs() / b.abs()
+}
+
+fn min_max(z: &[f64]) -> (f64, f64) {
+    z.iter()
+        .filter(|z| !z.is_nan())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &z| {
+            (a.min(z), b.max(z))
+        })
+}
+
+#[test]
+fn metropro_golden_and_not_8x() {
+    let s = read_surface(&specimen("metropro-1.dat")).unwrap();
+    assert_eq!((s.height, s.width), (480, 640));
+    assert_eq!(s.invalid_count(), 0);
+    assert!(
+        rel(s.pitch_x_um, 1.09825203) < 1e-8,
+        "pitch {}",
+        s.pitch_x_um
+    );
+    // The 8x trap: R = 32768 for phase_res 1, not 4096.
+    let sq = sq_valid(&s.heights_um);
+    assert!(rel(sq, 0.07528822204734589) < 1e-9, "Sq {sq}");
+    let (lo, hi) = min_max(&s.heights_um);
+    assert!(
+        rel(lo, 50.10827568297134) < 1e-9 && rel(hi, 51.47133201226055) < 1e-9,
+        "{lo} {hi}"
+    );
+    assert_eq!(s.metadata.format, "metropro");
+    assert!(s.metadata.wavelength_um.is_some_and(|w| w > 0.3 && w < 1.0));
+    // The metrology module agrees (its own sums).
+    let p =
+        params(&Grid::new(&s.heights_um, s.height, s.width, s.pitch_x_um, s.pitch_y_um).unwrap())
+            .unwrap();
+    assert!(rel(p.sq, 0.07528822204734589) < 1e-9, "params Sq {}", p.sq);
+}
+
+#[test]
+fn x3p_golden_int32_axes_anisotropic() {
+    let s = read_surface(&specimen("x3p-2.x3p")).unwrap();
+    assert_eq!((s.height, s.width), (650, 650));
+    assert!(rel(s.pitch_x_um, 0.12765651) < 1e-7 && rel(s.pitch_y_um, 0.314582114) < 1e-7);
+    assert!(rel(sq_valid(&s.heights_um), 0.0772803327) < 1e-9);
+    let (lo, hi) = min_max(&s.heights_um);
+    assert!(
+        rel(lo, -0.314420687) < 1e-8 && rel(hi, 0.239915513) < 1e-8,
+        "{lo} {hi}"
+    );
+    assert_eq!(
+        s.metadata.instrument.as_deref(),
+        Some("DIGITAL SURF Mountains Map Technology Software 6.2")
+    );
+    assert_eq!(s.metadata.date.as_deref(), Some("1970-01-01T01:00:00"));
+}
+
+#[test]
+fn x3p_golden_int16_with_valid_bin() {
+    let s = read_surface(&specimen("sample4_bin.x3p")).unwrap();
+    assert_eq!((s.height, s.width), (4, 4));
+    assert_eq!(s.invalid_count(), 1);
+    assert!(rel(sq_valid(&s.heights_um), 610537.577) < 1e-9);
+    let (lo, hi) = min_max(&s.heights_um);
+    assert!(rel(lo, -808000.0) < 1e-12 && rel(hi, 1048000.0) < 1e-12);
+}
+
+#[test]
+fn sur_golden_uncompressed() {
+    let s = read_surface(&specimen("sur-uncompressed.sur")).unwrap();
+    assert_eq!((s.height, s.width), (512, 512));
+    assert_eq!(s.invalid_count(), 0);
+    assert!(rel(s.pitch_x_um, 0.0195709163) < 1e-8 && rel(s.pitch_y_um, 0.0195802095) < 1e-8);
+    assert!(rel(sq_valid(&s.heights_um), 0.119146667) < 1e-9);
+    // offset_z (-1.4725e-5 mm) is applied in the z step unit (Gwyddion's convention); surfalize
+    // adds it unscaled, so its min/max are ours + 14.72 nm - 0.0147 nm.
+    let off = -1.472474559705006e-5 * 1e3;
+    let (lo, hi) = min_max(&s.heights_um);
+    assert!((lo - (-0.29727819530567245 + off)).abs() < 1e-9, "{lo}");
+    assert!((hi - (0.3292170231361524 + off)).abs() < 1e-9, "{hi}");
+}
+
+#[test]
+fn sur_invalid_marker_and_units() {
+    let s = read_surface(&specimen("sur-3.sur")).unwrap();
+    assert_eq!((s.height, s.width), (512, 512));
+    // non_measured_points = 1, min_point 0: raw == -2 is invalid.
+    assert_eq!(s.invalid_count(), 233009);
+    // spacing 295546 nm -> 295.546 um; z step unit m.
+    assert!(rel(s.pitch_x_um, 295.546) < 1e-6);
+    let (_, hi) = min_max(&s.heights_um);
+    assert!(
+        rel(hi, 6992.35 + -0.0034143300727009773 * 1e6) < 1e-6,
+        "{hi}"
+    );
+    assert_eq!(s.metadata.date.as_deref(), Some("2023-06-22T10:08:53"));
+}
+
+fn toy_surface(w: usize, h: usize) -> Surface {
+    let heights_um = (0..w * h)
+        .map(|i| {
+            if i % 7 == 3 {
+                f64::NAN
+            } else {
+                ((i * 37 % 101) as f64 - 50.0) * 0.013
+            }
+        })
+        .collect();
+    Surface {
+        width: w,
+        height: h,
+        pitch_x_um: 0.5,
+        pitch_y_um: 0.75,
+        heights_um,
+        metadata: Metadata::default(),
+    }
+}
+
+fn same_heights(a: &[f64], b: &[f64], tol: f64) {
+    assert_eq!(a.len(), b.len());
+    for (x, y) in a.iter().zip(b) {
+        assert!(
+            x.is_nan() == y.is_nan() && (x.is_nan() || (x - y).abs() <= tol),
+            "{x} vs {y}"
+        );
+    }
+}
+
+#[test]
+fn sur_compressed_round_trip() {
+    let s = toy_surface(13, 9);
+    for compressed in [false, true] {
+        let bytes = formats::sur::encode_for_tests(&s, compressed, true);
+        let r = parse_surface(&bytes, Format::Sur).unwrap();
+        assert_eq!((r.width, r.height), (13, 9));
+        assert_eq!(r.metadata.extra["compressed"], compressed.to_string());
+        same_heights(&r.heights_um, &s.heights_um, 1e-6); // spacing_z is f32
+        assert!(rel(r.pitch_y_um, 0.75) < 1e-7);
+    }
+}
+
+#[test]
+fn sur_compressed_lying_lengths() {
+    let s = toy_surface(13, 9);
+    let bytes = formats::sur::encode_for_tests(&s, true, true);
+    // Stream count far beyond the zone.
+    let mut b = bytes.clone();
+    b[512..516].copy_from_slice(&u32::MAX.to_le_bytes());
+    let e = format!("{:#}", parse_surface(&b, Format::Sur).unwrap_err());
+    assert!(e.contains("stream count"), "{e}");
+    // First stream claims more raw bytes than the map holds.
+    let mut b = bytes.clone();
+    b[516..520].copy_from_slice(&1_000_000u32.to_le_bytes());
+    let e = format!("{:#}", parse_surface(&b, Format::Sur).unwrap_err());
+    assert!(e.contains("inflates past"), "{e}");
+    // Corrupt zlib data.
+    let mut b = bytes.clone();
+    let n = b.len();
+    for v in &mut b[n - 40..n - 10] {
+        *v ^= 0x5a;
+    }
+    assert!(parse_surface(&b, Format::Sur).is_err());
+}
+
+fn x3p_parts(path: &Path) -> Vec<(String, Vec<u8>)> {
+    let data = std::fs::read(path).unwrap();
+    let mut z = zip::ZipArchive::new(Cursor::new(data)).unwrap();
+    let mut out = Vec::new();
+    for i in 0..z.len() {
+        let mut f = z.by_index(i).unwrap();
+        if f.is_dir() {
+            continue;
+        }
+        let mut v = Vec::new();
+        std::io::Read::read_to_end(&mut f, &mut v).unwrap();
+        out.push((f.name().unwrap().to_string(), v));
+    }
+    out
+}
+
+fn x3p_from_parts(parts: &[(String, Vec<u8>)]) -> Vec<u8> {
+    let mut w = zip::ZipWriter::new(Cursor::new(Vec::new()));
+    for (name, bytes) in parts {
+        w.start_file(name.as_str(), zip::write::SimpleFileOptions::default())
+            .unwrap();
+        w.write_all(bytes).unwrap();
+    }
+    w.finish().unwrap().into_inner()
+}
+
+#[test]
+fn x3p_traps_subfolder_uppercase_md5_lying_checksums() {
+    let parts = x3p_parts(&specimen("sample4_bin.x3p"));
+    let reference = parse_surface(&x3p_from_parts(&parts), Format::X3p).unwrap();
+    // main.xml in a sub-folder, md5checksum.hex in upper case.
+    let moved: Vec<(String, Vec<u8>)> = parts
+        .iter()
+        .map(|(n, b)| {
+            let b = if n == "md5checksum.hex" {
+                String::from_utf8(b.clone())
+                    .unwrap()
+                    .to_uppercase()
+                    .replace("*MAIN.XML", "*main.xml")
+                    .into_bytes()
+            } else {
+                b.clone()
+            };
+            (format!("scan_0001/{n}"), b)
+        })
+        .collect();
+    let s = parse_surface(&x3p_from_parts(&moved), Format::X3p).unwrap();
+    same_heights(&s.heights_um, &reference.heights_um, 0.0);
+    // A wrong main.xml checksum names main.xml; a wrong data checksum names the point data.
+    let mut bad = parts.clone();
+    for (n, b) in &mut bad {
+        if n == "md5checksum.hex" {
+            b[0] = if b[0] == b'0' { b'1' } else { b'0' };
+        }
+    }
+    let e = format!(
+        "{:#}",
+        parse_surface(&x3p_from_parts(&bad), Format::X3p).unwrap_err()
+    );
+    assert!(e.contains("MD5 checksum of main.xml"), "{e}");
+    let mut bad = parts.clone();
+    for (n, b) in &mut bad {
+        if n == "bindata/data.bin" {
+            b[0] ^= 1;
+        }
+    }
+    let e = format!(
+        "{:#}",
+        parse_surface(&x3p_from_parts(&bad), Format::X3p).unwrap_err()
+    );
+    assert!(e.contains("point data"), "{e}");
+    // Truncated data.bin: the size is checked before anything is converted.
+    let mut bad = parts.clone();
+    for (n, b) in &mut bad {
+        if n == "bindata/data.bin" {
+            b.truncate(10);
+        }
+    }
+    let e = format!(
+        "{:#}",
+        parse_surface(&x3p_from_parts(&bad), Format::X3p).unwrap_err()
+    );
+    assert!(e.contains("expected 4 x 4 x 2"), "{e}");
+    // A lying size that overflows.
+    let mut bad = parts.clone();
+    for (n, b) in &mut bad {
+        if n == "main.xml" {
+            *b = String::from_utf8(b.clone())
+                .unwrap()
+                .replace("<SizeX>4</SizeX>", "<SizeX>18446744073709551615</SizeX>")
+                .into_bytes();
+        }
+    }
+    bad.retain(|(n, _)| n != "md5checksum.hex");
+    let e = format!(
+        "{:#}",
+        parse_surface(&x3p_from_parts(&bad), Format::X3p).unwrap_err()
+    );
+    assert!(e.contains("overflows"), "{e}");
+}
+
+#[test]
+fn x3p_valid_bin_bit_order_lsb_first() {
+    // sample4_bin.x3p marks exactly one point invalid; find which and check it against the
+    // valid.bin bits read least significant bit first.
+    let parts = x3p_parts(&specimen("sample4_bin.x3p"));
+    let valid = &parts
+        .iter()
+        .find(|(n, _)| n == "bindata/valid.bin")
+        .unwrap()
+        .1;
+    let s = read_surface(&specimen("sample4_bin.x3p")).unwrap();
+    for i in 0..16 {
+        let bit = valid[i / 8] >> (i % 8) & 1;
+        assert_eq!(bit == 0, s.heights_um[i].is_nan(), "point {i}");
+    }
+    // And a file of ours with a pattern that MSB-first would read differently.
+    let mut t = toy_surface(5, 3);
+    t.heights_um[1] = f64::NAN;
+    t.heights_um[8] = f64::NAN;
+    let r = parse_surface(&formats::x3p::encode(&t).unwrap(), Format::X3p).unwrap();
+    same_heights(&r.heights_um, &t.heights_um, 1e-15);
+}
+
+#[test]
+fn x3p_write_round_trip_through_our_reader() {
+    let mut t = toy_surface(17, 11);
+    t.metadata.instrument = Some("ZeGage <Pro> & co".into());
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("pano.x3p");
+    formats::write_surface(&p, &t).unwrap();
+    let r = read_surface(&p).unwrap();
+    assert_eq!((r.width, r.height), (17, 11));
+    same_heights(&r.heights_um, &t.heights_um, 1e-15);
+    assert!(rel(r.pitch_x_um, 0.5) < 1e-12 && rel(r.pitch_y_um, 0.75) < 1e-12);
+    assert!(r
+        .metadata
+        .instrument
+        .unwrap()
+        .starts_with("ZeGage <Pro> & co"));
+}
+
+#[test]
+fn x3p_write_round_trip_through_surfalize() {
+    let t = toy_surface(23, 19);
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("pano.x3p");
+    formats::write_surface(&p, &t).unwrap();
+    let script = r#"
+import sys, json, numpy as np
+from surfalize import Surface
+s = Surface.load(sys.argv[1])
+d = np.asarray(s.data, dtype=np.float64)
+print(json.dumps({"shape": list(d.shape), "sx": s.step_x, "sy": s.step_y,
+                  "data": [None if np.isnan(v) else float(v) for v in d.ravel()]}))
+"#;
+    let out = Command::new(python())
+        .arg("-c")
+        .arg(script)
+        .arg(&p)
+        .output()
+        .expect("python runs");
+    assert!(
+        out.status.success(),
+        "surfalize failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["shape"], serde_json::json!([19, 23]));
+    assert!(
+        rel(v["sx"].as_f64().unwrap(), 0.5) < 1e-12 && rel(v["sy"].as_f64().unwrap(), 0.75) < 1e-12
+    );
+    let data: Vec<f64> = v["data"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_f64().unwrap_or(f64::NAN))
+        .collect();
+    same_heights(&data, &t.heights_um, 1e-12);
+}
+
+fn synthetic_datx() -> (tempfile::TempDir, Vec<PathBuf>) {
+    let dir = tempfile::tempdir().unwrap();
+    let script = repo_root().join("../shared/bench/make_synthetic_datx.py");
+    let out = Command::new(python())
+        .arg(&script)
+        .arg(dir.path())
+        .output()
+        .expect("python runs");
+    assert!(
+        out.status.success(),
+        "make_synthetic_datx.py failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let files = v["files"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| PathBuf::from(f.as_str().unwrap()))
+        .collect();
+    (dir, files)
+}
+
+#[test]
+fn datx_link_table_converters_no_data() {
+    let (_dir, files) = synthetic_datx();
+    assert_eq!(files.len(), 4, "fixed/vlen x contiguous/gzip");
+    for f in &files {
+        let s = read_surface(f).unwrap_or_else(|e| panic!("{}: {e:#}", f.display()));
+        assert_eq!((s.height, s.width), (3, 4), "{}", f.display());
+        assert_eq!(s.pitch_x_um, 1.0, "X Converter Parameters[1]");
+        assert_eq!(s.pitch_y_um, 2.0, "Y Converter Parameters[1]");
+        assert!(s.metadata.pitch_known);
+        for (i, z) in s.heights_um.iter().enumerate() {
+            if i == 6 {
+                assert!(z.is_nan(), "No Data marker at row 1, column 2");
+            } else {
+                assert!((z - i as f64 * 1e-3).abs() < 1e-15, "NanoMeters -> um: {z}");
+            }
+        }
+        assert_eq!(
+            s.metadata.extra["surface_path"],
+            "/Data/Surface/{00000000-0000-0000-0000-000000000001}"
+        );
+        assert!(rel(s.metadata.wavelength_um.unwrap(), 0.633) < 1e-12);
+    }
+}
+
+#[test]
+fn datx_fringes_and_decoy_surface() {
+    // A file whose first /Data/Surface dataset is a decoy and whose height unit is Fringes:
+    // the link table must be followed and height_m = value * S * O * lambda.
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("fringes.datx");
+    let script = r#"
+import sys, h5py, numpy as np
+s = h5py.string_dtype()
+with h5py.File(sys.argv[1], 'w') as h5:
+    real = '/Data/Surface/{B}'
+    md = np.array([('Root', 'Measurement', '{M}'), ('{M}', 'Surface', '{S}'), ('{S}', 'Path', real)],
+                  dtype=[('Source', s), ('Link', s), ('Destination', s)])
+    h5.create_dataset('MetaData', data=md)
+    h5.create_dataset('/Data/Surface/{A}', data=np.full((2, 2), 99.0, 'f4'))
+    z = np.array([[0, 1, 2], [3, np.nan, 5]], 'f4')
+    ds = h5.create_dataset(real, data=z)
+    cdt = np.dtype([('Category', s), ('BaseUnit', s), ('Parameters', h5py.vlen_dtype(np.float64))])
+    def conv(cat, unit, p):
+        c = np.empty(1, dtype=cdt); c[0] = (cat, unit, np.array(p, 'f8')); return c
+    ds.attrs['X Converter'] = conv('LateralCat', 'Pixels', [0, 0.5e-6, 0, 0])
+    ds.attrs['Y Converter'] = conv('LateralCat', 'Pixels', [0, 0.5e-6, 0, 0])
+    ds.attrs['Z Converter'] = conv('HeightCat', 'Fringes', [0, 6.33e-7, 0.5, 1.0])
+    ds.attrs['Unit'] = np.array(['Fringes'], dtype=s)
+    ds.attrs['No Data'] = np.array([np.finfo(np.float32).max], 'f4')
+"#;
+    let out = Command::new(python())
+        .arg("-c")
+        .arg(script)
+        .arg(&p)
+        .output()
+        .expect("python runs");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let s = read_surface(&p).unwrap();
+    assert_eq!((s.height, s.width), (2, 3));
+    let k = 6.33e-7 * 0.5 * 1.0 * 1e6;
+    assert!(s.heights_um[4].is_nan());
+    for i in [0, 1, 2, 3, 5] {
+        assert!(
+            (s.heights_um[i] - i as f64 * k).abs() < 1e-12,
+            "{}",
+            s.heights_um[i]
+        );
+    }
+    assert_eq!(s.pitch_x_um, 0.5);
+}
+
+#[test]
+fn datx_corrupt_and_truncated() {
+    let (_dir, files) = synthetic_datx();
+    let bytes = std::fs::read(&files[0]).unwrap();
+    for cut in [0, 8, 100, bytes.len() / 2, bytes.len() - 1] {
+        assert!(
+            parse_surface(&bytes[..cut], Format::Datx).is_err(),
+            "truncated at {cut}"
+        );
+    }
+    let e = format!(
+        "{:#}",
+        parse_surface(b"not an hdf5 file at all", Format::Datx).unwrap_err()
+    );
+    assert!(e.contains("HDF5"), "{e}");
+}
+
+fn metropro_header(w: u16, h: u16, phase_res: i16) -> Vec<u8> {
+    let mut b = vec![0u8; 834];
+    b[0..4].copy_from_slice(&[0x88, 0x1B, 0x03, 0x6F]);
+    b[4..6].copy_from_slice(&1u16.to_be_bytes());
+    b[6..10].copy_from_slice(&834u32.to_be_bytes());
+    b[68..70].copy_from_slice(&w.to_be_bytes());
+    b[70..72].copy_from_slice(&h.to_be_bytes());
+    b[72..76].copy_from_slice(&(4 * w as u32 * h as u32).to_be_bytes());
+    b[164..168].copy_from_slice(&0.5f32.to_be_bytes());
+    b[168..172].copy_from_slice(&6.33e-7f32.to_be_bytes());
+    b[176..180].copy_from_slice(&1.0f32.to_be_bytes());
+    b[184..188].copy_from_slice(&1e-6f32.to_be_bytes());
+    b[218..220].copy_from_slice(&phase_res.to_be_bytes());
+    b
+}
+
+#[test]
+fn metropro_phase_res_table_sign_invalid_and_lies() {
+    for (phase_res, r) in [(0i16, 4096.0), (1, 32768.0), (2, 131072.0)] {
+        let mut b = metropro_header(2, 1, phase_res);
+        b.extend_from_slice(&1000i32.to_be_bytes());
+        b.extend_from_slice(&2147483640i32.to_be_bytes());
+        let s = parse_surface(&b, Format::MetroPro).unwrap();
+        let expect = 1000.0 * 0.5f32 as f64 * 6.33e-7f32 as f64 / r * 1e6;
+        assert!(
+            rel(s.heights_um[0], expect) < 1e-15,
+            "phase_res {phase_res}"
+        );
+        assert!(s.heights_um[1].is_nan());
+        // sign != 0 negates.
+        b[232..234].copy_from_slice(&1i16.to_be_bytes());
+        assert!(
+            rel(
+                parse_surface(&b, Format::MetroPro).unwrap().heights_um[0],
+                -expect
+            ) < 1e-15
+        );
+    }
+    let mut b = metropro_header(2, 1, 3);
+    b.extend_from_slice(&[0; 8]);
+    assert!(
+        format!("{:#}", parse_surface(&b, Format::MetroPro).unwrap_err()).contains("phase_res")
+    );
+    // Counts larger than the file.
+    let mut b = metropro_header(10000, 10000, 1);
+    b.extend_from_slice(&[0; 8]);
+    let e = format!("{:#}", parse_surface(&b, Format::MetroPro).unwrap_err());
+    assert!(e.contains("phase data") && e.contains("only"), "{e}");
+    // Magic and header size disagree.
+    let mut b = metropro_header(2, 1, 1);
+    b[3] = 0x71;
+    assert!(
+        format!("{:#}", parse_surface(&b, Format::MetroPro).unwrap_err())
+            .contains("inconsistent header")
+    );
+    // cn_n_bytes lies.
+    let mut b = metropro_header(2, 1, 1);
+    b[72..76].copy_from_slice(&12u32.to_be_bytes());
+    assert!(
+        format!("{:#}", parse_surface(&b, Format::MetroPro).unwrap_err()).contains("cn_n_bytes")
+    );
+}
+
+#[test]
+fn truncated_specimens_fail_cleanly() {
+    for (name, format) in [
+        ("metropro-1.dat", Format::MetroPro),
+        ("sur-uncompressed.sur", Format::Sur),
+        ("x3p-2.x3p", Format::X3p),
+    ] {
+        let b = std::fs::read(specimen(name)).unwrap();
+        for cut in [0, 3, 100, 511, 600, b.len() / 2, b.len() - 1] {
+            let e = parse_surface(&b[..cut], format);
+            assert!(e.is_err(), "{name} cut at {cut} read without error");
+        }
+    }
+    // The error from read_surface names the file.
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("cut.sur");
+    std::fs::write(
+        &p,
+        &std::fs::read(specimen("sur-uncompressed.sur")).unwrap()[..1000],
+    )
+    .unwrap();
+    let e = format!("{:#}", read_surface(&p).unwrap_err());
+    assert!(e.contains("cut.sur") && e.contains("point data"), "{e}");
+}
+
+#[test]
+fn xyz_regular_grid_with_gaps() {
+    // Table-3-like columns, a missing node and a NaN height; shuffled order; comma separated.
+    let mut lines = vec!["# x y z (um)".to_string(), "X,Y,Z".to_string()];
+    for r in 0..3 {
+        for c in 0..4 {
+            if (r, c) == (1, 1) {
+                continue;
+            }
+            let z = if (r, c) == (2, 3) {
+                "nan".to_string()
+            } else {
+                format!("{}", r * 10 + c)
+            };
+            lines.push(format!(
+                "{:.6},{:.6},{z}",
+                100.0 + c as f64 * 0.8148,
+                50.0 + r as f64 * 1.5
+            ));
+        }
+    }
+    lines.swap(3, 9);
+    let s = parse_surface(lines.join("\n").as_bytes(), Format::Xyz).unwrap();
+    assert_eq!((s.width, s.height), (4, 3));
+    assert!(rel(s.pitch_x_um, 0.8148) < 1e-6 && rel(s.pitch_y_um, 1.5) < 1e-9);
+    assert!(s.heights_um[5].is_nan() && s.heights_um[11].is_nan());
+    assert_eq!(s.heights_um[6], 12.0);
+    assert_eq!(s.invalid_count(), 2);
+    // Off-grid point, duplicate point, sparse cloud: errors.
+    assert!(format!(
+        "{:#}",
+        parse_surface(b"0 0 1\n1 0 1\n2.5 0 1\n", Format::Xyz).unwrap_err()
+    )
+    .contains("not on the regular grid"));
+    assert!(format!(
+        "{:#}",
+        parse_surface(b"0 0 1\n1 0 1\n1 0 2\n", Format::Xyz).unwrap_err()
+    )
+    .contains("two points"));
+    assert!(format!(
+        "{:#}",
+        parse_surface(b"0 0 1\n1 0 1\n100000 100000 1\n", Format::Xyz).unwrap_err()
+    )
+    .contains("sparse"));
+    assert!(format!(
+        "{:#}",
+        parse_surface(b"0 0 1\n1 0 oops\n", Format::Xyz).unwrap_err()
+    )
+    .contains("line 2"));
+}
+
+#[test]
+fn npy_and_unknown_extension() {
+    let dir = tempfile::tempdir().unwrap();
+    let t = toy_surface(6, 5);
+    let p = dir.path().join("a.npy");
+    formats::write_surface(&p, &t).unwrap();
+    let r = read_surface(&p).unwrap();
+    same_heights(&r.heights_um, &t.heights_um, 0.0);
+    assert!(!r.metadata.pitch_known);
+    let e = format!("{:#}", read_surface(&dir.path().join("a.tif")).unwrap_err());
+    assert!(e.contains("a.tif") && e.contains("unsupported"), "{e}");
+}
