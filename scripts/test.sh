@@ -15,4 +15,7 @@ fi
 export SURFSTREAM_PYTHON="$PWD/$VENV/bin/python"
 
 cargo build --release --workspace --bins
+# PyWavelets parity goldens (every base, mode, odd/even size, level) for nodes/wavelet's tests.
+"$SURFSTREAM_PYTHON" scripts/gen_wavelet_golden.py target/wavelet-golden
+export SURFSTREAM_WAVELET_GOLDEN="$PWD/target/wavelet-golden"
 cargo test --release --workspace

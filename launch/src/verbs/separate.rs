@@ -1,18 +1,130 @@
-//! `surfstream separate`: datum / roughness separation of one height map.
+//! `surfstream separate`: datum / roughness separation of one height map, on its own.
+//!
+//! Reads any map `formats::read_surface` reads, runs the wavelet node's library
+//! ([`surfstream_wavelet::analyse`]: the same code as the pipeline's final pass) and writes
+//! `datum.npy`, `roughness.npy`, `pooled.npy` and `separate.json` (base, level, mode, energy
+//! curve, RMSE ranking when the base is "auto", pooling bias) into `--out`.
 
 use std::path::PathBuf;
 
-use anyhow::{bail, Result};
+use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
+use surfstream_common::formats::read_surface;
+use surfstream_common::fsutil::write_atomic;
+use surfstream_common::npy::write_npy_f32;
+use surfstream_wavelet::{analyse, BaseChoice, LevelChoice, Mode, PoolOp, Wavelet};
 
 #[derive(Args)]
 pub struct SeparateArgs {
-    /// Height-map file.
+    /// Height-map file (.npy, or an instrument format `surfstream inspect` reads).
     pub file: PathBuf,
+    /// Wavelet base: db1..db10, sym2..sym10, coif1..coif5, or "auto" (minimum reconstruction
+    /// RMSE, the paper's eq. 10; note that it ranks floating-point round-off).
+    #[arg(long, default_value = "sym5")]
+    pub wavelet: String,
+    /// Decomposition level (clamped to the largest useful level of the map), or "auto": the
+    /// minimum of the approximation's energy proportion after plane levelling (paper Fig. 13).
+    #[arg(long, default_value = "8")]
+    pub level: String,
+    /// Border extension: symmetric (PyWavelets' default) or periodization.
+    #[arg(long, default_value = "symmetric")]
+    pub mode: String,
+    /// Pooling block size, px.
+    #[arg(long, default_value_t = 4)]
+    pub pool: usize,
+    /// Pooling operation: max (the paper) or mean.
+    #[arg(long = "pool-op", default_value = "max")]
+    pub pool_op: String,
+    /// Output directory (created if needed).
     #[arg(long)]
     pub out: PathBuf,
 }
 
-pub fn run(_a: SeparateArgs) -> Result<()> {
-    bail!("separate: not built yet")
+pub fn run(a: SeparateArgs) -> Result<()> {
+    let base = if a.wavelet.trim().eq_ignore_ascii_case("auto") {
+        BaseChoice::MinRmse
+    } else {
+        BaseChoice::Named(Wavelet::by_name(&a.wavelet).ok_or_else(|| {
+            anyhow!(
+                "--wavelet {:?}: expected db1..db10, sym2..sym10, coif1..coif5 or auto",
+                a.wavelet
+            )
+        })?)
+    };
+    let level = if a.level.trim().eq_ignore_ascii_case("auto") {
+        LevelChoice::MinEnergy
+    } else {
+        match a.level.trim().parse::<usize>() {
+            Ok(l) if l >= 1 => LevelChoice::Fixed(l),
+            _ => bail!("--level {:?}: expected a level >= 1 or auto", a.level),
+        }
+    };
+    let mode = Mode::by_name(&a.mode)
+        .ok_or_else(|| anyhow!("--mode {:?}: expected symmetric or periodization", a.mode))?;
+    let pool_op = PoolOp::by_name(&a.pool_op)
+        .ok_or_else(|| anyhow!("--pool-op {:?}: expected max or mean", a.pool_op))?;
+    if a.pool == 0 {
+        bail!("--pool 0: expected a block size of at least 1 px");
+    }
+
+    let s = read_surface(&a.file)?;
+    // Frames and outputs are f32 (DESIGN §2); the separation itself runs in f64.
+    let heights: Vec<f32> = s.heights_um.iter().map(|&z| z as f32).collect();
+    let an = analyse(
+        &heights, s.height, s.width, base, level, mode, a.pool, pool_op,
+    )
+    .with_context(|| format!("{}: separation", a.file.display()))?;
+
+    std::fs::create_dir_all(&a.out)
+        .with_context(|| format!("{}: cannot create the output directory", a.out.display()))?;
+    let sep = &an.separation;
+    write_npy_f32(a.out.join("datum.npy"), &sep.datum, s.height, s.width)?;
+    write_npy_f32(
+        a.out.join("roughness.npy"),
+        &sep.roughness,
+        s.height,
+        s.width,
+    )?;
+    write_npy_f32(
+        a.out.join("pooled.npy"),
+        &an.pooled.heights,
+        an.pooled.rows,
+        an.pooled.cols,
+    )?;
+    let mut summary = an.summary();
+    if let Some(o) = summary.as_object_mut() {
+        o.insert(
+            "input".into(),
+            serde_json::json!(a.file.display().to_string()),
+        );
+        o.insert("input_px".into(), serde_json::json!([s.width, s.height]));
+        o.insert(
+            "pitch_um".into(),
+            serde_json::json!([s.pitch_x_um, s.pitch_y_um]),
+        );
+        o.insert(
+            "files".into(),
+            serde_json::json!(["datum.npy", "roughness.npy", "pooled.npy", "separate.json"]),
+        );
+    }
+    let json = serde_json::to_string_pretty(&summary)?;
+    write_atomic(&a.out.join("separate.json"), |w| {
+        use std::io::Write;
+        w.write_all(json.as_bytes())?;
+        Ok(())
+    })?;
+    println!(
+        "{}: {} x {} px, {} level {} ({}), level by min energy {}; wrote datum.npy, roughness.npy, pooled.npy ({} x {}), separate.json to {}",
+        a.file.display(),
+        s.width,
+        s.height,
+        an.wavelet.name(),
+        sep.level,
+        mode.name(),
+        an.level_min_energy.map_or("-".to_string(), |l| l.to_string()),
+        an.pooled.cols,
+        an.pooled.rows,
+        a.out.display()
+    );
+    Ok(())
 }

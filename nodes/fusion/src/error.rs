@@ -85,4 +85,8 @@ pub enum FusionError {
     /// `render` was given no tile: there is no panorama to render.
     #[error("tiles is empty: expected at least one tile to render")]
     NoTiles,
+
+    /// Wavelet fusion of a tile's overlap failed (the DWT refused the overlap raster).
+    #[error("tile {index}: wavelet fusion of the overlap failed: {message}")]
+    WaveletFusion { index: u32, message: String },
 }

@@ -25,7 +25,10 @@
 //!    any covering tile is valid in the panorama, and seams fade linearly in both directions
 //!    and at the corners where four tiles meet. A ramp <= 0.5 px is the plain average (eq. 4).
 //!    Accumulators: a running weighted mean and the weight sum per pixel, both f32 (see
-//!    [`Panorama`]).
+//!    [`Panorama`]). The third method, wavelet fusion (eq. 6), replaces the weighted mean by
+//!    a DWT fusion of each new tile with the canvas over its footprint ([`method`]).
+//! 5. **Quality.** [`overlap_quality`] scores every overlap of the final panorama by SSIM
+//!    (eq. 7) against the two tiles that meet there.
 //!
 //! [`Panorama::place`] returns the [`Region`] it changed (the tile's footprint); a node sends
 //! [`Panorama::extract`] of that region downstream as a patch. The work per tile is
@@ -41,10 +44,14 @@
 
 mod error;
 mod input;
+pub mod method;
 mod panorama;
+mod quality;
 mod resample;
 
 pub use error::{FusionError, Result};
 pub use input::{BlendParams, PlaneCorrection, TileInput};
-pub use panorama::{render, Panorama, Raster, Region, DEFAULT_MAX_CANVAS_PX};
+pub use method::{fuse_wavelet, FusionMethod, WaveletFusion};
+pub use panorama::{render, render_panorama, Panorama, Raster, Region, DEFAULT_MAX_CANVAS_PX};
+pub use quality::{overlap_quality, PairQuality};
 pub mod node;

@@ -4,6 +4,13 @@
 //!
 //! Tiles are placed strictly in acquisition order, whatever order the two inputs arrive in,
 //! so the panorama is the same under `launch` and `run`.
+//!
+//! The node keeps every tile until the end of the scan. If the matcher publishes revised,
+//! globally solved registrations (flag FINAL) before its end of scan, the final panorama is
+//! re-rendered from all tiles at those positions (tiles without a FINAL registration keep
+//! their streaming one); otherwise the streaming panorama is final. The report carries the
+//! SSIM of every overlap of the final panorama (`fusion_pairs`, see
+//! [`crate::overlap_quality`]).
 
 use std::collections::BTreeMap;
 
@@ -15,7 +22,31 @@ use surfstream_common::graph::NodeContext;
 use surfstream_common::node::{Input, NodeLogic, Outbox};
 use surfstream_common::preview::{write_preview_png, PreviewOptions};
 
-use crate::{BlendParams, Panorama, PlaneCorrection, TileInput};
+use surfstream_wavelet::Wavelet;
+
+use crate::{
+    overlap_quality, render_panorama, BlendParams, FusionMethod, PairQuality, Panorama,
+    PlaneCorrection, TileInput, WaveletFusion,
+};
+
+/// A received tile at a registration's position and plane.
+fn tile_input<'a>(tile: &'a HeightMap, reg: &TileRegistration) -> TileInput<'a> {
+    let h = &tile.header;
+    TileInput {
+        index: h.tile_index,
+        heights: &tile.heights,
+        width: h.width as usize,
+        height: h.height as usize,
+        x_um: reg.x_um,
+        y_um: reg.y_um,
+        plane: PlaneCorrection {
+            piston_um: reg.piston_um,
+            tilt_x_um_per_px: reg.tilt_x_um_per_px,
+            tilt_y_um_per_px: reg.tilt_y_um_per_px,
+        },
+        z_offset_um: h.z_offset_um,
+    }
+}
 
 const PANORAMA: &str = "panorama";
 const PREVIEW: &str = "preview";
@@ -25,9 +56,14 @@ const PREVIEW_STEP: usize = 4;
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct Params {
-    /// "gradual" (the paper's gradual in-and-out, eq. 5) or "average" (eq. 4).
+    /// "gradual" (the paper's gradual in-and-out, eq. 5), "average" (eq. 4) or "wavelet"
+    /// (eq. 6).
     #[serde(default = "gradual")]
     method: String,
+    /// Wavelet of the wavelet fusion (default sym5).
+    wavelet: Option<String>,
+    /// Decomposition levels of the wavelet fusion (default 2, clamped to the overlap).
+    wavelet_level: Option<usize>,
     /// Weight ramp length from a tile's border, px. Default: half the tile, so the weights are
     /// exactly linear across any overlap up to 50 % (the paper's gradual in-and-out).
     ramp_px: Option<f64>,
@@ -44,12 +80,20 @@ fn yes() -> bool {
 }
 
 pub struct FusionNode {
-    method: String,
+    method: FusionMethod,
+    wavelet: Option<WaveletFusion>,
     ramp_px: Option<f64>,
     write_files: bool,
     out_dir: std::path::PathBuf,
     tiles: BTreeMap<u32, HeightMap>,
     registrations: BTreeMap<u32, TileRegistration>,
+    /// Tiles already placed, with the registration they were placed at (kept for the final
+    /// re-render and the overlap quality).
+    placed: BTreeMap<u32, (HeightMap, TileRegistration)>,
+    /// FINAL (globally solved) registrations from the matcher.
+    final_registrations: BTreeMap<u32, TileRegistration>,
+    pairs: Vec<PairQuality>,
+    rerendered: bool,
     next: u32,
     panorama: Option<Panorama>,
     tiles_ended: bool,
@@ -63,13 +107,34 @@ pub struct FusionNode {
 
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
     let p: Params = ctx.params()?;
-    if !matches!(p.method.as_str(), "gradual" | "average") {
+    let Some(method) = FusionMethod::by_name(&p.method) else {
         bail!(
-            "graph '{}', node '{}': method = {:?}: expected \"gradual\" or \"average\"",
+            "graph '{}', node '{}': method = {:?}: expected \"gradual\", \"average\" or \"wavelet\"",
             ctx.graph_name,
             ctx.node_id,
             p.method
         );
+    };
+    let mut wf = WaveletFusion::default();
+    if let Some(name) = &p.wavelet {
+        wf.wavelet = Wavelet::by_name(name).ok_or_else(|| {
+            anyhow!(
+                "graph '{}', node '{}': wavelet = {name:?}: expected one of db1..db10, sym2..sym10, coif1..coif5",
+                ctx.graph_name,
+                ctx.node_id
+            )
+        })?;
+    }
+    if let Some(level) = p.wavelet_level {
+        if !(1..=surfstream_wavelet::MAX_LEVEL).contains(&level) {
+            bail!(
+                "graph '{}', node '{}': wavelet_level = {level}: expected 1..={}",
+                ctx.graph_name,
+                ctx.node_id,
+                surfstream_wavelet::MAX_LEVEL
+            );
+        }
+        wf.level = level;
     }
     if let Some(r) = p.ramp_px {
         if !(r.is_finite() && r > 0.0) {
@@ -81,12 +146,17 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
         }
     }
     Ok(Box::new(FusionNode {
-        method: p.method,
+        method,
+        wavelet: (method == FusionMethod::Wavelet).then_some(wf),
         ramp_px: p.ramp_px,
         write_files: p.write_files,
         out_dir: ctx.out_dir.clone(),
         tiles: BTreeMap::new(),
         registrations: BTreeMap::new(),
+        placed: BTreeMap::new(),
+        final_registrations: BTreeMap::new(),
+        pairs: Vec::new(),
+        rerendered: false,
         next: 0,
         panorama: None,
         tiles_ended: false,
@@ -105,8 +175,8 @@ impl FusionNode {
     }
 
     fn blend_params(&self, tile: &FrameHeader) -> BlendParams {
-        match (self.method.as_str(), self.ramp_px) {
-            ("average", _) => BlendParams::average(),
+        match (self.method, self.ramp_px) {
+            (FusionMethod::Average | FusionMethod::Wavelet, _) => BlendParams::average(),
             (_, Some(r)) => BlendParams::from_overlap_px(r, r),
             _ => BlendParams::from_overlap_px(tile.width as f64 / 2.0, tile.height as f64 / 2.0),
         }
@@ -121,30 +191,15 @@ impl FusionNode {
         ) {
             let h = tile.header;
             if self.panorama.is_none() {
-                self.panorama = Some(Panorama::new(
-                    h.pitch_x_um,
-                    h.pitch_y_um,
-                    self.blend_params(&h),
-                )?);
+                let mut pano = Panorama::new(h.pitch_x_um, h.pitch_y_um, self.blend_params(&h))?;
+                pano.set_wavelet_fusion(self.wavelet);
+                self.panorama = Some(pano);
             }
             let pano = self
                 .panorama
                 .as_mut()
                 .ok_or_else(|| anyhow!("no panorama"))?;
-            let region = pano.place(TileInput {
-                index: h.tile_index,
-                heights: &tile.heights,
-                width: h.width as usize,
-                height: h.height as usize,
-                x_um: reg.x_um,
-                y_um: reg.y_um,
-                plane: PlaneCorrection {
-                    piston_um: reg.piston_um,
-                    tilt_x_um_per_px: reg.tilt_x_um_per_px,
-                    tilt_y_um_per_px: reg.tilt_y_um_per_px,
-                },
-                z_offset_um: h.z_offset_um,
-            })?;
+            let region = pano.place(tile_input(tile, reg))?;
             let (ox, oy) = pano.region_origin_um(&region);
             let heights = pano.extract(region);
             let (px, py) = pano.pitch_um();
@@ -168,8 +223,12 @@ impl FusionNode {
             out.send_frame(PANORAMA, HeightMap { header, heights });
             self.patches += 1;
             self.last = (h.tile_index, h.t_acquired_ns);
-            self.tiles.remove(&self.next);
-            self.registrations.remove(&self.next);
+            if let (Some(tile), Some(reg)) = (
+                self.tiles.remove(&self.next),
+                self.registrations.remove(&self.next),
+            ) {
+                self.placed.insert(self.next, (tile, reg));
+            }
             self.next += 1;
             placed += 1;
         }
@@ -183,11 +242,47 @@ impl FusionNode {
         if let Some(k) = self.registrations.keys().next() {
             bail!("fusion: registration for tile {k} has no tile (tiles ended)");
         }
-        let pano = self
-            .panorama
-            .as_ref()
-            .ok_or_else(|| anyhow!("fusion: the scan had no tiles"))?;
-        let r = pano.to_raster();
+        if let Some(k) = self
+            .final_registrations
+            .keys()
+            .find(|k| !self.placed.contains_key(k))
+        {
+            bail!("fusion: FINAL registration for tile {k}, which never arrived");
+        }
+        let (pairs, r, rerendered) = {
+            let pano = self
+                .panorama
+                .as_ref()
+                .ok_or_else(|| anyhow!("fusion: the scan had no tiles"))?;
+            // The globally solved positions, where the matcher sent them.
+            let inputs: Vec<TileInput<'_>> = self
+                .placed
+                .iter()
+                .map(|(k, (tile, reg))| {
+                    tile_input(tile, self.final_registrations.get(k).unwrap_or(reg))
+                })
+                .collect();
+            let rerendered = if self.final_registrations.is_empty() {
+                None
+            } else {
+                let (px, py) = pano.pitch_um();
+                Some(render_panorama(
+                    px,
+                    py,
+                    &inputs,
+                    *pano.params(),
+                    pano.wavelet_fusion().copied(),
+                )?)
+            };
+            let pano = rerendered.as_ref().unwrap_or(pano);
+            (
+                overlap_quality(pano, &inputs)?,
+                pano.to_raster(),
+                rerendered.is_some(),
+            )
+        };
+        self.pairs = pairs;
+        self.rerendered = rerendered;
         if self.write_files {
             let npy = self.out_dir.join("panorama.npy");
             surfstream_common::npy::write_npy_f32(&npy, &r.heights, r.height, r.width)?;
@@ -272,6 +367,8 @@ impl NodeLogic for FusionNode {
             ("registrations", Input::Registration(r)) => {
                 if r.has(flags::END_OF_SCAN) {
                     self.registrations_ended = true;
+                } else if r.has(flags::FINAL) {
+                    self.final_registrations.insert(r.tile_index, *r);
                 } else {
                     self.registrations.insert(r.tile_index, *r);
                 }
@@ -298,6 +395,15 @@ impl NodeLogic for FusionNode {
     }
 
     fn report(&self) -> serde_json::Value {
-        json!({ "method": self.method, "patches": self.patches, "panorama": self.summary, "files": self.files })
+        json!({
+            "method": self.method.name(),
+            "patches": self.patches,
+            "panorama": self.summary,
+            "files": self.files,
+            "rerendered_from_final_registrations": self.rerendered,
+            "final_registrations": self.final_registrations.len(),
+            "ssim": "Wang et al. 2004 (paper eq. 7): 11x11 Gaussian window, sigma 1.5, K1 0.01, K2 0.03, L = height range of the overlap; SSIM(fused, each tile) over pixels both tiles measured",
+            "fusion_pairs": self.pairs,
+        })
     }
 }

@@ -8,6 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{FusionError, Result};
 use crate::input::{validate_pitch, BlendParams, TileInput};
+use crate::method::{fuse_wavelet, WaveletFusion};
 use crate::resample::{AxisPlan, Resampler, MAX_OFFSET_PX};
 
 /// A rectangle of canvas pixels: columns `x0 .. x0 + width`, rows `y0 .. y0 + height`.
@@ -141,6 +142,8 @@ pub struct Panorama {
     placed: HashSet<u32>,
     /// `reserve_um` hint [x_min, y_min, x_max, y_max] waiting for the anchor.
     reserved_um: Option<[f64; 4]>,
+    /// Wavelet fusion (eq. 6) instead of the weighted mean; see [`Panorama::set_wavelet_fusion`].
+    wavelet: Option<WaveletFusion>,
 }
 
 impl Panorama {
@@ -167,7 +170,20 @@ impl Panorama {
             content: None,
             placed: HashSet::new(),
             reserved_um: None,
+            wavelet: None,
         })
+    }
+
+    /// Fuse overlaps by wavelet fusion (paper eq. 6, [`crate::method`]) instead of the
+    /// weighted mean of the blend parameters; `None` restores the weighted mean. Set it before
+    /// the first tile. With wavelet fusion the weight accumulator counts the tiles per pixel.
+    pub fn set_wavelet_fusion(&mut self, wavelet: Option<WaveletFusion>) {
+        self.wavelet = wavelet;
+    }
+
+    /// The wavelet fusion parameters, if that is the method.
+    pub fn wavelet_fusion(&self) -> Option<&WaveletFusion> {
+        self.wavelet.as_ref()
     }
 
     /// Change the limit on the canvas size in pixels (default [`DEFAULT_MAX_CANVAS_PX`]).
@@ -491,6 +507,10 @@ impl Panorama {
             y,
         };
         let region = self.to_region(&footprint);
+        if let Some(wf) = self.wavelet {
+            self.place_wavelet(&resampler, region, &wf, tile.index)?;
+            return Ok(region);
+        }
         let stride = self.canvas.width();
         let rows = region.y0 * stride..(region.y0 + region.height) * stride;
         let cols = region.x0..region.x0 + region.width;
@@ -509,6 +529,62 @@ impl Panorama {
                 )
             });
         Ok(region)
+    }
+
+    /// Wavelet fusion of a resampled tile into its footprint `region` (eq. 6): the tile's
+    /// values and the canvas's current values over the footprint are fused by
+    /// [`fuse_wavelet`]; pixels the tile does not measure keep the canvas's value.
+    fn place_wavelet(
+        &mut self,
+        resampler: &Resampler<'_>,
+        region: Region,
+        wf: &WaveletFusion,
+        index: u32,
+    ) -> Result<()> {
+        let w = region.width;
+        let mut tile_z = vec![0.0f32; region.len()];
+        let mut tile_w = vec![0.0f32; region.len()];
+        tile_z
+            .par_chunks_mut(w)
+            .zip(tile_w.par_chunks_mut(w))
+            .enumerate()
+            .with_min_len(8)
+            .for_each(|(j, (z, wt))| resampler.blend_row(j, z, wt));
+        for (z, &wt) in tile_z.iter_mut().zip(&tile_w) {
+            if wt <= 0.0 {
+                *z = f32::NAN;
+            }
+        }
+        let canvas_z = self.extract(region);
+        let fused = fuse_wavelet(&canvas_z, &tile_z, region.height, w, wf).map_err(|e| {
+            FusionError::WaveletFusion {
+                index,
+                message: e.to_string(),
+            }
+        })?;
+        let stride = self.canvas.width();
+        for j in 0..region.height {
+            let row = (region.y0 + j) * stride + region.x0;
+            for i in 0..w {
+                let k = j * w + i;
+                if tile_w[k] > 0.0 {
+                    self.mean[row + i] = fused[k];
+                    self.weight[row + i] += 1.0;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The tile resampled alone onto this panorama's grid (no blending, plane and z applied as
+    /// in [`Panorama::place`]): what this tile contributes, for overlap quality. Before any tile
+    /// is placed the tile anchors its own grid.
+    pub fn resample_alone(&self, tile: TileInput<'_>) -> Result<Raster> {
+        let mut alone = Panorama::new(self.pitch_x_um, self.pitch_y_um, BlendParams::average())?;
+        alone.anchor = self.anchor;
+        alone.max_canvas_px = self.max_canvas_px;
+        alone.place(tile)?;
+        Ok(alone.to_raster())
     }
 
     /// Blended heights of a region (um relative to [`Panorama::z_offset_um`]), row-major;
@@ -567,7 +643,20 @@ pub fn render(
     tiles: &[TileInput<'_>],
     params: BlendParams,
 ) -> Result<Raster> {
+    Ok(render_panorama(pitch_x_um, pitch_y_um, tiles, params, None)?.to_raster())
+}
+
+/// [`render`] with an optional wavelet fusion, returning the panorama itself (for
+/// [`crate::overlap_quality`]). Equals placing the tiles one by one in index order.
+pub fn render_panorama(
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+    tiles: &[TileInput<'_>],
+    params: BlendParams,
+    wavelet: Option<WaveletFusion>,
+) -> Result<Panorama> {
     let mut pano = Panorama::new(pitch_x_um, pitch_y_um, params)?;
+    pano.set_wavelet_fusion(wavelet);
     let mut order: Vec<&TileInput<'_>> = tiles.iter().collect();
     // Stable: equal indices keep their slice order (and then fail as duplicates in place()).
     order.sort_by_key(|t| t.index);
@@ -599,5 +688,5 @@ pub fn render(
     for tile in order {
         pano.place(*tile)?;
     }
-    Ok(pano.to_raster())
+    Ok(pano)
 }

@@ -1,8 +1,12 @@
 //! Timing of the wavelet node's kernels on generated fields (loads nothing):
 //!
 //! ```text
-//! cargo run --release -p surfstream-wavelet --example bench_wavelet [-- [--only rt|sep|pool] SIZE ...]
+//! cargo run --release -p surfstream-wavelet --example bench_wavelet [-- [--only rt|sep|pool] [--inputs DIR] SIZE ...]
 //! ```
+//!
+//! `--inputs DIR` reads `DIR/synth_<n>.npy` (float64), the arrays the anchors write with
+//! `wavelet_anchor.py --save-inputs DIR` / `pooling_anchor.py --save-inputs DIR`, so both
+//! sides time the same data; without it the fields are generated here.
 //!
 //! For each size (default 1024 2048 4096) prints the median over repeats of
 //! * `wavedec2` + `waverec2`, sym5, level 8, symmetric, f64 (the PyWavelets anchor's headline);
@@ -130,6 +134,14 @@ fn main() -> anyhow::Result<()> {
         }
         _ => None,
     };
+    let inputs = match args.iter().position(|a| a == "--inputs") {
+        Some(i) if i + 1 < args.len() => {
+            let v = args.remove(i + 1);
+            args.remove(i);
+            Some(std::path::PathBuf::from(v))
+        }
+        _ => None,
+    };
     let run = |what: &str| only.as_deref().is_none_or(|o| o == what);
     let sizes: Vec<usize> = args.iter().map(|a| a.parse()).collect::<Result<_, _>>()?;
     let sizes = if sizes.is_empty() {
@@ -153,7 +165,21 @@ fn main() -> anyhow::Result<()> {
         } else {
             7
         };
-        let x = field(n, n as u64);
+        let x = match &inputs {
+            Some(dir) => {
+                let path = dir.join(format!("synth_{n}.npy"));
+                let a = surfstream_common::npy::read_npy_f64(&path)?;
+                anyhow::ensure!(
+                    (a.rows, a.cols) == (n, n),
+                    "{}: {} x {}, expected {n} x {n}",
+                    path.display(),
+                    a.rows,
+                    a.cols
+                );
+                a.data
+            }
+            None => field(n, n as u64),
+        };
         let x32: Vec<f32> = x.iter().map(|&v| v as f32).collect();
 
         let rt = time_ms(if run("rt") { reps } else { 0 }, || {

@@ -9,7 +9,10 @@
 //! * [`separate`]: datum / roughness separation of a height map (f32, NaN = not measured):
 //!   datum = approximation-only reconstruction at a level chosen by [`default_level`],
 //!   roughness = heights - datum.
-//! * [`pool`]: NaN-aware max / mean block pooling.
+//! * [`pool`]: NaN-aware max / mean block pooling; [`pooling_bias`]: what it does to the mean,
+//!   Sa, Sq and Sz.
+//! * The paper's selections: [`energy_curve`] / [`level_by_min_energy`] (level, Fig. 13) and
+//!   [`rmse_per_base`] (base, eq. 10: it ranks round-off, see the `select` module).
 //!
 //! Heavy loops run in parallel on rayon's global pool.
 //!
@@ -33,12 +36,17 @@ mod dwt;
 mod error;
 mod filters;
 mod pool;
+mod select;
 mod separate;
 mod wavelet;
 
 pub use dwt::{wavedec2, waverec2, Array2, Coeffs2, Details2, MAX_LEVEL};
 pub use error::{Result, WaveletError};
 pub use pool::{pool, PoolOp, Pooled};
+pub use select::{
+    analyse, energy_curve, height_stats, level_by_min_energy, pooling_bias, rmse_per_base,
+    Analysis, BaseChoice, BaseRmse, EnergyPoint, HeightStats, LevelChoice, PoolingBias,
+};
 pub use separate::{default_level, fill_invalid, separate, Separation, DEFAULT_LEVEL};
 pub use wavelet::{dwt_coeff_len, dwt_max_level, Mode, Wavelet};
 pub mod node;

@@ -16,15 +16,19 @@ use surfstream_common::graph::NodeContext;
 use surfstream_common::node::{Input, NodeLogic, Outbox};
 use surfstream_common::preview::{write_preview_png, PreviewOptions};
 
-use crate::{default_level, pool, separate, Mode, PoolOp, Wavelet};
+use crate::{
+    analyse, default_level, pool, separate, BaseChoice, LevelChoice, Mode, PoolOp, Wavelet,
+};
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct Params {
+    /// A base name, or "auto": minimum reconstruction RMSE (eq. 10; it ranks round-off).
     #[serde(default = "sym5")]
     wavelet: String,
-    /// Decomposition level of the datum; clamped to the largest useful level of the panorama.
-    level: Option<usize>,
+    /// Decomposition level of the datum (clamped to the largest useful level of the
+    /// panorama), or "auto": minimum approximation energy proportion (Fig. 13).
+    level: Option<LevelParam>,
     #[serde(default = "symmetric")]
     mode: String,
     /// Pooling block, px.
@@ -41,6 +45,13 @@ struct Params {
     live_margin_px: usize,
     #[serde(default = "yes")]
     write_files: bool,
+}
+
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum LevelParam {
+    Level(usize),
+    Named(String),
 }
 
 fn sym5() -> String {
@@ -256,9 +267,13 @@ impl Mirror {
 }
 
 pub struct WaveletNode {
+    /// The base of live passes (sym5 when the final base is chosen by RMSE).
     wavelet: Wavelet,
+    base: BaseChoice,
     mode: Mode,
+    /// Level of live passes (the default when the final level is chosen by energy).
     level: Option<usize>,
+    level_choice: LevelChoice,
     pool: usize,
     pool_op: PoolOp,
     live: bool,
@@ -279,13 +294,36 @@ pub struct WaveletNode {
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
     let p: Params = ctx.params()?;
     let at = || format!("graph '{}', node '{}'", ctx.graph_name, ctx.node_id);
-    let wavelet = Wavelet::by_name(&p.wavelet).ok_or_else(|| {
-        anyhow!(
-            "{}: wavelet = {:?}: expected db1..db10, sym2..sym10 or coif1..coif5",
-            at(),
-            p.wavelet
-        )
-    })?;
+    let base = if p.wavelet.trim().eq_ignore_ascii_case("auto") {
+        BaseChoice::MinRmse
+    } else {
+        BaseChoice::Named(Wavelet::by_name(&p.wavelet).ok_or_else(|| {
+            anyhow!(
+                "{}: wavelet = {:?}: expected db1..db10, sym2..sym10, coif1..coif5 or \"auto\"",
+                at(),
+                p.wavelet
+            )
+        })?)
+    };
+    let wavelet = match base {
+        BaseChoice::Named(w) => w,
+        BaseChoice::MinRmse => Wavelet::by_name("sym5").ok_or_else(|| anyhow!("sym5 missing"))?,
+    };
+    let level_choice = match p.level {
+        None => LevelChoice::Default,
+        Some(LevelParam::Level(0)) => bail!(
+            "{}: level = 0: expected a decomposition level of at least 1, or \"auto\"",
+            at()
+        ),
+        Some(LevelParam::Level(l)) => LevelChoice::Fixed(l),
+        Some(LevelParam::Named(n)) if n.trim().eq_ignore_ascii_case("auto") => {
+            LevelChoice::MinEnergy
+        }
+        Some(LevelParam::Named(n)) => bail!(
+            "{}: level = {n:?}: expected a decomposition level >= 1 or \"auto\"",
+            at()
+        ),
+    };
     let mode = Mode::by_name(&p.mode).ok_or_else(|| {
         anyhow!(
             "{}: mode = {:?}: expected \"symmetric\" or \"periodization\"",
@@ -293,27 +331,25 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
             p.mode
         )
     })?;
-    let pool_op = match p.pool_op.as_str() {
-        "max" => PoolOp::Max,
-        "mean" => PoolOp::Mean,
-        other => bail!(
-            "{}: pool_op = {other:?}: expected \"max\" or \"mean\"",
-            at()
-        ),
+    let Some(pool_op) = PoolOp::by_name(&p.pool_op) else {
+        bail!(
+            "{}: pool_op = {:?}: expected \"max\" or \"mean\"",
+            at(),
+            p.pool_op
+        )
     };
     if p.pool == 0 {
         bail!("{}: pool = 0: expected a block size of at least 1 px", at());
     }
-    if p.level == Some(0) {
-        bail!(
-            "{}: level = 0: expected a decomposition level of at least 1",
-            at()
-        );
-    }
     Ok(Box::new(WaveletNode {
         wavelet,
+        base,
         mode,
-        level: p.level,
+        level: match level_choice {
+            LevelChoice::Fixed(l) => Some(l),
+            _ => None,
+        },
+        level_choice,
         pool: p.pool,
         pool_op,
         live: p.live,
@@ -425,15 +461,19 @@ impl WaveletNode {
             .ok_or_else(|| anyhow!("wavelet: end of scan without a final panorama"))?;
         let h = pano.header;
         let (rows, cols) = (h.height as usize, h.width as usize);
-        let sep = separate(
+        let analysis = analyse(
             &pano.heights,
             rows,
             cols,
-            &self.wavelet,
+            self.base,
+            self.level_choice,
             self.mode,
-            self.level,
+            self.pool,
+            self.pool_op,
         )?;
-        let pooled = pool(&pano.heights, rows, cols, self.pool, self.pool_op)?;
+        let summary = analysis.summary();
+        let wavelet = analysis.wavelet;
+        let (sep, pooled) = (analysis.separation, analysis.pooled);
         let mk = |kind: FrameKind| FrameHeader {
             kind: kind as u32,
             flags: flags::FINAL,
@@ -466,7 +506,7 @@ impl WaveletNode {
                     &sep.datum,
                     rows,
                     cols,
-                    format!("datum, {} level {} (um)", self.wavelet.name(), sep.level),
+                    format!("datum, {} level {} (um)", wavelet.name(), sep.level),
                 ),
                 (
                     "roughness.png",
@@ -498,13 +538,13 @@ impl WaveletNode {
                 "pooled.png",
             ];
         }
-        self.summary = json!({
-            "wavelet": self.wavelet.name(), "mode": self.mode.name(),
-            "level_requested": self.level, "level": sep.level,
-            "pool": self.pool, "pool_op": match self.pool_op { PoolOp::Max => "max", PoolOp::Mean => "mean" },
-            "panorama_px": [cols, rows], "pooled_px": [pooled.cols, pooled.rows],
-            "files": files,
-        });
+        let mut summary = summary;
+        if let Some(o) = summary.as_object_mut() {
+            o.insert("level_requested".into(), json!(self.level));
+            o.insert("panorama_px".into(), json!([cols, rows]));
+            o.insert("files".into(), json!(files));
+        }
+        self.summary = summary;
         out.send_frame(
             "datum",
             HeightMap {

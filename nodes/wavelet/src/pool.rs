@@ -15,6 +15,23 @@ pub enum PoolOp {
     Mean,
 }
 
+impl PoolOp {
+    /// "max" or "mean".
+    pub fn name(self) -> &'static str {
+        match self {
+            PoolOp::Max => "max",
+            PoolOp::Mean => "mean",
+        }
+    }
+
+    /// Parse "max" / "mean" (ASCII case ignored).
+    pub fn by_name(name: &str) -> Option<PoolOp> {
+        [PoolOp::Max, PoolOp::Mean]
+            .into_iter()
+            .find(|p| p.name().eq_ignore_ascii_case(name.trim()))
+    }
+}
+
 /// A pooled map, row-major `rows x cols`.
 ///
 /// Output pixel `(i, j)` summarises input rows `i*block .. min((i+1)*block, in_rows)` and

@@ -1,0 +1,248 @@
+//! `surfstream stitch SCAN --compare-fusion --out DIR`: the paper's Table 2. The scan is
+//! stitched three times, once per fusion method (average, gradual, wavelet), into
+//! `DIR/<method>/`, and the SSIM of every overlap (the fusion node's `fusion_pairs`) is
+//! summarised side by side.
+//!
+//! When the scan directory also holds `specimen.npy` and `ground_truth.json` (what
+//! `make_tiles.py` writes), each panorama is also scored against the specimen it was cut from:
+//! the panorama is placed on the specimen through tile 0 (its final position against its true
+//! origin: this fixes the free global shift of a stitch), the specimen is sampled bilinearly at
+//! every panorama pixel, the least-squares plane of the difference is removed (a stitch's
+//! absolute height and tilt are free too), and the RMS of what is left is the height error;
+//! SSIM of the panorama against the sampled specimen (same plane removed) is given beside it.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{anyhow, bail, Context, Result};
+use serde_json::Value;
+use surfstream_common::similarity::ssim;
+
+use crate::{launcher, stitch_graph};
+
+const METHODS: [&str; 3] = ["average", "gradual", "wavelet"];
+
+pub fn run(scan: &Path, out: &Path, set: &[String], method: Option<&str>) -> Result<()> {
+    if let Some(s) = set
+        .iter()
+        .find(|s| s.trim_start().starts_with("fusion.method"))
+    {
+        bail!("--compare-fusion runs every fusion method itself: drop --set {s}");
+    }
+    let scan_dir = if scan.is_dir() {
+        scan.to_path_buf()
+    } else {
+        scan.parent()
+            .map_or_else(|| PathBuf::from("."), Path::to_path_buf)
+    };
+    let truth = Truth::load(&scan_dir)?;
+    let mut rows = Vec::new();
+    for m in METHODS {
+        let dir = out.join(m);
+        let mut set_m = set.to_vec();
+        set_m.push(format!("fusion.method={m}"));
+        let graph = stitch_graph(scan, dir.clone(), &set_m, method)?;
+        launcher::run_in_process(graph, scan)?;
+        rows.push(score(m, &dir, truth.as_ref())?);
+    }
+    println!();
+    println!("Fusion methods (paper Table 2), SSIM of every overlap (Wang et al. 2004: 11x11 Gaussian window, sigma 1.5; mean of SSIM(fused, tile a) and SSIM(fused, tile b)):");
+    println!();
+    println!("| method | overlaps | mean SSIM | min SSIM | height RMS error vs specimen (um) | SSIM vs specimen |");
+    println!("|---|---|---|---|---|---|");
+    for r in &rows {
+        let opt = |v: Option<f64>, d: usize| v.map_or("-".to_string(), |v| format!("{v:.d$}"));
+        println!(
+            "| {} | {} | {:.4} | {:.4} | {} | {} |",
+            r.method,
+            r.pairs,
+            r.mean_ssim,
+            r.min_ssim,
+            opt(r.rms_error_um, 5),
+            opt(r.ssim_vs_specimen, 4)
+        );
+    }
+    println!();
+    println!("outputs: {}/{{{}}}", out.display(), METHODS.join(","));
+    Ok(())
+}
+
+struct Row {
+    method: &'static str,
+    pairs: usize,
+    mean_ssim: f64,
+    min_ssim: f64,
+    rms_error_um: Option<f64>,
+    ssim_vs_specimen: Option<f64>,
+}
+
+fn read_json(path: &Path) -> Result<Value> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("{}: cannot read", path.display()))?;
+    serde_json::from_str(&text).with_context(|| format!("{}: not valid JSON", path.display()))
+}
+
+fn num(v: &Value, path: &Path, field: &str) -> Result<f64> {
+    v.pointer(field)
+        .and_then(Value::as_f64)
+        .ok_or_else(|| anyhow!("{}: field {field} missing or not a number", path.display()))
+}
+
+fn score(method: &'static str, dir: &Path, truth: Option<&Truth>) -> Result<Row> {
+    let fpath = dir.join("nodes").join("fusion.json");
+    let fusion = read_json(&fpath)?;
+    let pairs = fusion
+        .pointer("/report/fusion_pairs")
+        .and_then(Value::as_array)
+        .ok_or_else(|| anyhow!("{}: report.fusion_pairs missing", fpath.display()))?;
+    let ssims: Vec<f64> = pairs
+        .iter()
+        .filter_map(|p| p.get("ssim_mean").and_then(Value::as_f64))
+        .collect();
+    let mean_ssim = ssims.iter().sum::<f64>() / ssims.len().max(1) as f64;
+    let min_ssim = ssims.iter().copied().fold(f64::NAN, f64::min);
+    let (rms_error_um, ssim_vs_specimen) = match truth {
+        Some(t) => {
+            let (rms, s) = t.compare(dir, &fusion, &fpath)?;
+            (Some(rms), s)
+        }
+        None => (None, None),
+    };
+    Ok(Row {
+        method,
+        pairs: ssims.len(),
+        mean_ssim,
+        min_ssim,
+        rms_error_um,
+        ssim_vs_specimen,
+    })
+}
+
+/// The specimen and tile 0's true origin, from make_tiles.py's files.
+struct Truth {
+    specimen: surfstream_common::npy::NpyArray<f32>,
+    origin0_px: [f64; 2],
+}
+
+impl Truth {
+    fn load(scan_dir: &Path) -> Result<Option<Truth>> {
+        let (spec, gt) = (
+            scan_dir.join("specimen.npy"),
+            scan_dir.join("ground_truth.json"),
+        );
+        if !spec.exists() || !gt.exists() {
+            return Ok(None);
+        }
+        let g = read_json(&gt)?;
+        let origin0_px = [
+            num(&g, &gt, "/tiles/0/true_origin_px/0")?,
+            num(&g, &gt, "/tiles/0/true_origin_px/1")?,
+        ];
+        let specimen = surfstream_common::npy::read_npy(&spec)?;
+        Ok(Some(Truth {
+            specimen,
+            origin0_px,
+        }))
+    }
+
+    /// Bilinear sample of the specimen at (x, y) specimen pixels; NaN outside or on a hole.
+    fn sample(&self, x: f64, y: f64) -> f64 {
+        let s = &self.specimen;
+        let (x0, y0) = (x.floor(), y.floor());
+        if x0 < 0.0 || y0 < 0.0 || x0 + 1.0 >= s.cols as f64 || y0 + 1.0 >= s.rows as f64 {
+            return f64::NAN;
+        }
+        let (c, r) = (x0 as usize, y0 as usize);
+        let (fx, fy) = (x - x0, y - y0);
+        let v = |r: usize, c: usize| f64::from(s.get(r, c));
+        (1.0 - fy) * ((1.0 - fx) * v(r, c) + fx * v(r, c + 1))
+            + fy * ((1.0 - fx) * v(r + 1, c) + fx * v(r + 1, c + 1))
+    }
+
+    /// (height RMS error, SSIM) of `dir`'s panorama against the specimen.
+    fn compare(&self, dir: &Path, fusion: &Value, fpath: &Path) -> Result<(f64, Option<f64>)> {
+        let run_path = dir.join("run.json");
+        let run = read_json(&run_path)?;
+        let x0_um = num(&run, &run_path, "/tiles/0/x_um")?;
+        let y0_um = num(&run, &run_path, "/tiles/0/y_um")?;
+        let ox = num(fusion, fpath, "/report/panorama/origin_x_um")?;
+        let oy = num(fusion, fpath, "/report/panorama/origin_y_um")?;
+        let px = num(fusion, fpath, "/report/panorama/pitch_x_um")?;
+        let py = num(fusion, fpath, "/report/panorama/pitch_y_um")?;
+        let pano = surfstream_common::npy::read_npy(dir.join("panorama.npy"))?;
+        let (rows, cols) = (pano.rows, pano.cols);
+        let mut p = Vec::with_capacity(rows * cols);
+        let mut t = Vec::with_capacity(rows * cols);
+        for r in 0..rows {
+            for c in 0..cols {
+                let sx = self.origin0_px[0] + (ox + c as f64 * px - x0_um) / px;
+                let sy = self.origin0_px[1] + (oy + r as f64 * py - y0_um) / py;
+                p.push(f64::from(pano.get(r, c)));
+                t.push(self.sample(sx, sy));
+            }
+        }
+        // Remove the least-squares plane of the difference (free height and tilt).
+        let plane = fit_plane(&p, &t, rows, cols)
+            .ok_or_else(|| anyhow!("{}: no pixel overlaps the specimen", dir.display()))?;
+        let mut sq = 0.0;
+        let mut n = 0usize;
+        let mut a = vec![f32::NAN; rows * cols];
+        let mut b = vec![f32::NAN; rows * cols];
+        for r in 0..rows {
+            for c in 0..cols {
+                let i = r * cols + c;
+                if p[i].is_finite() && t[i].is_finite() {
+                    let pl = plane[0] + plane[1] * c as f64 + plane[2] * r as f64;
+                    let d = p[i] - pl - t[i];
+                    sq += d * d;
+                    n += 1;
+                    a[i] = (p[i] - pl) as f32;
+                    b[i] = t[i] as f32;
+                }
+            }
+        }
+        let s = ssim(&a, &b, rows, cols, None).ok().map(|s| s.mssim);
+        Ok(((sq / n.max(1) as f64).sqrt(), s))
+    }
+}
+
+/// Least-squares plane `a + b c + d r` of `p - t` over pixels where both are finite.
+fn fit_plane(p: &[f64], t: &[f64], rows: usize, cols: usize) -> Option<[f64; 3]> {
+    let mut m = [[0.0f64; 3]; 3];
+    let mut v = [0.0f64; 3];
+    for r in 0..rows {
+        for c in 0..cols {
+            let i = r * cols + c;
+            if p[i].is_finite() && t[i].is_finite() {
+                let q = [1.0, c as f64, r as f64];
+                for (j, qj) in q.iter().enumerate() {
+                    for (k, qk) in q.iter().enumerate() {
+                        m[j][k] += qj * qk;
+                    }
+                    v[j] += qj * (p[i] - t[i]);
+                }
+            }
+        }
+    }
+    if m[0][0] == 0.0 {
+        return None;
+    }
+    // Cramer's rule on the 3 x 3 normal equations.
+    let det = |m: &[[f64; 3]; 3]| {
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    };
+    let d = det(&m);
+    if d.abs() < 1e-300 {
+        return Some([v[0] / m[0][0], 0.0, 0.0]);
+    }
+    let mut out = [0.0; 3];
+    for (j, o) in out.iter_mut().enumerate() {
+        let mut mj = m;
+        for k in 0..3 {
+            mj[k][j] = v[k];
+        }
+        *o = det(&mj) / d;
+    }
+    Some(out)
+}
