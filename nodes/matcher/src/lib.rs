@@ -44,7 +44,16 @@
 //!    textures fix no offset along their lines), or a shift from nominal beyond
 //!    `max_shift_px` (30 px) or 45 % of the overlap extent along that axis.
 //!
-//! # Z alignment: [`estimate_plane`]
+//! # Global solve: [`solve_positions`], [`solve_planes`]
+//!
+//! At end of scan the node places every tile from all accepted pair offsets at once (weighted
+//! least squares, stage positions as a weak prior, inconsistent links removed one by one; a tile
+//! left without a kept link is placed by the stage and flagged) and levels every tile by one
+//! least-squares fit of piston and tilt over all overlaps of the scan, the first tile held as
+//! gauge. See [`global`] for the model; `tests/global.rs` checks both against a synthetic
+//! scan's truth.
+//!
+//! # Z alignment while streaming: [`estimate_plane`]
 //!
 //! The piston and tilt of a tile relative to already-levelled neighbours: one least-squares
 //! plane (3 x 3 normal equations, Cholesky) of `b - (neighbour - its correction)` over all
@@ -81,11 +90,16 @@
 //! under 1 ms more.
 
 mod fft2;
+pub mod global;
 mod ncc;
 pub mod plane;
 pub mod raster;
 pub mod register;
 
+pub use global::{
+    solve_planes, solve_positions, GlobalSolution, Link, LinkOutcome, PlaneSolution, SolveError,
+    SolveParams,
+};
 pub use plane::{
     estimate_plane, estimate_plane_report, fit_plane, PlaneCorrection, PlaneError, PlaneEstimate,
     PlaneModel,
