@@ -1,18 +1,201 @@
-//! `surfstream mesh`: error-bounded triangle mesh of one height map, written as STL.
+//! `surfstream mesh`: error-bounded triangle mesh of one height map, written as STL, with its
+//! statistics in `OUT.json` beside it.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
 
-use anyhow::{bail, Result};
-use clap::Args;
+use anyhow::{anyhow, bail, Context, Result};
+use clap::{Args, ValueEnum};
+use serde_json::json;
+use surfstream_mesher::{
+    check_closed, mesh_height_field, stl, Epsilon, HeightFieldRef, LengthUnit, MeshKind,
+    MeshParams, MissingSamples, SolidParams,
+};
+
+#[derive(Clone, Copy, ValueEnum)]
+pub enum Units {
+    M,
+    Mm,
+    Um,
+}
 
 #[derive(Args)]
 pub struct MeshArgs {
-    /// Height-map file.
+    /// Height-map file (.npy in um, or any instrument format the readers know).
     pub file: PathBuf,
+    /// Largest vertical distance between any measured sample and the mesh, um.
+    #[arg(
+        long,
+        required_unless_present = "epsilon_sq",
+        conflicts_with = "epsilon_sq"
+    )]
+    pub epsilon_um: Option<f64>,
+    /// The bound as a fraction of the map's Sq (about its least-squares plane), e.g. 0.02.
+    #[arg(long)]
+    pub epsilon_sq: Option<f64>,
+    /// Stop refining at this many surface triangles (the bound may then not hold; OUT.json says).
+    #[arg(long)]
+    pub max_triangles: Option<usize>,
+    /// A closed solid: surface, side walls and a flat base (default).
+    #[arg(long, conflicts_with = "sheet")]
+    pub solid: bool,
+    /// The open surface alone (e.g. a wall); with --holes, missing samples stay holes.
+    #[arg(long)]
+    pub sheet: bool,
+    /// Leave missing samples out as holes instead of filling them (needs --sheet).
+    #[arg(long, requires = "sheet")]
+    pub holes: bool,
+    /// Write ASCII STL (LIGGGHTS) instead of binary (EDEM, Rocky, MercuryDPM).
+    #[arg(long)]
+    pub ascii: bool,
+    /// Unit of the STL coordinates.
+    #[arg(long, value_enum, default_value = "mm")]
+    pub units: Units,
+    /// Base of the solid below the lowest sample, um (default: 10 % of the height range, >= 10).
+    #[arg(long)]
+    pub base_depth_um: Option<f64>,
+    /// Sample spacing, um, for files without a lateral calibration (.npy); overrides the file's.
+    #[arg(long)]
+    pub pitch_um: Option<f64>,
+    /// Output STL; the statistics go to the same name with .json.
     #[arg(long)]
     pub out: PathBuf,
 }
 
-pub fn run(_a: MeshArgs) -> Result<()> {
-    bail!("mesh: not built yet")
+pub fn run(a: MeshArgs) -> Result<()> {
+    let surface = surfstream_common::formats::read_surface(&a.file)?;
+    let (pitch_x_um, pitch_y_um) = match a.pitch_um {
+        Some(p) if p.is_finite() && p > 0.0 => (p, p),
+        Some(p) => bail!("--pitch-um {p}: expected a finite number > 0"),
+        None => (surface.pitch_x_um, surface.pitch_y_um),
+    };
+    if a.pitch_um.is_none() && !surface.metadata.pitch_known {
+        eprintln!(
+            "mesh: {} carries no lateral calibration; using {pitch_x_um} um (give --pitch-um)",
+            a.file.display()
+        );
+    }
+    // Heights as f32 relative to their mean, so that f32 keeps nanometres however far up the
+    // z axis the part sits; the mean goes into z_offset_um and comes back in the offset.
+    let finite: Vec<f64> = surface
+        .heights_um
+        .iter()
+        .copied()
+        .filter(|h| h.is_finite())
+        .collect();
+    if finite.is_empty() {
+        bail!("{}: no measured sample (all NaN)", a.file.display());
+    }
+    let z_offset_um = finite.iter().sum::<f64>() / finite.len() as f64;
+    let heights_um: Vec<f32> = surface
+        .heights_um
+        .iter()
+        .map(|&h| (h - z_offset_um) as f32)
+        .collect();
+    let map = HeightFieldRef::new(
+        &heights_um,
+        surface.width,
+        surface.height,
+        pitch_x_um,
+        pitch_y_um,
+    )
+    .with_z_offset(z_offset_um);
+    let units = match a.units {
+        Units::M => LengthUnit::M,
+        Units::Mm => LengthUnit::Mm,
+        Units::Um => LengthUnit::Um,
+    };
+    let params = MeshParams {
+        epsilon: match (a.epsilon_um, a.epsilon_sq) {
+            (Some(e), _) => Epsilon::Um(e),
+            (None, Some(f)) => Epsilon::SqFraction(f),
+            (None, None) => bail!("give --epsilon-um or --epsilon-sq"),
+        },
+        max_triangles: a.max_triangles,
+        kind: if a.sheet {
+            MeshKind::Sheet
+        } else {
+            MeshKind::Solid
+        },
+        missing: if a.holes {
+            MissingSamples::Holes
+        } else {
+            MissingSamples::Fill
+        },
+        solid: SolidParams {
+            units,
+            base_depth_um: a.base_depth_um,
+            recentre: true,
+        },
+    };
+    let t0 = Instant::now();
+    let m = mesh_height_field(map, &params).with_context(|| format!("{}", a.file.display()))?;
+    let mesh_s = t0.elapsed().as_secs_f64();
+    let check = check_closed(&m.mesh);
+
+    let label = stl::stl_header(&m.mesh, "surfstream mesh");
+    surfstream_common::fsutil::write_atomic(&a.out, |w| {
+        if a.ascii {
+            surfstream_mesher::write_stl_ascii(w, &m.mesh, &label)?;
+        } else {
+            surfstream_mesher::write_stl_binary(w, &m.mesh, &label)?;
+        }
+        Ok(())
+    })?;
+    let json_path = a.out.with_extension("json");
+    let mut report = m.summary();
+    let o = report
+        .as_object_mut()
+        .ok_or_else(|| anyhow!("mesh summary is not an object"))?;
+    o.insert("input".into(), json!(a.file.display().to_string()));
+    o.insert("input_format".into(), json!(surface.metadata.format));
+    o.insert("grid_px".into(), json!([surface.width, surface.height]));
+    o.insert("pitch_um".into(), json!([pitch_x_um, pitch_y_um]));
+    o.insert("stl".into(), json!(file_name(&a.out)));
+    o.insert(
+        "format".into(),
+        json!(if a.ascii { "ascii" } else { "binary" }),
+    );
+    o.insert("watertight".into(), json!(check.watertight));
+    o.insert(
+        "consistently_oriented".into(),
+        json!(check.consistently_oriented),
+    );
+    o.insert(
+        "degenerate_triangles".into(),
+        json!(check.degenerate_triangles),
+    );
+    o.insert(
+        "duplicate_triangles".into(),
+        json!(check.duplicate_triangles),
+    );
+    o.insert("mesh_s".into(), json!(mesh_s));
+    surfstream_common::fsutil::write_atomic(&json_path, |w| {
+        serde_json::to_writer_pretty(w, &report)
+            .map_err(|e| anyhow!("{}: {e}", json_path.display()))
+    })?;
+    let f = &m.fidelity;
+    eprintln!(
+        "mesh: {} triangles ({} surface) in {mesh_s:.3} s; max error {:.4} um, RMS {:.4} um \
+         (epsilon {:.4} um{}); {} and {}",
+        m.mesh.triangles.len(),
+        m.surface_triangles,
+        f.error.max_um,
+        f.error.rms_um,
+        f.epsilon_um,
+        if m.budget_reached {
+            ", triangle budget reached"
+        } else {
+            ""
+        },
+        a.out.display(),
+        json_path.display()
+    );
+    Ok(())
+}
+
+fn file_name(p: &Path) -> String {
+    p.file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default()
 }

@@ -56,6 +56,10 @@ pub enum MeshError {
     #[error("invalid mesh: {0}")]
     InvalidMesh(String),
 
+    /// Two options that cannot be combined, or an option the input cannot satisfy.
+    #[error("{0}")]
+    Incompatible(String),
+
     /// Writing the STL stream failed.
     #[error("writing STL: {0}")]
     Io(#[from] std::io::Error),

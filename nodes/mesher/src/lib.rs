@@ -31,13 +31,17 @@
 //! # Ok::<(), surfstream_mesher::MeshError>(())
 //! ```
 
+pub mod adaptive;
 pub mod check;
 pub mod error;
+pub mod fidelity;
 pub mod field;
 mod geom;
 pub mod solid;
 pub mod stl;
+pub mod tin;
 
+pub use adaptive::{mesh_height_field, AdaptiveMesh, Epsilon, MeshKind, MeshParams};
 pub use check::{check_closed, MeshCheck};
 pub use error::{MeshError, Result};
 pub use field::{fill_missing, HeightFieldRef};
@@ -45,4 +49,5 @@ pub use solid::{
     close_top_surface, default_base_depth_um, grid_solid, LengthUnit, SolidMesh, SolidParams,
 };
 pub use stl::{write_stl_ascii, write_stl_binary};
+pub use tin::{triangulate, MissingSamples, Tin, TinParams};
 pub mod node;

@@ -1,5 +1,6 @@
-//! The mesher node: turns the final (pooled) surface into a closed STL solid. Live patches are
-//! counted and skipped: a mesh is written once, from the exact final surface.
+//! The mesher node: turns the final (pooled) surface into an error-bounded STL solid or sheet
+//! (or, with `method = "grid"`, the full-grid solid). Live patches are counted and skipped: a
+//! mesh is written once, from the exact final surface.
 
 use anyhow::{anyhow, bail, Result};
 use serde::Deserialize;
@@ -8,7 +9,13 @@ use surfstream_common::frame::{flags, monotonic_ns, HeightMap};
 use surfstream_common::graph::NodeContext;
 use surfstream_common::node::{Input, NodeLogic, Outbox};
 
-use crate::{check_closed, grid_solid, stl, HeightFieldRef, LengthUnit, SolidParams};
+use crate::{
+    check_closed, grid_solid, mesh_height_field, stl, Epsilon, HeightFieldRef, LengthUnit,
+    MeshKind, MeshParams, MissingSamples, SolidParams,
+};
+
+/// The bound when the graph gives none: 5 % of the surface's Sq.
+const DEFAULT_EPSILON_SQ_FRACTION: f64 = 0.05;
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -23,6 +30,26 @@ struct Params {
     base_depth_um: Option<f64>,
     #[serde(default = "stl_name")]
     file: String,
+    /// "adaptive" (error-bounded, default) or "grid" (two triangles per grid cell).
+    #[serde(default = "adaptive")]
+    method: String,
+    /// Largest vertical error, um (adaptive).
+    epsilon_um: Option<f64>,
+    /// Largest vertical error as a fraction of the surface's Sq (adaptive; default 0.05 when
+    /// `epsilon_um` is not given).
+    epsilon_sq_fraction: Option<f64>,
+    /// Triangle budget of the surface (adaptive).
+    max_triangles: Option<usize>,
+    /// "solid" (default) or "sheet" (adaptive).
+    #[serde(default)]
+    kind: MeshKind,
+    /// "fill" (default) or "holes" (sheet only): missing samples.
+    #[serde(default)]
+    missing: MissingSamples,
+}
+
+fn adaptive() -> String {
+    "adaptive".into()
 }
 
 fn binary() -> String {
@@ -34,6 +61,8 @@ fn stl_name() -> String {
 
 pub struct MesherNode {
     params: SolidParams,
+    /// `None`: the full-grid solid.
+    adaptive: Option<MeshParams>,
     ascii: bool,
     path: std::path::PathBuf,
     file: String,
@@ -62,8 +91,35 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
     params
         .validate()
         .map_err(|e| anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id))?;
+    let adaptive = match p.method.as_str() {
+        "grid" => None,
+        "adaptive" => {
+            let epsilon = match (p.epsilon_um, p.epsilon_sq_fraction) {
+                (Some(_), Some(_)) => bail!(
+                    "graph '{}', node '{}': give epsilon_um or epsilon_sq_fraction, not both",
+                    ctx.graph_name,
+                    ctx.node_id
+                ),
+                (Some(e), None) => Epsilon::Um(e),
+                (None, f) => Epsilon::SqFraction(f.unwrap_or(DEFAULT_EPSILON_SQ_FRACTION)),
+            };
+            Some(MeshParams {
+                epsilon,
+                max_triangles: p.max_triangles,
+                kind: p.kind,
+                missing: p.missing,
+                solid: params.clone(),
+            })
+        }
+        other => bail!(
+            "graph '{}', node '{}': method = {other:?}: expected \"adaptive\" or \"grid\"",
+            ctx.graph_name,
+            ctx.node_id
+        ),
+    };
     Ok(Box::new(MesherNode {
         params,
+        adaptive,
         ascii,
         path: ctx.out_dir.join(&p.file),
         file: p.file,
@@ -91,7 +147,14 @@ impl MesherNode {
             origin_y_um: h.origin_y_um,
             z_offset_um: h.z_offset_um,
         };
-        let solid = grid_solid(field, &self.params)?;
+        let (solid, adaptive) = match &self.adaptive {
+            None => (grid_solid(field, &self.params)?, None),
+            Some(p) => {
+                let m = mesh_height_field(field, p)?;
+                let summary = m.summary();
+                (m.mesh, Some(summary))
+            }
+        };
         let check = check_closed(&solid);
         let label = stl::stl_header(&solid, "surfstream surface");
         let ascii = self.ascii;
@@ -121,6 +184,14 @@ impl MesherNode {
             "t_written_ns": monotonic_ns(),
             "live_frames_skipped": self.live_frames,
         });
+        if let (Some(o), Some(serde_json::Value::Object(a))) =
+            (self.summary.as_object_mut(), adaptive)
+        {
+            o.insert("method".into(), json!("adaptive"));
+            o.extend(a);
+        } else if let Some(o) = self.summary.as_object_mut() {
+            o.insert("method".into(), json!("grid"));
+        }
         Ok(())
     }
 }
