@@ -178,14 +178,16 @@ fn bad_scan_directories_are_named() {
         err
     };
 
-    // A missing field.
+    // A missing field (the .npy tiles carry no pitch, so the manifest must).
+    tile(&scan, "tile_000.npy", 64, 100);
+    tile(&scan, "tile_001.npy", 64, 100);
     write(&s, &GOOD_SCAN.replace("pitch_y_um = 0.8148\n", ""));
     let err = stitch("pitch_y_um");
     assert!(err.contains("scan.toml"), "{err}");
 
     // A missing tile file.
     write(&s, GOOD_SCAN);
-    tile(&scan, "tile_000.npy", 64, 100);
+    std::fs::remove_file(scan.join("tile_001.npy")).unwrap();
     let err = stitch("tile_001.npy");
     assert!(err.contains("no such tile file"), "{err}");
 

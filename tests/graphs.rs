@@ -141,7 +141,8 @@ with open(sys.argv[1], "rb") as f:
             payload = len(message.data) - 4 - hlen
             assert payload == 1024 * 1024 * 4, payload
 assert counts.get("stage/tiles") == 5, counts
-assert counts.get("matcher/registrations") == 5, counts
+# 4 streamed + 4 FINAL (global solve) + end of scan
+assert counts.get("matcher/registrations") == 9, counts
 assert "surfstream.FrameHeader.v1" in schemas and "surfstream.TileRegistration.v1" in schemas, schemas
 import trimesh
 m = trimesh.load(sys.argv[2])
@@ -199,8 +200,9 @@ fn demo_launch_run_and_replay_agree_and_match_the_truth() {
     for node in ["matcher", "fusion", "recorder"] {
         assert_eq!(msgs[node]["received"]["tiles"], 5, "{node}");
     }
-    assert_eq!(msgs["fusion"]["received"]["registrations"], 5);
-    assert_eq!(msgs["recorder"]["received"]["registrations"], 5);
+    // Registrations: 4 streamed, 4 FINAL from the global solve, end of scan.
+    assert_eq!(msgs["fusion"]["received"]["registrations"], 9);
+    assert_eq!(msgs["recorder"]["received"]["registrations"], 9);
     assert_eq!(
         msgs["wavelet"]["received"]["panorama"],
         msgs["fusion"]["sent"]["panorama"]

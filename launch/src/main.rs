@@ -1,8 +1,11 @@
 //! `surfstream`: start a node graph as processes (`launch`) or threads (`run`), or stitch a
 //! scan directory or recording in one go (`stitch`).
 
+mod compare_fusion;
+mod deviation;
 mod launcher;
 mod nodes;
+mod report;
 mod runjson;
 mod verbs;
 
@@ -57,6 +60,15 @@ enum Command {
         /// Override one node parameter (nodes: stage, matcher, fusion, wavelet, mesher).
         #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
         set: Vec<String>,
+        /// Registration method of the matcher: phase | auto (auto = the best available;
+        /// the same as `--set matcher.method=...`).
+        #[arg(long, value_name = "METHOD")]
+        method: Option<String>,
+        /// Stitch once per fusion method (average, gradual, wavelet) into OUT/<method>/ and
+        /// print the SSIM of the overlaps side by side (the paper's Table 2), plus the height
+        /// error against the specimen when the scan has make_tiles.py's ground truth.
+        #[arg(long)]
+        compare_fusion: bool,
     },
     /// Show a height-map file's metadata, shape, pitch and invalid count.
     Inspect(verbs::metrology::InspectArgs),
@@ -93,8 +105,21 @@ fn dispatch(cli: Cli) -> Result<()> {
             let graph = load_graph(&a)?;
             launcher::run_in_process(graph, &a.graph)
         }
-        Command::Stitch { scan, out, set } => {
-            let graph = stitch_graph(&scan, out, &set)?;
+        Command::Stitch {
+            scan,
+            out,
+            set,
+            method,
+            compare_fusion: true,
+        } => compare_fusion::run(&scan, &out, &set, method.as_deref()),
+        Command::Stitch {
+            scan,
+            out,
+            set,
+            method,
+            compare_fusion: false,
+        } => {
+            let graph = stitch_graph(&scan, out, &set, method.as_deref())?;
             launcher::run_in_process(graph, &scan)
         }
         Command::Inspect(a) => verbs::metrology::inspect(a),
@@ -120,7 +145,12 @@ fn load_graph(a: &GraphArgs) -> Result<GraphFile> {
 }
 
 /// The default pipeline for a scan directory or a recording.
-fn stitch_graph(scan: &std::path::Path, out: PathBuf, set: &[String]) -> Result<GraphFile> {
+fn stitch_graph(
+    scan: &std::path::Path,
+    out: PathBuf,
+    set: &[String],
+    method: Option<&str>,
+) -> Result<GraphFile> {
     let source = if scan.extension().is_some_and(|e| e == "mcap") {
         toml::Value::String("mcap".into())
     } else {
@@ -176,6 +206,10 @@ inputs = {{ surface = "wavelet/pooled" }}
         path = path_str
     );
     let mut graph = GraphFile::parse(&text, "stitch pipeline")?;
+    if let Some(m) = method {
+        // A string, whatever it looks like: the matcher validates the name.
+        graph.apply_override(&format!("matcher.method={}", toml::Value::String(m.into())))?;
+    }
     for s in set {
         graph.apply_override(s)?;
     }

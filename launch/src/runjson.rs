@@ -90,10 +90,12 @@ pub fn write(
         "files": files,
         "elapsed_s": elapsed.as_secs_f64(),
     });
+    let run = crate::deviation::attach(out, run);
     let path = out.join("run.json");
     surfstream_common::fsutil::write_atomic(&path, |w| {
         serde_json::to_writer_pretty(w, &run).map_err(|e| anyhow!("{}: {e}", path.display()))
     })?;
+    crate::report::write(out)?;
     Ok(summary(&run, &lat, out))
 }
 
