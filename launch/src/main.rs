@@ -86,6 +86,18 @@ enum Command {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    if !matches!(
+        cli.command,
+        Command::Launch(_) | Command::Run(_) | Command::Stitch { .. }
+    ) {
+        // The single-file verbs print tables that users pipe into `head` or `grep`: a closed
+        // pipe ends them quietly, like any Unix filter, instead of a "Broken pipe" panic.
+        // (Graph verbs keep Rust's default, so a supervisor never dies of a closed terminal.)
+        // SAFETY: restoring a signal's default disposition before any thread is started.
+        unsafe {
+            libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+        }
+    }
     match dispatch(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
