@@ -51,7 +51,7 @@ mod resample;
 
 pub use error::{FusionError, Result};
 pub use input::{BlendParams, PlaneCorrection, TileInput};
-pub use method::{fuse_wavelet, FusionMethod, WaveletFusion};
+pub use method::{fuse_wavelet, fuse_wavelet_in, FusionMethod, WaveletFusion};
 pub use panorama::{render, render_panorama, Panorama, Raster, Region, DEFAULT_MAX_CANVAS_PX};
 pub use quality::{overlap_quality, PairQuality};
 pub mod node;

@@ -8,7 +8,8 @@
 //!   symmetric by default), the approximations are averaged, and each detail coefficient is
 //!   taken from the input whose coefficient is larger in magnitude (the "max-abs" rule of the
 //!   image-fusion literature: it keeps the sharper of the two textures instead of blurring
-//!   them together); the inverse DWT gives the fused overlap. Pixels only one side measured
+//!   them together); the inverse DWT gives the fused overlap, feathered into the lone sides
+//!   over [`feather_px`] from the overlap's edge so no step remains. Pixels only one side measured
 //!   keep that side's value, so a pixel valid in any tile is valid in the panorama. With more
 //!   than two tiles over a pixel (corners), tiles are fused one at a time in index order.
 
@@ -93,6 +94,20 @@ pub fn fuse_wavelet(
     cols: usize,
     p: &WaveletFusion,
 ) -> Result<Vec<f32>, WaveletError> {
+    fuse_wavelet_in(a, b, rows, cols, p, |_, _| false)
+}
+
+/// [`fuse_wavelet`] for a raster that sits inside a larger one where only `a` continues:
+/// `a_beyond(row, col)` (indices may be -1 or `rows` / `cols`) says whether `a` is measured
+/// just outside, so the feathering also meets `a` there without a step.
+pub fn fuse_wavelet_in(
+    a: &[f32],
+    b: &[f32],
+    rows: usize,
+    cols: usize,
+    p: &WaveletFusion,
+    a_beyond: impl Fn(isize, isize) -> bool,
+) -> Result<Vec<f32>, WaveletError> {
     let n = rows * cols;
     if a.len() != n || b.len() != n {
         return Err(WaveletError::SizeMismatch {
@@ -148,16 +163,98 @@ pub fn fuse_wavelet(
     let ca = wavedec2(&fa, h, w, &p.wavelet, p.mode, level)?;
     let cb = wavedec2(&fb, h, w, &p.wavelet, p.mode, level)?;
     let fused = waverec2(&fuse_coeffs(ca, &cb), &p.wavelet, p.mode)?;
+    // Feathering: the fused overlap differs from the single tile just outside it (its
+    // approximation is the two sides' mean), which leaves a step where an overlap ends. Over
+    // `feather_px` from the edge of the both-measured region the result slides from the
+    // distance-weighted blend of the two sides (equal to the lone side at the edge, as in
+    // the gradual method) to the wavelet fusion.
+    // Distances to where only one side shows: near a lone-`a` pixel the blend is `a`, near a
+    // lone-`b` pixel it is `b`. Pixels neither side measured show nothing and do not count.
+    let lone_b = distance_to(
+        rows,
+        cols,
+        |i| !a[i].is_finite() && b[i].is_finite(),
+        |_, _| false,
+    );
+    let lone_a = distance_to(
+        rows,
+        cols,
+        |i| a[i].is_finite() && !b[i].is_finite(),
+        &a_beyond,
+    );
+    let feather_px = feather_px(level);
     for r in 0..h {
         for c in 0..w {
             let i = (r + r0) * cols + c + c0;
             if a[i].is_finite() && b[i].is_finite() {
                 // waverec2 gives one extra row / column on odd sizes: index, never reshape.
-                out[i] = fused.as_slice()[r * fused.cols() + c] as f32;
+                let f = fused.as_slice()[r * fused.cols() + c];
+                // `a` weighs with the distance to lone `b`, `b` with the distance to lone `a`.
+                let (da, db) = (f64::from(lone_b[i]), f64::from(lone_a[i]));
+                let edge = (da.min(db) / feather_px).min(1.0);
+                let blend = (da * f64::from(a[i]) + db * f64::from(b[i])) / (da + db);
+                out[i] = (edge * f + (1.0 - edge) * blend) as f32;
             }
         }
     }
     Ok(out)
+}
+
+/// Width of the seam feathering of wavelet fusion, px: four times the coarsest fused
+/// approximation's sample spacing, so the step of the averaged approximation is spread over
+/// a few of its own samples.
+pub fn feather_px(level: usize) -> f64 {
+    4.0 * f64::from(1u32 << level.min(16))
+}
+
+/// Chamfer (3-4) distance, px, from every pixel to the nearest pixel `i` with `target(i)`,
+/// or just outside the raster at (row, col) with `outside(row, col)`. Large (1e9 / 3) when
+/// there is none.
+fn distance_to(
+    rows: usize,
+    cols: usize,
+    target: impl Fn(usize) -> bool,
+    outside: impl Fn(isize, isize) -> bool,
+) -> Vec<f32> {
+    const FAR: f32 = 1.0e9;
+    let mut d: Vec<f32> = (0..rows * cols)
+        .map(|i| if target(i) { 0.0 } else { FAR })
+        .collect();
+    let at = |d: &[f32], r: isize, c: isize| -> f32 {
+        if r < 0 || c < 0 || r >= rows as isize || c >= cols as isize {
+            if outside(r, c) {
+                0.0
+            } else {
+                FAR
+            }
+        } else {
+            d[r as usize * cols + c as usize]
+        }
+    };
+    for r in 0..rows as isize {
+        for c in 0..cols as isize {
+            let i = r as usize * cols + c as usize;
+            let v = d[i]
+                .min(at(&d, r, c - 1) + 3.0)
+                .min(at(&d, r - 1, c) + 3.0)
+                .min(at(&d, r - 1, c - 1) + 4.0)
+                .min(at(&d, r - 1, c + 1) + 4.0);
+            d[i] = v;
+        }
+    }
+    for r in (0..rows as isize).rev() {
+        for c in (0..cols as isize).rev() {
+            let i = r as usize * cols + c as usize;
+            let v = d[i]
+                .min(at(&d, r, c + 1) + 3.0)
+                .min(at(&d, r + 1, c) + 3.0)
+                .min(at(&d, r + 1, c + 1) + 4.0)
+                .min(at(&d, r + 1, c - 1) + 4.0);
+            d[i] = v;
+        }
+    }
+    // The 3-4 chamfer counts 3 per pixel step.
+    d.iter().map(|v| v / 3.0).collect()
 }
 
 /// Approximations averaged, details by the max-abs rule (ties keep `a`'s).
@@ -259,6 +356,40 @@ mod tests {
         let f = fuse_wavelet(&a, &b, 5, 6, &WaveletFusion::default()).unwrap();
         assert!(f.iter().all(|&v| v == 2.0));
         assert!(fuse_wavelet(&a, &b[..4], 5, 6, &WaveletFusion::default()).is_err());
+    }
+
+    #[test]
+    fn no_step_where_an_overlap_ends() {
+        // Two tiles of one smooth surface, the second 0.5 um higher (a piston nobody removed):
+        // without feathering the fused overlap (mean approximation) meets the lone tiles with
+        // a 0.25 um step on each side.
+        let (rows, cols) = (40, 112);
+        let f = |r: usize, c: usize| (0.05 * c as f32).sin() + 0.01 * r as f32;
+        let mut a = vec![f32::NAN; rows * cols];
+        let mut b = vec![f32::NAN; rows * cols];
+        for r in 0..rows {
+            for c in 0..cols {
+                if c < 80 {
+                    a[r * cols + c] = f(r, c);
+                }
+                if c >= 32 {
+                    b[r * cols + c] = f(r, c) + 0.5;
+                }
+            }
+        }
+        let out = fuse_wavelet(&a, &b, rows, cols, &WaveletFusion::default()).unwrap();
+        let mut worst = 0.0f32;
+        for r in 0..rows {
+            for c in 0..cols - 1 {
+                let jump = out[r * cols + c + 1] - out[r * cols + c] - (f(r, c + 1) - f(r, c));
+                worst = worst.max(jump.abs());
+            }
+        }
+        // 0.5 um spread over the 48 px overlap is ~0.01 um per px; a step would be 0.25.
+        assert!(
+            worst < 0.05,
+            "largest jump beyond the surface's own slope: {worst}"
+        );
     }
 
     #[test]

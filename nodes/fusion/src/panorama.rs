@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{FusionError, Result};
 use crate::input::{validate_pitch, BlendParams, TileInput};
-use crate::method::{fuse_wavelet, WaveletFusion};
+use crate::method::{fuse_wavelet_in, WaveletFusion};
 use crate::resample::{AxisPlan, Resampler, MAX_OFFSET_PX};
 
 /// A rectangle of canvas pixels: columns `x0 .. x0 + width`, rows `y0 .. y0 + height`.
@@ -556,12 +556,18 @@ impl Panorama {
             }
         }
         let canvas_z = self.extract(region);
-        let fused = fuse_wavelet(&canvas_z, &tile_z, region.height, w, wf).map_err(|e| {
-            FusionError::WaveletFusion {
+        // Whether the canvas has data just outside the footprint: there the tile's edge is a
+        // seam the feathering must close.
+        let (cw, ch) = (self.canvas.width() as isize, self.canvas.height() as isize);
+        let canvas_beyond = |r: isize, c: isize| {
+            let (y, x) = (region.y0 as isize + r, region.x0 as isize + c);
+            (0..ch).contains(&y) && (0..cw).contains(&x) && self.weight[(y * cw + x) as usize] > 0.0
+        };
+        let fused = fuse_wavelet_in(&canvas_z, &tile_z, region.height, w, wf, canvas_beyond)
+            .map_err(|e| FusionError::WaveletFusion {
                 index,
                 message: e.to_string(),
-            }
-        })?;
+            })?;
         let stride = self.canvas.width();
         for j in 0..region.height {
             let row = (region.y0 + j) * stride + region.x0;
