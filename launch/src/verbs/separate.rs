@@ -11,7 +11,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 use surfstream_common::formats::read_surface;
 use surfstream_common::fsutil::write_atomic;
-use surfstream_common::npy::write_npy_f32;
+use surfstream_common::npy::{write_npy_f32, write_npy_f64};
 use surfstream_wavelet::{analyse, BaseChoice, LevelChoice, Mode, PoolOp, Wavelet};
 
 #[derive(Args)]
@@ -68,8 +68,23 @@ pub fn run(a: SeparateArgs) -> Result<()> {
     }
 
     let s = read_surface(&a.file)?;
-    // Frames and outputs are f32 (DESIGN §2); the separation itself runs in f64.
-    let heights: Vec<f32> = s.heights_um.iter().map(|&z| z as f32).collect();
+    // The separation takes f32 heights (as frames carry them, DESIGN §2) and runs in f64.
+    // Instrument heights can sit tens of um up (MetroPro: ~50 um), where f32 keeps only
+    // ~4e-6 um: remove the mean first, as frames do with z_offset_um, and add it back to
+    // the datum and the pooled map, which are written in f64.
+    let (sum, count) = s
+        .heights_um
+        .iter()
+        .filter(|z| z.is_finite())
+        .fold((0.0f64, 0usize), |(s, n), &z| (s + z, n + 1));
+    let z_offset_um = if count > 0 { sum / count as f64 } else { 0.0 };
+    let heights: Vec<f32> = s
+        .heights_um
+        .iter()
+        .map(|&z| (z - z_offset_um) as f32)
+        .collect();
+    let with_offset =
+        |v: &[f32]| -> Vec<f64> { v.iter().map(|&z| f64::from(z) + z_offset_um).collect() };
     let an = analyse(
         &heights, s.height, s.width, base, level, mode, a.pool, pool_op,
     )
@@ -78,16 +93,21 @@ pub fn run(a: SeparateArgs) -> Result<()> {
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("{}: cannot create the output directory", a.out.display()))?;
     let sep = &an.separation;
-    write_npy_f32(a.out.join("datum.npy"), &sep.datum, s.height, s.width)?;
+    write_npy_f64(
+        a.out.join("datum.npy"),
+        &with_offset(&sep.datum),
+        s.height,
+        s.width,
+    )?;
     write_npy_f32(
         a.out.join("roughness.npy"),
         &sep.roughness,
         s.height,
         s.width,
     )?;
-    write_npy_f32(
+    write_npy_f64(
         a.out.join("pooled.npy"),
-        &an.pooled.heights,
+        &with_offset(&an.pooled.heights),
         an.pooled.rows,
         an.pooled.cols,
     )?;
@@ -98,6 +118,9 @@ pub fn run(a: SeparateArgs) -> Result<()> {
             serde_json::json!(a.file.display().to_string()),
         );
         o.insert("input_px".into(), serde_json::json!([s.width, s.height]));
+        // Heights inside the summary (pooling bias means) are relative to this; datum.npy and
+        // pooled.npy are absolute (f64), roughness.npy has no offset.
+        o.insert("z_offset_um".into(), serde_json::json!(z_offset_um));
         o.insert(
             "pitch_um".into(),
             serde_json::json!([s.pitch_x_um, s.pitch_y_um]),
