@@ -663,15 +663,20 @@ fn npy_and_unknown_extension() {
     assert!(e.contains("a.tif") && e.contains("unsupported"), "{e}");
 }
 
-/// Found by `cargo fuzz run datx` (2026-11-21): a /MetaData dataspace claiming 3 TB. The
-/// reader must refuse it with an error naming the file and the dataset. hdf5-reader reserves
-/// fallibly, so the release build fails cleanly; AddressSanitizer reports the attempted
-/// allocation itself, hence ASAN_OPTIONS=allocator_may_return_null=1 when fuzzing.
+/// Found by `cargo fuzz run datx` (2026-11-21): /MetaData dataspaces claiming 3 TB and 8 GB
+/// in files of a few KB. The reader refuses them before allocating, with an error naming the
+/// file and the dataset (the 8 GB one was allocated and zeroed before the size check).
 #[test]
 fn datx_lying_dataspace_is_a_clear_error() {
-    let path =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/fuzz-datx-3tb-dataspace.datx");
-    let err = format!("{:#}", read_surface(&path).unwrap_err());
-    assert!(err.contains("fuzz-datx-3tb-dataspace.datx"), "{err}");
-    assert!(err.contains("/MetaData"), "{err}");
+    for name in [
+        "fuzz-datx-3tb-dataspace.datx",
+        "fuzz-datx-8gb-metadata.datx",
+    ] {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/fixtures")
+            .join(name);
+        let err = format!("{:#}", read_surface(&path).unwrap_err());
+        assert!(err.contains(name), "{err}");
+        assert!(err.contains("/MetaData: declares"), "{err}");
+    }
 }

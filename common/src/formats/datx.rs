@@ -60,6 +60,18 @@ fn stored_size(ds: &Dataset, dtype: &Datatype) -> Result<usize> {
     })
 }
 
+/// A dataset cannot hold more than its file's bytes expanded by deflate's best ratio (1032:1):
+/// a larger declared size is a lying header, refused before anything is allocated for it.
+fn plausible_size(declared_bytes: usize, file_len: usize, what: &str) -> Result<()> {
+    const DEFLATE_MAX_RATIO: usize = 1032;
+    if declared_bytes > file_len.saturating_mul(DEFLATE_MAX_RATIO) {
+        bail!(
+            "{what}: declares {declared_bytes} bytes of data, more than a {file_len}-byte file can hold even deflated (x{DEFLATE_MAX_RATIO})"
+        );
+    }
+    Ok(())
+}
+
 fn field_slice<'a>(raw: &'a [u8], offset: usize, len: usize, what: &str) -> Result<&'a [u8]> {
     raw.get(offset..offset.saturating_add(len))
         .with_context(|| {
@@ -71,7 +83,7 @@ fn field_slice<'a>(raw: &'a [u8], offset: usize, len: usize, what: &str) -> Resu
 }
 
 /// The `/MetaData` link table as (source, link, destination) triples.
-fn link_table(file: &Hdf5File) -> Result<Vec<(String, String, String)>> {
+fn link_table(file: &Hdf5File, file_len: usize) -> Result<Vec<(String, String, String)>> {
     let ds = h5(
         file.dataset("/MetaData"),
         "dataset /MetaData (the link table)",
@@ -86,6 +98,10 @@ fn link_table(file: &Hdf5File) -> Result<Vec<(String, String, String)>> {
             .with_context(|| format!("/MetaData: member '{name}' missing"))
     };
     let (src, link, dst) = (field("Source")?, field("Link")?, field("Destination")?);
+    let shape: Vec<usize> = ds.shape().iter().map(|&d| d as usize).collect();
+    let records = checked_size(&shape, "/MetaData shape")?;
+    let declared = checked_size(&[records, size as usize], "/MetaData size")?;
+    plausible_size(declared, file_len, "/MetaData")?;
     let raw = h5(ds.read_raw_bytes(), "/MetaData")?;
     let rec = size as usize;
     if rec == 0 {
@@ -207,7 +223,7 @@ fn pitch_m(ds: &Dataset, name: &str) -> Result<Option<f64>> {
 
 pub fn parse(data: &[u8]) -> Result<Surface> {
     let file = h5(Hdf5File::from_bytes(data), "not a readable HDF5 file")?;
-    let table = link_table(&file)?;
+    let table = link_table(&file, data.len())?;
     let measurement = follow(&table, "Root", "Measurement")?;
     let surface_node = follow(&table, &measurement, "Surface")?;
     let path = follow(&table, &surface_node, "Path")?;
@@ -224,6 +240,11 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
         }
         other => bail!("surface dataset '{path}': type {other:?}, expected float32 or float64"),
     };
+    plausible_size(
+        checked_size(&[n, elem], "surface size")?,
+        data.len(),
+        &format!("surface dataset '{path}'"),
+    )?;
     let raw = h5(ds.read_raw_bytes(), &format!("surface dataset '{path}'"))?;
     if raw.len() != n * elem {
         bail!(
