@@ -3,6 +3,7 @@
 //!
 //!     cargo run --release -p surfstream-common --example metrology_bench -- params FILE.npy [REPS]
 //!     cargo run --release -p surfstream-common --example metrology_bench -- read FILE... [REPS via SURFSTREAM_REPS]
+//!     cargo run --release -p surfstream-common --example metrology_bench -- make-sur IN.npy OUT.sur plain|compressed
 //!
 //! Prints one JSON line per measurement: median / min / max seconds over the repeats (the
 //! first, warm-up run is not counted), and the rayon thread count.
@@ -12,7 +13,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use surfstream_common::formats::read_surface;
-use surfstream_common::metrology::{level_plane, params, Grid};
+use surfstream_common::metrology::{height_params, hybrid_params, level_plane, params, Grid};
 
 fn stats(mut t: Vec<f64>) -> serde_json::Value {
     t.sort_by(f64::total_cmp);
@@ -40,6 +41,9 @@ fn main() -> Result<()> {
             let s = read_surface(Path::new(file))?;
             let g = Grid::new(&s.heights_um, s.height, s.width, s.pitch_x_um, s.pitch_y_um)?;
             let (all9, p) = time(reps, || Ok(params(&g)?))?;
+            // Where the time goes: the height parameters alone, the two hybrid ones alone.
+            let (heights7, _) = time(reps, || Ok(height_params(&g)?))?;
+            let (hybrid2, _) = time(reps, || Ok(hybrid_params(&g)))?;
             let (lev, _) = time(reps, || {
                 let l = level_plane(&g)?;
                 Ok(params(&Grid {
@@ -50,7 +54,7 @@ fn main() -> Result<()> {
             println!(
                 "{}",
                 serde_json::json!({"what": "params", "file": file, "rows": s.height, "cols": s.width,
-                    "rayon_threads": threads, "all_9_params": all9, "level_and_all_9": lev, "params": p})
+                    "rayon_threads": threads, "all_9_params": all9, "height_7": heights7, "sdq_sdr": hybrid2, "level_and_all_9": lev, "params": p})
             );
         }
         Some("read") => {
@@ -68,7 +72,27 @@ fn main() -> Result<()> {
                 );
             }
         }
-        _ => bail!("usage: metrology_bench params FILE.npy [REPS] | read FILE..."),
+        Some("make-sur") => {
+            // Benchmark inputs only: a .sur (1 nm steps) of the same heights, plain or compressed.
+            let (input, out, kind) = match &args[1..] {
+                [i, o, k] => (i, o, k.as_str()),
+                _ => bail!("make-sur IN.npy OUT.sur plain|compressed"),
+            };
+            let compressed = match kind {
+                "plain" => false,
+                "compressed" => true,
+                other => bail!("make-sur: '{other}', expected plain or compressed"),
+            };
+            let s = read_surface(Path::new(input))?;
+            let bytes = surfstream_common::formats::sur::encode_for_tests(&s, compressed, false);
+            surfstream_common::fsutil::write_atomic(Path::new(out), |w| {
+                use std::io::Write;
+                Ok(w.write_all(&bytes)?)
+            })?;
+        }
+        _ => bail!(
+            "usage: metrology_bench params FILE.npy [REPS] | read FILE... | make-sur IN.npy OUT.sur plain|compressed"
+        ),
     }
     Ok(())
 }

@@ -13,13 +13,18 @@
 //!   Sdr and Sdq need a filled grid to mean what ISO says; on data with holes they describe
 //!   the measured part only.
 //!
-//! Sums: each row is summed in four independent lanes (short, so the error stays ~1e-15
-//! relative) and rows are combined with Neumaier's compensated summation; naive f64 sums over
-//! 1e7 points drift past 1e-9 relative. Rows run in parallel (rayon); the result does not
-//! depend on the thread count (rows are combined in a fixed order).
+//! Computation: two passes over the heights. The first gathers everything that does not need
+//! the mean (count, sum, min, max, the squared differences and the four corner-triangle
+//! normals of every cell), the second the central sums about the first mean, corrected
+//! algebraically to the exact mean. Each row is summed in short vector lanes (`wide::f64x4`,
+//! NaN masked out branch-free; chains of cols / 4 terms keep the error ~1e-15 relative) and
+//! rows are combined in row order with Neumaier's compensated summation (naive f64 sums over
+//! 1e7 points drift past 1e-9 relative). Rows run in parallel (rayon); the result does not
+//! depend on the thread count, bit for bit.
 
 use rayon::prelude::*;
 use serde::Serialize;
+use wide::{f64x4, CmpEq, CmpGt, CmpLt};
 
 /// Neumaier's compensated sum.
 #[derive(Debug, Clone, Copy, Default)]
@@ -196,67 +201,283 @@ fn row_sums<const K: usize>(rows: usize, f: impl Fn(usize) -> [f64; K] + Sync) -
     acc.map(Compensated::value)
 }
 
-/// Count, mean, min and max of the valid heights.
-fn moments0(g: &Grid) -> Result<(f64, f64, f64, f64), MetrologyError> {
-    let per_row: Vec<(f64, f64, f64, f64)> = (0..g.rows)
+/// Lanes of the vector kernels.
+type V = f64x4;
+
+#[inline(always)]
+fn load(s: &[f64]) -> V {
+    V::new([s[0], s[1], s[2], s[3]])
+}
+
+/// All-ones lanes where `v` is not NaN: `valid(v) & x` keeps x there and gives 0 elsewhere,
+/// so NaN never reaches an accumulator (branch-free).
+#[inline(always)]
+fn valid(v: V) -> V {
+    v.cmp_eq(v)
+}
+
+/// Lane accumulators reduced in a fixed order.
+#[inline(always)]
+fn fold(v: V) -> f64 {
+    let a = v.to_array();
+    (a[0] + a[1]) + (a[2] + a[3])
+}
+
+/// Scalar counterpart of `valid(v) & x` for the remainders.
+#[inline(always)]
+fn keep(ok: bool, v: f64) -> f64 {
+    if ok {
+        v
+    } else {
+        0.0
+    }
+}
+
+/// What one row contributes independently of the mean: valid count, sum, min, max; and with
+/// the hybrid sums: sum (dz)^2 along x (row r) and its count, along y (rows r, r+1) and its
+/// count, the Sdr excess of the cells between rows r and r+1 and their count.
+#[derive(Debug, Clone, Copy)]
+struct RowSums {
+    /// n, sum z, sum dzx^2, nx, sum dzy^2, ny, sum cell excess, cells.
+    sums: [f64; 8],
+    lo: f64,
+    hi: f64,
+}
+
+/// Count, sum, min and max of one row's valid heights.
+fn row_count_sum_min_max(a: &[f64]) -> (f64, f64, f64, f64) {
+    let (mut n, mut s) = (V::ZERO, V::ZERO);
+    let mut lo = V::splat(f64::INFINITY);
+    let mut hi = V::splat(f64::NEG_INFINITY);
+    let chunks = a.chunks_exact(4);
+    let rest = chunks.remainder();
+    for c in chunks {
+        let z = load(c);
+        let ok = valid(z);
+        n += ok & V::ONE;
+        s += ok & z;
+        // NaN compares false: it never replaces a bound.
+        lo = z.cmp_lt(lo).blend(z, lo);
+        hi = z.cmp_gt(hi).blend(z, hi);
+    }
+    let (mut n, mut s) = (fold(n), fold(s));
+    let mut lo = lo.to_array().into_iter().fold(f64::INFINITY, f64::min);
+    let mut hi = hi.to_array().into_iter().fold(f64::NEG_INFINITY, f64::max);
+    for &z in rest {
+        if !z.is_nan() {
+            n += 1.0;
+            s += z;
+            lo = lo.min(z);
+            hi = hi.max(z);
+        }
+    }
+    (n, s, lo, hi)
+}
+
+/// Sum and count of the squared x differences of one row (both points valid).
+fn row_dx2(a: &[f64]) -> (f64, f64) {
+    let (mut s, mut n) = (0.0, 0.0);
+    for w in a.windows(2) {
+        let d = w[1] - w[0];
+        if !d.is_nan() {
+            s += d * d;
+            n += 1.0;
+        }
+    }
+    (s, n)
+}
+
+/// Pitch terms of the cell kernel: py^2, px^2, (px py)^2, 4 px py.
+#[derive(Clone, Copy)]
+struct CellPitch {
+    py2: f64,
+    px2: f64,
+    cell2: f64,
+    four_cells: f64,
+}
+
+/// One cell (corners a0 a1 on row r, b0 b1 on row r+1), any lane type: [dzx^2 of row r,
+/// dzy^2 of the left column, the cell's excess sum |n| - 4 px py].
+///
+/// A cell's four corner triangles (both diagonal triangulations) have normals
+/// |n| = sqrt(dzx^2 py^2 + dzy^2 px^2 + (px py)^2); the cell's area is sum |n| / 4. Subtracting
+/// 4 px py per cell rounds by ~1e-16 of px py per cell, i.e. ~1e-14 % absolute on Sdr, far
+/// below the 1e-9 % that near-flat parity allows; without a division per triangle Sdr costs
+/// four square roots per cell.
+macro_rules! cell_terms {
+    ($a0:expr, $a1:expr, $b0:expr, $b1:expr, $c:expr, $splat:expr) => {{
+        let (a0, a1, b0, b1) = ($a0, $a1, $b0, $b1);
+        let dxa = a1 - a0;
+        let dxb = b1 - b0;
+        let dyl = b0 - a0;
+        let dyr = b1 - a1;
+        let (dxa2, dyl2) = (dxa * dxa, dyl * dyl);
+        let py2 = $splat($c.py2);
+        let px2 = $splat($c.px2);
+        let cell2 = $splat($c.cell2);
+        let (bx, tx) = (dxa2 * py2, dxb * dxb * py2);
+        let (ly, ry) = (dyl2 * px2, dyr * dyr * px2);
+        let v = ((bx + ly + cell2).sqrt() + (bx + ry + cell2).sqrt())
+            + ((tx + ry + cell2).sqrt() + (tx + ly + cell2).sqrt())
+            - $splat($c.four_cells);
+        (dxa2, dyl2, v)
+    }};
+}
+
+/// The difference and cell sums between rows `a` (r) and `b` (r+1): sum dzx^2 of row a and
+/// its count, sum dzy^2 and count, the Sdr excess of the cells and their count.
+fn row_pair_sums(a: &[f64], b: &[f64], c: CellPitch) -> [f64; 6] {
+    if a.is_empty() || a.len() != b.len() {
+        return [0.0; 6];
+    }
+    let m = a.len() - 1;
+    let mut acc = [V::ZERO; 6];
+    let (a0, a1, b0, b1) = (&a[..m], &a[1..], &b[..m], &b[1..]);
+    let chunks = a0
+        .chunks_exact(4)
+        .zip(a1.chunks_exact(4))
+        .zip(b0.chunks_exact(4))
+        .zip(b1.chunks_exact(4));
+    for (((xa0, xa1), xb0), xb1) in chunks {
+        let (dx2, dy2, v) = cell_terms!(load(xa0), load(xa1), load(xb0), load(xb1), c, V::splat);
+        let (okx, oky, okc) = (valid(dx2), valid(dy2), valid(v));
+        acc[0] += okx & dx2;
+        acc[1] += okx & V::ONE;
+        acc[2] += oky & dy2;
+        acc[3] += oky & V::ONE;
+        acc[4] += okc & v;
+        acc[5] += okc & V::ONE;
+    }
+    let mut out = acc.map(fold);
+    let id = |v: f64| v;
+    for i in m / 4 * 4..m {
+        let (dx2, dy2, v) = cell_terms!(a0[i], a1[i], b0[i], b1[i], c, id);
+        let (okx, oky, okc) = (!dx2.is_nan(), !dy2.is_nan(), !v.is_nan());
+        out[0] += keep(okx, dx2);
+        out[1] += keep(okx, 1.0);
+        out[2] += keep(oky, dy2);
+        out[3] += keep(oky, 1.0);
+        out[4] += keep(okc, v);
+        out[5] += keep(okc, 1.0);
+    }
+    // The last column's y difference (the cells cover columns 0..m).
+    if let (Some(&za), Some(&zb)) = (a.last(), b.last()) {
+        let d = zb - za;
+        if !d.is_nan() {
+            out[2] += d * d;
+            out[3] += 1.0;
+        }
+    }
+    out
+}
+
+/// Everything that does not need the mean, one pass: the sums of row r and of the cells
+/// between rows r and r+1 (`hybrid` = false skips the difference and cell sums).
+fn pass_independent(g: &Grid, hybrid: bool) -> RowSums {
+    let (px, py) = (g.pitch_x_um, g.pitch_y_um);
+    let c = CellPitch {
+        py2: py * py,
+        px2: px * px,
+        cell2: (px * py) * (px * py),
+        four_cells: 4.0 * (px * py),
+    };
+    let per_row: Vec<RowSums> = (0..g.rows)
         .into_par_iter()
         .map(|r| {
-            let row = g.row(r);
-            let [n, s] = lanes(row.len(), |i| {
-                let z = row[i];
-                if z.is_nan() {
-                    [0.0, 0.0]
+            let a = g.row(r);
+            let (n, s, lo, hi) = row_count_sum_min_max(a);
+            let mut sums = [n, s, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+            if hybrid {
+                let pair = if r + 1 < g.rows {
+                    row_pair_sums(a, g.row(r + 1), c)
                 } else {
-                    [1.0, z]
-                }
-            });
-            let (lo, hi) = row
-                .iter()
-                .filter(|z| !z.is_nan())
-                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &z| {
-                    (lo.min(z), hi.max(z))
-                });
-            (n, s, lo, hi)
+                    let (sx, nx) = row_dx2(a);
+                    [sx, nx, 0.0, 0.0, 0.0, 0.0]
+                };
+                sums[2..].copy_from_slice(&pair);
+            }
+            RowSums { sums, lo, hi }
         })
         .collect();
-    let (mut n, mut s) = (0.0, Compensated::default());
+    // Rows combined in row order with compensation: the result is the same for any thread count.
+    let mut acc = [Compensated::default(); 8];
     let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-    for &(rn, rs, rlo, rhi) in &per_row {
-        n += rn;
-        s.add(rs);
-        lo = lo.min(rlo);
-        hi = hi.max(rhi);
+    for row in &per_row {
+        for (a, &v) in acc.iter_mut().zip(&row.sums) {
+            a.add(v);
+        }
+        lo = lo.min(row.lo);
+        hi = hi.max(row.hi);
     }
+    RowSums {
+        sums: acc.map(Compensated::value),
+        lo,
+        hi,
+    }
+}
+
+/// The central sums about the exact mean of the valid heights: sum |c|, c^2, c^3, c^4, from
+/// one pass about `mean0` (the first, rounded mean) corrected algebraically by the mean of
+/// the residuals d (so no third pass is needed to refine the mean).
+fn pass_central(g: &Grid, n: f64, mean0: f64) -> (f64, [f64; 4]) {
+    let [s_abs, s1, s2, s3, s4, sgn] = row_sums(g.rows, |r| {
+        let row = g.row(r);
+        let mut acc = [V::ZERO; 6];
+        let m0 = V::splat(mean0);
+        let chunks = row.chunks_exact(4);
+        let rest = chunks.remainder();
+        for ch in chunks {
+            let z = load(ch);
+            let c = valid(z) & (z - m0);
+            let c2 = c * c;
+            acc[0] += c.abs();
+            acc[1] += c;
+            acc[2] += c2;
+            acc[3] += c2 * c;
+            acc[4] += c2 * c2;
+            acc[5] += (c.cmp_gt(V::ZERO) & V::ONE) - (c.cmp_lt(V::ZERO) & V::ONE);
+        }
+        let mut out = acc.map(fold);
+        for &z in rest {
+            if !z.is_nan() {
+                let c = z - mean0;
+                let c2 = c * c;
+                out[0] += c.abs();
+                out[1] += c;
+                out[2] += c2;
+                out[3] += c2 * c;
+                out[4] += c2 * c2;
+                out[5] += if c > 0.0 {
+                    1.0
+                } else if c < 0.0 {
+                    -1.0
+                } else {
+                    0.0
+                };
+            }
+        }
+        out
+    });
+    let d = s1 / n;
+    let mean = mean0 + d;
+    // Moments about mean0 + d from those about mean0 (binomial expansion, s1 = n d). For Sa,
+    // |c - d| = |c| - d sign(c) wherever |c| > |d|; d is a rounding residue (~1e-16 of the
+    // heights), so the points where that does not hold change Sa by less than |d| / n each.
+    let sa_sum = s_abs - d * sgn;
+    let c2 = s2 - n * d * d;
+    let c3 = s3 - 3.0 * d * s2 + 2.0 * n * d * d * d;
+    let c4 = s4 - 4.0 * d * s3 + 6.0 * d * d * s2 - 3.0 * n * d * d * d * d;
+    (mean, [sa_sum, c2, c3, c4])
+}
+
+fn heights_from(g: &Grid, p1: &RowSums) -> Result<[f64; 7], MetrologyError> {
+    let (n, sum) = (p1.sums[0], p1.sums[1]);
     if n == 0.0 {
         return Err(MetrologyError::NoValidPoint);
     }
-    let mean0 = s.value() / n;
-    // One refinement step: the mean of the residuals removes the rounding of the first mean.
-    let [corr] = row_sums(g.rows, |r| {
-        let row = g.row(r);
-        lanes(row.len(), |i| {
-            let z = row[i];
-            [if z.is_nan() { 0.0 } else { z - mean0 }]
-        })
-    });
-    Ok((n, mean0 + corr / n, lo, hi))
-}
-
-/// The height parameters Sa Sq Sp Sv Sz Ssk Sku (um; Ssk, Sku dimensionless) over the valid
-/// points, about their mean.
-pub fn height_params(g: &Grid) -> Result<[f64; 7], MetrologyError> {
-    let (n, mean, lo, hi) = moments0(g)?;
-    let [s1, s2, s3, s4] = row_sums(g.rows, |r| {
-        let row = g.row(r);
-        lanes(row.len(), |i| {
-            let z = row[i];
-            let c = if z.is_nan() { 0.0 } else { z - mean };
-            let c2 = c * c;
-            [c.abs(), c2, c2 * c, c2 * c2]
-        })
-    });
+    let (mean, [s1, s2, s3, s4]) = pass_central(g, n, sum / n);
     let sq = (s2 / n).sqrt();
-    let (sp, sv) = (hi - mean, (lo - mean).abs());
+    let (sp, sv) = (p1.hi - mean, (p1.lo - mean).abs());
     // A constant surface has Sq = 0: skewness and kurtosis are undefined (NaN), as in surfalize.
     Ok([
         s1 / n,
@@ -269,73 +490,43 @@ pub fn height_params(g: &Grid) -> Result<[f64; 7], MetrologyError> {
     ])
 }
 
-/// Sdq and Sdr (%). NaN when no difference / no whole cell is valid.
-pub fn hybrid_params(g: &Grid) -> (f64, f64) {
+fn hybrid_from(g: &Grid, p1: &RowSums) -> (f64, f64) {
+    let [_, _, sx, nx, sy, ny, excess, cells] = p1.sums;
     let (px, py) = (g.pitch_x_um, g.pitch_y_um);
-    let cell = px * py;
-    let cell2 = cell * cell;
-    // Per row r: [sum (dz/dx)^2, count x, sum (dz/dy)^2 to row r+1, count y, Sdr excess, cells].
-    let [sx, nx, sy, ny, excess, cells] = row_sums(g.rows, |r| {
-        let a = g.row(r);
-        let [sx, nx] = lanes(g.cols.saturating_sub(1), |i| {
-            let d = (a[i + 1] - a[i]) / px;
-            if d.is_nan() {
-                [0.0, 0.0]
-            } else {
-                [d * d, 1.0]
-            }
-        });
-        if r + 1 >= g.rows {
-            return [sx, nx, 0.0, 0.0, 0.0, 0.0];
-        }
-        let b = g.row(r + 1);
-        let [sy, ny] = lanes(g.cols, |i| {
-            let d = (b[i] - a[i]) / py;
-            if d.is_nan() {
-                [0.0, 0.0]
-            } else {
-                [d * d, 1.0]
-            }
-        });
-        // Cell (r, i): corners a[i], a[i+1], b[i], b[i+1]. Four triangles (both diagonals), each
-        // |n| = sqrt(leg terms + (px py)^2); excess |n| - px py = legs / (|n| + px py), summed
-        // directly so flat surfaces do not cancel catastrophically.
-        let [e, c] = lanes(g.cols.saturating_sub(1), |i| {
-            let zx_a = (a[i + 1] - a[i]) * py;
-            let zx_b = (b[i + 1] - b[i]) * py;
-            let zy_l = (b[i] - a[i]) * px;
-            let zy_r = (b[i + 1] - a[i + 1]) * px;
-            let (bx, tx, ly, ry) = (zx_a * zx_a, zx_b * zx_b, zy_l * zy_l, zy_r * zy_r);
-            let ex = |legs: f64| legs / ((legs + cell2).sqrt() + cell);
-            let v = ex(bx + ly) + ex(bx + ry) + ex(tx + ry) + ex(tx + ly);
-            if v.is_nan() {
-                [0.0, 0.0]
-            } else {
-                [v, 1.0]
-            }
-        });
-        [sx, nx, sy, ny, e, c]
-    });
     let sdq = if nx + ny == 0.0 {
         f64::NAN
     } else {
-        let mx = if nx > 0.0 { sx / nx } else { 0.0 };
-        let my = if ny > 0.0 { sy / ny } else { 0.0 };
+        // The sums are of height differences; the slopes divide by the pitch once here.
+        let mx = if nx > 0.0 { sx / nx / (px * px) } else { 0.0 };
+        let my = if ny > 0.0 { sy / ny / (py * py) } else { 0.0 };
         (mx + my).sqrt()
     };
-    // Each cell's area ratio - 1 = (sum of the four excesses / 4) / (px py).
+    // Each cell's area ratio - 1 = (sum of its four normals' excess / 4) / (px py).
     let sdr = if cells == 0.0 {
         f64::NAN
     } else {
-        excess / (4.0 * cell) / cells * 100.0
+        excess / (4.0 * px * py) / cells * 100.0
     };
     (sdq, sdr)
 }
 
-/// All nine parameters.
+/// The height parameters Sa Sq Sp Sv Sz Ssk Sku (um; Ssk, Sku dimensionless) over the valid
+/// points, about their mean.
+pub fn height_params(g: &Grid) -> Result<[f64; 7], MetrologyError> {
+    heights_from(g, &pass_independent(g, false))
+}
+
+/// Sdq and Sdr (%). NaN when no difference / no whole cell is valid.
+pub fn hybrid_params(g: &Grid) -> (f64, f64) {
+    hybrid_from(g, &pass_independent(g, true))
+}
+
+/// All nine parameters: two passes over the heights (the mean-independent sums, including
+/// the slope and area sums, then the central moments).
 pub fn params(g: &Grid) -> Result<Params, MetrologyError> {
-    let [sa, sq, sp, sv, sz, ssk, sku] = height_params(g)?;
-    let (sdq, sdr) = hybrid_params(g);
+    let p1 = pass_independent(g, true);
+    let [sa, sq, sp, sv, sz, ssk, sku] = heights_from(g, &p1)?;
+    let (sdq, sdr) = hybrid_from(g, &p1);
     Ok(Params {
         sa,
         sq,
@@ -352,31 +543,31 @@ pub fn params(g: &Grid) -> Result<Params, MetrologyError> {
 /// The least-squares plane z = a + b x + c y through the valid points (x = col * pitch_x,
 /// y = row * pitch_y, um), as (a, b, c); fitted on centred coordinates for conditioning.
 pub fn fit_plane(g: &Grid) -> Result<(f64, f64, f64), MetrologyError> {
-    let (n, zmean, _, _) = moments0(g)?;
-    let [sx, sy] = row_sums(g.rows, |r| {
+    // Pass 1: count and the sums of z, x, y over the valid points.
+    let [n, sz, sx, sy] = row_sums(g.rows, |r| {
         let row = g.row(r);
-        let y = r as f64;
-        lanes(row.len(), |i| {
-            if row[i].is_nan() {
-                [0.0, 0.0]
-            } else {
-                [i as f64, y]
-            }
-        })
+        let [n, sz, sx] = lanes(row.len(), |i| {
+            let z = row[i];
+            let ok = !z.is_nan();
+            [keep(ok, 1.0), keep(ok, z), keep(ok, i as f64)]
+        });
+        [n, sz, sx, n * r as f64]
     });
-    let (xm, ym) = (sx / n, sy / n);
+    if n == 0.0 {
+        return Err(MetrologyError::NoValidPoint);
+    }
+    let (zmean, xm, ym) = (sz / n, sx / n, sy / n);
+    // Pass 2: centred second moments and cross products.
     let [sxx, sxy, syy, sxz, syz] = row_sums(g.rows, |r| {
         let row = g.row(r);
         let y = r as f64 - ym;
         lanes(row.len(), |i| {
             let z = row[i];
-            if z.is_nan() {
-                [0.0; 5]
-            } else {
-                let x = i as f64 - xm;
-                let dz = z - zmean;
-                [x * x, x * y, y * y, x * dz, y * dz]
-            }
+            let ok = !z.is_nan();
+            let x = keep(ok, i as f64 - xm);
+            let yv = keep(ok, y);
+            let dz = keep(ok, z - zmean);
+            [x * x, x * yv, yv * yv, x * dz, yv * dz]
         })
     });
     let det = sxx * syy - sxy * sxy;

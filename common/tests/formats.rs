@@ -357,6 +357,63 @@ fn x3p_write_round_trip_through_our_reader() {
 }
 
 #[test]
+fn x3p_writer_stores_incompressible_heights_and_deflates_holes() {
+    // Measured f64 heights barely deflate (and inflating costs readers time): data.bin is then
+    // stored; a map that is mostly NaN deflates well and is deflated. Both read back exactly,
+    // the stored one through surfalize too.
+    let (w, h) = (256, 200);
+    let noisy = |i: usize| {
+        let u = ((i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 11) as f64 / (1u64 << 53) as f64;
+        47.0 + u
+    };
+    let mut stored = toy_surface(w, h);
+    stored.heights_um = (0..w * h).map(noisy).collect();
+    let mut holey = stored.clone();
+    for (i, z) in holey.heights_um.iter_mut().enumerate() {
+        if i % w >= 20 {
+            *z = f64::NAN;
+        }
+    }
+    let dir = tempfile::tempdir().unwrap();
+    for (name, s, method) in [
+        ("stored.x3p", &stored, zip::CompressionMethod::Stored),
+        ("holey.x3p", &holey, zip::CompressionMethod::Deflated),
+    ] {
+        let p = dir.path().join(name);
+        formats::write_surface(&p, s).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        let mut z = zip::ZipArchive::new(Cursor::new(bytes)).unwrap();
+        assert_eq!(
+            z.by_name("bindata/data.bin").unwrap().compression(),
+            method,
+            "{name}"
+        );
+        same_heights(&read_surface(&p).unwrap().heights_um, &s.heights_um, 1e-12);
+    }
+    let script = r#"
+import sys, json, numpy as np
+from surfalize import Surface
+d = np.asarray(Surface.load(sys.argv[1]).data, dtype=np.float64)
+print(json.dumps({"shape": list(d.shape), "sum": float(d.sum())}))
+"#;
+    let out = Command::new(python())
+        .arg("-c")
+        .arg(script)
+        .arg(dir.path().join("stored.x3p"))
+        .output()
+        .expect("python runs");
+    assert!(
+        out.status.success(),
+        "surfalize failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["shape"], serde_json::json!([h, w]));
+    let ours: f64 = stored.heights_um.iter().sum();
+    assert!(rel(v["sum"].as_f64().unwrap(), ours) < 1e-12, "{v}");
+}
+
+#[test]
 fn x3p_write_round_trip_through_surfalize() {
     let t = toy_surface(23, 19);
     let dir = tempfile::tempdir().unwrap();
@@ -492,6 +549,85 @@ with h5py.File(sys.argv[1], 'w') as h5:
         );
     }
     assert_eq!(s.pitch_x_um, 0.5);
+}
+
+#[test]
+fn datx_instrument_serial_date() {
+    // Mx keeps them as "Data Context.Data Attributes.*" attributes of an attribute group:
+    // (a) named by the link table, variable-length strings; (b) no link, a group under
+    // /Attributes, fixed-length strings; (c) the synthetic files have none: fields absent,
+    // wavelength from the Z Converter.
+    let dir = tempfile::tempdir().unwrap();
+    let script = r#"
+import sys, h5py, numpy as np
+def write(path, vlen, linked):
+    s = h5py.string_dtype() if vlen else 'S64'
+    enc = (lambda x: x) if vlen else (lambda x: x.encode())
+    real = '/Data/Surface/{S1}'
+    rows = [('Root', 'Measurement', '{M}'), ('{M}', 'Surface', '{S}'), ('{S}', 'Path', real)]
+    group = '/Attributes/{A1}'
+    if linked:
+        rows += [('{M}', 'Attributes', '{A}'), ('{A}', 'Path', group)]
+    md = np.array([tuple(enc(v) for v in r) for r in rows],
+                  dtype=[('Source', s), ('Link', s), ('Destination', s)])
+    with h5py.File(path, 'w') as h5:
+        h5.create_dataset('MetaData', data=md)
+        ds = h5.create_dataset(real, data=np.arange(6, dtype='f8').reshape(2, 3))
+        cdt = np.dtype([('Category', s), ('BaseUnit', s), ('Parameters', h5py.vlen_dtype(np.float64))])
+        def conv(cat, unit, p):
+            c = np.empty(1, dtype=cdt); c[0] = (enc(cat), enc(unit), np.array(p, 'f8')); return c
+        ds.attrs['X Converter'] = conv('LateralCat', 'Pixels', [0, 1e-6, 0, 0])
+        ds.attrs['Y Converter'] = conv('LateralCat', 'Pixels', [0, 1e-6, 0, 0])
+        ds.attrs['Z Converter'] = conv('HeightCat', 'MicroMeters', [0, 5.5e-7, 0.5, 1.0])
+        ds.attrs['Unit'] = np.array([enc('MicroMeters')], dtype=s)
+        if not linked:
+            h5.create_group('/Attributes/{A0}')   # an empty decoy group first
+        g = h5.create_group(group)
+        p = 'Data Context.Data Attributes.'
+        g.attrs[p + 'System Type'] = np.array([enc('NewView 9000')], dtype=s)
+        g.attrs[p + 'System Serial Number'] = np.array([enc('NV-12345')], dtype=s)
+        g.attrs[p + 'Time Stamp'] = np.array([enc('2025-03-14 09:26:53')], dtype=s)
+        g.attrs[p + 'Acquisition Mode'] = np.array([enc('CSI')], dtype=s)
+        g.attrs[p + 'Camera Gain:Value'] = np.array([2.0])
+write(sys.argv[1], True, True)
+write(sys.argv[2], False, False)
+"#;
+    let (a, b) = (
+        dir.path().join("linked.datx"),
+        dir.path().join("group.datx"),
+    );
+    let out = Command::new(python())
+        .arg("-c")
+        .arg(script)
+        .arg(&a)
+        .arg(&b)
+        .output()
+        .expect("python runs");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for (f, group) in [(&a, "/Attributes/{A1}"), (&b, "/Attributes/{A1}")] {
+        let s = read_surface(f).unwrap_or_else(|e| panic!("{}: {e:#}", f.display()));
+        let m = &s.metadata;
+        assert_eq!(
+            m.instrument.as_deref(),
+            Some("NewView 9000"),
+            "{}",
+            f.display()
+        );
+        assert_eq!(m.serial.as_deref(), Some("NV-12345"));
+        assert_eq!(m.date.as_deref(), Some("2025-03-14 09:26:53"));
+        assert_eq!(m.extra["acquisition_mode"], "CSI");
+        assert_eq!(m.extra["attributes_path"], group);
+        assert!((m.wavelength_um.unwrap() - 0.55).abs() < 1e-12);
+        assert_eq!(s.heights_um[5], 5.0);
+    }
+    let (_d, synthetic) = synthetic_datx();
+    let m = read_surface(&synthetic[0]).unwrap().metadata;
+    assert_eq!((m.instrument, m.serial, m.date), (None, None, None));
+    assert!(!m.extra.contains_key("attributes_path"));
 }
 
 #[test]

@@ -213,6 +213,8 @@ fn nan_points_are_left_out() {
         assert!((a - b).abs() <= 1e-12 * b.abs().max(1.0), "{n}: {a} vs {b}");
     }
     assert!(p.sdq.is_finite() && p.sdr.is_finite() && p.sdr > 0.0);
+    // Zero columns (a valid 5 x 0 grid): no point, a clear error, no panic.
+    assert!(params(&Grid::new(&[], 5, 0, 1.0, 1.0).unwrap()).is_err());
     // All NaN: a clear error.
     let e = params(&Grid::new(&[f64::NAN; 4], 2, 2, 1.0, 1.0).unwrap()).unwrap_err();
     assert!(e.to_string().contains("no valid"));
@@ -251,4 +253,72 @@ fn sim_and_rms_difference() {
     let (rms, n) = rms_difference(&c, &d).unwrap();
     assert!((rms - 0.5).abs() < 1e-12 && n == 399);
     assert!(sim(&a, &a[..10]).is_err());
+}
+
+#[test]
+fn results_do_not_depend_on_the_thread_count() {
+    // Rows are reduced in a fixed order: 1 and 3 threads give the same bits, holes included.
+    let (rows, cols) = (203, 131);
+    let mut z = synthetic(rows, cols, 1.3, 0.02);
+    for i in (5..rows * cols).step_by(23) {
+        z[i] = f64::NAN;
+    }
+    let g = Grid::new(&z, rows, cols, 0.7, 0.9).unwrap();
+    let run = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| params(&g).unwrap())
+    };
+    let (one, three) = (run(1), run(3));
+    for ((name, a), (_, b)) in one.named().iter().zip(three.named()) {
+        assert_eq!(a.to_bits(), b.to_bits(), "{name}: {a} vs {b}");
+    }
+}
+
+#[test]
+fn frame_heights_keep_the_parameters_of_the_readers_f64() {
+    // Frames carry f32 heights relative to an f64 offset (frame.rs). Parameters computed from
+    // that form agree with those of the reader's f64 heights within 1e-6 relative (Ssk, which
+    // is ~0 on symmetric surfaces, within 1e-6 absolute); the plain f32 of the absolute heights
+    // (no offset) does not on MetroPro's ~50 um heights, which is why frames carry the offset.
+    use surfstream_common::formats::from_frame_heights;
+    for name in [
+        "metropro-1.dat",
+        "x3p-2.x3p",
+        "sample4_bin.x3p",
+        "sur-uncompressed.sur",
+        "sur-3.sur",
+    ] {
+        let s = read_surface(&specimen(name)).unwrap();
+        let grid = |z: &[f64]| {
+            params(&Grid::new(z, s.height, s.width, s.pitch_x_um, s.pitch_y_um).unwrap()).unwrap()
+        };
+        let exact = grid(&s.heights_um);
+        let (offset, f32s) = s.to_frame_heights();
+        let framed = grid(&from_frame_heights(offset, &f32s));
+        for ((p, a), (_, b)) in exact.named().iter().zip(framed.named()) {
+            let ok = if *p == "Ssk" {
+                (a - b).abs() <= 1e-6
+            } else {
+                (a - b).abs() <= 1e-6 * a.abs()
+            };
+            assert!(ok, "{name} {p}: f64 {a:e}, from the frame {b:e}");
+        }
+        if name == "metropro-1.dat" {
+            let plain: Vec<f64> = s.heights_um.iter().map(|&z| f64::from(z as f32)).collect();
+            let p = grid(&plain);
+            let worst = exact
+                .named()
+                .iter()
+                .zip(p.named())
+                .map(|((_, a), (_, b))| (a - b).abs() / a.abs())
+                .fold(0.0, f64::max);
+            assert!(
+                worst > 1e-6,
+                "plain f32 of ~50 um heights should lose a parameter's 7th digit (worst {worst:e})"
+            );
+        }
+    }
 }

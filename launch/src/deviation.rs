@@ -12,13 +12,16 @@
 //! = (model - measured) / measured in %; a stage passes in a region when |deviation| <= e for
 //! Sa, Sq and Sz (Table 6's parameters). The nine parameters are all reported; slope
 //! parameters of a re-sampled model (Sdq, Sdr of the pooled map) differ by construction and
-//! are not judged. e defaults to [`DEFAULT_THRESHOLD_PCT`].
+//! are not judged. e defaults to [`DEFAULT_THRESHOLD_PCT`]; a graph file changes it with a
+//! `[deviation]` table (`threshold_percent = 2`), the command line with
+//! `--set deviation.threshold_percent=2` ([`Settings`]).
 //!
 //! Also writes `panorama.x3p` (the stitched panorama for MountainsMap, Gwyddion, surfalize).
 
 use std::path::Path;
+use std::sync::RwLock;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{anyhow, bail, Context, Result};
 use serde_json::{json, Map, Value};
 use surfstream_common::formats::{self, Metadata, Surface};
 use surfstream_common::metrology::{self, Grid, Params};
@@ -26,6 +29,103 @@ use surfstream_common::npy::read_npy_f64;
 
 /// Threshold e of Table 6, in percent.
 pub const DEFAULT_THRESHOLD_PCT: f64 = 5.0;
+/// The `--set` key and graph-file table of the settings below.
+pub const SECTION: &str = "deviation";
+
+/// Settings of the Table-6 evaluation: a `[deviation]` table in the graph file, or
+/// `--set deviation.threshold_percent=VALUE` (which wins). The graph parser knows only
+/// `[graph]` and `[[node]]`: the launcher takes this table out before parsing
+/// ([`split_graph_text`]) and keeps the settings for the run ([`configure`]).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Settings {
+    /// Threshold e in percent: a stage passes a region when |deviation| <= e for Sa, Sq, Sz.
+    #[serde(default = "default_threshold_pct")]
+    pub threshold_percent: f64,
+}
+
+fn default_threshold_pct() -> f64 {
+    DEFAULT_THRESHOLD_PCT
+}
+
+impl Default for Settings {
+    fn default() -> Self {
+        DEFAULTS
+    }
+}
+
+const DEFAULTS: Settings = Settings {
+    threshold_percent: DEFAULT_THRESHOLD_PCT,
+};
+
+impl Settings {
+    fn check(self, origin: &str) -> Result<Self> {
+        let e = self.threshold_percent;
+        if !(e.is_finite() && e > 0.0) {
+            bail!("{origin}: deviation.threshold_percent is {e}, expected a finite number > 0 (percent)");
+        }
+        Ok(self)
+    }
+
+    /// Applies the `--set` assignments addressed to `deviation.` and returns the others (for
+    /// the nodes), in order.
+    pub fn apply_sets(&mut self, sets: &[String]) -> Result<Vec<String>> {
+        let mut rest = Vec::new();
+        for s in sets {
+            let Some((key, value)) = s.split_once('=') else {
+                rest.push(s.clone());
+                continue;
+            };
+            let Some(name) = key.trim().strip_prefix("deviation.") else {
+                rest.push(s.clone());
+                continue;
+            };
+            match name {
+                "threshold_percent" => {
+                    self.threshold_percent = value.trim().parse().map_err(|_| {
+                        anyhow!("--set {s:?}: expected a number of percent, e.g. deviation.threshold_percent=2")
+                    })?;
+                }
+                other => bail!(
+                    "--set {s:?}: the deviation settings have no '{other}' (known: threshold_percent)"
+                ),
+            }
+        }
+        self.check("--set")?;
+        Ok(rest)
+    }
+}
+
+/// Takes the `[deviation]` table out of a graph file's text: the settings, and the text the
+/// graph parser gets (unchanged when there is no such table, so its error positions stay
+/// those of the file).
+pub fn split_graph_text(text: &str, origin: &str) -> Result<(String, Settings)> {
+    let mut table: toml::Table =
+        toml::from_str(text).map_err(|e| anyhow!("{origin}: not a valid graph file: {e}"))?;
+    let Some(section) = table.remove(SECTION) else {
+        return Ok((text.to_string(), Settings::default()));
+    };
+    let settings: Settings = section
+        .try_into()
+        .map_err(|e| anyhow!("{origin}: [deviation]: {e}"))?;
+    let rest = toml::to_string(&table).map_err(|e| anyhow!("{origin}: {e}"))?;
+    Ok((rest, settings.check(origin)?))
+}
+
+/// The settings of the graph this process runs (one graph at a time: set by the CLI before
+/// the graph starts, read when run.json is written).
+static CURRENT: RwLock<Settings> = RwLock::new(DEFAULTS);
+
+/// Sets the settings for the graph about to run.
+pub fn configure(settings: Settings) {
+    // A poisoned lock only means a panic elsewhere while holding it; the value is plain data.
+    *CURRENT.write().unwrap_or_else(|p| p.into_inner()) = settings;
+}
+
+fn current() -> Settings {
+    *CURRENT.read().unwrap_or_else(|p| p.into_inner())
+}
+
 /// The parameters Table 6 judges.
 pub const JUDGED: [&str; 3] = ["Sa", "Sq", "Sz"];
 
@@ -308,7 +408,7 @@ pub fn attach(out: &Path, mut run: Value) -> Value {
     if !out.join("panorama.npy").exists() {
         return run;
     }
-    let entry = match evaluate(out, &run, DEFAULT_THRESHOLD_PCT) {
+    let entry = match evaluate(out, &run, current().threshold_percent) {
         Ok(v) => {
             if let Some(files) = run["files"].as_array_mut() {
                 files.push(json!("panorama.x3p"));
@@ -331,6 +431,55 @@ pub fn attach(out: &Path, mut run: Value) -> Value {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn settings_from_graph_text_and_set() {
+        let text = "[graph]\nname = \"g\"\n\n[deviation]\nthreshold_percent = 2.5\n\n[[node]]\nid = \"a\"\nnode = \"replay\"\n";
+        let (rest, s) = split_graph_text(text, "g.toml").unwrap();
+        assert_eq!(s.threshold_percent, 2.5);
+        assert!(!rest.contains("deviation") && rest.contains("replay"));
+        // No table: the text is passed on unchanged, the default applies.
+        let plain = "[graph]\nname = \"g\"\n";
+        assert_eq!(
+            split_graph_text(plain, "g.toml").unwrap(),
+            (plain.to_string(), Settings::default())
+        );
+        let mut s = Settings::default();
+        let rest = s
+            .apply_sets(&[
+                "stage.rows=3".into(),
+                "deviation.threshold_percent=1".into(),
+            ])
+            .unwrap();
+        assert_eq!(
+            (s.threshold_percent, rest),
+            (1.0, vec!["stage.rows=3".to_string()])
+        );
+        // Bad values and unknown keys are clear errors naming the setting.
+        for bad in [
+            "deviation.threshold_percent=-1",
+            "deviation.threshold_percent=x",
+        ] {
+            let e = Settings::default().apply_sets(&[bad.into()]).unwrap_err();
+            assert!(e.to_string().contains("threshold_percent"), "{e}");
+        }
+        let e = Settings::default()
+            .apply_sets(&["deviation.e=1".into()])
+            .unwrap_err();
+        assert!(e.to_string().contains("no 'e'"), "{e}");
+        let e = split_graph_text(
+            "[graph]\nname = \"g\"\n[deviation]\nthreshold = 1\n",
+            "g.toml",
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("[deviation]"), "{e}");
+        let e = split_graph_text(
+            "[graph]\nname = \"g\"\n[deviation]\nthreshold_percent = 0\n",
+            "g.toml",
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("g.toml"), "{e}");
+    }
 
     #[test]
     fn unpool_spreads_cells() {

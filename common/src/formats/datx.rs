@@ -5,8 +5,13 @@
 //! under /Data/Surface", which is wrong on files holding several surfaces. Strings may be
 //! fixed-length or variable-length. Heights: `Unit` a length unit -> values in that unit;
 //! `Unit` = Fringes -> height_m = value * S * O * lambda with `Z Converter.Parameters` =
-//! [?, lambda_m, S, O]. Pitch = `X Converter.Parameters[1]` metres (Y likewise). Invalid: value
-//! >= `No Data`, or NaN. Rows keep the stored order (first stored row = row 0).
+//! [?, lambda_m, S, O]. Pitch = `X Converter.Parameters[1]` metres (Y likewise). Invalid:
+//! a value at or above `No Data`, or NaN. Rows keep the stored order (first stored row = row
+//! 0).
+//!
+//! Metadata: wavelength = `Z Converter.Parameters[1]`; instrument, serial and date from the
+//! measurement's attribute group ("Data Context.Data Attributes.System Type" / "System Serial
+//! Number" / "Time Stamp"), where present.
 
 use anyhow::{anyhow, bail, Context, Result};
 use hdf5_reader::{
@@ -221,6 +226,78 @@ fn pitch_m(ds: &Dataset, name: &str) -> Result<Option<f64>> {
     }
 }
 
+/// Prefix of Mx's measurement attributes ("Data Context.Data Attributes.System Type", ...).
+const ATTRIBUTE_PREFIX: &str = "Data Context.Data Attributes.";
+
+/// A text attribute's value (fixed or variable-length string, scalar or 1-element array),
+/// NULs and spaces trimmed; None for other types or an empty text.
+fn attr_text(a: &hdf5_reader::Attribute) -> Option<String> {
+    let s = match a.decoded_strings.as_ref().and_then(|v| v.first()) {
+        Some(s) => s.clone(),
+        None => a.read_string().ok()?,
+    };
+    let s = s.trim_end_matches('\0').trim();
+    (!s.is_empty()).then(|| s.to_string())
+}
+
+/// Instrument, serial number and date from the measurement's attribute group, where Mx keeps
+/// them as "Data Context.Data Attributes.System Type" / "System Serial Number" / "Time Stamp"
+/// (plus acquisition details, kept in `extra`). The group is the one the link table names
+/// (measurement -Attributes-> node -Path-> group), else `/Measurement/Attributes` (older
+/// files), else the first group under `/Attributes` that has them. Metadata only: a file
+/// without the group, or with unreadable attributes, reads with these fields absent.
+fn instrument_attributes(
+    file: &Hdf5File,
+    table: &[(String, String, String)],
+    measurement: &str,
+    metadata: &mut Metadata,
+) {
+    let mut groups = Vec::new();
+    if let Ok(node) = follow(table, measurement, "Attributes") {
+        match follow(table, &node, "Path") {
+            Ok(path) => groups.push(path),
+            Err(_) if node.starts_with('/') => groups.push(node),
+            Err(_) => {}
+        }
+    }
+    groups.push("/Measurement/Attributes".to_string());
+    if let Ok((names, _)) = file.group("/Attributes").and_then(|g| g.member_names()) {
+        groups.extend(names.into_iter().map(|n| format!("/Attributes/{n}")));
+    }
+    for path in groups {
+        let Ok(attrs) = file.group(&path).and_then(|g| g.attributes()) else {
+            continue;
+        };
+        let mut found = false;
+        for a in &attrs {
+            let Some(key) = a.name.strip_prefix(ATTRIBUTE_PREFIX) else {
+                continue;
+            };
+            let Some(text) = attr_text(a) else {
+                continue;
+            };
+            let slot = match key {
+                "System Type" => &mut metadata.instrument,
+                "System Serial Number" => &mut metadata.serial,
+                "Time Stamp" => &mut metadata.date,
+                "Acquisition Mode" | "Camera Name" | "Camera Mode" => {
+                    metadata
+                        .extra
+                        .insert(key.to_ascii_lowercase().replace(' ', "_"), text);
+                    continue;
+                }
+                _ => continue,
+            };
+            *slot = Some(text);
+            found = true;
+        }
+        if found {
+            metadata.extra.insert("attributes_path".into(), path);
+            return;
+        }
+    }
+}
+
 pub fn parse(data: &[u8]) -> Result<Surface> {
     let file = h5(Hdf5File::from_bytes(data), "not a readable HDF5 file")?;
     let table = link_table(&file, data.len())?;
@@ -266,6 +343,7 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
         format: "datx".into(),
         ..Metadata::default()
     };
+    instrument_attributes(&file, &table, &measurement, &mut metadata);
     let scale_um = if unit == "Fringes" {
         let (_, p) = converter(&ds, "Z Converter").context("Unit is Fringes")?;
         let [_, lambda_m, s, o, ..] = p[..] else {

@@ -10,6 +10,7 @@
 use std::io::Read;
 
 use anyhow::{bail, Context, Result};
+use rayon::prelude::*;
 
 use super::bytes::{checked_size, length_unit_um, Bytes};
 use super::{Metadata, Surface};
@@ -175,29 +176,41 @@ fn inflate_streams(zone: &[u8], expected: usize) -> Result<Vec<u8>> {
                 zone.len()
             )
         })?;
-    let mut out = Vec::with_capacity(expected);
-    let mut pos = table_len;
+    // The table first (every length checked against the zone and the expected total), then
+    // the streams inflated in parallel: each is an independent zlib stream.
+    let mut streams = Vec::with_capacity(count);
+    let (mut pos, mut total) = (table_len, 0usize);
     for i in 0..count {
         let raw_len = z.u32_le(4 + 8 * i, "stream raw length")? as usize;
         let zip_len = z.u32_le(8 + 8 * i, "stream compressed length")? as usize;
-        if out.len().checked_add(raw_len).is_none_or(|t| t > expected) {
-            bail!("compressed stream {i} inflates past the {expected} bytes of point data");
-        }
+        total = match total.checked_add(raw_len) {
+            Some(t) if t <= expected => t,
+            _ => bail!("compressed stream {i} inflates past the {expected} bytes of point data"),
+        };
         let stream = z.slice(pos, zip_len, "compressed stream")?;
         pos += zip_len;
-        let before = out.len();
-        // Bound the inflation by the declared length (+1 to detect a lying length).
-        flate2::read::ZlibDecoder::new(stream)
-            .take(raw_len as u64 + 1)
-            .read_to_end(&mut out)
-            .with_context(|| format!("compressed stream {i}: zlib data corrupt"))?;
-        if out.len() - before != raw_len {
-            bail!(
-                "compressed stream {i}: inflated to {} bytes, header says {raw_len}",
-                out.len() - before
-            );
-        }
+        streams.push((i, raw_len, stream));
     }
+    let parts: Vec<Vec<u8>> = streams
+        .par_iter()
+        .map(|&(i, raw_len, stream)| -> Result<Vec<u8>> {
+            // Deflate expands at most ~1032x: a lying raw length cannot reserve more than that.
+            let mut part = Vec::with_capacity(raw_len.min(stream.len().saturating_mul(1032)));
+            // Bound the inflation by the declared length (+1 to detect a lying length).
+            flate2::read::ZlibDecoder::new(stream)
+                .take(raw_len as u64 + 1)
+                .read_to_end(&mut part)
+                .with_context(|| format!("compressed stream {i}: zlib data corrupt"))?;
+            if part.len() != raw_len {
+                bail!(
+                    "compressed stream {i}: inflated to {} bytes, header says {raw_len}",
+                    part.len()
+                );
+            }
+            Ok(part)
+        })
+        .collect::<Result<_>>()?;
+    let out = parts.concat();
     if out.len() != expected {
         bail!(
             "compressed data inflated to {} bytes, expected {expected} (points x bytes per point)",

@@ -1,0 +1,95 @@
+#!/usr/bin/env python3
+"""The nine ISO 25178 parameters on 4096^2: surfalize (../shared/bench/params_anchor.py's own
+timing function) and ours (common/examples/metrology_bench), interleaved round by round on the
+same array, so both see the same machine load.
+
+    python scripts/bench_params.py [--rounds 3] [--reps 3] [--input bench-out/inputs/synth_4096.npy]
+
+Run from the repository root with the bench venv (.bench-venv/bin/python: surfalize). Needs
+`cargo build --release -p surfstream-common --example metrology_bench` (CARGO_TARGET_DIR
+honoured). The input is params_anchor.py's timing array (`--save-inputs`); it is written here
+when missing. Prints one JSON line per measurement and a summary with medians and ratios,
+ours with RAYON_NUM_THREADS=1 and with rayon's default thread count.
+"""
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+BENCH = os.path.join(ROOT, "..", "shared", "bench")
+sys.path.insert(0, BENCH)
+
+import params_anchor  # noqa: E402  (the anchor's own parameter set and timing)
+from benchkit import synth_surface  # noqa: E402
+
+
+def surfalize_all9(z, reps):
+    from surfalize import Surface
+    ts = []
+    for i in range(reps + 1):
+        s = Surface(z.copy(), 1.0, 1.0)  # fresh object: surfalize caches per object
+        t0 = time.perf_counter()
+        p = params_anchor.surfalize_params(s)
+        dt = time.perf_counter() - t0
+        if i:
+            ts.append(dt)
+    return float(np.median(ts)), p
+
+
+def ours(binary, path, reps, threads):
+    env = dict(os.environ)
+    if threads is None:
+        env.pop("RAYON_NUM_THREADS", None)
+    else:
+        env["RAYON_NUM_THREADS"] = str(threads)
+    out = subprocess.run([binary, "params", path, str(reps)], env=env, check=True,
+                         capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--input", default="bench-out/inputs/synth_4096.npy")
+    a = ap.parse_args()
+    target = os.environ.get("CARGO_TARGET_DIR", os.path.join(ROOT, "target"))
+    binary = os.path.join(target, "release", "examples", "metrology_bench")
+    if not os.path.exists(binary):
+        sys.exit(f"{binary} missing: cargo build --release -p surfstream-common --example metrology_bench")
+    if not os.path.exists(a.input):
+        os.makedirs(os.path.dirname(a.input) or ".", exist_ok=True)
+        np.save(a.input, synth_surface(4096, seed=4096))
+    z = np.load(a.input)
+    rows = {"surfalize": [], "ours_1_thread": [], "ours_default_threads": []}
+    default_threads = None
+    worst_rel = 0.0
+    for r in range(a.rounds):
+        t, theirs = surfalize_all9(z, a.reps)
+        rows["surfalize"].append(t)
+        print(json.dumps({"round": r, "what": "surfalize all 9", "median_s": t, "load": os.getloadavg()}))
+        for key, threads in (("ours_1_thread", 1), ("ours_default_threads", None)):
+            o = ours(binary, a.input, a.reps, threads)
+            rows[key].append(o["all_9_params"]["median_s"])
+            if threads is None:
+                default_threads = o["rayon_threads"]
+            for k, v in theirs.items():
+                worst_rel = max(worst_rel, abs(o["params"][k] - v) / abs(v))
+            print(json.dumps({"round": r, "what": key, "rayon_threads": o["rayon_threads"],
+                              "median_s": o["all_9_params"]["median_s"], "load": os.getloadavg()}))
+    med = {k: float(np.median(v)) for k, v in rows.items()}
+    print(f"\n4096^2, nine parameters, median of {a.rounds} rounds (each a median of {a.reps}), interleaved:")
+    print(f"  surfalize: {med['surfalize'] * 1e3:.1f} ms")
+    for key, label in (("ours_1_thread", "1 thread"), ("ours_default_threads", f"{default_threads} threads")):
+        print(f"  ours, {label}: {med[key] * 1e3:.1f} ms = {med['surfalize'] / med[key]:.1f}x faster")
+    print(f"  largest relative difference of the nine values to surfalize's: {worst_rel:.2e}")
+
+
+if __name__ == "__main__":
+    main()
