@@ -284,8 +284,15 @@ impl FusionNode {
         self.pairs = pairs;
         self.rerendered = rerendered;
         if self.write_files {
+            // Absolute heights in f64: the frame's f32 are relative to its f64 offset, and a
+            // file must not lose the offset (nor the precision f32 keeps near zero).
             let npy = self.out_dir.join("panorama.npy");
-            surfstream_common::npy::write_npy_f32(&npy, &r.heights, r.height, r.width)?;
+            let absolute: Vec<f64> = r
+                .heights
+                .iter()
+                .map(|&h| f64::from(h) + r.z_offset_um)
+                .collect();
+            surfstream_common::npy::write_npy_f64(&npy, &absolute, r.height, r.width)?;
             let png = self.out_dir.join("panorama.png");
             let opts = PreviewOptions {
                 title: Some("panorama (um)".into()),

@@ -283,6 +283,7 @@ fn scan(ctx: &NodeContext, p: ScanParams) -> Result<ReplayNode> {
             pitch_y_um: dir.scan.pitch_y_um,
             origin_x_um: t.entry.stage_x_um,
             origin_y_um: t.entry.stage_y_um,
+            z_offset_um: dir.z_offset_um,
             ..Default::default()
         };
         tiles.push(
@@ -305,6 +306,7 @@ fn scan(ctx: &NodeContext, p: ScanParams) -> Result<ReplayNode> {
         "pitch_x_um": dir.scan.pitch_x_um,
         "pitch_y_um": dir.scan.pitch_y_um,
         "height_unit": dir.scan.height_unit,
+        "z_offset_um": dir.z_offset_um,
     });
     Ok(ReplayNode::new(
         Source::Frames(frames),

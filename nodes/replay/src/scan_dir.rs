@@ -72,6 +72,11 @@ pub struct ScanDirectory {
     pub manifest_path: PathBuf,
     pub scan: ScanSection,
     pub tiles: Vec<LoadedTile>,
+    /// One height offset for the whole scan (um, f64): the mean of the first tile's valid
+    /// heights. Tiles hold f32 heights relative to it (DESIGN §2), so a part sitting tens of
+    /// micrometres (or millimetres) up the z axis keeps the reader's f64 precision, and every
+    /// tile shares the offset, so overlaps compare without conversion.
+    pub z_offset_um: f64,
     pub tile_width_px: usize,
     pub tile_height_px: usize,
 }
@@ -80,7 +85,21 @@ pub struct ScanDirectory {
 #[derive(Debug, Clone)]
 pub struct LoadedTile {
     pub entry: TileEntry,
+    /// Heights in um relative to [`ScanDirectory::z_offset_um`]; NaN = not measured.
     pub heights_um: Vec<f32>,
+}
+
+/// Mean of the finite values (f64), or 0 when there are none.
+fn mean_valid(values: &[f64]) -> f64 {
+    let (sum, n) = values
+        .iter()
+        .filter(|z| z.is_finite())
+        .fold((0.0, 0usize), |(s, n), &z| (s + z, n + 1));
+    if n == 0 {
+        0.0
+    } else {
+        sum / n as f64
+    }
 }
 
 /// Heights in the manifest's unit -> um.
@@ -145,6 +164,7 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
     let dir = manifest_path.parent().unwrap_or(Path::new("."));
     let mut seen = std::collections::BTreeSet::new();
     let mut tiles = Vec::with_capacity(file.tile.len());
+    let mut z_offset_um: Option<f64> = None;
     let mut shape: Option<(usize, usize, String)> = None;
     // (pitch x, pitch y, file) of the first tile that carries a lateral calibration.
     let mut file_pitch: Option<(f64, f64, String)> = None;
@@ -218,11 +238,10 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
             );
         }
         let file_scale = if carries_units { 1.0 } else { scale };
-        let heights_um: Vec<f32> = surface
-            .heights_um
-            .iter()
-            .map(|&z| (z * file_scale) as f32)
-            .collect();
+        let mut heights = surface.heights_um;
+        heights.iter_mut().for_each(|z| *z *= file_scale);
+        let offset = *z_offset_um.get_or_insert_with(|| mean_valid(&heights));
+        let heights_um: Vec<f32> = heights.iter().map(|&z| (z - offset) as f32).collect();
         tiles.push(LoadedTile {
             entry: t,
             heights_um,
@@ -237,6 +256,7 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         manifest_path,
         scan,
         tiles,
+        z_offset_um: z_offset_um.unwrap_or(0.0),
         tile_width_px: cols,
         tile_height_px: rows,
     })
@@ -284,7 +304,36 @@ stage_y_um = 0.0
         write_scan(d.path(), OK, &[("a.npy", 3, 4), ("b.npy", 3, 4)]);
         let s = load_scan(d.path()).unwrap();
         assert_eq!((s.tile_height_px, s.tile_width_px), (3, 4));
-        assert_eq!(s.tiles[1].heights_um[5], 0.005);
+        // Tile a holds 0..11 nm: the scan's offset is its mean, 5.5 nm.
+        assert!((s.z_offset_um - 0.0055).abs() < 1e-15, "{}", s.z_offset_um);
+        let absolute = f64::from(s.tiles[1].heights_um[5]) + s.z_offset_um;
+        assert!((absolute - 0.005).abs() < 1e-10, "{absolute}");
+    }
+
+    /// A part tens of millimetres up the z axis: f32 alone would keep only ~2 nm of 25 mm;
+    /// relative to the scan's f64 offset the tiles keep the reader's sub-picometre steps.
+    #[test]
+    fn tiles_keep_f64_precision_relative_to_the_scan_offset() {
+        let d = tempfile::tempdir().unwrap();
+        std::fs::write(d.path().join("scan.toml"), OK.replace("\"nm\"", "\"um\"")).unwrap();
+        let truth: Vec<Vec<f64>> = (0..2)
+            .map(|t| {
+                (0..12)
+                    .map(|i| 25_000.0 + (i * 7 + t) as f64 * 1e-4)
+                    .collect()
+            })
+            .collect();
+        for (name, z) in ["a.npy", "b.npy"].iter().zip(&truth) {
+            surfstream_common::npy::write_npy_f64(d.path().join(name), z, 3, 4).unwrap();
+        }
+        let s = load_scan(d.path()).unwrap();
+        assert!((s.z_offset_um - 25_000.0).abs() < 0.01);
+        for (tile, z) in s.tiles.iter().zip(&truth) {
+            for (&h, &want) in tile.heights_um.iter().zip(z) {
+                let got = f64::from(h) + s.z_offset_um;
+                assert!((got - want).abs() < 1e-9, "{got} vs {want}");
+            }
+        }
     }
 
     #[test]
@@ -343,7 +392,8 @@ stage_y_um = 0.0
         x3p_tile(d.path(), "b.x3p", 0.8148);
         let s = load_scan(d.path()).unwrap();
         assert!((s.scan.pitch_x_um - 0.8148).abs() < 1e-12);
-        assert_eq!(s.tiles[1].heights_um[5], 1.25);
+        let absolute = f64::from(s.tiles[1].heights_um[5]) + s.z_offset_um;
+        assert!((absolute - 1.25).abs() < 1e-9, "{absolute}");
         // Manifest says 0.5, files say 0.8148: an error naming both.
         std::fs::write(d.path().join("scan.toml"), &manifest).unwrap();
         let e = format!("{:#}", load_scan(d.path()).unwrap_err());

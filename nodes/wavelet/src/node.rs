@@ -486,17 +486,27 @@ impl WaveletNode {
         ph.pitch_y_um *= self.pool as f64;
         let mut files = Vec::new();
         if self.write_files {
-            use surfstream_common::npy::write_npy_f32;
-            write_npy_f32(self.out_dir.join("datum.npy"), &sep.datum, rows, cols)?;
+            use surfstream_common::npy::{write_npy_f32, write_npy_f64};
+            // datum and pooled carry the panorama's f64 offset (absolute heights, f64 files);
+            // roughness is relative by nature and stays f32.
+            let absolute = |v: &[f32]| -> Vec<f64> {
+                v.iter().map(|&z| f64::from(z) + h.z_offset_um).collect()
+            };
+            write_npy_f64(
+                self.out_dir.join("datum.npy"),
+                &absolute(&sep.datum),
+                rows,
+                cols,
+            )?;
             write_npy_f32(
                 self.out_dir.join("roughness.npy"),
                 &sep.roughness,
                 rows,
                 cols,
             )?;
-            write_npy_f32(
+            write_npy_f64(
                 self.out_dir.join("pooled.npy"),
-                &pooled.heights,
+                &absolute(&pooled.heights),
                 pooled.rows,
                 pooled.cols,
             )?;
