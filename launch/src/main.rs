@@ -39,7 +39,8 @@ struct GraphArgs {
     /// Output directory (overrides [graph] out_dir).
     #[arg(long)]
     out: Option<PathBuf>,
-    /// Override one node parameter, e.g. --set stage.rows=3 (VALUE is read as TOML).
+    /// Override one node parameter, e.g. --set stage.rows=3 (VALUE is read as TOML); or the
+    /// Table-6 threshold: --set deviation.threshold_percent=2.
     #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
     set: Vec<String>,
 }
@@ -57,11 +58,12 @@ enum Command {
         /// Output directory.
         #[arg(long)]
         out: PathBuf,
-        /// Override one node parameter (nodes: stage, matcher, fusion, wavelet, mesher).
+        /// Override one node parameter (nodes: stage, matcher, fusion, wavelet, mesher), or
+        /// the Table-6 threshold: --set deviation.threshold_percent=2.
         #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
         set: Vec<String>,
-        /// Registration method of the matcher: phase | auto (auto = the best available;
-        /// the same as `--set matcher.method=...`).
+        /// Registration method of the matcher: auto | phase | harris | sift (auto = the best
+        /// available, phase correlation; the same as `--set matcher.method=...`).
         #[arg(long, value_name = "METHOD")]
         method: Option<String>,
         /// Stitch once per fusion method (average, gradual, wavelet) into OUT/<method>/ and
@@ -145,10 +147,16 @@ fn dispatch(cli: Cli) -> Result<()> {
 
 /// Reads a graph file and applies `--out` and `--set`.
 fn load_graph(a: &GraphArgs) -> Result<GraphFile> {
-    let mut graph = GraphFile::load(&a.graph)?;
-    for s in &a.set {
-        graph.apply_override(s)?;
+    let origin = a.graph.display().to_string();
+    let text = std::fs::read_to_string(&a.graph)
+        .with_context(|| format!("{origin}: cannot read graph file"))?;
+    // The [deviation] table and `--set deviation.*` are the launcher's, not a node's.
+    let (text, mut settings) = deviation::split_graph_text(&text, &origin)?;
+    let mut graph = GraphFile::parse(&text, &origin)?;
+    for s in settings.apply_sets(&a.set)? {
+        graph.apply_override(&s)?;
     }
+    deviation::configure(settings);
     if let Some(out) = &a.out {
         graph.graph.out_dir = out.clone();
     }
@@ -222,9 +230,19 @@ inputs = {{ surface = "wavelet/pooled" }}
         // A string, whatever it looks like: the matcher validates the name.
         graph.apply_override(&format!("matcher.method={}", toml::Value::String(m.into())))?;
     }
-    for s in set {
-        graph.apply_override(s)?;
+    // make_tiles.py's ground truth beside scan.toml: the matcher scores feature matches
+    // against it (r and MAP in run.json); `--set matcher.truth=...` still overrides.
+    let truth = path.with_file_name("ground_truth.json");
+    if path.extension().is_some_and(|e| e == "toml") && truth.is_file() {
+        if let Some(t) = truth.to_str() {
+            graph.apply_override(&format!("matcher.truth={}", toml::Value::String(t.into())))?;
+        }
     }
+    let mut settings = deviation::Settings::default();
+    for s in settings.apply_sets(set)? {
+        graph.apply_override(&s)?;
+    }
+    deviation::configure(settings);
     graph.graph.out_dir = out;
     graph.validate("stitch pipeline")?;
     Ok(graph)

@@ -31,6 +31,19 @@ fn raster(t: &Tile) -> RasterRef<'_> {
     }
 }
 
+/// CPU time of the whole process (all threads, user + system), s, from /proc/self/stat (clock
+/// ticks, assumed 100 per second as on Linux); `None` elsewhere. Wall time alone says little on
+/// a loaded machine.
+fn process_cpu_s() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the command name (which may hold spaces) start at "state" (field 3).
+    let rest = &stat[stat.rfind(')')? + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let utime: f64 = f.get(11)?.parse().ok()?;
+    let stime: f64 = f.get(12)?.parse().ok()?;
+    Some((utime + stime) / 100.0)
+}
+
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
@@ -43,6 +56,8 @@ fn main() -> Result<()> {
             .ok_or_else(|| anyhow!("usage: bench_scan SCAN.toml [RUNS]"))?,
     );
     let runs: usize = args.get(2).map(|s| s.parse()).transpose()?.unwrap_or(5);
+    // `--pairs` as third argument: print every pair's answer and candidates (first round).
+    let verbose = args.get(3).is_some_and(|s| s == "--pairs");
     let dir = scan.parent().unwrap_or(Path::new("."));
     let text = std::fs::read_to_string(scan).with_context(|| format!("{}", scan.display()))?;
     let doc: toml::Table = toml::from_str(&text).with_context(|| format!("{}", scan.display()))?;
@@ -103,6 +118,7 @@ fn main() -> Result<()> {
     let mut corr = PhaseCorrelator::new();
     let mut per_pair_ms = Vec::new();
     let mut offsets = vec![None; pairs.len()];
+    let cpu0 = process_cpu_s();
     for _ in 0..runs {
         for (k, &(a, b)) in pairs.iter().enumerate() {
             let nominal = [
@@ -113,8 +129,35 @@ fn main() -> Result<()> {
             let r = corr.register(raster(&tiles[a]), raster(&tiles[b]), nominal, &params);
             per_pair_ms.push(t0.elapsed().as_secs_f64() * 1e3);
             offsets[k] = r.offset_px;
+            if verbose && per_pair_ms.len() <= pairs.len() {
+                let t = truth.as_ref();
+                let err = |o: [f64; 2]| {
+                    t.map(|t| [o[0] - (t[b][0] - t[a][0]), o[1] - (t[b][1] - t[a][1])])
+                };
+                println!(
+                    "pair {a}-{b}: offset {:?} err {:?} ncc {:.3} roundness {:.3} {:?}",
+                    r.offset_px,
+                    r.offset_px.and_then(err),
+                    r.ncc,
+                    r.peak_roundness,
+                    r.rejection.as_ref().map(|e| e.to_string())
+                );
+                for c in &r.candidates {
+                    let o = [c.offset_px[0] as f64, c.offset_px[1] as f64];
+                    println!(
+                        "    candidate {:?} err {:?} peak {:.3} ncc {:.3}",
+                        c.offset_px,
+                        err(o),
+                        c.peak,
+                        c.ncc
+                    );
+                }
+            }
         }
     }
+    let cpu_per_pair_ms = cpu0
+        .zip(process_cpu_s())
+        .map(|(t0, t1)| (t1 - t0) * 1e3 / per_pair_ms.len() as f64);
     let stage_px: Vec<[f64; 2]> = tiles
         .iter()
         .map(|t| [t.stage_um[0] / pitch[0], t.stage_um[1] / pitch[1]])
@@ -157,6 +200,9 @@ fn main() -> Result<()> {
         planes.rms_before_um,
         planes.rms_residual_um
     );
+    if let Some(c) = cpu_per_pair_ms {
+        println!("per pair: process CPU (all threads) {c:.1} ms, mean over the registrations");
+    }
     if let Some(t) = truth {
         let mut worst: f64 = 0.0;
         for (&(a, b), o) in pairs.iter().zip(&offsets) {

@@ -214,6 +214,184 @@ pub fn solve_positions(
     })
 }
 
+/// A pair the pairwise test found ambiguous (several distinct, equally good NCC maxima, as on
+/// periodic or lay-dominated textures), with the offsets it could not choose between.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AmbiguousLink {
+    pub a: usize,
+    pub b: usize,
+    /// The candidate offsets (b's pixel (0, 0) minus a's, px), best NCC first.
+    pub offsets_px: Vec<[f64; 2]>,
+    /// Standard deviation of a chosen offset, px (as [`Link::sigma_px`]).
+    pub sigma_px: f64,
+}
+
+/// [`solve_positions`] that also resolves ambiguous pairs by consistency with the rest of the
+/// scan, the way ASHLAR and MIST let the tile graph decide between correlation peaks. Returns
+/// the solution over `links` followed by the chosen ambiguous links (in input order), and
+/// per ambiguous link the index of the chosen offset (`None`: left out).
+///
+/// Repeated until nothing changes:
+/// - an ambiguous pair whose two tiles are both placed by kept links takes the one offset
+///   within `outlier_px` of their solved relative position, when exactly one is;
+/// - a tile not placed by any kept link, with ambiguous pairs to two or more placed tiles,
+///   takes the position on which offsets of two or more of those pairs agree (within
+///   `outlier_px`), when exactly one such position exists (a wrong peak of one pair rarely
+///   lands where a wrong peak of another does).
+///
+/// A tile with a single ambiguous pair stays unplaced (stage placement): the stage error is of
+/// the same size as the spacing of the peaks, so the prior cannot choose honestly.
+pub fn solve_positions_with_alternatives(
+    stage_px: &[[f64; 2]],
+    links: &[Link],
+    ambiguous: &[AmbiguousLink],
+    params: &SolveParams,
+) -> Result<(GlobalSolution, Vec<Option<usize>>), SolveError> {
+    for (i, l) in ambiguous.iter().enumerate() {
+        let n = stage_px.len();
+        for tile in [l.a, l.b] {
+            if tile >= n {
+                return Err(SolveError::TileOutOfRange {
+                    link: links.len() + i,
+                    tile,
+                    tiles: n,
+                });
+            }
+        }
+        if l.a == l.b {
+            return Err(SolveError::SelfLink {
+                link: links.len() + i,
+                tile: l.a,
+            });
+        }
+        let finite = l.offsets_px.iter().flatten().all(|v| v.is_finite());
+        if !(finite && l.sigma_px.is_finite() && l.sigma_px > 0.0) {
+            return Err(SolveError::BadLink {
+                link: links.len() + i,
+            });
+        }
+    }
+    let mut chosen: Vec<Option<usize>> = vec![None; ambiguous.len()];
+    let all_links = |chosen: &[Option<usize>]| -> Vec<Link> {
+        let mut v = links.to_vec();
+        for (k, ch) in chosen.iter().enumerate() {
+            if let Some(c) = *ch {
+                let l = &ambiguous[k];
+                v.push(Link {
+                    a: l.a,
+                    b: l.b,
+                    offset_px: l.offsets_px[c],
+                    sigma_px: l.sigma_px,
+                });
+            }
+        }
+        v
+    };
+    loop {
+        let sol = solve_positions(stage_px, &all_links(&chosen), params)?;
+        let pos = &sol.positions_px;
+        let mut progress = false;
+        // Pairs between placed tiles: the one consistent offset.
+        for (k, l) in ambiguous.iter().enumerate() {
+            if chosen[k].is_some() || !(sol.linked[l.a] && sol.linked[l.b]) {
+                continue;
+            }
+            let consistent: Vec<usize> = (0..l.offsets_px.len())
+                .filter(|&c| {
+                    let o = l.offsets_px[c];
+                    let r = [
+                        pos[l.b][0] - pos[l.a][0] - o[0],
+                        pos[l.b][1] - pos[l.a][1] - o[1],
+                    ];
+                    norm(r) <= params.outlier_px
+                })
+                .collect();
+            if let [c] = consistent[..] {
+                chosen[k] = Some(c);
+                progress = true;
+            }
+        }
+        if !progress {
+            // One unplaced tile at a time, then solve again.
+            for t in (0..stage_px.len()).filter(|&t| !sol.linked[t]) {
+                if let Some(picks) = agreeing_position(t, &sol, ambiguous, &chosen, params) {
+                    for (k, c) in picks {
+                        chosen[k] = Some(c);
+                    }
+                    progress = true;
+                    break;
+                }
+            }
+        }
+        if !progress {
+            return Ok((sol, chosen));
+        }
+    }
+}
+
+/// Hypotheses that agree on one position: (ambiguous link, offset index) pairs and the position.
+type Cluster = (Vec<(usize, usize)>, [f64; 2]);
+
+/// For the unplaced tile `t`: the offsets (ambiguous link, offset index) of its pairs to placed
+/// tiles that agree on one position of `t`, when exactly one position has the support of two
+/// or more pairs.
+fn agreeing_position(
+    t: usize,
+    sol: &GlobalSolution,
+    ambiguous: &[AmbiguousLink],
+    chosen: &[Option<usize>],
+    params: &SolveParams,
+) -> Option<Vec<(usize, usize)>> {
+    // Every hypothesis for t's position: (link, offset index, position).
+    let mut hyp: Vec<(usize, usize, [f64; 2])> = Vec::new();
+    for (k, l) in ambiguous.iter().enumerate() {
+        if chosen[k].is_some() {
+            continue;
+        }
+        let (other, sign) = if l.b == t && l.a != t {
+            (l.a, 1.0)
+        } else if l.a == t && l.b != t {
+            (l.b, -1.0)
+        } else {
+            continue;
+        };
+        if !sol.linked[other] {
+            continue;
+        }
+        let p = sol.positions_px[other];
+        for (c, o) in l.offsets_px.iter().enumerate() {
+            hyp.push((k, c, [p[0] + sign * o[0], p[1] + sign * o[1]]));
+        }
+    }
+    // Clusters seeded by each hypothesis: the hypotheses of other links within outlier_px.
+    // The supported position found so far and its members.
+    let mut found: Option<Cluster> = None;
+    for &(k, c, p) in &hyp {
+        let mut members = vec![(k, c)];
+        for &(k2, c2, p2) in &hyp {
+            if k2 != k
+                && norm([p2[0] - p[0], p2[1] - p[1]]) <= params.outlier_px
+                && !members.iter().any(|m| m.0 == k2)
+            {
+                members.push((k2, c2));
+            }
+        }
+        if members.len() < 2 {
+            continue;
+        }
+        match &found {
+            None => found = Some((members, p)),
+            Some((_, q)) => {
+                if norm([p[0] - q[0], p[1] - q[1]]) > params.outlier_px {
+                    // Two distinct supported positions: no honest choice.
+                    return None;
+                }
+            }
+        }
+    }
+    found.map(|(m, _)| m)
+}
+
 fn residual(pos: &[[f64; 2]], l: &Link) -> [f64; 2] {
     [
         pos[l.b][0] - pos[l.a][0] - l.offset_px[0],

@@ -28,8 +28,13 @@ use surfstream_common::frame::{flags, placed_by, FrameKind, TileRegistration};
 use surfstream_common::graph::NodeContext;
 use surfstream_common::node::{Input, NodeLogic, Outbox};
 
-use crate::global::{solve_planes, solve_positions, Link, SolveParams};
-use crate::{estimate_plane, PhaseCorrelator, PhaseParams, PlaneCorrection, RasterRef};
+use crate::global::{
+    solve_planes, solve_positions_with_alternatives, AmbiguousLink, Link, SolveParams,
+};
+use crate::{
+    estimate_plane, register_pair_features, FeatureMethod, FeatureParams, FeatureRegistration,
+    PhaseCorrelator, PhaseParams, PlaneCorrection, RasterRef,
+};
 
 const OUT: &str = "registrations";
 
@@ -57,6 +62,9 @@ struct Params {
     stage_sigma_px: Option<f64>,
     /// A link disagreeing with the global solve by more than this (px) is removed (1).
     outlier_px: Option<f64>,
+    /// A ground_truth.json (make_tiles.py's, or the simulated stage's truth.json; relative to
+    /// the output directory): with a feature method, r and MAP against it (crate::efficiency).
+    truth: Option<String>,
 }
 
 fn auto() -> String {
@@ -87,6 +95,10 @@ struct PairRecord {
     b: usize,
     offset_px: Option<[f64; 2]>,
     ncc: f64,
+    /// An ambiguous pair's distinct NCC maxima, for the global solve to choose from.
+    alternatives: Vec<[f64; 2]>,
+    /// The feature matcher's outcome (methods "harris", "sift").
+    features: Option<FeatureRegistration>,
     report: serde_json::Value,
 }
 
@@ -94,6 +106,9 @@ pub struct MatcherNode {
     params: PhaseParams,
     solve: SolveParams,
     method: String,
+    /// Harris or SIFT instead of phase correlation (crate::feature_match).
+    features: Option<FeatureParams>,
+    truth: Option<std::path::PathBuf>,
     correlator: PhaseCorrelator,
     pending: Vec<StoredTile>,
     tiles: Vec<StoredTile>,
@@ -110,13 +125,15 @@ pub struct MatcherNode {
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
     let p: Params = ctx.params()?;
     let where_ = || format!("graph '{}', node '{}'", ctx.graph_name, ctx.node_id);
-    if !matches!(p.method.as_str(), "auto" | "phase") {
-        bail!(
-            "{}: method = {:?}: expected \"auto\" or \"phase\"",
-            where_(),
-            p.method
-        );
-    }
+    let features = match p.method.as_str() {
+        "auto" | "phase" => None,
+        "harris" => Some(FeatureParams::for_method(FeatureMethod::Harris)),
+        "sift" => Some(FeatureParams::for_method(FeatureMethod::Sift)),
+        m => bail!(
+            "{}: method = {m:?}: expected \"auto\", \"phase\", \"harris\" or \"sift\"",
+            where_()
+        ),
+    };
     let mut params = PhaseParams::default();
     if let Some(v) = p.min_ncc {
         params.min_ncc = v;
@@ -143,7 +160,12 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
     Ok(Box::new(MatcherNode {
         params,
         solve,
-        method: "phase".into(),
+        method: features
+            .as_ref()
+            .map_or("phase", |f| f.method.name())
+            .into(),
+        features,
+        truth: p.truth.map(|t| ctx.out_dir.join(t)),
         correlator: PhaseCorrelator::new(),
         pending: Vec::new(),
         tiles: Vec::new(),
@@ -213,9 +235,21 @@ impl MatcherNode {
                 (t.stage_um[0] - a.stage_um[0]) / pitch[0],
                 (t.stage_um[1] - a.stage_um[1]) / pitch[1],
             ];
-            let r = self
-                .correlator
-                .register(raster(a), b, nominal, &self.params);
+            let (r, alternatives, features) = match &self.features {
+                Some(fp) => {
+                    let f = register_pair_features(raster(a), b, nominal, fp);
+                    (f.registration.clone(), Vec::new(), Some(f))
+                }
+                None => {
+                    let (r, alt) = self.correlator.register_with_alternatives(
+                        raster(a),
+                        b,
+                        nominal,
+                        &self.params,
+                    );
+                    (r, alt, None)
+                }
+            };
             let direction = if a.row == t.row {
                 "horizontal"
             } else {
@@ -229,11 +263,22 @@ impl MatcherNode {
                 "accepted": r.offset_px.is_some(),
                 "reason": r.rejection.as_ref().map(|e| e.to_string()),
             });
+            let report = match &features {
+                Some(f) => {
+                    let mut report = report;
+                    report["reason"] = json!(f.reason());
+                    report["features"] = f.report(None);
+                    report
+                }
+                None => report,
+            };
             self.pairs.push(PairRecord {
                 a: ai,
                 b: me,
                 offset_px: r.offset_px,
                 ncc: r.ncc,
+                alternatives: alternatives.iter().map(|c| c.offset_px).collect(),
+                features,
                 report,
             });
             stage_votes.push((
@@ -336,8 +381,40 @@ impl MatcherNode {
                 })
             })
             .collect();
-        let sol = solve_positions(&stage_px, &links, &self.solve)
-            .map_err(|e| anyhow::anyhow!("matcher: global position solve: {e}"))?;
+        let ambiguous_pairs: Vec<usize> = (0..self.pairs.len())
+            .filter(|&k| self.pairs[k].alternatives.len() >= 2)
+            .collect();
+        let ambiguous: Vec<AmbiguousLink> = ambiguous_pairs
+            .iter()
+            .map(|&k| {
+                let p = &self.pairs[k];
+                AmbiguousLink {
+                    a: p.a,
+                    b: p.b,
+                    offsets_px: p.alternatives.clone(),
+                    sigma_px: LINK_SIGMA_PX / p.ncc.clamp(0.05, 1.0),
+                }
+            })
+            .collect();
+        let (sol, chosen) =
+            solve_positions_with_alternatives(&stage_px, &links, &ambiguous, &self.solve)
+                .map_err(|e| anyhow::anyhow!("matcher: global position solve: {e}"))?;
+        // The solution's links: the accepted pairs, then the chosen ambiguous ones in input
+        // order (as the solve appends them).
+        let mut accepted = accepted;
+        let mut links = links;
+        for (i, c) in chosen.iter().enumerate() {
+            if let Some(c) = *c {
+                let l = &ambiguous[i];
+                accepted.push(ambiguous_pairs[i]);
+                links.push(Link {
+                    a: l.a,
+                    b: l.b,
+                    offset_px: l.offsets_px[c],
+                    sigma_px: l.sigma_px,
+                });
+            }
+        }
         // The scan frame is the first tile's stage position, as while streaming: shift the
         // solution so tile 0 keeps its streaming position when it is linked.
         let shift = [
@@ -422,14 +499,44 @@ impl MatcherNode {
                 },
             }));
         }
+        // Feature methods with a truth file: r and MAP of every pair's matches.
+        let (feature_truth, feature_summary) = match (&self.truth, &self.features) {
+            (Some(path), Some(_)) => {
+                let scored: Vec<(u64, u64, &FeatureRegistration)> = self
+                    .pairs
+                    .iter()
+                    .filter_map(|p| {
+                        let f = p.features.as_ref()?;
+                        Some((
+                            self.tiles[p.a].index as u64,
+                            self.tiles[p.b].index as u64,
+                            f,
+                        ))
+                    })
+                    .collect();
+                let (q, summary) = crate::efficiency::score_feature_pairs(path, &scored)
+                    .map_err(|e| anyhow::anyhow!("matcher: truth: {e}"))?;
+                (q, summary)
+            }
+            _ => (Vec::new(), serde_json::Value::Null),
+        };
+        let mut feature_truth = feature_truth.into_iter();
         for (k, p) in self.pairs.iter().enumerate() {
             let mut r = p.report.clone();
+            if let Some(f) = &p.features {
+                r["features"] = f.report(feature_truth.next().flatten().as_ref());
+            }
             let final_offset = [
                 positions_px[p.b][0] - positions_px[p.a][0],
                 positions_px[p.b][1] - positions_px[p.a][1],
             ];
             r["final_offset_px"] = json!(final_offset);
             r["z_samples"] = json!(planes.samples[k]);
+            if let Some(i) = ambiguous_pairs.iter().position(|&a| a == k) {
+                // An ambiguous pair: its candidate offsets, and the one the global solve took.
+                r["alternatives_px"] = json!(p.alternatives);
+                r["chosen_alternative"] = json!(chosen[i]);
+            }
             if let Some(li) = accepted.iter().position(|&a| a == k) {
                 let o = sol.links[li];
                 r["kept_by_global_solve"] = json!(o.kept);
@@ -448,6 +555,7 @@ impl MatcherNode {
             "outlier_px": self.solve.outlier_px,
             "z_rms_before_um": planes.rms_before_um,
             "z_rms_residual_um": planes.rms_residual_um,
+            "features": feature_summary,
         });
         Ok(regs)
     }

@@ -1,0 +1,117 @@
+//! The true tile positions of a scan, read from a `ground_truth.json`: the file
+//! `bench/make_tiles.py` writes beside a scan's `scan.toml`, and the layout the simulated stage
+//! writes as `truth.json` beside a graph's outputs (`surfstream-replay`'s `truth` module).
+//!
+//! Only `tiles[].index` and `tiles[].true_origin_px` (`[x, y]`, px) are read; a pair's true
+//! offset is `true_origin_px[b] - true_origin_px[a]`, the same definition as the file's
+//! `pairs[].true_offset_px`, for any two tiles.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use thiserror::Error;
+
+/// Why a truth file was refused; every variant names the file.
+#[derive(Debug, Error)]
+pub enum TruthError {
+    #[error("{path}: cannot read: {source}")]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{path}: not JSON: {source}")]
+    Json {
+        path: PathBuf,
+        source: serde_json::Error,
+    },
+    #[error("{path}: {field}: expected {expected}")]
+    Field {
+        path: PathBuf,
+        field: String,
+        expected: &'static str,
+    },
+    #[error("{path}: tiles[{at}].index = {index} appears twice")]
+    Duplicate {
+        path: PathBuf,
+        at: usize,
+        index: u64,
+    },
+}
+
+/// True origins by acquisition index.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScanTruth {
+    pub path: PathBuf,
+    origins_px: BTreeMap<u64, [f64; 2]>,
+}
+
+impl ScanTruth {
+    /// Reads and checks a truth file.
+    pub fn read(path: &Path) -> Result<ScanTruth, TruthError> {
+        let text = std::fs::read_to_string(path).map_err(|source| TruthError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::parse(&text, path)
+    }
+
+    /// Parses the text of a truth file (`path` only names it in errors).
+    pub fn parse(text: &str, path: &Path) -> Result<ScanTruth, TruthError> {
+        let v: serde_json::Value =
+            serde_json::from_str(text).map_err(|source| TruthError::Json {
+                path: path.to_path_buf(),
+                source,
+            })?;
+        let field = |field: String, expected: &'static str| TruthError::Field {
+            path: path.to_path_buf(),
+            field,
+            expected,
+        };
+        let tiles = v
+            .get("tiles")
+            .and_then(|t| t.as_array())
+            .ok_or_else(|| field("tiles".into(), "an array of tiles"))?;
+        let mut origins_px = BTreeMap::new();
+        for (k, t) in tiles.iter().enumerate() {
+            let index = t
+                .get("index")
+                .and_then(|i| i.as_u64())
+                .ok_or_else(|| field(format!("tiles[{k}].index"), "a non-negative integer"))?;
+            let o = t
+                .get("true_origin_px")
+                .and_then(|o| o.as_array())
+                .filter(|o| o.len() == 2)
+                .and_then(|o| Some([o[0].as_f64()?, o[1].as_f64()?]))
+                .filter(|o| o.iter().all(|c| c.is_finite()))
+                .ok_or_else(|| {
+                    field(
+                        format!("tiles[{k}].true_origin_px"),
+                        "two finite numbers [x, y] in px",
+                    )
+                })?;
+            if origins_px.insert(index, o).is_some() {
+                return Err(TruthError::Duplicate {
+                    path: path.to_path_buf(),
+                    at: k,
+                    index,
+                });
+            }
+        }
+        Ok(ScanTruth {
+            path: path.to_path_buf(),
+            origins_px,
+        })
+    }
+
+    /// True offset of tile `b` relative to tile `a` (acquisition indices), px; `None` when
+    /// either is not in the file.
+    pub fn true_offset_px(&self, a: u64, b: u64) -> Option<[f64; 2]> {
+        let (oa, ob) = (self.origins_px.get(&a)?, self.origins_px.get(&b)?);
+        Some([ob[0] - oa[0], ob[1] - oa[1]])
+    }
+
+    /// Number of tiles with a true origin.
+    pub fn tiles(&self) -> usize {
+        self.origins_px.len()
+    }
+}
