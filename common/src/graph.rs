@@ -84,7 +84,13 @@ pub fn node_kind_ports(kind: &str) -> Option<(&'static [InputDef], &'static [Por
         out("roughness", Frames, Lossless),
         out("pooled", Frames, Lossless),
     ];
-    const MESHER_IN: &[InputDef] = &[inp("surface", Some(Frames), true)];
+    // Which of these the mesher needs follows its `surface` parameter (its build checks it):
+    // `surface` for the pooled map or the panorama, `datum` and/or `roughness` otherwise.
+    const MESHER_IN: &[InputDef] = &[
+        inp("surface", Some(Frames), false),
+        inp("datum", Some(Frames), false),
+        inp("roughness", Some(Frames), false),
+    ];
     const RECORDER_IN: &[InputDef] = &[inp("*", None, false)];
     Some(match kind {
         "replay" => (&[], REPLAY_OUT),

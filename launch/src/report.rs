@@ -164,6 +164,8 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
         h.push_str("</div>\n");
     }
 
+    deviation_tables(&mut h, &run["deviation"]);
+
     if let Some(lat) = run["latency_ms"].as_object() {
         h.push_str("<h2>Latencies (ms)</h2>");
         let mut rows = Vec::new();
@@ -216,6 +218,70 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
     }
     h.push_str("</body></html>\n");
     Ok(h)
+}
+
+/// The ISO 25178 parameters of the measured panorama per region beside those of each model
+/// stage and their deviation (the reference study's Table 6), from run.json's `deviation`.
+fn deviation_tables(h: &mut String, dev: &Value) {
+    let Some(stages) = dev["stages"].as_object().filter(|s| !s.is_empty()) else {
+        return;
+    };
+    let judged: Vec<&str> = dev["judged"]
+        .as_array()
+        .map(|j| j.iter().filter_map(Value::as_str).collect())
+        .unwrap_or_default();
+    let _ = write!(
+        h,
+        "<h2>Parameters and deviation (Table 6)</h2><p>measured: {}; overall pass: {}; {}</p>\
+         <div class=\"flex\">",
+        esc(dev["measured"].as_str().unwrap_or("?")),
+        num(&dev["pass"]),
+        esc(dev["conventions"].as_str().unwrap_or("")),
+    );
+    for (stage, st) in stages {
+        let mut rows = Vec::new();
+        for (region, r) in st["regions"].as_object().into_iter().flatten() {
+            for (param, measured) in r["measured"].as_object().into_iter().flatten() {
+                let mark = if judged.contains(&param.as_str()) {
+                    " *"
+                } else {
+                    ""
+                };
+                rows.push(vec![
+                    region.clone(),
+                    format!("{param}{mark}"),
+                    num(measured),
+                    num(&r["model"][param]),
+                    num(&r["deviation_pct"][param]),
+                ]);
+            }
+            rows.push(vec![
+                region.clone(),
+                "pass".into(),
+                String::new(),
+                String::new(),
+                num(&r["pass"]),
+            ]);
+        }
+        let _ = write!(
+            h,
+            "<div><h3>{} (pass: {})</h3>",
+            esc(stage),
+            num(&st["pass"])
+        );
+        h.push_str(&table(
+            &[
+                "region",
+                "parameter (* judged)",
+                "measured",
+                "model",
+                "deviation %",
+            ],
+            &rows,
+        ));
+        h.push_str("</div>");
+    }
+    h.push_str("</div>\n");
 }
 
 /// Stage (dashed) and registered (solid) tile outlines, to scale, y down as in the previews.
@@ -418,11 +484,21 @@ mod tests {
             "tiles": [{"index": 0, "stage_x_um": 0.0, "stage_y_um": 0.0, "x_um": 1.0, "y_um": 2.0, "placed_by": "registration"}],
             "stages": {"mesher": {"triangles": 10, "fidelity": {"field": {"sq_um": 1.0}, "mesh": {"sq_um": 0.99}}}},
             "latency_ms": {"hops": {"a_to_b": {"p50": 1.0, "p95": 2.0, "max": 3.0, "n": 4}}},
+            "deviation": {"measured": "panorama.npy", "pass": false, "judged": ["Sa"],
+                "stages": {"pooled": {"pass": false, "regions": {"S1": {"pass": false,
+                    "measured": {"Sa": 2.0, "Sdr": 10.0}, "model": {"Sa": 2.5, "Sdr": 9.0},
+                    "deviation_pct": {"Sa": 25.0, "Sdr": -10.0}}}}}},
         });
         let h = render(&run, Path::new("/nonexistent")).unwrap();
         assert!(h.contains("t&lt;x&gt;") && !h.contains("t<x>"));
         assert!(h.contains("<svg") && h.contains("stroke-dasharray"));
         assert!(h.contains("<td>0.9900</td>"));
         assert!(h.contains("a_to_b"));
+        assert!(h.contains("<h2>Parameters and deviation (Table 6)</h2>"));
+        assert!(h.contains("<h3>pooled (pass: false)</h3>"));
+        assert!(h.contains(
+            "<td class=\"k\">S1</td><td>Sa *</td><td>2.0000</td><td>2.5000</td><td>25.0000</td>"
+        ));
+        assert!(h.contains("<td>Sdr</td><td>10.0000</td><td>9.0000</td><td>-10.0000</td>"));
     }
 }

@@ -127,6 +127,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
             base_depth_um: a.base_depth_um,
             recentre: true,
         },
+        block_samples: None,
     };
     let t0 = Instant::now();
     let m = mesh_height_field(map, &params).with_context(|| format!("{}", a.file.display()))?;

@@ -3,7 +3,8 @@
 //! triangles, achieved max and RMS vertical error, watertightness. Used by
 //! `scripts/bench_mesh.py` to compare with pymeshlab in one run.
 //!
-//! `cargo run --release -p surfstream-mesher --example bench_adaptive FILE.npy STEP_UM EPSILON_UM [REPEATS]`
+//! `cargo run --release -p surfstream-mesher --example bench_adaptive FILE.npy STEP_UM EPSILON_UM [REPEATS [OUT.stl]]`
+//! (OUT.stl: the last solid as binary STL in um, for an outside watertightness check).
 
 use std::time::Instant;
 
@@ -16,7 +17,7 @@ use surfstream_mesher::{
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     if args.len() < 3 {
-        bail!("usage: bench_adaptive FILE.npy STEP_UM EPSILON_UM [REPEATS]");
+        bail!("usage: bench_adaptive FILE.npy STEP_UM EPSILON_UM [REPEATS [OUT.stl]]");
     }
     let a = surfstream_common::npy::read_npy_f64(&args[0]).context(args[0].clone())?;
     let step_um: f64 = args[1].parse().context("STEP_UM")?;
@@ -37,6 +38,7 @@ fn main() -> Result<()> {
             base_depth_um: None,
             recentre: true,
         },
+        block_samples: None,
     };
     let mut times = Vec::new();
     let mut cpu = Vec::new();
@@ -51,6 +53,16 @@ fn main() -> Result<()> {
     cpu.sort_by(f64::total_cmp);
     let m = last.context("no run")?;
     times.sort_by(f64::total_cmp);
+    if let Some(path) = args.get(4) {
+        surfstream_common::fsutil::write_atomic(std::path::Path::new(path), |w| {
+            Ok(surfstream_mesher::write_stl_binary(
+                w,
+                &m.mesh,
+                "bench_adaptive",
+            )?)
+        })
+        .with_context(|| path.clone())?;
+    }
     let c = check_closed(&m.mesh);
     // The error is also measured in f64 against the f64 input (the f32 conversion of the
     // heights is part of what is measured: the STL stores f32 anyway).

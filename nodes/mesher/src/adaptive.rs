@@ -5,10 +5,10 @@
 use serde::{Deserialize, Serialize};
 
 use crate::error::{MeshError, Result};
-use crate::fidelity::{area_params, fit_plane, AreaParams};
+use crate::fidelity::{compare, field_params, AreaParams};
 use crate::field::HeightFieldRef;
 use crate::solid::{close_top_surface, default_base_depth_um, SolidMesh, SolidParams};
-use crate::tin::{error_stats, resample, triangulate, ErrorStats, MissingSamples, TinParams};
+use crate::tin::{resample_with_error, triangulate, ErrorStats, MissingSamples, TinParams};
 
 /// The error bound: absolute, or a fraction of the height field's Sq.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -38,6 +38,9 @@ pub struct MeshParams {
     pub missing: MissingSamples,
     /// Units, base depth (solids) and recentring, as for the grid solid.
     pub solid: SolidParams,
+    /// Side of the blocks meshed independently and in parallel, samples (None: the default,
+    /// [`crate::tin::DEFAULT_BLOCK_SAMPLES`]); see [`crate::tin::triangulate`].
+    pub block_samples: Option<usize>,
 }
 
 /// The fidelity report (issue item 5), in um.
@@ -84,14 +87,12 @@ pub fn mesh_height_field(map: HeightFieldRef<'_>, params: &MeshParams) -> Result
                 .into(),
         ));
     }
-    let plane = fit_plane(map.heights_um, map.width);
-    let field_params = plane
-        .and_then(|p| area_params(map.heights_um, map.width, map.pitch_x_um, map.pitch_y_um, p));
     let epsilon_um = match params.epsilon {
         Epsilon::Um(e) => e,
         Epsilon::SqFraction(f) => {
             crate::field::positive_finite("epsilon_sq_fraction", f)?;
-            let sq = field_params.map_or(0.0, |p| p.sq_um);
+            let field = field_params(map.heights_um, map.width, map.pitch_x_um, map.pitch_y_um);
+            let sq = field.map_or(0.0, |p| p.sq_um);
             if sq <= 0.0 {
                 return Err(MeshError::Incompatible(format!(
                     "epsilon relative to Sq: the height field's Sq is {sq} um, so the bound \
@@ -107,25 +108,23 @@ pub fn mesh_height_field(map: HeightFieldRef<'_>, params: &MeshParams) -> Result
             epsilon_um,
             max_triangles: params.max_triangles,
             missing: params.missing,
+            block_samples: params.block_samples,
         },
     )?;
-    let error = error_stats(&tin, map.heights_um);
-    let resampled_um = resample(&tin);
+    let (resampled_um, error) = resample_with_error(&tin, map.heights_um);
     // Compare at the measured samples only.
     let mesh_at_measured: Vec<f32> = resampled_um
         .iter()
         .zip(map.heights_um)
         .map(|(&m, h)| if h.is_nan() { f32::NAN } else { m })
         .collect();
-    let mesh_params = plane.and_then(|p| {
-        area_params(
-            &mesh_at_measured,
-            map.width,
-            map.pitch_x_um,
-            map.pitch_y_um,
-            p,
-        )
-    });
+    let (field_params, mesh_params) = compare(
+        map.heights_um,
+        &mesh_at_measured,
+        map.width,
+        map.pitch_x_um,
+        map.pitch_y_um,
+    );
 
     // Place the vertices as the grid solid does: x, y from the sample's index, z from its
     // height; re-centred from small numbers so that no precision is lost.

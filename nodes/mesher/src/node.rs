@@ -1,6 +1,12 @@
-//! The mesher node: turns the final (pooled) surface into an error-bounded STL solid or sheet
-//! (or, with `method = "grid"`, the full-grid solid). Live patches are counted and skipped: a
-//! mesh is written once, from the exact final surface.
+//! The mesher node: turns the final surface into an error-bounded STL solid or sheet (or, with
+//! `method = "grid"`, the full-grid solid). Live patches are counted and skipped: a mesh is
+//! written once, from the exact final surface, after every wired input has ended its scan.
+//!
+//! Which surface (`surface`, issue item 4): "pooled" (default) or "panorama" arrive on the input
+//! `surface` (wired to wavelet/pooled or fusion/panorama); "datum" and "roughness" on the inputs
+//! of those names; "datum+roughness" needs both and meshes their sum (the panorama as the
+//! separation rebuilds it). The wiring must match the choice: a missing or an unused input is
+//! an error when the graph is read.
 
 use anyhow::{anyhow, bail, Result};
 use serde::Deserialize;
@@ -46,6 +52,47 @@ struct Params {
     /// "fill" (default) or "holes" (sheet only): missing samples.
     #[serde(default)]
     missing: MissingSamples,
+    /// Which surface to mesh (see the module docs).
+    #[serde(default)]
+    surface: SurfaceChoice,
+}
+
+/// Which surface the mesher meshes, and the input ports that carry it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, serde::Serialize)]
+pub enum SurfaceChoice {
+    #[default]
+    #[serde(rename = "pooled")]
+    Pooled,
+    #[serde(rename = "panorama")]
+    Panorama,
+    #[serde(rename = "datum+roughness")]
+    DatumPlusRoughness,
+    #[serde(rename = "datum")]
+    Datum,
+    #[serde(rename = "roughness")]
+    Roughness,
+}
+
+impl SurfaceChoice {
+    /// The input ports this choice needs (and the only ones it accepts).
+    pub fn ports(self) -> &'static [&'static str] {
+        match self {
+            Self::Pooled | Self::Panorama => &["surface"],
+            Self::DatumPlusRoughness => &["datum", "roughness"],
+            Self::Datum => &["datum"],
+            Self::Roughness => &["roughness"],
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Pooled => "pooled",
+            Self::Panorama => "panorama",
+            Self::DatumPlusRoughness => "datum+roughness",
+            Self::Datum => "datum",
+            Self::Roughness => "roughness",
+        }
+    }
 }
 
 fn adaptive() -> String {
@@ -66,76 +113,164 @@ pub struct MesherNode {
     ascii: bool,
     path: std::path::PathBuf,
     file: String,
-    final_surface: Option<HeightMap>,
+    surface: SurfaceChoice,
+    /// Where each input comes from ("node/port"), for run.json.
+    sources: Vec<(String, String)>,
+    /// The final frame per input port, and the ports whose scan has ended.
+    finals: std::collections::BTreeMap<String, HeightMap>,
+    ended: std::collections::BTreeSet<String>,
     live_frames: u64,
     done: bool,
     summary: serde_json::Value,
 }
 
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
-    let p: Params = ctx.params()?;
-    let ascii = match p.format.as_str() {
-        "binary" => false,
-        "ascii" => true,
-        other => bail!(
-            "graph '{}', node '{}': format = {other:?}: expected \"binary\" or \"ascii\"",
-            ctx.graph_name,
-            ctx.node_id
-        ),
-    };
-    let params = SolidParams {
-        units: p.units,
-        base_depth_um: p.base_depth_um,
-        recentre: true,
-    };
-    params
-        .validate()
-        .map_err(|e| anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id))?;
-    let adaptive = match p.method.as_str() {
-        "grid" => None,
-        "adaptive" => {
-            let epsilon = match (p.epsilon_um, p.epsilon_sq_fraction) {
-                (Some(_), Some(_)) => bail!(
-                    "graph '{}', node '{}': give epsilon_um or epsilon_sq_fraction, not both",
-                    ctx.graph_name,
-                    ctx.node_id
-                ),
-                (Some(e), None) => Epsilon::Um(e),
-                (None, f) => Epsilon::SqFraction(f.unwrap_or(DEFAULT_EPSILON_SQ_FRACTION)),
-            };
-            Some(MeshParams {
-                epsilon,
-                max_triangles: p.max_triangles,
-                kind: p.kind,
-                missing: p.missing,
-                solid: params.clone(),
-            })
-        }
-        other => bail!(
-            "graph '{}', node '{}': method = {other:?}: expected \"adaptive\" or \"grid\"",
-            ctx.graph_name,
-            ctx.node_id
-        ),
-    };
-    Ok(Box::new(MesherNode {
-        params,
-        adaptive,
-        ascii,
-        path: ctx.out_dir.join(&p.file),
-        file: p.file,
-        final_surface: None,
-        live_frames: 0,
-        done: false,
-        summary: serde_json::Value::Null,
-    }))
+    Ok(Box::new(MesherNode::new(ctx)?))
 }
 
 impl MesherNode {
+    /// The node's logic from its graph context (parameters and wiring checked here).
+    pub fn new(ctx: &NodeContext) -> Result<Self> {
+        let p: Params = ctx.params()?;
+        let wired: Vec<&str> = ctx.inputs.iter().map(|i| i.port.as_str()).collect();
+        let needed = p.surface.ports();
+        for port in needed {
+            if !wired.contains(port) {
+                bail!(
+                    "graph '{}', node '{}': surface = \"{}\" needs the input '{port}' \
+                     (wired: {wired:?})",
+                    ctx.graph_name,
+                    ctx.node_id,
+                    p.surface.name()
+                );
+            }
+        }
+        if let Some(extra) = wired.iter().find(|w| !needed.contains(w)) {
+            bail!(
+                "graph '{}', node '{}': input '{extra}' is wired but surface = \"{}\" does \
+                 not use it (it uses {needed:?})",
+                ctx.graph_name,
+                ctx.node_id,
+                p.surface.name()
+            );
+        }
+        let sources = ctx
+            .inputs
+            .iter()
+            .map(|i| (i.port.clone(), format!("{}/{}", i.from_node, i.from_port)))
+            .collect();
+        let ascii = match p.format.as_str() {
+            "binary" => false,
+            "ascii" => true,
+            other => bail!(
+                "graph '{}', node '{}': format = {other:?}: expected \"binary\" or \"ascii\"",
+                ctx.graph_name,
+                ctx.node_id
+            ),
+        };
+        let params = SolidParams {
+            units: p.units,
+            base_depth_um: p.base_depth_um,
+            recentre: true,
+        };
+        params
+            .validate()
+            .map_err(|e| anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id))?;
+        let adaptive = match p.method.as_str() {
+            "grid" => None,
+            "adaptive" => {
+                let epsilon = match (p.epsilon_um, p.epsilon_sq_fraction) {
+                    (Some(_), Some(_)) => bail!(
+                        "graph '{}', node '{}': give epsilon_um or epsilon_sq_fraction, not both",
+                        ctx.graph_name,
+                        ctx.node_id
+                    ),
+                    (Some(e), None) => Epsilon::Um(e),
+                    (None, f) => Epsilon::SqFraction(f.unwrap_or(DEFAULT_EPSILON_SQ_FRACTION)),
+                };
+                Some(MeshParams {
+                    epsilon,
+                    max_triangles: p.max_triangles,
+                    kind: p.kind,
+                    missing: p.missing,
+                    solid: params.clone(),
+                    block_samples: None,
+                })
+            }
+            other => bail!(
+                "graph '{}', node '{}': method = {other:?}: expected \"adaptive\" or \"grid\"",
+                ctx.graph_name,
+                ctx.node_id
+            ),
+        };
+        Ok(MesherNode {
+            params,
+            adaptive,
+            ascii,
+            path: ctx.out_dir.join(&p.file),
+            file: p.file,
+            surface: p.surface,
+            sources,
+            finals: Default::default(),
+            ended: Default::default(),
+            live_frames: 0,
+            done: false,
+            summary: serde_json::Value::Null,
+        })
+    }
+
+    /// The surface to mesh from the final frames: one input as is, or datum + roughness summed
+    /// (the roughness is relative to the same z offset as the datum's frame, so the sum keeps
+    /// the datum's offset).
+    fn surface_to_mesh(&mut self) -> Result<HeightMap> {
+        let mut take = |port: &str| {
+            self.finals
+                .remove(port)
+                .ok_or_else(|| anyhow!("mesher: end of scan without a final '{port}' frame"))
+        };
+        match self.surface {
+            SurfaceChoice::Pooled | SurfaceChoice::Panorama => take("surface"),
+            SurfaceChoice::Datum => take("datum"),
+            SurfaceChoice::Roughness => take("roughness"),
+            SurfaceChoice::DatumPlusRoughness => {
+                let mut d = take("datum")?;
+                let r = take("roughness")?;
+                let (a, b) = (&d.header, &r.header);
+                if (a.width, a.height) != (b.width, b.height)
+                    || a.pitch_x_um != b.pitch_x_um
+                    || a.pitch_y_um != b.pitch_y_um
+                    || a.origin_x_um != b.origin_x_um
+                    || a.origin_y_um != b.origin_y_um
+                    || d.heights.len() != r.heights.len()
+                {
+                    bail!(
+                        "mesher: datum ({} x {} px, pitch {} x {} um, origin {}, {} um) and \
+                         roughness ({} x {} px, pitch {} x {} um, origin {}, {} um) are not on \
+                         the same grid",
+                        a.width,
+                        a.height,
+                        a.pitch_x_um,
+                        a.pitch_y_um,
+                        a.origin_x_um,
+                        a.origin_y_um,
+                        b.width,
+                        b.height,
+                        b.pitch_x_um,
+                        b.pitch_y_um,
+                        b.origin_x_um,
+                        b.origin_y_um
+                    );
+                }
+                for (z, &r) in d.heights.iter_mut().zip(&r.heights) {
+                    *z += r;
+                }
+                Ok(d)
+            }
+        }
+    }
+
     fn mesh(&mut self) -> Result<()> {
-        let s = self
-            .final_surface
-            .take()
-            .ok_or_else(|| anyhow!("mesher: end of scan without a final surface"))?;
+        let s = self.surface_to_mesh()?;
         let h = s.header;
         let field = HeightFieldRef {
             heights_um: &s.heights,
@@ -183,6 +318,8 @@ impl MesherNode {
             "t_acquired_ns": h.t_acquired_ns,
             "t_written_ns": monotonic_ns(),
             "live_frames_skipped": self.live_frames,
+            "surface": self.surface.name(),
+            "sources": self.sources.iter().map(|(p, f)| (p.clone(), json!(f))).collect::<serde_json::Map<_, _>>(),
         });
         if let (Some(o), Some(serde_json::Value::Object(a))) =
             (self.summary.as_object_mut(), adaptive)
@@ -202,10 +339,13 @@ impl NodeLogic for MesherNode {
             bail!("mesher: input '{port}' must carry frames")
         };
         if f.header.has(flags::END_OF_SCAN) {
-            self.mesh()?;
-            self.done = true;
+            self.ended.insert(port.to_owned());
+            if self.surface.ports().iter().all(|p| self.ended.contains(*p)) {
+                self.mesh()?;
+                self.done = true;
+            }
         } else if f.header.has(flags::FINAL) {
-            self.final_surface = Some(f.to_owned());
+            self.finals.insert(port.to_owned(), f.to_owned());
         } else {
             self.live_frames += 1;
         }
