@@ -356,6 +356,86 @@ fn stitch_scans_a_scan_directory() {
     );
 }
 
+/// The paper's Harris + NCC path through a real graph: `stitch --method harris` on a scan whose
+/// `ground_truth.json` lies beside `scan.toml` scores every pair's matches (r, eq. 2; MAP, eq. 3)
+/// in run.json, and the tiles still land within half a pixel of the truth.
+#[test]
+fn stitch_with_harris_scores_matches_against_the_truth() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = dir.path().join("scan");
+    std::fs::create_dir(&scan).unwrap();
+    write_scan_dir(&scan, 2, 2, 256);
+    let out_dir = dir.path().join("out");
+    let out = run({
+        let mut cmd = surfstream();
+        cmd.args(["stitch", "--method", "harris", "--out"])
+            .arg(&out_dir)
+            .arg(&scan);
+        cmd
+    });
+    assert!(out.status.success(), "stitch failed:\n{}", stderr(&out));
+    let run_json = read_json(&out_dir.join("run.json"));
+    let truth = read_json(&scan.join("ground_truth.json"));
+    let err = max_position_error_px(&run_json, &truth);
+    assert!(err < 0.5, "tile position error {err} px");
+    let pairs = run_json["pairs"].as_array().expect("run.json pairs");
+    assert_eq!(pairs.len(), 4, "a 2 x 2 serpentine has 4 neighbour pairs");
+    for p in pairs {
+        let f = &p["features"];
+        assert_eq!(f["method"], "harris", "{p}");
+        let q = &f["truth"];
+        let (matches, correct) = (q["matches"].as_u64(), q["correct"].as_u64());
+        assert!(matches.is_some_and(|m| m > 0), "no scored matches: {p}");
+        let r = q["r"].as_f64().expect("r");
+        assert!((r - correct.unwrap() as f64 / matches.unwrap() as f64).abs() < 1e-12);
+        assert!(r > 0.3, "matching efficiency {r}: {p}");
+    }
+    let summary = &run_json["stages"]["matcher"]["global"]["features"];
+    let map = summary["map"]
+        .as_f64()
+        .expect("MAP in stages.matcher.global.features");
+    assert!((0.0..=1.0).contains(&map) && map > 0.3, "MAP {map}");
+}
+
+/// A part far up the z axis: the tiles' f64 heights survive the f32 frames (scan-wide offset)
+/// and the written panorama, datum and pooled map are absolute.
+#[test]
+fn stitch_keeps_absolute_heights_of_a_part_far_up_the_z_axis() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = dir.path().join("scan");
+    std::fs::create_dir(&scan).unwrap();
+    write_scan_dir(&scan, 1, 2, 256);
+    const Z_UM: f64 = 25_000.0;
+    let mut tiles_mean = Vec::new();
+    for k in 0..2 {
+        let path = scan.join(format!("tile_{k:03}.npy"));
+        let a = surfstream_common::npy::read_npy_f64(&path).unwrap();
+        let lifted: Vec<f64> = a.data.iter().map(|z| z + Z_UM).collect();
+        tiles_mean.extend(a.data.iter().filter(|z| z.is_finite()).copied());
+        surfstream_common::npy::write_npy_f64(&path, &lifted, a.rows, a.cols).unwrap();
+    }
+    let mean_tiles = tiles_mean.iter().sum::<f64>() / tiles_mean.len() as f64;
+    let out_dir = dir.path().join("out");
+    let out = run({
+        let mut cmd = surfstream();
+        cmd.arg("stitch").arg(&scan).arg("--out").arg(&out_dir);
+        cmd
+    });
+    assert!(out.status.success(), "stitch failed:\n{}", stderr(&out));
+    for f in ["panorama.npy", "datum.npy", "pooled.npy"] {
+        let a = surfstream_common::npy::read_npy_f64(out_dir.join(f)).unwrap();
+        let valid: Vec<f64> = a.data.iter().copied().filter(|z| z.is_finite()).collect();
+        let mean = valid.iter().sum::<f64>() / valid.len() as f64;
+        // The tiles are levelled against each other (piston, tilt), so the mean moves by the
+        // tiles' own relief, never by the 25 mm offset.
+        assert!(
+            (mean - (Z_UM + mean_tiles)).abs() < 5.0,
+            "{f}: mean {mean} um, tiles {} um",
+            Z_UM + mean_tiles
+        );
+    }
+}
+
 fn find_pid(binary: &str, marker: &str) -> Option<i32> {
     for e in std::fs::read_dir("/proc").ok()?.flatten() {
         let Ok(pid) = e.file_name().to_string_lossy().parse::<i32>() else {
