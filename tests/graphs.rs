@@ -224,6 +224,17 @@ fn demo_launch_run_and_replay_agree_and_match_the_truth() {
     eprintln!("panorama vs specimen: rms {rms:.4} um over {n} samples");
     assert!(n > 100_000 && rms < 0.1, "height rms {rms} um");
 
+    // Table 6 judges every model stage against the measured panorama, the mesh included.
+    let stages = &run_json["deviation"]["stages"];
+    for stage in ["datum+roughness", "pooled", "mesh"] {
+        let sa = &stages[stage]["regions"]["panorama"]["model"]["Sa"];
+        assert!(
+            sa.as_f64().is_some(),
+            "deviation stage {stage}: {}",
+            stages[stage]
+        );
+    }
+
     // Latency of every stage is known.
     let lat = &run_json["latency_ms"];
     assert_eq!(lat["tile_to_registration"]["n"], 4);

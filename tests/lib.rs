@@ -83,6 +83,7 @@ pub const OUTPUTS: &[&str] = &[
     "roughness.npy",
     "pooled.npy",
     "surface.stl",
+    "mesh_resampled.npy",
     "panorama.png",
     "datum.png",
     "roughness.png",

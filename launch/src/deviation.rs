@@ -3,8 +3,9 @@
 //!
 //! Measured surface: the fused panorama (`panorama.npy`). Model stages: "datum+roughness"
 //! (`datum.npy` + `roughness.npy`) and "pooled" (`pooled.npy`, each pooled cell spread back
-//! over the panorama pixels it pooled: nearest re-sampling onto the panorama grid). The mesh
-//! re-sampled onto the panorama grid is one more [`compare_stage`] call.
+//! over the panorama pixels it pooled: nearest re-sampling onto the panorama grid) and "mesh"
+//! (`mesh_resampled.npy`, the mesher's STL surface re-sampled on the grid it meshed, spread
+//! back onto the panorama grid the same way).
 //!
 //! Regions: S1..Sn = each tile's footprint in the panorama (from its final position), and
 //! "panorama" = the whole map. Parameters (ISO 25178, mean removed, no levelling, over points
@@ -388,6 +389,18 @@ fn evaluate(out: &Path, run: &Value, threshold_pct: f64) -> Result<Value> {
         stages.insert(
             "pooled".into(),
             compare_stage(&measured, "pooled", &up, threshold_pct)?,
+        );
+    }
+    // The mesher's surface re-sampled on its grid (the pooled map's, the panorama's...):
+    // the model one stage further, judged against the same measured panorama.
+    let mesh = out.join("mesh_resampled.npy");
+    if mesh.exists() {
+        let m = read_npy_f64(&mesh)?;
+        let up = unpool(&m.data, m.rows, m.cols, rows, cols)
+            .with_context(|| format!("{}", mesh.display()))?;
+        stages.insert(
+            "mesh".into(),
+            compare_stage(&measured, "mesh", &up, threshold_pct)?,
         );
     }
     let pass = stages.values().all(|s| s["pass"] == json!(true));

@@ -282,14 +282,28 @@ impl MesherNode {
             origin_y_um: h.origin_y_um,
             z_offset_um: h.z_offset_um,
         };
-        let (solid, adaptive) = match &self.adaptive {
-            None => (grid_solid(field, &self.params)?, None),
+        // The mesh re-sampled on the meshed grid (um relative to the frame's offset): for the
+        // grid mesh the samples themselves, for the adaptive one its interpolation. It becomes
+        // the "mesh" stage of the model-vs-measurement table (Table 6) in run.json.
+        let (solid, adaptive, resampled_um) = match &self.adaptive {
+            None => (grid_solid(field, &self.params)?, None, s.heights.clone()),
             Some(p) => {
                 let m = mesh_height_field(field, p)?;
                 let summary = m.summary();
-                (m.mesh, Some(summary))
+                (m.mesh, Some(summary), m.resampled_um)
             }
         };
+        let resampled_path = self.path.with_file_name(MESH_RESAMPLED);
+        let absolute: Vec<f64> = resampled_um
+            .iter()
+            .map(|&z| f64::from(z) + h.z_offset_um)
+            .collect();
+        surfstream_common::npy::write_npy_f64(
+            &resampled_path,
+            &absolute,
+            h.height as usize,
+            h.width as usize,
+        )?;
         let check = check_closed(&solid);
         let label = stl::stl_header(&solid, "surfstream surface");
         let ascii = self.ascii;
@@ -303,6 +317,7 @@ impl MesherNode {
         })?;
         self.summary = json!({
             "file": self.file,
+            "resampled": MESH_RESAMPLED,
             "format": if self.ascii { "ascii" } else { "binary" },
             "units": self.params.units.symbol(),
             "offset_um": solid.offset_um,
@@ -332,6 +347,9 @@ impl MesherNode {
         Ok(())
     }
 }
+
+/// The mesh re-sampled on the meshed grid, absolute heights (um, f64), beside the STL.
+pub const MESH_RESAMPLED: &str = "mesh_resampled.npy";
 
 impl NodeLogic for MesherNode {
     fn on_input(&mut self, port: &str, input: Input<'_>, _: &mut Outbox) -> Result<()> {
