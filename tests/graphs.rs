@@ -340,20 +340,44 @@ fn write_scan_dir(
     plan
 }
 
-#[test]
-fn stitch_scans_a_scan_directory() {
+/// A simulated scan directory (`rows` x `cols` tiles of `tile_px`) in a fresh temp dir, whose
+/// tiles `prepare` may rewrite, stitched by `surfstream stitch ARGS`; returns the temp dir
+/// (holding `scan/` and `out/`) and run.json.
+fn stitch_simulated_scan(
+    rows: usize,
+    cols: usize,
+    tile_px: usize,
+    args: &[&str],
+    prepare: impl FnOnce(&Path),
+) -> (tempfile::TempDir, Value) {
     let dir = tempfile::tempdir().unwrap();
     let scan = dir.path().join("scan");
     std::fs::create_dir(&scan).unwrap();
-    write_scan_dir(&scan, 2, 3, 256);
+    write_scan_dir(&scan, rows, cols, tile_px);
+    prepare(&scan);
     let out_dir = dir.path().join("out");
     let out = run({
         let mut cmd = surfstream();
-        cmd.arg("stitch").arg(&scan).arg("--out").arg(&out_dir);
+        cmd.arg("stitch")
+            .arg(&scan)
+            .arg("--out")
+            .arg(&out_dir)
+            .args(args);
         cmd
     });
-    assert!(out.status.success(), "stitch failed:\n{}", stderr(&out));
+    assert!(
+        out.status.success(),
+        "stitch {args:?} failed:\n{}",
+        stderr(&out)
+    );
     let run_json = read_json(&out_dir.join("run.json"));
+    (dir, run_json)
+}
+
+#[test]
+fn stitch_scans_a_scan_directory() {
+    let (dir, run_json) = stitch_simulated_scan(2, 3, 256, &[], |_| {});
+    let (scan, out_dir) = (dir.path().join("scan"), dir.path().join("out"));
     let truth = read_json(&scan.join("ground_truth.json"));
     let err = max_position_error_px(&run_json, &truth);
     eprintln!("max tile position error: {err:.3} px");
@@ -372,21 +396,8 @@ fn stitch_scans_a_scan_directory() {
 /// in run.json, and the tiles still land within half a pixel of the truth.
 #[test]
 fn stitch_with_harris_scores_matches_against_the_truth() {
-    let dir = tempfile::tempdir().unwrap();
-    let scan = dir.path().join("scan");
-    std::fs::create_dir(&scan).unwrap();
-    write_scan_dir(&scan, 2, 2, 256);
-    let out_dir = dir.path().join("out");
-    let out = run({
-        let mut cmd = surfstream();
-        cmd.args(["stitch", "--method", "harris", "--out"])
-            .arg(&out_dir)
-            .arg(&scan);
-        cmd
-    });
-    assert!(out.status.success(), "stitch failed:\n{}", stderr(&out));
-    let run_json = read_json(&out_dir.join("run.json"));
-    let truth = read_json(&scan.join("ground_truth.json"));
+    let (dir, run_json) = stitch_simulated_scan(2, 2, 256, &["--method", "harris"], |_| {});
+    let truth = read_json(&dir.path().join("scan/ground_truth.json"));
     let err = max_position_error_px(&run_json, &truth);
     assert!(err < 0.5, "tile position error {err} px");
     let pairs = run_json["pairs"].as_array().expect("run.json pairs");
@@ -412,37 +423,29 @@ fn stitch_with_harris_scores_matches_against_the_truth() {
 /// and the written panorama, datum and pooled map are absolute.
 #[test]
 fn stitch_keeps_absolute_heights_of_a_part_far_up_the_z_axis() {
-    let dir = tempfile::tempdir().unwrap();
-    let scan = dir.path().join("scan");
-    std::fs::create_dir(&scan).unwrap();
-    write_scan_dir(&scan, 1, 2, 256);
     const Z_UM: f64 = 25_000.0;
-    let mut tiles_mean = Vec::new();
-    for k in 0..2 {
-        let path = scan.join(format!("tile_{k:03}.npy"));
-        let a = surfstream_common::npy::read_npy_f64(&path).unwrap();
-        let lifted: Vec<f64> = a.data.iter().map(|z| z + Z_UM).collect();
-        tiles_mean.extend(a.data.iter().filter(|z| z.is_finite()).copied());
-        surfstream_common::npy::write_npy_f64(&path, &lifted, a.rows, a.cols).unwrap();
-    }
-    let mean_tiles = tiles_mean.iter().sum::<f64>() / tiles_mean.len() as f64;
-    let out_dir = dir.path().join("out");
-    let out = run({
-        let mut cmd = surfstream();
-        cmd.arg("stitch").arg(&scan).arg("--out").arg(&out_dir);
-        cmd
+    let mut tiles_mean = 0.0;
+    let (dir, _) = stitch_simulated_scan(1, 2, 256, &[], |scan| {
+        let mut valid = Vec::new();
+        for k in 0..2 {
+            let path = scan.join(format!("tile_{k:03}.npy"));
+            let a = surfstream_common::npy::read_npy_f64(&path).unwrap();
+            let lifted: Vec<f64> = a.data.iter().map(|z| z + Z_UM).collect();
+            valid.extend(a.data.iter().filter(|z| z.is_finite()).copied());
+            surfstream_common::npy::write_npy_f64(&path, &lifted, a.rows, a.cols).unwrap();
+        }
+        tiles_mean = valid.iter().sum::<f64>() / valid.len() as f64;
     });
-    assert!(out.status.success(), "stitch failed:\n{}", stderr(&out));
     for f in ["panorama.npy", "datum.npy", "pooled.npy"] {
-        let a = surfstream_common::npy::read_npy_f64(out_dir.join(f)).unwrap();
+        let a = surfstream_common::npy::read_npy_f64(dir.path().join("out").join(f)).unwrap();
         let valid: Vec<f64> = a.data.iter().copied().filter(|z| z.is_finite()).collect();
         let mean = valid.iter().sum::<f64>() / valid.len() as f64;
         // The tiles are levelled against each other (piston, tilt), so the mean moves by the
         // tiles' own relief, never by the 25 mm offset.
         assert!(
-            (mean - (Z_UM + mean_tiles)).abs() < 5.0,
+            (mean - (Z_UM + tiles_mean)).abs() < 5.0,
             "{f}: mean {mean} um, tiles {} um",
-            Z_UM + mean_tiles
+            Z_UM + tiles_mean
         );
     }
 }

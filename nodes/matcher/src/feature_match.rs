@@ -489,17 +489,7 @@ fn rejected(
     features: [usize; 2],
 ) -> FeatureRegistration {
     FeatureRegistration {
-        registration: PairRegistration {
-            offset_px: None,
-            ncc: 0.0,
-            peak_ratio: 0.0,
-            peak_roundness: 0.0,
-            shift_from_nominal_px: None,
-            overlap_px,
-            valid_overlap_px: 0,
-            rejection: Some(rejection),
-            candidates: Vec::new(),
-        },
+        registration: PairRegistration::rejected(rejection, overlap_px),
         method,
         features,
         one_way_matches: 0,

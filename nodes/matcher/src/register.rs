@@ -268,7 +268,8 @@ pub struct PairRegistration {
 }
 
 impl PairRegistration {
-    fn rejected(rejection: Rejection, overlap_px: [usize; 2]) -> Self {
+    /// No answer, for `rejection`: every measure zero, no candidates.
+    pub(crate) fn rejected(rejection: Rejection, overlap_px: [usize; 2]) -> Self {
         PairRegistration {
             offset_px: None,
             ncc: 0.0,
