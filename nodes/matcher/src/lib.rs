@@ -153,6 +153,7 @@ pub mod plane;
 pub mod raster;
 pub mod register;
 pub mod sift;
+mod simd;
 pub mod truth;
 
 pub use detector::{DetectorImage, DetectorParams, Rect};

@@ -6,6 +6,8 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::raster::{validate_offset, InputError, RasterRef};
+use crate::simd::avx2_dispatch;
+use wide::f32x8;
 
 /// The height correction of one tile: a piston plus a tilt about the tile centre.
 ///
@@ -158,46 +160,7 @@ impl PlaneSums {
     /// per-row lane sums are exact enough for rows of a few thousand pixels and are promoted to
     /// f64 before they are combined.
     pub(crate) fn add_row_offset(&mut self, y: f64, x0: f64, z: &[f32], z_ref: f32) {
-        const L: usize = 8;
-        let mut acc = [[0.0f32; L]; 6];
-        let mut xs = [0.0f32; L];
-        for (l, x) in xs.iter_mut().enumerate() {
-            *x = l as f32;
-        }
-        let mut chunks = z.chunks_exact(L);
-        for ch in chunks.by_ref() {
-            for l in 0..L {
-                let v = ch[l] - z_ref;
-                let ok = v.is_finite();
-                let m = if ok { 1.0 } else { 0.0 };
-                let v = if ok { v } else { 0.0 };
-                let x = xs[l];
-                acc[0][l] += m;
-                acc[1][l] += m * x;
-                acc[2][l] += m * x * x;
-                acc[3][l] += v;
-                acc[4][l] += v * x;
-                acc[5][l] += v * v;
-                xs[l] = x + L as f32;
-            }
-        }
-        let mut t = [0.0f64; 6];
-        for (k, a) in acc.iter().enumerate() {
-            t[k] = a.iter().map(|&v| v as f64).sum();
-        }
-        let i0 = z.len() - chunks.remainder().len();
-        for (l, &v) in chunks.remainder().iter().enumerate() {
-            if v.is_finite() {
-                let x = (i0 + l) as f64;
-                let v = (v - z_ref) as f64;
-                t[0] += 1.0;
-                t[1] += x;
-                t[2] += x * x;
-                t[3] += v;
-                t[4] += v * x;
-                t[5] += v * v;
-            }
-        }
+        let t = row_sums_all_finite(z, z_ref).unwrap_or_else(|| row_sums_masked(z, z_ref));
         // Sums over x' = x0 + x.
         let [n, sxi, sxxi, sz, sxzi, szz] = t;
         let sx = n * x0 + sxi;
@@ -317,6 +280,96 @@ impl PlaneSums {
             var.sqrt(),
         ))
     }
+}
+
+avx2_dispatch! {
+/// [n, sum x, sum x^2, sum z, sum x z, sum z^2] over the finite `z[i] - z_ref`, x = i, when
+/// every value is finite (checked on the sums: a NaN or infinity propagates into them), else
+/// `None`. Three lanes instead of six and no masks: most rows of a measurement have no
+/// dropout.
+fn row_sums_all_finite(z: &[f32], z_ref: f32) -> Option<[f64; 6]> {
+    let mut acc = [f32x8::ZERO; 3];
+    let mut xs = f32x8::new([0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]);
+    let (z8, tail) = z.as_chunks::<8>();
+    let zr = f32x8::splat(z_ref);
+    for ch in z8 {
+        let v = f32x8::new(*ch) - zr;
+        acc[0] += v;
+        acc[1] += v * xs;
+        acc[2] += v * v;
+        xs += f32x8::splat(8.0);
+    }
+    let acc = acc.map(|v| v.to_array());
+    let mut t = acc.map(|a| a.iter().map(|&v| v as f64).sum::<f64>());
+    let i0 = z.len() - tail.len();
+    for (l, &v) in tail.iter().enumerate() {
+        let x = (i0 + l) as f64;
+        let v = (v - z_ref) as f64;
+        t[0] += v;
+        t[1] += v * x;
+        t[2] += v * v;
+    }
+    if !t.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let n = z.len() as f64;
+    Some([
+        n,
+        n * (n - 1.0) * 0.5,
+        (n - 1.0) * n * (2.0 * n - 1.0) / 6.0,
+        t[0],
+        t[1],
+        t[2],
+    ])
+}
+}
+
+avx2_dispatch! {
+/// [`row_sums_all_finite`] for rows with invalid (non-finite) values: branch-free masked
+/// f32 lanes, promoted to f64 per row.
+fn row_sums_masked(z: &[f32], z_ref: f32) -> [f64; 6] {
+    const L: usize = 8;
+    let mut acc = [[0.0f32; L]; 6];
+    let mut xs = [0.0f32; L];
+    for (l, x) in xs.iter_mut().enumerate() {
+        *x = l as f32;
+    }
+    let mut chunks = z.chunks_exact(L);
+    for ch in chunks.by_ref() {
+        for l in 0..L {
+            let v = ch[l] - z_ref;
+            let ok = v.is_finite();
+            let m = if ok { 1.0 } else { 0.0 };
+            let v = if ok { v } else { 0.0 };
+            let x = xs[l];
+            acc[0][l] += m;
+            acc[1][l] += m * x;
+            acc[2][l] += m * x * x;
+            acc[3][l] += v;
+            acc[4][l] += v * x;
+            acc[5][l] += v * v;
+            xs[l] = x + L as f32;
+        }
+    }
+    let mut t = [0.0f64; 6];
+    for (k, a) in acc.iter().enumerate() {
+        t[k] = a.iter().map(|&v| v as f64).sum();
+    }
+    let i0 = z.len() - chunks.remainder().len();
+    for (l, &v) in chunks.remainder().iter().enumerate() {
+        if v.is_finite() {
+            let x = (i0 + l) as f64;
+            let v = (v - z_ref) as f64;
+            t[0] += 1.0;
+            t[1] += x;
+            t[2] += x * x;
+            t[3] += v;
+            t[4] += v * x;
+            t[5] += v * v;
+        }
+    }
+    t
+}
 }
 
 /// The least-squares plane of one raster over its valid pixels, as a [`PlaneCorrection`]
