@@ -18,6 +18,7 @@ use hdf5_reader::{
     messages::datatype::{StringSize, VarLenKind},
     ByteOrder, Dataset, Datatype, Hdf5File,
 };
+use rayon::prelude::*;
 
 use super::bytes::{checked_size, length_unit_um};
 use super::{Metadata, Surface};
@@ -298,6 +299,14 @@ fn instrument_attributes(
     }
 }
 
+/// The decoded element count must be the shape's.
+fn check_len(len: usize, n: usize, elem: usize, what: &str) -> Result<()> {
+    if len != n {
+        bail!("{what}: {} bytes, expected {n} x {elem}", len * elem);
+    }
+    Ok(())
+}
+
 pub fn parse(data: &[u8]) -> Result<Surface> {
     let file = h5(Hdf5File::from_bytes(data), "not a readable HDF5 file")?;
     let table = link_table(&file, data.len())?;
@@ -311,10 +320,8 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
         other => bail!("surface dataset '{path}': shape {other:?}, expected 2-D rows x columns"),
     };
     let n = checked_size(&[width, height], "surface shape")?;
-    let (elem, order) = match ds.dtype() {
-        Datatype::FloatingPoint { size, byte_order } if *size == 4 || *size == 8 => {
-            (*size as usize, *byte_order)
-        }
+    let elem = match ds.dtype() {
+        Datatype::FloatingPoint { size, .. } if *size == 4 || *size == 8 => *size as usize,
         other => bail!("surface dataset '{path}': type {other:?}, expected float32 or float64"),
     };
     plausible_size(
@@ -322,13 +329,6 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
         data.len(),
         &format!("surface dataset '{path}'"),
     )?;
-    let raw = h5(ds.read_raw_bytes(), &format!("surface dataset '{path}'"))?;
-    if raw.len() != n * elem {
-        bail!(
-            "surface dataset '{path}': {} bytes, expected {n} x {elem}",
-            raw.len()
-        );
-    }
     let unit = string_attr(&ds, "Unit").with_context(|| format!("surface dataset '{path}'"))?;
     let no_data = match ds.attribute("No Data") {
         Ok(a) => Some(h5(a.read_as_f64(), "attribute 'No Data'").or_else(|_| {
@@ -371,32 +371,24 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
             v * scale_um
         }
     };
-    let big = order == ByteOrder::BigEndian;
+    // Chunks (gzip-compressed in Mx files) are inflated in parallel by the HDF5 reader, which
+    // also converts the byte order; the unit conversion runs in parallel over rows.
+    let what = format!("surface dataset '{path}'");
     let heights_um: Vec<f64> = if elem == 8 {
-        raw.chunks_exact(8)
-            .map(|c| {
-                let mut a = [0u8; 8];
-                a.copy_from_slice(c);
-                to_um(if big {
-                    f64::from_be_bytes(a)
-                } else {
-                    f64::from_le_bytes(a)
-                })
-            })
-            .collect()
+        let a = h5(ds.read_array_parallel::<f64>(), &what)?;
+        check_len(a.len(), n, elem, &what)?;
+        match a.as_slice() {
+            Some(s) => s.par_iter().map(|&v| to_um(v)).collect(),
+            None => a.iter().map(|&v| to_um(v)).collect(),
+        }
     } else {
-        raw.chunks_exact(4)
-            .map(|c| {
-                let a = [c[0], c[1], c[2], c[3]];
-                let v = if big {
-                    f32::from_be_bytes(a)
-                } else {
-                    f32::from_le_bytes(a)
-                };
-                // The marker is compared in the stored precision: an f32 'No Data' widened.
-                to_um(v as f64)
-            })
-            .collect()
+        let a = h5(ds.read_array_parallel::<f32>(), &what)?;
+        check_len(a.len(), n, elem, &what)?;
+        // The marker is compared in the stored precision: an f32 'No Data' widened.
+        match a.as_slice() {
+            Some(s) => s.par_iter().map(|&v| to_um(v as f64)).collect(),
+            None => a.iter().map(|&v| to_um(v as f64)).collect(),
+        }
     };
     let px = pitch_m(&ds, "X Converter")?;
     let py = pitch_m(&ds, "Y Converter")?.or(px);

@@ -53,7 +53,7 @@ fn read_entry<R: Read + Seek>(
 
 /// Inflated bytes handed from the inflating thread to the hashing / converting one at a time
 /// (a multiple of every point size, so no point straddles two chunks).
-const CHUNK_BYTES: usize = 1 << 20;
+const CHUNK_BYTES: usize = 1 << 18;
 
 /// Reads the point data entry `name` (exactly `data_bytes` expected) and converts it to
 /// heights, while a second thread hashes it (MD5, when `want_md5`) and converts what is already
