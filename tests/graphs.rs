@@ -615,3 +615,35 @@ unsafe fn libc_signal(pid: i32, sig: i32) {
     }
     kill(pid, sig);
 }
+
+/// Table 6's threshold e reaches run.json from `--set deviation.threshold_percent` on `stitch`,
+/// and from a graph file's `[deviation]` table on `run` (each run judged by its own setting).
+#[test]
+fn deviation_threshold_comes_from_the_command_line_or_the_graph_file() {
+    let (_dir, run_json) = stitch_simulated_scan(
+        1,
+        2,
+        256,
+        &["--set", "deviation.threshold_percent=0.5"],
+        |_| {},
+    );
+    assert_eq!(run_json["deviation"]["threshold_pct"], 0.5);
+
+    let dir = tempfile::tempdir().unwrap();
+    let demo = std::fs::read_to_string(repo_root().join("launch/graphs/demo.toml")).unwrap();
+    let graph = dir.path().join("strict.toml");
+    std::fs::write(
+        &graph,
+        format!("{demo}\n[deviation]\nthreshold_percent = 7.5\n"),
+    )
+    .unwrap();
+    let out_dir = dir.path().join("out");
+    let out = run({
+        let mut cmd = surfstream();
+        cmd.arg("run").arg(&graph).arg("--out").arg(&out_dir);
+        cmd
+    });
+    assert!(out.status.success(), "run failed:\n{}", stderr(&out));
+    let run_json = read_json(&out_dir.join("run.json"));
+    assert_eq!(run_json["deviation"]["threshold_pct"], 7.5);
+}

@@ -40,8 +40,8 @@ pub fn run(scan: &Path, out: &Path, set: &[String], method: Option<&str>) -> Res
         let dir = out.join(m);
         let mut set_m = set.to_vec();
         set_m.push(format!("fusion.method={m}"));
-        let graph = stitch_graph(scan, dir.clone(), &set_m, method)?;
-        launcher::run_in_process(graph, scan)?;
+        let (graph, deviation) = stitch_graph(scan, dir.clone(), &set_m, method)?;
+        launcher::run_in_process(graph, scan, deviation)?;
         rows.push(score(m, &dir, truth.as_ref())?);
     }
     println!();

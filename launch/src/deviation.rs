@@ -20,7 +20,6 @@
 //! Also writes `panorama.x3p` (the stitched panorama for MountainsMap, Gwyddion, surfalize).
 
 use std::path::Path;
-use std::sync::RwLock;
 
 use anyhow::{anyhow, bail, Context, Result};
 use serde_json::{json, Map, Value};
@@ -111,20 +110,6 @@ pub fn split_graph_text(text: &str, origin: &str) -> Result<(String, Settings)> 
         .map_err(|e| anyhow!("{origin}: [deviation]: {e}"))?;
     let rest = toml::to_string(&table).map_err(|e| anyhow!("{origin}: {e}"))?;
     Ok((rest, settings.check(origin)?))
-}
-
-/// The settings of the graph this process runs (one graph at a time: set by the CLI before
-/// the graph starts, read when run.json is written).
-static CURRENT: RwLock<Settings> = RwLock::new(DEFAULTS);
-
-/// Sets the settings for the graph about to run.
-pub fn configure(settings: Settings) {
-    // A poisoned lock only means a panic elsewhere while holding it; the value is plain data.
-    *CURRENT.write().unwrap_or_else(|p| p.into_inner()) = settings;
-}
-
-fn current() -> Settings {
-    *CURRENT.read().unwrap_or_else(|p| p.into_inner())
 }
 
 /// The parameters Table 6 judges.
@@ -417,11 +402,11 @@ fn evaluate(out: &Path, run: &Value, threshold_pct: f64) -> Result<Value> {
 
 /// Adds "deviation" (Table 6) to run.json and writes panorama.x3p when the out dir holds a
 /// panorama; a failure is recorded in run.json (and on stderr), not fatal to the run.
-pub fn attach(out: &Path, mut run: Value) -> Value {
+pub fn attach(out: &Path, mut run: Value, threshold_percent: f64) -> Value {
     if !out.join("panorama.npy").exists() {
         return run;
     }
-    let entry = match evaluate(out, &run, current().threshold_percent) {
+    let entry = match evaluate(out, &run, threshold_percent) {
         Ok(v) => {
             if let Some(files) = run["files"].as_array_mut() {
                 files.push(json!("panorama.x3p"));

@@ -22,6 +22,7 @@ use surfstream_common::inproc::{self, InProcessNode};
 use surfstream_common::node::NodeReport;
 use surfstream_common::{fsutil, ipc, shell};
 
+use crate::deviation;
 use crate::{nodes, runjson};
 
 /// Concurrent launches supported on one machine (one iceoryx2 prefix each).
@@ -69,7 +70,11 @@ fn prepare(graph: &mut GraphFile) -> Result<Vec<NodeContext>> {
 }
 
 /// `surfstream run`: the graph in this process.
-pub fn run_in_process(mut graph: GraphFile, origin: &Path) -> Result<()> {
+pub fn run_in_process(
+    mut graph: GraphFile,
+    origin: &Path,
+    deviation: deviation::Settings,
+) -> Result<()> {
     let contexts = prepare(&mut graph)?;
     let started = Instant::now();
     let mut threads = Vec::new();
@@ -92,7 +97,7 @@ pub fn run_in_process(mut graph: GraphFile, origin: &Path) -> Result<()> {
     for r in &reports {
         shell::write_report(&graph.graph.out_dir, r)?;
     }
-    finish(&graph, origin, &reports, "run", started)
+    finish(&graph, origin, &reports, "run", started, deviation)
 }
 
 /// Writes run.json and prints the summary.
@@ -102,8 +107,9 @@ fn finish(
     reports: &[NodeReport],
     mode: &str,
     started: Instant,
+    deviation: deviation::Settings,
 ) -> Result<()> {
-    let summary = runjson::write(graph, origin, reports, mode, started.elapsed())?;
+    let summary = runjson::write(graph, origin, reports, mode, started.elapsed(), deviation)?;
     eprintln!("{summary}");
     Ok(())
 }
@@ -188,7 +194,7 @@ fn describe_exit(status: &std::process::ExitStatus) -> String {
 }
 
 /// `surfstream launch`: every node its own process.
-pub fn launch(mut graph: GraphFile, origin: &Path) -> Result<()> {
+pub fn launch(mut graph: GraphFile, origin: &Path, deviation: deviation::Settings) -> Result<()> {
     let contexts = prepare(&mut graph)?;
     let started = Instant::now();
     let out = graph.graph.out_dir.clone();
@@ -287,7 +293,7 @@ pub fn launch(mut graph: GraphFile, origin: &Path) -> Result<()> {
     }
     result?;
     let reports = read_reports(&out, &contexts)?;
-    finish(&graph, origin, &reports, "launch", started)
+    finish(&graph, origin, &reports, "launch", started, deviation)
 }
 
 fn spawn(

@@ -112,12 +112,12 @@ fn main() -> ExitCode {
 fn dispatch(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Launch(a) => {
-            let graph = load_graph(&a)?;
-            launcher::launch(graph, &a.graph)
+            let (graph, deviation) = load_graph(&a)?;
+            launcher::launch(graph, &a.graph, deviation)
         }
         Command::Run(a) => {
-            let graph = load_graph(&a)?;
-            launcher::run_in_process(graph, &a.graph)
+            let (graph, deviation) = load_graph(&a)?;
+            launcher::run_in_process(graph, &a.graph, deviation)
         }
         Command::Stitch {
             scan,
@@ -133,8 +133,8 @@ fn dispatch(cli: Cli) -> Result<()> {
             method,
             compare_fusion: false,
         } => {
-            let graph = stitch_graph(&scan, out, &set, method.as_deref())?;
-            launcher::run_in_process(graph, &scan)
+            let (graph, deviation) = stitch_graph(&scan, out, &set, method.as_deref())?;
+            launcher::run_in_process(graph, &scan, deviation)
         }
         Command::Inspect(a) => verbs::metrology::inspect(a),
         Command::Params(a) => verbs::metrology::params(a),
@@ -145,8 +145,9 @@ fn dispatch(cli: Cli) -> Result<()> {
     }
 }
 
-/// Reads a graph file and applies `--out` and `--set`.
-fn load_graph(a: &GraphArgs) -> Result<GraphFile> {
+/// Reads a graph file and applies `--out` and `--set`; returns the graph and the Table-6
+/// settings of its `[deviation]` table.
+fn load_graph(a: &GraphArgs) -> Result<(GraphFile, deviation::Settings)> {
     let origin = a.graph.display().to_string();
     let text = std::fs::read_to_string(&a.graph)
         .with_context(|| format!("{origin}: cannot read graph file"))?;
@@ -156,12 +157,11 @@ fn load_graph(a: &GraphArgs) -> Result<GraphFile> {
     for s in settings.apply_sets(&a.set)? {
         graph.apply_override(&s)?;
     }
-    deviation::configure(settings);
     if let Some(out) = &a.out {
         graph.graph.out_dir = out.clone();
     }
     graph.validate(&a.graph.display().to_string())?;
-    Ok(graph)
+    Ok((graph, settings))
 }
 
 /// The default pipeline for a scan directory or a recording.
@@ -170,7 +170,7 @@ fn stitch_graph(
     out: PathBuf,
     set: &[String],
     method: Option<&str>,
-) -> Result<GraphFile> {
+) -> Result<(GraphFile, deviation::Settings)> {
     let source = if scan.extension().is_some_and(|e| e == "mcap") {
         toml::Value::String("mcap".into())
     } else {
@@ -242,8 +242,7 @@ inputs = {{ surface = "wavelet/pooled" }}
     for s in settings.apply_sets(set)? {
         graph.apply_override(&s)?;
     }
-    deviation::configure(settings);
     graph.graph.out_dir = out;
     graph.validate("stitch pipeline")?;
-    Ok(graph)
+    Ok((graph, settings))
 }

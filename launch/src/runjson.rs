@@ -19,6 +19,7 @@ pub fn write(
     reports: &[NodeReport],
     mode: &str,
     elapsed: Duration,
+    deviation: crate::deviation::Settings,
 ) -> Result<String> {
     let out = &graph.graph.out_dir;
     let by_kind = |k: &str| reports.iter().find(|r| r.node_kind == k).map(|r| &r.report);
@@ -90,7 +91,7 @@ pub fn write(
         "files": files,
         "elapsed_s": elapsed.as_secs_f64(),
     });
-    let run = crate::deviation::attach(out, run);
+    let run = crate::deviation::attach(out, run, deviation.threshold_percent);
     let path = out.join("run.json");
     surfstream_common::fsutil::write_atomic(&path, |w| {
         serde_json::to_writer_pretty(w, &run).map_err(|e| anyhow!("{}: {e}", path.display()))
