@@ -42,6 +42,20 @@ fn python() -> PathBuf {
     venv
 }
 
+/// Runs the test environment's Python with the arguments `args` adds; its output, after
+/// asserting that it succeeded (its stderr otherwise).
+fn python_ok(args: impl FnOnce(&mut Command)) -> std::process::Output {
+    let mut cmd = Command::new(python());
+    args(&mut cmd);
+    let out = cmd.output().expect("python runs");
+    assert!(
+        out.status.success(),
+        "python failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
 /// Population Sq of the valid heights about their mean, from the reader's f64 data.
 fn sq_valid(z: &[f64]) -> f64 {
     let v: Vec<f64> = z.iter().copied().filter(|z| !z.is_nan()).collect();
@@ -396,17 +410,9 @@ from surfalize import Surface
 d = np.asarray(Surface.load(sys.argv[1]).data, dtype=np.float64)
 print(json.dumps({"shape": list(d.shape), "sum": float(d.sum())}))
 "#;
-    let out = Command::new(python())
-        .arg("-c")
-        .arg(script)
-        .arg(dir.path().join("stored.x3p"))
-        .output()
-        .expect("python runs");
-    assert!(
-        out.status.success(),
-        "surfalize failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = python_ok(|c| {
+        c.arg("-c").arg(script).arg(dir.path().join("stored.x3p"));
+    });
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(v["shape"], serde_json::json!([h, w]));
     let ours: f64 = stored.heights_um.iter().sum();
@@ -427,17 +433,9 @@ d = np.asarray(s.data, dtype=np.float64)
 print(json.dumps({"shape": list(d.shape), "sx": s.step_x, "sy": s.step_y,
                   "data": [None if np.isnan(v) else float(v) for v in d.ravel()]}))
 "#;
-    let out = Command::new(python())
-        .arg("-c")
-        .arg(script)
-        .arg(&p)
-        .output()
-        .expect("python runs");
-    assert!(
-        out.status.success(),
-        "surfalize failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = python_ok(|c| {
+        c.arg("-c").arg(script).arg(&p);
+    });
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(v["shape"], serde_json::json!([19, 23]));
     assert!(
@@ -455,16 +453,9 @@ print(json.dumps({"shape": list(d.shape), "sx": s.step_x, "sy": s.step_y,
 fn synthetic_datx() -> (tempfile::TempDir, Vec<PathBuf>) {
     let dir = tempfile::tempdir().unwrap();
     let script = repo_root().join("../shared/bench/make_synthetic_datx.py");
-    let out = Command::new(python())
-        .arg(&script)
-        .arg(dir.path())
-        .output()
-        .expect("python runs");
-    assert!(
-        out.status.success(),
-        "make_synthetic_datx.py failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = python_ok(|c| {
+        c.arg(&script).arg(dir.path());
+    });
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let files = v["files"]
         .as_array()
@@ -526,17 +517,9 @@ with h5py.File(sys.argv[1], 'w') as h5:
     ds.attrs['Unit'] = np.array(['Fringes'], dtype=s)
     ds.attrs['No Data'] = np.array([np.finfo(np.float32).max], 'f4')
 "#;
-    let out = Command::new(python())
-        .arg("-c")
-        .arg(script)
-        .arg(&p)
-        .output()
-        .expect("python runs");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    python_ok(|c| {
+        c.arg("-c").arg(script).arg(&p);
+    });
     let s = read_surface(&p).unwrap();
     assert_eq!((s.height, s.width), (2, 3));
     let k = 6.33e-7 * 0.5 * 1.0 * 1e6;
@@ -582,17 +565,9 @@ for path, dt in zip(sys.argv[1:], ['>f4', '<f4', '>f8', '<f8']):
         .iter()
         .map(|n| dir.path().join(format!("{n}.datx")))
         .collect();
-    let out = Command::new(python())
-        .arg("-c")
-        .arg(script)
-        .args(&paths)
-        .output()
-        .expect("python runs");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    python_ok(|c| {
+        c.arg("-c").arg(script).args(&paths);
+    });
     for p in &paths {
         let s = read_surface(p).unwrap();
         assert_eq!((s.height, s.width), (37, 23), "{}", p.display());
@@ -602,7 +577,11 @@ for path, dt in zip(sys.argv[1:], ['>f4', '<f4', '>f8', '<f8']):
                 assert!(h.is_nan(), "{}: ({r}, {c}) = {h}", p.display());
             } else {
                 let want = (i as f64 * 0.25 - 7.0) * 1e-3;
-                assert!((h - want).abs() < 1e-12, "{}: ({r}, {c}) = {h}", p.display());
+                assert!(
+                    (h - want).abs() < 1e-12,
+                    "{}: ({r}, {c}) = {h}",
+                    p.display()
+                );
             }
         }
     }
@@ -653,18 +632,9 @@ write(sys.argv[2], False, False)
         dir.path().join("linked.datx"),
         dir.path().join("group.datx"),
     );
-    let out = Command::new(python())
-        .arg("-c")
-        .arg(script)
-        .arg(&a)
-        .arg(&b)
-        .output()
-        .expect("python runs");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    python_ok(|c| {
+        c.arg("-c").arg(script).arg(&a).arg(&b);
+    });
     for (f, group) in [(&a, "/Attributes/{A1}"), (&b, "/Attributes/{A1}")] {
         let s = read_surface(f).unwrap_or_else(|e| panic!("{}: {e:#}", f.display()));
         let m = &s.metadata;

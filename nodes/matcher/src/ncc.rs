@@ -175,26 +175,8 @@ pub(crate) fn ncc_stencil(
                     let k = 2 - sx;
                     let (n, sx_, sxx) = (w as f64, sum_x as f64, sum_xx as f64);
                     let [sb, sbb, sxb] = bs[k].map(|v| v as f64);
-                    let add = [
-                        n,
-                        sx_,
-                        y * n,
-                        sxx,
-                        y * sx_,
-                        y * y * n,
-                        sa,
-                        sxa,
-                        y * sa,
-                        sb,
-                        sxb,
-                        y * sb,
-                        saa,
-                        sbb,
-                        dots[k] as f64,
-                    ];
-                    for (u, v) in t.iter_mut().zip(add) {
-                        *u += v;
-                    }
+                    let row = [n, sx_, sxx, sa, sxa, sb, sxb, saa, sbb, dots[k] as f64];
+                    add_row_terms(t, y, row);
                 }
                 continue;
             }
@@ -204,26 +186,7 @@ pub(crate) fn ncc_stencil(
                 let k = 2 - sx;
                 let r = levelled_sums(&va, &ma, &vb[k..k + w], &mb[k..k + w], &xs);
                 let [n, sa, sb, saa, sbb, sab, sx_, sxx, sxa, sxb] = r.map(|v| v as f64);
-                let add = [
-                    n,
-                    sx_,
-                    y * n,
-                    sxx,
-                    y * sx_,
-                    y * y * n,
-                    sa,
-                    sxa,
-                    y * sa,
-                    sb,
-                    sxb,
-                    y * sb,
-                    saa,
-                    sbb,
-                    sab,
-                ];
-                for (u, v) in t.iter_mut().zip(add) {
-                    *u += v;
-                }
+                add_row_terms(t, y, [n, sx_, sxx, sa, sxa, sb, sxb, saa, sbb, sab]);
             }
         }
     }
@@ -314,6 +277,33 @@ fn dot3(a: &[f32], b: &[f32]) -> [f32; 3] {
         t[2] += a[i] * b[i + 2];
     }
     t
+}
+
+/// Adds one row's sums at plane coordinate `y`, `[n, Sx, Sxx, Sa, Sxa, Sb, Sxb, Saa, Sbb,
+/// Sab]`, to the 15 sums [`finish_plane_removed`] takes.
+#[inline(always)]
+fn add_row_terms(t: &mut [f64; 15], y: f64, row: [f64; 10]) {
+    let [n, sx, sxx, sa, sxa, sb, sxb, saa, sbb, sab] = row;
+    let add = [
+        n,
+        sx,
+        y * n,
+        sxx,
+        y * sx,
+        y * y * n,
+        sa,
+        sxa,
+        y * sa,
+        sb,
+        sxb,
+        y * sb,
+        saa,
+        sbb,
+        sab,
+    ];
+    for (u, v) in t.iter_mut().zip(add) {
+        *u += v;
+    }
 }
 
 /// NCC of the residuals after removing each side's least-squares plane over the common valid
