@@ -239,6 +239,22 @@ impl DetectorImage {
             && self.valid_fraction(x - r, y - r, x + r, y + r) >= self.min_support_valid
     }
 
+    /// [`Self::support_ok`] for a support that may leave the image: the part outside counts
+    /// as not measured. For SIFT descriptors, whose footprint (9 px at the finest scale) is
+    /// wider than much of a 22-66 px overlap strip; the descriptor skips what is outside.
+    pub fn support_ok_clipped(&self, x: i64, y: i64, r: i64) -> bool {
+        if self.valid_fraction(x, y, x, y) != 1.0 {
+            return false;
+        }
+        // The part of the box outside the image counts as not measured.
+        let clip_x = |v: i64| v.clamp(0, self.width as i64 - 1);
+        let clip_y = |v: i64| v.clamp(0, self.height as i64 - 1);
+        let (x0, y0, x1, y1) = (clip_x(x - r), clip_y(y - r), clip_x(x + r), clip_y(y + r));
+        let inside = ((x1 - x0 + 1) * (y1 - y0 + 1)) as f64;
+        let side = (2 * r + 1) as f64;
+        self.valid_fraction(x0, y0, x1, y1) * inside / (side * side) >= self.min_support_valid
+    }
+
     /// The stretched values with invalid pixels set to 0, and the validity mask (1 / 0):
     /// the two inputs of a normalised convolution.
     pub(crate) fn values_and_mask(&self) -> (Vec<f32>, Vec<f32>) {

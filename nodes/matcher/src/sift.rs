@@ -24,9 +24,11 @@
 //!
 //! Dropouts: every Gaussian image is a normalised convolution (valid values and validity
 //! mask blurred alike, then divided), and a key point is dropped when its pixel is not
-//! measured, when less than `min_support_valid` of its descriptor footprint (the rotated
-//! square's circumscribed radius, plus the gradient stencil) is, or when the footprint leaves
-//! the image (see [`crate::detector`]).
+//! measured or when less than `min_support_valid` of its descriptor footprint (the rotated
+//! square's circumscribed radius, plus the gradient stencil) is, the part outside the image
+//! counting as not measured ([`crate::detector::DetectorImage::support_ok_clipped`]); the
+//! orientation histogram and the descriptor skip samples outside the image, as OpenCV's
+//! border handling lets key points near the edge of a narrow overlap strip live.
 
 use crate::detector::{bad, gaussian_blur, DetectorImage};
 use crate::raster::InputError;
@@ -414,7 +416,7 @@ fn make_keypoints(
     let (tx, ty) = (e.x * scale, e.y * scale);
     let r_tile = (radius_oct * scale).ceil() as i64 + 1;
     let (cx, cy) = (tx.round() as i64, ty.round() as i64);
-    if !image.support_ok(cx, cy, r_tile) {
+    if !image.support_ok_clipped(cx, cy, r_tile) {
         return;
     }
     let img = &gauss[e.layer];
