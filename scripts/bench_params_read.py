@@ -16,14 +16,19 @@ Inputs (all from the same synthetic 1024^2 surface, benchkit.synth_surface, um, 
 The .sur files come from `metrology_bench make-sur` (the benchmark's writer). Needs h5py (the
 bench venv), `cargo build --release -p surfstream` and `cargo build --release -p
 surfstream-common --example metrology_bench` (CARGO_TARGET_DIR honoured). Prints the reader's JSON lines (median, min, max
-seconds over the repeats, first read not counted) and the process CPU seconds per read.
+seconds over the repeats, first read not counted) and the process CPU seconds per read, and
+beside each, in the same run, the anchor reading the same file in this Python: surfalize's
+`Surface.load` (x3p, sur; it has no .datx reader) or h5py (libhdf5) reading the .datx height
+dataset and converting it to um with NaN for No Data; "ratio" = anchor median / ours.
 """
 import argparse
 import json
 import os
 import resource
+import statistics
 import subprocess
 import sys
+import time
 import zipfile
 
 import h5py
@@ -56,6 +61,30 @@ def write_datx(path, z_um, dtype, gzip):
         ds.attrs['Z Converter'] = conv('HeightCat', 'NanoMeters', [0, 6.33e-7, 0.5, 1.0])
         ds.attrs['Unit'] = np.array([b'NanoMeters'], dtype=s)
         ds.attrs['No Data'] = np.array([np.finfo(dtype).max], dtype)
+
+
+def anchor_read(path):
+    """(tool, seconds) of the anchor's read of `path` into a float64 um array."""
+    if path.endswith(".datx"):
+        with h5py.File(path, "r") as h5:
+            ds = h5["/Data/Surface/{00000000-0000-0000-0000-000000000001}"]
+            z = ds[()].astype(np.float64)
+            no_data = ds.attrs["No Data"][0]
+            z[z >= no_data] = np.nan
+            z *= 1e-3
+        return "h5py", z
+    from surfalize import Surface
+    return "surfalize", Surface.load(path).data
+
+
+def time_anchor(path, reps):
+    times = []
+    for _ in range(reps + 1):
+        t = time.perf_counter()
+        tool, z = anchor_read(path)
+        times.append(time.perf_counter() - t)
+    assert z.shape == (1024, 1024), z.shape
+    return tool, statistics.median(times[1:])
 
 
 def main():
@@ -98,6 +127,10 @@ def main():
         line = json.loads(out.strip().splitlines()[-1])
         line["cpu_s_per_read"] = cpu / (a.reps + 1)
         line["load"] = os.getloadavg()
+        if not name.endswith(".npy"):
+            tool, med = time_anchor(p(name), a.reps)
+            line["anchor"] = {"tool": tool, "median_s": med,
+                              "ratio": med / line["read"]["median_s"]}
         print(json.dumps(line))
 
 
