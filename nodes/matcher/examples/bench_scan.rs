@@ -6,30 +6,18 @@
 //!
 //! `RAYON_NUM_THREADS=1 cargo run --release -p surfstream-matcher --example bench_scan -- DIR/scan.toml [RUNS]`
 
+#[path = "support/scan.rs"]
+mod support;
+
 use std::path::Path;
 use std::time::Instant;
 
-use anyhow::{anyhow, Context, Result};
+use anyhow::{anyhow, Result};
+use support::{median, Scan};
 use surfstream_matcher::{
-    solve_planes, solve_positions, Link, PhaseCorrelator, PhaseParams, RasterRef, SolveParams,
+    solve_planes, solve_positions, Link, PhaseCorrelator, PhaseParams, RasterRef, ScanTruth,
+    SolveParams,
 };
-
-struct Tile {
-    row: i64,
-    col: i64,
-    stage_um: [f64; 2],
-    heights: Vec<f32>,
-    width: usize,
-    height: usize,
-}
-
-fn raster(t: &Tile) -> RasterRef<'_> {
-    RasterRef {
-        heights: &t.heights,
-        width: t.width,
-        height: t.height,
-    }
-}
 
 /// CPU time of the whole process (all threads, user + system), s, from /proc/self/stat (clock
 /// ticks, assumed 100 per second as on Linux); `None` elsewhere. Wall time alone says little on
@@ -44,11 +32,6 @@ fn process_cpu_s() -> Option<f64> {
     Some((utime + stime) / 100.0)
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().collect();
     let scan = Path::new(
@@ -59,61 +42,9 @@ fn main() -> Result<()> {
     // `--pairs` as third argument: print every pair's answer and candidates (first round).
     let verbose = args.get(3).is_some_and(|s| s == "--pairs");
     let dir = scan.parent().unwrap_or(Path::new("."));
-    let text = std::fs::read_to_string(scan).with_context(|| format!("{}", scan.display()))?;
-    let doc: toml::Table = toml::from_str(&text).with_context(|| format!("{}", scan.display()))?;
-    let head = doc["scan"]
-        .as_table()
-        .ok_or_else(|| anyhow!("{}: no [scan]", scan.display()))?;
-    let num = |t: &toml::Table, k: &str| -> Result<f64> {
-        t.get(k)
-            .and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
-            .ok_or_else(|| anyhow!("{}: field {k}: expected a number", scan.display()))
-    };
-    let pitch = [num(head, "pitch_x_um")?, num(head, "pitch_y_um")?];
-    let mut tiles = Vec::new();
-    for t in doc["tile"]
-        .as_array()
-        .ok_or_else(|| anyhow!("no [[tile]]"))?
-    {
-        let t = t
-            .as_table()
-            .ok_or_else(|| anyhow!("tile: expected a table"))?;
-        let file = t["file"]
-            .as_str()
-            .ok_or_else(|| anyhow!("tile.file: expected a string"))?;
-        let a = surfstream_common::npy::read_npy(dir.join(file))?;
-        tiles.push(Tile {
-            row: num(t, "row")? as i64,
-            col: num(t, "col")? as i64,
-            stage_um: [num(t, "stage_x_um")?, num(t, "stage_y_um")?],
-            heights: a.data,
-            width: a.cols,
-            height: a.rows,
-        });
-    }
-    let truth: Option<Vec<[f64; 2]>> = std::fs::read_to_string(dir.join("ground_truth.json"))
-        .ok()
-        .and_then(|s| serde_json::from_str::<serde_json::Value>(&s).ok())
-        .and_then(|g| {
-            g["tiles"]
-                .as_array()?
-                .iter()
-                .map(|t| {
-                    Some([
-                        t["true_origin_px"][0].as_f64()?,
-                        t["true_origin_px"][1].as_f64()?,
-                    ])
-                })
-                .collect()
-        });
-    let mut pairs = Vec::new();
-    for (b, tb) in tiles.iter().enumerate() {
-        for (a, ta) in tiles.iter().enumerate().take(b) {
-            if (ta.row - tb.row).abs() + (ta.col - tb.col).abs() == 1 {
-                pairs.push((a, b));
-            }
-        }
-    }
+    let tiles = Scan::load(scan)?;
+    let truth = ScanTruth::read(&dir.join("ground_truth.json")).ok();
+    let pairs = tiles.neighbour_pairs();
     let params = PhaseParams::default();
     let mut corr = PhaseCorrelator::new();
     let mut per_pair_ms = Vec::new();
@@ -121,19 +52,16 @@ fn main() -> Result<()> {
     let cpu0 = process_cpu_s();
     for _ in 0..runs {
         for (k, &(a, b)) in pairs.iter().enumerate() {
-            let nominal = [
-                (tiles[b].stage_um[0] - tiles[a].stage_um[0]) / pitch[0],
-                (tiles[b].stage_um[1] - tiles[a].stage_um[1]) / pitch[1],
-            ];
+            let nominal = tiles.nominal_offset_px(a, b);
             let t0 = Instant::now();
-            let r = corr.register(raster(&tiles[a]), raster(&tiles[b]), nominal, &params);
+            let r = corr.register(tiles.raster(a), tiles.raster(b), nominal, &params);
             per_pair_ms.push(t0.elapsed().as_secs_f64() * 1e3);
             offsets[k] = r.offset_px;
             if verbose && per_pair_ms.len() <= pairs.len() {
-                let t = truth.as_ref();
-                let err = |o: [f64; 2]| {
-                    t.map(|t| [o[0] - (t[b][0] - t[a][0]), o[1] - (t[b][1] - t[a][1])])
-                };
+                let t = truth
+                    .as_ref()
+                    .and_then(|t| t.true_offset_px(a as u64, b as u64));
+                let err = |o: [f64; 2]| t.map(|t| [o[0] - t[0], o[1] - t[1]]);
                 println!(
                     "pair {a}-{b}: offset {:?} err {:?} ncc {:.3} roundness {:.3} {:?}",
                     r.offset_px,
@@ -158,10 +86,7 @@ fn main() -> Result<()> {
     let cpu_per_pair_ms = cpu0
         .zip(process_cpu_s())
         .map(|(t0, t1)| (t1 - t0) * 1e3 / per_pair_ms.len() as f64);
-    let stage_px: Vec<[f64; 2]> = tiles
-        .iter()
-        .map(|t| [t.stage_um[0] / pitch[0], t.stage_um[1] / pitch[1]])
-        .collect();
+    let stage_px: Vec<[f64; 2]> = (0..tiles.tiles.len()).map(|i| tiles.stage_px(i)).collect();
     let links: Vec<Link> = pairs
         .iter()
         .zip(&offsets)
@@ -177,16 +102,16 @@ fn main() -> Result<()> {
     let t0 = Instant::now();
     let sol = solve_positions(&stage_px, &links, &SolveParams::default())?;
     let solve_ms = t0.elapsed().as_secs_f64() * 1e3;
-    let rasters: Vec<RasterRef<'_>> = tiles.iter().map(raster).collect();
+    let rasters: Vec<RasterRef<'_>> = (0..tiles.tiles.len()).map(|i| tiles.raster(i)).collect();
     let t0 = Instant::now();
     let planes = solve_planes(&rasters, &sol.positions_px, &pairs, 0, 2)?;
     let z_ms = t0.elapsed().as_secs_f64() * 1e3;
     println!(
         "{}: {} tiles {}x{} px, {} pairs, {} accepted, threads {}",
         scan.display(),
-        tiles.len(),
-        tiles[0].width,
-        tiles[0].height,
+        tiles.tiles.len(),
+        tiles.width,
+        tiles.height,
         pairs.len(),
         links.len(),
         rayon::current_num_threads()
@@ -206,9 +131,8 @@ fn main() -> Result<()> {
     if let Some(t) = truth {
         let mut worst: f64 = 0.0;
         for (&(a, b), o) in pairs.iter().zip(&offsets) {
-            if let Some(o) = o {
-                let e = (o[0] - (t[b][0] - t[a][0])).hypot(o[1] - (t[b][1] - t[a][1]));
-                worst = worst.max(e);
+            if let (Some(o), Some(t)) = (o, t.true_offset_px(a as u64, b as u64)) {
+                worst = worst.max((o[0] - t[0]).hypot(o[1] - t[1]));
             }
         }
         println!("worst pair error vs ground truth: {worst:.3} px");

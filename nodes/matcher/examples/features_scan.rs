@@ -10,66 +10,17 @@
 //! (a directory of sets, or one set's scan.toml; FEATURES_WINDOW_RADIUS=N changes the NCC
 //! window, FEATURES_VERBOSE=1 prints every pair)
 
+#[path = "support/scan.rs"]
+mod support;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, bail, Result};
+use support::{median, Scan};
 use surfstream_matcher::efficiency::{aggregate, match_quality, MatchQuality, RankedMatch};
-use surfstream_matcher::{
-    register_pair_features, FeatureMethod, FeatureParams, RasterRef, ScanTruth,
-};
-
-struct Tile {
-    index: u64,
-    row: i64,
-    col: i64,
-    stage_um: [f64; 2],
-    heights: Vec<f32>,
-    width: usize,
-    height: usize,
-}
-
-fn load(scan: &Path) -> Result<(Vec<Tile>, [f64; 2])> {
-    let dir = scan.parent().unwrap_or(Path::new("."));
-    let text = std::fs::read_to_string(scan).with_context(|| format!("{}", scan.display()))?;
-    let doc: toml::Table = toml::from_str(&text).with_context(|| format!("{}", scan.display()))?;
-    let head = doc
-        .get("scan")
-        .and_then(|s| s.as_table())
-        .ok_or_else(|| anyhow!("{}: no [scan]", scan.display()))?;
-    let num = |t: &toml::Table, k: &str| -> Result<f64> {
-        t.get(k)
-            .and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
-            .ok_or_else(|| anyhow!("{}: field {k}: expected a number", scan.display()))
-    };
-    let pitch = [num(head, "pitch_x_um")?, num(head, "pitch_y_um")?];
-    let mut tiles = Vec::new();
-    let list = doc
-        .get("tile")
-        .and_then(|t| t.as_array())
-        .ok_or_else(|| anyhow!("{}: no [[tile]]", scan.display()))?;
-    for (k, t) in list.iter().enumerate() {
-        let t = t
-            .as_table()
-            .ok_or_else(|| anyhow!("{}: tile {k}: expected a table", scan.display()))?;
-        let file = t
-            .get("file")
-            .and_then(|f| f.as_str())
-            .ok_or_else(|| anyhow!("{}: tile {k}.file: expected a string", scan.display()))?;
-        let a = surfstream_common::npy::read_npy(dir.join(file))?;
-        tiles.push(Tile {
-            index: k as u64,
-            row: num(t, "row")? as i64,
-            col: num(t, "col")? as i64,
-            stage_um: [num(t, "stage_x_um")?, num(t, "stage_y_um")?],
-            heights: a.data,
-            width: a.cols,
-            height: a.rows,
-        });
-    }
-    Ok((tiles, pitch))
-}
+use surfstream_matcher::{register_pair_features, FeatureMethod, FeatureParams, ScanTruth};
 
 #[derive(Default)]
 struct Stats {
@@ -82,14 +33,6 @@ struct Stats {
     rotations_deg: Vec<f64>,
     ms: Vec<f64>,
     reasons: BTreeMap<String, usize>,
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
 }
 
 fn main() -> Result<()> {
@@ -139,67 +82,57 @@ fn main() -> Result<()> {
             .unwrap_or("?")
             .to_string();
         let truth = ScanTruth::read(&dir.join("ground_truth.json"))?;
-        let (tiles, pitch) = load(scan)?;
+        let tiles = Scan::load(scan)?;
         for &method in &methods {
             let mut params = FeatureParams::for_method(method);
             if let Some(r) = window_radius {
                 params.window_radius_px = r;
             }
-            for tb in &tiles {
-                for ta in tiles.iter().filter(|t| t.index < tb.index) {
-                    if (ta.row - tb.row).abs() + (ta.col - tb.col).abs() != 1 {
-                        continue;
-                    }
-                    let nominal = [
-                        (tb.stage_um[0] - ta.stage_um[0]) / pitch[0],
-                        (tb.stage_um[1] - ta.stage_um[1]) / pitch[1],
-                    ];
-                    let ra = RasterRef::new(&ta.heights, ta.width, ta.height)?;
-                    let rb = RasterRef::new(&tb.heights, tb.width, tb.height)?;
-                    let t0 = Instant::now();
-                    let f = register_pair_features(ra, rb, nominal, &params);
-                    let ms = t0.elapsed().as_secs_f64() * 1e3;
-                    let true_off = truth
-                        .true_offset_px(ta.index, tb.index)
-                        .ok_or_else(|| anyhow!("{}: no truth for tile pair", dir.display()))?;
-                    let ranked: Vec<RankedMatch> = f
-                        .matches
-                        .iter()
-                        .map(|m| RankedMatch {
-                            displacement_px: m.displacement_px,
-                            score: m.score,
-                        })
-                        .collect();
-                    let s = stats
-                        .entry((method.name().to_string(), texture.clone()))
-                        .or_default();
-                    s.pairs += 1;
-                    s.ms.push(ms);
-                    s.qualities.push(match_quality(&ranked, true_off, 1.0));
-                    if let Some(r) = f.rotation_deg {
-                        s.rotations_deg.push(r.abs());
-                    }
-                    if verbose {
-                        eprintln!(
+            for (a, b) in tiles.neighbour_pairs() {
+                let nominal = tiles.nominal_offset_px(a, b);
+                let t0 = Instant::now();
+                let f = register_pair_features(tiles.raster(a), tiles.raster(b), nominal, &params);
+                let ms = t0.elapsed().as_secs_f64() * 1e3;
+                let true_off = truth
+                    .true_offset_px(a as u64, b as u64)
+                    .ok_or_else(|| anyhow!("{}: no truth for tile pair", dir.display()))?;
+                let ranked: Vec<RankedMatch> = f
+                    .matches
+                    .iter()
+                    .map(|m| RankedMatch {
+                        displacement_px: m.displacement_px,
+                        score: m.score,
+                    })
+                    .collect();
+                let s = stats
+                    .entry((method.name().to_string(), texture.clone()))
+                    .or_default();
+                s.pairs += 1;
+                s.ms.push(ms);
+                s.qualities.push(match_quality(&ranked, true_off, 1.0));
+                if let Some(r) = f.rotation_deg {
+                    s.rotations_deg.push(r.abs());
+                }
+                if verbose {
+                    eprintln!(
                             "{} {} {}-{}: features {:?}, one-way {}, two-way {}, inliers {}, truth {:?}, answer {:?}, {}",
-                            dir.display(), method.name(), ta.index, tb.index, f.features,
+                            dir.display(), method.name(), a, b, f.features,
                             f.one_way_matches, f.matches.len(), f.inliers, true_off,
                             f.registration.offset_px, f.reason().unwrap_or_default()
                         );
-                    }
-                    if let Some(rej) = &f.registration.rejection {
-                        // The rejection's variant name.
-                        let kind = format!("{rej:?}");
-                        let kind = kind.split([' ', '{', '(']).next().unwrap_or("").to_string();
-                        *s.reasons.entry(kind).or_default() += 1;
-                    }
-                    if let Some(o) = f.registration.offset_px {
-                        s.answered += 1;
-                        let e = (o[0] - true_off[0]).abs().max((o[1] - true_off[1]).abs());
-                        s.within_half += usize::from(e <= 0.5);
-                        s.over_two += usize::from(e > 2.0);
-                        s.max_err = s.max_err.max(e);
-                    }
+                }
+                if let Some(rej) = &f.registration.rejection {
+                    // The rejection's variant name.
+                    let kind = format!("{rej:?}");
+                    let kind = kind.split([' ', '{', '(']).next().unwrap_or("").to_string();
+                    *s.reasons.entry(kind).or_default() += 1;
+                }
+                if let Some(o) = f.registration.offset_px {
+                    s.answered += 1;
+                    let e = (o[0] - true_off[0]).abs().max((o[1] - true_off[1]).abs());
+                    s.within_half += usize::from(e <= 0.5);
+                    s.over_two += usize::from(e > 2.0);
+                    s.max_err = s.max_err.max(e);
                 }
             }
         }

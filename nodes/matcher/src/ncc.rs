@@ -145,7 +145,7 @@ pub(crate) fn ncc_stencil(
             b.row_term[yb],
             dst,
         );
-        b_window_sums.push(full.then(|| window_sums(dst, cx)));
+        b_window_sums.push(full.then(|| window_sums(dst, &xs, cx)));
     }
     let (mut va, mut ma) = (vec![0.0f32; w], vec![0.0f32; w]);
     let (mut vb, mut mb) = (vec![0.0f32; wb], vec![0.0f32; wb]);
@@ -199,15 +199,15 @@ pub(crate) fn ncc_stencil(
 /// (`i - cx` for b's index k + i). The middle `[2, w)` is shared by the three windows and
 /// summed once.
 #[inline(always)]
-fn window_sums(vb: &[f32], cx: f32) -> [[f32; 3]; 3] {
+fn window_sums(vb: &[f32], xs: &[f32], cx: f32) -> [[f32; 3]; 3] {
     let w = vb.len() - 2;
-    // x' = j - 1 - cx is the coordinate for window 1; window k's is x' - (k - 1).
+    // x' = j - 1 - cx (= xs[j - 1]) is the coordinate for window 1; window k's is x' - (k - 1).
     let xp = |j: usize| j as f32 - 1.0 - cx;
-    let mut core = [0.0f32; 3];
-    if w > 2 {
-        let xs: Vec<f32> = (2..w).map(xp).collect();
-        core = weighted_sums(&vb[2..w], &xs);
-    }
+    let core = if w > 2 {
+        weighted_sums(&vb[2..w], &xs[1..w - 1])
+    } else {
+        [0.0f32; 3]
+    };
     let edge = |js: &[usize]| {
         let mut e = [0.0f32; 3];
         for &j in js {
@@ -220,13 +220,14 @@ fn window_sums(vb: &[f32], cx: f32) -> [[f32; 3]; 3] {
     };
     // Window k holds [k, k + w): the middle plus k's two edge pixels (w >= 2), or, for w < 2,
     // exactly its own pixels.
-    let edges: [Vec<usize>; 3] = if w >= 2 {
-        [vec![0, 1], vec![1, w], vec![w, w + 1]]
+    let (two, one) = ([[0, 1], [1, w], [w, w + 1]], [[0], [1], [2]]);
+    let edges: [&[usize]; 3] = if w >= 2 {
+        [&two[0], &two[1], &two[2]]
     } else {
-        [vec![0], vec![1], vec![2]]
+        [&one[0], &one[1], &one[2]]
     };
     let mut out = [[0.0f32; 3]; 3];
-    for (k, js) in edges.iter().enumerate() {
+    for (k, js) in edges.into_iter().enumerate() {
         let e = edge(js);
         let sb = core[0] + e[0];
         let sxp = core[2] + e[2];

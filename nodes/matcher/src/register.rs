@@ -600,10 +600,7 @@ impl PhaseCorrelator {
             out.rejection = Some(Rejection::Ambiguous {
                 best_ncc: best.ncc,
                 rival_ncc: r.ncc,
-                rival_shift_px: [
-                    r.offset_px[0] as f64 - nominal_offset_px[0],
-                    r.offset_px[1] as f64 - nominal_offset_px[1],
-                ],
+                rival_shift_px: shift_from(r.offset_px, nominal_offset_px),
             });
             // The distinct maxima that would each pass every other check are kept for the
             // global solve, which may pick the one consistent with the rest of the scan.
@@ -716,10 +713,7 @@ impl PhaseCorrelator {
         );
         peaks.into_iter().find_map(|(_, tx, ty)| {
             let off = [g.ndx + tx, g.ndy + ty];
-            let shift = [
-                off[0] as f64 - nominal_offset_px[0],
-                off[1] as f64 - nominal_offset_px[1],
-            ];
+            let shift = shift_from(off, nominal_offset_px);
             let beyond = (0..2).any(|k| shift[k].abs() > limit[k]);
             let allowed = (0..2).all(|k| shift[k].abs() <= params.max_shift_px);
             if !(beyond && allowed) {
@@ -727,10 +721,7 @@ impl PhaseCorrelator {
             }
             let (la, lb) = relevelled(*a, *b, off)?;
             let (rp, _, _) = settled_peak(*a, *b, off, la, lb);
-            let end = [
-                rp.offset_px[0] as f64 - nominal_offset_px[0],
-                rp.offset_px[1] as f64 - nominal_offset_px[1],
-            ];
+            let end = shift_from(rp.offset_px, nominal_offset_px);
             let still_beyond = (0..2).any(|k| end[k].abs() > limit[k]);
             (still_beyond && rp.c[1][1] > ncc + BEYOND_LIMIT_MARGIN).then_some(end)
         })
@@ -987,6 +978,14 @@ fn ncc_peak(a: &LevelledTile<'_>, b: &LevelledTile<'_>, offset_px: [i64; 2]) -> 
             roundness,
         };
     }
+}
+
+/// The shift of the integer offset `offset_px` from the nominal offset, px.
+fn shift_from(offset_px: [i64; 2], nominal_offset_px: [f64; 2]) -> [f64; 2] {
+    [
+        offset_px[0] as f64 - nominal_offset_px[0],
+        offset_px[1] as f64 - nominal_offset_px[1],
+    ]
 }
 
 /// Chebyshev distance between two integer offsets, px.
