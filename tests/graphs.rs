@@ -509,6 +509,9 @@ fn assert_nothing_left_behind(err: &str, out_dir: &Path) {
         );
     }
     let domain = domain_of(err).expect("launch names its domain");
+    // The launcher released its slot on exit; another test's launch may already be using the
+    // domain. Hold the slot while looking, so what is counted is what this launch left.
+    let _slot = hold_slot(&domain);
     assert!(
         shm_leftovers(&domain).is_empty(),
         "{:?}",
@@ -607,6 +610,29 @@ fn ctrl_c_stops_every_node_and_leaves_nothing_behind() {
     );
     assert!(err.contains("interrupted"), "{err}");
     assert_nothing_left_behind(&err, &out_dir);
+}
+
+/// Takes the launcher's lock on the slot of `domain` ("ss{k}_"), waiting while a launch holds
+/// it; released when the returned file is dropped.
+fn hold_slot(domain: &str) -> std::fs::File {
+    use std::os::fd::AsRawFd;
+    let k: usize = domain
+        .trim_start_matches("ss")
+        .trim_end_matches('_')
+        .parse()
+        .expect("slot domain ss{k}_");
+    let path = std::env::temp_dir()
+        .join("surfstream-slots")
+        .join(format!("slot-{k}.lock"));
+    let file = std::fs::File::options()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+        .unwrap();
+    // SAFETY: flock on a file descriptor this function owns.
+    assert_eq!(unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX) }, 0);
+    file
 }
 
 unsafe fn libc_signal(pid: i32, sig: i32) {
