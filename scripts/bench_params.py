@@ -6,7 +6,7 @@ same array, so both see the same machine load.
     python scripts/bench_params.py [--rounds 3] [--reps 3] [--input bench-out/inputs/synth_4096.npy]
 
 Run from the repository root with the bench venv (.bench-venv/bin/python: surfalize). Needs
-`cargo build --release -p surfstream-common --example metrology_bench` (CARGO_TARGET_DIR
+`cargo build --release -p surfstream-io --example metrology_bench` (CARGO_TARGET_DIR
 honoured). The input is params_anchor.py's timing array (`--save-inputs`); it is written here
 when missing. Prints one JSON line per measurement and a summary with medians and ratios,
 ours with RAYON_NUM_THREADS=1 and with rayon's default thread count.
@@ -62,7 +62,7 @@ def main():
     target = os.environ.get("CARGO_TARGET_DIR", os.path.join(ROOT, "target"))
     binary = os.path.join(target, "release", "examples", "metrology_bench")
     if not os.path.exists(binary):
-        sys.exit(f"{binary} missing: cargo build --release -p surfstream-common --example metrology_bench")
+        sys.exit(f"{binary} missing: cargo build --release -p surfstream-io --example metrology_bench")
     if not os.path.exists(a.input):
         os.makedirs(os.path.dirname(a.input) or ".", exist_ok=True)
         np.save(a.input, synth_surface(4096, seed=4096))

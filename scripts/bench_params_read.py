@@ -98,7 +98,7 @@ def main():
     for b in (bench, cli):
         if not os.path.exists(b):
             sys.exit(f"{b} missing: cargo build --release -p surfstream; "
-                     "cargo build --release -p surfstream-common --example metrology_bench")
+                     "cargo build --release -p surfstream-io --example metrology_bench")
     os.makedirs(a.out, exist_ok=True)
     p = lambda name: os.path.join(a.out, name)  # noqa: E731
     if not os.path.exists(p("s1024.npy")):

@@ -65,7 +65,7 @@ fn tile(dir: &Path, name: &str, rows: usize, cols: usize) {
     let data: Vec<f32> = (0..rows * cols)
         .map(|i| ((i * 7919) % 101) as f32 * 0.01)
         .collect();
-    surfstream_common::npy::write_npy_f32(dir.join(name), &data, rows, cols).unwrap();
+    surfstream_io::npy::write_npy_f32(dir.join(name), &data, rows, cols).unwrap();
 }
 
 #[test]
@@ -215,8 +215,8 @@ fn bad_scan_directories_are_named() {
 
 #[test]
 fn corrupt_and_truncated_recordings_are_named() {
-    use surfstream_common::recording::Recorder;
-    use surfstream_common::{FrameHeader, FrameKind};
+    use surfstream_core::{FrameHeader, FrameKind};
+    use surfstream_io::recording::Recorder;
     let d = tempfile::tempdir().unwrap();
     let out = d.path().join("out");
     let good = d.path().join("good.mcap");

@@ -53,8 +53,8 @@ fn bilinear(map: &[f32], w: usize, h: usize, x: f64, y: f64) -> Option<f64> {
 /// RMS of panorama - specimen after removing the best-fit plane of the difference (tile 0's
 /// own piston and tilt are the panorama's reference).
 fn height_rms_vs_specimen(out: &Path, run: &Value, truth: &Value) -> (f64, usize) {
-    let pano = surfstream_common::npy::read_npy(out.join("panorama.npy")).unwrap();
-    let spec = surfstream_common::npy::read_npy(out.join("specimen.npy")).unwrap();
+    let pano = surfstream_io::npy::read_npy(out.join("panorama.npy")).unwrap();
+    let spec = surfstream_io::npy::read_npy(out.join("specimen.npy")).unwrap();
     let pitch = truth["pixel_pitch_um"]["x"].as_f64().unwrap();
     let p = &run["stages"]["fusion"]["panorama"];
     let (ox, oy) = (
@@ -324,7 +324,7 @@ fn write_scan_dir(
     for t in &plan.tiles {
         let heights = acquire_tile(&spec, t, &stage);
         let name = format!("tile_{:03}.npy", t.index);
-        surfstream_common::npy::write_npy_f32(dir.join(&name), &heights, tile_px, tile_px).unwrap();
+        surfstream_io::npy::write_npy_f32(dir.join(&name), &heights, tile_px, tile_px).unwrap();
         toml += &format!(
             "\n[[tile]]\nfile = \"{name}\"\nrow = {}\ncol = {}\nstage_x_um = {}\nstage_y_um = {}\n",
             t.row, t.col, t.stage_position_um[0], t.stage_position_um[1]
@@ -429,15 +429,15 @@ fn stitch_keeps_absolute_heights_of_a_part_far_up_the_z_axis() {
         let mut valid = Vec::new();
         for k in 0..2 {
             let path = scan.join(format!("tile_{k:03}.npy"));
-            let a = surfstream_common::npy::read_npy_f64(&path).unwrap();
+            let a = surfstream_io::npy::read_npy_f64(&path).unwrap();
             let lifted: Vec<f64> = a.data.iter().map(|z| z + Z_UM).collect();
             valid.extend(a.data.iter().filter(|z| z.is_finite()).copied());
-            surfstream_common::npy::write_npy_f64(&path, &lifted, a.rows, a.cols).unwrap();
+            surfstream_io::npy::write_npy_f64(&path, &lifted, a.rows, a.cols).unwrap();
         }
         tiles_mean = valid.iter().sum::<f64>() / valid.len() as f64;
     });
     for f in ["panorama.npy", "datum.npy", "pooled.npy"] {
-        let a = surfstream_common::npy::read_npy_f64(dir.path().join("out").join(f)).unwrap();
+        let a = surfstream_io::npy::read_npy_f64(dir.path().join("out").join(f)).unwrap();
         let valid: Vec<f64> = a.data.iter().copied().filter(|z| z.is_finite()).collect();
         let mean = valid.iter().sum::<f64>() / valid.len() as f64;
         // The tiles are levelled against each other (piston, tilt), so the mean moves by the
@@ -517,9 +517,9 @@ fn assert_nothing_left_behind(err: &str, out_dir: &Path) {
         "{:?}",
         shm_leftovers(&domain)
     );
-    let cfg = surfstream_common::ipc::domain_config(&domain).unwrap();
+    let cfg = surfstream_runtime::ipc::domain_config(&domain).unwrap();
     assert_eq!(
-        surfstream_common::ipc::count_nodes(&cfg).unwrap(),
+        surfstream_runtime::ipc::count_nodes(&cfg).unwrap(),
         0,
         "nodes left registered"
     );

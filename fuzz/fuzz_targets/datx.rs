@@ -2,7 +2,7 @@
 //! Any byte string given to the Datx reader returns Ok or Err, never panics or aborts.
 
 use libfuzzer_sys::fuzz_target;
-use surfstream_common::formats::{parse_surface, Format};
+use surfstream_io::formats::{parse_surface, Format};
 
 fuzz_target!(|data: &[u8]| {
     if let Ok(s) = parse_surface(data, Format::Datx) {

@@ -4,7 +4,7 @@
 //! temp dir).
 
 use libfuzzer_sys::fuzz_target;
-use surfstream_common::formats::read_surface;
+use surfstream_io::formats::read_surface;
 
 fuzz_target!(|data: &[u8]| {
     let dir = if std::path::Path::new("/dev/shm").is_dir() {

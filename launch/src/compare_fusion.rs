@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, bail, Context, Result};
 use serde_json::Value;
-use surfstream_common::similarity::ssim;
+use surfstream_core::similarity::ssim;
 
 use crate::{launcher, stitch_graph};
 
@@ -119,7 +119,7 @@ fn score(method: &'static str, dir: &Path, truth: Option<&Truth>) -> Result<Row>
 
 /// The specimen and tile 0's true origin, from make_tiles.py's files.
 struct Truth {
-    specimen: surfstream_common::npy::NpyArray<f32>,
+    specimen: surfstream_io::npy::NpyArray<f32>,
     origin0_px: [f64; 2],
 }
 
@@ -137,7 +137,7 @@ impl Truth {
             num(&g, &gt, "/tiles/0/true_origin_px/0")?,
             num(&g, &gt, "/tiles/0/true_origin_px/1")?,
         ];
-        let specimen = surfstream_common::npy::read_npy(&spec)?;
+        let specimen = surfstream_io::npy::read_npy(&spec)?;
         Ok(Some(Truth {
             specimen,
             origin0_px,
@@ -168,7 +168,7 @@ impl Truth {
         let oy = num(fusion, fpath, "/report/panorama/origin_y_um")?;
         let px = num(fusion, fpath, "/report/panorama/pitch_x_um")?;
         let py = num(fusion, fpath, "/report/panorama/pitch_y_um")?;
-        let pano = surfstream_common::npy::read_npy(dir.join("panorama.npy"))?;
+        let pano = surfstream_io::npy::read_npy(dir.join("panorama.npy"))?;
         let (rows, cols) = (pano.rows, pano.cols);
         let mut p = Vec::with_capacity(rows * cols);
         let mut t = Vec::with_capacity(rows * cols);

@@ -23,9 +23,9 @@ use std::path::Path;
 
 use anyhow::{anyhow, bail, Context, Result};
 use serde_json::{json, Map, Value};
-use surfstream_common::formats::{self, Metadata, Surface};
-use surfstream_common::metrology::{self, Grid, Params};
-use surfstream_common::npy::read_npy_f64;
+use surfstream_core::metrology::{self, Grid, Params};
+use surfstream_io::formats::{self, Metadata, Surface};
+use surfstream_io::npy::read_npy_f64;
 
 /// Threshold e of Table 6, in percent.
 pub const DEFAULT_THRESHOLD_PCT: f64 = 5.0;

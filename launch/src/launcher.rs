@@ -17,10 +17,11 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context, Result};
 use crossbeam_channel::{unbounded, Receiver, RecvTimeoutError};
-use surfstream_common::graph::{GraphFile, NodeContext};
-use surfstream_common::inproc::{self, InProcessNode};
-use surfstream_common::node::NodeReport;
-use surfstream_common::{fsutil, ipc, shell};
+use surfstream_core::fsutil;
+use surfstream_runtime::graph::{GraphFile, NodeContext};
+use surfstream_runtime::inproc::{self, InProcessNode};
+use surfstream_runtime::node::NodeReport;
+use surfstream_runtime::{ipc, shell};
 
 use crate::deviation;
 use crate::{nodes, runjson};

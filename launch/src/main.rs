@@ -14,7 +14,7 @@ use std::process::ExitCode;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
-use surfstream_common::graph::GraphFile;
+use surfstream_runtime::graph::GraphFile;
 
 #[derive(Parser)]
 #[command(

@@ -2,8 +2,8 @@
 //! `surfstream-<kind>` binaries instead, which call the same `build` functions.
 
 use anyhow::{bail, Result};
-use surfstream_common::graph::NodeContext;
-use surfstream_common::node::NodeLogic;
+use surfstream_runtime::graph::NodeContext;
+use surfstream_runtime::node::NodeLogic;
 
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
     match ctx.node_kind.as_str() {

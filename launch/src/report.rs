@@ -18,7 +18,7 @@ pub fn write(out: &Path) -> Result<()> {
         .with_context(|| format!("{}: not valid JSON", run_path.display()))?;
     let html = render(&run, out)?;
     let path = out.join("report.html");
-    surfstream_common::fsutil::write_atomic(&path, |w| {
+    surfstream_core::fsutil::write_atomic(&path, |w| {
         w.write_all(html.as_bytes())
             .map_err(|e| anyhow!("{}: {e}", path.display()))
     })

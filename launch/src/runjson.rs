@@ -8,9 +8,9 @@ use std::time::Duration;
 
 use anyhow::{anyhow, Result};
 use serde_json::{json, Map, Value};
-use surfstream_common::graph::GraphFile;
-use surfstream_common::latency;
-use surfstream_common::node::NodeReport;
+use surfstream_runtime::graph::GraphFile;
+use surfstream_runtime::latency;
+use surfstream_runtime::node::NodeReport;
 
 /// Writes `<out>/run.json`; returns a short human summary.
 pub fn write(
@@ -93,7 +93,7 @@ pub fn write(
     });
     let run = crate::deviation::attach(out, run, deviation.threshold_percent);
     let path = out.join("run.json");
-    surfstream_common::fsutil::write_atomic(&path, |w| {
+    surfstream_core::fsutil::write_atomic(&path, |w| {
         serde_json::to_writer_pretty(w, &run).map_err(|e| anyhow!("{}: {e}", path.display()))
     })?;
     crate::report::write(out)?;

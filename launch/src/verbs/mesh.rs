@@ -63,7 +63,7 @@ pub struct MeshArgs {
 }
 
 pub fn run(a: MeshArgs) -> Result<()> {
-    let surface = surfstream_common::formats::read_surface(&a.file)?;
+    let surface = surfstream_io::formats::read_surface(&a.file)?;
     let (pitch_x_um, pitch_y_um) = match a.pitch_um {
         Some(p) if p.is_finite() && p > 0.0 => (p, p),
         Some(p) => bail!("--pitch-um {p}: expected a finite number > 0"),
@@ -135,7 +135,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
     let check = check_closed(&m.mesh);
 
     let label = stl::stl_header(&m.mesh, "surfstream mesh");
-    surfstream_common::fsutil::write_atomic(&a.out, |w| {
+    surfstream_core::fsutil::write_atomic(&a.out, |w| {
         if a.ascii {
             surfstream_mesher::write_stl_ascii(w, &m.mesh, &label)?;
         } else {
@@ -171,7 +171,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
         json!(check.duplicate_triangles),
     );
     o.insert("mesh_s".into(), json!(mesh_s));
-    surfstream_common::fsutil::write_atomic(&json_path, |w| {
+    surfstream_core::fsutil::write_atomic(&json_path, |w| {
         serde_json::to_writer_pretty(w, &report)
             .map_err(|e| anyhow!("{}: {e}", json_path.display()))
     })?;

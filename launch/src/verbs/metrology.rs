@@ -1,14 +1,14 @@
 //! `surfstream inspect | params | convert | compare`: reading instrument files and judging
-//! surfaces (ISO 25178 parameters, SIM, SSIM). Thin shells over surfstream_common::formats,
+//! surfaces (ISO 25178 parameters, SIM, SSIM). Thin shells over surfstream_io::formats,
 //! ::metrology and ::similarity.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use surfstream_common::formats::{read_surface, write_surface, Surface};
-use surfstream_common::metrology::{self, Grid};
-use surfstream_common::similarity;
+use surfstream_core::metrology::{self, Grid};
+use surfstream_core::similarity;
+use surfstream_io::formats::{read_surface, write_surface, Surface};
 
 #[derive(Args)]
 pub struct InspectArgs {

@@ -9,9 +9,9 @@ use std::path::PathBuf;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
-use surfstream_common::formats::read_surface;
-use surfstream_common::fsutil::write_atomic;
-use surfstream_common::npy::{write_npy_f32, write_npy_f64};
+use surfstream_core::fsutil::write_atomic;
+use surfstream_io::formats::read_surface;
+use surfstream_io::npy::{write_npy_f32, write_npy_f64};
 use surfstream_wavelet::{analyse, BaseChoice, LevelChoice, Mode, PoolOp, Wavelet};
 
 #[derive(Args)]

@@ -17,10 +17,10 @@ use std::collections::BTreeMap;
 use anyhow::{anyhow, bail, Result};
 use serde::Deserialize;
 use serde_json::json;
-use surfstream_common::frame::{flags, FrameHeader, FrameKind, HeightMap, TileRegistration};
-use surfstream_common::graph::NodeContext;
-use surfstream_common::node::{Input, NodeLogic, Outbox};
-use surfstream_common::preview::{write_preview_png, PreviewOptions};
+use surfstream_core::frame::{flags, FrameHeader, FrameKind, HeightMap, TileRegistration};
+use surfstream_io::preview::{write_preview_png, PreviewOptions};
+use surfstream_runtime::graph::NodeContext;
+use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
 use surfstream_wavelet::Wavelet;
 
@@ -292,7 +292,7 @@ impl FusionNode {
                 .iter()
                 .map(|&h| f64::from(h) + r.z_offset_um)
                 .collect();
-            surfstream_common::npy::write_npy_f64(&npy, &absolute, r.height, r.width)?;
+            surfstream_io::npy::write_npy_f64(&npy, &absolute, r.height, r.width)?;
             let png = self.out_dir.join("panorama.png");
             let opts = PreviewOptions {
                 title: Some("panorama (um)".into()),

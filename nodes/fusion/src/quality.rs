@@ -5,13 +5,13 @@
 //! the intersection rectangle restricted to pixels both tiles measured. There the fused
 //! panorama is compared with tile i and with tile j, each resampled alone onto the same grid
 //! ([`Panorama::resample_alone`]: plane, z and sub-pixel position as placed), by
-//! [`surfstream_common::similarity::ssim`] (Wang et al. 2004: 11 x 11 Gaussian window,
+//! [`surfstream_core::similarity::ssim`] (Wang et al. 2004: 11 x 11 Gaussian window,
 //! sigma 1.5, K1 = 0.01, K2 = 0.03, L = the height range over the overlap). `ssim_mean` is
 //! the mean of the two: how well the fused overlap keeps the structure of both measurements.
 //! Overlaps smaller than the 11 px window in either direction are not scored.
 
 use serde::Serialize;
-use surfstream_common::similarity::{ssim, WINDOW_PX};
+use surfstream_core::similarity::{ssim, WINDOW_PX};
 
 use crate::error::Result;
 use crate::input::TileInput;

@@ -7,12 +7,12 @@
 
 use std::collections::BTreeMap;
 
-use surfstream_common::frame::{
+use surfstream_core::frame::{
     flags, FrameHeader, FrameKind, FrameView, HeightMap, TileRegistration,
 };
-use surfstream_common::graph::NodeContext;
-use surfstream_common::node::{Input, NodeLogic, Outbox, Output};
 use surfstream_fusion::{render, BlendParams, FusionMethod, PlaneCorrection, TileInput};
+use surfstream_runtime::graph::NodeContext;
+use surfstream_runtime::node::{Input, NodeLogic, Outbox, Output};
 use surfstream_wavelet::{separate, Mode, Wavelet};
 
 const PITCH_UM: f64 = 0.8;

@@ -1,4 +1,4 @@
 //! surfstream-matcher: the matcher node of a graph, as a process.
 fn main() {
-    surfstream_common::shell::node_main("matcher", surfstream_matcher::node::build)
+    surfstream_runtime::shell::node_main("matcher", surfstream_matcher::node::build)
 }

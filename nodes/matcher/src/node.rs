@@ -24,9 +24,9 @@ use std::collections::BTreeMap;
 use anyhow::{bail, Result};
 use serde::Deserialize;
 use serde_json::json;
-use surfstream_common::frame::{flags, placed_by, FrameKind, TileRegistration};
-use surfstream_common::graph::NodeContext;
-use surfstream_common::node::{Input, NodeLogic, Outbox};
+use surfstream_core::frame::{flags, placed_by, FrameKind, TileRegistration};
+use surfstream_runtime::graph::NodeContext;
+use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
 use crate::global::{
     solve_planes, solve_positions_with_alternatives, AmbiguousLink, Link, SolveParams,

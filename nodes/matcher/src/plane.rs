@@ -13,7 +13,7 @@ use wide::f32x8;
 ///
 /// `corrected(row, col) = raw(row, col) - (piston_um + tilt_x_um_per_px * (col - (width-1)/2)
 /// + tilt_y_um_per_px * (row - (height-1)/2))`, the same convention as
-/// `surfstream_common::TileRegistration`.
+/// `surfstream_core::TileRegistration`.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct PlaneCorrection {
     pub piston_um: f64,

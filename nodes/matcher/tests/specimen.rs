@@ -7,7 +7,7 @@
 
 use std::path::{Path, PathBuf};
 
-use surfstream_common::formats::read_surface;
+use surfstream_io::formats::read_surface;
 use surfstream_matcher::{PhaseCorrelator, PhaseParams, RasterRef};
 
 const TILE: usize = 220;

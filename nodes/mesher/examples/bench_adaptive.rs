@@ -19,7 +19,7 @@ fn main() -> Result<()> {
     if args.len() < 3 {
         bail!("usage: bench_adaptive FILE.npy STEP_UM EPSILON_UM [REPEATS [OUT.stl]]");
     }
-    let a = surfstream_common::npy::read_npy_f64(&args[0]).context(args[0].clone())?;
+    let a = surfstream_io::npy::read_npy_f64(&args[0]).context(args[0].clone())?;
     let step_um: f64 = args[1].parse().context("STEP_UM")?;
     let epsilon_um: f64 = args[2].parse().context("EPSILON_UM")?;
     let repeats: usize = args
@@ -54,7 +54,7 @@ fn main() -> Result<()> {
     let m = last.context("no run")?;
     times.sort_by(f64::total_cmp);
     if let Some(path) = args.get(4) {
-        surfstream_common::fsutil::write_atomic(std::path::Path::new(path), |w| {
+        surfstream_core::fsutil::write_atomic(std::path::Path::new(path), |w| {
             Ok(surfstream_mesher::write_stl_binary(
                 w,
                 &m.mesh,

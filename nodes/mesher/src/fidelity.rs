@@ -2,14 +2,14 @@
 //! height field beside those of the mesh resampled on the same grid (the reference study's
 //! Table 6, one stage further).
 //!
-//! The parameters and the plane fit are the project's metrology ([`surfstream_common::metrology`],
+//! The parameters and the plane fit are the project's metrology ([`surfstream_core::metrology`],
 //! checked against surfalize); this module only decides what is compared: both surfaces are
 //! levelled by the same least-squares plane (fitted to the height field), so the comparison
 //! sees only what the mesh changed. Missing samples (NaN) are left out; Sdr counts only grid
 //! cells with four measured corners.
 
 use serde::Serialize;
-use surfstream_common::metrology::{fit_plane, params, Grid};
+use surfstream_core::metrology::{fit_plane, params, Grid};
 
 /// Areal parameters of one surface, um (Sdr in %).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]

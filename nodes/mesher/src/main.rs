@@ -1,4 +1,4 @@
 //! surfstream-mesher: the mesher node of a graph, as a process.
 fn main() {
-    surfstream_common::shell::node_main("mesher", surfstream_mesher::node::build)
+    surfstream_runtime::shell::node_main("mesher", surfstream_mesher::node::build)
 }

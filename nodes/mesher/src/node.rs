@@ -11,9 +11,9 @@
 use anyhow::{anyhow, bail, Result};
 use serde::Deserialize;
 use serde_json::json;
-use surfstream_common::frame::{flags, monotonic_ns, HeightMap};
-use surfstream_common::graph::NodeContext;
-use surfstream_common::node::{Input, NodeLogic, Outbox};
+use surfstream_core::frame::{flags, monotonic_ns, HeightMap};
+use surfstream_runtime::graph::NodeContext;
+use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
 use crate::{
     check_closed, grid_solid, mesh_height_field, stl, Epsilon, HeightFieldRef, LengthUnit,
@@ -298,7 +298,7 @@ impl MesherNode {
             .iter()
             .map(|&z| f64::from(z) + h.z_offset_um)
             .collect();
-        surfstream_common::npy::write_npy_f64(
+        surfstream_io::npy::write_npy_f64(
             &resampled_path,
             &absolute,
             h.height as usize,
@@ -307,7 +307,7 @@ impl MesherNode {
         let check = check_closed(&solid);
         let label = stl::stl_header(&solid, "surfstream surface");
         let ascii = self.ascii;
-        surfstream_common::fsutil::write_atomic(&self.path, |w| {
+        surfstream_core::fsutil::write_atomic(&self.path, |w| {
             if ascii {
                 crate::write_stl_ascii(w, &solid, &label)?;
             } else {

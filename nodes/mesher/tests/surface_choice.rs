@@ -3,11 +3,11 @@
 //! it came from), datum + roughness against their sum, the node waits for every input's end of
 //! scan, and wiring that does not match the choice is refused when the graph is read.
 
-use surfstream_common::frame::{flags, FrameHeader, FrameKind, HeightMap};
-use surfstream_common::graph::{Delivery, InputSpec, NodeContext, PortKind};
-use surfstream_common::node::{Input, NodeLogic, Outbox};
+use surfstream_core::frame::{flags, FrameHeader, FrameKind, HeightMap};
 use surfstream_mesher::fidelity::field_params;
 use surfstream_mesher::node::MesherNode;
+use surfstream_runtime::graph::{Delivery, InputSpec, NodeContext, PortKind};
+use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
 const W: usize = 96;
 const H: usize = 72;

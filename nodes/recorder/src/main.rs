@@ -1,4 +1,4 @@
 //! surfstream-recorder: the recorder node of a graph, as a process.
 fn main() {
-    surfstream_common::shell::node_main("recorder", surfstream_recorder::node::build)
+    surfstream_runtime::shell::node_main("recorder", surfstream_recorder::node::build)
 }

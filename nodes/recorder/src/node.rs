@@ -6,9 +6,9 @@ use std::path::PathBuf;
 use anyhow::{anyhow, bail, Result};
 use serde::Deserialize;
 use serde_json::json;
-use surfstream_common::graph::{NodeContext, PortKind};
-use surfstream_common::node::{Input, NodeLogic, Outbox};
-use surfstream_common::recording::{ChannelId, Recorder};
+use surfstream_io::recording::{ChannelId, Recorder};
+use surfstream_runtime::graph::{NodeContext, PortKind};
+use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]

@@ -1,4 +1,4 @@
 //! surfstream-replay: the tile source of a graph, as a process.
 fn main() {
-    surfstream_common::shell::node_main("replay", surfstream_replay::node::build)
+    surfstream_runtime::shell::node_main("replay", surfstream_replay::node::build)
 }

@@ -8,10 +8,10 @@ use std::time::{Duration, Instant};
 use anyhow::{anyhow, bail, Context, Result};
 use serde::Deserialize;
 use serde_json::json;
-use surfstream_common::frame::{monotonic_ns, FrameHeader, FrameKind, HeightMap};
-use surfstream_common::graph::{params_from_table, NodeContext};
-use surfstream_common::node::{Input, NodeLogic, Outbox};
-use surfstream_common::recording::{read_recording, Recorded};
+use surfstream_core::frame::{monotonic_ns, FrameHeader, FrameKind, HeightMap};
+use surfstream_io::recording::{read_recording, Recorded};
+use surfstream_runtime::graph::{params_from_table, NodeContext};
+use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
 use crate::scan_dir::load_scan;
 use crate::{
@@ -207,7 +207,7 @@ fn simulated(ctx: &NodeContext) -> Result<ReplayNode> {
     let plan = plan_scan(&stage).map_err(|e| err_in(ctx, e))?;
     let specimen = match &specimen_file {
         Some(path) => {
-            let arr = surfstream_common::npy::read_npy(path)?;
+            let arr = surfstream_io::npy::read_npy(path)?;
             Specimen::from_heights(arr.data, arr.cols, arr.rows, stage.pitch_um)
                 .map_err(|e| anyhow!("{}: {e}", path.display()))?
         }
@@ -219,14 +219,14 @@ fn simulated(ctx: &NodeContext) -> Result<ReplayNode> {
         .with_context(|| format!("{}: cannot create", ctx.out_dir.display()))?;
     let truth_path = ctx.out_dir.join("truth.json");
     let truth = truth_for(&plan);
-    surfstream_common::fsutil::write_atomic(&truth_path, |w| {
+    surfstream_core::fsutil::write_atomic(&truth_path, |w| {
         serde_json::to_writer_pretty(w, &truth)
             .map_err(|e| anyhow!("{}: {e}", truth_path.display()))
     })?;
     if save_specimen {
         // The whole virtual part, so a test or a user can compare the panorama with it.
         let path = ctx.out_dir.join("specimen.npy");
-        surfstream_common::npy::write_npy_f32(
+        surfstream_io::npy::write_npy_f32(
             &path,
             &specimen.heights,
             specimen.height,
@@ -324,7 +324,7 @@ fn mcap(ctx: &NodeContext, p: McapParams) -> Result<ReplayNode> {
     let mut first_log = None;
     for m in rec.messages.into_iter().filter(|m| m.topic == p.topic) {
         if let Recorded::Frame(f) = m.message {
-            if f.header.has(surfstream_common::flags::END_OF_SCAN) {
+            if f.header.has(surfstream_core::flags::END_OF_SCAN) {
                 continue;
             }
             if f.header.kind() != Some(FrameKind::Tile) {

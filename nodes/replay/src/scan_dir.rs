@@ -1,6 +1,6 @@
 //! Scan directories (DESIGN §5): `scan.toml` plus one height-map file per field, in
 //! acquisition order — the format `bench/make_tiles.py` writes. Tiles may be any format
-//! `surfstream_common::formats::read_surface` reads (.npy, .datx, .dat, .x3p, .sur, .xyz).
+//! `surfstream_io::formats::read_surface` reads (.npy, .datx, .dat, .x3p, .sur, .xyz).
 //!
 //! Pitch: `pitch_x_um` / `pitch_y_um` may be left out of `[scan]` when every tile file carries
 //! its own lateral calibration; when both say something they must agree (within 1e-6
@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, bail, Context, Result};
 use serde::Deserialize;
-use surfstream_common::formats;
+use surfstream_io::formats;
 
 /// Pitches agree when within 1e-6 relative (files store f32 calibrations).
 fn same_pitch(a: f64, b: f64) -> bool {
@@ -270,7 +270,7 @@ mod tests {
         std::fs::write(dir.join("scan.toml"), manifest).unwrap();
         for (name, r, c) in tiles {
             let data: Vec<f32> = (0..r * c).map(|i| i as f32).collect();
-            surfstream_common::npy::write_npy_f32(dir.join(name), &data, *r, *c).unwrap();
+            surfstream_io::npy::write_npy_f32(dir.join(name), &data, *r, *c).unwrap();
         }
     }
 
@@ -324,7 +324,7 @@ stage_y_um = 0.0
             })
             .collect();
         for (name, z) in ["a.npy", "b.npy"].iter().zip(&truth) {
-            surfstream_common::npy::write_npy_f64(d.path().join(name), z, 3, 4).unwrap();
+            surfstream_io::npy::write_npy_f64(d.path().join(name), z, 3, 4).unwrap();
         }
         let s = load_scan(d.path()).unwrap();
         assert!((s.z_offset_um - 25_000.0).abs() < 0.01);

@@ -168,7 +168,7 @@ fn main() -> anyhow::Result<()> {
         let x = match &inputs {
             Some(dir) => {
                 let path = dir.join(format!("synth_{n}.npy"));
-                let a = surfstream_common::npy::read_npy_f64(&path)?;
+                let a = surfstream_io::npy::read_npy_f64(&path)?;
                 anyhow::ensure!(
                     (a.rows, a.cols) == (n, n),
                     "{}: {} x {}, expected {n} x {n}",

@@ -1,4 +1,4 @@
 //! surfstream-wavelet: the wavelet node of a graph, as a process.
 fn main() {
-    surfstream_common::shell::node_main("wavelet", surfstream_wavelet::node::build)
+    surfstream_runtime::shell::node_main("wavelet", surfstream_wavelet::node::build)
 }

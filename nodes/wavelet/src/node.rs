@@ -11,10 +11,10 @@
 use anyhow::{anyhow, bail, Result};
 use serde::Deserialize;
 use serde_json::json;
-use surfstream_common::frame::{flags, FrameHeader, FrameKind, HeightMap};
-use surfstream_common::graph::NodeContext;
-use surfstream_common::node::{Input, NodeLogic, Outbox};
-use surfstream_common::preview::{write_preview_png, PreviewOptions};
+use surfstream_core::frame::{flags, FrameHeader, FrameKind, HeightMap};
+use surfstream_io::preview::{write_preview_png, PreviewOptions};
+use surfstream_runtime::graph::NodeContext;
+use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
 use crate::{
     analyse, default_level, pool, separate, BaseChoice, LevelChoice, Mode, PoolOp, Wavelet,
@@ -486,7 +486,7 @@ impl WaveletNode {
         ph.pitch_y_um *= self.pool as f64;
         let mut files = Vec::new();
         if self.write_files {
-            use surfstream_common::npy::{write_npy_f32, write_npy_f64};
+            use surfstream_io::npy::{write_npy_f32, write_npy_f64};
             // datum and pooled carry the panorama's f64 offset (absolute heights, f64 files);
             // roughness is relative by nature and stays f32.
             let absolute = |v: &[f32]| -> Vec<f64> {

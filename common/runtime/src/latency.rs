@@ -8,8 +8,8 @@ use std::collections::BTreeMap;
 
 use serde::Serialize;
 
-use crate::frame::flags;
 use crate::node::NodeReport;
+use surfstream_core::frame::flags;
 
 /// p50 / p95 / max in milliseconds, and the sample count.
 #[derive(Debug, Clone, Copy, Serialize, PartialEq)]

@@ -19,7 +19,7 @@
 //!   heights and NaN only if it has none). A map whose longer side is below
 //!   [`PreviewOptions::min_side_px`] (default 256) is enlarged by an integer factor (nearest
 //!   neighbour), so tiny maps stay visible.
-//! - The file is written atomically ([`crate::fsutil::write_atomic`]).
+//! - The file is written atomically ([`surfstream_core::fsutil::write_atomic`]).
 
 use std::io::Write;
 use std::path::Path;
@@ -114,7 +114,7 @@ pub fn write_preview_png(
     let image = render_preview(heights, rows, cols, opts)
         .with_context(|| format!("{}: cannot draw preview", path.display()))?;
     let info = image.info;
-    crate::fsutil::write_atomic(path, |w| {
+    surfstream_core::fsutil::write_atomic(path, |w| {
         let mut enc = png::Encoder::new(&mut *w, info.width_px, info.height_px);
         enc.set_color(png::ColorType::Rgb);
         enc.set_depth(png::BitDepth::Eight);

@@ -20,9 +20,9 @@ use iceoryx2::port::{BackpressureAction, BackpressureInfo};
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::{event as event_factory, publish_subscribe as ps_factory};
 
-use crate::frame::{FrameHeader, FrameView, TileRegistration};
 use crate::graph::{service_name, Delivery, NodeContext, PortKind};
 use crate::node::{deliver, Input, NodeLogic, NodeReport, NodeStats, Outbox, Output};
+use surfstream_core::frame::{FrameHeader, FrameView, TileRegistration};
 
 /// Set by a termination request (SIGTERM / SIGINT, see [`crate::shell`]): the event loop stops
 /// with an error, so ports are dropped and partial files removed on the way out.

@@ -6,7 +6,8 @@
 //! Scan coordinates: x grows along columns, y along rows, both in micrometres in the stage's
 //! frame; `origin_*_um` is the position of pixel (0, 0).
 
-use iceoryx2::prelude::ZeroCopySend;
+use iceoryx2_bb_derive_macros::ZeroCopySend;
+use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 use serde::{Deserialize, Serialize};
 
 /// Versioned type name: two binaries with different header layouts refuse to connect.

@@ -1,7 +1,7 @@
 //! Transport cost per hop: surfstream's lossless channel next to raw iceoryx2, same run,
 //! same machine, two processes each, interleaved rounds.
 //!
-//!   cargo run --release -p surfstream-common --example transport_bench -- [FRAMES] [SIDE] [ROUNDS]
+//!   cargo run --release -p surfstream-runtime --example transport_bench -- [FRAMES] [SIDE] [ROUNDS]
 //!
 //! Both sides send SIDE x SIDE f32 frames (default 1024: 4 MiB), one every 5 ms so latency is
 //! measured rather than throughput, to a subscriber woken by a WaitSet. The clock starts
@@ -12,12 +12,12 @@ use std::time::{Duration, Instant};
 
 use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::*;
-use surfstream_common::frame::monotonic_ns;
-use surfstream_common::graph::GraphFile;
-use surfstream_common::ipc as ss;
-use surfstream_common::latency::percentiles_ms;
-use surfstream_common::node::{Input, NodeLogic, Outbox};
-use surfstream_common::{FrameHeader, FrameKind, HeightMap};
+use surfstream_core::frame::monotonic_ns;
+use surfstream_core::{FrameHeader, FrameKind, HeightMap};
+use surfstream_runtime::graph::GraphFile;
+use surfstream_runtime::ipc as ss;
+use surfstream_runtime::latency::percentiles_ms;
+use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
 const GAP: Duration = Duration::from_millis(5);
 
@@ -245,7 +245,7 @@ impl NodeLogic for Sink {
     }
 }
 
-fn bench_graph(round: usize) -> anyhow::Result<Vec<surfstream_common::graph::NodeContext>> {
+fn bench_graph(round: usize) -> anyhow::Result<Vec<surfstream_runtime::graph::NodeContext>> {
     let text = format!("[graph]\nname = \"bench{round}\"\n[[node]]\nid = \"src\"\nnode = \"replay\"\n[[node]]\nid = \"sink\"\nnode = \"matcher\"\ninputs = {{ tiles = \"src/tiles\" }}\n");
     GraphFile::parse(&text, "bench")?.resolve(round as u64)
 }

@@ -551,7 +551,7 @@ pub fn encode(s: &Surface) -> Result<Vec<u8>> {
 /// Writes `s` as an X3P file, atomically.
 pub fn write(path: &Path, s: &Surface) -> Result<()> {
     let bytes = encode(s).with_context(|| format!("{}", path.display()))?;
-    crate::fsutil::write_atomic(path, |w| {
+    surfstream_core::fsutil::write_atomic(path, |w| {
         w.write_all(&bytes)
             .with_context(|| format!("{}: write failed", path.display()))
     })

@@ -1,9 +1,9 @@
 //! Times the nine ISO 25178 parameters on a .npy height map and reading height-map files, for
 //! side-by-side runs with ../shared/bench/params_anchor.py (same input via --save-inputs).
 //!
-//!     cargo run --release -p surfstream-common --example metrology_bench -- params FILE.npy [REPS]
-//!     cargo run --release -p surfstream-common --example metrology_bench -- read FILE... [REPS via SURFSTREAM_REPS]
-//!     cargo run --release -p surfstream-common --example metrology_bench -- make-sur IN.npy OUT.sur plain|compressed
+//!     cargo run --release -p surfstream-io --example metrology_bench -- params FILE.npy [REPS]
+//!     cargo run --release -p surfstream-io --example metrology_bench -- read FILE... [REPS via SURFSTREAM_REPS]
+//!     cargo run --release -p surfstream-io --example metrology_bench -- make-sur IN.npy OUT.sur plain|compressed
 //!
 //! Prints one JSON line per measurement: median / min / max seconds over the repeats (the
 //! first, warm-up run is not counted), and the rayon thread count.
@@ -12,8 +12,8 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use surfstream_common::formats::read_surface;
-use surfstream_common::metrology::{height_params, hybrid_params, level_plane, params, Grid};
+use surfstream_core::metrology::{height_params, hybrid_params, level_plane, params, Grid};
+use surfstream_io::formats::read_surface;
 
 fn stats(mut t: Vec<f64>) -> serde_json::Value {
     t.sort_by(f64::total_cmp);
@@ -84,8 +84,8 @@ fn main() -> Result<()> {
                 other => bail!("make-sur: '{other}', expected plain or compressed"),
             };
             let s = read_surface(Path::new(input))?;
-            let bytes = surfstream_common::formats::sur::encode_for_tests(&s, compressed, false);
-            surfstream_common::fsutil::write_atomic(Path::new(out), |w| {
+            let bytes = surfstream_io::formats::sur::encode_for_tests(&s, compressed, false);
+            surfstream_core::fsutil::write_atomic(Path::new(out), |w| {
                 use std::io::Write;
                 Ok(w.write_all(&bytes)?)
             })?;

@@ -6,8 +6,8 @@ use std::io::{Cursor, Write};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use surfstream_common::formats::{self, parse_surface, read_surface, Format, Metadata, Surface};
-use surfstream_common::metrology::{params, Grid};
+use surfstream_core::metrology::{params, Grid};
+use surfstream_io::formats::{self, parse_surface, read_surface, Format, Metadata, Surface};
 
 fn repo_root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))

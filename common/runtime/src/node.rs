@@ -12,7 +12,7 @@ use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
 
-use crate::frame::{monotonic_ns, FrameHeader, FrameView, HeightMap, TileRegistration};
+use surfstream_core::frame::{monotonic_ns, FrameHeader, FrameView, HeightMap, TileRegistration};
 
 /// A received message, borrowed (from shared memory under `launch`).
 #[derive(Debug, Clone, Copy)]
@@ -24,8 +24,8 @@ pub enum Input<'a> {
 impl Input<'_> {
     pub fn is_end_of_scan(&self) -> bool {
         match self {
-            Input::Frame(f) => f.header.has(crate::flags::END_OF_SCAN),
-            Input::Registration(r) => r.has(crate::flags::END_OF_SCAN),
+            Input::Frame(f) => f.header.has(surfstream_core::flags::END_OF_SCAN),
+            Input::Registration(r) => r.has(surfstream_core::flags::END_OF_SCAN),
         }
     }
     fn trace(&self) -> (u32, u64, u64, u32, u32) {
@@ -52,8 +52,8 @@ pub enum Output {
 impl Output {
     pub fn is_end_of_scan(&self) -> bool {
         match self {
-            Output::Frame(f) => f.header.has(crate::flags::END_OF_SCAN),
-            Output::Registration(r) => r.has(crate::flags::END_OF_SCAN),
+            Output::Frame(f) => f.header.has(surfstream_core::flags::END_OF_SCAN),
+            Output::Registration(r) => r.has(surfstream_core::flags::END_OF_SCAN),
         }
     }
     /// Stamps the per-channel sequence number and the send time.
@@ -116,7 +116,7 @@ impl Outbox {
             port,
             TileRegistration {
                 tile_index,
-                flags: crate::flags::END_OF_SCAN,
+                flags: surfstream_core::flags::END_OF_SCAN,
                 t_acquired_ns,
                 ..Default::default()
             },

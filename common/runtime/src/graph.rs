@@ -15,9 +15,9 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum PortKind {
-    /// HeightMap frames (`[f32]` payload + [`crate::FrameHeader`]).
+    /// HeightMap frames (`[f32]` payload + [`surfstream_core::FrameHeader`]).
     Frames,
-    /// [`crate::TileRegistration`] messages.
+    /// [`surfstream_core::TileRegistration`] messages.
     Registrations,
 }
 

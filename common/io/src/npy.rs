@@ -9,7 +9,7 @@
 //! Writing produces exactly what `numpy.save` writes for a C-order little-endian array: format
 //! 1.0 (2.0 only if the header would not fit a 1.0 header), the header padded with spaces to a
 //! multiple of 64 bytes and ended by `\n`. Files are written atomically
-//! ([`crate::fsutil::write_atomic`]): a reader never sees a half-written file.
+//! ([`surfstream_core::fsutil::write_atomic`]): a reader never sees a half-written file.
 //!
 //! Every error names the file and what was wrong with it.
 
@@ -90,7 +90,7 @@ fn write_npy<T: Copy>(
     let header = header_block(&format!(
         "{{'descr': '{descr}', 'fortran_order': False, 'shape': ({rows}, {cols}), }}"
     ));
-    crate::fsutil::write_atomic(path, |w| {
+    surfstream_core::fsutil::write_atomic(path, |w| {
         w.write_all(&header)
             .with_context(|| format!("{}: write failed", path.display()))?;
         let mut buf = Vec::with_capacity(8192 * 8);

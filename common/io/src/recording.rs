@@ -20,7 +20,7 @@
 //! caller's `log_time_ns`, its `publish_time` the `t_sent_ns` of the frame or registration, its
 //! `sequence` a per-channel counter from 0.
 //!
-//! Writing goes to `<path>.partial` ([`crate::fsutil::partial_path`]) and [`Recorder::finish`]
+//! Writing goes to `<path>.partial` ([`surfstream_core::fsutil::partial_path`]) and [`Recorder::finish`]
 //! renames the complete, synced file into place; a recorder dropped without `finish` removes its
 //! partial file, so a crash or an error never leaves a file at `path` that looks complete.
 //!
@@ -41,7 +41,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use mcap::records::{MessageHeader, Record};
 use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
 
-use crate::frame::{
+use surfstream_core::frame::{
     FrameHeader, FrameKind, HeightMap, TileRegistration, FRAME_TYPE_NAME, REGISTRATION_TYPE_NAME,
 };
 
@@ -151,7 +151,7 @@ impl Recorder {
     /// `<path>.partial` (an existing partial file is replaced).
     pub fn create(path: impl AsRef<Path>) -> Result<Recorder> {
         let path = path.as_ref().to_path_buf();
-        let partial = crate::fsutil::partial_path(&path);
+        let partial = surfstream_core::fsutil::partial_path(&path);
         let file = File::create(&partial)
             .with_context(|| format!("{}: cannot create", partial.display()))?;
         let options = mcap::WriteOptions::new()
@@ -852,7 +852,7 @@ fn decode_registration(data: &[u8]) -> std::result::Result<TileRegistration, Str
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::frame::flags;
+    use surfstream_core::frame::flags;
 
     fn frame(seq: u64, w: u32, h: u32, with_nan: bool) -> HeightMap {
         let header = FrameHeader {
@@ -889,7 +889,7 @@ mod tests {
             scan_id: 0xDEAD_BEEF_1234,
             sequence: i as u64,
             tile_index: i,
-            placed_by: crate::frame::placed_by::REGISTRATION,
+            placed_by: surfstream_core::frame::placed_by::REGISTRATION,
             flags: 0,
             links_accepted: 2,
             links_tried: 3,
@@ -940,7 +940,7 @@ mod tests {
         let eos = FrameHeader::end_of_scan(0xDEAD_BEEF_1234, 3, 2, 77);
         rec.write_frame(tiles, &eos, &[], 400).expect("eos");
         assert_eq!(rec.message_count(), 6);
-        assert!(crate::fsutil::partial_path(path).exists());
+        assert!(surfstream_core::fsutil::partial_path(path).exists());
         assert!(!path.exists());
         rec.finish().expect("finish");
         let mut all = frames;
@@ -957,7 +957,7 @@ mod tests {
         let path = dir.path().join("rec.mcap");
         let (frames, regs) = sample(&path, (64, 48));
         assert!(path.exists());
-        assert!(!crate::fsutil::partial_path(&path).exists());
+        assert!(!surfstream_core::fsutil::partial_path(&path).exists());
 
         let r = read_recording(&path).expect("read");
         assert_eq!(r.channels.len(), 2);
@@ -1054,7 +1054,7 @@ mod tests {
                 .expect("write");
         }
         assert!(!path.exists());
-        assert!(!crate::fsutil::partial_path(&path).exists());
+        assert!(!surfstream_core::fsutil::partial_path(&path).exists());
         assert_eq!(std::fs::read_dir(dir.path()).expect("ls").count(), 0);
     }
 

@@ -25,7 +25,7 @@ pub fn write_report(out_dir: &Path, report: &NodeReport) -> Result<()> {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("{}: cannot create", dir.display()))?;
     }
-    crate::fsutil::write_atomic(&path, |w| {
+    surfstream_core::fsutil::write_atomic(&path, |w| {
         serde_json::to_writer(w, report).map_err(|e| anyhow!("{}: {e}", path.display()))
     })
 }

@@ -5,11 +5,11 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use surfstream_common::formats::read_surface;
-use surfstream_common::metrology::{
+use surfstream_core::metrology::{
     fit_plane, level_plane, params, rms_difference, sim, Grid, Params,
 };
-use surfstream_common::npy::write_npy_f64;
+use surfstream_io::formats::read_surface;
+use surfstream_io::npy::write_npy_f64;
 
 fn repo_root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -283,7 +283,7 @@ fn frame_heights_keep_the_parameters_of_the_readers_f64() {
     // that form agree with those of the reader's f64 heights within 1e-6 relative (Ssk, which
     // is ~0 on symmetric surfaces, within 1e-6 absolute); the plain f32 of the absolute heights
     // (no offset) does not on MetroPro's ~50 um heights, which is why frames carry the offset.
-    use surfstream_common::formats::from_frame_heights;
+    use surfstream_io::formats::from_frame_heights;
     for name in [
         "metropro-1.dat",
         "x3p-2.x3p",

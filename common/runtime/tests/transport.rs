@@ -2,9 +2,10 @@
 
 use std::time::Instant;
 
-use surfstream_common::graph::GraphFile;
-use surfstream_common::node::{Input, NodeLogic, Outbox};
-use surfstream_common::{inproc, ipc, FrameHeader, FrameKind, HeightMap};
+use surfstream_core::{FrameHeader, FrameKind, HeightMap};
+use surfstream_runtime::graph::GraphFile;
+use surfstream_runtime::node::{Input, NodeLogic, Outbox};
+use surfstream_runtime::{inproc, ipc};
 
 const N: u32 = 40;
 const SIDE: u32 = 512;
@@ -37,7 +38,7 @@ impl NodeLogic for Source {
                 tile_index: i,
                 width: SIDE,
                 height: SIDE,
-                t_acquired_ns: surfstream_common::frame::monotonic_ns(),
+                t_acquired_ns: surfstream_core::frame::monotonic_ns(),
                 ..Default::default()
             };
             let heights = (0..SIDE * SIDE).map(|k| (k ^ i) as f32).collect();
@@ -59,7 +60,7 @@ struct Sink {
 impl NodeLogic for Sink {
     fn on_input(&mut self, _: &str, input: Input<'_>, _: &mut Outbox) -> anyhow::Result<()> {
         if let Input::Frame(f) = input {
-            if f.header.has(surfstream_common::flags::END_OF_SCAN) {
+            if f.header.has(surfstream_core::flags::END_OF_SCAN) {
                 self.ended = true;
             } else {
                 let i = f.header.tile_index;
@@ -106,7 +107,7 @@ inputs = {{ tiles = "src/tiles" }}
     GraphFile::parse(&text, "test").unwrap()
 }
 
-fn check(reports: &[surfstream_common::node::NodeReport]) {
+fn check(reports: &[surfstream_runtime::node::NodeReport]) {
     let expect: Vec<u32> = (0..N).collect();
     for r in reports.iter().filter(|r| r.node_id != "src") {
         assert_eq!(

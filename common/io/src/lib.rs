@@ -1,0 +1,7 @@
+//! surfstream-io: files in and out: instrument height-map formats ([`formats`]), NumPy arrays
+//! ([`npy`]), PNG previews ([`preview`]) and MCAP recordings ([`recording`]).
+
+pub mod formats;
+pub mod npy;
+pub mod preview;
+pub mod recording;

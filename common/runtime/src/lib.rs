@@ -1,0 +1,10 @@
+//! surfstream-runtime: how a graph runs: the node contract ([`node`]), graph files
+//! ([`graph`]), the iceoryx2 transport ([`ipc`]), the in-process transport ([`inproc`]), the
+//! process shell every node binary uses ([`shell`]) and latency statistics ([`latency`]).
+
+pub mod graph;
+pub mod inproc;
+pub mod ipc;
+pub mod latency;
+pub mod node;
+pub mod shell;
