@@ -216,3 +216,37 @@ pub fn monotonic_ns() -> u64 {
     unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
     ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
 }
+
+/// Absolute heights (um, f64) as a frame carries them: f32 relative to an f64 offset, here the
+/// mean of the valid heights (0 when none), so absolute heights far from zero (MetroPro ~50 um,
+/// a part 25 mm up the z axis) keep the f32's 7 digits for the surface's own variation.
+/// Returns (z_offset_um, heights); [`from_frame_heights`] inverts it.
+pub fn to_frame_heights(heights_um: &[f64]) -> (f64, Vec<f32>) {
+    let z_offset_um = valid_mean(heights_um);
+    let heights = heights_um
+        .iter()
+        .map(|&z| (z - z_offset_um) as f32)
+        .collect();
+    (z_offset_um, heights)
+}
+
+/// Absolute heights (um, f64) from a frame's `z_offset_um` and f32 payload.
+pub fn from_frame_heights(z_offset_um: f64, heights: &[f32]) -> Vec<f64> {
+    heights
+        .iter()
+        .map(|&z| f64::from(z) + z_offset_um)
+        .collect()
+}
+
+/// The mean of the non-NaN values, 0 when there are none.
+pub fn valid_mean(values: &[f64]) -> f64 {
+    let (n, sum) = values
+        .iter()
+        .filter(|z| !z.is_nan())
+        .fold((0usize, 0.0), |(n, s), &z| (n + 1, s + z));
+    if n == 0 {
+        0.0
+    } else {
+        sum / n as f64
+    }
+}

@@ -56,41 +56,13 @@ impl Surface {
         self.heights_um.iter().filter(|z| z.is_nan()).count()
     }
 
-    /// The heights as a frame carries them (frame.rs): f32 relative to an f64 offset, here
-    /// the mean of the valid heights (0 when none), so absolute heights far from zero (MetroPro
-    /// ~50 um) keep the f32's 7 digits for the surface's own variation. Returns
-    /// (z_offset_um, heights); [`from_frame_heights`] inverts it.
+    /// The heights as a frame carries them: see [`surfstream_core::frame::to_frame_heights`].
     pub fn to_frame_heights(&self) -> (f64, Vec<f32>) {
-        let z_offset_um = valid_mean(&self.heights_um);
-        let heights = self
-            .heights_um
-            .iter()
-            .map(|&z| (z - z_offset_um) as f32)
-            .collect();
-        (z_offset_um, heights)
+        to_frame_heights(&self.heights_um)
     }
 }
 
-/// The mean of the non-NaN values, 0 when there are none.
-pub fn valid_mean(values: &[f64]) -> f64 {
-    let (n, sum) = values
-        .iter()
-        .filter(|z| !z.is_nan())
-        .fold((0usize, 0.0), |(n, s), &z| (n + 1, s + z));
-    if n == 0 {
-        0.0
-    } else {
-        sum / n as f64
-    }
-}
-
-/// Absolute heights (um, f64) from a frame's `z_offset_um` and f32 payload.
-pub fn from_frame_heights(z_offset_um: f64, heights: &[f32]) -> Vec<f64> {
-    heights
-        .iter()
-        .map(|&z| f64::from(z) + z_offset_um)
-        .collect()
-}
+pub use surfstream_core::frame::{from_frame_heights, to_frame_heights, valid_mean};
 
 /// The height-map formats read here.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
