@@ -11,8 +11,9 @@ use surfstream_io::formats::{self, parse_surface, read_surface, Format, Metadata
 
 fn repo_root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .expect("common/ has a parent")
+        .ancestors()
+        .nth(2)
+        .expect("common/io lies two levels below the repository root")
         .to_path_buf()
 }
 

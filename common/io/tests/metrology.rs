@@ -13,8 +13,9 @@ use surfstream_io::npy::write_npy_f64;
 
 fn repo_root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .expect("common/ has a parent")
+        .ancestors()
+        .nth(2)
+        .expect("common/io lies two levels below the repository root")
         .to_path_buf()
 }
 
