@@ -1,14 +1,17 @@
 //! surfstream-core: the types and small algorithms every surfstream crate shares, with no
 //! transport and no file formats: the frame ([`frame`]), the one raster type ([`raster`]),
 //! the tile plane correction ([`plane`]), atomic output files ([`fsutil`]), ISO 25178
-//! parameters ([`metrology`]) and image similarity ([`similarity`]).
+//! parameters ([`metrology`]), image similarity ([`similarity`]), FFT sizes ([`fft`]) and the
+//! AVX2 dispatch of hot loops ([`simd`]).
 
+pub mod fft;
 pub mod frame;
 pub mod fsutil;
 pub mod metrology;
 pub mod plane;
 pub mod raster;
 pub mod similarity;
+pub mod simd;
 
 pub use frame::{flags, FrameHeader, FrameKind, FrameView, HeightMap, TileRegistration};
 pub use plane::PlaneCorrection;
