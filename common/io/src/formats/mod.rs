@@ -49,6 +49,9 @@ pub struct Metadata {
     pub wavelength_um: Option<f64>,
     /// Further format-specific header fields, by name (e.g. MetroPro "phase_res").
     pub extra: BTreeMap<String, String>,
+    /// What the reader accepted but the user should know (a checksum that does not match).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
 }
 
 impl Surface {
@@ -107,7 +110,7 @@ pub fn is_surface_file(path: &Path) -> bool {
 pub fn read_surface(path: &Path) -> Result<Surface> {
     let format = Format::from_path(path)?;
     if format == Format::Npy {
-        return read_npy_surface(path);
+        return read_npy_surface(path).map(invalid_if_not_finite);
     }
     let data = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
     parse_surface(&data, format).with_context(|| format!("{}", path.display()))
@@ -125,7 +128,18 @@ pub fn parse_surface(data: &[u8], format: Format) -> Result<Surface> {
         Format::Npy => bail!(".npy is read from a path (read_surface)"),
     };
     debug_assert_eq!(s.heights_um.len(), s.width * s.height);
-    Ok(s)
+    Ok(invalid_if_not_finite(s))
+}
+
+/// Every reader's one convention for invalid points: NaN. Some writers store them as +-inf
+/// (Alicona's float x3p); left as inf they would poison every parameter.
+fn invalid_if_not_finite(mut s: Surface) -> Surface {
+    for z in s.heights_um.iter_mut() {
+        if !z.is_finite() {
+            *z = f64::NAN;
+        }
+    }
+    s
 }
 
 /// Writes `s` by the extension of `path`: `.x3p` (float64, valid.bin for NaN) or `.npy`

@@ -70,6 +70,12 @@ fn read_points<R: Read + Seek>(
     let mut entry = zip
         .by_name(name)
         .with_context(|| format!("zip entry '{name}'"))?;
+    check_entry_can_hold(
+        name,
+        data_bytes,
+        entry.compressed_size(),
+        entry.compression(),
+    )?;
     let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<u8>>(4);
     std::thread::scope(|scope| {
         let worker = scope.spawn(|| {
@@ -120,6 +126,33 @@ fn read_points<R: Read + Seek>(
             .map_err(|_| anyhow!("zip entry '{name}': the converting thread panicked"))?;
         read.map(|()| (heights, total, md5))
     })
+}
+
+/// Deflate expands at most about 1032:1; a stored entry not at all.
+const MAX_DEFLATE_RATIO: u64 = 1032;
+
+/// Refuses a size claim (main.xml's SizeX * SizeY) that the archive entry cannot hold, before
+/// anything is allocated for it: a 100000 x 100000 claim in a 3 MB file is an error, not an
+/// 80 GB allocation.
+fn check_entry_can_hold(
+    name: &str,
+    data_bytes: usize,
+    compressed_bytes: u64,
+    method: zip::CompressionMethod,
+) -> Result<()> {
+    let ratio = if method == zip::CompressionMethod::Stored {
+        1
+    } else {
+        MAX_DEFLATE_RATIO
+    };
+    let most = compressed_bytes.saturating_mul(ratio).saturating_add(64);
+    if data_bytes as u64 > most {
+        bail!(
+            "main.xml: MatrixDimension declares {data_bytes} bytes of point data, but zip entry \
+             '{name}' ({compressed_bytes} bytes stored, {method:?}) can hold at most {most}"
+        );
+    }
+    Ok(())
 }
 
 /// Little-endian points to heights in um (a trailing partial point is left out: the caller
@@ -223,6 +256,9 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
         .context("no main.xml in the archive")?;
     let folder = &main_name[..main_name.len() - "main.xml".len()];
     let xml_bytes = read_entry(&mut zip, &main_name, MAX_XML_BYTES)?;
+    // A checksum that does not match is a warning, not a refusal: the user wants the data, and
+    // to be told.
+    let mut warnings = Vec::new();
     let sum_name = format!("{folder}md5checksum.hex");
     if names.contains(&sum_name) {
         let sum_file = read_entry(&mut zip, &sum_name, 4096)?;
@@ -230,15 +266,16 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
         let expected = sum_text.split_whitespace().next().unwrap_or("");
         let actual = md5_hex(&xml_bytes);
         if !expected.eq_ignore_ascii_case(&actual) {
-            bail!("MD5 checksum of main.xml fails: md5checksum.hex says '{expected}', main.xml hashes to {actual}");
+            warnings.push(format!("MD5 checksum of main.xml fails: md5checksum.hex says '{expected}', main.xml hashes to {actual}; the data is read as stored"));
         }
     }
     let xml = std::str::from_utf8(&xml_bytes).context("main.xml is not UTF-8")?;
     let doc = roxmltree::Document::parse(xml).context("main.xml is not well-formed XML")?;
     let root = doc.root_element();
-    if root.tag_name().name() != "ISO5436_2" {
+    // Some writers name the root after the 2000 standard, ISO5436, with the same records.
+    if !matches!(root.tag_name().name(), "ISO5436_2" | "ISO5436") {
         bail!(
-            "main.xml: root element is '{}', expected ISO5436_2",
+            "main.xml: root element is '{}', expected ISO5436_2 (or ISO5436)",
             root.tag_name().name()
         );
     }
@@ -292,7 +329,15 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
     }
     let n = checked_size(&[width, height], "SizeX * SizeY")?;
     let data_bytes = checked_size(&[n, ztype.bytes()], "point data size")?;
-    let link = need(r3, &["DataLink"])?;
+    let to_um = |v: f64| (z_offset + v * z_increment) * 1e6;
+    let Some(link) = child(r3, "DataLink") else {
+        let list =
+            child(r3, "DataList").context("main.xml: Record3 has neither DataLink nor DataList")?;
+        let heights_um = parse_data_list(list, n, &to_um)?;
+        return Ok(finish(
+            root, r1, width, height, pitch_x_m, pitch_y_m, heights_um, warnings,
+        ));
+    };
     let point_link =
         text_of(link, &["PointDataLink"]).context("main.xml: DataLink/PointDataLink missing")?;
     let entry_name = |l: &str| -> Result<String> {
@@ -305,7 +350,6 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
     };
     let data_name = entry_name(&point_link)?;
     let point_sum = text_of(link, &["MD5ChecksumPointData"]);
-    let to_um = |v: f64| (z_offset + v * z_increment) * 1e6;
     let (mut heights_um, read_bytes, actual_sum) = read_points(
         &mut zip,
         &data_name,
@@ -322,7 +366,7 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
     }
     if let (Some(sum), Some(actual)) = (point_sum, actual_sum) {
         if !sum.eq_ignore_ascii_case(&actual) {
-            bail!("MD5 checksum of the point data ({data_name}) fails: main.xml says '{sum}', the data hashes to {actual}");
+            warnings.push(format!("MD5 checksum of the point data ({data_name}) fails: main.xml says '{sum}', the data hashes to {actual}; the data is read as stored"));
         }
     }
     let valid = match text_of(link, &["ValidPointsLink"]) {
@@ -340,7 +384,7 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
             if let Some(sum) = text_of(link, &["MD5ChecksumValidPoints"]) {
                 let actual = md5_hex(&bits);
                 if !sum.eq_ignore_ascii_case(&actual) {
-                    bail!("MD5 checksum of the valid points ({name}) fails: main.xml says '{sum}', the data hashes to {actual}");
+                    warnings.push(format!("MD5 checksum of the valid points ({name}) fails: main.xml says '{sum}', the data hashes to {actual}; the mask is used as stored"));
                 }
             }
             Some(bits)
@@ -353,6 +397,54 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
             }
         }
     }
+    Ok(finish(
+        root, r1, width, height, pitch_x_m, pitch_y_m, heights_um, warnings,
+    ))
+}
+
+/// Inline point data (Record3/DataList, one `Datum` per point, x fastest): each holds the z
+/// value (or "x;y;z" with empty incremental coordinates); an empty Datum is a point not measured.
+fn parse_data_list(
+    list: roxmltree::Node,
+    n: usize,
+    to_um: &impl Fn(f64) -> f64,
+) -> Result<Vec<f64>> {
+    let datums = list
+        .children()
+        .filter(|c| c.is_element() && c.tag_name().name() == "Datum");
+    // Count before allocating: the size claim must match what the file holds.
+    let found = datums.clone().count();
+    if found != n {
+        bail!("main.xml: DataList holds {found} Datum elements, MatrixDimension declares {n}");
+    }
+    let mut heights = Vec::with_capacity(n);
+    for (i, d) in datums.enumerate() {
+        let text = d.text().unwrap_or("").trim();
+        let z = text.rsplit(';').next().unwrap_or("").trim();
+        if z.is_empty() {
+            heights.push(f64::NAN);
+            continue;
+        }
+        let v: f64 = z
+            .parse()
+            .map_err(|_| anyhow!("main.xml: DataList/Datum[{i}] is '{text}', expected a number"))?;
+        heights.push(to_um(v));
+    }
+    Ok(heights)
+}
+
+/// The surface with the metadata of Record1/Record2.
+#[allow(clippy::too_many_arguments)]
+fn finish(
+    root: roxmltree::Node,
+    r1: roxmltree::Node,
+    width: usize,
+    height: usize,
+    pitch_x_m: f64,
+    pitch_y_m: f64,
+    heights_um: Vec<f64>,
+    warnings: Vec<String>,
+) -> Surface {
     let r2 = child(root, "Record2");
     let instrument = r2.and_then(|r| {
         let parts: Vec<String> = ["Manufacturer", "Model", "Version"]
@@ -383,14 +475,15 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
     if let Some(rev) = text_of(r1, &["Revision"]) {
         metadata.extra.insert("revision".into(), rev);
     }
-    Ok(Surface {
+    metadata.warnings = warnings;
+    Surface {
         width,
         height,
         pitch_x_um: pitch_x_m * 1e6,
         pitch_y_um: pitch_y_m * 1e6,
         heights_um,
         metadata,
-    })
+    }
 }
 
 fn xml_escape(s: &str) -> String {
