@@ -7,9 +7,9 @@ use crate::raster::{Raster, RasterView, Shape};
 
 /// The height correction of one tile: a piston plus a tilt about the tile centre.
 ///
-/// `corrected(row, col) = raw(row, col) - (piston_um + tilt_x_um_per_px * (col - (cols-1)/2)
-/// + tilt_y_um_per_px * (row - (rows-1)/2))`, the same convention as
-/// [`crate::TileRegistration`]. The plane is centred on the tile, so the piston is the plane's
+/// `corrected(row, col) = raw(row, col) - plane(row, col)` with `plane(row, col) = piston_um +
+/// tilt_x_um_per_px * (col - (cols-1)/2) + tilt_y_um_per_px * (row - (rows-1)/2)`, the same
+/// convention as [`crate::TileRegistration`]. The plane is centred on the tile, so the piston is the plane's
 /// height at the tile centre and does not change when the tilt does.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct PlaneCorrection {
