@@ -199,6 +199,20 @@ struct Header {
     data_offset: usize,
 }
 
+/// The start of a header for an error message: a corrupt file's "header" can be 150 KB of
+/// binary, which nobody wants echoed to the terminal.
+fn excerpt(text: &str) -> String {
+    const MAX_CHARS: usize = 80;
+    let trimmed = text.trim();
+    let total = trimmed.chars().count();
+    if total <= MAX_CHARS {
+        format!("{trimmed:?}")
+    } else {
+        let head: String = trimmed.chars().take(MAX_CHARS).collect();
+        format!("{head:?}... ({total} characters in all)")
+    }
+}
+
 fn read_as<T: Element>(path: &Path) -> Result<NpyArray<T>> {
     let bytes = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
     let header = parse_header(&bytes).map_err(|e| anyhow!("{}: {e}", path.display()))?;
@@ -325,8 +339,8 @@ fn parse_header(bytes: &[u8]) -> std::result::Result<Header, String> {
     };
     let dict = match PyParser::new(&text).parse_top() {
         Ok(PyValue::Dict(d)) => d,
-        Ok(_) => return Err(format!("the header is not a dict: {:?}", text.trim())),
-        Err(e) => return Err(format!("cannot parse the header {:?}: {e}", text.trim())),
+        Ok(_) => return Err(format!("the header is not a dict: {}", excerpt(&text))),
+        Err(e) => return Err(format!("cannot parse the header {}: {e}", excerpt(&text))),
     };
     let get = |key: &str| {
         dict.iter()
@@ -667,6 +681,19 @@ mod tests {
 
     fn err_text(r: Result<impl std::fmt::Debug>) -> String {
         format!("{:#}", r.expect_err("expected an error"))
+    }
+
+    #[test]
+    fn a_huge_binary_header_is_not_echoed_and_the_path_is_named_once() {
+        let dir = tmp();
+        let junk: String = (0..160_000)
+            .map(|i| char::from(b'!' + (i % 90) as u8))
+            .collect();
+        let p = write(&dir, "junk.npy", &raw_npy(2, &junk, &[]));
+        let e = err_text(crate::formats::read_surface(&p));
+        assert!(e.len() < 400, "{} characters: {}", e.len(), &e[..400]);
+        assert!(e.contains("characters in all"), "{e}");
+        assert_eq!(e.matches("junk.npy").count(), 1, "{e}");
     }
 
     #[test]

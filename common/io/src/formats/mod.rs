@@ -157,7 +157,8 @@ pub fn write_surface(path: &Path, s: &Surface) -> Result<()> {
 
 /// A 2-D .npy (f32 or f64) as heights in um; pitch unknown (1 um).
 fn read_npy_surface(path: &Path) -> Result<Surface> {
-    let a = crate::npy::read_npy_f64(path).with_context(|| format!("{}", path.display()))?;
+    // npy's errors already name the path.
+    let a = crate::npy::read_npy_f64(path)?;
     Ok(Surface {
         width: a.cols,
         height: a.rows,
