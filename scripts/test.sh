@@ -5,6 +5,17 @@
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
+# Debian packages the tests drive for real: LIGGGHTS (the DEM engine our STL must import).
+missing=()
+command -v liggghts >/dev/null || missing+=(liggghts)
+if [ ${#missing[@]} -gt 0 ]; then
+    echo "test.sh: installing ${missing[*]} (apt-get)"
+    SUDO=""
+    [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}" >/dev/null
+fi
+
 VENV=.test-venv
 if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import mcap, trimesh, numpy, pywt, surfalize, h5py' 2>/dev/null; then
     echo "test.sh: creating $VENV (mcap, trimesh, numpy, PyWavelets, surfalize, h5py)"

@@ -39,6 +39,7 @@ pub mod field;
 mod geom;
 pub mod solid;
 pub mod stl;
+pub mod target;
 pub mod tin;
 
 pub use adaptive::{mesh_height_field, AdaptiveMesh, Epsilon, MeshKind, MeshParams};

@@ -1,0 +1,275 @@
+//! What each discrete-element engine imports, and the checks that say an STL will load.
+//!
+//! The engines disagree (checked against the real programs where Debian ships them):
+//!
+//! | engine | reads | wall as | units | limits |
+//! |---|---|---|---|---|
+//! | LIGGGHTS-PUBLIC 3.8 | ASCII STL only | open sheet (`mesh/surface`); a closed solid aborts the run | SI (m) | smallest angle > 0.5 deg (else "high aspect ratio"), no duplicate elements; the error-bounded Delaunay mesh's slivers abort it at setup, a regular grid imports |
+//! | MercuryDPM | binary STL only (`readTriangleWall`) | sheet | SI (m) | none documented |
+//! | EDEM | binary or ASCII STL | closed solid (geometry import) | mm (the import dialog's default) | none documented |
+//! | Yade | ASCII STL (`ymport.stl`) | sheet | SI (m) | vertices are welded in O(V^2): keep the mesh small |
+//!
+//! A target therefore fixes the format, the kind, the units, the meshing method and a
+//! triangle budget; [`EngineProfile::for_engine`] is the table above as data. Regular grids are
+//! made to fit the budget by block means over `stride x stride` samples ([`block_mean`]).
+
+use std::str::FromStr;
+
+use serde::Serialize;
+use surfstream_core::raster::{Raster, RasterView, Shape};
+
+use crate::solid::{LengthUnit, SolidMesh};
+
+/// A discrete-element engine an STL is made for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DemEngine {
+    Liggghts,
+    MercuryDpm,
+    Edem,
+    Yade,
+}
+
+impl FromStr for DemEngine {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.to_ascii_lowercase().as_str() {
+            "liggghts" => Ok(Self::Liggghts),
+            "mercurydpm" => Ok(Self::MercuryDpm),
+            "edem" => Ok(Self::Edem),
+            "yade" => Ok(Self::Yade),
+            other => Err(format!(
+                "unknown DEM target '{other}', expected liggghts, mercurydpm, edem or yade"
+            )),
+        }
+    }
+}
+
+impl DemEngine {
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Liggghts => "liggghts",
+            Self::MercuryDpm => "mercurydpm",
+            Self::Edem => "edem",
+            Self::Yade => "yade",
+        }
+    }
+}
+
+/// How the mesh is made for an engine.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TargetMethod {
+    /// Two triangles per (block-averaged) grid cell: no slivers, at most 6 triangles per vertex.
+    Grid,
+    /// The error-bounded greedy insertion (fewest triangles for a given error).
+    Adaptive,
+}
+
+/// What one engine imports.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct EngineProfile {
+    pub engine: DemEngine,
+    /// ASCII (true) or binary STL.
+    pub ascii: bool,
+    /// A closed solid (true) or the open surface.
+    pub solid: bool,
+    pub units: LengthUnit,
+    pub method: TargetMethod,
+    /// Most surface triangles the engine is given.
+    pub max_triangles: usize,
+    /// Smallest interior angle every triangle must have, degrees.
+    pub min_angle_deg: f64,
+}
+
+impl EngineProfile {
+    pub fn for_engine(engine: DemEngine) -> Self {
+        match engine {
+            DemEngine::Liggghts => Self {
+                engine,
+                ascii: true,
+                solid: false,
+                units: LengthUnit::M,
+                method: TargetMethod::Grid,
+                max_triangles: 400_000,
+                // LIGGGHTS' soft limit is 0.5 deg; keep a margin.
+                min_angle_deg: 1.0,
+            },
+            DemEngine::MercuryDpm => Self {
+                engine,
+                ascii: false,
+                solid: false,
+                units: LengthUnit::M,
+                method: TargetMethod::Grid,
+                max_triangles: 1_000_000,
+                min_angle_deg: 1.0,
+            },
+            DemEngine::Edem => Self {
+                engine,
+                ascii: false,
+                solid: true,
+                units: LengthUnit::Mm,
+                method: TargetMethod::Adaptive,
+                max_triangles: 2_000_000,
+                min_angle_deg: 0.0,
+            },
+            DemEngine::Yade => Self {
+                engine,
+                ascii: true,
+                solid: false,
+                units: LengthUnit::M,
+                method: TargetMethod::Grid,
+                // Welding is O(V^2): 20k triangles is ~10k vertices, ~1e8 comparisons.
+                max_triangles: 20_000,
+                min_angle_deg: 1.0,
+            },
+        }
+    }
+}
+
+/// The smallest block side `stride` such that a grid of `shape` averaged over
+/// `stride x stride` blocks meshes into at most `max_triangles` triangles (two per cell).
+pub fn grid_stride_for_budget(shape: Shape, max_triangles: usize) -> usize {
+    let triangles = |s: usize| {
+        let (r, c) = (shape.rows.div_ceil(s), shape.cols.div_ceil(s));
+        2 * r.saturating_sub(1) * c.saturating_sub(1)
+    };
+    let mut stride = 1;
+    while triangles(stride) > max_triangles && stride < shape.rows.max(shape.cols) {
+        stride += 1;
+    }
+    stride
+}
+
+/// The NaN-aware mean of every `stride x stride` block (edge blocks may be smaller); a block
+/// with no valid sample stays NaN. The block's centre moves by `(stride - 1) / 2` samples, which
+/// the caller adds to the origin.
+pub fn block_mean(heights: RasterView<'_, f32>, stride: usize) -> Raster<f32> {
+    let stride = stride.max(1);
+    let out_shape = Shape::new(
+        heights.rows().div_ceil(stride),
+        heights.cols().div_ceil(stride),
+    );
+    let mut out = Raster::filled(out_shape, f32::NAN);
+    for r in 0..out_shape.rows {
+        for c in 0..out_shape.cols {
+            let (mut n, mut sum) = (0usize, 0.0f64);
+            for rr in r * stride..((r + 1) * stride).min(heights.rows()) {
+                for &z in &heights.row(rr)[c * stride..((c + 1) * stride).min(heights.cols())] {
+                    if !z.is_nan() {
+                        n += 1;
+                        sum += z as f64;
+                    }
+                }
+            }
+            if n > 0 {
+                out.values_mut()[out_shape.index(r, c)] = (sum / n as f64) as f32;
+            }
+        }
+    }
+    out
+}
+
+/// Element quality as the engines judge it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct ElementQuality {
+    /// Smallest interior angle of any triangle, degrees.
+    pub min_angle_deg: f64,
+    /// Most triangles sharing one vertex.
+    pub max_triangles_per_vertex: usize,
+    /// Triangles with the same three vertices as another.
+    pub duplicate_triangles: usize,
+}
+
+/// Measures the quality of the first `count` triangles of `mesh`.
+pub fn element_quality(mesh: &SolidMesh, count: usize) -> ElementQuality {
+    let mut min_angle = f64::INFINITY;
+    let mut per_vertex = vec![0usize; mesh.vertices.len()];
+    let mut keys: Vec<[u32; 3]> = Vec::with_capacity(count);
+    for t in mesh.triangles.iter().take(count) {
+        let p = t.map(|i| mesh.vertices[i as usize]);
+        for k in 0..3 {
+            let (a, b, c) = (p[k], p[(k + 1) % 3], p[(k + 2) % 3]);
+            let u = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+            let v = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
+            let dot = u[0] * v[0] + u[1] * v[1] + u[2] * v[2];
+            let cross = [
+                u[1] * v[2] - u[2] * v[1],
+                u[2] * v[0] - u[0] * v[2],
+                u[0] * v[1] - u[1] * v[0],
+            ];
+            let sin = (cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2]).sqrt();
+            min_angle = min_angle.min(sin.atan2(dot).to_degrees());
+        }
+        for &i in t {
+            per_vertex[i as usize] += 1;
+        }
+        let mut key = *t;
+        key.sort_unstable();
+        keys.push(key);
+    }
+    keys.sort_unstable();
+    let duplicate_triangles = keys.windows(2).filter(|w| w[0] == w[1]).count();
+    ElementQuality {
+        min_angle_deg: if min_angle.is_finite() {
+            min_angle
+        } else {
+            0.0
+        },
+        max_triangles_per_vertex: per_vertex.into_iter().max().unwrap_or(0),
+        duplicate_triangles,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn engines_parse_and_liggghts_gets_an_ascii_sheet_in_metres() {
+        assert_eq!("LIGGGHTS".parse::<DemEngine>(), Ok(DemEngine::Liggghts));
+        assert!("rocky"
+            .parse::<DemEngine>()
+            .unwrap_err()
+            .contains("expected liggghts"));
+        let p = EngineProfile::for_engine(DemEngine::Liggghts);
+        assert!(p.ascii && !p.solid);
+        assert_eq!(p.units, LengthUnit::M);
+        assert_eq!(p.method, TargetMethod::Grid);
+        let m = EngineProfile::for_engine(DemEngine::MercuryDpm);
+        assert!(!m.ascii, "MercuryDPM reads binary STL only");
+    }
+
+    #[test]
+    fn stride_fits_the_budget_and_block_means_skip_nan() {
+        let shape = Shape::new(1000, 600);
+        assert_eq!(grid_stride_for_budget(shape, 2 * 999 * 599), 1);
+        let s = grid_stride_for_budget(shape, 20_000);
+        let (r, c) = (1000usize.div_ceil(s), 600usize.div_ceil(s));
+        assert!(2 * (r - 1) * (c - 1) <= 20_000);
+        let (r1, c1) = (1000usize.div_ceil(s - 1), 600usize.div_ceil(s - 1));
+        assert!(
+            2 * (r1 - 1) * (c1 - 1) > 20_000,
+            "stride {s} is not the smallest"
+        );
+
+        // 3 rows x 4 cols, one NaN: 2 x 2 blocks.
+        let z = [
+            1.0,
+            3.0,
+            5.0,
+            7.0,
+            f32::NAN,
+            5.0,
+            9.0,
+            11.0,
+            2.0,
+            4.0,
+            6.0,
+            8.0,
+        ];
+        let m = block_mean(RasterView::new(&z, Shape::new(3, 4)).unwrap(), 2);
+        assert_eq!(m.shape(), Shape::new(2, 2));
+        assert_eq!(m.values(), &[3.0, 8.0, 3.0, 7.0]);
+    }
+}
