@@ -41,12 +41,15 @@
 pub mod acquire;
 pub mod error;
 mod rng;
+pub mod run;
+pub mod source;
 pub mod specimen;
 pub mod stage;
 pub mod truth;
 
 pub use acquire::{acquire_tile, sample_bicubic};
 pub use error::{ReplayError, Result};
+pub use run::{DueTile, Pacing, StageRun, TileSource};
 pub use specimen::{generate_specimen, Specimen, SpecimenParams};
 pub use stage::{plan_scan, serpentine_order, ScanPlan, StageParams, TilePlan};
 pub use truth::{truth_for, ScanTruth};
