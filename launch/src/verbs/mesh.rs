@@ -7,9 +7,11 @@ use std::time::Instant;
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, ValueEnum};
 use serde_json::json;
+use surfstream_core::frame::to_frame_heights;
+use surfstream_core::raster::{RasterView, Shape};
 use surfstream_mesher::{
-    check_closed, mesh_height_field, stl, Epsilon, HeightFieldRef, LengthUnit, MeshKind,
-    MeshParams, MissingSamples, SolidParams,
+    check_closed, mesh_height_field, stl, Epsilon, LengthUnit, MeshError, MeshKind, MeshParams,
+    MissingSamples, ScanPlacement, SolidParams,
 };
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -77,29 +79,23 @@ pub fn run(a: MeshArgs) -> Result<()> {
     }
     // Heights as f32 relative to their mean, so that f32 keeps nanometres however far up the
     // z axis the part sits; the mean goes into z_offset_um and comes back in the offset.
-    let finite: Vec<f64> = surface
-        .heights_um
-        .iter()
-        .copied()
-        .filter(|h| h.is_finite())
-        .collect();
-    if finite.is_empty() {
+    if !surface.heights_um.iter().any(|h| h.is_finite()) {
         bail!("{}: no measured sample (all NaN)", a.file.display());
     }
-    let z_offset_um = finite.iter().sum::<f64>() / finite.len() as f64;
-    let heights_um: Vec<f32> = surface
-        .heights_um
-        .iter()
-        .map(|&h| (h - z_offset_um) as f32)
-        .collect();
-    let map = HeightFieldRef::new(
-        &heights_um,
-        surface.width,
-        surface.height,
-        pitch_x_um,
-        pitch_y_um,
-    )
-    .with_z_offset(z_offset_um);
+    // Only NaN marks a missing sample: an infinity is refused (before it enters the mean).
+    if let Some(k) = surface.heights_um.iter().position(|h| h.is_infinite()) {
+        let cols = surface.width.max(1);
+        let value = surface.heights_um[k] as f32;
+        return Err(MeshError::InfiniteSample {
+            row: k / cols,
+            col: k % cols,
+            value,
+        })
+        .with_context(|| format!("{}", a.file.display()));
+    }
+    let (z_offset_um, heights_um) = to_frame_heights(&surface.heights_um);
+    let heights = RasterView::new(&heights_um, Shape::new(surface.height, surface.width))?;
+    let at = ScanPlacement::new(pitch_x_um, pitch_y_um).with_z_offset(z_offset_um);
     let units = match a.units {
         Units::M => LengthUnit::M,
         Units::Mm => LengthUnit::Mm,
@@ -130,7 +126,8 @@ pub fn run(a: MeshArgs) -> Result<()> {
         block_samples: None,
     };
     let t0 = Instant::now();
-    let m = mesh_height_field(map, &params).with_context(|| format!("{}", a.file.display()))?;
+    let m = mesh_height_field(heights, &at, &params)
+        .with_context(|| format!("{}", a.file.display()))?;
     let mesh_s = t0.elapsed().as_secs_f64();
     let check = check_closed(&m.mesh);
 

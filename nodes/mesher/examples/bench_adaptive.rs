@@ -9,9 +9,10 @@
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
+use surfstream_core::raster::{RasterView, Shape};
 use surfstream_mesher::{
-    check_closed, mesh_height_field, Epsilon, HeightFieldRef, LengthUnit, MeshKind, MeshParams,
-    MissingSamples, SolidParams,
+    check_closed, mesh_height_field, Epsilon, LengthUnit, MeshKind, MeshParams, MissingSamples,
+    ScanPlacement, SolidParams,
 };
 
 fn main() -> Result<()> {
@@ -27,7 +28,8 @@ fn main() -> Result<()> {
         .map_or(Ok(3), |r| r.parse())
         .context("REPEATS")?;
     let heights_um: Vec<f32> = a.data.iter().map(|&h| h as f32).collect();
-    let map = HeightFieldRef::new(&heights_um, a.cols, a.rows, step_um, step_um);
+    let heights = RasterView::new(&heights_um, Shape::new(a.rows, a.cols))?;
+    let at = ScanPlacement::new(step_um, step_um);
     let params = MeshParams {
         epsilon: Epsilon::Um(epsilon_um),
         max_triangles: None,
@@ -45,7 +47,7 @@ fn main() -> Result<()> {
     let mut last = None;
     for _ in 0..repeats.max(1) {
         let (t0, c0) = (Instant::now(), cpu_s());
-        let m = mesh_height_field(map, &params)?;
+        let m = mesh_height_field(heights, &at, &params)?;
         times.push(t0.elapsed().as_secs_f64());
         cpu.push(cpu_s() - c0);
         last = Some(m);

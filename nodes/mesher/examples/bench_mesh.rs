@@ -8,8 +8,9 @@ use std::io::BufWriter;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
+use surfstream_core::raster::{RasterView, Shape};
 use surfstream_mesher::{
-    grid_solid, write_stl_ascii, write_stl_binary, HeightFieldRef, SolidParams,
+    grid_solid, write_stl_ascii, write_stl_binary, ScanPlacement, SolidParams,
 };
 
 fn main() -> anyhow::Result<()> {
@@ -35,7 +36,8 @@ fn main() -> anyhow::Result<()> {
             }
         })
         .collect();
-    let map = HeightFieldRef::new(&heights_um, size, size, 0.8148, 0.8148)
+    let heights = RasterView::new(&heights_um, Shape::new(size, size))?;
+    let at = ScanPlacement::new(0.8148, 0.8148)
         .with_origin(114.21, 26.36)
         .with_z_offset(12_000.0);
     let params = SolidParams::default();
@@ -46,7 +48,7 @@ fn main() -> anyhow::Result<()> {
     let mut last = None;
     for _ in 0..repeats.max(1) {
         let t0 = Instant::now();
-        let mesh = grid_solid(map, &params)?;
+        let mesh = grid_solid(heights, &at, &params)?;
         let t1 = Instant::now();
         write_stl_binary(File::create(&path)?, &mesh, "surfstream solid")?;
         let t2 = Instant::now();

@@ -6,7 +6,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{MeshError, Result};
 use crate::fidelity::{compare, field_params, AreaParams};
-use crate::field::HeightFieldRef;
+use surfstream_core::raster::RasterView;
+
+use crate::field::{validate, ScanPlacement};
 use crate::solid::{close_top_surface, default_base_depth_um, SolidMesh, SolidParams};
 use crate::tin::{resample_with_error, triangulate, ErrorStats, MissingSamples, TinParams};
 
@@ -74,11 +76,16 @@ pub struct AdaptiveMesh {
     pub resampled_um: Vec<f32>,
 }
 
-/// Meshes `map` with the greedy error-bounded triangulation and closes it into a solid or keeps
+/// Meshes `heights` (placed in scan coordinates by `at`) with the greedy error-bounded triangulation and closes it into a solid or keeps
 /// it as a sheet. Errors: bad geometry or parameters, a solid asked with missing samples left as
 /// holes (a solid needs a closed top), or a solid whose top no longer reaches the grid's rim.
-pub fn mesh_height_field(map: HeightFieldRef<'_>, params: &MeshParams) -> Result<AdaptiveMesh> {
-    map.validate()?;
+pub fn mesh_height_field(
+    heights: RasterView<'_, f32>,
+    at: &ScanPlacement,
+    params: &MeshParams,
+) -> Result<AdaptiveMesh> {
+    validate(heights, at)?;
+    let heights_um = heights.values();
     params.solid.validate()?;
     if params.kind == MeshKind::Solid && params.missing == MissingSamples::Holes {
         return Err(MeshError::Incompatible(
@@ -91,7 +98,7 @@ pub fn mesh_height_field(map: HeightFieldRef<'_>, params: &MeshParams) -> Result
         Epsilon::Um(e) => e,
         Epsilon::SqFraction(f) => {
             crate::field::positive_finite("epsilon_sq_fraction", f)?;
-            let field = field_params(map.heights_um, map.width, map.pitch_x_um, map.pitch_y_um);
+            let field = field_params(heights, at.pitch_x_um, at.pitch_y_um);
             let sq = field.map_or(0.0, |p| p.sq_um);
             if sq <= 0.0 {
                 return Err(MeshError::Incompatible(format!(
@@ -103,7 +110,7 @@ pub fn mesh_height_field(map: HeightFieldRef<'_>, params: &MeshParams) -> Result
         }
     };
     let tin = triangulate(
-        map,
+        heights,
         &TinParams {
             epsilon_um,
             max_triangles: params.max_triangles,
@@ -111,20 +118,15 @@ pub fn mesh_height_field(map: HeightFieldRef<'_>, params: &MeshParams) -> Result
             block_samples: params.block_samples,
         },
     )?;
-    let (resampled_um, error) = resample_with_error(&tin, map.heights_um);
+    let (resampled_um, error) = resample_with_error(&tin, heights_um);
     // Compare at the measured samples only.
     let mesh_at_measured: Vec<f32> = resampled_um
         .iter()
-        .zip(map.heights_um)
+        .zip(heights_um)
         .map(|(&m, h)| if h.is_nan() { f32::NAN } else { m })
         .collect();
-    let (field_params, mesh_params) = compare(
-        map.heights_um,
-        &mesh_at_measured,
-        map.width,
-        map.pitch_x_um,
-        map.pitch_y_um,
-    );
+    let (field_params, mesh_params) =
+        compare(heights, &mesh_at_measured, at.pitch_x_um, at.pitch_y_um);
 
     // Place the vertices as the grid solid does: x, y from the sample's index, z from its
     // height; re-centred from small numbers so that no precision is lost.
@@ -160,15 +162,14 @@ pub fn mesh_height_field(map: HeightFieldRef<'_>, params: &MeshParams) -> Result
         MeshKind::Sheet => 0.0,
     };
     let um_per_unit = params.solid.units.um_per_unit();
-    let (width, height) = (map.width, map.height);
-    let centre_col = (width - 1) as f64 / 2.0;
-    let centre_row = (height - 1) as f64 / 2.0;
+    let cols = heights.cols();
+    let (centre_col, centre_row) = heights.shape().centre_px();
     let recentre = params.solid.recentre;
     let offset_um = if recentre {
         [
-            map.origin_x_um + centre_col * map.pitch_x_um,
-            map.origin_y_um + centre_row * map.pitch_y_um,
-            map.z_offset_um + min_um - base_depth_um,
+            at.origin_x_um + centre_col * at.pitch_x_um,
+            at.origin_y_um + centre_row * at.pitch_y_um,
+            at.z_offset_um + min_um - base_depth_um,
         ]
     } else {
         [0.0; 3]
@@ -176,19 +177,19 @@ pub fn mesh_height_field(map: HeightFieldRef<'_>, params: &MeshParams) -> Result
     let mut vertices: Vec<[f64; 3]> = samples
         .iter()
         .map(|&s| {
-            let (i, j) = ((s / width) as f64, (s % width) as f64);
+            let (i, j) = ((s / cols) as f64, (s % cols) as f64);
             let h = f64::from(tin.filled_um[s]);
             let p = if recentre {
                 [
-                    (j - centre_col) * map.pitch_x_um,
-                    (i - centre_row) * map.pitch_y_um,
+                    (j - centre_col) * at.pitch_x_um,
+                    (i - centre_row) * at.pitch_y_um,
                     (h - min_um) + base_depth_um,
                 ]
             } else {
                 [
-                    map.origin_x_um + j * map.pitch_x_um,
-                    map.origin_y_um + i * map.pitch_y_um,
-                    map.z_offset_um + h,
+                    at.origin_x_um + j * at.pitch_x_um,
+                    at.origin_y_um + i * at.pitch_y_um,
+                    at.z_offset_um + h,
                 ]
             };
             p.map(|c| c / um_per_unit)
@@ -206,7 +207,7 @@ pub fn mesh_height_field(map: HeightFieldRef<'_>, params: &MeshParams) -> Result
         let base_z_um = if recentre {
             0.0
         } else {
-            map.z_offset_um + min_um - base_depth_um
+            at.z_offset_um + min_um - base_depth_um
         };
         close_top_surface(&mut vertices, &mut triangles, &rim, base_z_um / um_per_unit)?;
     }

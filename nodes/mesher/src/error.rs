@@ -9,20 +9,14 @@ pub type Result<T, E = MeshError> = std::result::Result<T, E>;
 pub enum MeshError {
     /// The grid is too small to enclose a volume (a solid needs at least one grid cell).
     #[error(
-        "height field is {width} x {height} samples (width x height); a solid needs at least \
-         2 x 2 samples"
+        "height field is {rows} x {cols} samples (rows x cols); a solid needs at least 2 x 2 \
+         samples"
     )]
-    TooSmall { width: usize, height: usize },
+    TooSmall { rows: usize, cols: usize },
 
-    /// The payload length disagrees with the declared size.
-    #[error(
-        "height field declares {width} x {height} samples but its payload holds {actual} values"
-    )]
-    SizeMismatch {
-        width: usize,
-        height: usize,
-        actual: usize,
-    },
+    /// The samples and the declared shape do not make a raster.
+    #[error("height field: {0}")]
+    Shape(#[from] surfstream_core::raster::ShapeError),
 
     /// A numeric parameter is out of its domain.
     #[error("{name} = {value}: expected {expected}")]

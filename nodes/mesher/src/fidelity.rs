@@ -9,7 +9,8 @@
 //! cells with four measured corners.
 
 use serde::Serialize;
-use surfstream_core::metrology::{fit_plane, params, Grid};
+use surfstream_core::metrology::{fit_plane, level_plane, params, Grid};
+use surfstream_core::raster::{Raster, RasterView, Shape};
 
 /// Areal parameters of one surface, um (Sdr in %).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -24,37 +25,18 @@ pub struct AreaParams {
     pub sdr_percent: f64,
 }
 
-/// The least-squares plane of `field_um` (`width` columns, pitches in um) as a function of
-/// the sample's (column, row); `None` when it cannot be fitted (no valid sample, a bad pitch).
-fn plane_of(
-    field_um: &[f32],
-    width: usize,
-    pitch_x_um: f64,
-    pitch_y_um: f64,
-) -> Option<impl Fn(usize) -> f64 + Sync> {
-    let field: Vec<f64> = field_um.iter().map(|&h| f64::from(h)).collect();
-    let rows = field.len() / width.max(1);
-    let g = Grid::new(&field, rows, width, pitch_x_um, pitch_y_um).ok()?;
-    let (a, b, c) = fit_plane(&g).ok()?;
-    let (bx, by) = (b * pitch_x_um, c * pitch_y_um);
-    Some(move |k: usize| a + bx * (k % width) as f64 + by * (k / width) as f64)
+/// `heights` widened to f64 as a metrology grid's samples.
+fn widened(heights: RasterView<'_, f32>) -> Raster<f64> {
+    heights.map(|&h| f64::from(h))
 }
 
-/// Sa, Sq, Sz, Sdr of `heights_um` minus `plane`; `None` when no sample is valid.
-fn levelled_params(
-    heights_um: &[f32],
-    width: usize,
+fn area_params(
+    levelled_um: &[f64],
+    shape: Shape,
     pitch_x_um: f64,
     pitch_y_um: f64,
-    plane: &(impl Fn(usize) -> f64 + Sync),
 ) -> Option<AreaParams> {
-    let levelled: Vec<f64> = heights_um
-        .iter()
-        .enumerate()
-        .map(|(k, &h)| f64::from(h) - plane(k))
-        .collect();
-    let rows = levelled.len() / width.max(1);
-    let g = Grid::new(&levelled, rows, width, pitch_x_um, pitch_y_um).ok()?;
+    let g = Grid::new(levelled_um, shape.rows, shape.cols, pitch_x_um, pitch_y_um).ok()?;
     let p = params(&g).ok()?;
     Some(AreaParams {
         sa_um: p.sa,
@@ -64,32 +46,69 @@ fn levelled_params(
     })
 }
 
-/// The parameters of the height field alone, levelled by its least-squares plane.
+/// The parameters of the height field alone, levelled by its least-squares plane; `None` when
+/// no sample is valid or a pitch is bad.
 pub fn field_params(
-    field_um: &[f32],
-    width: usize,
+    field: RasterView<'_, f32>,
     pitch_x_um: f64,
     pitch_y_um: f64,
 ) -> Option<AreaParams> {
-    let plane = plane_of(field_um, width, pitch_x_um, pitch_y_um)?;
-    levelled_params(field_um, width, pitch_x_um, pitch_y_um, &plane)
+    let shape = field.shape();
+    let field = widened(field);
+    let g = Grid::new(
+        field.values(),
+        shape.rows,
+        shape.cols,
+        pitch_x_um,
+        pitch_y_um,
+    )
+    .ok()?;
+    area_params(&level_plane(&g).ok()?, shape, pitch_x_um, pitch_y_um)
 }
 
-/// The parameters of the height field and of the resampled mesh (NaN where the mesh is not
-/// compared), both levelled by the height field's least-squares plane.
+/// The parameters of the height field and of the resampled mesh (`mesh_um`, the field's shape,
+/// NaN where the mesh is not compared), both levelled by the height field's least-squares
+/// plane.
 pub fn compare(
-    field_um: &[f32],
+    field: RasterView<'_, f32>,
     mesh_um: &[f32],
-    width: usize,
     pitch_x_um: f64,
     pitch_y_um: f64,
 ) -> (Option<AreaParams>, Option<AreaParams>) {
-    let Some(plane) = plane_of(field_um, width, pitch_x_um, pitch_y_um) else {
+    let shape = field.shape();
+    let Ok(mesh) = RasterView::new(mesh_um, shape) else {
         return (None, None);
     };
+    let (field, mesh) = (widened(field), widened(mesh));
+    let Ok(g) = Grid::new(
+        field.values(),
+        shape.rows,
+        shape.cols,
+        pitch_x_um,
+        pitch_y_um,
+    ) else {
+        return (None, None);
+    };
+    let Ok((a, b, c)) = fit_plane(&g) else {
+        return (None, None);
+    };
+    // Both levelled by the one plane, evaluated as `level_plane` does, so the field's side is
+    // exactly `level_plane` of the field.
+    let (bx, by) = (b * pitch_x_um, c * pitch_y_um);
+    let level = |z: &Raster<f64>| -> Vec<f64> {
+        z.rows_iter()
+            .enumerate()
+            .flat_map(|(r, row)| {
+                let base = a + by * r as f64;
+                row.iter()
+                    .enumerate()
+                    .map(move |(i, &z)| z - (base + bx * i as f64))
+            })
+            .collect()
+    };
     (
-        levelled_params(field_um, width, pitch_x_um, pitch_y_um, &plane),
-        levelled_params(mesh_um, width, pitch_x_um, pitch_y_um, &plane),
+        area_params(&level(&field), shape, pitch_x_um, pitch_y_um),
+        area_params(&level(&mesh), shape, pitch_x_um, pitch_y_um),
     )
 }
 
@@ -97,13 +116,17 @@ pub fn compare(
 mod tests {
     use super::*;
 
+    fn view(h: &[f32], rows: usize, cols: usize) -> RasterView<'_, f32> {
+        RasterView::new(h, Shape::new(rows, cols)).unwrap()
+    }
+
     #[test]
     fn tilted_plane_levels_to_zero_and_sine_matches_theory() {
         let (w, h) = (64, 48);
         let tilted: Vec<f32> = (0..w * h)
             .map(|k| (3.0 + 0.01 * (k % w) as f64 - 0.02 * (k / w) as f64) as f32)
             .collect();
-        let (field, mesh) = compare(&tilted, &tilted, w, 0.5, 0.5);
+        let (field, mesh) = compare(view(&tilted, h, w), &tilted, 0.5, 0.5);
         let (field, mesh) = (field.unwrap(), mesh.unwrap());
         assert!(field.sq_um < 1e-5 && field.sz_um < 1e-5, "{field:?}");
         assert_eq!(field, mesh);
@@ -116,7 +139,7 @@ mod tests {
         let phase = |k: usize| 2.0 * std::f64::consts::PI * ((k % w) as f64 - centre) / 16.0;
         let sine: Vec<f32> = (0..w * h).map(|k| (a * phase(k).cos()) as f32).collect();
         let half: Vec<f32> = sine.iter().map(|&z| 0.5 * z).collect();
-        let (field, mesh) = compare(&sine, &half, w, 1.0, 1.0);
+        let (field, mesh) = compare(view(&sine, h, w), &half, 1.0, 1.0);
         let (field, mesh) = (field.unwrap(), mesh.unwrap());
         assert!((field.sq_um - a / 2f64.sqrt()).abs() < 1e-3, "{field:?}");
         assert!(
@@ -128,7 +151,7 @@ mod tests {
         assert!((mesh.sq_um - 0.5 * field.sq_um).abs() < 1e-3, "{mesh:?}");
         assert!(field.sdr_percent > mesh.sdr_percent && mesh.sdr_percent > 0.0);
         assert_eq!(
-            compare(&[f32::NAN; 6], &[0.0; 6], 3, 1.0, 1.0),
+            compare(view(&[f32::NAN; 6], 2, 3), &[0.0; 6], 1.0, 1.0),
             (None, None)
         );
     }

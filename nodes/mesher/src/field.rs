@@ -1,27 +1,23 @@
-//! The mesher's input: a borrowed height field (the payload and geometry of a frame, DESIGN §2)
-//! and the filling of missing samples.
+//! The mesher's input: a height field is a [`RasterView`] of `f32` heights (the payload of a
+//! frame, DESIGN §2) placed in scan coordinates by a [`ScanPlacement`]; and the filling of
+//! missing samples.
 
 use std::borrow::Cow;
 
+use surfstream_core::frame::FrameHeader;
+use surfstream_core::raster::RasterView;
+
 use crate::error::{MeshError, Result};
 
-/// A borrowed height field: row-major `f32` heights in micrometres relative to `z_offset_um`,
-/// `width` columns by `height` rows, NaN = not measured.
+/// Where the samples of a height field sit in scan coordinates; the samples themselves and the
+/// grid's size are a [`RasterView`] (`rows x cols`, row-major `f32` heights in micrometres
+/// relative to `z_offset_um`, NaN = not measured).
 ///
 /// Scan coordinates (DESIGN §2): sample (row `i`, column `j`) sits at
 /// `x = origin_x_um + j * pitch_x_um`, `y = origin_y_um + i * pitch_y_um`,
-/// `z = z_offset_um + heights_um[i * width + j]`. Row index grows with y, column index with x.
-///
-/// The fields mirror the frame header so a node shell can build one from a frame view without
-/// copying the payload.
-#[derive(Debug, Clone, Copy)]
-pub struct HeightFieldRef<'a> {
-    /// Row-major heights, um relative to `z_offset_um`; NaN = not measured.
-    pub heights_um: &'a [f32],
-    /// Number of columns (samples along x).
-    pub width: usize,
-    /// Number of rows (samples along y).
-    pub height: usize,
+/// `z = z_offset_um + heights[(i, j)]`. Row index grows with y, column index with x.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScanPlacement {
     /// Sample spacing along x (columns), um.
     pub pitch_x_um: f64,
     /// Sample spacing along y (rows), um.
@@ -30,23 +26,14 @@ pub struct HeightFieldRef<'a> {
     pub origin_x_um: f64,
     /// Scan y of sample (0, 0), um.
     pub origin_y_um: f64,
-    /// Height that the payload's heights are relative to, um.
+    /// Height that the raster's heights are relative to, um.
     pub z_offset_um: f64,
 }
 
-impl<'a> HeightFieldRef<'a> {
-    /// A field with sample (0, 0) at the scan origin and heights relative to z = 0.
-    pub fn new(
-        heights_um: &'a [f32],
-        width: usize,
-        height: usize,
-        pitch_x_um: f64,
-        pitch_y_um: f64,
-    ) -> Self {
+impl ScanPlacement {
+    /// Sample (0, 0) at the scan origin and heights relative to z = 0.
+    pub fn new(pitch_x_um: f64, pitch_y_um: f64) -> Self {
         Self {
-            heights_um,
-            width,
-            height,
             pitch_x_um,
             pitch_y_um,
             origin_x_um: 0.0,
@@ -55,43 +42,46 @@ impl<'a> HeightFieldRef<'a> {
         }
     }
 
-    /// The same field with sample (0, 0) at (`origin_x_um`, `origin_y_um`).
+    /// The placement a frame header carries.
+    pub fn of_frame(h: &FrameHeader) -> Self {
+        Self {
+            pitch_x_um: h.pitch_x_um,
+            pitch_y_um: h.pitch_y_um,
+            origin_x_um: h.origin_x_um,
+            origin_y_um: h.origin_y_um,
+            z_offset_um: h.z_offset_um,
+        }
+    }
+
+    /// The same placement with sample (0, 0) at (`origin_x_um`, `origin_y_um`).
     pub fn with_origin(mut self, origin_x_um: f64, origin_y_um: f64) -> Self {
         self.origin_x_um = origin_x_um;
         self.origin_y_um = origin_y_um;
         self
     }
 
-    /// The same field with heights relative to `z_offset_um`.
+    /// The same placement with heights relative to `z_offset_um`.
     pub fn with_z_offset(mut self, z_offset_um: f64) -> Self {
         self.z_offset_um = z_offset_um;
         self
     }
+}
 
-    /// Checks the geometry (size, payload length, pitches, origin, z offset). The heights
-    /// themselves are checked by [`fill_missing`].
-    pub fn validate(&self) -> Result<()> {
-        let (width, height) = (self.width, self.height);
-        let expected = width.checked_mul(height);
-        if expected != Some(self.heights_um.len()) {
-            return Err(MeshError::SizeMismatch {
-                width,
-                height,
-                actual: self.heights_um.len(),
-            });
-        }
-        if width < 2 || height < 2 {
-            return Err(MeshError::TooSmall { width, height });
-        }
-        // A non-positive pitch would mirror the grid and invert every triangle's winding; the
-        // readers guarantee rows grow with y (DESIGN §2), so refuse rather than flip silently.
-        positive_finite("pitch_x_um", self.pitch_x_um)?;
-        positive_finite("pitch_y_um", self.pitch_y_um)?;
-        finite("origin_x_um", self.origin_x_um)?;
-        finite("origin_y_um", self.origin_y_um)?;
-        finite("z_offset_um", self.z_offset_um)?;
-        Ok(())
+/// Checks the geometry of a field to mesh: at least 2 x 2 samples, finite positive pitches,
+/// finite origin and z offset. The heights themselves are checked by [`fill_missing`].
+pub(crate) fn validate(heights: RasterView<'_, f32>, at: &ScanPlacement) -> Result<()> {
+    let (rows, cols) = (heights.rows(), heights.cols());
+    if rows < 2 || cols < 2 {
+        return Err(MeshError::TooSmall { rows, cols });
     }
+    // A non-positive pitch would mirror the grid and invert every triangle's winding; the
+    // readers guarantee rows grow with y (DESIGN §2), so refuse rather than flip silently.
+    positive_finite("pitch_x_um", at.pitch_x_um)?;
+    positive_finite("pitch_y_um", at.pitch_y_um)?;
+    finite("origin_x_um", at.origin_x_um)?;
+    finite("origin_y_um", at.origin_y_um)?;
+    finite("z_offset_um", at.z_offset_um)?;
+    Ok(())
 }
 
 pub(crate) fn positive_finite(name: &'static str, value: f64) -> Result<()> {
@@ -127,28 +117,19 @@ pub(crate) fn finite(name: &'static str, value: f64) -> Result<()> {
 /// A hole therefore closes from its rim inwards with a smooth, bounded fill (never outside the
 /// range of the measured heights), without the streaks that copying along rows would leave.
 ///
-/// Errors: payload length not `width * height`, a sample that is +/-infinity (corrupt input,
-/// not "missing"), or no valid sample at all.
-pub fn fill_missing(
-    heights_um: &[f32],
-    width: usize,
-    height: usize,
-) -> Result<(Cow<'_, [f32]>, usize)> {
-    if width.checked_mul(height) != Some(heights_um.len()) {
-        return Err(MeshError::SizeMismatch {
-            width,
-            height,
-            actual: heights_um.len(),
-        });
-    }
+/// Errors: a sample that is +/-infinity (corrupt input, not "missing"), or no valid sample at
+/// all.
+pub fn fill_missing(heights: RasterView<'_, f32>) -> Result<(Cow<'_, [f32]>, usize)> {
+    let (rows, cols) = (heights.rows(), heights.cols());
+    let heights_um = heights.values();
     let mut missing = 0usize;
     for (k, &h) in heights_um.iter().enumerate() {
         if h.is_nan() {
             missing += 1;
         } else if h.is_infinite() {
             return Err(MeshError::InfiniteSample {
-                row: k / width,
-                col: k % width,
+                row: k / cols,
+                col: k % cols,
                 value: h,
             });
         }
@@ -173,11 +154,11 @@ pub fn fill_missing(
 
     // Calls `f` with the index of every in-bounds 8-neighbour of sample k.
     let neighbours = |k: usize, f: &mut dyn FnMut(usize)| {
-        let (i, j) = (k / width, k % width);
-        for ni in i.saturating_sub(1)..=(i + 1).min(height - 1) {
-            for nj in j.saturating_sub(1)..=(j + 1).min(width - 1) {
+        let (i, j) = (k / cols, k % cols);
+        for ni in i.saturating_sub(1)..=(i + 1).min(rows - 1) {
+            for nj in j.saturating_sub(1)..=(j + 1).min(cols - 1) {
                 if ni != i || nj != j {
-                    f(ni * width + nj);
+                    f(ni * cols + nj);
                 }
             }
         }
@@ -234,6 +215,11 @@ pub fn fill_missing(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use surfstream_core::raster::Shape;
+
+    fn view(h: &[f32], rows: usize, cols: usize) -> RasterView<'_, f32> {
+        RasterView::new(h, Shape::new(rows, cols)).unwrap()
+    }
 
     #[test]
     fn fills_a_hole_from_its_rim() {
@@ -243,7 +229,7 @@ mod tests {
             1.0, f32::NAN, f32::NAN, 3.0,
             1.0, 1.0, 1.0, 3.0,
         ];
-        let (out, filled) = fill_missing(&h, 4, 3).unwrap();
+        let (out, filled) = fill_missing(view(&h, 3, 4)).unwrap();
         assert_eq!(filled, 2);
         // Both holes see only measured neighbours in round one.
         assert!((out[5] - 1.0).abs() < 1e-6);
@@ -254,7 +240,7 @@ mod tests {
     fn fills_far_from_the_only_sample() {
         let mut h = vec![f32::NAN; 25];
         h[0] = 4.5;
-        let (out, filled) = fill_missing(&h, 5, 5).unwrap();
+        let (out, filled) = fill_missing(view(&h, 5, 5)).unwrap();
         assert_eq!(filled, 24);
         assert!(out.iter().all(|&v| v == 4.5));
     }
@@ -262,12 +248,12 @@ mod tests {
     #[test]
     fn borrows_when_complete_and_refuses_infinity() {
         let h = [0.0f32; 4];
-        let (out, filled) = fill_missing(&h, 2, 2).unwrap();
+        let (out, filled) = fill_missing(view(&h, 2, 2)).unwrap();
         assert!(matches!(out, Cow::Borrowed(_)));
         assert_eq!(filled, 0);
         let h = [0.0, 0.0, f32::INFINITY, 0.0];
         assert!(matches!(
-            fill_missing(&h, 2, 2),
+            fill_missing(view(&h, 2, 2)),
             Err(MeshError::InfiniteSample { row: 1, col: 0, .. })
         ));
     }

@@ -1,28 +1,45 @@
-//! surfstream-mesher: height field -> closed triangle solid -> STL, so that discrete-element
-//! simulators (EDEM, LIGGGHTS, Yade, MercuryDPM) can import a measured surface as a wall.
+//! surfstream-mesher: a height field -> an error-bounded triangle mesh -> STL, so that
+//! discrete-element simulators (EDEM, LIGGGHTS, Yade, MercuryDPM, Rocky) can import a measured
+//! surface as a wall, with a report of how faithful the mesh is.
 //!
-//! The library is plain functions over in-memory data (DESIGN §1): no IPC, no files.
+//! The library is plain functions and types over in-memory data (DESIGN §1): no IPC.
 //!
-//! - Input: [`HeightFieldRef`], a borrowed height map as carried by a frame (DESIGN §2): `f32`
-//!   heights in um relative to `z_offset_um`, row-major, rows growing with y and columns with
-//!   x, NaN = not measured, with pitches and the scan position of sample (0, 0).
-//! - [`grid_solid`] meshes it on its own grid into a [`SolidMesh`]: the measured top surface
-//!   (two triangles per grid cell), four vertical side walls and a flat base, closed and
-//!   watertight with outward normals. Missing samples are filled first ([`fill_missing`]).
-//!   Coordinates keep the map's axes (no flips), are scaled to a [`LengthUnit`] (mm by default)
-//!   and, by default, re-centred so that f32 STL keeps sub-nanometre resolution; the shift is
-//!   returned as `offset_um` so that `scan_um = vertex * unit.um_per_unit() + offset_um`.
-//! - [`close_top_surface`] (walls and base for any top surface with a convex rim) is separate
-//!   from the grid so that the adaptive re-mesher that replaces the grid can reuse it.
-//! - [`write_stl_binary`] / [`write_stl_ascii`] write the solid; [`check_closed`] verifies
+//! - Input: a height field is a [`RasterView`](surfstream_core::raster::RasterView) of `f32`
+//!   heights (`rows x cols`, row-major, rows growing with y and columns with x, NaN = not
+//!   measured; the payload of a frame, DESIGN §2) placed in scan coordinates by a
+//!   [`ScanPlacement`] (pitches, the position of sample (0, 0), the z offset the heights are
+//!   relative to).
+//! - [`mesh_height_field`] is the mesher: error-bounded greedy insertion ([`tin`]: start from
+//!   the grid's corners, insert the sample farthest from the mesh until every measured sample
+//!   is within `epsilon` vertically, or a triangle budget is reached). The grid is cut into
+//!   blocks meshed in parallel; the sides two blocks share are simplified once and kept
+//!   exactly by both, so the pieces join without a crack and the result does not depend on
+//!   the thread count. The bound is absolute or a fraction of the surface's Sq ([`Epsilon`]).
+//!   The top becomes a closed solid (side walls and a flat base, [`close_top_surface`]) or
+//!   stays an open sheet ([`MeshKind`]); missing samples are filled ([`fill_missing`]) or, for
+//!   a sheet, left as holes ([`MissingSamples`]).
+//! - Fidelity ([`fidelity`]): the achieved vertical error, and Sa, Sq, Sz, Sdr of the mesh
+//!   resampled on the grid beside those of the height field, both levelled by the field's
+//!   least-squares plane (the project's metrology, `surfstream_core::metrology`).
+//! - [`grid_solid`] is the reference: two triangles per grid cell, closed the same way.
+//! - Coordinates keep the map's axes (no flips), are scaled to a [`LengthUnit`] (mm by
+//!   default) and re-centred so that f32 STL keeps sub-nanometre resolution; the shift is
+//!   returned as `offset_um`, `scan_um = vertex * unit.um_per_unit() + offset_um`.
+//!   [`write_stl_binary`] / [`write_stl_ascii`] write a solid, [`check_closed`] verifies
 //!   watertightness, orientation and volume.
+//! - In a graph ([`job`]): [`MeshJob`] takes the final frame of the chosen surface
+//!   ([`SurfaceChoice`]: pooled, panorama, datum, roughness, or datum + roughness summed), and
+//!   meshes it once every input has ended its scan; `node` is the process shell around it.
 //!
 //! ```
-//! use surfstream_mesher::{check_closed, grid_solid, write_stl_binary, HeightFieldRef, SolidParams};
+//! use surfstream_core::raster::{RasterView, Shape};
+//! use surfstream_mesher::{check_closed, grid_solid, write_stl_binary, ScanPlacement, SolidParams};
 //!
+//! // 2 rows x 3 columns, one missing sample.
 //! let heights_um = [0.0f32, 1.0, 2.0, 0.5, f32::NAN, 1.5];
-//! let map = HeightFieldRef::new(&heights_um, 3, 2, 0.8148, 0.8148).with_origin(100.0, 20.0);
-//! let solid = grid_solid(map, &SolidParams::default())?;
+//! let heights = RasterView::new(&heights_um, Shape::new(2, 3))?;
+//! let at = ScanPlacement::new(0.8148, 0.8148).with_origin(100.0, 20.0);
+//! let solid = grid_solid(heights, &at, &SolidParams::default())?;
 //! assert_eq!(solid.filled_samples, 1);
 //! assert!(check_closed(&solid).watertight);
 //! let mut stl = Vec::new();
@@ -37,6 +54,7 @@ pub mod error;
 pub mod fidelity;
 pub mod field;
 mod geom;
+pub mod job;
 pub mod solid;
 pub mod stl;
 pub mod target;
@@ -45,7 +63,8 @@ pub mod tin;
 pub use adaptive::{mesh_height_field, AdaptiveMesh, Epsilon, MeshKind, MeshParams};
 pub use check::{check_closed, MeshCheck};
 pub use error::{MeshError, Result};
-pub use field::{fill_missing, HeightFieldRef};
+pub use field::{fill_missing, ScanPlacement};
+pub use job::{MeshJob, MeshSettings, MeshedSurface, MesherConfig, StlFormat, SurfaceChoice};
 pub use solid::{
     close_top_surface, default_base_depth_um, grid_solid, LengthUnit, SolidMesh, SolidParams,
 };

@@ -6,7 +6,9 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{MeshError, Result};
-use crate::field::{fill_missing, finite, positive_finite, HeightFieldRef};
+use surfstream_core::raster::RasterView;
+
+use crate::field::{fill_missing, finite, positive_finite, validate, ScanPlacement};
 use crate::geom;
 
 /// Length unit of a mesh's coordinates. STL carries no unit, so the writers state it in the
@@ -177,24 +179,28 @@ impl SolidMesh {
     }
 }
 
-/// Meshes a height field into a closed, watertight solid on its regular grid.
+/// Meshes a rows field into a closed, watertight solid on its regular grid.
 ///
 /// - Missing (NaN) samples are filled first by [`fill_missing`]; the count is returned in
 ///   `filled_samples`. A field with no valid sample, a +/-infinite sample, fewer than 2 x 2
-///   samples, a payload of the wrong length or a non-finite / non-positive pitch is an error.
-/// - Top: one vertex per sample, `vertices[i * width + j]` is sample (row i, column j); two
+///   samples, a non-finite / non-positive pitch is an error.
+/// - Top: one vertex per sample, `vertices[i * cols + j]` is sample (row i, column j); two
 ///   triangles per grid cell, split along the diagonal from (i, j) to (i + 1, j + 1):
-///   `2 (width - 1)(height - 1)` triangles, first in `triangles`.
+///   `2 (cols - 1)(rows - 1)` triangles, first in `triangles`.
 /// - Then [`close_top_surface`]: side walls down to a flat base `base_depth_um` below the lowest
-///   sample and the base. With `B = 2 (width - 1) + 2 (height - 1)` boundary samples, the solid
-///   has `width * height + B + 1` vertices and `2 (width - 1)(height - 1) + 3 B` triangles.
+///   sample and the base. With `B = 2 (cols - 1) + 2 (rows - 1)` boundary samples, the solid
+///   has `cols * rows + B + 1` vertices and `2 (cols - 1)(rows - 1) + 3 B` triangles.
 ///
 /// Runs in parallel over rows (rayon); `examples/bench_mesh.rs` times a 1024 x 1024 field.
-pub fn grid_solid(map: HeightFieldRef<'_>, params: &SolidParams) -> Result<SolidMesh> {
-    map.validate()?;
+pub fn grid_solid(
+    heights: RasterView<'_, f32>,
+    at: &ScanPlacement,
+    params: &SolidParams,
+) -> Result<SolidMesh> {
+    validate(heights, at)?;
     params.validate()?;
-    let (width, height) = (map.width, map.height);
-    let (heights_um, filled_samples) = fill_missing(map.heights_um, width, height)?;
+    let (rows, cols) = (heights.rows(), heights.cols());
+    let (heights_um, filled_samples) = fill_missing(heights)?;
 
     let (min_um, max_um) = heights_um
         .par_iter()
@@ -211,10 +217,10 @@ pub fn grid_solid(map: HeightFieldRef<'_>, params: &SolidParams) -> Result<Solid
         .base_depth_um
         .unwrap_or_else(|| default_base_depth_um(max_um - min_um));
 
-    let boundary_len = 2 * (width - 1) + 2 * (height - 1);
-    let top_vertices = width * height;
+    let boundary_len = 2 * (cols - 1) + 2 * (rows - 1);
+    let top_vertices = cols * rows;
     let vertex_count = top_vertices + boundary_len + 1;
-    let top_triangles = 2 * (width - 1) * (height - 1);
+    let top_triangles = 2 * (cols - 1) * (rows - 1);
     let triangle_count = top_triangles + 3 * boundary_len;
     // Indices are u32 (what every mesh consumer uses, and half the memory of usize).
     if vertex_count > u32::MAX as usize {
@@ -233,23 +239,23 @@ pub fn grid_solid(map: HeightFieldRef<'_>, params: &SolidParams) -> Result<Solid
     }
 
     let um_per_unit = params.units.um_per_unit();
-    let (px, py) = (map.pitch_x_um, map.pitch_y_um);
-    let centre_col = (width - 1) as f64 / 2.0;
-    let centre_row = (height - 1) as f64 / 2.0;
+    let (px, py) = (at.pitch_x_um, at.pitch_y_um);
+    let centre_col = (cols - 1) as f64 / 2.0;
+    let centre_row = (rows - 1) as f64 / 2.0;
     // Position of a sample relative to the output origin, um. Recentred coordinates are formed
-    // from small numbers (index - centre, height - min) rather than by subtracting the offset
+    // from small numbers (index - centre, rows - min) rather than by subtracting the offset
     // from absolute positions, so no precision is lost to cancellation.
     let (offset_um, base_z_um) = if params.recentre {
         (
             [
-                map.origin_x_um + centre_col * px,
-                map.origin_y_um + centre_row * py,
-                map.z_offset_um + min_um - base_depth_um,
+                at.origin_x_um + centre_col * px,
+                at.origin_y_um + centre_row * py,
+                at.z_offset_um + min_um - base_depth_um,
             ],
             0.0,
         )
     } else {
-        ([0.0; 3], map.z_offset_um + (min_um - base_depth_um))
+        ([0.0; 3], at.z_offset_um + (min_um - base_depth_um))
     };
     let recentre = params.recentre;
     let place = |i: usize, j: usize, h_um: f32| -> [f64; 3] {
@@ -262,9 +268,9 @@ pub fn grid_solid(map: HeightFieldRef<'_>, params: &SolidParams) -> Result<Solid
             )
         } else {
             (
-                map.origin_x_um + j as f64 * px,
-                map.origin_y_um + i as f64 * py,
-                map.z_offset_um + h_um,
+                at.origin_x_um + j as f64 * px,
+                at.origin_y_um + i as f64 * py,
+                at.z_offset_um + h_um,
             )
         };
         [x_um / um_per_unit, y_um / um_per_unit, z_um / um_per_unit]
@@ -273,8 +279,8 @@ pub fn grid_solid(map: HeightFieldRef<'_>, params: &SolidParams) -> Result<Solid
     let mut vertices: Vec<[f64; 3]> = Vec::with_capacity(vertex_count);
     vertices.resize(top_vertices, [0.0; 3]);
     vertices
-        .par_chunks_mut(width)
-        .zip(heights_um.par_chunks(width))
+        .par_chunks_mut(cols)
+        .zip(heights_um.par_chunks(cols))
         .enumerate()
         .for_each(|(i, (row, h_row))| {
             for (j, (v, &h)) in row.iter_mut().zip(h_row).enumerate() {
@@ -284,9 +290,9 @@ pub fn grid_solid(map: HeightFieldRef<'_>, params: &SolidParams) -> Result<Solid
 
     let mut triangles: Vec<[u32; 3]> = Vec::with_capacity(triangle_count);
     triangles.resize(top_triangles, [0; 3]);
-    let w32 = width as u32; // fits: vertex_count <= u32::MAX was checked
+    let w32 = cols as u32; // fits: vertex_count <= u32::MAX was checked
     triangles
-        .par_chunks_mut(2 * (width - 1))
+        .par_chunks_mut(2 * (cols - 1))
         .enumerate()
         .for_each(|(i, row)| {
             for (j, pair) in row.chunks_exact_mut(2).enumerate() {
@@ -294,7 +300,7 @@ pub fn grid_solid(map: HeightFieldRef<'_>, params: &SolidParams) -> Result<Solid
                 // counter-clockwise seen from +z (right-handed): the normal points up. The
                 // "image" winding (i, j) -> (i+1, j) -> (i+1, j+1), counter-clockwise on a
                 // screen whose rows grow downwards, would point every top normal into the solid.
-                let v00 = (i * width + j) as u32;
+                let v00 = (i * cols + j) as u32;
                 let v01 = v00 + 1;
                 let v10 = v00 + w32;
                 let v11 = v10 + 1;
@@ -305,12 +311,12 @@ pub fn grid_solid(map: HeightFieldRef<'_>, params: &SolidParams) -> Result<Solid
 
     // The grid's rim, counter-clockwise seen from +z: along y = min (+x), x = max (+y),
     // y = max (-x), x = min (-y).
-    let idx = |i: usize, j: usize| (i * width + j) as u32;
+    let idx = |i: usize, j: usize| (i * cols + j) as u32;
     let mut boundary = Vec::with_capacity(boundary_len);
-    boundary.extend((0..width - 1).map(|j| idx(0, j)));
-    boundary.extend((0..height - 1).map(|i| idx(i, width - 1)));
-    boundary.extend((1..width).rev().map(|j| idx(height - 1, j)));
-    boundary.extend((1..height).rev().map(|i| idx(i, 0)));
+    boundary.extend((0..cols - 1).map(|j| idx(0, j)));
+    boundary.extend((0..rows - 1).map(|i| idx(i, cols - 1)));
+    boundary.extend((1..cols).rev().map(|j| idx(rows - 1, j)));
+    boundary.extend((1..rows).rev().map(|i| idx(i, 0)));
     close_top_surface(
         &mut vertices,
         &mut triangles,

@@ -26,7 +26,9 @@
 use rayon::prelude::*;
 
 use crate::error::{MeshError, Result};
-use crate::field::{fill_missing, positive_finite, HeightFieldRef};
+use surfstream_core::raster::{RasterView, Shape};
+
+use crate::field::{fill_missing, positive_finite};
 
 const NONE: u32 = u32::MAX;
 
@@ -59,10 +61,9 @@ pub struct TinParams {
 /// An error-bounded triangulation of a height field. Vertices are grid samples.
 #[derive(Debug, Clone)]
 pub struct Tin {
-    /// Grid width and height (samples).
-    pub width: usize,
-    pub height: usize,
-    /// Sample index (`row * width + col`) of every vertex.
+    /// The grid's size, samples.
+    pub shape: Shape,
+    /// Sample index (`row * cols + col`) of every vertex.
     pub vertex_samples: Vec<u32>,
     /// Kept triangles as vertex indices, counter-clockwise seen from +z (x = column, y = row).
     pub triangles: Vec<[u32; 3]>,
@@ -768,8 +769,13 @@ fn cuts(last: usize, size: usize) -> Vec<usize> {
 ///
 /// The four grid corners are always vertices and the rim follows the grid's rectangle exactly
 /// (with holes, the corners may be missing and their triangles left out).
-pub fn triangulate(map: HeightFieldRef<'_>, params: &TinParams) -> Result<Tin> {
-    map.validate()?;
+pub fn triangulate(heights: RasterView<'_, f32>, params: &TinParams) -> Result<Tin> {
+    if heights.rows() < 2 || heights.cols() < 2 {
+        return Err(MeshError::TooSmall {
+            rows: heights.rows(),
+            cols: heights.cols(),
+        });
+    }
     positive_finite("epsilon_um", params.epsilon_um)?;
     if let Some(n) = params.max_triangles {
         if n < 2 {
@@ -787,26 +793,26 @@ pub fn triangulate(map: HeightFieldRef<'_>, params: &TinParams) -> Result<Tin> {
             expected: "at least 1 (samples per block side)",
         });
     }
-    let (width, height) = (map.width, map.height);
-    if width > i32::MAX as usize || height > i32::MAX as usize || width * height >= NONE as usize {
+    let (rows, cols) = (heights.rows(), heights.cols());
+    if cols > i32::MAX as usize || rows > i32::MAX as usize || cols * rows >= NONE as usize {
         return Err(MeshError::TooLarge {
             what: "samples",
-            count: width * height,
+            count: cols * rows,
             limit: NONE as usize - 1,
         });
     }
-    let (filled, missing_samples) = fill_missing(map.heights_um, width, height)?;
+    let (filled, missing_samples) = fill_missing(heights)?;
     let filled: Vec<f32> = filled.into_owned();
     let valid: Option<Vec<bool>> = (params.missing == MissingSamples::Holes && missing_samples > 0)
-        .then(|| map.heights_um.iter().map(|h| !h.is_nan()).collect());
+        .then(|| heights.values().iter().map(|h| !h.is_nan()).collect());
     let valid = valid.as_deref();
 
     let block_samples = match params.max_triangles {
         Some(_) => usize::MAX,
         None => params.block_samples.unwrap_or(DEFAULT_BLOCK_SAMPLES),
     };
-    let xs = cuts(width - 1, block_samples);
-    let ys = cuts(height - 1, block_samples);
+    let xs = cuts(cols - 1, block_samples);
+    let ys = cuts(rows - 1, block_samples);
     let (nbx, nby) = (xs.len() - 1, ys.len() - 1);
     // The shared sides, simplified once: vertical ones (x = xs[i], 0 < i < nbx) per block
     // row, horizontal ones (y = ys[j]) per block column.
@@ -814,7 +820,7 @@ pub fn triangulate(map: HeightFieldRef<'_>, params: &TinParams) -> Result<Tin> {
     let mut horizontal = vec![Vec::new(); nbx * (nby + 1)];
     for j in 0..nby {
         for i in 1..nbx {
-            let line: Vec<usize> = (ys[j]..=ys[j + 1]).map(|y| y * width + xs[i]).collect();
+            let line: Vec<usize> = (ys[j]..=ys[j + 1]).map(|y| y * cols + xs[i]).collect();
             simplify_border(
                 &line,
                 &filled,
@@ -826,7 +832,7 @@ pub fn triangulate(map: HeightFieldRef<'_>, params: &TinParams) -> Result<Tin> {
     }
     for j in 1..nby {
         for i in 0..nbx {
-            let line: Vec<usize> = (xs[i]..=xs[i + 1]).map(|x| ys[j] * width + x).collect();
+            let line: Vec<usize> = (xs[i]..=xs[i + 1]).map(|x| ys[j] * cols + x).collect();
             simplify_border(
                 &line,
                 &filled,
@@ -868,7 +874,7 @@ pub fn triangulate(map: HeightFieldRef<'_>, params: &TinParams) -> Result<Tin> {
             mesh_block(
                 &filled,
                 valid,
-                width,
+                cols,
                 block,
                 shared,
                 &border,
@@ -880,7 +886,7 @@ pub fn triangulate(map: HeightFieldRef<'_>, params: &TinParams) -> Result<Tin> {
 
     // One vertex per sample across blocks (the shared sides' vertices appear in both).
     let is_valid = |s: usize| valid.is_none_or(|v| v[s]);
-    let mut vertex_of = vec![NONE; width * height];
+    let mut vertex_of = vec![NONE; cols * rows];
     let mut vertex_samples = Vec::new();
     let mut triangles = Vec::new();
     let mut tin_blocks = Vec::with_capacity(meshed.len());
@@ -919,10 +925,9 @@ pub fn triangulate(map: HeightFieldRef<'_>, params: &TinParams) -> Result<Tin> {
         }
         tin_blocks.push((block, first..triangles.len()));
     }
-    let rim = all_kept.then(|| grid_rim(&vertex_of, width, height));
+    let rim = all_kept.then(|| grid_rim(&vertex_of, heights.shape()));
     Ok(Tin {
-        width,
-        height,
+        shape: heights.shape(),
         vertex_samples,
         triangles,
         blocks: tin_blocks,
@@ -936,13 +941,14 @@ pub fn triangulate(map: HeightFieldRef<'_>, params: &TinParams) -> Result<Tin> {
 
 /// The vertices on the grid's outer rectangle, counter-clockwise from +z starting at sample 0:
 /// the rim of a triangulation that covers the whole rectangle.
-fn grid_rim(vertex_of: &[u32], width: usize, height: usize) -> Vec<u32> {
-    let at = |x: usize, y: usize| vertex_of[y * width + x];
+fn grid_rim(vertex_of: &[u32], shape: Shape) -> Vec<u32> {
+    let Shape { rows, cols } = shape;
+    let at = |x: usize, y: usize| vertex_of[y * cols + x];
     let mut rim = Vec::new();
-    rim.extend((0..width - 1).map(|x| at(x, 0)));
-    rim.extend((0..height - 1).map(|y| at(width - 1, y)));
-    rim.extend((1..width).rev().map(|x| at(x, height - 1)));
-    rim.extend((1..height).rev().map(|y| at(0, y)));
+    rim.extend((0..cols - 1).map(|x| at(x, 0)));
+    rim.extend((0..rows - 1).map(|y| at(cols - 1, y)));
+    rim.extend((1..cols).rev().map(|x| at(x, rows - 1)));
+    rim.extend((1..rows).rev().map(|y| at(0, y)));
     rim.retain(|&v| v != NONE);
     rim.dedup();
     rim
@@ -955,7 +961,7 @@ fn grid_rim(vertex_of: &[u32], width: usize, height: usize) -> Vec<u32> {
 /// of large heights. Rows of blocks run in parallel; the sums are combined in row order, so
 /// the result does not depend on the thread count.
 pub fn resample_with_error(tin: &Tin, measured_um: &[f32]) -> (Vec<f32>, ErrorStats) {
-    let (w, h) = (tin.width, tin.height);
+    let (w, h) = (tin.shape.cols, tin.shape.rows);
     let mut mesh_um = vec![f64::NAN; w * h];
     // Bands of block rows: band k owns rows y0..y1 (the last one also row y1 = h - 1).
     let mut bands: Vec<(usize, usize, Vec<usize>)> = Vec::new();

@@ -3,12 +3,15 @@
 //! consistently oriented by edge manifoldness, holes never spanned, units and offset round-trip,
 //! and STL read back by trimesh (the test Python, SURFSTREAM_PYTHON) with the same geometry.
 
+mod common;
+
 use std::path::PathBuf;
 use std::process::Command;
 
+use common::Map;
 use surfstream_mesher::{
     check_closed, mesh_height_field, write_stl_ascii, write_stl_binary, AdaptiveMesh, Epsilon,
-    HeightFieldRef, LengthUnit, MeshKind, MeshParams, MissingSamples, SolidParams,
+    LengthUnit, MeshKind, MeshParams, MissingSamples, SolidParams,
 };
 
 /// A rough, anisotropic, deterministic surface (um): waviness, a crossed ripple and
@@ -50,8 +53,8 @@ fn params(epsilon_um: f64, kind: MeshKind, missing: MissingSamples) -> MeshParam
 /// For every measured sample: the heights of the surface triangles that contain it (found by a
 /// brute-force barycentric search in scan coordinates). Returns (worst |error| over covered
 /// samples, samples covered by no triangle, missing samples covered by a triangle).
-fn independent_check(m: &AdaptiveMesh, map: &HeightFieldRef<'_>) -> (f64, usize, usize) {
-    let (w, h) = (map.width, map.height);
+fn independent_check(m: &AdaptiveMesh, map: &Map<'_>) -> (f64, usize, usize) {
+    let (w, h) = (map.heights.cols(), map.heights.rows());
     let mut worst = 0.0f64;
     let mut covered = vec![false; w * h];
     let mut nan_covered = 0;
@@ -60,9 +63,9 @@ fn independent_check(m: &AdaptiveMesh, map: &HeightFieldRef<'_>) -> (f64, usize,
         // Back to fractional grid indices.
         let g = p.map(|q| {
             (
-                (q[0] - map.origin_x_um) / map.pitch_x_um,
-                (q[1] - map.origin_y_um) / map.pitch_y_um,
-                q[2] - map.z_offset_um,
+                (q[0] - map.at.origin_x_um) / map.at.pitch_x_um,
+                (q[1] - map.at.origin_y_um) / map.at.pitch_y_um,
+                q[2] - map.at.z_offset_um,
             )
         });
         let (x0, x1) = (
@@ -97,7 +100,7 @@ fn independent_check(m: &AdaptiveMesh, map: &HeightFieldRef<'_>) -> (f64, usize,
                     continue;
                 }
                 let s = y as usize * w + x as usize;
-                let sample = map.heights_um[s];
+                let sample = map.heights.values()[s];
                 if sample.is_nan() {
                     // On a vertex of a kept triangle is impossible (missing corners are
                     // dropped); inside or on an edge means the triangle spans a hole.
@@ -111,7 +114,7 @@ fn independent_check(m: &AdaptiveMesh, map: &HeightFieldRef<'_>) -> (f64, usize,
         }
     }
     let uncovered = (0..w * h)
-        .filter(|&s| !covered[s] && !map.heights_um[s].is_nan())
+        .filter(|&s| !covered[s] && !map.heights.values()[s].is_nan())
         .count();
     (worst, uncovered, nan_covered)
 }
@@ -120,12 +123,13 @@ fn independent_check(m: &AdaptiveMesh, map: &HeightFieldRef<'_>) -> (f64, usize,
 fn bound_holds_at_every_sample_of_a_rough_surface_and_the_solid_is_closed() {
     let (w, h) = (157, 119);
     let heights = rough_um(w, h, 0.3);
-    let map = HeightFieldRef::new(&heights, w, h, 0.8148, 0.61)
+    let map = Map::new(&heights, h, w, 0.8148, 0.61)
         .with_origin(12_345.6, -789.0)
         .with_z_offset(25_000.0);
     for epsilon_um in [0.5, 0.1, 0.02] {
         let m = mesh_height_field(
-            map,
+            map.heights,
+            &map.at,
             &params(epsilon_um, MeshKind::Solid, MissingSamples::Fill),
         )
         .unwrap();
@@ -148,10 +152,18 @@ fn bound_holds_at_every_sample_of_a_rough_surface_and_the_solid_is_closed() {
         let (f, g) = (m.fidelity.field.unwrap(), m.fidelity.mesh.unwrap());
         assert!((f.sq_um - g.sq_um).abs() <= epsilon_um);
     }
-    let coarse =
-        mesh_height_field(map, &params(0.5, MeshKind::Solid, MissingSamples::Fill)).unwrap();
-    let fine =
-        mesh_height_field(map, &params(0.02, MeshKind::Solid, MissingSamples::Fill)).unwrap();
+    let coarse = mesh_height_field(
+        map.heights,
+        &map.at,
+        &params(0.5, MeshKind::Solid, MissingSamples::Fill),
+    )
+    .unwrap();
+    let fine = mesh_height_field(
+        map.heights,
+        &map.at,
+        &params(0.02, MeshKind::Solid, MissingSamples::Fill),
+    )
+    .unwrap();
     assert!(coarse.surface_triangles * 4 < fine.surface_triangles);
 }
 
@@ -159,10 +171,10 @@ fn bound_holds_at_every_sample_of_a_rough_surface_and_the_solid_is_closed() {
 fn budget_stops_refinement_and_says_so() {
     let (w, h) = (80, 60);
     let heights = rough_um(w, h, 0.3);
-    let map = HeightFieldRef::new(&heights, w, h, 1.0, 1.0);
+    let map = Map::new(&heights, h, w, 1.0, 1.0);
     let mut p = params(0.001, MeshKind::Sheet, MissingSamples::Fill);
     p.max_triangles = Some(500);
-    let m = mesh_height_field(map, &p).unwrap();
+    let m = mesh_height_field(map.heights, &map.at, &p).unwrap();
     assert!(m.budget_reached && !m.fidelity.bound_met);
     assert!(m.surface_triangles <= 500);
     let c = check_closed(&m.mesh);
@@ -183,8 +195,13 @@ fn holes_are_left_out_and_never_spanned() {
         heights[k] = f32::NAN; // scattered dropouts, including rim samples
     }
     heights[0] = f32::NAN; // a missing corner
-    let map = HeightFieldRef::new(&heights, w, h, 0.5, 0.5).with_origin(-40.0, 7.0);
-    let m = mesh_height_field(map, &params(0.05, MeshKind::Sheet, MissingSamples::Holes)).unwrap();
+    let map = Map::new(&heights, h, w, 0.5, 0.5).with_origin(-40.0, 7.0);
+    let m = mesh_height_field(
+        map.heights,
+        &map.at,
+        &params(0.05, MeshKind::Sheet, MissingSamples::Holes),
+    )
+    .unwrap();
     let (worst, uncovered, nan_covered) = independent_check(&m, &map);
     assert_eq!(nan_covered, 0, "a triangle spans a missing sample");
     assert!(worst <= 0.05 + 1e-6, "worst {worst}");
@@ -196,9 +213,18 @@ fn holes_are_left_out_and_never_spanned() {
 
     // A solid cannot have holes; filled, it is closed again and meets the bound at the measured
     // samples.
-    assert!(mesh_height_field(map, &params(0.05, MeshKind::Solid, MissingSamples::Holes)).is_err());
-    let filled =
-        mesh_height_field(map, &params(0.05, MeshKind::Solid, MissingSamples::Fill)).unwrap();
+    assert!(mesh_height_field(
+        map.heights,
+        &map.at,
+        &params(0.05, MeshKind::Solid, MissingSamples::Holes)
+    )
+    .is_err());
+    let filled = mesh_height_field(
+        map.heights,
+        &map.at,
+        &params(0.05, MeshKind::Solid, MissingSamples::Fill),
+    )
+    .unwrap();
     assert!(check_closed(&filled.mesh).watertight);
     let (worst, uncovered, _) = independent_check(&filled, &map);
     assert!(worst <= 0.05 + 1e-6 && uncovered == 0);
@@ -208,7 +234,7 @@ fn holes_are_left_out_and_never_spanned() {
 fn units_and_offset_round_trip() {
     let (w, h) = (40, 30);
     let heights = rough_um(w, h, 0.1);
-    let map = HeightFieldRef::new(&heights, w, h, 0.8148, 0.8148)
+    let map = Map::new(&heights, h, w, 0.8148, 0.8148)
         .with_origin(50_000.0, 20_000.0)
         .with_z_offset(12_000.0);
     let mut reference: Option<Vec<[f64; 3]>> = None;
@@ -216,7 +242,7 @@ fn units_and_offset_round_trip() {
         let mut p = params(0.05, MeshKind::Solid, MissingSamples::Fill);
         p.solid.units = units;
         p.solid.base_depth_um = Some(15.0);
-        let m = mesh_height_field(map, &p).unwrap();
+        let m = mesh_height_field(map.heights, &map.at, &p).unwrap();
         let scan: Vec<[f64; 3]> = m
             .mesh
             .vertices
@@ -273,18 +299,17 @@ fn real_specimen_meets_the_bound() {
     let mean = s.heights_um.iter().filter(|h| h.is_finite()).sum::<f64>()
         / s.heights_um.iter().filter(|h| h.is_finite()).count() as f64;
     let heights: Vec<f32> = s.heights_um.iter().map(|&h| (h - mean) as f32).collect();
-    let map = HeightFieldRef::new(&heights, s.width, s.height, s.pitch_x_um, s.pitch_y_um)
-        .with_z_offset(mean);
-    let sq =
-        surfstream_mesher::fidelity::field_params(&heights, s.width, s.pitch_x_um, s.pitch_y_um)
-            .unwrap()
-            .sq_um;
+    let map = Map::new(&heights, s.height, s.width, s.pitch_x_um, s.pitch_y_um).with_z_offset(mean);
+    let sq = surfstream_mesher::fidelity::field_params(map.heights, s.pitch_x_um, s.pitch_y_um)
+        .unwrap()
+        .sq_um;
     let epsilon_um = 0.1 * sq;
     for (kind, missing) in [
         (MeshKind::Sheet, MissingSamples::Holes),
         (MeshKind::Solid, MissingSamples::Fill),
     ] {
-        let m = mesh_height_field(map, &params(epsilon_um, kind, missing)).unwrap();
+        let m =
+            mesh_height_field(map.heights, &map.at, &params(epsilon_um, kind, missing)).unwrap();
         let (worst, _, nan_covered) = independent_check(&m, &map);
         assert!(
             worst <= epsilon_um + 1e-6,
@@ -316,8 +341,13 @@ fn python() -> PathBuf {
 fn trimesh_reads_binary_and_ascii_with_the_same_geometry() {
     let (w, h) = (60, 45);
     let heights = rough_um(w, h, 0.2);
-    let map = HeightFieldRef::new(&heights, w, h, 0.8148, 0.8148).with_origin(1000.0, 2000.0);
-    let m = mesh_height_field(map, &params(0.05, MeshKind::Solid, MissingSamples::Fill)).unwrap();
+    let map = Map::new(&heights, h, w, 0.8148, 0.8148).with_origin(1000.0, 2000.0);
+    let m = mesh_height_field(
+        map.heights,
+        &map.at,
+        &params(0.05, MeshKind::Solid, MissingSamples::Fill),
+    )
+    .unwrap();
     let dir = tempfile::tempdir().unwrap();
     let (bin, asc) = (dir.path().join("s.stl"), dir.path().join("s_ascii.stl"));
     let mut b = Vec::new();
@@ -377,7 +407,7 @@ print(json.dumps({"faces": [len(a.faces), len(b.faces)],
 fn blocks_join_exactly_and_do_not_depend_on_threads() {
     let (w, h) = (203, 150);
     let heights = rough_um(w, h, 0.3);
-    let map = HeightFieldRef::new(&heights, w, h, 0.5, 0.5);
+    let map = Map::new(&heights, h, w, 0.5, 0.5);
     let mesh = |block: Option<usize>, threads: usize| {
         let mut p = params(0.03, MeshKind::Solid, MissingSamples::Fill);
         p.block_samples = block;
@@ -385,7 +415,7 @@ fn blocks_join_exactly_and_do_not_depend_on_threads() {
             .num_threads(threads)
             .build()
             .unwrap()
-            .install(|| mesh_height_field(map, &p).unwrap())
+            .install(|| mesh_height_field(map.heights, &map.at, &p).unwrap())
     };
     let one_block = mesh(Some(100_000), 1);
     for block in [7, 16, 64] {

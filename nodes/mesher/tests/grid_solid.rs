@@ -3,8 +3,9 @@
 mod common;
 
 use common::*;
+use surfstream_core::raster::{RasterView, Shape, ShapeError};
 use surfstream_mesher::{
-    check_closed, grid_solid, HeightFieldRef, LengthUnit, MeshError, SolidMesh, SolidParams,
+    check_closed, grid_solid, LengthUnit, MeshError, ScanPlacement, SolidMesh, SolidParams,
 };
 
 fn params(units: LengthUnit, recentre: bool) -> SolidParams {
@@ -33,7 +34,7 @@ fn prism_volume(mesh: &SolidMesh, base_z: f64) -> f64 {
 
 #[test]
 fn small_asymmetric_map_is_a_closed_outward_solid() {
-    let mesh = grid_solid(field_3x4(&HEIGHTS_3X4_UM), &SolidParams::default()).unwrap();
+    let mesh = solid(field_3x4(&HEIGHTS_3X4_UM), &SolidParams::default()).unwrap();
     // Top 2 (4-1)(3-1) = 12, rim B = 2*3 + 2*2 = 10 samples: walls 2B = 20, base B = 10.
     assert_eq!(mesh.top_triangles, 12);
     assert_eq!(mesh.triangles.len(), 42);
@@ -60,7 +61,7 @@ fn small_asymmetric_map_is_a_closed_outward_solid() {
 
 #[test]
 fn every_face_points_outwards() {
-    let mesh = grid_solid(field_3x4(&HEIGHTS_3X4_UM), &params(LengthUnit::Um, true)).unwrap();
+    let mesh = solid(field_3x4(&HEIGHTS_3X4_UM), &params(LengthUnit::Um, true)).unwrap();
     let centre = [0.0, 0.0]; // recentred: the x-y centre of the grid
     for t in 0..mesh.triangles.len() {
         let n = mesh.face_normal(t);
@@ -83,33 +84,33 @@ fn every_face_points_outwards() {
 #[test]
 fn vertices_sit_on_the_samples_without_flips() {
     // No recentring, origin 0, z offset 0, um: vertex (i, j) is exactly (j px, i py, h).
-    let map = HeightFieldRef::new(&HEIGHTS_3X4_UM, WIDTH, HEIGHT, PITCH_X_UM, PITCH_Y_UM);
-    let mesh = grid_solid(map, &params(LengthUnit::Um, false)).unwrap();
+    let map = Map::new(&HEIGHTS_3X4_UM, ROWS, COLS, PITCH_X_UM, PITCH_Y_UM);
+    let mesh = solid(map, &params(LengthUnit::Um, false)).unwrap();
     assert_eq!(mesh.offset_um, [0.0; 3]);
-    for i in 0..HEIGHT {
-        for j in 0..WIDTH {
-            let v = mesh.vertices[i * WIDTH + j];
+    for i in 0..ROWS {
+        for j in 0..COLS {
+            let v = mesh.vertices[i * COLS + j];
             let expected = [
                 j as f64 * PITCH_X_UM,
                 i as f64 * PITCH_Y_UM,
-                f64::from(HEIGHTS_3X4_UM[i * WIDTH + j]),
+                f64::from(HEIGHTS_3X4_UM[i * COLS + j]),
             ];
             assert_eq!(v, expected, "vertex (row {i}, col {j})");
         }
     }
     // Base 10 um below the lowest sample (0.3 um).
-    let base_z = mesh.vertices[WIDTH * HEIGHT][2];
+    let base_z = mesh.vertices[COLS * ROWS][2];
     assert_close(base_z, 0.3f32 as f64 - 10.0, 1e-12, "base z");
 
     // With recentring and an origin: the same positions once the offset is added back.
-    let mesh = grid_solid(field_3x4(&HEIGHTS_3X4_UM), &params(LengthUnit::Um, true)).unwrap();
-    for i in 0..HEIGHT {
-        for j in 0..WIDTH {
-            let scan = mesh.to_scan_um(mesh.vertices[i * WIDTH + j]);
+    let mesh = solid(field_3x4(&HEIGHTS_3X4_UM), &params(LengthUnit::Um, true)).unwrap();
+    for i in 0..ROWS {
+        for j in 0..COLS {
+            let scan = mesh.to_scan_um(mesh.vertices[i * COLS + j]);
             let expected = [
                 12_345.6 + j as f64 * PITCH_X_UM,
                 -7_890.1 + i as f64 * PITCH_Y_UM,
-                25_000.0 + f64::from(HEIGHTS_3X4_UM[i * WIDTH + j]),
+                25_000.0 + f64::from(HEIGHTS_3X4_UM[i * COLS + j]),
             ];
             for k in 0..3 {
                 assert_close(scan[k], expected[k], 1e-9, "scan coordinate");
@@ -117,13 +118,13 @@ fn vertices_sit_on_the_samples_without_flips() {
         }
     }
     // Recentred: x-y centre of the grid at 0, base at z = 0, everything else above it.
-    let top = &mesh.vertices[..WIDTH * HEIGHT];
+    let top = &mesh.vertices[..COLS * ROWS];
     let (sx, sy) = top
         .iter()
         .fold((0.0, 0.0), |(sx, sy), v| (sx + v[0], sy + v[1]));
     assert_close(sx, 0.0, 1e-12, "mean x");
     assert_close(sy, 0.0, 1e-12, "mean y");
-    assert!(mesh.vertices[WIDTH * HEIGHT..].iter().all(|v| v[2] == 0.0));
+    assert!(mesh.vertices[COLS * ROWS..].iter().all(|v| v[2] == 0.0));
     assert!(top.iter().all(|v| v[2] >= 10.0));
     assert_eq!(
         mesh.offset_um,
@@ -137,9 +138,9 @@ fn vertices_sit_on_the_samples_without_flips() {
 
 #[test]
 fn units_scale_and_round_trip() {
-    let um = grid_solid(field_3x4(&HEIGHTS_3X4_UM), &params(LengthUnit::Um, true)).unwrap();
+    let um = solid(field_3x4(&HEIGHTS_3X4_UM), &params(LengthUnit::Um, true)).unwrap();
     for (units, per_um) in [(LengthUnit::Mm, 1e-3), (LengthUnit::M, 1e-6)] {
-        let mesh = grid_solid(field_3x4(&HEIGHTS_3X4_UM), &params(units, true)).unwrap();
+        let mesh = solid(field_3x4(&HEIGHTS_3X4_UM), &params(units, true)).unwrap();
         assert_eq!(mesh.triangles, um.triangles);
         assert_eq!(mesh.offset_um, um.offset_um, "the offset is always in um");
         for (v, v_um) in mesh.vertices.iter().zip(&um.vertices) {
@@ -162,7 +163,7 @@ fn units_scale_and_round_trip() {
         );
     }
     // Without recentring the units apply to absolute coordinates.
-    let m = grid_solid(field_3x4(&HEIGHTS_3X4_UM), &params(LengthUnit::M, false)).unwrap();
+    let m = solid(field_3x4(&HEIGHTS_3X4_UM), &params(LengthUnit::M, false)).unwrap();
     assert_close(
         m.vertices[1][0],
         (12_345.6 + PITCH_X_UM) * 1e-6,
@@ -176,7 +177,7 @@ fn nan_samples_are_filled_and_counted() {
     let mut h = HEIGHTS_3X4_UM;
     h[5] = f32::NAN; // (1, 1): all 8 neighbours measured
     h[11] = f32::NAN; // corner (2, 3): neighbours (1, 2), (1, 3), (2, 2)
-    let mesh = grid_solid(field_3x4(&h), &params(LengthUnit::Um, false)).unwrap();
+    let mesh = solid(field_3x4(&h), &params(LengthUnit::Um, false)).unwrap();
     assert_eq!(mesh.filled_samples, 2);
     let z = |k: usize| mesh.vertices[k][2] - 25_000.0;
     let ring = [1.0, 2.5, 0.3, 3.2, 5.1, 0.9, 6.3, 1.1];
@@ -190,7 +191,7 @@ fn nan_samples_are_filled_and_counted() {
     for k in [0, 1, 2, 3, 4, 8] {
         h[k] = f32::NAN;
     }
-    let mesh = grid_solid(field_3x4(&h), &SolidParams::default()).unwrap();
+    let mesh = solid(field_3x4(&h), &SolidParams::default()).unwrap();
     assert_eq!(mesh.filled_samples, 6);
     assert!(mesh
         .vertices
@@ -203,51 +204,42 @@ fn nan_samples_are_filled_and_counted() {
 fn bad_inputs_give_clear_errors() {
     let params = SolidParams::default();
     let one = [1.0f32];
-    let err = grid_solid(HeightFieldRef::new(&one, 1, 1, 1.0, 1.0), &params).unwrap_err();
-    assert!(matches!(
-        err,
-        MeshError::TooSmall {
-            width: 1,
-            height: 1
-        }
-    ));
+    let err = solid(Map::new(&one, 1, 1, 1.0, 1.0), &params).unwrap_err();
+    assert!(matches!(err, MeshError::TooSmall { rows: 1, cols: 1 }));
     assert!(err.to_string().contains("at least 2 x 2"), "{err}");
 
-    let err = grid_solid(HeightFieldRef::new(&[], 0, 0, 1.0, 1.0), &params).unwrap_err();
-    assert!(
-        matches!(
-            err,
-            MeshError::TooSmall {
-                width: 0,
-                height: 0
-            }
-        ),
-        "{err}"
-    );
-
     let row = [1.0f32; 5];
-    let err = grid_solid(HeightFieldRef::new(&row, 5, 1, 1.0, 1.0), &params).unwrap_err();
-    assert!(matches!(err, MeshError::TooSmall { .. }), "{err}");
-
-    let err = grid_solid(HeightFieldRef::new(&row, 2, 2, 1.0, 1.0), &params).unwrap_err();
+    let err = solid(Map::new(&row, 1, 5, 1.0, 1.0), &params).unwrap_err();
     assert!(
-        matches!(err, MeshError::SizeMismatch { actual: 5, .. }),
+        matches!(err, MeshError::TooSmall { rows: 1, cols: 5 }),
         "{err}"
     );
-    assert!(err.to_string().contains("2 x 2"), "{err}");
+    assert!(
+        err.to_string().contains("1 x 5 samples (rows x cols)"),
+        "{err}"
+    );
 
-    let overflow = HeightFieldRef::new(&row, usize::MAX, 2, 1.0, 1.0);
-    assert!(matches!(
-        grid_solid(overflow, &params),
-        Err(MeshError::SizeMismatch { .. })
-    ));
+    // A payload that does not fill its shape, an empty or an overflowing shape never becomes
+    // a raster, so it never reaches the mesher; the error converts into the mesher's.
+    let at = ScanPlacement::new(1.0, 1.0);
+    for (values, shape) in [
+        (&row[..], Shape::new(2, 2)),
+        (&[][..], Shape::new(0, 0)),
+        (&row[..], Shape::new(2, usize::MAX)),
+    ] {
+        let e = RasterView::new(values, shape).unwrap_err();
+        assert!(matches!(
+            e,
+            ShapeError::Length { .. } | ShapeError::Empty(_)
+        ));
+        let err = MeshError::from(e);
+        assert!(err.to_string().starts_with("height field: "), "{err}");
+    }
+    let short = RasterView::new(&row[..4], Shape::new(2, 2)).unwrap();
+    assert!(grid_solid(short, &at, &params).is_ok());
 
     for bad in [f64::NAN, f64::INFINITY, 0.0, -0.8] {
-        let err = grid_solid(
-            HeightFieldRef::new(&HEIGHTS_3X4_UM, 4, 3, bad, 1.0),
-            &params,
-        )
-        .unwrap_err();
+        let err = solid(Map::new(&HEIGHTS_3X4_UM, 3, 4, bad, 1.0), &params).unwrap_err();
         assert!(
             matches!(
                 err,
@@ -258,20 +250,16 @@ fn bad_inputs_give_clear_errors() {
             ),
             "{err}"
         );
-        let err = grid_solid(
-            HeightFieldRef::new(&HEIGHTS_3X4_UM, 4, 3, 1.0, bad),
-            &params,
-        )
-        .unwrap_err();
+        let err = solid(Map::new(&HEIGHTS_3X4_UM, 3, 4, 1.0, bad), &params).unwrap_err();
         assert!(err.to_string().starts_with("pitch_y_um"), "{err}");
     }
     let map = field_3x4(&HEIGHTS_3X4_UM).with_origin(f64::NAN, 0.0);
-    assert!(grid_solid(map, &params).is_err());
+    assert!(solid(map, &params).is_err());
     let map = field_3x4(&HEIGHTS_3X4_UM).with_z_offset(f64::INFINITY);
-    assert!(grid_solid(map, &params).is_err());
+    assert!(solid(map, &params).is_err());
 
     let nan = [f32::NAN; 12];
-    let err = grid_solid(field_3x4(&nan), &params).unwrap_err();
+    let err = solid(field_3x4(&nan), &params).unwrap_err();
     assert!(
         matches!(err, MeshError::NoValidSample { samples: 12 }),
         "{err}"
@@ -279,7 +267,7 @@ fn bad_inputs_give_clear_errors() {
 
     let mut inf = HEIGHTS_3X4_UM;
     inf[6] = f32::NEG_INFINITY;
-    let err = grid_solid(field_3x4(&inf), &params).unwrap_err();
+    let err = solid(field_3x4(&inf), &params).unwrap_err();
     assert!(
         matches!(err, MeshError::InfiniteSample { row: 1, col: 2, .. }),
         "{err}"
@@ -290,7 +278,7 @@ fn bad_inputs_give_clear_errors() {
             base_depth_um: Some(depth),
             ..SolidParams::default()
         };
-        let err = grid_solid(field_3x4(&HEIGHTS_3X4_UM), &p).unwrap_err();
+        let err = solid(field_3x4(&HEIGHTS_3X4_UM), &p).unwrap_err();
         assert!(err.to_string().starts_with("base_depth_um"), "{err}");
     }
 }
@@ -302,7 +290,7 @@ fn explicit_base_depth_is_used() {
         base_depth_um: Some(2.5),
         recentre: true,
     };
-    let mesh = grid_solid(field_3x4(&HEIGHTS_3X4_UM), &p).unwrap();
+    let mesh = solid(field_3x4(&HEIGHTS_3X4_UM), &p).unwrap();
     assert_eq!(mesh.base_depth_um, 2.5);
     let lowest_top = mesh.vertices[..12]
         .iter()
@@ -314,9 +302,9 @@ fn explicit_base_depth_is_used() {
 #[test]
 fn larger_field_is_watertight_with_the_prism_volume() {
     let (w, h) = (97, 64);
-    let heights = wavy_heights_um(w, h);
-    let map = HeightFieldRef::new(&heights, w, h, 0.8148, 0.8148).with_origin(5.0e4, 3.0e4);
-    let mesh = grid_solid(map, &SolidParams::default()).unwrap();
+    let heights = wavy_heights_um(h, w);
+    let map = Map::new(&heights, h, w, 0.8148, 0.8148).with_origin(5.0e4, 3.0e4);
+    let mesh = solid(map, &SolidParams::default()).unwrap();
     let b = 2 * (w - 1) + 2 * (h - 1);
     assert_eq!(mesh.triangles.len(), 2 * (w - 1) * (h - 1) + 3 * b);
     let check = check_closed(&mesh);
@@ -331,10 +319,10 @@ fn larger_field_is_watertight_with_the_prism_volume() {
 fn recentring_keeps_f32_resolution_far_from_the_origin() {
     // 1 nm pitch 50 mm from the scan origin: f32 metres resolve only ~4 nm there.
     let heights = wavy_heights_um(8, 8);
-    let map = HeightFieldRef::new(&heights, 8, 8, 1e-3, 1e-3).with_origin(5.0e4, 5.0e4);
-    let absolute = grid_solid(map, &params(LengthUnit::M, false)).unwrap();
+    let map = Map::new(&heights, 8, 8, 1e-3, 1e-3).with_origin(5.0e4, 5.0e4);
+    let absolute = solid(map, &params(LengthUnit::M, false)).unwrap();
     assert!(check_closed(&absolute).coincident_vertices_f32 > 0);
-    let recentred = grid_solid(map, &params(LengthUnit::M, true)).unwrap();
+    let recentred = solid(map, &params(LengthUnit::M, true)).unwrap();
     assert_eq!(check_closed(&recentred).coincident_vertices_f32, 0);
 }
 

@@ -8,8 +8,7 @@ use std::collections::HashMap;
 use common::*;
 use surfstream_mesher::stl::{binary_stl_len, stl_header};
 use surfstream_mesher::{
-    check_closed, grid_solid, write_stl_ascii, write_stl_binary, HeightFieldRef, LengthUnit,
-    SolidMesh, SolidParams,
+    check_closed, write_stl_ascii, write_stl_binary, LengthUnit, SolidMesh, SolidParams,
 };
 
 /// One facet as stored: normal and three corners, f32.
@@ -107,7 +106,7 @@ fn expected_facets(mesh: &SolidMesh) -> Vec<Facet> {
 }
 
 fn fixture_mesh() -> SolidMesh {
-    grid_solid(field_3x4(&HEIGHTS_3X4_UM), &SolidParams::default()).unwrap()
+    solid(field_3x4(&HEIGHTS_3X4_UM), &SolidParams::default()).unwrap()
 }
 
 #[test]
@@ -165,14 +164,14 @@ fn ascii_stl_reads_back_to_the_binary_triangles() {
 #[test]
 fn larger_mesh_survives_both_formats_in_every_unit() {
     let (w, h) = (40, 33);
-    let heights = wavy_heights_um(w, h);
-    let map = HeightFieldRef::new(&heights, w, h, 0.8148, 0.8148).with_origin(2.0e4, 1.0e4);
+    let heights = wavy_heights_um(h, w);
+    let map = Map::new(&heights, h, w, 0.8148, 0.8148).with_origin(2.0e4, 1.0e4);
     for units in [LengthUnit::M, LengthUnit::Mm, LengthUnit::Um] {
         let params = SolidParams {
             units,
             ..SolidParams::default()
         };
-        let mesh = grid_solid(map, &params).unwrap();
+        let mesh = solid(map, &params).unwrap();
         let mut bytes = Vec::new();
         write_stl_binary(&mut bytes, &mesh, "").unwrap();
         let (header, facets) = read_binary(&bytes);

@@ -4,6 +4,7 @@
 //! scan, and wiring that does not match the choice is refused when the graph is read.
 
 use surfstream_core::frame::{flags, FrameHeader, FrameKind, HeightMap};
+use surfstream_core::raster::{RasterView, Shape};
 use surfstream_mesher::fidelity::field_params;
 use surfstream_mesher::node::MesherNode;
 use surfstream_runtime::graph::{Delivery, InputSpec, NodeContext, PortKind};
@@ -39,6 +40,11 @@ fn ctx(surface: &str, ports: &[(&str, &str)], out_dir: &std::path::Path) -> Node
         startup_timeout_s: 30.0,
         scan_id: 7,
     }
+}
+
+/// The test grid: H rows x W columns.
+fn grid(heights: &[f32]) -> RasterView<'_, f32> {
+    RasterView::new(heights, Shape::new(H, W)).unwrap()
 }
 
 /// A smooth datum (a tilted bowl) and a rough roughness (a fine deterministic ripple and
@@ -102,9 +108,11 @@ fn sq_of(report: &serde_json::Value, which: &str) -> f64 {
 fn datum_alone_is_meshed_and_judged_against_the_datum() {
     let dir = tempfile::tempdir().unwrap();
     let (datum, roughness) = datum_and_roughness();
-    let datum_sq = field_params(&datum, W, PITCH_UM, PITCH_UM).unwrap().sq_um;
+    let datum_sq = field_params(grid(&datum), PITCH_UM, PITCH_UM)
+        .unwrap()
+        .sq_um;
     let sum: Vec<f32> = datum.iter().zip(&roughness).map(|(d, r)| d + r).collect();
-    let sum_sq = field_params(&sum, W, PITCH_UM, PITCH_UM).unwrap().sq_um;
+    let sum_sq = field_params(grid(&sum), PITCH_UM, PITCH_UM).unwrap().sq_um;
 
     let mut node = MesherNode::new(&ctx("datum", &[("datum", "datum")], dir.path())).unwrap();
     send(&mut node, "datum", &frame(FrameKind::Datum, &datum));
@@ -155,7 +163,7 @@ fn datum_alone_is_meshed_and_judged_against_the_datum() {
     );
     end(&mut node, "roughness");
     let r = node.report();
-    let rough_sq = field_params(&roughness, W, PITCH_UM, PITCH_UM)
+    let rough_sq = field_params(grid(&roughness), PITCH_UM, PITCH_UM)
         .unwrap()
         .sq_um;
     assert!((sq_of(&r, "field") - rough_sq).abs() < 1e-9, "{r}");

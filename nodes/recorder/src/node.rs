@@ -1,14 +1,14 @@
-//! The recorder node: every input is one MCAP channel named after its producer ("node/port").
+//! The recorder node: a shell around [`RecordingSession`] (every input is one MCAP channel
+//! named after its producer, "node/port"), stamping each message with the wall clock.
 
-use std::collections::BTreeMap;
 use std::path::PathBuf;
 
-use anyhow::{anyhow, bail, Result};
+use anyhow::{bail, Result};
 use serde::Deserialize;
-use serde_json::json;
-use surfstream_io::recording::{ChannelId, Recorder};
-use surfstream_runtime::graph::{NodeContext, PortKind};
+use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
+
+use crate::RecordingSession;
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -22,17 +22,8 @@ fn default_path() -> PathBuf {
     PathBuf::from("recording.mcap")
 }
 
-struct Channel {
-    id: ChannelId,
-    topic: String,
-    ended: bool,
-    messages: u64,
-}
-
 pub struct RecorderNode {
-    recorder: Option<Recorder>,
-    path: PathBuf,
-    channels: BTreeMap<String, Channel>,
+    session: RecordingSession,
     finished: bool,
 }
 
@@ -46,40 +37,9 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
         );
     }
     let path = ctx.out_dir.join(&p.path);
-    if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| anyhow!("{}: cannot create: {e}", dir.display()))?;
-    }
-    let mut recorder = Recorder::create(&path)?;
-    let mut channels = BTreeMap::new();
-    for i in &ctx.inputs {
-        let topic = i.topic();
-        let meta: BTreeMap<String, String> = [
-            ("graph", ctx.graph_name.clone()),
-            ("node", i.from_node.clone()),
-            ("port", i.from_port.clone()),
-        ]
-        .into_iter()
-        .map(|(k, v)| (k.to_string(), v))
-        .collect();
-        let id = match i.kind {
-            PortKind::Frames => recorder.add_frame_channel(&topic, meta)?,
-            PortKind::Registrations => recorder.add_registration_channel(&topic, meta)?,
-        };
-        channels.insert(
-            i.port.clone(),
-            Channel {
-                id,
-                topic,
-                ended: false,
-                messages: 0,
-            },
-        );
-    }
+    let session = RecordingSession::create(&path, &ctx.graph_name, &ctx.inputs)?;
     Ok(Box::new(RecorderNode {
-        recorder: Some(recorder),
-        path,
-        channels,
+        session,
         finished: false,
     }))
 }
@@ -93,32 +53,12 @@ fn wall_clock_ns() -> u64 {
 
 impl NodeLogic for RecorderNode {
     fn on_input(&mut self, port: &str, input: Input<'_>, _: &mut Outbox) -> Result<()> {
-        let ch = self
-            .channels
-            .get_mut(port)
-            .ok_or_else(|| anyhow!("recorder: message on unknown input '{port}'"))?;
-        let rec = self
-            .recorder
-            .as_mut()
-            .ok_or_else(|| anyhow!("recorder already finished"))?;
-        let t = wall_clock_ns();
-        match input {
-            Input::Frame(f) => rec.write_frame(ch.id, f.header, f.heights, t)?,
-            Input::Registration(r) => rec.write_registration(ch.id, r, t)?,
-        }
-        ch.messages += 1;
-        if input.is_end_of_scan() {
-            ch.ended = true;
-        }
-        Ok(())
+        self.session.record(port, input, wall_clock_ns())
     }
 
     fn on_drained(&mut self, _: &mut Outbox) -> Result<()> {
-        if !self.finished && self.channels.values().all(|c| c.ended) {
-            if let Some(rec) = self.recorder.take() {
-                rec.finish()?;
-            }
-            self.finished = true;
+        if !self.finished {
+            self.finished = self.session.finish_when_all_ended()?;
         }
         Ok(())
     }
@@ -128,11 +68,6 @@ impl NodeLogic for RecorderNode {
     }
 
     fn report(&self) -> serde_json::Value {
-        let topics: BTreeMap<_, _> = self
-            .channels
-            .values()
-            .map(|c| (c.topic.clone(), c.messages))
-            .collect();
-        json!({ "file": self.path.file_name().map(|f| f.to_string_lossy().to_string()), "messages": topics })
+        self.session.report()
     }
 }

@@ -1,7 +1,14 @@
-//! surfstream-replay: the acquisition stage of surfstream.
+//! surfstream-replay: the acquisition stage of surfstream, the graph's source of tiles.
 //!
-//! This crate is the library behind the `surfstream-replay` node. It holds the simulated
-//! profiler stage as plain functions over in-memory height maps (no IPC, no files, no globals):
+//! This crate is the library behind the `surfstream-replay` node. Tiles come from the
+//! simulated profiler stage, a scan directory ([`scan_dir`]: `scan.toml` plus tile files) or an
+//! MCAP recording; [`source::open_source`] opens the one a graph names and [`StageRun`] hands
+//! the tiles out in acquisition order with the pacing's decisions (as fast as possible, one
+//! field per `field_time_s` like the instrument, or a recording's own timing). The node
+//! (`node`) is only the process shell around them.
+//!
+//! The simulated stage is plain functions over in-memory height maps (no IPC, no files, no
+//! globals):
 //!
 //! 1. [`generate_specimen`] synthesises a virtual specimen from [`SpecimenParams`]: self-affine
 //!    roughness (FFT synthesis, Hurst exponent and roll-off, scaled to an exact Sa) plus
@@ -12,7 +19,7 @@
 //!    plus a seeded Gaussian stage error) and its piston and tilt.
 //! 3. [`acquire_tile`] measures one tile: the specimen resampled bicubically at the true
 //!    sub-pixel origin, plus piston, tilt and white noise, with NaN dropouts.
-//! 4. [`truth_for`] gives the [`ScanTruth`] to write as `ground_truth.json` beside the output,
+//! 4. [`truth_for`] gives the [`ScanTruth`] the node writes beside the output (`truth.json`),
 //!    in the layout of `bench/make_tiles.py` so that `bench/score_registration.py` can score a run.
 //!
 //! Conventions (DESIGN.md §2): heights in micrometres, f32, row-major, NaN = not measured;
@@ -41,12 +48,15 @@
 pub mod acquire;
 pub mod error;
 mod rng;
+pub mod run;
+pub mod source;
 pub mod specimen;
 pub mod stage;
 pub mod truth;
 
 pub use acquire::{acquire_tile, sample_bicubic};
 pub use error::{ReplayError, Result};
+pub use run::{DueTile, Pacing, StageRun, TileSource};
 pub use specimen::{generate_specimen, Specimen, SpecimenParams};
 pub use stage::{plan_scan, serpentine_order, ScanPlan, StageParams, TilePlan};
 pub use truth::{truth_for, ScanTruth};

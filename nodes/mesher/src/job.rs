@@ -1,0 +1,395 @@
+//! The mesher's job in a graph, without IPC: its settings from the graph parameters
+//! ([`MesherConfig`] -> [`MeshSettings`]), which surface it meshes and from which inputs
+//! ([`SurfaceChoice`]), and [`MeshJob`], which keeps the final frame of every input until each
+//! has ended its scan and then meshes the chosen surface once into a [`MeshedSurface`]: the
+//! STL-ready solid or sheet, its check, the mesh resampled on the grid and the statistics for
+//! run.json (with the fidelity report for the adaptive mesh).
+//!
+//! Live frames are counted and skipped: a mesh is made once, from the exact final surface.
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use anyhow::{anyhow, bail, Result};
+use serde::Deserialize;
+use serde_json::json;
+use surfstream_core::frame::{flags, from_frame_heights, FrameHeader, FrameView, HeightMap};
+use surfstream_core::raster::{Raster, RasterView, Shape};
+
+use crate::{
+    check_closed, grid_solid, mesh_height_field, stl, Epsilon, LengthUnit, MeshCheck, MeshKind,
+    MeshParams, MissingSamples, ScanPlacement, SolidMesh, SolidParams,
+};
+
+/// The bound when the graph gives none: 5 % of the surface's Sq.
+const DEFAULT_EPSILON_SQ_FRACTION: f64 = 0.05;
+
+/// The mesher's graph parameters, as written in a graph file.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MesherConfig {
+    /// STL coordinate unit: "mm" (default), "m" or "um".
+    #[serde(default)]
+    pub units: LengthUnit,
+    /// "binary" (EDEM, Rocky, MercuryDPM) or "ascii" (LIGGGHTS).
+    #[serde(default = "binary")]
+    pub format: String,
+    /// Base of the solid below the lowest sample, um (default: from the height range).
+    pub base_depth_um: Option<f64>,
+    #[serde(default = "stl_name")]
+    pub file: String,
+    /// "adaptive" (error-bounded, default) or "grid" (two triangles per grid cell).
+    #[serde(default = "adaptive")]
+    pub method: String,
+    /// Largest vertical error, um (adaptive).
+    pub epsilon_um: Option<f64>,
+    /// Largest vertical error as a fraction of the surface's Sq (adaptive; default 0.05 when
+    /// `epsilon_um` is not given).
+    pub epsilon_sq_fraction: Option<f64>,
+    /// Triangle budget of the surface (adaptive).
+    pub max_triangles: Option<usize>,
+    /// "solid" (default) or "sheet" (adaptive).
+    #[serde(default)]
+    pub kind: MeshKind,
+    /// "fill" (default) or "holes" (sheet only): missing samples.
+    #[serde(default)]
+    pub missing: MissingSamples,
+    /// Which surface to mesh.
+    #[serde(default)]
+    pub surface: SurfaceChoice,
+}
+
+fn adaptive() -> String {
+    "adaptive".into()
+}
+fn binary() -> String {
+    "binary".into()
+}
+fn stl_name() -> String {
+    "surface.stl".into()
+}
+
+/// Which surface the mesher meshes, and the input ports that carry it: "pooled" (default) or
+/// "panorama" arrive on the input `surface`; "datum" and "roughness" on the inputs of those
+/// names; "datum+roughness" needs both and meshes their sum (the panorama as the separation
+/// rebuilds it).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, serde::Serialize)]
+pub enum SurfaceChoice {
+    #[default]
+    #[serde(rename = "pooled")]
+    Pooled,
+    #[serde(rename = "panorama")]
+    Panorama,
+    #[serde(rename = "datum+roughness")]
+    DatumPlusRoughness,
+    #[serde(rename = "datum")]
+    Datum,
+    #[serde(rename = "roughness")]
+    Roughness,
+}
+
+impl SurfaceChoice {
+    /// The input ports this choice needs (and the only ones it accepts).
+    pub fn ports(self) -> &'static [&'static str] {
+        match self {
+            Self::Pooled | Self::Panorama => &["surface"],
+            Self::DatumPlusRoughness => &["datum", "roughness"],
+            Self::Datum => &["datum"],
+            Self::Roughness => &["roughness"],
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Pooled => "pooled",
+            Self::Panorama => "panorama",
+            Self::DatumPlusRoughness => "datum+roughness",
+            Self::Datum => "datum",
+            Self::Roughness => "roughness",
+        }
+    }
+
+    /// The wiring must match the choice: a missing or an unused input is an error.
+    pub fn check_wiring(self, wired: &[&str]) -> std::result::Result<(), String> {
+        let needed = self.ports();
+        if let Some(port) = needed.iter().find(|p| !wired.contains(p)) {
+            return Err(format!(
+                "surface = \"{}\" needs the input '{port}' (wired: {wired:?})",
+                self.name()
+            ));
+        }
+        if let Some(extra) = wired.iter().find(|w| !needed.contains(w)) {
+            return Err(format!(
+                "input '{extra}' is wired but surface = \"{}\" does not use it (it uses \
+                 {needed:?})",
+                self.name()
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// How the STL is written.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StlFormat {
+    /// EDEM, Rocky, MercuryDPM.
+    Binary,
+    /// LIGGGHTS.
+    Ascii,
+}
+
+impl StlFormat {
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Binary => "binary",
+            Self::Ascii => "ascii",
+        }
+    }
+}
+
+/// The checked settings of a mesher.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MeshSettings {
+    pub solid: SolidParams,
+    /// `None`: the full-grid solid.
+    pub adaptive: Option<MeshParams>,
+    pub format: StlFormat,
+    pub surface: SurfaceChoice,
+}
+
+impl MesherConfig {
+    /// The checked settings; the error says which parameter is wrong and what was expected.
+    pub fn settings(&self) -> std::result::Result<MeshSettings, String> {
+        let format = match self.format.as_str() {
+            "binary" => StlFormat::Binary,
+            "ascii" => StlFormat::Ascii,
+            other => {
+                return Err(format!(
+                    "format = {other:?}: expected \"binary\" or \"ascii\""
+                ))
+            }
+        };
+        let solid = SolidParams {
+            units: self.units,
+            base_depth_um: self.base_depth_um,
+            recentre: true,
+        };
+        solid.validate().map_err(|e| e.to_string())?;
+        let adaptive = match self.method.as_str() {
+            "grid" => None,
+            "adaptive" => {
+                let epsilon = match (self.epsilon_um, self.epsilon_sq_fraction) {
+                    (Some(_), Some(_)) => {
+                        return Err("give epsilon_um or epsilon_sq_fraction, not both".into())
+                    }
+                    (Some(e), None) => Epsilon::Um(e),
+                    (None, f) => Epsilon::SqFraction(f.unwrap_or(DEFAULT_EPSILON_SQ_FRACTION)),
+                };
+                Some(MeshParams {
+                    epsilon,
+                    max_triangles: self.max_triangles,
+                    kind: self.kind,
+                    missing: self.missing,
+                    solid: solid.clone(),
+                    block_samples: None,
+                })
+            }
+            other => {
+                return Err(format!(
+                    "method = {other:?}: expected \"adaptive\" or \"grid\""
+                ))
+            }
+        };
+        Ok(MeshSettings {
+            solid,
+            adaptive,
+            format,
+            surface: self.surface,
+        })
+    }
+}
+
+/// The surface, meshed.
+pub struct MeshedSurface {
+    pub solid: SolidMesh,
+    pub check: MeshCheck,
+    /// The adaptive mesh's statistics and fidelity report (`None` for the grid solid).
+    pub adaptive: Option<serde_json::Value>,
+    /// The mesh re-sampled on the meshed grid, absolute heights (um): for the grid mesh the
+    /// samples themselves, for the adaptive one its interpolation (NaN where not covered). It
+    /// is the "mesh" stage of the model-vs-measurement table (Table 6) in run.json.
+    pub resampled_um: Raster<f64>,
+    /// The header of the meshed surface's frame (grid, pitch, latency trace).
+    pub header: FrameHeader,
+}
+
+impl MeshedSurface {
+    /// Writes the solid as STL in `format`.
+    pub fn write_stl(&self, w: &mut dyn std::io::Write, format: StlFormat) -> crate::Result<()> {
+        let label = stl::stl_header(&self.solid, "surfstream surface");
+        match format {
+            StlFormat::Ascii => crate::write_stl_ascii(w, &self.solid, &label),
+            StlFormat::Binary => crate::write_stl_binary(w, &self.solid, &label),
+        }
+    }
+
+    /// The statistics for run.json (the caller adds files, wiring and times).
+    pub fn summary(&self, settings: &MeshSettings) -> serde_json::Value {
+        let (solid, h) = (&self.solid, &self.header);
+        let mut summary = json!({
+            "format": settings.format.name(),
+            "units": settings.solid.units.symbol(),
+            "offset_um": solid.offset_um,
+            "triangles": solid.triangles.len(),
+            "top_triangles": solid.top_triangles,
+            "vertices": solid.vertices.len(),
+            "filled_samples": solid.filled_samples,
+            "base_depth_um": solid.base_depth_um,
+            "watertight": self.check.watertight,
+            "consistently_oriented": self.check.consistently_oriented,
+            "grid_px": [h.width, h.height],
+            "pitch_um": [h.pitch_x_um, h.pitch_y_um],
+            "t_acquired_ns": h.t_acquired_ns,
+            "surface": settings.surface.name(),
+        });
+        if let Some(o) = summary.as_object_mut() {
+            match &self.adaptive {
+                Some(serde_json::Value::Object(a)) => {
+                    o.insert("method".into(), json!("adaptive"));
+                    o.extend(a.clone());
+                }
+                _ => {
+                    o.insert("method".into(), json!("grid"));
+                }
+            }
+        }
+        summary
+    }
+}
+
+/// Collects the final surface from the inputs and meshes it once every input has ended.
+pub struct MeshJob {
+    settings: MeshSettings,
+    /// The final frame per input port, and the ports whose scan has ended.
+    finals: BTreeMap<String, HeightMap>,
+    ended: BTreeSet<String>,
+    live_frames: u64,
+}
+
+impl MeshJob {
+    pub fn new(settings: MeshSettings) -> Self {
+        Self {
+            settings,
+            finals: BTreeMap::new(),
+            ended: BTreeSet::new(),
+            live_frames: 0,
+        }
+    }
+
+    pub fn settings(&self) -> &MeshSettings {
+        &self.settings
+    }
+
+    /// Live (not final) frames seen and skipped.
+    pub fn live_frames_skipped(&self) -> u64 {
+        self.live_frames
+    }
+
+    /// Takes one frame from input `port`; true when it was the last end of scan the job waits
+    /// for, so the surface is ready to mesh ([`MeshJob::mesh`]).
+    pub fn accept(&mut self, port: &str, frame: FrameView<'_>) -> bool {
+        if frame.header.has(flags::END_OF_SCAN) {
+            self.ended.insert(port.to_owned());
+            return self
+                .settings
+                .surface
+                .ports()
+                .iter()
+                .all(|p| self.ended.contains(*p));
+        }
+        if frame.header.has(flags::FINAL) {
+            self.finals.insert(port.to_owned(), frame.to_owned());
+        } else {
+            self.live_frames += 1;
+        }
+        false
+    }
+
+    /// The surface to mesh from the final frames: one input as is, or datum + roughness summed
+    /// (the roughness is relative to the same z offset as the datum's frame, so the sum keeps
+    /// the datum's offset).
+    fn surface_to_mesh(&mut self) -> Result<HeightMap> {
+        let mut take = |port: &str| {
+            self.finals
+                .remove(port)
+                .ok_or_else(|| anyhow!("mesher: end of scan without a final '{port}' frame"))
+        };
+        match self.settings.surface {
+            SurfaceChoice::Pooled | SurfaceChoice::Panorama => take("surface"),
+            SurfaceChoice::Datum => take("datum"),
+            SurfaceChoice::Roughness => take("roughness"),
+            SurfaceChoice::DatumPlusRoughness => {
+                let mut d = take("datum")?;
+                let r = take("roughness")?;
+                let (a, b) = (&d.header, &r.header);
+                if (a.width, a.height) != (b.width, b.height)
+                    || a.pitch_x_um != b.pitch_x_um
+                    || a.pitch_y_um != b.pitch_y_um
+                    || a.origin_x_um != b.origin_x_um
+                    || a.origin_y_um != b.origin_y_um
+                    || d.heights.len() != r.heights.len()
+                {
+                    bail!(
+                        "mesher: datum ({} x {} px (rows x cols), pitch {} x {} um, origin {}, \
+                         {} um) and roughness ({} x {} px, pitch {} x {} um, origin {}, {} um) \
+                         are not on the same grid",
+                        a.height,
+                        a.width,
+                        a.pitch_x_um,
+                        a.pitch_y_um,
+                        a.origin_x_um,
+                        a.origin_y_um,
+                        b.height,
+                        b.width,
+                        b.pitch_x_um,
+                        b.pitch_y_um,
+                        b.origin_x_um,
+                        b.origin_y_um
+                    );
+                }
+                for (z, &r) in d.heights.iter_mut().zip(&r.heights) {
+                    *z += r;
+                }
+                Ok(d)
+            }
+        }
+    }
+
+    /// Meshes the chosen surface (takes its final frames).
+    pub fn mesh(&mut self) -> Result<MeshedSurface> {
+        let s = self.surface_to_mesh()?;
+        let h = s.header;
+        // The frame's grid: rows along y (header height), columns along x (header width).
+        let shape = Shape::new(h.height as usize, h.width as usize);
+        let heights = RasterView::new(&s.heights, shape).map_err(|e| anyhow!("mesher: {e}"))?;
+        let at = ScanPlacement::of_frame(&h);
+        let (solid, adaptive, resampled) = match &self.settings.adaptive {
+            None => (grid_solid(heights, &at, &self.settings.solid)?, None, None),
+            Some(p) => {
+                let m = mesh_height_field(heights, &at, p)?;
+                let summary = m.summary();
+                (m.mesh, Some(summary), Some(m.resampled_um))
+            }
+        };
+        let resampled = resampled.as_deref().unwrap_or(&s.heights);
+        let resampled_um = Raster::new(from_frame_heights(h.z_offset_um, resampled), shape)
+            .map_err(|e| anyhow!("mesher: resampled mesh: {e}"))?;
+        let check = check_closed(&solid);
+        Ok(MeshedSurface {
+            solid,
+            check,
+            adaptive,
+            resampled_um,
+            header: h,
+        })
+    }
+}

@@ -1,0 +1,147 @@
+//! The mesher's job without a node: settings from graph parameters, wiring checked against the
+//! surface choice, live frames skipped, meshing only when every input has ended, datum +
+//! roughness summed, and the mesh + fidelity report it produces.
+
+use surfstream_core::frame::{flags, FrameHeader, FrameKind, HeightMap};
+use surfstream_mesher::{MeshJob, MesherConfig, StlFormat, SurfaceChoice};
+
+const ROWS: usize = 24;
+const COLS: usize = 40;
+
+fn config(text: &str) -> MesherConfig {
+    toml::from_str(text).expect("test config")
+}
+
+fn frame(kind: FrameKind, flag: u32, heights: Vec<f32>) -> HeightMap {
+    HeightMap {
+        header: FrameHeader {
+            kind: kind as u32,
+            flags: flag,
+            width: COLS as u32,
+            height: ROWS as u32,
+            pitch_x_um: 2.0,
+            pitch_y_um: 3.0,
+            origin_x_um: 10.0,
+            origin_y_um: 20.0,
+            z_offset_um: 500.0,
+            ..Default::default()
+        },
+        heights,
+    }
+}
+
+fn wavy(scale: f32) -> Vec<f32> {
+    (0..ROWS * COLS)
+        .map(|k| {
+            let (i, j) = ((k / COLS) as f32, (k % COLS) as f32);
+            scale * ((0.4 * j).sin() + 0.3 * (0.5 * i).cos())
+        })
+        .collect()
+}
+
+fn eos() -> HeightMap {
+    HeightMap {
+        header: FrameHeader::end_of_scan(1, 9, 0, 0),
+        heights: Vec::new(),
+    }
+}
+
+#[test]
+fn settings_and_wiring_are_checked() {
+    let s = config("").settings().unwrap();
+    assert_eq!(s.surface, SurfaceChoice::Pooled);
+    assert_eq!(s.format, StlFormat::Binary);
+    assert!(s.adaptive.is_some());
+    assert!(config("method = \"grid\"")
+        .settings()
+        .unwrap()
+        .adaptive
+        .is_none());
+    for (bad, says) in [
+        ("format = \"obj\"", "format = \"obj\""),
+        ("method = \"poisson\"", "method = \"poisson\""),
+        ("epsilon_um = 0.1\nepsilon_sq_fraction = 0.1", "not both"),
+    ] {
+        let e = config(bad).settings().unwrap_err();
+        assert!(e.contains(says), "{bad}: {e}");
+    }
+    let both = SurfaceChoice::DatumPlusRoughness;
+    assert!(both.check_wiring(&["datum", "roughness"]).is_ok());
+    assert!(both
+        .check_wiring(&["datum"])
+        .unwrap_err()
+        .contains("needs the input 'roughness'"));
+    assert!(SurfaceChoice::Datum
+        .check_wiring(&["datum", "surface"])
+        .unwrap_err()
+        .contains("input 'surface' is wired but"));
+}
+
+#[test]
+fn meshes_the_sum_once_both_inputs_have_ended() {
+    let settings = config(
+        "surface = \"datum+roughness\"\nepsilon_um = 0.02\nunits = \"um\"\nformat = \"ascii\"",
+    )
+    .settings()
+    .unwrap();
+    let mut job = MeshJob::new(settings);
+    let (datum, roughness) = (wavy(1.0), wavy(0.1));
+    // A live frame is counted and skipped.
+    assert!(!job.accept("datum", frame(FrameKind::Datum, 0, datum.clone()).view()));
+    assert!(!job.accept(
+        "datum",
+        frame(FrameKind::Datum, flags::FINAL, datum.clone()).view()
+    ));
+    assert!(!job.accept(
+        "roughness",
+        frame(FrameKind::Roughness, flags::FINAL, roughness.clone()).view()
+    ));
+    assert!(!job.accept("datum", eos().view()));
+    assert!(job.accept("roughness", eos().view()));
+    assert_eq!(job.live_frames_skipped(), 1);
+
+    let m = job.mesh().unwrap();
+    assert!(m.check.watertight);
+    assert_eq!((m.resampled_um.rows(), m.resampled_um.cols()), (ROWS, COLS));
+    // The resampled mesh is absolute and within the bound of datum + roughness.
+    for ((&r, &d), &q) in m.resampled_um.values().iter().zip(&datum).zip(&roughness) {
+        let sum = 500.0 + f64::from(d + q);
+        assert!((r - sum).abs() <= 0.02 + 1e-4, "{r} vs {sum}");
+    }
+    let summary = m.summary(job.settings());
+    assert_eq!(summary["method"], "adaptive");
+    assert_eq!(summary["surface"], "datum+roughness");
+    assert_eq!(summary["grid_px"], serde_json::json!([COLS, ROWS]));
+    assert_eq!(summary["format"], "ascii");
+    assert_eq!(summary["fidelity"]["bound_met"], true);
+    let mut stl = Vec::new();
+    m.write_stl(&mut stl, StlFormat::Ascii).unwrap();
+    assert!(stl.starts_with(b"solid"));
+    // The frames were taken: a second mesh has nothing to mesh.
+    assert!(job.mesh().is_err());
+}
+
+#[test]
+fn grid_method_resamples_to_the_samples_themselves() {
+    let mut job = MeshJob::new(config("method = \"grid\"").settings().unwrap());
+    let h = wavy(1.0);
+    job.accept(
+        "surface",
+        frame(FrameKind::Pooled, flags::FINAL, h.clone()).view(),
+    );
+    assert!(job.accept("surface", eos().view()));
+    let m = job.mesh().unwrap();
+    assert!(m.adaptive.is_none());
+    assert_eq!(m.summary(job.settings())["method"], "grid");
+    for (&r, &z) in m.resampled_um.values().iter().zip(&h) {
+        assert_eq!(r, f64::from(z) + 500.0);
+    }
+}
+
+#[test]
+fn end_of_scan_without_a_final_frame_is_an_error() {
+    let mut job = MeshJob::new(config("").settings().unwrap());
+    assert!(job.accept("surface", eos().view()));
+    let e = job.mesh().err().unwrap().to_string();
+    assert!(e.contains("without a final 'surface' frame"), "{e}");
+}
