@@ -10,8 +10,9 @@ use serde_json::json;
 use surfstream_core::frame::to_frame_heights;
 use surfstream_core::raster::{RasterView, Shape};
 use surfstream_mesher::{
-    check_closed, mesh_height_field, stl, Epsilon, LengthUnit, MeshError, MeshKind, MeshParams,
-    MissingSamples, ScanPlacement, SolidParams,
+    check_closed, grid_sheet_for, job::DEFAULT_EPSILON_SQ_FRACTION, mesh_height_field, stl,
+    DemEngine, EngineProfile, Epsilon, LengthUnit, MeshError, MeshKind, MeshParams, MissingSamples,
+    ScanPlacement, SolidParams, TargetMethod,
 };
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -26,15 +27,18 @@ pub struct MeshArgs {
     /// Height-map file (.npy in um, or any instrument format the readers know).
     pub file: PathBuf,
     /// Largest vertical distance between any measured sample and the mesh, um.
-    #[arg(
-        long,
-        required_unless_present = "epsilon_sq",
-        conflicts_with = "epsilon_sq"
-    )]
+    #[arg(long, conflicts_with = "epsilon_sq")]
     pub epsilon_um: Option<f64>,
-    /// The bound as a fraction of the map's Sq (about its least-squares plane), e.g. 0.02.
+    /// The bound as a fraction of the map's Sq (about its least-squares plane); default 0.05,
+    /// as in the graph.
     #[arg(long)]
     pub epsilon_sq: Option<f64>,
+    /// Write what this DEM engine imports: liggghts (ASCII sheet in m on a regular grid, no
+    /// slivers), mercurydpm (binary sheet in m), edem (binary solid in mm), yade (small ASCII
+    /// sheet in m). Sets the format, kind, units, method and triangle budget; the target is
+    /// recorded in OUT.json.
+    #[arg(long, conflicts_with_all = ["solid", "sheet", "holes", "ascii", "units"])]
+    pub target: Option<DemEngine>,
     /// Stop refining at this many surface triangles (the bound may then not hold; OUT.json says).
     #[arg(long)]
     pub max_triangles: Option<usize>,
@@ -96,6 +100,16 @@ pub fn run(a: MeshArgs) -> Result<()> {
     let (z_offset_um, heights_um) = to_frame_heights(&surface.heights_um);
     let heights = RasterView::new(&heights_um, Shape::new(surface.height, surface.width))?;
     let at = ScanPlacement::new(pitch_x_um, pitch_y_um).with_z_offset(z_offset_um);
+    let profile = a.target.map(|engine| {
+        let mut p = EngineProfile::for_engine(engine);
+        if let Some(budget) = a.max_triangles {
+            p.max_triangles = budget;
+        }
+        p
+    });
+    if let Some(profile) = profile.filter(|p| p.method == TargetMethod::Grid) {
+        return write_grid_target(&a, &surface.metadata.format, heights, &at, &profile);
+    }
     let units = match a.units {
         Units::M => LengthUnit::M,
         Units::Mm => LengthUnit::Mm,
@@ -105,10 +119,10 @@ pub fn run(a: MeshArgs) -> Result<()> {
         epsilon: match (a.epsilon_um, a.epsilon_sq) {
             (Some(e), _) => Epsilon::Um(e),
             (None, Some(f)) => Epsilon::SqFraction(f),
-            (None, None) => bail!("give --epsilon-um or --epsilon-sq"),
+            (None, None) => Epsilon::SqFraction(DEFAULT_EPSILON_SQ_FRACTION),
         },
         max_triangles: a.max_triangles,
-        kind: if a.sheet {
+        kind: if a.sheet || profile.is_some_and(|p| !p.solid) {
             MeshKind::Sheet
         } else {
             MeshKind::Solid
@@ -119,7 +133,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
             MissingSamples::Fill
         },
         solid: SolidParams {
-            units,
+            units: profile.map_or(units, |p| p.units),
             base_depth_um: a.base_depth_um,
             recentre: true,
         },
@@ -131,9 +145,10 @@ pub fn run(a: MeshArgs) -> Result<()> {
     let mesh_s = t0.elapsed().as_secs_f64();
     let check = check_closed(&m.mesh);
 
+    let ascii = profile.map_or(a.ascii, |p| p.ascii);
     let label = stl::stl_header(&m.mesh, "surfstream mesh");
     surfstream_core::fsutil::write_atomic(&a.out, |w| {
-        if a.ascii {
+        if ascii {
             surfstream_mesher::write_stl_ascii(w, &m.mesh, &label)?;
         } else {
             surfstream_mesher::write_stl_binary(w, &m.mesh, &label)?;
@@ -152,8 +167,11 @@ pub fn run(a: MeshArgs) -> Result<()> {
     o.insert("stl".into(), json!(file_name(&a.out)));
     o.insert(
         "format".into(),
-        json!(if a.ascii { "ascii" } else { "binary" }),
+        json!(if ascii { "ascii" } else { "binary" }),
     );
+    if let Some(p) = profile {
+        o.insert("target".into(), json!(p));
+    }
     o.insert("watertight".into(), json!(check.watertight));
     o.insert(
         "consistently_oriented".into(),
@@ -186,6 +204,78 @@ pub fn run(a: MeshArgs) -> Result<()> {
         } else {
             ""
         },
+        a.out.display(),
+        json_path.display()
+    );
+    Ok(())
+}
+
+/// `--target` for an engine that wants a regular-grid sheet: block-averaged to the engine's
+/// triangle budget, elements checked against its limits, written in its format and units.
+fn write_grid_target(
+    a: &MeshArgs,
+    input_format: &str,
+    heights: RasterView<'_, f32>,
+    at: &ScanPlacement,
+    profile: &EngineProfile,
+) -> Result<()> {
+    let t0 = Instant::now();
+    let t =
+        grid_sheet_for(heights, at, profile).with_context(|| format!("{}", a.file.display()))?;
+    let mesh_s = t0.elapsed().as_secs_f64();
+    let label = stl::stl_header(
+        &t.mesh,
+        &format!("surfstream mesh for {}", profile.engine.name()),
+    );
+    surfstream_core::fsutil::write_atomic(&a.out, |w| {
+        if profile.ascii {
+            surfstream_mesher::write_stl_ascii(w, &t.mesh, &label)?;
+        } else {
+            surfstream_mesher::write_stl_binary(w, &t.mesh, &label)?;
+        }
+        Ok(())
+    })?;
+    let json_path = a.out.with_extension("json");
+    let report = json!({
+        "input": a.file.display().to_string(),
+        "input_format": input_format,
+        "target": profile,
+        "format": if profile.ascii { "ascii" } else { "binary" },
+        "kind": "sheet",
+        "method": "grid",
+        "units": profile.units,
+        "stl": file_name(&a.out),
+        "triangles": t.mesh.triangles.len(),
+        "surface_triangles": t.mesh.triangles.len(),
+        "measured_grid_rows_cols": [heights.rows(), heights.cols()],
+        "grid_rows_cols": [t.grid.rows, t.grid.cols],
+        "block_stride": t.stride,
+        "pitch_um": t.pitch_um,
+        "offset_um": t.mesh.offset_um,
+        "offset_rule": "scan_um = vertex * um_per_unit + offset_um",
+        "filled_samples": t.mesh.filled_samples,
+        "element_quality": t.quality,
+        "fidelity": { "measured": t.measured, "meshed_grid": t.meshed },
+        "mesh_s": mesh_s,
+    });
+    surfstream_core::fsutil::write_atomic(&json_path, |w| {
+        serde_json::to_writer_pretty(w, &report)
+            .map_err(|e| anyhow!("{}: {e}", json_path.display()))
+    })?;
+    eprintln!(
+        "mesh: {} triangles for {} ({} sheet in {}, {} x {} grid{}); smallest angle {:.1} deg; {} and {}",
+        t.mesh.triangles.len(),
+        profile.engine.name(),
+        if profile.ascii { "ASCII" } else { "binary" },
+        profile.units.symbol(),
+        t.grid.rows,
+        t.grid.cols,
+        if t.stride > 1 {
+            format!(", {0} x {0} samples averaged to fit {1} triangles", t.stride, profile.max_triangles)
+        } else {
+            String::new()
+        },
+        t.quality.min_angle_deg,
         a.out.display(),
         json_path.display()
     );

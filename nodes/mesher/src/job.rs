@@ -15,13 +15,14 @@ use serde_json::json;
 use surfstream_core::frame::{flags, from_frame_heights, FrameHeader, FrameView, HeightMap};
 use surfstream_core::raster::{Raster, RasterView, Shape};
 
+use crate::target::{block_values_on_grid, DemEngine, EngineProfile, TargetMethod};
 use crate::{
-    check_closed, grid_solid, mesh_height_field, stl, Epsilon, LengthUnit, MeshCheck, MeshKind,
-    MeshParams, MissingSamples, ScanPlacement, SolidMesh, SolidParams,
+    check_closed, grid_sheet_for, grid_solid, mesh_height_field, stl, Epsilon, LengthUnit,
+    MeshCheck, MeshKind, MeshParams, MissingSamples, ScanPlacement, SolidMesh, SolidParams,
 };
 
 /// The bound when the graph gives none: 5 % of the surface's Sq.
-const DEFAULT_EPSILON_SQ_FRACTION: f64 = 0.05;
+pub const DEFAULT_EPSILON_SQ_FRACTION: f64 = 0.05;
 
 /// The mesher's graph parameters, as written in a graph file.
 #[derive(Deserialize)]
@@ -56,6 +57,10 @@ pub struct MesherConfig {
     /// Which surface to mesh.
     #[serde(default)]
     pub surface: SurfaceChoice,
+    /// "liggghts" | "mercurydpm" | "edem" | "yade": write what that engine imports
+    /// ([`crate::target`]); sets the format, units, kind, method and triangle budget
+    /// (`max_triangles` still lowers the budget).
+    pub target: Option<DemEngine>,
 }
 
 fn adaptive() -> String {
@@ -154,6 +159,8 @@ pub struct MeshSettings {
     pub adaptive: Option<MeshParams>,
     pub format: StlFormat,
     pub surface: SurfaceChoice,
+    /// The engine the STL is made for, when one was named.
+    pub target: Option<EngineProfile>,
 }
 
 impl MesherConfig {
@@ -199,12 +206,36 @@ impl MesherConfig {
                 ))
             }
         };
-        Ok(MeshSettings {
+        let mut settings = MeshSettings {
             solid,
             adaptive,
             format,
             surface: self.surface,
-        })
+            target: None,
+        };
+        if let Some(engine) = self.target {
+            let mut profile = EngineProfile::for_engine(engine);
+            if let Some(budget) = self.max_triangles {
+                profile.max_triangles = budget;
+            }
+            settings.format = if profile.ascii {
+                StlFormat::Ascii
+            } else {
+                StlFormat::Binary
+            };
+            settings.solid.units = profile.units;
+            if let Some(a) = settings.adaptive.as_mut() {
+                a.solid.units = profile.units;
+                a.kind = if profile.solid {
+                    MeshKind::Solid
+                } else {
+                    MeshKind::Sheet
+                };
+                a.max_triangles = Some(profile.max_triangles);
+            }
+            settings.target = Some(profile);
+        }
+        Ok(settings)
     }
 }
 
@@ -251,6 +282,9 @@ impl MeshedSurface {
             "t_acquired_ns": h.t_acquired_ns,
             "surface": settings.surface.name(),
         });
+        if let (Some(o), Some(t)) = (summary.as_object_mut(), settings.target) {
+            o.insert("target".into(), json!(t));
+        }
         if let Some(o) = summary.as_object_mut() {
             match &self.adaptive {
                 Some(serde_json::Value::Object(a)) => {
@@ -372,9 +406,27 @@ impl MeshJob {
         let shape = Shape::new(h.height as usize, h.width as usize);
         let heights = RasterView::new(&s.heights, shape).map_err(|e| anyhow!("mesher: {e}"))?;
         let at = ScanPlacement::of_frame(&h);
-        let (solid, adaptive, resampled) = match &self.settings.adaptive {
-            None => (grid_solid(heights, &at, &self.settings.solid)?, None, None),
-            Some(p) => {
+        let grid_target = self
+            .settings
+            .target
+            .filter(|p| p.method == TargetMethod::Grid);
+        let (solid, adaptive, resampled) = match (&self.settings.adaptive, grid_target) {
+            (_, Some(profile)) => {
+                let t = grid_sheet_for(heights, &at, &profile)?;
+                let on_grid = block_values_on_grid(t.block_means.view(), t.stride, shape);
+                let summary = json!({
+                    "method": "grid",
+                    "kind": "sheet",
+                    "block_stride": t.stride,
+                    "grid_rows_cols": [t.grid.rows, t.grid.cols],
+                    "meshed_pitch_um": t.pitch_um,
+                    "element_quality": t.quality,
+                    "fidelity": { "measured": t.measured, "meshed_grid": t.meshed },
+                });
+                (t.mesh, Some(summary), Some(on_grid.into_values()))
+            }
+            (None, None) => (grid_solid(heights, &at, &self.settings.solid)?, None, None),
+            (Some(p), None) => {
                 let m = mesh_height_field(heights, &at, p)?;
                 let summary = m.summary();
                 (m.mesh, Some(summary), Some(m.resampled_um))

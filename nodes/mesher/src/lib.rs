@@ -69,5 +69,6 @@ pub use solid::{
     close_top_surface, default_base_depth_um, grid_solid, LengthUnit, SolidMesh, SolidParams,
 };
 pub use stl::{write_stl_ascii, write_stl_binary};
+pub use target::{grid_sheet_for, DemEngine, EngineProfile, TargetMesh, TargetMethod};
 pub use tin::{triangulate, MissingSamples, Tin, TinParams};
 pub mod node;

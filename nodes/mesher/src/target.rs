@@ -15,13 +15,16 @@
 
 use std::str::FromStr;
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use surfstream_core::raster::{Raster, RasterView, Shape};
 
-use crate::solid::{LengthUnit, SolidMesh};
+use crate::error::{MeshError, Result};
+use crate::fidelity::{field_params, AreaParams};
+use crate::field::ScanPlacement;
+use crate::solid::{grid_solid, LengthUnit, SolidMesh, SolidParams};
 
 /// A discrete-element engine an STL is made for.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum DemEngine {
     Liggghts,
@@ -170,6 +173,46 @@ pub fn block_mean(heights: RasterView<'_, f32>, stride: usize) -> Raster<f32> {
     out
 }
 
+/// The block means back on the measured grid (each sample takes its block's value): the
+/// surface the engine is given, sampled where the measurement was, for Table 6.
+pub fn block_values_on_grid(
+    reduced: RasterView<'_, f32>,
+    stride: usize,
+    shape: Shape,
+) -> Raster<f32> {
+    let stride = stride.max(1);
+    let mut out = Raster::filled(shape, f32::NAN);
+    for r in 0..shape.rows {
+        let src = reduced.row((r / stride).min(reduced.rows() - 1));
+        for (c, z) in out.row_mut(r).iter_mut().enumerate() {
+            *z = src[(c / stride).min(src.len() - 1)];
+        }
+    }
+    out
+}
+
+/// Keeps only the vertices the triangles use (the grid solid's wall and base vertices go with
+/// its wall and base triangles), in their order.
+fn drop_unused_vertices(mesh: &mut SolidMesh) {
+    let mut new_index = vec![u32::MAX; mesh.vertices.len()];
+    for &i in mesh.triangles.iter().flatten() {
+        new_index[i as usize] = 0;
+    }
+    let mut kept = Vec::with_capacity(mesh.vertices.len());
+    for (i, v) in mesh.vertices.iter().enumerate() {
+        if new_index[i] == 0 {
+            new_index[i] = kept.len() as u32;
+            kept.push(*v);
+        }
+    }
+    for t in &mut mesh.triangles {
+        for i in t.iter_mut() {
+            *i = new_index[*i as usize];
+        }
+    }
+    mesh.vertices = kept;
+}
+
 /// Element quality as the engines judge it.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct ElementQuality {
@@ -219,6 +262,94 @@ pub fn element_quality(mesh: &SolidMesh, count: usize) -> ElementQuality {
         max_triangles_per_vertex: per_vertex.into_iter().max().unwrap_or(0),
         duplicate_triangles,
     }
+}
+
+/// A regular-grid sheet made for an engine, and what was done to fit it.
+#[derive(Debug, Clone)]
+pub struct TargetMesh {
+    /// The open surface (every triangle is surface).
+    pub mesh: SolidMesh,
+    pub profile: EngineProfile,
+    /// Side of the blocks averaged into one grid sample (1: the measured grid itself).
+    pub stride: usize,
+    /// The meshed grid, rows x cols.
+    pub grid: Shape,
+    /// The block means that were meshed, um relative to the input's z offset.
+    pub block_means: Raster<f32>,
+    /// Sample spacing of the meshed grid, um (x, y).
+    pub pitch_um: [f64; 2],
+    pub quality: ElementQuality,
+    /// Sa, Sq, Sz, Sdr of the measured field and of the meshed grid (what averaging cost).
+    pub measured: Option<AreaParams>,
+    pub meshed: Option<AreaParams>,
+}
+
+/// Meshes `heights` as a regular-grid sheet within the engine's triangle budget and checks
+/// the elements against its limits. Missing samples are filled (see [`crate::fill_missing`]).
+/// Errors: a geometry the grid mesher refuses, or an element the engine would reject.
+pub fn grid_sheet_for(
+    heights: RasterView<'_, f32>,
+    at: &ScanPlacement,
+    profile: &EngineProfile,
+) -> Result<TargetMesh> {
+    let stride = grid_stride_for_budget(heights.shape(), profile.max_triangles);
+    let reduced = block_mean(heights, stride);
+    // A block's mean stands at the block's centre.
+    let half = (stride as f64 - 1.0) * 0.5;
+    let reduced_at = ScanPlacement {
+        pitch_x_um: at.pitch_x_um * stride as f64,
+        pitch_y_um: at.pitch_y_um * stride as f64,
+        origin_x_um: at.origin_x_um + half * at.pitch_x_um,
+        origin_y_um: at.origin_y_um + half * at.pitch_y_um,
+        z_offset_um: at.z_offset_um,
+    };
+    let params = SolidParams {
+        units: profile.units,
+        base_depth_um: None,
+        recentre: true,
+    };
+    let mut mesh = grid_solid(reduced.view(), &reduced_at, &params)?;
+    // The engines that take a sheet want the measured surface alone: drop walls and base.
+    mesh.triangles.truncate(mesh.top_triangles);
+    drop_unused_vertices(&mut mesh);
+    // Without its base the sheet's lowest point, not the base, sits at z = 0.
+    let lowest = mesh
+        .vertices
+        .iter()
+        .map(|v| v[2])
+        .fold(f64::INFINITY, f64::min);
+    if lowest.is_finite() {
+        for v in &mut mesh.vertices {
+            v[2] -= lowest;
+        }
+        mesh.offset_um[2] += lowest * profile.units.um_per_unit();
+        mesh.base_depth_um = 0.0;
+    }
+    let quality = element_quality(&mesh, mesh.triangles.len());
+    if quality.min_angle_deg < profile.min_angle_deg || quality.duplicate_triangles > 0 {
+        return Err(MeshError::Incompatible(format!(
+            "{}: the mesh has a smallest angle of {:.3} deg and {} duplicate triangles; the \
+             engine needs angles above {} deg and no duplicates (pitch {} x {} um is too \
+             anisotropic)",
+            profile.engine.name(),
+            quality.min_angle_deg,
+            quality.duplicate_triangles,
+            profile.min_angle_deg,
+            reduced_at.pitch_x_um,
+            reduced_at.pitch_y_um
+        )));
+    }
+    Ok(TargetMesh {
+        mesh,
+        measured: field_params(heights, at.pitch_x_um, at.pitch_y_um),
+        meshed: field_params(reduced.view(), reduced_at.pitch_x_um, reduced_at.pitch_y_um),
+        profile: *profile,
+        stride,
+        grid: reduced.shape(),
+        block_means: reduced,
+        pitch_um: [reduced_at.pitch_x_um, reduced_at.pitch_y_um],
+        quality,
+    })
 }
 
 #[cfg(test)]
@@ -271,5 +402,48 @@ mod tests {
         let m = block_mean(RasterView::new(&z, Shape::new(3, 4)).unwrap(), 2);
         assert_eq!(m.shape(), Shape::new(2, 2));
         assert_eq!(m.values(), &[3.0, 8.0, 3.0, 7.0]);
+    }
+
+    #[test]
+    fn a_liggghts_sheet_fits_the_budget_with_good_elements() {
+        let shape = Shape::new(60, 90);
+        let z: Vec<f32> = (0..shape.len())
+            .map(|i| ((i % 90) as f32 * 0.3).sin() + ((i / 90) as f32 * 0.2).cos())
+            .collect();
+        let mut profile = EngineProfile::for_engine(DemEngine::Liggghts);
+        profile.max_triangles = 2000;
+        let t = grid_sheet_for(
+            RasterView::new(&z, shape).unwrap(),
+            &ScanPlacement::new(0.5, 1.0),
+            &profile,
+        )
+        .unwrap();
+        assert!(
+            t.mesh.triangles.len() <= 2000 && t.stride > 1,
+            "{}",
+            t.stride
+        );
+        assert_eq!(
+            t.mesh.triangles.len(),
+            2 * (t.grid.rows - 1) * (t.grid.cols - 1)
+        );
+        assert!(t.quality.min_angle_deg > 20.0, "{:?}", t.quality);
+        assert!(t.quality.max_triangles_per_vertex <= 6);
+        assert_eq!(t.quality.duplicate_triangles, 0);
+        // Metres, and the sheet spans the measured area (less half a block at each end).
+        let xs: Vec<f64> = t.mesh.vertices.iter().map(|v| v[0]).collect();
+        let span = xs.iter().cloned().fold(f64::MIN, f64::max)
+            - xs.iter().cloned().fold(f64::MAX, f64::min);
+        assert!(span > 40e-6 && span <= 45e-6, "{span}");
+        let zmin = t
+            .mesh
+            .vertices
+            .iter()
+            .map(|v| v[2])
+            .fold(f64::MAX, f64::min);
+        assert!(
+            zmin.abs() < 1e-12,
+            "the sheet's lowest point is at z = 0: {zmin}"
+        );
     }
 }

@@ -1,0 +1,310 @@
+//! The STL made for LIGGGHTS is imported by the real engine (LIGGGHTS-PUBLIC, Debian package
+//! `liggghts`; scripts/test.sh installs it): a measured specimen is meshed with
+//! `--target liggghts`, used as a `mesh/surface` wall with `wall/gran`, and 30 spheres dropped on
+//! it must come to rest on it: every sphere touches the mesh (centre one radius from the nearest
+//! triangle) and none is below it.
+
+use std::path::Path;
+use std::process::Command;
+
+use surfstream_e2e::{read_json, run, stderr, surfstream};
+
+/// Sphere radius, m: a few times the specimen's pitch, a tenth of its width.
+const RADIUS_M: f64 = 3e-6;
+const PARTICLES: usize = 30;
+
+type Triangle = [[f64; 3]; 3];
+
+/// Triangles of an ASCII STL, coordinates as written.
+fn read_ascii_stl(path: &Path) -> Vec<Triangle> {
+    let text = std::fs::read_to_string(path).expect("ASCII STL is UTF-8 text");
+    assert!(text.starts_with("solid"), "not an ASCII STL");
+    let vertices: Vec<[f64; 3]> = text
+        .lines()
+        .filter_map(|l| l.trim().strip_prefix("vertex "))
+        .map(|v| {
+            let c: Vec<f64> = v
+                .split_whitespace()
+                .map(|s| s.parse().expect("vertex coordinate"))
+                .collect();
+            [c[0], c[1], c[2]]
+        })
+        .collect();
+    assert_eq!(vertices.len() % 3, 0);
+    vertices.chunks(3).map(|t| [t[0], t[1], t[2]]).collect()
+}
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// Closest point of triangle `t` to `p` (Ericson, Real-Time Collision Detection, 5.1.5).
+fn closest_on_triangle(p: [f64; 3], t: &Triangle) -> [f64; 3] {
+    let [a, b, c] = *t;
+    let (ab, ac, ap) = (sub(b, a), sub(c, a), sub(p, a));
+    let (d1, d2) = (dot(ab, ap), dot(ac, ap));
+    if d1 <= 0.0 && d2 <= 0.0 {
+        return a;
+    }
+    let bp = sub(p, b);
+    let (d3, d4) = (dot(ab, bp), dot(ac, bp));
+    if d3 >= 0.0 && d4 <= d3 {
+        return b;
+    }
+    let vc = d1 * d4 - d3 * d2;
+    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        let v = d1 / (d1 - d3);
+        return [a[0] + v * ab[0], a[1] + v * ab[1], a[2] + v * ab[2]];
+    }
+    let cp = sub(p, c);
+    let (d5, d6) = (dot(ab, cp), dot(ac, cp));
+    if d6 >= 0.0 && d5 <= d6 {
+        return c;
+    }
+    let vb = d5 * d2 - d1 * d6;
+    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+        let w = d2 / (d2 - d6);
+        return [a[0] + w * ac[0], a[1] + w * ac[1], a[2] + w * ac[2]];
+    }
+    let va = d3 * d6 - d5 * d4;
+    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
+        let w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+        let bc = sub(c, b);
+        return [b[0] + w * bc[0], b[1] + w * bc[1], b[2] + w * bc[2]];
+    }
+    let denom = 1.0 / (va + vb + vc);
+    let (v, w) = (vb * denom, vc * denom);
+    [
+        a[0] + ab[0] * v + ac[0] * w,
+        a[1] + ab[1] * v + ac[1] * w,
+        a[2] + ab[2] * v + ac[2] * w,
+    ]
+}
+
+/// Distance from `p` to the mesh, and whether `p` is above it (the nearest point's upward side).
+fn distance_and_side(p: [f64; 3], mesh: &[Triangle]) -> (f64, bool) {
+    let mut best = (f64::INFINITY, [0.0; 3]);
+    for t in mesh {
+        let q = closest_on_triangle(p, t);
+        let d = sub(p, q);
+        let d2 = dot(d, d);
+        if d2 < best.0 {
+            best = (d2, q);
+        }
+    }
+    (best.0.sqrt(), p[2] >= best.1[2])
+}
+
+fn liggghts_input(bounds: [[f64; 2]; 3]) -> String {
+    let [[x0, x1], [y0, y1], [z0, z1]] = bounds;
+    let r = RADIUS_M;
+    format!(
+        "# {PARTICLES} spheres settling on a measured surface: mesh/surface + wall/gran
+atom_style granular
+atom_modify map array
+boundary f f f
+newton off
+communicate single vel yes
+units si
+region domain block {dx0:e} {dx1:e} {dy0:e} {dy1:e} {dz0:e} {dz1:e} units box
+create_box 1 domain
+neighbor {skin:e} bin
+neigh_modify delay 0
+fix m1 all property/global youngsModulus peratomtype 5.e6
+fix m2 all property/global poissonsRatio peratomtype 0.3
+fix m3 all property/global coefficientRestitution peratomtypepair 1 0.1
+fix m4 all property/global coefficientFriction peratomtypepair 1 0.5
+pair_style gran model hertz tangential history
+pair_coeff * *
+timestep 5e-8
+fix gravity all gravity 9.81 vector 0.0 0.0 -1.0
+fix wall all mesh/surface file wall.stl type 1 verbose yes
+fix walls all wall/gran model hertz tangential history mesh n_meshes 1 meshes wall
+region drop block {ix0:e} {ix1:e} {iy0:e} {iy1:e} {iz0:e} {iz1:e} units box volume_limit 1e-20
+fix template all particletemplate/sphere 15485863 atom_type 1 density constant 2500 radius constant {r:e} volume_limit 1e-20
+fix distribution all particledistribution/discrete 32452843 1 template 1.0
+fix insert all insert/pack seed 32452867 distributiontemplate distribution vel constant 0. 0. 0. insert_every once overlapcheck yes all_in yes particles_in_region {PARTICLES} region drop
+fix integrate all nve/sphere
+thermo_style custom step atoms ke
+thermo 10000
+thermo_modify lost ignore norm no
+run 60000
+write_dump all custom final.txt id x y z radius
+",
+        dx0 = x0 - 4.0 * r,
+        dx1 = x1 + 4.0 * r,
+        dy0 = y0 - 4.0 * r,
+        dy1 = y1 + 4.0 * r,
+        // Room below the lowest point: a sphere that fell through would leave the box.
+        dz0 = z0 - 4.0 * r,
+        dz1 = z1 + 12.0 * r,
+        skin = 0.5 * r,
+        ix0 = x0 + 2.0 * r,
+        ix1 = x1 - 2.0 * r,
+        iy0 = y0 + 2.0 * r,
+        iy1 = y1 - 2.0 * r,
+        iz0 = z1 + 1.5 * r,
+        iz1 = z1 + 7.0 * r,
+    )
+}
+
+#[test]
+fn liggghts_imports_the_wall_and_spheres_settle_on_it() {
+    let liggghts = which("liggghts").unwrap_or_else(|| {
+        panic!(
+            "LIGGGHTS is not installed: this test needs the Debian package `liggghts` \
+             (scripts/test.sh installs it with apt-get)"
+        )
+    });
+    let dir = tempfile::tempdir().expect("tempdir");
+    let specimen = surfstream_e2e::repo_root().join("../shared/specimens/x3p-2.x3p");
+    let stl = dir.path().join("wall.stl");
+    let mut cmd = surfstream();
+    cmd.arg("mesh")
+        .arg(&specimen)
+        // A budget that keeps the simulation short; the default (400k) imports the same way.
+        .args(["--target", "liggghts", "--max-triangles", "30000", "--out"])
+        .arg(&stl);
+    let out = run(cmd);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let report = read_json(&dir.path().join("wall.json"));
+    assert_eq!(report["target"]["engine"], "liggghts", "{report:#}");
+    assert_eq!(report["format"], "ascii");
+    assert_eq!(report["kind"], "sheet");
+    assert_eq!(report["units"], "m");
+    assert!(
+        report["element_quality"]["min_angle_deg"]
+            .as_f64()
+            .unwrap_or(0.0)
+            > 1.0
+    );
+    let triangles = report["triangles"].as_u64().expect("triangle count") as usize;
+
+    let mesh = read_ascii_stl(&stl);
+    assert_eq!(mesh.len(), triangles);
+    let mut bounds = [[f64::INFINITY, f64::NEG_INFINITY]; 3];
+    for t in &mesh {
+        for v in t {
+            for (axis, b) in bounds.iter_mut().enumerate() {
+                b[0] = b[0].min(v[axis]);
+                b[1] = b[1].max(v[axis]);
+            }
+        }
+    }
+    // The specimen is 83 um x 204 um: in metres, as LIGGGHTS' `units si` reads it.
+    assert!(
+        (bounds[0][1] - bounds[0][0] - 82.8e-6).abs() < 1e-6,
+        "{bounds:?}"
+    );
+    assert!(
+        (bounds[1][1] - bounds[1][0] - 204.2e-6).abs() < 1e-6,
+        "{bounds:?}"
+    );
+
+    std::fs::write(dir.path().join("in.settle"), liggghts_input(bounds)).expect("write input");
+    let run_out = Command::new(liggghts)
+        .args(["-in", "in.settle"])
+        .current_dir(dir.path())
+        .output()
+        .expect("start liggghts");
+    let log = String::from_utf8_lossy(&run_out.stdout).to_string();
+    assert!(
+        run_out.status.success() && !log.contains("ERROR"),
+        "LIGGGHTS failed ({:?}):\n{}\n{}",
+        run_out.status,
+        &log[log.len().saturating_sub(3000)..],
+        String::from_utf8_lossy(&run_out.stderr)
+    );
+    let imported = format!(
+        "Import and parallelization of mesh wall containing {triangles} triangle(s) successful"
+    );
+    assert!(log.contains(&imported), "mesh not imported:\n{log}");
+    assert!(
+        !log.contains("high aspect ratio"),
+        "LIGGGHTS warns about element quality:\n{log}"
+    );
+
+    // Final positions: every sphere kept (none left the box by falling through), every sphere
+    // above the wall and touching it.
+    let dump = std::fs::read_to_string(dir.path().join("final.txt")).expect("final.txt");
+    let atoms: Vec<[f64; 4]> = dump
+        .lines()
+        .skip_while(|l| !l.starts_with("ITEM: ATOMS"))
+        .skip(1)
+        .map(|l| {
+            let c: Vec<f64> = l
+                .split_whitespace()
+                .map(|s| s.parse().expect("number"))
+                .collect();
+            [c[1], c[2], c[3], c[4]]
+        })
+        .collect();
+    assert_eq!(
+        atoms.len(),
+        PARTICLES,
+        "spheres lost (fell through or flew off)"
+    );
+    let mut touching = 0;
+    for a in &atoms {
+        let (d, above) = distance_and_side([a[0], a[1], a[2]], &mesh);
+        assert!(above, "sphere at {a:?} is below the wall");
+        assert!(
+            d > 0.9 * a[3],
+            "sphere at {a:?} sinks {:.3} r into the wall",
+            1.0 - d / a[3]
+        );
+        if d < 1.02 * a[3] {
+            touching += 1;
+        }
+    }
+    // A sphere may come to rest on another one; nearly all rest on the wall.
+    assert!(
+        touching >= PARTICLES * 9 / 10,
+        "{touching} of {PARTICLES} spheres touch the wall"
+    );
+}
+
+fn which(name: &str) -> Option<std::path::PathBuf> {
+    std::env::var_os("PATH").and_then(|paths| {
+        std::env::split_paths(&paths)
+            .map(|p| p.join(name))
+            .find(|p| p.is_file())
+    })
+}
+
+/// The graph parameter does what the flag does: `--set mesher.target=liggghts` on the demo
+/// writes an ASCII sheet in metres on a regular grid and records the target in run.json.
+#[test]
+fn graph_parameter_target_liggghts_writes_an_ascii_sheet() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out_dir = dir.path().join("out");
+    let mut cmd = surfstream();
+    cmd.args([
+        "run",
+        "launch/graphs/demo.toml",
+        "--set",
+        "stage.pacing=fast",
+    ])
+    .args(["--set", "mesher.target=liggghts", "--out"])
+    .arg(&out_dir);
+    let out = run(cmd);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let mesh = &read_json(&out_dir.join("run.json"))["stages"]["mesher"];
+    assert_eq!(mesh["target"]["engine"], "liggghts", "{mesh:#}");
+    assert_eq!(mesh["format"], "ascii");
+    assert_eq!(mesh["units"], "m");
+    assert_eq!(mesh["method"], "grid");
+    assert_eq!(mesh["kind"], "sheet");
+    assert!(
+        mesh["element_quality"]["min_angle_deg"]
+            .as_f64()
+            .unwrap_or(0.0)
+            > 1.0
+    );
+    let stl = read_ascii_stl(&out_dir.join("surface.stl"));
+    assert_eq!(stl.len() as u64, mesh["triangles"].as_u64().unwrap_or(0));
+    assert!(stl.len() <= 400_000);
+}
