@@ -12,7 +12,10 @@
 mod bytes;
 pub mod datx;
 pub mod metropro;
+pub mod opd;
+pub mod plu;
 pub mod sur;
+pub mod vk4;
 pub mod x3p;
 pub mod xyz;
 
@@ -38,7 +41,8 @@ pub struct Surface {
 /// What the file says about where the data came from (kept where the format has it).
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
 pub struct Metadata {
-    /// Reader that produced the surface: "npy", "datx", "metropro", "x3p", "sur", "xyz".
+    /// Reader that produced the surface: "npy", "datx", "metropro", "x3p", "sur", "xyz",
+    /// "plu", "vk4", "opd".
     pub format: String,
     /// False when the file carries no lateral calibration (e.g. .npy): pitch is then 1 um
     /// unless the caller supplies one.
@@ -76,6 +80,10 @@ pub enum Format {
     X3p,
     Sur,
     Xyz,
+    // Instrument formats (issue 12): Sensofar, Keyence, Bruker/Wyko.
+    Plu,
+    Vk4,
+    Opd,
 }
 
 impl Format {
@@ -93,8 +101,11 @@ impl Format {
             "x3p" => Format::X3p,
             "sur" => Format::Sur,
             "xyz" | "txt" | "csv" | "asc" => Format::Xyz,
+            "plu" => Format::Plu,
+            "vk4" => Format::Vk4,
+            "opd" => Format::Opd,
             other => bail!(
-                "{}: unsupported height-map format '.{other}' (expected .npy, .datx, .dat, .x3p, .sur, .xyz/.txt/.csv/.asc)",
+                "{}: unsupported height-map format '.{other}' (expected .npy, .datx, .dat, .x3p, .sur, .xyz/.txt/.csv/.asc, .plu, .vk4, .opd)",
                 path.display()
             ),
         })
@@ -125,6 +136,9 @@ pub fn parse_surface(data: &[u8], format: Format) -> Result<Surface> {
         Format::X3p => x3p::parse(data)?,
         Format::Sur => sur::parse(data)?,
         Format::Xyz => xyz::parse(data)?,
+        Format::Plu => plu::parse(data)?,
+        Format::Vk4 => vk4::parse(data)?,
+        Format::Opd => opd::parse(data)?,
         Format::Npy => bail!(".npy is read from a path (read_surface)"),
     };
     debug_assert_eq!(s.heights_um.len(), s.width * s.height);
