@@ -1,4 +1,5 @@
-//! Golden tests of the instrument readers (issue 12): Sensofar .plu, Keyence .vk4, Wyko .opd.
+//! Golden tests of the instrument readers (issue 12): Sensofar .plu, Keyence .vk4, Wyko .opd,
+//! KLA Zeta .zmg.
 //!
 //! Each fixture is written here, byte by byte, from the format's published layout (see each
 //! reader's module doc), 5 columns x 3 rows with distinct values so a transpose or a flip
@@ -380,6 +381,88 @@ fn opd_lying_sizes_are_errors_naming_the_field() {
     assert!(e.contains("'array element size' is 8"), "{e}");
 }
 
+// ---------------------------------------------------------------- KLA Zeta .zmg
+
+const ZMG_STEP_Z_UM: f32 = 0.001;
+
+/// Raw u16 heights (no invalid marker is published): distinct, asymmetric, some >= 32768 so
+/// that reading them as i16 would fail.
+fn zmg_raw() -> Vec<u16> {
+    vec![
+        500, 1250, 40_000, 2000, 125, //
+        1500, 875, 3300, 65_535, 250, //
+        3000, 2250, 62, 375, 33_000,
+    ]
+}
+
+/// A .zmg: the 205-byte fixed header, a comment of `comment_size` bytes, u16 heights, then
+/// trailing bytes (real files carry further images after the heights).
+fn zmg_fixture(cols: usize, rows: usize, raw: &[u16]) -> Vec<u8> {
+    let mut b = vec![0u8; 205];
+    b[..36].copy_from_slice(b"Zeta-Instruments_Zeta3D_file_type = ");
+    put_u32(&mut b, 85, cols as u32);
+    put_u32(&mut b, 89, rows as u32);
+    put_f32(&mut b, 97, 0.4);
+    put_f32(&mut b, 101, 0.45);
+    put_f32(&mut b, 105, ZMG_STEP_Z_UM);
+    let comment = b"golden comment";
+    put_u32(&mut b, 117, comment.len() as u32);
+    b[131..137].copy_from_slice(b"recipe");
+    b.extend_from_slice(comment);
+    for &v in raw {
+        b.extend_from_slice(&v.to_le_bytes());
+    }
+    b.extend_from_slice(&[0xee; 10]);
+    b
+}
+
+#[test]
+fn zmg_golden() {
+    let raw = zmg_raw();
+    let bytes = zmg_fixture(COLS, ROWS, &raw);
+    let s = parse_surface(&bytes, Format::Zmg).unwrap();
+    let z: Vec<f64> = raw
+        .iter()
+        .map(|&v| v as f64 * ZMG_STEP_Z_UM as f64)
+        .collect();
+    check_surface(&s, &z, 0.4f32 as f64, 0.45f32 as f64, 0);
+    assert_eq!(s.metadata.format, "zmg");
+    assert_eq!(
+        s.metadata.extra.get("recipe").map(String::as_str),
+        Some("recipe")
+    );
+    assert_eq!(
+        s.metadata.extra.get("comment").map(String::as_str),
+        Some("golden comment")
+    );
+    let step = ZMG_STEP_Z_UM as f64;
+    close(s.heights_um[1], 1250.0 * step);
+    close(s.heights_um[COLS], 1500.0 * step);
+    close(s.heights_um[2], 40_000.0 * step);
+}
+
+#[test]
+fn zmg_lying_sizes_are_errors_naming_the_field() {
+    let good = zmg_fixture(COLS, ROWS, &zmg_raw());
+    let mut bytes = good.clone();
+    put_u32(&mut bytes, 85, 100_000);
+    put_u32(&mut bytes, 89, 100_000);
+    let e = err(&bytes, Format::Zmg);
+    assert!(e.contains("'xres' x 'yres' (100000 x 100000)"), "{e}");
+    let mut bytes = good.clone();
+    put_u32(&mut bytes, 117, u32::MAX);
+    let e = err(&bytes, Format::Zmg);
+    assert!(e.contains("'comment_size' is 4294967295"), "{e}");
+    let mut bytes = good.clone();
+    put_f32(&mut bytes, 97, f32::NAN);
+    let e = err(&bytes, Format::Zmg);
+    assert!(e.contains("'step_x' is NaN"), "{e}");
+    let mut bytes = good;
+    bytes[0] = b'z';
+    let e = err(&bytes, Format::Zmg);
+    assert!(e.contains("'magic'"), "{e}");
+}
+
 // ---------------------------------------------------------------- all formats
 
 #[test]
@@ -390,13 +473,14 @@ fn extensions_choose_the_readers() {
         ("b.vk4", Format::Vk4),
         ("c.opd", Format::Opd),
         ("c.OPD", Format::Opd),
+        ("d.zmg", Format::Zmg),
     ] {
         assert_eq!(Format::from_path(Path::new(name)).unwrap(), f);
     }
 }
 
 /// Name, format, fixture, and the shortest prefix that still holds every point (a .plu's
-/// trailing min / max are not needed).
+/// trailing min / max and a .zmg's trailing images are not needed).
 fn fixtures() -> Vec<(&'static str, Format, Vec<u8>, usize)> {
     let plu = plu_fixture(COLS, ROWS, &golden_um(), 0.69, 0.72);
     let plu_points_end = plu.len() - 8;
@@ -404,10 +488,13 @@ fn fixtures() -> Vec<(&'static str, Format, Vec<u8>, usize)> {
     let vk4_len = vk4.len();
     let opd = opd_float_fixture().0;
     let opd_len = opd.len();
+    let zmg = zmg_fixture(COLS, ROWS, &zmg_raw());
+    let zmg_points_end = zmg.len() - 10;
     vec![
         ("plu", Format::Plu, plu, plu_points_end),
         ("vk4", Format::Vk4, vk4, vk4_len),
         ("opd", Format::Opd, opd, opd_len),
+        ("zmg", Format::Zmg, zmg, zmg_points_end),
     ]
 }
 

@@ -18,6 +18,7 @@ pub mod sur;
 pub mod vk4;
 pub mod x3p;
 pub mod xyz;
+pub mod zmg;
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -42,7 +43,7 @@ pub struct Surface {
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
 pub struct Metadata {
     /// Reader that produced the surface: "npy", "datx", "metropro", "x3p", "sur", "xyz",
-    /// "plu", "vk4", "opd".
+    /// "plu", "vk4", "opd", "zmg".
     pub format: String,
     /// False when the file carries no lateral calibration (e.g. .npy): pitch is then 1 um
     /// unless the caller supplies one.
@@ -80,10 +81,11 @@ pub enum Format {
     X3p,
     Sur,
     Xyz,
-    // Instrument formats (issue 12): Sensofar, Keyence, Bruker/Wyko.
+    // Instrument formats (issue 12): Sensofar, Keyence, Bruker/Wyko, KLA Zeta.
     Plu,
     Vk4,
     Opd,
+    Zmg,
 }
 
 impl Format {
@@ -104,8 +106,9 @@ impl Format {
             "plu" => Format::Plu,
             "vk4" => Format::Vk4,
             "opd" => Format::Opd,
+            "zmg" => Format::Zmg,
             other => bail!(
-                "{}: unsupported height-map format '.{other}' (expected .npy, .datx, .dat, .x3p, .sur, .xyz/.txt/.csv/.asc, .plu, .vk4, .opd)",
+                "{}: unsupported height-map format '.{other}' (expected .npy, .datx, .dat, .x3p, .sur, .xyz/.txt/.csv/.asc, .plu, .vk4, .opd, .zmg)",
                 path.display()
             ),
         })
@@ -139,6 +142,7 @@ pub fn parse_surface(data: &[u8], format: Format) -> Result<Surface> {
         Format::Plu => plu::parse(data)?,
         Format::Vk4 => vk4::parse(data)?,
         Format::Opd => opd::parse(data)?,
+        Format::Zmg => zmg::parse(data)?,
         Format::Npy => bail!(".npy is read from a path (read_surface)"),
     };
     debug_assert_eq!(s.heights_um.len(), s.width * s.height);
