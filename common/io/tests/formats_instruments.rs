@@ -239,6 +239,8 @@ fn opd_fixture(cols: usize, rows: usize, elsize: u16, points: &[u8]) -> Vec<u8> 
         ("Title", 5, title.to_vec()),
         ("Wavelength", 7, OPD_WAVELENGTH_NM.to_le_bytes().to_vec()),
         ("Empty", 5, Vec::new()),
+        // Vision's descriptor says 40 bytes; the file holds 4 (see the reader's doc).
+        ("ImageModificat~0", 7, 0f32.to_le_bytes().to_vec()),
         ("Mult", 6, OPD_MULT.to_le_bytes().to_vec()),
         ("Pixel_size", 7, OPD_PIXEL_MM.to_le_bytes().to_vec()),
         ("Aspect", 7, OPD_ASPECT.to_le_bytes().to_vec()),
@@ -248,7 +250,12 @@ fn opd_fixture(cols: usize, rows: usize, elsize: u16, points: &[u8]) -> Vec<u8> 
     let mut b = vec![1u8, 0];
     b.extend(opd_descriptor("Directory", 1, dir_len as u32, 0xffff));
     for (name, kind, body) in &blocks {
-        b.extend(opd_descriptor(name, *kind, body.len() as u32, 0));
+        let len = if *name == "ImageModificat~0" {
+            40
+        } else {
+            body.len()
+        };
+        b.extend(opd_descriptor(name, *kind, len as u32, 0));
     }
     for (_, _, body) in &blocks {
         b.extend_from_slice(body);
@@ -351,8 +358,8 @@ fn opd_golden_int16() {
 #[test]
 fn opd_lying_sizes_are_errors_naming_the_field() {
     let (good, _) = opd_float_fixture();
-    // Directory: 2 + 24 bytes; RAW_DATA is the 7th descriptor, its length at 2 + 7*24 + 18.
-    let raw_len_at = 2 + 7 * 24 + 18;
+    // Directory: 2 + 24 bytes; RAW_DATA is the 8th descriptor, its length at 2 + 8*24 + 18.
+    let raw_len_at = 2 + 8 * 24 + 18;
     let mut bytes = good.clone();
     put_u32(&mut bytes, raw_len_at, u32::MAX);
     let e = err(&bytes, Format::Opd);

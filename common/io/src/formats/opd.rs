@@ -10,7 +10,10 @@
 //! - Block contents follow the directory (at byte 2 + directory length), one after another in
 //!   descriptor order, each `length` bytes (zero-length blocks take no space).
 //! - Types: 3 array, 5 text, 6 short (i16; a "short" of length 4 is an i32, as Gwyddion
-//!   found), 7 float (f32), 8 double, 12 long (i32).
+//!   found), 7 float (f32), 8 double, 12 long (i32). A float block "ImageModificat~0" whose
+//!   descriptor says 40 bytes holds 4 (Gwyddion's finding); read as 4. Gwyddion also notes
+//!   that a type-15 block shifts the positions of what follows it; that is not handled (such
+//!   a file reads wrong or fails the size checks, as in Gwyddion).
 //! - Heights: the first array named "OPD", "SAMPLE_DATA", "RAW_DATA", "RAW DATA" or "Raw":
 //!   nx, ny, element size (u16 each: 4 = f32, 2 = i16, 1 = u8), then nx * ny elements,
 //!   column after column (x slowest), each column from the largest y to the smallest.
@@ -77,7 +80,12 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
     // The directory fits in the file, so the block list is bounded by the file's length.
     let mut blocks = Vec::with_capacity(dir_len / BLOCK_LEN - 1);
     for k in 1..dir_len / BLOCK_LEN {
-        let (name, kind, len) = read_descriptor(&b, DIR_START + k * BLOCK_LEN)?;
+        let (name, kind, mut len) = read_descriptor(&b, DIR_START + k * BLOCK_LEN)?;
+        if name == "ImageModificat~0" && kind == TYPE_FLOAT && len == 40 {
+            // Vision writes this float's length as 40 but stores 4 bytes (Gwyddion's finding
+            // on real files); taking 40 would shift every later block.
+            len = 4;
+        }
         let start = offset;
         offset = match start.checked_add(len) {
             Some(end) if end <= data.len() => end,
