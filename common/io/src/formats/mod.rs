@@ -12,9 +12,13 @@
 mod bytes;
 pub mod datx;
 pub mod metropro;
+pub mod opd;
+pub mod plu;
 pub mod sur;
+pub mod vk4;
 pub mod x3p;
 pub mod xyz;
+pub mod zmg;
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -38,7 +42,8 @@ pub struct Surface {
 /// What the file says about where the data came from (kept where the format has it).
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
 pub struct Metadata {
-    /// Reader that produced the surface: "npy", "datx", "metropro", "x3p", "sur", "xyz".
+    /// Reader that produced the surface: "npy", "datx", "metropro", "x3p", "sur", "xyz",
+    /// "plu", "vk4", "opd", "zmg".
     pub format: String,
     /// False when the file carries no lateral calibration (e.g. .npy): pitch is then 1 um
     /// unless the caller supplies one.
@@ -76,6 +81,11 @@ pub enum Format {
     X3p,
     Sur,
     Xyz,
+    // Instrument formats (issue 12): Sensofar, Keyence, Bruker/Wyko, KLA Zeta.
+    Plu,
+    Vk4,
+    Opd,
+    Zmg,
 }
 
 impl Format {
@@ -93,8 +103,12 @@ impl Format {
             "x3p" => Format::X3p,
             "sur" => Format::Sur,
             "xyz" | "txt" | "csv" | "asc" => Format::Xyz,
+            "plu" => Format::Plu,
+            "vk4" => Format::Vk4,
+            "opd" => Format::Opd,
+            "zmg" => Format::Zmg,
             other => bail!(
-                "{}: unsupported height-map format '.{other}' (expected .npy, .datx, .dat, .x3p, .sur, .xyz/.txt/.csv/.asc)",
+                "{}: unsupported height-map format '.{other}' (expected .npy, .datx, .dat, .x3p, .sur, .xyz/.txt/.csv/.asc, .plu, .vk4, .opd, .zmg)",
                 path.display()
             ),
         })
@@ -125,6 +139,10 @@ pub fn parse_surface(data: &[u8], format: Format) -> Result<Surface> {
         Format::X3p => x3p::parse(data)?,
         Format::Sur => sur::parse(data)?,
         Format::Xyz => xyz::parse(data)?,
+        Format::Plu => plu::parse(data)?,
+        Format::Vk4 => vk4::parse(data)?,
+        Format::Opd => opd::parse(data)?,
+        Format::Zmg => zmg::parse(data)?,
         Format::Npy => bail!(".npy is read from a path (read_surface)"),
     };
     debug_assert_eq!(s.heights_um.len(), s.width * s.height);
