@@ -51,3 +51,4 @@ pub use solid::{
 pub use stl::{write_stl_ascii, write_stl_binary};
 pub use tin::{triangulate, MissingSamples, Tin, TinParams};
 pub mod node;
+pub mod ports;

@@ -3,3 +3,4 @@
 //! has ended, so a recording on disk is always complete.
 
 pub mod node;
+pub mod ports;
