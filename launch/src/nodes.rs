@@ -52,3 +52,17 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
         ),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_linked_kind_is_registered_once_in_pipeline_order() {
+        // The order is the one graph-file errors list ("expected one of ...").
+        assert_eq!(
+            registry().kind_names(),
+            ["replay", "matcher", "fusion", "wavelet", "mesher", "recorder"]
+        );
+    }
+}

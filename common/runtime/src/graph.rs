@@ -631,6 +631,22 @@ inputs = { tiles = "stage/tiles", panorama = "fusion/panorama" }
     }
 
     #[test]
+    fn keeps_the_launchers_deviation_table() {
+        let g = GraphFile::parse(
+            &format!("{DEMO}\n[deviation]\nthreshold_percent = 2\n"),
+            "demo.toml",
+            &registry(),
+        )
+        .unwrap();
+        let table = g.deviation.unwrap();
+        assert_eq!(table["threshold_percent"].as_integer(), Some(2));
+        assert!(GraphFile::parse(DEMO, "demo.toml", &registry())
+            .unwrap()
+            .deviation
+            .is_none());
+    }
+
+    #[test]
     fn overrides_parse_toml_values() {
         let mut g = GraphFile::parse(DEMO, "demo.toml", &registry()).unwrap();
         g.apply_override("stage.rows=3").unwrap();
