@@ -15,6 +15,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, bail, Context, Result};
 use serde_json::Value;
+use surfstream_core::metrology::{level_plane, Grid, MetrologyError};
+use surfstream_core::raster::Shape;
 use surfstream_core::similarity::ssim;
 
 use crate::{launcher, stitch_graph};
@@ -169,80 +171,54 @@ impl Truth {
         let px = num(fusion, fpath, "/report/panorama/pitch_x_um")?;
         let py = num(fusion, fpath, "/report/panorama/pitch_y_um")?;
         let pano = surfstream_io::npy::read_npy(dir.join("panorama.npy"))?;
-        let (rows, cols) = (pano.rows, pano.cols);
-        let mut p = Vec::with_capacity(rows * cols);
-        let mut t = Vec::with_capacity(rows * cols);
-        for r in 0..rows {
-            for c in 0..cols {
+        let shape = Shape {
+            rows: pano.rows,
+            cols: pano.cols,
+        };
+        // The panorama and the specimen sampled under each of its pixels.
+        let mut p = Vec::with_capacity(shape.len());
+        let mut t = Vec::with_capacity(shape.len());
+        for r in 0..shape.rows {
+            for c in 0..shape.cols {
                 let sx = self.origin0_px[0] + (ox + c as f64 * px - x0_um) / px;
                 let sy = self.origin0_px[1] + (oy + r as f64 * py - y0_um) / py;
                 p.push(f64::from(pano.get(r, c)));
                 t.push(self.sample(sx, sy));
             }
         }
-        // Remove the least-squares plane of the difference (free height and tilt).
-        let plane = fit_plane(&p, &t, rows, cols)
-            .ok_or_else(|| anyhow!("{}: no pixel overlaps the specimen", dir.display()))?;
+        // The difference without its least-squares plane (a stitch's height and tilt are free);
+        // NaN where either map has no value.
+        let diff: Vec<f64> = p
+            .iter()
+            .zip(&t)
+            .map(|(p, t)| {
+                if p.is_finite() && t.is_finite() {
+                    p - t
+                } else {
+                    f64::NAN
+                }
+            })
+            .collect();
+        let grid = Grid::new(&diff, shape.rows, shape.cols, 1.0, 1.0)?;
+        let levelled = match level_plane(&grid) {
+            Err(MetrologyError::NoValidPoint) => {
+                bail!("{}: no pixel overlaps the specimen", dir.display())
+            }
+            other => other?,
+        };
         let mut sq = 0.0;
         let mut n = 0usize;
-        let mut a = vec![f32::NAN; rows * cols];
-        let mut b = vec![f32::NAN; rows * cols];
-        for r in 0..rows {
-            for c in 0..cols {
-                let i = r * cols + c;
-                if p[i].is_finite() && t[i].is_finite() {
-                    let pl = plane[0] + plane[1] * c as f64 + plane[2] * r as f64;
-                    let d = p[i] - pl - t[i];
-                    sq += d * d;
-                    n += 1;
-                    a[i] = (p[i] - pl) as f32;
-                    b[i] = t[i] as f32;
-                }
-            }
+        let mut a = vec![f32::NAN; shape.len()];
+        let mut b = vec![f32::NAN; shape.len()];
+        for (i, d) in levelled.iter().enumerate().filter(|(_, d)| !d.is_nan()) {
+            sq += d * d;
+            n += 1;
+            // The panorama with the difference's plane removed, against the specimen.
+            a[i] = (t[i] + d) as f32;
+            b[i] = t[i] as f32;
         }
+        let (rows, cols) = (shape.rows, shape.cols);
         let s = ssim(&a, &b, rows, cols, None).ok().map(|s| s.mssim);
         Ok(((sq / n.max(1) as f64).sqrt(), s))
     }
-}
-
-/// Least-squares plane `a + b c + d r` of `p - t` over pixels where both are finite.
-fn fit_plane(p: &[f64], t: &[f64], rows: usize, cols: usize) -> Option<[f64; 3]> {
-    let mut m = [[0.0f64; 3]; 3];
-    let mut v = [0.0f64; 3];
-    for r in 0..rows {
-        for c in 0..cols {
-            let i = r * cols + c;
-            if p[i].is_finite() && t[i].is_finite() {
-                let q = [1.0, c as f64, r as f64];
-                for (j, qj) in q.iter().enumerate() {
-                    for (k, qk) in q.iter().enumerate() {
-                        m[j][k] += qj * qk;
-                    }
-                    v[j] += qj * (p[i] - t[i]);
-                }
-            }
-        }
-    }
-    if m[0][0] == 0.0 {
-        return None;
-    }
-    // Cramer's rule on the 3 x 3 normal equations.
-    let det = |m: &[[f64; 3]; 3]| {
-        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
-            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
-            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
-    };
-    let d = det(&m);
-    if d.abs() < 1e-300 {
-        return Some([v[0] / m[0][0], 0.0, 0.0]);
-    }
-    let mut out = [0.0; 3];
-    for (j, o) in out.iter_mut().enumerate() {
-        let mut mj = m;
-        for k in 0..3 {
-            mj[k][j] = v[k];
-        }
-        *o = det(&mj) / d;
-    }
-    Some(out)
 }

@@ -61,7 +61,7 @@ fn prepare(graph: &mut GraphFile) -> Result<Vec<NodeContext>> {
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_nanos() as u64)
         .unwrap_or(0);
-    let contexts = graph.resolve(scan_id)?;
+    let contexts = graph.resolve(scan_id, &crate::nodes::registry())?;
     let resolved = out.join(shell::RESOLVED_GRAPH);
     fsutil::write_atomic(&resolved, |w| {
         serde_json::to_writer_pretty(w, &contexts)

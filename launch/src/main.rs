@@ -151,16 +151,17 @@ fn load_graph(a: &GraphArgs) -> Result<(GraphFile, deviation::Settings)> {
     let origin = a.graph.display().to_string();
     let text = std::fs::read_to_string(&a.graph)
         .with_context(|| format!("{origin}: cannot read graph file"))?;
+    let registry = nodes::registry();
+    let mut graph = GraphFile::parse(&text, &origin, &registry)?;
     // The [deviation] table and `--set deviation.*` are the launcher's, not a node's.
-    let (text, mut settings) = deviation::split_graph_text(&text, &origin)?;
-    let mut graph = GraphFile::parse(&text, &origin)?;
+    let mut settings = deviation::Settings::from_graph(&graph, &origin)?;
     for s in settings.apply_sets(&a.set)? {
         graph.apply_override(&s)?;
     }
     if let Some(out) = &a.out {
         graph.graph.out_dir = out.clone();
     }
-    graph.validate(&a.graph.display().to_string())?;
+    graph.validate(&a.graph.display().to_string(), &registry)?;
     Ok((graph, settings))
 }
 
@@ -225,7 +226,8 @@ inputs = {{ surface = "wavelet/pooled" }}
 "#,
         path = path_str
     );
-    let mut graph = GraphFile::parse(&text, "stitch pipeline")?;
+    let registry = nodes::registry();
+    let mut graph = GraphFile::parse(&text, "stitch pipeline", &registry)?;
     if let Some(m) = method {
         // A string, whatever it looks like: the matcher validates the name.
         graph.apply_override(&format!("matcher.method={}", toml::Value::String(m.into())))?;
@@ -243,6 +245,6 @@ inputs = {{ surface = "wavelet/pooled" }}
         graph.apply_override(&s)?;
     }
     graph.graph.out_dir = out;
-    graph.validate("stitch pipeline")?;
+    graph.validate("stitch pipeline", &registry)?;
     Ok((graph, settings))
 }

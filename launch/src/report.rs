@@ -24,9 +24,25 @@ pub fn write(out: &Path) -> Result<()> {
     })
 }
 
-/// The page for one run; `out` is where the PNG previews are looked for.
+/// The page for one run; `out` is where the PNG previews are looked for. One section after
+/// the other; a section whose data run.json lacks is left out.
 pub fn render(run: &Value, out: &Path) -> Result<String> {
     let mut h = String::new();
+    header(&mut h, run);
+    previews(&mut h, out);
+    tile_layout(&mut h, run);
+    registrations(&mut h, run);
+    mesh(&mut h, run);
+    deviation_tables(&mut h, &run["deviation"]);
+    latencies(&mut h, run);
+    stage_reports(&mut h, run);
+    node_parameters(&mut h, run);
+    h.push_str("</body></html>\n");
+    Ok(h)
+}
+
+/// The document head (title, style) and the run's one-line summary.
+fn header(h: &mut String, run: &Value) {
     let name = run["graph"]["name"].as_str().unwrap_or("run");
     let _ = write!(
         h,
@@ -51,7 +67,10 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
         esc(run["surfstream_version"].as_str().unwrap_or("?")),
         esc(run["graph"]["file"].as_str().unwrap_or("?")),
     );
+}
 
+/// The PNG previews present in `out`, inlined.
+fn previews(h: &mut String, out: &Path) {
     h.push_str("<h2>Previews</h2><div class=\"previews\">");
     for (file, caption) in [
         ("panorama.png", "panorama"),
@@ -69,7 +88,10 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
         }
     }
     h.push_str("</div>\n");
+}
 
+/// Stage vs registered tile positions: an SVG and a table.
+fn tile_layout(h: &mut String, run: &Value) {
     if let Some(tiles) = run["tiles"].as_array().filter(|t| !t.is_empty()) {
         h.push_str("<h2>Tile layout</h2><div class=\"flex\">");
         h.push_str(&layout_svg(tiles, &run["scan"]));
@@ -105,6 +127,10 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
         ));
         h.push_str("</div>\n");
     }
+}
+
+/// Every pair's registration.
+fn registrations(h: &mut String, run: &Value) {
     if let Some(pairs) = run["pairs"].as_array().filter(|p| !p.is_empty()) {
         h.push_str("<h2>Registrations</h2>");
         let rows: Vec<Vec<String>> = pairs
@@ -132,7 +158,10 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
             &rows,
         ));
     }
+}
 
+/// The mesher's report and its fidelity (height field vs re-sampled mesh).
+fn mesh(h: &mut String, run: &Value) {
     if let Some(mesh) = run["stages"]
         .as_object()
         .and_then(|s| s.values().find(|v| v.get("triangles").is_some()))
@@ -163,9 +192,10 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
         h.push_str(&kv_table(mesh, &["fidelity"]));
         h.push_str("</div>\n");
     }
+}
 
-    deviation_tables(&mut h, &run["deviation"]);
-
+/// Latency percentiles per path.
+fn latencies(h: &mut String, run: &Value) {
     if let Some(lat) = run["latency_ms"].as_object() {
         h.push_str("<h2>Latencies (ms)</h2>");
         let mut rows = Vec::new();
@@ -193,8 +223,10 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
         }
         h.push_str(&table(&["path", "p50", "p95", "max", "n"], &rows));
     }
+}
 
-    // Whatever else the stages report (parameters, deviations, SSIM, wavelet levels), flattened.
+/// Whatever else the stages report (parameters, deviations, SSIM, wavelet levels), flattened.
+fn stage_reports(h: &mut String, run: &Value) {
     if let Some(stages) = run["stages"].as_object() {
         h.push_str("<h2>Stage reports</h2><div class=\"flex\">");
         for (id, r) in stages {
@@ -207,6 +239,10 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
         }
         h.push_str("</div>\n");
     }
+}
+
+/// Every node's parameters.
+fn node_parameters(h: &mut String, run: &Value) {
     if let Some(params) = run["parameters"].as_object() {
         h.push_str("<h2>Node parameters</h2><div class=\"flex\">");
         for (id, p) in params {
@@ -216,8 +252,6 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
         }
         h.push_str("</div>\n");
     }
-    h.push_str("</body></html>\n");
-    Ok(h)
 }
 
 /// The ISO 25178 parameters of the measured panorama per region beside those of each model

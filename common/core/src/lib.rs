@@ -2,8 +2,10 @@
 //! transport and no file formats: the frame ([`frame`]), the one raster type ([`raster`]),
 //! the tile plane correction ([`plane`]), atomic output files ([`fsutil`]), ISO 25178
 //! parameters ([`metrology`]), image similarity ([`similarity`]), FFT sizes ([`fft`]) and the
-//! AVX2 dispatch of hot loops ([`simd`]).
+//! AVX2 dispatch of hot loops ([`simd`]); the model-vs-measurement table (Table 6,
+//! [`deviation`]).
 
+pub mod deviation;
 pub mod fft;
 pub mod frame;
 pub mod fsutil;

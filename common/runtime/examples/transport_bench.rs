@@ -14,7 +14,7 @@ use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::*;
 use surfstream_core::frame::monotonic_ns;
 use surfstream_core::{FrameHeader, FrameKind, HeightMap};
-use surfstream_runtime::graph::GraphFile;
+use surfstream_runtime::graph::{GraphFile, NodeRegistry};
 use surfstream_runtime::ipc as ss;
 use surfstream_runtime::latency::percentiles_ms;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
@@ -245,9 +245,36 @@ impl NodeLogic for Sink {
     }
 }
 
+/// The test's node kinds: a source and a sink (the runtime links no node crate).
+fn registry() -> NodeRegistry {
+    use surfstream_runtime::graph::{Delivery, InputDef, NodePorts, PortDef, PortKind};
+    const KINDS: &[NodePorts] = &[
+        NodePorts {
+            kind: "replay",
+            inputs: &[],
+            outputs: &[PortDef::new("tiles", PortKind::Frames, Delivery::Lossless)],
+        },
+        NodePorts {
+            kind: "matcher",
+            inputs: &[InputDef::required("tiles", PortKind::Frames)],
+            outputs: &[PortDef::new(
+                "registrations",
+                PortKind::Registrations,
+                Delivery::Lossless,
+            )],
+        },
+        NodePorts {
+            kind: "recorder",
+            inputs: &[InputDef::ANY],
+            outputs: &[],
+        },
+    ];
+    NodeRegistry::new(KINDS.iter().copied())
+}
+
 fn bench_graph(round: usize) -> anyhow::Result<Vec<surfstream_runtime::graph::NodeContext>> {
     let text = format!("[graph]\nname = \"bench{round}\"\n[[node]]\nid = \"src\"\nnode = \"replay\"\n[[node]]\nid = \"sink\"\nnode = \"matcher\"\ninputs = {{ tiles = \"src/tiles\" }}\n");
-    GraphFile::parse(&text, "bench")?.resolve(round as u64)
+    GraphFile::parse(&text, "bench", &registry())?.resolve(round as u64, &registry())
 }
 
 fn run_ours(domain: &str, frames: usize, side: usize, round: usize) -> anyhow::Result<Vec<u64>> {

@@ -39,6 +39,16 @@ pub struct PortDef {
     pub delivery: Delivery,
 }
 
+impl PortDef {
+    pub const fn new(name: &'static str, kind: PortKind, delivery: Delivery) -> Self {
+        Self {
+            name,
+            kind,
+            delivery,
+        }
+    }
+}
+
 /// An input port of a node kind. `name = "*"` accepts any input name (the recorder).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct InputDef {
@@ -48,65 +58,66 @@ pub struct InputDef {
     pub required: bool,
 }
 
-const fn out(name: &'static str, kind: PortKind, delivery: Delivery) -> PortDef {
-    PortDef {
-        name,
-        kind,
-        delivery,
+impl InputDef {
+    /// An input the graph must wire.
+    pub const fn required(name: &'static str, kind: PortKind) -> Self {
+        Self {
+            name,
+            kind: Some(kind),
+            required: true,
+        }
     }
-}
-const fn inp(name: &'static str, kind: Option<PortKind>, required: bool) -> InputDef {
-    InputDef {
-        name,
-        kind,
-        required,
+    /// An input the graph may leave unwired (the node's build decides what it needs).
+    pub const fn optional(name: &'static str, kind: PortKind) -> Self {
+        Self {
+            name,
+            kind: Some(kind),
+            required: false,
+        }
     }
+    /// Any number of inputs of any name and kind (the recorder).
+    pub const ANY: Self = Self {
+        name: "*",
+        kind: None,
+        required: false,
+    };
 }
 
-/// The node kinds, their binaries' ports. One table, so the launcher and every node agree.
-pub fn node_kind_ports(kind: &str) -> Option<(&'static [InputDef], &'static [PortDef])> {
-    use Delivery::*;
-    use PortKind::*;
-    const REPLAY_OUT: &[PortDef] = &[out("tiles", Frames, Lossless)];
-    const MATCHER_IN: &[InputDef] = &[inp("tiles", Some(Frames), true)];
-    const MATCHER_OUT: &[PortDef] = &[out("registrations", Registrations, Lossless)];
-    const FUSION_IN: &[InputDef] = &[
-        inp("tiles", Some(Frames), true),
-        inp("registrations", Some(Registrations), true),
-    ];
-    const FUSION_OUT: &[PortDef] = &[
-        out("panorama", Frames, Lossless),
-        out("preview", Frames, LatestWins),
-    ];
-    const WAVELET_IN: &[InputDef] = &[inp("panorama", Some(Frames), true)];
-    const WAVELET_OUT: &[PortDef] = &[
-        out("datum", Frames, Lossless),
-        out("roughness", Frames, Lossless),
-        out("pooled", Frames, Lossless),
-    ];
-    // Which of these the mesher needs follows its `surface` parameter (its build checks it):
-    // `surface` for the pooled map or the panorama, `datum` and/or `roughness` otherwise.
-    const MESHER_IN: &[InputDef] = &[
-        inp("surface", Some(Frames), false),
-        inp("datum", Some(Frames), false),
-        inp("roughness", Some(Frames), false),
-    ];
-    const RECORDER_IN: &[InputDef] = &[inp("*", None, false)];
-    Some(match kind {
-        "replay" => (&[], REPLAY_OUT),
-        "matcher" => (MATCHER_IN, MATCHER_OUT),
-        "fusion" => (FUSION_IN, FUSION_OUT),
-        "wavelet" => (WAVELET_IN, WAVELET_OUT),
-        "mesher" => (MESHER_IN, &[]),
-        "recorder" => (RECORDER_IN, &[]),
-        _ => return None,
-    })
+/// The ports of one node kind. Each node crate declares its own (`surfstream_<kind>::ports::PORTS`),
+/// so adding a node kind touches only its crate and the registry its caller builds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct NodePorts {
+    /// The `node = "..."` name in graph files; the binary is `surfstream-<kind>`.
+    pub kind: &'static str,
+    pub inputs: &'static [InputDef],
+    pub outputs: &'static [PortDef],
 }
 
-/// The node kinds a graph may use.
-pub const NODE_KINDS: &[&str] = &[
-    "replay", "matcher", "fusion", "wavelet", "mesher", "recorder",
-];
+/// The node kinds a graph may use, in the order errors list them. Built by the caller from the
+/// node crates it links (the launcher links them all); node binaries need none, since the
+/// resolved context the launcher hands them already carries their wiring.
+#[derive(Debug, Clone, Default)]
+pub struct NodeRegistry {
+    kinds: Vec<NodePorts>,
+}
+
+impl NodeRegistry {
+    pub fn new(kinds: impl IntoIterator<Item = NodePorts>) -> Self {
+        Self {
+            kinds: kinds.into_iter().collect(),
+        }
+    }
+
+    /// The ports of `kind`, if the registry knows it.
+    pub fn ports(&self, kind: &str) -> Option<&NodePorts> {
+        self.kinds.iter().find(|k| k.kind == kind)
+    }
+
+    /// The known kinds' names, in registry order.
+    pub fn kind_names(&self) -> Vec<&'static str> {
+        self.kinds.iter().map(|k| k.kind).collect()
+    }
+}
 
 /// `[graph]` section.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -153,6 +164,10 @@ pub struct GraphFile {
     pub graph: GraphSection,
     #[serde(default, rename = "node")]
     pub nodes: Vec<NodeEntry>,
+    /// `[deviation]`: the launcher's model-vs-measurement settings (Table 6). No node reads
+    /// it; the graph keeps it so the launcher reads it from the parsed file.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub deviation: Option<toml::Table>,
 }
 
 /// A resolved input: where it comes from.
@@ -249,23 +264,23 @@ pub fn service_name(graph: &str, node_id: &str, port: &str) -> String {
 }
 
 impl GraphFile {
-    /// Reads and validates a graph file.
-    pub fn load(path: &Path) -> Result<Self> {
+    /// Reads and validates a graph file against the node kinds of `registry`.
+    pub fn load(path: &Path, registry: &NodeRegistry) -> Result<Self> {
         let text = std::fs::read_to_string(path)
             .with_context(|| format!("{}: cannot read graph file", path.display()))?;
-        Self::parse(&text, &path.display().to_string())
+        Self::parse(&text, &path.display().to_string(), registry)
     }
 
     /// Parses and validates graph TOML; `origin` names the file in errors.
-    pub fn parse(text: &str, origin: &str) -> Result<Self> {
+    pub fn parse(text: &str, origin: &str, registry: &NodeRegistry) -> Result<Self> {
         let graph: GraphFile =
             toml::from_str(text).map_err(|e| anyhow!("{origin}: not a valid graph file: {e}"))?;
-        graph.validate(origin)?;
+        graph.validate(origin, registry)?;
         Ok(graph)
     }
 
-    /// Checks names, kinds and wiring.
-    pub fn validate(&self, origin: &str) -> Result<()> {
+    /// Checks names, kinds (those of `registry`) and wiring.
+    pub fn validate(&self, origin: &str, registry: &NodeRegistry) -> Result<()> {
         let valid_name = |s: &str| {
             !s.is_empty()
                 && s.len() <= 64
@@ -306,18 +321,20 @@ impl GraphFile {
                     n.id
                 );
             }
-            if node_kind_ports(&n.node).is_none() {
+            if registry.ports(&n.node).is_none() {
                 bail!(
                     "{origin}: node '{}': node = {:?}: expected one of {}",
                     n.id,
                     n.node,
-                    NODE_KINDS.join(", ")
+                    registry.kind_names().join(", ")
                 );
             }
         }
         for n in &self.nodes {
-            let (ins, _) = node_kind_ports(&n.node).ok_or_else(|| anyhow!("unreachable"))?;
-            let any = ins.iter().any(|d| d.name == "*");
+            let ins = registry
+                .ports(&n.node)
+                .ok_or_else(|| anyhow!("unreachable"))?
+                .inputs;
             for def in ins.iter().filter(|d| d.required) {
                 if !n.inputs.contains_key(def.name) {
                     bail!(
@@ -356,8 +373,10 @@ impl GraphFile {
                         n.id
                     )
                 })?;
-                let (_, outs) =
-                    node_kind_ports(&producer.node).ok_or_else(|| anyhow!("unreachable"))?;
+                let outs = registry
+                    .ports(&producer.node)
+                    .ok_or_else(|| anyhow!("unreachable"))?
+                    .outputs;
                 let out = outs.iter().find(|o| o.name == from_port).ok_or_else(|| {
                     let names: Vec<_> = outs.iter().map(|o| o.name).collect();
                     anyhow!(
@@ -383,7 +402,6 @@ impl GraphFile {
                         n.id
                     );
                 }
-                let _ = any;
             }
         }
         Ok(())
@@ -423,11 +441,13 @@ impl GraphFile {
     }
 
     /// Resolves every node's wiring. `out_dir` must already be final (absolute for processes).
-    pub fn resolve(&self, scan_id: u64) -> Result<Vec<NodeContext>> {
+    pub fn resolve(&self, scan_id: u64, registry: &NodeRegistry) -> Result<Vec<NodeContext>> {
         let mut contexts = Vec::with_capacity(self.nodes.len());
         for n in &self.nodes {
-            let (_, outs) = node_kind_ports(&n.node)
-                .ok_or_else(|| anyhow!("node '{}': unknown kind {:?}", n.id, n.node))?;
+            let outs = registry
+                .ports(&n.node)
+                .ok_or_else(|| anyhow!("node '{}': unknown kind {:?}", n.id, n.node))?
+                .outputs;
             let mut inputs = Vec::new();
             for (port, source) in &n.inputs {
                 let (from_node, from_port) = source
@@ -440,8 +460,10 @@ impl GraphFile {
                     .ok_or_else(|| {
                         anyhow!("node '{}': inputs.{port}: no node {from_node}", n.id)
                     })?;
-                let (_, pouts) = node_kind_ports(&producer.node)
-                    .ok_or_else(|| anyhow!("node '{}': unknown kind", producer.id))?;
+                let pouts = registry
+                    .ports(&producer.node)
+                    .ok_or_else(|| anyhow!("node '{}': unknown kind", producer.id))?
+                    .outputs;
                 let def = pouts.iter().find(|o| o.name == from_port).ok_or_else(|| {
                     anyhow!("node '{}': inputs.{port}: no port {from_port}", n.id)
                 })?;
@@ -484,6 +506,41 @@ impl GraphFile {
 mod tests {
     use super::*;
 
+    /// The test's own node kinds (the runtime links no node crate).
+    fn registry() -> NodeRegistry {
+        use Delivery::*;
+        use PortKind::*;
+        const KINDS: &[NodePorts] = &[
+            NodePorts {
+                kind: "replay",
+                inputs: &[],
+                outputs: &[PortDef::new("tiles", Frames, Lossless)],
+            },
+            NodePorts {
+                kind: "matcher",
+                inputs: &[InputDef::required("tiles", Frames)],
+                outputs: &[PortDef::new("registrations", Registrations, Lossless)],
+            },
+            NodePorts {
+                kind: "fusion",
+                inputs: &[
+                    InputDef::required("tiles", Frames),
+                    InputDef::required("registrations", Registrations),
+                ],
+                outputs: &[
+                    PortDef::new("panorama", Frames, Lossless),
+                    PortDef::new("preview", Frames, LatestWins),
+                ],
+            },
+            NodePorts {
+                kind: "recorder",
+                inputs: &[InputDef::ANY],
+                outputs: &[],
+            },
+        ];
+        NodeRegistry::new(KINDS.iter().copied())
+    }
+
     const DEMO: &str = r#"
 [graph]
 name = "demo"
@@ -512,8 +569,8 @@ inputs = { tiles = "stage/tiles", panorama = "fusion/panorama" }
 
     #[test]
     fn resolves_wiring_and_subscriber_counts() {
-        let g = GraphFile::parse(DEMO, "demo.toml").unwrap();
-        let ctx = g.resolve(7).unwrap();
+        let g = GraphFile::parse(DEMO, "demo.toml", &registry()).unwrap();
+        let ctx = g.resolve(7, &registry()).unwrap();
         let stage = &ctx[0];
         assert_eq!(stage.outputs[0].port, "tiles");
         assert_eq!(stage.outputs[0].subscribers, 3);
@@ -536,7 +593,9 @@ inputs = { tiles = "stage/tiles", panorama = "fusion/panorama" }
             "stage/tiles\" }\n\n[[node]]\nid = \"fusion\"",
             "stage/tile\" }\n\n[[node]]\nid = \"fusion\"",
         );
-        let e = GraphFile::parse(&bad, "g.toml").unwrap_err().to_string();
+        let e = GraphFile::parse(&bad, "g.toml", &registry())
+            .unwrap_err()
+            .to_string();
         assert!(
             e.contains("g.toml") && e.contains("inputs.tiles") && e.contains("no output"),
             "{e}"
@@ -545,15 +604,18 @@ inputs = { tiles = "stage/tiles", panorama = "fusion/panorama" }
         let e = GraphFile::parse(
             "[graph]\nname = \"x\"\n[[node]]\nid=\"a\"\nnode=\"warp\"\n",
             "h.toml",
+            &registry(),
         )
         .unwrap_err()
         .to_string();
         assert!(
-            e.contains("h.toml") && e.contains("warp") && e.contains("expected one of"),
+            e.contains("h.toml")
+                && e.contains("warp")
+                && e.contains("expected one of replay, matcher, fusion, recorder"),
             "{e}"
         );
 
-        let e = GraphFile::parse("[graph]\nnam = \"x\"\n", "i.toml")
+        let e = GraphFile::parse("[graph]\nnam = \"x\"\n", "i.toml", &registry())
             .unwrap_err()
             .to_string();
         assert!(e.contains("i.toml") && e.contains("nam"), "{e}");
@@ -561,6 +623,7 @@ inputs = { tiles = "stage/tiles", panorama = "fusion/panorama" }
         let e = GraphFile::parse(
             "[graph]\nname = \"x\"\n[[node]]\nid=\"m\"\nnode=\"matcher\"\n",
             "j.toml",
+            &registry(),
         )
         .unwrap_err()
         .to_string();
@@ -568,8 +631,24 @@ inputs = { tiles = "stage/tiles", panorama = "fusion/panorama" }
     }
 
     #[test]
+    fn keeps_the_launchers_deviation_table() {
+        let g = GraphFile::parse(
+            &format!("{DEMO}\n[deviation]\nthreshold_percent = 2\n"),
+            "demo.toml",
+            &registry(),
+        )
+        .unwrap();
+        let table = g.deviation.unwrap();
+        assert_eq!(table["threshold_percent"].as_integer(), Some(2));
+        assert!(GraphFile::parse(DEMO, "demo.toml", &registry())
+            .unwrap()
+            .deviation
+            .is_none());
+    }
+
+    #[test]
     fn overrides_parse_toml_values() {
-        let mut g = GraphFile::parse(DEMO, "demo.toml").unwrap();
+        let mut g = GraphFile::parse(DEMO, "demo.toml", &registry()).unwrap();
         g.apply_override("stage.rows=3").unwrap();
         g.apply_override("stage.source=scan").unwrap();
         g.apply_override("stage.overlap=0.2").unwrap();

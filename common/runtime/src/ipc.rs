@@ -3,8 +3,8 @@
 //! Per output port: a publish-subscribe service `surfstream/<graph>/<node>/<port>`, an event
 //! service of the same name for wake-ups, and `<name>/ready` for the startup handshake.
 //! Lossless ports never overflow: the publisher waits for one "ready" per expected subscriber
-//! before its first send (iceoryx2 drops samples for subscribers that have not attached yet),
-//! every `send()` must reach that many receivers, and a full queue fails loudly after the
+//! before its first send (iceoryx2 drops samples for subscribers that have not attached yet;
+//! see [`LosslessHandshake`]), every `send()` must reach that many receivers, and a full queue fails loudly after the
 //! graph's backpressure timeout. Latest-wins ports overwrite (buffer 1, history 1).
 //! Each node waits on one WaitSet (inputs + a housekeeping tick), never busy-polls, and at the
 //! end keeps its publishers alive until every subscriber has left, so nothing in flight is lost
@@ -20,7 +20,7 @@ use iceoryx2::port::{BackpressureAction, BackpressureInfo};
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::{event as event_factory, publish_subscribe as ps_factory};
 
-use crate::graph::{service_name, Delivery, NodeContext, PortKind};
+use crate::graph::{service_name, Delivery, InputSpec, NodeContext, OutputSpec, PortKind};
 use crate::node::{deliver, Input, NodeLogic, NodeReport, NodeStats, Outbox, Output};
 use surfstream_core::frame::{FrameHeader, FrameView, TileRegistration};
 
@@ -325,7 +325,9 @@ pub fn launcher_link(graph: &str) -> LauncherLink {
     }
 }
 
-/// Runs one node as this process's only iceoryx2 node until it finishes.
+/// Runs one node as this process's only iceoryx2 node until it finishes: open outputs, open
+/// inputs, the lossless handshake, the launcher's start signal, the event loop, then hold the
+/// outputs until every subscriber has left.
 pub fn run_node(
     ctx: &NodeContext,
     logic: &mut dyn NodeLogic,
@@ -333,207 +335,322 @@ pub fn run_node(
     launcher: Option<&LauncherLink>,
 ) -> Result<NodeReport> {
     let node = create_node(cfg, &format!("{}/{}", ctx.graph_name, ctx.node_id))?;
-    let startup = Duration::from_secs_f64(ctx.startup_timeout_s);
-    let deadline = Instant::now() + startup;
-    let backpressure = Duration::from_secs_f64(ctx.backpressure_timeout_s);
-
-    // 1. Outputs: the ready listener exists before the publisher, so no "ready" is missed.
-    let mut outs = Vec::new();
-    for o in &ctx.outputs {
-        let name = ctx.service_name(&ctx.node_id, &o.port);
-        let ready_service = open_events(&node, &format!("{name}/ready"), deadline)?;
-        let ready_listener = match o.delivery {
-            Delivery::Lossless => Some(
-                ready_service
-                    .listener_builder()
-                    .create()
-                    .map_err(|e| anyhow!("{name}/ready: cannot create listener: {e:?}"))?,
-            ),
-            Delivery::LatestWins => None,
-        };
-        let handler = move |info: &BackpressureInfo| {
-            if info.elapsed_time > backpressure {
-                BackpressureAction::DiscardDataAndFail
-            } else {
-                BackpressureAction::Retry
-            }
-        };
-        let sender = match o.kind {
-            PortKind::Frames => {
-                let f = open_frames(&node, &name, o.delivery, o.subscribers, deadline)?;
-                let p = f
-                    .publisher_builder()
-                    .initial_max_slice_len(1 << 20)
-                    .allocation_strategy(AllocationStrategy::PowerOfTwo)
-                    .max_loaned_samples(1)
-                    .backpressure_strategy(match o.delivery {
-                        Delivery::Lossless => BackpressureStrategy::RetryUntilDelivered,
-                        Delivery::LatestWins => BackpressureStrategy::DiscardData,
-                    })
-                    .set_backpressure_handler(handler)
-                    .create()
-                    .map_err(|e| anyhow!("{name}: cannot create publisher: {e:?}"))?;
-                Sender::Frames(f, p)
-            }
-            PortKind::Registrations => {
-                let f = open_registrations(&node, &name, o.subscribers, deadline)?;
-                let p = f
-                    .publisher_builder()
-                    .max_loaned_samples(1)
-                    .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
-                    .set_backpressure_handler(handler)
-                    .create()
-                    .map_err(|e| anyhow!("{name}: cannot create publisher: {e:?}"))?;
-                Sender::Registrations(f, p)
-            }
-        };
-        let wake_service = open_events(&node, &name, deadline)?;
-        let wake = wake_service
-            .notifier_builder()
-            .create()
-            .map_err(|e| anyhow!("{name}: cannot create notifier: {e:?}"))?;
-        outs.push(OutPort {
-            port: o.port.clone(),
-            delivery: o.delivery,
-            expected: match o.delivery {
-                Delivery::Lossless => o.subscribers,
-                Delivery::LatestWins => 0,
-            },
-            sender,
-            wake,
-            ready_listener,
-            _ready_service: ready_service,
-            _wake_service: wake_service,
-            sequence: 0,
-        });
-    }
-
-    // 2. Inputs: attach once the producer's publisher exists, then tell it we are ready.
-    let mut ins = Vec::new();
-    for i in &ctx.inputs {
-        let name = ctx.service_name(&i.from_node, &i.from_port);
-        let receiver = match i.kind {
-            PortKind::Frames => {
-                let f = open_frames(&node, &name, i.delivery, i.producer_subscribers, deadline)?;
-                let s = f
-                    .subscriber_builder()
-                    .create()
-                    .map_err(|e| anyhow!("{name}: cannot create subscriber: {e:?}"))?;
-                Receiver::Frames(f, s)
-            }
-            PortKind::Registrations => {
-                let f = open_registrations(&node, &name, i.producer_subscribers, deadline)?;
-                let s = f
-                    .subscriber_builder()
-                    .create()
-                    .map_err(|e| anyhow!("{name}: cannot create subscriber: {e:?}"))?;
-                Receiver::Registrations(f, s)
-            }
-        };
-        let wake_service = open_events(&node, &name, deadline)?;
-        let listener = wake_service
-            .listener_builder()
-            .create()
-            .map_err(|e| anyhow!("{name}: cannot create listener: {e:?}"))?;
-        let port = InPort {
-            port: i.port.clone(),
-            topic: i.topic(),
-            receiver,
-            listener,
-            _wake_service: wake_service,
-        };
-        // Startup only: wait (politely) for the producer's publisher to exist.
-        while port.publishers_now() == 0 {
-            check_stop()?;
-            if Instant::now() > deadline {
-                bail!(
-                    "input '{}': producer {} did not appear within {:.0} s",
-                    i.port,
-                    i.topic(),
-                    startup.as_secs_f64()
-                );
-            }
-            std::thread::sleep(Duration::from_millis(2));
-        }
-        port.update_connections()?;
-        if i.delivery == Delivery::Lossless {
-            let ready = open_events(&node, &format!("{name}/ready"), deadline)?;
-            let n = ready
-                .notifier_builder()
-                .create()
-                .map_err(|e| anyhow!("{name}/ready: cannot create notifier: {e:?}"))?;
-            n.notify()
-                .map_err(|e| anyhow!("{name}/ready: notify failed: {e:?}"))?;
-        }
-        ins.push(port);
-    }
-
-    // 3. Handshake: every lossless output has heard from all its subscribers.
-    for o in &mut outs {
-        let Some(listener) = o.ready_listener.take() else {
-            continue;
-        };
-        let mut ready = 0u64;
-        while ready < o.expected as u64 {
-            check_stop()?;
-            let left = deadline.saturating_duration_since(Instant::now());
-            if left.is_zero() {
-                bail!(
-                    "output '{}': only {ready} of {} subscribers attached within {:.0} s",
-                    o.port,
-                    o.expected,
-                    startup.as_secs_f64()
-                );
-            }
-            listener
-                .timed_wait(|e| ready += e.count, left.min(Duration::from_millis(100)))
-                .map_err(|e| anyhow!("output '{}': ready wait failed: {e:?}", o.port))?;
-        }
-    }
-
-    // 4. Under the launcher: report ready, and sources wait for "go".
+    let startup = Startup::of(ctx);
+    let mut outs = ctx
+        .outputs
+        .iter()
+        .map(|o| open_output(&node, ctx, o, &startup))
+        .collect::<Result<Vec<_>>>()?;
+    let ins = ctx
+        .inputs
+        .iter()
+        .map(|i| open_input(&node, ctx, i, &startup))
+        .collect::<Result<Vec<_>>>()?;
+    LosslessHandshake::await_subscribers(&mut outs, &startup)?;
     if let Some(link) = launcher {
-        let go_service = open_events(&node, &link.go_service, deadline)?;
-        let go = go_service
-            .listener_builder()
-            .create()
-            .map_err(|e| anyhow!("{}: cannot create listener: {e:?}", link.go_service))?;
-        let ready_service = open_events(&node, &link.ready_service, deadline)?;
-        ready_service
+        join_launcher(&node, link, ctx.inputs.is_empty(), &startup)?;
+    }
+    let stats = event_loop(&node, ctx, logic, &ins, &mut outs)?;
+    // Leave inputs, then hold outputs: samples in flight (and a panorama in a freshly grown
+    // segment) stay readable until consumed.
+    drop(ins);
+    hold_until_subscribers_left(&node, &outs)?;
+    Ok(NodeReport::finished(ctx, stats, logic))
+}
+
+/// The startup budget: attach, handshake and readiness share one deadline.
+struct Startup {
+    timeout: Duration,
+    deadline: Instant,
+}
+
+impl Startup {
+    fn of(ctx: &NodeContext) -> Self {
+        let timeout = Duration::from_secs_f64(ctx.startup_timeout_s);
+        Self {
+            timeout,
+            deadline: Instant::now() + timeout,
+        }
+    }
+    fn expired(&self) -> bool {
+        Instant::now() > self.deadline
+    }
+    fn left(&self) -> Duration {
+        self.deadline.saturating_duration_since(Instant::now())
+    }
+    fn seconds(&self) -> f64 {
+        self.timeout.as_secs_f64()
+    }
+}
+
+/// The lossless handshake (DESIGN §3). iceoryx2 delivers a sample only to the subscribers
+/// connected when it is sent, so a publisher that sends before a subscriber attached would
+/// lose that subscriber's first frames silently. The handshake has three steps:
+///
+/// 1. [`LosslessHandshake::listen`]: each lossless output opens the listener of
+///    `<service>/ready` *before* its publisher exists, so no subscriber's "ready" can be missed;
+/// 2. [`LosslessHandshake::announce`]: each subscriber, once connected to the publisher,
+///    notifies `<service>/ready` once;
+/// 3. [`LosslessHandshake::await_subscribers`]: each lossless output waits for as many
+///    "ready"s as the graph wired subscribers to it, or fails after the startup timeout
+///    saying how many came.
+///
+/// Guarantee: when `await_subscribers` returns, every subscriber the graph wired to a lossless
+/// output is connected, so the first sample reaches all of them. From then on every send
+/// checks that it reached that many receivers (`send_all`): a lossless channel never drops
+/// without failing loudly. Latest-wins outputs take no part.
+struct LosslessHandshake;
+
+impl LosslessHandshake {
+    fn ready_service(service: &str) -> String {
+        format!("{service}/ready")
+    }
+
+    /// Step 1, publisher side: the ready listener of a lossless output (none for latest-wins).
+    fn listen(
+        ready_service: &EventFactory,
+        service: &str,
+        delivery: Delivery,
+    ) -> Result<Option<iceoryx2::port::listener::Listener<ipc::Service>>> {
+        match delivery {
+            Delivery::Lossless => ready_service
+                .listener_builder()
+                .create()
+                .map(Some)
+                .map_err(|e| anyhow!("{service}/ready: cannot create listener: {e:?}")),
+            Delivery::LatestWins => Ok(None),
+        }
+    }
+
+    /// Step 2, subscriber side: tells the producer of `service` this subscriber is connected.
+    fn announce(node: &Node<ipc::Service>, service: &str, deadline: Instant) -> Result<()> {
+        let ready = open_events(node, &Self::ready_service(service), deadline)?;
+        let n = ready
             .notifier_builder()
             .create()
-            .map_err(|e| anyhow!("{}: cannot create notifier: {e:?}", link.ready_service))?
-            .notify()
-            .map_err(|e| anyhow!("{}: notify failed: {e:?}", link.ready_service))?;
-        if ctx.inputs.is_empty() {
-            let mut started = false;
-            while !started {
+            .map_err(|e| anyhow!("{service}/ready: cannot create notifier: {e:?}"))?;
+        n.notify()
+            .map_err(|e| anyhow!("{service}/ready: notify failed: {e:?}"))?;
+        Ok(())
+    }
+
+    /// Step 3, publisher side: waits until every lossless output has heard "ready" from all
+    /// the subscribers the graph wired to it.
+    fn await_subscribers(outs: &mut [OutPort], startup: &Startup) -> Result<()> {
+        for o in outs {
+            let Some(listener) = o.ready_listener.take() else {
+                continue;
+            };
+            let mut ready = 0u64;
+            while ready < o.expected as u64 {
                 check_stop()?;
-                if Instant::now() > deadline {
+                let left = startup.left();
+                if left.is_zero() {
                     bail!(
-                        "the launcher did not say 'go' within {:.0} s",
-                        startup.as_secs_f64()
+                        "output '{}': only {ready} of {} subscribers attached within {:.0} s",
+                        o.port,
+                        o.expected,
+                        startup.seconds()
                     );
                 }
-                go.timed_wait(|_| started = true, Duration::from_millis(100))
-                    .map_err(|e| anyhow!("go wait failed: {e:?}"))?;
+                listener
+                    .timed_wait(|e| ready += e.count, left.min(Duration::from_millis(100)))
+                    .map_err(|e| anyhow!("output '{}': ready wait failed: {e:?}", o.port))?;
             }
         }
+        Ok(())
     }
+}
 
-    // 5. The event loop.
+/// Opens one output port: ready listener (handshake step 1), then publisher and wake-up
+/// notifier.
+fn open_output(
+    node: &Node<ipc::Service>,
+    ctx: &NodeContext,
+    o: &OutputSpec,
+    startup: &Startup,
+) -> Result<OutPort> {
+    let deadline = startup.deadline;
+    let name = ctx.service_name(&ctx.node_id, &o.port);
+    let ready_service = open_events(node, &LosslessHandshake::ready_service(&name), deadline)?;
+    let ready_listener = LosslessHandshake::listen(&ready_service, &name, o.delivery)?;
+    let backpressure = Duration::from_secs_f64(ctx.backpressure_timeout_s);
+    let handler = move |info: &BackpressureInfo| {
+        if info.elapsed_time > backpressure {
+            BackpressureAction::DiscardDataAndFail
+        } else {
+            BackpressureAction::Retry
+        }
+    };
+    let sender = match o.kind {
+        PortKind::Frames => {
+            let f = open_frames(node, &name, o.delivery, o.subscribers, deadline)?;
+            let p = f
+                .publisher_builder()
+                .initial_max_slice_len(1 << 20)
+                .allocation_strategy(AllocationStrategy::PowerOfTwo)
+                .max_loaned_samples(1)
+                .backpressure_strategy(match o.delivery {
+                    Delivery::Lossless => BackpressureStrategy::RetryUntilDelivered,
+                    Delivery::LatestWins => BackpressureStrategy::DiscardData,
+                })
+                .set_backpressure_handler(handler)
+                .create()
+                .map_err(|e| anyhow!("{name}: cannot create publisher: {e:?}"))?;
+            Sender::Frames(f, p)
+        }
+        PortKind::Registrations => {
+            let f = open_registrations(node, &name, o.subscribers, deadline)?;
+            let p = f
+                .publisher_builder()
+                .max_loaned_samples(1)
+                .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
+                .set_backpressure_handler(handler)
+                .create()
+                .map_err(|e| anyhow!("{name}: cannot create publisher: {e:?}"))?;
+            Sender::Registrations(f, p)
+        }
+    };
+    let wake_service = open_events(node, &name, deadline)?;
+    let wake = wake_service
+        .notifier_builder()
+        .create()
+        .map_err(|e| anyhow!("{name}: cannot create notifier: {e:?}"))?;
+    Ok(OutPort {
+        port: o.port.clone(),
+        delivery: o.delivery,
+        expected: match o.delivery {
+            Delivery::Lossless => o.subscribers,
+            Delivery::LatestWins => 0,
+        },
+        sender,
+        wake,
+        ready_listener,
+        _ready_service: ready_service,
+        _wake_service: wake_service,
+        sequence: 0,
+    })
+}
+
+/// Opens one input port: subscriber and wake-up listener, waits for the producer's publisher,
+/// connects, and on a lossless input announces itself (handshake step 2).
+fn open_input(
+    node: &Node<ipc::Service>,
+    ctx: &NodeContext,
+    i: &InputSpec,
+    startup: &Startup,
+) -> Result<InPort> {
+    let deadline = startup.deadline;
+    let name = ctx.service_name(&i.from_node, &i.from_port);
+    let receiver = match i.kind {
+        PortKind::Frames => {
+            let f = open_frames(node, &name, i.delivery, i.producer_subscribers, deadline)?;
+            let s = f
+                .subscriber_builder()
+                .create()
+                .map_err(|e| anyhow!("{name}: cannot create subscriber: {e:?}"))?;
+            Receiver::Frames(f, s)
+        }
+        PortKind::Registrations => {
+            let f = open_registrations(node, &name, i.producer_subscribers, deadline)?;
+            let s = f
+                .subscriber_builder()
+                .create()
+                .map_err(|e| anyhow!("{name}: cannot create subscriber: {e:?}"))?;
+            Receiver::Registrations(f, s)
+        }
+    };
+    let wake_service = open_events(node, &name, deadline)?;
+    let listener = wake_service
+        .listener_builder()
+        .create()
+        .map_err(|e| anyhow!("{name}: cannot create listener: {e:?}"))?;
+    let port = InPort {
+        port: i.port.clone(),
+        topic: i.topic(),
+        receiver,
+        listener,
+        _wake_service: wake_service,
+    };
+    // Startup only: wait (politely) for the producer's publisher to exist.
+    while port.publishers_now() == 0 {
+        check_stop()?;
+        if startup.expired() {
+            bail!(
+                "input '{}': producer {} did not appear within {:.0} s",
+                i.port,
+                i.topic(),
+                startup.seconds()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    port.update_connections()?;
+    if i.delivery == Delivery::Lossless {
+        LosslessHandshake::announce(node, &name, deadline)?;
+    }
+    Ok(port)
+}
+
+/// Under the launcher: report ready, and a source (no inputs) waits for "go", so no source
+/// sends before every node of the graph is up.
+fn join_launcher(
+    node: &Node<ipc::Service>,
+    link: &LauncherLink,
+    is_source: bool,
+    startup: &Startup,
+) -> Result<()> {
+    let go_service = open_events(node, &link.go_service, startup.deadline)?;
+    let go = go_service
+        .listener_builder()
+        .create()
+        .map_err(|e| anyhow!("{}: cannot create listener: {e:?}", link.go_service))?;
+    let ready_service = open_events(node, &link.ready_service, startup.deadline)?;
+    ready_service
+        .notifier_builder()
+        .create()
+        .map_err(|e| anyhow!("{}: cannot create notifier: {e:?}", link.ready_service))?
+        .notify()
+        .map_err(|e| anyhow!("{}: notify failed: {e:?}", link.ready_service))?;
+    if is_source {
+        let mut started = false;
+        while !started {
+            check_stop()?;
+            if startup.expired() {
+                bail!(
+                    "the launcher did not say 'go' within {:.0} s",
+                    startup.seconds()
+                );
+            }
+            go.timed_wait(|_| started = true, Duration::from_millis(100))
+                .map_err(|e| anyhow!("go wait failed: {e:?}"))?;
+        }
+    }
+    Ok(())
+}
+
+/// The event loop: one WaitSet over the inputs' wake-ups and a housekeeping tick; each round
+/// drains every input, fires a due timer, sends what the logic produced and, on the tick,
+/// checks that producers are still alive. Returns the node's message statistics.
+fn event_loop(
+    node: &Node<ipc::Service>,
+    ctx: &NodeContext,
+    logic: &mut dyn NodeLogic,
+    ins: &[InPort],
+    outs: &mut [OutPort],
+) -> Result<NodeStats> {
     let waitset = WaitSetBuilder::new()
         .signal_handling_mode(SignalHandlingMode::Disabled)
         .create::<ipc::Service>()
         .map_err(|e| anyhow!("cannot create WaitSet: {e:?}"))?;
-    let mut guards = Vec::new();
-    for p in &ins {
-        guards.push(
+    let _guards = ins
+        .iter()
+        .map(|p| {
             waitset
                 .attach_notification(&p.listener)
-                .map_err(|e| anyhow!("cannot attach input '{}': {e:?}", p.port))?,
-        );
-    }
+                .map_err(|e| anyhow!("cannot attach input '{}': {e:?}", p.port))
+        })
+        .collect::<Result<Vec<_>>>()?;
     let tick = waitset
         .attach_interval(HOUSEKEEPING)
         .map_err(|e| anyhow!("cannot attach housekeeping tick: {e:?}"))?;
@@ -543,15 +660,6 @@ pub fn run_node(
     let mut ended = vec![false; ins.len()];
     while !logic.finished() {
         check_stop()?;
-        let timeout = logic
-            .next_wakeup()
-            .map(|w| w.saturating_duration_since(Instant::now()))
-            .unwrap_or(HOUSEKEEPING)
-            .min(if logic.has_pending_work() {
-                Duration::ZERO
-            } else {
-                HOUSEKEEPING
-            });
         waitset
             .wait_and_process_once_with_timeout(
                 |id| {
@@ -560,7 +668,7 @@ pub fn run_node(
                     }
                     CallbackProgression::Continue
                 },
-                timeout,
+                wait_timeout(logic),
             )
             .map_err(|e| anyhow!("WaitSet wait failed: {e:?}"))?;
         // Receive eagerly: clear wake-ups, then drain every queue.
@@ -574,27 +682,48 @@ pub fn run_node(
             logic.on_timer(&mut outbox)?;
         }
         logic.on_drained(&mut outbox)?;
-        send_all(ctx, &mut outs, &mut outbox, &mut stats)?;
+        send_all(ctx, outs, &mut outbox, &mut stats)?;
         if housekeeping_due {
             housekeeping_due = false;
             node.try_cleanup_dead_nodes();
-            for (p, _) in ins.iter().zip(&ended).filter(|(_, e)| !**e) {
-                if p.publishers_now() == 0 && !has_pending(p)? {
-                    bail!(
-                        "input '{}': producer {} is gone before end of scan (it died or exited early)",
-                        p.port,
-                        p.topic
-                    );
-                }
-            }
+            check_producers_alive(ins, &ended)?;
         }
     }
-    drop(guards);
-    drop(tick);
-    drop(waitset);
-    // 6. Leave inputs, then hold outputs until every subscriber has left: samples in flight
-    // (and a panorama in a freshly grown segment) stay readable until consumed.
-    drop(ins);
+    Ok(stats)
+}
+
+/// How long the WaitSet may sleep: until the logic's next timer, at most one housekeeping
+/// period, and not at all while the logic has work pending.
+fn wait_timeout(logic: &dyn NodeLogic) -> Duration {
+    logic
+        .next_wakeup()
+        .map(|w| w.saturating_duration_since(Instant::now()))
+        .unwrap_or(HOUSEKEEPING)
+        .min(if logic.has_pending_work() {
+            Duration::ZERO
+        } else {
+            HOUSEKEEPING
+        })
+}
+
+/// An input whose producer is gone with nothing left to read, before its end of scan, is an
+/// error (the producer died or exited early), not a reason to wait forever.
+fn check_producers_alive(ins: &[InPort], ended: &[bool]) -> Result<()> {
+    for (p, _) in ins.iter().zip(ended).filter(|(_, e)| !**e) {
+        if p.publishers_now() == 0 && !has_pending(p)? {
+            bail!(
+                "input '{}': producer {} is gone before end of scan (it died or exited early)",
+                p.port,
+                p.topic
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Keeps the lossless publishers alive until every subscriber has left, so nothing in flight
+/// is lost when this process exits.
+fn hold_until_subscribers_left(node: &Node<ipc::Service>, outs: &[OutPort]) -> Result<()> {
     for o in outs.iter().filter(|o| o.delivery == Delivery::Lossless) {
         while o.subscribers_now() > 0 {
             check_stop()?;
@@ -602,7 +731,7 @@ pub fn run_node(
             std::thread::sleep(Duration::from_millis(10));
         }
     }
-    Ok(NodeReport::finished(ctx, stats, logic))
+    Ok(())
 }
 
 fn has_pending(p: &InPort) -> Result<bool> {

@@ -3,7 +3,7 @@
 use std::time::Instant;
 
 use surfstream_core::{FrameHeader, FrameKind, HeightMap};
-use surfstream_runtime::graph::GraphFile;
+use surfstream_runtime::graph::{GraphFile, NodeRegistry};
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 use surfstream_runtime::{inproc, ipc};
 
@@ -86,6 +86,33 @@ impl NodeLogic for Sink {
     }
 }
 
+/// The test's node kinds: a source and two sinks (the runtime links no node crate).
+fn registry() -> NodeRegistry {
+    use surfstream_runtime::graph::{Delivery, InputDef, NodePorts, PortDef, PortKind};
+    const KINDS: &[NodePorts] = &[
+        NodePorts {
+            kind: "replay",
+            inputs: &[],
+            outputs: &[PortDef::new("tiles", PortKind::Frames, Delivery::Lossless)],
+        },
+        NodePorts {
+            kind: "matcher",
+            inputs: &[InputDef::required("tiles", PortKind::Frames)],
+            outputs: &[PortDef::new(
+                "registrations",
+                PortKind::Registrations,
+                Delivery::Lossless,
+            )],
+        },
+        NodePorts {
+            kind: "recorder",
+            inputs: &[InputDef::ANY],
+            outputs: &[],
+        },
+    ];
+    NodeRegistry::new(KINDS.iter().copied())
+}
+
 fn graph(name: &str) -> GraphFile {
     let text = format!(
         r#"
@@ -104,7 +131,7 @@ node = "recorder"
 inputs = {{ tiles = "src/tiles" }}
 "#
     );
-    GraphFile::parse(&text, "test").unwrap()
+    GraphFile::parse(&text, "test", &registry()).unwrap()
 }
 
 fn check(reports: &[surfstream_runtime::node::NodeReport]) {
@@ -124,7 +151,7 @@ fn check(reports: &[surfstream_runtime::node::NodeReport]) {
 
 #[test]
 fn in_process_is_lossless_and_ordered() {
-    let ctxs = graph("inproc").resolve(1).unwrap();
+    let ctxs = graph("inproc").resolve(1, &registry()).unwrap();
     let nodes = ctxs
         .into_iter()
         .map(|c| {
@@ -146,7 +173,7 @@ fn in_process_is_lossless_and_ordered() {
 fn iceoryx2_is_lossless_and_ordered_with_two_subscribers() {
     let domain = format!("sst{}_", std::process::id() % 100000);
     let cfg = ipc::domain_config(&domain).unwrap();
-    let ctxs = graph("ipc").resolve(2).unwrap();
+    let ctxs = graph("ipc").resolve(2, &registry()).unwrap();
     let handles: Vec<_> = ctxs
         .into_iter()
         .map(|c| {

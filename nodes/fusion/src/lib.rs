@@ -55,3 +55,4 @@ pub use method::{fuse_wavelet, fuse_wavelet_in, FusionMethod, WaveletFusion};
 pub use panorama::{render, render_panorama, Panorama, Raster, Region, DEFAULT_MAX_CANVAS_PX};
 pub use quality::{overlap_quality, PairQuality};
 pub mod node;
+pub mod ports;

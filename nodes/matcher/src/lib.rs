@@ -178,3 +178,4 @@ pub use register::{
 pub use sift::{sift_keypoints, Keypoint, SiftParams};
 pub use truth::{ScanTruth, TruthError};
 pub mod node;
+pub mod ports;

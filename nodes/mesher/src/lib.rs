@@ -72,3 +72,4 @@ pub use stl::{write_stl_ascii, write_stl_binary};
 pub use target::{grid_sheet_for, DemEngine, EngineProfile, TargetMesh, TargetMethod};
 pub use tin::{triangulate, MissingSamples, Tin, TinParams};
 pub mod node;
+pub mod ports;

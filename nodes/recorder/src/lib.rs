@@ -6,6 +6,7 @@
 //! process shell that maps the graph's messages to it.
 
 pub mod node;
+pub mod ports;
 pub mod session;
 
 pub use session::RecordingSession;

@@ -62,3 +62,4 @@ pub use stage::{plan_scan, serpentine_order, ScanPlan, StageParams, TilePlan};
 pub use truth::{truth_for, ScanTruth};
 pub mod node;
 pub mod scan_dir;
+pub mod ports;

@@ -50,3 +50,4 @@ pub use select::{
 pub use separate::{default_level, fill_invalid, separate, Separation, DEFAULT_LEVEL};
 pub use wavelet::{dwt_coeff_len, dwt_max_level, Mode, Wavelet};
 pub mod node;
+pub mod ports;

@@ -1,0 +1,14 @@
+//! The ports of the matcher node, as graph files wire them.
+
+use surfstream_runtime::graph::{Delivery, InputDef, NodePorts, PortDef, PortKind};
+
+/// Tiles in, one registration per tile out.
+pub const PORTS: NodePorts = NodePorts {
+    kind: "matcher",
+    inputs: &[InputDef::required("tiles", PortKind::Frames)],
+    outputs: &[PortDef::new(
+        "registrations",
+        PortKind::Registrations,
+        Delivery::Lossless,
+    )],
+};

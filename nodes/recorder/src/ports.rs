@@ -1,0 +1,10 @@
+//! The ports of the recorder node, as graph files wire them.
+
+use surfstream_runtime::graph::{InputDef, NodePorts};
+
+/// A sink of any inputs, whatever their names and kinds.
+pub const PORTS: NodePorts = NodePorts {
+    kind: "recorder",
+    inputs: &[InputDef::ANY],
+    outputs: &[],
+};

@@ -1,0 +1,10 @@
+//! The ports of the replay node, as graph files wire them.
+
+use surfstream_runtime::graph::{Delivery, NodePorts, PortDef, PortKind};
+
+/// A source: no inputs; the tiles in acquisition order, then end of scan.
+pub const PORTS: NodePorts = NodePorts {
+    kind: "replay",
+    inputs: &[],
+    outputs: &[PortDef::new("tiles", PortKind::Frames, Delivery::Lossless)],
+};
