@@ -185,6 +185,16 @@ fn bad_scan_directories_are_named() {
     let err = stitch("pitch_y_um");
     assert!(err.contains("scan.toml"), "{err}");
 
+    // Inconsistent manifests: the same file at two grid positions, more tiles than the grid
+    // holds, a pitch no profiler has.
+    write(&s, &GOOD_SCAN.replace("tile_001.npy", "tile_000.npy"));
+    let err = stitch("both name file \"tile_000.npy\"");
+    assert!(err.contains("#1 and #2"), "{err}");
+    write(&s, &GOOD_SCAN.replace("cols = 2", "cols = 1"));
+    stitch("2 [[tile]] entries for a 1 x 1 (rows x cols) scan");
+    write(&s, &GOOD_SCAN.replace("pitch_x_um = 0.8148", "pitch_x_um = 1e30"));
+    stitch("pitch_x_um = 1000000000000000000000000000000: expected a pitch between");
+
     // A missing tile file.
     write(&s, GOOD_SCAN);
     std::fs::remove_file(scan.join("tile_001.npy")).unwrap();

@@ -71,6 +71,20 @@ enum Command {
         /// error against the specimen when the scan has make_tiles.py's ground truth.
         #[arg(long)]
         compare_fusion: bool,
+        /// SCAN is a folder of tiles without scan.toml: the grid as ROWSxCOLS (e.g. 3x4); the
+        /// tiles in file-name order are the acquisition order. The inferred scan.toml is
+        /// written to OUT.
+        #[arg(long, value_name = "ROWSxCOLS", requires = "overlap")]
+        grid: Option<surfstream_replay::infer::Grid>,
+        /// With --grid: the overlap of neighbouring fields, "20%" or "0.2".
+        #[arg(long, requires = "grid")]
+        overlap: Option<surfstream_replay::infer::Overlap>,
+        /// With --grid: odd rows run right to left (the stage's serpentine).
+        #[arg(long, requires = "grid")]
+        serpentine: bool,
+        /// With --grid: the pitch, um, for tiles that carry none (.npy).
+        #[arg(long, requires = "grid")]
+        pitch_um: Option<f64>,
     },
     /// Show a height-map file's metadata, shape, pitch and invalid count.
     Inspect(verbs::metrology::InspectArgs),
@@ -124,15 +138,21 @@ fn dispatch(cli: Cli) -> Result<()> {
             out,
             set,
             method,
-            compare_fusion: true,
-        } => compare_fusion::run(&scan, &out, &set, method.as_deref()),
-        Command::Stitch {
-            scan,
-            out,
-            set,
-            method,
-            compare_fusion: false,
+            compare_fusion,
+            grid,
+            overlap,
+            serpentine,
+            pitch_um,
         } => {
+            let scan = match (grid, overlap) {
+                (Some(g), Some(o)) => {
+                    infer_scan(&scan, &out, g, o, serpentine, pitch_um)?
+                }
+                _ => scan,
+            };
+            if compare_fusion {
+                return compare_fusion::run(&scan, &out, &set, method.as_deref());
+            }
             let (graph, deviation) = stitch_graph(&scan, out, &set, method.as_deref())?;
             launcher::run_in_process(graph, &scan, deviation)
         }
@@ -163,6 +183,50 @@ fn load_graph(a: &GraphArgs) -> Result<(GraphFile, deviation::Settings)> {
     }
     graph.validate(&a.graph.display().to_string(), &registry)?;
     Ok((graph, settings))
+}
+
+/// Writes OUT/scan.toml for a folder of tiles laid out as the user says, and returns its path.
+fn infer_scan(
+    dir: &std::path::Path,
+    out: &std::path::Path,
+    grid: surfstream_replay::infer::Grid,
+    overlap: surfstream_replay::infer::Overlap,
+    serpentine: bool,
+    pitch_um: Option<f64>,
+) -> Result<PathBuf> {
+    if !dir.is_dir() {
+        anyhow::bail!("{}: --grid needs a folder of tiles", dir.display());
+    }
+    if dir.join("scan.toml").exists() {
+        anyhow::bail!(
+            "{}: the folder has a scan.toml; stitch it without --grid, or move it away",
+            dir.display()
+        );
+    }
+    let layout = surfstream_replay::infer::GridLayout {
+        rows: grid.rows,
+        cols: grid.cols,
+        overlap_x: overlap.0,
+        overlap_y: overlap.0,
+        serpentine,
+    };
+    let text = surfstream_replay::infer::infer_manifest(dir, &layout, pitch_um)?;
+    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
+    let manifest = out.join("scan.toml");
+    surfstream_core::fsutil::write_atomic(&manifest, |w| {
+        use std::io::Write;
+        w.write_all(text.as_bytes())
+            .with_context(|| format!("{}: write failed", manifest.display()))
+    })?;
+    eprintln!(
+        "stitch: {} tiles as {} x {} (rows x cols){}, inferred manifest {}",
+        grid.rows * grid.cols,
+        grid.rows,
+        grid.cols,
+        if serpentine { ", serpentine" } else { "" },
+        manifest.display()
+    );
+    Ok(manifest)
 }
 
 /// The default pipeline for a scan directory or a recording.

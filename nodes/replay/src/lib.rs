@@ -47,6 +47,7 @@
 
 pub mod acquire;
 pub mod error;
+pub mod infer;
 mod rng;
 pub mod run;
 pub mod source;

@@ -89,6 +89,11 @@ pub struct LoadedTile {
     pub heights_um: Vec<f32>,
 }
 
+/// The sampling an optical profiler can have: below 10 nm or above 100 um (per pixel) a value
+/// is a unit mistake, not a measurement.
+pub const MIN_PITCH_UM: f64 = 0.001;
+pub const MAX_PITCH_UM: f64 = 1000.0;
+
 /// Mean of the finite values (f64), or 0 when there are none.
 fn mean_valid(values: &[f64]) -> f64 {
     let (sum, n) = values
@@ -134,6 +139,12 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
             if !(v.is_finite() && v > 0.0) {
                 bail!("{m}: [scan] {field} = {v}: expected a positive pitch in micrometres");
             }
+            if !(MIN_PITCH_UM..=MAX_PITCH_UM).contains(&v) {
+                bail!(
+                    "{m}: [scan] {field} = {v}: expected a pitch between {MIN_PITCH_UM} and \
+                     {MAX_PITCH_UM} um (an optical profiler's field is sampled at 0.01-100 um)"
+                );
+            }
         }
     }
     let unit_given = raw.height_unit.is_some();
@@ -160,6 +171,27 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
     }
     if file.tile.is_empty() {
         bail!("{m}: no [[tile]] entries: expected one per field, in acquisition order");
+    }
+    if file.tile.len() > scan.rows * scan.cols {
+        bail!(
+            "{m}: {} [[tile]] entries for a {} x {} (rows x cols) scan: expected at most {}",
+            file.tile.len(),
+            scan.rows,
+            scan.cols,
+            scan.rows * scan.cols
+        );
+    }
+    // One field measured once: the same file at two grid positions would be placed twice.
+    let mut files = std::collections::BTreeMap::new();
+    for (k, t) in file.tile.iter().enumerate() {
+        if let Some(first) = files.insert(t.file.as_str(), k) {
+            bail!(
+                "{m}: [[tile]] #{} and #{} both name file {:?}: each field is one file",
+                first + 1,
+                k + 1,
+                t.file
+            );
+        }
     }
     let dir = manifest_path.parent().unwrap_or(Path::new("."));
     let mut seen = std::collections::BTreeSet::new();
