@@ -3,6 +3,7 @@
 //! the tile plane correction ([`plane`]), atomic output files ([`fsutil`]), ISO 25178
 //! parameters ([`metrology`]) and image similarity ([`similarity`]).
 
+pub mod canvas;
 pub mod frame;
 pub mod fsutil;
 pub mod metrology;
