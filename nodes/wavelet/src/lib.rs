@@ -42,7 +42,7 @@ mod select;
 mod separate;
 mod wavelet;
 
-pub use dwt::{wavedec2, waverec2, Array2, Coeffs2, Details2, MAX_LEVEL};
+pub use dwt::{wavedec2, waverec2, Coeffs2, Details2, MAX_LEVEL};
 pub use error::{Result, WaveletError};
 pub use live::{
     final_separation, FinalSeparation, LivePatches, LiveSeparation, SeparationSettings,
