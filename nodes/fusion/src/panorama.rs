@@ -7,6 +7,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use surfstream_core::canvas::{amortised_growth, GridRect, GrowingCanvas};
+use surfstream_core::raster::{Raster, Shape};
 
 use crate::error::{FusionError, Result};
 use crate::input::{validate_pitch, BlendParams, TileInput};
@@ -38,13 +39,13 @@ impl Region {
     }
 }
 
-/// A height raster with its place in scan coordinates: the whole panorama.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Raster {
-    /// Row-major, `width * height` heights in um relative to `z_offset_um`; NaN = no data.
-    pub heights: Vec<f32>,
-    pub width: usize,
-    pub height: usize,
+/// A height raster with its place in scan coordinates: the whole panorama, or one tile
+/// resampled onto its grid.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PlacedRaster {
+    /// Heights in um relative to `z_offset_um`, rows along y; NaN = no data. 0 x 0 when
+    /// nothing was placed.
+    pub heights: Raster<f32>,
     /// Scan position (um) of the centre of pixel (0, 0).
     pub origin_x_um: f64,
     pub origin_y_um: f64,
@@ -325,8 +326,16 @@ impl Panorama {
             }
         }
         Ok((
-            AxisPlan::new(offset_x_px, tile.width, self.params.effective_ramp_x_px()),
-            AxisPlan::new(offset_y_px, tile.height, self.params.effective_ramp_y_px()),
+            AxisPlan::new(
+                offset_x_px,
+                tile.heights.cols(),
+                self.params.effective_ramp_x_px(),
+            ),
+            AxisPlan::new(
+                offset_y_px,
+                tile.heights.rows(),
+                self.params.effective_ramp_y_px(),
+            ),
         ))
     }
 
@@ -416,13 +425,15 @@ impl Panorama {
             None => footprint,
         });
 
-        let centre_x = (tile.width - 1) as f64 / 2.0;
+        let (cols, rows) = (tile.heights.cols(), tile.heights.rows());
+        let centre_x = (cols - 1) as f64 / 2.0;
         let tilt_x = tile.plane.tilt_x_um_per_px;
         let resampler = Resampler {
-            heights: tile.heights,
-            width: tile.width,
-            height: tile.height,
-            col_term_um: (0..tile.width)
+            // The hot loops index the raw samples.
+            heights: tile.heights.values(),
+            width: cols,
+            height: rows,
+            col_term_um: (0..cols)
                 .map(|c| -(tilt_x * (c as f64 - centre_x)))
                 .collect(),
             piston_um: tile.plane.piston_um,
@@ -512,7 +523,7 @@ impl Panorama {
     /// The tile resampled alone onto this panorama's grid (no blending, plane and z applied as
     /// in [`Panorama::place`]): what this tile contributes, for overlap quality. Before any tile
     /// is placed the tile anchors its own grid.
-    pub fn resample_alone(&self, tile: TileInput<'_>) -> Result<Raster> {
+    pub fn resample_alone(&self, tile: TileInput<'_>) -> Result<PlacedRaster> {
         let mut alone = Panorama::new(self.pitch_x_um, self.pitch_y_um, BlendParams::average())?;
         alone.anchor = self.anchor;
         alone.max_canvas_px = self.max_canvas_px;
@@ -547,15 +558,18 @@ impl Panorama {
 
     /// The whole panorama, trimmed to the bounding box of the placed tiles' footprints. An
     /// empty panorama gives a 0 x 0 raster.
-    pub fn to_raster(&self) -> Raster {
+    pub fn to_raster(&self) -> PlacedRaster {
         let (region, origin) = match self.content {
             Some(c) => (self.to_region(&c), self.grid_to_um(c.x0, c.y0)),
             None => (Region::default(), (0.0, 0.0)),
         };
-        Raster {
-            heights: self.extract(region),
-            width: region.width,
-            height: region.height,
+        let shape = Shape::new(region.height, region.width);
+        // `extract` gives exactly `shape.len()` values, so only an empty panorama is refused:
+        // it becomes the 0 x 0 raster.
+        let heights = Raster::new(self.extract(region), shape)
+            .unwrap_or_else(|_| Raster::filled(Shape::default(), f32::NAN));
+        PlacedRaster {
+            heights,
             origin_x_um: origin.0,
             origin_y_um: origin.1,
             pitch_x_um: self.pitch_x_um,
@@ -575,7 +589,7 @@ pub fn render(
     pitch_y_um: f64,
     tiles: &[TileInput<'_>],
     params: BlendParams,
-) -> Result<Raster> {
+) -> Result<PlacedRaster> {
     Ok(render_panorama(pitch_x_um, pitch_y_um, tiles, params, None)?.to_raster())
 }
 

@@ -47,14 +47,16 @@ impl FusionSettings {
     }
 }
 
-/// A received tile at a registration's position and plane.
-fn tile_input<'a>(tile: &'a HeightMap, reg: &TileRegistration) -> TileInput<'a> {
+/// A received tile at a registration's position and plane; errors when the frame's payload
+/// does not match its declared size.
+fn tile_input<'a>(tile: &'a HeightMap, reg: &TileRegistration) -> Result<TileInput<'a>> {
     let h = &tile.header;
-    TileInput {
+    let shape = Shape::new(h.height as usize, h.width as usize);
+    let heights = RasterView::new(&tile.heights, shape)
+        .map_err(|e| anyhow!("fusion: tile {}: {e}", h.tile_index))?;
+    Ok(TileInput {
         index: h.tile_index,
-        heights: &tile.heights,
-        width: h.width as usize,
-        height: h.height as usize,
+        heights,
         x_um: reg.x_um,
         y_um: reg.y_um,
         plane: PlaneCorrection {
@@ -63,7 +65,7 @@ fn tile_input<'a>(tile: &'a HeightMap, reg: &TileRegistration) -> TileInput<'a> 
             tilt_y_um_per_px: reg.tilt_y_um_per_px,
         },
         z_offset_um: h.z_offset_um,
-    }
+    })
 }
 
 /// One placed tile's output: the changed region, and every `PREVIEW_STEP`-th pixel of it for
@@ -174,7 +176,7 @@ impl StreamingFusion {
                     self.panorama.insert(p)
                 }
             };
-            let region = pano.place(tile_input(tile, reg))?;
+            let region = pano.place(tile_input(tile, reg)?)?;
             let (ox, oy) = pano.region_origin_um(&region);
             let heights = pano.extract(region);
             let (px, py) = pano.pitch_um();
@@ -244,7 +246,7 @@ impl StreamingFusion {
             .map(|(k, (tile, reg))| {
                 tile_input(tile, self.final_registrations.get(k).unwrap_or(reg))
             })
-            .collect();
+            .collect::<Result<_>>()?;
         let rerendered = if self.final_registrations.is_empty() {
             None
         } else {
@@ -261,10 +263,11 @@ impl StreamingFusion {
         let pairs = overlap_quality(final_pano, &inputs)?;
         let r = final_pano.to_raster();
         let mut written = Vec::new();
+        let (rows, cols) = (r.heights.rows(), r.heights.cols());
         if let Some(w) = files {
             w.write_surface(&SurfaceOutput {
                 name: "panorama",
-                heights: RasterView::new(&r.heights, Shape::new(r.height, r.width))?,
+                heights: r.heights.view(),
                 z_offset_um: r.z_offset_um,
                 npy: NpyHeights::AbsoluteF64,
                 title: "panorama (um)",
@@ -272,9 +275,9 @@ impl StreamingFusion {
             })?;
             written = w.files().to_vec();
         }
-        let invalid = r.heights.iter().filter(|z| z.is_nan()).count();
+        let invalid = r.heights.values().iter().filter(|z| z.is_nan()).count();
         let summary = json!({
-            "width_px": r.width, "height_px": r.height,
+            "width_px": cols, "height_px": rows,
             "origin_x_um": r.origin_x_um, "origin_y_um": r.origin_y_um,
             "pitch_x_um": r.pitch_x_um, "pitch_y_um": r.pitch_y_um,
             "z_offset_um": r.z_offset_um, "invalid_px": invalid,
@@ -283,8 +286,8 @@ impl StreamingFusion {
             kind: FrameKind::Panorama as u32,
             flags: flags::FINAL,
             tile_index: self.last.0,
-            width: r.width as u32,
-            height: r.height as u32,
+            width: cols as u32,
+            height: rows as u32,
             pitch_x_um: r.pitch_x_um,
             pitch_y_um: r.pitch_y_um,
             origin_x_um: r.origin_x_um,
@@ -296,7 +299,7 @@ impl StreamingFusion {
         Ok(FinalPanorama {
             panorama: HeightMap {
                 header,
-                heights: r.heights,
+                heights: r.heights.into_values(),
             },
             report: FinalReport {
                 summary,
