@@ -36,7 +36,7 @@ mod dwt;
 mod error;
 mod filters;
 pub mod live;
-mod options;
+pub mod options;
 mod pool;
 mod select;
 mod separate;
@@ -47,7 +47,7 @@ pub use error::{Result, WaveletError};
 pub use live::{
     final_separation, FinalSeparation, LivePatches, LiveSeparation, SeparationSettings,
 };
-pub use options::OptionError;
+pub use options::{OptionError, WaveletParams};
 pub use pool::{pool, PoolOp, Pooled};
 pub use select::{
     analyse, energy_curve, height_stats, level_by_min_energy, pooling_bias, rmse_per_base,

@@ -5,7 +5,6 @@
 //! exact pass, published with FINAL and written to the out dir.
 
 use anyhow::{anyhow, bail, Result};
-use serde::Deserialize;
 use serde_json::json;
 use surfstream_core::frame::{flags, FrameKind, HeightMap};
 use surfstream_io::output::OutputWriter;
@@ -13,61 +12,7 @@ use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
 use crate::live::{final_separation, LiveSeparation, SeparationSettings};
-use crate::LevelChoice;
-
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct Params {
-    /// A base name, or "auto": minimum reconstruction RMSE (eq. 10; it ranks round-off).
-    #[serde(default = "sym5")]
-    wavelet: String,
-    /// Decomposition level of the datum (clamped to the largest useful level of the
-    /// panorama), or "auto": minimum approximation energy proportion (Fig. 13).
-    level: Option<LevelParam>,
-    #[serde(default = "symmetric")]
-    mode: String,
-    /// Pooling block, px.
-    #[serde(default = "four")]
-    pool: usize,
-    /// "max" (the paper) or "mean".
-    #[serde(default = "max")]
-    pool_op: String,
-    /// Publish live (preview) patches while tiles arrive.
-    #[serde(default = "yes")]
-    live: bool,
-    /// Context around the changed region for a live patch, px.
-    #[serde(default = "margin")]
-    live_margin_px: usize,
-    #[serde(default = "yes")]
-    write_files: bool,
-}
-
-/// A level as a TOML number or a string ("auto").
-#[derive(Deserialize)]
-#[serde(untagged)]
-enum LevelParam {
-    Level(usize),
-    Named(String),
-}
-
-fn sym5() -> String {
-    "sym5".into()
-}
-fn symmetric() -> String {
-    "symmetric".into()
-}
-fn four() -> usize {
-    4
-}
-fn max() -> String {
-    "max".into()
-}
-fn yes() -> bool {
-    true
-}
-fn margin() -> usize {
-    256
-}
+use crate::options::WaveletParams;
 
 pub struct WaveletNode {
     settings: SeparationSettings,
@@ -83,30 +28,9 @@ pub struct WaveletNode {
 }
 
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
-    let p: Params = ctx.params()?;
+    let p: WaveletParams = ctx.params()?;
     let at = format!("graph '{}', node '{}'", ctx.graph_name, ctx.node_id);
-    let level = match &p.level {
-        None => Ok(LevelChoice::Default),
-        Some(LevelParam::Level(l)) => l.to_string().parse(),
-        Some(LevelParam::Named(n)) => n.parse(),
-    }
-    .map_err(|e| anyhow!("{at}: level = {e}"))?;
-    if p.pool == 0 {
-        bail!("{at}: pool = 0: expected a block size of at least 1 px");
-    }
-    let settings = SeparationSettings {
-        base: p
-            .wavelet
-            .parse()
-            .map_err(|e| anyhow!("{at}: wavelet = {e}"))?,
-        level,
-        mode: p.mode.parse().map_err(|e| anyhow!("{at}: mode = {e}"))?,
-        pool_block: p.pool,
-        pool_op: p
-            .pool_op
-            .parse()
-            .map_err(|e| anyhow!("{at}: pool_op = {e}"))?,
-    };
+    let settings = p.settings().map_err(|e| anyhow!("{at}: {e}"))?;
     Ok(Box::new(WaveletNode {
         live: LiveSeparation::new(&settings, p.live_margin_px)?,
         settings,

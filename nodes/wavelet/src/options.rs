@@ -1,5 +1,6 @@
 //! The separation's options as text (a graph file's params, the `separate` verb's flags): one
-//! parser per option, so the node and the verb accept and refuse the same spellings.
+//! parser per option, so the node and the verb accept and refuse the same spellings, and the
+//! wavelet node's parameters ([`WaveletParams`]) built from them.
 //!
 //! Every parser trims and ignores ASCII case. The error names what was expected; the caller
 //! prefixes where the value came from (`--level`, `graph 'g', node 'w': level = `).
@@ -7,6 +8,9 @@
 use std::fmt;
 use std::str::FromStr;
 
+use serde::Deserialize;
+
+use crate::live::SeparationSettings;
 use crate::{BaseChoice, LevelChoice, Mode, PoolOp, Wavelet};
 
 /// A value an option does not accept.
@@ -88,6 +92,82 @@ impl FromStr for PoolOp {
     }
 }
 
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WaveletParams {
+    /// A base name, or "auto": minimum reconstruction RMSE (eq. 10; it ranks round-off).
+    #[serde(default = "sym5")]
+    pub wavelet: String,
+    /// Decomposition level of the datum (clamped to the largest useful level of the
+    /// panorama), or "auto": minimum approximation energy proportion (Fig. 13).
+    pub level: Option<LevelParam>,
+    #[serde(default = "symmetric")]
+    pub mode: String,
+    /// Pooling block, px.
+    #[serde(default = "four")]
+    pub pool: usize,
+    /// "max" (the paper) or "mean".
+    #[serde(default = "max")]
+    pub pool_op: String,
+    /// Publish live (preview) patches while tiles arrive.
+    #[serde(default = "yes")]
+    pub live: bool,
+    /// Context around the changed region for a live patch, px.
+    #[serde(default = "margin")]
+    pub live_margin_px: usize,
+    #[serde(default = "yes")]
+    pub write_files: bool,
+}
+
+/// A level as a TOML number or a string ("auto").
+#[derive(Deserialize)]
+#[serde(untagged)]
+pub enum LevelParam {
+    Level(usize),
+    Named(String),
+}
+
+fn sym5() -> String {
+    "sym5".into()
+}
+fn symmetric() -> String {
+    "symmetric".into()
+}
+fn four() -> usize {
+    4
+}
+fn max() -> String {
+    "max".into()
+}
+fn yes() -> bool {
+    true
+}
+fn margin() -> usize {
+    256
+}
+
+impl WaveletParams {
+    /// The separation these parameters ask for; the error names the parameter.
+    pub fn settings(&self) -> Result<SeparationSettings, String> {
+        let level = match &self.level {
+            None => Ok(LevelChoice::Default),
+            Some(LevelParam::Level(l)) => l.to_string().parse(),
+            Some(LevelParam::Named(n)) => n.parse(),
+        }
+        .map_err(|e| format!("level = {e}"))?;
+        if self.pool == 0 {
+            return Err("pool = 0: expected a block size of at least 1 px".into());
+        }
+        Ok(SeparationSettings {
+            base: self.wavelet.parse().map_err(|e| format!("wavelet = {e}"))?,
+            level,
+            mode: self.mode.parse().map_err(|e| format!("mode = {e}"))?,
+            pool_block: self.pool,
+            pool_op: self.pool_op.parse().map_err(|e| format!("pool_op = {e}"))?,
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -114,5 +194,30 @@ mod tests {
         assert!("zero".parse::<Mode>().is_err());
         assert!("min".parse::<PoolOp>().is_err());
         assert!("auto".parse::<Wavelet>().is_err());
+    }
+
+    #[test]
+    fn node_params_become_settings_or_name_the_bad_one() {
+        let p = |toml: &str| -> WaveletParams { serde_json::from_str(toml).expect("params") };
+        let s = p(r#"{"level": 6, "pool_op": "Mean"}"#).settings().unwrap();
+        assert_eq!(s.level, LevelChoice::Fixed(6));
+        assert_eq!((s.pool_block, s.pool_op), (4, PoolOp::Mean));
+        assert_eq!(p("{}").settings().unwrap().level, LevelChoice::Default);
+        assert_eq!(
+            p(r#"{"level": "auto", "wavelet": "auto"}"#)
+                .settings()
+                .unwrap()
+                .base,
+            BaseChoice::MinRmse
+        );
+        for (bad, field) in [
+            (r#"{"level": 0}"#, "level = "),
+            (r#"{"pool": 0}"#, "pool = 0"),
+            (r#"{"mode": "zero"}"#, "mode = "),
+            (r#"{"wavelet": "haar"}"#, "wavelet = "),
+        ] {
+            let e = p(bad).settings().unwrap_err();
+            assert!(e.starts_with(field), "{bad}: {e}");
+        }
     }
 }
