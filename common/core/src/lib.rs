@@ -1,10 +1,12 @@
 //! surfstream-core: the types and small algorithms every surfstream crate shares, with no
-//! transport and no file formats: the frame ([`frame`]), the one raster type ([`raster`]),
+//! transport and no file formats: the frame ([`frame`]), the one raster type ([`raster`]) and
+//! the growing canvas built on it ([`canvas`]),
 //! the tile plane correction ([`plane`]), atomic output files ([`fsutil`]), ISO 25178
 //! parameters ([`metrology`]), image similarity ([`similarity`]), FFT sizes ([`fft`]) and the
 //! AVX2 dispatch of hot loops ([`simd`]); the model-vs-measurement table (Table 6,
 //! [`deviation`]).
 
+pub mod canvas;
 pub mod deviation;
 pub mod fft;
 pub mod frame;

@@ -3,5 +3,6 @@
 
 pub mod formats;
 pub mod npy;
+pub mod output;
 pub mod preview;
 pub mod recording;

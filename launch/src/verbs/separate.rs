@@ -12,7 +12,7 @@ use clap::Args;
 use surfstream_core::fsutil::write_atomic;
 use surfstream_io::formats::read_surface;
 use surfstream_io::npy::{write_npy_f32, write_npy_f64};
-use surfstream_wavelet::{analyse, BaseChoice, LevelChoice, Mode, PoolOp, Wavelet};
+use surfstream_wavelet::{analyse, BaseChoice, LevelChoice, Mode, PoolOp};
 
 #[derive(Args)]
 pub struct SeparateArgs {
@@ -41,28 +41,11 @@ pub struct SeparateArgs {
 }
 
 pub fn run(a: SeparateArgs) -> Result<()> {
-    let base = if a.wavelet.trim().eq_ignore_ascii_case("auto") {
-        BaseChoice::MinRmse
-    } else {
-        BaseChoice::Named(Wavelet::by_name(&a.wavelet).ok_or_else(|| {
-            anyhow!(
-                "--wavelet {:?}: expected db1..db10, sym2..sym10, coif1..coif5 or auto",
-                a.wavelet
-            )
-        })?)
-    };
-    let level = if a.level.trim().eq_ignore_ascii_case("auto") {
-        LevelChoice::MinEnergy
-    } else {
-        match a.level.trim().parse::<usize>() {
-            Ok(l) if l >= 1 => LevelChoice::Fixed(l),
-            _ => bail!("--level {:?}: expected a level >= 1 or auto", a.level),
-        }
-    };
-    let mode = Mode::by_name(&a.mode)
-        .ok_or_else(|| anyhow!("--mode {:?}: expected symmetric or periodization", a.mode))?;
-    let pool_op = PoolOp::by_name(&a.pool_op)
-        .ok_or_else(|| anyhow!("--pool-op {:?}: expected max or mean", a.pool_op))?;
+    // One parser per option, shared with the wavelet node's params.
+    let base: BaseChoice = a.wavelet.parse().map_err(|e| anyhow!("--wavelet {e}"))?;
+    let level: LevelChoice = a.level.parse().map_err(|e| anyhow!("--level {e}"))?;
+    let mode: Mode = a.mode.parse().map_err(|e| anyhow!("--mode {e}"))?;
+    let pool_op: PoolOp = a.pool_op.parse().map_err(|e| anyhow!("--pool-op {e}"))?;
     if a.pool == 0 {
         bail!("--pool 0: expected a block size of at least 1 px");
     }

@@ -11,6 +11,7 @@ use std::time::Instant;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
+use surfstream_core::raster::{RasterView, Shape};
 use surfstream_fusion::{render, BlendParams, Panorama, PlaneCorrection, TileInput};
 
 const COLS: usize = 10;
@@ -76,9 +77,8 @@ fn make_tiles() -> Vec<Tile> {
 fn input(index: usize, t: &Tile) -> TileInput<'_> {
     TileInput {
         index: index as u32,
-        heights: &t.heights,
-        width: TILE_PX,
-        height: TILE_PX,
+        heights: RasterView::new(&t.heights, Shape::new(TILE_PX, TILE_PX))
+            .expect("a tile of TILE_PX x TILE_PX heights"),
         x_um: t.x_um,
         y_um: t.y_um,
         plane: t.plane,
@@ -227,7 +227,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!("  tiles that grew the canvas: {}", growth.join(", "));
     println!(
         "  final canvas {} x {} px, panorama {} x {} px",
-        canvas.0, canvas.1, raster.width, raster.height
+        canvas.0,
+        canvas.1,
+        raster.heights.cols(),
+        raster.heights.rows()
     );
     println!("render() of all {n} tiles: {render_ms:.0} ms, cpu {render_cpu_ms:.0} ms");
     Ok(())

@@ -16,22 +16,6 @@ pub enum FusionError {
         expected: &'static str,
     },
 
-    /// A tile declares a zero width or height.
-    #[error("tile {index}: {field} = 0: expected at least 1 pixel")]
-    ZeroSize { index: u32, field: &'static str },
-
-    /// The payload length disagrees with the declared size.
-    #[error(
-        "tile {index}: heights holds {len} values but width x height = {width} x {height} \
-         (expected exactly width * height values, row-major)"
-    )]
-    LengthMismatch {
-        index: u32,
-        len: usize,
-        width: usize,
-        height: usize,
-    },
-
     /// A position, offset or plane coefficient of a tile is NaN or infinite.
     #[error("tile {index}: {field} = {value}: expected a finite number")]
     NonFinite {

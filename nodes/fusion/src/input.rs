@@ -4,6 +4,9 @@
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use surfstream_core::raster::RasterView;
+pub use surfstream_core::PlaneCorrection;
+
 use crate::error::{FusionError, Result};
 use crate::resample::MAX_RAMP_PX;
 
@@ -101,21 +104,6 @@ impl BlendParams {
     }
 }
 
-/// The plane a matcher fitted to a tile, to be subtracted from its raw heights:
-/// `corrected(row, col) = raw - (piston + tilt_x * (col - (w-1)/2) + tilt_y * (row - (h-1)/2))`.
-///
-/// The tilts are per tile pixel and the plane is centred on the tile, so the piston is the
-/// plane's height at the tile centre and does not change when the tilt does.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
-pub struct PlaneCorrection {
-    /// Height of the plane at the tile centre, um.
-    pub piston_um: f64,
-    /// Slope along columns, um per pixel.
-    pub tilt_x_um_per_px: f64,
-    /// Slope along rows, um per pixel.
-    pub tilt_y_um_per_px: f64,
-}
-
 /// One tile with its final position: the input of [`crate::Panorama::place`].
 ///
 /// The tile's pitch is the panorama's pitch: the instrument does not change objective between
@@ -124,12 +112,8 @@ pub struct PlaneCorrection {
 pub struct TileInput<'a> {
     /// Acquisition index; [`crate::render`] places tiles in increasing index order.
     pub index: u32,
-    /// Row-major heights in um relative to `z_offset_um`; NaN = not measured.
-    pub heights: &'a [f32],
-    /// Pixels per row.
-    pub width: usize,
-    /// Rows.
-    pub height: usize,
+    /// Heights in um relative to `z_offset_um`, rows along y; NaN = not measured.
+    pub heights: RasterView<'a, f32>,
     /// Scan position (um) of the centre of pixel (0, 0) along x (columns). Need not be a
     /// multiple of the pitch.
     pub x_um: f64,
@@ -142,29 +126,10 @@ pub struct TileInput<'a> {
 }
 
 impl TileInput<'_> {
-    /// Check sizes, finiteness of every number and the payload (NaN allowed, +/-inf not).
+    /// Check the finiteness of every number and of the payload (NaN allowed, +/-inf not); the
+    /// size is right by construction of the raster view.
     pub fn validate(&self) -> Result<()> {
         let index = self.index;
-        if self.width == 0 {
-            return Err(FusionError::ZeroSize {
-                index,
-                field: "width",
-            });
-        }
-        if self.height == 0 {
-            return Err(FusionError::ZeroSize {
-                index,
-                field: "height",
-            });
-        }
-        if self.width.checked_mul(self.height) != Some(self.heights.len()) {
-            return Err(FusionError::LengthMismatch {
-                index,
-                len: self.heights.len(),
-                width: self.width,
-                height: self.height,
-            });
-        }
         let numbers = [
             ("x_um", self.x_um),
             ("y_um", self.y_um),
@@ -182,12 +147,13 @@ impl TileInput<'_> {
                 });
             }
         }
-        if let Some(at) = first_infinite(self.heights) {
+        if let Some(at) = first_infinite(self.heights.values()) {
+            let cols = self.heights.cols();
             return Err(FusionError::InfiniteHeight {
                 index,
-                row: at / self.width,
-                col: at % self.width,
-                value: self.heights[at],
+                row: at / cols,
+                col: at % cols,
+                value: self.heights.values()[at],
             });
         }
         Ok(())

@@ -48,11 +48,15 @@ pub mod method;
 mod panorama;
 mod quality;
 mod resample;
+pub mod stream;
 
 pub use error::{FusionError, Result};
 pub use input::{BlendParams, PlaneCorrection, TileInput};
 pub use method::{fuse_wavelet, fuse_wavelet_in, FusionMethod, WaveletFusion};
-pub use panorama::{render, render_panorama, Panorama, Raster, Region, DEFAULT_MAX_CANVAS_PX};
+pub use panorama::{
+    render, render_panorama, Panorama, PlacedRaster, Region, DEFAULT_MAX_CANVAS_PX,
+};
 pub use quality::{overlap_quality, PairQuality};
+pub use stream::{FinalPanorama, FinalReport, FusionSettings, PanoramaPatch, StreamingFusion};
 pub mod node;
 pub mod ports;

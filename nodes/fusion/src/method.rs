@@ -188,7 +188,7 @@ pub fn fuse_wavelet_in(
             let i = (r + r0) * cols + c + c0;
             if a[i].is_finite() && b[i].is_finite() {
                 // waverec2 gives one extra row / column on odd sizes: index, never reshape.
-                let f = fused.as_slice()[r * fused.cols() + c];
+                let f = fused.values()[r * fused.cols() + c];
                 // `a` weighs with the distance to lone `b`, `b` with the distance to lone `a`.
                 let (da, db) = (f64::from(lone_b[i]), f64::from(lone_a[i]));
                 let edge = (da.min(db) / feather_px).min(1.0);
@@ -259,12 +259,12 @@ fn distance_to(
 
 /// Approximations averaged, details by the max-abs rule (ties keep `a`'s).
 fn fuse_coeffs(mut a: Coeffs2, b: &Coeffs2) -> Coeffs2 {
-    for (x, y) in a.approx.as_mut_slice().iter_mut().zip(b.approx.as_slice()) {
+    for (x, y) in a.approx.values_mut().iter_mut().zip(b.approx.values()) {
         *x = 0.5 * (*x + y);
     }
     for (da, db) in a.details.iter_mut().zip(&b.details) {
         for (ba, bb) in [(&mut da.h, &db.h), (&mut da.v, &db.v), (&mut da.d, &db.d)] {
-            for (x, &y) in ba.as_mut_slice().iter_mut().zip(bb.as_slice()) {
+            for (x, &y) in ba.values_mut().iter_mut().zip(bb.values()) {
                 if y.abs() > x.abs() {
                     *x = y;
                 }

@@ -6,6 +6,9 @@ use std::collections::HashSet;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use surfstream_core::canvas::{amortised_growth, GridRect, GrowingCanvas};
+use surfstream_core::raster::{Raster, Shape};
+
 use crate::error::{FusionError, Result};
 use crate::input::{validate_pitch, BlendParams, TileInput};
 use crate::method::{fuse_wavelet_in, WaveletFusion};
@@ -36,13 +39,13 @@ impl Region {
     }
 }
 
-/// A height raster with its place in scan coordinates: the whole panorama.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Raster {
-    /// Row-major, `width * height` heights in um relative to `z_offset_um`; NaN = no data.
-    pub heights: Vec<f32>,
-    pub width: usize,
-    pub height: usize,
+/// A height raster with its place in scan coordinates: the whole panorama, or one tile
+/// resampled onto its grid.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PlacedRaster {
+    /// Heights in um relative to `z_offset_um`, rows along y; NaN = no data. 0 x 0 when
+    /// nothing was placed.
+    pub heights: Raster<f32>,
     /// Scan position (um) of the centre of pixel (0, 0).
     pub origin_x_um: f64,
     pub origin_y_um: f64,
@@ -50,44 +53,6 @@ pub struct Raster {
     pub pitch_y_um: f64,
     /// Absolute height (um) that `heights` are relative to.
     pub z_offset_um: f64,
-}
-
-/// Grid indices, half-open: columns `x0 .. x1`, rows `y0 .. y1`. Grid index `k` along x is the
-/// pixel centred at `anchor_x_um + k * pitch_x_um`; it may be negative (left of the anchor).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-struct GridRect {
-    x0: i64,
-    y0: i64,
-    x1: i64,
-    y1: i64,
-}
-
-impl GridRect {
-    fn width(&self) -> usize {
-        (self.x1 - self.x0) as usize
-    }
-
-    fn height(&self) -> usize {
-        (self.y1 - self.y0) as usize
-    }
-
-    fn contains(&self, other: &GridRect) -> bool {
-        other.x0 >= self.x0 && other.x1 <= self.x1 && other.y0 >= self.y0 && other.y1 <= self.y1
-    }
-
-    fn union(&self, other: &GridRect) -> GridRect {
-        GridRect {
-            x0: self.x0.min(other.x0),
-            y0: self.y0.min(other.y0),
-            x1: self.x1.max(other.x1),
-            y1: self.y1.max(other.y1),
-        }
-    }
-
-    /// Pixel count, `None` if it does not fit in usize.
-    fn area(&self) -> Option<usize> {
-        self.width().checked_mul(self.height())
-    }
 }
 
 /// The first tile's origin and z offset: the canvas grid and the canvas z are anchored there.
@@ -131,12 +96,11 @@ pub struct Panorama {
     max_canvas_px: usize,
     /// Set by the first placed tile.
     anchor: Option<Anchor>,
-    /// Grid extent of the allocated canvas (empty before the first tile).
-    canvas: GridRect,
-    /// Running weighted mean per canvas pixel, row-major over `canvas`.
-    mean: Vec<f32>,
+    /// Running weighted mean per canvas pixel. It and `weight` always cover the same grid
+    /// rectangle, the canvas (empty before the first tile).
+    mean: GrowingCanvas<f32>,
     /// Weight sum per canvas pixel; 0 = no data.
-    weight: Vec<f32>,
+    weight: GrowingCanvas<f32>,
     /// Union of the footprints of all placed tiles.
     content: Option<GridRect>,
     placed: HashSet<u32>,
@@ -159,14 +123,8 @@ impl Panorama {
             params,
             max_canvas_px: DEFAULT_MAX_CANVAS_PX,
             anchor: None,
-            canvas: GridRect {
-                x0: 0,
-                y0: 0,
-                x1: 0,
-                y1: 0,
-            },
-            mean: Vec::new(),
-            weight: Vec::new(),
+            mean: GrowingCanvas::new(0.0),
+            weight: GrowingCanvas::new(0.0),
             content: None,
             placed: HashSet::new(),
             reserved_um: None,
@@ -214,12 +172,17 @@ impl Panorama {
 
     /// Canvas width in pixels (allocated extent, including growth headroom).
     pub fn width(&self) -> usize {
-        self.canvas.width()
+        self.canvas().cols()
     }
 
     /// Canvas height in pixels (allocated extent, including growth headroom).
     pub fn height(&self) -> usize {
-        self.canvas.height()
+        self.canvas().rows()
+    }
+
+    /// The grid rectangle the canvas covers.
+    fn canvas(&self) -> GridRect {
+        self.mean.rect()
     }
 
     /// Number of tiles placed so far.
@@ -229,7 +192,8 @@ impl Panorama {
 
     /// Scan position (um) of the centre of canvas pixel (0, 0); (0, 0) before any tile.
     pub fn canvas_origin_um(&self) -> (f64, f64) {
-        self.grid_to_um(self.canvas.x0, self.canvas.y0)
+        let c = self.canvas();
+        self.grid_to_um(c.x0, c.y0)
     }
 
     /// Scan position (um) of the centre of a region's first pixel in the current canvas.
@@ -290,8 +254,8 @@ impl Panorama {
             return Ok(());
         }
         if let Some(g) = self.grid_rect_um(&rect) {
-            if !self.canvas.contains(&g) {
-                let wanted = self.canvas.union(&g);
+            if !self.canvas().contains(&g) {
+                let wanted = self.canvas().union(&g);
                 if wanted.area().is_some_and(|a| a <= self.max_canvas_px) {
                     // Cannot fail: `wanted` fits the limit.
                     self.reallocate(wanted, wanted, 0)?;
@@ -333,11 +297,12 @@ impl Panorama {
 
     /// Grid rectangle (inside the canvas) to canvas pixel coordinates.
     fn to_region(&self, r: &GridRect) -> Region {
+        let c = self.canvas();
         Region {
-            x0: (r.x0 - self.canvas.x0) as usize,
-            y0: (r.y0 - self.canvas.y0) as usize,
-            width: r.width(),
-            height: r.height(),
+            x0: (r.x0 - c.x0) as usize,
+            y0: (r.y0 - c.y0) as usize,
+            width: r.cols(),
+            height: r.rows(),
         }
     }
 
@@ -361,8 +326,16 @@ impl Panorama {
             }
         }
         Ok((
-            AxisPlan::new(offset_x_px, tile.width, self.params.effective_ramp_x_px()),
-            AxisPlan::new(offset_y_px, tile.height, self.params.effective_ramp_y_px()),
+            AxisPlan::new(
+                offset_x_px,
+                tile.heights.cols(),
+                self.params.effective_ramp_x_px(),
+            ),
+            AxisPlan::new(
+                offset_y_px,
+                tile.heights.rows(),
+                self.params.effective_ramp_y_px(),
+            ),
         ))
     }
 
@@ -389,34 +362,11 @@ impl Panorama {
             self.reserved_um = None;
             return Ok(());
         }
-        let cur = self.canvas;
+        let cur = self.canvas();
         if cur.contains(&need) {
             return Ok(());
         }
-        let step_x = (need.width().max(cur.width() / 2)) as i64;
-        let step_y = (need.height().max(cur.height() / 2)) as i64;
-        let padded = GridRect {
-            x0: if need.x0 < cur.x0 {
-                need.x0.min(cur.x0 - step_x)
-            } else {
-                cur.x0
-            },
-            x1: if need.x1 > cur.x1 {
-                need.x1.max(cur.x1 + step_x)
-            } else {
-                cur.x1
-            },
-            y0: if need.y0 < cur.y0 {
-                need.y0.min(cur.y0 - step_y)
-            } else {
-                cur.y0
-            },
-            y1: if need.y1 > cur.y1 {
-                need.y1.max(cur.y1 + step_y)
-            } else {
-                cur.y1
-            },
-        };
+        let padded = amortised_growth(cur, need);
         self.reallocate(padded, cur.union(&need), index)
     }
 
@@ -430,30 +380,14 @@ impl Panorama {
         } else {
             return Err(FusionError::CanvasTooLarge {
                 index,
-                width: minimal.width(),
-                height: minimal.height(),
+                width: minimal.cols(),
+                height: minimal.rows(),
                 max_px: self.max_canvas_px,
             });
         };
-        let area = new.width() * new.height();
         // Zeroed allocations are lazy: untouched headroom costs no RAM.
-        let mut mean = vec![0.0f32; area];
-        let mut weight = vec![0.0f32; area];
-        let old = self.canvas;
-        if !self.mean.is_empty() {
-            let (ow, nw) = (old.width(), new.width());
-            let dx = (old.x0 - new.x0) as usize;
-            let dy = (old.y0 - new.y0) as usize;
-            for r in 0..old.height() {
-                let src = r * ow..(r + 1) * ow;
-                let dst = (r + dy) * nw + dx;
-                mean[dst..dst + ow].copy_from_slice(&self.mean[src.clone()]);
-                weight[dst..dst + ow].copy_from_slice(&self.weight[src]);
-            }
-        }
-        self.canvas = new;
-        self.mean = mean;
-        self.weight = weight;
+        self.mean.reallocate(new);
+        self.weight.reallocate(new);
         Ok(())
     }
 
@@ -491,13 +425,15 @@ impl Panorama {
             None => footprint,
         });
 
-        let centre_x = (tile.width - 1) as f64 / 2.0;
+        let (cols, rows) = (tile.heights.cols(), tile.heights.rows());
+        let centre_x = (cols - 1) as f64 / 2.0;
         let tilt_x = tile.plane.tilt_x_um_per_px;
         let resampler = Resampler {
-            heights: tile.heights,
-            width: tile.width,
-            height: tile.height,
-            col_term_um: (0..tile.width)
+            // The hot loops index the raw samples.
+            heights: tile.heights.values(),
+            width: cols,
+            height: rows,
+            col_term_um: (0..cols)
                 .map(|c| -(tilt_x * (c as f64 - centre_x)))
                 .collect(),
             piston_um: tile.plane.piston_um,
@@ -511,14 +447,14 @@ impl Panorama {
             self.place_wavelet(&resampler, region, &wf, tile.index)?;
             return Ok(region);
         }
-        let stride = self.canvas.width();
+        let stride = self.mean.stride();
         let rows = region.y0 * stride..(region.y0 + region.height) * stride;
         let cols = region.x0..region.x0 + region.width;
         // One task per canvas row: rows are independent, so the result does not depend on the
         // thread count or schedule (bit for bit), and only the tile's rows are visited.
-        self.mean[rows.clone()]
+        self.mean.values_mut()[rows.clone()]
             .par_chunks_mut(stride)
-            .zip(self.weight[rows].par_chunks_mut(stride))
+            .zip(self.weight.values_mut()[rows].par_chunks_mut(stride))
             .enumerate()
             .with_min_len(8)
             .for_each(|(j, (mean_row, weight_row))| {
@@ -558,24 +494,26 @@ impl Panorama {
         let canvas_z = self.extract(region);
         // Whether the canvas has data just outside the footprint: there the tile's edge is a
         // seam the feathering must close.
-        let (cw, ch) = (self.canvas.width() as isize, self.canvas.height() as isize);
+        let (cw, ch) = (self.width() as isize, self.height() as isize);
+        let weight = self.weight.values();
         let canvas_beyond = |r: isize, c: isize| {
             let (y, x) = (region.y0 as isize + r, region.x0 as isize + c);
-            (0..ch).contains(&y) && (0..cw).contains(&x) && self.weight[(y * cw + x) as usize] > 0.0
+            (0..ch).contains(&y) && (0..cw).contains(&x) && weight[(y * cw + x) as usize] > 0.0
         };
         let fused = fuse_wavelet_in(&canvas_z, &tile_z, region.height, w, wf, canvas_beyond)
             .map_err(|e| FusionError::WaveletFusion {
                 index,
                 message: e.to_string(),
             })?;
-        let stride = self.canvas.width();
+        let stride = self.mean.stride();
+        let (mean, weight) = (self.mean.values_mut(), self.weight.values_mut());
         for j in 0..region.height {
             let row = (region.y0 + j) * stride + region.x0;
             for i in 0..w {
                 let k = j * w + i;
                 if tile_w[k] > 0.0 {
-                    self.mean[row + i] = fused[k];
-                    self.weight[row + i] += 1.0;
+                    mean[row + i] = fused[k];
+                    weight[row + i] += 1.0;
                 }
             }
         }
@@ -585,7 +523,7 @@ impl Panorama {
     /// The tile resampled alone onto this panorama's grid (no blending, plane and z applied as
     /// in [`Panorama::place`]): what this tile contributes, for overlap quality. Before any tile
     /// is placed the tile anchors its own grid.
-    pub fn resample_alone(&self, tile: TileInput<'_>) -> Result<Raster> {
+    pub fn resample_alone(&self, tile: TileInput<'_>) -> Result<PlacedRaster> {
         let mut alone = Panorama::new(self.pitch_x_um, self.pitch_y_um, BlendParams::average())?;
         alone.anchor = self.anchor;
         alone.max_canvas_px = self.max_canvas_px;
@@ -597,7 +535,7 @@ impl Panorama {
     /// NaN where no tile has data and for pixels outside the canvas.
     pub fn extract(&self, region: Region) -> Vec<f32> {
         let mut out = vec![f32::NAN; region.len()];
-        let (cw, ch) = (self.canvas.width(), self.canvas.height());
+        let (cw, ch) = (self.width(), self.height());
         if region.is_empty() || region.x0 >= cw || region.y0 >= ch {
             return out;
         }
@@ -607,8 +545,8 @@ impl Panorama {
             let src = r * cw + region.x0..r * cw + x_end;
             for ((o, &m), &w) in out_row
                 .iter_mut()
-                .zip(&self.mean[src.clone()])
-                .zip(&self.weight[src])
+                .zip(&self.mean.values()[src.clone()])
+                .zip(&self.weight.values()[src])
             {
                 if w > 0.0 {
                     *o = m;
@@ -620,15 +558,18 @@ impl Panorama {
 
     /// The whole panorama, trimmed to the bounding box of the placed tiles' footprints. An
     /// empty panorama gives a 0 x 0 raster.
-    pub fn to_raster(&self) -> Raster {
+    pub fn to_raster(&self) -> PlacedRaster {
         let (region, origin) = match self.content {
             Some(c) => (self.to_region(&c), self.grid_to_um(c.x0, c.y0)),
             None => (Region::default(), (0.0, 0.0)),
         };
-        Raster {
-            heights: self.extract(region),
-            width: region.width,
-            height: region.height,
+        let shape = Shape::new(region.height, region.width);
+        // `extract` gives exactly `shape.len()` values, so only an empty panorama is refused:
+        // it becomes the 0 x 0 raster.
+        let heights = Raster::new(self.extract(region), shape)
+            .unwrap_or_else(|_| Raster::filled(Shape::default(), f32::NAN));
+        PlacedRaster {
+            heights,
             origin_x_um: origin.0,
             origin_y_um: origin.1,
             pitch_x_um: self.pitch_x_um,
@@ -648,7 +589,7 @@ pub fn render(
     pitch_y_um: f64,
     tiles: &[TileInput<'_>],
     params: BlendParams,
-) -> Result<Raster> {
+) -> Result<PlacedRaster> {
     Ok(render_panorama(pitch_x_um, pitch_y_um, tiles, params, None)?.to_raster())
 }
 
@@ -681,8 +622,8 @@ pub fn render_panorama(
         if union.area().is_none_or(|a| a > pano.max_canvas_px) {
             return Err(FusionError::CanvasTooLarge {
                 index: tile.index,
-                width: union.width(),
-                height: union.height(),
+                width: union.cols(),
+                height: union.rows(),
                 max_px: pano.max_canvas_px,
             });
         }

@@ -15,7 +15,7 @@ use surfstream_core::similarity::{ssim, WINDOW_PX};
 
 use crate::error::Result;
 use crate::input::TileInput;
-use crate::panorama::{Panorama, Raster, Region};
+use crate::panorama::{Panorama, PlacedRaster, Region};
 
 /// SSIM of one overlap.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -43,10 +43,10 @@ pub fn overlap_quality(pano: &Panorama, tiles: &[TileInput<'_>]) -> Result<Vec<P
     let (cx, cy) = pano.canvas_origin_um();
     let (px, py) = pano.pitch_um();
     // Each tile alone and where it sits in canvas pixels.
-    let mut alone: Vec<(u32, Raster, i64, i64)> = Vec::with_capacity(tiles.len());
+    let mut alone: Vec<(u32, PlacedRaster, i64, i64)> = Vec::with_capacity(tiles.len());
     for t in tiles {
         let r = pano.resample_alone(*t)?;
-        if r.width == 0 || r.height == 0 {
+        if r.heights.shape().is_empty() {
             continue;
         }
         let gx = ((r.origin_x_um - cx) / px).round() as i64;
@@ -59,8 +59,8 @@ pub fn overlap_quality(pano: &Panorama, tiles: &[TileInput<'_>]) -> Result<Vec<P
         for (ib, rb, bx, by) in &alone[i + 1..] {
             let x0 = (*ax).max(*bx).max(content.x0 as i64);
             let y0 = (*ay).max(*by).max(content.y0 as i64);
-            let x1 = (ax + ra.width as i64).min(bx + rb.width as i64);
-            let y1 = (ay + ra.height as i64).min(by + rb.height as i64);
+            let x1 = (ax + ra.heights.cols() as i64).min(bx + rb.heights.cols() as i64);
+            let y1 = (ay + ra.heights.rows() as i64).min(by + rb.heights.rows() as i64);
             if x1 - x0 < WINDOW_PX as i64 || y1 - y0 < WINDOW_PX as i64 {
                 continue;
             }
@@ -71,12 +71,12 @@ pub fn overlap_quality(pano: &Panorama, tiles: &[TileInput<'_>]) -> Result<Vec<P
                 height: (y1 - y0) as usize,
             };
             let fused = pano.extract(region);
-            let crop = |r: &Raster, gx: i64, gy: i64| -> Vec<f32> {
+            let crop = |r: &PlacedRaster, gx: i64, gy: i64| -> Vec<f32> {
                 let mut v = Vec::with_capacity(region.len());
                 for row in 0..region.height {
                     let sr = (y0 - gy) as usize + row;
                     let sc = (x0 - gx) as usize;
-                    v.extend_from_slice(&r.heights[sr * r.width + sc..][..region.width]);
+                    v.extend_from_slice(&r.heights.row(sr)[sc..][..region.width]);
                 }
                 v
             };

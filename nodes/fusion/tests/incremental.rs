@@ -10,6 +10,7 @@ use std::collections::BTreeMap;
 use surfstream_core::frame::{
     flags, FrameHeader, FrameKind, FrameView, HeightMap, TileRegistration,
 };
+use surfstream_core::raster::{RasterView, Shape};
 use surfstream_fusion::{render, BlendParams, FusionMethod, PlaneCorrection, TileInput};
 use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox, Output};
@@ -227,9 +228,7 @@ fn streamed_3x3_scan_ends_bit_identical_to_batch() {
             .iter()
             .map(|(t, _, f)| TileInput {
                 index: t.header.tile_index,
-                heights: &t.heights,
-                width: TILE_PX,
-                height: TILE_PX,
+                heights: RasterView::new(&t.heights, Shape::new(TILE_PX, TILE_PX)).unwrap(),
                 x_um: f.x_um,
                 y_um: f.y_um,
                 plane: PlaneCorrection {
@@ -253,14 +252,19 @@ fn streamed_3x3_scan_ends_bit_identical_to_batch() {
             .to_raster();
         if m == FusionMethod::Gradual {
             assert_eq!(
-                bits(&render(PITCH_UM, PITCH_UM, &inputs, params).unwrap().heights),
-                bits(&pano.heights)
+                bits(
+                    render(PITCH_UM, PITCH_UM, &inputs, params)
+                        .unwrap()
+                        .heights
+                        .values()
+                ),
+                bits(pano.heights.values())
             );
         }
         let batch = separate(
-            &pano.heights,
-            pano.height,
-            pano.width,
+            pano.heights.values(),
+            pano.heights.rows(),
+            pano.heights.cols(),
             &Wavelet::by_name("sym5").unwrap(),
             Mode::Symmetric,
             None,
@@ -274,7 +278,7 @@ fn streamed_3x3_scan_ends_bit_identical_to_batch() {
         };
         assert_eq!(
             bits(got("panorama")),
-            bits(&pano.heights),
+            bits(pano.heights.values()),
             "{method}: panorama"
         );
         assert_eq!(bits(got("datum")), bits(&batch.datum), "{method}: datum");
@@ -286,7 +290,7 @@ fn streamed_3x3_scan_ends_bit_identical_to_batch() {
         let p = &finals["panorama"].header;
         assert_eq!(
             (p.width as usize, p.height as usize),
-            (pano.width, pano.height)
+            (pano.heights.cols(), pano.heights.rows())
         );
     }
 }

@@ -3,9 +3,10 @@
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use surfstream_core::raster::{RasterView, Shape};
 use surfstream_fusion::{
     overlap_quality, render, render_panorama, BlendParams, FusionError, FusionMethod, Panorama,
-    PlaneCorrection, Raster, Region, TileInput, WaveletFusion,
+    PlacedRaster, PlaneCorrection, Region, TileInput, WaveletFusion,
 };
 
 const PITCH_X_UM: f64 = 0.8148;
@@ -79,9 +80,7 @@ impl Tile {
     fn input(&self) -> TileInput<'_> {
         TileInput {
             index: self.index,
-            heights: &self.heights,
-            width: self.width,
-            height: self.height,
+            heights: RasterView::new(&self.heights, Shape::new(self.height, self.width)).unwrap(),
             x_um: self.x_um,
             y_um: self.y_um,
             plane: self.plane,
@@ -185,12 +184,12 @@ fn place_all(pano: &mut Panorama, tiles: &[Tile]) -> Vec<Region> {
         .collect()
 }
 
-fn value_at(raster: &Raster, col: usize, row: usize) -> f32 {
-    raster.heights[row * raster.width + col]
+fn value_at(raster: &PlacedRaster, col: usize, row: usize) -> f32 {
+    raster.heights.values()[row * raster.heights.cols() + col]
 }
 
 /// Scan position of raster pixel (col, row).
-fn pos_um(raster: &Raster, col: usize, row: usize) -> (f64, f64) {
+fn pos_um(raster: &PlacedRaster, col: usize, row: usize) -> (f64, f64) {
     (
         raster.origin_x_um + col as f64 * raster.pitch_x_um,
         raster.origin_y_um + row as f64 * raster.pitch_y_um,
@@ -229,8 +228,8 @@ fn reproduces_a_smooth_surface_across_seams_and_corners() {
     let jitter_x = 6.0 * PITCH_X_UM;
     let jitter_y = 6.0 * PITCH_Y_UM;
     let (mut checked, mut max_err, mut seams) = (0usize, 0.0f64, 0usize);
-    for row in 0..raster.height {
-        for col in 0..raster.width {
+    for row in 0..raster.heights.rows() {
+        for col in 0..raster.heights.cols() {
             let (x, y) = pos_um(&raster, col, row);
             let v = value_at(&raster, col, row);
             let inside = x > min_x + jitter_x
@@ -268,7 +267,7 @@ fn reproduces_a_smooth_surface_across_seams_and_corners() {
             checked += 1;
         }
     }
-    assert!(checked > raster.width * raster.height * 9 / 10);
+    assert!(checked > raster.heights.cols() * raster.heights.rows() * 9 / 10);
     assert!(seams > checked / 5, "the scan has too few overlap pixels");
     eprintln!("max error {max_err:.2e} um, bound {bound:.2e} um, {seams} overlap px");
 }
@@ -285,9 +284,9 @@ fn on_grid_tile_is_copied_exactly() {
         BlendParams::from_overlap_px(4.0, 4.0),
     )
     .unwrap();
-    assert_eq!((raster.width, raster.height), (20, 10));
+    assert_eq!((raster.heights.cols(), raster.heights.rows()), (20, 10));
     assert_eq!((raster.origin_x_um, raster.origin_y_um), (5.0, 7.0));
-    assert_eq!(raster.heights, tile.heights);
+    assert_eq!(raster.heights.values(), tile.heights);
 }
 
 #[test]
@@ -361,10 +360,10 @@ fn growth_left_and_up_keeps_content() {
     let raster = pano.to_raster();
     let content = pano.content_region().unwrap();
     assert_eq!(
-        (raster.width, raster.height),
+        (raster.heights.cols(), raster.heights.rows()),
         (content.width, content.height)
     );
-    assert!(raster.width < pano.width() || raster.height < pano.height());
+    assert!(raster.heights.cols() < pano.width() || raster.heights.rows() < pano.height());
     assert!((raster.origin_x_um - (100.0 - 90.45 * PITCH_X_UM)).abs() < PITCH_X_UM);
     assert!((raster.origin_y_um - (200.0 - 55.2 * PITCH_Y_UM)).abs() < PITCH_Y_UM);
 }
@@ -411,11 +410,12 @@ fn pistons_tilts_and_z_offsets_corrected_give_an_exactly_flat_panorama() {
     assert_eq!(raster.z_offset_um, z_canvas_um);
     let valid: Vec<f32> = raster
         .heights
+        .values()
         .iter()
         .copied()
         .filter(|v| !v.is_nan())
         .collect();
-    assert!(valid.len() > raster.heights.len() * 9 / 10);
+    assert!(valid.len() > raster.heights.values().len() * 9 / 10);
     assert!(
         valid.iter().all(|&v| v == level_um as f32),
         "not flat: {:?}",
@@ -484,8 +484,8 @@ fn nan_pixels_are_filled_from_the_other_tile_and_stay_nan_where_none_has_data() 
         // Everywhere else: no NaN leaked in as a value (the surface sits 10 um up, so a NaN
         // read as 0 would be far off). Next to a hole, a renormalised bilinear sample may be
         // off by up to the slope over one pixel.
-        for row in 0..raster.height {
-            for col in 0..raster.width {
+        for row in 0..raster.heights.rows() {
+            for col in 0..raster.heights.cols() {
                 let v = at(col, row);
                 if !v.is_nan() {
                     let (x, y) = pos_um(&raster, col, row);
@@ -527,7 +527,7 @@ fn blend_is_linear_across_a_horizontal_overlap() {
         let raster = render(PITCH_X_UM, PITCH_Y_UM, &[a.input(), b.input()], params).unwrap();
         let first_b = dx_px.ceil() as usize;
         for row in 0..h {
-            let line: Vec<f64> = (0..raster.width)
+            let line: Vec<f64> = (0..raster.heights.cols())
                 .map(|c| value_at(&raster, c, row) as f64)
                 .collect();
             assert!(line[..first_b].iter().all(|&v| v == 0.0));
@@ -570,15 +570,15 @@ fn four_tile_corner_fades_smoothly() {
         })
         .collect();
     let inputs: Vec<TileInput> = tiles.iter().map(Tile::input).collect();
-    let max_jump = |raster: &Raster| {
+    let max_jump = |raster: &PlacedRaster| {
         let mut jump = 0.0f32;
-        for row in 0..raster.height {
-            for col in 0..raster.width {
+        for row in 0..raster.heights.rows() {
+            for col in 0..raster.heights.cols() {
                 let v = value_at(raster, col, row);
-                if col + 1 < raster.width {
+                if col + 1 < raster.heights.cols() {
                     jump = jump.max((value_at(raster, col + 1, row) - v).abs());
                 }
-                if row + 1 < raster.height {
+                if row + 1 < raster.heights.rows() {
                     jump = jump.max((value_at(raster, col, row + 1) - v).abs());
                 }
             }
@@ -592,7 +592,7 @@ fn four_tile_corner_fades_smoothly() {
         BlendParams::from_overlap_px(20.0, 20.0),
     )
     .unwrap();
-    assert!(ramped.heights.iter().all(|v| !v.is_nan()));
+    assert!(ramped.heights.values().iter().all(|v| !v.is_nan()));
     let averaged = render(PITCH_X_UM, PITCH_Y_UM, &inputs, BlendParams::average()).unwrap();
     // A 0..3 step spread over a 20 px ramp moves at most ~3 / 20 per pixel, even at the
     // corner where all four tiles meet; a plain average jumps wherever a tile begins.
@@ -635,8 +635,16 @@ fn render_equals_sequential_place_bit_for_bit() {
 
     for other in [&rendered, &single] {
         assert_eq!(
-            (other.width, other.height, other.z_offset_um),
-            (sequential.width, sequential.height, sequential.z_offset_um)
+            (
+                other.heights.cols(),
+                other.heights.rows(),
+                other.z_offset_um
+            ),
+            (
+                sequential.heights.cols(),
+                sequential.heights.rows(),
+                sequential.z_offset_um
+            )
         );
         assert_eq!(
             other.origin_x_um.to_bits(),
@@ -646,11 +654,25 @@ fn render_equals_sequential_place_bit_for_bit() {
             other.origin_y_um.to_bits(),
             sequential.origin_y_um.to_bits()
         );
-        let bits = |r: &Raster| r.heights.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        let bits = |r: &PlacedRaster| {
+            r.heights
+                .values()
+                .iter()
+                .map(|v| v.to_bits())
+                .collect::<Vec<_>>()
+        };
         assert_eq!(bits(other), bits(&sequential));
     }
-    assert!(sequential.heights.iter().any(|v| v.is_nan()));
-    assert!(sequential.heights.iter().filter(|v| !v.is_nan()).count() > 1000);
+    assert!(sequential.heights.values().iter().any(|v| v.is_nan()));
+    assert!(
+        sequential
+            .heights
+            .values()
+            .iter()
+            .filter(|v| !v.is_nan())
+            .count()
+            > 1000
+    );
 }
 
 #[test]
@@ -739,11 +761,14 @@ fn bad_input_is_a_clear_error_naming_the_field() {
     );
 
     let heights = vec![0.5f32; 12];
+    let shape = Shape::new(3, 4);
+    // A payload that does not fit its size cannot even become a tile: the raster view refuses.
+    assert!(RasterView::new(&heights[..11], shape).is_err());
+    assert!(RasterView::<f32>::new(&[], Shape::new(3, 0)).is_err());
+    assert!(RasterView::new(&heights, Shape::new(2, usize::MAX)).is_err());
     let good = TileInput {
         index: 3,
-        heights: &heights,
-        width: 4,
-        height: 3,
+        heights: RasterView::new(&heights, shape).unwrap(),
         x_um: 0.0,
         y_um: 0.0,
         plane: PlaneCorrection::default(),
@@ -755,37 +780,6 @@ fn bad_input_is_a_clear_error_naming_the_field() {
         h
     };
     let cases: Vec<(TileInput, &str)> = vec![
-        (
-            TileInput {
-                heights: &heights[..11],
-                ..good
-            },
-            "heights holds 11 values",
-        ),
-        (
-            TileInput {
-                width: 0,
-                heights: &[],
-                ..good
-            },
-            "width = 0",
-        ),
-        (
-            TileInput {
-                height: 0,
-                heights: &[],
-                ..good
-            },
-            "height = 0",
-        ),
-        (
-            TileInput {
-                width: usize::MAX,
-                height: 2,
-                ..good
-            },
-            "width x height",
-        ),
         (
             TileInput {
                 x_um: f64::NAN,
@@ -819,7 +813,7 @@ fn bad_input_is_a_clear_error_naming_the_field() {
         ),
         (
             TileInput {
-                heights: &with_inf,
+                heights: RasterView::new(&with_inf, shape).unwrap(),
                 ..good
             },
             "heights[1][2]",
@@ -868,8 +862,8 @@ fn bad_input_is_a_clear_error_naming_the_field() {
 fn empty_panorama_is_a_zero_raster() {
     let pano = Panorama::new(1.0, 1.0, BlendParams::average()).unwrap();
     let raster = pano.to_raster();
-    assert_eq!((raster.width, raster.height), (0, 0));
-    assert!(raster.heights.is_empty());
+    assert_eq!((raster.heights.cols(), raster.heights.rows()), (0, 0));
+    assert!(raster.heights.values().is_empty());
     assert_eq!(pano.content_region(), None);
     assert!(pano
         .extract(Region {
@@ -910,10 +904,16 @@ fn reserve_pre_sizes_the_canvas_and_changes_no_value() {
     assert!(sizes[0].0 >= (140.0 / PITCH_X_UM) as usize);
     let (a, b) = (grown.to_raster(), reserved.to_raster());
     assert_eq!(
-        (a.width, a.height, a.origin_x_um),
-        (b.width, b.height, b.origin_x_um)
+        (a.heights.cols(), a.heights.rows(), a.origin_x_um),
+        (b.heights.cols(), b.heights.rows(), b.origin_x_um)
     );
-    let bits = |r: &Raster| r.heights.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+    let bits = |r: &PlacedRaster| {
+        r.heights
+            .values()
+            .iter()
+            .map(|v| v.to_bits())
+            .collect::<Vec<_>>()
+    };
     assert_eq!(bits(&a), bits(&b));
 
     // After the first tile a reservation grows the canvas at once; one over the limit is
@@ -962,14 +962,15 @@ fn three_methods_reproduce_the_truth_and_score_every_overlap() {
         assert!(
             raster
                 .heights
+                .values()
                 .iter()
-                .zip(&rendered.heights)
+                .zip(rendered.heights.values())
                 .all(|(a, b)| a.to_bits() == b.to_bits()),
             "{method}: render differs from sequential placement"
         );
         let (mut n, mut sq, mut max_err) = (0usize, 0.0f64, 0.0f64);
-        for row in 0..raster.height {
-            for col in 0..raster.width {
+        for row in 0..raster.heights.rows() {
+            for col in 0..raster.heights.cols() {
                 let v = value_at(&raster, col, row);
                 if v.is_nan() {
                     continue;

@@ -41,6 +41,8 @@
 
 use rayon::prelude::*;
 
+use surfstream_core::raster::{Raster, Shape};
+
 use crate::error::{check_raster, Result, WaveletError};
 use crate::wavelet::{dwt_coeff_len, Mode, Wavelet};
 
@@ -48,79 +50,13 @@ use crate::wavelet::{dwt_coeff_len, Mode, Wavelet};
 /// warning past [`crate::dwt_max_level`]); 64 levels is far past any map that fits in memory.
 pub const MAX_LEVEL: usize = 64;
 
-/// A row-major 2-D array of `f64`: `rows * cols` values, row `r` at `r * cols ..`.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Array2 {
-    data: Vec<f64>,
-    rows: usize,
-    cols: usize,
-}
-
-impl Array2 {
-    /// Wrap a row-major buffer. Errors if `data.len() != rows * cols` or a side is zero.
-    pub fn new(data: Vec<f64>, rows: usize, cols: usize) -> Result<Self> {
-        check_raster(data.len(), rows, cols)?;
-        Ok(Array2 { data, rows, cols })
-    }
-
-    /// A `rows x cols` array of zeros (a side may be zero here: the array is then empty).
-    ///
-    /// # Panics
-    ///
-    /// If `rows * cols` overflows `usize` (no such array could be allocated anyway).
-    pub fn zeros(rows: usize, cols: usize) -> Self {
-        let len = rows
-            .checked_mul(cols)
-            .expect("Array2::zeros: rows * cols overflows");
-        Array2 {
-            data: vec![0.0; len],
-            rows,
-            cols,
-        }
-    }
-
-    /// Number of rows (size along y, axis 0).
-    pub fn rows(&self) -> usize {
-        self.rows
-    }
-
-    /// Number of columns (size along x, axis 1).
-    pub fn cols(&self) -> usize {
-        self.cols
-    }
-
-    /// `(rows, cols)`, as numpy's `shape`.
-    pub fn shape(&self) -> (usize, usize) {
-        (self.rows, self.cols)
-    }
-
-    /// The values, row-major.
-    pub fn as_slice(&self) -> &[f64] {
-        &self.data
-    }
-
-    /// The values, row-major, writable (e.g. to zero a sub-band).
-    pub fn as_mut_slice(&mut self) -> &mut [f64] {
-        &mut self.data
-    }
-
-    /// The value at `(row, col)`, `None` outside the array.
-    pub fn get(&self, row: usize, col: usize) -> Option<f64> {
-        (row < self.rows && col < self.cols).then(|| self.data[row * self.cols + col])
-    }
-
-    /// Give the buffer back.
-    pub fn into_vec(self) -> Vec<f64> {
-        self.data
-    }
-
-    fn view(&self) -> View<'_> {
-        View {
-            data: &self.data,
-            rows: self.rows,
-            cols: self.cols,
-            stride: self.cols,
-        }
+/// The kernels' input: a whole raster (a coefficient array) as a strided view.
+fn view_of(a: &Raster<f64>) -> View<'_> {
+    View {
+        data: a.values(),
+        rows: a.rows(),
+        cols: a.cols(),
+        stride: a.cols(),
     }
 }
 
@@ -128,18 +64,18 @@ impl Array2 {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Details2 {
     /// Horizontal detail: low-pass along x (rows), high-pass along y (PyWavelets' cH).
-    pub h: Array2,
+    pub h: Raster<f64>,
     /// Vertical detail: high-pass along x, low-pass along y (cV).
-    pub v: Array2,
+    pub v: Raster<f64>,
     /// Diagonal detail: high-pass along both axes (cD).
-    pub d: Array2,
+    pub d: Raster<f64>,
 }
 
 /// The result of [`wavedec2`]: PyWavelets' list `[cA_n, (cH_n, cV_n, cD_n), ..., (cH_1, cV_1, cD_1)]`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Coeffs2 {
     /// Approximation at the deepest level, cA_n.
-    pub approx: Array2,
+    pub approx: Raster<f64>,
     /// Details, coarsest level (n) first and finest level (1) last, as in PyWavelets' list.
     pub details: Vec<Details2>,
 }
@@ -510,49 +446,44 @@ fn rows_per_task(rows: usize, cols: usize) -> usize {
 }
 
 /// One decomposition level of `x`: cA and, when `details`, (cH, cV, cD).
-fn dec_level(x: View<'_>, an: &Analysis, details: bool) -> (Array2, Option<Details2>) {
+fn dec_level(x: View<'_>, an: &Analysis, details: bool) -> (Raster<f64>, Option<Details2>) {
     let (r2, c2) = (an.out_len(x.rows), an.out_len(x.cols));
-    let mut ca = vec![0.0; r2 * c2];
+    let shape = Shape::new(r2, c2);
+    let mut ca = Raster::filled(shape, 0.0);
     let chunk = rows_per_task(r2, c2) * c2;
     if details {
-        let mut ch = vec![0.0; r2 * c2];
-        let mut cv = vec![0.0; r2 * c2];
-        let mut cd = vec![0.0; r2 * c2];
-        ca.par_chunks_mut(chunk)
-            .zip(ch.par_chunks_mut(chunk))
-            .zip(cv.par_chunks_mut(chunk))
-            .zip(cd.par_chunks_mut(chunk))
+        let mut ch = Raster::filled(shape, 0.0);
+        let mut cv = Raster::filled(shape, 0.0);
+        let mut cd = Raster::filled(shape, 0.0);
+        ca.values_mut()
+            .par_chunks_mut(chunk)
+            .zip(ch.values_mut().par_chunks_mut(chunk))
+            .zip(cv.values_mut().par_chunks_mut(chunk))
+            .zip(cd.values_mut().par_chunks_mut(chunk))
             .enumerate()
             .for_each(|(t, (((ca, ch), cv), cd))| {
                 let out = DecOut { ca, ch, cv, cd };
                 dec_task_dispatch::<true>(x, an, t * chunk / c2, out);
             });
-        let arr = |data| Array2 {
-            data,
-            rows: r2,
-            cols: c2,
-        };
         let det = Details2 {
-            h: arr(ch),
-            v: arr(cv),
-            d: arr(cd),
+            h: ch,
+            v: cv,
+            d: cd,
         };
-        (arr(ca), Some(det))
+        (ca, Some(det))
     } else {
-        ca.par_chunks_mut(chunk).enumerate().for_each(|(t, ca)| {
-            let out = DecOut {
-                ca,
-                ch: &mut [],
-                cv: &mut [],
-                cd: &mut [],
-            };
-            dec_task_dispatch::<false>(x, an, t * chunk / c2, out);
-        });
-        let ca = Array2 {
-            data: ca,
-            rows: r2,
-            cols: c2,
-        };
+        ca.values_mut()
+            .par_chunks_mut(chunk)
+            .enumerate()
+            .for_each(|(t, ca)| {
+                let out = DecOut {
+                    ca,
+                    ch: &mut [],
+                    cv: &mut [],
+                    cd: &mut [],
+                };
+                dec_task_dispatch::<false>(x, an, t * chunk / c2, out);
+            });
         (ca, None)
     }
 }
@@ -584,10 +515,10 @@ pub fn wavedec2(
 /// [`wavedec2`] after the argument checks.
 fn wavedec2_with(data: &[f64], rows: usize, cols: usize, an: &Analysis, level: usize) -> Coeffs2 {
     let mut details = Vec::with_capacity(level);
-    let mut approx: Option<Array2> = None;
+    let mut approx: Option<Raster<f64>> = None;
     for _ in 0..level {
         let x = match &approx {
-            Some(a) => a.view(),
+            Some(a) => view_of(a),
             None => View {
                 data,
                 rows,
@@ -603,11 +534,12 @@ fn wavedec2_with(data: &[f64], rows: usize, cols: usize, an: &Analysis, level: u
     details.reverse();
     let approx = match approx {
         Some(a) => a,
-        None => Array2 {
-            data: data.to_vec(),
-            rows,
-            cols,
-        },
+        None => {
+            // Level 0: the input itself (the caller checked its size).
+            let mut a = Raster::filled(Shape::new(rows, cols), 0.0);
+            a.values_mut().copy_from_slice(data);
+            a
+        }
     };
     Coeffs2 { approx, details }
 }
@@ -931,7 +863,7 @@ fn rec_task_dispatch<const D: bool>(inp: RecIn<'_>, sy: &Synthesis, n0: usize, o
 
 /// One inverse level. Shapes must already be checked: `a` and the details equal, and long
 /// enough for the filter.
-fn rec_level(inp: RecIn<'_>, sy: &Synthesis) -> Result<Array2> {
+fn rec_level(inp: RecIn<'_>, sy: &Synthesis) -> Result<Raster<f64>> {
     let too_short = || {
         WaveletError::CoeffShape(format!(
             "{} x {} coefficients are too few for a filter of length {} in {} mode",
@@ -943,33 +875,32 @@ fn rec_level(inp: RecIn<'_>, sy: &Synthesis) -> Result<Array2> {
     };
     let rows = sy.out_len(inp.a.rows).ok_or_else(too_short)?;
     let cols = sy.out_len(inp.a.cols).ok_or_else(too_short)?;
-    let mut out = vec![0.0; rows * cols];
+    let mut out = Raster::filled(Shape::new(rows, cols), 0.0);
     let chunk = rows_per_task(rows, cols) * cols;
-    out.par_chunks_mut(chunk).enumerate().for_each(|(t, o)| {
-        if inp.hvd.is_some() {
-            rec_task_dispatch::<true>(inp, sy, t * chunk / cols, o);
-        } else {
-            rec_task_dispatch::<false>(inp, sy, t * chunk / cols, o);
-        }
-    });
-    Ok(Array2 {
-        data: out,
-        rows,
-        cols,
-    })
+    out.values_mut()
+        .par_chunks_mut(chunk)
+        .enumerate()
+        .for_each(|(t, o)| {
+            if inp.hvd.is_some() {
+                rec_task_dispatch::<true>(inp, sy, t * chunk / cols, o);
+            } else {
+                rec_task_dispatch::<false>(inp, sy, t * chunk / cols, o);
+            }
+        });
+    Ok(out)
 }
 
 /// The approximation of one level, trimmed as PyWavelets' `_match_coeff_dims`: it may exceed
 /// the detail shape by one along each axis (odd sizes); anything else is an error.
-fn match_dims<'a>(a: &'a Array2, rows: usize, cols: usize) -> Result<View<'a>> {
+fn match_dims<'a>(a: &'a Raster<f64>, rows: usize, cols: usize) -> Result<View<'a>> {
     let fits = |n: usize, m: usize| n == m || n == m + 1;
-    if !fits(a.rows, rows) || !fits(a.cols, cols) {
+    if !fits(a.rows(), rows) || !fits(a.cols(), cols) {
         return Err(WaveletError::CoeffShape(format!(
-            "approximation {} x {} does not fit details {} x {}",
-            a.rows, a.cols, rows, cols
+            "approximation {} does not fit details {rows} x {cols}",
+            a.shape()
         )));
     }
-    Ok(a.view().corner(rows, cols))
+    Ok(view_of(a).corner(rows, cols))
 }
 
 /// Multilevel 2-D inverse DWT, as `pywt.waverec2(coeffs, wavelet, mode)`.
@@ -977,18 +908,18 @@ fn match_dims<'a>(a: &'a Array2, rows: usize, cols: usize) -> Result<View<'a>> {
 /// The output has PyWavelets' shape: for an odd input side it is one sample longer than the
 /// data given to [`wavedec2`]; crop it. Errors if the shapes do not chain as `wavedec2` makes
 /// them.
-pub fn waverec2(coeffs: &Coeffs2, wavelet: &Wavelet, mode: Mode) -> Result<Array2> {
+pub fn waverec2(coeffs: &Coeffs2, wavelet: &Wavelet, mode: Mode) -> Result<Raster<f64>> {
     waverec2_with(coeffs, &Synthesis::new(wavelet, mode))
 }
 
 /// [`waverec2`] with given kernels.
-fn waverec2_with(coeffs: &Coeffs2, sy: &Synthesis) -> Result<Array2> {
-    let mut approx: Option<Array2> = None;
+fn waverec2_with(coeffs: &Coeffs2, sy: &Synthesis) -> Result<Raster<f64>> {
+    let mut approx: Option<Raster<f64>> = None;
     for (idx, det) in coeffs.details.iter().enumerate() {
         let shape = det.h.shape();
         if det.v.shape() != shape || det.d.shape() != shape {
             return Err(WaveletError::CoeffShape(format!(
-                "level {}: cH {:?}, cV {:?}, cD {:?} differ",
+                "level {}: cH {}, cV {}, cD {} differ",
                 coeffs.details.len() - idx,
                 shape,
                 det.v.shape(),
@@ -1000,18 +931,18 @@ fn waverec2_with(coeffs: &Coeffs2, sy: &Synthesis) -> Result<Array2> {
             // The deepest level is not trimmed: PyWavelets requires equal shapes there.
             if a_full.shape() != shape {
                 return Err(WaveletError::CoeffShape(format!(
-                    "cA {:?} differs from the deepest details {:?}",
+                    "cA {} differs from the deepest details {}",
                     a_full.shape(),
                     shape
                 )));
             }
-            a_full.view()
+            view_of(a_full)
         } else {
-            match_dims(a_full, shape.0, shape.1)?
+            match_dims(a_full, shape.rows, shape.cols)?
         };
         let inp = RecIn {
             a,
-            hvd: Some([det.h.view(), det.v.view(), det.d.view()]),
+            hvd: Some([view_of(&det.h), view_of(&det.v), view_of(&det.d)]),
         };
         approx = Some(rec_level(inp, sy)?);
     }
@@ -1023,7 +954,7 @@ fn waverec2_with(coeffs: &Coeffs2, sy: &Synthesis) -> Result<Array2> {
 /// straight into its f32 surfaces without a full-size f64 intermediate.
 pub(crate) struct LowpassFinal {
     /// Approximation at level 1 (untrimmed: trimmed through `trim` when read).
-    a: Array2,
+    a: Raster<f64>,
     trim: (usize, usize),
     sy: Synthesis,
     rows: usize,
@@ -1044,7 +975,7 @@ impl LowpassFinal {
     /// Write reconstruction rows `n0 ..` into `out` (a whole number of rows of
     /// [`Self::cols`] values, not past [`Self::rows`]).
     pub(crate) fn compute_rows(&self, n0: usize, out: &mut [f64]) {
-        let a = self.a.view().corner(self.trim.0, self.trim.1);
+        let a = view_of(&self.a).corner(self.trim.0, self.trim.1);
         rec_task_dispatch::<false>(RecIn { a, hvd: None }, &self.sy, n0, out);
     }
 }
@@ -1083,10 +1014,10 @@ pub(crate) fn lowpass_final(
         false,
     )
     .0;
-    shapes.push(approx.shape());
+    shapes.push((approx.rows(), approx.cols()));
     for _ in 1..level {
-        approx = dec_level(approx.view(), &an, false).0;
-        shapes.push(approx.shape());
+        approx = dec_level(view_of(&approx), &an, false).0;
+        shapes.push((approx.rows(), approx.cols()));
     }
     // As waverec2: before each inverse step, trim to that level's detail shape (equal at the
     // deepest level).
@@ -1118,18 +1049,15 @@ fn approx_only(
     wavelet: &Wavelet,
     mode: Mode,
     level: usize,
-) -> Result<Array2> {
+) -> Result<Raster<f64>> {
     let fin = lowpass_final(data, rows, cols, wavelet, mode, level)?;
-    let mut out = vec![0.0; fin.rows * fin.cols];
+    let mut out = Raster::filled(Shape::new(fin.rows, fin.cols), 0.0);
     let chunk = rows_per_task(fin.rows, fin.cols) * fin.cols;
-    out.par_chunks_mut(chunk)
+    out.values_mut()
+        .par_chunks_mut(chunk)
         .enumerate()
         .for_each(|(t, o)| fin.compute_rows(t * chunk / fin.cols, o));
-    Ok(Array2 {
-        data: out,
-        rows: fin.rows,
-        cols: fin.cols,
-    })
+    Ok(out)
 }
 
 #[cfg(test)]
@@ -1177,7 +1105,7 @@ mod tests {
                     let mut err: f64 = 0.0;
                     for i in 0..rows {
                         for j in 0..cols {
-                            let v = r.get(i, j).unwrap_or(f64::NAN);
+                            let v = r.get(i, j).copied().unwrap_or(f64::NAN);
                             err = err.max((v - x[i * cols + j]).abs());
                         }
                     }
@@ -1205,11 +1133,11 @@ mod tests {
                 );
                 let cp = wavedec2_with(&x, rows, cols, &an_p, 2);
                 let cf = wavedec2_with(&x, rows, cols, &an_f, 2);
-                let close = |a: &Array2, b: &Array2| {
+                let close = |a: &Raster<f64>, b: &Raster<f64>| {
                     a.shape() == b.shape()
-                        && a.as_slice()
+                        && a.values()
                             .iter()
-                            .zip(b.as_slice())
+                            .zip(b.values())
                             .all(|(u, v)| (u - v).abs() < 1e-13)
                 };
                 assert!(close(&cp.approx, &cf.approx), "{name} {mode}");
@@ -1232,18 +1160,22 @@ mod tests {
             for mode in [Mode::Symmetric, Mode::Periodization] {
                 let mut c = wavedec2(&x, rows, cols, &w, mode, 3).expect("dec");
                 for d in &mut c.details {
-                    d.h.as_mut_slice().fill(0.0);
-                    d.v.as_mut_slice().fill(0.0);
-                    d.d.as_mut_slice().fill(0.0);
+                    d.h.values_mut().fill(0.0);
+                    d.v.values_mut().fill(0.0);
+                    d.d.values_mut().fill(0.0);
                 }
                 let full = waverec2(&c, &w, mode).expect("rec");
                 let fast = approx_only(&x, rows, cols, &w, mode, 3).expect("approx");
                 assert_eq!(full.shape(), fast.shape());
-                for (a, b) in full.as_slice().iter().zip(fast.as_slice()) {
+                for (a, b) in full.values().iter().zip(fast.values()) {
                     assert!((a - b).abs() < 1e-13, "{name} {mode}");
                 }
             }
         }
+    }
+
+    fn zeros(rows: usize, cols: usize) -> Raster<f64> {
+        Raster::filled(Shape::new(rows, cols), 0.0)
     }
 
     #[test]
@@ -1253,17 +1185,17 @@ mod tests {
         assert!(wavedec2(&[], 0, 3, &w, Mode::Symmetric, 1).is_err());
         assert!(wavedec2(&[0.0; 6], 2, 3, &w, Mode::Symmetric, MAX_LEVEL + 1).is_err());
         let mut c = wavedec2(&noise(100, 1), 10, 10, &w, Mode::Symmetric, 2).expect("dec");
-        c.details[1].v = Array2::zeros(3, 3);
+        c.details[1].v = zeros(3, 3);
         assert!(matches!(
             waverec2(&c, &w, Mode::Symmetric),
             Err(WaveletError::CoeffShape(_))
         ));
         let c = Coeffs2 {
-            approx: Array2::zeros(1, 1),
+            approx: zeros(1, 1),
             details: vec![Details2 {
-                h: Array2::zeros(1, 1),
-                v: Array2::zeros(1, 1),
-                d: Array2::zeros(1, 1),
+                h: zeros(1, 1),
+                v: zeros(1, 1),
+                d: zeros(1, 1),
             }],
         };
         // One coefficient is too few for a 4-tap filter in symmetric mode.

@@ -35,13 +35,19 @@
 mod dwt;
 mod error;
 mod filters;
+pub mod live;
+pub mod options;
 mod pool;
 mod select;
 mod separate;
 mod wavelet;
 
-pub use dwt::{wavedec2, waverec2, Array2, Coeffs2, Details2, MAX_LEVEL};
+pub use dwt::{wavedec2, waverec2, Coeffs2, Details2, MAX_LEVEL};
 pub use error::{Result, WaveletError};
+pub use live::{
+    final_separation, FinalSeparation, LivePatches, LiveSeparation, SeparationSettings,
+};
+pub use options::{OptionError, WaveletParams};
 pub use pool::{pool, PoolOp, Pooled};
 pub use select::{
     analyse, energy_curve, height_stats, level_by_min_energy, pooling_bias, rmse_per_base,

@@ -53,17 +53,16 @@ pub fn energy_curve(
         // time on the previous approximation gives every level's bands in one sweep.
         let co = wavedec2(&a, r, c, wavelet, mode, 1)?;
         for d in &co.details {
-            detail_energy +=
-                energy(d.h.as_slice()) + energy(d.v.as_slice()) + energy(d.d.as_slice());
+            detail_energy += energy(d.h.values()) + energy(d.v.values()) + energy(d.d.values());
         }
-        let ea = energy(co.approx.as_slice());
+        let ea = energy(co.approx.values());
         let total = ea + detail_energy;
         curve.push(EnergyPoint {
             level,
             approx_energy_fraction: if total > 0.0 { ea / total } else { 0.0 },
         });
-        (r, c) = co.approx.shape();
-        a = co.approx.into_vec();
+        (r, c) = (co.approx.rows(), co.approx.cols());
+        a = co.approx.into_values();
     }
     Ok(curve)
 }
@@ -114,7 +113,7 @@ pub fn rmse_per_base(
         for r in 0..rows {
             for c in 0..cols {
                 if heights[r * cols + c].is_finite() {
-                    let d = filled[r * cols + c] - rec.as_slice()[r * rc + c];
+                    let d = filled[r * cols + c] - rec.values()[r * rc + c];
                     sq += d * d;
                     n += 1;
                 }
@@ -379,7 +378,7 @@ mod tests {
         let pc = energy_curve(&h, rows, cols, &w, Mode::Periodization).unwrap();
         let x = levelled(&h, rows, cols).unwrap();
         let c = wavedec2(&x, rows, cols, &w, Mode::Periodization, 1).unwrap();
-        let want = energy(c.approx.as_slice()) / energy(&x);
+        let want = energy(c.approx.values()) / energy(&x);
         assert!((pc[0].approx_energy_fraction - want).abs() < 1e-9);
     }
 

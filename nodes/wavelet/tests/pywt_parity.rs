@@ -8,9 +8,9 @@
 use std::collections::HashMap;
 
 use anyhow::{anyhow, bail, ensure, Context, Result};
+use surfstream_core::raster::{Raster, Shape};
 use surfstream_wavelet::{
-    dwt_max_level, separate, wavedec2, waverec2, Array2, Coeffs2, Details2, Mode, Wavelet,
-    WaveletError,
+    dwt_max_level, separate, wavedec2, waverec2, Coeffs2, Details2, Mode, Wavelet, WaveletError,
 };
 
 const GOLDEN_ENV: &str = "SURFSTREAM_WAVELET_GOLDEN";
@@ -24,7 +24,7 @@ const REL_TOL: f64 = 1e-12;
 const ROUND_TRIP_TOL: f64 = 1e-11;
 
 struct Golden {
-    arrays: HashMap<String, Array2>,
+    arrays: HashMap<String, Raster<f64>>,
     /// (case key "<rows>x<cols>/<wavelet>/<mode>", decomposition depth)
     cases: Vec<(String, usize)>,
 }
@@ -66,7 +66,10 @@ impl Golden {
                     let data = values
                         .get(offset..offset + rows * cols)
                         .with_context(|| format!("{key} lies past the end of golden.bin"))?;
-                    arrays.insert(key.to_string(), Array2::new(data.to_vec(), rows, cols)?);
+                    arrays.insert(
+                        key.to_string(),
+                        Raster::new(data.to_vec(), Shape::new(rows, cols))?,
+                    );
                 }
                 _ => bail!("bad index line {line:?}"),
             }
@@ -75,7 +78,7 @@ impl Golden {
         Ok(Golden { arrays, cases })
     }
 
-    fn get(&self, key: &str) -> Result<&Array2> {
+    fn get(&self, key: &str) -> Result<&Raster<f64>> {
         self.arrays
             .get(key)
             .ok_or_else(|| anyhow!("golden array {key} missing"))
@@ -94,7 +97,7 @@ fn parse_case(case: &str) -> Result<(String, Wavelet, Mode)> {
 }
 
 /// Max |a - b| / max |b|, after checking the shapes.
-fn rel_err(ours: &Array2, theirs: &Array2, what: &str) -> Result<f64> {
+fn rel_err(ours: &Raster<f64>, theirs: &Raster<f64>, what: &str) -> Result<f64> {
     ensure!(
         ours.shape() == theirs.shape(),
         "{what}: shape {:?}, PyWavelets {:?}",
@@ -102,23 +105,29 @@ fn rel_err(ours: &Array2, theirs: &Array2, what: &str) -> Result<f64> {
         theirs.shape()
     );
     let scale = theirs
-        .as_slice()
+        .values()
         .iter()
         .fold(0.0f64, |m, v| m.max(v.abs()))
         .max(f64::MIN_POSITIVE);
     let diff = ours
-        .as_slice()
+        .values()
         .iter()
-        .zip(theirs.as_slice())
+        .zip(theirs.values())
         .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
     Ok(diff / scale)
 }
 
-fn check(ours: &Array2, theirs: &Array2, what: &str, worst: &mut f64) -> Result<()> {
+fn check(ours: &Raster<f64>, theirs: &Raster<f64>, what: &str, worst: &mut f64) -> Result<()> {
     check_tol(ours, theirs, what, worst, REL_TOL)
 }
 
-fn check_tol(ours: &Array2, theirs: &Array2, what: &str, worst: &mut f64, tol: f64) -> Result<()> {
+fn check_tol(
+    ours: &Raster<f64>,
+    theirs: &Raster<f64>,
+    what: &str,
+    worst: &mut f64,
+    tol: f64,
+) -> Result<()> {
     let e = rel_err(ours, theirs, what)?;
     ensure!(e <= tol, "{what}: relative error {e:e} > {tol:e}");
     *worst = worst.max(e);
@@ -126,12 +135,12 @@ fn check_tol(ours: &Array2, theirs: &Array2, what: &str, worst: &mut f64, tol: f
 }
 
 /// The top-left `rows x cols` of `a` (PyWavelets' output is one longer on odd sides).
-fn crop(a: &Array2, rows: usize, cols: usize) -> Result<Array2> {
+fn crop(a: &Raster<f64>, rows: usize, cols: usize) -> Result<Raster<f64>> {
     let data = (0..rows)
         .flat_map(|r| (0..cols).map(move |c| (r, c)))
-        .map(|(r, c)| a.get(r, c).context("crop outside the array"))
+        .map(|(r, c)| a.get(r, c).copied().context("crop outside the array"))
         .collect::<Result<Vec<f64>>>()?;
-    Ok(Array2::new(data, rows, cols)?)
+    Ok(Raster::new(data, Shape::new(rows, cols))?)
 }
 
 /// The golden decomposition of depth `n` of a case, as `Coeffs2`.
@@ -166,9 +175,9 @@ fn filters_are_pywt_filters_bit_for_bit() -> Result<()> {
         ] {
             let theirs = g.get(&format!("filter/{name}/{band}"))?;
             ensure!(
-                theirs.as_slice().len() == ours.len()
+                theirs.values().len() == ours.len()
                     && theirs
-                        .as_slice()
+                        .values()
                         .iter()
                         .zip(ours)
                         .all(|(a, b)| a.to_bits() == b.to_bits()),
@@ -206,7 +215,7 @@ fn wavedec2_matches_pywt_at_every_level() -> Result<()> {
         let (size, w, mode) = parse_case(case)?;
         let x = g.get(&format!("{size}/x"))?;
         for lev in 1..=*n {
-            let c = wavedec2(x.as_slice(), x.rows(), x.cols(), &w, mode, lev)?;
+            let c = wavedec2(x.values(), x.rows(), x.cols(), &w, mode, lev)?;
             ensure!(
                 c.level() == lev,
                 "{case}: {} levels, asked {lev}",
@@ -283,12 +292,12 @@ fn round_trip_reconstructs_input() -> Result<()> {
     for (case, n) in &g.cases {
         let (size, w, mode) = parse_case(case)?;
         let x = g.get(&format!("{size}/x"))?;
-        let c = wavedec2(x.as_slice(), x.rows(), x.cols(), &w, mode, *n)?;
+        let c = wavedec2(x.values(), x.rows(), x.cols(), &w, mode, *n)?;
         let r = waverec2(&c, &w, mode)?;
         // PyWavelets' shape: one sample longer on each odd side.
         let want = |k: usize| k + k % 2;
         ensure!(
-            r.shape() == (want(x.rows()), want(x.cols())),
+            r.shape() == Shape::new(want(x.rows()), want(x.cols())),
             "{case}: reconstruction shape {:?}",
             r.shape()
         );
@@ -325,10 +334,10 @@ fn datum_matches_pywt() -> Result<()> {
         let (size, w, mode) = parse_case(case)?;
         let x = g.get(&format!("{size}/x"))?;
         // f64: waverec2 with every detail zeroed, in PyWavelets' (uncropped) shape.
-        let mut c = wavedec2(x.as_slice(), x.rows(), x.cols(), &w, mode, *n)?;
+        let mut c = wavedec2(x.values(), x.rows(), x.cols(), &w, mode, *n)?;
         for d in &mut c.details {
             for band in [&mut d.h, &mut d.v, &mut d.d] {
-                band.as_mut_slice().fill(0.0);
+                band.values_mut().fill(0.0);
             }
         }
         check(
@@ -340,7 +349,7 @@ fn datum_matches_pywt() -> Result<()> {
 
         // f32: the separation of the same heights (they are f32 values) at the same level,
         // where that level is a valid one for the map.
-        let h: Vec<f32> = x.as_slice().iter().map(|&v| v as f32).collect();
+        let h: Vec<f32> = x.values().iter().map(|&v| v as f32).collect();
         let res = separate(&h, x.rows(), x.cols(), &w, mode, Some(*n));
         if dwt_max_level(x.rows().min(x.cols()), w.filter_len()) < *n {
             ensure!(
@@ -352,14 +361,8 @@ fn datum_matches_pywt() -> Result<()> {
         let s = res?;
         ensure!(s.level == *n, "{case}: level {}", s.level);
         let want = crop(datum, x.rows(), x.cols())?;
-        for (i, ((&d, &r), &v)) in s
-            .datum
-            .iter()
-            .zip(&s.roughness)
-            .zip(x.as_slice())
-            .enumerate()
-        {
-            let dw = want.as_slice()[i];
+        for (i, ((&d, &r), &v)) in s.datum.iter().zip(&s.roughness).zip(x.values()).enumerate() {
+            let dw = want.values()[i];
             // f32 output: one rounding of a value of magnitude ~|x|.
             let tol = 4.0 * f64::from(f32::EPSILON) * v.abs().max(1.0);
             ensure!(

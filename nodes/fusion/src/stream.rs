@@ -1,0 +1,423 @@
+//! The fusion node's state and decisions, without IPC: tiles and registrations arrive in any
+//! order; each tile is placed at its registered position as soon as both are in, strictly in
+//! acquisition order (so the panorama is the same under `launch` and `run`), and the changed
+//! region goes downstream as a panorama patch. At end of scan the whole panorama is published
+//! (and written) once.
+//!
+//! Every tile is kept until the end of the scan. If the matcher sends revised, globally solved
+//! registrations (flag FINAL), the final panorama is re-rendered from all tiles at those
+//! positions (tiles without a FINAL registration keep their streaming one); otherwise the
+//! streaming panorama is final. The overlap quality ([`crate::overlap_quality`]) is scored on
+//! the final panorama.
+
+use std::collections::BTreeMap;
+
+use anyhow::{anyhow, bail, Result};
+use serde_json::json;
+use surfstream_core::frame::{flags, FrameHeader, FrameKind, HeightMap, TileRegistration};
+use surfstream_core::raster::{RasterView, Shape};
+use surfstream_io::output::{NpyHeights, OutputWriter, SurfaceOutput};
+
+use crate::{
+    overlap_quality, render_panorama, BlendParams, FusionMethod, PairQuality, Panorama,
+    PlaneCorrection, TileInput, WaveletFusion,
+};
+
+/// Decimation of the latest-wins preview patches.
+pub const PREVIEW_STEP: usize = 4;
+
+/// How tiles are blended.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FusionSettings {
+    pub method: FusionMethod,
+    /// The wavelet fusion's parameters (used when `method` is wavelet).
+    pub wavelet: WaveletFusion,
+    /// Weight ramp from a tile's border, px; `None`: half the tile, so the weights are
+    /// exactly linear across any overlap up to 50 % (the paper's gradual in-and-out).
+    pub ramp_px: Option<f64>,
+}
+
+impl FusionSettings {
+    fn blend_params(&self, tile: &FrameHeader) -> BlendParams {
+        match (self.method, self.ramp_px) {
+            (FusionMethod::Average | FusionMethod::Wavelet, _) => BlendParams::average(),
+            (_, Some(r)) => BlendParams::from_overlap_px(r, r),
+            _ => BlendParams::from_overlap_px(tile.width as f64 / 2.0, tile.height as f64 / 2.0),
+        }
+    }
+}
+
+/// A received tile at a registration's position and plane; errors when the frame's payload
+/// does not match its declared size.
+fn tile_input<'a>(tile: &'a HeightMap, reg: &TileRegistration) -> Result<TileInput<'a>> {
+    let h = &tile.header;
+    let shape = Shape::new(h.height as usize, h.width as usize);
+    let heights = RasterView::new(&tile.heights, shape)
+        .map_err(|e| anyhow!("fusion: tile {}: {e}", h.tile_index))?;
+    Ok(TileInput {
+        index: h.tile_index,
+        heights,
+        x_um: reg.x_um,
+        y_um: reg.y_um,
+        plane: PlaneCorrection {
+            piston_um: reg.piston_um,
+            tilt_x_um_per_px: reg.tilt_x_um_per_px,
+            tilt_y_um_per_px: reg.tilt_y_um_per_px,
+        },
+        z_offset_um: h.z_offset_um,
+    })
+}
+
+/// One placed tile's output: the changed region, and every `PREVIEW_STEP`-th pixel of it for
+/// latest-wins subscribers.
+#[derive(Debug, Clone)]
+pub struct PanoramaPatch {
+    pub patch: HeightMap,
+    pub preview: HeightMap,
+}
+
+/// The end of scan's output.
+#[derive(Debug, Clone)]
+pub struct FinalPanorama {
+    /// The whole panorama, flag FINAL.
+    pub panorama: HeightMap,
+    pub report: FinalReport,
+}
+
+/// What the end of scan reports.
+#[derive(Debug, Clone)]
+pub struct FinalReport {
+    /// Size, place, offset and invalid pixels of the panorama.
+    pub summary: serde_json::Value,
+    pub pairs: Vec<PairQuality>,
+    /// Re-rendered from FINAL registrations.
+    pub rerendered: bool,
+    /// Files written (empty without a writer).
+    pub files: Vec<String>,
+}
+
+/// The panorama of one scan as tiles and registrations stream in.
+#[derive(Debug)]
+pub struct StreamingFusion {
+    settings: FusionSettings,
+    tiles: BTreeMap<u32, HeightMap>,
+    registrations: BTreeMap<u32, TileRegistration>,
+    /// Tiles already placed, with the registration they were placed at (kept for the final
+    /// re-render and the overlap quality).
+    placed: BTreeMap<u32, (HeightMap, TileRegistration)>,
+    /// FINAL (globally solved) registrations from the matcher.
+    final_registrations: BTreeMap<u32, TileRegistration>,
+    next: u32,
+    panorama: Option<Panorama>,
+    /// Tile index and acquisition time of the last placed tile.
+    last: (u32, u64),
+}
+
+impl StreamingFusion {
+    pub fn new(settings: FusionSettings) -> Self {
+        Self {
+            settings,
+            tiles: BTreeMap::new(),
+            registrations: BTreeMap::new(),
+            placed: BTreeMap::new(),
+            final_registrations: BTreeMap::new(),
+            next: 0,
+            panorama: None,
+            last: (0, 0),
+        }
+    }
+
+    pub fn settings(&self) -> &FusionSettings {
+        &self.settings
+    }
+
+    /// Keeps a tile until its registration is in.
+    pub fn add_tile(&mut self, tile: HeightMap) -> Result<()> {
+        if tile.header.kind() != Some(FrameKind::Tile) {
+            bail!(
+                "fusion: input 'tiles' carries {:?} frames, expected tiles",
+                tile.header.kind()
+            );
+        }
+        self.tiles.insert(tile.header.tile_index, tile);
+        Ok(())
+    }
+
+    /// Keeps a streaming registration, or a FINAL (globally solved) one for the end of scan.
+    pub fn add_registration(&mut self, reg: TileRegistration) {
+        if reg.has(flags::FINAL) {
+            self.final_registrations.insert(reg.tile_index, reg);
+        } else {
+            self.registrations.insert(reg.tile_index, reg);
+        }
+    }
+
+    /// Number of FINAL registrations received.
+    pub fn final_registrations(&self) -> usize {
+        self.final_registrations.len()
+    }
+
+    /// Places every tile whose registration is in, in index order, and returns their patches.
+    pub fn place_ready(&mut self) -> Result<Vec<PanoramaPatch>> {
+        let mut patches = Vec::new();
+        while let (Some(tile), Some(reg)) = (
+            self.tiles.get(&self.next),
+            self.registrations.get(&self.next),
+        ) {
+            let h = tile.header;
+            let pano = match &mut self.panorama {
+                Some(p) => p,
+                None => {
+                    let mut p =
+                        Panorama::new(h.pitch_x_um, h.pitch_y_um, self.settings.blend_params(&h))?;
+                    if self.settings.method == FusionMethod::Wavelet {
+                        p.set_wavelet_fusion(Some(self.settings.wavelet));
+                    }
+                    self.panorama.insert(p)
+                }
+            };
+            let region = pano.place(tile_input(tile, reg)?)?;
+            let (ox, oy) = pano.region_origin_um(&region);
+            let heights = pano.extract(region);
+            let (px, py) = pano.pitch_um();
+            let header = FrameHeader {
+                kind: FrameKind::PanoramaPatch as u32,
+                flags: reg.flags & flags::PLACED_BY_STAGE,
+                tile_index: h.tile_index,
+                tile_row: h.tile_row,
+                tile_col: h.tile_col,
+                width: region.width as u32,
+                height: region.height as u32,
+                pitch_x_um: px,
+                pitch_y_um: py,
+                origin_x_um: ox,
+                origin_y_um: oy,
+                z_offset_um: pano.z_offset_um(),
+                t_acquired_ns: h.t_acquired_ns,
+                ..Default::default()
+            };
+            let preview = decimate(&header, &heights, PREVIEW_STEP);
+            patches.push(PanoramaPatch {
+                patch: HeightMap { header, heights },
+                preview,
+            });
+            self.last = (h.tile_index, h.t_acquired_ns);
+            if let (Some(tile), Some(reg)) = (
+                self.tiles.remove(&self.next),
+                self.registrations.remove(&self.next),
+            ) {
+                self.placed.insert(self.next, (tile, reg));
+            }
+            self.next += 1;
+        }
+        Ok(patches)
+    }
+
+    /// Tile index and acquisition time of the last placed tile: what end-of-scan markers carry.
+    pub fn last_tile(&self) -> (u32, u64) {
+        self.last
+    }
+
+    /// The final panorama once both inputs ended: re-rendered from FINAL registrations when
+    /// there are any, scored by overlap, written as `panorama` (.npy absolute f64 + .png) when
+    /// a writer is given. Errors when a tile or a registration is missing its partner.
+    pub fn finish(&self, files: Option<&mut OutputWriter>) -> Result<FinalPanorama> {
+        if let Some(k) = self.tiles.keys().next() {
+            bail!("fusion: tile {k} never received its registration (registrations ended)");
+        }
+        if let Some(k) = self.registrations.keys().next() {
+            bail!("fusion: registration for tile {k} has no tile (tiles ended)");
+        }
+        if let Some(k) = self
+            .final_registrations
+            .keys()
+            .find(|k| !self.placed.contains_key(k))
+        {
+            bail!("fusion: FINAL registration for tile {k}, which never arrived");
+        }
+        let pano = self
+            .panorama
+            .as_ref()
+            .ok_or_else(|| anyhow!("fusion: the scan had no tiles"))?;
+        // The globally solved positions, where the matcher sent them.
+        let inputs: Vec<TileInput<'_>> = self
+            .placed
+            .iter()
+            .map(|(k, (tile, reg))| {
+                tile_input(tile, self.final_registrations.get(k).unwrap_or(reg))
+            })
+            .collect::<Result<_>>()?;
+        let rerendered = if self.final_registrations.is_empty() {
+            None
+        } else {
+            let (px, py) = pano.pitch_um();
+            Some(render_panorama(
+                px,
+                py,
+                &inputs,
+                *pano.params(),
+                pano.wavelet_fusion().copied(),
+            )?)
+        };
+        let final_pano = rerendered.as_ref().unwrap_or(pano);
+        let pairs = overlap_quality(final_pano, &inputs)?;
+        let r = final_pano.to_raster();
+        let mut written = Vec::new();
+        let (rows, cols) = (r.heights.rows(), r.heights.cols());
+        if let Some(w) = files {
+            w.write_surface(&SurfaceOutput {
+                name: "panorama",
+                heights: r.heights.view(),
+                z_offset_um: r.z_offset_um,
+                npy: NpyHeights::AbsoluteF64,
+                title: "panorama (um)",
+                x3p_pitch_um: None,
+            })?;
+            written = w.files().to_vec();
+        }
+        let invalid = r.heights.values().iter().filter(|z| z.is_nan()).count();
+        let summary = json!({
+            "width_px": cols, "height_px": rows,
+            "origin_x_um": r.origin_x_um, "origin_y_um": r.origin_y_um,
+            "pitch_x_um": r.pitch_x_um, "pitch_y_um": r.pitch_y_um,
+            "z_offset_um": r.z_offset_um, "invalid_px": invalid,
+        });
+        let header = FrameHeader {
+            kind: FrameKind::Panorama as u32,
+            flags: flags::FINAL,
+            tile_index: self.last.0,
+            width: cols as u32,
+            height: rows as u32,
+            pitch_x_um: r.pitch_x_um,
+            pitch_y_um: r.pitch_y_um,
+            origin_x_um: r.origin_x_um,
+            origin_y_um: r.origin_y_um,
+            z_offset_um: r.z_offset_um,
+            t_acquired_ns: self.last.1,
+            ..Default::default()
+        };
+        Ok(FinalPanorama {
+            panorama: HeightMap {
+                header,
+                heights: r.heights.into_values(),
+            },
+            report: FinalReport {
+                summary,
+                pairs,
+                rerendered: rerendered.is_some(),
+                files: written,
+            },
+        })
+    }
+}
+
+/// Every `step`-th pixel of a patch: a cheap live view for latest-wins subscribers.
+fn decimate(header: &FrameHeader, heights: &[f32], step: usize) -> HeightMap {
+    let (w, h) = (header.width as usize, header.height as usize);
+    let (dw, dh) = (w.div_ceil(step), h.div_ceil(step));
+    let mut out = Vec::with_capacity(dw * dh);
+    for r in (0..h).step_by(step) {
+        out.extend(heights[r * w..(r + 1) * w].iter().step_by(step));
+    }
+    let mut hd = *header;
+    hd.width = dw as u32;
+    hd.height = dh as u32;
+    hd.pitch_x_um *= step as f64;
+    hd.pitch_y_um *= step as f64;
+    hd.flags |= flags::PREVIEW;
+    HeightMap {
+        header: hd,
+        heights: out,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const PITCH: f64 = 0.5;
+
+    fn settings() -> FusionSettings {
+        FusionSettings {
+            method: FusionMethod::Gradual,
+            wavelet: WaveletFusion::default(),
+            ramp_px: None,
+        }
+    }
+
+    fn tile(index: u32, v: f32) -> HeightMap {
+        HeightMap {
+            header: FrameHeader {
+                kind: FrameKind::Tile as u32,
+                tile_index: index,
+                width: 32,
+                height: 24,
+                pitch_x_um: PITCH,
+                pitch_y_um: PITCH,
+                t_acquired_ns: 100 + u64::from(index),
+                ..Default::default()
+            },
+            heights: (0..32 * 24).map(|i| v + (i % 7) as f32 * 0.1).collect(),
+        }
+    }
+
+    fn reg(index: u32, col: f64, flags: u32) -> TileRegistration {
+        TileRegistration {
+            tile_index: index,
+            x_um: col * PITCH,
+            flags,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn tiles_are_placed_in_index_order_whatever_the_arrival_order() {
+        let mut f = StreamingFusion::new(settings());
+        f.add_tile(tile(1, 2.0)).unwrap();
+        f.add_registration(reg(1, 16.0, 0));
+        assert!(f.place_ready().unwrap().is_empty(), "tile 0 is not in yet");
+        f.add_registration(reg(0, 0.0, 0));
+        f.add_tile(tile(0, 1.0)).unwrap();
+        let patches = f.place_ready().unwrap();
+        let idx: Vec<u32> = patches.iter().map(|p| p.patch.header.tile_index).collect();
+        assert_eq!(idx, [0, 1]);
+        let p = &patches[1];
+        assert_eq!((p.patch.header.width, p.patch.header.height), (32, 24));
+        assert_eq!(p.patch.header.origin_x_um, 8.0);
+        assert_eq!((p.preview.header.width, p.preview.header.height), (8, 6));
+        assert!(p.preview.header.has(flags::PREVIEW));
+        assert_eq!(f.last_tile(), (1, 101));
+
+        let dir = tempfile::tempdir().unwrap();
+        let mut w = OutputWriter::new(dir.path());
+        let done = f.finish(Some(&mut w)).unwrap();
+        assert_eq!(done.panorama.header.width, 48);
+        assert!(done.panorama.header.has(flags::FINAL));
+        assert!(!done.report.rerendered);
+        assert_eq!(done.report.files, ["panorama.npy", "panorama.png"]);
+        assert_eq!(done.report.pairs.len(), 1);
+    }
+
+    #[test]
+    fn final_registrations_re_render_and_unmatched_inputs_are_errors() {
+        let mut f = StreamingFusion::new(settings());
+        f.add_tile(tile(0, 1.0)).unwrap();
+        f.add_registration(reg(0, 0.0, 0));
+        f.place_ready().unwrap();
+        f.add_registration(reg(0, 2.0, flags::FINAL));
+        let done = f.finish(None).unwrap();
+        assert!(done.report.rerendered);
+        assert_eq!(done.panorama.header.origin_x_um, 1.0);
+        assert!(done.report.files.is_empty());
+
+        f.add_registration(reg(5, 0.0, flags::FINAL));
+        assert!(f.finish(None).is_err());
+        let mut g = StreamingFusion::new(settings());
+        g.add_tile(tile(0, 1.0)).unwrap();
+        assert!(g.finish(None).is_err());
+        let mut not_a_tile = tile(1, 0.0);
+        not_a_tile.header.kind = FrameKind::Datum as u32;
+        assert!(g.add_tile(not_a_tile).is_err());
+        assert!(StreamingFusion::new(settings()).finish(None).is_err());
+    }
+}

@@ -1,0 +1,223 @@
+//! The separation's options as text (a graph file's params, the `separate` verb's flags): one
+//! parser per option, so the node and the verb accept and refuse the same spellings, and the
+//! wavelet node's parameters ([`WaveletParams`]) built from them.
+//!
+//! Every parser trims and ignores ASCII case. The error names what was expected; the caller
+//! prefixes where the value came from (`--level`, `graph 'g', node 'w': level = `).
+
+use std::fmt;
+use std::str::FromStr;
+
+use serde::Deserialize;
+
+use crate::live::SeparationSettings;
+use crate::{BaseChoice, LevelChoice, Mode, PoolOp, Wavelet};
+
+/// A value an option does not accept.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct OptionError {
+    /// The value as given.
+    pub value: String,
+    /// What the option accepts.
+    pub expected: &'static str,
+}
+
+impl fmt::Display for OptionError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{:?}: expected {}", self.value, self.expected)
+    }
+}
+
+impl std::error::Error for OptionError {}
+
+fn refuse(value: &str, expected: &'static str) -> OptionError {
+    OptionError {
+        value: value.to_string(),
+        expected,
+    }
+}
+
+fn is_auto(s: &str) -> bool {
+    s.trim().eq_ignore_ascii_case("auto")
+}
+
+impl FromStr for Wavelet {
+    type Err = OptionError;
+    /// A PyWavelets name: db1..db10, sym2..sym10, coif1..coif5.
+    fn from_str(s: &str) -> Result<Self, OptionError> {
+        Wavelet::by_name(s).ok_or_else(|| refuse(s, "db1..db10, sym2..sym10 or coif1..coif5"))
+    }
+}
+
+impl FromStr for BaseChoice {
+    type Err = OptionError;
+    /// A wavelet name, or "auto": minimum reconstruction RMSE (eq. 10).
+    fn from_str(s: &str) -> Result<Self, OptionError> {
+        if is_auto(s) {
+            return Ok(BaseChoice::MinRmse);
+        }
+        Wavelet::by_name(s)
+            .map(BaseChoice::Named)
+            .ok_or_else(|| refuse(s, "db1..db10, sym2..sym10, coif1..coif5 or \"auto\""))
+    }
+}
+
+impl FromStr for LevelChoice {
+    type Err = OptionError;
+    /// A decomposition level >= 1, or "auto": minimum approximation energy (Fig. 13).
+    fn from_str(s: &str) -> Result<Self, OptionError> {
+        if is_auto(s) {
+            return Ok(LevelChoice::MinEnergy);
+        }
+        match s.trim().parse::<usize>() {
+            Ok(level) if level >= 1 => Ok(LevelChoice::Fixed(level)),
+            _ => Err(refuse(s, "a decomposition level >= 1 or \"auto\"")),
+        }
+    }
+}
+
+impl FromStr for Mode {
+    type Err = OptionError;
+    /// "symmetric" or "periodization".
+    fn from_str(s: &str) -> Result<Self, OptionError> {
+        Mode::by_name(s).ok_or_else(|| refuse(s, "\"symmetric\" or \"periodization\""))
+    }
+}
+
+impl FromStr for PoolOp {
+    type Err = OptionError;
+    /// "max" or "mean".
+    fn from_str(s: &str) -> Result<Self, OptionError> {
+        PoolOp::by_name(s).ok_or_else(|| refuse(s, "\"max\" or \"mean\""))
+    }
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WaveletParams {
+    /// A base name, or "auto": minimum reconstruction RMSE (eq. 10; it ranks round-off).
+    #[serde(default = "sym5")]
+    pub wavelet: String,
+    /// Decomposition level of the datum (clamped to the largest useful level of the
+    /// panorama), or "auto": minimum approximation energy proportion (Fig. 13).
+    pub level: Option<LevelParam>,
+    #[serde(default = "symmetric")]
+    pub mode: String,
+    /// Pooling block, px.
+    #[serde(default = "four")]
+    pub pool: usize,
+    /// "max" (the paper) or "mean".
+    #[serde(default = "max")]
+    pub pool_op: String,
+    /// Publish live (preview) patches while tiles arrive.
+    #[serde(default = "yes")]
+    pub live: bool,
+    /// Context around the changed region for a live patch, px.
+    #[serde(default = "margin")]
+    pub live_margin_px: usize,
+    #[serde(default = "yes")]
+    pub write_files: bool,
+}
+
+/// A level as a TOML number or a string ("auto").
+#[derive(Deserialize)]
+#[serde(untagged)]
+pub enum LevelParam {
+    Level(usize),
+    Named(String),
+}
+
+fn sym5() -> String {
+    "sym5".into()
+}
+fn symmetric() -> String {
+    "symmetric".into()
+}
+fn four() -> usize {
+    4
+}
+fn max() -> String {
+    "max".into()
+}
+fn yes() -> bool {
+    true
+}
+fn margin() -> usize {
+    256
+}
+
+impl WaveletParams {
+    /// The separation these parameters ask for; the error names the parameter.
+    pub fn settings(&self) -> Result<SeparationSettings, String> {
+        let level = match &self.level {
+            None => Ok(LevelChoice::Default),
+            Some(LevelParam::Level(l)) => l.to_string().parse(),
+            Some(LevelParam::Named(n)) => n.parse(),
+        }
+        .map_err(|e| format!("level = {e}"))?;
+        if self.pool == 0 {
+            return Err("pool = 0: expected a block size of at least 1 px".into());
+        }
+        Ok(SeparationSettings {
+            base: self.wavelet.parse().map_err(|e| format!("wavelet = {e}"))?,
+            level,
+            mode: self.mode.parse().map_err(|e| format!("mode = {e}"))?,
+            pool_block: self.pool,
+            pool_op: self.pool_op.parse().map_err(|e| format!("pool_op = {e}"))?,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_option_accepts_its_spellings_and_names_what_it_expects() {
+        assert_eq!("sym5".parse::<Wavelet>().unwrap().name(), "sym5");
+        assert_eq!(" AUTO ".parse::<BaseChoice>(), Ok(BaseChoice::MinRmse));
+        assert!(
+            matches!("DB4".parse::<BaseChoice>(), Ok(BaseChoice::Named(w)) if w.name() == "db4")
+        );
+        assert_eq!("auto".parse::<LevelChoice>(), Ok(LevelChoice::MinEnergy));
+        assert_eq!(" 8".parse::<LevelChoice>(), Ok(LevelChoice::Fixed(8)));
+        assert_eq!("Periodization".parse::<Mode>(), Ok(Mode::Periodization));
+        assert_eq!("mean".parse::<PoolOp>(), Ok(PoolOp::Mean));
+        for bad in ["0", "-1", "eight", ""] {
+            assert!(bad.parse::<LevelChoice>().is_err(), "{bad}");
+        }
+        let e = "haar".parse::<BaseChoice>().unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "\"haar\": expected db1..db10, sym2..sym10, coif1..coif5 or \"auto\""
+        );
+        assert!("zero".parse::<Mode>().is_err());
+        assert!("min".parse::<PoolOp>().is_err());
+        assert!("auto".parse::<Wavelet>().is_err());
+    }
+
+    #[test]
+    fn node_params_become_settings_or_name_the_bad_one() {
+        let p = |toml: &str| -> WaveletParams { serde_json::from_str(toml).expect("params") };
+        let s = p(r#"{"level": 6, "pool_op": "Mean"}"#).settings().unwrap();
+        assert_eq!(s.level, LevelChoice::Fixed(6));
+        assert_eq!((s.pool_block, s.pool_op), (4, PoolOp::Mean));
+        assert_eq!(p("{}").settings().unwrap().level, LevelChoice::Default);
+        assert_eq!(
+            p(r#"{"level": "auto", "wavelet": "auto"}"#)
+                .settings()
+                .unwrap()
+                .base,
+            BaseChoice::MinRmse
+        );
+        for (bad, field) in [
+            (r#"{"level": 0}"#, "level = "),
+            (r#"{"pool": 0}"#, "pool = 0"),
+            (r#"{"mode": "zero"}"#, "mode = "),
+            (r#"{"wavelet": "haar"}"#, "wavelet = "),
+        ] {
+            let e = p(bad).settings().unwrap_err();
+            assert!(e.starts_with(field), "{bad}: {e}");
+        }
+    }
+}
