@@ -10,6 +10,12 @@
 //! the file, and errors name the file, the field and what was expected.
 
 mod bytes;
+// Issue 12, group "open": Gwyddion, ISO 25178-71 SDF, TrueMap, Alicona.
+pub mod al3d;
+pub mod gsf;
+pub mod gwy;
+pub mod sdf;
+pub mod tmd;
 pub mod datx;
 pub mod metropro;
 pub mod sur;
@@ -76,6 +82,12 @@ pub enum Format {
     X3p,
     Sur,
     Xyz,
+    // Issue 12, group "open".
+    Gsf,
+    Gwy,
+    Sdf,
+    Tmd,
+    Al3d,
 }
 
 impl Format {
@@ -93,8 +105,13 @@ impl Format {
             "x3p" => Format::X3p,
             "sur" => Format::Sur,
             "xyz" | "txt" | "csv" | "asc" => Format::Xyz,
+            "gsf" => Format::Gsf,
+            "gwy" => Format::Gwy,
+            "sdf" => Format::Sdf,
+            "tmd" => Format::Tmd,
+            "al3d" => Format::Al3d,
             other => bail!(
-                "{}: unsupported height-map format '.{other}' (expected .npy, .datx, .dat, .x3p, .sur, .xyz/.txt/.csv/.asc)",
+                "{}: unsupported height-map format '.{other}' (expected .npy, .datx, .dat, .x3p, .sur, .xyz/.txt/.csv/.asc, .gsf, .gwy, .sdf, .tmd, .al3d)",
                 path.display()
             ),
         })
@@ -125,6 +142,11 @@ pub fn parse_surface(data: &[u8], format: Format) -> Result<Surface> {
         Format::X3p => x3p::parse(data)?,
         Format::Sur => sur::parse(data)?,
         Format::Xyz => xyz::parse(data)?,
+        Format::Gsf => gsf::parse(data)?,
+        Format::Gwy => gwy::parse(data)?,
+        Format::Sdf => sdf::parse(data)?,
+        Format::Tmd => tmd::parse(data)?,
+        Format::Al3d => al3d::parse(data)?,
         Format::Npy => bail!(".npy is read from a path (read_surface)"),
     };
     debug_assert_eq!(s.heights_um.len(), s.width * s.height);
