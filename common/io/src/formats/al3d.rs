@@ -90,7 +90,10 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
     }
     let pitch_x_m = real("PixelSizeXMeter")?;
     let pitch_y_m = real("PixelSizeYMeter")?;
-    for (name, v) in [("PixelSizeXMeter", pitch_x_m), ("PixelSizeYMeter", pitch_y_m)] {
+    for (name, v) in [
+        ("PixelSizeXMeter", pitch_x_m),
+        ("PixelSizeYMeter", pitch_y_m),
+    ] {
         if !v.is_finite() || v <= 0.0 {
             bail!("tag '{name}' is {v}, expected a finite positive size (metres)");
         }
@@ -124,7 +127,11 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
             "depth image: 'Rows' x 'Cols' = {rows} x {cols} float32 (rows padded to 8 bytes) needs {padded_len} bytes at 'DepthImageOffset' {offset}, the file has {available}"
         );
     };
-    let depth = b.slice(offset, checked_size(&[rows, stride, 4], "depth image")?, "depth image")?;
+    let depth = b.slice(
+        offset,
+        checked_size(&[rows, stride, 4], "depth image")?,
+        "depth image",
+    )?;
     let mut heights_um = Vec::with_capacity(rows * cols);
     for row in depth.chunks_exact(stride * 4) {
         for c in row[..cols * 4].chunks_exact(4) {

@@ -32,8 +32,8 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
         .iter()
         .position(|&b| b == 0)
         .context("header: no NUL byte ends the text header")?;
-    let header = std::str::from_utf8(&data[MAGIC.len()..header_end])
-        .context("header: not UTF-8 text")?;
+    let header =
+        std::str::from_utf8(&data[MAGIC.len()..header_end]).context("header: not UTF-8 text")?;
     let mut xres = None;
     let mut yres = None;
     let (mut xreal, mut yreal) = (1.0f64, 1.0f64);
@@ -90,7 +90,9 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
                 Ok(1e6)
             }
             Some(u) => length_unit_um(u).with_context(|| {
-                format!("header field '{field}' is '{u}', expected a length unit (m, mm, um, nm, ...)")
+                format!(
+                    "header field '{field}' is '{u}', expected a length unit (m, mm, um, nm, ...)"
+                )
             }),
         }
     };

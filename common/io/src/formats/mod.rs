@@ -10,17 +10,18 @@
 //! the file, and errors name the file, the field and what was expected.
 
 mod bytes;
+pub mod datx;
+pub mod metropro;
+pub mod sur;
+pub mod x3p;
+pub mod xyz;
+
 // Issue 12, group "open": Gwyddion, ISO 25178-71 SDF, TrueMap, Alicona.
 pub mod al3d;
 pub mod gsf;
 pub mod gwy;
 pub mod sdf;
 pub mod tmd;
-pub mod datx;
-pub mod metropro;
-pub mod sur;
-pub mod x3p;
-pub mod xyz;
 
 use std::collections::BTreeMap;
 use std::path::Path;

@@ -33,7 +33,9 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
     match magic {
         b"aISO-1.0" | b"aBCR-1.0" => parse_ascii(data),
         b"bISO-1.0" | b"bBCR-1.0" => parse_binary(data),
-        _ => bail!("magic: expected 'aISO-1.0', 'aBCR-1.0' (ASCII) or 'bISO-1.0', 'bBCR-1.0' (binary)"),
+        _ => bail!(
+            "magic: expected 'aISO-1.0', 'aBCR-1.0' (ASCII) or 'bISO-1.0', 'bBCR-1.0' (binary)"
+        ),
     }
 }
 
@@ -63,7 +65,10 @@ impl Header {
             }
         }
         if !self.zscale.is_finite() || self.zscale == 0.0 {
-            bail!("field 'Zscale' is {}, expected a finite non-zero number (metres)", self.zscale);
+            bail!(
+                "field 'Zscale' is {}, expected a finite non-zero number (metres)",
+                self.zscale
+            );
         }
         if self.data_type > 7 {
             bail!("field 'DataType' is {}, expected 0..=7", self.data_type);
@@ -74,7 +79,10 @@ impl Header {
                 self.compression
             );
         }
-        checked_size(&[self.num_points, self.num_profiles], "NumPoints * NumProfiles")
+        checked_size(
+            &[self.num_points, self.num_profiles],
+            "NumPoints * NumProfiles",
+        )
     }
 
     /// The raw value that marks a point not measured, for the integer types that have one.
@@ -151,7 +159,8 @@ fn parse_ascii(data: &[u8]) -> Result<Surface> {
     };
     let count = |name: &str| -> Result<usize> {
         let v = int(name)?;
-        usize::try_from(v).with_context(|| format!("header field '{name}' is {v}, expected positive"))
+        usize::try_from(v)
+            .with_context(|| format!("header field '{name}' is {v}, expected positive"))
     };
     let data_type = int("DataType")?;
     let header = Header {
@@ -230,7 +239,11 @@ fn parse_binary(data: &[u8]) -> Result<Surface> {
     let n = header.check()?;
     let item = [1usize, 2, 4, 4, 1, 2, 4, 8][header.data_type as usize];
     let len = checked_size(&[n, item], "point data size")?;
-    let raw_bytes = b.slice(BINARY_HEADER_LEN, len, "point data (NumPoints x NumProfiles)")?;
+    let raw_bytes = b.slice(
+        BINARY_HEADER_LEN,
+        len,
+        "point data (NumPoints x NumProfiles)",
+    )?;
     let raw: Vec<f64> = raw_bytes
         .chunks_exact(item)
         .map(|c| match header.data_type {
