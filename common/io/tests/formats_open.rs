@@ -695,3 +695,16 @@ fn al3d_truncated_lying_and_wrong() {
 fn al3d_corruption_sweep() {
     corruption_sweep(&al3d_fixture("5", "3", "9", true), Format::Al3d, 3000);
 }
+
+#[test]
+fn extensions_pick_the_open_readers() {
+    for (name, format) in [
+        ("t.gsf", Format::Gsf),
+        ("t.GWY", Format::Gwy),
+        ("t.sdf", Format::Sdf),
+        ("t.tmd", Format::Tmd),
+        ("t.AL3D", Format::Al3d),
+    ] {
+        assert_eq!(Format::from_path(name.as_ref()).unwrap(), format, "{name}");
+    }
+}
