@@ -20,6 +20,13 @@ pub mod x3p;
 pub mod xyz;
 pub mod zmg;
 
+// Issue 12, group "open": Gwyddion, ISO 25178-71 SDF, TrueMap, Alicona.
+pub mod al3d;
+pub mod gsf;
+pub mod gwy;
+pub mod sdf;
+pub mod tmd;
+
 use std::collections::BTreeMap;
 use std::path::Path;
 
@@ -86,6 +93,12 @@ pub enum Format {
     Vk4,
     Opd,
     Zmg,
+    // Issue 12, group "open".
+    Gsf,
+    Gwy,
+    Sdf,
+    Tmd,
+    Al3d,
 }
 
 impl Format {
@@ -107,8 +120,13 @@ impl Format {
             "vk4" => Format::Vk4,
             "opd" => Format::Opd,
             "zmg" => Format::Zmg,
+            "gsf" => Format::Gsf,
+            "gwy" => Format::Gwy,
+            "sdf" => Format::Sdf,
+            "tmd" => Format::Tmd,
+            "al3d" => Format::Al3d,
             other => bail!(
-                "{}: unsupported height-map format '.{other}' (expected .npy, .datx, .dat, .x3p, .sur, .xyz/.txt/.csv/.asc, .plu, .vk4, .opd, .zmg)",
+                "{}: unsupported height-map format '.{other}' (expected .npy, .datx, .dat, .x3p, .sur, .xyz/.txt/.csv/.asc, .plu, .vk4, .opd, .zmg, .gsf, .gwy, .sdf, .tmd, .al3d)",
                 path.display()
             ),
         })
@@ -143,6 +161,11 @@ pub fn parse_surface(data: &[u8], format: Format) -> Result<Surface> {
         Format::Vk4 => vk4::parse(data)?,
         Format::Opd => opd::parse(data)?,
         Format::Zmg => zmg::parse(data)?,
+        Format::Gsf => gsf::parse(data)?,
+        Format::Gwy => gwy::parse(data)?,
+        Format::Sdf => sdf::parse(data)?,
+        Format::Tmd => tmd::parse(data)?,
+        Format::Al3d => al3d::parse(data)?,
         Format::Npy => bail!(".npy is read from a path (read_surface)"),
     };
     debug_assert_eq!(s.heights_um.len(), s.width * s.height);
