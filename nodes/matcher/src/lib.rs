@@ -152,6 +152,7 @@ mod ncc;
 pub mod plane;
 pub mod raster;
 pub mod register;
+pub mod scan;
 pub mod sift;
 mod simd;
 pub mod truth;
@@ -175,6 +176,7 @@ pub use register::{
     register_pair, Candidate, PairRegistration, PhaseCorrelator, PhaseParams, Rejection, SubPixel,
     Window,
 };
+pub use scan::{ScanError, ScanParams, ScanRegistration, ScanTile};
 pub use sift::{sift_keypoints, Keypoint, SiftParams};
 pub use truth::{ScanTruth, TruthError};
 pub mod node;
