@@ -21,7 +21,9 @@ use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use crate::plane::{centre_px, PlaneCorrection};
+use surfstream_core::raster::Shape;
+
+use crate::plane::PlaneCorrection;
 use crate::raster::{InputError, RasterRef};
 
 /// One measured pair offset: `position(b) - position(a) = offset_px`.
@@ -524,7 +526,7 @@ pub fn solve_planes(
             return Err(SolveError::SelfLink { link: k, tile: a });
         }
     }
-    let (cx, cy) = centre_px(tiles[0].width, tiles[0].height);
+    let (cx, cy) = Shape::new(tiles[0].height, tiles[0].width).centre_px();
     // Tilts are solved per half tile (x / half) so that all unknowns have similar scales: the
     // normal matrix stays well conditioned.
     let half = cx.max(cy).max(1.0);
