@@ -5,3 +5,4 @@ pub mod formats;
 pub mod npy;
 pub mod preview;
 pub mod recording;
+pub mod truth;

@@ -84,7 +84,7 @@
 //!    fit over the inliers and is reported: the stage does not rotate, so it measures how
 //!    well that holds (median 0.02-0.03 deg on the anchors' sets).
 //! 6. **Efficiency r (eq. 2) and MAP (eq. 3)** ([`efficiency`]) against truth when the node
-//!    has `truth = "PATH"` (a `ground_truth.json`; [`truth`]): a match is correct when its
+//!    has `truth = "PATH"` (a `ground_truth.json`; [`ScanTruth`]): a match is correct when its
 //!    unrefined displacement is within 1 px of the true offset; r = correct / two-way
 //!    matches; AP = mean over the correct matches of the precision at their rank (ranked by
 //!    score); MAP = mean AP over pairs. run.json carries `pairs[].features` (counts, inliers,
@@ -155,7 +155,6 @@ pub mod register;
 pub mod scan;
 pub mod sift;
 mod simd;
-pub mod truth;
 
 pub use detector::{DetectorImage, DetectorParams, Rect};
 pub use efficiency::{match_quality, MatchQuality, RankedMatch};
@@ -178,5 +177,6 @@ pub use register::{
 };
 pub use scan::{ScanError, ScanParams, ScanRegistration, ScanTile};
 pub use sift::{sift_keypoints, Keypoint, SiftParams};
-pub use truth::{ScanTruth, TruthError};
+/// The truth file reader lives with the other file formats; re-exported for the examples.
+pub use surfstream_io::truth::{ScanTruth, TruthError};
 pub mod node;

@@ -31,11 +31,11 @@ use crate::global::{
     solve_planes, solve_positions_with_alternatives, AmbiguousLink, GlobalSolution, Link,
     PlaneSolution, SolveError, SolveParams,
 };
-use crate::truth::TruthError;
 use crate::{
     estimate_plane, register_pair_features, FeatureParams, FeatureRegistration, PairRegistration,
     PhaseCorrelator, PhaseParams, PlaneCorrection, RasterRef,
 };
+use surfstream_io::truth::TruthError;
 
 /// Standard deviation (px) of an accepted link with NCC 1; lower NCC trusts it less (the
 /// global solve then puts a loop's misfit on the weaker links).
