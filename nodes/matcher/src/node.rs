@@ -8,7 +8,6 @@ use anyhow::{anyhow, bail, Result};
 use serde::Deserialize;
 use surfstream_core::frame::{flags, FrameKind};
 use surfstream_core::raster::{Raster, Shape};
-use surfstream_core::TileRegistration;
 use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
@@ -137,8 +136,7 @@ impl NodeLogic for MatcherNode {
 
     fn on_drained(&mut self, out: &mut Outbox) -> Result<()> {
         for t in std::mem::take(&mut self.pending) {
-            let reg: TileRegistration =
-                self.scan.register(t).map_err(|e| anyhow!("matcher: {e}"))?;
+            let reg = self.scan.register(t).map_err(|e| anyhow!("matcher: {e}"))?;
             out.send_registration(OUT, reg);
         }
         if self.ended && !self.done {
