@@ -1,8 +1,8 @@
 //! The matcher node: feeds each arriving tile to [`ScanRegistration`] and publishes one
-//! [`TileRegistration`] per tile, in acquisition order; at end of scan it runs the global
-//! solve once ([`ScanRegistration::finish`]) and publishes one more registration per tile,
-//! flagged [`flags::FINAL`], before the end-of-scan marker. The decisions live in
-//! [`crate::scan`].
+//! [`surfstream_core::TileRegistration`] per tile, in acquisition order; at end of scan it
+//! runs the global solve once ([`ScanRegistration::finish`]) and publishes one more
+//! registration per tile, flagged [`flags::FINAL`], before the end-of-scan marker. The
+//! decisions live in [`crate::scan`].
 
 use anyhow::{anyhow, bail, Result};
 use serde::Deserialize;
