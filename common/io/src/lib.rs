@@ -6,3 +6,4 @@ pub mod npy;
 pub mod output;
 pub mod preview;
 pub mod recording;
+pub mod truth;

@@ -28,6 +28,8 @@
 //! single-pixel dropouts (a 21 x 21 window is then clean with probability 0.11): measured on
 //! the anchors' noisy sets, where it left 40 % of the pairs answered.
 
+use surfstream_core::raster::{Raster, Shape};
+
 use crate::plane::fit_plane;
 use crate::raster::{InputError, RasterRef};
 
@@ -179,7 +181,9 @@ impl DetectorImage {
                 height: h,
             };
             if let Some(plane) = fit_plane(view) {
-                plane.apply(&mut signal, w, h)?;
+                let mut levelled = Raster::new(signal, Shape::new(h, w))?;
+                plane.apply(&mut levelled);
+                signal = levelled.into_values();
             }
         }
         if params.smoothing_sigma_px > 0.0 && valid_px > 0 {

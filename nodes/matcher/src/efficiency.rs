@@ -98,8 +98,8 @@ pub const CORRECT_MATCH_TOLERANCE_PX: f64 = 1.0;
 pub fn score_feature_pairs(
     truth_path: &std::path::Path,
     pairs: &[(u64, u64, &crate::feature_match::FeatureRegistration)],
-) -> Result<(Vec<Option<MatchQuality>>, serde_json::Value), crate::truth::TruthError> {
-    let truth = crate::truth::ScanTruth::read(truth_path)?;
+) -> Result<(Vec<Option<MatchQuality>>, serde_json::Value), surfstream_io::truth::TruthError> {
+    let truth = surfstream_io::truth::ScanTruth::read(truth_path)?;
     let per_pair: Vec<Option<MatchQuality>> = pairs
         .iter()
         .map(|(a, b, f)| {

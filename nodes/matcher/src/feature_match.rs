@@ -533,6 +533,7 @@ pub fn register_pair_features(
     {
         return invalid(e);
     }
+    // Step 1: the regions.
     let Some((ra, rb, overlap_px)) = detection_regions(
         (a.width, a.height),
         (b.width, b.height),
@@ -549,63 +550,16 @@ pub fn register_pair_features(
             [0, 0],
         );
     };
-    // The conversion sees the detection regions plus context for the band-pass, so that the
-    // low-pass near a region's border is the same in both tiles (crops cut at different
-    // places of the part would otherwise high-pass the same texture differently).
-    let context =
-        (3.0 * params.detector.highpass_sigma_px).ceil() as usize + params.window_radius_px + 1;
-    let grow = |q: Rect, w: usize, h: usize| Rect {
-        x0: q.x0.saturating_sub(context),
-        y0: q.y0.saturating_sub(context),
-        x1: (q.x1 + context).min(w),
-        y1: (q.y1 + context).min(h),
+    // Steps 2-3: detector input and features.
+    let (ia, ib) = match detector_images(a, b, (ra, rb), params) {
+        Ok(v) => v,
+        Err(e) => return invalid(e),
     };
-    let (ia, ib) = match (
-        DetectorImage::from_region(a, grow(ra, a.width, a.height), &params.detector),
-        DetectorImage::from_region(b, grow(rb, b.width, b.height), &params.detector),
+    let (fa, fb) = match (
+        region_features(&ia, ra, params),
+        region_features(&ib, rb, params),
     ) {
         (Ok(x), Ok(y)) => (x, y),
-        (Err(e), _) | (_, Err(e)) => return invalid(e),
-    };
-    let r = params.window_radius_px;
-    let to_feats = |img: &DetectorImage, pts: Vec<Detected>| {
-        pts.into_iter()
-            .map(|(pos, descriptor)| Feat {
-                pos,
-                window: window(
-                    img,
-                    pos[0].round() as i64 - img.origin_x as i64,
-                    pos[1].round() as i64 - img.origin_y as i64,
-                    r,
-                ),
-                descriptor,
-            })
-            .collect::<Vec<_>>()
-    };
-    let detect = |img: &DetectorImage| -> Result<Vec<Detected>, InputError> {
-        Ok(match method {
-            FeatureMethod::Harris => harris_corners(img, &params.harris)?
-                .into_iter()
-                .map(|c| ([c.x, c.y], None))
-                .collect(),
-            FeatureMethod::Sift => sift_keypoints(img, &params.sift)?
-                .into_iter()
-                .map(|k| ([k.x, k.y], Some(k.descriptor)))
-                .collect(),
-        })
-    };
-    let inside = |q: Rect, pts: Vec<Detected>| {
-        pts.into_iter()
-            .filter(|(p, _)| {
-                p[0] >= q.x0 as f64
-                    && p[0] < q.x1 as f64
-                    && p[1] >= q.y0 as f64
-                    && p[1] < q.y1 as f64
-            })
-            .collect::<Vec<_>>()
-    };
-    let (fa, fb) = match (detect(&ia), detect(&ib)) {
-        (Ok(x), Ok(y)) => (to_feats(&ia, inside(ra, x)), to_feats(&ib, inside(rb, y))),
         (Err(e), _) | (_, Err(e)) => return invalid(e),
     };
     let features = [fa.len(), fb.len()];
@@ -618,13 +572,96 @@ pub fn register_pair_features(
             features,
         );
     }
-    // Candidate table: only pairs whose displacement is within the stage-error bound.
+    // Steps 4-5: two-way matches, refined, then the translation.
+    let (mutual, one_way) = two_way_matches(&fa, &fb, nominal_offset_px, params);
+    let matches = refined_matches(&mutual, (&fa, &fb), (&ia, &ib), params.window_radius_px);
+    let mut out = rejected(method, Rejection::NoCandidate, overlap_px, features);
+    out.one_way_matches = one_way;
+    fit_translation(&mut out, matches, nominal_offset_px, params);
+    out
+}
+
+/// Step 2: the detector images of both tiles: the detection regions plus context for the
+/// band-pass, so that the low-pass near a region's border is the same in both tiles (crops
+/// cut at different places of the part would otherwise high-pass the same texture
+/// differently).
+fn detector_images(
+    a: RasterRef<'_>,
+    b: RasterRef<'_>,
+    (ra, rb): (Rect, Rect),
+    params: &FeatureParams,
+) -> Result<(DetectorImage, DetectorImage), InputError> {
+    let context =
+        (3.0 * params.detector.highpass_sigma_px).ceil() as usize + params.window_radius_px + 1;
+    let grow = |q: Rect, w: usize, h: usize| Rect {
+        x0: q.x0.saturating_sub(context),
+        y0: q.y0.saturating_sub(context),
+        x1: (q.x1 + context).min(w),
+        y1: (q.y1 + context).min(h),
+    };
+    match (
+        DetectorImage::from_region(a, grow(ra, a.width, a.height), &params.detector),
+        DetectorImage::from_region(b, grow(rb, b.width, b.height), &params.detector),
+    ) {
+        (Ok(x), Ok(y)) => Ok((x, y)),
+        (Err(e), _) | (_, Err(e)) => Err(e),
+    }
+}
+
+/// Step 3: the Harris corners or SIFT keypoints of `img` inside the detection region, each
+/// with its NCC window of the band-passed heights (when fully supported).
+fn region_features(
+    img: &DetectorImage,
+    region: Rect,
+    params: &FeatureParams,
+) -> Result<Vec<Feat>, InputError> {
+    let detected: Vec<Detected> = match params.method {
+        FeatureMethod::Harris => harris_corners(img, &params.harris)?
+            .into_iter()
+            .map(|c| ([c.x, c.y], None))
+            .collect(),
+        FeatureMethod::Sift => sift_keypoints(img, &params.sift)?
+            .into_iter()
+            .map(|k| ([k.x, k.y], Some(k.descriptor)))
+            .collect(),
+    };
+    let r = params.window_radius_px;
+    Ok(detected
+        .into_iter()
+        .filter(|(p, _)| {
+            p[0] >= region.x0 as f64
+                && p[0] < region.x1 as f64
+                && p[1] >= region.y0 as f64
+                && p[1] < region.y1 as f64
+        })
+        .map(|(pos, descriptor)| Feat {
+            pos,
+            window: window(
+                img,
+                pos[0].round() as i64 - img.origin_x as i64,
+                pos[1].round() as i64 - img.origin_y as i64,
+                r,
+            ),
+            descriptor,
+        })
+        .collect())
+}
+
+/// Step 4: the two-way matches `(i in a, j in b, score)` among pairs whose displacement is
+/// within `search_px` of nominal (Harris: window NCC >= `min_ncc`; SIFT: descriptor
+/// similarity and Lowe's ratio test), and how many of a's features had any candidate.
+fn two_way_matches(
+    fa: &[Feat],
+    fb: &[Feat],
+    nominal_offset_px: [f64; 2],
+    params: &FeatureParams,
+) -> (Vec<(usize, usize, f64)>, usize) {
     let gate = |pa: [f64; 2], pb: [f64; 2]| {
         (pa[0] - pb[0] - nominal_offset_px[0]).abs() <= params.search_px
             && (pa[1] - pb[1] - nominal_offset_px[1]).abs() <= params.search_px
     };
     let mut table: Vec<Vec<(usize, f64)>> = vec![Vec::new(); fa.len()];
-    let (mutual, one_way) = match method {
+    match params.method {
         FeatureMethod::Harris => {
             for (i, f) in fa.iter().enumerate() {
                 let Some(wa) = &f.window else { continue };
@@ -672,7 +709,16 @@ pub fn register_pair_features(
                 .collect();
             (m, one_way)
         }
-    };
+    }
+}
+
+/// Step 5a: each two-way match with its sub-pixel refined displacement, best score first.
+fn refined_matches(
+    mutual: &[(usize, usize, f64)],
+    (fa, fb): (&[Feat], &[Feat]),
+    (ia, ib): (&DetectorImage, &DetectorImage),
+    r: usize,
+) -> Vec<FeatureMatch> {
     let mut matches: Vec<FeatureMatch> = mutual
         .iter()
         .map(|&(i, j, score)| {
@@ -686,7 +732,7 @@ pub fn register_pair_features(
                 a_px: pa,
                 b_px: pb,
                 displacement_px: displacement,
-                refined_px: refine_displacement(&ia, &ib, pa, pb, r).unwrap_or(displacement),
+                refined_px: refine_displacement(ia, ib, pa, pb, r).unwrap_or(displacement),
                 ncc,
                 score,
                 inlier: false,
@@ -694,13 +740,24 @@ pub fn register_pair_features(
         })
         .collect();
     matches.sort_by(|x, y| y.score.total_cmp(&x.score));
-    let mut out = rejected(method, Rejection::NoCandidate, overlap_px, features);
-    out.one_way_matches = one_way;
+    matches
+}
+
+/// Step 5b: the translation by 1-point RANSAC over the refined displacements, the residual
+/// rotation and scale of the inliers, and the decision (too few inliers, an ambiguous rival
+/// translation, or accepted), written into `out` (which starts as "no candidate").
+fn fit_translation(
+    out: &mut FeatureRegistration,
+    mut matches: Vec<FeatureMatch>,
+    nominal_offset_px: [f64; 2],
+    params: &FeatureParams,
+) {
+    let r = params.window_radius_px;
     let disp: Vec<[f64; 2]> = matches.iter().map(|m| m.refined_px).collect();
     let scores: Vec<f64> = matches.iter().map(|m| m.score).collect();
     let Some(fit) = ransac_translation(&disp, &scores, params.inlier_radius_px) else {
         out.matches = matches;
-        return out;
+        return;
     };
     for (m, inl) in matches.iter_mut().zip(&fit.inliers) {
         m.inlier = *inl;
@@ -762,7 +819,6 @@ pub fn register_pair_features(
         reg.offset_px = Some(t);
     }
     out.matches = matches;
-    out
 }
 
 fn rms(v: &[f32]) -> f64 {

@@ -21,7 +21,9 @@ use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use crate::plane::{centre_px, PlaneCorrection};
+use surfstream_core::raster::Shape;
+
+use crate::plane::PlaneCorrection;
 use crate::raster::{InputError, RasterRef};
 
 /// One measured pair offset: `position(b) - position(a) = offset_px`.
@@ -496,6 +498,41 @@ pub fn solve_planes(
     if gauge >= n {
         return Err(bad("gauge", "must be a tile index"));
     }
+    check_plane_inputs(tiles, positions_px, pairs)?;
+    let centre = Shape::new(tiles[0].height, tiles[0].width).centre_px();
+    // Tilts are solved per half tile (x / half) so that all unknowns have similar scales: the
+    // normal matrix stays well conditioned.
+    let half = centre.0.max(centre.1).max(1.0);
+    let blocks: Vec<PairBlock> = pairs
+        .iter()
+        .map(|&(a, b)| {
+            let offset = [
+                positions_px[b][0] - positions_px[a][0],
+                positions_px[b][1] - positions_px[a][1],
+            ];
+            overlap_normal_block(&tiles[a], &tiles[b], offset, centre, half, stride)
+        })
+        .collect();
+    let (m, rhs, zz_total, count_total) = normal_equations(n, gauge, pairs, &blocks);
+    let corrections = solve_corrections(m, rhs, n, gauge, half)?;
+    let ssr = residual_sum_of_squares(pairs, &blocks, &corrections, half, zz_total);
+    let denom = count_total.max(1) as f64;
+    Ok(PlaneSolution {
+        corrections,
+        samples: blocks.iter().map(|b| b.3).collect(),
+        rms_residual_um: (ssr.max(0.0) / denom).sqrt(),
+        rms_before_um: (zz_total / denom).sqrt(),
+    })
+}
+
+/// [`solve_planes`]' input checks: valid rasters of one size, finite positions, pairs of two
+/// distinct tiles.
+fn check_plane_inputs(
+    tiles: &[RasterRef<'_>],
+    positions_px: &[[f64; 2]],
+    pairs: &[(usize, usize)],
+) -> Result<(), SolveError> {
+    let n = tiles.len();
     for (i, t) in tiles.iter().enumerate() {
         t.validate()?;
         if t.width != tiles[0].width || t.height != tiles[0].height {
@@ -524,76 +561,88 @@ pub fn solve_planes(
             return Err(SolveError::SelfLink { link: k, tile: a });
         }
     }
-    let (cx, cy) = centre_px(tiles[0].width, tiles[0].height);
-    // Tilts are solved per half tile (x / half) so that all unknowns have similar scales: the
-    // normal matrix stays well conditioned.
-    let half = cx.max(cy).max(1.0);
-    // Per pair: the 6 x 6 normal block over (p_a, tx_a, ty_a, p_b, tx_b, ty_b) and its rhs.
-    // A sample says c_b(x_b) - c_a(x_a) = z_b - z_a, with c = p + tx * x + ty * y about the
-    // tile centre.
-    let blocks: Vec<PairBlock> = pairs
-        .iter()
-        .map(|&(a, b)| {
-            let (ta, tb) = (&tiles[a], &tiles[b]);
-            let ox = positions_px[b][0] - positions_px[a][0];
-            let oy = positions_px[b][1] - positions_px[a][1];
-            let mut ata = [[0.0; 6]; 6];
-            let mut atb = [0.0; 6];
-            let mut zz = 0.0;
-            let mut count = 0;
-            let c_lo = (-ox).ceil().max(0.0);
-            let c_hi = ((ta.width - 1) as f64 - ox)
-                .floor()
-                .min((tb.width - 1) as f64);
-            let r_lo = (-oy).ceil().max(0.0);
-            let r_hi = ((ta.height - 1) as f64 - oy)
-                .floor()
-                .min((tb.height - 1) as f64);
-            if c_lo > c_hi || r_lo > r_hi {
-                return (ata, atb, zz, count);
+    Ok(())
+}
+
+/// One overlap's 6 x 6 normal block over (p_a, tx_a, ty_a, p_b, tx_b, ty_b) and its rhs, from
+/// b's pixels (every `stride`-th row and column) and a sampled at `offset` (b's origin in a's
+/// pixels). A sample says c_b(x_b) - c_a(x_a) = z_b - z_a, with c = p + tx * x + ty * y about
+/// the tile centre `(cx, cy)`, x and y in units of `half`.
+fn overlap_normal_block(
+    ta: &RasterRef<'_>,
+    tb: &RasterRef<'_>,
+    [ox, oy]: [f64; 2],
+    (cx, cy): (f64, f64),
+    half: f64,
+    stride: usize,
+) -> PairBlock {
+    let mut ata = [[0.0; 6]; 6];
+    let mut atb = [0.0; 6];
+    let mut zz = 0.0;
+    let mut count = 0;
+    let c_lo = (-ox).ceil().max(0.0);
+    let c_hi = ((ta.width - 1) as f64 - ox)
+        .floor()
+        .min((tb.width - 1) as f64);
+    let r_lo = (-oy).ceil().max(0.0);
+    let r_hi = ((ta.height - 1) as f64 - oy)
+        .floor()
+        .min((tb.height - 1) as f64);
+    if c_lo > c_hi || r_lo > r_hi {
+        return (ata, atb, zz, count);
+    }
+    for r in (r_lo as usize..=r_hi as usize).step_by(stride) {
+        let yb = (r as f64 - cy) / half;
+        let ya = (r as f64 + oy - cy) / half;
+        for c in (c_lo as usize..=c_hi as usize).step_by(stride) {
+            let zb = tb.heights[r * tb.width + c];
+            if !zb.is_finite() {
+                continue;
             }
-            for r in (r_lo as usize..=r_hi as usize).step_by(stride) {
-                let yb = (r as f64 - cy) / half;
-                let ya = (r as f64 + oy - cy) / half;
-                for c in (c_lo as usize..=c_hi as usize).step_by(stride) {
-                    let zb = tb.heights[r * tb.width + c];
-                    if !zb.is_finite() {
-                        continue;
-                    }
-                    let Some(za) = sample_cubic(ta, c as f64 + ox, r as f64 + oy) else {
-                        continue;
-                    };
-                    let xb = (c as f64 - cx) / half;
-                    let xa = (c as f64 + ox - cx) / half;
-                    let g = [-1.0, -xa, -ya, 1.0, xb, yb];
-                    let d = zb as f64 - za;
-                    for i in 0..6 {
-                        for j in 0..6 {
-                            ata[i][j] += g[i] * g[j];
-                        }
-                        atb[i] += g[i] * d;
-                    }
-                    zz += d * d;
-                    count += 1;
+            let Some(za) = sample_cubic(ta, c as f64 + ox, r as f64 + oy) else {
+                continue;
+            };
+            let xb = (c as f64 - cx) / half;
+            let xa = (c as f64 + ox - cx) / half;
+            let g = [-1.0, -xa, -ya, 1.0, xb, yb];
+            let d = zb as f64 - za;
+            for i in 0..6 {
+                for j in 0..6 {
+                    ata[i][j] += g[i] * g[j];
                 }
+                atb[i] += g[i] * d;
             }
-            (ata, atb, zz, count)
-        })
-        .collect();
-    // The gauge tile's unknowns are eliminated (held at zero): slot of tile i, if any.
-    let slot = |i: usize| -> Option<usize> {
-        match i.cmp(&gauge) {
-            std::cmp::Ordering::Less => Some(3 * i),
-            std::cmp::Ordering::Equal => None,
-            std::cmp::Ordering::Greater => Some(3 * (i - 1)),
+            zz += d * d;
+            count += 1;
         }
-    };
+    }
+    (ata, atb, zz, count)
+}
+
+/// The unknowns' slot of tile `i`: the gauge tile's are eliminated (held at zero).
+fn gauge_slot(i: usize, gauge: usize) -> Option<usize> {
+    match i.cmp(&gauge) {
+        std::cmp::Ordering::Less => Some(3 * i),
+        std::cmp::Ordering::Equal => None,
+        std::cmp::Ordering::Greater => Some(3 * (i - 1)),
+    }
+}
+
+/// The scan's normal equations from the overlaps' blocks (gauge eliminated, a tiny ridge
+/// added), and the data's sum of squares and sample count.
+fn normal_equations(
+    n: usize,
+    gauge: usize,
+    pairs: &[(usize, usize)],
+    blocks: &[PairBlock],
+) -> (DMatrix<f64>, DVector<f64>, f64, usize) {
+    let slot = |i: usize| gauge_slot(i, gauge);
     let dim = 3 * (n - 1);
     let mut m = DMatrix::<f64>::zeros(dim, dim);
     let mut rhs = DVector::<f64>::zeros(dim);
     let mut zz_total = 0.0;
     let mut count_total = 0usize;
-    for (&(a, b), (ata, atb, zz, count)) in pairs.iter().zip(&blocks) {
+    for (&(a, b), (ata, atb, zz, count)) in pairs.iter().zip(blocks) {
         let idx: [Option<usize>; 6] = {
             let (sa, sb) = (slot(a), slot(b));
             [
@@ -623,13 +672,24 @@ pub fn solve_planes(
     for i in 0..dim {
         m[(i, i)] += 1e-9 * scale;
     }
-    let x = if dim == 0 {
+    (m, rhs, zz_total, count_total)
+}
+
+/// Every tile's correction from the normal equations (Cholesky); the gauge's is zero.
+fn solve_corrections(
+    m: DMatrix<f64>,
+    rhs: DVector<f64>,
+    n: usize,
+    gauge: usize,
+    half: f64,
+) -> Result<Vec<PlaneCorrection>, SolveError> {
+    let x = if rhs.is_empty() {
         DVector::<f64>::zeros(0)
     } else {
         m.cholesky().ok_or(SolveError::Singular)?.solve(&rhs)
     };
-    let corrections: Vec<PlaneCorrection> = (0..n)
-        .map(|i| match slot(i) {
+    Ok((0..n)
+        .map(|i| match gauge_slot(i, gauge) {
             Some(k) => PlaneCorrection {
                 piston_um: x[k],
                 tilt_x_um_per_px: x[k + 1] / half,
@@ -637,10 +697,19 @@ pub fn solve_planes(
             },
             None => PlaneCorrection::ZERO,
         })
-        .collect();
-    // Residual sum of squares = zz - 2 x.atb + x.M.x, with the pure data matrix.
+        .collect())
+}
+
+/// Residual sum of squares = zz - 2 x.atb + x.M.x, with the pure data matrix.
+fn residual_sum_of_squares(
+    pairs: &[(usize, usize)],
+    blocks: &[PairBlock],
+    corrections: &[PlaneCorrection],
+    half: f64,
+    zz_total: f64,
+) -> f64 {
     let mut ssr = zz_total;
-    for (&(a, b), (ata, atb, _, _)) in pairs.iter().zip(&blocks) {
+    for (&(a, b), (ata, atb, _, _)) in pairs.iter().zip(blocks) {
         let u = [
             corrections[a].piston_um,
             corrections[a].tilt_x_um_per_px * half,
@@ -656,13 +725,7 @@ pub fn solve_planes(
             }
         }
     }
-    let denom = count_total.max(1) as f64;
-    Ok(PlaneSolution {
-        corrections,
-        samples: blocks.iter().map(|b| b.3).collect(),
-        rms_residual_um: (ssr.max(0.0) / denom).sqrt(),
-        rms_before_um: (zz_total / denom).sqrt(),
-    })
+    ssr
 }
 
 /// Cubic-convolution (Keys, a = -0.5) sample of `r` at (x, y) px; `None` when the 4 x 4

@@ -4,12 +4,25 @@
 //! An optical profiler scans a part as a serpentine of overlapping tiles; each tile comes with
 //! a nominal stage position (a few pixels off), its own piston and tilt, noise and NaN
 //! dropouts. This crate measures where a tile really sits relative to a placed neighbour, and
-//! how to bring its heights to its neighbours' level. Plain functions over borrowed rasters:
-//! no IPC, no files, no globals.
+//! how to bring its heights to its neighbours' level. Plain functions over borrowed rasters,
+//! and one stateful type for a whole scan ([`ScanRegistration`]): no IPC, no globals; the only
+//! file read is an optional truth file for scoring feature matches.
 //!
 //! Conventions (DESIGN.md §2): heights are f32 micrometres, row-major, rows grow with y,
 //! columns with x, NaN = not measured. Offsets are `[x, y]` in pixels: the position of tile
 //! b's pixel (0, 0) minus tile a's pixel (0, 0).
+//!
+//! # A whole scan: [`ScanRegistration`] (the node's logic)
+//!
+//! Tiles go in as the stage delivers them ([`ScanTile`]: index, grid row/column, stage
+//! position, heights); each is registered against its already-placed grid neighbours with the
+//! chosen method and gets a streaming [`surfstream_core::TileRegistration`] (placed by
+//! registration, or by the stage and flagged when no link is trusted, and levelled onto its
+//! neighbours). [`ScanRegistration::finish`] runs the global solve (below) and returns the FINAL
+//! placement of every tile; [`ScanRegistration::report`] is the node's run.json entry. The
+//! method ([`ScanParams`], the node's `method` parameter) is `"auto"` (= `"phase"`, phase
+//! correlation, below), `"harris"` or `"sift"` (the reference study's feature matchers).
+//! `src/node.rs` only turns frames into these calls.
 //!
 //! # Pairwise registration: [`register_pair`], [`PhaseCorrelator`]
 //!
@@ -84,7 +97,7 @@
 //!    fit over the inliers and is reported: the stage does not rotate, so it measures how
 //!    well that holds (median 0.02-0.03 deg on the anchors' sets).
 //! 6. **Efficiency r (eq. 2) and MAP (eq. 3)** ([`efficiency`]) against truth when the node
-//!    has `truth = "PATH"` (a `ground_truth.json`; [`truth`]): a match is correct when its
+//!    has `truth = "PATH"` (a `ground_truth.json`; [`ScanTruth`]): a match is correct when its
 //!    unrefined displacement is within 1 px of the true offset; r = correct / two-way
 //!    matches; AP = mean over the correct matches of the precision at their rank (ranked by
 //!    score); MAP = mean AP over pairs. run.json carries `pairs[].features` (counts, inliers,
@@ -99,9 +112,10 @@
 //!
 //! # Global solve: [`solve_positions`], [`solve_planes`]
 //!
-//! At end of scan the node places every tile from all accepted pair offsets at once (weighted
-//! least squares, stage positions as a weak prior, inconsistent links removed one by one; a tile
-//! left without a kept link is placed by the stage and flagged) and levels every tile by one
+//! At end of scan [`ScanRegistration::finish`] places every tile from all accepted pair offsets
+//! at once (weighted least squares, stage positions as a weak prior, inconsistent links removed
+//! one by one, ambiguous pairs resolved by consistency with the rest of the scan; a tile left
+//! without a kept link is placed by the stage and flagged) and levels every tile by one
 //! least-squares fit of piston and tilt over all overlaps of the scan, the first tile held as
 //! gauge. See [`global`] for the model; `tests/global.rs` checks both against a synthetic
 //! scan's truth.
@@ -152,9 +166,9 @@ mod ncc;
 pub mod plane;
 pub mod raster;
 pub mod register;
+pub mod scan;
 pub mod sift;
 mod simd;
-pub mod truth;
 
 pub use detector::{DetectorImage, DetectorParams, Rect};
 pub use efficiency::{match_quality, MatchQuality, RankedMatch};
@@ -175,7 +189,9 @@ pub use register::{
     register_pair, Candidate, PairRegistration, PhaseCorrelator, PhaseParams, Rejection, SubPixel,
     Window,
 };
+pub use scan::{ScanError, ScanParams, ScanRegistration, ScanTile};
 pub use sift::{sift_keypoints, Keypoint, SiftParams};
-pub use truth::{ScanTruth, TruthError};
+/// The truth file reader lives with the other file formats; re-exported for the examples.
+pub use surfstream_io::truth::{ScanTruth, TruthError};
 pub mod node;
 pub mod ports;

@@ -5,83 +5,13 @@ use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+use surfstream_core::raster::Shape;
+
 use crate::raster::{validate_offset, InputError, RasterRef};
 use crate::simd::avx2_dispatch;
+/// The correction convention is the workspace's one: [`surfstream_core::PlaneCorrection`].
+pub use surfstream_core::PlaneCorrection;
 use wide::f32x8;
-
-/// The height correction of one tile: a piston plus a tilt about the tile centre.
-///
-/// `corrected(row, col) = raw(row, col) - (piston_um + tilt_x_um_per_px * (col - (width-1)/2)
-/// + tilt_y_um_per_px * (row - (height-1)/2))`, the same convention as
-/// `surfstream_core::TileRegistration`.
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
-pub struct PlaneCorrection {
-    pub piston_um: f64,
-    pub tilt_x_um_per_px: f64,
-    pub tilt_y_um_per_px: f64,
-}
-
-impl PlaneCorrection {
-    /// No correction.
-    pub const ZERO: PlaneCorrection = PlaneCorrection {
-        piston_um: 0.0,
-        tilt_x_um_per_px: 0.0,
-        tilt_y_um_per_px: 0.0,
-    };
-
-    /// The correction (um) at a possibly fractional pixel position of a `width x height` tile.
-    #[inline]
-    pub fn at(&self, row: f64, col: f64, width: usize, height: usize) -> f64 {
-        let (cx, cy) = centre_px(width, height);
-        self.piston_um + self.tilt_x_um_per_px * (col - cx) + self.tilt_y_um_per_px * (row - cy)
-    }
-
-    /// Subtracts the correction in place from a row-major `width x height` raster (NaN stays NaN).
-    pub fn apply(
-        &self,
-        heights: &mut [f32],
-        width: usize,
-        height: usize,
-    ) -> Result<(), InputError> {
-        RasterRef {
-            heights,
-            width,
-            height,
-        }
-        .validate()?;
-        let (cx, cy) = centre_px(width, height);
-        for (row, line) in heights.chunks_exact_mut(width).enumerate() {
-            let base = self.piston_um + self.tilt_y_um_per_px * (row as f64 - cy)
-                - self.tilt_x_um_per_px * cx;
-            for (col, z) in line.iter_mut().enumerate() {
-                *z = (*z as f64 - (base + self.tilt_x_um_per_px * col as f64)) as f32;
-            }
-        }
-        Ok(())
-    }
-
-    /// A corrected copy of `raster`.
-    pub fn corrected(&self, raster: RasterRef<'_>) -> Result<Vec<f32>, InputError> {
-        raster.validate()?;
-        let mut out = raster.heights.to_vec();
-        self.apply(&mut out, raster.width, raster.height)?;
-        Ok(out)
-    }
-
-    /// The sum of two corrections (apply `self`, then `other`).
-    pub fn then(&self, other: &PlaneCorrection) -> PlaneCorrection {
-        PlaneCorrection {
-            piston_um: self.piston_um + other.piston_um,
-            tilt_x_um_per_px: self.tilt_x_um_per_px + other.tilt_x_um_per_px,
-            tilt_y_um_per_px: self.tilt_y_um_per_px + other.tilt_y_um_per_px,
-        }
-    }
-}
-
-#[inline]
-pub(crate) fn centre_px(width: usize, height: usize) -> (f64, f64) {
-    ((width as f64 - 1.0) * 0.5, (height as f64 - 1.0) * 0.5)
-}
 
 /// Which model the least-squares fit could support.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -376,7 +306,7 @@ fn row_sums_masked(z: &[f32], z_ref: f32) -> [f64; 6] {
 /// (subtracting it levels the raster). `None` for invalid input or no valid pixel.
 pub fn fit_plane(raster: RasterRef<'_>) -> Option<PlaneCorrection> {
     raster.validate().ok()?;
-    let (cx, cy) = centre_px(raster.width, raster.height);
+    let (cx, cy) = Shape::new(raster.height, raster.width).centre_px();
     let mut sums = PlaneSums::default();
     for row in 0..raster.height {
         sums.add_row(row as f64 - cy, -cx, raster.row(row));
@@ -453,7 +383,7 @@ pub fn estimate_plane_report(
         n.validate()?;
         validate_offset(*off)?;
     }
-    let (cx, cy) = centre_px(b.width, b.height);
+    let (cx, cy) = Shape::new(b.height, b.width).centre_px();
     let mut sums = PlaneSums::default();
     for (nb, off, corr) in neighbours {
         let [ox, oy] = *off;
@@ -480,7 +410,7 @@ pub fn estimate_plane_report(
                 }
                 let xn = c as f64 + ox;
                 if let Some(zn) = sample_bilinear(nb, xn, yn) {
-                    let zn = zn - corr.at(yn, xn, nb.width, nb.height);
+                    let zn = zn - corr.at(yn, xn, Shape::new(nb.height, nb.width));
                     local.add(c as f64 - cx, r as f64 - cy, zb as f64 - zn);
                 }
             }

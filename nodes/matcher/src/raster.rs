@@ -1,6 +1,7 @@
 //! Borrowed height rasters and input validation.
 
 use serde::{Deserialize, Serialize};
+use surfstream_core::raster::ShapeError;
 use thiserror::Error;
 
 /// A borrowed height map: `width * height` heights in micrometres, row-major, rows grow with y,
@@ -31,6 +32,27 @@ pub enum InputError {
     OffsetOutOfRange { x_px: f64, y_px: f64 },
     #[error("invalid parameter {name}: {reason}")]
     InvalidParameter { name: String, reason: String },
+}
+
+impl From<ShapeError> for InputError {
+    fn from(e: ShapeError) -> Self {
+        match e {
+            ShapeError::Empty(shape) => InputError::ZeroSize {
+                width: shape.cols,
+                height: shape.rows,
+            },
+            ShapeError::Length {
+                shape,
+                expected,
+                found,
+            } => InputError::SliceLength {
+                width: shape.cols,
+                height: shape.rows,
+                expected,
+                actual: found,
+            },
+        }
+    }
 }
 
 impl<'a> RasterRef<'a> {

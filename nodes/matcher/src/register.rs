@@ -413,6 +413,9 @@ impl PhaseCorrelator {
         (reg, alternatives)
     }
 
+    /// The steps of a pairwise registration (the crate documentation's 1-5): the nominal
+    /// overlap's crops correlated, candidates verified by NCC, the best refined to sub-pixel,
+    /// then the decision. An ambiguous pair's usable maxima go to `alternatives`.
     fn register_inner(
         &mut self,
         a: RasterRef<'_>,
@@ -431,84 +434,17 @@ impl PhaseCorrelator {
         }
         let g = geometry(&a, &b, nominal_offset_px);
         let overlap_px = [g.w, g.h];
-        if g.w < params.min_overlap_side_px || g.h < params.min_overlap_side_px {
-            return PairRegistration::rejected(
-                Rejection::NoOverlap {
-                    overlap_px,
-                    min_side_px: params.min_overlap_side_px,
-                },
-                overlap_px,
-            );
-        }
-        let (w, h) = (g.w, g.h);
-
-        // Phase correlation of the nominal overlap crops.
-        let (rect_a, rect_b) = g.rects();
-        let (stats_a, stats_b, pw, ph) = self.correlate(&a, &b, rect_a, rect_b, params, false);
-        let required = params
-            .min_valid_px
-            .max((params.min_valid_fraction * (w * h) as f64).ceil() as usize)
-            .max(3);
-        let valid = stats_a.valid.min(stats_b.valid);
-        if valid < required {
-            return PairRegistration::rejected(
-                Rejection::TooFewValidPixels {
-                    valid_px: valid,
-                    required_px: required,
-                },
-                overlap_px,
-            );
-        }
-        for s in [&stats_a, &stats_b] {
-            // A plane (or a constant) within f32 rounding of its height.
-            if s.rms_um <= 1e-6 * (1.0 + s.ref_um.abs()) || s.energy <= 0.0 {
-                return PairRegistration::rejected(
-                    Rejection::Featureless { rms_um: s.rms_um },
-                    overlap_px,
-                );
-            }
-        }
-
-        // Candidates: the strongest local maxima with at least half the crop overlapping,
-        // verified by the NCC at their integer offsets.
-        let peaks = local_maxima(
-            &self.surface,
-            pw,
-            ph,
-            (w / 2) as i64,
-            (h / 2) as i64,
-            params.candidates,
+        let verified = self.correlate_nominal_overlap(&a, &b, &g, params).and_then(
+            |(stats_a, stats_b, pw, ph)| {
+                self.verified_candidates(a, b, &g, (&stats_a, &stats_b), (pw, ph), params)
+            },
         );
-        if peaks.is_empty() {
-            return PairRegistration::rejected(Rejection::NoCandidate, overlap_px);
-        }
-        let lev_a = LevelledTile::new(a, rect_a, &stats_a.plane);
-        let lev_b = LevelledTile::new(b, rect_b, &stats_b.plane);
-        let min_pairs = params.min_valid_px.max(3);
-        let mut cands: Vec<Candidate> = peaks
-            .par_iter()
-            .map(|&(peak, tx, ty)| {
-                let off = [g.ndx + tx, g.ndy + ty];
-                let (ncc, n) = ncc_at(&lev_a, &lev_b, off[0], off[1]);
-                Candidate {
-                    offset_px: off,
-                    peak: peak as f64,
-                    ncc: if n >= min_pairs { ncc } else { -1.0 },
-                    valid_px: n,
-                }
-            })
-            .collect();
-        cands.sort_by(|p, q| q.ncc.total_cmp(&p.ncc).then(q.peak.total_cmp(&p.peak)));
-        let best = cands[0];
-        let others_peak = cands[1..]
-            .iter()
-            .map(|c| c.peak)
-            .fold(f64::NEG_INFINITY, f64::max);
-        let peak_ratio = if others_peak > 0.0 {
-            (best.peak / others_peak).min(1000.0)
-        } else {
-            1000.0
+        let (cands, lev_a, lev_b) = match verified {
+            Ok(v) => v,
+            Err(rejection) => return PairRegistration::rejected(rejection, overlap_px),
         };
+        let best = cands[0];
+        let peak_ratio = peak_ratio(&cands);
 
         // The NCC peak around the best candidate, then the sub-pixel refinement. Each tile is
         // levelled again on the actual overlap at the best offset: the nominal crops are
@@ -517,20 +453,7 @@ impl PhaseCorrelator {
         // on 22 px overlaps of a wavy specimen).
         let (lev_a, lev_b) = relevelled(a, b, best.offset_px).unwrap_or((lev_a, lev_b));
         let (peak, lev_a, lev_b) = settled_peak(a, b, best.offset_px, lev_a, lev_b);
-        let (int_offset, frac) = match params.subpixel {
-            SubPixel::None => (peak.offset_px, [0.0, 0.0]),
-            SubPixel::NccGaussian => (peak.offset_px, peak.fit(PeakFit::Gaussian)),
-            SubPixel::NccParabolic => (peak.offset_px, peak.fit(PeakFit::Parabolic)),
-            SubPixel::PhaseGaussian => {
-                self.refine_phase(&a, &b, peak.offset_px, PeakFit::Gaussian, params)
-            }
-            SubPixel::PhaseParabolic => {
-                self.refine_phase(&a, &b, peak.offset_px, PeakFit::Parabolic, params)
-            }
-            SubPixel::PhaseForoosh => {
-                self.refine_phase(&a, &b, peak.offset_px, PeakFit::Foroosh, params)
-            }
-        };
+        let (int_offset, frac) = self.subpixel(&a, &b, &peak, params);
         let (ncc, valid_overlap_px) = if int_offset == best.offset_px {
             (best.ncc, best.valid_px)
         } else {
@@ -555,112 +478,185 @@ impl PhaseCorrelator {
             rejection: None,
             candidates: cands.clone(),
         };
+        let limit = shift_limit_px(params, overlap_px);
+        out.rejection = self.decide(
+            (&a, &b),
+            nominal_offset_px,
+            params,
+            (&cands, &peak),
+            (ncc, valid_overlap_px),
+            (shift, limit),
+            alternatives,
+        );
+        if out.rejection.is_none() {
+            out.offset_px = Some(offset);
+        }
+        out
+    }
 
-        // The decision.
-        if valid_overlap_px < min_pairs || ncc < params.min_ncc {
-            out.rejection = Some(Rejection::LowNcc {
+    /// Step 1-2: the phase correlation of the nominal overlap's crops (into `self.surface`)
+    /// and their statistics; refused when the overlap is too small, has too few valid pixels
+    /// or is featureless. Returns both crops' statistics and the padded size.
+    fn correlate_nominal_overlap(
+        &mut self,
+        a: &RasterRef<'_>,
+        b: &RasterRef<'_>,
+        g: &Geometry,
+        params: &PhaseParams,
+    ) -> Result<(CropStats, CropStats, usize, usize), Rejection> {
+        let (w, h) = (g.w, g.h);
+        if w < params.min_overlap_side_px || h < params.min_overlap_side_px {
+            return Err(Rejection::NoOverlap {
+                overlap_px: [w, h],
+                min_side_px: params.min_overlap_side_px,
+            });
+        }
+        let (rect_a, rect_b) = g.rects();
+        let (stats_a, stats_b, pw, ph) = self.correlate(a, b, rect_a, rect_b, params, false);
+        let required = params
+            .min_valid_px
+            .max((params.min_valid_fraction * (w * h) as f64).ceil() as usize)
+            .max(3);
+        let valid = stats_a.valid.min(stats_b.valid);
+        if valid < required {
+            return Err(Rejection::TooFewValidPixels {
+                valid_px: valid,
+                required_px: required,
+            });
+        }
+        for s in [&stats_a, &stats_b] {
+            // A plane (or a constant) within f32 rounding of its height.
+            if s.rms_um <= 1e-6 * (1.0 + s.ref_um.abs()) || s.energy <= 0.0 {
+                return Err(Rejection::Featureless { rms_um: s.rms_um });
+            }
+        }
+        Ok((stats_a, stats_b, pw, ph))
+    }
+
+    /// Step 3: the strongest local maxima of the correlation surface with at least half the
+    /// crop overlapping, each verified by the NCC of the levelled tiles at its integer offset;
+    /// best NCC first. Also returns the tiles levelled by their crops' planes.
+    fn verified_candidates<'a>(
+        &self,
+        a: RasterRef<'a>,
+        b: RasterRef<'a>,
+        g: &Geometry,
+        (stats_a, stats_b): (&CropStats, &CropStats),
+        (pw, ph): (usize, usize),
+        params: &PhaseParams,
+    ) -> Result<(Vec<Candidate>, LevelledTile<'a>, LevelledTile<'a>), Rejection> {
+        let peaks = local_maxima(
+            &self.surface,
+            pw,
+            ph,
+            (g.w / 2) as i64,
+            (g.h / 2) as i64,
+            params.candidates,
+        );
+        if peaks.is_empty() {
+            return Err(Rejection::NoCandidate);
+        }
+        let (rect_a, rect_b) = g.rects();
+        let lev_a = LevelledTile::new(a, rect_a, &stats_a.plane);
+        let lev_b = LevelledTile::new(b, rect_b, &stats_b.plane);
+        let min_pairs = params.min_valid_px.max(3);
+        let mut cands: Vec<Candidate> = peaks
+            .par_iter()
+            .map(|&(peak, tx, ty)| {
+                let off = [g.ndx + tx, g.ndy + ty];
+                let (ncc, n) = ncc_at(&lev_a, &lev_b, off[0], off[1]);
+                Candidate {
+                    offset_px: off,
+                    peak: peak as f64,
+                    ncc: if n >= min_pairs { ncc } else { -1.0 },
+                    valid_px: n,
+                }
+            })
+            .collect();
+        cands.sort_by(|p, q| q.ncc.total_cmp(&p.ncc).then(q.peak.total_cmp(&p.peak)));
+        Ok((cands, lev_a, lev_b))
+    }
+
+    /// Step 4: the integer offset and sub-pixel fraction of the NCC peak by the chosen method.
+    fn subpixel(
+        &mut self,
+        a: &RasterRef<'_>,
+        b: &RasterRef<'_>,
+        peak: &NccPeak,
+        params: &PhaseParams,
+    ) -> ([i64; 2], [f64; 2]) {
+        match params.subpixel {
+            SubPixel::None => (peak.offset_px, [0.0, 0.0]),
+            SubPixel::NccGaussian => (peak.offset_px, peak.fit(PeakFit::Gaussian)),
+            SubPixel::NccParabolic => (peak.offset_px, peak.fit(PeakFit::Parabolic)),
+            SubPixel::PhaseGaussian => {
+                self.refine_phase(a, b, peak.offset_px, PeakFit::Gaussian, params)
+            }
+            SubPixel::PhaseParabolic => {
+                self.refine_phase(a, b, peak.offset_px, PeakFit::Parabolic, params)
+            }
+            SubPixel::PhaseForoosh => {
+                self.refine_phase(a, b, peak.offset_px, PeakFit::Foroosh, params)
+            }
+        }
+    }
+
+    /// Step 5: why the refined answer (the NCC at it, its shift from nominal) is refused, in
+    /// order: low NCC, ambiguous (then the usable maxima go to `alternatives`), not
+    /// localised, shift beyond the limit, a clearly better match beyond the limit. `None`:
+    /// accepted.
+    #[allow(clippy::too_many_arguments)]
+    fn decide(
+        &mut self,
+        (a, b): (&RasterRef<'_>, &RasterRef<'_>),
+        nominal_offset_px: [f64; 2],
+        params: &PhaseParams,
+        (cands, peak): (&[Candidate], &NccPeak),
+        (ncc, valid_overlap_px): (f64, usize),
+        (shift, limit): ([f64; 2], [f64; 2]),
+        alternatives: &mut Vec<Alternative>,
+    ) -> Option<Rejection> {
+        let best = cands[0];
+        if valid_overlap_px < params.min_valid_px.max(3) || ncc < params.min_ncc {
+            return Some(Rejection::LowNcc {
                 ncc,
                 min_ncc: params.min_ncc,
             });
-            return out;
         }
-        let limit = [
-            params
-                .max_shift_px
-                .min(params.max_shift_fraction * w as f64),
-            params
-                .max_shift_px
-                .min(params.max_shift_fraction * h as f64),
-        ];
-        // Rivals: other correlation peaks of similar NCC. Each is climbed to its own NCC
-        // maximum first: one that ends on the best's maximum is the same hill (a smooth
-        // surface puts several correlation maxima on one broad NCC hill), not a rival.
-        let mut rivals: Vec<(Candidate, NccPeak)> = Vec::new();
-        for c in &cands[1..] {
-            let d = chebyshev(c.offset_px, best.offset_px);
-            if !(d >= 3
-                && c.ncc >= best.ncc - params.ambiguity_margin
-                && c.peak >= params.rival_peak_fraction * best.peak)
-            {
-                continue;
-            }
-            let (rp, _, _) = match relevelled(a, b, c.offset_px) {
-                Some((la, lb)) => settled_peak(a, b, c.offset_px, la, lb),
-                None => continue,
-            };
-            let same_hill = chebyshev(rp.offset_px, peak.offset_px) <= 1
-                || rivals
-                    .iter()
-                    .any(|(_, q)| chebyshev(rp.offset_px, q.offset_px) <= 1);
-            if !same_hill && rp.c[1][1] >= peak.c[1][1] - params.ambiguity_margin {
-                rivals.push((*c, rp));
-            }
-        }
+        let rivals = rivals(*a, *b, cands, peak, params);
         if let Some((r, _)) = rivals.first() {
-            out.rejection = Some(Rejection::Ambiguous {
+            // The distinct maxima that would each pass every other check are kept for the
+            // global solve, which may pick the one consistent with the rest of the scan.
+            alternatives.extend(usable_maxima(
+                peak,
+                &rivals,
+                nominal_offset_px,
+                params,
+                limit,
+            ));
+            return Some(Rejection::Ambiguous {
                 best_ncc: best.ncc,
                 rival_ncc: r.ncc,
                 rival_shift_px: shift_from(r.offset_px, nominal_offset_px),
             });
-            // The distinct maxima that would each pass every other check are kept for the
-            // global solve, which may pick the one consistent with the rest of the scan.
-            let fit = match params.subpixel {
-                SubPixel::None => None,
-                SubPixel::NccParabolic => Some(PeakFit::Parabolic),
-                _ => Some(PeakFit::Gaussian),
-            };
-            let mut peaks = vec![&peak];
-            peaks.extend(rivals.iter().map(|(_, q)| q));
-            for q in peaks {
-                let frac = fit.map_or([0.0, 0.0], |f| q.fit(f));
-                let off = [
-                    q.offset_px[0] as f64 + frac[0],
-                    q.offset_px[1] as f64 + frac[1],
-                ];
-                let sh = [off[0] - nominal_offset_px[0], off[1] - nominal_offset_px[1]];
-                let ok = q.c[1][1] >= params.min_ncc
-                    && q.roundness >= params.min_peak_roundness
-                    && sh[0].abs() <= limit[0]
-                    && sh[1].abs() <= limit[1];
-                if ok {
-                    alternatives.push(Alternative {
-                        offset_px: off,
-                        ncc: q.c[1][1],
-                        roundness: q.roundness,
-                    });
-                }
-            }
-            if alternatives.len() < 2 {
-                // Fewer than two usable maxima is no choice to offer.
-                alternatives.clear();
-            }
-            return out;
         }
         if peak.roundness.is_nan() || peak.roundness < params.min_peak_roundness {
-            out.rejection = Some(Rejection::NotLocalized {
+            return Some(Rejection::NotLocalized {
                 roundness: peak.roundness,
                 min_roundness: params.min_peak_roundness,
             });
-            return out;
         }
         if shift[0].abs() > limit[0] || shift[1].abs() > limit[1] {
-            out.rejection = Some(Rejection::ShiftTooLarge {
+            return Some(Rejection::ShiftTooLarge {
                 shift_px: shift,
                 limit_px: limit,
             });
-            return out;
         }
-        if let Some(beyond) =
-            self.better_beyond_limit(&a, &b, nominal_offset_px, params, limit, peak.c[1][1])
-        {
-            out.rejection = Some(Rejection::ShiftTooLarge {
+        self.better_beyond_limit(a, b, nominal_offset_px, params, limit, peak.c[1][1])
+            .map(|beyond| Rejection::ShiftTooLarge {
                 shift_px: beyond,
                 limit_px: limit,
-            });
-            return out;
-        }
-        out.offset_px = Some(offset);
-        out
+            })
     }
 
     /// The shift from nominal of a clearly better match beyond the shift limit, if any.
@@ -823,6 +819,111 @@ impl PhaseCorrelator {
             ],
         )
     }
+}
+
+/// The best candidate's correlation peak over the strongest other one (capped at 1000).
+fn peak_ratio(cands: &[Candidate]) -> f64 {
+    let best = cands[0];
+    let others_peak = cands[1..]
+        .iter()
+        .map(|c| c.peak)
+        .fold(f64::NEG_INFINITY, f64::max);
+    if others_peak > 0.0 {
+        (best.peak / others_peak).min(1000.0)
+    } else {
+        1000.0
+    }
+}
+
+/// The largest accepted shift from nominal along x and y, px: `max_shift_px`, or a fraction
+/// of the overlap extent along that axis when smaller.
+fn shift_limit_px(params: &PhaseParams, overlap_px: [usize; 2]) -> [f64; 2] {
+    [
+        params
+            .max_shift_px
+            .min(params.max_shift_fraction * overlap_px[0] as f64),
+        params
+            .max_shift_px
+            .min(params.max_shift_fraction * overlap_px[1] as f64),
+    ]
+}
+
+/// Rivals of the best candidate: other correlation peaks at least 3 px away with similar NCC
+/// and peak. Each is climbed to its own NCC maximum first: one that ends on the best's
+/// maximum (`peak`) is the same hill (a smooth surface puts several correlation maxima on one
+/// broad NCC hill), not a rival.
+fn rivals(
+    a: RasterRef<'_>,
+    b: RasterRef<'_>,
+    cands: &[Candidate],
+    peak: &NccPeak,
+    params: &PhaseParams,
+) -> Vec<(Candidate, NccPeak)> {
+    let best = cands[0];
+    let mut rivals: Vec<(Candidate, NccPeak)> = Vec::new();
+    for c in &cands[1..] {
+        let d = chebyshev(c.offset_px, best.offset_px);
+        if !(d >= 3
+            && c.ncc >= best.ncc - params.ambiguity_margin
+            && c.peak >= params.rival_peak_fraction * best.peak)
+        {
+            continue;
+        }
+        let (rp, _, _) = match relevelled(a, b, c.offset_px) {
+            Some((la, lb)) => settled_peak(a, b, c.offset_px, la, lb),
+            None => continue,
+        };
+        let same_hill = chebyshev(rp.offset_px, peak.offset_px) <= 1
+            || rivals
+                .iter()
+                .any(|(_, q)| chebyshev(rp.offset_px, q.offset_px) <= 1);
+        if !same_hill && rp.c[1][1] >= peak.c[1][1] - params.ambiguity_margin {
+            rivals.push((*c, rp));
+        }
+    }
+    rivals
+}
+
+/// An ambiguous pair's maxima (the best's, then the rivals') that would each pass every
+/// other check, refined like the answer; empty unless at least two are (one is no choice).
+fn usable_maxima(
+    peak: &NccPeak,
+    rivals: &[(Candidate, NccPeak)],
+    nominal_offset_px: [f64; 2],
+    params: &PhaseParams,
+    limit: [f64; 2],
+) -> Vec<Alternative> {
+    let fit = match params.subpixel {
+        SubPixel::None => None,
+        SubPixel::NccParabolic => Some(PeakFit::Parabolic),
+        _ => Some(PeakFit::Gaussian),
+    };
+    let mut peaks = vec![peak];
+    peaks.extend(rivals.iter().map(|(_, q)| q));
+    let mut usable = Vec::new();
+    for q in peaks {
+        let frac = fit.map_or([0.0, 0.0], |f| q.fit(f));
+        let off = [
+            q.offset_px[0] as f64 + frac[0],
+            q.offset_px[1] as f64 + frac[1],
+        ];
+        let sh = [off[0] - nominal_offset_px[0], off[1] - nominal_offset_px[1]];
+        let ok = q.c[1][1] >= params.min_ncc
+            && q.roundness >= params.min_peak_roundness
+            && sh[0].abs() <= limit[0]
+            && sh[1].abs() <= limit[1];
+        if ok {
+            usable.push(Alternative {
+                offset_px: off,
+                ncc: q.c[1][1],
+                roundness: q.roundness,
+            });
+        }
+    }
+    if usable.len() < 2 {
+        usable.clear();
+    }
+    usable
 }
 
 /// Both tiles levelled by the least-squares planes of their actual overlap when b's origin

@@ -7,6 +7,7 @@ mod support;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use support::{cut, Surface};
+use surfstream_core::raster::{Raster, RasterView, Shape};
 use surfstream_matcher::{
     estimate_plane, estimate_plane_report, fit_plane, PlaneCorrection, PlaneError, PlaneModel,
     RasterRef,
@@ -25,7 +26,7 @@ fn raster(heights: &[f32], width: usize, height: usize) -> RasterRef<'_> {
 fn add_plane(z: &[f32], w: usize, h: usize, p: &PlaneCorrection) -> Vec<f32> {
     z.iter()
         .enumerate()
-        .map(|(i, &v)| (v as f64 + p.at((i / w) as f64, (i % w) as f64, w, h)) as f32)
+        .map(|(i, &v)| (v as f64 + p.at((i / w) as f64, (i % w) as f64, Shape::new(h, w))) as f32)
         .collect()
 }
 
@@ -62,22 +63,22 @@ fn correction_helpers_follow_the_convention() {
         tilt_y_um_per_px: -0.05,
     };
     // Centre of a 5 x 3 tile is (row 1, col 2).
-    assert_eq!(p.at(1.0, 2.0, 5, 3), 2.0);
-    assert!((p.at(0.0, 4.0, 5, 3) - (2.0 + 0.2 + 0.05)).abs() < 1e-12);
+    let shape = Shape::new(3, 5);
+    assert_eq!(p.at(1.0, 2.0, shape), 2.0);
+    assert!((p.at(0.0, 4.0, shape) - (2.0 + 0.2 + 0.05)).abs() < 1e-12);
     let raw = add_plane(&[0.0; 15], 5, 3, &p);
-    let mut z = raw.clone();
-    z[7] = f32::NAN;
-    p.apply(&mut z, 5, 3).expect("valid raster");
-    for (i, v) in z.iter().enumerate() {
+    let mut z = Raster::new(raw.clone(), shape).expect("valid raster");
+    z.values_mut()[7] = f32::NAN;
+    p.apply(&mut z);
+    for (i, v) in z.values().iter().enumerate() {
         if i == 7 {
             assert!(v.is_nan());
         } else {
             assert!(v.abs() < 1e-6, "{i}: {v}");
         }
     }
-    let c = p.corrected(raster(&raw, 5, 3)).expect("valid raster");
-    assert!(c.iter().all(|v| v.abs() < 1e-6));
-    assert!(p.apply(&mut z, 4, 3).is_err());
+    let c = p.corrected(RasterView::new(&raw, shape).expect("valid raster"));
+    assert!(c.values().iter().all(|v| v.abs() < 1e-6));
     let sum = p.then(&p);
     assert_eq!(sum.piston_um, 4.0);
 }
@@ -197,7 +198,10 @@ fn thin_strip_falls_back_to_the_tilt_along_it() {
     };
     let truth_b: Vec<f32> = {
         // Re-level b with its true plane, then give it a plane without x tilt.
-        let z = s.plane_b.corrected(raster(&s.b, T, T)).expect("valid");
+        let z = s
+            .plane_b
+            .corrected(RasterView::new(&s.b, Shape::new(T, T)).expect("valid"))
+            .into_values();
         add_plane(&z, T, T, &b_flat_x)
     };
     let est = estimate_plane_report(

@@ -19,7 +19,7 @@
 //!    plus a seeded Gaussian stage error) and its piston and tilt.
 //! 3. [`acquire_tile`] measures one tile: the specimen resampled bicubically at the true
 //!    sub-pixel origin, plus piston, tilt and white noise, with NaN dropouts.
-//! 4. [`truth_for`] gives the [`ScanTruth`] the node writes beside the output (`truth.json`),
+//! 4. [`truth_for`] gives the [`GroundTruth`] the node writes beside the output (`truth.json`),
 //!    in the layout of `bench/make_tiles.py` so that `bench/score_registration.py` can score a run.
 //!
 //! Conventions (DESIGN.md §2): heights in micrometres, f32, row-major, NaN = not measured;
@@ -60,7 +60,7 @@ pub use error::{ReplayError, Result};
 pub use run::{DueTile, Pacing, StageRun, TileSource};
 pub use specimen::{generate_specimen, Specimen, SpecimenParams};
 pub use stage::{plan_scan, serpentine_order, ScanPlan, StageParams, TilePlan};
-pub use truth::{truth_for, ScanTruth};
+pub use truth::{truth_for, GroundTruth};
 pub mod node;
 pub mod scan_dir;
 pub mod ports;

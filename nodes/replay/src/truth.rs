@@ -1,5 +1,7 @@
 //! The ground truth of a simulated scan, in the layout of `bench/make_tiles.py`'s
 //! `ground_truth.json` so that `bench/score_registration.py` scores a surfstream run against it.
+//! This is the writer; the one reader of the file (the matcher's scoring, the benchmarks) is
+//! [`surfstream_io::truth::ScanTruth`], and a test below reads what this writes with it.
 //!
 //! The scorer reads `pixel_pitch_um.{x,y}`, `tiles[].index`, `tiles[].true_origin_px` and
 //! `pairs[].{a,b,true_offset_px}`; everything else is for people and other tools. Field names
@@ -137,7 +139,7 @@ pub struct PairTruth {
 
 /// Everything a scorer needs about a simulated scan; serialise it as `ground_truth.json`.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct ScanTruth {
+pub struct GroundTruth {
     /// Who wrote it.
     pub generator: String,
     /// How to read it.
@@ -158,7 +160,7 @@ pub struct ScanTruth {
     pub pairs: Vec<PairTruth>,
 }
 
-impl ScanTruth {
+impl GroundTruth {
     /// Records how the specimen was generated.
     pub fn with_specimen(mut self, specimen: &SpecimenParams) -> Self {
         self.specimen = SpecimenTruth {
@@ -175,7 +177,7 @@ fn diff(b: [f64; 2], a: [f64; 2]) -> [f64; 2] {
 }
 
 /// The truth of a plan.
-pub fn truth_for(plan: &ScanPlan) -> ScanTruth {
+pub fn truth_for(plan: &ScanPlan) -> GroundTruth {
     let p = &plan.params;
     let (ox, oy) = p.overlap_xy();
     let (tw, th) = (plan.tile_width_px, plan.tile_height_px);
@@ -218,7 +220,7 @@ pub fn truth_for(plan: &ScanPlan) -> ScanTruth {
             }
         }
     }
-    ScanTruth {
+    GroundTruth {
         generator: format!("surfstream-replay {}", env!("CARGO_PKG_VERSION")),
         conventions: Conventions {
             coords: "(x, y) = (column, row) in pixels of the specimen; tile pixel (i, j) = \
@@ -274,5 +276,34 @@ pub fn truth_for(plan: &ScanPlan) -> ScanTruth {
         params: p.clone(),
         tiles,
         pairs,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::stage::plan_scan;
+
+    #[test]
+    fn the_truth_reader_reads_what_the_stage_writes() {
+        let params = StageParams {
+            rows: 2,
+            cols: 3,
+            tile_px: 64,
+            ..StageParams::default()
+        };
+        let plan = plan_scan(&params).expect("plan");
+        let truth = truth_for(&plan);
+        let text = serde_json::to_string_pretty(&truth).expect("json");
+        let read =
+            surfstream_io::truth::ScanTruth::parse(&text, std::path::Path::new("truth.json"))
+                .expect("readable");
+        assert_eq!(read.tiles(), 6);
+        for p in &truth.pairs {
+            // serde_json's default float parsing may be one ulp off.
+            let got = read.true_offset_px(p.a as u64, p.b as u64).expect("listed");
+            assert!((got[0] - p.true_offset_px[0]).abs() < 1e-9, "{got:?}");
+            assert!((got[1] - p.true_offset_px[1]).abs() < 1e-9, "{got:?}");
+        }
     }
 }

@@ -1,6 +1,8 @@
 //! The true tile positions of a scan, read from a `ground_truth.json`: the file
 //! `bench/make_tiles.py` writes beside a scan's `scan.toml`, and the layout the simulated stage
-//! writes as `truth.json` beside a graph's outputs (`surfstream-replay`'s `truth` module).
+//! writes as `truth.json` beside a graph's outputs (`surfstream-replay`'s `GroundTruth`, whose
+//! output this reader is tested on). The one reader of that file: the matcher scores feature
+//! matches with it, the benchmarks and tests score registrations.
 //!
 //! Only `tiles[].index` and `tiles[].true_origin_px` (`[x, y]`, px) are read; a pair's true
 //! offset is `true_origin_px[b] - true_origin_px[a]`, the same definition as the file's
@@ -9,33 +11,60 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use thiserror::Error;
-
 /// Why a truth file was refused; every variant names the file.
-#[derive(Debug, Error)]
+#[derive(Debug)]
 pub enum TruthError {
-    #[error("{path}: cannot read: {source}")]
     Read {
         path: PathBuf,
         source: std::io::Error,
     },
-    #[error("{path}: not JSON: {source}")]
     Json {
         path: PathBuf,
         source: serde_json::Error,
     },
-    #[error("{path}: {field}: expected {expected}")]
     Field {
         path: PathBuf,
         field: String,
         expected: &'static str,
     },
-    #[error("{path}: tiles[{at}].index = {index} appears twice")]
     Duplicate {
         path: PathBuf,
         at: usize,
         index: u64,
     },
+}
+
+impl std::fmt::Display for TruthError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            TruthError::Read { path, source } => {
+                write!(f, "{}: cannot read: {source}", path.display())
+            }
+            TruthError::Json { path, source } => {
+                write!(f, "{}: not JSON: {source}", path.display())
+            }
+            TruthError::Field {
+                path,
+                field,
+                expected,
+            } => write!(f, "{}: {field}: expected {expected}", path.display()),
+            TruthError::Duplicate { path, at, index } => write!(
+                f,
+                "{}: tiles[{at}].index = {index} appears twice",
+                path.display()
+            ),
+        }
+    }
+}
+
+impl std::error::Error for TruthError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            TruthError::Read { source, .. } => Some(source),
+            TruthError::Json { source, .. } => Some(source),
+            _ => None,
+        }
+    }
 }
 
 /// True origins by acquisition index.

@@ -1,0 +1,663 @@
+//! A whole scan's registration: each tile against its already-placed grid neighbours as the
+//! stage delivers it ([`ScanRegistration::register`]), then every tile at once at end of scan
+//! ([`ScanRegistration::finish`]). The matcher node only feeds it frames.
+//!
+//! While streaming, a tile's position is its placed neighbours' positions plus the measured
+//! offsets (averaged over accepted links, weighted by NCC). With no trustworthy link it keeps
+//! its stage position relative to its placed neighbours (the stage's own offset between them)
+//! and is flagged `placed_by: "stage"`. The plane correction (piston, tilt) levels it onto its
+//! neighbours.
+//!
+//! At end of scan, [`crate::global::solve_positions_with_alternatives`] places every tile from
+//! all accepted links at once (inconsistent links removed, ambiguous pairs resolved by the rest
+//! of the scan, stage positions as weak prior; a tile left without a kept link is placed by the
+//! stage and flagged), and [`crate::global::solve_planes`] levels every tile over all overlaps
+//! at those positions (the first tile is the gauge, as in streaming). The report ("tiles",
+//! "pairs" in run.json) gives the FINAL positions; the streaming ones stay beside them under
+//! "streaming".
+//!
+//! Memory: every tile's heights are kept until end of scan (the z alignment needs the
+//! overlaps at the final positions): 4 MiB per 1024 x 1024 tile.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+use serde_json::json;
+use surfstream_core::frame::{flags, placed_by, TileRegistration};
+use surfstream_core::raster::Raster;
+use thiserror::Error;
+
+use crate::global::{
+    solve_planes, solve_positions_with_alternatives, AmbiguousLink, GlobalSolution, Link,
+    PlaneSolution, SolveError, SolveParams,
+};
+use crate::{
+    estimate_plane, register_pair_features, FeatureParams, FeatureRegistration, PairRegistration,
+    PhaseCorrelator, PhaseParams, PlaneCorrection, RasterRef,
+};
+use surfstream_io::truth::TruthError;
+
+/// Standard deviation (px) of an accepted link with NCC 1; lower NCC trusts it less (the
+/// global solve then puts a loop's misfit on the weaker links).
+const LINK_SIGMA_PX: f64 = 0.05;
+
+/// Sample every 2nd row and column of the overlaps in the final z alignment: a 20 % overlap of
+/// 1024 px tiles still gives 50 000 samples per pair.
+const Z_STRIDE: usize = 2;
+
+/// How a scan is registered.
+#[derive(Debug, Clone, Default)]
+pub struct ScanParams {
+    /// Phase correlation (used when `features` is `None`).
+    pub phase: PhaseParams,
+    /// Harris or SIFT instead of phase correlation ([`crate::feature_match`]).
+    pub features: Option<FeatureParams>,
+    /// The global solve at end of scan.
+    pub solve: SolveParams,
+    /// A `ground_truth.json`: with a feature method, r and MAP of every pair against it,
+    /// read at end of scan ([`crate::efficiency`]).
+    pub truth: Option<PathBuf>,
+}
+
+/// A tile as the stage delivers it.
+#[derive(Debug, Clone)]
+pub struct ScanTile {
+    /// Acquisition index.
+    pub index: u32,
+    /// Grid row and column: the neighbours are the grid's 4-neighbours.
+    pub row: u32,
+    pub col: u32,
+    /// Pixel pitch `[x, y]`, um.
+    pub pitch_um: [f64; 2],
+    /// Nominal stage position of pixel (0, 0) `[x, y]`, um.
+    pub stage_um: [f64; 2],
+    /// Passed through to the registrations (the trace of the tile).
+    pub t_acquired_ns: u64,
+    /// Heights, um, NaN = not measured.
+    pub heights: Raster<f32>,
+}
+
+impl ScanTile {
+    /// Refuses a pitch or stage position that no placement can use.
+    pub fn validate(&self) -> Result<(), ScanError> {
+        if !self.pitch_um.iter().all(|p| p.is_finite() && *p > 0.0) {
+            return Err(ScanError::BadPitch {
+                index: self.index,
+                pitch_um: self.pitch_um,
+            });
+        }
+        if !self.stage_um.iter().all(|v| v.is_finite()) {
+            return Err(ScanError::BadStage {
+                index: self.index,
+                stage_um: self.stage_um,
+            });
+        }
+        Ok(())
+    }
+
+    fn raster(&self) -> RasterRef<'_> {
+        RasterRef {
+            heights: self.heights.values(),
+            width: self.heights.cols(),
+            height: self.heights.rows(),
+        }
+    }
+}
+
+/// Why a tile or the scan could not be registered.
+#[derive(Debug, Error)]
+pub enum ScanError {
+    #[error("tile {index}: pitch {pitch_um:?} um, expected finite and > 0")]
+    BadPitch { index: u32, pitch_um: [f64; 2] },
+    #[error("tile {index}: stage position ({}, {}) um is not finite", stage_um[0], stage_um[1])]
+    BadStage { index: u32, stage_um: [f64; 2] },
+    #[error(
+        "tile {index} has pitch {pitch_um:?} um, tile {first} has {first_pitch_um:?} um: \
+         one scan needs one pitch"
+    )]
+    PitchMismatch {
+        index: u32,
+        pitch_um: [f64; 2],
+        first: u32,
+        first_pitch_um: [f64; 2],
+    },
+    #[error("global position solve: {0}")]
+    Positions(SolveError),
+    #[error("global z alignment: {0}")]
+    Planes(SolveError),
+    #[error("truth: {0}")]
+    Truth(#[from] TruthError),
+}
+
+/// A registered tile, kept to the end of the scan with its streaming placement.
+struct PlacedTile {
+    tile: ScanTile,
+    position_um: [f64; 2],
+    plane: PlaneCorrection,
+    placed_by: u32,
+    links_tried: u32,
+}
+
+/// One registered pair (b = the later tile), positions into the tile list.
+struct PairRecord {
+    a: usize,
+    b: usize,
+    offset_px: Option<[f64; 2]>,
+    ncc: f64,
+    /// An ambiguous pair's distinct NCC maxima, for the global solve to choose from.
+    alternatives: Vec<[f64; 2]>,
+    /// The feature matcher's outcome (methods "harris", "sift").
+    features: Option<FeatureRegistration>,
+    report: serde_json::Value,
+}
+
+/// Candidate positions of a new tile, um, weighted: one per neighbour.
+type Vote = (f64, [f64; 2]);
+
+/// The global solve's placement: positions (px, in the streaming scan frame), the links it
+/// saw with their pair numbers, and per ambiguous pair its number and chosen offset.
+struct GlobalPlacement {
+    sol: GlobalSolution,
+    positions_px: Vec<[f64; 2]>,
+    links: Vec<Link>,
+    /// Pair number of each of `links`.
+    link_pairs: Vec<usize>,
+    ambiguous_pairs: Vec<usize>,
+    chosen: Vec<Option<usize>>,
+}
+
+/// The registration of one scan; see the module documentation.
+pub struct ScanRegistration {
+    params: ScanParams,
+    correlator: PhaseCorrelator,
+    tiles: Vec<PlacedTile>,
+    by_grid: BTreeMap<(u32, u32), usize>,
+    pairs: Vec<PairRecord>,
+    tiles_report: Vec<serde_json::Value>,
+    pairs_report: Vec<serde_json::Value>,
+    global_report: serde_json::Value,
+}
+
+impl ScanRegistration {
+    pub fn new(params: ScanParams) -> Self {
+        ScanRegistration {
+            params,
+            correlator: PhaseCorrelator::new(),
+            tiles: Vec::new(),
+            by_grid: BTreeMap::new(),
+            pairs: Vec::new(),
+            tiles_report: Vec::new(),
+            pairs_report: Vec::new(),
+            global_report: serde_json::Value::Null,
+        }
+    }
+
+    /// "phase", "harris" or "sift".
+    pub fn method(&self) -> &'static str {
+        self.params
+            .features
+            .as_ref()
+            .map_or("phase", |f| f.method.name())
+    }
+
+    /// Streaming registration of one tile against its placed grid neighbours: its position,
+    /// how it was placed, and its plane correction onto them.
+    pub fn register(&mut self, tile: ScanTile) -> Result<TileRegistration, ScanError> {
+        tile.validate()?;
+        if let Some(first) = self.tiles.first() {
+            if first.tile.pitch_um != tile.pitch_um {
+                return Err(ScanError::PitchMismatch {
+                    index: tile.index,
+                    pitch_um: tile.pitch_um,
+                    first: first.tile.index,
+                    first_pitch_um: first.tile.pitch_um,
+                });
+            }
+        }
+        let neighbours = self.placed_neighbours(&tile);
+        let mut votes = Vec::new();
+        let mut stage_votes = Vec::new();
+        for &ai in &neighbours {
+            let (vote, stage_vote) = self.register_link(ai, &tile);
+            votes.extend(vote);
+            stage_votes.push(stage_vote);
+        }
+        let (position_um, how) = place(&tile, &votes, &stage_votes);
+        let plane = self.level(&tile, &neighbours, position_um);
+        let quality = votes.iter().map(|v| v.0).fold(0.0, f64::max);
+        let reg = TileRegistration {
+            tile_index: tile.index,
+            placed_by: how,
+            flags: if how == placed_by::STAGE {
+                flags::PLACED_BY_STAGE
+            } else {
+                0
+            },
+            links_accepted: votes.len() as u32,
+            links_tried: neighbours.len() as u32,
+            x_um: position_um[0],
+            y_um: position_um[1],
+            piston_um: plane.piston_um,
+            tilt_x_um_per_px: plane.tilt_x_um_per_px,
+            tilt_y_um_per_px: plane.tilt_y_um_per_px,
+            quality,
+            t_acquired_ns: tile.t_acquired_ns,
+            ..Default::default()
+        };
+        self.by_grid.insert((tile.row, tile.col), self.tiles.len());
+        self.tiles.push(PlacedTile {
+            tile,
+            position_um,
+            plane,
+            placed_by: how,
+            links_tried: neighbours.len() as u32,
+        });
+        Ok(reg)
+    }
+
+    /// The already-placed grid 4-neighbours of `t` (left, right, above, below).
+    fn placed_neighbours(&self, t: &ScanTile) -> Vec<usize> {
+        let keys = [
+            (t.row, t.col.wrapping_sub(1)),
+            (t.row, t.col + 1),
+            (t.row.wrapping_sub(1), t.col),
+            (t.row + 1, t.col),
+        ];
+        keys.iter()
+            .filter_map(|k| self.by_grid.get(k).copied())
+            .collect()
+    }
+
+    /// Registers the new tile `t` against the placed tile `ai` and records the pair: the
+    /// position it gives `t` when accepted (weighted by NCC), and the one the stage gives.
+    fn register_link(&mut self, ai: usize, t: &ScanTile) -> (Option<Vote>, Vote) {
+        let pitch = t.pitch_um;
+        let a = &self.tiles[ai];
+        let nominal = [
+            (t.stage_um[0] - a.tile.stage_um[0]) / pitch[0],
+            (t.stage_um[1] - a.tile.stage_um[1]) / pitch[1],
+        ];
+        let (r, alternatives, features) = match &self.params.features {
+            Some(fp) => {
+                let f = register_pair_features(a.tile.raster(), t.raster(), nominal, fp);
+                (f.registration.clone(), Vec::new(), Some(f))
+            }
+            None => {
+                let (r, alt) = self.correlator.register_with_alternatives(
+                    a.tile.raster(),
+                    t.raster(),
+                    nominal,
+                    &self.params.phase,
+                );
+                (r, alt, None)
+            }
+        };
+        let report = pair_report(&a.tile, t, nominal, &r, features.as_ref());
+        let stage_vote = (
+            1.0,
+            [
+                a.position_um[0] + nominal[0] * pitch[0],
+                a.position_um[1] + nominal[1] * pitch[1],
+            ],
+        );
+        let vote = r.offset_px.map(|off| {
+            (
+                r.ncc.max(1e-3),
+                [
+                    a.position_um[0] + off[0] * pitch[0],
+                    a.position_um[1] + off[1] * pitch[1],
+                ],
+            )
+        });
+        self.pairs.push(PairRecord {
+            a: ai,
+            b: self.tiles.len(),
+            offset_px: r.offset_px,
+            ncc: r.ncc,
+            alternatives: alternatives.iter().map(|c| c.offset_px).collect(),
+            features,
+            report,
+        });
+        (vote, stage_vote)
+    }
+
+    /// The plane correction that levels `t`, at `position_um`, onto its placed neighbours.
+    fn level(&self, t: &ScanTile, neighbours: &[usize], position_um: [f64; 2]) -> PlaneCorrection {
+        let pitch = t.pitch_um;
+        let levels: Vec<_> = neighbours
+            .iter()
+            .map(|&ai| {
+                let a = &self.tiles[ai];
+                (
+                    a.tile.raster(),
+                    [
+                        (position_um[0] - a.position_um[0]) / pitch[0],
+                        (position_um[1] - a.position_um[1]) / pitch[1],
+                    ],
+                    a.plane,
+                )
+            })
+            .collect();
+        if levels.is_empty() {
+            PlaneCorrection::default()
+        } else {
+            estimate_plane(t.raster(), &levels).unwrap_or_default()
+        }
+    }
+
+    /// The global solve over the whole scan: one FINAL registration per tile, in acquisition
+    /// order (the report is filled too). An empty scan gives none.
+    pub fn finish(&mut self) -> Result<Vec<TileRegistration>, ScanError> {
+        if self.tiles.is_empty() {
+            return Ok(Vec::new());
+        }
+        let placement = self.solve_positions()?;
+        let overlaps: Vec<(usize, usize)> = self.pairs.iter().map(|p| (p.a, p.b)).collect();
+        let rasters: Vec<RasterRef<'_>> = self.tiles.iter().map(|t| t.tile.raster()).collect();
+        let planes = solve_planes(&rasters, &placement.positions_px, &overlaps, 0, Z_STRIDE)
+            .map_err(ScanError::Planes)?;
+        let regs = self.final_registrations(&placement, &planes);
+        let feature_summary = self.report_pairs(&placement, &planes)?;
+        self.global_report = json!({
+            "links": placement.links.len(),
+            "links_removed": placement.sol.links.iter().filter(|l| !l.kept).count(),
+            "max_residual_px": placement.sol.max_residual_px,
+            "tiles_placed_by_stage": regs.iter().filter(|r| r.placed_by == placed_by::STAGE).count(),
+            "stage_sigma_px": self.params.solve.stage_sigma_px,
+            "outlier_px": self.params.solve.outlier_px,
+            "z_rms_before_um": planes.rms_before_um,
+            "z_rms_residual_um": planes.rms_residual_um,
+            "features": feature_summary,
+        });
+        Ok(regs)
+    }
+
+    /// Positions of all tiles from all accepted and ambiguous pairs, shifted so that tile 0
+    /// keeps its streaming position (the scan frame is the first tile's stage position).
+    fn solve_positions(&self) -> Result<GlobalPlacement, ScanError> {
+        let pitch = self.tiles[0].tile.pitch_um;
+        let stage_px: Vec<[f64; 2]> = self
+            .tiles
+            .iter()
+            .map(|t| [t.tile.stage_um[0] / pitch[0], t.tile.stage_um[1] / pitch[1]])
+            .collect();
+        let mut link_pairs: Vec<usize> = (0..self.pairs.len())
+            .filter(|&k| self.pairs[k].offset_px.is_some())
+            .collect();
+        let mut links: Vec<Link> = link_pairs
+            .iter()
+            .filter_map(|&k| {
+                let p = &self.pairs[k];
+                p.offset_px.map(|o| Link {
+                    a: p.a,
+                    b: p.b,
+                    offset_px: o,
+                    sigma_px: link_sigma_px(p.ncc),
+                })
+            })
+            .collect();
+        let ambiguous_pairs: Vec<usize> = (0..self.pairs.len())
+            .filter(|&k| self.pairs[k].alternatives.len() >= 2)
+            .collect();
+        let ambiguous: Vec<AmbiguousLink> = ambiguous_pairs
+            .iter()
+            .map(|&k| {
+                let p = &self.pairs[k];
+                AmbiguousLink {
+                    a: p.a,
+                    b: p.b,
+                    offsets_px: p.alternatives.clone(),
+                    sigma_px: link_sigma_px(p.ncc),
+                }
+            })
+            .collect();
+        let (sol, chosen) =
+            solve_positions_with_alternatives(&stage_px, &links, &ambiguous, &self.params.solve)
+                .map_err(ScanError::Positions)?;
+        // The solution's links: the accepted pairs, then the chosen ambiguous ones in input
+        // order (as the solve appends them).
+        for (i, c) in chosen.iter().enumerate() {
+            if let Some(c) = *c {
+                let l = &ambiguous[i];
+                link_pairs.push(ambiguous_pairs[i]);
+                links.push(Link {
+                    a: l.a,
+                    b: l.b,
+                    offset_px: l.offsets_px[c],
+                    sigma_px: l.sigma_px,
+                });
+            }
+        }
+        // The gauge shift: tile 0 keeps its streaming position when it is linked.
+        let first = &self.tiles[0];
+        let shift = [
+            first.position_um[0] / pitch[0] - sol.positions_px[0][0],
+            first.position_um[1] / pitch[1] - sol.positions_px[0][1],
+        ];
+        let positions_px: Vec<[f64; 2]> = sol
+            .positions_px
+            .iter()
+            .map(|p| [p[0] + shift[0], p[1] + shift[1]])
+            .collect();
+        Ok(GlobalPlacement {
+            sol,
+            positions_px,
+            links,
+            link_pairs,
+            ambiguous_pairs,
+            chosen,
+        })
+    }
+
+    /// One FINAL registration per tile from the global placement and planes; fills the tile
+    /// report.
+    fn final_registrations(
+        &mut self,
+        g: &GlobalPlacement,
+        planes: &PlaneSolution,
+    ) -> Vec<TileRegistration> {
+        let pitch = self.tiles[0].tile.pitch_um;
+        let single = self.tiles.len() == 1;
+        let mut regs = Vec::with_capacity(self.tiles.len());
+        let mut accepted_per_tile = vec![0u32; self.tiles.len()];
+        for (l, o) in g.links.iter().zip(&g.sol.links) {
+            if o.kept {
+                accepted_per_tile[l.a] += 1;
+                accepted_per_tile[l.b] += 1;
+            }
+        }
+        let mut tried_per_tile = vec![0u32; self.tiles.len()];
+        for p in &self.pairs {
+            tried_per_tile[p.a] += 1;
+            tried_per_tile[p.b] += 1;
+        }
+        for (i, t) in self.tiles.iter().enumerate() {
+            let how = if g.sol.linked[i] || single {
+                placed_by::REGISTRATION
+            } else {
+                placed_by::STAGE
+            };
+            let plane = planes.corrections[i];
+            let pos_um = [
+                g.positions_px[i][0] * pitch[0],
+                g.positions_px[i][1] * pitch[1],
+            ];
+            // The best NCC among the tile's links the global solve kept.
+            let quality = self
+                .pairs
+                .iter()
+                .zip(0..)
+                .filter(|(p, _)| p.a == i || p.b == i)
+                .filter_map(|(p, k)| {
+                    let li = g.link_pairs.iter().position(|&a| a == k)?;
+                    g.sol.links[li].kept.then_some(p.ncc)
+                })
+                .fold(0.0, f64::max);
+            regs.push(TileRegistration {
+                tile_index: t.tile.index,
+                placed_by: how,
+                flags: flags::FINAL
+                    | if how == placed_by::STAGE {
+                        flags::PLACED_BY_STAGE
+                    } else {
+                        0
+                    },
+                links_accepted: accepted_per_tile[i],
+                links_tried: tried_per_tile[i],
+                x_um: pos_um[0],
+                y_um: pos_um[1],
+                piston_um: plane.piston_um,
+                tilt_x_um_per_px: plane.tilt_x_um_per_px,
+                tilt_y_um_per_px: plane.tilt_y_um_per_px,
+                quality,
+                t_acquired_ns: t.tile.t_acquired_ns,
+                ..Default::default()
+            });
+            self.tiles_report.push(json!({
+                "index": t.tile.index, "row": t.tile.row, "col": t.tile.col,
+                "x_um": pos_um[0], "y_um": pos_um[1],
+                "placed_by": placed_name(how),
+                "links_accepted": accepted_per_tile[i], "links_tried": tried_per_tile[i],
+                "quality": quality,
+                "piston_um": plane.piston_um, "tilt_x_um_per_px": plane.tilt_x_um_per_px,
+                "tilt_y_um_per_px": plane.tilt_y_um_per_px,
+                "streaming": {
+                    "x_um": t.position_um[0], "y_um": t.position_um[1],
+                    "placed_by": placed_name(t.placed_by), "links_tried": t.links_tried,
+                    "piston_um": t.plane.piston_um,
+                    "tilt_x_um_per_px": t.plane.tilt_x_um_per_px,
+                    "tilt_y_um_per_px": t.plane.tilt_y_um_per_px,
+                },
+            }));
+        }
+        regs
+    }
+
+    /// Fills the pair report with the global outcome of every pair (and, with a feature method
+    /// and a truth file, r and AP); returns the feature summary (`global.features`).
+    fn report_pairs(
+        &mut self,
+        g: &GlobalPlacement,
+        planes: &PlaneSolution,
+    ) -> Result<serde_json::Value, ScanError> {
+        let (feature_truth, feature_summary) = match (&self.params.truth, &self.params.features) {
+            (Some(path), Some(_)) => {
+                let scored: Vec<(u64, u64, &FeatureRegistration)> = self
+                    .pairs
+                    .iter()
+                    .filter_map(|p| {
+                        let f = p.features.as_ref()?;
+                        Some((
+                            self.tiles[p.a].tile.index as u64,
+                            self.tiles[p.b].tile.index as u64,
+                            f,
+                        ))
+                    })
+                    .collect();
+                crate::efficiency::score_feature_pairs(path, &scored)?
+            }
+            _ => (Vec::new(), serde_json::Value::Null),
+        };
+        let mut feature_truth = feature_truth.into_iter();
+        for (k, p) in self.pairs.iter().enumerate() {
+            let mut r = p.report.clone();
+            if let Some(f) = &p.features {
+                r["features"] = f.report(feature_truth.next().flatten().as_ref());
+            }
+            let final_offset = [
+                g.positions_px[p.b][0] - g.positions_px[p.a][0],
+                g.positions_px[p.b][1] - g.positions_px[p.a][1],
+            ];
+            r["final_offset_px"] = json!(final_offset);
+            r["z_samples"] = json!(planes.samples[k]);
+            if let Some(i) = g.ambiguous_pairs.iter().position(|&a| a == k) {
+                // An ambiguous pair: its candidate offsets, and the one the global solve took.
+                r["alternatives_px"] = json!(p.alternatives);
+                r["chosen_alternative"] = json!(g.chosen[i]);
+            }
+            if let Some(li) = g.link_pairs.iter().position(|&a| a == k) {
+                let o = g.sol.links[li];
+                r["kept_by_global_solve"] = json!(o.kept);
+                r["residual_px"] = json!(o.residual_px);
+            } else {
+                r["kept_by_global_solve"] = json!(false);
+            }
+            self.pairs_report.push(r);
+        }
+        Ok(feature_summary)
+    }
+
+    /// The run report: the method, per tile and per pair outcomes, and the global solve's
+    /// summary (empty until [`ScanRegistration::finish`]).
+    pub fn report(&self) -> serde_json::Value {
+        json!({
+            "method": self.method(),
+            "tiles": self.tiles_report,
+            "pairs": self.pairs_report,
+            "global": self.global_report,
+        })
+    }
+}
+
+/// Standard deviation of a link measured with this NCC, px.
+fn link_sigma_px(ncc: f64) -> f64 {
+    LINK_SIGMA_PX / ncc.clamp(0.05, 1.0)
+}
+
+/// A new tile's streaming position: the NCC-weighted mean of its accepted links, else the
+/// stage's offsets from its placed neighbours (flagged), else (the first tile, which defines
+/// the scan frame) its stage position.
+fn place(t: &ScanTile, votes: &[Vote], stage_votes: &[Vote]) -> ([f64; 2], u32) {
+    if let Some(p) = weighted_mean(votes) {
+        (p, placed_by::REGISTRATION)
+    } else if let Some(p) = weighted_mean(stage_votes) {
+        (p, placed_by::STAGE)
+    } else {
+        (t.stage_um, placed_by::REGISTRATION)
+    }
+}
+
+/// The pair's entry in the report while streaming.
+fn pair_report(
+    a: &ScanTile,
+    b: &ScanTile,
+    nominal: [f64; 2],
+    r: &PairRegistration,
+    features: Option<&FeatureRegistration>,
+) -> serde_json::Value {
+    let direction = if a.row == b.row {
+        "horizontal"
+    } else {
+        "vertical"
+    };
+    let mut report = json!({
+        "a": a.index, "b": b.index, "direction": direction,
+        "nominal_offset_px": nominal,
+        "offset_px": r.offset_px,
+        "ncc": r.ncc, "peak_ratio": r.peak_ratio,
+        "accepted": r.offset_px.is_some(),
+        "reason": r.rejection.as_ref().map(|e| e.to_string()),
+    });
+    if let Some(f) = features {
+        report["reason"] = json!(f.reason());
+        report["features"] = f.report(None);
+    }
+    report
+}
+
+fn weighted_mean(votes: &[Vote]) -> Option<[f64; 2]> {
+    let w: f64 = votes.iter().map(|v| v.0).sum();
+    (w > 0.0).then(|| {
+        let x = votes.iter().map(|v| v.0 * v.1[0]).sum::<f64>() / w;
+        let y = votes.iter().map(|v| v.0 * v.1[1]).sum::<f64>() / w;
+        [x, y]
+    })
+}
+
+fn placed_name(how: u32) -> &'static str {
+    if how == placed_by::STAGE {
+        "stage"
+    } else {
+        "registration"
+    }
+}
