@@ -192,7 +192,10 @@ fn bad_scan_directories_are_named() {
     assert!(err.contains("#1 and #2"), "{err}");
     write(&s, &GOOD_SCAN.replace("cols = 2", "cols = 1"));
     stitch("2 [[tile]] entries for a 1 x 1 (rows x cols) scan");
-    write(&s, &GOOD_SCAN.replace("pitch_x_um = 0.8148", "pitch_x_um = 1e30"));
+    write(
+        &s,
+        &GOOD_SCAN.replace("pitch_x_um = 0.8148", "pitch_x_um = 1e30"),
+    );
     stitch("pitch_x_um = 1000000000000000000000000000000: expected a pitch between");
 
     // A missing tile file.

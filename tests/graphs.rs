@@ -391,6 +391,51 @@ fn stitch_scans_a_scan_directory() {
     );
 }
 
+/// A folder of tiles without scan.toml: `stitch DIR --grid 2x3 --overlap 20% --serpentine`
+/// infers the manifest (written to OUT), places every tile within half a pixel of the truth,
+/// and a grid that disagrees with the folder is a clear error.
+#[test]
+fn stitch_infers_the_scan_from_a_folder_and_the_grid() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = dir.path().join("scan");
+    std::fs::create_dir(&scan).unwrap();
+    write_scan_dir(&scan, 2, 3, 256);
+    std::fs::remove_file(scan.join("scan.toml")).unwrap();
+    let truth = read_json(&scan.join("ground_truth.json"));
+    let pitch = truth["pixel_pitch_um"]["x"].as_f64().unwrap().to_string();
+    let out_dir = dir.path().join("out");
+    let stitch = |grid: &str| {
+        let mut cmd = surfstream();
+        cmd.arg("stitch")
+            .arg(&scan)
+            .args(["--grid", grid, "--overlap", "20%", "--serpentine"])
+            .args(["--pitch-um", &pitch, "--out"])
+            .arg(&out_dir);
+        run(cmd)
+    };
+    let out = stitch("2x3");
+    assert!(out.status.success(), "{}", stderr(&out));
+    let run_json = read_json(&out_dir.join("run.json"));
+    let err = max_position_error_px(&run_json, &truth);
+    assert!(err < 0.5, "tile position error {err} px");
+    let manifest = std::fs::read_to_string(out_dir.join("scan.toml")).unwrap();
+    assert!(
+        manifest.contains("rows = 2") && manifest.contains("cols = 3"),
+        "{manifest}"
+    );
+    // The serpentine: the 4th tile acquired (index 3) is the last column of row 1.
+    assert_eq!(run_json["tiles"][3]["row"], 1);
+    assert_eq!(run_json["tiles"][3]["col"], 2);
+
+    let out = stitch("3x3");
+    assert!(!out.status.success());
+    let e = stderr(&out);
+    assert!(
+        e.contains("6 tile files, but --grid 3x3 (rows x cols) needs 9"),
+        "{e}"
+    );
+}
+
 /// The paper's Harris + NCC path through a real graph: `stitch --method harris` on a scan whose
 /// `ground_truth.json` lies beside `scan.toml` scores every pair's matches (r, eq. 2; MAP, eq. 3)
 /// in run.json, and the tiles still land within half a pixel of the truth.

@@ -145,9 +145,7 @@ fn dispatch(cli: Cli) -> Result<()> {
             pitch_um,
         } => {
             let scan = match (grid, overlap) {
-                (Some(g), Some(o)) => {
-                    infer_scan(&scan, &out, g, o, serpentine, pitch_um)?
-                }
+                (Some(g), Some(o)) => infer_scan(&scan, &out, g, o, serpentine, pitch_um)?,
                 _ => scan,
             };
             if compare_fusion {

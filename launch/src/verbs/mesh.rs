@@ -70,6 +70,9 @@ pub struct MeshArgs {
 
 pub fn run(a: MeshArgs) -> Result<()> {
     let surface = surfstream_io::formats::read_surface(&a.file)?;
+    for w in &surface.metadata.warnings {
+        eprintln!("{}: warning: {w}", a.file.display());
+    }
     let (pitch_x_um, pitch_y_um) = match a.pitch_um {
         Some(p) if p.is_finite() && p > 0.0 => (p, p),
         Some(p) => bail!("--pitch-um {p}: expected a finite number > 0"),

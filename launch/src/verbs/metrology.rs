@@ -57,6 +57,9 @@ pub struct CompareArgs {
 /// Reads `path`, applying `pitch_um` to files without a lateral calibration.
 fn load(path: &Path, pitch_um: Option<f64>) -> Result<Surface> {
     let mut s = read_surface(path)?;
+    for w in &s.metadata.warnings {
+        eprintln!("{}: warning: {w}", path.display());
+    }
     if let Some(p) = pitch_um {
         if !(p.is_finite() && p > 0.0) {
             bail!("--pitch-um {p}: expected a finite positive number");

@@ -36,9 +36,7 @@ impl FromStr for Grid {
     type Err = String;
     fn from_str(s: &str) -> std::result::Result<Self, String> {
         let bad = || format!("grid {s:?}: expected ROWSxCOLS, e.g. 3x4 (3 rows of 4 fields)");
-        let (r, c) = s
-            .split_once(['x', 'X', '×'])
-            .ok_or_else(bad)?;
+        let (r, c) = s.split_once(['x', 'X', '×']).ok_or_else(bad)?;
         let (rows, cols) = (
             r.trim().parse::<usize>().map_err(|_| bad())?,
             c.trim().parse::<usize>().map_err(|_| bad())?,
@@ -146,7 +144,8 @@ pub fn infer_manifest(dir: &Path, layout: &GridLayout, pitch_um: Option<f64>) ->
         .file_name()
         .map(|n| n.to_string_lossy().replace('"', "'"))
         .unwrap_or_else(|| "scan".into());
-    let mut toml = format!(
+    let mut toml =
+        format!(
         "# Inferred by surfstream stitch --grid {}x{} --overlap {:.4}/{:.4}{} from the tiles of\n\
          # {} ({} x {} px each, rows x cols), in file-name order.\n\
          [scan]\nname = \"{name}\"\nrows = {}\ncols = {}\n",

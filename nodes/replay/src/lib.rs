@@ -62,5 +62,5 @@ pub use specimen::{generate_specimen, Specimen, SpecimenParams};
 pub use stage::{plan_scan, serpentine_order, ScanPlan, StageParams, TilePlan};
 pub use truth::{truth_for, GroundTruth};
 pub mod node;
-pub mod scan_dir;
 pub mod ports;
+pub mod scan_dir;
