@@ -14,8 +14,8 @@ pub mod fsutil;
 pub mod metrology;
 pub mod plane;
 pub mod raster;
-pub mod similarity;
 pub mod simd;
+pub mod similarity;
 
 pub use frame::{flags, FrameHeader, FrameKind, FrameView, HeightMap, TileRegistration};
 pub use plane::PlaneCorrection;
