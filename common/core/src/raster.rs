@@ -142,7 +142,7 @@ impl<T> Raster<T> {
         }
     }
     pub fn row(&self, row: usize) -> &[T] {
-        &self.values[row * self.shape.cols..(row + 1) * self.shape.cols]
+        self.view().row(row)
     }
     pub fn row_mut(&mut self, row: usize) -> &mut [T] {
         let cols = self.shape.cols;
@@ -150,15 +150,14 @@ impl<T> Raster<T> {
     }
     /// Rows in order, each `cols` long.
     pub fn rows_iter(&self) -> std::slice::ChunksExact<'_, T> {
-        self.values.chunks_exact(self.shape.cols.max(1))
+        self.view().rows_iter()
     }
     pub fn rows_iter_mut(&mut self) -> std::slice::ChunksExactMut<'_, T> {
         self.values.chunks_exact_mut(self.shape.cols.max(1))
     }
     #[inline]
     pub fn get(&self, row: usize, col: usize) -> Option<&T> {
-        (row < self.shape.rows && col < self.shape.cols)
-            .then(|| &self.values[self.shape.index(row, col)])
+        self.view().get(row, col)
     }
     /// A raster of `f` applied to every sample.
     pub fn map<U>(&self, f: impl FnMut(&T) -> U) -> Raster<U> {

@@ -8,13 +8,16 @@
 //! before the producer copies its finished frame into shared memory and stops when the
 //! consumer holds it: what a node pays to hand a computed frame to the next node.
 
+#[path = "../tests/support/registry.rs"]
+mod registry;
+use registry::registry;
 use std::time::{Duration, Instant};
 
 use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::*;
 use surfstream_core::frame::monotonic_ns;
 use surfstream_core::{FrameHeader, FrameKind, HeightMap};
-use surfstream_runtime::graph::{GraphFile, NodeRegistry};
+use surfstream_runtime::graph::GraphFile;
 use surfstream_runtime::ipc as ss;
 use surfstream_runtime::latency::percentiles_ms;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
@@ -243,33 +246,6 @@ impl NodeLogic for Sink {
     fn finished(&self) -> bool {
         self.ended
     }
-}
-
-/// The test's node kinds: a source and a sink (the runtime links no node crate).
-fn registry() -> NodeRegistry {
-    use surfstream_runtime::graph::{Delivery, InputDef, NodePorts, PortDef, PortKind};
-    const KINDS: &[NodePorts] = &[
-        NodePorts {
-            kind: "replay",
-            inputs: &[],
-            outputs: &[PortDef::new("tiles", PortKind::Frames, Delivery::Lossless)],
-        },
-        NodePorts {
-            kind: "matcher",
-            inputs: &[InputDef::required("tiles", PortKind::Frames)],
-            outputs: &[PortDef::new(
-                "registrations",
-                PortKind::Registrations,
-                Delivery::Lossless,
-            )],
-        },
-        NodePorts {
-            kind: "recorder",
-            inputs: &[InputDef::ANY],
-            outputs: &[],
-        },
-    ];
-    NodeRegistry::new(KINDS.iter().copied())
 }
 
 fn bench_graph(round: usize) -> anyhow::Result<Vec<surfstream_runtime::graph::NodeContext>> {

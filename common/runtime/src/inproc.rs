@@ -13,7 +13,9 @@ use anyhow::{anyhow, bail, Result};
 use crossbeam_channel::{bounded, Receiver, Select, SendTimeoutError, Sender, TrySendError};
 
 use crate::graph::{Delivery, NodeContext};
-use crate::node::{deliver, Input, NodeLogic, NodeReport, NodeStats, Outbox, Output};
+use crate::node::{
+    deliver, stamp_for_port, Input, NodeLogic, NodeReport, NodeStats, Outbox, Output, SequencedPort,
+};
 
 /// Queue depth of a lossless in-process channel.
 const LOSSLESS_DEPTH: usize = 16;
@@ -36,6 +38,16 @@ struct OutputChannel {
     delivery: Delivery,
     txs: Vec<(String, Sender<Message>)>,
     sequence: u64,
+}
+
+impl SequencedPort for OutputChannel {
+    fn port_name(&self) -> &str {
+        &self.port
+    }
+    fn next_sequence(&mut self) -> u64 {
+        self.sequence += 1;
+        self.sequence - 1
+    }
 }
 
 /// Marks failures that are consequences of another node's failure (a closed channel), so the
@@ -204,14 +216,7 @@ fn send_all(
     timeout: Duration,
 ) -> Result<()> {
     for (port, mut msg) in outbox.take() {
-        let ch = outputs.iter_mut().find(|c| c.port == port).ok_or_else(|| {
-            anyhow!(
-                "node '{}' sent on unknown output port '{port}'",
-                ctx.node_id
-            )
-        })?;
-        msg.stamp(ch.sequence, ctx.scan_id);
-        ch.sequence += 1;
+        let ch = stamp_for_port(ctx, outputs, &port, &mut msg)?;
         let msg = Arc::new(msg);
         let mut delivered = 0;
         for (consumer, tx) in &ch.txs {

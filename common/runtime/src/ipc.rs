@@ -21,7 +21,9 @@ use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::{event as event_factory, publish_subscribe as ps_factory};
 
 use crate::graph::{service_name, Delivery, InputSpec, NodeContext, OutputSpec, PortKind};
-use crate::node::{deliver, Input, NodeLogic, NodeReport, NodeStats, Outbox, Output};
+use crate::node::{
+    deliver, stamp_for_port, Input, NodeLogic, NodeReport, NodeStats, Outbox, Output, SequencedPort,
+};
 use surfstream_core::frame::{FrameHeader, FrameView, TileRegistration};
 
 /// Set by a termination request (SIGTERM / SIGINT, see [`crate::shell`]): the event loop stops
@@ -253,6 +255,16 @@ pub fn open_event_service(node: &Node<ipc::Service>, name: &str) -> Result<Event
 enum Sender {
     Frames(FrameFactory, Publisher<ipc::Service, [f32], FrameHeader>),
     Registrations(RegFactory, Publisher<ipc::Service, TileRegistration, ()>),
+}
+
+impl SequencedPort for OutPort {
+    fn port_name(&self) -> &str {
+        &self.port
+    }
+    fn next_sequence(&mut self) -> u64 {
+        self.sequence += 1;
+        self.sequence - 1
+    }
 }
 
 struct OutPort {
@@ -802,14 +814,7 @@ fn send_all(
     stats: &mut NodeStats,
 ) -> Result<()> {
     for (port, mut msg) in outbox.take() {
-        let o = outs.iter_mut().find(|o| o.port == port).ok_or_else(|| {
-            anyhow!(
-                "node '{}' sent on unknown output port '{port}'",
-                ctx.node_id
-            )
-        })?;
-        msg.stamp(o.sequence, ctx.scan_id);
-        o.sequence += 1;
+        let o = stamp_for_port(ctx, outs, &port, &mut msg)?;
         let receivers = match (&o.sender, &msg) {
             (Sender::Frames(_, publisher), Output::Frame(f)) => {
                 let mut sample = publisher.loan_slice_uninit(f.heights.len()).map_err(|e| {

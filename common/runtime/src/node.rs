@@ -42,6 +42,35 @@ impl Input<'_> {
     }
 }
 
+/// An output port as a transport holds it: its name and its message counter.
+pub(crate) trait SequencedPort {
+    fn port_name(&self) -> &str;
+    /// The sequence number of the next message, advanced.
+    fn next_sequence(&mut self) -> u64;
+}
+
+/// Finds the output port `port` of `ctx`'s node among `ports` and stamps `msg` with the port's
+/// next sequence number, the scan id and the send time: the same for both transports, so
+/// `run` and `launch` number messages alike.
+pub(crate) fn stamp_for_port<'p, P: SequencedPort>(
+    ctx: &crate::graph::NodeContext,
+    ports: &'p mut [P],
+    port: &str,
+    msg: &mut Output,
+) -> anyhow::Result<&'p mut P> {
+    let p = ports
+        .iter_mut()
+        .find(|p| p.port_name() == port)
+        .ok_or_else(|| {
+            anyhow::anyhow!(
+                "node '{}' sent on unknown output port '{port}'",
+                ctx.node_id
+            )
+        })?;
+    msg.stamp(p.next_sequence(), ctx.scan_id);
+    Ok(p)
+}
+
 /// A message a node publishes.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Output {

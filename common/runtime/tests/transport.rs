@@ -1,9 +1,12 @@
 //! The two runtimes carry frames losslessly and in order, with the same logic.
 
+#[path = "support/registry.rs"]
+mod registry;
+use registry::registry;
 use std::time::Instant;
 
 use surfstream_core::{FrameHeader, FrameKind, HeightMap};
-use surfstream_runtime::graph::{GraphFile, NodeRegistry};
+use surfstream_runtime::graph::GraphFile;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 use surfstream_runtime::{inproc, ipc};
 
@@ -84,33 +87,6 @@ impl NodeLogic for Sink {
     fn report(&self) -> serde_json::Value {
         serde_json::json!({ "seen": self.seen })
     }
-}
-
-/// The test's node kinds: a source and two sinks (the runtime links no node crate).
-fn registry() -> NodeRegistry {
-    use surfstream_runtime::graph::{Delivery, InputDef, NodePorts, PortDef, PortKind};
-    const KINDS: &[NodePorts] = &[
-        NodePorts {
-            kind: "replay",
-            inputs: &[],
-            outputs: &[PortDef::new("tiles", PortKind::Frames, Delivery::Lossless)],
-        },
-        NodePorts {
-            kind: "matcher",
-            inputs: &[InputDef::required("tiles", PortKind::Frames)],
-            outputs: &[PortDef::new(
-                "registrations",
-                PortKind::Registrations,
-                Delivery::Lossless,
-            )],
-        },
-        NodePorts {
-            kind: "recorder",
-            inputs: &[InputDef::ANY],
-            outputs: &[],
-        },
-    ];
-    NodeRegistry::new(KINDS.iter().copied())
 }
 
 fn graph(name: &str) -> GraphFile {
