@@ -58,5 +58,7 @@ pub use panorama::{
 };
 pub use quality::{overlap_quality, PairQuality};
 pub use stream::{FinalPanorama, FinalReport, FusionSettings, PanoramaPatch, StreamingFusion};
+#[cfg(feature = "node")]
 pub mod node;
+#[cfg(feature = "node")]
 pub mod ports;

@@ -193,5 +193,7 @@ pub use scan::{ScanError, ScanParams, ScanRegistration, ScanTile};
 pub use sift::{sift_keypoints, Keypoint, SiftParams};
 /// The truth file reader lives with the other file formats; re-exported for the examples.
 pub use surfstream_io::truth::{ScanTruth, TruthError};
+#[cfg(feature = "node")]
 pub mod node;
+#[cfg(feature = "node")]
 pub mod ports;

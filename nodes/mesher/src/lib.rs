@@ -71,5 +71,7 @@ pub use solid::{
 pub use stl::{write_stl_ascii, write_stl_binary};
 pub use target::{grid_sheet_for, DemEngine, EngineProfile, TargetMesh, TargetMethod};
 pub use tin::{triangulate, MissingSamples, Tin, TinParams};
+#[cfg(feature = "node")]
 pub mod node;
+#[cfg(feature = "node")]
 pub mod ports;

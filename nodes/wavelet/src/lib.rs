@@ -55,5 +55,7 @@ pub use select::{
 };
 pub use separate::{default_level, fill_invalid, separate, Separation, DEFAULT_LEVEL};
 pub use wavelet::{dwt_coeff_len, dwt_max_level, Mode, Wavelet};
+#[cfg(feature = "node")]
 pub mod node;
+#[cfg(feature = "node")]
 pub mod ports;
