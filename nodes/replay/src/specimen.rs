@@ -29,6 +29,8 @@ use rustfft::num_complex::Complex32;
 use rustfft::FftPlanner;
 use serde::{Deserialize, Serialize};
 
+use surfstream_core::fft::fast_len;
+
 use crate::error::{invalid, ReplayError, Result};
 use crate::rng::{domain, stream};
 
@@ -221,26 +223,9 @@ impl Specimen {
     }
 }
 
-/// Smallest `m >= n` whose only prime factors are 2, 3 and 5 (fast FFT lengths).
-pub fn fast_fft_len(n: usize) -> usize {
-    let mut m = n.max(1);
-    loop {
-        let mut r = m;
-        for p in [2, 3, 5] {
-            while r.is_multiple_of(p) {
-                r /= p;
-            }
-        }
-        if r == 1 {
-            return m;
-        }
-        m += 1;
-    }
-}
-
 /// The padded synthesis grid (nx, ny) for a specimen of `width x height` px.
 fn synthesis_shape(width: usize, height: usize) -> (usize, usize) {
-    (fast_fft_len(width), fast_fft_len(height))
+    (fast_len(width), fast_len(height))
 }
 
 /// Signed frequency index of FFT bin `k` of an `n`-point transform.
@@ -483,15 +468,6 @@ fn waviness_components(params: &SpecimenParams) -> Vec<Wave> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn fast_lengths_are_smooth_and_minimal() {
-        assert_eq!(fast_fft_len(9352), 9375);
-        assert_eq!(fast_fft_len(4744), 4800);
-        assert_eq!(fast_fft_len(1024), 1024);
-        assert_eq!(fast_fft_len(1025), 1080);
-        assert_eq!(fast_fft_len(0), 1);
-    }
 
     #[test]
     fn signed_bins() {
