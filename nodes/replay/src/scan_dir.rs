@@ -15,6 +15,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, bail, Context, Result};
 use serde::Deserialize;
+use surfstream_core::frame::{to_frame_heights_at, valid_mean};
 use surfstream_io::formats;
 
 /// Pitches agree when within 1e-6 relative (files store f32 calibrations).
@@ -93,19 +94,6 @@ pub struct LoadedTile {
 /// is a unit mistake, not a measurement.
 pub const MIN_PITCH_UM: f64 = 0.001;
 pub const MAX_PITCH_UM: f64 = 1000.0;
-
-/// Mean of the finite values (f64), or 0 when there are none.
-fn mean_valid(values: &[f64]) -> f64 {
-    let (sum, n) = values
-        .iter()
-        .filter(|z| z.is_finite())
-        .fold((0.0, 0usize), |(s, n), &z| (s + z, n + 1));
-    if n == 0 {
-        0.0
-    } else {
-        sum / n as f64
-    }
-}
 
 /// Heights in the manifest's unit -> um.
 fn unit_scale(unit: &str) -> Option<f64> {
@@ -272,8 +260,11 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         let file_scale = if carries_units { 1.0 } else { scale };
         let mut heights = surface.heights_um;
         heights.iter_mut().for_each(|z| *z *= file_scale);
-        let offset = *z_offset_um.get_or_insert_with(|| mean_valid(&heights));
-        let heights_um: Vec<f32> = heights.iter().map(|&z| (z - offset) as f32).collect();
+        // Every tile is relative to the FIRST tile's mean, so overlaps compare without
+        // conversion. The readers already turned every non-finite height into NaN
+        // (formats::parse_surface), so valid_mean's !is_nan is the former is_finite filter.
+        let offset = *z_offset_um.get_or_insert_with(|| valid_mean(&heights));
+        let heights_um = to_frame_heights_at(&heights, offset);
         tiles.push(LoadedTile {
             entry: t,
             heights_um,
