@@ -1,6 +1,6 @@
 //! Scan directories (DESIGN §5): `scan.toml` plus one height-map file per field, in
 //! acquisition order — the format `bench/make_tiles.py` writes. Tiles may be any format
-//! `surfstream_io::formats::read_surface` reads (.npy, .datx, .dat, .x3p, .sur, .xyz).
+//! `surfstream_io::formats::read_surface` reads (`surfstream_io::formats::EXTENSIONS`).
 //!
 //! Pitch: `pitch_x_um` / `pitch_y_um` may be left out of `[scan]` when every tile file carries
 //! its own lateral calibration; when both say something they must agree (within 1e-6
@@ -94,6 +94,20 @@ pub struct LoadedTile {
 /// is a unit mistake, not a measurement.
 pub const MIN_PITCH_UM: f64 = 0.001;
 pub const MAX_PITCH_UM: f64 = 1000.0;
+
+/// The tile extensions the readers take, from `formats::EXTENSIONS` so the message cannot go
+/// stale: ".npy, .datx, ... or .al3d".
+fn supported_extensions() -> String {
+    let dotted: Vec<String> = formats::EXTENSIONS
+        .iter()
+        .map(|e| format!(".{e}"))
+        .collect();
+    match dotted.split_last() {
+        Some((last, [])) => last.clone(),
+        Some((last, rest)) => format!("{} or {last}", rest.join(", ")),
+        None => String::new(),
+    }
+}
 
 /// Heights in the manifest's unit -> um.
 fn unit_scale(unit: &str) -> Option<f64> {
@@ -212,7 +226,10 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
             bail!("{at}: {}: no such tile file", tile_path.display());
         }
         if !formats::is_surface_file(&tile_path) {
-            bail!("{at}: unsupported tile format: expected .npy, .datx, .dat, .x3p, .sur or .xyz");
+            bail!(
+                "{at}: unsupported tile format: expected {}",
+                supported_extensions()
+            );
         }
         let surface = formats::read_surface(&tile_path).with_context(|| at.clone())?;
         let (rows, cols) = (surface.height, surface.width);
@@ -384,6 +401,45 @@ stage_y_um = 0.0
         write_scan(d.path(), &OK.replace("pitch_x_um = 0.5\n", ""), &[]);
         let e = format!("{:#}", load_scan(d.path()).unwrap_err());
         assert!(e.contains("scan.toml") && e.contains("pitch_x_um"), "{e}");
+    }
+
+    #[test]
+    fn unsupported_tile_message_lists_every_reader_extension() {
+        let list = supported_extensions();
+        assert!(
+            list.starts_with(".npy, ") && list.ends_with(" or .al3d"),
+            "{list}"
+        );
+        for ext in formats::EXTENSIONS {
+            assert!(
+                formats::is_surface_file(Path::new(&format!("t.{ext}"))),
+                "{ext}"
+            );
+            assert!(
+                list.contains(&format!(".{ext}")),
+                "{ext} missing from {list}"
+            );
+        }
+        // The reader's own message names the extensions it matches: none missing here.
+        let e = formats::Format::from_path(Path::new("t.bmp"))
+            .unwrap_err()
+            .to_string();
+        let named = e.split("(expected ").nth(1).unwrap_or_default();
+        for ext in named
+            .split(|c: char| !c.is_ascii_alphanumeric())
+            .filter(|w| !w.is_empty())
+        {
+            assert!(
+                formats::EXTENSIONS.contains(&ext),
+                "{ext} not in EXTENSIONS"
+            );
+        }
+
+        let d = tempfile::tempdir().unwrap();
+        write_scan(d.path(), &OK.replace("b.npy", "b.bmp"), &[("a.npy", 3, 4)]);
+        std::fs::write(d.path().join("b.bmp"), b"not a height map").unwrap();
+        let e = format!("{:#}", load_scan(d.path()).unwrap_err());
+        assert!(e.contains("b.bmp") && e.contains(&list), "{e}");
     }
 
     fn x3p_tile(dir: &Path, name: &str, pitch_um: f64) {
