@@ -223,11 +223,16 @@ pub fn monotonic_ns() -> u64 {
 /// Returns (z_offset_um, heights); [`from_frame_heights`] inverts it.
 pub fn to_frame_heights(heights_um: &[f64]) -> (f64, Vec<f32>) {
     let z_offset_um = valid_mean(heights_um);
-    let heights = heights_um
+    (z_offset_um, to_frame_heights_at(heights_um, z_offset_um))
+}
+
+/// Absolute heights (um, f64) as f32 relative to a given `z_offset_um`: for tiles that share
+/// one offset (a scan's, so overlaps compare without conversion). NaN stays NaN.
+pub fn to_frame_heights_at(heights_um: &[f64], z_offset_um: f64) -> Vec<f32> {
+    heights_um
         .iter()
         .map(|&z| (z - z_offset_um) as f32)
-        .collect();
-    (z_offset_um, heights)
+        .collect()
 }
 
 /// Absolute heights (um, f64) from a frame's `z_offset_um` and f32 payload.

@@ -68,9 +68,7 @@ impl OutputWriter {
 
     /// Writes `name.npy`, `name.png` and, when asked, `name.x3p`.
     pub fn write_surface(&mut self, s: &SurfaceOutput<'_>) -> Result<()> {
-        if s.name.is_empty() || s.name.contains(['/', '\\']) {
-            bail!("output name {:?}: expected a plain file stem", s.name);
-        }
+        check_name(s.name)?;
         let (rows, cols) = (s.heights.rows(), s.heights.cols());
         let values = s.heights.values();
         let npy = format!("{}.npy", s.name);
@@ -110,6 +108,29 @@ impl OutputWriter {
         }
         Ok(())
     }
+
+    /// Writes `name.npy` only: absolute heights (um) already in f64, written as they are (the
+    /// mesher's resampled mesh; no preview, it is for comparing numbers).
+    pub fn write_npy_f64(&mut self, name: &str, heights: RasterView<'_, f64>) -> Result<()> {
+        check_name(name)?;
+        let npy = format!("{name}.npy");
+        write_npy_f64(
+            self.dir.join(&npy),
+            heights.values(),
+            heights.rows(),
+            heights.cols(),
+        )?;
+        self.files.push(npy);
+        Ok(())
+    }
+}
+
+/// A file stem stays inside the writer's directory.
+fn check_name(name: &str) -> Result<()> {
+    if name.is_empty() || name.contains(['/', '\\']) {
+        bail!("output name {name:?}: expected a plain file stem");
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -178,5 +199,20 @@ mod tests {
                 }
             })
             .is_err());
+    }
+
+    #[test]
+    fn writes_f64_npy_as_given() {
+        let dir = tempfile::tempdir().unwrap();
+        let r = Raster::new(vec![50.125f64, f64::NAN, -1e-9, 3.0], Shape::new(2, 2)).unwrap();
+        let mut w = OutputWriter::new(dir.path());
+        w.write_npy_f64("mesh_resampled", r.view()).unwrap();
+        assert_eq!(w.files(), ["mesh_resampled.npy"]);
+        let back = crate::npy::read_npy_f64(dir.path().join("mesh_resampled.npy")).unwrap();
+        assert_eq!((back.rows, back.cols), (2, 2));
+        assert_eq!(back.data[0].to_bits(), 50.125f64.to_bits());
+        assert!(back.data[1].is_nan());
+        assert_eq!(back.data[2], -1e-9);
+        assert!(w.write_npy_f64("a/b", r.view()).is_err());
     }
 }

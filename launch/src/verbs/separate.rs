@@ -9,6 +9,7 @@ use std::path::PathBuf;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
+use surfstream_core::frame::{from_frame_heights, to_frame_heights};
 use surfstream_core::fsutil::write_atomic;
 use surfstream_io::formats::read_surface;
 use surfstream_io::npy::{write_npy_f32, write_npy_f64};
@@ -55,19 +56,10 @@ pub fn run(a: SeparateArgs) -> Result<()> {
     // Instrument heights can sit tens of um up (MetroPro: ~50 um), where f32 keeps only
     // ~4e-6 um: remove the mean first, as frames do with z_offset_um, and add it back to
     // the datum and the pooled map, which are written in f64.
-    let (sum, count) = s
-        .heights_um
-        .iter()
-        .filter(|z| z.is_finite())
-        .fold((0.0f64, 0usize), |(s, n), &z| (s + z, n + 1));
-    let z_offset_um = if count > 0 { sum / count as f64 } else { 0.0 };
-    let heights: Vec<f32> = s
-        .heights_um
-        .iter()
-        .map(|&z| (z - z_offset_um) as f32)
-        .collect();
-    let with_offset =
-        |v: &[f32]| -> Vec<f64> { v.iter().map(|&z| f64::from(z) + z_offset_um).collect() };
+    // read_surface already made every non-finite height NaN, so the frame's NaN-skipping
+    // mean is the same as skipping non-finite heights.
+    let (z_offset_um, heights) = to_frame_heights(&s.heights_um);
+    let with_offset = |v: &[f32]| from_frame_heights(z_offset_um, v);
     let an = analyse(
         &heights, s.height, s.width, base, level, mode, a.pool, pool_op,
     )

@@ -34,16 +34,16 @@ fn main() -> anyhow::Result<()> {
     if std::env::var_os("SPECIMEN_ONLY").is_some() {
         println!(
             "specimen {} x {} px: {:.3} s",
-            specimen.width,
-            specimen.height,
+            specimen.shape.cols,
+            specimen.shape.rows,
             t_spec.as_secs_f64()
         );
         return Ok(());
     }
     println!(
         "specimen {} x {} px: {:.3} s",
-        specimen.width,
-        specimen.height,
+        specimen.shape.cols,
+        specimen.shape.rows,
         t_spec.as_secs_f64()
     );
 

@@ -66,13 +66,13 @@ fn resample_window(
         return;
     }
     // Far outside: nothing to sample (also keeps the i64 arithmetic below in range).
-    let limit = 4.0 * (specimen.width.max(specimen.height) + width.max(height)) as f64;
+    let limit = 4.0 * (specimen.shape.cols.max(specimen.shape.rows) + width.max(height)) as f64;
     if x0.abs() > limit || y0.abs() > limit {
         return;
     }
     let (ix, tx) = taps(x0);
     let (iy, ty) = taps(y0);
-    let (sw, sh) = (specimen.width as i64, specimen.height as i64);
+    let (sw, sh) = (specimen.shape.cols as i64, specimen.shape.rows as i64);
     let (w, h) = (width as i64, height as i64);
     let ox_min = tx.iter().map(|t| t.0).min().unwrap_or(0);
     let ox_max = tx.iter().map(|t| t.0).max().unwrap_or(0);

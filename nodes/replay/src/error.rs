@@ -32,15 +32,17 @@ pub enum ReplayError {
         limit: String,
     },
     /// A height buffer's length does not match its stated shape.
-    #[error("height buffer holds {len} values but {width_px} x {height_px} px needs {expected}")]
+    #[error(
+        "height buffer holds {len} values but {rows} x {cols} px (rows x cols) needs {expected}"
+    )]
     ShapeMismatch {
         /// Values present.
         len: usize,
-        /// Stated width.
-        width_px: usize,
-        /// Stated height.
-        height_px: usize,
-        /// `width_px * height_px`.
+        /// Stated rows (y).
+        rows: usize,
+        /// Stated columns (x).
+        cols: usize,
+        /// `rows * cols`.
         expected: usize,
     },
     /// The specimen does not match the scan plan (too small, or a different pixel pitch).

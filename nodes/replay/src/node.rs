@@ -47,8 +47,8 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
         surfstream_io::npy::write_npy_f32(
             &path,
             &specimen.heights,
-            specimen.height,
-            specimen.width,
+            specimen.shape.rows,
+            specimen.shape.cols,
         )?;
     }
     Ok(Box::new(ReplayNode {

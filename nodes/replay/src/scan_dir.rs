@@ -1,6 +1,6 @@
 //! Scan directories (DESIGN §5): `scan.toml` plus one height-map file per field, in
 //! acquisition order — the format `bench/make_tiles.py` writes. Tiles may be any format
-//! `surfstream_io::formats::read_surface` reads (.npy, .datx, .dat, .x3p, .sur, .xyz).
+//! `surfstream_io::formats::read_surface` reads (`surfstream_io::formats::EXTENSIONS`).
 //!
 //! Pitch: `pitch_x_um` / `pitch_y_um` may be left out of `[scan]` when every tile file carries
 //! its own lateral calibration; when both say something they must agree (within 1e-6
@@ -15,6 +15,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, bail, Context, Result};
 use serde::Deserialize;
+use surfstream_core::frame::{to_frame_heights_at, valid_mean};
 use surfstream_io::formats;
 
 /// Pitches agree when within 1e-6 relative (files store f32 calibrations).
@@ -94,16 +95,17 @@ pub struct LoadedTile {
 pub const MIN_PITCH_UM: f64 = 0.001;
 pub const MAX_PITCH_UM: f64 = 1000.0;
 
-/// Mean of the finite values (f64), or 0 when there are none.
-fn mean_valid(values: &[f64]) -> f64 {
-    let (sum, n) = values
+/// The tile extensions the readers take, from `formats::EXTENSIONS` so the message cannot go
+/// stale: ".npy, .datx, ... or .al3d".
+fn supported_extensions() -> String {
+    let dotted: Vec<String> = formats::EXTENSIONS
         .iter()
-        .filter(|z| z.is_finite())
-        .fold((0.0, 0usize), |(s, n), &z| (s + z, n + 1));
-    if n == 0 {
-        0.0
-    } else {
-        sum / n as f64
+        .map(|e| format!(".{e}"))
+        .collect();
+    match dotted.split_last() {
+        Some((last, [])) => last.clone(),
+        Some((last, rest)) => format!("{} or {last}", rest.join(", ")),
+        None => String::new(),
     }
 }
 
@@ -224,7 +226,10 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
             bail!("{at}: {}: no such tile file", tile_path.display());
         }
         if !formats::is_surface_file(&tile_path) {
-            bail!("{at}: unsupported tile format: expected .npy, .datx, .dat, .x3p, .sur or .xyz");
+            bail!(
+                "{at}: unsupported tile format: expected {}",
+                supported_extensions()
+            );
         }
         let surface = formats::read_surface(&tile_path).with_context(|| at.clone())?;
         let (rows, cols) = (surface.height, surface.width);
@@ -272,8 +277,11 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         let file_scale = if carries_units { 1.0 } else { scale };
         let mut heights = surface.heights_um;
         heights.iter_mut().for_each(|z| *z *= file_scale);
-        let offset = *z_offset_um.get_or_insert_with(|| mean_valid(&heights));
-        let heights_um: Vec<f32> = heights.iter().map(|&z| (z - offset) as f32).collect();
+        // Every tile is relative to the FIRST tile's mean, so overlaps compare without
+        // conversion. The readers already turned every non-finite height into NaN
+        // (formats::parse_surface), so valid_mean's !is_nan is the former is_finite filter.
+        let offset = *z_offset_um.get_or_insert_with(|| valid_mean(&heights));
+        let heights_um = to_frame_heights_at(&heights, offset);
         tiles.push(LoadedTile {
             entry: t,
             heights_um,
@@ -393,6 +401,45 @@ stage_y_um = 0.0
         write_scan(d.path(), &OK.replace("pitch_x_um = 0.5\n", ""), &[]);
         let e = format!("{:#}", load_scan(d.path()).unwrap_err());
         assert!(e.contains("scan.toml") && e.contains("pitch_x_um"), "{e}");
+    }
+
+    #[test]
+    fn unsupported_tile_message_lists_every_reader_extension() {
+        let list = supported_extensions();
+        assert!(
+            list.starts_with(".npy, ") && list.ends_with(" or .al3d"),
+            "{list}"
+        );
+        for ext in formats::EXTENSIONS {
+            assert!(
+                formats::is_surface_file(Path::new(&format!("t.{ext}"))),
+                "{ext}"
+            );
+            assert!(
+                list.contains(&format!(".{ext}")),
+                "{ext} missing from {list}"
+            );
+        }
+        // The reader's own message names the extensions it matches: none missing here.
+        let e = formats::Format::from_path(Path::new("t.bmp"))
+            .unwrap_err()
+            .to_string();
+        let named = e.split("(expected ").nth(1).unwrap_or_default();
+        for ext in named
+            .split(|c: char| !c.is_ascii_alphanumeric())
+            .filter(|w| !w.is_empty())
+        {
+            assert!(
+                formats::EXTENSIONS.contains(&ext),
+                "{ext} not in EXTENSIONS"
+            );
+        }
+
+        let d = tempfile::tempdir().unwrap();
+        write_scan(d.path(), &OK.replace("b.npy", "b.bmp"), &[("a.npy", 3, 4)]);
+        std::fs::write(d.path().join("b.bmp"), b"not a height map").unwrap();
+        let e = format!("{:#}", load_scan(d.path()).unwrap_err());
+        assert!(e.contains("b.bmp") && e.contains(&list), "{e}");
     }
 
     fn x3p_tile(dir: &Path, name: &str, pitch_um: f64) {

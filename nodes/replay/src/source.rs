@@ -171,7 +171,8 @@ fn simulated(ctx: &NodeContext) -> Result<OpenedSource> {
     let specimen = match &specimen_file {
         Some(path) => {
             let arr = surfstream_io::npy::read_npy(path)?;
-            crate::Specimen::from_heights(arr.data, arr.cols, arr.rows, stage.pitch_um)
+            let shape = surfstream_core::raster::Shape::new(arr.rows, arr.cols);
+            crate::Specimen::from_heights(arr.data, shape, stage.pitch_um)
                 .map_err(|e| anyhow!("{}: {e}", path.display()))?
         }
         None => generate_specimen(&plan.specimen_params(&base)).map_err(|e| err_in(ctx, e))?,

@@ -29,6 +29,9 @@ use rustfft::num_complex::Complex32;
 use rustfft::FftPlanner;
 use serde::{Deserialize, Serialize};
 
+use surfstream_core::fft::fast_len;
+use surfstream_core::raster::Shape;
+
 use crate::error::{invalid, ReplayError, Result};
 use crate::rng::{domain, stream};
 
@@ -162,50 +165,42 @@ impl SpecimenParams {
     }
 }
 
-/// A height map in micrometres, row-major (`heights[y * width + x]`, x = column), NaN = not
-/// measured. Pixel (0, 0) sits at scan position (0, 0) um.
+/// A height map in micrometres, row-major (`heights[y * cols + x]`, x = column, y = row), NaN
+/// = not measured. Pixel (0, 0) sits at scan position (0, 0) um.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Specimen {
-    /// `width * height` heights in micrometres.
+    /// `shape.rows * shape.cols` heights in micrometres.
     pub heights: Vec<f32>,
-    /// Width in pixels (x).
-    pub width: usize,
-    /// Height in pixels (y).
-    pub height: usize,
+    /// Rows (y) x columns (x), in pixels.
+    pub shape: Shape,
     /// Pixel pitch in micrometres (x and y).
     pub pitch_um: f64,
 }
 
 impl Specimen {
     /// Wraps an existing height map (e.g. one loaded from a file), checking its shape and pitch.
-    pub fn from_heights(
-        heights: Vec<f32>,
-        width: usize,
-        height: usize,
-        pitch_um: f64,
-    ) -> Result<Self> {
-        let expected = width.checked_mul(height);
-        if expected != Some(heights.len()) || width == 0 || height == 0 {
+    pub fn from_heights(heights: Vec<f32>, shape: Shape, pitch_um: f64) -> Result<Self> {
+        let expected = shape.checked_len();
+        if expected != Some(heights.len()) || shape.is_empty() {
             return Err(ReplayError::ShapeMismatch {
                 len: heights.len(),
-                width_px: width,
-                height_px: height,
+                rows: shape.rows,
+                cols: shape.cols,
                 expected: expected.unwrap_or(usize::MAX),
             });
         }
         check_positive("pitch_um", pitch_um)?;
         Ok(Self {
             heights,
-            width,
-            height,
+            shape,
             pitch_um,
         })
     }
 
     /// The height at integer pixel (x, y), or `None` outside the specimen.
     pub fn get(&self, x: usize, y: usize) -> Option<f32> {
-        if x < self.width && y < self.height {
-            self.heights.get(y * self.width + x).copied()
+        if x < self.shape.cols && y < self.shape.rows {
+            self.heights.get(self.shape.index(y, x)).copied()
         } else {
             None
         }
@@ -213,34 +208,18 @@ impl Specimen {
 
     /// One row of heights (`None` outside).
     pub fn row(&self, y: usize) -> Option<&[f32]> {
-        if y < self.height {
-            self.heights.get(y * self.width..(y + 1) * self.width)
+        if y < self.shape.rows {
+            let cols = self.shape.cols;
+            self.heights.get(y * cols..(y + 1) * cols)
         } else {
             None
         }
     }
 }
 
-/// Smallest `m >= n` whose only prime factors are 2, 3 and 5 (fast FFT lengths).
-pub fn fast_fft_len(n: usize) -> usize {
-    let mut m = n.max(1);
-    loop {
-        let mut r = m;
-        for p in [2, 3, 5] {
-            while r.is_multiple_of(p) {
-                r /= p;
-            }
-        }
-        if r == 1 {
-            return m;
-        }
-        m += 1;
-    }
-}
-
 /// The padded synthesis grid (nx, ny) for a specimen of `width x height` px.
 fn synthesis_shape(width: usize, height: usize) -> (usize, usize) {
-    (fast_fft_len(width), fast_fft_len(height))
+    (fast_len(width), fast_len(height))
 }
 
 /// Signed frequency index of FFT bin `k` of an `n`-point transform.
@@ -306,8 +285,7 @@ pub fn generate_specimen(params: &SpecimenParams) -> Result<Specimen> {
     );
     Ok(Specimen {
         heights,
-        width: w,
-        height: h,
+        shape: Shape::new(h, w),
         pitch_um: pitch,
     })
 }
@@ -483,15 +461,6 @@ fn waviness_components(params: &SpecimenParams) -> Vec<Wave> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn fast_lengths_are_smooth_and_minimal() {
-        assert_eq!(fast_fft_len(9352), 9375);
-        assert_eq!(fast_fft_len(4744), 4800);
-        assert_eq!(fast_fft_len(1024), 1024);
-        assert_eq!(fast_fft_len(1025), 1080);
-        assert_eq!(fast_fft_len(0), 1);
-    }
 
     #[test]
     fn signed_bins() {

@@ -3,6 +3,7 @@
 use rand::Rng;
 use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
+use surfstream_core::raster::Shape;
 
 use crate::error::{invalid, ReplayError, Result};
 use crate::rng::{domain, stream};
@@ -340,10 +341,11 @@ impl ScanPlan {
 
     /// Checks that `specimen` is large enough for the plan and has its pixel pitch.
     pub fn check_specimen(&self, specimen: &Specimen) -> Result<()> {
-        if specimen.width < self.specimen_width_px || specimen.height < self.specimen_height_px {
+        let Shape { rows, cols } = specimen.shape;
+        if cols < self.specimen_width_px || rows < self.specimen_height_px {
             return Err(ReplayError::SpecimenMismatch(format!(
-                "specimen is {} x {} px, the scan needs at least {} x {} px",
-                specimen.width, specimen.height, self.specimen_width_px, self.specimen_height_px
+                "specimen is {} x {} px, the scan needs at least {} x {} px (width x height)",
+                cols, rows, self.specimen_width_px, self.specimen_height_px
             )));
         }
         let rel = (specimen.pitch_um - self.params.pitch_um).abs() / self.params.pitch_um;

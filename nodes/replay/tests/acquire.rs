@@ -1,6 +1,7 @@
 //! Tile acquisition: exact sampling, sub-pixel accuracy, degradations, determinism.
 
 use rayon::prelude::*;
+use surfstream_core::raster::Shape;
 use surfstream_replay::{
     acquire_tile, generate_specimen, plan_scan, sample_bicubic, Specimen, SpecimenParams,
     StageParams, TilePlan,
@@ -40,7 +41,7 @@ fn analytic(w: usize, h: usize, f: impl Fn(f64, f64) -> f64) -> Specimen {
         .flat_map(|y| (0..w).map(move |x| (x, y)))
         .map(|(x, y)| f(x as f64, y as f64) as f32)
         .collect();
-    Specimen::from_heights(heights, w, h, 0.8148).expect("shape")
+    Specimen::from_heights(heights, Shape::new(h, w), 0.8148).expect("shape")
 }
 
 fn rough_specimen() -> Specimen {

@@ -1,5 +1,6 @@
 //! Specimen synthesis: determinism, exact Sa, components, validation.
 
+use surfstream_core::raster::Shape;
 use surfstream_replay::{generate_specimen, ReplayError, Specimen, SpecimenParams};
 
 fn small(seed: u64) -> SpecimenParams {
@@ -34,8 +35,7 @@ fn mean_and_sa(v: &[f32]) -> (f64, f64) {
 fn same_seed_gives_identical_bytes() {
     let a = generate_specimen(&small(7)).expect("valid");
     let b = generate_specimen(&small(7)).expect("valid");
-    assert_eq!(a.width, 300);
-    assert_eq!(a.height, 211);
+    assert_eq!(a.shape, Shape::new(211, 300));
     assert_eq!(a.heights.len(), 300 * 211);
     assert_eq!(bytes(&a), bytes(&b));
     assert!(a.heights.iter().all(|v| v.is_finite()));
@@ -111,12 +111,12 @@ fn longer_correlation_length_is_smoother_at_equal_sa() {
         let s = generate_specimen(&p).expect("valid");
         // mean |dz/dx| per pixel
         let mut sum = 0.0;
-        for row in s.heights.chunks_exact(s.width) {
+        for row in s.heights.chunks_exact(s.shape.cols) {
             for w in row.windows(2) {
                 sum += f64::from((w[1] - w[0]).abs());
             }
         }
-        sum / ((s.width - 1) * s.height) as f64
+        sum / ((s.shape.cols - 1) * s.shape.rows) as f64
     };
     let rough = slope(5.0);
     let smooth = slope(80.0);
@@ -320,9 +320,10 @@ fn params_deserialize_with_defaults_and_reject_unknown_fields() {
 
 #[test]
 fn from_heights_checks_the_shape() {
-    assert!(Specimen::from_heights(vec![0.0; 6], 3, 2, 0.5).is_ok());
-    let err = Specimen::from_heights(vec![0.0; 5], 3, 2, 0.5).expect_err("short");
+    // 2 rows of 3.
+    assert!(Specimen::from_heights(vec![0.0; 6], Shape::new(2, 3), 0.5).is_ok());
+    let err = Specimen::from_heights(vec![0.0; 5], Shape::new(2, 3), 0.5).expect_err("short");
     assert!(matches!(err, ReplayError::ShapeMismatch { .. }), "{err}");
-    assert!(Specimen::from_heights(vec![], 0, 0, 0.5).is_err());
-    assert!(Specimen::from_heights(vec![0.0; 6], 3, 2, -1.0).is_err());
+    assert!(Specimen::from_heights(vec![], Shape::new(0, 0), 0.5).is_err());
+    assert!(Specimen::from_heights(vec![0.0; 6], Shape::new(2, 3), -1.0).is_err());
 }

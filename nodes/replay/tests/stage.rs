@@ -1,5 +1,6 @@
 //! Scan planning: serpentine order, geometry, determinism, validation.
 
+use surfstream_core::raster::Shape;
 use surfstream_replay::{plan_scan, serpentine_order, ReplayError, StageParams};
 
 fn params(rows: usize, cols: usize) -> StageParams {
@@ -198,14 +199,14 @@ fn specimen_params_and_check_specimen() {
     );
     let ok = surfstream_replay::Specimen::from_heights(
         vec![0.0; sp.width_px * sp.height_px],
-        sp.width_px,
-        sp.height_px,
+        Shape::new(sp.height_px, sp.width_px),
         0.8148,
     )
     .expect("shape");
     assert!(plan.check_specimen(&ok).is_ok());
     let small =
-        surfstream_replay::Specimen::from_heights(vec![0.0; 100], 10, 10, 0.8148).expect("shape");
+        surfstream_replay::Specimen::from_heights(vec![0.0; 100], Shape::new(10, 10), 0.8148)
+            .expect("shape");
     let err = plan.check_specimen(&small).expect_err("too small");
     assert!(err.to_string().contains("10 x 10 px"), "{err}");
     let other_pitch = surfstream_replay::Specimen {

@@ -156,6 +156,9 @@ impl Madd for Fused {
     }
 }
 
+// Not surfstream_core::avx2_dispatch!: that macro promises both copies give the same bits,
+// and the FMA path here deliberately rounds once per multiply-add (different bits), chosen by
+// the caller's `fast` option, and needs the "fma" feature as well as AVX2.
 #[cfg(target_arch = "x86_64")]
 fn have_avx2_fma() -> bool {
     std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")

@@ -66,20 +66,12 @@ pub fn pool(heights: &[f32], rows: usize, cols: usize, block: usize, op: PoolOp)
     let mut out = vec![0.0f32; out_rows * out_cols];
     // Each task owns a band of output rows and streams its input rows once, in order.
     let band = (16384 / out_cols).clamp(1, 64);
-    #[cfg(target_arch = "x86_64")]
-    let avx2 = std::is_x86_feature_detected!("avx2");
     out.par_chunks_mut(band * out_cols)
         .enumerate()
         .for_each(|(t, out_band)| {
             let r0 = t * band * block;
             let input = &heights[r0 * cols..((t + 1) * band * block).min(rows) * cols];
-            #[cfg(target_arch = "x86_64")]
-            if avx2 {
-                // SAFETY: the CPU supports AVX2, checked above.
-                unsafe { pool_band_avx2(input, cols, block, op, out_band) };
-                return;
-            }
-            pool_band(input, cols, block, op, out_band);
+            pool_band_dispatched(input, cols, block, op, out_band);
         });
     Ok(Pooled {
         heights: out,
@@ -88,10 +80,12 @@ pub fn pool(heights: &[f32], rows: usize, cols: usize, block: usize, op: PoolOp)
     })
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn pool_band_avx2(input: &[f32], cols: usize, block: usize, op: PoolOp, out: &mut [f32]) {
-    pool_band(input, cols, block, op, out)
+surfstream_core::avx2_dispatch! {
+    /// [`pool_band`], compiled with AVX2 when the CPU has it. Max and a NaN-skipping f64 sum
+    /// in a fixed order: both copies give the same bits (no FMA involved).
+    fn pool_band_dispatched(input: &[f32], cols: usize, block: usize, op: PoolOp, out: &mut [f32]) -> () {
+        pool_band(input, cols, block, op, out)
+    }
 }
 
 /// Pool the input rows of a band of output rows. Each output row first reduces its `block`
@@ -224,6 +218,29 @@ mod tests {
                         );
                     }
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn avx2_and_baseline_copies_give_the_same_bits() {
+        let (rows, cols) = (67, 131);
+        let h: Vec<f32> = (0..rows * cols)
+            .map(|i| {
+                if i % 11 == 5 {
+                    f32::NAN
+                } else {
+                    ((i * 7919 % 1009) as f32 - 500.0) * 1.37e-3 + 25_000.0
+                }
+            })
+            .collect();
+        for block in [1, 2, 3, 4, 7] {
+            for op in [PoolOp::Max, PoolOp::Mean] {
+                let fast = pool(&h, rows, cols, block, op).expect("pools");
+                let base = surfstream_core::simd::with_baseline(|| pool(&h, rows, cols, block, op))
+                    .expect("pools");
+                let bits = |p: &Pooled| p.heights.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&fast), bits(&base), "block {block} {op:?}");
             }
         }
     }

@@ -101,6 +101,13 @@ pub enum Format {
     Al3d,
 }
 
+/// Every extension [`Format::from_path`] accepts (lower case, no dot), for messages that list
+/// them: keep in step with its match.
+pub const EXTENSIONS: &[&str] = &[
+    "npy", "datx", "dat", "x3p", "sur", "xyz", "txt", "csv", "asc", "plu", "vk4", "opd", "zmg",
+    "gsf", "gwy", "sdf", "tmd", "al3d",
+];
+
 impl Format {
     /// The format for a file name's extension (case-insensitive).
     pub fn from_path(path: &Path) -> Result<Format> {
