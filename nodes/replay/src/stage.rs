@@ -344,8 +344,8 @@ impl ScanPlan {
         let Shape { rows, cols } = specimen.shape;
         if cols < self.specimen_width_px || rows < self.specimen_height_px {
             return Err(ReplayError::SpecimenMismatch(format!(
-                "specimen is {} x {} px, the scan needs at least {} x {} px (width x height)",
-                cols, rows, self.specimen_width_px, self.specimen_height_px
+                "specimen is {} x {} px, the scan needs at least {} x {} px (rows x cols)",
+                rows, cols, self.specimen_height_px, self.specimen_width_px
             )));
         }
         let rel = (specimen.pitch_um - self.params.pitch_um).abs() / self.params.pitch_um;
