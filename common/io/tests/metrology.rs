@@ -2,40 +2,15 @@
 //! synthetic surfaces: within 1e-9 relative (Sdr: 1e-9 relative or 1e-9 % absolute), raw and
 //! after plane levelling; NaN handling, levelling and SIM on known cases.
 
-use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use surfstream_core::metrology::{
     fit_plane, level_plane, params, rms_difference, sim, Grid, Params,
 };
+mod support;
+use support::{python, specimen};
 use surfstream_io::formats::read_surface;
 use surfstream_io::npy::write_npy_f64;
-
-fn repo_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .ancestors()
-        .nth(2)
-        .expect("common/io lies two levels below the repository root")
-        .to_path_buf()
-}
-
-fn python() -> PathBuf {
-    if let Some(p) = std::env::var_os("SURFSTREAM_PYTHON") {
-        return PathBuf::from(p);
-    }
-    let venv = repo_root().join(".test-venv/bin/python");
-    assert!(
-        venv.exists(),
-        "no Python test environment: run scripts/test.sh (it creates .test-venv with surfalize)"
-    );
-    venv
-}
-
-fn specimen(name: &str) -> PathBuf {
-    let p = repo_root().join("../shared/specimens").join(name);
-    assert!(p.exists(), "specimen {} missing", p.display());
-    p
-}
 
 struct Case {
     name: String,
