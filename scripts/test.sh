@@ -5,9 +5,10 @@
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
-# Debian packages the tests drive for real: LIGGGHTS (the DEM engine our STL must import).
+# Debian packages the tests drive for real: the DEM engines our STL must import.
 missing=()
 command -v liggghts >/dev/null || missing+=(liggghts)
+command -v yade >/dev/null || missing+=(yade)
 if [ ${#missing[@]} -gt 0 ]; then
     echo "test.sh: installing ${missing[*]} (apt-get)"
     SUDO=""

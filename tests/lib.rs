@@ -3,6 +3,8 @@
 //! The tests start the release binaries (`cargo build --release` first; `scripts/test.sh`
 //! does both), as a user would.
 
+pub mod dem;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 

@@ -4,99 +4,14 @@
 //! it must come to rest on it: every sphere touches the mesh (centre one radius from the nearest
 //! triangle) and none is below it.
 
-use std::path::Path;
 use std::process::Command;
 
+use surfstream_e2e::dem::{distance_and_side, read_ascii_stl, which};
 use surfstream_e2e::{read_json, run, stderr, surfstream};
 
 /// Sphere radius, m: a few times the specimen's pitch, a tenth of its width.
 const RADIUS_M: f64 = 3e-6;
 const PARTICLES: usize = 30;
-
-type Triangle = [[f64; 3]; 3];
-
-/// Triangles of an ASCII STL, coordinates as written.
-fn read_ascii_stl(path: &Path) -> Vec<Triangle> {
-    let text = std::fs::read_to_string(path).expect("ASCII STL is UTF-8 text");
-    assert!(text.starts_with("solid"), "not an ASCII STL");
-    let vertices: Vec<[f64; 3]> = text
-        .lines()
-        .filter_map(|l| l.trim().strip_prefix("vertex "))
-        .map(|v| {
-            let c: Vec<f64> = v
-                .split_whitespace()
-                .map(|s| s.parse().expect("vertex coordinate"))
-                .collect();
-            [c[0], c[1], c[2]]
-        })
-        .collect();
-    assert_eq!(vertices.len() % 3, 0);
-    vertices.chunks(3).map(|t| [t[0], t[1], t[2]]).collect()
-}
-
-fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-/// Closest point of triangle `t` to `p` (Ericson, Real-Time Collision Detection, 5.1.5).
-fn closest_on_triangle(p: [f64; 3], t: &Triangle) -> [f64; 3] {
-    let [a, b, c] = *t;
-    let (ab, ac, ap) = (sub(b, a), sub(c, a), sub(p, a));
-    let (d1, d2) = (dot(ab, ap), dot(ac, ap));
-    if d1 <= 0.0 && d2 <= 0.0 {
-        return a;
-    }
-    let bp = sub(p, b);
-    let (d3, d4) = (dot(ab, bp), dot(ac, bp));
-    if d3 >= 0.0 && d4 <= d3 {
-        return b;
-    }
-    let vc = d1 * d4 - d3 * d2;
-    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
-        let v = d1 / (d1 - d3);
-        return [a[0] + v * ab[0], a[1] + v * ab[1], a[2] + v * ab[2]];
-    }
-    let cp = sub(p, c);
-    let (d5, d6) = (dot(ab, cp), dot(ac, cp));
-    if d6 >= 0.0 && d5 <= d6 {
-        return c;
-    }
-    let vb = d5 * d2 - d1 * d6;
-    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
-        let w = d2 / (d2 - d6);
-        return [a[0] + w * ac[0], a[1] + w * ac[1], a[2] + w * ac[2]];
-    }
-    let va = d3 * d6 - d5 * d4;
-    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
-        let w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
-        let bc = sub(c, b);
-        return [b[0] + w * bc[0], b[1] + w * bc[1], b[2] + w * bc[2]];
-    }
-    let denom = 1.0 / (va + vb + vc);
-    let (v, w) = (vb * denom, vc * denom);
-    [
-        a[0] + ab[0] * v + ac[0] * w,
-        a[1] + ab[1] * v + ac[1] * w,
-        a[2] + ab[2] * v + ac[2] * w,
-    ]
-}
-
-/// Distance from `p` to the mesh, and whether `p` is above it (the nearest point's upward side).
-fn distance_and_side(p: [f64; 3], mesh: &[Triangle]) -> (f64, bool) {
-    let mut best = (f64::INFINITY, [0.0; 3]);
-    for t in mesh {
-        let q = closest_on_triangle(p, t);
-        let d = sub(p, q);
-        let d2 = dot(d, d);
-        if d2 < best.0 {
-            best = (d2, q);
-        }
-    }
-    (best.0.sqrt(), p[2] >= best.1[2])
-}
 
 fn liggghts_input(bounds: [[f64; 2]; 3]) -> String {
     let [[x0, x1], [y0, y1], [z0, z1]] = bounds;
@@ -265,14 +180,6 @@ fn liggghts_imports_the_wall_and_spheres_settle_on_it() {
         touching >= PARTICLES * 9 / 10,
         "{touching} of {PARTICLES} spheres touch the wall"
     );
-}
-
-fn which(name: &str) -> Option<std::path::PathBuf> {
-    std::env::var_os("PATH").and_then(|paths| {
-        std::env::split_paths(&paths)
-            .map(|p| p.join(name))
-            .find(|p| p.is_file())
-    })
 }
 
 /// The graph parameter does what the flag does: `--set mesher.target=liggghts` on the demo
