@@ -638,23 +638,28 @@ fn two_launches_at_once_are_isolated() {
 }
 
 #[test]
-fn ctrl_c_stops_every_node_and_leaves_nothing_behind() {
-    let dir = tempfile::tempdir().unwrap();
-    let (out_dir, log) = (
-        dir.path().join("interrupted"),
-        dir.path().join("launcher.stderr"),
-    );
-    let mut child = launch_mid_scan(&out_dir, &log);
-    // SAFETY: signalling the launcher this test started.
-    unsafe { libc_signal(child.id() as i32, 2) };
-    let status = child.wait().unwrap();
-    let err = std::fs::read_to_string(&log).unwrap();
-    assert!(
-        !status.success(),
-        "an interrupted launch must not report success"
-    );
-    assert!(err.contains("interrupted"), "{err}");
-    assert_nothing_left_behind(&err, &out_dir);
+fn a_stop_signal_stops_every_node_names_itself_and_leaves_nothing_behind() {
+    for (sig, name) in [(2, "SIGINT (Ctrl-C)"), (15, "SIGTERM")] {
+        let dir = tempfile::tempdir().unwrap();
+        let (out_dir, log) = (
+            dir.path().join("interrupted"),
+            dir.path().join("launcher.stderr"),
+        );
+        let mut child = launch_mid_scan(&out_dir, &log);
+        // SAFETY: signalling the launcher this test started.
+        unsafe { libc_signal(child.id() as i32, sig) };
+        let status = child.wait().unwrap();
+        let err = std::fs::read_to_string(&log).unwrap();
+        assert!(
+            !status.success(),
+            "an interrupted launch must not report success"
+        );
+        assert!(err.contains(&format!("interrupted by {name}")), "{err}");
+        if sig != 2 {
+            assert!(!err.contains("Ctrl-C"), "{name} reported as Ctrl-C: {err}");
+        }
+        assert_nothing_left_behind(&err, &out_dir);
+    }
 }
 
 /// Takes the launcher's lock on the slot of `domain` ("ss{k}_"), waiting while a launch holds

@@ -5,8 +5,9 @@
 //! dead processes of an earlier run of that slot left behind, starts every node with its stderr
 //! captured, waits until all report ready, says "go" to the sources, and supervises: a node that
 //! exits non-zero or dies stops the graph, is named with the tail of its stderr, and makes the
-//! launcher exit non-zero. Ctrl-C stops every node. Children die with the launcher
-//! (PR_SET_PDEATHSIG), and the slot is cleaned again at the end.
+//! launcher exit non-zero. SIGINT (Ctrl-C), SIGTERM or SIGHUP stops every node, and the error
+//! names the signal. Children die with the launcher (PR_SET_PDEATHSIG), and the slot is
+//! cleaned again at the end.
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -149,7 +150,42 @@ enum Event {
         id: String,
         status: std::process::ExitStatus,
     },
-    Interrupted,
+    /// The launcher got SIGINT, SIGTERM or SIGHUP (the number).
+    Interrupted(i32),
+}
+
+/// Stops forwarding signals when dropped (a process may launch more than once: the tests do).
+struct SignalForwarder(signal_hook::iterator::Handle);
+
+impl Drop for SignalForwarder {
+    fn drop(&mut self) {
+        self.0.close();
+    }
+}
+
+/// Forwards SIGINT, SIGTERM and SIGHUP to the supervisor as [`Event::Interrupted`], so the
+/// graph stops in order and the error names the signal that stopped it.
+fn forward_stop_signals(tx: crossbeam_channel::Sender<Event>) -> Result<SignalForwarder> {
+    use signal_hook::consts::{SIGHUP, SIGINT, SIGTERM};
+    let mut signals = signal_hook::iterator::Signals::new([SIGINT, SIGTERM, SIGHUP])
+        .map_err(|e| anyhow!("cannot install the launcher's signal handlers: {e}"))?;
+    let handle = signals.handle();
+    std::thread::spawn(move || {
+        if let Some(sig) = signals.forever().next() {
+            let _ = tx.send(Event::Interrupted(sig));
+        }
+    });
+    Ok(SignalForwarder(handle))
+}
+
+/// How a stop signal is named in the error.
+fn signal_name(sig: i32) -> &'static str {
+    match sig {
+        signal_hook::consts::SIGINT => "SIGINT (Ctrl-C)",
+        signal_hook::consts::SIGTERM => "SIGTERM",
+        signal_hook::consts::SIGHUP => "SIGHUP (the terminal closed)",
+        _ => "a stop signal",
+    }
 }
 
 struct Running {
@@ -231,11 +267,7 @@ pub fn launch(mut graph: GraphFile, origin: &Path, deviation: deviation::Setting
             .map_err(|e| anyhow!("cannot create the launcher's go notifier: {e:?}"))?;
 
         let (tx, rx) = unbounded();
-        let ctrlc_tx = tx.clone();
-        // A second Ctrl-C handler registration fails in tests that launch twice: ignore.
-        let _ = ctrlc::set_handler(move || {
-            let _ = ctrlc_tx.send(Event::Interrupted);
-        });
+        let _signals = forward_stop_signals(tx.clone())?;
         let resolved = out.join(shell::RESOLVED_GRAPH);
         let mut running = Vec::new();
         let mut spawn_error = None;
@@ -374,7 +406,10 @@ fn supervise(
 
 fn handle(ev: Event, running: &mut [Running]) -> Result<()> {
     match ev {
-        Event::Interrupted => bail!("interrupted (Ctrl-C): stopping every node"),
+        Event::Interrupted(sig) => bail!(
+            "interrupted by {} (signal {sig}): stopping every node",
+            signal_name(sig)
+        ),
         Event::Exited { id, status } => {
             let r = running
                 .iter_mut()
@@ -426,7 +461,7 @@ fn stop_all(running: &mut [Running], rx: &Receiver<Event>) {
                     r.exited = true;
                 }
             }
-            Ok(Event::Interrupted) => {}
+            Ok(Event::Interrupted(_)) => {}
             Err(_) => break,
         }
     }
