@@ -168,7 +168,6 @@ pub mod raster;
 pub mod register;
 pub mod scan;
 pub mod sift;
-mod simd;
 
 pub use detector::{DetectorImage, DetectorParams, Rect};
 pub use efficiency::{match_quality, MatchQuality, RankedMatch};

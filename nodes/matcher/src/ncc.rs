@@ -3,7 +3,7 @@
 
 use crate::plane::PlaneCorrection;
 use crate::raster::RasterRef;
-use crate::simd::avx2_dispatch;
+use surfstream_core::avx2_dispatch;
 use wide::f32x8;
 
 /// A tile levelled on the fly by the plane fitted to its crop: the plane at (row, col) is
@@ -625,7 +625,7 @@ mod tests {
             ncc_stencil(&la, &lb, [-3, -2], region),
             ncc_at(&la, &lb, -3, -2),
         );
-        let base = crate::simd::with_baseline(|| {
+        let base = surfstream_core::simd::with_baseline(|| {
             (
                 ncc_stencil(&la, &lb, [-3, -2], region),
                 ncc_at(&la, &lb, -3, -2),

@@ -8,7 +8,7 @@ use thiserror::Error;
 use surfstream_core::raster::Shape;
 
 use crate::raster::{validate_offset, InputError, RasterRef};
-use crate::simd::avx2_dispatch;
+use surfstream_core::avx2_dispatch;
 /// The correction convention is the workspace's one: [`surfstream_core::PlaneCorrection`].
 pub use surfstream_core::PlaneCorrection;
 use wide::f32x8;
