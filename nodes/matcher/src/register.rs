@@ -6,10 +6,11 @@ use rustfft::num_complex::Complex32;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use crate::fft2::{fast_len, Fft2};
+use crate::fft2::Fft2;
 use crate::ncc::{ncc_at, ncc_stencil, overlap_in_a, LevelledTile};
 use crate::plane::{PlaneCorrection, PlaneSums};
 use crate::raster::{validate_offset, InputError, RasterRef};
+use surfstream_core::fft::fast_len;
 
 /// Apodisation applied to each overlap crop before the FFT.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

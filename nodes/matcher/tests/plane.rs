@@ -119,7 +119,7 @@ const T: usize = 256;
 fn scene(step: usize, frac: [f64; 2], seed: u64) -> Scene {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let m = 4;
-    let n = support::fast_len(T + step + 2 * m);
+    let n = surfstream_core::fft::fast_len(T + step + 2 * m);
     let surface = Surface::rough(n, n, seed, 40.0, 0.8, 0.25);
     let (f0, f1) = surface.render_pair(frac[0], frac[1]);
     // b at (m + step + fx, m + step + fy); left at (m, m + step); top at (m + step, m).
