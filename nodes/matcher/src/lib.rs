@@ -183,7 +183,7 @@ pub use plane::{
     estimate_plane, estimate_plane_report, fit_plane, PlaneCorrection, PlaneError, PlaneEstimate,
     PlaneModel,
 };
-pub use raster::{InputError, RasterRef};
+pub use raster::InputError;
 pub use register::{
     register_pair, Candidate, PairRegistration, PhaseCorrelator, PhaseParams, Rejection, SubPixel,
     Window,
