@@ -163,6 +163,7 @@ mod fft2;
 pub mod global;
 pub mod harris;
 mod ncc;
+pub mod params;
 pub mod plane;
 pub mod raster;
 pub mod register;
@@ -179,6 +180,7 @@ pub use global::{
     SolveParams,
 };
 pub use harris::{harris_corners, Corner, HarrisParams};
+pub use params::{MatcherParams, RegistrationMethod};
 pub use plane::{
     estimate_plane, estimate_plane_report, fit_plane, PlaneCorrection, PlaneError, PlaneEstimate,
     PlaneModel,
