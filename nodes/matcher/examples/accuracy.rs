@@ -11,7 +11,8 @@
 mod support;
 
 use support::{make_pair, PairSpec, Surface};
-use surfstream_matcher::{PhaseCorrelator, PhaseParams, RasterRef, SubPixel, Window};
+use surfstream_core::raster::{RasterView, Shape};
+use surfstream_matcher::{PhaseCorrelator, PhaseParams, SubPixel, Window};
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
@@ -104,16 +105,10 @@ fn main() {
                 let surface = Surface::rough(nx, ny, 1000 + seed, corr_len, 0.8, cutoff);
                 seed += 1;
                 let pair = make_pair(&surface, &spec);
-                let a = RasterRef {
-                    heights: &pair.a,
-                    width: pair.w,
-                    height: pair.h,
-                };
-                let b = RasterRef {
-                    heights: &pair.b,
-                    width: pair.w,
-                    height: pair.h,
-                };
+                let a =
+                    RasterView::new(&pair.a, Shape::new(pair.h, pair.w)).expect("synthetic tile");
+                let b =
+                    RasterView::new(&pair.b, Shape::new(pair.h, pair.w)).expect("synthetic tile");
                 for (i, (_, p)) in configs.iter().enumerate() {
                     let r = corr.register(a, b, pair.nominal_offset_px, p);
                     match r.offset_px {

@@ -10,7 +10,8 @@ mod support;
 use std::time::Instant;
 
 use support::{make_pair, Pair, PairSpec};
-use surfstream_matcher::{register_pair, PhaseCorrelator, PhaseParams, RasterRef};
+use surfstream_core::raster::{RasterView, Shape};
+use surfstream_matcher::{register_pair, PhaseCorrelator, PhaseParams};
 
 /// (median, min) of the samples.
 fn stats_ms(mut v: Vec<f64>) -> (f64, f64) {
@@ -42,16 +43,8 @@ struct Timing {
 }
 
 fn time_pair(pair: &Pair, runs: usize, params: &PhaseParams) -> Timing {
-    let a = RasterRef {
-        heights: &pair.a,
-        width: pair.w,
-        height: pair.h,
-    };
-    let b = RasterRef {
-        heights: &pair.b,
-        width: pair.w,
-        height: pair.h,
-    };
+    let a = RasterView::new(&pair.a, Shape::new(pair.h, pair.w)).expect("synthetic tile");
+    let b = RasterView::new(&pair.b, Shape::new(pair.h, pair.w)).expect("synthetic tile");
     let mut corr = PhaseCorrelator::new();
     let mut worst = 0.0f64;
     // Warm-up (plans, buffers, rayon pool).

@@ -14,9 +14,9 @@ use std::time::Instant;
 
 use anyhow::{anyhow, Result};
 use support::{median, Scan};
+use surfstream_core::raster::RasterView;
 use surfstream_matcher::{
-    solve_planes, solve_positions, Link, PhaseCorrelator, PhaseParams, RasterRef, ScanTruth,
-    SolveParams,
+    solve_planes, solve_positions, Link, PhaseCorrelator, PhaseParams, ScanTruth, SolveParams,
 };
 
 /// CPU time of the whole process (all threads, user + system), s, from /proc/self/stat (clock
@@ -54,7 +54,7 @@ fn main() -> Result<()> {
         for (k, &(a, b)) in pairs.iter().enumerate() {
             let nominal = tiles.nominal_offset_px(a, b);
             let t0 = Instant::now();
-            let r = corr.register(tiles.raster(a), tiles.raster(b), nominal, &params);
+            let r = corr.register(tiles.raster(a)?, tiles.raster(b)?, nominal, &params);
             per_pair_ms.push(t0.elapsed().as_secs_f64() * 1e3);
             offsets[k] = r.offset_px;
             if verbose && per_pair_ms.len() <= pairs.len() {
@@ -102,16 +102,17 @@ fn main() -> Result<()> {
     let t0 = Instant::now();
     let sol = solve_positions(&stage_px, &links, &SolveParams::default())?;
     let solve_ms = t0.elapsed().as_secs_f64() * 1e3;
-    let rasters: Vec<RasterRef<'_>> = (0..tiles.tiles.len()).map(|i| tiles.raster(i)).collect();
+    let rasters: Vec<RasterView<'_, f32>> = (0..tiles.tiles.len())
+        .map(|i| tiles.raster(i))
+        .collect::<Result<_>>()?;
     let t0 = Instant::now();
     let planes = solve_planes(&rasters, &sol.positions_px, &pairs, 0, 2)?;
     let z_ms = t0.elapsed().as_secs_f64() * 1e3;
     println!(
-        "{}: {} tiles {}x{} px, {} pairs, {} accepted, threads {}",
+        "{}: {} tiles of {} px (rows x cols), {} pairs, {} accepted, threads {}",
         scan.display(),
         tiles.tiles.len(),
-        tiles.width,
-        tiles.height,
+        tiles.shape,
         pairs.len(),
         links.len(),
         rayon::current_num_threads()

@@ -91,7 +91,8 @@ fn main() -> Result<()> {
             for (a, b) in tiles.neighbour_pairs() {
                 let nominal = tiles.nominal_offset_px(a, b);
                 let t0 = Instant::now();
-                let f = register_pair_features(tiles.raster(a), tiles.raster(b), nominal, &params);
+                let f =
+                    register_pair_features(tiles.raster(a)?, tiles.raster(b)?, nominal, &params);
                 let ms = t0.elapsed().as_secs_f64() * 1e3;
                 let true_off = truth
                     .true_offset_px(a as u64, b as u64)

@@ -28,10 +28,10 @@
 //! single-pixel dropouts (a 21 x 21 window is then clean with probability 0.11): measured on
 //! the anchors' noisy sets, where it left 40 % of the pairs answered.
 
-use surfstream_core::raster::{Raster, Shape};
+use surfstream_core::raster::{Raster, RasterView, Shape};
 
 use crate::plane::fit_plane;
-use crate::raster::{InputError, RasterRef};
+use crate::raster::InputError;
 
 /// A rectangle of tile pixels, `x0 <= x < x1`, `y0 <= y < y1`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -149,17 +149,16 @@ impl DetectorImage {
     /// Converts `region` of tile `r` (clipped to the tile). An empty region or one without
     /// valid pixels gives an image with `valid_px == 0`, on which no detector finds anything.
     pub fn from_region(
-        r: RasterRef<'_>,
+        r: RasterView<'_, f32>,
         region: Rect,
         params: &DetectorParams,
     ) -> Result<DetectorImage, InputError> {
-        r.validate()?;
         params.validate()?;
         let region = Rect {
-            x0: region.x0.min(r.width),
-            y0: region.y0.min(r.height),
-            x1: region.x1.min(r.width),
-            y1: region.y1.min(r.height),
+            x0: region.x0.min(r.cols()),
+            y0: region.y0.min(r.rows()),
+            x1: region.x1.min(r.cols()),
+            y1: region.y1.min(r.rows()),
         };
         let (w, h) = (region.width(), region.height());
         let mut crop = Vec::with_capacity(w * h);
@@ -175,11 +174,7 @@ impl DetectorImage {
         }
         let mut signal = crop;
         if valid_px >= 3 {
-            let view = RasterRef {
-                heights: &signal,
-                width: w,
-                height: h,
-            };
+            let view = RasterView::new(&signal, Shape::new(h, w))?;
             if let Some(plane) = fit_plane(view) {
                 let mut levelled = Raster::new(signal, Shape::new(h, w))?;
                 plane.apply(&mut levelled);

@@ -10,9 +10,10 @@ use serde::{Deserialize, Serialize};
 
 use crate::detector::{bad, DetectorImage, DetectorParams, Rect};
 use crate::harris::{harris_corners, parabola_peak, HarrisParams};
-use crate::raster::{validate_offset, InputError, RasterRef};
+use crate::raster::{validate_offset, InputError};
 use crate::register::{PairRegistration, Rejection};
 use crate::sift::{sift_keypoints, SiftParams, DESCRIPTOR_LEN};
+use surfstream_core::raster::RasterView;
 
 /// Which detector and matcher.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -515,28 +516,23 @@ fn rejected(
 }
 
 /// Registers tile `b` against tile `a` near `nominal_offset_px` (b's pixel (0, 0) minus a's,
-/// px, (x, y)) with Harris or SIFT features. Never panics on input: invalid rasters or
-/// parameters give a rejected registration with [`Rejection::InvalidInput`].
+/// px, (x, y)) with Harris or SIFT features. Never panics on input: an invalid offset or
+/// invalid parameters give a rejected registration with [`Rejection::InvalidInput`].
 pub fn register_pair_features(
-    a: RasterRef<'_>,
-    b: RasterRef<'_>,
+    a: RasterView<'_, f32>,
+    b: RasterView<'_, f32>,
     nominal_offset_px: [f64; 2],
     params: &FeatureParams,
 ) -> FeatureRegistration {
     let method = params.method;
     let invalid = |e: InputError| rejected(method, Rejection::InvalidInput(e), [0, 0], [0, 0]);
-    if let Err(e) = a
-        .validate()
-        .and_then(|_| b.validate())
-        .and_then(|_| validate_offset(nominal_offset_px))
-        .and_then(|_| params.validate())
-    {
+    if let Err(e) = validate_offset(nominal_offset_px).and_then(|_| params.validate()) {
         return invalid(e);
     }
     // Step 1: the regions.
     let Some((ra, rb, overlap_px)) = detection_regions(
-        (a.width, a.height),
-        (b.width, b.height),
+        (a.cols(), a.rows()),
+        (b.cols(), b.rows()),
         nominal_offset_px,
         params.search_px,
     ) else {
@@ -586,8 +582,8 @@ pub fn register_pair_features(
 /// cut at different places of the part would otherwise high-pass the same texture
 /// differently).
 fn detector_images(
-    a: RasterRef<'_>,
-    b: RasterRef<'_>,
+    a: RasterView<'_, f32>,
+    b: RasterView<'_, f32>,
     (ra, rb): (Rect, Rect),
     params: &FeatureParams,
 ) -> Result<(DetectorImage, DetectorImage), InputError> {
@@ -600,8 +596,8 @@ fn detector_images(
         y1: (q.y1 + context).min(h),
     };
     match (
-        DetectorImage::from_region(a, grow(ra, a.width, a.height), &params.detector),
-        DetectorImage::from_region(b, grow(rb, b.width, b.height), &params.detector),
+        DetectorImage::from_region(a, grow(ra, a.cols(), a.rows()), &params.detector),
+        DetectorImage::from_region(b, grow(rb, b.cols(), b.rows()), &params.detector),
     ) {
         (Ok(x), Ok(y)) => Ok((x, y)),
         (Err(e), _) | (_, Err(e)) => Err(e),

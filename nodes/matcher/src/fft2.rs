@@ -12,24 +12,6 @@ const ROWS_PER_TASK: usize = 32;
 /// Edge of the square blocks of the transpose.
 const BLOCK: usize = 32;
 
-/// The smallest `m >= n` whose only prime factors are 2, 3 and 5 (sizes rustfft handles with
-/// its fast mixed-radix algorithms).
-pub(crate) fn fast_len(n: usize) -> usize {
-    let mut m = n.max(1);
-    loop {
-        let mut k = m;
-        for p in [2, 3, 5] {
-            while k.is_multiple_of(p) {
-                k /= p;
-            }
-        }
-        if k == 1 {
-            return m;
-        }
-        m += 1;
-    }
-}
-
 /// Cached forward/inverse plans and scratch space for 2-D transforms.
 pub(crate) struct Fft2 {
     planner: FftPlanner<f32>,
@@ -122,15 +104,6 @@ fn transpose(src: &[Complex32], dst: &mut [Complex32], rows: usize, cols: usize)
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn fast_len_is_smooth_and_minimal() {
-        assert_eq!(fast_len(1), 1);
-        assert_eq!(fast_len(205), 216);
-        assert_eq!(fast_len(1024), 1024);
-        assert_eq!(fast_len(103), 108);
-        assert_eq!(fast_len(7), 8);
-    }
 
     #[test]
     fn transpose_roundtrip() {

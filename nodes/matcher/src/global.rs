@@ -21,10 +21,10 @@ use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use surfstream_core::raster::Shape;
+use surfstream_core::raster::{RasterView, Shape};
 
 use crate::plane::PlaneCorrection;
-use crate::raster::{InputError, RasterRef};
+use crate::raster::InputError;
 
 /// One measured pair offset: `position(b) - position(a) = offset_px`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -474,7 +474,7 @@ pub struct PlaneSolution {
 ///
 /// All tiles must share one size (the tilt is about the tile centre).
 pub fn solve_planes(
-    tiles: &[RasterRef<'_>],
+    tiles: &[RasterView<'_, f32>],
     positions_px: &[[f64; 2]],
     pairs: &[(usize, usize)],
     gauge: usize,
@@ -499,7 +499,7 @@ pub fn solve_planes(
         return Err(bad("gauge", "must be a tile index"));
     }
     check_plane_inputs(tiles, positions_px, pairs)?;
-    let centre = Shape::new(tiles[0].height, tiles[0].width).centre_px();
+    let centre = Shape::new(tiles[0].rows(), tiles[0].cols()).centre_px();
     // Tilts are solved per half tile (x / half) so that all unknowns have similar scales: the
     // normal matrix stays well conditioned.
     let half = centre.0.max(centre.1).max(1.0);
@@ -528,19 +528,18 @@ pub fn solve_planes(
 /// [`solve_planes`]' input checks: valid rasters of one size, finite positions, pairs of two
 /// distinct tiles.
 fn check_plane_inputs(
-    tiles: &[RasterRef<'_>],
+    tiles: &[RasterView<'_, f32>],
     positions_px: &[[f64; 2]],
     pairs: &[(usize, usize)],
 ) -> Result<(), SolveError> {
     let n = tiles.len();
     for (i, t) in tiles.iter().enumerate() {
-        t.validate()?;
-        if t.width != tiles[0].width || t.height != tiles[0].height {
+        if t.shape() != tiles[0].shape() {
             return Err(SolveError::Mismatch {
                 tile: i,
                 what: "tile width x height",
-                got: (t.width * 100_000 + t.height) as f64,
-                expected: (tiles[0].width * 100_000 + tiles[0].height) as f64,
+                got: (t.cols() * 100_000 + t.rows()) as f64,
+                expected: (tiles[0].cols() * 100_000 + tiles[0].rows()) as f64,
             });
         }
         if !positions_px[i].iter().all(|v| v.is_finite()) {
@@ -569,8 +568,8 @@ fn check_plane_inputs(
 /// pixels). A sample says c_b(x_b) - c_a(x_a) = z_b - z_a, with c = p + tx * x + ty * y about
 /// the tile centre `(cx, cy)`, x and y in units of `half`.
 fn overlap_normal_block(
-    ta: &RasterRef<'_>,
-    tb: &RasterRef<'_>,
+    ta: &RasterView<'_, f32>,
+    tb: &RasterView<'_, f32>,
     [ox, oy]: [f64; 2],
     (cx, cy): (f64, f64),
     half: f64,
@@ -581,13 +580,13 @@ fn overlap_normal_block(
     let mut zz = 0.0;
     let mut count = 0;
     let c_lo = (-ox).ceil().max(0.0);
-    let c_hi = ((ta.width - 1) as f64 - ox)
+    let c_hi = ((ta.cols() - 1) as f64 - ox)
         .floor()
-        .min((tb.width - 1) as f64);
+        .min((tb.cols() - 1) as f64);
     let r_lo = (-oy).ceil().max(0.0);
-    let r_hi = ((ta.height - 1) as f64 - oy)
+    let r_hi = ((ta.rows() - 1) as f64 - oy)
         .floor()
-        .min((tb.height - 1) as f64);
+        .min((tb.rows() - 1) as f64);
     if c_lo > c_hi || r_lo > r_hi {
         return (ata, atb, zz, count);
     }
@@ -595,7 +594,7 @@ fn overlap_normal_block(
         let yb = (r as f64 - cy) / half;
         let ya = (r as f64 + oy - cy) / half;
         for c in (c_lo as usize..=c_hi as usize).step_by(stride) {
-            let zb = tb.heights[r * tb.width + c];
+            let zb = tb.values()[r * tb.cols() + c];
             if !zb.is_finite() {
                 continue;
             }
@@ -733,9 +732,9 @@ fn residual_sum_of_squares(
 /// leave a resampling error of a few percent of the roughness on surfaces with detail at a few
 /// pixels, spatially correlated, and that error (not the noise) then limits the tilt fitted
 /// across a narrow overlap.
-fn sample_cubic(r: &RasterRef<'_>, x: f64, y: f64) -> Option<f64> {
+fn sample_cubic(r: &RasterView<'_, f32>, x: f64, y: f64) -> Option<f64> {
     let (x0, y0) = (x.floor(), y.floor());
-    if !(x0 >= 1.0 && y0 >= 1.0 && x0 + 2.0 < r.width as f64 && y0 + 2.0 < r.height as f64) {
+    if !(x0 >= 1.0 && y0 >= 1.0 && x0 + 2.0 < r.cols() as f64 && y0 + 2.0 < r.rows() as f64) {
         return None;
     }
     let weights = |t: f64| -> [f64; 4] {
@@ -754,7 +753,7 @@ fn sample_cubic(r: &RasterRef<'_>, x: f64, y: f64) -> Option<f64> {
         if wyj == 0.0 {
             continue;
         }
-        let row = &r.heights[(yi + j) * r.width + xi..(yi + j) * r.width + xi + 4];
+        let row = &r.values()[(yi + j) * r.cols() + xi..(yi + j) * r.cols() + xi + 4];
         let mut line = 0.0;
         for (&v, &wxi) in row.iter().zip(&wx) {
             if wxi != 0.0 {
@@ -778,13 +777,13 @@ mod tests {
         let mut z: Vec<f32> = (0..w * h)
             .map(|i| f((i % w) as f64, (i / w) as f64) as f32)
             .collect();
-        let r = RasterRef::new(&z, w, h).unwrap();
+        let r = RasterView::new(&z, Shape::new(h, w)).unwrap();
         let v = sample_cubic(&r, 3.3, 2.6).unwrap();
         assert!((v - f(3.3, 2.6)).abs() < 1e-5, "{v}");
         assert!(sample_cubic(&r, 0.5, 3.0).is_none());
         assert!(sample_cubic(&r, 3.0, 5.5).is_none());
         z[3 * w + 4] = f32::NAN;
-        let r = RasterRef::new(&z, w, h).unwrap();
+        let r = RasterView::new(&z, Shape::new(h, w)).unwrap();
         assert!(sample_cubic(&r, 3.5, 2.5).is_none());
         assert!(sample_cubic(&r, 2.0, 2.0).is_some());
     }

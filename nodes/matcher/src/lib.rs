@@ -163,12 +163,12 @@ mod fft2;
 pub mod global;
 pub mod harris;
 mod ncc;
+pub mod params;
 pub mod plane;
 pub mod raster;
 pub mod register;
 pub mod scan;
 pub mod sift;
-mod simd;
 
 pub use detector::{DetectorImage, DetectorParams, Rect};
 pub use efficiency::{match_quality, MatchQuality, RankedMatch};
@@ -180,11 +180,12 @@ pub use global::{
     SolveParams,
 };
 pub use harris::{harris_corners, Corner, HarrisParams};
+pub use params::{MatcherParams, RegistrationMethod};
 pub use plane::{
     estimate_plane, estimate_plane_report, fit_plane, PlaneCorrection, PlaneError, PlaneEstimate,
     PlaneModel,
 };
-pub use raster::{InputError, RasterRef};
+pub use raster::InputError;
 pub use register::{
     register_pair, Candidate, PairRegistration, PhaseCorrelator, PhaseParams, Rejection, SubPixel,
     Window,

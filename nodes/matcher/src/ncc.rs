@@ -2,14 +2,14 @@
 //! valid pixel pairs only.
 
 use crate::plane::PlaneCorrection;
-use crate::raster::RasterRef;
-use crate::simd::avx2_dispatch;
+use surfstream_core::avx2_dispatch;
+use surfstream_core::raster::RasterView;
 use wide::f32x8;
 
 /// A tile levelled on the fly by the plane fitted to its crop: the plane at (row, col) is
 /// `row_term[row] + col_term[col]`.
 pub(crate) struct LevelledTile<'a> {
-    tile: RasterRef<'a>,
+    tile: RasterView<'a, f32>,
     row_term: Vec<f32>,
     col_term: Vec<f32>,
 }
@@ -17,7 +17,7 @@ pub(crate) struct LevelledTile<'a> {
 impl<'a> LevelledTile<'a> {
     /// `plane` as fitted on the crop `rect` (crop-centred coordinates), extended to the tile.
     pub(crate) fn new(
-        tile: RasterRef<'a>,
+        tile: RasterView<'a, f32>,
         rect: (usize, usize, usize, usize),
         plane: &PlaneCorrection,
     ) -> Self {
@@ -26,10 +26,10 @@ impl<'a> LevelledTile<'a> {
         let cy = y0 as f64 + (h as f64 - 1.0) * 0.5;
         LevelledTile {
             tile,
-            row_term: (0..tile.height)
+            row_term: (0..tile.rows())
                 .map(|r| (plane.piston_um + plane.tilt_y_um_per_px * (r as f64 - cy)) as f32)
                 .collect(),
-            col_term: (0..tile.width)
+            col_term: (0..tile.cols())
                 .map(|c| (plane.tilt_x_um_per_px * (c as f64 - cx)) as f32)
                 .collect(),
         }
@@ -49,8 +49,8 @@ pub(crate) fn overlap_in_a(
     dx: i64,
     dy: i64,
 ) -> [i64; 4] {
-    let (wa, ha) = (a.tile.width as i64, a.tile.height as i64);
-    let (wb, hb) = (b.tile.width as i64, b.tile.height as i64);
+    let (wa, ha) = (a.tile.cols() as i64, a.tile.rows() as i64);
+    let (wb, hb) = (b.tile.cols() as i64, b.tile.rows() as i64);
     [dx.max(0), (dx + wb).min(wa), dy.max(0), (dy + hb).min(ha)]
 }
 
@@ -518,6 +518,7 @@ fn row_sums(za: &[f32], ca: &[f32], ra: f32, zb: &[f32], cb: &[f32], rb: f32) ->
 #[cfg(test)]
 mod tests {
     use super::*;
+    use surfstream_core::raster::Shape;
 
     /// Reference for the stencil: NCC after removing each side's plane over the pairs valid
     /// in both, in f64 with nalgebra's least squares.
@@ -574,8 +575,8 @@ mod tests {
             .collect();
         za[5] = f32::NAN;
         zb[77] = f32::NAN;
-        let ta = RasterRef::new(&za, w, h).expect("valid");
-        let tb = RasterRef::new(&zb, w, h).expect("valid");
+        let ta = RasterView::new(&za, Shape::new(h, w)).expect("valid");
+        let tb = RasterView::new(&zb, Shape::new(h, w)).expect("valid");
         let rect = (0, 0, w, h);
         let la = LevelledTile::new(ta, rect, &PlaneCorrection::ZERO);
         let plane_b = PlaneCorrection {
@@ -616,8 +617,8 @@ mod tests {
             .map(|i| if i % 997 == 5 { f32::NAN } else { height(i) })
             .collect();
         let zb: Vec<f32> = (0..w * h).map(|i| height(i + 2 * w + 3) + 0.5).collect();
-        let ta = RasterRef::new(&za, w, h).expect("valid");
-        let tb = RasterRef::new(&zb, w, h).expect("valid");
+        let ta = RasterView::new(&za, Shape::new(h, w)).expect("valid");
+        let tb = RasterView::new(&zb, Shape::new(h, w)).expect("valid");
         let la = LevelledTile::new(ta, (0, 0, w, h), &PlaneCorrection::ZERO);
         let lb = LevelledTile::new(tb, (0, 0, w, h), &PlaneCorrection::ZERO);
         let region = [5, w as i64 - 5, 5, h as i64 - 5];
@@ -625,7 +626,7 @@ mod tests {
             ncc_stencil(&la, &lb, [-3, -2], region),
             ncc_at(&la, &lb, -3, -2),
         );
-        let base = crate::simd::with_baseline(|| {
+        let base = surfstream_core::simd::with_baseline(|| {
             (
                 ncc_stencil(&la, &lb, [-3, -2], region),
                 ncc_at(&la, &lb, -3, -2),

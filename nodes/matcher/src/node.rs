@@ -5,41 +5,15 @@
 //! decisions live in [`crate::scan`].
 
 use anyhow::{anyhow, bail, Result};
-use serde::Deserialize;
 use surfstream_core::frame::{flags, FrameKind};
 use surfstream_core::raster::{Raster, Shape};
 use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
-use crate::scan::{ScanParams, ScanRegistration, ScanTile};
-use crate::{FeatureMethod, FeatureParams};
+use crate::params::MatcherParams;
+use crate::scan::{ScanRegistration, ScanTile};
 
 const OUT: &str = "registrations";
-
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct Params {
-    /// Registration method: "auto" (= "phase": phase correlation with NCC-verified
-    /// candidates), "harris" or "sift" (the reference study's feature matchers).
-    #[serde(default = "auto")]
-    method: String,
-    /// Lowest NCC of the overlap at the chosen shift for a link to be trusted.
-    min_ncc: Option<f64>,
-    /// Largest accepted deviation from the stage's nominal offset, px.
-    max_shift_px: Option<f64>,
-    /// Standard deviation of the stage positions, px: the weight of the prior in the global
-    /// solve (5).
-    stage_sigma_px: Option<f64>,
-    /// A link disagreeing with the global solve by more than this (px) is removed (1).
-    outlier_px: Option<f64>,
-    /// A ground_truth.json (make_tiles.py's, or the simulated stage's truth.json; relative to
-    /// the output directory): with a feature method, r and MAP against it (crate::efficiency).
-    truth: Option<String>,
-}
-
-fn auto() -> String {
-    "auto".into()
-}
 
 pub struct MatcherNode {
     scan: ScanRegistration,
@@ -52,46 +26,10 @@ pub struct MatcherNode {
 }
 
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
-    let p: Params = ctx.params()?;
-    let where_ = || format!("graph '{}', node '{}'", ctx.graph_name, ctx.node_id);
-    let mut params = ScanParams {
-        features: match p.method.as_str() {
-            "auto" | "phase" => None,
-            "harris" => Some(FeatureParams::for_method(FeatureMethod::Harris)),
-            "sift" => Some(FeatureParams::for_method(FeatureMethod::Sift)),
-            m => bail!(
-                "{}: method = {m:?}: expected \"auto\", \"phase\", \"harris\" or \"sift\"",
-                where_()
-            ),
-        },
-        truth: p.truth.map(|t| ctx.out_dir.join(t)),
-        ..ScanParams::default()
-    };
-    if let Some(v) = p.min_ncc {
-        params.phase.min_ncc = v;
-    }
-    if let Some(v) = p.max_shift_px {
-        params.phase.max_shift_px = v;
-    }
-    params
-        .phase
-        .validate()
-        .map_err(|e| anyhow!("{}: {e}", where_()))?;
-    for (name, value, field) in [
-        (
-            "stage_sigma_px",
-            p.stage_sigma_px,
-            &mut params.solve.stage_sigma_px,
-        ),
-        ("outlier_px", p.outlier_px, &mut params.solve.outlier_px),
-    ] {
-        if let Some(v) = value {
-            if !(v.is_finite() && v > 0.0) {
-                bail!("{}: {name} = {v}: expected a number > 0", where_());
-            }
-            *field = v;
-        }
-    }
+    let p: MatcherParams = ctx.params()?;
+    let params = p
+        .scan_params(&ctx.out_dir)
+        .map_err(|e| anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id))?;
     Ok(Box::new(MatcherNode {
         scan: ScanRegistration::new(params),
         pending: Vec::new(),

@@ -5,10 +5,10 @@ use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use surfstream_core::raster::Shape;
+use surfstream_core::raster::{RasterView, Shape};
 
-use crate::raster::{validate_offset, InputError, RasterRef};
-use crate::simd::avx2_dispatch;
+use crate::raster::{validate_offset, InputError};
+use surfstream_core::avx2_dispatch;
 /// The correction convention is the workspace's one: [`surfstream_core::PlaneCorrection`].
 pub use surfstream_core::PlaneCorrection;
 use wide::f32x8;
@@ -303,12 +303,11 @@ fn row_sums_masked(z: &[f32], z_ref: f32) -> [f64; 6] {
 }
 
 /// The least-squares plane of one raster over its valid pixels, as a [`PlaneCorrection`]
-/// (subtracting it levels the raster). `None` for invalid input or no valid pixel.
-pub fn fit_plane(raster: RasterRef<'_>) -> Option<PlaneCorrection> {
-    raster.validate().ok()?;
-    let (cx, cy) = Shape::new(raster.height, raster.width).centre_px();
+/// (subtracting it levels the raster). `None` when no plane fits (too few valid pixels).
+pub fn fit_plane(raster: RasterView<'_, f32>) -> Option<PlaneCorrection> {
+    let (cx, cy) = Shape::new(raster.rows(), raster.cols()).centre_px();
     let mut sums = PlaneSums::default();
-    for row in 0..raster.height {
+    for row in 0..raster.rows() {
         sums.add_row(row as f64 - cy, -cx, raster.row(row));
     }
     sums.solve().map(|(p, _, _)| p)
@@ -317,18 +316,18 @@ pub fn fit_plane(raster: RasterRef<'_>) -> Option<PlaneCorrection> {
 /// Bilinear sample of `r` at (x, y) px; `None` outside the raster or when a corner with
 /// non-zero weight is NaN.
 #[inline]
-pub(crate) fn sample_bilinear(r: &RasterRef<'_>, x: f64, y: f64) -> Option<f64> {
-    if !(x >= 0.0 && y >= 0.0 && x <= (r.width - 1) as f64 && y <= (r.height - 1) as f64) {
+pub(crate) fn sample_bilinear(r: &RasterView<'_, f32>, x: f64, y: f64) -> Option<f64> {
+    if !(x >= 0.0 && y >= 0.0 && x <= (r.cols() - 1) as f64 && y <= (r.rows() - 1) as f64) {
         return None;
     }
     let x0 = x.floor() as usize;
     let y0 = y.floor() as usize;
     let fx = x - x0 as f64;
     let fy = y - y0 as f64;
-    let x1 = (x0 + 1).min(r.width - 1);
-    let y1 = (y0 + 1).min(r.height - 1);
-    let w = r.width;
-    let h = r.heights;
+    let x1 = (x0 + 1).min(r.cols() - 1);
+    let y1 = (y0 + 1).min(r.rows() - 1);
+    let w = r.cols();
+    let h = r.values();
     let mut acc = 0.0;
     for (xi, yi, wt) in [
         (x0, y0, (1.0 - fx) * (1.0 - fy)),
@@ -364,8 +363,8 @@ pub(crate) fn sample_bilinear(r: &RasterRef<'_>, x: f64, y: f64) -> Option<f64> 
 ///
 /// `None` for invalid input or when no neighbour overlaps a valid pixel of b.
 pub fn estimate_plane(
-    b: RasterRef<'_>,
-    neighbours: &[(RasterRef<'_>, [f64; 2], PlaneCorrection)],
+    b: RasterView<'_, f32>,
+    neighbours: &[(RasterView<'_, f32>, [f64; 2], PlaneCorrection)],
 ) -> Option<PlaneCorrection> {
     estimate_plane_report(b, neighbours)
         .ok()
@@ -375,27 +374,25 @@ pub fn estimate_plane(
 /// [`estimate_plane`] with the model used, the sample count and the residual, or the reason
 /// there is no estimate.
 pub fn estimate_plane_report(
-    b: RasterRef<'_>,
-    neighbours: &[(RasterRef<'_>, [f64; 2], PlaneCorrection)],
+    b: RasterView<'_, f32>,
+    neighbours: &[(RasterView<'_, f32>, [f64; 2], PlaneCorrection)],
 ) -> Result<PlaneEstimate, PlaneError> {
-    b.validate()?;
-    for (n, off, _) in neighbours {
-        n.validate()?;
+    for (_, off, _) in neighbours {
         validate_offset(*off)?;
     }
-    let (cx, cy) = Shape::new(b.height, b.width).centre_px();
+    let (cx, cy) = Shape::new(b.rows(), b.cols()).centre_px();
     let mut sums = PlaneSums::default();
     for (nb, off, corr) in neighbours {
         let [ox, oy] = *off;
         // b pixel (r, c) sits at neighbour position (c + ox, r + oy).
         let c_lo = (-ox).ceil().max(0.0);
-        let c_hi = ((nb.width - 1) as f64 - ox)
+        let c_hi = ((nb.cols() - 1) as f64 - ox)
             .floor()
-            .min((b.width - 1) as f64);
+            .min((b.cols() - 1) as f64);
         let r_lo = (-oy).ceil().max(0.0);
-        let r_hi = ((nb.height - 1) as f64 - oy)
+        let r_hi = ((nb.rows() - 1) as f64 - oy)
             .floor()
-            .min((b.height - 1) as f64);
+            .min((b.rows() - 1) as f64);
         if c_lo > c_hi || r_lo > r_hi {
             continue;
         }
@@ -410,7 +407,7 @@ pub fn estimate_plane_report(
                 }
                 let xn = c as f64 + ox;
                 if let Some(zn) = sample_bilinear(nb, xn, yn) {
-                    let zn = zn - corr.at(yn, xn, Shape::new(nb.height, nb.width));
+                    let zn = zn - corr.at(yn, xn, Shape::new(nb.rows(), nb.cols()));
                     local.add(c as f64 - cx, r as f64 - cy, zb as f64 - zn);
                 }
             }

@@ -1,20 +1,16 @@
-//! Borrowed height rasters and input validation.
+//! Input validation: why an input was refused.
+//!
+//! Tiles are borrowed as `surfstream_core::raster::RasterView<f32>` (heights in micrometres,
+//! `rows x cols`, row-major, NaN = not measured), whose constructor already refuses a shape
+//! that does not match its samples; [`InputError`] wraps that refusal beside the matcher's own.
 
 use serde::{Deserialize, Serialize};
 use surfstream_core::raster::ShapeError;
 use thiserror::Error;
 
-/// A borrowed height map: `width * height` heights in micrometres, row-major, rows grow with y,
-/// columns with x. NaN marks a pixel that was not measured.
-#[derive(Debug, Clone, Copy)]
-pub struct RasterRef<'a> {
-    pub heights: &'a [f32],
-    pub width: usize,
-    pub height: usize,
-}
-
-/// Why an input was refused. Every public entry point validates its rasters and parameters
-/// first and reports one of these instead of panicking.
+/// Why an input was refused. Every public entry point validates its offsets and parameters
+/// first and reports one of these instead of panicking; a raster's shape was checked when its
+/// `RasterView` was built, and a `ShapeError` from there converts into the first two variants.
 #[derive(Debug, Clone, PartialEq, Error, Serialize, Deserialize)]
 pub enum InputError {
     #[error("raster has zero size ({width} x {height} px)")]
@@ -52,45 +48,6 @@ impl From<ShapeError> for InputError {
                 actual: found,
             },
         }
-    }
-}
-
-impl<'a> RasterRef<'a> {
-    /// A validated raster: `heights.len() == width * height`, both sizes non-zero.
-    pub fn new(heights: &'a [f32], width: usize, height: usize) -> Result<Self, InputError> {
-        let r = RasterRef {
-            heights,
-            width,
-            height,
-        };
-        r.validate()?;
-        Ok(r)
-    }
-
-    /// Checks the size invariants of a raster built as a struct literal.
-    pub fn validate(&self) -> Result<(), InputError> {
-        if self.width == 0 || self.height == 0 {
-            return Err(InputError::ZeroSize {
-                width: self.width,
-                height: self.height,
-            });
-        }
-        let expected = self.width.checked_mul(self.height);
-        if expected != Some(self.heights.len()) {
-            return Err(InputError::SliceLength {
-                width: self.width,
-                height: self.height,
-                expected: expected.unwrap_or(usize::MAX),
-                actual: self.heights.len(),
-            });
-        }
-        Ok(())
-    }
-
-    /// One row of heights. The caller guarantees `row < height` and a validated raster.
-    #[inline]
-    pub(crate) fn row(&self, row: usize) -> &'a [f32] {
-        &self.heights[row * self.width..(row + 1) * self.width]
     }
 }
 

@@ -6,10 +6,12 @@ use rustfft::num_complex::Complex32;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use crate::fft2::{fast_len, Fft2};
+use crate::fft2::Fft2;
 use crate::ncc::{ncc_at, ncc_stencil, overlap_in_a, LevelledTile};
 use crate::plane::{PlaneCorrection, PlaneSums};
-use crate::raster::{validate_offset, InputError, RasterRef};
+use crate::raster::{validate_offset, InputError};
+use surfstream_core::fft::fast_len;
+use surfstream_core::raster::RasterView;
 
 /// Apodisation applied to each overlap crop before the FFT.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -294,8 +296,8 @@ impl PairRegistration {
 /// pairs should keep one correlator and call [`PhaseCorrelator::register`], which reuses FFT
 /// plans and buffers.
 pub fn register_pair(
-    a: RasterRef<'_>,
-    b: RasterRef<'_>,
+    a: RasterView<'_, f32>,
+    b: RasterView<'_, f32>,
     nominal_offset_px: [f64; 2],
     params: &PhaseParams,
 ) -> PairRegistration {
@@ -348,13 +350,13 @@ impl Geometry {
 /// A crop `(x0, y0, w, h)` of a tile.
 type Rect = (usize, usize, usize, usize);
 
-fn geometry(a: &RasterRef<'_>, b: &RasterRef<'_>, offset_px: [f64; 2]) -> Geometry {
+fn geometry(a: &RasterView<'_, f32>, b: &RasterView<'_, f32>, offset_px: [f64; 2]) -> Geometry {
     let ndx = offset_px[0].round() as i64;
     let ndy = offset_px[1].round() as i64;
     let x0 = ndx.max(0);
-    let x1 = (ndx + b.width as i64).min(a.width as i64);
+    let x1 = (ndx + b.cols() as i64).min(a.cols() as i64);
     let y0 = ndy.max(0);
-    let y1 = (ndy + b.height as i64).min(a.height as i64);
+    let y1 = (ndy + b.rows() as i64).min(a.rows() as i64);
     Geometry {
         ndx,
         ndy,
@@ -388,8 +390,8 @@ impl PhaseCorrelator {
     /// See [`register_pair`].
     pub fn register(
         &mut self,
-        a: RasterRef<'_>,
-        b: RasterRef<'_>,
+        a: RasterView<'_, f32>,
+        b: RasterView<'_, f32>,
         nominal_offset_px: [f64; 2],
         params: &PhaseParams,
     ) -> PairRegistration {
@@ -403,8 +405,8 @@ impl PhaseCorrelator {
     /// the one consistent with the rest of the scan. Empty otherwise.
     pub fn register_with_alternatives(
         &mut self,
-        a: RasterRef<'_>,
-        b: RasterRef<'_>,
+        a: RasterView<'_, f32>,
+        b: RasterView<'_, f32>,
         nominal_offset_px: [f64; 2],
         params: &PhaseParams,
     ) -> (PairRegistration, Vec<Alternative>) {
@@ -418,17 +420,13 @@ impl PhaseCorrelator {
     /// then the decision. An ambiguous pair's usable maxima go to `alternatives`.
     fn register_inner(
         &mut self,
-        a: RasterRef<'_>,
-        b: RasterRef<'_>,
+        a: RasterView<'_, f32>,
+        b: RasterView<'_, f32>,
         nominal_offset_px: [f64; 2],
         params: &PhaseParams,
         alternatives: &mut Vec<Alternative>,
     ) -> PairRegistration {
-        let checked = a
-            .validate()
-            .and_then(|_| b.validate())
-            .and_then(|_| validate_offset(nominal_offset_px))
-            .and_then(|_| params.validate());
+        let checked = validate_offset(nominal_offset_px).and_then(|_| params.validate());
         if let Err(e) = checked {
             return PairRegistration::rejected(Rejection::InvalidInput(e), [0, 0]);
         }
@@ -499,8 +497,8 @@ impl PhaseCorrelator {
     /// or is featureless. Returns both crops' statistics and the padded size.
     fn correlate_nominal_overlap(
         &mut self,
-        a: &RasterRef<'_>,
-        b: &RasterRef<'_>,
+        a: &RasterView<'_, f32>,
+        b: &RasterView<'_, f32>,
         g: &Geometry,
         params: &PhaseParams,
     ) -> Result<(CropStats, CropStats, usize, usize), Rejection> {
@@ -538,8 +536,8 @@ impl PhaseCorrelator {
     /// best NCC first. Also returns the tiles levelled by their crops' planes.
     fn verified_candidates<'a>(
         &self,
-        a: RasterRef<'a>,
-        b: RasterRef<'a>,
+        a: RasterView<'a, f32>,
+        b: RasterView<'a, f32>,
         g: &Geometry,
         (stats_a, stats_b): (&CropStats, &CropStats),
         (pw, ph): (usize, usize),
@@ -580,8 +578,8 @@ impl PhaseCorrelator {
     /// Step 4: the integer offset and sub-pixel fraction of the NCC peak by the chosen method.
     fn subpixel(
         &mut self,
-        a: &RasterRef<'_>,
-        b: &RasterRef<'_>,
+        a: &RasterView<'_, f32>,
+        b: &RasterView<'_, f32>,
         peak: &NccPeak,
         params: &PhaseParams,
     ) -> ([i64; 2], [f64; 2]) {
@@ -608,7 +606,7 @@ impl PhaseCorrelator {
     #[allow(clippy::too_many_arguments)]
     fn decide(
         &mut self,
-        (a, b): (&RasterRef<'_>, &RasterRef<'_>),
+        (a, b): (&RasterView<'_, f32>, &RasterView<'_, f32>),
         nominal_offset_px: [f64; 2],
         params: &PhaseParams,
         (cands, peak): (&[Candidate], &NccPeak),
@@ -671,8 +669,8 @@ impl PhaseCorrelator {
     /// the answer is an alias, and the pair gets none.
     fn better_beyond_limit(
         &mut self,
-        a: &RasterRef<'_>,
-        b: &RasterRef<'_>,
+        a: &RasterView<'_, f32>,
+        b: &RasterView<'_, f32>,
         nominal_offset_px: [f64; 2],
         params: &PhaseParams,
         limit: [f64; 2],
@@ -682,7 +680,7 @@ impl PhaseCorrelator {
         let mut grown = nominal_offset_px;
         let mut any = false;
         for k in 0..2 {
-            let along = if k == 0 { a.width } else { a.height } as f64;
+            let along = if k == 0 { a.cols() } else { a.rows() } as f64;
             let n = nominal_offset_px[k];
             // Only an axis the tiles are offset along (the overlap is partial) can grow.
             if limit[k] < params.max_shift_px && n.abs() >= 1.0 && n.abs() < along {
@@ -727,8 +725,8 @@ impl PhaseCorrelator {
     /// spectrum of `a + i b` is left transposed (`[kx][ky]`, `pw x ph`) in `self.spec`.
     fn spectrum(
         &mut self,
-        a: &RasterRef<'_>,
-        b: &RasterRef<'_>,
+        a: &RasterView<'_, f32>,
+        b: &RasterView<'_, f32>,
         rect_a: Rect,
         rect_b: Rect,
         params: &PhaseParams,
@@ -754,8 +752,8 @@ impl PhaseCorrelator {
     /// (`ph x pw`, circular; index (tx, ty) = shift of b's content relative to a's).
     fn correlate(
         &mut self,
-        a: &RasterRef<'_>,
-        b: &RasterRef<'_>,
+        a: &RasterView<'_, f32>,
+        b: &RasterView<'_, f32>,
         rect_a: Rect,
         rect_b: Rect,
         params: &PhaseParams,
@@ -784,8 +782,8 @@ impl PhaseCorrelator {
     /// the crop centre. Returns the integer offset of the peak and its sub-pixel part.
     fn refine_phase(
         &mut self,
-        a: &RasterRef<'_>,
-        b: &RasterRef<'_>,
+        a: &RasterView<'_, f32>,
+        b: &RasterView<'_, f32>,
         offset_px: [i64; 2],
         fit: PeakFit,
         params: &PhaseParams,
@@ -853,8 +851,8 @@ fn shift_limit_px(params: &PhaseParams, overlap_px: [usize; 2]) -> [f64; 2] {
 /// maximum (`peak`) is the same hill (a smooth surface puts several correlation maxima on one
 /// broad NCC hill), not a rival.
 fn rivals(
-    a: RasterRef<'_>,
-    b: RasterRef<'_>,
+    a: RasterView<'_, f32>,
+    b: RasterView<'_, f32>,
     cands: &[Candidate],
     peak: &NccPeak,
     params: &PhaseParams,
@@ -930,8 +928,8 @@ fn usable_maxima(
 /// sits at `offset_px` in a's coordinates; `None` when the overlap is empty or has fewer than
 /// three valid pixels in either tile.
 fn relevelled<'a>(
-    a: RasterRef<'a>,
-    b: RasterRef<'a>,
+    a: RasterView<'a, f32>,
+    b: RasterView<'a, f32>,
     offset_px: [i64; 2],
 ) -> Option<(LevelledTile<'a>, LevelledTile<'a>)> {
     let g = geometry(&a, &b, [offset_px[0] as f64, offset_px[1] as f64]);
@@ -939,7 +937,7 @@ fn relevelled<'a>(
         return None;
     }
     let (rect_a, rect_b) = g.rects();
-    let fit = |t: &RasterRef<'_>, rect: Rect| -> Option<PlaneCorrection> {
+    let fit = |t: &RasterView<'_, f32>, rect: Rect| -> Option<PlaneCorrection> {
         let (x0, y0, w, h) = rect;
         let cx = (w as f64 - 1.0) * 0.5;
         let cy = (h as f64 - 1.0) * 0.5;
@@ -980,8 +978,8 @@ const MAX_RELEVELS: usize = 3;
 /// stays put. The levelling plane belongs to one overlap: fitted at a start 3 px off on a
 /// 32 px strip of a smooth grating, it moves the NCC maximum by 1-2 px towards the start.
 fn settled_peak<'a>(
-    a: RasterRef<'a>,
-    b: RasterRef<'a>,
+    a: RasterView<'a, f32>,
+    b: RasterView<'a, f32>,
     start: [i64; 2],
     mut lev_a: LevelledTile<'a>,
     mut lev_b: LevelledTile<'a>,
@@ -1125,7 +1123,7 @@ fn window(n: usize, kind: Window) -> Vec<f32> {
 /// [`fill_dropouts`]).
 #[allow(clippy::too_many_arguments)]
 fn prepare_crop(
-    tile: &RasterRef<'_>,
+    tile: &RasterView<'_, f32>,
     rect: (usize, usize, usize, usize),
     wx: &[f32],
     wy: &[f32],
@@ -1201,7 +1199,7 @@ fn prepare_crop(
 /// with less than half of the kernel weight valid around them (inside large holes) stay 0.
 /// The window varies little over 2 px, so averaging windowed values is accurate enough.
 fn fill_dropouts(
-    tile: &RasterRef<'_>,
+    tile: &RasterView<'_, f32>,
     rect: (usize, usize, usize, usize),
     buf: &mut [Complex32],
     stride: usize,

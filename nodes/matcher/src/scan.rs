@@ -24,7 +24,7 @@ use std::path::PathBuf;
 
 use serde_json::json;
 use surfstream_core::frame::{flags, placed_by, TileRegistration};
-use surfstream_core::raster::Raster;
+use surfstream_core::raster::{Raster, RasterView};
 use thiserror::Error;
 
 use crate::global::{
@@ -33,7 +33,7 @@ use crate::global::{
 };
 use crate::{
     estimate_plane, register_pair_features, FeatureParams, FeatureRegistration, PairRegistration,
-    PhaseCorrelator, PhaseParams, PlaneCorrection, RasterRef,
+    PhaseCorrelator, PhaseParams, PlaneCorrection,
 };
 use surfstream_io::truth::TruthError;
 
@@ -95,12 +95,8 @@ impl ScanTile {
         Ok(())
     }
 
-    fn raster(&self) -> RasterRef<'_> {
-        RasterRef {
-            heights: self.heights.values(),
-            width: self.heights.cols(),
-            height: self.heights.rows(),
-        }
+    fn raster(&self) -> RasterView<'_, f32> {
+        self.heights.view()
     }
 }
 
@@ -353,7 +349,8 @@ impl ScanRegistration {
         }
         let placement = self.solve_positions()?;
         let overlaps: Vec<(usize, usize)> = self.pairs.iter().map(|p| (p.a, p.b)).collect();
-        let rasters: Vec<RasterRef<'_>> = self.tiles.iter().map(|t| t.tile.raster()).collect();
+        let rasters: Vec<RasterView<'_, f32>> =
+            self.tiles.iter().map(|t| t.tile.raster()).collect();
         let planes = solve_planes(&rasters, &placement.positions_px, &overlaps, 0, Z_STRIDE)
             .map_err(ScanError::Planes)?;
         let regs = self.final_registrations(&placement, &planes);

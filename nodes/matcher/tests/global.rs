@@ -8,9 +8,9 @@ mod support;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use support::{cut, Defects, Surface};
+use surfstream_core::raster::{RasterView, Shape};
 use surfstream_matcher::{
-    solve_planes, solve_positions, Link, PhaseCorrelator, PhaseParams, PlaneCorrection, RasterRef,
-    SolveParams,
+    solve_planes, solve_positions, Link, PhaseCorrelator, PhaseParams, PlaneCorrection, SolveParams,
 };
 
 const TILE: usize = 256;
@@ -66,8 +66,8 @@ fn scan(rows: usize, cols: usize, seed: u64, corr_len_px: f64, cutoff: f64) -> S
     s
 }
 
-fn raster(t: &[f32]) -> RasterRef<'_> {
-    RasterRef::new(t, TILE, TILE).expect("tile size")
+fn raster(t: &[f32]) -> RasterView<'_, f32> {
+    RasterView::new(t, Shape::new(TILE, TILE)).expect("tile size")
 }
 
 /// Every grid-neighbour pair, registered; (a, b, offset).
@@ -152,7 +152,7 @@ fn global_z_alignment_removes_piston_and_tilt_below_the_noise() {
     let s = scan(3, 3, 11, 20.0, 0.15);
     let pairs = register_all(&s);
     let overlaps: Vec<(usize, usize)> = pairs.iter().map(|p| (p.0, p.1)).collect();
-    let rasters: Vec<RasterRef<'_>> = s.tiles.iter().map(|t| raster(t)).collect();
+    let rasters: Vec<RasterView<'_, f32>> = s.tiles.iter().map(|t| raster(t)).collect();
     let sol = solve_planes(&rasters, &s.truth_px, &overlaps, 0, 1).expect("planes");
     // The truth relative to the gauge tile 0: correction_i at tile i's pixel = its defect plane
     // minus tile 0's defect plane at the same point of the surface.
@@ -224,7 +224,7 @@ fn solve_planes_refuses_malformed_input() {
     let t = vec![0.0f32; TILE * TILE];
     let small = vec![0.0f32; 16];
     let r = raster(&t);
-    let s4 = RasterRef::new(&small, 4, 4).expect("4x4");
+    let s4 = RasterView::new(&small, Shape::new(4, 4)).expect("4x4");
     let p = [[0.0, 0.0], [200.0, 0.0]];
     assert!(solve_planes(&[r, s4], &p, &[(0, 1)], 0, 1).is_err());
     assert!(solve_planes(&[r, r], &p[..1], &[(0, 1)], 0, 1).is_err());

@@ -10,15 +10,11 @@ use support::{cut, Surface};
 use surfstream_core::raster::{Raster, RasterView, Shape};
 use surfstream_matcher::{
     estimate_plane, estimate_plane_report, fit_plane, PlaneCorrection, PlaneError, PlaneModel,
-    RasterRef,
 };
 
-fn raster(heights: &[f32], width: usize, height: usize) -> RasterRef<'_> {
-    RasterRef {
-        heights,
-        width,
-        height,
-    }
+/// The view of `rows x cols` heights (well-formed in every test that uses it).
+fn raster(heights: &[f32], rows: usize, cols: usize) -> RasterView<'_, f32> {
+    RasterView::new(heights, Shape::new(rows, cols)).expect("raster shape")
 }
 
 /// `z + correction(row, col)` for every pixel of a `w x h` tile (the raw tile whose
@@ -94,10 +90,11 @@ fn fit_plane_recovers_a_plane_through_dropouts() {
     let (w, h) = (300, 200);
     let mut z = add_plane(&vec![0.0; w * h], w, h, &want);
     drop_random(&mut z, 0.3, &mut rng);
-    let got = fit_plane(raster(&z, w, h)).expect("a plane");
+    let got = fit_plane(raster(&z, h, w)).expect("a plane");
     assert_close(&got, &want, 1e-3, 1e-6);
     assert!(fit_plane(raster(&[f32::NAN; 4], 2, 2)).is_none());
-    assert!(fit_plane(raster(&[1.0; 3], 2, 2)).is_none());
+    // Three heights cannot be a 2 x 2 tile: the view refuses to exist.
+    assert!(RasterView::new(&[1.0f32; 3], Shape::new(2, 2)).is_err());
 }
 
 /// A b tile with a left and a top neighbour, all cut from one rough surface; b sits at a
@@ -119,7 +116,7 @@ const T: usize = 256;
 fn scene(step: usize, frac: [f64; 2], seed: u64) -> Scene {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let m = 4;
-    let n = support::fast_len(T + step + 2 * m);
+    let n = surfstream_core::fft::fast_len(T + step + 2 * m);
     let surface = Surface::rough(n, n, seed, 40.0, 0.8, 0.25);
     let (f0, f1) = surface.render_pair(frac[0], frac[1]);
     // b at (m + step + fx, m + step + fy); left at (m, m + step); top at (m + step, m).
@@ -227,16 +224,16 @@ fn no_overlap_or_bad_input_gives_none() {
         Err(PlaneError::NoOverlap)
     );
     assert_eq!(estimate_plane(b, &[]), None);
-    // Wrong slice length, non-finite offset, zero-size neighbour.
-    let short = [(raster(&s.left[1..], T, T), s.off_left, s.plane_left)];
-    assert!(matches!(
-        estimate_plane_report(b, &short),
-        Err(PlaneError::Input(_))
-    ));
+    // A wrong slice length or a zero size cannot make a neighbour's view; a non-finite offset
+    // is the input error left to refuse.
+    assert!(RasterView::new(&s.left[1..], Shape::new(T, T)).is_err());
+    assert!(RasterView::<f32>::new(&[], Shape::new(0, 0)).is_err());
     let nan = [(raster(&s.left, T, T), [f64::NAN, 0.0], s.plane_left)];
     assert_eq!(estimate_plane(b, &nan), None);
-    let empty = [(raster(&[], 0, 0), s.off_left, s.plane_left)];
-    assert_eq!(estimate_plane(b, &empty), None);
+    assert!(matches!(
+        estimate_plane_report(b, &nan),
+        Err(PlaneError::Input(_))
+    ));
     // An overlap that is all dropouts.
     let holes = vec![f32::NAN; T * T];
     let dark = [(raster(&holes, T, T), s.off_left, s.plane_left)];

@@ -9,22 +9,20 @@
 mod support;
 
 use support::{make_pair, rough_pair, Pair, PairSpec};
+use surfstream_core::raster::{RasterView, Shape};
 use surfstream_matcher::{
-    register_pair, InputError, PairRegistration, PhaseCorrelator, PhaseParams, RasterRef, Rejection,
+    register_pair, InputError, PairRegistration, PhaseCorrelator, PhaseParams, Rejection,
 };
 
-fn raster(heights: &[f32], width: usize, height: usize) -> RasterRef<'_> {
-    RasterRef {
-        heights,
-        width,
-        height,
-    }
+/// The view of `rows x cols` heights (well-formed in every test that uses it).
+fn raster(heights: &[f32], rows: usize, cols: usize) -> RasterView<'_, f32> {
+    RasterView::new(heights, Shape::new(rows, cols)).expect("raster shape")
 }
 
 fn register(corr: &mut PhaseCorrelator, pair: &Pair) -> PairRegistration {
     corr.register(
-        raster(&pair.a, pair.w, pair.h),
-        raster(&pair.b, pair.w, pair.h),
+        raster(&pair.a, pair.h, pair.w),
+        raster(&pair.b, pair.h, pair.w),
         pair.nominal_offset_px,
         &PhaseParams::default(),
     )
@@ -162,7 +160,7 @@ fn tiles_of_different_sizes_register() {
         .collect();
     let r = register_pair(
         raster(&pair.a, 256, 256),
-        raster(&b, bw, bh),
+        raster(&b, bh, bw),
         pair.nominal_offset_px,
         &PhaseParams::default(),
     );
@@ -180,8 +178,8 @@ fn reused_correlator_matches_one_shot() {
     let _ = register(&mut corr, &other);
     let again = register(&mut corr, &small);
     let fresh = register_pair(
-        raster(&small.a, small.w, small.h),
-        raster(&small.b, small.w, small.h),
+        raster(&small.a, small.h, small.w),
+        raster(&small.b, small.h, small.w),
         small.nominal_offset_px,
         &PhaseParams::default(),
     );
@@ -210,8 +208,8 @@ fn shift_beyond_the_limit_is_refused_with_the_measured_shift() {
         ..PhaseParams::default()
     };
     let r = register_pair(
-        raster(&pair.a, pair.w, pair.h),
-        raster(&pair.b, pair.w, pair.h),
+        raster(&pair.a, pair.h, pair.w),
+        raster(&pair.b, pair.h, pair.w),
         pair.nominal_offset_px,
         &params,
     );
@@ -345,42 +343,32 @@ fn bad_input_is_refused_with_a_reason() {
     let w = 64;
     let good = vec![0.0f32; w * w];
     let params = PhaseParams::default();
-    let reason = |a: RasterRef<'_>, b: RasterRef<'_>, off: [f64; 2], p: &PhaseParams| {
-        let r = register_pair(a, b, off, p);
-        assert!(r.offset_px.is_none());
-        r.rejection.expect("a reason")
-    };
+    let reason =
+        |a: RasterView<'_, f32>, b: RasterView<'_, f32>, off: [f64; 2], p: &PhaseParams| {
+            let r = register_pair(a, b, off, p);
+            assert!(r.offset_px.is_none());
+            r.rejection.expect("a reason")
+        };
 
-    // Wrong slice length.
+    // Wrong slice length and zero size: the view refuses to exist, and the matcher's
+    // InputError, converted from that refusal, still says which.
     let short = vec![0.0f32; w * w - 1];
-    let rej = reason(
-        raster(&short, w, w),
-        raster(&good, w, w),
-        [50.0, 0.0],
-        &params,
-    );
+    let refused = RasterView::new(&short, Shape::new(w, w)).expect_err("short slice");
+    let e = InputError::from(refused);
     assert!(
         matches!(
-            rej,
-            Rejection::InvalidInput(InputError::SliceLength {
+            e,
+            InputError::SliceLength {
                 expected: 4096,
                 actual: 4095,
                 ..
-            })
+            }
         ),
-        "{rej:?}"
+        "{e:?}"
     );
-    // Zero size.
-    let rej = reason(
-        raster(&[], 0, 10),
-        raster(&good, w, w),
-        [50.0, 0.0],
-        &params,
-    );
-    assert!(
-        matches!(rej, Rejection::InvalidInput(InputError::ZeroSize { .. })),
-        "{rej:?}"
-    );
+    let refused = RasterView::<f32>::new(&[], Shape::new(10, 0)).expect_err("zero size");
+    let e = InputError::from(refused);
+    assert!(matches!(e, InputError::ZeroSize { .. }), "{e:?}");
     // Non-finite nominal offset.
     let rej = reason(
         raster(&good, w, w),

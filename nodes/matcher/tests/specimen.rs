@@ -7,8 +7,9 @@
 
 use std::path::{Path, PathBuf};
 
+use surfstream_core::raster::{RasterView, Shape};
 use surfstream_io::formats::read_surface;
-use surfstream_matcher::{PhaseCorrelator, PhaseParams, RasterRef};
+use surfstream_matcher::{PhaseCorrelator, PhaseParams};
 
 const TILE: usize = 220;
 
@@ -111,8 +112,8 @@ fn known_shifts(name: &str, overlap_px: usize, errors: &[[i64; 2]]) -> (usize, u
             );
             let nominal = [truth[0] as f64 - e[0] as f64, truth[1] as f64 - e[1] as f64];
             let r = corr.register(
-                RasterRef::new(&a, TILE, TILE).expect("tile"),
-                RasterRef::new(&b, TILE, TILE).expect("tile"),
+                RasterView::new(&a, Shape::new(TILE, TILE)).expect("tile"),
+                RasterView::new(&b, Shape::new(TILE, TILE)).expect("tile"),
                 nominal,
                 &params,
             );

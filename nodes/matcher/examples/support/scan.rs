@@ -5,14 +5,14 @@
 use std::path::Path;
 
 use anyhow::Result;
-use surfstream_matcher::RasterRef;
+use surfstream_core::raster::{RasterView, Shape};
 use surfstream_replay::scan_dir::{load_scan, LoadedTile};
 
 pub struct Scan {
     pub tiles: Vec<LoadedTile>,
     pub pitch_um: [f64; 2],
-    pub width: usize,
-    pub height: usize,
+    /// Every tile's shape (the scan's one tile size).
+    pub shape: Shape,
 }
 
 impl Scan {
@@ -21,17 +21,13 @@ impl Scan {
         Ok(Scan {
             tiles: s.tiles,
             pitch_um: [s.scan.pitch_x_um, s.scan.pitch_y_um],
-            width: s.tile_width_px,
-            height: s.tile_height_px,
+            shape: Shape::new(s.tile_height_px, s.tile_width_px),
         })
     }
 
-    pub fn raster(&self, i: usize) -> RasterRef<'_> {
-        RasterRef {
-            heights: &self.tiles[i].heights_um,
-            width: self.width,
-            height: self.height,
-        }
+    /// Tile `i`'s heights; an error when a file's heights do not fill the scan's tile shape.
+    pub fn raster(&self, i: usize) -> Result<RasterView<'_, f32>> {
+        Ok(RasterView::new(&self.tiles[i].heights_um, self.shape)?)
     }
 
     /// Grid-neighbour pairs (a, b), a < b (acquisition indices).

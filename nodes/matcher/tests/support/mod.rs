@@ -10,6 +10,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use rustfft::num_complex::Complex64;
 use rustfft::FftPlanner;
+use surfstream_core::fft::fast_len;
 
 /// Signed frequency index of bin `k` of an `n`-point DFT.
 fn signed(k: usize, n: usize) -> f64 {
@@ -17,23 +18,6 @@ fn signed(k: usize, n: usize) -> f64 {
         k as f64
     } else {
         k as f64 - n as f64
-    }
-}
-
-/// The smallest 2-3-5-smooth integer >= n.
-pub fn fast_len(n: usize) -> usize {
-    let mut m = n.max(1);
-    loop {
-        let mut k = m;
-        for p in [2, 3, 5] {
-            while k.is_multiple_of(p) {
-                k /= p;
-            }
-        }
-        if k == 1 {
-            return m;
-        }
-        m += 1;
     }
 }
 
