@@ -88,6 +88,30 @@ pub fn distance_and_side(p: [f64; 3], mesh: &[Triangle]) -> (f64, bool) {
     (best.0.sqrt(), p[2] >= best.1[2])
 }
 
+/// Asserts that spheres `[x, y, z, radius]` rest on `mesh`: every one above it and not sinking
+/// more than 0.1 r into it, and nearly all (90 %; one may rest on another) within 1.02 r of it.
+pub fn assert_spheres_rest_on(mesh: &[Triangle], spheres: &[[f64; 4]]) {
+    let mut touching = 0;
+    for s in spheres {
+        let (d, above) = distance_and_side([s[0], s[1], s[2]], mesh);
+        assert!(above, "sphere at {s:?} is below the wall");
+        assert!(
+            d > 0.9 * s[3],
+            "sphere at {s:?} sinks {:.3} r into the wall",
+            1.0 - d / s[3]
+        );
+        if d < 1.02 * s[3] {
+            touching += 1;
+        }
+    }
+    assert!(
+        touching >= spheres.len() * 9 / 10,
+        "{touching} of {} spheres touch the wall",
+        spheres.len()
+    );
+}
+
+/// The program `name` on PATH.
 pub fn which(name: &str) -> Option<PathBuf> {
     std::env::var_os("PATH").and_then(|paths| {
         std::env::split_paths(&paths)

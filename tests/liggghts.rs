@@ -6,7 +6,7 @@
 
 use std::process::Command;
 
-use surfstream_e2e::dem::{distance_and_side, read_ascii_stl, which};
+use surfstream_e2e::dem::{assert_spheres_rest_on, read_ascii_stl, which};
 use surfstream_e2e::{read_json, run, stderr, surfstream};
 
 /// Sphere radius, m: a few times the specimen's pitch, a tenth of its width.
@@ -162,24 +162,7 @@ fn liggghts_imports_the_wall_and_spheres_settle_on_it() {
         PARTICLES,
         "spheres lost (fell through or flew off)"
     );
-    let mut touching = 0;
-    for a in &atoms {
-        let (d, above) = distance_and_side([a[0], a[1], a[2]], &mesh);
-        assert!(above, "sphere at {a:?} is below the wall");
-        assert!(
-            d > 0.9 * a[3],
-            "sphere at {a:?} sinks {:.3} r into the wall",
-            1.0 - d / a[3]
-        );
-        if d < 1.02 * a[3] {
-            touching += 1;
-        }
-    }
-    // A sphere may come to rest on another one; nearly all rest on the wall.
-    assert!(
-        touching >= PARTICLES * 9 / 10,
-        "{touching} of {PARTICLES} spheres touch the wall"
-    );
+    assert_spheres_rest_on(&mesh, &atoms);
 }
 
 /// The graph parameter does what the flag does: `--set mesher.target=liggghts` on the demo

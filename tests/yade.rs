@@ -5,7 +5,7 @@
 
 use std::process::Command;
 
-use surfstream_e2e::dem::{distance_and_side, read_ascii_stl, which};
+use surfstream_e2e::dem::{assert_spheres_rest_on, read_ascii_stl, which};
 use surfstream_e2e::{read_json, run, stderr, surfstream};
 
 const SPHERES: usize = 30;
@@ -98,22 +98,9 @@ fn yade_imports_the_wall_and_spheres_settle_on_it() {
     );
     let spheres = result["spheres"].as_array().expect("spheres");
     assert_eq!(spheres.len(), SPHERES);
-    let mut touching = 0;
-    for s in spheres {
-        let c: Vec<f64> = (0..4).map(|k| s[k].as_f64().expect("number")).collect();
-        let (d, above) = distance_and_side([c[0], c[1], c[2]], &mesh);
-        assert!(above, "sphere at {c:?} is below the wall");
-        assert!(
-            d > 0.9 * c[3],
-            "sphere at {c:?} sinks {:.3} r into the wall",
-            1.0 - d / c[3]
-        );
-        if d < 1.02 * c[3] {
-            touching += 1;
-        }
-    }
-    assert!(
-        touching >= SPHERES * 9 / 10,
-        "{touching} of {SPHERES} spheres touch the wall"
-    );
+    let spheres: Vec<[f64; 4]> = spheres
+        .iter()
+        .map(|s| std::array::from_fn(|k| s[k].as_f64().expect("number")))
+        .collect();
+    assert_spheres_rest_on(&mesh, &spheres);
 }
