@@ -65,9 +65,9 @@ fn inspect_params_and_convert_on_a_metropro_file() {
     let sq = p["Sq"].as_f64().unwrap();
     assert!(rel(sq, 0.07528822204734589) < 1e-9, "Sq {sq}");
 
-    // Through .x3p and back: the same parameters.
+    // Through .x3p and back: the same parameters; missing output folders are created.
     let d = tempfile::tempdir().unwrap();
-    let x3p = d.path().join("m.x3p");
+    let x3p = d.path().join("new").join("deeper").join("m.x3p");
     ok(&["convert", s(&dat), s(&x3p)]);
     let q = params(&x3p);
     for k in ["Sa", "Sq", "Sz", "Sdq", "Sdr"] {

@@ -5,11 +5,17 @@ use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
 /// Writes `path` through `fill` into a temporary sibling, then renames it into place: readers
-/// see either the old file, no file, or the whole new file.
+/// see either the old file, no file, or the whole new file. Missing parent folders are created
+/// (`convert x.dat out/new/x.x3p` works, as users expect of an output path).
 pub fn write_atomic<F>(path: &Path, fill: F) -> anyhow::Result<()>
 where
     F: FnOnce(&mut BufWriter<File>) -> anyhow::Result<()>,
 {
+    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).map_err(|e| {
+            anyhow::anyhow!("{}: cannot create the folder: {e}", parent.display())
+        })?;
+    }
     let tmp = partial_path(path);
     let result = (|| {
         let file = File::create(&tmp)
