@@ -12,9 +12,8 @@ where
     F: FnOnce(&mut BufWriter<File>) -> anyhow::Result<()>,
 {
     if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent).map_err(|e| {
-            anyhow::anyhow!("{}: cannot create the folder: {e}", parent.display())
-        })?;
+        std::fs::create_dir_all(parent)
+            .map_err(|e| anyhow::anyhow!("{}: cannot create the folder: {e}", parent.display()))?;
     }
     let tmp = partial_path(path);
     let result = (|| {
