@@ -3,6 +3,36 @@
 
 use std::path::{Path, PathBuf};
 
+use crate::{read_json, repo_root, run, stderr, surfstream};
+
+/// Meshes the specimen `x3p-2.x3p` with `mesh --target ENGINE --max-triangles BUDGET` into
+/// `dir/wall.stl`; returns the mesh JSON (its target and format checked) and the triangles.
+pub fn mesh_specimen_for(
+    dir: &Path,
+    engine: &str,
+    max_triangles: usize,
+) -> (serde_json::Value, Vec<Triangle>) {
+    let specimen = repo_root().join("../shared/specimens/x3p-2.x3p");
+    let stl = dir.join("wall.stl");
+    let mut cmd = surfstream();
+    cmd.arg("mesh")
+        .arg(&specimen)
+        .args(["--target", engine, "--max-triangles"])
+        .arg(max_triangles.to_string())
+        .arg("--out")
+        .arg(&stl);
+    let out = run(cmd);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let report = read_json(&dir.join("wall.json"));
+    assert_eq!(report["target"]["engine"], engine, "{report:#}");
+    assert_eq!(report["format"], "ascii");
+    assert_eq!(report["kind"], "sheet");
+    assert_eq!(report["units"], "m");
+    let mesh = read_ascii_stl(&stl);
+    assert_eq!(Some(mesh.len() as u64), report["triangles"].as_u64());
+    (report, mesh)
+}
+
 pub type Triangle = [[f64; 3]; 3];
 
 /// Triangles of an ASCII STL, coordinates as written.

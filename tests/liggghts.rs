@@ -6,7 +6,7 @@
 
 use std::process::Command;
 
-use surfstream_e2e::dem::{assert_spheres_rest_on, read_ascii_stl, which};
+use surfstream_e2e::dem::{assert_spheres_rest_on, mesh_specimen_for, read_ascii_stl, which};
 use surfstream_e2e::{read_json, run, stderr, surfstream};
 
 /// Sphere radius, m: a few times the specimen's pitch, a tenth of its width.
@@ -75,31 +75,15 @@ fn liggghts_imports_the_wall_and_spheres_settle_on_it() {
         )
     });
     let dir = tempfile::tempdir().expect("tempdir");
-    let specimen = surfstream_e2e::repo_root().join("../shared/specimens/x3p-2.x3p");
-    let stl = dir.path().join("wall.stl");
-    let mut cmd = surfstream();
-    cmd.arg("mesh")
-        .arg(&specimen)
-        // A budget that keeps the simulation short; the default (400k) imports the same way.
-        .args(["--target", "liggghts", "--max-triangles", "30000", "--out"])
-        .arg(&stl);
-    let out = run(cmd);
-    assert!(out.status.success(), "{}", stderr(&out));
-    let report = read_json(&dir.path().join("wall.json"));
-    assert_eq!(report["target"]["engine"], "liggghts", "{report:#}");
-    assert_eq!(report["format"], "ascii");
-    assert_eq!(report["kind"], "sheet");
-    assert_eq!(report["units"], "m");
+    // A budget that keeps the simulation short; the default (400k) imports the same way.
+    let (report, mesh) = mesh_specimen_for(dir.path(), "liggghts", 30_000);
     assert!(
         report["element_quality"]["min_angle_deg"]
             .as_f64()
             .unwrap_or(0.0)
             > 1.0
     );
-    let triangles = report["triangles"].as_u64().expect("triangle count") as usize;
-
-    let mesh = read_ascii_stl(&stl);
-    assert_eq!(mesh.len(), triangles);
+    let triangles = mesh.len();
     let mut bounds = [[f64::INFINITY, f64::NEG_INFINITY]; 3];
     for t in &mesh {
         for v in t {

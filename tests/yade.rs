@@ -5,8 +5,8 @@
 
 use std::process::Command;
 
-use surfstream_e2e::dem::{assert_spheres_rest_on, read_ascii_stl, which};
-use surfstream_e2e::{read_json, run, stderr, surfstream};
+use surfstream_e2e::dem::{assert_spheres_rest_on, mesh_specimen_for, which};
+use surfstream_e2e::read_json;
 
 const SPHERES: usize = 30;
 
@@ -57,24 +57,9 @@ fn yade_imports_the_wall_and_spheres_settle_on_it() {
         )
     });
     let dir = tempfile::tempdir().expect("tempdir");
-    let specimen = surfstream_e2e::repo_root().join("../shared/specimens/x3p-2.x3p");
-    let stl = dir.path().join("wall.stl");
-    let mut cmd = surfstream();
-    cmd.arg("mesh")
-        .arg(&specimen)
-        // ymport.stl welds vertices in O(V^2): 20k triangles (the target's budget) take ~2 min
-        // here, 4k take seconds and import the same way.
-        .args(["--target", "yade", "--max-triangles", "4000", "--out"])
-        .arg(&stl);
-    let out = run(cmd);
-    assert!(out.status.success(), "{}", stderr(&out));
-    let report = read_json(&dir.path().join("wall.json"));
-    assert_eq!(report["target"]["engine"], "yade", "{report:#}");
-    assert_eq!(
-        (report["format"].as_str(), report["units"].as_str()),
-        (Some("ascii"), Some("m"))
-    );
-    let mesh = read_ascii_stl(&stl);
+    // ymport.stl welds vertices in O(V^2): 20k triangles (the target's budget) take ~2 min
+    // here, 4k take seconds and import the same way.
+    let (_, mesh) = mesh_specimen_for(dir.path(), "yade", 4000);
 
     let script = SETTLE_PY.replace("SPHERES", &SPHERES.to_string());
     std::fs::write(dir.path().join("settle.py"), script).expect("write script");

@@ -103,13 +103,9 @@ pub fn run(a: MeshArgs) -> Result<()> {
     let (z_offset_um, heights_um) = to_frame_heights(&surface.heights_um);
     let heights = RasterView::new(&heights_um, Shape::new(surface.height, surface.width))?;
     let at = ScanPlacement::new(pitch_x_um, pitch_y_um).with_z_offset(z_offset_um);
-    let profile = a.target.map(|engine| {
-        let mut p = EngineProfile::for_engine(engine);
-        if let Some(budget) = a.max_triangles {
-            p.max_triangles = budget;
-        }
-        p
-    });
+    let profile = a
+        .target
+        .map(|engine| EngineProfile::with_budget(engine, a.max_triangles));
     if let Some(profile) = profile.filter(|p| p.method == TargetMethod::Grid) {
         return write_grid_target(&a, &surface.metadata.format, heights, &at, &profile);
     }
@@ -239,28 +235,36 @@ fn write_grid_target(
         Ok(())
     })?;
     let json_path = a.out.with_extension("json");
-    let report = json!({
-        "input": a.file.display().to_string(),
-        "input_format": input_format,
-        "target": profile,
-        "format": if profile.ascii { "ascii" } else { "binary" },
-        "kind": "sheet",
-        "method": "grid",
-        "units": profile.units,
-        "stl": file_name(&a.out),
-        "triangles": t.mesh.triangles.len(),
-        "surface_triangles": t.mesh.triangles.len(),
-        "measured_grid_rows_cols": [heights.rows(), heights.cols()],
-        "grid_rows_cols": [t.grid.rows, t.grid.cols],
-        "block_stride": t.stride,
-        "pitch_um": t.pitch_um,
-        "offset_um": t.mesh.offset_um,
-        "offset_rule": "scan_um = vertex * um_per_unit + offset_um",
-        "filled_samples": t.mesh.filled_samples,
-        "element_quality": t.quality,
-        "fidelity": { "measured": t.measured, "meshed_grid": t.meshed },
-        "mesh_s": mesh_s,
-    });
+    let mut report = t.summary();
+    let o = report
+        .as_object_mut()
+        .ok_or_else(|| anyhow!("mesh summary is not an object"))?;
+    for (key, value) in [
+        ("input", json!(a.file.display().to_string())),
+        ("input_format", json!(input_format)),
+        (
+            "format",
+            json!(if profile.ascii { "ascii" } else { "binary" }),
+        ),
+        ("units", json!(profile.units)),
+        ("stl", json!(file_name(&a.out))),
+        ("triangles", json!(t.mesh.triangles.len())),
+        ("surface_triangles", json!(t.mesh.triangles.len())),
+        (
+            "measured_grid_rows_cols",
+            json!([heights.rows(), heights.cols()]),
+        ),
+        ("pitch_um", json!([at.pitch_x_um, at.pitch_y_um])),
+        ("offset_um", json!(t.mesh.offset_um)),
+        (
+            "offset_rule",
+            json!("scan_um = vertex * um_per_unit + offset_um"),
+        ),
+        ("filled_samples", json!(t.mesh.filled_samples)),
+        ("mesh_s", json!(mesh_s)),
+    ] {
+        o.insert(key.into(), value);
+    }
     surfstream_core::fsutil::write_atomic(&json_path, |w| {
         serde_json::to_writer_pretty(w, &report)
             .map_err(|e| anyhow!("{}: {e}", json_path.display()))

@@ -214,10 +214,7 @@ impl MesherConfig {
             target: None,
         };
         if let Some(engine) = self.target {
-            let mut profile = EngineProfile::for_engine(engine);
-            if let Some(budget) = self.max_triangles {
-                profile.max_triangles = budget;
-            }
+            let profile = EngineProfile::with_budget(engine, self.max_triangles);
             settings.format = if profile.ascii {
                 StlFormat::Ascii
             } else {
@@ -414,15 +411,7 @@ impl MeshJob {
             (_, Some(profile)) => {
                 let t = grid_sheet_for(heights, &at, &profile)?;
                 let on_grid = block_values_on_grid(t.block_means.view(), t.stride, shape);
-                let summary = json!({
-                    "method": "grid",
-                    "kind": "sheet",
-                    "block_stride": t.stride,
-                    "grid_rows_cols": [t.grid.rows, t.grid.cols],
-                    "meshed_pitch_um": t.pitch_um,
-                    "element_quality": t.quality,
-                    "fidelity": { "measured": t.measured, "meshed_grid": t.meshed },
-                });
+                let summary = t.summary();
                 (t.mesh, Some(summary), Some(on_grid.into_values()))
             }
             (None, None) => (grid_solid(heights, &at, &self.settings.solid)?, None, None),

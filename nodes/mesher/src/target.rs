@@ -86,6 +86,16 @@ pub struct EngineProfile {
 }
 
 impl EngineProfile {
+    /// The engine's profile with its triangle budget lowered (or raised) to `max_triangles`
+    /// when the user gives one.
+    pub fn with_budget(engine: DemEngine, max_triangles: Option<usize>) -> Self {
+        let mut p = Self::for_engine(engine);
+        if let Some(budget) = max_triangles {
+            p.max_triangles = budget;
+        }
+        p
+    }
+
     pub fn for_engine(engine: DemEngine) -> Self {
         match engine {
             DemEngine::Liggghts => Self {
@@ -191,28 +201,6 @@ pub fn block_values_on_grid(
     out
 }
 
-/// Keeps only the vertices the triangles use (the grid solid's wall and base vertices go with
-/// its wall and base triangles), in their order.
-fn drop_unused_vertices(mesh: &mut SolidMesh) {
-    let mut new_index = vec![u32::MAX; mesh.vertices.len()];
-    for &i in mesh.triangles.iter().flatten() {
-        new_index[i as usize] = 0;
-    }
-    let mut kept = Vec::with_capacity(mesh.vertices.len());
-    for (i, v) in mesh.vertices.iter().enumerate() {
-        if new_index[i] == 0 {
-            new_index[i] = kept.len() as u32;
-            kept.push(*v);
-        }
-    }
-    for t in &mut mesh.triangles {
-        for i in t.iter_mut() {
-            *i = new_index[*i as usize];
-        }
-    }
-    mesh.vertices = kept;
-}
-
 /// Element quality as the engines judge it.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct ElementQuality {
@@ -284,6 +272,22 @@ pub struct TargetMesh {
     pub meshed: Option<AreaParams>,
 }
 
+impl TargetMesh {
+    /// What run.json and the mesh JSON record of a grid target beside the common fields.
+    pub fn summary(&self) -> serde_json::Value {
+        serde_json::json!({
+            "target": self.profile,
+            "method": "grid",
+            "kind": "sheet",
+            "block_stride": self.stride,
+            "grid_rows_cols": [self.grid.rows, self.grid.cols],
+            "meshed_pitch_um": self.pitch_um,
+            "element_quality": self.quality,
+            "fidelity": { "measured": self.measured, "meshed_grid": self.meshed },
+        })
+    }
+}
+
 /// Meshes `heights` as a regular-grid sheet within the engine's triangle budget and checks
 /// the elements against its limits. Missing samples are filled (see [`crate::fill_missing`]).
 /// Errors: a geometry the grid mesher refuses, or an element the engine would reject.
@@ -310,8 +314,10 @@ pub fn grid_sheet_for(
     };
     let mut mesh = grid_solid(reduced.view(), &reduced_at, &params)?;
     // The engines that take a sheet want the measured surface alone: drop walls and base.
+    // grid_solid lays the top out first (vertex row * cols + col, then the surface triangles):
+    // what follows is walls and base.
     mesh.triangles.truncate(mesh.top_triangles);
-    drop_unused_vertices(&mut mesh);
+    mesh.vertices.truncate(reduced.shape().len());
     // Without its base the sheet's lowest point, not the base, sits at z = 0.
     let lowest = mesh
         .vertices
