@@ -395,6 +395,141 @@ fn x3p_real_world_variants() {
     assert!(e.contains("bindata/data.bin"), "{e}");
 }
 
+/// An 8-bit PNG of `width` x `height` pixels, `channels` 3 (RGB) or 4 (RGBA), rows top first.
+fn png_bytes(width: u32, height: u32, channels: usize, pixels: &[u8]) -> Vec<u8> {
+    let mut out = Vec::new();
+    let mut enc = png::Encoder::new(&mut out, width, height);
+    enc.set_color(if channels == 4 {
+        png::ColorType::Rgba
+    } else {
+        png::ColorType::Rgb
+    });
+    enc.set_depth(png::BitDepth::Eight);
+    let mut w = enc.write_header().unwrap();
+    w.write_image_data(pixels).unwrap();
+    w.finish().unwrap();
+    out
+}
+
+/// The x3ptools / FiX3P colour mask (`Record3/Mask`, `bindata/mask.png`): points painted in a
+/// colour other than the background are not measured, pixel (i, j) covers point (i, j), and a
+/// warning counts each colour with its annotation.
+#[test]
+fn x3p_mask_png_marks_painted_points_not_measured() {
+    // 3 columns x 2 rows of float32 metres, all finite.
+    let z_m: [f32; 6] = [1e-6, 2e-6, 3e-6, 4e-6, 5e-6, 6e-6];
+    let data: Vec<u8> = z_m.iter().flat_map(|v| v.to_le_bytes()).collect();
+    const BRONZE: [u8; 4] = [0xcd, 0x7f, 0x32, 255];
+    const RED: [u8; 4] = [255, 0, 0, 255];
+    const BLUE: [u8; 4] = [0, 0, 255, 255];
+    const CLEAR: [u8; 4] = [9, 9, 9, 0];
+    // Row 0: background, red, background; row 1: blue, background, transparent.
+    let rgba: Vec<u8> = [BRONZE, RED, BRONZE, BLUE, BRONZE, CLEAR].concat();
+    let mask = "<Mask><Background>#CD7F32</Background><Annotations>\
+                <Annotation color=\"#ff0000\">damage</Annotation></Annotations></Mask>";
+    let link =
+        format!("<DataLink><PointDataLink>bindata/data.bin</PointDataLink></DataLink>{mask}");
+    let read = |xml: String, png: Vec<u8>, png_name: &str| {
+        parse_surface(
+            &x3p_from_parts(&[
+                ("main.xml".into(), xml.into_bytes()),
+                ("bindata/data.bin".into(), data.clone()),
+                (png_name.into(), png),
+            ]),
+            Format::X3p,
+        )
+    };
+    let png = png_bytes(3, 2, 4, &rgba);
+    let s = read(
+        x3p_main_xml("ISO5436_2", 3, 2, &link),
+        png.clone(),
+        "bindata/mask.png",
+    )
+    .unwrap();
+    same_heights(
+        &s.heights_um,
+        &[1.0, f64::NAN, 3.0, f64::NAN, 5.0, 6.0],
+        1e-6,
+    );
+    assert_eq!(s.metadata.warnings.len(), 1, "{:?}", s.metadata.warnings);
+    let w = &s.metadata.warnings[0];
+    assert!(
+        w.contains("bindata/mask.png marks 2 points")
+            && w.contains("#0000ff: 1")
+            && w.contains("#ff0000 'damage': 1"),
+        "{w}"
+    );
+    // Inline DataList, no Mask element: mask.png alone, default background #cd7f32, RGB PNG.
+    let list = "<DataList><Datum>1e-6</Datum><Datum>2e-6</Datum><Datum>3e-6</Datum>\
+                <Datum>4e-6</Datum><Datum>5e-6</Datum><Datum>6e-6</Datum></DataList>";
+    let rgb: Vec<u8> = rgba
+        .chunks(4)
+        .flat_map(|p| if p[3] == 0 { &BRONZE[..3] } else { &p[..3] })
+        .copied()
+        .collect();
+    let s = read(
+        x3p_main_xml("ISO5436_2", 3, 2, list),
+        png_bytes(3, 2, 3, &rgb),
+        "bindata/mask.png",
+    )
+    .unwrap();
+    same_heights(
+        &s.heights_um,
+        &[1.0, f64::NAN, 3.0, f64::NAN, 5.0, 6.0],
+        1e-6,
+    );
+    // A Link elsewhere, a white background: everything not white is out.
+    let linked = link.replace(
+        "<Background>#CD7F32</Background>",
+        "<Link>bindata/annot.png</Link><Background>#ffffff</Background>",
+    );
+    let s = read(
+        x3p_main_xml("ISO5436_2", 3, 2, &linked),
+        png.clone(),
+        "bindata/annot.png",
+    )
+    .unwrap();
+    assert_eq!(
+        s.invalid_count(),
+        5,
+        "all but the transparent point are painted"
+    );
+    // A mask of the wrong size, a corrupt PNG, a missing linked image, a bad colour: errors
+    // that name what is wrong.
+    let err =
+        |xml: String, png: Vec<u8>, name: &str| format!("{:#}", read(xml, png, name).unwrap_err());
+    let e = err(
+        x3p_main_xml("ISO5436_2", 3, 2, &link),
+        png_bytes(2, 3, 4, &rgba),
+        "bindata/mask.png",
+    );
+    assert!(
+        e.contains("bindata/mask.png") && e.contains("2 x 3 pixels") && e.contains("3 x 2"),
+        "{e}"
+    );
+    let mut broken = png.clone();
+    let len = broken.len();
+    broken.truncate(len - 20);
+    let e = err(
+        x3p_main_xml("ISO5436_2", 3, 2, &link),
+        broken,
+        "bindata/mask.png",
+    );
+    assert!(e.contains("bindata/mask.png"), "{e}");
+    let e = err(
+        x3p_main_xml("ISO5436_2", 3, 2, &linked),
+        png.clone(),
+        "bindata/mask.png",
+    );
+    assert!(e.contains("Mask/Link names 'bindata/annot.png'"), "{e}");
+    let e = err(
+        x3p_main_xml("ISO5436_2", 3, 2, &link.replace("#CD7F32", "bronze")),
+        png,
+        "bindata/mask.png",
+    );
+    assert!(e.contains("Background is 'bronze'"), "{e}");
+}
+
 #[test]
 fn x3p_valid_bin_bit_order_lsb_first() {
     // sample4_bin.x3p marks exactly one point invalid; find which and check it against the

@@ -333,7 +333,16 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
     let Some(link) = child(r3, "DataLink") else {
         let list =
             child(r3, "DataList").context("main.xml: Record3 has neither DataLink nor DataList")?;
-        let heights_um = parse_data_list(list, n, &to_um)?;
+        let mut heights_um = parse_data_list(list, n, &to_um)?;
+        apply_mask(
+            &mut zip,
+            &names,
+            folder,
+            r3,
+            (width, height),
+            &mut heights_um,
+            &mut warnings,
+        )?;
         return Ok(finish(
             root, r1, width, height, pitch_x_m, pitch_y_m, heights_um, warnings,
         ));
@@ -397,9 +406,172 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
             }
         }
     }
+    apply_mask(
+        &mut zip,
+        &names,
+        folder,
+        r3,
+        (width, height),
+        &mut heights_um,
+        &mut warnings,
+    )?;
     Ok(finish(
         root, r1, width, height, pitch_x_m, pitch_y_m, heights_um, warnings,
     ))
+}
+
+/// Background colour of a mask without `Record3/Mask/Background` (x3ptools' and FiX3P's default).
+const DEFAULT_MASK_BACKGROUND: [u8; 3] = [0xcd, 0x7f, 0x32];
+
+/// "#rrggbb" (case-insensitive) to RGB.
+fn parse_colour(text: &str) -> Option<[u8; 3]> {
+    let hex = text.trim().strip_prefix('#')?;
+    if hex.len() != 6 || !hex.is_ascii() {
+        return None;
+    }
+    let byte = |i: usize| u8::from_str_radix(&hex[i..i + 2], 16).ok();
+    Some([byte(0)?, byte(2)?, byte(4)?])
+}
+
+/// The optional colour mask of ISO 25178-72 / AMD 1 as x3ptools and FiX3P write it:
+/// `Record3/Mask` (`Background` colour, `Annotations/Annotation color="#rrggbb"` naming each
+/// painted colour, optional `Link` to the image) and a PNG, `bindata/mask.png` by default,
+/// SizeX pixels wide and SizeY tall, pixel (column i, row j) covering point (i, j) of data.bin.
+/// Points of the background colour, or fully transparent, are the surface as measured; points
+/// painted in any other colour are regions an annotator marked out, and are read as not
+/// measured, with a warning that counts them per colour (and its annotation).
+fn apply_mask<R: Read + Seek>(
+    zip: &mut zip::ZipArchive<R>,
+    names: &[String],
+    folder: &str,
+    r3: roxmltree::Node,
+    (width, height): (usize, usize),
+    heights_um: &mut [f64],
+    warnings: &mut Vec<String>,
+) -> Result<()> {
+    let mask = child(r3, "Mask");
+    let link = mask
+        .and_then(|m| text_of(m, &["Link"]))
+        .unwrap_or_else(|| "bindata/mask.png".into());
+    let Some(name) = [format!("{folder}{link}"), link.clone()]
+        .into_iter()
+        .find(|c| names.iter().any(|n| n == c))
+    else {
+        if mask.is_some_and(|m| child(m, "Link").is_some()) {
+            bail!("main.xml: Record3/Mask/Link names '{link}', which is not in the archive");
+        }
+        return Ok(());
+    };
+    let background = match mask.and_then(|m| text_of(m, &["Background"])) {
+        None => DEFAULT_MASK_BACKGROUND,
+        Some(t) => parse_colour(&t).with_context(|| {
+            format!("main.xml: Record3/Mask/Background is '{t}', expected a colour #rrggbb")
+        })?,
+    };
+    let n = width * height;
+    // A PNG of width x height points holds at most 8 bytes a point (16-bit RGBA) before
+    // deflate; anything larger is not this mask.
+    let limit = (n as u64).saturating_mul(8).saturating_add(1 << 20);
+    let png_bytes = read_entry(zip, &name, limit)?;
+    let rgba = decode_mask_png(&png_bytes, width, height).with_context(|| format!("{name}"))?;
+    let mut painted: std::collections::BTreeMap<[u8; 3], usize> = Default::default();
+    for (z, px) in heights_um.iter_mut().zip(rgba.chunks_exact(4)) {
+        let rgb = [px[0], px[1], px[2]];
+        if px[3] == 0 || rgb == background {
+            continue;
+        }
+        *painted.entry(rgb).or_default() += 1;
+        *z = f64::NAN;
+    }
+    if !painted.is_empty() {
+        let annotations: Vec<(Option<[u8; 3]>, String)> = mask
+            .and_then(|m| child(m, "Annotations"))
+            .map(|a| {
+                a.children()
+                    .filter(|c| c.is_element() && c.tag_name().name() == "Annotation")
+                    .map(|c| {
+                        let colour = c.attribute("color").and_then(parse_colour);
+                        (colour, c.text().unwrap_or("").trim().to_string())
+                    })
+                    .collect()
+            })
+            .unwrap_or_default();
+        let parts: Vec<String> = painted
+            .iter()
+            .map(|(rgb, count)| {
+                let label = annotations
+                    .iter()
+                    .find(|(c, _)| *c == Some(*rgb))
+                    .map(|(_, t)| format!(" '{t}'"))
+                    .unwrap_or_default();
+                format!(
+                    "#{:02x}{:02x}{:02x}{label}: {count}",
+                    rgb[0], rgb[1], rgb[2]
+                )
+            })
+            .collect();
+        let total: usize = painted.values().sum();
+        warnings.push(format!(
+            "{name} marks {total} points in colours other than the background #{:02x}{:02x}{:02x}; \
+             they are read as not measured ({})",
+            background[0],
+            background[1],
+            background[2],
+            parts.join(", ")
+        ));
+    }
+    Ok(())
+}
+
+/// The mask image as 8-bit RGBA, after checking its size against the point grid (from the PNG
+/// header, before the pixels are decoded).
+fn decode_mask_png(bytes: &[u8], width: usize, height: usize) -> Result<Vec<u8>> {
+    // The decoder's own buffers are bounded by the point grid, not by its 64 MiB default.
+    let limits = png::Limits {
+        bytes: (width * height).saturating_mul(8).max(64 << 20),
+    };
+    let mut decoder = png::Decoder::new_with_limits(Cursor::new(bytes), limits);
+    decoder.set_transformations(png::Transformations::normalize_to_color8());
+    let mut reader = decoder
+        .read_info()
+        .map_err(|e| anyhow!("not a readable PNG: {e}"))?;
+    let info = reader.info();
+    if (info.width as usize, info.height as usize) != (width, height) {
+        bail!(
+            "the mask image is {} x {} pixels (width x height), the point grid SizeX x SizeY is \
+             {width} x {height}",
+            info.width,
+            info.height
+        );
+    }
+    let mut buf = vec![0u8; reader.output_buffer_size()];
+    let frame = reader
+        .next_frame(&mut buf)
+        .map_err(|e| anyhow!("cannot decode the PNG: {e}"))?;
+    buf.truncate(frame.buffer_size());
+    let channels = match frame.color_type {
+        png::ColorType::Grayscale => 1,
+        png::ColorType::GrayscaleAlpha => 2,
+        png::ColorType::Rgb => 3,
+        png::ColorType::Rgba => 4,
+        png::ColorType::Indexed => bail!("palette PNG left unexpanded"),
+    };
+    if frame.bit_depth != png::BitDepth::Eight || buf.len() != width * height * channels {
+        bail!(
+            "decoded to {} bytes at {:?} bits, expected {width} x {height} x {channels} bytes",
+            buf.len(),
+            frame.bit_depth
+        );
+    }
+    Ok(buf
+        .chunks_exact(channels)
+        .flat_map(|p| match channels {
+            1 => [p[0], p[0], p[0], 255],
+            2 => [p[0], p[0], p[0], p[1]],
+            3 => [p[0], p[1], p[2], 255],
+            _ => [p[0], p[1], p[2], p[3]],
+        })
+        .collect())
 }
 
 /// Inline point data (Record3/DataList, one `Datum` per point, x fastest): each holds the z
