@@ -128,7 +128,7 @@ fn solve3(mut a: [[f64; 3]; 3], mut b: [f64; 3]) -> [f64; 3] {
 
 fn check_python_reads(recording: &Path, stl: &Path) {
     let script = r#"
-import sys, struct
+import sys, json, base64
 from mcap.reader import make_reader
 counts, schemas = {}, set()
 with open(sys.argv[1], "rb") as f:
@@ -137,13 +137,16 @@ with open(sys.argv[1], "rb") as f:
         counts[channel.topic] = counts.get(channel.topic, 0) + 1
         schemas.add(schema.name)
         if channel.topic == "stage/tiles" and counts[channel.topic] == 1:
-            (hlen,) = struct.unpack_from("<I", message.data, 0)
-            payload = len(message.data) - 4 - hlen
-            assert payload == 1024 * 1024 * 4, payload
+            # Self-describing: JSON Schema in the file, JSON messages, cells in base64.
+            assert schema.encoding == "jsonschema", schema.encoding
+            assert json.loads(schema.data)["properties"]["data"]["contentEncoding"] == "base64"
+            grid = json.loads(message.data)
+            payload = len(base64.b64decode(grid["data"]))
+            assert payload == 1024 * 1024 * 4 == grid["row_stride"] * 1024, payload
 assert counts.get("stage/tiles") == 5, counts
 # 4 streamed + 4 FINAL (global solve) + end of scan
 assert counts.get("matcher/registrations") == 9, counts
-assert "surfstream.FrameHeader.v1" in schemas and "surfstream.TileRegistration.v1" in schemas, schemas
+assert "foxglove.Grid" in schemas and "surfstream.TileRegistration" in schemas, schemas
 import trimesh
 m = trimesh.load(sys.argv[2])
 assert m.is_watertight, "not watertight"

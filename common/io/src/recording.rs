@@ -2,22 +2,33 @@
 //! [`RecordingReader`] read them back.
 //!
 //! A recording is a standard MCAP file (chunked, zstd-compressed, with CRCs, indexes and a
-//! summary), so generic MCAP tools (the `mcap` CLI, Foxglove, the Python `mcap` package) list
-//! and read it. One MCAP channel per recorded surfstream port; its topic is the port name
-//! (e.g. `stage/tiles`). Two channel kinds, each with its own schema:
+//! summary) that describes itself: every channel's schema is a JSON Schema stored in the file
+//! (schema encoding `jsonschema`) and every message is JSON (message encoding `json`), so a
+//! reader that knows nothing of surfstream decodes it from the file alone, and Foxglove shows
+//! the height maps. One MCAP channel per recorded surfstream port; its topic is the port name
+//! (e.g. `stage/tiles`). Two channel kinds:
 //!
-//! - frames: schema `surfstream.FrameHeader.v1`, message encoding `surfstream.frame.v1`; message
-//!   data = `[u32 LE header length][FrameHeader, bincode 2][width * height f32 LE heights]`.
-//! - registrations: schema `surfstream.TileRegistration.v1`, message encoding
-//!   `surfstream.registration.v1`; message data = the `TileRegistration`, bincode 2.
+//! - frames (tiles, panorama patches, datum, roughness, pooled maps, end-of-scan markers):
+//!   schema `foxglove.Grid` ([`FRAME_JSON_SCHEMA`]), Foxglove's well-known grid, which its 3D
+//!   and Image panels draw: `column_count` = width, `cell_size` = pitch in metres, `pose` at the
+//!   frame's origin, one field `height_um` (FLOAT32) in `data` (base64 of the f32 little-endian
+//!   heights, rows growing with scan y, NaN = not measured). One property more than Foxglove's
+//!   schema, `surfstream`, holds the frame header exactly (`z_offset_um`, scan id, kind, flags,
+//!   times), so absolute height = `z_offset_um` + `height_um` and a replay rebuilds every frame
+//!   bit for bit.
+//! - registrations: schema `surfstream.TileRegistration` ([`REGISTRATION_JSON_SCHEMA`]).
 //!
-//! Both schemas have the schema encoding `surfstream.bincode2`.
+//! f64 values are JSON numbers written with the shortest digits that read back to the same
+//! f64 (serde_json, read with its `float_roundtrip` parser); a non-finite one is the string
+//! "NaN", "inf" or "-inf". Why JSON with base64 rather than protobuf: Foxglove documents both
+//! for MCAP and draws `foxglove.Grid` from either; JSON needs no code generator or descriptor
+//! set, a Python reader decodes it with the standard library, and zstd takes back most of the
+//! base64 overhead.
 //!
-//! "bincode 2" is the serde encoding of bincode 2.x with `bincode::config::standard()`
-//! (little-endian, variable-length integers, floats as their 4 / 8 raw bytes). The schema data is
-//! a short UTF-8 text that spells this layout out for readers in other languages
-//! ([`FRAME_SCHEMA_TEXT`], [`REGISTRATION_SCHEMA_TEXT`]). The MCAP `log_time` of a message is the
-//! caller's `log_time_ns`, its `publish_time` the `t_sent_ns` of the frame or registration, its
+//! Recordings made before this encoding (schema encoding `surfstream.bincode2`: a bincode 2
+//! `FrameHeader` + raw f32 heights, or a bincode 2 `TileRegistration`) still read: the decoder
+//! is kept, and only the writer moved on. The MCAP `log_time` of a message is the caller's
+//! `log_time_ns`, its `publish_time` the `t_sent_ns` of the frame or registration, its
 //! `sequence` a per-channel counter from 0.
 //!
 //! Writing goes to `<path>.partial` ([`surfstream_core::fsutil::partial_path`]) and [`Recorder::finish`]
@@ -25,9 +36,10 @@
 //! partial file, so a crash or an error never leaves a file at `path` that looks complete.
 //!
 //! Reading checks everything and never panics on bad input: MCAP structure, chunk, data and
-//! summary CRCs, the end magic, that every channel has one of the two schemas above and every
-//! message decodes exactly (header length within the message, payload length = width * height *
-//! 4, no trailing bytes, a known frame kind), and that the summary's message count matches.
+//! summary CRCs, the end magic, that every channel has one of the schemas above and every
+//! message decodes exactly (every header field present and in range, the grid layout the one
+//! written, data length = width * height * 4 checked before decoding, a known frame kind), and
+//! that the summary's message count matches.
 //! Errors name the file, the channel's topic and what was expected. A record longer than
 //! max(64 MiB, 64 x the file size) after decompression is taken for a corrupt length rather than
 //! allocated.
@@ -45,39 +57,12 @@ use surfstream_core::frame::{
     FrameHeader, FrameKind, HeightMap, TileRegistration, FRAME_TYPE_NAME, REGISTRATION_TYPE_NAME,
 };
 
-/// Schema encoding of both schemas.
-pub const SCHEMA_ENCODING: &str = "surfstream.bincode2";
-/// Message encoding of frame channels.
-pub const FRAME_MESSAGE_ENCODING: &str = "surfstream.frame.v1";
-/// Message encoding of registration channels.
-pub const REGISTRATION_MESSAGE_ENCODING: &str = "surfstream.registration.v1";
-
-/// Schema data of frame channels: the message layout in words.
-pub const FRAME_SCHEMA_TEXT: &str = "\
-surfstream.FrameHeader.v1, message encoding surfstream.frame.v1. Message data:
-  u32 little-endian: header_len, the byte length of the encoded header
-  header_len bytes: the FrameHeader, serde-encoded by bincode 2.x with config::standard()
-    (little-endian, unsigned integers as varints: < 251 one byte, else 251 + u16 / 252 + u32 /
-    253 + u64 little-endian; f64 as 8 raw bytes), fields in this order:
-    kind u32 (1 tile, 2 panorama patch, 3 panorama, 4 datum, 5 roughness, 6 pooled, 7 marker),
-    flags u32 (1 final, 2 end of scan, 4 placed by stage, 8 preview), scan_id u64, sequence u64,
-    tile_index u32, tile_row u32, tile_col u32, width u32, height u32, _pad u32,
-    pitch_x_um f64, pitch_y_um f64, origin_x_um f64, origin_y_um f64, z_offset_um f64,
-    t_acquired_ns u64, t_sent_ns u64 (CLOCK_MONOTONIC)
-  width * height f32 little-endian: heights in micrometres relative to z_offset_um, row-major
-    (row index grows with scan y, column index with scan x), NaN = not measured
-";
-
-/// Schema data of registration channels: the message layout in words.
-pub const REGISTRATION_SCHEMA_TEXT: &str = "\
-surfstream.TileRegistration.v1, message encoding surfstream.registration.v1. Message data:
-  the TileRegistration, serde-encoded by bincode 2.x with config::standard() (little-endian,
-  unsigned integers as varints, f64 as 8 raw bytes), fields in this order:
-    scan_id u64, sequence u64, tile_index u32, placed_by u32 (1 registration, 2 stage),
-    flags u32 (2 end of scan), links_accepted u32, links_tried u32, _pad u32,
-    x_um f64, y_um f64 (final scan position of the tile's pixel (0, 0)), piston_um f64,
-    tilt_x_um_per_px f64, tilt_y_um_per_px f64, quality f64, t_acquired_ns u64, t_sent_ns u64
-";
+/// Schema encoding of recordings written before the JSON encoding (read, never written).
+pub const LEGACY_SCHEMA_ENCODING: &str = "surfstream.bincode2";
+/// Message encoding of legacy frame channels.
+pub const LEGACY_FRAME_MESSAGE_ENCODING: &str = "surfstream.frame.v1";
+/// Message encoding of legacy registration channels.
+pub const LEGACY_REGISTRATION_MESSAGE_ENCODING: &str = "surfstream.registration.v1";
 
 /// Target uncompressed chunk size of recordings, bytes (a 1024 x 1024 tile is one chunk).
 const CHUNK_SIZE_BYTES: u64 = 4 * 1024 * 1024;
@@ -96,20 +81,26 @@ pub enum ChannelKind {
 impl ChannelKind {
     fn schema_name(self) -> &'static str {
         match self {
+            Self::Frame => FRAME_SCHEMA_NAME,
+            Self::Registration => REGISTRATION_SCHEMA_NAME,
+        }
+    }
+    fn json_schema(self) -> &'static str {
+        match self {
+            Self::Frame => FRAME_JSON_SCHEMA,
+            Self::Registration => REGISTRATION_JSON_SCHEMA,
+        }
+    }
+    fn legacy_schema_name(self) -> &'static str {
+        match self {
             Self::Frame => FRAME_TYPE_NAME,
             Self::Registration => REGISTRATION_TYPE_NAME,
         }
     }
-    fn message_encoding(self) -> &'static str {
+    fn legacy_message_encoding(self) -> &'static str {
         match self {
-            Self::Frame => FRAME_MESSAGE_ENCODING,
-            Self::Registration => REGISTRATION_MESSAGE_ENCODING,
-        }
-    }
-    fn schema_text(self) -> &'static str {
-        match self {
-            Self::Frame => FRAME_SCHEMA_TEXT,
-            Self::Registration => REGISTRATION_SCHEMA_TEXT,
+            Self::Frame => LEGACY_FRAME_MESSAGE_ENCODING,
+            Self::Registration => LEGACY_REGISTRATION_MESSAGE_ENCODING,
         }
     }
     fn name(self) -> &'static str {
@@ -118,6 +109,15 @@ impl ChannelKind {
             Self::Registration => "registration",
         }
     }
+}
+
+/// How a channel's messages are encoded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum ChannelEncoding {
+    /// JSON messages described by a JSON Schema in the file (what [`Recorder`] writes).
+    Json,
+    /// bincode 2 with a prose schema: recordings made before the JSON encoding (read only).
+    LegacyBincode,
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -232,8 +232,8 @@ impl Recorder {
                 let id = writer
                     .add_schema(
                         kind.schema_name(),
-                        SCHEMA_ENCODING,
-                        kind.schema_text().as_bytes(),
+                        JSON_SCHEMA_ENCODING,
+                        kind.json_schema().as_bytes(),
                     )
                     .map_err(|e| {
                         anyhow!(
@@ -247,7 +247,7 @@ impl Recorder {
             }
         };
         let id = writer
-            .add_channel(schema_id, topic, kind.message_encoding(), &metadata)
+            .add_channel(schema_id, topic, JSON_MESSAGE_ENCODING, &metadata)
             .map_err(|e| anyhow!("{}: cannot add channel \"{topic}\": {e}", partial.display()))?;
         self.channels.insert(
             id,
@@ -302,15 +302,9 @@ impl Recorder {
             );
         }
         let mut buf = std::mem::take(&mut self.buf);
-        buf.clear();
-        buf.reserve(64 + heights.len() * 4);
-        buf.extend_from_slice(&[0; 4]);
-        bincode::serde::encode_into_std_write(header, &mut buf, bincode_config())
-            .map_err(|e| anyhow!("cannot encode a frame header: {e}"))?;
-        let header_len = (buf.len() - 4) as u32;
-        buf[..4].copy_from_slice(&header_len.to_le_bytes());
-        for h in heights {
-            buf.extend_from_slice(&h.to_le_bytes());
+        if let Err(e) = encode_frame_json(header, heights, &mut buf) {
+            self.buf = buf;
+            return Err(e);
         }
         let result = self.write_message(channel, &buf, log_time_ns, header.t_sent_ns);
         self.buf = buf;
@@ -325,8 +319,7 @@ impl Recorder {
         log_time_ns: u64,
     ) -> Result<()> {
         self.channel(channel, ChannelKind::Registration)?;
-        let data = bincode::serde::encode_to_vec(registration, bincode_config())
-            .map_err(|e| anyhow!("cannot encode a registration: {e}"))?;
+        let data = encode_registration_json(registration)?;
         self.write_message(channel, &data, log_time_ns, registration.t_sent_ns)
     }
 
@@ -416,6 +409,7 @@ impl Drop for Recorder {
 pub struct ChannelInfo {
     pub topic: String,
     pub kind: ChannelKind,
+    pub encoding: ChannelEncoding,
     pub metadata: BTreeMap<String, String>,
 }
 
@@ -668,25 +662,32 @@ impl RecordingReader {
                 c.schema_id
             )
         })?;
-        let kind = [ChannelKind::Frame, ChannelKind::Registration]
-            .into_iter()
-            .find(|k| {
-                k.schema_name() == name
-                    && encoding == SCHEMA_ENCODING
-                    && k.message_encoding() == c.message_encoding
-            })
-            .ok_or_else(|| {
-                anyhow!(
-                    "{p}: topic \"{topic}\" (channel {}) has schema \"{name}\" (encoding \
-                     \"{encoding}\") and message encoding \"{}\"; expected {}",
-                    c.id,
-                    c.message_encoding,
-                    expected_kinds()
-                )
-            })?;
+        let kinds = [ChannelKind::Frame, ChannelKind::Registration];
+        let json = kinds.into_iter().find(|k| {
+            k.schema_name() == name
+                && encoding == JSON_SCHEMA_ENCODING
+                && c.message_encoding == JSON_MESSAGE_ENCODING
+        });
+        let legacy = kinds.into_iter().find(|k| {
+            k.legacy_schema_name() == name
+                && encoding == LEGACY_SCHEMA_ENCODING
+                && k.legacy_message_encoding() == c.message_encoding
+        });
+        let (kind, channel_encoding) = match (json, legacy) {
+            (Some(k), _) => (k, ChannelEncoding::Json),
+            (None, Some(k)) => (k, ChannelEncoding::LegacyBincode),
+            (None, None) => bail!(
+                "{p}: topic \"{topic}\" (channel {}) has schema \"{name}\" (encoding \
+                 \"{encoding}\") and message encoding \"{}\"; expected {}",
+                c.id,
+                c.message_encoding,
+                expected_kinds()
+            ),
+        };
         let info = ChannelInfo {
             topic: c.topic,
             kind,
+            encoding: channel_encoding,
             metadata: c.metadata,
         };
         if let Some(prev) = self.channels.get(&c.id) {
@@ -722,9 +723,17 @@ fn decode_message(
             header.channel_id
         )
     })?;
-    let message = match channel.kind {
-        ChannelKind::Frame => decode_frame(data).map(Recorded::Frame),
-        ChannelKind::Registration => decode_registration(data).map(Recorded::Registration),
+    let message = match (channel.kind, channel.encoding) {
+        (ChannelKind::Frame, ChannelEncoding::Json) => decode_frame_json(data).map(Recorded::Frame),
+        (ChannelKind::Registration, ChannelEncoding::Json) => {
+            decode_registration_json(data).map(Recorded::Registration)
+        }
+        (ChannelKind::Frame, ChannelEncoding::LegacyBincode) => {
+            decode_frame(data).map(Recorded::Frame)
+        }
+        (ChannelKind::Registration, ChannelEncoding::LegacyBincode) => {
+            decode_registration(data).map(Recorded::Registration)
+        }
     }
     .map_err(|what| {
         anyhow!(
@@ -744,9 +753,11 @@ fn decode_message(
 
 fn expected_kinds() -> String {
     format!(
-        "schema \"{FRAME_TYPE_NAME}\" with message encoding \"{FRAME_MESSAGE_ENCODING}\" \
-         or schema \"{REGISTRATION_TYPE_NAME}\" with message encoding \
-         \"{REGISTRATION_MESSAGE_ENCODING}\" (schema encoding \"{SCHEMA_ENCODING}\")"
+        "schema \"{FRAME_SCHEMA_NAME}\" or \"{REGISTRATION_SCHEMA_NAME}\" (encoding \
+         \"{JSON_SCHEMA_ENCODING}\", message encoding \"{JSON_MESSAGE_ENCODING}\"), or from an \
+         older recording schema \"{FRAME_TYPE_NAME}\" with message encoding \
+         \"{LEGACY_FRAME_MESSAGE_ENCODING}\" or \"{REGISTRATION_TYPE_NAME}\" with message encoding \
+         \"{LEGACY_REGISTRATION_MESSAGE_ENCODING}\" (encoding \"{LEGACY_SCHEMA_ENCODING}\")"
     )
 }
 
@@ -847,6 +858,415 @@ fn decode_registration(data: &[u8]) -> std::result::Result<TileRegistration, Str
         ));
     }
     Ok(reg)
+}
+
+// ---------------------------------------------------------------------------------------------
+// The self-describing encoding (JSON messages, JSON Schema schemas)
+
+/// Schema encoding of the schemas written now.
+pub const JSON_SCHEMA_ENCODING: &str = "jsonschema";
+/// Message encoding of the channels written now.
+pub const JSON_MESSAGE_ENCODING: &str = "json";
+/// Schema name of frame channels: Foxglove's well-known grid, which its 3D and Image panels show.
+pub const FRAME_SCHEMA_NAME: &str = "foxglove.Grid";
+/// Schema name of registration channels.
+pub const REGISTRATION_SCHEMA_NAME: &str = "surfstream.TileRegistration";
+/// `frame_id` of every grid: the scan coordinates (x along columns, y along rows).
+pub const SCAN_FRAME_ID: &str = "surfstream_scan";
+/// The one field of a grid's `data`: f32 heights in micrometres relative to `z_offset_um`.
+pub const HEIGHT_FIELD: &str = "height_um";
+/// Foxglove's NumericType of an f32.
+const NUMERIC_TYPE_FLOAT32: u64 = 7;
+
+/// JSON Schema of a number that may also be a non-finite float spelled as a string.
+macro_rules! float_schema {
+    ($desc:literal) => {
+        concat!(
+            r#"{"type": ["number", "string"], "description": ""#,
+            $desc,
+            r#" (f64; written with enough digits to read back bit for bit; a non-finite value is the string \"NaN\", \"inf\" or \"-inf\")"}"#
+        )
+    };
+}
+
+/// JSON Schema of frame messages: Foxglove's `foxglove.Grid` (same properties, same meaning, so
+/// Foxglove shows the heights as a grid in its 3D and Image panels) plus one property,
+/// `surfstream`, that holds the frame header exactly.
+pub const FRAME_JSON_SCHEMA: &str = concat!(
+    r#"{
+  "title": "foxglove.Grid",
+  "description": "A 2D grid of data: one surfstream height map (a tile, a panorama patch, a datum, roughness or pooled map, or an end-of-scan marker without cells). Foxglove's foxglove.Grid plus the property surfstream, the exact frame header.",
+  "$comment": "Properties as in https://docs.foxglove.dev/docs/sdk/schemas/grid; surfstream is an addition that Foxglove ignores.",
+  "type": "object",
+  "properties": {
+    "timestamp": {"type": "object", "title": "time", "description": "Timestamp of grid: the frame's t_sent_ns (CLOCK_MONOTONIC of the sending host)",
+      "properties": {"sec": {"type": "integer", "minimum": 0}, "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}}},
+    "frame_id": {"type": "string", "description": "Frame of reference: surfstream_scan, the scan coordinates in metres (x along columns, y along rows)"},
+    "pose": {"title": "foxglove.Pose", "type": "object", "description": "Origin of grid's corner relative to frame of reference; grid is positioned in the x-y plane relative to this origin. Position = (origin_x_um, origin_y_um, z_offset_um) in metres for display (0 where not finite); the exact values are in surfstream",
+      "properties": {
+        "position": {"title": "foxglove.Vector3", "type": "object", "properties": {"x": {"type": "number"}, "y": {"type": "number"}, "z": {"type": "number"}}, "required": ["x", "y", "z"]},
+        "orientation": {"title": "foxglove.Quaternion", "type": "object", "properties": {"x": {"type": "number"}, "y": {"type": "number"}, "z": {"type": "number"}, "w": {"type": "number"}}, "required": ["x", "y", "z", "w"]}},
+      "required": ["position", "orientation"]},
+    "column_count": {"type": "integer", "minimum": 0, "description": "Number of grid columns (the frame's width)"},
+    "cell_size": {"title": "foxglove.Vector2", "type": "object", "description": "Size of single grid cell along x and y axes, relative to pose: the pitch in metres",
+      "properties": {"x": {"type": "number"}, "y": {"type": "number"}}, "required": ["x", "y"]},
+    "row_stride": {"type": "integer", "minimum": 0, "description": "Number of bytes between rows in data"},
+    "cell_stride": {"type": "integer", "minimum": 0, "description": "Number of bytes between cells within a row in data"},
+    "fields": {"type": "array", "description": "Fields in data: one, height_um, FLOAT32 at offset 0",
+      "items": {"title": "foxglove.PackedElementField", "type": "object",
+        "properties": {
+          "name": {"type": "string", "description": "Name of the field"},
+          "offset": {"type": "integer", "minimum": 0, "description": "Byte offset from start of data buffer"},
+          "type": {"title": "foxglove.NumericType", "description": "Type of data in the field. Integers are stored using little-endian byte order.",
+            "oneOf": [{"title": "UNKNOWN", "const": 0}, {"title": "UINT8", "const": 1}, {"title": "INT8", "const": 2}, {"title": "UINT16", "const": 3}, {"title": "INT16", "const": 4}, {"title": "UINT32", "const": 5}, {"title": "INT32", "const": 6}, {"title": "FLOAT32", "const": 7}, {"title": "FLOAT64", "const": 8}]}},
+        "required": ["name", "offset", "type"]}},
+    "data": {"type": "string", "contentEncoding": "base64", "description": "Grid cell data, interpreted using fields, in row-major (y-major) order: height_um, float32 little-endian, micrometres relative to surfstream.z_offset_um, NaN = not measured; row index grows with scan y, column index with scan x"},
+    "surfstream": {"title": "surfstream.FrameHeader", "type": "object", "description": "The frame header, exactly (DESIGN section 2); absolute height = z_offset_um + height_um",
+      "properties": {
+        "kind": {"description": "What the frame holds", "oneOf": [{"title": "tile", "const": 1}, {"title": "panorama_patch", "const": 2}, {"title": "panorama", "const": 3}, {"title": "datum", "const": 4}, {"title": "roughness", "const": 5}, {"title": "pooled", "const": 6}, {"title": "marker", "const": 7}]},
+        "flags": {"type": "integer", "minimum": 0, "description": "Bit set: 1 final, 2 end of scan, 4 placed by stage, 8 preview"},
+        "scan_id": {"type": "integer", "minimum": 0, "description": "u64, identifies one scan"},
+        "sequence": {"type": "integer", "minimum": 0, "description": "u64, per-channel sequence number"},
+        "tile_index": {"type": "integer", "minimum": 0, "description": "Acquisition index of the tile that caused this frame"},
+        "tile_row": {"type": "integer", "minimum": 0, "description": "Grid row of that tile (tiles only)"},
+        "tile_col": {"type": "integer", "minimum": 0, "description": "Grid column of that tile (tiles only)"},
+        "width": {"type": "integer", "minimum": 0, "description": "Columns (= column_count)"},
+        "height": {"type": "integer", "minimum": 0, "description": "Rows"},
+        "pitch_x_um": "#,
+    float_schema!("Column spacing, micrometres"),
+    r#",
+        "pitch_y_um": "#,
+    float_schema!("Row spacing, micrometres"),
+    r#",
+        "origin_x_um": "#,
+    float_schema!("Scan x of cell (0, 0), micrometres"),
+    r#",
+        "origin_y_um": "#,
+    float_schema!("Scan y of cell (0, 0), micrometres"),
+    r#",
+        "z_offset_um": "#,
+    float_schema!("Heights in data are relative to this, micrometres"),
+    r#",
+        "t_acquired_ns": {"type": "integer", "minimum": 0, "description": "u64, CLOCK_MONOTONIC when the causing tile was acquired"},
+        "t_sent_ns": {"type": "integer", "minimum": 0, "description": "u64, CLOCK_MONOTONIC when this frame was sent"}},
+      "required": ["kind", "flags", "scan_id", "sequence", "tile_index", "tile_row", "tile_col", "width", "height", "pitch_x_um", "pitch_y_um", "origin_x_um", "origin_y_um", "z_offset_um", "t_acquired_ns", "t_sent_ns"]}
+  },
+  "required": ["timestamp", "frame_id", "pose", "column_count", "cell_size", "row_stride", "cell_stride", "fields", "data", "surfstream"]
+}
+"#
+);
+
+/// JSON Schema of registration messages.
+pub const REGISTRATION_JSON_SCHEMA: &str = concat!(
+    r#"{
+  "title": "surfstream.TileRegistration",
+  "description": "Where one tile goes in the panorama and how its heights are levelled into it; sent once per tile, and once more (flag final) after the global solve at the end of the scan",
+  "type": "object",
+  "properties": {
+    "scan_id": {"type": "integer", "minimum": 0, "description": "u64, identifies one scan"},
+    "sequence": {"type": "integer", "minimum": 0, "description": "u64, per-channel sequence number"},
+    "tile_index": {"type": "integer", "minimum": 0, "description": "Acquisition index of the tile"},
+    "placed_by": {"description": "How the position was found", "oneOf": [{"title": "registration", "const": 1}, {"title": "stage", "const": 2}]},
+    "flags": {"type": "integer", "minimum": 0, "description": "Bit set: 1 final, 2 end of scan (no tile)"},
+    "links_accepted": {"type": "integer", "minimum": 0, "description": "Neighbour links accepted"},
+    "links_tried": {"type": "integer", "minimum": 0, "description": "Neighbour links tried"},
+    "x_um": "#,
+    float_schema!("Final scan x of the tile's pixel (0, 0), micrometres"),
+    r#",
+    "y_um": "#,
+    float_schema!("Final scan y of the tile's pixel (0, 0), micrometres"),
+    r#",
+    "piston_um": "#,
+    float_schema!("Height correction piston, micrometres"),
+    r#",
+    "tilt_x_um_per_px": "#,
+    float_schema!(
+        "Height correction tilt along columns, micrometres per pixel from the tile centre"
+    ),
+    r#",
+    "tilt_y_um_per_px": "#,
+    float_schema!("Height correction tilt along rows, micrometres per pixel from the tile centre"),
+    r#",
+    "quality": "#,
+    float_schema!("Best link quality (normalized cross-correlation), 0 if none"),
+    r#",
+    "t_acquired_ns": {"type": "integer", "minimum": 0, "description": "u64, CLOCK_MONOTONIC when the tile was acquired"},
+    "t_sent_ns": {"type": "integer", "minimum": 0, "description": "u64, CLOCK_MONOTONIC when this message was sent"}
+  },
+  "required": ["scan_id", "sequence", "tile_index", "placed_by", "flags", "links_accepted", "links_tried", "x_um", "y_um", "piston_um", "tilt_x_um_per_px", "tilt_y_um_per_px", "quality", "t_acquired_ns", "t_sent_ns"]
+}
+"#
+);
+
+/// An f64 as JSON: a number (serde_json writes the shortest digits that read back exactly), or
+/// one of the strings "NaN", "inf", "-inf".
+fn json_f64(v: f64) -> serde_json::Value {
+    match serde_json::Number::from_f64(v) {
+        Some(n) => serde_json::Value::Number(n),
+        None if v.is_nan() => "NaN".into(),
+        None if v > 0.0 => "inf".into(),
+        None => "-inf".into(),
+    }
+}
+
+/// For display fields Foxglove needs as numbers.
+fn finite_or_zero(v: f64) -> f64 {
+    if v.is_finite() {
+        v
+    } else {
+        0.0
+    }
+}
+
+/// The JSON message of a frame (see [`FRAME_JSON_SCHEMA`]) into `out`.
+fn encode_frame_json(h: &FrameHeader, heights: &[f32], out: &mut Vec<u8>) -> Result<()> {
+    use base64::Engine as _;
+    use serde_json::json;
+    let message = json!({
+        "timestamp": {"sec": h.t_sent_ns / 1_000_000_000, "nsec": h.t_sent_ns % 1_000_000_000},
+        "frame_id": SCAN_FRAME_ID,
+        "pose": {
+            "position": {
+                "x": finite_or_zero(h.origin_x_um * 1e-6),
+                "y": finite_or_zero(h.origin_y_um * 1e-6),
+                "z": finite_or_zero(h.z_offset_um * 1e-6),
+            },
+            "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+        },
+        "column_count": h.width,
+        "cell_size": {"x": finite_or_zero(h.pitch_x_um * 1e-6), "y": finite_or_zero(h.pitch_y_um * 1e-6)},
+        "row_stride": h.width as u64 * 4,
+        "cell_stride": 4,
+        "fields": [{"name": HEIGHT_FIELD, "offset": 0, "type": NUMERIC_TYPE_FLOAT32}],
+        "surfstream": {
+            "kind": h.kind,
+            "flags": h.flags,
+            "scan_id": h.scan_id,
+            "sequence": h.sequence,
+            "tile_index": h.tile_index,
+            "tile_row": h.tile_row,
+            "tile_col": h.tile_col,
+            "width": h.width,
+            "height": h.height,
+            "pitch_x_um": json_f64(h.pitch_x_um),
+            "pitch_y_um": json_f64(h.pitch_y_um),
+            "origin_x_um": json_f64(h.origin_x_um),
+            "origin_y_um": json_f64(h.origin_y_um),
+            "z_offset_um": json_f64(h.z_offset_um),
+            "t_acquired_ns": h.t_acquired_ns,
+            "t_sent_ns": h.t_sent_ns,
+        },
+    });
+    out.clear();
+    serde_json::to_writer(&mut *out, &message)
+        .map_err(|e| anyhow!("cannot encode a frame message: {e}"))?;
+    // The cells go in last, base64 straight into the buffer (no escaping is ever needed), not
+    // through a multi-megabyte JSON string value.
+    if out.pop() != Some(b'}') {
+        bail!("cannot encode a frame message: JSON object expected");
+    }
+    let raw: Vec<u8> = heights.iter().flat_map(|h| h.to_le_bytes()).collect();
+    out.extend_from_slice(b",\"data\":\"");
+    let start = out.len();
+    out.resize(start + base64::encoded_len(raw.len(), true).unwrap_or(0), 0);
+    let written = base64::engine::general_purpose::STANDARD
+        .encode_slice(&raw, &mut out[start..])
+        .map_err(|e| anyhow!("cannot encode a frame message: {e}"))?;
+    out.truncate(start + written);
+    out.extend_from_slice(b"\"}");
+    Ok(())
+}
+
+/// The JSON message of a registration (see [`REGISTRATION_JSON_SCHEMA`]).
+fn encode_registration_json(r: &TileRegistration) -> Result<Vec<u8>> {
+    let message = serde_json::json!({
+        "scan_id": r.scan_id,
+        "sequence": r.sequence,
+        "tile_index": r.tile_index,
+        "placed_by": r.placed_by,
+        "flags": r.flags,
+        "links_accepted": r.links_accepted,
+        "links_tried": r.links_tried,
+        "x_um": json_f64(r.x_um),
+        "y_um": json_f64(r.y_um),
+        "piston_um": json_f64(r.piston_um),
+        "tilt_x_um_per_px": json_f64(r.tilt_x_um_per_px),
+        "tilt_y_um_per_px": json_f64(r.tilt_y_um_per_px),
+        "quality": json_f64(r.quality),
+        "t_acquired_ns": r.t_acquired_ns,
+        "t_sent_ns": r.t_sent_ns,
+    });
+    serde_json::to_vec(&message).map_err(|e| anyhow!("cannot encode a registration: {e}"))
+}
+
+/// Reads the members of one JSON object, naming the object (`what`) in every error.
+struct JsonFields<'a> {
+    what: &'static str,
+    object: &'a serde_json::Map<String, serde_json::Value>,
+}
+
+impl<'a> JsonFields<'a> {
+    fn of(value: &'a serde_json::Value, what: &'static str) -> std::result::Result<Self, String> {
+        let object = value
+            .as_object()
+            .ok_or_else(|| format!("{what} is not a JSON object"))?;
+        Ok(Self { what, object })
+    }
+    fn get(&self, key: &str) -> std::result::Result<&'a serde_json::Value, String> {
+        self.object
+            .get(key)
+            .ok_or_else(|| format!("{}.{key} is missing", self.what))
+    }
+    fn u64(&self, key: &str) -> std::result::Result<u64, String> {
+        let v = self.get(key)?;
+        v.as_u64()
+            .ok_or_else(|| format!("{}.{key} is {v}, expected an unsigned integer", self.what))
+    }
+    fn u32(&self, key: &str) -> std::result::Result<u32, String> {
+        let v = self.u64(key)?;
+        u32::try_from(v).map_err(|_| {
+            format!(
+                "{}.{key} is {v}, expected an unsigned 32-bit integer",
+                self.what
+            )
+        })
+    }
+    fn f64(&self, key: &str) -> std::result::Result<f64, String> {
+        let v = self.get(key)?;
+        match v {
+            serde_json::Value::Number(n) => n.as_f64(),
+            serde_json::Value::String(s) => match s.as_str() {
+                "NaN" => Some(f64::NAN),
+                "inf" => Some(f64::INFINITY),
+                "-inf" => Some(f64::NEG_INFINITY),
+                _ => None,
+            },
+            _ => None,
+        }
+        .ok_or_else(|| {
+            format!(
+                "{}.{key} is {v}, expected a number or \"NaN\", \"inf\", \"-inf\"",
+                self.what
+            )
+        })
+    }
+}
+
+/// Decodes a JSON frame message; the error says what was wrong.
+fn decode_frame_json(data: &[u8]) -> std::result::Result<HeightMap, String> {
+    use base64::Engine as _;
+    let value: serde_json::Value = serde_json::from_slice(data)
+        .map_err(|e| format!("frame message is not JSON ({} bytes): {e}", data.len()))?;
+    let grid = JsonFields::of(&value, "grid")?;
+    let s = JsonFields::of(grid.get("surfstream")?, "surfstream")?;
+    let header = FrameHeader {
+        kind: s.u32("kind")?,
+        flags: s.u32("flags")?,
+        scan_id: s.u64("scan_id")?,
+        sequence: s.u64("sequence")?,
+        tile_index: s.u32("tile_index")?,
+        tile_row: s.u32("tile_row")?,
+        tile_col: s.u32("tile_col")?,
+        width: s.u32("width")?,
+        height: s.u32("height")?,
+        _pad: 0,
+        pitch_x_um: s.f64("pitch_x_um")?,
+        pitch_y_um: s.f64("pitch_y_um")?,
+        origin_x_um: s.f64("origin_x_um")?,
+        origin_y_um: s.f64("origin_y_um")?,
+        z_offset_um: s.f64("z_offset_um")?,
+        t_acquired_ns: s.u64("t_acquired_ns")?,
+        t_sent_ns: s.u64("t_sent_ns")?,
+    };
+    if FrameKind::from_u32(header.kind).is_none() {
+        return Err(format!(
+            "unknown frame kind {} (expected 1..=7)",
+            header.kind
+        ));
+    }
+    // The grid's own layout must be the one the header implies: one f32 field, packed.
+    let columns = grid.u64("column_count")?;
+    let row_stride = grid.u64("row_stride")?;
+    let cell_stride = grid.u64("cell_stride")?;
+    if columns != header.width as u64 || cell_stride != 4 || row_stride != header.width as u64 * 4 {
+        return Err(format!(
+            "grid layout column_count {columns}, row_stride {row_stride}, cell_stride \
+             {cell_stride}; expected {w}, {} and 4 for a {w} x {h} (width x height) frame of f32",
+            header.width as u64 * 4,
+            w = header.width,
+            h = header.height
+        ));
+    }
+    let fields = grid.get("fields")?;
+    let one_f32 = fields.as_array().is_some_and(|f| {
+        f.len() == 1
+            && f[0]["name"] == HEIGHT_FIELD
+            && f[0]["offset"] == 0
+            && f[0]["type"] == NUMERIC_TYPE_FLOAT32
+    });
+    if !one_f32 {
+        return Err(format!(
+            "grid fields are {fields}, expected one field {HEIGHT_FIELD} of type FLOAT32 (7) at offset 0"
+        ));
+    }
+    let b64 = grid
+        .get("data")?
+        .as_str()
+        .ok_or_else(|| "grid.data is not a base64 string".to_string())?;
+    let expected = header.width as u64 * header.height as u64 * 4;
+    // Checked before decoding, so a lying header allocates nothing.
+    let decoded_len = (b64.len() as u64 / 4) * 3;
+    if decoded_len < expected || decoded_len > expected + 2 {
+        return Err(format!(
+            "grid.data holds about {decoded_len} bytes, expected width * height * 4 = {} x {} x 4 = {expected}",
+            header.width, header.height
+        ));
+    }
+    let raw = base64::engine::general_purpose::STANDARD
+        .decode(b64)
+        .map_err(|e| format!("grid.data is not valid base64: {e}"))?;
+    if raw.len() as u64 != expected {
+        return Err(format!(
+            "grid.data holds {} bytes, expected width * height * 4 = {} x {} x 4 = {expected}",
+            raw.len(),
+            header.width,
+            header.height
+        ));
+    }
+    let heights = raw
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect();
+    Ok(HeightMap { header, heights })
+}
+
+/// Decodes a JSON registration message.
+fn decode_registration_json(data: &[u8]) -> std::result::Result<TileRegistration, String> {
+    let value: serde_json::Value = serde_json::from_slice(data).map_err(|e| {
+        format!(
+            "registration message is not JSON ({} bytes): {e}",
+            data.len()
+        )
+    })?;
+    let r = JsonFields::of(&value, "registration")?;
+    Ok(TileRegistration {
+        scan_id: r.u64("scan_id")?,
+        sequence: r.u64("sequence")?,
+        tile_index: r.u32("tile_index")?,
+        placed_by: r.u32("placed_by")?,
+        flags: r.u32("flags")?,
+        links_accepted: r.u32("links_accepted")?,
+        links_tried: r.u32("links_tried")?,
+        _pad: 0,
+        x_um: r.f64("x_um")?,
+        y_um: r.f64("y_um")?,
+        piston_um: r.f64("piston_um")?,
+        tilt_x_um_per_px: r.f64("tilt_x_um_per_px")?,
+        tilt_y_um_per_px: r.f64("tilt_y_um_per_px")?,
+        quality: r.f64("quality")?,
+        t_acquired_ns: r.u64("t_acquired_ns")?,
+        t_sent_ns: r.u64("t_sent_ns")?,
+    })
 }
 
 #[cfg(test)]
@@ -1128,8 +1548,288 @@ mod tests {
         );
     }
 
+    /// An MCAP file of one channel "stage/tiles" with `schema` (name, encoding), message
+    /// encoding `enc` and the messages `data`, written with the mcap crate directly.
+    fn write_raw(path: &Path, schema: (&str, &str), enc: &str, data: &[&[u8]]) {
+        let mut w =
+            mcap::Writer::new(BufWriter::new(File::create(path).expect("create"))).expect("writer");
+        let s = w.add_schema(schema.0, schema.1, b"x").expect("schema");
+        let c = w
+            .add_channel(s, "stage/tiles", enc, &BTreeMap::new())
+            .expect("channel");
+        for (i, d) in data.iter().enumerate() {
+            w.write_to_known_channel(
+                &MessageHeader {
+                    channel_id: c,
+                    sequence: i as u32,
+                    log_time: 5 + i as u64,
+                    publish_time: 5,
+                },
+                d,
+            )
+            .expect("message");
+        }
+        w.finish().expect("finish");
+    }
+
+    /// A legacy (bincode 2) frame message, as recordings were written before the JSON encoding.
+    fn legacy_frame_message(f: &HeightMap) -> Vec<u8> {
+        let mut m = vec![0u8; 4];
+        bincode::serde::encode_into_std_write(f.header, &mut m, bincode_config()).expect("encode");
+        let hl = (m.len() - 4) as u32;
+        m[..4].copy_from_slice(&hl.to_le_bytes());
+        for h in &f.heights {
+            m.extend_from_slice(&h.to_le_bytes());
+        }
+        m
+    }
+
     #[test]
-    fn bad_messages_are_reported_with_topic_and_reason() {
+    fn legacy_bincode_recordings_still_read_bit_for_bit() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("old.mcap");
+        let mut w = mcap::Writer::new(BufWriter::new(File::create(&path).expect("create")))
+            .expect("writer");
+        let fs = w
+            .add_schema(FRAME_TYPE_NAME, LEGACY_SCHEMA_ENCODING, b"prose")
+            .expect("schema");
+        let rs = w
+            .add_schema(REGISTRATION_TYPE_NAME, LEGACY_SCHEMA_ENCODING, b"prose")
+            .expect("schema");
+        let tiles = w
+            .add_channel(
+                fs,
+                "stage/tiles",
+                LEGACY_FRAME_MESSAGE_ENCODING,
+                &BTreeMap::new(),
+            )
+            .expect("channel");
+        let regs = w
+            .add_channel(
+                rs,
+                "matcher/registrations",
+                LEGACY_REGISTRATION_MESSAGE_ENCODING,
+                &BTreeMap::new(),
+            )
+            .expect("channel");
+        let f = frame(0, 7, 5, true);
+        let r = registration(3);
+        let header = |channel_id, log_time| MessageHeader {
+            channel_id,
+            sequence: 0,
+            log_time,
+            publish_time: log_time,
+        };
+        w.write_to_known_channel(&header(tiles, 10), &legacy_frame_message(&f))
+            .expect("frame");
+        let reg = bincode::serde::encode_to_vec(r, bincode_config()).expect("encode");
+        w.write_to_known_channel(&header(regs, 20), &reg)
+            .expect("registration");
+        w.finish().expect("finish");
+
+        let got = read_recording(&path).expect("legacy recording reads");
+        assert!(got
+            .channels
+            .iter()
+            .all(|c| c.encoding == ChannelEncoding::LegacyBincode));
+        match &got.messages[0].message {
+            Recorded::Frame(g) => {
+                assert_eq!(g.header, f.header);
+                assert_eq!(bits(&g.heights), bits(&f.heights));
+            }
+            other => panic!("expected a frame, got {other:?}"),
+        }
+        assert_eq!(got.messages[1].message, Recorded::Registration(r));
+    }
+
+    #[test]
+    fn new_recordings_are_json_with_json_schemas() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("rec.mcap");
+        sample(&path, (6, 4));
+        let bytes = std::fs::read(&path).expect("read");
+        let summary = mcap::Summary::read(&bytes)
+            .expect("summary")
+            .expect("has a summary");
+        let mut names = Vec::new();
+        for s in summary.schemas.values() {
+            assert_eq!(s.encoding, JSON_SCHEMA_ENCODING);
+            let schema: serde_json::Value = serde_json::from_slice(&s.data).expect("schema JSON");
+            assert_eq!(schema["title"], s.name.as_str());
+            names.push(s.name.clone());
+        }
+        names.sort();
+        assert_eq!(names, [FRAME_SCHEMA_NAME, REGISTRATION_SCHEMA_NAME]);
+        for c in summary.channels.values() {
+            assert_eq!(c.message_encoding, JSON_MESSAGE_ENCODING);
+        }
+        // Every property a message carries is described by the schema, and every required one
+        // is there.
+        let frame_schema: serde_json::Value =
+            serde_json::from_str(FRAME_JSON_SCHEMA).expect("frame schema");
+        let reg_schema: serde_json::Value =
+            serde_json::from_str(REGISTRATION_JSON_SCHEMA).expect("registration schema");
+        let f = frame(1, 3, 2, true);
+        let mut m = Vec::new();
+        encode_frame_json(&f.header, &f.heights, &mut m).expect("encode");
+        let m: serde_json::Value = serde_json::from_slice(&m).expect("message JSON");
+        let check = |schema: &serde_json::Value, message: &serde_json::Value| {
+            let props = schema["properties"].as_object().expect("properties");
+            let keys: Vec<&String> = message.as_object().expect("object").keys().collect();
+            for k in &keys {
+                assert!(props.contains_key(*k), "{k} not in the schema");
+            }
+            for r in schema["required"].as_array().expect("required") {
+                assert!(keys.iter().any(|k| *k == r), "{r} missing");
+            }
+        };
+        check(&frame_schema, &m);
+        check(&frame_schema["properties"]["surfstream"], &m["surfstream"]);
+        assert_eq!(
+            frame_schema["properties"]["data"]["contentEncoding"],
+            "base64"
+        );
+        let r: serde_json::Value =
+            serde_json::from_slice(&encode_registration_json(&registration(2)).expect("encode"))
+                .expect("registration JSON");
+        check(&reg_schema, &r);
+    }
+
+    #[test]
+    fn non_finite_and_extreme_header_values_read_back_exactly() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("odd.mcap");
+        let mut f = frame(0, 3, 2, true);
+        f.header.origin_x_um = f64::NAN;
+        f.header.origin_y_um = f64::NEG_INFINITY;
+        f.header.z_offset_um = 0.1 + 0.2; // 0.30000000000000004: needs all 17 digits
+        f.header.pitch_x_um = f64::MIN_POSITIVE;
+        f.header.pitch_y_um = -0.0;
+        f.header.scan_id = u64::MAX;
+        f.header.t_sent_ns = u64::MAX - 1;
+        let mut r = registration(0);
+        r.quality = f64::NAN;
+        r.x_um = f64::INFINITY;
+        r.y_um = 1e300;
+        let mut rec = Recorder::create(&path).expect("create");
+        let t = rec
+            .add_frame_channel("stage/tiles", BTreeMap::new())
+            .expect("channel");
+        let g = rec
+            .add_registration_channel("matcher/registrations", BTreeMap::new())
+            .expect("channel");
+        rec.write_frame(t, &f.header, &f.heights, 1).expect("frame");
+        rec.write_registration(g, &r, 2).expect("registration");
+        rec.finish().expect("finish");
+        let got = read_recording(&path).expect("read");
+        let Recorded::Frame(gf) = &got.messages[0].message else {
+            panic!("frame expected")
+        };
+        let hb = |h: &FrameHeader| {
+            [
+                h.pitch_x_um,
+                h.pitch_y_um,
+                h.origin_x_um,
+                h.origin_y_um,
+                h.z_offset_um,
+            ]
+            .map(f64::to_bits)
+        };
+        assert_eq!(hb(&gf.header), hb(&f.header));
+        assert_eq!(
+            (gf.header.scan_id, gf.header.t_sent_ns),
+            (u64::MAX, u64::MAX - 1)
+        );
+        assert_eq!(bits(&gf.heights), bits(&f.heights));
+        let Recorded::Registration(gr) = got.messages[1].message else {
+            panic!("registration expected")
+        };
+        assert!(gr.quality.is_nan() && gr.x_um == f64::INFINITY && gr.y_um == 1e300);
+    }
+
+    #[test]
+    fn bad_json_messages_are_reported_with_topic_and_reason() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let f = frame(0, 2, 2, false);
+        let mut good = Vec::new();
+        encode_frame_json(&f.header, &f.heights, &mut good).expect("encode");
+        let good: serde_json::Value = serde_json::from_slice(&good).expect("json");
+        let err = |name: &str, m: &serde_json::Value| -> String {
+            let path = dir.path().join(name);
+            let data = serde_json::to_vec(m).expect("json");
+            write_raw(
+                &path,
+                (FRAME_SCHEMA_NAME, JSON_SCHEMA_ENCODING),
+                JSON_MESSAGE_ENCODING,
+                &[&data],
+            );
+            let e = read_err(&path);
+            assert!(e.contains(name) && e.contains("\"stage/tiles\""), "{e}");
+            e
+        };
+        // Sanity: the unmodified message reads.
+        let path = dir.path().join("good.mcap");
+        let data = serde_json::to_vec(&good).expect("json");
+        write_raw(
+            &path,
+            (FRAME_SCHEMA_NAME, JSON_SCHEMA_ENCODING),
+            JSON_MESSAGE_ENCODING,
+            &[&data],
+        );
+        assert_eq!(read_recording(&path).expect("good").messages.len(), 1);
+
+        let mut m = good.clone();
+        m["surfstream"]
+            .as_object_mut()
+            .expect("object")
+            .remove("z_offset_um");
+        assert!(err("nozoff.mcap", &m).contains("surfstream.z_offset_um is missing"));
+        let mut m = good.clone();
+        m["surfstream"]["width"] = 3.into();
+        assert!(err("width.mcap", &m).contains("grid layout column_count 2"));
+        let mut m = good.clone();
+        m["surfstream"]["height"] = 4_000_000_000u32.into();
+        assert!(err("lying.mcap", &m).contains("expected width * height * 4 = 2 x 4000000000 x 4"));
+        let mut m = good.clone();
+        m["fields"][0]["type"] = 8.into();
+        assert!(err("type.mcap", &m).contains("expected one field height_um of type FLOAT32"));
+        let mut m = good.clone();
+        m["data"] = "!!!!!!!!!!!!!!!!!!!!!!!!".into();
+        assert!(err("b64.mcap", &m).contains("not valid base64"));
+        let mut m = good.clone();
+        m["surfstream"]["kind"] = 99.into();
+        assert!(err("kind.mcap", &m).contains("unknown frame kind 99"));
+        let mut m = good.clone();
+        m["surfstream"]["pitch_x_um"] = "wide".into();
+        assert!(err("pitch.mcap", &m).contains("surfstream.pitch_x_um is \"wide\""));
+        let mut m = good.clone();
+        m["surfstream"]["tile_row"] = (-1).into();
+        assert!(err("row.mcap", &m).contains("expected an unsigned integer"));
+        let path = dir.path().join("text.mcap");
+        write_raw(
+            &path,
+            (FRAME_SCHEMA_NAME, JSON_SCHEMA_ENCODING),
+            JSON_MESSAGE_ENCODING,
+            &[b"{\"column_count\": 2,"],
+        );
+        assert!(read_err(&path).contains("frame message is not JSON"));
+        // A foxglove.Grid channel in protobuf is someone else's recording: named, not guessed.
+        let path = dir.path().join("proto.mcap");
+        write_raw(
+            &path,
+            (FRAME_SCHEMA_NAME, "protobuf"),
+            "protobuf",
+            &[b"\x08\x01"],
+        );
+        let e = read_err(&path);
+        assert!(
+            e.contains("proto.mcap") && e.contains("encoding \"protobuf\""),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn bad_legacy_messages_are_reported_with_topic_and_reason() {
         // Messages that pass MCAP's checks but not ours, written with the mcap crate directly.
         let dir = tempfile::tempdir().expect("tempdir");
         let write = |name: &str, schema: (&str, &str), enc: &str, data: &[u8]| -> PathBuf {
@@ -1153,7 +1853,7 @@ mod tests {
             w.finish().expect("finish");
             path
         };
-        let frame_schema = (FRAME_TYPE_NAME, SCHEMA_ENCODING);
+        let frame_schema = (FRAME_TYPE_NAME, LEGACY_SCHEMA_ENCODING);
         let f = frame(0, 2, 2, false);
         let mut good = vec![0u8; 4];
         bincode::serde::encode_into_std_write(f.header, &mut good, bincode_config())
@@ -1164,13 +1864,18 @@ mod tests {
             good.extend_from_slice(&h.to_le_bytes());
         }
         // Sanity: the hand-made message reads.
-        let p = write("good.mcap", frame_schema, FRAME_MESSAGE_ENCODING, &good);
+        let p = write(
+            "good.mcap",
+            frame_schema,
+            LEGACY_FRAME_MESSAGE_ENCODING,
+            &good,
+        );
         assert_eq!(read_recording(&p).expect("good").messages.len(), 1);
 
         let p = write(
             "schema.mcap",
             ("ros.Image", "ros2msg"),
-            FRAME_MESSAGE_ENCODING,
+            LEGACY_FRAME_MESSAGE_ENCODING,
             &good,
         );
         let e = read_err(&p);
@@ -1189,7 +1894,7 @@ mod tests {
         let p = write(
             "hlen.mcap",
             frame_schema,
-            FRAME_MESSAGE_ENCODING,
+            LEGACY_FRAME_MESSAGE_ENCODING,
             &long_header,
         );
         let e = read_err(&p);
@@ -1203,7 +1908,7 @@ mod tests {
         let p = write(
             "short.mcap",
             frame_schema,
-            FRAME_MESSAGE_ENCODING,
+            LEGACY_FRAME_MESSAGE_ENCODING,
             &good[..good.len() - 4],
         );
         let e = read_err(&p);
@@ -1212,7 +1917,12 @@ mod tests {
             "{e}"
         );
 
-        let p = write("tiny.mcap", frame_schema, FRAME_MESSAGE_ENCODING, &[1, 0]);
+        let p = write(
+            "tiny.mcap",
+            frame_schema,
+            LEGACY_FRAME_MESSAGE_ENCODING,
+            &[1, 0],
+        );
         assert!(read_err(&p).contains("shorter than its 4-byte header length"));
 
         let mut bad_kind = f.header;
@@ -1221,7 +1931,7 @@ mod tests {
         bincode::serde::encode_into_std_write(bad_kind, &mut m, bincode_config()).expect("encode");
         let hl = (m.len() - 4) as u32;
         m[..4].copy_from_slice(&hl.to_le_bytes());
-        let p = write("kind.mcap", frame_schema, FRAME_MESSAGE_ENCODING, &m);
+        let p = write("kind.mcap", frame_schema, LEGACY_FRAME_MESSAGE_ENCODING, &m);
         assert!(read_err(&p).contains("unknown frame kind 99"));
 
         let mut reg =
@@ -1229,15 +1939,15 @@ mod tests {
         reg.push(0);
         let p = write(
             "reg.mcap",
-            (REGISTRATION_TYPE_NAME, SCHEMA_ENCODING),
-            REGISTRATION_MESSAGE_ENCODING,
+            (REGISTRATION_TYPE_NAME, LEGACY_SCHEMA_ENCODING),
+            LEGACY_REGISTRATION_MESSAGE_ENCODING,
             &reg,
         );
         assert!(read_err(&p).contains("1 bytes after the"));
         let p = write(
             "reg2.mcap",
-            (REGISTRATION_TYPE_NAME, SCHEMA_ENCODING),
-            REGISTRATION_MESSAGE_ENCODING,
+            (REGISTRATION_TYPE_NAME, LEGACY_SCHEMA_ENCODING),
+            LEGACY_REGISTRATION_MESSAGE_ENCODING,
             &reg[..10],
         );
         assert!(read_err(&p).contains("cannot decode the surfstream.TileRegistration.v1 message"));
