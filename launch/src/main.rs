@@ -146,6 +146,10 @@ fn dispatch(cli: Cli) -> Result<()> {
         } => {
             let scan = match (grid, overlap) {
                 (Some(g), Some(o)) => infer_scan(&scan, &out, g, o, serpentine, pitch_um)?,
+                // A folder of tiles without a manifest: the layout from the files' stage positions.
+                (None, None) if scan.is_dir() && !scan.join("scan.toml").exists() => {
+                    infer_scan_from_positions(&scan, &out, pitch_um)?
+                }
                 _ => scan,
             };
             if compare_fusion {
@@ -209,13 +213,7 @@ fn infer_scan(
         serpentine,
     };
     let text = surfstream_replay::infer::infer_manifest(dir, &layout, pitch_um)?;
-    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
-    let manifest = out.join("scan.toml");
-    surfstream_core::fsutil::write_atomic(&manifest, |w| {
-        use std::io::Write;
-        w.write_all(text.as_bytes())
-            .with_context(|| format!("{}: write failed", manifest.display()))
-    })?;
+    let manifest = write_inferred_manifest(out, &text)?;
     eprintln!(
         "stitch: {} tiles as {} x {} (rows x cols){}, inferred manifest {}",
         grid.rows * grid.cols,
@@ -224,6 +222,36 @@ fn infer_scan(
         if serpentine { ", serpentine" } else { "" },
         manifest.display()
     );
+    Ok(manifest)
+}
+
+/// Writes OUT/scan.toml for a folder of tiles whose files store their stage positions (no
+/// --grid), and returns its path.
+fn infer_scan_from_positions(
+    dir: &std::path::Path,
+    out: &std::path::Path,
+    pitch_um: Option<f64>,
+) -> Result<PathBuf> {
+    let (text, rows, cols) =
+        surfstream_replay::infer::infer_manifest_from_positions(dir, pitch_um)?;
+    let manifest = write_inferred_manifest(out, &text)?;
+    eprintln!(
+        "stitch: {} tiles as {rows} x {cols} (rows x cols) from the stage positions in the files, \
+         inferred manifest {}",
+        rows * cols,
+        manifest.display()
+    );
+    Ok(manifest)
+}
+
+fn write_inferred_manifest(out: &std::path::Path, text: &str) -> Result<PathBuf> {
+    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
+    let manifest = out.join("scan.toml");
+    surfstream_core::fsutil::write_atomic(&manifest, |w| {
+        use std::io::Write;
+        w.write_all(text.as_bytes())
+            .with_context(|| format!("{}: write failed", manifest.display()))
+    })?;
     Ok(manifest)
 }
 

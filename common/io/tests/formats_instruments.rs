@@ -1,5 +1,5 @@
 //! Golden tests of the instrument readers (issue 12): Sensofar .plu, Keyence .vk4, Wyko .opd,
-//! KLA Zeta .zmg.
+//! KLA Zeta .zmg, NanoFocus .nms.
 //!
 //! Each fixture is written here, byte by byte, from the format's published layout (see each
 //! reader's module doc), 5 columns x 3 rows with distinct values so a transpose or a flip
@@ -470,6 +470,87 @@ fn zmg_lying_sizes_are_errors_naming_the_field() {
     assert!(e.contains("'magic'"), "{e}");
 }
 
+// ---------------------------------------------------------------- NanoFocus .nms
+
+const NMS_ZMIN_UM: f64 = -2.5;
+const NMS_ZMAX_UM: f64 = 4.0;
+
+fn nms_raw() -> Vec<u16> {
+    vec![
+        0, 1250, 40_000, 2000, 125, //
+        1500, 875, 3300, 65_534, 250, //
+        3000, 2250, 62, 375, 33_000,
+    ]
+}
+
+fn put_f64(b: &mut [u8], at: usize, v: f64) {
+    b[at..at + 8].copy_from_slice(&v.to_le_bytes());
+}
+
+/// A .nms: the 3468-byte header (zmin/zmax at 16, date at 1076, nx/ny at 1368, dx/dy at 1376),
+/// u16 heights, then the grey image real files carry.
+fn nms_fixture(cols: usize, rows: usize, dx: f64, dy: f64, raw: &[u16]) -> Vec<u8> {
+    let mut b = vec![0u8; 3468];
+    put_f64(&mut b, 16, NMS_ZMIN_UM);
+    put_f64(&mut b, 24, NMS_ZMAX_UM);
+    b[1076..1092].copy_from_slice(b"2026-11-24 10:00");
+    put_u32(&mut b, 1368, cols as u32);
+    put_u32(&mut b, 1372, rows as u32);
+    put_f64(&mut b, 1376, dx);
+    put_f64(&mut b, 1384, dy);
+    for &v in raw {
+        b.extend_from_slice(&v.to_le_bytes());
+    }
+    b.extend(std::iter::repeat_n(0x80u8, cols * rows));
+    b
+}
+
+#[test]
+fn nms_golden() {
+    let raw = nms_raw();
+    let z: Vec<f64> = raw
+        .iter()
+        .map(|&v| NMS_ZMIN_UM + v as f64 / 65534.0 * (NMS_ZMAX_UM - NMS_ZMIN_UM))
+        .collect();
+    // dx, dy as SurfaceTopography reads them (mm) and as surfalize does (nm): one pitch.
+    for (dx, dy, unit) in [(0.0004, 0.00045, "mm"), (400.0, 450.0, "nm")] {
+        let s = parse_surface(&nms_fixture(COLS, ROWS, dx, dy, &raw), Format::Nms).unwrap();
+        check_surface(&s, &z, 0.4, 0.45, 0);
+        assert_eq!(s.metadata.format, "nms");
+        assert_eq!(s.metadata.extra["lateral_unit"], unit);
+        assert_eq!(s.metadata.date.as_deref(), Some("2026-11-24 10:00"));
+        assert!(s.metadata.warnings[0].contains(&format!("read as {unit}")));
+        // Raw 0 is zmin, raw 65534 zmax (the header's range), first stored row = row 0.
+        close(s.heights_um[0], NMS_ZMIN_UM);
+        close(s.heights_um[8], NMS_ZMAX_UM);
+        close(s.heights_um[COLS], NMS_ZMIN_UM + 1500.0 / 65534.0 * 6.5);
+    }
+}
+
+#[test]
+fn nms_lying_sizes_are_errors_naming_the_field() {
+    let good = nms_fixture(COLS, ROWS, 0.0004, 0.00045, &nms_raw());
+    let mut bytes = good.clone();
+    put_u32(&mut bytes, 1368, 100_000);
+    put_u32(&mut bytes, 1372, 100_000);
+    let e = err(&bytes, Format::Nms);
+    assert!(e.contains("'nx' x 'ny' (100000 x 100000)"), "{e}");
+    let mut bytes = good.clone();
+    put_f64(&mut bytes, 1376, 0.5);
+    let e = err(&bytes, Format::Nms);
+    assert!(e.contains("'dx' x 'dy' are 0.5 x 0.00045"), "{e}");
+    let mut bytes = good.clone();
+    put_f64(&mut bytes, 16, 9.0);
+    let e = err(&bytes, Format::Nms);
+    assert!(e.contains("'zmin' / 'zmax' are 9 / 4"), "{e}");
+    let e = err(&good[..3000], Format::Nms);
+    assert!(e.contains("3468-byte header"), "{e}");
+    let mut bytes = good;
+    put_u32(&mut bytes, 1372, 0);
+    let e = err(&bytes, Format::Nms);
+    assert!(e.contains("'nx' x 'ny' are 5 x 0"), "{e}");
+}
+
 // ---------------------------------------------------------------- all formats
 
 #[test]
@@ -481,6 +562,7 @@ fn extensions_choose_the_readers() {
         ("c.opd", Format::Opd),
         ("c.OPD", Format::Opd),
         ("d.zmg", Format::Zmg),
+        ("e.NMS", Format::Nms),
     ] {
         assert_eq!(Format::from_path(Path::new(name)).unwrap(), f);
     }
@@ -497,11 +579,14 @@ fn fixtures() -> Vec<(&'static str, Format, Vec<u8>, usize)> {
     let opd_len = opd.len();
     let zmg = zmg_fixture(COLS, ROWS, &zmg_raw());
     let zmg_points_end = zmg.len() - 10;
+    let nms = nms_fixture(COLS, ROWS, 0.0004, 0.00045, &nms_raw());
+    let nms_points_end = nms.len() - COLS * ROWS;
     vec![
         ("plu", Format::Plu, plu, plu_points_end),
         ("vk4", Format::Vk4, vk4, vk4_len),
         ("opd", Format::Opd, opd, opd_len),
         ("zmg", Format::Zmg, zmg, zmg_points_end),
+        ("nms", Format::Nms, nms, nms_points_end),
     ]
 }
 
@@ -531,9 +616,11 @@ fn corruption_sweep_never_panics() {
         for _ in 0..4000 {
             let mut bytes = good.clone();
             let at = next() % bytes.len();
-            // Half the mutations land in the first 600 bytes, where the headers are.
+            // Half the mutations land in the headers: the first 600 bytes (the .nms's fields
+            // sit at 16..32 and 1368..1392).
             let at = if next() % 2 == 0 {
-                at % 600.min(bytes.len())
+                let header = if name == "nms" { 1400 } else { 600 };
+                at % header.min(bytes.len())
             } else {
                 at
             };

@@ -56,6 +56,9 @@ impl<'a> Bytes<'a> {
     pub fn f32_le(&self, o: usize, f: &str) -> Result<f32> {
         Ok(f32::from_le_bytes(self.array(o, f)?))
     }
+    pub fn f64_le(&self, o: usize, f: &str) -> Result<f64> {
+        Ok(f64::from_le_bytes(self.array(o, f)?))
+    }
 
     /// A fixed-width text field, trailing NULs and spaces removed; Latin-1 decoded (Digital
     /// Surf writes "µm" as the single byte 0xB5).

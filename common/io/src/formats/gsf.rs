@@ -38,6 +38,7 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
     let mut yres = None;
     let (mut xreal, mut yreal) = (1.0f64, 1.0f64);
     let (mut xy_unit, mut z_unit) = (None, None);
+    let (mut xoff, mut yoff) = (None, None);
     let mut metadata = Metadata {
         format: "gsf".into(),
         pitch_known: true,
@@ -58,6 +59,8 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
             "YReal" => yreal = positive_real(name, value)?,
             "XYUnits" => xy_unit = Some(value.to_string()),
             "ZUnits" => z_unit = Some(value.to_string()),
+            "XOffset" => xoff = Some(finite_real(name, value)?),
+            "YOffset" => yoff = Some(finite_real(name, value)?),
             _ => {
                 metadata.extra.insert(name.to_string(), value.to_string());
             }
@@ -98,6 +101,9 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
     };
     let uxy = unit_um("XYUnits", xy_unit)?;
     let uz = unit_um("ZUnits", z_unit)?;
+    if let (Some(x), Some(y)) = (xoff, yoff) {
+        metadata.stage_position_um = Some([x * uxy, y * uxy]);
+    }
     let heights_um = data[data_start..]
         .chunks_exact(4)
         .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64 * uz)
@@ -116,6 +122,13 @@ fn positive_int(name: &str, value: &str) -> Result<usize> {
     match value.parse::<usize>() {
         Ok(v) if v > 0 => Ok(v),
         _ => bail!("header field '{name}' is '{value}', expected a positive integer"),
+    }
+}
+
+fn finite_real(name: &str, value: &str) -> Result<f64> {
+    match value.parse::<f64>() {
+        Ok(v) if v.is_finite() => Ok(v),
+        _ => bail!("header field '{name}' is '{value}', expected a finite number"),
     }
 }
 

@@ -241,6 +241,13 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
     let yreal = positive_double(field, "yreal")?;
     let uxy = unit_um(field, "si_unit_xy", &mut metadata)?;
     let uz = unit_um(field, "si_unit_z", &mut metadata)?;
+    // xoff / yoff are optional (0 when absent); a file that has both says where it lies.
+    if let (Some(Value::Double(x)), Some(Value::Double(y))) = (field.get("xoff"), field.get("yoff"))
+    {
+        if x.is_finite() && y.is_finite() {
+            metadata.stage_position_um = Some([x * uxy, y * uxy]);
+        }
+    }
     let mut heights_um: Vec<f64> = heights.map(|z| z * uz).collect();
     if let Some(Value::Object(mask)) = root.get(&format!("/{id}/mask")) {
         let (mw, mh, marks) = field_values(mask, "mask")?;

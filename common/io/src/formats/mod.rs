@@ -12,6 +12,7 @@
 mod bytes;
 pub mod datx;
 pub mod metropro;
+pub mod nms;
 pub mod opd;
 pub mod plu;
 pub mod sur;
@@ -61,6 +62,12 @@ pub struct Metadata {
     pub wavelength_um: Option<f64>,
     /// Further format-specific header fields, by name (e.g. MetroPro "phase_res").
     pub extra: BTreeMap<String, String>,
+    /// Where the file puts pixel (0, 0), micrometres (x, y), in the instrument's coordinates:
+    /// X3P `Axes/CX|CY/Offset`, Gwyddion `.gsf` `XOffset`/`YOffset`, `.gwy` `xoff`/`yoff`.
+    /// None where the format or the file stores none. A stitch run's tiles carry their stage
+    /// positions here (`stitch DIR` uses them).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stage_position_um: Option<[f64; 2]>,
     /// What the reader accepted but the user should know (a checksum that does not match).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub warnings: Vec<String>,
@@ -93,6 +100,7 @@ pub enum Format {
     Vk4,
     Opd,
     Zmg,
+    Nms,
     // Issue 12, group "open".
     Gsf,
     Gwy,
@@ -105,7 +113,7 @@ pub enum Format {
 /// them: keep in step with its match.
 pub const EXTENSIONS: &[&str] = &[
     "npy", "datx", "dat", "x3p", "sur", "xyz", "txt", "csv", "asc", "plu", "vk4", "opd", "zmg",
-    "gsf", "gwy", "sdf", "tmd", "al3d",
+    "nms", "gsf", "gwy", "sdf", "tmd", "al3d",
 ];
 
 impl Format {
@@ -127,13 +135,14 @@ impl Format {
             "vk4" => Format::Vk4,
             "opd" => Format::Opd,
             "zmg" => Format::Zmg,
+            "nms" => Format::Nms,
             "gsf" => Format::Gsf,
             "gwy" => Format::Gwy,
             "sdf" => Format::Sdf,
             "tmd" => Format::Tmd,
             "al3d" => Format::Al3d,
             other => bail!(
-                "{}: unsupported height-map format '.{other}' (expected .npy, .datx, .dat, .x3p, .sur, .xyz/.txt/.csv/.asc, .plu, .vk4, .opd, .zmg, .gsf, .gwy, .sdf, .tmd, .al3d)",
+                "{}: unsupported height-map format '.{other}' (expected .npy, .datx, .dat, .x3p, .sur, .xyz/.txt/.csv/.asc, .plu, .vk4, .opd, .zmg, .nms, .gsf, .gwy, .sdf, .tmd, .al3d)",
                 path.display()
             ),
         })
@@ -168,6 +177,7 @@ pub fn parse_surface(data: &[u8], format: Format) -> Result<Surface> {
         Format::Vk4 => vk4::parse(data)?,
         Format::Opd => opd::parse(data)?,
         Format::Zmg => zmg::parse(data)?,
+        Format::Nms => nms::parse(data)?,
         Format::Gsf => gsf::parse(data)?,
         Format::Gwy => gwy::parse(data)?,
         Format::Sdf => sdf::parse(data)?,

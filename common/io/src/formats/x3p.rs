@@ -305,6 +305,14 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
     if pitch_x_m <= 0.0 || pitch_y_m <= 0.0 {
         bail!("main.xml: Axes CX/CY Increment are {pitch_x_m} / {pitch_y_m}, expected positive");
     }
+    // Where point (0, 0) is, when the file says: x = Offset + i * Increment.
+    let stage_position_um = match (
+        number(axes, &["CX", "Offset"])?,
+        number(axes, &["CY", "Offset"])?,
+    ) {
+        (Some(x), Some(y)) => Some([x * 1e6, y * 1e6]),
+        _ => None,
+    };
     let ztype = match text_of(axes, &["CZ", "DataType"]).as_deref() {
         Some("I") => ZType::I16,
         Some("L") => ZType::I32,
@@ -344,7 +352,13 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
             &mut warnings,
         )?;
         return Ok(finish(
-            root, r1, width, height, pitch_x_m, pitch_y_m, heights_um, warnings,
+            root,
+            r1,
+            (width, height),
+            (pitch_x_m, pitch_y_m),
+            stage_position_um,
+            heights_um,
+            warnings,
         ));
     };
     let point_link =
@@ -416,7 +430,13 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
         &mut warnings,
     )?;
     Ok(finish(
-        root, r1, width, height, pitch_x_m, pitch_y_m, heights_um, warnings,
+        root,
+        r1,
+        (width, height),
+        (pitch_x_m, pitch_y_m),
+        stage_position_um,
+        heights_um,
+        warnings,
     ))
 }
 
@@ -606,14 +626,12 @@ fn parse_data_list(
 }
 
 /// The surface with the metadata of Record1/Record2.
-#[allow(clippy::too_many_arguments)]
 fn finish(
     root: roxmltree::Node,
     r1: roxmltree::Node,
-    width: usize,
-    height: usize,
-    pitch_x_m: f64,
-    pitch_y_m: f64,
+    (width, height): (usize, usize),
+    (pitch_x_m, pitch_y_m): (f64, f64),
+    stage_position_um: Option<[f64; 2]>,
     heights_um: Vec<f64>,
     warnings: Vec<String>,
 ) -> Surface {
@@ -648,6 +666,7 @@ fn finish(
         metadata.extra.insert("revision".into(), rev);
     }
     metadata.warnings = warnings;
+    metadata.stage_position_um = stage_position_um;
     Surface {
         width,
         height,
