@@ -493,7 +493,7 @@ fn apply_mask<R: Read + Seek>(
     // deflate; anything larger is not this mask.
     let limit = (n as u64).saturating_mul(8).saturating_add(1 << 20);
     let png_bytes = read_entry(zip, &name, limit)?;
-    let rgba = decode_mask_png(&png_bytes, width, height).with_context(|| format!("{name}"))?;
+    let rgba = decode_mask_png(&png_bytes, width, height).with_context(|| name.clone())?;
     let mut painted: std::collections::BTreeMap<[u8; 3], usize> = Default::default();
     for (z, px) in heights_um.iter_mut().zip(rgba.chunks_exact(4)) {
         let rgb = [px[0], px[1], px[2]];
