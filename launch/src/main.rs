@@ -265,7 +265,8 @@ fn check_node_params(graph: &GraphFile, origin: &str) -> Result<()> {
                     }
                 }
             }
-            _ => drop(nodes::build(c).with_context(at)?),
+            // The nodes' own errors name the graph, the node and the field.
+            _ => drop(nodes::build(c).with_context(|| origin.to_string())?),
         }
     }
     Ok(())
@@ -343,6 +344,9 @@ fn check_source_params(c: &surfstream_runtime::graph::NodeContext) -> Result<()>
             } else {
                 path.clone()
             };
+            if kind == "scan" && file.is_file() {
+                warn_assumed_height_unit(&file);
+            }
             if !file.is_file() {
                 bail!(
                     "params.path = {:?}: no such file (expected {})",
@@ -357,6 +361,36 @@ fn check_source_params(c: &surfstream_runtime::graph::NodeContext) -> Result<()>
             Ok(())
         }
         other => bail!("params.source = {other:?}: expected \"simulated\", \"scan\" or \"mcap\""),
+    }
+}
+
+/// A scan.toml without `height_unit` whose tiles carry no unit (.npy, .xyz): the reader
+/// takes their heights as um; say so (a unit is never assumed silently).
+fn warn_assumed_height_unit(manifest: &std::path::Path) {
+    let Some(m) = std::fs::read_to_string(manifest)
+        .ok()
+        .and_then(|t| t.parse::<toml::Table>().ok())
+    else {
+        return; // the loader names what is wrong with it
+    };
+    if m.get("scan").and_then(|s| s.get("height_unit")).is_some() {
+        return;
+    }
+    let unitless = m
+        .get("tile")
+        .and_then(|t| t.as_array())
+        .into_iter()
+        .flatten()
+        .filter_map(|t| t.get("file").and_then(|f| f.as_str()))
+        .any(|f| {
+            let f = f.to_ascii_lowercase();
+            f.ends_with(".npy") || f.ends_with(".xyz")
+        });
+    if unitless {
+        eprintln!(
+            "stitch: warning: {}: no [scan] height_unit and the tiles carry none (.npy/.xyz): heights taken as um",
+            manifest.display()
+        );
     }
 }
 

@@ -203,8 +203,8 @@ pub fn run(a: MeshArgs) -> Result<()> {
         Epsilon::SqFraction(q) => format!(" = {q} x Sq"),
     };
     eprintln!(
-        "mesh: {} triangles ({} surface), {} vertices, in {} in {mesh_s:.2} s; max vertical error \
-         {:.3} um, RMS {:.3} um (bound {:.3} um{bound}{}); {} and {}",
+        "mesh: {} triangles ({} surface), {} vertices, STL in {}; max vertical error \
+         {:.3} um, RMS {:.3} um (bound {:.3} um{bound}{}); {mesh_s:.2} s; wrote {} and {}",
         m.mesh.triangles.len(),
         m.surface_triangles,
         m.mesh.vertices.len(),
@@ -281,7 +281,7 @@ fn write_grid_target(
             .map_err(|e| anyhow!("{}: {e}", json_path.display()))
     })?;
     eprintln!(
-        "mesh: {} triangles for {} ({} sheet in {}, {} x {} grid{}); smallest angle {:.1} deg; {} and {}",
+        "mesh: {} triangles for {} ({} sheet in {}, {} x {} grid (rows x cols){}); smallest angle {:.1} deg; {} and {}",
         t.mesh.triangles.len(),
         profile.engine.name(),
         if profile.ascii { "ASCII" } else { "binary" },

@@ -213,7 +213,7 @@ pub fn convert(a: ConvertArgs) -> Result<()> {
     let s = load(&a.input, a.pitch_um)?;
     write_surface(&output, &s)?;
     eprintln!(
-        "{} -> {} ({} x {} px, pitch {} x {} um)",
+        "{} -> {} ({} x {} px (rows x cols), pitch {:.4} x {:.4} um)",
         a.input.display(),
         output.display(),
         s.height,
