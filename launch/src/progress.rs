@@ -286,23 +286,15 @@ pub fn eta(started: Instant, now: Instant, done: usize, total: Option<usize>) ->
 
 fn print_events(rx: Receiver<TileEvent>, layout: Layout, bar: bool) {
     let started = Instant::now();
-    let pb = bar.then(|| {
-        let pb = match layout.total() {
-            Some(t) => indicatif::ProgressBar::new(t as u64),
-            None => indicatif::ProgressBar::new_spinner(),
-        };
-        pb.set_draw_target(indicatif::ProgressDrawTarget::stderr());
-        if let Ok(style) = indicatif::ProgressStyle::with_template(
-            "{spinner} [{bar:30}] {pos}/{len} tiles registered, {elapsed} elapsed, ETA {eta}",
-        ) {
-            pb.set_style(style.progress_chars("=> "));
-        }
-        pb.enable_steady_tick(Duration::from_millis(200));
-        pb
-    });
+    // The bar appears with the first tile and goes with the last, so the launcher's own
+    // lines before ("scan started") and the nodes' after (final passes) are not drawn over.
+    let mut pb: Option<indicatif::ProgressBar> = None;
     let mut done = 0usize;
     for e in rx {
         done += 1;
+        if bar && pb.is_none() && layout.total().is_none_or(|t| done <= t) {
+            pb = Some(new_bar(&layout));
+        }
         // The bar shows its own ETA; plain lines carry it.
         let eta = if pb.is_some() {
             None
@@ -311,16 +303,38 @@ fn print_events(rx: Receiver<TileEvent>, layout: Layout, bar: bool) {
         };
         let text = line(&e, &layout, done, eta);
         match &pb {
-            Some(pb) => {
-                pb.println(text);
-                pb.inc(1);
+            Some(b) => {
+                b.println(text);
+                b.inc(1);
+                if layout.total().is_some_and(|t| done >= t) {
+                    b.finish_and_clear();
+                    pb = None;
+                }
             }
             None => eprintln!("{text}"),
         }
     }
-    if let Some(pb) = pb {
-        pb.finish_and_clear();
+    if let Some(b) = pb {
+        b.finish_and_clear();
     }
+}
+
+fn new_bar(layout: &Layout) -> indicatif::ProgressBar {
+    let pb = match layout.total() {
+        Some(t) => indicatif::ProgressBar::new(t as u64),
+        None => indicatif::ProgressBar::new_spinner(),
+    };
+    pb.set_draw_target(indicatif::ProgressDrawTarget::stderr());
+    let template = if layout.total().is_some() {
+        "{spinner} [{bar:30}] {pos}/{len} tiles registered, {elapsed} elapsed, ETA {eta}"
+    } else {
+        "{spinner} {pos} tiles registered, {elapsed} elapsed"
+    };
+    if let Ok(style) = indicatif::ProgressStyle::with_template(template) {
+        pb.set_style(style.progress_chars("=> "));
+    }
+    pb.enable_steady_tick(Duration::from_millis(200));
+    pb
 }
 
 /// The launch-side observer: its own iceoryx2 node on a launcher thread. Returns when the
