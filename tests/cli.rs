@@ -408,3 +408,32 @@ fn stitch_shows_progress_from_the_manifest_and_warns_of_an_assumed_height_unit()
     assert!(text.contains("1 x 2 tiles (rows x cols)"), "{text}");
     assert!(text.contains("verdict: "), "{text}");
 }
+
+/// On a terminal the progress lines come with an indicatif bar (and its ETA) that is cleared
+/// at the end; `script` (util-linux, in every Debian) gives the run a pseudo-terminal.
+#[test]
+fn on_a_terminal_progress_is_a_bar_above_the_lines() {
+    let dir = tempfile::tempdir().unwrap();
+    let bin = surfstream_e2e::bin_dir().join("surfstream");
+    let cmd = format!(
+        "{} run launch/graphs/demo.toml --set stage.tile_px=256 --set stage.pacing=fast -o {}",
+        bin.display(),
+        dir.path().join("out").display()
+    );
+    let out = run({
+        let mut c = std::process::Command::new("script");
+        c.current_dir(surfstream_e2e::repo_root())
+            .args(["-qec", &cmd, "/dev/null"]);
+        c
+    });
+    assert!(out.status.success(), "{}", stderr(&out));
+    let tty = stdout(&out);
+    assert!(tty.contains("/4 tiles registered"), "no bar:\n{tty}");
+    assert!(tty.contains("ETA "), "no ETA:\n{tty}");
+    assert_eq!(
+        tty.lines().filter(|l| l.contains("row 1 x col 0")).count(),
+        1,
+        "each tile's line once:\n{tty}"
+    );
+    assert!(tty.contains("verdict: "), "{tty}");
+}
