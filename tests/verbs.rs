@@ -6,9 +6,12 @@ use std::path::{Path, PathBuf};
 use serde_json::Value;
 use surfstream_e2e::{read_json, run, stderr, surfstream};
 
+/// A real instrument file: ../shared/specimens beside the repository, or the folder
+/// SURFSTREAM_SPECIMENS names (a git worktree elsewhere).
 fn specimen(name: &str) -> PathBuf {
-    surfstream_e2e::repo_root()
-        .join("../shared/specimens")
+    std::env::var_os("SURFSTREAM_SPECIMENS")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| surfstream_e2e::repo_root().join("../shared/specimens"))
         .join(name)
 }
 
@@ -68,7 +71,7 @@ fn inspect_params_and_convert_on_a_metropro_file() {
     // Through .x3p and back: the same parameters; missing output folders are created.
     let d = tempfile::tempdir().unwrap();
     let x3p = d.path().join("new").join("deeper").join("m.x3p");
-    ok(&["convert", s(&dat), s(&x3p)]);
+    ok(&["convert", s(&dat), "-o", s(&x3p)]);
     let q = params(&x3p);
     for k in ["Sa", "Sq", "Sz", "Sdq", "Sdr"] {
         let (a, b) = (p[k].as_f64().unwrap(), q[k].as_f64().unwrap());

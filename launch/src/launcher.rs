@@ -62,7 +62,8 @@ fn prepare(graph: &mut GraphFile) -> Result<Vec<NodeContext>> {
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_nanos() as u64)
         .unwrap_or(0);
-    let contexts = graph.resolve(scan_id, &crate::nodes::registry())?;
+    let mut contexts = graph.resolve(scan_id, &crate::nodes::registry())?;
+    crate::progress::attach_observer(&mut contexts);
     let resolved = out.join(shell::RESOLVED_GRAPH);
     fsutil::write_atomic(&resolved, |w| {
         serde_json::to_writer_pretty(w, &contexts)
@@ -79,9 +80,14 @@ pub fn run_in_process(
 ) -> Result<()> {
     let contexts = prepare(&mut graph)?;
     let started = Instant::now();
+    let progress = crate::progress::Progress::start(&contexts);
     let mut threads = Vec::new();
     for c in &contexts {
-        let logic = nodes::build(c)?;
+        let logic = if crate::progress::is_observer(&c.node_kind) {
+            progress.observer()
+        } else {
+            nodes::build(c)?
+        };
         threads.push(InProcessNode {
             context: c.clone(),
             logic,
@@ -90,19 +96,22 @@ pub fn run_in_process(
     eprintln!(
         "surfstream: running graph '{}' in one process ({} nodes) -> {}",
         graph.graph.name,
-        contexts.len(),
+        graph.nodes.len(),
         graph.graph.out_dir.display()
     );
     let reports = inproc::run_graph(threads).inspect_err(|_| {
         fsutil::remove_partials(&graph.graph.out_dir);
-    })?;
+    });
+    progress.finish();
+    let mut reports = reports?;
+    crate::progress::drop_observer_reports(&mut reports);
     for r in &reports {
         shell::write_report(&graph.graph.out_dir, r)?;
     }
     finish(&graph, origin, &reports, "run", started, deviation)
 }
 
-/// Writes run.json and prints the summary.
+/// Writes run.json.
 fn finish(
     graph: &GraphFile,
     origin: &Path,
@@ -111,8 +120,8 @@ fn finish(
     started: Instant,
     deviation: deviation::Settings,
 ) -> Result<()> {
-    let summary = runjson::write(graph, origin, reports, mode, started.elapsed(), deviation)?;
-    eprintln!("{summary}");
+    // The verdict (main.rs) reads run.json; the latency table only with --verbose.
+    runjson::write(graph, origin, reports, mode, started.elapsed(), deviation)?;
     Ok(())
 }
 
@@ -249,7 +258,10 @@ pub fn launch(mut graph: GraphFile, origin: &Path, deviation: deviation::Setting
     std::fs::create_dir_all(&logs).with_context(|| format!("{}: cannot create", logs.display()))?;
     let binaries: Vec<PathBuf> = contexts
         .iter()
-        .map(|c| node_binary(&c.node_kind))
+        .map(|c| match crate::progress::is_observer(&c.node_kind) {
+            true => Ok(PathBuf::new()),
+            false => node_binary(&c.node_kind),
+        })
         .collect::<Result<_>>()?;
 
     let result = {
@@ -271,7 +283,18 @@ pub fn launch(mut graph: GraphFile, origin: &Path, deviation: deviation::Setting
         let resolved = out.join(shell::RESOLVED_GRAPH);
         let mut running = Vec::new();
         let mut spawn_error = None;
+        let progress = crate::progress::Progress::start(&contexts);
+        let mut observer = None;
         for (c, bin) in contexts.iter().zip(&binaries) {
+            if crate::progress::is_observer(&c.node_kind) {
+                // A launcher thread, not a process (see progress.rs).
+                observer = Some(crate::progress::spawn_ipc_observer(
+                    c.clone(),
+                    &progress,
+                    cfg.clone(),
+                )?);
+                continue;
+            }
             let log = logs.join(format!("{}.stderr", c.node_id));
             match spawn(bin, &resolved, c, &slot.prefix, &log) {
                 Ok(mut child) => {
@@ -310,7 +333,13 @@ pub fn launch(mut graph: GraphFile, origin: &Path, deviation: deviation::Setting
         };
         if outcome.is_err() {
             stop_all(&mut running, &rx);
+            // The observer's upstream is gone: end its event loop too.
+            ipc::STOP_REQUESTED.store(true, std::sync::atomic::Ordering::Relaxed);
         }
+        if let Some(o) = observer {
+            let _ = o.join();
+        }
+        progress.finish();
         drop(go);
         drop(ready);
         drop(launcher);
@@ -392,7 +421,7 @@ fn supervise(
         .map_err(|e| anyhow!("cannot tell the sources to start: {e:?}"))?;
     eprintln!(
         "surfstream: all {} nodes ready; scan started",
-        contexts.len()
+        graph.nodes.len()
     );
     while running.iter().any(|r| !r.exited) {
         match rx.recv_timeout(Duration::from_secs(3600)) {
@@ -469,7 +498,10 @@ fn stop_all(running: &mut [Running], rx: &Receiver<Event>) {
 
 fn read_reports(out: &Path, contexts: &[NodeContext]) -> Result<Vec<NodeReport>> {
     let mut reports = BTreeMap::new();
-    for c in contexts {
+    for c in contexts
+        .iter()
+        .filter(|c| !crate::progress::is_observer(&c.node_kind))
+    {
         let path = shell::report_path(out, &c.node_id);
         let text = std::fs::read_to_string(&path)
             .with_context(|| format!("{}: node '{}' left no report", path.display(), c.node_id))?;

@@ -5,9 +5,11 @@ mod compare_fusion;
 mod deviation;
 mod launcher;
 mod nodes;
+mod progress;
 mod report;
 mod runjson;
 mod verbs;
+mod verdict;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -25,7 +27,12 @@ use surfstream_runtime::graph::GraphFile;
 stage through registration, fusion, wavelet separation and meshing.\n\n\
   surfstream launch launch/graphs/demo.toml     every node its own process, frames over shared memory\n\
   surfstream run launch/graphs/demo.toml        the same graph in one process (identical outputs)\n\
-  surfstream stitch scan.toml --out out/scan    the default pipeline for a scan directory or recording"
+  surfstream stitch scan.toml -o out/scan       the default pipeline for a scan directory or recording\n\n\
+Conventions of every verb: outputs go where -o/--out says (missing folders are created); \
+heights and lengths in um; sizes as rows x cols; a warning on stderr whenever a pitch, unit or \
+level is assumed or changed. launch, run and stitch print a line per registered tile while they \
+work and a verdict at the end (key parameters, outputs, mesh size, Table 6 pass/fail); \
+--strict makes a failed check exit with status 3."
 )]
 struct Cli {
     #[command(subcommand)]
@@ -37,12 +44,27 @@ struct GraphArgs {
     /// Graph file (TOML): nodes, parameters, wiring. See launch/graphs/demo.toml.
     graph: PathBuf,
     /// Output directory (overrides [graph] out_dir).
-    #[arg(long)]
+    #[arg(short = 'o', long, value_name = "DIR")]
     out: Option<PathBuf>,
     /// Override one node parameter, e.g. --set stage.rows=3 (VALUE is read as TOML); or the
     /// Table-6 threshold: --set deviation.threshold_percent=2.
     #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
     set: Vec<String>,
+    #[command(flatten)]
+    verdict: VerdictArgs,
+}
+
+/// How the end of a graph run is judged and told.
+#[derive(Args, Clone, Copy)]
+struct VerdictArgs {
+    /// Exit with status 3 when a check fails (Table 6 deviation beyond the threshold, tiles
+    /// placed by stage fallback), after writing every output.
+    #[arg(long)]
+    strict: bool,
+    /// Also print the latency tables (p50 / p95 / max per stage, ms); they are always in
+    /// run.json and report.html.
+    #[arg(short, long)]
+    verbose: bool,
 }
 
 #[derive(Subcommand)]
@@ -55,8 +77,8 @@ enum Command {
     Stitch {
         /// scan.toml (or its directory), or a .mcap recording made by the recorder.
         scan: PathBuf,
-        /// Output directory.
-        #[arg(long)]
+        /// Output directory (created with its missing parents).
+        #[arg(short = 'o', long, value_name = "DIR")]
         out: PathBuf,
         /// Override one node parameter (nodes: stage, matcher, fusion, wavelet, mesher), or
         /// the Table-6 threshold: --set deviation.threshold_percent=2.
@@ -85,12 +107,14 @@ enum Command {
         /// With --grid: the pitch, um, for tiles that carry none (.npy).
         #[arg(long, requires = "grid")]
         pitch_um: Option<f64>,
+        #[command(flatten)]
+        verdict: VerdictArgs,
     },
     /// Show a height-map file's metadata, shape, pitch and invalid count.
     Inspect(verbs::metrology::InspectArgs),
     /// ISO 25178 height and hybrid parameters of a height-map file.
     Params(verbs::metrology::ParamsArgs),
-    /// Convert a height-map file to another format (by extension).
+    /// Convert a height-map file to another format (by extension): convert IN -o OUT.
     Convert(verbs::metrology::ConvertArgs),
     /// Compare two height maps or images: SIM, SSIM, RMS difference.
     Compare(verbs::metrology::CompareArgs),
@@ -115,7 +139,7 @@ fn main() -> ExitCode {
         }
     }
     match dispatch(cli) {
-        Ok(()) => ExitCode::SUCCESS,
+        Ok(code) => code,
         Err(e) => {
             eprintln!("surfstream: error: {e:#}");
             ExitCode::FAILURE
@@ -123,15 +147,20 @@ fn main() -> ExitCode {
     }
 }
 
-fn dispatch(cli: Cli) -> Result<()> {
+fn dispatch(cli: Cli) -> Result<ExitCode> {
+    let done = |r: Result<()>| r.map(|()| ExitCode::SUCCESS);
     match cli.command {
         Command::Launch(a) => {
             let (graph, deviation) = load_graph(&a)?;
-            launcher::launch(graph, &a.graph, deviation)
+            let out = graph.graph.out_dir.clone();
+            launcher::launch(graph, &a.graph, deviation)?;
+            tell_verdict(&out, a.verdict)
         }
         Command::Run(a) => {
             let (graph, deviation) = load_graph(&a)?;
-            launcher::run_in_process(graph, &a.graph, deviation)
+            let out = graph.graph.out_dir.clone();
+            launcher::run_in_process(graph, &a.graph, deviation)?;
+            tell_verdict(&out, a.verdict)
         }
         Command::Stitch {
             scan,
@@ -143,6 +172,7 @@ fn dispatch(cli: Cli) -> Result<()> {
             overlap,
             serpentine,
             pitch_um,
+            verdict,
         } => {
             let scan = match (grid, overlap) {
                 (Some(g), Some(o)) => infer_scan(&scan, &out, g, o, serpentine, pitch_um)?,
@@ -153,18 +183,48 @@ fn dispatch(cli: Cli) -> Result<()> {
                 _ => scan,
             };
             if compare_fusion {
-                return compare_fusion::run(&scan, &out, &set, method.as_deref());
+                return done(compare_fusion::run(&scan, &out, &set, method.as_deref()));
             }
-            let (graph, deviation) = stitch_graph(&scan, out, &set, method.as_deref())?;
-            launcher::run_in_process(graph, &scan, deviation)
+            let (graph, deviation) = stitch_graph(&scan, out.clone(), &set, method.as_deref())?;
+            launcher::run_in_process(graph, &scan, deviation)?;
+            tell_verdict(&out, verdict)
         }
-        Command::Inspect(a) => verbs::metrology::inspect(a),
-        Command::Params(a) => verbs::metrology::params(a),
-        Command::Convert(a) => verbs::metrology::convert(a),
-        Command::Compare(a) => verbs::metrology::compare(a),
-        Command::Separate(a) => verbs::separate::run(a),
-        Command::Mesh(a) => verbs::mesh::run(a),
+        Command::Inspect(a) => {
+            verbs::one_file(&a.file, "inspect")?;
+            done(verbs::metrology::inspect(a))
+        }
+        Command::Params(a) => done(verbs::metrology::params(a)),
+        Command::Convert(mut a) => {
+            verbs::one_file(&a.input, "convert")?;
+            let out = verbs::convert_output(a.out.take(), a.output.take())?;
+            a.out = Some(out);
+            done(verbs::metrology::convert(a))
+        }
+        Command::Compare(a) => done(verbs::metrology::compare(a)),
+        Command::Separate(a) => done(verbs::separate::run(a)),
+        Command::Mesh(a) => {
+            verbs::one_file(&a.file, "mesh")?;
+            done(verbs::mesh::run(a))
+        }
     }
+}
+
+/// Prints the verdict of the run in `out` (stdout: it is the result; progress and warnings
+/// go to stderr). Under `--strict` a failed check is exit status 3.
+fn tell_verdict(out: &std::path::Path, how: VerdictArgs) -> Result<ExitCode> {
+    let v = verdict::from_out_dir(out, how.verbose)?;
+    println!("{}", v.text);
+    if how.strict && !v.failures.is_empty() {
+        eprintln!(
+            "surfstream: --strict: {} check(s) failed (outputs are written):",
+            v.failures.len()
+        );
+        for f in &v.failures {
+            eprintln!("  {f}");
+        }
+        return Ok(ExitCode::from(verdict::STRICT_FAILURE_EXIT));
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 /// Reads a graph file and applies `--out` and `--set`; returns the graph and the Table-6
@@ -184,7 +244,158 @@ fn load_graph(a: &GraphArgs) -> Result<(GraphFile, deviation::Settings)> {
         graph.graph.out_dir = out.clone();
     }
     graph.validate(&a.graph.display().to_string(), &registry)?;
+    check_node_params(&graph, &origin)?;
     Ok((graph, settings))
+}
+
+/// Every node's parameters checked the way the node will check them, before anything is
+/// started or written (the out dir is not touched): a typo fails here, not after "launched
+/// graph" with a half-prepared out dir. Nodes whose construction has no side effects are
+/// built and dropped; the source is checked without generating its specimen or reading its
+/// tiles; the recorder (which creates its file when built) by its one key.
+fn check_node_params(graph: &GraphFile, origin: &str) -> Result<()> {
+    let contexts = graph.resolve(0, &nodes::registry())?;
+    for c in &contexts {
+        let at = || format!("{origin}: node '{}' ({})", c.node_id, c.node_kind);
+        match c.node_kind.as_str() {
+            "replay" => check_source_params(c).with_context(at)?,
+            "recorder" => {
+                for (k, v) in &c.params {
+                    if k != "path" || !v.is_str() {
+                        bail!(
+                            "{}: params.{k} = {v}: the recorder takes only path = \"FILE.mcap\"",
+                            at()
+                        );
+                    }
+                }
+            }
+            // The nodes' own errors name the graph, the node and the field.
+            _ => drop(nodes::build(c).with_context(|| origin.to_string())?),
+        }
+    }
+    Ok(())
+}
+
+/// The replay node's parameters, cheaply: the simulated stage's plan and specimen settings
+/// (not the specimen itself), the pacing, and that a scan or recording path exists.
+fn check_source_params(c: &surfstream_runtime::graph::NodeContext) -> Result<()> {
+    use surfstream_runtime::graph::params_from_table;
+    let p = &c.params;
+    let text = |k: &str, default: &str| -> Result<String> {
+        match p.get(k) {
+            None => Ok(default.to_string()),
+            Some(v) => v
+                .as_str()
+                .map(str::to_string)
+                .ok_or_else(|| anyhow!("params.{k} = {v}: expected a string")),
+        }
+    };
+    let seconds = match p.get("field_time_s") {
+        None => 1.0,
+        Some(v) => v
+            .as_float()
+            .or_else(|| v.as_integer().map(|i| i as f64))
+            .ok_or_else(|| anyhow!("params.field_time_s = {v}: expected seconds"))?,
+    };
+    match text("source", "")?.as_str() {
+        "simulated" => {
+            surfstream_replay::Pacing::from_name(&text("pacing", "realtime")?, seconds)
+                .map_err(|e| anyhow!("{e}"))?;
+            // The same split as the node: its own keys, the specimen's, the stage's.
+            let mut stage = p.clone();
+            for k in [
+                "source",
+                "pacing",
+                "field_time_s",
+                "save_specimen",
+                "specimen",
+            ] {
+                stage.remove(k);
+            }
+            let mut specimen = toml::Table::new();
+            for k in [
+                "sa_um",
+                "hurst",
+                "correlation_length_um",
+                "waviness_amplitude_um",
+                "waviness_wavelength_um",
+                "waviness_components",
+                "form_sag_um",
+            ] {
+                if let Some(v) = stage.remove(k) {
+                    specimen.insert(k.into(), v);
+                }
+            }
+            if let Some(seed) = p.get("seed") {
+                specimen.insert("seed".into(), seed.clone());
+            }
+            let stage: surfstream_replay::StageParams =
+                params_from_table(&stage).map_err(|e| anyhow!("bad params: {e}"))?;
+            let plan = surfstream_replay::plan_scan(&stage)?;
+            if !p.contains_key("specimen") {
+                let base: surfstream_replay::SpecimenParams =
+                    params_from_table(&specimen).map_err(|e| anyhow!("bad params: {e}"))?;
+                plan.specimen_params(&base).validate()?;
+            }
+            Ok(())
+        }
+        kind @ ("scan" | "mcap") => {
+            let path = PathBuf::from(text("path", "")?);
+            let pacing = text("pacing", if kind == "scan" { "fast" } else { "original" })?;
+            surfstream_replay::Pacing::from_name(&pacing, seconds).map_err(|e| anyhow!("{e}"))?;
+            let file = if kind == "scan" && path.is_dir() {
+                path.join("scan.toml")
+            } else {
+                path.clone()
+            };
+            if kind == "scan" && file.is_file() {
+                warn_assumed_height_unit(&file);
+            }
+            if !file.is_file() {
+                bail!(
+                    "params.path = {:?}: no such file (expected {})",
+                    path.display().to_string(),
+                    if kind == "scan" {
+                        "a scan.toml or its directory"
+                    } else {
+                        "a .mcap recording"
+                    }
+                );
+            }
+            Ok(())
+        }
+        other => bail!("params.source = {other:?}: expected \"simulated\", \"scan\" or \"mcap\""),
+    }
+}
+
+/// A scan.toml without `height_unit` whose tiles carry no unit (.npy, .xyz): the reader
+/// takes their heights as um; say so (a unit is never assumed silently).
+fn warn_assumed_height_unit(manifest: &std::path::Path) {
+    let Some(m) = std::fs::read_to_string(manifest)
+        .ok()
+        .and_then(|t| t.parse::<toml::Table>().ok())
+    else {
+        return; // the loader names what is wrong with it
+    };
+    if m.get("scan").and_then(|s| s.get("height_unit")).is_some() {
+        return;
+    }
+    let unitless = m
+        .get("tile")
+        .and_then(|t| t.as_array())
+        .into_iter()
+        .flatten()
+        .filter_map(|t| t.get("file").and_then(|f| f.as_str()))
+        .any(|f| {
+            let f = f.to_ascii_lowercase();
+            f.ends_with(".npy") || f.ends_with(".xyz")
+        });
+    if unitless {
+        eprintln!(
+            "stitch: warning: {}: no [scan] height_unit and the tiles carry none (.npy/.xyz): heights taken as um",
+            manifest.display()
+        );
+    }
 }
 
 /// Writes OUT/scan.toml for a folder of tiles laid out as the user says, and returns its path.
@@ -336,5 +547,6 @@ inputs = {{ surface = "wavelet/pooled" }}
     }
     graph.graph.out_dir = out;
     graph.validate("stitch pipeline", &registry)?;
+    check_node_params(&graph, "stitch pipeline")?;
     Ok((graph, settings))
 }

@@ -10,8 +10,8 @@ use serde_json::json;
 use surfstream_core::frame::to_frame_heights;
 use surfstream_core::raster::{RasterView, Shape};
 use surfstream_mesher::{
-    check_closed, grid_sheet_for, job::DEFAULT_EPSILON_SQ_FRACTION, mesh_height_field, stl,
-    DemEngine, EngineProfile, Epsilon, LengthUnit, MeshError, MeshKind, MeshParams, MissingSamples,
+    check_closed, grid_sheet_for, job::DEFAULT_EPSILON_SQ_FRACTION, mesh_height_field, DemEngine,
+    EngineProfile, Epsilon, LengthUnit, MeshError, MeshKind, MeshParams, MissingSamples,
     ScanPlacement, SolidParams, TargetMethod,
 };
 
@@ -54,17 +54,17 @@ pub struct MeshArgs {
     /// Write ASCII STL (LIGGGHTS) instead of binary (EDEM, Rocky, MercuryDPM).
     #[arg(long)]
     pub ascii: bool,
-    /// Unit of the STL coordinates.
-    #[arg(long, value_enum, default_value = "mm")]
-    pub units: Units,
+    /// Unit of the STL coordinates (mm when not given, with a warning).
+    #[arg(long, value_enum)]
+    pub units: Option<Units>,
     /// Base of the solid below the lowest sample, um (default: 10 % of the height range, >= 10).
     #[arg(long)]
     pub base_depth_um: Option<f64>,
     /// Sample spacing, um, for files without a lateral calibration (.npy); overrides the file's.
     #[arg(long)]
     pub pitch_um: Option<f64>,
-    /// Output STL; the statistics go to the same name with .json.
-    #[arg(long)]
+    /// Output STL (missing folders are created); the statistics go to the same name with .json.
+    #[arg(short = 'o', long, value_name = "OUT.stl")]
     pub out: PathBuf,
 }
 
@@ -80,9 +80,12 @@ pub fn run(a: MeshArgs) -> Result<()> {
     };
     if a.pitch_um.is_none() && !surface.metadata.pitch_known {
         eprintln!(
-            "mesh: {} carries no lateral calibration; using {pitch_x_um} um (give --pitch-um)",
+            "mesh: warning: {} carries no lateral calibration; assuming a pitch of {pitch_x_um:.4} um (give --pitch-um)",
             a.file.display()
         );
+    }
+    if a.units.is_none() && a.target.is_none() {
+        eprintln!("mesh: warning: no --units given; the STL is in mm (--units m | mm | um)");
     }
     // Heights as f32 relative to their mean, so that f32 keeps nanometres however far up the
     // z axis the part sits; the mean goes into z_offset_um and comes back in the offset.
@@ -109,7 +112,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
     if let Some(profile) = profile.filter(|p| p.method == TargetMethod::Grid) {
         return write_grid_target(&a, &surface.metadata.format, heights, &at, &profile);
     }
-    let units = match a.units {
+    let units = match a.units.unwrap_or(Units::Mm) {
         Units::M => LengthUnit::M,
         Units::Mm => LengthUnit::Mm,
         Units::Um => LengthUnit::Um,
@@ -145,12 +148,13 @@ pub fn run(a: MeshArgs) -> Result<()> {
     let check = check_closed(&m.mesh);
 
     let ascii = profile.map_or(a.ascii, |p| p.ascii);
-    let label = stl::stl_header(&m.mesh, "surfstream mesh");
+    // The writers add units and offset to the label (stl::stl_header).
+    let label = "surfstream mesh";
     surfstream_core::fsutil::write_atomic(&a.out, |w| {
         if ascii {
-            surfstream_mesher::write_stl_ascii(w, &m.mesh, &label)?;
+            surfstream_mesher::write_stl_ascii(w, &m.mesh, label)?;
         } else {
-            surfstream_mesher::write_stl_binary(w, &m.mesh, &label)?;
+            surfstream_mesher::write_stl_binary(w, &m.mesh, label)?;
         }
         Ok(())
     })?;
@@ -161,7 +165,11 @@ pub fn run(a: MeshArgs) -> Result<()> {
         .ok_or_else(|| anyhow!("mesh summary is not an object"))?;
     o.insert("input".into(), json!(a.file.display().to_string()));
     o.insert("input_format".into(), json!(surface.metadata.format));
-    o.insert("grid_px".into(), json!([surface.width, surface.height]));
+    o.remove("grid_px");
+    o.insert(
+        "grid_rows_cols".into(),
+        json!([surface.height, surface.width]),
+    );
     o.insert("pitch_um".into(), json!([pitch_x_um, pitch_y_um]));
     o.insert("stl".into(), json!(file_name(&a.out)));
     o.insert(
@@ -190,11 +198,17 @@ pub fn run(a: MeshArgs) -> Result<()> {
             .map_err(|e| anyhow!("{}: {e}", json_path.display()))
     })?;
     let f = &m.fidelity;
+    let bound = match params.epsilon {
+        Epsilon::Um(_) => String::new(),
+        Epsilon::SqFraction(q) => format!(" = {q} x Sq"),
+    };
     eprintln!(
-        "mesh: {} triangles ({} surface) in {mesh_s:.3} s; max error {:.4} um, RMS {:.4} um \
-         (epsilon {:.4} um{}); {} and {}",
+        "mesh: {} triangles ({} surface), {} vertices, STL in {}; max vertical error \
+         {:.3} um, RMS {:.3} um (bound {:.3} um{bound}{}); {mesh_s:.2} s; wrote {} and {}",
         m.mesh.triangles.len(),
         m.surface_triangles,
+        m.mesh.vertices.len(),
+        m.mesh.units.symbol(),
         f.error.max_um,
         f.error.rms_um,
         f.epsilon_um,
@@ -222,10 +236,7 @@ fn write_grid_target(
     let t =
         grid_sheet_for(heights, at, profile).with_context(|| format!("{}", a.file.display()))?;
     let mesh_s = t0.elapsed().as_secs_f64();
-    let label = stl::stl_header(
-        &t.mesh,
-        &format!("surfstream mesh for {}", profile.engine.name()),
-    );
+    let label = format!("surfstream mesh for {}", profile.engine.name());
     surfstream_core::fsutil::write_atomic(&a.out, |w| {
         if profile.ascii {
             surfstream_mesher::write_stl_ascii(w, &t.mesh, &label)?;
@@ -270,7 +281,7 @@ fn write_grid_target(
             .map_err(|e| anyhow!("{}: {e}", json_path.display()))
     })?;
     eprintln!(
-        "mesh: {} triangles for {} ({} sheet in {}, {} x {} grid{}); smallest angle {:.1} deg; {} and {}",
+        "mesh: {} triangles for {} ({} sheet in {}, {} x {} grid (rows x cols){}); smallest angle {:.1} deg; {} and {}",
         t.mesh.triangles.len(),
         profile.engine.name(),
         if profile.ascii { "ASCII" } else { "binary" },

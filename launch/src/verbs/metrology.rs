@@ -38,8 +38,12 @@ pub struct ParamsArgs {
 pub struct ConvertArgs {
     /// Any readable height-map file.
     pub input: PathBuf,
-    /// .x3p or .npy.
-    pub output: PathBuf,
+    /// Output file, .x3p or .npy (missing folders are created).
+    #[arg(short = 'o', long = "out", value_name = "OUT")]
+    pub out: Option<PathBuf>,
+    /// Deprecated: the output as a second argument (use -o).
+    #[arg(hide = true, value_name = "OUTPUT")]
+    pub output: Option<PathBuf>,
     /// Pitch in um for inputs that carry none (.npy); an error for inputs that do.
     #[arg(long)]
     pub pitch_um: Option<f64>,
@@ -203,12 +207,15 @@ pub fn params(a: ParamsArgs) -> Result<()> {
 }
 
 pub fn convert(a: ConvertArgs) -> Result<()> {
+    let Some(output) = a.out.or(a.output) else {
+        bail!("convert: no output: write `convert IN -o OUT.x3p` (or .npy)");
+    };
     let s = load(&a.input, a.pitch_um)?;
-    write_surface(&a.output, &s)?;
+    write_surface(&output, &s)?;
     eprintln!(
-        "{} -> {} ({} x {} px, pitch {} x {} um)",
+        "{} -> {} ({} x {} px (rows x cols), pitch {:.4} x {:.4} um)",
         a.input.display(),
-        a.output.display(),
+        output.display(),
         s.height,
         s.width,
         s.pitch_x_um,

@@ -37,7 +37,7 @@ pub struct SeparateArgs {
     #[arg(long = "pool-op", default_value = "max")]
     pub pool_op: String,
     /// Output directory (created if needed).
-    #[arg(long)]
+    #[arg(short = 'o', long)]
     pub out: PathBuf,
 }
 

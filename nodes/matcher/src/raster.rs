@@ -13,9 +13,11 @@ use thiserror::Error;
 /// `RasterView` was built, and a `ShapeError` from there converts into the first two variants.
 #[derive(Debug, Clone, PartialEq, Error, Serialize, Deserialize)]
 pub enum InputError {
-    #[error("raster has zero size ({width} x {height} px)")]
+    #[error("raster has zero size ({height} x {width} px, rows x cols)")]
     ZeroSize { width: usize, height: usize },
-    #[error("raster of {width} x {height} px needs {expected} heights, got {actual}")]
+    #[error(
+        "raster of {height} x {width} px (rows x cols) needs {expected} heights, got {actual}"
+    )]
     SliceLength {
         width: usize,
         height: usize,

@@ -32,9 +32,11 @@ pub fn binary_stl_len(triangles: usize) -> u64 {
 /// (the offset to 1 nm), at most 80 ASCII bytes. The unit and offset fit for any offset below
 /// 1e15 um; the label is shortened if needed, non-printable or non-ASCII characters in it become '?', and a label
 /// that starts with "solid" is prefixed with "binary " because readers take a binary file whose
-/// header starts with "solid" for ASCII.
+/// header starts with "solid" for ASCII. A label that already ends in a unit and offset
+/// (a header made by this function) loses them first, so the description is never repeated:
+/// `stl_header(m, &stl_header(m, l)) == stl_header(m, l)`.
 pub fn stl_header(mesh: &SolidMesh, label: &str) -> String {
-    let mut label = clean_label(label);
+    let mut label = clean_label(bare_label(label));
     if label.len() >= 5 && label[..5].eq_ignore_ascii_case("solid") {
         label.insert_str(0, "binary ");
     }
@@ -51,6 +53,20 @@ pub fn stl_header(mesh: &SolidMesh, label: &str) -> String {
     };
     header.truncate(80);
     header
+}
+
+/// `label` without a trailing `units=..., offset_um=...` description (what [`stl_header`]
+/// appends), so callers may pass either a plain label or a finished header.
+fn bare_label(label: &str) -> &str {
+    let cut = if label.starts_with("units=") {
+        Some(0)
+    } else {
+        label.find(", units=").or_else(|| label.find(" units="))
+    };
+    match cut {
+        Some(k) => label[..k].trim_end_matches([',', ' ']),
+        None => label,
+    }
 }
 
 /// The label as printable ASCII, trimmed.
@@ -120,7 +136,7 @@ pub fn write_stl_binary<W: Write>(mut w: W, mesh: &SolidMesh, header_text: &str)
 pub fn write_stl_ascii<W: Write>(mut w: W, mesh: &SolidMesh, header_text: &str) -> Result<()> {
     mesh.validate()?;
     // The first word is the solid's name; the rest says units and offset. No length limit here.
-    let name = match clean_label(header_text).replace(' ', "_") {
+    let name = match clean_label(bare_label(header_text)).replace(' ', "_") {
         n if n.is_empty() => "surfstream".to_string(),
         n => n,
     };
@@ -296,6 +312,34 @@ mod tests {
             "units=mm, offset_um=123456789.000,-98765.432,0.500"
         );
         assert!(stl_header(&m, "naïve\ttab").starts_with("na?ve?tab, "));
+    }
+
+    /// The callers used to pass a finished header as the label, which came out as
+    /// "surfstream surface, units=mm, offse, units=mm, ..." (issue 13): the header is idempotent
+    /// and the file's 80 bytes say unit and offset exactly once, NUL padded.
+    #[test]
+    fn header_of_a_header_is_the_header_and_the_file_says_it_once() {
+        let m = mesh([211.27764, -5.5, -15.134544]);
+        let h = stl_header(&m, "surfstream surface");
+        assert_eq!(
+            h,
+            "surfstream surface, units=mm, offset_um=211.278,-5.500,-15.135"
+        );
+        assert_eq!(stl_header(&m, &h), h);
+        assert_eq!(stl_header(&m, &stl_header(&m, "")), stl_header(&m, ""));
+        let mut out = Vec::new();
+        write_stl_binary(&mut out, &m, &h).unwrap();
+        let text = &out[..80];
+        assert_eq!(&text[..h.len()], h.as_bytes());
+        assert!(text[h.len()..].iter().all(|&b| b == 0));
+        let mut ascii = Vec::new();
+        write_stl_ascii(&mut ascii, &m, &h).unwrap();
+        let first = String::from_utf8(ascii).unwrap();
+        let first = first.lines().next().unwrap().to_string();
+        assert_eq!(
+            first,
+            "solid surfstream_surface units=mm offset_um=211.278,-5.500,-15.135"
+        );
     }
 
     #[test]

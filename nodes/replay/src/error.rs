@@ -20,7 +20,7 @@ pub enum ReplayError {
         expected: String,
     },
     /// The raster would be too large to synthesise or hold.
-    #[error("{what} of {width_px} x {height_px} px is too large: expected {limit}")]
+    #[error("{what} of {height_px} x {width_px} px (rows x cols) is too large: expected {limit}")]
     TooLarge {
         /// What was too large (e.g. "specimen for a 40 x 40 scan").
         what: String,

@@ -1,0 +1,376 @@
+//! The verdict printed at the end of `launch`, `run` and `stitch`: what a metrologist asks
+//! first. Key parameters of the measured surface, where the outputs are, the mesh size, Table
+//! 6's pass/fail with the reason (which stage, parameter, region, by how much, against which
+//! limit) and the tiles placed by stage fallback. Built from run.json alone, so it says
+//! exactly what the file says; latency tables only with `--verbose` (and in report.html).
+//!
+//! Numbers: heights in um with 3 decimals, positions in um with 2, percentages with 2, times
+//! in ms with 2: never scientific notation.
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use serde_json::Value;
+
+/// Exit code of a run whose outputs were written but a check failed under `--strict`
+/// (1 stays "error, no result"; 2 is clap's usage error).
+pub const STRICT_FAILURE_EXIT: u8 = 3;
+
+/// What the verdict found.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Verdict {
+    /// The text to print (several lines, no trailing newline).
+    pub text: String,
+    /// Every failed check, one short line each (empty: all passed).
+    pub failures: Vec<String>,
+}
+
+/// A height (or length) in um with fixed precision: "1.384 um".
+pub fn um(v: f64) -> String {
+    format!("{v:.3} um")
+}
+
+/// A count with thin grouping for readability: 27850 -> "27 850".
+pub fn count(n: u64) -> String {
+    let digits = n.to_string();
+    let mut out = String::new();
+    for (k, c) in digits.chars().enumerate() {
+        if k > 0 && (digits.len() - k).is_multiple_of(3) {
+            out.push(' ');
+        }
+        out.push(c);
+    }
+    out
+}
+
+fn f(v: &Value) -> Option<f64> {
+    v.as_f64()
+}
+
+/// Reads `<out>/run.json` and builds the verdict.
+pub fn from_out_dir(out: &Path, verbose: bool) -> anyhow::Result<Verdict> {
+    let path = out.join("run.json");
+    let text = std::fs::read_to_string(&path)
+        .map_err(|e| anyhow::anyhow!("{}: cannot read run.json: {e}", path.display()))?;
+    let run: Value = serde_json::from_str(&text)
+        .map_err(|e| anyhow::anyhow!("{}: not valid JSON: {e}", path.display()))?;
+    Ok(verdict(&run, out, verbose))
+}
+
+/// The verdict of one run.json (the out dir only names the files).
+pub fn verdict(run: &Value, out: &Path, verbose: bool) -> Verdict {
+    let mut s = String::new();
+    let mut failures = Vec::new();
+    let tiles = run["tiles"].as_array().cloned().unwrap_or_default();
+    let fallback: Vec<&Value> = tiles.iter().filter(|t| t["placed_by"] == "stage").collect();
+    let scan = &run["scan"];
+    let grid = match (scan["rows"].as_u64(), scan["cols"].as_u64()) {
+        (Some(r), Some(c)) => format!("{r} x {c} tiles (rows x cols)"),
+        _ => format!("{} tiles", tiles.len()),
+    };
+    let _ = writeln!(
+        s,
+        "surfstream: done in {:.2} s",
+        run["elapsed_s"].as_f64().unwrap_or(0.0)
+    );
+    let _ = writeln!(
+        s,
+        "  scan        {grid}: {} by registration, {} by stage fallback",
+        tiles.len() - fallback.len(),
+        fallback.len()
+    );
+    if let Some(line) = surface_line(run) {
+        let _ = writeln!(s, "  surface     {line}");
+    }
+    if let Some(line) = mesh_line(run) {
+        let _ = writeln!(s, "  mesh        {line}");
+    }
+    match deviation_line(&run["deviation"]) {
+        Some((line, failed)) => {
+            let _ = writeln!(s, "  deviation   {line}");
+            if failed {
+                failures.push(format!("deviation: {line}"));
+            }
+        }
+        None => {
+            let _ = writeln!(s, "  deviation   not evaluated (no Table 6 in run.json)");
+        }
+    }
+    if !fallback.is_empty() {
+        let list: Vec<String> = fallback.iter().map(|t| tile_name(t)).collect();
+        let line = format!(
+            "{} tile(s) placed by stage position, not registration: {}",
+            fallback.len(),
+            list.join(", ")
+        );
+        let _ = writeln!(s, "  fallback    {line}");
+        failures.push(format!("fallback: {line}"));
+    }
+    let _ = writeln!(s, "  outputs     {}", outputs_line(run, out));
+    if verbose {
+        s.push_str(&latency_table(&run["latency_ms"]));
+    }
+    let _ = write!(
+        s,
+        "verdict: {}",
+        if failures.is_empty() {
+            "PASS".to_string()
+        } else {
+            format!("FAIL ({} check(s) failed)", failures.len())
+        }
+    );
+    Verdict { text: s, failures }
+}
+
+fn tile_name(t: &Value) -> String {
+    format!("tile {} (row {} x col {})", t["index"], t["row"], t["col"])
+}
+
+/// Sa, Sq, Sz of the measured panorama: Table 6's "measured" for the whole-panorama region.
+fn surface_line(run: &Value) -> Option<String> {
+    let dev = &run["deviation"];
+    let measured_file = dev["measured"].as_str().unwrap_or("panorama.npy");
+    let stages = dev["stages"].as_object()?;
+    let measured = stages
+        .values()
+        .map(|st| &st["regions"]["panorama"]["measured"])
+        .find(|m| m.is_object())?;
+    let p = |k: &str| f(&measured[k]).map(|v| format!("{k} {}", um(v)));
+    let params: Vec<String> = ["Sa", "Sq", "Sz"].iter().filter_map(|k| p(k)).collect();
+    if params.is_empty() {
+        return None;
+    }
+    let shape = run["deviation"]["regions"]
+        .as_array()
+        .and_then(|rs| rs.iter().find(|r| r["name"] == "panorama"))
+        .map(|r| format!(", {} x {} px", r["rows"], r["cols"]))
+        .unwrap_or_default();
+    Some(format!(
+        "{} of {measured_file}{shape} (rows x cols), mean removed",
+        params.join(", ")
+    ))
+}
+
+/// The STL: file, triangles, vertices, units and the vertical error against its bound.
+fn mesh_line(run: &Value) -> Option<String> {
+    let stages = run["stages"].as_object()?;
+    let m = stages
+        .values()
+        .find(|st| st.get("triangles").is_some() && st.get("file").is_some())?;
+    let mut line = format!(
+        "{}: {} triangles, {} vertices, units {}",
+        m["file"].as_str().unwrap_or("?"),
+        count(m["triangles"].as_u64().unwrap_or(0)),
+        count(m["vertices"].as_u64().unwrap_or(0)),
+        m["units"].as_str().unwrap_or("?"),
+    );
+    let fid = &m["fidelity"];
+    if let (Some(max), Some(eps)) = (f(&fid["error"]["max_um"]), f(&fid["epsilon_um"])) {
+        let _ = write!(
+            line,
+            "; max vertical error {} (bound {}{})",
+            um(max),
+            um(eps),
+            if fid["bound_met"] == false {
+                ", NOT met"
+            } else {
+                ""
+            }
+        );
+    }
+    Some(line)
+}
+
+/// Table 6 in one line: PASS, or FAIL with the worst judged parameter of every failing stage.
+fn deviation_line(dev: &Value) -> Option<(String, bool)> {
+    let stages = dev["stages"].as_object()?;
+    let limit = f(&dev["threshold_pct"]).unwrap_or(f64::NAN);
+    let judged: Vec<&str> = dev["judged"]
+        .as_array()
+        .map(|a| a.iter().filter_map(Value::as_str).collect())
+        .unwrap_or_else(|| vec!["Sa", "Sq", "Sz"]);
+    let mut reasons = Vec::new();
+    for (name, st) in stages {
+        if st["pass"] != false {
+            continue;
+        }
+        let Some(regions) = st["regions"].as_object() else {
+            reasons.push(format!("{name} fails"));
+            continue;
+        };
+        let failing = regions.values().filter(|r| r["pass"] == false).count();
+        // The worst judged parameter over the failing regions.
+        let worst = regions
+            .iter()
+            .filter(|(_, r)| r["pass"] == false)
+            .flat_map(|(region, r)| {
+                judged
+                    .iter()
+                    .filter_map(move |k| f(&r["deviation_pct"][*k]).map(|d| (region, *k, d)))
+            })
+            .max_by(|a, b| a.2.abs().total_cmp(&b.2.abs()));
+        match worst {
+            Some((region, param, d)) => reasons.push(format!(
+                "{name}: {param} {d:+.2} % in {region}, beyond the limit of +/-{limit:.2} % \
+                 ({failing} of {} regions fail)",
+                regions.len()
+            )),
+            None => reasons.push(format!("{name} fails")),
+        }
+    }
+    let pass = dev["pass"] != false && reasons.is_empty();
+    let judged_text = judged.join(", ");
+    Some(if pass {
+        (
+            format!(
+                "PASS: every model stage within +/-{limit:.2} % of the measurement on {judged_text} (Table 6)"
+            ),
+            false,
+        )
+    } else {
+        (format!("FAIL: {}", reasons.join("; ")), true)
+    })
+}
+
+fn outputs_line(run: &Value, out: &Path) -> String {
+    let files: Vec<&str> = run["files"]
+        .as_array()
+        .map(|a| a.iter().filter_map(Value::as_str).collect())
+        .unwrap_or_default();
+    let key: Vec<&str> = [
+        "surface.stl",
+        "report.html",
+        "run.json",
+        "panorama.npy",
+        "panorama.x3p",
+        "recording.mcap",
+    ]
+    .into_iter()
+    // report.html is written after run.json lists the files: look on disk.
+    .filter(|k| files.contains(k) || out.join(k).is_file())
+    .collect();
+    let stl = run["stages"]
+        .as_object()
+        .and_then(|st| st.values().find_map(|m| m["file"].as_str()))
+        .filter(|f| f.ends_with(".stl"))
+        .map(|f| format!("; STL {}", out.join(f).display()))
+        .unwrap_or_default();
+    format!(
+        "{} ({} files: {}){stl}",
+        out.display(),
+        files.len(),
+        key.join(", ")
+    )
+}
+
+/// The latency tables of run.json (`--verbose`), in ms.
+fn latency_table(lat: &Value) -> String {
+    let mut s = String::new();
+    let Some(obj) = lat.as_object() else {
+        return s;
+    };
+    let _ = writeln!(
+        s,
+        "  latency (ms)                          p50       p95       max     n"
+    );
+    let mut rows: Vec<(&str, &Value)> = Vec::new();
+    for (k, v) in obj {
+        if v.get("p50").is_some() {
+            rows.push((k, v));
+        }
+    }
+    for group in ["hops", "final_frames"] {
+        if let Some(g) = obj.get(group).and_then(Value::as_object) {
+            rows.extend(g.iter().map(|(k, v)| (k.as_str(), v)));
+        }
+    }
+    for (name, p) in rows {
+        let n = |k: &str| f(&p[k]).unwrap_or(f64::NAN);
+        let _ = writeln!(
+            s,
+            "    {name:<34} {:>8.2}  {:>8.2}  {:>8.2}  {:>4}",
+            n("p50"),
+            n("p95"),
+            n("max"),
+            p["n"]
+        );
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    fn run_json(pass: bool, fallback: bool) -> Value {
+        json!({
+            "elapsed_s": 1.5,
+            "scan": { "rows": 1, "cols": 2 },
+            "tiles": [
+                { "index": 0, "row": 0, "col": 0, "placed_by": "registration" },
+                { "index": 1, "row": 0, "col": 1, "placed_by": if fallback { "stage" } else { "registration" } },
+            ],
+            "files": ["run.json", "surface.stl", "report.html"],
+            "stages": { "mesher": { "file": "surface.stl", "triangles": 27850, "vertices": 13927,
+                "units": "mm", "fidelity": { "epsilon_um": 0.08, "bound_met": true,
+                "error": { "max_um": 0.0799 } } } },
+            "deviation": {
+                "pass": pass, "threshold_pct": 5.0, "judged": ["Sa", "Sq", "Sz"],
+                "measured": "panorama.npy",
+                "regions": [{ "name": "panorama", "rows": 487, "cols": 486 }],
+                "stages": { "pooled": { "pass": pass, "regions": {
+                    "panorama": { "pass": pass,
+                        "measured": { "Sa": 1.3630563293, "Sq": 1.7, "Sz": 14.19 },
+                        "deviation_pct": { "Sa": -2.97, "Sq": -3.2, "Sz": if pass { -1.0 } else { -8.14 } } },
+                    "S1": { "pass": true, "deviation_pct": { "Sa": 0.1, "Sq": 0.1, "Sz": 0.1 } } } } }
+            },
+            "latency_ms": { "tile_to_panorama": { "p50": 1.0, "p95": 2.0, "max": 3.0, "n": 4 } }
+        })
+    }
+
+    #[test]
+    fn a_passing_run_names_parameters_mesh_and_outputs_in_fixed_precision() {
+        let v = verdict(&run_json(true, false), Path::new("/o"), false);
+        assert!(v.failures.is_empty(), "{:?}", v.failures);
+        let t = &v.text;
+        assert!(t.contains("Sa 1.363 um, Sq 1.700 um, Sz 14.190 um"), "{t}");
+        assert!(
+            t.contains("of panorama.npy, 487 x 486 px (rows x cols), mean removed"),
+            "{t}"
+        );
+        assert!(t.contains("1 x 2 tiles (rows x cols)"), "{t}");
+        assert!(
+            t.contains("surface.stl: 27 850 triangles, 13 927 vertices, units mm"),
+            "{t}"
+        );
+        assert!(t.contains("STL /o/surface.stl"), "{t}");
+        assert!(t.contains("deviation   PASS"), "{t}");
+        assert!(t.ends_with("verdict: PASS"), "{t}");
+        assert!(!t.contains("latency"), "{t}");
+        assert!(!t.contains("e0"), "no scientific notation: {t}");
+    }
+
+    #[test]
+    fn a_failing_run_says_which_parameter_by_how_much_against_which_limit() {
+        let v = verdict(&run_json(false, true), Path::new("/o"), true);
+        assert_eq!(v.failures.len(), 2, "{:?}", v.failures);
+        let t = &v.text;
+        assert!(
+            t.contains("FAIL: pooled: Sz -8.14 % in panorama, beyond the limit of +/-5.00 % (1 of 2 regions fail)"),
+            "{t}"
+        );
+        assert!(t.contains("tile 1 (row 0 x col 1)"), "{t}");
+        assert!(t.contains("tile_to_panorama"), "verbose shows latency: {t}");
+        assert!(t.ends_with("verdict: FAIL (2 check(s) failed)"), "{t}");
+    }
+
+    #[test]
+    fn counts_are_grouped_by_thousands() {
+        assert_eq!(count(0), "0");
+        assert_eq!(count(999), "999");
+        assert_eq!(count(1000), "1 000");
+        assert_eq!(count(1234567), "1 234 567");
+        assert_eq!(um(1.3630563293), "1.363 um");
+    }
+}

@@ -1,0 +1,439 @@
+//! What the engineer sees (issue 13): progress per tile, the verdict at the end, `--strict`,
+//! parameters checked before anything is written, and one convention across the file verbs
+//! (`-o/--out`, folders created, clear errors, fixed-precision numbers, a clean STL header).
+
+use std::path::{Path, PathBuf};
+use std::process::Output;
+
+use surfstream_e2e::{read_json, run, stderr, surfstream};
+
+fn stdout(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// A real instrument file: ../shared/specimens beside the repository, or the folder
+/// SURFSTREAM_SPECIMENS names (a git worktree elsewhere).
+fn specimen(name: &str) -> PathBuf {
+    std::env::var_os("SURFSTREAM_SPECIMENS")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| surfstream_e2e::repo_root().join("../shared/specimens"))
+        .join(name)
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// `surfstream <verb> launch/graphs/demo.toml` on 256 px tiles, fast, into `out`, plus `args`.
+fn demo(verb: &str, out: &Path, args: &[&str]) -> Output {
+    run({
+        let mut c = surfstream();
+        c.args([
+            verb,
+            "launch/graphs/demo.toml",
+            "--set",
+            "stage.tile_px=256",
+        ])
+        .args(["--set", "stage.pacing=fast", "-o"])
+        .arg(out)
+        .args(args);
+        c
+    })
+}
+
+/// 27850 -> "27 850", as the verdict prints counts.
+fn grouped(n: u64) -> String {
+    let d = n.to_string();
+    let mut out = String::new();
+    for (k, c) in d.chars().enumerate() {
+        if k > 0 && (d.len() - k).is_multiple_of(3) {
+            out.push(' ');
+        }
+        out.push(c);
+    }
+    out
+}
+
+/// A number with a unit is never in scientific notation ("1.3630563293e0 um").
+fn assert_no_scientific(text: &str) {
+    for w in text.split_whitespace() {
+        let t = w.trim_matches(|c: char| !c.is_ascii_alphanumeric() && c != '.' && c != '-');
+        let sci = t.split_once('e').is_some_and(|(m, e)| {
+            !m.is_empty()
+                && m.chars()
+                    .all(|c| c.is_ascii_digit() || c == '.' || c == '-')
+                && !e.is_empty()
+                && e.trim_start_matches('-')
+                    .chars()
+                    .all(|c| c.is_ascii_digit())
+        });
+        assert!(!sci, "scientific notation {w:?} in:\n{text}");
+    }
+}
+
+/// The progress lines of a 2 x 2 demo: one per tile, with its grid place, NCC and position.
+fn assert_progress_per_tile(err: &str) {
+    let lines: Vec<&str> = err.lines().filter(|l| l.starts_with("tile ")).collect();
+    assert_eq!(lines.len(), 4, "one progress line per tile:\n{err}");
+    // Serpentine: 0 (0,0), 1 (0,1), 2 (1,1), 3 (1,0); tile 0 is the anchor.
+    for (k, (r, c)) in [(0, 0), (0, 1), (1, 1), (1, 0)].iter().enumerate() {
+        let l = lines
+            .iter()
+            .find(|l| l.starts_with(&format!("tile {k}/4 ")))
+            .unwrap_or_else(|| panic!("no line for tile {k}:\n{err}"));
+        assert!(l.contains(&format!("row {r} x col {c}")), "{l}");
+        assert!(l.contains(" um "), "{l}");
+        if k == 0 {
+            assert!(l.contains("anchor"), "{l}");
+        } else {
+            assert!(l.contains("NCC 0.9") && l.contains("registration"), "{l}");
+        }
+    }
+}
+
+/// `run` prints a line per tile and a verdict with Sa, Sq, Sz in um, the STL path and size
+/// and Table 6's outcome; latency only with --verbose; --strict exits 3 on a failed Table 6
+/// (a threshold no model meets) after writing every output, and 0 when the checks pass.
+#[test]
+fn run_prints_progress_and_a_verdict_and_strict_fails_on_a_failed_check() {
+    let dir = tempfile::tempdir().unwrap();
+    let out_dir = dir.path().join("new").join("run");
+    let out = demo(
+        "run",
+        &out_dir,
+        &["--strict", "--set", "deviation.threshold_percent=1000"],
+    );
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+    let (text, err) = (stdout(&out), stderr(&out));
+    assert_progress_per_tile(&err);
+    let run_json = read_json(&out_dir.join("run.json"));
+    let mesher = &run_json["stages"]["mesher"];
+    let stl = out_dir.canonicalize().unwrap().join("surface.stl");
+    for want in [
+        "surface     Sa ".to_string(),
+        " um, Sq ".into(),
+        " um, Sz ".into(),
+        format!("STL {}", stl.display()),
+        format!("{} vertices", grouped(mesher["vertices"].as_u64().unwrap())),
+        format!(
+            "{} triangles",
+            grouped(mesher["triangles"].as_u64().unwrap())
+        ),
+        "2 x 2 tiles (rows x cols): 4 by registration, 0 by stage fallback".into(),
+        "deviation   PASS".into(),
+        "verdict: PASS".into(),
+    ] {
+        assert!(
+            text.contains(&want),
+            "{want:?} missing from the verdict:\n{text}"
+        );
+    }
+    // Sa in the verdict is run.json's, to the printed precision.
+    let sa = run_json["deviation"]["stages"]["pooled"]["regions"]["panorama"]["measured"]["Sa"]
+        .as_f64()
+        .unwrap();
+    assert!(text.contains(&format!("Sa {sa:.3} um")), "{text}");
+    assert!(
+        !text.contains("latency"),
+        "latency only with --verbose:\n{text}"
+    );
+    assert_no_scientific(&text);
+
+    // Every model stage fails a 0.001 % threshold: --strict exits 3, outputs still written.
+    let strict_dir = dir.path().join("strict");
+    let out = demo(
+        "run",
+        &strict_dir,
+        &[
+            "--strict",
+            "--verbose",
+            "--set",
+            "deviation.threshold_percent=0.001",
+        ],
+    );
+    assert_eq!(out.status.code(), Some(3), "{}", stderr(&out));
+    let text = stdout(&out);
+    assert!(text.contains("deviation   FAIL: "), "{text}");
+    assert!(text.contains("beyond the limit of +/-0.00 %"), "{text}");
+    assert!(
+        text.contains("latency (ms)"),
+        "--verbose shows latency:\n{text}"
+    );
+    assert!(
+        stderr(&out).contains("--strict: 1 check(s) failed"),
+        "{}",
+        stderr(&out)
+    );
+    assert!(strict_dir.join("surface.stl").is_file());
+    assert_eq!(
+        read_json(&strict_dir.join("run.json"))["deviation"]["pass"],
+        false
+    );
+
+    // Without --strict the same failure is reported but the exit status is 0.
+    let lax_dir = dir.path().join("lax");
+    let out = demo(
+        "run",
+        &lax_dir,
+        &["--set", "deviation.threshold_percent=0.001"],
+    );
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+    assert!(stdout(&out).contains("verdict: FAIL"), "{}", stdout(&out));
+
+    // The graph's STL says its unit and offset once, in a clean 80-byte header.
+    let bytes = std::fs::read(&stl).unwrap();
+    let header = String::from_utf8_lossy(&bytes[..80])
+        .trim_end_matches('\0')
+        .to_string();
+    assert!(
+        header.starts_with("surfstream surface, units=mm, offset_um="),
+        "{header:?}"
+    );
+    assert_eq!(header.matches("units=").count(), 1, "{header:?}");
+    assert!(
+        bytes[header.len()..80].iter().all(|&b| b == 0),
+        "{header:?}"
+    );
+}
+
+/// `launch` shows the same progress: the launcher's observer subscribes to the matcher's
+/// registrations over shared memory.
+#[test]
+fn launch_prints_progress_from_its_registrations_subscriber_and_a_verdict() {
+    let dir = tempfile::tempdir().unwrap();
+    let out_dir = dir.path().join("launch");
+    let out = demo("launch", &out_dir, &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert_progress_per_tile(&stderr(&out));
+    let text = stdout(&out);
+    assert!(text.contains("surface.stl: "), "{text}");
+    assert!(text.contains("verdict: "), "{text}");
+    // The observer is the launcher's, not a node of the graph: run.json does not list it.
+    let run_json = read_json(&out_dir.join("run.json"));
+    let stages: Vec<&String> = run_json["stages"].as_object().unwrap().keys().collect();
+    assert_eq!(
+        stages,
+        ["fusion", "matcher", "mesher", "recorder", "stage", "wavelet"],
+        "{stages:?}"
+    );
+}
+
+/// A bad node parameter is refused before "launched graph" and before the out dir exists,
+/// for `launch`, `run` and `stitch` alike.
+#[test]
+fn invalid_node_parameters_are_refused_before_the_out_dir_is_touched() {
+    let dir = tempfile::tempdir().unwrap();
+    for (verb, set, named) in [
+        ("launch", "fusion.method=\"bogus\"", "bogus"),
+        ("run", "wavelet.pool_op=\"median\"", "median"),
+        ("launch", "stage.rows=0", "rows"),
+        ("run", "mesher.surface=\"datum\"", "datum"),
+        ("launch", "recorder.compression=1", "compression"),
+    ] {
+        let out_dir = dir.path().join(verb).join("out");
+        let out = run({
+            let mut c = surfstream();
+            c.args([verb, "launch/graphs/demo.toml", "--set", set, "-o"])
+                .arg(&out_dir);
+            c
+        });
+        let err = stderr(&out);
+        assert_eq!(out.status.code(), Some(1), "{verb} --set {set}: {err}");
+        assert!(err.contains(named), "{verb} --set {set}: {err}");
+        assert!(
+            !err.contains("launched graph") && !err.contains("running graph"),
+            "{err}"
+        );
+        assert!(
+            !out_dir.exists(),
+            "{verb} --set {set} created {}",
+            out_dir.display()
+        );
+        assert!(!dir.path().join(verb).exists(), "{verb}: parent created");
+    }
+}
+
+/// convert writes with -o into folders that do not exist yet; the old positional output
+/// still works with a deprecation warning; an unwritable extension lists what convert writes;
+/// a folder given to inspect is named as a folder.
+#[test]
+fn convert_inspect_and_mesh_follow_one_convention() {
+    let d = tempfile::tempdir().unwrap();
+    let dat = specimen("metropro-1.dat");
+    let x3p = d.path().join("a").join("b").join("m.x3p");
+    let out = run({
+        let mut c = surfstream();
+        c.args(["convert", s(&dat), "-o", s(&x3p)]);
+        c
+    });
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(x3p.is_file());
+    assert!(!stderr(&out).contains("deprecated"), "{}", stderr(&out));
+
+    let npy = d.path().join("old").join("m.npy");
+    let out = run({
+        let mut c = surfstream();
+        c.args(["convert", s(&dat), s(&npy)]);
+        c
+    });
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(npy.is_file());
+    assert!(
+        stderr(&out).contains("deprecated; write `convert IN -o"),
+        "{}",
+        stderr(&out)
+    );
+
+    let png = d.path().join("m.png");
+    let out = run({
+        let mut c = surfstream();
+        c.args(["convert", s(&dat), "-o", s(&png)]);
+        c
+    });
+    let err = stderr(&out);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("cannot write .png files; the formats convert writes are .x3p, .npy"),
+        "{err}"
+    );
+    assert!(!png.exists());
+
+    let out = run({
+        let mut c = surfstream();
+        c.args(["inspect", s(d.path())]);
+        c
+    });
+    let err = stderr(&out);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("is a folder; inspect takes one height-map file"),
+        "{err}"
+    );
+    assert!(!err.contains("unsupported format"), "{err}");
+
+    // mesh: -o into a new folder, the graph's default bound (0.05 Sq), a warning for the
+    // assumed unit, fixed-precision numbers, and a header that says units and offset once.
+    let stl = d.path().join("mesh").join("new").join("m.stl");
+    let out = run({
+        let mut c = surfstream();
+        c.args(["mesh", s(&dat), "--max-triangles", "20000", "-o", s(&stl)]);
+        c
+    });
+    let err = stderr(&out);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("warning: no --units given; the STL is in mm"),
+        "{err}"
+    );
+    assert!(err.contains(" = 0.05 x Sq"), "{err}");
+    assert!(err.contains(" vertices, STL in mm;"), "{err}");
+    assert_no_scientific(&err);
+    let bytes = std::fs::read(&stl).unwrap();
+    let header = String::from_utf8_lossy(&bytes[..80])
+        .trim_end_matches('\0')
+        .to_string();
+    assert!(
+        header.starts_with("surfstream mesh, units=mm, offset_um="),
+        "{header:?}"
+    );
+    assert_eq!(header.matches("units=").count(), 1, "{header:?}");
+    let json = read_json(&stl.with_extension("json"));
+    assert_eq!(
+        json["grid_rows_cols"],
+        serde_json::json!([480, 640]),
+        "{json}"
+    );
+}
+
+/// `stitch` of a scan directory: progress lines take the grid from scan.toml, the verdict
+/// follows, and heights of unitless tiles (.npy) taken as um are said to be.
+#[test]
+fn stitch_shows_progress_from_the_manifest_and_warns_of_an_assumed_height_unit() {
+    use surfstream_replay::*;
+    let dir = tempfile::tempdir().unwrap();
+    let scan = dir.path().join("scan");
+    std::fs::create_dir(&scan).unwrap();
+    let stage = StageParams {
+        rows: 1,
+        cols: 2,
+        tile_px: 256,
+        overlap: 0.2,
+        seed: 7,
+        ..Default::default()
+    };
+    let plan = plan_scan(&stage).unwrap();
+    let spec = generate_specimen(&plan.specimen_params(&SpecimenParams {
+        seed: 7,
+        ..Default::default()
+    }))
+    .unwrap();
+    // No height_unit: the .npy tiles' heights are taken as um.
+    let mut toml = format!(
+        "[scan]\nname = \"fixture\"\npitch_x_um = {p}\npitch_y_um = {p}\nrows = 1\ncols = 2\n",
+        p = stage.pitch_um
+    );
+    for t in &plan.tiles {
+        let name = format!("tile_{:03}.npy", t.index);
+        let heights = acquire_tile(&spec, t, &stage);
+        surfstream_io::npy::write_npy_f32(scan.join(&name), &heights, 256, 256).unwrap();
+        toml += &format!(
+            "\n[[tile]]\nfile = \"{name}\"\nrow = {}\ncol = {}\nstage_x_um = {}\nstage_y_um = {}\n",
+            t.row, t.col, t.stage_position_um[0], t.stage_position_um[1]
+        );
+    }
+    std::fs::write(scan.join("scan.toml"), toml).unwrap();
+    let out_dir = dir.path().join("out");
+    let out = run({
+        let mut c = surfstream();
+        c.arg("stitch").arg(&scan).arg("-o").arg(&out_dir);
+        c
+    });
+    let err = stderr(&out);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("warning: ")
+            && err.contains("no [scan] height_unit")
+            && err.contains("heights taken as um"),
+        "{err}"
+    );
+    let lines: Vec<&str> = err.lines().filter(|l| l.starts_with("tile ")).collect();
+    assert_eq!(lines.len(), 2, "{err}");
+    assert!(
+        lines
+            .iter()
+            .any(|l| l.starts_with("tile 1/2 ") && l.contains("row 0 x col 1")),
+        "{err}"
+    );
+    let text = stdout(&out);
+    assert!(text.contains("1 x 2 tiles (rows x cols)"), "{text}");
+    assert!(text.contains("verdict: "), "{text}");
+}
+
+/// On a terminal the progress lines come with an indicatif bar (and its ETA) that is cleared
+/// at the end; `script` (util-linux, in every Debian) gives the run a pseudo-terminal.
+#[test]
+fn on_a_terminal_progress_is_a_bar_above_the_lines() {
+    let dir = tempfile::tempdir().unwrap();
+    let bin = surfstream_e2e::bin_dir().join("surfstream");
+    let cmd = format!(
+        "{} run launch/graphs/demo.toml --set stage.tile_px=256 --set stage.pacing=fast -o {}",
+        bin.display(),
+        dir.path().join("out").display()
+    );
+    let out = run({
+        let mut c = std::process::Command::new("script");
+        c.current_dir(surfstream_e2e::repo_root())
+            .args(["-qec", &cmd, "/dev/null"]);
+        c
+    });
+    assert!(out.status.success(), "{}", stderr(&out));
+    let tty = stdout(&out);
+    assert!(tty.contains("/4 tiles registered"), "no bar:\n{tty}");
+    assert!(tty.contains("ETA "), "no ETA:\n{tty}");
+    assert_eq!(
+        tty.lines().filter(|l| l.contains("row 1 x col 0")).count(),
+        1,
+        "each tile's line once:\n{tty}"
+    );
+    assert!(tty.contains("verdict: "), "{tty}");
+}
