@@ -72,6 +72,9 @@ pub fn drop_observer_reports(reports: &mut Vec<NodeReport>) {
 /// lossless handshake waits for the observer too. Returns false (nothing added) for a graph
 /// without a matcher.
 pub fn attach_observer(contexts: &mut Vec<NodeContext>) -> bool {
+    if contexts.iter().any(|c| c.node_id == OBSERVER_ID) {
+        return false; // a user's node has the id: no progress rather than a clash
+    }
     let Some(k) = contexts.iter().position(|c| {
         c.node_kind == "matcher" && c.outputs.iter().any(|o| o.port == REGISTRATIONS)
     }) else {
