@@ -82,6 +82,8 @@ struct AxisPass {
     inverse: Arc<dyn Fft<f32>>,
     /// Real spectrum of the centred kernel, already divided by `fft_len`.
     kernel_hat: Vec<f32>,
+    /// Normalised weights at 0, 1, ..., reach pitches.
+    weights: Vec<f64>,
     scratch_len: usize,
 }
 
@@ -129,54 +131,65 @@ impl AxisPass {
             forward,
             inverse,
             kernel_hat,
+            weights: weights[..=reach].iter().map(|w| w / sum).collect(),
             scratch_len,
         })
     }
 
-    /// Convolves every line of `data` (lines of `n`) with the kernel, in place.
-    fn run(&self, data: &mut [Complex32]) {
+    /// A line buffer and FFT scratch for [`AxisPass::convolve`].
+    fn buffers(&self) -> (Vec<Complex32>, Vec<Complex32>) {
         let zero = Complex32::default();
-        data.par_chunks_mut(self.n).for_each_init(
-            || {
-                (
-                    vec![zero; self.fft_len],
-                    vec![zero; self.scratch_len.max(1)],
-                )
-            },
-            |(buf, scratch), line| {
-                // A line without any weight stays zero: skip its FFTs.
-                if line.iter().all(|v| v.im == 0.0 && v.re == 0.0) {
-                    return;
-                }
-                buf[..self.n].copy_from_slice(line);
-                buf[self.n..].fill(zero);
-                self.forward.process_with_scratch(buf, scratch);
-                for (b, &k) in buf.iter_mut().zip(&self.kernel_hat) {
-                    *b *= k;
-                }
-                self.inverse.process_with_scratch(buf, scratch);
-                line.copy_from_slice(&buf[..self.n]);
-            },
-        );
+        (vec![zero; self.fft_len], vec![zero; self.scratch_len.max(1)])
+    }
+
+    /// The kernel's sum over the in-field samples at every position of a fully measured line
+    /// (1 in the middle, about 1/2 at the ends).
+    fn edge_support(&self) -> Vec<f32> {
+        let w = &self.weights;
+        let reach = w.len() - 1;
+        (0..self.n)
+            .map(|i| {
+                let left = i.min(reach);
+                let right = (self.n - 1 - i).min(reach);
+                let s = w[0] + w[1..=left].iter().sum::<f64>() + w[1..=right].iter().sum::<f64>();
+                s as f32
+            })
+            .collect()
+    }
+
+    /// Convolves the line in `buf[..n]` with the kernel, in place; `buf[n..]` is zeroed first
+    /// (the padding that makes the circular convolution a linear one).
+    fn convolve(&self, buf: &mut [Complex32], scratch: &mut [Complex32]) {
+        buf[self.n..].fill(Complex32::default());
+        self.forward.process_with_scratch(buf, scratch);
+        for (b, &k) in buf.iter_mut().zip(&self.kernel_hat) {
+            *b *= k;
+        }
+        self.inverse.process_with_scratch(buf, scratch);
     }
 }
 
-/// `dst` (cols x rows) = transpose of `src` (rows x cols), in column bands so reads stay
-/// contiguous and writes stay within a few cache lines per row.
-fn transpose(src: &[Complex32], rows: usize, cols: usize, dst: &mut [Complex32]) {
-    const BAND: usize = 16;
-    dst.par_chunks_mut(BAND * rows)
-        .enumerate()
-        .for_each(|(b, band)| {
-            let c0 = b * BAND;
-            let width = band.len() / rows;
-            for r in 0..rows {
-                let line = &src[r * cols + c0..r * cols + c0 + width];
-                for (k, &v) in line.iter().enumerate() {
-                    band[k * rows + r] = v;
-                }
-            }
-        });
+/// Columns per block of the column pass: a block's lines stay in cache between the gather,
+/// the FFTs and the scatter.
+const COLUMN_BLOCK: usize = 16;
+
+/// A raw pointer to an output raster that column blocks write through, each its own columns.
+#[derive(Clone, Copy)]
+struct ColumnsOut(*mut f32);
+// SAFETY: the column pass hands every block a disjoint set of columns, so no two threads write
+// the same element, and the vectors outlive the parallel loop.
+unsafe impl Send for ColumnsOut {}
+unsafe impl Sync for ColumnsOut {}
+
+impl ColumnsOut {
+    /// Writes `v` at `i`.
+    ///
+    /// # Safety
+    /// `i` is inside the raster and no other thread writes `i` (its column is this block's).
+    unsafe fn write(self, i: usize, v: f32) {
+        // SAFETY: as the caller promises.
+        unsafe { *self.0.add(i) = v }
+    }
 }
 
 /// An areal Gaussian filter planned for one grid and cutoff; apply it to any number of maps
@@ -221,13 +234,7 @@ impl GaussianFilter {
     /// The Gaussian mean surface of `heights` (NaN = not measured; module doc for the
     /// end-effect and NaN rules).
     pub fn apply(&self, heights: &[f32]) -> Result<Vec<f32>, FilterError> {
-        self.grid.check(heights.len())?;
-        let weights: Vec<f32> = heights
-            .par_iter()
-            .map(|z| if z.is_finite() { 1.0 } else { 0.0 })
-            .collect();
-        let m = self.weighted_mean(heights, &weights, MIN_SUPPORT)?;
-        Ok(m.mean)
+        Ok(self.run(heights, None, MIN_SUPPORT, false)?.0)
     }
 
     /// `sum(s w z) / sum(s w)` over the field, for weights `w >= 0` (a point whose height is
@@ -239,52 +246,218 @@ impl GaussianFilter {
         weights: &[f32],
         min_support: f64,
     ) -> Result<WeightedMean, FilterError> {
+        self.grid.check(weights.len())?;
+        let (mean, support) = self.run(heights, Some(weights), min_support, true)?;
+        Ok(WeightedMean {
+            mean,
+            support: support.unwrap_or_default(),
+        })
+    }
+
+    /// The weighted mean (weights `None`: 1 on every finite height) and, if asked, the support.
+    fn run(
+        &self,
+        heights: &[f32],
+        weights: Option<&[f32]>,
+        min_support: f64,
+        want_support: bool,
+    ) -> Result<(Vec<f32>, Option<Vec<f32>>), FilterError> {
         let Grid { rows, cols, .. } = self.grid;
         self.grid.check(heights.len())?;
-        self.grid.check(weights.len())?;
+        let weight = |i: usize, z: f32| -> f32 {
+            let w = weights.map_or(1.0, |w| w[i]);
+            if z.is_finite() && w.is_finite() && w > 0.0 {
+                w
+            } else {
+                0.0
+            }
+        };
         // Filter around the weighted mean height: f32 then keeps µm-scale detail even for
         // maps that sit tens of µm up.
         let (sw, swz) = heights
             .par_iter()
-            .zip(weights)
-            .filter(|(z, w)| z.is_finite() && w.is_finite() && **w > 0.0)
-            .map(|(&z, &w)| (f64::from(w), f64::from(w) * f64::from(z)))
+            .enumerate()
+            .map(|(i, &z)| {
+                let w = f64::from(weight(i, z));
+                if w > 0.0 {
+                    (w, w * f64::from(z))
+                } else {
+                    (0.0, 0.0)
+                }
+            })
             .reduce(|| (0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
         if sw <= 0.0 {
             return Err(FilterError::AllNan);
         }
         let offset = swz / sw;
-        let mut a: Vec<Complex32> = heights
-            .par_iter()
-            .zip(weights)
-            .map(|(&z, &w)| {
-                if z.is_finite() && w.is_finite() && w > 0.0 {
-                    Complex32::new(w * (f64::from(z) - offset) as f32, w)
-                } else {
-                    Complex32::default()
+        if weights.is_none() && sw == (rows * cols) as f64 {
+            return Ok(self.run_complete(heights, offset, min_support, want_support));
+        }
+
+        // Pass 1, rows: (w (z - offset), w) as one complex line, convolved along x.
+        let zero = Complex32::default();
+        let mut a = vec![zero; rows * cols];
+        a.par_chunks_mut(cols).enumerate().for_each_init(
+            || self.rows_pass.buffers(),
+            |(buf, scratch), (r, line)| {
+                let mut any = false;
+                for (c, b) in buf[..cols].iter_mut().enumerate() {
+                    let i = r * cols + c;
+                    let z = heights[i];
+                    let w = weight(i, z);
+                    any |= w > 0.0;
+                    *b = Complex32::new(w * (f64::from(z) - offset) as f32, w);
+                    if w == 0.0 {
+                        b.re = 0.0;
+                    }
                 }
-            })
-            .collect();
-        self.rows_pass.run(&mut a);
-        let mut t = vec![Complex32::default(); a.len()];
-        transpose(&a, rows, cols, &mut t);
-        self.cols_pass.run(&mut t);
-        transpose(&t, cols, rows, &mut a);
-        drop(t);
+                // A row without any weight stays zero: skip its FFTs.
+                if any {
+                    self.rows_pass.convolve(buf, scratch);
+                    line.copy_from_slice(&buf[..cols]);
+                }
+            },
+        );
+
+        // Pass 2, columns in blocks: gather, convolve along y, and write mean (and support)
+        // straight into the outputs.
+        let mut mean = vec![f32::NAN; rows * cols];
+        let mut support = if want_support {
+            vec![0.0f32; rows * cols]
+        } else {
+            Vec::new()
+        };
+        let mean_out = ColumnsOut(mean.as_mut_ptr());
+        let support_out = want_support.then_some(ColumnsOut(support.as_mut_ptr()));
         let floor = min_support.max(1e-6) as f32;
-        let (mean, support): (Vec<f32>, Vec<f32>) = a
-            .par_iter()
-            .zip(heights)
-            .map(|(v, &z)| {
-                let m = if z.is_finite() && v.im >= floor {
-                    (f64::from(v.re / v.im) + offset) as f32
-                } else {
-                    f32::NAN
-                };
-                (m, v.im.max(0.0))
-            })
-            .unzip();
-        Ok(WeightedMean { mean, support })
+        let n_blocks = cols.div_ceil(COLUMN_BLOCK);
+        (0..n_blocks).into_par_iter().for_each_init(
+            || {
+                let (b, s) = self.cols_pass.buffers();
+                (vec![b; COLUMN_BLOCK], s)
+            },
+            |(bufs, scratch), block| {
+                let c0 = block * COLUMN_BLOCK;
+                let width = COLUMN_BLOCK.min(cols - c0);
+                for r in 0..rows {
+                    for (k, v) in a[r * cols + c0..r * cols + c0 + width].iter().enumerate() {
+                        bufs[k][r] = *v;
+                    }
+                }
+                for buf in bufs.iter_mut().take(width) {
+                    self.cols_pass.convolve(buf, scratch);
+                }
+                // Row by row, so each output row is written as one contiguous run.
+                for r in 0..rows {
+                    for (k, buf) in bufs.iter().take(width).enumerate() {
+                        let i = r * cols + c0 + k;
+                        let (z, v) = (heights[i], buf[r]);
+                        let m = if z.is_finite() && v.im >= floor {
+                            (f64::from(v.re / v.im) + offset) as f32
+                        } else {
+                            f32::NAN
+                        };
+                        // SAFETY: i < rows * cols = the outputs' length, and column c0 + k
+                        // belongs to this block only (see ColumnsOut).
+                        unsafe {
+                            mean_out.write(i, m);
+                            if let Some(s) = support_out {
+                                s.write(i, v.im.max(0.0));
+                            }
+                        }
+                    }
+                }
+            },
+        );
+        Ok((mean, want_support.then_some(support)))
+    }
+
+    /// [`Self::run`] for a fully measured map with unit weights: the support is the product of
+    /// the two axes' in-field kernel sums, so only numerators are convolved, two real lines per
+    /// complex FFT (half the FFTs and half the memory of the general case).
+    fn run_complete(
+        &self,
+        heights: &[f32],
+        offset: f64,
+        min_support: f64,
+        want_support: bool,
+    ) -> (Vec<f32>, Option<Vec<f32>>) {
+        let Grid { rows, cols, .. } = self.grid;
+        let zero = Complex32::default();
+        // Pass 1: rows 2p and 2p + 1 as the real and imaginary part of line p.
+        let pairs = rows.div_ceil(2);
+        let mut a = vec![zero; pairs * cols];
+        a.par_chunks_mut(cols).enumerate().for_each_init(
+            || self.rows_pass.buffers(),
+            |(buf, scratch), (p, line)| {
+                let upper = &heights[2 * p * cols..(2 * p + 1) * cols];
+                let lower = heights.get((2 * p + 1) * cols..(2 * p + 2) * cols);
+                for (c, b) in buf[..cols].iter_mut().enumerate() {
+                    let im = lower.map_or(0.0, |l| (f64::from(l[c]) - offset) as f32);
+                    *b = Complex32::new((f64::from(upper[c]) - offset) as f32, im);
+                }
+                self.rows_pass.convolve(buf, scratch);
+                line.copy_from_slice(&buf[..cols]);
+            },
+        );
+        let support_y = self.cols_pass.edge_support();
+        let support_x = self.rows_pass.edge_support();
+        // Pass 2: columns 2q and 2q + 1 as one complex line, in blocks.
+        let mut mean = vec![0.0f32; rows * cols];
+        let mut support = if want_support {
+            vec![0.0f32; rows * cols]
+        } else {
+            Vec::new()
+        };
+        let mean_out = ColumnsOut(mean.as_mut_ptr());
+        let support_out = want_support.then_some(ColumnsOut(support.as_mut_ptr()));
+        let floor = min_support.max(1e-6) as f32;
+        (0..cols.div_ceil(COLUMN_BLOCK))
+            .into_par_iter()
+            .for_each_init(
+                || {
+                    let (b, s) = self.cols_pass.buffers();
+                    (vec![b; COLUMN_BLOCK / 2], s)
+                },
+                |(bufs, scratch), block| {
+                    let c0 = block * COLUMN_BLOCK;
+                    let width = COLUMN_BLOCK.min(cols - c0);
+                    let lines = width.div_ceil(2);
+                    for r in 0..rows {
+                        let row = &a[(r / 2) * cols + c0..(r / 2) * cols + c0 + width];
+                        let pick = |v: &Complex32| if r % 2 == 0 { v.re } else { v.im };
+                        for (q, buf) in bufs.iter_mut().take(lines).enumerate() {
+                            let im = row.get(2 * q + 1).map_or(0.0, pick);
+                            buf[r] = Complex32::new(pick(&row[2 * q]), im);
+                        }
+                    }
+                    for buf in bufs.iter_mut().take(lines) {
+                        self.cols_pass.convolve(buf, scratch);
+                    }
+                    for (r, &sy) in support_y.iter().enumerate() {
+                        for k in 0..width {
+                            let i = r * cols + c0 + k;
+                            let v = bufs[k / 2][r];
+                            let num = if k % 2 == 0 { v.re } else { v.im };
+                            let den = sy * support_x[c0 + k];
+                            let m = if den >= floor {
+                                (f64::from(num / den) + offset) as f32
+                            } else {
+                                f32::NAN
+                            };
+                            // SAFETY: i < rows * cols = the outputs' length, and column
+                            // c0 + k belongs to this block only (see ColumnsOut).
+                            unsafe {
+                                mean_out.write(i, m);
+                                if let Some(s) = support_out {
+                                    s.write(i, den);
+                                }
+                            }
+                        }
+                    }
+                },
+            );
+        (mean, want_support.then_some(support))
     }
 }
 
@@ -339,6 +512,27 @@ mod tests {
         let f = GaussianFilter::new(g, 3.0).unwrap();
         assert!(f.apply(&[0.0; 19]).is_err());
         assert_eq!(f.apply(&[f32::NAN; 20]), Err(FilterError::AllNan));
+    }
+
+    #[test]
+    fn the_complete_map_shortcut_equals_the_general_path() {
+        // Odd sizes: the last row / column rides alone in its complex line.
+        let g = Grid {
+            rows: 41,
+            cols: 29,
+            pitch_x_um: 0.5,
+            pitch_y_um: 0.7,
+        };
+        let h: Vec<f32> = (0..41 * 29)
+            .map(|i| ((i % 29) as f32 * 0.4).sin() + ((i / 29) as f32 * 0.3).cos() + 50.0)
+            .collect();
+        let f = GaussianFilter::new(g, 9.0).unwrap();
+        let fast = f.apply(&h).unwrap();
+        let general = f.weighted_mean(&h, &vec![1.0; h.len()], MIN_SUPPORT).unwrap();
+        for (a, b) in fast.iter().zip(&general.mean) {
+            assert!((a - b).abs() < 2e-5, "{a} vs {b}");
+        }
+        assert!((general.support[0] - general.support[g.cols - 1]).abs() < 1e-6);
     }
 
     #[test]
