@@ -139,7 +139,10 @@ impl AxisPass {
     /// A line buffer and FFT scratch for [`AxisPass::convolve`].
     fn buffers(&self) -> (Vec<Complex32>, Vec<Complex32>) {
         let zero = Complex32::default();
-        (vec![zero; self.fft_len], vec![zero; self.scratch_len.max(1)])
+        (
+            vec![zero; self.fft_len],
+            vec![zero; self.scratch_len.max(1)],
+        )
     }
 
     /// The kernel's sum over the in-field samples at every position of a fully measured line
@@ -528,7 +531,9 @@ mod tests {
             .collect();
         let f = GaussianFilter::new(g, 9.0).unwrap();
         let fast = f.apply(&h).unwrap();
-        let general = f.weighted_mean(&h, &vec![1.0; h.len()], MIN_SUPPORT).unwrap();
+        let general = f
+            .weighted_mean(&h, &vec![1.0; h.len()], MIN_SUPPORT)
+            .unwrap();
         for (a, b) in fast.iter().zip(&general.mean) {
             assert!((a - b).abs() < 2e-5, "{a} vs {b}");
         }
