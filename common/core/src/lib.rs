@@ -2,13 +2,14 @@
 //! transport and no file formats: the frame ([`frame`]), the one raster type ([`raster`]) and
 //! the growing canvas built on it ([`canvas`]),
 //! the tile plane correction ([`plane`]), atomic output files ([`fsutil`]), ISO 25178
-//! parameters ([`metrology`]), image similarity ([`similarity`]), FFT sizes ([`fft`]) and the
+//! parameters ([`metrology`]), image similarity ([`similarity`]), FFT sizes ([`fft`]), ISO 16610 filters and form removal ([`filter`]) and the
 //! AVX2 dispatch of hot loops ([`simd`]); the model-vs-measurement table (Table 6,
 //! [`deviation`]).
 
 pub mod canvas;
 pub mod deviation;
 pub mod fft;
+pub mod filter;
 pub mod frame;
 pub mod fsutil;
 pub mod metrology;

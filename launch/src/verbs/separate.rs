@@ -3,22 +3,38 @@
 //! Reads any map `formats::read_surface` reads, runs the wavelet node's library
 //! ([`surfstream_wavelet::analyse`]: the same code as the pipeline's final pass) and writes
 //! `datum.npy`, `roughness.npy`, `pooled.npy` and `separate.json` (base, level, mode, energy
-//! curve, RMSE ranking when the base is "auto", pooling bias) into `--out`.
+//! curve, RMSE ranking when the base is "auto", the level's equivalent cutoff, pooling bias)
+//! into `--out`. `--method gaussian | robust-gaussian --cutoff-um L` separates by an ISO 16610
+//! L-filter instead ([`surfstream_wavelet::filter_separation`], the node's code too).
 
 use std::path::PathBuf;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
+use surfstream_core::filter::Grid;
 use surfstream_core::frame::{from_frame_heights, to_frame_heights};
 use surfstream_core::fsutil::write_atomic;
 use surfstream_io::formats::read_surface;
 use surfstream_io::npy::{write_npy_f32, write_npy_f64};
-use surfstream_wavelet::{analyse, BaseChoice, LevelChoice, Mode, PoolOp};
+use surfstream_wavelet::{
+    analyse, equivalent_cutoff_um, filter_separation, level_lowered_warning, pool, pooling_bias,
+    BaseChoice, LevelChoice, Mode, PoolOp, SeparationMethod, DEFAULT_LEVEL,
+};
 
 #[derive(Args)]
 pub struct SeparateArgs {
     /// Height-map file (.npy, or an instrument format `surfstream inspect` reads).
     pub file: PathBuf,
+    /// How the datum is separated: wavelet (the paper's low-pass, --wavelet / --level),
+    /// gaussian (ISO 16610-61 L-filter) or robust-gaussian (ISO 16610-71, zeroth order).
+    #[arg(long, default_value = "wavelet")]
+    pub method: String,
+    /// L-filter cutoff lambda_c for the filter methods: µm, or with a unit ("0.8mm", "250um").
+    #[arg(long = "cutoff-um", value_name = "LENGTH")]
+    pub cutoff_um: Option<String>,
+    /// S-filter cutoff lambda_s for the filter methods (µm or with a unit); none by default.
+    #[arg(long = "lambda-s-um", value_name = "LENGTH")]
+    pub lambda_s_um: Option<String>,
     /// Wavelet base: db1..db10, sym2..sym10, coif1..coif5, or "auto" (minimum reconstruction
     /// RMSE, the paper's eq. 10; note that it ranks floating-point round-off).
     #[arg(long, default_value = "sym5")]
@@ -41,7 +57,49 @@ pub struct SeparateArgs {
     pub out: PathBuf,
 }
 
+/// A length in µm: a number (µm) or a number with the unit "um", "µm" or "mm".
+fn length_um(flag: &str, text: &str) -> Result<f64> {
+    let t = text.trim().to_ascii_lowercase();
+    let (number, scale) = if let Some(n) = t.strip_suffix("mm") {
+        (n, 1000.0)
+    } else if let Some(n) = t.strip_suffix("um").or_else(|| t.strip_suffix("µm")) {
+        (n, 1.0)
+    } else {
+        (t.as_str(), 1.0)
+    };
+    match number.trim().parse::<f64>() {
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(v * scale),
+        _ => bail!("{flag} {text:?}: expected a positive length in µm, or with a unit (\"0.8mm\", \"250um\")"),
+    }
+}
+
 pub fn run(a: SeparateArgs) -> Result<()> {
+    let cutoff_um = a
+        .cutoff_um
+        .as_deref()
+        .map(|t| length_um("--cutoff-um", t))
+        .transpose()?;
+    let lambda_s_um = a
+        .lambda_s_um
+        .as_deref()
+        .map(|t| length_um("--lambda-s-um", t))
+        .transpose()?;
+    let method = SeparationMethod::parse(&a.method, cutoff_um).map_err(|e| {
+        anyhow!(
+            "--method {}: {}",
+            a.method,
+            e.replace("cutoff_um", "--cutoff-um")
+        )
+    })?;
+    if let Some(ls) = lambda_s_um {
+        match method.cutoff_um() {
+            None => bail!("--lambda-s-um: applies to --method gaussian or robust-gaussian"),
+            Some(lc) if ls >= lc => {
+                bail!("--lambda-s-um {ls}: expected a cutoff shorter than --cutoff-um {lc}")
+            }
+            Some(_) => {}
+        }
+    }
     // One parser per option, shared with the wavelet node's params.
     let base: BaseChoice = a.wavelet.parse().map_err(|e| anyhow!("--wavelet {e}"))?;
     let level: LevelChoice = a.level.parse().map_err(|e| anyhow!("--level {e}"))?;
@@ -60,33 +118,89 @@ pub fn run(a: SeparateArgs) -> Result<()> {
     // mean is the same as skipping non-finite heights.
     let (z_offset_um, heights) = to_frame_heights(&s.heights_um);
     let with_offset = |v: &[f32]| from_frame_heights(z_offset_um, v);
-    let an = analyse(
-        &heights, s.height, s.width, base, level, mode, a.pool, pool_op,
-    )
-    .with_context(|| format!("{}: separation", a.file.display()))?;
+    let grid = Grid {
+        rows: s.height,
+        cols: s.width,
+        pitch_x_um: s.pitch_x_um,
+        pitch_y_um: s.pitch_y_um,
+    };
+    let (datum, roughness, pooled, mut summary, line) = if method == SeparationMethod::Wavelet {
+        let an = analyse(
+            &heights, s.height, s.width, base, level, mode, a.pool, pool_op,
+        )
+        .with_context(|| format!("{}: separation", a.file.display()))?;
+        let used = an.separation.level;
+        let cutoff = equivalent_cutoff_um(&an.wavelet, used, s.pitch_x_um);
+        let requested = match level {
+            LevelChoice::Fixed(l) => Some(l),
+            LevelChoice::Default => Some(DEFAULT_LEVEL),
+            LevelChoice::MinEnergy => None,
+        };
+        let warning =
+            requested.and_then(|r| level_lowered_warning(&an.wavelet, r, used, s.pitch_x_um));
+        if let Some(w) = &warning {
+            eprintln!("{}: {w}", a.file.display());
+        }
+        let mut summary = an.summary();
+        if let Some(o) = summary.as_object_mut() {
+            o.insert("method".into(), serde_json::json!("wavelet"));
+            o.insert("equivalent_cutoff_um".into(), serde_json::json!(cutoff));
+            o.insert(
+                "equivalent_cutoff_definition".into(),
+                serde_json::json!(surfstream_wavelet::live::CUTOFF_DEFINITION),
+            );
+            o.insert("warning".into(), serde_json::json!(warning));
+        }
+        let line = format!(
+            "{} level {used} ({}, equivalent cutoff {cutoff:.1} µm), level by min energy {}",
+            an.wavelet.name(),
+            mode.name(),
+            an.level_min_energy
+                .map_or("-".to_string(), |l| l.to_string()),
+        );
+        let sep = an.separation;
+        (sep.datum, sep.roughness, an.pooled, summary, line)
+    } else {
+        let f = filter_separation(&heights, grid, method, lambda_s_um)
+            .map_err(|e| anyhow!("{}: {} separation: {e}", a.file.display(), method.name()))?;
+        let pooled = pool(&heights, s.height, s.width, a.pool, pool_op)
+            .with_context(|| format!("{}: pooling", a.file.display()))?;
+        let cutoff = method.cutoff_um().unwrap_or(f64::NAN);
+        let summary = serde_json::json!({
+            "method": method.name(),
+            "cutoff_um": cutoff,
+            "lambda_s_um": lambda_s_um,
+            "plane_removed_um": f.plane_um,
+            "robust_iterations": f.robust_iterations.map(|r| r.0),
+            "robust_converged": f.robust_iterations.map(|r| r.1),
+            "pool": a.pool,
+            "pool_op": pool_op.name(),
+            "pooled_px": [pooled.cols, pooled.rows],
+            "pooling_bias": pooling_bias(&heights, &pooled.heights),
+        });
+        let line = format!(
+            "{} lambda_c {cutoff} µm{}",
+            method.name(),
+            lambda_s_um.map_or(String::new(), |l| format!(", lambda_s {l} µm"))
+        );
+        (f.datum, f.roughness, pooled, summary, line)
+    };
 
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("{}: cannot create the output directory", a.out.display()))?;
-    let sep = &an.separation;
     write_npy_f64(
         a.out.join("datum.npy"),
-        &with_offset(&sep.datum),
+        &with_offset(&datum),
         s.height,
         s.width,
     )?;
-    write_npy_f32(
-        a.out.join("roughness.npy"),
-        &sep.roughness,
-        s.height,
-        s.width,
-    )?;
+    write_npy_f32(a.out.join("roughness.npy"), &roughness, s.height, s.width)?;
     write_npy_f64(
         a.out.join("pooled.npy"),
-        &with_offset(&an.pooled.heights),
-        an.pooled.rows,
-        an.pooled.cols,
+        &with_offset(&pooled.heights),
+        pooled.rows,
+        pooled.cols,
     )?;
-    let mut summary = an.summary();
     if let Some(o) = summary.as_object_mut() {
         o.insert(
             "input".into(),
@@ -112,16 +226,12 @@ pub fn run(a: SeparateArgs) -> Result<()> {
         Ok(())
     })?;
     println!(
-        "{}: {} x {} px, {} level {} ({}), level by min energy {}; wrote datum.npy, roughness.npy, pooled.npy ({} x {}), separate.json to {}",
+        "{}: {} x {} px, {line}; wrote datum.npy, roughness.npy, pooled.npy ({} x {}), separate.json to {}",
         a.file.display(),
         s.width,
         s.height,
-        an.wavelet.name(),
-        sep.level,
-        mode.name(),
-        an.level_min_energy.map_or("-".to_string(), |l| l.to_string()),
-        an.pooled.cols,
-        an.pooled.rows,
+        pooled.cols,
+        pooled.rows,
         a.out.display()
     );
     Ok(())

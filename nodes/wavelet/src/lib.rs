@@ -9,6 +9,9 @@
 //! * [`separate`]: datum / roughness separation of a height map (f32, NaN = not measured):
 //!   datum = approximation-only reconstruction at a level chosen by [`default_level`],
 //!   roughness = heights - datum.
+//! * [`filter_separation`]: the same split by an ISO 16610 filter (Gaussian or robust
+//!   Gaussian L-filter, `surfstream_core::filter`), the node's `method = "gaussian"` /
+//!   `"robust-gaussian"`; [`equivalent_cutoff_um`]: the wavelet level's cutoff wavelength.
 //! * [`pool`]: NaN-aware max / mean block pooling; [`pooling_bias`]: what it does to the mean,
 //!   Sa, Sq and Sz.
 //! * The paper's selections: [`energy_curve`] / [`level_by_min_energy`] (level, Fig. 13) and
@@ -36,6 +39,7 @@ mod dwt;
 mod error;
 mod filters;
 pub mod live;
+pub mod method;
 pub mod options;
 mod pool;
 mod select;
@@ -46,6 +50,10 @@ pub use dwt::{wavedec2, waverec2, Coeffs2, Details2, MAX_LEVEL};
 pub use error::{Result, WaveletError};
 pub use live::{
     final_separation, FinalSeparation, LivePatches, LiveSeparation, SeparationSettings,
+};
+pub use method::{
+    equivalent_cutoff_um, filter_separation, level_lowered_warning, FilterSeparation,
+    SeparationMethod,
 };
 pub use options::{OptionError, WaveletParams};
 pub use pool::{pool, PoolOp, Pooled};

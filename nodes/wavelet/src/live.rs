@@ -17,8 +17,12 @@ use surfstream_core::frame::{flags, FrameHeader, FrameKind, HeightMap};
 use surfstream_core::raster::{RasterView, Shape};
 use surfstream_io::output::{NpyHeights, OutputWriter, SurfaceOutput};
 
+use surfstream_core::filter::Grid;
+
+use crate::method::{equivalent_cutoff_um, filter_separation, level_lowered_warning};
 use crate::{
-    analyse, default_level, pool, separate, BaseChoice, LevelChoice, Mode, PoolOp, Wavelet,
+    analyse, default_level, pool, pooling_bias, separate, BaseChoice, LevelChoice, Mode, PoolOp,
+    SeparationMethod, Wavelet, DEFAULT_LEVEL,
 };
 
 /// Largest mirror the live pass keeps, px (as the fusion's canvas limit): a patch whose
@@ -28,6 +32,10 @@ const MAX_MIRROR_PX: usize = 1 << 31;
 /// How the panorama is separated and pooled.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SeparationSettings {
+    /// Wavelet (base, level, mode below) or an ISO 16610 L-filter.
+    pub method: SeparationMethod,
+    /// S-filter cutoff, µm (filter methods only).
+    pub lambda_s_um: Option<f64>,
     pub base: BaseChoice,
     pub level: LevelChoice,
     pub mode: Mode,
@@ -143,6 +151,8 @@ pub struct LivePatches {
 /// The live separation of a growing panorama.
 #[derive(Debug, Clone)]
 pub struct LiveSeparation {
+    method: SeparationMethod,
+    lambda_s_um: Option<f64>,
     wavelet: Wavelet,
     mode: Mode,
     level: Option<usize>,
@@ -160,6 +170,8 @@ impl LiveSeparation {
     /// Live passes with `settings`, over the changed region plus `margin_px` of context.
     pub fn new(settings: &SeparationSettings, margin_px: usize) -> Result<Self> {
         Ok(Self {
+            method: settings.method,
+            lambda_s_um: settings.lambda_s_um,
             wavelet: settings.live_wavelet()?,
             mode: settings.mode,
             level: settings.fixed_level(),
@@ -200,9 +212,17 @@ impl LiveSeparation {
         else {
             return Ok(None);
         };
+        // A filter's datum depends on lambda_c around each point: take at least that much.
+        let margin = match self.method.cutoff_um() {
+            Some(lc) => {
+                let reach = (lc / m.pitch_um[0].min(m.pitch_um[1])).ceil();
+                self.margin_px.max(reach.min(1e6) as usize)
+            }
+            None => self.margin_px,
+        };
         let Some(window) = m
             .extent
-            .and_then(|e| dirty.expand(self.margin_px as i64).intersect(&e))
+            .and_then(|e| dirty.expand(margin as i64).intersect(&e))
         else {
             return Ok(None);
         };
@@ -211,10 +231,23 @@ impl LiveSeparation {
             return Ok(None);
         }
         let (rows, cols) = (window.rows(), window.cols());
-        let Ok(level) = default_level(rows, cols, &self.wavelet, self.level) else {
-            return Ok(None);
+        let sep = if self.method == SeparationMethod::Wavelet {
+            let Ok(level) = default_level(rows, cols, &self.wavelet, self.level) else {
+                return Ok(None);
+            };
+            let s = separate(&heights, rows, cols, &self.wavelet, self.mode, Some(level))?;
+            (s.datum, s.roughness)
+        } else {
+            let grid = Grid {
+                rows,
+                cols,
+                pitch_x_um: m.pitch_um[0],
+                pitch_y_um: m.pitch_um[1],
+            };
+            let s = filter_separation(&heights, grid, self.method, self.lambda_s_um)
+                .map_err(|e| anyhow!("wavelet: live {} separation: {e}", self.method.name()))?;
+            (s.datum, s.roughness)
         };
-        let sep = separate(&heights, rows, cols, &self.wavelet, self.mode, Some(level))?;
         let crop = |v: &[f32]| -> Vec<f32> {
             let (dx, dy) = (
                 (dirty.x0 - window.x0) as usize,
@@ -236,11 +269,11 @@ impl LiveSeparation {
         };
         let datum = HeightMap {
             header: stamp(m.header_for(dirty, FrameKind::Datum, 1)),
-            heights: crop(&sep.datum),
+            heights: crop(&sep.0),
         };
         let roughness = HeightMap {
             header: stamp(m.header_for(dirty, FrameKind::Roughness, 1)),
-            heights: crop(&sep.roughness),
+            heights: crop(&sep.1),
         };
         // Pooled blocks stay aligned to the mirror's grid so live patches tile seamlessly.
         let pooled = match m
@@ -284,6 +317,9 @@ pub struct FinalSeparation {
     pub summary: serde_json::Value,
 }
 
+/// How run.json and `separate.json` define the wavelet's equivalent cutoff.
+pub const CUTOFF_DEFINITION: &str = "wavelength at which the level's approximation passes 50 % amplitude: T(w) = prod_{k<level} |H(2^k w)|^2 / 2, H the decomposition low-pass, aliasing ignored (nodes/wavelet/src/method.rs)";
+
 /// The exact separation of the final panorama; with a writer, also `datum`, `roughness` and
 /// `pooled` as .npy + .png (datum and pooled absolute f64: they carry the panorama's offset;
 /// roughness relative f32: it has none by nature).
@@ -294,18 +330,86 @@ pub fn final_separation(
 ) -> Result<FinalSeparation> {
     let h = panorama.header;
     let (rows, cols) = (h.height as usize, h.width as usize);
-    let analysis = analyse(
-        &panorama.heights,
-        rows,
-        cols,
-        settings.base,
-        settings.level,
-        settings.mode,
-        settings.pool_block,
-        settings.pool_op,
-    )?;
-    let mut summary = analysis.summary();
-    let (sep, pooled) = (analysis.separation, analysis.pooled);
+    let (datum, roughness, pooled, mut summary, title) = match settings.method {
+        SeparationMethod::Wavelet => {
+            let analysis = analyse(
+                &panorama.heights,
+                rows,
+                cols,
+                settings.base,
+                settings.level,
+                settings.mode,
+                settings.pool_block,
+                settings.pool_op,
+            )?;
+            let mut summary = analysis.summary();
+            let level = analysis.separation.level;
+            let w = analysis.wavelet;
+            if let Some(o) = summary.as_object_mut() {
+                o.insert("method".into(), json!("wavelet"));
+                o.insert(
+                    "equivalent_cutoff_um".into(),
+                    json!(equivalent_cutoff_um(&w, level, h.pitch_x_um)),
+                );
+                if h.pitch_y_um != h.pitch_x_um {
+                    o.insert(
+                        "equivalent_cutoff_y_um".into(),
+                        json!(equivalent_cutoff_um(&w, level, h.pitch_y_um)),
+                    );
+                }
+                o.insert(
+                    "equivalent_cutoff_definition".into(),
+                    json!(CUTOFF_DEFINITION),
+                );
+                let requested = match settings.level {
+                    LevelChoice::Fixed(l) => Some(l),
+                    LevelChoice::Default => Some(DEFAULT_LEVEL),
+                    LevelChoice::MinEnergy => None,
+                };
+                if let Some(warning) =
+                    requested.and_then(|r| level_lowered_warning(&w, r, level, h.pitch_x_um))
+                {
+                    eprintln!("wavelet: {warning}");
+                    o.insert("warning".into(), json!(warning));
+                }
+            }
+            let title = format!("datum, {} level {level} (um)", w.name());
+            let sep = analysis.separation;
+            (sep.datum, sep.roughness, analysis.pooled, summary, title)
+        }
+        method => {
+            let grid = Grid {
+                rows,
+                cols,
+                pitch_x_um: h.pitch_x_um,
+                pitch_y_um: h.pitch_y_um,
+            };
+            let s = filter_separation(&panorama.heights, grid, method, settings.lambda_s_um)
+                .map_err(|e| anyhow!("wavelet: {} separation: {e}", method.name()))?;
+            let pooled = pool(
+                &panorama.heights,
+                rows,
+                cols,
+                settings.pool_block,
+                settings.pool_op,
+            )?;
+            let cutoff = method.cutoff_um().unwrap_or(f64::NAN);
+            let summary = json!({
+                "method": method.name(),
+                "cutoff_um": cutoff,
+                "lambda_s_um": settings.lambda_s_um,
+                "plane_removed_um": s.plane_um,
+                "robust_iterations": s.robust_iterations.map(|r| r.0),
+                "robust_converged": s.robust_iterations.map(|r| r.1),
+                "pool": settings.pool_block,
+                "pool_op": settings.pool_op.name(),
+                "pooled_px": [pooled.cols, pooled.rows],
+                "pooling_bias": pooling_bias(&panorama.heights, &pooled.heights),
+            });
+            let title = format!("datum, {} lambda_c {cutoff} um (um)", method.name());
+            (s.datum, s.roughness, pooled, summary, title)
+        }
+    };
     let shape = Shape::new(rows, cols);
     let pooled_shape = Shape::new(pooled.rows, pooled.cols);
     let mut written = Vec::new();
@@ -314,18 +418,14 @@ pub fn final_separation(
         for (name, values, shape, npy, title) in [
             (
                 "datum",
-                &sep.datum,
+                &datum,
                 shape,
                 NpyHeights::AbsoluteF64,
-                format!(
-                    "datum, {} level {} (um)",
-                    analysis.wavelet.name(),
-                    sep.level
-                ),
+                title.clone(),
             ),
             (
                 "roughness",
-                &sep.roughness,
+                &roughness,
                 shape,
                 NpyHeights::RelativeF32,
                 "roughness (um)".to_string(),
@@ -367,11 +467,11 @@ pub fn final_separation(
     Ok(FinalSeparation {
         datum: HeightMap {
             header: header(FrameKind::Datum),
-            heights: sep.datum,
+            heights: datum,
         },
         roughness: HeightMap {
             header: header(FrameKind::Roughness),
-            heights: sep.roughness,
+            heights: roughness,
         },
         pooled: HeightMap {
             header: pooled_header,
@@ -387,6 +487,8 @@ mod tests {
 
     fn settings() -> SeparationSettings {
         SeparationSettings {
+            method: SeparationMethod::Wavelet,
+            lambda_s_um: None,
             base: BaseChoice::Named(Wavelet::by_name("db2").unwrap()),
             level: LevelChoice::Fixed(2),
             mode: Mode::Symmetric,

@@ -11,7 +11,7 @@ use std::str::FromStr;
 use serde::Deserialize;
 
 use crate::live::SeparationSettings;
-use crate::{BaseChoice, LevelChoice, Mode, PoolOp, Wavelet};
+use crate::{BaseChoice, LevelChoice, Mode, PoolOp, SeparationMethod, Wavelet};
 
 /// A value an option does not accept.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -95,6 +95,13 @@ impl FromStr for PoolOp {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct WaveletParams {
+    /// "wavelet" (the paper), "gaussian" (ISO 16610-61) or "robust-gaussian" (ISO 16610-71).
+    #[serde(default = "wavelet")]
+    pub method: String,
+    /// The L-filter's cutoff wavelength lambda_c, µm (filter methods only).
+    pub cutoff_um: Option<f64>,
+    /// The S-filter's cutoff lambda_s, µm (filter methods only; none by default).
+    pub lambda_s_um: Option<f64>,
     /// A base name, or "auto": minimum reconstruction RMSE (eq. 10; it ranks round-off).
     #[serde(default = "sym5")]
     pub wavelet: String,
@@ -127,6 +134,9 @@ pub enum LevelParam {
     Named(String),
 }
 
+fn wavelet() -> String {
+    "wavelet".into()
+}
 fn sym5() -> String {
     "sym5".into()
 }
@@ -158,7 +168,24 @@ impl WaveletParams {
         if self.pool == 0 {
             return Err("pool = 0: expected a block size of at least 1 px".into());
         }
+        let method = SeparationMethod::parse(&self.method, self.cutoff_um)?;
+        let lambda_s_um = match (self.lambda_s_um, method.cutoff_um()) {
+            (None, _) => None,
+            (Some(ls), Some(lc)) if ls.is_finite() && ls > 0.0 && ls < lc => Some(ls),
+            (Some(ls), Some(_)) => {
+                return Err(format!(
+                "lambda_s_um = {ls}: expected a positive wavelength in µm shorter than cutoff_um"
+            ))
+            }
+            (Some(_), None) => {
+                return Err(
+                    "lambda_s_um: applies to method \"gaussian\" or \"robust-gaussian\"".into(),
+                )
+            }
+        };
         Ok(SeparationSettings {
+            method,
+            lambda_s_um,
             base: self.wavelet.parse().map_err(|e| format!("wavelet = {e}"))?,
             level,
             mode: self.mode.parse().map_err(|e| format!("mode = {e}"))?,
@@ -204,6 +231,18 @@ mod tests {
         assert_eq!((s.pool_block, s.pool_op), (4, PoolOp::Mean));
         assert_eq!(p("{}").settings().unwrap().level, LevelChoice::Default);
         assert_eq!(
+            p("{}").settings().unwrap().method,
+            SeparationMethod::Wavelet
+        );
+        let g = p(r#"{"method": "robust-gaussian", "cutoff_um": 250, "lambda_s_um": 2.5}"#)
+            .settings()
+            .unwrap();
+        assert_eq!(
+            g.method,
+            SeparationMethod::RobustGaussian { cutoff_um: 250.0 }
+        );
+        assert_eq!(g.lambda_s_um, Some(2.5));
+        assert_eq!(
             p(r#"{"level": "auto", "wavelet": "auto"}"#)
                 .settings()
                 .unwrap()
@@ -215,6 +254,15 @@ mod tests {
             (r#"{"pool": 0}"#, "pool = 0"),
             (r#"{"mode": "zero"}"#, "mode = "),
             (r#"{"wavelet": "haar"}"#, "wavelet = "),
+            (r#"{"method": "median"}"#, "method = "),
+            (r#"{"method": "gaussian"}"#, "cutoff_um"),
+            (r#"{"method": "gaussian", "cutoff_um": 0}"#, "cutoff_um = 0"),
+            (r#"{"cutoff_um": 80}"#, "cutoff_um"),
+            (
+                r#"{"method": "gaussian", "cutoff_um": 80, "lambda_s_um": 90}"#,
+                "lambda_s_um = 90",
+            ),
+            (r#"{"lambda_s_um": 2.5}"#, "lambda_s_um"),
         ] {
             let e = p(bad).settings().unwrap_err();
             assert!(e.starts_with(field), "{bad}: {e}");
