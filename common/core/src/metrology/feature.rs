@@ -216,6 +216,7 @@ pub fn segment_dales(d: &[f64], rows: usize, cols: usize, pruning_pct: f64, sz: 
     drop(drain);
     let m = count as usize;
     // 4. Per basin: pit (value, first index in scan order), pixel count, incomplete flag.
+    let any_gap = d.par_iter().any(|v| v.is_nan());
     let mut crit = vec![(f64::INFINITY, usize::MAX); m + 1];
     let mut area = vec![0usize; m + 1];
     let mut incomplete = vec![false; m + 1];
@@ -230,12 +231,12 @@ pub fn segment_dales(d: &[f64], rows: usize, cols: usize, pruning_pct: f64, sz: 
             if d[i] < crit[l].0 {
                 crit[l] = (d[i], i);
             }
-            if r == 0 || c == 0 || r + 1 == rows || c + 1 == cols {
-                incomplete[l] = true;
-            } else if OFFSETS
-                .iter()
-                .any(|&(dy, dx)| d[at(r as isize + dy, c as isize + dx).unwrap_or(i)].is_nan())
-            {
+            let on_border = r == 0 || c == 0 || r + 1 == rows || c + 1 == cols;
+            let beside_gap = any_gap
+                && OFFSETS
+                    .iter()
+                    .any(|&(dy, dx)| d[at(r as isize + dy, c as isize + dx).unwrap_or(i)].is_nan());
+            if on_border || beside_gap {
                 incomplete[l] = true;
             }
         }
@@ -363,12 +364,12 @@ pub fn segment_dales(d: &[f64], rows: usize, cols: usize, pruning_pct: f64, sz: 
     drop(heap);
     // 7. Roots, their areas and incompleteness.
     let mut root = vec![0u32; m + 1];
-    for r in 1..=m {
+    for (r, out) in root.iter_mut().enumerate().skip(1) {
         let mut x = r as u32;
         while merged_into[x as usize] != x {
             x = merged_into[x as usize];
         }
-        root[r] = x;
+        *out = x;
     }
     let mut root_area = vec![0usize; m + 1];
     let mut root_incomplete = vec![false; m + 1];

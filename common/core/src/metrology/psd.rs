@@ -73,7 +73,7 @@ impl ArealPsd {
                 if k == 0 || k > bins {
                     continue;
                 }
-                let weight = if kx == 0 || (self.cols % 2 == 0 && kx == self.cols / 2) {
+                let weight = if kx == 0 || (self.cols.is_multiple_of(2) && kx == self.cols / 2) {
                     1.0
                 } else {
                     2.0

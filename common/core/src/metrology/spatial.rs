@@ -238,7 +238,7 @@ pub(crate) fn angular_from_spectrum(
             for kx in 0..h {
                 // Columns 1..cols/2 stand for their conjugate mirror too (same |F|, same angle
                 // mod 180); column 0 and, for even cols, column cols/2 hold both signs already.
-                let weight = if kx == 0 || (cols % 2 == 0 && kx == cols / 2) {
+                let weight = if kx == 0 || (cols.is_multiple_of(2) && kx == cols / 2) {
                     1.0
                 } else {
                     2.0

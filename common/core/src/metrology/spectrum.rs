@@ -145,7 +145,7 @@ pub(crate) fn correlation_half_plane(field: &[f64], rows: usize, cols: usize) ->
             sbuf.copy_from_slice(&spec[ty * h..(ty + 1) * h]);
             // The spectrum of a real sequence: DC (and Nyquist) are real; drop rounding residue.
             sbuf[0].im = 0.0;
-            if q % 2 == 0 {
+            if q.is_multiple_of(2) {
                 sbuf[h - 1].im = 0.0;
             }
             let _ = c2r.process_with_scratch(sbuf, rbuf, scratch);
