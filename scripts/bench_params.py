@@ -1,9 +1,19 @@
 #!/usr/bin/env python3
-"""The nine ISO 25178 parameters on 4096^2: surfalize (../shared/bench/params_anchor.py's own
-timing function) and ours (common/examples/metrology_bench), interleaved round by round on the
+"""ISO 25178 parameters on 4096^2, surfalize beside ours, interleaved round by round on the
 same array, so both see the same machine load.
 
-    python scripts/bench_params.py [--rounds 3] [--reps 3] [--input bench-out/inputs/synth_4096.npy]
+    python scripts/bench_params.py --all [--rounds 3] [--input bench-out/inputs/synth_4096.npy]
+    python scripts/bench_params.py [--rounds 3] [--reps 3] [--input ...]
+
+--all: every parameter both compute (height, hybrid, Sal Str Std, the Sk family, Sxp, the four
+volumes, Smr(c), Smc(mr), Spd Spc S5p S5v S10z): `surfstream params FILE --all --jsonl` (the
+whole process: reading the .npy, all 35 parameters, printing) against the same parameters from
+one fresh surfalize Surface (its caches shared between parameters, as a user gets them), one
+repeat per round each; medians over the rounds, the ratio, and the largest relative difference
+of each value. Needs `cargo build --release -p surfstream`.
+
+Without --all: the nine height and hybrid parameters (../shared/bench/params_anchor.py's own
+timing function) against common/examples/metrology_bench.
 
 Run from the repository root with the bench venv (.bench-venv/bin/python: surfalize). Needs
 `cargo build --release -p surfstream-io --example metrology_bench` (CARGO_TARGET_DIR
@@ -53,13 +63,75 @@ def ours(binary, path, reps, threads):
     return json.loads(out.strip().splitlines()[-1])
 
 
+SHARED = ["Sa", "Sq", "Sp", "Sv", "Sz", "Ssk", "Sku", "Sdq", "Sdr", "Sal", "Str", "Std",
+          "Sk", "Spk", "Svk", "Smr1", "Smr2", "Spkx", "Svkx", "Sxp", "Vmp", "Vmc", "Vvv", "Vvc",
+          "Spd", "Spc", "S5p", "S5v", "S10z"]
+
+
+def surfalize_all(z):
+    import warnings
+    from surfalize import Surface
+    warnings.simplefilter("ignore")
+    s = Surface(z.copy(), 1.0, 1.0)
+    t0 = time.perf_counter()
+    p = {k: float(getattr(s, k)()) for k in SHARED}
+    m = float(z.mean())
+    p["Smr(c=0um)"] = float(s.Smr(m))
+    p["Smc(mr=10%)"] = float(s.Smc(10)) - m
+    return time.perf_counter() - t0, p
+
+
+def ours_all(binary, path):
+    t0 = time.perf_counter()
+    out = subprocess.run([binary, "params", path, "--all", "--pitch-um", "1", "--jsonl"], check=True,
+                         capture_output=True, text=True).stdout
+    return time.perf_counter() - t0, json.loads(out.strip().splitlines()[-1])
+
+
+def main_all(a, target):
+    binary = os.path.join(target, "release", "surfstream")
+    if not os.path.exists(binary):
+        sys.exit(f"{binary} missing: cargo build --release -p surfstream")
+    z = np.load(a.input)
+    ts = {"surfalize": [], "ours": []}
+    worst = {}
+    for r in range(a.rounds):
+        t, theirs = surfalize_all(z)
+        ts["surfalize"].append(t)
+        print(json.dumps({"round": r, "what": "surfalize", "s": t, "load": os.getloadavg()}), flush=True)
+        t, o = ours_all(binary, a.input)
+        ts["ours"].append(t)
+        print(json.dumps({"round": r, "what": "ours params --all", "s": t, "load": os.getloadavg()}), flush=True)
+        for k, v in theirs.items():
+            w = o.get(k)
+            if k == "Std":  # surfalize measures towards -y (row 0 on top): 180 - ours
+                v = (180.0 - v) % 180.0
+            if w is None or v != v:
+                worst[k] = "both undefined" if (w is None and v != v) else f"ours {w}, surfalize {v}"
+                continue
+            worst[k] = max(worst.get(k, 0.0) if isinstance(worst.get(k), float) else 0.0,
+                           abs(w - v) / max(abs(v), 1e-300))
+    med = {k: float(np.median(v)) for k, v in ts.items()}
+    print(f"\n{z.shape[0]} x {z.shape[1]}, {len(SHARED) + 2} shared parameters, median of {a.rounds} rounds, interleaved:")
+    print(f"  surfalize {med['surfalize']:.2f} s, ours (params --all, whole process) {med['ours']:.2f} s:"
+          f" ours {med['surfalize'] / med['ours']:.1f}x faster")
+    print("  largest relative difference per parameter: " +
+          ", ".join(f"{k} {v:.1e}" if isinstance(v, float) else f"{k} {v}" for k, v in worst.items()))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--all", action="store_true", help="every parameter both compute, via params --all")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--input", default="bench-out/inputs/synth_4096.npy")
     a = ap.parse_args()
     target = os.environ.get("CARGO_TARGET_DIR", os.path.join(ROOT, "target"))
+    if not os.path.exists(a.input):
+        os.makedirs(os.path.dirname(a.input) or ".", exist_ok=True)
+        np.save(a.input, synth_surface(4096, seed=4096))
+    if a.all:
+        return main_all(a, target)
     binary = os.path.join(target, "release", "examples", "metrology_bench")
     if not os.path.exists(binary):
         sys.exit(f"{binary} missing: cargo build --release -p surfstream-io --example metrology_bench")

@@ -64,7 +64,13 @@ fn inspect_params_and_convert_on_a_metropro_file() {
     for k in ["Sa", "Sq", "Sp", "Sv", "Sz", "Ssk", "Sku", "Sdq", "Sdr"] {
         assert!(keys.contains(&k), "{k} missing from {keys:?}");
     }
-    assert_eq!(keys.len(), 9, "{keys:?}");
+    // The record also says which file, its shape and pitch, and each parameter's unit; without
+    // --all exactly these nine parameters.
+    assert_eq!(p["units"].as_object().unwrap().len(), 9, "{keys:?}");
+    assert_eq!(p["units"]["Sa"], "um");
+    assert_eq!(p["units"]["Sdr"], "%");
+    assert_eq!(p["rows"], 480);
+    assert_eq!(p["pitch_assumed"], false);
     let sq = p["Sq"].as_f64().unwrap();
     assert!(rel(sq, 0.07528822204734589) < 1e-9, "Sq {sq}");
 

@@ -112,7 +112,7 @@ enum Command {
     },
     /// Show a height-map file's metadata, shape, pitch and invalid count.
     Inspect(verbs::metrology::InspectArgs),
-    /// ISO 25178 height and hybrid parameters of a height-map file.
+    /// ISO 25178 parameters of height-map files (--all: the full set; --json/--csv/--jsonl).
     Params(verbs::metrology::ParamsArgs),
     /// Convert a height-map file to another format (by extension): convert IN -o OUT.
     Convert(verbs::metrology::ConvertArgs),

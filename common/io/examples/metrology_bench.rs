@@ -57,6 +57,26 @@ fn main() -> Result<()> {
                     "rayon_threads": threads, "all_9_params": all9, "height_7": heights7, "sdq_sdr": hybrid2, "level_and_all_9": lev, "params": p})
             );
         }
+        Some("families") => {
+            // Where the time of `params --all` goes: each family alone, then all together.
+            let file = args.get(1).context("families FILE.npy [REPS]")?;
+            let reps: usize = args.get(2).map(|r| r.parse()).transpose()?.unwrap_or(3);
+            let s = read_surface(Path::new(file))?;
+            let g = Grid::new(&s.heights_um, s.height, s.width, s.pitch_x_um, s.pitch_y_um)?;
+            use surfstream_core::metrology as m;
+            let (basic, _) = time(reps, || Ok(params(&g)?))?;
+            let (functional, _) = time(reps, || Ok(m::functional_params(&g)?))?;
+            let (acf, _) = time(reps, || Ok(m::Acf::of(&g)?.sal_str(0.2)))?;
+            let (spatial, _) = time(reps, || Ok(m::spatial_params(&g)?))?;
+            let (feature, _) = time(reps, || Ok(m::feature_params(&g, 5.0)?))?;
+            let (all, _) = time(reps, || Ok(m::all_params(&g)?))?;
+            println!(
+                "{}",
+                serde_json::json!({"what": "families", "file": file, "rayon_threads": threads,
+                    "basic_9": basic, "functional": functional, "acf_sal_str": acf, "spatial": spatial,
+                    "feature": feature, "all": all})
+            );
+        }
         Some("read") => {
             let reps: usize = std::env::var("SURFSTREAM_REPS")
                 .ok()

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use surfstream_core::metrology::{self, Grid};
+use surfstream_core::metrology::{self, Grid, ParamValue};
 use surfstream_core::similarity;
 use surfstream_io::formats::{read_surface, write_surface, Surface};
 
@@ -21,17 +21,38 @@ pub struct InspectArgs {
 
 #[derive(Args)]
 pub struct ParamsArgs {
-    /// Height-map file.
-    pub file: PathBuf,
+    /// Height-map files (any readable format); one record per file, in the order given.
+    #[arg(required = true)]
+    pub files: Vec<PathBuf>,
+    /// Every ISO 25178-2 parameter: height, hybrid, spatial (Sal Str Std), functional (Sk
+    /// family, volumes, Smr(c), Smc(mr)) and feature (Spd Spc S5p S5v S10z Sda Sha Sdv Shv).
+    /// Without it: Sa Sq Sp Sv Sz Ssk Sku Sdq Sdr.
+    #[arg(long)]
+    pub all: bool,
     /// Subtract the least-squares plane first (otherwise only the mean is removed).
     #[arg(long)]
     pub level: bool,
-    /// Print JSON: one key per parameter ("Sa", "Sq", ...), heights in um, Sdr in %.
-    #[arg(long)]
+    /// JSON: one object per file (an array for several files), values at full precision,
+    /// units in "units".
+    #[arg(long, conflicts_with_all = ["csv", "jsonl"])]
     pub json: bool,
-    /// Pitch in um for files that carry none (.npy); an error for files that do.
+    /// CSV: a header naming each column with its unit, one row per file.
+    #[arg(long, conflicts_with = "jsonl")]
+    pub csv: bool,
+    /// JSON lines: one object per file per line.
+    #[arg(long)]
+    pub jsonl: bool,
+    /// Write to this file instead of standard output (parent folders created; nothing is
+    /// written when any file fails).
+    #[arg(short = 'o', long = "out")]
+    pub out: Option<PathBuf>,
+    /// Pitch in um for files that carry none (.npy); an error for files that do. Without it
+    /// such files are computed at 1 um with a warning.
     #[arg(long)]
     pub pitch_um: Option<f64>,
+    /// Wolf pruning threshold of the feature parameters, % of Sz (ISO 25178-3: 5).
+    #[arg(long, default_value_t = 5.0)]
+    pub pruning_pct: f64,
 }
 
 #[derive(Args)]
@@ -160,12 +181,55 @@ pub fn inspect(a: InspectArgs) -> Result<()> {
     Ok(())
 }
 
-pub fn params(a: ParamsArgs) -> Result<()> {
-    let s = load(&a.file, a.pitch_um)?;
-    let g = grid(&s).with_context(|| format!("{}", a.file.display()))?;
+/// One file's parameters, ready to print.
+struct ParamsRecord {
+    file: String,
+    rows: usize,
+    cols: usize,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+    pitch_assumed: bool,
+    valid_points: usize,
+    levelled: bool,
+    values: Vec<ParamValue>,
+}
+
+fn basic_named(p: &metrology::Params) -> Vec<ParamValue> {
+    let unit = |name: &str| match name {
+        "Ssk" | "Sku" | "Sdq" => "",
+        "Sdr" => "%",
+        _ => "um",
+    };
+    let family = |name: &str| match name {
+        "Sdq" | "Sdr" => "hybrid",
+        _ => "height",
+    };
+    p.named()
+        .into_iter()
+        .map(|(name, value)| ParamValue {
+            name,
+            value,
+            unit: unit(name),
+            family: family(name),
+        })
+        .collect()
+}
+
+fn params_of(path: &Path, a: &ParamsArgs) -> Result<ParamsRecord> {
+    let s = load(path, a.pitch_um)?;
+    let pitch_assumed = !s.metadata.pitch_known && a.pitch_um.is_none();
+    if pitch_assumed {
+        eprintln!(
+            "{}: warning: the file carries no pitch; assumed {} x {} um (give --pitch-um)",
+            path.display(),
+            s.pitch_x_um,
+            s.pitch_y_um
+        );
+    }
+    let g = grid(&s)?;
     let levelled;
     let g = if a.level {
-        levelled = metrology::level_plane(&g).with_context(|| format!("{}", a.file.display()))?;
+        levelled = metrology::level_plane(&g)?;
         Grid {
             heights_um: &levelled,
             ..g
@@ -173,35 +237,223 @@ pub fn params(a: ParamsArgs) -> Result<()> {
     } else {
         g
     };
-    let p = metrology::params(&g).with_context(|| format!("{}", a.file.display()))?;
-    if a.json {
-        println!("{}", serde_json::to_string_pretty(&p)?);
-        return Ok(());
+    let values = if a.all {
+        metrology::all_params_pruned(&g, a.pruning_pct)?.named()
+    } else {
+        basic_named(&metrology::params(&g)?)
+    };
+    Ok(ParamsRecord {
+        file: path.display().to_string(),
+        rows: s.height,
+        cols: s.width,
+        pitch_x_um: s.pitch_x_um,
+        pitch_y_um: s.pitch_y_um,
+        pitch_assumed,
+        valid_points: s.heights_um.len() - s.invalid_count(),
+        levelled: a.level,
+        values,
+    })
+}
+
+/// A number with 6 significant digits, fixed-point where that reads well.
+fn sig6(v: f64) -> String {
+    if v.is_nan() {
+        return "NaN".into();
     }
-    println!(
-        "{}: {} x {} px, pitch {} x {} um, {} valid points, {}",
-        a.file.display(),
-        s.height,
-        s.width,
-        s.pitch_x_um,
-        s.pitch_y_um,
-        s.heights_um.len() - s.invalid_count(),
-        if a.level {
+    if v == 0.0 {
+        return "0".into();
+    }
+    let e = v.abs().log10().floor() as i32;
+    if (-4..6).contains(&e) {
+        format!("{v:.*}", (5 - e).max(0) as usize)
+    } else {
+        format!("{v:.5e}")
+    }
+}
+
+fn json_record(r: &ParamsRecord) -> serde_json::Value {
+    let mut m = serde_json::Map::new();
+    m.insert("file".into(), r.file.clone().into());
+    m.insert("rows".into(), r.rows.into());
+    m.insert("cols".into(), r.cols.into());
+    m.insert("pitch_x_um".into(), r.pitch_x_um.into());
+    m.insert("pitch_y_um".into(), r.pitch_y_um.into());
+    m.insert("pitch_assumed".into(), r.pitch_assumed.into());
+    m.insert("valid_points".into(), r.valid_points.into());
+    m.insert(
+        "surface".into(),
+        if r.levelled {
             "plane levelled"
         } else {
-            "mean removed, not levelled"
+            "mean removed"
         }
+        .into(),
     );
-    for (name, v) in p.named() {
-        let unit = match name {
-            "Ssk" | "Sku" | "Sdq" => "",
-            "Sdr" => " %",
-            _ => " um",
-        };
-        println!("{name:<4} {v:.10e}{unit}");
+    let mut units = serde_json::Map::new();
+    for v in &r.values {
+        // NaN (undefined, e.g. Str when the ACF does not decay inside the map) becomes null.
+        m.insert(v.name.into(), serde_json::json!(v.value));
+        units.insert(v.name.into(), v.unit.into());
     }
-    if s.invalid_count() > 0 {
-        println!("(over valid points; Sdq and Sdr use only differences and cells whose points are all valid)");
+    m.insert("units".into(), units.into());
+    serde_json::Value::Object(m)
+}
+
+fn csv_field(s: &str) -> String {
+    if s.contains([',', '"', '\n']) {
+        format!("\"{}\"", s.replace('"', "\"\""))
+    } else {
+        s.to_string()
+    }
+}
+
+fn render(records: &[ParamsRecord], a: &ParamsArgs) -> Result<String> {
+    use std::fmt::Write as _;
+    let mut out = String::new();
+    if a.json {
+        let v: Vec<_> = records.iter().map(json_record).collect();
+        let doc = if v.len() == 1 {
+            v.into_iter().next().unwrap_or_default()
+        } else {
+            serde_json::Value::Array(v)
+        };
+        out = serde_json::to_string_pretty(&doc)?;
+        out.push('\n');
+    } else if a.jsonl {
+        for r in records {
+            writeln!(out, "{}", serde_json::to_string(&json_record(r))?)?;
+        }
+    } else if a.csv {
+        let mut head = vec![
+            "file".to_string(),
+            "rows".into(),
+            "cols".into(),
+            "pitch_x [um]".into(),
+            "pitch_y [um]".into(),
+            "pitch_assumed".into(),
+            "valid_points".into(),
+            "surface".into(),
+        ];
+        if let Some(r) = records.first() {
+            for v in &r.values {
+                head.push(if v.unit.is_empty() {
+                    v.name.to_string()
+                } else {
+                    format!("{} [{}]", v.name, v.unit)
+                });
+            }
+        }
+        writeln!(
+            out,
+            "{}",
+            head.iter()
+                .map(|h| csv_field(h))
+                .collect::<Vec<_>>()
+                .join(",")
+        )?;
+        for r in records {
+            let mut row = vec![
+                csv_field(&r.file),
+                r.rows.to_string(),
+                r.cols.to_string(),
+                r.pitch_x_um.to_string(),
+                r.pitch_y_um.to_string(),
+                r.pitch_assumed.to_string(),
+                r.valid_points.to_string(),
+                if r.levelled {
+                    "plane levelled"
+                } else {
+                    "mean removed"
+                }
+                .into(),
+            ];
+            // Undefined values are empty cells.
+            row.extend(r.values.iter().map(|v| {
+                if v.value.is_nan() {
+                    String::new()
+                } else {
+                    sig6(v.value)
+                }
+            }));
+            writeln!(out, "{}", row.join(","))?;
+        }
+    } else {
+        for (k, r) in records.iter().enumerate() {
+            if k > 0 {
+                out.push('\n');
+            }
+            writeln!(
+                out,
+                "{}: {} rows x {} cols, pitch {} x {} um{}, {} valid points, {}",
+                r.file,
+                r.rows,
+                r.cols,
+                r.pitch_x_um,
+                r.pitch_y_um,
+                if r.pitch_assumed { " (assumed)" } else { "" },
+                r.valid_points,
+                if r.levelled {
+                    "plane levelled"
+                } else {
+                    "mean removed, not levelled"
+                }
+            )?;
+            let mut family = "";
+            for v in &r.values {
+                if a.all && v.family != family {
+                    family = v.family;
+                    writeln!(out, "  {family}")?;
+                }
+                writeln!(out, "    {:<12} {:>14} {}", v.name, sig6(v.value), v.unit)?;
+            }
+            if r.valid_points < r.rows * r.cols {
+                writeln!(out, "  (over the valid points; Sdq and Sdr use only differences and cells whose points are all valid)")?;
+            }
+        }
+    }
+    Ok(out)
+}
+
+pub fn params(a: ParamsArgs) -> Result<()> {
+    if !(a.pruning_pct.is_finite() && a.pruning_pct >= 0.0) {
+        bail!(
+            "--pruning-pct {}: expected a finite number >= 0",
+            a.pruning_pct
+        );
+    }
+    let mut records = Vec::with_capacity(a.files.len());
+    let mut failures = Vec::new();
+    for f in &a.files {
+        match params_of(f, &a) {
+            Ok(r) => records.push(r),
+            Err(e) => failures.push(format!("{}: {e:#}", f.display())),
+        }
+    }
+    if !failures.is_empty() {
+        for f in &failures[..failures.len() - 1] {
+            eprintln!("error: {f}");
+        }
+        bail!(
+            "{}{}",
+            failures[failures.len() - 1],
+            if a.out.is_some() {
+                " (nothing written)"
+            } else {
+                ""
+            }
+        );
+    }
+    let text = render(&records, &a)?;
+    match &a.out {
+        Some(path) => {
+            surfstream_core::fsutil::write_atomic(path, |w| {
+                use std::io::Write as _;
+                w.write_all(text.as_bytes())?;
+                Ok(())
+            })?;
+            eprintln!("{} file(s) -> {}", records.len(), path.display());
+        }
+        None => print!("{text}"),
     }
     Ok(())
 }

@@ -26,6 +26,19 @@ use rayon::prelude::*;
 use serde::Serialize;
 use wide::{f64x4, CmpEq, CmpGt, CmpLt};
 
+mod all;
+pub mod feature;
+pub mod functional;
+pub mod psd;
+pub mod spatial;
+mod spectrum;
+
+pub use all::{all_params, all_params_pruned, AllParams, ParamValue};
+pub use feature::{feature_params, FeatureParams};
+pub use functional::{abbott_curve, functional_params, AbbottCurve, FunctionalParams};
+pub use psd::{radial_psd, ArealPsd};
+pub use spatial::{spatial_params, Acf, SpatialParams};
+
 /// Neumaier's compensated sum.
 #[derive(Debug, Clone, Copy, Default)]
 struct Compensated {
@@ -514,6 +527,16 @@ fn hybrid_from(g: &Grid, p1: &RowSums) -> (f64, f64) {
 /// points, about their mean.
 pub fn height_params(g: &Grid) -> Result<[f64; 7], MetrologyError> {
     heights_from(g, &pass_independent(g, false))
+}
+
+/// The mean of the valid heights, exactly as the height parameters take it.
+pub(crate) fn height_params_mean(g: &Grid) -> Result<f64, MetrologyError> {
+    let p1 = pass_independent(g, false);
+    let (n, sum) = (p1.sums[0], p1.sums[1]);
+    if n == 0.0 {
+        return Err(MetrologyError::NoValidPoint);
+    }
+    Ok(pass_central(g, n, sum / n).0)
 }
 
 /// Sdq and Sdr (%). NaN when no difference / no whole cell is valid.

@@ -1,0 +1,480 @@
+//! Feature parameters, ISO 25178-2 §5: watershed segmentation into dales (and, on the inverted
+//! heights, hills), Wolf pruning, and the statistics of the significant motifs: Spd, Spc, S5p,
+//! S5v, S10z, Sda, Sha, Sdv, Shv (and Svd, Svc, their pit counterparts).
+//!
+//! Segmentation (the same rules as surfalize 0.19.2, the parity reference): every valid pixel
+//! drains to its lowest 8-neighbour when that one is strictly lower (the first in scan order
+//! on ties); pixels without a lower neighbour are sinks, 8-connected sinks seed one basin
+//! (numbered in scan order); each basin is the set of pixels draining to its seed. Two
+//! adjacent basins (8-neighbours) connect at their saddle, the lowest over their common
+//! border of the higher of the two heights. Wolf pruning: the motif with the smallest local
+//! depth (lowest bounding saddle minus its pit) below `pruning_pct` % of Sz is merged into the
+//! neighbour across that saddle (the deeper pit survives), until every motif is at least that
+//! deep. Default 5 % of Sz (ISO 25178-3).
+//!
+//! Significant motifs: the pruned motifs that touch neither the border of the map nor a gap
+//! (NaN; a gap is an unknown boundary, so a motif beside it is incomplete like one at the
+//! border). Attributes: the pit (dale) / peak (hill) height about the mean of the valid points,
+//! the local mean curvature there -(d2z/dx2 + d2z/dy2) / 2 (central differences; pits or peaks
+//! on the border or beside a gap skipped), the area (pixels x px py) and the volume: for a
+//! dale the void below its lowest bounding saddle inside the motif, for a hill the material
+//! above its saddle (the saddle of the inverted heights), sum |z - saddle| px py over the motif
+//! pixels on the right side of the saddle.
+//!
+//! Spd, Svd: significant hills / dales per unit area, the area being (cols - 1) px (rows - 1)
+//! py times the fraction of valid points (1/um^2). Spc, Svc: mean curvature at the peaks / pits
+//! (1/um; Svc is negative). S5p: mean height of the five highest peaks, S5v: mean depth of the
+//! five deepest pits (fewer when fewer exist), S10z = S5p + S5v (um). Sha, Sda: mean hill /
+//! dale area (um^2); Shv, Sdv: mean hill / dale volume (um^3). No significant motif: NaN.
+
+use std::cmp::{Ordering, Reverse};
+use std::collections::BinaryHeap;
+
+use rayon::prelude::*;
+use rustc_hash::FxHashMap;
+use serde::Serialize;
+
+use super::{Grid, MetrologyError};
+
+/// ISO 25178-3 default Wolf pruning threshold, % of Sz.
+pub const DEFAULT_PRUNING_PCT: f64 = 5.0;
+const FIVE: usize = 5;
+
+/// The feature parameters (see the module documentation for units).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct FeatureParams {
+    #[serde(rename = "Spd")]
+    pub spd: f64,
+    #[serde(rename = "Spc")]
+    pub spc: f64,
+    #[serde(rename = "S5p")]
+    pub s5p: f64,
+    #[serde(rename = "S5v")]
+    pub s5v: f64,
+    #[serde(rename = "S10z")]
+    pub s10z: f64,
+    #[serde(rename = "Sda")]
+    pub sda: f64,
+    #[serde(rename = "Sha")]
+    pub sha: f64,
+    #[serde(rename = "Sdv")]
+    pub sdv: f64,
+    #[serde(rename = "Shv")]
+    pub shv: f64,
+    #[serde(rename = "Svd")]
+    pub svd: f64,
+    #[serde(rename = "Svc")]
+    pub svc: f64,
+}
+
+/// One significant motif: its pit (index into the map), area (px) and volume (um * px).
+#[derive(Debug, Clone, Copy)]
+pub struct Motif {
+    pub critical_index: usize,
+    pub area_px: usize,
+    pub volume_um_px: f64,
+}
+
+const OFFSETS: [(isize, isize); 8] = [
+    (-1, -1),
+    (-1, 0),
+    (-1, 1),
+    (0, -1),
+    (0, 1),
+    (1, -1),
+    (1, 0),
+    (1, 1),
+];
+
+#[derive(Clone, Copy, PartialEq)]
+struct Key(f64);
+impl Eq for Key {}
+impl PartialOrd for Key {
+    fn partial_cmp(&self, o: &Self) -> Option<Ordering> {
+        Some(self.cmp(o))
+    }
+}
+impl Ord for Key {
+    fn cmp(&self, o: &Self) -> Ordering {
+        self.0.total_cmp(&o.0)
+    }
+}
+
+fn find(parent: &mut [u32], mut a: u32) -> u32 {
+    while parent[a as usize] != a {
+        let p = parent[parent[a as usize] as usize];
+        parent[a as usize] = p;
+        a = p;
+    }
+    a
+}
+
+/// Watershed + Wolf pruning of the dales of `d` (NaN = gap); the significant motifs.
+/// `sz` is the range of the valid heights (the pruning reference).
+pub fn segment_dales(d: &[f64], rows: usize, cols: usize, pruning_pct: f64, sz: f64) -> Vec<Motif> {
+    let n = rows * cols;
+    let at = |r: isize, c: isize| -> Option<usize> {
+        if r < 0 || c < 0 || r >= rows as isize || c >= cols as isize {
+            None
+        } else {
+            Some(r as usize * cols + c as usize)
+        }
+    };
+    // 1. Steepest descent: each pixel's drain (itself for a sink; u32::MAX for a gap).
+    let mut drain = vec![0u32; n];
+    drain.par_chunks_mut(cols).enumerate().for_each(|(r, out)| {
+        for (c, o) in out.iter_mut().enumerate() {
+            let i = r * cols + c;
+            let z = d[i];
+            if z.is_nan() {
+                *o = u32::MAX;
+                continue;
+            }
+            let (mut lo, mut li) = (f64::INFINITY, i);
+            if r > 0 && c > 0 && r + 1 < rows && c + 1 < cols {
+                // Interior: no bounds to check.
+                let w = cols;
+                for j in [
+                    i - w - 1,
+                    i - w,
+                    i - w + 1,
+                    i - 1,
+                    i + 1,
+                    i + w - 1,
+                    i + w,
+                    i + w + 1,
+                ] {
+                    let v = d[j];
+                    if v < lo {
+                        lo = v;
+                        li = j;
+                    }
+                }
+            } else {
+                for (dy, dx) in OFFSETS {
+                    if let Some(j) = at(r as isize + dy, c as isize + dx) {
+                        let v = d[j];
+                        if v < lo {
+                            lo = v;
+                            li = j;
+                        }
+                    }
+                }
+            }
+            *o = if lo < z { li as u32 } else { i as u32 };
+        }
+    });
+    // 2. Sinks, 8-connected, numbered by their first pixel in scan order (1-based).
+    let mut parent: Vec<u32> = (0..n as u32).collect();
+    for i in 0..n {
+        if drain[i] != i as u32 {
+            continue;
+        }
+        let (r, c) = ((i / cols) as isize, (i % cols) as isize);
+        for (dy, dx) in [(-1, -1), (-1, 0), (-1, 1), (0, -1)] {
+            if let Some(j) = at(r + dy, c + dx) {
+                if drain[j] == j as u32 {
+                    let (a, b) = (find(&mut parent, i as u32), find(&mut parent, j as u32));
+                    if a != b {
+                        let (lo, hi) = if a < b { (a, b) } else { (b, a) };
+                        parent[hi as usize] = lo;
+                    }
+                }
+            }
+        }
+    }
+    let mut label = vec![0u32; n];
+    let mut count = 0u32;
+    for i in 0..n {
+        if drain[i] == i as u32 {
+            let root = find(&mut parent, i as u32) as usize;
+            if label[root] == 0 {
+                count += 1;
+                label[root] = count;
+            }
+            label[i] = label[root];
+        }
+    }
+    drop(parent);
+    // 3. Every pixel takes its sink's label (paths strictly descend: follow and memoise).
+    let mut path = Vec::new();
+    for i in 0..n {
+        if label[i] != 0 || drain[i] == u32::MAX {
+            continue;
+        }
+        let mut j = i;
+        while label[j] == 0 {
+            path.push(j);
+            j = drain[j] as usize;
+        }
+        let l = label[j];
+        for &p in &path {
+            label[p] = l;
+        }
+        path.clear();
+    }
+    drop(drain);
+    let m = count as usize;
+    // 4. Per basin: pit (value, first index in scan order), pixel count, incomplete flag.
+    let any_gap = d.par_iter().any(|v| v.is_nan());
+    let mut crit = vec![(f64::INFINITY, usize::MAX); m + 1];
+    let mut area = vec![0usize; m + 1];
+    let mut incomplete = vec![false; m + 1];
+    for r in 0..rows {
+        for c in 0..cols {
+            let i = r * cols + c;
+            let l = label[i] as usize;
+            if l == 0 {
+                continue;
+            }
+            area[l] += 1;
+            if d[i] < crit[l].0 {
+                crit[l] = (d[i], i);
+            }
+            let on_border = r == 0 || c == 0 || r + 1 == rows || c + 1 == cols;
+            let beside_gap = any_gap
+                && OFFSETS
+                    .iter()
+                    .any(|&(dy, dx)| d[at(r as isize + dy, c as isize + dx).unwrap_or(i)].is_nan());
+            if on_border || beside_gap {
+                incomplete[l] = true;
+            }
+        }
+    }
+    // 5. Saddles between adjacent basins (8-neighbours): min over the border of the higher height.
+    // Blocks of rows collect their pairs in a map (a border repeats one pair many times), so
+    // only distinct pairs per block are sorted.
+    const ROWS_PER_BLOCK: usize = 32;
+    let mut pairs: Vec<(u64, f64)> = (0..rows.div_ceil(ROWS_PER_BLOCK))
+        .into_par_iter()
+        .flat_map_iter(|b| {
+            let mut map: FxHashMap<u64, f64> = FxHashMap::default();
+            for r in b * ROWS_PER_BLOCK..((b + 1) * ROWS_PER_BLOCK).min(rows) {
+                for c in 0..cols {
+                    let i = r * cols + c;
+                    let la = label[i];
+                    if la == 0 {
+                        continue;
+                    }
+                    for (dy, dx) in [(0isize, 1isize), (1, 0), (1, 1), (1, -1)] {
+                        if let Some(j) = at(r as isize + dy, c as isize + dx) {
+                            let lb = label[j];
+                            if lb != 0 && lb != la {
+                                let (a, b) = if la < lb { (la, lb) } else { (lb, la) };
+                                let s = d[i].max(d[j]);
+                                map.entry(((a as u64) << 32) | b as u64)
+                                    .and_modify(|v| {
+                                        if s < *v {
+                                            *v = s
+                                        }
+                                    })
+                                    .or_insert(s);
+                            }
+                        }
+                    }
+                }
+            }
+            map.into_iter()
+        })
+        .collect();
+    pairs.par_sort_unstable_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)));
+    pairs.dedup_by_key(|p| p.0);
+    let mut adj: Vec<FxHashMap<u32, f64>> = vec![FxHashMap::default(); m + 1];
+    for &(k, s) in &pairs {
+        let (a, b) = ((k >> 32) as u32, (k & 0xffff_ffff) as u32);
+        adj[a as usize].insert(b, s);
+        adj[b as usize].insert(a, s);
+    }
+    drop(pairs);
+    // 6. Wolf pruning.
+    let threshold = pruning_pct / 100.0 * sz;
+    let mut min_saddle = vec![f64::INFINITY; m + 1];
+    let mut min_nb = vec![0u32; m + 1];
+    let rescan = |adj: &FxHashMap<u32, f64>| {
+        let mut best = (f64::INFINITY, 0u32);
+        for (&nb, &s) in adj {
+            // Lowest saddle, then lowest label: independent of the map's iteration order.
+            if s < best.0 || (s == best.0 && nb < best.1) {
+                best = (s, nb);
+            }
+        }
+        best
+    };
+    for r in 1..=m {
+        let (s, nb) = rescan(&adj[r]);
+        min_saddle[r] = s;
+        min_nb[r] = nb;
+    }
+    let mut version = vec![0u32; m + 1];
+    let mut alive = vec![true; m + 1];
+    let mut merged_into: Vec<u32> = (0..=m as u32).collect();
+    let mut heap: BinaryHeap<Reverse<(Key, u32, u32)>> = (1..=m)
+        .map(|r| Reverse((Key(min_saddle[r] - crit[r].0), r as u32, 0)))
+        .collect();
+    while let Some(Reverse((Key(h), r, ver))) = heap.pop() {
+        let ru = r as usize;
+        if !alive[ru] || ver != version[ru] {
+            continue;
+        }
+        if h >= threshold {
+            break;
+        }
+        let nb = min_nb[ru];
+        let nbu = nb as usize;
+        let mut radj = std::mem::take(&mut adj[ru]);
+        radj.remove(&nb);
+        adj[nbu].remove(&r);
+        let mut moved = (f64::INFINITY, 0u32);
+        for (&other, &s) in &radj {
+            let combined = match adj[nbu].get(&other) {
+                Some(&e) if e <= s => e,
+                _ => s,
+            };
+            adj[nbu].insert(other, combined);
+            let oa = &mut adj[other as usize];
+            oa.remove(&r);
+            oa.insert(nb, combined);
+            if min_nb[other as usize] == r {
+                min_nb[other as usize] = nb;
+            }
+            if combined < moved.0 || (combined == moved.0 && other < moved.1) {
+                moved = (combined, other);
+            }
+        }
+        if crit[ru].0 < crit[nbu].0 {
+            crit[nbu] = crit[ru];
+        }
+        alive[ru] = false;
+        merged_into[ru] = nb;
+        if min_nb[nbu] == r {
+            let (s, b) = rescan(&adj[nbu]);
+            min_saddle[nbu] = s;
+            min_nb[nbu] = b;
+        } else if moved.0 < min_saddle[nbu] {
+            min_saddle[nbu] = moved.0;
+            min_nb[nbu] = moved.1;
+        }
+        version[nbu] += 1;
+        heap.push(Reverse((
+            Key(min_saddle[nbu] - crit[nbu].0),
+            nb,
+            version[nbu],
+        )));
+    }
+    drop(heap);
+    // 7. Roots, their areas and incompleteness.
+    let mut root = vec![0u32; m + 1];
+    for (r, out) in root.iter_mut().enumerate().skip(1) {
+        let mut x = r as u32;
+        while merged_into[x as usize] != x {
+            x = merged_into[x as usize];
+        }
+        *out = x;
+    }
+    let mut root_area = vec![0usize; m + 1];
+    let mut root_incomplete = vec![false; m + 1];
+    for r in 1..=m {
+        let x = root[r] as usize;
+        root_area[x] += area[r];
+        root_incomplete[x] |= incomplete[r];
+    }
+    let significant = |x: usize| alive[x] && !root_incomplete[x] && min_saddle[x].is_finite();
+    // 8. Volumes below each significant root's saddle.
+    let mut volume = vec![0.0f64; m + 1];
+    for (i, &l) in label.iter().enumerate() {
+        if l == 0 {
+            continue;
+        }
+        let x = root[l as usize] as usize;
+        if significant(x) {
+            let depth = min_saddle[x] - d[i];
+            if depth > 0.0 {
+                volume[x] += depth;
+            }
+        }
+    }
+    (1..=m)
+        .filter(|&x| significant(x))
+        .map(|x| Motif {
+            critical_index: crit[x].1,
+            area_px: root_area[x],
+            volume_um_px: volume[x],
+        })
+        .collect()
+}
+
+fn mean(v: impl Iterator<Item = f64>) -> f64 {
+    let (mut s, mut k) = (0.0, 0usize);
+    for x in v {
+        s += x;
+        k += 1;
+    }
+    if k == 0 {
+        f64::NAN
+    } else {
+        s / k as f64
+    }
+}
+
+/// Mean of the `FIVE` largest values (fewer when fewer).
+fn top_five_mean(mut v: Vec<f64>) -> f64 {
+    v.sort_by(|a, b| b.total_cmp(a));
+    v.truncate(FIVE);
+    mean(v.into_iter())
+}
+
+/// The feature parameters of `g` with Wolf pruning at `pruning_pct` % of Sz.
+pub fn feature_params(g: &Grid, pruning_pct: f64) -> Result<FeatureParams, MetrologyError> {
+    let z = g.heights_um;
+    let (rows, cols) = (g.rows, g.cols);
+    let (mut lo, mut hi, mut valid) = (f64::INFINITY, f64::NEG_INFINITY, 0usize);
+    for &v in z {
+        if !v.is_nan() {
+            lo = lo.min(v);
+            hi = hi.max(v);
+            valid += 1;
+        }
+    }
+    if valid == 0 {
+        return Err(MetrologyError::NoValidPoint);
+    }
+    let mean_z = super::height_params_mean(g)?;
+    let sz = hi - lo;
+    let inverted: Vec<f64> = z.par_iter().map(|&v| -v).collect();
+    let (hills, dales) = rayon::join(
+        || segment_dales(&inverted, rows, cols, pruning_pct, sz),
+        || segment_dales(z, rows, cols, pruning_pct, sz),
+    );
+    drop(inverted);
+    let (px, py) = (g.pitch_x_um, g.pitch_y_um);
+    let curvature = |i: usize| -> Option<f64> {
+        let (r, c) = (i / cols, i % cols);
+        if r == 0 || c == 0 || r + 1 >= rows || c + 1 >= cols {
+            return None;
+        }
+        let (l, rr, u, dn) = (z[i - 1], z[i + 1], z[i - cols], z[i + cols]);
+        let d2x = (rr - 2.0 * z[i] + l) / (px * px);
+        let d2y = (dn - 2.0 * z[i] + u) / (py * py);
+        let k = -0.5 * (d2x + d2y);
+        (!k.is_nan()).then_some(k)
+    };
+    let area = (cols.saturating_sub(1) as f64 * px)
+        * (rows.saturating_sub(1) as f64 * py)
+        * (valid as f64 / z.len() as f64);
+    let cell = px * py;
+    let s5p = top_five_mean(hills.iter().map(|m| z[m.critical_index] - mean_z).collect());
+    let s5v = top_five_mean(dales.iter().map(|m| mean_z - z[m.critical_index]).collect());
+    Ok(FeatureParams {
+        spd: hills.len() as f64 / area,
+        spc: mean(hills.iter().filter_map(|m| curvature(m.critical_index))),
+        s5p,
+        s5v,
+        s10z: s5p + s5v,
+        sda: mean(dales.iter().map(|m| m.area_px as f64 * cell)),
+        sha: mean(hills.iter().map(|m| m.area_px as f64 * cell)),
+        sdv: mean(dales.iter().map(|m| m.volume_um_px * cell)),
+        shv: mean(hills.iter().map(|m| m.volume_um_px * cell)),
+        svd: dales.len() as f64 / area,
+        svc: mean(dales.iter().filter_map(|m| curvature(m.critical_index))),
+    })
+}
