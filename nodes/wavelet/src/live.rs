@@ -603,6 +603,37 @@ mod tests {
     }
 
     #[test]
+    fn final_separation_by_a_filter_and_the_wavelet_cutoff_are_reported() {
+        let mut pano = patch(0, 0, 48, 40, surface);
+        pano.header.kind = FrameKind::Panorama as u32;
+        let mut s = settings();
+        s.method = SeparationMethod::Gaussian { cutoff_um: 8.0 };
+        let f = final_separation(&s, &pano, None).unwrap();
+        assert_eq!(f.summary["method"], "gaussian");
+        assert_eq!(f.summary["cutoff_um"], 8.0);
+        for ((d, r), h) in f
+            .datum
+            .heights
+            .iter()
+            .zip(&f.roughness.heights)
+            .zip(&pano.heights)
+        {
+            assert!((d + r - h).abs() < 1e-5);
+        }
+        // The wavelet: db2 level 2 at 0.5 um is 8 pitches (4 um), reported with a warning
+        // when the level asked for does not fit.
+        let w = final_separation(&settings(), &pano, None).unwrap();
+        let cutoff = w.summary["equivalent_cutoff_um"].as_f64().unwrap();
+        assert!((cutoff - 4.0).abs() < 0.2, "{cutoff}");
+        assert!(w.summary["warning"].is_null());
+        s = settings();
+        s.level = LevelChoice::Fixed(9);
+        let lowered = final_separation(&s, &pano, None).unwrap();
+        let text = lowered.summary["warning"].as_str().unwrap().to_string();
+        assert!(text.contains("level 9 lowered to"), "{text}");
+    }
+
+    #[test]
     fn final_separation_equals_the_batch_analysis_and_writes_files() {
         let pano = patch(0, 0, 48, 40, surface);
         let mut pano = pano;
