@@ -32,7 +32,7 @@ import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
-BENCH = os.path.join(ROOT, "..", "shared", "bench")
+BENCH = os.environ.get("SURFSTREAM_BENCH_KIT", os.path.join(ROOT, "..", "shared", "bench"))  # the anchor kit
 sys.path.insert(0, BENCH)
 
 import params_anchor  # noqa: E402  (the anchor's own parameter set and timing)

@@ -4,7 +4,7 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use clap::Args;
 use surfstream_core::metrology::{self, Grid, ParamValue};
 use surfstream_core::similarity;
@@ -426,7 +426,16 @@ pub fn params(a: ParamsArgs) -> Result<()> {
     for f in &a.files {
         match params_of(f, &a) {
             Ok(r) => records.push(r),
-            Err(e) => failures.push(format!("{}: {e:#}", f.display())),
+            Err(e) => {
+                // Readers name the file already; others (a computation) get it here.
+                let msg = format!("{e:#}");
+                let name = f.display().to_string();
+                failures.push(if msg.contains(&name) {
+                    msg
+                } else {
+                    format!("{name}: {msg}")
+                });
+            }
         }
     }
     if !failures.is_empty() {
