@@ -51,6 +51,7 @@ mod panorama;
 mod quality;
 mod resample;
 pub mod stream;
+pub mod zarr;
 
 pub use chunks::{ChunkStats, TileSpill, CHUNK_BYTES, CHUNK_PX};
 pub use error::{FusionError, Result};

@@ -126,6 +126,8 @@ pub struct StreamingFusion {
     /// Memory budget of the panorama's chunks (bytes) and the folder of the spill files.
     budget_bytes: Option<usize>,
     spill_dir: Option<PathBuf>,
+    /// Also write `panorama.zarr` when the panorama has at least this many pixels.
+    zarr_min_px: Option<usize>,
     /// FINAL (globally solved) registrations from the matcher.
     final_registrations: BTreeMap<u32, TileRegistration>,
     next: u32,
@@ -144,6 +146,7 @@ impl StreamingFusion {
             spill: TileSpill::new(None),
             budget_bytes: None,
             spill_dir: None,
+            zarr_min_px: None,
             final_registrations: BTreeMap::new(),
             next: 0,
             panorama: None,
@@ -162,6 +165,13 @@ impl StreamingFusion {
         self.budget_bytes = bytes;
         self.spill = TileSpill::new(spill_dir.clone());
         self.spill_dir = spill_dir;
+    }
+
+    /// With a writer, also write the panorama as a Zarr v3 store (`panorama.zarr`,
+    /// [`crate::zarr`]) when it has at least `min_px` pixels (`Some(0)`: always); `None`:
+    /// never.
+    pub fn set_zarr_min_px(&mut self, min_px: Option<usize>) {
+        self.zarr_min_px = min_px;
     }
 
     /// Chunk statistics of the panorama (see [`crate::ChunkStats`]).
@@ -360,6 +370,23 @@ impl StreamingFusion {
                 x3p_pitch_um: None,
             })?;
             written = w.files().to_vec();
+            if self.zarr_min_px.is_some_and(|min| rows * cols >= min) {
+                let geometry = crate::zarr::ZarrGeometry {
+                    pitch_x_um: r.pitch_x_um,
+                    pitch_y_um: r.pitch_y_um,
+                    origin_x_um: r.origin_x_um,
+                    origin_y_um: r.origin_y_um,
+                };
+                written.push(crate::zarr::write_zarr_abs_f64(
+                    w.dir(),
+                    "panorama",
+                    r.heights.values(),
+                    rows,
+                    cols,
+                    r.z_offset_um,
+                    geometry,
+                )?);
+            }
         }
         let invalid = r.heights.values().iter().filter(|z| z.is_nan()).count();
         let summary = json!({
