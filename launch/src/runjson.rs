@@ -91,13 +91,39 @@ pub fn write(
         "files": files,
         "elapsed_s": elapsed.as_secs_f64(),
     });
-    let run = crate::deviation::attach(out, run, deviation.threshold_percent);
+    let mut run = crate::deviation::attach(out, run, deviation.threshold_percent);
+    // After the deviation pass, which loads whole rasters in the launcher.
+    run["peak_rss"] = peak_rss(graph, reports, mode);
     let path = out.join("run.json");
     surfstream_core::fsutil::write_atomic(&path, |w| {
         serde_json::to_writer_pretty(w, &run).map_err(|e| anyhow!("{}: {e}", path.display()))
     })?;
     crate::report::write(out)?;
     Ok(summary(&run, &lat, out))
+}
+
+/// Peak resident memory (VmHWM) of the launcher and of every node as it finished, bytes. Under
+/// `run` the nodes are threads of the launcher's process, so `process_bytes` is the run's
+/// peak; under `launch` each node is its own process and the run held at most the sum.
+fn peak_rss(graph: &GraphFile, reports: &[NodeReport], mode: &str) -> Value {
+    let launcher = surfstream_runtime::node::peak_rss_bytes();
+    let nodes: Map<String, Value> = reports
+        .iter()
+        .map(|r| (r.node_id.clone(), json!(r.peak_rss_bytes)))
+        .collect();
+    let node_sum: u64 = reports.iter().filter_map(|r| r.peak_rss_bytes).sum();
+    let run_peak = if mode == "launch" {
+        launcher.map(|l| l + node_sum)
+    } else {
+        launcher
+    };
+    json!({
+        "process_bytes": launcher,
+        "nodes_bytes": nodes,
+        "run_bytes_at_most": run_peak,
+        "memory_budget_gb": graph.graph.memory_budget_gb,
+        "source": "VmHWM of /proc/self/status, read by each node as it finished and by the launcher after the deviation pass (the report.html written after it is not included)",
+    })
 }
 
 fn list_files(dir: &Path) -> Result<Vec<String>> {

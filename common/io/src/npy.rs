@@ -67,6 +67,21 @@ pub fn write_npy_f64(path: impl AsRef<Path>, data: &[f64], rows: usize, cols: us
     })
 }
 
+/// Writes f32 frame heights as absolute float64 heights (`f64::from(z) + z_offset_um`, the
+/// values [`surfstream_core::frame::from_frame_heights`] gives), converting as it writes: no
+/// f64 copy of the whole raster is made.
+pub fn write_npy_abs_f64(
+    path: impl AsRef<Path>,
+    data: &[f32],
+    rows: usize,
+    cols: usize,
+    z_offset_um: f64,
+) -> Result<()> {
+    write_npy(path.as_ref(), data, rows, cols, "<f8", |v, out| {
+        out.extend_from_slice(&(f64::from(v) + z_offset_um).to_le_bytes())
+    })
+}
+
 // ---------------------------------------------------------------------------------------------
 // Writing
 

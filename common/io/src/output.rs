@@ -15,7 +15,7 @@ use surfstream_core::frame::from_frame_heights;
 use surfstream_core::raster::RasterView;
 
 use crate::formats::{Metadata, Surface};
-use crate::npy::{write_npy_f32, write_npy_f64};
+use crate::npy::{write_npy_abs_f64, write_npy_f32, write_npy_f64};
 use crate::preview::{write_preview_png, PreviewOptions};
 
 /// How a surface's numbers go into its `.npy`.
@@ -73,12 +73,9 @@ impl OutputWriter {
         let values = s.heights.values();
         let npy = format!("{}.npy", s.name);
         match s.npy {
-            NpyHeights::AbsoluteF64 => write_npy_f64(
-                self.dir.join(&npy),
-                &from_frame_heights(s.z_offset_um, values),
-                rows,
-                cols,
-            )?,
+            NpyHeights::AbsoluteF64 => {
+                write_npy_abs_f64(self.dir.join(&npy), values, rows, cols, s.z_offset_um)?
+            }
             NpyHeights::RelativeF32 => write_npy_f32(self.dir.join(&npy), values, rows, cols)?,
         }
         self.files.push(npy);

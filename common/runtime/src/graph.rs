@@ -132,6 +132,10 @@ pub struct GraphSection {
     /// How long startup (attach, handshake, readiness) may take before failing loudly.
     #[serde(default = "default_startup_timeout_s")]
     pub startup_timeout_s: f64,
+    /// Memory the run should stay within, GB (10^9 bytes); nodes that hold whole-scan state
+    /// (the fusion's panorama chunks) spill to disk beyond their share. `None`: no limit.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub memory_budget_gb: Option<f64>,
 }
 
 fn default_out_dir() -> PathBuf {
@@ -216,6 +220,9 @@ pub struct NodeContext {
     pub startup_timeout_s: f64,
     /// Identifies this run's scan in every frame header.
     pub scan_id: u64,
+    /// `[graph] memory_budget_gb` in bytes; `None`: no limit.
+    #[serde(default)]
+    pub memory_budget_bytes: Option<u64>,
 }
 
 impl NodeContext {
@@ -302,6 +309,13 @@ impl GraphFile {
         }
         if !(self.graph.startup_timeout_s > 0.0 && self.graph.startup_timeout_s.is_finite()) {
             bail!("{origin}: [graph] startup_timeout_s: expected a positive number of seconds");
+        }
+        if let Some(gb) = self.graph.memory_budget_gb {
+            if !(gb > 0.0 && gb.is_finite()) {
+                bail!(
+                    "{origin}: [graph] memory_budget_gb = {gb}: expected a positive number of GB"
+                );
+            }
         }
         if self.nodes.is_empty() {
             bail!("{origin}: no [[node]] entries: a graph needs at least one node");
@@ -415,6 +429,15 @@ impl GraphFile {
         let (node_id, param) = key
             .split_once('.')
             .ok_or_else(|| anyhow!("--set {assignment:?}: expected NODE.PARAM=VALUE"))?;
+        if node_id == "graph" && param == "memory_budget_gb" {
+            let gb = value.trim().parse::<f64>().map_err(|_| {
+                anyhow!(
+                    "--set {assignment:?}: expected a number of GB, e.g. graph.memory_budget_gb=4"
+                )
+            })?;
+            self.graph.memory_budget_gb = Some(gb);
+            return Ok(());
+        }
         let node = self
             .nodes
             .iter_mut()
@@ -496,6 +519,7 @@ impl GraphFile {
                 backpressure_timeout_s: self.graph.backpressure_timeout_s,
                 startup_timeout_s: self.graph.startup_timeout_s,
                 scan_id,
+                memory_budget_bytes: self.graph.memory_budget_gb.map(|gb| (gb * 1e9) as u64),
             });
         }
         Ok(contexts)
@@ -584,6 +608,34 @@ inputs = { tiles = "stage/tiles", panorama = "fusion/panorama" }
                 .unwrap()
                 .subscribers,
             1
+        );
+    }
+
+    #[test]
+    fn memory_budget_reaches_every_node_and_is_checked() {
+        let g = GraphFile::parse(DEMO, "demo.toml", &registry()).unwrap();
+        assert!(g.resolve(7, &registry()).unwrap()[2]
+            .memory_budget_bytes
+            .is_none());
+        let with = DEMO.replace(
+            "out_dir = \"out/demo\"",
+            "out_dir = \"o\"\nmemory_budget_gb = 2.5",
+        );
+        let mut g = GraphFile::parse(&with, "demo.toml", &registry()).unwrap();
+        let ctx = g.resolve(7, &registry()).unwrap();
+        assert!(ctx
+            .iter()
+            .all(|c| c.memory_budget_bytes == Some(2_500_000_000)));
+        g.apply_override("graph.memory_budget_gb=0.5").unwrap();
+        assert_eq!(g.graph.memory_budget_gb, Some(0.5));
+        assert!(g.apply_override("graph.memory_budget_gb=lots").is_err());
+        let bad = DEMO.replace("out_dir = \"out/demo\"", "memory_budget_gb = -1");
+        let e = GraphFile::parse(&bad, "g.toml", &registry())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("g.toml") && e.contains("memory_budget_gb"),
+            "{e}"
         );
     }
 

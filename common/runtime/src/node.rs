@@ -261,6 +261,18 @@ pub struct NodeReport {
     pub report: serde_json::Value,
     /// CLOCK_MONOTONIC when the node finished.
     pub t_finished_ns: u64,
+    /// Peak resident memory of the node's process when it finished (VmHWM, bytes): its own
+    /// under `launch`, the whole process (every node) under `run`. `None` off Linux.
+    #[serde(default)]
+    pub peak_rss_bytes: Option<u64>,
+}
+
+/// This process's peak resident memory so far (VmHWM of /proc/self/status), in bytes.
+pub fn peak_rss_bytes() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
 }
 
 impl NodeReport {
@@ -276,6 +288,7 @@ impl NodeReport {
             stats,
             report: logic.report(),
             t_finished_ns: monotonic_ns(),
+            peak_rss_bytes: peak_rss_bytes(),
         }
     }
 }

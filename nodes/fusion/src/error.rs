@@ -73,4 +73,9 @@ pub enum FusionError {
     /// Wavelet fusion of a tile's overlap failed (the DWT refused the overlap raster).
     #[error("tile {index}: wavelet fusion of the overlap failed: {message}")]
     WaveletFusion { index: u32, message: String },
+
+    /// The spill file of the chunked panorama or of the kept tiles could not be created,
+    /// written or read (disk full, spill folder not writable).
+    #[error("spill to disk failed: {message}")]
+    Spill { message: String },
 }

@@ -6,8 +6,9 @@
 //!
 //! 1. **Grid.** The canvas grid has the tiles' pitch and is anchored at the first tile's
 //!    origin: canvas pixel centres lie at `x = anchor_x_um + k * pitch_x_um` (likewise y), `k`
-//!    any integer. The canvas grows left, up, right and down as tiles arrive, by at least a
-//!    tile or 50 % per reallocation, keeping its content.
+//!    any integer. The canvas grows left, up, right and down as tiles arrive; its pixels live
+//!    in fixed 512 x 512 chunks created where tiles land ([`chunks`]), so growing moves no
+//!    data, and with a memory budget the least recently touched chunks spill to disk.
 //! 2. **Plane and z.** Each raw height gets the plane subtracted,
 //!    `raw - (piston + tilt_x * (col - (w-1)/2) + tilt_y * (row - (h-1)/2))`, and is moved
 //!    from the tile's `z_offset_um` into the canvas's (the first tile's), in f64.
@@ -42,6 +43,7 @@
 //! input (wrong payload length, zero size, non-finite numbers, infinite heights, pitch <= 0)
 //! is a [`FusionError`] naming the field, never a panic.
 
+pub mod chunks;
 mod error;
 mod input;
 pub mod method;
@@ -49,14 +51,16 @@ mod panorama;
 mod quality;
 mod resample;
 pub mod stream;
+pub mod zarr;
 
+pub use chunks::{ChunkStats, TileSpill, CHUNK_BYTES, CHUNK_PX};
 pub use error::{FusionError, Result};
 pub use input::{BlendParams, PlaneCorrection, TileInput};
 pub use method::{fuse_wavelet, fuse_wavelet_in, FusionMethod, WaveletFusion};
 pub use panorama::{
     render, render_panorama, Panorama, PlacedRaster, Region, DEFAULT_MAX_CANVAS_PX,
 };
-pub use quality::{overlap_quality, PairQuality};
+pub use quality::{overlap_quality, overlap_quality_streamed, PairQuality, TileFootprint};
 pub use stream::{FinalPanorama, FinalReport, FusionSettings, PanoramaPatch, StreamingFusion};
 #[cfg(feature = "node")]
 pub mod node;

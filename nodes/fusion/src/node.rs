@@ -32,6 +32,17 @@ struct Params {
     /// Write panorama.npy and panorama.png into the out dir.
     #[serde(default = "yes")]
     write_files: bool,
+    /// Also write panorama.zarr (Zarr v3, chunked): "auto" (panoramas of at least
+    /// `ZARR_AUTO_MIN_PX`), "always" or "never".
+    #[serde(default = "auto")]
+    zarr: String,
+}
+
+/// Panoramas from this size (64 Mi px, a 512 MiB f64 .npy) get a panorama.zarr with "auto".
+pub const ZARR_AUTO_MIN_PX: usize = 1 << 26;
+
+fn auto() -> String {
+    "auto".into()
 }
 
 fn gradual() -> String {
@@ -41,8 +52,13 @@ fn yes() -> bool {
     true
 }
 
+/// The fusion's share of `[graph] memory_budget_gb` for its panorama chunks: the rest is for
+/// the final panorama frame (4 bytes per pixel) and the other nodes.
+pub const BUDGET_SHARE: f64 = 0.25;
+
 pub struct FusionNode {
     fusion: StreamingFusion,
+    chunk_budget_bytes: Option<usize>,
     files: Option<OutputWriter>,
     tiles_ended: bool,
     registrations_ended: bool,
@@ -73,12 +89,26 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
     if let Some(r) = p.ramp_px.filter(|r| !(r.is_finite() && *r > 0.0)) {
         bail!("{at}: ramp_px = {r}: expected > 0 px");
     }
+    let mut fusion = StreamingFusion::new(FusionSettings {
+        method,
+        wavelet,
+        ramp_px: p.ramp_px,
+    });
+    // Spill files (unnamed, gone at exit) go beside the outputs: the system temp folder may be
+    // a RAM disk.
+    let chunk_budget_bytes = ctx
+        .memory_budget_bytes
+        .map(|b| (b as f64 * BUDGET_SHARE) as usize);
+    fusion.set_memory_budget(chunk_budget_bytes, Some(ctx.out_dir.clone()));
+    fusion.set_zarr_min_px(match p.zarr.as_str() {
+        "auto" => Some(ZARR_AUTO_MIN_PX),
+        "always" => Some(0),
+        "never" => None,
+        other => bail!("{at}: zarr = {other:?}: expected \"auto\", \"always\" or \"never\""),
+    });
     Ok(Box::new(FusionNode {
-        fusion: StreamingFusion::new(FusionSettings {
-            method,
-            wavelet,
-            ramp_px: p.ramp_px,
-        }),
+        fusion,
+        chunk_budget_bytes,
         files: p.write_files.then(|| OutputWriter::new(&ctx.out_dir)),
         tiles_ended: false,
         registrations_ended: false,
@@ -141,6 +171,11 @@ impl NodeLogic for FusionNode {
             "final_registrations": self.fusion.final_registrations(),
             "ssim": "Wang et al. 2004 (paper eq. 7): 11x11 Gaussian window, sigma 1.5, K1 0.01, K2 0.03, L = height range of the overlap; SSIM(fused, each tile) over pixels both tiles measured",
             "fusion_pairs": r.map_or(&[][..], |r| &r.pairs[..]),
+            "memory": {
+                "chunk_px": crate::CHUNK_PX,
+                "chunk_budget_bytes": self.chunk_budget_bytes,
+                "chunks": self.fusion.chunk_stats(),
+            },
         })
     }
 }

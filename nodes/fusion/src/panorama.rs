@@ -2,13 +2,15 @@
 //! into, one at a time, as the scan proceeds.
 
 use std::collections::HashSet;
+use std::path::PathBuf;
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use surfstream_core::canvas::{amortised_growth, GridRect, GrowingCanvas};
+use surfstream_core::canvas::{amortised_growth, GridRect};
 use surfstream_core::raster::{Raster, Shape};
 
+use crate::chunks::{ChunkStats, ChunkStore, CHUNK_PX};
 use crate::error::{FusionError, Result};
 use crate::input::{validate_pitch, BlendParams, TileInput};
 use crate::method::{fuse_wavelet_in, WaveletFusion};
@@ -86,8 +88,10 @@ pub const DEFAULT_MAX_CANVAS_PX: usize = 1 << 31;
 /// of f32 sums, but a constant surface stays exactly constant and heights keep full f32
 /// precision however many tiles overlap. Pixels with weight 0 have no data (NaN on output).
 ///
-/// Memory: 8 bytes per canvas pixel. The buffers are zero-initialised, so the headroom that
-/// amortised growth reserves costs address space, not RAM, until a tile lands there.
+/// Memory: 8 bytes per touched pixel, in chunks of [`CHUNK_PX`]^2 ([`crate::chunks`]): the
+/// canvas rectangle is bookkeeping only, chunks exist where tiles landed, and with a budget
+/// ([`Panorama::set_memory_budget_bytes`]) the least recently touched chunks live in a spill
+/// file instead of memory, with the same result bit for bit.
 #[derive(Debug, Clone)]
 pub struct Panorama {
     pitch_x_um: f64,
@@ -96,11 +100,11 @@ pub struct Panorama {
     max_canvas_px: usize,
     /// Set by the first placed tile.
     anchor: Option<Anchor>,
-    /// Running weighted mean per canvas pixel. It and `weight` always cover the same grid
-    /// rectangle, the canvas (empty before the first tile).
-    mean: GrowingCanvas<f32>,
-    /// Weight sum per canvas pixel; 0 = no data.
-    weight: GrowingCanvas<f32>,
+    /// The grid rectangle of the canvas (empty before the first tile): what canvas pixel
+    /// coordinates ([`Region`]) are relative to. Growing it moves no data.
+    rect: GridRect,
+    /// Running weighted mean and weight sum (0 = no data) per grid pixel, in chunks.
+    store: ChunkStore,
     /// Union of the footprints of all placed tiles.
     content: Option<GridRect>,
     placed: HashSet<u32>,
@@ -123,8 +127,8 @@ impl Panorama {
             params,
             max_canvas_px: DEFAULT_MAX_CANVAS_PX,
             anchor: None,
-            mean: GrowingCanvas::new(0.0),
-            weight: GrowingCanvas::new(0.0),
+            rect: GridRect::default(),
+            store: ChunkStore::default(),
             content: None,
             placed: HashSet::new(),
             reserved_um: None,
@@ -147,6 +151,19 @@ impl Panorama {
     /// Change the limit on the canvas size in pixels (default [`DEFAULT_MAX_CANVAS_PX`]).
     pub fn set_max_canvas_px(&mut self, max_px: usize) {
         self.max_canvas_px = max_px;
+    }
+
+    /// Keep at most about `bytes` of the accumulator chunks in memory, the rest in a spill
+    /// file in `spill_dir` (default the system temp folder); `None`: no limit. Any budget
+    /// gives the same panorama bit for bit.
+    pub fn set_memory_budget_bytes(&mut self, bytes: Option<usize>, spill_dir: Option<PathBuf>) {
+        self.store.set_budget_bytes(bytes);
+        self.store.set_spill_dir(spill_dir);
+    }
+
+    /// Chunk counts, spills and reloads so far.
+    pub fn chunk_stats(&self) -> ChunkStats {
+        self.store.stats()
     }
 
     /// The limit on the canvas size in pixels.
@@ -182,7 +199,7 @@ impl Panorama {
 
     /// The grid rectangle the canvas covers.
     fn canvas(&self) -> GridRect {
-        self.mean.rect()
+        self.rect
     }
 
     /// Number of tiles placed so far.
@@ -249,7 +266,7 @@ impl Panorama {
             });
         }
         let rect = [x_min_um, y_min_um, x_max_um, y_max_um];
-        if self.mean.is_empty() {
+        if self.rect.is_empty() {
             self.reserved_um = Some(rect);
             return Ok(());
         }
@@ -353,7 +370,7 @@ impl Panorama {
     /// scan of n tiles reallocates O(log n) times and never copies more than a constant
     /// multiple of the final canvas in total.
     fn ensure_covers(&mut self, need: GridRect, index: u32) -> Result<()> {
-        if self.mean.is_empty() {
+        if self.rect.is_empty() {
             let wanted = match self.reserved_um {
                 Some(r) => self.grid_rect_um(&r).map_or(need, |g| g.union(&need)),
                 None => need,
@@ -385,9 +402,8 @@ impl Panorama {
                 max_px: self.max_canvas_px,
             });
         };
-        // Zeroed allocations are lazy: untouched headroom costs no RAM.
-        self.mean.reallocate(new);
-        self.weight.reallocate(new);
+        // Bookkeeping only: chunks are created where tiles land.
+        self.rect = new;
         Ok(())
     }
 
@@ -447,23 +463,25 @@ impl Panorama {
             self.place_wavelet(&resampler, region, &wf, tile.index)?;
             return Ok(region);
         }
-        let stride = self.mean.stride();
-        let rows = region.y0 * stride..(region.y0 + region.height) * stride;
-        let cols = region.x0..region.x0 + region.width;
-        // One task per canvas row: rows are independent, so the result does not depend on the
-        // thread count or schedule (bit for bit), and only the tile's rows are visited.
-        self.mean.values_mut()[rows.clone()]
-            .par_chunks_mut(stride)
-            .zip(self.weight.values_mut()[rows].par_chunks_mut(stride))
-            .enumerate()
-            .with_min_len(8)
-            .for_each(|(j, (mean_row, weight_row))| {
-                resampler.blend_row(
+        // One task per chunk the footprint touches: pixels are independent, so the result does
+        // not depend on the thread count, the schedule or the chunking (bit for bit).
+        self.store.for_each_mut(&footprint, |cr, chunk| {
+            let Some(part) = cr.intersect(&footprint) else {
+                return;
+            };
+            let n = part.cols();
+            let i0 = (part.x0 - footprint.x0) as usize;
+            for gy in part.y0..part.y1 {
+                let j = (gy - footprint.y0) as usize;
+                let at = (gy - cr.y0) as usize * CHUNK_PX + (part.x0 - cr.x0) as usize;
+                resampler.blend_span(
                     j,
-                    &mut mean_row[cols.clone()],
-                    &mut weight_row[cols.clone()],
-                )
-            });
+                    i0,
+                    &mut chunk.mean[at..at + n],
+                    &mut chunk.weight[at..at + n],
+                );
+            }
+        })?;
         Ok(region)
     }
 
@@ -493,30 +511,38 @@ impl Panorama {
         }
         let canvas_z = self.extract(region);
         // Whether the canvas has data just outside the footprint: there the tile's edge is a
-        // seam the feathering must close.
+        // seam the feathering must close. The footprint's one-pixel ring, clipped to the canvas.
         let (cw, ch) = (self.width() as isize, self.height() as isize);
-        let weight = self.weight.values();
+        let ring = self.to_grid(&region).expand(1);
+        let (_, ring_weight) = self.store.read_rect(&ring)?;
+        let ring_cols = ring.cols() as isize;
         let canvas_beyond = |r: isize, c: isize| {
             let (y, x) = (region.y0 as isize + r, region.x0 as isize + c);
-            (0..ch).contains(&y) && (0..cw).contains(&x) && weight[(y * cw + x) as usize] > 0.0
+            (0..ch).contains(&y)
+                && (0..cw).contains(&x)
+                && ring_weight[((r + 1) * ring_cols + c + 1) as usize] > 0.0
         };
         let fused = fuse_wavelet_in(&canvas_z, &tile_z, region.height, w, wf, canvas_beyond)
             .map_err(|e| FusionError::WaveletFusion {
                 index,
                 message: e.to_string(),
             })?;
-        let stride = self.mean.stride();
-        let (mean, weight) = (self.mean.values_mut(), self.weight.values_mut());
-        for j in 0..region.height {
-            let row = (region.y0 + j) * stride + region.x0;
-            for i in 0..w {
-                let k = j * w + i;
-                if tile_w[k] > 0.0 {
-                    mean[row + i] = fused[k];
-                    weight[row + i] += 1.0;
+        let footprint = self.to_grid(&region);
+        self.store.for_each_mut(&footprint, |cr, chunk| {
+            let Some(part) = cr.intersect(&footprint) else {
+                return;
+            };
+            for gy in part.y0..part.y1 {
+                for gx in part.x0..part.x1 {
+                    let k = (gy - footprint.y0) as usize * w + (gx - footprint.x0) as usize;
+                    if tile_w[k] > 0.0 {
+                        let at = (gy - cr.y0) as usize * CHUNK_PX + (gx - cr.x0) as usize;
+                        chunk.mean[at] = fused[k];
+                        chunk.weight[at] += 1.0;
+                    }
                 }
             }
-        }
+        })?;
         Ok(())
     }
 
@@ -531,29 +557,82 @@ impl Panorama {
         Ok(alone.to_raster())
     }
 
+    /// Canvas pixel coordinates to grid indices.
+    fn to_grid(&self, region: &Region) -> GridRect {
+        GridRect {
+            x0: self.rect.x0 + region.x0 as i64,
+            y0: self.rect.y0 + region.y0 as i64,
+            x1: self.rect.x0 + (region.x0 + region.width) as i64,
+            y1: self.rect.y0 + (region.y0 + region.height) as i64,
+        }
+    }
+
+    /// Where a tile at (`x_um`, `y_um`) with `cols` x `rows` samples lands on this canvas, as
+    /// [`Panorama::resample_alone`] would place it: the first covered pixel in canvas pixel
+    /// coordinates (negative when left of / above the canvas) and the covered size. `None`
+    /// before the anchor is set, for a position out of range, or when it covers no pixel.
+    pub fn footprint_px(
+        &self,
+        x_um: f64,
+        y_um: f64,
+        cols: usize,
+        rows: usize,
+    ) -> Option<(i64, i64, usize, usize)> {
+        let anchor = self.anchor?;
+        if cols == 0 || rows == 0 {
+            return None;
+        }
+        let ox = (x_um - anchor.x_um) / self.pitch_x_um;
+        let oy = (y_um - anchor.y_um) / self.pitch_y_um;
+        if !(-MAX_OFFSET_PX..=MAX_OFFSET_PX).contains(&ox)
+            || !(-MAX_OFFSET_PX..=MAX_OFFSET_PX).contains(&oy)
+        {
+            return None;
+        }
+        let x = AxisPlan::new(ox, cols, self.params.effective_ramp_x_px());
+        let y = AxisPlan::new(oy, rows, self.params.effective_ramp_y_px());
+        (x.len > 0 && y.len > 0)
+            .then(|| (x.start - self.rect.x0, y.start - self.rect.y0, x.len, y.len))
+    }
+
     /// Blended heights of a region (um relative to [`Panorama::z_offset_um`]), row-major;
-    /// NaN where no tile has data and for pixels outside the canvas.
+    /// NaN where no tile has data and for pixels outside the canvas. Panics only if a spilled
+    /// chunk cannot be read back (see [`Panorama::try_extract`]).
     pub fn extract(&self, region: Region) -> Vec<f32> {
+        match self.try_extract(region) {
+            Ok(v) => v,
+            Err(e) => panic!("panorama: {e}"),
+        }
+    }
+
+    /// [`Panorama::extract`], with an error when a spilled chunk cannot be read back.
+    pub fn try_extract(&self, region: Region) -> Result<Vec<f32>> {
         let mut out = vec![f32::NAN; region.len()];
         let (cw, ch) = (self.width(), self.height());
         if region.is_empty() || region.x0 >= cw || region.y0 >= ch {
-            return out;
+            return Ok(out);
         }
         let x_end = region.x0.saturating_add(region.width).min(cw);
         let y_end = region.y0.saturating_add(region.height).min(ch);
-        for (r, out_row) in (region.y0..y_end).zip(out.chunks_mut(region.width)) {
-            let src = r * cw + region.x0..r * cw + x_end;
-            for ((o, &m), &w) in out_row
-                .iter_mut()
-                .zip(&self.mean.values()[src.clone()])
-                .zip(&self.weight.values()[src])
-            {
+        let inside = Region {
+            x0: region.x0,
+            y0: region.y0,
+            width: x_end - region.x0,
+            height: y_end - region.y0,
+        };
+        let (mean, weight) = self.store.read_rect(&self.to_grid(&inside))?;
+        let n = inside.width;
+        for (out_row, (m_row, w_row)) in out
+            .chunks_mut(region.width)
+            .zip(mean.chunks(n).zip(weight.chunks(n)))
+        {
+            for ((o, &m), &w) in out_row.iter_mut().zip(m_row).zip(w_row) {
                 if w > 0.0 {
                     *o = m;
                 }
             }
         }
-        out
+        Ok(out)
     }
 
     /// The whole panorama, trimmed to the bounding box of the placed tiles' footprints. An

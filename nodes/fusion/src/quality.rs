@@ -10,6 +10,8 @@
 //! the mean of the two: how well the fused overlap keeps the structure of both measurements.
 //! Overlaps smaller than the 11 px window in either direction are not scored.
 
+use std::collections::HashMap;
+
 use serde::Serialize;
 use surfstream_core::similarity::{ssim, WINDOW_PX};
 
@@ -34,33 +36,66 @@ pub struct PairQuality {
     pub ssim_mean: f64,
 }
 
+/// Where a tile sits, without its heights: what pairing the overlaps needs.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TileFootprint {
+    pub index: u32,
+    pub x_um: f64,
+    pub y_um: f64,
+    pub cols: usize,
+    pub rows: usize,
+}
+
+impl TileFootprint {
+    pub fn of(t: &TileInput<'_>) -> Self {
+        Self {
+            index: t.index,
+            x_um: t.x_um,
+            y_um: t.y_um,
+            cols: t.heights.cols(),
+            rows: t.heights.rows(),
+        }
+    }
+}
+
 /// SSIM of every scored overlap of `tiles` in the (final) panorama `pano`, ordered by
 /// (tile_a, tile_b).
 pub fn overlap_quality(pano: &Panorama, tiles: &[TileInput<'_>]) -> Result<Vec<PairQuality>> {
+    let footprints: Vec<TileFootprint> = tiles.iter().map(TileFootprint::of).collect();
+    overlap_quality_streamed(pano, &footprints, |k| pano.resample_alone(tiles[k]))
+}
+
+/// [`overlap_quality`] with the tiles resampled on demand: `alone(k)` gives tile
+/// `footprints[k]` resampled alone onto `pano`'s grid ([`Panorama::resample_alone`]). Pairs
+/// are found from the footprints; each tile is resampled once and dropped when its last
+/// partner is scored, so in a serpentine scan about two rows of tiles are in memory at once,
+/// not the whole scan. The result is the same as [`overlap_quality`]'s.
+pub fn overlap_quality_streamed(
+    pano: &Panorama,
+    footprints: &[TileFootprint],
+    mut alone: impl FnMut(usize) -> Result<PlacedRaster>,
+) -> Result<Vec<PairQuality>> {
     let Some(content) = pano.content_region() else {
         return Ok(Vec::new());
     };
-    let (cx, cy) = pano.canvas_origin_um();
-    let (px, py) = pano.pitch_um();
-    // Each tile alone and where it sits in canvas pixels.
-    let mut alone: Vec<(u32, PlacedRaster, i64, i64)> = Vec::with_capacity(tiles.len());
-    for t in tiles {
-        let r = pano.resample_alone(*t)?;
-        if r.heights.shape().is_empty() {
-            continue;
-        }
-        let gx = ((r.origin_x_um - cx) / px).round() as i64;
-        let gy = ((r.origin_y_um - cy) / py).round() as i64;
-        alone.push((t.index, r, gx, gy));
-    }
-    alone.sort_by_key(|a| a.0);
-    let mut out = Vec::new();
-    for (i, (ia, ra, ax, ay)) in alone.iter().enumerate() {
-        for (ib, rb, bx, by) in &alone[i + 1..] {
-            let x0 = (*ax).max(*bx).max(content.x0 as i64);
-            let y0 = (*ay).max(*by).max(content.y0 as i64);
-            let x1 = (ax + ra.heights.cols() as i64).min(bx + rb.heights.cols() as i64);
-            let y1 = (ay + ra.heights.rows() as i64).min(by + rb.heights.rows() as i64);
+    // Each tile's place in canvas pixels, in index order (stable for equal indices).
+    let mut placed: Vec<(usize, u32, i64, i64, usize, usize)> = footprints
+        .iter()
+        .enumerate()
+        .filter_map(|(k, f)| {
+            pano.footprint_px(f.x_um, f.y_um, f.cols, f.rows)
+                .map(|(gx, gy, w, h)| (k, f.index, gx, gy, w, h))
+        })
+        .collect();
+    placed.sort_by_key(|p| p.1);
+    // The scored pairs (positions in `placed`) and their overlap rectangles.
+    let mut pairs: Vec<(usize, usize, Region)> = Vec::new();
+    for (i, &(_, _, ax, ay, aw, ah)) in placed.iter().enumerate() {
+        for (j, &(_, _, bx, by, bw, bh)) in placed.iter().enumerate().skip(i + 1) {
+            let x0 = ax.max(bx).max(content.x0 as i64);
+            let y0 = ay.max(by).max(content.y0 as i64);
+            let x1 = (ax + aw as i64).min(bx + bw as i64);
+            let y1 = (ay + ah as i64).min(by + bh as i64);
             if x1 - x0 < WINDOW_PX as i64 || y1 - y0 < WINDOW_PX as i64 {
                 continue;
             }
@@ -70,44 +105,70 @@ pub fn overlap_quality(pano: &Panorama, tiles: &[TileInput<'_>]) -> Result<Vec<P
                 width: (x1 - x0) as usize,
                 height: (y1 - y0) as usize,
             };
-            let fused = pano.extract(region);
-            let crop = |r: &PlacedRaster, gx: i64, gy: i64| -> Vec<f32> {
-                let mut v = Vec::with_capacity(region.len());
-                for row in 0..region.height {
-                    let sr = (y0 - gy) as usize + row;
-                    let sc = (x0 - gx) as usize;
-                    v.extend_from_slice(&r.heights.row(sr)[sc..][..region.width]);
-                }
-                v
-            };
-            let mut za = crop(ra, *ax, *ay);
-            let mut zb = crop(rb, *bx, *by);
-            // Score only where both measured: each side loses the other's holes.
-            let mut valid_px = 0;
-            for (a, b) in za.iter_mut().zip(zb.iter_mut()) {
-                if a.is_finite() && b.is_finite() {
-                    valid_px += 1;
-                } else {
-                    *a = f32::NAN;
-                    *b = f32::NAN;
-                }
-            }
-            let (h, w) = (region.height, region.width);
-            let (Ok(sa), Ok(sb)) = (ssim(&fused, &za, h, w, None), ssim(&fused, &zb, h, w, None))
-            else {
-                continue; // no window with enough data in both: nothing to score
-            };
-            out.push(PairQuality {
-                tile_a: *ia,
-                tile_b: *ib,
-                width_px: w,
-                height_px: h,
-                valid_px,
-                ssim_a: sa.mssim,
-                ssim_b: sb.mssim,
-                ssim_mean: 0.5 * (sa.mssim + sb.mssim),
-            });
+            pairs.push((i, j, region));
         }
+    }
+    // The last pair each tile takes part in: after it, the tile is dropped.
+    let mut last_use = vec![0usize; placed.len()];
+    for (p, &(i, j, _)) in pairs.iter().enumerate() {
+        last_use[i] = p;
+        last_use[j] = p;
+    }
+    let mut cache: HashMap<usize, PlacedRaster> = HashMap::new();
+    let mut out = Vec::new();
+    for (p, &(i, j, region)) in pairs.iter().enumerate() {
+        for k in [i, j] {
+            if let std::collections::hash_map::Entry::Vacant(e) = cache.entry(k) {
+                e.insert(alone(placed[k].0)?);
+            }
+        }
+        let (ra, rb) = (&cache[&i], &cache[&j]);
+        let (ia, ax, ay) = (placed[i].1, placed[i].2, placed[i].3);
+        let (ib, bx, by) = (placed[j].1, placed[j].2, placed[j].3);
+        let (x0, y0) = (region.x0 as i64, region.y0 as i64);
+        let fused = pano.try_extract(region)?;
+        let crop = |r: &PlacedRaster, gx: i64, gy: i64| -> Vec<f32> {
+            let mut v = Vec::with_capacity(region.len());
+            for row in 0..region.height {
+                let sr = (y0 - gy) as usize + row;
+                let sc = (x0 - gx) as usize;
+                v.extend_from_slice(&r.heights.row(sr)[sc..][..region.width]);
+            }
+            v
+        };
+        let mut za = crop(ra, ax, ay);
+        let mut zb = crop(rb, bx, by);
+        if last_use[i] == p {
+            cache.remove(&i);
+        }
+        if last_use[j] == p {
+            cache.remove(&j);
+        }
+        // Score only where both measured: each side loses the other's holes.
+        let mut valid_px = 0;
+        for (a, b) in za.iter_mut().zip(zb.iter_mut()) {
+            if a.is_finite() && b.is_finite() {
+                valid_px += 1;
+            } else {
+                *a = f32::NAN;
+                *b = f32::NAN;
+            }
+        }
+        let (h, w) = (region.height, region.width);
+        let (Ok(sa), Ok(sb)) = (ssim(&fused, &za, h, w, None), ssim(&fused, &zb, h, w, None))
+        else {
+            continue; // no window with enough data in both: nothing to score
+        };
+        out.push(PairQuality {
+            tile_a: ia,
+            tile_b: ib,
+            width_px: w,
+            height_px: h,
+            valid_px,
+            ssim_a: sa.mssim,
+            ssim_b: sb.mssim,
+            ssim_mean: 0.5 * (sa.mssim + sb.mssim),
+        });
     }
     Ok(out)
 }

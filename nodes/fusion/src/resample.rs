@@ -110,7 +110,15 @@ impl Resampler<'_> {
     /// `sum(w)`; `weight == 0` means no tile has data there.
     pub fn blend_row(&self, j: usize, mean: &mut [f32], weight: &mut [f32]) {
         debug_assert_eq!(mean.len(), self.x.len);
-        debug_assert_eq!(weight.len(), self.x.len);
+        self.blend_span(j, 0, mean, weight)
+    }
+
+    /// [`Resampler::blend_row`] for the covered pixels `i0 .. i0 + mean.len()` of row `j`
+    /// only: a chunk's part of the row. Every pixel is computed on its own, so blending a row
+    /// in spans gives the same bits as blending it whole.
+    pub fn blend_span(&self, j: usize, i0: usize, mean: &mut [f32], weight: &mut [f32]) {
+        debug_assert!(i0 + mean.len() <= self.x.len);
+        debug_assert_eq!(weight.len(), mean.len());
         let w = self.width;
         // With a fractional offset the covered pixels stop one short of the tile's last
         // row/column, so `+ 1` stays inside; on the grid the second corner has weight 0 and
@@ -133,14 +141,14 @@ impl Resampler<'_> {
         let ct = &self.col_term_um;
         let dc = usize::from(self.x.frac > 0.0);
 
-        for (i, ((m, acc_w), &wx)) in mean
+        for (k, ((m, acc_w), &wx)) in mean
             .iter_mut()
             .zip(weight.iter_mut())
-            .zip(&self.x.weights)
+            .zip(&self.x.weights[i0..])
             .enumerate()
         {
-            let c0 = i;
-            let c1 = i + dc;
+            let c0 = i0 + k;
+            let c1 = c0 + dc;
             let mut sum = 0.0f64;
             let mut valid = 0.0f64;
             // NaN corners are skipped, never multiplied: 0 * NaN would poison the sum.

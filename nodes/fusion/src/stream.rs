@@ -4,13 +4,22 @@
 //! region goes downstream as a panorama patch. At end of scan the whole panorama is published
 //! (and written) once.
 //!
-//! Every tile is kept until the end of the scan. If the matcher sends revised, globally solved
-//! registrations (flag FINAL), the final panorama is re-rendered from all tiles at those
-//! positions (tiles without a FINAL registration keep their streaming one); otherwise the
-//! streaming panorama is final. The overlap quality ([`crate::overlap_quality`]) is scored on
-//! the final panorama.
+//! Every tile is kept until the end of the scan, on disk: once placed, its heights go to a
+//! spill file ([`crate::TileSpill`]) and only its header stays in memory. If the matcher sends
+//! revised, globally solved registrations (flag FINAL), the final panorama is re-rendered from
+//! all tiles at those positions, read back one at a time (tiles without a FINAL registration
+//! keep their streaming one); otherwise the streaming panorama is final. The overlap quality
+//! ([`crate::overlap_quality_streamed`]) is scored on the final panorama, again reading the
+//! tiles back as the pairs need them.
+//!
+//! Memory: the panorama's accumulator chunks ([`crate::Panorama`], 8 bytes per touched pixel)
+//! plus the tiles waiting for their registration. With a budget
+//! ([`StreamingFusion::set_memory_budget`]) the chunks beyond it spill to disk, so the
+//! fusion's own memory stays about constant whatever the scan size; the final panorama frame
+//! (4 bytes per pixel, f32) is the one whole-panorama allocation left.
 
 use std::collections::BTreeMap;
+use std::path::PathBuf;
 
 use anyhow::{anyhow, bail, Result};
 use serde_json::json;
@@ -19,8 +28,8 @@ use surfstream_core::raster::{RasterView, Shape};
 use surfstream_io::output::{NpyHeights, OutputWriter, SurfaceOutput};
 
 use crate::{
-    overlap_quality, render_panorama, BlendParams, FusionMethod, PairQuality, Panorama,
-    PlaneCorrection, TileInput, WaveletFusion,
+    overlap_quality_streamed, BlendParams, FusionMethod, PairQuality, Panorama, PlaneCorrection,
+    TileFootprint, TileInput, TileSpill, WaveletFusion,
 };
 
 /// Decimation of the latest-wins preview patches.
@@ -96,15 +105,29 @@ pub struct FinalReport {
     pub files: Vec<String>,
 }
 
+/// A placed tile: its header and where its heights are in the spill file.
+#[derive(Debug, Clone, Copy)]
+struct SpilledTile {
+    header: FrameHeader,
+    offset: u64,
+    len: usize,
+}
+
 /// The panorama of one scan as tiles and registrations stream in.
 #[derive(Debug)]
 pub struct StreamingFusion {
     settings: FusionSettings,
     tiles: BTreeMap<u32, HeightMap>,
     registrations: BTreeMap<u32, TileRegistration>,
-    /// Tiles already placed, with the registration they were placed at (kept for the final
-    /// re-render and the overlap quality).
-    placed: BTreeMap<u32, (HeightMap, TileRegistration)>,
+    /// Tiles already placed, with the registration they were placed at (kept, on disk, for
+    /// the final re-render and the overlap quality).
+    placed: BTreeMap<u32, (SpilledTile, TileRegistration)>,
+    spill: TileSpill,
+    /// Memory budget of the panorama's chunks (bytes) and the folder of the spill files.
+    budget_bytes: Option<usize>,
+    spill_dir: Option<PathBuf>,
+    /// Also write `panorama.zarr` when the panorama has at least this many pixels.
+    zarr_min_px: Option<usize>,
     /// FINAL (globally solved) registrations from the matcher.
     final_registrations: BTreeMap<u32, TileRegistration>,
     next: u32,
@@ -120,6 +143,10 @@ impl StreamingFusion {
             tiles: BTreeMap::new(),
             registrations: BTreeMap::new(),
             placed: BTreeMap::new(),
+            spill: TileSpill::new(None),
+            budget_bytes: None,
+            spill_dir: None,
+            zarr_min_px: None,
             final_registrations: BTreeMap::new(),
             next: 0,
             panorama: None,
@@ -129,6 +156,49 @@ impl StreamingFusion {
 
     pub fn settings(&self) -> &FusionSettings {
         &self.settings
+    }
+
+    /// Keep at most about `bytes` of panorama chunks in memory (`None`: no limit), and put the
+    /// spill files (chunks beyond the budget, placed tiles) in `spill_dir` (default: the
+    /// system temp folder). Set before the first tile. The panorama does not depend on it.
+    pub fn set_memory_budget(&mut self, bytes: Option<usize>, spill_dir: Option<PathBuf>) {
+        self.budget_bytes = bytes;
+        self.spill = TileSpill::new(spill_dir.clone());
+        self.spill_dir = spill_dir;
+    }
+
+    /// With a writer, also write the panorama as a Zarr v3 store (`panorama.zarr`,
+    /// [`crate::zarr`]) when it has at least `min_px` pixels (`Some(0)`: always); `None`:
+    /// never.
+    pub fn set_zarr_min_px(&mut self, min_px: Option<usize>) {
+        self.zarr_min_px = min_px;
+    }
+
+    /// Chunk statistics of the panorama (see [`crate::ChunkStats`]).
+    pub fn chunk_stats(&self) -> Option<crate::ChunkStats> {
+        self.panorama.as_ref().map(|p| p.chunk_stats())
+    }
+
+    fn new_panorama(
+        &self,
+        pitch_x_um: f64,
+        pitch_y_um: f64,
+        params: BlendParams,
+    ) -> Result<Panorama> {
+        let mut p = Panorama::new(pitch_x_um, pitch_y_um, params)?;
+        if self.settings.method == FusionMethod::Wavelet {
+            p.set_wavelet_fusion(Some(self.settings.wavelet));
+        }
+        p.set_memory_budget_bytes(self.budget_bytes, self.spill_dir.clone());
+        Ok(p)
+    }
+
+    /// A placed tile read back from the spill file.
+    fn load(&self, t: &SpilledTile) -> Result<HeightMap> {
+        Ok(HeightMap {
+            header: t.header,
+            heights: self.spill.read(t.offset, t.len)?,
+        })
     }
 
     /// Keeps a tile until its registration is in.
@@ -165,20 +235,17 @@ impl StreamingFusion {
             self.registrations.get(&self.next),
         ) {
             let h = tile.header;
-            let pano = match &mut self.panorama {
-                Some(p) => p,
-                None => {
-                    let mut p =
-                        Panorama::new(h.pitch_x_um, h.pitch_y_um, self.settings.blend_params(&h))?;
-                    if self.settings.method == FusionMethod::Wavelet {
-                        p.set_wavelet_fusion(Some(self.settings.wavelet));
-                    }
-                    self.panorama.insert(p)
-                }
+            if self.panorama.is_none() {
+                let p =
+                    self.new_panorama(h.pitch_x_um, h.pitch_y_um, self.settings.blend_params(&h))?;
+                self.panorama = Some(p);
+            }
+            let Some(pano) = self.panorama.as_mut() else {
+                bail!("fusion: no panorama"); // just set
             };
             let region = pano.place(tile_input(tile, reg)?)?;
             let (ox, oy) = pano.region_origin_um(&region);
-            let heights = pano.extract(region);
+            let heights = pano.try_extract(region)?;
             let (px, py) = pano.pitch_um();
             let header = FrameHeader {
                 kind: FrameKind::PanoramaPatch as u32,
@@ -206,7 +273,13 @@ impl StreamingFusion {
                 self.tiles.remove(&self.next),
                 self.registrations.remove(&self.next),
             ) {
-                self.placed.insert(self.next, (tile, reg));
+                let offset = self.spill.write(&tile.heights)?;
+                let kept = SpilledTile {
+                    header: tile.header,
+                    offset,
+                    len: tile.heights.len(),
+                };
+                self.placed.insert(self.next, (kept, reg));
             }
             self.next += 1;
         }
@@ -221,7 +294,7 @@ impl StreamingFusion {
     /// The final panorama once both inputs ended: re-rendered from FINAL registrations when
     /// there are any, scored by overlap, written as `panorama` (.npy absolute f64 + .png) when
     /// a writer is given. Errors when a tile or a registration is missing its partner.
-    pub fn finish(&self, files: Option<&mut OutputWriter>) -> Result<FinalPanorama> {
+    pub fn finish(&mut self, files: Option<&mut OutputWriter>) -> Result<FinalPanorama> {
         if let Some(k) = self.tiles.keys().next() {
             bail!("fusion: tile {k} never received its registration (registrations ended)");
         }
@@ -240,27 +313,50 @@ impl StreamingFusion {
             .as_ref()
             .ok_or_else(|| anyhow!("fusion: the scan had no tiles"))?;
         // The globally solved positions, where the matcher sent them.
-        let inputs: Vec<TileInput<'_>> = self
+        let positions: Vec<(SpilledTile, TileRegistration)> = self
             .placed
             .iter()
-            .map(|(k, (tile, reg))| {
-                tile_input(tile, self.final_registrations.get(k).unwrap_or(reg))
-            })
-            .collect::<Result<_>>()?;
-        let rerendered = if self.final_registrations.is_empty() {
-            None
-        } else {
+            .map(|(k, (t, reg))| (*t, *self.final_registrations.get(k).unwrap_or(reg)))
+            .collect();
+        let rerendered = !self.final_registrations.is_empty();
+        if rerendered {
+            // Placed one by one in index order, read back one at a time: the same result, bit
+            // for bit, as rendering from all tiles in memory ([`crate::render_panorama`]). The
+            // streaming panorama goes first, so the two never take memory at once.
             let (px, py) = pano.pitch_um();
-            Some(render_panorama(
-                px,
-                py,
-                &inputs,
-                *pano.params(),
-                pano.wavelet_fusion().copied(),
-            )?)
+            let (params, wavelet) = (*pano.params(), pano.wavelet_fusion().copied());
+            self.panorama = None;
+            let mut fresh = self.new_panorama(px, py, params)?;
+            fresh.set_wavelet_fusion(wavelet);
+            for (t, reg) in &positions {
+                let tile = self.load(t)?;
+                fresh.place(tile_input(&tile, reg)?)?;
+            }
+            self.panorama = Some(fresh);
+        }
+        let Some(final_pano) = self.panorama.as_ref() else {
+            bail!("fusion: no panorama"); // set above
         };
-        let final_pano = rerendered.as_ref().unwrap_or(pano);
-        let pairs = overlap_quality(final_pano, &inputs)?;
+        let footprints: Vec<TileFootprint> = positions
+            .iter()
+            .map(|(t, reg)| TileFootprint {
+                index: t.header.tile_index,
+                x_um: reg.x_um,
+                y_um: reg.y_um,
+                cols: t.header.width as usize,
+                rows: t.header.height as usize,
+            })
+            .collect();
+        let pairs = overlap_quality_streamed(final_pano, &footprints, |k| {
+            let (t, reg) = &positions[k];
+            let tile = self.load(t).map_err(|e| crate::FusionError::Spill {
+                message: e.to_string(),
+            })?;
+            let input = tile_input(&tile, reg).map_err(|e| crate::FusionError::Spill {
+                message: e.to_string(),
+            })?;
+            final_pano.resample_alone(input)
+        })?;
         let r = final_pano.to_raster();
         let mut written = Vec::new();
         let (rows, cols) = (r.heights.rows(), r.heights.cols());
@@ -274,6 +370,23 @@ impl StreamingFusion {
                 x3p_pitch_um: None,
             })?;
             written = w.files().to_vec();
+            if self.zarr_min_px.is_some_and(|min| rows * cols >= min) {
+                let geometry = crate::zarr::ZarrGeometry {
+                    pitch_x_um: r.pitch_x_um,
+                    pitch_y_um: r.pitch_y_um,
+                    origin_x_um: r.origin_x_um,
+                    origin_y_um: r.origin_y_um,
+                };
+                written.push(crate::zarr::write_zarr_abs_f64(
+                    w.dir(),
+                    "panorama",
+                    r.heights.values(),
+                    rows,
+                    cols,
+                    r.z_offset_um,
+                    geometry,
+                )?);
+            }
         }
         let invalid = r.heights.values().iter().filter(|z| z.is_nan()).count();
         let summary = json!({
@@ -304,7 +417,7 @@ impl StreamingFusion {
             report: FinalReport {
                 summary,
                 pairs,
-                rerendered: rerendered.is_some(),
+                rerendered,
                 files: written,
             },
         })
@@ -419,5 +532,87 @@ mod tests {
         not_a_tile.header.kind = FrameKind::Datum as u32;
         assert!(g.add_tile(not_a_tile).is_err());
         assert!(StreamingFusion::new(settings()).finish(None).is_err());
+    }
+
+    #[test]
+    fn a_budget_spills_but_the_final_panorama_and_scores_stay_the_same() {
+        let (w, h) = (600usize, 500usize);
+        let big = |index: u32| HeightMap {
+            header: FrameHeader {
+                kind: FrameKind::Tile as u32,
+                tile_index: index,
+                width: w as u32,
+                height: h as u32,
+                pitch_x_um: PITCH,
+                pitch_y_um: PITCH,
+                ..Default::default()
+            },
+            heights: (0..w * h)
+                .map(|i| {
+                    let (r, c) = ((i / w) as f32, (i % w) as f32);
+                    (0.013 * c).sin() + (0.021 * r).cos() + index as f32 * 1e-3
+                })
+                .collect(),
+        };
+        let at = |index: u32, col: f64, row: f64, flags: u32| TileRegistration {
+            tile_index: index,
+            x_um: col * PITCH,
+            y_um: row * PITCH,
+            flags,
+            ..Default::default()
+        };
+        let spill = tempfile::tempdir().unwrap();
+        let run = |budget: Option<usize>| {
+            let mut f = StreamingFusion::new(settings());
+            f.set_memory_budget(budget, Some(spill.path().into()));
+            let grid = [(0.0, 0.0), (540.0, 0.0), (540.0, 450.0), (0.0, 450.0)];
+            for (k, &(c, r)) in grid.iter().enumerate() {
+                f.add_tile(big(k as u32)).unwrap();
+                f.add_registration(at(k as u32, c, r, 0));
+                f.place_ready().unwrap();
+            }
+            // The global solve moves two tiles by a fraction of a pixel: a re-render.
+            f.add_registration(at(1, 540.4, 0.3, flags::FINAL));
+            f.add_registration(at(3, -0.2, 450.6, flags::FINAL));
+            let done = f.finish(None).unwrap();
+            (done, f.chunk_stats().unwrap())
+        };
+        let (whole, ws) = run(None);
+        let (spilled, ss) = run(Some(crate::CHUNK_BYTES));
+        assert!(whole.report.rerendered && spilled.report.rerendered);
+        assert_eq!(ws.spills, 0);
+        assert!(ss.spills > 0, "{ss:?}");
+        let bits = |m: &HeightMap| m.heights.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        assert_eq!(whole.panorama.header.width, spilled.panorama.header.width);
+        assert_eq!(bits(&whole.panorama), bits(&spilled.panorama));
+        assert_eq!(whole.report.pairs, spilled.report.pairs);
+        assert_eq!(whole.report.pairs.len(), 6);
+        // And the same as rendering from all tiles held in memory.
+        let tiles: Vec<HeightMap> = (0..4).map(big).collect();
+        let regs = [
+            at(0, 0.0, 0.0, 0),
+            at(1, 540.4, 0.3, 0),
+            at(2, 540.0, 450.0, 0),
+            at(3, -0.2, 450.6, 0),
+        ];
+        let inputs: Vec<TileInput<'_>> = tiles
+            .iter()
+            .zip(&regs)
+            .map(|(t, r)| tile_input(t, r).unwrap())
+            .collect();
+        let reference = crate::render(
+            PITCH,
+            PITCH,
+            &inputs,
+            settings().blend_params(&tiles[0].header),
+        )
+        .unwrap();
+        let ref_bits: Vec<u32> = reference
+            .heights
+            .values()
+            .iter()
+            .map(|v| v.to_bits())
+            .collect();
+        assert_eq!(bits(&whole.panorama), ref_bits);
     }
 }

@@ -32,6 +32,7 @@ fn ctx(kind: &str, params: &str) -> NodeContext {
         backpressure_timeout_s: 60.0,
         startup_timeout_s: 30.0,
         scan_id: 1,
+        memory_budget_bytes: None,
     }
 }
 

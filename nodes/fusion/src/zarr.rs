@@ -1,0 +1,165 @@
+//! The panorama as a Zarr v3 array (issue 17): a chunked format that zarr-python, xarray,
+//! napari and other standard tools open without reading the whole file, for scans whose
+//! panorama is too large for a single `.npy` to be handy.
+//!
+//! Written by hand rather than through a Zarr crate: an uncompressed Zarr v3 array is one
+//! JSON document and one raw file per chunk (Zarr v3 core specification: regular chunk grid,
+//! default chunk key encoding with "/", the `bytes` codec, little endian), and the Rust Zarr
+//! implementation would add about a hundred crates to the build for that.
+//!
+//! Layout of `NAME.zarr/`:
+//! - `zarr.json`: `shape` [rows, cols], `data_type` "float64" (absolute heights in um, as in
+//!   `panorama.npy`), `chunk_grid` regular with `chunk_shape` [[`ZARR_CHUNK_PX`]; 2],
+//!   `fill_value` "NaN" (not measured), `dimension_names` ["y", "x"] (row index grows with
+//!   y), and `attributes` with the pitch and the scan position of pixel (0, 0) in um.
+//! - `c/<i>/<j>`: chunk (row block i, column block j), `ZARR_CHUNK_PX^2` little-endian f64,
+//!   row-major; edge chunks are padded with NaN to the full chunk shape, as the spec asks.
+//!   Chunks with no measured pixel are not written (they read as the fill value).
+//!
+//! The store is written into `NAME.zarr.partial/` and renamed when complete: a failed write
+//! leaves no half store under the final name.
+
+use std::path::Path;
+
+use anyhow::{Context, Result};
+use serde_json::json;
+
+/// Chunk side of the written array, px.
+pub const ZARR_CHUNK_PX: usize = 512;
+
+/// Where the array sits: pitch and scan position of pixel (0, 0), um.
+#[derive(Debug, Clone, Copy)]
+pub struct ZarrGeometry {
+    pub pitch_x_um: f64,
+    pub pitch_y_um: f64,
+    pub origin_x_um: f64,
+    pub origin_y_um: f64,
+}
+
+/// Writes `dir/NAME.zarr` from f32 frame heights (`rows` x `cols`, row-major, relative to
+/// `z_offset_um`) as absolute float64 heights `f64::from(z) + z_offset_um`, the same values as
+/// the `.npy`. Returns the store's name.
+pub fn write_zarr_abs_f64(
+    dir: &Path,
+    name: &str,
+    heights: &[f32],
+    rows: usize,
+    cols: usize,
+    z_offset_um: f64,
+    geometry: ZarrGeometry,
+) -> Result<String> {
+    let store = format!("{name}.zarr");
+    let final_path = dir.join(&store);
+    let partial = dir.join(format!("{store}.partial"));
+    if heights.len() != rows * cols {
+        anyhow::bail!(
+            "{}: cannot write {rows} x {cols} array: got {} values",
+            final_path.display(),
+            heights.len()
+        );
+    }
+    if partial.exists() {
+        std::fs::remove_dir_all(&partial)
+            .with_context(|| format!("{}: cannot remove", partial.display()))?;
+    }
+    std::fs::create_dir_all(&partial)
+        .with_context(|| format!("{}: cannot create", partial.display()))?;
+    let c = ZARR_CHUNK_PX;
+    let meta = json!({
+        "zarr_format": 3,
+        "node_type": "array",
+        "shape": [rows, cols],
+        "data_type": "float64",
+        "chunk_grid": {"name": "regular", "configuration": {"chunk_shape": [c, c]}},
+        "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
+        "fill_value": "NaN",
+        "codecs": [{"name": "bytes", "configuration": {"endian": "little"}}],
+        "dimension_names": ["y", "x"],
+        "attributes": {
+            "surfstream": {
+                "what": "panorama: absolute heights in um, NaN = not measured, row index grows with y",
+                "pitch_x_um": geometry.pitch_x_um,
+                "pitch_y_um": geometry.pitch_y_um,
+                "origin_x_um": geometry.origin_x_um,
+                "origin_y_um": geometry.origin_y_um,
+            }
+        },
+    });
+    let meta_path = partial.join("zarr.json");
+    std::fs::write(&meta_path, serde_json::to_vec_pretty(&meta)?)
+        .with_context(|| format!("{}: write failed", meta_path.display()))?;
+    let mut buf: Vec<u8> = Vec::with_capacity(c * c * 8);
+    for bi in 0..rows.div_ceil(c) {
+        let row_dir = partial.join("c").join(bi.to_string());
+        let mut made = false;
+        for bj in 0..cols.div_ceil(c) {
+            buf.clear();
+            let mut measured = false;
+            for r in bi * c..(bi + 1) * c {
+                for col in bj * c..(bj + 1) * c {
+                    let v = if r < rows && col < cols {
+                        let z = heights[r * cols + col];
+                        measured |= !z.is_nan();
+                        f64::from(z) + z_offset_um
+                    } else {
+                        f64::NAN
+                    };
+                    buf.extend_from_slice(&v.to_le_bytes());
+                }
+            }
+            if !measured {
+                continue;
+            }
+            if !made {
+                std::fs::create_dir_all(&row_dir)
+                    .with_context(|| format!("{}: cannot create", row_dir.display()))?;
+                made = true;
+            }
+            let p = row_dir.join(bj.to_string());
+            std::fs::write(&p, &buf).with_context(|| format!("{}: write failed", p.display()))?;
+        }
+    }
+    if final_path.exists() {
+        std::fs::remove_dir_all(&final_path)
+            .with_context(|| format!("{}: cannot replace", final_path.display()))?;
+    }
+    std::fs::rename(&partial, &final_path)
+        .with_context(|| format!("{}: cannot move into place", final_path.display()))?;
+    Ok(store)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn chunks_are_padded_and_empty_ones_left_out() {
+        let dir = tempfile::tempdir().unwrap();
+        let (rows, cols) = (3, ZARR_CHUNK_PX + 2);
+        let mut h = vec![f32::NAN; rows * cols];
+        h[1] = 1.5; // chunk (0, 0)
+        let geometry = ZarrGeometry {
+            pitch_x_um: 0.5,
+            pitch_y_um: 0.25,
+            origin_x_um: 1.0,
+            origin_y_um: -2.0,
+        };
+        let name = write_zarr_abs_f64(dir.path(), "p", &h, rows, cols, 100.0, geometry).unwrap();
+        let store = dir.path().join(name);
+        let meta: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(store.join("zarr.json")).unwrap()).unwrap();
+        assert_eq!(meta["shape"], json!([rows, cols]));
+        assert_eq!(meta["attributes"]["surfstream"]["pitch_y_um"], json!(0.25));
+        let chunk = std::fs::read(store.join("c/0/0")).unwrap();
+        assert_eq!(chunk.len(), ZARR_CHUNK_PX * ZARR_CHUNK_PX * 8);
+        let v1 = f64::from_le_bytes(chunk[8..16].try_into().unwrap());
+        assert_eq!(v1, 101.5);
+        let pad = f64::from_le_bytes(chunk[(ZARR_CHUNK_PX * 3) * 8..][..8].try_into().unwrap());
+        assert!(pad.is_nan());
+        assert!(
+            !store.join("c/0/1").exists(),
+            "an all-NaN chunk is the fill value"
+        );
+        assert!(!dir.path().join("p.zarr.partial").exists());
+    }
+}

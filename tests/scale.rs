@@ -1,0 +1,100 @@
+//! Scans of any size (issue 17): a memory budget that makes the fusion spill its panorama
+//! chunks to disk changes no output byte, the run reports its peak memory, and the chunked
+//! panorama (Zarr v3) opens in zarr-python with the same heights as the .npy.
+
+use std::path::Path;
+use std::process::Command;
+
+use surfstream_e2e::{assert_same_outputs, python, read_json, run, stderr, surfstream};
+
+fn demo(out: &Path, extra: &[&str]) {
+    let out_run = run({
+        let mut c = surfstream();
+        c.args(["run", "launch/graphs/demo.toml", "--out"]).arg(out);
+        for s in [
+            "stage.rows=3",
+            "stage.cols=3",
+            "stage.tile_px=512",
+            "stage.pacing=fast",
+        ]
+        .iter()
+        .chain(extra)
+        {
+            c.args(["--set", s]);
+        }
+        c
+    });
+    assert!(
+        out_run.status.success(),
+        "run failed:\n{}",
+        stderr(&out_run)
+    );
+}
+
+#[test]
+fn a_memory_budget_changes_no_output_and_zarr_python_reads_the_panorama() {
+    let dir = tempfile::tempdir().unwrap();
+    let (whole, budget) = (dir.path().join("whole"), dir.path().join("budget"));
+    demo(&whole, &[]);
+    // 4 MB: the fusion's quarter (1 MB) is less than one 2 MiB chunk: a 512 px tile touches up
+    // to 4 of the panorama's 9 chunks, so chunks spill and come back all along the scan.
+    demo(
+        &budget,
+        &["graph.memory_budget_gb=0.004", "fusion.zarr=always"],
+    );
+    assert_same_outputs(&whole, &budget);
+
+    let w = read_json(&whole.join("run.json"));
+    let b = read_json(&budget.join("run.json"));
+    let chunks = &b["stages"]["fusion"]["memory"]["chunks"];
+    assert!(chunks["spills"].as_u64().unwrap() > 0, "{chunks}");
+    assert!(chunks["reloads"].as_u64().unwrap() > 0, "{chunks}");
+    assert_eq!(w["stages"]["fusion"]["memory"]["chunks"]["spills"], 0);
+    assert_eq!(b["peak_rss"]["memory_budget_gb"], 0.004);
+    let peak = b["peak_rss"]["process_bytes"].as_u64().unwrap();
+    assert!(peak > 10 << 20, "peak RSS {peak} bytes");
+    assert!(b["peak_rss"]["nodes_bytes"]["fusion"].as_u64().unwrap() > 0);
+    assert!(
+        !whole.join("panorama.zarr").exists(),
+        "auto: only large panoramas"
+    );
+    let files = b["files"].as_array().unwrap();
+    assert!(
+        files.iter().any(|f| f == "panorama.zarr/zarr.json"),
+        "{files:?}"
+    );
+    // No spill file is left in the out dir.
+    let left: Vec<_> = std::fs::read_dir(&budget)
+        .unwrap()
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().contains("spill"))
+        .collect();
+    assert!(left.is_empty(), "{left:?}");
+
+    let script = r#"
+import sys, numpy as np, zarr
+z = zarr.open_array(sys.argv[1] + "/panorama.zarr", mode="r")
+npy = np.load(sys.argv[1] + "/panorama.npy")
+assert z.shape == npy.shape, (z.shape, npy.shape)
+assert z.dtype == np.float64, z.dtype
+a = z[:]
+assert np.array_equal(a, npy, equal_nan=True), "zarr and npy differ"
+assert np.isnan(npy).any() and np.isfinite(npy).sum() > 0.9 * npy.size
+# A window read touches only its chunks and gives the same values.
+assert np.array_equal(z[100:700, 300:900], npy[100:700, 300:900], equal_nan=True)
+attrs = z.attrs["surfstream"]
+assert attrs["pitch_x_um"] == 0.8148, attrs
+print("zarr ok", z.shape, z.chunks)
+"#;
+    let out = run({
+        let mut c = Command::new(python());
+        c.arg("-c").arg(script).arg(&budget);
+        c
+    });
+    assert!(
+        out.status.success(),
+        "zarr-python check failed:\n{}",
+        stderr(&out)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("zarr ok"));
+}
