@@ -91,6 +91,7 @@ fn report_is_one_self_contained_page_with_every_section() {
     for id in [
         "summary",
         "parameters",
+        "outputs",
         "maps",
         "view3d",
         "profile",
@@ -98,7 +99,6 @@ fn report_is_one_self_contained_page_with_every_section() {
         "table6",
         "tiles",
         "mesh",
-        "outputs",
         "latencies",
         "nodes",
     ] {

@@ -232,11 +232,9 @@ pub fn render_preview(
     // Under the map: the colour of "not measured" and how the colour range was chosen.
     let legend = opts.colour_bar.then(|| {
         if opts.range_um.is_some() {
-            "not measured; colour range fixed".to_string()
+            "not measured. colour range fixed".to_string()
         } else {
-            format!(
-                "not measured; colours clipped at the {ROBUST_LOW_PERCENT} / {ROBUST_HIGH_PERCENT} percentiles"
-            )
+            format!("not measured. colour clip: {ROBUST_LOW_PERCENT} / {ROBUST_HIGH_PERCENT} %")
         }
     });
     let swatch_w = 2 * glyph_h;
@@ -815,6 +813,14 @@ mod tests {
         let rows = &img.rgb[(below * i.width_px) as usize * 3..];
         assert!(rows.chunks(3).any(|p| p == NAN_RGB), "grey swatch");
         assert!(rows.chunks(3).any(|p| p == TEXT_RGB), "legend text");
+        // The legend fits beside the colour bar: it does not widen the image.
+        let no_bar = PreviewOptions {
+            colour_bar: false,
+            ..Default::default()
+        };
+        let plain = render_preview(&h, 300, 400, &no_bar).expect("render");
+        assert!(i.width_px > plain.info.width_px);
+        assert!(i.width_px < plain.info.width_px + 120, "{} px", i.width_px);
     }
 
     #[test]

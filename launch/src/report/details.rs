@@ -97,19 +97,24 @@ pub fn tile_layout(run: &Value) -> String {
                 )
             })
             .collect();
+        let mut head = vec![
+            "pair",
+            "direction",
+            "NCC",
+            "accepted",
+            "nominal offset x / y (px)",
+            "measured offset x / y (px)",
+            "residual (px)",
+        ];
+        let mut rows = rows;
+        if pairs.iter().all(|p| p["residual_px"].is_null()) {
+            head.pop();
+            rows.iter_mut().for_each(|r| {
+                r.1.pop();
+            });
+        }
         h.push_str("<h3>Registrations (neighbour pairs)</h3>");
-        h.push_str(&table_raw(
-            &[
-                "pair",
-                "direction",
-                "NCC",
-                "accepted",
-                "nominal offset x / y (px)",
-                "measured offset x / y (px)",
-                "residual (px)",
-            ],
-            &rows,
-        ));
+        h.push_str(&table_raw(&head, &rows));
     }
     h.push_str("</section>\n");
     h

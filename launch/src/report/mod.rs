@@ -96,22 +96,23 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
     let surfaces = Surfaces::load(out, run);
     let name = run["graph"]["name"].as_str().unwrap_or("run");
     let mut h = String::new();
-    let _ = write!(
+    let _ = writeln!(
         h,
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
          <meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\
          <title>surfstream report: {0}</title><style>{STYLE}</style></head><body><main>\n\
          <h1>Surface report: {0}</h1><p class=\"sub\">surfstream: stitched panorama, \
          datum / roughness separation, pooled model and STL, judged against the measurement.</p>\
-         <nav><a href=\"#summary\">summary</a><a href=\"#parameters\">parameters</a>\
+         <nav><a href=\"#summary\">summary</a><a href=\"#parameters\">parameters</a><a href=\"#outputs\">outputs</a>\
          <a href=\"#maps\">height maps</a><a href=\"#view3d\">3-D view</a>\
          <a href=\"#profile\">profile</a><a href=\"#distribution\">distribution and PSD</a>\
          <a href=\"#table6\">Table 6</a><a href=\"#tiles\">tiles</a><a href=\"#mesh\">mesh</a>\
-         <a href=\"#outputs\">outputs</a><a href=\"#latencies\">latencies</a></nav>\n",
+         <a href=\"#latencies\">latencies</a></nav>",
         esc(name)
     );
     h.push_str(&summary::section(run, &surfaces));
     h.push_str(&summary::key_parameters(&surfaces));
+    h.push_str(&summary::outputs(run));
     for p in &surfaces.problems {
         let _ = write!(h, "<p class=\"bad\">Not shown: {}</p>", esc(p));
     }
@@ -125,16 +126,16 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
                 "panorama"
             },
         ) {
-            let _ = write!(
+            let _ = writeln!(
                 h,
-                "<section id=\"view3d\"><h2>3-D view of the model</h2>{f}</section>\n"
+                "<section id=\"view3d\"><h2>3-D view of the model</h2>{f}</section>"
             );
         }
     }
     if let Some(f) = profile::section(&surfaces) {
-        let _ = write!(
+        let _ = writeln!(
             h,
-            "<section id=\"profile\"><h2>Profile cut</h2>{f}</section>\n"
+            "<section id=\"profile\"><h2>Profile cut</h2>{f}</section>"
         );
     }
     if let Some(p) = &surfaces.panorama {
@@ -142,10 +143,10 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
             .as_object()
             .and_then(|s| s.values().find_map(|v| v["final"]["level"].as_u64()));
         let scale = level.map(|l| (l, 2f64.powi(l as i32) * p.pitch_x_um));
-        let _ = write!(
+        let _ = writeln!(
             h,
             "<section id=\"distribution\"><h2>Height distribution and power spectral density \
-             (panorama)</h2><div class=\"pair\">{}{}</div></section>\n",
+             (panorama)</h2><div class=\"pair\">{}{}</div></section>",
             charts::distribution(p).unwrap_or_default(),
             charts::psd(p, scale).unwrap_or_default()
         );
@@ -153,13 +154,12 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
     h.push_str(&table6::section(&run["deviation"]));
     h.push_str(&details::tile_layout(run));
     h.push_str(&details::mesh(run));
-    h.push_str(&summary::outputs(run));
     h.push_str(&details::latencies(run));
     h.push_str(&details::node_reports(run));
-    let _ = write!(
+    let _ = writeln!(
         h,
         "</main><div id=\"lightbox\" hidden><p></p><img alt=\"full size\"></div>\
-         <script>{SCRIPT}</script></body></html>\n"
+         <script>{SCRIPT}</script></body></html>"
     );
     Ok(h)
 }
@@ -204,9 +204,9 @@ fn maps_section(h: &mut String, s: &Surfaces) {
     .filter_map(|(m, title, r, cut)| Some(maps::figure(m?, title, r, cut)))
     .collect();
     if !figures.is_empty() {
-        let _ = write!(
+        let _ = writeln!(
             h,
-            "<section id=\"maps\"><h2>Height maps</h2>{}</section>\n",
+            "<section id=\"maps\"><h2>Height maps</h2>{}</section>",
             figures.concat()
         );
     }

@@ -59,7 +59,7 @@ impl Axis {
             let (a, b) = (a.min(b), a.max(b));
             let every = ((b - a) as usize).div_ceil(n.max(1)).max(1);
             (a..=b)
-                .filter(|k| (k - a) as usize % every == 0)
+                .filter(|k| ((k - a) as usize).is_multiple_of(every))
                 .map(|k| {
                     let label = if (-2..=3).contains(&k) {
                         fixed(10f64.powi(k), (-k).max(0) as usize)

@@ -7,7 +7,7 @@ use std::fmt::Write as _;
 
 use serde_json::Value;
 
-use super::html::{esc, fixed, signed, table_raw, um};
+use super::html::{esc, fixed, pitch, signed, table_raw, um};
 
 const PARAMS: [&str; 9] = ["Sa", "Sq", "Sp", "Sv", "Sz", "Ssk", "Sku", "Sdq", "Sdr"];
 
@@ -80,7 +80,7 @@ pub fn section(dev: &Value) -> String {
                         (Some(r), Some(c)) => format!("{r} x {c}"),
                         _ => "-".into(),
                     },
-                    g["pitch_x_um"].as_f64().map(um).unwrap_or("-".into()),
+                    g["pitch_x_um"].as_f64().map(pitch).unwrap_or("-".into()),
                     format!("{} of {total}", total - failed),
                     badge(st["pass"] == true).to_string(),
                 ],
@@ -249,9 +249,9 @@ pub fn section(dev: &Value) -> String {
             }
         }
     }
-    let _ = write!(
+    let _ = writeln!(
         h,
-        "<details><summary>Full table: {} rows (every stage, region and parameter)</summary>{}</details></section>\n",
+        "<details><summary>Full table: {} rows (every stage, region and parameter)</summary>{}</details></section>",
         all.len(),
         table_raw(
             &["stage", "region", "parameter", "measured", "model", "deviation"],
