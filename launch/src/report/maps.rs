@@ -98,7 +98,7 @@ pub fn figure(s: &Surface, title: &str, reference: &str, cut: Option<&Cut>) -> S
         "</linearGradient></defs><image class=\"zoomable\" x=\"{LEFT}\" y=\"{TOP}\" \
          width=\"{mw:.1}\" height=\"{mh:.1}\" preserveAspectRatio=\"none\" \
          style=\"image-rendering:pixelated\" data-title=\"{t}\" \
-         href=\"data:image/png;base64,{}\"><title>click for full size ({} x {} px)</title></image>\
+         href=\"data:image/png;base64,{}\"><title>click for full size ({} x {} px, rows x cols)</title></image>\
          <rect x=\"{LEFT}\" y=\"{TOP}\" width=\"{mw:.1}\" height=\"{mh:.1}\" fill=\"none\" \
          stroke=\"#333\" stroke-width=\"1\"/>",
         base64(&map.png),

@@ -67,7 +67,7 @@ tr.fail td{background:#fdecea}tr.pass td:first-child{box-shadow:inset 3px 0 #2e7
 .verdict.pass{background:#e8f5e9;border:1px solid #81c784}.verdict.fail{background:#fdecea;border:1px solid #e57373}.verdict.warn{background:#fff8e1;border:1px solid #ffca28}\
 .note{color:#555;font-size:13px}figure{margin:12px 0 22px}figcaption{font-size:13px;color:#333;margin-top:4px;max-width:1100px}\
 svg{font-family:inherit;max-width:100%;height:auto}svg .tick{font-size:12px;fill:#222}svg .axis{font-size:13px;fill:#111;font-weight:600}svg .grid{stroke:#e3e6ea;stroke-width:1}\
-.mapsvg,.chart{width:100%;display:block}.chart.half{max-width:680px}\
+.mapsvg,.chart{width:100%;display:block}.chart.half{max-width:680px}.chart.half .tick{font-size:14px}.chart.half .axis{font-size:15px}\
 .zoomable{cursor:zoom-in}img.view3d{width:100%;max-width:1200px;display:block;border:1px solid #e0e0e0}\
 .flex{display:flex;gap:22px;flex-wrap:wrap;align-items:flex-start}.pair{display:grid;grid-template-columns:repeat(auto-fit,minmax(520px,1fr));gap:10px 26px}\
 details{margin:16px 0;border:1px solid #dde1e6;border-radius:6px;padding:6px 12px}summary{cursor:pointer;font-weight:600;font-size:16px}\

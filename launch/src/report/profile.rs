@@ -4,7 +4,7 @@
 
 use std::fmt::Write as _;
 
-use super::html::{length, um};
+use super::html::{length, pitch};
 use super::plot::{Axis, Panel};
 use super::surfaces::Surfaces;
 
@@ -94,6 +94,6 @@ pub fn section(s: &Surfaces) -> Option<String> {
         length((r as f64 + 0.5) * p.pitch_y_um),
         length(p.width_um()),
         p.cols,
-        um(p.pitch_x_um),
+        pitch(p.pitch_x_um),
     ))
 }
