@@ -5,10 +5,12 @@
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
-# Debian packages the tests drive for real: the DEM engines our STL must import.
+# Debian packages the tests drive for real: the DEM engines our STL must import, and the
+# browser that renders report.html (tests/report.rs).
 missing=()
 command -v liggghts >/dev/null || missing+=(liggghts)
 command -v yade >/dev/null || missing+=(yade)
+[ -x /usr/bin/chromium ] || missing+=(chromium)
 if [ ${#missing[@]} -gt 0 ]; then
     echo "test.sh: installing ${missing[*]} (apt-get)"
     SUDO=""

@@ -2,12 +2,12 @@
 //! nodes finish (runjson::write calls [`attach`]): loads the out dir's rasters and hands them
 //! to [`surfstream_core::deviation::Table6`], which computes the table (conventions there).
 //!
-//! Measured surface: the fused panorama (`panorama.npy`). Model stages: "datum+roughness"
-//! (`datum.npy` + `roughness.npy`) and "pooled" (`pooled.npy`, each pooled cell spread back
-//! over the panorama pixels it pooled: nearest re-sampling onto the panorama grid) and "mesh"
-//! (`mesh_resampled.npy`, the mesher's STL surface re-sampled on the grid it meshed, spread
-//! back onto the panorama grid the same way). Regions: S1..Sn = each tile's footprint in the
-//! panorama (from its final position), and "panorama" = the whole map.
+//! Measured surface: the fused panorama (`panorama.npy`). Model stages, each judged on its own
+//! grid: "datum+roughness" (`datum.npy` + `roughness.npy`, the panorama grid), "pooled"
+//! (`pooled.npy` at the pooled pitch) and "mesh" (`mesh_resampled.npy`, the mesher's STL
+//! surface re-sampled on the grid it meshed, at that grid's pitch). run.json says which grid
+//! (`grid`: rows x cols, cell size in panorama pixels, pitch). Regions: S1..Sn = each tile's
+//! footprint in the panorama (from its final position), and "panorama" = the whole map.
 //!
 //! The threshold defaults to [`DEFAULT_THRESHOLD_PCT`]; a graph file changes it with a
 //! `[deviation]` table (`threshold_percent = 2`), the command line with
@@ -19,7 +19,7 @@ use std::path::Path;
 
 use anyhow::{anyhow, bail, Context, Result};
 use serde_json::{json, Map, Value};
-use surfstream_core::deviation::{unpool, Measured, Region, StageVerdict, Table6, JUDGED};
+use surfstream_core::deviation::{Measured, ModelStage, Region, StageVerdict, Table6, JUDGED};
 use surfstream_core::metrology::Params;
 use surfstream_core::raster::{Raster, Shape};
 use surfstream_io::formats::{self, Metadata, Surface};
@@ -174,8 +174,9 @@ fn regions(run: &Value, geometry: &Geometry, panorama: Shape) -> Vec<Region> {
     out
 }
 
-/// The model stages the out dir holds, each on the panorama grid.
-fn model_stages(out: &Path, panorama: Shape) -> Result<Vec<(&'static str, Raster<f64>)>> {
+/// The model stages the out dir holds, each on its own grid: (name, heights, whether the grid
+/// is coarser than the panorama's and its cell size is read from the shapes).
+fn model_stages(out: &Path, panorama: Shape) -> Result<Vec<(&'static str, Raster<f64>, bool)>> {
     let mut stages = Vec::new();
     let datum = out.join("datum.npy");
     let rough = out.join("roughness.npy");
@@ -195,17 +196,14 @@ fn model_stages(out: &Path, panorama: Shape) -> Result<Vec<(&'static str, Raster
             .zip(r.values())
             .map(|(a, b)| a + b)
             .collect();
-        stages.push(("datum+roughness", Raster::new(sum, panorama)?));
+        stages.push(("datum+roughness", Raster::new(sum, panorama)?, false));
     }
     // The pooled map, and the mesher's surface re-sampled on its grid (the pooled map's, the
-    // panorama's...): the model one and two stages further, spread back onto the panorama.
+    // panorama's...): the model one and two stages further, each at its own pitch.
     for (name, file) in [("pooled", "pooled.npy"), ("mesh", "mesh_resampled.npy")] {
         let path = out.join(file);
         if path.exists() {
-            let coarse = load(&path)?;
-            let up =
-                unpool(coarse.view(), panorama).with_context(|| format!("{}", path.display()))?;
-            stages.push((name, up));
+            stages.push((name, load(&path)?, true));
         }
     }
     Ok(stages)
@@ -218,8 +216,8 @@ fn params_json(p: &Option<Params>) -> Value {
     }
 }
 
-/// run.json's layout of one stage's verdict.
-fn stage_json(s: &StageVerdict) -> Value {
+/// run.json's layout of one stage's verdict; `pitch_um` is the measured (panorama) pitch.
+fn stage_json(s: &StageVerdict, pitch_um: (f64, f64)) -> Value {
     let regions: Map<String, Value> = s
         .regions
         .iter()
@@ -240,7 +238,19 @@ fn stage_json(s: &StageVerdict) -> Value {
             )
         })
         .collect();
-    json!({ "regions": regions, "pass": s.pass })
+    let grid = json!({
+        "rows": s.grid.rows,
+        "cols": s.grid.cols,
+        "cell_px": s.cell_px,
+        "pitch_x_um": pitch_um.0 * s.cell_px as f64,
+        "pitch_y_um": pitch_um.1 * s.cell_px as f64,
+        "name": if s.cell_px == 1 {
+            "panorama grid".to_string()
+        } else {
+            format!("own grid, {0} x {0} px cells", s.cell_px)
+        },
+    });
+    json!({ "regions": regions, "pass": s.pass, "grid": grid })
 }
 
 /// Writes the panorama as X3P.
@@ -274,18 +284,27 @@ fn evaluate(out: &Path, run: &Value, threshold_pct: f64) -> Result<Value> {
         pitch_x_um: geometry.pitch_um.0,
         pitch_y_um: geometry.pitch_um.1,
     };
-    let stages: Vec<_> = models.iter().map(|(n, m)| (*n, m.view())).collect();
+    let stages: Vec<_> = models
+        .iter()
+        .map(|(n, m, coarse)| {
+            if *coarse {
+                ModelStage::pooled(n, m.view(), pano.shape())
+            } else {
+                ModelStage::on_measured_grid(n, m.view())
+            }
+        })
+        .collect();
     let table = Table6::judge(measured, &stages, &regions, threshold_pct)?;
     let stages: Map<String, Value> = table
         .stages
         .iter()
-        .map(|s| (s.stage.clone(), stage_json(s)))
+        .map(|s| (s.stage.clone(), stage_json(s, geometry.pitch_um)))
         .collect();
     Ok(json!({
             "measured": "panorama.npy",
             "threshold_pct": threshold_pct,
             "judged": JUDGED,
-            "conventions": "ISO 25178 over points valid in both maps, mean removed, no levelling; deviation = (model - measured) / measured * 100; pass = |deviation| <= threshold for Sa, Sq, Sz",
+            "conventions": "ISO 25178 over points valid in both maps, mean removed, no levelling; each stage on its own grid at its own pitch (grid); deviation = (model - measured) / measured * 100; pass = |deviation| <= threshold for Sa, Sq, Sz",
             "regions": regions.iter().map(|r| json!({"name": r.name, "row0": r.row0, "col0": r.col0, "rows": r.rows, "cols": r.cols})).collect::<Vec<_>>(),
             "stages": stages,
             "pass": table.pass,

@@ -1,14 +1,20 @@
 //! The model-vs-measurement deviation of the reference study's Table 6, over in-memory
 //! surfaces: no files, no JSON.
 //!
-//! A measured surface (the fused panorama) is compared with model stages on its grid (datum +
-//! roughness, the pooled map spread back with [`unpool`], the mesh re-sampled), in regions of
-//! the panorama (each tile's footprint, [`Region::tile_footprint`], and the whole map).
+//! A measured surface (the fused panorama) is compared with model stages, each on its own grid
+//! ([`ModelStage`]): datum + roughness on the panorama grid, the pooled map and the mesh
+//! re-sampled on the grid it meshed at their own, coarser pitch (one model cell = `cell_px` x
+//! `cell_px` panorama pixels). A pooled map is never blown back up to the panorama grid: that
+//! would add steps that are not in the model and bias the slope parameters (Sdq, Sdr).
+//! Regions are rectangles of the panorama (each tile's footprint, [`Region::tile_footprint`],
+//! and the whole map); on a coarse grid a region covers the cells its pixels fall in.
 //! Per region and stage: the nine ISO 25178 parameters ([`metrology::params`], mean removed,
-//! no levelling) of both, each over the points valid in both maps (holes are not deviation);
-//! relative deviation = (model - measured) / measured in %; the stage passes a region when
-//! |deviation| <= the threshold for Sa, Sq and Sz ([`JUDGED`]). Slope parameters of a
-//! re-sampled model (Sdq, Sdr of the pooled map) differ by construction: reported, not judged.
+//! no levelling) of both, each over the points valid in both maps (holes are not deviation: a
+//! panorama pixel counts when its model cell is valid, a model cell when at least one of its
+//! pixels in the region is); relative deviation = (model - measured) / measured in %; the stage
+//! passes a region when |deviation| <= the threshold for Sa, Sq and Sz ([`JUDGED`]). Slope
+//! parameters of a coarser model differ by construction (the slopes are taken over a longer
+//! base): reported, not judged.
 
 use crate::metrology::{self, Grid, Params};
 use crate::raster::{Raster, RasterView, Shape};
@@ -36,6 +42,14 @@ pub enum DeviationError {
     },
     #[error("pooled map {pooled} is not a whole-factor pooling of the {target} panorama")]
     NotAPooling { pooled: Shape, target: Shape },
+    #[error("stage {stage}: model is {model} (rows x cols) with {cell_px} x {cell_px} px cells, expected {expected} for the {measured} measured surface")]
+    StageGrid {
+        stage: String,
+        model: Shape,
+        cell_px: usize,
+        expected: Shape,
+        measured: Shape,
+    },
 }
 
 /// A rectangle of the measured grid, pixels, end exclusive.
@@ -99,19 +113,94 @@ impl Region {
                 .is_some_and(|end| end <= shape.cols)
     }
 
-    /// The heights of this region of `z` where `mask` (same shape) is valid, NaN elsewhere.
-    fn crop(&self, z: RasterView<f64>, mask: RasterView<f64>) -> Vec<f64> {
-        let mut out = Vec::with_capacity(self.rows * self.cols);
+    /// The cells of a grid with `cell_px` x `cell_px` px cells (of `model` shape) that this
+    /// region's pixels fall in: (row0, col0, rows, cols).
+    fn on_cells(&self, cell_px: usize, model: Shape) -> (usize, usize, usize, usize) {
+        let r0 = (self.row0 / cell_px).min(model.rows);
+        let c0 = (self.col0 / cell_px).min(model.cols);
+        let r1 = (self.row0 + self.rows).div_ceil(cell_px).min(model.rows);
+        let c1 = (self.col0 + self.cols).div_ceil(cell_px).min(model.cols);
+        (r0, c0, r1 - r0, c1 - c0)
+    }
+
+    /// The measured heights of this region where the model cell over them is valid (NaN
+    /// elsewhere), and the model cells of the region where at least one of their measured
+    /// pixels in the region is valid (NaN elsewhere), with the cells' (rows, cols).
+    fn crop_both(
+        &self,
+        measured: RasterView<f64>,
+        model: RasterView<f64>,
+        cell_px: usize,
+    ) -> (Vec<f64>, Vec<f64>, (usize, usize)) {
+        let (r0, c0, rows, cols) = self.on_cells(cell_px, model.shape());
+        let mut seen = vec![false; rows * cols];
+        let mut m = Vec::with_capacity(self.rows * self.cols);
         for row in self.row0..self.row0 + self.rows {
-            let span = self.col0..self.col0 + self.cols;
-            out.extend(
-                z.row(row)[span.clone()]
-                    .iter()
-                    .zip(&mask.row(row)[span])
-                    .map(|(&v, &m)| if m.is_nan() { f64::NAN } else { v }),
+            let model_row = model.row(row / cell_px);
+            for (col, &v) in measured.row(row)[self.col0..self.col0 + self.cols]
+                .iter()
+                .enumerate()
+                .map(|(k, v)| (self.col0 + k, v))
+            {
+                let cell = model_row[col / cell_px];
+                if cell.is_nan() || v.is_nan() {
+                    m.push(f64::NAN);
+                } else {
+                    m.push(v);
+                    seen[(row / cell_px - r0) * cols + col / cell_px - c0] = true;
+                }
+            }
+        }
+        let mut z = Vec::with_capacity(rows * cols);
+        for r in 0..rows {
+            let src = &model.row(r0 + r)[c0..c0 + cols];
+            z.extend(
+                src.iter()
+                    .zip(&seen[r * cols..(r + 1) * cols])
+                    .map(|(&v, &s)| if s { v } else { f64::NAN }),
             );
         }
-        out
+        (m, z, (rows, cols))
+    }
+}
+
+/// One model stage on its own grid: one cell covers `cell_px` x `cell_px` pixels of the
+/// measured grid (1 = the measured grid itself), so its shape is the measured shape divided by
+/// `cell_px`, rounded up, and its pitch `cell_px` times the measured pitch.
+#[derive(Debug, Clone, Copy)]
+pub struct ModelStage<'a> {
+    pub name: &'a str,
+    pub heights_um: RasterView<'a, f64>,
+    pub cell_px: usize,
+}
+
+impl<'a> ModelStage<'a> {
+    /// A stage on the measured grid.
+    pub fn on_measured_grid(name: &'a str, heights_um: RasterView<'a, f64>) -> Self {
+        Self {
+            name,
+            heights_um,
+            cell_px: 1,
+        }
+    }
+
+    /// A stage on a coarser grid whose cell size is read from the column counts (what a
+    /// whole-factor pooling of `measured` gives); [`Table6::judge`] checks the rows.
+    pub fn pooled(name: &'a str, heights_um: RasterView<'a, f64>, measured: Shape) -> Self {
+        let cell_px = measured.cols.div_ceil(heights_um.cols().max(1)).max(1);
+        Self {
+            name,
+            heights_um,
+            cell_px,
+        }
+    }
+
+    /// The grid the stage is judged on, for the report.
+    pub fn expected_shape(cell_px: usize, measured: Shape) -> Shape {
+        Shape {
+            rows: measured.rows.div_ceil(cell_px.max(1)),
+            cols: measured.cols.div_ceil(cell_px.max(1)),
+        }
     }
 }
 
@@ -140,6 +229,9 @@ pub struct RegionVerdict {
 #[derive(Debug, Clone, PartialEq)]
 pub struct StageVerdict {
     pub stage: String,
+    /// The grid the stage was judged on: its shape and pixels of the measured grid per cell.
+    pub grid: Shape,
+    pub cell_px: usize,
     pub regions: Vec<RegionVerdict>,
     pub pass: bool,
 }
@@ -154,12 +246,12 @@ pub struct Table6 {
 }
 
 impl Table6 {
-    /// Judges each `(stage name, model surface)` against `measured` in `regions` at
-    /// `threshold_pct`. Models must have the measured surface's shape and regions must lie
-    /// inside it.
+    /// Judges each model stage, on its own grid, against `measured` in `regions` at
+    /// `threshold_pct`. A model's shape must be the measured shape divided by its `cell_px`
+    /// (rounded up) and regions must lie inside the measured surface.
     pub fn judge(
         measured: Measured,
-        stages: &[(&str, RasterView<f64>)],
+        stages: &[ModelStage],
         regions: &[Region],
         threshold_pct: f64,
     ) -> Result<Self, DeviationError> {
@@ -176,7 +268,7 @@ impl Table6 {
         }
         let stages = stages
             .iter()
-            .map(|(name, model)| judge_stage(&measured, name, *model, regions, threshold_pct))
+            .map(|stage| judge_stage(&measured, stage, regions, threshold_pct))
             .collect::<Result<Vec<_>, _>>()?;
         Ok(Self {
             threshold_pct,
@@ -188,41 +280,53 @@ impl Table6 {
 
 fn judge_stage(
     m: &Measured,
-    stage: &str,
-    model: RasterView<f64>,
+    stage: &ModelStage,
     regions: &[Region],
     threshold_pct: f64,
 ) -> Result<StageVerdict, DeviationError> {
-    if model.shape() != m.heights_um.shape() {
+    let measured = m.heights_um.shape();
+    let model = stage.heights_um.shape();
+    if stage.cell_px <= 1 && model != measured {
         return Err(DeviationError::StageShape {
-            stage: stage.to_string(),
-            model: model.shape(),
-            measured: m.heights_um.shape(),
+            stage: stage.name.to_string(),
+            model,
+            measured,
+        });
+    }
+    let expected = ModelStage::expected_shape(stage.cell_px, measured);
+    if model != expected {
+        return Err(DeviationError::StageGrid {
+            stage: stage.name.to_string(),
+            model,
+            cell_px: stage.cell_px,
+            expected,
+            measured,
         });
     }
     let regions: Vec<RegionVerdict> = regions
         .iter()
-        .map(|r| judge_region(m, model, r, threshold_pct))
+        .map(|r| judge_region(m, stage, r, threshold_pct))
         .collect();
     Ok(StageVerdict {
-        stage: stage.to_string(),
+        stage: stage.name.to_string(),
+        grid: model,
+        cell_px: stage.cell_px.max(1),
         pass: regions.iter().all(|r| r.pass),
         regions,
     })
 }
 
-fn judge_region(
-    m: &Measured,
-    model: RasterView<f64>,
-    r: &Region,
-    threshold_pct: f64,
-) -> RegionVerdict {
-    let params_of = |z: &[f64]| -> Option<Params> {
-        metrology::params(&Grid::new(z, r.rows, r.cols, m.pitch_x_um, m.pitch_y_um).ok()?).ok()
+fn judge_region(m: &Measured, stage: &ModelStage, r: &Region, threshold_pct: f64) -> RegionVerdict {
+    let cell = stage.cell_px.max(1);
+    let params_of = |z: &[f64], rows: usize, cols: usize, f: usize| -> Option<Params> {
+        let (px, py) = (m.pitch_x_um * f as f64, m.pitch_y_um * f as f64);
+        metrology::params(&Grid::new(z, rows, cols, px, py).ok()?).ok()
     };
-    // Both over the points valid in both maps, so holes do not count as deviation.
-    let measured = params_of(&r.crop(m.heights_um, model));
-    let modelled = params_of(&r.crop(model, m.heights_um));
+    // Both over the points valid in both maps, so holes do not count as deviation; each at
+    // its own pitch.
+    let (zm, zs, (rows, cols)) = r.crop_both(m.heights_um, stage.heights_um, cell);
+    let measured = params_of(&zm, r.rows, r.cols, 1);
+    let modelled = params_of(&zs, rows, cols, cell);
     let mut deviation_pct = Vec::new();
     let mut pass = measured.is_some() && modelled.is_some();
     if let (Some(a), Some(b)) = (&measured, &modelled) {
@@ -336,7 +440,10 @@ mod tests {
         let scaled = z.map(|v| v * 1.06);
         let t = Table6::judge(
             measured,
-            &[("same", z.view()), ("scaled", scaled.view())],
+            &[
+                ModelStage::on_measured_grid("same", z.view()),
+                ModelStage::on_measured_grid("scaled", scaled.view()),
+            ],
             &regions,
             5.0,
         )
@@ -349,7 +456,13 @@ mod tests {
             assert!((d - 6.0).abs() < 1e-9, "{name}: {d}");
         }
         // At a 7 % threshold a 6 % deviation passes.
-        let t = Table6::judge(measured, &[("scaled", scaled.view())], &regions, 7.0).unwrap();
+        let t = Table6::judge(
+            measured,
+            &[ModelStage::on_measured_grid("scaled", scaled.view())],
+            &regions,
+            7.0,
+        )
+        .unwrap();
         assert!(t.pass);
     }
 
@@ -365,7 +478,7 @@ mod tests {
         };
         let t = Table6::judge(
             measured,
-            &[("holed", model.view())],
+            &[ModelStage::on_measured_grid("holed", model.view())],
             &[Region::whole(z.shape())],
             1.0,
         )
@@ -385,14 +498,132 @@ mod tests {
         let small = surface(5, 10);
         let e = Table6::judge(
             measured,
-            &[("small", small.view())],
+            &[ModelStage::on_measured_grid("small", small.view())],
             &[Region::whole(z.shape())],
             5.0,
         );
         assert!(matches!(e, Err(DeviationError::StageShape { .. })));
+        // A coarse grid whose rows do not match its cell size.
+        let coarse = surface(4, 5);
+        let e = Table6::judge(
+            measured,
+            &[ModelStage::pooled("coarse", coarse.view(), z.shape())],
+            &[Region::whole(z.shape())],
+            5.0,
+        );
+        assert!(
+            matches!(e, Err(DeviationError::StageGrid { cell_px: 2, .. })),
+            "{e:?}"
+        );
         let big = Region::whole(shape(11, 10));
         let e = Table6::judge(measured, &[], &[big], 5.0);
         assert!(matches!(e, Err(DeviationError::RegionOutside { .. })));
+    }
+
+    /// Mean pooling of `z` in `f` x `f` blocks (NaN-aware), the pooled map's own grid.
+    fn mean_pool(z: &Raster<f64>, f: usize) -> Raster<f64> {
+        let out = ModelStage::expected_shape(f, z.shape());
+        let mut v = Vec::with_capacity(out.len());
+        for r in 0..out.rows {
+            for c in 0..out.cols {
+                let cell: Vec<f64> = (r * f..((r + 1) * f).min(z.rows()))
+                    .flat_map(|rr| (c * f..((c + 1) * f).min(z.cols())).map(move |cc| (rr, cc)))
+                    .map(|(rr, cc)| z.view().row(rr)[cc])
+                    .filter(|x| !x.is_nan())
+                    .collect();
+                v.push(if cell.is_empty() {
+                    f64::NAN
+                } else {
+                    cell.iter().sum::<f64>() / cell.len() as f64
+                });
+            }
+        }
+        Raster::new(v, out).unwrap()
+    }
+
+    #[test]
+    fn a_pooled_stage_is_judged_on_its_own_grid() {
+        // A blocky surface (constant in 2 x 2 blocks): its 2 x 2 pooling has exactly the same
+        // height distribution, so every height parameter deviates by 0 on the pooled grid, in
+        // a tile region and over the whole map, holes on either side included.
+        let (rows, cols) = (24, 32);
+        let mut z = Raster::new(
+            (0..rows * cols)
+                .map(|i| (((i / cols) / 2 * 7 + (i % cols) / 2 * 13) % 11) as f64 * 0.3)
+                .collect(),
+            shape(rows, cols),
+        )
+        .unwrap();
+        // A hole in the measurement (one whole block) and a hole in the model (another cell).
+        for (r, c) in [(4, 6), (4, 7), (5, 6), (5, 7)] {
+            z.values_mut()[r * cols + c] = f64::NAN;
+        }
+        let mut pooled = mean_pool(&z, 2);
+        assert!(pooled.view().row(2)[3].is_nan());
+        pooled.values_mut()[5 * 16 + 9] = f64::NAN;
+        let measured = Measured {
+            heights_um: z.view(),
+            pitch_x_um: 0.5,
+            pitch_y_um: 0.5,
+        };
+        let regions = [
+            Region {
+                name: "S1".into(),
+                row0: 2,
+                col0: 4,
+                rows: 14,
+                cols: 20,
+            },
+            Region::whole(z.shape()),
+        ];
+        let stage = ModelStage::pooled("pooled", pooled.view(), z.shape());
+        assert_eq!(stage.cell_px, 2);
+        let t = Table6::judge(measured, &[stage], &regions, 0.001).unwrap();
+        let s = &t.stages[0];
+        assert_eq!((s.grid, s.cell_px), (shape(12, 16), 2));
+        assert!(t.pass, "{t:?}");
+        for region in &s.regions {
+            for name in ["Sa", "Sq", "Sp", "Sv", "Sz", "Ssk", "Sku"] {
+                assert!(deviation(region, name).abs() < 1e-9, "{name}");
+            }
+        }
+    }
+
+    #[test]
+    fn slopes_of_a_pooled_stage_are_taken_at_its_own_pitch() {
+        // A long-wave surface pooled 4 x 4: at the pooled pitch Sdq is within a few percent of
+        // the measured one (the finite difference over 4 px and the block mean each shorten a
+        // 64 px wave's slope by < 1 %); spread back onto the measured grid it would be twice
+        // as steep (all slope in one step per block).
+        let n = 128;
+        let z = Raster::new(
+            (0..n * n)
+                .map(|i| (2.0 * std::f64::consts::PI * (i % n) as f64 / 64.0).sin())
+                .collect(),
+            shape(n, n),
+        )
+        .unwrap();
+        let pooled = mean_pool(&z, 4);
+        let measured = Measured {
+            heights_um: z.view(),
+            pitch_x_um: 1.0,
+            pitch_y_um: 1.0,
+        };
+        let up = unpool(pooled.view(), z.shape()).unwrap();
+        let t = Table6::judge(
+            measured,
+            &[
+                ModelStage::pooled("own", pooled.view(), z.shape()),
+                ModelStage::on_measured_grid("blown up", up.view()),
+            ],
+            &[Region::whole(z.shape())],
+            5.0,
+        )
+        .unwrap();
+        let own = deviation(&t.stages[0].regions[0], "Sdq");
+        let blown = deviation(&t.stages[1].regions[0], "Sdq");
+        assert!(own.abs() < 3.0, "own grid Sdq deviation {own} %");
+        assert!(blown > 80.0, "blown-up Sdq deviation {blown} %");
     }
 
     #[test]

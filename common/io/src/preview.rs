@@ -3,8 +3,9 @@
 //! [`write_preview_png`] draws a row-major height map (micrometres, NaN = not measured) as an RGB
 //! PNG: row 0 at the top, column 0 at the left (scan y grows downwards, x to the right), heights
 //! coloured with the viridis colour map, not-measured pixels in a neutral grey
-//! ([`NAN_RGB`]), a vertical colour bar on the right labelled in micrometres, and an optional
-//! title at the top. Text uses a small built-in 5 x 7 bitmap font, so previews need no system
+//! ([`NAN_RGB`]), a vertical colour bar on the right labelled in micrometres, an optional
+//! title at the top and, under the map, a legend: the grey of "not measured" and how the
+//! colour range was chosen (the clipping percentiles, or "fixed"). Text uses a small built-in 5 x 7 bitmap font, so previews need no system
 //! fonts.
 //!
 //! - Colour range: given explicitly ([`PreviewOptions::range_um`]) or, by default, robust
@@ -228,8 +229,26 @@ pub fn render_preview(
         .as_deref()
         .map(|t| 2 * MARGIN_PX + text_width(t, scale))
         .unwrap_or(0);
-    let width = content_w.max(title_w);
-    let height = map_top + content_h + MARGIN_PX;
+    // Under the map: the colour of "not measured" and how the colour range was chosen.
+    let legend = opts.colour_bar.then(|| {
+        if opts.range_um.is_some() {
+            "not measured. colour range fixed".to_string()
+        } else {
+            format!("not measured. colour clip: {ROBUST_LOW_PERCENT} / {ROBUST_HIGH_PERCENT} %")
+        }
+    });
+    let swatch_w = 2 * glyph_h;
+    let legend_w = legend
+        .as_deref()
+        .map(|l| 2 * MARGIN_PX + swatch_w + 6 + text_width(l, scale))
+        .unwrap_or(0);
+    let legend_h = if legend.is_some() {
+        glyph_h + MARGIN_PX
+    } else {
+        0
+    };
+    let width = content_w.max(title_w).max(legend_w);
+    let height = map_top + content_h + legend_h + MARGIN_PX;
     if width > u32::MAX as usize
         || height > u32::MAX as usize
         || width
@@ -284,6 +303,12 @@ pub fn render_preview(
     if let Some(title) = &opts.title {
         canvas.text(MARGIN_PX, MARGIN_PX, title, scale, TEXT_RGB);
     }
+    if let Some(legend) = &legend {
+        let y = map_top + content_h + MARGIN_PX;
+        canvas.fill(MARGIN_PX, y, swatch_w, glyph_h, NAN_RGB);
+        canvas.frame(MARGIN_PX, y, swatch_w, glyph_h, FRAME_RGB);
+        canvas.text(MARGIN_PX + swatch_w + 6, y, legend, scale, TEXT_RGB);
+    }
 
     let info = PreviewInfo {
         min_um,
@@ -300,6 +325,80 @@ pub fn render_preview(
     Ok(PreviewImage {
         rgb: canvas.rgb,
         info,
+    })
+}
+
+/// The map alone (no title, no colour bar), as [`encode_map_png`] returns it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MapPng {
+    /// An 8-bit indexed PNG: palette entries 0..=254 are viridis from `range_um.0` to
+    /// `range_um.1` (heights outside saturate), entry 255 is [`NAN_RGB`] (not measured).
+    pub png: Vec<u8>,
+    pub rows: usize,
+    pub cols: usize,
+    /// Each pixel is the NaN-aware mean of a `block x block` block of heights.
+    pub block: usize,
+}
+
+/// The height map alone, reduced by NaN-aware block means until its longer side is at most
+/// `max_side_px`, coloured over `range_um` (low, high), as an indexed PNG (a third of the
+/// size of RGB, for pages that inline it). Row 0 at the top, as in [`write_preview_png`].
+pub fn encode_map_png(
+    heights: &[f32],
+    rows: usize,
+    cols: usize,
+    max_side_px: usize,
+    range_um: (f64, f64),
+) -> Result<MapPng> {
+    if rows == 0 || cols == 0 || rows.checked_mul(cols) != Some(heights.len()) {
+        bail!(
+            "height map is {rows} x {cols} but has {} values",
+            heights.len()
+        );
+    }
+    let (lo, hi) = range_um;
+    if !(lo.is_finite() && hi.is_finite() && lo < hi) {
+        bail!("colour range {lo} .. {hi} um is not an increasing pair of finite numbers");
+    }
+    let block = rows.max(cols).div_ceil(max_side_px.max(1)).max(1);
+    let (small, s_rows, s_cols) = if block > 1 {
+        let (m, r, c) = block_mean(heights, rows, cols, block);
+        (std::borrow::Cow::Owned(m), r, c)
+    } else {
+        (std::borrow::Cow::Borrowed(heights), rows, cols)
+    };
+    let index: Vec<u8> = small
+        .iter()
+        .map(|&v| {
+            if v.is_finite() {
+                ((v as f64 - lo) / (hi - lo) * 254.0)
+                    .round()
+                    .clamp(0.0, 254.0) as u8
+            } else {
+                255
+            }
+        })
+        .collect();
+    let mut palette = Vec::with_capacity(256 * 3);
+    for i in 0..255 {
+        palette.extend_from_slice(&viridis(i as f64 / 254.0));
+    }
+    palette.extend_from_slice(&NAN_RGB);
+    let mut png_bytes = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut png_bytes, s_cols as u32, s_rows as u32);
+        enc.set_color(png::ColorType::Indexed);
+        enc.set_depth(png::BitDepth::Eight);
+        enc.set_palette(palette);
+        let mut w = enc.write_header().context("PNG encoding failed")?;
+        w.write_image_data(&index).context("PNG encoding failed")?;
+        w.finish().context("PNG encoding failed")?;
+    }
+    Ok(MapPng {
+        png: png_bytes,
+        rows: s_rows,
+        cols: s_cols,
+        block,
     })
 }
 
@@ -703,6 +802,53 @@ mod tests {
         // Title text is drawn (some black pixels above the map).
         let title_rows = &rgb[..(info.map_top_px as usize * w as usize * 3)];
         assert!(title_rows.chunks(3).any(|p| p == TEXT_RGB));
+    }
+
+    #[test]
+    fn legend_under_the_map_shows_the_not_measured_grey() {
+        let h = vec![1.0f32; 300 * 400];
+        let img = render_preview(&h, 300, 400, &PreviewOptions::default()).expect("render");
+        let i = img.info;
+        let below = i.map_top_px + i.map_height_px + 1;
+        let rows = &img.rgb[(below * i.width_px) as usize * 3..];
+        assert!(rows.chunks(3).any(|p| p == NAN_RGB), "grey swatch");
+        assert!(rows.chunks(3).any(|p| p == TEXT_RGB), "legend text");
+        // The legend fits beside the colour bar: it does not widen the image.
+        let no_bar = PreviewOptions {
+            colour_bar: false,
+            ..Default::default()
+        };
+        let plain = render_preview(&h, 300, 400, &no_bar).expect("render");
+        assert!(i.width_px > plain.info.width_px);
+        assert!(i.width_px < plain.info.width_px + 120, "{} px", i.width_px);
+    }
+
+    #[test]
+    fn map_png_is_indexed_viridis_with_a_not_measured_entry() {
+        // 4 x 6, block 2 (max side 3): the block at (0, 2) is all NaN.
+        let mut h: Vec<f32> = (0..24).map(|i| i as f32 * 0.1).collect();
+        for (r, c) in [(0, 4), (0, 5), (1, 4), (1, 5)] {
+            h[r * 6 + c] = f32::NAN;
+        }
+        let m = encode_map_png(&h, 4, 6, 3, (0.0, 2.3)).expect("encode");
+        assert_eq!((m.rows, m.cols, m.block), (2, 3, 2));
+        let dec = png::Decoder::new(std::io::Cursor::new(&m.png));
+        let mut reader = dec.read_info().expect("png header");
+        let palette = reader.info().palette.clone().expect("palette").to_vec();
+        assert_eq!(&palette[255 * 3..], &NAN_RGB);
+        assert_eq!(&palette[..3], &VIRIDIS[0]);
+        assert_eq!(&palette[254 * 3..255 * 3], &VIRIDIS[255]);
+        let mut buf = vec![0; reader.output_buffer_size()];
+        let info = reader.next_frame(&mut buf).expect("frame");
+        assert_eq!(info.color_type, png::ColorType::Indexed);
+        buf.truncate(info.buffer_size());
+        // Block (0, 0): mean of 0.0, 0.1, 0.6, 0.7 = 0.35 -> 0.35 / 2.3 * 254 = 38.65 -> 39.
+        assert_eq!(buf[0], 39);
+        assert_eq!(buf[2], 255);
+        // Block (1, 2): mean of 1.6, 1.7, 2.2, 2.3 = 1.95 -> 215.35 -> 215.
+        assert_eq!(buf[5], 215);
+        assert!(encode_map_png(&h, 4, 5, 3, (0.0, 1.0)).is_err());
+        assert!(encode_map_png(&h, 4, 6, 3, (1.0, 1.0)).is_err());
     }
 
     #[test]

@@ -1,0 +1,165 @@
+//! The height distribution (histogram beside the Abbott-Firestone curve, sharing the height
+//! axis) and the PSD, as inline SVG, from [`super::surface_stats`].
+
+use std::fmt::Write as _;
+
+use super::html::{length, um};
+use super::plot::{Axis, Panel};
+use super::surface_stats::{height_histogram, material_ratio_curve, radial_psd};
+use super::surfaces::Surface;
+
+/// Histogram (left, % of points per bin, drawn sideways so both panels share the height axis)
+/// and the Abbott-Firestone curve (right, material ratio in %).
+pub fn distribution(s: &Surface) -> Option<String> {
+    let h = height_histogram(&s.z, 80)?;
+    let curve = material_ratio_curve(&s.z, 400);
+    let total = h.total.max(1) as f64;
+    let max_pct = h
+        .counts
+        .iter()
+        .map(|&c| 100.0 * c as f64 / total)
+        .fold(0.0, f64::max);
+    let ya = Axis::linear(h.lo, h.hi, "height (µm)");
+    let left = Panel {
+        x: 80.0,
+        y: 14.0,
+        w: 200.0,
+        h: 380.0,
+        xa: Axis::linear(0.0, max_pct * 1.08, "points per bin (%)"),
+        ya: ya.clone(),
+    };
+    let right = Panel {
+        x: 360.0,
+        y: 14.0,
+        w: 300.0,
+        h: 380.0,
+        xa: Axis::linear(0.0, 100.0, "material ratio Mr (%)"),
+        ya,
+    };
+    let mut g = String::from(
+        "<svg class=\"chart half\" viewBox=\"0 0 680 450\" role=\"img\" \
+         aria-label=\"height distribution and Abbott-Firestone curve\">",
+    );
+    left.axes(&mut g, true);
+    let bw = h.bin_width();
+    for (k, &c) in h.counts.iter().enumerate() {
+        let (z0, z1) = (h.lo + k as f64 * bw, h.lo + (k + 1) as f64 * bw);
+        let (y0, y1) = (left.py(z1), left.py(z0));
+        let w = left.px(100.0 * c as f64 / total) - left.x;
+        let _ = write!(
+            g,
+            "<rect x=\"{:.1}\" y=\"{y0:.1}\" width=\"{w:.1}\" height=\"{:.2}\" fill=\"#5b8fc9\"/>",
+            left.x,
+            (y1 - y0).max(0.5)
+        );
+    }
+    right.axes(&mut g, true);
+    right.line(&mut g, &curve, "#c0392b", 2.0);
+    // The mean height (0: heights are relative to the mean) as a reference line.
+    let y0 = right.py(0.0);
+    if (right.y..=right.y + right.h).contains(&y0) {
+        let _ = write!(
+            g,
+            "<line x1=\"{:.1}\" y1=\"{y0:.1}\" x2=\"{:.1}\" y2=\"{y0:.1}\" stroke=\"#555\" \
+             stroke-dasharray=\"4,3\"/><text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\">mean</text>",
+            left.x,
+            right.x + right.w,
+            right.x + right.w - 36.0,
+            y0 - 4.0
+        );
+    }
+    g.push_str("</svg>");
+    Some(format!(
+        "<figure>{g}<figcaption>Heights of the {} ({} valid points, relative to the mean), \
+         {} bins of {}. Abbott-Firestone curve: the share of the surface at or above each \
+         height (ISO 25178-2 areal material ratio).</figcaption></figure>",
+        s.name,
+        h.total,
+        h.counts.len(),
+        um(bw)
+    ))
+}
+
+/// The radially averaged PSD, log-log, against wavelength (long wavelengths left).
+/// `wavelet_scale_um`: the scale of the wavelet level that split datum from roughness.
+pub fn psd(s: &Surface, wavelet_scale: Option<(u64, f64)>) -> Option<String> {
+    let bins = radial_psd(&s.z, s.rows, s.cols, s.pitch_x_um, s.pitch_y_um, 48);
+    let pts: Vec<(f64, f64)> = bins
+        .iter()
+        .filter(|b| b.psd_um4 > 0.0)
+        .map(|b| (b.wavelength_um(), b.psd_um4))
+        .collect();
+    if pts.len() < 2 {
+        return None;
+    }
+    let (wl_lo, wl_hi) = pts.iter().fold((f64::INFINITY, 0.0f64), |(a, b), p| {
+        (a.min(p.0), b.max(p.0))
+    });
+    let (p_lo, p_hi) = pts.iter().fold((f64::INFINITY, 0.0f64), |(a, b), p| {
+        (a.min(p.1), b.max(p.1))
+    });
+    let mut xa = Axis::log(wl_lo, wl_hi, "wavelength (µm)");
+    // Long wavelengths on the left: swap the ends.
+    std::mem::swap(&mut xa.lo, &mut xa.hi);
+    let panel = Panel {
+        x: 86.0,
+        y: 14.0,
+        w: 560.0,
+        h: 380.0,
+        xa,
+        ya: Axis::log(p_lo, p_hi, "PSD (µm⁴)"),
+    };
+    let mut g = String::from(
+        "<svg class=\"chart half\" viewBox=\"0 0 680 450\" role=\"img\" aria-label=\"power spectral density\">",
+    );
+    panel.axes(&mut g, true);
+    // Points of a swapped log axis: `line` checks lo <= v <= hi, so draw through px/py.
+    let d = super::html::path_d(pts.iter().map(|&(x, y)| Some((panel.px(x), panel.py(y)))));
+    let _ = write!(
+        g,
+        "<path d=\"{d}\" fill=\"none\" stroke=\"#6c3483\" stroke-width=\"2\"/>"
+    );
+    for &(x, y) in &pts {
+        let _ = write!(
+            g,
+            "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"2.2\" fill=\"#6c3483\"/>",
+            panel.px(x),
+            panel.py(y)
+        );
+    }
+    let mut note = String::new();
+    if let Some((level, scale_um)) = wavelet_scale {
+        let x = panel.px(scale_um);
+        if (panel.x..=panel.x + panel.w).contains(&x) {
+            let _ = write!(
+                g,
+                "<line x1=\"{x:.1}\" y1=\"{:.1}\" x2=\"{x:.1}\" y2=\"{:.1}\" stroke=\"#e4572e\" \
+                 stroke-dasharray=\"6,4\" stroke-width=\"1.5\"/><text x=\"{:.1}\" y=\"{:.1}\" \
+                 class=\"tick\" fill=\"#e4572e\">2^{level} px = {}</text>",
+                panel.y,
+                panel.y + panel.h,
+                x + 4.0,
+                panel.y + 16.0,
+                length(scale_um)
+            );
+            let _ = write!(
+                note,
+                " Dashed: the scale of wavelet level {level} (2^{level} pitches = {}), where \
+                 the datum / roughness separation splits the surface (approximately: a \
+                 wavelet band is an octave wide).",
+                length(scale_um)
+            );
+        }
+    }
+    g.push_str("</svg>");
+    Some(format!(
+        "<figure>{g}<figcaption>Power spectral density of the {}: least-squares plane removed, \
+         not-measured points set to the plane, Hann window, 2-D |FFT|² scaled to µm⁴ \
+         (integrates to the mean square height), averaged over rings of equal wavelength \
+         ({} log-spaced rings from {} to the Nyquist wavelength {}).{note}</figcaption></figure>",
+        s.name,
+        bins.len(),
+        length(wl_hi),
+        um(2.0 * s.pitch_x_um.max(s.pitch_y_um)),
+    ))
+}

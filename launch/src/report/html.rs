@@ -1,0 +1,247 @@
+//! Small HTML / SVG helpers of the report: escaping, tables, number formats, nice axis ticks,
+//! base64 and PNG encoding. Every number a person reads goes through [`fixed`] or [`um`], so
+//! the page uses one precision per quantity.
+
+use std::fmt::Write as _;
+
+use anyhow::{Context, Result};
+use serde_json::Value;
+
+pub fn esc(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
+}
+
+/// `v` with `decimals` decimals, "-" when not finite; "-0.000" shows as "0.000".
+pub fn fixed(v: f64, decimals: usize) -> String {
+    if !v.is_finite() {
+        return "-".into();
+    }
+    let s = format!("{v:.decimals$}");
+    if s.starts_with('-') && s[1..].chars().all(|c| c == '0' || c == '.') {
+        s[1..].to_string()
+    } else {
+        s
+    }
+}
+
+/// A length in micrometres with a precision that suits its size: "0.0153 um", "1.510 um",
+/// "15.23 um", "1584.8 um".
+pub fn um(v: f64) -> String {
+    let a = v.abs();
+    let d = if a < 0.1 {
+        4
+    } else if a < 10.0 {
+        3
+    } else if a < 100.0 {
+        2
+    } else {
+        1
+    };
+    format!("{} µm", fixed(v, d))
+}
+
+/// A pitch in um: four decimals (0.8148 µm), the precision instruments state it with.
+pub fn pitch(v: f64) -> String {
+    format!("{} µm", fixed(v, 4))
+}
+
+/// A signed percentage with `decimals` decimals, "+2.5", "-8.33"; zero shows unsigned.
+pub fn signed(v: f64, decimals: usize) -> String {
+    let s = fixed(v, decimals);
+    if s == "-" || s.starts_with('-') || s.chars().all(|c| c == '0' || c == '.') {
+        s
+    } else {
+        format!("+{s}")
+    }
+}
+
+/// A round length (a scale bar's) with no more decimals than it needs: "200 µm", "1 mm",
+/// "0.5 µm".
+pub fn round_length(v_um: f64) -> String {
+    let (v, unit) = if v_um >= 1000.0 {
+        (v_um / 1000.0, "mm")
+    } else {
+        (v_um, "µm")
+    };
+    let s = format!("{v:.3}");
+    let s = s.trim_end_matches('0').trim_end_matches('.');
+    format!("{s} {unit}")
+}
+
+/// A length in um shown in mm when it is long: "1.585 mm" or "812.3 µm".
+pub fn length(v_um: f64) -> String {
+    if v_um.abs() >= 1000.0 {
+        format!("{} mm", fixed(v_um / 1000.0, 3))
+    } else {
+        um(v_um)
+    }
+}
+
+/// A JSON value as short text: numbers to 4 decimals (or 4 significant digits in exponent
+/// form when tiny or huge), arrays inline; for the generic tables.
+pub fn num(v: &Value) -> String {
+    match v {
+        Value::Null => "-".into(),
+        Value::Number(n) => match (n.as_i64(), n.as_f64()) {
+            (Some(i), _) => i.to_string(),
+            (None, Some(f)) if f != 0.0 && (f.abs() < 1e-3 || f.abs() >= 1e7) => format!("{f:.3e}"),
+            (None, Some(f)) => fixed(f, 4),
+            _ => n.to_string(),
+        },
+        Value::String(s) => s.clone(),
+        Value::Bool(b) => if *b { "yes" } else { "no" }.into(),
+        Value::Array(a) => a.iter().map(num).collect::<Vec<_>>().join(" x "),
+        Value::Object(_) => "{...}".into(),
+    }
+}
+
+/// A table; the first column is a key (left aligned). Cells are escaped.
+pub fn table(head: &[&str], rows: &[Vec<String>]) -> String {
+    table_raw(
+        head,
+        &rows
+            .iter()
+            .map(|r| (String::new(), r.iter().map(|c| esc(c)).collect()))
+            .collect::<Vec<_>>(),
+    )
+}
+
+/// A table of (row class, cells already HTML).
+pub fn table_raw(head: &[&str], rows: &[(String, Vec<String>)]) -> String {
+    let mut s = String::from("<table><thead><tr>");
+    for c in head {
+        let _ = write!(s, "<th>{}</th>", esc(c));
+    }
+    s.push_str("</tr></thead><tbody>");
+    for (class, r) in rows {
+        if class.is_empty() {
+            s.push_str("<tr>");
+        } else {
+            let _ = write!(s, "<tr class=\"{class}\">");
+        }
+        for (i, c) in r.iter().enumerate() {
+            let class = if i == 0 { " class=\"k\"" } else { "" };
+            let _ = write!(s, "<td{class}>{c}</td>");
+        }
+        s.push_str("</tr>");
+    }
+    s.push_str("</tbody></table>");
+    s
+}
+
+/// "Nice" tick values (1, 2 or 5 times a power of ten) inside `lo..=hi`, about `n` of them,
+/// and the number of decimals their labels need.
+pub fn ticks(lo: f64, hi: f64, n: usize) -> (Vec<f64>, usize) {
+    let raw = (hi - lo) / n.max(1) as f64;
+    if !(raw > 0.0 && raw.is_finite()) {
+        return (Vec::new(), 0);
+    }
+    let mag = 10f64.powf(raw.log10().floor());
+    let step = [1.0, 2.0, 5.0, 10.0]
+        .iter()
+        .map(|m| m * mag)
+        .find(|s| *s >= raw * (1.0 - 1e-9))
+        .unwrap_or(10.0 * mag);
+    let decimals = (-(step.log10().floor())).clamp(0.0, 9.0) as usize;
+    let first = (lo / step).ceil() as i64;
+    let last = (hi / step).floor() as i64;
+    ((first..=last).map(|i| i as f64 * step).collect(), decimals)
+}
+
+/// Standard base64 (RFC 4648) with padding.
+pub fn base64(bytes: &[u8]) -> String {
+    const A: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut s = String::with_capacity(bytes.len().div_ceil(3) * 4);
+    for c in bytes.chunks(3) {
+        let n = (u32::from(c[0]) << 16)
+            | (u32::from(*c.get(1).unwrap_or(&0)) << 8)
+            | u32::from(*c.get(2).unwrap_or(&0));
+        for k in 0..4 {
+            if k <= c.len() {
+                s.push(A[(n >> (18 - 6 * k)) as usize & 63] as char);
+            } else {
+                s.push('=');
+            }
+        }
+    }
+    s
+}
+
+/// An RGB image (3 bytes per pixel, row-major) as PNG bytes.
+pub fn png_rgb(rgb: &[u8], width: usize, height: usize) -> Result<Vec<u8>> {
+    let mut out = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut out, width as u32, height as u32);
+        enc.set_color(png::ColorType::Rgb);
+        enc.set_depth(png::BitDepth::Eight);
+        let mut w = enc.write_header().context("PNG header")?;
+        w.write_image_data(rgb).context("PNG data")?;
+        w.finish().context("PNG end")?;
+    }
+    Ok(out)
+}
+
+/// An SVG polyline's points attribute; `None` points break the line into segments, so the
+/// result is one `d` of a path.
+pub fn path_d(points: impl IntoIterator<Item = Option<(f64, f64)>>) -> String {
+    let mut d = String::new();
+    let mut pen_down = false;
+    for p in points {
+        match p {
+            Some((x, y)) if x.is_finite() && y.is_finite() => {
+                let _ = write!(d, "{}{x:.1},{y:.1}", if pen_down { "L" } else { "M" });
+                pen_down = true;
+            }
+            _ => pen_down = false,
+        }
+    }
+    d
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn base64_matches_rfc4648_vectors() {
+        for (i, o) in [
+            ("", ""),
+            ("f", "Zg=="),
+            ("fo", "Zm8="),
+            ("foo", "Zm9v"),
+            ("foob", "Zm9vYg=="),
+            ("fooba", "Zm9vYmE="),
+            ("foobar", "Zm9vYmFy"),
+        ] {
+            assert_eq!(base64(i.as_bytes()), o);
+        }
+    }
+
+    #[test]
+    fn numbers_have_fixed_precision() {
+        assert_eq!(um(1.3630563293), "1.363 µm");
+        assert_eq!(um(15.2321), "15.23 µm");
+        assert_eq!(um(0.015255), "0.0153 µm");
+        assert_eq!(length(1584.83), "1.585 mm");
+        assert_eq!(fixed(-0.0001, 2), "0.00");
+        assert_eq!(signed(-0.04, 1), "0.0");
+        assert_eq!(signed(2.54, 1), "+2.5");
+        assert_eq!(signed(-8.333, 2), "-8.33");
+        assert_eq!(round_length(200.0), "200 µm");
+        assert_eq!(round_length(0.5), "0.5 µm");
+        assert_eq!(round_length(2000.0), "2 mm");
+        assert_eq!(pitch(0.8148), "0.8148 µm");
+        assert_eq!(fixed(f64::NAN, 2), "-");
+        let (t, d) = ticks(-0.37, 1.23, 8);
+        assert_eq!(d, 1);
+        assert_eq!(t.len(), 8);
+        assert!((t[0] + 0.2).abs() < 1e-12 && (t[7] - 1.2).abs() < 1e-12);
+        assert_eq!(
+            path_d([Some((0.0, 1.0)), Some((2.0, 3.0)), None, Some((4.0, 5.0))]),
+            "M0.0,1.0L2.0,3.0M4.0,5.0"
+        );
+    }
+}

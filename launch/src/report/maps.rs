@@ -1,0 +1,257 @@
+//! The height maps as figures: the map itself (an indexed PNG from
+//! [`surfstream_io::preview::encode_map_png`]) inside an SVG that draws what a reader needs to
+//! read it: x and y axes in mm or um from the map's top-left corner, a scale bar, the colour
+//! bar with its unit and its clipping (the 0.5 / 99.5 percentiles of the map's valid heights,
+//! how many points saturate), the grey of "not measured" and how many points it covers. A
+//! click on the map opens it at full size (the page's script).
+
+use std::fmt::Write as _;
+
+use surfstream_io::preview::{
+    encode_map_png, robust_range_um, viridis, NAN_RGB, ROBUST_HIGH_PERCENT, ROBUST_LOW_PERCENT,
+};
+
+use super::html::{base64, esc, fixed, length, pitch, round_length, ticks, um};
+use super::surfaces::Surface;
+
+/// Longest side of an inlined map, px: the demo panorama (1946 px) at full resolution.
+const MAX_SIDE_PX: usize = 2048;
+/// Width of the map inside the figure (SVG user units = CSS px at full width).
+const MAP_W: f64 = 860.0;
+/// Tallest map inside the figure.
+const MAP_H_MAX: f64 = 640.0;
+const LEFT: f64 = 64.0;
+const TOP: f64 = 12.0;
+
+/// A horizontal line to draw over the map (the profile cut), at row `row`.
+pub struct Cut {
+    pub row: usize,
+    pub label: String,
+}
+
+/// One figure: `<figure>` with the SVG and a caption. `reference` says what the heights are
+/// relative to.
+pub fn figure(s: &Surface, title: &str, reference: &str, cut: Option<&Cut>) -> String {
+    let values = s.to_f32();
+    let Some((lo, hi)) = robust_range_um(&values) else {
+        return format!(
+            "<figure class=\"map\"><figcaption><b>{}</b>: no measured point</figcaption></figure>",
+            esc(title)
+        );
+    };
+    let map = match encode_map_png(&values, s.rows, s.cols, MAX_SIDE_PX, (lo, hi)) {
+        Ok(m) => m,
+        Err(e) => {
+            return format!(
+                "<figure class=\"map\"><figcaption><b>{}</b>: {}</figcaption></figure>",
+                esc(title),
+                esc(&format!("{e:#}"))
+            )
+        }
+    };
+    let (n_valid, below, above) =
+        values
+            .iter()
+            .filter(|v| v.is_finite())
+            .fold((0usize, 0usize, 0usize), |(n, b, a), &v| {
+                let v = v as f64;
+                (n + 1, b + usize::from(v < lo), a + usize::from(v > hi))
+            });
+    let n_nan = values.len() - n_valid;
+    let pct = |k: usize| 100.0 * k as f64 / values.len().max(1) as f64;
+
+    // Geometry: the map keeps its aspect ratio in um.
+    let (w_um, h_um) = (s.width_um(), s.height_um());
+    let mut mw = MAP_W;
+    let mut mh = mw * h_um / w_um;
+    if mh > MAP_H_MAX {
+        mh = MAP_H_MAX;
+        mw = mh * w_um / h_um;
+    }
+    let bar_x = LEFT + mw + 28.0;
+    let bar_w = 22.0;
+    let bar_top = TOP + 24.0;
+    let bar_h = (mh - 24.0).max(160.0);
+    let width = bar_x + bar_w + 78.0;
+    let height = TOP + mh.max(bar_h + 24.0) + 58.0;
+    let to_mm = w_um.max(h_um) >= 2000.0;
+    let (unit, div) = if to_mm { ("mm", 1000.0) } else { ("µm", 1.0) };
+
+    let id = s.name;
+    let mut g = String::new();
+    let _ = write!(
+        g,
+        "<svg class=\"mapsvg\" viewBox=\"0 0 {width:.0} {height:.0}\" role=\"img\" \
+         aria-label=\"{t}\"><defs><linearGradient id=\"cb-{id}\" x1=\"0\" y1=\"1\" x2=\"0\" y2=\"0\">",
+        t = esc(title)
+    );
+    for k in 0..=16 {
+        let t = k as f64 / 16.0;
+        let [r, gg, b] = viridis(t);
+        let _ = write!(
+            g,
+            "<stop offset=\"{t:.4}\" stop-color=\"rgb({r},{gg},{b})\"/>"
+        );
+    }
+    let _ = write!(
+        g,
+        "</linearGradient></defs><image class=\"zoomable\" x=\"{LEFT}\" y=\"{TOP}\" \
+         width=\"{mw:.1}\" height=\"{mh:.1}\" preserveAspectRatio=\"none\" \
+         style=\"image-rendering:pixelated\" data-title=\"{t}\" \
+         href=\"data:image/png;base64,{}\"><title>click for full size ({} x {} px, rows x cols)</title></image>\
+         <rect x=\"{LEFT}\" y=\"{TOP}\" width=\"{mw:.1}\" height=\"{mh:.1}\" fill=\"none\" \
+         stroke=\"#333\" stroke-width=\"1\"/>",
+        base64(&map.png),
+        map.rows,
+        map.cols,
+        t = esc(title)
+    );
+
+    // Axes: x along the bottom, y down the left, from the top-left corner.
+    let (xt, xd) = ticks(0.0, w_um / div, 8);
+    for v in &xt {
+        let x = LEFT + v * div / w_um * mw;
+        let _ = write!(
+            g,
+            "<line x1=\"{x:.1}\" y1=\"{y0:.1}\" x2=\"{x:.1}\" y2=\"{y1:.1}\" stroke=\"#333\"/>\
+             <text x=\"{x:.1}\" y=\"{ty:.1}\" class=\"tick\" text-anchor=\"middle\">{}</text>",
+            fixed(*v, xd),
+            y0 = TOP + mh,
+            y1 = TOP + mh + 5.0,
+            ty = TOP + mh + 18.0
+        );
+    }
+    let _ = write!(
+        g,
+        "<text x=\"{:.1}\" y=\"{:.1}\" class=\"axis\" text-anchor=\"middle\">x ({unit})</text>",
+        LEFT + mw / 2.0,
+        TOP + mh + 36.0
+    );
+    let (yt, yd) = ticks(0.0, h_um / div, 8);
+    for v in &yt {
+        let y = TOP + v * div / h_um * mh;
+        let _ = write!(
+            g,
+            "<line x1=\"{x0:.1}\" y1=\"{y:.1}\" x2=\"{LEFT}\" y2=\"{y:.1}\" stroke=\"#333\"/>\
+             <text x=\"{tx:.1}\" y=\"{ty:.1}\" class=\"tick\" text-anchor=\"end\">{}</text>",
+            fixed(*v, yd),
+            x0 = LEFT - 5.0,
+            tx = LEFT - 8.0,
+            ty = y + 4.0
+        );
+    }
+    let _ = write!(
+        g,
+        "<text transform=\"translate(16 {:.1}) rotate(-90)\" class=\"axis\" \
+         text-anchor=\"middle\">y ({unit})</text>",
+        TOP + mh / 2.0
+    );
+
+    // Scale bar: a round length of about a fifth of the width, bottom right inside the map.
+    let target = w_um / 5.0;
+    let mag = 10f64.powf(target.log10().floor());
+    let bar_um = [5.0, 2.0, 1.0]
+        .iter()
+        .map(|m| m * mag)
+        .find(|l| *l <= target)
+        .unwrap_or(mag);
+    let sb_w = bar_um / w_um * mw;
+    let (sb_x, sb_y) = (LEFT + mw - sb_w - 14.0, TOP + mh - 16.0);
+    let _ = write!(
+        g,
+        "<rect x=\"{:.1}\" y=\"{:.1}\" width=\"{:.1}\" height=\"30\" fill=\"#fff\" \
+         fill-opacity=\"0.8\" rx=\"3\"/><rect x=\"{sb_x:.1}\" y=\"{sb_y:.1}\" width=\"{sb_w:.1}\" \
+         height=\"5\" fill=\"#111\"/><text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\" \
+         text-anchor=\"middle\">{}</text>",
+        sb_x - 8.0,
+        sb_y - 18.0,
+        sb_w + 16.0,
+        sb_x + sb_w / 2.0,
+        sb_y - 4.0,
+        round_length(bar_um)
+    );
+
+    if let Some(cut) = cut {
+        let y = TOP + (cut.row as f64 + 0.5) / s.rows as f64 * mh;
+        let _ = write!(
+            g,
+            "<line x1=\"{LEFT}\" y1=\"{y:.1}\" x2=\"{:.1}\" y2=\"{y:.1}\" stroke=\"#fff\" \
+             stroke-width=\"2\" stroke-dasharray=\"8,5\"/><rect x=\"{:.1}\" y=\"{:.1}\" \
+             width=\"{:.1}\" height=\"18\" fill=\"#fff\" fill-opacity=\"0.85\" rx=\"3\"/>\
+             <text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\">{}</text>",
+            LEFT + mw,
+            LEFT + 6.0,
+            y - 22.0,
+            7.0 * cut.label.len() as f64 + 10.0,
+            LEFT + 11.0,
+            y - 9.0,
+            esc(&cut.label)
+        );
+    }
+
+    // Colour bar: unit on top, ticks on the right, "not measured" swatch below.
+    let _ = write!(
+        g,
+        "<text x=\"{:.1}\" y=\"{:.1}\" class=\"axis\" text-anchor=\"middle\">z (µm)</text>\
+         <rect x=\"{bar_x:.1}\" y=\"{bar_top:.1}\" width=\"{bar_w}\" height=\"{bar_h:.1}\" \
+         fill=\"url(#cb-{id})\" stroke=\"#333\"/>",
+        bar_x + bar_w / 2.0,
+        TOP + 12.0
+    );
+    let (zt, zd) = ticks(lo, hi, 8);
+    for v in &zt {
+        let y = bar_top + bar_h - (v - lo) / (hi - lo) * bar_h;
+        let _ = write!(
+            g,
+            "<line x1=\"{x0:.1}\" y1=\"{y:.1}\" x2=\"{x1:.1}\" y2=\"{y:.1}\" stroke=\"#333\"/>\
+             <text x=\"{tx:.1}\" y=\"{ty:.1}\" class=\"tick\">{}</text>",
+            fixed(*v, zd),
+            x0 = bar_x + bar_w,
+            x1 = bar_x + bar_w + 5.0,
+            tx = bar_x + bar_w + 8.0,
+            ty = y + 4.0
+        );
+    }
+    let sw_y = bar_top + bar_h + 14.0;
+    let [r, gg, b] = NAN_RGB;
+    let _ = write!(
+        g,
+        "<rect x=\"{bar_x:.1}\" y=\"{sw_y:.1}\" width=\"{bar_w}\" height=\"14\" \
+         fill=\"rgb({r},{gg},{b})\" stroke=\"#333\"/><text x=\"{:.1}\" y=\"{:.1}\" \
+         class=\"tick\">not</text><text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\">measured</text></svg>",
+        bar_x + bar_w + 6.0,
+        sw_y + 6.0,
+        bar_x + bar_w + 6.0,
+        sw_y + 19.0,
+    );
+
+    let caption = format!(
+        "<b>{}</b>: {} x {} px (rows x cols), {} x {} at {} pitch; heights {}. \
+         Colour scale clipped to the {ROBUST_LOW_PERCENT} / {ROBUST_HIGH_PERCENT} percentiles \
+         of the measured heights, {} .. {}: {}&nbsp;% of the points lie below and {}&nbsp;% above \
+         and take the end colours. Grey: not measured ({} points, {}&nbsp;%). {}\
+         Click the map for full size.",
+        esc(title),
+        s.rows,
+        s.cols,
+        length(h_um),
+        length(w_um),
+        pitch(s.pitch_x_um),
+        esc(reference),
+        um(lo),
+        um(hi),
+        fixed(pct(below), 2),
+        fixed(pct(above), 2),
+        n_nan,
+        fixed(pct(n_nan), 2),
+        if map.block > 1 {
+            format!(
+                "Drawn at {} x {} px, each the mean of {} x {} heights. ",
+                map.rows, map.cols, map.block, map.block
+            )
+        } else {
+            String::new()
+        }
+    );
+    format!("<figure class=\"map\" id=\"map-{id}\">{g}<figcaption>{caption}</figcaption></figure>")
+}

@@ -1,0 +1,362 @@
+//! The top of the page: what was measured (input, instrument, pitch, scan and panorama size),
+//! the verdict (Table 6 pass / fail with the reason, tiles placed by the stage fallback), the
+//! key ISO 25178 parameters and the output files.
+
+use std::fmt::Write as _;
+
+use serde_json::Value;
+use surfstream_core::metrology::{params, Grid, Params};
+
+use super::html::{esc, fixed, length, pitch, signed, table_raw, um};
+use super::surfaces::{Surface, Surfaces};
+
+/// The verdict banner and the facts table.
+pub fn section(run: &Value, surfaces: &Surfaces) -> String {
+    let mut h = String::new();
+    verdict(&mut h, run);
+    let scan = &run["scan"];
+    let mut rows: Vec<(String, Vec<String>)> = Vec::new();
+    let mut row = |k: &str, v: String| rows.push((String::new(), vec![esc(k), v]));
+    row("input", input(run));
+    row("instrument", instrument(scan));
+    if let (Some(px), Some(py)) = (scan["pitch_x_um"].as_f64(), scan["pitch_y_um"].as_f64()) {
+        row(
+            "pitch (x, y)",
+            if px == py {
+                pitch(px)
+            } else {
+                format!("{} x {}", pitch(px), pitch(py))
+            },
+        );
+    }
+    let tiles = run["tiles"].as_array().map(Vec::len).unwrap_or(0);
+    let (tw, th) = (
+        scan["tile_width_px"].as_u64(),
+        scan["tile_height_px"].as_u64(),
+    );
+    let grid = match (scan["rows"].as_u64(), scan["cols"].as_u64()) {
+        (Some(r), Some(c)) => format!("{r} x {c} tiles (rows x cols)"),
+        _ => format!("{tiles} tiles"),
+    };
+    let tile = match (
+        th,
+        tw,
+        scan["pitch_x_um"].as_f64(),
+        scan["pitch_y_um"].as_f64(),
+    ) {
+        (Some(h), Some(w), Some(px), Some(py)) => format!(
+            ", each {h} x {w} px = {} x {}",
+            length(h as f64 * py),
+            length(w as f64 * px)
+        ),
+        _ => String::new(),
+    };
+    let overlap = scan["overlap"]
+        .as_array()
+        .and_then(|o| Some((o.first()?.as_f64()?, o.get(1)?.as_f64()?)))
+        .map(|(x, y)| {
+            if x == y {
+                format!(", {} % nominal overlap", fixed(x * 100.0, 0))
+            } else {
+                format!(
+                    ", {} / {} % nominal overlap (x / y)",
+                    fixed(x * 100.0, 0),
+                    fixed(y * 100.0, 0)
+                )
+            }
+        })
+        .unwrap_or_default();
+    row("scan", esc(&format!("{grid}{tile}{overlap}")));
+    if let Some(p) = &surfaces.panorama {
+        let nan = p.z.iter().filter(|v| !v.is_finite()).count();
+        row(
+            "panorama",
+            esc(&format!(
+                "{} x {} px = {} x {} (rows x cols); {} % not measured",
+                p.rows,
+                p.cols,
+                length(p.height_um()),
+                length(p.width_um()),
+                fixed(100.0 * nan as f64 / p.z.len().max(1) as f64, 2)
+            )),
+        );
+    }
+    let by_stage: Vec<String> = run["tiles"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter(|t| t["placed_by"] == "stage")
+        .map(|t| format!("tile {}", super::html::num(&t["index"])))
+        .collect();
+    row(
+        "tile placement",
+        if by_stage.is_empty() {
+            format!("all {tiles} tiles placed by registration")
+        } else {
+            format!(
+                "<span class=\"bad\">{} of {tiles} placed by the stage position (registration \
+                 fallback): {}</span>",
+                by_stage.len(),
+                esc(&by_stage.join(", "))
+            )
+        },
+    );
+    if let Some(m) = mesh(run) {
+        row("model (STL)", m);
+    }
+    row(
+        "run",
+        esc(&format!(
+            "{} mode, {} s, surfstream {}, graph {} ({})",
+            run["mode"].as_str().unwrap_or("?"),
+            fixed(run["elapsed_s"].as_f64().unwrap_or(f64::NAN), 2),
+            run["surfstream_version"].as_str().unwrap_or("?"),
+            run["graph"]["name"].as_str().unwrap_or("?"),
+            run["graph"]["file"].as_str().unwrap_or("?"),
+        )),
+    );
+    h.push_str("<section id=\"summary\"><h2>Summary</h2>");
+    h.push_str(
+        &table_raw(&["", ""], &rows).replace("<thead><tr><th></th><th></th></tr></thead>", ""),
+    );
+    h.push_str("</section>\n");
+    h
+}
+
+fn input(run: &Value) -> String {
+    let scan = &run["scan"];
+    let graph = esc(run["graph"]["file"].as_str().unwrap_or("?"));
+    match scan["source"].as_str() {
+        Some("simulated") => format!(
+            "simulated profiler stage (graph {graph}), specimen {}",
+            esc(scan["specimen"].as_str().unwrap_or("generated"))
+        ),
+        Some("scan") => format!(
+            "scan directory {}",
+            esc(scan["manifest"].as_str().unwrap_or("?"))
+        ),
+        Some("mcap") => format!(
+            "recording {}",
+            esc(scan["recording"].as_str().unwrap_or("?"))
+        ),
+        Some(other) => format!("{} (graph {graph})", esc(other)),
+        None => format!("graph {graph}"),
+    }
+}
+
+fn instrument(scan: &Value) -> String {
+    if let Some(i) = scan["instrument"].as_str() {
+        return esc(i);
+    }
+    match scan["source"].as_str() {
+        Some("simulated") => "simulated optical profiler (noise, dropouts, stage error)".into(),
+        _ => "not recorded in the scan files".into(),
+    }
+}
+
+fn mesh(run: &Value) -> Option<String> {
+    let m = run["stages"]
+        .as_object()?
+        .values()
+        .find(|v| v.get("triangles").is_some())?;
+    let f = &m["fidelity"];
+    Some(esc(&format!(
+        "{}: {} triangles, {} vertices, {}, {} {}, max vertical error {} (bound {}, {})",
+        m["file"].as_str().unwrap_or("?"),
+        m["triangles"].as_u64().unwrap_or(0),
+        m["vertices"].as_u64().unwrap_or(0),
+        if m["watertight"] == true {
+            "watertight"
+        } else {
+            "not watertight"
+        },
+        m["format"].as_str().unwrap_or("?"),
+        m["units"]
+            .as_str()
+            .map(|u| format!("STL in {u}"))
+            .unwrap_or_default(),
+        f["error"]["max_um"].as_f64().map(um).unwrap_or("-".into()),
+        f["epsilon_um"].as_f64().map(um).unwrap_or("-".into()),
+        if f["bound_met"] == true {
+            "met"
+        } else {
+            "NOT met"
+        },
+    )))
+}
+
+/// The Table-6 verdict as a banner: pass, or which stage failed where and by how much.
+fn verdict(h: &mut String, run: &Value) {
+    let dev = &run["deviation"];
+    if let Some(e) = dev["error"].as_str() {
+        let _ = write!(
+            h,
+            "<div class=\"verdict warn\"><b>No verdict:</b> the model-vs-measurement deviation \
+             could not be computed: {}</div>",
+            esc(e)
+        );
+        return;
+    }
+    let Some(pass) = dev["pass"].as_bool() else {
+        return;
+    };
+    let e = dev["threshold_pct"].as_f64().unwrap_or(f64::NAN);
+    let judged: Vec<&str> = dev["judged"]
+        .as_array()
+        .map(|j| j.iter().filter_map(Value::as_str).collect())
+        .unwrap_or_default();
+    if pass {
+        let _ = write!(
+            h,
+            "<div class=\"verdict pass\"><b>PASS</b>: every model stage is within ±{} % of the \
+             measurement for {} in every region (Table 6 below).</div>",
+            fixed(e, 1),
+            judged.join(", ")
+        );
+        return;
+    }
+    let mut reasons = Vec::new();
+    for (stage, st) in dev["stages"].as_object().into_iter().flatten() {
+        if st["pass"] == true {
+            continue;
+        }
+        let mut worst: Option<(String, String, f64)> = None;
+        let mut failed = 0;
+        for (region, r) in st["regions"].as_object().into_iter().flatten() {
+            if r["pass"] == false {
+                failed += 1;
+            }
+            for p in &judged {
+                if let Some(d) = r["deviation_pct"][*p].as_f64() {
+                    if worst.as_ref().is_none_or(|w| d.abs() > w.2.abs()) {
+                        worst = Some((region.clone(), p.to_string(), d));
+                    }
+                }
+            }
+        }
+        let grid = st["grid"]["name"].as_str().unwrap_or("");
+        reasons.push(match worst {
+            Some((region, p, d)) => format!(
+                "<b>{}</b> ({}): {failed} region(s) outside ±{} %, worst {p} {} % in {}",
+                esc(stage),
+                esc(grid),
+                fixed(e, 1),
+                signed(d, 1),
+                esc(&region)
+            ),
+            None => format!("<b>{}</b>: no parameters could be compared", esc(stage)),
+        });
+    }
+    let _ = write!(
+        h,
+        "<div class=\"verdict fail\"><b>FAIL</b>: the model deviates from the measurement by \
+         more than ±{} % in {} (Table 6 below):<ul>",
+        fixed(e, 1),
+        judged.join(" / ")
+    );
+    for r in reasons {
+        let _ = write!(h, "<li>{r}</li>");
+    }
+    h.push_str("</ul></div>");
+}
+
+fn params_of(s: &Surface) -> Option<Params> {
+    params(&Grid::new(&s.z, s.rows, s.cols, s.pitch_x_um, s.pitch_y_um).ok()?).ok()
+}
+
+/// Sa .. Sdr of the panorama, the roughness and the pooled map, each at its own pitch.
+pub fn key_parameters(s: &Surfaces) -> String {
+    let cols: Vec<(&str, Option<Params>)> = [
+        ("panorama (measured)", s.panorama.as_ref()),
+        ("roughness", s.roughness.as_ref()),
+        ("pooled map (model)", s.pooled.as_ref()),
+    ]
+    .into_iter()
+    .filter_map(|(n, m)| Some((n, params_of(m?))))
+    .collect();
+    if cols.is_empty() {
+        return String::new();
+    }
+    let what = [
+        ("Sa", "arithmetic mean height", "µm", 3),
+        ("Sq", "root mean square height", "µm", 3),
+        ("Sp", "maximum peak height", "µm", 3),
+        ("Sv", "maximum pit depth", "µm", 3),
+        ("Sz", "maximum height", "µm", 3),
+        ("Ssk", "skewness", "", 3),
+        ("Sku", "kurtosis", "", 3),
+        ("Sdq", "root mean square gradient", "", 4),
+        ("Sdr", "developed interfacial area ratio", "%", 2),
+    ];
+    let mut head = vec!["parameter", "", "unit"];
+    head.extend(cols.iter().map(|c| c.0));
+    let rows: Vec<(String, Vec<String>)> = what
+        .iter()
+        .enumerate()
+        .map(|(i, (name, long, unit, d))| {
+            let mut r = vec![format!("<b>{name}</b>"), esc(long), unit.to_string()];
+            for (_, p) in &cols {
+                r.push(
+                    p.map(|p| fixed(p.named()[i].1, *d))
+                        .unwrap_or_else(|| "-".into()),
+                );
+            }
+            (String::new(), r)
+        })
+        .collect();
+    format!(
+        "<section id=\"parameters\"><h2>Key parameters (ISO 25178-2)</h2>{}<p class=\"note\">\
+         Over all valid points of each map at its own pitch, mean removed, no levelling and no \
+         filter (S-F or S-L) applied; the roughness is the panorama minus the wavelet datum. \
+         Sdq and Sdr depend on the pitch: the pooled map's are taken over its coarser grid.</p></section>\n",
+        table_raw(&head, &rows)
+    )
+}
+
+/// The output files, linked (relative links: the page sits beside them).
+pub fn outputs(run: &Value) -> String {
+    let Some(files) = run["files"].as_array().filter(|f| !f.is_empty()) else {
+        return String::new();
+    };
+    let describe = |f: &str| -> &str {
+        match f {
+            "panorama.npy" => {
+                "stitched height map, absolute heights in µm (float64, NaN = not measured)"
+            }
+            "panorama.x3p" => {
+                "the panorama as ISO 25178-72 X3P (MountainsMap, Gwyddion, surfalize)"
+            }
+            "datum.npy" => "datum (wavelet approximation), absolute µm",
+            "roughness.npy" => "roughness = panorama - datum, µm (float32)",
+            "pooled.npy" => "pooled height map (the meshed model), absolute µm",
+            "surface.stl" => "the model as STL for DEM simulators",
+            "mesh_resampled.npy" => "the STL surface re-sampled on the grid it meshed",
+            "recording.mcap" => "tiles and registrations as recorded",
+            "truth.json" => "simulated truth (true tile origins)",
+            "run.json" => "everything on this page as numbers",
+            f if f.ends_with(".png") => "preview image",
+            f if f.starts_with("logs/") => "a process's stderr",
+            f if f.starts_with("nodes/") => "a node's report",
+            _ => "",
+        }
+    };
+    let mut main = String::new();
+    let mut other = String::new();
+    for f in files.iter().filter_map(Value::as_str) {
+        let link = format!(
+            "<li><a href=\"{0}\">{0}</a> <span class=\"note\">{1}</span></li>",
+            esc(f),
+            esc(describe(f))
+        );
+        if f.contains('/') || f.ends_with(".png") || f == "graph.resolved.json" {
+            other.push_str(&link);
+        } else {
+            main.push_str(&link);
+        }
+    }
+    format!(
+        "<section id=\"outputs\"><h2>Outputs</h2><p class=\"note\">Beside this page in the \
+         output folder.</p><ul class=\"files\">{main}</ul><details><summary>previews, node reports \
+         and logs</summary><ul class=\"files\">{other}</ul></details></section>\n"
+    )
+}

@@ -1,0 +1,262 @@
+//! The reference study's Table 6 from run.json's `deviation`: per stage the grid it was judged
+//! on and its verdict, the failures first, a compact matrix of deviations (regions x
+//! parameters, judged cells marked) and the full table (measured, model, deviation for every
+//! region and parameter) collapsed.
+
+use std::fmt::Write as _;
+
+use serde_json::Value;
+
+use super::html::{esc, fixed, pitch, signed, table_raw, um};
+
+const PARAMS: [&str; 9] = ["Sa", "Sq", "Sp", "Sv", "Sz", "Ssk", "Sku", "Sdq", "Sdr"];
+
+/// A parameter value with its unit's precision.
+fn value(p: &str, v: &Value) -> String {
+    match v.as_f64() {
+        None => "-".into(),
+        Some(x) => match p {
+            "Ssk" | "Sku" => fixed(x, 3),
+            "Sdq" => fixed(x, 4),
+            "Sdr" => format!("{} %", fixed(x, 2)),
+            _ => um(x),
+        },
+    }
+}
+
+fn badge(pass: bool) -> &'static str {
+    if pass {
+        "<span class=\"badge pass\">pass</span>"
+    } else {
+        "<span class=\"badge fail\">FAIL</span>"
+    }
+}
+
+pub fn section(dev: &Value) -> String {
+    if let Some(e) = dev["error"].as_str() {
+        return format!(
+            "<section id=\"table6\"><h2>Model vs measurement (Table 6)</h2><p class=\"bad\">Not \
+             computed: {}</p></section>\n",
+            esc(e)
+        );
+    }
+    let Some(stages) = dev["stages"].as_object().filter(|s| !s.is_empty()) else {
+        return String::new();
+    };
+    let e = dev["threshold_pct"].as_f64().unwrap_or(f64::NAN);
+    let judged: Vec<&str> = dev["judged"]
+        .as_array()
+        .map(|j| j.iter().filter_map(Value::as_str).collect())
+        .unwrap_or_default();
+    let mut h = String::new();
+    let _ = write!(
+        h,
+        "<section id=\"table6\"><h2>Model vs measurement (Table 6) {}</h2><p>Measured: <code>{}</code>. \
+         A stage passes a region when |deviation| ≤ {} % for {}; the other parameters are \
+         reported, not judged. {}</p>",
+        badge(dev["pass"] == true),
+        esc(dev["measured"].as_str().unwrap_or("?")),
+        fixed(e, 1),
+        judged.join(", "),
+        esc(dev["conventions"].as_str().unwrap_or("")),
+    );
+
+    // Stages: grid and verdict.
+    let rows: Vec<(String, Vec<String>)> = stages
+        .iter()
+        .map(|(name, st)| {
+            let g = &st["grid"];
+            let regions = st["regions"].as_object();
+            let failed = regions
+                .map(|r| r.values().filter(|r| r["pass"] != true).count())
+                .unwrap_or(0);
+            let total = regions.map(|r| r.len()).unwrap_or(0);
+            (
+                if st["pass"] == true { "pass" } else { "fail" }.to_string(),
+                vec![
+                    format!("<b>{}</b>", esc(name)),
+                    esc(g["name"].as_str().unwrap_or("?")),
+                    match (g["rows"].as_u64(), g["cols"].as_u64()) {
+                        (Some(r), Some(c)) => format!("{r} x {c}"),
+                        _ => "-".into(),
+                    },
+                    g["pitch_x_um"].as_f64().map(pitch).unwrap_or("-".into()),
+                    format!("{} of {total}", total - failed),
+                    badge(st["pass"] == true).to_string(),
+                ],
+            )
+        })
+        .collect();
+    h.push_str(&table_raw(
+        &[
+            "stage",
+            "judged on",
+            "grid (rows x cols)",
+            "pitch",
+            "regions passed",
+            "verdict",
+        ],
+        &rows,
+    ));
+
+    // The failures, one row per judged parameter out of bounds.
+    let mut fails = Vec::new();
+    for (stage, st) in stages {
+        for (region, r) in st["regions"].as_object().into_iter().flatten() {
+            if r["pass"] == true {
+                continue;
+            }
+            let mut any = false;
+            for p in &judged {
+                let d = r["deviation_pct"][*p].as_f64();
+                if d.is_some_and(|d| d.abs() <= e) {
+                    continue;
+                }
+                any = true;
+                fails.push((
+                    "fail".to_string(),
+                    vec![
+                        esc(stage),
+                        esc(region),
+                        p.to_string(),
+                        value(p, &r["measured"][*p]),
+                        value(p, &r["model"][*p]),
+                        d.map(|d| format!("{} %", signed(d, 2)))
+                            .unwrap_or("-".into()),
+                    ],
+                ));
+            }
+            if !any {
+                fails.push((
+                    "fail".to_string(),
+                    vec![
+                        esc(stage),
+                        esc(region),
+                        "-".into(),
+                        "-".into(),
+                        "-".into(),
+                        "no valid points in common".into(),
+                    ],
+                ));
+            }
+        }
+    }
+    if fails.is_empty() {
+        h.push_str("<p>No judged parameter is out of bounds.</p>");
+    } else {
+        let _ = write!(h, "<h3>Out of bounds ({} judged values)</h3>", fails.len());
+        h.push_str(&table_raw(
+            &[
+                "stage",
+                "region",
+                "parameter",
+                "measured",
+                "model",
+                "deviation",
+            ],
+            &fails,
+        ));
+    }
+
+    // Deviations at a glance: regions x parameters per stage.
+    h.push_str("<h3>Deviation (model - measured) / measured, %</h3><div class=\"flex\">");
+    for (stage, st) in stages {
+        let mut head = vec!["region"];
+        head.extend(PARAMS);
+        head.push("");
+        let rows: Vec<(String, Vec<String>)> = st["regions"]
+            .as_object()
+            .into_iter()
+            .flatten()
+            .map(|(region, r)| {
+                let mut cells = vec![esc(region)];
+                for p in PARAMS {
+                    let d = r["deviation_pct"][p].as_f64();
+                    let text = d.map(|d| signed(d, 1)).unwrap_or("-".into());
+                    let tip = format!(
+                        "{p}: measured {}, model {}",
+                        value(p, &r["measured"][p]),
+                        value(p, &r["model"][p])
+                    );
+                    cells.push(if judged.contains(&p) {
+                        let ok = d.is_some_and(|d| d.abs() <= e);
+                        format!(
+                            "<span class=\"{}\" title=\"{}\">{text}</span>",
+                            if ok { "ok" } else { "bad" },
+                            esc(&tip)
+                        )
+                    } else {
+                        format!(
+                            "<span class=\"unjudged\" title=\"{}\">{text}</span>",
+                            esc(&tip)
+                        )
+                    });
+                }
+                cells.push(badge(r["pass"] == true).to_string());
+                (
+                    if r["pass"] == true { "pass" } else { "fail" }.to_string(),
+                    cells,
+                )
+            })
+            .collect();
+        let g = &st["grid"];
+        let _ = write!(
+            h,
+            "<div><h4>{} {} <span class=\"note\">on the {}</span></h4>{}</div>",
+            esc(stage),
+            badge(st["pass"] == true),
+            esc(g["name"].as_str().unwrap_or("?")),
+            table_raw(&head, &rows)
+        );
+    }
+    let _ = write!(
+        h,
+        "</div><p class=\"note\">Bold columns are judged (±{} %); grey ones are reported only \
+         (Ssk near 0 gives large relative deviations; slopes of a coarser grid differ by \
+         construction). Hover a cell for the two values.</p>",
+        fixed(e, 1)
+    );
+
+    // The full table.
+    let mut all = Vec::new();
+    for (stage, st) in stages {
+        for (region, r) in st["regions"].as_object().into_iter().flatten() {
+            for p in PARAMS {
+                let d = r["deviation_pct"][p].as_f64();
+                let class = if !judged.contains(&p) {
+                    ""
+                } else if d.is_some_and(|d| d.abs() <= e) {
+                    "pass"
+                } else {
+                    "fail"
+                };
+                all.push((
+                    class.to_string(),
+                    vec![
+                        esc(stage),
+                        esc(region),
+                        if judged.contains(&p) {
+                            format!("<b>{p}</b> (judged)")
+                        } else {
+                            p.to_string()
+                        },
+                        value(p, &r["measured"][p]),
+                        value(p, &r["model"][p]),
+                        d.map(|d| format!("{} %", signed(d, 2)))
+                            .unwrap_or("-".into()),
+                    ],
+                ));
+            }
+        }
+    }
+    let _ = writeln!(
+        h,
+        "<details><summary>Full table: {} rows (every stage, region and parameter)</summary>{}</details></section>",
+        all.len(),
+        table_raw(
+            &["stage", "region", "parameter", "measured", "model", "deviation"],
+            &all
+        )
+    );
+    h
+}

@@ -1,0 +1,343 @@
+//! The 3-D view: a static oblique render of the model surface (the pooled map the mesher
+//! meshed), by a small software rasteriser, so the page needs no WebGL or script library and
+//! stays one file that works offline.
+//!
+//! Orthographic camera 35° above the surface, turned 30° about the vertical from the maps'
+//! bottom edge (the largest y, nearest the viewer); heights exaggerated so the colour range is
+//! 5 % of the longer side (the factor is stated); two triangles per grid cell, flat-shaded
+//! (Lambert, light from the far left, above) in the maps' viridis colours, depth-buffered, and
+//! a grey base block under the surface; drawn at twice the size and box-filtered down.
+
+use std::fmt::Write as _;
+
+use surfstream_io::preview::{robust_range_um, viridis};
+
+use super::html::{base64, esc, fixed, length, png_rgb};
+use super::surfaces::Surface;
+
+/// Output size, px.
+const WIDTH: usize = 1200;
+const HEIGHT: usize = 700;
+/// Supersampling factor.
+const SS: usize = 2;
+/// Longest side of the grid that is drawn (larger maps are block averaged).
+const MAX_GRID: usize = 512;
+const AZIMUTH_DEG: f64 = 30.0;
+const ELEVATION_DEG: f64 = 35.0;
+/// The colour range is drawn this share of the longer side high.
+const RELIEF: f64 = 0.05;
+
+/// A rendered view and what it shows.
+pub struct Render {
+    pub png: Vec<u8>,
+    pub exaggeration: f64,
+    pub grid: (usize, usize),
+    pub block: usize,
+}
+
+struct Raster {
+    w: usize,
+    h: usize,
+    rgb: Vec<f32>,
+    depth: Vec<f64>,
+}
+
+impl Raster {
+    /// Fills a screen-space triangle (x, y, depth) with `colour`, nearer (larger depth) wins.
+    fn triangle(&mut self, p: [(f64, f64, f64); 3], colour: [f32; 3]) {
+        let (x0, x1) = (
+            p.iter().map(|q| q.0).fold(f64::INFINITY, f64::min),
+            p.iter().map(|q| q.0).fold(f64::NEG_INFINITY, f64::max),
+        );
+        let (y0, y1) = (
+            p.iter().map(|q| q.1).fold(f64::INFINITY, f64::min),
+            p.iter().map(|q| q.1).fold(f64::NEG_INFINITY, f64::max),
+        );
+        let area = (p[1].0 - p[0].0) * (p[2].1 - p[0].1) - (p[2].0 - p[0].0) * (p[1].1 - p[0].1);
+        if area.abs() < 1e-12 || !area.is_finite() {
+            return;
+        }
+        let cx0 = x0.floor().max(0.0) as usize;
+        let cy0 = y0.floor().max(0.0) as usize;
+        let cx1 = (x1.ceil() as usize).min(self.w.saturating_sub(1));
+        let cy1 = (y1.ceil() as usize).min(self.h.saturating_sub(1));
+        if x1 < 0.0 || y1 < 0.0 {
+            return;
+        }
+        for y in cy0..=cy1 {
+            let py = y as f64 + 0.5;
+            for x in cx0..=cx1 {
+                let px = x as f64 + 0.5;
+                let w0 = ((p[1].0 - px) * (p[2].1 - py) - (p[2].0 - px) * (p[1].1 - py)) / area;
+                let w1 = ((p[2].0 - px) * (p[0].1 - py) - (p[0].0 - px) * (p[2].1 - py)) / area;
+                let w2 = 1.0 - w0 - w1;
+                if w0 < -1e-9 || w1 < -1e-9 || w2 < -1e-9 {
+                    continue;
+                }
+                let d = w0 * p[0].2 + w1 * p[1].2 + w2 * p[2].2;
+                let i = y * self.w + x;
+                if d > self.depth[i] {
+                    self.depth[i] = d;
+                    self.rgb[i * 3..i * 3 + 3].copy_from_slice(&colour);
+                }
+            }
+        }
+    }
+}
+
+/// NaN-aware block means, `f` x `f`.
+fn block_mean(s: &Surface, f: usize) -> (Vec<f64>, usize, usize) {
+    let (rows, cols) = (s.rows.div_ceil(f), s.cols.div_ceil(f));
+    let mut out = vec![f64::NAN; rows * cols];
+    for r in 0..rows {
+        for c in 0..cols {
+            let (mut sum, mut n) = (0.0, 0usize);
+            for rr in r * f..((r + 1) * f).min(s.rows) {
+                for &v in &s.row(rr)[c * f..((c + 1) * f).min(s.cols)] {
+                    if v.is_finite() {
+                        sum += v;
+                        n += 1;
+                    }
+                }
+            }
+            if n > 0 {
+                out[r * cols + c] = sum / n as f64;
+            }
+        }
+    }
+    (out, rows, cols)
+}
+
+/// Two significant digits, so the stated factor is the one used.
+fn round2(v: f64) -> f64 {
+    let mag = 10f64.powf(v.abs().log10().floor() - 1.0);
+    (v / mag).round() * mag
+}
+
+pub fn render(s: &Surface) -> Option<Render> {
+    let block = s.rows.max(s.cols).div_ceil(MAX_GRID).max(1);
+    let (z, rows, cols) = block_mean(s, block);
+    if rows < 2 || cols < 2 {
+        return None;
+    }
+    let (dx, dy) = (s.pitch_x_um * block as f64, s.pitch_y_um * block as f64);
+    let zf: Vec<f32> = z.iter().map(|&v| v as f32).collect();
+    let (lo, hi) = robust_range_um(&zf)?;
+    let (w_um, h_um) = (cols as f64 * dx, rows as f64 * dy);
+    let ex = round2(RELIEF * w_um.max(h_um) / (hi - lo));
+    if !(ex.is_finite() && ex > 0.0) {
+        return None;
+    }
+    let base_z = (lo - 0.25 * (hi - lo)) * ex;
+    let (a, e) = (AZIMUTH_DEG.to_radians(), ELEVATION_DEG.to_radians());
+    let (ca, sa, ce, se) = (a.cos(), a.sin(), e.cos(), e.sin());
+    let (cx, cy) = (w_um / 2.0, h_um / 2.0);
+    // World (x right, y toward the viewer, z up) -> (u right, v up, depth toward the viewer).
+    let project = |x: f64, y: f64, zz: f64| -> (f64, f64, f64) {
+        let (xw, yw) = (x - cx, y - cy);
+        let xr = xw * ca + yw * sa;
+        let yr = -xw * sa + yw * ca;
+        (xr, zz * ce - yr * se, yr * ce + zz * se)
+    };
+    // Fit the block's corners (top at the colour range's top, bottom at the base).
+    let mut bounds = (
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+    );
+    for (x, y) in [(0.0, 0.0), (w_um, 0.0), (0.0, h_um), (w_um, h_um)] {
+        for zz in [base_z, hi * ex] {
+            let (u, v, _) = project(x, y, zz);
+            bounds = (
+                bounds.0.min(u),
+                bounds.1.max(u),
+                bounds.2.min(v),
+                bounds.3.max(v),
+            );
+        }
+    }
+    let (w, h) = (WIDTH * SS, HEIGHT * SS);
+    let margin = 24.0 * SS as f64;
+    let k = ((w as f64 - 2.0 * margin) / (bounds.1 - bounds.0))
+        .min((h as f64 - 2.0 * margin) / (bounds.3 - bounds.2));
+    let ox = (w as f64 - k * (bounds.1 - bounds.0)) / 2.0 - k * bounds.0;
+    let oy = (h as f64 + k * (bounds.3 - bounds.2)) / 2.0 + k * bounds.2;
+    let screen = |x: f64, y: f64, zz: f64| {
+        let (u, v, d) = project(x, y, zz);
+        (ox + k * u, oy - k * v, d)
+    };
+    let mut ras = Raster {
+        w,
+        h,
+        rgb: vec![1.0; w * h * 3],
+        depth: vec![f64::NEG_INFINITY; w * h],
+    };
+    let light = {
+        let l = [-0.8f64, -1.0, 1.3];
+        let n = (l[0] * l[0] + l[1] * l[1] + l[2] * l[2]).sqrt();
+        [l[0] / n, l[1] / n, l[2] / n]
+    };
+    let shade = |nx: f64, ny: f64, nz: f64| -> f32 {
+        let n = (nx * nx + ny * ny + nz * nz).sqrt();
+        (0.45 + 0.55 * ((nx * light[0] + ny * light[1] + nz * light[2]) / n).max(0.0)) as f32
+    };
+    let at = |r: usize, c: usize| z[r * cols + c];
+    // The surface.
+    for r in 0..rows - 1 {
+        for c in 0..cols - 1 {
+            let q = [at(r, c), at(r, c + 1), at(r + 1, c), at(r + 1, c + 1)];
+            if q.iter().any(|v| !v.is_finite()) {
+                continue;
+            }
+            let dzdx = (q[1] - q[0] + q[3] - q[2]) / (2.0 * dx) * ex;
+            let dzdy = (q[2] - q[0] + q[3] - q[1]) / (2.0 * dy) * ex;
+            let mean = (q[0] + q[1] + q[2] + q[3]) / 4.0;
+            let rgb = viridis((mean - lo) / (hi - lo));
+            let s = shade(-dzdx, -dzdy, 1.0);
+            let colour = [
+                rgb[0] as f32 / 255.0 * s,
+                rgb[1] as f32 / 255.0 * s,
+                rgb[2] as f32 / 255.0 * s,
+            ];
+            let (x0, x1, y0, y1) = (
+                c as f64 * dx,
+                (c + 1) as f64 * dx,
+                r as f64 * dy,
+                (r + 1) as f64 * dy,
+            );
+            let p00 = screen(x0, y0, q[0] * ex);
+            let p01 = screen(x1, y0, q[1] * ex);
+            let p10 = screen(x0, y1, q[2] * ex);
+            let p11 = screen(x1, y1, q[3] * ex);
+            ras.triangle([p00, p01, p11], colour);
+            ras.triangle([p00, p11, p10], colour);
+        }
+    }
+    // The base block's four sides, from the surface edge down to the base.
+    let side = |ras: &mut Raster, pts: &[(f64, f64, f64)], normal: (f64, f64)| {
+        let s = shade(normal.0, normal.1, 0.0) * 0.9;
+        let colour = [0.72 * s, 0.72 * s, 0.74 * s];
+        for p in pts.windows(2) {
+            let (a0, b0) = (p[0], p[1]);
+            if !(a0.2.is_finite() && b0.2.is_finite()) {
+                continue;
+            }
+            let ta = screen(a0.0, a0.1, a0.2 * ex);
+            let tb = screen(b0.0, b0.1, b0.2 * ex);
+            let ba = screen(a0.0, a0.1, base_z);
+            let bb = screen(b0.0, b0.1, base_z);
+            ras.triangle([ta, tb, bb], colour);
+            ras.triangle([ta, bb, ba], colour);
+        }
+    };
+    let edge = |f: &dyn Fn(usize) -> (usize, usize), n: usize| -> Vec<(f64, f64, f64)> {
+        (0..n)
+            .map(|i| {
+                let (r, c) = f(i);
+                // Corners at cell positions: the edge sits at the outer cell boundary.
+                (
+                    c as f64 * dx,
+                    r as f64 * dy,
+                    at(r.min(rows - 1), c.min(cols - 1)),
+                )
+            })
+            .collect()
+    };
+    side(&mut ras, &edge(&|i| (rows - 1, i), cols), (0.0, 1.0));
+    side(&mut ras, &edge(&|i| (0, i), cols), (0.0, -1.0));
+    side(&mut ras, &edge(&|i| (i, 0), rows), (-1.0, 0.0));
+    side(&mut ras, &edge(&|i| (i, cols - 1), rows), (1.0, 0.0));
+
+    // Box filter SS x SS down to the output size.
+    let mut out = vec![0u8; WIDTH * HEIGHT * 3];
+    for y in 0..HEIGHT {
+        for x in 0..WIDTH {
+            for ch in 0..3 {
+                let mut acc = 0.0f32;
+                for sy in 0..SS {
+                    for sx in 0..SS {
+                        acc += ras.rgb[((y * SS + sy) * w + x * SS + sx) * 3 + ch];
+                    }
+                }
+                out[(y * WIDTH + x) * 3 + ch] =
+                    (acc / (SS * SS) as f32 * 255.0).round().clamp(0.0, 255.0) as u8;
+            }
+        }
+    }
+    Some(Render {
+        png: png_rgb(&out, WIDTH, HEIGHT).ok()?,
+        exaggeration: ex,
+        grid: (rows, cols),
+        block,
+    })
+}
+
+/// The section's figure.
+pub fn figure(s: &Surface, what: &str) -> Option<String> {
+    let r = render(s)?;
+    let mut f = String::new();
+    let _ = write!(
+        f,
+        "<figure class=\"wide\"><img class=\"zoomable view3d\" alt=\"3-D view of the {n}\" \
+         data-title=\"3-D view of the {n}\" src=\"data:image/png;base64,{}\">\
+         <figcaption>The {} ({} x {}), seen from its front edge (the maps' bottom edge) turned \
+         {AZIMUTH_DEG}° and {ELEVATION_DEG}° above it; heights exaggerated <b>{} x</b>; \
+         colours as in the maps (viridis over the 0.5 / 99.5 percentiles), shaded by a light \
+         from the far left; grey: the base block. Drawn from a {} x {} grid{}. Static render, \
+         click for full size.</figcaption></figure>",
+        base64(&r.png),
+        esc(what),
+        length(s.height_um()),
+        length(s.width_um()),
+        fixed(r.exaggeration, if r.exaggeration < 10.0 { 1 } else { 0 }),
+        r.grid.0,
+        r.grid.1,
+        if r.block > 1 {
+            format!(" (block means of {0} x {0} points)", r.block)
+        } else {
+            String::new()
+        },
+        n = esc(s.name),
+    );
+    Some(f)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn renders_a_surface_with_colour_and_background() {
+        let (rows, cols) = (40, 60);
+        let z: Vec<f64> = (0..rows * cols)
+            .map(|i| ((i % cols) as f64 * 0.3).sin() + ((i / cols) as f64 * 0.2).cos())
+            .collect();
+        let s = Surface {
+            name: "pooled",
+            z,
+            rows,
+            cols,
+            pitch_x_um: 2.0,
+            pitch_y_um: 2.0,
+        };
+        let r = render(&s).expect("render");
+        assert_eq!((r.grid, r.block), ((40, 60), 1));
+        // Exaggeration: the colour range spans 5 % of 120 um.
+        assert!(
+            r.exaggeration > 1.0 && r.exaggeration < 20.0,
+            "{}",
+            r.exaggeration
+        );
+        let dec = png::Decoder::new(std::io::Cursor::new(&r.png));
+        let mut reader = dec.read_info().expect("png");
+        let mut buf = vec![0; reader.output_buffer_size()];
+        let info = reader.next_frame(&mut buf).expect("frame");
+        assert_eq!((info.width, info.height), (WIDTH as u32, HEIGHT as u32));
+        let px = |x: usize, y: usize| &buf[(y * WIDTH + x) * 3..(y * WIDTH + x) * 3 + 3];
+        assert_eq!(px(2, 2), &[255, 255, 255], "background in the corner");
+        let centre = px(WIDTH / 2, HEIGHT / 2);
+        assert_ne!(centre, &[255, 255, 255], "the surface covers the centre");
+        assert!(round2(13.456) == 13.0 && round2(0.0876) == 0.088);
+    }
+}
