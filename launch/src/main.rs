@@ -5,6 +5,7 @@ mod compare_fusion;
 mod deviation;
 mod launcher;
 mod nodes;
+mod outdir;
 mod report;
 mod runjson;
 mod verbs;

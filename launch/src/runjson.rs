@@ -91,7 +91,7 @@ pub fn write(
         "files": files,
         "elapsed_s": elapsed.as_secs_f64(),
     });
-    let run = crate::deviation::attach(out, run, deviation.threshold_percent);
+    let run = crate::deviation::attach(out, run, deviation.threshold_percent)?;
     let path = out.join("run.json");
     surfstream_core::fsutil::write_atomic(&path, |w| {
         serde_json::to_writer_pretty(w, &run).map_err(|e| anyhow!("{}: {e}", path.display()))

@@ -132,6 +132,10 @@ pub struct GraphSection {
     /// How long startup (attach, handshake, readiness) may take before failing loudly.
     #[serde(default = "default_startup_timeout_s")]
     pub startup_timeout_s: f64,
+    /// How long a launched node may make no progress (stopped, hung, or one computation this
+    /// long) before the launcher names it and stops the graph (see [`crate::watchdog`]).
+    #[serde(default = "default_stall_timeout_s")]
+    pub stall_timeout_s: f64,
 }
 
 fn default_out_dir() -> PathBuf {
@@ -142,6 +146,9 @@ fn default_backpressure_timeout_s() -> f64 {
 }
 fn default_startup_timeout_s() -> f64 {
     30.0
+}
+fn default_stall_timeout_s() -> f64 {
+    crate::watchdog::DEFAULT_STALL_TIMEOUT_S
 }
 
 /// One `[[node]]` entry.
@@ -302,6 +309,9 @@ impl GraphFile {
         }
         if !(self.graph.startup_timeout_s > 0.0 && self.graph.startup_timeout_s.is_finite()) {
             bail!("{origin}: [graph] startup_timeout_s: expected a positive number of seconds");
+        }
+        if !(self.graph.stall_timeout_s > 0.0 && self.graph.stall_timeout_s.is_finite()) {
+            bail!("{origin}: [graph] stall_timeout_s: expected a positive number of seconds");
         }
         if self.nodes.is_empty() {
             bail!("{origin}: no [[node]] entries: a graph needs at least one node");
