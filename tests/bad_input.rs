@@ -211,7 +211,7 @@ fn bad_scan_directories_are_named() {
     absurd[3 * 100 + 7] = 1e30;
     surfstream_io::npy::write_npy_f32(scan.join("tile_001.npy"), &absurd, 64, 100).unwrap();
     write(&s, GOOD_SCAN);
-    let err = stitch("1 height(s) beyond +-1e6 um, the first 1e30 um at row 3, col 7");
+    let err = stitch("1 height(s) beyond +-1e6 um, the first 1.000e30 um at row 3, col 7");
     assert!(err.contains("tile_001.npy"), "{err}");
     tile(&scan, "tile_001.npy", 64, 100);
 
@@ -336,7 +336,7 @@ fn absurd_heights_in_a_single_file_are_flagged() {
     let err = stderr(&out);
     assert!(
         err.contains("warning")
-            && err.contains("1 height(s) beyond +-1e6 um, the largest -1e30 um"),
+            && err.contains("1 height(s) beyond +-1e6 um, the largest -1.000e30 um"),
         "{err}"
     );
 }

@@ -6,8 +6,11 @@
 //! captured, waits until all report ready, says "go" to the sources, and supervises: a node that
 //! exits non-zero or dies stops the graph, is named with the tail of its stderr, and makes the
 //! launcher exit non-zero. SIGINT (Ctrl-C), SIGTERM or SIGHUP stops every node, and the error
-//! names the signal. Children die with the launcher (PR_SET_PDEATHSIG), and the slot is
-//! cleaned again at the end.
+//! names the signal. Children die with the launcher (PR_SET_PDEATHSIG, and a parent check at
+//! every tick), and the slot is cleaned again at the end. A node that makes no progress for
+//! `[graph] stall_timeout_s` is named and stops the graph ([`watchdog`]). Both `launch` and
+//! `run` write into a staging folder that replaces the out dir only when complete
+//! ([`outdir`]: one run per out dir, a `FAILED` record otherwise).
 
 use std::collections::BTreeMap;
 use std::fs::File;

@@ -312,7 +312,7 @@ fn refuse_absurd_heights(heights_um: &[f64], at: &str, cols: usize) -> Result<()
         .collect();
     if let Some(&first) = bad.first() {
         bail!(
-            "{at}: {} height(s) beyond +-{limit:e} um, the first {:e} um at row {}, col {}: \
+            "{at}: {} height(s) beyond +-{limit:e} um, the first {:.3e} um at row {}, col {}: \
              physically absurd for a profiler (a corrupt point, or check [scan] height_unit)",
             bad.len(),
             heights_um[first],

@@ -211,7 +211,7 @@ fn flag_absurd_heights(s: &mut Surface) {
     }
     if n > 0 {
         s.metadata.warnings.push(format!(
-            "{n} height(s) beyond +-{MAX_PLAUSIBLE_HEIGHT_UM:e} um (1 m), the largest {worst:e} um: \
+            "{n} height(s) beyond +-{MAX_PLAUSIBLE_HEIGHT_UM:e} um (1 m), the largest {worst:.3e} um: \
              physically absurd for a profiler (a corrupt point or a wrong height unit)"
         ));
     }
