@@ -336,7 +336,7 @@ fn absurd_heights_in_a_single_file_are_flagged() {
     let err = stderr(&out);
     assert!(
         err.contains("warning")
-            && err.contains("1 height(s) beyond +-1e6 um, the largest -1.000e30 um"),
+            && err.contains("1 height(s) beyond +-1e6 um (1 m), the largest -1.000e30 um"),
         "{err}"
     );
 }
