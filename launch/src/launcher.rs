@@ -502,6 +502,8 @@ fn supervise(
         }
         ready
             .timed_wait(|e| ready_count += e.count, Duration::from_millis(50))
+            .map(|_| ())
+            .or_else(ipc::retry_if_interrupted)
             .map_err(|e| anyhow!("ready wait failed: {e:?}"))?;
         while let Ok(ev) = rx.try_recv() {
             handle(ev, running, &watch)?;

@@ -63,6 +63,17 @@ pub fn domain_config(prefix: &str) -> Result<Config> {
     Ok(cfg)
 }
 
+/// A timed wait woken by a signal (SIGSTOP and SIGCONT do that: EINTR) is a spurious wake-up,
+/// not a failure: the caller's loop waits again.
+pub fn retry_if_interrupted(
+    e: iceoryx2::port::listener::ListenerWaitError,
+) -> std::result::Result<(), iceoryx2::port::listener::ListenerWaitError> {
+    match e {
+        iceoryx2::port::listener::ListenerWaitError::InterruptSignal => Ok(()),
+        e => Err(e),
+    }
+}
+
 /// Creates an iceoryx2 node in `domain` with signal handling left to us.
 pub fn create_node(cfg: &Config, name: &str) -> Result<Node<ipc::Service>> {
     let node_name: NodeName = name
@@ -536,6 +547,8 @@ impl LosslessHandshake {
                 }
                 listener
                     .timed_wait(|e| ready += e.count, left.min(Duration::from_millis(100)))
+                    .map(|_| ())
+                    .or_else(retry_if_interrupted)
                     .map_err(|e| anyhow!("output '{}': ready wait failed: {e:?}", o.port))?;
             }
         }
@@ -707,6 +720,8 @@ fn join_launcher(
                 );
             }
             go.timed_wait(|_| started = true, Duration::from_millis(100))
+                .map(|_| ())
+                .or_else(retry_if_interrupted)
                 .map_err(|e| anyhow!("go wait failed: {e:?}"))?;
         }
     }
