@@ -198,6 +198,23 @@ fn bad_scan_directories_are_named() {
     );
     stitch("pitch_x_um = 1000000000000000000000000000000: expected a pitch between");
 
+    // The case: `rows = 3` (one column) with four tiles listed.
+    let four = format!(
+        "{}\n[[tile]]\nfile = \"tile_002.npy\"\nrow = 2\ncol = 0\nstage_x_um = 0.0\nstage_y_um = 100.0\n\n[[tile]]\nfile = \"tile_003.npy\"\nrow = 2\ncol = 1\nstage_x_um = 80.0\nstage_y_um = 100.0\n",
+        GOOD_SCAN.replace("rows = 1\ncols = 2", "rows = 3\ncols = 1")
+    );
+    write(&s, &four);
+    stitch("4 [[tile]] entries for a 3 x 1 (rows x cols) scan: expected at most 3");
+
+    // A physically absurd height: one 1e30 um point would make an STL 1e25 mm tall.
+    let mut absurd: Vec<f32> = (0..64 * 100).map(|i| (i % 13) as f32 * 0.01).collect();
+    absurd[3 * 100 + 7] = 1e30;
+    surfstream_io::npy::write_npy_f32(scan.join("tile_001.npy"), &absurd, 64, 100).unwrap();
+    write(&s, GOOD_SCAN);
+    let err = stitch("1 height(s) beyond +-1e6 um, the first 1.000e30 um at row 3, col 7");
+    assert!(err.contains("tile_001.npy"), "{err}");
+    tile(&scan, "tile_001.npy", 64, 100);
+
     // A missing tile file.
     write(&s, GOOD_SCAN);
     std::fs::remove_file(scan.join("tile_001.npy")).unwrap();
@@ -301,4 +318,25 @@ fn corrupt_and_truncated_recordings_are_named() {
         &out,
     );
     assert!(err.contains("corrupt.mcap"), "{err}");
+}
+
+/// A single file with a physically absurd height is flagged by every verb that reads it.
+#[test]
+fn absurd_heights_in_a_single_file_are_flagged() {
+    let d = tempfile::tempdir().unwrap();
+    let mut z: Vec<f32> = (0..32 * 40).map(|i| (i % 11) as f32 * 0.1).collect();
+    z[5] = -1e30;
+    let f = d.path().join("spike.npy");
+    surfstream_io::npy::write_npy_f32(&f, &z, 32, 40).unwrap();
+    let out = run({
+        let mut c = surfstream();
+        c.args(["params", f.to_str().unwrap(), "--pitch-um", "1"]);
+        c
+    });
+    let err = stderr(&out);
+    assert!(
+        err.contains("warning")
+            && err.contains("1 height(s) beyond +-1e6 um (1 m), the largest -1.000e30 um"),
+        "{err}"
+    );
 }

@@ -272,12 +272,15 @@ fn write_x3p(out: &Path, pano: &Raster<f64>, geometry: &Geometry) -> Result<()> 
     )
 }
 
-/// Reads the out dir's rasters, computes Table 6 and writes panorama.x3p.
-fn evaluate(out: &Path, run: &Value, threshold_pct: f64) -> Result<Value> {
-    let pano = load(&out.join("panorama.npy"))?;
-    let geometry = geometry(run)?;
-    let regions = regions(run, &geometry, pano.shape());
-    write_x3p(out, &pano, &geometry)?;
+/// Computes Table 6 from the out dir's rasters.
+fn evaluate(
+    out: &Path,
+    run: &Value,
+    threshold_pct: f64,
+    pano: &Raster<f64>,
+    geometry: &Geometry,
+) -> Result<Value> {
+    let regions = regions(run, geometry, pano.shape());
     let models = model_stages(out, pano.shape())?;
     let measured = Measured {
         heights_um: pano.view(),
@@ -312,29 +315,33 @@ fn evaluate(out: &Path, run: &Value, threshold_pct: f64) -> Result<Value> {
 }
 
 /// Adds "deviation" (Table 6) to run.json and writes panorama.x3p when the out dir holds a
-/// panorama; a failure is recorded in run.json (and on stderr), not fatal to the run.
-pub fn attach(out: &Path, mut run: Value, threshold_percent: f64) -> Value {
+/// panorama. An output that cannot be written (panorama.x3p on a full disk) fails the run;
+/// a Table 6 that cannot be computed is recorded in run.json (and on stderr).
+pub fn attach(out: &Path, mut run: Value, threshold_percent: f64) -> Result<Value> {
     if !out.join("panorama.npy").exists() {
-        return run;
+        return Ok(run);
     }
-    let entry = match evaluate(out, &run, threshold_percent) {
-        Ok(v) => {
+    let inputs = load(&out.join("panorama.npy")).and_then(|p| Ok((p, geometry(&run)?)));
+    let entry = match inputs {
+        Ok((pano, geometry)) => {
+            write_x3p(out, &pano, &geometry)?;
             if let Some(files) = run["files"].as_array_mut() {
                 files.push(json!("panorama.x3p"));
                 files.sort_by(|a, b| a.as_str().cmp(&b.as_str()));
                 files.dedup();
             }
-            v
+            evaluate(out, &run, threshold_percent, &pano, &geometry)
         }
-        Err(e) => {
-            eprintln!("surfstream: model-vs-measurement deviation not computed: {e:#}");
-            json!({ "error": format!("{e:#}") })
-        }
+        Err(e) => Err(e),
     };
+    let entry = entry.unwrap_or_else(|e| {
+        eprintln!("surfstream: model-vs-measurement deviation not computed: {e:#}");
+        json!({ "error": format!("{e:#}") })
+    });
     if let Some(o) = run.as_object_mut() {
         o.insert("deviation".into(), entry);
     }
-    run
+    Ok(run)
 }
 
 #[cfg(test)]

@@ -6,8 +6,11 @@
 //! captured, waits until all report ready, says "go" to the sources, and supervises: a node that
 //! exits non-zero or dies stops the graph, is named with the tail of its stderr, and makes the
 //! launcher exit non-zero. SIGINT (Ctrl-C), SIGTERM or SIGHUP stops every node, and the error
-//! names the signal. Children die with the launcher (PR_SET_PDEATHSIG), and the slot is
-//! cleaned again at the end.
+//! names the signal. Children die with the launcher (PR_SET_PDEATHSIG, and a parent check at
+//! every tick), and the slot is cleaned again at the end. A node that makes no progress for
+//! `[graph] stall_timeout_s` is named and stops the graph ([`watchdog`]). Both `launch` and
+//! `run` write into a staging folder that replaces the out dir only when complete
+//! ([`outdir`]: one run per out dir, a `FAILED` record otherwise).
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -22,15 +25,19 @@ use surfstream_core::fsutil;
 use surfstream_runtime::graph::{GraphFile, NodeContext};
 use surfstream_runtime::inproc::{self, InProcessNode};
 use surfstream_runtime::node::NodeReport;
+use surfstream_runtime::watchdog::{self, StallWatch};
 use surfstream_runtime::{ipc, shell};
 
 use crate::deviation;
-use crate::{nodes, runjson};
+use crate::{nodes, outdir, runjson};
 
 /// Concurrent launches supported on one machine (one iceoryx2 prefix each).
 const SLOTS: usize = 32;
 /// How long stopped nodes get to exit after SIGTERM before SIGKILL.
 const STOP_GRACE: Duration = Duration::from_secs(3);
+/// A node silent this long when another fails is a suspect (named if stopped, or silent for
+/// half the stall deadline).
+const STALL_HINT: Duration = Duration::from_secs(2);
 
 mod iceoryx2_free {
     //! Small process helpers that need no iceoryx2.
@@ -42,34 +49,96 @@ mod iceoryx2_free {
     }
 }
 
-/// Prepares the out dir, resolves the graph and writes the resolved form beside the outputs.
-fn prepare(graph: &mut GraphFile) -> Result<Vec<NodeContext>> {
-    let out = &graph.graph.out_dir;
-    std::fs::create_dir_all(out)
-        .with_context(|| format!("{}: cannot create out dir", out.display()))?;
-    let out = out
-        .canonicalize()
-        .with_context(|| format!("{}: cannot resolve out dir", out.display()))?;
-    graph.graph.out_dir = out.clone();
-    // Reports of an earlier run must not be mistaken for this run's.
-    let nodes_dir = out.join("nodes");
-    if nodes_dir.exists() {
-        std::fs::remove_dir_all(&nodes_dir)
-            .with_context(|| format!("{}: cannot clear old node reports", nodes_dir.display()))?;
-    }
-    let _ = std::fs::remove_file(out.join("run.json"));
+/// Resolves the graph into the run's staging folder and writes the resolved form there; the
+/// out dir itself is not touched until the run is complete (see [`outdir`]).
+fn prepare(graph: &mut GraphFile, staged: &outdir::StagedOut) -> Result<Vec<NodeContext>> {
+    staged.carry_inputs(graph)?;
+    graph.graph.out_dir = staged.staging.clone();
     let scan_id = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_nanos() as u64)
         .unwrap_or(0);
     let mut contexts = graph.resolve(scan_id, &crate::nodes::registry())?;
     crate::progress::attach_observer(&mut contexts);
-    let resolved = out.join(shell::RESOLVED_GRAPH);
-    fsutil::write_atomic(&resolved, |w| {
-        serde_json::to_writer_pretty(w, &contexts)
-            .map_err(|e| anyhow!("{}: {e}", resolved.display()))
-    })?;
+    write_resolved(&staged.staging, &contexts)?;
     Ok(contexts)
+}
+
+fn write_resolved(dir: &Path, contexts: &[NodeContext]) -> Result<()> {
+    let resolved = dir.join(shell::RESOLVED_GRAPH);
+    fsutil::write_atomic(&resolved, |w| {
+        serde_json::to_writer_pretty(w, contexts)
+            .map_err(|e| anyhow!("{}: {e}", resolved.display()))
+    })
+}
+
+/// How far a run got when it ended: decides what happens to its out dir.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Reached {
+    /// Nothing was produced (bad parameters or inputs, a node that could not start).
+    Startup,
+    /// The scan started: outputs may exist.
+    Scan,
+}
+
+/// Ends a run's out dir: a complete run replaces the out dir; a run that failed during the scan
+/// replaces it by a folder with a `FAILED` record and the logs; a run that failed at startup
+/// leaves it as it was.
+fn settle(
+    staged: outdir::StagedOut,
+    contexts: &[NodeContext],
+    outcome: Result<()>,
+    reached: Reached,
+) -> Result<()> {
+    match outcome {
+        Ok(()) => {
+            // The resolved graph names where the nodes wrote; after the move that is the out dir.
+            let mut moved = contexts.to_vec();
+            for c in &mut moved {
+                c.out_dir = staged.final_dir.clone();
+            }
+            let (staging, final_dir) = (staged.staging.clone(), staged.final_dir.clone());
+            let written = write_resolved(&staging, &moved).and_then(|_| staged.commit());
+            if let Err(e) = written {
+                return Err(e.context(format!(
+                    "the run completed but could not be moved into {}; its outputs are in {}",
+                    final_dir.display(),
+                    staging.display()
+                )));
+            }
+            Ok(())
+        }
+        Err(e) if reached == Reached::Startup => {
+            let out = staged.final_dir.clone();
+            staged.discard();
+            Err(e.context(format!(
+                "the run did not start; {} was left as it was",
+                out.display()
+            )))
+        }
+        Err(e) => {
+            let staging = staged.staging.clone();
+            // The logs a message points at are in the out dir once the failed run is moved.
+            let e = anyhow!(
+                "{}",
+                format!("{e:#}").replace(
+                    &staging.display().to_string(),
+                    &staged.final_dir.display().to_string()
+                )
+            );
+            match staged.fail(&e) {
+                Ok(dir) => Err(e.context(format!(
+                    "the run failed; {} holds only its logs and the record {}",
+                    dir.display(),
+                    dir.join(outdir::FAILED).display()
+                ))),
+                Err(f) => Err(e.context(format!(
+                    "the run failed, and marking it failed failed too ({f:#}); what it left is in {}",
+                    staging.display()
+                ))),
+            }
+        }
+    }
 }
 
 /// `surfstream run`: the graph in this process.
@@ -78,40 +147,48 @@ pub fn run_in_process(
     origin: &Path,
     deviation: deviation::Settings,
 ) -> Result<()> {
-    let contexts = prepare(&mut graph)?;
+    let staged = outdir::stage(&graph.graph.out_dir)?;
+    let final_dir = staged.final_dir.clone();
+    let contexts = match prepare(&mut graph, &staged) {
+        Ok(c) => c,
+        Err(e) => return settle(staged, &[], Err(e), Reached::Startup),
+    };
     let started = Instant::now();
     let progress = crate::progress::Progress::start(&contexts);
     let mut threads = Vec::new();
     for c in &contexts {
-        let logic = if crate::progress::is_observer(&c.node_kind) {
-            progress.observer()
+        let built = if crate::progress::is_observer(&c.node_kind) {
+            Ok(progress.observer())
         } else {
-            nodes::build(c)?
+            nodes::build(c)
         };
-        threads.push(InProcessNode {
-            context: c.clone(),
-            logic,
-        });
+        match built {
+            Ok(logic) => threads.push(InProcessNode {
+                context: c.clone(),
+                logic,
+            }),
+            Err(e) => return settle(staged, &contexts, Err(e), Reached::Startup),
+        }
     }
     eprintln!(
         "surfstream: running graph '{}' in one process ({} nodes) -> {}",
         graph.graph.name,
         graph.nodes.len(),
-        graph.graph.out_dir.display()
+        final_dir.display()
     );
-    let reports = inproc::run_graph(threads).inspect_err(|_| {
-        fsutil::remove_partials(&graph.graph.out_dir);
-    });
+    let outcome = inproc::run_graph(threads);
     progress.finish();
-    let mut reports = reports?;
-    crate::progress::drop_observer_reports(&mut reports);
-    for r in &reports {
-        shell::write_report(&graph.graph.out_dir, r)?;
-    }
-    finish(&graph, origin, &reports, "run", started, deviation)
+    let outcome = outcome.and_then(|mut reports| {
+        crate::progress::drop_observer_reports(&mut reports);
+        for r in &reports {
+            shell::write_report(&graph.graph.out_dir, r)?;
+        }
+        finish(&graph, origin, &reports, "run", started, deviation)
+    });
+    settle(staged, &contexts, outcome, Reached::Scan)
 }
 
-/// Writes run.json.
+/// Writes run.json (and report.html, panorama.x3p); the verdict (main.rs) reads run.json.
 fn finish(
     graph: &GraphFile,
     origin: &Path,
@@ -120,9 +197,7 @@ fn finish(
     started: Instant,
     deviation: deviation::Settings,
 ) -> Result<()> {
-    // The verdict (main.rs) reads run.json; the latency table only with --verbose.
-    runjson::write(graph, origin, reports, mode, started.elapsed(), deviation)?;
-    Ok(())
+    runjson::write(graph, origin, reports, mode, started.elapsed(), deviation)
 }
 
 struct Slot {
@@ -241,21 +316,21 @@ fn describe_exit(status: &std::process::ExitStatus) -> String {
 
 /// `surfstream launch`: every node its own process.
 pub fn launch(mut graph: GraphFile, origin: &Path, deviation: deviation::Settings) -> Result<()> {
-    let contexts = prepare(&mut graph)?;
+    // Everything that can be checked without running is checked before anything is written:
+    // the graph (validated when loaded), the node binaries, a free slot, the out dir's lock.
+    for n in &graph.nodes {
+        node_binary(&n.node)?;
+    }
+    let slot = take_slot()?;
+    let staged = outdir::stage(&graph.graph.out_dir)?;
+    let final_dir = staged.final_dir.clone();
+    let contexts = match prepare(&mut graph, &staged) {
+        Ok(c) => c,
+        Err(e) => return settle(staged, &[], Err(e), Reached::Startup),
+    };
     let started = Instant::now();
     let out = graph.graph.out_dir.clone();
-    let slot = take_slot()?;
-    let cfg = ipc::domain_config(&slot.prefix)?;
-    // The slot is ours alone and its processes died with their launcher: start from nothing.
-    let stale = ipc::cleanup_dead_nodes(&cfg)? + ipc::wipe_domain(&cfg);
-    if stale > 0 {
-        eprintln!(
-            "surfstream: removed {stale} stale resource(s) left in slot {} by an earlier run",
-            slot.prefix
-        );
-    }
-    let logs = out.join("logs");
-    std::fs::create_dir_all(&logs).with_context(|| format!("{}: cannot create", logs.display()))?;
+    // The progress observer is a launcher thread, not a process (see progress.rs).
     let binaries: Vec<PathBuf> = contexts
         .iter()
         .map(|c| match crate::progress::is_observer(&c.node_kind) {
@@ -263,8 +338,16 @@ pub fn launch(mut graph: GraphFile, origin: &Path, deviation: deviation::Setting
             false => node_binary(&c.node_kind),
         })
         .collect::<Result<_>>()?;
-
-    let result = {
+    let cfg = match ipc::domain_config(&slot.prefix) {
+        Ok(c) => c,
+        Err(e) => return settle(staged, &contexts, Err(e), Reached::Startup),
+    };
+    clean_slot(&cfg, &slot);
+    let mut reached = Reached::Startup;
+    let result = (|| {
+        let logs = out.join("logs");
+        std::fs::create_dir_all(&logs)
+            .with_context(|| format!("{}: cannot create", logs.display()))?;
         let launcher = ipc::create_node(&cfg, &format!("{}/launcher", graph.graph.name))?;
         let link = ipc::launcher_link(&graph.graph.name);
         let ready_events = ipc::open_event_service(&launcher, &link.ready_service)?;
@@ -325,11 +408,19 @@ pub fn launch(mut graph: GraphFile, origin: &Path, deviation: deviation::Setting
             graph.graph.name,
             running.len(),
             slot.prefix,
-            out.display()
+            final_dir.display()
         );
         let outcome = match spawn_error {
             Some(e) => Err(e),
-            None => supervise(&graph, &contexts, &mut running, &rx, &ready, &go),
+            None => supervise(
+                &graph,
+                &contexts,
+                &mut running,
+                &rx,
+                &ready,
+                &go,
+                &mut reached,
+            ),
         };
         if outcome.is_err() {
             stop_all(&mut running, &rx);
@@ -344,18 +435,29 @@ pub fn launch(mut graph: GraphFile, origin: &Path, deviation: deviation::Setting
         drop(ready);
         drop(launcher);
         outcome
-    };
+    })();
     // Whatever happened, leave the slot clean, and no half-written file behind.
     let cleaned = ipc::cleanup_dead_nodes(&cfg).unwrap_or(0) + ipc::wipe_domain(&cfg);
     if cleaned > 0 {
         eprintln!("surfstream: removed {cleaned} stale resource(s) of stopped nodes");
     }
-    if result.is_err() {
-        fsutil::remove_partials(&out);
+    let outcome = result.and_then(|()| {
+        let reports = read_reports(&out, &contexts)?;
+        finish(&graph, origin, &reports, "launch", started, deviation)
+    });
+    settle(staged, &contexts, outcome, reached)
+}
+
+/// The slot is ours alone and its processes died with their launcher: start from nothing
+/// (node records, services, shared memory and node folders of a launch that was killed).
+fn clean_slot(cfg: &iceoryx2::prelude::Config, slot: &Slot) {
+    let stale = ipc::cleanup_dead_nodes(cfg).unwrap_or(0) + ipc::wipe_domain(cfg);
+    if stale > 0 {
+        eprintln!(
+            "surfstream: removed {stale} stale resource(s) left in slot {} by an earlier run",
+            slot.prefix
+        );
     }
-    result?;
-    let reports = read_reports(&out, &contexts)?;
-    finish(&graph, origin, &reports, "launch", started, deviation)
 }
 
 fn spawn(
@@ -377,13 +479,18 @@ fn spawn(
         .stdin(Stdio::null())
         .stdout(Stdio::null())
         .stderr(stderr);
+    let launcher = std::process::id() as libc::pid_t;
     // SAFETY: only async-signal-safe calls between fork and exec.
     unsafe {
-        cmd.pre_exec(|| {
+        cmd.pre_exec(move || {
             // Own process group: a terminal's Ctrl-C reaches the launcher, which stops nodes in order.
             libc::setpgid(0, 0);
             // A node never outlives its launcher.
             libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL);
+            // The launcher may have died between fork and prctl: then no signal will come.
+            if libc::getppid() != launcher {
+                libc::_exit(1);
+            }
             Ok(())
         });
     }
@@ -398,7 +505,16 @@ fn supervise(
     rx: &Receiver<Event>,
     ready: &iceoryx2::port::listener::Listener<iceoryx2::prelude::ipc::Service>,
     go: &iceoryx2::port::notifier::Notifier<iceoryx2::prelude::ipc::Service>,
+    reached: &mut Reached,
 ) -> Result<()> {
+    let mut watch = StallWatch::new(Duration::from_secs_f64(graph.graph.stall_timeout_s));
+    for (r, c) in running.iter().zip(contexts) {
+        watch.watch(
+            &r.id,
+            r.pid,
+            watchdog::heartbeat_path(&c.out_dir, &c.node_id),
+        );
+    }
     // Readiness: every node attached all its channels.
     let deadline = Instant::now() + Duration::from_secs_f64(graph.graph.startup_timeout_s + 5.0);
     let mut ready_count = 0u64;
@@ -412,28 +528,45 @@ fn supervise(
         }
         ready
             .timed_wait(|e| ready_count += e.count, Duration::from_millis(50))
+            .map(|_| ())
+            .or_else(ipc::retry_if_interrupted)
             .map_err(|e| anyhow!("ready wait failed: {e:?}"))?;
         while let Ok(ev) = rx.try_recv() {
-            handle(ev, running)?;
+            handle(ev, running, &watch)?;
         }
+        check_stalls(&watch, running)?;
     }
+    *reached = Reached::Scan;
     go.notify()
         .map_err(|e| anyhow!("cannot tell the sources to start: {e:?}"))?;
+    watch.restart();
     eprintln!(
         "surfstream: all {} nodes ready; scan started",
         graph.nodes.len()
     );
     while running.iter().any(|r| !r.exited) {
-        match rx.recv_timeout(Duration::from_secs(3600)) {
-            Ok(ev) => handle(ev, running)?,
-            Err(RecvTimeoutError::Timeout) => continue,
+        match rx.recv_timeout(watchdog::BEAT_PERIOD * 2) {
+            Ok(ev) => handle(ev, running, &watch)?,
+            Err(RecvTimeoutError::Timeout) => check_stalls(&watch, running)?,
             Err(RecvTimeoutError::Disconnected) => bail!("lost track of the node processes"),
         }
     }
     Ok(())
 }
 
-fn handle(ev: Event, running: &mut [Running]) -> Result<()> {
+/// Fails, naming the node, when a running node made no progress within the stall deadline.
+fn check_stalls(watch: &StallWatch, running: &[Running]) -> Result<()> {
+    let alive = |id: &str| running.iter().any(|r| r.id == id && !r.exited);
+    if let Some(stall) = watch.stalled(alive) {
+        bail!(
+            "stalled: {stall}; the graph is stopped ([graph] stall_timeout_s = {:.0})",
+            watch.timeout().as_secs_f64()
+        );
+    }
+    Ok(())
+}
+
+fn handle(ev: Event, running: &mut [Running], watch: &StallWatch) -> Result<()> {
     match ev {
         Event::Interrupted(sig) => bail!(
             "interrupted by {} (signal {sig}): stopping every node",
@@ -446,6 +579,25 @@ fn handle(ev: Event, running: &mut [Running]) -> Result<()> {
                 .ok_or_else(|| anyhow!("unknown node '{id}' exited"))?;
             r.exited = true;
             if !status.success() {
+                // A sender that gave up on a full queue is not the culprit: the receiver that
+                // stopped draining is (it beats no more, or its process is stopped).
+                let (id, kind) = (r.id.clone(), r.kind.clone());
+                let alive = |n: &str| n != id && running.iter().any(|r| r.id == n && !r.exited);
+                let stalled = watch
+                    .silent_longer_than(STALL_HINT, alive)
+                    .filter(|s| s.stopped || s.silent_for >= watch.timeout() / 2);
+                let r = running
+                    .iter()
+                    .find(|r| r.id == id)
+                    .ok_or_else(|| anyhow!("unknown node '{id}' exited"))?;
+                if let Some(stall) = stalled {
+                    bail!(
+                        "stalled: {stall}, so node '{id}' (surfstream-{kind}) {} waiting for it; last lines of its stderr ({}):{}",
+                        describe_exit(&status),
+                        r.log.display(),
+                        stderr_tail(&r.log, 12)
+                    );
+                }
                 bail!(
                     "node '{}' (surfstream-{}) {}; last lines of its stderr ({}):{}",
                     r.id,

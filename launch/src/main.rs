@@ -6,6 +6,7 @@ mod deviation;
 mod launcher;
 mod nodes;
 mod progress;
+mod outdir;
 mod report;
 mod runjson;
 mod verbs;

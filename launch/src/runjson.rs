@@ -2,7 +2,6 @@
 //! pair's registration, latencies, message counts, parameters and the files written.
 
 use std::collections::BTreeMap;
-use std::fmt::Write as _;
 use std::path::Path;
 use std::time::Duration;
 
@@ -12,7 +11,7 @@ use surfstream_runtime::graph::GraphFile;
 use surfstream_runtime::latency;
 use surfstream_runtime::node::NodeReport;
 
-/// Writes `<out>/run.json`; returns a short human summary.
+/// Writes `<out>/run.json` and report.html (the verdict printed at the end reads run.json).
 pub fn write(
     graph: &GraphFile,
     origin: &Path,
@@ -20,7 +19,7 @@ pub fn write(
     mode: &str,
     elapsed: Duration,
     deviation: crate::deviation::Settings,
-) -> Result<String> {
+) -> Result<()> {
     let out = &graph.graph.out_dir;
     let by_kind = |k: &str| reports.iter().find(|r| r.node_kind == k).map(|r| &r.report);
 
@@ -91,7 +90,7 @@ pub fn write(
         "files": files,
         "elapsed_s": elapsed.as_secs_f64(),
     });
-    let mut run = crate::deviation::attach(out, run, deviation.threshold_percent);
+    let mut run = crate::deviation::attach(out, run, deviation.threshold_percent)?;
     // After the deviation pass, which loads whole rasters in the launcher.
     run["peak_rss"] = peak_rss(graph, reports, mode);
     let path = out.join("run.json");
@@ -99,7 +98,7 @@ pub fn write(
         serde_json::to_writer_pretty(w, &run).map_err(|e| anyhow!("{}: {e}", path.display()))
     })?;
     crate::report::write(out)?;
-    Ok(summary(&run, &lat, out))
+    Ok(())
 }
 
 /// Peak resident memory (VmHWM) of the launcher and of every node as it finished, bytes. Under
@@ -144,36 +143,4 @@ fn list_files(dir: &Path) -> Result<Vec<String>> {
         }
     }
     Ok(files)
-}
-
-fn summary(run: &Value, lat: &latency::LatencySummary, out: &Path) -> String {
-    let mut s = String::new();
-    let tiles = run["tiles"].as_array().map(Vec::len).unwrap_or(0);
-    let by_stage = run["tiles"]
-        .as_array()
-        .map(|t| t.iter().filter(|t| t["placed_by"] == "stage").count())
-        .unwrap_or(0);
-    let _ = writeln!(
-        s,
-        "surfstream: done in {:.2} s: {tiles} tiles ({by_stage} placed by stage position)",
-        run["elapsed_s"].as_f64().unwrap_or(0.0)
-    );
-    let _ = writeln!(
-        s,
-        "latency (ms)                 p50       p95       max     n"
-    );
-    let rows = lat
-        .end_to_end
-        .iter()
-        .chain(lat.hops.iter())
-        .chain(lat.final_frames.iter());
-    for (name, p) in rows {
-        let _ = writeln!(
-            s,
-            "  {name:<24} {:>8.2}  {:>8.2}  {:>8.2}  {:>4}",
-            p.p50, p.p95, p.max, p.n
-        );
-    }
-    let _ = write!(s, "outputs in {} (run.json lists them)", out.display());
-    s
 }

@@ -345,12 +345,14 @@ impl Recorder {
             log_time: log_time_ns,
             publish_time: publish_time_ns,
         };
+        // The mcap error's Display hides its io::Error source ("No space left on device"):
+        // keep it as the source, so `{:#}` prints it.
         writer.write_to_known_channel(&header, data).map_err(|e| {
-            anyhow!(
-                "{}: cannot record a message on \"{}\": {e}",
+            anyhow::Error::new(e).context(format!(
+                "{}: cannot record a message on \"{}\"",
                 partial.display(),
                 c.topic
-            )
+            ))
         })?;
         c.next_sequence = c.next_sequence.wrapping_add(1);
         self.messages += 1;
@@ -370,7 +372,12 @@ impl Recorder {
         let finished = writer.finish();
         let buffered = writer.into_inner();
         // On any early return below, `self` drops and removes the partial file.
-        finished.map_err(|e| fail("cannot complete the MCAP recording", &e))?;
+        finished.map_err(|e| {
+            anyhow::Error::new(e).context(format!(
+                "{}: cannot complete the MCAP recording",
+                partial.display()
+            ))
+        })?;
         let file = buffered
             .into_inner()
             .map_err(|e| fail("write failed", &e.error().to_string()))?;

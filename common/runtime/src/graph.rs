@@ -136,6 +136,10 @@ pub struct GraphSection {
     /// (the fusion's panorama chunks) spill to disk beyond their share. `None`: no limit.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub memory_budget_gb: Option<f64>,
+    /// How long a launched node may make no progress (stopped, hung, or one computation this
+    /// long) before the launcher names it and stops the graph (see [`crate::watchdog`]).
+    #[serde(default = "default_stall_timeout_s")]
+    pub stall_timeout_s: f64,
 }
 
 fn default_out_dir() -> PathBuf {
@@ -146,6 +150,9 @@ fn default_backpressure_timeout_s() -> f64 {
 }
 fn default_startup_timeout_s() -> f64 {
     30.0
+}
+fn default_stall_timeout_s() -> f64 {
+    crate::watchdog::DEFAULT_STALL_TIMEOUT_S
 }
 
 /// One `[[node]]` entry.
@@ -316,6 +323,9 @@ impl GraphFile {
                     "{origin}: [graph] memory_budget_gb = {gb}: expected a positive number of GB"
                 );
             }
+        }
+        if !(self.graph.stall_timeout_s > 0.0 && self.graph.stall_timeout_s.is_finite()) {
+            bail!("{origin}: [graph] stall_timeout_s: expected a positive number of seconds");
         }
         if self.nodes.is_empty() {
             bail!("{origin}: no [[node]] entries: a graph needs at least one node");

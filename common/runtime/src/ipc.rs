@@ -31,10 +31,14 @@ use surfstream_core::frame::{FrameHeader, FrameView, TileRegistration};
 pub static STOP_REQUESTED: std::sync::atomic::AtomicBool =
     std::sync::atomic::AtomicBool::new(false);
 
+/// Called from every loop a node can wait in: stops on a termination request or when the
+/// launcher is gone, and tells the launcher this node is alive (see [`crate::watchdog`]).
 fn check_stop() -> Result<()> {
     if STOP_REQUESTED.load(std::sync::atomic::Ordering::Relaxed) {
         bail!("stopped by a termination request");
     }
+    crate::watchdog::check_launcher()?;
+    crate::watchdog::beat();
     Ok(())
 }
 
@@ -57,6 +61,17 @@ pub fn domain_config(prefix: &str) -> Result<Config> {
     cfg.global.prefix = FileName::new(prefix.as_bytes())
         .map_err(|e| anyhow!("invalid iceoryx2 domain prefix {prefix:?}: {e:?}"))?;
     Ok(cfg)
+}
+
+/// A timed wait woken by a signal (SIGSTOP and SIGCONT do that: EINTR) is a spurious wake-up,
+/// not a failure: the caller's loop waits again.
+pub fn retry_if_interrupted(
+    e: iceoryx2::port::listener::ListenerWaitError,
+) -> std::result::Result<(), iceoryx2::port::listener::ListenerWaitError> {
+    match e {
+        iceoryx2::port::listener::ListenerWaitError::InterruptSignal => Ok(()),
+        e => Err(e),
+    }
 }
 
 /// Creates an iceoryx2 node in `domain` with signal handling left to us.
@@ -119,15 +134,80 @@ pub fn wipe_domain(cfg: &Config) -> usize {
     remove_prefixed(std::path::Path::new("/dev/shm"), &mut Vec::new());
     remove_prefixed(&root.join("services"), &mut Vec::new());
     remove_prefixed(&root.join("nodes"), &mut ids);
-    // A node's directory is named by its id and holds only prefixed records.
-    for id in ids {
-        let dir = root.join("nodes").join(&id);
-        if dir.is_dir() {
+    // A node's directory is named by its id (unprefixed) and holds only prefixed records. Its
+    // monitor file may be gone already (a node killed mid-cleanup), so every directory is
+    // looked at: one holding records of this domain only is this domain's.
+    let nodes = root.join("nodes");
+    let mut dirs_removed = 0;
+    let dirs: Vec<_> = std::fs::read_dir(&nodes)
+        .map(|d| {
+            d.flatten()
+                .map(|e| e.path())
+                .filter(|p| p.is_dir())
+                .collect()
+        })
+        .unwrap_or_default();
+    for dir in dirs {
+        let names: Vec<String> = std::fs::read_dir(&dir)
+            .map(|d| {
+                d.flatten()
+                    .map(|e| e.file_name().to_string_lossy().to_string())
+                    .collect()
+            })
+            .unwrap_or_default();
+        let ours = !names.is_empty() && names.iter().all(|n| n.starts_with(&prefix));
+        let listed = dir
+            .file_name()
+            .is_some_and(|n| ids.iter().any(|id| *id == n.to_string_lossy()));
+        if ours || (listed && names.is_empty()) {
             remove_prefixed(&dir, &mut Vec::new());
-            let _ = std::fs::remove_dir(&dir);
+            if std::fs::remove_dir(&dir).is_ok() {
+                dirs_removed += 1;
+            }
+        } else if names.is_empty() && is_older_than(&dir, STALE_EMPTY_NODE_DIR) {
+            // An empty node folder of any domain, long past any node's creation: a node killed
+            // between creating its folder and its first record.
+            if std::fs::remove_dir(&dir).is_ok() {
+                dirs_removed += 1;
+            }
         }
     }
-    removed
+    removed + dirs_removed
+}
+
+/// An empty node folder older than this cannot belong to a node still being created.
+const STALE_EMPTY_NODE_DIR: Duration = Duration::from_secs(60);
+
+fn is_older_than(path: &std::path::Path, age: Duration) -> bool {
+    std::fs::metadata(path)
+        .and_then(|m| m.modified())
+        .ok()
+        .and_then(|t| t.elapsed().ok())
+        .is_some_and(|e| e > age)
+}
+
+/// Node folders under the iceoryx2 root's `nodes/` that hold a record of `cfg`'s domain (a
+/// node alive or not cleaned up), for tests and diagnostics.
+pub fn node_dirs_of_domain(cfg: &Config) -> Vec<std::path::PathBuf> {
+    let prefix = String::from_utf8_lossy(cfg.global.prefix.as_bytes()).to_string();
+    let root = std::path::PathBuf::from(
+        String::from_utf8_lossy(cfg.global.root_path().as_bytes()).to_string(),
+    );
+    std::fs::read_dir(root.join("nodes"))
+        .map(|d| {
+            d.flatten()
+                .map(|e| e.path())
+                .filter(|p| p.is_dir())
+                .filter(|p| {
+                    std::fs::read_dir(p).is_ok_and(|mut d| {
+                        d.any(|e| {
+                            e.is_ok_and(|e| e.file_name().to_string_lossy().starts_with(&prefix))
+                        })
+                    })
+                })
+                .collect()
+        })
+        .unwrap_or_default()
 }
 
 /// Counts the nodes (alive or dead) registered in a domain.
@@ -366,7 +446,7 @@ pub fn run_node(
     // Leave inputs, then hold outputs: samples in flight (and a panorama in a freshly grown
     // segment) stay readable until consumed.
     drop(ins);
-    hold_until_subscribers_left(&node, &outs)?;
+    hold_until_subscribers_left(&node, ctx, &outs)?;
     Ok(NodeReport::finished(ctx, stats, logic))
 }
 
@@ -467,6 +547,8 @@ impl LosslessHandshake {
                 }
                 listener
                     .timed_wait(|e| ready += e.count, left.min(Duration::from_millis(100)))
+                    .map(|_| ())
+                    .or_else(retry_if_interrupted)
                     .map_err(|e| anyhow!("output '{}': ready wait failed: {e:?}", o.port))?;
             }
         }
@@ -488,6 +570,9 @@ fn open_output(
     let ready_listener = LosslessHandshake::listen(&ready_service, &name, o.delivery)?;
     let backpressure = Duration::from_secs_f64(ctx.backpressure_timeout_s);
     let handler = move |info: &BackpressureInfo| {
+        // Blocked by a full downstream queue is not a stall of this node: keep beating, so the
+        // launcher names the receiver that does not drain.
+        crate::watchdog::beat();
         if info.elapsed_time > backpressure {
             BackpressureAction::DiscardDataAndFail
         } else {
@@ -635,6 +720,8 @@ fn join_launcher(
                 );
             }
             go.timed_wait(|_| started = true, Duration::from_millis(100))
+                .map(|_| ())
+                .or_else(retry_if_interrupted)
                 .map_err(|e| anyhow!("go wait failed: {e:?}"))?;
         }
     }
@@ -699,6 +786,7 @@ fn event_loop(
             housekeeping_due = false;
             node.try_cleanup_dead_nodes();
             check_producers_alive(ins, &ended)?;
+            check_stop()?;
         }
     }
     Ok(stats)
@@ -734,11 +822,26 @@ fn check_producers_alive(ins: &[InPort], ended: &[bool]) -> Result<()> {
 }
 
 /// Keeps the lossless publishers alive until every subscriber has left, so nothing in flight
-/// is lost when this process exits.
-fn hold_until_subscribers_left(node: &Node<ipc::Service>, outs: &[OutPort]) -> Result<()> {
+/// is lost when this process exits. Bounded: a subscriber still attached after twice the
+/// backpressure timeout is stalled (the launcher's stall watch normally names it first).
+fn hold_until_subscribers_left(
+    node: &Node<ipc::Service>,
+    ctx: &NodeContext,
+    outs: &[OutPort],
+) -> Result<()> {
+    let limit = Duration::from_secs_f64(2.0 * ctx.backpressure_timeout_s);
+    let deadline = Instant::now() + limit;
     for o in outs.iter().filter(|o| o.delivery == Delivery::Lossless) {
         while o.subscribers_now() > 0 {
             check_stop()?;
+            if Instant::now() > deadline {
+                bail!(
+                    "output '{}': {} subscriber(s) still attached {:.0} s after this node finished: a downstream node does not drain",
+                    o.port,
+                    o.subscribers_now(),
+                    limit.as_secs_f64()
+                );
+            }
             node.try_cleanup_dead_nodes();
             std::thread::sleep(Duration::from_millis(10));
         }

@@ -1,6 +1,7 @@
 //! surfstream-runtime: how a graph runs: the node contract ([`node`]), graph files
 //! ([`graph`]), the iceoryx2 transport ([`ipc`]), the in-process transport ([`inproc`]), the
-//! process shell every node binary uses ([`shell`]) and latency statistics ([`latency`]).
+//! process shell every node binary uses ([`shell`]), latency statistics ([`latency`]) and
+//! liveness: heartbeats, the stall watch, the launcher check ([`watchdog`]).
 
 pub mod graph;
 pub mod inproc;
@@ -8,3 +9,4 @@ pub mod ipc;
 pub mod latency;
 pub mod node;
 pub mod shell;
+pub mod watchdog;

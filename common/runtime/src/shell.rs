@@ -105,6 +105,10 @@ fn run(kind: &str, build: fn(&NodeContext) -> Result<Box<dyn NodeLogic + Send>>)
             ctx.node_kind
         );
     }
+    if args.launched {
+        // Heartbeat for the launcher's stall watch, and a node never outlives its launcher.
+        crate::watchdog::install(&ctx.out_dir, &ctx.node_id)?;
+    }
     let mut logic = build(&ctx)?;
     let cfg = ipc::domain_config(&args.domain)?;
     let link = ipc::launcher_link(&ctx.graph_name);

@@ -277,6 +277,7 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         let file_scale = if carries_units { 1.0 } else { scale };
         let mut heights = surface.heights_um;
         heights.iter_mut().for_each(|z| *z *= file_scale);
+        refuse_absurd_heights(&heights, &at, cols)?;
         // Every tile is relative to the FIRST tile's mean, so overlaps compare without
         // conversion. The readers already turned every non-finite height into NaN
         // (formats::parse_surface), so valid_mean's !is_nan is the former is_finite filter.
@@ -300,6 +301,26 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         tile_width_px: cols,
         tile_height_px: rows,
     })
+}
+
+/// A height beyond +-1 m is a corrupt point or a wrong unit: stitched and meshed it would
+/// make a model kilometres tall, so a scan refuses it, naming the tile, the pixel and the value.
+fn refuse_absurd_heights(heights_um: &[f64], at: &str, cols: usize) -> Result<()> {
+    let limit = formats::MAX_PLAUSIBLE_HEIGHT_UM;
+    let bad: Vec<usize> = (0..heights_um.len())
+        .filter(|&i| heights_um[i].abs() > limit)
+        .collect();
+    if let Some(&first) = bad.first() {
+        bail!(
+            "{at}: {} height(s) beyond +-{limit:e} um, the first {:.3e} um at row {}, col {}: \
+             physically absurd for a profiler (a corrupt point, or check [scan] height_unit)",
+            bad.len(),
+            heights_um[first],
+            first / cols.max(1),
+            first % cols.max(1)
+        );
+    }
+    Ok(())
 }
 
 #[cfg(test)]

@@ -197,7 +197,34 @@ fn invalid_if_not_finite(mut s: Surface) -> Surface {
             *z = f64::NAN;
         }
     }
+    flag_absurd_heights(&mut s);
     s
+}
+
+/// No profiler measures a height beyond +-1 m (1e6 um): such a value is a corrupt point or a
+/// wrong unit, and would make an STL kilometres tall. Readers flag it (a warning every verb
+/// prints); a scan directory refuses it.
+pub const MAX_PLAUSIBLE_HEIGHT_UM: f64 = 1e6;
+
+/// Adds a warning naming how many heights are physically absurd and the largest.
+fn flag_absurd_heights(s: &mut Surface) {
+    let (mut n, mut worst) = (0usize, 0.0f64);
+    for z in s
+        .heights_um
+        .iter()
+        .filter(|z| z.abs() > MAX_PLAUSIBLE_HEIGHT_UM)
+    {
+        n += 1;
+        if z.abs() > worst.abs() {
+            worst = *z;
+        }
+    }
+    if n > 0 {
+        s.metadata.warnings.push(format!(
+            "{n} height(s) beyond +-{MAX_PLAUSIBLE_HEIGHT_UM:e} um (1 m), the largest {worst:.3e} um: \
+             physically absurd for a profiler (a corrupt point or a wrong height unit)"
+        ));
+    }
 }
 
 /// Writes `s` by the extension of `path`: `.x3p` (float64, valid.bin for NaN) or `.npy`

@@ -1,0 +1,428 @@
+//! An out dir holds exactly one run (issue 15): a run writes into a fresh staging folder beside
+//! the out dir (`OUT.staging-<pid>`) and moves it into place only when it is complete, so old
+//! and new outputs never mix and a killed run never leaves a complete-looking folder.
+//!
+//! - **Lock**: `OUT.lock` beside the out dir (flock, holding the owner's pid) is held for the
+//!   whole run; a second run into the same out dir is refused, naming the pid that holds it.
+//! - **Stale staging**: whoever holds the lock removes `OUT.staging-*` folders of earlier runs
+//!   (a launcher killed with SIGKILL cannot clean up after itself).
+//! - **Commit**: the staging folder is exchanged with the out dir in one `renameat2(EXCHANGE)`
+//!   (two renames where the file system cannot exchange), then the old run is removed.
+//! - **Failure** after the scan started: the out dir is replaced by the failed run: a `FAILED`
+//!   record naming the cause, the logs and the resolved graph; its outputs are removed.
+//!   A failure before the scan started (bad parameters, a bad input file, no free slot) leaves
+//!   the out dir as it was and removes the staging folder: nothing was produced.
+
+use std::fs::File;
+use std::io::{Read, Seek, Write};
+use std::os::fd::AsRawFd;
+use std::os::unix::fs::MetadataExt;
+use std::path::{Path, PathBuf};
+
+use anyhow::{anyhow, bail, Context, Result};
+
+/// Name of the failure record in a failed run's folder.
+pub const FAILED: &str = "FAILED";
+
+/// What a failed run keeps besides [`FAILED`]: the diagnostics, never an output.
+const KEPT_ON_FAILURE: &[&str] = &["logs", "nodes", surfstream_runtime::shell::RESOLVED_GRAPH];
+
+/// The out dir of a run in progress: locked, with its staging folder.
+pub struct StagedOut {
+    /// Where the outputs end up.
+    pub final_dir: PathBuf,
+    /// Where this run writes while it runs.
+    pub staging: PathBuf,
+    _lock: OutDirLock,
+}
+
+fn sibling(out: &Path, suffix: &str) -> Result<PathBuf> {
+    let name = out
+        .file_name()
+        .ok_or_else(|| anyhow!("{}: an out dir needs a folder name", out.display()))?;
+    let mut n = name.to_os_string();
+    n.push(suffix);
+    Ok(out.with_file_name(n))
+}
+
+/// `out` made absolute without resolving symlinks of the last component (it may not exist).
+fn absolute(out: &Path) -> Result<PathBuf> {
+    let abs = if out.is_absolute() {
+        out.to_path_buf()
+    } else {
+        std::env::current_dir()
+            .context("cannot read the current folder")?
+            .join(out)
+    };
+    let parent = abs
+        .parent()
+        .ok_or_else(|| anyhow!("{}: an out dir needs a parent folder", out.display()))?;
+    std::fs::create_dir_all(parent)
+        .with_context(|| format!("{}: cannot create the out dir's parent", parent.display()))?;
+    let parent = parent
+        .canonicalize()
+        .with_context(|| format!("{}: cannot resolve", parent.display()))?;
+    let name = abs
+        .file_name()
+        .filter(|n| *n != "..")
+        .ok_or_else(|| anyhow!("{}: an out dir needs a folder name", out.display()))?;
+    Ok(parent.join(name))
+}
+
+/// Locks `out`, removes stale staging folders of killed runs, and creates this run's staging
+/// folder. Nothing in `out` itself is touched.
+pub fn stage(out: &Path) -> Result<StagedOut> {
+    let final_dir = absolute(out)?;
+    if final_dir.exists() && !final_dir.is_dir() {
+        bail!(
+            "{}: the out dir exists and is not a folder",
+            final_dir.display()
+        );
+    }
+    let lock = OutDirLock::take(&sibling(&final_dir, ".lock")?, &final_dir)?;
+    let stale = remove_stale_staging(&final_dir);
+    if stale > 0 {
+        eprintln!(
+            "surfstream: removed {stale} staging folder(s) of an earlier run into {} that was killed",
+            final_dir.display()
+        );
+    }
+    let staging = sibling(&final_dir, &format!(".staging-{}", std::process::id()))?;
+    std::fs::create_dir(&staging)
+        .with_context(|| format!("{}: cannot create the staging folder", staging.display()))?;
+    Ok(StagedOut {
+        final_dir,
+        staging,
+        _lock: lock,
+    })
+}
+
+/// Removes `OUT.staging-*` beside `out`. Only for the holder of `out`'s lock: no live run
+/// writes there.
+fn remove_stale_staging(out: &Path) -> usize {
+    let (Some(parent), Some(name)) = (out.parent(), out.file_name()) else {
+        return 0;
+    };
+    let prefix = format!("{}.staging-", name.to_string_lossy());
+    let Ok(entries) = std::fs::read_dir(parent) else {
+        return 0;
+    };
+    entries
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().starts_with(&prefix))
+        .filter(|e| std::fs::remove_dir_all(e.path()).is_ok())
+        .count()
+}
+
+impl StagedOut {
+    /// Copies files that the graph reads from inside the out dir (an inferred `scan.toml`, a
+    /// recording replayed into its own folder) into the staging folder, so the committed run
+    /// still holds them. Node parameters name such files as strings.
+    pub fn carry_inputs(&self, graph: &surfstream_runtime::graph::GraphFile) -> Result<()> {
+        let Ok(out) = self.final_dir.canonicalize() else {
+            return Ok(()); // no out dir yet: nothing to carry
+        };
+        for n in &graph.nodes {
+            for v in n.params.values() {
+                let Some(s) = v.as_str() else { continue };
+                let Ok(path) = Path::new(s).canonicalize() else {
+                    continue;
+                };
+                let Ok(rel) = path.strip_prefix(&out) else {
+                    continue;
+                };
+                if !path.is_file() {
+                    continue;
+                }
+                let to = self.staging.join(rel);
+                if let Some(dir) = to.parent() {
+                    std::fs::create_dir_all(dir)
+                        .with_context(|| format!("{}: cannot create", dir.display()))?;
+                }
+                std::fs::copy(&path, &to).with_context(|| {
+                    format!(
+                        "{}: cannot copy the input into the staging folder {}",
+                        path.display(),
+                        to.display()
+                    )
+                })?;
+            }
+        }
+        Ok(())
+    }
+
+    /// The run is complete: it replaces the out dir (and whatever run was there).
+    pub fn commit(self) -> Result<PathBuf> {
+        replace_dir(&self.staging, &self.final_dir)?;
+        Ok(self.final_dir.clone())
+    }
+
+    /// The run failed before anything was produced: the out dir stays as it was.
+    pub fn discard(self) {
+        let _ = std::fs::remove_dir_all(&self.staging);
+    }
+
+    /// The run failed after it started producing: the out dir becomes the failed run (a
+    /// [`FAILED`] record naming the cause, the logs), without any of its outputs. Returns the
+    /// folder that holds the record.
+    pub fn fail(self, cause: &anyhow::Error) -> Result<PathBuf> {
+        // Outputs first: on a full disk this frees the room the record needs.
+        if let Ok(entries) = std::fs::read_dir(&self.staging) {
+            for e in entries.flatten() {
+                let name = e.file_name().to_string_lossy().to_string();
+                if KEPT_ON_FAILURE.contains(&name.as_str()) {
+                    continue;
+                }
+                let p = e.path();
+                let _ = if p.is_dir() {
+                    std::fs::remove_dir_all(&p)
+                } else {
+                    std::fs::remove_file(&p)
+                };
+            }
+        }
+        let record = self.staging.join(FAILED);
+        let text = failure_record(cause);
+        std::fs::write(&record, text)
+            .with_context(|| format!("{}: cannot write the failure record", record.display()))?;
+        replace_dir(&self.staging, &self.final_dir)?;
+        Ok(self.final_dir.clone())
+    }
+}
+
+fn failure_record(cause: &anyhow::Error) -> String {
+    let when = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0);
+    format!(
+        "surfstream: this run FAILED; the folder holds no outputs, only its logs.\n\
+         cause: {cause:#}\n\
+         unix_time: {when}\n\
+         pid: {}\n",
+        std::process::id()
+    )
+}
+
+/// Puts `from` at `to`, replacing a folder at `to`; removes the replaced folder.
+fn replace_dir(from: &Path, to: &Path) -> Result<()> {
+    if !to.exists() {
+        return std::fs::rename(from, to).with_context(|| {
+            format!(
+                "{}: cannot move the staging folder {} into place",
+                to.display(),
+                from.display()
+            )
+        });
+    }
+    if exchange(from, to).is_ok() {
+        // `from` now holds the replaced run.
+        let _ = std::fs::remove_dir_all(from);
+        return Ok(());
+    }
+    // No atomic exchange on this file system: move the old run aside first.
+    let old = sibling(to, &format!(".replaced-{}", std::process::id()))?;
+    std::fs::rename(to, &old)
+        .with_context(|| format!("{}: cannot move the previous run aside", to.display()))?;
+    std::fs::rename(from, to).with_context(|| {
+        format!(
+            "{}: cannot move the staging folder {} into place",
+            to.display(),
+            from.display()
+        )
+    })?;
+    let _ = std::fs::remove_dir_all(&old);
+    Ok(())
+}
+
+fn exchange(a: &Path, b: &Path) -> std::io::Result<()> {
+    use std::ffi::CString;
+    use std::os::unix::ffi::OsStrExt;
+    let ca = CString::new(a.as_os_str().as_bytes())?;
+    let cb = CString::new(b.as_os_str().as_bytes())?;
+    // SAFETY: two valid NUL-terminated paths; renameat2 only reads them.
+    let rc = unsafe {
+        libc::renameat2(
+            libc::AT_FDCWD,
+            ca.as_ptr(),
+            libc::AT_FDCWD,
+            cb.as_ptr(),
+            libc::RENAME_EXCHANGE,
+        )
+    };
+    if rc == 0 {
+        Ok(())
+    } else {
+        Err(std::io::Error::last_os_error())
+    }
+}
+
+/// `OUT.lock`: an exclusive flock for the life of the run, with the owner's pid inside (for the
+/// error another run gets). The file is removed when the run ends.
+struct OutDirLock {
+    file: File,
+    path: PathBuf,
+}
+
+impl OutDirLock {
+    fn take(path: &Path, out: &Path) -> Result<Self> {
+        loop {
+            let mut file = File::options()
+                .create(true)
+                .truncate(false)
+                .read(true)
+                .write(true)
+                .open(path)
+                .with_context(|| format!("{}: cannot open the out dir's lock", path.display()))?;
+            // SAFETY: flock on a file descriptor we own.
+            if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } != 0 {
+                let mut owner = String::new();
+                let _ = file.read_to_string(&mut owner);
+                let owner = owner.trim();
+                bail!(
+                    "{}: the out dir is in use by another run ({}; lock {}); wait for it or choose another --out",
+                    out.display(),
+                    if owner.is_empty() {
+                        "pid unknown".to_string()
+                    } else {
+                        format!("pid {owner}")
+                    },
+                    path.display()
+                );
+            }
+            // The previous holder may have removed the file between our open and our lock:
+            // then we locked an orphan inode, and must lock the file that is there now.
+            let same = std::fs::metadata(path)
+                .ok()
+                .zip(file.metadata().ok())
+                .is_some_and(|(on_disk, ours)| {
+                    on_disk.ino() == ours.ino() && on_disk.dev() == ours.dev()
+                });
+            if !same {
+                continue;
+            }
+            file.set_len(0)
+                .and_then(|_| file.rewind())
+                .and_then(|_| write!(file, "{}", std::process::id()))
+                .with_context(|| format!("{}: cannot write the lock", path.display()))?;
+            return Ok(Self {
+                file,
+                path: path.to_path_buf(),
+            });
+        }
+    }
+}
+
+impl Drop for OutDirLock {
+    fn drop(&mut self) {
+        // Remove while still holding the lock; a waiter that opened the old inode notices the
+        // change of inode and retries.
+        let _ = std::fs::remove_file(&self.path);
+        let _ = &self.file;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_committed_run_replaces_the_old_one_whole() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("out");
+        std::fs::create_dir(&out).unwrap();
+        std::fs::write(out.join("report.html"), "old").unwrap();
+        std::fs::write(out.join("surface.stl"), "old").unwrap();
+        let staged = stage(&out).unwrap();
+        assert!(staged
+            .staging
+            .starts_with(dir.path().canonicalize().unwrap()));
+        std::fs::write(staged.staging.join("surface.stl"), "new").unwrap();
+        // Untouched while the run runs.
+        assert_eq!(
+            std::fs::read_to_string(out.join("surface.stl")).unwrap(),
+            "old"
+        );
+        staged.commit().unwrap();
+        assert_eq!(
+            std::fs::read_to_string(out.join("surface.stl")).unwrap(),
+            "new"
+        );
+        assert!(!out.join("report.html").exists(), "an old output survived");
+        let names: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .flatten()
+            .map(|e| e.file_name().to_string_lossy().to_string())
+            .collect();
+        assert_eq!(names, ["out"], "staging, replaced run or lock left behind");
+    }
+
+    #[test]
+    fn a_second_run_into_the_same_out_dir_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("out");
+        let first = stage(&out).unwrap();
+        let e = stage(&out).err().expect("second run refused").to_string();
+        assert!(
+            e.contains("in use by another run") && e.contains(&std::process::id().to_string()),
+            "{e}"
+        );
+        first.discard();
+        // Released: the next run gets it.
+        stage(&out).unwrap().discard();
+        assert!(!out.exists(), "a discarded run created the out dir");
+    }
+
+    #[test]
+    fn a_failed_run_leaves_a_failed_record_and_no_outputs() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("out");
+        std::fs::create_dir(&out).unwrap();
+        std::fs::write(out.join("panorama.npy"), "old").unwrap();
+        let staged = stage(&out).unwrap();
+        std::fs::create_dir(staged.staging.join("logs")).unwrap();
+        std::fs::write(staged.staging.join("logs/fusion.stderr"), "boom").unwrap();
+        std::fs::write(staged.staging.join("datum.npy"), "half").unwrap();
+        staged
+            .fail(&anyhow!("No space left on device (os error 28)"))
+            .unwrap();
+        let record = std::fs::read_to_string(out.join(FAILED)).unwrap();
+        assert!(record.contains("No space left on device"), "{record}");
+        assert!(out.join("logs/fusion.stderr").exists());
+        assert!(!out.join("datum.npy").exists() && !out.join("panorama.npy").exists());
+    }
+
+    #[test]
+    fn staging_folders_of_killed_runs_are_removed_by_the_next_run() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("out");
+        let killed = dir.path().join("out.staging-999999");
+        std::fs::create_dir_all(killed.join("nodes")).unwrap();
+        std::fs::write(killed.join("recording.mcap.partial"), "x").unwrap();
+        let staged = stage(&out).unwrap();
+        assert!(!killed.exists());
+        staged.discard();
+    }
+
+    #[test]
+    fn inputs_read_from_inside_the_out_dir_are_carried_into_the_new_run() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("out");
+        std::fs::create_dir(&out).unwrap();
+        std::fs::write(out.join("scan.toml"), "[scan]").unwrap();
+        let text = format!(
+            "[graph]\nname = \"g\"\n[[node]]\nid = \"stage\"\nnode = \"replay\"\nparams = {{ path = {:?} }}\n",
+            out.join("scan.toml").to_str().unwrap()
+        );
+        let graph =
+            surfstream_runtime::graph::GraphFile::parse(&text, "g.toml", &crate::nodes::registry())
+                .unwrap();
+        let staged = stage(&out).unwrap();
+        staged.carry_inputs(&graph).unwrap();
+        staged.commit().unwrap();
+        assert_eq!(
+            std::fs::read_to_string(out.join("scan.toml")).unwrap(),
+            "[scan]"
+        );
+    }
+}
