@@ -294,10 +294,10 @@ impl Recorder {
         let c = self.channel(channel, ChannelKind::Frame)?;
         if heights.len() as u64 != expected {
             bail!(
-                "topic \"{}\": frame {} x {} needs {expected} heights, got {}",
+                "topic \"{}\": frame {} rows x {} cols needs {expected} heights, got {}",
                 c.topic,
-                header.width,
                 header.height,
+                header.width,
                 heights.len()
             );
         }
@@ -836,10 +836,10 @@ fn decode_frame(data: &[u8]) -> std::result::Result<HeightMap, String> {
     let expected = header.width as u64 * header.height as u64 * 4;
     if payload.len() as u64 != expected {
         return Err(format!(
-            "frame payload is {} bytes, expected width * height * 4 = {} x {} x 4 = {expected}",
+            "frame payload is {} bytes, expected rows * cols * 4 = {} x {} x 4 = {expected}",
             payload.len(),
-            header.width,
-            header.height
+            header.height,
+            header.width
         ));
     }
     let heights = payload
@@ -1198,7 +1198,7 @@ fn decode_frame_json(data: &[u8]) -> std::result::Result<HeightMap, String> {
     if columns != header.width as u64 || cell_stride != 4 || row_stride != header.width as u64 * 4 {
         return Err(format!(
             "grid layout column_count {columns}, row_stride {row_stride}, cell_stride \
-             {cell_stride}; expected {w}, {} and 4 for a {w} x {h} (width x height) frame of f32",
+             {cell_stride}; expected {w}, {} and 4 for a {h} rows x {w} cols frame of f32",
             header.width as u64 * 4,
             w = header.width,
             h = header.height
@@ -1234,10 +1234,10 @@ fn decode_frame_json(data: &[u8]) -> std::result::Result<HeightMap, String> {
         .map_err(|e| format!("grid.data is not valid base64: {e}"))?;
     if raw.len() as u64 != expected {
         return Err(format!(
-            "grid.data holds {} bytes, expected width * height * 4 = {} x {} x 4 = {expected}",
+            "grid.data holds {} bytes, expected rows * cols * 4 = {} x {} x 4 = {expected}",
             raw.len(),
-            header.width,
-            header.height
+            header.height,
+            header.width
         ));
     }
     let heights = raw
@@ -1920,7 +1920,7 @@ mod tests {
         );
         let e = read_err(&p);
         assert!(
-            e.contains("frame payload is 12 bytes, expected width * height * 4 = 2 x 2 x 4 = 16"),
+            e.contains("frame payload is 12 bytes, expected rows * cols * 4 = 2 x 2 x 4 = 16"),
             "{e}"
         );
 

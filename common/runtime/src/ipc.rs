@@ -877,13 +877,13 @@ fn drain(
                 let heights: &[f32] = sample.payload();
                 if heights.len() != header.len() {
                     bail!(
-                        "input '{}' ({}): frame {} has {} heights, header says {} x {}",
+                        "input '{}' ({}): frame {} has {} heights, header says {} rows x {} cols",
                         p.port,
                         p.topic,
                         header.sequence,
                         heights.len(),
-                        header.width,
-                        header.height
+                        header.height,
+                        header.width
                     );
                 }
                 let input = Input::Frame(FrameView { header, heights });

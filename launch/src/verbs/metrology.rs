@@ -152,7 +152,7 @@ pub fn inspect(a: InspectArgs) -> Result<()> {
         " (not in the file: assumed)"
     };
     println!(
-        "pitch       {} x {} um{pitch_note}",
+        "pitch       x {:.4} um, y {:.4} um{pitch_note}",
         s.pitch_x_um, s.pitch_y_um
     );
     println!(
@@ -161,7 +161,7 @@ pub fn inspect(a: InspectArgs) -> Result<()> {
         s.heights_um.len()
     );
     if !valid.is_empty() {
-        println!("heights     {lo} .. {hi} um");
+        println!("heights     {lo:.4} .. {hi:.4} um");
     }
     for (k, v) in [
         ("instrument", &m.instrument),
@@ -173,7 +173,7 @@ pub fn inspect(a: InspectArgs) -> Result<()> {
         }
     }
     if let Some(w) = m.wavelength_um {
-        println!("wavelength  {w} um");
+        println!("wavelength  {w:.4} um");
     }
     for (k, v) in &m.extra {
         println!("{k:<11} {v}");
@@ -512,12 +512,12 @@ pub fn compare(a: CompareArgs) -> Result<()> {
         });
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
-        println!("SIM   {sim:.9} (normalised cross-correlation, eq. 12)");
+        println!("SIM   {sim:.6} (normalised cross-correlation, eq. 12)");
         println!(
-            "SSIM  {:.9} ({} windows, L = {} um)",
+            "SSIM  {:.6} ({} windows, L = {:.4} um)",
             ssim.mssim, ssim.windows, ssim.range_um
         );
-        println!("RMS   {rms:.9e} um over {n} points valid in both");
+        println!("RMS   {rms:.6} um over {n} points valid in both");
     }
     Ok(())
 }

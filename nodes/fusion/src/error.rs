@@ -56,7 +56,7 @@ pub enum FusionError {
 
     /// Placing the tile would grow the canvas beyond the configured limit.
     #[error(
-        "tile {index}: the canvas would grow to {width} x {height} px, more than the limit of \
+        "tile {index}: the canvas would grow to {height} rows x {width} cols px, more than the limit of \
          {max_px} px (check the tile positions, or raise Panorama::set_max_canvas_px)"
     )]
     CanvasTooLarge {
