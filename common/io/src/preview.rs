@@ -469,12 +469,12 @@ fn block_mean(heights: &[f32], rows: usize, cols: usize, block: usize) -> (Vec<f
     (out, out_rows, out_cols)
 }
 
-/// At most about eight "nice" tick values (1, 2 or 5 times a power of ten) inside `lo..=hi`,
-/// with their labels.
-fn nice_ticks(lo: f64, hi: f64) -> Vec<(f64, String)> {
-    let raw = (hi - lo) / 8.0;
+/// About `n` "nice" tick values (1, 2 or 5 times a power of ten) inside `lo..=hi`, and the
+/// number of decimals their labels need. Shared by the PNG colour bars and report.html's axes.
+pub fn ticks(lo: f64, hi: f64, n: usize) -> (Vec<f64>, usize) {
+    let raw = (hi - lo) / n.max(1) as f64;
     if !(raw > 0.0 && raw.is_finite()) {
-        return Vec::new();
+        return (Vec::new(), 0);
     }
     let mag = 10f64.powf(raw.log10().floor());
     let step = [1.0, 2.0, 5.0, 10.0]
@@ -485,9 +485,15 @@ fn nice_ticks(lo: f64, hi: f64) -> Vec<(f64, String)> {
     let decimals = (-(step.log10().floor())).clamp(0.0, 9.0) as usize;
     let first = (lo / step).ceil() as i64;
     let last = (hi / step).floor() as i64;
-    (first..=last)
-        .map(|i| {
-            let v = i as f64 * step;
+    ((first..=last).map(|i| i as f64 * step).collect(), decimals)
+}
+
+/// At most about eight nice ticks inside `lo..=hi`, with their labels.
+fn nice_ticks(lo: f64, hi: f64) -> Vec<(f64, String)> {
+    let (values, decimals) = ticks(lo, hi, 8);
+    values
+        .into_iter()
+        .map(|v| {
             let mut label = format!("{v:.decimals$}");
             if label.starts_with('-') && label[1..].chars().all(|c| c == '0' || c == '.') {
                 label.remove(0); // "-0.0" -> "0.0"

@@ -132,42 +132,12 @@ pub fn table_raw(head: &[&str], rows: &[(String, Vec<String>)]) -> String {
     s
 }
 
-/// "Nice" tick values (1, 2 or 5 times a power of ten) inside `lo..=hi`, about `n` of them,
-/// and the number of decimals their labels need.
-pub fn ticks(lo: f64, hi: f64, n: usize) -> (Vec<f64>, usize) {
-    let raw = (hi - lo) / n.max(1) as f64;
-    if !(raw > 0.0 && raw.is_finite()) {
-        return (Vec::new(), 0);
-    }
-    let mag = 10f64.powf(raw.log10().floor());
-    let step = [1.0, 2.0, 5.0, 10.0]
-        .iter()
-        .map(|m| m * mag)
-        .find(|s| *s >= raw * (1.0 - 1e-9))
-        .unwrap_or(10.0 * mag);
-    let decimals = (-(step.log10().floor())).clamp(0.0, 9.0) as usize;
-    let first = (lo / step).ceil() as i64;
-    let last = (hi / step).floor() as i64;
-    ((first..=last).map(|i| i as f64 * step).collect(), decimals)
-}
+pub use surfstream_io::preview::ticks;
 
 /// Standard base64 (RFC 4648) with padding.
 pub fn base64(bytes: &[u8]) -> String {
-    const A: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-    let mut s = String::with_capacity(bytes.len().div_ceil(3) * 4);
-    for c in bytes.chunks(3) {
-        let n = (u32::from(c[0]) << 16)
-            | (u32::from(*c.get(1).unwrap_or(&0)) << 8)
-            | u32::from(*c.get(2).unwrap_or(&0));
-        for k in 0..4 {
-            if k <= c.len() {
-                s.push(A[(n >> (18 - 6 * k)) as usize & 63] as char);
-            } else {
-                s.push('=');
-            }
-        }
-    }
-    s
+    use base64::Engine as _;
+    base64::engine::general_purpose::STANDARD.encode(bytes)
 }
 
 /// An RGB image (3 bytes per pixel, row-major) as PNG bytes.
