@@ -5,7 +5,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
-use surfstream_e2e::{read_json, run, stderr, surfstream};
+use surfstream_e2e::{read_json, run, stderr, surfstream, write_scan_dir};
 
 fn stdout(out: &Output) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()
@@ -349,39 +349,11 @@ fn convert_inspect_and_mesh_follow_one_convention() {
 /// follows, and heights of unitless tiles (.npy) taken as um are said to be.
 #[test]
 fn stitch_shows_progress_from_the_manifest_and_warns_of_an_assumed_height_unit() {
-    use surfstream_replay::*;
     let dir = tempfile::tempdir().unwrap();
     let scan = dir.path().join("scan");
     std::fs::create_dir(&scan).unwrap();
-    let stage = StageParams {
-        rows: 1,
-        cols: 2,
-        tile_px: 256,
-        overlap: 0.2,
-        seed: 7,
-        ..Default::default()
-    };
-    let plan = plan_scan(&stage).unwrap();
-    let spec = generate_specimen(&plan.specimen_params(&SpecimenParams {
-        seed: 7,
-        ..Default::default()
-    }))
-    .unwrap();
     // No height_unit: the .npy tiles' heights are taken as um.
-    let mut toml = format!(
-        "[scan]\nname = \"fixture\"\npitch_x_um = {p}\npitch_y_um = {p}\nrows = 1\ncols = 2\n",
-        p = stage.pitch_um
-    );
-    for t in &plan.tiles {
-        let name = format!("tile_{:03}.npy", t.index);
-        let heights = acquire_tile(&spec, t, &stage);
-        surfstream_io::npy::write_npy_f32(scan.join(&name), &heights, 256, 256).unwrap();
-        toml += &format!(
-            "\n[[tile]]\nfile = \"{name}\"\nrow = {}\ncol = {}\nstage_x_um = {}\nstage_y_um = {}\n",
-            t.row, t.col, t.stage_position_um[0], t.stage_position_um[1]
-        );
-    }
-    std::fs::write(scan.join("scan.toml"), toml).unwrap();
+    write_scan_dir(&scan, 1, 2, 256, None);
     let out_dir = dir.path().join("out");
     let out = run({
         let mut c = surfstream();

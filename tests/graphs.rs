@@ -298,51 +298,6 @@ fn demo_launch_run_and_replay_agree_and_match_the_truth() {
     );
 }
 
-/// Writes a scan directory (scan.toml + .npy tiles) from the simulated stage.
-fn write_scan_dir(
-    dir: &Path,
-    rows: usize,
-    cols: usize,
-    tile_px: usize,
-) -> surfstream_replay::ScanPlan {
-    use surfstream_replay::*;
-    let stage = StageParams {
-        rows,
-        cols,
-        tile_px,
-        overlap: 0.2,
-        seed: 7,
-        ..Default::default()
-    };
-    let plan = plan_scan(&stage).unwrap();
-    let spec = generate_specimen(&plan.specimen_params(&SpecimenParams {
-        seed: 7,
-        ..Default::default()
-    }))
-    .unwrap();
-    let mut toml = format!(
-        "[scan]\nname = \"fixture\"\npitch_x_um = {p}\npitch_y_um = {p}\nheight_unit = \"um\"\nrows = {rows}\ncols = {cols}\n",
-        p = stage.pitch_um
-    );
-    for t in &plan.tiles {
-        let heights = acquire_tile(&spec, t, &stage);
-        let name = format!("tile_{:03}.npy", t.index);
-        surfstream_io::npy::write_npy_f32(dir.join(&name), &heights, tile_px, tile_px).unwrap();
-        toml += &format!(
-            "\n[[tile]]\nfile = \"{name}\"\nrow = {}\ncol = {}\nstage_x_um = {}\nstage_y_um = {}\n",
-            t.row, t.col, t.stage_position_um[0], t.stage_position_um[1]
-        );
-    }
-    std::fs::write(dir.join("scan.toml"), toml).unwrap();
-    let truth = truth_for(&plan);
-    std::fs::write(
-        dir.join("ground_truth.json"),
-        serde_json::to_string(&truth).unwrap(),
-    )
-    .unwrap();
-    plan
-}
-
 /// A simulated scan directory (`rows` x `cols` tiles of `tile_px`) in a fresh temp dir, whose
 /// tiles `prepare` may rewrite, stitched by `surfstream stitch ARGS`; returns the temp dir
 /// (holding `scan/` and `out/`) and run.json.
@@ -356,7 +311,7 @@ fn stitch_simulated_scan(
     let dir = tempfile::tempdir().unwrap();
     let scan = dir.path().join("scan");
     std::fs::create_dir(&scan).unwrap();
-    write_scan_dir(&scan, rows, cols, tile_px);
+    write_scan_dir(&scan, rows, cols, tile_px, Some("um"));
     prepare(&scan);
     let out_dir = dir.path().join("out");
     let out = run({
@@ -402,7 +357,7 @@ fn stitch_infers_the_scan_from_a_folder_and_the_grid() {
     let dir = tempfile::tempdir().unwrap();
     let scan = dir.path().join("scan");
     std::fs::create_dir(&scan).unwrap();
-    write_scan_dir(&scan, 2, 3, 256);
+    write_scan_dir(&scan, 2, 3, 256, Some("um"));
     std::fs::remove_file(scan.join("scan.toml")).unwrap();
     let truth = read_json(&scan.join("ground_truth.json"));
     let pitch = truth["pixel_pitch_um"]["x"].as_f64().unwrap().to_string();

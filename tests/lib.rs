@@ -126,3 +126,51 @@ pub fn shm_leftovers(domain: &str) -> Vec<String> {
         })
         .unwrap_or_default()
 }
+
+/// Writes a scan directory (scan.toml + .npy tiles + ground_truth.json) from the simulated
+/// stage; `height_unit: None` leaves `[scan] height_unit` out.
+pub fn write_scan_dir(
+    dir: &Path,
+    rows: usize,
+    cols: usize,
+    tile_px: usize,
+    height_unit: Option<&str>,
+) -> surfstream_replay::ScanPlan {
+    use surfstream_replay::*;
+    let stage = StageParams {
+        rows,
+        cols,
+        tile_px,
+        overlap: 0.2,
+        seed: 7,
+        ..Default::default()
+    };
+    let plan = plan_scan(&stage).unwrap();
+    let spec = generate_specimen(&plan.specimen_params(&SpecimenParams {
+        seed: 7,
+        ..Default::default()
+    }))
+    .unwrap();
+    let unit = height_unit.map_or(String::new(), |u| format!("height_unit = \"{u}\"\n"));
+    let mut toml = format!(
+        "[scan]\nname = \"fixture\"\npitch_x_um = {p}\npitch_y_um = {p}\n{unit}rows = {rows}\ncols = {cols}\n",
+        p = stage.pitch_um
+    );
+    for t in &plan.tiles {
+        let heights = acquire_tile(&spec, t, &stage);
+        let name = format!("tile_{:03}.npy", t.index);
+        surfstream_io::npy::write_npy_f32(dir.join(&name), &heights, tile_px, tile_px).unwrap();
+        toml += &format!(
+            "\n[[tile]]\nfile = \"{name}\"\nrow = {}\ncol = {}\nstage_x_um = {}\nstage_y_um = {}\n",
+            t.row, t.col, t.stage_position_um[0], t.stage_position_um[1]
+        );
+    }
+    std::fs::write(dir.join("scan.toml"), toml).unwrap();
+    let truth = truth_for(&plan);
+    std::fs::write(
+        dir.join("ground_truth.json"),
+        serde_json::to_string(&truth).unwrap(),
+    )
+    .unwrap();
+    plan
+}
