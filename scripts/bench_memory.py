@@ -4,7 +4,8 @@
 Runs `surfstream run|launch launch/graphs/demo.toml --set stage.pacing=fast --set
 stage.rows=R --set stage.cols=C --out OUT` under /usr/bin/time -v and samples /proc every
 50 ms meanwhile: the peak of the summed VmRSS of the whole process tree (under `launch` every
-node is its own process, so this is what the machine has to hold at once) and each process's
+node is its own process, so this is what the machine has to hold at once; shared-memory frames
+count in every process that maps them) and of its summed PSS (each shared page counted once) and each process's
 VmHWM (its own peak) by name. Prints one JSON line: the panorama size, the peaks, bytes per
 panorama pixel, wall time, the throughput of the scan (fields per second through the fusion),
 the time from the last tile to the final mesh, and the load average before and after (the
@@ -59,6 +60,19 @@ def status_kb(pid):
     return out
 
 
+def pss_kb(pid):
+    """Proportional set size: shared pages (the iceoryx2 frames every subscriber maps) are
+    split among the processes that map them, so the sum over the tree counts them once."""
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as f:
+            for line in f:
+                if line.startswith("Pss:"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return 0
+
+
 def loadavg():
     with open("/proc/loadavg") as f:
         return " ".join(f.read().split()[:3])
@@ -84,17 +98,19 @@ def main():
     load_before = loadavg()
     t0 = time.monotonic()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    peak_tree_kb, hwm = 0, {}
+    peak_tree_kb, peak_pss_kb, hwm = 0, 0, {}
     while proc.poll() is None:
-        total = 0
+        total, total_pss = 0, 0
         for pid in children_of(proc.pid):
             s = status_kb(pid)
             if not s or "VmRSS" not in s:
                 continue
             total += int(s["VmRSS"])
+            total_pss += pss_kb(pid)
             name = s["Name"]
             hwm[name] = max(hwm.get(name, 0), int(s.get("VmHWM", 0)))
         peak_tree_kb = max(peak_tree_kb, total)
+        peak_pss_kb = max(peak_pss_kb, total_pss)
         time.sleep(0.05)
     wall = time.monotonic() - t0
     err = proc.stderr.read()
@@ -112,6 +128,8 @@ def main():
         "panorama_px": px, "panorama": f'{pano["width_px"]}x{pano["height_px"]}',
         "peak_tree_rss_mb": round(peak_tree_kb / 1024, 1),
         "peak_tree_bytes_per_px": round(peak_tree_kb * 1024 / px, 2),
+        "peak_tree_pss_mb": round(peak_pss_kb / 1024, 1),
+        "peak_tree_pss_bytes_per_px": round(peak_pss_kb * 1024 / px, 2),
         "time_v_max_rss_mb": round(int(max_rss[0].split()[-1]) / 1024, 1) if max_rss else None,
         "process_hwm_mb": {k: round(v / 1024, 1) for k, v in sorted(hwm.items())},
         "run_json_peak_rss": run.get("peak_rss"),
