@@ -44,6 +44,7 @@ pub mod options;
 mod pool;
 mod select;
 mod separate;
+pub mod stream;
 mod wavelet;
 
 pub use dwt::{wavedec2, waverec2, Coeffs2, Details2, MAX_LEVEL};
@@ -62,6 +63,7 @@ pub use select::{
     Analysis, BaseChoice, BaseRmse, EnergyPoint, HeightStats, LevelChoice, PoolingBias,
 };
 pub use separate::{default_level, fill_invalid, separate, Separation, DEFAULT_LEVEL};
+pub use stream::{energy_curve_streamed, separate_streamed, StreamError, StreamOptions};
 pub use wavelet::{dwt_coeff_len, dwt_max_level, Mode, Wavelet};
 #[cfg(feature = "node")]
 pub mod node;

@@ -144,6 +144,21 @@ fn energy(v: &[f64]) -> f64 {
 /// The filled map minus the least-squares plane `a + b x + c y` of its valid pixels.
 fn levelled(heights: &[f32], rows: usize, cols: usize) -> Result<Vec<f64>> {
     let mut filled = fill_invalid(heights, rows, cols)?;
+    let (coef, cx, cy) = plane_coef(heights, rows, cols);
+    filled
+        .par_chunks_mut(cols)
+        .enumerate()
+        .for_each(|(r, row)| {
+            for (c, z) in row.iter_mut().enumerate() {
+                *z -= coef[0] + coef[1] * (c as f64 - cx) + coef[2] * (r as f64 - cy);
+            }
+        });
+    Ok(filled)
+}
+
+/// The least-squares plane of the valid pixels: `([a, b, c], cx, cy)` for
+/// `a + b (x - cx) + c (y - cy)`.
+pub(crate) fn plane_coef(heights: &[f32], rows: usize, cols: usize) -> ([f64; 3], f64, f64) {
     // Normal equations in centred coordinates (well conditioned for any map size).
     let (cx, cy) = ((cols as f64 - 1.0) / 2.0, (rows as f64 - 1.0) / 2.0);
     let mut m = Matrix3::<f64>::zeros();
@@ -161,15 +176,7 @@ fn levelled(heights: &[f32], rows: usize, cols: usize) -> Result<Vec<f64>> {
     // A single valid row or column leaves the plane undetermined: level by the mean instead.
     let coef = m.lu().solve(&v).filter(|s| s.iter().all(|x| x.is_finite()));
     let coef = coef.unwrap_or_else(|| Vector3::new(v[0] / m[(0, 0)].max(1.0), 0.0, 0.0));
-    filled
-        .par_chunks_mut(cols)
-        .enumerate()
-        .for_each(|(r, row)| {
-            for (c, z) in row.iter_mut().enumerate() {
-                *z -= coef[0] + coef[1] * (c as f64 - cx) + coef[2] * (r as f64 - cy);
-            }
-        });
-    Ok(filled)
+    ([coef[0], coef[1], coef[2]], cx, cy)
 }
 
 /// Height statistics of the valid pixels (ISO 25178 definitions, no levelling).
