@@ -245,7 +245,7 @@ impl NpyRowWriter {
                 if self.f64 { "float64" } else { "float32" }
             );
         }
-        if n % self.cols != 0 || self.rows_written + n / self.cols > self.rows {
+        if !n.is_multiple_of(self.cols) || self.rows_written + n / self.cols > self.rows {
             bail!(
                 "{}: {n} values are not whole rows of {} within the {} x {} array ({} rows written)",
                 self.path.display(),

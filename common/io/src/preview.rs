@@ -192,7 +192,7 @@ impl PreviewBuilder {
     /// The next whole rows of the map.
     pub fn push_rows(&mut self, heights: &[f32]) -> Result<()> {
         let cols = self.cols;
-        if heights.len() % cols != 0 || self.next_row + heights.len() / cols > self.rows {
+        if !heights.len().is_multiple_of(cols) || self.next_row + heights.len() / cols > self.rows {
             bail!(
                 "preview: {} values are not whole rows of {cols} within {} x {cols} ({} rows in)",
                 heights.len(),
@@ -222,7 +222,7 @@ impl PreviewBuilder {
                 }
             }
             self.next_row += 1;
-            if self.next_row % self.block == 0 || self.next_row == self.rows {
+            if self.next_row.is_multiple_of(self.block) || self.next_row == self.rows {
                 self.small
                     .extend(self.sum.iter().zip(&self.count).map(|(&s, &n)| {
                         if n > 0 {

@@ -50,7 +50,8 @@ mod wavelet;
 pub use dwt::{wavedec2, waverec2, Coeffs2, Details2, MAX_LEVEL};
 pub use error::{Result, WaveletError};
 pub use live::{
-    final_separation, FinalSeparation, LivePatches, LiveSeparation, SeparationSettings,
+    final_pass_streams, final_separation, final_separation_with, FinalRequest, FinalSeparation,
+    LivePatches, LiveSeparation, SeparationSettings,
 };
 pub use method::{
     equivalent_cutoff_um, filter_separation, level_lowered_warning, FilterSeparation,

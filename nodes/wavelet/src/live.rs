@@ -20,9 +20,12 @@ use surfstream_io::output::{NpyHeights, OutputWriter, SurfaceOutput};
 use surfstream_core::filter::Grid;
 
 use crate::method::{equivalent_cutoff_um, filter_separation, level_lowered_warning};
+use crate::select::SummaryParts;
+use crate::stream::StreamOptions;
 use crate::{
-    analyse, default_level, pool, pooling_bias, separate, BaseChoice, LevelChoice, Mode, PoolOp,
-    SeparationMethod, Wavelet, DEFAULT_LEVEL,
+    analyse, default_level, energy_curve_streamed, level_by_min_energy, pool, pooling_bias,
+    separate, separate_streamed, BaseChoice, LevelChoice, Mode, PoolOp, SeparationMethod, Wavelet,
+    DEFAULT_LEVEL,
 };
 
 /// Largest mirror the live pass keeps, px (as the fusion's canvas limit): a patch whose
@@ -309,29 +312,167 @@ impl LiveSeparation {
 /// What the final pass publishes (flag FINAL) and reports.
 #[derive(Debug, Clone)]
 pub struct FinalSeparation {
-    pub datum: HeightMap,
-    pub roughness: HeightMap,
+    /// Only when asked for ([`FinalRequest::publish_datum`]): a whole frame, built from the
+    /// rows as they stream.
+    pub datum: Option<HeightMap>,
+    pub roughness: Option<HeightMap>,
     pub pooled: HeightMap,
     /// The choices and the evidence ([`crate::Analysis::summary`]), the level asked for, the
     /// panorama's size and the files written.
     pub summary: serde_json::Value,
 }
 
+/// What the final pass should produce besides its summary and pooled map.
+#[derive(Debug)]
+pub struct FinalRequest<'a> {
+    /// Write `datum`, `roughness` and `pooled` (.npy + .png) here.
+    pub files: Option<&'a mut OutputWriter>,
+    /// Build the whole datum / roughness frames (a consumer is connected to the port).
+    pub publish_datum: bool,
+    pub publish_roughness: bool,
+    /// Bands and level stores of the streamed pass.
+    pub stream: StreamOptions,
+}
+
 /// How run.json and `separate.json` define the wavelet's equivalent cutoff.
 pub const CUTOFF_DEFINITION: &str = "wavelength at which the level's approximation passes 50 % amplitude: T(w) = prod_{k<level} |H(2^k w)|^2 / 2, H the decomposition low-pass, aliasing ignored (nodes/wavelet/src/method.rs)";
 
-/// The exact separation of the final panorama; with a writer, also `datum`, `roughness` and
-/// `pooled` as .npy + .png (datum and pooled absolute f64: they carry the panorama's offset;
-/// roughness relative f32: it has none by nature).
+/// [`final_separation_with`] building both frames, level stores beside the files.
 pub fn final_separation(
     settings: &SeparationSettings,
     panorama: &HeightMap,
     files: Option<&mut OutputWriter>,
 ) -> Result<FinalSeparation> {
+    let stream = StreamOptions {
+        spill_dir: files.as_ref().map(|w| w.dir().to_path_buf()),
+        ..StreamOptions::default()
+    };
+    final_separation_with(
+        settings,
+        panorama,
+        FinalRequest {
+            files,
+            publish_datum: true,
+            publish_roughness: true,
+            stream,
+        },
+    )
+}
+
+/// Whether the final pass streams ([`crate::separate_streamed`]): a named wavelet at a fixed
+/// or the default level. Choosing the base by RMSE (every base over the whole map), the level
+/// by minimum energy, and the ISO filter methods (FFT) keep the in-memory path.
+pub fn final_pass_streams(settings: &SeparationSettings) -> bool {
+    matches!(settings.method, SeparationMethod::Wavelet)
+        && matches!(settings.base, BaseChoice::Named(_))
+        && matches!(settings.level, LevelChoice::Fixed(_) | LevelChoice::Default)
+}
+
+/// The exact separation of the final panorama; with a writer, also `datum`, `roughness` and
+/// `pooled` as .npy + .png (datum and pooled absolute f64: they carry the panorama's offset;
+/// roughness relative f32: it has none by nature). A named wavelet at a fixed / default
+/// level streams ([`final_pass_streams`]): memory is a band of rows plus the panorama, and
+/// the datum / roughness frames are built only when asked for.
+pub fn final_separation_with(
+    settings: &SeparationSettings,
+    panorama: &HeightMap,
+    req: FinalRequest<'_>,
+) -> Result<FinalSeparation> {
     let h = panorama.header;
     let (rows, cols) = (h.height as usize, h.width as usize);
-    let (datum, roughness, pooled, mut summary, title) = match settings.method {
-        SeparationMethod::Wavelet => {
+    let FinalRequest {
+        mut files,
+        publish_datum,
+        publish_roughness,
+        stream,
+    } = req;
+    let mut written = Vec::new();
+    let (datum, roughness, pooled, mut summary) = match (settings.method, settings.base) {
+        (SeparationMethod::Wavelet, BaseChoice::Named(w)) if final_pass_streams(settings) => {
+            let heights = &panorama.heights;
+            if heights.len() != rows * cols {
+                bail!(
+                    "wavelet: panorama frame holds {} heights, its header says {rows} x {cols}",
+                    heights.len()
+                );
+            }
+            let requested = settings.fixed_level();
+            let level = default_level(rows, cols, &w, requested)?;
+            let curve = energy_curve_streamed(heights, rows, cols, &w, settings.mode, &stream)?;
+            let pooled = pool(heights, rows, cols, settings.pool_block, settings.pool_op)?;
+            let mut summary = SummaryParts {
+                wavelet: &w,
+                mode: settings.mode,
+                level,
+                level_min_energy: level_by_min_energy(&curve),
+                energy_curve: &curve,
+                base_rmse: None,
+                pool_block: settings.pool_block,
+                pool_op: settings.pool_op,
+                pooled_px: [pooled.cols, pooled.rows],
+                pooling_bias: pooling_bias(heights, &pooled.heights),
+            }
+            .json();
+            add_wavelet_notes(&mut summary, settings, &w, level, &h);
+            let title = datum_title(&w, level);
+            let mut out = match files.as_deref() {
+                Some(fw) => Some((
+                    fw.begin_surface(
+                        "datum",
+                        rows,
+                        cols,
+                        h.z_offset_um,
+                        NpyHeights::AbsoluteF64,
+                        &title,
+                    )?,
+                    fw.begin_surface(
+                        "roughness",
+                        rows,
+                        cols,
+                        h.z_offset_um,
+                        NpyHeights::RelativeF32,
+                        ROUGHNESS_TITLE,
+                    )?,
+                )),
+                None => None,
+            };
+            let mut datum = Vec::new();
+            let mut roughness = Vec::new();
+            separate_streamed(
+                heights,
+                rows,
+                cols,
+                &w,
+                settings.mode,
+                Some(level),
+                &stream,
+                |_, d, r| {
+                    if let Some((ds, rs)) = out.as_mut() {
+                        ds.push_rows(d)?;
+                        rs.push_rows(r)?;
+                    }
+                    if publish_datum {
+                        datum.extend_from_slice(d);
+                    }
+                    if publish_roughness {
+                        roughness.extend_from_slice(r);
+                    }
+                    Ok(())
+                },
+            )
+            .map_err(|e| anyhow!("wavelet: streamed separation: {e}"))?;
+            if let (Some(fw), Some((ds, rs))) = (files.as_deref_mut(), out) {
+                fw.finish_surface(ds)?;
+                fw.finish_surface(rs)?;
+            }
+            (
+                publish_datum.then_some(datum),
+                publish_roughness.then_some(roughness),
+                pooled,
+                summary,
+            )
+        }
+        (SeparationMethod::Wavelet, _) => {
             let analysis = analyse(
                 &panorama.heights,
                 rows,
@@ -345,39 +486,19 @@ pub fn final_separation(
             let mut summary = analysis.summary();
             let level = analysis.separation.level;
             let w = analysis.wavelet;
-            if let Some(o) = summary.as_object_mut() {
-                o.insert("method".into(), json!("wavelet"));
-                o.insert(
-                    "equivalent_cutoff_um".into(),
-                    json!(equivalent_cutoff_um(&w, level, h.pitch_x_um)),
-                );
-                if h.pitch_y_um != h.pitch_x_um {
-                    o.insert(
-                        "equivalent_cutoff_y_um".into(),
-                        json!(equivalent_cutoff_um(&w, level, h.pitch_y_um)),
-                    );
-                }
-                o.insert(
-                    "equivalent_cutoff_definition".into(),
-                    json!(CUTOFF_DEFINITION),
-                );
-                let requested = match settings.level {
-                    LevelChoice::Fixed(l) => Some(l),
-                    LevelChoice::Default => Some(DEFAULT_LEVEL),
-                    LevelChoice::MinEnergy => None,
-                };
-                if let Some(warning) =
-                    requested.and_then(|r| level_lowered_warning(&w, r, level, h.pitch_x_um))
-                {
-                    eprintln!("wavelet: {warning}");
-                    o.insert("warning".into(), json!(warning));
-                }
-            }
-            let title = format!("datum, {} level {level} (um)", w.name());
+            add_wavelet_notes(&mut summary, settings, &w, level, &h);
             let sep = analysis.separation;
-            (sep.datum, sep.roughness, analysis.pooled, summary, title)
+            if let Some(fw) = files.as_deref_mut() {
+                write_pair(fw, &sep.datum, &sep.roughness, &datum_title(&w, level), &h)?;
+            }
+            (
+                publish_datum.then_some(sep.datum),
+                publish_roughness.then_some(sep.roughness),
+                analysis.pooled,
+                summary,
+            )
         }
-        method => {
+        (method, _) => {
             let grid = Grid {
                 rows,
                 cols,
@@ -407,52 +528,34 @@ pub fn final_separation(
                 "pooling_bias": pooling_bias(&panorama.heights, &pooled.heights),
             });
             let title = format!("datum, {} lambda_c {cutoff} um (um)", method.name());
-            (s.datum, s.roughness, pooled, summary, title)
+            if let Some(fw) = files.as_deref_mut() {
+                write_pair(fw, &s.datum, &s.roughness, &title, &h)?;
+            }
+            (
+                publish_datum.then_some(s.datum),
+                publish_roughness.then_some(s.roughness),
+                pooled,
+                summary,
+            )
         }
     };
-    let shape = Shape::new(rows, cols);
-    let pooled_shape = Shape::new(pooled.rows, pooled.cols);
-    let mut written = Vec::new();
-    if let Some(w) = files {
+    if let Some(fw) = files {
         let block = settings.pool_block;
-        for (name, values, shape, npy, title) in [
-            (
-                "datum",
-                &datum,
-                shape,
-                NpyHeights::AbsoluteF64,
-                title.clone(),
-            ),
-            (
-                "roughness",
-                &roughness,
-                shape,
-                NpyHeights::RelativeF32,
-                "roughness (um)".to_string(),
-            ),
-            (
-                "pooled",
-                &pooled.heights,
-                pooled_shape,
-                NpyHeights::AbsoluteF64,
-                format!("pooled {block}x{block} (um)"),
-            ),
-        ] {
-            w.write_surface(&SurfaceOutput {
-                name,
-                heights: RasterView::new(values, shape)?,
-                z_offset_um: h.z_offset_um,
-                npy,
-                title: &title,
-                x3p_pitch_um: None,
-            })?;
-        }
-        written = w.files().to_vec();
+        fw.write_surface(&SurfaceOutput {
+            name: "pooled",
+            heights: RasterView::new(&pooled.heights, Shape::new(pooled.rows, pooled.cols))?,
+            z_offset_um: h.z_offset_um,
+            npy: NpyHeights::AbsoluteF64,
+            title: &format!("pooled {block}x{block} (um)"),
+            x3p_pitch_um: None,
+        })?;
+        written = fw.files().to_vec();
     }
     if let Some(o) = summary.as_object_mut() {
         o.insert("level_requested".into(), json!(settings.fixed_level()));
         o.insert("panorama_px".into(), json!([cols, rows]));
         o.insert("files".into(), json!(written));
+        o.insert("streamed".into(), json!(final_pass_streams(settings)));
     }
     let header = |kind: FrameKind| FrameHeader {
         kind: kind as u32,
@@ -465,20 +568,94 @@ pub fn final_separation(
     pooled_header.pitch_x_um *= settings.pool_block as f64;
     pooled_header.pitch_y_um *= settings.pool_block as f64;
     Ok(FinalSeparation {
-        datum: HeightMap {
+        datum: datum.map(|heights| HeightMap {
             header: header(FrameKind::Datum),
-            heights: datum,
-        },
-        roughness: HeightMap {
+            heights,
+        }),
+        roughness: roughness.map(|heights| HeightMap {
             header: header(FrameKind::Roughness),
-            heights: roughness,
-        },
+            heights,
+        }),
         pooled: HeightMap {
             header: pooled_header,
             heights: pooled.heights,
         },
         summary,
     })
+}
+
+const ROUGHNESS_TITLE: &str = "roughness (um)";
+
+fn datum_title(w: &Wavelet, level: usize) -> String {
+    format!("datum, {} level {level} (um)", w.name())
+}
+
+/// Whole datum and roughness maps (the in-memory paths) as .npy + .png.
+fn write_pair(
+    fw: &mut OutputWriter,
+    datum: &[f32],
+    roughness: &[f32],
+    title: &str,
+    h: &FrameHeader,
+) -> Result<()> {
+    let shape = Shape::new(h.height as usize, h.width as usize);
+    for (name, values, npy, title) in [
+        ("datum", datum, NpyHeights::AbsoluteF64, title),
+        (
+            "roughness",
+            roughness,
+            NpyHeights::RelativeF32,
+            ROUGHNESS_TITLE,
+        ),
+    ] {
+        fw.write_surface(&SurfaceOutput {
+            name,
+            heights: RasterView::new(values, shape)?,
+            z_offset_um: h.z_offset_um,
+            npy,
+            title,
+            x3p_pitch_um: None,
+        })?;
+    }
+    Ok(())
+}
+
+/// The wavelet's method, equivalent cutoff and, when the level asked for was lowered, why.
+fn add_wavelet_notes(
+    summary: &mut serde_json::Value,
+    settings: &SeparationSettings,
+    w: &Wavelet,
+    level: usize,
+    h: &FrameHeader,
+) {
+    let Some(o) = summary.as_object_mut() else {
+        return;
+    };
+    o.insert("method".into(), json!("wavelet"));
+    o.insert(
+        "equivalent_cutoff_um".into(),
+        json!(equivalent_cutoff_um(w, level, h.pitch_x_um)),
+    );
+    if h.pitch_y_um != h.pitch_x_um {
+        o.insert(
+            "equivalent_cutoff_y_um".into(),
+            json!(equivalent_cutoff_um(w, level, h.pitch_y_um)),
+        );
+    }
+    o.insert(
+        "equivalent_cutoff_definition".into(),
+        json!(CUTOFF_DEFINITION),
+    );
+    let requested = match settings.level {
+        LevelChoice::Fixed(l) => Some(l),
+        LevelChoice::Default => Some(DEFAULT_LEVEL),
+        LevelChoice::MinEnergy => None,
+    };
+    if let Some(warning) = requested.and_then(|r| level_lowered_warning(w, r, level, h.pitch_x_um))
+    {
+        eprintln!("wavelet: {warning}");
+        o.insert("warning".into(), json!(warning));
+    }
 }
 
 #[cfg(test)]
@@ -611,13 +788,8 @@ mod tests {
         let f = final_separation(&s, &pano, None).unwrap();
         assert_eq!(f.summary["method"], "gaussian");
         assert_eq!(f.summary["cutoff_um"], 8.0);
-        for ((d, r), h) in f
-            .datum
-            .heights
-            .iter()
-            .zip(&f.roughness.heights)
-            .zip(&pano.heights)
-        {
+        let (fd, fr) = (f.datum.unwrap(), f.roughness.unwrap());
+        for ((d, r), h) in fd.heights.iter().zip(&fr.heights).zip(&pano.heights) {
             assert!((d + r - h).abs() < 1e-5);
         }
         // The wavelet: db2 level 2 at 0.5 um is 8 pitches (4 um), reported with a warning
@@ -653,9 +825,10 @@ mod tests {
             PoolOp::Max,
         )
         .unwrap();
-        assert_eq!(f.datum.heights, batch.separation.datum);
+        let datum_frame = f.datum.as_ref().unwrap();
+        assert_eq!(datum_frame.heights, batch.separation.datum);
         assert_eq!(f.pooled.heights, batch.pooled.heights);
-        assert!(f.datum.header.has(flags::FINAL));
+        assert!(datum_frame.header.has(flags::FINAL));
         assert_eq!(
             (f.pooled.header.width, f.pooled.header.pitch_x_um),
             (12, 2.0)
@@ -663,6 +836,139 @@ mod tests {
         assert_eq!(f.summary["files"].as_array().unwrap().len(), 6);
         assert_eq!(f.summary["level_requested"], 2);
         let datum = surfstream_io::npy::read_npy_f64(dir.path().join("datum.npy")).unwrap();
-        assert_eq!(datum.data[0], f64::from(f.datum.heights[0]) + 100.0);
+        assert_eq!(datum.data[0], f64::from(datum_frame.heights[0]) + 100.0);
+    }
+
+    /// A demo-size panorama (a 3x3 scan of 1024^2 tiles is ~2.8k px a side; this is a
+    /// quarter of that area) with holes: rows at the top, middle and bottom, scattered pixels.
+    fn demo_panorama(rows: u32, cols: u32) -> HeightMap {
+        let mut pano = patch(0, 0, cols, rows, |x, y| {
+            let (xf, yf) = (x as f32, y as f32);
+            3.0 + 0.001 * xf - 0.0005 * yf
+                + (0.01 * xf).sin()
+                + 0.2 * (0.3 * yf).cos()
+                + ((x * 7919 + y * 104_729) % 97) as f32 * 1e-3
+        });
+        pano.header.kind = FrameKind::Panorama as u32;
+        pano.header.z_offset_um = 1234.5;
+        let c = cols as usize;
+        for r in [0usize, 1, rows as usize / 2, rows as usize - 1] {
+            pano.heights[r * c..(r + 1) * c].fill(f32::NAN);
+        }
+        for i in (3..pano.heights.len()).step_by(1009) {
+            pano.heights[i] = f32::NAN;
+        }
+        pano
+    }
+
+    #[test]
+    fn streamed_final_files_are_byte_identical_to_the_in_memory_ones() {
+        let (rows, cols) = (1401u32, 1400u32);
+        let pano = demo_panorama(rows, cols);
+        let mut s = settings();
+        s.base = BaseChoice::Named(Wavelet::by_name("sym5").unwrap());
+        s.level = LevelChoice::Default;
+        assert!(final_pass_streams(&s));
+        for mode in [Mode::Symmetric, Mode::Periodization] {
+            s.mode = mode;
+            let dir = tempfile::tempdir().unwrap();
+            let (a, b) = (dir.path().join("streamed"), dir.path().join("reference"));
+            std::fs::create_dir_all(&a).unwrap();
+            std::fs::create_dir_all(&b).unwrap();
+            let mut wa = OutputWriter::new(&a);
+            let f = final_separation(&s, &pano, Some(&mut wa)).unwrap();
+            assert_eq!(f.summary["streamed"], true);
+            // What the node wrote before streaming: analyse(), then whole-map writers.
+            let (r, c) = (rows as usize, cols as usize);
+            let batch =
+                analyse(&pano.heights, r, c, s.base, s.level, mode, 4, PoolOp::Max).unwrap();
+            let mut wb = OutputWriter::new(&b);
+            let level = batch.separation.level;
+            write_pair(
+                &mut wb,
+                &batch.separation.datum,
+                &batch.separation.roughness,
+                &format!("datum, sym5 level {level} (um)"),
+                &pano.header,
+            )
+            .unwrap();
+            wb.write_surface(&SurfaceOutput {
+                name: "pooled",
+                heights: RasterView::new(
+                    &batch.pooled.heights,
+                    Shape::new(batch.pooled.rows, batch.pooled.cols),
+                )
+                .unwrap(),
+                z_offset_um: pano.header.z_offset_um,
+                npy: NpyHeights::AbsoluteF64,
+                title: "pooled 4x4 (um)",
+                x3p_pitch_um: None,
+            })
+            .unwrap();
+            assert_eq!(wa.files(), wb.files());
+            assert_eq!(wa.files().len(), 6);
+            for name in wb.files() {
+                let x = std::fs::read(a.join(name)).unwrap();
+                let y = std::fs::read(b.join(name)).unwrap();
+                assert!(x == y, "{mode}: {name} differs");
+            }
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert!(bits(&f.datum.unwrap().heights) == bits(&batch.separation.datum));
+            assert!(bits(&f.roughness.unwrap().heights) == bits(&batch.separation.roughness));
+            // The summary: the same choices; the energy curve to round-off.
+            let reference = batch.summary();
+            for key in [
+                "wavelet",
+                "mode",
+                "level",
+                "level_min_energy",
+                "pooled_px",
+                "pooling_bias",
+            ] {
+                assert_eq!(f.summary[key], reference[key], "{key}");
+            }
+            let (ea, eb) = (&f.summary["energy_curve"], &reference["energy_curve"]);
+            assert_eq!(ea.as_array().unwrap().len(), eb.as_array().unwrap().len());
+            for (p, q) in ea.as_array().unwrap().iter().zip(eb.as_array().unwrap()) {
+                let (x, y) = (
+                    p["approx_energy_fraction"].as_f64().unwrap(),
+                    q["approx_energy_fraction"].as_f64().unwrap(),
+                );
+                assert!((x - y).abs() <= 1e-12 * x.abs(), "{x} vs {y}");
+            }
+        }
+    }
+
+    #[test]
+    fn frames_only_when_asked_and_other_choices_stay_in_memory() {
+        let pano = demo_panorama(120, 90);
+        let dir = tempfile::tempdir().unwrap();
+        let mut w = OutputWriter::new(dir.path());
+        let f = final_separation_with(
+            &settings(),
+            &pano,
+            FinalRequest {
+                files: Some(&mut w),
+                publish_datum: false,
+                publish_roughness: true,
+                stream: StreamOptions::default(),
+            },
+        )
+        .unwrap();
+        assert!(f.datum.is_none());
+        assert_eq!(f.roughness.unwrap().heights.len(), 120 * 90);
+        assert_eq!(f.summary["files"].as_array().unwrap().len(), 6);
+        assert!(dir.path().join("datum.npy").exists());
+        let mut s = settings();
+        s.level = LevelChoice::MinEnergy;
+        assert!(!final_pass_streams(&s));
+        let f = final_separation(&s, &pano, None).unwrap();
+        assert_eq!(f.summary["streamed"], false);
+        s = settings();
+        s.base = BaseChoice::MinRmse;
+        assert!(!final_pass_streams(&s));
+        s = settings();
+        s.method = SeparationMethod::Gaussian { cutoff_um: 8.0 };
+        assert!(!final_pass_streams(&s));
     }
 }

@@ -329,10 +329,43 @@ pub fn analyse(
 impl Analysis {
     /// The choices and the evidence, for run.json and the `separate` summary.
     pub fn summary(&self) -> serde_json::Value {
+        SummaryParts {
+            wavelet: &self.wavelet,
+            mode: self.mode,
+            level: self.separation.level,
+            level_min_energy: self.level_min_energy,
+            energy_curve: &self.energy_curve,
+            base_rmse: self.base_rmse.as_deref(),
+            pool_block: self.pool_block,
+            pool_op: self.pool_op,
+            pooled_px: [self.pooled.cols, self.pooled.rows],
+            pooling_bias: self.pooling_bias,
+        }
+        .json()
+    }
+}
+
+/// What [`Analysis::summary`] reports, for the streamed final pass that has no [`Analysis`].
+pub(crate) struct SummaryParts<'a> {
+    pub wavelet: &'a Wavelet,
+    pub mode: Mode,
+    pub level: usize,
+    pub level_min_energy: Option<usize>,
+    pub energy_curve: &'a [EnergyPoint],
+    pub base_rmse: Option<&'a [BaseRmse]>,
+    pub pool_block: usize,
+    pub pool_op: crate::PoolOp,
+    /// (cols, rows).
+    pub pooled_px: [usize; 2],
+    pub pooling_bias: Option<PoolingBias>,
+}
+
+impl SummaryParts<'_> {
+    pub(crate) fn json(&self) -> serde_json::Value {
         serde_json::json!({
             "wavelet": self.wavelet.name(),
             "mode": self.mode.name(),
-            "level": self.separation.level,
+            "level": self.level,
             "level_min_energy": self.level_min_energy,
             "energy_curve": self.energy_curve,
             "energy_curve_note": "approximation energy / total energy per level, after filling holes and removing the least-squares plane (paper Fig. 13)",
@@ -340,7 +373,7 @@ impl Analysis {
             "base_rmse_note": self.base_rmse.as_ref().map(|_| "eq. 10: every base is orthogonal, so this RMSE is floating-point round-off, not a measure of fit"),
             "pool": self.pool_block,
             "pool_op": self.pool_op.name(),
-            "pooled_px": [self.pooled.cols, self.pooled.rows],
+            "pooled_px": self.pooled_px,
             "pooling_bias": self.pooling_bias,
         })
     }

@@ -388,6 +388,8 @@ fn too_short(a: &LevelStore) -> WaveletError {
 /// [`crate::separate`], streamed: the datum and roughness rows go to `sink(first_row, datum,
 /// roughness)` band by band, top to bottom (whole rows of `cols` values each), bit-identical
 /// to [`crate::separate`]'s. Returns the level used.
+// separate()'s arguments plus the stream options and the sink.
+#[allow(clippy::too_many_arguments)]
 pub fn separate_streamed(
     heights: &[f32],
     rows: usize,
