@@ -9,6 +9,11 @@
 //! so live patches are approximations by construction.
 //! Final: [`final_separation`] is the exact pass over the whole final panorama, identical to
 //! the batch computation ([`crate::analyse`]), flagged FINAL and optionally written to files.
+//! For a named wavelet at a fixed or the default level (the demo and every graph in
+//! launch/graphs) it streams ([`crate::stream`]): datum and roughness are computed band by
+//! band, written row by row (.npy and .png byte-identical to the whole-map writers), and
+//! built as whole frames only when a consumer is wired to the port. Base by RMSE, level by
+//! minimum energy and the ISO filter methods (FFT over the whole map) keep the in-memory path.
 
 use anyhow::{anyhow, bail, Result};
 use serde_json::json;
@@ -24,7 +29,7 @@ use crate::select::SummaryParts;
 use crate::stream::StreamOptions;
 use crate::{
     analyse, default_level, energy_curve_streamed, level_by_min_energy, pool, pooling_bias,
-    separate, separate_streamed, BaseChoice, LevelChoice, Mode, PoolOp, SeparationMethod, Wavelet,
+    separate_streamed, BaseChoice, LevelChoice, Mode, PoolOp, SeparationMethod, Wavelet,
     DEFAULT_LEVEL,
 };
 
@@ -187,6 +192,14 @@ impl LiveSeparation {
         })
     }
 
+    /// Frees the mirror (a whole f32 copy of the panorama) once the final panorama is here
+    /// and its live patches are out: the final pass must not hold it too.
+    pub fn release_mirror(&mut self) {
+        self.mirror = None;
+        self.dirty = None;
+        self.trace = None;
+    }
+
     /// Folds a panorama patch into the mirror and marks its region changed.
     pub fn apply_patch(&mut self, header: &FrameHeader, heights: &[f32]) -> Result<()> {
         let m = self
@@ -234,12 +247,48 @@ impl LiveSeparation {
             return Ok(None);
         }
         let (rows, cols) = (window.rows(), window.cols());
+        // Only the changed region is published: the window's margin is context.
+        let (dx, dy) = (
+            (dirty.x0 - window.x0) as usize,
+            (dirty.y0 - window.y0) as usize,
+        );
+        let (w, h) = (dirty.cols(), dirty.rows());
+        let crop = |v: &[f32]| -> Vec<f32> {
+            let mut c = Vec::with_capacity(w * h);
+            for row in 0..h {
+                let at = (row + dy) * cols + dx;
+                c.extend_from_slice(&v[at..at + w]);
+            }
+            c
+        };
         let sep = if self.method == SeparationMethod::Wavelet {
             let Ok(level) = default_level(rows, cols, &self.wavelet, self.level) else {
                 return Ok(None);
             };
-            let s = separate(&heights, rows, cols, &self.wavelet, self.mode, Some(level))?;
-            (s.datum, s.roughness)
+            // Streamed, cropping rows as they come: the same bits as `separate`, without the
+            // window's f64 copies (a window can be most of the panorama under load).
+            let (mut d, mut r) = (Vec::with_capacity(w * h), Vec::with_capacity(w * h));
+            separate_streamed(
+                &heights,
+                rows,
+                cols,
+                &self.wavelet,
+                self.mode,
+                Some(level),
+                &StreamOptions::default(),
+                |r0, d_band, r_band| {
+                    let rows_in = d_band.chunks_exact(cols).zip(r_band.chunks_exact(cols));
+                    for (i, (d_row, r_row)) in rows_in.enumerate() {
+                        if (dy..dy + h).contains(&(r0 + i)) {
+                            d.extend_from_slice(&d_row[dx..dx + w]);
+                            r.extend_from_slice(&r_row[dx..dx + w]);
+                        }
+                    }
+                    Ok(())
+                },
+            )
+            .map_err(|e| anyhow!("wavelet: live separation: {e}"))?;
+            (d, r)
         } else {
             let grid = Grid {
                 rows,
@@ -249,20 +298,7 @@ impl LiveSeparation {
             };
             let s = filter_separation(&heights, grid, self.method, self.lambda_s_um)
                 .map_err(|e| anyhow!("wavelet: live {} separation: {e}", self.method.name()))?;
-            (s.datum, s.roughness)
-        };
-        let crop = |v: &[f32]| -> Vec<f32> {
-            let (dx, dy) = (
-                (dirty.x0 - window.x0) as usize,
-                (dirty.y0 - window.y0) as usize,
-            );
-            let w = dirty.cols();
-            let mut c = Vec::with_capacity(w * dirty.rows());
-            for row in 0..dirty.rows() {
-                let at = (row + dy) * cols + dx;
-                c.extend_from_slice(&v[at..at + w]);
-            }
-            c
+            (crop(&s.datum), crop(&s.roughness))
         };
         let stamp = |mut h: FrameHeader| {
             h.flags |= flags::PREVIEW;
@@ -272,11 +308,11 @@ impl LiveSeparation {
         };
         let datum = HeightMap {
             header: stamp(m.header_for(dirty, FrameKind::Datum, 1)),
-            heights: crop(&sep.0),
+            heights: sep.0,
         };
         let roughness = HeightMap {
             header: stamp(m.header_for(dirty, FrameKind::Roughness, 1)),
-            heights: crop(&sep.1),
+            heights: sep.1,
         };
         // Pooled blocks stay aligned to the mirror's grid so live patches tile seamlessly.
         let pooled = match m
@@ -776,6 +812,11 @@ mod tests {
         let pooled = p.pooled.expect("pooled patch");
         assert_eq!(pooled.header.pitch_x_um, 2.0);
         assert_eq!((pooled.header.width, pooled.header.height), (18, 8));
+        assert!(live.live_pass().unwrap().is_none());
+        let c = patch(0, 40, 40, 30, surface);
+        live.apply_patch(&c.header, &c.heights).unwrap();
+        live.release_mirror();
+        assert!(!live.has_changes());
         assert!(live.live_pass().unwrap().is_none());
     }
 

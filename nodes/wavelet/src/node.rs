@@ -95,6 +95,7 @@ impl NodeLogic for WaveletNode {
                 .final_panorama
                 .take()
                 .ok_or_else(|| anyhow!("wavelet: end of scan without a final panorama"))?;
+            self.live.release_mirror();
             let request = FinalRequest {
                 files: self.files.as_mut(),
                 publish_datum: self.publish_datum,

@@ -53,7 +53,7 @@ impl Default for StreamOptions {
     fn default() -> Self {
         Self {
             band_rows: None,
-            memory_store_max_bytes: 32 << 20,
+            memory_store_max_bytes: 8 << 20,
             spill_dir: None,
         }
     }
