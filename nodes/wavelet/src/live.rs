@@ -2,7 +2,7 @@
 //! live pass publishes, what the final pass computes and writes.
 //!
 //! Live: [`LiveSeparation::apply_patch`] copies each arrived panorama patch into a mirror of
-//! the panorama (a [`GrowingCanvas`], cheap), and [`LiveSeparation::live_pass`] separates once
+//! the panorama (fixed-size chunks, cheap), and [`LiveSeparation::live_pass`] separates once
 //! over the region changed since the last pass plus a margin, at the level that window
 //! supports, giving datum / roughness / pooled patches flagged PREVIEW. The work is bounded by
 //! the window, not the panorama. A level-8 sym5 datum depends on ~2300 px around each pixel,
@@ -17,7 +17,7 @@
 
 use anyhow::{anyhow, bail, Result};
 use serde_json::json;
-use surfstream_core::canvas::{GridRect, GrowingCanvas};
+use surfstream_core::canvas::GridRect;
 use surfstream_core::frame::{flags, FrameHeader, FrameKind, HeightMap};
 use surfstream_core::raster::{RasterView, Shape};
 use surfstream_io::output::{NpyHeights, OutputWriter, SurfaceOutput};
@@ -79,7 +79,85 @@ struct PanoramaMirror {
     z_offset_um: f64,
     /// What patches have covered so far.
     extent: Option<GridRect>,
-    heights: GrowingCanvas<f32>,
+    heights: ChunkedHeights,
+}
+
+/// Side of a mirror chunk, px.
+const MIRROR_CHUNK: i64 = 256;
+
+/// Heights on an unbounded grid in fixed `MIRROR_CHUNK`² chunks created as patches cover them:
+/// memory follows the covered area (about 4 B/px), and growing never copies (a growing
+/// array would hold up to ~2.25x the area, and old + new while it reallocates).
+#[derive(Debug, Clone, Default)]
+struct ChunkedHeights {
+    chunks: std::collections::HashMap<(i64, i64), Box<[f32]>>,
+}
+
+impl ChunkedHeights {
+    /// The chunks `rect` touches, with the part of `rect` inside each.
+    fn pieces(rect: GridRect) -> impl Iterator<Item = ((i64, i64), GridRect)> {
+        let (cy0, cy1) = (
+            rect.y0.div_euclid(MIRROR_CHUNK),
+            (rect.y1 - 1).div_euclid(MIRROR_CHUNK),
+        );
+        let (cx0, cx1) = (
+            rect.x0.div_euclid(MIRROR_CHUNK),
+            (rect.x1 - 1).div_euclid(MIRROR_CHUNK),
+        );
+        (cy0..=cy1).flat_map(move |cy| {
+            (cx0..=cx1).filter_map(move |cx| {
+                let chunk = GridRect {
+                    x0: cx * MIRROR_CHUNK,
+                    y0: cy * MIRROR_CHUNK,
+                    x1: (cx + 1) * MIRROR_CHUNK,
+                    y1: (cy + 1) * MIRROR_CHUNK,
+                };
+                chunk.intersect(&rect).map(|part| ((cx, cy), part))
+            })
+        })
+    }
+
+    /// Copies row-major `values` (`rect`'s size, checked by the caller) into `rect`.
+    fn write(&mut self, rect: GridRect, values: &[f32]) {
+        if rect.cols() == 0 || rect.rows() == 0 {
+            return;
+        }
+        let w = rect.cols();
+        for ((cx, cy), part) in Self::pieces(rect) {
+            let chunk = self.chunks.entry((cx, cy)).or_insert_with(|| {
+                vec![f32::NAN; (MIRROR_CHUNK * MIRROR_CHUNK) as usize].into_boxed_slice()
+            });
+            let n = part.cols();
+            for y in part.y0..part.y1 {
+                let src = (y - rect.y0) as usize * w + (part.x0 - rect.x0) as usize;
+                let dst =
+                    ((y - cy * MIRROR_CHUNK) * MIRROR_CHUNK + part.x0 - cx * MIRROR_CHUNK) as usize;
+                chunk[dst..dst + n].copy_from_slice(&values[src..src + n]);
+            }
+        }
+    }
+
+    /// The heights in `rect`, row-major; NaN where no patch wrote.
+    fn read(&self, rect: GridRect) -> Vec<f32> {
+        let w = rect.cols();
+        let mut out = vec![f32::NAN; w * rect.rows()];
+        if out.is_empty() {
+            return out;
+        }
+        for ((cx, cy), part) in Self::pieces(rect) {
+            let Some(chunk) = self.chunks.get(&(cx, cy)) else {
+                continue;
+            };
+            let n = part.cols();
+            for y in part.y0..part.y1 {
+                let dst = (y - rect.y0) as usize * w + (part.x0 - rect.x0) as usize;
+                let src =
+                    ((y - cy * MIRROR_CHUNK) * MIRROR_CHUNK + part.x0 - cx * MIRROR_CHUNK) as usize;
+                out[dst..dst + n].copy_from_slice(&chunk[src..src + n]);
+            }
+        }
+        out
+    }
 }
 
 impl PanoramaMirror {
@@ -89,7 +167,7 @@ impl PanoramaMirror {
             pitch_um: [h.pitch_x_um, h.pitch_y_um],
             z_offset_um: h.z_offset_um,
             extent: None,
-            heights: GrowingCanvas::new(f32::NAN),
+            heights: ChunkedHeights::default(),
         }
     }
 
@@ -124,9 +202,16 @@ impl PanoramaMirror {
                 h.sequence
             );
         }
-        self.heights
-            .write(r, heights)
-            .map_err(|e| anyhow!("wavelet: panorama patch {}: {e}", h.sequence))?;
+        if heights.len() != r.cols() * r.rows() || heights.is_empty() {
+            bail!(
+                "wavelet: panorama patch {} holds {} heights, its header says {} x {}",
+                h.sequence,
+                heights.len(),
+                h.height,
+                h.width
+            );
+        }
+        self.heights.write(r, heights);
         self.extent = Some(extent);
         Ok(r)
     }
@@ -755,7 +840,6 @@ mod tests {
                 y1: 8
             }
         );
-        assert!(m.heights.rect().contains(&extent));
         assert_eq!(
             m.heights.read(GridRect {
                 x0: 0,
@@ -772,6 +856,32 @@ mod tests {
             y1: -3
         })[0]
             .is_nan());
+    }
+
+    #[test]
+    fn chunked_mirror_reads_what_was_written_across_chunks() {
+        let mut c = ChunkedHeights::default();
+        let a = GridRect::at(-300, -20, Shape::new(600, 700));
+        let va: Vec<f32> = (0..600 * 700).map(|i| i as f32).collect();
+        c.write(a, &va);
+        assert_eq!(c.read(a), va);
+        let b = GridRect::at(200, 250, Shape::new(10, 300));
+        let vb = vec![-1.0f32; 3000];
+        c.write(b, &vb);
+        // A window over both and beyond: b on top of a, NaN where nothing was written.
+        let win = GridRect::at(-310, -30, Shape::new(700, 900));
+        let got = c.read(win);
+        for (i, v) in got.iter().enumerate() {
+            let (x, y) = (win.x0 + (i % 900) as i64, win.y0 + (i / 900) as i64);
+            let inside = |r: &GridRect| x >= r.x0 && x < r.x1 && y >= r.y0 && y < r.y1;
+            if inside(&b) {
+                assert_eq!(*v, -1.0);
+            } else if inside(&a) {
+                assert_eq!(*v, ((y - a.y0) * 700 + (x - a.x0)) as f32);
+            } else {
+                assert!(v.is_nan());
+            }
+        }
     }
 
     #[test]

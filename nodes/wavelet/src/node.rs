@@ -60,8 +60,26 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
     }))
 }
 
+impl WaveletNode {
+    /// One live pass over what changed, published (when live passes are on).
+    fn publish_live_pass(&mut self, out: &mut Outbox) -> Result<()> {
+        if !(self.publish_live && self.live.has_changes()) {
+            return Ok(());
+        }
+        if let Some(p) = self.live.live_pass()? {
+            out.send_frame("datum", p.datum);
+            out.send_frame("roughness", p.roughness);
+            if let Some(pooled) = p.pooled {
+                out.send_frame("pooled", pooled);
+            }
+            self.live_patches += 1;
+        }
+        Ok(())
+    }
+}
+
 impl NodeLogic for WaveletNode {
-    fn on_input(&mut self, port: &str, input: Input<'_>, _: &mut Outbox) -> Result<()> {
+    fn on_input(&mut self, port: &str, input: Input<'_>, out: &mut Outbox) -> Result<()> {
         let Input::Frame(f) = input else {
             bail!("wavelet: input '{port}' must carry frames")
         };
@@ -71,7 +89,14 @@ impl NodeLogic for WaveletNode {
         }
         match f.header.kind() {
             Some(FrameKind::PanoramaPatch) => self.live.apply_patch(f.header, f.heights)?,
-            Some(FrameKind::Panorama) => self.final_panorama = Some(f.to_owned()),
+            Some(FrameKind::Panorama) => {
+                // The last live patches go out now and the live mirror (a whole f32 copy of
+                // the panorama, with growth room) is freed before the final panorama is
+                // copied: the node never holds both.
+                self.publish_live_pass(out)?;
+                self.live.release_mirror();
+                self.final_panorama = Some(f.to_owned());
+            }
             other => {
                 bail!("wavelet: input '{port}' carries {other:?} frames, expected panorama patches")
             }
@@ -82,20 +107,12 @@ impl NodeLogic for WaveletNode {
     fn on_drained(&mut self, out: &mut Outbox) -> Result<()> {
         // Live patches of the last tiles go out first; the final pass runs on the next call.
         if self.publish_live && self.live.has_changes() {
-            if let Some(p) = self.live.live_pass()? {
-                out.send_frame("datum", p.datum);
-                out.send_frame("roughness", p.roughness);
-                if let Some(pooled) = p.pooled {
-                    out.send_frame("pooled", pooled);
-                }
-                self.live_patches += 1;
-            }
+            self.publish_live_pass(out)?;
         } else if self.ended && !self.done {
             let pano = self
                 .final_panorama
                 .take()
                 .ok_or_else(|| anyhow!("wavelet: end of scan without a final panorama"))?;
-            self.live.release_mirror();
             let request = FinalRequest {
                 files: self.files.as_mut(),
                 publish_datum: self.publish_datum,
