@@ -148,6 +148,178 @@ fn header_block(dict: &str) -> Vec<u8> {
     out
 }
 
+/// Writes a 2-D `.npy` file row by row, for maps that are never whole in memory: the same
+/// bytes as [`write_npy_f32`] / [`write_npy_f64`] / [`write_npy_abs_f64`] give. The data go to
+/// `<path>.partial`, renamed into place by [`NpyRowWriter::finish`] once every row arrived;
+/// dropped unfinished (an error on the way), the partial file is removed: a reader never sees
+/// a half-written file.
+#[derive(Debug)]
+pub struct NpyRowWriter {
+    path: std::path::PathBuf,
+    tmp: std::path::PathBuf,
+    out: Option<std::io::BufWriter<std::fs::File>>,
+    rows: usize,
+    cols: usize,
+    rows_written: usize,
+    /// float64 (else float32).
+    f64: bool,
+    buf: Vec<u8>,
+}
+
+impl NpyRowWriter {
+    /// A float32 file of `rows x cols` (rows go in with [`NpyRowWriter::push_f32`]).
+    pub fn create_f32(path: impl AsRef<Path>, rows: usize, cols: usize) -> Result<Self> {
+        Self::create(path.as_ref(), rows, cols, false)
+    }
+
+    /// A float64 file of `rows x cols` ([`NpyRowWriter::push_abs_f64`] or
+    /// [`NpyRowWriter::push_f64`]).
+    pub fn create_f64(path: impl AsRef<Path>, rows: usize, cols: usize) -> Result<Self> {
+        Self::create(path.as_ref(), rows, cols, true)
+    }
+
+    fn create(path: &Path, rows: usize, cols: usize, f64: bool) -> Result<Self> {
+        if rows == 0 || cols == 0 || rows.checked_mul(cols).is_none() {
+            bail!("{}: cannot write a {rows} x {cols} array", path.display());
+        }
+        if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+            std::fs::create_dir_all(parent)
+                .with_context(|| format!("{}: cannot create the folder", parent.display()))?;
+        }
+        let tmp = surfstream_core::fsutil::partial_path(path);
+        let file = std::fs::File::create(&tmp)
+            .with_context(|| format!("{}: cannot create", tmp.display()))?;
+        let mut w = Self {
+            path: path.to_path_buf(),
+            tmp,
+            out: Some(std::io::BufWriter::with_capacity(1 << 20, file)),
+            rows,
+            cols,
+            rows_written: 0,
+            f64,
+            buf: Vec::new(),
+        };
+        let descr = if f64 { "<f8" } else { "<f4" };
+        let header = header_block(&format!(
+            "{{'descr': '{descr}', 'fortran_order': False, 'shape': ({rows}, {cols}), }}"
+        ));
+        w.write(&header)?;
+        Ok(w)
+    }
+
+    /// Whole rows of f32 values (float32 files).
+    pub fn push_f32(&mut self, values: &[f32]) -> Result<()> {
+        self.check(values.len(), false)?;
+        self.buf.clear();
+        self.buf.extend(values.iter().flat_map(|v| v.to_le_bytes()));
+        self.flush_buf(values.len())
+    }
+
+    /// Whole rows of f32 frame heights written as absolute float64 heights,
+    /// `f64::from(z) + z_offset_um` (float64 files; as [`write_npy_abs_f64`]).
+    pub fn push_abs_f64(&mut self, values: &[f32], z_offset_um: f64) -> Result<()> {
+        self.check(values.len(), true)?;
+        self.buf.clear();
+        self.buf.extend(
+            values
+                .iter()
+                .flat_map(|&v| (f64::from(v) + z_offset_um).to_le_bytes()),
+        );
+        self.flush_buf(values.len())
+    }
+
+    /// Whole rows of f64 values (float64 files).
+    pub fn push_f64(&mut self, values: &[f64]) -> Result<()> {
+        self.check(values.len(), true)?;
+        self.buf.clear();
+        self.buf.extend(values.iter().flat_map(|v| v.to_le_bytes()));
+        self.flush_buf(values.len())
+    }
+
+    fn check(&self, n: usize, f64: bool) -> Result<()> {
+        if f64 != self.f64 {
+            bail!(
+                "{}: {} values pushed into a {} file",
+                self.path.display(),
+                if f64 { "float64" } else { "float32" },
+                if self.f64 { "float64" } else { "float32" }
+            );
+        }
+        if !n.is_multiple_of(self.cols) || self.rows_written + n / self.cols > self.rows {
+            bail!(
+                "{}: {n} values are not whole rows of {} within the {} x {} array ({} rows written)",
+                self.path.display(),
+                self.cols,
+                self.rows,
+                self.cols,
+                self.rows_written
+            );
+        }
+        Ok(())
+    }
+
+    fn flush_buf(&mut self, n: usize) -> Result<()> {
+        let buf = std::mem::take(&mut self.buf);
+        let r = self.write(&buf);
+        self.buf = buf;
+        r?;
+        self.rows_written += n / self.cols;
+        Ok(())
+    }
+
+    fn write(&mut self, bytes: &[u8]) -> Result<()> {
+        let out = self
+            .out
+            .as_mut()
+            .ok_or_else(|| anyhow!("{}: already finished", self.path.display()))?;
+        out.write_all(bytes)
+            .with_context(|| format!("{}: write failed", self.tmp.display()))
+    }
+
+    /// Rows written so far.
+    pub fn rows_written(&self) -> usize {
+        self.rows_written
+    }
+
+    /// Checks that every row arrived, then moves the file into place.
+    pub fn finish(mut self) -> Result<()> {
+        if self.rows_written != self.rows {
+            bail!(
+                "{}: {} of {} rows written",
+                self.path.display(),
+                self.rows_written,
+                self.rows
+            );
+        }
+        let out = self
+            .out
+            .take()
+            .ok_or_else(|| anyhow!("{}: already finished", self.path.display()))?;
+        let result = (|| {
+            let file = out
+                .into_inner()
+                .map_err(|e| anyhow!("{}: write failed: {e}", self.tmp.display()))?;
+            file.sync_all().ok();
+            drop(file);
+            std::fs::rename(&self.tmp, &self.path)
+                .with_context(|| format!("{}: cannot rename into place", self.path.display()))
+        })();
+        if result.is_err() {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+        result
+    }
+}
+
+impl Drop for NpyRowWriter {
+    fn drop(&mut self) {
+        // Unfinished: no half-written file stays behind.
+        if self.out.take().is_some() {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+    }
+}
+
 // ---------------------------------------------------------------------------------------------
 // Reading
 
@@ -664,6 +836,58 @@ impl<'a> PyParser<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn row_writer_writes_the_same_bytes_and_nothing_half_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let (rows, cols) = (5, 3);
+        let v: Vec<f32> = (0..15).map(|i| i as f32 * 0.37 - 2.0).collect();
+        let mut v2 = v.clone();
+        v2[4] = f32::NAN;
+        write_npy_f32(dir.path().join("a.npy"), &v2, rows, cols).unwrap();
+        write_npy_abs_f64(dir.path().join("b.npy"), &v2, rows, cols, 123.25).unwrap();
+        let f64s: Vec<f64> = v.iter().map(|&x| f64::from(x) / 3.0).collect();
+        write_npy_f64(dir.path().join("c.npy"), &f64s, rows, cols).unwrap();
+        let mut a = NpyRowWriter::create_f32(dir.path().join("a2.npy"), rows, cols).unwrap();
+        let mut b = NpyRowWriter::create_f64(dir.path().join("b2.npy"), rows, cols).unwrap();
+        let mut c = NpyRowWriter::create_f64(dir.path().join("c2.npy"), rows, cols).unwrap();
+        // Uneven pieces of whole rows.
+        for (r0, r1) in [(0, 2), (2, 3), (3, 5)] {
+            a.push_f32(&v2[r0 * cols..r1 * cols]).unwrap();
+            b.push_abs_f64(&v2[r0 * cols..r1 * cols], 123.25).unwrap();
+            c.push_f64(&f64s[r0 * cols..r1 * cols]).unwrap();
+        }
+        assert!(!dir.path().join("a2.npy").exists());
+        a.finish().unwrap();
+        b.finish().unwrap();
+        c.finish().unwrap();
+        for (x, y) in [
+            ("a.npy", "a2.npy"),
+            ("b.npy", "b2.npy"),
+            ("c.npy", "c2.npy"),
+        ] {
+            let read = |n: &str| std::fs::read(dir.path().join(n)).unwrap();
+            assert_eq!(read(x), read(y), "{y}");
+        }
+        // Part rows, too many rows, the wrong type: errors.
+        let mut d = NpyRowWriter::create_f32(dir.path().join("d.npy"), rows, cols).unwrap();
+        assert!(d.push_f32(&v[..2]).is_err());
+        assert!(d.push_f64(&f64s[..3]).is_err());
+        assert!(d.push_f32(&[0.0; 18]).is_err());
+        d.push_f32(&v[..3]).unwrap();
+        // Unfinished: finish refuses, and nothing stays behind.
+        let e = d.finish().unwrap_err();
+        assert!(format!("{e:#}").contains("1 of 5 rows"), "{e:#}");
+        let mut e = NpyRowWriter::create_f32(dir.path().join("e.npy"), rows, cols).unwrap();
+        e.push_f32(&v[..3]).unwrap();
+        drop(e);
+        let names: Vec<String> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.starts_with('d') || n.starts_with('e'))
+            .collect();
+        assert!(names.is_empty(), "{names:?}");
+    }
 
     fn tmp() -> tempfile::TempDir {
         tempfile::tempdir().expect("tempdir")

@@ -15,8 +15,8 @@ use surfstream_core::frame::from_frame_heights;
 use surfstream_core::raster::RasterView;
 
 use crate::formats::{Metadata, Surface};
-use crate::npy::{write_npy_abs_f64, write_npy_f32, write_npy_f64};
-use crate::preview::{write_preview_png, PreviewOptions};
+use crate::npy::{write_npy_abs_f64, write_npy_f32, write_npy_f64, NpyRowWriter};
+use crate::preview::{write_preview_png, PreviewBuilder, PreviewOptions};
 
 /// How a surface's numbers go into its `.npy`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -122,6 +122,76 @@ impl OutputWriter {
     }
 }
 
+/// A surface written row by row ([`OutputWriter::begin_surface`]): its `.npy` and `.png`
+/// come out byte-identical to [`OutputWriter::write_surface`]'s for the same heights, without
+/// the map ever being whole in memory. Both files appear only at
+/// [`OutputWriter::finish_surface`]; dropped before that, nothing is left behind.
+#[derive(Debug)]
+pub struct SurfaceStream {
+    name: String,
+    npy: NpyRowWriter,
+    npy_heights: NpyHeights,
+    z_offset_um: f64,
+    preview: PreviewBuilder,
+}
+
+impl SurfaceStream {
+    /// The next whole rows of frame heights (um relative to the offset, NaN = not measured).
+    pub fn push_rows(&mut self, heights: &[f32]) -> Result<()> {
+        match self.npy_heights {
+            NpyHeights::AbsoluteF64 => self.npy.push_abs_f64(heights, self.z_offset_um)?,
+            NpyHeights::RelativeF32 => self.npy.push_f32(heights)?,
+        }
+        self.preview.push_rows(heights)
+    }
+}
+
+impl OutputWriter {
+    /// Starts `name.npy` and `name.png` of a `rows x cols` surface whose rows arrive in order
+    /// ([`SurfaceStream::push_rows`]); [`OutputWriter::finish_surface`] completes them.
+    pub fn begin_surface(
+        &self,
+        name: &str,
+        rows: usize,
+        cols: usize,
+        z_offset_um: f64,
+        npy: NpyHeights,
+        title: &str,
+    ) -> Result<SurfaceStream> {
+        check_name(name)?;
+        let path = self.dir.join(format!("{name}.npy"));
+        let writer = match npy {
+            NpyHeights::AbsoluteF64 => NpyRowWriter::create_f64(path, rows, cols)?,
+            NpyHeights::RelativeF32 => NpyRowWriter::create_f32(path, rows, cols)?,
+        };
+        let opts = PreviewOptions {
+            title: Some(title.to_string()),
+            ..Default::default()
+        };
+        Ok(SurfaceStream {
+            name: name.to_string(),
+            npy: writer,
+            npy_heights: npy,
+            z_offset_um,
+            preview: PreviewBuilder::new(rows, cols, &opts)?,
+        })
+    }
+
+    /// Completes a streamed surface (every row must have arrived): `name.npy`, then
+    /// `name.png`, recorded in [`OutputWriter::files`] as [`OutputWriter::write_surface`] does.
+    pub fn finish_surface(&mut self, s: SurfaceStream) -> Result<()> {
+        let SurfaceStream {
+            name, npy, preview, ..
+        } = s;
+        npy.finish()?;
+        self.files.push(format!("{name}.npy"));
+        let png = format!("{name}.png");
+        preview.write_png(self.dir.join(&png))?;
+        self.files.push(png);
+        Ok(())
+    }
+}
+
 /// A file stem stays inside the writer's directory.
 fn check_name(name: &str) -> Result<()> {
     if name.is_empty() || name.contains(['/', '\\']) {
@@ -195,6 +265,75 @@ mod tests {
                     x3p_pitch_um: None,
                 }
             })
+            .is_err());
+    }
+
+    #[test]
+    fn streamed_surfaces_equal_whole_ones() {
+        let dir = tempfile::tempdir().unwrap();
+        let (whole_dir, rows_dir) = (dir.path().join("whole"), dir.path().join("rows"));
+        std::fs::create_dir_all(&whole_dir).unwrap();
+        std::fs::create_dir_all(&rows_dir).unwrap();
+        let (rows, cols) = (301, 1290);
+        let h: Vec<f32> = (0..rows * cols)
+            .map(|i| {
+                if i % 89 == 0 {
+                    f32::NAN
+                } else {
+                    (i % 1000) as f32 * 0.01 - 3.0
+                }
+            })
+            .collect();
+        let r = Raster::new(h.clone(), Shape::new(rows, cols)).unwrap();
+        let mut whole = OutputWriter::new(&whole_dir);
+        let mut streamed = OutputWriter::new(&rows_dir);
+        for (name, npy) in [
+            ("datum", NpyHeights::AbsoluteF64),
+            ("roughness", NpyHeights::RelativeF32),
+        ] {
+            whole
+                .write_surface(&SurfaceOutput {
+                    name,
+                    heights: r.view(),
+                    z_offset_um: 250.5,
+                    npy,
+                    title: "t (um)",
+                    x3p_pitch_um: None,
+                })
+                .unwrap();
+            let mut s = streamed
+                .begin_surface(name, rows, cols, 250.5, npy, "t (um)")
+                .unwrap();
+            for band in h.chunks(17 * cols) {
+                s.push_rows(band).unwrap();
+            }
+            assert!(!rows_dir.join(format!("{name}.npy")).exists());
+            streamed.finish_surface(s).unwrap();
+        }
+        assert_eq!(whole.files(), streamed.files());
+        for f in whole.files() {
+            let a = std::fs::read(whole_dir.join(f)).unwrap();
+            let b = std::fs::read(rows_dir.join(f)).unwrap();
+            assert!(a == b, "{f} differs");
+        }
+        // Unfinished or short: nothing is written.
+        let mut s = streamed
+            .begin_surface("cut", rows, cols, 0.0, NpyHeights::RelativeF32, "")
+            .unwrap();
+        s.push_rows(&h[..cols]).unwrap();
+        assert!(streamed.finish_surface(s).is_err());
+        let s = streamed
+            .begin_surface("dropped", rows, cols, 0.0, NpyHeights::RelativeF32, "")
+            .unwrap();
+        drop(s);
+        let left: Vec<_> = std::fs::read_dir(&rows_dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.starts_with("cut") || n.starts_with("dropped"))
+            .collect();
+        assert!(left.is_empty(), "{left:?}");
+        assert!(streamed
+            .begin_surface("a/b", 2, 2, 0.0, NpyHeights::RelativeF32, "")
             .is_err());
     }
 

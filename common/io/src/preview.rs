@@ -114,6 +114,11 @@ pub fn write_preview_png(
     let path = path.as_ref();
     let image = render_preview(heights, rows, cols, opts)
         .with_context(|| format!("{}: cannot draw preview", path.display()))?;
+    write_image_png(path, &image)
+}
+
+/// Writes a rendered preview as an RGB PNG, atomically.
+fn write_image_png(path: &Path, image: &PreviewImage) -> Result<PreviewInfo> {
     let info = image.info;
     surfstream_core::fsutil::write_atomic(path, |w| {
         let mut enc = png::Encoder::new(&mut *w, info.width_px, info.height_px);
@@ -143,6 +148,142 @@ pub fn write_preview_png(
     Ok(info)
 }
 
+/// Builds the preview of a map that arrives row by row (never whole in memory): the same
+/// image as [`render_preview`] of the whole map. It keeps one row of block sums, the reduced
+/// map (at most `max_side_px` squared) and the percentile subsample (at most
+/// [`PERCENTILE_SAMPLE_LIMIT`] values): a bounded amount whatever the map's size.
+#[derive(Debug, Clone)]
+pub struct PreviewBuilder {
+    rows: usize,
+    cols: usize,
+    opts: PreviewOptions,
+    block: usize,
+    next_row: usize,
+    sum: Vec<f64>,
+    count: Vec<u32>,
+    small: Vec<f32>,
+    stride: usize,
+    sample: Vec<f32>,
+}
+
+impl PreviewBuilder {
+    pub fn new(rows: usize, cols: usize, opts: &PreviewOptions) -> Result<Self> {
+        let n = rows.checked_mul(cols).unwrap_or(0);
+        if n == 0 {
+            bail!("empty or oversized height map ({rows} x {cols})");
+        }
+        check_options(opts)?;
+        let block = rows.max(cols).div_ceil(opts.max_side_px).max(1);
+        let out_cols = cols.div_ceil(block);
+        Ok(Self {
+            rows,
+            cols,
+            opts: opts.clone(),
+            block,
+            next_row: 0,
+            sum: vec![0.0; out_cols],
+            count: vec![0; out_cols],
+            small: Vec::with_capacity(rows.div_ceil(block) * out_cols),
+            stride: n.div_ceil(PERCENTILE_SAMPLE_LIMIT).max(1),
+            sample: Vec::new(),
+        })
+    }
+
+    /// The next whole rows of the map.
+    pub fn push_rows(&mut self, heights: &[f32]) -> Result<()> {
+        let cols = self.cols;
+        if !heights.len().is_multiple_of(cols) || self.next_row + heights.len() / cols > self.rows {
+            bail!(
+                "preview: {} values are not whole rows of {cols} within {} x {cols} ({} rows in)",
+                heights.len(),
+                self.rows,
+                self.next_row
+            );
+        }
+        for row in heights.chunks_exact(cols) {
+            let r = self.next_row;
+            if self.opts.range_um.is_none() {
+                // The values robust_range_um samples: flat indices that are multiples of stride.
+                let first = r * cols;
+                let mut c = (self.stride - first % self.stride) % self.stride;
+                while c < cols {
+                    let v = row[c];
+                    if v.is_finite() {
+                        self.sample.push(v);
+                    }
+                    c += self.stride;
+                }
+            }
+            // block_mean's sums, in its order (rows down, columns across).
+            for (c, &v) in row.iter().enumerate() {
+                if v.is_finite() {
+                    self.sum[c / self.block] += v as f64;
+                    self.count[c / self.block] += 1;
+                }
+            }
+            self.next_row += 1;
+            if self.next_row.is_multiple_of(self.block) || self.next_row == self.rows {
+                self.small
+                    .extend(self.sum.iter().zip(&self.count).map(|(&s, &n)| {
+                        if n > 0 {
+                            (s / n as f64) as f32
+                        } else {
+                            f32::NAN
+                        }
+                    }));
+                self.sum.iter_mut().for_each(|s| *s = 0.0);
+                self.count.iter_mut().for_each(|n| *n = 0);
+            }
+        }
+        Ok(())
+    }
+
+    /// The image, once every row arrived.
+    pub fn render(mut self) -> Result<PreviewImage> {
+        if self.next_row != self.rows {
+            bail!("preview: {} of {} rows arrived", self.next_row, self.rows);
+        }
+        let range = match self.opts.range_um {
+            Some(r) => r,
+            None => robust_range_of_sample(&mut self.sample).unwrap_or((0.0, 1.0)),
+        };
+        let (s_rows, s_cols) = (
+            self.rows.div_ceil(self.block),
+            self.cols.div_ceil(self.block),
+        );
+        render_reduced(
+            &self.small,
+            s_rows,
+            s_cols,
+            self.block,
+            self.rows.max(self.cols),
+            range,
+            &self.opts,
+        )
+    }
+
+    /// Renders and writes the PNG (atomically), as [`write_preview_png`] does.
+    pub fn write_png(self, path: impl AsRef<Path>) -> Result<PreviewInfo> {
+        let path = path.as_ref();
+        let image = self
+            .render()
+            .with_context(|| format!("{}: cannot draw preview", path.display()))?;
+        write_image_png(path, &image)
+    }
+}
+
+fn check_options(opts: &PreviewOptions) -> Result<()> {
+    if opts.max_side_px == 0 {
+        bail!("max_side_px must be at least 1");
+    }
+    if let Some((lo, hi)) = opts.range_um {
+        if !(lo.is_finite() && hi.is_finite() && lo < hi) {
+            bail!("colour range {lo} .. {hi} um is not an increasing pair of finite numbers");
+        }
+    }
+    Ok(())
+}
+
 /// Renders the preview into memory (what [`write_preview_png`] writes).
 pub fn render_preview(
     heights: &[f32],
@@ -160,16 +301,9 @@ pub fn render_preview(
             rows as u128 * cols as u128
         );
     }
-    if opts.max_side_px == 0 {
-        bail!("max_side_px must be at least 1");
-    }
-    let (min_um, max_um) = match opts.range_um {
-        Some((lo, hi)) => {
-            if !(lo.is_finite() && hi.is_finite() && lo < hi) {
-                bail!("colour range {lo} .. {hi} um is not an increasing pair of finite numbers");
-            }
-            (lo, hi)
-        }
+    check_options(opts)?;
+    let range = match opts.range_um {
+        Some(r) => r,
         None => robust_range_um(heights).unwrap_or((0.0, 1.0)),
     };
 
@@ -182,6 +316,20 @@ pub fn render_preview(
     } else {
         (std::borrow::Cow::Borrowed(heights), rows, cols)
     };
+    render_reduced(&small, s_rows, s_cols, block, longer, range, opts)
+}
+
+/// Draws the reduced map `small` (`s_rows x s_cols`, the map reduced by `block`; `longer` the
+/// map's longer side) over the colour range `(min_um, max_um)`.
+fn render_reduced(
+    small: &[f32],
+    s_rows: usize,
+    s_cols: usize,
+    block: usize,
+    longer: usize,
+    (min_um, max_um): (f64, f64),
+    opts: &PreviewOptions,
+) -> Result<PreviewImage> {
     let zoom = if block == 1 && opts.min_side_px > longer {
         (opts.min_side_px / longer)
             .min(opts.max_side_px / longer)
@@ -412,11 +560,16 @@ pub fn robust_range_um(heights: &[f32]) -> Option<(f64, f64)> {
         .copied()
         .filter(|v| v.is_finite())
         .collect();
+    robust_range_of_sample(&mut sample)
+}
+
+/// [`robust_range_um`] of its (finite) subsample.
+fn robust_range_of_sample(sample: &mut [f32]) -> Option<(f64, f64)> {
     if sample.is_empty() {
         return None;
     }
-    let lo = percentile(&mut sample, ROBUST_LOW_PERCENT / 100.0);
-    let hi = percentile(&mut sample, ROBUST_HIGH_PERCENT / 100.0);
+    let lo = percentile(sample, ROBUST_LOW_PERCENT / 100.0);
+    let hi = percentile(sample, ROBUST_HIGH_PERCENT / 100.0);
     if hi > lo {
         Some((lo, hi))
     } else {
@@ -913,6 +1066,52 @@ mod tests {
         assert_eq!(px(1, 0), NAN_RGB);
         assert_eq!(px(2, 0), VIRIDIS[0]);
         assert_eq!(px(4, 2), VIRIDIS[0]);
+    }
+
+    #[test]
+    fn builder_from_rows_draws_the_same_image() {
+        // Block 1 (zoomed), block 3 with a strided percentile sample (> 2^22 values), and a
+        // fixed range; rows pushed in uneven pieces.
+        for (rows, cols, range) in [
+            (37usize, 53usize, None),
+            (2100, 2050, None),
+            (1500, 1030, Some((-1.0, 2.0))),
+        ] {
+            let h: Vec<f32> = (0..rows * cols)
+                .map(|i| {
+                    let (r, c) = ((i / cols) as f32, (i % cols) as f32);
+                    if i % 97 == 5 || r as usize == rows / 2 {
+                        f32::NAN
+                    } else {
+                        (0.01 * c).sin() + 0.002 * r + ((i * 7919) % 101) as f32 * 1e-3
+                    }
+                })
+                .collect();
+            let opts = PreviewOptions {
+                title: Some("t".into()),
+                range_um: range,
+                ..Default::default()
+            };
+            let whole = render_preview(&h, rows, cols, &opts).unwrap();
+            let mut b = PreviewBuilder::new(rows, cols, &opts).unwrap();
+            let mut r = 0;
+            for n in [1usize, 5, 64, 3].iter().cycle() {
+                if r == rows {
+                    break;
+                }
+                let k = (*n).min(rows - r);
+                b.push_rows(&h[r * cols..(r + k) * cols]).unwrap();
+                r += k;
+            }
+            let streamed = b.render().unwrap();
+            assert_eq!(whole.info, streamed.info, "{rows} x {cols}");
+            assert!(whole.rgb == streamed.rgb, "{rows} x {cols}");
+        }
+        let mut b = PreviewBuilder::new(4, 3, &PreviewOptions::default()).unwrap();
+        assert!(b.push_rows(&[0.0; 4]).is_err());
+        b.push_rows(&[0.0; 6]).unwrap();
+        assert!(b.clone().render().is_err());
+        assert!(b.push_rows(&[0.0; 9]).is_err());
     }
 
     #[test]

@@ -96,12 +96,48 @@ struct View<'a> {
     stride: usize,
 }
 
-impl<'a> View<'a> {
+/// Rows of a coefficient array as the kernels read them: a whole array ([`View`]) or only the
+/// rows one band needs (the streamed pass, [`crate::stream`]). Every output row is computed
+/// from the rows it reads by the same code either way, so the results are bit-identical.
+pub(crate) trait Rows: Sync {
+    /// Number of rows of the whole (logical) array: the border extension wraps on it.
+    fn n_rows(&self) -> usize;
+    fn n_cols(&self) -> usize;
+    /// Row `r` (`r < n_rows()`), `n_cols()` values.
+    fn row(&self, r: usize) -> &[f64];
+}
+
+impl<T: Rows + ?Sized> Rows for &T {
     #[inline(always)]
-    fn row(&self, r: usize) -> &'a [f64] {
+    fn n_rows(&self) -> usize {
+        (**self).n_rows()
+    }
+    #[inline(always)]
+    fn n_cols(&self) -> usize {
+        (**self).n_cols()
+    }
+    #[inline(always)]
+    fn row(&self, r: usize) -> &[f64] {
+        (**self).row(r)
+    }
+}
+
+impl Rows for View<'_> {
+    #[inline(always)]
+    fn n_rows(&self) -> usize {
+        self.rows
+    }
+    #[inline(always)]
+    fn n_cols(&self) -> usize {
+        self.cols
+    }
+    #[inline(always)]
+    fn row(&self, r: usize) -> &[f64] {
         &self.data[r * self.stride..r * self.stride + self.cols]
     }
+}
 
+impl<'a> View<'a> {
     /// The top-left `rows x cols` corner (PyWavelets' trim of a one-larger approximation).
     fn corner(self, rows: usize, cols: usize) -> View<'a> {
         View { rows, cols, ..self }
@@ -382,13 +418,13 @@ struct DecOut<'o> {
 
 /// Produce output rows `k0 ..` (as many as `out.ca` holds) of one decomposition level.
 #[inline(always)]
-fn dec_task<M: Madd, const D: bool>(x: View<'_>, an: &Analysis, k0: usize, out: DecOut<'_>) {
-    let c2 = an.out_len(x.cols);
+fn dec_task<M: Madd, const D: bool, S: Rows>(x: &S, an: &Analysis, k0: usize, out: DecOut<'_>) {
+    let c2 = an.out_len(x.n_cols());
     let e_len = c2 + an.half - 1;
     let mut e0 = vec![0.0; e_len];
     let mut e1 = vec![0.0; e_len];
-    let mut lowy = vec![0.0; x.cols];
-    let mut highy = if D { vec![0.0; x.cols] } else { Vec::new() };
+    let mut lowy = vec![0.0; x.n_cols()];
+    let mut highy = if D { vec![0.0; x.n_cols()] } else { Vec::new() };
     let mut taps: Vec<&[f64]> = Vec::with_capacity(an.flen);
     let n_rows = out.ca.len() / c2;
     for t in 0..n_rows {
@@ -396,7 +432,7 @@ fn dec_task<M: Madd, const D: bool>(x: View<'_>, an: &Analysis, k0: usize, out: 
         taps.clear();
         taps.extend((0..an.flen).map(|j| {
             let pos = 2 * k as isize + an.shift - j as isize;
-            x.row(ext_index(pos, x.rows, an.mode))
+            x.row(ext_index(pos, x.n_rows(), an.mode))
         }));
         col_analysis::<M, D>(&taps, an, &mut lowy, &mut highy);
         let row = t * c2..(t + 1) * c2;
@@ -426,17 +462,17 @@ fn dec_task<M: Madd, const D: bool>(x: View<'_>, an: &Analysis, k0: usize, out: 
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-fn dec_task_avx2<const D: bool>(x: View<'_>, an: &Analysis, k0: usize, out: DecOut<'_>) {
-    dec_task::<Fused, D>(x, an, k0, out)
+fn dec_task_avx2<const D: bool, S: Rows>(x: &S, an: &Analysis, k0: usize, out: DecOut<'_>) {
+    dec_task::<Fused, D, S>(x, an, k0, out)
 }
 
-fn dec_task_dispatch<const D: bool>(x: View<'_>, an: &Analysis, k0: usize, out: DecOut<'_>) {
+fn dec_task_dispatch<const D: bool, S: Rows>(x: &S, an: &Analysis, k0: usize, out: DecOut<'_>) {
     #[cfg(target_arch = "x86_64")]
     if an.fused {
         // SAFETY: `fused` is only set when the CPU supports AVX2 and FMA (Analysis::new).
-        return unsafe { dec_task_avx2::<D>(x, an, k0, out) };
+        return unsafe { dec_task_avx2::<D, S>(x, an, k0, out) };
     }
-    dec_task::<Plain, D>(x, an, k0, out)
+    dec_task::<Plain, D, S>(x, an, k0, out)
 }
 
 /// Rows per rayon task: about 8 tasks per thread for load balance, but at least ~4096
@@ -466,7 +502,7 @@ fn dec_level(x: View<'_>, an: &Analysis, details: bool) -> (Raster<f64>, Option<
             .enumerate()
             .for_each(|(t, (((ca, ch), cv), cd))| {
                 let out = DecOut { ca, ch, cv, cd };
-                dec_task_dispatch::<true>(x, an, t * chunk / c2, out);
+                dec_task_dispatch::<true, _>(&x, an, t * chunk / c2, out);
             });
         let det = Details2 {
             h: ch,
@@ -485,7 +521,7 @@ fn dec_level(x: View<'_>, an: &Analysis, details: bool) -> (Raster<f64>, Option<
                     cv: &mut [],
                     cd: &mut [],
                 };
-                dec_task_dispatch::<false>(x, an, t * chunk / c2, out);
+                dec_task_dispatch::<false, _>(&x, an, t * chunk / c2, out);
             });
         (ca, None)
     }
@@ -802,15 +838,20 @@ fn col_synthesis<M: Madd, const D: bool>(
 /// Inputs of one inverse level: the (trimmed) approximation and, unless approximating only,
 /// the three detail bands of the same shape.
 #[derive(Clone, Copy)]
-struct RecIn<'a> {
-    a: View<'a>,
+struct RecIn<'a, A: Rows = View<'a>> {
+    a: A,
     hvd: Option<[View<'a>; 3]>,
 }
 
 /// Produce output rows `n0 ..` (as many as `out` holds) of one inverse level.
 #[inline(always)]
-fn rec_task<M: Madd, const D: bool>(inp: RecIn<'_>, sy: &Synthesis, n0: usize, out: &mut [f64]) {
-    let (r2, c2) = (inp.a.rows, inp.a.cols);
+fn rec_task<M: Madd, const D: bool, A: Rows>(
+    inp: RecIn<'_, A>,
+    sy: &Synthesis,
+    n0: usize,
+    out: &mut [f64],
+) {
+    let (r2, c2) = (inp.a.n_rows(), inp.a.n_cols());
     let Some(c_out) = sy.out_len(c2) else {
         return;
     };
@@ -836,7 +877,7 @@ fn rec_task<M: Madd, const D: bool>(inp: RecIn<'_>, sy: &Synthesis, n0: usize, o
         let rows = (0..sy.half).map(|j| sy.coeff_index(q - j as isize + sy.off[p], r2));
         taps.a.clear();
         taps.a.extend(rows.clone().map(|r| inp.a.row(r)));
-        if let Some([h, v, d]) = hvd {
+        if let Some([h, v, d]) = &hvd {
             taps.h.clear();
             taps.v.clear();
             taps.d.clear();
@@ -851,17 +892,27 @@ fn rec_task<M: Madd, const D: bool>(inp: RecIn<'_>, sy: &Synthesis, n0: usize, o
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-fn rec_task_avx2<const D: bool>(inp: RecIn<'_>, sy: &Synthesis, n0: usize, out: &mut [f64]) {
-    rec_task::<Fused, D>(inp, sy, n0, out)
+fn rec_task_avx2<const D: bool, A: Rows>(
+    inp: RecIn<'_, A>,
+    sy: &Synthesis,
+    n0: usize,
+    out: &mut [f64],
+) {
+    rec_task::<Fused, D, A>(inp, sy, n0, out)
 }
 
-fn rec_task_dispatch<const D: bool>(inp: RecIn<'_>, sy: &Synthesis, n0: usize, out: &mut [f64]) {
+fn rec_task_dispatch<const D: bool, A: Rows>(
+    inp: RecIn<'_, A>,
+    sy: &Synthesis,
+    n0: usize,
+    out: &mut [f64],
+) {
     #[cfg(target_arch = "x86_64")]
     if sy.fused {
         // SAFETY: `fused` is only set when the CPU supports AVX2 and FMA (Synthesis::new).
-        return unsafe { rec_task_avx2::<D>(inp, sy, n0, out) };
+        return unsafe { rec_task_avx2::<D, A>(inp, sy, n0, out) };
     }
-    rec_task::<Plain, D>(inp, sy, n0, out)
+    rec_task::<Plain, D, A>(inp, sy, n0, out)
 }
 
 /// One inverse level. Shapes must already be checked: `a` and the details equal, and long
@@ -885,9 +936,9 @@ fn rec_level(inp: RecIn<'_>, sy: &Synthesis) -> Result<Raster<f64>> {
         .enumerate()
         .for_each(|(t, o)| {
             if inp.hvd.is_some() {
-                rec_task_dispatch::<true>(inp, sy, t * chunk / cols, o);
+                rec_task_dispatch::<true, _>(inp, sy, t * chunk / cols, o);
             } else {
-                rec_task_dispatch::<false>(inp, sy, t * chunk / cols, o);
+                rec_task_dispatch::<false, _>(inp, sy, t * chunk / cols, o);
             }
         });
     Ok(out)
@@ -979,7 +1030,7 @@ impl LowpassFinal {
     /// [`Self::cols`] values, not past [`Self::rows`]).
     pub(crate) fn compute_rows(&self, n0: usize, out: &mut [f64]) {
         let a = view_of(&self.a).corner(self.trim.0, self.trim.1);
-        rec_task_dispatch::<false>(RecIn { a, hvd: None }, &self.sy, n0, out);
+        rec_task_dispatch::<false, _>(RecIn { a, hvd: None }, &self.sy, n0, out);
     }
 }
 
@@ -1041,6 +1092,110 @@ pub(crate) fn lowpass_final(
         rows: out_rows,
         cols: out_cols,
     })
+}
+
+/// One wavelet's kernels in one mode for the streamed pass ([`crate::stream`]): which input
+/// rows a band of output rows reads, and those output rows computed by the very kernels
+/// [`wavedec2`] / [`waverec2`] run (same arithmetic per row, hence the same bits).
+pub(crate) struct LevelKernels {
+    an: Analysis,
+    sy: Synthesis,
+}
+
+impl LevelKernels {
+    pub(crate) fn new(wavelet: &Wavelet, mode: Mode) -> Self {
+        Self {
+            an: Analysis::new(wavelet, mode),
+            sy: Synthesis::new(wavelet, mode),
+        }
+    }
+
+    /// Coefficients one decomposition step makes from `n` samples.
+    pub(crate) fn dec_out_len(&self, n: usize) -> usize {
+        self.an.out_len(n)
+    }
+
+    /// Input rows (sorted, distinct) that decomposition output rows `k0..k1` read from an
+    /// input of `n_in` rows: `[2 k0 + s - L + 1, 2 (k1 - 1) + s]` and the mode's edge rows.
+    pub(crate) fn dec_rows_needed(&self, k0: usize, k1: usize, n_in: usize) -> Vec<usize> {
+        let mut v: Vec<usize> = (k0..k1)
+            .flat_map(|k| {
+                (0..self.an.flen).map(move |j| {
+                    let pos = 2 * k as isize + self.an.shift - j as isize;
+                    ext_index(pos, n_in, self.an.mode)
+                })
+            })
+            .collect();
+        v.sort_unstable();
+        v.dedup();
+        v
+    }
+
+    /// Decomposition output rows `k0 ..` (as many as `ca` holds, `dec_out_len(x.n_cols())`
+    /// values each) of input `x`; with `details` also (cH, cV, cD) of the same size.
+    pub(crate) fn dec_rows<S: Rows>(
+        &self,
+        x: &S,
+        k0: usize,
+        ca: &mut [f64],
+        details: Option<[&mut [f64]; 3]>,
+    ) {
+        match details {
+            Some([ch, cv, cd]) => {
+                dec_task_dispatch::<true, S>(x, &self.an, k0, DecOut { ca, ch, cv, cd })
+            }
+            None => dec_task_dispatch::<false, S>(
+                x,
+                &self.an,
+                k0,
+                DecOut {
+                    ca,
+                    ch: &mut [],
+                    cv: &mut [],
+                    cd: &mut [],
+                },
+            ),
+        }
+    }
+
+    /// Samples one inverse step makes from `n` coefficients (`None`: too few for the filter).
+    pub(crate) fn rec_out_len(&self, n: usize) -> Option<usize> {
+        self.sy.out_len(n)
+    }
+
+    /// Approximation rows (sorted, distinct) that inverse output rows `n0..n1` read from
+    /// `n_in` rows.
+    pub(crate) fn rec_rows_needed(&self, n0: usize, n1: usize, n_in: usize) -> Vec<usize> {
+        let sy = &self.sy;
+        let mut v: Vec<usize> = (n0..n1)
+            .flat_map(|nr| {
+                let (q, p) = ((nr / 2) as isize, nr % 2);
+                (0..sy.half).map(move |j| sy.coeff_index(q - j as isize + sy.off[p], n_in))
+            })
+            .collect();
+        v.sort_unstable();
+        v.dedup();
+        v
+    }
+
+    /// Approximation-only inverse output rows `n0 ..` (as many as `out` holds, each
+    /// `rec_out_len(a.n_cols())` values) from the (trimmed) approximation `a`.
+    pub(crate) fn rec_rows<S: Rows>(&self, a: &S, n0: usize, out: &mut [f64]) {
+        rec_task_dispatch::<false, &S>(RecIn { a, hvd: None }, &self.sy, n0, out);
+    }
+}
+
+/// PyWavelets' `_match_coeff_dims` check: an approximation of `have` rows x cols may be read
+/// as `want` when each side is equal or one longer.
+pub(crate) fn check_trim(have: (usize, usize), want: (usize, usize)) -> Result<()> {
+    let fits = |n: usize, m: usize| n == m || n == m + 1;
+    if !fits(have.0, want.0) || !fits(have.1, want.1) {
+        return Err(WaveletError::CoeffShape(format!(
+            "approximation {} x {} does not fit details {} x {}",
+            have.0, have.1, want.0, want.1
+        )));
+    }
+    Ok(())
 }
 
 /// [`lowpass_final`] run to the end: the whole low-pass reconstruction, in PyWavelets' shape.

@@ -44,12 +44,14 @@ pub mod options;
 mod pool;
 mod select;
 mod separate;
+pub mod stream;
 mod wavelet;
 
 pub use dwt::{wavedec2, waverec2, Coeffs2, Details2, MAX_LEVEL};
 pub use error::{Result, WaveletError};
 pub use live::{
-    final_separation, FinalSeparation, LivePatches, LiveSeparation, SeparationSettings,
+    final_pass_streams, final_separation, final_separation_with, FinalRequest, FinalSeparation,
+    LivePatches, LiveSeparation, SeparationSettings,
 };
 pub use method::{
     equivalent_cutoff_um, filter_separation, level_lowered_warning, FilterSeparation,
@@ -62,6 +64,7 @@ pub use select::{
     Analysis, BaseChoice, BaseRmse, EnergyPoint, HeightStats, LevelChoice, PoolingBias,
 };
 pub use separate::{default_level, fill_invalid, separate, Separation, DEFAULT_LEVEL};
+pub use stream::{energy_curve_streamed, separate_streamed, StreamError, StreamOptions};
 pub use wavelet::{dwt_coeff_len, dwt_max_level, Mode, Wavelet};
 #[cfg(feature = "node")]
 pub mod node;

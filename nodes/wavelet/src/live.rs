@@ -2,17 +2,22 @@
 //! live pass publishes, what the final pass computes and writes.
 //!
 //! Live: [`LiveSeparation::apply_patch`] copies each arrived panorama patch into a mirror of
-//! the panorama (a [`GrowingCanvas`], cheap), and [`LiveSeparation::live_pass`] separates once
+//! the panorama (fixed-size chunks, cheap), and [`LiveSeparation::live_pass`] separates once
 //! over the region changed since the last pass plus a margin, at the level that window
 //! supports, giving datum / roughness / pooled patches flagged PREVIEW. The work is bounded by
 //! the window, not the panorama. A level-8 sym5 datum depends on ~2300 px around each pixel,
 //! so live patches are approximations by construction.
 //! Final: [`final_separation`] is the exact pass over the whole final panorama, identical to
 //! the batch computation ([`crate::analyse`]), flagged FINAL and optionally written to files.
+//! For a named wavelet at a fixed or the default level (the demo and every graph in
+//! launch/graphs) it streams ([`crate::stream`]): datum and roughness are computed band by
+//! band, written row by row (.npy and .png byte-identical to the whole-map writers), and
+//! built as whole frames only when a consumer is wired to the port. Base by RMSE, level by
+//! minimum energy and the ISO filter methods (FFT over the whole map) keep the in-memory path.
 
 use anyhow::{anyhow, bail, Result};
 use serde_json::json;
-use surfstream_core::canvas::{GridRect, GrowingCanvas};
+use surfstream_core::canvas::GridRect;
 use surfstream_core::frame::{flags, FrameHeader, FrameKind, HeightMap};
 use surfstream_core::raster::{RasterView, Shape};
 use surfstream_io::output::{NpyHeights, OutputWriter, SurfaceOutput};
@@ -20,9 +25,12 @@ use surfstream_io::output::{NpyHeights, OutputWriter, SurfaceOutput};
 use surfstream_core::filter::Grid;
 
 use crate::method::{equivalent_cutoff_um, filter_separation, level_lowered_warning};
+use crate::select::SummaryParts;
+use crate::stream::StreamOptions;
 use crate::{
-    analyse, default_level, pool, pooling_bias, separate, BaseChoice, LevelChoice, Mode, PoolOp,
-    SeparationMethod, Wavelet, DEFAULT_LEVEL,
+    analyse, default_level, energy_curve_streamed, level_by_min_energy, pool, pooling_bias,
+    separate_streamed, BaseChoice, LevelChoice, Mode, PoolOp, SeparationMethod, Wavelet,
+    DEFAULT_LEVEL,
 };
 
 /// Largest mirror the live pass keeps, px (as the fusion's canvas limit): a patch whose
@@ -71,7 +79,85 @@ struct PanoramaMirror {
     z_offset_um: f64,
     /// What patches have covered so far.
     extent: Option<GridRect>,
-    heights: GrowingCanvas<f32>,
+    heights: ChunkedHeights,
+}
+
+/// Side of a mirror chunk, px.
+const MIRROR_CHUNK: i64 = 256;
+
+/// Heights on an unbounded grid in fixed `MIRROR_CHUNK`² chunks created as patches cover them:
+/// memory follows the covered area (about 4 B/px), and growing never copies (a growing
+/// array would hold up to ~2.25x the area, and old + new while it reallocates).
+#[derive(Debug, Clone, Default)]
+struct ChunkedHeights {
+    chunks: std::collections::HashMap<(i64, i64), Box<[f32]>>,
+}
+
+impl ChunkedHeights {
+    /// The chunks `rect` touches, with the part of `rect` inside each.
+    fn pieces(rect: GridRect) -> impl Iterator<Item = ((i64, i64), GridRect)> {
+        let (cy0, cy1) = (
+            rect.y0.div_euclid(MIRROR_CHUNK),
+            (rect.y1 - 1).div_euclid(MIRROR_CHUNK),
+        );
+        let (cx0, cx1) = (
+            rect.x0.div_euclid(MIRROR_CHUNK),
+            (rect.x1 - 1).div_euclid(MIRROR_CHUNK),
+        );
+        (cy0..=cy1).flat_map(move |cy| {
+            (cx0..=cx1).filter_map(move |cx| {
+                let chunk = GridRect {
+                    x0: cx * MIRROR_CHUNK,
+                    y0: cy * MIRROR_CHUNK,
+                    x1: (cx + 1) * MIRROR_CHUNK,
+                    y1: (cy + 1) * MIRROR_CHUNK,
+                };
+                chunk.intersect(&rect).map(|part| ((cx, cy), part))
+            })
+        })
+    }
+
+    /// Copies row-major `values` (`rect`'s size, checked by the caller) into `rect`.
+    fn write(&mut self, rect: GridRect, values: &[f32]) {
+        if rect.cols() == 0 || rect.rows() == 0 {
+            return;
+        }
+        let w = rect.cols();
+        for ((cx, cy), part) in Self::pieces(rect) {
+            let chunk = self.chunks.entry((cx, cy)).or_insert_with(|| {
+                vec![f32::NAN; (MIRROR_CHUNK * MIRROR_CHUNK) as usize].into_boxed_slice()
+            });
+            let n = part.cols();
+            for y in part.y0..part.y1 {
+                let src = (y - rect.y0) as usize * w + (part.x0 - rect.x0) as usize;
+                let dst =
+                    ((y - cy * MIRROR_CHUNK) * MIRROR_CHUNK + part.x0 - cx * MIRROR_CHUNK) as usize;
+                chunk[dst..dst + n].copy_from_slice(&values[src..src + n]);
+            }
+        }
+    }
+
+    /// The heights in `rect`, row-major; NaN where no patch wrote.
+    fn read(&self, rect: GridRect) -> Vec<f32> {
+        let w = rect.cols();
+        let mut out = vec![f32::NAN; w * rect.rows()];
+        if out.is_empty() {
+            return out;
+        }
+        for ((cx, cy), part) in Self::pieces(rect) {
+            let Some(chunk) = self.chunks.get(&(cx, cy)) else {
+                continue;
+            };
+            let n = part.cols();
+            for y in part.y0..part.y1 {
+                let dst = (y - rect.y0) as usize * w + (part.x0 - rect.x0) as usize;
+                let src =
+                    ((y - cy * MIRROR_CHUNK) * MIRROR_CHUNK + part.x0 - cx * MIRROR_CHUNK) as usize;
+                out[dst..dst + n].copy_from_slice(&chunk[src..src + n]);
+            }
+        }
+        out
+    }
 }
 
 impl PanoramaMirror {
@@ -81,7 +167,7 @@ impl PanoramaMirror {
             pitch_um: [h.pitch_x_um, h.pitch_y_um],
             z_offset_um: h.z_offset_um,
             extent: None,
-            heights: GrowingCanvas::new(f32::NAN),
+            heights: ChunkedHeights::default(),
         }
     }
 
@@ -116,9 +202,16 @@ impl PanoramaMirror {
                 h.sequence
             );
         }
-        self.heights
-            .write(r, heights)
-            .map_err(|e| anyhow!("wavelet: panorama patch {}: {e}", h.sequence))?;
+        if heights.len() != r.cols() * r.rows() || heights.is_empty() {
+            bail!(
+                "wavelet: panorama patch {} holds {} heights, its header says {} x {}",
+                h.sequence,
+                heights.len(),
+                h.height,
+                h.width
+            );
+        }
+        self.heights.write(r, heights);
         self.extent = Some(extent);
         Ok(r)
     }
@@ -184,6 +277,14 @@ impl LiveSeparation {
         })
     }
 
+    /// Frees the mirror (a whole f32 copy of the panorama) once the final panorama is here
+    /// and its live patches are out: the final pass must not hold it too.
+    pub fn release_mirror(&mut self) {
+        self.mirror = None;
+        self.dirty = None;
+        self.trace = None;
+    }
+
     /// Folds a panorama patch into the mirror and marks its region changed.
     pub fn apply_patch(&mut self, header: &FrameHeader, heights: &[f32]) -> Result<()> {
         let m = self
@@ -231,12 +332,48 @@ impl LiveSeparation {
             return Ok(None);
         }
         let (rows, cols) = (window.rows(), window.cols());
+        // Only the changed region is published: the window's margin is context.
+        let (dx, dy) = (
+            (dirty.x0 - window.x0) as usize,
+            (dirty.y0 - window.y0) as usize,
+        );
+        let (w, h) = (dirty.cols(), dirty.rows());
+        let crop = |v: &[f32]| -> Vec<f32> {
+            let mut c = Vec::with_capacity(w * h);
+            for row in 0..h {
+                let at = (row + dy) * cols + dx;
+                c.extend_from_slice(&v[at..at + w]);
+            }
+            c
+        };
         let sep = if self.method == SeparationMethod::Wavelet {
             let Ok(level) = default_level(rows, cols, &self.wavelet, self.level) else {
                 return Ok(None);
             };
-            let s = separate(&heights, rows, cols, &self.wavelet, self.mode, Some(level))?;
-            (s.datum, s.roughness)
+            // Streamed, cropping rows as they come: the same bits as `separate`, without the
+            // window's f64 copies (a window can be most of the panorama under load).
+            let (mut d, mut r) = (Vec::with_capacity(w * h), Vec::with_capacity(w * h));
+            separate_streamed(
+                &heights,
+                rows,
+                cols,
+                &self.wavelet,
+                self.mode,
+                Some(level),
+                &StreamOptions::default(),
+                |r0, d_band, r_band| {
+                    let rows_in = d_band.chunks_exact(cols).zip(r_band.chunks_exact(cols));
+                    for (i, (d_row, r_row)) in rows_in.enumerate() {
+                        if (dy..dy + h).contains(&(r0 + i)) {
+                            d.extend_from_slice(&d_row[dx..dx + w]);
+                            r.extend_from_slice(&r_row[dx..dx + w]);
+                        }
+                    }
+                    Ok(())
+                },
+            )
+            .map_err(|e| anyhow!("wavelet: live separation: {e}"))?;
+            (d, r)
         } else {
             let grid = Grid {
                 rows,
@@ -246,20 +383,7 @@ impl LiveSeparation {
             };
             let s = filter_separation(&heights, grid, self.method, self.lambda_s_um)
                 .map_err(|e| anyhow!("wavelet: live {} separation: {e}", self.method.name()))?;
-            (s.datum, s.roughness)
-        };
-        let crop = |v: &[f32]| -> Vec<f32> {
-            let (dx, dy) = (
-                (dirty.x0 - window.x0) as usize,
-                (dirty.y0 - window.y0) as usize,
-            );
-            let w = dirty.cols();
-            let mut c = Vec::with_capacity(w * dirty.rows());
-            for row in 0..dirty.rows() {
-                let at = (row + dy) * cols + dx;
-                c.extend_from_slice(&v[at..at + w]);
-            }
-            c
+            (crop(&s.datum), crop(&s.roughness))
         };
         let stamp = |mut h: FrameHeader| {
             h.flags |= flags::PREVIEW;
@@ -269,11 +393,11 @@ impl LiveSeparation {
         };
         let datum = HeightMap {
             header: stamp(m.header_for(dirty, FrameKind::Datum, 1)),
-            heights: crop(&sep.0),
+            heights: sep.0,
         };
         let roughness = HeightMap {
             header: stamp(m.header_for(dirty, FrameKind::Roughness, 1)),
-            heights: crop(&sep.1),
+            heights: sep.1,
         };
         // Pooled blocks stay aligned to the mirror's grid so live patches tile seamlessly.
         let pooled = match m
@@ -309,29 +433,167 @@ impl LiveSeparation {
 /// What the final pass publishes (flag FINAL) and reports.
 #[derive(Debug, Clone)]
 pub struct FinalSeparation {
-    pub datum: HeightMap,
-    pub roughness: HeightMap,
+    /// Only when asked for ([`FinalRequest::publish_datum`]): a whole frame, built from the
+    /// rows as they stream.
+    pub datum: Option<HeightMap>,
+    pub roughness: Option<HeightMap>,
     pub pooled: HeightMap,
     /// The choices and the evidence ([`crate::Analysis::summary`]), the level asked for, the
     /// panorama's size and the files written.
     pub summary: serde_json::Value,
 }
 
+/// What the final pass should produce besides its summary and pooled map.
+#[derive(Debug)]
+pub struct FinalRequest<'a> {
+    /// Write `datum`, `roughness` and `pooled` (.npy + .png) here.
+    pub files: Option<&'a mut OutputWriter>,
+    /// Build the whole datum / roughness frames (a consumer is connected to the port).
+    pub publish_datum: bool,
+    pub publish_roughness: bool,
+    /// Bands and level stores of the streamed pass.
+    pub stream: StreamOptions,
+}
+
 /// How run.json and `separate.json` define the wavelet's equivalent cutoff.
 pub const CUTOFF_DEFINITION: &str = "wavelength at which the level's approximation passes 50 % amplitude: T(w) = prod_{k<level} |H(2^k w)|^2 / 2, H the decomposition low-pass, aliasing ignored (nodes/wavelet/src/method.rs)";
 
-/// The exact separation of the final panorama; with a writer, also `datum`, `roughness` and
-/// `pooled` as .npy + .png (datum and pooled absolute f64: they carry the panorama's offset;
-/// roughness relative f32: it has none by nature).
+/// [`final_separation_with`] building both frames, level stores beside the files.
 pub fn final_separation(
     settings: &SeparationSettings,
     panorama: &HeightMap,
     files: Option<&mut OutputWriter>,
 ) -> Result<FinalSeparation> {
+    let stream = StreamOptions {
+        spill_dir: files.as_ref().map(|w| w.dir().to_path_buf()),
+        ..StreamOptions::default()
+    };
+    final_separation_with(
+        settings,
+        panorama,
+        FinalRequest {
+            files,
+            publish_datum: true,
+            publish_roughness: true,
+            stream,
+        },
+    )
+}
+
+/// Whether the final pass streams ([`crate::separate_streamed`]): a named wavelet at a fixed
+/// or the default level. Choosing the base by RMSE (every base over the whole map), the level
+/// by minimum energy, and the ISO filter methods (FFT) keep the in-memory path.
+pub fn final_pass_streams(settings: &SeparationSettings) -> bool {
+    matches!(settings.method, SeparationMethod::Wavelet)
+        && matches!(settings.base, BaseChoice::Named(_))
+        && matches!(settings.level, LevelChoice::Fixed(_) | LevelChoice::Default)
+}
+
+/// The exact separation of the final panorama; with a writer, also `datum`, `roughness` and
+/// `pooled` as .npy + .png (datum and pooled absolute f64: they carry the panorama's offset;
+/// roughness relative f32: it has none by nature). A named wavelet at a fixed / default
+/// level streams ([`final_pass_streams`]): memory is a band of rows plus the panorama, and
+/// the datum / roughness frames are built only when asked for.
+pub fn final_separation_with(
+    settings: &SeparationSettings,
+    panorama: &HeightMap,
+    req: FinalRequest<'_>,
+) -> Result<FinalSeparation> {
     let h = panorama.header;
     let (rows, cols) = (h.height as usize, h.width as usize);
-    let (datum, roughness, pooled, mut summary, title) = match settings.method {
-        SeparationMethod::Wavelet => {
+    let FinalRequest {
+        mut files,
+        publish_datum,
+        publish_roughness,
+        stream,
+    } = req;
+    let mut written = Vec::new();
+    let (datum, roughness, pooled, mut summary) = match (settings.method, settings.base) {
+        (SeparationMethod::Wavelet, BaseChoice::Named(w)) if final_pass_streams(settings) => {
+            let heights = &panorama.heights;
+            if heights.len() != rows * cols {
+                bail!(
+                    "wavelet: panorama frame holds {} heights, its header says {rows} x {cols}",
+                    heights.len()
+                );
+            }
+            let requested = settings.fixed_level();
+            let level = default_level(rows, cols, &w, requested)?;
+            let curve = energy_curve_streamed(heights, rows, cols, &w, settings.mode, &stream)?;
+            let pooled = pool(heights, rows, cols, settings.pool_block, settings.pool_op)?;
+            let mut summary = SummaryParts {
+                wavelet: &w,
+                mode: settings.mode,
+                level,
+                level_min_energy: level_by_min_energy(&curve),
+                energy_curve: &curve,
+                base_rmse: None,
+                pool_block: settings.pool_block,
+                pool_op: settings.pool_op,
+                pooled_px: [pooled.cols, pooled.rows],
+                pooling_bias: pooling_bias(heights, &pooled.heights),
+            }
+            .json();
+            add_wavelet_notes(&mut summary, settings, &w, level, &h);
+            let title = datum_title(&w, level);
+            let mut out = match files.as_deref() {
+                Some(fw) => Some((
+                    fw.begin_surface(
+                        "datum",
+                        rows,
+                        cols,
+                        h.z_offset_um,
+                        NpyHeights::AbsoluteF64,
+                        &title,
+                    )?,
+                    fw.begin_surface(
+                        "roughness",
+                        rows,
+                        cols,
+                        h.z_offset_um,
+                        NpyHeights::RelativeF32,
+                        ROUGHNESS_TITLE,
+                    )?,
+                )),
+                None => None,
+            };
+            let mut datum = Vec::new();
+            let mut roughness = Vec::new();
+            separate_streamed(
+                heights,
+                rows,
+                cols,
+                &w,
+                settings.mode,
+                Some(level),
+                &stream,
+                |_, d, r| {
+                    if let Some((ds, rs)) = out.as_mut() {
+                        ds.push_rows(d)?;
+                        rs.push_rows(r)?;
+                    }
+                    if publish_datum {
+                        datum.extend_from_slice(d);
+                    }
+                    if publish_roughness {
+                        roughness.extend_from_slice(r);
+                    }
+                    Ok(())
+                },
+            )
+            .map_err(|e| anyhow!("wavelet: streamed separation: {e}"))?;
+            if let (Some(fw), Some((ds, rs))) = (files.as_deref_mut(), out) {
+                fw.finish_surface(ds)?;
+                fw.finish_surface(rs)?;
+            }
+            (
+                publish_datum.then_some(datum),
+                publish_roughness.then_some(roughness),
+                pooled,
+                summary,
+            )
+        }
+        (SeparationMethod::Wavelet, _) => {
             let analysis = analyse(
                 &panorama.heights,
                 rows,
@@ -345,39 +607,19 @@ pub fn final_separation(
             let mut summary = analysis.summary();
             let level = analysis.separation.level;
             let w = analysis.wavelet;
-            if let Some(o) = summary.as_object_mut() {
-                o.insert("method".into(), json!("wavelet"));
-                o.insert(
-                    "equivalent_cutoff_um".into(),
-                    json!(equivalent_cutoff_um(&w, level, h.pitch_x_um)),
-                );
-                if h.pitch_y_um != h.pitch_x_um {
-                    o.insert(
-                        "equivalent_cutoff_y_um".into(),
-                        json!(equivalent_cutoff_um(&w, level, h.pitch_y_um)),
-                    );
-                }
-                o.insert(
-                    "equivalent_cutoff_definition".into(),
-                    json!(CUTOFF_DEFINITION),
-                );
-                let requested = match settings.level {
-                    LevelChoice::Fixed(l) => Some(l),
-                    LevelChoice::Default => Some(DEFAULT_LEVEL),
-                    LevelChoice::MinEnergy => None,
-                };
-                if let Some(warning) =
-                    requested.and_then(|r| level_lowered_warning(&w, r, level, h.pitch_x_um))
-                {
-                    eprintln!("wavelet: {warning}");
-                    o.insert("warning".into(), json!(warning));
-                }
-            }
-            let title = format!("datum, {} level {level} (um)", w.name());
+            add_wavelet_notes(&mut summary, settings, &w, level, &h);
             let sep = analysis.separation;
-            (sep.datum, sep.roughness, analysis.pooled, summary, title)
+            if let Some(fw) = files.as_deref_mut() {
+                write_pair(fw, &sep.datum, &sep.roughness, &datum_title(&w, level), &h)?;
+            }
+            (
+                publish_datum.then_some(sep.datum),
+                publish_roughness.then_some(sep.roughness),
+                analysis.pooled,
+                summary,
+            )
         }
-        method => {
+        (method, _) => {
             let grid = Grid {
                 rows,
                 cols,
@@ -407,52 +649,34 @@ pub fn final_separation(
                 "pooling_bias": pooling_bias(&panorama.heights, &pooled.heights),
             });
             let title = format!("datum, {} lambda_c {cutoff} um (um)", method.name());
-            (s.datum, s.roughness, pooled, summary, title)
+            if let Some(fw) = files.as_deref_mut() {
+                write_pair(fw, &s.datum, &s.roughness, &title, &h)?;
+            }
+            (
+                publish_datum.then_some(s.datum),
+                publish_roughness.then_some(s.roughness),
+                pooled,
+                summary,
+            )
         }
     };
-    let shape = Shape::new(rows, cols);
-    let pooled_shape = Shape::new(pooled.rows, pooled.cols);
-    let mut written = Vec::new();
-    if let Some(w) = files {
+    if let Some(fw) = files {
         let block = settings.pool_block;
-        for (name, values, shape, npy, title) in [
-            (
-                "datum",
-                &datum,
-                shape,
-                NpyHeights::AbsoluteF64,
-                title.clone(),
-            ),
-            (
-                "roughness",
-                &roughness,
-                shape,
-                NpyHeights::RelativeF32,
-                "roughness (um)".to_string(),
-            ),
-            (
-                "pooled",
-                &pooled.heights,
-                pooled_shape,
-                NpyHeights::AbsoluteF64,
-                format!("pooled {block}x{block} (um)"),
-            ),
-        ] {
-            w.write_surface(&SurfaceOutput {
-                name,
-                heights: RasterView::new(values, shape)?,
-                z_offset_um: h.z_offset_um,
-                npy,
-                title: &title,
-                x3p_pitch_um: None,
-            })?;
-        }
-        written = w.files().to_vec();
+        fw.write_surface(&SurfaceOutput {
+            name: "pooled",
+            heights: RasterView::new(&pooled.heights, Shape::new(pooled.rows, pooled.cols))?,
+            z_offset_um: h.z_offset_um,
+            npy: NpyHeights::AbsoluteF64,
+            title: &format!("pooled {block}x{block} (um)"),
+            x3p_pitch_um: None,
+        })?;
+        written = fw.files().to_vec();
     }
     if let Some(o) = summary.as_object_mut() {
         o.insert("level_requested".into(), json!(settings.fixed_level()));
         o.insert("panorama_px".into(), json!([cols, rows]));
         o.insert("files".into(), json!(written));
+        o.insert("streamed".into(), json!(final_pass_streams(settings)));
     }
     let header = |kind: FrameKind| FrameHeader {
         kind: kind as u32,
@@ -465,20 +689,94 @@ pub fn final_separation(
     pooled_header.pitch_x_um *= settings.pool_block as f64;
     pooled_header.pitch_y_um *= settings.pool_block as f64;
     Ok(FinalSeparation {
-        datum: HeightMap {
+        datum: datum.map(|heights| HeightMap {
             header: header(FrameKind::Datum),
-            heights: datum,
-        },
-        roughness: HeightMap {
+            heights,
+        }),
+        roughness: roughness.map(|heights| HeightMap {
             header: header(FrameKind::Roughness),
-            heights: roughness,
-        },
+            heights,
+        }),
         pooled: HeightMap {
             header: pooled_header,
             heights: pooled.heights,
         },
         summary,
     })
+}
+
+const ROUGHNESS_TITLE: &str = "roughness (um)";
+
+fn datum_title(w: &Wavelet, level: usize) -> String {
+    format!("datum, {} level {level} (um)", w.name())
+}
+
+/// Whole datum and roughness maps (the in-memory paths) as .npy + .png.
+fn write_pair(
+    fw: &mut OutputWriter,
+    datum: &[f32],
+    roughness: &[f32],
+    title: &str,
+    h: &FrameHeader,
+) -> Result<()> {
+    let shape = Shape::new(h.height as usize, h.width as usize);
+    for (name, values, npy, title) in [
+        ("datum", datum, NpyHeights::AbsoluteF64, title),
+        (
+            "roughness",
+            roughness,
+            NpyHeights::RelativeF32,
+            ROUGHNESS_TITLE,
+        ),
+    ] {
+        fw.write_surface(&SurfaceOutput {
+            name,
+            heights: RasterView::new(values, shape)?,
+            z_offset_um: h.z_offset_um,
+            npy,
+            title,
+            x3p_pitch_um: None,
+        })?;
+    }
+    Ok(())
+}
+
+/// The wavelet's method, equivalent cutoff and, when the level asked for was lowered, why.
+fn add_wavelet_notes(
+    summary: &mut serde_json::Value,
+    settings: &SeparationSettings,
+    w: &Wavelet,
+    level: usize,
+    h: &FrameHeader,
+) {
+    let Some(o) = summary.as_object_mut() else {
+        return;
+    };
+    o.insert("method".into(), json!("wavelet"));
+    o.insert(
+        "equivalent_cutoff_um".into(),
+        json!(equivalent_cutoff_um(w, level, h.pitch_x_um)),
+    );
+    if h.pitch_y_um != h.pitch_x_um {
+        o.insert(
+            "equivalent_cutoff_y_um".into(),
+            json!(equivalent_cutoff_um(w, level, h.pitch_y_um)),
+        );
+    }
+    o.insert(
+        "equivalent_cutoff_definition".into(),
+        json!(CUTOFF_DEFINITION),
+    );
+    let requested = match settings.level {
+        LevelChoice::Fixed(l) => Some(l),
+        LevelChoice::Default => Some(DEFAULT_LEVEL),
+        LevelChoice::MinEnergy => None,
+    };
+    if let Some(warning) = requested.and_then(|r| level_lowered_warning(w, r, level, h.pitch_x_um))
+    {
+        eprintln!("wavelet: {warning}");
+        o.insert("warning".into(), json!(warning));
+    }
 }
 
 #[cfg(test)]
@@ -542,7 +840,6 @@ mod tests {
                 y1: 8
             }
         );
-        assert!(m.heights.rect().contains(&extent));
         assert_eq!(
             m.heights.read(GridRect {
                 x0: 0,
@@ -559,6 +856,32 @@ mod tests {
             y1: -3
         })[0]
             .is_nan());
+    }
+
+    #[test]
+    fn chunked_mirror_reads_what_was_written_across_chunks() {
+        let mut c = ChunkedHeights::default();
+        let a = GridRect::at(-300, -20, Shape::new(600, 700));
+        let va: Vec<f32> = (0..600 * 700).map(|i| i as f32).collect();
+        c.write(a, &va);
+        assert_eq!(c.read(a), va);
+        let b = GridRect::at(200, 250, Shape::new(10, 300));
+        let vb = vec![-1.0f32; 3000];
+        c.write(b, &vb);
+        // A window over both and beyond: b on top of a, NaN where nothing was written.
+        let win = GridRect::at(-310, -30, Shape::new(700, 900));
+        let got = c.read(win);
+        for (i, v) in got.iter().enumerate() {
+            let (x, y) = (win.x0 + (i % 900) as i64, win.y0 + (i / 900) as i64);
+            let inside = |r: &GridRect| x >= r.x0 && x < r.x1 && y >= r.y0 && y < r.y1;
+            if inside(&b) {
+                assert_eq!(*v, -1.0);
+            } else if inside(&a) {
+                assert_eq!(*v, ((y - a.y0) * 700 + (x - a.x0)) as f32);
+            } else {
+                assert!(v.is_nan());
+            }
+        }
     }
 
     #[test]
@@ -600,6 +923,11 @@ mod tests {
         assert_eq!(pooled.header.pitch_x_um, 2.0);
         assert_eq!((pooled.header.width, pooled.header.height), (18, 8));
         assert!(live.live_pass().unwrap().is_none());
+        let c = patch(0, 40, 40, 30, surface);
+        live.apply_patch(&c.header, &c.heights).unwrap();
+        live.release_mirror();
+        assert!(!live.has_changes());
+        assert!(live.live_pass().unwrap().is_none());
     }
 
     #[test]
@@ -611,13 +939,8 @@ mod tests {
         let f = final_separation(&s, &pano, None).unwrap();
         assert_eq!(f.summary["method"], "gaussian");
         assert_eq!(f.summary["cutoff_um"], 8.0);
-        for ((d, r), h) in f
-            .datum
-            .heights
-            .iter()
-            .zip(&f.roughness.heights)
-            .zip(&pano.heights)
-        {
+        let (fd, fr) = (f.datum.unwrap(), f.roughness.unwrap());
+        for ((d, r), h) in fd.heights.iter().zip(&fr.heights).zip(&pano.heights) {
             assert!((d + r - h).abs() < 1e-5);
         }
         // The wavelet: db2 level 2 at 0.5 um is 8 pitches (4 um), reported with a warning
@@ -653,9 +976,10 @@ mod tests {
             PoolOp::Max,
         )
         .unwrap();
-        assert_eq!(f.datum.heights, batch.separation.datum);
+        let datum_frame = f.datum.as_ref().unwrap();
+        assert_eq!(datum_frame.heights, batch.separation.datum);
         assert_eq!(f.pooled.heights, batch.pooled.heights);
-        assert!(f.datum.header.has(flags::FINAL));
+        assert!(datum_frame.header.has(flags::FINAL));
         assert_eq!(
             (f.pooled.header.width, f.pooled.header.pitch_x_um),
             (12, 2.0)
@@ -663,6 +987,139 @@ mod tests {
         assert_eq!(f.summary["files"].as_array().unwrap().len(), 6);
         assert_eq!(f.summary["level_requested"], 2);
         let datum = surfstream_io::npy::read_npy_f64(dir.path().join("datum.npy")).unwrap();
-        assert_eq!(datum.data[0], f64::from(f.datum.heights[0]) + 100.0);
+        assert_eq!(datum.data[0], f64::from(datum_frame.heights[0]) + 100.0);
+    }
+
+    /// A demo-size panorama (a 3x3 scan of 1024^2 tiles is ~2.8k px a side; this is a
+    /// quarter of that area) with holes: rows at the top, middle and bottom, scattered pixels.
+    fn demo_panorama(rows: u32, cols: u32) -> HeightMap {
+        let mut pano = patch(0, 0, cols, rows, |x, y| {
+            let (xf, yf) = (x as f32, y as f32);
+            3.0 + 0.001 * xf - 0.0005 * yf
+                + (0.01 * xf).sin()
+                + 0.2 * (0.3 * yf).cos()
+                + ((x * 7919 + y * 104_729) % 97) as f32 * 1e-3
+        });
+        pano.header.kind = FrameKind::Panorama as u32;
+        pano.header.z_offset_um = 1234.5;
+        let c = cols as usize;
+        for r in [0usize, 1, rows as usize / 2, rows as usize - 1] {
+            pano.heights[r * c..(r + 1) * c].fill(f32::NAN);
+        }
+        for i in (3..pano.heights.len()).step_by(1009) {
+            pano.heights[i] = f32::NAN;
+        }
+        pano
+    }
+
+    #[test]
+    fn streamed_final_files_are_byte_identical_to_the_in_memory_ones() {
+        let (rows, cols) = (1401u32, 1400u32);
+        let pano = demo_panorama(rows, cols);
+        let mut s = settings();
+        s.base = BaseChoice::Named(Wavelet::by_name("sym5").unwrap());
+        s.level = LevelChoice::Default;
+        assert!(final_pass_streams(&s));
+        for mode in [Mode::Symmetric, Mode::Periodization] {
+            s.mode = mode;
+            let dir = tempfile::tempdir().unwrap();
+            let (a, b) = (dir.path().join("streamed"), dir.path().join("reference"));
+            std::fs::create_dir_all(&a).unwrap();
+            std::fs::create_dir_all(&b).unwrap();
+            let mut wa = OutputWriter::new(&a);
+            let f = final_separation(&s, &pano, Some(&mut wa)).unwrap();
+            assert_eq!(f.summary["streamed"], true);
+            // What the node wrote before streaming: analyse(), then whole-map writers.
+            let (r, c) = (rows as usize, cols as usize);
+            let batch =
+                analyse(&pano.heights, r, c, s.base, s.level, mode, 4, PoolOp::Max).unwrap();
+            let mut wb = OutputWriter::new(&b);
+            let level = batch.separation.level;
+            write_pair(
+                &mut wb,
+                &batch.separation.datum,
+                &batch.separation.roughness,
+                &format!("datum, sym5 level {level} (um)"),
+                &pano.header,
+            )
+            .unwrap();
+            wb.write_surface(&SurfaceOutput {
+                name: "pooled",
+                heights: RasterView::new(
+                    &batch.pooled.heights,
+                    Shape::new(batch.pooled.rows, batch.pooled.cols),
+                )
+                .unwrap(),
+                z_offset_um: pano.header.z_offset_um,
+                npy: NpyHeights::AbsoluteF64,
+                title: "pooled 4x4 (um)",
+                x3p_pitch_um: None,
+            })
+            .unwrap();
+            assert_eq!(wa.files(), wb.files());
+            assert_eq!(wa.files().len(), 6);
+            for name in wb.files() {
+                let x = std::fs::read(a.join(name)).unwrap();
+                let y = std::fs::read(b.join(name)).unwrap();
+                assert!(x == y, "{mode}: {name} differs");
+            }
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert!(bits(&f.datum.unwrap().heights) == bits(&batch.separation.datum));
+            assert!(bits(&f.roughness.unwrap().heights) == bits(&batch.separation.roughness));
+            // The summary: the same choices; the energy curve to round-off.
+            let reference = batch.summary();
+            for key in [
+                "wavelet",
+                "mode",
+                "level",
+                "level_min_energy",
+                "pooled_px",
+                "pooling_bias",
+            ] {
+                assert_eq!(f.summary[key], reference[key], "{key}");
+            }
+            let (ea, eb) = (&f.summary["energy_curve"], &reference["energy_curve"]);
+            assert_eq!(ea.as_array().unwrap().len(), eb.as_array().unwrap().len());
+            for (p, q) in ea.as_array().unwrap().iter().zip(eb.as_array().unwrap()) {
+                let (x, y) = (
+                    p["approx_energy_fraction"].as_f64().unwrap(),
+                    q["approx_energy_fraction"].as_f64().unwrap(),
+                );
+                assert!((x - y).abs() <= 1e-12 * x.abs(), "{x} vs {y}");
+            }
+        }
+    }
+
+    #[test]
+    fn frames_only_when_asked_and_other_choices_stay_in_memory() {
+        let pano = demo_panorama(120, 90);
+        let dir = tempfile::tempdir().unwrap();
+        let mut w = OutputWriter::new(dir.path());
+        let f = final_separation_with(
+            &settings(),
+            &pano,
+            FinalRequest {
+                files: Some(&mut w),
+                publish_datum: false,
+                publish_roughness: true,
+                stream: StreamOptions::default(),
+            },
+        )
+        .unwrap();
+        assert!(f.datum.is_none());
+        assert_eq!(f.roughness.unwrap().heights.len(), 120 * 90);
+        assert_eq!(f.summary["files"].as_array().unwrap().len(), 6);
+        assert!(dir.path().join("datum.npy").exists());
+        let mut s = settings();
+        s.level = LevelChoice::MinEnergy;
+        assert!(!final_pass_streams(&s));
+        let f = final_separation(&s, &pano, None).unwrap();
+        assert_eq!(f.summary["streamed"], false);
+        s = settings();
+        s.base = BaseChoice::MinRmse;
+        assert!(!final_pass_streams(&s));
+        s = settings();
+        s.method = SeparationMethod::Gaussian { cutoff_um: 8.0 };
+        assert!(!final_pass_streams(&s));
     }
 }

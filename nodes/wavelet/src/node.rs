@@ -2,7 +2,9 @@
 //!
 //! Panorama patches go into the live separation as they arrive; each wake-up publishes one
 //! live pass over what changed (flag PREVIEW). At end of scan the final panorama gets the
-//! exact pass, published with FINAL and written to the out dir.
+//! exact pass, written to the out dir and published with FINAL. The whole datum / roughness
+//! frames are built and published only when the graph wires a consumer to that port (the
+//! demo wires only `pooled`): the streamed final pass never holds them otherwise.
 
 use anyhow::{anyhow, bail, Result};
 use serde_json::json;
@@ -11,8 +13,9 @@ use surfstream_io::output::OutputWriter;
 use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
-use crate::live::{final_separation, LiveSeparation, SeparationSettings};
+use crate::live::{final_separation_with, FinalRequest, LiveSeparation, SeparationSettings};
 use crate::options::WaveletParams;
+use crate::stream::StreamOptions;
 
 pub struct WaveletNode {
     settings: SeparationSettings,
@@ -20,6 +23,11 @@ pub struct WaveletNode {
     /// Publish live passes (patches are applied either way: that also checks them).
     publish_live: bool,
     files: Option<OutputWriter>,
+    /// Consumers are wired to `datum` / `roughness`.
+    publish_datum: bool,
+    publish_roughness: bool,
+    /// Level stores of the streamed final pass go beside the outputs (the staging out dir).
+    spill_dir: std::path::PathBuf,
     final_panorama: Option<HeightMap>,
     ended: bool,
     done: bool,
@@ -31,7 +39,15 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
     let p: WaveletParams = ctx.params()?;
     let at = format!("graph '{}', node '{}'", ctx.graph_name, ctx.node_id);
     let settings = p.settings().map_err(|e| anyhow!("{at}: {e}"))?;
+    let wired = |port: &str| {
+        ctx.outputs
+            .iter()
+            .any(|o| o.port == port && o.subscribers > 0)
+    };
     Ok(Box::new(WaveletNode {
+        publish_datum: wired("datum"),
+        publish_roughness: wired("roughness"),
+        spill_dir: ctx.out_dir.clone(),
         live: LiveSeparation::new(&settings, p.live_margin_px)?,
         settings,
         publish_live: p.live,
@@ -44,8 +60,26 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
     }))
 }
 
+impl WaveletNode {
+    /// One live pass over what changed, published (when live passes are on).
+    fn publish_live_pass(&mut self, out: &mut Outbox) -> Result<()> {
+        if !(self.publish_live && self.live.has_changes()) {
+            return Ok(());
+        }
+        if let Some(p) = self.live.live_pass()? {
+            out.send_frame("datum", p.datum);
+            out.send_frame("roughness", p.roughness);
+            if let Some(pooled) = p.pooled {
+                out.send_frame("pooled", pooled);
+            }
+            self.live_patches += 1;
+        }
+        Ok(())
+    }
+}
+
 impl NodeLogic for WaveletNode {
-    fn on_input(&mut self, port: &str, input: Input<'_>, _: &mut Outbox) -> Result<()> {
+    fn on_input(&mut self, port: &str, input: Input<'_>, out: &mut Outbox) -> Result<()> {
         let Input::Frame(f) = input else {
             bail!("wavelet: input '{port}' must carry frames")
         };
@@ -55,7 +89,14 @@ impl NodeLogic for WaveletNode {
         }
         match f.header.kind() {
             Some(FrameKind::PanoramaPatch) => self.live.apply_patch(f.header, f.heights)?,
-            Some(FrameKind::Panorama) => self.final_panorama = Some(f.to_owned()),
+            Some(FrameKind::Panorama) => {
+                // The last live patches go out now and the live mirror (a whole f32 copy of
+                // the panorama, with growth room) is freed before the final panorama is
+                // copied: the node never holds both.
+                self.publish_live_pass(out)?;
+                self.live.release_mirror();
+                self.final_panorama = Some(f.to_owned());
+            }
             other => {
                 bail!("wavelet: input '{port}' carries {other:?} frames, expected panorama patches")
             }
@@ -66,26 +107,34 @@ impl NodeLogic for WaveletNode {
     fn on_drained(&mut self, out: &mut Outbox) -> Result<()> {
         // Live patches of the last tiles go out first; the final pass runs on the next call.
         if self.publish_live && self.live.has_changes() {
-            if let Some(p) = self.live.live_pass()? {
-                out.send_frame("datum", p.datum);
-                out.send_frame("roughness", p.roughness);
-                if let Some(pooled) = p.pooled {
-                    out.send_frame("pooled", pooled);
-                }
-                self.live_patches += 1;
-            }
+            self.publish_live_pass(out)?;
         } else if self.ended && !self.done {
             let pano = self
                 .final_panorama
                 .take()
                 .ok_or_else(|| anyhow!("wavelet: end of scan without a final panorama"))?;
-            let f = final_separation(&self.settings, &pano, self.files.as_mut())?;
+            let request = FinalRequest {
+                files: self.files.as_mut(),
+                publish_datum: self.publish_datum,
+                publish_roughness: self.publish_roughness,
+                stream: StreamOptions {
+                    spill_dir: Some(self.spill_dir.clone()),
+                    ..StreamOptions::default()
+                },
+            };
+            let f = final_separation_with(&self.settings, &pano, request)?;
+            let (tile, t_ns) = (pano.header.tile_index, pano.header.t_acquired_ns);
+            drop(pano);
             self.summary = f.summary;
-            out.send_frame("datum", f.datum);
-            out.send_frame("roughness", f.roughness);
+            if let Some(datum) = f.datum {
+                out.send_frame("datum", datum);
+            }
+            if let Some(roughness) = f.roughness {
+                out.send_frame("roughness", roughness);
+            }
             out.send_frame("pooled", f.pooled);
             for port in ["datum", "roughness", "pooled"] {
-                out.end_frames(port, pano.header.tile_index, pano.header.t_acquired_ns);
+                out.end_frames(port, tile, t_ns);
             }
             self.done = true;
         }

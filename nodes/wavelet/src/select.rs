@@ -144,6 +144,21 @@ fn energy(v: &[f64]) -> f64 {
 /// The filled map minus the least-squares plane `a + b x + c y` of its valid pixels.
 fn levelled(heights: &[f32], rows: usize, cols: usize) -> Result<Vec<f64>> {
     let mut filled = fill_invalid(heights, rows, cols)?;
+    let (coef, cx, cy) = plane_coef(heights, rows, cols);
+    filled
+        .par_chunks_mut(cols)
+        .enumerate()
+        .for_each(|(r, row)| {
+            for (c, z) in row.iter_mut().enumerate() {
+                *z -= coef[0] + coef[1] * (c as f64 - cx) + coef[2] * (r as f64 - cy);
+            }
+        });
+    Ok(filled)
+}
+
+/// The least-squares plane of the valid pixels: `([a, b, c], cx, cy)` for
+/// `a + b (x - cx) + c (y - cy)`.
+pub(crate) fn plane_coef(heights: &[f32], rows: usize, cols: usize) -> ([f64; 3], f64, f64) {
     // Normal equations in centred coordinates (well conditioned for any map size).
     let (cx, cy) = ((cols as f64 - 1.0) / 2.0, (rows as f64 - 1.0) / 2.0);
     let mut m = Matrix3::<f64>::zeros();
@@ -161,15 +176,7 @@ fn levelled(heights: &[f32], rows: usize, cols: usize) -> Result<Vec<f64>> {
     // A single valid row or column leaves the plane undetermined: level by the mean instead.
     let coef = m.lu().solve(&v).filter(|s| s.iter().all(|x| x.is_finite()));
     let coef = coef.unwrap_or_else(|| Vector3::new(v[0] / m[(0, 0)].max(1.0), 0.0, 0.0));
-    filled
-        .par_chunks_mut(cols)
-        .enumerate()
-        .for_each(|(r, row)| {
-            for (c, z) in row.iter_mut().enumerate() {
-                *z -= coef[0] + coef[1] * (c as f64 - cx) + coef[2] * (r as f64 - cy);
-            }
-        });
-    Ok(filled)
+    ([coef[0], coef[1], coef[2]], cx, cy)
 }
 
 /// Height statistics of the valid pixels (ISO 25178 definitions, no levelling).
@@ -322,10 +329,43 @@ pub fn analyse(
 impl Analysis {
     /// The choices and the evidence, for run.json and the `separate` summary.
     pub fn summary(&self) -> serde_json::Value {
+        SummaryParts {
+            wavelet: &self.wavelet,
+            mode: self.mode,
+            level: self.separation.level,
+            level_min_energy: self.level_min_energy,
+            energy_curve: &self.energy_curve,
+            base_rmse: self.base_rmse.as_deref(),
+            pool_block: self.pool_block,
+            pool_op: self.pool_op,
+            pooled_px: [self.pooled.cols, self.pooled.rows],
+            pooling_bias: self.pooling_bias,
+        }
+        .json()
+    }
+}
+
+/// What [`Analysis::summary`] reports, for the streamed final pass that has no [`Analysis`].
+pub(crate) struct SummaryParts<'a> {
+    pub wavelet: &'a Wavelet,
+    pub mode: Mode,
+    pub level: usize,
+    pub level_min_energy: Option<usize>,
+    pub energy_curve: &'a [EnergyPoint],
+    pub base_rmse: Option<&'a [BaseRmse]>,
+    pub pool_block: usize,
+    pub pool_op: crate::PoolOp,
+    /// (cols, rows).
+    pub pooled_px: [usize; 2],
+    pub pooling_bias: Option<PoolingBias>,
+}
+
+impl SummaryParts<'_> {
+    pub(crate) fn json(&self) -> serde_json::Value {
         serde_json::json!({
             "wavelet": self.wavelet.name(),
             "mode": self.mode.name(),
-            "level": self.separation.level,
+            "level": self.level,
             "level_min_energy": self.level_min_energy,
             "energy_curve": self.energy_curve,
             "energy_curve_note": "approximation energy / total energy per level, after filling holes and removing the least-squares plane (paper Fig. 13)",
@@ -333,7 +373,7 @@ impl Analysis {
             "base_rmse_note": self.base_rmse.as_ref().map(|_| "eq. 10: every base is orthogonal, so this RMSE is floating-point round-off, not a measure of fit"),
             "pool": self.pool_block,
             "pool_op": self.pool_op.name(),
-            "pooled_px": [self.pooled.cols, self.pooled.rows],
+            "pooled_px": self.pooled_px,
             "pooling_bias": self.pooling_bias,
         })
     }

@@ -135,7 +135,7 @@ pub fn separate(
 
 /// datum = low-pass, roughness = heights - datum, both NaN where the height is not finite.
 #[inline]
-fn finish_row(h: &[f32], low: &[f64], datum: &mut [f32], roughness: &mut [f32]) {
+pub(crate) fn finish_row(h: &[f32], low: &[f64], datum: &mut [f32], roughness: &mut [f32]) {
     for (((d, r), &h), &l) in datum.iter_mut().zip(roughness).zip(h).zip(low) {
         // Compute both, then select: branch-free, so the loop vectorises.
         let ok = h.is_finite();
@@ -186,7 +186,7 @@ pub fn fill_invalid(heights: &[f32], rows: usize, cols: usize) -> Result<Vec<f64
 }
 
 /// Fill one row (step 1). Returns false, leaving `out` untouched, if it has no valid pixel.
-fn fill_row(h: &[f32], out: &mut [f64]) -> bool {
+pub(crate) fn fill_row(h: &[f32], out: &mut [f64]) -> bool {
     // Most rows are complete: a vectorisable count, then a plain conversion.
     if h.iter().filter(|v| !v.is_finite()).count() == 0 {
         for (o, &v) in out.iter_mut().zip(h) {
