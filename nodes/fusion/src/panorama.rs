@@ -620,17 +620,30 @@ impl Panorama {
             width: x_end - region.x0,
             height: y_end - region.y0,
         };
-        let (mean, weight) = self.store.read_rect(&self.to_grid(&inside))?;
+        // One band of chunk rows at a time: the accumulators are read (from memory or the
+        // spill file, each chunk once) for that band only, so extracting the whole panorama
+        // costs its f32 output plus one band, not two more whole-panorama buffers.
+        let grid = self.to_grid(&inside);
+        let c = crate::CHUNK_PX as i64;
         let n = inside.width;
-        for (out_row, (m_row, w_row)) in out
-            .chunks_mut(region.width)
-            .zip(mean.chunks(n).zip(weight.chunks(n)))
-        {
-            for ((o, &m), &w) in out_row.iter_mut().zip(m_row).zip(w_row) {
-                if w > 0.0 {
-                    *o = m;
+        let mut y0 = grid.y0;
+        while y0 < grid.y1 {
+            let y1 = ((y0.div_euclid(c) + 1) * c).min(grid.y1);
+            let band = GridRect { y0, y1, ..grid };
+            let (mean, weight) = self.store.read_rect(&band)?;
+            let first = (y0 - grid.y0) as usize;
+            let out_band = &mut out[first * region.width..(y1 - grid.y0) as usize * region.width];
+            for (out_row, (m_row, w_row)) in out_band
+                .chunks_mut(region.width)
+                .zip(mean.chunks(n).zip(weight.chunks(n)))
+            {
+                for ((o, &m), &w) in out_row.iter_mut().zip(m_row).zip(w_row) {
+                    if w > 0.0 {
+                        *o = m;
+                    }
                 }
             }
+            y0 = y1;
         }
         Ok(out)
     }

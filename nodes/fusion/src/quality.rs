@@ -67,9 +67,10 @@ pub fn overlap_quality(pano: &Panorama, tiles: &[TileInput<'_>]) -> Result<Vec<P
 
 /// [`overlap_quality`] with the tiles resampled on demand: `alone(k)` gives tile
 /// `footprints[k]` resampled alone onto `pano`'s grid ([`Panorama::resample_alone`]). Pairs
-/// are found from the footprints; each tile is resampled once and dropped when its last
-/// partner is scored, so in a serpentine scan about two rows of tiles are in memory at once,
-/// not the whole scan. The result is the same as [`overlap_quality`]'s.
+/// are found from the footprints; each tile is resampled once, cut into its crops over the
+/// overlaps still to score, and dropped: in a serpentine scan about two rows of overlap strips
+/// are in memory at once (a few MB), not tiles. The result is the same as
+/// [`overlap_quality`]'s.
 pub fn overlap_quality_streamed(
     pano: &Panorama,
     footprints: &[TileFootprint],
@@ -108,42 +109,41 @@ pub fn overlap_quality_streamed(
             pairs.push((i, j, region));
         }
     }
-    // The last pair each tile takes part in: after it, the tile is dropped.
-    let mut last_use = vec![0usize; placed.len()];
+    // Each tile is resampled once, at its first pair, and only its crops over the overlaps
+    // still to score are kept (strips of about the overlap's size), not the resampled tile.
+    let mut pairs_of: Vec<Vec<usize>> = vec![Vec::new(); placed.len()];
     for (p, &(i, j, _)) in pairs.iter().enumerate() {
-        last_use[i] = p;
-        last_use[j] = p;
+        pairs_of[i].push(p);
+        pairs_of[j].push(p);
     }
-    let mut cache: HashMap<usize, PlacedRaster> = HashMap::new();
+    let crop = |r: &PlacedRaster, gx: i64, gy: i64, region: &Region| -> Vec<f32> {
+        let (x0, y0) = (region.x0 as i64, region.y0 as i64);
+        let mut v = Vec::with_capacity(region.len());
+        for row in 0..region.height {
+            let sr = (y0 - gy) as usize + row;
+            let sc = (x0 - gx) as usize;
+            v.extend_from_slice(&r.heights.row(sr)[sc..][..region.width]);
+        }
+        v
+    };
+    let mut crops: HashMap<(usize, usize), Vec<f32>> = HashMap::new();
     let mut out = Vec::new();
     for (p, &(i, j, region)) in pairs.iter().enumerate() {
         for k in [i, j] {
-            if let std::collections::hash_map::Entry::Vacant(e) = cache.entry(k) {
-                e.insert(alone(placed[k].0)?);
+            if crops.contains_key(&(p, k)) {
+                continue;
+            }
+            let r = alone(placed[k].0)?;
+            let (gx, gy) = (placed[k].2, placed[k].3);
+            for &q in pairs_of[k].iter().filter(|&&q| q >= p) {
+                crops.insert((q, k), crop(&r, gx, gy, &pairs[q].2));
             }
         }
-        let (ra, rb) = (&cache[&i], &cache[&j]);
-        let (ia, ax, ay) = (placed[i].1, placed[i].2, placed[i].3);
-        let (ib, bx, by) = (placed[j].1, placed[j].2, placed[j].3);
-        let (x0, y0) = (region.x0 as i64, region.y0 as i64);
+        let (ia, ib) = (placed[i].1, placed[j].1);
         let fused = pano.try_extract(region)?;
-        let crop = |r: &PlacedRaster, gx: i64, gy: i64| -> Vec<f32> {
-            let mut v = Vec::with_capacity(region.len());
-            for row in 0..region.height {
-                let sr = (y0 - gy) as usize + row;
-                let sc = (x0 - gx) as usize;
-                v.extend_from_slice(&r.heights.row(sr)[sc..][..region.width]);
-            }
-            v
+        let (Some(mut za), Some(mut zb)) = (crops.remove(&(p, i)), crops.remove(&(p, j))) else {
+            continue; // inserted just above
         };
-        let mut za = crop(ra, ax, ay);
-        let mut zb = crop(rb, bx, by);
-        if last_use[i] == p {
-            cache.remove(&i);
-        }
-        if last_use[j] == p {
-            cache.remove(&j);
-        }
         // Score only where both measured: each side loses the other's holes.
         let mut valid_px = 0;
         for (a, b) in za.iter_mut().zip(zb.iter_mut()) {

@@ -132,6 +132,9 @@ pub struct StreamingFusion {
     final_registrations: BTreeMap<u32, TileRegistration>,
     next: u32,
     panorama: Option<Panorama>,
+    /// The chunk statistics of the final panorama, kept when [`StreamingFusion::finish`]
+    /// frees its chunks.
+    final_chunk_stats: Option<crate::ChunkStats>,
     /// Tile index and acquisition time of the last placed tile.
     last: (u32, u64),
 }
@@ -150,6 +153,7 @@ impl StreamingFusion {
             final_registrations: BTreeMap::new(),
             next: 0,
             panorama: None,
+            final_chunk_stats: None,
             last: (0, 0),
         }
     }
@@ -176,7 +180,10 @@ impl StreamingFusion {
 
     /// Chunk statistics of the panorama (see [`crate::ChunkStats`]).
     pub fn chunk_stats(&self) -> Option<crate::ChunkStats> {
-        self.panorama.as_ref().map(|p| p.chunk_stats())
+        self.panorama
+            .as_ref()
+            .map(|p| p.chunk_stats())
+            .or(self.final_chunk_stats)
     }
 
     fn new_panorama(
@@ -358,6 +365,10 @@ impl StreamingFusion {
             final_pano.resample_alone(input)
         })?;
         let r = final_pano.to_raster();
+        // The accumulators are not needed past this point: free them (the budget's worth of
+        // chunks) before the frame is written and sent.
+        self.final_chunk_stats = Some(final_pano.chunk_stats());
+        self.panorama = None;
         let mut written = Vec::new();
         let (rows, cols) = (r.heights.rows(), r.heights.cols());
         if let Some(w) = files {

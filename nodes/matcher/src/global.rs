@@ -480,12 +480,74 @@ pub fn solve_planes(
     gauge: usize,
     stride: usize,
 ) -> Result<PlaneSolution, SolveError> {
+    solve_planes_in(
+        &mut TilesInMemory(tiles),
+        positions_px,
+        pairs,
+        gauge,
+        stride,
+    )
+}
+
+/// Where [`solve_planes_in`] finds the tiles: their number and sizes, and a pair of them at a
+/// time (so they need not all be in memory at once).
+pub trait PlaneTiles {
+    /// What reading a tile can fail with.
+    type Error: From<SolveError>;
+    /// Number of tiles.
+    fn len(&self) -> usize;
+    /// Whether there are no tiles.
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// Rows x columns of tile `i`.
+    fn shape(&self, i: usize) -> Shape;
+    /// Calls `f` with tiles `a` and `b`.
+    fn with_pair(
+        &mut self,
+        a: usize,
+        b: usize,
+        f: &mut dyn FnMut(RasterView<'_, f32>, RasterView<'_, f32>),
+    ) -> Result<(), Self::Error>;
+}
+
+/// Tiles held in memory.
+struct TilesInMemory<'a, 'b>(&'a [RasterView<'b, f32>]);
+
+impl PlaneTiles for TilesInMemory<'_, '_> {
+    type Error = SolveError;
+    fn len(&self) -> usize {
+        self.0.len()
+    }
+    fn shape(&self, i: usize) -> Shape {
+        self.0[i].shape()
+    }
+    fn with_pair(
+        &mut self,
+        a: usize,
+        b: usize,
+        f: &mut dyn FnMut(RasterView<'_, f32>, RasterView<'_, f32>),
+    ) -> Result<(), SolveError> {
+        f(self.0[a], self.0[b]);
+        Ok(())
+    }
+}
+
+/// [`solve_planes`] over tiles read a pair at a time ([`PlaneTiles`]): the same solution, bit
+/// for bit.
+pub fn solve_planes_in<T: PlaneTiles>(
+    tiles: &mut T,
+    positions_px: &[[f64; 2]],
+    pairs: &[(usize, usize)],
+    gauge: usize,
+    stride: usize,
+) -> Result<PlaneSolution, T::Error> {
     let n = tiles.len();
     if positions_px.len() != n {
-        return Err(bad("positions_px", "must have one position per tile"));
+        return Err(bad("positions_px", "must have one position per tile").into());
     }
     if stride == 0 {
-        return Err(bad("stride", "must be >= 1"));
+        return Err(bad("stride", "must be >= 1").into());
     }
     if n == 0 {
         return Ok(PlaneSolution {
@@ -496,23 +558,26 @@ pub fn solve_planes(
         });
     }
     if gauge >= n {
-        return Err(bad("gauge", "must be a tile index"));
+        return Err(bad("gauge", "must be a tile index").into());
     }
-    check_plane_inputs(tiles, positions_px, pairs)?;
-    let centre = Shape::new(tiles[0].rows(), tiles[0].cols()).centre_px();
+    let shapes: Vec<Shape> = (0..n).map(|i| tiles.shape(i)).collect();
+    check_plane_inputs(&shapes, positions_px, pairs)?;
+    let centre = shapes[0].centre_px();
     // Tilts are solved per half tile (x / half) so that all unknowns have similar scales: the
     // normal matrix stays well conditioned.
     let half = centre.0.max(centre.1).max(1.0);
-    let blocks: Vec<PairBlock> = pairs
-        .iter()
-        .map(|&(a, b)| {
-            let offset = [
-                positions_px[b][0] - positions_px[a][0],
-                positions_px[b][1] - positions_px[a][1],
-            ];
-            overlap_normal_block(&tiles[a], &tiles[b], offset, centre, half, stride)
-        })
-        .collect();
+    let mut blocks: Vec<PairBlock> = Vec::with_capacity(pairs.len());
+    for &(a, b) in pairs {
+        let offset = [
+            positions_px[b][0] - positions_px[a][0],
+            positions_px[b][1] - positions_px[a][1],
+        ];
+        let mut block = None;
+        tiles.with_pair(a, b, &mut |ta, tb| {
+            block = Some(overlap_normal_block(&ta, &tb, offset, centre, half, stride));
+        })?;
+        blocks.push(block.ok_or_else(|| bad("tiles", "with_pair did not give the pair"))?);
+    }
     let (m, rhs, zz_total, count_total) = normal_equations(n, gauge, pairs, &blocks);
     let corrections = solve_corrections(m, rhs, n, gauge, half)?;
     let ssr = residual_sum_of_squares(pairs, &blocks, &corrections, half, zz_total);
@@ -525,21 +590,21 @@ pub fn solve_planes(
     })
 }
 
-/// [`solve_planes`]' input checks: valid rasters of one size, finite positions, pairs of two
+/// [`solve_planes`]' input checks: tiles of one size, finite positions, pairs of two
 /// distinct tiles.
 fn check_plane_inputs(
-    tiles: &[RasterView<'_, f32>],
+    shapes: &[Shape],
     positions_px: &[[f64; 2]],
     pairs: &[(usize, usize)],
 ) -> Result<(), SolveError> {
-    let n = tiles.len();
-    for (i, t) in tiles.iter().enumerate() {
-        if t.shape() != tiles[0].shape() {
+    let n = shapes.len();
+    for (i, t) in shapes.iter().enumerate() {
+        if *t != shapes[0] {
             return Err(SolveError::Mismatch {
                 tile: i,
                 what: "tile width x height",
-                got: (t.cols() * 100_000 + t.rows()) as f64,
-                expected: (tiles[0].cols() * 100_000 + tiles[0].rows()) as f64,
+                got: (t.cols * 100_000 + t.rows) as f64,
+                expected: (shapes[0].cols * 100_000 + shapes[0].rows) as f64,
             });
         }
         if !positions_px[i].iter().all(|v| v.is_finite()) {

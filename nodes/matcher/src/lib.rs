@@ -176,8 +176,8 @@ pub use feature_match::{
     register_pair_features, FeatureMatch, FeatureMethod, FeatureParams, FeatureRegistration,
 };
 pub use global::{
-    solve_planes, solve_positions, GlobalSolution, Link, LinkOutcome, PlaneSolution, SolveError,
-    SolveParams,
+    solve_planes, solve_planes_in, solve_positions, GlobalSolution, Link, LinkOutcome,
+    PlaneSolution, PlaneTiles, SolveError, SolveParams,
 };
 pub use harris::{harris_corners, Corner, HarrisParams};
 pub use params::{MatcherParams, RegistrationMethod};

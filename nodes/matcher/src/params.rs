@@ -75,6 +75,7 @@ impl MatcherParams {
         let mut params = ScanParams {
             features,
             truth: self.truth.as_ref().map(|t| out_dir.join(t)),
+            spill_dir: Some(out_dir.to_path_buf()),
             ..ScanParams::default()
         };
         if let Some(v) = self.min_ncc {

@@ -16,20 +16,26 @@
 //! "pairs" in run.json) gives the FINAL positions; the streaming ones stay beside them under
 //! "streaming".
 //!
-//! Memory: every tile's heights are kept until end of scan (the z alignment needs the
-//! overlaps at the final positions): 4 MiB per 1024 x 1024 tile.
+//! Memory: every tile's heights are needed again at end of scan (the z alignment needs the
+//! overlaps at the final positions), but not in memory: only the newest tile stays resident;
+//! the others go to an unnamed spill file ([`ScanParams::spill_dir`]) and are read back when
+//! a later tile pairs with them (the tile above, in a serpentine) and, a pair at a time, by
+//! the final z alignment. Resident heights are therefore a few tiles whatever the scan's size,
+//! and the registrations are the same, bit for bit, as with every tile in memory.
 
 use std::collections::BTreeMap;
+use std::fs::File;
+use std::os::unix::fs::FileExt;
 use std::path::PathBuf;
 
 use serde_json::json;
 use surfstream_core::frame::{flags, placed_by, TileRegistration};
-use surfstream_core::raster::{Raster, RasterView};
+use surfstream_core::raster::{Raster, RasterView, Shape};
 use thiserror::Error;
 
 use crate::global::{
-    solve_planes, solve_positions_with_alternatives, AmbiguousLink, GlobalSolution, Link,
-    PlaneSolution, SolveError, SolveParams,
+    solve_planes_in, solve_positions_with_alternatives, AmbiguousLink, GlobalSolution, Link,
+    PlaneSolution, PlaneTiles, SolveError, SolveParams,
 };
 use crate::{
     estimate_plane, register_pair_features, FeatureParams, FeatureRegistration, PairRegistration,
@@ -57,6 +63,9 @@ pub struct ScanParams {
     /// A `ground_truth.json`: with a feature method, r and MAP of every pair against it,
     /// read at end of scan ([`crate::efficiency`]).
     pub truth: Option<PathBuf>,
+    /// Folder of the unnamed file placed tiles' heights are spilled to (the node uses its out
+    /// dir); `None`: the system temp folder.
+    pub spill_dir: Option<PathBuf>,
 }
 
 /// A tile as the stage delivers it.
@@ -123,11 +132,71 @@ pub enum ScanError {
     Planes(SolveError),
     #[error("truth: {0}")]
     Truth(#[from] TruthError),
+    #[error("tile spill file: {0}")]
+    Spill(#[from] std::io::Error),
+}
+
+/// Placed tiles' heights on disk: an unnamed temporary file (gone when closed, also after a
+/// crash), each tile's f32 values little-endian at its own offset.
+struct TileSpill {
+    dir: Option<PathBuf>,
+    file: Option<File>,
+    end: u64,
+}
+
+impl TileSpill {
+    fn new(dir: Option<PathBuf>) -> Self {
+        Self {
+            dir,
+            file: None,
+            end: 0,
+        }
+    }
+
+    /// Appends `values`; returns their offset.
+    fn write(&mut self, values: &[f32]) -> std::io::Result<u64> {
+        if self.file.is_none() {
+            self.file = Some(match &self.dir {
+                Some(d) => {
+                    std::fs::create_dir_all(d)?;
+                    tempfile::tempfile_in(d)?
+                }
+                None => tempfile::tempfile()?,
+            });
+        }
+        let Some(file) = self.file.as_ref() else {
+            return Err(std::io::Error::other("no spill file")); // created just above
+        };
+        let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let offset = self.end;
+        file.write_all_at(&bytes, offset)?;
+        self.end += bytes.len() as u64;
+        Ok(offset)
+    }
+
+    /// The `len` values written at `offset`.
+    fn read(&self, offset: u64, len: usize) -> std::io::Result<Vec<f32>> {
+        let Some(file) = self.file.as_ref() else {
+            return Err(std::io::Error::other("nothing was spilled"));
+        };
+        let mut bytes = vec![0u8; len * 4];
+        file.read_exact_at(&mut bytes, offset)?;
+        Ok(bytes
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect())
+    }
 }
 
 /// A registered tile, kept to the end of the scan with its streaming placement.
 struct PlacedTile {
+    /// The tile; once spilled its `heights` are a 1 x 1 placeholder and `spilled` says where
+    /// they are.
     tile: ScanTile,
+    /// Offset of the heights in the spill file, once spilled.
+    spilled: Option<u64>,
+    /// The tile's size (also once spilled).
+    shape: Shape,
     position_um: [f64; 2],
     plane: PlaneCorrection,
     placed_by: u32,
@@ -167,6 +236,7 @@ pub struct ScanRegistration {
     params: ScanParams,
     correlator: PhaseCorrelator,
     tiles: Vec<PlacedTile>,
+    spill: TileSpill,
     by_grid: BTreeMap<(u32, u32), usize>,
     pairs: Vec<PairRecord>,
     tiles_report: Vec<serde_json::Value>,
@@ -177,6 +247,7 @@ pub struct ScanRegistration {
 impl ScanRegistration {
     pub fn new(params: ScanParams) -> Self {
         ScanRegistration {
+            spill: TileSpill::new(params.spill_dir.clone()),
             params,
             correlator: PhaseCorrelator::new(),
             tiles: Vec::new(),
@@ -186,6 +257,12 @@ impl ScanRegistration {
             pairs_report: Vec::new(),
             global_report: serde_json::Value::Null,
         }
+    }
+
+    /// Tiles whose heights are in memory (the others are in the spill file): 1 once any
+    /// tile is registered, whatever the scan's size.
+    pub fn resident_tiles(&self) -> usize {
+        self.tiles.iter().filter(|t| t.spilled.is_none()).count()
     }
 
     /// "phase", "harris" or "sift".
@@ -211,15 +288,50 @@ impl ScanRegistration {
             }
         }
         let neighbours = self.placed_neighbours(&tile);
+        // Spilled neighbours are read back for this tile only.
+        let loaded: Vec<Option<Raster<f32>>> = neighbours
+            .iter()
+            .map(|&i| self.read_spilled(i))
+            .collect::<Result<_, _>>()?;
+        let views: Vec<RasterView<'_, f32>> = neighbours
+            .iter()
+            .zip(&loaded)
+            .map(|(&i, l)| {
+                l.as_ref()
+                    .map_or_else(|| self.tiles[i].tile.raster(), |r| r.view())
+            })
+            .collect();
         let mut votes = Vec::new();
         let mut stage_votes = Vec::new();
-        for &ai in &neighbours {
-            let (vote, stage_vote) = self.register_link(ai, &tile);
+        let mut records = Vec::new();
+        for (&ai, &a_heights) in neighbours.iter().zip(&views) {
+            let (vote, stage_vote, record) = register_link(
+                &mut self.correlator,
+                &self.params,
+                &self.tiles[ai],
+                a_heights,
+                &tile,
+            );
             votes.extend(vote);
             stage_votes.push(stage_vote);
+            records.push((ai, record));
         }
         let (position_um, how) = place(&tile, &votes, &stage_votes);
-        let plane = self.level(&tile, &neighbours, position_um);
+        let plane = self.level(&tile, &neighbours, &views, position_um);
+        drop(views);
+        drop(loaded);
+        let b = self.tiles.len();
+        for (ai, (offset_px, ncc, alternatives, features, report)) in records {
+            self.pairs.push(PairRecord {
+                a: ai,
+                b,
+                offset_px,
+                ncc,
+                alternatives,
+                features,
+                report,
+            });
+        }
         let quality = votes.iter().map(|v| v.0).fold(0.0, f64::max);
         let reg = TileRegistration {
             tile_index: tile.index,
@@ -240,15 +352,49 @@ impl ScanRegistration {
             t_acquired_ns: tile.t_acquired_ns,
             ..Default::default()
         };
-        self.by_grid.insert((tile.row, tile.col), self.tiles.len());
+        // Only the newest tile stays in memory: the next one pairs with it (left or right);
+        // any other neighbour is read back from the spill file.
+        if let Some(prev) = b.checked_sub(1) {
+            self.spill_tile(prev)?;
+        }
+        self.by_grid.insert((tile.row, tile.col), b);
+        let shape = tile.heights.shape();
         self.tiles.push(PlacedTile {
             tile,
+            spilled: None,
+            shape,
             position_um,
             plane,
             placed_by: how,
             links_tried: neighbours.len() as u32,
         });
         Ok(reg)
+    }
+
+    /// Moves tile `i`'s heights to the spill file (nothing if already there).
+    fn spill_tile(&mut self, i: usize) -> Result<(), ScanError> {
+        let Some(t) = self.tiles.get_mut(i) else {
+            return Ok(());
+        };
+        if t.spilled.is_some() {
+            return Ok(());
+        }
+        t.spilled = Some(self.spill.write(t.tile.heights.values())?);
+        // A 1 x 1 placeholder: the heights are on disk now.
+        t.tile.heights = Raster::filled(Shape::new(1, 1), f32::NAN);
+        Ok(())
+    }
+
+    /// Tile `i`'s heights read back from the spill file; `None` while they are in memory.
+    fn read_spilled(&self, i: usize) -> Result<Option<Raster<f32>>, ScanError> {
+        let t = &self.tiles[i];
+        let Some(offset) = t.spilled else {
+            return Ok(None);
+        };
+        let values = self.spill.read(offset, t.shape.len())?;
+        Raster::new(values, t.shape)
+            .map(Some)
+            .map_err(|e| ScanError::Spill(std::io::Error::other(e.to_string())))
     }
 
     /// The already-placed grid 4-neighbours of `t` (left, right, above, below).
@@ -264,68 +410,22 @@ impl ScanRegistration {
             .collect()
     }
 
-    /// Registers the new tile `t` against the placed tile `ai` and records the pair: the
-    /// position it gives `t` when accepted (weighted by NCC), and the one the stage gives.
-    fn register_link(&mut self, ai: usize, t: &ScanTile) -> (Option<Vote>, Vote) {
-        let pitch = t.pitch_um;
-        let a = &self.tiles[ai];
-        let nominal = [
-            (t.stage_um[0] - a.tile.stage_um[0]) / pitch[0],
-            (t.stage_um[1] - a.tile.stage_um[1]) / pitch[1],
-        ];
-        let (r, alternatives, features) = match &self.params.features {
-            Some(fp) => {
-                let f = register_pair_features(a.tile.raster(), t.raster(), nominal, fp);
-                (f.registration.clone(), Vec::new(), Some(f))
-            }
-            None => {
-                let (r, alt) = self.correlator.register_with_alternatives(
-                    a.tile.raster(),
-                    t.raster(),
-                    nominal,
-                    &self.params.phase,
-                );
-                (r, alt, None)
-            }
-        };
-        let report = pair_report(&a.tile, t, nominal, &r, features.as_ref());
-        let stage_vote = (
-            1.0,
-            [
-                a.position_um[0] + nominal[0] * pitch[0],
-                a.position_um[1] + nominal[1] * pitch[1],
-            ],
-        );
-        let vote = r.offset_px.map(|off| {
-            (
-                r.ncc.max(1e-3),
-                [
-                    a.position_um[0] + off[0] * pitch[0],
-                    a.position_um[1] + off[1] * pitch[1],
-                ],
-            )
-        });
-        self.pairs.push(PairRecord {
-            a: ai,
-            b: self.tiles.len(),
-            offset_px: r.offset_px,
-            ncc: r.ncc,
-            alternatives: alternatives.iter().map(|c| c.offset_px).collect(),
-            features,
-            report,
-        });
-        (vote, stage_vote)
-    }
-
     /// The plane correction that levels `t`, at `position_um`, onto its placed neighbours.
-    fn level(&self, t: &ScanTile, neighbours: &[usize], position_um: [f64; 2]) -> PlaneCorrection {
+    fn level(
+        &self,
+        t: &ScanTile,
+        neighbours: &[usize],
+        heights: &[RasterView<'_, f32>],
+        position_um: [f64; 2],
+    ) -> PlaneCorrection {
         let pitch = t.pitch_um;
         let levels: Vec<_> = neighbours
             .iter()
-            .map(|&ai| {
+            .zip(heights)
+            .map(|(&ai, &a_heights)| {
                 let a = &self.tiles[ai];
                 (
-                    a.tile.raster(),
+                    a_heights,
                     [
                         (position_um[0] - a.position_um[0]) / pitch[0],
                         (position_um[1] - a.position_um[1]) / pitch[1],
@@ -349,10 +449,16 @@ impl ScanRegistration {
         }
         let placement = self.solve_positions()?;
         let overlaps: Vec<(usize, usize)> = self.pairs.iter().map(|p| (p.a, p.b)).collect();
-        let rasters: Vec<RasterView<'_, f32>> =
-            self.tiles.iter().map(|t| t.tile.raster()).collect();
-        let planes = solve_planes(&rasters, &placement.positions_px, &overlaps, 0, Z_STRIDE)
-            .map_err(ScanError::Planes)?;
+        // The tiles a pair at a time, spilled ones read back (a few at once, not the scan).
+        let mut tiles = PlacedTiles {
+            scan: self,
+            cache: Vec::new(),
+        };
+        let planes = solve_planes_in(&mut tiles, &placement.positions_px, &overlaps, 0, Z_STRIDE)
+            .map_err(|e| match e {
+            PlanesError::Solve(e) => ScanError::Planes(e),
+            PlanesError::Spill(e) => e,
+        })?;
         let regs = self.final_registrations(&placement, &planes);
         let feature_summary = self.report_pairs(&placement, &planes)?;
         self.global_report = json!({
@@ -593,6 +699,148 @@ impl ScanRegistration {
             "pairs": self.pairs_report,
             "global": self.global_report,
         })
+    }
+}
+
+/// A pair's outcome while streaming: offset, NCC, alternatives, feature outcome, report.
+type LinkRecord = (
+    Option<[f64; 2]>,
+    f64,
+    Vec<[f64; 2]>,
+    Option<FeatureRegistration>,
+    serde_json::Value,
+);
+
+/// Registers the new tile `t` against the placed tile `a` (its heights `a_heights`): the
+/// position it gives `t` when accepted (weighted by NCC), the one the stage gives, and the
+/// pair's record.
+fn register_link(
+    correlator: &mut PhaseCorrelator,
+    params: &ScanParams,
+    a: &PlacedTile,
+    a_heights: RasterView<'_, f32>,
+    t: &ScanTile,
+) -> (Option<Vote>, Vote, LinkRecord) {
+    let pitch = t.pitch_um;
+    let nominal = [
+        (t.stage_um[0] - a.tile.stage_um[0]) / pitch[0],
+        (t.stage_um[1] - a.tile.stage_um[1]) / pitch[1],
+    ];
+    let (r, alternatives, features) = match &params.features {
+        Some(fp) => {
+            let f = register_pair_features(a_heights, t.raster(), nominal, fp);
+            (f.registration.clone(), Vec::new(), Some(f))
+        }
+        None => {
+            let (r, alt) = correlator.register_with_alternatives(
+                a_heights,
+                t.raster(),
+                nominal,
+                &params.phase,
+            );
+            (r, alt, None)
+        }
+    };
+    let report = pair_report(&a.tile, t, nominal, &r, features.as_ref());
+    let stage_vote = (
+        1.0,
+        [
+            a.position_um[0] + nominal[0] * pitch[0],
+            a.position_um[1] + nominal[1] * pitch[1],
+        ],
+    );
+    let vote = r.offset_px.map(|off| {
+        (
+            r.ncc.max(1e-3),
+            [
+                a.position_um[0] + off[0] * pitch[0],
+                a.position_um[1] + off[1] * pitch[1],
+            ],
+        )
+    });
+    let record = (
+        r.offset_px,
+        r.ncc,
+        alternatives.iter().map(|c| c.offset_px).collect(),
+        features,
+        report,
+    );
+    (vote, stage_vote, record)
+}
+
+/// Why the final z alignment failed: the solve, or reading a tile back.
+enum PlanesError {
+    Solve(SolveError),
+    Spill(ScanError),
+}
+
+impl From<SolveError> for PlanesError {
+    fn from(e: SolveError) -> Self {
+        PlanesError::Solve(e)
+    }
+}
+
+/// Spilled tiles read back this many at a time (least recently used out): a pair and the
+/// next pair's new tile.
+const PLANE_CACHE_TILES: usize = 3;
+
+/// The scan's placed tiles for the final z alignment, spilled ones read back on demand.
+struct PlacedTiles<'a> {
+    scan: &'a ScanRegistration,
+    /// Read-back tiles, least recently used first.
+    cache: Vec<(usize, Raster<f32>)>,
+}
+
+impl PlacedTiles<'_> {
+    fn ensure(&mut self, i: usize) -> Result<(), PlanesError> {
+        if let Some(k) = self.cache.iter().position(|c| c.0 == i) {
+            let hit = self.cache.remove(k);
+            self.cache.push(hit);
+            return Ok(());
+        }
+        if let Some(r) = self.scan.read_spilled(i).map_err(PlanesError::Spill)? {
+            if self.cache.len() >= PLANE_CACHE_TILES {
+                self.cache.remove(0);
+            }
+            self.cache.push((i, r));
+        }
+        Ok(())
+    }
+
+    fn view(&self, i: usize) -> Option<RasterView<'_, f32>> {
+        let t = self.scan.tiles.get(i)?;
+        if t.spilled.is_none() {
+            return Some(t.tile.raster());
+        }
+        self.cache.iter().find(|c| c.0 == i).map(|c| c.1.view())
+    }
+}
+
+impl PlaneTiles for PlacedTiles<'_> {
+    type Error = PlanesError;
+    fn len(&self) -> usize {
+        self.scan.tiles.len()
+    }
+    fn shape(&self, i: usize) -> Shape {
+        self.scan.tiles[i].shape
+    }
+    fn with_pair(
+        &mut self,
+        a: usize,
+        b: usize,
+        f: &mut dyn FnMut(RasterView<'_, f32>, RasterView<'_, f32>),
+    ) -> Result<(), PlanesError> {
+        self.ensure(a)?;
+        self.ensure(b)?;
+        match (self.view(a), self.view(b)) {
+            (Some(va), Some(vb)) => {
+                f(va, vb);
+                Ok(())
+            }
+            _ => Err(PlanesError::Spill(ScanError::Spill(std::io::Error::other(
+                format!("tiles {a} and {b} are not both readable"),
+            )))),
+        }
     }
 }
 

@@ -7,7 +7,7 @@ mod support;
 use support::Surface;
 use surfstream_core::frame::{flags, placed_by};
 use surfstream_core::raster::{Raster, Shape};
-use surfstream_matcher::{ScanParams, ScanRegistration, ScanTile};
+use surfstream_matcher::{solve_planes, ScanParams, ScanRegistration, ScanTile};
 
 const TILE: usize = 256;
 const PITCH_UM: f64 = 0.5;
@@ -226,4 +226,53 @@ fn a_second_pitch_and_a_bad_stage_position_are_refused() {
     let e = scan.register(t).expect_err("stage").to_string();
     assert!(e.contains("stage position"), "{e}");
     assert_eq!(scan.finish().expect("finish").len(), 1);
+}
+
+#[test]
+fn placed_tiles_leave_memory_and_the_final_planes_read_them_back_exactly() {
+    let field = rough_field(21);
+    let spill = tempfile::tempdir().expect("temp dir");
+    let mut scan = ScanRegistration::new(ScanParams {
+        spill_dir: Some(spill.path().into()),
+        ..ScanParams::default()
+    });
+    let mut originals = Vec::new();
+    for (i, &(_, _, nominal, truth)) in layout().iter().enumerate() {
+        let t = tile(&field, i, nominal, truth);
+        originals.push(t.heights.clone());
+        scan.register(t).expect("register");
+        // Only the newest tile is in memory; its neighbours were read back to pair with it.
+        assert_eq!(scan.resident_tiles(), 1);
+    }
+    let regs = scan.finish().expect("finish");
+    // The z alignment over the spilled tiles equals the in-memory solve over the originals
+    // at the same positions (tile 0 is the gauge; 2 is the matcher's sampling stride).
+    let report = scan.report();
+    let pairs: Vec<(usize, usize)> = report["pairs"]
+        .as_array()
+        .expect("pairs")
+        .iter()
+        .map(|p| {
+            (
+                p["a"].as_u64().unwrap() as usize,
+                p["b"].as_u64().unwrap() as usize,
+            )
+        })
+        .collect();
+    assert_eq!(pairs.len(), 4);
+    let positions: Vec<[f64; 2]> = regs
+        .iter()
+        .map(|r| [r.x_um / PITCH_UM, r.y_um / PITCH_UM])
+        .collect();
+    let views: Vec<_> = originals.iter().map(|r| r.view()).collect();
+    let planes = solve_planes(&views, &positions, &pairs, 0, 2).expect("solve");
+    for (r, c) in regs.iter().zip(&planes.corrections) {
+        assert!((r.piston_um - c.piston_um).abs() < 1e-9, "{r:?} {c:?}");
+        assert!((r.tilt_x_um_per_px - c.tilt_x_um_per_px).abs() < 1e-12);
+        assert!((r.tilt_y_um_per_px - c.tilt_y_um_per_px).abs() < 1e-12);
+    }
+    assert!(
+        regs.iter().skip(1).any(|r| r.piston_um != 0.0),
+        "planes were solved"
+    );
 }

@@ -10,7 +10,8 @@ use std::time::Instant;
 
 use anyhow::{bail, Context};
 use rayon::prelude::*;
-use surfstream_replay::{acquire_tile, generate_specimen, plan_scan, truth_for};
+use surfstream_replay::SpecimenSurface;
+use surfstream_replay::{acquire_tile, generate_virtual_specimen, plan_scan, truth_for};
 use surfstream_replay::{SpecimenParams, StageParams};
 
 fn main() -> anyhow::Result<()> {
@@ -28,22 +29,24 @@ fn main() -> anyhow::Result<()> {
     let plan = plan_scan(&stage)?;
     let spec_params = plan.specimen_params(&SpecimenParams::default());
     let t0 = Instant::now();
-    let specimen = generate_specimen(&spec_params)?;
+    let specimen = generate_virtual_specimen(&spec_params)?;
     let t_spec = t0.elapsed();
     plan.check_specimen(&specimen)?;
     if std::env::var_os("SPECIMEN_ONLY").is_some() {
         println!(
-            "specimen {} x {} px: {:.3} s",
-            specimen.shape.cols,
-            specimen.shape.rows,
-            t_spec.as_secs_f64()
+            "specimen {} x {} px: {:.3} s, {} values in memory (roughness period {:?} px)",
+            specimen.shape().cols,
+            specimen.shape().rows,
+            t_spec.as_secs_f64(),
+            specimen.allocated_points(),
+            specimen.period_px()
         );
         return Ok(());
     }
     println!(
         "specimen {} x {} px: {:.3} s",
-        specimen.shape.cols,
-        specimen.shape.rows,
+        specimen.shape().cols,
+        specimen.shape().rows,
         t_spec.as_secs_f64()
     );
 

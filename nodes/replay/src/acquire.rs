@@ -5,7 +5,7 @@ use rand::Rng;
 use rand_distr::{Distribution, Poisson, StandardNormal};
 
 use crate::rng::{domain, stream};
-use crate::specimen::Specimen;
+use crate::specimen::SpecimenSurface;
 use crate::stage::{StageParams, TilePlan};
 
 /// Largest number of dropout blobs drawn for one tile (a guard against absurd means).
@@ -43,7 +43,7 @@ fn taps(x: f64) -> (i64, Vec<(i64, f32)>) {
 
 /// Bicubic (Keys, a = -0.5) sample of the specimen at sub-pixel (x, y) = (column, row).
 /// NaN if the interpolation support leaves the specimen or touches a NaN.
-pub fn sample_bicubic(specimen: &Specimen, x: f64, y: f64) -> f32 {
+pub fn sample_bicubic<S: SpecimenSurface + ?Sized>(specimen: &S, x: f64, y: f64) -> f32 {
     let mut out = [f32::NAN];
     resample_window(specimen, x, y, 1, 1, &mut out);
     out[0]
@@ -53,8 +53,8 @@ pub fn sample_bicubic(specimen: &Specimen, x: f64, y: f64) -> f32 {
 /// (x0, y0), writing row-major into `out`. The fractional part is the same for every pixel, so
 /// the bicubic weights are computed once and applied separably (rows, then columns). Pixels
 /// whose support leaves the specimen are NaN.
-fn resample_window(
-    specimen: &Specimen,
+fn resample_window<S: SpecimenSurface + ?Sized>(
+    specimen: &S,
     x0: f64,
     y0: f64,
     width: usize,
@@ -66,13 +66,14 @@ fn resample_window(
         return;
     }
     // Far outside: nothing to sample (also keeps the i64 arithmetic below in range).
-    let limit = 4.0 * (specimen.shape.cols.max(specimen.shape.rows) + width.max(height)) as f64;
+    let shape = specimen.shape();
+    let limit = 4.0 * (shape.cols.max(shape.rows) + width.max(height)) as f64;
     if x0.abs() > limit || y0.abs() > limit {
         return;
     }
     let (ix, tx) = taps(x0);
     let (iy, ty) = taps(y0);
-    let (sw, sh) = (specimen.shape.cols as i64, specimen.shape.rows as i64);
+    let (sw, sh) = (shape.cols as i64, shape.rows as i64);
     let (w, h) = (width as i64, height as i64);
     let ox_min = tx.iter().map(|t| t.0).min().unwrap_or(0);
     let ox_max = tx.iter().map(|t| t.0).max().unwrap_or(0);
@@ -86,21 +87,27 @@ fn resample_window(
         return;
     }
     let (j_lo, j_hi) = (j_lo as usize, j_hi as usize);
-    // Horizontal pass over the specimen rows iy + oy_min ..= iy + h - 1 + oy_max.
+    // Horizontal pass over the specimen rows iy + oy_min ..= iy + h - 1 + oy_max, read as one
+    // block of the columns the taps need (ix + j_lo + ox_min ..= ix + j_hi - 1 + ox_max).
     let temp_rows = (h + oy_max - oy_min) as usize;
     let mut temp = vec![f32::NAN; temp_rows * width];
+    let col0 = (ix + j_lo as i64 + ox_min) as usize;
+    let src_w = j_hi - j_lo + (ox_max - ox_min) as usize;
+    let row_lo = (iy + oy_min).clamp(0, sh);
+    let row_hi = (iy + oy_min + temp_rows as i64).clamp(row_lo, sh);
+    let mut src = vec![0f32; (row_hi - row_lo) as usize * src_w];
+    specimen.read_block(col0, row_lo as usize, src_w, &mut src);
     for (r, trow) in temp.chunks_exact_mut(width).enumerate() {
         let sy = iy + oy_min + r as i64;
-        if sy < 0 || sy >= sh {
+        if sy < row_lo || sy >= row_hi {
             continue;
         }
-        let Some(srow) = specimen.row(sy as usize) else {
-            continue;
-        };
+        let at = (sy - row_lo) as usize * src_w;
+        let srow = &src[at..at + src_w];
         let seg = &mut trow[j_lo..j_hi];
         seg.fill(0.0);
         for &(ox, wx) in &tx {
-            let start = (ix + j_lo as i64 + ox) as usize;
+            let start = (ox - ox_min) as usize;
             for (t, s) in seg.iter_mut().zip(&srow[start..start + (j_hi - j_lo)]) {
                 *t += wx * s;
             }
@@ -135,7 +142,11 @@ fn resample_window(
 /// order, in parallel, with identical results. Pixels whose interpolation support leaves the
 /// specimen are NaN (cannot happen for a plan whose [`crate::ScanPlan::check_specimen`]
 /// passed). Never panics.
-pub fn acquire_tile(specimen: &Specimen, tile: &TilePlan, params: &StageParams) -> Vec<f32> {
+pub fn acquire_tile<S: SpecimenSurface + ?Sized>(
+    specimen: &S,
+    tile: &TilePlan,
+    params: &StageParams,
+) -> Vec<f32> {
     let (w, h) = params.tile_shape_px();
     let Some(n) = w.checked_mul(h) else {
         return Vec::new();

@@ -58,7 +58,10 @@ pub mod truth;
 pub use acquire::{acquire_tile, sample_bicubic};
 pub use error::{ReplayError, Result};
 pub use run::{DueTile, Pacing, StageRun, TileSource};
-pub use specimen::{generate_specimen, Specimen, SpecimenParams};
+pub use specimen::{
+    generate_specimen, generate_virtual_specimen, PeriodicSpecimen, Specimen, SpecimenParams,
+    SpecimenSurface, VirtualSpecimen,
+};
 pub use stage::{plan_scan, serpentine_order, ScanPlan, StageParams, TilePlan};
 pub use truth::{truth_for, GroundTruth};
 pub mod node;

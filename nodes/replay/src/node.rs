@@ -35,14 +35,19 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
         std::fs::create_dir_all(&ctx.out_dir)
             .with_context(|| format!("{}: cannot create", ctx.out_dir.display()))?;
         let truth_path = ctx.out_dir.join("truth.json");
-        let truth = truth_for(plan);
+        let mut truth = truth_for(plan);
+        truth.specimen.roughness_period_px = source.specimen().and_then(|s| s.period_px());
         surfstream_core::fsutil::write_atomic(&truth_path, |w| {
             serde_json::to_writer_pretty(w, &truth)
                 .map_err(|e| anyhow!("{}: {e}", truth_path.display()))
         })?;
     }
     if let (true, Some(specimen)) = (source.save_specimen, source.specimen()) {
-        // The whole virtual part, so a test or a user can compare the panorama with it.
+        // The whole virtual part, so a test or a user can compare the panorama with it (a
+        // periodic specimen is rendered for it: 4 B per specimen pixel, only when asked).
+        let specimen = specimen
+            .to_specimen()
+            .map_err(|e| anyhow!("save_specimen: {e}"))?;
         let path = ctx.out_dir.join("specimen.npy");
         surfstream_io::npy::write_npy_f32(
             &path,

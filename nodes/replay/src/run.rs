@@ -10,13 +10,13 @@ use std::time::{Duration, Instant};
 
 use surfstream_core::frame::{FrameHeader, FrameKind, HeightMap};
 
-use crate::{acquire_tile, ScanPlan, Specimen};
+use crate::{acquire_tile, ScanPlan, VirtualSpecimen};
 
 /// Where tiles come from.
 pub enum TileSource {
     /// The simulated stage: each tile is measured from the specimen when it is due.
     Simulated {
-        specimen: Specimen,
+        specimen: VirtualSpecimen,
         plan: Box<ScanPlan>,
     },
     /// Tiles already in memory (scan directory, recording), with their headers, in
@@ -119,7 +119,7 @@ impl StageRun {
     }
 
     /// The simulated specimen (for saving it beside the outputs).
-    pub fn specimen(&self) -> Option<&Specimen> {
+    pub fn specimen(&self) -> Option<&VirtualSpecimen> {
         match &self.source {
             TileSource::Simulated { specimen, .. } => Some(specimen),
             TileSource::Frames(_) => None,

@@ -17,7 +17,7 @@ use surfstream_runtime::graph::{params_from_table, NodeContext};
 
 use crate::run::{Pacing, StageRun, TileSource};
 use crate::scan_dir::load_scan;
-use crate::{generate_specimen, plan_scan, SpecimenParams, StageParams};
+use crate::{generate_virtual_specimen, plan_scan, SpecimenParams, StageParams, VirtualSpecimen};
 
 /// A source ready to run, with what run.json says about it.
 pub struct OpenedSource {
@@ -32,7 +32,7 @@ pub struct OpenedSource {
 
 impl OpenedSource {
     /// The simulated specimen (for `save_specimen`).
-    pub fn specimen(&self) -> Option<&crate::Specimen> {
+    pub fn specimen(&self) -> Option<&crate::VirtualSpecimen> {
         self.run.specimen()
     }
 }
@@ -86,6 +86,7 @@ const SPECIMEN_KEYS: &[&str] = &[
     "waviness_wavelength_um",
     "waviness_components",
     "form_sag_um",
+    "roughness_period_px",
 ];
 
 /// Opens the source the node's parameters name; errors name the graph and the node.
@@ -172,10 +173,14 @@ fn simulated(ctx: &NodeContext) -> Result<OpenedSource> {
         Some(path) => {
             let arr = surfstream_io::npy::read_npy(path)?;
             let shape = surfstream_core::raster::Shape::new(arr.rows, arr.cols);
-            crate::Specimen::from_heights(arr.data, shape, stage.pitch_um)
-                .map_err(|e| anyhow!("{}: {e}", path.display()))?
+            VirtualSpecimen::Raster(
+                crate::Specimen::from_heights(arr.data, shape, stage.pitch_um)
+                    .map_err(|e| anyhow!("{}: {e}", path.display()))?,
+            )
         }
-        None => generate_specimen(&plan.specimen_params(&base)).map_err(|e| err_in(ctx, e))?,
+        None => {
+            generate_virtual_specimen(&plan.specimen_params(&base)).map_err(|e| err_in(ctx, e))?
+        }
     };
     plan.check_specimen(&specimen).map_err(|e| err_in(ctx, e))?;
     let (tw, th) = (plan.tile_width_px, plan.tile_height_px);

@@ -17,9 +17,33 @@
 //! columns `kx = 0 ..= nx / 2` (the field is real, the rest is their Hermitian mirror; in
 //! place, each column contiguous), then along x for blocks of output rows gathered from that
 //! buffer, two real rows per complex transform. Peak memory is half a complex f32 buffer of
-//! the padded size plus the output (about 0.35 GB for a 9353 x 4745 px specimen). Every random number comes from a stream keyed
-//! by (seed, spectrum column), so the result is bit-identical for a seed whatever the number of
-//! threads.
+//! the padded size plus the output (8 B per point: about 0.13 GB at the 2^24-point limit
+//! below). Every random number comes from a stream keyed by (seed, spectrum column), so the
+//! result is bit-identical for a seed whatever the number of threads.
+//!
+//! ## Large specimens: a periodic roughness texture
+//!
+//! Synthesising the roughness whole costs memory in proportion to the specimen's area (8 B per
+//! pixel at peak): a 20 x 20 scan of 1024 px fields needs a 17.4k x 17.4k specimen. So the
+//! whole synthesis is kept only while the padded grid has at most
+//! [`WHOLE_SYNTHESIS_MAX_POINTS`] (2^24) points, which holds every scan up to 4 x 4 fields of
+//! 1024 px (the demo, the tests, the goldens: bit for bit as before). Beyond, or when
+//! `roughness_period_px` is given, the roughness is one `P x P` texture (P =
+//! [`ROUGHNESS_PERIOD_PX`] = 4096 px, 3.3 mm at 0.8148 um) synthesised by the same
+//! spectrum with an unpadded P-point inverse FFT per axis, which is exactly periodic by
+//! construction, so the texture tiles the plane without seams. It is scaled so that one period
+//! has Sa = `sa_um`; the waviness and the form stay those of the whole specimen and are
+//! evaluated analytically where a tile reads them ([`PeriodicSpecimen`]). Memory is then the
+//! texture (64 MiB, about 130 MB while it is synthesised), whatever the scan's area.
+//!
+//! What it means for a user: the specimen is synthetic either way; a large one repeats its
+//! roughness every P pixels in x and y (the true heights at (x, y) and (x + P, y) differ only by
+//! waviness and form), its roughness statistics (Sa, the spectrum below the period, the
+//! height distribution) are those of one period, and wavelengths longer than P carry no
+//! roughness. P is four fields: two neighbouring tiles never see the same texture at two
+//! offsets within the stage's uncertainty (tens of pixels), so registration, which searches
+//! around the stage's prior, is never ambiguous. The truth (`truth.json`) says
+//! `specimen.roughness_period_px` when the roughness is periodic.
 
 use std::f64::consts::TAU;
 
@@ -35,8 +59,21 @@ use surfstream_core::raster::Shape;
 use crate::error::{invalid, ReplayError, Result};
 use crate::rng::{domain, stream};
 
-/// Largest padded synthesis grid, in points (2^28: a 2 GiB complex f32 buffer).
-pub const MAX_SYNTHESIS_POINTS: usize = 1 << 28;
+/// Largest specimen held as a raster in memory, in pixels (2^28: 1 GiB of f32).
+pub const MAX_RASTER_POINTS: usize = 1 << 28;
+
+/// Largest padded grid synthesised whole (2^24 points: about 0.2 GB at peak). Beyond, the
+/// roughness is a periodic texture.
+pub const WHOLE_SYNTHESIS_MAX_POINTS: usize = 1 << 24;
+
+/// The roughness period of a large specimen, in pixels (x and y): 4096 px = 3.34 mm at
+/// 0.8148 um, four 1024 px fields.
+pub const ROUGHNESS_PERIOD_PX: usize = 4096;
+
+/// Smallest and largest `roughness_period_px` (a 8192^2 texture is 256 MiB).
+pub const MIN_PERIOD_PX: usize = 8;
+/// See [`MIN_PERIOD_PX`].
+pub const MAX_PERIOD_PX: usize = 8192;
 
 /// Largest side of a specimen, in pixels.
 pub const MAX_SIDE_PX: usize = 1 << 17;
@@ -75,6 +112,12 @@ pub struct SpecimenParams {
     pub form_sag_um: f64,
     /// Seed of every random quantity of the specimen.
     pub seed: u64,
+    /// Period of the roughness texture in pixels (x and y). Absent: the roughness is
+    /// synthesised whole when its padded grid has at most [`WHOLE_SYNTHESIS_MAX_POINTS`]
+    /// points, and as a periodic texture of [`ROUGHNESS_PERIOD_PX`] beyond (see the module
+    /// doc). Given: always periodic with this period.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub roughness_period_px: Option<usize>,
 }
 
 impl Default for SpecimenParams {
@@ -91,6 +134,7 @@ impl Default for SpecimenParams {
             waviness_components: 2,
             form_sag_um: 3.0,
             seed: 0,
+            roughness_period_px: None,
         }
     }
 }
@@ -150,18 +194,27 @@ impl SpecimenParams {
                 "a finite number",
             ));
         }
-        let (nx, ny) = synthesis_shape(self.width_px, self.height_px);
-        if nx.saturating_mul(ny) > MAX_SYNTHESIS_POINTS {
-            return Err(ReplayError::TooLarge {
-                what: "specimen".to_string(),
-                width_px: self.width_px,
-                height_px: self.height_px,
-                limit: format!(
-                    "a synthesis grid of at most {MAX_SYNTHESIS_POINTS} points (this one is {nx} x {ny})"
-                ),
-            });
+        if let Some(p) = self.roughness_period_px {
+            if !(MIN_PERIOD_PX..=MAX_PERIOD_PX).contains(&p) {
+                return Err(invalid(
+                    SECTION,
+                    "roughness_period_px",
+                    p,
+                    format!("an integer in {MIN_PERIOD_PX} ..= {MAX_PERIOD_PX}"),
+                ));
+            }
         }
         Ok(())
+    }
+
+    /// The period of the roughness texture in pixels, or `None` when the roughness is
+    /// synthesised whole (see the module doc).
+    pub fn roughness_period(&self) -> Option<usize> {
+        if self.roughness_period_px.is_some() {
+            return self.roughness_period_px;
+        }
+        let (nx, ny) = synthesis_shape(self.width_px, self.height_px);
+        (nx.saturating_mul(ny) > WHOLE_SYNTHESIS_MAX_POINTS).then_some(ROUGHNESS_PERIOD_PX)
     }
 }
 
@@ -231,62 +284,347 @@ fn signed_bin(k: usize, n: usize) -> f64 {
     }
 }
 
-/// Generates the specimen described by `params`: roughness (Sa = `sa_um` exactly, up to f32
-/// rounding) plus waviness plus form. Deterministic for a seed, whatever the thread count.
+/// A height field the stage can measure: a raster in memory ([`Specimen`]) or a specimen
+/// evaluated where it is looked at ([`PeriodicSpecimen`]).
+pub trait SpecimenSurface: Sync {
+    /// Rows (y) x columns (x), in pixels.
+    fn shape(&self) -> Shape;
+    /// Pixel pitch in micrometres (x and y).
+    fn pitch_um(&self) -> f64;
+    /// Writes the heights of the block whose pixel (0, 0) is specimen pixel (`x0`, `y0`),
+    /// `width` columns by `out.len() / width` rows, row-major into `out`. Pixels outside the
+    /// specimen are NaN.
+    fn read_block(&self, x0: usize, y0: usize, width: usize, out: &mut [f32]);
+}
+
+impl SpecimenSurface for Specimen {
+    fn shape(&self) -> Shape {
+        self.shape
+    }
+
+    fn pitch_um(&self) -> f64 {
+        self.pitch_um
+    }
+
+    fn read_block(&self, x0: usize, y0: usize, width: usize, out: &mut [f32]) {
+        if width == 0 {
+            return;
+        }
+        for (r, orow) in out.chunks_exact_mut(width).enumerate() {
+            let src = self
+                .row(y0 + r)
+                .and_then(|row| row.get(x0..x0.checked_add(width)?));
+            match src {
+                Some(src) => orow.copy_from_slice(src),
+                None => orow.fill(f32::NAN),
+            }
+        }
+    }
+}
+
+/// Generates the specimen described by `params` as a raster in memory: roughness (Sa =
+/// `sa_um` exactly, up to f32 rounding) plus waviness plus form. Deterministic for a seed,
+/// whatever the thread count. A specimen whose roughness is periodic
+/// ([`SpecimenParams::roughness_period`]) is the [`PeriodicSpecimen`] rendered whole; use
+/// [`generate_virtual_specimen`] to measure a large one without holding its area.
 pub fn generate_specimen(params: &SpecimenParams) -> Result<Specimen> {
     params.validate()?;
     let (w, h) = (params.width_px, params.height_px);
+    check_raster_size(w, h)?;
+    if params.roughness_period().is_some() {
+        return PeriodicSpecimen::generate(params)?.to_specimen();
+    }
     let mut heights = vec![0f32; w * h];
     let (mean, scale) = if params.sa_um > 0.0 {
-        synthesize_roughness(params, &mut heights);
+        synthesize_roughness(params, (w, h), synthesis_shape(w, h), &mut heights);
         let (mean, sa) = mean_and_sa(&heights, w);
         (mean, if sa > 0.0 { params.sa_um / sa } else { 0.0 })
     } else {
         (0.0, 0.0)
     };
-    let waves = waviness_components(params);
-    let pitch = params.pitch_um;
-    // Form: a paraboloid through +sag/2 at the centre and -sag/2 at the corners.
-    let cx = (w as f64 - 1.0) / 2.0;
-    let cy = (h as f64 - 1.0) / 2.0;
-    let r2_max = ((cx * pitch).powi(2) + (cy * pitch).powi(2)).max(f64::MIN_POSITIVE);
-    let sag = params.form_sag_um;
-    let form_x: Vec<f64> = (0..w)
-        .map(|x| sag * ((x as f64 - cx) * pitch).powi(2) / r2_max)
-        .collect();
-    // Waviness: a * sin(kx x + ky y + phi) = a (sin(kx x + phi) cos(ky y) + cos(kx x + phi) sin(ky y)).
-    let wave_x: Vec<(Vec<f64>, Vec<f64>)> = waves
-        .iter()
-        .map(|wv| {
-            (0..w)
-                .map(|x| (wv.kx_per_um * x as f64 * pitch + wv.phase_rad).sin_cos())
-                .unzip()
-        })
-        .collect();
+    let relief = Relief::new(params, mean, scale);
+    let columns = relief.columns(0, w);
     heights.par_chunks_mut(w).enumerate().for_each_init(
         || vec![0f64; w],
-        |z, (y, row)| {
-            let y_um = y as f64 * pitch;
-            let fy = sag * (0.5 - ((y as f64 - cy) * pitch).powi(2) / r2_max);
-            for ((zx, &v), fx) in z.iter_mut().zip(row.iter()).zip(&form_x) {
-                *zx = (f64::from(v) - mean) * scale + fy - fx;
-            }
-            for (wv, (sx, cx_)) in waves.iter().zip(&wave_x) {
-                let (sy, cy_) = (wv.ky_per_um * y_um).sin_cos();
-                let (a_cy, a_sy) = (wv.amplitude_um * cy_, wv.amplitude_um * sy);
-                for ((zx, s), c) in z.iter_mut().zip(sx).zip(cx_) {
-                    *zx += a_cy * s + a_sy * c;
-                }
-            }
-            for (v, zx) in row.iter_mut().zip(z.iter()) {
-                *v = *zx as f32;
-            }
-        },
+        |z, (y, row)| relief.apply_row(y, &columns, row, z),
     );
     Ok(Specimen {
         heights,
         shape: Shape::new(h, w),
-        pitch_um: pitch,
+        pitch_um: params.pitch_um,
+    })
+}
+
+fn check_raster_size(w: usize, h: usize) -> Result<()> {
+    if w.saturating_mul(h) > MAX_RASTER_POINTS {
+        return Err(ReplayError::TooLarge {
+            what: "specimen raster".to_string(),
+            width_px: w,
+            height_px: h,
+            limit: format!(
+                "at most {MAX_RASTER_POINTS} pixels in memory (a larger specimen is measured \
+                 without a raster: generate_virtual_specimen)"
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// How the unscaled roughness, the waviness and the form add up to the height at a point.
+/// One definition for the whole raster and for a periodic specimen's blocks.
+struct Relief {
+    mean: f64,
+    scale: f64,
+    waves: Vec<Wave>,
+    pitch: f64,
+    cx: f64,
+    cy: f64,
+    r2_max: f64,
+    sag: f64,
+}
+
+/// Per-column terms of a block of columns: the form along x and every wave's (sin, cos).
+struct Columns {
+    form_x: Vec<f64>,
+    wave_x: Vec<(Vec<f64>, Vec<f64>)>,
+}
+
+impl Relief {
+    fn new(params: &SpecimenParams, mean: f64, scale: f64) -> Self {
+        let (w, h) = (params.width_px, params.height_px);
+        let pitch = params.pitch_um;
+        // Form: a paraboloid through +sag/2 at the centre and -sag/2 at the corners.
+        let cx = (w as f64 - 1.0) / 2.0;
+        let cy = (h as f64 - 1.0) / 2.0;
+        let r2_max = ((cx * pitch).powi(2) + (cy * pitch).powi(2)).max(f64::MIN_POSITIVE);
+        Self {
+            mean,
+            scale,
+            waves: waviness_components(params),
+            pitch,
+            cx,
+            cy,
+            r2_max,
+            sag: params.form_sag_um,
+        }
+    }
+
+    fn columns(&self, x0: usize, width: usize) -> Columns {
+        let (pitch, cx) = (self.pitch, self.cx);
+        let form_x = (x0..x0 + width)
+            .map(|x| self.sag * ((x as f64 - cx) * pitch).powi(2) / self.r2_max)
+            .collect();
+        // Waviness: a sin(kx x + ky y + phi) = a (sin(kx x + phi) cos(ky y) + cos(kx x + phi) sin(ky y)).
+        let wave_x = self
+            .waves
+            .iter()
+            .map(|wv| {
+                (x0..x0 + width)
+                    .map(|x| (wv.kx_per_um * x as f64 * pitch + wv.phase_rad).sin_cos())
+                    .unzip()
+            })
+            .collect();
+        Columns { form_x, wave_x }
+    }
+
+    /// Turns one row (specimen row `y`, the columns of `columns`) of unscaled roughness into
+    /// heights, in place; `z` is scratch of at least the row's length.
+    fn apply_row(&self, y: usize, columns: &Columns, row: &mut [f32], z: &mut [f64]) {
+        let pitch = self.pitch;
+        let (mean, scale) = (self.mean, self.scale);
+        let z = &mut z[..row.len()];
+        let y_um = y as f64 * pitch;
+        let fy = self.sag * (0.5 - ((y as f64 - self.cy) * pitch).powi(2) / self.r2_max);
+        for ((zx, &v), fx) in z.iter_mut().zip(row.iter()).zip(&columns.form_x) {
+            *zx = (f64::from(v) - mean) * scale + fy - fx;
+        }
+        for (wv, (sx, cx_)) in self.waves.iter().zip(&columns.wave_x) {
+            let (sy, cy_) = (wv.ky_per_um * y_um).sin_cos();
+            let (a_cy, a_sy) = (wv.amplitude_um * cy_, wv.amplitude_um * sy);
+            for ((zx, s), c) in z.iter_mut().zip(sx).zip(cx_) {
+                *zx += a_cy * s + a_sy * c;
+            }
+        }
+        for (v, zx) in row.iter_mut().zip(z.iter()) {
+            *v = *zx as f32;
+        }
+    }
+}
+
+/// A specimen of any size whose roughness is one periodic texture (see the module doc):
+/// memory is the `period x period` texture, whatever the specimen's area. Heights are
+/// evaluated where they are read ([`SpecimenSurface::read_block`]): the texture at
+/// (x mod period, y mod period), scaled, plus the waviness and the form of the whole specimen.
+pub struct PeriodicSpecimen {
+    /// `period * period` unscaled roughness, row-major (empty when `sa_um` = 0).
+    texture: Vec<f32>,
+    period_px: usize,
+    relief: Relief,
+    shape: Shape,
+    pitch_um: f64,
+}
+
+impl PeriodicSpecimen {
+    /// Synthesises the texture for `params` (period [`SpecimenParams::roughness_period`], or
+    /// [`ROUGHNESS_PERIOD_PX`] if the specimen is small enough to be made whole) and scales it
+    /// so that the Sa of one period is exactly `sa_um` (up to f32 rounding).
+    pub fn generate(params: &SpecimenParams) -> Result<Self> {
+        params.validate()?;
+        let p = params.roughness_period().unwrap_or(ROUGHNESS_PERIOD_PX);
+        let mut texture = Vec::new();
+        let (mean, scale) = if params.sa_um > 0.0 {
+            texture = vec![0f32; p * p];
+            // An unpadded p-point transform per axis: the inverse FFT is exactly periodic.
+            synthesize_roughness(params, (p, p), (p, p), &mut texture);
+            let (mean, sa) = mean_and_sa(&texture, p);
+            (mean, if sa > 0.0 { params.sa_um / sa } else { 0.0 })
+        } else {
+            (0.0, 0.0)
+        };
+        Ok(Self {
+            texture,
+            period_px: p,
+            relief: Relief::new(params, mean, scale),
+            shape: Shape::new(params.height_px, params.width_px),
+            pitch_um: params.pitch_um,
+        })
+    }
+
+    /// The roughness period in pixels (x and y).
+    pub fn period_px(&self) -> usize {
+        self.period_px
+    }
+
+    /// Values held in memory (the texture): `period^2`, or 0 without roughness. Independent
+    /// of the specimen's area.
+    pub fn allocated_points(&self) -> usize {
+        self.texture.len()
+    }
+
+    /// The whole specimen as a raster (refused past [`MAX_RASTER_POINTS`]).
+    pub fn to_specimen(&self) -> Result<Specimen> {
+        let Shape { rows, cols } = self.shape;
+        check_raster_size(cols, rows)?;
+        let mut heights = vec![0f32; rows * cols];
+        heights
+            .par_chunks_mut(cols * ROW_BLOCK)
+            .enumerate()
+            .for_each(|(b, block)| self.read_block(0, b * ROW_BLOCK, cols, block));
+        Specimen::from_heights(heights, self.shape, self.pitch_um)
+    }
+}
+
+impl SpecimenSurface for PeriodicSpecimen {
+    fn shape(&self) -> Shape {
+        self.shape
+    }
+
+    fn pitch_um(&self) -> f64 {
+        self.pitch_um
+    }
+
+    fn read_block(&self, x0: usize, y0: usize, width: usize, out: &mut [f32]) {
+        if width == 0 {
+            return;
+        }
+        let Shape { rows, cols } = self.shape;
+        let inside = cols.saturating_sub(x0).min(width);
+        let columns = self.relief.columns(x0, inside);
+        let mut z = vec![0f64; inside];
+        let p = self.period_px;
+        for (r, orow) in out.chunks_exact_mut(width).enumerate() {
+            let y = y0 + r;
+            orow.fill(f32::NAN);
+            if y >= rows {
+                continue;
+            }
+            let row = &mut orow[..inside];
+            if self.texture.is_empty() {
+                row.fill(0.0);
+            } else {
+                let trow = &self.texture[(y % p) * p..(y % p + 1) * p];
+                // Copy the texture row in runs that wrap at the period.
+                let mut done = 0;
+                while done < inside {
+                    let tx = (x0 + done) % p;
+                    let n = (p - tx).min(inside - done);
+                    row[done..done + n].copy_from_slice(&trow[tx..tx + n]);
+                    done += n;
+                }
+            }
+            self.relief.apply_row(y, &columns, row, &mut z);
+        }
+    }
+}
+
+/// The specimen a simulated stage measures: a raster when it is small enough to be
+/// synthesised whole (every existing scan, bit for bit), a periodic specimen beyond.
+pub enum VirtualSpecimen {
+    /// Synthesised whole, held in memory.
+    Raster(Specimen),
+    /// Roughness from one periodic texture, evaluated where it is read.
+    Periodic(PeriodicSpecimen),
+}
+
+impl VirtualSpecimen {
+    /// The roughness period in pixels, if periodic.
+    pub fn period_px(&self) -> Option<usize> {
+        match self {
+            VirtualSpecimen::Raster(_) => None,
+            VirtualSpecimen::Periodic(s) => Some(s.period_px()),
+        }
+    }
+
+    /// Values held in memory: the raster's pixels or the periodic texture's.
+    pub fn allocated_points(&self) -> usize {
+        match self {
+            VirtualSpecimen::Raster(s) => s.heights.len(),
+            VirtualSpecimen::Periodic(s) => s.allocated_points(),
+        }
+    }
+
+    /// The whole specimen as a raster (a copy for a periodic one, refused past
+    /// [`MAX_RASTER_POINTS`]).
+    pub fn to_specimen(&self) -> Result<std::borrow::Cow<'_, Specimen>> {
+        Ok(match self {
+            VirtualSpecimen::Raster(s) => std::borrow::Cow::Borrowed(s),
+            VirtualSpecimen::Periodic(s) => std::borrow::Cow::Owned(s.to_specimen()?),
+        })
+    }
+}
+
+impl SpecimenSurface for VirtualSpecimen {
+    fn shape(&self) -> Shape {
+        match self {
+            VirtualSpecimen::Raster(s) => s.shape,
+            VirtualSpecimen::Periodic(s) => s.shape,
+        }
+    }
+
+    fn pitch_um(&self) -> f64 {
+        match self {
+            VirtualSpecimen::Raster(s) => s.pitch_um,
+            VirtualSpecimen::Periodic(s) => s.pitch_um,
+        }
+    }
+
+    fn read_block(&self, x0: usize, y0: usize, width: usize, out: &mut [f32]) {
+        match self {
+            VirtualSpecimen::Raster(s) => s.read_block(x0, y0, width, out),
+            VirtualSpecimen::Periodic(s) => s.read_block(x0, y0, width, out),
+        }
+    }
+}
+
+/// The specimen for `params`, whole ([`generate_specimen`]) when its padded synthesis grid
+/// has at most [`WHOLE_SYNTHESIS_MAX_POINTS`] points and no period is asked for, periodic
+/// ([`PeriodicSpecimen`]) otherwise. Memory is bounded either way.
+pub fn generate_virtual_specimen(params: &SpecimenParams) -> Result<VirtualSpecimen> {
+    params.validate()?;
+    Ok(if params.roughness_period().is_some() {
+        VirtualSpecimen::Periodic(PeriodicSpecimen::generate(params)?)
+    } else {
+        VirtualSpecimen::Raster(generate_specimen(params)?)
     })
 }
 
@@ -299,9 +637,12 @@ pub fn generate_specimen(params: &SpecimenParams) -> Result<Specimen> {
 /// self-mirrored columns (`kx = 0` and, for even `nx`, `nx / 2`) are made Hermitian by keeping
 /// the real part after pass 1, with their amplitude raised by sqrt(2) so that they carry the
 /// same power as the rest of the spectrum.
-fn synthesize_roughness(params: &SpecimenParams, out: &mut [f32]) {
-    let (w, h) = (params.width_px, params.height_px);
-    let (nx, ny) = synthesis_shape(w, h);
+fn synthesize_roughness(
+    params: &SpecimenParams,
+    (w, _h): (usize, usize),
+    (nx, ny): (usize, usize),
+    out: &mut [f32],
+) {
     let half = nx / 2 + 1; // columns kx = 0 ..= nx / 2
     let mut planner = FftPlanner::<f32>::new();
     let fft_y = planner.plan_fft_inverse(ny);

@@ -7,7 +7,7 @@ use surfstream_core::raster::Shape;
 
 use crate::error::{invalid, ReplayError, Result};
 use crate::rng::{domain, stream};
-use crate::specimen::{Specimen, SpecimenParams, MAX_SIDE_PX};
+use crate::specimen::{SpecimenParams, SpecimenSurface, MAX_SIDE_PX};
 
 /// Pixels of interpolation support kept inside the specimen on every side (bicubic: the
 /// sample at x needs columns floor(x) - 1 ..= floor(x) + 2).
@@ -340,19 +340,20 @@ impl ScanPlan {
     }
 
     /// Checks that `specimen` is large enough for the plan and has its pixel pitch.
-    pub fn check_specimen(&self, specimen: &Specimen) -> Result<()> {
-        let Shape { rows, cols } = specimen.shape;
+    pub fn check_specimen<S: SpecimenSurface + ?Sized>(&self, specimen: &S) -> Result<()> {
+        let Shape { rows, cols } = specimen.shape();
         if cols < self.specimen_width_px || rows < self.specimen_height_px {
             return Err(ReplayError::SpecimenMismatch(format!(
                 "specimen is {} x {} px, the scan needs at least {} x {} px (rows x cols)",
                 rows, cols, self.specimen_height_px, self.specimen_width_px
             )));
         }
-        let rel = (specimen.pitch_um - self.params.pitch_um).abs() / self.params.pitch_um;
+        let rel = (specimen.pitch_um() - self.params.pitch_um).abs() / self.params.pitch_um;
         if rel.is_nan() || rel > 1e-9 {
             return Err(ReplayError::SpecimenMismatch(format!(
                 "specimen pitch is {} um, the stage's pitch_um is {} um",
-                specimen.pitch_um, self.params.pitch_um
+                specimen.pitch_um(),
+                self.params.pitch_um
             )));
         }
         Ok(())

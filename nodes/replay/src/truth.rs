@@ -93,6 +93,11 @@ pub struct SpecimenTruth {
     /// Generation parameters, if the specimen was generated.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub generated: Option<SpecimenParams>,
+    /// The roughness repeats with this period in pixels (x and y), if it is a periodic
+    /// texture (a large generated specimen): the true heights at (x, y) and (x + period, y)
+    /// differ only by waviness and form.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub roughness_period_px: Option<usize>,
 }
 
 /// One tile's truth.
@@ -167,6 +172,7 @@ impl GroundTruth {
             width_px: specimen.width_px,
             height_px: specimen.height_px,
             generated: Some(specimen.clone()),
+            roughness_period_px: specimen.roughness_period(),
         };
         self
     }
@@ -241,6 +247,7 @@ pub fn truth_for(plan: &ScanPlan) -> GroundTruth {
             width_px: plan.specimen_width_px,
             height_px: plan.specimen_height_px,
             generated: None,
+            roughness_period_px: None,
         },
         pixel_pitch_um: Xy {
             x: p.pitch_um,

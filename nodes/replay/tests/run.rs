@@ -46,7 +46,7 @@ fn simulated_run_yields_the_plan_in_serpentine_order_with_fixed_pacing() {
     let field = Duration::from_millis(250);
     let mut run = StageRun::new(
         TileSource::Simulated {
-            specimen,
+            specimen: surfstream_replay::VirtualSpecimen::Raster(specimen),
             plan: Box::new(plan),
         },
         Pacing::Fixed(field),
