@@ -57,10 +57,11 @@ mod geom;
 pub mod job;
 pub mod solid;
 pub mod stl;
+pub mod stream;
 pub mod target;
 pub mod tin;
 
-pub use adaptive::{mesh_height_field, AdaptiveMesh, Epsilon, MeshKind, MeshParams};
+pub use adaptive::{mesh_height_field, AdaptiveMesh, Epsilon, MeshCounts, MeshKind, MeshParams};
 pub use check::{check_closed, MeshCheck};
 pub use error::{MeshError, Result};
 pub use field::{fill_missing, ScanPlacement};
@@ -69,6 +70,7 @@ pub use solid::{
     close_top_surface, default_base_depth_um, grid_solid, LengthUnit, SolidMesh, SolidParams,
 };
 pub use stl::{write_stl_ascii, write_stl_binary};
+pub use stream::{mesh_streaming, StreamedMesh};
 pub use target::{grid_sheet_for, DemEngine, EngineProfile, TargetMesh, TargetMethod};
 pub use tin::{triangulate, MissingSamples, Tin, TinParams};
 #[cfg(feature = "node")]
