@@ -299,7 +299,7 @@ pub fn mesh_streaming(
         let mut belows = Vec::with_capacity(bands.len());
         belows.push(std::mem::take(&mut below));
         for b in 1..bands.len() {
-            belows.push(on_row(bands[b - 1].1.clone(), bands[b].0, cols));
+            belows.push(on_row(&bands[b - 1].1, bands[b].0, cols));
         }
         let errors: Vec<ErrorStats> = bands
             .par_iter_mut()
@@ -307,9 +307,9 @@ pub fn mesh_streaming(
             .map(|((y0, own, out), below)| paint_band(filled, measured, cols, *y0, below, own, out))
             .collect();
         band_errors.extend(errors);
-        if let Some((_, own, _)) = bands.last_mut() {
+        if let Some((_, own, _)) = bands.last() {
             if j1 < nby {
-                below = on_row(std::mem::take(own), plan.ys[j1], cols);
+                below = on_row(own, plan.ys[j1], cols);
             }
         }
         // The side edges of these bands are settled unless they lie on the row the next band

@@ -1085,7 +1085,7 @@ pub fn resample_with_error(tin: &Tin, measured_um: &[f32]) -> (Vec<f32>, ErrorSt
     let stats: Vec<ErrorStats> = chunks
         .into_par_iter()
         .map(|((y0, _, members), below, out)| {
-            let below = on_row(as_samples(below), *y0, w);
+            let below = on_row(&as_samples(below), *y0, w);
             paint_band(
                 &tin.filled_um,
                 measured_um,
@@ -1102,9 +1102,11 @@ pub fn resample_with_error(tin: &Tin, measured_um: &[f32]) -> (Vec<f32>, ErrorSt
 
 /// The triangles (as sample triples) with a corner on row `y` of a grid `w` samples wide: what
 /// a band of blocks paints on the row it shares with the band above.
-pub(crate) fn on_row(mut tris: Vec<[u32; 3]>, y: usize, w: usize) -> Vec<[u32; 3]> {
-    tris.retain(|t| t.iter().any(|&s| s as usize / w == y));
-    tris
+pub(crate) fn on_row(tris: &[[u32; 3]], y: usize, w: usize) -> Vec<[u32; 3]> {
+    tris.iter()
+        .filter(|t| t.iter().any(|&s| s as usize / w == y))
+        .copied()
+        .collect()
 }
 
 /// Paints the triangles of one band of blocks on its rows (`out`: rows `y0..`, `w` wide, f32
