@@ -4,7 +4,10 @@
 //! one JSON line with the process's peak resident memory (VmHWM) in bytes per sample.
 //! A benchmark, not a test: run it alone, the figure is the process's own.
 //!
-//! `cargo run --release -p surfstream-mesher --example mesh_memory -- ROWS COLS stream|memory OUT_DIR`
+//! `cargo run --release -p surfstream-mesher --example mesh_memory -- ROWS COLS stream|memory OUT_DIR [--discard]`
+//!
+//! `--discard`: the STL and the .npy are encoded but thrown away (the machine's disk is shared;
+//! a 4k x 4k field makes a 1.6 GB STL); the streaming mesher's spill file still goes to OUT_DIR.
 
 use std::time::Instant;
 
@@ -26,9 +29,10 @@ fn vm_hwm_bytes() -> u64 {
 
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    if args.len() != 4 {
-        bail!("usage: mesh_memory ROWS COLS stream|memory OUT_DIR");
+    if args.len() != 4 && !(args.len() == 5 && args[4] == "--discard") {
+        bail!("usage: mesh_memory ROWS COLS stream|memory OUT_DIR [--discard]");
     }
+    let discard = args.len() == 5;
     let rows: usize = args[0].parse().context("ROWS")?;
     let cols: usize = args[1].parse().context("COLS")?;
     let out = std::path::PathBuf::from(&args[3]);
@@ -62,21 +66,35 @@ fn main() -> Result<()> {
     let (triangles, watertight) = match args[2].as_str() {
         "stream" => {
             let mut m = mesh_streaming(heights, &at, &params, &out)?;
-            surfstream_io::npy::write_npy_abs_f64(&npy, &m.resampled_um, rows, cols, 100.0)?;
             let mut check = None;
-            surfstream_core::fsutil::write_atomic(&stl, |w| {
-                check = Some(m.write_stl(w, false, "surfstream surface", heights)?);
-                Ok(())
-            })?;
+            if discard {
+                check = Some(m.write_stl(
+                    &mut std::io::sink(),
+                    false,
+                    "surfstream surface",
+                    heights,
+                )?);
+            } else {
+                surfstream_io::npy::write_npy_abs_f64(&npy, &m.resampled_um, rows, cols, 100.0)?;
+                surfstream_core::fsutil::write_atomic(&stl, |w| {
+                    check = Some(m.write_stl(w, false, "surfstream surface", heights)?);
+                    Ok(())
+                })?;
+            }
             (m.counts.triangles, check.is_some_and(|c| c.watertight))
         }
         "memory" => {
             let m = mesh_height_field(heights, &at, &params)?;
             let abs = surfstream_core::frame::from_frame_heights(100.0, &m.resampled_um);
-            surfstream_io::npy::write_npy_f64(&npy, &abs, rows, cols)?;
-            surfstream_core::fsutil::write_atomic(&stl, |w| {
-                Ok(write_stl_binary(w, &m.mesh, "surfstream surface")?)
-            })?;
+            if discard {
+                write_stl_binary(std::io::sink(), &m.mesh, "surfstream surface")?;
+            } else {
+                surfstream_io::npy::write_npy_f64(&npy, &abs, rows, cols)?;
+                surfstream_core::fsutil::write_atomic(&stl, |w| {
+                    Ok(write_stl_binary(w, &m.mesh, "surfstream surface")?)
+                })?;
+            }
+            drop(abs);
             let c = check_closed(&m.mesh);
             (m.mesh.triangles.len(), c.watertight)
         }
