@@ -20,9 +20,9 @@ use surfstream_io::npy::{write_npy_abs_f64, write_npy_f64};
 
 use crate::target::{block_values_on_grid, DemEngine, EngineProfile, TargetMethod};
 use crate::{
-    check_closed, grid_sheet_for, grid_solid, mesh_height_field, mesh_streaming, stl, Epsilon,
-    LengthUnit, MeshCheck, MeshCounts, MeshKind, MeshParams, MissingSamples, ScanPlacement,
-    SolidMesh, SolidParams,
+    check_closed, grid_sheet_for, grid_solid, grid_streaming, mesh_height_field, mesh_streaming,
+    stl, Epsilon, LengthUnit, MeshCheck, MeshCounts, MeshKind, MeshParams, MissingSamples,
+    ScanPlacement, SolidMesh, SolidParams,
 };
 
 /// The label in the STL header (before the unit and offset).
@@ -483,7 +483,34 @@ impl MeshJob {
         let shape = Shape::new(h.height as usize, h.width as usize);
         let params = match (&self.settings.adaptive, self.grid_target()) {
             (Some(p), None) => p.clone(),
+            (None, None) => {
+                // The full-grid solid, streamed: its mesh on the grid is the samples themselves.
+                let heights =
+                    RasterView::new(&s.heights, shape).map_err(|e| anyhow!("mesher: {e}"))?;
+                let g =
+                    grid_streaming(heights, &ScanPlacement::of_frame(&h), &self.settings.solid)?;
+                write_npy_abs_f64(
+                    resampled_npy,
+                    &s.heights,
+                    shape.rows,
+                    shape.cols,
+                    h.z_offset_um,
+                )?;
+                let mut check = None;
+                write_atomic(stl, |w| {
+                    check = Some(g.write_stl(w, format == StlFormat::Ascii, STL_LABEL, heights)?);
+                    Ok(())
+                })?;
+                let check =
+                    check.ok_or_else(|| anyhow!("mesher: {}: nothing written", stl.display()))?;
+                return Ok(MeshFiles {
+                    summary: surface_summary(&g.counts, &check, None, &h, &self.settings),
+                    check,
+                    streamed: true,
+                });
+            }
             _ => {
+                // The engines' grid sheets: bounded by their triangle budgets, made in memory.
                 let m = self.mesh_in_memory(&s)?;
                 drop(s);
                 let r = &m.resampled_um;

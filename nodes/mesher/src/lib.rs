@@ -70,7 +70,7 @@ pub use solid::{
     close_top_surface, default_base_depth_um, grid_solid, LengthUnit, SolidMesh, SolidParams,
 };
 pub use stl::{write_stl_ascii, write_stl_binary};
-pub use stream::{mesh_streaming, StreamedMesh};
+pub use stream::{grid_streaming, mesh_streaming, StreamedGrid, StreamedMesh};
 pub use target::{grid_sheet_for, DemEngine, EngineProfile, TargetMesh, TargetMethod};
 pub use tin::{triangulate, MissingSamples, Tin, TinParams};
 #[cfg(feature = "node")]

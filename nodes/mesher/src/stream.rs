@@ -40,9 +40,10 @@ use crate::adaptive::{adaptive_summary, Fidelity, MeshCounts, VertexPlacement};
 use crate::check::MeshCheck;
 use crate::error::{MeshError, Result};
 use crate::fidelity::level_field;
+use crate::field::fill_missing;
 use crate::field::{positive_finite, validate, ScanPlacement};
 use crate::geom;
-use crate::solid::close_top_surface;
+use crate::solid::{close_top_surface, GridPlacement, SolidParams};
 use crate::stl::StlSink;
 use crate::tin::{grid_rim, on_row, paint_band, BlockPlan, ErrorStats, MissingSamples, TinParams};
 use crate::{Epsilon, MeshKind, MeshParams};
@@ -357,26 +358,7 @@ pub fn mesh_streaming(
     // The walls settle the rim; everything still pending is final now.
     let mut pending = std::mem::take(&mut topology.pending);
     if let Some(w) = &walls {
-        let n = w.rim.len();
-        let key = |v: u32| -> u64 {
-            let v = v as usize;
-            if v < n {
-                u64::from(w.rim[v])
-            } else {
-                BASE_KEY + (v - n) as u64
-            }
-        };
-        let mut sorted = Vec::with_capacity(w.triangles.len());
-        for t in &w.triangles {
-            for k in 0..3 {
-                pending.extend(edge(key(t[k]), key(t[(k + 1) % 3])));
-            }
-            let mut s = t.map(key);
-            s.sort_unstable();
-            sorted.push(s);
-        }
-        sorted.sort_unstable();
-        topology.duplicate_triangles += sorted.windows(2).filter(|p| p[0] == p[1]).count();
+        add_walls(w, &mut pending, &mut topology);
     }
     topology.settle(&mut pending, |_| true);
     let mut collinear = std::mem::take(&mut topology.collinear);
@@ -598,69 +580,319 @@ impl StreamedMesh {
             }
         }
         out.finish()?;
-        let t = &self.topology;
-        let edges_ok =
-            t.boundary_edges == 0 && t.non_manifold_edges == 0 && t.misoriented_edges == 0;
-        Ok(MeshCheck {
-            watertight: edges_ok,
-            consistently_oriented: t.misoriented_edges == 0,
-            signed_volume: volume6 / 6.0,
-            degenerate_triangles: degenerate,
-            duplicate_triangles: t.duplicate_triangles,
-            boundary_edges: t.boundary_edges,
-            non_manifold_edges: t.non_manifold_edges,
-            misoriented_edges: t.misoriented_edges,
-            coincident_vertices_f32: self.coincident_vertices(heights.shape(), filled),
-        })
+        let coincident = self.coincident_vertices(heights.shape(), filled);
+        Ok(self.topology.check(degenerate, volume6, coincident))
     }
 
-    /// Vertices equal once rounded to f32 (as [`crate::check_closed`] counts them). Rounding
-    /// is monotonic and a top vertex's x depends on its column alone, y on its row: when the
-    /// columns' f32 x are all distinct and so are the rows' f32 y, no two top vertices
-    /// coincide; with re-centring every top vertex is above the base (z = 0) also in f32, so
-    /// only the base's own vertices remain to compare. Otherwise (far from the origin without
-    /// re-centring) every used vertex is hashed, which costs memory per vertex.
+    /// Vertices equal once rounded to f32: see the free function [`coincident_vertices`].
     fn coincident_vertices(&self, shape: Shape, filled: &[f32]) -> usize {
-        let key = |v: [f64; 3]| v.map(|c| (c as f32 + 0.0).to_bits());
-        let distinct = |values: Vec<u32>| values.windows(2).all(|p| p[0] != p[1]);
-        let xs = (0..shape.cols)
-            .map(|j| key(self.place.vertex(j, 0.0))[0])
-            .collect();
-        let ys = (0..shape.rows)
-            .map(|i| key(self.place.vertex(i * shape.cols, 0.0))[1])
-            .collect();
         let base: Vec<[f64; 3]> = self
             .walls
             .as_ref()
             .map_or(Vec::new(), |w| w.vertices[w.rim.len()..].to_vec());
-        if distinct(xs) && distinct(ys) && self.top_z_positive {
-            let set: HashSet<[u32; 3]> = base.iter().map(|&v| key(v)).collect();
-            return base.len() - set.len();
-        }
-        // Every used vertex: the samples the spill file names.
-        let mut set: HashSet<[u32; 3]> = HashSet::new();
-        let mut seen: HashSet<u32> = HashSet::new();
-        let mut count = 0usize;
-        let mut reader = BufReader::new(&self.spill);
-        if reader.seek(SeekFrom::Start(0)).is_err() {
-            return 0;
-        }
-        let mut r = [0u8; 4];
-        for _ in 0..3 * self.counts.top_triangles {
-            if reader.read_exact(&mut r).is_err() {
-                break;
-            }
-            let s = u32::from_le_bytes(r);
-            if seen.insert(s) {
-                count += 1;
-                set.insert(key(self.place.vertex(s as usize, filled[s as usize])));
-            }
-        }
-        for &v in &base {
+        coincident_vertices(
+            shape,
+            |s| self.place.vertex(s, 0.0),
+            self.top_z_positive,
+            &base,
+            |visit| {
+                // Every used vertex: the samples the spill file names.
+                let mut seen: HashSet<u32> = HashSet::new();
+                let mut reader = BufReader::new(&self.spill);
+                if reader.seek(SeekFrom::Start(0)).is_err() {
+                    return;
+                }
+                let mut r = [0u8; 4];
+                for _ in 0..3 * self.counts.top_triangles {
+                    if reader.read_exact(&mut r).is_err() {
+                        break;
+                    }
+                    let s = u32::from_le_bytes(r);
+                    if seen.insert(s) {
+                        visit(self.place.vertex(s as usize, filled[s as usize]));
+                    }
+                }
+            },
+        )
+    }
+}
+
+/// Vertices equal once rounded to f32 (as [`crate::check_closed`] counts them). Rounding is
+/// monotonic and a top vertex's x depends on its column alone, y on its row (`at_height_0` of
+/// sample s): when the columns' f32 x are all distinct and so are the rows' f32 y, no two top
+/// vertices coincide; when the lowest top vertex is above the base also in f32
+/// (`top_z_positive`), no top vertex meets a base vertex, so only the base's own vertices
+/// remain to compare. Otherwise (far from the origin without re-centring) every top vertex is
+/// hashed (`each_top` visits them once each), which costs memory per vertex.
+fn coincident_vertices(
+    shape: Shape,
+    at_height_0: impl Fn(usize) -> [f64; 3],
+    top_z_positive: bool,
+    base: &[[f64; 3]],
+    each_top: impl FnOnce(&mut dyn FnMut([f64; 3])),
+) -> usize {
+    let key = |v: [f64; 3]| v.map(|c| (c as f32 + 0.0).to_bits());
+    let distinct = |values: Vec<u32>| values.windows(2).all(|p| p[0] != p[1]);
+    let xs = (0..shape.cols).map(|j| key(at_height_0(j))[0]).collect();
+    let ys = (0..shape.rows)
+        .map(|i| key(at_height_0(i * shape.cols))[1])
+        .collect();
+    let mut set: HashSet<[u32; 3]> = base.iter().map(|&v| key(v)).collect();
+    let mut count = base.len();
+    if !(distinct(xs) && distinct(ys) && top_z_positive) {
+        each_top(&mut |v| {
             count += 1;
             set.insert(key(v));
+        });
+    }
+    count - set.len()
+}
+
+/// The full-grid solid ([`crate::grid_solid`]) streamed: the same STL bytes and check, with
+/// nothing per sample held but the input (and its filled copy when samples are missing). The
+/// triangles are generated again while writing; the check runs in groups of cell rows (edges
+/// along the row a group shares with the next, and along the rim, wait).
+pub struct StreamedGrid {
+    pub counts: MeshCounts,
+    place: GridPlacement,
+    filled: Filled,
+    walls: Walls,
+    topology: Topology,
+    shape: Shape,
+    top_z_positive: bool,
+}
+
+/// Cells per group of cell rows in the grid's edge check (about 25 MB of edges).
+const GRID_CHECK_CELLS: usize = 1 << 18;
+
+/// The two triangles of cell (row `i`, column `j`) as sample indices, as [`crate::grid_solid`]
+/// makes them.
+#[inline]
+fn cell_triangles(i: usize, j: usize, cols: usize) -> [[u32; 3]; 2] {
+    let v00 = (i * cols + j) as u32;
+    let (v01, v10) = (v00 + 1, v00 + cols as u32);
+    let v11 = v10 + 1;
+    [[v00, v01, v11], [v00, v11, v10]]
+}
+
+/// The first pass of the streamed grid solid: counts, placement, walls and the edge check
+/// (errors as [`crate::grid_solid`]). Then [`StreamedGrid::write_stl`] with the same heights.
+pub fn grid_streaming(
+    heights: RasterView<'_, f32>,
+    at: &ScanPlacement,
+    params: &SolidParams,
+) -> Result<StreamedGrid> {
+    validate(heights, at)?;
+    params.validate()?;
+    let shape = heights.shape();
+    let (rows, cols) = (shape.rows, shape.cols);
+    let (filled, filled_samples) = fill_missing(heights)?;
+    let place = GridPlacement::new(&filled, at, params, shape)?;
+    let (_, vertex_count, top_triangles, triangle_count) = place.counts();
+    let rim = place.boundary();
+    let mut vertices: Vec<[f64; 3]> = rim
+        .iter()
+        .map(|&s| {
+            let s = s as usize;
+            place.place(s / cols, s % cols, filled[s])
+        })
+        .collect();
+    let local: Vec<u32> = (0..rim.len() as u32).collect();
+    let mut triangles = Vec::new();
+    close_top_surface(
+        &mut vertices,
+        &mut triangles,
+        &local,
+        place.base_z_um / params.units.um_per_unit(),
+    )?;
+    let walls = Walls {
+        rim,
+        vertices,
+        triangles,
+    };
+
+    let mut topology = Topology::default();
+    let group = (GRID_CHECK_CELLS / cols).max(1);
+    for r0 in (0..rows - 1).step_by(group) {
+        let r1 = (r0 + group).min(rows - 1);
+        let mut edges: Vec<Edge> = std::mem::take(&mut topology.pending);
+        let mut sorted = Vec::with_capacity((r1 - r0) * (cols - 1) * 2);
+        for i in r0..r1 {
+            for j in 0..cols - 1 {
+                for t in cell_triangles(i, j, cols) {
+                    for k in 0..3 {
+                        edges.extend(edge(u64::from(t[k]), u64::from(t[(k + 1) % 3])));
+                    }
+                    let mut s = t;
+                    s.sort_unstable();
+                    sorted.push(s);
+                }
+            }
         }
-        count - set.len()
+        // A triangle spans two rows of samples, so it repeats only inside its own group.
+        sorted.par_sort_unstable();
+        topology.duplicate_triangles += sorted.windows(2).filter(|p| p[0] == p[1]).count();
+        let open_row = (r1 < rows - 1).then_some(r1);
+        topology.settle(&mut edges, |key| {
+            !on_rim(key, shape) && open_row.is_none_or(|y| !on_grid_row(key, y, cols))
+        });
+        topology.pending = edges;
+    }
+    let mut pending = std::mem::take(&mut topology.pending);
+    add_walls(&walls, &mut pending, &mut topology);
+    topology.settle(&mut pending, |_| true);
+
+    let counts = MeshCounts {
+        units: params.units,
+        offset_um: place.offset_um,
+        triangles: triangle_count,
+        top_triangles,
+        vertices: vertex_count,
+        filled_samples,
+        base_depth_um: place.base_depth_um,
+    };
+    let lowest = place.place(0, 0, place_min(&filled))[2] as f32;
+    let top_z_positive = lowest > (place.base_z_um / params.units.um_per_unit()) as f32;
+    let filled = match filled {
+        std::borrow::Cow::Borrowed(_) => Filled::Input,
+        std::borrow::Cow::Owned(v) => Filled::Owned(v),
+    };
+    Ok(StreamedGrid {
+        counts,
+        place,
+        filled,
+        walls,
+        topology,
+        shape,
+        top_z_positive,
+    })
+}
+
+/// The lowest height (um) of the filled samples.
+fn place_min(filled: &[f32]) -> f32 {
+    filled
+        .par_iter()
+        .copied()
+        .reduce(|| f32::INFINITY, f32::min)
+}
+
+/// The walls' edges (keyed as the top's) into `pending`, their duplicates into `topology`.
+fn add_walls(w: &Walls, pending: &mut Vec<Edge>, topology: &mut Topology) {
+    let n = w.rim.len();
+    let key = |v: u32| -> u64 {
+        let v = v as usize;
+        if v < n {
+            u64::from(w.rim[v])
+        } else {
+            BASE_KEY + (v - n) as u64
+        }
+    };
+    let mut sorted = Vec::with_capacity(w.triangles.len());
+    for t in &w.triangles {
+        for k in 0..3 {
+            pending.extend(edge(key(t[k]), key(t[(k + 1) % 3])));
+        }
+        let mut s = t.map(key);
+        s.sort_unstable();
+        sorted.push(s);
+    }
+    sorted.sort_unstable();
+    topology.duplicate_triangles += sorted.windows(2).filter(|p| p[0] == p[1]).count();
+}
+
+impl Topology {
+    fn check(&self, degenerate: usize, volume6: f64, coincident: usize) -> MeshCheck {
+        let edges_ok =
+            self.boundary_edges == 0 && self.non_manifold_edges == 0 && self.misoriented_edges == 0;
+        MeshCheck {
+            watertight: edges_ok,
+            consistently_oriented: self.misoriented_edges == 0,
+            signed_volume: volume6 / 6.0,
+            degenerate_triangles: degenerate,
+            duplicate_triangles: self.duplicate_triangles,
+            boundary_edges: self.boundary_edges,
+            non_manifold_edges: self.non_manifold_edges,
+            misoriented_edges: self.misoriented_edges,
+            coincident_vertices_f32: coincident,
+        }
+    }
+}
+
+impl StreamedGrid {
+    /// Writes the STL (binary or `ascii`): the same bytes as the in-memory writers give for
+    /// [`crate::grid_solid`]'s mesh; returns the check. `heights` must be the field given to
+    /// [`grid_streaming`].
+    pub fn write_stl(
+        &self,
+        w: &mut dyn Write,
+        ascii: bool,
+        header_text: &str,
+        heights: RasterView<'_, f32>,
+    ) -> Result<MeshCheck> {
+        let filled: &[f32] = match &self.filled {
+            Filled::Input => heights.values(),
+            Filled::Owned(v) => v,
+        };
+        let (rows, cols) = (self.shape.rows, self.shape.cols);
+        if filled.len() != rows * cols {
+            return Err(MeshError::Incompatible(format!(
+                "write_stl: the height field has {} samples, the mesh was made from {}",
+                filled.len(),
+                rows * cols
+            )));
+        }
+        let mut out = StlSink::new(
+            w,
+            ascii,
+            self.counts.units,
+            self.counts.offset_um,
+            header_text,
+            self.counts.triangles as u32,
+        )?;
+        let (mut degenerate, mut volume6) = (0usize, 0.0f64);
+        let g = &self.place;
+        let vertex = |s: u32| {
+            let s = s as usize;
+            g.place(s / cols, s % cols, filled[s])
+        };
+        for i in 0..rows - 1 {
+            let corners: Vec<([[f64; 3]; 3], [u32; 3])> = (0..cols - 1)
+                .into_par_iter()
+                .flat_map_iter(|j| cell_triangles(i, j, cols).map(|t| (t.map(vertex), t)))
+                .collect();
+            let (d, v) = shape_terms(&corners);
+            degenerate += d;
+            volume6 += v;
+            for (c, _) in &corners {
+                out.push(*c)?;
+            }
+        }
+        let walls: Vec<([[f64; 3]; 3], [u32; 3])> = self
+            .walls
+            .triangles
+            .iter()
+            .map(|t| (t.map(|v| self.walls.vertices[v as usize]), *t))
+            .collect();
+        let (d, v) = shape_terms(&walls);
+        degenerate += d;
+        volume6 += v;
+        for (c, _) in &walls {
+            out.push(*c)?;
+        }
+        out.finish()?;
+        let base = &self.walls.vertices[self.walls.rim.len()..];
+        let coincident = coincident_vertices(
+            self.shape,
+            |s| g.place(s / cols, s % cols, 0.0),
+            self.top_z_positive,
+            base,
+            |visit| {
+                for (s, &h) in filled.iter().enumerate() {
+                    visit(g.place(s / cols, s % cols, h));
+                }
+            },
+        );
+        Ok(self.topology.check(degenerate, volume6, coincident))
     }
 }
 
