@@ -4,7 +4,10 @@
 //! one JSON line with the process's peak resident memory (VmHWM) in bytes per sample.
 //! A benchmark, not a test: run it alone, the figure is the process's own.
 //!
-//! `cargo run --release -p surfstream-mesher --example mesh_memory -- ROWS COLS stream|memory OUT_DIR [--discard]`
+//! `cargo run --release -p surfstream-mesher --example mesh_memory -- ROWS COLS MODE OUT_DIR [--discard]`
+//!
+//! MODE: `stream` | `memory` (the adaptive mesh), `grid-stream` | `grid-memory` (the full-grid
+//! solid, `method = "grid"`).
 //!
 //! `--discard`: the STL and the .npy are encoded but thrown away (the machine's disk is shared;
 //! a 4k x 4k field makes a 1.6 GB STL); the streaming mesher's spill file still goes to OUT_DIR.
@@ -14,8 +17,8 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use surfstream_core::raster::{RasterView, Shape};
 use surfstream_mesher::{
-    check_closed, mesh_height_field, mesh_streaming, write_stl_binary, Epsilon, MeshKind,
-    MeshParams, MissingSamples, ScanPlacement, SolidParams,
+    check_closed, grid_solid, grid_streaming, mesh_height_field, mesh_streaming, write_stl_binary,
+    Epsilon, MeshKind, MeshParams, MissingSamples, ScanPlacement, SolidParams,
 };
 
 fn vm_hwm_bytes() -> u64 {
@@ -30,7 +33,7 @@ fn vm_hwm_bytes() -> u64 {
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     if args.len() != 4 && !(args.len() == 5 && args[4] == "--discard") {
-        bail!("usage: mesh_memory ROWS COLS stream|memory OUT_DIR [--discard]");
+        bail!("usage: mesh_memory ROWS COLS stream|memory|grid-stream|grid-memory OUT_DIR [--discard]");
     }
     let discard = args.len() == 5;
     let rows: usize = args[0].parse().context("ROWS")?;
@@ -98,7 +101,35 @@ fn main() -> Result<()> {
             let c = check_closed(&m.mesh);
             (m.mesh.triangles.len(), c.watertight)
         }
-        other => bail!("mode {other:?}: expected stream or memory"),
+        "grid-stream" => {
+            let g = grid_streaming(heights, &at, &params.solid)?;
+            let check = if discard {
+                g.write_stl(&mut std::io::sink(), false, "surfstream surface", heights)?
+            } else {
+                surfstream_io::npy::write_npy_abs_f64(&npy, &heights_um, rows, cols, 100.0)?;
+                let mut check = None;
+                surfstream_core::fsutil::write_atomic(&stl, |w| {
+                    check = Some(g.write_stl(w, false, "surfstream surface", heights)?);
+                    Ok(())
+                })?;
+                check.context("nothing written")?
+            };
+            (g.counts.triangles, check.watertight)
+        }
+        "grid-memory" => {
+            let m = grid_solid(heights, &at, &params.solid)?;
+            if discard {
+                write_stl_binary(std::io::sink(), &m, "surfstream surface")?;
+            } else {
+                let abs = surfstream_core::frame::from_frame_heights(100.0, &heights_um);
+                surfstream_io::npy::write_npy_f64(&npy, &abs, rows, cols)?;
+                surfstream_core::fsutil::write_atomic(&stl, |w| {
+                    Ok(write_stl_binary(w, &m, "surfstream surface")?)
+                })?;
+            }
+            (m.triangles.len(), check_closed(&m).watertight)
+        }
+        other => bail!("mode {other:?}: expected stream, memory, grid-stream or grid-memory"),
     };
     let peak = vm_hwm_bytes();
     let samples = (rows * cols) as f64;

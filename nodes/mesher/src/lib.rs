@@ -27,6 +27,9 @@
 //!   returned as `offset_um`, `scan_um = vertex * unit.um_per_unit() + offset_um`.
 //!   [`write_stl_binary`] / [`write_stl_ascii`] write a solid, [`check_closed`] verifies
 //!   watertightness, orientation and volume.
+//! - Bounded memory ([`stream`], issue 17): [`mesh_streaming`] and [`grid_streaming`] make the
+//!   same meshes, STL bytes and checks without holding the triangle or vertex lists (triangles
+//!   spilled to an unnamed file, the check settled block by block); the node uses them.
 //! - In a graph ([`job`]): [`MeshJob`] takes the final frame of the chosen surface
 //!   ([`SurfaceChoice`]: pooled, panorama, datum, roughness, or datum + roughness summed), and
 //!   meshes it once every input has ended its scan; `node` is the process shell around it.
