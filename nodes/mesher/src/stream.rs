@@ -233,15 +233,11 @@ pub fn mesh_streaming(
     let filled: &[f32] = &plan.filled;
     let measured = heights.values();
 
-    let spill_file = tempfile::tempfile_in(spill_dir).map_err(|e| {
-        MeshError::Io(std::io::Error::new(
-            e.kind(),
-            format!(
-                "{}: cannot create the mesher's spill file: {e}",
-                spill_dir.display()
-            ),
-        ))
-    })?;
+    let spill_error = |source: std::io::Error| MeshError::Spill {
+        dir: spill_dir.display().to_string(),
+        source,
+    };
+    let spill_file = tempfile::tempfile_in(spill_dir).map_err(spill_error)?;
     let mut spill = BufWriter::with_capacity(1 << 20, spill_file);
     let mut resampled_um = vec![f32::NAN; rows * cols];
     let mut used = Bits::new(rows * cols);
@@ -260,10 +256,10 @@ pub fn mesh_streaming(
             .collect();
         // Bands in order: their triangles (block order) and rows.
         let mut bands = Vec::with_capacity(j1 - j0);
-        for (b, band_parts) in parts.chunks(nbx).enumerate() {
-            let j = j0 + b;
+        let mut parts = parts.into_iter();
+        for j in j0..j1 {
             let mut own = Vec::new();
-            for p in band_parts {
+            for mut p in parts.by_ref().take(nbx) {
                 budget_reached |= p.budget_reached;
                 all_kept &= p.all_kept;
                 topology.boundary_edges += p.inner[0];
@@ -284,10 +280,10 @@ pub fn mesh_streaming(
                     for (slot, s) in record.chunks_exact_mut(4).zip(t) {
                         slot.copy_from_slice(&s.to_le_bytes());
                     }
-                    spill.write_all(&record)?;
+                    spill.write_all(&record).map_err(spill_error)?;
                 }
                 top_triangles += p.triangles.len();
-                own.extend_from_slice(&p.triangles);
+                own.append(&mut p.triangles);
             }
             let y0 = plan.ys[j];
             let end = if j + 1 == nby { rows } else { plan.ys[j + 1] };
@@ -295,7 +291,6 @@ pub fn mesh_streaming(
             rest = next;
             bands.push((y0, own, this));
         }
-        drop(parts);
         // Each band paints on top of what the band below left on their shared row.
         let mut belows = Vec::with_capacity(bands.len());
         belows.push(std::mem::take(&mut below));
@@ -325,7 +320,7 @@ pub fn mesh_streaming(
     let error = ErrorStats::combine(&band_errors);
     let spill_file = spill
         .into_inner()
-        .map_err(|e| MeshError::Io(e.into_error()))?;
+        .map_err(|e| spill_error(e.into_error()))?;
 
     if top_triangles == 0 {
         return Err(MeshError::Incompatible(
@@ -540,7 +535,11 @@ impl StreamedMesh {
             header_text,
             self.counts.triangles as u32,
         )?;
-        self.spill.seek(SeekFrom::Start(0))?;
+        let spill_error = |source: std::io::Error| MeshError::Spill {
+            dir: "(unnamed)".into(),
+            source,
+        };
+        self.spill.seek(SeekFrom::Start(0)).map_err(spill_error)?;
         let mut reader = BufReader::with_capacity(1 << 20, &self.spill);
         let mut left = self.counts.top_triangles;
         let mut bytes = vec![0u8; READ_TRIANGLES * 12];
@@ -548,7 +547,9 @@ impl StreamedMesh {
         let place = &self.place;
         while left > 0 {
             let n = left.min(READ_TRIANGLES);
-            reader.read_exact(&mut bytes[..n * 12])?;
+            reader
+                .read_exact(&mut bytes[..n * 12])
+                .map_err(spill_error)?;
             let corners: Vec<([[f64; 3]; 3], [u32; 3])> = bytes[..n * 12]
                 .par_chunks_exact(12)
                 .map(|r| {
