@@ -154,47 +154,12 @@ pub fn mesh_height_field(
                 let h = f64::from(tin.filled_um[s]);
                 (lo.min(h), hi.max(h))
             });
-    let base_depth_um = match params.kind {
-        MeshKind::Solid => params
-            .solid
-            .base_depth_um
-            .unwrap_or_else(|| default_base_depth_um(max_um - min_um)),
-        MeshKind::Sheet => 0.0,
-    };
-    let um_per_unit = params.solid.units.um_per_unit();
-    let cols = heights.cols();
-    let (centre_col, centre_row) = heights.shape().centre_px();
-    let recentre = params.solid.recentre;
-    let offset_um = if recentre {
-        [
-            at.origin_x_um + centre_col * at.pitch_x_um,
-            at.origin_y_um + centre_row * at.pitch_y_um,
-            at.z_offset_um + min_um - base_depth_um,
-        ]
-    } else {
-        [0.0; 3]
-    };
+    let place = VertexPlacement::new(params, at, heights.shape(), min_um, max_um);
     let mut vertices: Vec<[f64; 3]> = samples
         .iter()
-        .map(|&s| {
-            let (i, j) = ((s / cols) as f64, (s % cols) as f64);
-            let h = f64::from(tin.filled_um[s]);
-            let p = if recentre {
-                [
-                    (j - centre_col) * at.pitch_x_um,
-                    (i - centre_row) * at.pitch_y_um,
-                    (h - min_um) + base_depth_um,
-                ]
-            } else {
-                [
-                    at.origin_x_um + j * at.pitch_x_um,
-                    at.origin_y_um + i * at.pitch_y_um,
-                    at.z_offset_um + h,
-                ]
-            };
-            p.map(|c| c / um_per_unit)
-        })
+        .map(|&s| place.vertex(s, tin.filled_um[s]))
         .collect();
+    let (offset_um, base_depth_um) = (place.offset_um(), place.base_depth_um);
     let surface_triangles = top.len();
     let mut triangles = top;
     if params.kind == MeshKind::Solid {
@@ -204,12 +169,7 @@ pub fn mesh_height_field(
             )
         })?;
         let rim: Vec<u32> = rim.iter().map(|&v| used[v as usize]).collect();
-        let base_z_um = if recentre {
-            0.0
-        } else {
-            at.z_offset_um + min_um - base_depth_um
-        };
-        close_top_surface(&mut vertices, &mut triangles, &rim, base_z_um / um_per_unit)?;
+        close_top_surface(&mut vertices, &mut triangles, &rim, place.base_z())?;
     }
     let bound_met = error.max_um <= epsilon_um;
     Ok(AdaptiveMesh {
@@ -242,22 +202,162 @@ pub fn mesh_height_field(
     })
 }
 
+/// Where the vertices of an adaptive mesh go: x, y from the sample's index, z from its height,
+/// re-centred from small numbers so that no precision is lost (the grid's centre at x = y = 0,
+/// the base at z = 0; see [`SolidMesh`]). One copy for the in-memory and the streaming mesher,
+/// so both place every vertex on the same f64.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct VertexPlacement {
+    at: ScanPlacement,
+    cols: usize,
+    centre_col: f64,
+    centre_row: f64,
+    /// Lowest and highest height of the used vertices, um (relative to the z offset).
+    min_um: f64,
+    pub(crate) base_depth_um: f64,
+    um_per_unit: f64,
+    recentre: bool,
+}
+
+impl VertexPlacement {
+    /// The placement for a mesh of `params.kind` whose vertices' heights span
+    /// `min_um..=max_um` on a grid of `shape`.
+    pub(crate) fn new(
+        params: &MeshParams,
+        at: &ScanPlacement,
+        shape: surfstream_core::raster::Shape,
+        min_um: f64,
+        max_um: f64,
+    ) -> Self {
+        let base_depth_um = match params.kind {
+            MeshKind::Solid => params
+                .solid
+                .base_depth_um
+                .unwrap_or_else(|| default_base_depth_um(max_um - min_um)),
+            MeshKind::Sheet => 0.0,
+        };
+        let (centre_col, centre_row) = shape.centre_px();
+        Self {
+            at: *at,
+            cols: shape.cols,
+            centre_col,
+            centre_row,
+            min_um,
+            base_depth_um,
+            um_per_unit: params.solid.units.um_per_unit(),
+            recentre: params.solid.recentre,
+        }
+    }
+
+    /// Scan position (um) of the output origin (zero without recentring).
+    pub(crate) fn offset_um(&self) -> [f64; 3] {
+        let at = &self.at;
+        if self.recentre {
+            [
+                at.origin_x_um + self.centre_col * at.pitch_x_um,
+                at.origin_y_um + self.centre_row * at.pitch_y_um,
+                at.z_offset_um + self.min_um - self.base_depth_um,
+            ]
+        } else {
+            [0.0; 3]
+        }
+    }
+
+    /// The base plane's z, output units.
+    pub(crate) fn base_z(&self) -> f64 {
+        let base_z_um = if self.recentre {
+            0.0
+        } else {
+            self.at.z_offset_um + self.min_um - self.base_depth_um
+        };
+        base_z_um / self.um_per_unit
+    }
+
+    /// The vertex of grid sample `s` at height `h_um` (filled), output units.
+    pub(crate) fn vertex(&self, s: usize, h_um: f32) -> [f64; 3] {
+        let at = &self.at;
+        let (i, j) = ((s / self.cols) as f64, (s % self.cols) as f64);
+        let h = f64::from(h_um);
+        let p = if self.recentre {
+            [
+                (j - self.centre_col) * at.pitch_x_um,
+                (i - self.centre_row) * at.pitch_y_um,
+                (h - self.min_um) + self.base_depth_um,
+            ]
+        } else {
+            [
+                at.origin_x_um + j * at.pitch_x_um,
+                at.origin_y_um + i * at.pitch_y_um,
+                at.z_offset_um + h,
+            ]
+        };
+        p.map(|c| c / self.um_per_unit)
+    }
+}
+
 impl AdaptiveMesh {
     /// The statistics written to run.json and OUT.json (everything but the file names).
     pub fn summary(&self) -> serde_json::Value {
-        serde_json::json!({
-            "kind": self.kind,
-            "units": self.mesh.units.symbol(),
-            "offset_um": self.mesh.offset_um,
-            "offset_rule": "scan_um = vertex * um_per_unit + offset_um",
-            "triangles": self.mesh.triangles.len(),
-            "surface_triangles": self.surface_triangles,
-            "vertices": self.mesh.vertices.len(),
-            "base_depth_um": self.mesh.base_depth_um,
-            "missing_samples": self.missing_samples,
-            "missing": self.missing,
-            "budget_reached": self.budget_reached,
-            "fidelity": self.fidelity,
-        })
+        adaptive_summary(
+            self.kind,
+            &MeshCounts::of(&self.mesh),
+            self.missing_samples,
+            self.missing,
+            self.budget_reached,
+            &self.fidelity,
+        )
     }
+}
+
+/// The sizes of a finished mesh, as run.json reports them (whether the mesh is in memory or
+/// was streamed to its file).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MeshCounts {
+    pub units: crate::LengthUnit,
+    pub offset_um: [f64; 3],
+    pub triangles: usize,
+    /// The surface's triangles (the first ones); the rest are walls and base.
+    pub top_triangles: usize,
+    pub vertices: usize,
+    pub filled_samples: usize,
+    pub base_depth_um: f64,
+}
+
+impl MeshCounts {
+    pub fn of(mesh: &SolidMesh) -> Self {
+        Self {
+            units: mesh.units,
+            offset_um: mesh.offset_um,
+            triangles: mesh.triangles.len(),
+            top_triangles: mesh.top_triangles,
+            vertices: mesh.vertices.len(),
+            filled_samples: mesh.filled_samples,
+            base_depth_um: mesh.base_depth_um,
+        }
+    }
+}
+
+/// The statistics written to run.json and OUT.json for an adaptive mesh.
+pub(crate) fn adaptive_summary(
+    kind: MeshKind,
+    mesh: &MeshCounts,
+    missing_samples: usize,
+    missing: MissingSamples,
+    budget_reached: bool,
+    fidelity: &Fidelity,
+) -> serde_json::Value {
+    serde_json::json!({
+        "kind": kind,
+        "units": mesh.units.symbol(),
+        "offset_um": mesh.offset_um,
+        "offset_rule": "scan_um = vertex * um_per_unit + offset_um",
+        "triangles": mesh.triangles,
+        "surface_triangles": mesh.top_triangles,
+        "vertices": mesh.vertices,
+        "base_depth_um": mesh.base_depth_um,
+        "missing_samples": missing_samples,
+        "missing": missing,
+        "budget_reached": budget_reached,
+        "fidelity": fidelity,
+    })
 }

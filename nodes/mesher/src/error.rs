@@ -54,6 +54,11 @@ pub enum MeshError {
     #[error("{0}")]
     Incompatible(String),
 
+    /// The streaming mesher's spill file (its triangles, 12 bytes each) could not be created,
+    /// written or read back.
+    #[error("{dir}: the mesher's spill file (12 bytes per triangle): {source}")]
+    Spill { dir: String, source: std::io::Error },
+
     /// Writing the STL stream failed.
     #[error("writing STL: {0}")]
     Io(#[from] std::io::Error),

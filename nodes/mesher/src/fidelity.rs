@@ -8,8 +8,9 @@
 //! sees only what the mesh changed. Missing samples (NaN) are left out; Sdr counts only grid
 //! cells with four measured corners.
 
+use rayon::prelude::*;
 use serde::Serialize;
-use surfstream_core::metrology::{fit_plane, level_plane, params, Grid};
+use surfstream_core::metrology::{fit_plane, params, Grid};
 use surfstream_core::raster::{Raster, RasterView, Shape};
 
 /// Areal parameters of one surface, um (Sdr in %).
@@ -53,17 +54,114 @@ pub fn field_params(
     pitch_x_um: f64,
     pitch_y_um: f64,
 ) -> Option<AreaParams> {
+    level_field(field, pitch_x_um, pitch_y_um)?.params
+}
+
+/// A height field's least-squares plane and its parameters about that plane: the field's side
+/// of [`compare`], kept so that the mesh's side can be computed later ([`FieldLevel::mesh_params`])
+/// without holding both surfaces in f64 at once.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct FieldLevel {
+    /// z = a + b x + c y (um), as [`fit_plane`] gives it.
+    plane: (f64, f64, f64),
+    pitch_um: (f64, f64),
+    shape: Shape,
+    /// The field's parameters, levelled by the plane.
+    pub(crate) params: Option<AreaParams>,
+}
+
+/// `z` widened to f64 minus the plane, row by row (in place), evaluated as
+/// [`surfstream_core::metrology::level_plane`] does.
+/// With `measured`, only where it is not NaN (NaN elsewhere).
+fn levelled(
+    z: &[f32],
+    measured: Option<&[f32]>,
+    cols: usize,
+    plane: (f64, f64, f64),
+    bx: f64,
+    by: f64,
+) -> Vec<f64> {
+    let mut out: Vec<f64> = match measured {
+        None => z.iter().map(|&h| f64::from(h)).collect(),
+        Some(m) => z
+            .iter()
+            .zip(m)
+            .map(|(&h, m)| if m.is_nan() { f64::NAN } else { f64::from(h) })
+            .collect(),
+    };
+    let a = plane.0;
+    out.par_chunks_mut(cols.max(1))
+        .enumerate()
+        .for_each(|(r, row)| {
+            let base = a + by * r as f64;
+            for (i, z) in row.iter_mut().enumerate() {
+                *z -= base + bx * i as f64;
+            }
+        });
+    out
+}
+
+/// The field's plane and levelled parameters; `None` when the field has no valid sample or a
+/// pitch is bad. Holds one f64 copy of the field while it runs.
+pub(crate) fn level_field(
+    field: RasterView<'_, f32>,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+) -> Option<FieldLevel> {
     let shape = field.shape();
-    let field = widened(field);
-    let g = Grid::new(
-        field.values(),
-        shape.rows,
-        shape.cols,
+    let plane = {
+        let widened = widened(field);
+        let g = Grid::new(
+            widened.values(),
+            shape.rows,
+            shape.cols,
+            pitch_x_um,
+            pitch_y_um,
+        )
+        .ok()?;
+        fit_plane(&g).ok()?
+    };
+    let (bx, by) = (plane.1 * pitch_x_um, plane.2 * pitch_y_um);
+    let params = area_params(
+        &levelled(field.values(), None, shape.cols, plane, bx, by),
+        shape,
         pitch_x_um,
         pitch_y_um,
-    )
-    .ok()?;
-    area_params(&level_plane(&g).ok()?, shape, pitch_x_um, pitch_y_um)
+    );
+    Some(FieldLevel {
+        plane,
+        pitch_um: (pitch_x_um, pitch_y_um),
+        shape,
+        params,
+    })
+}
+
+impl FieldLevel {
+    /// The parameters of `mesh_um` (the field's shape, NaN where not compared) levelled by
+    /// the field's plane.
+    pub(crate) fn mesh_params(&self, mesh_um: &[f32]) -> Option<AreaParams> {
+        self.mesh_params_where(mesh_um, None)
+    }
+
+    /// [`FieldLevel::mesh_params`] of `mesh_um` at the samples `measured` (the field) holds,
+    /// without a masked copy.
+    pub(crate) fn mesh_params_at_measured(
+        &self,
+        mesh_um: &[f32],
+        measured: &[f32],
+    ) -> Option<AreaParams> {
+        self.mesh_params_where(mesh_um, Some(measured))
+    }
+
+    fn mesh_params_where(&self, mesh_um: &[f32], measured: Option<&[f32]>) -> Option<AreaParams> {
+        if mesh_um.len() != self.shape.len() || measured.is_some_and(|m| m.len() != mesh_um.len()) {
+            return None;
+        }
+        let (px, py) = self.pitch_um;
+        let (bx, by) = (self.plane.1 * px, self.plane.2 * py);
+        let mesh = levelled(mesh_um, measured, self.shape.cols, self.plane, bx, by);
+        area_params(&mesh, self.shape, px, py)
+    }
 }
 
 /// The parameters of the height field and of the resampled mesh (`mesh_um`, the field's shape,
@@ -75,41 +173,13 @@ pub fn compare(
     pitch_x_um: f64,
     pitch_y_um: f64,
 ) -> (Option<AreaParams>, Option<AreaParams>) {
-    let shape = field.shape();
-    let Ok(mesh) = RasterView::new(mesh_um, shape) else {
+    if mesh_um.len() != field.shape().len() {
         return (None, None);
-    };
-    let (field, mesh) = (widened(field), widened(mesh));
-    let Ok(g) = Grid::new(
-        field.values(),
-        shape.rows,
-        shape.cols,
-        pitch_x_um,
-        pitch_y_um,
-    ) else {
-        return (None, None);
-    };
-    let Ok((a, b, c)) = fit_plane(&g) else {
-        return (None, None);
-    };
-    // Both levelled by the one plane, evaluated as `level_plane` does, so the field's side is
-    // exactly `level_plane` of the field.
-    let (bx, by) = (b * pitch_x_um, c * pitch_y_um);
-    let level = |z: &Raster<f64>| -> Vec<f64> {
-        z.rows_iter()
-            .enumerate()
-            .flat_map(|(r, row)| {
-                let base = a + by * r as f64;
-                row.iter()
-                    .enumerate()
-                    .map(move |(i, &z)| z - (base + bx * i as f64))
-            })
-            .collect()
-    };
-    (
-        area_params(&level(&field), shape, pitch_x_um, pitch_y_um),
-        area_params(&level(&mesh), shape, pitch_x_um, pitch_y_um),
-    )
+    }
+    match level_field(field, pitch_x_um, pitch_y_um) {
+        Some(level) => (level.params, level.mesh_params(mesh_um)),
+        None => (None, None),
+    }
 }
 
 #[cfg(test)]

@@ -8,18 +8,25 @@
 //! Live frames are counted and skipped: a mesh is made once, from the exact final surface.
 
 use std::collections::{BTreeMap, BTreeSet};
+use std::path::Path;
 
 use anyhow::{anyhow, bail, Result};
 use serde::Deserialize;
 use serde_json::json;
 use surfstream_core::frame::{flags, from_frame_heights, FrameHeader, FrameView, HeightMap};
+use surfstream_core::fsutil::write_atomic;
 use surfstream_core::raster::{Raster, RasterView, Shape};
+use surfstream_io::npy::{write_npy_abs_f64, write_npy_f64};
 
 use crate::target::{block_values_on_grid, DemEngine, EngineProfile, TargetMethod};
 use crate::{
-    check_closed, grid_sheet_for, grid_solid, mesh_height_field, stl, Epsilon, LengthUnit,
-    MeshCheck, MeshKind, MeshParams, MissingSamples, ScanPlacement, SolidMesh, SolidParams,
+    check_closed, grid_sheet_for, grid_solid, grid_streaming, mesh_height_field, mesh_streaming,
+    stl, Epsilon, LengthUnit, MeshCheck, MeshCounts, MeshKind, MeshParams, MissingSamples,
+    ScanPlacement, SolidMesh, SolidParams,
 };
+
+/// The label in the STL header (before the unit and offset).
+const STL_LABEL: &str = "surfstream surface";
 
 /// The bound when the graph gives none: 5 % of the surface's Sq.
 pub const DEFAULT_EPSILON_SQ_FRACTION: f64 = 0.05;
@@ -253,7 +260,7 @@ pub struct MeshedSurface {
 impl MeshedSurface {
     /// Writes the solid as STL in `format`.
     pub fn write_stl(&self, w: &mut dyn std::io::Write, format: StlFormat) -> crate::Result<()> {
-        let label = stl::stl_header(&self.solid, "surfstream surface");
+        let label = stl::stl_header(&self.solid, STL_LABEL);
         match format {
             StlFormat::Ascii => crate::write_stl_ascii(w, &self.solid, &label),
             StlFormat::Binary => crate::write_stl_binary(w, &self.solid, &label),
@@ -262,39 +269,64 @@ impl MeshedSurface {
 
     /// The statistics for run.json (the caller adds files, wiring and times).
     pub fn summary(&self, settings: &MeshSettings) -> serde_json::Value {
-        let (solid, h) = (&self.solid, &self.header);
-        let mut summary = json!({
-            "format": settings.format.name(),
-            "units": settings.solid.units.symbol(),
-            "offset_um": solid.offset_um,
-            "triangles": solid.triangles.len(),
-            "top_triangles": solid.top_triangles,
-            "vertices": solid.vertices.len(),
-            "filled_samples": solid.filled_samples,
-            "base_depth_um": solid.base_depth_um,
-            "watertight": self.check.watertight,
-            "consistently_oriented": self.check.consistently_oriented,
-            "grid_px": [h.width, h.height],
-            "pitch_um": [h.pitch_x_um, h.pitch_y_um],
-            "t_acquired_ns": h.t_acquired_ns,
-            "surface": settings.surface.name(),
-        });
-        if let (Some(o), Some(t)) = (summary.as_object_mut(), settings.target) {
-            o.insert("target".into(), json!(t));
-        }
-        if let Some(o) = summary.as_object_mut() {
-            match &self.adaptive {
-                Some(serde_json::Value::Object(a)) => {
-                    o.insert("method".into(), json!("adaptive"));
-                    o.extend(a.clone());
-                }
-                _ => {
-                    o.insert("method".into(), json!("grid"));
-                }
+        surface_summary(
+            &MeshCounts::of(&self.solid),
+            &self.check,
+            self.adaptive.as_ref(),
+            &self.header,
+            settings,
+        )
+    }
+}
+
+/// The statistics for run.json of a mesh in memory or streamed to its file.
+fn surface_summary(
+    counts: &MeshCounts,
+    check: &MeshCheck,
+    adaptive: Option<&serde_json::Value>,
+    h: &FrameHeader,
+    settings: &MeshSettings,
+) -> serde_json::Value {
+    let mut summary = json!({
+        "format": settings.format.name(),
+        "units": settings.solid.units.symbol(),
+        "offset_um": counts.offset_um,
+        "triangles": counts.triangles,
+        "top_triangles": counts.top_triangles,
+        "vertices": counts.vertices,
+        "filled_samples": counts.filled_samples,
+        "base_depth_um": counts.base_depth_um,
+        "watertight": check.watertight,
+        "consistently_oriented": check.consistently_oriented,
+        "grid_px": [h.width, h.height],
+        "pitch_um": [h.pitch_x_um, h.pitch_y_um],
+        "t_acquired_ns": h.t_acquired_ns,
+        "surface": settings.surface.name(),
+    });
+    if let (Some(o), Some(t)) = (summary.as_object_mut(), settings.target) {
+        o.insert("target".into(), json!(t));
+    }
+    if let Some(o) = summary.as_object_mut() {
+        match adaptive {
+            Some(serde_json::Value::Object(a)) => {
+                o.insert("method".into(), json!("adaptive"));
+                o.extend(a.clone());
+            }
+            _ => {
+                o.insert("method".into(), json!("grid"));
             }
         }
-        summary
     }
+    summary
+}
+
+/// What [`MeshJob::mesh_to_files`] wrote.
+pub struct MeshFiles {
+    /// The statistics for run.json (as [`MeshedSurface::summary`]).
+    pub summary: serde_json::Value,
+    pub check: MeshCheck,
+    /// True when the adaptive mesh went through the streaming mesher ([`crate::stream`]).
+    pub streamed: bool,
 }
 
 /// Collects the final surface from the inputs and meshes it once every input has ended.
@@ -398,16 +430,16 @@ impl MeshJob {
     /// Meshes the chosen surface (takes its final frames).
     pub fn mesh(&mut self) -> Result<MeshedSurface> {
         let s = self.surface_to_mesh()?;
+        self.mesh_in_memory(&s)
+    }
+
+    fn mesh_in_memory(&self, s: &HeightMap) -> Result<MeshedSurface> {
         let h = s.header;
         // The frame's grid: rows along y (header height), columns along x (header width).
         let shape = Shape::new(h.height as usize, h.width as usize);
         let heights = RasterView::new(&s.heights, shape).map_err(|e| anyhow!("mesher: {e}"))?;
         let at = ScanPlacement::of_frame(&h);
-        let grid_target = self
-            .settings
-            .target
-            .filter(|p| p.method == TargetMethod::Grid);
-        let (solid, adaptive, resampled) = match (&self.settings.adaptive, grid_target) {
+        let (solid, adaptive, resampled) = match (&self.settings.adaptive, self.grid_target()) {
             (_, Some(profile)) => {
                 let t = grid_sheet_for(heights, &at, &profile)?;
                 let on_grid = block_values_on_grid(t.block_means.view(), t.stride, shape);
@@ -431,6 +463,92 @@ impl MeshJob {
             adaptive,
             resampled_um,
             header: h,
+        })
+    }
+
+    fn grid_target(&self) -> Option<EngineProfile> {
+        self.settings
+            .target
+            .filter(|p| p.method == TargetMethod::Grid)
+    }
+
+    /// Meshes the chosen surface (takes its final frames) and writes the STL to `stl` (atomically)
+    /// and the mesh re-sampled on the grid (absolute um, f64) to `resampled_npy`: the same files
+    /// and statistics as [`MeshJob::mesh`] followed by [`MeshedSurface::write_stl`], but the
+    /// adaptive mesh is streamed ([`crate::stream`]): its triangles go through a spill file
+    /// beside `stl`, so the memory held is a few bytes per sample whatever the triangle count.
+    pub fn mesh_to_files(&mut self, stl: &Path, resampled_npy: &Path) -> Result<MeshFiles> {
+        let s = self.surface_to_mesh()?;
+        let (h, format) = (s.header, self.settings.format);
+        let shape = Shape::new(h.height as usize, h.width as usize);
+        let params = match (&self.settings.adaptive, self.grid_target()) {
+            (Some(p), None) => p.clone(),
+            (None, None) => {
+                // The full-grid solid, streamed: its mesh on the grid is the samples themselves.
+                let heights =
+                    RasterView::new(&s.heights, shape).map_err(|e| anyhow!("mesher: {e}"))?;
+                let g =
+                    grid_streaming(heights, &ScanPlacement::of_frame(&h), &self.settings.solid)?;
+                write_npy_abs_f64(
+                    resampled_npy,
+                    &s.heights,
+                    shape.rows,
+                    shape.cols,
+                    h.z_offset_um,
+                )?;
+                let mut check = None;
+                write_atomic(stl, |w| {
+                    check = Some(g.write_stl(w, format == StlFormat::Ascii, STL_LABEL, heights)?);
+                    Ok(())
+                })?;
+                let check =
+                    check.ok_or_else(|| anyhow!("mesher: {}: nothing written", stl.display()))?;
+                return Ok(MeshFiles {
+                    summary: surface_summary(&g.counts, &check, None, &h, &self.settings),
+                    check,
+                    streamed: true,
+                });
+            }
+            _ => {
+                // The engines' grid sheets: bounded by their triangle budgets, made in memory.
+                let m = self.mesh_in_memory(&s)?;
+                drop(s);
+                let r = &m.resampled_um;
+                write_npy_f64(resampled_npy, r.values(), r.rows(), r.cols())?;
+                write_atomic(stl, |w| Ok(m.write_stl(w, format)?))?;
+                return Ok(MeshFiles {
+                    summary: m.summary(&self.settings),
+                    check: m.check,
+                    streamed: false,
+                });
+            }
+        };
+        let heights = RasterView::new(&s.heights, shape).map_err(|e| anyhow!("mesher: {e}"))?;
+        let at = ScanPlacement::of_frame(&h);
+        let spill_dir = match stl.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d,
+            _ => Path::new("."),
+        };
+        std::fs::create_dir_all(spill_dir)
+            .map_err(|e| anyhow!("{}: cannot create the folder: {e}", spill_dir.display()))?;
+        let mut m = mesh_streaming(heights, &at, &params, spill_dir)?;
+        write_npy_abs_f64(
+            resampled_npy,
+            &m.resampled_um,
+            shape.rows,
+            shape.cols,
+            h.z_offset_um,
+        )?;
+        let mut check = None;
+        write_atomic(stl, |w| {
+            check = Some(m.write_stl(w, format == StlFormat::Ascii, STL_LABEL, heights)?);
+            Ok(())
+        })?;
+        let check = check.ok_or_else(|| anyhow!("mesher: {}: nothing written", stl.display()))?;
+        Ok(MeshFiles {
+            summary: surface_summary(&m.counts, &check, Some(&m.summary), &h, &self.settings),
+            check,
+            streamed: true,
         })
     }
 }

@@ -27,6 +27,9 @@
 //!   returned as `offset_um`, `scan_um = vertex * unit.um_per_unit() + offset_um`.
 //!   [`write_stl_binary`] / [`write_stl_ascii`] write a solid, [`check_closed`] verifies
 //!   watertightness, orientation and volume.
+//! - Bounded memory ([`stream`], issue 17): [`mesh_streaming`] and [`grid_streaming`] make the
+//!   same meshes, STL bytes and checks without holding the triangle or vertex lists (triangles
+//!   spilled to an unnamed file, the check settled block by block); the node uses them.
 //! - In a graph ([`job`]): [`MeshJob`] takes the final frame of the chosen surface
 //!   ([`SurfaceChoice`]: pooled, panorama, datum, roughness, or datum + roughness summed), and
 //!   meshes it once every input has ended its scan; `node` is the process shell around it.
@@ -57,10 +60,11 @@ mod geom;
 pub mod job;
 pub mod solid;
 pub mod stl;
+pub mod stream;
 pub mod target;
 pub mod tin;
 
-pub use adaptive::{mesh_height_field, AdaptiveMesh, Epsilon, MeshKind, MeshParams};
+pub use adaptive::{mesh_height_field, AdaptiveMesh, Epsilon, MeshCounts, MeshKind, MeshParams};
 pub use check::{check_closed, MeshCheck};
 pub use error::{MeshError, Result};
 pub use field::{fill_missing, ScanPlacement};
@@ -69,6 +73,7 @@ pub use solid::{
     close_top_surface, default_base_depth_um, grid_solid, LengthUnit, SolidMesh, SolidParams,
 };
 pub use stl::{write_stl_ascii, write_stl_binary};
+pub use stream::{grid_streaming, mesh_streaming, StreamedGrid, StreamedMesh};
 pub use target::{grid_sheet_for, DemEngine, EngineProfile, TargetMesh, TargetMethod};
 pub use tin::{triangulate, MissingSamples, Tin, TinParams};
 #[cfg(feature = "node")]

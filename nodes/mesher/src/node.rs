@@ -8,7 +8,6 @@
 use anyhow::{anyhow, bail, Result};
 use serde_json::json;
 use surfstream_core::frame::monotonic_ns;
-use surfstream_io::output::OutputWriter;
 use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
@@ -18,8 +17,6 @@ pub use crate::job::SurfaceChoice;
 
 /// The mesh re-sampled on the meshed grid, absolute heights (um, f64), beside the STL.
 pub const MESH_RESAMPLED: &str = "mesh_resampled.npy";
-/// [`MESH_RESAMPLED`] without its extension, for [`OutputWriter`].
-const MESH_RESAMPLED_STEM: &str = "mesh_resampled";
 
 pub struct MesherNode {
     job: MeshJob,
@@ -60,13 +57,12 @@ impl MesherNode {
     }
 
     fn mesh(&mut self) -> Result<()> {
-        let m = self.job.mesh()?;
         // Beside the STL, as before (the STL name may carry a sub-directory).
         let dir = self.path.parent().unwrap_or(std::path::Path::new("."));
-        OutputWriter::new(dir).write_npy_f64(MESH_RESAMPLED_STEM, m.resampled_um.view())?;
-        let format = self.job.settings().format;
-        surfstream_core::fsutil::write_atomic(&self.path, |w| Ok(m.write_stl(w, format)?))?;
-        self.summary = m.summary(self.job.settings());
+        let written = self
+            .job
+            .mesh_to_files(&self.path, &dir.join(MESH_RESAMPLED))?;
+        self.summary = written.summary;
         if let Some(o) = self.summary.as_object_mut() {
             let sources: serde_json::Map<_, _> = self
                 .sources

@@ -199,82 +199,14 @@ pub fn grid_solid(
 ) -> Result<SolidMesh> {
     validate(heights, at)?;
     params.validate()?;
-    let (rows, cols) = (heights.rows(), heights.cols());
+    let cols = heights.cols();
     let (heights_um, filled_samples) = fill_missing(heights)?;
 
-    let (min_um, max_um) = heights_um
-        .par_iter()
-        .fold(
-            || (f32::INFINITY, f32::NEG_INFINITY),
-            |(lo, hi), &h| (lo.min(h), hi.max(h)),
-        )
-        .reduce(
-            || (f32::INFINITY, f32::NEG_INFINITY),
-            |(a, b), (c, d)| (a.min(c), b.max(d)),
-        );
-    let (min_um, max_um) = (f64::from(min_um), f64::from(max_um));
-    let base_depth_um = params
-        .base_depth_um
-        .unwrap_or_else(|| default_base_depth_um(max_um - min_um));
-
-    let boundary_len = 2 * (cols - 1) + 2 * (rows - 1);
-    let top_vertices = cols * rows;
-    let vertex_count = top_vertices + boundary_len + 1;
-    let top_triangles = 2 * (cols - 1) * (rows - 1);
-    let triangle_count = top_triangles + 3 * boundary_len;
-    // Indices are u32 (what every mesh consumer uses, and half the memory of usize).
-    if vertex_count > u32::MAX as usize {
-        return Err(MeshError::TooLarge {
-            what: "vertices",
-            count: vertex_count,
-            limit: u32::MAX as usize,
-        });
-    }
-    if triangle_count > u32::MAX as usize {
-        return Err(MeshError::TooLarge {
-            what: "triangles",
-            count: triangle_count,
-            limit: u32::MAX as usize,
-        });
-    }
-
+    let g = GridPlacement::new(&heights_um, at, params, heights.shape())?;
+    let (top_vertices, vertex_count, top_triangles, triangle_count) = g.counts();
+    let (offset_um, base_z_um, base_depth_um) = (g.offset_um, g.base_z_um, g.base_depth_um);
     let um_per_unit = params.units.um_per_unit();
-    let (px, py) = (at.pitch_x_um, at.pitch_y_um);
-    let centre_col = (cols - 1) as f64 / 2.0;
-    let centre_row = (rows - 1) as f64 / 2.0;
-    // Position of a sample relative to the output origin, um. Recentred coordinates are formed
-    // from small numbers (index - centre, rows - min) rather than by subtracting the offset
-    // from absolute positions, so no precision is lost to cancellation.
-    let (offset_um, base_z_um) = if params.recentre {
-        (
-            [
-                at.origin_x_um + centre_col * px,
-                at.origin_y_um + centre_row * py,
-                at.z_offset_um + min_um - base_depth_um,
-            ],
-            0.0,
-        )
-    } else {
-        ([0.0; 3], at.z_offset_um + (min_um - base_depth_um))
-    };
-    let recentre = params.recentre;
-    let place = |i: usize, j: usize, h_um: f32| -> [f64; 3] {
-        let h_um = f64::from(h_um);
-        let (x_um, y_um, z_um) = if recentre {
-            (
-                (j as f64 - centre_col) * px,
-                (i as f64 - centre_row) * py,
-                (h_um - min_um) + base_depth_um,
-            )
-        } else {
-            (
-                at.origin_x_um + j as f64 * px,
-                at.origin_y_um + i as f64 * py,
-                at.z_offset_um + h_um,
-            )
-        };
-        [x_um / um_per_unit, y_um / um_per_unit, z_um / um_per_unit]
-    };
+    let place = |i: usize, j: usize, h_um: f32| g.place(i, j, h_um);
 
     let mut vertices: Vec<[f64; 3]> = Vec::with_capacity(vertex_count);
     vertices.resize(top_vertices, [0.0; 3]);
@@ -309,14 +241,7 @@ pub fn grid_solid(
             }
         });
 
-    // The grid's rim, counter-clockwise seen from +z: along y = min (+x), x = max (+y),
-    // y = max (-x), x = min (-y).
-    let idx = |i: usize, j: usize| (i * cols + j) as u32;
-    let mut boundary = Vec::with_capacity(boundary_len);
-    boundary.extend((0..cols - 1).map(|j| idx(0, j)));
-    boundary.extend((0..rows - 1).map(|i| idx(i, cols - 1)));
-    boundary.extend((1..cols).rev().map(|j| idx(rows - 1, j)));
-    boundary.extend((1..rows).rev().map(|i| idx(i, 0)));
+    let boundary = g.boundary();
     close_top_surface(
         &mut vertices,
         &mut triangles,
@@ -335,6 +260,149 @@ pub fn grid_solid(
         top_triangles,
         base_depth_um,
     })
+}
+
+/// Where the vertices of the full-grid solid go ([`grid_solid`]; also the streamed grid,
+/// [`crate::stream`]): one copy, so both place every vertex on the same f64.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct GridPlacement {
+    at: ScanPlacement,
+    rows: usize,
+    cols: usize,
+    centre_col: f64,
+    centre_row: f64,
+    min_um: f64,
+    pub(crate) base_depth_um: f64,
+    pub(crate) offset_um: [f64; 3],
+    /// The base plane's z, um relative to the output origin.
+    pub(crate) base_z_um: f64,
+    um_per_unit: f64,
+    recentre: bool,
+}
+
+impl GridPlacement {
+    /// The placement for `heights_um` (filled, `shape`); errors when the solid would need more
+    /// vertices or triangles than u32 indices address.
+    pub(crate) fn new(
+        heights_um: &[f32],
+        at: &ScanPlacement,
+        params: &SolidParams,
+        shape: surfstream_core::raster::Shape,
+    ) -> Result<Self> {
+        let (rows, cols) = (shape.rows, shape.cols);
+        let (min_um, max_um) = heights_um
+            .par_iter()
+            .fold(
+                || (f32::INFINITY, f32::NEG_INFINITY),
+                |(lo, hi), &h| (lo.min(h), hi.max(h)),
+            )
+            .reduce(
+                || (f32::INFINITY, f32::NEG_INFINITY),
+                |(a, b), (c, d)| (a.min(c), b.max(d)),
+            );
+        let (min_um, max_um) = (f64::from(min_um), f64::from(max_um));
+        let base_depth_um = params
+            .base_depth_um
+            .unwrap_or_else(|| default_base_depth_um(max_um - min_um));
+        let (px, py) = (at.pitch_x_um, at.pitch_y_um);
+        let centre_col = (cols - 1) as f64 / 2.0;
+        let centre_row = (rows - 1) as f64 / 2.0;
+        // Position of a sample relative to the output origin, um. Recentred coordinates are
+        // formed from small numbers (index - centre, rows - min) rather than by subtracting
+        // the offset from absolute positions, so no precision is lost to cancellation.
+        let (offset_um, base_z_um) = if params.recentre {
+            (
+                [
+                    at.origin_x_um + centre_col * px,
+                    at.origin_y_um + centre_row * py,
+                    at.z_offset_um + min_um - base_depth_um,
+                ],
+                0.0,
+            )
+        } else {
+            ([0.0; 3], at.z_offset_um + (min_um - base_depth_um))
+        };
+        let g = Self {
+            at: *at,
+            rows,
+            cols,
+            centre_col,
+            centre_row,
+            min_um,
+            base_depth_um,
+            offset_um,
+            base_z_um,
+            um_per_unit: params.units.um_per_unit(),
+            recentre: params.recentre,
+        };
+        let (_, vertex_count, _, triangle_count) = g.counts();
+        // Indices are u32 (what every mesh consumer uses, and half the memory of usize).
+        if vertex_count > u32::MAX as usize {
+            return Err(MeshError::TooLarge {
+                what: "vertices",
+                count: vertex_count,
+                limit: u32::MAX as usize,
+            });
+        }
+        if triangle_count > u32::MAX as usize {
+            return Err(MeshError::TooLarge {
+                what: "triangles",
+                count: triangle_count,
+                limit: u32::MAX as usize,
+            });
+        }
+        Ok(g)
+    }
+
+    /// (top vertices, vertices, top triangles, triangles) of the closed solid.
+    pub(crate) fn counts(&self) -> (usize, usize, usize, usize) {
+        let (rows, cols) = (self.rows, self.cols);
+        let boundary_len = 2 * (cols - 1) + 2 * (rows - 1);
+        let top_vertices = cols * rows;
+        let top_triangles = 2 * (cols - 1) * (rows - 1);
+        (
+            top_vertices,
+            top_vertices + boundary_len + 1,
+            top_triangles,
+            top_triangles + 3 * boundary_len,
+        )
+    }
+
+    /// The vertex of sample (row `i`, column `j`) at height `h_um`, output units.
+    #[inline]
+    pub(crate) fn place(&self, i: usize, j: usize, h_um: f32) -> [f64; 3] {
+        let at = &self.at;
+        let (px, py) = (at.pitch_x_um, at.pitch_y_um);
+        let h_um = f64::from(h_um);
+        let (x_um, y_um, z_um) = if self.recentre {
+            (
+                (j as f64 - self.centre_col) * px,
+                (i as f64 - self.centre_row) * py,
+                (h_um - self.min_um) + self.base_depth_um,
+            )
+        } else {
+            (
+                at.origin_x_um + j as f64 * px,
+                at.origin_y_um + i as f64 * py,
+                at.z_offset_um + h_um,
+            )
+        };
+        let u = self.um_per_unit;
+        [x_um / u, y_um / u, z_um / u]
+    }
+
+    /// The grid's rim as sample indices, counter-clockwise seen from +z: along y = min (+x),
+    /// x = max (+y), y = max (-x), x = min (-y).
+    pub(crate) fn boundary(&self) -> Vec<u32> {
+        let (rows, cols) = (self.rows, self.cols);
+        let idx = |i: usize, j: usize| (i * cols + j) as u32;
+        let mut boundary = Vec::with_capacity(2 * (cols - 1) + 2 * (rows - 1));
+        boundary.extend((0..cols - 1).map(|j| idx(0, j)));
+        boundary.extend((0..rows - 1).map(|i| idx(i, cols - 1)));
+        boundary.extend((1..cols).rev().map(|j| idx(rows - 1, j)));
+        boundary.extend((1..rows).rev().map(|i| idx(i, 0)));
+        boundary
+    }
 }
 
 /// Closes an open top surface into a solid: a vertical wall under every boundary edge down to

@@ -12,7 +12,8 @@ use std::io::Write;
 use rayon::prelude::*;
 
 use crate::error::Result;
-use crate::solid::SolidMesh;
+use crate::geom;
+use crate::solid::{LengthUnit, SolidMesh};
 
 /// Bytes of a binary STL record: normal, three vertices (12 f32) and a 2-byte attribute.
 const RECORD_BYTES: usize = 50;
@@ -36,14 +37,19 @@ pub fn binary_stl_len(triangles: usize) -> u64 {
 /// (a header made by this function) loses them first, so the description is never repeated:
 /// `stl_header(m, &stl_header(m, l)) == stl_header(m, l)`.
 pub fn stl_header(mesh: &SolidMesh, label: &str) -> String {
+    header_for(mesh.units, mesh.offset_um, label)
+}
+
+/// [`stl_header`] of a mesh in `units` recentred by `offset_um`.
+pub(crate) fn header_for(units: LengthUnit, offset_um: [f64; 3], label: &str) -> String {
     let mut label = clean_label(bare_label(label));
     if label.len() >= 5 && label[..5].eq_ignore_ascii_case("solid") {
         label.insert_str(0, "binary ");
     }
     let suffix = format!(
         "units={}, offset_um={}",
-        mesh.units.symbol(),
-        offset_text(mesh)
+        units.symbol(),
+        offset_text(offset_um)
     );
     label.truncate(80usize.saturating_sub(suffix.len() + 2)); // ASCII: bytes are chars
     let mut header = if label.is_empty() {
@@ -84,8 +90,8 @@ fn clean_label(label: &str) -> String {
     cleaned.trim().to_string()
 }
 
-fn offset_text(mesh: &SolidMesh) -> String {
-    let [x, y, z] = mesh.offset_um;
+fn offset_text(offset_um: [f64; 3]) -> String {
+    let [x, y, z] = offset_um;
     format!("{x:.3},{y:.3},{z:.3}")
 }
 
@@ -93,37 +99,157 @@ fn offset_text(mesh: &SolidMesh) -> String {
 /// triangle count, and per triangle its f64-computed unit normal and its corners as f32 in the
 /// mesh's units. Exactly [`binary_stl_len`] bytes. Errors if the mesh is malformed (see
 /// [`SolidMesh::validate`]) or the writer fails.
-pub fn write_stl_binary<W: Write>(mut w: W, mesh: &SolidMesh, header_text: &str) -> Result<()> {
+pub fn write_stl_binary<W: Write>(w: W, mesh: &SolidMesh, header_text: &str) -> Result<()> {
     mesh.validate()?;
-    let mut header = [0u8; 80];
-    let text = stl_header(mesh, header_text);
-    header[..text.len()].copy_from_slice(text.as_bytes());
-    w.write_all(&header)?;
     // validate() checked that the count fits in u32.
-    w.write_all(&(mesh.triangles.len() as u32).to_le_bytes())?;
-
-    let mut buf = vec![0u8; BLOCK_TRIANGLES.min(mesh.triangles.len()) * RECORD_BYTES];
-    for (block, tris) in mesh.triangles.chunks(BLOCK_TRIANGLES).enumerate() {
-        let out = &mut buf[..tris.len() * RECORD_BYTES];
-        let first = block * BLOCK_TRIANGLES;
-        out.par_chunks_mut(RECORD_BYTES)
-            .enumerate()
-            .for_each(|(k, record)| {
-                let corners = mesh.triangle_corners(first + k);
-                let normal = mesh.face_normal(first + k);
-                let values = [normal, corners[0], corners[1], corners[2]];
-                for (slot, c) in record[..48]
-                    .chunks_exact_mut(4)
-                    .zip(values.iter().flatten())
-                {
-                    slot.copy_from_slice(&(*c as f32).to_le_bytes());
-                }
-                record[48..].fill(0); // attribute byte count: unused
-            });
-        w.write_all(out)?;
+    let mut out = StlSink::new(
+        w,
+        false,
+        mesh.units,
+        mesh.offset_um,
+        header_text,
+        mesh.triangles.len() as u32,
+    )?;
+    for tris in mesh.triangles.chunks(BLOCK_TRIANGLES) {
+        for t in tris {
+            out.push(t.map(|v| mesh.vertices[v as usize]))?;
+        }
     }
-    w.flush()?;
-    Ok(())
+    out.finish()
+}
+
+/// An STL file written one triangle at a time (corners in the mesh's units, f64): the header
+/// first (a binary file needs the triangle count up front), then the triangles, encoded in
+/// parallel blocks of [`BLOCK_TRIANGLES`] and handed to the writer in large `write_all` calls,
+/// so the memory held stays bounded whatever the mesh size. The in-memory writers go through
+/// it too, so a streamed file and a written [`SolidMesh`] are the same bytes.
+pub(crate) struct StlSink<W: Write> {
+    w: W,
+    ascii: bool,
+    /// The solid's name on the ASCII `solid` / `endsolid` lines.
+    name: String,
+    pending: Vec<[[f64; 3]; 3]>,
+    buf: Vec<u8>,
+    /// Triangles the header announced, and those written.
+    announced: u64,
+    written: u64,
+}
+
+impl<W: Write> StlSink<W> {
+    /// Writes the header of a binary (`ascii` false) or ASCII STL of `triangles` triangles.
+    pub(crate) fn new(
+        mut w: W,
+        ascii: bool,
+        units: LengthUnit,
+        offset_um: [f64; 3],
+        header_text: &str,
+        triangles: u32,
+    ) -> Result<Self> {
+        let mut name = String::new();
+        if ascii {
+            // The first word is the solid's name; the rest says units and offset. No length
+            // limit here.
+            name = match clean_label(bare_label(header_text)).replace(' ', "_") {
+                n if n.is_empty() => "surfstream".to_string(),
+                n => n,
+            };
+            let details = format!(
+                "units={} offset_um={}",
+                units.symbol(),
+                offset_text(offset_um)
+            );
+            writeln!(w, "solid {name} {details}")?;
+        } else {
+            let mut header = [0u8; 80];
+            let text = header_for(units, offset_um, header_text);
+            header[..text.len()].copy_from_slice(text.as_bytes());
+            w.write_all(&header)?;
+            w.write_all(&triangles.to_le_bytes())?;
+        }
+        Ok(Self {
+            w,
+            ascii,
+            name,
+            pending: Vec::with_capacity(BLOCK_TRIANGLES.min(triangles as usize)),
+            buf: Vec::new(),
+            announced: u64::from(triangles),
+            written: 0,
+        })
+    }
+
+    /// Adds one triangle (corners counter-clockwise seen from outside, in the mesh's units).
+    pub(crate) fn push(&mut self, corners: [[f64; 3]; 3]) -> Result<()> {
+        self.pending.push(corners);
+        if self.pending.len() == BLOCK_TRIANGLES {
+            self.flush_block()?;
+        }
+        Ok(())
+    }
+
+    fn flush_block(&mut self) -> Result<()> {
+        let tris = &self.pending;
+        if self.ascii {
+            let texts: Vec<Vec<u8>> = tris
+                .par_chunks(ASCII_TASK_TRIANGLES)
+                .map(|part| {
+                    // ~250 bytes per facet with 9-digit numbers.
+                    let mut s = Vec::with_capacity(part.len() * 256);
+                    for c in part {
+                        s.extend_from_slice(b"facet normal");
+                        push_xyz(&mut s, geom::unit_normal(c[0], c[1], c[2]));
+                        s.extend_from_slice(b"\n outer loop\n");
+                        for corner in c {
+                            s.extend_from_slice(b"  vertex");
+                            push_xyz(&mut s, *corner);
+                            s.push(b'\n');
+                        }
+                        s.extend_from_slice(b" endloop\nendfacet\n");
+                    }
+                    s
+                })
+                .collect();
+            for text in &texts {
+                self.w.write_all(text)?;
+            }
+        } else {
+            self.buf.resize(tris.len() * RECORD_BYTES, 0);
+            self.buf
+                .par_chunks_mut(RECORD_BYTES)
+                .zip(tris.par_iter())
+                .for_each(|(record, c)| {
+                    let normal = geom::unit_normal(c[0], c[1], c[2]);
+                    let values = [normal, c[0], c[1], c[2]];
+                    for (slot, v) in record[..48]
+                        .chunks_exact_mut(4)
+                        .zip(values.iter().flatten())
+                    {
+                        slot.copy_from_slice(&(*v as f32).to_le_bytes());
+                    }
+                    record[48..].fill(0); // attribute byte count: unused
+                });
+            self.w.write_all(&self.buf)?;
+        }
+        self.written += tris.len() as u64;
+        self.pending.clear();
+        Ok(())
+    }
+
+    /// Writes what is pending and the end of the file; errors if the count differs from the
+    /// header's.
+    pub(crate) fn finish(mut self) -> Result<()> {
+        self.flush_block()?;
+        if self.written != self.announced {
+            return Err(crate::MeshError::InvalidMesh(format!(
+                "STL: {} triangles written but the header announced {}",
+                self.written, self.announced
+            )));
+        }
+        if self.ascii {
+            writeln!(self.w, "endsolid {}", self.name)?;
+        }
+        self.w.flush()?;
+        Ok(())
+    }
 }
 
 /// Writes `mesh` as ASCII STL. The `solid` line carries the label (spaces replaced by '_') and
@@ -133,50 +259,20 @@ pub fn write_stl_binary<W: Write>(mut w: W, mesh: &SolidMesh, header_text: &str)
 /// `1.24999997e-3`), which reads
 /// back to exactly the same f32, so both formats describe the same triangles. Errors as
 /// [`write_stl_binary`].
-pub fn write_stl_ascii<W: Write>(mut w: W, mesh: &SolidMesh, header_text: &str) -> Result<()> {
+pub fn write_stl_ascii<W: Write>(w: W, mesh: &SolidMesh, header_text: &str) -> Result<()> {
     mesh.validate()?;
-    // The first word is the solid's name; the rest says units and offset. No length limit here.
-    let name = match clean_label(bare_label(header_text)).replace(' ', "_") {
-        n if n.is_empty() => "surfstream".to_string(),
-        n => n,
-    };
-    let details = format!(
-        "units={} offset_um={}",
-        mesh.units.symbol(),
-        offset_text(mesh)
-    );
-    writeln!(w, "solid {name} {details}")?;
-
-    for (block, tris) in mesh.triangles.chunks(BLOCK_TRIANGLES).enumerate() {
-        let first = block * BLOCK_TRIANGLES;
-        let texts: Vec<Vec<u8>> = tris
-            .par_chunks(ASCII_TASK_TRIANGLES)
-            .enumerate()
-            .map(|(task, part)| {
-                // ~250 bytes per facet with 9-digit numbers.
-                let mut s = Vec::with_capacity(part.len() * 256);
-                for k in 0..part.len() {
-                    let t = first + task * ASCII_TASK_TRIANGLES + k;
-                    s.extend_from_slice(b"facet normal");
-                    push_xyz(&mut s, mesh.face_normal(t));
-                    s.extend_from_slice(b"\n outer loop\n");
-                    for corner in mesh.triangle_corners(t) {
-                        s.extend_from_slice(b"  vertex");
-                        push_xyz(&mut s, corner);
-                        s.push(b'\n');
-                    }
-                    s.extend_from_slice(b" endloop\nendfacet\n");
-                }
-                s
-            })
-            .collect();
-        for text in &texts {
-            w.write_all(text)?;
-        }
+    let mut out = StlSink::new(
+        w,
+        true,
+        mesh.units,
+        mesh.offset_um,
+        header_text,
+        mesh.triangles.len() as u32,
+    )?;
+    for t in &mesh.triangles {
+        out.push(t.map(|v| mesh.vertices[v as usize]))?;
     }
-    writeln!(w, "endsolid {name}")?;
-    w.flush()?;
-    Ok(())
+    out.finish()
 }
 
 /// Appends " x y z" (each rounded to f32, see [`push_f32`]).
@@ -280,7 +376,6 @@ fn push_f32(out: &mut Vec<u8>, v: f32) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::solid::LengthUnit;
 
     fn mesh(offset_um: [f64; 3]) -> SolidMesh {
         SolidMesh {

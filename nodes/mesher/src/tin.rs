@@ -583,13 +583,6 @@ impl Builder<'_> {
     }
 }
 
-/// One block's triangulation: its vertices (grid samples) and triangles over them.
-struct BlockTin {
-    vertex_samples: Vec<u32>,
-    tris: Vec<Tri>,
-    budget_reached: bool,
-}
-
 /// Greedy insertion inside one block. `border` lists the samples on the block's shared sides
 /// that must be vertices (from [`simplify_border`]); every other sample on a shared side is
 /// settled (never inserted), so both blocks along a side end with the same vertices there.
@@ -770,128 +763,22 @@ fn cuts(last: usize, size: usize) -> Vec<usize> {
 /// The four grid corners are always vertices and the rim follows the grid's rectangle exactly
 /// (with holes, the corners may be missing and their triangles left out).
 pub fn triangulate(heights: RasterView<'_, f32>, params: &TinParams) -> Result<Tin> {
-    if heights.rows() < 2 || heights.cols() < 2 {
-        return Err(MeshError::TooSmall {
-            rows: heights.rows(),
-            cols: heights.cols(),
-        });
-    }
-    positive_finite("epsilon_um", params.epsilon_um)?;
-    if let Some(n) = params.max_triangles {
-        if n < 2 {
-            return Err(MeshError::InvalidParameter {
-                name: "max_triangles",
-                value: n as f64,
-                expected: "at least 2 (the two triangles spanning the grid)",
-            });
-        }
-    }
-    if params.block_samples == Some(0) {
-        return Err(MeshError::InvalidParameter {
-            name: "block_samples",
-            value: 0.0,
-            expected: "at least 1 (samples per block side)",
-        });
-    }
-    let (rows, cols) = (heights.rows(), heights.cols());
-    if cols > i32::MAX as usize || rows > i32::MAX as usize || cols * rows >= NONE as usize {
-        return Err(MeshError::TooLarge {
-            what: "samples",
-            count: cols * rows,
-            limit: NONE as usize - 1,
-        });
-    }
-    let (filled, missing_samples) = fill_missing(heights)?;
-    let filled: Vec<f32> = filled.into_owned();
-    let valid: Option<Vec<bool>> = (params.missing == MissingSamples::Holes && missing_samples > 0)
-        .then(|| heights.values().iter().map(|h| !h.is_nan()).collect());
-    let valid = valid.as_deref();
-
-    let block_samples = match params.max_triangles {
-        Some(_) => usize::MAX,
-        None => params.block_samples.unwrap_or(DEFAULT_BLOCK_SAMPLES),
-    };
-    let xs = cuts(cols - 1, block_samples);
-    let ys = cuts(rows - 1, block_samples);
-    let (nbx, nby) = (xs.len() - 1, ys.len() - 1);
-    // The shared sides, simplified once: vertical ones (x = xs[i], 0 < i < nbx) per block
-    // row, horizontal ones (y = ys[j]) per block column.
-    let mut vertical = vec![Vec::new(); (nbx + 1) * nby];
-    let mut horizontal = vec![Vec::new(); nbx * (nby + 1)];
-    for j in 0..nby {
-        for i in 1..nbx {
-            let line: Vec<usize> = (ys[j]..=ys[j + 1]).map(|y| y * cols + xs[i]).collect();
-            simplify_border(
-                &line,
-                &filled,
-                valid,
-                params.epsilon_um,
-                &mut vertical[j * (nbx + 1) + i],
-            );
-        }
-    }
-    for j in 1..nby {
-        for i in 0..nbx {
-            let line: Vec<usize> = (xs[i]..=xs[i + 1]).map(|x| ys[j] * cols + x).collect();
-            simplify_border(
-                &line,
-                &filled,
-                valid,
-                params.epsilon_um,
-                &mut horizontal[j * nbx + i],
-            );
-        }
-    }
-    let blocks: Vec<(Block, [bool; 4])> = (0..nby)
-        .flat_map(|j| (0..nbx).map(move |i| (i, j)))
-        .map(|(i, j)| {
-            let block = Block {
-                x0: xs[i],
-                y0: ys[j],
-                x1: xs[i + 1],
-                y1: ys[j + 1],
-            };
-            (block, [j > 0, i + 1 < nbx, j + 1 < nby, i > 0])
-        })
-        .collect();
-    let max_triangles = params.max_triangles.unwrap_or(usize::MAX);
-    let meshed: Vec<BlockTin> = blocks
-        .par_iter()
-        .enumerate()
-        .map(|(k, &(block, shared))| {
-            let (i, j) = (k % nbx, k / nbx);
-            let mut border = Vec::new();
-            for (side, list) in [
-                (shared[0], &horizontal[j * nbx + i]),
-                (shared[1], &vertical[j * (nbx + 1) + i + 1]),
-                (shared[2], &horizontal[(j + 1) * nbx + i]),
-                (shared[3], &vertical[j * (nbx + 1) + i]),
-            ] {
-                if side {
-                    border.extend_from_slice(list);
-                }
-            }
-            mesh_block(
-                &filled,
-                valid,
-                cols,
-                block,
-                shared,
-                &border,
-                params.epsilon_um,
-                max_triangles,
-            )
-        })
+    let plan = BlockPlan::new(heights, params)?;
+    let meshed: Vec<BlockTin> = (0..plan.block_count())
+        .into_par_iter()
+        .map(|k| plan.mesh(k))
         .collect();
 
     // One vertex per sample across blocks (the shared sides' vertices appear in both).
+    let (rows, cols) = (plan.rows, plan.cols);
+    let valid = plan.valid.as_deref();
     let is_valid = |s: usize| valid.is_none_or(|v| v[s]);
     let mut vertex_of = vec![NONE; cols * rows];
     let mut vertex_samples = Vec::new();
     let mut triangles = Vec::new();
     let mut tin_blocks = Vec::with_capacity(meshed.len());
     let (mut dropped_spanning, mut all_kept, mut budget_reached) = (0, true, false);
-    for (bt, &(block, _)) in meshed.iter().zip(&blocks) {
+    for (k, bt) in meshed.iter().enumerate() {
         budget_reached |= bt.budget_reached;
         let ids: Vec<u32> = bt
             .vertex_samples
@@ -923,35 +810,242 @@ pub fn triangulate(heights: RasterView<'_, f32>, params: &TinParams) -> Result<T
             }
             triangles.push(t.v.map(|v| ids[v as usize]));
         }
-        tin_blocks.push((block, first..triangles.len()));
+        tin_blocks.push((plan.block(k).0, first..triangles.len()));
     }
-    let rim = all_kept.then(|| grid_rim(&vertex_of, heights.shape()));
+    let rim = all_kept.then(|| grid_rim(|s| vertex_of[s] != NONE, heights.shape()));
+    let rim = rim.map(|samples| samples.iter().map(|&s| vertex_of[s as usize]).collect());
     Ok(Tin {
         shape: heights.shape(),
         vertex_samples,
         triangles,
         blocks: tin_blocks,
         rim,
-        filled_um: filled,
-        missing_samples,
+        filled_um: plan.filled.into_owned(),
+        missing_samples: plan.missing_samples,
         budget_reached,
         dropped_spanning,
     })
 }
 
-/// The vertices on the grid's outer rectangle, counter-clockwise from +z starting at sample 0:
-/// the rim of a triangulation that covers the whole rectangle.
-fn grid_rim(vertex_of: &[u32], shape: Shape) -> Vec<u32> {
+/// A triangulation cut into blocks, before the blocks are meshed: the filled heights, the
+/// measured mask (holes mode), the block grid and the simplified shared sides. Every block is
+/// then meshed on its own ([`BlockPlan::mesh`]), in any order and on any thread, with the same
+/// result: [`triangulate`] meshes them all at once, the streaming mesher band by band.
+pub(crate) struct BlockPlan<'a> {
+    pub(crate) rows: usize,
+    pub(crate) cols: usize,
+    /// The heights with missing samples filled (borrowed when none is missing), um.
+    pub(crate) filled: std::borrow::Cow<'a, [f32]>,
+    /// Measured samples (holes mode with missing samples only).
+    pub(crate) valid: Option<Vec<bool>>,
+    pub(crate) missing_samples: usize,
+    /// Block boundaries along x (columns) and y (rows).
+    pub(crate) xs: Vec<usize>,
+    pub(crate) ys: Vec<usize>,
+    vertical: Vec<Vec<u32>>,
+    horizontal: Vec<Vec<u32>>,
+    epsilon_um: f64,
+    max_triangles: usize,
+}
+
+/// One block's triangulation: its vertices (grid samples) and triangles over them.
+pub(crate) struct BlockTin {
+    vertex_samples: Vec<u32>,
+    tris: Vec<Tri>,
+    pub(crate) budget_reached: bool,
+}
+
+/// The triangles of one block that the result keeps, as grid sample indices.
+pub(crate) struct KeptTriangles {
+    pub(crate) triangles: Vec<[u32; 3]>,
+    /// Left out because they still span a missing sample (see [`Tin::dropped_spanning`]).
+    pub(crate) dropped_spanning: usize,
+    /// No triangle was left out.
+    pub(crate) all_kept: bool,
+}
+
+impl BlockTin {
+    /// The triangles whose corners are all measured and that span no missing sample, with
+    /// their corners as grid sample indices, in the block's order.
+    pub(crate) fn kept(&self, valid: Option<&[bool]>) -> KeptTriangles {
+        let is_valid = |s: u32| valid.is_none_or(|v| v[s as usize]);
+        let mut kept = KeptTriangles {
+            triangles: Vec::with_capacity(self.tris.len()),
+            dropped_spanning: 0,
+            all_kept: true,
+        };
+        for t in &self.tris {
+            let corners = t.v.map(|v| self.vertex_samples[v as usize]);
+            if !corners.iter().all(|&s| is_valid(s)) {
+                kept.all_kept = false;
+            } else if t.spans_missing {
+                kept.dropped_spanning += 1;
+                kept.all_kept = false;
+            } else {
+                kept.triangles.push(corners);
+            }
+        }
+        kept
+    }
+}
+
+impl<'a> BlockPlan<'a> {
+    /// Checks the parameters, fills the missing samples, cuts the grid into blocks and
+    /// simplifies the sides they share (errors as [`triangulate`]).
+    pub(crate) fn new(heights: RasterView<'a, f32>, params: &TinParams) -> Result<Self> {
+        if heights.rows() < 2 || heights.cols() < 2 {
+            return Err(MeshError::TooSmall {
+                rows: heights.rows(),
+                cols: heights.cols(),
+            });
+        }
+        positive_finite("epsilon_um", params.epsilon_um)?;
+        if let Some(n) = params.max_triangles {
+            if n < 2 {
+                return Err(MeshError::InvalidParameter {
+                    name: "max_triangles",
+                    value: n as f64,
+                    expected: "at least 2 (the two triangles spanning the grid)",
+                });
+            }
+        }
+        if params.block_samples == Some(0) {
+            return Err(MeshError::InvalidParameter {
+                name: "block_samples",
+                value: 0.0,
+                expected: "at least 1 (samples per block side)",
+            });
+        }
+        let (rows, cols) = (heights.rows(), heights.cols());
+        if cols > i32::MAX as usize || rows > i32::MAX as usize || cols * rows >= NONE as usize {
+            return Err(MeshError::TooLarge {
+                what: "samples",
+                count: cols * rows,
+                limit: NONE as usize - 1,
+            });
+        }
+        let (filled, missing_samples) = fill_missing(heights)?;
+        let valid: Option<Vec<bool>> = (params.missing == MissingSamples::Holes
+            && missing_samples > 0)
+            .then(|| heights.values().iter().map(|h| !h.is_nan()).collect());
+
+        let block_samples = match params.max_triangles {
+            Some(_) => usize::MAX,
+            None => params.block_samples.unwrap_or(DEFAULT_BLOCK_SAMPLES),
+        };
+        let xs = cuts(cols - 1, block_samples);
+        let ys = cuts(rows - 1, block_samples);
+        let (nbx, nby) = (xs.len() - 1, ys.len() - 1);
+        // The shared sides, simplified once: vertical ones (x = xs[i], 0 < i < nbx) per block
+        // row, horizontal ones (y = ys[j]) per block column.
+        let mut vertical = vec![Vec::new(); (nbx + 1) * nby];
+        let mut horizontal = vec![Vec::new(); nbx * (nby + 1)];
+        for j in 0..nby {
+            for i in 1..nbx {
+                let line: Vec<usize> = (ys[j]..=ys[j + 1]).map(|y| y * cols + xs[i]).collect();
+                simplify_border(
+                    &line,
+                    &filled,
+                    valid.as_deref(),
+                    params.epsilon_um,
+                    &mut vertical[j * (nbx + 1) + i],
+                );
+            }
+        }
+        for j in 1..nby {
+            for i in 0..nbx {
+                let line: Vec<usize> = (xs[i]..=xs[i + 1]).map(|x| ys[j] * cols + x).collect();
+                simplify_border(
+                    &line,
+                    &filled,
+                    valid.as_deref(),
+                    params.epsilon_um,
+                    &mut horizontal[j * nbx + i],
+                );
+            }
+        }
+        Ok(Self {
+            rows,
+            cols,
+            filled,
+            valid,
+            missing_samples,
+            xs,
+            ys,
+            vertical,
+            horizontal,
+            epsilon_um: params.epsilon_um,
+            max_triangles: params.max_triangles.unwrap_or(usize::MAX),
+        })
+    }
+
+    /// Blocks per row of blocks, and rows of blocks.
+    pub(crate) fn blocks_x_y(&self) -> (usize, usize) {
+        (self.xs.len() - 1, self.ys.len() - 1)
+    }
+
+    pub(crate) fn block_count(&self) -> usize {
+        let (nbx, nby) = self.blocks_x_y();
+        nbx * nby
+    }
+
+    /// Block `k` (row-major) and which of its sides it shares (bottom, right, top, left).
+    pub(crate) fn block(&self, k: usize) -> (Block, [bool; 4]) {
+        let (nbx, nby) = self.blocks_x_y();
+        let (i, j) = (k % nbx, k / nbx);
+        let (xs, ys) = (&self.xs, &self.ys);
+        let block = Block {
+            x0: xs[i],
+            y0: ys[j],
+            x1: xs[i + 1],
+            y1: ys[j + 1],
+        };
+        (block, [j > 0, i + 1 < nbx, j + 1 < nby, i > 0])
+    }
+
+    /// Meshes block `k` (row-major) with the shared sides' vertices fixed.
+    pub(crate) fn mesh(&self, k: usize) -> BlockTin {
+        let (nbx, _) = self.blocks_x_y();
+        let (i, j) = (k % nbx, k / nbx);
+        let (block, shared) = self.block(k);
+        let mut border = Vec::new();
+        for (side, list) in [
+            (shared[0], &self.horizontal[j * nbx + i]),
+            (shared[1], &self.vertical[j * (nbx + 1) + i + 1]),
+            (shared[2], &self.horizontal[(j + 1) * nbx + i]),
+            (shared[3], &self.vertical[j * (nbx + 1) + i]),
+        ] {
+            if side {
+                border.extend_from_slice(list);
+            }
+        }
+        mesh_block(
+            &self.filled,
+            self.valid.as_deref(),
+            self.cols,
+            block,
+            shared,
+            &border,
+            self.epsilon_um,
+            self.max_triangles,
+        )
+    }
+}
+
+/// The samples on the grid's outer rectangle that are vertices (`is_vertex`),
+/// counter-clockwise from +z starting at sample 0: the rim of a triangulation that covers the
+/// whole rectangle.
+pub(crate) fn grid_rim(is_vertex: impl Fn(usize) -> bool, shape: Shape) -> Vec<u32> {
     let Shape { rows, cols } = shape;
-    let at = |x: usize, y: usize| vertex_of[y * cols + x];
+    let at = |x: usize, y: usize| y * cols + x;
     let mut rim = Vec::new();
     rim.extend((0..cols - 1).map(|x| at(x, 0)));
     rim.extend((0..rows - 1).map(|y| at(cols - 1, y)));
     rim.extend((1..cols).rev().map(|x| at(x, rows - 1)));
     rim.extend((1..rows).rev().map(|y| at(0, y)));
-    rim.retain(|&v| v != NONE);
+    rim.retain(|&s| is_vertex(s));
     rim.dedup();
-    rim
+    rim.into_iter().map(|s| s as u32).collect()
 }
 
 /// The mesh resampled on the grid, and its vertical error against the measured samples
@@ -962,7 +1056,7 @@ fn grid_rim(vertex_of: &[u32], shape: Shape) -> Vec<u32> {
 /// the result does not depend on the thread count.
 pub fn resample_with_error(tin: &Tin, measured_um: &[f32]) -> (Vec<f32>, ErrorStats) {
     let (w, h) = (tin.shape.cols, tin.shape.rows);
-    let mut mesh_um = vec![f64::NAN; w * h];
+    let mut resampled = vec![f32::NAN; w * h];
     // Bands of block rows: band k owns rows y0..y1 (the last one also row y1 = h - 1).
     let mut bands: Vec<(usize, usize, Vec<usize>)> = Vec::new();
     for (k, (b, _)) in tin.blocks.iter().enumerate() {
@@ -971,81 +1065,126 @@ pub fn resample_with_error(tin: &Tin, measured_um: &[f32]) -> (Vec<f32>, ErrorSt
             _ => bands.push((b.y0, b.y1, vec![k])),
         }
     }
+    let as_samples = |members: &[usize]| -> Vec<[u32; 3]> {
+        members
+            .iter()
+            .flat_map(|&k| &tin.triangles[tin.blocks[k].1.clone()])
+            .map(|t| t.map(|v| tin.vertex_samples[v as usize]))
+            .collect()
+    };
     let mut chunks = Vec::with_capacity(bands.len());
-    let mut rest: &mut [f64] = &mut mesh_um;
+    let mut rest: &mut [f32] = &mut resampled;
     for (k, band) in bands.iter().enumerate() {
         let end = if k + 1 == bands.len() { h } else { band.1 };
         let (this, next) = rest.split_at_mut((end - band.0) * w);
         // The band below shares row y0; with holes its triangles may be the only ones there.
         let below: &[usize] = if k > 0 { &bands[k - 1].2 } else { &[] };
-        chunks.push((band, below, end, this));
+        chunks.push((band, below, this));
         rest = next;
     }
-    let wi = w as i64;
-    let stats: Vec<(f64, f64, usize, usize)> = chunks
+    let stats: Vec<ErrorStats> = chunks
         .into_par_iter()
-        .map(|((y0, _, members), below, end, out)| {
-            let (y0, end) = (*y0 as i64, end as i64);
-            let from_below = below.iter().map(|&k| (k, true));
-            for (k, shared_row_only) in from_below.chain(members.iter().map(|&k| (k, false))) {
-                for tri in &tin.triangles[tin.blocks[k].1.clone()] {
-                    if shared_row_only
-                        && tri
-                            .iter()
-                            .all(|&v| (tin.vertex_samples[v as usize] as usize / w) as i64 != y0)
-                    {
-                        continue;
-                    }
-                    let c = tri.map(|v| {
-                        let s = tin.vertex_samples[v as usize] as usize;
-                        ((s % w) as i64, (s / w) as i64, f64::from(tin.filled_um[s]))
-                    });
-                    let plane = Plane::through(c);
-                    for_each_row(
-                        (c[0].0, c[0].1),
-                        (c[1].0, c[1].1),
-                        (c[2].0, c[2].1),
-                        |y, lo, hi| {
-                            if y >= y0 && y < end {
-                                let row = ((y - y0) * wi) as usize;
-                                for x in lo..=hi {
-                                    out[row + x as usize] = plane.at(x, y);
-                                }
-                            }
-                            true
-                        },
-                    );
-                }
-            }
-            let (mut max_um, mut sum2, mut samples, mut uncovered) = (0.0f64, 0.0f64, 0, 0);
-            let first = (y0 * wi) as usize;
-            for (k, &m) in out.iter().enumerate() {
-                let s = measured_um[first + k];
-                if s.is_nan() {
-                    continue;
-                }
-                if m.is_nan() {
-                    uncovered += 1;
-                    continue;
-                }
-                let e = m - f64::from(s);
-                max_um = max_um.max(e.abs());
-                sum2 += e * e;
-                samples += 1;
-            }
-            (max_um, sum2, samples, uncovered)
+        .map(|((y0, _, members), below, out)| {
+            let below = on_row(&as_samples(below), *y0, w);
+            paint_band(
+                &tin.filled_um,
+                measured_um,
+                w,
+                *y0,
+                &below,
+                &as_samples(members),
+                out,
+            )
         })
         .collect();
-    let (mut max_um, mut sum2, mut samples, mut uncovered) = (0.0f64, 0.0f64, 0, 0);
-    for s in stats {
-        max_um = max_um.max(s.0);
-        sum2 += s.1;
-        samples += s.2;
-        uncovered += s.3;
+    (resampled, ErrorStats::combine(&stats))
+}
+
+/// The triangles (as sample triples) with a corner on row `y` of a grid `w` samples wide: what
+/// a band of blocks paints on the row it shares with the band above.
+pub(crate) fn on_row(tris: &[[u32; 3]], y: usize, w: usize) -> Vec<[u32; 3]> {
+    tris.iter()
+        .filter(|t| t.iter().any(|&s| s as usize / w == y))
+        .copied()
+        .collect()
+}
+
+/// Paints the triangles of one band of blocks on its rows (`out`: rows `y0..`, `w` wide, f32
+/// of the f64 plane heights, um relative to the z offset; NaN where no triangle covers), first
+/// the triangles of the band below that touch the shared row `y0`, then the band's own, in
+/// order (a later triangle wins on a shared edge), and returns the vertical error of the
+/// band's rows against `measured_um` (the whole grid's). Corners are grid sample indices;
+/// `filled_um` gives their heights.
+pub(crate) fn paint_band(
+    filled_um: &[f32],
+    measured_um: &[f32],
+    w: usize,
+    y0: usize,
+    below: &[[u32; 3]],
+    own: &[[u32; 3]],
+    out: &mut [f32],
+) -> ErrorStats {
+    let end = (y0 + out.len() / w) as i64;
+    let (y0, wi) = (y0 as i64, w as i64);
+    // f64 while painting, so the error below is that of the planes themselves.
+    let mut mesh_um = vec![f64::NAN; out.len()];
+    for tri in below.iter().chain(own) {
+        let c = tri.map(|s| {
+            let s = s as usize;
+            ((s % w) as i64, (s / w) as i64, f64::from(filled_um[s]))
+        });
+        let plane = Plane::through(c);
+        for_each_row(
+            (c[0].0, c[0].1),
+            (c[1].0, c[1].1),
+            (c[2].0, c[2].1),
+            |y, lo, hi| {
+                if y >= y0 && y < end {
+                    let row = ((y - y0) * wi) as usize;
+                    for x in lo..=hi {
+                        mesh_um[row + x as usize] = plane.at(x, y);
+                    }
+                }
+                true
+            },
+        );
     }
-    let resampled = mesh_um.par_iter().map(|&m| m as f32).collect();
-    (
-        resampled,
+    let (mut max_um, mut sum2, mut samples, mut uncovered) = (0.0f64, 0.0f64, 0, 0);
+    let first = (y0 * wi) as usize;
+    for (k, &m) in mesh_um.iter().enumerate() {
+        out[k] = m as f32;
+        let s = measured_um[first + k];
+        if s.is_nan() {
+            continue;
+        }
+        if m.is_nan() {
+            uncovered += 1;
+            continue;
+        }
+        let e = m - f64::from(s);
+        max_um = max_um.max(e.abs());
+        sum2 += e * e;
+        samples += 1;
+    }
+    ErrorStats {
+        max_um,
+        rms_um: sum2,
+        samples,
+        uncovered,
+    }
+}
+
+impl ErrorStats {
+    /// The bands' statistics (from [`paint_band`], `rms_um` holding the band's sum of
+    /// squares) combined in band order.
+    pub(crate) fn combine(bands: &[ErrorStats]) -> ErrorStats {
+        let (mut max_um, mut sum2, mut samples, mut uncovered) = (0.0f64, 0.0f64, 0, 0);
+        for s in bands {
+            max_um = max_um.max(s.max_um);
+            sum2 += s.rms_um;
+            samples += s.samples;
+            uncovered += s.uncovered;
+        }
         ErrorStats {
             max_um,
             rms_um: if samples > 0 {
@@ -1055,8 +1194,8 @@ pub fn resample_with_error(tin: &Tin, measured_um: &[f32]) -> (Vec<f32>, ErrorSt
             },
             samples,
             uncovered,
-        },
-    )
+        }
+    }
 }
 
 /// Vertical error of a mesh against the measured samples.
