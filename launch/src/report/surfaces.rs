@@ -45,11 +45,12 @@ pub struct Surface {
 }
 
 impl Surface {
+    /// The file's map's extent (a decimated map's last block may be ragged).
     pub fn width_um(&self) -> f64 {
-        self.cols as f64 * self.pitch_x_um
+        self.file_shape.1 as f64 * self.pitch_x_um / self.block as f64
     }
     pub fn height_um(&self) -> f64 {
-        self.rows as f64 * self.pitch_y_um
+        self.file_shape.0 as f64 * self.pitch_y_um / self.block as f64
     }
     pub fn row(&self, r: usize) -> &[f64] {
         &self.z[r * self.cols..(r + 1) * self.cols]
