@@ -1,6 +1,9 @@
 //! The model-vs-measurement deviation of the reference study's Table 6, run once after the
-//! nodes finish (runjson::write calls [`attach`]): loads the out dir's rasters and hands them
-//! to [`surfstream_core::deviation::Table6`], which computes the table (conventions there).
+//! nodes finish (runjson::write calls [`attach`]): reads the out dir's rasters by rows (a band
+//! of rows of each at a time, [`NpyRows`]) into [`Table6::judge_streamed`], which computes the
+//! table (conventions in surfstream_core::deviation) exactly as the in-memory
+//! [`Table6::judge`] does, without holding any whole raster: the launcher's memory does not
+//! grow with the scan (issue 17).
 //!
 //! Measured surface: the fused panorama (`panorama.npy`). Model stages, each judged on its own
 //! grid: "datum+roughness" (`datum.npy` + `roughness.npy`, the panorama grid), "pooled"
@@ -13,17 +16,19 @@
 //! `[deviation]` table (`threshold_percent = 2`), the command line with
 //! `--set deviation.threshold_percent=2` ([`Settings`]).
 //!
-//! Also writes `panorama.x3p` (the stitched panorama for MountainsMap, Gwyddion, surfalize).
+//! Also writes `panorama.x3p` (the stitched panorama for MountainsMap, Gwyddion, surfalize),
+//! streamed from panorama.npy by rows ([`x3p::write_by_rows`]: the same file as the in-memory
+//! writer's, byte for byte where data.bin is stored; the same entries where it is deflated).
 
 use std::path::Path;
 
 use anyhow::{anyhow, bail, Context, Result};
 use serde_json::{json, Map, Value};
-use surfstream_core::deviation::{Measured, ModelStage, Region, StageVerdict, Table6, JUDGED};
+use surfstream_core::deviation::{Region, RowSource, StageVerdict, StreamedStage, Table6, JUDGED};
 use surfstream_core::metrology::Params;
-use surfstream_core::raster::{Raster, Shape};
-use surfstream_io::formats::{self, Metadata, Surface};
-use surfstream_io::npy::read_npy_f64;
+use surfstream_core::raster::Shape;
+use surfstream_io::formats::{x3p, Metadata, Surface};
+use surfstream_io::npy::NpyRows;
 use surfstream_runtime::graph::GraphFile;
 
 /// Threshold e of Table 6, in percent.
@@ -105,17 +110,48 @@ impl Settings {
     }
 }
 
-/// An npy file of the out dir as a raster.
-fn load(path: &Path) -> Result<Raster<f64>> {
-    let a = read_npy_f64(path)?;
-    Raster::new(
-        a.data,
+/// An npy file of the out dir read by rows.
+struct NpySource(NpyRows);
+
+impl NpySource {
+    fn open(path: &Path) -> Result<Self> {
+        Ok(Self(NpyRows::open(path)?))
+    }
+}
+
+impl RowSource for NpySource {
+    fn shape(&self) -> Shape {
         Shape {
-            rows: a.rows,
-            cols: a.cols,
-        },
-    )
-    .with_context(|| format!("{}", path.display()))
+            rows: self.0.rows(),
+            cols: self.0.cols(),
+        }
+    }
+    fn read_rows(&mut self, row0: usize, rows: usize, out: &mut Vec<f64>) -> Result<(), String> {
+        self.0
+            .read_rows_f64(row0, rows, out)
+            .map_err(|e| format!("{e:#}"))
+    }
+}
+
+/// datum + roughness, row by row (the model on the panorama grid).
+struct SumSource {
+    a: NpySource,
+    b: NpySource,
+    scratch: Vec<f64>,
+}
+
+impl RowSource for SumSource {
+    fn shape(&self) -> Shape {
+        self.a.shape()
+    }
+    fn read_rows(&mut self, row0: usize, rows: usize, out: &mut Vec<f64>) -> Result<(), String> {
+        self.a.read_rows(row0, rows, out)?;
+        self.b.read_rows(row0, rows, &mut self.scratch)?;
+        out.iter_mut()
+            .zip(&self.scratch)
+            .for_each(|(a, b)| *a += *b);
+        Ok(())
+    }
 }
 
 /// The panorama's geometry (origin, pitch) as the fusion node reported it.
@@ -174,15 +210,14 @@ fn regions(run: &Value, geometry: &Geometry, panorama: Shape) -> Vec<Region> {
     out
 }
 
-/// The model stages the out dir holds, each on its own grid: (name, heights, whether the grid
-/// is coarser than the panorama's and its cell size is read from the shapes).
-fn model_stages(out: &Path, panorama: Shape) -> Result<Vec<(&'static str, Raster<f64>, bool)>> {
+/// The model stages the out dir holds, each on its own grid, read by rows.
+fn model_stages(out: &Path, panorama: Shape) -> Result<Vec<StreamedStage<'static>>> {
     let mut stages = Vec::new();
     let datum = out.join("datum.npy");
     let rough = out.join("roughness.npy");
     if datum.exists() && rough.exists() {
-        let d = load(&datum)?;
-        let r = load(&rough)?;
+        let d = NpySource::open(&datum)?;
+        let r = NpySource::open(&rough)?;
         if d.shape() != panorama || r.shape() != panorama {
             bail!(
                 "datum {} / roughness {} differ from the panorama {panorama}",
@@ -190,20 +225,23 @@ fn model_stages(out: &Path, panorama: Shape) -> Result<Vec<(&'static str, Raster
                 r.shape()
             );
         }
-        let sum: Vec<f64> = d
-            .values()
-            .iter()
-            .zip(r.values())
-            .map(|(a, b)| a + b)
-            .collect();
-        stages.push(("datum+roughness", Raster::new(sum, panorama)?, false));
+        let sum = SumSource {
+            a: d,
+            b: r,
+            scratch: Vec::new(),
+        };
+        stages.push(StreamedStage::on_measured_grid(
+            "datum+roughness",
+            Box::new(sum),
+        ));
     }
     // The pooled map, and the mesher's surface re-sampled on its grid (the pooled map's, the
     // panorama's...): the model one and two stages further, each at its own pitch.
     for (name, file) in [("pooled", "pooled.npy"), ("mesh", "mesh_resampled.npy")] {
         let path = out.join(file);
         if path.exists() {
-            stages.push((name, load(&path)?, true));
+            let source = NpySource::open(&path)?;
+            stages.push(StreamedStage::pooled(name, Box::new(source), panorama));
         }
     }
     Ok(stages)
@@ -253,51 +291,45 @@ fn stage_json(s: &StageVerdict, pitch_um: (f64, f64)) -> Value {
     json!({ "regions": regions, "pass": s.pass, "grid": grid })
 }
 
-/// Writes the panorama as X3P.
-fn write_x3p(out: &Path, pano: &Raster<f64>, geometry: &Geometry) -> Result<()> {
-    formats::write_surface(
-        &out.join("panorama.x3p"),
-        &Surface {
-            width: pano.cols(),
-            height: pano.rows(),
-            pitch_x_um: geometry.pitch_um.0,
-            pitch_y_um: geometry.pitch_um.1,
-            heights_um: pano.values().to_vec(),
-            metadata: Metadata {
-                format: "npy".into(),
-                pitch_known: true,
-                ..Metadata::default()
-            },
+/// Writes the panorama as X3P, read from panorama.npy a band of rows at a time (the map is
+/// never held whole; [`x3p::write_by_rows`]).
+fn write_x3p(out: &Path, pano: &mut NpySource, geometry: &Geometry) -> Result<()> {
+    let shape = pano.shape();
+    let surface = Surface {
+        width: shape.cols,
+        height: shape.rows,
+        pitch_x_um: geometry.pitch_um.0,
+        pitch_y_um: geometry.pitch_um.1,
+        heights_um: Vec::new(),
+        metadata: Metadata {
+            format: "npy".into(),
+            pitch_known: true,
+            ..Metadata::default()
         },
-    )
+    };
+    x3p::write_by_rows(&out.join("panorama.x3p"), &surface, |row0, rows, buf| {
+        pano.0.read_rows_f64(row0, rows, buf)
+    })
 }
 
-/// Computes Table 6 from the out dir's rasters.
+/// Computes Table 6 from the out dir's rasters, read by rows.
 fn evaluate(
     out: &Path,
     run: &Value,
     threshold_pct: f64,
-    pano: &Raster<f64>,
+    pano: &mut NpySource,
     geometry: &Geometry,
 ) -> Result<Value> {
-    let regions = regions(run, geometry, pano.shape());
-    let models = model_stages(out, pano.shape())?;
-    let measured = Measured {
-        heights_um: pano.view(),
-        pitch_x_um: geometry.pitch_um.0,
-        pitch_y_um: geometry.pitch_um.1,
-    };
-    let stages: Vec<_> = models
-        .iter()
-        .map(|(n, m, coarse)| {
-            if *coarse {
-                ModelStage::pooled(n, m.view(), pano.shape())
-            } else {
-                ModelStage::on_measured_grid(n, m.view())
-            }
-        })
-        .collect();
-    let table = Table6::judge(measured, &stages, &regions, threshold_pct)?;
+    let shape = pano.shape();
+    let regions = regions(run, geometry, shape);
+    let mut stages = model_stages(out, shape)?;
+    let table = Table6::judge_streamed(
+        pano,
+        geometry.pitch_um,
+        &mut stages,
+        &regions,
+        threshold_pct,
+    )?;
     let stages: Map<String, Value> = table
         .stages
         .iter()
@@ -321,16 +353,16 @@ pub fn attach(out: &Path, mut run: Value, threshold_percent: f64) -> Result<Valu
     if !out.join("panorama.npy").exists() {
         return Ok(run);
     }
-    let inputs = load(&out.join("panorama.npy")).and_then(|p| Ok((p, geometry(&run)?)));
+    let inputs = NpySource::open(&out.join("panorama.npy")).and_then(|p| Ok((p, geometry(&run)?)));
     let entry = match inputs {
-        Ok((pano, geometry)) => {
-            write_x3p(out, &pano, &geometry)?;
+        Ok((mut pano, geometry)) => {
+            write_x3p(out, &mut pano, &geometry)?;
             if let Some(files) = run["files"].as_array_mut() {
                 files.push(json!("panorama.x3p"));
                 files.sort_by(|a, b| a.as_str().cmp(&b.as_str()));
                 files.dedup();
             }
-            evaluate(out, &run, threshold_percent, &pano, &geometry)
+            evaluate(out, &run, threshold_percent, &mut pano, &geometry)
         }
         Err(e) => Err(e),
     };

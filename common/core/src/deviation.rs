@@ -16,7 +16,9 @@
 //! parameters of a coarser model differ by construction (the slopes are taken over a longer
 //! base): reported, not judged.
 
-use crate::metrology::{self, Grid, Params};
+use rayon::prelude::*;
+
+use crate::metrology::{self, Grid, Params, ParamsByRows};
 use crate::raster::{Raster, RasterView, Shape};
 
 /// The parameters Table 6 judges.
@@ -50,6 +52,8 @@ pub enum DeviationError {
         expected: Shape,
         measured: Shape,
     },
+    #[error("{0}")]
+    Read(String),
 }
 
 /// A rectangle of the measured grid, pixels, end exclusive.
@@ -327,6 +331,16 @@ fn judge_region(m: &Measured, stage: &ModelStage, r: &Region, threshold_pct: f64
     let (zm, zs, (rows, cols)) = r.crop_both(m.heights_um, stage.heights_um, cell);
     let measured = params_of(&zm, r.rows, r.cols, 1);
     let modelled = params_of(&zs, rows, cols, cell);
+    region_verdict(r.name.clone(), measured, modelled, threshold_pct)
+}
+
+/// The deviations of one region and whether the stage passes it.
+fn region_verdict(
+    region: String,
+    measured: Option<Params>,
+    modelled: Option<Params>,
+    threshold_pct: f64,
+) -> RegionVerdict {
     let mut deviation_pct = Vec::new();
     let mut pass = measured.is_some() && modelled.is_some();
     if let (Some(a), Some(b)) = (&measured, &modelled) {
@@ -339,7 +353,7 @@ fn judge_region(m: &Measured, stage: &ModelStage, r: &Region, threshold_pct: f64
         }
     }
     RegionVerdict {
-        region: r.name.clone(),
+        region,
         measured,
         model: modelled,
         deviation_pct,
@@ -361,6 +375,280 @@ pub fn unpool(pooled: RasterView<f64>, target: Shape) -> Result<Raster<f64>, Dev
         out.extend((0..target.cols).map(|c| src[c / factor]));
     }
     Raster::new(out, target).map_err(|_| DeviationError::NotAPooling { pooled: p, target })
+}
+
+// ---------------------------------------------------------------------------------------------
+// Table 6 from rasters read by rows (issue 17): nothing larger than a band of rows is held.
+
+/// A raster read by whole rows on demand (a file; or memory, [`RasterRows`]).
+pub trait RowSource: Send {
+    fn shape(&self) -> Shape;
+    /// Rows `row0 .. row0 + rows` into `out` (cleared first), row-major.
+    fn read_rows(&mut self, row0: usize, rows: usize, out: &mut Vec<f64>) -> Result<(), String>;
+}
+
+/// An in-memory raster as a [`RowSource`].
+pub struct RasterRows<'a>(pub RasterView<'a, f64>);
+
+impl RowSource for RasterRows<'_> {
+    fn shape(&self) -> Shape {
+        self.0.shape()
+    }
+    fn read_rows(&mut self, row0: usize, rows: usize, out: &mut Vec<f64>) -> Result<(), String> {
+        let cols = self.0.cols();
+        let v = self
+            .0
+            .values()
+            .get(row0 * cols..(row0 + rows) * cols)
+            .ok_or_else(|| format!("rows {row0}..{} outside {}", row0 + rows, self.0.shape()))?;
+        out.clear();
+        out.extend_from_slice(v);
+        Ok(())
+    }
+}
+
+/// A model stage read by rows ([`ModelStage`]'s streamed counterpart).
+pub struct StreamedStage<'a> {
+    pub name: &'a str,
+    pub heights_um: Box<dyn RowSource + 'a>,
+    pub cell_px: usize,
+}
+
+impl<'a> StreamedStage<'a> {
+    /// A stage on the measured grid.
+    pub fn on_measured_grid(name: &'a str, heights_um: Box<dyn RowSource + 'a>) -> Self {
+        Self {
+            name,
+            heights_um,
+            cell_px: 1,
+        }
+    }
+
+    /// A stage on a coarser grid, the cell size read from the column counts as
+    /// [`ModelStage::pooled`] does.
+    pub fn pooled(name: &'a str, heights_um: Box<dyn RowSource + 'a>, measured: Shape) -> Self {
+        let cell_px = measured
+            .cols
+            .div_ceil(heights_um.shape().cols.max(1))
+            .max(1);
+        Self {
+            name,
+            heights_um,
+            cell_px,
+        }
+    }
+}
+
+/// Measured rows read per band (both passes read every file twice, band by band).
+const BAND_ROWS: usize = 64;
+
+/// One stage in one region while the rows stream by: the masked measured rows and the masked
+/// model rows (exactly [`Region::crop_both`]'s) go into two [`ParamsByRows`].
+struct RegionStream {
+    stage: usize,
+    region: usize,
+    cell: usize,
+    /// The region's cells on the model grid: first row, first column, columns.
+    cells: (usize, usize, usize),
+    measured: Option<ParamsByRows>,
+    model: Option<ParamsByRows>,
+    seen: Vec<bool>,
+    m_row: Vec<f64>,
+    z_row: Vec<f64>,
+}
+
+impl RegionStream {
+    /// Feeds the rows of `band` (measured rows `b0..`, model rows from `model_row0`) that lie
+    /// in `r`; `second` = the second pass.
+    fn feed(
+        &mut self,
+        r: &Region,
+        measured: &[f64],
+        (b0, cols): (usize, usize),
+        model: &[f64],
+        (model_row0, model_cols): (usize, usize),
+        second: bool,
+    ) {
+        let band_rows = measured.len() / cols.max(1);
+        let (lo, hi) = (b0.max(r.row0), (b0 + band_rows).min(r.row0 + r.rows));
+        let (_, c0, n_cells) = self.cells;
+        let cell = self.cell;
+        for row in lo..hi {
+            let src = &measured[(row - b0) * cols..][r.col0..r.col0 + r.cols];
+            let cell_row = row / cell;
+            let model_row = &model[(cell_row - model_row0) * model_cols..][..model_cols];
+            self.m_row.clear();
+            for (k, &v) in src.iter().enumerate() {
+                let col = r.col0 + k;
+                if model_row[col / cell].is_nan() || v.is_nan() {
+                    self.m_row.push(f64::NAN);
+                } else {
+                    self.m_row.push(v);
+                    self.seen[col / cell - c0] = true;
+                }
+            }
+            push(&mut self.measured, &self.m_row, second);
+            // The model row is complete after the region's last pixel row in this cell row.
+            if row + 1 == (cell_row + 1) * cell || row + 1 == r.row0 + r.rows {
+                self.z_row.clear();
+                self.z_row.extend(
+                    model_row[c0..c0 + n_cells]
+                        .iter()
+                        .zip(&self.seen)
+                        .map(|(&v, &s)| if s { v } else { f64::NAN }),
+                );
+                self.seen.iter_mut().for_each(|s| *s = false);
+                push(&mut self.model, &self.z_row, second);
+            }
+        }
+    }
+}
+
+/// One row into a parameter stream (`None` = unusable pitch: the parameters are `None`, as
+/// [`Grid::new`] failing makes them in [`Table6::judge`]).
+fn push(p: &mut Option<ParamsByRows>, row: &[f64], second: bool) {
+    if let Some(acc) = p {
+        // The width is the stream's own by construction: a shape error cannot happen.
+        let ok = if second {
+            acc.push_second(row)
+        } else {
+            acc.push_first(row)
+        };
+        if ok.is_err() {
+            *p = None;
+        }
+    }
+}
+
+impl Table6 {
+    /// [`Table6::judge`] over rasters read by rows: the same table, bit for bit, holding one
+    /// band of rows of every map at a time (each map is read twice: the parameters take two
+    /// passes).
+    pub fn judge_streamed(
+        measured: &mut dyn RowSource,
+        pitch_um: (f64, f64),
+        stages: &mut [StreamedStage],
+        regions: &[Region],
+        threshold_pct: f64,
+    ) -> Result<Self, DeviationError> {
+        let shape = measured.shape();
+        if let Some(r) = regions.iter().find(|r| !r.fits(shape)) {
+            return Err(DeviationError::RegionOutside {
+                region: r.name.clone(),
+                row0: r.row0,
+                col0: r.col0,
+                rows: r.rows,
+                cols: r.cols,
+                measured: shape,
+            });
+        }
+        // The same checks, in the same order, as judge_stage.
+        for stage in stages.iter() {
+            let model = stage.heights_um.shape();
+            if stage.cell_px <= 1 && model != shape {
+                return Err(DeviationError::StageShape {
+                    stage: stage.name.to_string(),
+                    model,
+                    measured: shape,
+                });
+            }
+            let expected = ModelStage::expected_shape(stage.cell_px, shape);
+            if model != expected {
+                return Err(DeviationError::StageGrid {
+                    stage: stage.name.to_string(),
+                    model,
+                    cell_px: stage.cell_px,
+                    expected,
+                    measured: shape,
+                });
+            }
+        }
+        let (px, py) = pitch_um;
+        let mut streams: Vec<RegionStream> = Vec::new();
+        for (s, stage) in stages.iter().enumerate() {
+            let cell = stage.cell_px.max(1);
+            for (k, r) in regions.iter().enumerate() {
+                let (r0, c0, _, cols) = r.on_cells(cell, stage.heights_um.shape());
+                streams.push(RegionStream {
+                    stage: s,
+                    region: k,
+                    cell,
+                    cells: (r0, c0, cols),
+                    measured: ParamsByRows::new(r.cols, px, py).ok(),
+                    model: ParamsByRows::new(cols, px * cell as f64, py * cell as f64).ok(),
+                    seen: vec![false; cols],
+                    m_row: Vec::with_capacity(r.cols),
+                    z_row: Vec::with_capacity(cols),
+                });
+            }
+        }
+        let mut band = Vec::new();
+        let mut model_bands: Vec<Vec<f64>> = vec![Vec::new(); stages.len()];
+        for second in [false, true] {
+            let mut b0 = 0;
+            while b0 < shape.rows {
+                let n = BAND_ROWS.min(shape.rows - b0);
+                measured
+                    .read_rows(b0, n, &mut band)
+                    .map_err(DeviationError::Read)?;
+                let mut model_at = Vec::with_capacity(stages.len());
+                for (stage, buf) in stages.iter_mut().zip(&mut model_bands) {
+                    let cell = stage.cell_px.max(1);
+                    let (m0, m1) = (b0 / cell, (b0 + n - 1) / cell + 1);
+                    stage
+                        .heights_um
+                        .read_rows(m0, m1 - m0, buf)
+                        .map_err(DeviationError::Read)?;
+                    model_at.push((m0, stage.heights_um.shape().cols));
+                }
+                streams.par_iter_mut().for_each(|t| {
+                    t.feed(
+                        &regions[t.region],
+                        &band,
+                        (b0, shape.cols),
+                        &model_bands[t.stage],
+                        model_at[t.stage],
+                        second,
+                    )
+                });
+                b0 += n;
+            }
+            if !second {
+                for t in &mut streams {
+                    for p in [&mut t.measured, &mut t.model].into_iter().flatten() {
+                        p.end_first();
+                    }
+                }
+            }
+        }
+        let mut verdicts: Vec<Vec<RegionVerdict>> = vec![Vec::new(); stages.len()];
+        for t in streams {
+            let measured = t.measured.and_then(|p| p.finish().ok());
+            let model = t.model.and_then(|p| p.finish().ok());
+            verdicts[t.stage].push(region_verdict(
+                regions[t.region].name.clone(),
+                measured,
+                model,
+                threshold_pct,
+            ));
+        }
+        let stages: Vec<StageVerdict> = stages
+            .iter()
+            .zip(verdicts)
+            .map(|(stage, regions)| StageVerdict {
+                stage: stage.name.to_string(),
+                grid: stage.heights_um.shape(),
+                cell_px: stage.cell_px.max(1),
+                pass: regions.iter().all(|r| r.pass),
+                regions,
+            })
+            .collect();
+        Ok(Self {
+            threshold_pct,
+            pass: stages.iter().all(|s| s.pass),
+            stages,
+        })
+    }
 }
 
 #[cfg(test)]
@@ -636,5 +924,99 @@ mod tests {
         );
         // Factor 5 from the columns, but 3 rows pool to 1.
         assert!(unpool(p.view(), shape(3, 9)).is_err());
+    }
+
+    #[test]
+    fn the_streamed_table_equals_the_in_memory_one_bit_for_bit() {
+        // 150 rows cross two bands; 77 columns and 3 px cells leave ragged edges; regions
+        // start off the cell grid; holes on both sides; a model cell row spans the band edge
+        // (row 63/64 lies inside cell row 21).
+        let (rows, cols) = (150, 77);
+        let mut z = surface(rows, cols);
+        for i in (0..rows * cols).step_by(37) {
+            z.values_mut()[i] = f64::NAN;
+        }
+        let datum = z.map(|v| v * 0.97 + 0.01);
+        let mut pooled = mean_pool(&z, 3);
+        pooled.values_mut()[7] = f64::NAN;
+        let measured = Measured {
+            heights_um: z.view(),
+            pitch_x_um: 0.8,
+            pitch_y_um: 0.7,
+        };
+        let regions = [
+            Region {
+                name: "S1".into(),
+                row0: 5,
+                col0: 4,
+                rows: 100,
+                cols: 50,
+            },
+            Region {
+                name: "S2".into(),
+                row0: 61,
+                col0: 31,
+                rows: 89,
+                cols: 46,
+            },
+            Region::whole(z.shape()),
+        ];
+        let in_memory = Table6::judge(
+            measured,
+            &[
+                ModelStage::on_measured_grid("datum", datum.view()),
+                ModelStage::pooled("pooled", pooled.view(), z.shape()),
+            ],
+            &regions,
+            5.0,
+        )
+        .unwrap();
+        let mut stages = [
+            StreamedStage::on_measured_grid("datum", Box::new(RasterRows(datum.view()))),
+            StreamedStage::pooled("pooled", Box::new(RasterRows(pooled.view())), z.shape()),
+        ];
+        let streamed = Table6::judge_streamed(
+            &mut RasterRows(z.view()),
+            (0.8, 0.7),
+            &mut stages,
+            &regions,
+            5.0,
+        )
+        .unwrap();
+        assert_eq!(streamed.stages[1].cell_px, 3);
+        // Bit for bit (PartialEq on f64 would also let -0.0 == 0.0 through).
+        let bits = |t: &Table6| {
+            format!(
+                "{:?}",
+                t.stages
+                    .iter()
+                    .map(|s| s
+                        .regions
+                        .iter()
+                        .map(|r| (
+                            r.measured.map(|p| p.named().map(|(_, v)| v.to_bits())),
+                            r.model.map(|p| p.named().map(|(_, v)| v.to_bits())),
+                            r.pass
+                        ))
+                        .collect::<Vec<_>>())
+                    .collect::<Vec<_>>()
+            )
+        };
+        assert_eq!(bits(&streamed), bits(&in_memory));
+        assert_eq!(streamed, in_memory);
+        // A wrong model grid is the same error as in memory.
+        let small = surface(10, 10);
+        let mut bad = [StreamedStage::on_measured_grid(
+            "small",
+            Box::new(RasterRows(small.view())),
+        )];
+        let e = Table6::judge_streamed(
+            &mut RasterRows(z.view()),
+            (1.0, 1.0),
+            &mut bad,
+            &regions,
+            5.0,
+        );
+        assert!(matches!(e, Err(DeviationError::StageShape { .. })));
     }
 }

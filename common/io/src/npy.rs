@@ -1299,3 +1299,267 @@ mod tests {
         assert!(err_text(read_npy(&p)).contains("too large"));
     }
 }
+
+// ---------------------------------------------------------------------------------------------
+// Reading by rows: a window of a file without the whole array in memory (issue 17).
+
+/// A 2-D C-order `.npy` file opened for reading rows or windows on demand: the header is
+/// parsed and the size checked once; every read seeks to the rows it needs.
+#[derive(Debug)]
+pub struct NpyRows {
+    path: std::path::PathBuf,
+    file: std::fs::File,
+    dtype: Dtype,
+    rows: usize,
+    cols: usize,
+    data_offset: u64,
+    raw: Vec<u8>,
+}
+
+impl NpyRows {
+    /// Opens `path`; the same header checks as [`read_npy`], and the file's length must be
+    /// exactly the header plus the data. Fortran-order arrays are refused (a row of them is
+    /// scattered over the whole file).
+    pub fn open(path: impl AsRef<Path>) -> Result<Self> {
+        use std::io::Read;
+        let path = path.as_ref();
+        let mut file = std::fs::File::open(path)
+            .with_context(|| format!("{}: cannot read", path.display()))?;
+        let len = file
+            .metadata()
+            .with_context(|| format!("{}: cannot read", path.display()))?
+            .len();
+        // Magic, version and the header length, then the whole header.
+        let mut head = vec![0u8; 12.min(len as usize)];
+        file.read_exact(&mut head)
+            .with_context(|| format!("{}: cannot read", path.display()))?;
+        let header_len = match head.get(6) {
+            Some(1) => head
+                .get(8..10)
+                .map(|b| u16::from_le_bytes([b[0], b[1]]) as usize + 10),
+            Some(2 | 3) => head
+                .get(8..12)
+                .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize + 12),
+            _ => None,
+        };
+        let mut bytes = head;
+        if let Some(total) = header_len.filter(|&t| t as u64 <= len && t > bytes.len()) {
+            let mut rest = vec![0u8; total - bytes.len()];
+            file.read_exact(&mut rest)
+                .with_context(|| format!("{}: cannot read", path.display()))?;
+            bytes.extend_from_slice(&rest);
+        }
+        let header = parse_header(&bytes).map_err(|e| anyhow!("{}: {e}", path.display()))?;
+        let (rows, cols) = (header.rows, header.cols);
+        if header.fortran_order && rows > 1 && cols > 1 {
+            bail!(
+                "{}: a Fortran-order (column-major) array cannot be read by rows; \
+                 expected fortran_order False",
+                path.display()
+            );
+        }
+        let expected = (rows * cols * header.dtype.size) as u64;
+        let found = len.saturating_sub(header.data_offset as u64);
+        if found != expected {
+            bail!(
+                "{}: expected {expected} bytes of data for a {rows} x {cols} array, found {found}",
+                path.display()
+            );
+        }
+        Ok(Self {
+            path: path.to_path_buf(),
+            file,
+            dtype: header.dtype,
+            rows,
+            cols,
+            data_offset: header.data_offset as u64,
+            raw: Vec::new(),
+        })
+    }
+
+    pub fn rows(&self) -> usize {
+        self.rows
+    }
+
+    pub fn cols(&self) -> usize {
+        self.cols
+    }
+
+    /// True when the file stores float32 (f32 reads then lose nothing).
+    pub fn is_f32(&self) -> bool {
+        self.dtype.kind == Kind::Float && self.dtype.size == 4
+    }
+
+    /// Rows `row0 .. row0 + rows`, whole, as f64 into `out` (cleared first).
+    pub fn read_rows_f64(&mut self, row0: usize, rows: usize, out: &mut Vec<f64>) -> Result<()> {
+        self.read_window(row0, 0, rows, self.cols, out)
+    }
+
+    /// The window of `rows` x `cols` values from (`row0`, `col0`), row-major, into `out`
+    /// (cleared first), converted as [`read_npy_f64`] / [`read_npy`] convert.
+    pub fn read_window<T: WindowElement>(
+        &mut self,
+        row0: usize,
+        col0: usize,
+        rows: usize,
+        cols: usize,
+        out: &mut Vec<T>,
+    ) -> Result<()> {
+        use std::io::{Read, Seek, SeekFrom};
+        if row0 + rows > self.rows || col0 + cols > self.cols {
+            bail!(
+                "{}: window {rows} x {cols} at row {row0}, col {col0} leaves the {} x {} array",
+                self.path.display(),
+                self.rows,
+                self.cols
+            );
+        }
+        out.clear();
+        out.reserve(rows * cols);
+        let size = self.dtype.size;
+        // Whole rows are one read; a narrower window one read per row.
+        let (per_read, reads) = if cols == self.cols {
+            (rows * cols, usize::from(rows > 0))
+        } else {
+            (cols, rows)
+        };
+        for k in 0..reads {
+            let (r, c) = if cols == self.cols {
+                (row0, 0)
+            } else {
+                (row0 + k, col0)
+            };
+            let at = self.data_offset + ((r * self.cols + c) * size) as u64;
+            self.raw.resize(per_read * size, 0);
+            self.file
+                .seek(SeekFrom::Start(at))
+                .and_then(|_| self.file.read_exact(&mut self.raw))
+                .with_context(|| format!("{}: cannot read rows from {r}", self.path.display()))?;
+            let values = decode::<T>(&self.raw, self.dtype).ok_or_else(|| {
+                anyhow!(
+                    "{}: unsupported dtype {:?}",
+                    self.path.display(),
+                    self.dtype
+                )
+            })?;
+            out.extend_from_slice(&values);
+        }
+        Ok(())
+    }
+
+    /// Every `step`-th row and column from (0, 0), as f64: a `rows.div_ceil(step)` x
+    /// `cols.div_ceil(step)` map read one row at a time.
+    pub fn read_strided_f64(&mut self, step: usize) -> Result<(Vec<f64>, usize, usize)> {
+        let step = step.max(1);
+        let (rows, cols) = (self.rows.div_ceil(step), self.cols.div_ceil(step));
+        let mut out = Vec::with_capacity(rows * cols);
+        let mut row = Vec::new();
+        for r in 0..rows {
+            self.read_rows_f64(r * step, 1, &mut row)?;
+            out.extend(row.iter().step_by(step));
+        }
+        Ok((out, rows, cols))
+    }
+
+    /// NaN-aware means of `block` x `block` cells (ragged at the right and bottom edges), as
+    /// f64: a `rows.div_ceil(block)` x `cols.div_ceil(block)` map read `block` rows at a time.
+    pub fn read_block_means_f64(&mut self, block: usize) -> Result<(Vec<f64>, usize, usize)> {
+        let block = block.max(1);
+        let (rows, cols) = (self.rows.div_ceil(block), self.cols.div_ceil(block));
+        let mut out = Vec::with_capacity(rows * cols);
+        let mut band = Vec::new();
+        let (mut sum, mut count) = (vec![0.0f64; cols], vec![0u32; cols]);
+        for br in 0..rows {
+            let r0 = br * block;
+            let n = block.min(self.rows - r0);
+            self.read_rows_f64(r0, n, &mut band)?;
+            sum.iter_mut().for_each(|s| *s = 0.0);
+            count.iter_mut().for_each(|c| *c = 0);
+            for row in band.chunks_exact(self.cols) {
+                for (c, &v) in row.iter().enumerate() {
+                    if v.is_finite() {
+                        sum[c / block] += v;
+                        count[c / block] += 1;
+                    }
+                }
+            }
+            out.extend(sum.iter().zip(&count).map(
+                |(&s, &n)| {
+                    if n > 0 {
+                        s / n as f64
+                    } else {
+                        f64::NAN
+                    }
+                },
+            ));
+        }
+        Ok((out, rows, cols))
+    }
+}
+
+/// What [`NpyRows::read_window`] reads into: f32 or f64.
+#[allow(private_bounds)]
+pub trait WindowElement: Element {}
+impl WindowElement for f32 {}
+impl WindowElement for f64 {}
+
+#[cfg(test)]
+mod rows_tests {
+    use super::*;
+
+    #[test]
+    fn windows_rows_and_decimations_equal_the_whole_read() {
+        let dir = std::env::temp_dir().join(format!("npy-rows-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (rows, cols) = (7, 5);
+        let data: Vec<f32> = (0..rows * cols)
+            .map(|i| {
+                if i == 12 {
+                    f32::NAN
+                } else {
+                    i as f32 * 0.5 - 3.0
+                }
+            })
+            .collect();
+        let p = dir.join("a.npy");
+        write_npy_f32(&p, &data, rows, cols).unwrap();
+        let whole = read_npy_f64(&p).unwrap();
+        let mut f = NpyRows::open(&p).unwrap();
+        assert_eq!((f.rows(), f.cols(), f.is_f32()), (rows, cols, true));
+        let mut out: Vec<f64> = Vec::new();
+        f.read_rows_f64(2, 3, &mut out).unwrap();
+        assert_eq!(
+            out.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+            whole.data[10..25]
+                .iter()
+                .map(|v| v.to_bits())
+                .collect::<Vec<_>>()
+        );
+        let mut w: Vec<f32> = Vec::new();
+        f.read_window(1, 2, 3, 2, &mut w).unwrap();
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        let expected: Vec<f32> = [7, 8, 12, 13, 17, 18].map(|i| data[i]).to_vec();
+        assert_eq!(bits(&w), bits(&expected));
+        let (s, sr, sc) = f.read_strided_f64(3).unwrap();
+        assert_eq!((sr, sc), (3, 2));
+        assert_eq!(s[..2], [whole.data[0], whole.data[3]]);
+        assert_eq!(s[4..], [whole.data[30], whole.data[33]]);
+        let (m, mr, mc) = f.read_block_means_f64(2).unwrap();
+        assert_eq!((mr, mc), (4, 3));
+        // Cell (1, 1): rows 2-3, cols 2-3, value 12 is NaN.
+        let cell = [13, 17, 18].map(|i| whole.data[i]);
+        assert_eq!(m[4], cell.iter().sum::<f64>() / 3.0);
+        assert_eq!(m[11], whole.data[34]);
+        assert!(f.read_window::<f64>(5, 0, 3, 5, &mut out).is_err());
+        // A truncated file is refused at open, naming the file.
+        let bytes = std::fs::read(&p).unwrap();
+        let t = dir.join("t.npy");
+        std::fs::write(&t, &bytes[..bytes.len() - 4]).unwrap();
+        let e = NpyRows::open(&t).unwrap_err().to_string();
+        assert!(
+            e.contains("t.npy") && e.contains("expected 140 bytes"),
+            "{e}"
+        );
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}

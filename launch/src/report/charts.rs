@@ -5,14 +5,21 @@ use std::fmt::Write as _;
 
 use super::html::{length, um};
 use super::plot::{Axis, Panel};
-use super::surface_stats::{height_histogram, material_ratio_curve, radial_psd};
+use super::surface_stats::{material_ratio_curve, radial_psd, Histogram};
 use super::surfaces::Surface;
 
 /// Histogram (left, % of points per bin, drawn sideways so both panels share the height axis)
 /// and the Abbott-Firestone curve (right, material ratio in %).
-pub fn distribution(s: &Surface) -> Option<String> {
-    let h = height_histogram(&s.z, 80)?;
-    let curve = material_ratio_curve(&s.z, 400);
+/// `histogram`: of the whole map at full resolution, with its finer counts; the curve is from
+/// the map itself when `s` holds it whole, else from the finer counts (stated).
+pub fn distribution(s: &Surface, histogram: &(Histogram, Vec<usize>)) -> Option<String> {
+    let (h, fine) = histogram;
+    let h = h.clone();
+    let curve = if s.block == 1 {
+        material_ratio_curve(&s.z, 400)
+    } else {
+        binned_material_ratio_curve(&h, fine, 400)
+    };
     let total = h.total.max(1) as f64;
     let max_pct = h
         .counts
@@ -72,12 +79,55 @@ pub fn distribution(s: &Surface) -> Option<String> {
     Some(format!(
         "<figure>{g}<figcaption>Heights of the {} ({} valid points, relative to the mean), \
          {} bins of {}. Abbott-Firestone curve: the share of the surface at or above each \
-         height (ISO 25178-2 areal material ratio).</figcaption></figure>",
+         height (ISO 25178-2 areal material ratio){}.</figcaption></figure>",
         s.name,
         h.total,
         h.counts.len(),
-        um(bw)
+        um(bw),
+        if s.block > 1 {
+            format!(
+                " (from the histogram of every point in {} bins: quantiles within a bin \
+                 interpolated linearly)",
+                fine.len()
+            )
+        } else {
+            String::new()
+        }
     ))
+}
+
+/// The Abbott-Firestone curve as [`material_ratio_curve`] gives it, from counts in equal bins
+/// over `h.lo..=h.hi` instead of the sorted heights: the (1 - Mr) quantile is placed inside
+/// its bin by linear interpolation (exact to a bin's width).
+pub(super) fn binned_material_ratio_curve(
+    h: &Histogram,
+    fine: &[usize],
+    n: usize,
+) -> Vec<(f64, f64)> {
+    let total: usize = fine.iter().sum();
+    if total == 0 || n == 0 || fine.is_empty() {
+        return Vec::new();
+    }
+    let width = (h.hi - h.lo) / fine.len() as f64;
+    let last = (total - 1) as f64;
+    (0..=n)
+        .map(|k| {
+            let mr = k as f64 / n as f64;
+            // Order statistic (0-based, ascending) of the quantile.
+            let pos = (1.0 - mr) * last;
+            let mut below = 0usize;
+            let mut c = h.hi;
+            for (b, &count) in fine.iter().enumerate() {
+                if count > 0 && pos < (below + count) as f64 {
+                    let f = (pos - below as f64 + 0.5) / count as f64;
+                    c = h.lo + (b as f64 + f.clamp(0.0, 1.0)) * width;
+                    break;
+                }
+                below += count;
+            }
+            (mr * 100.0, c)
+        })
+        .collect()
 }
 
 /// The radially averaged PSD, log-log, against wavelength (long wavelengths left).
@@ -128,6 +178,17 @@ pub fn psd(s: &Surface, wavelet_scale: Option<(u64, f64)>) -> Option<String> {
         );
     }
     let mut note = String::new();
+    if s.block > 1 {
+        let _ = write!(
+            note,
+            " Computed from the {0} x {0} block means of the {1} x {2} px map (pitch {3}):              wavelengths below {4} are not in it, and the shortest shown are damped by the              averaging.",
+            s.block,
+            s.file_shape.0,
+            s.file_shape.1,
+            length(s.pitch_x_um / s.block as f64),
+            length(2.0 * s.pitch_x_um.max(s.pitch_y_um)),
+        );
+    }
     if let Some((level, scale_um)) = wavelet_scale {
         let x = panel.px(scale_um);
         if (panel.x..=panel.x + panel.w).contains(&x) {

@@ -232,11 +232,11 @@ pub fn figure(s: &Surface, title: &str, reference: &str, cut: Option<&Cut>) -> S
          and take the end colours. Grey: not measured ({} points, {}&nbsp;%). {}\
          Click the map for full size.",
         esc(title),
-        s.rows,
-        s.cols,
+        s.file_shape.0,
+        s.file_shape.1,
         length(h_um),
         length(w_um),
-        pitch(s.pitch_x_um),
+        pitch(s.pitch_x_um / s.block as f64),
         esc(reference),
         um(lo),
         um(hi),
@@ -244,10 +244,18 @@ pub fn figure(s: &Surface, title: &str, reference: &str, cut: Option<&Cut>) -> S
         fixed(pct(above), 2),
         n_nan,
         fixed(pct(n_nan), 2),
-        if map.block > 1 {
+        if map.block * s.block > 1 {
             format!(
-                "Drawn at {} x {} px, each the mean of {} x {} heights. ",
-                map.rows, map.cols, map.block, map.block
+                "Drawn at {} x {} px, each the mean of {} x {} heights{}. ",
+                map.rows,
+                map.cols,
+                map.block * s.block,
+                map.block * s.block,
+                if s.block > 1 {
+                    " (the percentiles, saturation and not-measured counts are of these means)"
+                } else {
+                    ""
+                }
             )
         } else {
             String::new()

@@ -142,12 +142,16 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
         let level = run["stages"]
             .as_object()
             .and_then(|s| s.values().find_map(|v| v["final"]["level"].as_u64()));
-        let scale = level.map(|l| (l, 2f64.powi(l as i32) * p.pitch_x_um));
+        let scale = level.map(|l| (l, 2f64.powi(l as i32) * p.pitch_x_um / p.block as f64));
         let _ = writeln!(
             h,
             "<section id=\"distribution\"><h2>Height distribution and power spectral density \
              (panorama)</h2><div class=\"pair\">{}{}</div></section>",
-            charts::distribution(p).unwrap_or_default(),
+            surfaces
+                .histogram
+                .as_ref()
+                .and_then(|hist| charts::distribution(p, hist))
+                .unwrap_or_default(),
             charts::psd(p, scale).unwrap_or_default()
         );
     }

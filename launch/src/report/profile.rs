@@ -8,33 +8,34 @@ use super::html::{length, pitch};
 use super::plot::{Axis, Panel};
 use super::surfaces::Surfaces;
 
-/// The row the profile runs along.
+/// The row the profile runs along, on the panorama as held (block means when decimated).
 pub fn row(s: &Surfaces) -> Option<usize> {
-    s.panorama.as_ref().map(|p| p.rows / 2)
+    let p = s.panorama.as_ref()?;
+    Some(
+        s.profile
+            .as_ref()
+            .map_or(p.rows / 2, |c| c.row / p.block.max(1)),
+    )
 }
 
 pub fn section(s: &Surfaces) -> Option<String> {
     let p = s.panorama.as_ref()?;
-    let r = row(s)?;
+    // The cut at full resolution, read from the files.
+    let cut = s.profile.as_ref()?;
+    let r = cut.row;
+    let (pitch_x_um, pitch_y_um) = (p.pitch_x_um / p.block as f64, p.pitch_y_um / p.block as f64);
+    let cols = cut.panorama.len();
     let to_mm = p.width_um() >= 2000.0;
     let (unit, div) = if to_mm { ("mm", 1000.0) } else { ("µm", 1.0) };
     let xs = |cols: usize, pitch: f64| -> Vec<f64> {
         (0..cols).map(|c| (c as f64 + 0.5) * pitch / div).collect()
     };
-    let x = xs(p.cols, p.pitch_x_um);
+    let x = xs(cols, pitch_x_um);
     let series =
         |z: &[f64]| -> Vec<(f64, f64)> { x.iter().copied().zip(z.iter().copied()).collect() };
-    let pano = series(p.row(r));
-    let datum = s
-        .datum
-        .as_ref()
-        .filter(|d| d.rows == p.rows && d.cols == p.cols)
-        .map(|d| series(d.row(r)));
-    let rough = s
-        .roughness
-        .as_ref()
-        .filter(|d| d.rows == p.rows && d.cols == p.cols)
-        .map(|d| series(d.row(r)));
+    let pano = series(&cut.panorama);
+    let datum = cut.datum.as_deref().map(series);
+    let rough = cut.roughness.as_deref().map(series);
     let range = |pts: &[(f64, f64)]| {
         pts.iter()
             .map(|p| p.1)
@@ -90,10 +91,10 @@ pub fn section(s: &Surfaces) -> Option<String> {
         "<figure class=\"wide\">{g}<figcaption>Row {r} of {} (y = {} from the top edge, the dashed \
          line on the panorama), {} long, {} points at {} pitch; heights relative to the \
          panorama's mean. Gaps: not measured.</figcaption></figure>",
-        p.rows,
-        length((r as f64 + 0.5) * p.pitch_y_um),
+        p.file_shape.0,
+        length((r as f64 + 0.5) * pitch_y_um),
         length(p.width_um()),
-        p.cols,
-        pitch(p.pitch_x_um),
+        cols,
+        pitch(pitch_x_um),
     ))
 }

@@ -5,10 +5,10 @@
 use std::fmt::Write as _;
 
 use serde_json::Value;
-use surfstream_core::metrology::{params, Grid, Params};
+use surfstream_core::metrology::Params;
 
 use super::html::{esc, fixed, length, pitch, signed, table_raw, um};
-use super::surfaces::{Surface, Surfaces};
+use super::surfaces::Surfaces;
 
 /// The verdict banner and the facts table.
 pub fn section(run: &Value, surfaces: &Surfaces) -> String {
@@ -68,16 +68,16 @@ pub fn section(run: &Value, surfaces: &Surfaces) -> String {
         .unwrap_or_default();
     row("scan", esc(&format!("{grid}{tile}{overlap}")));
     if let Some(p) = &surfaces.panorama {
-        let nan = p.z.iter().filter(|v| !v.is_finite()).count();
+        let (points, nan) = surfaces.panorama_points;
         row(
             "panorama",
             esc(&format!(
                 "{} x {} px = {} x {} (rows x cols); {} % not measured",
-                p.rows,
-                p.cols,
+                p.file_shape.0,
+                p.file_shape.1,
                 length(p.height_um()),
                 length(p.width_um()),
-                fixed(100.0 * nan as f64 / p.z.len().max(1) as f64, 2)
+                fixed(100.0 * nan as f64 / points.max(1) as f64, 2)
             )),
         );
     }
@@ -260,19 +260,16 @@ fn verdict(h: &mut String, run: &Value) {
     h.push_str("</ul></div>");
 }
 
-fn params_of(s: &Surface) -> Option<Params> {
-    params(&Grid::new(&s.z, s.rows, s.cols, s.pitch_x_um, s.pitch_y_um).ok()?).ok()
-}
-
 /// Sa .. Sdr of the panorama, the roughness and the pooled map, each at its own pitch.
 pub fn key_parameters(s: &Surfaces) -> String {
+    // At full resolution, streamed from the files (Surfaces::load).
     let cols: Vec<(&str, Option<Params>)> = [
-        ("panorama (measured)", s.panorama.as_ref()),
-        ("roughness", s.roughness.as_ref()),
-        ("pooled map (model)", s.pooled.as_ref()),
+        ("panorama (measured)", s.panorama.as_ref(), s.params[0]),
+        ("roughness", s.roughness.as_ref(), s.params[1]),
+        ("pooled map (model)", s.pooled.as_ref(), s.params[2]),
     ]
     .into_iter()
-    .filter_map(|(n, m)| Some((n, params_of(m?))))
+    .filter_map(|(n, m, p)| m.map(|_| (n, p)))
     .collect();
     if cols.is_empty() {
         return String::new();

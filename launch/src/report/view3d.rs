@@ -293,8 +293,8 @@ pub fn figure(s: &Surface, what: &str) -> Option<String> {
         fixed(r.exaggeration, if r.exaggeration < 10.0 { 1 } else { 0 }),
         r.grid.0,
         r.grid.1,
-        if r.block > 1 {
-            format!(" (block means of {0} x {0} points)", r.block)
+        if r.block * s.block > 1 {
+            format!(" (block means of {0} x {0} points)", r.block * s.block)
         } else {
             String::new()
         },
@@ -320,6 +320,8 @@ mod tests {
             cols,
             pitch_x_um: 2.0,
             pitch_y_um: 2.0,
+            block: 1,
+            file_shape: (rows, cols),
         };
         let r = render(&s).expect("render");
         assert_eq!((r.grid, r.block), ((40, 60), 1));

@@ -301,7 +301,7 @@ fn row_dx2(a: &[f64]) -> (f64, f64) {
 }
 
 /// Pitch terms of the cell kernel: py^2, px^2, (px py)^2, 4 px py.
-#[derive(Clone, Copy)]
+#[derive(Debug, Clone, Copy)]
 struct CellPitch {
     py2: f64,
     px2: f64,
@@ -433,44 +433,51 @@ fn pass_independent(g: &Grid, hybrid: bool) -> RowSums {
 /// one pass about `mean0` (the first, rounded mean) corrected algebraically by the mean of
 /// the residuals d (so no third pass is needed to refine the mean).
 fn pass_central(g: &Grid, n: f64, mean0: f64) -> (f64, [f64; 4]) {
-    let [s_abs, s1, s2, s3, s4, sgn] = row_sums(g.rows, |r| {
-        let row = g.row(r);
-        let mut acc = [V::ZERO; 6];
-        let m0 = V::splat(mean0);
-        let chunks = row.chunks_exact(4);
-        let rest = chunks.remainder();
-        for ch in chunks {
-            let z = load(ch);
-            let c = valid(z) & (z - m0);
+    central_about_mean(n, mean0, row_sums(g.rows, |r| row_central(g.row(r), mean0)))
+}
+
+/// One row's sums about `mean0`: sum |c|, c, c^2, c^3, c^4 and sum sign(c).
+fn row_central(row: &[f64], mean0: f64) -> [f64; 6] {
+    let mut acc = [V::ZERO; 6];
+    let m0 = V::splat(mean0);
+    let chunks = row.chunks_exact(4);
+    let rest = chunks.remainder();
+    for ch in chunks {
+        let z = load(ch);
+        let c = valid(z) & (z - m0);
+        let c2 = c * c;
+        acc[0] += c.abs();
+        acc[1] += c;
+        acc[2] += c2;
+        acc[3] += c2 * c;
+        acc[4] += c2 * c2;
+        acc[5] += (c.cmp_gt(V::ZERO) & V::ONE) - (c.cmp_lt(V::ZERO) & V::ONE);
+    }
+    let mut out = acc.map(fold);
+    for &z in rest {
+        if !z.is_nan() {
+            let c = z - mean0;
             let c2 = c * c;
-            acc[0] += c.abs();
-            acc[1] += c;
-            acc[2] += c2;
-            acc[3] += c2 * c;
-            acc[4] += c2 * c2;
-            acc[5] += (c.cmp_gt(V::ZERO) & V::ONE) - (c.cmp_lt(V::ZERO) & V::ONE);
+            out[0] += c.abs();
+            out[1] += c;
+            out[2] += c2;
+            out[3] += c2 * c;
+            out[4] += c2 * c2;
+            out[5] += if c > 0.0 {
+                1.0
+            } else if c < 0.0 {
+                -1.0
+            } else {
+                0.0
+            };
         }
-        let mut out = acc.map(fold);
-        for &z in rest {
-            if !z.is_nan() {
-                let c = z - mean0;
-                let c2 = c * c;
-                out[0] += c.abs();
-                out[1] += c;
-                out[2] += c2;
-                out[3] += c2 * c;
-                out[4] += c2 * c2;
-                out[5] += if c > 0.0 {
-                    1.0
-                } else if c < 0.0 {
-                    -1.0
-                } else {
-                    0.0
-                };
-            }
-        }
-        out
-    });
+    }
+    out
+}
+
+/// The exact mean and the central sums (|c|, c^2, c^3, c^4) from the sums about `mean0`.
+fn central_about_mean(n: f64, mean0: f64, sums: [f64; 6]) -> (f64, [f64; 4]) {
+    let [s_abs, s1, s2, s3, s4, sgn] = sums;
     let d = s1 / n;
     let mean = mean0 + d;
     // Moments about mean0 + d from those about mean0 (binomial expansion, s1 = n d). For Sa,
@@ -488,11 +495,16 @@ fn heights_from(g: &Grid, p1: &RowSums) -> Result<[f64; 7], MetrologyError> {
     if n == 0.0 {
         return Err(MetrologyError::NoValidPoint);
     }
-    let (mean, [s1, s2, s3, s4]) = pass_central(g, n, sum / n);
+    Ok(heights_of(p1, pass_central(g, n, sum / n)))
+}
+
+/// Sa..Sku from the first pass (count, bounds) and the central sums about the exact mean.
+fn heights_of(p1: &RowSums, (mean, [s1, s2, s3, s4]): (f64, [f64; 4])) -> [f64; 7] {
+    let n = p1.sums[0];
     let sq = (s2 / n).sqrt();
     let (sp, sv) = (p1.hi - mean, (p1.lo - mean).abs());
     // A constant surface has Sq = 0: skewness and kurtosis are undefined (NaN), as in surfalize.
-    Ok([
+    [
         s1 / n,
         sq,
         sp,
@@ -500,12 +512,15 @@ fn heights_from(g: &Grid, p1: &RowSums) -> Result<[f64; 7], MetrologyError> {
         sp + sv,
         (s3 / n) / (sq * sq * sq),
         (s4 / n) / (sq * sq * sq * sq),
-    ])
+    ]
 }
 
 fn hybrid_from(g: &Grid, p1: &RowSums) -> (f64, f64) {
+    hybrid_of(g.pitch_x_um, g.pitch_y_um, p1)
+}
+
+fn hybrid_of(px: f64, py: f64, p1: &RowSums) -> (f64, f64) {
     let [_, _, sx, nx, sy, ny, excess, cells] = p1.sums;
-    let (px, py) = (g.pitch_x_um, g.pitch_y_um);
     let sdq = if nx + ny == 0.0 {
         f64::NAN
     } else {
@@ -701,4 +716,148 @@ pub fn rms_difference(a: &[f64], b: &[f64]) -> Result<(f64, usize), MetrologyErr
         return Err(MetrologyError::NoValidPoint);
     }
     Ok(((s / n).sqrt(), n as usize))
+}
+
+// ---------------------------------------------------------------------------------------------
+// The nine parameters of a map too large to hold: rows pushed twice (issue 17).
+
+/// [`params`] of a height map fed row by row, twice: every row in order through
+/// [`ParamsByRows::push_first`], then [`ParamsByRows::end_first`], then every row again, in
+/// the same order, through [`ParamsByRows::push_second`], then [`ParamsByRows::finish`]. It
+/// holds one row; the result equals [`params`] on the whole map bit for bit (the same per-row
+/// kernels, rows combined in the same order).
+#[derive(Debug, Clone)]
+pub struct ParamsByRows {
+    cols: usize,
+    pitch_um: (f64, f64),
+    cell: CellPitch,
+    /// The previous row of the first pass and its count, sum, min, max.
+    prev: Vec<f64>,
+    prev_sums: Option<(f64, f64, f64, f64)>,
+    first: [Compensated; 8],
+    lo: f64,
+    hi: f64,
+    /// The first pass's result, once ended.
+    p1: Option<RowSums>,
+    /// The second pass's sums about the first pass's mean.
+    second: [Compensated; 6],
+}
+
+impl ParamsByRows {
+    /// For rows of `cols` heights at the given pitch (um, finite and positive).
+    pub fn new(cols: usize, pitch_x_um: f64, pitch_y_um: f64) -> Result<Self, MetrologyError> {
+        // The same checks as Grid::new.
+        Grid::new(&[], 0, cols, pitch_x_um, pitch_y_um)?;
+        let (px, py) = (pitch_x_um, pitch_y_um);
+        Ok(Self {
+            cols,
+            pitch_um: (px, py),
+            cell: CellPitch {
+                py2: py * py,
+                px2: px * px,
+                cell2: (px * py) * (px * py),
+                four_cells: 4.0 * (px * py),
+            },
+            prev: Vec::with_capacity(cols),
+            prev_sums: None,
+            first: [Compensated::default(); 8],
+            lo: f64::INFINITY,
+            hi: f64::NEG_INFINITY,
+            p1: None,
+            second: [Compensated::default(); 6],
+        })
+    }
+
+    fn check(&self, row: &[f64]) -> Result<(), MetrologyError> {
+        if row.len() != self.cols {
+            return Err(MetrologyError::Shape {
+                rows: 1,
+                cols: self.cols,
+                found: row.len(),
+            });
+        }
+        Ok(())
+    }
+
+    /// Adds the previous row's sums: its pair with `next`, or its x differences when last.
+    fn close_prev(&mut self, next: Option<&[f64]>) {
+        let Some((n, s, lo, hi)) = self.prev_sums.take() else {
+            return;
+        };
+        let pair = match next {
+            Some(b) => row_pair_sums(&self.prev, b, self.cell),
+            None => {
+                let (sx, nx) = row_dx2(&self.prev);
+                [sx, nx, 0.0, 0.0, 0.0, 0.0]
+            }
+        };
+        let sums = [n, s, pair[0], pair[1], pair[2], pair[3], pair[4], pair[5]];
+        for (a, &v) in self.first.iter_mut().zip(&sums) {
+            a.add(v);
+        }
+        self.lo = self.lo.min(lo);
+        self.hi = self.hi.max(hi);
+    }
+
+    /// The next row of the first pass.
+    pub fn push_first(&mut self, row: &[f64]) -> Result<(), MetrologyError> {
+        self.check(row)?;
+        self.close_prev(Some(row));
+        self.prev.clear();
+        self.prev.extend_from_slice(row);
+        self.prev_sums = Some(row_count_sum_min_max(row));
+        Ok(())
+    }
+
+    /// Ends the first pass.
+    pub fn end_first(&mut self) {
+        self.close_prev(None);
+        self.prev = Vec::new();
+        self.p1 = Some(RowSums {
+            sums: self.first.map(Compensated::value),
+            lo: self.lo,
+            hi: self.hi,
+        });
+    }
+
+    /// The next row of the second pass; a row before [`ParamsByRows::end_first`] is a shape
+    /// error (no first pass has ended).
+    pub fn push_second(&mut self, row: &[f64]) -> Result<(), MetrologyError> {
+        self.check(row)?;
+        let Some(p1) = &self.p1 else {
+            return Err(MetrologyError::Shape {
+                rows: 0,
+                cols: self.cols,
+                found: row.len(),
+            });
+        };
+        let mean0 = p1.sums[1] / p1.sums[0];
+        for (a, v) in self.second.iter_mut().zip(row_central(row, mean0)) {
+            a.add(v);
+        }
+        Ok(())
+    }
+
+    /// The nine parameters.
+    pub fn finish(self) -> Result<Params, MetrologyError> {
+        let p1 = self.p1.ok_or(MetrologyError::NoValidPoint)?;
+        let (n, sum) = (p1.sums[0], p1.sums[1]);
+        if n == 0.0 {
+            return Err(MetrologyError::NoValidPoint);
+        }
+        let central = central_about_mean(n, sum / n, self.second.map(Compensated::value));
+        let [sa, sq, sp, sv, sz, ssk, sku] = heights_of(&p1, central);
+        let (sdq, sdr) = hybrid_of(self.pitch_um.0, self.pitch_um.1, &p1);
+        Ok(Params {
+            sa,
+            sq,
+            sp,
+            sv,
+            sz,
+            ssk,
+            sku,
+            sdq,
+            sdr,
+        })
+    }
 }

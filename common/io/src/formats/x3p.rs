@@ -736,13 +736,33 @@ pub fn encode(s: &Surface) -> Result<Vec<u8>> {
             valid[i / 8] |= 1 << (i % 8);
         }
     }
-    let valid_link = if any_invalid {
-        format!(
-            "\n      <ValidPointsLink>bindata/valid.bin</ValidPointsLink>\n      <MD5ChecksumValidPoints>{}</MD5ChecksumValidPoints>",
-            md5_hex(&valid)
-        )
-    } else {
-        String::new()
+    let xml = main_xml(
+        s,
+        &md5_hex(&data),
+        any_invalid.then(|| md5_hex(&valid)).as_deref(),
+    );
+    let mut zw = zip::ZipWriter::new(Cursor::new(Vec::new()));
+    let mut put = |name: &str, bytes: &[u8]| put_entry(&mut zw, name, bytes);
+    put("main.xml", xml.as_bytes())?;
+    put(
+        "md5checksum.hex",
+        format!("{} *main.xml\n", md5_hex(xml.as_bytes())).as_bytes(),
+    )?;
+    put("bindata/data.bin", &data)?;
+    if any_invalid {
+        put("bindata/valid.bin", &valid)?;
+    }
+    Ok(zw.finish().context("finishing the zip")?.into_inner())
+}
+
+/// main.xml of `s` (its size, pitch and metadata; the heights are not read) with the MD5
+/// checksums of data.bin and, when some point is invalid, valid.bin.
+fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
+    let valid_link = match valid_md5 {
+        Some(md5) => format!(
+            "\n      <ValidPointsLink>bindata/valid.bin</ValidPointsLink>\n      <MD5ChecksumValidPoints>{md5}</MD5ChecksumValidPoints>"
+        ),
+        None => String::new(),
     };
     let m = &s.metadata;
     let date = m
@@ -751,7 +771,7 @@ pub fn encode(s: &Surface) -> Result<Vec<u8>> {
         .unwrap_or_else(|| "1970-01-01T00:00:00".into());
     let instrument = xml_escape(m.instrument.as_deref().unwrap_or("surfstream"));
     let serial = xml_escape(m.serial.as_deref().unwrap_or("not available"));
-    let xml = format!(
+    format!(
         r#"<?xml version="1.0" encoding="UTF-8" standalone="no" ?>
 <p:ISO5436_2 xmlns:p="{NAMESPACE}" xmlns:xsi="http://www.w3.org/2001/XMLSchema-instance" xsi:schemaLocation="{NAMESPACE} {NAMESPACE}/ISO5436_2.xsd">
   <Record1>
@@ -816,20 +836,8 @@ pub fn encode(s: &Surface) -> Result<Vec<u8>> {
         version = env!("CARGO_PKG_VERSION"),
         w = s.width,
         h = s.height,
-        md5 = md5_hex(&data),
-    );
-    let mut zw = zip::ZipWriter::new(Cursor::new(Vec::new()));
-    let mut put = |name: &str, bytes: &[u8]| put_entry(&mut zw, name, bytes);
-    put("main.xml", xml.as_bytes())?;
-    put(
-        "md5checksum.hex",
-        format!("{} *main.xml\n", md5_hex(xml.as_bytes())).as_bytes(),
-    )?;
-    put("bindata/data.bin", &data)?;
-    if any_invalid {
-        put("bindata/valid.bin", &valid)?;
-    }
-    Ok(zw.finish().context("finishing the zip")?.into_inner())
+        md5 = data_md5,
+    )
 }
 
 /// Writes `s` as an X3P file, atomically.
@@ -839,4 +847,243 @@ pub fn write(path: &Path, s: &Surface) -> Result<()> {
         w.write_all(&bytes)
             .with_context(|| format!("{}: write failed", path.display()))
     })
+}
+
+/// Writes an X3P of `s`'s size, pitch and metadata (`s.heights_um` is ignored and may be
+/// empty) whose heights come from `rows(row0, n, out)`, a band of whole rows at a time, so the
+/// map is never held whole: two passes over the rows (main.xml precedes the data in the zip
+/// and carries data.bin's MD5), then data.bin straight into the file, deflated (level 1)
+/// or stored as [`write`] decides, atomically. The valid-point mask (one bit per point) is
+/// the one thing held. The content equals [`write`]'s (same main.xml, data.bin, valid.bin).
+pub fn write_by_rows(
+    path: &Path,
+    s: &Surface,
+    mut rows: impl FnMut(usize, usize, &mut Vec<f64>) -> Result<()>,
+) -> Result<()> {
+    use md5::Digest as _;
+    let ctx = || format!("{}", path.display());
+    let n = checked_size(&[s.width, s.height], "width * height").with_context(ctx)?;
+    if n == 0 {
+        bail!(
+            "{}: surface is {} x {}, expected > 0",
+            path.display(),
+            s.width,
+            s.height
+        );
+    }
+    // Rows per band: about 8 MB of f64.
+    let band = (1 << 20) / s.width.max(1) + 1;
+    let mut buf = Vec::new();
+    let mut bytes = Vec::new();
+    let mut valid = vec![0u8; n.div_ceil(8)];
+    let mut any_invalid = false;
+    let mut data_md5 = Md5::new();
+    // data.bin is stored when deflating saves less than 10 %, as `put_entry` decides: the
+    // deflated size is measured in the first pass (the zip crate deflates with this flate2).
+    let mut deflated_size =
+        flate2::write::DeflateEncoder::new(ByteCount(0), flate2::Compression::new(1));
+    let mut row0 = 0;
+    while row0 < s.height {
+        let k = band.min(s.height - row0);
+        rows(row0, k, &mut buf).with_context(ctx)?;
+        if buf.len() != k * s.width {
+            bail!(
+                "{}: rows {row0}..{} gave {} heights, expected {}",
+                path.display(),
+                row0 + k,
+                buf.len(),
+                k * s.width
+            );
+        }
+        bytes.clear();
+        bytes.extend(buf.iter().flat_map(|z| (z * 1e-6).to_le_bytes()));
+        data_md5.update(&bytes);
+        deflated_size.write_all(&bytes).with_context(ctx)?;
+        for (j, z) in buf.iter().enumerate() {
+            let i = row0 * s.width + j;
+            if z.is_nan() {
+                any_invalid = true;
+            } else {
+                valid[i / 8] |= 1 << (i % 8);
+            }
+        }
+        row0 += k;
+    }
+    let deflate = (deflated_size.finish().with_context(ctx)?.0 as f64) < 0.9 * (n * 8) as f64;
+    let xml = main_xml(
+        s,
+        &hex(&data_md5.finalize()),
+        any_invalid.then(|| md5_hex(&valid)).as_deref(),
+    );
+    surfstream_core::fsutil::write_atomic(path, |w| {
+        let mut zw = zip::ZipWriter::new(w);
+        put_entry(&mut zw, "main.xml", xml.as_bytes()).with_context(ctx)?;
+        put_entry(
+            &mut zw,
+            "md5checksum.hex",
+            format!("{} *main.xml\n", md5_hex(xml.as_bytes())).as_bytes(),
+        )
+        .with_context(ctx)?;
+        let options = if deflate {
+            zip::write::SimpleFileOptions::default()
+                .compression_method(zip::CompressionMethod::Deflated)
+                .compression_level(Some(1))
+        } else {
+            zip::write::SimpleFileOptions::default()
+                .compression_method(zip::CompressionMethod::Stored)
+        };
+        let options = options.large_file(n as u64 * 8 >= u32::MAX as u64);
+        zw.start_file("bindata/data.bin", options)
+            .with_context(|| format!("{}: zip entry bindata/data.bin", path.display()))?;
+        let mut row0 = 0;
+        while row0 < s.height {
+            let k = band.min(s.height - row0);
+            rows(row0, k, &mut buf).with_context(ctx)?;
+            bytes.clear();
+            bytes.extend(buf.iter().flat_map(|z| (z * 1e-6).to_le_bytes()));
+            zw.write_all(&bytes)
+                .with_context(|| format!("{}: write failed", path.display()))?;
+            row0 += k;
+        }
+        if any_invalid {
+            put_entry(&mut zw, "bindata/valid.bin", &valid).with_context(ctx)?;
+        }
+        zw.finish()
+            .with_context(|| format!("{}: finishing the zip", path.display()))?;
+        Ok(())
+    })
+}
+
+/// A writer that only counts the bytes.
+struct ByteCount(u64);
+
+impl Write for ByteCount {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.0 += buf.len() as u64;
+        Ok(buf.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod by_rows_tests {
+    use super::*;
+
+    fn entry(bytes: &[u8], name: &str) -> Vec<u8> {
+        let mut zip = zip::ZipArchive::new(Cursor::new(bytes)).unwrap();
+        let mut out = Vec::new();
+        zip.by_name(name).unwrap().read_to_end(&mut out).unwrap();
+        out
+    }
+
+    #[test]
+    fn written_by_rows_has_the_content_of_the_whole_write() {
+        let dir = std::env::temp_dir().join(format!("x3p-rows-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        // 300 columns: a band is 3496 rows, so 7000 rows take three bands.
+        let (w, h) = (300, 7000);
+        let heights: Vec<f64> = (0..w * h)
+            .map(|i| {
+                if i % 977 == 5 {
+                    f64::NAN
+                } else {
+                    ((i * 31 % 113) as f64).sin() * 2.5
+                }
+            })
+            .collect();
+        let s = Surface {
+            width: w,
+            height: h,
+            pitch_x_um: 0.8148,
+            pitch_y_um: 0.9,
+            heights_um: heights.clone(),
+            metadata: Metadata {
+                format: "npy".into(),
+                pitch_known: true,
+                ..Metadata::default()
+            },
+        };
+        let whole = dir.join("whole.x3p");
+        let rows = dir.join("rows.x3p");
+        write(&whole, &s).unwrap();
+        let shell = Surface {
+            heights_um: Vec::new(),
+            ..s.clone()
+        };
+        let mut reads = 0;
+        write_by_rows(&rows, &shell, |r0, n, out| {
+            reads += 1;
+            out.clear();
+            out.extend_from_slice(&heights[r0 * w..(r0 + n) * w]);
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(reads, 6, "two passes of three bands");
+        let (a, b) = (
+            std::fs::read(&whole).unwrap(),
+            std::fs::read(&rows).unwrap(),
+        );
+        for name in [
+            "main.xml",
+            "md5checksum.hex",
+            "bindata/data.bin",
+            "bindata/valid.bin",
+        ] {
+            assert!(entry(&a, name) == entry(&b, name), "{name} differs");
+        }
+        // This map deflates well: data.bin is deflated in both (the streams may differ).
+        let method = |bytes: &[u8]| {
+            let mut zip = zip::ZipArchive::new(Cursor::new(bytes.to_vec())).unwrap();
+            let m = zip.by_name("bindata/data.bin").unwrap().compression();
+            m
+        };
+        assert_eq!(method(&b), zip::CompressionMethod::Deflated);
+        assert_eq!(method(&a), method(&b));
+        // Heights that do not deflate: data.bin stored, the file the same byte for byte.
+        let noisy: Vec<f64> = (0..w * 50)
+            .map(|i| (i as f64 * 0.7123).sin() * 2.5)
+            .collect();
+        let small = Surface {
+            height: 50,
+            heights_um: noisy.clone(),
+            ..s.clone()
+        };
+        write(&whole, &small).unwrap();
+        write_by_rows(
+            &rows,
+            &Surface {
+                heights_um: Vec::new(),
+                ..small.clone()
+            },
+            |r0, n, out| {
+                out.clear();
+                out.extend_from_slice(&noisy[r0 * w..(r0 + n) * w]);
+                Ok(())
+            },
+        )
+        .unwrap();
+        let (a2, b2) = (
+            std::fs::read(&whole).unwrap(),
+            std::fs::read(&rows).unwrap(),
+        );
+        assert_eq!(method(&b2), zip::CompressionMethod::Stored);
+        assert!(a2 == b2, "zip bytes differ");
+        // The reader checks both MD5s and gives the heights back.
+        let back = parse(&b).unwrap();
+        assert_eq!((back.width, back.height), (w, h));
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&back.heights_um), bits(&parse(&a).unwrap().heights_um));
+        assert_eq!(
+            back.heights_um.iter().filter(|v| v.is_nan()).count(),
+            7000 * 300 / 977 + 1
+        );
+        // A source that fails names the file and leaves nothing behind.
+        let bad = dir.join("bad.x3p");
+        let e = write_by_rows(&bad, &shell, |_, _, _| Err(anyhow!("disk gone"))).unwrap_err();
+        assert!(format!("{e:#}").contains("bad.x3p"), "{e:#}");
+        assert!(!bad.exists());
+        std::fs::remove_dir_all(&dir).ok();
+    }
 }
