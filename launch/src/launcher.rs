@@ -59,6 +59,9 @@ fn prepare(graph: &mut GraphFile, staged: &outdir::StagedOut) -> Result<Vec<Node
         .map(|d| d.as_nanos() as u64)
         .unwrap_or(0);
     let mut contexts = graph.resolve(scan_id, &crate::nodes::registry())?;
+    // This process runs every node under `run`, and the Table 6 pass under both.
+    let budget = contexts.first().and_then(|c| c.memory_budget_bytes);
+    surfstream_runtime::memory::return_freed_buffers(budget);
     crate::progress::attach_observer(&mut contexts);
     write_resolved(&staged.staging, &contexts)?;
     Ok(contexts)
