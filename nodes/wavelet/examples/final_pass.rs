@@ -88,7 +88,7 @@ fn main() -> Result<()> {
         "streamed" => {
             final_separation_with(
                 &settings,
-                &pano,
+                pano.view(),
                 FinalRequest {
                     files: write.then_some(&mut w),
                     publish_datum: false,

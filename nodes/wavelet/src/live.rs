@@ -18,7 +18,7 @@
 use anyhow::{anyhow, bail, Result};
 use serde_json::json;
 use surfstream_core::canvas::GridRect;
-use surfstream_core::frame::{flags, FrameHeader, FrameKind, HeightMap};
+use surfstream_core::frame::{flags, FrameHeader, FrameKind, FrameView, HeightMap};
 use surfstream_core::raster::{RasterView, Shape};
 use surfstream_io::output::{NpyHeights, OutputWriter, SurfaceOutput};
 
@@ -470,7 +470,7 @@ pub fn final_separation(
     };
     final_separation_with(
         settings,
-        panorama,
+        panorama.view(),
         FinalRequest {
             files,
             publish_datum: true,
@@ -491,15 +491,16 @@ pub fn final_pass_streams(settings: &SeparationSettings) -> bool {
 
 /// The exact separation of the final panorama; with a writer, also `datum`, `roughness` and
 /// `pooled` as .npy + .png (datum and pooled absolute f64: they carry the panorama's offset;
-/// roughness relative f32: it has none by nature). A named wavelet at a fixed / default
+/// roughness relative f32: it has none by nature). Borrows the panorama (the received
+/// frame itself: no copy of it is made). A named wavelet at a fixed / default
 /// level streams ([`final_pass_streams`]): memory is a band of rows plus the panorama, and
 /// the datum / roughness frames are built only when asked for.
 pub fn final_separation_with(
     settings: &SeparationSettings,
-    panorama: &HeightMap,
+    panorama: FrameView<'_>,
     req: FinalRequest<'_>,
 ) -> Result<FinalSeparation> {
-    let h = panorama.header;
+    let h = *panorama.header;
     let (rows, cols) = (h.height as usize, h.width as usize);
     let FinalRequest {
         mut files,
@@ -510,7 +511,7 @@ pub fn final_separation_with(
     let mut written = Vec::new();
     let (datum, roughness, pooled, mut summary) = match (settings.method, settings.base) {
         (SeparationMethod::Wavelet, BaseChoice::Named(w)) if final_pass_streams(settings) => {
-            let heights = &panorama.heights;
+            let heights = panorama.heights;
             if heights.len() != rows * cols {
                 bail!(
                     "wavelet: panorama frame holds {} heights, its header says {rows} x {cols}",
@@ -595,7 +596,7 @@ pub fn final_separation_with(
         }
         (SeparationMethod::Wavelet, _) => {
             let analysis = analyse(
-                &panorama.heights,
+                panorama.heights,
                 rows,
                 cols,
                 settings.base,
@@ -626,10 +627,10 @@ pub fn final_separation_with(
                 pitch_x_um: h.pitch_x_um,
                 pitch_y_um: h.pitch_y_um,
             };
-            let s = filter_separation(&panorama.heights, grid, method, settings.lambda_s_um)
+            let s = filter_separation(panorama.heights, grid, method, settings.lambda_s_um)
                 .map_err(|e| anyhow!("wavelet: {} separation: {e}", method.name()))?;
             let pooled = pool(
-                &panorama.heights,
+                panorama.heights,
                 rows,
                 cols,
                 settings.pool_block,
@@ -646,7 +647,7 @@ pub fn final_separation_with(
                 "pool": settings.pool_block,
                 "pool_op": settings.pool_op.name(),
                 "pooled_px": [pooled.cols, pooled.rows],
-                "pooling_bias": pooling_bias(&panorama.heights, &pooled.heights),
+                "pooling_bias": pooling_bias(panorama.heights, &pooled.heights),
             });
             let title = format!("datum, {} lambda_c {cutoff} um (um)", method.name());
             if let Some(fw) = files.as_deref_mut() {
@@ -1097,7 +1098,7 @@ mod tests {
         let mut w = OutputWriter::new(dir.path());
         let f = final_separation_with(
             &settings(),
-            &pano,
+            pano.view(),
             FinalRequest {
                 files: Some(&mut w),
                 publish_datum: false,

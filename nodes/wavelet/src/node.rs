@@ -1,14 +1,16 @@
 //! The wavelet node: maps frames to [`LiveSeparation`] and [`final_separation`] calls.
 //!
 //! Panorama patches go into the live separation as they arrive; each wake-up publishes one
-//! live pass over what changed (flag PREVIEW). At end of scan the final panorama gets the
-//! exact pass, written to the out dir and published with FINAL. The whole datum / roughness
+//! live pass over what changed (flag PREVIEW). The final panorama gets the exact pass as it
+//! arrives, on the received frame itself (no copy: under `launch` it is read from shared
+//! memory, under `run` from the fusion's own buffer), written to the out dir and published
+//! with FINAL; the end-of-scan markers follow at end of scan. The whole datum / roughness
 //! frames are built and published only when the graph wires a consumer to that port (the
 //! demo wires only `pooled`): the streamed final pass never holds them otherwise.
 
 use anyhow::{anyhow, bail, Result};
 use serde_json::json;
-use surfstream_core::frame::{flags, FrameKind, HeightMap};
+use surfstream_core::frame::{flags, FrameKind, FrameView};
 use surfstream_io::output::OutputWriter;
 use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
@@ -28,7 +30,9 @@ pub struct WaveletNode {
     publish_roughness: bool,
     /// Level stores of the streamed final pass go beside the outputs (the staging out dir).
     spill_dir: std::path::PathBuf,
-    final_panorama: Option<HeightMap>,
+    /// The final panorama's tile index and acquisition time, once its pass has run (the
+    /// end-of-scan markers carry them).
+    final_stamp: Option<(u32, u64)>,
     ended: bool,
     done: bool,
     live_patches: u64,
@@ -52,7 +56,7 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
         settings,
         publish_live: p.live,
         files: p.write_files.then(|| OutputWriter::new(&ctx.out_dir)),
-        final_panorama: None,
+        final_stamp: None,
         ended: false,
         done: false,
         live_patches: 0,
@@ -61,6 +65,33 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
 }
 
 impl WaveletNode {
+    /// The exact pass over the final panorama, borrowed from the input; its frames go out now.
+    fn final_pass(&mut self, pano: FrameView<'_>, out: &mut Outbox) -> Result<()> {
+        if self.final_stamp.is_some() {
+            bail!("wavelet: a second final panorama in one scan");
+        }
+        let request = FinalRequest {
+            files: self.files.as_mut(),
+            publish_datum: self.publish_datum,
+            publish_roughness: self.publish_roughness,
+            stream: StreamOptions {
+                spill_dir: Some(self.spill_dir.clone()),
+                ..StreamOptions::default()
+            },
+        };
+        let f = final_separation_with(&self.settings, pano, request)?;
+        self.summary = f.summary;
+        if let Some(datum) = f.datum {
+            out.send_frame("datum", datum);
+        }
+        if let Some(roughness) = f.roughness {
+            out.send_frame("roughness", roughness);
+        }
+        out.send_frame("pooled", f.pooled);
+        self.final_stamp = Some((pano.header.tile_index, pano.header.t_acquired_ns));
+        Ok(())
+    }
+
     /// One live pass over what changed, published (when live passes are on).
     fn publish_live_pass(&mut self, out: &mut Outbox) -> Result<()> {
         if !(self.publish_live && self.live.has_changes()) {
@@ -90,12 +121,12 @@ impl NodeLogic for WaveletNode {
         match f.header.kind() {
             Some(FrameKind::PanoramaPatch) => self.live.apply_patch(f.header, f.heights)?,
             Some(FrameKind::Panorama) => {
-                // The last live patches go out now and the live mirror (a whole f32 copy of
-                // the panorama, with growth room) is freed before the final panorama is
-                // copied: the node never holds both.
+                // The last live patches go out now and the live mirror (an f32 copy of the
+                // panorama in chunks) is freed before the final pass: the node never holds
+                // both, and it never copies the final panorama.
                 self.publish_live_pass(out)?;
                 self.live.release_mirror();
-                self.final_panorama = Some(f.to_owned());
+                self.final_pass(f, out)?;
             }
             other => {
                 bail!("wavelet: input '{port}' carries {other:?} frames, expected panorama patches")
@@ -105,34 +136,13 @@ impl NodeLogic for WaveletNode {
     }
 
     fn on_drained(&mut self, out: &mut Outbox) -> Result<()> {
-        // Live patches of the last tiles go out first; the final pass runs on the next call.
+        // Live patches of the last tiles go out first; then the end-of-scan markers.
         if self.publish_live && self.live.has_changes() {
             self.publish_live_pass(out)?;
         } else if self.ended && !self.done {
-            let pano = self
-                .final_panorama
-                .take()
+            let (tile, t_ns) = self
+                .final_stamp
                 .ok_or_else(|| anyhow!("wavelet: end of scan without a final panorama"))?;
-            let request = FinalRequest {
-                files: self.files.as_mut(),
-                publish_datum: self.publish_datum,
-                publish_roughness: self.publish_roughness,
-                stream: StreamOptions {
-                    spill_dir: Some(self.spill_dir.clone()),
-                    ..StreamOptions::default()
-                },
-            };
-            let f = final_separation_with(&self.settings, &pano, request)?;
-            let (tile, t_ns) = (pano.header.tile_index, pano.header.t_acquired_ns);
-            drop(pano);
-            self.summary = f.summary;
-            if let Some(datum) = f.datum {
-                out.send_frame("datum", datum);
-            }
-            if let Some(roughness) = f.roughness {
-                out.send_frame("roughness", roughness);
-            }
-            out.send_frame("pooled", f.pooled);
             for port in ["datum", "roughness", "pooled"] {
                 out.end_frames(port, tile, t_ns);
             }
