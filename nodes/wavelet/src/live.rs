@@ -15,6 +15,11 @@
 //! built as whole frames only when a consumer is wired to the port. Base by RMSE, level by
 //! minimum energy and the ISO filter methods (FFT over the whole map) keep the in-memory path.
 
+use std::collections::HashMap;
+use std::fs::File;
+use std::os::unix::fs::FileExt;
+use std::path::PathBuf;
+
 use anyhow::{anyhow, bail, Result};
 use serde_json::json;
 use surfstream_core::canvas::GridRect;
@@ -72,7 +77,7 @@ impl SeparationSettings {
 }
 
 /// The panorama as far as patches told it, on the grid of the first patch.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 struct PanoramaMirror {
     anchor_um: [f64; 2],
     pitch_um: [f64; 2],
@@ -87,10 +92,33 @@ const MIRROR_CHUNK: i64 = 256;
 
 /// Heights on an unbounded grid in fixed `MIRROR_CHUNK`² chunks created as patches cover them:
 /// memory follows the covered area (about 4 B/px), and growing never copies (a growing
-/// array would hold up to ~2.25x the area, and old + new while it reallocates).
-#[derive(Debug, Clone, Default)]
+/// array would hold up to ~2.25x the area, and old + new while it reallocates). Under a
+/// memory budget ([`LiveSeparation::limit_mirror`]) at most `limit` chunks stay in memory: the
+/// least recently used go to an unnamed spill file (exact bits; slot `k` at byte
+/// `k * MIRROR_CHUNK_BYTES`, native-endian f32, a chunk keeps its slot) and come back when a
+/// patch or a live window touches them. A live window is a patch plus its margin, far
+/// smaller than the budget, so the chunks a scan has left behind are the ones that go.
+#[derive(Debug, Default)]
 struct ChunkedHeights {
-    chunks: std::collections::HashMap<(i64, i64), Box<[f32]>>,
+    chunks: HashMap<(i64, i64), Box<[f32]>>,
+    /// Last use of each resident chunk (a counter), for the eviction order.
+    used: HashMap<(i64, i64), u64>,
+    clock: u64,
+    /// Most chunks kept in memory; `None`: all.
+    limit: Option<usize>,
+    /// Where the spill file goes (created at the first eviction).
+    spill_dir: Option<PathBuf>,
+    spill: Option<MirrorSpill>,
+}
+
+/// Bytes of one mirror chunk.
+const MIRROR_CHUNK_BYTES: u64 = (MIRROR_CHUNK * MIRROR_CHUNK) as u64 * 4;
+
+#[derive(Debug)]
+struct MirrorSpill {
+    file: File,
+    dir: PathBuf,
+    slots: HashMap<(i64, i64), u64>,
 }
 
 impl ChunkedHeights {
@@ -117,16 +145,114 @@ impl ChunkedHeights {
         })
     }
 
+    /// Keep at most `limit` chunks in memory, spilling the rest into an unnamed file in `dir`.
+    fn set_limit(&mut self, limit: usize, dir: PathBuf) {
+        self.limit = Some(limit.max(1));
+        self.spill_dir = Some(dir);
+    }
+
+    /// Chunk `key` in memory (read back from the spill file if it went there), if it exists.
+    fn load(&mut self, key: (i64, i64)) -> Result<bool> {
+        self.clock += 1;
+        if self.chunks.contains_key(&key) {
+            self.used.insert(key, self.clock);
+            return Ok(true);
+        }
+        let Some(spill) = &self.spill else {
+            return Ok(false);
+        };
+        let Some(&slot) = spill.slots.get(&key) else {
+            return Ok(false);
+        };
+        let mut bytes = vec![0u8; MIRROR_CHUNK_BYTES as usize];
+        spill
+            .file
+            .read_exact_at(&mut bytes, slot * MIRROR_CHUNK_BYTES)
+            .map_err(|e| {
+                anyhow!(
+                    "wavelet: cannot read the live mirror's spill file in {}: {e}",
+                    spill.dir.display()
+                )
+            })?;
+        let chunk: Box<[f32]> = bytes
+            .chunks_exact(4)
+            .map(|b| f32::from_ne_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        self.chunks.insert(key, chunk);
+        self.used.insert(key, self.clock);
+        Ok(true)
+    }
+
+    /// Spills least recently used chunks until at most the limit stay, never one in `keep`.
+    fn evict(&mut self, keep: GridRect) -> Result<()> {
+        let Some(limit) = self.limit else {
+            return Ok(());
+        };
+        while self.chunks.len() > limit {
+            let kept: std::collections::HashSet<(i64, i64)> =
+                Self::pieces(keep).map(|(k, _)| k).collect();
+            let Some((&key, _)) = self
+                .used
+                .iter()
+                .filter(|(k, _)| !kept.contains(k))
+                .min_by_key(|(_, &t)| t)
+            else {
+                return Ok(());
+            };
+            if self.spill.is_none() {
+                let dir = self.spill_dir.clone().unwrap_or_else(std::env::temp_dir);
+                let file = tempfile::tempfile_in(&dir).map_err(|e| {
+                    anyhow!(
+                        "wavelet: cannot create the live mirror's spill file in {}: {e}",
+                        dir.display()
+                    )
+                })?;
+                self.spill = Some(MirrorSpill {
+                    file,
+                    dir,
+                    slots: HashMap::new(),
+                });
+            }
+            let Some(spill) = self.spill.as_mut() else {
+                return Ok(());
+            };
+            let Some(chunk) = self.chunks.remove(&key) else {
+                return Ok(());
+            };
+            self.used.remove(&key);
+            let next = spill.slots.len() as u64;
+            let slot = *spill.slots.entry(key).or_insert(next);
+            let bytes: Vec<u8> = chunk.iter().flat_map(|v| v.to_ne_bytes()).collect();
+            spill
+                .file
+                .write_all_at(&bytes, slot * MIRROR_CHUNK_BYTES)
+                .map_err(|e| {
+                    anyhow!(
+                        "wavelet: cannot write the live mirror's spill file in {}: {e}",
+                        spill.dir.display()
+                    )
+                })?;
+        }
+        Ok(())
+    }
+
     /// Copies row-major `values` (`rect`'s size, checked by the caller) into `rect`.
-    fn write(&mut self, rect: GridRect, values: &[f32]) {
+    fn write(&mut self, rect: GridRect, values: &[f32]) -> Result<()> {
         if rect.cols() == 0 || rect.rows() == 0 {
-            return;
+            return Ok(());
         }
         let w = rect.cols();
         for ((cx, cy), part) in Self::pieces(rect) {
-            let chunk = self.chunks.entry((cx, cy)).or_insert_with(|| {
-                vec![f32::NAN; (MIRROR_CHUNK * MIRROR_CHUNK) as usize].into_boxed_slice()
-            });
+            if !self.load((cx, cy))? {
+                self.chunks.insert(
+                    (cx, cy),
+                    vec![f32::NAN; (MIRROR_CHUNK * MIRROR_CHUNK) as usize].into_boxed_slice(),
+                );
+                self.used.insert((cx, cy), self.clock);
+            }
+            let Some(chunk) = self.chunks.get_mut(&(cx, cy)) else {
+                continue;
+            };
             let n = part.cols();
             for y in part.y0..part.y1 {
                 let src = (y - rect.y0) as usize * w + (part.x0 - rect.x0) as usize;
@@ -135,16 +261,20 @@ impl ChunkedHeights {
                 chunk[dst..dst + n].copy_from_slice(&values[src..src + n]);
             }
         }
+        self.evict(rect)
     }
 
     /// The heights in `rect`, row-major; NaN where no patch wrote.
-    fn read(&self, rect: GridRect) -> Vec<f32> {
+    fn read(&mut self, rect: GridRect) -> Result<Vec<f32>> {
         let w = rect.cols();
         let mut out = vec![f32::NAN; w * rect.rows()];
         if out.is_empty() {
-            return out;
+            return Ok(out);
         }
         for ((cx, cy), part) in Self::pieces(rect) {
+            if !self.load((cx, cy))? {
+                continue;
+            }
             let Some(chunk) = self.chunks.get(&(cx, cy)) else {
                 continue;
             };
@@ -156,7 +286,8 @@ impl ChunkedHeights {
                 out[dst..dst + n].copy_from_slice(&chunk[src..src + n]);
             }
         }
-        out
+        self.evict(rect)?;
+        Ok(out)
     }
 }
 
@@ -211,7 +342,7 @@ impl PanoramaMirror {
                 h.width
             );
         }
-        self.heights.write(r, heights);
+        self.heights.write(r, heights)?;
         self.extent = Some(extent);
         Ok(r)
     }
@@ -242,7 +373,7 @@ pub struct LivePatches {
 }
 
 /// The live separation of a growing panorama.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 pub struct LiveSeparation {
     method: SeparationMethod,
     lambda_s_um: Option<f64>,
@@ -253,6 +384,8 @@ pub struct LiveSeparation {
     pool_op: PoolOp,
     margin_px: usize,
     mirror: Option<PanoramaMirror>,
+    /// Mirror chunks kept in memory and the spill folder for the rest (under a budget).
+    mirror_limit: Option<(usize, PathBuf)>,
     /// Grid region changed since the last live pass.
     dirty: Option<GridRect>,
     /// Latest tile and oldest acquisition time among the patches not yet served.
@@ -272,9 +405,20 @@ impl LiveSeparation {
             pool_op: settings.pool_op,
             margin_px,
             mirror: None,
+            mirror_limit: None,
             dirty: None,
             trace: None,
         })
+    }
+
+    /// Keep at most `bytes` of the mirror in memory; the rest goes to an unnamed file in
+    /// `spill_dir` (see `ChunkedHeights`). Bit-exact: live passes are the same.
+    pub fn limit_mirror(&mut self, bytes: u64, spill_dir: PathBuf) {
+        let chunks = (bytes / MIRROR_CHUNK_BYTES).max(1) as usize;
+        if let Some(m) = &mut self.mirror {
+            m.heights.set_limit(chunks, spill_dir.clone());
+        }
+        self.mirror_limit = Some((chunks, spill_dir));
     }
 
     /// Frees the mirror (a whole f32 copy of the panorama) once the final panorama is here
@@ -287,9 +431,14 @@ impl LiveSeparation {
 
     /// Folds a panorama patch into the mirror and marks its region changed.
     pub fn apply_patch(&mut self, header: &FrameHeader, heights: &[f32]) -> Result<()> {
-        let m = self
-            .mirror
-            .get_or_insert_with(|| PanoramaMirror::new(header));
+        let limit = self.mirror_limit.clone();
+        let m = self.mirror.get_or_insert_with(|| {
+            let mut m = PanoramaMirror::new(header);
+            if let Some((chunks, dir)) = limit {
+                m.heights.set_limit(chunks, dir);
+            }
+            m
+        });
         let r = m.apply(header, heights)?;
         self.dirty = Some(self.dirty.map_or(r, |d| d.union(&r)));
         let t = self
@@ -309,7 +458,7 @@ impl LiveSeparation {
     /// even level 1 (the final pass covers it).
     pub fn live_pass(&mut self) -> Result<Option<LivePatches>> {
         let (Some(m), Some(dirty), Some((tile, t_acq))) =
-            (&self.mirror, self.dirty.take(), self.trace.take())
+            (&mut self.mirror, self.dirty.take(), self.trace.take())
         else {
             return Ok(None);
         };
@@ -327,7 +476,7 @@ impl LiveSeparation {
         else {
             return Ok(None);
         };
-        let heights = m.heights.read(window);
+        let heights = m.heights.read(window)?;
         if heights.iter().all(|z| z.is_nan()) {
             return Ok(None);
         }
@@ -406,7 +555,7 @@ impl LiveSeparation {
         {
             Some(a) => {
                 let p = pool(
-                    &m.heights.read(a),
+                    &m.heights.read(a)?,
                     a.rows(),
                     a.cols(),
                     self.pool_block,
@@ -829,7 +978,7 @@ mod tests {
         for (x0, y0, v) in [(-5, 0, 2.0), (0, -4, 3.0), (6, 5, 4.0), (2, 1, 5.0)] {
             let p = patch(x0, y0, 4, 3, |_, _| v);
             let r = m.apply(&p.header, &p.heights).unwrap();
-            assert_eq!(m.heights.read(r), p.heights);
+            assert_eq!(m.heights.read(r).unwrap(), p.heights);
         }
         let extent = m.extent.unwrap();
         assert_eq!(
@@ -842,21 +991,51 @@ mod tests {
             }
         );
         assert_eq!(
-            m.heights.read(GridRect {
-                x0: 0,
-                y0: 0,
-                x1: 2,
-                y1: 1
-            }),
+            m.heights
+                .read(GridRect {
+                    x0: 0,
+                    y0: 0,
+                    x1: 2,
+                    y1: 1
+                })
+                .unwrap(),
             vec![1.0, 1.0]
         );
-        assert!(m.heights.read(GridRect {
-            x0: 9,
-            y0: -4,
-            x1: 10,
-            y1: -3
-        })[0]
+        assert!(m
+            .heights
+            .read(GridRect {
+                x0: 9,
+                y0: -4,
+                x1: 10,
+                y1: -3
+            })
+            .unwrap()[0]
             .is_nan());
+    }
+
+    #[test]
+    fn a_mirror_limited_to_a_few_chunks_spills_and_reads_back_every_bit() {
+        let dir = std::env::temp_dir();
+        let mut limited = ChunkedHeights::default();
+        limited.set_limit(3, dir);
+        let mut whole = ChunkedHeights::default();
+        // Overlapping patches across many chunks, each later one partly over earlier ones.
+        for k in 0..12i64 {
+            let r = GridRect::at(k * 150 - 400, (k % 3) * 170 - 90, Shape::new(300, 330));
+            let v: Vec<f32> = (0..300 * 330)
+                .map(|i| (i as f32).sin() + k as f32)
+                .collect();
+            limited.write(r, &v).unwrap();
+            whole.write(r, &v).unwrap();
+            assert!(limited.chunks.len() <= 3.max(ChunkedHeights::pieces(r).count()));
+        }
+        assert!(limited.spill.is_some(), "nothing was spilled");
+        let win = GridRect::at(-450, -120, Shape::new(700, 2200));
+        let (a, b) = (limited.read(win).unwrap(), whole.read(win).unwrap());
+        assert_eq!(
+            a.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+            b.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+        );
     }
 
     #[test]
@@ -864,14 +1043,14 @@ mod tests {
         let mut c = ChunkedHeights::default();
         let a = GridRect::at(-300, -20, Shape::new(600, 700));
         let va: Vec<f32> = (0..600 * 700).map(|i| i as f32).collect();
-        c.write(a, &va);
-        assert_eq!(c.read(a), va);
+        c.write(a, &va).unwrap();
+        assert_eq!(c.read(a).unwrap(), va);
         let b = GridRect::at(200, 250, Shape::new(10, 300));
         let vb = vec![-1.0f32; 3000];
-        c.write(b, &vb);
+        c.write(b, &vb).unwrap();
         // A window over both and beyond: b on top of a, NaN where nothing was written.
         let win = GridRect::at(-310, -30, Shape::new(700, 900));
-        let got = c.read(win);
+        let got = c.read(win).unwrap();
         for (i, v) in got.iter().enumerate() {
             let (x, y) = (win.x0 + (i % 900) as i64, win.y0 + (i / 900) as i64);
             let inside = |r: &GridRect| x >= r.x0 && x < r.x1 && y >= r.y0 && y < r.y1;

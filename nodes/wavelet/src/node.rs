@@ -48,11 +48,16 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
             .iter()
             .any(|o| o.port == port && o.subscribers > 0)
     };
+    let mut live = LiveSeparation::new(&settings, p.live_margin_px)?;
+    if let Some(budget) = ctx.memory_budget_bytes {
+        // A quarter of the budget, as the fusion's chunks: the rest is the final frame's.
+        live.limit_mirror(budget / 4, ctx.out_dir.clone());
+    }
     Ok(Box::new(WaveletNode {
         publish_datum: wired("datum"),
         publish_roughness: wired("roughness"),
         spill_dir: ctx.out_dir.clone(),
-        live: LiveSeparation::new(&settings, p.live_margin_px)?,
+        live,
         settings,
         publish_live: p.live,
         files: p.write_files.then(|| OutputWriter::new(&ctx.out_dir)),
