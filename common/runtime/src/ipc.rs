@@ -918,13 +918,16 @@ fn send_all(
 ) -> Result<()> {
     for (port, mut msg) in outbox.take() {
         let o = stamp_for_port(ctx, outs, &port, &mut msg)?;
-        let receivers = match (&o.sender, &msg) {
+        let receivers = match (&o.sender, &mut msg) {
             (Sender::Frames(_, publisher), Output::Frame(f)) => {
                 let mut sample = publisher.loan_slice_uninit(f.heights.len()).map_err(|e| {
                     anyhow!("output '{port}': cannot loan {} heights: {e:?}", f.heights.len())
                 })?;
                 *sample.user_header_mut() = f.header;
-                let sample = sample.write_from_slice(&f.heights);
+                copy_releasing_source(&mut f.heights, sample.payload_mut());
+                // SAFETY: copy_releasing_source wrote every element (equal lengths: the loan
+                // was made for f.heights.len()).
+                let sample = unsafe { sample.assume_init() };
                 sample.send()
             }
             (Sender::Registrations(_, publisher), Output::Registration(r)) => {
@@ -956,6 +959,50 @@ fn send_all(
     Ok(())
 }
 
+/// Heights copied per band by [`copy_releasing_source`] (16 MiB).
+const RELEASE_BAND: usize = 1 << 22;
+
+/// Copies a frame's heights into its loaned sample band by band, handing each copied band's
+/// whole pages back to the system (`MADV_DONTNEED`: they read as zero afterwards). The frame is
+/// dropped right after the send, so its values are not needed again; without this, a final
+/// panorama (4 B/px) existed twice, in the node's memory and in shared memory, at the peak.
+fn copy_releasing_source(src: &mut [f32], dst: &mut [std::mem::MaybeUninit<f32>]) {
+    for (s, d) in src
+        .chunks_mut(RELEASE_BAND)
+        .zip(dst.chunks_mut(RELEASE_BAND))
+    {
+        for (d, &v) in d.iter_mut().zip(s.iter()) {
+            d.write(v);
+        }
+        release_pages(s);
+    }
+}
+
+/// Returns the whole pages inside `values` to the system; they read as 0.0 afterwards.
+fn release_pages(values: &mut [f32]) {
+    // SAFETY: sysconf has no preconditions.
+    let page = match usize::try_from(unsafe { libc::sysconf(libc::_SC_PAGESIZE) }) {
+        Ok(p) if p > 0 => p,
+        _ => return,
+    };
+    let start = values.as_mut_ptr() as usize;
+    let end = start + std::mem::size_of_val(values);
+    let (first, last) = (start.div_ceil(page) * page, end / page * page);
+    if last > first {
+        // SAFETY: [first, last) lies inside `values`, which we borrow mutably, in private
+        // anonymous memory (the heap or a mapping of its own); MADV_DONTNEED makes those pages
+        // read as zero, a valid f32, and touches nothing outside them (the allocator's own
+        // bookkeeping sits outside the slice).
+        unsafe {
+            libc::madvise(
+                first as *mut libc::c_void,
+                last - first,
+                libc::MADV_DONTNEED,
+            );
+        }
+    }
+}
+
 /// Convenience for a node binary: context check of the domain prefix format.
 pub fn validate_prefix(prefix: &str) -> Result<()> {
     if prefix.is_empty()
@@ -967,4 +1014,29 @@ pub fn validate_prefix(prefix: &str) -> Result<()> {
         bail!("--domain {prefix:?}: expected 1-32 characters of [A-Za-z0-9_]");
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod release_tests {
+    use super::*;
+
+    #[test]
+    fn a_frame_copied_into_its_sample_arrives_whole_and_its_source_pages_go_back() {
+        let n = RELEASE_BAND * 2 + 12345;
+        let mut src: Vec<f32> = (0..n).map(|i| i as f32 * 0.25 - 7.0).collect();
+        let want = src.clone();
+        let mut dst = vec![std::mem::MaybeUninit::<f32>::uninit(); n];
+        copy_releasing_source(&mut src, &mut dst);
+        // SAFETY: every element was written.
+        let got: Vec<f32> = dst.iter().map(|v| unsafe { v.assume_init() }).collect();
+        assert_eq!(got, want);
+        // The whole pages inside each band were released: they read as zero now (read
+        // volatile: the compiler cannot know that madvise changed them). A band's partial
+        // first and last pages keep their values.
+        let released = src[RELEASE_BAND / 2..RELEASE_BAND / 2 + 4096]
+            .iter()
+            // SAFETY: a reference to an initialised f32.
+            .all(|v| unsafe { std::ptr::read_volatile(v) } == 0.0);
+        assert!(released);
+    }
 }
