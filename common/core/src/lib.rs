@@ -12,6 +12,7 @@ pub mod fft;
 pub mod filter;
 pub mod frame;
 pub mod fsutil;
+pub mod liveness;
 pub mod metrology;
 pub mod plane;
 pub mod raster;

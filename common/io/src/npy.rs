@@ -109,7 +109,10 @@ fn write_npy<T: Copy>(
         w.write_all(&header)
             .with_context(|| format!("{}: write failed", path.display()))?;
         let mut buf = Vec::with_capacity(8192 * 8);
-        for chunk in data.chunks(8192) {
+        for (k, chunk) in data.chunks(8192).enumerate() {
+            if k % 4096 == 0 {
+                surfstream_core::liveness::beat();
+            }
             buf.clear();
             for &v in chunk {
                 put(v, &mut buf);

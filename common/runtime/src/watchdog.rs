@@ -65,6 +65,8 @@ pub fn install(out_dir: &Path, node_id: &str) -> Result<()> {
         epoch: Instant::now(),
         last_ns: AtomicU64::new(0),
     });
+    // Long computations in the algorithm crates beat through the core's hook.
+    surfstream_core::liveness::set_hook(beat);
     Ok(())
 }
 

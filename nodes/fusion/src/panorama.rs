@@ -630,6 +630,7 @@ impl Panorama {
         while y0 < grid.y1 {
             let y1 = ((y0.div_euclid(c) + 1) * c).min(grid.y1);
             let band = GridRect { y0, y1, ..grid };
+            surfstream_core::liveness::beat();
             let (mean, weight) = self.store.read_rect(&band)?;
             let first = (y0 - grid.y0) as usize;
             let out_band = &mut out[first * region.width..(y1 - grid.y0) as usize * region.width];

@@ -338,6 +338,7 @@ impl StreamingFusion {
             for (t, reg) in &positions {
                 let tile = self.load(t)?;
                 fresh.place(tile_input(&tile, reg)?)?;
+                surfstream_core::liveness::beat();
             }
             self.panorama = Some(fresh);
         }
@@ -356,6 +357,7 @@ impl StreamingFusion {
             .collect();
         let pairs = overlap_quality_streamed(final_pano, &footprints, |k| {
             let (t, reg) = &positions[k];
+            surfstream_core::liveness::beat();
             let tile = self.load(t).map_err(|e| crate::FusionError::Spill {
                 message: e.to_string(),
             })?;

@@ -93,6 +93,7 @@ pub fn write_zarr_abs_f64(
         let row_dir = partial.join("c").join(bi.to_string());
         let mut made = false;
         for bj in 0..cols.div_ceil(c) {
+            surfstream_core::liveness::beat();
             buf.clear();
             let mut measured = false;
             for r in bi * c..(bi + 1) * c {

@@ -568,6 +568,7 @@ pub fn solve_planes_in<T: PlaneTiles>(
     let half = centre.0.max(centre.1).max(1.0);
     let mut blocks: Vec<PairBlock> = Vec::with_capacity(pairs.len());
     for &(a, b) in pairs {
+        surfstream_core::liveness::beat();
         let offset = [
             positions_px[b][0] - positions_px[a][0],
             positions_px[b][1] - positions_px[a][1],

@@ -249,6 +249,7 @@ pub fn mesh_streaming(
     let mut below: Vec<[u32; 3]> = Vec::new();
     let mut rest: &mut [f32] = &mut resampled_um;
     for j0 in (0..nby).step_by(BANDS_AT_ONCE) {
+        surfstream_core::liveness::beat();
         let j1 = (j0 + BANDS_AT_ONCE).min(nby);
         let parts: Vec<BlockPart> = (j0 * nbx..j1 * nbx)
             .into_par_iter()
@@ -546,6 +547,7 @@ impl StreamedMesh {
         let (mut degenerate, mut volume6) = (0usize, 0.0f64);
         let place = &self.place;
         while left > 0 {
+            surfstream_core::liveness::beat();
             let n = left.min(READ_TRIANGLES);
             reader
                 .read_exact(&mut bytes[..n * 12])
@@ -715,6 +717,7 @@ pub fn grid_streaming(
     let mut topology = Topology::default();
     let group = (GRID_CHECK_CELLS / cols).max(1);
     for r0 in (0..rows - 1).step_by(group) {
+        surfstream_core::liveness::beat();
         let r1 = (r0 + group).min(rows - 1);
         let mut edges: Vec<Edge> = std::mem::take(&mut topology.pending);
         let mut sorted = Vec::with_capacity((r1 - r0) * (cols - 1) * 2);

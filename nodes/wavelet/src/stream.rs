@@ -316,6 +316,7 @@ fn dec_step(
     let mut energy = StepEnergy::default();
     let sq = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>();
     for k0 in (0..r2).step_by(band) {
+        surfstream_core::liveness::beat();
         let k1 = (k0 + band).min(r2);
         let rows = BandRows::gather(src, k.dec_rows_needed(k0, k1, src.rows()))?;
         let n = (k1 - k0) * c2;
@@ -362,6 +363,7 @@ fn rec_step(
     let mut out = Vec::new();
     let mut kept = Vec::new();
     for n0 in (0..want.0).step_by(band) {
+        surfstream_core::liveness::beat();
         let n1 = (n0 + band).min(want.0);
         let rows = BandRows::gather(src, k.rec_rows_needed(n0, n1, src.rows))?;
         out.clear();
