@@ -421,3 +421,17 @@ def test_cli_missing_is_a_clear_error(monkeypatch, tmp_path):
     monkeypatch.setenv("SURFSTREAM_CLI", str(tmp_path / "absent"))
     with pytest.raises(ss.CliError, match="SURFSTREAM_CLI"):
         ss.run("g.toml", tmp_path / "o")
+
+
+# -- the documentation's example runs as written ---------------------------------------------------
+
+
+@needs_specimens
+def test_docs_example_runs(tmp_path, monkeypatch):
+    doc = (REPO / "docs" / "python.md").read_text()
+    code = doc.split("```python\n", 1)[1].split("```", 1)[0]
+    monkeypatch.chdir(tmp_path)
+    code = code.replace('"measurement.x3p"', repr(str(SPECIMENS / "x3p-2.x3p")))
+    exec(compile(code, "docs/python.md", "exec"), {})
+    assert (tmp_path / "datum.stl").stat().st_size > 84
+    assert ss.read(tmp_path / "datum.x3p").shape == (650, 650)

@@ -172,8 +172,10 @@ def stitch(
     ``scan``: a scan directory (scan.toml), a scan.toml, a .mcap recording, or a folder of
     tiles (with ``grid``, or tiles that store their stage positions); or a sequence of tile
     files, Surfaces or 2-D arrays in acquisition order with ``grid=(rows, cols)`` and
-    ``overlap`` (fraction of a field, e.g. 0.2); arrays need ``pitch_um``. ``out``: the out
-    dir (default: a new temporary folder). ``method``: auto | phase | harris | sift.
+    ``overlap`` (fraction of a field, e.g. 0.2); arrays need ``pitch_um``; they are written
+    (files linked) into ``OUT.tiles/`` beside the out dir. ``out``: the out dir (default: a
+    new temporary folder). ``method``: auto | phase | harris | sift. ``set``: as for
+    :func:`run`.
     """
     from . import Surface
 
@@ -188,7 +190,12 @@ def stitch(
         r, c = _grid_arg(grid)
         if len(tiles) != r * c:
             raise ParameterError(f"{len(tiles)} tiles for a {r} x {c} grid: expected {r * c}")
-        folder = Path(tempfile.mkdtemp(prefix="surfstream-tiles-"))
+        # The tiles as files, beside the out dir (OUT.tiles/; the inferred OUT/scan.toml
+        # names them), in acquisition order by name.
+        folder = out_p.parent / (out_p.name + ".tiles")
+        if folder.exists():
+            shutil.rmtree(folder)
+        folder.mkdir(parents=True)
         for i, t in enumerate(tiles):
             name = f"tile_{i:04d}"
             if isinstance(t, (str, os.PathLike)):
