@@ -435,3 +435,24 @@ def test_docs_example_runs(tmp_path, monkeypatch):
     exec(compile(code, "docs/python.md", "exec"), {})
     assert (tmp_path / "datum.stl").stat().st_size > 84
     assert ss.read(tmp_path / "datum.x3p").shape == (650, 650)
+
+
+def test_the_gil_is_released_during_computation():
+    # The main thread counts while a worker computes: with the GIL held for the whole call
+    # the count could not move between the worker's two reads of it.
+    import threading
+
+    s = ss.Surface(np.random.default_rng(6).normal(size=(1024, 1024)), 1.0)
+    state = {"count": 0, "during": None}
+
+    def worker():
+        before = state["count"]
+        s.params(all=True)
+        state["during"] = state["count"] - before
+
+    t = threading.Thread(target=worker)
+    t.start()
+    while t.is_alive():
+        state["count"] += 1
+    t.join()
+    assert state["during"] > 100, state
