@@ -205,16 +205,9 @@ fn write(
                 ..Metadata::default()
             },
         };
-        write_surface(&path, &s).map_err(|e| {
-            let kind = if e.to_string().contains("unsupported height-map format")
-                || e.to_string().contains("is not supported")
-            {
-                Kind::Format
-            } else {
-                Kind::Other
-            };
-            Failure::of(kind, e)
-        })
+        // The same classes as reading: a missing folder is a PathError, an extension the
+        // writers do not take a FormatError.
+        write_surface(&path, &s).map_err(read_failure)
     })?;
     Ok(())
 }
@@ -511,6 +504,15 @@ fn mesh(
         filter_grid(rows, cols, pitch_x_um, pitch_y_um)?;
         if !h.iter().any(|z| z.is_finite()) {
             return Err(Failure::new(Kind::Other, "no measured sample (all NaN)"));
+        }
+        // Only NaN marks a missing sample: an infinity is refused, as the CLI does.
+        if let Some(k) = h.iter().position(|z| z.is_infinite()) {
+            let e = surfstream_mesher::MeshError::InfiniteSample {
+                row: k / cols,
+                col: k % cols,
+                value: h[k] as f32,
+            };
+            return Err(Failure::new(Kind::Parameter, e));
         }
         let (z_offset_um, h32) = to_frame_heights(h);
         let view = RasterView::new(&h32, Shape::new(rows, cols))

@@ -223,6 +223,9 @@ def test_unsupported_format_raises_format_error_with_cli_message(tmp_path):
     assert str(e.value) == cli_error("params", bad)
     with pytest.raises(ss.FormatError):
         ss.Surface(np.zeros((3, 3))).write(tmp_path / "x.png")
+    # As `convert`: missing folders are created.
+    ss.Surface(np.zeros((3, 3))).write(tmp_path / "new" / "folder" / "x.npy")
+    assert (tmp_path / "new" / "folder" / "x.npy").is_file()
 
 
 def test_bad_arguments_raise_parameter_error():
@@ -239,6 +242,10 @@ def test_bad_arguments_raise_parameter_error():
         s.gaussian(-1.0)
     with pytest.raises(ValueError):  # ParameterError is a ValueError too
         s.mesh("x.stl", units="furlong")
+    z = np.zeros((8, 8))
+    z[2, 3] = np.inf
+    with pytest.raises(ss.ParameterError, match="row 2"):
+        ss.Surface(z).mesh("x.stl")
 
 
 # -- no copies where promised ---------------------------------------------------------------------

@@ -245,7 +245,7 @@ class Surface:
     def write(self, path: PathLike) -> None:
         """Writes the map by the extension of ``path``: ``.x3p`` (ISO 25178-72, float64,
         NaN as invalid points, pitch kept) or ``.npy`` (float64 heights in um, NaN kept; .npy
-        carries no pitch). Missing folders are not created."""
+        carries no pitch). Missing folders are created (as ``convert``)."""
         _native.write(os.fspath(path), *self._args())
 
     def mesh(
