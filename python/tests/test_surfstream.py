@@ -463,3 +463,19 @@ def test_the_gil_is_released_during_computation():
         state["count"] += 1
     t.join()
     assert state["during"] > 100, state
+
+
+@needs_cli
+def test_run_a_graph_with_overrides(tmp_path, monkeypatch):
+    monkeypatch.setenv("SURFSTREAM_CLI", str(CLI))
+    sets = {"stage.tile_px": 256, "stage.pacing": "fast", "stage.rows": 1, "stage.cols": 2, "wavelet.level": 3}
+    r = ss.run(REPO / "launch" / "graphs" / "demo.toml", tmp_path / "demo", set=sets)
+    assert r.out == tmp_path / "demo" and "surfstream: done" in r.verdict
+    assert r.run["parameters"]["wavelet"]["level"] == 3
+    assert len(r.registrations["tiles"]) == 2
+    pano = r.panorama
+    assert pano.pitch_um == (0.8148, 0.8148) and pano.shape[0] >= 256
+    ref = json.loads(cli("params", "--json", "--pitch-um", 0.8148, tmp_path / "demo" / "panorama.npy").stdout)
+    got = pano.params()
+    for n in ("Sa", "Sq", "Sz", "Sdr"):
+        assert close(got[n], ref[n]), n
