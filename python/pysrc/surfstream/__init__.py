@@ -316,9 +316,13 @@ class Surface:
             png = _native.preview_png(self._heights, 256)
             if png is not None:
                 data, lo, hi = png
+                # Drawn at the map's physical aspect (the pitch may differ along x and y).
+                w_um, h_um = c * self._pitch_um[0], r * self._pitch_um[1]
+                scale = 256.0 / max(w_um, h_um)
+                w_px, h_px = max(1, round(w_um * scale)), max(1, round(h_um * scale))
                 img = (
                     f'<img src="data:image/png;base64,{b64encode(bytes(data)).decode()}" '
-                    f'style="image-rendering:pixelated;max-width:256px" '
+                    f'style="image-rendering:pixelated;width:{w_px}px;height:{h_px}px" '
                     f'title="viridis {lo:.4g} .. {hi:.4g} um"/>'
                     f'<div style="font-size:smaller">{lo:.4g} .. {hi:.4g} um</div>'
                 )
