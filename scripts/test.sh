@@ -33,3 +33,11 @@ cargo build --release --workspace --bins
 "$SURFSTREAM_PYTHON" scripts/gen_wavelet_golden.py target/wavelet-golden
 export SURFSTREAM_WAVELET_GOLDEN="$PWD/target/wavelet-golden"
 cargo test --release --workspace
+
+# The Python package (python/, pyo3 + maturin from PyPI): installed into the test venv as a
+# user installs it (pip install ./python, a release build sharing target/) and tested with
+# pytest against the CLI binary just built and ../shared/specimens.
+"$SURFSTREAM_PYTHON" -c 'import pytest' 2>/dev/null ||
+    "$SURFSTREAM_PYTHON" -m pip install --quiet --disable-pip-version-check 'pytest==9.2.0'
+"$SURFSTREAM_PYTHON" -m pip install --quiet --disable-pip-version-check ./python
+SURFSTREAM_CLI="$PWD/target/release/surfstream" "$SURFSTREAM_PYTHON" -m pytest -q python/tests

@@ -53,13 +53,10 @@ const fn pv(
     }
 }
 
-impl AllParams {
-    /// Every value in the order of ISO 25178-2's families.
-    pub fn named(&self) -> Vec<ParamValue> {
-        let b = &self.basic;
-        let s = &self.spatial;
-        let f = &self.functional;
-        let e = &self.feature;
+impl Params {
+    /// The nine values with their units and families (the first nine of [`AllParams::named`]).
+    pub fn named_values(&self) -> Vec<ParamValue> {
+        let b = self;
         vec![
             pv("Sa", b.sa, "um", "height"),
             pv("Sq", b.sq, "um", "height"),
@@ -70,6 +67,18 @@ impl AllParams {
             pv("Sku", b.sku, "", "height"),
             pv("Sdq", b.sdq, "", "hybrid"),
             pv("Sdr", b.sdr, "%", "hybrid"),
+        ]
+    }
+}
+
+impl AllParams {
+    /// Every value in the order of ISO 25178-2's families.
+    pub fn named(&self) -> Vec<ParamValue> {
+        let s = &self.spatial;
+        let f = &self.functional;
+        let e = &self.feature;
+        let mut all = self.basic.named_values();
+        all.extend([
             pv("Sal", s.sal, "um", "spatial"),
             pv("Str", s.str_, "", "spatial"),
             pv("Std", s.std, "deg", "spatial"),
@@ -96,7 +105,8 @@ impl AllParams {
             pv("Sha", e.sha, "um^2", "feature"),
             pv("Sdv", e.sdv, "um^3", "feature"),
             pv("Shv", e.shv, "um^3", "feature"),
-        ]
+        ]);
+        all
     }
 }
 

@@ -1,0 +1,680 @@
+//! `surfstream._native`: the Python module's compiled half. Every function is a thin shell
+//! over the crates the CLI uses (surfstream_io's readers and writers, surfstream_core's
+//! metrology and filters, surfstream_wavelet, surfstream_mesher): no algorithm lives here.
+//! The Python half (pysrc/surfstream) holds the `Surface` class, the exceptions and the
+//! calls of the CLI binary for graphs and stitching.
+//!
+//! Arrays: height maps arrive as C-contiguous float64 numpy arrays borrowed read-only (no
+//! copy; the Python side makes a contiguous float64 copy only when the caller's array is not
+//! one) and results leave as numpy arrays that own the Rust `Vec` they were computed into (no
+//! copy). The GIL is released (`Python::detach`) for every computation and file access.
+
+use std::path::PathBuf;
+
+use anyhow::anyhow;
+use numpy::ndarray::Array2;
+use numpy::{IntoPyArray, PyArray2, PyReadonlyArray2};
+use pyo3::prelude::*;
+use pyo3::types::PyBytes;
+
+use surfstream_core::filter::{self, Grid as FilterGrid, RobustSettings};
+use surfstream_core::frame::{from_frame_heights, to_frame_heights};
+use surfstream_core::metrology::{self, ArealPsd, Grid};
+use surfstream_io::formats::{read_surface, write_surface, Metadata, Surface};
+use surfstream_io::preview::{encode_map_png, robust_range_um};
+use surfstream_wavelet::{
+    analyse, equivalent_cutoff_um, filter_separation, level_lowered_warning, BaseChoice,
+    LevelChoice, Mode, PoolOp, SeparationMethod, DEFAULT_LEVEL,
+};
+
+/// Which `surfstream` exception (pysrc/surfstream/_errors.py) an error becomes.
+#[derive(Clone, Copy)]
+enum Kind {
+    /// `surfstream.Error`: anything else (a computation that cannot be done on these data).
+    Other,
+    /// `surfstream.PathError` (also a `FileNotFoundError`): the path does not exist.
+    Path,
+    /// `surfstream.FormatError`: an unsupported extension or a file its reader refuses.
+    Format,
+    /// `surfstream.ParameterError` (also a `ValueError`): an argument out of range.
+    Parameter,
+}
+
+impl Kind {
+    fn class_name(self) -> &'static str {
+        match self {
+            Kind::Other => "Error",
+            Kind::Path => "PathError",
+            Kind::Format => "FormatError",
+            Kind::Parameter => "ParameterError",
+        }
+    }
+}
+
+/// An error on its way to Python: the kind and the message, formatted as the CLI prints it
+/// (`{:#}`: every context, outermost first).
+struct Failure(Kind, String);
+
+impl Failure {
+    fn new(kind: Kind, e: impl std::fmt::Display) -> Self {
+        Failure(kind, e.to_string())
+    }
+    fn of(kind: Kind, e: anyhow::Error) -> Self {
+        Failure(kind, format!("{e:#}"))
+    }
+}
+
+impl From<Failure> for PyErr {
+    fn from(f: Failure) -> PyErr {
+        Python::attach(|py| {
+            let class = py
+                .import("surfstream._errors")
+                .and_then(|m| m.getattr(f.0.class_name()));
+            match class.and_then(|c| c.call1((f.1.clone(),))) {
+                Ok(value) => PyErr::from_value(value),
+                Err(e) => e,
+            }
+        })
+    }
+}
+
+/// A reader's error: a missing path or folder is a PathError, another I/O failure a plain
+/// Error, anything the reader says about the contents (or the extension) a FormatError.
+fn read_failure(e: anyhow::Error) -> Failure {
+    let io = e
+        .chain()
+        .find_map(|c| c.downcast_ref::<std::io::Error>())
+        .map(|io| io.kind());
+    let kind = match io {
+        Some(std::io::ErrorKind::NotFound) | Some(std::io::ErrorKind::IsADirectory) => Kind::Path,
+        Some(_) => Kind::Other,
+        None => Kind::Format,
+    };
+    Failure::of(kind, e)
+}
+
+fn metrology_failure(e: metrology::MetrologyError) -> Failure {
+    let kind = match e {
+        metrology::MetrologyError::BadPitch { .. } => Kind::Parameter,
+        _ => Kind::Other,
+    };
+    Failure::new(kind, e)
+}
+
+fn filter_failure(e: filter::FilterError) -> Failure {
+    let kind = match e {
+        filter::FilterError::BadValue { .. } => Kind::Parameter,
+        _ => Kind::Other,
+    };
+    Failure::new(kind, e)
+}
+
+/// The borrowed heights of a C-contiguous float64 array, and its rows and cols.
+fn heights<'a>(a: &'a PyReadonlyArray2<'_, f64>) -> PyResult<(&'a [f64], usize, usize)> {
+    let (rows, cols) = a.as_array().dim();
+    let s = a.as_slice().map_err(|_| {
+        Failure::new(
+            Kind::Parameter,
+            "heights: expected a C-contiguous float64 array (Surface makes one)",
+        )
+    })?;
+    if rows == 0 || cols == 0 {
+        return Err(Failure::new(
+            Kind::Parameter,
+            format!("heights: empty map ({rows} x {cols}, rows x cols)"),
+        )
+        .into());
+    }
+    Ok((s, rows, cols))
+}
+
+/// A row-major `Vec` handed to numpy as a `rows x cols` array that owns it (no copy).
+fn to_numpy(
+    py: Python<'_>,
+    v: Vec<f64>,
+    rows: usize,
+    cols: usize,
+) -> PyResult<Bound<'_, PyArray2<f64>>> {
+    let a = Array2::from_shape_vec((rows, cols), v)
+        .map_err(|e| Failure::new(Kind::Other, format!("result shape: {e}")))?;
+    Ok(a.into_pyarray(py))
+}
+
+fn metrology_grid(
+    h: &[f64],
+    rows: usize,
+    cols: usize,
+    px: f64,
+    py_: f64,
+) -> Result<Grid<'_>, Failure> {
+    Grid::new(h, rows, cols, px, py_).map_err(metrology_failure)
+}
+
+fn filter_grid(
+    rows: usize,
+    cols: usize,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+) -> Result<FilterGrid, Failure> {
+    let g = FilterGrid {
+        rows,
+        cols,
+        pitch_x_um,
+        pitch_y_um,
+    };
+    g.check(rows * cols).map_err(filter_failure)?;
+    Ok(g)
+}
+
+/// Reads a height-map file: (heights um, pitch x um, pitch y um, metadata as JSON).
+#[pyfunction]
+fn read(py: Python<'_>, path: PathBuf) -> PyResult<(Bound<'_, PyArray2<f64>>, f64, f64, String)> {
+    let s = py.detach(|| read_surface(&path).map_err(read_failure))?;
+    let meta = serde_json::to_string(&s.metadata).map_err(|e| Failure::new(Kind::Other, e))?;
+    let (px, py_) = (s.pitch_x_um, s.pitch_y_um);
+    Ok((
+        to_numpy(py, s.heights_um, s.height, s.width)?,
+        px,
+        py_,
+        meta,
+    ))
+}
+
+/// Writes a height map by the path's extension (.x3p, .npy: the CLI's writers).
+#[pyfunction]
+fn write(
+    py: Python<'_>,
+    path: PathBuf,
+    heights_um: PyReadonlyArray2<'_, f64>,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+) -> PyResult<()> {
+    let (h, rows, cols) = heights(&heights_um)?;
+    py.detach(|| {
+        filter_grid(rows, cols, pitch_x_um, pitch_y_um)?;
+        // The writers take an owned Surface: the one copy of a write.
+        let s = Surface {
+            width: cols,
+            height: rows,
+            pitch_x_um,
+            pitch_y_um,
+            heights_um: h.to_vec(),
+            metadata: Metadata {
+                format: "python".into(),
+                pitch_known: true,
+                ..Metadata::default()
+            },
+        };
+        // The same classes as reading: a missing folder is a PathError, an extension the
+        // writers do not take a FormatError.
+        write_surface(&path, &s).map_err(read_failure)
+    })?;
+    Ok(())
+}
+
+/// ISO 25178 parameters: [(name, value, unit, family)], the CLI's order and units.
+#[pyfunction]
+#[pyo3(signature = (heights_um, pitch_x_um, pitch_y_um, all=false, pruning_pct=5.0))]
+fn params(
+    py: Python<'_>,
+    heights_um: PyReadonlyArray2<'_, f64>,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+    all: bool,
+    pruning_pct: f64,
+) -> PyResult<Vec<(&'static str, f64, &'static str, &'static str)>> {
+    let (h, rows, cols) = heights(&heights_um)?;
+    if !(pruning_pct.is_finite() && pruning_pct >= 0.0) {
+        return Err(Failure::new(
+            Kind::Parameter,
+            format!("pruning_pct {pruning_pct}: expected a finite number >= 0"),
+        )
+        .into());
+    }
+    let values = py.detach(|| -> Result<_, Failure> {
+        let g = metrology_grid(h, rows, cols, pitch_x_um, pitch_y_um)?;
+        let named = if all {
+            metrology::all_params_pruned(&g, pruning_pct)
+                .map_err(metrology_failure)?
+                .named()
+        } else {
+            metrology::params(&g)
+                .map_err(metrology_failure)?
+                .named_values()
+        };
+        Ok(named
+            .into_iter()
+            .map(|v| (v.name, v.value, v.unit, v.family))
+            .collect())
+    })?;
+    Ok(values)
+}
+
+/// The heights minus their least-squares plane (metrology::level_plane, `params --level`).
+#[pyfunction]
+fn level<'py>(
+    py: Python<'py>,
+    heights_um: PyReadonlyArray2<'py, f64>,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    let (h, rows, cols) = heights(&heights_um)?;
+    let out = py.detach(|| -> Result<_, Failure> {
+        let g = metrology_grid(h, rows, cols, pitch_x_um, pitch_y_um)?;
+        metrology::level_plane(&g).map_err(metrology_failure)
+    })?;
+    to_numpy(py, out, rows, cols)
+}
+
+/// The least-squares polynomial form of `order` and the residual: (residual, form, the
+/// coefficients, the residual RMS um).
+#[pyfunction]
+#[allow(clippy::type_complexity)]
+fn remove_form<'py>(
+    py: Python<'py>,
+    heights_um: PyReadonlyArray2<'py, f64>,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+    order: usize,
+) -> PyResult<(
+    Bound<'py, PyArray2<f64>>,
+    Bound<'py, PyArray2<f64>>,
+    Vec<f64>,
+    f64,
+)> {
+    let (h, rows, cols) = heights(&heights_um)?;
+    let (residual, form, coefficients, rms) = py.detach(|| -> Result<_, Failure> {
+        let grid = filter_grid(rows, cols, pitch_x_um, pitch_y_um)?;
+        // The filters run in f32 about the mean, as frames carry heights (DESIGN §2).
+        let (offset, h32) = to_frame_heights(h);
+        let f = filter::fit_polynomial(&h32, grid, order).map_err(filter_failure)?;
+        let mut form = f.evaluate(grid);
+        let residual: Vec<f64> = h.iter().zip(&form).map(|(&z, &s)| z - offset - s).collect();
+        for s in form.iter_mut() {
+            *s += offset;
+        }
+        let mut coefficients = f.coefficients.clone();
+        if let Some(c0) = coefficients.first_mut() {
+            *c0 += offset;
+        }
+        Ok((residual, form, coefficients, f.residual_rms_um))
+    })?;
+    Ok((
+        to_numpy(py, residual, rows, cols)?,
+        to_numpy(py, form, rows, cols)?,
+        coefficients,
+        rms,
+    ))
+}
+
+/// The ISO 16610-61 Gaussian mean surface for cutoff `cutoff_um`.
+#[pyfunction]
+fn gaussian<'py>(
+    py: Python<'py>,
+    heights_um: PyReadonlyArray2<'py, f64>,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+    cutoff_um: f64,
+) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    let (h, rows, cols) = heights(&heights_um)?;
+    let out = py.detach(|| -> Result<_, Failure> {
+        let grid = filter_grid(rows, cols, pitch_x_um, pitch_y_um)?;
+        let (offset, h32) = to_frame_heights(h);
+        let mean = filter::gaussian_filter(&h32, grid, cutoff_um).map_err(filter_failure)?;
+        Ok(from_frame_heights(offset, &mean))
+    })?;
+    to_numpy(py, out, rows, cols)
+}
+
+/// The ISO 16610-71 robust Gaussian mean surface: (mean, iterations, converged).
+#[pyfunction]
+#[pyo3(signature = (heights_um, pitch_x_um, pitch_y_um, cutoff_um, max_iterations=30, tolerance=1e-3))]
+fn robust_gaussian<'py>(
+    py: Python<'py>,
+    heights_um: PyReadonlyArray2<'py, f64>,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+    cutoff_um: f64,
+    max_iterations: usize,
+    tolerance: f64,
+) -> PyResult<(Bound<'py, PyArray2<f64>>, usize, bool)> {
+    let (h, rows, cols) = heights(&heights_um)?;
+    let (out, it, conv) = py.detach(|| -> Result<_, Failure> {
+        let grid = filter_grid(rows, cols, pitch_x_um, pitch_y_um)?;
+        let (offset, h32) = to_frame_heights(h);
+        let settings = RobustSettings {
+            cutoff_um,
+            max_iterations,
+            tolerance,
+        };
+        let fit = filter::robust_gaussian_filter(&h32, grid, &settings).map_err(filter_failure)?;
+        Ok((
+            from_frame_heights(offset, &fit.mean),
+            fit.iterations,
+            fit.converged,
+        ))
+    })?;
+    Ok((to_numpy(py, out, rows, cols)?, it, conv))
+}
+
+/// Datum / roughness separation, the `separate` verb's code paths: (datum um absolute,
+/// roughness um, summary JSON, warnings).
+#[pyfunction]
+#[pyo3(signature = (heights_um, pitch_x_um, pitch_y_um, method="wavelet", wavelet="sym5", level="8", mode="symmetric", cutoff_um=None, lambda_s_um=None))]
+#[allow(clippy::too_many_arguments, clippy::type_complexity)]
+fn separate<'py>(
+    py: Python<'py>,
+    heights_um: PyReadonlyArray2<'py, f64>,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+    method: &str,
+    wavelet: &str,
+    level: &str,
+    mode: &str,
+    cutoff_um: Option<f64>,
+    lambda_s_um: Option<f64>,
+) -> PyResult<(
+    Bound<'py, PyArray2<f64>>,
+    Bound<'py, PyArray2<f64>>,
+    String,
+    Vec<String>,
+)> {
+    let (h, rows, cols) = heights(&heights_um)?;
+    let bad = |e: String| Failure::new(Kind::Parameter, e);
+    let method = SeparationMethod::parse(method, cutoff_um).map_err(bad)?;
+    // One parser per option, shared with the CLI and the wavelet node.
+    let base: BaseChoice = wavelet.parse().map_err(|e| bad(format!("wavelet {e}")))?;
+    let level: LevelChoice = level.parse().map_err(|e| bad(format!("level {e}")))?;
+    let mode: Mode = mode.parse().map_err(|e| bad(format!("mode {e}")))?;
+    let (datum, roughness, summary, warnings) = py.detach(|| -> Result<_, Failure> {
+        let grid = filter_grid(rows, cols, pitch_x_um, pitch_y_um)?;
+        let (offset, h32) = to_frame_heights(h);
+        let mut warnings = Vec::new();
+        let (datum, roughness, summary) = if method == SeparationMethod::Wavelet {
+            let (sep, wavelet, min_energy) = match (base, level) {
+                // A named base at a given level: the separation alone (what `analyse` runs
+                // after its choices), without the energy curve or pooling.
+                (BaseChoice::Named(w), LevelChoice::Fixed(_) | LevelChoice::Default) => {
+                    let l = match level {
+                        LevelChoice::Fixed(l) => Some(l),
+                        _ => None,
+                    };
+                    let s = surfstream_wavelet::separate(&h32, rows, cols, &w, mode, l)
+                        .map_err(|e| Failure::new(Kind::Other, e))?;
+                    (s, w, None)
+                }
+                _ => {
+                    let an = analyse(&h32, rows, cols, base, level, mode, 1, PoolOp::Max)
+                        .map_err(|e| Failure::of(Kind::Other, anyhow!(e)))?;
+                    (an.separation, an.wavelet, an.level_min_energy)
+                }
+            };
+            let used = sep.level;
+            let requested = match level {
+                LevelChoice::Fixed(l) => Some(l),
+                LevelChoice::Default => Some(DEFAULT_LEVEL),
+                LevelChoice::MinEnergy => None,
+            };
+            if let Some(w) =
+                requested.and_then(|r| level_lowered_warning(&wavelet, r, used, pitch_x_um))
+            {
+                warnings.push(w);
+            }
+            let summary = serde_json::json!({
+                "method": "wavelet",
+                "wavelet": wavelet.name(),
+                "level": used,
+                "level_min_energy": min_energy,
+                "mode": mode.name(),
+                "equivalent_cutoff_um": equivalent_cutoff_um(&wavelet, used, pitch_x_um),
+                "z_offset_um": offset,
+            });
+            (sep.datum, sep.roughness, summary)
+        } else {
+            let f = filter_separation(&h32, grid, method, lambda_s_um).map_err(filter_failure)?;
+            let summary = serde_json::json!({
+                "method": method.name(),
+                "cutoff_um": method.cutoff_um(),
+                "lambda_s_um": lambda_s_um,
+                "plane_removed_um": f.plane_um,
+                "robust_iterations": f.robust_iterations.map(|r| r.0),
+                "robust_converged": f.robust_iterations.map(|r| r.1),
+                "z_offset_um": offset,
+            });
+            (f.datum, f.roughness, summary)
+        };
+        // The datum comes back absolute (f64), the roughness as the difference (no offset).
+        let datum = from_frame_heights(offset, &datum);
+        let roughness: Vec<f64> = roughness.iter().map(|&r| f64::from(r)).collect();
+        Ok((datum, roughness, summary.to_string(), warnings))
+    })?;
+    Ok((
+        to_numpy(py, datum, rows, cols)?,
+        to_numpy(py, roughness, rows, cols)?,
+        summary,
+        warnings,
+    ))
+}
+
+/// Meshes the heights as an STL at `path` (the `mesh` verb's steps); returns the statistics
+/// as JSON and the warnings.
+#[pyfunction]
+#[pyo3(signature = (path, heights_um, pitch_x_um, pitch_y_um, target=None, tolerance_um=None, tolerance_sq=None, max_triangles=None, sheet=false, holes=false, ascii=false, units="mm", base_depth_um=None))]
+#[allow(clippy::too_many_arguments)]
+fn mesh(
+    py: Python<'_>,
+    path: PathBuf,
+    heights_um: PyReadonlyArray2<'_, f64>,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+    target: Option<&str>,
+    tolerance_um: Option<f64>,
+    tolerance_sq: Option<f64>,
+    max_triangles: Option<usize>,
+    sheet: bool,
+    holes: bool,
+    ascii: bool,
+    units: &str,
+    base_depth_um: Option<f64>,
+) -> PyResult<String> {
+    use surfstream_core::raster::{RasterView, Shape};
+    use surfstream_mesher::{
+        check_closed, grid_sheet_for, job::DEFAULT_EPSILON_SQ_FRACTION, mesh_height_field,
+        DemEngine, EngineProfile, Epsilon, LengthUnit, MeshKind, MeshParams, MissingSamples,
+        ScanPlacement, SolidParams, TargetMethod,
+    };
+    let (h, rows, cols) = heights(&heights_um)?;
+    let bad = |e: String| Failure::new(Kind::Parameter, e);
+    let engine: Option<DemEngine> = target.map(str::parse).transpose().map_err(bad)?;
+    let units = match units.to_ascii_lowercase().as_str() {
+        "m" => LengthUnit::M,
+        "mm" => LengthUnit::Mm,
+        "um" => LengthUnit::Um,
+        other => {
+            return Err(bad(format!("units {other:?}: expected \"m\", \"mm\" or \"um\"")).into())
+        }
+    };
+    if tolerance_um.is_some() && tolerance_sq.is_some() {
+        return Err(bad("give tolerance_um or tolerance_sq, not both".into()).into());
+    }
+    if holes && !sheet {
+        return Err(bad("holes=True needs sheet=True (a solid is closed)".into()).into());
+    }
+    let json = py.detach(|| -> Result<String, Failure> {
+        filter_grid(rows, cols, pitch_x_um, pitch_y_um)?;
+        if !h.iter().any(|z| z.is_finite()) {
+            return Err(Failure::new(Kind::Other, "no measured sample (all NaN)"));
+        }
+        // Only NaN marks a missing sample: an infinity is refused, as the CLI does.
+        if let Some(k) = h.iter().position(|z| z.is_infinite()) {
+            let e = surfstream_mesher::MeshError::InfiniteSample {
+                row: k / cols,
+                col: k % cols,
+                value: h[k] as f32,
+            };
+            return Err(Failure::new(Kind::Parameter, e));
+        }
+        let (z_offset_um, h32) = to_frame_heights(h);
+        let view = RasterView::new(&h32, Shape::new(rows, cols))
+            .map_err(|e| Failure::new(Kind::Other, e))?;
+        let at = ScanPlacement::new(pitch_x_um, pitch_y_um).with_z_offset(z_offset_um);
+        let profile = engine.map(|e| EngineProfile::with_budget(e, max_triangles));
+        let write = |w: &mut dyn std::io::Write,
+                     m: &surfstream_mesher::SolidMesh,
+                     ascii: bool,
+                     label: &str| {
+            if ascii {
+                surfstream_mesher::write_stl_ascii(w, m, label)
+            } else {
+                surfstream_mesher::write_stl_binary(w, m, label)
+            }
+        };
+        let fail = |e: anyhow::Error| Failure::of(Kind::Other, e);
+        if let Some(p) = profile.filter(|p| p.method == TargetMethod::Grid) {
+            let t = grid_sheet_for(view, &at, &p).map_err(|e| Failure::new(Kind::Other, e))?;
+            let label = format!("surfstream mesh for {}", p.engine.name());
+            surfstream_core::fsutil::write_atomic(&path, |w| {
+                Ok(write(w, &t.mesh, p.ascii, &label)?)
+            })
+            .map_err(fail)?;
+            let mut report = t.summary();
+            if let Some(o) = report.as_object_mut() {
+                o.insert("stl".into(), serde_json::json!(path.display().to_string()));
+                o.insert(
+                    "triangles".into(),
+                    serde_json::json!(t.mesh.triangles.len()),
+                );
+                o.insert("units".into(), serde_json::json!(p.units));
+                o.insert("offset_um".into(), serde_json::json!(t.mesh.offset_um));
+            }
+            return Ok(report.to_string());
+        }
+        let params = MeshParams {
+            epsilon: match (tolerance_um, tolerance_sq) {
+                (Some(e), _) => Epsilon::Um(e),
+                (None, Some(f)) => Epsilon::SqFraction(f),
+                (None, None) => Epsilon::SqFraction(DEFAULT_EPSILON_SQ_FRACTION),
+            },
+            max_triangles,
+            kind: if sheet || profile.is_some_and(|p| !p.solid) {
+                MeshKind::Sheet
+            } else {
+                MeshKind::Solid
+            },
+            missing: if holes {
+                MissingSamples::Holes
+            } else {
+                MissingSamples::Fill
+            },
+            solid: SolidParams {
+                units: profile.map_or(units, |p| p.units),
+                base_depth_um,
+                recentre: true,
+            },
+            block_samples: None,
+        };
+        let m =
+            mesh_height_field(view, &at, &params).map_err(|e| Failure::new(Kind::Parameter, e))?;
+        let check = check_closed(&m.mesh);
+        let ascii = profile.map_or(ascii, |p| p.ascii);
+        surfstream_core::fsutil::write_atomic(&path, |w| {
+            Ok(write(w, &m.mesh, ascii, "surfstream mesh")?)
+        })
+        .map_err(fail)?;
+        let mut report = m.summary();
+        if let Some(o) = report.as_object_mut() {
+            o.insert("stl".into(), serde_json::json!(path.display().to_string()));
+            o.insert(
+                "format".into(),
+                serde_json::json!(if ascii { "ascii" } else { "binary" }),
+            );
+            if let Some(p) = profile {
+                o.insert("target".into(), serde_json::json!(p));
+            }
+            o.insert("watertight".into(), serde_json::json!(check.watertight));
+            o.insert(
+                "consistently_oriented".into(),
+                serde_json::json!(check.consistently_oriented),
+            );
+        }
+        Ok(report.to_string())
+    })?;
+    Ok(json)
+}
+
+/// The Abbott-Firestone curve: [(material ratio %, height um about the mean)].
+#[pyfunction]
+fn abbott(
+    py: Python<'_>,
+    heights_um: PyReadonlyArray2<'_, f64>,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+    samples: usize,
+) -> PyResult<Vec<(f64, f64)>> {
+    let (h, rows, cols) = heights(&heights_um)?;
+    Ok(py.detach(|| -> Result<_, Failure> {
+        let g = metrology_grid(h, rows, cols, pitch_x_um, pitch_y_um)?;
+        metrology::abbott_curve(&g, samples.max(2)).map_err(metrology_failure)
+    })?)
+}
+
+/// The radially averaged PSD: [(wavelength um, power um^4)], longest wavelength first.
+#[pyfunction]
+fn psd(
+    py: Python<'_>,
+    heights_um: PyReadonlyArray2<'_, f64>,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+) -> PyResult<Vec<(f64, f64)>> {
+    let (h, rows, cols) = heights(&heights_um)?;
+    Ok(py.detach(|| -> Result<_, Failure> {
+        let g = metrology_grid(h, rows, cols, pitch_x_um, pitch_y_um)?;
+        Ok(ArealPsd::of(&g).map_err(metrology_failure)?.radial())
+    })?)
+}
+
+/// A small viridis PNG of the map (the report's colour map, common/io/src/preview.rs):
+/// (PNG bytes, low um, high um of the colour range), or None when nothing is measured.
+#[pyfunction]
+fn preview_png<'py>(
+    py: Python<'py>,
+    heights_um: PyReadonlyArray2<'py, f64>,
+    max_side_px: usize,
+) -> PyResult<Option<(Bound<'py, PyBytes>, f64, f64)>> {
+    let (h, rows, cols) = heights(&heights_um)?;
+    let png = py.detach(|| -> Result<_, Failure> {
+        let h32: Vec<f32> = h.iter().map(|&z| z as f32).collect();
+        let Some(range) = robust_range_um(&h32) else {
+            return Ok(None);
+        };
+        let m = encode_map_png(&h32, rows, cols, max_side_px.max(1), range)
+            .map_err(|e| Failure::of(Kind::Other, e))?;
+        Ok(Some((m.png, range)))
+    })?;
+    Ok(png.map(|(bytes, (lo, hi))| (PyBytes::new(py, &bytes), lo, hi)))
+}
+
+/// Every extension the readers take (lower case, no dot).
+#[pyfunction]
+fn readable_extensions() -> Vec<&'static str> {
+    surfstream_io::formats::EXTENSIONS.to_vec()
+}
+
+#[pymodule]
+fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(read, m)?)?;
+    m.add_function(wrap_pyfunction!(write, m)?)?;
+    m.add_function(wrap_pyfunction!(params, m)?)?;
+    m.add_function(wrap_pyfunction!(level, m)?)?;
+    m.add_function(wrap_pyfunction!(remove_form, m)?)?;
+    m.add_function(wrap_pyfunction!(gaussian, m)?)?;
+    m.add_function(wrap_pyfunction!(robust_gaussian, m)?)?;
+    m.add_function(wrap_pyfunction!(separate, m)?)?;
+    m.add_function(wrap_pyfunction!(mesh, m)?)?;
+    m.add_function(wrap_pyfunction!(abbott, m)?)?;
+    m.add_function(wrap_pyfunction!(psd, m)?)?;
+    m.add_function(wrap_pyfunction!(preview_png, m)?)?;
+    m.add_function(wrap_pyfunction!(readable_extensions, m)?)?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}
