@@ -91,7 +91,8 @@ enum Command {
         method: Option<String>,
         /// Stitch once per fusion method (average, gradual, wavelet) into OUT/<method>/ and
         /// print the SSIM of the overlaps side by side (the paper's Table 2), plus the height
-        /// error against the specimen when the scan has make_tiles.py's ground truth.
+        /// error against the specimen when the scan directory holds specimen.npy and
+        /// ground_truth.json.
         #[arg(long)]
         compare_fusion: bool,
         /// SCAN is a folder of tiles without scan.toml: the grid as ROWSxCOLS (e.g. 3x4); the
