@@ -95,7 +95,8 @@ enum Command {
         method: Option<String>,
         /// Stitch once per fusion method (average, gradual, wavelet) into OUT/<method>/ and
         /// print the SSIM of the overlaps side by side (the paper's Table 2), plus the height
-        /// error against the specimen when the scan has make_tiles.py's ground truth.
+        /// error against the specimen when the scan directory holds specimen.npy and
+        /// ground_truth.json.
         #[arg(long)]
         compare_fusion: bool,
         /// SCAN is a folder of tiles without scan.toml: the grid as ROWSxCOLS (e.g. 3x4); the
@@ -320,7 +321,6 @@ fn check_node_params(graph: &GraphFile, origin: &str) -> Result<()> {
 /// The replay node's parameters, cheaply: the simulated stage's plan and specimen settings
 /// (not the specimen itself), the pacing, and that a scan or recording path exists.
 fn check_source_params(c: &surfstream_runtime::graph::NodeContext) -> Result<()> {
-    use surfstream_runtime::graph::params_from_table;
     let p = &c.params;
     let text = |k: &str, default: &str| -> Result<String> {
         match p.get(k) {
@@ -340,44 +340,8 @@ fn check_source_params(c: &surfstream_runtime::graph::NodeContext) -> Result<()>
     };
     match text("source", "")?.as_str() {
         "simulated" => {
-            surfstream_replay::Pacing::from_name(&text("pacing", "realtime")?, seconds)
-                .map_err(|e| anyhow!("{e}"))?;
-            // The same split as the node: its own keys, the specimen's, the stage's.
-            let mut stage = p.clone();
-            for k in [
-                "source",
-                "pacing",
-                "field_time_s",
-                "save_specimen",
-                "specimen",
-            ] {
-                stage.remove(k);
-            }
-            let mut specimen = toml::Table::new();
-            for k in [
-                "sa_um",
-                "hurst",
-                "correlation_length_um",
-                "waviness_amplitude_um",
-                "waviness_wavelength_um",
-                "waviness_components",
-                "form_sag_um",
-            ] {
-                if let Some(v) = stage.remove(k) {
-                    specimen.insert(k.into(), v);
-                }
-            }
-            if let Some(seed) = p.get("seed") {
-                specimen.insert("seed".into(), seed.clone());
-            }
-            let stage: surfstream_replay::StageParams =
-                params_from_table(&stage).map_err(|e| anyhow!("bad params: {e}"))?;
-            let plan = surfstream_replay::plan_scan(&stage)?;
-            if !p.contains_key("specimen") {
-                let base: surfstream_replay::SpecimenParams =
-                    params_from_table(&specimen).map_err(|e| anyhow!("bad params: {e}"))?;
-                plan.specimen_params(&base).validate()?;
-            }
+            // The node's own split and checks (one place: surfstream_replay::source).
+            surfstream_replay::source::SimulatedParams::from_table(p)?.check()?;
             Ok(())
         }
         kind @ ("scan" | "mcap") => {

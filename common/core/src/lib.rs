@@ -4,7 +4,7 @@
 //! the tile plane correction ([`plane`]), atomic output files ([`fsutil`]), ISO 25178
 //! parameters ([`metrology`]), image similarity ([`similarity`]), FFT sizes ([`fft`]), ISO 16610 filters and form removal ([`filter`]) and the
 //! AVX2 dispatch of hot loops ([`simd`]); the model-vs-measurement table (Table 6,
-//! [`deviation`]).
+//! [`deviation`]); spill files for data that need not stay in memory ([`store`]).
 
 pub mod canvas;
 pub mod deviation;
@@ -18,6 +18,7 @@ pub mod plane;
 pub mod raster;
 pub mod simd;
 pub mod similarity;
+pub mod store;
 
 pub use frame::{flags, FrameHeader, FrameKind, FrameView, HeightMap, TileRegistration};
 pub use plane::PlaneCorrection;

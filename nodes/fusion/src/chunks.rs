@@ -15,21 +15,17 @@
 //! resident while it is placed, so a budget below that (about 9 chunks, 18 MiB, for a
 //! 1024 px tile) is exceeded by that much rather than failing.
 //!
-//! **Spill file layout** (our own, private to the run): an unnamed temporary file (deleted by
-//! the OS when the store is dropped or the process dies) in the spill folder
-//! ([`ChunkStore::set_spill_dir`], default the system temp folder). A chunk is given a slot
-//! the first time it spills and keeps it; slot `k` starts at byte `k * CHUNK_BYTES` and holds
-//! the `CHUNK_PX^2` means, row-major, then the `CHUNK_PX^2` weights, each a little-endian f32.
+//! **Spill file**: [`surfstream_core::store::ChunkedGrid`], an unnamed temporary file in the
+//! spill folder ([`ChunkStore::set_spill_dir`], default the system temp folder); a chunk's slot
+//! holds the `CHUNK_PX^2` means, row-major, then the `CHUNK_PX^2` weights, little-endian f32.
 
-use std::collections::HashMap;
-use std::fs::File;
-use std::os::unix::fs::FileExt;
 use std::path::PathBuf;
 
 use rayon::prelude::*;
 use surfstream_core::canvas::GridRect;
+use surfstream_core::store::{self, AppendLog, ChunkedGrid, GridChunk};
 
-use crate::error::{FusionError, Result};
+use crate::error::Result;
 
 /// Side of a chunk in pixels. 512 keeps a 1024 px tile on 9 chunks at most (12 when its
 /// footprint straddles a boundary in both directions) and one chunk at 2 MiB.
@@ -81,12 +77,22 @@ impl Chunk {
     }
 }
 
-#[derive(Debug)]
-enum Slot {
-    /// In memory, with the clock of its last use.
-    Resident(Box<Chunk>, u64),
-    /// In the spill file at this slot.
-    Spilled(u64),
+impl GridChunk for Chunk {
+    const BYTES: usize = CHUNK_BYTES;
+    fn encode(&self, out: &mut Vec<u8>) {
+        out.extend(store::encode(&self.mean));
+        out.extend(store::encode(&self.weight));
+    }
+    fn decode(bytes: &[u8]) -> Self {
+        let (m, w) = bytes.split_at(CHUNK_BYTES / 2);
+        let mut c = Chunk {
+            mean: Vec::with_capacity(CHUNK_LEN),
+            weight: Vec::with_capacity(CHUNK_LEN),
+        };
+        store::decode_into(m, &mut c.mean);
+        store::decode_into(w, &mut c.weight);
+        c
+    }
 }
 
 /// What the store did, for reports.
@@ -104,15 +110,9 @@ pub struct ChunkStats {
 /// The chunked accumulators of one panorama.
 #[derive(Debug, Default)]
 pub struct ChunkStore {
-    chunks: HashMap<ChunkKey, Slot>,
-    /// Spill slot of every chunk that has spilled once.
-    slots: HashMap<ChunkKey, u64>,
-    clock: u64,
-    resident: usize,
+    grid: ChunkedGrid<Chunk>,
     budget_chunks: Option<usize>,
     spill_dir: Option<PathBuf>,
-    spill: Option<File>,
-    stats: ChunkStats,
 }
 
 impl Clone for ChunkStore {
@@ -120,19 +120,14 @@ impl Clone for ChunkStore {
     /// file.
     fn clone(&self) -> Self {
         let mut out = ChunkStore::default();
-        for &key in self.chunks.keys() {
+        out.grid.tick();
+        for key in self.grid.keys() {
             // A clone is for tests and small panoramas; a failing read leaves the chunk empty
             // in the copy rather than panicking.
-            if let Ok(c) = self.read(key) {
-                out.chunks.insert(key, Slot::Resident(Box::new(c), 0));
+            if let Ok(Some(c)) = self.grid.peek(key, Chunk::clone) {
+                out.grid.insert(key, c);
             }
         }
-        out.resident = out.chunks.len();
-        out.stats = ChunkStats {
-            chunks: out.chunks.len(),
-            peak_resident_chunks: out.chunks.len(),
-            ..ChunkStats::default()
-        };
         out
     }
 }
@@ -142,133 +137,38 @@ impl ChunkStore {
     /// placed); `None`: no limit.
     pub fn set_budget_bytes(&mut self, bytes: Option<usize>) {
         self.budget_chunks = bytes.map(|b| (b / CHUNK_BYTES).max(1));
+        self.grid
+            .set_limit(self.budget_chunks, self.spill_dir.clone());
     }
 
     /// Folder of the spill file (default: the system temp folder). Takes effect at the first
     /// spill.
     pub fn set_spill_dir(&mut self, dir: Option<PathBuf>) {
         self.spill_dir = dir;
+        self.grid
+            .set_limit(self.budget_chunks, self.spill_dir.clone());
     }
 
     pub fn stats(&self) -> ChunkStats {
-        self.stats
-    }
-
-    fn spill_io(e: std::io::Error, what: &str) -> FusionError {
-        FusionError::Spill {
-            message: format!("{what}: {e}"),
+        let s = self.grid.stats();
+        ChunkStats {
+            chunks: s.chunks,
+            peak_resident_chunks: s.peak_resident,
+            spills: s.spills,
+            reloads: s.reloads,
         }
-    }
-
-    /// A chunk's content, from memory or from the spill file; a chunk never touched is all
-    /// zero (no data).
-    fn read(&self, key: ChunkKey) -> Result<Chunk> {
-        match self.chunks.get(&key) {
-            None => Ok(Chunk::zeroed()),
-            Some(Slot::Resident(c, _)) => Ok((**c).clone()),
-            Some(Slot::Spilled(slot)) => self.read_slot(*slot),
-        }
-    }
-
-    fn read_slot(&self, slot: u64) -> Result<Chunk> {
-        let file = self.spill.as_ref().ok_or_else(|| FusionError::Spill {
-            message: "a spilled chunk without a spill file".into(),
-        })?;
-        let mut bytes = vec![0u8; CHUNK_BYTES];
-        file.read_exact_at(&mut bytes, slot * CHUNK_BYTES as u64)
-            .map_err(|e| Self::spill_io(e, "reading a chunk back from the spill file"))?;
-        let mut c = Chunk {
-            mean: Vec::with_capacity(CHUNK_LEN),
-            weight: Vec::with_capacity(CHUNK_LEN),
-        };
-        let (m, w) = bytes.split_at(CHUNK_BYTES / 2);
-        c.mean.extend(
-            m.chunks_exact(4)
-                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])),
-        );
-        c.weight.extend(
-            w.chunks_exact(4)
-                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])),
-        );
-        Ok(c)
-    }
-
-    fn write_slot(&mut self, key: ChunkKey, c: &Chunk) -> Result<u64> {
-        if self.spill.is_none() {
-            let dir = self.spill_dir.clone().unwrap_or_else(std::env::temp_dir);
-            let f = tempfile_in(&dir).map_err(|e| {
-                Self::spill_io(e, &format!("creating the spill file in {}", dir.display()))
-            })?;
-            self.spill = Some(f);
-        }
-        let next = self.slots.len() as u64;
-        let slot = *self.slots.entry(key).or_insert(next);
-        let mut bytes = Vec::with_capacity(CHUNK_BYTES);
-        for v in c.mean.iter().chain(&c.weight) {
-            bytes.extend_from_slice(&v.to_le_bytes());
-        }
-        if let Some(f) = &self.spill {
-            f.write_all_at(&bytes, slot * CHUNK_BYTES as u64)
-                .map_err(|e| Self::spill_io(e, "writing a chunk to the spill file"))?;
-        }
-        self.stats.spills += 1;
-        Ok(slot)
     }
 
     /// Make the chunks `keys` resident (created empty or read back), then spill the least
     /// recently used others while over budget.
     fn make_resident(&mut self, keys: &[ChunkKey]) -> Result<()> {
-        self.clock += 1;
-        let now = self.clock;
+        self.grid.tick();
         for &key in keys {
-            match self.chunks.get_mut(&key) {
-                Some(Slot::Resident(_, t)) => *t = now,
-                Some(Slot::Spilled(slot)) => {
-                    let slot = *slot;
-                    let c = self.read_slot(slot)?;
-                    self.chunks.insert(key, Slot::Resident(Box::new(c), now));
-                    self.resident += 1;
-                    self.stats.reloads += 1;
-                }
-                None => {
-                    self.chunks
-                        .insert(key, Slot::Resident(Box::new(Chunk::zeroed()), now));
-                    self.resident += 1;
-                    self.stats.chunks += 1;
-                }
+            if !self.grid.load(key)? {
+                self.grid.insert(key, Chunk::zeroed());
             }
         }
-        self.stats.peak_resident_chunks = self.stats.peak_resident_chunks.max(self.resident);
-        let Some(budget) = self.budget_chunks else {
-            return Ok(());
-        };
-        if self.resident <= budget {
-            return Ok(());
-        }
-        // Oldest first; the chunks just used (clock == now) stay.
-        let mut victims: Vec<(u64, ChunkKey)> = self
-            .chunks
-            .iter()
-            .filter_map(|(k, s)| match s {
-                Slot::Resident(_, t) if *t < now => Some((*t, *k)),
-                _ => None,
-            })
-            .collect();
-        victims.sort_unstable();
-        for (_, key) in victims.into_iter().take(self.resident - budget) {
-            if let Some(Slot::Resident(c, _)) = self.chunks.remove(&key) {
-                match self.write_slot(key, &c) {
-                    Ok(slot) => {
-                        self.chunks.insert(key, Slot::Spilled(slot));
-                        self.resident -= 1;
-                    }
-                    Err(e) => {
-                        self.chunks.insert(key, Slot::Resident(c, 0));
-                        return Err(e);
-                    }
-                }
-            }
-        }
+        self.grid.evict(|k| keys.contains(&k))?;
         Ok(())
     }
 
@@ -282,16 +182,7 @@ impl ChunkStore {
     ) -> Result<()> {
         let keys = chunks_of(rect);
         self.make_resident(&keys)?;
-        let mut touched: Vec<(ChunkKey, &mut Chunk)> = self
-            .chunks
-            .iter_mut()
-            .filter_map(|(k, s)| match s {
-                Slot::Resident(c, t) if *t == self.clock && keys.contains(k) => {
-                    Some((*k, &mut **c))
-                }
-                _ => None,
-            })
-            .collect();
+        let mut touched = self.grid.resident_mut(&keys);
         touched
             .par_iter_mut()
             .for_each(|(k, c)| f(&chunk_rect(*k), c));
@@ -305,119 +196,54 @@ impl ChunkStore {
         let mut mean = vec![0.0f32; w * h];
         let mut weight = vec![0.0f32; w * h];
         for key in chunks_of(rect) {
-            let spilled;
-            let c: &Chunk = match self.chunks.get(&key) {
-                None => continue,
-                Some(Slot::Resident(c, _)) => c,
-                Some(Slot::Spilled(slot)) => {
-                    spilled = self.read_slot(*slot)?;
-                    &spilled
-                }
-            };
             let cr = chunk_rect(key);
             let Some(i) = cr.intersect(rect) else {
                 continue;
             };
             let n = i.cols();
-            for gy in i.y0..i.y1 {
-                let src = (gy - cr.y0) as usize * CHUNK_PX + (i.x0 - cr.x0) as usize;
-                let dst = (gy - rect.y0) as usize * w + (i.x0 - rect.x0) as usize;
-                mean[dst..dst + n].copy_from_slice(&c.mean[src..src + n]);
-                weight[dst..dst + n].copy_from_slice(&c.weight[src..src + n]);
-            }
+            self.grid.peek(key, |c| {
+                for gy in i.y0..i.y1 {
+                    let src = (gy - cr.y0) as usize * CHUNK_PX + (i.x0 - cr.x0) as usize;
+                    let dst = (gy - rect.y0) as usize * w + (i.x0 - rect.x0) as usize;
+                    mean[dst..dst + n].copy_from_slice(&c.mean[src..src + n]);
+                    weight[dst..dst + n].copy_from_slice(&c.weight[src..src + n]);
+                }
+            })?;
         }
         Ok((mean, weight))
     }
 }
 
-/// An unnamed temporary file in `dir`: gone when closed, also after a crash.
-fn tempfile_in(dir: &std::path::Path) -> std::io::Result<File> {
-    // O_TMPFILE where the file system supports it; otherwise create and unlink at once.
-    std::fs::create_dir_all(dir)?;
-    for attempt in 0..100u32 {
-        let path = dir.join(format!(
-            ".surfstream-spill-{}-{}-{attempt}",
-            std::process::id(),
-            SPILL_SEQ.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
-        ));
-        match std::fs::OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create_new(true)
-            .open(&path)
-        {
-            Ok(f) => {
-                std::fs::remove_file(&path)?;
-                return Ok(f);
-            }
-            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
-            Err(e) => return Err(e),
-        }
-    }
-    Err(std::io::Error::other("no free spill file name"))
+/// Tiles written once to an unnamed temporary file and read back one at a time: what the
+/// final re-render and the overlap quality need, without keeping every tile in memory
+/// ([`surfstream_core::store::AppendLog`]: the tiles' f32 heights, little-endian, row-major,
+/// one after another; the offset and length of each are kept in memory with its header).
+#[derive(Debug)]
+pub struct TileSpill {
+    log: AppendLog<f32>,
 }
 
-static SPILL_SEQ: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-
-/// Tiles written once to an unnamed temporary file and read back one at a time: what the
-/// final re-render and the overlap quality need, without keeping every tile in memory.
-///
-/// Layout (our own, private to the run): the tiles' f32 heights, little-endian, row-major,
-/// one after another in the order they were written; the offset and length of each are kept
-/// in memory with its header.
-#[derive(Debug, Default)]
-pub struct TileSpill {
-    dir: Option<PathBuf>,
-    file: Option<File>,
-    end: u64,
+impl Default for TileSpill {
+    fn default() -> Self {
+        Self::new(None)
+    }
 }
 
 impl TileSpill {
     pub fn new(dir: Option<PathBuf>) -> Self {
         Self {
-            dir,
-            file: None,
-            end: 0,
+            log: AppendLog::new(dir),
         }
     }
 
     /// Appends heights; returns their offset.
     pub fn write(&mut self, heights: &[f32]) -> Result<u64> {
-        if self.file.is_none() {
-            let dir = self.dir.clone().unwrap_or_else(std::env::temp_dir);
-            let f = tempfile_in(&dir).map_err(|e| FusionError::Spill {
-                message: format!("creating the tile spill file in {}: {e}", dir.display()),
-            })?;
-            self.file = Some(f);
-        }
-        let mut bytes = Vec::with_capacity(heights.len() * 4);
-        for v in heights {
-            bytes.extend_from_slice(&v.to_le_bytes());
-        }
-        let at = self.end;
-        if let Some(f) = &self.file {
-            f.write_all_at(&bytes, at).map_err(|e| FusionError::Spill {
-                message: format!("writing a tile to the spill file: {e}"),
-            })?;
-        }
-        self.end += bytes.len() as u64;
-        Ok(at)
+        Ok(self.log.append(heights)?)
     }
 
     /// Reads `len` heights written at `offset`.
     pub fn read(&self, offset: u64, len: usize) -> Result<Vec<f32>> {
-        let file = self.file.as_ref().ok_or_else(|| FusionError::Spill {
-            message: "reading a tile before any was written".into(),
-        })?;
-        let mut bytes = vec![0u8; len * 4];
-        file.read_exact_at(&mut bytes, offset)
-            .map_err(|e| FusionError::Spill {
-                message: format!("reading a tile back from the spill file: {e}"),
-            })?;
-        Ok(bytes
-            .chunks_exact(4)
-            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .collect())
+        Ok(self.log.read(offset, len)?)
     }
 }
 

@@ -79,3 +79,12 @@ pub enum FusionError {
     #[error("spill to disk failed: {message}")]
     Spill { message: String },
 }
+
+impl From<surfstream_core::store::StoreError> for FusionError {
+    /// The store's message names the spill folder and what failed.
+    fn from(e: surfstream_core::store::StoreError) -> Self {
+        FusionError::Spill {
+            message: e.to_string(),
+        }
+    }
+}

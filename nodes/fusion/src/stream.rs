@@ -201,7 +201,7 @@ impl StreamingFusion {
     }
 
     /// A placed tile read back from the spill file.
-    fn load(&self, t: &SpilledTile) -> Result<HeightMap> {
+    fn load(&self, t: &SpilledTile) -> crate::Result<HeightMap> {
         Ok(HeightMap {
             header: t.header,
             heights: self.spill.read(t.offset, t.len)?,
@@ -358,9 +358,7 @@ impl StreamingFusion {
         let pairs = overlap_quality_streamed(final_pano, &footprints, |k| {
             let (t, reg) = &positions[k];
             surfstream_core::liveness::beat();
-            let tile = self.load(t).map_err(|e| crate::FusionError::Spill {
-                message: e.to_string(),
-            })?;
+            let tile = self.load(t)?;
             let input = tile_input(&tile, reg).map_err(|e| crate::FusionError::Spill {
                 message: e.to_string(),
             })?;

@@ -24,13 +24,12 @@
 //! and the registrations are the same, bit for bit, as with every tile in memory.
 
 use std::collections::BTreeMap;
-use std::fs::File;
-use std::os::unix::fs::FileExt;
 use std::path::PathBuf;
 
 use serde_json::json;
 use surfstream_core::frame::{flags, placed_by, TileRegistration};
 use surfstream_core::raster::{Raster, RasterView, Shape};
+use surfstream_core::store::{AppendLog, StoreError};
 use thiserror::Error;
 
 use crate::global::{
@@ -132,60 +131,8 @@ pub enum ScanError {
     Planes(SolveError),
     #[error("truth: {0}")]
     Truth(#[from] TruthError),
-    #[error("tile spill file: {0}")]
-    Spill(#[from] std::io::Error),
-}
-
-/// Placed tiles' heights on disk: an unnamed temporary file (gone when closed, also after a
-/// crash), each tile's f32 values little-endian at its own offset.
-struct TileSpill {
-    dir: Option<PathBuf>,
-    file: Option<File>,
-    end: u64,
-}
-
-impl TileSpill {
-    fn new(dir: Option<PathBuf>) -> Self {
-        Self {
-            dir,
-            file: None,
-            end: 0,
-        }
-    }
-
-    /// Appends `values`; returns their offset.
-    fn write(&mut self, values: &[f32]) -> std::io::Result<u64> {
-        if self.file.is_none() {
-            self.file = Some(match &self.dir {
-                Some(d) => {
-                    std::fs::create_dir_all(d)?;
-                    tempfile::tempfile_in(d)?
-                }
-                None => tempfile::tempfile()?,
-            });
-        }
-        let Some(file) = self.file.as_ref() else {
-            return Err(std::io::Error::other("no spill file")); // created just above
-        };
-        let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
-        let offset = self.end;
-        file.write_all_at(&bytes, offset)?;
-        self.end += bytes.len() as u64;
-        Ok(offset)
-    }
-
-    /// The `len` values written at `offset`.
-    fn read(&self, offset: u64, len: usize) -> std::io::Result<Vec<f32>> {
-        let Some(file) = self.file.as_ref() else {
-            return Err(std::io::Error::other("nothing was spilled"));
-        };
-        let mut bytes = vec![0u8; len * 4];
-        file.read_exact_at(&mut bytes, offset)?;
-        Ok(bytes
-            .chunks_exact(4)
-            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .collect())
-    }
+    #[error("placed tiles: {0}")]
+    Spill(#[from] StoreError),
 }
 
 /// A registered tile, kept to the end of the scan with its streaming placement.
@@ -236,7 +183,7 @@ pub struct ScanRegistration {
     params: ScanParams,
     correlator: PhaseCorrelator,
     tiles: Vec<PlacedTile>,
-    spill: TileSpill,
+    spill: AppendLog<f32>,
     by_grid: BTreeMap<(u32, u32), usize>,
     pairs: Vec<PairRecord>,
     tiles_report: Vec<serde_json::Value>,
@@ -247,7 +194,7 @@ pub struct ScanRegistration {
 impl ScanRegistration {
     pub fn new(params: ScanParams) -> Self {
         ScanRegistration {
-            spill: TileSpill::new(params.spill_dir.clone()),
+            spill: AppendLog::new(params.spill_dir.clone()),
             params,
             correlator: PhaseCorrelator::new(),
             tiles: Vec::new(),
@@ -379,7 +326,7 @@ impl ScanRegistration {
         if t.spilled.is_some() {
             return Ok(());
         }
-        t.spilled = Some(self.spill.write(t.tile.heights.values())?);
+        t.spilled = Some(self.spill.append(t.tile.heights.values())?);
         // A 1 x 1 placeholder: the heights are on disk now.
         t.tile.heights = Raster::filled(Shape::new(1, 1), f32::NAN);
         Ok(())
@@ -392,9 +339,13 @@ impl ScanRegistration {
             return Ok(None);
         };
         let values = self.spill.read(offset, t.shape.len())?;
-        Raster::new(values, t.shape)
-            .map(Some)
-            .map_err(|e| ScanError::Spill(std::io::Error::other(e.to_string())))
+        Raster::new(values, t.shape).map(Some).map_err(|e| {
+            ScanError::Spill(StoreError {
+                folder: self.spill.folder().to_path_buf(),
+                action: format!("reading tile {i} back"),
+                source: std::io::Error::other(e.to_string()),
+            })
+        })
     }
 
     /// The already-placed grid 4-neighbours of `t` (left, right, above, below).
@@ -837,9 +788,11 @@ impl PlaneTiles for PlacedTiles<'_> {
                 f(va, vb);
                 Ok(())
             }
-            _ => Err(PlanesError::Spill(ScanError::Spill(std::io::Error::other(
-                format!("tiles {a} and {b} are not both readable"),
-            )))),
+            _ => Err(PlanesError::Spill(ScanError::Spill(StoreError {
+                folder: self.scan.spill.folder().to_path_buf(),
+                action: format!("reading tiles {a} and {b} back"),
+                source: std::io::Error::other("not both readable"),
+            }))),
         }
     }
 }

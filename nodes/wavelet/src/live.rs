@@ -15,9 +15,6 @@
 //! built as whole frames only when a consumer is wired to the port. Base by RMSE, level by
 //! minimum energy and the ISO filter methods (FFT over the whole map) keep the in-memory path.
 
-use std::collections::HashMap;
-use std::fs::File;
-use std::os::unix::fs::FileExt;
 use std::path::PathBuf;
 
 use anyhow::{anyhow, bail, Result};
@@ -25,6 +22,7 @@ use serde_json::json;
 use surfstream_core::canvas::GridRect;
 use surfstream_core::frame::{flags, FrameHeader, FrameKind, FrameView, HeightMap};
 use surfstream_core::raster::{RasterView, Shape};
+use surfstream_core::store::{self, ChunkedGrid, GridChunk};
 use surfstream_io::output::{NpyHeights, OutputWriter, SurfaceOutput};
 
 use surfstream_core::filter::Grid;
@@ -94,31 +92,32 @@ const MIRROR_CHUNK: i64 = 256;
 /// memory follows the covered area (about 4 B/px), and growing never copies (a growing
 /// array would hold up to ~2.25x the area, and old + new while it reallocates). Under a
 /// memory budget ([`LiveSeparation::limit_mirror`]) at most `limit` chunks stay in memory: the
-/// least recently used go to an unnamed spill file (exact bits; slot `k` at byte
-/// `k * MIRROR_CHUNK_BYTES`, native-endian f32, a chunk keeps its slot) and come back when a
-/// patch or a live window touches them. A live window is a patch plus its margin, far
-/// smaller than the budget, so the chunks a scan has left behind are the ones that go.
+/// least recently used go to an unnamed spill file ([`surfstream_core::store::ChunkedGrid`]:
+/// exact bits, little-endian f32) and come back when a patch or a live window touches them. A
+/// live window is a patch plus its margin, far smaller than the budget, so the chunks a scan
+/// has left behind are the ones that go.
 #[derive(Debug, Default)]
 struct ChunkedHeights {
-    chunks: HashMap<(i64, i64), Box<[f32]>>,
-    /// Last use of each resident chunk (a counter), for the eviction order.
-    used: HashMap<(i64, i64), u64>,
-    clock: u64,
-    /// Most chunks kept in memory; `None`: all.
-    limit: Option<usize>,
-    /// Where the spill file goes (created at the first eviction).
-    spill_dir: Option<PathBuf>,
-    spill: Option<MirrorSpill>,
+    grid: ChunkedGrid<MirrorChunk>,
 }
 
 /// Bytes of one mirror chunk.
 const MIRROR_CHUNK_BYTES: u64 = (MIRROR_CHUNK * MIRROR_CHUNK) as u64 * 4;
 
+/// One mirror chunk's heights, row-major, NaN where no patch wrote.
 #[derive(Debug)]
-struct MirrorSpill {
-    file: File,
-    dir: PathBuf,
-    slots: HashMap<(i64, i64), u64>,
+struct MirrorChunk(Box<[f32]>);
+
+impl GridChunk for MirrorChunk {
+    const BYTES: usize = MIRROR_CHUNK_BYTES as usize;
+    fn encode(&self, out: &mut Vec<u8>) {
+        out.extend(store::encode(&self.0));
+    }
+    fn decode(bytes: &[u8]) -> Self {
+        let mut v = Vec::with_capacity(bytes.len() / 4);
+        store::decode_into(bytes, &mut v);
+        MirrorChunk(v.into_boxed_slice())
+    }
 }
 
 impl ChunkedHeights {
@@ -147,93 +146,25 @@ impl ChunkedHeights {
 
     /// Keep at most `limit` chunks in memory, spilling the rest into an unnamed file in `dir`.
     fn set_limit(&mut self, limit: usize, dir: PathBuf) {
-        self.limit = Some(limit.max(1));
-        self.spill_dir = Some(dir);
+        self.grid.set_limit(Some(limit), Some(dir));
     }
 
     /// Chunk `key` in memory (read back from the spill file if it went there), if it exists.
     fn load(&mut self, key: (i64, i64)) -> Result<bool> {
-        self.clock += 1;
-        if self.chunks.contains_key(&key) {
-            self.used.insert(key, self.clock);
-            return Ok(true);
-        }
-        let Some(spill) = &self.spill else {
-            return Ok(false);
-        };
-        let Some(&slot) = spill.slots.get(&key) else {
-            return Ok(false);
-        };
-        let mut bytes = vec![0u8; MIRROR_CHUNK_BYTES as usize];
-        spill
-            .file
-            .read_exact_at(&mut bytes, slot * MIRROR_CHUNK_BYTES)
-            .map_err(|e| {
-                anyhow!(
-                    "wavelet: cannot read the live mirror's spill file in {}: {e}",
-                    spill.dir.display()
-                )
-            })?;
-        let chunk: Box<[f32]> = bytes
-            .chunks_exact(4)
-            .map(|b| f32::from_ne_bytes([b[0], b[1], b[2], b[3]]))
-            .collect();
-        self.chunks.insert(key, chunk);
-        self.used.insert(key, self.clock);
-        Ok(true)
+        self.grid.tick();
+        Ok(self
+            .grid
+            .load(key)
+            .map_err(|e| anyhow!("wavelet: the live mirror's {e}"))?)
     }
 
     /// Spills least recently used chunks until at most the limit stay, never one in `keep`.
     fn evict(&mut self, keep: GridRect) -> Result<()> {
-        let Some(limit) = self.limit else {
-            return Ok(());
-        };
-        while self.chunks.len() > limit {
-            let kept: std::collections::HashSet<(i64, i64)> =
-                Self::pieces(keep).map(|(k, _)| k).collect();
-            let Some((&key, _)) = self
-                .used
-                .iter()
-                .filter(|(k, _)| !kept.contains(k))
-                .min_by_key(|(_, &t)| t)
-            else {
-                return Ok(());
-            };
-            if self.spill.is_none() {
-                let dir = self.spill_dir.clone().unwrap_or_else(std::env::temp_dir);
-                let file = tempfile::tempfile_in(&dir).map_err(|e| {
-                    anyhow!(
-                        "wavelet: cannot create the live mirror's spill file in {}: {e}",
-                        dir.display()
-                    )
-                })?;
-                self.spill = Some(MirrorSpill {
-                    file,
-                    dir,
-                    slots: HashMap::new(),
-                });
-            }
-            let Some(spill) = self.spill.as_mut() else {
-                return Ok(());
-            };
-            let Some(chunk) = self.chunks.remove(&key) else {
-                return Ok(());
-            };
-            self.used.remove(&key);
-            let next = spill.slots.len() as u64;
-            let slot = *spill.slots.entry(key).or_insert(next);
-            let bytes: Vec<u8> = chunk.iter().flat_map(|v| v.to_ne_bytes()).collect();
-            spill
-                .file
-                .write_all_at(&bytes, slot * MIRROR_CHUNK_BYTES)
-                .map_err(|e| {
-                    anyhow!(
-                        "wavelet: cannot write the live mirror's spill file in {}: {e}",
-                        spill.dir.display()
-                    )
-                })?;
-        }
-        Ok(())
+        let kept: std::collections::HashSet<(i64, i64)> =
+            Self::pieces(keep).map(|(k, _)| k).collect();
+        self.grid
+            .evict(|k| kept.contains(&k))
+            .map_err(|e| anyhow!("wavelet: the live mirror's {e}"))
     }
 
     /// Copies row-major `values` (`rect`'s size, checked by the caller) into `rect`.
@@ -244,13 +175,14 @@ impl ChunkedHeights {
         let w = rect.cols();
         for ((cx, cy), part) in Self::pieces(rect) {
             if !self.load((cx, cy))? {
-                self.chunks.insert(
+                self.grid.insert(
                     (cx, cy),
-                    vec![f32::NAN; (MIRROR_CHUNK * MIRROR_CHUNK) as usize].into_boxed_slice(),
+                    MirrorChunk(
+                        vec![f32::NAN; (MIRROR_CHUNK * MIRROR_CHUNK) as usize].into_boxed_slice(),
+                    ),
                 );
-                self.used.insert((cx, cy), self.clock);
             }
-            let Some(chunk) = self.chunks.get_mut(&(cx, cy)) else {
+            let Some(MirrorChunk(chunk)) = self.grid.get_mut((cx, cy)) else {
                 continue;
             };
             let n = part.cols();
@@ -275,7 +207,7 @@ impl ChunkedHeights {
             if !self.load((cx, cy))? {
                 continue;
             }
-            let Some(chunk) = self.chunks.get(&(cx, cy)) else {
+            let Some(MirrorChunk(chunk)) = self.grid.get((cx, cy)) else {
                 continue;
             };
             let n = part.cols();
@@ -1027,9 +959,9 @@ mod tests {
                 .collect();
             limited.write(r, &v).unwrap();
             whole.write(r, &v).unwrap();
-            assert!(limited.chunks.len() <= 3.max(ChunkedHeights::pieces(r).count()));
+            assert!(limited.grid.resident_len() <= 3.max(ChunkedHeights::pieces(r).count()));
         }
-        assert!(limited.spill.is_some(), "nothing was spilled");
+        assert!(limited.grid.has_spilled(), "nothing was spilled");
         let win = GridRect::at(-450, -120, Shape::new(700, 2200));
         let (a, b) = (limited.read(win).unwrap(), whole.read(win).unwrap());
         assert_eq!(

@@ -21,11 +21,10 @@
 //! caller's. [`energy_curve_streamed`] does the same for [`crate::energy_curve`] (details
 //! included; its sums are added in another order, so it agrees to round-off, not bits).
 
-use std::fs::File;
-use std::os::unix::fs::FileExt;
 use std::path::PathBuf;
 
 use rayon::prelude::*;
+use surfstream_core::store::{RowStore, StoreError};
 
 use crate::dwt::{check_trim, LevelKernels, Rows};
 use crate::error::{check_raster, WaveletError};
@@ -68,6 +67,13 @@ pub enum StreamError {
     Store(#[from] std::io::Error),
     #[error("{0:#}")]
     Sink(anyhow::Error),
+}
+
+impl From<StoreError> for StreamError {
+    /// The message names the spill folder.
+    fn from(e: StoreError) -> Self {
+        StreamError::Store(e.into())
+    }
 }
 
 /// Where input rows come from: the filled heights (level 0) or a stored level.
@@ -162,81 +168,26 @@ impl RowFetch for FilledRows<'_> {
 
 /// One level's coefficients, `rows x cols` f64: in memory when small, else in an unnamed
 /// temporary file (gone when dropped, also after a crash) read and written by row.
-struct LevelStore {
-    rows: usize,
-    cols: usize,
-    mem: Vec<f64>,
-    file: Option<File>,
-}
+type LevelStore = RowStore<f64>;
 
-impl LevelStore {
-    fn new(rows: usize, cols: usize, opts: &StreamOptions) -> std::io::Result<Self> {
-        let bytes = rows.saturating_mul(cols).saturating_mul(8);
-        if bytes <= opts.memory_store_max_bytes {
-            return Ok(Self {
-                rows,
-                cols,
-                mem: vec![0.0; rows * cols],
-                file: None,
-            });
-        }
-        let dir = opts.spill_dir.clone().unwrap_or_else(std::env::temp_dir);
-        let file = tempfile::tempfile_in(&dir).map_err(|e| {
-            std::io::Error::new(
-                e.kind(),
-                format!("cannot create a temporary file in {}: {e}", dir.display()),
-            )
-        })?;
-        file.set_len(bytes as u64)?;
-        Ok(Self {
-            rows,
-            cols,
-            mem: Vec::new(),
-            file: Some(file),
-        })
-    }
-
-    /// Rows `r0 ..` from `data` (whole rows).
-    fn write_rows(&mut self, r0: usize, data: &[f64]) -> std::io::Result<()> {
-        let at = r0 * self.cols;
-        match &self.file {
-            None => {
-                self.mem[at..at + data.len()].copy_from_slice(data);
-                Ok(())
-            }
-            Some(f) => {
-                let bytes: Vec<u8> = data.iter().flat_map(|v| v.to_le_bytes()).collect();
-                f.write_all_at(&bytes, at as u64 * 8)
-            }
-        }
-    }
+fn new_level(rows: usize, cols: usize, opts: &StreamOptions) -> Result<LevelStore, StoreError> {
+    RowStore::new(
+        rows,
+        cols,
+        opts.memory_store_max_bytes,
+        opts.spill_dir.clone(),
+    )
 }
 
 impl RowFetch for LevelStore {
     fn rows(&self) -> usize {
-        self.rows
+        RowStore::rows(self)
     }
     fn cols(&self) -> usize {
-        self.cols
+        RowStore::cols(self)
     }
     fn fetch(&self, r: usize, out: &mut [f64]) -> std::io::Result<()> {
-        let at = r * self.cols;
-        match &self.file {
-            None => {
-                out.copy_from_slice(&self.mem[at..at + self.cols]);
-                Ok(())
-            }
-            Some(f) => {
-                let mut bytes = vec![0u8; self.cols * 8];
-                f.read_exact_at(&mut bytes, at as u64 * 8)?;
-                for (o, b) in out.iter_mut().zip(bytes.chunks_exact(8)) {
-                    let mut a = [0u8; 8];
-                    a.copy_from_slice(b);
-                    *o = f64::from_le_bytes(a);
-                }
-                Ok(())
-            }
-        }
+        Ok(self.read_row(r, out)?)
     }
 }
 
@@ -310,7 +261,7 @@ fn dec_step(
     opts: &StreamOptions,
 ) -> Result<(LevelStore, StepEnergy), StreamError> {
     let (r2, c2) = (k.dec_out_len(src.rows()), k.dec_out_len(src.cols()));
-    let mut store = LevelStore::new(r2, c2, opts)?;
+    let mut store = new_level(r2, c2, opts)?;
     let band = band_rows(opts, src.cols(), 2);
     let sub = task_rows(band);
     let mut energy = StepEnergy::default();
@@ -354,10 +305,10 @@ fn rec_step(
     want: (usize, usize),
     opts: &StreamOptions,
 ) -> Result<LevelStore, StreamError> {
-    let out_rows = k.rec_out_len(src.rows).ok_or_else(|| too_short(src))?;
-    let out_cols = k.rec_out_len(src.cols).ok_or_else(|| too_short(src))?;
+    let out_rows = k.rec_out_len(src.rows()).ok_or_else(|| too_short(src))?;
+    let out_cols = k.rec_out_len(src.cols()).ok_or_else(|| too_short(src))?;
     check_trim((out_rows, out_cols), want)?;
-    let mut store = LevelStore::new(want.0, want.1, opts)?;
+    let mut store = new_level(want.0, want.1, opts)?;
     let band = band_rows(opts, out_cols, 1);
     let sub = task_rows(band);
     let mut out = Vec::new();
@@ -365,7 +316,7 @@ fn rec_step(
     for n0 in (0..want.0).step_by(band) {
         surfstream_core::liveness::beat();
         let n1 = (n0 + band).min(want.0);
-        let rows = BandRows::gather(src, k.rec_rows_needed(n0, n1, src.rows))?;
+        let rows = BandRows::gather(src, k.rec_rows_needed(n0, n1, src.rows()))?;
         out.clear();
         out.resize((n1 - n0) * out_cols, 0.0);
         out.par_chunks_mut(sub * out_cols)
@@ -383,7 +334,8 @@ fn rec_step(
 fn too_short(a: &LevelStore) -> WaveletError {
     WaveletError::CoeffShape(format!(
         "{} x {} coefficients are too few for the filter",
-        a.rows, a.cols
+        a.rows(),
+        a.cols()
     ))
 }
 
@@ -409,10 +361,10 @@ pub fn separate_streamed(
     // Decompose, keeping only the newest approximation; remember every level's shape.
     let mut shapes = vec![(rows, cols)];
     let (mut approx, _) = dec_step(&filled, &k, false, opts)?;
-    shapes.push((approx.rows, approx.cols));
+    shapes.push((approx.rows(), approx.cols()));
     for _ in 1..level {
         approx = dec_step(&approx, &k, false, opts)?.0;
-        shapes.push((approx.rows, approx.cols));
+        shapes.push((approx.rows(), approx.cols()));
     }
     // Reconstruct approximation-only, trimming as waverec2 does, down to level 1.
     for l in (2..=level).rev() {
@@ -420,10 +372,10 @@ pub fn separate_streamed(
     }
     // The last inverse step, band by band into datum / roughness rows.
     let out_rows = k
-        .rec_out_len(approx.rows)
+        .rec_out_len(approx.rows())
         .ok_or_else(|| too_short(&approx))?;
     let out_cols = k
-        .rec_out_len(approx.cols)
+        .rec_out_len(approx.cols())
         .ok_or_else(|| too_short(&approx))?;
     if out_rows < rows || out_cols < cols {
         return Err(WaveletError::CoeffShape(format!(
@@ -438,7 +390,7 @@ pub fn separate_streamed(
     let mut roughness = Vec::new();
     for n0 in (0..rows).step_by(band) {
         let n1 = (n0 + band).min(rows);
-        let src = BandRows::gather(&approx, k.rec_rows_needed(n0, n1, approx.rows))?;
+        let src = BandRows::gather(&approx, k.rec_rows_needed(n0, n1, approx.rows()))?;
         low.clear();
         low.resize((n1 - n0) * out_cols, 0.0);
         datum.clear();

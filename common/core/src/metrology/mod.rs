@@ -1,7 +1,7 @@
 //! ISO 25178-2 height and hybrid parameters, plane levelling, SIM (the reference study's
 //! eq. 12) and the model-vs-measurement deviation of its Table 6.
 //!
-//! Conventions (the parity reference is surfalize 0.19.2, see ../shared/notes/formats.md):
+//! Conventions (the parity reference is surfalize 0.19.2, see docs/formats.md):
 //! z = the valid (non-NaN) heights, N their count, c = z - mean(z); nothing is levelled or
 //! filtered implicitly ([`level_plane`] is the explicit step).
 //! - Sa = sum|c| / N; Sq = sqrt(sum c^2 / N); Sp = max c; Sv = |min c|; Sz = Sp + Sv;
