@@ -553,7 +553,7 @@ const STOP_POLL: Duration = Duration::from_millis(100);
 
 /// Fails when a stop signal arrived: the graph is stopped and the error names the signal.
 fn stopping() -> Result<()> {
-    stop::check().map_err(|e| e.context("stopping every node"))
+    stop::check()
 }
 
 /// Fails, naming the node, when a running node made no progress within the stall deadline.

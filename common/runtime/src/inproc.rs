@@ -401,3 +401,68 @@ fn send_beating(
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::node::Input;
+
+    /// A node that hangs in one call (like a read of a FIFO) without beating, or finishes.
+    struct Hangs {
+        hang: Option<Duration>,
+        done: bool,
+    }
+
+    impl NodeLogic for Hangs {
+        fn on_input(&mut self, _: &str, _: Input<'_>, _: &mut Outbox) -> Result<()> {
+            Ok(())
+        }
+        fn on_drained(&mut self, _: &mut Outbox) -> Result<()> {
+            if let Some(d) = self.hang.take() {
+                std::thread::sleep(d);
+            }
+            self.done = true;
+            Ok(())
+        }
+        fn finished(&self) -> bool {
+            self.done
+        }
+    }
+
+    fn node(id: &str, hang: Option<Duration>) -> InProcessNode {
+        InProcessNode {
+            context: NodeContext {
+                graph_name: "g".into(),
+                node_id: id.into(),
+                node_kind: "test".into(),
+                params: toml::Table::new(),
+                out_dir: "/nonexistent".into(),
+                inputs: vec![],
+                outputs: vec![],
+                backpressure_timeout_s: 5.0,
+                startup_timeout_s: 5.0,
+                scan_id: 1,
+                memory_budget_bytes: None,
+            },
+            logic: Box::new(Hangs { hang, done: false }),
+        }
+    }
+
+    #[test]
+    fn a_node_hung_in_one_call_is_named_as_stalled_under_run() {
+        let sup = Supervision {
+            stall_timeout: Duration::from_millis(600),
+            grace: Duration::from_millis(100),
+        };
+        let e = run_graph_supervised(
+            vec![node("quick", None), node("stuck", Some(Duration::from_secs(5)))],
+            Some(sup),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("stalled: node 'stuck' made no progress"), "{e}");
+        // Nodes that finish in time are not stalls.
+        let ok = run_graph_supervised(vec![node("quick", Some(Duration::from_millis(50)))], Some(sup));
+        assert!(ok.is_ok());
+    }
+}

@@ -65,9 +65,6 @@ pub fn exit_cleanly_on_stream_panics() {
             .map(String::as_str)
             .or_else(|| info.payload().downcast_ref::<&str>().copied())
             .unwrap_or("");
-        if msg.contains("os error 28") {
-            std::process::exit(EXIT_NO_SPACE);
-        }
         if msg.starts_with("failed printing to stdout") {
             use std::io::Write;
             let _ = writeln!(
@@ -79,6 +76,10 @@ pub fn exit_cleanly_on_stream_panics() {
         }
         if msg.starts_with("failed printing to stderr") {
             std::process::exit(1);
+        }
+        // Any other write that failed for a full disk, in a thread that panicked on it.
+        if msg.contains("os error 28") {
+            std::process::exit(EXIT_NO_SPACE);
         }
         default(info);
     }));
