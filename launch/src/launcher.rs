@@ -50,6 +50,7 @@ mod iceoryx2_free {
 /// Resolves the graph into the run's staging folder and writes the resolved form there; the
 /// out dir itself is not touched until the run is complete (see [`outdir`]).
 fn prepare(graph: &mut GraphFile, staged: &outdir::StagedOut) -> Result<Vec<NodeContext>> {
+    reserve_failure_room(&staged.staging);
     staged.carry_inputs(graph)?;
     graph.graph.out_dir = staged.staging.clone();
     let scan_id = std::time::SystemTime::now()
@@ -71,6 +72,23 @@ fn write_resolved(dir: &Path, contexts: &[NodeContext]) -> Result<()> {
         serde_json::to_writer_pretty(w, contexts)
             .map_err(|e| anyhow!("{}: {e}", resolved.display()))
     })
+}
+
+/// A file of reserved disk blocks in the staging folder, removed before the `FAILED` record
+/// is written (the record's writer removes every output first) or before a complete run is
+/// moved into place: on a disk that filled up during the run, the record naming ENOSPC still
+/// fits.
+const FAILURE_RESERVE: &str = ".failure-reserve";
+const FAILURE_RESERVE_BYTES: i64 = 256 * 1024;
+
+fn reserve_failure_room(staging: &Path) {
+    if let Ok(f) = File::create(staging.join(FAILURE_RESERVE)) {
+        use std::os::fd::AsRawFd;
+        // SAFETY: fallocate on a descriptor we own; failure (no room, no support) is ignored.
+        unsafe {
+            libc::fallocate(f.as_raw_fd(), 0, 0, FAILURE_RESERVE_BYTES);
+        }
+    }
 }
 
 /// How far a run got when it ended: decides what happens to its out dir.
@@ -99,6 +117,7 @@ fn settle(
                 c.out_dir = staged.final_dir.clone();
             }
             let (staging, final_dir) = (staged.staging.clone(), staged.final_dir.clone());
+            let _ = std::fs::remove_file(staging.join(FAILURE_RESERVE));
             let written = write_resolved(&staging, &moved).and_then(|_| staged.commit());
             if let Err(e) = written {
                 return Err(e.context(format!(
@@ -156,8 +175,9 @@ pub fn run_in_process(
     mut graph: GraphFile,
     origin: &Path,
     deviation: deviation::Settings,
+    claim: &outdir::Claim,
 ) -> Result<()> {
-    let staged = outdir::stage(&graph.graph.out_dir)?;
+    let staged = outdir::stage(&graph.graph.out_dir, claim)?;
     let final_dir = staged.final_dir.clone();
     let contexts = match prepare(&mut graph, &staged) {
         Ok(c) => c,
@@ -274,14 +294,19 @@ fn describe_exit(status: &std::process::ExitStatus) -> String {
 }
 
 /// `surfstream launch`: every node its own process.
-pub fn launch(mut graph: GraphFile, origin: &Path, deviation: deviation::Settings) -> Result<()> {
+pub fn launch(
+    mut graph: GraphFile,
+    origin: &Path,
+    deviation: deviation::Settings,
+    claim: &outdir::Claim,
+) -> Result<()> {
     // Everything that can be checked without running is checked before anything is written:
     // the graph (validated when loaded), the node binaries, a free slot, the out dir's lock.
     for n in &graph.nodes {
         node_binary(&n.node)?;
     }
     let slot = slots::take()?;
-    let staged = outdir::stage(&graph.graph.out_dir)?;
+    let staged = outdir::stage(&graph.graph.out_dir, claim)?;
     let final_dir = staged.final_dir.clone();
     let contexts = match prepare(&mut graph, &staged) {
         Ok(c) => c,
