@@ -367,9 +367,17 @@ fn graph_files_writing_outside_the_out_dir_are_refused() {
     let abs = format!("recorder.path=\"{}\"", outside.display());
     for (set, node, field) in [
         (abs.as_str(), "node 'recorder'", "params.path"),
-        ("recorder.path=\"../../x.mcap\"", "node 'recorder'", "params.path"),
+        (
+            "recorder.path=\"../../x.mcap\"",
+            "node 'recorder'",
+            "params.path",
+        ),
         ("mesher.file=\"../x.stl\"", "node 'mesher'", "params.file"),
-        ("mesher.file=\"/tmp/surfstream-x.stl\"", "node 'mesher'", "params.file"),
+        (
+            "mesher.file=\"/tmp/surfstream-x.stl\"",
+            "node 'mesher'",
+            "params.file",
+        ),
     ] {
         for verb in ["run", "launch"] {
             graph_fails(verb, &demo, &out, &[set], &["demo.toml", node, field]);
@@ -384,7 +392,13 @@ fn graph_files_writing_outside_the_out_dir_are_refused() {
         .unwrap()
         .replace("path = \"recording.mcap\"", "path = \"../escape.mcap\"");
     write(&g, &text);
-    graph_fails("run", &g, &out, &[], &["escape.toml", "node 'recorder'", "leaves the out dir"]);
+    graph_fails(
+        "run",
+        &g,
+        &out,
+        &[],
+        &["escape.toml", "node 'recorder'", "leaves the out dir"],
+    );
 }
 
 /// A cycle is refused when the graph is read, not found by a stall watch minutes later.
@@ -402,7 +416,13 @@ fn a_graph_with_a_cycle_is_refused_when_read() {
     write(&g, &text);
     for verb in ["run", "launch"] {
         let t0 = std::time::Instant::now();
-        graph_fails(verb, &g, &out, &[], &["cycle.toml", "cycle", "matcher", "fusion"]);
+        graph_fails(
+            verb,
+            &g,
+            &out,
+            &[],
+            &["cycle.toml", "cycle", "matcher", "fusion"],
+        );
         // Refused on reading (well within a stall deadline of 60 s), not by the stall watch.
         assert!(t0.elapsed() < std::time::Duration::from_secs(30));
     }
@@ -422,8 +442,20 @@ fn absurd_durations_sizes_and_heights_are_clear_errors() {
         &["stage.field_time_s=1e20"],
         &["field_time_s = 100000000000000000000", "at most"],
     );
-    graph_fails("run", &demo, &out, &["stage.noise_um=1e30"], &["noise_um", "at most"]);
-    graph_fails("launch", &demo, &out, &["stage.sa_um=1e12"], &["sa_um", "at most"]);
+    graph_fails(
+        "run",
+        &demo,
+        &out,
+        &["stage.noise_um=1e30"],
+        &["noise_um", "at most"],
+    );
+    graph_fails(
+        "launch",
+        &demo,
+        &out,
+        &["stage.sa_um=1e12"],
+        &["sa_um", "at most"],
+    );
     graph_fails(
         "run",
         &demo,
@@ -431,11 +463,16 @@ fn absurd_durations_sizes_and_heights_are_clear_errors() {
         &["stage.rows=4294967296", "stage.cols=4294967296"],
         &["rows"],
     );
-    for field in ["backpressure_timeout_s", "startup_timeout_s", "stall_timeout_s"] {
+    for field in [
+        "backpressure_timeout_s",
+        "startup_timeout_s",
+        "stall_timeout_s",
+    ] {
         let g = d.path().join(format!("{field}.toml"));
-        let text = std::fs::read_to_string(&demo)
-            .unwrap()
-            .replace("name = \"demo\"\n", &format!("name = \"demo\"\n{field} = 1e300\n"));
+        let text = std::fs::read_to_string(&demo).unwrap().replace(
+            "name = \"demo\"\n",
+            &format!("name = \"demo\"\n{field} = 1e300\n"),
+        );
         write(&g, &text);
         graph_fails("run", &g, &out, &[], &[field, "at most"]);
     }
@@ -449,7 +486,12 @@ fn absurd_durations_sizes_and_heights_are_clear_errors() {
         &GOOD_SCAN.replace("rows = 1\ncols = 2", "rows = 4294967296\ncols = 4294967296"),
     );
     let err = fails(
-        &["stitch", scan.to_str().unwrap(), "-o", out.to_str().unwrap()],
+        &[
+            "stitch",
+            scan.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+        ],
         &out,
     );
     assert!(err.contains("rows * cols <="), "{err}");
@@ -491,7 +533,12 @@ fn recordings_with_absurd_heights_are_refused() {
     };
     let offset = write_rec("offset.mcap", 1e30, 1.0);
     let err = fails(
-        &["stitch", offset.to_str().unwrap(), "-o", out.to_str().unwrap()],
+        &[
+            "stitch",
+            offset.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+        ],
         &out,
     );
     assert!(
@@ -500,11 +547,18 @@ fn recordings_with_absurd_heights_are_refused() {
     );
     let spike = write_rec("spike.mcap", 0.0, 1e20);
     let err = fails(
-        &["stitch", spike.to_str().unwrap(), "-o", out.to_str().unwrap()],
+        &[
+            "stitch",
+            spike.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+        ],
         &out,
     );
     assert!(
-        err.contains("spike.mcap") && err.contains("beyond +-1e6 um") && err.contains("row 3, col 5"),
+        err.contains("spike.mcap")
+            && err.contains("beyond +-1e6 um")
+            && err.contains("row 3, col 5"),
         "{err}"
     );
 }
@@ -521,22 +575,45 @@ fn manifests_that_lie_are_refused_or_named() {
     tile(&scan, "tile_001.npy", 64, 100);
     tile(d.path(), "secret.npy", 64, 100);
     let s = scan.join("scan.toml");
-    let stitch = || fails(&["stitch", s.to_str().unwrap(), "-o", out.to_str().unwrap()], &out);
-    write(&s, &GOOD_SCAN.replace("\"tile_001.npy\"", "\"../secret.npy\""));
+    let stitch = || {
+        fails(
+            &["stitch", s.to_str().unwrap(), "-o", out.to_str().unwrap()],
+            &out,
+        )
+    };
+    write(
+        &s,
+        &GOOD_SCAN.replace("\"tile_001.npy\"", "\"../secret.npy\""),
+    );
     let err = stitch();
-    assert!(err.contains("outside the scan directory") && err.contains("secret.npy"), "{err}");
+    assert!(
+        err.contains("outside the scan directory") && err.contains("secret.npy"),
+        "{err}"
+    );
     let abs = d.path().join("secret.npy");
-    write(&s, &GOOD_SCAN.replace("\"tile_001.npy\"", &format!("{:?}", abs.display().to_string())));
+    write(
+        &s,
+        &GOOD_SCAN.replace(
+            "\"tile_001.npy\"",
+            &format!("{:?}", abs.display().to_string()),
+        ),
+    );
     let err = stitch();
     assert!(err.contains("outside the scan directory"), "{err}");
     // A FIFO: refused at once, not a silent hang.
     let fifo = scan.join("fifo.npy");
-    let made = std::process::Command::new("mkfifo").arg(&fifo).status().unwrap();
+    let made = std::process::Command::new("mkfifo")
+        .arg(&fifo)
+        .status()
+        .unwrap();
     assert!(made.success());
     write(&s, &GOOD_SCAN.replace("\"tile_001.npy\"", "\"fifo.npy\""));
     let t0 = std::time::Instant::now();
     let err = stitch();
-    assert!(err.contains("fifo.npy") && err.contains("not a regular file"), "{err}");
+    assert!(
+        err.contains("fifo.npy") && err.contains("not a regular file"),
+        "{err}"
+    );
     assert!(t0.elapsed() < std::time::Duration::from_secs(30));
     // A pitch that disagrees with the ground truth the tiles were made with.
     let sim = d.path().join("sim");
@@ -548,10 +625,19 @@ fn manifests_that_lie_are_refused_or_named() {
         .replace("pitch_y_um = 0.8148", "pitch_y_um = 2.0");
     assert_ne!(wrong, m);
     write(&sim.join("scan.toml"), &wrong);
-    let err = fails(&["stitch", sim.to_str().unwrap(), "-o", out.to_str().unwrap()], &out);
-    assert!(err.contains("ground_truth.json") && err.contains("disagree"), "{err}");
+    let err = fails(
+        &["stitch", sim.to_str().unwrap(), "-o", out.to_str().unwrap()],
+        &out,
+    );
+    assert!(
+        err.contains("ground_truth.json") && err.contains("disagree"),
+        "{err}"
+    );
     // Stage steps larger than a tile at the manifest's pitch: the tiles cannot overlap.
-    write(&s, &GOOD_SCAN.replace("stage_x_um = 80.0", "stage_x_um = 800.0"));
+    write(
+        &s,
+        &GOOD_SCAN.replace("stage_x_um = 80.0", "stage_x_um = 800.0"),
+    );
     let err = stitch();
     assert!(err.contains("cannot overlap"), "{err}");
 }
@@ -588,7 +674,12 @@ fn a_full_stdout_or_stderr_is_a_clean_exit() {
     let d = tempfile::tempdir().unwrap();
     tile(d.path(), "t.npy", 16, 16);
     let f = d.path().join("t.npy");
-    let full = || std::fs::OpenOptions::new().write(true).open("/dev/full").unwrap();
+    let full = || {
+        std::fs::OpenOptions::new()
+            .write(true)
+            .open("/dev/full")
+            .unwrap()
+    };
     // stdout on /dev/full: a clean error on stderr.
     let o = surfstream()
         .args(["params", f.to_str().unwrap()])

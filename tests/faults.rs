@@ -556,7 +556,10 @@ fn interrupt(
         .spawn()
         .unwrap();
     let t0 = Instant::now();
-    while !std::fs::read_to_string(log).unwrap_or_default().contains(when) {
+    while !std::fs::read_to_string(log)
+        .unwrap_or_default()
+        .contains(when)
+    {
         if let Some(s) = child.try_wait().unwrap() {
             panic!(
                 "ended ({s:?}) before {when:?}: {}",
@@ -582,7 +585,10 @@ fn assert_interrupted(out: &Path, status: std::process::ExitStatus, err: &str, n
     assert!(err.contains(&format!("interrupted by {name}")), "{err}");
     assert_eq!(out_state(out), OutState::Failed, "{err}");
     let record = std::fs::read_to_string(out.join("FAILED")).unwrap();
-    assert!(record.contains(name), "the FAILED record names no signal: {record}");
+    assert!(
+        record.contains(name),
+        "the FAILED record names no signal: {record}"
+    );
     assert!(run_leftovers(out).is_empty(), "{:?}", run_leftovers(out));
     let marker = out.to_str().unwrap();
     let t0 = Instant::now();
@@ -738,7 +744,13 @@ fn planted_and_foreign_slot_files_are_refused_not_followed() {
         surfstream()
             .env("XDG_RUNTIME_DIR", &runtime)
             .args(["launch", graph.to_str().unwrap()])
-            .args(["--set", "stage.tile_px=256", "--set", "stage.pacing=\"fast\"", "-o"])
+            .args([
+                "--set",
+                "stage.tile_px=256",
+                "--set",
+                "stage.pacing=\"fast\"",
+                "-o",
+            ])
             .arg(out)
             .output()
             .unwrap()
@@ -746,17 +758,30 @@ fn planted_and_foreign_slot_files_are_refused_not_followed() {
     let o = launch(&out);
     let err = stderr(&o);
     assert!(o.status.success(), "{err}");
-    assert!(err.contains("slot-0.lock") && err.contains("symlink"), "{err}");
+    assert!(
+        err.contains("slot-0.lock") && err.contains("symlink"),
+        "{err}"
+    );
     assert!(!victim.exists(), "the planted link was followed");
     let domain = domain_of(&err).unwrap();
     if root {
-        assert!(err.contains("slot-1.lock") && err.contains("not a regular file of yours"), "{err}");
+        assert!(
+            err.contains("slot-1.lock") && err.contains("not a regular file of yours"),
+            "{err}"
+        );
         assert!(domain.starts_with("ss2_"), "{domain}");
     } else {
         assert!(domain.starts_with("ss1_"), "{domain}");
     }
-    assert!(shm_leftovers(&domain).is_empty(), "{:?}", shm_leftovers(&domain));
-    assert!(slots.join("iceoryx2").is_dir(), "the iceoryx2 records are in the user's folder");
+    assert!(
+        shm_leftovers(&domain).is_empty(),
+        "{:?}",
+        shm_leftovers(&domain)
+    );
+    assert!(
+        slots.join("iceoryx2").is_dir(),
+        "the iceoryx2 records are in the user's folder"
+    );
     if root {
         // The whole slot folder planted by another user: refused, nothing started.
         std::os::unix::fs::chown(&slots, Some(65534), Some(65534)).unwrap();

@@ -275,7 +275,11 @@ pub fn line(e: &TileEvent, layout: &Layout, done: usize, eta: Option<Duration>) 
 /// The line that corrects a tile's streaming line when the end-of-scan solve placed it the
 /// other way (the verdict and run.json count the final placement, which the panorama uses):
 /// `None` when both agree.
-pub fn final_differs(e: &TileEvent, streaming_by_stage: Option<bool>, layout: &Layout) -> Option<String> {
+pub fn final_differs(
+    e: &TileEvent,
+    streaming_by_stage: Option<bool>,
+    layout: &Layout,
+) -> Option<String> {
     let was = streaming_by_stage?;
     if was == e.by_stage {
         return None;

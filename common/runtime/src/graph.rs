@@ -115,8 +115,7 @@ impl NodeRegistry {
     /// when one is not a relative name inside the out dir (no absolute path, no `..`): every
     /// file a run writes goes through its staging folder and its lock.
     pub fn with_output_files(mut self, kind: &'static str, params: &[&'static str]) -> Self {
-        self.output_files
-            .extend(params.iter().map(|&p| (kind, p)));
+        self.output_files.extend(params.iter().map(|&p| (kind, p)));
         self
     }
 
@@ -192,10 +191,12 @@ pub fn check_relative_output(value: &str) -> std::result::Result<(), String> {
             "{value:?} is an absolute path: every file a run writes lives in its out dir; give a name relative to it"
         ));
     }
-    if path
-        .components()
-        .any(|c| !matches!(c, std::path::Component::Normal(_) | std::path::Component::CurDir))
-    {
+    if path.components().any(|c| {
+        !matches!(
+            c,
+            std::path::Component::Normal(_) | std::path::Component::CurDir
+        )
+    }) {
         return Err(format!(
             "{value:?} leaves the out dir (a `..` component): give a name inside it"
         ));
@@ -408,7 +409,11 @@ impl GraphFile {
                     );
                 };
                 check_relative_output(text).map_err(|e| {
-                    anyhow!("{origin}: node '{}' ({}): params.{param}: {e}", n.id, n.node)
+                    anyhow!(
+                        "{origin}: node '{}' ({}): params.{param}: {e}",
+                        n.id,
+                        n.node
+                    )
                 })?;
             }
         }
@@ -923,7 +928,10 @@ inputs = { tiles = "stage/tiles", panorama = "fusion/panorama" }
                 "{field}={value}: {e}"
             );
         }
-        let ok = DEMO.replace("out_dir = \"out/demo\"", "out_dir = \"o\"\nstall_timeout_s = 3600");
+        let ok = DEMO.replace(
+            "out_dir = \"out/demo\"",
+            "out_dir = \"o\"\nstall_timeout_s = 3600",
+        );
         GraphFile::parse(&ok, "t.toml", &registry()).unwrap();
     }
 }

@@ -455,14 +455,20 @@ mod tests {
             grace: Duration::from_millis(100),
         };
         let e = run_graph_supervised(
-            vec![node("quick", None), node("stuck", Some(Duration::from_secs(5)))],
+            vec![
+                node("quick", None),
+                node("stuck", Some(Duration::from_secs(5))),
+            ],
             Some(sup),
         )
         .unwrap_err()
         .to_string();
         assert!(e.contains("stalled: node 'stuck' made no progress"), "{e}");
         // Nodes that finish in time are not stalls.
-        let ok = run_graph_supervised(vec![node("quick", Some(Duration::from_millis(50)))], Some(sup));
+        let ok = run_graph_supervised(
+            vec![node("quick", Some(Duration::from_millis(50)))],
+            Some(sup),
+        );
         assert!(ok.is_ok());
     }
 }

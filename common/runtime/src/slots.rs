@@ -270,7 +270,12 @@ pub fn create_management_segment(prefix: &str) -> Result<()> {
         .mode(0o600)
         .custom_flags(libc::O_NOFOLLOW | libc::O_CLOEXEC)
         .open(&path)
-        .with_context(|| format!("{}: cannot create the domain's management segment", path.display()))?;
+        .with_context(|| {
+            format!(
+                "{}: cannot create the domain's management segment",
+                path.display()
+            )
+        })?;
     // iceoryx2 0.10's PackageVersion::to_u64: major << 32 | minor << 16 | patch.
     let version: u64 = 10 << 16;
     let mut bytes = [0u8; 16];
@@ -320,7 +325,10 @@ mod tests {
         assert_eq!(mode, 0o700, "an open folder of ours is closed");
         let link = dir.path().join("link");
         std::os::unix::fs::symlink(&real, &link).unwrap();
-        assert!(private_dir(&link).unwrap_err().to_string().contains("symlink"));
+        assert!(private_dir(&link)
+            .unwrap_err()
+            .to_string()
+            .contains("symlink"));
         assert!(!private_dir(&dir.path().join("none")).unwrap());
     }
 

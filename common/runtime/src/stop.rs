@@ -20,7 +20,9 @@ extern "C" fn on_signal(sig: libc::c_int) {
         SIGNAL.store(sig, Ordering::SeqCst);
         crate::ipc::STOP_REQUESTED.store(true, Ordering::SeqCst);
         let msg: &[u8] = match sig {
-            libc::SIGINT => b"\nsurfstream: SIGINT (Ctrl-C): stopping the run (Ctrl-C again to force)\n",
+            libc::SIGINT => {
+                b"\nsurfstream: SIGINT (Ctrl-C): stopping the run (Ctrl-C again to force)\n"
+            }
             libc::SIGTERM => b"\nsurfstream: SIGTERM: stopping the run (again to force)\n",
             _ => b"\nsurfstream: SIGHUP: stopping the run\n",
         };

@@ -375,7 +375,7 @@ fn check_pitch_against_truth(manifest: &Path, scan: &ScanSection) -> Result<()> 
         let Some(truth_pitch) = v["pixel_pitch_um"][axis].as_f64() else {
             continue;
         };
-        if truth_pitch > 0.0 && !(((manifest_pitch - truth_pitch).abs()) <= 1e-6 * truth_pitch.max(manifest_pitch)) {
+        if truth_pitch > 0.0 && !same_pitch(manifest_pitch, truth_pitch) {
             bail!(
                 "{}: [scan] pitch_{axis}_um = {manifest_pitch} but {} says the tiles were made at {truth_pitch} um: manifest and tiles disagree (fix the manifest's pitch)",
                 manifest.display(),
@@ -396,8 +396,10 @@ fn check_stage_steps(
     width_px: usize,
     height_px: usize,
 ) -> Result<()> {
-    let at: std::collections::BTreeMap<(usize, usize), &TileEntry> =
-        tiles.iter().map(|t| ((t.entry.row, t.entry.col), &t.entry)).collect();
+    let at: std::collections::BTreeMap<(usize, usize), &TileEntry> = tiles
+        .iter()
+        .map(|t| ((t.entry.row, t.entry.col), &t.entry))
+        .collect();
     for (&(r, c), a) in &at {
         for (b, axis, side_px, pitch) in [
             (at.get(&(r, c + 1)), "x", width_px, scan.pitch_x_um),

@@ -278,12 +278,7 @@ fn scan(ctx: &NodeContext, p: ScanParams) -> Result<OpenedSource> {
 /// corrupt like any file): a plausible pitch, finite stage positions, a z offset and heights
 /// within +-1 m ([`surfstream_io::formats::MAX_PLAUSIBLE_HEIGHT_UM`]). The error names the
 /// recording, the tile and the field.
-fn check_recorded_tile(
-    path: &std::path::Path,
-    topic: &str,
-    k: usize,
-    f: &HeightMap,
-) -> Result<()> {
+fn check_recorded_tile(path: &std::path::Path, topic: &str, k: usize, f: &HeightMap) -> Result<()> {
     use crate::scan_dir::{MAX_PITCH_UM, MIN_PITCH_UM};
     let at = format!(
         "{}: topic {topic:?}, tile #{} (index {})",
@@ -297,7 +292,10 @@ fn check_recorded_tile(
             bail!("{at}: {field} = {v}: expected a pitch between {MIN_PITCH_UM} and {MAX_PITCH_UM} um");
         }
     }
-    for (field, v) in [("origin_x_um", h.origin_x_um), ("origin_y_um", h.origin_y_um)] {
+    for (field, v) in [
+        ("origin_x_um", h.origin_x_um),
+        ("origin_y_um", h.origin_y_um),
+    ] {
         if !v.is_finite() || v.abs() > 1e9 {
             bail!("{at}: {field} = {v}: expected a finite stage position within +-1 km (in um)");
         }

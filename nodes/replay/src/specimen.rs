@@ -188,7 +188,9 @@ impl SpecimenParams {
                     SECTION,
                     field,
                     v,
-                    format!("at most {MAX_HEIGHT_PARAM_UM:e} um (heights beyond +-1 m are refused)"),
+                    format!(
+                        "at most {MAX_HEIGHT_PARAM_UM:e} um (heights beyond +-1 m are refused)"
+                    ),
                 ));
             }
         }
