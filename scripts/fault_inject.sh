@@ -1,20 +1,163 @@
 #!/usr/bin/env bash
-# Fault injection (issue 15): N launches of a small demo graph, each hit by one fault at a random
+# Fault injection.
+#
+# Part 1 (issue 15): N launches of a small demo graph, each hit by one fault at a random
 # moment (SIGKILL of a node, SIGSTOP of a node, SIGKILL of the launcher, SIGSTOP of the launcher
 # for 2 s, in rotation; the node and the moment drawn from SEED), each followed by a clean launch
 # into the same out dir. After every run it asserts: the out dir holds one run (complete, FAILED,
 # or the earlier run untouched), no process outlived the launcher, a stopped node was named as
 # stalled, and the next launch left /dev/shm, the iceoryx2 node records and folders, staging
-# folders and .partial files at zero. The suite runs 4 of these (tests/faults.rs); this is the
-# larger campaign. About 15-25 s per run on a loaded 2-core machine.
+# folders and .partial files at zero. The suite runs 4 of these (tests/faults.rs).
 #
-#   bash scripts/fault_inject.sh            # 10 runs, seed from the clock (printed)
-#   bash scripts/fault_inject.sh 40 12345   # 40 runs, reproducible
+# Part 2 (issue 27): stop signals. N runs of `run`, `stitch` and `launch` in rotation, each sent
+# SIGINT, SIGTERM or SIGHUP (in rotation) in one phase (in rotation): "startup" (0.05-0.5 s after
+# the start, before the first tile), "scan" (after the first tile's progress line), "end" (after
+# the last tile's line: final passes, run.json, the commit), and "twice" (two SIGINTs mid-scan:
+# the second forces). After each: exit status 1 naming the signal (0 if the run had completed,
+# 130/143/129 for "twice"), never 101 or a panic; the out dir FAILED naming the signal, complete,
+# or never created; no staging folder, no lock, no process of the run, no /dev/shm file of its
+# domain. One line per run and a table at the end (docs/reliability.md).
+#
+# Part 3 (issue 27): a second user. As root, a throwaway user (useradd) tries to read and block
+# the launcher's slots and shared memory while root launches, then launches itself. Skipped
+# (said so) when not root.
+#
+#   bash scripts/fault_inject.sh             # 10 + 10 runs, seed from the clock (printed)
+#   bash scripts/fault_inject.sh 40 12345    # 40 + 40 runs, reproducible kills
+#   SKIP_KILLS=1 bash scripts/fault_inject.sh 24   # only parts 2 and 3
 set -euo pipefail
 cd "$(dirname "$0")/.."
 N="${1:-10}"
 SEED="${2:-$(date +%s)}"
 cargo build --release --workspace --bins
-SURFSTREAM_FAULT_RUNS="$N" SURFSTREAM_FAULT_SEED="$SEED" \
-  timeout $((N * 60 + 120)) \
-  cargo test --release -p surfstream-e2e --test faults -- --nocapture --test-threads 1
+BIN="$PWD/target/release/surfstream"
+
+if [ -z "${SKIP_KILLS:-}" ]; then
+  SURFSTREAM_FAULT_RUNS="$N" SURFSTREAM_FAULT_SEED="$SEED" \
+    timeout $((N * 60 + 120)) \
+    cargo test --release -p surfstream-e2e --test faults -- --nocapture --test-threads 1 \
+    faults_leave_one_run
+fi
+
+# ---- part 2: stop signals at every phase of run, stitch and launch ----
+WORK="$(mktemp -d /tmp/ss-signals.XXXXXX)"
+chmod 755 "$WORK"
+trap 'rm -rf "$WORK"' EXIT
+GRAPH="$WORK/demo.toml"
+sed 's/^name = "demo"$/name = "demo"\nstall_timeout_s = 20/' launch/graphs/demo.toml > "$GRAPH"
+SCAN="$WORK/scan"
+# A 2 x 2 scan directory of 256 px tiles, from a `run` of the simulated stage's recording.
+"$BIN" run "$GRAPH" --set stage.tile_px=256 --set 'stage.pacing="fast"' -o "$WORK/seed" >/dev/null 2>&1
+SCAN="$WORK/seed/recording.mcap"
+[ -f "$SCAN" ] || { echo "no seed recording"; exit 1; }
+
+verbs=(run stitch launch)
+sigs=(INT TERM HUP)
+phases=(startup scan end twice)
+declare -A tally
+fails=0
+wait_for() { # wait_for FILE TEXT PID: until FILE contains TEXT (0) or PID ended (1)
+  local t=0
+  while ! grep -qF -- "$2" "$1" 2>/dev/null; do
+    kill -0 "$3" 2>/dev/null || return 1
+    sleep 0.02; t=$((t + 1)); [ $t -lt 6000 ] || return 1
+  done
+}
+for ((k = 0; k < N; k++)); do
+  verb=${verbs[$((k % 3))]}
+  sig=${sigs[$(((k / 3) % 3))]}
+  phase=${phases[$(((k / 9) % 4))]}
+  [ "$phase" = twice ] && sig=INT
+  d="$WORK/r$k"; mkdir -p "$d"; out="$d/out"; log="$d/stderr"
+  case $verb in
+    run|launch) args=("$verb" "$GRAPH" --set stage.tile_px=256 --set stage.field_time_s=0.7 --set 'stage.pacing="realtime"' -o "$out") ;;
+    stitch) args=(stitch "$SCAN" --set 'stage.pacing="realtime"' -o "$out") ;;
+  esac
+  "$BIN" "${args[@]}" >/dev/null 2>"$log" &
+  pid=$!
+  applied=1
+  case $phase in
+    startup) sleep "0.$((5 + RANDOM % 45))" ;;
+    scan|twice) wait_for "$log" "(1 done)" $pid || applied=0 ;;
+    end) wait_for "$log" "(4 done)" $pid || applied=0; sleep "0.$((RANDOM % 99))" ;;
+  esac
+  kill -s "$sig" $pid 2>/dev/null || applied=0
+  if [ "$phase" = twice ]; then sleep 0.05; kill -s INT $pid 2>/dev/null || true; fi
+  set +e; wait $pid; code=$?; set -e
+  err="$(cat "$log")"
+  bad=""
+  [ $code -ne 101 ] || bad="exit 101"
+  ! grep -q panicked "$log" || bad="$bad panic"
+  if [ -e "$out/FAILED" ]; then state=FAILED; grep -q "SIG$sig" "$out/FAILED" || bad="$bad FAILED-without-signal"
+  elif [ -e "$out/run.json" ]; then state=complete
+  elif [ -e "$out" ]; then state=other; bad="$bad out-half-written"
+  else state=none; fi
+  case "$code:$phase" in
+    0:*) [ "$state" = complete ] || bad="$bad exit0-not-complete" ;;
+    1:*) grep -q "interrupted by SIG$sig" "$log" || bad="$bad error-without-signal" ;;
+    130:twice) grep -q "second stop signal" "$log" || bad="$bad no-force-note" ;;
+    *) bad="$bad exit$code" ;;
+  esac
+  left="$(ls -a "$d" | grep -E '^out\.(staging|lock)' || true)"
+  [ -z "$left" ] || { [ "$code" = 130 ] || bad="$bad left:$left"; }
+  sleep 0.3
+  pgrep -f -- "$d/" >/dev/null && bad="$bad orphans"
+  dom="$(grep -o 'domain ss[0-9]*_[0-9a-f]*_' "$log" | head -1 | cut -d' ' -f2 || true)"
+  if [ -n "$dom" ] && [ "$code" != 130 ] && ls /dev/shm | grep -q "^$dom"; then bad="$bad shm-left"; fi
+  [ -n "$bad" ] && fails=$((fails + 1))
+  key="$verb SIG$sig $phase"
+  printf 'signal run %2d: %-6s SIG%-4s %-7s -> exit %3s, out %-8s %s\n' "$k" "$verb" "$sig" "$phase" "$code" "$state" "${bad:-ok}$([ $applied = 1 ] || echo ' (signal after the end)')"
+  tally["$verb $phase exit$code $state${bad:+ BAD}"]=$(( ${tally["$verb $phase exit$code $state${bad:+ BAD}"]:-0} + 1 ))
+done
+echo
+echo "| verb | phase | exit | out dir | runs |"
+echo "|---|---|---|---|---|"
+for key in "${!tally[@]}"; do
+  read -r v p e s rest <<<"$key"
+  echo "| $v | $p | ${e#exit} | $s${rest:+ $rest} | ${tally[$key]} |"
+done | sort
+echo "signal runs: $N, failures: $fails"
+
+# ---- part 3: a second user ----
+if [ "$(id -u)" != 0 ]; then
+  echo "second user: SKIPPED (needs root to create a throwaway user)"
+  [ $fails -eq 0 ]; exit
+fi
+U=ssneighbour
+unset XDG_RUNTIME_DIR # root's slots in /tmp/surfstream-0, which the neighbour can see exists
+id "$U" >/dev/null 2>&1 || useradd --no-create-home --shell /usr/sbin/nologin "$U"
+as_u() { runuser -u "$U" -- "$@"; }
+# Root launches (slow pacing) while the neighbour tries everything.
+"$BIN" launch "$GRAPH" --set stage.tile_px=256 --set stage.field_time_s=1.0 --set 'stage.pacing="realtime"' \
+  -o "$WORK/root-out" >/dev/null 2>"$WORK/root.stderr" &
+rpid=$!
+wait_for "$WORK/root.stderr" "scan started" $rpid || true
+dom="$(grep -o 'domain ss[0-9]*_[0-9a-f]*_' "$WORK/root.stderr" | head -1 | cut -d' ' -f2)"
+sb=0
+attempt() { # attempt DESCRIPTION CMD...: the neighbour must fail
+  if as_u "$@" >/dev/null 2>&1; then echo "second user: $1: SUCCEEDED (bad)"; sb=$((sb + 1))
+  else echo "second user: refused: $*"; fi
+}
+attempt ls /tmp/surfstream-0
+attempt sh -c 'flock -n /tmp/surfstream-0/slot-0.lock true'
+attempt sh -c "cat /dev/shm/${dom}* | head -c1 | grep -q ."
+attempt sh -c "printf 0123456789abcdef > /dev/shm/${dom}node.0_10_0.global_mgmt"
+attempt ls /tmp/surfstream-0/iceoryx2
+# The neighbour plants what it can where root would look, then root's launch still completes.
+as_u sh -c 'mkdir -p /tmp/surfstream-slots && for k in $(seq 0 31); do : > /tmp/surfstream-slots/slot-$k.lock; done' || true
+as_u flock /tmp/surfstream-slots/slot-0.lock sleep 20 &
+npid=$!
+set +e; wait $rpid; rc=$?; set -e
+echo "second user: root's launch during the attempts -> exit $rc"
+[ $rc -eq 0 ] || sb=$((sb + 1))
+"$BIN" launch "$GRAPH" --set stage.tile_px=256 --set 'stage.pacing="fast"' -o "$WORK/root-out2" >/dev/null 2>"$WORK/root2.stderr" \
+  && echo "second user: root's next launch -> ok" || { echo "root's next launch failed"; sb=$((sb + 1)); }
+stat -c 'second user: root management segment mode %a' /dev/shm/*global_mgmt 2>/dev/null | sort | uniq -c || echo "second user: no management segment left in /dev/shm"
+# And the neighbour can launch too (its own slots), after root did.
+mkdir -p "$WORK/u" && chown "$U" "$WORK/u"
+if as_u env -u XDG_RUNTIME_DIR HOME="$WORK/u" "$BIN" launch "$GRAPH" --set stage.tile_px=256 --set 'stage.pacing="fast"' -o "$WORK/u/out" >/dev/null 2>"$WORK/u.stderr"; then
+  echo "second user: its own launch after root's -> ok ($(grep -o 'domain [^ ]*' "$WORK/u.stderr"))"
+else echo "second user: its own launch FAILED:"; tail -3 "$WORK/u.stderr"; sb=$((sb + 1)); fi
+kill "$npid" 2>/dev/null || true
+echo "second user: $sb failure(s)"
+[ $fails -eq 0 ] && [ $sb -eq 0 ]

@@ -340,3 +340,369 @@ fn absurd_heights_in_a_single_file_are_flagged() {
         "{err}"
     );
 }
+
+/// `surfstream ARGS` (with `graph` and `-o out`) must fail naming every `want`.
+fn graph_fails(verb: &str, graph: &Path, out: &Path, sets: &[&str], want: &[&str]) -> String {
+    let mut args = vec![verb, graph.to_str().unwrap(), "-o", out.to_str().unwrap()];
+    for s in sets {
+        args.push("--set");
+        args.push(s);
+    }
+    let err = fails(&args, out);
+    for w in want {
+        assert!(err.contains(w), "expected {w:?} for {sets:?} in: {err}");
+    }
+    err
+}
+
+/// Every file a graph writes lives under OUT (issue 27): a recorder or mesher file given as
+/// an absolute path or with `..` is refused when the graph is read, naming file, node and
+/// field, and nothing is written there.
+#[test]
+fn graph_files_writing_outside_the_out_dir_are_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("sub").join("out");
+    let demo = repo_root().join("launch/graphs/demo.toml");
+    let outside = d.path().join("outside.mcap");
+    let abs = format!("recorder.path=\"{}\"", outside.display());
+    for (set, node, field) in [
+        (abs.as_str(), "node 'recorder'", "params.path"),
+        (
+            "recorder.path=\"../../x.mcap\"",
+            "node 'recorder'",
+            "params.path",
+        ),
+        ("mesher.file=\"../x.stl\"", "node 'mesher'", "params.file"),
+        (
+            "mesher.file=\"/tmp/surfstream-x.stl\"",
+            "node 'mesher'",
+            "params.file",
+        ),
+    ] {
+        for verb in ["run", "launch"] {
+            graph_fails(verb, &demo, &out, &[set], &["demo.toml", node, field]);
+        }
+    }
+    assert!(!outside.exists());
+    assert!(!d.path().join("sub").join("x.stl").exists());
+    assert!(!d.path().join("x.mcap").exists());
+    // The same in the graph file itself.
+    let g = d.path().join("escape.toml");
+    let text = std::fs::read_to_string(&demo)
+        .unwrap()
+        .replace("path = \"recording.mcap\"", "path = \"../escape.mcap\"");
+    write(&g, &text);
+    graph_fails(
+        "run",
+        &g,
+        &out,
+        &[],
+        &["escape.toml", "node 'recorder'", "leaves the out dir"],
+    );
+}
+
+/// A cycle is refused when the graph is read, not found by a stall watch minutes later.
+#[test]
+fn a_graph_with_a_cycle_is_refused_when_read() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("out");
+    let g = d.path().join("cycle.toml");
+    let demo = std::fs::read_to_string(repo_root().join("launch/graphs/demo.toml")).unwrap();
+    let text = demo.replace(
+        "params = { method = \"auto\" }\ninputs = { tiles = \"stage/tiles\" }",
+        "params = { method = \"auto\" }\ninputs = { tiles = \"fusion/panorama\" }",
+    );
+    assert_ne!(text, demo, "demo.toml's matcher changed");
+    write(&g, &text);
+    for verb in ["run", "launch"] {
+        let t0 = std::time::Instant::now();
+        graph_fails(
+            verb,
+            &g,
+            &out,
+            &[],
+            &["cycle.toml", "cycle", "matcher", "fusion"],
+        );
+        // Refused on reading (well within a stall deadline of 60 s), not by the stall watch.
+        assert!(t0.elapsed() < std::time::Duration::from_secs(30));
+    }
+}
+
+/// No parameter value panics (issue 27): durations, sizes and heights out of range are
+/// clear errors naming the field.
+#[test]
+fn absurd_durations_sizes_and_heights_are_clear_errors() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("out");
+    let demo = repo_root().join("launch/graphs/demo.toml");
+    graph_fails(
+        "run",
+        &demo,
+        &out,
+        &["stage.field_time_s=1e20"],
+        &["field_time_s = 100000000000000000000", "at most"],
+    );
+    graph_fails(
+        "run",
+        &demo,
+        &out,
+        &["stage.noise_um=1e30"],
+        &["noise_um", "at most"],
+    );
+    graph_fails(
+        "launch",
+        &demo,
+        &out,
+        &["stage.sa_um=1e12"],
+        &["sa_um", "at most"],
+    );
+    graph_fails(
+        "run",
+        &demo,
+        &out,
+        &["stage.rows=4294967296", "stage.cols=4294967296"],
+        &["rows"],
+    );
+    for field in [
+        "backpressure_timeout_s",
+        "startup_timeout_s",
+        "stall_timeout_s",
+    ] {
+        let g = d.path().join(format!("{field}.toml"));
+        let text = std::fs::read_to_string(&demo).unwrap().replace(
+            "name = \"demo\"\n",
+            &format!("name = \"demo\"\n{field} = 1e300\n"),
+        );
+        write(&g, &text);
+        graph_fails("run", &g, &out, &[], &[field, "at most"]);
+    }
+    // A scan manifest whose grid overflows rows * cols.
+    let scan = d.path().join("scan");
+    std::fs::create_dir(&scan).unwrap();
+    tile(&scan, "tile_000.npy", 64, 100);
+    tile(&scan, "tile_001.npy", 64, 100);
+    write(
+        &scan.join("scan.toml"),
+        &GOOD_SCAN.replace("rows = 1\ncols = 2", "rows = 4294967296\ncols = 4294967296"),
+    );
+    let err = fails(
+        &[
+            "stitch",
+            scan.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+        ],
+        &out,
+    );
+    assert!(err.contains("rows * cols <="), "{err}");
+}
+
+/// The +-1 m guard of scan directories holds for recordings too: a recording with an absurd
+/// z offset or absurd heights is refused, naming the file, the tile and the field.
+#[test]
+fn recordings_with_absurd_heights_are_refused() {
+    use surfstream_core::{FrameHeader, FrameKind};
+    use surfstream_io::recording::Recorder;
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("out");
+    let write_rec = |name: &str, z_offset_um: f64, spike: f32| {
+        let path = d.path().join(name);
+        let mut rec = Recorder::create(&path).unwrap();
+        let ch = rec
+            .add_frame_channel("stage/tiles", Default::default())
+            .unwrap();
+        for i in 0..2u32 {
+            let h = FrameHeader {
+                kind: FrameKind::Tile as u32,
+                tile_index: i,
+                tile_col: i,
+                width: 64,
+                height: 64,
+                pitch_x_um: 1.0,
+                pitch_y_um: 1.0,
+                origin_x_um: 50.0 * i as f64,
+                z_offset_um,
+                ..Default::default()
+            };
+            let mut z: Vec<f32> = (0..64 * 64).map(|k| (k % 13) as f32).collect();
+            z[64 * 3 + 5] = spike;
+            rec.write_frame(ch, &h, &z, 1_000 + i as u64).unwrap();
+        }
+        rec.finish().unwrap();
+        path
+    };
+    let offset = write_rec("offset.mcap", 1e30, 1.0);
+    let err = fails(
+        &[
+            "stitch",
+            offset.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+        ],
+        &out,
+    );
+    assert!(
+        err.contains("offset.mcap") && err.contains("tile #1") && err.contains("z_offset_um"),
+        "{err}"
+    );
+    let spike = write_rec("spike.mcap", 0.0, 1e20);
+    let err = fails(
+        &[
+            "stitch",
+            spike.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+        ],
+        &out,
+    );
+    assert!(
+        err.contains("spike.mcap")
+            && err.contains("beyond +-1e6 um")
+            && err.contains("row 3, col 5"),
+        "{err}"
+    );
+}
+
+/// Manifests that lie: tile files outside the scan directory, a FIFO as a tile, a pitch the
+/// tiles were not made with; a grid the tiles do not fill is named.
+#[test]
+fn manifests_that_lie_are_refused_or_named() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("out");
+    let scan = d.path().join("scan");
+    std::fs::create_dir(&scan).unwrap();
+    tile(&scan, "tile_000.npy", 64, 100);
+    tile(&scan, "tile_001.npy", 64, 100);
+    tile(d.path(), "secret.npy", 64, 100);
+    let s = scan.join("scan.toml");
+    let stitch = || {
+        fails(
+            &["stitch", s.to_str().unwrap(), "-o", out.to_str().unwrap()],
+            &out,
+        )
+    };
+    write(
+        &s,
+        &GOOD_SCAN.replace("\"tile_001.npy\"", "\"../secret.npy\""),
+    );
+    let err = stitch();
+    assert!(
+        err.contains("outside the scan directory") && err.contains("secret.npy"),
+        "{err}"
+    );
+    let abs = d.path().join("secret.npy");
+    write(
+        &s,
+        &GOOD_SCAN.replace(
+            "\"tile_001.npy\"",
+            &format!("{:?}", abs.display().to_string()),
+        ),
+    );
+    let err = stitch();
+    assert!(err.contains("outside the scan directory"), "{err}");
+    // A FIFO: refused at once, not a silent hang.
+    let fifo = scan.join("fifo.npy");
+    let made = std::process::Command::new("mkfifo")
+        .arg(&fifo)
+        .status()
+        .unwrap();
+    assert!(made.success());
+    write(&s, &GOOD_SCAN.replace("\"tile_001.npy\"", "\"fifo.npy\""));
+    let t0 = std::time::Instant::now();
+    let err = stitch();
+    assert!(
+        err.contains("fifo.npy") && err.contains("not a regular file"),
+        "{err}"
+    );
+    assert!(t0.elapsed() < std::time::Duration::from_secs(30));
+    // A pitch that disagrees with the ground truth the tiles were made with.
+    let sim = d.path().join("sim");
+    std::fs::create_dir(&sim).unwrap();
+    write_scan_dir(&sim, 2, 2, 128, Some("um"));
+    let m = std::fs::read_to_string(sim.join("scan.toml")).unwrap();
+    let wrong = m
+        .replace("pitch_x_um = 0.8148", "pitch_x_um = 2.0")
+        .replace("pitch_y_um = 0.8148", "pitch_y_um = 2.0");
+    assert_ne!(wrong, m);
+    write(&sim.join("scan.toml"), &wrong);
+    let err = fails(
+        &["stitch", sim.to_str().unwrap(), "-o", out.to_str().unwrap()],
+        &out,
+    );
+    assert!(
+        err.contains("ground_truth.json") && err.contains("disagree"),
+        "{err}"
+    );
+    // Stage steps larger than a tile at the manifest's pitch: the tiles cannot overlap.
+    write(
+        &s,
+        &GOOD_SCAN.replace("stage_x_um = 80.0", "stage_x_um = 800.0"),
+    );
+    let err = stitch();
+    assert!(err.contains("cannot overlap"), "{err}");
+}
+
+/// A 3-tile manifest for a 2 x 2 grid runs, and says which field has no tile.
+#[test]
+fn a_grid_the_tiles_do_not_fill_is_named() {
+    let d = tempfile::tempdir().unwrap();
+    let sim = d.path().join("sim");
+    std::fs::create_dir(&sim).unwrap();
+    write_scan_dir(&sim, 2, 2, 128, Some("um"));
+    let m = std::fs::read_to_string(sim.join("scan.toml")).unwrap();
+    // Drop the last [[tile]] (acquisition index 3).
+    let cut = m.rfind("\n[[tile]]").unwrap();
+    write(&sim.join("scan.toml"), &m[..cut]);
+    let out = d.path().join("out");
+    let o = run({
+        let mut c = surfstream();
+        c.args(["stitch", sim.to_str().unwrap(), "-o", out.to_str().unwrap()]);
+        c
+    });
+    let err = stderr(&o);
+    assert!(!err.contains("panicked"), "{err}");
+    assert!(
+        err.contains("3 [[tile]] entries for a 2 x 2 (rows x cols) grid")
+            && err.contains("1 field(s) have no tile"),
+        "{err}"
+    );
+}
+
+/// A full or closed stdout/stderr ends cleanly (issue 27): no exit 101, no panic.
+#[test]
+fn a_full_stdout_or_stderr_is_a_clean_exit() {
+    let d = tempfile::tempdir().unwrap();
+    tile(d.path(), "t.npy", 16, 16);
+    let f = d.path().join("t.npy");
+    let full = || {
+        std::fs::OpenOptions::new()
+            .write(true)
+            .open("/dev/full")
+            .unwrap()
+    };
+    // stdout on /dev/full: a clean error on stderr.
+    let o = surfstream()
+        .args(["params", f.to_str().unwrap()])
+        .stdout(full())
+        .output()
+        .unwrap();
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("cannot write to stdout"), "{err}");
+    // stderr on /dev/full: the error is lost, but the exit is the error's, not a panic's.
+    let o = surfstream()
+        .args(["stitch", d.path().join("nowhere").to_str().unwrap(), "-o"])
+        .arg(d.path().join("out"))
+        .stderr(full())
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    // Both on /dev/full, a verb that prints a table.
+    let o = surfstream()
+        .args(["inspect", f.to_str().unwrap()])
+        .stdout(full())
+        .stderr(full())
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1));
+}

@@ -232,24 +232,8 @@ fn run_leftovers(out: &Path) -> Vec<String> {
 
 /// Takes the launcher's lock of slot `domain` ("ss{k}_") while looking at it.
 fn hold_slot(domain: &str) -> std::fs::File {
-    use std::os::fd::AsRawFd;
-    let k: usize = domain
-        .trim_start_matches("ss")
-        .trim_end_matches('_')
-        .parse()
-        .unwrap();
-    let path = std::env::temp_dir()
-        .join("surfstream-slots")
-        .join(format!("slot-{k}.lock"));
-    let file = std::fs::File::options()
-        .create(true)
-        .truncate(false)
-        .write(true)
-        .open(path)
-        .unwrap();
-    // SAFETY: flock on a descriptor this function owns.
-    assert_eq!(unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX) }, 0);
-    file
+    let k = surfstream_runtime::slots::index_of(domain).expect("slot domain ss{k}_{nonce}_");
+    surfstream_runtime::slots::hold(k).unwrap()
 }
 
 /// The slot of `domain` holds nothing: no shared memory, no node record, no node folder.
@@ -554,4 +538,256 @@ fn a_full_disk_fails_the_run_and_keeps_the_os_reason() {
     let record = std::fs::read_to_string(out.join("FAILED")).unwrap();
     assert!(record.contains("No space left on device"), "{record}");
     assert!(run_leftovers(&out).is_empty(), "{:?}", run_leftovers(&out));
+}
+
+/// Starts `surfstream ARGS` with stderr to `log`, waits until the log shows `when`, sends
+/// `signals` (each after `gap`), and returns the exit status and the log.
+fn interrupt(
+    args: &[&str],
+    log: &Path,
+    when: &str,
+    signals: &[i32],
+    gap: Duration,
+) -> (std::process::ExitStatus, String) {
+    let mut child = surfstream()
+        .args(args)
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(log).unwrap())
+        .spawn()
+        .unwrap();
+    let t0 = Instant::now();
+    while !std::fs::read_to_string(log)
+        .unwrap_or_default()
+        .contains(when)
+    {
+        if let Some(s) = child.try_wait().unwrap() {
+            panic!(
+                "ended ({s:?}) before {when:?}: {}",
+                std::fs::read_to_string(log).unwrap_or_default()
+            );
+        }
+        assert!(t0.elapsed() < RUN_LIMIT, "never reached {when:?}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    for &sig in signals {
+        assert!(signal(child.id() as i32, sig));
+        std::thread::sleep(gap);
+    }
+    let status = wait_bounded(&mut child, RUN_LIMIT);
+    (status, std::fs::read_to_string(log).unwrap_or_default())
+}
+
+/// What every interrupted run must leave: exit 1, the signal named in the error and in the
+/// FAILED record, no staging folder, no lock, no process of the run.
+fn assert_interrupted(out: &Path, status: std::process::ExitStatus, err: &str, name: &str) {
+    assert_eq!(status.code(), Some(1), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+    assert!(err.contains(&format!("interrupted by {name}")), "{err}");
+    assert_eq!(out_state(out), OutState::Failed, "{err}");
+    let record = std::fs::read_to_string(out.join("FAILED")).unwrap();
+    assert!(
+        record.contains(name),
+        "the FAILED record names no signal: {record}"
+    );
+    assert!(run_leftovers(out).is_empty(), "{:?}", run_leftovers(out));
+    let marker = out.to_str().unwrap();
+    let t0 = Instant::now();
+    while !pids_with(marker).is_empty() {
+        assert!(t0.elapsed() < ORPHAN_GRACE, "{:?}", pids_with(marker));
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// Ctrl-C to `run` mid-scan (issue 27): the nodes stop, FAILED names SIGINT, staging and lock
+/// are gone. Before, the process died at once and left OUT.staging-PID and OUT.lock.
+#[test]
+fn sigint_to_run_mid_scan_leaves_failed_and_no_staging() {
+    let base = tempfile::tempdir().unwrap();
+    let graph = test_graph(base.path());
+    let out = base.path().join("out");
+    let (status, err) = interrupt(
+        &[
+            "run",
+            graph.to_str().unwrap(),
+            "--set",
+            "stage.tile_px=256",
+            "--set",
+            "stage.field_time_s=1.0",
+            "--set",
+            "stage.pacing=\"realtime\"",
+            "-o",
+            out.to_str().unwrap(),
+        ],
+        &base.path().join("run.stderr"),
+        "(1 done)",
+        &[libc::SIGINT],
+        Duration::ZERO,
+    );
+    assert_interrupted(&out, status, &err, "SIGINT");
+}
+
+/// SIGTERM to `stitch` mid-scan: the same story as `run`.
+#[test]
+fn sigterm_to_stitch_mid_scan_leaves_failed_and_no_staging() {
+    let base = tempfile::tempdir().unwrap();
+    let scan = base.path().join("scan");
+    std::fs::create_dir(&scan).unwrap();
+    write_scan_dir(&scan, 2, 2, 256, Some("um"));
+    let out = base.path().join("out");
+    let (status, err) = interrupt(
+        &[
+            "stitch",
+            scan.to_str().unwrap(),
+            "--set",
+            "stage.pacing=\"realtime\"",
+            "--set",
+            "stage.field_time_s=1.0",
+            "-o",
+            out.to_str().unwrap(),
+        ],
+        &base.path().join("stitch.stderr"),
+        "(1 done)",
+        &[libc::SIGTERM],
+        Duration::ZERO,
+    );
+    assert_interrupted(&out, status, &err, "SIGTERM");
+    // The input was not touched.
+    assert!(scan.join("scan.toml").is_file() && scan.join("tile_000.npy").is_file());
+}
+
+/// SIGHUP (the terminal closed) to `launch` mid-scan: every node stopped, FAILED names it.
+#[test]
+fn sighup_to_launch_mid_scan_leaves_failed_and_no_staging() {
+    let base = tempfile::tempdir().unwrap();
+    let graph = test_graph(base.path());
+    let out = base.path().join("out");
+    let (status, err) = interrupt(
+        &[
+            "launch",
+            graph.to_str().unwrap(),
+            "--set",
+            "stage.tile_px=256",
+            "--set",
+            "stage.field_time_s=1.0",
+            "--set",
+            "stage.pacing=\"realtime\"",
+            "-o",
+            out.to_str().unwrap(),
+        ],
+        &base.path().join("launch.stderr"),
+        "(1 done)",
+        &[libc::SIGHUP],
+        Duration::ZERO,
+    );
+    assert_interrupted(&out, status, &err, "SIGHUP");
+    if let Some(domain) = domain_of(&err) {
+        assert_domain_clean(&domain);
+    }
+}
+
+/// A second Ctrl-C forces: the process exits at once with 128 + SIGINT, saying so.
+#[test]
+fn a_second_ctrl_c_forces_an_exit() {
+    let base = tempfile::tempdir().unwrap();
+    let graph = test_graph(base.path());
+    let out = base.path().join("out");
+    let (status, err) = interrupt(
+        &[
+            "run",
+            graph.to_str().unwrap(),
+            "--set",
+            "stage.tile_px=256",
+            "--set",
+            "stage.field_time_s=1.0",
+            "--set",
+            "stage.pacing=\"realtime\"",
+            "-o",
+            out.to_str().unwrap(),
+        ],
+        &base.path().join("run.stderr"),
+        "(1 done)",
+        &[libc::SIGINT, libc::SIGINT],
+        Duration::from_millis(1),
+    );
+    // The first signal's stop takes at least one watch tick (250 ms); the second comes 1 ms on.
+    assert_eq!(status.code(), Some(130), "{err}");
+    assert!(err.contains("second stop signal"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+}
+
+/// Hostile neighbours (issue 27): in a private runtime folder, slot 0's lock file is a planted
+/// symlink and slot 1's belongs to another user. The launch refuses both (naming them), never
+/// creates the link's target, takes slot 2, and leaves no management segment behind. A slot
+/// folder owned by another user is refused outright, naming its owner.
+#[test]
+fn planted_and_foreign_slot_files_are_refused_not_followed() {
+    use std::os::unix::fs::PermissionsExt;
+    let base = tempfile::tempdir().unwrap();
+    let runtime = base.path().join("runtime");
+    std::fs::create_dir(&runtime).unwrap();
+    std::fs::set_permissions(&runtime, std::fs::Permissions::from_mode(0o700)).unwrap();
+    let slots = runtime.join("surfstream");
+    std::fs::create_dir(&slots).unwrap();
+    std::fs::set_permissions(&slots, std::fs::Permissions::from_mode(0o700)).unwrap();
+    let victim = base.path().join("victim");
+    std::os::unix::fs::symlink(&victim, slots.join("slot-0.lock")).unwrap();
+    // SAFETY: geteuid has no preconditions.
+    let root = unsafe { libc::geteuid() } == 0;
+    if root {
+        let foreign = slots.join("slot-1.lock");
+        std::fs::write(&foreign, "").unwrap();
+        std::os::unix::fs::chown(&foreign, Some(65534), Some(65534)).unwrap();
+    }
+    let graph = test_graph(base.path());
+    let out = base.path().join("out");
+    let launch = |out: &Path| {
+        surfstream()
+            .env("XDG_RUNTIME_DIR", &runtime)
+            .args(["launch", graph.to_str().unwrap()])
+            .args([
+                "--set",
+                "stage.tile_px=256",
+                "--set",
+                "stage.pacing=\"fast\"",
+                "-o",
+            ])
+            .arg(out)
+            .output()
+            .unwrap()
+    };
+    let o = launch(&out);
+    let err = stderr(&o);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains("slot-0.lock") && err.contains("symlink"),
+        "{err}"
+    );
+    assert!(!victim.exists(), "the planted link was followed");
+    let domain = domain_of(&err).unwrap();
+    if root {
+        assert!(
+            err.contains("slot-1.lock") && err.contains("not a regular file of yours"),
+            "{err}"
+        );
+        assert!(domain.starts_with("ss2_"), "{domain}");
+    } else {
+        assert!(domain.starts_with("ss1_"), "{domain}");
+    }
+    assert!(
+        shm_leftovers(&domain).is_empty(),
+        "{:?}",
+        shm_leftovers(&domain)
+    );
+    assert!(
+        slots.join("iceoryx2").is_dir(),
+        "the iceoryx2 records are in the user's folder"
+    );
+    if root {
+        // The whole slot folder planted by another user: refused, nothing started.
+        std::os::unix::fs::chown(&slots, Some(65534), Some(65534)).unwrap();
+        let o = launch(&base.path().join("out2"));
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(1), "{err}");
+        assert!(err.contains("owned by uid 65534, not by you"), "{err}");
+    }
 }

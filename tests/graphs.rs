@@ -623,24 +623,8 @@ fn a_stop_signal_stops_every_node_names_itself_and_leaves_nothing_behind() {
 /// Takes the launcher's lock on the slot of `domain` ("ss{k}_"), waiting while a launch holds
 /// it; released when the returned file is dropped.
 fn hold_slot(domain: &str) -> std::fs::File {
-    use std::os::fd::AsRawFd;
-    let k: usize = domain
-        .trim_start_matches("ss")
-        .trim_end_matches('_')
-        .parse()
-        .expect("slot domain ss{k}_");
-    let path = std::env::temp_dir()
-        .join("surfstream-slots")
-        .join(format!("slot-{k}.lock"));
-    let file = std::fs::File::options()
-        .create(true)
-        .truncate(false)
-        .write(true)
-        .open(&path)
-        .unwrap();
-    // SAFETY: flock on a file descriptor this function owns.
-    assert_eq!(unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX) }, 0);
-    file
+    let k = surfstream_runtime::slots::index_of(domain).expect("slot domain ss{k}_{nonce}_");
+    surfstream_runtime::slots::hold(k).unwrap()
 }
 
 unsafe fn libc_signal(pid: i32, sig: i32) {

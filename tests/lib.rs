@@ -114,14 +114,14 @@ pub fn domain_of(stderr: &str) -> Option<String> {
     Some(rest[..end].to_string())
 }
 
-/// Shared-memory files of a domain, except the 16-byte per-prefix management file that
-/// iceoryx2 keeps by design.
+/// Shared-memory files of a domain, the management segment included (the launcher creates it
+/// 0600 and removes it at the end; each launch's domain is its own).
 pub fn shm_leftovers(domain: &str) -> Vec<String> {
     std::fs::read_dir("/dev/shm")
         .map(|d| {
             d.flatten()
                 .map(|e| e.file_name().to_string_lossy().to_string())
-                .filter(|n| n.starts_with(domain) && !n.ends_with("global_mgmt"))
+                .filter(|n| n.starts_with(domain))
                 .collect()
         })
         .unwrap_or_default()

@@ -26,13 +26,11 @@ use surfstream_runtime::graph::{GraphFile, NodeContext};
 use surfstream_runtime::inproc::{self, InProcessNode};
 use surfstream_runtime::node::NodeReport;
 use surfstream_runtime::watchdog::{self, StallWatch};
-use surfstream_runtime::{ipc, shell};
+use surfstream_runtime::{ipc, shell, slots, stop};
 
 use crate::deviation;
 use crate::{nodes, outdir, runjson};
 
-/// Concurrent launches supported on one machine (one iceoryx2 prefix each).
-const SLOTS: usize = 32;
 /// How long stopped nodes get to exit after SIGTERM before SIGKILL.
 const STOP_GRACE: Duration = Duration::from_secs(3);
 /// A node silent this long when another fails is a suspect (named if stopped, or silent for
@@ -52,6 +50,7 @@ mod iceoryx2_free {
 /// Resolves the graph into the run's staging folder and writes the resolved form there; the
 /// out dir itself is not touched until the run is complete (see [`outdir`]).
 fn prepare(graph: &mut GraphFile, staged: &outdir::StagedOut) -> Result<Vec<NodeContext>> {
+    reserve_failure_room(&staged.staging);
     staged.carry_inputs(graph)?;
     graph.graph.out_dir = staged.staging.clone();
     let scan_id = std::time::SystemTime::now()
@@ -73,6 +72,23 @@ fn write_resolved(dir: &Path, contexts: &[NodeContext]) -> Result<()> {
         serde_json::to_writer_pretty(w, contexts)
             .map_err(|e| anyhow!("{}: {e}", resolved.display()))
     })
+}
+
+/// A file of reserved disk blocks in the staging folder, removed before the `FAILED` record
+/// is written (the record's writer removes every output first) or before a complete run is
+/// moved into place: on a disk that filled up during the run, the record naming ENOSPC still
+/// fits.
+const FAILURE_RESERVE: &str = ".failure-reserve";
+const FAILURE_RESERVE_BYTES: i64 = 256 * 1024;
+
+fn reserve_failure_room(staging: &Path) {
+    if let Ok(f) = File::create(staging.join(FAILURE_RESERVE)) {
+        use std::os::fd::AsRawFd;
+        // SAFETY: fallocate on a descriptor we own; failure (no room, no support) is ignored.
+        unsafe {
+            libc::fallocate(f.as_raw_fd(), 0, 0, FAILURE_RESERVE_BYTES);
+        }
+    }
 }
 
 /// How far a run got when it ended: decides what happens to its out dir.
@@ -101,6 +117,7 @@ fn settle(
                 c.out_dir = staged.final_dir.clone();
             }
             let (staging, final_dir) = (staged.staging.clone(), staged.final_dir.clone());
+            let _ = std::fs::remove_file(staging.join(FAILURE_RESERVE));
             let written = write_resolved(&staging, &moved).and_then(|_| staged.commit());
             if let Err(e) = written {
                 return Err(e.context(format!(
@@ -113,6 +130,15 @@ fn settle(
         }
         Err(e) if reached == Reached::Startup => {
             let out = staged.final_dir.clone();
+            // The logs a message names go with the staging folder: say so instead of naming a
+            // path that no longer exists (the message carries their last lines).
+            let e = anyhow!(
+                "{}",
+                format!("{e:#}").replace(
+                    &staged.staging.display().to_string(),
+                    "<the staging folder, removed>"
+                )
+            );
             staged.discard();
             Err(e.context(format!(
                 "the run did not start; {} was left as it was",
@@ -180,14 +206,24 @@ pub fn run_in_process(
         graph.nodes.len(),
         final_dir.display()
     );
-    let outcome = inproc::run_graph(threads);
+    // A signal during startup leaves the out dir as it was; from here on it is a failed run.
+    if let Err(e) = stop::check() {
+        return settle(staged, &contexts, Err(e), Reached::Startup);
+    }
+    let supervision = inproc::Supervision {
+        stall_timeout: Duration::from_secs_f64(graph.graph.stall_timeout_s),
+        grace: STOP_GRACE,
+    };
+    let outcome = inproc::run_graph_supervised(threads, Some(supervision));
     progress.finish();
     let outcome = outcome.and_then(|mut reports| {
+        stop::check()?;
         crate::progress::drop_observer_reports(&mut reports);
         for r in &reports {
             shell::write_report(&graph.graph.out_dir, r)?;
         }
-        finish(&graph, origin, &reports, "run", started, deviation)
+        finish(&graph, origin, &reports, "run", started, deviation)?;
+        stop::check()
     });
     settle(staged, &contexts, outcome, Reached::Scan)
 }
@@ -204,76 +240,11 @@ fn finish(
     runjson::write(graph, origin, reports, mode, started.elapsed(), deviation)
 }
 
-struct Slot {
-    _lock: File,
-    prefix: String,
-}
-
-/// Takes the first free slot; the lock is held for the life of the launch.
-fn take_slot() -> Result<Slot> {
-    let dir = std::env::temp_dir().join("surfstream-slots");
-    std::fs::create_dir_all(&dir).with_context(|| format!("{}: cannot create", dir.display()))?;
-    for k in 0..SLOTS {
-        let path = dir.join(format!("slot-{k}.lock"));
-        let file = File::options()
-            .create(true)
-            .truncate(false)
-            .write(true)
-            .open(&path)
-            .with_context(|| format!("{}: cannot open", path.display()))?;
-        use std::os::fd::AsRawFd;
-        // SAFETY: flock on a file descriptor we own.
-        if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } == 0 {
-            return Ok(Slot {
-                _lock: file,
-                prefix: format!("ss{k}_"),
-            });
-        }
-    }
-    bail!("all {SLOTS} launch slots are busy: too many graphs running at once")
-}
-
 enum Event {
     Exited {
         id: String,
         status: std::process::ExitStatus,
     },
-    /// The launcher got SIGINT, SIGTERM or SIGHUP (the number).
-    Interrupted(i32),
-}
-
-/// Stops forwarding signals when dropped (a process may launch more than once: the tests do).
-struct SignalForwarder(signal_hook::iterator::Handle);
-
-impl Drop for SignalForwarder {
-    fn drop(&mut self) {
-        self.0.close();
-    }
-}
-
-/// Forwards SIGINT, SIGTERM and SIGHUP to the supervisor as [`Event::Interrupted`], so the
-/// graph stops in order and the error names the signal that stopped it.
-fn forward_stop_signals(tx: crossbeam_channel::Sender<Event>) -> Result<SignalForwarder> {
-    use signal_hook::consts::{SIGHUP, SIGINT, SIGTERM};
-    let mut signals = signal_hook::iterator::Signals::new([SIGINT, SIGTERM, SIGHUP])
-        .map_err(|e| anyhow!("cannot install the launcher's signal handlers: {e}"))?;
-    let handle = signals.handle();
-    std::thread::spawn(move || {
-        if let Some(sig) = signals.forever().next() {
-            let _ = tx.send(Event::Interrupted(sig));
-        }
-    });
-    Ok(SignalForwarder(handle))
-}
-
-/// How a stop signal is named in the error.
-fn signal_name(sig: i32) -> &'static str {
-    match sig {
-        signal_hook::consts::SIGINT => "SIGINT (Ctrl-C)",
-        signal_hook::consts::SIGTERM => "SIGTERM",
-        signal_hook::consts::SIGHUP => "SIGHUP (the terminal closed)",
-        _ => "a stop signal",
-    }
 }
 
 struct Running {
@@ -312,6 +283,10 @@ fn stderr_tail(path: &Path, lines: usize) -> String {
 
 fn describe_exit(status: &std::process::ExitStatus) -> String {
     match (status.code(), status.signal()) {
+        (Some(surfstream_runtime::stdio::EXIT_NO_SPACE), _) => format!(
+            "exited with status {}: the disk is full (no space left on device, ENOSPC)",
+            surfstream_runtime::stdio::EXIT_NO_SPACE
+        ),
         (Some(c), _) => format!("exited with status {c}"),
         (None, Some(s)) => format!("was killed by signal {s}"),
         _ => "ended".into(),
@@ -330,7 +305,7 @@ pub fn launch(
     for n in &graph.nodes {
         node_binary(&n.node)?;
     }
-    let slot = take_slot()?;
+    let slot = slots::take()?;
     let staged = outdir::stage(&graph.graph.out_dir, claim)?;
     let final_dir = staged.final_dir.clone();
     let contexts = match prepare(&mut graph, &staged) {
@@ -347,13 +322,18 @@ pub fn launch(
             false => node_binary(&c.node_kind),
         })
         .collect::<Result<_>>()?;
-    let cfg = match ipc::domain_config(&slot.prefix) {
+    let cfg = match ipc::domain_config(&slot.prefix).and_then(|cfg| {
+        clean_slot(&slot)?;
+        // Ours alone, 0600, before iceoryx2 would make it world-writable.
+        slots::create_management_segment(&slot.prefix)?;
+        Ok(cfg)
+    }) {
         Ok(c) => c,
         Err(e) => return settle(staged, &contexts, Err(e), Reached::Startup),
     };
-    clean_slot(&cfg, &slot);
     let mut reached = Reached::Startup;
     let result = (|| {
+        stop::check()?;
         let logs = out.join("logs");
         std::fs::create_dir_all(&logs)
             .with_context(|| format!("{}: cannot create", logs.display()))?;
@@ -371,7 +351,6 @@ pub fn launch(
             .map_err(|e| anyhow!("cannot create the launcher's go notifier: {e:?}"))?;
 
         let (tx, rx) = unbounded();
-        let _signals = forward_stop_signals(tx.clone())?;
         let resolved = out.join(shell::RESOLVED_GRAPH);
         let mut running = Vec::new();
         let mut spawn_error = None;
@@ -450,22 +429,48 @@ pub fn launch(
     if cleaned > 0 {
         eprintln!("surfstream: removed {cleaned} stale resource(s) of stopped nodes");
     }
+    slots::remove_management_segment(&slot.prefix);
+    slot.release_clean();
     let outcome = result.and_then(|()| {
+        stop::check()?;
         let reports = read_reports(&out, &contexts)?;
-        finish(&graph, origin, &reports, "launch", started, deviation)
+        finish(&graph, origin, &reports, "launch", started, deviation)?;
+        stop::check()
     });
     settle(staged, &contexts, outcome, reached)
 }
 
-/// The slot is ours alone and its processes died with their launcher: start from nothing
-/// (node records, services, shared memory and node folders of a launch that was killed).
-fn clean_slot(cfg: &iceoryx2::prelude::Config, slot: &Slot) {
-    let stale = ipc::cleanup_dead_nodes(cfg).unwrap_or(0) + ipc::wipe_domain(cfg);
+/// The slot is ours alone and the processes of its earlier launch died with their launcher:
+/// remove what that launch left (node records, services, shared memory, node folders, the
+/// management segment), found by the domain it recorded in the slot.
+fn clean_slot(slot: &slots::Slot) -> Result<()> {
+    let Some(previous) = &slot.previous else {
+        return Ok(());
+    };
+    let cfg = ipc::domain_config(previous)?;
+    let stale = ipc::cleanup_dead_nodes(&cfg).unwrap_or(0)
+        + ipc::wipe_domain(&cfg)
+        + usize::from(slots::remove_management_segment(previous));
     if stale > 0 {
         eprintln!(
-            "surfstream: removed {stale} stale resource(s) left in slot {} by an earlier run",
-            slot.prefix
+            "surfstream: removed {stale} stale resource(s) left in slot {} by an earlier run ({previous})",
+            slot.index
         );
+    }
+    Ok(())
+}
+
+/// Disk blocks reserved for each node's stderr log: its last words (the error that ended it)
+/// still reach the log when the disk filled up during the run.
+const LOG_RESERVE: i64 = 64 * 1024;
+
+/// Reserves `bytes` of blocks for `file` without changing its size (ignored where the file
+/// system cannot).
+fn reserve(file: &File, bytes: i64) {
+    use std::os::fd::AsRawFd;
+    // SAFETY: fallocate on a descriptor we own; KEEP_SIZE leaves the visible size alone.
+    unsafe {
+        libc::fallocate(file.as_raw_fd(), libc::FALLOC_FL_KEEP_SIZE, 0, bytes);
     }
 }
 
@@ -477,6 +482,7 @@ fn spawn(
     log: &Path,
 ) -> Result<std::process::Child> {
     let stderr = File::create(log).with_context(|| format!("{}: cannot create", log.display()))?;
+    reserve(&stderr, LOG_RESERVE);
     let mut cmd = Command::new(bin);
     cmd.arg("--graph")
         .arg(resolved)
@@ -543,6 +549,7 @@ fn supervise(
         while let Ok(ev) = rx.try_recv() {
             handle(ev, running, &watch)?;
         }
+        stopping()?;
         check_stalls(&watch, running)?;
     }
     *reached = Reached::Scan;
@@ -554,13 +561,24 @@ fn supervise(
         graph.nodes.len()
     );
     while running.iter().any(|r| !r.exited) {
-        match rx.recv_timeout(watchdog::BEAT_PERIOD * 2) {
+        match rx.recv_timeout(STOP_POLL) {
             Ok(ev) => handle(ev, running, &watch)?,
-            Err(RecvTimeoutError::Timeout) => check_stalls(&watch, running)?,
+            Err(RecvTimeoutError::Timeout) => {
+                stopping()?;
+                check_stalls(&watch, running)?
+            }
             Err(RecvTimeoutError::Disconnected) => bail!("lost track of the node processes"),
         }
     }
-    Ok(())
+    stopping()
+}
+
+/// How often the supervisor looks for a stop signal while waiting for its nodes.
+const STOP_POLL: Duration = Duration::from_millis(100);
+
+/// Fails when a stop signal arrived: the graph is stopped and the error names the signal.
+fn stopping() -> Result<()> {
+    stop::check()
 }
 
 /// Fails, naming the node, when a running node made no progress within the stall deadline.
@@ -577,10 +595,6 @@ fn check_stalls(watch: &StallWatch, running: &[Running]) -> Result<()> {
 
 fn handle(ev: Event, running: &mut [Running], watch: &StallWatch) -> Result<()> {
     match ev {
-        Event::Interrupted(sig) => bail!(
-            "interrupted by {} (signal {sig}): stopping every node",
-            signal_name(sig)
-        ),
         Event::Exited { id, status } => {
             let r = running
                 .iter_mut()
@@ -651,7 +665,6 @@ fn stop_all(running: &mut [Running], rx: &Receiver<Event>) {
                     r.exited = true;
                 }
             }
-            Ok(Event::Interrupted(_)) => {}
             Err(_) => break,
         }
     }

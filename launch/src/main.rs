@@ -148,6 +148,20 @@ fn main() -> ExitCode {
             libc::signal(libc::SIGPIPE, libc::SIG_DFL);
         }
     }
+    // A full or closed stderr (`2> /dev/full`) must not turn a message into a panic.
+    surfstream_runtime::stdio::discard_unwritable_stderr();
+    surfstream_runtime::stdio::exit_cleanly_on_stream_panics();
+    if matches!(
+        cli.command,
+        Command::Launch(_) | Command::Run(_) | Command::Stitch { .. }
+    ) {
+        // One signal story: Ctrl-C, SIGTERM, SIGHUP at any phase stop the run through its
+        // failure path (FAILED names the signal); a second one forces.
+        if let Err(e) = surfstream_runtime::stop::install() {
+            eprintln!("surfstream: error: {e:#}");
+            return ExitCode::FAILURE;
+        }
+    }
     match dispatch(cli) {
         Ok(code) => code,
         Err(e) => {
@@ -255,7 +269,21 @@ fn graph_claim(graph: &GraphFile, graph_file: &std::path::Path, force: bool) -> 
 /// go to stderr). Under `--strict` a failed check is exit status 3.
 fn tell_verdict(out: &std::path::Path, how: VerdictArgs) -> Result<ExitCode> {
     let v = verdict::from_out_dir(out, how.verbose)?;
-    println!("{}", v.text);
+    {
+        use std::io::Write;
+        let mut stdout = std::io::stdout().lock();
+        writeln!(stdout, "{}", v.text)
+            .and_then(|()| stdout.flush())
+            .map_err(|e| {
+                anyhow!(
+                    "cannot write the verdict to stdout ({e}); the run itself is complete in {}",
+                    out.display()
+                )
+            })?;
+    }
+    // The run is complete; a stop signal that came after it still ends with an error.
+    surfstream_runtime::stop::check()
+        .map_err(|e| e.context(format!("the run completed in {}", out.display())))?;
     if how.strict && !v.failures.is_empty() {
         eprintln!(
             "surfstream: --strict: {} check(s) failed (outputs are written):",

@@ -38,7 +38,10 @@ const KINDS: &[(NodePorts, Build)] = &[
 
 /// The node kinds a graph run by this CLI may use.
 pub fn registry() -> NodeRegistry {
+    // Parameters that name a file the node writes: refused unless inside the out dir.
     NodeRegistry::new(KINDS.iter().map(|(ports, _)| *ports))
+        .with_output_files("recorder", &["path"])
+        .with_output_files("mesher", &["file"])
 }
 
 /// The logic of `ctx`'s node kind, for a run in threads.

@@ -41,6 +41,9 @@ pub struct TileEvent {
     /// Neighbour links tried (0: the first tile, placed where the stage put it as the anchor).
     pub links_tried: u32,
     pub by_stage: bool,
+    /// The end-of-scan solve's placement (the one the panorama and run.json use), not the
+    /// streaming one.
+    pub is_final: bool,
 }
 
 /// Where each tile sits in the grid and how many there are, from the source's parameters
@@ -184,7 +187,7 @@ impl NodeLogic for Observer {
         if let Input::Registration(r) = input {
             if r.has(flags::END_OF_SCAN) {
                 self.done = true;
-            } else if !r.has(flags::FINAL) {
+            } else {
                 // The printer may have gone (terminal closed): progress is best effort.
                 let _ = self.tx.send(TileEvent {
                     index: r.tile_index,
@@ -193,6 +196,7 @@ impl NodeLogic for Observer {
                     ncc: r.quality,
                     links_tried: r.links_tried,
                     by_stage: r.placed_by == placed_by::STAGE,
+                    is_final: r.has(flags::FINAL),
                 });
             }
         }
@@ -268,6 +272,36 @@ pub fn line(e: &TileEvent, layout: &Layout, done: usize, eta: Option<Duration>) 
     )
 }
 
+/// The line that corrects a tile's streaming line when the end-of-scan solve placed it the
+/// other way (the verdict and run.json count the final placement, which the panorama uses):
+/// `None` when both agree.
+pub fn final_differs(
+    e: &TileEvent,
+    streaming_by_stage: Option<bool>,
+    layout: &Layout,
+) -> Option<String> {
+    let was = streaming_by_stage?;
+    if was == e.by_stage {
+        return None;
+    }
+    let grid = layout
+        .grid
+        .get(e.index as usize)
+        .map(|(r, c)| format!("row {r} x col {c}"))
+        .unwrap_or_else(|| "row ? x col ?".into());
+    Some(if e.by_stage {
+        format!(
+            "tile {}  {grid}  final solve: STAGE FALLBACK (its links were removed as inconsistent with the rest of the scan; the streaming line said registration)",
+            e.index
+        )
+    } else {
+        format!(
+            "tile {}  {grid}  final solve: registration at ({:.2}, {:.2}) um (later tiles linked it; the streaming line said STAGE FALLBACK)",
+            e.index, e.x_um, e.y_um
+        )
+    })
+}
+
 fn human(d: Duration) -> String {
     let s = d.as_secs();
     if s >= 60 {
@@ -293,7 +327,19 @@ fn print_events(rx: Receiver<TileEvent>, layout: Layout, bar: bool) {
     // lines before ("scan started") and the nodes' after (final passes) are not drawn over.
     let mut pb: Option<indicatif::ProgressBar> = None;
     let mut done = 0usize;
+    // How each tile's streaming line placed it, to tell where the final solve differs.
+    let mut streaming: std::collections::BTreeMap<u32, bool> = Default::default();
     for e in rx {
+        if e.is_final {
+            if let Some(text) = final_differs(&e, streaming.get(&e.index).copied(), &layout) {
+                match &pb {
+                    Some(b) => b.println(text),
+                    None => eprintln!("{text}"),
+                }
+            }
+            continue;
+        }
+        streaming.insert(e.index, e.by_stage);
         done += 1;
         if bar && pb.is_none() && layout.total().is_none_or(|t| done <= t) {
             pb = Some(new_bar(&layout));
@@ -431,6 +477,7 @@ mod tests {
             ncc: 0.98765,
             links_tried: 2,
             by_stage: false,
+            is_final: false,
         };
         assert_eq!(
             line(&e, &layout, 4, Some(Duration::from_secs(75))),
@@ -461,5 +508,29 @@ mod tests {
         assert_eq!(eta(t0, t1, 1, Some(6)), None);
         assert_eq!(eta(t0, t1, 6, Some(6)), None);
         assert_eq!(eta(t0, t1, 3, None), None);
+    }
+
+    #[test]
+    fn a_final_placement_that_differs_from_the_streaming_line_is_told() {
+        let layout = Layout {
+            grid: vec![(0, 0), (0, 1)],
+        };
+        let fin = |by_stage| TileEvent {
+            index: 1,
+            x_um: 10.0,
+            y_um: 0.0,
+            ncc: 0.9,
+            links_tried: 1,
+            by_stage,
+            is_final: true,
+        };
+        // Streaming said STAGE FALLBACK, the final solve registration: the verdict's count.
+        let t = final_differs(&fin(false), Some(true), &layout).unwrap();
+        assert!(t.contains("tile 1") && t.contains("row 0 x col 1"), "{t}");
+        assert!(t.contains("final solve: registration"), "{t}");
+        let t = final_differs(&fin(true), Some(false), &layout).unwrap();
+        assert!(t.contains("final solve: STAGE FALLBACK"), "{t}");
+        assert!(final_differs(&fin(true), Some(true), &layout).is_none());
+        assert!(final_differs(&fin(false), None, &layout).is_none());
     }
 }

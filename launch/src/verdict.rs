@@ -75,7 +75,7 @@ pub fn verdict(run: &Value, out: &Path, verbose: bool) -> Verdict {
     );
     let _ = writeln!(
         s,
-        "  scan        {grid}: {} by registration, {} by stage fallback",
+        "  scan        {grid}: {} by registration, {} by stage fallback (end-of-scan solve)",
         tiles.len() - fallback.len(),
         fallback.len()
     );

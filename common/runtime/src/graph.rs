@@ -99,13 +99,24 @@ pub struct NodePorts {
 #[derive(Debug, Clone, Default)]
 pub struct NodeRegistry {
     kinds: Vec<NodePorts>,
+    /// (kind, parameter) pairs that name a file the node writes: relative to the out dir.
+    output_files: Vec<(&'static str, &'static str)>,
 }
 
 impl NodeRegistry {
     pub fn new(kinds: impl IntoIterator<Item = NodePorts>) -> Self {
         Self {
             kinds: kinds.into_iter().collect(),
+            output_files: Vec::new(),
         }
+    }
+
+    /// Declares parameters of `kind` that name a file the node writes. The graph is refused
+    /// when one is not a relative name inside the out dir (no absolute path, no `..`): every
+    /// file a run writes goes through its staging folder and its lock.
+    pub fn with_output_files(mut self, kind: &'static str, params: &[&'static str]) -> Self {
+        self.output_files.extend(params.iter().map(|&p| (kind, p)));
+        self
     }
 
     /// The ports of `kind`, if the registry knows it.
@@ -153,6 +164,44 @@ fn default_startup_timeout_s() -> f64 {
 }
 fn default_stall_timeout_s() -> f64 {
     crate::watchdog::DEFAULT_STALL_TIMEOUT_S
+}
+
+/// The longest duration a graph may ask for (timeouts, the stage's field time): 30 days. Longer
+/// values are typos or probes (1e20 s does not fit a `Duration`), refused when the graph is read.
+pub const MAX_DURATION_S: f64 = 30.0 * 24.0 * 3600.0;
+
+/// Checks one duration in seconds: positive, finite, at most [`MAX_DURATION_S`].
+pub fn check_duration_s(what: &str, seconds: f64) -> Result<()> {
+    if !(seconds > 0.0 && seconds <= MAX_DURATION_S) {
+        bail!(
+            "{what} = {seconds}: expected a positive number of seconds, at most {MAX_DURATION_S} (30 days)"
+        );
+    }
+    Ok(())
+}
+
+/// Checks that `value` names a file inside the out dir: relative, no `..`, not empty.
+pub fn check_relative_output(value: &str) -> std::result::Result<(), String> {
+    let path = Path::new(value);
+    if value.is_empty() {
+        return Err("expected a file name relative to the out dir, got an empty name".into());
+    }
+    if path.is_absolute() {
+        return Err(format!(
+            "{value:?} is an absolute path: every file a run writes lives in its out dir; give a name relative to it"
+        ));
+    }
+    if path.components().any(|c| {
+        !matches!(
+            c,
+            std::path::Component::Normal(_) | std::path::Component::CurDir
+        )
+    }) {
+        return Err(format!(
+            "{value:?} leaves the out dir (a `..` component): give a name inside it"
+        ));
+    }
+    Ok(())
 }
 
 /// One `[[node]]` entry.
@@ -307,15 +356,13 @@ impl GraphFile {
                 self.graph.name
             );
         }
-        if !(self.graph.backpressure_timeout_s > 0.0
-            && self.graph.backpressure_timeout_s.is_finite())
-        {
-            bail!(
-                "{origin}: [graph] backpressure_timeout_s: expected a positive number of seconds"
-            );
-        }
-        if !(self.graph.startup_timeout_s > 0.0 && self.graph.startup_timeout_s.is_finite()) {
-            bail!("{origin}: [graph] startup_timeout_s: expected a positive number of seconds");
+        for (field, seconds) in [
+            ("backpressure_timeout_s", self.graph.backpressure_timeout_s),
+            ("startup_timeout_s", self.graph.startup_timeout_s),
+            ("stall_timeout_s", self.graph.stall_timeout_s),
+        ] {
+            check_duration_s(&format!("[graph] {field}"), seconds)
+                .map_err(|e| anyhow!("{origin}: {e}"))?;
         }
         if let Some(gb) = self.graph.memory_budget_gb {
             if !(gb > 0.0 && gb.is_finite()) {
@@ -323,9 +370,6 @@ impl GraphFile {
                     "{origin}: [graph] memory_budget_gb = {gb}: expected a positive number of GB"
                 );
             }
-        }
-        if !(self.graph.stall_timeout_s > 0.0 && self.graph.stall_timeout_s.is_finite()) {
-            bail!("{origin}: [graph] stall_timeout_s: expected a positive number of seconds");
         }
         if self.nodes.is_empty() {
             bail!("{origin}: no [[node]] entries: a graph needs at least one node");
@@ -352,6 +396,25 @@ impl GraphFile {
                     n.node,
                     registry.kind_names().join(", ")
                 );
+            }
+            for &(_, param) in registry.output_files.iter().filter(|(k, _)| *k == n.node) {
+                let Some(value) = n.params.get(param) else {
+                    continue;
+                };
+                let Some(text) = value.as_str() else {
+                    bail!(
+                        "{origin}: node '{}' ({}): params.{param} = {value}: expected a file name (a string)",
+                        n.id,
+                        n.node
+                    );
+                };
+                check_relative_output(text).map_err(|e| {
+                    anyhow!(
+                        "{origin}: node '{}' ({}): params.{param}: {e}",
+                        n.id,
+                        n.node
+                    )
+                })?;
             }
         }
         for n in &self.nodes {
@@ -428,7 +491,72 @@ impl GraphFile {
                 }
             }
         }
+        if let Some(cycle) = self.find_cycle() {
+            bail!(
+                "{origin}: the wiring has a cycle ({}): every node waits for its upstream's end of scan, so a cycle never ends; wire the graph as a chain or a tree",
+                cycle.join(" -> ")
+            );
+        }
         Ok(())
+    }
+
+    /// A cycle of the wiring (producer -> consumer), as node ids from its first node back to
+    /// it, if there is one.
+    pub fn find_cycle(&self) -> Option<Vec<String>> {
+        // Depth-first search; state 1 = on the current path, 2 = done.
+        let consumers: Vec<Vec<usize>> = self
+            .nodes
+            .iter()
+            .map(|p| {
+                let mut c: Vec<usize> = self
+                    .nodes
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, n)| {
+                        n.inputs
+                            .values()
+                            .any(|s| s.split_once('/').is_some_and(|(from, _)| from == p.id))
+                    })
+                    .map(|(i, _)| i)
+                    .collect();
+                c.dedup();
+                c
+            })
+            .collect();
+        let mut state = vec![0u8; self.nodes.len()];
+        for start in 0..self.nodes.len() {
+            if state[start] != 0 {
+                continue;
+            }
+            // Iterative DFS: (node, next consumer to visit).
+            let mut path: Vec<(usize, usize)> = vec![(start, 0)];
+            state[start] = 1;
+            while let Some(&mut (node, ref mut next)) = path.last_mut() {
+                if let Some(&c) = consumers[node].get(*next) {
+                    *next += 1;
+                    match state[c] {
+                        0 => {
+                            state[c] = 1;
+                            path.push((c, 0));
+                        }
+                        1 => {
+                            let from = path.iter().position(|(n, _)| *n == c).unwrap_or(0);
+                            let mut ids: Vec<String> = path[from..]
+                                .iter()
+                                .map(|(n, _)| self.nodes[*n].id.clone())
+                                .collect();
+                            ids.push(self.nodes[c].id.clone());
+                            return Some(ids);
+                        }
+                        _ => {}
+                    }
+                } else {
+                    state[node] = 2;
+                    path.pop();
+                }
+            }
+        }
+        None
     }
 
     /// Applies `--set NODE.PARAM=VALUE`; VALUE is read as a TOML value, else as a string.
@@ -572,7 +700,7 @@ mod tests {
                 outputs: &[],
             },
         ];
-        NodeRegistry::new(KINDS.iter().copied())
+        NodeRegistry::new(KINDS.iter().copied()).with_output_files("recorder", &["path"])
     }
 
     const DEMO: &str = r#"
@@ -720,5 +848,90 @@ inputs = { tiles = "stage/tiles", panorama = "fusion/panorama" }
         assert_eq!(p["overlap"].as_float(), Some(0.2));
         assert!(g.apply_override("nobody.x=1").is_err());
         assert!(g.apply_override("stage-rows").is_err());
+    }
+
+    #[test]
+    fn output_files_outside_the_out_dir_are_refused() {
+        for bad in ["/abs/x.mcap", "../../x.mcap", "sub/../../x.mcap", ""] {
+            let text = DEMO.replace(
+                "inputs = { tiles = \"stage/tiles\", panorama = \"fusion/panorama\" }",
+                &format!(
+                    "inputs = {{ tiles = \"stage/tiles\", panorama = \"fusion/panorama\" }}\nparams = {{ path = {bad:?} }}"
+                ),
+            );
+            assert_ne!(text, DEMO);
+            let e = GraphFile::parse(&text, "g.toml", &registry())
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("g.toml") && e.contains("node 'rec'") && e.contains("params.path"),
+                "{bad}: {e}"
+            );
+        }
+        for good in ["x.mcap", "sub/x.mcap", "./x.mcap"] {
+            let text = DEMO.replace(
+                "inputs = { tiles = \"stage/tiles\", panorama = \"fusion/panorama\" }",
+                &format!(
+                    "inputs = {{ tiles = \"stage/tiles\", panorama = \"fusion/panorama\" }}\nparams = {{ path = {good:?} }}"
+                ),
+            );
+            GraphFile::parse(&text, "g.toml", &registry()).unwrap();
+        }
+        // An override is checked too (the launcher validates again after --set).
+        let mut g = GraphFile::parse(DEMO, "demo.toml", &registry()).unwrap();
+        g.apply_override("rec.path=/tmp/elsewhere.mcap").unwrap();
+        assert!(g.validate("demo.toml", &registry()).is_err());
+    }
+
+    #[test]
+    fn a_cycle_is_refused_when_the_graph_is_read() {
+        // The matcher reads the fusion's panorama, the fusion the matcher's registrations.
+        let text = DEMO.replace(
+            "id = \"matcher\"\nnode = \"matcher\"\ninputs = { tiles = \"stage/tiles\" }",
+            "id = \"matcher\"\nnode = \"matcher\"\ninputs = { tiles = \"fusion/panorama\" }",
+        );
+        assert_ne!(text, DEMO);
+        let e = GraphFile::parse(&text, "c.toml", &registry())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("c.toml")
+                && e.contains("cycle")
+                && (e.contains("matcher -> fusion -> matcher")
+                    || e.contains("fusion -> matcher -> fusion")),
+            "{e}"
+        );
+        assert!(GraphFile::parse(DEMO, "demo.toml", &registry())
+            .unwrap()
+            .find_cycle()
+            .is_none());
+    }
+
+    #[test]
+    fn absurd_timeouts_are_refused_not_panicked_on() {
+        for (field, value) in [
+            ("backpressure_timeout_s", "1e300"),
+            ("startup_timeout_s", "1e20"),
+            ("stall_timeout_s", "inf"),
+            ("stall_timeout_s", "0"),
+            ("startup_timeout_s", "nan"),
+        ] {
+            let text = DEMO.replace(
+                "out_dir = \"out/demo\"",
+                &format!("out_dir = \"o\"\n{field} = {value}"),
+            );
+            let e = GraphFile::parse(&text, "t.toml", &registry())
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("t.toml") && e.contains(field) && e.contains("at most"),
+                "{field}={value}: {e}"
+            );
+        }
+        let ok = DEMO.replace(
+            "out_dir = \"out/demo\"",
+            "out_dir = \"o\"\nstall_timeout_s = 3600",
+        );
+        GraphFile::parse(&ok, "t.toml", &registry()).unwrap();
     }
 }

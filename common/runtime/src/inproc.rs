@@ -4,9 +4,17 @@
 //! Channels are bounded (backpressure) and a send that waits longer than the graph's
 //! backpressure timeout fails loudly, as over iceoryx2. A node whose upstream disappears
 //! without an end-of-scan marker fails; the first failure is reported with its node.
+//!
+//! Liveness, as under `launch` ([`crate::watchdog`]): every node thread beats (its loop, a send
+//! waiting on a full queue, and the long computations through `surfstream_core::liveness`),
+//! and [`run_graph_supervised`] names a node silent for the stall deadline and stops the
+//! graph, as it does on a stop signal ([`crate::stop`]): a hung read (a FIFO as a tile file)
+//! no longer hangs `run` silently.
 
+use std::cell::RefCell;
 use std::collections::BTreeMap;
-use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Result};
@@ -67,8 +75,68 @@ pub struct InProcessNode {
     pub logic: Box<dyn NodeLogic + Send>,
 }
 
+/// Process-wide clock of the in-process heartbeats.
+fn epoch() -> Instant {
+    static EPOCH: OnceLock<Instant> = OnceLock::new();
+    *EPOCH.get_or_init(Instant::now)
+}
+
+fn now_ns() -> u64 {
+    epoch().elapsed().as_nanos() as u64
+}
+
+/// The last beat of one node thread (ns since [`epoch`]).
+#[derive(Default)]
+struct Beat(AtomicU64);
+
+impl Beat {
+    fn beat(&self) {
+        self.0.store(now_ns(), Ordering::Relaxed);
+    }
+    fn silent_for(&self) -> Duration {
+        Duration::from_nanos(now_ns().saturating_sub(self.0.load(Ordering::Relaxed)))
+    }
+}
+
+thread_local! {
+    /// The heartbeat of the node this thread runs (none on other threads).
+    static CURRENT: RefCell<Option<Arc<Beat>>> = const { RefCell::new(None) };
+}
+/// Beats from threads that run no node (rayon workers of a node's computation).
+static ANONYMOUS_BEAT: AtomicU64 = AtomicU64::new(0);
+
+/// The core's liveness hook under `run`: the calling node thread's heartbeat.
+fn beat_current() {
+    let mine = CURRENT.with(|c| c.borrow().as_ref().map(|b| b.beat()).is_some());
+    if !mine {
+        ANONYMOUS_BEAT.store(now_ns(), Ordering::Relaxed);
+    }
+}
+
+/// How [`run_graph_supervised`] watches the graph.
+#[derive(Debug, Clone, Copy)]
+pub struct Supervision {
+    /// A node thread silent this long is named and the graph stopped (`[graph]
+    /// stall_timeout_s`).
+    pub stall_timeout: Duration,
+    /// How long the threads get to end after a stop (stall or signal) before the run returns
+    /// its error without them.
+    pub grace: Duration,
+}
+
 /// Runs every node on its own thread until all finish; returns their reports in graph order.
 pub fn run_graph(nodes: Vec<InProcessNode>) -> Result<Vec<NodeReport>> {
+    run_graph_supervised(nodes, None)
+}
+
+/// [`run_graph`] with a stall watch and the stop signals of [`crate::stop`] (`None`: no watch,
+/// the threads are joined as they end).
+pub fn run_graph_supervised(
+    nodes: Vec<InProcessNode>,
+    supervision: Option<Supervision>,
+) -> Result<Vec<NodeReport>> {
+    surfstream_core::liveness::set_hook(beat_current);
+    let stop = Arc::new(AtomicBool::new(false));
     // One channel per (consumer, input port); producers keep the senders.
     let mut senders: Fanout = BTreeMap::new();
     let mut receivers: Vec<Vec<InputChannel>> = Vec::new();
@@ -109,12 +177,36 @@ pub fn run_graph(nodes: Vec<InProcessNode>) -> Result<Vec<NodeReport>> {
             })
             .collect();
         let id = n.context.node_id.clone();
+        let beat = Arc::new(Beat::default());
+        beat.beat();
+        let (thread_beat, thread_stop) = (beat.clone(), stop.clone());
         let handle = std::thread::Builder::new()
             .name(id.clone())
-            .spawn(move || run_node(n.context, n.logic, inputs, outputs))
+            .spawn(move || {
+                CURRENT.with(|c| *c.borrow_mut() = Some(thread_beat));
+                run_node(n.context, n.logic, inputs, outputs, &thread_stop)
+            })
             .map_err(|e| anyhow!("cannot start thread for node '{id}': {e}"))?;
-        handles.push((id, handle));
+        handles.push((id, handle, beat));
     }
+    if let Some(sup) = supervision {
+        if let Some(reason) = watch(&handles, &sup) {
+            // Every node stops at its next step; a thread stuck in a read or a computation is
+            // left behind (the process ends after the error is recorded).
+            stop.store(true, Ordering::SeqCst);
+            let deadline = Instant::now() + sup.grace;
+            while Instant::now() < deadline && handles.iter().any(|(_, h, _)| !h.is_finished()) {
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            for (_, h, _) in handles {
+                if h.is_finished() {
+                    let _ = h.join();
+                }
+            }
+            return Err(reason);
+        }
+    }
+    let handles: Vec<_> = handles.into_iter().map(|(id, h, _)| (id, h)).collect();
     let mut reports = Vec::new();
     let mut errors: Vec<(String, anyhow::Error)> = Vec::new();
     for (id, h) in handles {
@@ -135,16 +227,59 @@ pub fn run_graph(nodes: Vec<InProcessNode>) -> Result<Vec<NodeReport>> {
     Ok(reports)
 }
 
+type Handles = Vec<(
+    String,
+    std::thread::JoinHandle<Result<NodeReport>>,
+    Arc<Beat>,
+)>;
+
+/// Waits until every thread ended (`None`), or a stop signal or a stall says to stop the graph.
+fn watch(handles: &Handles, sup: &Supervision) -> Option<anyhow::Error> {
+    loop {
+        if handles.iter().all(|(_, h, _)| h.is_finished()) {
+            return None;
+        }
+        if let Some(sig) = crate::stop::signal() {
+            return Some(crate::stop::interrupted(sig));
+        }
+        let anonymous =
+            Duration::from_nanos(now_ns().saturating_sub(ANONYMOUS_BEAT.load(Ordering::Relaxed)));
+        let stalled = handles
+            .iter()
+            .filter(|(_, h, _)| !h.is_finished())
+            .map(|(id, _, b)| (id, b.silent_for()))
+            .filter(|(_, silent)| *silent > sup.stall_timeout)
+            .max_by_key(|(_, silent)| *silent);
+        // A computation fanned out to worker threads beats from them: not a stall.
+        if let Some((id, silent)) = stalled.filter(|_| anonymous > sup.stall_timeout) {
+            return Some(anyhow!(
+                "stalled: node '{id}' made no progress for {:.0} s (hung, e.g. reading a FIFO or a dead network file, or one computation longer than [graph] stall_timeout_s = {:.0}); the graph is stopped",
+                silent.as_secs_f64(),
+                sup.stall_timeout.as_secs_f64()
+            ));
+        }
+        std::thread::sleep(crate::watchdog::BEAT_PERIOD);
+    }
+}
+
 fn run_node(
     ctx: NodeContext,
     mut logic: Box<dyn NodeLogic + Send>,
     mut inputs: Vec<InputChannel>,
     mut outputs: Vec<OutputChannel>,
+    stop: &AtomicBool,
 ) -> Result<NodeReport> {
     let mut stats = NodeStats::default();
     let mut outbox = Outbox::default();
     let timeout = Duration::from_secs_f64(ctx.backpressure_timeout_s);
     while !logic.finished() {
+        beat_current();
+        if stop.load(Ordering::Relaxed) || crate::ipc::STOP_REQUESTED.load(Ordering::Relaxed) {
+            return Err(anyhow!(Consequence(format!(
+                "node '{}': stopped (the graph is being stopped)",
+                ctx.node_id
+            ))));
+        }
         // Wait for input or the next timer, without spinning.
         let wake = logic.next_wakeup();
         let wait = wake
@@ -221,7 +356,7 @@ fn send_all(
         let mut delivered = 0;
         for (consumer, tx) in &ch.txs {
             match ch.delivery {
-                Delivery::Lossless => match tx.send_timeout(msg.clone(), timeout) {
+                Delivery::Lossless => match send_beating(tx, msg.clone(), timeout) {
                     Ok(()) => delivered += 1,
                     Err(SendTimeoutError::Timeout(_)) => bail!(
                         "output '{port}' -> '{consumer}': downstream queue full for {:.1} s (backpressure timeout)",
@@ -242,4 +377,98 @@ fn send_all(
         stats.on_sent(&port, &msg, delivered);
     }
     Ok(())
+}
+
+/// A lossless send that waits up to `timeout` for room, beating while it waits: the sender
+/// of a full queue is alive, the receiver that does not drain is the one to name.
+fn send_beating(
+    tx: &Sender<Message>,
+    mut msg: Message,
+    timeout: Duration,
+) -> std::result::Result<(), SendTimeoutError<Message>> {
+    let deadline = Instant::now() + timeout;
+    loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        match tx.send_timeout(msg, left.min(crate::watchdog::BEAT_PERIOD)) {
+            Err(SendTimeoutError::Timeout(m)) if !left.is_zero() => {
+                beat_current();
+                if crate::ipc::STOP_REQUESTED.load(Ordering::Relaxed) {
+                    return Err(SendTimeoutError::Disconnected(m));
+                }
+                msg = m;
+            }
+            other => return other,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::node::Input;
+
+    /// A node that hangs in one call (like a read of a FIFO) without beating, or finishes.
+    struct Hangs {
+        hang: Option<Duration>,
+        done: bool,
+    }
+
+    impl NodeLogic for Hangs {
+        fn on_input(&mut self, _: &str, _: Input<'_>, _: &mut Outbox) -> Result<()> {
+            Ok(())
+        }
+        fn on_drained(&mut self, _: &mut Outbox) -> Result<()> {
+            if let Some(d) = self.hang.take() {
+                std::thread::sleep(d);
+            }
+            self.done = true;
+            Ok(())
+        }
+        fn finished(&self) -> bool {
+            self.done
+        }
+    }
+
+    fn node(id: &str, hang: Option<Duration>) -> InProcessNode {
+        InProcessNode {
+            context: NodeContext {
+                graph_name: "g".into(),
+                node_id: id.into(),
+                node_kind: "test".into(),
+                params: toml::Table::new(),
+                out_dir: "/nonexistent".into(),
+                inputs: vec![],
+                outputs: vec![],
+                backpressure_timeout_s: 5.0,
+                startup_timeout_s: 5.0,
+                scan_id: 1,
+                memory_budget_bytes: None,
+            },
+            logic: Box::new(Hangs { hang, done: false }),
+        }
+    }
+
+    #[test]
+    fn a_node_hung_in_one_call_is_named_as_stalled_under_run() {
+        let sup = Supervision {
+            stall_timeout: Duration::from_millis(600),
+            grace: Duration::from_millis(100),
+        };
+        let e = run_graph_supervised(
+            vec![
+                node("quick", None),
+                node("stuck", Some(Duration::from_secs(5))),
+            ],
+            Some(sup),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("stalled: node 'stuck' made no progress"), "{e}");
+        // Nodes that finish in time are not stalls.
+        let ok = run_graph_supervised(
+            vec![node("quick", Some(Duration::from_millis(50)))],
+            Some(sup),
+        );
+        assert!(ok.is_ok());
+    }
 }

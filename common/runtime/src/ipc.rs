@@ -60,6 +60,13 @@ pub fn domain_config(prefix: &str) -> Result<Config> {
     let mut cfg = Config::default();
     cfg.global.prefix = FileName::new(prefix.as_bytes())
         .map_err(|e| anyhow!("invalid iceoryx2 domain prefix {prefix:?}: {e:?}"))?;
+    // Node and service records in this user's private folder, not the shared /tmp/iceoryx2
+    // (which the first user to launch owns, and no other user may then enter).
+    let root = crate::slots::iceoryx2_root()?;
+    let root_text = format!("{}/", root.display());
+    let root_path = iceoryx2::prelude::Path::new(root_text.as_bytes())
+        .map_err(|e| anyhow!("{}: not usable as the iceoryx2 root: {e:?}", root.display()))?;
+    cfg.global.set_root_path(&root_path);
     Ok(cfg)
 }
 

@@ -81,11 +81,19 @@ fn parse_args(kind: &str) -> Result<Args> {
 
 /// The whole `main` of a node binary.
 pub fn node_main(kind: &str, build: fn(&NodeContext) -> Result<Box<dyn NodeLogic + Send>>) -> ! {
+    // A log on a full disk: the cause goes to the launcher in the exit status.
+    crate::stdio::discard_unwritable_stderr();
+    crate::stdio::exit_cleanly_on_stream_panics();
     let code = match run(kind, build) {
         Ok(()) => 0,
         Err(e) => {
-            eprintln!("surfstream-{kind}: error: {e:#}");
-            1
+            use std::io::Write;
+            let _ = writeln!(std::io::stderr(), "surfstream-{kind}: error: {e:#}");
+            if crate::stdio::is_no_space(&e) {
+                crate::stdio::EXIT_NO_SPACE
+            } else {
+                1
+            }
         }
     };
     std::process::exit(code)

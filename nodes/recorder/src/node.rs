@@ -36,6 +36,21 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
             ctx.node_id
         );
     }
+    // Every file of a run lives in its out dir (staged, locked): no absolute path, no `..`.
+    let name = p.path.to_str().ok_or_else(|| {
+        anyhow::anyhow!(
+            "graph '{}', node '{}': params.path: not UTF-8",
+            ctx.graph_name,
+            ctx.node_id
+        )
+    })?;
+    surfstream_runtime::graph::check_relative_output(name).map_err(|e| {
+        anyhow::anyhow!(
+            "graph '{}', node '{}' (recorder): params.path: {e}",
+            ctx.graph_name,
+            ctx.node_id
+        )
+    })?;
     let path = ctx.out_dir.join(&p.path);
     let session = RecordingSession::create(&path, &ctx.graph_name, &ctx.inputs)?;
     Ok(Box::new(RecorderNode {

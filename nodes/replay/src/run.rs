@@ -35,6 +35,9 @@ pub enum Pacing {
     Original,
 }
 
+/// The longest time per field a simulated stage may take (30 days, as the graph's timeouts).
+pub const MAX_FIELD_TIME_S: f64 = 30.0 * 24.0 * 3600.0;
+
 impl Pacing {
     /// The pacing a graph names: "fast", "realtime" (one field every `field_time_s`) or
     /// "original" (a recording's own timing). The error says what was expected.
@@ -42,9 +45,11 @@ impl Pacing {
         Ok(match name {
             "fast" => Pacing::Fast,
             "realtime" => {
-                if !(field_time_s.is_finite() && field_time_s > 0.0) {
+                // Bounded: 1e20 s does not fit a Duration (it panicked), and no stage takes
+                // a month per field.
+                if !(field_time_s > 0.0 && field_time_s <= MAX_FIELD_TIME_S) {
                     return Err(format!(
-                        "field_time_s = {field_time_s}: expected seconds > 0"
+                        "field_time_s = {field_time_s}: expected seconds > 0 and at most {MAX_FIELD_TIME_S} (30 days)"
                     ));
                 }
                 Pacing::Fixed(Duration::from_secs_f64(field_time_s))

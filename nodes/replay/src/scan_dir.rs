@@ -174,13 +174,45 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
     if file.tile.is_empty() {
         bail!("{m}: no [[tile]] entries: expected one per field, in acquisition order");
     }
-    if file.tile.len() > scan.rows * scan.cols {
+    // Checked: rows = cols = 2^32 overflowed to "expected at most 0".
+    let cells = scan
+        .rows
+        .checked_mul(scan.cols)
+        .filter(|&n| n <= crate::stage::MAX_TILES)
+        .ok_or_else(|| {
+            anyhow!(
+                "{m}: [scan] rows = {}, cols = {}: expected rows * cols <= {}",
+                scan.rows,
+                scan.cols,
+                crate::stage::MAX_TILES
+            )
+        })?;
+    if file.tile.len() > cells {
         bail!(
-            "{m}: {} [[tile]] entries for a {} x {} (rows x cols) scan: expected at most {}",
+            "{m}: {} [[tile]] entries for a {} x {} (rows x cols) scan: expected at most {cells}",
             file.tile.len(),
             scan.rows,
             scan.cols,
-            scan.rows * scan.cols
+        );
+    }
+    if file.tile.len() < cells {
+        // Not silent: a field missing from a grid leaves a hole in the panorama.
+        let listed: std::collections::BTreeSet<(usize, usize)> =
+            file.tile.iter().map(|t| (t.row, t.col)).collect();
+        let missing: Vec<String> = (0..scan.rows)
+            .flat_map(|r| (0..scan.cols).map(move |c| (r, c)))
+            .filter(|rc| !listed.contains(rc))
+            .take(8)
+            .map(|(r, c)| format!("row {r} col {c}"))
+            .collect();
+        eprintln!(
+            "stitch: warning: {m}: {} [[tile]] entries for a {} x {} (rows x cols) grid: {} field(s) have no tile ({}{}); the panorama has holes there",
+            file.tile.len(),
+            scan.rows,
+            scan.cols,
+            cells - file.tile.len(),
+            missing.join(", "),
+            if cells - file.tile.len() > missing.len() { ", ..." } else { "" }
         );
     }
     // One field measured once: the same file at two grid positions would be placed twice.
@@ -196,6 +228,9 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         }
     }
     let dir = manifest_path.parent().unwrap_or(Path::new("."));
+    let dir_real = dir
+        .canonicalize()
+        .with_context(|| format!("{}: cannot resolve the scan directory", dir.display()))?;
     let mut seen = std::collections::BTreeSet::new();
     let mut tiles = Vec::with_capacity(file.tile.len());
     let mut z_offset_um: Option<f64> = None;
@@ -224,6 +259,26 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         let tile_path = dir.join(&t.file);
         if !tile_path.exists() {
             bail!("{at}: {}: no such tile file", tile_path.display());
+        }
+        // A manifest reads its own folder only: `../` or an absolute path elsewhere would
+        // read (and copy into the outputs) any file the user can read.
+        let real = tile_path
+            .canonicalize()
+            .with_context(|| format!("{at}: cannot resolve {}", tile_path.display()))?;
+        // A FIFO or a device would block the reader forever (a hang, not an error).
+        if !std::fs::metadata(&real).is_ok_and(|md| md.is_file()) {
+            bail!(
+                "{at}: {}: not a regular file (a FIFO, device or folder): expected a height-map file",
+                tile_path.display()
+            );
+        }
+        if !real.starts_with(&dir_real) {
+            bail!(
+                "{at}: file = {:?} resolves to {}, outside the scan directory {}: tile files must be inside it",
+                t.file,
+                real.display(),
+                dir_real.display()
+            );
         }
         if !formats::is_surface_file(&tile_path) {
             bail!(
@@ -293,6 +348,8 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         scan.pitch_x_um = px;
         scan.pitch_y_um = py;
     }
+    check_pitch_against_truth(&manifest_path, &scan)?;
+    check_stage_steps(&m.to_string(), &scan, &tiles, cols, rows)?;
     Ok(ScanDirectory {
         manifest_path,
         scan,
@@ -301,6 +358,69 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         tile_width_px: cols,
         tile_height_px: rows,
     })
+}
+
+/// `ground_truth.json` beside the manifest (the simulated stage's, `make_tiles.py`'s) knows the
+/// pitch the tiles were made with: a manifest that says otherwise places every tile wrongly
+/// (a 461 x 368 panorama instead of 461 x 461), so it is refused.
+fn check_pitch_against_truth(manifest: &Path, scan: &ScanSection) -> Result<()> {
+    let truth = manifest.with_file_name("ground_truth.json");
+    let Ok(text) = std::fs::read_to_string(&truth) else {
+        return Ok(());
+    };
+    let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) else {
+        return Ok(()); // not ours to judge; the matcher's scorer names a bad file
+    };
+    for (axis, manifest_pitch) in [("x", scan.pitch_x_um), ("y", scan.pitch_y_um)] {
+        let Some(truth_pitch) = v["pixel_pitch_um"][axis].as_f64() else {
+            continue;
+        };
+        if truth_pitch > 0.0 && !same_pitch(manifest_pitch, truth_pitch) {
+            bail!(
+                "{}: [scan] pitch_{axis}_um = {manifest_pitch} but {} says the tiles were made at {truth_pitch} um: manifest and tiles disagree (fix the manifest's pitch)",
+                manifest.display(),
+                truth.display()
+            );
+        }
+    }
+    Ok(())
+}
+
+/// The stage positions at the manifest's pitch must make neighbouring tiles overlap: a step
+/// larger than the tile is a wrong pitch (or wrong positions), flagged before registration
+/// falls back to the stage for every tile.
+fn check_stage_steps(
+    m: &str,
+    scan: &ScanSection,
+    tiles: &[LoadedTile],
+    width_px: usize,
+    height_px: usize,
+) -> Result<()> {
+    let at: std::collections::BTreeMap<(usize, usize), &TileEntry> = tiles
+        .iter()
+        .map(|t| ((t.entry.row, t.entry.col), &t.entry))
+        .collect();
+    for (&(r, c), a) in &at {
+        for (b, axis, side_px, pitch) in [
+            (at.get(&(r, c + 1)), "x", width_px, scan.pitch_x_um),
+            (at.get(&(r + 1, c)), "y", height_px, scan.pitch_y_um),
+        ] {
+            let Some(b) = b else { continue };
+            let step_um = match axis {
+                "x" => (b.stage_x_um - a.stage_x_um).abs(),
+                _ => (b.stage_y_um - a.stage_y_um).abs(),
+            };
+            let step_px = step_um / pitch;
+            if step_px >= side_px as f64 {
+                bail!(
+                    "{m}: tiles {:?} and {:?} are {step_um} um apart in {axis} = {step_px:.0} px at pitch_{axis}_um = {pitch}, but a tile is {side_px} px: they cannot overlap (check the pitch or the stage positions)",
+                    a.file,
+                    b.file
+                );
+            }
+        }
+    }
+    Ok(())
 }
 
 /// A height beyond +-1 m is a corrupt point or a wrong unit: stitched and meshed it would

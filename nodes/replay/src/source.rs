@@ -335,7 +335,70 @@ fn scan(ctx: &NodeContext, p: ScanParams) -> Result<OpenedSource> {
     })
 }
 
+/// The guards a scan directory's tiles pass, for a recorded tile (a recording can be edited or
+/// corrupt like any file): a plausible pitch, finite stage positions, a z offset and heights
+/// within +-1 m ([`surfstream_io::formats::MAX_PLAUSIBLE_HEIGHT_UM`]). The error names the
+/// recording, the tile and the field.
+fn check_recorded_tile(path: &std::path::Path, topic: &str, k: usize, f: &HeightMap) -> Result<()> {
+    use crate::scan_dir::{MAX_PITCH_UM, MIN_PITCH_UM};
+    let at = format!(
+        "{}: topic {topic:?}, tile #{} (index {})",
+        path.display(),
+        k + 1,
+        f.header.tile_index
+    );
+    let h = &f.header;
+    for (field, v) in [("pitch_x_um", h.pitch_x_um), ("pitch_y_um", h.pitch_y_um)] {
+        if !(MIN_PITCH_UM..=MAX_PITCH_UM).contains(&v) {
+            bail!("{at}: {field} = {v}: expected a pitch between {MIN_PITCH_UM} and {MAX_PITCH_UM} um");
+        }
+    }
+    for (field, v) in [
+        ("origin_x_um", h.origin_x_um),
+        ("origin_y_um", h.origin_y_um),
+    ] {
+        if !v.is_finite() || v.abs() > 1e9 {
+            bail!("{at}: {field} = {v}: expected a finite stage position within +-1 km (in um)");
+        }
+    }
+    let limit = surfstream_io::formats::MAX_PLAUSIBLE_HEIGHT_UM;
+    if !(h.z_offset_um.is_finite() && h.z_offset_um.abs() <= limit) {
+        bail!(
+            "{at}: z_offset_um = {:e}: expected a height within +-{limit:e} um (+-1 m): physically absurd for a profiler (a corrupt or edited recording)",
+            h.z_offset_um
+        );
+    }
+    let cols = (h.width as usize).max(1);
+    let bad = f
+        .heights
+        .iter()
+        .enumerate()
+        .filter(|(_, z)| !z.is_nan() && (f64::from(**z) + h.z_offset_um).abs() > limit)
+        .map(|(i, z)| (i, f64::from(*z) + h.z_offset_um));
+    let mut count = 0usize;
+    let mut first = None;
+    for (i, z) in bad {
+        count += 1;
+        first.get_or_insert((i, z));
+    }
+    if let Some((i, z)) = first {
+        bail!(
+            "{at}: {count} height(s) beyond +-{limit:e} um, the first {z:.3e} um at row {}, col {}: physically absurd for a profiler (a corrupt point or a wrong unit)",
+            i / cols,
+            i % cols
+        );
+    }
+    Ok(())
+}
+
 fn mcap(ctx: &NodeContext, p: McapParams) -> Result<OpenedSource> {
+    // A FIFO or a device would block the reader forever.
+    if !std::fs::metadata(&p.path).is_ok_and(|m| m.is_file()) {
+        bail!(
+            "{}: not a regular file: expected a .mcap recording",
+            p.path.display()
+        );
+    }
     let rec = read_recording(&p.path)?;
     let mut frames = Vec::new();
     let mut offsets_ns = Vec::new();
@@ -353,6 +416,7 @@ fn mcap(ctx: &NodeContext, p: McapParams) -> Result<OpenedSource> {
                     f.header.kind().map(|k| k.name()).unwrap_or("unknown")
                 );
             }
+            check_recorded_tile(&p.path, &p.topic, frames.len(), &f)?;
             let t0 = *first_log.get_or_insert(m.log_time_ns);
             offsets_ns.push(m.log_time_ns.saturating_sub(t0));
             frames.push(f);

@@ -157,6 +157,10 @@ fn check_non_negative(field: &'static str, v: f64) -> Result<()> {
     }
 }
 
+/// The largest height parameter (um) of a simulated specimen or stage: 1 m, the guard every
+/// input path applies to heights (`surfstream_io::formats::MAX_PLAUSIBLE_HEIGHT_UM`).
+pub const MAX_HEIGHT_PARAM_UM: f64 = surfstream_io::formats::MAX_PLAUSIBLE_HEIGHT_UM;
+
 impl SpecimenParams {
     /// Checks every field; the error names the first field out of range.
     pub fn validate(&self) -> Result<()> {
@@ -172,6 +176,24 @@ impl SpecimenParams {
         }
         check_positive("pitch_um", self.pitch_um)?;
         check_non_negative("sa_um", self.sa_um)?;
+        // Heights beyond +-1 m are refused from a scan directory and a recording alike; a
+        // simulated specimen may not make them either.
+        for (field, v) in [
+            ("sa_um", self.sa_um),
+            ("waviness_amplitude_um", self.waviness_amplitude_um),
+            ("form_sag_um", self.form_sag_um.abs()),
+        ] {
+            if v > MAX_HEIGHT_PARAM_UM {
+                return Err(invalid(
+                    SECTION,
+                    field,
+                    v,
+                    format!(
+                        "at most {MAX_HEIGHT_PARAM_UM:e} um (heights beyond +-1 m are refused)"
+                    ),
+                ));
+            }
+        }
         if !(self.hurst.is_finite() && self.hurst > 0.0 && self.hurst <= 1.0) {
             return Err(invalid(SECTION, "hurst", self.hurst, "a number in (0, 1]"));
         }

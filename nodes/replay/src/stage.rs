@@ -212,6 +212,23 @@ impl StageParams {
         check_non_negative("piston_sigma_um", self.piston_sigma_um)?;
         check_non_negative("tilt_sigma_um", self.tilt_sigma_um)?;
         check_non_negative("noise_um", self.noise_um)?;
+        for (field, v) in [
+            ("piston_sigma_um", self.piston_sigma_um),
+            ("tilt_sigma_um", self.tilt_sigma_um),
+            ("noise_um", self.noise_um),
+        ] {
+            if v > crate::specimen::MAX_HEIGHT_PARAM_UM {
+                return Err(invalid(
+                    SECTION,
+                    field,
+                    v,
+                    format!(
+                        "at most {:e} um (heights beyond +-1 m are refused)",
+                        crate::specimen::MAX_HEIGHT_PARAM_UM
+                    ),
+                ));
+            }
+        }
         if !(self.dropout_fraction.is_finite() && (0.0..=1.0).contains(&self.dropout_fraction)) {
             return Err(invalid(
                 SECTION,
