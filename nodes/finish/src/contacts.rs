@@ -149,11 +149,14 @@ mod tests {
         // Contact at (1, 2, 0), particle above, sliding 2 m/s along x and approaching at 1 m/s;
         // force 3 N normal, 0.5 N tangential.
         let row = [
-            1.0, 2.0, 0.0, 1.0, 2.0, 1.5, 0.0, 0.0, 0.0, 2.0, 0.0, -1.0, 0.0, 7.0, 1.0, -0.5,
-            0.0, 3.0,
+            1.0, 2.0, 0.0, 1.0, 2.0, 1.5, 0.0, 0.0, 0.0, 2.0, 0.0, -1.0, 0.0, 7.0, 1.0, -0.5, 0.0,
+            3.0,
         ];
         let w = contact_wear(&row, 1e-3, 0.1);
-        assert!((w.volume_m3 - 1e-3 * 3.0 * 2.0 * 0.1).abs() < 1e-15, "{w:?}");
+        assert!(
+            (w.volume_m3 - 1e-3 * 3.0 * 2.0 * 0.1).abs() < 1e-15,
+            "{w:?}"
+        );
         assert_eq!((w.x_m, w.y_m), (1.0, 2.0));
         let mut pulling = row;
         pulling[17] = -3.0;
@@ -176,11 +179,7 @@ mod tests {
         let (w, s) = archard_from_dump(&p, 1.0, 1.0).unwrap();
         assert_eq!((w.len(), s.snapshots), (2, 2));
         assert!((s.total_volume_m3 - 12.0).abs() < 1e-12);
-        std::fs::write(
-            &p,
-            "ITEM: NUMBER OF ENTRIES\n1\nITEM: ENTRIES a\n1 2 3\n",
-        )
-        .unwrap();
+        std::fs::write(&p, "ITEM: NUMBER OF ENTRIES\n1\nITEM: ENTRIES a\n1 2 3\n").unwrap();
         let e = archard_from_dump(&p, 1.0, 1.0).unwrap_err().to_string();
         assert!(e.contains("3 columns, expected 18"), "{e}");
     }

@@ -99,6 +99,8 @@ pub struct EngineProgress {
 #[derive(Debug, Clone, PartialEq)]
 pub struct EngineRun {
     pub wall_s: f64,
+    /// CPU time of the engine's processes (user + system, from getrusage of the children).
+    pub cpu_s: f64,
     /// Stopped by the caller (Ctrl-C) before the end.
     pub stopped: bool,
     pub command: String,
@@ -119,6 +121,7 @@ pub fn run_engine(
     progress: &mut dyn FnMut(EngineProgress),
 ) -> Result<EngineRun> {
     let argv = engine.argv(input, log);
+    let cpu0 = children_cpu_s();
     let t0 = Instant::now();
     let mut child = Command::new(&argv[0])
         .args(&argv[1..])
@@ -184,8 +187,8 @@ pub fn run_engine(
                     // Thermo steps count across runs (LIGGGHTS keeps the step counter).
                     let elapsed_s = t0.elapsed().as_secs_f64();
                     let done = step.min(steps_total);
-                    let eta_s = (done > 0)
-                        .then(|| elapsed_s * (steps_total - done) as f64 / done as f64);
+                    let eta_s =
+                        (done > 0).then(|| elapsed_s * (steps_total - done) as f64 / done as f64);
                     progress(EngineProgress {
                         pass,
                         passes,
@@ -217,12 +220,14 @@ pub fn run_engine(
     };
     let _ = err_lines.join();
     let wall_s = t0.elapsed().as_secs_f64();
+    let cpu_s = children_cpu_s() - cpu0;
     let command = argv.join(" ");
     // A terminal's Ctrl-C reaches the engine too (same process group): it may have died
     // before the flag was seen here.
     if stopped || stop.load(Ordering::SeqCst) {
         return Ok(EngineRun {
             wall_s,
+            cpu_s,
             stopped: true,
             command,
         });
@@ -240,9 +245,21 @@ pub fn run_engine(
     }
     Ok(EngineRun {
         wall_s,
+        cpu_s,
         stopped: false,
         command,
     })
+}
+
+/// User + system CPU time of the waited-for children of this process, s.
+fn children_cpu_s() -> f64 {
+    // SAFETY: getrusage fills the struct it is given.
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    if unsafe { libc::getrusage(libc::RUSAGE_CHILDREN, &mut u) } != 0 {
+        return 0.0;
+    }
+    let t = |v: libc::timeval| v.tv_sec as f64 + v.tv_usec as f64 * 1e-6;
+    t(u.ru_utime) + t(u.ru_stime)
 }
 
 /// The step of a thermo line of `thermo_style custom step atoms ke cpu` (four numbers, the
@@ -261,7 +278,10 @@ mod tests {
 
     #[test]
     fn thermo_lines_give_steps_and_mpirun_wraps_the_engine() {
-        assert_eq!(thermo_step("    1200        1  1.37e-05  0.81 "), Some(1200));
+        assert_eq!(
+            thermo_step("    1200        1  1.37e-05  0.81 "),
+            Some(1200)
+        );
         assert_eq!(thermo_step("Step Atoms KinEng CPU"), None);
         assert_eq!(thermo_step("Loop time of 0.8 on 1 procs"), None);
         let e = EngineCommand {

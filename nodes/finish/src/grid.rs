@@ -159,10 +159,8 @@ pub fn mesh_patch(
 ) -> Result<PatchMesh> {
     let h32: Vec<f32> = heights_um.iter().map(|&h| h as f32).collect();
     let view = RasterView::new(&h32, Shape::new(rows, cols))?;
-    let profile = EngineProfile::with_budget(
-        surfstream_mesher::DemEngine::Liggghts,
-        Some(max_triangles),
-    );
+    let profile =
+        EngineProfile::with_budget(surfstream_mesher::DemEngine::Liggghts, Some(max_triangles));
     let target = grid_sheet_for(view, &ScanPlacement::new(pitch_x_um, pitch_y_um), &profile)?;
     let map = NodeMap {
         stride: target.stride,

@@ -35,7 +35,10 @@ pub fn write_report(
         .collect();
     let curve = |k: &str| -> Vec<(f64, f64)> {
         let a = &summary[k];
-        let mr = a["material_ratio_pct"].as_array().cloned().unwrap_or_default();
+        let mr = a["material_ratio_pct"]
+            .as_array()
+            .cloned()
+            .unwrap_or_default();
         let h = a["height_um"].as_array().cloned().unwrap_or_default();
         mr.iter()
             .zip(&h)
@@ -56,7 +59,9 @@ pub fn write_report(
         "height (um)",
     );
     let mut rows_html = String::new();
-    for key in ["Sa", "Sq", "Sz", "Sp", "Sv", "Sk", "Spk", "Svk", "Ssk", "Sku"] {
+    for key in [
+        "Sa", "Sq", "Sz", "Sp", "Sv", "Sk", "Spk", "Svk", "Ssk", "Sku",
+    ] {
         let b = summary["before"][key].as_f64().unwrap_or(f64::NAN);
         let a = summary["after"][key].as_f64().unwrap_or(f64::NAN);
         let paper = |t: &[(&str, f64)]| {
@@ -98,14 +103,16 @@ SIM(model vs ideal wear maps) {sim_ideal}.</p>\
         summary["volume_check"]["relative_error"].as_f64().unwrap_or(f64::NAN),
         (cols * 2).clamp(200, 420),
     );
-    let mut f = std::fs::File::create(path)
-        .with_context(|| format!("{}: cannot write", path.display()))?;
+    let mut f =
+        std::fs::File::create(path).with_context(|| format!("{}: cannot write", path.display()))?;
     f.write_all(html.as_bytes())
         .with_context(|| format!("{}: write failed", path.display()))
 }
 
 fn html_escape(s: &str) -> String {
-    s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;")
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
 }
 
 /// A grey-to-orange ramp of `z` (0 .. max) as PNG bytes.
@@ -113,7 +120,11 @@ fn heat_png(z: &[f64], rows: usize, cols: usize) -> Result<Vec<u8>> {
     let max = z.iter().cloned().fold(0.0, f64::max);
     let mut px = Vec::with_capacity(rows * cols * 3);
     for &v in z {
-        let t = if max > 0.0 { (v / max).clamp(0.0, 1.0) } else { 0.0 };
+        let t = if max > 0.0 {
+            (v / max).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
         // Dark blue -> orange -> pale yellow.
         let r = (30.0 + 225.0 * t.sqrt()) as u8;
         let g = (30.0 + 200.0 * t) as u8;
@@ -132,7 +143,10 @@ fn heat_png(z: &[f64], rows: usize, cols: usize) -> Result<Vec<u8>> {
 }
 
 /// A small line chart of several series.
-fn svg_lines(series: &[(&Vec<(f64, f64)>, &str, &str)], xlabel: &str, ylabel: &str) -> String {
+/// A named series: points, colour, label.
+type Series<'a> = (&'a Vec<(f64, f64)>, &'a str, &'a str);
+
+fn svg_lines(series: &[Series<'_>], xlabel: &str, ylabel: &str) -> String {
     let (w, h, m) = (420.0, 260.0, 40.0);
     let pts = series.iter().flat_map(|(s, _, _)| s.iter());
     let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);

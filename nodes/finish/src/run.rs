@@ -9,9 +9,7 @@ use std::time::Instant;
 use anyhow::{anyhow, bail, Context, Result};
 use serde::Serialize;
 use serde_json::{json, Value};
-use surfstream_core::metrology::{
-    functional_params, level_plane, params, sim, AbbottCurve, Grid,
-};
+use surfstream_core::metrology::{functional_params, level_plane, params, sim, AbbottCurve, Grid};
 
 use crate::contacts::{archard_from_dump, ContactSummary};
 use crate::engine::{run_engine, EngineCommand, EngineProgress};
@@ -157,6 +155,7 @@ pub struct Progress {
     pub cycle: usize,
     pub cycles: usize,
     pub engine: EngineProgress,
+    /// Simulated time of this segment so far, s.
     pub simulated_s: f64,
     pub segment_simulated_s: f64,
 }
@@ -174,8 +173,7 @@ impl Progress {
             self.simulated_s * 1e3,
             self.segment_simulated_s * 1e3,
             e.elapsed_s,
-            e.eta_s
-                .map_or("?".to_string(), |s| format!("{s:.0} s")),
+            e.eta_s.map_or("?".to_string(), |s| format!("{s:.0} s")),
         )
     }
 }
@@ -256,6 +254,7 @@ pub struct SegmentResult {
     pub contacts: ContactSummary,
     pub segment: Segment,
     pub engine_s: f64,
+    pub engine_cpu_s: f64,
     pub stopped: bool,
     pub command: String,
     pub triangles: usize,
@@ -332,11 +331,17 @@ pub fn run_segment(
     let aim = AimArea {
         x_m: [
             to_m(aim_window.col0 as f64 * pitch_x_um, 0),
-            to_m((aim_window.col0 + aim_window.cols - 1) as f64 * pitch_x_um, 0),
+            to_m(
+                (aim_window.col0 + aim_window.cols - 1) as f64 * pitch_x_um,
+                0,
+            ),
         ],
         y_m: [
             to_m(aim_window.row0 as f64 * pitch_y_um, 1),
-            to_m((aim_window.row0 + aim_window.rows - 1) as f64 * pitch_y_um, 1),
+            to_m(
+                (aim_window.row0 + aim_window.rows - 1) as f64 * pitch_y_um,
+                1,
+            ),
         ],
         top_m: hi[2],
     };
@@ -403,6 +408,7 @@ pub fn run_segment(
             contacts: ContactSummary::default(),
             segment: seg,
             engine_s: run.wall_s,
+            engine_cpu_s: run.cpu_s,
             stopped: true,
             command: run.command,
             triangles,
@@ -438,6 +444,7 @@ pub fn run_segment(
         contacts: contact_summary,
         segment: seg,
         engine_s: run.wall_s,
+        engine_cpu_s: run.cpu_s,
         stopped: false,
         command: run.command,
         triangles,
@@ -456,14 +463,20 @@ pub fn timestep_s(media: &Media, workpiece: &Workpiece, action: &Action) -> f64 
 fn sa_after(patch: &Patch, h: &[f64], wear: &[f64], s: f64) -> Result<f64> {
     let z: Vec<f64> = h.iter().zip(wear).map(|(a, w)| a - s * w).collect();
     let c = patch.cropped(&z);
-    let (_, p) = surface_params(&c, patch.crop.rows, patch.crop.cols, patch.pitch_x_um, patch.pitch_y_um)?;
+    let (_, p) = surface_params(
+        &c,
+        patch.crop.rows,
+        patch.crop.cols,
+        patch.pitch_x_um,
+        patch.pitch_y_um,
+    )?;
     Ok(p.sa)
 }
 
 /// The scale `s` such that the crop of `h - s * wear` has Sa = `target`: the first crossing
-/// on a scan of s up to the scale that wears the deepest point by twice the crop's Sz, then
+/// on a scan of s up to the scale that wears the deepest point by the crop's Sq, then
 /// bisection. Returns the scale and whether the target was reached (else the scale of the
-/// smallest Sa).
+/// smallest Sa within that cap).
 fn fit_scale(patch: &Patch, h: &[f64], wear: &[f64], target: f64) -> Result<(f64, bool)> {
     let crop_wear = patch.cropped(wear);
     let max_w = crop_wear.iter().cloned().fold(0.0, f64::max);
@@ -471,11 +484,19 @@ fn fit_scale(patch: &Patch, h: &[f64], wear: &[f64], target: f64) -> Result<(f64
         return Ok((0.0, false));
     }
     let c = patch.cropped(h);
-    let (_, p0) = surface_params(&c, patch.crop.rows, patch.crop.cols, patch.pitch_x_um, patch.pitch_y_um)?;
+    let (_, p0) = surface_params(
+        &c,
+        patch.crop.rows,
+        patch.crop.cols,
+        patch.pitch_x_um,
+        patch.pitch_y_um,
+    )?;
     if p0.sa <= target {
         return Ok((0.0, true));
     }
-    let s_max = 2.0 * p0.sz / max_w;
+    // No point is worn by more than the crop's Sq in one cycle: deeper would cut a touched
+    // peak below untouched neighbours, which only the next DEM segment can tell.
+    let s_max = p0.sq / max_w;
     let n = 64;
     let mut prev = 0.0;
     let mut best = (0.0, p0.sa);
@@ -523,13 +544,22 @@ pub fn finish(
         bail!("--cycles 0: expected at least one cycle");
     }
     if !(opts.time_budget_s.is_finite() && opts.time_budget_s > 0.0) {
-        bail!("--time-budget-s {}: expected seconds > 0", opts.time_budget_s);
+        bail!(
+            "--time-budget-s {}: expected seconds > 0",
+            opts.time_budget_s
+        );
     }
     if !(opts.k_finnie_per_pa.is_finite() && opts.k_finnie_per_pa > 0.0) {
-        bail!("--k-finnie {}: expected a number > 0 (1/Pa)", opts.k_finnie_per_pa);
+        bail!(
+            "--k-finnie {}: expected a number > 0 (1/Pa)",
+            opts.k_finnie_per_pa
+        );
     }
     if !(opts.process_time_s.is_finite() && opts.process_time_s > 0.0) {
-        bail!("--process-time-s {}: expected seconds > 0", opts.process_time_s);
+        bail!(
+            "--process-time-s {}: expected seconds > 0",
+            opts.process_time_s
+        );
     }
     opts.media.validate()?;
     let engine = EngineCommand::locate(opts.ranks, opts.hostfile.clone())?;
@@ -622,13 +652,22 @@ pub fn finish(
             let w = patch.in_model;
             let area = crop(&m.heights_um, m.cols, w);
             let inner = crop(&area, w.cols, patch.crop);
-            Some(surface_params(&inner, patch.crop.rows, patch.crop.cols, patch.pitch_x_um, patch.pitch_y_um)?)
+            Some(surface_params(
+                &inner,
+                patch.crop.rows,
+                patch.crop.cols,
+                patch.pitch_x_um,
+                patch.pitch_y_um,
+            )?)
         }
         _ => None,
     };
     let target_sa = match &opts.calibrate {
         None => None,
-        Some(Calibration::Sa { before_um, after_um }) => {
+        Some(Calibration::Sa {
+            before_um,
+            after_um,
+        }) => {
             if !(after_um.is_finite() && *after_um > 0.0) {
                 bail!("--calibrate: Sa after {after_um}: expected um > 0");
             }
@@ -646,14 +685,22 @@ pub fn finish(
     let mut archard_total = vec![0.0; n];
     let mut cycles_json = Vec::new();
     let mut engine_s = 0.0;
+    let mut engine_cpu_s = 0.0;
+    let mut cost = opts.cost_per_triangle_step_s;
     let mut partial = false;
     let mut first_finnie_map: Option<Vec<f64>> = None;
     let mut worst_volume_error: f64 = 0.0;
     let mut sim_time_total = 0.0;
     for c in 1..=opts.cycles {
         let dir = out_dir.join(format!("cycle_{c:02}"));
+        // The budget left, shared by the segments left, at the cost measured so far (the
+        // machine may be busier than the planning estimate assumes).
+        let left = segments - (c - 1);
         let seg_plan = SegmentPlan {
             seed: opts.seed.wrapping_add(c as u64 - 1),
+            engine_budget_s: ((opts.time_budget_s - engine_s) / left as f64)
+                .max(0.02 * opts.time_budget_s),
+            cost_per_triangle_step_s: cost,
             ..plan.clone_with_engine(&engine)
         };
         let cycles = opts.cycles;
@@ -676,7 +723,7 @@ pub fn finish(
                         cycle: c,
                         cycles,
                         engine: p,
-                        simulated_s: sim_time_total + p.steps_done as f64 * seg.timestep_s,
+                        simulated_s: p.steps_done as f64 * seg.timestep_s,
                         segment_simulated_s: seg.simulated_time_s(),
                     }
                     .line());
@@ -684,9 +731,17 @@ pub fn finish(
             },
         )?;
         engine_s += r.engine_s;
+        engine_cpu_s += r.engine_cpu_s;
+        let steps = r.triangles as f64 * r.segment.total_steps() as f64;
+        if !r.stopped && steps > 0.0 {
+            cost = r.engine_s / steps;
+        }
         if r.stopped {
             partial = true;
-            say(&format!("finish: stopped during cycle {c}; keeping {} completed cycle(s)", c - 1));
+            say(&format!(
+                "finish: stopped during cycle {c}; keeping {} completed cycle(s)",
+                c - 1
+            ));
             break;
         }
         let sim_s = r.segment.simulated_time_s();
@@ -708,7 +763,13 @@ pub fn finish(
         add_scaled(&mut finnie_total, &r.finnie_um, scale);
         add_scaled(&mut archard_total, &r.archard_um, scale);
         add_scaled(&mut h, &r.finnie_um, -scale);
-        let (_, after_c) = surface_params(&patch.cropped(&h), patch.crop.rows, patch.crop.cols, patch.pitch_x_um, patch.pitch_y_um)?;
+        let (_, after_c) = surface_params(
+            &patch.cropped(&h),
+            patch.crop.rows,
+            patch.crop.cols,
+            patch.pitch_x_um,
+            patch.pitch_y_um,
+        )?;
         worst_volume_error = worst_volume_error.max(r.volume_relative_error().abs());
         say(&format!(
             "finish: cycle {c}/{}: {} passes, {:.3} ms simulated in {:.1} s; wear x {:.3e}{}; Sa {:.3} um (volume check {:+.2e})",
@@ -732,7 +793,9 @@ pub fn finish(
             "timestep_s": r.segment.timestep_s,
             "simulated_s": sim_s,
             "engine_s": r.engine_s,
+            "engine_cpu_s": r.engine_cpu_s,
             "cost_per_triangle_step_s": r.engine_s / (r.triangles as f64 * r.segment.total_steps() as f64),
+            "cpu_per_triangle_step_s": r.engine_cpu_s / (r.triangles as f64 * r.segment.total_steps() as f64),
             "acceleration_factor": acceleration,
             "wear_scale": scale,
             "target_reached": reached,
@@ -756,7 +819,11 @@ pub fn finish(
         if (ideal.rows, ideal.cols) != (model.rows, model.cols) {
             bail!(
                 "{}: the ideal model is {} x {}; the model is {} x {}",
-                ideal.source, ideal.rows, ideal.cols, model.rows, model.cols
+                ideal.source,
+                ideal.rows,
+                ideal.cols,
+                model.rows,
+                model.cols
             );
         }
         let w = patch.in_model;
@@ -766,7 +833,12 @@ pub fn finish(
         let dir = out_dir.join("ideal");
         let mut last_say = Instant::now();
         let r = run_segment(
-            &SegmentPlan { seed: opts.seed, ..plan.clone_with_engine(&engine) },
+            &SegmentPlan {
+                seed: opts.seed,
+                engine_budget_s: (opts.time_budget_s - engine_s).max(0.02 * opts.time_budget_s),
+                cost_per_triangle_step_s: cost,
+                ..plan.clone_with_engine(&engine)
+            },
             &levelled,
             w.rows,
             w.cols,
@@ -791,13 +863,16 @@ pub fn finish(
             },
         )?;
         engine_s += r.engine_s;
+        engine_cpu_s += r.engine_cpu_s;
         if r.stopped {
             partial = true;
         } else {
             let a = patch.cropped(hifi_map);
             let b = patch.cropped(&r.finnie_um);
             let s = sim(&a, &b).unwrap_or(f64::NAN);
-            say(&format!("finish: SIM(wear map of the model, wear map of the ideal model) = {s:.3}"));
+            say(&format!(
+                "finish: SIM(wear map of the model, wear map of the ideal model) = {s:.3}"
+            ));
             ideal_json = json!({
                 "source": ideal.source,
                 "dir": "ideal",
@@ -814,7 +889,8 @@ pub fn finish(
     let finnie_crop = patch.cropped(&finnie_total);
     let archard_crop = patch.cropped(&archard_total);
     let worn_raw = patch.cropped(&h);
-    let (worn_crop, after) = surface_params(&worn_raw, rows, cols, patch.pitch_x_um, patch.pitch_y_um)?;
+    let (worn_crop, after) =
+        surface_params(&worn_raw, rows, cols, patch.pitch_x_um, patch.pitch_y_um)?;
     let write = |name: &str, z: &[f64]| -> Result<()> {
         surfstream_io::npy::write_npy_f64(out_dir.join(name), z, rows, cols)
             .map_err(|e| anyhow!("{}: {e}", out_dir.join(name).display()))
@@ -838,7 +914,9 @@ pub fn finish(
     };
     surfstream_io::formats::write_surface(&out_dir.join(outputs::WORN_X3P), &x3p)?;
 
-    let sim_finnie_archard = sim(&finnie_crop, &archard_crop).ok().filter(|s| s.is_finite());
+    let sim_finnie_archard = sim(&finnie_crop, &archard_crop)
+        .ok()
+        .filter(|s| s.is_finite());
     let sim_measured = measured_after
         .as_ref()
         .and_then(|(m, _)| sim(&worn_crop, m).ok())
@@ -915,6 +993,7 @@ pub fn finish(
         "cycles": cycles_json,
         "timings": {
             "engine_s": engine_s,
+            "engine_cpu_s": engine_cpu_s,
             "total_s": total_s,
             "surfstream_overhead_s": total_s - engine_s,
             "overhead_share_of_engine": if engine_s > 0.0 { json!((total_s - engine_s) / engine_s) } else { Value::Null },

@@ -79,8 +79,8 @@ pub struct AimArea {
 
 /// The passes of a segment: directions uniform, aim points uniform over `aim`; each sphere
 /// starts `gap` above the highest point, upstream of its aim point by the distance it flies
-/// before landing there. Returns the passes and the steps each needs (landing and crossing
-/// half the patch's diagonal plus the guard band).
+/// before landing there. Returns the passes and the steps each needs (landing and sliding
+/// over a quarter of the patch's diagonal).
 pub fn plan_passes(
     count: usize,
     seed: u64,
@@ -113,9 +113,13 @@ pub fn plan_passes(
             velocity_m_s: [v_t * dx, v_t * dy, -v_n],
         });
     }
+    // A pass is the impact and a slide over a quarter of the patch's diagonal (at least
+    // 20 um): the wear of a medium is in its impacts and the bounces that follow; short passes
+    // spread more impacts over the patch for the same engine time.
     let w = aim.x_m[1] - aim.x_m[0];
     let h = aim.y_m[1] - aim.y_m[0];
-    let cross_m = 0.5 * (w * w + h * h).sqrt() + guard_m;
+    let _ = guard_m;
+    let cross_m = (0.25 * (w * w + h * h).sqrt()).max(2e-5);
     let pass_s = flight_s + if v_t > 0.0 { cross_m / v_t } else { 1e-5 };
     let steps = ((pass_s / timestep_s).ceil() as usize).max(10);
     (passes, steps)
@@ -250,7 +254,10 @@ mod tests {
             assert!(v[2] < 0.0);
         }
         // Same seed, same passes.
-        assert_eq!(plan_passes(7, 3, aim, &media, &action, 1e-7, 2e-5).0, passes);
+        assert_eq!(
+            plan_passes(7, 3, aim, &media, &action, 1e-7, 2e-5).0,
+            passes
+        );
         let seg = Segment {
             mesh_bounds_m: [[0.0, 2.1e-4], [0.0, 2.1e-4], [0.0, 5e-6]],
             triangles: 800,

@@ -20,16 +20,19 @@ pub struct VtkMesh {
 
 impl VtkMesh {
     pub fn field(&self, name: &str) -> Result<&[f64]> {
-        self.cell_fields.get(name).map(Vec::as_slice).ok_or_else(|| {
-            anyhow!(
-                "VTK mesh has no cell field '{name}' (fields: {})",
-                self.cell_fields
-                    .keys()
-                    .cloned()
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            )
-        })
+        self.cell_fields
+            .get(name)
+            .map(Vec::as_slice)
+            .ok_or_else(|| {
+                anyhow!(
+                    "VTK mesh has no cell field '{name}' (fields: {})",
+                    self.cell_fields
+                        .keys()
+                        .cloned()
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                )
+            })
     }
 }
 
@@ -187,12 +190,16 @@ impl<'a> Tokens<'a> {
         self.t.get(self.i).copied()
     }
     fn usize(&mut self) -> Result<usize> {
-        let w = self.next().ok_or_else(|| anyhow!("unexpected end of file"))?;
+        let w = self
+            .next()
+            .ok_or_else(|| anyhow!("unexpected end of file"))?;
         w.parse()
             .map_err(|_| anyhow!("expected a count, found {w:?}"))
     }
     fn f64(&mut self) -> Result<f64> {
-        let w = self.next().ok_or_else(|| anyhow!("unexpected end of file"))?;
+        let w = self
+            .next()
+            .ok_or_else(|| anyhow!("unexpected end of file"))?;
         w.parse()
             .map_err(|_| anyhow!("expected a number, found {w:?}"))
     }
