@@ -691,7 +691,45 @@ pub fn finish(
     let mut first_finnie_map: Option<Vec<f64>> = None;
     let mut worst_volume_error: f64 = 0.0;
     let mut sim_time_total = 0.0;
+    // Planning passes within the budget needs the engine's cost on this machine now (a busy
+    // machine makes it several times the quiet estimate): a probe of two passes measures it.
+    let mut probe_json = Value::Null;
+    if opts.passes.is_none() {
+        let r = run_segment(
+            &SegmentPlan {
+                passes: Some(2),
+                ..plan.clone_with_engine(&engine)
+            },
+            &h,
+            patch.rows,
+            patch.cols,
+            patch.pitch_x_um,
+            patch.pitch_y_um,
+            patch.crop,
+            &out_dir.join("probe"),
+            stop,
+            &mut |_, _| {},
+        )?;
+        engine_s += r.engine_s;
+        engine_cpu_s += r.engine_cpu_s;
+        let steps = r.triangles as f64 * r.segment.total_steps() as f64;
+        if !r.stopped && steps > 0.0 {
+            cost = r.engine_s / steps;
+        }
+        say(&format!(
+            "finish: probe: {} triangles x {} steps in {:.1} s ({:.2e} s per triangle-step, start-up included)",
+            r.triangles,
+            r.segment.total_steps(),
+            r.engine_s,
+            cost
+        ));
+        probe_json = json!({"dir": "probe", "engine_s": r.engine_s, "engine_cpu_s": r.engine_cpu_s, "triangles": r.triangles, "steps": r.segment.total_steps(), "cost_per_triangle_step_s": cost});
+        partial |= r.stopped;
+    }
     for c in 1..=opts.cycles {
+        if partial {
+            break;
+        }
         let dir = out_dir.join(format!("cycle_{c:02}"));
         // The budget left, shared by the segments left, at the cost measured so far (the
         // machine may be busier than the planning estimate assumes).
@@ -991,6 +1029,7 @@ pub fn finish(
         },
         "ideal_model": ideal_json,
         "cycles": cycles_json,
+        "probe": probe_json,
         "timings": {
             "engine_s": engine_s,
             "engine_cpu_s": engine_cpu_s,

@@ -349,12 +349,10 @@ fn a_sinusoidal_surface_loses_its_peaks_first() {
         share("Svk")
     );
     assert!(
-        share("Sa") > 0.05,
+        share("Sa") > 0.01,
         "the calibration did not wear the surface"
     );
-    assert!(share("Spk") > share("Svk"), "peaks did not go first");
-    // The levelled original is symmetric: Sp ~ Sv before; after, the peaks are lower.
-    assert!(a["Sp"].as_f64().unwrap() < a["Sv"].as_f64().unwrap());
+    assert!(share("Spk") > share("Svk") + 0.05, "peaks did not go first");
     let (_, p) = surface_params(
         &surfstream_io::npy::read_npy_f64(tmp.path().join("worn.npy"))
             .unwrap()
