@@ -149,6 +149,9 @@ pub struct NodeMap {
     pub offset_um: [f64; 3],
 }
 
+/// Shift of the mesh in x and y, m (see [`mesh_patch`]).
+pub const MESH_SHIFT_M: f64 = 1e-4;
+
 pub fn mesh_patch(
     heights_um: &[f64],
     rows: usize,
@@ -161,7 +164,16 @@ pub fn mesh_patch(
     let view = RasterView::new(&h32, Shape::new(rows, cols))?;
     let profile =
         EngineProfile::with_budget(surfstream_mesher::DemEngine::Liggghts, Some(max_triangles));
-    let target = grid_sheet_for(view, &ScanPlacement::new(pitch_x_um, pitch_y_um), &profile)?;
+    let mut target = grid_sheet_for(view, &ScanPlacement::new(pitch_x_um, pitch_y_um), &profile)?;
+    // LIGGGHTS refuses a mesh whose coordinates span less than 1e-4 m ("dimensions too
+    // small", a round-off guard over all of x, y, z): a sub-100-um patch recentred on the
+    // origin would. Moving it by +100 um in x and y makes the span at least 100 um.
+    for v in &mut target.mesh.vertices {
+        v[0] += MESH_SHIFT_M;
+        v[1] += MESH_SHIFT_M;
+    }
+    target.mesh.offset_um[0] -= MESH_SHIFT_M * 1e6;
+    target.mesh.offset_um[1] -= MESH_SHIFT_M * 1e6;
     let map = NodeMap {
         stride: target.stride,
         node_rows: target.grid.rows,
