@@ -249,6 +249,8 @@ fn a_flat_surface_wears_without_pattern() {
         passes: Some(60),
         max_triangles: 6_000,
         impact_angle_deg: 30.0,
+        // A constant that wears the flat by a fraction of a micrometre in the process time.
+        k_finnie_per_pa: 1e-18,
         ..Default::default()
     };
     let stop = AtomicBool::new(false);
