@@ -9,6 +9,7 @@ cd "$(dirname "${BASH_SOURCE[0]}")/.."
 # browser that renders report.html (tests/report.rs).
 missing=()
 command -v liggghts >/dev/null || missing+=(liggghts)
+command -v mpirun >/dev/null || missing+=(openmpi-bin)
 command -v yade >/dev/null || missing+=(yade)
 [ -x /usr/bin/chromium ] || missing+=(chromium)
 if [ ${#missing[@]} -gt 0 ]; then

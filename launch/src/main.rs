@@ -132,6 +132,9 @@ enum Command {
     Separate(verbs::separate::SeparateArgs),
     /// Mesh one height map with a bounded vertical error and write STL.
     Mesh(verbs::mesh::MeshArgs),
+    /// Finishing simulation on LIGGGHTS: a patch of FILE (or of a run's out dir) worn by
+    /// media over cycles; wear maps, worn surface, finish.json, finish.html.
+    Finish(verbs::finish::FinishArgs),
 }
 
 fn main() -> ExitCode {
@@ -255,6 +258,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             verbs::one_file(&a.file, "mesh")?;
             done(verbs::mesh::run(a))
         }
+        Command::Finish(a) => done(verbs::finish::run(a)),
     }
 }
 

@@ -34,6 +34,10 @@ const KINDS: &[(NodePorts, Build)] = &[
         surfstream_recorder::ports::PORTS,
         surfstream_recorder::node::build,
     ),
+    (
+        surfstream_finish::ports::PORTS,
+        surfstream_finish::node::build,
+    ),
 ];
 
 /// The node kinds a graph run by this CLI may use.
@@ -65,7 +69,7 @@ mod tests {
         // The order is the one graph-file errors list ("expected one of ...").
         assert_eq!(
             registry().kind_names(),
-            ["replay", "matcher", "fusion", "wavelet", "mesher", "recorder"]
+            ["replay", "matcher", "fusion", "wavelet", "mesher", "recorder", "finish"]
         );
     }
 }

@@ -2,6 +2,7 @@
 //! verbs (its clap arguments and its `run`), so main.rs only dispatches. The checks every
 //! file verb shares (one input file, the `-o/--out` convention) live here.
 
+pub mod finish;
 pub mod mesh;
 pub mod metrology;
 pub mod separate;

@@ -1,0 +1,281 @@
+//! `surfstream finish FILE|OUTDIR -o OUT`: the finishing simulation on LIGGGHTS (the
+//! surfstream-finish crate does the work; this is its command line).
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+use anyhow::{anyhow, bail, Context, Result};
+use clap::Args;
+use surfstream_finish::{Calibration, FinishOptions, Model};
+
+#[derive(Args)]
+pub struct FinishArgs {
+    /// A height map (any format the readers know), or a run's out dir (its panorama is the
+    /// model and its datum the ideal model).
+    pub input: PathBuf,
+    /// Output folder (created): wear.npy, worn.npy/.x3p, finish.json, finish.html, and per
+    /// cycle the LIGGGHTS input script, STL and log.
+    #[arg(short = 'o', long, value_name = "OUT")]
+    pub out: PathBuf,
+    /// Patch size, um: W or W,H (default: a centred square meshed at full resolution within
+    /// --max-triangles).
+    #[arg(long, value_name = "W[,H]")]
+    pub patch_um: Option<String>,
+    /// Guard band around the patch, meshed and cropped, um (default 15 % of the patch).
+    #[arg(long)]
+    pub guard_um: Option<f64>,
+    /// Engine wall-time budget of the whole job, s (sets the number of media passes).
+    #[arg(long, default_value_t = 300.0)]
+    pub time_budget_s: f64,
+    /// DEM segments; the surface is worn and re-meshed between them.
+    #[arg(long, default_value_t = 4)]
+    pub cycles: usize,
+    /// Media passes per segment (default: as many as the budget allows).
+    #[arg(long)]
+    pub passes: Option<usize>,
+    #[arg(long)]
+    pub media_diameter_mm: Option<f64>,
+    #[arg(long)]
+    pub media_density_kg_m3: Option<f64>,
+    #[arg(long)]
+    pub media_modulus_pa: Option<f64>,
+    /// Relative media velocity, m/s (default: from the barrel kinematics).
+    #[arg(long)]
+    pub media_velocity_m_s: Option<f64>,
+    /// Media pressure on the part, Pa (default: from the barrel kinematics).
+    #[arg(long)]
+    pub pressure_pa: Option<f64>,
+    /// Angle of the media's velocity to the part's plane, degrees.
+    #[arg(long)]
+    pub impact_angle_deg: Option<f64>,
+    /// Turret revolution, r/min (the paper: 300).
+    #[arg(long)]
+    pub revolution_rpm: Option<f64>,
+    /// Barrel counter-rotation, r/min (the paper: 300).
+    #[arg(long)]
+    pub rotation_rpm: Option<f64>,
+    /// Finnie's constant in the DEM, 1/Pa.
+    #[arg(long)]
+    pub k_finnie: Option<f64>,
+    /// Process time the run stands for, s (the paper: 300).
+    #[arg(long)]
+    pub process_time_s: Option<f64>,
+    /// Fit the wear coefficient: BEFORE,AFTER Sa in um (the paper: 1.272,0.565; the model's
+    /// Sa is reduced by the same ratio), or a measured after-finish scan of the same area.
+    #[arg(long, value_name = "SA_BEFORE,SA_AFTER | FILE")]
+    pub calibrate: Option<String>,
+    /// Skip the ideal model's run (the paper's comparison) for an out dir with a datum.
+    #[arg(long)]
+    pub no_ideal: bool,
+    /// The ideal model for a height-map input (a file on the same grid).
+    #[arg(long)]
+    pub ideal: Option<PathBuf>,
+    /// Triangles of the patch's mesh.
+    #[arg(long)]
+    pub max_triangles: Option<usize>,
+    /// MPI ranks (mpirun -np N liggghts).
+    #[arg(long, default_value_t = 1)]
+    pub ranks: usize,
+    /// mpirun hostfile for a cluster.
+    #[arg(long)]
+    pub hostfile: Option<PathBuf>,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Sample spacing, um, for files without a lateral calibration (.npy).
+    #[arg(long)]
+    pub pitch_um: Option<f64>,
+}
+
+fn read_model(path: &Path, pitch_um: Option<f64>, pitch_like: Option<(f64, f64)>) -> Result<Model> {
+    let s = surfstream_io::formats::read_surface(path)?;
+    for w in &s.metadata.warnings {
+        eprintln!("{}: warning: {w}", path.display());
+    }
+    let mut m = Model::from_surface(s.clone(), path.display().to_string());
+    match (pitch_um, pitch_like) {
+        (Some(p), _) => {
+            if !(p.is_finite() && p > 0.0) {
+                bail!("--pitch-um {p}: expected a finite number > 0");
+            }
+            m.pitch_x_um = p;
+            m.pitch_y_um = p;
+        }
+        (None, Some((x, y))) if !s.metadata.pitch_known => {
+            m.pitch_x_um = x;
+            m.pitch_y_um = y;
+        }
+        (None, _) if !s.metadata.pitch_known => eprintln!(
+            "finish: warning: {} carries no lateral calibration; assuming a pitch of {} um (give --pitch-um)",
+            path.display(),
+            m.pitch_x_um
+        ),
+        _ => {}
+    }
+    Ok(m)
+}
+
+/// The model and the ideal model of the input: a file, or a run's out dir.
+fn inputs(a: &FinishArgs) -> Result<(Model, Option<Model>)> {
+    if a.input.is_dir() {
+        let dir = &a.input;
+        let pano = ["panorama.x3p", "panorama.npy", "pooled.npy"]
+            .iter()
+            .map(|f| dir.join(f))
+            .find(|p| p.is_file())
+            .ok_or_else(|| {
+                anyhow!(
+                    "{}: no panorama.x3p, panorama.npy or pooled.npy: give a run's out dir or a height-map file",
+                    dir.display()
+                )
+            })?;
+        let model = read_model(&pano, a.pitch_um, None)?;
+        let datum = dir.join("datum.npy");
+        let ideal = if a.no_ideal || !datum.is_file() {
+            None
+        } else {
+            let d = read_model(&datum, None, Some((model.pitch_x_um, model.pitch_y_um)))?;
+            if (d.rows, d.cols) == (model.rows, model.cols) {
+                Some(d)
+            } else {
+                eprintln!(
+                    "finish: warning: {} is {} x {}, the panorama {} x {}: no ideal-model run",
+                    datum.display(),
+                    d.rows,
+                    d.cols,
+                    model.rows,
+                    model.cols
+                );
+                None
+            }
+        };
+        return Ok((model, ideal));
+    }
+    super::one_file(&a.input, "finish")?;
+    let model = read_model(&a.input, a.pitch_um, None)?;
+    let ideal = match &a.ideal {
+        Some(p) if !a.no_ideal => Some(read_model(
+            p,
+            None,
+            Some((model.pitch_x_um, model.pitch_y_um)),
+        )?),
+        _ => None,
+    };
+    Ok((model, ideal))
+}
+
+fn parse_pair(s: &str, what: &str) -> Result<Vec<f64>> {
+    s.split(',')
+        .map(|v| {
+            v.trim()
+                .parse::<f64>()
+                .map_err(|_| anyhow!("{what} {s:?}: expected numbers separated by a comma"))
+        })
+        .collect()
+}
+
+pub fn run(a: FinishArgs) -> Result<()> {
+    let (model, ideal) = inputs(&a)?;
+    let mut o = FinishOptions {
+        time_budget_s: a.time_budget_s,
+        cycles: a.cycles,
+        passes: a.passes,
+        guard_um: a.guard_um,
+        ranks: a.ranks,
+        hostfile: a.hostfile.clone(),
+        seed: a.seed,
+        media_velocity_m_s: a.media_velocity_m_s,
+        pressure_pa: a.pressure_pa,
+        ideal,
+        ..Default::default()
+    };
+    if let Some(p) = &a.patch_um {
+        let v = parse_pair(p, "--patch-um")?;
+        o.patch_um = Some(match v.as_slice() {
+            [s] => (*s, *s),
+            [w, h] => (*w, *h),
+            _ => bail!("--patch-um {p:?}: expected W or W,H in um"),
+        });
+    }
+    if let Some(d) = a.media_diameter_mm {
+        o.media.diameter_mm = d;
+    }
+    if let Some(d) = a.media_density_kg_m3 {
+        o.media.density_kg_m3 = d;
+    }
+    if let Some(e) = a.media_modulus_pa {
+        o.media.youngs_modulus_pa = e;
+    }
+    if let Some(x) = a.impact_angle_deg {
+        o.impact_angle_deg = x;
+    }
+    if let Some(x) = a.revolution_rpm {
+        o.machine.revolution_rpm = x;
+    }
+    if let Some(x) = a.rotation_rpm {
+        o.machine.counter_rotation_rpm = x;
+    }
+    if let Some(k) = a.k_finnie {
+        o.k_finnie_per_pa = k;
+    }
+    if let Some(t) = a.process_time_s {
+        o.process_time_s = t;
+    }
+    if let Some(t) = a.max_triangles {
+        o.max_triangles = t;
+    }
+    if let Some(c) = &a.calibrate {
+        let as_file = PathBuf::from(c);
+        o.calibrate = Some(if as_file.is_file() {
+            Calibration::Measured(read_model(
+                &as_file,
+                None,
+                Some((model.pitch_x_um, model.pitch_y_um)),
+            )?)
+        } else {
+            match parse_pair(c, "--calibrate")?.as_slice() {
+                [b, af] => Calibration::Sa {
+                    before_um: Some(*b),
+                    after_um: *af,
+                },
+                [af] => Calibration::Sa {
+                    before_um: None,
+                    after_um: *af,
+                },
+                _ => bail!("--calibrate {c:?}: expected SA_BEFORE,SA_AFTER (um) or a file"),
+            }
+        });
+    }
+    // Ctrl-C stops the engine; the completed cycles are kept (finish.json says partial).
+    let stop = Arc::new(AtomicBool::new(false));
+    let s = stop.clone();
+    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        signal_hook::flag::register(sig, s.clone()).context("cannot install the Ctrl-C handler")?;
+    }
+    let summary = surfstream_finish::finish(&model, &o, &a.out, &stop, &mut |l| eprintln!("{l}"))?;
+    let b = &summary["before"];
+    let af = &summary["after"];
+    println!(
+        "finish: {} cycle(s){}; Sa {:.3} -> {:.3} um, Sq {:.3} -> {:.3}, Sz {:.3} -> {:.3}, Spk {:.3} -> {:.3}, Svk {:.3} -> {:.3}; \
+         engine {:.1} s, surfstream {:.1} s; {}",
+        summary["cycles_completed"],
+        if summary["partial"].as_bool() == Some(true) { " (partial: stopped)" } else { "" },
+        b["Sa"].as_f64().unwrap_or(f64::NAN),
+        af["Sa"].as_f64().unwrap_or(f64::NAN),
+        b["Sq"].as_f64().unwrap_or(f64::NAN),
+        af["Sq"].as_f64().unwrap_or(f64::NAN),
+        b["Sz"].as_f64().unwrap_or(f64::NAN),
+        af["Sz"].as_f64().unwrap_or(f64::NAN),
+        b["Spk"].as_f64().unwrap_or(f64::NAN),
+        af["Spk"].as_f64().unwrap_or(f64::NAN),
+        b["Svk"].as_f64().unwrap_or(f64::NAN),
+        af["Svk"].as_f64().unwrap_or(f64::NAN),
+        summary["timings"]["engine_s"].as_f64().unwrap_or(0.0),
+        summary["timings"]["surfstream_overhead_s"].as_f64().unwrap_or(0.0),
+        a.out.join("finish.json").display()
+    );
+    if summary["partial"].as_bool() == Some(true) {
+        std::process::exit(130);
+    }
+    Ok(())
+}

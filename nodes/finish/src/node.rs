@@ -1,0 +1,221 @@
+//! The finish node: once the wired surface (and datum, when wired) have ended their scan, runs
+//! the finishing simulation on the final surface into `<out_dir>/<dir>` (default `finish/`).
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::sync::atomic::AtomicBool;
+
+use anyhow::{anyhow, bail, Result};
+use serde::Deserialize;
+use surfstream_core::frame::{flags, HeightMap};
+use surfstream_runtime::graph::NodeContext;
+use surfstream_runtime::node::{Input, NodeLogic, Outbox};
+
+use crate::run::{finish, Calibration, FinishOptions, Model};
+
+/// The node's graph parameters.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FinishConfig {
+    /// Sub-folder of the out dir for the outputs.
+    #[serde(default = "default_dir")]
+    pub dir: String,
+    #[serde(default = "default_budget")]
+    pub time_budget_s: f64,
+    #[serde(default = "default_cycles")]
+    pub cycles: usize,
+    /// [width, height] um, or [side] um.
+    #[serde(default)]
+    pub patch_um: Option<Vec<f64>>,
+    #[serde(default)]
+    pub media_diameter_mm: Option<f64>,
+    #[serde(default = "default_ranks")]
+    pub ranks: usize,
+    #[serde(default)]
+    pub max_triangles: Option<usize>,
+    #[serde(default)]
+    pub passes: Option<usize>,
+    /// Fit the wear coefficient so that Sa falls from `calibrate_sa_um[0]` to `[1]` (relative
+    /// reduction applied to the model's own Sa) over the process time.
+    #[serde(default)]
+    pub calibrate_sa_um: Option<[f64; 2]>,
+    #[serde(default)]
+    pub k_finnie_per_pa: Option<f64>,
+}
+
+fn default_dir() -> String {
+    "finish".into()
+}
+fn default_budget() -> f64 {
+    300.0
+}
+fn default_cycles() -> usize {
+    4
+}
+fn default_ranks() -> usize {
+    1
+}
+
+impl FinishConfig {
+    pub fn options(&self) -> Result<FinishOptions> {
+        let mut o = FinishOptions {
+            time_budget_s: self.time_budget_s,
+            cycles: self.cycles,
+            ranks: self.ranks,
+            passes: self.passes,
+            ..Default::default()
+        };
+        if let Some(p) = &self.patch_um {
+            o.patch_um = Some(match p.as_slice() {
+                [s] => (*s, *s),
+                [w, h] => (*w, *h),
+                _ => bail!("params.patch_um = {p:?}: expected [side] or [width, height] in um"),
+            });
+        }
+        if let Some(d) = self.media_diameter_mm {
+            o.media.diameter_mm = d;
+        }
+        if let Some(t) = self.max_triangles {
+            o.max_triangles = t;
+        }
+        if let Some(k) = self.k_finnie_per_pa {
+            o.k_finnie_per_pa = k;
+        }
+        if let Some([b, a]) = self.calibrate_sa_um {
+            o.calibrate = Some(Calibration::Sa {
+                before_um: Some(b),
+                after_um: a,
+            });
+        }
+        o.media.validate()?;
+        Ok(o)
+    }
+}
+
+pub struct FinishNode {
+    config: FinishConfig,
+    options: FinishOptions,
+    out_dir: std::path::PathBuf,
+    wired: BTreeSet<String>,
+    ended: BTreeSet<String>,
+    finals: BTreeMap<String, HeightMap>,
+    done: bool,
+    summary: serde_json::Value,
+}
+
+pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
+    Ok(Box::new(FinishNode::new(ctx)?))
+}
+
+impl FinishNode {
+    pub fn new(ctx: &NodeContext) -> Result<Self> {
+        let config: FinishConfig = ctx.params()?;
+        let options = config
+            .options()
+            .map_err(|e| anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id))?;
+        Ok(FinishNode {
+            out_dir: ctx.out_dir.join(&config.dir),
+            config,
+            options,
+            wired: ctx.inputs.iter().map(|i| i.port.clone()).collect(),
+            ended: BTreeSet::new(),
+            finals: BTreeMap::new(),
+            done: false,
+            summary: serde_json::Value::Null,
+        })
+    }
+
+    fn model(&mut self, port: &str) -> Result<Option<Model>> {
+        let Some(f) = self.finals.remove(port) else {
+            return Ok(None);
+        };
+        let h = &f.header;
+        Ok(Some(Model {
+            heights_um: f
+                .heights
+                .iter()
+                .map(|&z| f64::from(z) + h.z_offset_um)
+                .collect(),
+            rows: h.height as usize,
+            cols: h.width as usize,
+            pitch_x_um: h.pitch_x_um,
+            pitch_y_um: h.pitch_y_um,
+            source: format!("graph input '{port}'"),
+        }))
+    }
+
+    fn run(&mut self) -> Result<()> {
+        let model = self
+            .model("surface")?
+            .ok_or_else(|| anyhow!("finish: end of scan without a final 'surface' frame"))?;
+        let mut options = self.options.clone();
+        options.ideal = self.model("datum")?;
+        let stop = AtomicBool::new(false);
+        self.summary = finish(&model, &options, &self.out_dir, &stop, &mut |l| {
+            eprintln!("{l}")
+        })?;
+        if let Some(o) = self.summary.as_object_mut() {
+            o.insert("dir".into(), serde_json::json!(self.config.dir));
+        }
+        Ok(())
+    }
+}
+
+impl NodeLogic for FinishNode {
+    fn on_input(&mut self, port: &str, input: Input<'_>, _: &mut Outbox) -> Result<()> {
+        let Input::Frame(f) = input else {
+            bail!("finish: input '{port}' must carry frames")
+        };
+        if f.header.has(flags::END_OF_SCAN) {
+            self.ended.insert(port.to_owned());
+            if !self.done && self.wired.iter().all(|p| self.ended.contains(p)) {
+                self.run()?;
+                self.done = true;
+            }
+        } else if f.header.has(flags::FINAL) {
+            self.finals.insert(port.to_owned(), f.to_owned());
+        }
+        Ok(())
+    }
+
+    fn on_drained(&mut self, _: &mut Outbox) -> Result<()> {
+        Ok(())
+    }
+
+    fn finished(&self) -> bool {
+        self.done
+    }
+
+    fn report(&self) -> serde_json::Value {
+        // The summary without the bulky curves (they are in finish.json).
+        let mut r = self.summary.clone();
+        if let Some(o) = r.as_object_mut() {
+            o.remove("abbott_before");
+            o.remove("abbott_after");
+            o.remove("cycles");
+        }
+        r
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn graph_parameters_become_options_and_typos_are_refused() {
+        let t: toml::Table = toml::from_str(
+            "time_budget_s = 60\ncycles = 2\npatch_um = [200]\ncalibrate_sa_um = [1.272, 0.565]",
+        )
+        .unwrap();
+        let c: FinishConfig = surfstream_runtime::graph::params_from_table(&t).unwrap();
+        let o = c.options().unwrap();
+        assert_eq!(o.patch_um, Some((200.0, 200.0)));
+        assert_eq!(o.cycles, 2);
+        assert!(matches!(o.calibrate, Some(Calibration::Sa { .. })));
+        let bad: toml::Table = toml::from_str("cycle = 2").unwrap();
+        assert!(surfstream_runtime::graph::params_from_table::<FinishConfig>(&bad).is_err());
+        let t: toml::Table = toml::from_str("patch_um = [1, 2, 3]").unwrap();
+        let c: FinishConfig = surfstream_runtime::graph::params_from_table(&t).unwrap();
+        assert!(c.options().is_err());
+    }
+}

@@ -1,0 +1,369 @@
+//! The finishing simulation against the real engine (LIGGGHTS 3.8, Debian package `liggghts`;
+//! scripts/test.sh installs it). Small meshes and few passes: the whole file runs in well under
+//! a minute.
+//!
+//! - one frictionless sphere on a flat mesh: LIGGGHTS' Finnie volume equals the analytic
+//!   integral of Finnie's law over the loading half of a Hertz impact within 1 %, at 20, 45
+//!   and 70 degrees;
+//! - the wear mapped to the grid sums to LIGGGHTS' own total within 0.5 %;
+//! - the wear is linear in Finnie's k;
+//! - a flat surface wears without a pattern tied to the mesh or the position;
+//! - a sinusoidal surface loses its peaks first (Spk falls by a larger share than Svk).
+
+use std::path::Path;
+use std::sync::atomic::AtomicBool;
+
+use surfstream_finish::engine::{run_engine, EngineCommand};
+use surfstream_finish::grid::{mesh_patch, volume_um3, Window};
+use surfstream_finish::run::{run_segment, surface_params, timestep_s, SegmentPlan};
+use surfstream_finish::script::{self, input_script, Pass, Segment};
+use surfstream_finish::setting::{effective_modulus_pa, BarrelMachine, Media, Workpiece};
+use surfstream_finish::vtk::read_vtk;
+use surfstream_finish::{finish, Calibration, FinishOptions, Model};
+
+fn engine() -> EngineCommand {
+    EngineCommand::locate(1, None).unwrap_or_else(|e| {
+        panic!("{e} (these tests need the real engine; scripts/test.sh installs it)")
+    })
+}
+
+/// Finnie's angle function as LIGGGHTS codes it (mesh_module_stress.cpp), gamma from the plane.
+fn finnie_f(gamma: f64) -> f64 {
+    let (s, c) = gamma.sin_cos();
+    if 3.0 * s > c {
+        c * c / 3.0
+    } else {
+        2.0 * s * c - 3.0 * s * s
+    }
+}
+
+/// Finnie volume of one frictionless, elastic (e = 1) Hertz impact of `media` on a rigid-ish
+/// flat of `part` at normal speed `vn` and tangential speed `vt`: LIGGGHTS integrates
+/// 2 k |v| |F| f(gamma) dt while the sphere approaches. With F = K d^1.5 (K = 4/3 E* sqrt R)
+/// and energy conservation, vn(d)^2 = vn0^2 - 4 K d^2.5 / (5 m); dt = dd / vn; d = dmax sin(t)
+/// removes the end-point singularity.
+fn analytic_finnie_m3(media: &Media, part: &Workpiece, k: f64, vt: f64, vn0: f64) -> f64 {
+    let m = media.mass_kg();
+    let kk = 4.0 / 3.0 * effective_modulus_pa(media, part) * media.radius_m().sqrt();
+    let dmax = (5.0 * m * vn0 * vn0 / (4.0 * kk)).powf(0.4);
+    let n = 200_000;
+    let mut v = 0.0;
+    for i in 0..n {
+        let th = (i as f64 + 0.5) / n as f64 * std::f64::consts::FRAC_PI_2;
+        let d = dmax * th.sin();
+        let dd = dmax * th.cos() * std::f64::consts::FRAC_PI_2 / n as f64;
+        let vn = (vn0 * vn0 - 4.0 * kk / (5.0 * m) * d.powf(2.5))
+            .max(1e-300)
+            .sqrt();
+        let f = kk * d.powf(1.5);
+        let speed = vt.hypot(vn);
+        v += 2.0 * k * speed * f * finnie_f(vn.atan2(vt)) * dd / vn;
+    }
+    v
+}
+
+fn flat_segment(dir: &Path, media: Media, k: f64, vt: f64, vn: f64) -> Segment {
+    let (rows, cols) = (21, 21);
+    let pm = mesh_patch(&vec![0.0; rows * cols], rows, cols, 10.0, 10.0, 10_000).unwrap();
+    std::fs::create_dir_all(dir).unwrap();
+    let f = std::fs::File::create(dir.join(script::STL)).unwrap();
+    surfstream_mesher::write_stl_ascii(f, &pm.target.mesh, "flat").unwrap();
+    let contact =
+        surfstream_finish::setting::hertz_contact_time_s(&media, &Workpiece::default(), vn);
+    let dt = contact / 2000.0;
+    let gap = 1e-8;
+    let steps = ((gap / vn + contact) / dt) as usize + 200;
+    let v = &pm.target.mesh.vertices;
+    let lo = |k: usize| v.iter().map(|p| p[k]).fold(f64::INFINITY, f64::min);
+    let hi = |k: usize| v.iter().map(|p| p[k]).fold(f64::NEG_INFINITY, f64::max);
+    let (cx, cy) = (0.5 * (lo(0) + hi(0)), 0.5 * (lo(1) + hi(1)));
+    assert!(hi(2) - lo(2) == 0.0 && hi(0) - lo(0) > 1.9e-4);
+    Segment {
+        mesh_bounds_m: [[lo(0), hi(0)], [lo(1), hi(1)], [lo(2), hi(2)]],
+        triangles: pm.target.mesh.triangles.len(),
+        media,
+        workpiece: Workpiece::default(),
+        k_finnie_per_pa: k,
+        timestep_s: dt,
+        steps_per_pass: steps,
+        passes: vec![Pass {
+            start_m: [cx - 3e-5, cy + 1e-6, hi(2) + media.radius_m() + gap],
+            velocity_m_s: [vt, 0.0, -vn],
+        }],
+        press_force_n: 0.0,
+        contact_every: 5,
+        thermo_every: steps,
+    }
+}
+
+fn liggghts_volume_m3(dir: &Path) -> f64 {
+    let m = read_vtk(&dir.join(script::WEAR_VTK)).unwrap();
+    let w = m.field("wear").unwrap();
+    let a = m.field("area").unwrap();
+    w.iter().zip(a).map(|(w, a)| w * a).sum()
+}
+
+fn run_in(dir: &Path, seg: &Segment) {
+    std::fs::write(dir.join(script::INPUT), input_script(seg)).unwrap();
+    let stop = AtomicBool::new(false);
+    let r = run_engine(
+        &engine(),
+        dir,
+        script::INPUT,
+        script::LOG,
+        seg.steps_per_pass,
+        seg.passes.len(),
+        &stop,
+        &mut |_| {},
+    )
+    .unwrap();
+    assert!(!r.stopped);
+}
+
+#[test]
+fn a_single_impact_matches_the_analytic_finnie_integral_within_one_percent() {
+    let media = Media {
+        friction: 0.0,
+        restitution: 1.0,
+        ..Media::default()
+    };
+    let k = 1e-10;
+    let tmp = tempfile::tempdir().unwrap();
+    for angle_deg in [20.0f64, 45.0, 70.0] {
+        let (vt, vn) = (angle_deg.to_radians().cos(), angle_deg.to_radians().sin());
+        let dir = tmp.path().join(format!("a{angle_deg}"));
+        let seg = flat_segment(&dir, media, k, vt, vn);
+        run_in(&dir, &seg);
+        let sim = liggghts_volume_m3(&dir);
+        let exact = analytic_finnie_m3(&media, &Workpiece::default(), k, vt, vn);
+        let ratio = sim / exact;
+        eprintln!("impact at {angle_deg} deg: LIGGGHTS {sim:.4e} m^3, analytic {exact:.4e}, ratio {ratio:.5}");
+        assert!(exact > 0.0);
+        assert!((ratio - 1.0).abs() < 0.01, "{angle_deg} deg: ratio {ratio}");
+    }
+}
+
+/// A rough test surface: two crossed sines and a finer ripple, um.
+fn rough(rows: usize, cols: usize, pitch: f64) -> Vec<f64> {
+    (0..rows * cols)
+        .map(|k| {
+            let (x, y) = ((k % cols) as f64 * pitch, (k / cols) as f64 * pitch);
+            1.5 * (x / 23.0).sin() * (y / 31.0).cos() + 0.4 * (x / 7.0 + y / 11.0).sin()
+        })
+        .collect()
+}
+
+fn plan<'a>(engine: &'a EngineCommand, k: f64, passes: usize) -> SegmentPlan<'a> {
+    let media = Media::default();
+    let action = BarrelMachine::default().action(&media, 30.0).unwrap();
+    SegmentPlan {
+        engine,
+        media,
+        workpiece: Workpiece::default(),
+        timestep_s: timestep_s(&media, &Workpiece::default(), &action),
+        action,
+        k_finnie_per_pa: k,
+        archard_k_over_h_per_pa: 5e-14,
+        max_triangles: 6_000,
+        passes: Some(passes),
+        engine_budget_s: 10.0,
+        cost_per_triangle_step_s: 4e-8,
+        seed: 7,
+        contact_every: 5,
+    }
+}
+
+#[test]
+fn grid_wear_sums_to_liggghts_total_and_is_linear_in_k() {
+    let (rows, cols, pitch) = (50, 50, 3.0);
+    let z = rough(rows, cols, pitch);
+    let aim = Window {
+        row0: 8,
+        col0: 8,
+        rows: 34,
+        cols: 34,
+    };
+    let e = engine();
+    let tmp = tempfile::tempdir().unwrap();
+    let stop = AtomicBool::new(false);
+    let mut maps = Vec::new();
+    for (i, k) in [1e-10, 3e-10].into_iter().enumerate() {
+        let r = run_segment(
+            &plan(&e, k, 6),
+            &z,
+            rows,
+            cols,
+            pitch,
+            pitch,
+            aim,
+            &tmp.path().join(format!("k{i}")),
+            &stop,
+            &mut |_, _| {},
+        )
+        .unwrap();
+        assert!(r.liggghts_volume_um3 > 0.0, "no wear at all");
+        let err = r.volume_relative_error();
+        eprintln!(
+            "k = {k:e}: LIGGGHTS {:.6e} um^3, grid {:.6e} um^3 (error {err:.2e}), Archard {:.3e} um^3, {} contact samples",
+            r.liggghts_volume_um3,
+            r.grid_volume_um3,
+            volume_um3(&r.archard_um, pitch, pitch),
+            r.contacts.samples
+        );
+        assert!(err.abs() < 0.005, "grid vs LIGGGHTS: {err}");
+        assert_eq!(r.unmapped_volume_um3, 0.0);
+        assert!(r.contacts.samples > 0 && volume_um3(&r.archard_um, pitch, pitch) > 0.0);
+        maps.push(r.finnie_um);
+    }
+    // Same passes, three times k: three times the wear, sample by sample.
+    let (a, b) = (&maps[0], &maps[1]);
+    let total_a: f64 = a.iter().sum();
+    let total_b: f64 = b.iter().sum();
+    assert!(
+        (total_b / total_a - 3.0).abs() < 3e-3,
+        "{}",
+        total_b / total_a
+    );
+    let max_a = a.iter().cloned().fold(0.0, f64::max);
+    for (x, y) in a.iter().zip(b) {
+        assert!((y - 3.0 * x).abs() <= 3e-3 * 3.0 * max_a, "{x} {y}");
+    }
+}
+
+#[test]
+fn a_flat_surface_wears_without_pattern() {
+    let (rows, cols, pitch) = (40, 40, 5.0);
+    let model = Model {
+        heights_um: vec![0.0; rows * cols],
+        rows,
+        cols,
+        pitch_x_um: pitch,
+        pitch_y_um: pitch,
+        source: "flat".into(),
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let opts = FinishOptions {
+        patch_um: Some((150.0, 150.0)),
+        guard_um: Some(25.0),
+        cycles: 1,
+        passes: Some(60),
+        max_triangles: 6_000,
+        impact_angle_deg: 30.0,
+        // A constant that wears the flat by a fraction of a micrometre in the process time.
+        k_finnie_per_pa: 1e-18,
+        ..Default::default()
+    };
+    let stop = AtomicBool::new(false);
+    let s = finish(&model, &opts, tmp.path(), &stop, &mut |l| eprintln!("{l}")).unwrap();
+    let wear = surfstream_io::npy::read_npy_f64(tmp.path().join("wear.npy")).unwrap();
+    let (r, c) = (wear.rows, wear.cols);
+    let total: f64 = wear.data.iter().sum();
+    assert!(total > 0.0);
+    // No position pattern: each quadrant holds a fair share (random tracks: within 2x).
+    let mut q = [0.0; 4];
+    for (k, w) in wear.data.iter().enumerate() {
+        let (i, j) = (k / c, k % c);
+        q[(2 * i / r) * 2 + 2 * j / c] += w;
+    }
+    eprintln!("quadrant shares {:?}", q.map(|x| x / total));
+    for x in q {
+        assert!(x / total > 0.125 && x / total < 0.5, "{q:?}");
+    }
+    // No mesh pattern: even and odd rows and columns wear alike (a triangle-diagonal artefact
+    // would alternate).
+    let par = |f: &dyn Fn(usize) -> bool| -> f64 {
+        wear.data
+            .iter()
+            .enumerate()
+            .filter(|(k, _)| f(*k))
+            .map(|(_, w)| w)
+            .sum::<f64>()
+            / total
+    };
+    let even_cols = par(&|k| (k % c) % 2 == 0);
+    let even_rows = par(&|k| (k / c) % 2 == 0);
+    eprintln!("even columns {even_cols:.3}, even rows {even_rows:.3}");
+    assert!((even_cols - 0.5).abs() < 0.05 && (even_rows - 0.5).abs() < 0.05);
+    // The worn flat stays flat at the scale of the wear: its roughness is a fraction of the
+    // mean depth removed plus what the media's tracks leave.
+    assert!(s["volume_check"]["relative_error"].as_f64().unwrap() < 0.005);
+    for f in [
+        "wear.npy",
+        "wear_finnie.npy",
+        "wear_archard.npy",
+        "worn.npy",
+        "worn.x3p",
+        "finish.json",
+        "finish.html",
+        "cycle_01/in.liggghts",
+        "cycle_01/log.liggghts",
+        "cycle_01/patch.stl",
+    ] {
+        assert!(tmp.path().join(f).is_file(), "{f} missing");
+    }
+}
+
+#[test]
+fn a_sinusoidal_surface_loses_its_peaks_first() {
+    let (rows, cols, pitch) = (60, 60, 4.0);
+    let heights_um: Vec<f64> = (0..rows * cols)
+        .map(|k| {
+            let (x, y) = ((k % cols) as f64 * pitch, (k / cols) as f64 * pitch);
+            2.0 * (std::f64::consts::TAU * x / 60.0).sin()
+                * (std::f64::consts::TAU * y / 60.0).sin()
+        })
+        .collect();
+    let model = Model {
+        heights_um,
+        rows,
+        cols,
+        pitch_x_um: pitch,
+        pitch_y_um: pitch,
+        source: "sine".into(),
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let opts = FinishOptions {
+        patch_um: Some((180.0, 180.0)),
+        guard_um: Some(20.0),
+        cycles: 2,
+        passes: Some(12),
+        max_triangles: 6_000,
+        calibrate: Some(Calibration::Sa {
+            before_um: Some(1.0),
+            after_um: 0.75,
+        }),
+        ..Default::default()
+    };
+    let stop = AtomicBool::new(false);
+    let s = finish(&model, &opts, tmp.path(), &stop, &mut |l| eprintln!("{l}")).unwrap();
+    let b = &s["before"];
+    let a = &s["after"];
+    let share = |k: &str| 1.0 - a[k].as_f64().unwrap() / b[k].as_f64().unwrap();
+    eprintln!(
+        "Sa {} -> {}, Spk {} -> {} ({:.2}), Svk {} -> {} ({:.2})",
+        b["Sa"],
+        a["Sa"],
+        b["Spk"],
+        a["Spk"],
+        share("Spk"),
+        b["Svk"],
+        a["Svk"],
+        share("Svk")
+    );
+    assert!(
+        share("Sa") > 0.01,
+        "the calibration did not wear the surface"
+    );
+    assert!(share("Spk") > share("Svk") + 0.05, "peaks did not go first");
+    let (_, p) = surface_params(
+        &surfstream_io::npy::read_npy_f64(tmp.path().join("worn.npy"))
+            .unwrap()
+            .data,
+        45,
+        45,
+        pitch,
+        pitch,
+    )
+    .unwrap();
+    assert!((p.sa - a["Sa"].as_f64().unwrap()).abs() < 1e-9);
+}

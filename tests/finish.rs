@@ -1,0 +1,136 @@
+//! `surfstream finish` and the `finish` graph node, end to end with the real engine
+//! (LIGGGHTS, Debian package `liggghts`; scripts/test.sh installs it): a height-map file is
+//! finished into wear maps, a worn surface, finish.json and finish.html; a graph runs the node
+//! after the stitching with the ideal model beside it; a missing engine names its install
+//! command. Few passes: each test takes seconds.
+
+use surfstream_e2e::{read_json, repo_root, run, stderr, surfstream};
+
+/// A rough .npy height map (um), 3 um pitch given on the command line.
+fn rough_npy(path: &std::path::Path) {
+    let (rows, cols) = (50, 60);
+    let z: Vec<f64> = (0..rows * cols)
+        .map(|k| {
+            let (x, y) = ((k % cols) as f64 * 3.0, (k / cols) as f64 * 3.0);
+            1.2 * (x / 17.0).sin() * (y / 23.0).cos() + 0.5 * (x / 5.0 + y / 9.0).sin()
+        })
+        .collect();
+    surfstream_io::npy::write_npy_f64(path, &z, rows, cols).unwrap();
+}
+
+#[test]
+fn finish_a_height_map_writes_wear_worn_surface_script_log_and_summary() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("rough.npy");
+    rough_npy(&input);
+    let out = dir.path().join("fin");
+    let mut c = surfstream();
+    c.args(["finish"])
+        .arg(&input)
+        .args([
+            "--pitch-um",
+            "3",
+            "--patch-um",
+            "90,75",
+            "--cycles",
+            "2",
+            "--passes",
+            "4",
+        ])
+        .args(["--calibrate", "1.272,0.565", "-o"])
+        .arg(&out);
+    let o = run(c);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let err = stderr(&o);
+    assert!(err.contains("finish: cycle 2/2"), "{err}");
+    assert!(err.contains("ETA"), "no progress lines: {err}");
+    let s = read_json(&out.join("finish.json"));
+    assert_eq!(s["partial"], false);
+    assert_eq!(s["cycles_completed"], 2);
+    assert_eq!(
+        s["setting"]["patch"]["rows_cols"],
+        serde_json::json!([25, 30])
+    );
+    assert_eq!(s["setting"]["media"]["diameter_mm"], 3.0);
+    assert!(s["setting"]["action"]["source"]
+        .as_str()
+        .unwrap()
+        .contains("centrifugal barrel"));
+    for k in ["Sa", "Sq", "Sz", "Spk", "Svk", "Sk"] {
+        assert!(s["before"][k].as_f64().unwrap() > 0.0, "before.{k}");
+        assert!(s["after"][k].as_f64().unwrap() > 0.0, "after.{k}");
+    }
+    assert!(s["after"]["Sa"].as_f64() < s["before"]["Sa"].as_f64());
+    assert!(s["volume_check"]["relative_error"].as_f64().unwrap() < 0.005);
+    assert!(s["calibration"]["k_finnie_fitted_per_pa"].as_f64().unwrap() > 0.0);
+    assert!(s["timings"]["engine_s"].as_f64().unwrap() > 0.0);
+    for f in [
+        "wear.npy",
+        "wear_finnie.npy",
+        "wear_archard.npy",
+        "worn.npy",
+        "worn.x3p",
+        "original.npy",
+        "finish.html",
+        "cycle_01/in.liggghts",
+        "cycle_01/log.liggghts",
+        "cycle_02/patch.stl",
+    ] {
+        assert!(out.join(f).is_file(), "{f} missing");
+    }
+    // The worn surface reads back (x3p with its pitch) and the wear map is on its grid.
+    let worn = surfstream_io::formats::read_surface(&out.join("worn.x3p")).unwrap();
+    assert_eq!((worn.height, worn.width), (25, 30));
+    assert!((worn.pitch_x_um - 3.0).abs() < 1e-9);
+    let wear = surfstream_io::npy::read_npy_f64(out.join("wear.npy")).unwrap();
+    assert_eq!((wear.rows, wear.cols), (25, 30));
+    assert!(wear.data.iter().all(|w| *w >= 0.0) && wear.data.iter().any(|w| *w > 0.0));
+    // The script in the output reruns as it is.
+    let script = std::fs::read_to_string(out.join("cycle_01/in.liggghts")).unwrap();
+    assert!(script.contains("fix wall all mesh/surface/stress file patch.stl type 2 wear finnie"));
+}
+
+#[test]
+fn a_missing_engine_names_its_install_command() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("rough.npy");
+    rough_npy(&input);
+    let mut c = surfstream();
+    c.env("PATH", dir.path())
+        .env_remove("SURFSTREAM_LIGGGHTS")
+        .arg("finish")
+        .arg(&input)
+        .args(["--pitch-um", "3", "-o"])
+        .arg(dir.path().join("fin"));
+    let o = run(c);
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).contains("apt-get install liggghts"),
+        "{}",
+        stderr(&o)
+    );
+}
+
+#[test]
+fn the_finish_node_runs_after_stitching_beside_the_ideal_model() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("g");
+    let mut c = surfstream();
+    c.args(["run", "launch/graphs/finish.toml"])
+        .args(["--set", "stage.tile_px=256", "--set", "finish.passes=3"])
+        .args(["--set", "finish.patch_um=[60]", "-o"])
+        .arg(&out);
+    let o = run(c);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let s = read_json(&out.join("finish/finish.json"));
+    assert_eq!(s["cycles_completed"], 2);
+    let sim = s["ideal_model"]["sim_wear_maps"].as_f64().unwrap();
+    assert!((-1.0..=1.0).contains(&sim), "{sim}");
+    assert!(out.join("finish/ideal/in.liggghts").is_file());
+    let r = read_json(&out.join("run.json"));
+    assert!(
+        r.to_string().contains("finish"),
+        "run.json does not mention the node"
+    );
+    assert!(repo_root().join("launch/graphs/finish.toml").is_file());
+}
