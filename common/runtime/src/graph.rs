@@ -282,6 +282,12 @@ pub struct NodeContext {
 }
 
 impl NodeContext {
+    /// This node's memory plan: the budget, each node's share of it, the spill folder (the
+    /// out dir), MemAvailable read now ([`crate::memory::MemoryPlan`]).
+    pub fn memory_plan(&self) -> crate::memory::MemoryPlan {
+        crate::memory::MemoryPlan::resolve(self.memory_budget_bytes, self.out_dir.clone())
+    }
+
     /// Deserialises the node's parameters, naming the node and the field on error.
     pub fn params<T: serde::de::DeserializeOwned>(&self) -> Result<T> {
         params_from_table(&self.params).map_err(|e| {

@@ -10,6 +10,10 @@
 //! graph.memory_budget_gb=0.5`, one machine, back to back, load ~2): peak 802 MB with the
 //! default, 510 MB with 1 MiB, for 16.4 s vs 21.3 s wall (page faults on every fresh buffer).
 //! So it is done only under a budget, where the user asked for memory over speed.
+//!
+//! [`MemoryPlan`]: how the budget is shared among the nodes, and where spill files go.
+
+use std::path::PathBuf;
 
 /// Blocks of this size or more are mapped and unmapped on their own under a budget.
 pub const MMAP_THRESHOLD_UNDER_BUDGET: usize = 1 << 20;
@@ -37,6 +41,69 @@ fn set_mmap_threshold(_bytes: usize) -> bool {
     false
 }
 
+/// How a run's memory is shared among its nodes, decided in one place: the budget
+/// (`[graph] memory_budget_gb`), each node's share of it, the default without one, and the
+/// folder every spill file goes to. Nodes get it from [`crate::graph::NodeContext::memory_plan`]
+/// and take their share by name, so no node parses /proc or divides the budget itself.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct MemoryPlan {
+    /// `[graph] memory_budget_gb` in bytes; `None`: no budget.
+    pub budget_bytes: Option<u64>,
+    /// MemAvailable of /proc/meminfo when the plan was made; `None` where it cannot be read.
+    pub available_bytes: Option<u64>,
+    /// Where spill files go (unnamed, gone at exit): the out dir, beside the outputs (the
+    /// system temp folder may be a RAM disk).
+    pub spill_dir: PathBuf,
+}
+
+impl MemoryPlan {
+    /// The part of the budget one node's chunk store may hold in memory: a quarter each for
+    /// the fusion's panorama chunks and the wavelet's live mirror; the rest is for the final
+    /// panorama frame (4 bytes per pixel) and the other nodes.
+    pub const CHUNK_SHARE_OF_BUDGET: u64 = 4;
+    /// Without a budget, the fusion's chunks may hold an eighth of MemAvailable (2.75 GB on
+    /// a machine with 22 GB free: a 20 x 20 scan of 1024 px fields, 303 Mpx, keeps its 2.4 GB
+    /// of chunks in memory, larger scans spill), so a scan of any size runs without a setting.
+    pub const CHUNK_SHARE_OF_AVAILABLE: u64 = 8;
+
+    /// The plan for a node: the budget, MemAvailable read now, the spill folder.
+    pub fn resolve(budget_bytes: Option<u64>, spill_dir: PathBuf) -> Self {
+        let available_bytes = std::fs::read_to_string("/proc/meminfo")
+            .ok()
+            .and_then(|t| mem_available_bytes(&t));
+        Self {
+            budget_bytes,
+            available_bytes,
+            spill_dir,
+        }
+    }
+
+    /// Bytes the fusion's panorama chunks may keep in memory: a quarter of the budget, or
+    /// without one an eighth of MemAvailable; `None`: no limit (neither is known).
+    pub fn panorama_chunks_bytes(&self) -> Option<u64> {
+        match self.budget_bytes {
+            Some(b) => Some(b / Self::CHUNK_SHARE_OF_BUDGET),
+            None => self
+                .available_bytes
+                .map(|a| a / Self::CHUNK_SHARE_OF_AVAILABLE),
+        }
+    }
+
+    /// Bytes the wavelet's live mirror of the panorama may keep in memory: a quarter of the
+    /// budget; `None` (no limit) without one.
+    pub fn live_mirror_bytes(&self) -> Option<u64> {
+        self.budget_bytes.map(|b| b / Self::CHUNK_SHARE_OF_BUDGET)
+    }
+}
+
+/// MemAvailable of a /proc/meminfo text, in bytes.
+pub fn mem_available_bytes(meminfo: &str) -> Option<u64> {
+    let line = meminfo.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let mut words = line.split_whitespace().skip(1);
+    let kb: u64 = words.next()?.parse().ok()?;
+    (words.next() == Some("kB")).then_some(kb.checked_mul(1024)?)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -46,5 +113,32 @@ mod tests {
         assert!(!return_freed_buffers(None));
         #[cfg(all(target_os = "linux", target_env = "gnu"))]
         assert!(return_freed_buffers(Some(1 << 30)));
+    }
+
+    #[test]
+    fn mem_available_is_read_from_meminfo() {
+        let text = "MemTotal:       24534712 kB\nMemFree:         1204720 kB\nMemAvailable:   22011236 kB\n";
+        assert_eq!(mem_available_bytes(text), Some(22_011_236 * 1024));
+        assert_eq!(mem_available_bytes("MemTotal: 1 kB\n"), None);
+        assert_eq!(mem_available_bytes("MemAvailable: lots\n"), None);
+        assert_eq!(mem_available_bytes("MemAvailable: 12 MB\n"), None);
+    }
+
+    #[test]
+    fn each_node_takes_its_share_of_the_plan() {
+        let plan = |budget, available| MemoryPlan {
+            budget_bytes: budget,
+            available_bytes: available,
+            spill_dir: "out".into(),
+        };
+        let p = plan(Some(100_000_000), Some(8_000_000_000));
+        assert_eq!(p.panorama_chunks_bytes(), Some(25_000_000));
+        assert_eq!(p.live_mirror_bytes(), Some(25_000_000));
+        let p = plan(None, Some(8_000_000_000));
+        assert_eq!(p.panorama_chunks_bytes(), Some(1_000_000_000));
+        assert_eq!(p.live_mirror_bytes(), None);
+        assert_eq!(plan(None, None).panorama_chunks_bytes(), None);
+        let p = MemoryPlan::resolve(Some(7), "out".into());
+        assert_eq!((p.budget_bytes, p.spill_dir), (Some(7), "out".into()));
     }
 }

@@ -52,31 +52,6 @@ fn yes() -> bool {
     true
 }
 
-/// The fusion's share of `[graph] memory_budget_gb` for its panorama chunks: the rest is for
-/// the final panorama frame (4 bytes per pixel) and the other nodes.
-pub const BUDGET_SHARE: f64 = 0.25;
-
-/// The share of the machine's available memory (MemAvailable when the node starts) the
-/// panorama's chunks may hold when the graph sets no `memory_budget_gb`.
-pub const DEFAULT_AVAILABLE_SHARE: f64 = 0.125;
-
-/// The chunk budget without a graph budget: [`DEFAULT_AVAILABLE_SHARE`] of MemAvailable
-/// (2.75 GB on a machine with 22 GB free: a 20 x 20 scan of 1024 px fields, 303 Mpx, keeps
-/// its 2.4 GB of chunks in memory, larger scans spill). `None` (no limit) where
-/// /proc/meminfo cannot be read.
-fn default_chunk_budget_bytes() -> Option<usize> {
-    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
-    mem_available_bytes(&text).map(|b| (b as f64 * DEFAULT_AVAILABLE_SHARE) as usize)
-}
-
-/// MemAvailable of a /proc/meminfo text, in bytes.
-fn mem_available_bytes(meminfo: &str) -> Option<u64> {
-    let line = meminfo.lines().find(|l| l.starts_with("MemAvailable:"))?;
-    let mut words = line.split_whitespace().skip(1);
-    let kb: u64 = words.next()?.parse().ok()?;
-    (words.next() == Some("kB")).then_some(kb.checked_mul(1024)?)
-}
-
 pub struct FusionNode {
     fusion: StreamingFusion,
     chunk_budget_bytes: Option<usize>,
@@ -115,13 +90,9 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
         wavelet,
         ramp_px: p.ramp_px,
     });
-    // Spill files (unnamed, gone at exit) go beside the outputs: the system temp folder may be
-    // a RAM disk.
-    let chunk_budget_bytes = match ctx.memory_budget_bytes {
-        Some(b) => Some((b as f64 * BUDGET_SHARE) as usize),
-        None => default_chunk_budget_bytes(),
-    };
-    fusion.set_memory_budget(chunk_budget_bytes, Some(ctx.out_dir.clone()));
+    let memory = ctx.memory_plan();
+    let chunk_budget_bytes = memory.panorama_chunks_bytes().map(|b| b as usize);
+    fusion.set_memory_budget(chunk_budget_bytes, Some(memory.spill_dir));
     fusion.set_zarr_min_px(match p.zarr.as_str() {
         "auto" => Some(ZARR_AUTO_MIN_PX),
         "always" => Some(0),
@@ -199,19 +170,5 @@ impl NodeLogic for FusionNode {
                 "chunks": self.fusion.chunk_stats(),
             },
         })
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn mem_available_is_read_from_meminfo() {
-        let text = "MemTotal:       24534712 kB\nMemFree:         1204720 kB\nMemAvailable:   22011236 kB\n";
-        assert_eq!(mem_available_bytes(text), Some(22_011_236 * 1024));
-        assert_eq!(mem_available_bytes("MemTotal: 1 kB\n"), None);
-        assert_eq!(mem_available_bytes("MemAvailable: lots\n"), None);
-        assert_eq!(mem_available_bytes("MemAvailable: 12 MB\n"), None);
     }
 }

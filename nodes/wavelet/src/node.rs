@@ -49,14 +49,14 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
             .any(|o| o.port == port && o.subscribers > 0)
     };
     let mut live = LiveSeparation::new(&settings, p.live_margin_px)?;
-    if let Some(budget) = ctx.memory_budget_bytes {
-        // A quarter of the budget, as the fusion's chunks: the rest is the final frame's.
-        live.limit_mirror(budget / 4, ctx.out_dir.clone());
+    let memory = ctx.memory_plan();
+    if let Some(bytes) = memory.live_mirror_bytes() {
+        live.limit_mirror(bytes, memory.spill_dir.clone());
     }
     Ok(Box::new(WaveletNode {
         publish_datum: wired("datum"),
         publish_roughness: wired("roughness"),
-        spill_dir: ctx.out_dir.clone(),
+        spill_dir: memory.spill_dir,
         live,
         settings,
         publish_live: p.live,
