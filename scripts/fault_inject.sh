@@ -141,7 +141,9 @@ attempt() { # attempt DESCRIPTION CMD...: the neighbour must fail
 attempt ls /tmp/surfstream-0
 attempt sh -c 'flock -n /tmp/surfstream-0/slot-0.lock true'
 attempt sh -c "cat /dev/shm/${dom}* | head -c1 | grep -q ."
-attempt sh -c "printf 0123456789abcdef > /dev/shm/${dom}node.0_10_0.global_mgmt"
+mgmt="$(ls /dev/shm/${dom}*global_mgmt)"
+stat -c "second user: root's management segment $mgmt: mode %a, owner %U" "$mgmt"
+attempt sh -c "printf 0123456789abcdef 1<> $mgmt"
 attempt ls /tmp/surfstream-0/iceoryx2
 # The neighbour plants what it can where root would look, then root's launch still completes.
 as_u sh -c 'mkdir -p /tmp/surfstream-slots && for k in $(seq 0 31); do : > /tmp/surfstream-slots/slot-$k.lock; done' || true
@@ -152,7 +154,11 @@ echo "second user: root's launch during the attempts -> exit $rc"
 [ $rc -eq 0 ] || sb=$((sb + 1))
 "$BIN" launch "$GRAPH" --set stage.tile_px=256 --set 'stage.pacing="fast"' -o "$WORK/root-out2" >/dev/null 2>"$WORK/root2.stderr" \
   && echo "second user: root's next launch -> ok" || { echo "root's next launch failed"; sb=$((sb + 1)); }
-stat -c 'second user: root management segment mode %a' /dev/shm/*global_mgmt 2>/dev/null | sort | uniq -c || echo "second user: no management segment left in /dev/shm"
+for f in "$WORK"/root*.stderr; do
+  d2="$(grep -o 'domain ss[0-9]*_[0-9a-f]*_' "$f" | head -1 | cut -d' ' -f2)"
+  if ls /dev/shm | grep -q "^$d2"; then echo "second user: root's domain $d2 left files in /dev/shm"; sb=$((sb + 1));
+  else echo "second user: root's domain $d2: nothing left in /dev/shm"; fi
+done
 # And the neighbour can launch too (its own slots), after root did.
 mkdir -p "$WORK/u" && chown "$U" "$WORK/u"
 if as_u env -u XDG_RUNTIME_DIR HOME="$WORK/u" "$BIN" launch "$GRAPH" --set stage.tile_px=256 --set 'stage.pacing="fast"' -o "$WORK/u/out" >/dev/null 2>"$WORK/u.stderr"; then

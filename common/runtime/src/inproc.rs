@@ -217,6 +217,10 @@ pub fn run_graph_supervised(
         }
     }
     if !errors.is_empty() {
+        // Nodes that saw the stop request before the watch did: the signal is the cause.
+        if let Some(sig) = crate::stop::signal() {
+            return Err(crate::stop::interrupted(sig));
+        }
         let root = errors
             .iter()
             .position(|(_, e)| e.downcast_ref::<Consequence>().is_none())
@@ -236,11 +240,11 @@ type Handles = Vec<(
 /// Waits until every thread ended (`None`), or a stop signal or a stall says to stop the graph.
 fn watch(handles: &Handles, sup: &Supervision) -> Option<anyhow::Error> {
     loop {
-        if handles.iter().all(|(_, h, _)| h.is_finished()) {
-            return None;
-        }
         if let Some(sig) = crate::stop::signal() {
             return Some(crate::stop::interrupted(sig));
+        }
+        if handles.iter().all(|(_, h, _)| h.is_finished()) {
+            return None;
         }
         let anonymous =
             Duration::from_nanos(now_ns().saturating_sub(ANONYMOUS_BEAT.load(Ordering::Relaxed)));
