@@ -154,6 +154,8 @@ const OLD: &str = "output of an earlier run";
 /// A complete-looking earlier run in `out`: every output and run.json.
 fn plant_old_run(out: &Path) {
     std::fs::create_dir_all(out).unwrap();
+    // The marker every run folder carries (an unmarked folder is refused as not ours).
+    std::fs::write(out.join(".surfstream-run"), "").unwrap();
     for f in OUTPUTS.iter().chain(&["run.json", "report.html"]) {
         std::fs::write(out.join(f), OLD).unwrap();
     }

@@ -43,7 +43,11 @@ pub fn run(scan: &Path, out: &Path, set: &[String], method: Option<&str>) -> Res
         let mut set_m = set.to_vec();
         set_m.push(format!("fusion.method={m}"));
         let (graph, deviation) = stitch_graph(scan, dir.clone(), &set_m, method)?;
-        launcher::run_in_process(graph, scan, deviation)?;
+        let claim = crate::outdir::Claim {
+            inputs: crate::outdir::inputs_of(&graph, &dir),
+            force: false,
+        };
+        launcher::run_in_process(graph, scan, deviation, &claim)?;
         rows.push(score(m, &dir, truth.as_ref())?);
     }
     println!();

@@ -149,8 +149,9 @@ pub fn run_in_process(
     mut graph: GraphFile,
     origin: &Path,
     deviation: deviation::Settings,
+    claim: &outdir::Claim,
 ) -> Result<()> {
-    let staged = outdir::stage(&graph.graph.out_dir)?;
+    let staged = outdir::stage(&graph.graph.out_dir, claim)?;
     let final_dir = staged.final_dir.clone();
     let contexts = match prepare(&mut graph, &staged) {
         Ok(c) => c,
@@ -318,14 +319,19 @@ fn describe_exit(status: &std::process::ExitStatus) -> String {
 }
 
 /// `surfstream launch`: every node its own process.
-pub fn launch(mut graph: GraphFile, origin: &Path, deviation: deviation::Settings) -> Result<()> {
+pub fn launch(
+    mut graph: GraphFile,
+    origin: &Path,
+    deviation: deviation::Settings,
+    claim: &outdir::Claim,
+) -> Result<()> {
     // Everything that can be checked without running is checked before anything is written:
     // the graph (validated when loaded), the node binaries, a free slot, the out dir's lock.
     for n in &graph.nodes {
         node_binary(&n.node)?;
     }
     let slot = take_slot()?;
-    let staged = outdir::stage(&graph.graph.out_dir)?;
+    let staged = outdir::stage(&graph.graph.out_dir, claim)?;
     let final_dir = staged.final_dir.clone();
     let contexts = match prepare(&mut graph, &staged) {
         Ok(c) => c,

@@ -51,6 +51,10 @@ struct GraphArgs {
     /// Table-6 threshold: --set deviation.threshold_percent=2.
     #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
     set: Vec<String>,
+    /// Replace an existing output directory even though it is not a surfstream run (its
+    /// files are deleted). Never needed for a new folder or an earlier run's folder.
+    #[arg(long)]
+    force: bool,
     #[command(flatten)]
     verdict: VerdictArgs,
 }
@@ -108,6 +112,10 @@ enum Command {
         /// With --grid: the pitch, um, for tiles that carry none (.npy).
         #[arg(long, requires = "grid")]
         pitch_um: Option<f64>,
+        /// Replace an existing output directory even though it is not a surfstream run (its
+        /// files are deleted). The scan's own folder is never accepted as OUT.
+        #[arg(long)]
+        force: bool,
         #[command(flatten)]
         verdict: VerdictArgs,
     },
@@ -157,13 +165,15 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
         Command::Launch(a) => {
             let (graph, deviation) = load_graph(&a)?;
             let out = graph.graph.out_dir.clone();
-            launcher::launch(graph, &a.graph, deviation)?;
+            let claim = graph_claim(&graph, &a.graph, a.force);
+            launcher::launch(graph, &a.graph, deviation, &claim)?;
             tell_verdict(&out, a.verdict)
         }
         Command::Run(a) => {
             let (graph, deviation) = load_graph(&a)?;
             let out = graph.graph.out_dir.clone();
-            launcher::run_in_process(graph, &a.graph, deviation)?;
+            let claim = graph_claim(&graph, &a.graph, a.force);
+            launcher::run_in_process(graph, &a.graph, deviation, &claim)?;
             tell_verdict(&out, a.verdict)
         }
         Command::Stitch {
@@ -176,8 +186,30 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             overlap,
             serpentine,
             pitch_um,
+            force,
             verdict,
         } => {
+            // The scan's folder (or the recording) is never the out dir nor inside it.
+            let scan_input = if scan.is_dir() {
+                scan.clone()
+            } else {
+                scan.parent()
+                    .filter(|p| !p.as_os_str().is_empty())
+                    .map_or_else(|| PathBuf::from("."), std::path::Path::to_path_buf)
+            };
+            let mut claim = outdir::Claim {
+                inputs: vec![scan_input, scan.clone()],
+                force,
+            };
+            if grid.is_some()
+                || compare_fusion
+                || (scan.is_dir() && !scan.join("scan.toml").exists())
+            {
+                // Written into OUT before the run is staged: OUT must be ours first.
+                outdir::check_ours(&out, &claim)?;
+                outdir::create_marked(&out)?;
+                claim.force = false;
+            }
             let scan = match (grid, overlap) {
                 (Some(g), Some(o)) => infer_scan(&scan, &out, g, o, serpentine, pitch_um)?,
                 // A folder of tiles without a manifest: the layout from the files' stage positions.
@@ -190,7 +222,8 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                 return done(compare_fusion::run(&scan, &out, &set, method.as_deref()));
             }
             let (graph, deviation) = stitch_graph(&scan, out.clone(), &set, method.as_deref())?;
-            launcher::run_in_process(graph, &scan, deviation)?;
+            claim.inputs.extend(outdir::inputs_of(&graph, &out));
+            launcher::run_in_process(graph, &scan, deviation, &claim)?;
             tell_verdict(&out, verdict)
         }
         Command::Inspect(a) => {
@@ -212,6 +245,13 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
         }
         Command::Finish(a) => done(verbs::finish::run(a)),
     }
+}
+
+/// What a graph run reads (so its out dir may not replace it) and `--force`.
+fn graph_claim(graph: &GraphFile, graph_file: &std::path::Path, force: bool) -> outdir::Claim {
+    let mut inputs = outdir::inputs_of(graph, &graph.graph.out_dir);
+    inputs.push(graph_file.to_path_buf());
+    outdir::Claim { inputs, force }
 }
 
 /// Prints the verdict of the run in `out` (stdout: it is the result; progress and warnings

@@ -12,6 +12,12 @@
 //!   record naming the cause, the logs and the resolved graph; its outputs are removed.
 //!   A failure before the scan started (bad parameters, a bad input file, no free slot) leaves
 //!   the out dir as it was and removes the staging folder: nothing was produced.
+//! - **Ownership** (issue 27): a run only ever replaces a folder that a surfstream run made.
+//!   Every run folder (and every staging folder, which becomes the run folder) holds the marker
+//!   [`MARKER`]. An existing out dir that is neither empty nor marked is refused unless the user
+//!   says `--force`; a symlinked out dir, `/`, the home folder, the current folder or any of its
+//!   parents, and a folder that holds (or is) an input of the run are refused always. Stale
+//!   staging folders are removed only when they carry the marker.
 
 use std::fs::File;
 use std::io::{Read, Seek, Write};
@@ -24,8 +30,30 @@ use anyhow::{anyhow, bail, Context, Result};
 /// Name of the failure record in a failed run's folder.
 pub const FAILED: &str = "FAILED";
 
+/// The file that makes a folder a surfstream run folder (written when the run's staging folder
+/// is created, so every committed or failed run carries it).
+pub const MARKER: &str = ".surfstream-run";
+
+/// What a run folder made by an earlier surfstream (before the marker) always holds.
+const LEGACY_MARKER: &str = surfstream_runtime::shell::RESOLVED_GRAPH;
+
+/// What the run reads and whether the user allowed replacing a folder that is not a run.
+#[derive(Debug, Default, Clone)]
+pub struct Claim {
+    /// Files and folders the run reads: the out dir may not be one of them or hold one
+    /// (files inside an out dir that is already a run are carried into the new run instead).
+    pub inputs: Vec<PathBuf>,
+    /// `--force`: replace an existing out dir that is not a surfstream run.
+    pub force: bool,
+}
+
 /// What a failed run keeps besides [`FAILED`]: the diagnostics, never an output.
-const KEPT_ON_FAILURE: &[&str] = &["logs", "nodes", surfstream_runtime::shell::RESOLVED_GRAPH];
+const KEPT_ON_FAILURE: &[&str] = &[
+    "logs",
+    "nodes",
+    surfstream_runtime::shell::RESOLVED_GRAPH,
+    MARKER,
+];
 
 /// The out dir of a run in progress: locked, with its staging folder.
 pub struct StagedOut {
@@ -69,9 +97,26 @@ fn absolute(out: &Path) -> Result<PathBuf> {
     Ok(parent.join(name))
 }
 
-/// Locks `out`, removes stale staging folders of killed runs, and creates this run's staging
-/// folder. Nothing in `out` itself is touched.
-pub fn stage(out: &Path) -> Result<StagedOut> {
+/// Whether `dir` is a folder a surfstream run made (or an earlier surfstream's run folder).
+pub fn is_run_folder(dir: &Path) -> bool {
+    dir.join(MARKER).is_file() || dir.join(LEGACY_MARKER).is_file()
+}
+
+/// Checks that `out` may become this run's out dir (see the module doc, "Ownership"); touches
+/// nothing. Returns `out` made absolute.
+pub fn check_ours(out: &Path, claim: &Claim) -> Result<PathBuf> {
+    let shown = out.display();
+    if out.canonicalize().is_ok_and(|p| p.parent().is_none()) {
+        bail!(
+            "{shown}: refusing to use this folder as an out dir (the file system root): name a \
+             new folder with -o, e.g. -o out/run1"
+        );
+    }
+    if std::fs::symlink_metadata(out).is_ok_and(|m| m.file_type().is_symlink()) {
+        bail!(
+            "{shown}: the out dir is a symbolic link; surfstream does not replace a link or write through it: name the real folder with -o"
+        );
+    }
     let final_dir = absolute(out)?;
     if final_dir.exists() && !final_dir.is_dir() {
         bail!(
@@ -79,7 +124,117 @@ pub fn stage(out: &Path) -> Result<StagedOut> {
             final_dir.display()
         );
     }
+    let home = std::env::var_os("HOME").map(PathBuf::from);
+    let cwd = std::env::current_dir().ok();
+    let canon = |p: &Path| p.canonicalize().unwrap_or_else(|_| p.to_path_buf());
+    if final_dir.parent().is_none()
+        || home.as_deref().is_some_and(|h| canon(h) == final_dir)
+        || cwd
+            .as_deref()
+            .is_some_and(|c| canon(c).starts_with(&final_dir))
+    {
+        bail!(
+            "{}: refusing to use this folder as an out dir (the file system root, the home folder, or the current folder or one of its parents): a run replaces its out dir whole; name a new folder with -o, e.g. -o out/run1",
+            final_dir.display()
+        );
+    }
+    let ours = final_dir.is_dir() && is_run_folder(&final_dir);
+    for input in &claim.inputs {
+        let Ok(input) = input.canonicalize() else {
+            continue;
+        };
+        if !input.starts_with(&final_dir) {
+            continue;
+        }
+        // A file read from inside an earlier run (an inferred scan.toml, a recording) is
+        // carried into the new run; anything else would be lost when the run replaces it.
+        if ours && input != final_dir && input.is_file() {
+            continue;
+        }
+        bail!(
+            "{}: the out dir {} the input {}; a run replaces its out dir whole, so the input would be lost: choose another -o",
+            final_dir.display(),
+            if input == final_dir { "is" } else { "holds" },
+            input.display()
+        );
+    }
+    if final_dir.is_dir() && !ours && !claim.force {
+        let empty = std::fs::read_dir(&final_dir)
+            .with_context(|| format!("{}: cannot read the out dir", final_dir.display()))?
+            .next()
+            .is_none();
+        if !empty {
+            bail!(
+                "{}: the out dir exists and is not a surfstream run (it has no {MARKER}); a run replaces its out dir whole, so its files would be deleted. Choose another -o, or pass --force to replace it",
+                final_dir.display()
+            );
+        }
+    }
+    Ok(final_dir)
+}
+
+/// The files and folders a graph reads: every node parameter that names an existing path,
+/// and for a scan manifest the folder of its tiles (unless the manifest lies in `out` itself:
+/// then it was inferred there, and the caller names the tiles' folder).
+pub fn inputs_of(graph: &surfstream_runtime::graph::GraphFile, out: &Path) -> Vec<PathBuf> {
+    let out = absolute(out).ok().and_then(|o| o.canonicalize().ok());
+    let mut inputs = Vec::new();
+    for n in &graph.nodes {
+        for v in n.params.values() {
+            let Some(path) = v
+                .as_str()
+                .map(Path::new)
+                .and_then(|p| p.canonicalize().ok())
+            else {
+                continue;
+            };
+            let inside_out = out.as_deref().is_some_and(|o| path.starts_with(o));
+            if path.is_file()
+                && !inside_out
+                && n.params.get("source").and_then(|s| s.as_str()) == Some("scan")
+            {
+                if let Some(dir) = path.parent() {
+                    inputs.push(dir.to_path_buf());
+                }
+            }
+            inputs.push(path);
+        }
+    }
+    inputs
+}
+
+/// Creates `out` (and its parents) for files written before the run is staged (an inferred
+/// scan.toml), marked as a run folder; `out` must pass [`check_ours`] first.
+pub fn create_marked(out: &Path) -> Result<()> {
+    if !out.exists() {
+        std::fs::create_dir_all(out)
+            .with_context(|| format!("{}: cannot create", out.display()))?;
+    }
+    if !is_run_folder(out) {
+        write_marker(out)?;
+    }
+    Ok(())
+}
+
+fn write_marker(dir: &Path) -> Result<()> {
+    let path = dir.join(MARKER);
+    std::fs::write(
+        &path,
+        format!(
+            "This folder was made by surfstream {}: a later run into it replaces it whole.\n",
+            env!("CARGO_PKG_VERSION")
+        ),
+    )
+    .with_context(|| format!("{}: cannot write the run marker", path.display()))
+}
+
+/// Locks `out`, removes stale staging folders of killed runs, and creates this run's staging
+/// folder (marked as a run folder). Nothing in `out` itself is touched.
+pub fn stage(out: &Path, claim: &Claim) -> Result<StagedOut> {
+    let final_dir = check_ours(out, claim)?;
     let lock = OutDirLock::take(&sibling(&final_dir, ".lock")?, &final_dir)?;
+    // Checked again under the lock: another run may have committed meanwhile.
+    check_ours(&final_dir, claim)?;
     let stale = remove_stale_staging(&final_dir);
     if stale > 0 {
         eprintln!(
@@ -90,6 +245,10 @@ pub fn stage(out: &Path) -> Result<StagedOut> {
     let staging = sibling(&final_dir, &format!(".staging-{}", std::process::id()))?;
     std::fs::create_dir(&staging)
         .with_context(|| format!("{}: cannot create the staging folder", staging.display()))?;
+    if let Err(e) = write_marker(&staging) {
+        let _ = std::fs::remove_dir_all(&staging);
+        return Err(e);
+    }
     Ok(StagedOut {
         final_dir,
         staging,
@@ -97,8 +256,8 @@ pub fn stage(out: &Path) -> Result<StagedOut> {
     })
 }
 
-/// Removes `OUT.staging-*` beside `out`. Only for the holder of `out`'s lock: no live run
-/// writes there.
+/// Removes `OUT.staging-*` beside `out` that carry the run marker (a user's folder of that
+/// name is left alone). Only for the holder of `out`'s lock: no live run writes there.
 fn remove_stale_staging(out: &Path) -> usize {
     let (Some(parent), Some(name)) = (out.parent(), out.file_name()) else {
         return 0;
@@ -110,6 +269,7 @@ fn remove_stale_staging(out: &Path) -> usize {
     entries
         .flatten()
         .filter(|e| e.file_name().to_string_lossy().starts_with(&prefix))
+        .filter(|e| e.file_type().is_ok_and(|t| t.is_dir()) && e.path().join(MARKER).is_file())
         .filter(|e| std::fs::remove_dir_all(e.path()).is_ok())
         .count()
 }
@@ -331,9 +491,10 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("out");
         std::fs::create_dir(&out).unwrap();
+        std::fs::write(out.join(MARKER), "").unwrap();
         std::fs::write(out.join("report.html"), "old").unwrap();
         std::fs::write(out.join("surface.stl"), "old").unwrap();
-        let staged = stage(&out).unwrap();
+        let staged = stage(&out, &Claim::default()).unwrap();
         assert!(staged
             .staging
             .starts_with(dir.path().canonicalize().unwrap()));
@@ -361,15 +522,18 @@ mod tests {
     fn a_second_run_into_the_same_out_dir_is_refused() {
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("out");
-        let first = stage(&out).unwrap();
-        let e = stage(&out).err().expect("second run refused").to_string();
+        let first = stage(&out, &Claim::default()).unwrap();
+        let e = stage(&out, &Claim::default())
+            .err()
+            .expect("second run refused")
+            .to_string();
         assert!(
             e.contains("in use by another run") && e.contains(&std::process::id().to_string()),
             "{e}"
         );
         first.discard();
         // Released: the next run gets it.
-        stage(&out).unwrap().discard();
+        stage(&out, &Claim::default()).unwrap().discard();
         assert!(!out.exists(), "a discarded run created the out dir");
     }
 
@@ -378,8 +542,9 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("out");
         std::fs::create_dir(&out).unwrap();
+        std::fs::write(out.join(MARKER), "").unwrap();
         std::fs::write(out.join("panorama.npy"), "old").unwrap();
-        let staged = stage(&out).unwrap();
+        let staged = stage(&out, &Claim::default()).unwrap();
         std::fs::create_dir(staged.staging.join("logs")).unwrap();
         std::fs::write(staged.staging.join("logs/fusion.stderr"), "boom").unwrap();
         std::fs::write(staged.staging.join("datum.npy"), "half").unwrap();
@@ -399,8 +564,17 @@ mod tests {
         let killed = dir.path().join("out.staging-999999");
         std::fs::create_dir_all(killed.join("nodes")).unwrap();
         std::fs::write(killed.join("recording.mcap.partial"), "x").unwrap();
-        let staged = stage(&out).unwrap();
+        std::fs::write(killed.join(MARKER), "").unwrap();
+        // A user's folder that merely has the name is not ours.
+        let users = dir.path().join("out.staging-notes");
+        std::fs::create_dir(&users).unwrap();
+        std::fs::write(users.join("thesis.txt"), "x").unwrap();
+        let staged = stage(&out, &Claim::default()).unwrap();
         assert!(!killed.exists());
+        assert!(
+            users.join("thesis.txt").exists(),
+            "a user's folder was removed"
+        );
         staged.discard();
     }
 
@@ -409,6 +583,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("out");
         std::fs::create_dir(&out).unwrap();
+        std::fs::write(out.join(MARKER), "").unwrap();
         std::fs::write(out.join("scan.toml"), "[scan]").unwrap();
         let text = format!(
             "[graph]\nname = \"g\"\n[[node]]\nid = \"stage\"\nnode = \"replay\"\nparams = {{ path = {:?} }}\n",
@@ -417,12 +592,111 @@ mod tests {
         let graph =
             surfstream_runtime::graph::GraphFile::parse(&text, "g.toml", &crate::nodes::registry())
                 .unwrap();
-        let staged = stage(&out).unwrap();
+        let staged = stage(&out, &Claim::default()).unwrap();
         staged.carry_inputs(&graph).unwrap();
         staged.commit().unwrap();
         assert_eq!(
             std::fs::read_to_string(out.join("scan.toml")).unwrap(),
             "[scan]"
         );
+    }
+
+    fn listing(dir: &Path) -> Vec<String> {
+        let mut v: Vec<_> = std::fs::read_dir(dir)
+            .unwrap()
+            .flatten()
+            .map(|e| e.file_name().to_string_lossy().to_string())
+            .collect();
+        v.sort();
+        v
+    }
+
+    #[test]
+    fn a_folder_that_is_not_a_run_is_refused_and_left_intact() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("V");
+        std::fs::create_dir_all(out.join("sub")).unwrap();
+        std::fs::write(out.join("thesis.txt"), "x").unwrap();
+        let e = format!(
+            "{:#}",
+            stage(&out, &Claim::default()).err().expect("refused")
+        );
+        assert!(
+            e.contains("is not a surfstream run") && e.contains("--force"),
+            "{e}"
+        );
+        assert_eq!(listing(&out), ["sub", "thesis.txt"]);
+        assert_eq!(listing(dir.path()), ["V"], "lock or staging left behind");
+        // --force is the explicit override.
+        let forced = Claim {
+            force: true,
+            ..Claim::default()
+        };
+        stage(&out, &forced).unwrap().commit().unwrap();
+        assert_eq!(listing(&out), [MARKER]);
+    }
+
+    #[test]
+    fn an_empty_folder_may_become_the_out_dir() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("empty");
+        std::fs::create_dir(&out).unwrap();
+        stage(&out, &Claim::default()).unwrap().commit().unwrap();
+        assert!(is_run_folder(&out));
+    }
+
+    #[test]
+    fn a_symlinked_out_dir_is_refused_even_with_force() {
+        let dir = tempfile::tempdir().unwrap();
+        let real = dir.path().join("real");
+        std::fs::create_dir(&real).unwrap();
+        std::fs::write(real.join(MARKER), "").unwrap();
+        let link = dir.path().join("link");
+        std::os::unix::fs::symlink(&real, &link).unwrap();
+        let forced = Claim {
+            force: true,
+            ..Claim::default()
+        };
+        let e = format!("{:#}", stage(&link, &forced).err().expect("refused"));
+        assert!(e.contains("symbolic link"), "{e}");
+        assert!(std::fs::symlink_metadata(&link)
+            .unwrap()
+            .file_type()
+            .is_symlink());
+    }
+
+    #[test]
+    fn the_input_folder_or_a_parent_of_an_input_is_refused_even_with_force() {
+        let dir = tempfile::tempdir().unwrap();
+        let scan = dir.path().join("D");
+        std::fs::create_dir(&scan).unwrap();
+        std::fs::write(scan.join("scan.toml"), "[scan]").unwrap();
+        std::fs::write(scan.join("tile_000.npy"), "x").unwrap();
+        let claim = Claim {
+            inputs: vec![scan.clone()],
+            force: true,
+        };
+        for out in [scan.clone(), dir.path().to_path_buf()] {
+            let e = format!("{:#}", stage(&out, &claim).err().expect("refused"));
+            assert!(e.contains("the input"), "{e}");
+        }
+        assert_eq!(listing(&scan), ["scan.toml", "tile_000.npy"]);
+        // Beside the input is fine.
+        stage(&dir.path().join("out"), &claim).unwrap().discard();
+    }
+
+    #[test]
+    fn the_current_folder_root_and_home_are_refused() {
+        let forced = Claim {
+            force: true,
+            ..Claim::default()
+        };
+        for out in [Path::new("."), Path::new("/")] {
+            let e = format!("{:#}", check_ours(out, &forced).expect_err("refused"));
+            assert!(e.contains("refusing to use this folder"), "{out:?}: {e}");
+        }
+        if let Some(home) = std::env::var_os("HOME") {
+            assert!(check_ours(Path::new(&home), &forced).is_err());
+        }
     }
 }
