@@ -134,3 +134,43 @@ fn the_finish_node_runs_after_stitching_beside_the_ideal_model() {
     );
     assert!(repo_root().join("launch/graphs/finish.toml").is_file());
 }
+
+#[test]
+fn ctrl_c_stops_the_engine_and_keeps_completed_cycles_marked_partial() {
+    use std::io::{BufRead, BufReader};
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("rough.npy");
+    rough_npy(&input);
+    let out = dir.path().join("fin");
+    let mut c = surfstream();
+    c.args(["finish"])
+        .arg(&input)
+        .args(["--pitch-um", "3", "--patch-um", "90", "--cycles", "3"])
+        .args(["--passes", "150", "--calibrate", "1.272,0.565", "-o"])
+        .arg(&out)
+        .stderr(std::process::Stdio::piped());
+    let mut child = c.spawn().unwrap();
+    let err = child.stderr.take().unwrap();
+    let mut seen = Vec::new();
+    // Wait until the first cycle is done and the second one is running, then Ctrl-C.
+    // Keep reading to the end: a closed pipe would end surfstream by SIGPIPE instead.
+    let mut sent = false;
+    for line in BufReader::new(err).lines().map_while(Result::ok) {
+        seen.push(line.clone());
+        if !sent && line.starts_with("finish: cycle 2/3: pass") {
+            // SAFETY: signalling the child this test started.
+            unsafe {
+                libc::kill(child.id() as i32, libc::SIGINT);
+            }
+            sent = true;
+        }
+    }
+    let status = child.wait().unwrap();
+    assert_eq!(status.code(), Some(130), "{}", seen.join("\n"));
+    let s = read_json(&out.join("finish.json"));
+    assert_eq!(s["partial"], true);
+    assert_eq!(s["cycles_completed"], 1);
+    assert!(out.join("worn.npy").is_file() && out.join("wear.npy").is_file());
+    // The engine of cycle 2 was stopped: its wear was never written.
+    assert!(!out.join("cycle_02/wear.vtk").exists());
+}
