@@ -47,6 +47,25 @@ fn f(v: &Value) -> Option<f64> {
     v.as_f64()
 }
 
+/// The verdict's first line with the time the user waited (`wall_s`: the whole command,
+/// Table 6, x3p and report included) and, beside it, the pipeline's own (run.json).
+pub fn with_wall_time(text: &str, wall_s: f64) -> String {
+    let (first, rest) = text.split_once('\n').unwrap_or((text, ""));
+    let pipeline = first
+        .strip_prefix("surfstream: done in ")
+        .and_then(|t| t.strip_suffix(" s"))
+        .map(str::to_string);
+    let line = match pipeline {
+        Some(p) => format!("surfstream: done in {wall_s:.2} s (pipeline {p} s; then Table 6, x3p and report)"),
+        None => first.to_string(),
+    };
+    if rest.is_empty() {
+        line
+    } else {
+        format!("{line}\n{rest}")
+    }
+}
+
 /// Reads `<out>/run.json` and builds the verdict.
 pub fn from_out_dir(out: &Path, verbose: bool) -> anyhow::Result<Verdict> {
     let path = out.join("run.json");
@@ -104,6 +123,7 @@ pub fn verdict(run: &Value, out: &Path, verbose: bool) -> Verdict {
             list.join(", ")
         );
         let _ = writeln!(s, "  fallback    {line}");
+        let _ = writeln!(s, "  hint        {}", fallback_hint(&fallback, tiles.len()));
         failures.push(format!("fallback: {line}"));
     }
     let _ = writeln!(s, "  outputs     {}", outputs_line(run, out));
@@ -120,6 +140,22 @@ pub fn verdict(run: &Value, out: &Path, verbose: bool) -> Verdict {
         }
     );
     Verdict { text: s, failures }
+}
+
+/// The likely cause when registration placed few tiles: a layout that does not match the
+/// scan (overlaps computed where the fields do not overlap).
+fn fallback_hint(fallback: &[&Value], tiles: usize) -> String {
+    let anchor = fallback.iter().any(|t| t["index"].as_u64() == Some(0));
+    let share = if fallback.len() * 2 >= tiles || anchor {
+        "most tiles (the anchor too) were"
+    } else {
+        "some tiles were"
+    };
+    format!(
+        "{share} not registered: check the layout: a serpentine scan stitched without \
+         --serpentine (or with it, when rows all run one way), a wrong --overlap, or the \
+         scan.toml's positions; few features in the overlaps is the other cause"
+    )
 }
 
 fn tile_name(t: &Value) -> String {

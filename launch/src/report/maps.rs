@@ -32,7 +32,12 @@ pub struct Cut {
 /// One figure: `<figure>` with the SVG and a caption. `reference` says what the heights are
 /// relative to.
 pub fn figure(s: &Surface, title: &str, reference: &str, cut: Option<&Cut>) -> String {
-    let values = s.to_f32();
+    // y up, as a surface is drawn (row 0 = smallest y at the bottom): the image's rows are
+    // stored top first, so they go in reversed.
+    let values: Vec<f32> = {
+        let v = s.to_f32();
+        v.chunks(s.cols.max(1)).rev().flatten().copied().collect()
+    };
     let Some((lo, hi)) = robust_range_um(&values) else {
         return format!(
             "<figure class=\"map\"><figcaption><b>{}</b>: no measured point</figcaption></figure>",
@@ -107,7 +112,7 @@ pub fn figure(s: &Surface, title: &str, reference: &str, cut: Option<&Cut>) -> S
         t = esc(title)
     );
 
-    // Axes: x along the bottom, y down the left, from the top-left corner.
+    // Axes: x along the bottom, y up the left, from the bottom-left corner (y up).
     let (xt, xd) = ticks(0.0, w_um / div, 8);
     for v in &xt {
         let x = LEFT + v * div / w_um * mw;
@@ -129,7 +134,7 @@ pub fn figure(s: &Surface, title: &str, reference: &str, cut: Option<&Cut>) -> S
     );
     let (yt, yd) = ticks(0.0, h_um / div, 8);
     for v in &yt {
-        let y = TOP + v * div / h_um * mh;
+        let y = TOP + mh - v * div / h_um * mh;
         let _ = write!(
             g,
             "<line x1=\"{x0:.1}\" y1=\"{y:.1}\" x2=\"{LEFT}\" y2=\"{y:.1}\" stroke=\"#333\"/>\
@@ -172,7 +177,7 @@ pub fn figure(s: &Surface, title: &str, reference: &str, cut: Option<&Cut>) -> S
     );
 
     if let Some(cut) = cut {
-        let y = TOP + (cut.row as f64 + 0.5) / s.rows as f64 * mh;
+        let y = TOP + mh - (cut.row as f64 + 0.5) / s.rows as f64 * mh;
         let _ = write!(
             g,
             "<line x1=\"{LEFT}\" y1=\"{y:.1}\" x2=\"{:.1}\" y2=\"{y:.1}\" stroke=\"#fff\" \
@@ -226,7 +231,7 @@ pub fn figure(s: &Surface, title: &str, reference: &str, cut: Option<&Cut>) -> S
     );
 
     let caption = format!(
-        "<b>{}</b>: {} x {} px (rows x cols), {} x {} at {} pitch; heights {}. \
+        "<b>{}</b>: {} x {} px (rows x cols), {} x {} at {} pitch, y up (row 0 at the bottom); heights {}. \
          Colour scale clipped to the {ROBUST_LOW_PERCENT} / {ROBUST_HIGH_PERCENT} percentiles \
          of the measured heights, {} .. {}: {}&nbsp;% of the points lie below and {}&nbsp;% above \
          and take the end colours. Grey: not measured ({} points, {}&nbsp;%). {}\

@@ -28,6 +28,7 @@ use std::io::Write as _;
 use std::path::Path;
 
 use anyhow::{anyhow, Context, Result};
+use rayon::prelude::*;
 use serde_json::Value;
 
 use html::{esc, um};
@@ -110,50 +111,62 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
          <a href=\"#latencies\">latencies</a></nav>",
         esc(name)
     );
-    h.push_str(&summary::section(run, &surfaces));
-    h.push_str(&summary::key_parameters(&surfaces));
-    h.push_str(&summary::outputs(run));
-    for p in &surfaces.problems {
-        let _ = write!(h, "<p class=\"bad\">Not shown: {}</p>", esc(p));
-    }
-    maps_section(&mut h, &surfaces);
-    if let Some(model) = surfaces.pooled.as_ref().or(surfaces.panorama.as_ref()) {
-        if let Some(f) = view3d::figure(
+    // The sections are independent: computed in parallel (maps, 3-D view, profile,
+    // distribution and PSD are the costly ones), joined in page order.
+    let maps = || {
+        let mut m = String::new();
+        maps_section(&mut m, &surfaces);
+        m
+    };
+    let view = || {
+        let model = surfaces.pooled.as_ref().or(surfaces.panorama.as_ref())?;
+        let f = view3d::figure(
             model,
             if model.name == "pooled" {
                 "pooled map (the surface the STL meshes)"
             } else {
                 "panorama"
             },
-        ) {
-            let _ = writeln!(
-                h,
-                "<section id=\"view3d\"><h2>3-D view of the model</h2>{f}</section>"
-            );
-        }
-    }
-    if let Some(f) = profile::section(&surfaces) {
-        let _ = writeln!(
-            h,
-            "<section id=\"profile\"><h2>Profile cut</h2>{f}</section>"
-        );
-    }
-    if let Some(p) = &surfaces.panorama {
+        )?;
+        Some(format!(
+            "<section id=\"view3d\"><h2>3-D view of the model</h2>{f}</section>\n"
+        ))
+    };
+    let profile = || {
+        profile::section(&surfaces).map(|f| {
+            format!("<section id=\"profile\"><h2>Profile cut</h2>{f}</section>\n")
+        })
+    };
+    let distribution = || {
+        let p = surfaces.panorama.as_ref()?;
         let level = run["stages"]
             .as_object()
             .and_then(|s| s.values().find_map(|v| v["final"]["level"].as_u64()));
         let scale = level.map(|l| (l, 2f64.powi(l as i32) * p.pitch_x_um / p.block as f64));
-        let _ = writeln!(
-            h,
+        Some(format!(
             "<section id=\"distribution\"><h2>Height distribution and power spectral density \
-             (panorama)</h2><div class=\"pair\">{}{}</div></section>",
+             (panorama)</h2><div class=\"pair\">{}{}</div></section>\n",
             surfaces
                 .histogram
                 .as_ref()
                 .and_then(|hist| charts::distribution(p, hist))
                 .unwrap_or_default(),
             charts::psd(p, scale).unwrap_or_default()
-        );
+        ))
+    };
+    let ((maps, view), (profile, distribution)) = rayon::join(
+        || rayon::join(maps, view),
+        || rayon::join(profile, distribution),
+    );
+    h.push_str(&summary::section(run, &surfaces));
+    h.push_str(&summary::key_parameters(&surfaces));
+    h.push_str(&summary::outputs(run));
+    for p in &surfaces.problems {
+        let _ = write!(h, "<p class=\"bad\">Not shown: {}</p>", esc(p));
+    }
+    h.push_str(&maps);
+    for section in [view, profile, distribution].into_iter().flatten() {
+        h.push_str(&section);
     }
     h.push_str(&table6::section(&run["deviation"]));
     h.push_str(&details::tile_layout(run));
@@ -204,7 +217,7 @@ fn maps_section(h: &mut String, s: &Surfaces) {
             None,
         ),
     ]
-    .into_iter()
+    .into_par_iter()
     .filter_map(|(m, title, r, cut)| Some(maps::figure(m?, title, r, cut)))
     .collect();
     if !figures.is_empty() {
