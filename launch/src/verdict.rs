@@ -56,7 +56,9 @@ pub fn with_wall_time(text: &str, wall_s: f64) -> String {
         .and_then(|t| t.strip_suffix(" s"))
         .map(str::to_string);
     let line = match pipeline {
-        Some(p) => format!("surfstream: done in {wall_s:.2} s (pipeline {p} s; then Table 6, x3p and report)"),
+        Some(p) => format!(
+            "surfstream: done in {wall_s:.2} s (pipeline {p} s; then Table 6, x3p and report)"
+        ),
         None => first.to_string(),
     };
     if rest.is_empty() {

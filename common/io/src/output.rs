@@ -20,8 +20,8 @@ use surfstream_core::raster::RasterView;
 
 use crate::formats::{Metadata, Surface};
 use crate::npy::{write_npy_abs_f64, write_npy_f32, write_npy_f64, NpyRowWriter};
-use crate::sidecar::{remove_stale_sidecar, write_sidecar, NpyGeometry};
 use crate::preview::{write_preview_png, PreviewBuilder, PreviewOptions};
+use crate::sidecar::{remove_stale_sidecar, write_sidecar, NpyGeometry};
 
 /// How a surface's numbers go into its `.npy`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -87,7 +87,9 @@ pub fn remove_stale_sidecar(npy: &Path) -> Result<()> {
     match std::fs::remove_file(&path) {
         Ok(()) => Ok(()),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
-        Err(e) => Err(e).with_context(|| format!("{}: cannot remove the stale sidecar", path.display())),
+        Err(e) => {
+            Err(e).with_context(|| format!("{}: cannot remove the stale sidecar", path.display()))
+        }
     }
 }
 
@@ -100,8 +102,13 @@ pub fn read_sidecar(npy: &Path) -> Result<Option<NpyGeometry>> {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
         Err(e) => return Err(e).with_context(|| format!("{}: cannot read", path.display())),
     };
-    let doc: Value = serde_json::from_str(&text)
-        .with_context(|| format!("{}: not JSON (the pitch sidecar of {})", path.display(), npy.display()))?;
+    let doc: Value = serde_json::from_str(&text).with_context(|| {
+        format!(
+            "{}: not JSON (the pitch sidecar of {})",
+            path.display(),
+            npy.display()
+        )
+    })?;
     let number = |v: Option<&Value>, field: &str| -> Result<f64> {
         match v.and_then(Value::as_f64) {
             Some(x) if x.is_finite() => Ok(x),
@@ -117,7 +124,10 @@ pub fn read_sidecar(npy: &Path) -> Result<Option<NpyGeometry>> {
     let pitch_y_um = number(pitch.and_then(|p| p.get("y")), "pitch_um.y")?;
     for (field, v) in [("pitch_um.x", pitch_x_um), ("pitch_um.y", pitch_y_um)] {
         if v <= 0.0 {
-            bail!("{}: {field} = {v}: expected a positive pitch in um", path.display());
+            bail!(
+                "{}: {field} = {v}: expected a positive pitch in um",
+                path.display()
+            );
         }
     }
     if let Some(u) = doc.get("height_unit") {
@@ -170,8 +180,10 @@ mod tests {
         assert!(bad("{").contains("not JSON"));
         assert!(bad(r#"{"pitch_um": {"x": 1}}"#).contains("pitch_um.y: expected a finite number"));
         assert!(bad(r#"{"pitch_um": {"x": 1, "y": -1}}"#).contains("pitch_um.y = -1"));
-        assert!(bad(r#"{"pitch_um": {"x": 1, "y": 1}, "height_unit": "nm"}"#)
-            .contains("height_unit = \"nm\""));
+        assert!(
+            bad(r#"{"pitch_um": {"x": 1, "y": 1}, "height_unit": "nm"}"#)
+                .contains("height_unit = \"nm\"")
+        );
         assert!(write_sidecar(
             &npy,
             &NpyGeometry {

@@ -198,8 +198,8 @@ mod tests {
             }
         }
         let (_, len, at) = tags[&270];
-        let desc = String::from_utf8(bytes[at as usize..at as usize + len as usize - 1].to_vec())
-            .unwrap();
+        let desc =
+            String::from_utf8(bytes[at as usize..at as usize + len as usize - 1].to_vec()).unwrap();
         (rows, cols, v, desc)
     }
 
@@ -208,7 +208,13 @@ mod tests {
         let d = tempfile::tempdir().unwrap();
         for (rows, cols) in [(3usize, 2usize), (700, 90)] {
             let heights: Vec<f64> = (0..rows * cols)
-                .map(|i| if i == 1 { f64::NAN } else { i as f64 * 0.25 - 7.0 })
+                .map(|i| {
+                    if i == 1 {
+                        f64::NAN
+                    } else {
+                        i as f64 * 0.25 - 7.0
+                    }
+                })
                 .collect();
             let s = Surface {
                 width: cols,

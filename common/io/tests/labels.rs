@@ -14,7 +14,13 @@ fn surface(rows: usize, cols: usize, pitch: (f64, f64)) -> Surface {
         pitch_x_um: pitch.0,
         pitch_y_um: pitch.1,
         heights_um: (0..rows * cols)
-            .map(|i| if i == 3 { f64::NAN } else { (i as f64 * 0.37).sin() * 2.0 + 40.0 })
+            .map(|i| {
+                if i == 3 {
+                    f64::NAN
+                } else {
+                    (i as f64 * 0.37).sin() * 2.0 + 40.0
+                }
+            })
             .collect(),
         metadata: Metadata {
             format: "x3p".into(),
@@ -44,7 +50,10 @@ fn npy_keeps_its_pitch_in_a_sidecar_and_forgets_a_stale_one() {
     assert!(d.path().join("a.npy.json").is_file());
     let back = read_surface(&p).unwrap();
     assert!(back.metadata.pitch_known);
-    assert_eq!((back.pitch_x_um, back.pitch_y_um), (s.pitch_x_um, s.pitch_y_um));
+    assert_eq!(
+        (back.pitch_x_um, back.pitch_y_um),
+        (s.pitch_x_um, s.pitch_y_um)
+    );
     assert_eq!(back.metadata.stage_position_um, Some([100.0, -20.0]));
     assert_eq!(back.metadata.extra["pitch_from"], "a.npy.json");
     same_heights(&back.heights_um, &s.heights_um, 0.0);
@@ -56,18 +65,32 @@ fn npy_keeps_its_pitch_in_a_sidecar_and_forgets_a_stale_one() {
     assert!(!back.metadata.pitch_known);
     assert_eq!(back.pitch_x_um, 1.0);
     // A sidecar that says nothing usable is an error naming it, not a silent 1 um.
-    std::fs::write(d.path().join("a.npy.json"), r#"{"pitch_um": {"x": "half"}}"#).unwrap();
-    let e = read_surface(&p).unwrap_err().to_string();
+    std::fs::write(
+        d.path().join("a.npy.json"),
+        r#"{"pitch_um": {"x": "half"}}"#,
+    )
+    .unwrap();
+    let e = format!("{:#}", read_surface(&p).unwrap_err());
     assert!(e.contains("a.npy.json: pitch_um.x"), "{e}");
 }
 
 /// Gwyddion's "ASCII data matrix" export with the informational header, as Gwyddion writes
 /// it: `# Channel:`, `# Width:`, `# Height:` (value and unit), `# Value units:`, then one
 /// tab-separated line per row, values in the value unit.
-fn gwyddion_text(rows: usize, cols: usize, width: &str, height: &str, unit: &str, z: &[f64]) -> String {
-    let mut t = format!("# Channel: Height\n# Width: {width}\n# Height: {height}\n# Value units: {unit}\n");
+fn gwyddion_text(
+    rows: usize,
+    cols: usize,
+    width: &str,
+    height: &str,
+    unit: &str,
+    z: &[f64],
+) -> String {
+    let mut t =
+        format!("# Channel: Height\n# Width: {width}\n# Height: {height}\n# Value units: {unit}\n");
     for r in 0..rows {
-        let line: Vec<String> = (0..cols).map(|c| format!("{:e}", z[r * cols + c])).collect();
+        let line: Vec<String> = (0..cols)
+            .map(|c| format!("{:e}", z[r * cols + c]))
+            .collect();
         t.push_str(&line.join("\t"));
         t.push('\n');
     }
@@ -81,7 +104,11 @@ fn gwyddion_text_export_is_a_grid_with_its_pitch_and_unit() {
     let (rows, cols) = (9, 12);
     let z_m: Vec<f64> = (0..rows * cols).map(|i| (i as f64 - 50.0) * 1e-8).collect();
     let p = d.path().join("export.txt");
-    std::fs::write(&p, gwyddion_text(rows, cols, "12.34 µm", "5.670 µm", "m", &z_m)).unwrap();
+    std::fs::write(
+        &p,
+        gwyddion_text(rows, cols, "12.34 µm", "5.670 µm", "m", &z_m),
+    )
+    .unwrap();
     let s = read_surface(&p).unwrap();
     assert_eq!((s.height, s.width), (rows, cols));
     assert_eq!(s.invalid_count(), 0);
@@ -102,15 +129,23 @@ fn gwyddion_text_export_is_a_grid_with_its_pitch_and_unit() {
     assert!((s.heights_um[5] - 0.05).abs() < 1e-12);
     // Without a value unit, or with a unit that is not a length: refused, not guessed.
     std::fs::write(&p, "# Width: 1 um\n# Height: 1 um\n1 2\n3 4\n").unwrap();
-    assert!(read_surface(&p).unwrap_err().to_string().contains("Value units"));
-    std::fs::write(&p, "# Width: 1 um\n# Height: 1 um\n# Value units: V\n1 2\n3 4\n").unwrap();
-    assert!(read_surface(&p).unwrap_err().to_string().contains("not a height map"));
+    assert!(format!("{:#}", read_surface(&p).unwrap_err()).contains("Value units"));
+    std::fs::write(
+        &p,
+        "# Width: 1 um\n# Height: 1 um\n# Value units: V\n1 2\n3 4\n",
+    )
+    .unwrap();
+    assert!(format!("{:#}", read_surface(&p).unwrap_err()).contains("not a height map"));
     // Ragged rows name the line.
-    std::fs::write(&p, "# Width: 1 um\n# Height: 1 um\n# Value units: m\n1 2\n3\n").unwrap();
-    assert!(read_surface(&p).unwrap_err().to_string().contains("line 5"));
+    std::fs::write(
+        &p,
+        "# Width: 1 um\n# Height: 1 um\n# Value units: m\n1 2\n3\n",
+    )
+    .unwrap();
+    assert!(format!("{:#}", read_surface(&p).unwrap_err()).contains("line 5"));
     // A matrix without the header is refused (pitch and unit would be guesses).
     std::fs::write(&p, "1 2 3 4\n5 6 7 8\n").unwrap();
-    let e = read_surface(&p).unwrap_err().to_string();
+    let e = format!("{:#}", read_surface(&p).unwrap_err());
     assert!(e.contains("a matrix of heights"), "{e}");
 }
 
@@ -121,7 +156,10 @@ fn xyz_says_it_assumed_micrometres() {
     std::fs::write(&p, "0 0 1\n1 0 2\n0 1 3\n1 1 4\n").unwrap();
     let s = read_surface(&p).unwrap();
     assert!(
-        s.metadata.warnings.iter().any(|w| w.contains("taken as micrometres")),
+        s.metadata
+            .warnings
+            .iter()
+            .any(|w| w.contains("taken as micrometres")),
         "{:?}",
         s.metadata.warnings
     );
@@ -131,7 +169,10 @@ fn x3p_main_xml(path: &Path) -> String {
     let f = std::fs::File::open(path).unwrap();
     let mut z = zip::ZipArchive::new(f).unwrap();
     let mut xml = String::new();
-    z.by_name("main.xml").unwrap().read_to_string(&mut xml).unwrap();
+    z.by_name("main.xml")
+        .unwrap()
+        .read_to_string(&mut xml)
+        .unwrap();
     xml
 }
 
@@ -169,18 +210,29 @@ fn x3p_record2_is_iso8601_and_claims_nothing_it_does_not_know() {
     assert_eq!(tag(&xml, "Manufacturer"), "Sensofar Sneox1");
     // The calibration date is not the measurement's.
     assert_ne!(tag(&xml, "CalibrationDate"), tag(&xml, "Date"));
-    assert!(tag(&xml, "Comment").contains("CalibrationDate not known"), "{xml}");
+    assert!(
+        tag(&xml, "Comment").contains("CalibrationDate not known"),
+        "{xml}"
+    );
     let back = read_surface(&p).unwrap();
     assert_eq!(back.metadata.instrument.as_deref(), Some("Sensofar Sneox1"));
     assert_eq!(back.metadata.serial, None);
-    // A date that is not ISO 8601 ("04/03/2021": day or month?) is not guessed: the time of
-    // writing, and the source's text in the comment.
+    // A date that is not ISO 8601 ("04/03/2021": day or month?) is not guessed: the
+    // schema's value stands for unknown, said in the comment with the source's text.
     s.metadata.date = Some("04/03/2021 10:23".into());
     write_surface(&p, &s).unwrap();
     let xml = x3p_main_xml(&p);
     assert!(is_iso8601(tag(&xml, "Date")), "{}", tag(&xml, "Date"));
-    assert!(tag(&xml, "Comment").contains("04/03/2021 10:23"));
+    let comment = tag(&xml, "Comment");
+    assert!(
+        comment.contains("Date not known") && comment.contains("04/03/2021 10:23"),
+        "{comment}"
+    );
     assert!(is_iso8601(tag(&xml, "CalibrationDate")));
+    // The same surface gives the same file (no time of writing in it).
+    let first = std::fs::read(&p).unwrap();
+    write_surface(&p, &s).unwrap();
+    assert!(first == std::fs::read(&p).unwrap());
 }
 
 #[test]
@@ -199,7 +251,69 @@ fn gsf_written_reads_back_by_gwyddions_layout() {
     let back = read_surface(&p).unwrap();
     assert_eq!((back.height, back.width), (5, 7));
     assert!((back.pitch_x_um - 0.25).abs() < 1e-9 && (back.pitch_y_um - 0.75).abs() < 1e-9);
-    assert_eq!(back.metadata.stage_position_um.map(|p| p.map(|v| (v * 1e6).round() / 1e6)), Some([12.5, -3.0]));
+    assert_eq!(
+        back.metadata
+            .stage_position_um
+            .map(|p| p.map(|v| (v * 1e6).round() / 1e6)),
+        Some([12.5, -3.0])
+    );
     // float32 of metres: about 1e-7 relative.
     same_heights(&back.heights_um, &s.heights_um, 1e-5);
+}
+
+mod support;
+
+/// .tif by tifffile and .gsf by Gwyddion's published layout, in Python: heights, shape and
+/// pitch as written.
+#[test]
+fn float_tiff_and_gsf_read_back_by_an_independent_reader() {
+    let d = tempfile::tempdir().unwrap();
+    let s = surface(37, 53, (0.127656509837346, 0.314582113527746));
+    let (tif, gsf, npy) = (
+        d.path().join("s.tif"),
+        d.path().join("s.gsf"),
+        d.path().join("s.npy"),
+    );
+    for p in [&tif, &gsf, &npy] {
+        write_surface(p, &s).unwrap();
+    }
+    let script = r#"
+import json, sys, numpy as np, tifffile
+tif, gsf, npy = sys.argv[1:4]
+ref = np.load(npy)
+with tifffile.TiffFile(tif) as t:
+    p = t.pages[0]
+    a = p.asarray()
+    desc = json.loads(p.description)
+    xr = p.tags["XResolution"].value
+assert a.dtype == np.float32 and a.shape == ref.shape, (a.dtype, a.shape)
+assert np.array_equal(np.isnan(a), np.isnan(ref))
+assert np.nanmax(np.abs(a - ref)) < 1e-5
+assert abs(desc["pitch_um"]["y"] - 0.314582113527746) < 1e-15
+assert abs(xr[0] / xr[1] - 1e4 / 0.127656509837346) < 1e-3
+b = open(gsf, "rb").read()
+nul = b.index(b"\0")
+hdr = b[:nul].decode().split("\n")
+assert hdr[0] == "Gwyddion Simple Field 1.0"
+kv = dict(l.split(" = ", 1) for l in hdr[1:] if l.strip())
+start = (nul // 4 + 1) * 4
+xres, yres = int(kv["XRes"]), int(kv["YRes"])
+z = np.frombuffer(b[start:], "<f4").reshape(yres, xres) * 1e6
+assert (yres, xres) == ref.shape and kv["ZUnits"] == "m" and kv["XYUnits"] == "m"
+assert abs(float(kv["XReal"]) / xres * 1e6 - 0.127656509837346) < 1e-9
+assert np.array_equal(np.isnan(z), np.isnan(ref)) and np.nanmax(np.abs(z - ref)) < 1e-4
+print("ok")
+"#;
+    let out = std::process::Command::new(support::python())
+        .arg("-c")
+        .arg(script)
+        .args([&tif, &gsf, &npy])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success() && String::from_utf8_lossy(&out.stdout).trim() == "ok",
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
 }

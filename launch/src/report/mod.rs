@@ -83,7 +83,8 @@ ul.files{columns:2;font-size:14px;padding-left:20px}ul.files li{break-inside:avo
 const SCRIPT: &str = "(function(){\
 var box=document.getElementById('lightbox'),img=box.querySelector('img'),cap=box.querySelector('p');\
 function close(){box.hidden=true;img.removeAttribute('src');}\
-function open(el){img.src=el.getAttribute('href')||el.getAttribute('src');\
+function open(el){var inl=el.getAttribute('href')||el.getAttribute('src'),full=el.getAttribute('data-full');\
+img.onerror=function(){if(full&&img.getAttribute('src')===full){img.src=inl;}};img.src=full||inl;\
 cap.textContent=(el.getAttribute('data-title')||'')+': full size, one screen pixel per map pixel (click or Esc to close)';box.hidden=false;}\
 document.querySelectorAll('.zoomable').forEach(function(el){el.addEventListener('click',function(){open(el);});});\
 box.addEventListener('click',close);\
@@ -115,7 +116,7 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
     // distribution and PSD are the costly ones), joined in page order.
     let maps = || {
         let mut m = String::new();
-        maps_section(&mut m, &surfaces);
+        maps_section(&mut m, &surfaces, out);
         m
     };
     let view = || {
@@ -133,9 +134,8 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
         ))
     };
     let profile = || {
-        profile::section(&surfaces).map(|f| {
-            format!("<section id=\"profile\"><h2>Profile cut</h2>{f}</section>\n")
-        })
+        profile::section(&surfaces)
+            .map(|f| format!("<section id=\"profile\"><h2>Profile cut</h2>{f}</section>\n"))
     };
     let distribution = || {
         let p = surfaces.panorama.as_ref()?;
@@ -182,7 +182,7 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
 }
 
 /// The height maps: panorama (with the profile cut marked), datum, roughness, pooled map.
-fn maps_section(h: &mut String, s: &Surfaces) {
+fn maps_section(h: &mut String, s: &Surfaces, out: &Path) {
     let reference = format!(
         "relative to the panorama's mean height ({})",
         um(s.reference_um)
@@ -218,7 +218,7 @@ fn maps_section(h: &mut String, s: &Surfaces) {
         ),
     ]
     .into_par_iter()
-    .filter_map(|(m, title, r, cut)| Some(maps::figure(m?, title, r, cut)))
+    .filter_map(|(m, title, r, cut)| Some(maps::figure(m?, title, r, cut, Some(out))))
     .collect();
     if !figures.is_empty() {
         let _ = writeln!(
@@ -265,5 +265,92 @@ mod tests {
         assert!(h.contains("a → b"));
         assert!(!h.contains("t_acquired_ns"), "internal fields are hidden");
         assert!(h.contains("<td>0.990 µm</td>"));
+    }
+
+    /// Issue 26: one labelled set of parameters (which surface, not levelled) with the Sk
+    /// family, the mesh's levelled fidelity labelled as such, maps y up, the 3-D view with
+    /// axes and a z scale, the tile caption as y x x, and big maps inline at display size
+    /// with the full-size file beside the page.
+    #[test]
+    fn labels_say_which_surface_levelling_and_axes() {
+        let d = tempfile::tempdir().unwrap();
+        let (rows, cols) = (900, 1000);
+        let z: Vec<f64> = (0..rows * cols)
+            .map(|i| {
+                ((i % cols) as f64 * 0.05).sin() * 2.0 + ((i / cols) as f64 * 0.03).cos() + 50.0
+            })
+            .collect();
+        surfstream_io::npy::write_npy_f64(d.path().join("panorama.npy"), &z, rows, cols).unwrap();
+        let rough: Vec<f32> = z.iter().map(|v| ((v * 7.0).sin() * 0.1) as f32).collect();
+        surfstream_io::npy::write_npy_f32(d.path().join("roughness.npy"), &rough, rows, cols)
+            .unwrap();
+        let pooled: Vec<f64> = z
+            .iter()
+            .step_by(4)
+            .take((rows / 4) * (cols / 4))
+            .copied()
+            .collect();
+        surfstream_io::npy::write_npy_f64(d.path().join("pooled.npy"), &pooled, rows / 4, cols / 4)
+            .unwrap();
+        let run = serde_json::json!({
+            "graph": {"name": "t", "file": "g.toml"}, "mode": "run", "elapsed_s": 1.0,
+            "scan": {"source": "simulated", "rows": 1, "cols": 2, "pitch_x_um": 0.5, "pitch_y_um": 0.5,
+                     "tile_width_px": 700, "tile_height_px": 1100},
+            "tiles": [{"index": 0, "stage_x_um": 0.0, "stage_y_um": 0.0, "x_um": 0.0, "y_um": 0.0, "placed_by": "registration"},
+                      {"index": 1, "stage_x_um": 300.0, "stage_y_um": 0.0, "x_um": 300.0, "y_um": 0.0, "placed_by": "registration"}],
+            "stages": {"mesher": {"triangles": 10, "grid_px": [325, 275],
+                "fidelity": {"field": {"sq_um": 1.0}, "mesh": {"sq_um": 0.99}}}},
+        });
+        let h = render(&run, d.path()).unwrap();
+        assert!(h.contains("Key parameters (ISO 25178-2): mean removed, not levelled"));
+        assert!(h.contains("<b>no levelling</b>"));
+        for p in ["Sk", "Spk", "Svk", "Smr1", "Smr2"] {
+            assert!(
+                h.contains(&format!("<td class=\"k\"><b>{p}</b></td>")),
+                "{p}"
+            );
+        }
+        assert!(h.contains("Fidelity of the mesh (pooled map, levelled)"));
+        assert!(h.contains("<td>275 x 325</td>"), "mesh grid as rows x cols");
+        assert!(h.contains("y up (row 0 at the bottom)"));
+        assert!(h.contains("µm (y x x), y down as the stage moves"));
+        // The 3-D view: axes and a z scale over the render.
+        assert!(h.contains(">x (µm)</text>") && h.contains(">y (µm)</text>") && h.contains(">z "));
+        // Maps over 800 px: inline near display size, full size in report_maps/.
+        assert!(h.contains("data-full=\"report_maps/panorama.png\""));
+        assert!(d.path().join("report_maps/panorama.png").is_file());
+        assert!(h.contains("the file report_maps/panorama.png beside this page"));
+        assert!(
+            !h.contains("data-full=\"report_maps/pooled.png\""),
+            "small maps stay inline"
+        );
+    }
+
+    /// Measures writing report.html for an existing run folder (no assertion on time):
+    /// `SURFSTREAM_REPORT_DIR=out/demo cargo test --release -p surfstream report_write_time
+    /// -- --ignored --nocapture` (docs/outputs.md has the numbers).
+    #[test]
+    #[ignore]
+    fn report_write_time() {
+        let Some(dir) = std::env::var_os("SURFSTREAM_REPORT_DIR") else {
+            panic!("set SURFSTREAM_REPORT_DIR to a run's output folder");
+        };
+        let dir = std::path::PathBuf::from(dir);
+        let mut times = Vec::new();
+        for _ in 0..5 {
+            let t0 = std::time::Instant::now();
+            write(&dir).unwrap();
+            times.push(t0.elapsed().as_secs_f64());
+        }
+        times.sort_by(f64::total_cmp);
+        let size = std::fs::metadata(dir.join("report.html")).unwrap().len();
+        println!(
+            "report.html of {}: {:.3} s best, {:.3} s median of 5; {:.2} MB; {} threads",
+            dir.display(),
+            times[0],
+            times[2],
+            size as f64 / 1e6,
+            rayon::current_num_threads()
+        );
     }
 }

@@ -266,9 +266,24 @@ fn verdict(h: &mut String, run: &Value) {
 pub fn key_parameters(s: &Surfaces) -> String {
     // At full resolution, streamed from the files (Surfaces::load).
     let cols: Vec<(&str, Option<Params>, Option<FunctionalParams>)> = [
-        ("panorama (measured)", s.panorama.as_ref(), s.params[0], s.functional[0]),
-        ("roughness", s.roughness.as_ref(), s.params[1], s.functional[1]),
-        ("pooled map (model)", s.pooled.as_ref(), s.params[2], s.functional[2]),
+        (
+            "panorama (measured)",
+            s.panorama.as_ref(),
+            s.params[0],
+            s.functional[0],
+        ),
+        (
+            "roughness",
+            s.roughness.as_ref(),
+            s.params[1],
+            s.functional[1],
+        ),
+        (
+            "pooled map (model)",
+            s.pooled.as_ref(),
+            s.params[2],
+            s.functional[2],
+        ),
     ]
     .into_iter()
     .filter_map(|(n, m, p, f)| m.map(|_| (n, p, f)))
@@ -288,7 +303,13 @@ pub fn key_parameters(s: &Surfaces) -> String {
         ("Sku", "kurtosis", "", 3, None),
         ("Sdq", "root mean square gradient", "", 4, None),
         ("Sdr", "developed interfacial area ratio", "%", 2, None),
-        ("Sk", "core height (Sk family, ISO 25178-2)", "µm", 3, Some(|f| f.sk)),
+        (
+            "Sk",
+            "core height (Sk family, ISO 25178-2)",
+            "µm",
+            3,
+            Some(|f| f.sk),
+        ),
         ("Spk", "reduced peak height", "µm", 3, Some(|f| f.spk)),
         ("Svk", "reduced valley depth", "µm", 3, Some(|f| f.svk)),
         ("Smr1", "peak material ratio", "%", 2, Some(|f| f.smr1)),
@@ -345,6 +366,7 @@ pub fn outputs(run: &Value) -> String {
             "truth.json" => "simulated truth (true tile origins)",
             "run.json" => "everything on this page as numbers",
             f if f.ends_with(".png") => "preview image",
+            f if f.ends_with(".npy.json") => "the pitch of the .npy beside it (sidecar)",
             f if f.starts_with("logs/") => "a process's stderr",
             f if f.starts_with("nodes/") => "a node's report",
             _ => "",
@@ -358,7 +380,11 @@ pub fn outputs(run: &Value) -> String {
             esc(f),
             esc(describe(f))
         );
-        if f.contains('/') || f.ends_with(".png") || f == "graph.resolved.json" {
+        if f.contains('/')
+            || f.ends_with(".png")
+            || f.ends_with(".npy.json")
+            || f == "graph.resolved.json"
+        {
             other.push_str(&link);
         } else {
             main.push_str(&link);

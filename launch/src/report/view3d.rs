@@ -16,8 +16,8 @@ use super::html::{base64, esc, fixed, length, png_rgb};
 use super::surfaces::Surface;
 
 /// Output size, px.
-const WIDTH: usize = 1200;
-const HEIGHT: usize = 700;
+const WIDTH: usize = 960;
+const HEIGHT: usize = 560;
 /// Supersampling factor.
 const SS: usize = 2;
 /// Longest side of the grid that is drawn (larger maps are block averaged).
@@ -269,14 +269,22 @@ pub fn render(s: &Surface) -> Option<Render> {
             }
         }
     }
-    // Axes along the base's front and right edges, and a z scale bar at the front-left
+    // Axes along the base's front and left edges, and a z scale bar at the front-left
     // corner, in output pixels.
     let px = |x: f64, y: f64, zz: f64| {
         let (u, v, _) = screen(x, y, zz);
         (u / SS as f64, v / SS as f64)
     };
     let mut overlay = String::new();
-    let axis = |o: &mut String, a: (f64, f64), b: (f64, f64), label: &str, ticks_um: &[(f64, (f64, f64))], dy: f64| {
+    // Tick labels sit outside the block: below the front (x) edge, left of the left (y)
+    // edge, the two visible base edges; their shared corner is labelled once (by x).
+    let axis = |o: &mut String,
+                a: (f64, f64),
+                b: (f64, f64),
+                label: &str,
+                ticks_um: &[(f64, (f64, f64))],
+                off: (f64, f64),
+                anchor: &str| {
         let _ = write!(
             o,
             "<line x1=\"{:.1}\" y1=\"{:.1}\" x2=\"{:.1}\" y2=\"{:.1}\" stroke=\"#222\" stroke-width=\"1.5\"/>",
@@ -285,32 +293,48 @@ pub fn render(s: &Surface) -> Option<Render> {
         for (v, p) in ticks_um {
             let _ = write!(
                 o,
-                "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"2.5\" fill=\"#222\"/><text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\" text-anchor=\"middle\">{}</text>",
+                "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"2.5\" fill=\"#222\"/><text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\" text-anchor=\"{anchor}\">{}</text>",
                 p.0,
                 p.1,
-                p.0,
-                p.1 + dy,
+                p.0 + off.0,
+                p.1 + off.1,
                 fixed(*v, if *v >= 100.0 { 0 } else { 1 })
             );
         }
         let (mx, my) = ((a.0 + b.0) / 2.0, (a.1 + b.1) / 2.0);
         let _ = write!(
             o,
-            "<text x=\"{:.1}\" y=\"{:.1}\" class=\"axis\" text-anchor=\"middle\">{label}</text>",
-            mx,
-            my + 2.2 * dy
+            "<text x=\"{:.1}\" y=\"{:.1}\" class=\"axis\" text-anchor=\"{anchor}\">{label}</text>",
+            mx + 2.2 * off.0,
+            my + 2.2 * off.1
         );
     };
     let xs: Vec<(f64, (f64, f64))> = [0.0, 0.5, 1.0]
         .iter()
         .map(|f| (f * w_um, px(f * w_um, 0.0, base_z)))
         .collect();
-    axis(&mut overlay, px(0.0, 0.0, base_z), px(w_um, 0.0, base_z), "x (µm)", &xs, 16.0);
-    let ys: Vec<(f64, (f64, f64))> = [0.0, 0.5, 1.0]
+    axis(
+        &mut overlay,
+        px(0.0, 0.0, base_z),
+        px(w_um, 0.0, base_z),
+        "x (µm)",
+        &xs,
+        (0.0, 16.0),
+        "middle",
+    );
+    let ys: Vec<(f64, (f64, f64))> = [0.5, 1.0]
         .iter()
-        .map(|f| (f * h_um, px(w_um, f * h_um, base_z)))
+        .map(|f| (f * h_um, px(0.0, f * h_um, base_z)))
         .collect();
-    axis(&mut overlay, px(w_um, 0.0, base_z), px(w_um, h_um, base_z), "y (µm)", &ys, 16.0);
+    axis(
+        &mut overlay,
+        px(0.0, 0.0, base_z),
+        px(0.0, h_um, base_z),
+        "y (µm)",
+        &ys,
+        (-10.0, 10.0),
+        "end",
+    );
     // z: a bar of a round height, drawn at the exaggerated scale, labelled in true µm.
     let z_bar = round2((hi - lo) / 2.0);
     if z_bar.is_finite() && z_bar > 0.0 {
@@ -343,7 +367,7 @@ pub fn figure(s: &Surface, what: &str) -> Option<String> {
     let mut f = String::new();
     let _ = write!(
         f,
-        "<figure class=\"wide\"><div style=\"position:relative;max-width:1200px\">\
+        "<figure class=\"wide\"><div style=\"position:relative;max-width:960px\">\
          <img class=\"zoomable view3d\" alt=\"3-D view of the {n}\" \
          data-title=\"3-D view of the {n}\" src=\"data:image/png;base64,{}\">\
          <svg viewBox=\"0 0 {WIDTH} {HEIGHT}\" style=\"position:absolute;left:0;top:0;width:100%;height:100%;pointer-events:none\">{overlay}</svg></div>\

@@ -195,7 +195,10 @@ pub fn run(a: MeshArgs) -> Result<()> {
         m.surface_triangles,
         m.mesh.vertices.len(),
         if a.units.is_none() && profile.is_none() {
-            format!("{} (the default; --units m | mm | um)", m.mesh.units.symbol())
+            format!(
+                "{} (the default; --units m | mm | um)",
+                m.mesh.units.symbol()
+            )
         } else {
             m.mesh.units.symbol().to_string()
         },

@@ -254,7 +254,9 @@ fn params_of(path: &Path, a: &ParamsArgs) -> Result<ParamsRecord> {
 fn feature_notes(values: &[ParamValue], levelled: bool, pruning_pct: f64) -> Vec<String> {
     let undefined: Vec<&str> = values
         .iter()
-        .filter(|v| v.family == "feature" && (v.value.is_nan() || (v.name == "Spd" && v.value == 0.0)))
+        .filter(|v| {
+            v.family == "feature" && (v.value.is_nan() || (v.name == "Spd" && v.value == 0.0))
+        })
         .map(|v| v.name)
         .collect();
     if undefined.is_empty() {
@@ -548,14 +550,25 @@ fn render_table(records: &[ParamsRecord]) -> String {
                 pitch.trim_end_matches(" um").trim_end_matches(" um (x, y)"),
                 if r.pitch_assumed { " (assumed)" } else { "" }
             ),
-            if r.levelled { "levelled" } else { "mean removed" }.into(),
+            if r.levelled {
+                "levelled"
+            } else {
+                "mean removed"
+            }
+            .into(),
         ];
         row.extend(r.values.iter().map(|v| sig6(v.value)));
         rows.push(row);
     }
     let ncol = rows.iter().map(Vec::len).max().unwrap_or(0);
     let width: Vec<usize> = (0..ncol)
-        .map(|c| rows.iter().filter_map(|r| r.get(c)).map(|t| t.chars().count()).max().unwrap_or(0))
+        .map(|c| {
+            rows.iter()
+                .filter_map(|r| r.get(c))
+                .map(|t| t.chars().count())
+                .max()
+                .unwrap_or(0)
+        })
         .collect();
     let mut out = String::new();
     for r in &rows {
@@ -621,7 +634,11 @@ fn convert_one(input: &Path, output: &Path, pitch_um: Option<f64>) -> Result<Str
         s.height,
         s.width,
         pitch_text(s.pitch_x_um, s.pitch_y_um),
-        if s.metadata.pitch_known { "" } else { ", not known" }
+        if s.metadata.pitch_known {
+            ""
+        } else {
+            ", not known"
+        }
     ))
 }
 
@@ -648,13 +665,19 @@ pub fn convert_folder(a: ConvertArgs) -> Result<()> {
         );
     }
     if out_dir.is_file() {
-        bail!("{}: is a file; convert DIR writes into a folder (-o OUTDIR)", out_dir.display());
+        bail!(
+            "{}: is a file; convert DIR writes into a folder (-o OUTDIR)",
+            out_dir.display()
+        );
     }
     let files = super::readable_files(&a.input)?;
     let mut rows = Vec::new();
     let mut failures = 0usize;
     for f in &files {
-        let stem = f.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+        let stem = f
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default();
         let target = out_dir.join(format!("{stem}.{ext}"));
         match convert_one(f, &target, a.pitch_um) {
             Ok(_) => {
@@ -665,24 +688,47 @@ pub fn convert_folder(a: ConvertArgs) -> Result<()> {
                         pitch_text(s.pitch_x_um, s.pitch_y_um),
                     )
                 });
-                rows.push([f.display().to_string(), target.display().to_string(), shape, pitch, "ok".into()]);
+                rows.push([
+                    f.display().to_string(),
+                    target.display().to_string(),
+                    shape,
+                    pitch,
+                    "ok".into(),
+                ]);
             }
             Err(e) => {
                 failures += 1;
-                rows.push([f.display().to_string(), "-".into(), "-".into(), "-".into(), format!("error: {e:#}")]);
+                rows.push([
+                    f.display().to_string(),
+                    "-".into(),
+                    "-".into(),
+                    "-".into(),
+                    format!("error: {e:#}"),
+                ]);
             }
         }
     }
     let head = ["input", "output", "rows x cols", "pitch", "status"].map(String::from);
     let width: Vec<usize> = (0..5)
-        .map(|c| rows.iter().chain([&head]).map(|r| r[c].chars().count()).max().unwrap_or(0))
+        .map(|c| {
+            rows.iter()
+                .chain([&head])
+                .map(|r| r[c].chars().count())
+                .max()
+                .unwrap_or(0)
+        })
         .collect();
     for r in [&head].into_iter().chain(rows.iter()) {
-        let line: Vec<String> = (0..5).map(|c| format!("{:<w$}", r[c], w = width[c])).collect();
+        let line: Vec<String> = (0..5)
+            .map(|c| format!("{:<w$}", r[c], w = width[c]))
+            .collect();
         println!("{}", line.join("  ").trim_end());
     }
     if failures > 0 {
-        bail!("{failures} of {} file(s) not converted (named in the table)", files.len());
+        bail!(
+            "{failures} of {} file(s) not converted (named in the table)",
+            files.len()
+        );
     }
     Ok(())
 }
@@ -747,14 +793,19 @@ mod tests {
                 .unwrap_err()
                 .to_string();
             assert!(
-                e.contains(&format!("the file carries no pitch, and a .{ext} stores one: give --pitch-um")),
+                e.contains(&format!(
+                    "the file carries no pitch, and a .{ext} stores one: give --pitch-um"
+                )),
                 "{e}"
             );
         }
         // With --pitch-um: the x3p says it; back to .npy, the sidecar keeps it.
         let x3p = d.path().join("o.x3p");
         let line = convert_one(&bare, &x3p, Some(0.75)).unwrap();
-        assert!(line.contains("(6 rows x 7 cols, pitch 0.7500 um)"), "{line}");
+        assert!(
+            line.contains("(6 rows x 7 cols, pitch 0.7500 um)"),
+            "{line}"
+        );
         let back = d.path().join("back.npy");
         let line = convert_one(&x3p, &back, None).unwrap();
         assert!(line.contains("+ back.npy.json"), "{line}");
@@ -786,7 +837,9 @@ mod tests {
         let a = args(vec![]);
         // A steep ramp: every motif drains to the low edge; nothing significant is left.
         let p = d.path().join("ramp.npy");
-        let z: Vec<f64> = (0..20 * 30).map(|i| (i % 30) as f64 * 10.0 + ((i * 7) % 5) as f64 * 0.01).collect();
+        let z: Vec<f64> = (0..20 * 30)
+            .map(|i| (i % 30) as f64 * 10.0 + ((i * 7) % 5) as f64 * 0.01)
+            .collect();
         surfstream_io::npy::write_npy_f64(&p, &z, 20, 30).unwrap();
         let r = params_of(&p, &a).unwrap();
         let spd = r.values.iter().find(|v| v.name == "Spd").unwrap().value;
@@ -797,7 +850,10 @@ mod tests {
         let t = render_table(&[r]);
         let mut lines = t.lines();
         let head = lines.next().unwrap();
-        assert!(head.contains("rows x cols") && head.contains("Sa [um]"), "{head}");
+        assert!(
+            head.contains("rows x cols") && head.contains("Sa [um]"),
+            "{head}"
+        );
         let row = lines.next().unwrap();
         assert!(row.contains("20 x 30") && row.contains(" 1.000 "), "{row}");
     }
@@ -813,7 +869,10 @@ mod tests {
         let values = [v("Spd", 0.0), v("S10z", f64::NAN), v("S5p", f64::NAN)];
         let n = feature_notes(&values, false, 5.0);
         assert_eq!(n.len(), 1);
-        assert!(n[0].starts_with("Spd, S10z, S5p undefined") && n[0].contains("--level"), "{n:?}");
+        assert!(
+            n[0].starts_with("Spd, S10z, S5p undefined") && n[0].contains("--level"),
+            "{n:?}"
+        );
         let n = feature_notes(&values, true, 5.0);
         assert!(!n[0].contains("--level"));
         assert!(feature_notes(&[v("Spd", 0.2)], false, 5.0).is_empty());

@@ -271,7 +271,9 @@ mod tests {
         );
         let e = convert_output(o("x.png"), None).unwrap_err().to_string();
         assert!(
-            e.contains("cannot write .png files; the formats convert writes are .x3p, .npy, .gsf, .tif"),
+            e.contains(
+                "cannot write .png files; the formats convert writes are .x3p, .npy, .gsf, .tif"
+            ),
             "{e}"
         );
         let e = convert_output(o("x"), None).unwrap_err().to_string();
@@ -344,7 +346,10 @@ mod tests {
 
     #[test]
     fn pitches_and_bounds_print_with_four_significant_digits() {
-        assert_eq!(pitch_text(2.2797945189999997, 2.2797945189999997), "2.280 um");
+        assert_eq!(
+            pitch_text(2.2797945189999997, 2.2797945189999997),
+            "2.280 um"
+        );
         assert_eq!(pitch_text(0.5, 0.25), "0.5000 x 0.2500 um (x, y)");
         assert_eq!(sig(0.001, 4), "0.001000");
         assert_eq!(sig(1234.5678, 4), "1235");
@@ -364,7 +369,9 @@ mod tests {
             .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
             .collect();
         assert_eq!(names, ["t_1.npy", "t_2.npy", "t_10.npy"]);
-        let e = readable_files(&d.path().join("sub.npy")).unwrap_err().to_string();
+        let e = readable_files(&d.path().join("sub.npy"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("no height-map files in the folder"), "{e}");
     }
 
@@ -374,7 +381,9 @@ mod tests {
         for e in surfstream_io::formats::EXTENSIONS {
             assert!(help.contains(&format!(".{e}")), "{help} lacks .{e}");
         }
-        let e = one_file(&PathBuf::from("."), "params").unwrap_err().to_string();
+        let e = one_file(&PathBuf::from("."), "params")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains(&readable_list()), "{e}");
     }
 
@@ -382,7 +391,9 @@ mod tests {
     fn mesh_writes_stl_under_an_stl_name_only() {
         assert!(mesh::check_stl_name(Path::new("a/k.stl")).is_ok());
         assert!(mesh::check_stl_name(Path::new("K.STL")).is_ok());
-        let e = mesh::check_stl_name(Path::new("k.obj")).unwrap_err().to_string();
+        let e = mesh::check_stl_name(Path::new("k.obj"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("k.obj: mesh writes STL"), "{e}");
         assert!(mesh::check_stl_name(Path::new("k")).is_err());
     }

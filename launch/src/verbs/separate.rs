@@ -15,7 +15,7 @@ use clap::Args;
 use surfstream_core::filter::Grid;
 use surfstream_core::frame::{from_frame_heights, to_frame_heights};
 use surfstream_core::fsutil::write_atomic;
-use surfstream_io::npy::{write_npy_f32, write_npy_f64};
+use surfstream_io::npy::{write_npy_abs_f64, write_npy_f32, write_npy_f64};
 use surfstream_io::sidecar::{write_sidecar, NpyGeometry};
 
 use super::{file_help, load_surface, pitch_text, sig};
@@ -198,11 +198,13 @@ pub fn run(a: SeparateArgs) -> Result<()> {
 
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("{}: cannot create the output directory", a.out.display()))?;
-    write_npy_f64(
+    // Absolute f64 converted as it is written: no f64 copy of the whole datum.
+    write_npy_abs_f64(
         a.out.join("datum.npy"),
-        &with_offset(&datum),
+        &datum,
         s.height,
         s.width,
+        z_offset_um,
     )?;
     write_npy_f32(a.out.join("roughness.npy"), &roughness, s.height, s.width)?;
     write_npy_f64(
@@ -217,7 +219,11 @@ pub fn run(a: SeparateArgs) -> Result<()> {
         pitch_y_um: s.pitch_y_um * scale,
         origin_um: s.metadata.stage_position_um,
     };
-    for (name, scale) in [("datum.npy", 1.0), ("roughness.npy", 1.0), ("pooled.npy", a.pool as f64)] {
+    for (name, scale) in [
+        ("datum.npy", 1.0),
+        ("roughness.npy", 1.0),
+        ("pooled.npy", a.pool as f64),
+    ] {
         write_sidecar(&a.out.join(name), &at(scale))?;
     }
     if let Some(o) = summary.as_object_mut() {
@@ -322,7 +328,10 @@ mod tests {
             serde_json::from_str(&std::fs::read_to_string(out.join("separate.json")).unwrap())
                 .unwrap();
         assert_eq!(j["input_rows_cols"], serde_json::json!([rows, cols]));
-        assert_eq!(j["pooled_rows_cols"], serde_json::json!([rows / 4, cols / 4]));
+        assert_eq!(
+            j["pooled_rows_cols"],
+            serde_json::json!([rows / 4, cols / 4])
+        );
         assert!(j.get("input_px").is_none() && j.get("pooled_px").is_none());
     }
 }

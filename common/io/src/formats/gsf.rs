@@ -158,8 +158,14 @@ pub fn write(path: &std::path::Path, s: &Surface) -> Result<()> {
     let mut line = |k: &str, v: String| header.push_str(&format!("{k} = {v}\n"));
     line("XRes", s.width.to_string());
     line("YRes", s.height.to_string());
-    line("XReal", format!("{:e}", s.pitch_x_um * s.width as f64 * m_per_um));
-    line("YReal", format!("{:e}", s.pitch_y_um * s.height as f64 * m_per_um));
+    line(
+        "XReal",
+        format!("{:e}", s.pitch_x_um * s.width as f64 * m_per_um),
+    );
+    line(
+        "YReal",
+        format!("{:e}", s.pitch_y_um * s.height as f64 * m_per_um),
+    );
     if let Some([x, y]) = s.metadata.stage_position_um {
         line("XOffset", format!("{:e}", x * m_per_um));
         line("YOffset", format!("{:e}", y * m_per_um));

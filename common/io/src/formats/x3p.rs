@@ -766,21 +766,22 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
     };
     let m = &s.metadata;
     // Record2 holds what the source file said, and nothing in its place that it did not:
-    // Date is ISO 8601 (the measurement's when it can be read as a date, else the time of
-    // writing, with the source's text in Comment); CalibrationDate is the source's own
-    // (an X3P's) or the schema's required value marked as unknown in Comment.
+    // Date is ISO 8601, the measurement's when it can be read as a date; otherwise the
+    // schema's required value stands for unknown, said in Comment with the source's text.
+    // (Not the time of writing: the same surface must give the same file.)
+    const UNKNOWN_DATE: &str = "1970-01-01T00:00:00Z";
     let (date, date_note) = match m.date.as_deref().map(iso8601_date) {
         Some(Some(d)) => (d, String::new()),
         Some(None) => (
-            utc_now_iso8601(),
+            UNKNOWN_DATE.to_string(),
             format!(
-                "; Date is the time of writing: the source's date {:?} is not ISO 8601",
+                "; Date not known (1970-01-01 stands for unknown): the source's date {:?} is not ISO 8601",
                 m.date.as_deref().unwrap_or_default()
             ),
         ),
         None => (
-            utc_now_iso8601(),
-            "; Date is the time of writing: the source stores no measurement date".into(),
+            UNKNOWN_DATE.to_string(),
+            "; Date not known (1970-01-01 stands for unknown): the source stores none".into(),
         ),
     };
     let (calibration, calibration_note) = match m
@@ -790,8 +791,8 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
     {
         Some(d) => (d, String::new()),
         None => (
-            "1970-01-01T00:00:00Z".to_string(),
-            "; CalibrationDate not known (1970-01-01 stands for unknown)".to_string(),
+            UNKNOWN_DATE.to_string(),
+            "; CalibrationDate not known".to_string(),
         ),
     };
     let instrument = xml_escape(m.instrument.as_deref().unwrap_or("unknown"));
@@ -884,8 +885,16 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
 fn iso8601_date(text: &str) -> Option<String> {
     let t = text.trim();
     let b = t.as_bytes();
-    let digits = |r: std::ops::Range<usize>| b.get(r.clone()).is_some_and(|s| s.iter().all(u8::is_ascii_digit));
-    if !(digits(0..4) && b.get(4) == Some(&b'-') && digits(5..7) && b.get(7) == Some(&b'-') && digits(8..10)) {
+    let digits = |r: std::ops::Range<usize>| {
+        b.get(r.clone())
+            .is_some_and(|s| s.iter().all(u8::is_ascii_digit))
+    };
+    if !(digits(0..4)
+        && b.get(4) == Some(&b'-')
+        && digits(5..7)
+        && b.get(7) == Some(&b'-')
+        && digits(8..10))
+    {
         return None;
     }
     let (month, day): (u32, u32) = (t[5..7].parse().ok()?, t[8..10].parse().ok()?);
@@ -895,7 +904,11 @@ fn iso8601_date(text: &str) -> Option<String> {
     if b.len() == 10 {
         return Some(format!("{t}T00:00:00"));
     }
-    if !matches!(b.get(10), Some(b'T' | b' ')) || !digits(11..13) || b.get(13) != Some(&b':') || !digits(14..16) {
+    if !matches!(b.get(10), Some(b'T' | b' '))
+        || !digits(11..13)
+        || b.get(13) != Some(&b':')
+        || !digits(14..16)
+    {
         return None;
     }
     let rest = &t[16..];
@@ -915,30 +928,6 @@ fn iso8601_date(text: &str) -> Option<String> {
             && matches!(zone.as_bytes()[0], b'+' | b'-')
             && zone.as_bytes()[3] == b':');
     zone_ok.then(|| format!("{}T{}:{seconds}{zone}", &t[..10], &t[11..16]))
-}
-
-/// Now, UTC, as ISO 8601 ("2026-11-27T21:24:38Z").
-fn utc_now_iso8601() -> String {
-    let secs = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_secs()) as i64;
-    let (days, rem) = (secs.div_euclid(86_400), secs.rem_euclid(86_400));
-    // Days since 1970-01-01 to a civil date (H. Hinnant's algorithm).
-    let z = days + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z - era * 146_097;
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let day = doy - (153 * mp + 2) / 5 + 1;
-    let month = if mp < 10 { mp + 3 } else { mp - 9 };
-    let year = yoe + era * 400 + i64::from(month <= 2);
-    format!(
-        "{year:04}-{month:02}-{day:02}T{:02}:{:02}:{:02}Z",
-        rem / 3600,
-        rem % 3600 / 60,
-        rem % 60
-    )
 }
 
 /// Writes `s` as an X3P file, atomically.

@@ -153,9 +153,9 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
         ..Metadata::default()
     };
     // A unit is never assumed silently (README: a warning whenever a unit is assumed).
-    metadata.warnings.push(
-        "an 'x y z' file carries no unit: x, y and z taken as micrometres".into(),
-    );
+    metadata
+        .warnings
+        .push("an 'x y z' file carries no unit: x, y and z taken as micrometres".into());
     metadata
         .extra
         .insert("origin_x_um".into(), ax.origin.to_string());
@@ -246,9 +246,16 @@ fn parse_gwyddion_matrix(text: &str, h: GwyddionHeader) -> Result<Surface> {
         for f in l.split_whitespace() {
             // A locale's decimal comma ("1,25e-06"): Gwyddion separates values by whitespace.
             let v: f64 = f.replace(',', ".").parse().with_context(|| {
-                format!("line {}: '{f}' is not a number (Gwyddion text matrix)", i + 1)
+                format!(
+                    "line {}: '{f}' is not a number (Gwyddion text matrix)",
+                    i + 1
+                )
             })?;
-            heights_um.push(if v.is_finite() { v * h.value_um } else { f64::NAN });
+            heights_um.push(if v.is_finite() {
+                v * h.value_um
+            } else {
+                f64::NAN
+            });
         }
         let n = heights_um.len() - before;
         if rows == 0 {
