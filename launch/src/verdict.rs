@@ -148,10 +148,11 @@ pub fn verdict(run: &Value, out: &Path, verbose: bool) -> Verdict {
 /// scan (overlaps computed where the fields do not overlap).
 fn fallback_hint(fallback: &[&Value], tiles: usize) -> String {
     let anchor = fallback.iter().any(|t| t["index"].as_u64() == Some(0));
-    let share = if fallback.len() * 2 >= tiles || anchor {
-        "most tiles (the anchor too) were"
-    } else {
-        "some tiles were"
+    let share = match (fallback.len() * 2 >= tiles, anchor) {
+        (true, true) => "most tiles (the anchor too) were",
+        (true, false) => "half the tiles or more were",
+        (false, true) => "some tiles (the anchor too) were",
+        (false, false) => "some tiles were",
     };
     format!(
         "{share} not registered: check the layout: a serpentine scan stitched without \
@@ -399,6 +400,13 @@ mod tests {
             "{t}"
         );
         assert!(t.contains("tile 1 (row 0 x col 1)"), "{t}");
+        // Half the tiles by fallback: the likely causes are named.
+        assert!(
+            t.contains("hint        half the tiles or more were not registered")
+                && t.contains("without --serpentine")
+                && t.contains("a wrong --overlap"),
+            "{t}"
+        );
         assert!(t.contains("tile_to_panorama"), "verbose shows latency: {t}");
         assert!(t.ends_with("verdict: FAIL (2 check(s) failed)"), "{t}");
     }
@@ -410,5 +418,16 @@ mod tests {
         assert_eq!(count(1000), "1 000");
         assert_eq!(count(1234567), "1 234 567");
         assert_eq!(um(1.3630563293), "1.363 um");
+    }
+
+    #[test]
+    fn the_first_line_says_the_whole_wait() {
+        let t = "surfstream: done in 4.33 s\n  scan        x\nverdict: PASS";
+        let w = with_wall_time(t, 6.1);
+        assert!(
+            w.starts_with("surfstream: done in 6.10 s (pipeline 4.33 s; then Table 6, x3p and report)\n  scan"),
+            "{w}"
+        );
+        assert!(w.ends_with("verdict: PASS"));
     }
 }

@@ -378,7 +378,7 @@ fn layout_svg(tiles: &[Value], scan: &Value) -> String {
         ys.iter().copied().fold(f64::NEG_INFINITY, f64::max),
     );
     let scale = 420.0 / (x1 - x0).max(y1 - y0).max(1e-9);
-    let (sw, sh) = ((x1 - x0) * scale + 20.0, (y1 - y0) * scale + 40.0);
+    let (sw, sh) = ((x1 - x0) * scale + 20.0, (y1 - y0) * scale + 56.0);
     let mut s = format!(
         "<svg class=\"layout\" viewBox=\"0 0 {sw:.0} {sh:.0}\" width=\"{sw:.0}\" \
          style=\"border:1px solid #ccc;background:#fafafa\">"
@@ -418,8 +418,9 @@ fn layout_svg(tiles: &[Value], scan: &Value) -> String {
     }
     let _ = write!(
         s,
-        "<text x=\"10\" y=\"{:.0}\" class=\"tick\">solid: registered; dashed: stage position; \
-         {} x {} µm (y x x), y down as the stage moves</text></svg>",
+        "<text x=\"10\" y=\"{:.0}\" class=\"tick\">solid: registered; dashed: stage position</text>\
+         <text x=\"10\" y=\"{:.0}\" class=\"tick\">{} x {} µm (y x x), y down as the stage moves</text></svg>",
+        sh - 24.0,
         sh - 8.0,
         fixed(y1 - y0, 0),
         fixed(x1 - x0, 0)
