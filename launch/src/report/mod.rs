@@ -356,7 +356,10 @@ mod tests {
         }
         times.sort_by(f64::total_cmp);
         cpu.sort_by(f64::total_cmp);
-        println!("CPU time (user + sys, all threads): {:.3} s best, {:.3} s median", cpu[0], cpu[2]);
+        println!(
+            "CPU time (user + sys, all threads): {:.3} s best, {:.3} s median",
+            cpu[0], cpu[2]
+        );
         let size = std::fs::metadata(dir.join("report.html")).unwrap().len();
         println!(
             "report.html of {}: {:.3} s best, {:.3} s median of 5; {:.2} MB; {} threads",

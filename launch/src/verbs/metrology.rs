@@ -477,7 +477,10 @@ pub fn params(a: ParamsArgs) -> Result<()> {
             }
         }
     }
-    if !failures.is_empty() && !(folder && !records.is_empty()) {
+    // Explicit files: any failure fails the whole (nothing written). A folder: the readable
+    // ones are still tabled, unless none was.
+    let partial_batch = folder && !records.is_empty();
+    if !failures.is_empty() && !partial_batch {
         for f in &failures[..failures.len() - 1] {
             eprintln!("error: {f}");
         }
