@@ -311,8 +311,9 @@ fn convert_inspect_and_mesh_follow_one_convention() {
     );
     assert!(!err.contains("unsupported format"), "{err}");
 
-    // mesh: -o into a new folder, the graph's default bound (0.05 Sq), a warning for the
-    // assumed unit, fixed-precision numbers, and a header that says units and offset once.
+    // mesh: -o into a new folder, the graph's default bound (0.05 Sq), the default unit named
+    // in the summary (no warning: nothing was assumed), fixed-precision numbers, and a header
+    // that says units and offset once.
     let stl = d.path().join("mesh").join("new").join("m.stl");
     let out = run({
         let mut c = surfstream();
@@ -321,12 +322,12 @@ fn convert_inspect_and_mesh_follow_one_convention() {
     });
     let err = stderr(&out);
     assert!(out.status.success(), "{err}");
+    assert!(!err.contains("warning"), "{err}");
+    assert!(err.contains(" = 0.05 x Sq"), "{err}");
     assert!(
-        err.contains("warning: no --units given; the STL is in mm"),
+        err.contains(" vertices, STL in mm (the default; --units m | mm | um);"),
         "{err}"
     );
-    assert!(err.contains(" = 0.05 x Sq"), "{err}");
-    assert!(err.contains(" vertices, STL in mm;"), "{err}");
     assert_no_scientific(&err);
     let bytes = std::fs::read(&stl).unwrap();
     let header = String::from_utf8_lossy(&bytes[..80])

@@ -134,13 +134,15 @@ assert abs(float(np.nanmean(r))) < 1e-3, np.nanmean(r)  # roughness has no offse
         s(&sep.join("pooled.npy")),
         "--epsilon-um",
         "0.005",
-        "--pitch-um",
-        "4.393",
+        // No --pitch-um: pooled.npy carries its pitch (pooled.npy.json, 4 x the input's).
         "--solid",
         "--out",
         s(&stl),
     ]);
     let m = read_json(&d.path().join("wall.json"));
+    // The pooled map's pitch came with it: 4 x metropro-1's 1.0983 um.
+    let pitch = m["pitch_um"][0].as_f64().unwrap();
+    assert!((pitch - 4.393).abs() < 1e-3, "{m}");
     assert_eq!(m["watertight"], true, "{m}");
     assert_eq!(m["fidelity"]["bound_met"], true, "{m}");
     assert!(

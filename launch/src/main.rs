@@ -178,18 +178,24 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
     let done = |r: Result<()>| r.map(|()| ExitCode::SUCCESS);
     match cli.command {
         Command::Launch(a) => {
+            let started = std::time::Instant::now();
             let (graph, deviation) = load_graph(&a)?;
             let out = graph.graph.out_dir.clone();
+            note_replaced_run(&a, &out);
             let claim = graph_claim(&graph, &a.graph, a.force);
             launcher::launch(graph, &a.graph, deviation, &claim)?;
-            tell_verdict(&out, a.verdict)
+            // The nodes' stderr went to logs/: their warnings reach the user here too.
+            relay_node_warnings(&out);
+            tell_verdict(&out, a.verdict, started)
         }
         Command::Run(a) => {
+            let started = std::time::Instant::now();
             let (graph, deviation) = load_graph(&a)?;
             let out = graph.graph.out_dir.clone();
+            note_replaced_run(&a, &out);
             let claim = graph_claim(&graph, &a.graph, a.force);
             launcher::run_in_process(graph, &a.graph, deviation, &claim)?;
-            tell_verdict(&out, a.verdict)
+            tell_verdict(&out, a.verdict, started)
         }
         Command::Stitch {
             scan,
@@ -204,6 +210,8 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             force,
             verdict,
         } => {
+            let started = std::time::Instant::now();
+            refuse_single_file_scan(&scan)?;
             // The scan's folder (or the recording) is never the out dir nor inside it.
             let scan_input = if scan.is_dir() {
                 scan.clone()
@@ -239,21 +247,29 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             let (graph, deviation) = stitch_graph(&scan, out.clone(), &set, method.as_deref())?;
             claim.inputs.extend(outdir::inputs_of(&graph, &out));
             launcher::run_in_process(graph, &scan, deviation, &claim)?;
-            tell_verdict(&out, verdict)
+            tell_verdict(&out, verdict, started)
         }
         Command::Inspect(a) => {
             verbs::one_file(&a.file, "inspect")?;
             done(verbs::metrology::inspect(a))
         }
         Command::Params(a) => done(verbs::metrology::params(a)),
+        Command::Convert(a) if a.input.is_dir() => done(verbs::metrology::convert_folder(a)),
         Command::Convert(mut a) => {
             verbs::one_file(&a.input, "convert")?;
             let out = verbs::convert_output(a.out.take(), a.output.take())?;
             a.out = Some(out);
             done(verbs::metrology::convert(a))
         }
-        Command::Compare(a) => done(verbs::metrology::compare(a)),
-        Command::Separate(a) => done(verbs::separate::run(a)),
+        Command::Compare(a) => {
+            verbs::one_file(&a.a, "compare")?;
+            verbs::one_file(&a.b, "compare")?;
+            done(verbs::metrology::compare(a))
+        }
+        Command::Separate(a) => {
+            verbs::one_file(&a.file, "separate")?;
+            done(verbs::separate::run(a))
+        }
         Command::Mesh(a) => {
             verbs::one_file(&a.file, "mesh")?;
             done(verbs::mesh::run(a))
@@ -269,10 +285,83 @@ fn graph_claim(graph: &GraphFile, graph_file: &std::path::Path, force: bool) -> 
     outdir::Claim { inputs, force }
 }
 
+/// `launch`/`run` without `-o` write into the graph's out_dir: say so when a run is there
+/// already (it is replaced).
+fn note_replaced_run(a: &GraphArgs, out: &std::path::Path) {
+    if a.out.is_none() && out.join("run.json").is_file() {
+        eprintln!(
+            "surfstream: note: no -o given: writing to {} (the graph's out_dir), replacing the run \
+             there; give -o DIR to keep it",
+            out.display()
+        );
+    }
+}
+
+/// Lines of the nodes' logs (`out/logs/NODE.stderr`, where `launch` sends each process's
+/// stderr) that carry a warning, printed to the user's stderr with the node's name.
+fn relay_node_warnings(out: &std::path::Path) {
+    let Ok(entries) = std::fs::read_dir(out.join("logs")) else {
+        return;
+    };
+    let mut logs: Vec<PathBuf> = entries
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "stderr"))
+        .collect();
+    logs.sort();
+    for log in logs {
+        let Ok(text) = std::fs::read_to_string(&log) else {
+            continue;
+        };
+        let node = log
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        for line in text.lines().filter(|l| l.contains("warning")) {
+            let line = line.trim();
+            if line.starts_with(&format!("{node}:")) {
+                eprintln!("{line}");
+            } else {
+                eprintln!("{node}: {line}");
+            }
+        }
+    }
+}
+
+/// `stitch FILE` where FILE is neither a manifest nor a recording (a tile, say): named as
+/// such, not as a TOML parse error.
+fn refuse_single_file_scan(scan: &std::path::Path) -> Result<()> {
+    let ext = scan
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .unwrap_or_default();
+    if scan.is_file() && ext != "toml" && ext != "mcap" {
+        let what = if surfstream_io::formats::is_surface_file(scan) {
+            "one height-map file"
+        } else {
+            "neither a scan.toml nor a .mcap recording"
+        };
+        bail!(
+            "{}: {what}; stitch takes a scan.toml (or its folder), a folder of tiles \
+             (--grid ROWSxCOLS --overlap P) or a .mcap recording. For one file: surfstream \
+             params | separate | mesh FILE",
+            scan.display()
+        );
+    }
+    Ok(())
+}
+
 /// Prints the verdict of the run in `out` (stdout: it is the result; progress and warnings
 /// go to stderr). Under `--strict` a failed check is exit status 3.
-fn tell_verdict(out: &std::path::Path, how: VerdictArgs) -> Result<ExitCode> {
-    let v = verdict::from_out_dir(out, how.verbose)?;
+fn tell_verdict(
+    out: &std::path::Path,
+    how: VerdictArgs,
+    started: std::time::Instant,
+) -> Result<ExitCode> {
+    let mut v = verdict::from_out_dir(out, how.verbose)?;
+    // run.json's elapsed_s ends with the pipeline; the user waited for Table 6, the x3p and
+    // the report as well: the first line says the whole time.
+    v.text = verdict::with_wall_time(&v.text, started.elapsed().as_secs_f64());
     {
         use std::io::Write;
         let mut stdout = std::io::stdout().lock();

@@ -47,6 +47,27 @@ fn f(v: &Value) -> Option<f64> {
     v.as_f64()
 }
 
+/// The verdict's first line with the time the user waited (`wall_s`: the whole command,
+/// Table 6, x3p and report included) and, beside it, the pipeline's own (run.json).
+pub fn with_wall_time(text: &str, wall_s: f64) -> String {
+    let (first, rest) = text.split_once('\n').unwrap_or((text, ""));
+    let pipeline = first
+        .strip_prefix("surfstream: done in ")
+        .and_then(|t| t.strip_suffix(" s"))
+        .map(str::to_string);
+    let line = match pipeline {
+        Some(p) => format!(
+            "surfstream: done in {wall_s:.2} s (pipeline {p} s; then Table 6, x3p and report)"
+        ),
+        None => first.to_string(),
+    };
+    if rest.is_empty() {
+        line
+    } else {
+        format!("{line}\n{rest}")
+    }
+}
+
 /// Reads `<out>/run.json` and builds the verdict.
 pub fn from_out_dir(out: &Path, verbose: bool) -> anyhow::Result<Verdict> {
     let path = out.join("run.json");
@@ -104,6 +125,7 @@ pub fn verdict(run: &Value, out: &Path, verbose: bool) -> Verdict {
             list.join(", ")
         );
         let _ = writeln!(s, "  fallback    {line}");
+        let _ = writeln!(s, "  hint        {}", fallback_hint(&fallback, tiles.len()));
         failures.push(format!("fallback: {line}"));
     }
     let _ = writeln!(s, "  outputs     {}", outputs_line(run, out));
@@ -120,6 +142,23 @@ pub fn verdict(run: &Value, out: &Path, verbose: bool) -> Verdict {
         }
     );
     Verdict { text: s, failures }
+}
+
+/// The likely cause when registration placed few tiles: a layout that does not match the
+/// scan (overlaps computed where the fields do not overlap).
+fn fallback_hint(fallback: &[&Value], tiles: usize) -> String {
+    let anchor = fallback.iter().any(|t| t["index"].as_u64() == Some(0));
+    let share = match (fallback.len() * 2 >= tiles, anchor) {
+        (true, true) => "most tiles (the anchor too) were",
+        (true, false) => "half the tiles or more were",
+        (false, true) => "some tiles (the anchor too) were",
+        (false, false) => "some tiles were",
+    };
+    format!(
+        "{share} not registered: check the layout: a serpentine scan stitched without \
+         --serpentine (or with it, when rows all run one way), a wrong --overlap, or the \
+         scan.toml's positions; few features in the overlaps is the other cause"
+    )
 }
 
 fn tile_name(t: &Value) -> String {
@@ -361,6 +400,13 @@ mod tests {
             "{t}"
         );
         assert!(t.contains("tile 1 (row 0 x col 1)"), "{t}");
+        // Half the tiles by fallback: the likely causes are named.
+        assert!(
+            t.contains("hint        half the tiles or more were not registered")
+                && t.contains("without --serpentine")
+                && t.contains("a wrong --overlap"),
+            "{t}"
+        );
         assert!(t.contains("tile_to_panorama"), "verbose shows latency: {t}");
         assert!(t.ends_with("verdict: FAIL (2 check(s) failed)"), "{t}");
     }
@@ -372,5 +418,16 @@ mod tests {
         assert_eq!(count(1000), "1 000");
         assert_eq!(count(1234567), "1 234 567");
         assert_eq!(um(1.3630563293), "1.363 um");
+    }
+
+    #[test]
+    fn the_first_line_says_the_whole_wait() {
+        let t = "surfstream: done in 4.33 s\n  scan        x\nverdict: PASS";
+        let w = with_wall_time(t, 6.1);
+        assert!(
+            w.starts_with("surfstream: done in 6.10 s (pipeline 4.33 s; then Table 6, x3p and report)\n  scan"),
+            "{w}"
+        );
+        assert!(w.ends_with("verdict: PASS"));
     }
 }

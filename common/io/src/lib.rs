@@ -6,4 +6,6 @@ pub mod npy;
 pub mod output;
 pub mod preview;
 pub mod recording;
+pub mod sidecar;
+pub mod tiff;
 pub mod truth;

@@ -7,6 +7,10 @@
 //! surface with an absolute position (panorama, datum, pooled map) is written as absolute f64
 //! so the file loses neither the offset nor the f32's precision near zero; a surface that is
 //! relative by nature (roughness) stays f32 as computed.
+//!
+//! Every `.npy` surface gets its pitch sidecar `<name>.npy.json` ([`crate::sidecar`]) once the
+//! writer knows the pitch ([`OutputWriter::set_geometry`]), so `params`, `separate` or `mesh`
+//! on a run's output runs at the right pitch.
 
 use std::path::{Path, PathBuf};
 
@@ -17,6 +21,7 @@ use surfstream_core::raster::RasterView;
 use crate::formats::{Metadata, Surface};
 use crate::npy::{write_npy_abs_f64, write_npy_f32, write_npy_f64, NpyRowWriter};
 use crate::preview::{write_preview_png, PreviewBuilder, PreviewOptions};
+use crate::sidecar::{remove_stale_sidecar, write_sidecar, NpyGeometry};
 
 /// How a surface's numbers go into its `.npy`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -46,6 +51,7 @@ pub struct SurfaceOutput<'a> {
 pub struct OutputWriter {
     dir: PathBuf,
     files: Vec<String>,
+    geometry: Option<NpyGeometry>,
 }
 
 impl OutputWriter {
@@ -54,6 +60,31 @@ impl OutputWriter {
         Self {
             dir: dir.into(),
             files: Vec::new(),
+            geometry: None,
+        }
+    }
+
+    /// The pitch (and origin) of the surfaces written from now on: each `.npy` surface gets
+    /// its sidecar `<name>.npy.json`. None: no sidecar (an old one of that name is removed).
+    pub fn set_geometry(&mut self, geometry: Option<NpyGeometry>) {
+        self.geometry = geometry;
+    }
+
+    /// [`OutputWriter::set_geometry`] with a pitch and no origin.
+    pub fn set_pitch_um(&mut self, pitch_x_um: f64, pitch_y_um: f64) {
+        self.geometry = Some(NpyGeometry {
+            pitch_x_um,
+            pitch_y_um,
+            origin_um: None,
+        });
+    }
+
+    /// The sidecar of `npy` (a file name in the directory) for the current geometry.
+    fn write_geometry(&self, npy: &str) -> Result<()> {
+        let path = self.dir.join(npy);
+        match &self.geometry {
+            Some(g) => write_sidecar(&path, g),
+            None => remove_stale_sidecar(&path),
         }
     }
 
@@ -78,6 +109,7 @@ impl OutputWriter {
             }
             NpyHeights::RelativeF32 => write_npy_f32(self.dir.join(&npy), values, rows, cols)?,
         }
+        self.write_geometry(&npy)?;
         self.files.push(npy);
         let png = format!("{}.png", s.name);
         let opts = PreviewOptions {
@@ -184,7 +216,9 @@ impl OutputWriter {
             name, npy, preview, ..
         } = s;
         npy.finish()?;
-        self.files.push(format!("{name}.npy"));
+        let npy = format!("{name}.npy");
+        self.write_geometry(&npy)?;
+        self.files.push(npy);
         let png = format!("{name}.png");
         preview.write_png(self.dir.join(&png))?;
         self.files.push(png);
@@ -214,6 +248,7 @@ mod tests {
         )
         .unwrap();
         let mut w = OutputWriter::new(dir.path());
+        w.set_pitch_um(0.5, 0.25);
         w.write_surface(&SurfaceOutput {
             name: "datum",
             heights: r.view(),
@@ -253,6 +288,10 @@ mod tests {
         assert_eq!((x3p.height, x3p.width), (2, 3));
         assert_eq!(x3p.heights_um[5], 103.0);
         assert!(dir.path().join("datum.png").exists());
+        // The pitch travels with the .npy: read back through the sidecar.
+        let npy = crate::formats::read_surface(&dir.path().join("roughness.npy")).unwrap();
+        assert!(npy.metadata.pitch_known);
+        assert_eq!((npy.pitch_x_um, npy.pitch_y_um), (0.5, 0.25));
         assert!(w
             .write_surface(&SurfaceOutput {
                 name: "../x",

@@ -142,7 +142,14 @@ pub fn mesh(run: &Value) -> String {
             "format, units",
             format!("{}, {}", num(&m["format"]), num(&m["units"])),
         ),
-        ("grid (rows x cols)", num(&m["grid_px"])),
+        (
+            "grid (rows x cols)",
+            // The mesher's grid_px is [cols, rows].
+            match (m["grid_px"][1].as_u64(), m["grid_px"][0].as_u64()) {
+                (Some(r), Some(c)) => format!("{r} x {c}"),
+                _ => "-".into(),
+            },
+        ),
         (
             "pitch",
             m["pitch_um"][0].as_f64().map(um).unwrap_or("-".into()),
@@ -204,9 +211,18 @@ pub fn mesh(run: &Value) -> String {
         .collect();
         let _ = write!(
             h,
-            "<div><h3>Fidelity</h3>{}<p class=\"note\">Vertical error of the mesh at every \
-             sample: max {}, rms {} (bound {}: {}).</p></div>",
-            table(&["parameter", "height field", "mesh resampled"], &rows),
+            "<div><h3>Fidelity of the mesh (pooled map, levelled)</h3>{}<p class=\"note\">Both \
+             columns are levelled: the least-squares plane of the height field is removed from \
+             both, so they differ from the key parameters above (mean removed, not levelled). \
+             Vertical error of the mesh at every sample: max {}, rms {} (bound {}: {}).</p></div>",
+            table(
+                &[
+                    "parameter",
+                    "height field meshed (levelled)",
+                    "mesh resampled (levelled)",
+                ],
+                &rows
+            ),
             f["error"]["max_um"].as_f64().map(um).unwrap_or("-".into()),
             f["error"]["rms_um"].as_f64().map(um).unwrap_or("-".into()),
             f["epsilon_um"].as_f64().map(um).unwrap_or("-".into()),
@@ -362,7 +378,7 @@ fn layout_svg(tiles: &[Value], scan: &Value) -> String {
         ys.iter().copied().fold(f64::NEG_INFINITY, f64::max),
     );
     let scale = 420.0 / (x1 - x0).max(y1 - y0).max(1e-9);
-    let (sw, sh) = ((x1 - x0) * scale + 20.0, (y1 - y0) * scale + 40.0);
+    let (sw, sh) = ((x1 - x0) * scale + 20.0, (y1 - y0) * scale + 56.0);
     let mut s = format!(
         "<svg class=\"layout\" viewBox=\"0 0 {sw:.0} {sh:.0}\" width=\"{sw:.0}\" \
          style=\"border:1px solid #ccc;background:#fafafa\">"
@@ -402,11 +418,12 @@ fn layout_svg(tiles: &[Value], scan: &Value) -> String {
     }
     let _ = write!(
         s,
-        "<text x=\"10\" y=\"{:.0}\" class=\"tick\">solid: registered; dashed: stage position; \
-         {} x {} µm</text></svg>",
+        "<text x=\"10\" y=\"{:.0}\" class=\"tick\">solid: registered; dashed: stage position</text>\
+         <text x=\"10\" y=\"{:.0}\" class=\"tick\">{} x {} µm (y x x), y down as the stage moves</text></svg>",
+        sh - 24.0,
         sh - 8.0,
-        fixed(x1 - x0, 0),
-        fixed(y1 - y0, 0)
+        fixed(y1 - y0, 0),
+        fixed(x1 - x0, 0)
     );
     s
 }

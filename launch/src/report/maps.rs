@@ -14,8 +14,14 @@ use surfstream_io::preview::{
 use super::html::{base64, esc, fixed, length, pitch, round_length, ticks, um};
 use super::surfaces::Surface;
 
-/// Longest side of an inlined map, px: the demo panorama (1946 px) at full resolution.
+/// Longest side of an inlined map, px: near the figure's drawn width (860 CSS px), so the
+/// page stays small (the demo's report: 11 MB with 2048 px maps inline).
+const INLINE_SIDE_PX: usize = 800;
+/// Longest side of the full-size map a click opens (`report_maps/NAME.png` beside the page):
+/// the demo panorama (1946 px) at full resolution.
 const MAX_SIDE_PX: usize = 2048;
+/// Folder, beside report.html, of the full-size maps.
+pub const ZOOM_DIR: &str = "report_maps";
 /// Width of the map inside the figure (SVG user units = CSS px at full width).
 const MAP_W: f64 = 860.0;
 /// Tallest map inside the figure.
@@ -31,15 +37,42 @@ pub struct Cut {
 
 /// One figure: `<figure>` with the SVG and a caption. `reference` says what the heights are
 /// relative to.
-pub fn figure(s: &Surface, title: &str, reference: &str, cut: Option<&Cut>) -> String {
-    let values = s.to_f32();
+pub fn figure(
+    s: &Surface,
+    title: &str,
+    reference: &str,
+    cut: Option<&Cut>,
+    out: Option<&std::path::Path>,
+) -> String {
+    // y up, as a surface is drawn (row 0 = smallest y at the bottom): the image's rows are
+    // stored top first, so they go in reversed.
+    let values: Vec<f32> = {
+        let v = s.to_f32();
+        v.chunks(s.cols.max(1)).rev().flatten().copied().collect()
+    };
     let Some((lo, hi)) = robust_range_um(&values) else {
         return format!(
             "<figure class=\"map\"><figcaption><b>{}</b>: no measured point</figcaption></figure>",
             esc(title)
         );
     };
-    let map = match encode_map_png(&values, s.rows, s.cols, MAX_SIDE_PX, (lo, hi)) {
+    // The full-size map, when the inline one is reduced: a file beside the page that a click
+    // opens (the inline map when the file is missing, e.g. the page copied alone).
+    let full = out
+        .filter(|_| s.rows.max(s.cols) > INLINE_SIDE_PX)
+        .and_then(|dir| {
+            let m = encode_map_png(&values, s.rows, s.cols, MAX_SIDE_PX, (lo, hi)).ok()?;
+            let rel = format!("{ZOOM_DIR}/{}.png", s.name);
+            let path = dir.join(&rel);
+            surfstream_core::fsutil::write_atomic(&path, |w| {
+                use std::io::Write as _;
+                w.write_all(&m.png)?;
+                Ok(())
+            })
+            .ok()?;
+            Some((rel, m.rows, m.cols))
+        });
+    let map = match encode_map_png(&values, s.rows, s.cols, INLINE_SIDE_PX, (lo, hi)) {
         Ok(m) => m,
         Err(e) => {
             return format!(
@@ -97,17 +130,20 @@ pub fn figure(s: &Surface, title: &str, reference: &str, cut: Option<&Cut>) -> S
         g,
         "</linearGradient></defs><image class=\"zoomable\" x=\"{LEFT}\" y=\"{TOP}\" \
          width=\"{mw:.1}\" height=\"{mh:.1}\" preserveAspectRatio=\"none\" \
-         style=\"image-rendering:pixelated\" data-title=\"{t}\" \
+         style=\"image-rendering:pixelated\" data-title=\"{t}\"{full_attr} \
          href=\"data:image/png;base64,{}\"><title>click for full size ({} x {} px, rows x cols)</title></image>\
          <rect x=\"{LEFT}\" y=\"{TOP}\" width=\"{mw:.1}\" height=\"{mh:.1}\" fill=\"none\" \
          stroke=\"#333\" stroke-width=\"1\"/>",
         base64(&map.png),
-        map.rows,
-        map.cols,
-        t = esc(title)
+        full.as_ref().map_or(map.rows, |f| f.1),
+        full.as_ref().map_or(map.cols, |f| f.2),
+        t = esc(title),
+        full_attr = full
+            .as_ref()
+            .map_or(String::new(), |f| format!(" data-full=\"{}\"", esc(&f.0)))
     );
 
-    // Axes: x along the bottom, y down the left, from the top-left corner.
+    // Axes: x along the bottom, y up the left, from the bottom-left corner (y up).
     let (xt, xd) = ticks(0.0, w_um / div, 8);
     for v in &xt {
         let x = LEFT + v * div / w_um * mw;
@@ -129,7 +165,7 @@ pub fn figure(s: &Surface, title: &str, reference: &str, cut: Option<&Cut>) -> S
     );
     let (yt, yd) = ticks(0.0, h_um / div, 8);
     for v in &yt {
-        let y = TOP + v * div / h_um * mh;
+        let y = TOP + mh - v * div / h_um * mh;
         let _ = write!(
             g,
             "<line x1=\"{x0:.1}\" y1=\"{y:.1}\" x2=\"{LEFT}\" y2=\"{y:.1}\" stroke=\"#333\"/>\
@@ -172,7 +208,7 @@ pub fn figure(s: &Surface, title: &str, reference: &str, cut: Option<&Cut>) -> S
     );
 
     if let Some(cut) = cut {
-        let y = TOP + (cut.row as f64 + 0.5) / s.rows as f64 * mh;
+        let y = TOP + mh - (cut.row as f64 + 0.5) / s.rows as f64 * mh;
         let _ = write!(
             g,
             "<line x1=\"{LEFT}\" y1=\"{y:.1}\" x2=\"{:.1}\" y2=\"{y:.1}\" stroke=\"#fff\" \
@@ -226,11 +262,11 @@ pub fn figure(s: &Surface, title: &str, reference: &str, cut: Option<&Cut>) -> S
     );
 
     let caption = format!(
-        "<b>{}</b>: {} x {} px (rows x cols), {} x {} at {} pitch; heights {}. \
+        "<b>{}</b>: {} x {} px (rows x cols), {} x {} at {} pitch, y up (row 0 at the bottom); heights {}. \
          Colour scale clipped to the {ROBUST_LOW_PERCENT} / {ROBUST_HIGH_PERCENT} percentiles \
          of the measured heights, {} .. {}: {}&nbsp;% of the points lie below and {}&nbsp;% above \
          and take the end colours. Grey: not measured ({} points, {}&nbsp;%). {}\
-         Click the map for full size.",
+         {}",
         esc(title),
         s.file_shape.0,
         s.file_shape.1,
@@ -259,6 +295,13 @@ pub fn figure(s: &Surface, title: &str, reference: &str, cut: Option<&Cut>) -> S
             )
         } else {
             String::new()
+        },
+        match &full {
+            Some((rel, r, c)) => format!(
+                "Click the map for full size: {r} x {c} px, the file {} beside this page.",
+                esc(rel)
+            ),
+            None => "Click the map for full size.".into(),
         }
     );
     format!("<figure class=\"map\" id=\"map-{id}\">{g}<figcaption>{caption}</figcaption></figure>")

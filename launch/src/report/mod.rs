@@ -3,9 +3,10 @@
 //! key parameters and the outputs; the height maps with axes, scale bar and colour bar; a 3-D
 //! view of the model; a profile cut; the height distribution with the Abbott-Firestone curve
 //! and the PSD; Table 6 with its failures first; the tile layout and mesh; latencies and node
-//! reports collapsed. Images are inlined as data: URIs and charts drawn as inline SVG, so the
-//! page needs no other file and works offline; one small inline script opens a map at full
-//! size on click.
+//! reports collapsed. Images are inlined as data: URIs at about the size they are drawn and
+//! charts drawn as inline SVG, so the page reads offline on its own; one small inline script
+//! opens a map at full size on click, from `report_maps/NAME.png` beside the page (the inline
+//! map when that file is missing). Sections are computed in parallel (rayon).
 //!
 //! Sections, one file each: [`summary`] (summary, key parameters, outputs), [`maps`],
 //! [`view3d`], [`profile`], [`charts`] (histogram + Abbott-Firestone, PSD; the statistics in
@@ -28,6 +29,7 @@ use std::io::Write as _;
 use std::path::Path;
 
 use anyhow::{anyhow, Context, Result};
+use rayon::prelude::*;
 use serde_json::Value;
 
 use html::{esc, um};
@@ -82,7 +84,8 @@ ul.files{columns:2;font-size:14px;padding-left:20px}ul.files li{break-inside:avo
 const SCRIPT: &str = "(function(){\
 var box=document.getElementById('lightbox'),img=box.querySelector('img'),cap=box.querySelector('p');\
 function close(){box.hidden=true;img.removeAttribute('src');}\
-function open(el){img.src=el.getAttribute('href')||el.getAttribute('src');\
+function open(el){var inl=el.getAttribute('href')||el.getAttribute('src'),full=el.getAttribute('data-full');\
+img.onerror=function(){if(full&&img.getAttribute('src')===full){img.src=inl;}};img.src=full||inl;\
 cap.textContent=(el.getAttribute('data-title')||'')+': full size, one screen pixel per map pixel (click or Esc to close)';box.hidden=false;}\
 document.querySelectorAll('.zoomable').forEach(function(el){el.addEventListener('click',function(){open(el);});});\
 box.addEventListener('click',close);\
@@ -110,50 +113,61 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
          <a href=\"#latencies\">latencies</a></nav>",
         esc(name)
     );
-    h.push_str(&summary::section(run, &surfaces));
-    h.push_str(&summary::key_parameters(&surfaces));
-    h.push_str(&summary::outputs(run));
-    for p in &surfaces.problems {
-        let _ = write!(h, "<p class=\"bad\">Not shown: {}</p>", esc(p));
-    }
-    maps_section(&mut h, &surfaces);
-    if let Some(model) = surfaces.pooled.as_ref().or(surfaces.panorama.as_ref()) {
-        if let Some(f) = view3d::figure(
+    // The sections are independent: computed in parallel (maps, 3-D view, profile,
+    // distribution and PSD are the costly ones), joined in page order.
+    let maps = || {
+        let mut m = String::new();
+        maps_section(&mut m, &surfaces, out);
+        m
+    };
+    let view = || {
+        let model = surfaces.pooled.as_ref().or(surfaces.panorama.as_ref())?;
+        let f = view3d::figure(
             model,
             if model.name == "pooled" {
                 "pooled map (the surface the STL meshes)"
             } else {
                 "panorama"
             },
-        ) {
-            let _ = writeln!(
-                h,
-                "<section id=\"view3d\"><h2>3-D view of the model</h2>{f}</section>"
-            );
-        }
-    }
-    if let Some(f) = profile::section(&surfaces) {
-        let _ = writeln!(
-            h,
-            "<section id=\"profile\"><h2>Profile cut</h2>{f}</section>"
-        );
-    }
-    if let Some(p) = &surfaces.panorama {
+        )?;
+        Some(format!(
+            "<section id=\"view3d\"><h2>3-D view of the model</h2>{f}</section>\n"
+        ))
+    };
+    let profile = || {
+        profile::section(&surfaces)
+            .map(|f| format!("<section id=\"profile\"><h2>Profile cut</h2>{f}</section>\n"))
+    };
+    let distribution = || {
+        let p = surfaces.panorama.as_ref()?;
         let level = run["stages"]
             .as_object()
             .and_then(|s| s.values().find_map(|v| v["final"]["level"].as_u64()));
         let scale = level.map(|l| (l, 2f64.powi(l as i32) * p.pitch_x_um / p.block as f64));
-        let _ = writeln!(
-            h,
+        Some(format!(
             "<section id=\"distribution\"><h2>Height distribution and power spectral density \
-             (panorama)</h2><div class=\"pair\">{}{}</div></section>",
+             (panorama)</h2><div class=\"pair\">{}{}</div></section>\n",
             surfaces
                 .histogram
                 .as_ref()
                 .and_then(|hist| charts::distribution(p, hist))
                 .unwrap_or_default(),
             charts::psd(p, scale).unwrap_or_default()
-        );
+        ))
+    };
+    let ((maps, view), (profile, distribution)) = rayon::join(
+        || rayon::join(maps, view),
+        || rayon::join(profile, distribution),
+    );
+    h.push_str(&summary::section(run, &surfaces));
+    h.push_str(&summary::key_parameters(&surfaces));
+    h.push_str(&summary::outputs(run));
+    for p in &surfaces.problems {
+        let _ = write!(h, "<p class=\"bad\">Not shown: {}</p>", esc(p));
+    }
+    h.push_str(&maps);
+    for section in [view, profile, distribution].into_iter().flatten() {
+        h.push_str(&section);
     }
     h.push_str(&table6::section(&run["deviation"]));
     h.push_str(&details::tile_layout(run));
@@ -169,7 +183,7 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
 }
 
 /// The height maps: panorama (with the profile cut marked), datum, roughness, pooled map.
-fn maps_section(h: &mut String, s: &Surfaces) {
+fn maps_section(h: &mut String, s: &Surfaces, out: &Path) {
     let reference = format!(
         "relative to the panorama's mean height ({})",
         um(s.reference_um)
@@ -204,8 +218,8 @@ fn maps_section(h: &mut String, s: &Surfaces) {
             None,
         ),
     ]
-    .into_iter()
-    .filter_map(|(m, title, r, cut)| Some(maps::figure(m?, title, r, cut)))
+    .into_par_iter()
+    .filter_map(|(m, title, r, cut)| Some(maps::figure(m?, title, r, cut, Some(out))))
     .collect();
     if !figures.is_empty() {
         let _ = writeln!(
@@ -252,5 +266,108 @@ mod tests {
         assert!(h.contains("a → b"));
         assert!(!h.contains("t_acquired_ns"), "internal fields are hidden");
         assert!(h.contains("<td>0.990 µm</td>"));
+    }
+
+    /// Issue 26: one labelled set of parameters (which surface, not levelled) with the Sk
+    /// family, the mesh's levelled fidelity labelled as such, maps y up, the 3-D view with
+    /// axes and a z scale, the tile caption as y x x, and big maps inline at display size
+    /// with the full-size file beside the page.
+    #[test]
+    fn labels_say_which_surface_levelling_and_axes() {
+        let d = tempfile::tempdir().unwrap();
+        let (rows, cols) = (900, 1000);
+        let z: Vec<f64> = (0..rows * cols)
+            .map(|i| {
+                ((i % cols) as f64 * 0.05).sin() * 2.0 + ((i / cols) as f64 * 0.03).cos() + 50.0
+            })
+            .collect();
+        surfstream_io::npy::write_npy_f64(d.path().join("panorama.npy"), &z, rows, cols).unwrap();
+        let rough: Vec<f32> = z.iter().map(|v| ((v * 7.0).sin() * 0.1) as f32).collect();
+        surfstream_io::npy::write_npy_f32(d.path().join("roughness.npy"), &rough, rows, cols)
+            .unwrap();
+        let pooled: Vec<f64> = z
+            .iter()
+            .step_by(4)
+            .take((rows / 4) * (cols / 4))
+            .copied()
+            .collect();
+        surfstream_io::npy::write_npy_f64(d.path().join("pooled.npy"), &pooled, rows / 4, cols / 4)
+            .unwrap();
+        let run = serde_json::json!({
+            "graph": {"name": "t", "file": "g.toml"}, "mode": "run", "elapsed_s": 1.0,
+            "scan": {"source": "simulated", "rows": 1, "cols": 2, "pitch_x_um": 0.5, "pitch_y_um": 0.5,
+                     "tile_width_px": 700, "tile_height_px": 1100},
+            "tiles": [{"index": 0, "stage_x_um": 0.0, "stage_y_um": 0.0, "x_um": 0.0, "y_um": 0.0, "placed_by": "registration"},
+                      {"index": 1, "stage_x_um": 300.0, "stage_y_um": 0.0, "x_um": 300.0, "y_um": 0.0, "placed_by": "registration"}],
+            "stages": {"mesher": {"triangles": 10, "grid_px": [325, 275],
+                "fidelity": {"field": {"sq_um": 1.0}, "mesh": {"sq_um": 0.99}}}},
+        });
+        let h = render(&run, d.path()).unwrap();
+        assert!(h.contains("Key parameters (ISO 25178-2): mean removed, not levelled"));
+        assert!(h.contains("<b>no levelling</b>"));
+        for p in ["Sk", "Spk", "Svk", "Smr1", "Smr2"] {
+            assert!(
+                h.contains(&format!("<td class=\"k\"><b>{p}</b></td>")),
+                "{p}"
+            );
+        }
+        assert!(h.contains("Fidelity of the mesh (pooled map, levelled)"));
+        assert!(h.contains("<td>275 x 325</td>"), "mesh grid as rows x cols");
+        assert!(h.contains("y up (row 0 at the bottom)"));
+        assert!(h.contains("µm (y x x), y down as the stage moves"));
+        // The 3-D view: axes and a z scale over the render.
+        assert!(h.contains(">x (µm)</text>") && h.contains(">y (µm)</text>") && h.contains(">z "));
+        // Maps over 800 px: inline near display size, full size in report_maps/.
+        assert!(h.contains("data-full=\"report_maps/panorama.png\""));
+        assert!(d.path().join("report_maps/panorama.png").is_file());
+        assert!(h.contains("the file report_maps/panorama.png beside this page"));
+        assert!(
+            !h.contains("data-full=\"report_maps/pooled.png\""),
+            "small maps stay inline"
+        );
+    }
+
+    /// Measures writing report.html for an existing run folder (no assertion on time):
+    /// `SURFSTREAM_REPORT_DIR=out/demo cargo test --release -p surfstream report_write_time
+    /// -- --ignored --nocapture` (docs/outputs.md has the numbers).
+    #[test]
+    #[ignore]
+    fn report_write_time() {
+        let Some(dir) = std::env::var_os("SURFSTREAM_REPORT_DIR") else {
+            panic!("set SURFSTREAM_REPORT_DIR to a run's output folder");
+        };
+        let dir = std::path::PathBuf::from(dir);
+        // CPU time (all threads) beside the wall clock: on a shared, loaded machine the wall
+        // clock says more about the neighbours than about the report.
+        let cpu_s = || {
+            let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+            // SAFETY: getrusage fills the struct it is given.
+            unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) };
+            let t = |v: libc::timeval| v.tv_sec as f64 + v.tv_usec as f64 * 1e-6;
+            t(u.ru_utime) + t(u.ru_stime)
+        };
+        let mut times = Vec::new();
+        let mut cpu = Vec::new();
+        for _ in 0..5 {
+            let (t0, c0) = (std::time::Instant::now(), cpu_s());
+            write(&dir).unwrap();
+            times.push(t0.elapsed().as_secs_f64());
+            cpu.push(cpu_s() - c0);
+        }
+        times.sort_by(f64::total_cmp);
+        cpu.sort_by(f64::total_cmp);
+        println!(
+            "CPU time (user + sys, all threads): {:.3} s best, {:.3} s median",
+            cpu[0], cpu[2]
+        );
+        let size = std::fs::metadata(dir.join("report.html")).unwrap().len();
+        println!(
+            "report.html of {}: {:.3} s best, {:.3} s median of 5; {:.2} MB; {} threads",
+            dir.display(),
+            times[0],
+            times[2],
+            size as f64 / 1e6,
+            rayon::current_num_threads()
+        );
     }
 }

@@ -58,10 +58,12 @@ impl Axis {
             );
             let (a, b) = (a.min(b), a.max(b));
             let every = ((b - a) as usize).div_ceil(n.max(1)).max(1);
+            // One style per axis: plain numbers when every tick reads well so, else powers.
+            let plain = (-2..=3).contains(&a) && (-2..=3).contains(&b);
             (a..=b)
                 .filter(|k| ((k - a) as usize).is_multiple_of(every))
                 .map(|k| {
-                    let label = if (-2..=3).contains(&k) {
+                    let label = if plain {
                         fixed(10f64.powi(k), (-k).max(0) as usize)
                     } else {
                         format!("10<tspan dy=\"-6\" font-size=\"9\">{k}</tspan>")

@@ -88,7 +88,7 @@ pub fn section(s: &Surfaces) -> Option<String> {
     }
     g.push_str("</svg>");
     Some(format!(
-        "<figure class=\"wide\">{g}<figcaption>Row {r} of {} (y = {} from the top edge, the dashed \
+        "<figure class=\"wide\">{g}<figcaption>Row {r} of {} (y = {} from the bottom edge, row 0, the dashed \
          line on the panorama), {} long, {} points at {} pitch; heights relative to the \
          panorama's mean. Gaps: not measured.</figcaption></figure>",
         p.file_shape.0,

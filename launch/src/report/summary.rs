@@ -5,7 +5,7 @@
 use std::fmt::Write as _;
 
 use serde_json::Value;
-use surfstream_core::metrology::Params;
+use surfstream_core::metrology::{FunctionalParams, Params};
 
 use super::html::{esc, fixed, length, pitch, signed, table_raw, um};
 use super::surfaces::Surfaces;
@@ -260,52 +260,86 @@ fn verdict(h: &mut String, run: &Value) {
     h.push_str("</ul></div>");
 }
 
-/// Sa .. Sdr of the panorama, the roughness and the pooled map, each at its own pitch.
+/// Sa .. Sdr and the Sk family of the panorama, the roughness and the pooled map, each at its
+/// own pitch: the page's one set of parameters of these surfaces, labelled (mean removed, not
+/// levelled).
 pub fn key_parameters(s: &Surfaces) -> String {
     // At full resolution, streamed from the files (Surfaces::load).
-    let cols: Vec<(&str, Option<Params>)> = [
-        ("panorama (measured)", s.panorama.as_ref(), s.params[0]),
-        ("roughness", s.roughness.as_ref(), s.params[1]),
-        ("pooled map (model)", s.pooled.as_ref(), s.params[2]),
+    let cols: Vec<(&str, Option<Params>, Option<FunctionalParams>)> = [
+        (
+            "panorama (measured)",
+            s.panorama.as_ref(),
+            s.params[0],
+            s.functional[0],
+        ),
+        (
+            "roughness",
+            s.roughness.as_ref(),
+            s.params[1],
+            s.functional[1],
+        ),
+        (
+            "pooled map (model)",
+            s.pooled.as_ref(),
+            s.params[2],
+            s.functional[2],
+        ),
     ]
     .into_iter()
-    .filter_map(|(n, m, p)| m.map(|_| (n, p)))
+    .filter_map(|(n, m, p, f)| m.map(|_| (n, p, f)))
     .collect();
     if cols.is_empty() {
         return String::new();
     }
-    let what = [
-        ("Sa", "arithmetic mean height", "µm", 3),
-        ("Sq", "root mean square height", "µm", 3),
-        ("Sp", "maximum peak height", "µm", 3),
-        ("Sv", "maximum pit depth", "µm", 3),
-        ("Sz", "maximum height", "µm", 3),
-        ("Ssk", "skewness", "", 3),
-        ("Sku", "kurtosis", "", 3),
-        ("Sdq", "root mean square gradient", "", 4),
-        ("Sdr", "developed interfacial area ratio", "%", 2),
+    // The first nine from Params::named (in its order), then the Sk family.
+    type Get = Option<fn(&FunctionalParams) -> f64>;
+    let what: [(&str, &str, &str, usize, Get); 14] = [
+        ("Sa", "arithmetic mean height", "µm", 3, None),
+        ("Sq", "root mean square height", "µm", 3, None),
+        ("Sp", "maximum peak height", "µm", 3, None),
+        ("Sv", "maximum pit depth", "µm", 3, None),
+        ("Sz", "maximum height", "µm", 3, None),
+        ("Ssk", "skewness", "", 3, None),
+        ("Sku", "kurtosis", "", 3, None),
+        ("Sdq", "root mean square gradient", "", 4, None),
+        ("Sdr", "developed interfacial area ratio", "%", 2, None),
+        (
+            "Sk",
+            "core height (Sk family, ISO 25178-2)",
+            "µm",
+            3,
+            Some(|f| f.sk),
+        ),
+        ("Spk", "reduced peak height", "µm", 3, Some(|f| f.spk)),
+        ("Svk", "reduced valley depth", "µm", 3, Some(|f| f.svk)),
+        ("Smr1", "peak material ratio", "%", 2, Some(|f| f.smr1)),
+        ("Smr2", "valley material ratio", "%", 2, Some(|f| f.smr2)),
     ];
     let mut head = vec!["parameter", "", "unit"];
     head.extend(cols.iter().map(|c| c.0));
     let rows: Vec<(String, Vec<String>)> = what
         .iter()
         .enumerate()
-        .map(|(i, (name, long, unit, d))| {
+        .map(|(i, (name, long, unit, d, get))| {
             let mut r = vec![format!("<b>{name}</b>"), esc(long), unit.to_string()];
-            for (_, p) in &cols {
-                r.push(
-                    p.map(|p| fixed(p.named()[i].1, *d))
-                        .unwrap_or_else(|| "-".into()),
-                );
+            for (_, p, f) in &cols {
+                let v = match get {
+                    None => p.map(|p| p.named()[i].1),
+                    Some(get) => f.as_ref().map(get),
+                };
+                r.push(v.map(|v| fixed(v, *d)).unwrap_or_else(|| "-".into()));
             }
             (String::new(), r)
         })
         .collect();
     format!(
-        "<section id=\"parameters\"><h2>Key parameters (ISO 25178-2)</h2>{}<p class=\"note\">\
-         Over all valid points of each map at its own pitch, mean removed, no levelling and no \
+        "<section id=\"parameters\"><h2>Key parameters (ISO 25178-2): mean removed, not \
+         levelled</h2>{}<p class=\"note\">The page's parameters of these three surfaces. Over all \
+         valid points of each map at its own pitch, mean removed, <b>no levelling</b> and no \
          filter (S-F or S-L) applied; the roughness is the panorama minus the wavelet datum. \
-         Sdq and Sdr depend on the pitch: the pooled map's are taken over its coarser grid.</p></section>\n",
+         Sdq and Sdr depend on the pitch: the pooled map's are taken over its coarser grid. The \
+         mesh's fidelity table (below) is levelled and differs by the plane. Every parameter of \
+         a map: <code>surfstream params FILE --all</code>.</p></section>\n",
         table_raw(&head, &rows)
     )
 }
@@ -332,6 +366,7 @@ pub fn outputs(run: &Value) -> String {
             "truth.json" => "simulated truth (true tile origins)",
             "run.json" => "everything on this page as numbers",
             f if f.ends_with(".png") => "preview image",
+            f if f.ends_with(".npy.json") => "the pitch of the .npy beside it (sidecar)",
             f if f.starts_with("logs/") => "a process's stderr",
             f if f.starts_with("nodes/") => "a node's report",
             _ => "",
@@ -345,7 +380,11 @@ pub fn outputs(run: &Value) -> String {
             esc(f),
             esc(describe(f))
         );
-        if f.contains('/') || f.ends_with(".png") || f == "graph.resolved.json" {
+        if f.contains('/')
+            || f.ends_with(".png")
+            || f.ends_with(".npy.json")
+            || f == "graph.resolved.json"
+        {
             other.push_str(&link);
         } else {
             main.push_str(&link);

@@ -14,7 +14,7 @@ use std::path::Path;
 
 use anyhow::Result;
 use serde_json::Value;
-use surfstream_core::metrology::{Params, ParamsByRows};
+use surfstream_core::metrology::{functional_params, FunctionalParams, Grid, Params, ParamsByRows};
 use surfstream_io::npy::{read_npy_f64, NpyRows};
 
 use super::surface_stats::Histogram;
@@ -78,6 +78,10 @@ pub struct Surfaces {
     pub panorama_points: (usize, usize),
     /// ISO 25178 parameters of panorama, roughness and pooled map at full resolution.
     pub params: [Option<Params>; 3],
+    /// The Sk family (and the other functional parameters) of the same three maps, at full
+    /// resolution; None for a map over [`FUNCTIONAL_MAX_POINTS`] (the material ratio curve
+    /// sorts every height).
+    pub functional: [Option<FunctionalParams>; 3],
     /// The profile cut at full resolution: the file row and the panorama's, datum's and
     /// roughness's heights along it (panorama and datum relative to the reference).
     pub profile: Option<ProfileRows>,
@@ -131,6 +135,21 @@ fn streamed_params(path: &Path, pitch_um: (f64, f64), shift: f64) -> Result<Opti
         }
     }
     Ok(if ok { p.finish().ok() } else { None })
+}
+
+/// The largest map whose functional parameters the report computes (sorting 16 M heights
+/// takes about a second; bigger maps: `surfstream params FILE --all`).
+pub const FUNCTIONAL_MAX_POINTS: usize = 1 << 24;
+
+/// The functional parameters of a file's whole map (independent of a height shift).
+fn file_functional(path: &Path, pitch_um: (f64, f64)) -> Option<FunctionalParams> {
+    let f = NpyRows::open(path).ok()?;
+    if f.rows() * f.cols() > FUNCTIONAL_MAX_POINTS {
+        return None;
+    }
+    let a = read_npy_f64(path).ok()?;
+    let g = Grid::new(&a.data, a.rows, a.cols, pitch_um.0, pitch_um.1).ok()?;
+    functional_params(&g).ok()
 }
 
 /// The reference (mean of the finite heights, summed in row order as the whole-map path
@@ -290,11 +309,40 @@ impl Surfaces {
                 .ok()
                 .flatten()
         };
-        s.params = [
-            full_params("panorama", &panorama, reference),
-            full_params("roughness", &roughness, 0.0),
-            full_params("pooled", &pooled, reference),
-        ];
+        let functional = |name: &str, surface: &Option<Surface>| {
+            let m = surface.as_ref()?;
+            let pitch = (m.pitch_x_um / m.block as f64, m.pitch_y_um / m.block as f64);
+            file_functional(&out.join(format!("{name}.npy")), pitch)
+        };
+        // Six independent passes over the files: in parallel.
+        let (params, functional) = rayon::join(
+            || {
+                let ((a, b), c) = rayon::join(
+                    || {
+                        rayon::join(
+                            || full_params("panorama", &panorama, reference),
+                            || full_params("roughness", &roughness, 0.0),
+                        )
+                    },
+                    || full_params("pooled", &pooled, reference),
+                );
+                [a, b, c]
+            },
+            || {
+                let ((a, b), c) = rayon::join(
+                    || {
+                        rayon::join(
+                            || functional("panorama", &panorama),
+                            || functional("roughness", &roughness),
+                        )
+                    },
+                    || functional("pooled", &pooled),
+                );
+                [a, b, c]
+            },
+        );
+        s.params = params;
+        s.functional = functional;
         if let Some(p) = &panorama {
             let row = p.file_shape.0 / 2;
             let same_grid =

@@ -16,8 +16,8 @@ use super::html::{base64, esc, fixed, length, png_rgb};
 use super::surfaces::Surface;
 
 /// Output size, px.
-const WIDTH: usize = 1200;
-const HEIGHT: usize = 700;
+const WIDTH: usize = 960;
+const HEIGHT: usize = 560;
 /// Supersampling factor.
 const SS: usize = 2;
 /// Longest side of the grid that is drawn (larger maps are block averaged).
@@ -33,6 +33,8 @@ pub struct Render {
     pub exaggeration: f64,
     pub grid: (usize, usize),
     pub block: usize,
+    /// Axes and scale drawn over the image: SVG elements in output pixels.
+    pub overlay: String,
 }
 
 struct Raster {
@@ -132,9 +134,10 @@ pub fn render(s: &Surface) -> Option<Render> {
     let (a, e) = (AZIMUTH_DEG.to_radians(), ELEVATION_DEG.to_radians());
     let (ca, sa, ce, se) = (a.cos(), a.sin(), e.cos(), e.sin());
     let (cx, cy) = (w_um / 2.0, h_um / 2.0);
-    // World (x right, y toward the viewer, z up) -> (u right, v up, depth toward the viewer).
+    // World (x right, y away from the viewer, z up: row 0, the maps' bottom edge, in front,
+    // as the maps are drawn y up) -> (u right, v up, depth toward the viewer).
     let project = |x: f64, y: f64, zz: f64| -> (f64, f64, f64) {
-        let (xw, yw) = (x - cx, y - cy);
+        let (xw, yw) = (x - cx, cy - y);
         let xr = xw * ca + yw * sa;
         let yr = -xw * sa + yw * ca;
         (xr, zz * ce - yr * se, yr * ce + zz * se)
@@ -174,7 +177,8 @@ pub fn render(s: &Surface) -> Option<Render> {
         depth: vec![f64::NEG_INFINITY; w * h],
     };
     let light = {
-        let l = [-0.8f64, -1.0, 1.3];
+        // From the far left (y grows away from the viewer).
+        let l = [-0.8f64, 1.0, 1.3];
         let n = (l[0] * l[0] + l[1] * l[1] + l[2] * l[2]).sqrt();
         [l[0] / n, l[1] / n, l[2] / n]
     };
@@ -265,11 +269,95 @@ pub fn render(s: &Surface) -> Option<Render> {
             }
         }
     }
+    // Axes along the base's front and left edges, and a z scale bar at the front-left
+    // corner, in output pixels.
+    let px = |x: f64, y: f64, zz: f64| {
+        let (u, v, _) = screen(x, y, zz);
+        (u / SS as f64, v / SS as f64)
+    };
+    let mut overlay = String::new();
+    // Tick labels sit outside the block: below the front (x) edge, left of the left (y)
+    // edge, the two visible base edges; their shared corner is labelled once (by x).
+    let axis = |o: &mut String,
+                a: (f64, f64),
+                b: (f64, f64),
+                label: &str,
+                ticks_um: &[(f64, (f64, f64))],
+                off: (f64, f64),
+                anchor: &str| {
+        let _ = write!(
+            o,
+            "<line x1=\"{:.1}\" y1=\"{:.1}\" x2=\"{:.1}\" y2=\"{:.1}\" stroke=\"#222\" stroke-width=\"1.5\"/>",
+            a.0, a.1, b.0, b.1
+        );
+        for (v, p) in ticks_um {
+            let _ = write!(
+                o,
+                "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"2.5\" fill=\"#222\"/><text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\" text-anchor=\"{anchor}\">{}</text>",
+                p.0,
+                p.1,
+                p.0 + off.0,
+                p.1 + off.1,
+                fixed(*v, if *v >= 100.0 { 0 } else { 1 })
+            );
+        }
+        let (mx, my) = ((a.0 + b.0) / 2.0, (a.1 + b.1) / 2.0);
+        let _ = write!(
+            o,
+            "<text x=\"{:.1}\" y=\"{:.1}\" class=\"axis\" text-anchor=\"{anchor}\">{label}</text>",
+            mx + 2.2 * off.0,
+            my + 2.2 * off.1
+        );
+    };
+    let xs: Vec<(f64, (f64, f64))> = [0.0, 0.5, 1.0]
+        .iter()
+        .map(|f| (f * w_um, px(f * w_um, 0.0, base_z)))
+        .collect();
+    axis(
+        &mut overlay,
+        px(0.0, 0.0, base_z),
+        px(w_um, 0.0, base_z),
+        "x (µm)",
+        &xs,
+        (0.0, 16.0),
+        "middle",
+    );
+    let ys: Vec<(f64, (f64, f64))> = [0.5, 1.0]
+        .iter()
+        .map(|f| (f * h_um, px(0.0, f * h_um, base_z)))
+        .collect();
+    axis(
+        &mut overlay,
+        px(0.0, 0.0, base_z),
+        px(0.0, h_um, base_z),
+        "y (µm)",
+        &ys,
+        (-10.0, 10.0),
+        "end",
+    );
+    // z: a bar of a round height, drawn at the exaggerated scale, labelled in true µm.
+    let z_bar = round2((hi - lo) / 2.0);
+    if z_bar.is_finite() && z_bar > 0.0 {
+        let top = px(0.0, 0.0, hi * ex);
+        let bottom = px(0.0, 0.0, hi * ex - z_bar * ex);
+        let x = top.0 - 14.0;
+        let _ = write!(
+            overlay,
+            "<line x1=\"{x:.1}\" y1=\"{:.1}\" x2=\"{x:.1}\" y2=\"{:.1}\" stroke=\"#222\" stroke-width=\"3\"/>\
+             <text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\" text-anchor=\"end\">z {} µm</text>",
+            top.1,
+            bottom.1,
+            x - 6.0,
+            (top.1 + bottom.1) / 2.0 + 4.0,
+            fixed(z_bar, if z_bar >= 10.0 { 0 } else { 2 })
+        );
+    }
     Some(Render {
         png: png_rgb(&out, WIDTH, HEIGHT).ok()?,
         exaggeration: ex,
         grid: (rows, cols),
         block,
+        overlay,
     })
 }
 
@@ -279,9 +367,11 @@ pub fn figure(s: &Surface, what: &str) -> Option<String> {
     let mut f = String::new();
     let _ = write!(
         f,
-        "<figure class=\"wide\"><img class=\"zoomable view3d\" alt=\"3-D view of the {n}\" \
+        "<figure class=\"wide\"><div style=\"position:relative;max-width:960px\">\
+         <img class=\"zoomable view3d\" alt=\"3-D view of the {n}\" \
          data-title=\"3-D view of the {n}\" src=\"data:image/png;base64,{}\">\
-         <figcaption>The {} ({} x {}), seen from its front edge (the maps' bottom edge) turned \
+         <svg viewBox=\"0 0 {WIDTH} {HEIGHT}\" style=\"position:absolute;left:0;top:0;width:100%;height:100%;pointer-events:none\">{overlay}</svg></div>\
+         <figcaption>The {} ({} x {}, y x x), seen from its front edge (the maps' bottom edge, y = 0) turned \
          {AZIMUTH_DEG}° and {ELEVATION_DEG}° above it; heights exaggerated <b>{} x</b>; \
          colours as in the maps (viridis over the 0.5 / 99.5 percentiles), shaded by a light \
          from the far left; grey: the base block. Drawn from a {} x {} grid{}. Static render, \
@@ -299,6 +389,7 @@ pub fn figure(s: &Surface, what: &str) -> Option<String> {
             String::new()
         },
         n = esc(s.name),
+        overlay = r.overlay,
     );
     Some(f)
 }

@@ -24,7 +24,7 @@ pub enum Units {
 
 #[derive(Args)]
 pub struct MeshArgs {
-    /// Height-map file (.npy in um, or any instrument format the readers know).
+    #[arg(help = super::file_help())]
     pub file: PathBuf,
     /// Largest vertical distance between any measured sample and the mesh, um.
     #[arg(long, conflicts_with = "epsilon_sq")]
@@ -54,13 +54,14 @@ pub struct MeshArgs {
     /// Write ASCII STL (LIGGGHTS) instead of binary (EDEM, Rocky, MercuryDPM).
     #[arg(long)]
     pub ascii: bool,
-    /// Unit of the STL coordinates (mm when not given, with a warning).
+    /// Unit of the STL coordinates (mm when not given; the summary line names it).
     #[arg(long, value_enum)]
     pub units: Option<Units>,
     /// Base of the solid below the lowest sample, um (default: 10 % of the height range, >= 10).
     #[arg(long)]
     pub base_depth_um: Option<f64>,
-    /// Sample spacing, um, for files without a lateral calibration (.npy); overrides the file's.
+    /// Pitch in um for a file that carries none (a .npy without its NAME.npy.json sidecar);
+    /// refused when it disagrees with the file's own (the rule of every verb).
     #[arg(long)]
     pub pitch_um: Option<f64>,
     /// Output STL (missing folders are created); the statistics go to the same name with .json.
@@ -69,24 +70,9 @@ pub struct MeshArgs {
 }
 
 pub fn run(a: MeshArgs) -> Result<()> {
-    let surface = surfstream_io::formats::read_surface(&a.file)?;
-    for w in &surface.metadata.warnings {
-        eprintln!("{}: warning: {w}", a.file.display());
-    }
-    let (pitch_x_um, pitch_y_um) = match a.pitch_um {
-        Some(p) if p.is_finite() && p > 0.0 => (p, p),
-        Some(p) => bail!("--pitch-um {p}: expected a finite number > 0"),
-        None => (surface.pitch_x_um, surface.pitch_y_um),
-    };
-    if a.pitch_um.is_none() && !surface.metadata.pitch_known {
-        eprintln!(
-            "mesh: warning: {} carries no lateral calibration; assuming a pitch of {pitch_x_um:.4} um (give --pitch-um)",
-            a.file.display()
-        );
-    }
-    if a.units.is_none() && a.target.is_none() {
-        eprintln!("mesh: warning: no --units given; the STL is in mm (--units m | mm | um)");
-    }
+    check_stl_name(&a.out)?;
+    let surface = super::load_surface(&a.file, a.pitch_um, "mesh", true)?.surface;
+    let (pitch_x_um, pitch_y_um) = (surface.pitch_x_um, surface.pitch_y_um);
     // Heights as f32 relative to their mean, so that f32 keeps nanometres however far up the
     // z axis the part sits; the mean goes into z_offset_um and comes back in the offset.
     if !surface.heights_um.iter().any(|h| h.is_finite()) {
@@ -204,14 +190,21 @@ pub fn run(a: MeshArgs) -> Result<()> {
     };
     eprintln!(
         "mesh: {} triangles ({} surface), {} vertices, STL in {}; max vertical error \
-         {:.3} um, RMS {:.3} um (bound {:.3} um{bound}{}); {mesh_s:.2} s; wrote {} and {}",
+         {} um, RMS {} um (bound {} um{bound}{}); {mesh_s:.2} s; wrote {} and {}",
         m.mesh.triangles.len(),
         m.surface_triangles,
         m.mesh.vertices.len(),
-        m.mesh.units.symbol(),
-        f.error.max_um,
-        f.error.rms_um,
-        f.epsilon_um,
+        if a.units.is_none() && profile.is_none() {
+            format!(
+                "{} (the default; --units m | mm | um)",
+                m.mesh.units.symbol()
+            )
+        } else {
+            m.mesh.units.symbol().to_string()
+        },
+        super::sig(f.error.max_um, 4),
+        super::sig(f.error.rms_um, 4),
+        super::sig(f.epsilon_um, 4),
         if m.budget_reached {
             ", triangle budget reached"
         } else {
@@ -297,6 +290,21 @@ fn write_grid_target(
         a.out.display(),
         json_path.display()
     );
+    Ok(())
+}
+
+/// `mesh` writes STL: an output named otherwise (`-o k.obj`) is refused, not filled with STL.
+pub(super) fn check_stl_name(out: &Path) -> Result<()> {
+    let ext = out
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase);
+    if ext.as_deref() != Some("stl") {
+        bail!(
+            "{}: mesh writes STL; name the output OUT.stl (the statistics go to OUT.json)",
+            out.display()
+        );
+    }
     Ok(())
 }
 

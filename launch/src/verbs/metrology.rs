@@ -8,11 +8,13 @@ use anyhow::{bail, Result};
 use clap::Args;
 use surfstream_core::metrology::{self, Grid, ParamValue};
 use surfstream_core::similarity;
-use surfstream_io::formats::{read_surface, write_surface, Surface};
+use surfstream_io::formats::{write_surface, Surface};
+
+use super::{file_help, load_surface, pitch_text, WRITABLE_WITH_PITCH};
 
 #[derive(Args)]
 pub struct InspectArgs {
-    /// Height-map file (.datx, .dat, .x3p, .sur, .npy, .xyz).
+    #[arg(help = file_help())]
     pub file: PathBuf,
     /// Print JSON instead of text.
     #[arg(long)]
@@ -21,8 +23,10 @@ pub struct InspectArgs {
 
 #[derive(Args)]
 pub struct ParamsArgs {
-    /// Height-map files (any readable format); one record per file, in the order given.
-    #[arg(required = true)]
+    /// Height-map files (any readable format), one record per file in the order given; or a
+    /// folder: every readable file in it, one table row per file (a file that cannot be read
+    /// is named on stderr and the exit status is 1).
+    #[arg(required = true, value_name = "FILE|DIR")]
     pub files: Vec<PathBuf>,
     /// Every ISO 25178-2 parameter: height, hybrid, spatial (Sal Str Std), functional (Sk
     /// family, volumes, Smr(c), Smc(mr)) and feature (Spd Spc S5p S5v S10z Sda Sha Sdv Shv).
@@ -46,8 +50,9 @@ pub struct ParamsArgs {
     /// written when any file fails).
     #[arg(short = 'o', long = "out")]
     pub out: Option<PathBuf>,
-    /// Pitch in um for files that carry none (.npy); an error for files that do. Without it
-    /// such files are computed at 1 um with a warning.
+    /// Pitch in um for files that carry none (a .npy without its NAME.npy.json sidecar);
+    /// refused when it disagrees with a file's own. Without it such files are computed at
+    /// 1 um with a warning.
     #[arg(long)]
     pub pitch_um: Option<f64>,
     /// Wolf pruning threshold of the feature parameters, % of Sz (ISO 25178-3: 5).
@@ -57,50 +62,38 @@ pub struct ParamsArgs {
 
 #[derive(Args)]
 pub struct ConvertArgs {
-    /// Any readable height-map file.
+    /// Any readable height-map file, or a folder: every readable file in it is converted
+    /// into the folder -o names, as --to says (a table, one row per file).
+    #[arg(value_name = "IN|DIR")]
     pub input: PathBuf,
-    /// Output file, .x3p or .npy (missing folders are created).
+    /// Output file: .x3p, .npy (+ its pitch sidecar NAME.npy.json), .gsf (Gwyddion) or
+    /// .tif (float32 TIFF, um); for a folder input, the output folder (missing folders are
+    /// created).
     #[arg(short = 'o', long = "out", value_name = "OUT")]
     pub out: Option<PathBuf>,
+    /// For a folder input: the format to write (x3p, npy, gsf, tif).
+    #[arg(long, value_name = "EXT", default_value = "x3p")]
+    pub to: String,
     /// Deprecated: the output as a second argument (use -o).
     #[arg(hide = true, value_name = "OUTPUT")]
     pub output: Option<PathBuf>,
-    /// Pitch in um for inputs that carry none (.npy); an error for inputs that do.
+    /// Pitch in um for inputs that carry none (a .npy without its sidecar); refused when it
+    /// disagrees with the input's own. Needed for such inputs to .x3p, .gsf or .tif (they
+    /// store a pitch).
     #[arg(long)]
     pub pitch_um: Option<f64>,
 }
 
 #[derive(Args)]
 pub struct CompareArgs {
+    /// The first height map (any readable format; e.g. a panorama).
     pub a: PathBuf,
+    /// The second, of the same rows x cols as A (e.g. its datum, or a reference). SIM and
+    /// SSIM are symmetric; the RMS difference is over the points valid in both.
     pub b: PathBuf,
     /// Print JSON instead of text.
     #[arg(long)]
     pub json: bool,
-}
-
-/// Reads `path`, applying `pitch_um` to files without a lateral calibration.
-fn load(path: &Path, pitch_um: Option<f64>) -> Result<Surface> {
-    let mut s = read_surface(path)?;
-    for w in &s.metadata.warnings {
-        eprintln!("{}: warning: {w}", path.display());
-    }
-    if let Some(p) = pitch_um {
-        if !(p.is_finite() && p > 0.0) {
-            bail!("--pitch-um {p}: expected a finite positive number");
-        }
-        if s.metadata.pitch_known {
-            bail!(
-                "{}: the file carries its pitch ({} x {} um); --pitch-um is only for files without one",
-                path.display(),
-                s.pitch_x_um,
-                s.pitch_y_um
-            );
-        }
-        s.pitch_x_um = p;
-        s.pitch_y_um = p;
-    }
-    Ok(s)
 }
 
 fn grid(s: &Surface) -> Result<Grid<'_>> {
@@ -114,7 +107,7 @@ fn grid(s: &Surface) -> Result<Grid<'_>> {
 }
 
 pub fn inspect(a: InspectArgs) -> Result<()> {
-    let s = load(&a.file, None)?;
+    let s = load_surface(&a.file, None, "inspect", false)?.surface;
     let valid: Vec<f64> = s
         .heights_um
         .iter()
@@ -147,13 +140,19 @@ pub fn inspect(a: InspectArgs) -> Result<()> {
     println!("format      {}", m.format);
     println!("shape       {} rows x {} cols", s.height, s.width);
     let pitch_note = if m.pitch_known {
-        ""
+        String::new()
     } else {
-        " (not in the file: assumed)"
+        format!(
+            " (not in the file: assumed; give --pitch-um to the other verbs, or keep a {} sidecar beside it)",
+            surfstream_io::sidecar::sidecar_path(&a.file)
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default()
+        )
     };
     println!(
-        "pitch       x {:.4} um, y {:.4} um{pitch_note}",
-        s.pitch_x_um, s.pitch_y_um
+        "pitch       {}{pitch_note}",
+        pitch_text(s.pitch_x_um, s.pitch_y_um)
     );
     println!(
         "invalid     {} of {} points",
@@ -192,6 +191,8 @@ struct ParamsRecord {
     valid_points: usize,
     levelled: bool,
     values: Vec<ParamValue>,
+    /// Why some values are undefined (feature parameters without a significant motif).
+    notes: Vec<String>,
 }
 
 fn basic_named(p: &metrology::Params) -> Vec<ParamValue> {
@@ -216,16 +217,8 @@ fn basic_named(p: &metrology::Params) -> Vec<ParamValue> {
 }
 
 fn params_of(path: &Path, a: &ParamsArgs) -> Result<ParamsRecord> {
-    let s = load(path, a.pitch_um)?;
-    let pitch_assumed = !s.metadata.pitch_known && a.pitch_um.is_none();
-    if pitch_assumed {
-        eprintln!(
-            "{}: warning: the file carries no pitch; assumed {} x {} um (give --pitch-um)",
-            path.display(),
-            s.pitch_x_um,
-            s.pitch_y_um
-        );
-    }
+    let loaded = load_surface(path, a.pitch_um, "params", true)?;
+    let (s, pitch_assumed) = (loaded.surface, loaded.pitch_assumed);
     let g = grid(&s)?;
     let levelled;
     let g = if a.level {
@@ -242,6 +235,7 @@ fn params_of(path: &Path, a: &ParamsArgs) -> Result<ParamsRecord> {
     } else {
         basic_named(&metrology::params(&g)?)
     };
+    let notes = feature_notes(&values, a.level, a.pruning_pct);
     Ok(ParamsRecord {
         file: path.display().to_string(),
         rows: s.height,
@@ -252,7 +246,35 @@ fn params_of(path: &Path, a: &ParamsArgs) -> Result<ParamsRecord> {
         valid_points: s.heights_um.len() - s.invalid_count(),
         levelled: a.level,
         values,
+        notes,
     })
+}
+
+/// Why feature parameters are undefined, when they are: no motif survives as significant.
+fn feature_notes(values: &[ParamValue], levelled: bool, pruning_pct: f64) -> Vec<String> {
+    let undefined: Vec<&str> = values
+        .iter()
+        .filter(|v| {
+            v.family == "feature" && (v.value.is_nan() || (v.name == "Spd" && v.value == 0.0))
+        })
+        .map(|v| v.name)
+        .collect();
+    if undefined.is_empty() {
+        return Vec::new();
+    }
+    let why = format!(
+        "{} undefined (Spd = 0: no significant hill): after Wolf pruning at {pruning_pct} % of Sz \
+         every remaining hill or dale touches the map's border or a gap, so none counts",
+        undefined.join(", ")
+    );
+    vec![if levelled {
+        why
+    } else {
+        format!(
+            "{why}; the surface is not levelled, and a tilt or form drains every motif to the \
+             low edge: --level (plane first) usually defines them"
+        )
+    }]
 }
 
 /// A number with 6 significant digits, fixed-point where that reads well.
@@ -296,6 +318,9 @@ fn json_record(r: &ParamsRecord) -> serde_json::Value {
         units.insert(v.name.into(), v.unit.into());
     }
     m.insert("units".into(), units.into());
+    if !r.notes.is_empty() {
+        m.insert("notes".into(), serde_json::json!(r.notes));
+    }
     serde_json::Value::Object(m)
 }
 
@@ -384,12 +409,11 @@ fn render(records: &[ParamsRecord], a: &ParamsArgs) -> Result<String> {
             }
             writeln!(
                 out,
-                "{}: {} rows x {} cols, pitch {} x {} um{}, {} valid points, {}",
+                "{}: {} rows x {} cols, pitch {}{}, {} valid points, {}",
                 r.file,
                 r.rows,
                 r.cols,
-                r.pitch_x_um,
-                r.pitch_y_um,
+                pitch_text(r.pitch_x_um, r.pitch_y_um),
                 if r.pitch_assumed { " (assumed)" } else { "" },
                 r.valid_points,
                 if r.levelled {
@@ -409,6 +433,9 @@ fn render(records: &[ParamsRecord], a: &ParamsArgs) -> Result<String> {
             if r.valid_points < r.rows * r.cols {
                 writeln!(out, "  (over the valid points; Sdq and Sdr use only differences and cells whose points are all valid)")?;
             }
+            for n in &r.notes {
+                writeln!(out, "  note: {n}")?;
+            }
         }
     }
     Ok(out)
@@ -421,9 +448,21 @@ pub fn params(a: ParamsArgs) -> Result<()> {
             a.pruning_pct
         );
     }
-    let mut records = Vec::with_capacity(a.files.len());
-    let mut failures = Vec::new();
+    // A folder stands for its readable files; a batch over a folder reports a file that
+    // cannot be read and goes on (exit status 1 at the end).
+    let mut files = Vec::new();
+    let mut folder = false;
     for f in &a.files {
+        if f.is_dir() {
+            folder = true;
+            files.extend(super::readable_files(f)?);
+        } else {
+            files.push(f.clone());
+        }
+    }
+    let mut records = Vec::with_capacity(files.len());
+    let mut failures = Vec::new();
+    for f in &files {
         match params_of(f, &a) {
             Ok(r) => records.push(r),
             Err(e) => {
@@ -438,7 +477,10 @@ pub fn params(a: ParamsArgs) -> Result<()> {
             }
         }
     }
-    if !failures.is_empty() {
+    // Explicit files: any failure fails the whole (nothing written). A folder: the readable
+    // ones are still tabled, unless none was.
+    let partial_batch = folder && !records.is_empty();
+    if !failures.is_empty() && !partial_batch {
         for f in &failures[..failures.len() - 1] {
             eprintln!("error: {f}");
         }
@@ -452,7 +494,12 @@ pub fn params(a: ParamsArgs) -> Result<()> {
             }
         );
     }
-    let text = render(&records, &a)?;
+    let plain = !(a.json || a.jsonl || a.csv);
+    let text = if folder && plain {
+        render_table(&records)
+    } else {
+        render(&records, &a)?
+    };
     match &a.out {
         Some(path) => {
             surfstream_core::fsutil::write_atomic(path, |w| {
@@ -464,33 +511,238 @@ pub fn params(a: ParamsArgs) -> Result<()> {
         }
         None => print!("{text}"),
     }
+    if !failures.is_empty() {
+        for f in &failures {
+            eprintln!("error: {f}");
+        }
+        bail!(
+            "{} of {} file(s) could not be read (the others are in the table)",
+            failures.len(),
+            files.len()
+        );
+    }
     Ok(())
+}
+
+/// The records of a folder batch as one aligned table: a row per file, a column per
+/// parameter (unit in the header), shape as rows x cols, pitch to 4 significant digits.
+fn render_table(records: &[ParamsRecord]) -> String {
+    let mut head = vec![
+        "file".to_string(),
+        "rows x cols".into(),
+        "pitch [um]".into(),
+        "surface".into(),
+    ];
+    if let Some(r) = records.first() {
+        head.extend(r.values.iter().map(|v| {
+            if v.unit.is_empty() {
+                v.name.to_string()
+            } else {
+                format!("{} [{}]", v.name, v.unit)
+            }
+        }));
+    }
+    let mut rows = vec![head];
+    for r in records {
+        let pitch = pitch_text(r.pitch_x_um, r.pitch_y_um);
+        let mut row = vec![
+            r.file.clone(),
+            format!("{} x {}", r.rows, r.cols),
+            format!(
+                "{}{}",
+                pitch.trim_end_matches(" um").trim_end_matches(" um (x, y)"),
+                if r.pitch_assumed { " (assumed)" } else { "" }
+            ),
+            if r.levelled {
+                "levelled"
+            } else {
+                "mean removed"
+            }
+            .into(),
+        ];
+        row.extend(r.values.iter().map(|v| sig6(v.value)));
+        rows.push(row);
+    }
+    let ncol = rows.iter().map(Vec::len).max().unwrap_or(0);
+    let width: Vec<usize> = (0..ncol)
+        .map(|c| {
+            rows.iter()
+                .filter_map(|r| r.get(c))
+                .map(|t| t.chars().count())
+                .max()
+                .unwrap_or(0)
+        })
+        .collect();
+    let mut out = String::new();
+    for r in &rows {
+        let cells: Vec<String> = r
+            .iter()
+            .enumerate()
+            .map(|(c, t)| {
+                if c == 0 {
+                    format!("{t:<w$}", w = width[c])
+                } else {
+                    format!("{t:>w$}", w = width[c])
+                }
+            })
+            .collect();
+        out.push_str(cells.join("  ").trim_end());
+        out.push('\n');
+    }
+    for r in records {
+        for n in &r.notes {
+            out.push_str(&format!("note: {}: {n}\n", r.file));
+        }
+    }
+    out
+}
+
+/// Reads one input and writes one output; the line `convert` prints for it.
+fn convert_one(input: &Path, output: &Path, pitch_um: Option<f64>) -> Result<String> {
+    let loaded = load_surface(input, pitch_um, "convert", false)?;
+    let mut s = loaded.surface;
+    let ext = output
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .unwrap_or_default();
+    if loaded.pitch_assumed && WRITABLE_WITH_PITCH.contains(&ext.as_str()) {
+        bail!(
+            "{}: the file carries no pitch, and a .{ext} stores one: give --pitch-um (or write .npy, \
+             which keeps no pitch until one is known)",
+            input.display()
+        );
+    }
+    if pitch_um.is_some() {
+        // The pitch given is now the surface's own: written into the output (x3p, the npy
+        // sidecar, ...).
+        s.metadata.pitch_known = true;
+    }
+    write_surface(output, &s)?;
+    let sidecar = if ext == "npy" && s.metadata.pitch_known {
+        format!(
+            " + {}",
+            surfstream_io::sidecar::sidecar_path(output)
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default()
+        )
+    } else {
+        String::new()
+    };
+    Ok(format!(
+        "{} -> {}{sidecar} ({} rows x {} cols, pitch {}{})",
+        input.display(),
+        output.display(),
+        s.height,
+        s.width,
+        pitch_text(s.pitch_x_um, s.pitch_y_um),
+        if s.metadata.pitch_known {
+            ""
+        } else {
+            ", not known"
+        }
+    ))
 }
 
 pub fn convert(a: ConvertArgs) -> Result<()> {
     let Some(output) = a.out.or(a.output) else {
-        bail!("convert: no output: write `convert IN -o OUT.x3p` (or .npy)");
+        bail!("convert: no output: write `convert IN -o OUT.x3p`");
     };
-    let s = load(&a.input, a.pitch_um)?;
-    write_surface(&output, &s)?;
-    eprintln!(
-        "{} -> {} ({} x {} px (rows x cols), pitch {:.4} x {:.4} um)",
-        a.input.display(),
-        output.display(),
-        s.height,
-        s.width,
-        s.pitch_x_um,
-        s.pitch_y_um
-    );
+    eprintln!("{}", convert_one(&a.input, &output, a.pitch_um)?);
+    Ok(())
+}
+
+/// `convert DIR -o OUTDIR --to EXT`: every readable file of DIR, one table row each; a file
+/// that cannot be converted is named and the others go on (exit status 1 at the end).
+pub fn convert_folder(a: ConvertArgs) -> Result<()> {
+    let Some(out_dir) = a.out.clone().or(a.output.clone()) else {
+        bail!("convert: no output folder: write `convert DIR -o OUTDIR --to x3p`");
+    };
+    let ext = a.to.trim_start_matches('.').to_ascii_lowercase();
+    if !super::WRITABLE.contains(&ext.as_str()) {
+        bail!(
+            "--to {}: expected one of {}",
+            a.to,
+            super::WRITABLE.join(", ")
+        );
+    }
+    if out_dir.is_file() {
+        bail!(
+            "{}: is a file; convert DIR writes into a folder (-o OUTDIR)",
+            out_dir.display()
+        );
+    }
+    let files = super::readable_files(&a.input)?;
+    let mut rows = Vec::new();
+    let mut failures = 0usize;
+    for f in &files {
+        let stem = f
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let target = out_dir.join(format!("{stem}.{ext}"));
+        match convert_one(f, &target, a.pitch_um) {
+            Ok(_) => {
+                let s = surfstream_io::formats::read_surface(&target);
+                let (shape, pitch) = s.map_or(("?".into(), "?".into()), |s| {
+                    (
+                        format!("{} x {}", s.height, s.width),
+                        pitch_text(s.pitch_x_um, s.pitch_y_um),
+                    )
+                });
+                rows.push([
+                    f.display().to_string(),
+                    target.display().to_string(),
+                    shape,
+                    pitch,
+                    "ok".into(),
+                ]);
+            }
+            Err(e) => {
+                failures += 1;
+                rows.push([
+                    f.display().to_string(),
+                    "-".into(),
+                    "-".into(),
+                    "-".into(),
+                    format!("error: {e:#}"),
+                ]);
+            }
+        }
+    }
+    let head = ["input", "output", "rows x cols", "pitch", "status"].map(String::from);
+    let width: Vec<usize> = (0..5)
+        .map(|c| {
+            rows.iter()
+                .chain([&head])
+                .map(|r| r[c].chars().count())
+                .max()
+                .unwrap_or(0)
+        })
+        .collect();
+    for r in [&head].into_iter().chain(rows.iter()) {
+        let line: Vec<String> = (0..5)
+            .map(|c| format!("{:<w$}", r[c], w = width[c]))
+            .collect();
+        println!("{}", line.join("  ").trim_end());
+    }
+    if failures > 0 {
+        bail!(
+            "{failures} of {} file(s) not converted (named in the table)",
+            files.len()
+        );
+    }
     Ok(())
 }
 
 pub fn compare(a: CompareArgs) -> Result<()> {
-    let x = load(&a.a, None)?;
-    let y = load(&a.b, None)?;
+    // SIM, SSIM and the RMS difference compare samples, not lengths: no pitch is needed.
+    let x = load_surface(&a.a, None, "compare", false)?.surface;
+    let y = load_surface(&a.b, None, "compare", false)?.surface;
     if (x.height, x.width) != (y.height, y.width) {
         bail!(
-            "{} is {} x {} px but {} is {} x {} px: compare needs maps of the same shape",
+            "{} is {} x {} px (rows x cols) but {} is {} x {} px: compare needs maps of the same shape",
             a.a.display(),
             x.height,
             x.width,
@@ -520,4 +772,112 @@ pub fn compare(a: CompareArgs) -> Result<()> {
         println!("RMS   {rms:.6} um over {n} points valid in both");
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn npy(dir: &Path, name: &str, rows: usize, cols: usize) -> PathBuf {
+        let p = dir.join(name);
+        let z: Vec<f64> = (0..rows * cols)
+            .map(|i| ((i % cols) as f64 * 0.7).sin() * 3.0 + (i / cols) as f64 * 0.02)
+            .collect();
+        surfstream_io::npy::write_npy_f64(&p, &z, rows, cols).unwrap();
+        p
+    }
+
+    #[test]
+    fn convert_refuses_to_invent_a_pitch_and_carries_a_known_one() {
+        let d = tempfile::tempdir().unwrap();
+        let bare = npy(d.path(), "bare.npy", 6, 7);
+        for ext in ["x3p", "gsf", "tif"] {
+            let e = convert_one(&bare, &d.path().join(format!("o.{ext}")), None)
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains(&format!(
+                    "the file carries no pitch, and a .{ext} stores one: give --pitch-um"
+                )),
+                "{e}"
+            );
+        }
+        // With --pitch-um: the x3p says it; back to .npy, the sidecar keeps it.
+        let x3p = d.path().join("o.x3p");
+        let line = convert_one(&bare, &x3p, Some(0.75)).unwrap();
+        assert!(
+            line.contains("(6 rows x 7 cols, pitch 0.7500 um)"),
+            "{line}"
+        );
+        let back = d.path().join("back.npy");
+        let line = convert_one(&x3p, &back, None).unwrap();
+        assert!(line.contains("+ back.npy.json"), "{line}");
+        let s = surfstream_io::formats::read_surface(&back).unwrap();
+        assert!(s.metadata.pitch_known && (s.pitch_x_um - 0.75).abs() < 1e-12);
+        // A pitchless .npy to .npy: no sidecar, no claim.
+        let line = convert_one(&bare, &d.path().join("copy.npy"), None).unwrap();
+        assert!(line.ends_with("pitch 1.000 um, not known)"), "{line}");
+        assert!(!d.path().join("copy.npy.json").exists());
+    }
+
+    fn args(files: Vec<PathBuf>) -> ParamsArgs {
+        ParamsArgs {
+            files,
+            all: true,
+            level: false,
+            json: false,
+            csv: false,
+            jsonl: false,
+            out: None,
+            pitch_um: Some(1.0),
+            pruning_pct: 5.0,
+        }
+    }
+
+    #[test]
+    fn params_table_is_rows_x_cols_and_feature_nulls_say_why() {
+        let d = tempfile::tempdir().unwrap();
+        let a = args(vec![]);
+        // A steep ramp: every motif drains to the low edge; nothing significant is left.
+        let p = d.path().join("ramp.npy");
+        let z: Vec<f64> = (0..20 * 30)
+            .map(|i| (i % 30) as f64 * 10.0 + ((i * 7) % 5) as f64 * 0.01)
+            .collect();
+        surfstream_io::npy::write_npy_f64(&p, &z, 20, 30).unwrap();
+        let r = params_of(&p, &a).unwrap();
+        let spd = r.values.iter().find(|v| v.name == "Spd").unwrap().value;
+        if spd == 0.0 || spd.is_nan() {
+            assert!(!r.notes.is_empty());
+            assert!(r.notes[0].contains("--level"), "{:?}", r.notes);
+        }
+        let t = render_table(&[r]);
+        let mut lines = t.lines();
+        let head = lines.next().unwrap();
+        assert!(
+            head.contains("rows x cols") && head.contains("Sa [um]"),
+            "{head}"
+        );
+        let row = lines.next().unwrap();
+        assert!(row.contains("20 x 30") && row.contains(" 1.000 "), "{row}");
+    }
+
+    #[test]
+    fn feature_notes_name_the_reason() {
+        let v = |name: &'static str, value: f64| ParamValue {
+            name,
+            value,
+            unit: "um",
+            family: "feature",
+        };
+        let values = [v("Spd", 0.0), v("S10z", f64::NAN), v("S5p", f64::NAN)];
+        let n = feature_notes(&values, false, 5.0);
+        assert_eq!(n.len(), 1);
+        assert!(
+            n[0].starts_with("Spd, S10z, S5p undefined") && n[0].contains("--level"),
+            "{n:?}"
+        );
+        let n = feature_notes(&values, true, 5.0);
+        assert!(!n[0].contains("--level"));
+        assert!(feature_notes(&[v("Spd", 0.2)], false, 5.0).is_empty());
+    }
 }

@@ -9,10 +9,166 @@ pub mod separate;
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
+use surfstream_io::formats::{read_surface, Surface};
 
 /// The formats `convert` writes (surfstream_io::formats::write_surface), by extension.
-pub const WRITABLE: &[&str] = &["x3p", "npy"];
+pub const WRITABLE: &[&str] = surfstream_io::formats::WRITABLE;
+
+/// Output formats that store a pitch: writing one from a file without a pitch would turn the
+/// assumed 1 um into a claim, so `convert` refuses unless `--pitch-um` is given.
+pub const WRITABLE_WITH_PITCH: &[&str] = &["x3p", "gsf", "tif", "tiff"];
+
+/// `v` with `digits` significant digits (fixed-point where it reads well): how every verb
+/// prints a pitch or a bound ("2.280", "0.001000").
+pub fn sig(v: f64, digits: usize) -> String {
+    if !v.is_finite() {
+        return format!("{v}");
+    }
+    if v == 0.0 {
+        return "0".into();
+    }
+    let e = v.abs().log10().floor() as i32;
+    if (-5..7).contains(&e) {
+        let decimals = (digits as i32 - 1 - e).max(0) as usize;
+        format!("{v:.decimals$}")
+    } else {
+        format!("{v:.*e}", digits.saturating_sub(1))
+    }
+}
+
+/// A pitch as every verb prints it: "2.280 um", or "2.280 x 1.000 um" (x, y) when they
+/// differ; 4 significant digits.
+pub fn pitch_text(pitch_x_um: f64, pitch_y_um: f64) -> String {
+    if pitch_x_um == pitch_y_um {
+        format!("{} um", sig(pitch_x_um, 4))
+    } else {
+        format!("{} x {} um (x, y)", sig(pitch_x_um, 4), sig(pitch_y_um, 4))
+    }
+}
+
+/// A height map read for a verb, with whether its pitch is the 1 um stand-in.
+pub struct Loaded {
+    pub surface: Surface,
+    pub pitch_assumed: bool,
+}
+
+/// Reads `path` for `verb` with the one `--pitch-um` rule of every verb: a file that carries
+/// its pitch (every instrument format, a `.npy` with its `NAME.npy.json` sidecar) keeps it,
+/// and a `--pitch-um` that disagrees with it is refused; a file without one takes
+/// `--pitch-um`, or 1 um with a warning (`warn_assumed`). The reader's warnings are printed
+/// with the file name.
+pub fn load_surface(
+    path: &Path,
+    pitch_um: Option<f64>,
+    verb: &str,
+    warn_assumed: bool,
+) -> Result<Loaded> {
+    if let Some(p) = pitch_um {
+        if !(p.is_finite() && p > 0.0) {
+            bail!("--pitch-um {p}: expected a finite positive pitch in um");
+        }
+    }
+    let mut s = read_surface(path)?;
+    for w in &s.metadata.warnings {
+        eprintln!("{}: warning: {w}", path.display());
+    }
+    let mut pitch_assumed = false;
+    match (pitch_um, s.metadata.pitch_known) {
+        (Some(p), true) => {
+            let same = |a: f64| (a - p).abs() <= 1e-6 * p;
+            if !(same(s.pitch_x_um) && same(s.pitch_y_um)) {
+                let from = s
+                    .metadata
+                    .extra
+                    .get("pitch_from")
+                    .map_or(String::new(), |f| format!(" (from {f})"));
+                bail!(
+                    "{}: the file carries its pitch, {}{from}; --pitch-um {} disagrees: {verb} \
+                     takes --pitch-um only for files without a pitch (leave it out)",
+                    path.display(),
+                    pitch_text(s.pitch_x_um, s.pitch_y_um),
+                    sig(p, 4)
+                );
+            }
+        }
+        (Some(p), false) => {
+            s.pitch_x_um = p;
+            s.pitch_y_um = p;
+        }
+        (None, true) => {}
+        (None, false) => {
+            pitch_assumed = true;
+            if warn_assumed {
+                eprintln!(
+                    "{}: warning: the file carries no pitch; {verb} assumed {} (give --pitch-um, \
+                     or keep a {} sidecar beside it)",
+                    path.display(),
+                    pitch_text(s.pitch_x_um, s.pitch_y_um),
+                    surfstream_io::sidecar::sidecar_path(Path::new("NAME.npy")).display()
+                );
+            }
+        }
+    }
+    Ok(Loaded {
+        surface: s,
+        pitch_assumed,
+    })
+}
+
+/// The readable height-map files of a folder (not its sub-folders), in natural file-name
+/// order (`t_2` before `t_10`): what `params DIR` and `convert DIR` work through.
+pub fn readable_files(dir: &Path) -> Result<Vec<PathBuf>> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("{}: cannot list the folder", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.is_file() && surfstream_io::formats::is_surface_file(p))
+        .collect();
+    files.sort_by(|a, b| natural_cmp(&a.to_string_lossy(), &b.to_string_lossy()));
+    if files.is_empty() {
+        bail!(
+            "{}: no height-map files in the folder (readable: {})",
+            dir.display(),
+            readable_list()
+        );
+    }
+    Ok(files)
+}
+
+/// Compares names with runs of digits as numbers.
+fn natural_cmp(a: &str, b: &str) -> std::cmp::Ordering {
+    let (mut a, mut b) = (a.chars().peekable(), b.chars().peekable());
+    loop {
+        match (a.peek().copied(), b.peek().copied()) {
+            (None, None) => return std::cmp::Ordering::Equal,
+            (None, _) => return std::cmp::Ordering::Less,
+            (_, None) => return std::cmp::Ordering::Greater,
+            (Some(x), Some(y)) if x.is_ascii_digit() && y.is_ascii_digit() => {
+                let take = |it: &mut std::iter::Peekable<std::str::Chars>| {
+                    let mut n = String::new();
+                    while let Some(c) = it.peek().copied().filter(char::is_ascii_digit) {
+                        n.push(c);
+                        it.next();
+                    }
+                    n
+                };
+                let (na, nb) = (take(&mut a), take(&mut b));
+                let (ta, tb) = (na.trim_start_matches('0'), nb.trim_start_matches('0'));
+                let o = ta.len().cmp(&tb.len()).then(ta.cmp(tb));
+                if o != std::cmp::Ordering::Equal {
+                    return o;
+                }
+            }
+            (Some(x), Some(y)) => {
+                if x != y {
+                    return x.cmp(&y);
+                }
+                a.next();
+                b.next();
+            }
+        }
+    }
+}
 
 /// `path` must be one existing file: a folder or a missing path is named as such, not as an
 /// "unsupported format '.'".
@@ -38,7 +194,15 @@ pub fn one_file(path: &Path, verb: &str) -> Result<()> {
     Ok(())
 }
 
-fn readable_list() -> String {
+/// The help of a verb's height-map argument, naming every readable extension: the same list
+/// as the errors (one source, `surfstream_io::formats::EXTENSIONS`).
+pub fn file_help() -> &'static str {
+    static HELP: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+    HELP.get_or_init(|| format!("Height-map file: {}", readable_list()))
+}
+
+/// The readable extensions, as every message lists them.
+pub fn readable_list() -> String {
     surfstream_io::formats::EXTENSIONS
         .iter()
         .map(|e| format!(".{e}"))
@@ -63,7 +227,14 @@ pub fn convert_output(out: Option<PathBuf>, positional: Option<PathBuf>) -> Resu
             p.display(),
             o.display()
         ),
-        (None, None) => bail!("convert: no output: write `convert IN -o OUT.x3p` (or .npy)"),
+        (None, None) => bail!(
+            "convert: no output: write `convert IN -o OUT.x3p` (or {})",
+            WRITABLE[1..]
+                .iter()
+                .map(|e| format!(".{e}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
     };
     let ext = out
         .extension()
@@ -101,7 +272,9 @@ mod tests {
         );
         let e = convert_output(o("x.png"), None).unwrap_err().to_string();
         assert!(
-            e.contains("cannot write .png files; the formats convert writes are .x3p, .npy"),
+            e.contains(
+                "cannot write .png files; the formats convert writes are .x3p, .npy, .gsf, .tif"
+            ),
             "{e}"
         );
         let e = convert_output(o("x"), None).unwrap_err().to_string();
@@ -123,5 +296,106 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.ends_with("nope.dat: no such file"), "{e}");
+    }
+
+    fn npy(dir: &Path, name: &str, rows: usize, cols: usize) -> PathBuf {
+        let p = dir.join(name);
+        let z: Vec<f64> = (0..rows * cols)
+            .map(|i| ((i % cols) as f64 * 0.7).sin() + ((i / cols) as f64 * 0.3).cos())
+            .collect();
+        surfstream_io::npy::write_npy_f64(&p, &z, rows, cols).unwrap();
+        p
+    }
+
+    #[test]
+    fn one_pitch_rule_on_every_verb() {
+        let d = tempfile::tempdir().unwrap();
+        let bare = npy(d.path(), "bare.npy", 8, 9);
+        // No pitch anywhere: the stand-in, flagged.
+        let l = load_surface(&bare, None, "params", false).unwrap();
+        assert!(l.pitch_assumed && l.surface.pitch_x_um == 1.0);
+        // --pitch-um gives one.
+        let l = load_surface(&bare, Some(0.5), "params", false).unwrap();
+        assert!(!l.pitch_assumed && l.surface.pitch_y_um == 0.5);
+        assert!(load_surface(&bare, Some(-1.0), "mesh", false).is_err());
+        // A file with its pitch (the sidecar): kept; a disagreeing --pitch-um is refused by
+        // every verb in the same words; an agreeing one is fine.
+        surfstream_io::sidecar::write_sidecar(
+            &bare,
+            &surfstream_io::sidecar::NpyGeometry {
+                pitch_x_um: 2.2797945189999997,
+                pitch_y_um: 2.2797945189999997,
+                origin_um: None,
+            },
+        )
+        .unwrap();
+        let l = load_surface(&bare, None, "separate", false).unwrap();
+        assert!(!l.pitch_assumed && l.surface.pitch_x_um == 2.2797945189999997);
+        for verb in ["params", "convert", "separate", "mesh"] {
+            let e = load_surface(&bare, Some(1.0), verb, false)
+                .err()
+                .unwrap()
+                .to_string();
+            assert!(
+                e.contains("the file carries its pitch, 2.280 um (from bare.npy.json); --pitch-um 1.000 disagrees")
+                    && e.contains(&format!("{verb} takes --pitch-um only")),
+                "{e}"
+            );
+        }
+        assert!(load_surface(&bare, Some(2.2797945189999997), "mesh", false).is_ok());
+    }
+
+    #[test]
+    fn pitches_and_bounds_print_with_four_significant_digits() {
+        assert_eq!(
+            pitch_text(2.2797945189999997, 2.2797945189999997),
+            "2.280 um"
+        );
+        assert_eq!(pitch_text(0.5, 0.25), "0.5000 x 0.2500 um (x, y)");
+        assert_eq!(sig(0.001, 4), "0.001000");
+        assert_eq!(sig(1234.5678, 4), "1235");
+        assert_eq!(sig(0.0, 4), "0");
+    }
+
+    #[test]
+    fn folder_batches_list_readable_files_in_natural_order() {
+        let d = tempfile::tempdir().unwrap();
+        for n in ["t_10.npy", "t_2.npy", "notes.md", "t_1.npy"] {
+            std::fs::write(d.path().join(n), b"x").unwrap();
+        }
+        std::fs::create_dir(d.path().join("sub.npy")).unwrap();
+        let names: Vec<String> = readable_files(d.path())
+            .unwrap()
+            .iter()
+            .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(names, ["t_1.npy", "t_2.npy", "t_10.npy"]);
+        let e = readable_files(&d.path().join("sub.npy"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("no height-map files in the folder"), "{e}");
+    }
+
+    #[test]
+    fn help_names_every_readable_extension_like_the_errors() {
+        let help = file_help();
+        for e in surfstream_io::formats::EXTENSIONS {
+            assert!(help.contains(&format!(".{e}")), "{help} lacks .{e}");
+        }
+        let e = one_file(&PathBuf::from("."), "params")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(&readable_list()), "{e}");
+    }
+
+    #[test]
+    fn mesh_writes_stl_under_an_stl_name_only() {
+        assert!(mesh::check_stl_name(Path::new("a/k.stl")).is_ok());
+        assert!(mesh::check_stl_name(Path::new("K.STL")).is_ok());
+        let e = mesh::check_stl_name(Path::new("k.obj"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("k.obj: mesh writes STL"), "{e}");
+        assert!(mesh::check_stl_name(Path::new("k")).is_err());
     }
 }

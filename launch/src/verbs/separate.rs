@@ -2,7 +2,8 @@
 //!
 //! Reads any map `formats::read_surface` reads, runs the wavelet node's library
 //! ([`surfstream_wavelet::analyse`]: the same code as the pipeline's final pass) and writes
-//! `datum.npy`, `roughness.npy`, `pooled.npy` and `separate.json` (base, level, mode, energy
+//! `datum.npy`, `roughness.npy`, `pooled.npy` (each with its pitch sidecar `NAME.npy.json`,
+//! so `params` on them runs at the input's pitch) and `separate.json` (base, level, mode, energy
 //! curve, RMSE ranking when the base is "auto", the level's equivalent cutoff, pooling bias)
 //! into `--out`. `--method gaussian | robust-gaussian --cutoff-um L` separates by an ISO 16610
 //! L-filter instead ([`surfstream_wavelet::filter_separation`], the node's code too).
@@ -14,8 +15,10 @@ use clap::Args;
 use surfstream_core::filter::Grid;
 use surfstream_core::frame::{from_frame_heights, to_frame_heights};
 use surfstream_core::fsutil::write_atomic;
-use surfstream_io::formats::read_surface;
-use surfstream_io::npy::{write_npy_f32, write_npy_f64};
+use surfstream_io::npy::{write_npy_abs_f64, write_npy_f32, write_npy_f64};
+use surfstream_io::sidecar::{write_sidecar, NpyGeometry};
+
+use super::{file_help, load_surface, pitch_text, sig};
 use surfstream_wavelet::{
     analyse, equivalent_cutoff_um, filter_separation, level_lowered_warning, pool, pooling_bias,
     BaseChoice, LevelChoice, Mode, PoolOp, SeparationMethod, DEFAULT_LEVEL,
@@ -23,7 +26,7 @@ use surfstream_wavelet::{
 
 #[derive(Args)]
 pub struct SeparateArgs {
-    /// Height-map file (.npy, or an instrument format `surfstream inspect` reads).
+    #[arg(help = file_help())]
     pub file: PathBuf,
     /// How the datum is separated: wavelet (the paper's low-pass, --wavelet / --level),
     /// gaussian (ISO 16610-61 L-filter) or robust-gaussian (ISO 16610-71, zeroth order).
@@ -52,6 +55,11 @@ pub struct SeparateArgs {
     /// Pooling operation: max (the paper) or mean.
     #[arg(long = "pool-op", default_value = "max")]
     pub pool_op: String,
+    /// Pitch in um for a file that carries none (a .npy without its NAME.npy.json sidecar);
+    /// refused when it disagrees with the file's own. Without it such a file is separated at
+    /// 1 um with a warning (the equivalent cutoff and the outputs' sidecars say 1 um).
+    #[arg(long)]
+    pub pitch_um: Option<f64>,
     /// Output directory (created if needed).
     #[arg(short = 'o', long)]
     pub out: PathBuf,
@@ -109,7 +117,7 @@ pub fn run(a: SeparateArgs) -> Result<()> {
         bail!("--pool 0: expected a block size of at least 1 px");
     }
 
-    let s = read_surface(&a.file)?;
+    let s = load_surface(&a.file, a.pitch_um, "separate", true)?.surface;
     // The separation takes f32 heights (as frames carry them, DESIGN §2) and runs in f64.
     // Instrument heights can sit tens of um up (MetroPro: ~50 um), where f32 keeps only
     // ~4e-6 um: remove the mean first, as frames do with z_offset_um, and add it back to
@@ -152,9 +160,10 @@ pub fn run(a: SeparateArgs) -> Result<()> {
             o.insert("warning".into(), serde_json::json!(warning));
         }
         let line = format!(
-            "{} level {used} ({}, equivalent cutoff {cutoff:.1} µm), level by min energy {}",
+            "{} level {used} ({}, equivalent cutoff {} um), level by min energy {}",
             an.wavelet.name(),
             mode.name(),
+            sig(cutoff, 4),
             an.level_min_energy
                 .map_or("-".to_string(), |l| l.to_string()),
         );
@@ -175,24 +184,27 @@ pub fn run(a: SeparateArgs) -> Result<()> {
             "robust_converged": f.robust_iterations.map(|r| r.1),
             "pool": a.pool,
             "pool_op": pool_op.name(),
-            "pooled_px": [pooled.cols, pooled.rows],
+            "pooled_rows_cols": [pooled.rows, pooled.cols],
             "pooling_bias": pooling_bias(&heights, &pooled.heights),
         });
         let line = format!(
-            "{} lambda_c {cutoff} µm{}",
+            "{} lambda_c {} um{}",
             method.name(),
-            lambda_s_um.map_or(String::new(), |l| format!(", lambda_s {l} µm"))
+            sig(cutoff, 4),
+            lambda_s_um.map_or(String::new(), |l| format!(", lambda_s {} um", sig(l, 4)))
         );
         (f.datum, f.roughness, pooled, summary, line)
     };
 
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("{}: cannot create the output directory", a.out.display()))?;
-    write_npy_f64(
+    // Absolute f64 converted as it is written: no f64 copy of the whole datum.
+    write_npy_abs_f64(
         a.out.join("datum.npy"),
-        &with_offset(&datum),
+        &datum,
         s.height,
         s.width,
+        z_offset_um,
     )?;
     write_npy_f32(a.out.join("roughness.npy"), &roughness, s.height, s.width)?;
     write_npy_f64(
@@ -201,12 +213,34 @@ pub fn run(a: SeparateArgs) -> Result<()> {
         pooled.rows,
         pooled.cols,
     )?;
+    // The pitch travels with every output: NAME.npy.json beside each .npy.
+    let at = |scale: f64| NpyGeometry {
+        pitch_x_um: s.pitch_x_um * scale,
+        pitch_y_um: s.pitch_y_um * scale,
+        origin_um: s.metadata.stage_position_um,
+    };
+    for (name, scale) in [
+        ("datum.npy", 1.0),
+        ("roughness.npy", 1.0),
+        ("pooled.npy", a.pool as f64),
+    ] {
+        write_sidecar(&a.out.join(name), &at(scale))?;
+    }
     if let Some(o) = summary.as_object_mut() {
         o.insert(
             "input".into(),
             serde_json::json!(a.file.display().to_string()),
         );
-        o.insert("input_px".into(), serde_json::json!([s.width, s.height]));
+        o.insert(
+            "input_rows_cols".into(),
+            serde_json::json!([s.height, s.width]),
+        );
+        if let Some(p) = o.remove("pooled_px") {
+            // The library's [cols, rows]: as rows, cols like every size here.
+            if let Some([c, r]) = p.as_array().map(|v| [v[0].clone(), v[1].clone()]) {
+                o.insert("pooled_rows_cols".into(), serde_json::json!([r, c]));
+            }
+        }
         // Heights inside the summary (pooling bias means) are relative to this; datum.npy and
         // pooled.npy are absolute (f64), roughness.npy has no offset.
         o.insert("z_offset_um".into(), serde_json::json!(z_offset_um));
@@ -215,8 +249,20 @@ pub fn run(a: SeparateArgs) -> Result<()> {
             serde_json::json!([s.pitch_x_um, s.pitch_y_um]),
         );
         o.insert(
+            "pooled_pitch_um".into(),
+            serde_json::json!([s.pitch_x_um * a.pool as f64, s.pitch_y_um * a.pool as f64]),
+        );
+        o.insert(
             "files".into(),
-            serde_json::json!(["datum.npy", "roughness.npy", "pooled.npy", "separate.json"]),
+            serde_json::json!([
+                "datum.npy",
+                "datum.npy.json",
+                "roughness.npy",
+                "roughness.npy.json",
+                "pooled.npy",
+                "pooled.npy.json",
+                "separate.json"
+            ]),
         );
     }
     let json = serde_json::to_string_pretty(&summary)?;
@@ -226,13 +272,66 @@ pub fn run(a: SeparateArgs) -> Result<()> {
         Ok(())
     })?;
     println!(
-        "{}: {} x {} px, {line}; wrote datum.npy, roughness.npy, pooled.npy ({} x {}), separate.json to {}",
+        "{}: {} rows x {} cols, pitch {}, {line}; wrote datum.npy, roughness.npy, pooled.npy \
+         ({} rows x {} cols, pitch {}), each with its pitch sidecar NAME.npy.json, and separate.json to {}",
         a.file.display(),
-        s.width,
         s.height,
-        pooled.cols,
+        s.width,
+        pitch_text(s.pitch_x_um, s.pitch_y_um),
         pooled.rows,
+        pooled.cols,
+        pitch_text(s.pitch_x_um * a.pool as f64, s.pitch_y_um * a.pool as f64),
         a.out.display()
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn outputs_carry_the_pitch_and_sizes_are_rows_x_cols() {
+        let d = tempfile::tempdir().unwrap();
+        let input = d.path().join("in.npy");
+        let (rows, cols) = (40, 64);
+        let z: Vec<f64> = (0..rows * cols)
+            .map(|i| ((i % cols) as f64 * 0.3).sin() + (i / cols) as f64 * 0.05)
+            .collect();
+        surfstream_io::npy::write_npy_f64(&input, &z, rows, cols).unwrap();
+        let out = d.path().join("sep");
+        run(SeparateArgs {
+            file: input,
+            method: "wavelet".into(),
+            cutoff_um: None,
+            lambda_s_um: None,
+            wavelet: "sym5".into(),
+            level: "2".into(),
+            mode: "symmetric".into(),
+            pool: 4,
+            pool_op: "max".into(),
+            pitch_um: Some(0.5),
+            out: out.clone(),
+        })
+        .unwrap();
+        for (name, pitch, shape) in [
+            ("datum.npy", 0.5, (rows, cols)),
+            ("roughness.npy", 0.5, (rows, cols)),
+            ("pooled.npy", 2.0, (rows / 4, cols / 4)),
+        ] {
+            let s = surfstream_io::formats::read_surface(&out.join(name)).unwrap();
+            assert!(s.metadata.pitch_known, "{name}");
+            assert_eq!((s.pitch_x_um, s.pitch_y_um), (pitch, pitch), "{name}");
+            assert_eq!((s.height, s.width), shape, "{name}");
+        }
+        let j: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("separate.json")).unwrap())
+                .unwrap();
+        assert_eq!(j["input_rows_cols"], serde_json::json!([rows, cols]));
+        assert_eq!(
+            j["pooled_rows_cols"],
+            serde_json::json!([rows / 4, cols / 4])
+        );
+        assert!(j.get("input_px").is_none() && j.get("pooled_px").is_none());
+    }
 }

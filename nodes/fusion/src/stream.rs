@@ -372,6 +372,8 @@ impl StreamingFusion {
         let mut written = Vec::new();
         let (rows, cols) = (r.heights.rows(), r.heights.cols());
         if let Some(w) = files {
+            // The pitch travels with panorama.npy (its sidecar panorama.npy.json).
+            w.set_pitch_um(r.pitch_x_um, r.pitch_y_um);
             w.write_surface(&SurfaceOutput {
                 name: "panorama",
                 heights: r.heights.view(),

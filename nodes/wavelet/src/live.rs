@@ -589,6 +589,10 @@ pub fn final_separation_with(
         publish_roughness,
         stream,
     } = req;
+    // Every .npy gets its pitch sidecar (params on datum.npy runs at the panorama's pitch).
+    if let Some(fw) = files.as_deref_mut() {
+        fw.set_pitch_um(h.pitch_x_um, h.pitch_y_um);
+    }
     let mut written = Vec::new();
     let (datum, roughness, pooled, mut summary) = match (settings.method, settings.base) {
         (SeparationMethod::Wavelet, BaseChoice::Named(w)) if final_pass_streams(settings) => {
@@ -744,6 +748,7 @@ pub fn final_separation_with(
     };
     if let Some(fw) = files {
         let block = settings.pool_block;
+        fw.set_pitch_um(h.pitch_x_um * block as f64, h.pitch_y_um * block as f64);
         fw.write_surface(&SurfaceOutput {
             name: "pooled",
             heights: RasterView::new(&pooled.heights, Shape::new(pooled.rows, pooled.cols))?,

@@ -138,3 +138,54 @@ fn positive_real(name: &str, value: &str) -> Result<f64> {
         _ => bail!("header field '{name}' is '{value}', expected a finite positive number"),
     }
 }
+
+/// Writes `s` as a Gwyddion Simple Field: lengths and heights in metres (Gwyddion's base
+/// units, `XYUnits = m`, `ZUnits = m`), float32, rows in surfstream's order (row 0 = the
+/// file's first row), NaN kept for points not measured (Gwyddion masks them on import).
+pub fn write(path: &std::path::Path, s: &Surface) -> Result<()> {
+    use std::io::Write;
+    if s.width == 0 || s.height == 0 || s.heights_um.len() != s.width * s.height {
+        bail!(
+            "{}: cannot write a {} x {} px surface with {} heights",
+            path.display(),
+            s.height,
+            s.width,
+            s.heights_um.len()
+        );
+    }
+    let mut header = String::from("Gwyddion Simple Field 1.0\n");
+    let m_per_um = 1e-6;
+    let mut line = |k: &str, v: String| header.push_str(&format!("{k} = {v}\n"));
+    line("XRes", s.width.to_string());
+    line("YRes", s.height.to_string());
+    line(
+        "XReal",
+        format!("{:e}", s.pitch_x_um * s.width as f64 * m_per_um),
+    );
+    line(
+        "YReal",
+        format!("{:e}", s.pitch_y_um * s.height as f64 * m_per_um),
+    );
+    if let Some([x, y]) = s.metadata.stage_position_um {
+        line("XOffset", format!("{:e}", x * m_per_um));
+        line("YOffset", format!("{:e}", y * m_per_um));
+    }
+    line("XYUnits", "m".into());
+    line("ZUnits", "m".into());
+    line("Title", "Height".into());
+    if !s.metadata.pitch_known {
+        line("Comment", "pitch not known: 1 um assumed".into());
+    }
+    let mut bytes = header.into_bytes();
+    // One to four NULs: the data start at a multiple of 4.
+    let pad = 4 - bytes.len() % 4;
+    bytes.extend(std::iter::repeat_n(0u8, pad));
+    bytes.reserve(s.heights_um.len() * 4);
+    for &z in &s.heights_um {
+        bytes.extend_from_slice(&((z * m_per_um) as f32).to_le_bytes());
+    }
+    surfstream_core::fsutil::write_atomic(path, |w| {
+        w.write_all(&bytes)
+            .with_context(|| format!("{}: write failed", path.display()))
+    })
+}

@@ -227,32 +227,87 @@ fn flag_absurd_heights(s: &mut Surface) {
     }
 }
 
-/// Writes `s` by the extension of `path`: `.x3p` (float64, valid.bin for NaN) or `.npy`
-/// (float64, NaN kept).
+/// Writes `s` by the extension of `path`: `.x3p` (float64, valid.bin for NaN), `.npy`
+/// (float64, NaN kept, the pitch in the sidecar `NAME.npy.json`: [`crate::sidecar`]), `.gsf`
+/// (Gwyddion simple field, float32) or `.tif`/`.tiff` (float32 TIFF, pitch as resolution).
 pub fn write_surface(path: &Path, s: &Surface) -> Result<()> {
-    match Format::from_path(path)? {
-        Format::X3p => x3p::write(path, s),
-        Format::Npy => crate::npy::write_npy_f64(path, &s.heights_um, s.height, s.width),
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(|e| e.to_ascii_lowercase())
+        .unwrap_or_default();
+    match ext.as_str() {
+        "x3p" => x3p::write(path, s),
+        "npy" => {
+            crate::npy::write_npy_f64(path, &s.heights_um, s.height, s.width)?;
+            write_npy_geometry(path, s)
+        }
+        "gsf" => gsf::write(path, s),
+        "tif" | "tiff" => crate::tiff::write(path, s),
         other => bail!(
-            "{}: writing {other:?} is not supported (write .x3p or .npy)",
-            path.display()
+            "{}: cannot write {}; the formats written are {}",
+            path.display(),
+            if other.is_empty() {
+                "a file without extension".to_string()
+            } else {
+                format!(".{other} files")
+            },
+            WRITABLE
+                .iter()
+                .map(|e| format!(".{e}"))
+                .collect::<Vec<_>>()
+                .join(", ")
         ),
     }
 }
 
-/// A 2-D .npy (f32 or f64) as heights in um; pitch unknown (1 um).
+/// The extensions [`write_surface`] writes.
+pub const WRITABLE: &[&str] = &["x3p", "npy", "gsf", "tif", "tiff"];
+
+/// The sidecar of a `.npy` surface: the pitch (and stage position) when the surface knows
+/// them; an old sidecar removed when it does not.
+fn write_npy_geometry(path: &Path, s: &Surface) -> Result<()> {
+    if s.metadata.pitch_known {
+        crate::sidecar::write_sidecar(
+            path,
+            &crate::sidecar::NpyGeometry {
+                pitch_x_um: s.pitch_x_um,
+                pitch_y_um: s.pitch_y_um,
+                origin_um: s.metadata.stage_position_um,
+            },
+        )
+    } else {
+        crate::sidecar::remove_stale_sidecar(path)
+    }
+}
+
+/// A 2-D .npy (f32 or f64) as heights in um; the pitch from its sidecar `NAME.npy.json`
+/// ([`crate::sidecar`]), else unknown (1 um, `pitch_known` false).
 fn read_npy_surface(path: &Path) -> Result<Surface> {
     // npy's errors already name the path.
     let a = crate::npy::read_npy_f64(path)?;
+    let geometry = crate::sidecar::read_sidecar(path)?;
+    let mut metadata = Metadata {
+        format: "npy".into(),
+        pitch_known: geometry.is_some(),
+        ..Metadata::default()
+    };
+    if let Some(g) = &geometry {
+        metadata.stage_position_um = g.origin_um;
+        metadata.extra.insert(
+            "pitch_from".into(),
+            crate::sidecar::sidecar_path(path)
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+        );
+    }
     Ok(Surface {
         width: a.cols,
         height: a.rows,
-        pitch_x_um: 1.0,
-        pitch_y_um: 1.0,
+        pitch_x_um: geometry.map_or(1.0, |g| g.pitch_x_um),
+        pitch_y_um: geometry.map_or(1.0, |g| g.pitch_y_um),
         heights_um: a.data,
-        metadata: Metadata {
-            format: "npy".into(),
-            ..Metadata::default()
-        },
+        metadata,
     })
 }

@@ -64,6 +64,12 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
         pitch_known: true,
         ..Metadata::default()
     };
+    // Readers disagree by x1000 on this format: say which reading this is, every time.
+    metadata.warnings.push(
+        "lengths and heights read as millimetres (GelSight's toolbox); SurfaceTopography reads \
+         the same numbers as micrometres: check a known dimension (pitch, step height)"
+            .into(),
+    );
     if !comment.is_empty() {
         metadata.extra.insert("comment".into(), comment);
     }

@@ -765,12 +765,48 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
         None => String::new(),
     };
     let m = &s.metadata;
-    let date = m
-        .date
-        .clone()
-        .unwrap_or_else(|| "1970-01-01T00:00:00".into());
-    let instrument = xml_escape(m.instrument.as_deref().unwrap_or("surfstream"));
-    let serial = xml_escape(m.serial.as_deref().unwrap_or("not available"));
+    // Record2 holds what the source file said, and nothing in its place that it did not:
+    // Date is ISO 8601, the measurement's when it can be read as a date; otherwise the
+    // schema's required value stands for unknown, said in Comment with the source's text.
+    // (Not the time of writing: the same surface must give the same file.)
+    const UNKNOWN_DATE: &str = "1970-01-01T00:00:00Z";
+    let (date, date_note) = match m.date.as_deref().map(iso8601_date) {
+        Some(Some(d)) => (d, String::new()),
+        Some(None) => (
+            UNKNOWN_DATE.to_string(),
+            format!(
+                "; Date not known (1970-01-01 stands for unknown): the source's date {:?} is not ISO 8601",
+                m.date.as_deref().unwrap_or_default()
+            ),
+        ),
+        None => (
+            UNKNOWN_DATE.to_string(),
+            "; Date not known (1970-01-01 stands for unknown): the source stores none".into(),
+        ),
+    };
+    let (calibration, calibration_note) = match m
+        .extra
+        .get("calibration_date")
+        .and_then(|d| iso8601_date(d))
+    {
+        Some(d) => (d, String::new()),
+        None => (
+            UNKNOWN_DATE.to_string(),
+            "; CalibrationDate not known".to_string(),
+        ),
+    };
+    let instrument = xml_escape(m.instrument.as_deref().unwrap_or("unknown"));
+    let serial = xml_escape(m.serial.as_deref().unwrap_or(""));
+    let source = if m.format.is_empty() || m.format == "x3p" {
+        String::new()
+    } else {
+        format!(" from a .{} file", m.format)
+    };
+    let comment = xml_escape(&format!(
+        "written by surfstream {}{source}{date_note}{calibration_note}",
+        env!("CARGO_PKG_VERSION")
+    ));
+    let [ox, oy] = m.stage_position_um.unwrap_or([0.0, 0.0]);
     format!(
         r#"<?xml version="1.0" encoding="UTF-8" standalone="no" ?>
 <p:ISO5436_2 xmlns:p="{NAMESPACE}" xmlns:xsi="http://www.w3.org/2001/XMLSchema-instance" xsi:schemaLocation="{NAMESPACE} {NAMESPACE}/ISO5436_2.xsd">
@@ -782,13 +818,13 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
         <AxisType>I</AxisType>
         <DataType>D</DataType>
         <Increment>{px:e}</Increment>
-        <Offset>0</Offset>
+        <Offset>{ox:e}</Offset>
       </CX>
       <CY>
         <AxisType>I</AxisType>
         <DataType>D</DataType>
         <Increment>{py:e}</Increment>
-        <Offset>0</Offset>
+        <Offset>{oy:e}</Offset>
       </CY>
       <CZ>
         <AxisType>A</AxisType>
@@ -803,16 +839,16 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
     <Creator>surfstream {version}</Creator>
     <Instrument>
       <Manufacturer>{instrument}</Manufacturer>
-      <Model>surfstream</Model>
+      <Model></Model>
       <Serial>{serial}</Serial>
-      <Version>{version}</Version>
+      <Version></Version>
     </Instrument>
-    <CalibrationDate>{date}</CalibrationDate>
+    <CalibrationDate>{calibration}</CalibrationDate>
     <ProbingSystem>
       <Type>NonContacting</Type>
       <Identification>not available</Identification>
     </ProbingSystem>
-    <Comment>written by surfstream</Comment>
+    <Comment>{comment}</Comment>
   </Record2>
   <Record3>
     <MatrixDimension>
@@ -832,12 +868,66 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
 "#,
         px = s.pitch_x_um * 1e-6,
         py = s.pitch_y_um * 1e-6,
+        ox = ox * 1e-6,
+        oy = oy * 1e-6,
         date = xml_escape(&date),
+        calibration = xml_escape(&calibration),
         version = env!("CARGO_PKG_VERSION"),
         w = s.width,
         h = s.height,
         md5 = data_md5,
     )
+}
+
+/// `text` as an ISO 8601 date-time when it is one already ("2021-03-04T10:23:00", with a
+/// space for the T, with or without seconds or zone) or a bare date; None otherwise (a
+/// "12/03/2021" is not guessed: day and month would be).
+fn iso8601_date(text: &str) -> Option<String> {
+    let t = text.trim();
+    let b = t.as_bytes();
+    let digits = |r: std::ops::Range<usize>| {
+        b.get(r.clone())
+            .is_some_and(|s| s.iter().all(u8::is_ascii_digit))
+    };
+    if !(digits(0..4)
+        && b.get(4) == Some(&b'-')
+        && digits(5..7)
+        && b.get(7) == Some(&b'-')
+        && digits(8..10))
+    {
+        return None;
+    }
+    let (month, day): (u32, u32) = (t[5..7].parse().ok()?, t[8..10].parse().ok()?);
+    if !(1..=12).contains(&month) || !(1..=31).contains(&day) {
+        return None;
+    }
+    if b.len() == 10 {
+        return Some(format!("{t}T00:00:00"));
+    }
+    if !matches!(b.get(10), Some(b'T' | b' '))
+        || !digits(11..13)
+        || b.get(13) != Some(&b':')
+        || !digits(14..16)
+    {
+        return None;
+    }
+    let rest = &t[16..];
+    let (seconds, zone) = match rest.strip_prefix(':') {
+        Some(r) if r.len() >= 2 && r[..2].bytes().all(|c| c.is_ascii_digit()) => {
+            let frac_end = r[2..]
+                .find(|c: char| !(c.is_ascii_digit() || c == '.'))
+                .map_or(r.len(), |k| k + 2);
+            (&r[..frac_end], &r[frac_end..])
+        }
+        Some(_) => return None,
+        None => ("00", rest),
+    };
+    let zone_ok = zone.is_empty()
+        || zone == "Z"
+        || (zone.len() == 6
+            && matches!(zone.as_bytes()[0], b'+' | b'-')
+            && zone.as_bytes()[3] == b':');
+    zone_ok.then(|| format!("{}T{}:{seconds}{zone}", &t[..10], &t[11..16]))
 }
 
 /// Writes `s` as an X3P file, atomically.

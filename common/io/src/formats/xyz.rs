@@ -5,6 +5,15 @@
 //! The points must lie on a regular grid: the pitch along x (y) is the smallest spacing between
 //! distinct x (y) values, refined over the whole span; every point must sit within 1 % of a
 //! pitch of a grid node. Grid nodes with no point become NaN. Row index grows with y.
+//! An `x y z` file carries no unit: x, y and z are taken as micrometres, with a warning.
+//!
+//! Gwyddion's text export ("ASCII data matrix", `File > Save As > .txt` with the
+//! informational header) is a matrix, not points: `# Channel: NAME`, `# Width: 12.34 um`,
+//! `# Height: 5.678 um`, `# Value units: m`, then one line per row of whitespace-separated
+//! values in the value unit (decimal dot, or comma when exported with the locale's). It is
+//! recognised by its `# Width:` / `# Height:` lines and read as a grid: pitch = width / cols,
+//! height / rows; rows in file order (Gwyddion's first row is its y = 0). A matrix without that
+//! header is refused (its pitch and unit would be guesses).
 
 use anyhow::{bail, Context, Result};
 
@@ -60,6 +69,9 @@ fn axis(values: &[f64], name: &str) -> Result<Axis> {
 
 pub fn parse(data: &[u8]) -> Result<Surface> {
     let text = std::str::from_utf8(data).context("not UTF-8 text")?;
+    if let Some(header) = GwyddionHeader::find(text)? {
+        return parse_gwyddion_matrix(text, header);
+    }
     let (mut xs, mut ys, mut zs) = (Vec::new(), Vec::new(), Vec::new());
     let mut seen_data = false;
     for (i, line) in text.lines().enumerate() {
@@ -85,6 +97,13 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
                 zs.push(if p[2].is_finite() { p[2] } else { f64::NAN });
                 seen_data = true;
             }
+            Some(p) if p.len() > 3 => bail!(
+                "line {}: {} numbers: a matrix of heights, not 'x y z' points; its pitch and height \
+                 unit are not in the file (export it from Gwyddion with the informational header: \
+                 '# Width:', '# Height:', '# Value units:'; or save it as .gsf / .npy)",
+                i + 1,
+                p.len()
+            ),
             _ if !seen_data => continue, // a header line
             _ => bail!(
                 "line {}: expected three numbers 'x y z', found '{l}'",
@@ -133,6 +152,10 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
         pitch_known: ax.count > 1 || ay.count > 1,
         ..Metadata::default()
     };
+    // A unit is never assumed silently (README: a warning whenever a unit is assumed).
+    metadata
+        .warnings
+        .push("an 'x y z' file carries no unit: x, y and z taken as micrometres".into());
     metadata
         .extra
         .insert("origin_x_um".into(), ax.origin.to_string());
@@ -144,6 +167,124 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
         height: ay.count,
         pitch_x_um: px,
         pitch_y_um: py,
+        heights_um,
+        metadata,
+    })
+}
+
+/// The informational header of Gwyddion's text export.
+struct GwyddionHeader {
+    channel: Option<String>,
+    width_um: f64,
+    height_um: f64,
+    value_um: f64,
+    value_unit: String,
+}
+
+impl GwyddionHeader {
+    /// The header when the file's leading `#` lines have Gwyddion's `# Width:` and
+    /// `# Height:`; None when they do not (an `x y z` file).
+    fn find(text: &str) -> Result<Option<GwyddionHeader>> {
+        let mut fields = std::collections::BTreeMap::new();
+        for line in text.lines() {
+            let l = line.trim();
+            if l.is_empty() {
+                continue;
+            }
+            let Some(comment) = l.strip_prefix('#') else {
+                break;
+            };
+            if let Some((k, v)) = comment.split_once(':') {
+                fields.insert(k.trim().to_ascii_lowercase(), v.trim().to_string());
+            }
+        }
+        let (Some(w), Some(h)) = (fields.get("width"), fields.get("height")) else {
+            return Ok(None);
+        };
+        let length = |name: &str, v: &str| -> Result<f64> {
+            let v = v.replace(',', ".");
+            let (num, unit) = v
+                .split_once(char::is_whitespace)
+                .map_or((v.as_str(), ""), |(n, u)| (n, u.trim()));
+            let n: f64 = num.parse().ok().filter(|n: &f64| n.is_finite() && *n > 0.0).with_context(|| {
+                format!("Gwyddion text header '# {name}: {v}': expected a positive length with a unit")
+            })?;
+            let scale = super::bytes::length_unit_um(unit).with_context(|| {
+                format!("Gwyddion text header '# {name}: {v}': unit '{unit}' is not a length unit (m, mm, um, nm, ...)")
+            })?;
+            Ok(n * scale)
+        };
+        let width_um = length("Width", w)?;
+        let height_um = length("Height", h)?;
+        let value_unit = fields.get("value units").cloned().context(
+            "Gwyddion text header: '# Width:' and '# Height:' but no '# Value units:' line: the height unit is unknown",
+        )?;
+        let value_um = super::bytes::length_unit_um(&value_unit).with_context(|| {
+            format!("Gwyddion text header '# Value units: {value_unit}': expected a length unit (m, mm, um, nm, ...): not a height map")
+        })?;
+        Ok(Some(GwyddionHeader {
+            channel: fields.get("channel").cloned(),
+            width_um,
+            height_um,
+            value_um,
+            value_unit,
+        }))
+    }
+}
+
+/// Gwyddion's text export: a matrix of heights under its header.
+fn parse_gwyddion_matrix(text: &str, h: GwyddionHeader) -> Result<Surface> {
+    let mut heights_um = Vec::new();
+    let mut cols = 0usize;
+    let mut rows = 0usize;
+    for (i, line) in text.lines().enumerate() {
+        let l = line.trim();
+        if l.is_empty() || l.starts_with('#') {
+            continue;
+        }
+        let before = heights_um.len();
+        for f in l.split_whitespace() {
+            // A locale's decimal comma ("1,25e-06"): Gwyddion separates values by whitespace.
+            let v: f64 = f.replace(',', ".").parse().with_context(|| {
+                format!(
+                    "line {}: '{f}' is not a number (Gwyddion text matrix)",
+                    i + 1
+                )
+            })?;
+            heights_um.push(if v.is_finite() {
+                v * h.value_um
+            } else {
+                f64::NAN
+            });
+        }
+        let n = heights_um.len() - before;
+        if rows == 0 {
+            cols = n;
+        } else if n != cols {
+            bail!(
+                "line {}: {n} values, but the matrix's first row has {cols}: every row of a Gwyddion text matrix has one length",
+                i + 1
+            );
+        }
+        rows += 1;
+    }
+    if rows == 0 || cols == 0 {
+        bail!("Gwyddion text header but no matrix of values under it");
+    }
+    let mut metadata = Metadata {
+        format: "gwyddion-text".into(),
+        pitch_known: true,
+        ..Metadata::default()
+    };
+    if let Some(c) = h.channel {
+        metadata.extra.insert("channel".into(), c);
+    }
+    metadata.extra.insert("value_unit".into(), h.value_unit);
+    Ok(Surface {
+        width: cols,
+        height: rows,
+        pitch_x_um: h.width_um / cols as f64,
+        pitch_y_um: h.height_um / rows as f64,
         heights_um,
         metadata,
     })
