@@ -152,10 +152,9 @@ impl ChunkedHeights {
     /// Chunk `key` in memory (read back from the spill file if it went there), if it exists.
     fn load(&mut self, key: (i64, i64)) -> Result<bool> {
         self.grid.tick();
-        Ok(self
-            .grid
+        self.grid
             .load(key)
-            .map_err(|e| anyhow!("wavelet: the live mirror's {e}"))?)
+            .map_err(|e| anyhow!("wavelet: the live mirror's {e}"))
     }
 
     /// Spills least recently used chunks until at most the limit stay, never one in `keep`.
