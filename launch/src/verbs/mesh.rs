@@ -66,10 +66,12 @@ pub struct MeshArgs {
     /// Output STL (missing folders are created); the statistics go to the same name with .json.
     #[arg(short = 'o', long, value_name = "OUT.stl")]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub mask: super::MaskArgs,
 }
 
 pub fn run(a: MeshArgs) -> Result<()> {
-    let surface = surfstream_io::formats::read_surface(&a.file)?;
+    let surface = a.mask.read(&a.file)?;
     for w in &surface.metadata.warnings {
         eprintln!("{}: warning: {w}", a.file.display());
     }

@@ -17,6 +17,8 @@ pub struct InspectArgs {
     /// Print JSON instead of text.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub mask: super::MaskArgs,
 }
 
 #[derive(Args)]
@@ -53,6 +55,8 @@ pub struct ParamsArgs {
     /// Wolf pruning threshold of the feature parameters, % of Sz (ISO 25178-3: 5).
     #[arg(long, default_value_t = 5.0)]
     pub pruning_pct: f64,
+    #[command(flatten)]
+    pub mask: super::MaskArgs,
 }
 
 #[derive(Args)]
@@ -68,6 +72,8 @@ pub struct ConvertArgs {
     /// Pitch in um for inputs that carry none (.npy); an error for inputs that do.
     #[arg(long)]
     pub pitch_um: Option<f64>,
+    #[command(flatten)]
+    pub mask: super::MaskArgs,
 }
 
 #[derive(Args)]
@@ -79,12 +85,14 @@ pub struct CompareArgs {
     pub json: bool,
 }
 
-/// Reads `path`, applying `pitch_um` to files without a lateral calibration.
-fn load(path: &Path, pitch_um: Option<f64>) -> Result<Surface> {
+/// Reads `path`, applying `pitch_um` to files without a lateral calibration and dropping the
+/// mask regions `mask` names.
+fn load(path: &Path, pitch_um: Option<f64>, mask: &super::MaskArgs) -> Result<Surface> {
     let mut s = read_surface(path)?;
     for w in &s.metadata.warnings {
         eprintln!("{}: warning: {w}", path.display());
     }
+    mask.apply(path, &mut s)?;
     if let Some(p) = pitch_um {
         if !(p.is_finite() && p > 0.0) {
             bail!("--pitch-um {p}: expected a finite positive number");
@@ -114,7 +122,7 @@ fn grid(s: &Surface) -> Result<Grid<'_>> {
 }
 
 pub fn inspect(a: InspectArgs) -> Result<()> {
-    let s = load(&a.file, None)?;
+    let s = load(&a.file, None, &a.mask)?;
     let valid: Vec<f64> = s
         .heights_um
         .iter()
@@ -163,6 +171,9 @@ pub fn inspect(a: InspectArgs) -> Result<()> {
     if !valid.is_empty() {
         println!("heights     {lo:.4} .. {hi:.4} um");
     }
+    if let Some(mask) = &m.mask {
+        print_mask_regions(mask, !a.mask.mask_exclude.is_empty());
+    }
     for (k, v) in [
         ("instrument", &m.instrument),
         ("serial", &m.serial),
@@ -179,6 +190,37 @@ pub fn inspect(a: InspectArgs) -> Result<()> {
         println!("{k:<11} {v}");
     }
     Ok(())
+}
+
+/// The labelled regions of an X3P colour mask, one line each.
+fn print_mask_regions(mask: &surfstream_io::formats::x3p::ColourMask, excluded: bool) {
+    let note = if excluded {
+        "--mask-exclude applied above"
+    } else {
+        "labels only: every point read as measured; --mask-exclude NAME|#rrggbb drops one"
+    };
+    println!(
+        "mask        {}, {} regions ({note})",
+        mask.image,
+        mask.regions.len()
+    );
+    let width = mask
+        .regions
+        .iter()
+        .map(|r| r.label().chars().count())
+        .max()
+        .unwrap_or(0);
+    for r in &mask.regions {
+        let label = r.label();
+        let pad = width.saturating_sub(label.chars().count());
+        println!(
+            "  {label}{:pad$}  {}  {:>9} points{}",
+            "",
+            r.colour,
+            r.points,
+            if r.background { "  (background)" } else { "" }
+        );
+    }
 }
 
 /// One file's parameters, ready to print.
@@ -216,7 +258,7 @@ fn basic_named(p: &metrology::Params) -> Vec<ParamValue> {
 }
 
 fn params_of(path: &Path, a: &ParamsArgs) -> Result<ParamsRecord> {
-    let s = load(path, a.pitch_um)?;
+    let s = load(path, a.pitch_um, &a.mask)?;
     let pitch_assumed = !s.metadata.pitch_known && a.pitch_um.is_none();
     if pitch_assumed {
         eprintln!(
@@ -471,7 +513,7 @@ pub fn convert(a: ConvertArgs) -> Result<()> {
     let Some(output) = a.out.or(a.output) else {
         bail!("convert: no output: write `convert IN -o OUT.x3p` (or .npy)");
     };
-    let s = load(&a.input, a.pitch_um)?;
+    let s = load(&a.input, a.pitch_um, &a.mask)?;
     write_surface(&output, &s)?;
     eprintln!(
         "{} -> {} ({} x {} px (rows x cols), pitch {:.4} x {:.4} um)",
@@ -486,8 +528,8 @@ pub fn convert(a: ConvertArgs) -> Result<()> {
 }
 
 pub fn compare(a: CompareArgs) -> Result<()> {
-    let x = load(&a.a, None)?;
-    let y = load(&a.b, None)?;
+    let x = load(&a.a, None, &Default::default())?;
+    let y = load(&a.b, None, &Default::default())?;
     if (x.height, x.width) != (y.height, y.width) {
         bail!(
             "{} is {} x {} px but {} is {} x {} px: compare needs maps of the same shape",

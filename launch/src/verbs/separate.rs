@@ -14,7 +14,6 @@ use clap::Args;
 use surfstream_core::filter::Grid;
 use surfstream_core::frame::{from_frame_heights, to_frame_heights};
 use surfstream_core::fsutil::write_atomic;
-use surfstream_io::formats::read_surface;
 use surfstream_io::npy::{write_npy_f32, write_npy_f64};
 use surfstream_wavelet::{
     analyse, equivalent_cutoff_um, filter_separation, level_lowered_warning, pool, pooling_bias,
@@ -55,6 +54,8 @@ pub struct SeparateArgs {
     /// Output directory (created if needed).
     #[arg(short = 'o', long)]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub mask: super::MaskArgs,
 }
 
 /// A length in µm: a number (µm) or a number with the unit "um", "µm" or "mm".
@@ -109,7 +110,7 @@ pub fn run(a: SeparateArgs) -> Result<()> {
         bail!("--pool 0: expected a block size of at least 1 px");
     }
 
-    let s = read_surface(&a.file)?;
+    let s = a.mask.read(&a.file)?;
     // The separation takes f32 heights (as frames carry them, DESIGN §2) and runs in f64.
     // Instrument heights can sit tens of um up (MetroPro: ~50 um), where f32 keeps only
     // ~4e-6 um: remove the mean first, as frames do with z_offset_um, and add it back to
