@@ -423,22 +423,27 @@ fn png_bytes(width: u32, height: u32, channels: usize, pixels: &[u8]) -> Vec<u8>
     out
 }
 
-/// The x3ptools / FiX3P colour mask (`Record3/Mask`, `bindata/mask.png`): points painted in a
-/// colour other than the background are not measured, pixel (i, j) covers point (i, j), and a
-/// warning counts each colour with its annotation.
+/// The x3ptools / FiX3P colour mask (`Record3/Mask`, `bindata/mask.png`): a colour is a region
+/// label ("legend entries for each color of a mask"), not a validity flag. Every point is read
+/// as measured; the regions are listed with their annotation and point count (pixel (i, j)
+/// covers point (i, j)); `exclude_mask_regions` drops exactly the points of the named regions.
 #[test]
-fn x3p_mask_png_marks_painted_points_not_measured() {
-    // 3 columns x 2 rows of float32 metres, all finite.
-    let z_m: [f32; 6] = [1e-6, 2e-6, 3e-6, 4e-6, 5e-6, 6e-6];
+fn x3p_mask_colours_are_region_labels_with_every_point_measured() {
+    // 3 columns x 2 rows of float32 metres; point 4 is not measured (NaN in the data).
+    let z_m: [f32; 6] = [1e-6, 2e-6, 3e-6, 4e-6, f32::NAN, 6e-6];
     let data: Vec<u8> = z_m.iter().flat_map(|v| v.to_le_bytes()).collect();
+    let as_read = [1.0, 2.0, 3.0, 4.0, f64::NAN, 6.0];
     const BRONZE: [u8; 4] = [0xcd, 0x7f, 0x32, 255];
     const RED: [u8; 4] = [255, 0, 0, 255];
     const BLUE: [u8; 4] = [0, 0, 255, 255];
     const CLEAR: [u8; 4] = [9, 9, 9, 0];
     // Row 0: background, red, background; row 1: blue, background, transparent.
     let rgba: Vec<u8> = [BRONZE, RED, BRONZE, BLUE, BRONZE, CLEAR].concat();
+    // As x3ptools writes it: colours with alpha, a colour repeated with an empty annotation.
     let mask = "<Mask><Background>#CD7F32</Background><Annotations>\
-                <Annotation color=\"#ff0000\">damage</Annotation></Annotations></Mask>";
+                <Annotation color=\"#FF0000FF\">damage</Annotation>\
+                <Annotation color=\"#00ff00\">groove</Annotation>\
+                <Annotation color=\"#ff0000\"/></Annotations></Mask>";
     let link =
         format!("<DataLink><PointDataLink>bindata/data.bin</PointDataLink></DataLink>{mask}");
     let read = |xml: String, png: Vec<u8>, png_name: &str| {
@@ -458,22 +463,103 @@ fn x3p_mask_png_marks_painted_points_not_measured() {
         "bindata/mask.png",
     )
     .unwrap();
-    same_heights(
-        &s.heights_um,
-        &[1.0, f64::NAN, 3.0, f64::NAN, 5.0, 6.0],
-        1e-6,
+    // Every measured point is read: only the data's own NaN is not measured.
+    same_heights(&s.heights_um, &as_read, 1e-6);
+    assert!(s.metadata.warnings.is_empty(), "{:?}", s.metadata.warnings);
+    let m = s.metadata.mask.as_ref().expect("the mask's regions");
+    assert_eq!(m.image, "bindata/mask.png");
+    let listed: Vec<(String, String, usize)> = m
+        .regions
+        .iter()
+        .map(|r| (r.label(), r.colour.clone(), r.points))
+        .collect();
+    let row = |l: &str, c: &str, n: usize| (l.to_string(), c.to_string(), n);
+    assert_eq!(
+        listed,
+        [
+            // The transparent pixel is unpainted: it counts with the background.
+            row("background", "#cd7f32", 4),
+            row("damage", "#ff0000", 1),
+            row("groove", "#00ff00", 0),
+            row("#0000ff", "#0000ff", 1),
+        ]
     );
-    assert_eq!(s.metadata.warnings.len(), 1, "{:?}", s.metadata.warnings);
-    let w = &s.metadata.warnings[0];
+    // inspect --json shows the regions (the per-point labels stay out of the JSON).
+    let json = serde_json::to_value(&s.metadata).unwrap();
+    assert_eq!(json["mask"]["regions"][1]["annotation"], "damage");
+    assert_eq!(json["mask"]["regions"][0]["background"], true);
+    assert!(json["mask"].get("labels").is_none());
+    // Excluding drops exactly the labelled points, by name (any case), colour or "background".
+    let excluded = |names: &[&str]| {
+        let mut t = s.clone();
+        let names: Vec<String> = names.iter().map(|n| n.to_string()).collect();
+        let n = t
+            .exclude_mask_regions(&names)
+            .map_err(|e| format!("{e:#}"))?;
+        Ok::<_, String>((n, t.heights_um))
+    };
+    let nan = f64::NAN;
+    let (n, h) = excluded(&["damage"]).unwrap();
+    assert_eq!(n, 1);
+    same_heights(&h, &[1.0, nan, 3.0, 4.0, nan, 6.0], 1e-6);
+    let (n, h) = excluded(&["#0000FF", " DAMAGE "]).unwrap();
+    assert_eq!(n, 2);
+    same_heights(&h, &[1.0, nan, 3.0, nan, nan, 6.0], 1e-6);
+    let (n, h) = excluded(&["background"]).unwrap();
+    assert_eq!(n, 3, "point 4 was not measured to begin with");
+    same_heights(&h, &[nan, 2.0, nan, 4.0, nan, nan], 1e-6);
+    let (n, h) = excluded(&["groove", "#cd7f32ff"]).unwrap();
+    assert_eq!(n, 3);
+    same_heights(&h, &[nan, 2.0, nan, 4.0, nan, nan], 1e-6);
+    assert_eq!(excluded(&[]).unwrap().0, 0);
+    // An unknown name is an error that lists the regions there are.
+    let e = excluded(&["scratch"]).unwrap_err();
     assert!(
-        w.contains("bindata/mask.png marks 2 points")
-            && w.contains("#0000ff: 1")
-            && w.contains("#ff0000 'damage': 1"),
-        "{w}"
+        e.contains("mask region 'scratch' is not in the mask (bindata/mask.png)")
+            && e.contains("'background' #cd7f32 (4 points)")
+            && e.contains("'damage' #ff0000 (1 points)")
+            && e.contains("'groove' #00ff00 (0 points)")
+            && e.contains("'#0000ff' #0000ff (1 points)"),
+        "{e}"
     );
+    assert!(excluded(&["#123456"])
+        .unwrap_err()
+        .contains("is not in the mask"));
+    // Two colours under one name (x3ptools' logo example: three colours "fingerprint"): both go.
+    let shared = link.replace("#00ff00\">groove", "#0000ff\">damage");
+    let s2 = read(
+        x3p_main_xml("ISO5436_2", 3, 2, &shared),
+        png.clone(),
+        "bindata/mask.png",
+    )
+    .unwrap();
+    let mut t = s2.clone();
+    assert_eq!(t.exclude_mask_regions(&["damage".into()]).unwrap(), 2);
+    same_heights(&t.heights_um, &[1.0, nan, 3.0, nan, nan, 6.0], 1e-6);
+    // A file without a mask: excluding is an error, reading is unchanged.
+    let plain = read(
+        x3p_main_xml(
+            "ISO5436_2",
+            3,
+            2,
+            "<DataLink><PointDataLink>bindata/data.bin</PointDataLink></DataLink>",
+        ),
+        Vec::new(),
+        "bindata/other.bin",
+    )
+    .unwrap();
+    assert!(plain.metadata.mask.is_none());
+    let e = format!(
+        "{:#}",
+        plain
+            .clone()
+            .exclude_mask_regions(&["damage".into()])
+            .unwrap_err()
+    );
+    assert!(e.contains("no colour mask"), "{e}");
     // Inline DataList, no Mask element: mask.png alone, default background #cd7f32, RGB PNG.
     let list = "<DataList><Datum>1e-6</Datum><Datum>2e-6</Datum><Datum>3e-6</Datum>\
-                <Datum>4e-6</Datum><Datum>5e-6</Datum><Datum>6e-6</Datum></DataList>";
+                <Datum>4e-6</Datum><Datum></Datum><Datum>6e-6</Datum></DataList>";
     let rgb: Vec<u8> = rgba
         .chunks(4)
         .flat_map(|p| if p[3] == 0 { &BRONZE[..3] } else { &p[..3] })
@@ -485,27 +571,23 @@ fn x3p_mask_png_marks_painted_points_not_measured() {
         "bindata/mask.png",
     )
     .unwrap();
-    same_heights(
-        &s.heights_um,
-        &[1.0, f64::NAN, 3.0, f64::NAN, 5.0, 6.0],
-        1e-6,
-    );
-    // A Link elsewhere, a white background: everything not white is out.
+    same_heights(&s.heights_um, &as_read, 1e-6);
+    let m = s.metadata.mask.as_ref().unwrap();
+    assert_eq!(m.regions.len(), 3, "background, #0000ff, #ff0000");
+    assert_eq!(m.labels, [0, 2, 0, 1, 0, 0]);
+    // A Link elsewhere, a white background: bronze is then a painted colour like the others.
     let linked = link.replace(
         "<Background>#CD7F32</Background>",
         "<Link>bindata/annot.png</Link><Background>#ffffff</Background>",
     );
-    let s = read(
+    let mut s = read(
         x3p_main_xml("ISO5436_2", 3, 2, &linked),
         png.clone(),
         "bindata/annot.png",
     )
     .unwrap();
-    assert_eq!(
-        s.invalid_count(),
-        5,
-        "all but the transparent point are painted"
-    );
+    assert_eq!(s.invalid_count(), 1, "only the data's own NaN");
+    assert_eq!(s.exclude_mask_regions(&["#cd7f32".into()]).unwrap(), 2);
     // A mask of the wrong size, a corrupt PNG, a missing linked image, a bad colour: errors
     // that name what is wrong.
     let err =
@@ -540,6 +622,79 @@ fn x3p_mask_png_marks_painted_points_not_measured() {
         "bindata/mask.png",
     );
     assert!(e.contains("Background is 'bronze'"), "{e}");
+}
+
+/// The writer keeps a colour mask: `convert` of a labelled X3P to X3P keeps the labels, in
+/// x3ptools' layout (`Record3/Mask`, `bindata/mask.png`).
+#[test]
+fn x3p_colour_mask_round_trips_through_the_writer() {
+    let (w, h) = (7, 5);
+    let mut s = toy_surface(w, h);
+    s.metadata.format = "x3p".into();
+    let region = |colour: &str, annotation: Option<&str>, background: bool, points: usize| {
+        formats::x3p::MaskRegion {
+            colour: colour.into(),
+            annotation: annotation.map(str::to_string),
+            background,
+            points,
+        }
+    };
+    // A band of "scratch" in row 2, one "pore" point, the rest background.
+    let labels: Vec<u16> = (0..w * h)
+        .map(|i| match (i / w, i % w) {
+            (2, _) => 1,
+            (4, 6) => 2,
+            _ => 0,
+        })
+        .collect();
+    s.metadata.mask = Some(formats::x3p::ColourMask {
+        image: "bindata/mask.png".into(),
+        regions: vec![
+            region("#cd7f32", None, true, w * h - w - 1),
+            region("#1f376c", Some("scratch & dent"), false, w),
+            region("#ffff00", Some("pore"), false, 1),
+        ],
+        labels: labels.clone(),
+    });
+    let bytes = formats::x3p::encode(&s).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("labelled.x3p");
+    std::fs::write(&path, &bytes).unwrap();
+    let parts = x3p_parts(&path);
+    let xml = String::from_utf8(
+        parts
+            .iter()
+            .find(|(n, _)| n == "main.xml")
+            .unwrap()
+            .1
+            .clone(),
+    )
+    .unwrap();
+    assert!(xml.contains("<Background>#cd7f32</Background>"), "{xml}");
+    assert!(
+        xml.contains("<Annotation color=\"#1f376c\">scratch &amp; dent</Annotation>"),
+        "{xml}"
+    );
+    assert!(parts.iter().any(|(n, _)| n == "bindata/mask.png"));
+    let back = parse_surface(&bytes, Format::X3p).unwrap();
+    assert_eq!(back.metadata.mask, s.metadata.mask);
+    same_heights(&back.heights_um, &s.heights_um, 1e-9);
+    // Excluding on the copy read back drops the band and the pore.
+    let mut t = back.clone();
+    let n = t
+        .exclude_mask_regions(&["Scratch & Dent".into(), "#FFFF00".into()])
+        .unwrap();
+    let measured_in_regions = (0..w * h)
+        .filter(|&i| labels[i] != 0 && !s.heights_um[i].is_nan())
+        .count();
+    assert_eq!(n, measured_in_regions);
+    for (i, z) in t.heights_um.iter().enumerate() {
+        assert_eq!(
+            z.is_nan(),
+            labels[i] != 0 || s.heights_um[i].is_nan(),
+            "point {i}"
+        );
+    }
 }
 
 #[test]

@@ -67,11 +67,14 @@ pub struct MeshArgs {
     /// Output STL (missing folders are created); the statistics go to the same name with .json.
     #[arg(short = 'o', long, value_name = "OUT.stl")]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub mask: super::MaskArgs,
 }
 
 pub fn run(a: MeshArgs) -> Result<()> {
     check_stl_name(&a.out)?;
-    let surface = super::load_surface(&a.file, a.pitch_um, "mesh", true)?.surface;
+    let mut surface = super::load_surface(&a.file, a.pitch_um, "mesh", true)?.surface;
+    a.mask.apply(&a.file, &mut surface)?;
     let (pitch_x_um, pitch_y_um) = (surface.pitch_x_um, surface.pitch_y_um);
     // Heights as f32 relative to their mean, so that f32 keeps nanometres however far up the
     // z axis the part sits; the mean goes into z_offset_um and comes back in the offset.

@@ -19,6 +19,8 @@ pub struct InspectArgs {
     /// Print JSON instead of text.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub mask: super::MaskArgs,
 }
 
 #[derive(Args)]
@@ -58,6 +60,8 @@ pub struct ParamsArgs {
     /// Wolf pruning threshold of the feature parameters, % of Sz (ISO 25178-3: 5).
     #[arg(long, default_value_t = 5.0)]
     pub pruning_pct: f64,
+    #[command(flatten)]
+    pub mask: super::MaskArgs,
 }
 
 #[derive(Args)]
@@ -82,6 +86,8 @@ pub struct ConvertArgs {
     /// store a pitch).
     #[arg(long)]
     pub pitch_um: Option<f64>,
+    #[command(flatten)]
+    pub mask: super::MaskArgs,
 }
 
 #[derive(Args)]
@@ -107,7 +113,8 @@ fn grid(s: &Surface) -> Result<Grid<'_>> {
 }
 
 pub fn inspect(a: InspectArgs) -> Result<()> {
-    let s = load_surface(&a.file, None, "inspect", false)?.surface;
+    let mut s = load_surface(&a.file, None, "inspect", false)?.surface;
+    a.mask.apply(&a.file, &mut s)?;
     let valid: Vec<f64> = s
         .heights_um
         .iter()
@@ -162,6 +169,9 @@ pub fn inspect(a: InspectArgs) -> Result<()> {
     if !valid.is_empty() {
         println!("heights     {lo:.4} .. {hi:.4} um");
     }
+    if let Some(mask) = &m.mask {
+        print_mask_regions(mask, !a.mask.mask_exclude.is_empty());
+    }
     for (k, v) in [
         ("instrument", &m.instrument),
         ("serial", &m.serial),
@@ -178,6 +188,37 @@ pub fn inspect(a: InspectArgs) -> Result<()> {
         println!("{k:<11} {v}");
     }
     Ok(())
+}
+
+/// The labelled regions of an X3P colour mask, one line each.
+fn print_mask_regions(mask: &surfstream_io::formats::x3p::ColourMask, excluded: bool) {
+    let note = if excluded {
+        "--mask-exclude applied above"
+    } else {
+        "labels only: every point read as measured; --mask-exclude NAME|#rrggbb drops one"
+    };
+    println!(
+        "mask        {}, {} regions ({note})",
+        mask.image,
+        mask.regions.len()
+    );
+    let width = mask
+        .regions
+        .iter()
+        .map(|r| r.label().chars().count())
+        .max()
+        .unwrap_or(0);
+    for r in &mask.regions {
+        let label = r.label();
+        let pad = width.saturating_sub(label.chars().count());
+        println!(
+            "  {label}{:pad$}  {}  {:>9} points{}",
+            "",
+            r.colour,
+            r.points,
+            if r.background { "  (background)" } else { "" }
+        );
+    }
 }
 
 /// One file's parameters, ready to print.
@@ -218,7 +259,8 @@ fn basic_named(p: &metrology::Params) -> Vec<ParamValue> {
 
 fn params_of(path: &Path, a: &ParamsArgs) -> Result<ParamsRecord> {
     let loaded = load_surface(path, a.pitch_um, "params", true)?;
-    let (s, pitch_assumed) = (loaded.surface, loaded.pitch_assumed);
+    let (mut s, pitch_assumed) = (loaded.surface, loaded.pitch_assumed);
+    a.mask.apply(path, &mut s)?;
     let g = grid(&s)?;
     let levelled;
     let g = if a.level {
@@ -598,9 +640,15 @@ fn render_table(records: &[ParamsRecord]) -> String {
 }
 
 /// Reads one input and writes one output; the line `convert` prints for it.
-fn convert_one(input: &Path, output: &Path, pitch_um: Option<f64>) -> Result<String> {
+fn convert_one(
+    input: &Path,
+    output: &Path,
+    pitch_um: Option<f64>,
+    mask: &super::MaskArgs,
+) -> Result<String> {
     let loaded = load_surface(input, pitch_um, "convert", false)?;
     let mut s = loaded.surface;
+    mask.apply(input, &mut s)?;
     let ext = output
         .extension()
         .and_then(|e| e.to_str())
@@ -649,7 +697,7 @@ pub fn convert(a: ConvertArgs) -> Result<()> {
     let Some(output) = a.out.or(a.output) else {
         bail!("convert: no output: write `convert IN -o OUT.x3p`");
     };
-    eprintln!("{}", convert_one(&a.input, &output, a.pitch_um)?);
+    eprintln!("{}", convert_one(&a.input, &output, a.pitch_um, &a.mask)?);
     Ok(())
 }
 
@@ -682,7 +730,7 @@ pub fn convert_folder(a: ConvertArgs) -> Result<()> {
             .map(|s| s.to_string_lossy().into_owned())
             .unwrap_or_default();
         let target = out_dir.join(format!("{stem}.{ext}"));
-        match convert_one(f, &target, a.pitch_um) {
+        match convert_one(f, &target, a.pitch_um, &a.mask) {
             Ok(_) => {
                 let s = surfstream_io::formats::read_surface(&target);
                 let (shape, pitch) = s.map_or(("?".into(), "?".into()), |s| {

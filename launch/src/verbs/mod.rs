@@ -10,7 +10,37 @@ pub mod separate;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
+use clap::Args;
 use surfstream_io::formats::{read_surface, Surface};
+
+/// `--mask-exclude`, shared by every verb that reads a height map: an X3P colour mask (x3ptools
+/// / FiX3P) labels regions, and every point is read as measured unless its region is named here.
+#[derive(Args, Debug, Clone, Default)]
+pub struct MaskArgs {
+    /// Drop one labelled region of the file's X3P colour mask (its points become not
+    /// measured): its annotation, "background", or its colour #rrggbb. Repeat for several.
+    /// `inspect` lists the regions.
+    #[arg(long = "mask-exclude", value_name = "NAME|#COLOUR")]
+    pub mask_exclude: Vec<String>,
+}
+
+impl MaskArgs {
+    /// Drops the named regions from `s`, read from `path`; says on stderr what it dropped.
+    pub fn apply(&self, path: &Path, s: &mut Surface) -> Result<()> {
+        if self.mask_exclude.is_empty() {
+            return Ok(());
+        }
+        let dropped = s
+            .exclude_mask_regions(&self.mask_exclude)
+            .with_context(|| format!("{}: --mask-exclude", path.display()))?;
+        eprintln!(
+            "{}: --mask-exclude {}: {dropped} points dropped (read as not measured)",
+            path.display(),
+            self.mask_exclude.join(", ")
+        );
+        Ok(())
+    }
+}
 
 /// The formats `convert` writes (surfstream_io::formats::write_surface), by extension.
 pub const WRITABLE: &[&str] = surfstream_io::formats::WRITABLE;

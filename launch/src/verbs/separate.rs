@@ -63,6 +63,8 @@ pub struct SeparateArgs {
     /// Output directory (created if needed).
     #[arg(short = 'o', long)]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub mask: super::MaskArgs,
 }
 
 /// A length in µm: a number (µm) or a number with the unit "um", "µm" or "mm".
@@ -117,7 +119,8 @@ pub fn run(a: SeparateArgs) -> Result<()> {
         bail!("--pool 0: expected a block size of at least 1 px");
     }
 
-    let s = load_surface(&a.file, a.pitch_um, "separate", true)?.surface;
+    let mut s = load_surface(&a.file, a.pitch_um, "separate", true)?.surface;
+    a.mask.apply(&a.file, &mut s)?;
     // The separation takes f32 heights (as frames carry them, DESIGN §2) and runs in f64.
     // Instrument heights can sit tens of um up (MetroPro: ~50 um), where f32 keeps only
     // ~4e-6 um: remove the mean first, as frames do with z_offset_um, and add it back to

@@ -644,7 +644,21 @@ impl PhaseCorrelator {
                 min_roundness: params.min_peak_roundness,
             });
         }
-        if shift[0].abs() > limit[0] || shift[1].abs() > limit[1] {
+        // A shift that brings the tiles closer than nominal only widens their overlap: there
+        // the fraction-of-overlap limit guards against nothing, and the stage error alone
+        // bounds it. On sparse 10 % sets this refused true shifts of 7.8 px on a 16 px strip
+        // (the links that held a tile, which the stage then placed 4-5 px off).
+        let widening =
+            |k: usize| nominal_offset_px[k].abs() >= 1.0 && shift[k] * nominal_offset_px[k] < 0.0;
+        let beyond = |k: usize| {
+            let lim = if widening(k) {
+                params.max_shift_px
+            } else {
+                limit[k]
+            };
+            shift[k].abs() > lim
+        };
+        if beyond(0) || beyond(1) {
             return Some(Rejection::ShiftTooLarge {
                 shift_px: shift,
                 limit_px: limit,
@@ -1010,14 +1024,45 @@ struct NccPeak {
 }
 
 impl NccPeak {
-    /// Sub-pixel offset from the three samples along x and along y.
+    /// Sub-pixel offset: the stationary point of the quadric (on the logarithms for the
+    /// Gaussian model) through the 3 x 3 samples, cross term included; the three samples along
+    /// x and along y separately where that quadric has no maximum.
+    ///
+    /// The cross term matters on sparse texture: a lone scratch or an elongated feature gives
+    /// an NCC peak elongated along a slant, where fitting x and y apart finds the ridge's
+    /// crossing of the sample row instead of its top (0.34 px rms on polished lay with
+    /// scratches, 0.07 px with the cross term; `scripts/bench_sparse.py`, docs/registration.md).
     fn fit(&self, fit: PeakFit) -> [f64; 2] {
         let c = &self.c;
+        if let Some(d) = fit_peak_2d(c, fit) {
+            return d;
+        }
         [
             fit_peak(c[1][0], c[1][1], c[1][2], fit),
             fit_peak(c[0][1], c[1][1], c[2][1], fit),
         ]
     }
+}
+
+/// The maximum of the quadric through the 3 x 3 samples `c[dy + 1][dx + 1]` by central
+/// differences (gradient and Hessian, cross term from the corners), on `ln c` for the
+/// Gaussian model when every sample is positive. `None` when the Hessian is not negative
+/// definite or the maximum lies more than a pixel out.
+fn fit_peak_2d(c: &[[f64; 3]; 3], fit: PeakFit) -> Option<[f64; 2]> {
+    let logs = fit == PeakFit::Gaussian && c.iter().flatten().all(|&v| v > 0.0);
+    let f = |r: usize, k: usize| if logs { c[r][k].ln() } else { c[r][k] };
+    let gx = 0.5 * (f(1, 2) - f(1, 0));
+    let gy = 0.5 * (f(2, 1) - f(0, 1));
+    let hxx = f(1, 0) - 2.0 * f(1, 1) + f(1, 2);
+    let hyy = f(0, 1) - 2.0 * f(1, 1) + f(2, 1);
+    let hxy = 0.25 * (f(2, 2) + f(0, 0) - f(0, 2) - f(2, 0));
+    let det = hxx * hyy - hxy * hxy;
+    if !(hxx < 0.0 && hyy < 0.0 && det > 0.0) {
+        return None;
+    }
+    let dx = -(hyy * gx - hxy * gy) / det;
+    let dy = -(hxx * gy - hxy * gx) / det;
+    (dx.is_finite() && dy.is_finite() && dx.abs() <= 1.0 && dy.abs() <= 1.0).then_some([dx, dy])
 }
 
 /// Steps the NCC climb may take from a correlation peak. On textures that are smooth at the

@@ -160,12 +160,15 @@ fn smooth_metropro_known_shifts_are_recovered() {
 
 /// A stage error along the pair beyond the shift limit (0.45 x the 22 px overlap = 9.9 px) but
 /// within `max_shift_px`: the nominal strips then hardly share any surface, and on the grating
-/// they show an alias well inside the limit (8.9 px wrong in the anchor benchmark). Every such
-/// pair must be refused, never answered at the alias.
+/// they show an alias well inside the limit (8.9 px wrong in the anchor benchmark). Such a
+/// pair must never be answered at the alias: `known_shifts` asserts every answer within
+/// 0.5 px. These errors widen the overlap (the tiles sit 12-18 px closer than nominal): there
+/// the limit is `max_shift_px` alone, and the pairs answered are answered at the true offset
+/// (before, every one was refused).
 #[test]
-fn periodic_x3p_grating_true_offset_beyond_the_limit_is_refused() {
+fn periodic_x3p_grating_true_offset_beyond_the_limit_is_never_answered_at_an_alias() {
     let errors = [[-8, -16], [5, -14], [-2, -18], [7, -12]];
     let (answered, tried) = known_shifts("x3p-2.x3p", 22, &errors);
     assert!(tried >= 6, "only {tried} pairs fit in the specimen");
-    assert_eq!(answered, 0, "{answered} of {tried} pairs answered");
+    eprintln!("{answered} of {tried} answered, each within 0.5 px");
 }

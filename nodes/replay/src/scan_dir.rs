@@ -8,6 +8,10 @@
 //! applies to files without a height unit (.npy, .xyz); instrument files carry theirs, and a
 //! `height_unit` other than um beside them is an error.
 //!
+//! `mask_exclude = ["name", "#rrggbb"]` in `[scan]` drops regions of the tiles' X3P colour
+//! masks (x3ptools / FiX3P labels; every point is measured otherwise): see
+//! `surfstream_io::formats::x3p::ColourMask`.
+//!
 //! Everything is validated before the first tile is sent: every error names the manifest or
 //! tile file, the field, and what was expected.
 
@@ -33,6 +37,9 @@ struct RawScanSection {
     height_unit: Option<String>,
     rows: usize,
     cols: usize,
+    /// Regions of the tiles' X3P colour masks to drop (annotation, "background" or #rrggbb).
+    #[serde(default)]
+    mask_exclude: Vec<String>,
 }
 
 /// `[scan]`, resolved: the pitch from the manifest or the tile files.
@@ -45,6 +52,10 @@ pub struct ScanSection {
     pub height_unit: String,
     pub rows: usize,
     pub cols: usize,
+    /// `mask_exclude = ["name", "#rrggbb"]`: regions of the tiles' X3P colour masks whose
+    /// points are read as not measured (x3ptools / FiX3P labels; by default every point is
+    /// measured). Each name must be a region of at least one tile's mask.
+    pub mask_exclude: Vec<String>,
 }
 
 /// One `[[tile]]`.
@@ -120,6 +131,82 @@ fn unit_scale(unit: &str) -> Option<f64> {
     })
 }
 
+/// `[scan] mask_exclude` over a scan's tiles: each tile drops the named regions its own mask
+/// holds; a name that no tile's mask holds is an error naming the regions there are.
+struct MaskExclusion<'a> {
+    names: &'a [String],
+    matched: Vec<bool>,
+    /// The regions seen, "'label' #rrggbb", for the error.
+    known: std::collections::BTreeSet<String>,
+    dropped: usize,
+}
+
+impl<'a> MaskExclusion<'a> {
+    fn new(names: &'a [String]) -> Self {
+        MaskExclusion {
+            names,
+            matched: vec![false; names.len()],
+            known: Default::default(),
+            dropped: 0,
+        }
+    }
+
+    fn apply(&mut self, surface: &mut formats::Surface) -> Result<()> {
+        let Some(mask) = surface
+            .metadata
+            .mask
+            .as_ref()
+            .filter(|_| !self.names.is_empty())
+        else {
+            return Ok(());
+        };
+        let mut here = Vec::new();
+        for (k, name) in self.names.iter().enumerate() {
+            if !mask.find(name).is_empty() {
+                self.matched[k] = true;
+                here.push(name.clone());
+            }
+        }
+        for r in &mask.regions {
+            self.known.insert(format!("'{}' {}", r.label(), r.colour));
+        }
+        self.dropped += surface.exclude_mask_regions(&here)?;
+        Ok(())
+    }
+
+    fn finish(self) -> Result<()> {
+        let unknown: Vec<&str> = self
+            .names
+            .iter()
+            .zip(&self.matched)
+            .filter(|(_, m)| !**m)
+            .map(|(n, _)| n.as_str())
+            .collect();
+        if unknown.is_empty() {
+            if !self.names.is_empty() {
+                eprintln!(
+                    "scan: mask_exclude {}: {} points dropped (read as not measured)",
+                    self.names.join(", "),
+                    self.dropped
+                );
+            }
+            return Ok(());
+        }
+        if self.known.is_empty() {
+            bail!(
+                "'{}': no tile carries a colour mask (X3P with Record3/Mask, x3ptools / FiX3P)",
+                unknown.join("', '")
+            );
+        }
+        bail!(
+            "'{}' is not a region of any tile's colour mask; the regions are {} (name one by its \
+             annotation, 'background', or its colour #rrggbb)",
+            unknown.join("', '"),
+            self.known.iter().cloned().collect::<Vec<_>>().join(", ")
+        )
+    }
+}
+
 /// Reads `scan.toml` (or a directory holding one) and every tile it lists.
 pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
     let manifest_path = if path.is_dir() {
@@ -157,6 +244,7 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         height_unit: raw.height_unit.unwrap_or_else(|| "um".into()),
         rows: raw.rows,
         cols: raw.cols,
+        mask_exclude: raw.mask_exclude,
     };
     let scale = unit_scale(&scan.height_unit).ok_or_else(|| {
         anyhow!(
@@ -237,6 +325,7 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
     let mut shape: Option<(usize, usize, String)> = None;
     // (pitch x, pitch y, file) of the first tile that carries a lateral calibration.
     let mut file_pitch: Option<(f64, f64, String)> = None;
+    let mut masks = MaskExclusion::new(&scan.mask_exclude);
     for (k, t) in file.tile.into_iter().enumerate() {
         let at = format!("{m}: [[tile]] #{} (file {:?})", k + 1, t.file);
         if t.row >= scan.rows || t.col >= scan.cols {
@@ -286,7 +375,8 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
                 supported_extensions()
             );
         }
-        let surface = formats::read_surface(&tile_path).with_context(|| at.clone())?;
+        let mut surface = formats::read_surface(&tile_path).with_context(|| at.clone())?;
+        masks.apply(&mut surface).with_context(|| at.clone())?;
         let (rows, cols) = (surface.height, surface.width);
         match &shape {
             None => shape = Some((rows, cols, t.file.clone())),
@@ -343,6 +433,9 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
             heights_um,
         });
     }
+    masks
+        .finish()
+        .with_context(|| format!("{m}: [scan] mask_exclude"))?;
     let (rows, cols, _) = shape.ok_or_else(|| anyhow!("{m}: no tiles"))?;
     if let Some((px, py, _)) = file_pitch {
         scan.pitch_x_um = px;
@@ -641,5 +734,96 @@ stage_y_um = 0.0
         .unwrap();
         let e = format!("{:#}", load_scan(d.path()).unwrap_err());
         assert!(e.contains("height_unit"), "{e}");
+    }
+
+    /// `[scan] mask_exclude`: each X3P tile drops exactly the points of the named colour-mask
+    /// regions it holds (a tile without that region keeps every point), all other points stay
+    /// measured; a name no tile holds is an error listing the regions.
+    #[test]
+    fn mask_exclude_drops_the_labelled_points_of_every_tile() {
+        use surfstream_io::formats::x3p::{ColourMask, MaskRegion};
+        use surfstream_io::formats::{Metadata, Surface};
+        let d = tempfile::tempdir().unwrap();
+        let (w, h) = (20, 16);
+        let region = |colour: &str, name: Option<&str>, background: bool| MaskRegion {
+            colour: colour.into(),
+            annotation: name.map(str::to_string),
+            background,
+            points: 0,
+        };
+        // Tile a: "dust" is a 3 x 2 patch; tile b: "scratch" is column 5, no dust.
+        let tile = |name: &str, second: MaskRegion, label: &dyn Fn(usize, usize) -> bool| {
+            let labels: Vec<u16> = (0..w * h).map(|i| label(i / w, i % w) as u16).collect();
+            let mut regions = vec![region("#cd7f32", None, true), second];
+            regions[1].points = labels.iter().filter(|&&l| l == 1).count();
+            regions[0].points = w * h - regions[1].points;
+            let s = Surface {
+                width: w,
+                height: h,
+                pitch_x_um: 0.5,
+                pitch_y_um: 0.5,
+                heights_um: (0..w * h).map(|i| (i % 7) as f64 * 0.1).collect(),
+                metadata: Metadata {
+                    format: "x3p".into(),
+                    pitch_known: true,
+                    mask: Some(ColourMask {
+                        image: "bindata/mask.png".into(),
+                        regions,
+                        labels,
+                    }),
+                    ..Metadata::default()
+                },
+            };
+            surfstream_io::formats::x3p::write(&d.path().join(name), &s).unwrap();
+        };
+        tile("a.x3p", region("#ff0000", Some("dust"), false), &|r, c| {
+            (4..6).contains(&r) && (10..13).contains(&c)
+        });
+        tile(
+            "b.x3p",
+            region("#00ff00", Some("scratch"), false),
+            &|_, c| c == 5,
+        );
+        let manifest = |exclude: &str| {
+            format!(
+                "[scan]\nname = \"m\"\nrows = 1\ncols = 2\n{exclude}\n\
+                 [[tile]]\nfile = \"a.x3p\"\nrow = 0\ncol = 0\nstage_x_um = 0.0\nstage_y_um = 0.0\n\
+                 [[tile]]\nfile = \"b.x3p\"\nrow = 0\ncol = 1\nstage_x_um = 8.0\nstage_y_um = 0.0\n"
+            )
+        };
+        let nans = |s: &ScanDirectory| -> Vec<usize> {
+            s.tiles
+                .iter()
+                .map(|t| t.heights_um.iter().filter(|z| z.is_nan()).count())
+                .collect()
+        };
+        std::fs::write(d.path().join("scan.toml"), manifest("")).unwrap();
+        let s = load_scan(d.path()).unwrap();
+        assert_eq!(nans(&s), [0, 0], "labels alone drop nothing");
+        std::fs::write(
+            d.path().join("scan.toml"),
+            manifest("mask_exclude = [\"Dust\", \"#00FF00\"]"),
+        )
+        .unwrap();
+        let s = load_scan(d.path()).unwrap();
+        assert_eq!(s.scan.mask_exclude, ["Dust", "#00FF00"]);
+        assert_eq!(nans(&s), [6, 16]);
+        assert!(s.tiles[0].heights_um[4 * w + 10].is_nan());
+        assert!(!s.tiles[0].heights_um[4 * w + 9].is_nan());
+        assert!(s.tiles[1].heights_um[7 * w + 5].is_nan());
+        std::fs::write(
+            d.path().join("scan.toml"),
+            manifest("mask_exclude = [\"dust\", \"pores\"]"),
+        )
+        .unwrap();
+        let e = format!("{:#}", load_scan(d.path()).unwrap_err());
+        assert!(
+            e.contains("[scan] mask_exclude")
+                && e.contains("'pores' is not a region of any tile's colour mask")
+                && e.contains("'dust' #ff0000")
+                && e.contains("'scratch' #00ff00")
+                && e.contains("'background' #cd7f32"),
+            "{e}"
+        );
     }
 }

@@ -71,11 +71,33 @@ pub struct Metadata {
     /// What the reader accepted but the user should know (a checksum that does not match).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub warnings: Vec<String>,
+    /// The labelled regions of an X3P colour mask (x3ptools / FiX3P). Labels, not validity:
+    /// every point stays as measured unless [`Surface::exclude_mask_regions`] drops a region.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mask: Option<x3p::ColourMask>,
 }
 
 impl Surface {
     pub fn invalid_count(&self) -> usize {
         self.heights_um.iter().filter(|z| z.is_nan()).count()
+    }
+
+    /// Drops (sets to NaN, not measured) the points of every colour-mask region named in
+    /// `regions` (an annotation, "background" or "#rrggbb"; see [`x3p::ColourMask::find`]) and
+    /// returns how many measured points that removed. Nothing to drop is not an error; a name
+    /// the mask does not hold, or a file without a colour mask, is.
+    pub fn exclude_mask_regions(&mut self, regions: &[String]) -> Result<usize> {
+        if regions.is_empty() {
+            return Ok(0);
+        }
+        match &self.metadata.mask {
+            Some(mask) => mask.exclude(&mut self.heights_um, regions),
+            None => bail!(
+                "no colour mask to exclude '{}' from: only X3P files with a mask image \
+                 (x3ptools / FiX3P, Record3/Mask) carry labelled regions",
+                regions.join("', '")
+            ),
+        }
     }
 
     /// The heights as a frame carries them: see [`surfstream_core::frame::to_frame_heights`].

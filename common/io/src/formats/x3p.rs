@@ -5,6 +5,11 @@
 //! Row index = y index of the file (the first stored line is row 0), so a panorama written by
 //! [`write`] reads back identically. Both MD5 checksums are verified (upper or lower case hex);
 //! the error says which one failed. Integer z = Offset + int * Increment (metres).
+//!
+//! Validity is the standard's: `valid.bin`, NaN in float data, an empty `Datum`. The colour
+//! mask x3ptools and FiX3P add (`Record3/Mask`, `bindata/mask.png`) labels regions and is read
+//! as labels ([`ColourMask`]): it never makes a point "not measured" unless a user asks
+//! ([`ColourMask::exclude`], `--mask-exclude`).
 
 use std::io::{Cursor, Read, Seek, Write};
 use std::path::Path;
@@ -341,16 +346,8 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
     let Some(link) = child(r3, "DataLink") else {
         let list =
             child(r3, "DataList").context("main.xml: Record3 has neither DataLink nor DataList")?;
-        let mut heights_um = parse_data_list(list, n, &to_um)?;
-        apply_mask(
-            &mut zip,
-            &names,
-            folder,
-            r3,
-            (width, height),
-            &mut heights_um,
-            &mut warnings,
-        )?;
+        let heights_um = parse_data_list(list, n, &to_um)?;
+        let mask = read_mask(&mut zip, &names, folder, r3, (width, height), &mut warnings)?;
         return Ok(finish(
             root,
             r1,
@@ -359,6 +356,7 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
             stage_position_um,
             heights_um,
             warnings,
+            mask,
         ));
     };
     let point_link =
@@ -420,15 +418,7 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
             }
         }
     }
-    apply_mask(
-        &mut zip,
-        &names,
-        folder,
-        r3,
-        (width, height),
-        &mut heights_um,
-        &mut warnings,
-    )?;
+    let mask = read_mask(&mut zip, &names, folder, r3, (width, height), &mut warnings)?;
     Ok(finish(
         root,
         r1,
@@ -437,6 +427,7 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
         stage_position_um,
         heights_um,
         warnings,
+        mask,
     ))
 }
 
@@ -453,22 +444,152 @@ fn parse_colour(text: &str) -> Option<[u8; 3]> {
     Some([byte(0)?, byte(2)?, byte(4)?])
 }
 
-/// The optional colour mask of ISO 25178-72 / AMD 1 as x3ptools and FiX3P write it:
-/// `Record3/Mask` (`Background` colour, `Annotations/Annotation color="#rrggbb"` naming each
-/// painted colour, optional `Link` to the image) and a PNG, `bindata/mask.png` by default,
-/// SizeX pixels wide and SizeY tall, pixel (column i, row j) covering point (i, j) of data.bin.
-/// Points of the background colour, or fully transparent, are the surface as measured; points
-/// painted in any other colour are regions an annotator marked out, and are read as not
-/// measured, with a warning that counts them per colour (and its annotation).
-fn apply_mask<R: Read + Seek>(
+/// One colour of an X3P colour mask: a region of the surface an annotator labelled.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct MaskRegion {
+    /// "#rrggbb", lower case.
+    pub colour: String,
+    /// The `Annotation` naming this colour in main.xml (the first non-empty one), if any.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub annotation: Option<String>,
+    /// The mask's `Background` colour (fully transparent pixels count here too: nothing was
+    /// painted there).
+    pub background: bool,
+    /// Points of this colour in the image (0 for an annotation no pixel carries).
+    pub points: usize,
+}
+
+impl MaskRegion {
+    /// How a user names the region: its annotation, else "background", else its colour.
+    pub fn label(&self) -> String {
+        match (&self.annotation, self.background) {
+            (Some(a), _) => a.clone(),
+            (None, true) => "background".into(),
+            (None, false) => self.colour.clone(),
+        }
+    }
+}
+
+/// An X3P colour mask read as region labels (x3ptools / FiX3P: "annotations are legend entries
+/// for each color of a mask"): every point stays as measured; [`ColourMask::exclude`] drops
+/// the regions a user names.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct ColourMask {
+    /// The zip entry of the image, e.g. "bindata/mask.png".
+    pub image: String,
+    /// Background first, then the annotated colours in main.xml's order, then painted colours
+    /// without an annotation.
+    pub regions: Vec<MaskRegion>,
+    /// Per point (row-major like the heights): index into `regions`.
+    #[serde(skip)]
+    pub labels: Vec<u16>,
+}
+
+impl ColourMask {
+    /// The regions `spec` names: `#rrggbb` (or `#rrggbbaa`, alpha ignored) by colour, else an
+    /// annotation (case-insensitive; several colours may share one) or "background".
+    pub fn find(&self, spec: &str) -> Vec<usize> {
+        let spec = spec.trim();
+        if spec.starts_with('#') {
+            let rgb = parse_colour(spec).or_else(|| {
+                (spec.len() == 9)
+                    .then(|| spec.get(..7).and_then(parse_colour))
+                    .flatten()
+            });
+            let Some(rgb) = rgb else {
+                return Vec::new();
+            };
+            let hex = colour_hex(rgb);
+            return (0..self.regions.len())
+                .filter(|&i| self.regions[i].colour == hex)
+                .collect();
+        }
+        let named: Vec<usize> = (0..self.regions.len())
+            .filter(|&i| {
+                self.regions[i]
+                    .annotation
+                    .as_deref()
+                    .is_some_and(|a| a.trim().eq_ignore_ascii_case(spec))
+            })
+            .collect();
+        if !named.is_empty() || !spec.eq_ignore_ascii_case("background") {
+            return named;
+        }
+        (0..self.regions.len())
+            .filter(|&i| self.regions[i].background)
+            .collect()
+    }
+
+    /// "'break-off' #1f376c (20900 points), ..." for messages.
+    pub fn describe(&self) -> String {
+        self.regions
+            .iter()
+            .map(|r| format!("'{}' {} ({} points)", r.label(), r.colour, r.points))
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
+    /// Sets the heights of every region named in `specs` (see [`ColourMask::find`]) to NaN
+    /// (not measured) and returns how many points that dropped. A name that matches no region
+    /// is an error that lists the regions there are.
+    pub fn exclude(&self, heights_um: &mut [f64], specs: &[String]) -> Result<usize> {
+        if heights_um.len() != self.labels.len() {
+            bail!(
+                "the mask labels {} points, the surface has {}",
+                self.labels.len(),
+                heights_um.len()
+            );
+        }
+        let mut drop = vec![false; self.regions.len()];
+        for spec in specs {
+            let found = self.find(spec);
+            if found.is_empty() {
+                bail!(
+                    "mask region '{}' is not in the mask ({}); its regions are {} (name one by \
+                     its annotation, 'background', or its colour #rrggbb)",
+                    spec.trim(),
+                    self.image,
+                    self.describe()
+                );
+            }
+            for i in found {
+                drop[i] = true;
+            }
+        }
+        let mut dropped = 0;
+        for (z, &l) in heights_um.iter_mut().zip(&self.labels) {
+            if drop.get(l as usize).copied().unwrap_or(false) && !z.is_nan() {
+                *z = f64::NAN;
+                dropped += 1;
+            }
+        }
+        Ok(dropped)
+    }
+}
+
+fn colour_hex(rgb: [u8; 3]) -> String {
+    format!("#{:02x}{:02x}{:02x}", rgb[0], rgb[1], rgb[2])
+}
+
+/// Most distinct colours a mask may hold to be read as labels (one u16 label per point).
+const MAX_MASK_COLOURS: usize = u16::MAX as usize;
+
+/// The optional colour mask of x3ptools and FiX3P (an extension beside ISO 25178-72, whose
+/// schema has no mask: validity there is `ValidPointsLink` / `bindata/valid.bin`, or NaN in
+/// float data): `Record3/Mask` (`Background` colour, `Annotations/Annotation color="#rrggbb"`
+/// naming each painted colour, optional `Link` to the image) and a PNG, `bindata/mask.png` by
+/// default, SizeX pixels wide and SizeY tall, pixel (column i, row j) covering point (i, j) of
+/// data.bin. A colour is a region label, not a validity flag: every point keeps its height,
+/// and the regions (colour, annotation, point count) are returned for the user to see and,
+/// on request, drop ([`ColourMask::exclude`]).
+fn read_mask<R: Read + Seek>(
     zip: &mut zip::ZipArchive<R>,
     names: &[String],
     folder: &str,
     r3: roxmltree::Node,
     (width, height): (usize, usize),
-    heights_um: &mut [f64],
     warnings: &mut Vec<String>,
-) -> Result<()> {
+) -> Result<Option<ColourMask>> {
     let mask = child(r3, "Mask");
     let link = mask
         .and_then(|m| text_of(m, &["Link"]))
@@ -480,7 +601,7 @@ fn apply_mask<R: Read + Seek>(
         if mask.is_some_and(|m| child(m, "Link").is_some()) {
             bail!("main.xml: Record3/Mask/Link names '{link}', which is not in the archive");
         }
-        return Ok(());
+        return Ok(None);
     };
     let background = match mask.and_then(|m| text_of(m, &["Background"])) {
         None => DEFAULT_MASK_BACKGROUND,
@@ -494,53 +615,108 @@ fn apply_mask<R: Read + Seek>(
     let limit = (n as u64).saturating_mul(8).saturating_add(1 << 20);
     let png_bytes = read_entry(zip, &name, limit)?;
     let rgba = decode_mask_png(&png_bytes, width, height).with_context(|| name.clone())?;
-    let mut painted: std::collections::BTreeMap<[u8; 3], usize> = Default::default();
-    for (z, px) in heights_um.iter_mut().zip(rgba.chunks_exact(4)) {
-        let rgb = [px[0], px[1], px[2]];
-        if px[3] == 0 || rgb == background {
+    // Regions: the background, then each annotated colour in main.xml's order (x3ptools
+    // repeats a colour with an empty annotation: the first non-empty text names it).
+    let mut regions = vec![MaskRegion {
+        colour: colour_hex(background),
+        annotation: None,
+        background: true,
+        points: 0,
+    }];
+    let mut index: std::collections::HashMap<[u8; 3], u16> = Default::default();
+    index.insert(background, 0);
+    let annotations = mask
+        .and_then(|m| child(m, "Annotations"))
+        .into_iter()
+        .flat_map(|a| a.children())
+        .filter(|c| c.is_element() && c.tag_name().name() == "Annotation");
+    for a in annotations {
+        let Some(colour) = a.attribute("color").map(str::trim) else {
             continue;
+        };
+        // x3ptools writes R colours as #rrggbbaa; the alpha does not name another region.
+        let rgb = parse_colour(colour).or_else(|| {
+            (colour.len() == 9)
+                .then(|| colour.get(..7).and_then(parse_colour))
+                .flatten()
+        });
+        let Some(rgb) = rgb else {
+            warnings.push(format!(
+                "main.xml: Record3/Mask/Annotations: colour '{colour}' is not #rrggbb; that \
+                 annotation is ignored"
+            ));
+            continue;
+        };
+        let text = a.text().map(str::trim).filter(|t| !t.is_empty());
+        let i = *index.entry(rgb).or_insert_with(|| {
+            regions.push(MaskRegion {
+                colour: colour_hex(rgb),
+                annotation: None,
+                background: false,
+                points: 0,
+            });
+            (regions.len() - 1) as u16
+        });
+        let r = &mut regions[i as usize];
+        if r.annotation.is_none() {
+            r.annotation = text.map(str::to_string);
         }
-        *painted.entry(rgb).or_default() += 1;
-        *z = f64::NAN;
     }
-    if !painted.is_empty() {
-        let annotations: Vec<(Option<[u8; 3]>, String)> = mask
-            .and_then(|m| child(m, "Annotations"))
-            .map(|a| {
-                a.children()
-                    .filter(|c| c.is_element() && c.tag_name().name() == "Annotation")
-                    .map(|c| {
-                        let colour = c.attribute("color").and_then(parse_colour);
-                        (colour, c.text().unwrap_or("").trim().to_string())
-                    })
-                    .collect()
-            })
-            .unwrap_or_default();
-        let parts: Vec<String> = painted
-            .iter()
-            .map(|(rgb, count)| {
-                let label = annotations
-                    .iter()
-                    .find(|(c, _)| *c == Some(*rgb))
-                    .map(|(_, t)| format!(" '{t}'"))
-                    .unwrap_or_default();
-                format!(
-                    "#{:02x}{:02x}{:02x}{label}: {count}",
-                    rgb[0], rgb[1], rgb[2]
-                )
-            })
-            .collect();
-        let total: usize = painted.values().sum();
-        warnings.push(format!(
-            "{name} marks {total} points in colours other than the background #{:02x}{:02x}{:02x}; \
-             they are read as not measured ({})",
-            background[0],
-            background[1],
-            background[2],
-            parts.join(", ")
-        ));
+    let mut labels = Vec::with_capacity(n);
+    let mut unannotated: Vec<[u8; 3]> = Vec::new();
+    for px in rgba.chunks_exact(4) {
+        let rgb = if px[3] == 0 {
+            background
+        } else {
+            [px[0], px[1], px[2]]
+        };
+        let i = match index.get(&rgb) {
+            Some(&i) => i,
+            None => {
+                if regions.len() >= MAX_MASK_COLOURS {
+                    warnings.push(format!(
+                        "{name} holds more than {MAX_MASK_COLOURS} colours: it is not a \
+                         label mask and is ignored (every point is read as measured)"
+                    ));
+                    return Ok(None);
+                }
+                regions.push(MaskRegion {
+                    colour: colour_hex(rgb),
+                    annotation: None,
+                    background: false,
+                    points: 0,
+                });
+                unannotated.push(rgb);
+                let i = (regions.len() - 1) as u16;
+                index.insert(rgb, i);
+                i
+            }
+        };
+        regions[i as usize].points += 1;
+        labels.push(i);
     }
-    Ok(())
+    // Painted colours without an annotation go last, ordered by colour (stable output
+    // whatever the pixel order).
+    let first_unannotated = regions.len() - unannotated.len();
+    if unannotated.len() > 1 {
+        let mut order: Vec<usize> = (first_unannotated..regions.len()).collect();
+        order.sort_by(|&p, &q| regions[p].colour.cmp(&regions[q].colour));
+        let mut remap: Vec<u16> = (0..regions.len() as u16).collect();
+        for (k, &old) in order.iter().enumerate() {
+            remap[old] = (first_unannotated + k) as u16;
+        }
+        let tail: Vec<MaskRegion> = order.iter().map(|&i| regions[i].clone()).collect();
+        regions.truncate(first_unannotated);
+        regions.extend(tail);
+        for l in labels.iter_mut() {
+            *l = remap[*l as usize];
+        }
+    }
+    Ok(Some(ColourMask {
+        image: name,
+        regions,
+        labels,
+    }))
 }
 
 /// The mask image as 8-bit RGBA, after checking its size against the point grid (from the PNG
@@ -626,6 +802,7 @@ fn parse_data_list(
 }
 
 /// The surface with the metadata of Record1/Record2.
+#[allow(clippy::too_many_arguments)]
 fn finish(
     root: roxmltree::Node,
     r1: roxmltree::Node,
@@ -634,6 +811,7 @@ fn finish(
     stage_position_um: Option<[f64; 2]>,
     heights_um: Vec<f64>,
     warnings: Vec<String>,
+    mask: Option<ColourMask>,
 ) -> Surface {
     let r2 = child(root, "Record2");
     let instrument = r2.and_then(|r| {
@@ -667,6 +845,7 @@ fn finish(
     }
     metadata.warnings = warnings;
     metadata.stage_position_um = stage_position_um;
+    metadata.mask = mask;
     Surface {
         width,
         height,
@@ -713,7 +892,8 @@ fn put_entry<W: Write + Seek>(zw: &mut zip::ZipWriter<W>, name: &str, bytes: &[u
 
 /// The X3P byte image of `s`: float64 heights in metres, NaN points marked invalid in
 /// `bindata/valid.bin` (and left NaN in data.bin), ISO5436 - 2000 revision (what every reader
-/// accepts).
+/// accepts); a colour mask read from an X3P is written back (`Record3/Mask`,
+/// `bindata/mask.png`), so `convert` keeps the labels.
 pub fn encode(s: &Surface) -> Result<Vec<u8>> {
     let n = checked_size(&[s.width, s.height], "width * height")?;
     if s.heights_um.len() != n || n == 0 {
@@ -752,6 +932,9 @@ pub fn encode(s: &Surface) -> Result<Vec<u8>> {
     if any_invalid {
         put("bindata/valid.bin", &valid)?;
     }
+    if let Some(png) = mask_png(s)? {
+        put(MASK_IMAGE, &png)?;
+    }
     Ok(zw.finish().context("finishing the zip")?.into_inner())
 }
 
@@ -764,6 +947,7 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
         ),
         None => String::new(),
     };
+    let mask = mask_xml(s);
     let m = &s.metadata;
     // Record2 holds what the source file said, and nothing in its place that it did not:
     // Date is ISO 8601, the measurement's when it can be read as a date; otherwise the
@@ -859,7 +1043,7 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
     <DataLink>
       <PointDataLink>bindata/data.bin</PointDataLink>
       <MD5ChecksumPointData>{md5}</MD5ChecksumPointData>{valid_link}
-    </DataLink>
+    </DataLink>{mask}
   </Record3>
   <Record4>
     <ChecksumFile>md5checksum.hex</ChecksumFile>
@@ -928,6 +1112,80 @@ fn iso8601_date(text: &str) -> Option<String> {
             && matches!(zone.as_bytes()[0], b'+' | b'-')
             && zone.as_bytes()[3] == b':');
     zone_ok.then(|| format!("{}T{}:{seconds}{zone}", &t[..10], &t[11..16]))
+}
+
+/// Where the writer puts a colour mask's image (x3ptools' and FiX3P's default name).
+const MASK_IMAGE: &str = "bindata/mask.png";
+
+/// `Record3/Mask` of `s`'s colour mask (the background, one `Annotation` per annotated
+/// colour), as x3ptools writes it; empty without a mask.
+fn mask_xml(s: &Surface) -> String {
+    let Some(mask) = &s.metadata.mask else {
+        return String::new();
+    };
+    let background = mask
+        .regions
+        .iter()
+        .find(|r| r.background)
+        .map_or("#cd7f32", |r| r.colour.as_str());
+    let annotations: String = mask
+        .regions
+        .iter()
+        .filter_map(|r| {
+            r.annotation.as_ref().map(|a| {
+                format!(
+                    "\n        <Annotation color=\"{}\">{}</Annotation>",
+                    r.colour,
+                    xml_escape(a)
+                )
+            })
+        })
+        .collect();
+    format!(
+        "\n    <Mask>\n      <Background>{background}</Background>\n      <Annotations>{annotations}\n      </Annotations>\n    </Mask>"
+    )
+}
+
+/// The colour mask of `s` as an 8-bit RGB PNG (one pixel per point), if it has one.
+fn mask_png(s: &Surface) -> Result<Option<Vec<u8>>> {
+    let Some(mask) = &s.metadata.mask else {
+        return Ok(None);
+    };
+    if mask.labels.len() != s.width * s.height {
+        bail!(
+            "the colour mask labels {} points, the surface has {} x {}",
+            mask.labels.len(),
+            s.width,
+            s.height
+        );
+    }
+    let colours: Vec<[u8; 3]> = mask
+        .regions
+        .iter()
+        .map(|r| {
+            parse_colour(&r.colour)
+                .with_context(|| format!("mask region colour '{}' is not #rrggbb", r.colour))
+        })
+        .collect::<Result<_>>()?;
+    let mut rgb = Vec::with_capacity(mask.labels.len() * 3);
+    for &l in &mask.labels {
+        let c = colours
+            .get(l as usize)
+            .with_context(|| format!("mask label {l} names no region"))?;
+        rgb.extend_from_slice(c);
+    }
+    let (w, h) = (
+        u32::try_from(s.width).context("mask width")?,
+        u32::try_from(s.height).context("mask height")?,
+    );
+    let mut out = Vec::new();
+    let mut enc = png::Encoder::new(&mut out, w, h);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    let mut writer = enc.write_header().context("mask PNG header")?;
+    writer.write_image_data(&rgb).context("mask PNG data")?;
+    writer.finish().context("mask PNG")?;
+    Ok(Some(out))
 }
 
 /// Writes `s` as an X3P file, atomically.
@@ -1037,6 +1295,9 @@ pub fn write_by_rows(
         }
         if any_invalid {
             put_entry(&mut zw, "bindata/valid.bin", &valid).with_context(ctx)?;
+        }
+        if let Some(png) = mask_png(s).with_context(ctx)? {
+            put_entry(&mut zw, MASK_IMAGE, &png).with_context(ctx)?;
         }
         zw.finish()
             .with_context(|| format!("{}: finishing the zip", path.display()))?;
