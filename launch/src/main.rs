@@ -524,7 +524,7 @@ inputs = {{ panorama = "fusion/panorama" }}
 [[node]]
 id = "mesher"
 node = "mesher"
-inputs = {{ surface = "wavelet/pooled" }}
+inputs = {{ surface = "fusion/panorama" }}
 "#,
         path = path_str
     );

@@ -19,6 +19,7 @@ use surfstream_core::raster::{Raster, RasterView, Shape};
 use surfstream_io::npy::{write_npy_abs_f64, write_npy_f64};
 
 use crate::target::{block_values_on_grid, DemEngine, EngineProfile, TargetMethod};
+use crate::tolerance::{mesh_streaming_to_tolerance, mesh_to_tolerance, ToleranceSettings};
 use crate::{
     check_closed, grid_sheet_for, grid_solid, grid_streaming, mesh_height_field, mesh_streaming,
     stl, Epsilon, LengthUnit, MeshCheck, MeshCounts, MeshKind, MeshParams, MissingSamples,
@@ -53,8 +54,14 @@ pub struct MesherConfig {
     /// Largest vertical error as a fraction of the surface's Sq (adaptive; default 0.05 when
     /// `epsilon_um` is not given).
     pub epsilon_sq_fraction: Option<f64>,
-    /// Triangle budget of the surface (adaptive).
+    /// Triangle budget of the surface (adaptive; with a tolerance, the search's limit).
     pub max_triangles: Option<usize>,
+    /// The model's tolerance per region, percent: "sa=1,sq=1,sz=3" or { sa = 1, sq = 1, sz = 3 }
+    /// (adaptive; the default when neither epsilon is given: Sa 1 %, Sq 1 %, Sz 3 %). The
+    /// mesher then finds the fewest triangles that meet it ([`crate::tolerance`]).
+    pub tolerance: Option<crate::Tolerance>,
+    /// Side of the windows the tolerance is judged in, samples (default 1024).
+    pub region_px: Option<usize>,
     /// "solid" (default) or "sheet" (adaptive).
     #[serde(default)]
     pub kind: MeshKind,
@@ -80,15 +87,16 @@ fn stl_name() -> String {
     "surface.stl".into()
 }
 
-/// Which surface the mesher meshes, and the input ports that carry it: "pooled" (default) or
-/// "panorama" arrive on the input `surface`; "datum" and "roughness" on the inputs of those
+/// Which surface the mesher meshes, and the input ports that carry it: "panorama" (default:
+/// the full-resolution surface, what the tolerance is judged against) or "pooled" (the
+/// reference study's 4 x 4 max-pooled map, an option) arrive on the input `surface`; "datum" and "roughness" on the inputs of those
 /// names; "datum+roughness" needs both and meshes their sum (the panorama as the separation
 /// rebuilds it).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, serde::Serialize)]
 pub enum SurfaceChoice {
-    #[default]
     #[serde(rename = "pooled")]
     Pooled,
+    #[default]
     #[serde(rename = "panorama")]
     Panorama,
     #[serde(rename = "datum+roughness")]
@@ -168,6 +176,8 @@ pub struct MeshSettings {
     pub surface: SurfaceChoice,
     /// The engine the STL is made for, when one was named.
     pub target: Option<EngineProfile>,
+    /// The model from a tolerance (adaptive only; `None`: the fixed bound of `adaptive`).
+    pub tolerance: Option<ToleranceSettings>,
 }
 
 impl MesherConfig {
@@ -188,6 +198,33 @@ impl MesherConfig {
             recentre: true,
         };
         solid.validate().map_err(|e| e.to_string())?;
+        let fixed_bound = self.epsilon_um.is_some() || self.epsilon_sq_fraction.is_some();
+        if self.tolerance.is_some() && fixed_bound {
+            return Err(
+                "give a tolerance or a fixed bound (epsilon_um / epsilon_sq_fraction), not both"
+                    .into(),
+            );
+        }
+        if self.tolerance.is_some() && self.method != "adaptive" {
+            return Err(format!(
+                "tolerance needs method = \"adaptive\" (method = {:?} meshes every sample)",
+                self.method
+            ));
+        }
+        if let Some(px) = self.region_px {
+            if px < 16 {
+                return Err(format!(
+                    "region_px = {px}: expected at least 16 (samples per side of a judged window)"
+                ));
+            }
+        }
+        let mut tolerance =
+            (self.method == "adaptive" && !fixed_bound).then(|| ToleranceSettings {
+                tolerance: self.tolerance.unwrap_or_default(),
+                region_px: self
+                    .region_px
+                    .unwrap_or(crate::tolerance::DEFAULT_REGION_PX),
+            });
         let adaptive = match self.method.as_str() {
             "grid" => None,
             "adaptive" => {
@@ -219,8 +256,20 @@ impl MesherConfig {
             format,
             surface: self.surface,
             target: None,
+            tolerance: None,
         };
         if let Some(engine) = self.target {
+            // An engine's regular grid is sized by its budget, not by a tolerance.
+            if EngineProfile::for_engine(engine).method == TargetMethod::Grid {
+                if self.tolerance.is_some() {
+                    return Err(format!(
+                        "target = {:?} meshes a regular grid within its triangle budget; a \
+                         tolerance applies to the adaptive mesh (remove one of them)",
+                        engine.name()
+                    ));
+                }
+                tolerance = None;
+            }
             let profile = EngineProfile::with_budget(engine, self.max_triangles);
             settings.format = if profile.ascii {
                 StlFormat::Ascii
@@ -239,6 +288,7 @@ impl MesherConfig {
             }
             settings.target = Some(profile);
         }
+        settings.tolerance = tolerance;
         Ok(settings)
     }
 }
@@ -318,6 +368,13 @@ fn surface_summary(
         }
     }
     summary
+}
+
+/// Adds the tolerance search's report to an adaptive mesh's statistics ("tolerance").
+fn add_tolerance(summary: &mut serde_json::Value, report: Option<&crate::ToleranceReport>) {
+    if let (Some(o), Some(r)) = (summary.as_object_mut(), report) {
+        o.insert("tolerance".into(), json!(r));
+    }
 }
 
 /// What [`MeshJob::mesh_to_files`] wrote.
@@ -448,8 +505,15 @@ impl MeshJob {
             }
             (None, None) => (grid_solid(heights, &at, &self.settings.solid)?, None, None),
             (Some(p), None) => {
-                let m = mesh_height_field(heights, &at, p)?;
-                let summary = m.summary();
+                let (m, report) = match &self.settings.tolerance {
+                    Some(t) => {
+                        let (m, r) = mesh_to_tolerance(heights, &at, p, t)?;
+                        (m, Some(r))
+                    }
+                    None => (mesh_height_field(heights, &at, p)?, None),
+                };
+                let mut summary = m.summary();
+                add_tolerance(&mut summary, report.as_ref());
                 (m.mesh, Some(summary), Some(m.resampled_um))
             }
         };
@@ -531,7 +595,14 @@ impl MeshJob {
         };
         std::fs::create_dir_all(spill_dir)
             .map_err(|e| anyhow!("{}: cannot create the folder: {e}", spill_dir.display()))?;
-        let mut m = mesh_streaming(heights, &at, &params, spill_dir)?;
+        let (mut m, report) = match &self.settings.tolerance {
+            Some(t) => {
+                let (m, r) = mesh_streaming_to_tolerance(heights, &at, &params, t, spill_dir)?;
+                (m, Some(r))
+            }
+            None => (mesh_streaming(heights, &at, &params, spill_dir)?, None),
+        };
+        add_tolerance(&mut m.summary, report.as_ref());
         write_npy_abs_f64(
             resampled_npy,
             &m.resampled_um,
