@@ -40,6 +40,11 @@ pub struct Tolerance {
     pub sa_pct: f64,
     pub sq_pct: f64,
     pub sz_pct: f64,
+    /// Optional limit on the pointwise residual RMS, percent of the region's Sq ("res=20"):
+    /// Sa, Sq and Sz can match while the mesh departs point by point (the greedy insertion's
+    /// peaks and its smoothing cancel in the parameters); this asks for pointwise fidelity too.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub residual_pct: Option<f64>,
 }
 
 /// The default tolerance: Sa 1 %, Sq 1 %, Sz 3 % (the reference study's Table 6 reached
@@ -48,6 +53,7 @@ pub const DEFAULT_TOLERANCE: Tolerance = Tolerance {
     sa_pct: 1.0,
     sq_pct: 1.0,
     sz_pct: 3.0,
+    residual_pct: None,
 };
 
 impl Default for Tolerance {
@@ -87,9 +93,10 @@ impl FromStr for Tolerance {
                 "sa" => t.sa_pct = v,
                 "sq" => t.sq_pct = v,
                 "sz" => t.sz_pct = v,
+                "res" | "residual" => t.residual_pct = Some(v),
                 other => {
                     return Err(format!(
-                        "tolerance {s:?}: unknown parameter {other:?} (known: sa, sq, sz)"
+                        "tolerance {s:?}: unknown parameter {other:?} (known: sa, sq, sz, res)"
                     ))
                 }
             }
@@ -109,11 +116,12 @@ impl<'de> Deserialize<'de> for Tolerance {
                 sa: Option<f64>,
                 sq: Option<f64>,
                 sz: Option<f64>,
+                res: Option<f64>,
             },
         }
         let text = match Raw::deserialize(d)? {
             Raw::Text(s) => s,
-            Raw::Table { sa, sq, sz } => [("sa", sa), ("sq", sq), ("sz", sz)]
+            Raw::Table { sa, sq, sz, res } => [("sa", sa), ("sq", sq), ("sz", sz), ("res", res)]
                 .iter()
                 .filter_map(|(k, v)| v.map(|v| format!("{k}={v}")))
                 .collect::<Vec<_>>()
@@ -129,7 +137,11 @@ impl std::fmt::Display for Tolerance {
             f,
             "Sa {} %, Sq {} %, Sz {} %",
             self.sa_pct, self.sq_pct, self.sz_pct
-        )
+        )?;
+        match self.residual_pct {
+            Some(r) => write!(f, ", residual {r} % of Sq"),
+            None => Ok(()),
+        }
     }
 }
 
@@ -220,11 +232,15 @@ impl RegionFit {
     /// The first parameter beyond `share` of the tolerance: (name, deviation, limit).
     pub fn excess(&self, t: &Tolerance, share: f64) -> Option<(&'static str, f64, f64)> {
         let limits = [t.sa_pct, t.sq_pct, t.sz_pct];
+        let residual = t
+            .residual_pct
+            .map(|l| ("residual", self.residual_pct_of_sq, l * share));
         ["Sa", "Sq", "Sz"]
             .into_iter()
             .zip(self.deviation_pct)
             .zip(limits)
             .map(|((n, d), l)| (n, d, l * share))
+            .chain(residual)
             .filter(|(_, d, l)| !(d.abs() <= *l))
             .max_by(|a, b| (a.1.abs() / a.2).total_cmp(&(b.1.abs() / b.2)))
     }
@@ -514,7 +530,7 @@ pub fn search<M>(
             ),
         };
         format!(
-            "region {}: {param} {d:+.2} % beyond the tolerance of +/-{limit} %: {why}",
+            "region {}: {param} {d:+.2} % beyond the tolerance of {limit} %: {why}",
             worst.region
         )
     });
@@ -546,9 +562,24 @@ pub fn search<M>(
 /// The measured Sq the bounds are scaled by (about the least-squares plane, as
 /// [`crate::Epsilon::SqFraction`]) and the measured sample count.
 fn scale_of(heights: RasterView<'_, f32>, at: &ScanPlacement) -> (f64, usize) {
-    let sq = field_params(heights, at.pitch_x_um, at.pitch_y_um).map_or(0.0, |p| p.sq_um);
-    let measured = heights.values().iter().filter(|h| !h.is_nan()).count();
-    (sq, measured)
+    let levelled = field_params(heights, at.pitch_x_um, at.pitch_y_um).map_or(0.0, |p| p.sq_um);
+    let v: Vec<f64> = heights
+        .values()
+        .iter()
+        .filter(|h| !h.is_nan())
+        .map(|&h| f64::from(h))
+        .collect();
+    let mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let about_mean =
+        (v.iter().map(|h| (h - mean).powi(2)).sum::<f64>() / v.len().max(1) as f64).sqrt();
+    // A plane has no Sq about its plane but the f32 rounding: scale by its Sq about the mean
+    // (what the regions judge), which the first, coarsest mesh then meets.
+    let sq = if levelled > 1e-6 * about_mean {
+        levelled
+    } else {
+        about_mean
+    };
+    (sq, v.len())
 }
 
 /// The adaptive mesh of `heights` with the fewest triangles the search finds within the
@@ -629,6 +660,10 @@ mod tests {
         assert_eq!((t.sa_pct, t.sq_pct, t.sz_pct), (2.0, 1.0, 5.0));
         assert!("sa=0".parse::<Tolerance>().unwrap_err().contains("> 0"));
         assert!("sdr=1".parse::<Tolerance>().unwrap_err().contains("known"));
+        assert_eq!(
+            "res=20".parse::<Tolerance>().unwrap().residual_pct,
+            Some(20.0)
+        );
         assert!("sa"
             .parse::<Tolerance>()
             .unwrap_err()
