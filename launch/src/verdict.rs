@@ -285,6 +285,24 @@ fn model_line(run: &Value) -> Option<(String, bool)> {
     if let Some(r) = t["reason"].as_str() {
         let _ = write!(line, " ({r})");
     }
+    let spikes = run["stages"]
+        .as_object()
+        .and_then(|s| s.values().find_map(|st| st.get("outliers")))
+        .filter(|o| o.is_object());
+    if let Some(o) = spikes {
+        let n = o["count"].as_u64().unwrap_or(0);
+        let _ = write!(
+            line,
+            "; {} spike(s) (they add {:+.2} % to Sz), {}",
+            count(n),
+            f(&o["sz_effect_pct"]).unwrap_or(0.0),
+            if o["policy"] == "remove" {
+                "removed on request (outliers = \"remove\")"
+            } else {
+                "kept as measured"
+            }
+        );
+    }
     Some((line, failed))
 }
 
@@ -419,6 +437,31 @@ mod tests {
         assert!(t.contains("tile 1 (row 0 x col 1)"), "{t}");
         assert!(t.contains("tile_to_panorama"), "verbose shows latency: {t}");
         assert!(t.ends_with("verdict: FAIL (2 check(s) failed)"), "{t}");
+    }
+
+    #[test]
+    fn a_model_that_misses_its_tolerance_names_the_region_and_fails() {
+        let mut run = run_json(true, false);
+        run["stages"]["mesher"]["tolerance"] = json!({
+            "tolerance": { "sa_pct": 1.0, "sq_pct": 1.0, "sz_pct": 3.0 },
+            "met": false, "surface_triangles": 1200, "triangles_per_measured_px": 0.012,
+            "regions": 5,
+            "region_fits": [{ "region": "W1.2", "deviation_pct": [-1.5, -1.2, 0.0],
+                "residual_pct_of_sq": 31.0 }],
+            "reason": "region W1.2: Sa -1.50 % beyond the tolerance of 1 %: the next finer mesh needs 5000 surface triangles, beyond max_triangles = 2000",
+        });
+        run["stages"]["mesher"]["outliers"] =
+            json!({ "count": 3, "sz_effect_pct": 12.5, "policy": "keep" });
+        let v = verdict(&run, Path::new("/o"), false);
+        let t = &v.text;
+        assert_eq!(v.failures.len(), 1, "{t}");
+        assert!(t.contains("model       tolerance Sa 1 %, Sq 1 %, Sz 3 % per region: NOT met at 1 200 surface triangles"), "{t}");
+        assert!(t.contains("worst of 5 regions W1.2: Sa -1.50 %"), "{t}");
+        assert!(t.contains("beyond max_triangles = 2000"), "{t}");
+        assert!(
+            t.contains("3 spike(s) (they add +12.50 % to Sz), kept as measured"),
+            "{t}"
+        );
     }
 
     #[test]

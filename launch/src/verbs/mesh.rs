@@ -9,6 +9,7 @@ use clap::{Args, ValueEnum};
 use serde_json::json;
 use surfstream_core::frame::to_frame_heights;
 use surfstream_core::raster::{RasterView, Shape};
+use surfstream_mesher::outliers::{find_spikes, OutlierPolicy};
 use surfstream_mesher::{
     check_closed, grid_sheet_for, job::DEFAULT_EPSILON_SQ_FRACTION, mesh_height_field, DemEngine,
     EngineProfile, Epsilon, LengthUnit, MeshError, MeshKind, MeshParams, MissingSamples,
@@ -36,6 +37,10 @@ pub struct MeshArgs {
     /// Side of the windows the tolerance is judged in, samples (default 1024).
     #[arg(long, value_name = "PX")]
     pub region_px: Option<usize>,
+    /// Treat isolated spikes as not measured before meshing (ISO 25178-3 style outlier
+    /// removal; they are always reported in OUT.json, and kept by default).
+    #[arg(long)]
+    pub remove_spikes: bool,
     /// A fixed bound instead of a tolerance: the largest vertical distance between any
     /// measured sample and the mesh, um.
     #[arg(long, conflicts_with = "epsilon_sq")]
@@ -114,8 +119,35 @@ pub fn run(a: MeshArgs) -> Result<()> {
         })
         .with_context(|| format!("{}", a.file.display()));
     }
-    let (z_offset_um, heights_um) = to_frame_heights(&surface.heights_um);
-    let heights = RasterView::new(&heights_um, Shape::new(surface.height, surface.width))?;
+    let (z_offset_um, mut heights_um) = to_frame_heights(&surface.heights_um);
+    let shape = Shape::new(surface.height, surface.width);
+    let policy = if a.remove_spikes {
+        OutlierPolicy::Remove
+    } else {
+        OutlierPolicy::Keep
+    };
+    let (spikes, spike_at) = find_spikes(RasterView::new(&heights_um, shape)?, policy);
+    if a.remove_spikes {
+        for &k in &spike_at {
+            heights_um[k] = f32::NAN;
+        }
+    }
+    if spikes.count > 0 {
+        eprintln!(
+            "mesh: {} spike(s) (largest {:+.3} um at row {} col {}; they add {:+.2} % to Sz): {}",
+            spikes.count,
+            spikes.largest[0].excess_um,
+            spikes.largest[0].row,
+            spikes.largest[0].col,
+            spikes.sz_effect_pct,
+            if a.remove_spikes {
+                "removed (--remove-spikes)"
+            } else {
+                "kept as measured (--remove-spikes to remove them)"
+            }
+        );
+    }
+    let heights = RasterView::new(&heights_um, shape)?;
     let at = ScanPlacement::new(pitch_x_um, pitch_y_um).with_z_offset(z_offset_um);
     let profile = a
         .target
@@ -224,6 +256,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
     if let Some(r) = &tolerance {
         o.insert("tolerance".into(), json!(r));
     }
+    o.insert("outliers".into(), json!(spikes));
     surfstream_core::fsutil::write_atomic(&json_path, |w| {
         serde_json::to_writer_pretty(w, &report)
             .map_err(|e| anyhow!("{}: {e}", json_path.display()))

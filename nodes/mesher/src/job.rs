@@ -18,6 +18,7 @@ use surfstream_core::fsutil::write_atomic;
 use surfstream_core::raster::{Raster, RasterView, Shape};
 use surfstream_io::npy::{write_npy_abs_f64, write_npy_f64};
 
+use crate::outliers::{find_spikes, OutlierPolicy, OutlierReport};
 use crate::target::{block_values_on_grid, DemEngine, EngineProfile, TargetMethod};
 use crate::tolerance::{mesh_streaming_to_tolerance, mesh_to_tolerance, ToleranceSettings};
 use crate::{
@@ -62,6 +63,10 @@ pub struct MesherConfig {
     pub tolerance: Option<crate::Tolerance>,
     /// Side of the windows the tolerance is judged in, samples (default 1024).
     pub region_px: Option<usize>,
+    /// Spikes (isolated outliers, [`crate::outliers`]): "keep" (default: mesh what was
+    /// measured; they are reported) or "remove" (treated as not measured, and reported).
+    #[serde(default)]
+    pub outliers: OutlierPolicy,
     /// "solid" (default) or "sheet" (adaptive).
     #[serde(default)]
     pub kind: MeshKind,
@@ -178,6 +183,8 @@ pub struct MeshSettings {
     pub target: Option<EngineProfile>,
     /// The model from a tolerance (adaptive only; `None`: the fixed bound of `adaptive`).
     pub tolerance: Option<ToleranceSettings>,
+    /// Spikes kept (default) or removed before the adaptive mesh.
+    pub outliers: OutlierPolicy,
 }
 
 impl MesherConfig {
@@ -257,6 +264,7 @@ impl MesherConfig {
             surface: self.surface,
             target: None,
             tolerance: None,
+            outliers: self.outliers,
         };
         if let Some(engine) = self.target {
             // An engine's regular grid is sized by its budget, not by a tolerance.
@@ -377,6 +385,13 @@ fn add_tolerance(summary: &mut serde_json::Value, report: Option<&crate::Toleran
     }
 }
 
+/// Adds the spike report to an adaptive mesh's statistics ("outliers").
+fn add_outliers(summary: &mut Option<serde_json::Value>, report: Option<&OutlierReport>) {
+    if let (Some(o), Some(r)) = (summary.as_mut().and_then(|v| v.as_object_mut()), report) {
+        o.insert("outliers".into(), json!(r));
+    }
+}
+
 /// What [`MeshJob::mesh_to_files`] wrote.
 pub struct MeshFiles {
     /// The statistics for run.json (as [`MeshedSurface::summary`]).
@@ -486,8 +501,29 @@ impl MeshJob {
 
     /// Meshes the chosen surface (takes its final frames).
     pub fn mesh(&mut self) -> Result<MeshedSurface> {
-        let s = self.surface_to_mesh()?;
-        self.mesh_in_memory(&s)
+        let mut s = self.surface_to_mesh()?;
+        let spikes = self.spikes(&mut s);
+        let mut m = self.mesh_in_memory(&s)?;
+        add_outliers(&mut m.adaptive, spikes.as_ref());
+        Ok(m)
+    }
+
+    /// The spikes of the surface an adaptive mesh is made of (reported; removed, i.e. set to
+    /// not measured, when the settings ask for it).
+    fn spikes(&self, s: &mut HeightMap) -> Option<OutlierReport> {
+        if self.settings.adaptive.is_none() || self.grid_target().is_some() {
+            return None;
+        }
+        let h = s.header;
+        let shape = Shape::new(h.height as usize, h.width as usize);
+        let view = RasterView::new(&s.heights, shape).ok()?;
+        let (report, spikes) = find_spikes(view, self.settings.outliers);
+        if self.settings.outliers == OutlierPolicy::Remove {
+            for k in spikes {
+                s.heights[k] = f32::NAN;
+            }
+        }
+        Some(report)
     }
 
     fn mesh_in_memory(&self, s: &HeightMap) -> Result<MeshedSurface> {
@@ -542,7 +578,8 @@ impl MeshJob {
     /// adaptive mesh is streamed ([`crate::stream`]): its triangles go through a spill file
     /// beside `stl`, so the memory held is a few bytes per sample whatever the triangle count.
     pub fn mesh_to_files(&mut self, stl: &Path, resampled_npy: &Path) -> Result<MeshFiles> {
-        let s = self.surface_to_mesh()?;
+        let mut s = self.surface_to_mesh()?;
+        let spikes = self.spikes(&mut s);
         let (h, format) = (s.header, self.settings.format);
         let shape = Shape::new(h.height as usize, h.width as usize);
         let params = match (&self.settings.adaptive, self.grid_target()) {
@@ -603,6 +640,9 @@ impl MeshJob {
             None => (mesh_streaming(heights, &at, &params, spill_dir)?, None),
         };
         add_tolerance(&mut m.summary, report.as_ref());
+        if let (Some(o), Some(r)) = (m.summary.as_object_mut(), &spikes) {
+            o.insert("outliers".into(), json!(r));
+        }
         write_npy_abs_f64(
             resampled_npy,
             &m.resampled_um,

@@ -58,6 +58,7 @@ pub mod fidelity;
 pub mod field;
 mod geom;
 pub mod job;
+pub mod outliers;
 pub mod solid;
 pub mod stl;
 pub mod stream;

@@ -56,10 +56,12 @@ fn settings_and_wiring_are_checked() {
     let t = s.tolerance.unwrap();
     assert_eq!(t.tolerance, surfstream_mesher::tolerance::DEFAULT_TOLERANCE);
     // A fixed bound replaces the tolerance; the pooled map stays a choice.
-    let fixed = config("epsilon_sq_fraction = 0.05
-surface = \"pooled\"")
-        .settings()
-        .unwrap();
+    let fixed = config(
+        "epsilon_sq_fraction = 0.05
+surface = \"pooled\"",
+    )
+    .settings()
+    .unwrap();
     assert!(fixed.tolerance.is_none());
     assert_eq!(fixed.surface, SurfaceChoice::Pooled);
     let t = config("tolerance = \"sa=2,sz=4\"\nregion_px = 64")
@@ -67,7 +69,10 @@ surface = \"pooled\"")
         .unwrap()
         .tolerance
         .unwrap();
-    assert_eq!((t.tolerance.sa_pct, t.tolerance.sz_pct, t.region_px), (2.0, 4.0, 64));
+    assert_eq!(
+        (t.tolerance.sa_pct, t.tolerance.sz_pct, t.region_px),
+        (2.0, 4.0, 64)
+    );
     assert!(config("method = \"grid\"")
         .settings()
         .unwrap()
@@ -80,7 +85,10 @@ surface = \"pooled\"")
         ("epsilon_um = 0.1\ntolerance = \"sa=1\"", "not both"),
         ("method = \"grid\"\ntolerance = \"sa=1\"", "needs method"),
         ("region_px = 4", "region_px = 4"),
-        ("target = \"liggghts\"\ntolerance = \"sa=1\"", "regular grid"),
+        (
+            "target = \"liggghts\"\ntolerance = \"sa=1\"",
+            "regular grid",
+        ),
     ] {
         let e = config(bad).settings().unwrap_err();
         assert!(e.contains(says), "{bad}: {e}");
