@@ -34,7 +34,8 @@ pub struct MeshArgs {
     /// pointwise residual (% of Sq).
     #[arg(long, value_name = "sa=1,sq=1,sz=3", conflicts_with_all = ["epsilon_um", "epsilon_sq"])]
     pub tolerance: Option<surfstream_mesher::Tolerance>,
-    /// Side of the windows the tolerance is judged in, samples (default 1024).
+    /// Side of the windows the tolerance is judged in, samples (default: half the map's
+    /// shorter side, 64 to 1024).
     #[arg(long, value_name = "PX")]
     pub region_px: Option<usize>,
     /// Treat isolated spikes as not measured before meshing (ISO 25178-3 style outlier
@@ -196,9 +197,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
     } else {
         let settings = ToleranceSettings {
             tolerance: a.tolerance.unwrap_or_default(),
-            region_px: a
-                .region_px
-                .unwrap_or(surfstream_mesher::tolerance::DEFAULT_REGION_PX),
+            region_px: a.region_px,
         };
         let (m, r) = mesh_to_tolerance(heights, &at, &params, &settings)
             .with_context(|| format!("{}", a.file.display()))?;

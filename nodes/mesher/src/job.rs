@@ -61,7 +61,8 @@ pub struct MesherConfig {
     /// (adaptive; the default when neither epsilon is given: Sa 1 %, Sq 1 %, Sz 3 %). The
     /// mesher then finds the fewest triangles that meet it ([`crate::tolerance`]).
     pub tolerance: Option<crate::Tolerance>,
-    /// Side of the windows the tolerance is judged in, samples (default 1024).
+    /// Side of the windows the tolerance is judged in, samples (default: half the map's
+    /// shorter side, 64 to 1024).
     pub region_px: Option<usize>,
     /// Spikes (isolated outliers, [`crate::outliers`]): "keep" (default: mesh what was
     /// measured; they are reported) or "remove" (treated as not measured, and reported).
@@ -228,9 +229,7 @@ impl MesherConfig {
         let mut tolerance =
             (self.method == "adaptive" && !fixed_bound).then(|| ToleranceSettings {
                 tolerance: self.tolerance.unwrap_or_default(),
-                region_px: self
-                    .region_px
-                    .unwrap_or(crate::tolerance::DEFAULT_REGION_PX),
+                region_px: self.region_px,
             });
         let adaptive = match self.method.as_str() {
             "grid" => None,

@@ -6,7 +6,7 @@
 //!
 //! Rule: r = height - median of the measured 8-neighbours (at least 3 of them); a sample is a
 //! candidate when |r| > [`SPIKE_SIGMAS`] x 1.4826 x median |r| over the map (a robust sigma of
-//! the local residual); a spike is a candidate none of whose neighbours is a candidate of the
+//! the local residual) and it stands above (below) all its neighbours by half of that; a spike is a candidate none of whose neighbours is a candidate of the
 //! same sign (so a narrow scratch or ridge, whose samples are candidates side by side, is a
 //! feature, not a spike).
 
@@ -61,8 +61,9 @@ pub struct OutlierReport {
     pub removed: usize,
 }
 
-/// The median of the measured 8-neighbours of (r, c), when at least 3 are measured.
-fn neighbour_median(z: &[f32], rows: usize, cols: usize, r: usize, c: usize) -> Option<f32> {
+/// The median, lowest and highest of the measured 8-neighbours of (r, c), when at least 3 are
+/// measured.
+fn neighbours(z: &[f32], rows: usize, cols: usize, r: usize, c: usize) -> Option<(f32, f32, f32)> {
     let mut v = [0f32; 8];
     let mut n = 0;
     for dr in -1i64..=1 {
@@ -86,11 +87,12 @@ fn neighbour_median(z: &[f32], rows: usize, cols: usize, r: usize, c: usize) -> 
     }
     let v = &mut v[..n];
     v.sort_unstable_by(f32::total_cmp);
-    Some(if n % 2 == 1 {
+    let median = if n % 2 == 1 {
         v[n / 2]
     } else {
         0.5 * (v[n / 2 - 1] + v[n / 2])
-    })
+    };
+    Some((median, v[0], v[n - 1]))
 }
 
 /// Finds the spikes of `heights` (NaN = not measured): the report and the spikes' sample
@@ -101,19 +103,21 @@ pub fn find_spikes(
 ) -> (OutlierReport, Vec<usize>) {
     let (rows, cols) = (heights.rows(), heights.cols());
     let z = heights.values();
-    // Local residual of every measured sample (NaN where it has no median).
-    let residual: Vec<f32> = (0..rows)
+    // Local residual of every measured sample (NaN where it has no median), and how far it
+    // stands out beyond all of its neighbours (above the highest or below the lowest; 0 when
+    // it does not).
+    let (residual, beyond): (Vec<f32>, Vec<f32>) = (0..rows)
         .into_par_iter()
         .flat_map_iter(|r| {
             (0..cols).map(move |c| {
                 let h = z[r * cols + c];
-                match (h.is_nan(), neighbour_median(z, rows, cols, r, c)) {
-                    (false, Some(m)) => h - m,
-                    _ => f32::NAN,
+                match (h.is_nan(), neighbours(z, rows, cols, r, c)) {
+                    (false, Some((m, lo, hi))) => (h - m, (h - hi).max(lo - h).max(0.0)),
+                    _ => (f32::NAN, 0.0),
                 }
             })
         })
-        .collect();
+        .unzip();
     let mut abs: Vec<f32> = residual
         .iter()
         .filter(|r| !r.is_nan())
@@ -128,7 +132,8 @@ pub fn find_spikes(
     };
     drop(abs);
     let threshold_um = SPIKE_SIGMAS * sigma;
-    let candidate = |k: usize| -> i8 {
+    // The side on which a sample is beyond the threshold from its neighbours' median.
+    let side = |k: usize| -> i8 {
         let r = residual[k];
         if r.is_nan() || sigma <= 0.0 || f64::from(r.abs()) <= threshold_um {
             0
@@ -136,6 +141,15 @@ pub fn find_spikes(
             1
         } else {
             -1
+        }
+    };
+    // A candidate also stands beyond every neighbour by half the threshold: the edge of a
+    // scratch or a step stands out from the median, not from all.
+    let candidate = |k: usize| -> i8 {
+        if f64::from(beyond[k]) <= 0.5 * threshold_um {
+            0
+        } else {
+            side(k)
         }
     };
     let mut spikes: Vec<usize> = (0..rows * cols)
@@ -148,7 +162,7 @@ pub fn find_spikes(
             let (r, c) = (k / cols, k % cols);
             for rr in r.saturating_sub(1)..=(r + 1).min(rows - 1) {
                 for cc in c.saturating_sub(1)..=(c + 1).min(cols - 1) {
-                    if (rr, cc) != (r, c) && candidate(rr * cols + cc) == s {
+                    if (rr, cc) != (r, c) && side(rr * cols + cc) == s {
                         return false;
                     }
                 }
@@ -194,8 +208,8 @@ pub fn find_spikes(
     let report = OutlierReport {
         rule: format!(
             "isolated sample beyond {SPIKE_SIGMAS} robust sigmas (1.4826 x median |r|) of r = \
-             height - median of its measured 8-neighbours, with no neighbour beyond it on the \
-             same side"
+             height - median of its measured 8-neighbours, beyond all of them by half of that, \
+             with no neighbour beyond it on the same side"
         ),
         threshold_um,
         count: spikes.len(),

@@ -66,8 +66,16 @@ impl Default for Tolerance {
 /// the mesher's windows).
 pub const TARGET_SHARE: f64 = 0.9;
 
-/// Default side of the judged windows, samples (a common profiler field, the demo's tile).
+/// Largest default side of the judged windows, samples (a common profiler field, the demo's
+/// tile).
 pub const DEFAULT_REGION_PX: usize = 1024;
+
+/// The default window side for a map: half its shorter side, between 64 and
+/// [`DEFAULT_REGION_PX`] (a scan of n x n tiles has tiles of about 1 / n of its side, so small
+/// maps get windows near a tile's size).
+pub fn default_region_px(shape: Shape) -> usize {
+    (shape.rows.min(shape.cols) / 2).clamp(64, DEFAULT_REGION_PX)
+}
 
 impl FromStr for Tolerance {
     type Err = String;
@@ -149,15 +157,15 @@ impl std::fmt::Display for Tolerance {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ToleranceSettings {
     pub tolerance: Tolerance,
-    /// Side of the judged windows, samples.
-    pub region_px: usize,
+    /// Side of the judged windows, samples (`None`: [`default_region_px`] of the map).
+    pub region_px: Option<usize>,
 }
 
 impl Default for ToleranceSettings {
     fn default() -> Self {
         Self {
             tolerance: DEFAULT_TOLERANCE,
-            region_px: DEFAULT_REGION_PX,
+            region_px: None,
         }
     }
 }
@@ -241,7 +249,7 @@ impl RegionFit {
             .zip(limits)
             .map(|((n, d), l)| (n, d, l * share))
             .chain(residual)
-            .filter(|(_, d, l)| !(d.abs() <= *l))
+            .filter(|(_, d, l)| d.is_nan() || d.abs() > *l)
             .max_by(|a, b| (a.1.abs() / a.2).total_cmp(&(b.1.abs() / b.2)))
     }
 
@@ -415,6 +423,7 @@ pub fn search<M>(
         )));
     }
     let t = settings.tolerance;
+    let region_px = settings.region_px.unwrap_or(DEFAULT_REGION_PX);
     let budget = max_triangles.unwrap_or(usize::MAX);
     let mut curve: Vec<(CurvePoint, Vec<RegionFit>)> = Vec::new();
     // (index in curve, mesh) of the best passing and of the finest within the budget.
@@ -545,7 +554,7 @@ pub fn search<M>(
         ToleranceReport {
             tolerance: t,
             target_share: TARGET_SHARE,
-            region_px: settings.region_px,
+            region_px,
             regions,
             measured_px,
             met,
@@ -582,6 +591,19 @@ fn scale_of(heights: RasterView<'_, f32>, at: &ScanPlacement) -> (f64, usize) {
     (sq, v.len())
 }
 
+/// The settings with the window side resolved for `shape`, and the windows.
+fn settings_for(s: &ToleranceSettings, shape: Shape) -> (ToleranceSettings, Vec<Window>) {
+    let px = s.region_px.unwrap_or_else(|| default_region_px(shape));
+    let regions = windows(shape, px);
+    (
+        ToleranceSettings {
+            tolerance: s.tolerance,
+            region_px: Some(px),
+        },
+        regions,
+    )
+}
+
 /// The adaptive mesh of `heights` with the fewest triangles the search finds within the
 /// tolerance (in memory; `params.epsilon` is replaced by the search's bounds and
 /// `params.max_triangles` bounds the search, not the insertion).
@@ -593,7 +615,8 @@ pub fn mesh_to_tolerance(
 ) -> Result<(AdaptiveMesh, ToleranceReport)> {
     validate(heights, at)?;
     let (sq, measured_px) = scale_of(heights, at);
-    let regions = windows(heights.shape(), settings.region_px);
+    let (settings, regions) = settings_for(settings, heights.shape());
+    let settings = &settings;
     let mut p = params.clone();
     p.max_triangles = None;
     search(
@@ -627,7 +650,8 @@ pub fn mesh_streaming_to_tolerance(
 ) -> Result<(StreamedMesh, ToleranceReport)> {
     validate(heights, at)?;
     let (sq, measured_px) = scale_of(heights, at);
-    let regions = windows(heights.shape(), settings.region_px);
+    let (settings, regions) = settings_for(settings, heights.shape());
+    let settings = &settings;
     let mut p = params.clone();
     p.max_triangles = None;
     search(

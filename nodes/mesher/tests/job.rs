@@ -71,7 +71,7 @@ surface = \"pooled\"",
         .unwrap();
     assert_eq!(
         (t.tolerance.sa_pct, t.tolerance.sz_pct, t.region_px),
-        (2.0, 4.0, 64)
+        (2.0, 4.0, Some(64))
     );
     assert!(config("method = \"grid\"")
         .settings()

@@ -56,7 +56,7 @@ fn params() -> MeshParams {
 fn settings(t: &str) -> ToleranceSettings {
     ToleranceSettings {
         tolerance: t.parse().unwrap(),
-        region_px: 48,
+        region_px: Some(48),
     }
 }
 
