@@ -464,9 +464,11 @@ pub fn search<M>(
     let mut f = COARSEST_SQ_FRACTION;
     let mut last_fail: Option<f64> = None;
     let mut first_pass: Option<f64> = None;
+    let mut over_at: Option<f64> = None;
     while f >= FINEST_SQ_FRACTION {
         let (pass, over, mesh) = run(f, &mut curve)?;
         if over {
+            over_at = Some(f);
             break;
         }
         let k = curve.len() - 1;
@@ -498,6 +500,25 @@ pub fn search<M>(
             }
         }
     }
+    // The budget stopped the search before a pass: use the budget, two geometric bisections
+    // between the last bound within it and the first beyond it.
+    if let (None, Some(mut lo), Some(mut hi)) = (first_pass, over_at, last_fail) {
+        for _ in 0..2 {
+            let mid = (lo * hi).sqrt();
+            let (pass, over, mesh) = run(mid, &mut curve)?;
+            let k = curve.len() - 1;
+            if over {
+                lo = mid;
+                continue;
+            }
+            hi = mid;
+            if pass {
+                best = mesh.map(|m| (k, m));
+                break;
+            }
+            fallback = mesh.map(|m| (k, m));
+        }
+    }
     // A few finer meshes for the curve when the search stopped early.
     if let Some(mut g) = first_pass {
         while curve.len() < MIN_CURVE_POINTS && g * STEP >= FINEST_SQ_FRACTION {
@@ -526,7 +547,10 @@ pub fn search<M>(
     let reason = (!met).then(|| {
         let worst = &fits[0];
         let (param, d, limit) = worst.excess(&t, 1.0).unwrap_or(("Sa", f64::NAN, t.sa_pct));
-        let finer_over = curve.iter().find(|c| c.0.over_budget);
+        let finer_over = curve
+            .iter()
+            .filter(|c| c.0.over_budget)
+            .min_by_key(|c| c.0.surface_triangles);
         let why = match finer_over {
             Some(c) => format!(
                 "the next finer mesh needs {} surface triangles, beyond max_triangles = {budget}",
