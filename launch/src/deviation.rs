@@ -6,11 +6,16 @@
 //! grow with the scan (issue 17).
 //!
 //! Measured surface: the fused panorama (`panorama.npy`). Model stages, each judged on its own
-//! grid: "datum+roughness" (`datum.npy` + `roughness.npy`, the panorama grid), "pooled"
-//! (`pooled.npy` at the pooled pitch) and "mesh" (`mesh_resampled.npy`, the mesher's STL
-//! surface re-sampled on the grid it meshed, at that grid's pitch). run.json says which grid
-//! (`grid`: rows x cols, cell size in panorama pixels, pitch). Regions: S1..Sn = each tile's
-//! footprint in the panorama (from its final position), and "panorama" = the whole map.
+//! grid: "mesh" (`mesh_resampled.npy`, the mesher's STL surface re-sampled on the grid it
+//! meshed: the panorama's by default, so at every measured point), judged at the model's
+//! tolerance when the mesher made it from one; "pooled" (`pooled.npy` at the pooled pitch),
+//! judged only when the STL was made from it; and "roughness (mesh - datum)": the roughness the
+//! simulator sees against the measured `roughness.npy` (it replaced "datum+roughness", which
+//! is the panorama by construction and could not fail). Stages on the panorama grid also get
+//! the pointwise residual RMS per region in percent of Sq, and every stage its worst region.
+//! run.json says which grid (`grid`: rows x cols, cell size in panorama pixels, pitch).
+//! Regions: S1..Sn = each tile's footprint in the panorama (from its final position), and
+//! "panorama" = the whole map.
 //!
 //! The threshold defaults to [`DEFAULT_THRESHOLD_PCT`]; a graph file changes it with a
 //! `[deviation]` table (`threshold_percent = 2`), the command line with
@@ -24,7 +29,9 @@ use std::path::Path;
 
 use anyhow::{anyhow, bail, Context, Result};
 use serde_json::{json, Map, Value};
-use surfstream_core::deviation::{Region, RowSource, StageVerdict, StreamedStage, Table6, JUDGED};
+use surfstream_core::deviation::{
+    residual_pct_of_sq, Region, RowSource, StageVerdict, StreamedStage, Table6, JUDGED,
+};
 use surfstream_core::metrology::Params;
 use surfstream_core::raster::Shape;
 use surfstream_io::formats::{x3p, Metadata, Surface};
@@ -133,27 +140,6 @@ impl RowSource for NpySource {
     }
 }
 
-/// datum + roughness, row by row (the model on the panorama grid).
-struct SumSource {
-    a: NpySource,
-    b: NpySource,
-    scratch: Vec<f64>,
-}
-
-impl RowSource for SumSource {
-    fn shape(&self) -> Shape {
-        self.a.shape()
-    }
-    fn read_rows(&mut self, row0: usize, rows: usize, out: &mut Vec<f64>) -> Result<(), String> {
-        self.a.read_rows(row0, rows, out)?;
-        self.b.read_rows(row0, rows, &mut self.scratch)?;
-        out.iter_mut()
-            .zip(&self.scratch)
-            .for_each(|(a, b)| *a += *b);
-        Ok(())
-    }
-}
-
 /// The panorama's geometry (origin, pitch) as the fusion node reported it.
 struct Geometry {
     origin_um: (f64, f64),
@@ -210,34 +196,75 @@ fn regions(run: &Value, geometry: &Geometry, panorama: Shape) -> Vec<Region> {
     out
 }
 
-/// The model stages the out dir holds, each on its own grid, read by rows.
+/// mesh_resampled - datum, row by row: the roughness the simulator sees (the model on the
+/// panorama grid minus the datum the separation found).
+struct DiffSource {
+    a: NpySource,
+    b: NpySource,
+    scratch: Vec<f64>,
+}
+
+impl RowSource for DiffSource {
+    fn shape(&self) -> Shape {
+        self.a.shape()
+    }
+    fn read_rows(&mut self, row0: usize, rows: usize, out: &mut Vec<f64>) -> Result<(), String> {
+        self.a.read_rows(row0, rows, out)?;
+        self.b.read_rows(row0, rows, &mut self.scratch)?;
+        out.iter_mut()
+            .zip(&self.scratch)
+            .for_each(|(a, b)| *a -= *b);
+        Ok(())
+    }
+}
+
+/// What the mesher reported in run.json: the surface it meshed and its tolerance (percent:
+/// Sa, Sq, Sz), when it made the model from one.
+struct MeshInfo {
+    surface: Option<String>,
+    tolerance: Option<[f64; 3]>,
+}
+
+fn mesh_info(run: &Value) -> MeshInfo {
+    let m = run["stages"].as_object().and_then(|s| {
+        s.values()
+            .find(|st| st.get("surface").is_some() && st.get("triangles").is_some())
+    });
+    let t = m.map(|m| &m["tolerance"]["tolerance"]);
+    let tolerance = t.and_then(|t| {
+        Some([
+            t["sa_pct"].as_f64()?,
+            t["sq_pct"].as_f64()?,
+            t["sz_pct"].as_f64()?,
+        ])
+    });
+    MeshInfo {
+        surface: m.and_then(|m| m["surface"].as_str().map(str::to_owned)),
+        tolerance,
+    }
+}
+
+/// How a stage is judged: the file it is compared with, its limits (Sa, Sq, Sz, percent),
+/// whether it counts in the verdict and why not.
+struct StageRule {
+    measured: &'static str,
+    limits: [f64; 3],
+    judged: bool,
+    note: &'static str,
+}
+
+/// The mesh stage: the model the STL carries, on the panorama grid (at every measured point)
+/// when the panorama was meshed.
+const MESH_STAGE: &str = "mesh";
+/// The roughness the simulator sees (mesh - datum) against the measured roughness.
+const DEM_ROUGHNESS_STAGE: &str = "roughness (mesh - datum)";
+
+/// The model stages the out dir holds that are judged against the panorama, each on its own
+/// grid, read by rows: the pooled map and the mesher's surface re-sampled on the grid it meshed
+/// (the panorama's, at every measured point; or the pooled map's).
 fn model_stages(out: &Path, panorama: Shape) -> Result<Vec<StreamedStage<'static>>> {
     let mut stages = Vec::new();
-    let datum = out.join("datum.npy");
-    let rough = out.join("roughness.npy");
-    if datum.exists() && rough.exists() {
-        let d = NpySource::open(&datum)?;
-        let r = NpySource::open(&rough)?;
-        if d.shape() != panorama || r.shape() != panorama {
-            bail!(
-                "datum {} / roughness {} differ from the panorama {panorama}",
-                d.shape(),
-                r.shape()
-            );
-        }
-        let sum = SumSource {
-            a: d,
-            b: r,
-            scratch: Vec::new(),
-        };
-        stages.push(StreamedStage::on_measured_grid(
-            "datum+roughness",
-            Box::new(sum),
-        ));
-    }
-    // The pooled map, and the mesher's surface re-sampled on its grid (the pooled map's, the
-    // panorama's...): the model one and two stages further, each at its own pitch.
-    for (name, file) in [("pooled", "pooled.npy"), ("mesh", "mesh_resampled.npy")] {
+    for (name, file) in [("pooled", "pooled.npy"), (MESH_STAGE, "mesh_resampled.npy")] {
         let path = out.join(file);
         if path.exists() {
             let source = NpySource::open(&path)?;
@@ -254,24 +281,56 @@ fn params_json(p: &Option<Params>) -> Value {
     }
 }
 
-/// run.json's layout of one stage's verdict; `pitch_um` is the measured (panorama) pitch.
-fn stage_json(s: &StageVerdict, pitch_um: (f64, f64)) -> Value {
+/// run.json's layout of one stage's verdict; `pitch_um` is the measured (panorama) pitch,
+/// `residuals` the pointwise residual per region (percent of Sq; stages on the measured grid).
+fn stage_json(
+    s: &StageVerdict,
+    pitch_um: (f64, f64),
+    rule: &StageRule,
+    residuals: &[Option<f64>],
+) -> (Value, bool) {
+    let mut worst: Option<(String, f64)> = None;
+    let mut stage_pass = true;
     let regions: Map<String, Value> = s
         .regions
         .iter()
-        .map(|r| {
+        .enumerate()
+        .map(|(k, r)| {
             let deviation: Map<String, Value> = r
                 .deviation_pct
                 .iter()
                 .map(|(name, d)| (name.to_string(), d.map_or(Value::Null, |d| json!(d))))
                 .collect();
+            // Judged at the stage's limits (Sa, Sq, Sz).
+            let mut ratio = 0.0f64;
+            let mut pass = r.measured.is_some() && r.model.is_some();
+            for (name, limit) in JUDGED.iter().zip(rule.limits) {
+                let d = r
+                    .deviation_pct
+                    .iter()
+                    .find(|(n, _)| n == name)
+                    .and_then(|(_, d)| *d);
+                match d {
+                    Some(d) => {
+                        ratio = ratio.max(d.abs() / limit);
+                        pass &= d.abs() <= limit;
+                    }
+                    None => pass = false,
+                }
+            }
+            if worst.as_ref().is_none_or(|w| ratio > w.1) {
+                worst = Some((r.region.clone(), ratio));
+            }
+            stage_pass &= pass;
+            let residual = residuals.get(k).copied().flatten();
             (
                 r.region.clone(),
                 json!({
                     "measured": params_json(&r.measured),
                     "model": params_json(&r.model),
                     "deviation_pct": deviation,
-                    "pass": r.pass,
+                    "residual_rms_pct_of_sq": residual,
+                    "pass": pass,
                 }),
             )
         })
@@ -288,7 +347,25 @@ fn stage_json(s: &StageVerdict, pitch_um: (f64, f64)) -> Value {
             format!("own grid, {0} x {0} px cells", s.cell_px)
         },
     });
-    json!({ "regions": regions, "pass": s.pass, "grid": grid })
+    let worst_residual = residuals
+        .iter()
+        .flatten()
+        .copied()
+        .fold(None, |a: Option<f64>, r| Some(a.map_or(r, |a| a.max(r))));
+    (
+        json!({
+            "regions": regions,
+            "pass": stage_pass,
+            "judged": rule.judged,
+            "note": rule.note,
+            "measured": rule.measured,
+            "limits_pct": { "Sa": rule.limits[0], "Sq": rule.limits[1], "Sz": rule.limits[2] },
+            "worst_region": worst.map(|w| w.0),
+            "worst_residual_rms_pct_of_sq": worst_residual,
+            "grid": grid,
+        }),
+        stage_pass || !rule.judged,
+    )
 }
 
 /// Writes the panorama as X3P, read from panorama.npy a band of rows at a time (the map is
@@ -322,6 +399,7 @@ fn evaluate(
 ) -> Result<Value> {
     let shape = pano.shape();
     let regions = regions(run, geometry, shape);
+    let info = mesh_info(run);
     let mut stages = model_stages(out, shape)?;
     let table = Table6::judge_streamed(
         pano,
@@ -330,19 +408,92 @@ fn evaluate(
         &regions,
         threshold_pct,
     )?;
-    let stages: Map<String, Value> = table
-        .stages
-        .iter()
-        .map(|s| (s.stage.clone(), stage_json(s, geometry.pitch_um)))
-        .collect();
+    // The mesh is judged at the model's tolerance when it was made from one.
+    let model_limits = info.tolerance.unwrap_or([threshold_pct; 3]);
+    let meshed_pooled = info.surface.as_deref() == Some("pooled");
+    let mesh_path = out.join("mesh_resampled.npy");
+    let mut out_stages = Map::new();
+    let mut pass = true;
+    for s in &table.stages {
+        let rule = match s.stage.as_str() {
+            MESH_STAGE => StageRule {
+                measured: "panorama.npy",
+                limits: model_limits,
+                judged: true,
+                note: "the STL's surface interpolated on the grid it meshed",
+            },
+            _ => StageRule {
+                measured: "panorama.npy",
+                limits: [threshold_pct; 3],
+                judged: meshed_pooled,
+                note: if meshed_pooled {
+                    "the pooled map the STL was made from"
+                } else {
+                    "reported, not judged: the STL was not made from the pooled map"
+                },
+            },
+        };
+        let residuals = if s.cell_px == 1 && s.stage == MESH_STAGE {
+            let mut m = NpySource::open(&mesh_path)?;
+            residual_pct_of_sq(pano, &mut m, &regions)?
+        } else {
+            Vec::new()
+        };
+        let (v, ok) = stage_json(s, geometry.pitch_um, &rule, &residuals);
+        pass &= ok;
+        out_stages.insert(s.stage.clone(), v);
+    }
+    // The roughness the simulator sees: mesh - datum against the measured roughness, on the
+    // panorama grid. Unlike datum + roughness (the panorama by construction) it can fail.
+    let (datum, rough) = (out.join("datum.npy"), out.join("roughness.npy"));
+    if datum.exists() && rough.exists() && mesh_path.exists() {
+        let mut measured = NpySource::open(&rough)?;
+        let a = NpySource::open(&mesh_path)?;
+        if a.shape() == shape && measured.shape() == shape {
+            let diff = DiffSource {
+                a,
+                b: NpySource::open(&datum)?,
+                scratch: Vec::new(),
+            };
+            let mut st = vec![StreamedStage::on_measured_grid(
+                DEM_ROUGHNESS_STAGE,
+                Box::new(diff),
+            )];
+            let t = Table6::judge_streamed(
+                &mut measured,
+                geometry.pitch_um,
+                &mut st,
+                &regions,
+                threshold_pct,
+            )?;
+            let mut model = DiffSource {
+                a: NpySource::open(&mesh_path)?,
+                b: NpySource::open(&datum)?,
+                scratch: Vec::new(),
+            };
+            let residuals = residual_pct_of_sq(&mut measured, &mut model, &regions)?;
+            let rule = StageRule {
+                measured: "roughness.npy",
+                limits: [threshold_pct; 3],
+                judged: true,
+                note: "the roughness the simulator sees: mesh minus datum against the measured roughness",
+            };
+            for s in &t.stages {
+                let (v, ok) = stage_json(s, geometry.pitch_um, &rule, &residuals);
+                pass &= ok;
+                out_stages.insert(s.stage.clone(), v);
+            }
+        }
+    }
     Ok(json!({
             "measured": "panorama.npy",
             "threshold_pct": threshold_pct,
+            "model_tolerance_pct": info.tolerance.map(|t| json!({"Sa": t[0], "Sq": t[1], "Sz": t[2]})),
             "judged": JUDGED,
-            "conventions": "ISO 25178 over points valid in both maps, mean removed, no levelling; each stage on its own grid at its own pitch (grid); deviation = (model - measured) / measured * 100; pass = |deviation| <= threshold for Sa, Sq, Sz",
+            "conventions": "ISO 25178 over points valid in both maps, mean removed, no levelling; each stage on its own grid at its own pitch (grid); deviation = (model - measured) / measured * 100; the mesh passes when |deviation| <= the model's tolerance (else the threshold) for Sa, Sq, Sz, the other stages at the threshold; residual_rms_pct_of_sq = RMS of the pointwise difference (means removed) / measured Sq * 100; a stage with judged = false is reported, not counted",
             "regions": regions.iter().map(|r| json!({"name": r.name, "row0": r.row0, "col0": r.col0, "rows": r.rows, "cols": r.cols})).collect::<Vec<_>>(),
-            "stages": stages,
-            "pass": table.pass,
+            "stages": out_stages,
+            "pass": pass,
     }))
 }
 

@@ -55,6 +55,11 @@ struct GraphArgs {
     /// files are deleted). Never needed for a new folder or an earlier run's folder.
     #[arg(long)]
     force: bool,
+    /// The model's tolerance per region, percent, e.g. sa=1,sq=1,sz=3 (add res=20 to bound the
+    /// pointwise residual, % of Sq): the mesher makes the fewest triangles that meet it
+    /// (docs/model.md). Sets `tolerance` on every mesher node.
+    #[arg(long, value_name = "sa=1,sq=1,sz=3")]
+    tolerance: Option<String>,
     #[command(flatten)]
     verdict: VerdictArgs,
 }
@@ -89,6 +94,9 @@ enum Command {
         /// the Table-6 threshold: --set deviation.threshold_percent=2.
         #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
         set: Vec<String>,
+        /// The model's tolerance per region, percent, e.g. sa=1,sq=1,sz=3 (docs/model.md).
+        #[arg(long, value_name = "sa=1,sq=1,sz=3")]
+        tolerance: Option<String>,
         /// Registration method of the matcher: auto | phase | harris | sift (auto = the best
         /// available, phase correlation; the same as `--set matcher.method=...`).
         #[arg(long, value_name = "METHOD")]
@@ -201,6 +209,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             scan,
             out,
             set,
+            tolerance,
             method,
             compare_fusion,
             grid,
@@ -244,7 +253,10 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             if compare_fusion {
                 return done(compare_fusion::run(&scan, &out, &set, method.as_deref()));
             }
-            let (graph, deviation) = stitch_graph(&scan, out.clone(), &set, method.as_deref())?;
+            let (mut graph, deviation) = stitch_graph(&scan, out.clone(), &set, method.as_deref())?;
+            if let Some(t) = &tolerance {
+                apply_tolerance(&mut graph, t, "stitch pipeline")?;
+            }
             claim.inputs.extend(outdir::inputs_of(&graph, &out));
             launcher::run_in_process(graph, &scan, deviation, &claim)?;
             tell_verdict(&out, verdict, started)
@@ -406,9 +418,33 @@ fn load_graph(a: &GraphArgs) -> Result<(GraphFile, deviation::Settings)> {
     if let Some(out) = &a.out {
         graph.graph.out_dir = out.clone();
     }
+    if let Some(t) = &a.tolerance {
+        apply_tolerance(&mut graph, t, &origin)?;
+    }
     graph.validate(&a.graph.display().to_string(), &registry)?;
     check_node_params(&graph, &origin)?;
     Ok((graph, settings))
+}
+
+/// `--tolerance`: checked, then set on every mesher node of the graph.
+fn apply_tolerance(graph: &mut GraphFile, tolerance: &str, origin: &str) -> Result<()> {
+    tolerance
+        .parse::<surfstream_mesher::Tolerance>()
+        .map_err(|e| anyhow!("--tolerance: {e}"))?;
+    let meshers: Vec<String> = graph
+        .nodes
+        .iter()
+        .filter(|n| n.node == "mesher")
+        .map(|n| n.id.clone())
+        .collect();
+    if meshers.is_empty() {
+        bail!("--tolerance: {origin} has no mesher node");
+    }
+    for id in meshers {
+        let value = toml::Value::String(tolerance.to_string());
+        graph.apply_override(&format!("{id}.tolerance={value}"))?;
+    }
+    check_node_params(graph, origin)
 }
 
 /// Every node's parameters checked the way the node will check them, before anything is
@@ -649,7 +685,7 @@ inputs = {{ panorama = "fusion/panorama" }}
 [[node]]
 id = "mesher"
 node = "mesher"
-inputs = {{ surface = "wavelet/pooled" }}
+inputs = {{ surface = "fusion/panorama" }}
 "#,
         path = path_str
     );

@@ -106,6 +106,12 @@ pub fn verdict(run: &Value, out: &Path, verbose: bool) -> Verdict {
     if let Some(line) = mesh_line(run) {
         let _ = writeln!(s, "  mesh        {line}");
     }
+    if let Some((line, failed)) = model_line(run) {
+        let _ = writeln!(s, "  model       {line}");
+        if failed {
+            failures.push(format!("model: {line}"));
+        }
+    }
     match deviation_line(&run["deviation"]) {
         Some((line, failed)) => {
             let _ = writeln!(s, "  deviation   {line}");
@@ -230,7 +236,8 @@ fn deviation_line(dev: &Value) -> Option<(String, bool)> {
         .unwrap_or_else(|| vec!["Sa", "Sq", "Sz"]);
     let mut reasons = Vec::new();
     for (name, st) in stages {
-        if st["pass"] != false {
+        // A stage reported but not judged (the pooled map when the STL is not made from it).
+        if st["pass"] != false || st["judged"] == false {
             continue;
         }
         let Some(regions) = st["regions"].as_object() else {
@@ -249,26 +256,93 @@ fn deviation_line(dev: &Value) -> Option<(String, bool)> {
             })
             .max_by(|a, b| a.2.abs().total_cmp(&b.2.abs()));
         match worst {
-            Some((region, param, d)) => reasons.push(format!(
-                "{name}: {param} {d:+.2} % in {region}, beyond the limit of +/-{limit:.2} % \
-                 ({failing} of {} regions fail)",
-                regions.len()
-            )),
+            Some((region, param, d)) => {
+                let limit = f(&st["limits_pct"][param]).unwrap_or(limit);
+                reasons.push(format!(
+                    "{name}: {param} {d:+.2} % in {region}, beyond the limit of +/-{limit:.2} % \
+                     ({failing} of {} regions fail)",
+                    regions.len()
+                ))
+            }
             None => reasons.push(format!("{name} fails")),
         }
     }
     let pass = dev["pass"] != false && reasons.is_empty();
     let judged_text = judged.join(", ");
+    let mesh_limits = &stages.get("mesh").map(|m| &m["limits_pct"]);
+    let limits_text = match mesh_limits {
+        Some(l) if l.is_object() && f(&dev["model_tolerance_pct"]["Sa"]).is_some() => format!(
+            "the mesh within its tolerance (Sa {} %, Sq {} %, Sz {} %), the other judged stages within +/-{limit:.2} %",
+            l["Sa"], l["Sq"], l["Sz"]
+        ),
+        _ => format!("every judged model stage within +/-{limit:.2} %"),
+    };
     Some(if pass {
         (
             format!(
-                "PASS: every model stage within +/-{limit:.2} % of the measurement on {judged_text} (Table 6)"
+                "PASS: {limits_text} of the measurement on {judged_text}, at the measured points (Table 6)"
             ),
             false,
         )
     } else {
         (format!("FAIL: {}", reasons.join("; ")), true)
     })
+}
+
+/// The model made from a tolerance: triangles, the worst region at the measured points and,
+/// when the tolerance is not met, which region and why.
+fn model_line(run: &Value) -> Option<(String, bool)> {
+    let t = run["stages"]
+        .as_object()?
+        .values()
+        .find_map(|st| st.get("tolerance").filter(|t| t.is_object()))?;
+    let tol = &t["tolerance"];
+    let pct = |v: &Value| f(v).map_or("?".to_string(), |v| format!("{v}"));
+    let mut line = format!(
+        "tolerance Sa {} %, Sq {} %, Sz {} % per region: {} at {} surface triangles ({:.3} per measured px)",
+        pct(&tol["sa_pct"]),
+        pct(&tol["sq_pct"]),
+        pct(&tol["sz_pct"]),
+        if t["met"] == true { "met" } else { "NOT met" },
+        count(t["surface_triangles"].as_u64().unwrap_or(0)),
+        f(&t["triangles_per_measured_px"]).unwrap_or(f64::NAN),
+    );
+    if let Some(w) = t["region_fits"].as_array().and_then(|r| r.first()) {
+        let d = |k: usize| f(&w["deviation_pct"][k]).unwrap_or(f64::NAN);
+        let _ = write!(
+            line,
+            "; worst of {} regions {}: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %, residual {:.1} % of Sq",
+            t["regions"],
+            w["region"].as_str().unwrap_or("?"),
+            d(0),
+            d(1),
+            d(2),
+            f(&w["residual_pct_of_sq"]).unwrap_or(f64::NAN),
+        );
+    }
+    let failed = t["met"] != true;
+    if let Some(r) = t["reason"].as_str() {
+        let _ = write!(line, " ({r})");
+    }
+    let spikes = run["stages"]
+        .as_object()
+        .and_then(|s| s.values().find_map(|st| st.get("outliers")))
+        .filter(|o| o.is_object());
+    if let Some(o) = spikes {
+        let n = o["count"].as_u64().unwrap_or(0);
+        let _ = write!(
+            line,
+            "; {} spike(s) (they add {:+.2} % to Sz), {}",
+            count(n),
+            f(&o["sz_effect_pct"]).unwrap_or(0.0),
+            if o["policy"] == "remove" {
+                "removed on request (outliers = \"remove\")"
+            } else {
+                "kept as measured"
+            }
+        );
+    }
+    Some((line, failed))
 }
 
 fn outputs_line(run: &Value, out: &Path) -> String {
@@ -409,6 +483,31 @@ mod tests {
         );
         assert!(t.contains("tile_to_panorama"), "verbose shows latency: {t}");
         assert!(t.ends_with("verdict: FAIL (2 check(s) failed)"), "{t}");
+    }
+
+    #[test]
+    fn a_model_that_misses_its_tolerance_names_the_region_and_fails() {
+        let mut run = run_json(true, false);
+        run["stages"]["mesher"]["tolerance"] = json!({
+            "tolerance": { "sa_pct": 1.0, "sq_pct": 1.0, "sz_pct": 3.0 },
+            "met": false, "surface_triangles": 1200, "triangles_per_measured_px": 0.012,
+            "regions": 5,
+            "region_fits": [{ "region": "W1.2", "deviation_pct": [-1.5, -1.2, 0.0],
+                "residual_pct_of_sq": 31.0 }],
+            "reason": "region W1.2: Sa -1.50 % beyond the tolerance of 1 %: the next finer mesh needs 5000 surface triangles, beyond max_triangles = 2000",
+        });
+        run["stages"]["mesher"]["outliers"] =
+            json!({ "count": 3, "sz_effect_pct": 12.5, "policy": "keep" });
+        let v = verdict(&run, Path::new("/o"), false);
+        let t = &v.text;
+        assert_eq!(v.failures.len(), 1, "{t}");
+        assert!(t.contains("model       tolerance Sa 1 %, Sq 1 %, Sz 3 % per region: NOT met at 1 200 surface triangles"), "{t}");
+        assert!(t.contains("worst of 5 regions W1.2: Sa -1.50 %"), "{t}");
+        assert!(t.contains("beyond max_triangles = 2000"), "{t}");
+        assert!(
+            t.contains("3 spike(s) (they add +12.50 % to Sz), kept as measured"),
+            "{t}"
+        );
     }
 
     #[test]

@@ -651,6 +651,72 @@ impl Table6 {
     }
 }
 
+/// The pointwise residual of a model on the measured grid (same shape), per region: the RMS
+/// of (model - its mean) - (measured - its mean) over the points valid in both, in percent of
+/// the measured Sq there (`None`: no valid point or a flat region). What Sa, Sq and Sz do not
+/// show: a model can match them while departing point by point. Reads both sources twice, a
+/// band of rows at a time.
+pub fn residual_pct_of_sq(
+    measured: &mut dyn RowSource,
+    model: &mut dyn RowSource,
+    regions: &[Region],
+) -> Result<Vec<Option<f64>>, DeviationError> {
+    let shape = measured.shape();
+    if model.shape() != shape {
+        return Err(DeviationError::StageShape {
+            stage: "residual".into(),
+            model: model.shape(),
+            measured: shape,
+        });
+    }
+    // Per region: n, sum z, sum m, then sum (dz)^2, sum (dm - dz)^2.
+    let mut acc = vec![[0.0f64; 5]; regions.len()];
+    let (mut zb, mut mb) = (Vec::new(), Vec::new());
+    for second in [false, true] {
+        let means: Vec<(f64, f64)> = acc
+            .iter()
+            .map(|a| (a[1] / a[0].max(1.0), a[2] / a[0].max(1.0)))
+            .collect();
+        let mut b0 = 0;
+        while b0 < shape.rows {
+            let n = BAND_ROWS.min(shape.rows - b0);
+            measured
+                .read_rows(b0, n, &mut zb)
+                .map_err(DeviationError::Read)?;
+            model
+                .read_rows(b0, n, &mut mb)
+                .map_err(DeviationError::Read)?;
+            for (k, r) in regions.iter().enumerate() {
+                let (lo, hi) = (b0.max(r.row0), (b0 + n).min(r.row0 + r.rows));
+                for row in lo..hi {
+                    let off = (row - b0) * shape.cols + r.col0;
+                    let pairs = zb[off..off + r.cols].iter().zip(&mb[off..off + r.cols]);
+                    for (&z, &m) in pairs.filter(|(z, m)| !z.is_nan() && !m.is_nan()) {
+                        let a = &mut acc[k];
+                        if second {
+                            let (dz, dm) = (z - means[k].0, m - means[k].1);
+                            a[3] += dz * dz;
+                            a[4] += (dm - dz) * (dm - dz);
+                        } else {
+                            a[0] += 1.0;
+                            a[1] += z;
+                            a[2] += m;
+                        }
+                    }
+                }
+            }
+            b0 += n;
+        }
+    }
+    Ok(acc
+        .iter()
+        .map(|a| {
+            let share = (a[4] / a[3]).sqrt() * 100.0;
+            (a[0] > 0.0 && share.is_finite()).then_some(share)
+        })
+        .collect())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -752,6 +818,28 @@ mod tests {
         )
         .unwrap();
         assert!(t.pass);
+    }
+
+    #[test]
+    fn residual_is_zero_for_an_offset_copy_and_half_for_a_halved_one() {
+        let z = surface(30, 20);
+        let offset = z.map(|v| v + 3.0);
+        let halved = z.map(|v| v * 0.5);
+        let regions = [Region::whole(z.shape())];
+        let r = residual_pct_of_sq(
+            &mut RasterRows(z.view()),
+            &mut RasterRows(offset.view()),
+            &regions,
+        )
+        .unwrap();
+        assert!(r[0].unwrap() < 1e-9, "{r:?}");
+        let r = residual_pct_of_sq(
+            &mut RasterRows(z.view()),
+            &mut RasterRows(halved.view()),
+            &regions,
+        )
+        .unwrap();
+        assert!((r[0].unwrap() - 50.0).abs() < 1e-9, "{r:?}");
     }
 
     #[test]

@@ -13,6 +13,7 @@
 //! [`surface_stats`]), [`table6`], [`details`] (tiles, mesh, latencies, node reports).
 
 mod charts;
+mod cost_curve;
 mod details;
 mod html;
 mod maps;
@@ -109,7 +110,7 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
          <nav><a href=\"#summary\">summary</a><a href=\"#parameters\">parameters</a><a href=\"#outputs\">outputs</a>\
          <a href=\"#maps\">height maps</a><a href=\"#view3d\">3-D view</a>\
          <a href=\"#profile\">profile</a><a href=\"#distribution\">distribution and PSD</a>\
-         <a href=\"#table6\">Table 6</a><a href=\"#tiles\">tiles</a><a href=\"#mesh\">mesh</a>\
+         <a href=\"#table6\">Table 6</a><a href=\"#cost\">fidelity-cost</a><a href=\"#tiles\">tiles</a><a href=\"#mesh\">mesh</a>\
          <a href=\"#latencies\">latencies</a></nav>",
         esc(name)
     );
@@ -170,6 +171,7 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
         h.push_str(&section);
     }
     h.push_str(&table6::section(&run["deviation"]));
+    h.push_str(&cost_curve::section(run));
     h.push_str(&details::tile_layout(run));
     h.push_str(&details::mesh(run));
     h.push_str(&details::latencies(run));

@@ -9,11 +9,13 @@ use clap::{Args, ValueEnum};
 use serde_json::json;
 use surfstream_core::frame::to_frame_heights;
 use surfstream_core::raster::{RasterView, Shape};
+use surfstream_mesher::outliers::{find_spikes, OutlierPolicy};
 use surfstream_mesher::{
     check_closed, grid_sheet_for, job::DEFAULT_EPSILON_SQ_FRACTION, mesh_height_field, DemEngine,
     EngineProfile, Epsilon, LengthUnit, MeshError, MeshKind, MeshParams, MissingSamples,
     ScanPlacement, SolidParams, TargetMethod,
 };
+use surfstream_mesher::{mesh_to_tolerance, ToleranceSettings};
 
 #[derive(Clone, Copy, ValueEnum)]
 pub enum Units {
@@ -26,11 +28,25 @@ pub enum Units {
 pub struct MeshArgs {
     #[arg(help = super::file_help())]
     pub file: PathBuf,
-    /// Largest vertical distance between any measured sample and the mesh, um.
+    /// The model's tolerance per region, percent (default sa=1,sq=1,sz=3 when no epsilon is
+    /// given): the fewest triangles whose mesh, interpolated at every measured sample, keeps
+    /// Sa, Sq and Sz within it in every window (docs/model.md); res=20 also bounds the
+    /// pointwise residual (% of Sq).
+    #[arg(long, value_name = "sa=1,sq=1,sz=3", conflicts_with_all = ["epsilon_um", "epsilon_sq"])]
+    pub tolerance: Option<surfstream_mesher::Tolerance>,
+    /// Side of the windows the tolerance is judged in, samples (default: half the map's
+    /// shorter side, 64 to 1024).
+    #[arg(long, value_name = "PX")]
+    pub region_px: Option<usize>,
+    /// Treat isolated spikes as not measured before meshing (ISO 25178-3 style outlier
+    /// removal; they are always reported in OUT.json, and kept by default).
+    #[arg(long)]
+    pub remove_spikes: bool,
+    /// A fixed bound instead of a tolerance: the largest vertical distance between any
+    /// measured sample and the mesh, um.
     #[arg(long, conflicts_with = "epsilon_sq")]
     pub epsilon_um: Option<f64>,
-    /// The bound as a fraction of the map's Sq (about its least-squares plane); default 0.05,
-    /// as in the graph.
+    /// A fixed bound as a fraction of the map's Sq (about its least-squares plane).
     #[arg(long)]
     pub epsilon_sq: Option<f64>,
     /// Write what this DEM engine imports: liggghts (ASCII sheet in m on a regular grid, no
@@ -39,7 +55,8 @@ pub struct MeshArgs {
     /// recorded in OUT.json.
     #[arg(long, conflicts_with_all = ["solid", "sheet", "holes", "ascii", "units"])]
     pub target: Option<DemEngine>,
-    /// Stop refining at this many surface triangles (the bound may then not hold; OUT.json says).
+    /// Stop refining at this many surface triangles (the bound may then not hold; OUT.json says);
+    /// with a tolerance, the most the search may use.
     #[arg(long)]
     pub max_triangles: Option<usize>,
     /// A closed solid: surface, side walls and a flat base (default).
@@ -92,8 +109,35 @@ pub fn run(a: MeshArgs) -> Result<()> {
         })
         .with_context(|| format!("{}", a.file.display()));
     }
-    let (z_offset_um, heights_um) = to_frame_heights(&surface.heights_um);
-    let heights = RasterView::new(&heights_um, Shape::new(surface.height, surface.width))?;
+    let (z_offset_um, mut heights_um) = to_frame_heights(&surface.heights_um);
+    let shape = Shape::new(surface.height, surface.width);
+    let policy = if a.remove_spikes {
+        OutlierPolicy::Remove
+    } else {
+        OutlierPolicy::Keep
+    };
+    let (spikes, spike_at) = find_spikes(RasterView::new(&heights_um, shape)?, policy);
+    if a.remove_spikes {
+        for &k in &spike_at {
+            heights_um[k] = f32::NAN;
+        }
+    }
+    if spikes.count > 0 {
+        eprintln!(
+            "mesh: {} spike(s) (largest {:+.3} um at row {} col {}; they add {:+.2} % to Sz): {}",
+            spikes.count,
+            spikes.largest[0].excess_um,
+            spikes.largest[0].row,
+            spikes.largest[0].col,
+            spikes.sz_effect_pct,
+            if a.remove_spikes {
+                "removed (--remove-spikes)"
+            } else {
+                "kept as measured (--remove-spikes to remove them)"
+            }
+        );
+    }
+    let heights = RasterView::new(&heights_um, shape)?;
     let at = ScanPlacement::new(pitch_x_um, pitch_y_um).with_z_offset(z_offset_um);
     let profile = a
         .target
@@ -131,8 +175,23 @@ pub fn run(a: MeshArgs) -> Result<()> {
         block_samples: None,
     };
     let t0 = Instant::now();
-    let m = mesh_height_field(heights, &at, &params)
-        .with_context(|| format!("{}", a.file.display()))?;
+    let fixed = a.epsilon_um.is_some() || a.epsilon_sq.is_some();
+    if let Some(px) = a.region_px.filter(|&p| p < 16) {
+        bail!("--region-px {px}: expected at least 16 samples");
+    }
+    let (m, tolerance) = if fixed {
+        let m = mesh_height_field(heights, &at, &params)
+            .with_context(|| format!("{}", a.file.display()))?;
+        (m, None)
+    } else {
+        let settings = ToleranceSettings {
+            tolerance: a.tolerance.unwrap_or_default(),
+            region_px: a.region_px,
+        };
+        let (m, r) = mesh_to_tolerance(heights, &at, &params, &settings)
+            .with_context(|| format!("{}", a.file.display()))?;
+        (m, Some(r))
+    };
     let mesh_s = t0.elapsed().as_secs_f64();
     let check = check_closed(&m.mesh);
 
@@ -182,10 +241,38 @@ pub fn run(a: MeshArgs) -> Result<()> {
         json!(check.duplicate_triangles),
     );
     o.insert("mesh_s".into(), json!(mesh_s));
+    if let Some(r) = &tolerance {
+        o.insert("tolerance".into(), json!(r));
+    }
+    o.insert("outliers".into(), json!(spikes));
     surfstream_core::fsutil::write_atomic(&json_path, |w| {
         serde_json::to_writer_pretty(w, &report)
             .map_err(|e| anyhow!("{}: {e}", json_path.display()))
     })?;
+    if let Some(r) = &tolerance {
+        let worst = r.region_fits.first();
+        eprintln!(
+            "mesh: tolerance {} {} at {} surface triangles ({:.3} per measured px, {} meshes \
+             tried){}",
+            r.tolerance,
+            if r.met { "met" } else { "NOT met" },
+            r.surface_triangles,
+            r.triangles_per_measured_px,
+            r.curve.len(),
+            worst.map_or(String::new(), |w| format!(
+                "; worst of {} regions {}: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %, residual {:.1} % of Sq",
+                r.regions,
+                w.region,
+                w.deviation_pct[0],
+                w.deviation_pct[1],
+                w.deviation_pct[2],
+                w.residual_pct_of_sq
+            ))
+        );
+        if let Some(reason) = &r.reason {
+            eprintln!("mesh: warning: {reason}");
+        }
+    }
     let f = &m.fidelity;
     let bound = match params.epsilon {
         Epsilon::Um(_) => String::new(),

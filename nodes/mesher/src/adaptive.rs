@@ -84,6 +84,17 @@ pub fn mesh_height_field(
     at: &ScanPlacement,
     params: &MeshParams,
 ) -> Result<AdaptiveMesh> {
+    mesh_height_field_with(heights, at, params, false)
+}
+
+/// [`mesh_height_field`], optionally with every block's peak and valley kept as vertices
+/// ([`TinParams::keep_extremes`]).
+pub(crate) fn mesh_height_field_with(
+    heights: RasterView<'_, f32>,
+    at: &ScanPlacement,
+    params: &MeshParams,
+    keep_extremes: bool,
+) -> Result<AdaptiveMesh> {
     validate(heights, at)?;
     let heights_um = heights.values();
     params.solid.validate()?;
@@ -116,6 +127,7 @@ pub fn mesh_height_field(
             max_triangles: params.max_triangles,
             missing: params.missing,
             block_samples: params.block_samples,
+            keep_extremes,
         },
     )?;
     let (resampled_um, error) = resample_with_error(&tin, heights_um);

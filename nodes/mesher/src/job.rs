@@ -18,7 +18,9 @@ use surfstream_core::fsutil::write_atomic;
 use surfstream_core::raster::{Raster, RasterView, Shape};
 use surfstream_io::npy::{write_npy_abs_f64, write_npy_f64};
 
+use crate::outliers::{find_spikes, OutlierPolicy, OutlierReport};
 use crate::target::{block_values_on_grid, DemEngine, EngineProfile, TargetMethod};
+use crate::tolerance::{mesh_streaming_to_tolerance, mesh_to_tolerance, ToleranceSettings};
 use crate::{
     check_closed, grid_sheet_for, grid_solid, grid_streaming, mesh_height_field, mesh_streaming,
     stl, Epsilon, LengthUnit, MeshCheck, MeshCounts, MeshKind, MeshParams, MissingSamples,
@@ -53,8 +55,19 @@ pub struct MesherConfig {
     /// Largest vertical error as a fraction of the surface's Sq (adaptive; default 0.05 when
     /// `epsilon_um` is not given).
     pub epsilon_sq_fraction: Option<f64>,
-    /// Triangle budget of the surface (adaptive).
+    /// Triangle budget of the surface (adaptive; with a tolerance, the search's limit).
     pub max_triangles: Option<usize>,
+    /// The model's tolerance per region, percent: "sa=1,sq=1,sz=3" or { sa = 1, sq = 1, sz = 3 }
+    /// (adaptive; the default when neither epsilon is given: Sa 1 %, Sq 1 %, Sz 3 %). The
+    /// mesher then finds the fewest triangles that meet it ([`crate::tolerance`]).
+    pub tolerance: Option<crate::Tolerance>,
+    /// Side of the windows the tolerance is judged in, samples (default: half the map's
+    /// shorter side, 64 to 1024).
+    pub region_px: Option<usize>,
+    /// Spikes (isolated outliers, [`crate::outliers`]): "keep" (default: mesh what was
+    /// measured; they are reported) or "remove" (treated as not measured, and reported).
+    #[serde(default)]
+    pub outliers: OutlierPolicy,
     /// "solid" (default) or "sheet" (adaptive).
     #[serde(default)]
     pub kind: MeshKind,
@@ -80,15 +93,16 @@ fn stl_name() -> String {
     "surface.stl".into()
 }
 
-/// Which surface the mesher meshes, and the input ports that carry it: "pooled" (default) or
-/// "panorama" arrive on the input `surface`; "datum" and "roughness" on the inputs of those
+/// Which surface the mesher meshes, and the input ports that carry it: "panorama" (default:
+/// the full-resolution surface, what the tolerance is judged against) or "pooled" (the
+/// reference study's 4 x 4 max-pooled map, an option) arrive on the input `surface`; "datum" and "roughness" on the inputs of those
 /// names; "datum+roughness" needs both and meshes their sum (the panorama as the separation
 /// rebuilds it).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, serde::Serialize)]
 pub enum SurfaceChoice {
-    #[default]
     #[serde(rename = "pooled")]
     Pooled,
+    #[default]
     #[serde(rename = "panorama")]
     Panorama,
     #[serde(rename = "datum+roughness")]
@@ -168,6 +182,10 @@ pub struct MeshSettings {
     pub surface: SurfaceChoice,
     /// The engine the STL is made for, when one was named.
     pub target: Option<EngineProfile>,
+    /// The model from a tolerance (adaptive only; `None`: the fixed bound of `adaptive`).
+    pub tolerance: Option<ToleranceSettings>,
+    /// Spikes kept (default) or removed before the adaptive mesh.
+    pub outliers: OutlierPolicy,
 }
 
 impl MesherConfig {
@@ -188,6 +206,31 @@ impl MesherConfig {
             recentre: true,
         };
         solid.validate().map_err(|e| e.to_string())?;
+        let fixed_bound = self.epsilon_um.is_some() || self.epsilon_sq_fraction.is_some();
+        if self.tolerance.is_some() && fixed_bound {
+            return Err(
+                "give a tolerance or a fixed bound (epsilon_um / epsilon_sq_fraction), not both"
+                    .into(),
+            );
+        }
+        if self.tolerance.is_some() && self.method != "adaptive" {
+            return Err(format!(
+                "tolerance needs method = \"adaptive\" (method = {:?} meshes every sample)",
+                self.method
+            ));
+        }
+        if let Some(px) = self.region_px {
+            if px < 16 {
+                return Err(format!(
+                    "region_px = {px}: expected at least 16 (samples per side of a judged window)"
+                ));
+            }
+        }
+        let mut tolerance =
+            (self.method == "adaptive" && !fixed_bound).then(|| ToleranceSettings {
+                tolerance: self.tolerance.unwrap_or_default(),
+                region_px: self.region_px,
+            });
         let adaptive = match self.method.as_str() {
             "grid" => None,
             "adaptive" => {
@@ -219,8 +262,21 @@ impl MesherConfig {
             format,
             surface: self.surface,
             target: None,
+            tolerance: None,
+            outliers: self.outliers,
         };
         if let Some(engine) = self.target {
+            // An engine's regular grid is sized by its budget, not by a tolerance.
+            if EngineProfile::for_engine(engine).method == TargetMethod::Grid {
+                if self.tolerance.is_some() {
+                    return Err(format!(
+                        "target = {:?} meshes a regular grid within its triangle budget; a \
+                         tolerance applies to the adaptive mesh (remove one of them)",
+                        engine.name()
+                    ));
+                }
+                tolerance = None;
+            }
             let profile = EngineProfile::with_budget(engine, self.max_triangles);
             settings.format = if profile.ascii {
                 StlFormat::Ascii
@@ -239,6 +295,7 @@ impl MesherConfig {
             }
             settings.target = Some(profile);
         }
+        settings.tolerance = tolerance;
         Ok(settings)
     }
 }
@@ -318,6 +375,20 @@ fn surface_summary(
         }
     }
     summary
+}
+
+/// Adds the tolerance search's report to an adaptive mesh's statistics ("tolerance").
+fn add_tolerance(summary: &mut serde_json::Value, report: Option<&crate::ToleranceReport>) {
+    if let (Some(o), Some(r)) = (summary.as_object_mut(), report) {
+        o.insert("tolerance".into(), json!(r));
+    }
+}
+
+/// Adds the spike report to an adaptive mesh's statistics ("outliers").
+fn add_outliers(summary: &mut Option<serde_json::Value>, report: Option<&OutlierReport>) {
+    if let (Some(o), Some(r)) = (summary.as_mut().and_then(|v| v.as_object_mut()), report) {
+        o.insert("outliers".into(), json!(r));
+    }
 }
 
 /// What [`MeshJob::mesh_to_files`] wrote.
@@ -429,8 +500,29 @@ impl MeshJob {
 
     /// Meshes the chosen surface (takes its final frames).
     pub fn mesh(&mut self) -> Result<MeshedSurface> {
-        let s = self.surface_to_mesh()?;
-        self.mesh_in_memory(&s)
+        let mut s = self.surface_to_mesh()?;
+        let spikes = self.spikes(&mut s);
+        let mut m = self.mesh_in_memory(&s)?;
+        add_outliers(&mut m.adaptive, spikes.as_ref());
+        Ok(m)
+    }
+
+    /// The spikes of the surface an adaptive mesh is made of (reported; removed, i.e. set to
+    /// not measured, when the settings ask for it).
+    fn spikes(&self, s: &mut HeightMap) -> Option<OutlierReport> {
+        if self.settings.adaptive.is_none() || self.grid_target().is_some() {
+            return None;
+        }
+        let h = s.header;
+        let shape = Shape::new(h.height as usize, h.width as usize);
+        let view = RasterView::new(&s.heights, shape).ok()?;
+        let (report, spikes) = find_spikes(view, self.settings.outliers);
+        if self.settings.outliers == OutlierPolicy::Remove {
+            for k in spikes {
+                s.heights[k] = f32::NAN;
+            }
+        }
+        Some(report)
     }
 
     fn mesh_in_memory(&self, s: &HeightMap) -> Result<MeshedSurface> {
@@ -448,8 +540,15 @@ impl MeshJob {
             }
             (None, None) => (grid_solid(heights, &at, &self.settings.solid)?, None, None),
             (Some(p), None) => {
-                let m = mesh_height_field(heights, &at, p)?;
-                let summary = m.summary();
+                let (m, report) = match &self.settings.tolerance {
+                    Some(t) => {
+                        let (m, r) = mesh_to_tolerance(heights, &at, p, t)?;
+                        (m, Some(r))
+                    }
+                    None => (mesh_height_field(heights, &at, p)?, None),
+                };
+                let mut summary = m.summary();
+                add_tolerance(&mut summary, report.as_ref());
                 (m.mesh, Some(summary), Some(m.resampled_um))
             }
         };
@@ -478,7 +577,8 @@ impl MeshJob {
     /// adaptive mesh is streamed ([`crate::stream`]): its triangles go through a spill file
     /// beside `stl`, so the memory held is a few bytes per sample whatever the triangle count.
     pub fn mesh_to_files(&mut self, stl: &Path, resampled_npy: &Path) -> Result<MeshFiles> {
-        let s = self.surface_to_mesh()?;
+        let mut s = self.surface_to_mesh()?;
+        let spikes = self.spikes(&mut s);
         let (h, format) = (s.header, self.settings.format);
         let shape = Shape::new(h.height as usize, h.width as usize);
         let params = match (&self.settings.adaptive, self.grid_target()) {
@@ -531,7 +631,17 @@ impl MeshJob {
         };
         std::fs::create_dir_all(spill_dir)
             .map_err(|e| anyhow!("{}: cannot create the folder: {e}", spill_dir.display()))?;
-        let mut m = mesh_streaming(heights, &at, &params, spill_dir)?;
+        let (mut m, report) = match &self.settings.tolerance {
+            Some(t) => {
+                let (m, r) = mesh_streaming_to_tolerance(heights, &at, &params, t, spill_dir)?;
+                (m, Some(r))
+            }
+            None => (mesh_streaming(heights, &at, &params, spill_dir)?, None),
+        };
+        add_tolerance(&mut m.summary, report.as_ref());
+        if let (Some(o), Some(r)) = (m.summary.as_object_mut(), &spikes) {
+            o.insert("outliers".into(), json!(r));
+        }
         write_npy_abs_f64(
             resampled_npy,
             &m.resampled_um,

@@ -58,11 +58,13 @@ pub mod fidelity;
 pub mod field;
 mod geom;
 pub mod job;
+pub mod outliers;
 pub mod solid;
 pub mod stl;
 pub mod stream;
 pub mod target;
 pub mod tin;
+pub mod tolerance;
 
 pub use adaptive::{mesh_height_field, AdaptiveMesh, Epsilon, MeshCounts, MeshKind, MeshParams};
 pub use check::{check_closed, MeshCheck};
@@ -76,6 +78,9 @@ pub use stl::{write_stl_ascii, write_stl_binary};
 pub use stream::{grid_streaming, mesh_streaming, StreamedGrid, StreamedMesh};
 pub use target::{grid_sheet_for, DemEngine, EngineProfile, TargetMesh, TargetMethod};
 pub use tin::{triangulate, MissingSamples, Tin, TinParams};
+pub use tolerance::{
+    mesh_streaming_to_tolerance, mesh_to_tolerance, Tolerance, ToleranceReport, ToleranceSettings,
+};
 #[cfg(feature = "node")]
 pub mod node;
 #[cfg(feature = "node")]

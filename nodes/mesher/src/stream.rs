@@ -191,6 +191,18 @@ pub fn mesh_streaming(
     params: &MeshParams,
     spill_dir: &Path,
 ) -> Result<StreamedMesh> {
+    mesh_streaming_with(heights, at, params, spill_dir, false)
+}
+
+/// [`mesh_streaming`], optionally with every block's peak and valley kept as vertices
+/// ([`TinParams::keep_extremes`]).
+pub(crate) fn mesh_streaming_with(
+    heights: RasterView<'_, f32>,
+    at: &ScanPlacement,
+    params: &MeshParams,
+    spill_dir: &Path,
+    keep_extremes: bool,
+) -> Result<StreamedMesh> {
     validate(heights, at)?;
     params.solid.validate()?;
     if params.kind == MeshKind::Solid && params.missing == MissingSamples::Holes {
@@ -226,6 +238,7 @@ pub fn mesh_streaming(
             max_triangles: params.max_triangles,
             missing: params.missing,
             block_samples: params.block_samples,
+            keep_extremes,
         },
     )?;
     let (nbx, nby) = plan.blocks_x_y();

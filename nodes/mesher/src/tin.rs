@@ -56,6 +56,10 @@ pub struct TinParams {
     /// Side of the blocks meshed independently, samples (None: [`DEFAULT_BLOCK_SAMPLES`];
     /// ignored with a triangle budget, which needs one block).
     pub block_samples: Option<usize>,
+    /// Make each block's highest and lowest measured sample (off its shared sides) a vertex
+    /// before the error-driven insertion, so that a region's peak and valley, which carry Sz,
+    /// sit exactly on the mesh whatever the bound ([`crate::tolerance`]).
+    pub keep_extremes: bool,
 }
 
 /// An error-bounded triangulation of a height field. Vertices are grid samples.
@@ -596,6 +600,7 @@ fn mesh_block(
     border: &[u32],
     epsilon_um: f64,
     max_triangles: usize,
+    keep_extremes: bool,
 ) -> BlockTin {
     let bw = block.x1 - block.x0 + 1;
     let bh = block.y1 - block.y0 + 1;
@@ -664,6 +669,36 @@ fn mesh_block(
         };
         b.insert(s, t);
         last = *b.fresh.last().unwrap_or(&0);
+    }
+    if keep_extremes {
+        // The block's peak and valley off the settled samples (shared sides, corners).
+        let (mut hi, mut lo) = ((f32::NEG_INFINITY, usize::MAX), (f32::INFINITY, usize::MAX));
+        for y in block.y0..=block.y1 {
+            let lrow = (y - block.y0) * bw;
+            for x in block.x0..=block.x1 {
+                let s = y * width + x;
+                if b.settled[lrow + x - block.x0] || valid.is_some_and(|v| !v[s]) {
+                    continue;
+                }
+                let h = z[s];
+                if h > hi.0 {
+                    hi = (h, s);
+                }
+                if h < lo.0 {
+                    lo = (h, s);
+                }
+            }
+        }
+        for s in [hi.1, lo.1] {
+            if s == usize::MAX || b.settled[b.local((s % width) as i64, (s / width) as i64)] {
+                continue;
+            }
+            let p = ((s % width) as i64, (s / width) as i64);
+            if let Some(t) = b.locate(p, last) {
+                b.insert(s, t);
+                last = *b.fresh.last().unwrap_or(&0);
+            }
+        }
     }
     b.scanning = true;
     for t in 0..b.tris.len() as u32 {
@@ -846,6 +881,7 @@ pub(crate) struct BlockPlan<'a> {
     horizontal: Vec<Vec<u32>>,
     epsilon_um: f64,
     max_triangles: usize,
+    keep_extremes: bool,
 }
 
 /// One block's triangulation: its vertices (grid samples) and triangles over them.
@@ -976,6 +1012,7 @@ impl<'a> BlockPlan<'a> {
             horizontal,
             epsilon_um: params.epsilon_um,
             max_triangles: params.max_triangles.unwrap_or(usize::MAX),
+            keep_extremes: params.keep_extremes,
         })
     }
 
@@ -1028,6 +1065,7 @@ impl<'a> BlockPlan<'a> {
             &border,
             self.epsilon_um,
             self.max_triangles,
+            self.keep_extremes,
         )
     }
 }

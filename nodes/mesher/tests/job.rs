@@ -48,10 +48,31 @@ fn eos() -> HeightMap {
 
 #[test]
 fn settings_and_wiring_are_checked() {
+    // The default: the full-resolution panorama, meshed to the default tolerance.
     let s = config("").settings().unwrap();
-    assert_eq!(s.surface, SurfaceChoice::Pooled);
+    assert_eq!(s.surface, SurfaceChoice::Panorama);
     assert_eq!(s.format, StlFormat::Binary);
     assert!(s.adaptive.is_some());
+    let t = s.tolerance.unwrap();
+    assert_eq!(t.tolerance, surfstream_mesher::tolerance::DEFAULT_TOLERANCE);
+    // A fixed bound replaces the tolerance; the pooled map stays a choice.
+    let fixed = config(
+        "epsilon_sq_fraction = 0.05
+surface = \"pooled\"",
+    )
+    .settings()
+    .unwrap();
+    assert!(fixed.tolerance.is_none());
+    assert_eq!(fixed.surface, SurfaceChoice::Pooled);
+    let t = config("tolerance = \"sa=2,sz=4\"\nregion_px = 64")
+        .settings()
+        .unwrap()
+        .tolerance
+        .unwrap();
+    assert_eq!(
+        (t.tolerance.sa_pct, t.tolerance.sz_pct, t.region_px),
+        (2.0, 4.0, Some(64))
+    );
     assert!(config("method = \"grid\"")
         .settings()
         .unwrap()
@@ -61,6 +82,13 @@ fn settings_and_wiring_are_checked() {
         ("format = \"obj\"", "format = \"obj\""),
         ("method = \"poisson\"", "method = \"poisson\""),
         ("epsilon_um = 0.1\nepsilon_sq_fraction = 0.1", "not both"),
+        ("epsilon_um = 0.1\ntolerance = \"sa=1\"", "not both"),
+        ("method = \"grid\"\ntolerance = \"sa=1\"", "needs method"),
+        ("region_px = 4", "region_px = 4"),
+        (
+            "target = \"liggghts\"\ntolerance = \"sa=1\"",
+            "regular grid",
+        ),
     ] {
         let e = config(bad).settings().unwrap_err();
         assert!(e.contains(says), "{bad}: {e}");

@@ -1,0 +1,199 @@
+//! The fidelity-cost curve of the model (issue 22): every mesh the mesher's tolerance search
+//! made, triangles against the worst Sa / Sq / Sz deviation and the worst pointwise residual
+//! over the regions, the chosen mesh marked, with what each costs a DEM step in LIGGGHTS.
+
+use std::fmt::Write as _;
+
+use serde_json::Value;
+
+use super::html::esc;
+use super::plot::{Axis, Panel};
+
+/// LIGGGHTS' cost of one mesh triangle per time step, us: measured with the Debian
+/// `liggghts` 3.8 binary on this project's machine (docs/model.md gives the command and the
+/// runs: a particle bed settling on an ASCII STL sheet, two mesh sizes, the difference in time
+/// per step divided by the difference in triangles).
+pub const LIGGGHTS_US_PER_TRIANGLE_STEP: f64 = 0.022;
+
+const COLOURS: [(&str, &str); 3] = [("Sa", "#1f77b4"), ("Sq", "#2ca02c"), ("Sz", "#d62728")];
+
+/// The section, or nothing when the mesher made no curve.
+pub fn section(run: &Value) -> String {
+    let Some(t) = run["stages"]
+        .as_object()
+        .and_then(|s| s.values().find_map(|st| st.get("tolerance")))
+        .filter(|t| t.is_object())
+    else {
+        return String::new();
+    };
+    let Some(curve) = t["curve"].as_array().filter(|c| !c.is_empty()) else {
+        return String::new();
+    };
+    let f = |v: &Value| v.as_f64().unwrap_or(f64::NAN);
+    let pts: Vec<(f64, [f64; 4], bool, &Value)> = curve
+        .iter()
+        .map(|c| {
+            (
+                f(&c["surface_triangles"]),
+                [
+                    f(&c["worst_sa_pct"]).abs(),
+                    f(&c["worst_sq_pct"]).abs(),
+                    f(&c["worst_sz_pct"]).abs(),
+                    f(&c["worst_residual_pct_of_sq"]),
+                ],
+                c["chosen"] == true,
+                c,
+            )
+        })
+        .filter(|p| p.0 > 0.0)
+        .collect();
+    if pts.is_empty() {
+        return String::new();
+    }
+    let tol = &t["tolerance"];
+    let limits = [f(&tol["sa_pct"]), f(&tol["sq_pct"]), f(&tol["sz_pct"])];
+    let (lo, hi) = pts.iter().fold((f64::INFINITY, 0.0f64), |(a, b), p| {
+        (a.min(p.0), b.max(p.0))
+    });
+    let dev_hi = pts
+        .iter()
+        .flat_map(|p| p.1[..3].iter().copied())
+        .chain(limits)
+        .filter(|v| v.is_finite())
+        .fold(0.0f64, f64::max);
+    let res_hi = pts
+        .iter()
+        .map(|p| p.1[3])
+        .filter(|v| v.is_finite())
+        .fold(0.0f64, f64::max);
+    let top = Panel {
+        x: 86.0,
+        y: 14.0,
+        w: 760.0,
+        h: 250.0,
+        xa: Axis::log(lo, hi, "surface triangles"),
+        ya: Axis::linear(0.0, (dev_hi * 1.1).max(0.5), "worst |deviation| (%)"),
+    };
+    let bottom = Panel {
+        y: 290.0,
+        h: 150.0,
+        ya: Axis::linear(0.0, (res_hi * 1.1).max(1.0), "residual (% of Sq)"),
+        ..top_clone(&top)
+    };
+    let mut g = String::from(
+        "<svg class=\"chart\" viewBox=\"0 0 880 500\" role=\"img\" aria-label=\"fidelity-cost curve\">",
+    );
+    top.axes(&mut g, false);
+    bottom.axes(&mut g, true);
+    for (k, (name, colour)) in COLOURS.iter().enumerate() {
+        let line: Vec<(f64, f64)> = pts.iter().map(|p| (p.0, p.1[k])).collect();
+        top.line(&mut g, &line, colour, 2.0);
+        for &(x, y) in &line {
+            dot(&mut g, &top, x, y, colour);
+        }
+        if limits[k].is_finite() {
+            let y = top.py(limits[k]);
+            let _ = write!(
+                g,
+                "<line x1=\"{:.1}\" y1=\"{y:.1}\" x2=\"{:.1}\" y2=\"{y:.1}\" stroke=\"{colour}\" \
+                 stroke-dasharray=\"5,4\" stroke-width=\"1.2\"/>",
+                top.x,
+                top.x + top.w
+            );
+        }
+        top.legend(
+            &mut g,
+            k,
+            colour,
+            &format!("worst |{name}| (dashed: tolerance {} %)", limits[k]),
+        );
+    }
+    let res: Vec<(f64, f64)> = pts.iter().map(|p| (p.0, p.1[3])).collect();
+    bottom.line(&mut g, &res, "#6c3483", 2.0);
+    for &(x, y) in &res {
+        dot(&mut g, &bottom, x, y, "#6c3483");
+    }
+    if let Some(c) = pts.iter().find(|p| p.2) {
+        let x = top.px(c.0);
+        let _ = write!(
+            g,
+            "<line x1=\"{x:.1}\" y1=\"{:.1}\" x2=\"{x:.1}\" y2=\"{:.1}\" stroke=\"#111\" \
+             stroke-width=\"1.5\"/><text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\">chosen</text>",
+            top.y,
+            bottom.y + bottom.h,
+            x + 4.0,
+            top.y + 14.0
+        );
+    }
+    g.push_str("</svg>");
+    let mut table = String::from(
+        "<table><tr><th>surface triangles</th><th>per measured px</th><th>bound (x Sq)</th>\
+         <th>worst Sa %</th><th>worst Sq %</th><th>worst Sz %</th><th>worst residual (% of Sq)</th>\
+         <th>worst region</th><th>passes</th><th>LIGGGHTS mesh cost per step</th></tr>",
+    );
+    for (tri, _, chosen, c) in &pts {
+        let _ = write!(
+            table,
+            "<tr class=\"{}\"><td>{}{}</td><td>{:.3}</td><td>{:.3}</td><td>{:+.2}</td><td>{:+.2}</td>\
+             <td>{:+.2}</td><td>{:.1}</td><td class=\"k\">{}</td><td>{}</td><td>{:.1} ms</td></tr>",
+            if c["pass"] == true { "pass" } else { "fail" },
+            *tri as u64,
+            if *chosen { " (chosen)" } else { "" },
+            f(&c["triangles_per_measured_px"]),
+            f(&c["epsilon_sq_fraction"]),
+            f(&c["worst_sa_pct"]),
+            f(&c["worst_sq_pct"]),
+            f(&c["worst_sz_pct"]),
+            f(&c["worst_residual_pct_of_sq"]),
+            esc(c["worst_region"].as_str().unwrap_or("")),
+            if c["over_budget"] == true {
+                "over budget"
+            } else if c["pass"] == true {
+                "yes"
+            } else {
+                "no"
+            },
+            tri * LIGGGHTS_US_PER_TRIANGLE_STEP / 1000.0
+        );
+    }
+    table.push_str("</table>");
+    let reason = t["reason"]
+        .as_str()
+        .map(|r| format!("<p class=\"bad\">Tolerance not met: {}</p>", esc(r)))
+        .unwrap_or_default();
+    format!(
+        "<section id=\"cost\"><h2>Fidelity-cost curve of the model</h2>{reason}<figure>{g}\
+         <figcaption>Every mesh the tolerance search made (greedy insertion on the full-resolution \
+         surface at a series of vertical bounds): top, the worst |deviation| of Sa, Sq and Sz over \
+         the {} judged regions (mesh interpolated at every measured point, mean removed), dashed \
+         the tolerance; bottom, the worst pointwise residual RMS in percent of the region's Sq. The \
+         search keeps the mesh with the fewest triangles within {:.0} % of the tolerance in every \
+         region (vertical line). A DEM step's cost grows with the triangles: in LIGGGHTS about \
+         {LIGGGHTS_US_PER_TRIANGLE_STEP} µs per triangle per time step (measured, \
+         docs/model.md), the last column.</figcaption></figure>{table}</section>",
+        t["regions"],
+        f(&t["target_share"]) * 100.0,
+    )
+}
+
+fn top_clone(p: &Panel) -> Panel {
+    Panel {
+        x: p.x,
+        y: p.y,
+        w: p.w,
+        h: p.h,
+        xa: p.xa.clone(),
+        ya: p.ya.clone(),
+    }
+}
+
+fn dot(g: &mut String, p: &Panel, x: f64, y: f64, colour: &str) {
+    if x.is_finite() && y.is_finite() && y >= p.ya.lo && y <= p.ya.hi {
+        let _ = write!(
+            g,
+            "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"3\" fill=\"{colour}\"/>",
+            p.px(x),
+            p.py(y)
+        );
+    }
+}

@@ -1,0 +1,265 @@
+//! Spikes: isolated single samples far from their neighbours, which carry Sz on a polished
+//! part (issue 22). They are always reported (count, positions, what they do to Sz); removing
+//! them is an explicit option ([`OutlierPolicy::Remove`], in the spirit of ISO 25178-3's outlier
+//! removal before the S-filter), never done silently: by default the model reproduces what the
+//! measurement holds.
+//!
+//! Rule: r = height - median of the measured 8-neighbours (at least 3 of them); a sample is a
+//! candidate when |r| > [`SPIKE_SIGMAS`] x 1.4826 x median |r| over the map (a robust sigma of
+//! the local residual) and it stands above (below) all its neighbours by half of that; a spike is a candidate none of whose neighbours is a candidate of the
+//! same sign (so a narrow scratch or ridge, whose samples are candidates side by side, is a
+//! feature, not a spike).
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use surfstream_core::raster::RasterView;
+
+/// Candidates are beyond this many robust sigmas of the local residual.
+pub const SPIKE_SIGMAS: f64 = 8.0;
+
+/// Positions listed in the report (the largest first).
+const LISTED: usize = 20;
+
+/// What the mesher does with spikes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum OutlierPolicy {
+    /// Mesh what the measurement holds (default); spikes are reported.
+    #[default]
+    Keep,
+    /// Treat spikes as not measured (then filled like any missing sample), and say so.
+    Remove,
+}
+
+/// One spike.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Spike {
+    pub row: usize,
+    pub col: usize,
+    /// Height, um relative to the map's z offset.
+    pub height_um: f64,
+    /// Height above (+) or below (-) the median of its neighbours, um.
+    pub excess_um: f64,
+}
+
+/// The spikes of a map and their effect on Sz.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct OutlierReport {
+    pub rule: String,
+    /// |height - neighbour median| beyond which a sample is a candidate, um.
+    pub threshold_um: f64,
+    pub count: usize,
+    /// The largest spikes (at most 20), largest |excess| first.
+    pub largest: Vec<Spike>,
+    /// Sz of the measured samples as they are, and with every spike at its neighbours' median.
+    pub sz_um: f64,
+    pub sz_without_spikes_um: f64,
+    /// (Sz - Sz without spikes) / Sz without spikes * 100: what the spikes add to Sz.
+    pub sz_effect_pct: f64,
+    pub policy: OutlierPolicy,
+    /// Samples set to "not measured" before meshing (0 unless the policy is remove).
+    pub removed: usize,
+}
+
+/// The median, lowest and highest of the measured 8-neighbours of (r, c), when at least 3 are
+/// measured.
+fn neighbours(z: &[f32], rows: usize, cols: usize, r: usize, c: usize) -> Option<(f32, f32, f32)> {
+    let mut v = [0f32; 8];
+    let mut n = 0;
+    for dr in -1i64..=1 {
+        for dc in -1i64..=1 {
+            if dr == 0 && dc == 0 {
+                continue;
+            }
+            let (rr, cc) = (r as i64 + dr, c as i64 + dc);
+            if rr < 0 || cc < 0 || rr >= rows as i64 || cc >= cols as i64 {
+                continue;
+            }
+            let h = z[rr as usize * cols + cc as usize];
+            if !h.is_nan() {
+                v[n] = h;
+                n += 1;
+            }
+        }
+    }
+    if n < 3 {
+        return None;
+    }
+    let v = &mut v[..n];
+    v.sort_unstable_by(f32::total_cmp);
+    let median = if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    };
+    Some((median, v[0], v[n - 1]))
+}
+
+/// Finds the spikes of `heights` (NaN = not measured): the report and the spikes' sample
+/// indices.
+pub fn find_spikes(
+    heights: RasterView<'_, f32>,
+    policy: OutlierPolicy,
+) -> (OutlierReport, Vec<usize>) {
+    let (rows, cols) = (heights.rows(), heights.cols());
+    let z = heights.values();
+    // Local residual of every measured sample (NaN where it has no median), and how far it
+    // stands out beyond all of its neighbours (above the highest or below the lowest; 0 when
+    // it does not).
+    let (residual, beyond): (Vec<f32>, Vec<f32>) = (0..rows)
+        .into_par_iter()
+        .flat_map_iter(|r| {
+            (0..cols).map(move |c| {
+                let h = z[r * cols + c];
+                match (h.is_nan(), neighbours(z, rows, cols, r, c)) {
+                    (false, Some((m, lo, hi))) => (h - m, (h - hi).max(lo - h).max(0.0)),
+                    _ => (f32::NAN, 0.0),
+                }
+            })
+        })
+        .unzip();
+    let mut abs: Vec<f32> = residual
+        .iter()
+        .filter(|r| !r.is_nan())
+        .map(|r| r.abs())
+        .collect();
+    let sigma = if abs.is_empty() {
+        0.0
+    } else {
+        let k = abs.len() / 2;
+        let (_, m, _) = abs.select_nth_unstable_by(k, f32::total_cmp);
+        1.4826 * f64::from(*m)
+    };
+    drop(abs);
+    let threshold_um = SPIKE_SIGMAS * sigma;
+    // The side on which a sample is beyond the threshold from its neighbours' median.
+    let side = |k: usize| -> i8 {
+        let r = residual[k];
+        if r.is_nan() || sigma <= 0.0 || f64::from(r.abs()) <= threshold_um {
+            0
+        } else if r > 0.0 {
+            1
+        } else {
+            -1
+        }
+    };
+    // A candidate also stands beyond every neighbour by half the threshold: the edge of a
+    // scratch or a step stands out from the median, not from all.
+    let candidate = |k: usize| -> i8 {
+        if f64::from(beyond[k]) <= 0.5 * threshold_um {
+            0
+        } else {
+            side(k)
+        }
+    };
+    let mut spikes: Vec<usize> = (0..rows * cols)
+        .into_par_iter()
+        .filter(|&k| {
+            let s = candidate(k);
+            if s == 0 {
+                return false;
+            }
+            let (r, c) = (k / cols, k % cols);
+            for rr in r.saturating_sub(1)..=(r + 1).min(rows - 1) {
+                for cc in c.saturating_sub(1)..=(c + 1).min(cols - 1) {
+                    if (rr, cc) != (r, c) && side(rr * cols + cc) == s {
+                        return false;
+                    }
+                }
+            }
+            true
+        })
+        .collect();
+    spikes.sort_by(|&a, &b| {
+        residual[b]
+            .abs()
+            .total_cmp(&residual[a].abs())
+            .then(a.cmp(&b))
+    });
+    let (mut lo, mut hi, mut lo2, mut hi2) = (
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+    );
+    let is_spike = {
+        let mut v = vec![false; rows * cols];
+        for &k in &spikes {
+            v[k] = true;
+        }
+        v
+    };
+    for (k, &h) in z.iter().enumerate() {
+        if h.is_nan() {
+            continue;
+        }
+        let h = f64::from(h);
+        lo = lo.min(h);
+        hi = hi.max(h);
+        let h2 = if is_spike[k] {
+            h - f64::from(residual[k])
+        } else {
+            h
+        };
+        lo2 = lo2.min(h2);
+        hi2 = hi2.max(h2);
+    }
+    let (sz, sz2) = (hi - lo, hi2 - lo2);
+    let report = OutlierReport {
+        rule: format!(
+            "isolated sample beyond {SPIKE_SIGMAS} robust sigmas (1.4826 x median |r|) of r = \
+             height - median of its measured 8-neighbours, beyond all of them by half of that, \
+             with no neighbour beyond it on the same side"
+        ),
+        threshold_um,
+        count: spikes.len(),
+        largest: spikes
+            .iter()
+            .take(LISTED)
+            .map(|&k| Spike {
+                row: k / cols,
+                col: k % cols,
+                height_um: f64::from(z[k]),
+                excess_um: f64::from(residual[k]),
+            })
+            .collect(),
+        sz_um: if sz.is_finite() { sz } else { 0.0 },
+        sz_without_spikes_um: if sz2.is_finite() { sz2 } else { 0.0 },
+        sz_effect_pct: if sz2 > 0.0 {
+            (sz - sz2) / sz2 * 100.0
+        } else {
+            0.0
+        },
+        policy,
+        removed: if policy == OutlierPolicy::Remove {
+            spikes.len()
+        } else {
+            0
+        },
+    };
+    (report, spikes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use surfstream_core::raster::Shape;
+
+    #[test]
+    fn an_isolated_spike_is_found_and_a_scratch_is_not() {
+        let (rows, cols) = (30, 40);
+        let mut z: Vec<f32> = (0..rows * cols)
+            .map(|k| (0.3 * (k % cols) as f32).sin() + 0.01 * ((k * 7919) % 13) as f32)
+            .collect();
+        z[12 * cols + 17] += 9.0;
+        for c in 3..35 {
+            z[22 * cols + c] -= 6.0; // a scratch along a row
+        }
+        let v = RasterView::new(&z, Shape::new(rows, cols)).unwrap();
+        let (r, idx) = find_spikes(v, OutlierPolicy::Keep);
+        assert_eq!(idx, vec![12 * cols + 17], "{r:?}");
+        assert_eq!((r.largest[0].row, r.largest[0].col), (12, 17));
+        assert!(r.sz_effect_pct > 0.0 && r.removed == 0);
+        assert!((r.largest[0].excess_um - 9.0).abs() < 0.5, "{r:?}");
+    }
+}

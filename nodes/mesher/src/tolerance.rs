@@ -1,0 +1,758 @@
+//! The model from a stated tolerance (issue 22): the fewest triangles whose mesh keeps Sa, Sq
+//! and Sz within a tolerance of the measurement in every region, judged where the simulator
+//! sees the surface: the mesh interpolated linearly at every measured (non-NaN) sample, mean
+//! removed, per region.
+//!
+//! How: the error-bounded greedy insertion ([`crate::tin`]) on the full-resolution grid, with
+//! every block's peak and valley inserted first ([`crate::tin::TinParams::keep_extremes`]: a
+//! region's Sz is then exact or within the bound), run at a geometric series of bounds
+//! epsilon = 2, 1.2, 0.72, ... x Sq (coarse to fine, each run a few seconds on a 2k x 2k map);
+//! each run is judged per region ([`judge_regions`]); the first bound that passes is refined by
+//! two bisections (geometric) against the last that failed. Every run is a point of the
+//! fidelity-cost curve ([`CurvePoint`]): triangles against the worst Sa / Sq / Sz deviation and
+//! the pointwise residual. The search stops at `max_triangles`; when no run within it passes,
+//! the finest one within it is kept and [`ToleranceReport::reason`] names the region, the
+//! parameter and why.
+//!
+//! Regions: the whole map and square windows of `region_px` samples at half-window steps
+//! (the tiles of a scan are not known to the mesher; a window of a tile's size at half steps
+//! is never far from any tile's footprint). The search aims at [`TARGET_SHARE`] of the
+//! tolerance so that regions the windows do not match exactly (Table 6's tile footprints)
+//! keep a margin.
+
+use std::path::Path;
+use std::str::FromStr;
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use surfstream_core::raster::{RasterView, Shape};
+
+use crate::adaptive::mesh_height_field_with;
+use crate::error::{MeshError, Result};
+use crate::fidelity::field_params;
+use crate::field::{validate, ScanPlacement};
+use crate::stream::{mesh_streaming_with, StreamedMesh};
+use crate::{AdaptiveMesh, Epsilon, MeshParams};
+
+/// The tolerance, percent of the measured value, per region.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Tolerance {
+    pub sa_pct: f64,
+    pub sq_pct: f64,
+    pub sz_pct: f64,
+    /// Optional limit on the pointwise residual RMS, percent of the region's Sq ("res=20"):
+    /// Sa, Sq and Sz can match while the mesh departs point by point (the greedy insertion's
+    /// peaks and its smoothing cancel in the parameters); this asks for pointwise fidelity too.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub residual_pct: Option<f64>,
+}
+
+/// The default tolerance: Sa 1 %, Sq 1 %, Sz 3 % (the reference study's Table 6 reached
+/// 0.6 / 0.6 / 2.7 %).
+pub const DEFAULT_TOLERANCE: Tolerance = Tolerance {
+    sa_pct: 1.0,
+    sq_pct: 1.0,
+    sz_pct: 3.0,
+    residual_pct: None,
+};
+
+impl Default for Tolerance {
+    fn default() -> Self {
+        DEFAULT_TOLERANCE
+    }
+}
+
+/// Share of the tolerance the search aims at (the rest is margin for regions that differ from
+/// the mesher's windows).
+pub const TARGET_SHARE: f64 = 0.9;
+
+/// Largest default side of the judged windows, samples (a common profiler field, the demo's
+/// tile).
+pub const DEFAULT_REGION_PX: usize = 1024;
+
+/// The default window side for a map: half its shorter side, between 64 and
+/// [`DEFAULT_REGION_PX`] (a scan of n x n tiles has tiles of about 1 / n of its side, so small
+/// maps get windows near a tile's size).
+pub fn default_region_px(shape: Shape) -> usize {
+    (shape.rows.min(shape.cols) / 2).clamp(64, DEFAULT_REGION_PX)
+}
+
+impl FromStr for Tolerance {
+    type Err = String;
+    /// "sa=1,sq=1,sz=3" (percent; a "%" is allowed; parameters not named keep their default).
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        let mut t = DEFAULT_TOLERANCE;
+        for part in s.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+            let (k, v) = part.split_once('=').ok_or_else(|| {
+                format!("tolerance {s:?}: expected NAME=PERCENT pairs, e.g. sa=1,sq=1,sz=3")
+            })?;
+            let v: f64 = v
+                .trim()
+                .trim_end_matches('%')
+                .trim()
+                .parse()
+                .map_err(|_| format!("tolerance {s:?}: {v:?} is not a number of percent"))?;
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!(
+                    "tolerance {s:?}: {k} = {v}: expected a finite number of percent > 0"
+                ));
+            }
+            match k.trim().to_ascii_lowercase().as_str() {
+                "sa" => t.sa_pct = v,
+                "sq" => t.sq_pct = v,
+                "sz" => t.sz_pct = v,
+                "res" | "residual" => t.residual_pct = Some(v),
+                other => {
+                    return Err(format!(
+                        "tolerance {s:?}: unknown parameter {other:?} (known: sa, sq, sz, res)"
+                    ))
+                }
+            }
+        }
+        Ok(t)
+    }
+}
+
+impl<'de> Deserialize<'de> for Tolerance {
+    /// A string ("sa=1,sq=1,sz=3") or a table ({ sa = 1, sq = 1, sz = 3 }).
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Raw {
+            Text(String),
+            Table {
+                sa: Option<f64>,
+                sq: Option<f64>,
+                sz: Option<f64>,
+                res: Option<f64>,
+            },
+        }
+        let text = match Raw::deserialize(d)? {
+            Raw::Text(s) => s,
+            Raw::Table { sa, sq, sz, res } => [("sa", sa), ("sq", sq), ("sz", sz), ("res", res)]
+                .iter()
+                .filter_map(|(k, v)| v.map(|v| format!("{k}={v}")))
+                .collect::<Vec<_>>()
+                .join(","),
+        };
+        text.parse().map_err(serde::de::Error::custom)
+    }
+}
+
+impl std::fmt::Display for Tolerance {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "Sa {} %, Sq {} %, Sz {} %",
+            self.sa_pct, self.sq_pct, self.sz_pct
+        )?;
+        match self.residual_pct {
+            Some(r) => write!(f, ", residual {r} % of Sq"),
+            None => Ok(()),
+        }
+    }
+}
+
+/// How the model is made from a tolerance.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ToleranceSettings {
+    pub tolerance: Tolerance,
+    /// Side of the judged windows, samples (`None`: [`default_region_px`] of the map).
+    pub region_px: Option<usize>,
+}
+
+impl Default for ToleranceSettings {
+    fn default() -> Self {
+        Self {
+            tolerance: DEFAULT_TOLERANCE,
+            region_px: None,
+        }
+    }
+}
+
+/// A judged rectangle of the grid, end exclusive.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Window {
+    pub name: String,
+    pub row0: usize,
+    pub col0: usize,
+    pub rows: usize,
+    pub cols: usize,
+}
+
+/// The whole map ("whole") and windows of `region_px` at half-window steps ("W<row>.<col>",
+/// the last ones flush with the far edges); only the whole map when it is not larger.
+pub fn windows(shape: Shape, region_px: usize) -> Vec<Window> {
+    let mut out = vec![Window {
+        name: "whole".into(),
+        row0: 0,
+        col0: 0,
+        rows: shape.rows,
+        cols: shape.cols,
+    }];
+    let side = region_px.max(2);
+    if shape.rows <= side && shape.cols <= side {
+        return out;
+    }
+    let starts = |n: usize| -> Vec<usize> {
+        if n <= side {
+            return vec![0];
+        }
+        let step = (side / 2).max(1);
+        let mut v: Vec<usize> = (0..)
+            .map(|k| k * step)
+            .take_while(|&s| s + side < n)
+            .collect();
+        v.push(n - side);
+        v.dedup();
+        v
+    };
+    let (rs, cs) = (starts(shape.rows), starts(shape.cols));
+    for (i, &r0) in rs.iter().enumerate() {
+        for (j, &c0) in cs.iter().enumerate() {
+            out.push(Window {
+                name: format!("W{}.{}", i + 1, j + 1),
+                row0: r0,
+                col0: c0,
+                rows: side.min(shape.rows),
+                cols: side.min(shape.cols),
+            });
+        }
+    }
+    out
+}
+
+/// One region of one mesh against the measurement.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct RegionFit {
+    pub region: String,
+    /// Measured samples compared (valid in both).
+    pub samples: usize,
+    /// Sa, Sq, Sz of the measurement, um (mean removed).
+    pub measured_um: [f64; 3],
+    /// (model - measured) / measured * 100 for Sa, Sq, Sz.
+    pub deviation_pct: [f64; 3],
+    /// RMS of the pointwise residual (both means removed), percent of the measured Sq.
+    pub residual_pct_of_sq: f64,
+}
+
+impl RegionFit {
+    /// The first parameter beyond `share` of the tolerance: (name, deviation, limit).
+    pub fn excess(&self, t: &Tolerance, share: f64) -> Option<(&'static str, f64, f64)> {
+        let limits = [t.sa_pct, t.sq_pct, t.sz_pct];
+        let residual = t
+            .residual_pct
+            .map(|l| ("residual", self.residual_pct_of_sq, l * share));
+        ["Sa", "Sq", "Sz"]
+            .into_iter()
+            .zip(self.deviation_pct)
+            .zip(limits)
+            .map(|((n, d), l)| (n, d, l * share))
+            .chain(residual)
+            .filter(|(_, d, l)| d.is_nan() || d.abs() > *l)
+            .max_by(|a, b| (a.1.abs() / a.2).total_cmp(&(b.1.abs() / b.2)))
+    }
+
+    /// The largest |deviation| / limit over Sa, Sq, Sz (<= 1: within the tolerance).
+    pub fn worst_ratio(&self, t: &Tolerance) -> f64 {
+        let limits = [t.sa_pct, t.sq_pct, t.sz_pct];
+        self.deviation_pct
+            .iter()
+            .zip(limits)
+            .map(|(d, l)| {
+                if d.is_finite() {
+                    d.abs() / l
+                } else {
+                    f64::INFINITY
+                }
+            })
+            .fold(0.0, f64::max)
+    }
+}
+
+/// Sa, Sq, Sz of the mesh (`mesh_um`, on the same grid and z offset) against the measured
+/// samples (`measured_um`, NaN = not measured) in every region: both over the samples valid
+/// in both, mean removed, no levelling (Table 6's conventions). Regions without a valid sample
+/// are left out.
+pub fn judge_regions(
+    measured_um: &[f32],
+    mesh_um: &[f32],
+    shape: Shape,
+    regions: &[Window],
+) -> Vec<RegionFit> {
+    regions
+        .par_iter()
+        .filter_map(|r| judge_region(measured_um, mesh_um, shape.cols, r))
+        .collect()
+}
+
+fn judge_region(z: &[f32], m: &[f32], cols: usize, r: &Window) -> Option<RegionFit> {
+    let rows = || {
+        (r.row0..r.row0 + r.rows).flat_map(move |y| {
+            let k = y * cols + r.col0;
+            z[k..k + r.cols]
+                .iter()
+                .zip(&m[k..k + r.cols])
+                .filter(|(a, b)| !a.is_nan() && !b.is_nan())
+                .map(|(&a, &b)| (f64::from(a), f64::from(b)))
+        })
+    };
+    let (mut n, mut sz, mut sm) = (0usize, 0.0, 0.0);
+    let (mut zlo, mut zhi, mut mlo, mut mhi) = (
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+    );
+    for (a, b) in rows() {
+        n += 1;
+        sz += a;
+        sm += b;
+        zlo = zlo.min(a);
+        zhi = zhi.max(a);
+        mlo = mlo.min(b);
+        mhi = mhi.max(b);
+    }
+    if n == 0 {
+        return None;
+    }
+    let (mz, mm) = (sz / n as f64, sm / n as f64);
+    let (mut za, mut zq, mut ma, mut mq, mut rq) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for (a, b) in rows() {
+        let (da, db) = (a - mz, b - mm);
+        za += da.abs();
+        zq += da * da;
+        ma += db.abs();
+        mq += db * db;
+        rq += (db - da) * (db - da);
+    }
+    let nf = n as f64;
+    let measured = [za / nf, (zq / nf).sqrt(), zhi - zlo];
+    let model = [ma / nf, (mq / nf).sqrt(), mhi - mlo];
+    let dev = [0, 1, 2].map(|k| (model[k] - measured[k]) / measured[k] * 100.0);
+    Some(RegionFit {
+        region: r.name.clone(),
+        samples: n,
+        measured_um: measured,
+        deviation_pct: dev.map(|d| if d.is_finite() { d } else { f64::NAN }),
+        residual_pct_of_sq: (rq / nf).sqrt() / measured[1] * 100.0,
+    })
+}
+
+/// One mesh of the search: its cost and its worst fidelity.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CurvePoint {
+    /// The vertical bound of the greedy insertion, um and as a fraction of Sq.
+    pub epsilon_um: f64,
+    pub epsilon_sq_fraction: f64,
+    pub surface_triangles: usize,
+    pub triangles_per_measured_px: f64,
+    /// Worst |deviation| over the regions, percent, signed as found.
+    pub worst_sa_pct: f64,
+    pub worst_sq_pct: f64,
+    pub worst_sz_pct: f64,
+    /// Largest pointwise residual RMS over the regions, percent of the region's Sq.
+    pub worst_residual_pct_of_sq: f64,
+    /// The region with the largest deviation relative to its limit.
+    pub worst_region: String,
+    /// Every region within [`TARGET_SHARE`] of the tolerance.
+    pub pass: bool,
+    /// Beyond `max_triangles` (not kept).
+    pub over_budget: bool,
+    /// The mesh written.
+    pub chosen: bool,
+}
+
+fn worst_signed(fits: &[RegionFit], k: usize) -> f64 {
+    fits.iter()
+        .map(|f| f.deviation_pct[k])
+        .max_by(|a, b| a.abs().total_cmp(&b.abs()))
+        .unwrap_or(f64::NAN)
+}
+
+/// What the search found, for run.json and the verdict.
+#[derive(Debug, Clone, Serialize)]
+pub struct ToleranceReport {
+    pub tolerance: Tolerance,
+    pub target_share: f64,
+    pub region_px: usize,
+    pub regions: usize,
+    pub measured_px: usize,
+    /// The tolerance holds in every region at the chosen mesh.
+    pub met: bool,
+    pub surface_triangles: usize,
+    pub triangles_per_measured_px: f64,
+    pub epsilon_um: f64,
+    /// Why the tolerance is not met (region, parameter, cause); None when it is.
+    pub reason: Option<String>,
+    /// Every region of the chosen mesh, worst first.
+    pub region_fits: Vec<RegionFit>,
+    /// The fidelity-cost curve: every mesh the search made, by triangle count.
+    pub curve: Vec<CurvePoint>,
+}
+
+/// Finest bound the search tries, as a fraction of Sq.
+const FINEST_SQ_FRACTION: f64 = 0.004;
+/// First (coarsest) bound and the step between bounds.
+const COARSEST_SQ_FRACTION: f64 = 2.0;
+const STEP: f64 = 0.6;
+/// Points the curve should have at least (finer meshes are added after a pass).
+const MIN_CURVE_POINTS: usize = 6;
+
+/// One mesh made by the search's caller: the mesh, its surface triangles and its regions.
+pub struct Trial<M> {
+    pub mesh: M,
+    pub surface_triangles: usize,
+    pub fits: Vec<RegionFit>,
+}
+
+/// The search (module docs): `mesh_at(epsilon_um)` makes and judges one mesh. Returns the
+/// chosen mesh and the report. `sq_um` is the measured Sq the bounds are scaled by.
+pub fn search<M>(
+    sq_um: f64,
+    measured_px: usize,
+    settings: &ToleranceSettings,
+    regions: usize,
+    max_triangles: Option<usize>,
+    mut mesh_at: impl FnMut(f64) -> Result<Trial<M>>,
+) -> Result<(M, ToleranceReport)> {
+    if !(sq_um.is_finite() && sq_um > 0.0) {
+        return Err(MeshError::Incompatible(format!(
+            "a model from a tolerance needs a surface with height variation: its Sq is \
+             {sq_um} um; give an absolute epsilon_um instead"
+        )));
+    }
+    let t = settings.tolerance;
+    let region_px = settings.region_px.unwrap_or(DEFAULT_REGION_PX);
+    let budget = max_triangles.unwrap_or(usize::MAX);
+    let mut curve: Vec<(CurvePoint, Vec<RegionFit>)> = Vec::new();
+    // (index in curve, mesh) of the best passing and of the finest within the budget.
+    let mut best: Option<(usize, M)> = None;
+    let mut fallback: Option<(usize, M)> = None;
+    let mut run = |f: f64,
+                   curve: &mut Vec<(CurvePoint, Vec<RegionFit>)>|
+     -> Result<(bool, bool, Option<M>)> {
+        surfstream_core::liveness::beat();
+        let trial = mesh_at(f * sq_um)?;
+        let mut fits = trial.fits;
+        fits.sort_by(|a, b| b.worst_ratio(&t).total_cmp(&a.worst_ratio(&t)));
+        let pass = !fits.is_empty() && fits.iter().all(|r| r.excess(&t, TARGET_SHARE).is_none());
+        let over = trial.surface_triangles > budget;
+        curve.push((
+            CurvePoint {
+                epsilon_um: f * sq_um,
+                epsilon_sq_fraction: f,
+                surface_triangles: trial.surface_triangles,
+                triangles_per_measured_px: trial.surface_triangles as f64
+                    / measured_px.max(1) as f64,
+                worst_sa_pct: worst_signed(&fits, 0),
+                worst_sq_pct: worst_signed(&fits, 1),
+                worst_sz_pct: worst_signed(&fits, 2),
+                worst_residual_pct_of_sq: fits
+                    .iter()
+                    .map(|r| r.residual_pct_of_sq)
+                    .fold(0.0, f64::max),
+                worst_region: fits.first().map(|r| r.region.clone()).unwrap_or_default(),
+                pass,
+                over_budget: over,
+                chosen: false,
+            },
+            fits,
+        ));
+        Ok((pass, over, (!over).then_some(trial.mesh)))
+    };
+    let mut f = COARSEST_SQ_FRACTION;
+    let mut last_fail: Option<f64> = None;
+    let mut first_pass: Option<f64> = None;
+    let mut over_at: Option<f64> = None;
+    while f >= FINEST_SQ_FRACTION {
+        let (pass, over, mesh) = run(f, &mut curve)?;
+        if over {
+            over_at = Some(f);
+            break;
+        }
+        let k = curve.len() - 1;
+        if pass {
+            best = mesh.map(|m| (k, m));
+            first_pass = Some(f);
+            break;
+        }
+        fallback = mesh.map(|m| (k, m));
+        last_fail = Some(f);
+        f *= STEP;
+    }
+    // Two geometric bisections between the last failing and the first passing bound.
+    if let (Some(mut lo), Some(mut hi)) = (first_pass, last_fail) {
+        for _ in 0..2 {
+            let mid = (lo * hi).sqrt();
+            let (pass, over, mesh) = run(mid, &mut curve)?;
+            let k = curve.len() - 1;
+            if pass && !over {
+                let fewer = best.as_ref().is_none_or(|(b, _)| {
+                    curve[k].0.surface_triangles < curve[*b].0.surface_triangles
+                });
+                if fewer {
+                    best = mesh.map(|m| (k, m));
+                }
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+    }
+    // The budget stopped the search before a pass: use the budget, two geometric bisections
+    // between the last bound within it and the first beyond it.
+    if let (None, Some(mut lo), Some(mut hi)) = (first_pass, over_at, last_fail) {
+        for _ in 0..2 {
+            let mid = (lo * hi).sqrt();
+            let (pass, over, mesh) = run(mid, &mut curve)?;
+            let k = curve.len() - 1;
+            if over {
+                lo = mid;
+                continue;
+            }
+            hi = mid;
+            if pass {
+                best = mesh.map(|m| (k, m));
+                break;
+            }
+            fallback = mesh.map(|m| (k, m));
+        }
+    }
+    // A few finer meshes for the curve when the search stopped early.
+    if let Some(mut g) = first_pass {
+        while curve.len() < MIN_CURVE_POINTS && g * STEP >= FINEST_SQ_FRACTION {
+            g *= STEP;
+            let (_, over, _) = run(g, &mut curve)?;
+            if over {
+                break;
+            }
+        }
+    }
+    let (k, mesh) = match (best, fallback) {
+        (Some(b), _) => b,
+        (None, Some(fb)) => fb,
+        (None, None) => {
+            return Err(MeshError::Incompatible(format!(
+                "tolerance {t}: even the coarsest mesh ({} surface triangles) exceeds \
+                 max_triangles = {budget}",
+                curve.first().map_or(0, |c| c.0.surface_triangles)
+            )))
+        }
+    };
+    curve[k].0.chosen = true;
+    let chosen = curve[k].0.clone();
+    let fits = curve[k].1.clone();
+    let met = fits.iter().all(|r| r.excess(&t, 1.0).is_none());
+    let reason = (!met).then(|| {
+        let worst = &fits[0];
+        let (param, d, limit) = worst.excess(&t, 1.0).unwrap_or(("Sa", f64::NAN, t.sa_pct));
+        let finer_over = curve
+            .iter()
+            .filter(|c| c.0.over_budget)
+            .min_by_key(|c| c.0.surface_triangles);
+        let why = match finer_over {
+            Some(c) => format!(
+                "the next finer mesh needs {} surface triangles, beyond max_triangles = {budget}",
+                c.0.surface_triangles
+            ),
+            None => format!(
+                "not reached even at the finest bound tried ({:.3} x Sq, {} surface \
+                 triangles); the residual is {:.1} % of Sq there",
+                chosen.epsilon_sq_fraction, chosen.surface_triangles, worst.residual_pct_of_sq
+            ),
+        };
+        format!(
+            "region {}: {param} {d:+.2} % beyond the tolerance of {limit} %: {why}",
+            worst.region
+        )
+    });
+    let mut points: Vec<CurvePoint> = curve.into_iter().map(|(c, _)| c).collect();
+    points.sort_by(|a, b| {
+        a.surface_triangles
+            .cmp(&b.surface_triangles)
+            .then(b.epsilon_um.total_cmp(&a.epsilon_um))
+    });
+    Ok((
+        mesh,
+        ToleranceReport {
+            tolerance: t,
+            target_share: TARGET_SHARE,
+            region_px,
+            regions,
+            measured_px,
+            met,
+            surface_triangles: chosen.surface_triangles,
+            triangles_per_measured_px: chosen.triangles_per_measured_px,
+            epsilon_um: chosen.epsilon_um,
+            reason,
+            region_fits: fits,
+            curve: points,
+        },
+    ))
+}
+
+/// The measured Sq the bounds are scaled by (about the least-squares plane, as
+/// [`crate::Epsilon::SqFraction`]) and the measured sample count.
+fn scale_of(heights: RasterView<'_, f32>, at: &ScanPlacement) -> (f64, usize) {
+    let levelled = field_params(heights, at.pitch_x_um, at.pitch_y_um).map_or(0.0, |p| p.sq_um);
+    let v: Vec<f64> = heights
+        .values()
+        .iter()
+        .filter(|h| !h.is_nan())
+        .map(|&h| f64::from(h))
+        .collect();
+    let mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let about_mean =
+        (v.iter().map(|h| (h - mean).powi(2)).sum::<f64>() / v.len().max(1) as f64).sqrt();
+    // A plane has no Sq about its plane but the f32 rounding: scale by its Sq about the mean
+    // (what the regions judge), which the first, coarsest mesh then meets.
+    let sq = if levelled > 1e-6 * about_mean {
+        levelled
+    } else {
+        about_mean
+    };
+    (sq, v.len())
+}
+
+/// The settings with the window side resolved for `shape`, and the windows.
+fn settings_for(s: &ToleranceSettings, shape: Shape) -> (ToleranceSettings, Vec<Window>) {
+    let px = s.region_px.unwrap_or_else(|| default_region_px(shape));
+    let regions = windows(shape, px);
+    (
+        ToleranceSettings {
+            tolerance: s.tolerance,
+            region_px: Some(px),
+        },
+        regions,
+    )
+}
+
+/// The adaptive mesh of `heights` with the fewest triangles the search finds within the
+/// tolerance (in memory; `params.epsilon` is replaced by the search's bounds and
+/// `params.max_triangles` bounds the search, not the insertion).
+pub fn mesh_to_tolerance(
+    heights: RasterView<'_, f32>,
+    at: &ScanPlacement,
+    params: &MeshParams,
+    settings: &ToleranceSettings,
+) -> Result<(AdaptiveMesh, ToleranceReport)> {
+    validate(heights, at)?;
+    let (sq, measured_px) = scale_of(heights, at);
+    let (settings, regions) = settings_for(settings, heights.shape());
+    let settings = &settings;
+    let mut p = params.clone();
+    p.max_triangles = None;
+    search(
+        sq,
+        measured_px,
+        settings,
+        regions.len(),
+        params.max_triangles,
+        |eps| {
+            p.epsilon = Epsilon::Um(eps);
+            let m = mesh_height_field_with(heights, at, &p, true)?;
+            let fits = judge_regions(heights.values(), &m.resampled_um, heights.shape(), &regions);
+            Ok(Trial {
+                surface_triangles: m.surface_triangles,
+                fits,
+                mesh: m,
+            })
+        },
+    )
+}
+
+/// [`mesh_to_tolerance`] through the streaming mesher ([`crate::stream`]): each trial holds
+/// its triangles in a spill file in `spill_dir`; at most three trials (the best, the finest
+/// failing one, the current) are alive at once.
+pub fn mesh_streaming_to_tolerance(
+    heights: RasterView<'_, f32>,
+    at: &ScanPlacement,
+    params: &MeshParams,
+    settings: &ToleranceSettings,
+    spill_dir: &Path,
+) -> Result<(StreamedMesh, ToleranceReport)> {
+    validate(heights, at)?;
+    let (sq, measured_px) = scale_of(heights, at);
+    let (settings, regions) = settings_for(settings, heights.shape());
+    let settings = &settings;
+    let mut p = params.clone();
+    p.max_triangles = None;
+    search(
+        sq,
+        measured_px,
+        settings,
+        regions.len(),
+        params.max_triangles,
+        |eps| {
+            p.epsilon = Epsilon::Um(eps);
+            let m = mesh_streaming_with(heights, at, &p, spill_dir, true)?;
+            let fits = judge_regions(heights.values(), &m.resampled_um, heights.shape(), &regions);
+            Ok(Trial {
+                surface_triangles: m.counts.top_triangles,
+                fits,
+                mesh: m,
+            })
+        },
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tolerance_parses_text_and_tables() {
+        assert_eq!("".parse::<Tolerance>(), Ok(DEFAULT_TOLERANCE));
+        let t: Tolerance = "sa=2, sz=5%".parse().unwrap();
+        assert_eq!((t.sa_pct, t.sq_pct, t.sz_pct), (2.0, 1.0, 5.0));
+        assert!("sa=0".parse::<Tolerance>().unwrap_err().contains("> 0"));
+        assert!("sdr=1".parse::<Tolerance>().unwrap_err().contains("known"));
+        assert_eq!(
+            "res=20".parse::<Tolerance>().unwrap().residual_pct,
+            Some(20.0)
+        );
+        assert!("sa"
+            .parse::<Tolerance>()
+            .unwrap_err()
+            .contains("NAME=PERCENT"));
+        #[derive(Deserialize)]
+        struct W {
+            t: Tolerance,
+        }
+        let w: W = toml::from_str("t = { sq = 0.5 }").unwrap();
+        assert_eq!(w.t.sq_pct, 0.5);
+        let w: W = toml::from_str("t = \"sz=4\"").unwrap();
+        assert_eq!(w.t.sz_pct, 4.0);
+    }
+
+    #[test]
+    fn windows_cover_the_map_at_half_steps() {
+        let w = windows(Shape::new(100, 60), 40);
+        assert_eq!(w[0].rows, 100);
+        // Rows: 0, 20, 40, 60; cols: 0, 20.
+        assert_eq!(w.len(), 1 + 4 * 2);
+        assert!(w
+            .iter()
+            .all(|r| r.row0 + r.rows <= 100 && r.col0 + r.cols <= 60));
+        assert_eq!(windows(Shape::new(30, 30), 40).len(), 1);
+    }
+
+    #[test]
+    fn a_mesh_equal_to_the_measurement_deviates_nowhere_and_a_flattened_one_does() {
+        let shape = Shape::new(20, 20);
+        let z: Vec<f32> = (0..400).map(|k| ((k * 37 % 11) as f32) - 5.0).collect();
+        let r = windows(shape, 10);
+        let same = judge_regions(&z, &z, shape, &r);
+        assert_eq!(same.len(), r.len());
+        assert!(same
+            .iter()
+            .all(|f| f.deviation_pct == [0.0; 3] && f.residual_pct_of_sq == 0.0));
+        let half: Vec<f32> = z.iter().map(|v| 0.5 * v).collect();
+        let f = &judge_regions(&z, &half, shape, &r[..1])[0];
+        for d in f.deviation_pct {
+            assert!((d + 50.0).abs() < 1e-9, "{d}");
+        }
+        assert!((f.residual_pct_of_sq - 50.0).abs() < 1e-9);
+    }
+}
