@@ -18,6 +18,10 @@ pub struct FinishArgs {
     /// cycle the LIGGGHTS input script, STL and log.
     #[arg(short = 'o', long, value_name = "OUT")]
     pub out: PathBuf,
+    /// Write into an existing OUT that no surfstream command made (files of the same name
+    /// are replaced). The input's own folder is never accepted as OUT.
+    #[arg(long)]
+    pub force: bool,
     /// Patch size, um: W or W,H (default: a centred square meshed at full resolution within
     /// --max-triangles).
     #[arg(long, value_name = "W[,H]")]
@@ -175,7 +179,14 @@ fn parse_pair(s: &str, what: &str) -> Result<Vec<f64>> {
 }
 
 pub fn run(a: FinishArgs) -> Result<()> {
+    // OUT is ours only if we made it (the rule of every verb that writes a folder).
+    let claim = crate::outdir::Claim {
+        inputs: vec![a.input.clone()],
+        force: a.force,
+    };
+    crate::outdir::check_ours(&a.out, &claim)?;
     let (model, ideal) = inputs(&a)?;
+    crate::outdir::create_marked(&a.out)?;
     let mut o = FinishOptions {
         time_budget_s: a.time_budget_s,
         cycles: a.cycles,
