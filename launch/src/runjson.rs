@@ -136,7 +136,11 @@ fn list_files(dir: &Path) -> Result<Vec<String>> {
                 stack.push(p);
             } else if let Ok(rel) = p.strip_prefix(dir) {
                 let name = rel.display().to_string();
-                if !name.ends_with(".partial") && name != "run.json" {
+                // Dot files (the run marker, the failure reserve) are bookkeeping, not outputs.
+                let hidden = rel
+                    .file_name()
+                    .is_some_and(|n| n.to_string_lossy().starts_with('.'));
+                if !hidden && !name.ends_with(".partial") && name != "run.json" {
                     files.push(name);
                 }
             }

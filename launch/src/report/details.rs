@@ -209,9 +209,10 @@ pub fn mesh(run: &Value) -> String {
             ]
         })
         .collect();
+        let meshed = m["surface"].as_str().unwrap_or("pooled");
         let _ = write!(
             h,
-            "<div><h3>Fidelity of the mesh (pooled map, levelled)</h3>{}<p class=\"note\">Both \
+            "<div><h3>Fidelity of the mesh ({meshed}, levelled)</h3>{}<p class=\"note\">Both \
              columns are levelled: the least-squares plane of the height field is removed from \
              both, so they differ from the key parameters above (mean removed, not levelled). \
              Vertical error of the mesh at every sample: max {}, rms {} (bound {}: {}).</p></div>",

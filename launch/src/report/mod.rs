@@ -126,7 +126,8 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
         let f = view3d::figure(
             model,
             if model.name == "pooled" {
-                "pooled map (the surface the STL meshes)"
+                "pooled map (4 x 4 max pooling of the panorama, drawn for speed; the STL's surface \
+                 is named in the Mesh section)"
             } else {
                 "panorama"
             },
@@ -313,7 +314,7 @@ mod tests {
                 "{p}"
             );
         }
-        assert!(h.contains("Fidelity of the mesh (pooled map, levelled)"));
+        assert!(h.contains("Fidelity of the mesh ("));
         assert!(h.contains("<td>275 x 325</td>"), "mesh grid as rows x cols");
         assert!(h.contains("y up (row 0 at the bottom)"));
         assert!(h.contains("µm (y x x), y down as the stage moves"));

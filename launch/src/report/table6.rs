@@ -32,6 +32,34 @@ fn badge(pass: bool) -> &'static str {
     }
 }
 
+/// Whether a stage is judged (a stage that is not meshed is reported only).
+fn stage_judged(st: &Value) -> bool {
+    st["judged"] != false
+}
+
+/// The stage's own limit for `p` (the mesh: the model's tolerance), else the threshold.
+fn limit(st: &Value, p: &str, threshold: f64) -> f64 {
+    st["limits_pct"][p].as_f64().unwrap_or(threshold)
+}
+
+/// The verdict badge of a stage or region; "reported" where the stage is not judged.
+fn verdict_badge(st: &Value, pass: bool) -> &'static str {
+    if stage_judged(st) {
+        badge(pass)
+    } else {
+        "<span class=\"badge\" title=\"not what the STL is made from: reported, not judged\">reported</span>"
+    }
+}
+
+/// The row class: pass / fail, nothing where the stage is not judged.
+fn row_class(st: &Value, pass: bool) -> String {
+    match (stage_judged(st), pass) {
+        (false, _) => String::new(),
+        (true, true) => "pass".into(),
+        (true, false) => "fail".into(),
+    }
+}
+
 pub fn section(dev: &Value) -> String {
     if let Some(e) = dev["error"].as_str() {
         return format!(
@@ -72,7 +100,7 @@ pub fn section(dev: &Value) -> String {
                 .unwrap_or(0);
             let total = regions.map(|r| r.len()).unwrap_or(0);
             (
-                if st["pass"] == true { "pass" } else { "fail" }.to_string(),
+                row_class(st, st["pass"] == true),
                 vec![
                     format!("<b>{}</b>", esc(name)),
                     esc(g["name"].as_str().unwrap_or("?")),
@@ -82,7 +110,7 @@ pub fn section(dev: &Value) -> String {
                     },
                     g["pitch_x_um"].as_f64().map(pitch).unwrap_or("-".into()),
                     format!("{} of {total}", total - failed),
-                    badge(st["pass"] == true).to_string(),
+                    verdict_badge(st, st["pass"] == true).to_string(),
                 ],
             )
         })
@@ -102,6 +130,9 @@ pub fn section(dev: &Value) -> String {
     // The failures, one row per judged parameter out of bounds.
     let mut fails = Vec::new();
     for (stage, st) in stages {
+        if !stage_judged(st) {
+            continue;
+        }
         for (region, r) in st["regions"].as_object().into_iter().flatten() {
             if r["pass"] == true {
                 continue;
@@ -109,7 +140,7 @@ pub fn section(dev: &Value) -> String {
             let mut any = false;
             for p in &judged {
                 let d = r["deviation_pct"][*p].as_f64();
-                if d.is_some_and(|d| d.abs() <= e) {
+                if d.is_some_and(|d| d.abs() <= limit(st, p, e)) {
                     continue;
                 }
                 any = true;
@@ -178,8 +209,8 @@ pub fn section(dev: &Value) -> String {
                         value(p, &r["measured"][p]),
                         value(p, &r["model"][p])
                     );
-                    cells.push(if judged.contains(&p) {
-                        let ok = d.is_some_and(|d| d.abs() <= e);
+                    cells.push(if judged.contains(&p) && stage_judged(st) {
+                        let ok = d.is_some_and(|d| d.abs() <= limit(st, p, e));
                         format!(
                             "<span class=\"{}\" title=\"{}\">{text}</span>",
                             if ok { "ok" } else { "bad" },
@@ -192,11 +223,8 @@ pub fn section(dev: &Value) -> String {
                         )
                     });
                 }
-                cells.push(badge(r["pass"] == true).to_string());
-                (
-                    if r["pass"] == true { "pass" } else { "fail" }.to_string(),
-                    cells,
-                )
+                cells.push(verdict_badge(st, r["pass"] == true).to_string());
+                (row_class(st, r["pass"] == true), cells)
             })
             .collect();
         let g = &st["grid"];
@@ -204,14 +232,15 @@ pub fn section(dev: &Value) -> String {
             h,
             "<div><h4>{} {} <span class=\"note\">on the {}</span></h4>{}</div>",
             esc(stage),
-            badge(st["pass"] == true),
+            verdict_badge(st, st["pass"] == true),
             esc(g["name"].as_str().unwrap_or("?")),
             table_raw(&head, &rows)
         );
     }
     let _ = write!(
         h,
-        "</div><p class=\"note\">Bold columns are judged (±{} %); grey ones are reported only \
+        "</div><p class=\"note\">Bold columns are judged (±{} %, the mesh against the model's \
+         tolerance); grey ones are reported only \
          (Ssk near 0 gives large relative deviations; slopes of a coarser grid differ by \
          construction). Hover a cell for the two values.</p>",
         fixed(e, 1)
@@ -223,9 +252,9 @@ pub fn section(dev: &Value) -> String {
         for (region, r) in st["regions"].as_object().into_iter().flatten() {
             for p in PARAMS {
                 let d = r["deviation_pct"][p].as_f64();
-                let class = if !judged.contains(&p) {
+                let class = if !judged.contains(&p) || !stage_judged(st) {
                     ""
-                } else if d.is_some_and(|d| d.abs() <= e) {
+                } else if d.is_some_and(|d| d.abs() <= limit(st, p, e)) {
                     "pass"
                 } else {
                     "fail"

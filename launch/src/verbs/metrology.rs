@@ -840,9 +840,14 @@ mod tests {
         let d = tempfile::tempdir().unwrap();
         let bare = npy(d.path(), "bare.npy", 6, 7);
         for ext in ["x3p", "gsf", "tif"] {
-            let e = convert_one(&bare, &d.path().join(format!("o.{ext}")), None)
-                .unwrap_err()
-                .to_string();
+            let e = convert_one(
+                &bare,
+                &d.path().join(format!("o.{ext}")),
+                None,
+                &Default::default(),
+            )
+            .unwrap_err()
+            .to_string();
             assert!(
                 e.contains(&format!(
                     "the file carries no pitch, and a .{ext} stores one: give --pitch-um"
@@ -852,24 +857,26 @@ mod tests {
         }
         // With --pitch-um: the x3p says it; back to .npy, the sidecar keeps it.
         let x3p = d.path().join("o.x3p");
-        let line = convert_one(&bare, &x3p, Some(0.75)).unwrap();
+        let line = convert_one(&bare, &x3p, Some(0.75), &Default::default()).unwrap();
         assert!(
             line.contains("(6 rows x 7 cols, pitch 0.7500 um)"),
             "{line}"
         );
         let back = d.path().join("back.npy");
-        let line = convert_one(&x3p, &back, None).unwrap();
+        let line = convert_one(&x3p, &back, None, &Default::default()).unwrap();
         assert!(line.contains("+ back.npy.json"), "{line}");
         let s = surfstream_io::formats::read_surface(&back).unwrap();
         assert!(s.metadata.pitch_known && (s.pitch_x_um - 0.75).abs() < 1e-12);
         // A pitchless .npy to .npy: no sidecar, no claim.
-        let line = convert_one(&bare, &d.path().join("copy.npy"), None).unwrap();
+        let line =
+            convert_one(&bare, &d.path().join("copy.npy"), None, &Default::default()).unwrap();
         assert!(line.ends_with("pitch 1.000 um, not known)"), "{line}");
         assert!(!d.path().join("copy.npy.json").exists());
     }
 
     fn args(files: Vec<PathBuf>) -> ParamsArgs {
         ParamsArgs {
+            mask: Default::default(),
             files,
             all: true,
             level: false,

@@ -304,6 +304,7 @@ mod tests {
         surfstream_io::npy::write_npy_f64(&input, &z, rows, cols).unwrap();
         let out = d.path().join("sep");
         run(SeparateArgs {
+            mask: Default::default(),
             file: input,
             method: "wavelet".into(),
             cutoff_um: None,
