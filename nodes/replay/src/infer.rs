@@ -207,18 +207,29 @@ fn manifest_text(
         .file_name()
         .map(|n| n.to_string_lossy().replace('"', "'"))
         .unwrap_or_else(|| "scan".into());
-    let mut toml = format!("{comment}[scan]\nname = \"{name}\"\nrows = {rows}\ncols = {cols}\n");
+    // The manifest goes to OUT, the tiles stay in `dir`: [scan] tile_dir names it, and the
+    // tile files are named inside it (a manifest reads only its tile folder).
+    let dir_real = dir
+        .canonicalize()
+        .with_context(|| format!("{}: cannot resolve", dir.display()))?;
+    let dir_text = dir_real
+        .to_str()
+        .ok_or_else(|| anyhow!("{}: the path is not UTF-8", dir_real.display()))?;
+    let mut toml = format!(
+        "{comment}[scan]\nname = \"{name}\"\nrows = {rows}\ncols = {cols}\ntile_dir = {dir_text:?}\n"
+    );
     if let Some((px, py)) = pitch_um {
         toml += &format!("pitch_x_um = {px}\npitch_y_um = {py}\n");
     }
     for t in tiles {
-        let path = t
+        let real = t
             .file
             .canonicalize()
             .with_context(|| format!("{}: cannot resolve", t.file.display()))?;
-        let path = path
+        let rel = real.strip_prefix(&dir_real).unwrap_or(&real);
+        let path = rel
             .to_str()
-            .ok_or_else(|| anyhow!("{}: the path is not UTF-8", path.display()))?;
+            .ok_or_else(|| anyhow!("{}: the path is not UTF-8", rel.display()))?;
         toml += &format!(
             "\n[[tile]]\nfile = {path:?}\nrow = {}\ncol = {}\nstage_x_um = {}\nstage_y_um = {}\n",
             t.row, t.col, t.stage_um[0], t.stage_um[1]

@@ -40,6 +40,10 @@ struct RawScanSection {
     /// Regions of the tiles' X3P colour masks to drop (annotation, "background" or #rrggbb).
     #[serde(default)]
     mask_exclude: Vec<String>,
+    /// The folder of the tile files when it is not the manifest's own (absolute, or relative
+    /// to the manifest): `stitch DIR --grid` writes its inferred manifest into OUT and names
+    /// DIR here. Tile files must lie inside it.
+    tile_dir: Option<String>,
 }
 
 /// `[scan]`, resolved: the pitch from the manifest or the tile files.
@@ -237,6 +241,7 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         }
     }
     let unit_given = raw.height_unit.is_some();
+    let tile_dir = raw.tile_dir;
     let mut scan = ScanSection {
         name: raw.name,
         pitch_x_um: raw.pitch_x_um.unwrap_or(f64::NAN),
@@ -315,7 +320,12 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
             );
         }
     }
-    let dir = manifest_path.parent().unwrap_or(Path::new("."));
+    let manifest_dir = manifest_path.parent().unwrap_or(Path::new("."));
+    let dir_buf = match &tile_dir {
+        Some(t) => manifest_dir.join(t),
+        None => manifest_dir.to_path_buf(),
+    };
+    let dir = dir_buf.as_path();
     let dir_real = dir
         .canonicalize()
         .with_context(|| format!("{}: cannot resolve the scan directory", dir.display()))?;
