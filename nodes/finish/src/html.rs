@@ -253,9 +253,9 @@ pub fn render(
 <style>body{{font-family:sans-serif;margin:24px;color:#222}}\
 table{{border-collapse:collapse;margin:6px 0 18px}}\
 td,th{{border:1px solid #ccc;padding:3px 8px;text-align:right;font-size:13px}}\
-td.k,th.k{{text-align:left}}td.t{{text-align:left;color:#555;max-width:520px}}\
+td.k,th.k{{text-align:left}}td.t{{text-align:left;color:#555;max-width:360px}}\
 .row{{display:flex;gap:22px;flex-wrap:wrap;align-items:flex-start;margin-bottom:18px}}\
-figure{{margin:0}}figcaption{{font-size:13px;color:#555;max-width:460px}}\
+figure{{margin:0;width:min-content}}figcaption{{font-size:13px;color:#555}}\
 h2{{margin-top:26px;border-bottom:1px solid #ddd}}.warn{{color:#b03a00}}</style></head><body>\
 <h1>Finishing simulation{}</h1><p><b>{}</b> Model: {}.</p>",
         if partial {
@@ -1066,7 +1066,7 @@ mod tests {
                           "guard_band_um": 45.0, "boundary": "guard band"},
                 "media": {"diameter_mm": 3.0, "density_kg_m3": 2500.0, "youngs_modulus_pa": 1e11,
                           "poisson_ratio": 0.25, "restitution": 0.6, "friction": 0.3},
-                "action": {"media_velocity_m_s": 1.5708, "pressure_pa": 3997.19,
+                "action": {"media_velocity_m_s": 1.618, "pressure_pa": 3997.19,
                            "impact_angle_deg": 20.0, "acceleration_m_s2": 133.2, "source": "barrel"},
                 "k_finnie_per_pa": 1e-10, "archard_k_over_h_per_pa": 5e-14,
                 "process_time_s": 300.0, "time_budget_s": 60.0, "ranks": 1,
@@ -1117,7 +1117,7 @@ mod tests {
         // The setting and timings from finish.json.
         for needle in [
             "3.00 mm, 2500 kg/m³",
-            "1.571 m/s",
+            "1.618 m/s",
             "3997 Pa",
             "20.0 × 15.0 µm",
             "2 of 3",
