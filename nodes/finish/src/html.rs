@@ -189,7 +189,8 @@ pub fn render(
     let ab_diff: Vec<(f64, f64)> = ab_before
         .iter()
         .zip(&ab_after)
-        .map(|(b, a)| (b.0, b.1 - a.1))
+        // The levelling shift taken out, so untouched valleys read zero.
+        .map(|(b, a)| (b.0, b.1 - a.1 - level_shift_um))
         .collect();
     let peak = |v: &[(f64, f64)]| -> Vec<(f64, f64)> {
         v.iter().copied().filter(|(m, _)| *m <= 20.0).collect()
@@ -284,8 +285,8 @@ The worn surface is re-levelled after wear, so original − worn differs from th
 <figure>{abbott_svg}<figcaption>Before (thick grey) and after (dashed red).</figcaption></figure>\
 <figure>{abbott_peak_svg}<figcaption>The peak region, where finishing acts first.</figcaption></figure>\
 <figure>{abbott_diff_svg}<figcaption>Height lost at each material ratio: large at the left (peaks), \
-small at the right (valleys); the worn surface is re-levelled, which shifts the whole curve by \
-{level_shift_um:+.4} µm.</figcaption></figure></div>\
+zero at the right (valleys). The worn surface is re-levelled after wear; that shift \
+({level_shift_um:+.4} µm) is taken out here.</figcaption></figure></div>\
 <h2>Roughness parameters (µm, Ssk/Sku dimensionless, Smr %)</h2>\
 <table><tr><th class=\"k\">param</th><th>before</th><th>after</th><th>change</th>\
 <th>paper before</th><th>paper after (5 min)</th></tr>{params}</table>\
@@ -553,6 +554,8 @@ fn parameter_table(s: &Value) -> String {
                 .map_or(String::new(), |(_, v)| format!("{v:.3}"))
         };
         let change = match (b, a) {
+            // Shape parameters near zero: a relative change means nothing, give the difference.
+            (Some(b), Some(a)) if matches!(key, "Ssk" | "Sku") => format!("{:+.3}", a - b),
             (Some(b), Some(a)) if b.abs() > 1e-12 => format!("{:+.1} %", (a - b) / b * 100.0),
             _ => "–".into(),
         };
