@@ -1,6 +1,10 @@
-//! finish.html: a standalone page of one finishing run: the wear map, the worn against the
-//! original profile, the Abbott curves before and after, and the parameters.
+//! finish.html: a standalone page of one finishing run for a process engineer: the setting and
+//! timings (from finish.json), the wear map and the surface before/after with axes in µm and
+//! colour bars, the worn against the original profile with the removed depth along the row,
+//! the Abbott-Firestone curves before/after with their difference and a zoom on the peaks, and
+//! the parameters beside the paper's.
 
+use std::fmt::Write as _;
 use std::io::Write;
 use std::path::Path;
 
@@ -12,6 +16,10 @@ use serde_json::Value;
 pub const PAPER_BEFORE: [(&str, f64); 3] = [("Sa", 1.272), ("Sq", 1.624), ("Sz", 15.262)];
 pub const PAPER_AFTER: [(&str, f64); 3] = [("Sa", 0.565), ("Sq", 0.708), ("Sz", 6.162)];
 
+const GREY: &str = "#9a9a9a";
+const RED: &str = "#c0392b";
+const BLUE: &str = "#1f5fa8";
+
 pub fn write_report(
     path: &Path,
     summary: &Value,
@@ -21,18 +29,145 @@ pub fn write_report(
     rows: usize,
     cols: usize,
 ) -> Result<()> {
-    let png = heat_png(wear, rows, cols)?;
-    let b64 = base64::engine::general_purpose::STANDARD.encode(png);
-    let mid = rows / 2;
+    let html = render(summary, original, worn, wear, rows, cols)?;
+    let mut f =
+        std::fs::File::create(path).with_context(|| format!("{}: cannot write", path.display()))?;
+    f.write_all(html.as_bytes())
+        .with_context(|| format!("{}: write failed", path.display()))
+}
+
+/// The page as a string (the file writer above and the tests share it).
+pub fn render(
+    summary: &Value,
+    original: &[f64],
+    worn: &[f64],
+    wear: &[f64],
+    rows: usize,
+    cols: usize,
+) -> Result<String> {
+    let n = rows * cols;
+    if original.len() != n || worn.len() != n || wear.len() != n {
+        return Err(anyhow!(
+            "finish.html: maps must hold rows x cols = {rows} x {cols} = {n} values \
+             (original {}, worn {}, wear {})",
+            original.len(),
+            worn.len(),
+            wear.len()
+        ));
+    }
     let pitch = summary["setting"]["patch"]["pitch_um"][0]
         .as_f64()
+        .filter(|p| *p > 0.0)
         .unwrap_or(1.0);
+    // The profile row: the one that lost most material, so the worn line visibly departs from
+    // the original (a middle row may not have been touched at all by the few passes).
+    let mid = (0..rows)
+        .map(|r| {
+            let v: f64 = wear[r * cols..(r + 1) * cols]
+                .iter()
+                .filter(|v| v.is_finite())
+                .sum();
+            (r, v)
+        })
+        .fold(
+            (rows / 2, 0.0),
+            |best, (r, v)| if v > best.1 { (r, v) } else { best },
+        );
+    let mid = mid.0;
+
+    // Maps: the wear on its own scale, before and after on one shared height scale so the
+    // two are compared colour for colour.
+    let wear_max = finite_max(wear).max(0.0);
+    let wear_map = map_figure(
+        wear,
+        rows,
+        cols,
+        pitch,
+        (0.0, if wear_max > 0.0 { wear_max } else { 1.0 }),
+        Ramp::Heat,
+        "wear depth along z (µm)",
+        mid,
+    )?;
+    let (h0, h1) = {
+        let (a0, a1) = finite_range(original);
+        let (b0, b1) = finite_range(worn);
+        let (lo, hi) = (a0.min(b0), a1.max(b1));
+        if lo < hi {
+            (lo, hi)
+        } else {
+            (lo, lo + 1.0)
+        }
+    };
+    let original_map = map_figure(
+        original,
+        rows,
+        cols,
+        pitch,
+        (h0, h1),
+        Ramp::Viridis,
+        "height (µm)",
+        mid,
+    )?;
+    let worn_map = map_figure(
+        worn,
+        rows,
+        cols,
+        pitch,
+        (h0, h1),
+        Ramp::Viridis,
+        "height (µm)",
+        mid,
+    )?;
+
+    // Profiles along the middle row: the original drawn thick underneath so the worn line on
+    // top never hides it; the removed depth in its own panel because it is ~100x smaller.
+    let row_x = |c: usize| c as f64 * pitch;
     let prof_a: Vec<(f64, f64)> = (0..cols)
-        .map(|c| (c as f64 * pitch, original[mid * cols + c]))
+        .map(|c| (row_x(c), original[mid * cols + c]))
         .collect();
     let prof_b: Vec<(f64, f64)> = (0..cols)
-        .map(|c| (c as f64 * pitch, worn[mid * cols + c]))
+        .map(|c| (row_x(c), worn[mid * cols + c]))
         .collect();
+    // The removed depth from the wear map itself: worn.npy is re-levelled, so original − worn
+    // carries the levelling shift (stated in the caption) on top of the wear.
+    let removed: Vec<(f64, f64)> = (0..cols)
+        .map(|c| (row_x(c), wear[mid * cols + c]))
+        .collect();
+    let level_shift_um = {
+        let d: Vec<f64> = (0..n)
+            .map(|k| original[k] - worn[k] - wear[k])
+            .filter(|v| v.is_finite())
+            .collect();
+        if d.is_empty() {
+            0.0
+        } else {
+            d.iter().sum::<f64>() / d.len() as f64
+        }
+    };
+    let profile_svg = Plot {
+        title: format!("Profile along row {mid} (y = {:.1} µm)", mid as f64 * pitch),
+        xlabel: "x (µm)",
+        ylabel: "height (µm)",
+        series: vec![
+            Series::line(&prof_a, GREY, 4.0, "original"),
+            Series::line(&prof_b, RED, 1.2, "worn"),
+        ],
+        ..Plot::default()
+    }
+    .svg();
+    let removed_svg = Plot {
+        title: "Removed depth along the same row".into(),
+        xlabel: "x (µm)",
+        ylabel: "wear depth along z (µm)",
+        series: vec![Series::area(&removed, BLUE, "removed")],
+        y_from_zero: true,
+        height: 190.0,
+        ..Plot::default()
+    }
+    .svg();
+
+    // Abbott-Firestone: the two curves differ by a fraction of a µm over a range of ~12 µm, so
+    // the difference and a zoom on the peak region (material ratio 0-20 %) carry the message.
     let curve = |k: &str| -> Vec<(f64, f64)> {
         let a = &summary[k];
         let mr = a["material_ratio_pct"]
@@ -40,73 +175,125 @@ pub fn write_report(
             .cloned()
             .unwrap_or_default();
         let h = a["height_um"].as_array().cloned().unwrap_or_default();
+        // Finish.json holds ~10^4 points; ~1000 draw the same curve and keep the page light.
+        let step = (mr.len() / 1000).max(1);
         mr.iter()
             .zip(&h)
-            .filter_map(|(m, h)| Some((m.as_f64()?, h.as_f64()?)))
+            .enumerate()
+            .filter(|(k, _)| k % step == 0 || *k + 1 == mr.len())
+            .filter_map(|(_, (m, h))| Some((m.as_f64()?, h.as_f64()?)))
             .collect()
     };
-    let profile_svg = svg_lines(
-        &[(&prof_a, "#888", "original"), (&prof_b, "#c0392b", "worn")],
-        "x (um)",
-        "height (um)",
-    );
-    let abbott_svg = svg_lines(
-        &[
-            (&curve("abbott_before"), "#888", "before"),
-            (&curve("abbott_after"), "#c0392b", "after"),
+    let ab_before = curve("abbott_before");
+    let ab_after = curve("abbott_after");
+    let ab_diff: Vec<(f64, f64)> = ab_before
+        .iter()
+        .zip(&ab_after)
+        // The levelling shift taken out, so untouched valleys read zero.
+        .map(|(b, a)| (b.0, b.1 - a.1 - level_shift_um))
+        .collect();
+    let peak = |v: &[(f64, f64)]| -> Vec<(f64, f64)> {
+        v.iter().copied().filter(|(m, _)| *m <= 20.0).collect()
+    };
+    let abbott_svg = Plot {
+        title: "Abbott-Firestone curves".into(),
+        xlabel: "material ratio (%)",
+        ylabel: "height (µm)",
+        series: vec![
+            Series::line(&ab_before, GREY, 4.0, "before"),
+            Series::dashed(&ab_after, RED, 1.6, "after"),
         ],
-        "material ratio (%)",
-        "height (um)",
-    );
-    let mut rows_html = String::new();
-    for key in [
-        "Sa", "Sq", "Sz", "Sp", "Sv", "Sk", "Spk", "Svk", "Ssk", "Sku",
-    ] {
-        let b = summary["before"][key].as_f64().unwrap_or(f64::NAN);
-        let a = summary["after"][key].as_f64().unwrap_or(f64::NAN);
-        let paper = |t: &[(&str, f64)]| {
-            t.iter()
-                .find(|(k, _)| *k == key)
-                .map_or(String::new(), |(_, v)| format!("{v:.3}"))
-        };
-        rows_html.push_str(&format!(
-            "<tr><td>{key}</td><td>{b:.3}</td><td>{a:.3}</td><td>{}</td><td>{}</td></tr>",
-            paper(&PAPER_BEFORE),
-            paper(&PAPER_AFTER)
-        ));
+        ..Plot::default()
     }
-    let max_depth = wear.iter().cloned().fold(0.0, f64::max);
+    .svg();
+    let (pb, pa) = (peak(&ab_before), peak(&ab_after));
+    let abbott_peak_svg = Plot {
+        title: "Zoom on the peak region (0-20 %)".into(),
+        xlabel: "material ratio (%)",
+        ylabel: "height (µm)",
+        series: vec![
+            Series::line(&pb, GREY, 4.0, "before"),
+            Series::line(&pa, RED, 1.6, "after"),
+        ],
+        ..Plot::default()
+    }
+    .svg();
+    let abbott_diff_svg = Plot {
+        title: "Height removed at each material ratio".into(),
+        xlabel: "material ratio (%)",
+        ylabel: "before − after (µm)",
+        series: vec![Series::line(&ab_diff, BLUE, 1.6, "before − after")],
+        y_from_zero: true,
+        ..Plot::default()
+    }
+    .svg();
+
+    let params = parameter_table(summary);
+    let setting = setting_table(summary);
+    let cycles = cycles_table(summary);
     let partial = summary["partial"].as_bool().unwrap_or(false);
-    let sim_ideal = summary["ideal_model"]["sim_wear_maps"]
-        .as_f64()
-        .map_or("not run".to_string(), |s| format!("{s:.3}"));
-    let html = format!(
-        "<!doctype html><html><head><meta charset=\"utf-8\"><title>surfstream finish</title>\
-<style>body{{font-family:sans-serif;margin:24px;color:#222}}table{{border-collapse:collapse}}\
-td,th{{border:1px solid #ccc;padding:3px 8px;text-align:right}}.row{{display:flex;gap:24px;flex-wrap:wrap}}\
-figure{{margin:0}}figcaption{{font-size:13px;color:#555}}</style></head><body>\
-<h1>Finishing simulation{}</h1>\
-<p>Model: {}; {} of {} cycle(s); engine {:.1} s, surfstream {:.1} s; volume check {:.2e}; \
-SIM(model vs ideal wear maps) {sim_ideal}.</p>\
-<div class=\"row\"><figure><img src=\"data:image/png;base64,{b64}\" width=\"{}\" style=\"image-rendering:pixelated;border:1px solid #ccc\">\
-<figcaption>Wear depth along z (Finnie), 0 (dark) to {max_depth:.3} um (light)</figcaption></figure>\
-<figure>{profile_svg}<figcaption>Middle row: original (grey) and worn (red)</figcaption></figure>\
-<figure>{abbott_svg}<figcaption>Abbott-Firestone curves before (grey) and after (red)</figcaption></figure></div>\
-<h2>Parameters (um)</h2><table><tr><th>param</th><th>before</th><th>after</th><th>paper before</th><th>paper after (5 min)</th></tr>{rows_html}</table>\
-</body></html>",
-        if partial { " (partial: stopped)" } else { "" },
-        html_escape(summary["model"].as_str().unwrap_or("")),
-        summary["cycles_completed"],
-        summary["cycles_requested"],
-        summary["timings"]["engine_s"].as_f64().unwrap_or(0.0),
-        summary["timings"]["surfstream_overhead_s"].as_f64().unwrap_or(0.0),
-        summary["volume_check"]["relative_error"].as_f64().unwrap_or(f64::NAN),
-        (cols * 2).clamp(200, 420),
+    let (sa_b, sa_a) = (
+        summary["before"]["Sa"].as_f64(),
+        summary["after"]["Sa"].as_f64(),
     );
-    let mut f =
-        std::fs::File::create(path).with_context(|| format!("{}: cannot write", path.display()))?;
-    f.write_all(html.as_bytes())
-        .with_context(|| format!("{}: write failed", path.display()))
+    let headline = match (sa_b, sa_a) {
+        (Some(b), Some(a)) => format!(
+            "Sa {b:.3} → {a:.3} µm ({:+.1} %) over {} of {} cycle(s) standing for {} s of process time.",
+            if b != 0.0 { (a - b) / b * 100.0 } else { 0.0 },
+            summary["cycles_completed"],
+            summary["cycles_requested"],
+            num(&summary["setting"]["process_time_s"], 0),
+        ),
+        _ => "No roughness parameters in finish.json.".into(),
+    };
+
+    let mut html = String::new();
+    write!(
+        html,
+        "<!doctype html><html><head><meta charset=\"utf-8\"><title>surfstream finish</title>\
+<style>body{{font-family:sans-serif;margin:24px;color:#222}}\
+table{{border-collapse:collapse;margin:6px 0 18px}}\
+td,th{{border:1px solid #ccc;padding:3px 8px;text-align:right;font-size:13px}}\
+td.k,th.k{{text-align:left}}td.t{{text-align:left;color:#555;max-width:360px}}\
+.row{{display:flex;gap:22px;flex-wrap:wrap;align-items:flex-start;margin-bottom:18px}}\
+figure{{margin:0;width:min-content}}figcaption{{font-size:13px;color:#555}}\
+h2{{margin-top:26px;border-bottom:1px solid #ddd}}.warn{{color:#b03a00}}</style></head><body>\
+<h1>Finishing simulation{}</h1><p><b>{}</b> Model: {}.</p>",
+        if partial {
+            " <span class=\"warn\">(partial: stopped early)</span>"
+        } else {
+            ""
+        },
+        headline,
+        html_escape(summary["model"].as_str().unwrap_or("(not named)")),
+    )
+    .ok();
+    write!(
+        html,
+        "<h2>Setting, timings and checks</h2><div class=\"row\">{setting}</div>\
+<h2>Wear and surface maps</h2><div class=\"row\">\
+<figure>{wear_map}<figcaption>Wear depth along z (Finnie) over the patch, µm. \
+The dashed line marks the profile row below (the row that lost most). Row 0 at the top.</figcaption></figure>\
+<figure>{original_map}<figcaption>Surface before finishing (levelled patch), µm.</figcaption></figure>\
+<figure>{worn_map}<figcaption>Worn surface after the last cycle, same colour scale as before.</figcaption></figure></div>\
+<h2>Profile</h2><div class=\"row\"><figure>{profile_svg}<figcaption>Original (thick grey, underneath) \
+and worn (thin red, on top): where the wear is small the red line runs inside the grey one.</figcaption></figure>\
+<figure>{removed_svg}<figcaption>Depth removed along the same row (the wear map's row), µm. \
+The worn surface is re-levelled after wear, so original − worn differs from this by \
+{level_shift_um:+.4} µm everywhere.</figcaption></figure></div>\
+<h2>Abbott-Firestone curves</h2><div class=\"row\">\
+<figure>{abbott_svg}<figcaption>Before (thick grey) and after (dashed red).</figcaption></figure>\
+<figure>{abbott_peak_svg}<figcaption>The peak region, where finishing acts first.</figcaption></figure>\
+<figure>{abbott_diff_svg}<figcaption>Height lost at each material ratio: large at the left (peaks), \
+zero at the right (valleys). The worn surface is re-levelled after wear; that shift \
+({level_shift_um:+.4} µm) is taken out here.</figcaption></figure></div>\
+<h2>Roughness parameters (µm, Ssk/Sku dimensionless, Smr %)</h2>\
+<table><tr><th class=\"k\">param</th><th>before</th><th>after</th><th>change</th>\
+<th>paper before</th><th>paper after (5 min)</th></tr>{params}</table>\
+<h2>Cycles</h2>{cycles}</body></html>"
+    )
+    .ok();
+    Ok(html)
 }
 
 fn html_escape(s: &str) -> String {
@@ -115,21 +302,346 @@ fn html_escape(s: &str) -> String {
         .replace('>', "&gt;")
 }
 
-/// A grey-to-orange ramp of `z` (0 .. max) as PNG bytes.
-fn heat_png(z: &[f64], rows: usize, cols: usize) -> Result<Vec<u8>> {
-    let max = z.iter().cloned().fold(0.0, f64::max);
+/// A JSON number with `dp` decimals, or "–" when absent.
+fn num(v: &Value, dp: usize) -> String {
+    v.as_f64()
+        .map_or_else(|| "–".to_string(), |x| format!("{x:.dp$}"))
+}
+
+/// A JSON number in scientific notation, or "–".
+fn sci(v: &Value) -> String {
+    v.as_f64()
+        .map_or_else(|| "–".to_string(), |x| format!("{x:.3e}"))
+}
+
+fn text(v: &Value) -> String {
+    match v {
+        Value::Null => "–".into(),
+        Value::String(s) => html_escape(s),
+        other => html_escape(&other.to_string()),
+    }
+}
+
+/// The setting (media, action, patch, wear model), the timings and the checks as tables.
+fn setting_table(s: &Value) -> String {
+    let st = &s["setting"];
+    let m = &st["media"];
+    let a = &st["action"];
+    let p = &st["patch"];
+    let t = &s["timings"];
+    let cal = &s["calibration"];
+    let factors: Vec<f64> = s["cycles"]
+        .as_array()
+        .map(|c| {
+            c.iter()
+                .filter_map(|c| c["acceleration_factor"].as_f64())
+                .collect()
+        })
+        .unwrap_or_default();
+    let factor = match (
+        factors.iter().cloned().reduce(f64::min),
+        factors.iter().cloned().reduce(f64::max),
+    ) {
+        (Some(lo), Some(hi)) if (hi - lo).abs() <= 1e-9 * hi.abs() => format!("{lo:.0}"),
+        (Some(lo), Some(hi)) => format!("{lo:.0} – {hi:.0} (per cycle below)"),
+        _ => "–".into(),
+    };
+    let row = |k: &str, v: String, note: String| {
+        format!("<tr><td class=\"k\">{k}</td><td>{v}</td><td class=\"t\">{note}</td></tr>")
+    };
+    let mut left = String::from("<table><tr><th class=\"k\" colspan=\"3\">Setting</th></tr>");
+    left += &row(
+        "media",
+        format!(
+            "{} mm, {} kg/m³",
+            num(&m["diameter_mm"], 2),
+            num(&m["density_kg_m3"], 0)
+        ),
+        format!(
+            "E {} Pa, ν {}, restitution {}, friction {}",
+            sci(&m["youngs_modulus_pa"]),
+            num(&m["poisson_ratio"], 2),
+            num(&m["restitution"], 2),
+            num(&m["friction"], 2)
+        ),
+    );
+    left += &row(
+        "media velocity",
+        format!("{} m/s", num(&a["media_velocity_m_s"], 3)),
+        format!(
+            "impact angle {}°; {}",
+            num(&a["impact_angle_deg"], 1),
+            text(&a["source"])
+        ),
+    );
+    left += &row(
+        "pressure",
+        format!("{} Pa", num(&a["pressure_pa"], 0)),
+        format!(
+            "acceleration {} m/s²; press force on the patch {} N",
+            num(&a["acceleration_m_s2"], 1),
+            num(&st["press_force_n"], 4)
+        ),
+    );
+    left += &row(
+        "patch",
+        format!(
+            "{} × {} µm",
+            num(&p["size_um"][0], 1),
+            num(&p["size_um"][1], 1)
+        ),
+        format!(
+            "{} × {} samples at {} µm; guard band {} µm; {}",
+            num(&p["rows_cols"][0], 0),
+            num(&p["rows_cols"][1], 0),
+            num(&p["pitch_um"][0], 4),
+            num(&p["guard_band_um"], 1),
+            text(&p["boundary"])
+        ),
+    );
+    left += &row(
+        "cycles",
+        format!("{} of {}", s["cycles_completed"], s["cycles_requested"]),
+        format!(
+            "process time {} s; time budget {} s; {} MPI rank(s)",
+            num(&st["process_time_s"], 0),
+            num(&st["time_budget_s"], 0),
+            text(&st["ranks"])
+        ),
+    );
+    left += &row(
+        "k (Finnie)",
+        format!("{} 1/Pa", sci(&st["k_finnie_per_pa"])),
+        format!(
+            "Archard K/H {} 1/Pa; {}",
+            sci(&st["archard_k_over_h_per_pa"]),
+            text(&st["wear_depth"])
+        ),
+    );
+    left += &row("acceleration factor", factor, text(&st["acceleration"]));
+    left += "</table>";
+
+    let engine_s = t["engine_s"].as_f64();
+    let mut right =
+        String::from("<table><tr><th class=\"k\" colspan=\"3\">Timings and checks</th></tr>");
+    right += &row(
+        "engine (LIGGGHTS)",
+        format!("{} s", num(&t["engine_s"], 1)),
+        format!(
+            "wall time; CPU {} s; {} s simulated",
+            num(&t["engine_cpu_s"], 1),
+            sci(&t["simulated_s"])
+        ),
+    );
+    right += &row(
+        "surfstream overhead",
+        format!("{} s", num(&t["surfstream_overhead_s"], 1)),
+        format!(
+            "{} % of the engine's time (meshing, mapping, writing)",
+            t["overhead_share_of_engine"]
+                .as_f64()
+                .map_or("–".into(), |x| format!("{:.1}", x * 100.0))
+        ),
+    );
+    right += &row(
+        "total",
+        format!("{} s", num(&t["total_s"], 1)),
+        match (engine_s, s["probe"]["engine_s"].as_f64()) {
+            (Some(_), Some(pr)) => format!("includes a cost probe of {pr:.1} s"),
+            _ => String::new(),
+        },
+    );
+    right += &row(
+        "volume check",
+        sci(&s["volume_check"]["relative_error"]),
+        text(&s["volume_check"]["what"]),
+    );
+    right += &row(
+        "calibration",
+        if cal.is_null() {
+            "none".into()
+        } else {
+            text(&cal["kind"])
+        },
+        if cal.is_null() {
+            "k as given".into()
+        } else {
+            let target = cal["target_sa_um"].as_f64();
+            let got = s["after"]["Sa"].as_f64();
+            format!(
+                "target Sa {} µm, reached {} µm{}; fitted k {} 1/Pa",
+                num(&cal["target_sa_um"], 3),
+                num(&s["after"]["Sa"], 3),
+                match (target, got) {
+                    (Some(tg), Some(g)) if g > tg * 1.02 =>
+                        " <span class=\"warn\">(short of the target)</span>",
+                    _ => "",
+                },
+                sci(&cal["k_finnie_fitted_per_pa"])
+            )
+        },
+    );
+    right += &row(
+        "SIM model vs ideal",
+        num(&s["ideal_model"]["sim_wear_maps"], 3),
+        "paper's eq. 12 between the wear maps of the model and of the form-only model".into(),
+    );
+    right += &row(
+        "SIM Finnie vs Archard",
+        num(&s["sim"]["finnie_vs_archard"], 3),
+        format!(
+            "SIM worn vs measured after: {}",
+            num(&s["sim"]["worn_vs_measured_after"], 3)
+        ),
+    );
+    right += &row(
+        "wear",
+        format!("{} µm³", num(&s["wear"]["finnie_volume_um3"], 0)),
+        format!(
+            "max depth {} µm, mean {} µm",
+            num(&s["wear"]["max_depth_um"], 3),
+            num(&s["wear"]["mean_depth_um"], 4)
+        ),
+    );
+    right += "</table>";
+    format!("{left}{right}")
+}
+
+fn cycles_table(s: &Value) -> String {
+    let Some(cycles) = s["cycles"].as_array().filter(|c| !c.is_empty()) else {
+        return "<p>No completed cycle.</p>".into();
+    };
+    let mut t = String::from(
+        "<table><tr><th>cycle</th><th>passes</th><th>simulated (s)</th><th>engine (s)</th>\
+<th>triangles</th><th>acceleration factor</th><th>k equivalent (1/Pa)</th><th>Sa after (µm)</th>\
+<th>Spk after (µm)</th><th>volume check</th></tr>",
+    );
+    for c in cycles {
+        write!(
+            t,
+            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td>\
+<td>{}</td><td>{}</td><td>{}</td></tr>",
+            text(&c["cycle"]),
+            text(&c["passes"]),
+            sci(&c["simulated_s"]),
+            num(&c["engine_s"], 1),
+            text(&c["triangles"]),
+            num(&c["acceleration_factor"], 0),
+            sci(&c["k_finnie_equivalent_per_pa"]),
+            num(&c["after"]["Sa"], 3),
+            num(&c["after"]["Spk"], 3),
+            sci(&c["volume_check"]["relative_error"]),
+        )
+        .ok();
+    }
+    t += "</table>";
+    t
+}
+
+fn parameter_table(s: &Value) -> String {
+    let mut out = String::new();
+    for key in [
+        "Sa", "Sq", "Sz", "Sp", "Sv", "Sk", "Spk", "Svk", "Ssk", "Sku", "Smr1", "Smr2", "Sdq",
+    ] {
+        let b = s["before"][key].as_f64();
+        let a = s["after"][key].as_f64();
+        if b.is_none() && a.is_none() {
+            continue;
+        }
+        let paper = |t: &[(&str, f64)]| {
+            t.iter()
+                .find(|(k, _)| *k == key)
+                .map_or(String::new(), |(_, v)| format!("{v:.3}"))
+        };
+        let change = match (b, a) {
+            // Shape parameters near zero: a relative change means nothing, give the difference.
+            (Some(b), Some(a)) if matches!(key, "Ssk" | "Sku") => format!("{:+.3}", a - b),
+            (Some(b), Some(a)) if b.abs() > 1e-12 => format!("{:+.1} %", (a - b) / b * 100.0),
+            _ => "–".into(),
+        };
+        write!(
+            out,
+            "<tr><td class=\"k\">{key}</td><td>{}</td><td>{}</td><td>{change}</td><td>{}</td><td>{}</td></tr>",
+            b.map_or("–".into(), |v| format!("{v:.3}")),
+            a.map_or("–".into(), |v| format!("{v:.3}")),
+            paper(&PAPER_BEFORE),
+            paper(&PAPER_AFTER)
+        )
+        .ok();
+    }
+    out
+}
+
+fn finite_max(z: &[f64]) -> f64 {
+    z.iter()
+        .cloned()
+        .filter(|v| v.is_finite())
+        .fold(f64::MIN, f64::max)
+}
+
+fn finite_range(z: &[f64]) -> (f64, f64) {
+    let lo = z
+        .iter()
+        .cloned()
+        .filter(|v| v.is_finite())
+        .fold(f64::MAX, f64::min);
+    let hi = finite_max(z);
+    if lo <= hi {
+        (lo, hi)
+    } else {
+        (0.0, 1.0)
+    }
+}
+
+#[derive(Clone, Copy)]
+enum Ramp {
+    /// Dark blue -> orange -> pale yellow: zero wear dark, deep wear bright.
+    Heat,
+    /// Perceptually even for heights (a 5-stop approximation of viridis).
+    Viridis,
+}
+
+impl Ramp {
+    fn rgb(self, t: f64) -> [u8; 3] {
+        let t = t.clamp(0.0, 1.0);
+        match self {
+            Ramp::Heat => [
+                (30.0 + 225.0 * t.sqrt()) as u8,
+                (30.0 + 200.0 * t) as u8,
+                (80.0 * (1.0 - t) + 60.0 * t * t) as u8,
+            ],
+            Ramp::Viridis => {
+                const STOPS: [[f64; 3]; 5] = [
+                    [68.0, 1.0, 84.0],
+                    [59.0, 82.0, 139.0],
+                    [33.0, 145.0, 140.0],
+                    [94.0, 201.0, 98.0],
+                    [253.0, 231.0, 37.0],
+                ];
+                let f = t * 4.0;
+                let i = (f.floor() as usize).min(3);
+                let u = f - i as f64;
+                let c = |k: usize| (STOPS[i][k] * (1.0 - u) + STOPS[i + 1][k] * u) as u8;
+                [c(0), c(1), c(2)]
+            }
+        }
+    }
+
+    fn hex(self, t: f64) -> String {
+        let [r, g, b] = self.rgb(t);
+        format!("#{r:02x}{g:02x}{b:02x}")
+    }
+}
+
+/// `z` (lo .. hi) through `ramp` as PNG bytes; non-finite samples grey.
+fn map_png(z: &[f64], rows: usize, cols: usize, lo: f64, hi: f64, ramp: Ramp) -> Result<Vec<u8>> {
     let mut px = Vec::with_capacity(rows * cols * 3);
     for &v in z {
-        let t = if max > 0.0 {
-            (v / max).clamp(0.0, 1.0)
+        if v.is_finite() {
+            px.extend_from_slice(&ramp.rgb((v - lo) / (hi - lo)));
         } else {
-            0.0
-        };
-        // Dark blue -> orange -> pale yellow.
-        let r = (30.0 + 225.0 * t.sqrt()) as u8;
-        let g = (30.0 + 200.0 * t) as u8;
-        let b = (80.0 * (1.0 - t) + 60.0 * t * t) as u8;
-        px.extend_from_slice(&[r, g, b]);
+            px.extend_from_slice(&[200, 200, 200]);
+        }
     }
     let mut out = Vec::new();
     {
@@ -142,59 +654,534 @@ fn heat_png(z: &[f64], rows: usize, cols: usize) -> Result<Vec<u8>> {
     Ok(out)
 }
 
-/// A small line chart of several series.
-/// A named series: points, colour, label.
-type Series<'a> = (&'a Vec<(f64, f64)>, &'a str, &'a str);
+/// About `n` round tick values covering lo..hi.
+fn ticks(lo: f64, hi: f64, n: usize) -> Vec<f64> {
+    if !(lo.is_finite() && hi.is_finite()) || hi <= lo {
+        return vec![lo];
+    }
+    let raw = (hi - lo) / n.max(1) as f64;
+    let mag = 10f64.powf(raw.log10().floor());
+    // The round step nearest to the raw one (in ratio), so the count stays near `n`.
+    let step = [1.0, 2.0, 2.5, 5.0, 10.0]
+        .iter()
+        .map(|m| m * mag)
+        .min_by(|a, b| (a / raw).ln().abs().total_cmp(&(b / raw).ln().abs()))
+        .unwrap_or(mag);
+    let mut v = (lo / step).ceil() * step;
+    let mut out = Vec::new();
+    while v <= hi + step * 1e-9 {
+        out.push(if v.abs() < step * 1e-9 { 0.0 } else { v });
+        v += step;
+    }
+    out
+}
 
-fn svg_lines(series: &[Series<'_>], xlabel: &str, ylabel: &str) -> String {
-    let (w, h, m) = (420.0, 260.0, 40.0);
-    let pts = series.iter().flat_map(|(s, _, _)| s.iter());
-    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-    for &(x, y) in pts {
-        if x.is_finite() && y.is_finite() {
-            x0 = x0.min(x);
-            x1 = x1.max(x);
-            y0 = y0.min(y);
-            y1 = y1.max(y);
+/// A tick label with as many decimals as the tick spacing needs.
+fn tick_label(v: f64, spacing: f64) -> String {
+    // The fewest decimals that write the spacing exactly (2.5 needs one, 0.25 two).
+    let dp = (0..6)
+        .find(|&d| {
+            let x = spacing * 10f64.powi(d);
+            (x - x.round()).abs() < 1e-6 * x.abs().max(1.0)
+        })
+        .unwrap_or(6) as usize;
+    format!("{v:.dp$}")
+}
+
+fn spacing(t: &[f64]) -> f64 {
+    if t.len() > 1 {
+        t[1] - t[0]
+    } else {
+        1.0
+    }
+}
+
+/// A map as SVG: the image with x/y axes in µm, a dashed marker on `mark_row` and a colour bar
+/// with its ticks and unit.
+#[allow(clippy::too_many_arguments)]
+fn map_figure(
+    z: &[f64],
+    rows: usize,
+    cols: usize,
+    pitch_um: f64,
+    (lo, hi): (f64, f64),
+    ramp: Ramp,
+    unit_label: &str,
+    mark_row: usize,
+) -> Result<String> {
+    let png = map_png(z, rows, cols, lo, hi, ramp)?;
+    let b64 = base64::engine::general_purpose::STANDARD.encode(png);
+    let (ml, mt, mb) = (52.0, 12.0, 44.0);
+    let side = 264.0;
+    let (iw, ih) = if cols >= rows {
+        (side, side * rows as f64 / cols.max(1) as f64)
+    } else {
+        (side * cols as f64 / rows.max(1) as f64, side)
+    };
+    let (cbx, cbw) = (ml + iw + 18.0, 16.0);
+    let w = cbx + cbw + 72.0;
+    let h = mt + ih + mb;
+    let (wx, wy) = (cols as f64 * pitch_um, rows as f64 * pitch_um);
+    let mut s = format!(
+        "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w:.0}\" height=\"{h:.0}\" font-size=\"11\">\
+<image x=\"{ml}\" y=\"{mt}\" width=\"{iw:.1}\" height=\"{ih:.1}\" preserveAspectRatio=\"none\" \
+style=\"image-rendering:pixelated\" href=\"data:image/png;base64,{b64}\"/>\
+<rect x=\"{ml}\" y=\"{mt}\" width=\"{iw:.1}\" height=\"{ih:.1}\" fill=\"none\" stroke=\"#444\"/>"
+    );
+    let my = mt + (mark_row as f64 + 0.5) / rows.max(1) as f64 * ih;
+    write!(
+        s,
+        "<line x1=\"{ml}\" x2=\"{:.1}\" y1=\"{my:.1}\" y2=\"{my:.1}\" stroke=\"#fff\" stroke-width=\"1.2\" stroke-dasharray=\"5 4\"/>",
+        ml + iw
+    )
+    .ok();
+    let tx = ticks(0.0, wx, 5);
+    for &v in &tx {
+        let x = ml + v / wx * iw;
+        write!(
+            s,
+            "<line x1=\"{x:.1}\" x2=\"{x:.1}\" y1=\"{:.1}\" y2=\"{:.1}\" stroke=\"#444\"/>\
+<text x=\"{x:.1}\" y=\"{:.1}\" text-anchor=\"middle\">{}</text>",
+            mt + ih,
+            mt + ih + 4.0,
+            mt + ih + 15.0,
+            tick_label(v, spacing(&tx))
+        )
+        .ok();
+    }
+    let ty = ticks(0.0, wy, 5);
+    for &v in &ty {
+        let y = mt + v / wy * ih;
+        write!(
+            s,
+            "<line x1=\"{:.1}\" x2=\"{ml}\" y1=\"{y:.1}\" y2=\"{y:.1}\" stroke=\"#444\"/>\
+<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"end\">{}</text>",
+            ml - 4.0,
+            ml - 6.0,
+            y + 4.0,
+            tick_label(v, spacing(&ty))
+        )
+        .ok();
+    }
+    write!(
+        s,
+        "<text class=\"xaxis\" x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"middle\" font-size=\"12\">x (µm)</text>\
+<text class=\"yaxis\" x=\"14\" y=\"{:.1}\" text-anchor=\"middle\" font-size=\"12\" transform=\"rotate(-90 14 {:.1})\">y (µm)</text>",
+        ml + iw / 2.0,
+        h - 8.0,
+        mt + ih / 2.0,
+        mt + ih / 2.0
+    )
+    .ok();
+    // Colour bar: a vertical gradient, low at the bottom.
+    let id = format!(
+        "cb{}",
+        COLORBAR_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+    );
+    s += &format!("<defs><linearGradient id=\"{id}\" x1=\"0\" y1=\"1\" x2=\"0\" y2=\"0\">");
+    for k in 0..=16 {
+        let t = k as f64 / 16.0;
+        write!(
+            s,
+            "<stop offset=\"{t:.4}\" stop-color=\"{}\"/>",
+            ramp.hex(t)
+        )
+        .ok();
+    }
+    write!(
+        s,
+        "</linearGradient></defs><g class=\"colorbar\"><rect x=\"{cbx:.1}\" y=\"{mt}\" width=\"{cbw}\" height=\"{ih:.1}\" \
+fill=\"url(#{id})\" stroke=\"#444\"/>"
+    )
+    .ok();
+    let tc = ticks(lo, hi, 5);
+    for &v in &tc {
+        let y = mt + ih - (v - lo) / (hi - lo) * ih;
+        write!(
+            s,
+            "<line x1=\"{:.1}\" x2=\"{:.1}\" y1=\"{y:.1}\" y2=\"{y:.1}\" stroke=\"#444\"/>\
+<text x=\"{:.1}\" y=\"{:.1}\">{}</text>",
+            cbx + cbw,
+            cbx + cbw + 4.0,
+            cbx + cbw + 6.0,
+            y + 4.0,
+            tick_label(v, spacing(&tc))
+        )
+        .ok();
+    }
+    let lx = cbx + cbw + 50.0;
+    let ly = mt + ih / 2.0;
+    write!(
+        s,
+        "<text x=\"{lx:.1}\" y=\"{ly:.1}\" text-anchor=\"middle\" font-size=\"12\" \
+transform=\"rotate(-90 {lx:.1} {ly:.1})\">{unit_label}</text></g></svg>"
+    )
+    .ok();
+    Ok(s)
+}
+
+/// Distinct gradient ids when several maps share the page.
+static COLORBAR_ID: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+
+/// A named series of a line chart.
+struct Series<'a> {
+    points: &'a [(f64, f64)],
+    color: &'a str,
+    width: f64,
+    dash: bool,
+    fill: bool,
+    label: &'a str,
+}
+
+impl<'a> Series<'a> {
+    fn line(points: &'a [(f64, f64)], color: &'a str, width: f64, label: &'a str) -> Self {
+        Series {
+            points,
+            color,
+            width,
+            dash: false,
+            fill: false,
+            label,
         }
     }
-    if x0 >= x1 {
-        x1 = x0 + 1.0;
+    fn dashed(points: &'a [(f64, f64)], color: &'a str, width: f64, label: &'a str) -> Self {
+        Series {
+            dash: true,
+            ..Series::line(points, color, width, label)
+        }
     }
-    if y0 >= y1 {
-        y1 = y0 + 1.0;
+    fn area(points: &'a [(f64, f64)], color: &'a str, label: &'a str) -> Self {
+        Series {
+            fill: true,
+            ..Series::line(points, color, 1.2, label)
+        }
     }
-    let sx = |x: f64| m + (x - x0) / (x1 - x0) * (w - 1.5 * m);
-    let sy = |y: f64| h - m - (y - y0) / (y1 - y0) * (h - 1.5 * m);
-    let mut s = format!(
-        "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" style=\"border:1px solid #ccc\">\
-<text x=\"{}\" y=\"{}\" font-size=\"12\" text-anchor=\"middle\">{xlabel}</text>\
-<text x=\"12\" y=\"{}\" font-size=\"12\" transform=\"rotate(-90 12 {})\" text-anchor=\"middle\">{ylabel}</text>\
-<text x=\"{m}\" y=\"{}\" font-size=\"10\">{x0:.3}</text><text x=\"{}\" y=\"{}\" font-size=\"10\" text-anchor=\"end\">{x1:.3}</text>\
-<text x=\"{}\" y=\"{}\" font-size=\"10\" text-anchor=\"end\">{y1:.2}</text><text x=\"{}\" y=\"{}\" font-size=\"10\" text-anchor=\"end\">{y0:.2}</text>",
-        w / 2.0,
-        h - 6.0,
-        h / 2.0,
-        h / 2.0,
-        h - m + 14.0,
-        w - 0.5 * m,
-        h - m + 14.0,
-        m - 2.0,
-        0.5 * m + 4.0,
-        m - 2.0,
-        h - m,
-    );
-    for (data, color, _) in series {
-        let p: Vec<String> = data
-            .iter()
-            .filter(|(x, y)| x.is_finite() && y.is_finite())
-            .map(|&(x, y)| format!("{:.1},{:.1}", sx(x), sy(y)))
+}
+
+/// A line chart with ticked axes, grid and legend.
+struct Plot<'a> {
+    title: String,
+    xlabel: &'a str,
+    ylabel: &'a str,
+    series: Vec<Series<'a>>,
+    /// Include y = 0 in the range (for differences and depths).
+    y_from_zero: bool,
+    width: f64,
+    height: f64,
+}
+
+impl Default for Plot<'_> {
+    fn default() -> Self {
+        Plot {
+            title: String::new(),
+            xlabel: "",
+            ylabel: "",
+            series: Vec::new(),
+            y_from_zero: false,
+            width: 440.0,
+            height: 270.0,
+        }
+    }
+}
+
+impl Plot<'_> {
+    fn svg(&self) -> String {
+        let (w, h) = (self.width, self.height);
+        let (ml, mr, mt, mb) = (58.0, 14.0, 26.0, 42.0);
+        let (pw, ph) = (w - ml - mr, h - mt - mb);
+        let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+        for &(x, y) in self.series.iter().flat_map(|s| s.points.iter()) {
+            if x.is_finite() && y.is_finite() {
+                x0 = x0.min(x);
+                x1 = x1.max(x);
+                y0 = y0.min(y);
+                y1 = y1.max(y);
+            }
+        }
+        if x0 > x1 {
+            (x0, x1, y0, y1) = (0.0, 1.0, 0.0, 1.0);
+        }
+        if self.y_from_zero {
+            y0 = y0.min(0.0);
+            y1 = y1.max(0.0);
+        }
+        if x0 >= x1 {
+            x1 = x0 + 1.0;
+        }
+        if y0 >= y1 {
+            y1 = y0 + 1.0;
+        }
+        let pad = (y1 - y0) * 0.04;
+        let (y0, y1) = (y0 - pad, y1 + pad);
+        let sx = |x: f64| ml + (x - x0) / (x1 - x0) * pw;
+        let sy = |y: f64| mt + ph - (y - y0) / (y1 - y0) * ph;
+        let mut s = format!(
+            "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" font-size=\"11\">\
+<text x=\"{ml}\" y=\"16\" font-size=\"13\" font-weight=\"bold\">{}</text>\
+<rect x=\"{ml}\" y=\"{mt}\" width=\"{pw}\" height=\"{ph}\" fill=\"#fcfcfc\" stroke=\"#444\"/>",
+            self.title
+        );
+        let tx = ticks(x0, x1, 6);
+        for &v in &tx {
+            let x = sx(v);
+            write!(
+                s,
+                "<line x1=\"{x:.1}\" x2=\"{x:.1}\" y1=\"{mt}\" y2=\"{:.1}\" stroke=\"#e4e4e4\"/>\
+<text x=\"{x:.1}\" y=\"{:.1}\" text-anchor=\"middle\">{}</text>",
+                mt + ph,
+                mt + ph + 14.0,
+                tick_label(v, spacing(&tx))
+            )
+            .ok();
+        }
+        let ty = ticks(y0, y1, 5);
+        for &v in &ty {
+            let y = sy(v);
+            write!(
+                s,
+                "<line x1=\"{ml}\" x2=\"{:.1}\" y1=\"{y:.1}\" y2=\"{y:.1}\" stroke=\"#e4e4e4\"/>\
+<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"end\">{}</text>",
+                ml + pw,
+                ml - 5.0,
+                y + 4.0,
+                tick_label(v, spacing(&ty))
+            )
+            .ok();
+        }
+        write!(
+            s,
+            "<text class=\"xaxis\" x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"middle\" font-size=\"12\">{}</text>\
+<text class=\"yaxis\" x=\"13\" y=\"{:.1}\" text-anchor=\"middle\" font-size=\"12\" transform=\"rotate(-90 13 {:.1})\">{}</text>",
+            ml + pw / 2.0,
+            h - 6.0,
+            self.xlabel,
+            mt + ph / 2.0,
+            mt + ph / 2.0,
+            self.ylabel
+        )
+        .ok();
+        if y0 < 0.0 && y1 > 0.0 {
+            write!(
+                s,
+                "<line x1=\"{ml}\" x2=\"{:.1}\" y1=\"{:.1}\" y2=\"{:.1}\" stroke=\"#888\"/>",
+                ml + pw,
+                sy(0.0),
+                sy(0.0)
+            )
+            .ok();
+        }
+        for ser in &self.series {
+            let p: Vec<String> = ser
+                .points
+                .iter()
+                .filter(|(x, y)| x.is_finite() && y.is_finite())
+                .map(|&(x, y)| format!("{:.1},{:.1}", sx(x), sy(y)))
+                .collect();
+            if p.is_empty() {
+                continue;
+            }
+            if ser.fill {
+                let base = sy(0.0_f64.clamp(y0, y1));
+                let first = ser.points.first().map_or(x0, |p| p.0);
+                let last = ser.points.last().map_or(x1, |p| p.0);
+                write!(
+                    s,
+                    "<polygon fill=\"{}\" fill-opacity=\"0.3\" stroke=\"none\" points=\"{:.1},{base:.1} {} {:.1},{base:.1}\"/>",
+                    ser.color,
+                    sx(first),
+                    p.join(" "),
+                    sx(last)
+                )
+                .ok();
+            }
+            write!(
+                s,
+                "<polyline fill=\"none\" stroke=\"{}\" stroke-width=\"{}\" stroke-linejoin=\"round\"{} points=\"{}\"/>",
+                ser.color,
+                ser.width,
+                if ser.dash { " stroke-dasharray=\"6 4\"" } else { "" },
+                p.join(" ")
+            )
+            .ok();
+        }
+        // Legend, top right inside the frame.
+        let mut ly = mt + 14.0;
+        for ser in &self.series {
+            let lx = ml + pw - 110.0;
+            write!(
+                s,
+                "<line x1=\"{lx:.1}\" x2=\"{:.1}\" y1=\"{:.1}\" y2=\"{:.1}\" stroke=\"{}\" stroke-width=\"{}\"{}/>\
+<text x=\"{:.1}\" y=\"{ly:.1}\">{}</text>",
+                lx + 24.0,
+                ly - 4.0,
+                ly - 4.0,
+                ser.color,
+                ser.width.max(2.0),
+                if ser.dash { " stroke-dasharray=\"6 4\"" } else { "" },
+                lx + 30.0,
+                ser.label
+            )
+            .ok();
+            ly += 15.0;
+        }
+        s.push_str("</svg>");
+        s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn ticks_are_round_and_cover_the_range() {
+        let t = ticks(0.0, 299.8, 5);
+        assert_eq!(t, vec![0.0, 50.0, 100.0, 150.0, 200.0, 250.0]);
+        let t = ticks(-0.013, 0.21, 5);
+        assert!(t.first().copied().unwrap() >= -0.013 && t.last().copied().unwrap() <= 0.21);
+        assert!((spacing(&t) - 0.05).abs() < 1e-12, "{t:?}");
+    }
+
+    fn page(summary: &Value, rows: usize, cols: usize) -> String {
+        let original: Vec<f64> = (0..rows * cols)
+            .map(|k| ((k % cols) as f64 * 0.3).sin() * 2.0)
             .collect();
-        s.push_str(&format!(
-            "<polyline fill=\"none\" stroke=\"{color}\" stroke-width=\"1.2\" points=\"{}\"/>",
-            p.join(" ")
-        ));
+        // Wear only on peaks above 1 um: the removed-depth panel and the Abbott difference
+        // must come out non-zero at the peaks.
+        let wear: Vec<f64> = original.iter().map(|&h| (h - 1.0).max(0.0) * 0.5).collect();
+        let worn: Vec<f64> = original.iter().zip(&wear).map(|(h, w)| h - w).collect();
+        render(summary, &original, &worn, &wear, rows, cols).expect("page renders")
     }
-    s.push_str("</svg>");
-    s
+
+    fn summary() -> Value {
+        let curve = |scale: f64| {
+            json!({
+                "material_ratio_pct": (0..=100).map(|k| k as f64).collect::<Vec<_>>(),
+                "height_um": (0..=100).map(|k| scale * (50.0 - k as f64) / 25.0).collect::<Vec<_>>(),
+            })
+        };
+        json!({
+            "model": "out/demo/panorama.x3p",
+            "cycles_completed": 2, "cycles_requested": 3, "partial": true,
+            "setting": {
+                "patch": {"pitch_um": [0.5, 0.5], "size_um": [20.0, 15.0], "rows_cols": [30, 40],
+                          "guard_band_um": 45.0, "boundary": "guard band"},
+                "media": {"diameter_mm": 3.0, "density_kg_m3": 2500.0, "youngs_modulus_pa": 1e11,
+                          "poisson_ratio": 0.25, "restitution": 0.6, "friction": 0.3},
+                "action": {"media_velocity_m_s": 1.618, "pressure_pa": 3997.19,
+                           "impact_angle_deg": 20.0, "acceleration_m_s2": 133.2, "source": "barrel"},
+                "k_finnie_per_pa": 1e-10, "archard_k_over_h_per_pa": 5e-14,
+                "process_time_s": 300.0, "time_budget_s": 60.0, "ranks": 1,
+            },
+            "cycles": [
+                {"cycle": 1, "acceleration_factor": 97095.8, "after": {"Sa": 1.3}},
+                {"cycle": 2, "acceleration_factor": 37759.5, "after": {"Sa": 1.2}},
+            ],
+            "timings": {"engine_s": 314.4, "engine_cpu_s": 42.5, "surfstream_overhead_s": 9.6,
+                        "overhead_share_of_engine": 0.0306, "total_s": 324.0, "simulated_s": 0.006},
+            "volume_check": {"relative_error": 2.7e-14, "what": "largest error"},
+            "calibration": {"kind": "Sa before/after", "target_sa_um": 0.5844,
+                            "k_finnie_fitted_per_pa": 9.01e-17},
+            "before": {"Sa": 1.3157, "Sq": 1.64, "Spk": 1.51},
+            "after": {"Sa": 1.2692, "Sq": 1.57, "Spk": 1.10},
+            "abbott_before": curve(1.0),
+            "abbott_after": curve(0.9),
+        })
+    }
+
+    #[test]
+    fn the_page_has_axes_colour_bars_and_the_setting_table() {
+        let html = page(&summary(), 30, 40);
+        // Three maps (wear, before, worn), each with a colour bar and µm axes.
+        assert_eq!(html.matches("<g class=\"colorbar\">").count(), 3);
+        assert_eq!(html.matches("<image ").count(), 3);
+        assert!(
+            html.matches(">x (µm)</text>").count() >= 5,
+            "maps and profiles carry x in µm"
+        );
+        assert_eq!(html.matches(">y (µm)</text>").count(), 3);
+        assert!(html.contains(">wear depth along z (µm)</text>"));
+        assert_eq!(html.matches(">height (µm)</text>").count(), 2 + 1 + 2);
+        // The x axis of a 40-column map at 0.5 um pitch ends at 20 um: ticks 0, 5, .., 20.
+        assert!(html.contains(">20</text>") && html.contains(">15</text>"));
+        // Distinct gradient ids, each referenced.
+        let ids: std::collections::BTreeSet<&str> = html
+            .match_indices("linearGradient id=\"")
+            .map(|(k, m)| {
+                let rest = &html[k + m.len()..];
+                &rest[..rest.find('"').unwrap()]
+            })
+            .collect();
+        assert_eq!(ids.len(), 3);
+        for id in &ids {
+            assert!(html.contains(&format!("url(#{id})")));
+        }
+        // The setting and timings from finish.json.
+        for needle in [
+            "3.00 mm, 2500 kg/m³",
+            "1.618 m/s",
+            "3997 Pa",
+            "20.0 × 15.0 µm",
+            "2 of 3",
+            "1.000e-10 1/Pa",
+            "37760 – 97096",
+            "314.4 s",
+            "9.6 s",
+            "3.1 % of the engine",
+            "2.700e-14",
+            "target Sa 0.584 µm, reached 1.269 µm",
+            "short of the target",
+            "9.010e-17",
+            "partial",
+        ] {
+            assert!(html.contains(needle), "page lacks {needle:?}");
+        }
+        // Both profiles and the removed depth, the Abbott before/after, the difference, the zoom.
+        for needle in [
+            ">original</text>",
+            ">worn</text>",
+            "wear depth along z (µm)",
+            ">before</text>",
+            ">after</text>",
+            "before − after (µm)",
+            "Zoom on the peak region",
+        ] {
+            assert!(html.contains(needle), "page lacks {needle:?}");
+        }
+        // The original is drawn first and thicker so the worn line cannot hide it.
+        let grey = html
+            .find(&format!("stroke=\"{GREY}\" stroke-width=\"4\""))
+            .unwrap();
+        let red = html
+            .find(&format!("stroke=\"{RED}\" stroke-width=\"1.2\""))
+            .unwrap();
+        assert!(grey < red);
+    }
+
+    #[test]
+    fn a_summary_without_a_setting_or_calibration_still_renders() {
+        let html = page(&json!({}), 8, 8);
+        assert!(html.contains("<g class=\"colorbar\">"));
+        assert!(html.contains("calibration"));
+        assert!(html.contains("No completed cycle."));
+        assert!(render(&json!({}), &[0.0; 3], &[0.0; 4], &[0.0; 4], 2, 2).is_err());
+    }
+}
+
+#[cfg(test)]
+mod rerender {
+    /// Re-renders finish.html of an existing run: FINISH_OUT=DIR cargo test -- --ignored rerender
+    #[test]
+    #[ignore]
+    fn rerender_an_out_dir() {
+        let dir = std::path::PathBuf::from(std::env::var("FINISH_OUT").expect("FINISH_OUT"));
+        let s: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("finish.json")).unwrap())
+                .unwrap();
+        let rd = |f: &str| surfstream_io::npy::read_npy_f64(dir.join(f)).unwrap();
+        let (o, w, f) = (rd("original.npy"), rd("worn.npy"), rd("wear_finnie.npy"));
+        let out = std::path::PathBuf::from(std::env::var("FINISH_HTML").expect("FINISH_HTML"));
+        super::write_report(&out, &s, &o.data, &w.data, &f.data, o.rows, o.cols).unwrap();
+    }
 }
