@@ -162,13 +162,19 @@ fn report_is_one_self_contained_page_with_every_section() {
         // A stage that is not what the STL is made from is reported, not judged; the mesh is
         // judged against its tolerance (limits_pct), the others against 5 %.
         if st["judged"] == false {
-            assert!(html.contains("reported</span>"), "{stage}: not shown as reported");
+            assert!(
+                html.contains("reported</span>"),
+                "{stage}: not shown as reported"
+            );
             continue;
         }
         for r in st["regions"].as_object().unwrap().values() {
             for p in ["Sa", "Sq", "Sz"] {
                 let limit = st["limits_pct"][p].as_f64().unwrap_or(5.0);
-                if r["deviation_pct"][p].as_f64().is_none_or(|d| d.abs() > limit) {
+                if r["deviation_pct"][p]
+                    .as_f64()
+                    .is_none_or(|d| d.abs() > limit)
+                {
                     failures += 1;
                 }
             }
