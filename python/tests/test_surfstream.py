@@ -170,6 +170,12 @@ def test_round_trip_x3p_and_npy(tmp_path):
     np.testing.assert_allclose(b.heights, s.heights, rtol=1e-15, atol=0)
     s.write(tmp_path / "a.npy")
     assert np.array_equal(np.load(tmp_path / "a.npy"), s.heights)
+    # The pitch travels with the .npy, in its sidecar NAME.npy.json (as the CLI writes it).
+    assert (tmp_path / "a.npy.json").is_file()
+    c = ss.read(tmp_path / "a.npy")
+    assert c.pitch_um == s.pitch_um and np.array_equal(c.heights, s.heights)
+    # Without the sidecar the pitch is unknown: said, never guessed silently.
+    (tmp_path / "a.npy.json").unlink()
     with pytest.warns(ss.SurfstreamWarning, match="carries no pitch"):
         c = ss.read(tmp_path / "a.npy")
     assert c.pitch_um == (1.0, 1.0)
