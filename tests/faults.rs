@@ -569,9 +569,21 @@ fn interrupt(
         assert!(t0.elapsed() < RUN_LIMIT, "never reached {when:?}");
         std::thread::sleep(Duration::from_millis(20));
     }
-    for &sig in signals {
+    for (k, &sig) in signals.iter().enumerate() {
         assert!(signal(child.id() as i32, sig));
         std::thread::sleep(gap);
+        if k + 1 < signals.len() {
+            // Two signals sent before the first is handled merge into one (a pending signal
+            // is a bit, not a queue): the next goes only once the first is seen handled.
+            let t1 = Instant::now();
+            while !std::fs::read_to_string(log)
+                .unwrap_or_default()
+                .contains("stopping the run")
+                && t1.elapsed() < Duration::from_secs(10)
+            {
+                std::thread::sleep(Duration::from_millis(2));
+            }
+        }
     }
     let status = wait_bounded(&mut child, RUN_LIMIT);
     (status, std::fs::read_to_string(log).unwrap_or_default())
