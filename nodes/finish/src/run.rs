@@ -954,9 +954,17 @@ pub fn finish(
     let worn_raw = patch.cropped(&h);
     let (worn_crop, after) =
         surface_params(&worn_raw, rows, cols, patch.pitch_x_um, patch.pitch_y_um)?;
+    // Every .npy keeps its pitch in its sidecar, as every other writer of the project does.
+    let geometry = surfstream_io::sidecar::NpyGeometry {
+        pitch_x_um: patch.pitch_x_um,
+        pitch_y_um: patch.pitch_y_um,
+        origin_um: None,
+    };
     let write = |name: &str, z: &[f64]| -> Result<()> {
-        surfstream_io::npy::write_npy_f64(out_dir.join(name), z, rows, cols)
-            .map_err(|e| anyhow!("{}: {e}", out_dir.join(name).display()))
+        let path = out_dir.join(name);
+        surfstream_io::npy::write_npy_f64(&path, z, rows, cols)
+            .map_err(|e| anyhow!("{}: {e}", path.display()))?;
+        surfstream_io::sidecar::write_sidecar(&path, &geometry)
     };
     write(outputs::WEAR, &finnie_crop)?;
     write(outputs::WEAR_FINNIE, &finnie_crop)?;
