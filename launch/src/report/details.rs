@@ -265,30 +265,25 @@ pub fn latencies(run: &RunRecord) -> String {
             None => groups.push((group, vec![row])),
         }
     };
-    // In run.json's key order (the groups sort among the end-to-end paths), which is the
-    // order the groups first appear in.
-    let mut entries: Vec<(
-        &str,
-        Option<&Percentiles>,
-        Option<&BTreeMap<String, Percentiles>>,
-    )> = lat
-        .end_to_end
-        .iter()
-        .map(|(k, p)| (k.as_str(), Some(p), None))
-        .collect();
-    entries.extend([
-        ("final_frames", None, Some(&lat.final_frames)),
-        ("hops", None, Some(&lat.hops)),
-        ("transport", None, Some(&lat.transport)),
-    ]);
-    entries.sort_by_key(|e| e.0);
-    for (name, one, group) in entries {
-        if let Some(p) = one {
-            push(group_name("end"), name, p);
-        }
-        for (path, p) in group.into_iter().flatten() {
-            push(group_name(name), path, p);
-        }
+    // In run.json's key order (the group names sort among the end-to-end paths), which is
+    // the order the groups first appear in.
+    type Row<'a> = (&'static str, &'a str, &'a Percentiles);
+    let mut rows: BTreeMap<&str, Vec<Row>> = BTreeMap::new();
+    for (path, p) in &lat.end_to_end {
+        rows.insert(path, vec![(group_name("end"), path, p)]);
+    }
+    for (key, group) in [
+        ("final_frames", &lat.final_frames),
+        ("hops", &lat.hops),
+        ("transport", &lat.transport),
+    ] {
+        let group_rows = group
+            .iter()
+            .map(|(path, p)| (group_name(key), path.as_str(), p));
+        rows.insert(key, group_rows.collect());
+    }
+    for (group, path, p) in rows.into_values().flatten() {
+        push(group, path, p);
     }
     let mut h = String::from(
         "<details id=\"latencies\"><summary>Latencies (p50 / p95 / max, ms)</summary><div class=\"flex\">",

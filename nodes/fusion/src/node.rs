@@ -157,7 +157,7 @@ impl NodeLogic for FusionNode {
         let r = self.result.as_ref();
         record::to_value(&FusionReport {
             method: self.fusion.settings().method.name().into(),
-            patches: self.patches as u64,
+            patches: self.patches,
             panorama: r.map(|r| r.summary),
             files: r.map_or(Vec::new(), |r| r.files.clone()),
             rerendered_from_final_registrations: r.is_some_and(|r| r.rerendered),
