@@ -40,6 +40,9 @@ pub struct FinishConfig {
     pub calibrate_sa_um: Option<[f64; 2]>,
     #[serde(default)]
     pub k_finnie_per_pa: Option<f64>,
+    /// "contact-field" (default) or "sampled-map".
+    #[serde(default)]
+    pub wear_model: Option<String>,
 }
 
 fn default_dir() -> String {
@@ -85,6 +88,10 @@ impl FinishConfig {
                 before_um: Some(b),
                 after_um: a,
             });
+        }
+        if let Some(m) = &self.wear_model {
+            o.wear_model = crate::run::WearModel::parse(m)
+                .map_err(|e| anyhow::anyhow!("params.wear_model: {e}"))?;
         }
         o.media.validate()?;
         Ok(o)
