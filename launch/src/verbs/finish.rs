@@ -234,7 +234,7 @@ pub fn run(a: FinishArgs) -> Result<()> {
         o.machine.counter_rotation_rpm = x;
     }
     if let Some(k) = a.k_finnie {
-        o.k_finnie_per_pa = k;
+        o.k_finnie_per_pa = Some(k);
     }
     if let Some(t) = a.process_time_s {
         o.process_time_s = t;

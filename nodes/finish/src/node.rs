@@ -81,7 +81,7 @@ impl FinishConfig {
             o.max_triangles = t;
         }
         if let Some(k) = self.k_finnie_per_pa {
-            o.k_finnie_per_pa = k;
+            o.k_finnie_per_pa = Some(k);
         }
         if let Some([b, a]) = self.calibrate_sa_um {
             o.calibrate = Some(Calibration::Sa {
