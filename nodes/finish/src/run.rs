@@ -567,6 +567,16 @@ fn fit_scale(patch: &Patch, h: &[f64], wear: &[f64], target: f64) -> Result<(f64
     Ok((best.0, false))
 }
 
+/// A fit of the contact field's scale: the worn surface it ends on and what it took.
+struct FieldFit {
+    cycle: usize,
+    heights_um: Vec<f64>,
+    wear_um: Vec<f64>,
+    impacts: f64,
+    extrapolation: field::Extrapolation,
+    reached: bool,
+}
+
 fn add_scaled(acc: &mut [f64], x: &[f64], s: f64) {
     for (a, v) in acc.iter_mut().zip(x) {
         *a += s * v;
@@ -754,6 +764,7 @@ pub fn finish(
     let impacts_process = impact_rate * aim_area_um2 * 1e-12 * opts.process_time_s;
     let mut table = WearTable::empty(dist.max_um());
     let mut provisional_scale: Option<f64> = None;
+    let mut last_fit: Option<FieldFit> = None;
     let mut archard_sampled: Vec<(Vec<f64>, f64)> = Vec::new();
     let mut checks: Vec<field::FieldCheck> = Vec::new();
     let mut sa_of_crop = |z: &[f64]| -> Result<f64> {
@@ -936,7 +947,7 @@ pub fn finish(
                 if let Some(t) = target_sa {
                     let mut h0 = patch.heights_um.clone();
                     let mut w0 = vec![0.0; n];
-                    let (used, _, _) = field::wear_to_target(
+                    let (used, e, ok) = field::wear_to_target(
                         &mut h0,
                         &mut w0,
                         field_grid,
@@ -947,6 +958,15 @@ pub fn finish(
                         &mut sa_of_crop,
                     )?;
                     provisional_scale = Some(used / impacts_process);
+                    // After the last cycle this is the final fit (same tables): kept.
+                    last_fit = Some(FieldFit {
+                        cycle: c,
+                        heights_um: h0,
+                        wear_um: w0,
+                        impacts: used,
+                        extrapolation: e,
+                        reached: ok,
+                    });
                 }
                 let scale = provisional_scale.unwrap_or(1.0);
                 // The next segment's surface: the model's estimate at the end of this cycle's
@@ -1048,18 +1068,39 @@ pub fn finish(
     if opts.wear_model == WearModel::ContactField && completed > 0 {
         let mut scale = provisional_scale.unwrap_or(1.0);
         if let (Some(t), false) = (target_sa, partial) {
-            let mut h0 = patch.heights_um.clone();
-            let mut w0 = vec![0.0; n];
-            let (used, e, reached) = field::wear_to_target(
-                &mut h0,
-                &mut w0,
-                field_grid,
-                &dist,
-                &table,
-                impacts_process * MAX_FIELD_SCALE,
-                t,
-                &mut sa_of_crop,
-            )?;
+            let fit = match last_fit.take().filter(|f| f.cycle == completed) {
+                Some(f) => f,
+                None => {
+                    let mut heights_um = patch.heights_um.clone();
+                    let mut wear_um = vec![0.0; n];
+                    let (impacts, extrapolation, reached) = field::wear_to_target(
+                        &mut heights_um,
+                        &mut wear_um,
+                        field_grid,
+                        &dist,
+                        &table,
+                        impacts_process * MAX_FIELD_SCALE,
+                        t,
+                        &mut sa_of_crop,
+                    )?;
+                    FieldFit {
+                        cycle: completed,
+                        heights_um,
+                        wear_um,
+                        impacts,
+                        extrapolation,
+                        reached,
+                    }
+                }
+            };
+            let FieldFit {
+                heights_um: h0,
+                wear_um: w0,
+                impacts: used,
+                extrapolation: e,
+                reached,
+                ..
+            } = fit;
             scale = used / impacts_process;
             h = h0;
             finnie_total = w0;
