@@ -15,6 +15,7 @@
 mod charts;
 mod cost_curve;
 mod details;
+mod finish;
 mod html;
 mod maps;
 mod plot;
@@ -173,6 +174,7 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
     }
     h.push_str(&table6::section(&run["deviation"]));
     h.push_str(&cost_curve::section(run));
+    h.push_str(&finish::section(run, out));
     h.push_str(&details::tile_layout(run));
     h.push_str(&details::mesh(run));
     h.push_str(&details::latencies(run));
