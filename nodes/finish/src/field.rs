@@ -406,8 +406,13 @@ pub struct FieldGrid {
 /// Deepest wear of one step of the extrapolation, um: small against the approach (about
 /// 1 um) so that a cut peak lets its neighbours into contact before it is cut further.
 pub const STEP_DEPTH_UM: f64 = 0.1;
-/// Most steps of one extrapolation (a guard; the demo takes about a hundred).
-pub const MAX_STEPS: usize = 20_000;
+/// Most steps of one extrapolation (a guard; the demo takes about sixty).
+pub const MAX_STEPS: usize = 5_000;
+/// [`wear_to_target`] gives up when Sa fell by less than this share of the way to the
+/// target over the last [`STALL_STEPS`] steps (the surface wears without getting smoother,
+/// e.g. a form the ball follows).
+pub const STALL_SHARE: f64 = 0.002;
+pub const STALL_STEPS: usize = 100;
 
 /// What an extrapolation did.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -473,7 +478,7 @@ pub fn extrapolate(
 /// step the wear is linear). Returns the impacts used (the fitted scale is their ratio to
 /// the process's impacts), the extrapolation, and whether the target was reached. Running
 /// [`extrapolate`] from the same surface with scale = used / N over N impacts takes the
-/// same steps.
+/// same steps. A set `stop` (Ctrl-C) ends it early, not reached.
 #[allow(clippy::too_many_arguments)]
 pub fn wear_to_target(
     heights_um: &mut [f64],
@@ -483,6 +488,7 @@ pub fn wear_to_target(
     table: &WearTable,
     max_impacts: f64,
     target_sa_um: f64,
+    stop: &std::sync::atomic::AtomicBool,
     mut sa_of: impl FnMut(&[f64]) -> Result<f64>,
 ) -> Result<(f64, Extrapolation, bool)> {
     let mut used = 0.0;
@@ -490,8 +496,14 @@ pub fn wear_to_target(
     let cell = g.pitch_x_um * g.pitch_y_um;
     let mut rate = vec![0.0; heights_um.len()];
     let mut trial = vec![0.0; heights_um.len()];
-    let mut reached = sa_of(heights_um)? <= target_sa_um;
-    while !reached && used < max_impacts && out.steps < MAX_STEPS {
+    let sa_start = sa_of(heights_um)?;
+    let mut reached = sa_start <= target_sa_um;
+    let mut sa_mark = sa_start;
+    while !reached
+        && used < max_impacts
+        && out.steps < MAX_STEPS
+        && !stop.load(std::sync::atomic::Ordering::Relaxed)
+    {
         let gap = ball_gap_um(
             heights_um,
             g.rows,
@@ -515,7 +527,8 @@ pub fn wear_to_target(
             }
         };
         worn(n, &mut trial);
-        if sa_of(&trial)? <= target_sa_um {
+        let sa_step = sa_of(&trial)?;
+        if sa_step <= target_sa_um {
             let (mut a, mut b) = (0.0, n);
             for _ in 0..30 {
                 let m = 0.5 * (a + b);
@@ -537,6 +550,12 @@ pub fn wear_to_target(
         }
         used += n;
         out.steps += 1;
+        if out.steps % STALL_STEPS == 0 {
+            if sa_mark - sa_step < STALL_SHARE * (sa_start - target_sa_um) {
+                break;
+            }
+            sa_mark = sa_step;
+        }
     }
     out.worn_cells =
         wear_um.iter().filter(|w| **w > 0.0).count() as f64 / wear_um.len().max(1) as f64;
@@ -749,7 +768,9 @@ mod tests {
         };
         let mut h = z.clone();
         let mut w = vec![0.0; h.len()];
-        let (used, _, ok) = wear_to_target(&mut h, &mut w, g, &d, &t, 1e9, target, sa).unwrap();
+        let stop = std::sync::atomic::AtomicBool::new(false);
+        let (used, _, ok) =
+            wear_to_target(&mut h, &mut w, g, &d, &t, 1e9, target, &stop, sa).unwrap();
         assert!(ok, "target not reached");
         assert!(
             (sa(&h).unwrap() / target - 1.0).abs() < 1e-6,

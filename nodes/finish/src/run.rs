@@ -955,6 +955,7 @@ pub fn finish(
                         &table,
                         impacts_process * MAX_FIELD_SCALE,
                         t,
+                        stop,
                         &mut sa_of_crop,
                     )?;
                     provisional_scale = Some(used / impacts_process);
@@ -1060,6 +1061,10 @@ pub fn finish(
         }));
     }
     let completed = cycles_json.len();
+    // A stop during the contact field's fit (no engine running) ends the run the same way.
+    if stop.load(std::sync::atomic::Ordering::Relaxed) {
+        partial = true;
+    }
 
     // The contact field's final fit, once, with every cycle's table, from the original
     // surface over the whole process time; without a target the cycles' wear stands (k as
@@ -1081,6 +1086,7 @@ pub fn finish(
                         &table,
                         impacts_process * MAX_FIELD_SCALE,
                         t,
+                        stop,
                         &mut sa_of_crop,
                     )?;
                     FieldFit {
