@@ -105,6 +105,7 @@ fn the_recorded_wear_table_calibrates_a_demo_like_patch_to_the_papers_sa() {
         &table,
         impacts * 1e8,
         target,
+        &std::sync::atomic::AtomicBool::new(false),
         |f| Ok(params(f).sa),
     )
     .unwrap();
