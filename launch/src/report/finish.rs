@@ -11,20 +11,20 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, Context, Result};
 use serde_json::Value;
+use surfstream_core::record::RunRecord;
 use surfstream_finish::summary::FinishSummary;
 
 use super::html::esc;
 
 /// The folders of `out` where a finish node wrote: its `dir` parameter (run.json
 /// `parameters.ID.dir`, "finish" by default) holding finish.json and wear.npy; in name order.
-fn finish_dirs(run: &Value, out: &Path) -> Vec<PathBuf> {
+fn finish_dirs(run: &RunRecord, out: &Path) -> Vec<PathBuf> {
     let mut names: Vec<String> = vec!["finish".into()];
-    if let Some(p) = run["parameters"].as_object() {
-        names.extend(
-            p.values()
-                .filter_map(|v| v["dir"].as_str().map(String::from)),
-        );
-    }
+    names.extend(
+        run.parameters
+            .values()
+            .filter_map(|v| v["dir"].as_str().map(String::from)),
+    );
     names.sort();
     names.dedup();
     names
@@ -35,7 +35,7 @@ fn finish_dirs(run: &Value, out: &Path) -> Vec<PathBuf> {
 }
 
 /// The section, or "" when the run has no finish output.
-pub fn section(run: &Value, out: &Path) -> String {
+pub fn section(run: &RunRecord, out: &Path) -> String {
     let mut h = String::new();
     for dir in finish_dirs(run, out) {
         let rel = dir.strip_prefix(out).unwrap_or(&dir).display().to_string();
