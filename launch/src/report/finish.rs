@@ -6,6 +6,7 @@
 //! (the same as its finish.html), from wear.npy, original.npy and worn.npy in the node's
 //! folder.
 
+use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -18,10 +19,10 @@ use super::html::esc;
 
 /// The folders of `out` where a finish node wrote: its `dir` parameter (run.json
 /// `parameters.ID.dir`, "finish" by default) holding finish.json and wear.npy; in name order.
-fn finish_dirs(run: &RunRecord, out: &Path) -> Vec<PathBuf> {
+fn finish_dirs(parameters: &BTreeMap<String, Value>, out: &Path) -> Vec<PathBuf> {
     let mut names: Vec<String> = vec!["finish".into()];
     names.extend(
-        run.parameters
+        parameters
             .values()
             .filter_map(|v| v["dir"].as_str().map(String::from)),
     );
@@ -36,8 +37,13 @@ fn finish_dirs(run: &RunRecord, out: &Path) -> Vec<PathBuf> {
 
 /// The section, or "" when the run has no finish output.
 pub fn section(run: &RunRecord, out: &Path) -> String {
+    section_of(&run.parameters, out)
+}
+
+/// The section for a run whose nodes' parameters are `parameters`.
+fn section_of(parameters: &BTreeMap<String, Value>, out: &Path) -> String {
     let mut h = String::new();
-    for dir in finish_dirs(run, out) {
+    for dir in finish_dirs(parameters, out) {
         let rel = dir.strip_prefix(out).unwrap_or(&dir).display().to_string();
         match render(&dir, &rel) {
             Ok(s) => h.push_str(&s),
@@ -229,17 +235,17 @@ mod tests {
     #[test]
     fn a_run_without_finish_output_has_no_section_and_a_broken_one_says_why() {
         let dir = tempfile::tempdir().unwrap();
-        let run = serde_json::json!({"parameters": {"fin": {"dir": "f2"}}});
-        assert_eq!(section(&run, dir.path()), "");
+        let run = BTreeMap::from([("fin".to_string(), serde_json::json!({"dir": "f2"}))]);
+        assert_eq!(section_of(&run, dir.path()), "");
         // A node's record (nodes/finish.json) is not a finish output.
         std::fs::create_dir_all(dir.path().join("nodes")).unwrap();
         std::fs::write(dir.path().join("nodes/finish.json"), "{}").unwrap();
-        assert_eq!(section(&run, dir.path()), "");
+        assert_eq!(section_of(&run, dir.path()), "");
         let f = dir.path().join("f2");
         std::fs::create_dir_all(&f).unwrap();
         std::fs::write(f.join("finish.json"), "{\"model\": 3}").unwrap();
         std::fs::write(f.join("wear.npy"), "").unwrap();
-        let s = section(&run, dir.path());
+        let s = section_of(&run, dir.path());
         assert!(s.contains("Not shown") && s.contains("finish.json"), "{s}");
     }
 }
