@@ -177,9 +177,10 @@ impl Default for FinishOptions {
 }
 
 /// Finnie's constant used when none is given (contact-field model), 1/Pa: the value fitted
-/// once by `--calibrate 1.272,0.565` on the demo specimen (docs/finish.md), rounded. It
-/// belongs to this setting (the impact rate, the approach distribution), not to a material.
-pub const DEFAULT_K_FINNIE_PER_PA: f64 = 2e-12;
+/// once by `--calibrate 1.272,0.565` on the demo specimen (5.84e-12, docs/finish.md),
+/// rounded. It belongs to this setting (the impact rate, the approach distribution, the DEM
+/// passes that measured the wear per contact), not to a material.
+pub const DEFAULT_K_FINNIE_PER_PA: f64 = 6e-12;
 /// The same for `--wear-model sampled-map`: the mean of its per-cycle fits on the demo,
 /// short of the target (its per-cycle depth cap; docs/finish.md).
 pub const DEFAULT_K_FINNIE_SAMPLED_MAP_PER_PA: f64 = 9e-17;
