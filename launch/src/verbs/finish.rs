@@ -36,10 +36,13 @@ pub struct FinishArgs {
     /// Media passes per segment (default: as many as the budget allows).
     #[arg(long)]
     pub passes: Option<usize>,
+    /// Diameter of the spherical media, mm (default 3, the paper's ceramic media).
     #[arg(long)]
     pub media_diameter_mm: Option<f64>,
+    /// Density of the media, kg/m^3 (default 2500, ceramic).
     #[arg(long)]
     pub media_density_kg_m3: Option<f64>,
+    /// Young's modulus of the media, Pa (default 1e11, ceramic; the part: 2.1e11, steel).
     #[arg(long)]
     pub media_modulus_pa: Option<f64>,
     /// Relative media velocity, m/s (default: from the barrel kinematics).
