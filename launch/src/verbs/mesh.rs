@@ -187,6 +187,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
         let settings = ToleranceSettings {
             tolerance: a.tolerance.unwrap_or_default(),
             region_px: a.region_px,
+            ..Default::default()
         };
         let (m, r) = mesh_to_tolerance(heights, &at, &params, &settings)
             .with_context(|| format!("{}", a.file.display()))?;

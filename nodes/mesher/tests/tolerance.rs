@@ -57,6 +57,7 @@ fn settings(t: &str) -> ToleranceSettings {
     ToleranceSettings {
         tolerance: t.parse().unwrap(),
         region_px: Some(48),
+        ..Default::default()
     }
 }
 
