@@ -355,6 +355,9 @@ struct Builder<'a> {
     /// Measured, whole grid, in fill mode with missing samples: the filled ones need no
     /// accuracy (nothing is judged there), only to be covered, so they are never candidates.
     measured: Option<&'a [bool]>,
+    /// The mesh's height at every sample of the block (local index), kept up to date by the
+    /// scans (blocks that are balanced, without holes): what the balance reads each round.
+    mesh_local: Option<Vec<f64>>,
     /// Local: a vertex, or a sample on a shared border that must not become one (its error is
     /// already bounded along the border); never a candidate.
     settled: Vec<bool>,
@@ -415,6 +418,9 @@ impl Builder<'_> {
                 let mut zp = plane.at(lo, y);
                 for x in lo..=hi {
                     let s = row + x as usize;
+                    if let Some(m) = self.mesh_local.as_mut() {
+                        m[lrow + x as usize] = zp;
+                    }
                     let e = (f64::from(self.z[s]) - zp).abs();
                     if e > best.0
                         && !self.settled[lrow + x as usize]
@@ -511,6 +517,15 @@ impl Builder<'_> {
         self.valid.or(self.measured).is_none_or(|v| v[s])
     }
 
+    /// The mesh's height at every sample of the block (local index): kept by the scans, or
+    /// painted.
+    fn mesh_values(&self) -> std::borrow::Cow<'_, [f64]> {
+        match &self.mesh_local {
+            Some(m) if self.valid.is_none() => std::borrow::Cow::Borrowed(m),
+            _ => std::borrow::Cow::Owned(self.paint_local()),
+        }
+    }
+
     /// The mesh's height at every sample of the block (local index), from the triangles'
     /// planes (NaN where none covers).
     fn paint_local(&self) -> Vec<f64> {
@@ -566,12 +581,21 @@ impl Builder<'_> {
         m: &[f64],
         mean: f64,
         mesh_mean: f64,
-        down: bool,
+        mode: Pull,
     ) -> Vec<(f64, u32)> {
         let (bx0, by0, bw) = (self.block.x0 as i64, self.block.y0 as i64, self.bw as i64);
         let w = self.width as i64;
         let mut out = Vec::new();
-        for tri in &self.tris {
+        if mode == Pull::Pointwise {
+            out.extend(
+                self.tris
+                    .iter()
+                    .filter(|t| t.candidate != NONE && t.err.is_finite() && t.err > 0.0)
+                    .map(|t| (t.err, t.candidate)),
+            );
+        }
+        let down = mode == Pull::Down;
+        for tri in self.tris.iter().filter(|_| mode != Pull::Pointwise) {
             let c = tri.v.map(|v| self.corner(v));
             let mut best = (0.0f64, NONE);
             for_each_row(
@@ -585,8 +609,14 @@ impl Builder<'_> {
                         if self.settled[l] || !self.is_measured(s) {
                             continue;
                         }
-                        let spread = (m[l] - mesh_mean).abs() - (f64::from(self.z[s]) - mean).abs();
-                        let score = if down { spread } else { -spread };
+                        let z = f64::from(self.z[s]);
+                        let spread = (m[l] - mesh_mean).abs() - (z - mean).abs();
+                        let score = match mode {
+                            Pull::Mean { high: true } => m[l] - z,
+                            Pull::Mean { high: false } => z - m[l],
+                            _ if down => spread,
+                            _ => -spread,
+                        };
                         if score > best.0 {
                             best = (score, s as u32);
                         }
@@ -784,6 +814,7 @@ fn mesh_block(
         border,
         epsilon_um,
         keep_extremes,
+        false,
     );
     let budget_reached = b.refine(epsilon_um, max_triangles);
     BlockTin {
@@ -806,6 +837,7 @@ fn start_block<'a>(
     border: &[u32],
     epsilon_um: f64,
     keep_extremes: bool,
+    track_mesh: bool,
 ) -> Builder<'a> {
     let bw = block.x1 - block.x0 + 1;
     let bh = block.y1 - block.y0 + 1;
@@ -817,6 +849,7 @@ fn start_block<'a>(
         valid,
         measured,
         settled: vec![false; bw * bh],
+        mesh_local: None,
         verts: Vec::new(),
         vertex_samples: Vec::new(),
         tris: Vec::new(),
@@ -900,6 +933,9 @@ fn start_block<'a>(
         }
     }
     b.scanning = true;
+    if track_mesh {
+        b.mesh_local = Some(vec![f64::NAN; bw * bh]);
+    }
     for t in 0..b.tris.len() as u32 {
         b.scan(t);
     }
@@ -937,6 +973,21 @@ fn simplify_border(
                 }
             }
         }
+    }
+    // The side's peak and valley: a region's extreme on a shared side is then a vertex too
+    // (the blocks' own extremes are taken off their shared sides).
+    let measured_at = |k: usize| valid.or(measured).is_none_or(|m| m[line[k]]);
+    let (mut hi, mut lo) = (None::<usize>, None::<usize>);
+    for k in (0..n).filter(|&k| measured_at(k)) {
+        if hi.is_none_or(|h| z[line[k]] > z[line[h]]) {
+            hi = Some(k);
+        }
+        if lo.is_none_or(|l| z[line[k]] < z[line[l]]) {
+            lo = Some(k);
+        }
+    }
+    for k in [hi, lo].into_iter().flatten() {
+        keep[k] = true;
     }
     // The margin keeps the bound when the triangles along the side evaluate their plane at
     // these samples with different rounding than the interpolation here.
@@ -1107,8 +1158,31 @@ pub(crate) struct Balance {
     pub(crate) sq: f64,
 }
 
+/// What a round of [`LiveBlock::balance`] inserts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Pull {
+    /// Samples where the mesh is farther from its mean than the measurement from its own.
+    Down,
+    /// Samples where it is nearer.
+    Up,
+    /// The largest pointwise errors.
+    Pointwise,
+    /// Samples farthest below (`high`: the mesh's mean is above the measurement's) or above
+    /// the mesh.
+    Mean { high: bool },
+}
+
+impl Pull {
+    fn opposes(self, other: Pull) -> bool {
+        matches!(
+            (self, other),
+            (Pull::Down, Pull::Up) | (Pull::Up, Pull::Down)
+        ) || matches!((self, other), (Pull::Mean { high: a }, Pull::Mean { high: b }) if a != b)
+    }
+}
+
 /// Rounds of [`LiveBlock::balance`] per step at most.
-const BALANCE_ROUNDS: usize = 24;
+const BALANCE_ROUNDS: usize = 16;
 
 /// Mean, Sa and Sq (about the mean) of values over a block's measured samples.
 #[derive(Debug, Clone, Copy)]
@@ -1149,28 +1223,54 @@ impl LiveBlock<'_> {
             return;
         };
         let mut batch = (self.b.vertex_samples.len() / 16).max(4);
-        let mut last_down = None;
+        // (direction, excess over the target, vertices inserted) of the last round.
+        let mut last: Option<(Pull, f64, usize)> = None;
         for _ in 0..BALANCE_ROUNDS {
-            let m = self.b.paint_local();
+            let m = self.b.mesh_values();
             let Some(mesh) = self.b.stats(|l, _| m[l]) else {
                 return;
             };
             let (da, dq) = (mesh.sa / measured.sa - 1.0, mesh.sq / measured.sq - 1.0);
-            if da.abs() <= target.sa && dq.abs() <= target.sq {
+            let (ra, rq) = (da.abs() / target.sa, dq.abs() / target.sq);
+            // The block's mean: an offset between blocks is spread the regions see (a mesh
+            // too coarse for the waviness flattens it between blocks while each block keeps
+            // its own Sa and Sq).
+            let dm = mesh.mean - measured.mean;
+            let rm = dm.abs() / (target.sq * measured.sq);
+            if ra <= 1.0 && rq <= 1.0 && rm <= 1.0 {
                 return;
             }
-            let down = if da.abs() / target.sa >= dq.abs() / target.sq {
-                da > 0.0
+            // Sa and Sq off in opposite directions (the mesh has the spread but not the
+            // shape of the distribution): neither direction helps both, the largest
+            // pointwise errors do.
+            let split = da * dq < 0.0 && ra.min(rq) > 1.0;
+            let (mode, ratio) = if rm >= ra.max(rq) {
+                (Pull::Mean { high: dm > 0.0 }, rm)
+            } else if split {
+                (Pull::Pointwise, ra.max(rq))
+            } else if ra >= rq {
+                (if da > 0.0 { Pull::Down } else { Pull::Up }, ra)
             } else {
-                dq > 0.0
+                (if dq > 0.0 { Pull::Down } else { Pull::Up }, rq)
             };
-            if last_down.is_some_and(|d| d != down) {
-                batch = (batch / 2).max(1);
-            }
-            last_down = Some(down);
+            batch = match last {
+                // Flipped: the last batch went too far.
+                Some((d, _, n)) if d.opposes(mode) => (n / 2).max(1),
+                // Same pull: as many as the last round's progress says are needed (most of
+                // them: the gain per vertex falls as the worst ones go), at most four times
+                // as many.
+                Some((d, before, n)) if d == mode && before > ratio => {
+                    let per_vertex = (before - ratio) / n as f64;
+                    (((ratio - 1.0) / per_vertex * 0.8).ceil() as usize).clamp(1, 4 * n)
+                }
+                Some((d, _, n)) if d == mode => 2 * n,
+                Some((_, _, n)) => n,
+                None => batch,
+            };
             let mut cands = self
                 .b
-                .balance_candidates(&m, measured.mean, mesh.mean, down);
+                .balance_candidates(&m, measured.mean, mesh.mean, mode);
+            drop(m);
             if cands.is_empty() {
                 return;
             }
@@ -1178,12 +1278,27 @@ impl LiveBlock<'_> {
                 cands.select_nth_unstable_by(batch, |a, b| b.0.total_cmp(&a.0));
                 cands.truncate(batch);
             }
+            let inserted = cands.len();
             cands.sort_by_key(|c| c.1);
-            let mut last = 0;
+            let mut at = 0;
             for (_, s) in cands {
-                last = self.b.insert_at(s as usize, last);
+                at = self.b.insert_at(s as usize, at);
             }
             self.budget_reached |= self.b.refine(self.b.epsilon_um, plan.max_triangles);
+            last = Some((mode, ratio, inserted));
+        }
+        if std::env::var_os("SURFSTREAM_DEBUG_BALANCE").is_some() {
+            let m = self.b.mesh_values();
+            if let Some(mesh) = self.b.stats(|l, _| m[l]) {
+                eprintln!(
+                    "balance: block {:?} rounds out: Sa {:+.3} % Sq {:+.3} % vertices {} last {:?}",
+                    self.b.block,
+                    (mesh.sa / measured.sa - 1.0) * 100.0,
+                    (mesh.sq / measured.sq - 1.0) * 100.0,
+                    self.b.vertex_samples.len(),
+                    last
+                );
+            }
         }
     }
 
@@ -1413,6 +1528,7 @@ impl<'a> BlockPlan<'a> {
             &border,
             sides.epsilon_um,
             self.keep_extremes,
+            true,
         );
         border.sort_unstable();
         border.dedup();
@@ -1768,6 +1884,16 @@ mod tests {
                 if let Some(t) = balance {
                     b.balance(plan, t);
                 }
+            }
+        }
+        // The heights the scans keep are the triangles' planes, painted afresh.
+        for b in &live {
+            if let (Some(kept), None) = (&b.b.mesh_local, b.b.valid) {
+                let painted = b.b.paint_local();
+                assert!(kept
+                    .iter()
+                    .zip(&painted)
+                    .all(|(a, p)| (a - p).abs() <= 1e-9 * (1.0 + p.abs())));
             }
         }
         let meshed: Vec<BlockTin> = live.iter().map(LiveBlock::snapshot).collect();

@@ -691,6 +691,13 @@ fn refine_blocks<'p>(
     });
 }
 
+/// Side of the blocks when they are balanced: a quarter of the judged windows (a window
+/// then holds about a dozen whole blocks and its Sa and Sq follow theirs), between 64 (the
+/// shared sides' vertices cost more below) and the default block.
+fn balance_block_px(s: &ToleranceSettings) -> usize {
+    (s.region_px.unwrap_or(DEFAULT_REGION_PX) / 4).clamp(64, crate::tin::DEFAULT_BLOCK_SAMPLES)
+}
+
 /// The block balance the settings ask for.
 fn balance_of(s: &ToleranceSettings) -> Option<Balance> {
     (s.method == ModelMethod::Balanced).then(|| Balance {
@@ -714,6 +721,9 @@ pub fn mesh_to_tolerance(
     let settings = &settings;
     let mut p = params.clone();
     p.max_triangles = None;
+    if settings.method == ModelMethod::Balanced && p.block_samples.is_none() {
+        p.block_samples = Some(balance_block_px(settings));
+    }
     let plan = order_plan(heights, &p, sq)?;
     let mut live = Vec::new();
     search(
@@ -755,6 +765,9 @@ pub fn mesh_streaming_to_tolerance(
     let settings = &settings;
     let mut p = params.clone();
     p.max_triangles = None;
+    if settings.method == ModelMethod::Balanced && p.block_samples.is_none() {
+        p.block_samples = Some(balance_block_px(settings));
+    }
     let plan = order_plan(heights, &p, sq)?;
     let level = field_level(heights, at);
     let mut live = Vec::new();
