@@ -1287,19 +1287,6 @@ impl LiveBlock<'_> {
             self.budget_reached |= self.b.refine(self.b.epsilon_um, plan.max_triangles);
             last = Some((mode, ratio, inserted));
         }
-        if std::env::var_os("SURFSTREAM_DEBUG_BALANCE").is_some() {
-            let m = self.b.mesh_values();
-            if let Some(mesh) = self.b.stats(|l, _| m[l]) {
-                eprintln!(
-                    "balance: block {:?} rounds out: Sa {:+.3} % Sq {:+.3} % vertices {} last {:?}",
-                    self.b.block,
-                    (mesh.sa / measured.sa - 1.0) * 100.0,
-                    (mesh.sq / measured.sq - 1.0) * 100.0,
-                    self.b.vertex_samples.len(),
-                    last
-                );
-            }
-        }
     }
 
     /// Mean, Sa and Sq of the measurement over the block's measured samples (cached).
