@@ -518,7 +518,8 @@ pub fn search<M>(
     // One insertion order, judged at every checkpoint: the first that passes is the fewest
     // triangles this order can give (the parameters do not move monotonically with the
     // triangles, so the first pass is taken, not a bisection).
-    let (mut best, mut fallback): (Option<(usize, M)>, Option<(usize, M)>) = (None, None);
+    let mut best: Option<(usize, M)> = None;
+    let mut fallback: Option<(usize, M)> = None;
     let mut fractions = checkpoint_fractions();
     for f in fractions.by_ref() {
         let (pass, over, mesh) = run(f, Stage::Search, &mut curve)?;
