@@ -13,6 +13,10 @@ largest p in 8, 4, 2, 1 that meets the tolerance gives the triangles that path n
 
     python scripts/bench_model.py --out /tmp/bench-model [--kit ../shared/bench]
         [--specimens ../shared/specimens] [--surfstream target/release/surfstream]
+        [--set mesher.model_method='"greedy"' ...] [--label NAME] [--only noisy,missing]
+
+`--set` is passed to every `surfstream stitch` (compare variants of the model: each run writes
+OUT/stitch-LABEL/ and OUT/bench_model-LABEL.json); the tiles are cut once and reused.
 
 Prints a Markdown table (and writes OUT/bench_model.json). Needs numpy and scipy (make_tiles);
 surfalize for the .x3p / .sur specimens.
@@ -24,6 +28,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -146,12 +151,24 @@ def main() -> int:
     ap.add_argument("--kit", type=Path, default=here.parent.parent / "shared" / "bench")
     ap.add_argument("--specimens", type=Path, default=here.parent.parent / "shared" / "specimens")
     ap.add_argument("--surfstream", type=Path, default=here.parent / "target" / "release" / "surfstream")
+    ap.add_argument("--set", action="append", default=[], help="NODE.PARAM=VALUE passed to stitch")
+    ap.add_argument("--label", default="", help="names this variant's outputs")
+    ap.add_argument("--only", default="", help="comma-separated substrings of the set names to run")
     a = ap.parse_args()
+    suffix = f"-{a.label}" if a.label else ""
     a.out.mkdir(parents=True, exist_ok=True)
     rows = []
+    only = [w for w in a.only.split(",") if w]
     for name, d in make_sets(a.out, a.kit, a.specimens):
-        o = a.out / "stitch" / d.name
-        r = subprocess.run([str(a.surfstream), "stitch", str(d), "-o", str(o)], capture_output=True, text=True)
+        if only and not any(w in name for w in only):
+            continue
+        o = a.out / f"stitch{suffix}" / d.name
+        cmd = [str(a.surfstream), "stitch", str(d), "-o", str(o)]
+        for kv in a.set:
+            cmd += ["--set", kv]
+        t0 = time.perf_counter()
+        r = subprocess.run(cmd, capture_output=True, text=True)
+        seconds = time.perf_counter() - t0
         if r.returncode != 0 or not (o / "run.json").exists():
             print(f"{name}: stitch failed: {r.stderr.strip()[-400:]}", file=sys.stderr)
             continue
@@ -182,20 +199,21 @@ def main() -> int:
                      "surface_triangles": tol.get("surface_triangles"),
                      "triangles_per_measured_px": tol.get("triangles_per_measured_px"),
                      "met": tol.get("met"), "table6_mesh_pass": mesh.get("pass"),
-                     "verdict_pass": dev.get("pass")},
+                     "verdict_pass": dev.get("pass"), "stitch_seconds": seconds,
+                     "checkpoints": len(tol.get("curve", []))},
             "paper_pool4": {**p4, "triangles": p4_tri, "triangles_per_measured_px": p4_tri / measured_px},
             "paper_needs": None if need is None else {"pool": need[0], "triangles": need[1],
                                                          "triangles_per_measured_px": need[1] / measured_px},
         })
-    (a.out / "bench_model.json").write_text(json.dumps(rows, indent=1))
-    print("| set | ours: worst Sa / Sq / Sz % | residual % of Sq | surface triangles (per measured px) | Table 6 | paper 4x4 max pool + grid: worst Sa / Sq / Sz % | residual | triangles (per px) | paper's path at the tolerance needs |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    (a.out / f"bench_model{suffix}.json").write_text(json.dumps(rows, indent=1))
+    print("| set | ours: worst Sa / Sq / Sz % | residual % of Sq | surface triangles (per measured px) | Table 6 | paper 4x4 max pool + grid: worst Sa / Sq / Sz % | residual | triangles (per px) | paper's path at the tolerance needs | stitch s |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         o, p, n = r["ours"], r["paper_pool4"], r["paper_needs"]
         need = "not met even at p = 1" if n is None else f"pool {n['pool']}: {n['triangles']} ({n['triangles_per_measured_px']:.3f})"
         print(f"| {r['set']} | {o['Sa']:+.2f} / {o['Sq']:+.2f} / {o['Sz']:+.2f} | {o['residual'] or float('nan'):.1f} | "
               f"{o['surface_triangles']} ({o['triangles_per_measured_px'] or float('nan'):.3f}) | {'PASS' if o['table6_mesh_pass'] else 'FAIL'} | "
-              f"{p['Sa']:+.2f} / {p['Sq']:+.2f} / {p['Sz']:+.2f} | {p['residual']:.1f} | {p['triangles']} ({p['triangles_per_measured_px']:.3f}) | {need} |")
+              f"{p['Sa']:+.2f} / {p['Sq']:+.2f} / {p['Sz']:+.2f} | {p['residual']:.1f} | {p['triangles']} ({p['triangles_per_measured_px']:.3f}) | {need} | {o['stitch_seconds']:.1f} |")
     return 0
 
 

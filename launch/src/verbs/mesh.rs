@@ -38,6 +38,10 @@ pub struct MeshArgs {
     /// shorter side, 64 to 1024).
     #[arg(long, value_name = "PX")]
     pub region_px: Option<usize>,
+    /// How the tolerance search's insertion order is made: "balanced" (default: greedy plus
+    /// a per-block Sa/Sq balance) or "greedy" (the pointwise bound only); docs/model.md.
+    #[arg(long, value_name = "balanced|greedy")]
+    pub model_method: Option<String>,
     /// Treat isolated spikes as not measured before meshing (ISO 25178-3 style outlier
     /// removal; they are always reported in OUT.json, and kept by default).
     #[arg(long)]
@@ -187,6 +191,11 @@ pub fn run(a: MeshArgs) -> Result<()> {
         let settings = ToleranceSettings {
             tolerance: a.tolerance.unwrap_or_default(),
             region_px: a.region_px,
+            method: match a.model_method.as_deref() {
+                None | Some("balanced") => surfstream_mesher::tolerance::ModelMethod::Balanced,
+                Some("greedy") => surfstream_mesher::tolerance::ModelMethod::Greedy,
+                Some(other) => bail!("--model-method {other}: expected balanced or greedy"),
+            },
         };
         let (m, r) = mesh_to_tolerance(heights, &at, &params, &settings)
             .with_context(|| format!("{}", a.file.display()))?;

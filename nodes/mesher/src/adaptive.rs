@@ -10,7 +10,7 @@ use surfstream_core::raster::RasterView;
 
 use crate::field::{validate, ScanPlacement};
 use crate::solid::{close_top_surface, default_base_depth_um, SolidMesh, SolidParams};
-use crate::tin::{resample_with_error, triangulate, ErrorStats, MissingSamples, TinParams};
+use crate::tin::{resample_with_error, triangulate, ErrorStats, MissingSamples, Tin, TinParams};
 
 /// The error bound: absolute, or a fraction of the height field's Sq.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -95,16 +95,7 @@ pub(crate) fn mesh_height_field_with(
     params: &MeshParams,
     keep_extremes: bool,
 ) -> Result<AdaptiveMesh> {
-    validate(heights, at)?;
-    let heights_um = heights.values();
-    params.solid.validate()?;
-    if params.kind == MeshKind::Solid && params.missing == MissingSamples::Holes {
-        return Err(MeshError::Incompatible(
-            "a solid needs a closed top surface: missing samples must be filled (use a sheet \
-             to keep them as holes)"
-                .into(),
-        ));
-    }
+    check_adaptive(heights, at, params)?;
     let epsilon_um = match params.epsilon {
         Epsilon::Um(e) => e,
         Epsilon::SqFraction(f) => {
@@ -130,7 +121,38 @@ pub(crate) fn mesh_height_field_with(
             keep_extremes,
         },
     )?;
-    let (resampled_um, error) = resample_with_error(&tin, heights_um);
+    finish_adaptive(heights, at, params, &tin, epsilon_um)
+}
+
+/// Checks what [`mesh_height_field`] checks before meshing.
+pub(crate) fn check_adaptive(
+    heights: RasterView<'_, f32>,
+    at: &ScanPlacement,
+    params: &MeshParams,
+) -> Result<()> {
+    validate(heights, at)?;
+    params.solid.validate()?;
+    if params.kind == MeshKind::Solid && params.missing == MissingSamples::Holes {
+        return Err(MeshError::Incompatible(
+            "a solid needs a closed top surface: missing samples must be filled (use a sheet \
+             to keep them as holes)"
+                .into(),
+        ));
+    }
+    Ok(())
+}
+
+/// The adaptive mesh of a triangulation `tin` of `heights` made at `epsilon_um`: resampled,
+/// compared, placed and closed as [`mesh_height_field`] does.
+pub(crate) fn finish_adaptive(
+    heights: RasterView<'_, f32>,
+    at: &ScanPlacement,
+    params: &MeshParams,
+    tin: &Tin,
+    epsilon_um: f64,
+) -> Result<AdaptiveMesh> {
+    let heights_um = heights.values();
+    let (resampled_um, error) = resample_with_error(tin, heights_um);
     // Compare at the measured samples only.
     let mesh_at_measured: Vec<f32> = resampled_um
         .iter()

@@ -65,6 +65,10 @@ pub struct MesherConfig {
     /// Side of the windows the tolerance is judged in, samples (default: half the map's
     /// shorter side, 64 to 1024).
     pub region_px: Option<usize>,
+    /// How the tolerance search's insertion order is made: "balanced" (default) or "greedy"
+    /// (the pointwise bound only; for comparison).
+    #[serde(default)]
+    pub model_method: crate::tolerance::ModelMethod,
     /// Spikes (isolated outliers, [`crate::outliers`]): "keep" (default: mesh what was
     /// measured; they are reported) or "remove" (treated as not measured, and reported).
     #[serde(default)]
@@ -231,6 +235,7 @@ impl MesherConfig {
             (self.method == "adaptive" && !fixed_bound).then(|| ToleranceSettings {
                 tolerance: self.tolerance.unwrap_or_default(),
                 region_px: self.region_px,
+                method: self.model_method,
             });
         let adaptive = match self.method.as_str() {
             "grid" => None,

@@ -39,13 +39,15 @@ use surfstream_core::raster::{RasterView, Shape};
 use crate::adaptive::{adaptive_summary, Fidelity, MeshCounts, VertexPlacement};
 use crate::check::MeshCheck;
 use crate::error::{MeshError, Result};
-use crate::fidelity::level_field;
+use crate::fidelity::{level_field, FieldLevel};
 use crate::field::fill_missing;
 use crate::field::{positive_finite, validate, ScanPlacement};
 use crate::geom;
 use crate::solid::{close_top_surface, GridPlacement, SolidParams};
 use crate::stl::StlSink;
-use crate::tin::{grid_rim, on_row, paint_band, BlockPlan, ErrorStats, MissingSamples, TinParams};
+use crate::tin::{
+    grid_rim, on_row, paint_band, BlockPlan, BlockTin, ErrorStats, MissingSamples, TinParams,
+};
 use crate::{Epsilon, MeshKind, MeshParams};
 
 /// Rows of blocks meshed (in parallel) and painted (in parallel) at a time. Two keep both
@@ -212,8 +214,6 @@ pub(crate) fn mesh_streaming_with(
                 .into(),
         ));
     }
-    let shape = heights.shape();
-    let (rows, cols) = (shape.rows, shape.cols);
     // The field's plane and parameters, once (the in-memory mesher computes them twice, the
     // same way); one f64 copy of the field while it runs.
     let level = level_field(heights, at.pitch_x_um, at.pitch_y_um);
@@ -241,6 +241,40 @@ pub(crate) fn mesh_streaming_with(
             keep_extremes,
         },
     )?;
+    stream_blocks(
+        heights,
+        at,
+        params,
+        spill_dir,
+        &plan,
+        level,
+        epsilon_um,
+        &|k| plan.mesh(k),
+    )
+}
+
+/// The level of the field, for [`stream_blocks`] (one f64 copy of the field while it runs).
+pub(crate) fn field_level(heights: RasterView<'_, f32>, at: &ScanPlacement) -> Option<FieldLevel> {
+    level_field(heights, at.pitch_x_um, at.pitch_y_um)
+}
+
+/// The first pass of the streaming mesher over the blocks of `plan`, each triangulated by
+/// `mesh_block(k)` (the plan's own greedy insertion, or a snapshot of a block refined step by
+/// step); `epsilon_um` is the bound they were made at, `level` the field's
+/// ([`field_level`]).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn stream_blocks(
+    heights: RasterView<'_, f32>,
+    at: &ScanPlacement,
+    params: &MeshParams,
+    spill_dir: &Path,
+    plan: &BlockPlan<'_>,
+    level: Option<FieldLevel>,
+    epsilon_um: f64,
+    mesh_block: &(dyn Fn(usize) -> BlockTin + Sync),
+) -> Result<StreamedMesh> {
+    let shape = heights.shape();
+    let (rows, cols) = (shape.rows, shape.cols);
     let (nbx, nby) = plan.blocks_x_y();
     let valid = plan.valid.as_deref();
     let filled: &[f32] = &plan.filled;
@@ -266,7 +300,7 @@ pub(crate) fn mesh_streaming_with(
         let j1 = (j0 + BANDS_AT_ONCE).min(nby);
         let parts: Vec<BlockPart> = (j0 * nbx..j1 * nbx)
             .into_par_iter()
-            .map(|k| block_part(&plan, k, valid))
+            .map(|k| block_part(plan, k, mesh_block(k), valid))
             .collect();
         // Bands in order: their triangles (block order) and rows.
         let mut bands = Vec::with_capacity(j1 - j0);
@@ -411,9 +445,9 @@ pub(crate) fn mesh_streaming_with(
         &fidelity,
     );
     let top_z_positive = place.vertex(0, min_um as f32)[2] as f32 > place.base_z() as f32;
-    let filled = match plan.filled {
+    let filled = match &plan.filled {
         std::borrow::Cow::Borrowed(_) => Filled::Input,
-        std::borrow::Cow::Owned(v) => Filled::Owned(v),
+        std::borrow::Cow::Owned(v) => Filled::Owned(v.clone()),
     };
     // Only the used samples' bits were needed; the spill and the walls carry the rest.
     drop(used);
@@ -432,8 +466,7 @@ pub(crate) fn mesh_streaming_with(
 }
 
 /// Meshes block `k` and settles what it can on its own thread.
-fn block_part(plan: &BlockPlan<'_>, k: usize, valid: Option<&[bool]>) -> BlockPart {
-    let bt = plan.mesh(k);
+fn block_part(plan: &BlockPlan<'_>, k: usize, bt: BlockTin, valid: Option<&[bool]>) -> BlockPart {
     let kept = bt.kept(valid);
     let (block, _) = plan.block(k);
     let cols = plan.cols;

@@ -27,11 +27,12 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use surfstream_core::raster::{RasterView, Shape};
 
-use crate::adaptive::mesh_height_field_with;
+use crate::adaptive::{check_adaptive, finish_adaptive};
 use crate::error::{MeshError, Result};
 use crate::fidelity::field_params;
-use crate::field::{validate, ScanPlacement};
-use crate::stream::{mesh_streaming_with, StreamedMesh};
+use crate::field::ScanPlacement;
+use crate::stream::{field_level, stream_blocks, StreamedMesh};
+use crate::tin::{assemble, Balance, BlockPlan, LiveBlock, TinParams};
 use crate::{AdaptiveMesh, Epsilon, MeshParams};
 
 /// The tolerance, percent of the measured value, per region.
@@ -48,13 +49,19 @@ pub struct Tolerance {
 }
 
 /// The default tolerance: Sa 1 %, Sq 1 %, Sz 3 % (the reference study's Table 6 reached
-/// 0.6 / 0.6 / 2.7 %).
+/// 0.6 / 0.6 / 2.7 %) and a pointwise residual of at most 50 % of Sq (the mesh explains at
+/// least three quarters of the variance point by point: without it, a coarse mesh whose
+/// blocks are balanced can match Sa and Sq as a statistical twin; docs/model.md has the
+/// numbers). "res=off" drops it.
 pub const DEFAULT_TOLERANCE: Tolerance = Tolerance {
     sa_pct: 1.0,
     sq_pct: 1.0,
     sz_pct: 3.0,
-    residual_pct: None,
+    residual_pct: Some(DEFAULT_RESIDUAL_PCT),
 };
+
+/// The default bound on the pointwise residual, percent of Sq.
+pub const DEFAULT_RESIDUAL_PCT: f64 = 50.0;
 
 impl Default for Tolerance {
     fn default() -> Self {
@@ -79,13 +86,21 @@ pub fn default_region_px(shape: Shape) -> usize {
 
 impl FromStr for Tolerance {
     type Err = String;
-    /// "sa=1,sq=1,sz=3" (percent; a "%" is allowed; parameters not named keep their default).
+    /// "sa=1,sq=1,sz=3" (percent; a "%" is allowed; parameters not named keep their default;
+    /// "res=off" drops the residual bound).
     fn from_str(s: &str) -> std::result::Result<Self, String> {
         let mut t = DEFAULT_TOLERANCE;
         for part in s.split(',').map(str::trim).filter(|p| !p.is_empty()) {
             let (k, v) = part.split_once('=').ok_or_else(|| {
                 format!("tolerance {s:?}: expected NAME=PERCENT pairs, e.g. sa=1,sq=1,sz=3")
             })?;
+            let key = k.trim().to_ascii_lowercase();
+            if matches!(key.as_str(), "res" | "residual")
+                && matches!(v.trim().to_ascii_lowercase().as_str(), "off" | "none")
+            {
+                t.residual_pct = None;
+                continue;
+            }
             let v: f64 = v
                 .trim()
                 .trim_end_matches('%')
@@ -159,6 +174,8 @@ pub struct ToleranceSettings {
     pub tolerance: Tolerance,
     /// Side of the judged windows, samples (`None`: [`default_region_px`] of the map).
     pub region_px: Option<usize>,
+    /// How the insertion order is made.
+    pub method: ModelMethod,
 }
 
 impl Default for ToleranceSettings {
@@ -166,9 +183,27 @@ impl Default for ToleranceSettings {
         Self {
             tolerance: DEFAULT_TOLERANCE,
             region_px: None,
+            method: ModelMethod::default(),
         }
     }
 }
+
+/// How the one insertion order of the search is made.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ModelMethod {
+    /// Greedy insertion (largest pointwise error first) down to each bound, then every
+    /// block's Sa and Sq balanced against the measurement ([`BLOCK_BALANCE_SHARE`] of the
+    /// tolerance) by inserting the samples that pull them back.
+    #[default]
+    Balanced,
+    /// Greedy insertion alone (the pointwise bound only).
+    Greedy,
+}
+
+/// Share of the tolerance each block's Sa and Sq are balanced to (the regions mix blocks;
+/// the rest is margin).
+pub const BLOCK_BALANCE_SHARE: f64 = 0.5;
 
 /// A judged rectangle of the grid, end exclusive.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -287,16 +322,11 @@ pub fn judge_regions(
 }
 
 fn judge_region(z: &[f32], m: &[f32], cols: usize, r: &Window) -> Option<RegionFit> {
-    let rows = || {
-        (r.row0..r.row0 + r.rows).flat_map(move |y| {
-            let k = y * cols + r.col0;
-            z[k..k + r.cols]
-                .iter()
-                .zip(&m[k..k + r.cols])
-                .filter(|(a, b)| !a.is_nan() && !b.is_nan())
-                .map(|(&a, &b)| (f64::from(a), f64::from(b)))
-        })
-    };
+    // Plain loops over row slices: this runs over every window at every checkpoint.
+    let rows = (r.row0..r.row0 + r.rows).map(|y| {
+        let k = y * cols + r.col0;
+        (&z[k..k + r.cols], &m[k..k + r.cols])
+    });
     let (mut n, mut sz, mut sm) = (0usize, 0.0, 0.0);
     let (mut zlo, mut zhi, mut mlo, mut mhi) = (
         f64::INFINITY,
@@ -304,27 +334,38 @@ fn judge_region(z: &[f32], m: &[f32], cols: usize, r: &Window) -> Option<RegionF
         f64::INFINITY,
         f64::NEG_INFINITY,
     );
-    for (a, b) in rows() {
-        n += 1;
-        sz += a;
-        sm += b;
-        zlo = zlo.min(a);
-        zhi = zhi.max(a);
-        mlo = mlo.min(b);
-        mhi = mhi.max(b);
+    for (zr, mr) in rows.clone() {
+        for (&a, &b) in zr.iter().zip(mr) {
+            if a.is_nan() || b.is_nan() {
+                continue;
+            }
+            let (a, b) = (f64::from(a), f64::from(b));
+            n += 1;
+            sz += a;
+            sm += b;
+            zlo = zlo.min(a);
+            zhi = zhi.max(a);
+            mlo = mlo.min(b);
+            mhi = mhi.max(b);
+        }
     }
     if n == 0 {
         return None;
     }
     let (mz, mm) = (sz / n as f64, sm / n as f64);
     let (mut za, mut zq, mut ma, mut mq, mut rq) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    for (a, b) in rows() {
-        let (da, db) = (a - mz, b - mm);
-        za += da.abs();
-        zq += da * da;
-        ma += db.abs();
-        mq += db * db;
-        rq += (db - da) * (db - da);
+    for (zr, mr) in rows {
+        for (&a, &b) in zr.iter().zip(mr) {
+            if a.is_nan() || b.is_nan() {
+                continue;
+            }
+            let (da, db) = (f64::from(a) - mz, f64::from(b) - mm);
+            za += da.abs();
+            zq += da * da;
+            ma += db.abs();
+            mq += db * db;
+            rq += (db - da) * (db - da);
+        }
     }
     let nf = n as f64;
     let measured = [za / nf, (zq / nf).sqrt(), zhi - zlo];
@@ -393,11 +434,13 @@ pub struct ToleranceReport {
 
 /// Finest bound the search tries, as a fraction of Sq.
 const FINEST_SQ_FRACTION: f64 = 0.004;
-/// First (coarsest) bound and the step between bounds.
+/// First (coarsest) bound and the step between checkpoints.
 const COARSEST_SQ_FRACTION: f64 = 2.0;
-const STEP: f64 = 0.6;
+const STEP: f64 = 0.8;
 /// Points the curve should have at least (finer meshes are added after a pass).
 const MIN_CURVE_POINTS: usize = 6;
+/// Points the curve keeps at most (the chosen mesh, the first and the last always).
+const MAX_CURVE_POINTS: usize = 10;
 
 /// One mesh made by the search's caller: the mesh, its surface triangles and its regions.
 pub struct Trial<M> {
@@ -406,34 +449,45 @@ pub struct Trial<M> {
     pub fits: Vec<RegionFit>,
 }
 
-/// The search (module docs): `mesh_at(epsilon_um)` makes and judges one mesh. Returns the
-/// chosen mesh and the report. `sq_um` is the measured Sq the bounds are scaled by.
+/// Why a checkpoint is made.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stage {
+    /// Before a mesh has passed: a candidate for the model.
+    Search,
+    /// After: a finer point for the fidelity-cost curve only (the insertion continues
+    /// greedily, without the block balance: what more triangles buy pointwise).
+    Curve,
+}
+
+/// The bounds the search walks through, as fractions of Sq: 2, 1.6, 1.28, ... down to
+/// [`FINEST_SQ_FRACTION`].
+pub fn checkpoint_fractions() -> impl Iterator<Item = f64> {
+    std::iter::successors(Some(COARSEST_SQ_FRACTION), |f| Some(f * STEP))
+        .take_while(|&f| f >= FINEST_SQ_FRACTION)
+}
+
+/// The search (module docs): `checkpoint(epsilon_um)` refines the one insertion order down to
+/// the bound (called with decreasing bounds only) and judges the mesh. Returns the chosen
+/// mesh and the report. `sq_um` is the measured Sq the bounds are scaled by.
 pub fn search<M>(
     sq_um: f64,
     measured_px: usize,
     settings: &ToleranceSettings,
     regions: usize,
     max_triangles: Option<usize>,
-    mut mesh_at: impl FnMut(f64) -> Result<Trial<M>>,
+    mut checkpoint: impl FnMut(f64, Stage) -> Result<Trial<M>>,
 ) -> Result<(M, ToleranceReport)> {
-    if !(sq_um.is_finite() && sq_um > 0.0) {
-        return Err(MeshError::Incompatible(format!(
-            "a model from a tolerance needs a surface with height variation: its Sq is \
-             {sq_um} um; give an absolute epsilon_um instead"
-        )));
-    }
+    check_scale(sq_um)?;
     let t = settings.tolerance;
     let region_px = settings.region_px.unwrap_or(DEFAULT_REGION_PX);
     let budget = max_triangles.unwrap_or(usize::MAX);
     let mut curve: Vec<(CurvePoint, Vec<RegionFit>)> = Vec::new();
-    // (index in curve, mesh) of the best passing and of the finest within the budget.
-    let mut best: Option<(usize, M)> = None;
-    let mut fallback: Option<(usize, M)> = None;
     let mut run = |f: f64,
+                   stage: Stage,
                    curve: &mut Vec<(CurvePoint, Vec<RegionFit>)>|
      -> Result<(bool, bool, Option<M>)> {
         surfstream_core::liveness::beat();
-        let trial = mesh_at(f * sq_um)?;
+        let trial = checkpoint(f * sq_um, stage)?;
         let mut fits = trial.fits;
         fits.sort_by(|a, b| b.worst_ratio(&t).total_cmp(&a.worst_ratio(&t)));
         let pass = !fits.is_empty() && fits.iter().all(|r| r.excess(&t, TARGET_SHARE).is_none());
@@ -461,69 +515,31 @@ pub fn search<M>(
         ));
         Ok((pass, over, (!over).then_some(trial.mesh)))
     };
-    let mut f = COARSEST_SQ_FRACTION;
-    let mut last_fail: Option<f64> = None;
-    let mut first_pass: Option<f64> = None;
-    let mut over_at: Option<f64> = None;
-    while f >= FINEST_SQ_FRACTION {
-        let (pass, over, mesh) = run(f, &mut curve)?;
+    // One insertion order, judged at every checkpoint: the first that passes is the fewest
+    // triangles this order can give (the parameters do not move monotonically with the
+    // triangles, so the first pass is taken, not a bisection).
+    let mut best: Option<(usize, M)> = None;
+    let mut fallback: Option<(usize, M)> = None;
+    let mut fractions = checkpoint_fractions();
+    for f in fractions.by_ref() {
+        let (pass, over, mesh) = run(f, Stage::Search, &mut curve)?;
         if over {
-            over_at = Some(f);
             break;
         }
         let k = curve.len() - 1;
         if pass {
             best = mesh.map(|m| (k, m));
-            first_pass = Some(f);
             break;
         }
         fallback = mesh.map(|m| (k, m));
-        last_fail = Some(f);
-        f *= STEP;
-    }
-    // Two geometric bisections between the last failing and the first passing bound.
-    if let (Some(mut lo), Some(mut hi)) = (first_pass, last_fail) {
-        for _ in 0..2 {
-            let mid = (lo * hi).sqrt();
-            let (pass, over, mesh) = run(mid, &mut curve)?;
-            let k = curve.len() - 1;
-            if pass && !over {
-                let fewer = best.as_ref().is_none_or(|(b, _)| {
-                    curve[k].0.surface_triangles < curve[*b].0.surface_triangles
-                });
-                if fewer {
-                    best = mesh.map(|m| (k, m));
-                }
-                lo = mid;
-            } else {
-                hi = mid;
-            }
-        }
-    }
-    // The budget stopped the search before a pass: use the budget, two geometric bisections
-    // between the last bound within it and the first beyond it.
-    if let (None, Some(mut lo), Some(mut hi)) = (first_pass, over_at, last_fail) {
-        for _ in 0..2 {
-            let mid = (lo * hi).sqrt();
-            let (pass, over, mesh) = run(mid, &mut curve)?;
-            let k = curve.len() - 1;
-            if over {
-                lo = mid;
-                continue;
-            }
-            hi = mid;
-            if pass {
-                best = mesh.map(|m| (k, m));
-                break;
-            }
-            fallback = mesh.map(|m| (k, m));
-        }
     }
     // A few finer meshes for the curve when the search stopped early.
-    if let Some(mut g) = first_pass {
-        while curve.len() < MIN_CURVE_POINTS && g * STEP >= FINEST_SQ_FRACTION {
-            g *= STEP;
-            let (_, over, _) = run(g, &mut curve)?;
+    if best.is_some() {
+        for f in fractions {
+            if curve.len() >= MIN_CURVE_POINTS {
+                break;
+            }
+            let (_, over, _) = run(f, Stage::Curve, &mut curve)?;
             if over {
                 break;
             }
@@ -587,9 +603,45 @@ pub fn search<M>(
             epsilon_um: chosen.epsilon_um,
             reason,
             region_fits: fits,
-            curve: points,
+            curve: thin_curve(points, MAX_CURVE_POINTS),
         },
     ))
+}
+
+/// At most `keep` points of the curve (sorted by triangles): the chosen one, the first, the
+/// last, the over-budget ones, and between them points spread evenly along the list.
+fn thin_curve(points: Vec<CurvePoint>, keep: usize) -> Vec<CurvePoint> {
+    let n = points.len();
+    if n <= keep {
+        return points;
+    }
+    let mut wanted = vec![false; n];
+    wanted[0] = true;
+    wanted[n - 1] = true;
+    for (w, p) in wanted.iter_mut().zip(&points) {
+        *w |= p.chosen || p.over_budget;
+    }
+    let fixed = wanted.iter().filter(|&&w| w).count();
+    let spare = keep.saturating_sub(fixed);
+    for i in 1..=spare {
+        wanted[i * (n - 1) / (spare + 1)] = true;
+    }
+    points
+        .into_iter()
+        .zip(wanted)
+        .filter_map(|(p, w)| w.then_some(p))
+        .collect()
+}
+
+fn check_scale(sq_um: f64) -> Result<()> {
+    if sq_um.is_finite() && sq_um > 0.0 {
+        Ok(())
+    } else {
+        Err(MeshError::Incompatible(format!(
+            "a model from a tolerance needs a surface with height variation: its Sq is \
+             {sq_um} um; give an absolute epsilon_um instead"
+        )))
+    }
 }
 
 /// The measured Sq the bounds are scaled by (about the least-squares plane, as
@@ -621,11 +673,69 @@ fn settings_for(s: &ToleranceSettings, shape: Shape) -> (ToleranceSettings, Vec<
     let regions = windows(shape, px);
     (
         ToleranceSettings {
-            tolerance: s.tolerance,
             region_px: Some(px),
+            ..*s
         },
         regions,
     )
+}
+
+/// The plan of the one insertion order the search refines (every block's peak and valley
+/// first, [`TinParams::keep_extremes`]), at the coarsest bound.
+fn order_plan<'a>(
+    heights: RasterView<'a, f32>,
+    params: &MeshParams,
+    sq_um: f64,
+) -> Result<BlockPlan<'a>> {
+    check_scale(sq_um)?;
+    BlockPlan::new(
+        heights,
+        &TinParams {
+            epsilon_um: COARSEST_SQ_FRACTION * sq_um,
+            max_triangles: None,
+            missing: params.missing,
+            block_samples: params.block_samples,
+            keep_extremes: true,
+        },
+    )
+}
+
+/// Refines every block of the one insertion order to `epsilon_um` (started at the first
+/// call), in parallel.
+fn refine_blocks<'p>(
+    plan: &'p BlockPlan<'_>,
+    live: &mut Vec<LiveBlock<'p>>,
+    epsilon_um: f64,
+    balance: Option<Balance>,
+) {
+    let sides = plan.sides_at(epsilon_um);
+    if live.is_empty() {
+        *live = (0..plan.block_count())
+            .into_par_iter()
+            .map(|k| plan.start(&sides, k))
+            .collect();
+    }
+    live.par_iter_mut().enumerate().for_each(|(k, b)| {
+        b.refine(plan, &sides, k);
+        if let Some(target) = balance {
+            b.balance(plan, target);
+        }
+    });
+}
+
+/// Side of the blocks when they are balanced: a quarter of the judged windows (a window
+/// then holds about a dozen whole blocks and its Sa and Sq follow theirs), between 64 (the
+/// shared sides' vertices cost more below) and the default block.
+fn balance_block_px(s: &ToleranceSettings) -> usize {
+    (s.region_px.unwrap_or(DEFAULT_REGION_PX) / 4).clamp(64, crate::tin::DEFAULT_BLOCK_SAMPLES)
+}
+
+/// The block balance the settings ask for.
+fn balance_of(s: &ToleranceSettings) -> Option<Balance> {
+    (s.method == ModelMethod::Balanced).then(|| Balance {
+        sa: s.tolerance.sa_pct / 100.0 * BLOCK_BALANCE_SHARE,
+        sq: s.tolerance.sq_pct / 100.0 * BLOCK_BALANCE_SHARE,
+    })
 }
 
 /// The adaptive mesh of `heights` with the fewest triangles the search finds within the
@@ -637,21 +747,31 @@ pub fn mesh_to_tolerance(
     params: &MeshParams,
     settings: &ToleranceSettings,
 ) -> Result<(AdaptiveMesh, ToleranceReport)> {
-    validate(heights, at)?;
+    check_adaptive(heights, at, params)?;
     let (sq, measured_px) = scale_of(heights, at);
     let (settings, regions) = settings_for(settings, heights.shape());
     let settings = &settings;
     let mut p = params.clone();
     p.max_triangles = None;
+    if settings.method == ModelMethod::Balanced && p.block_samples.is_none() {
+        p.block_samples = Some(balance_block_px(settings));
+    }
+    let plan = order_plan(heights, &p, sq)?;
+    let mut live = Vec::new();
     search(
         sq,
         measured_px,
         settings,
         regions.len(),
         params.max_triangles,
-        |eps| {
+        |eps, stage| {
+            let balance = balance_of(settings).filter(|_| stage == Stage::Search);
+            refine_blocks(&plan, &mut live, eps, balance);
+            let meshed: Vec<_> = live.par_iter().map(LiveBlock::snapshot).collect();
+            let tin = assemble(&plan, &meshed);
+            drop(meshed);
             p.epsilon = Epsilon::Um(eps);
-            let m = mesh_height_field_with(heights, at, &p, true)?;
+            let m = finish_adaptive(heights, at, &p, &tin, eps)?;
             let fits = judge_regions(heights.values(), &m.resampled_um, heights.shape(), &regions);
             Ok(Trial {
                 surface_triangles: m.surface_triangles,
@@ -662,9 +782,9 @@ pub fn mesh_to_tolerance(
     )
 }
 
-/// [`mesh_to_tolerance`] through the streaming mesher ([`crate::stream`]): each trial holds
-/// its triangles in a spill file in `spill_dir`; at most three trials (the best, the finest
-/// failing one, the current) are alive at once.
+/// [`mesh_to_tolerance`] through the streaming mesher ([`crate::stream`]): each checkpoint's
+/// mesh holds its triangles in a spill file in `spill_dir`; at most three are alive at once
+/// (the chosen or the last failing one, the current, and the live insertion order).
 pub fn mesh_streaming_to_tolerance(
     heights: RasterView<'_, f32>,
     at: &ScanPlacement,
@@ -672,21 +792,32 @@ pub fn mesh_streaming_to_tolerance(
     settings: &ToleranceSettings,
     spill_dir: &Path,
 ) -> Result<(StreamedMesh, ToleranceReport)> {
-    validate(heights, at)?;
+    check_adaptive(heights, at, params)?;
     let (sq, measured_px) = scale_of(heights, at);
     let (settings, regions) = settings_for(settings, heights.shape());
     let settings = &settings;
     let mut p = params.clone();
     p.max_triangles = None;
+    if settings.method == ModelMethod::Balanced && p.block_samples.is_none() {
+        p.block_samples = Some(balance_block_px(settings));
+    }
+    let plan = order_plan(heights, &p, sq)?;
+    let level = field_level(heights, at);
+    let mut live = Vec::new();
     search(
         sq,
         measured_px,
         settings,
         regions.len(),
         params.max_triangles,
-        |eps| {
+        |eps, stage| {
+            let balance = balance_of(settings).filter(|_| stage == Stage::Search);
+            refine_blocks(&plan, &mut live, eps, balance);
+            let blocks = &live;
             p.epsilon = Epsilon::Um(eps);
-            let m = mesh_streaming_with(heights, at, &p, spill_dir, true)?;
+            let m = stream_blocks(heights, at, &p, spill_dir, &plan, level, eps, &|k| {
+                blocks[k].snapshot()
+            })?;
             let fits = judge_regions(heights.values(), &m.resampled_um, heights.shape(), &regions);
             Ok(Trial {
                 surface_triangles: m.counts.top_triangles,
@@ -704,6 +835,8 @@ mod tests {
     #[test]
     fn tolerance_parses_text_and_tables() {
         assert_eq!("".parse::<Tolerance>(), Ok(DEFAULT_TOLERANCE));
+        assert_eq!(DEFAULT_TOLERANCE.residual_pct, Some(50.0));
+        assert_eq!("res=off".parse::<Tolerance>().unwrap().residual_pct, None);
         let t: Tolerance = "sa=2, sz=5%".parse().unwrap();
         assert_eq!((t.sa_pct, t.sq_pct, t.sz_pct), (2.0, 1.0, 5.0));
         assert!("sa=0".parse::<Tolerance>().unwrap_err().contains("> 0"));

@@ -368,8 +368,14 @@ fn mesh_to_files_matches_the_in_memory_job() {
             .collect();
         let got: Vec<u64> = back.data.iter().map(|v| v.to_bits()).collect();
         assert_eq!(got, want, "{text}");
-        // Only the two outputs: the spill file was unnamed.
-        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2, "{text}");
+        // Only the outputs (the STL, the re-sampled mesh and its pitch sidecar): the spill
+        // file was unnamed.
+        let mut names: Vec<String> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        assert_eq!(names, ["r.npy", "r.npy.json", "s.stl"], "{text}");
         if text.is_empty() {
             assert_eq!(StlFormat::Binary, settings.format);
         }
