@@ -133,6 +133,23 @@ fn the_finish_node_runs_after_stitching_beside_the_ideal_model() {
         "run.json does not mention the node"
     );
     assert!(repo_root().join("launch/graphs/finish.toml").is_file());
+    // The run's report.html has the finish section: wear map, profile, Abbott curves,
+    // parameters beside the paper's and the calibration table, from finish/finish.json.
+    let report = std::fs::read_to_string(out.join("report.html")).unwrap();
+    let at = report
+        .find("<section id=\"finish\">")
+        .expect("no finish section in report.html");
+    let section = &report[at..];
+    for want in [
+        "Wear depth along z",
+        "Abbott-Firestone",
+        "paper after 5 min",
+        "<h3>Calibration</h3>",
+        "Wear per contact measured by the DEM",
+    ] {
+        assert!(section.contains(want), "finish section lacks {want:?}");
+    }
+    assert!(!section.contains("Not shown"), "the finish section failed");
 }
 
 #[test]

@@ -15,6 +15,7 @@
 mod charts;
 mod cost_curve;
 mod details;
+mod finish;
 mod html;
 mod maps;
 mod plot;
@@ -177,6 +178,7 @@ pub fn render(run: &RunRecord, out: &Path) -> Result<String> {
         run.deviation.as_ref().unwrap_or(&Value::Null),
     ));
     h.push_str(&cost_curve::section(run));
+    h.push_str(&finish::section(run, out));
     h.push_str(&details::tile_layout(run));
     h.push_str(&details::mesh(run));
     h.push_str(&details::latencies(run));

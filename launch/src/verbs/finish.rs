@@ -2,10 +2,8 @@
 //! surfstream-finish crate does the work; this is its command line).
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::AtomicBool;
-use std::sync::Arc;
 
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, bail, Result};
 use clap::Args;
 use surfstream_finish::{Calibration, FinishOptions, Model};
 
@@ -38,10 +36,13 @@ pub struct FinishArgs {
     /// Media passes per segment (default: as many as the budget allows).
     #[arg(long)]
     pub passes: Option<usize>,
+    /// Diameter of the spherical media, mm (default 3, the paper's ceramic media).
     #[arg(long)]
     pub media_diameter_mm: Option<f64>,
+    /// Density of the media, kg/m^3 (default 2500, ceramic).
     #[arg(long)]
     pub media_density_kg_m3: Option<f64>,
+    /// Young's modulus of the media, Pa (default 1e11, ceramic; the part: 2.1e11, steel).
     #[arg(long)]
     pub media_modulus_pa: Option<f64>,
     /// Relative media velocity, m/s (default: from the barrel kinematics).
@@ -86,6 +87,15 @@ pub struct FinishArgs {
     pub hostfile: Option<PathBuf>,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// How the DEM's wear becomes the process's: contact-field (default: the wear per
+    /// contact measured by the DEM, extrapolated over every peak the media reach, re-closing
+    /// the ball envelope step by step) or sampled-map (the DEM's sampled wear map scaled).
+    #[arg(
+        long,
+        default_value = "contact-field",
+        value_name = "contact-field|sampled-map"
+    )]
+    pub wear_model: String,
     /// Sample spacing, um, for files without a lateral calibration (.npy).
     #[arg(long)]
     pub pitch_um: Option<f64>,
@@ -227,11 +237,13 @@ pub fn run(a: FinishArgs) -> Result<()> {
         o.machine.counter_rotation_rpm = x;
     }
     if let Some(k) = a.k_finnie {
-        o.k_finnie_per_pa = k;
+        o.k_finnie_per_pa = Some(k);
     }
     if let Some(t) = a.process_time_s {
         o.process_time_s = t;
     }
+    o.wear_model = surfstream_finish::run::WearModel::parse(&a.wear_model)
+        .map_err(|e| anyhow!("--wear-model: {e}"))?;
     if let Some(t) = a.max_triangles {
         o.max_triangles = t;
     }
@@ -257,13 +269,17 @@ pub fn run(a: FinishArgs) -> Result<()> {
             }
         });
     }
-    // Ctrl-C stops the engine; the completed cycles are kept (finish.json says partial).
-    let stop = Arc::new(AtomicBool::new(false));
-    let s = stop.clone();
-    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-        signal_hook::flag::register(sig, s.clone()).context("cannot install the Ctrl-C handler")?;
-    }
-    let summary = surfstream_finish::finish(&model, &o, &a.out, &stop, &mut |l| eprintln!("{l}"))?;
+    // The project's one signal story (surfstream_runtime::stop, as launch/run/stitch):
+    // Ctrl-C, SIGTERM or SIGHUP sets the runtime's stop flag, which stops the engine; the
+    // completed cycles are kept (finish.json says partial); a second signal forces.
+    surfstream_runtime::stop::install()?;
+    let summary = surfstream_finish::finish(
+        &model,
+        &o,
+        &a.out,
+        &surfstream_runtime::ipc::STOP_REQUESTED,
+        &mut |l| eprintln!("{l}"),
+    )?;
     let b = &summary["before"];
     let af = &summary["after"];
     println!(
@@ -286,7 +302,13 @@ pub fn run(a: FinishArgs) -> Result<()> {
         a.out.join("finish.json").display()
     );
     if summary["partial"].as_bool() == Some(true) {
-        std::process::exit(130);
+        let sig = surfstream_runtime::stop::signal().unwrap_or(libc::SIGINT);
+        eprintln!(
+            "surfstream: finish {}: {} completed cycle(s) kept, outputs marked partial",
+            surfstream_runtime::stop::interrupted(sig),
+            summary["cycles_completed"]
+        );
+        std::process::exit(128 + sig);
     }
     Ok(())
 }

@@ -36,15 +36,30 @@ pub fn write_report(
         .with_context(|| format!("{}: write failed", path.display()))
 }
 
-/// The page as a string (the file writer above and the tests share it).
-pub fn render(
+/// The figures of one finishing run (inline PNG maps and SVG plots), shared by finish.html
+/// and the run's report.html.
+pub struct Figures {
+    pub wear_map: String,
+    pub original_map: String,
+    pub worn_map: String,
+    pub profile_svg: String,
+    pub removed_svg: String,
+    pub abbott_svg: String,
+    pub abbott_peak_svg: String,
+    pub abbott_diff_svg: String,
+    /// Mean of original - worn - wear: the re-levelling shift of worn.npy, um.
+    pub level_shift_um: f64,
+}
+
+/// The figures from finish.json (`summary`) and the patch's maps (rows x cols).
+pub fn figures(
     summary: &Value,
     original: &[f64],
     worn: &[f64],
     wear: &[f64],
     rows: usize,
     cols: usize,
-) -> Result<String> {
+) -> Result<Figures> {
     let n = rows * cols;
     if original.len() != n || worn.len() != n || wear.len() != n {
         return Err(anyhow!(
@@ -228,9 +243,43 @@ pub fn render(
     }
     .svg();
 
+    Ok(Figures {
+        wear_map,
+        original_map,
+        worn_map,
+        profile_svg,
+        removed_svg,
+        abbott_svg,
+        abbott_peak_svg,
+        abbott_diff_svg,
+        level_shift_um,
+    })
+}
+
+/// The page as a string (the file writer above and the tests share it).
+pub fn render(
+    summary: &Value,
+    original: &[f64],
+    worn: &[f64],
+    wear: &[f64],
+    rows: usize,
+    cols: usize,
+) -> Result<String> {
+    let Figures {
+        wear_map,
+        original_map,
+        worn_map,
+        profile_svg,
+        removed_svg,
+        abbott_svg,
+        abbott_peak_svg,
+        abbott_diff_svg,
+        level_shift_um,
+    } = figures(summary, original, worn, wear, rows, cols)?;
     let params = parameter_table(summary);
     let setting = setting_table(summary);
     let cycles = cycles_table(summary);
+    let field = field_section(summary);
     let partial = summary["partial"].as_bool().unwrap_or(false);
     let (sa_b, sa_a) = (
         summary["before"]["Sa"].as_f64(),
@@ -290,6 +339,7 @@ zero at the right (valleys). The worn surface is re-levelled after wear; that sh
 <h2>Roughness parameters (µm, Ssk/Sku dimensionless, Smr %)</h2>\
 <table><tr><th class=\"k\">param</th><th>before</th><th>after</th><th>change</th>\
 <th>paper before</th><th>paper after (5 min)</th></tr>{params}</table>\
+<h2>Contact field and calibration</h2>{field}\
 <h2>Cycles</h2>{cycles}</body></html>"
     )
     .ok();
@@ -538,7 +588,84 @@ fn cycles_table(s: &Value) -> String {
     t
 }
 
-fn parameter_table(s: &Value) -> String {
+/// The contact-field model's calibration (finish.json `calibration`, `contact_field`): the
+/// fit, how well the contact field predicts where the DEM wore, and the wear-per-contact
+/// table.
+pub fn field_section(s: &Value) -> String {
+    let c = &s["calibration"];
+    let f = &s["contact_field"];
+    let mut t = format!("<p>Wear model: <b>{}</b>.</p>", text(&s["wear_model"]));
+    if !c.is_null() {
+        write!(
+            t,
+            "<table><tr><th class=\"k\">calibration</th><th>value</th></tr>\
+<tr><td class=\"k\">target Sa (µm)</td><td>{}</td></tr>\
+<tr><td class=\"k\">predicted Sa (µm)</td><td>{}</td></tr>\
+<tr><td class=\"k\">relative error (tolerance ±{} %)</td><td>{}</td></tr>\
+<tr><td class=\"k\">reached</td><td>{}</td></tr>\
+<tr><td class=\"k\">fitted k_finnie (1/Pa)</td><td>{}</td></tr>\
+<tr><td class=\"k\">fitted scale (× DEM k)</td><td>{}</td></tr></table>",
+            num(&c["target_sa_um"], 4),
+            num(&c["sa_after_um"], 4),
+            num(&c["tolerance_percent"], 0),
+            c["relative_error"]
+                .as_f64()
+                .map_or("–".into(), |e| format!("{:+.2} %", e * 100.0)),
+            text(&c["reached"]),
+            sci(&c["k_finnie_fitted_per_pa"]),
+            sci(&c["fit"]["scale"]),
+        )
+        .ok();
+    }
+    if f.is_null() {
+        return t;
+    }
+    let m = &f["check_mean"];
+    write!(
+        t,
+        "<table><tr><th class=\"k\">contact field</th><th>value</th></tr>\
+<tr><td class=\"k\">ball radius (µm)</td><td>{}</td></tr>\
+<tr><td class=\"k\">largest / mean-angle / static approach (µm)</td><td>{} / {} / {}</td></tr>\
+<tr><td class=\"k\">impacts over the process on the patch</td><td>{}</td></tr>\
+<tr><td class=\"k\">DEM impacts (all cycles)</td><td>{}</td></tr>\
+<tr><td class=\"k\">AUC: the gap ranks the DEM's worn cells (mean of cycles)</td><td>{}</td></tr>\
+<tr><td class=\"k\">DEM wear volume within reach</td><td>{}</td></tr>\
+<tr><td class=\"k\">cells within reach / worn by the DEM</td><td>{} / {}</td></tr>\
+<tr><td class=\"k\">cells worn after the process</td><td>{}</td></tr></table>",
+        num(&f["ball_radius_um"], 0),
+        num(&f["approach"]["full_speed_approach_um"], 3),
+        num(&f["approach"]["mean_angle_approach_um"], 3),
+        num(&f["approach"]["static_approach_um"], 3),
+        num(&f["impacts_over_process"], 0),
+        text(&f["table"]["impacts"]),
+        num(&m["auc_gap_predicts_worn"], 3),
+        num(&m["dem_volume_within_reach"], 3),
+        num(&m["cells_within_reach"], 3),
+        num(&m["dem_worn_cells"], 3),
+        num(&f["worn_cells_after"], 3),
+    )
+    .ok();
+    t += "<table><tr><th>gap from (µm)</th><th>to</th><th>cells</th><th>expected contacts</th>\
+<th>DEM worn cells</th><th>DEM depth sum (µm)</th><th>wear per contact (µm, DEM k)</th></tr>";
+    for b in f["table"]["bins"].as_array().into_iter().flatten() {
+        write!(
+            t,
+            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            num(&b["gap_from_um"], 3),
+            num(&b["gap_to_um"], 3),
+            text(&b["cells"]),
+            num(&b["expected_contacts"], 1),
+            text(&b["dem_worn_cells"]),
+            num(&b["dem_depth_sum_um"], 4),
+            sci(&b["wear_per_contact_um"]),
+        )
+        .ok();
+    }
+    t += "</table>";
+    t
+}
+
+pub fn parameter_table(s: &Value) -> String {
     let mut out = String::new();
     for key in [
         "Sa", "Sq", "Sz", "Sp", "Sv", "Sk", "Spk", "Svk", "Ssk", "Sku", "Smr1", "Smr2", "Sdq",

@@ -15,11 +15,13 @@
 
 pub mod contacts;
 pub mod engine;
+pub mod field;
 pub mod grid;
 pub mod html;
 pub mod run;
 pub mod script;
 pub mod setting;
+pub mod summary;
 pub mod vtk;
 
 #[cfg(feature = "node")]

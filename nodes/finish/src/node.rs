@@ -40,6 +40,9 @@ pub struct FinishConfig {
     pub calibrate_sa_um: Option<[f64; 2]>,
     #[serde(default)]
     pub k_finnie_per_pa: Option<f64>,
+    /// "contact-field" (default) or "sampled-map".
+    #[serde(default)]
+    pub wear_model: Option<String>,
 }
 
 fn default_dir() -> String {
@@ -78,13 +81,17 @@ impl FinishConfig {
             o.max_triangles = t;
         }
         if let Some(k) = self.k_finnie_per_pa {
-            o.k_finnie_per_pa = k;
+            o.k_finnie_per_pa = Some(k);
         }
         if let Some([b, a]) = self.calibrate_sa_um {
             o.calibrate = Some(Calibration::Sa {
                 before_um: Some(b),
                 after_um: a,
             });
+        }
+        if let Some(m) = &self.wear_model {
+            o.wear_model = crate::run::WearModel::parse(m)
+                .map_err(|e| anyhow::anyhow!("params.wear_model: {e}"))?;
         }
         o.media.validate()?;
         Ok(o)

@@ -13,6 +13,7 @@ use surfstream_core::metrology::{functional_params, level_plane, params, sim, Ab
 
 use crate::contacts::{archard_from_dump, ContactSummary};
 use crate::engine::{run_engine, EngineCommand, EngineProgress};
+use crate::field::{self, impact_rate_per_m2_s, ApproachDistribution, FieldGrid, WearTable};
 use crate::grid::{crop, mesh_patch, volume_um3, Patch};
 use crate::script::{self, input_script, plan_passes, AimArea, Segment};
 use crate::setting::{
@@ -92,8 +93,9 @@ pub struct FinishOptions {
     /// Given directly instead of from the machine.
     pub media_velocity_m_s: Option<f64>,
     pub pressure_pa: Option<f64>,
-    /// Finnie's constant in the DEM, 1/Pa.
-    pub k_finnie_per_pa: f64,
+    /// Finnie's constant in the DEM, 1/Pa; None: the wear model's default
+    /// ([`DEFAULT_K_FINNIE_PER_PA`], [`DEFAULT_K_FINNIE_SAMPLED_MAP_PER_PA`]).
+    pub k_finnie_per_pa: Option<f64>,
     /// Archard's K / H, 1/Pa.
     pub archard_k_over_h_per_pa: f64,
     /// Real process time the run stands for, s (the paper: 5 min).
@@ -108,7 +110,42 @@ pub struct FinishOptions {
     pub cost_per_triangle_step_s: f64,
     /// Run the ideal model too (the paper's comparison).
     pub ideal: Option<Model>,
+    /// How the DEM's wear becomes the process's (default: the contact field).
+    pub wear_model: WearModel,
 }
+
+/// How a cycle's DEM wear is turned into the wear of its share of the process time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum WearModel {
+    /// The default: the DEM measures the wear per contact as a function of the gap below
+    /// the ball's envelope, and the contact field of the current surface, re-closed step by
+    /// step, extrapolates it over the process's impacts (crate::field).
+    #[default]
+    ContactField,
+    /// The first method: each cycle's sampled DEM wear map scaled by the acceleration factor
+    /// (or fitted per cycle to the target under a depth cap of the crop's Sq).
+    SampledMap,
+}
+
+impl WearModel {
+    pub fn name(self) -> &'static str {
+        match self {
+            WearModel::ContactField => "contact-field",
+            WearModel::SampledMap => "sampled-map",
+        }
+    }
+
+    pub fn parse(s: &str) -> Result<Self> {
+        match s {
+            "contact-field" => Ok(WearModel::ContactField),
+            "sampled-map" => Ok(WearModel::SampledMap),
+            _ => bail!("wear model {s:?}: expected contact-field or sampled-map"),
+        }
+    }
+}
+
+/// The calibration counts as reached when the predicted Sa is within this of the target.
+pub const CALIBRATION_TOLERANCE_PERCENT: f64 = 5.0;
 
 impl Default for FinishOptions {
     fn default() -> Self {
@@ -124,7 +161,7 @@ impl Default for FinishOptions {
             impact_angle_deg: DEFAULT_IMPACT_ANGLE_DEG,
             media_velocity_m_s: None,
             pressure_pa: None,
-            k_finnie_per_pa: DEFAULT_K_FINNIE_PER_PA,
+            k_finnie_per_pa: None,
             archard_k_over_h_per_pa: DEFAULT_ARCHARD_K_OVER_H_PER_PA,
             process_time_s: 300.0,
             calibrate: None,
@@ -134,15 +171,21 @@ impl Default for FinishOptions {
             seed: 1,
             cost_per_triangle_step_s: DEFAULT_COST_PER_TRIANGLE_STEP_S,
             ideal: None,
+            wear_model: WearModel::ContactField,
         }
     }
 }
 
-/// Finnie's constant used when none is given, 1/Pa: the mean of the per-cycle values fitted
-/// by `--calibrate 1.272,0.565` on the demo specimen (docs/finish.md). The per-cycle depth cap
-/// kept that run short of the paper's Sa after, so this is the constant of the wear it did
-/// reach, not a validated material value.
-pub const DEFAULT_K_FINNIE_PER_PA: f64 = 9e-17;
+/// Finnie's constant used when none is given (contact-field model), 1/Pa: the value fitted
+/// once by `--calibrate 1.272,0.565` on the demo specimen (5.84e-12, docs/finish.md),
+/// rounded. It belongs to this setting (the impact rate, the approach distribution, the DEM
+/// passes that measured the wear per contact), not to a material.
+pub const DEFAULT_K_FINNIE_PER_PA: f64 = 6e-12;
+/// The same for `--wear-model sampled-map`: the mean of its per-cycle fits on the demo,
+/// short of the target (its per-cycle depth cap; docs/finish.md).
+pub const DEFAULT_K_FINNIE_SAMPLED_MAP_PER_PA: f64 = 9e-17;
+/// Largest wear scale the contact field's fit tries (x the process's impacts).
+pub const MAX_FIELD_SCALE: f64 = 1e8;
 /// Archard K / H when none is given, 1/Pa: K = 1e-4 (a mild abrasive regime) over H = 2 GPa
 /// (hardened steel), a textbook order of magnitude, not fitted.
 pub const DEFAULT_ARCHARD_K_OVER_H_PER_PA: f64 = 5e-14;
@@ -181,7 +224,7 @@ impl Progress {
 }
 
 /// ISO 25178 parameters of a (cropped) surface, levelled by its plane.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
 pub struct SurfaceParams {
     #[serde(rename = "Sa")]
     pub sa: f64,
@@ -525,6 +568,16 @@ fn fit_scale(patch: &Patch, h: &[f64], wear: &[f64], target: f64) -> Result<(f64
     Ok((best.0, false))
 }
 
+/// A fit of the contact field's scale: the worn surface it ends on and what it took.
+struct FieldFit {
+    cycle: usize,
+    heights_um: Vec<f64>,
+    wear_um: Vec<f64>,
+    impacts: f64,
+    extrapolation: field::Extrapolation,
+    reached: bool,
+}
+
 fn add_scaled(acc: &mut [f64], x: &[f64], s: f64) {
     for (a, v) in acc.iter_mut().zip(x) {
         *a += s * v;
@@ -551,11 +604,12 @@ pub fn finish(
             opts.time_budget_s
         );
     }
-    if !(opts.k_finnie_per_pa.is_finite() && opts.k_finnie_per_pa > 0.0) {
-        bail!(
-            "--k-finnie {}: expected a number > 0 (1/Pa)",
-            opts.k_finnie_per_pa
-        );
+    let k_finnie = opts.k_finnie_per_pa.unwrap_or(match opts.wear_model {
+        WearModel::ContactField => DEFAULT_K_FINNIE_PER_PA,
+        WearModel::SampledMap => DEFAULT_K_FINNIE_SAMPLED_MAP_PER_PA,
+    });
+    if !(k_finnie.is_finite() && k_finnie > 0.0) {
+        bail!("--k-finnie {}: expected a number > 0 (1/Pa)", k_finnie);
     }
     if !(opts.process_time_s.is_finite() && opts.process_time_s > 0.0) {
         bail!(
@@ -609,7 +663,7 @@ pub fn finish(
         media: opts.media,
         workpiece: opts.workpiece,
         action: action.clone(),
-        k_finnie_per_pa: opts.k_finnie_per_pa,
+        k_finnie_per_pa: k_finnie,
         archard_k_over_h_per_pa: opts.archard_k_over_h_per_pa,
         max_triangles: opts.max_triangles,
         timestep_s: dt,
@@ -693,6 +747,46 @@ pub fn finish(
     let mut first_finnie_map: Option<Vec<f64>> = None;
     let mut worst_volume_error: f64 = 0.0;
     let mut sim_time_total = 0.0;
+    // The contact-field model (crate::field): the approach distribution, the process's
+    // impacts on the evaluated patch, and the wear-per-contact table pooled over the cycles.
+    let press_force_n =
+        opts.media.load_n(action.pressure_pa) + opts.media.mass_kg() * action.acceleration_m_s2;
+    let dist = ApproachDistribution::of(&opts.media, &opts.workpiece, &action, press_force_n);
+    let field_grid = FieldGrid {
+        rows: patch.rows,
+        cols: patch.cols,
+        pitch_x_um: patch.pitch_x_um,
+        pitch_y_um: patch.pitch_y_um,
+        radius_um: opts.media.radius_m() * 1e6,
+    };
+    let cell_area_um2 = patch.pitch_x_um * patch.pitch_y_um;
+    let aim_area_um2 = cell_area_um2 * (patch.crop.rows * patch.crop.cols) as f64;
+    let impact_rate = impact_rate_per_m2_s(&opts.media, &action);
+    let impacts_process = impact_rate * aim_area_um2 * 1e-12 * opts.process_time_s;
+    let mut table = WearTable::empty(dist.max_um());
+    let mut provisional_scale: Option<f64> = None;
+    let mut last_fit: Option<FieldFit> = None;
+    let mut archard_sampled: Vec<(Vec<f64>, f64)> = Vec::new();
+    let mut checks: Vec<field::FieldCheck> = Vec::new();
+    let mut sa_of_crop = |z: &[f64]| -> Result<f64> {
+        let c = patch.cropped(z);
+        let g = Grid::new(
+            &c,
+            patch.crop.rows,
+            patch.crop.cols,
+            patch.pitch_x_um,
+            patch.pitch_y_um,
+        )?;
+        let l = level_plane(&g)?;
+        let g = Grid::new(
+            &l,
+            patch.crop.rows,
+            patch.crop.cols,
+            patch.pitch_x_um,
+            patch.pitch_y_um,
+        )?;
+        Ok(params(&g)?.sa)
+    };
     // Planning passes within the budget needs the engine's cost on this machine now (a busy
     // machine makes it several times the quiet estimate): a probe of two passes measures it.
     let mut probe_json = Value::Null;
@@ -786,46 +880,137 @@ pub fn finish(
         }
         let sim_s = r.segment.simulated_time_s();
         sim_time_total += sim_s;
-        // The acceleration factor: each cycle stands for its share of the process time.
-        let acceleration = opts.process_time_s / opts.cycles as f64 / sim_s;
-        let (scale, reached) = match target_sa {
-            Some(t) => {
-                let sa0 = before.sa;
-                let goal = sa0 * (t / sa0).powf(c as f64 / opts.cycles as f64);
-                fit_scale(&patch, &h, &r.finnie_um, goal)?
-            }
-            None => (acceleration, true),
-        };
-        let fitted_k = opts.k_finnie_per_pa * scale / acceleration;
-        // A wear deeper than the whole roughness in one cycle is not a finishing step: the
-        // constant does not fit the process time (and the re-mesh would be slivers).
-        let deepest = patch
-            .cropped(&r.finnie_um)
-            .iter()
-            .fold(0.0f64, |m, w| m.max(w * scale));
-        let (_, now) = surface_params(
-            &patch.cropped(&h),
-            patch.crop.rows,
-            patch.crop.cols,
-            patch.pitch_x_um,
-            patch.pitch_y_um,
-        )?;
-        if deepest > (2.0 * now.sz).max(0.5) {
-            bail!(
-                "cycle {c}: the wear is {deepest:.3e} um deep at its deepest, more than twice the \
-                 patch's Sz ({:.3} um) and 0.5 um: k_finnie {:.3e} 1/Pa is far too large for a process \
-                 time of {} s; fit it with --calibrate SA_BEFORE,SA_AFTER or give a smaller --k-finnie",
-                now.sz,
-                opts.k_finnie_per_pa,
-                opts.process_time_s
-            );
-        }
         if first_finnie_map.is_none() {
             first_finnie_map = Some(r.finnie_um.clone());
         }
-        add_scaled(&mut finnie_total, &r.finnie_um, scale);
-        add_scaled(&mut archard_total, &r.archard_um, scale);
-        add_scaled(&mut h, &r.finnie_um, -scale);
+        let dem_passes = r.segment.passes.len();
+        let (scale, reached, acceleration, fitted_k, field_json) = match opts.wear_model {
+            WearModel::SampledMap => {
+                // The acceleration factor: each cycle stands for its share of the process time.
+                let acceleration = opts.process_time_s / opts.cycles as f64 / sim_s;
+                let (scale, reached) = match target_sa {
+                    Some(t) => {
+                        let sa0 = before.sa;
+                        let goal = sa0 * (t / sa0).powf(c as f64 / opts.cycles as f64);
+                        fit_scale(&patch, &h, &r.finnie_um, goal)?
+                    }
+                    None => (acceleration, true),
+                };
+                let fitted_k = k_finnie * scale / acceleration;
+                // A wear deeper than the whole roughness in one cycle is not a finishing step:
+                // the constant does not fit the process time (and the re-mesh would be slivers).
+                let deepest = patch
+                    .cropped(&r.finnie_um)
+                    .iter()
+                    .fold(0.0f64, |m, w| m.max(w * scale));
+                let (_, now) = surface_params(
+                    &patch.cropped(&h),
+                    patch.crop.rows,
+                    patch.crop.cols,
+                    patch.pitch_x_um,
+                    patch.pitch_y_um,
+                )?;
+                if deepest > (2.0 * now.sz).max(0.5) {
+                    bail!(
+                        "cycle {c}: the wear is {deepest:.3e} um deep at its deepest, more than twice the \
+                         patch's Sz ({:.3} um) and 0.5 um: k_finnie {:.3e} 1/Pa is far too large for a process \
+                         time of {} s; fit it with --calibrate SA_BEFORE,SA_AFTER or give a smaller --k-finnie",
+                        now.sz,
+                        k_finnie,
+                        opts.process_time_s
+                    );
+                }
+                add_scaled(&mut finnie_total, &r.finnie_um, scale);
+                add_scaled(&mut archard_total, &r.archard_um, scale);
+                add_scaled(&mut h, &r.finnie_um, -scale);
+                (scale, reached, acceleration, fitted_k, Value::Null)
+            }
+            WearModel::ContactField => {
+                // The contact field of the surface this segment ran on, checked against
+                // where the DEM wore, and the wear per contact it measured.
+                let gap = field::ball_gap_um(
+                    &h,
+                    patch.rows,
+                    patch.cols,
+                    patch.pitch_x_um,
+                    patch.pitch_y_um,
+                    field_grid.radius_um,
+                );
+                let gap_crop = patch.cropped(&gap);
+                let dem_crop = patch.cropped(&r.finnie_um);
+                let check = field::check_field(&dist, &gap_crop, &dem_crop);
+                let mut own = WearTable::empty(dist.max_um());
+                own.add_segment(&dist, &gap_crop, &dem_crop, dem_passes, cell_area_um2)?;
+                table.add_segment(&dist, &gap_crop, &dem_crop, dem_passes, cell_area_um2)?;
+                let impacts_cycle = impacts_process / opts.cycles as f64;
+                // The scale that steers the next segments' surfaces: refitted on the tables
+                // so far over the whole process (the final fit, once, uses every table).
+                if let Some(t) = target_sa {
+                    let mut h0 = patch.heights_um.clone();
+                    let mut w0 = vec![0.0; n];
+                    let (used, e, ok) = field::wear_to_target(
+                        &mut h0,
+                        &mut w0,
+                        field_grid,
+                        &dist,
+                        &table,
+                        impacts_process * MAX_FIELD_SCALE,
+                        t,
+                        stop,
+                        &mut sa_of_crop,
+                    )?;
+                    provisional_scale = Some(used / impacts_process);
+                    // After the last cycle this is the final fit (same tables): kept.
+                    last_fit = Some(FieldFit {
+                        cycle: c,
+                        heights_um: h0,
+                        wear_um: w0,
+                        impacts: used,
+                        extrapolation: e,
+                        reached: ok,
+                    });
+                }
+                let scale = provisional_scale.unwrap_or(1.0);
+                // The next segment's surface: the model's estimate at the end of this cycle's
+                // share of the process, from the original with the tables so far.
+                let mut h_next = patch.heights_um.clone();
+                let mut w_next = vec![0.0; n];
+                let e = field::extrapolate(
+                    &mut h_next,
+                    &mut w_next,
+                    field_grid,
+                    &dist,
+                    &table,
+                    impacts_cycle * c as f64,
+                    scale,
+                );
+                h = h_next;
+                finnie_total = w_next;
+                archard_sampled.push((r.archard_um.clone(), impacts_cycle / dem_passes as f64));
+                say(&format!(
+                    "finish: cycle {c}: contact field: AUC {:.3} (gap ranks the DEM's worn cells), {:.1} % of the DEM wear within reach; {} extrapolation steps",
+                    check.auc_gap_predicts_worn,
+                    check.dem_volume_within_reach * 100.0,
+                    e.steps
+                ));
+                checks.push(check.clone());
+                let acceleration = impacts_cycle / dem_passes as f64;
+                (
+                    scale,
+                    true,
+                    acceleration,
+                    k_finnie * scale,
+                    json!({
+                        "check": check,
+                        "table": own,
+                        "impacts": impacts_cycle,
+                        "dem_impacts": dem_passes,
+                        "extrapolation": e,
+                        "scale_is": if target_sa.is_some() { "provisional (fitted on the tables so far); the final fit uses every table" } else { "1: k_finnie as given" },
+                    }),
+                )
+            }
+        };
         let (_, after_c) = surface_params(
             &patch.cropped(&h),
             patch.crop.rows,
@@ -835,8 +1020,9 @@ pub fn finish(
         )?;
         worst_volume_error = worst_volume_error.max(r.volume_relative_error().abs());
         say(&format!(
-            "finish: cycle {c}/{}: {} passes, {:.3} ms simulated in {:.1} s; wear x {:.3e}{}; Sa {:.3} um (volume check {:+.2e})",
+            "finish: cycle {c}/{} ({}): {} passes, {:.3} ms simulated in {:.1} s; wear x {:.3e}{}; Sa {:.3} um (volume check {:+.2e})",
             opts.cycles,
+            opts.wear_model.name(),
             r.segment.passes.len(),
             sim_s * 1e3,
             r.engine_s,
@@ -871,10 +1057,83 @@ pub fn finish(
             },
             "archard_volume_um3": volume_um3(&r.archard_um, patch.pitch_x_um, patch.pitch_y_um),
             "contacts": r.contacts,
+            "contact_field": field_json,
             "after": after_c,
         }));
     }
     let completed = cycles_json.len();
+    // A stop during the contact field's fit (no engine running) ends the run the same way.
+    if stop.load(std::sync::atomic::Ordering::Relaxed) {
+        partial = true;
+    }
+
+    // The contact field's final fit, once, with every cycle's table, from the original
+    // surface over the whole process time; without a target the cycles' wear stands (k as
+    // given).
+    let mut final_fit = Value::Null;
+    if opts.wear_model == WearModel::ContactField && completed > 0 {
+        let mut scale = provisional_scale.unwrap_or(1.0);
+        if let (Some(t), false) = (target_sa, partial) {
+            let fit = match last_fit.take().filter(|f| f.cycle == completed) {
+                Some(f) => f,
+                None => {
+                    let mut heights_um = patch.heights_um.clone();
+                    let mut wear_um = vec![0.0; n];
+                    let (impacts, extrapolation, reached) = field::wear_to_target(
+                        &mut heights_um,
+                        &mut wear_um,
+                        field_grid,
+                        &dist,
+                        &table,
+                        impacts_process * MAX_FIELD_SCALE,
+                        t,
+                        stop,
+                        &mut sa_of_crop,
+                    )?;
+                    FieldFit {
+                        cycle: completed,
+                        heights_um,
+                        wear_um,
+                        impacts,
+                        extrapolation,
+                        reached,
+                    }
+                }
+            };
+            let FieldFit {
+                heights_um: h0,
+                wear_um: w0,
+                impacts: used,
+                extrapolation: e,
+                reached,
+                ..
+            } = fit;
+            scale = used / impacts_process;
+            h = h0;
+            finnie_total = w0;
+            let sa = sa_of_crop(&h)?;
+            let err = sa / t - 1.0;
+            say(&format!(
+                "finish: contact field fitted once over {} impacts on the patch: scale {scale:.4e} (k_finnie {:.3e} 1/Pa), Sa {sa:.4} um for the target {t:.4} ({:+.2} %){}",
+                impacts_process,
+                k_finnie * scale,
+                err * 100.0,
+                if reached { "" } else { ": target NOT reached" }
+            ));
+            final_fit = json!({
+                "scale": scale,
+                "k_finnie_fitted_per_pa": k_finnie * scale,
+                "sa_after_um": sa,
+                "relative_error": err,
+                "reached": reached && err.abs() * 100.0 <= CALIBRATION_TOLERANCE_PERCENT,
+                "extrapolation": e,
+            });
+        }
+        archard_total = vec![0.0; n];
+        for (map, factor) in &archard_sampled {
+            add_scaled(&mut archard_total, map, factor * scale);
+        }
+    }
 
     // The paper's comparison: the ideal model (form only) under the same first segment.
     let mut ideal_json = Value::Null;
@@ -1020,7 +1279,7 @@ pub fn finish(
             "machine": opts.machine,
             "action": action,
             "press_force_n": opts.media.load_n(action.pressure_pa) + opts.media.mass_kg() * action.acceleration_m_s2,
-            "k_finnie_per_pa": opts.k_finnie_per_pa,
+            "k_finnie_per_pa": k_finnie,
             "archard_k_over_h_per_pa": opts.archard_k_over_h_per_pa,
             "process_time_s": opts.process_time_s,
             "timestep_s": dt,
@@ -1036,11 +1295,51 @@ pub fn finish(
             Some(c) => json!({
                 "kind": match c { Calibration::Sa{..} => "Sa before/after", Calibration::Measured(_) => "measured after-finish scan" },
                 "target_sa_um": target_sa,
-                "k_finnie_fitted_per_pa": if completed > 0 {
+                "wear_model": opts.wear_model.name(),
+                "tolerance_percent": CALIBRATION_TOLERANCE_PERCENT,
+                "k_finnie_fitted_per_pa": if opts.wear_model == WearModel::ContactField {
+                    final_fit.get("k_finnie_fitted_per_pa").cloned().unwrap_or(Value::Null)
+                } else if completed > 0 {
                     json!(cycles_json.iter().filter_map(|c| c["k_finnie_equivalent_per_pa"].as_f64()).sum::<f64>() / completed as f64)
                 } else { Value::Null },
+                "sa_after_um": after.sa,
+                "relative_error": target_sa.map(|t| after.sa / t - 1.0),
+                "reached": target_sa.map(|t| !partial && (after.sa / t - 1.0).abs() * 100.0 <= CALIBRATION_TOLERANCE_PERCENT),
+                "fit": final_fit,
+                "provisional_scale": provisional_scale,
                 "measured_after": measured_after.as_ref().map(|(_, p)| p),
             }),
+        },
+        "wear_model": opts.wear_model.name(),
+        "contact_field": if opts.wear_model == WearModel::ContactField {
+            let mean = |f: &dyn Fn(&field::FieldCheck) -> f64| -> Value {
+                let v: Vec<f64> = checks.iter().map(f).filter(|x| x.is_finite()).collect();
+                if v.is_empty() { Value::Null } else { json!(v.iter().sum::<f64>() / v.len() as f64) }
+            };
+            json!({
+                "ball_radius_um": field_grid.radius_um,
+                "closing": "the surface closed with the paraboloid r^2/2R of the media's radius (separable lower envelope of parabolas, exact, at the model's full resolution, over the patch and its guard band); the sphere differs from it by r^4/8R^3 (0.06 um at 200 um for R = 1.5 mm)",
+                "approach": dist,
+                "approach_model": "Hertz approach (15 m v_n^2 / (16 E* sqrt R))^(2/5), impact angle uniform on [0, max_impact_angle_deg] at the media speed; the press load's static approach a floor; p(gap) = P(approach > gap)",
+                "impact_rate_per_m2_s": impact_rate,
+                "impact_rate_model": "the bed's contact layer holds one medium per 2 sqrt(3) r^2 and each strikes afresh once per diameter travelled at the media speed (an assumption)",
+                "patch_area_um2": aim_area_um2,
+                "impacts_over_process": impacts_process,
+                "step_depth_um": field::STEP_DEPTH_UM,
+                "table": table,
+                "check_mean": {
+                    "auc_gap_predicts_worn": mean(&|c| c.auc_gap_predicts_worn),
+                    "dem_volume_within_reach": mean(&|c| c.dem_volume_within_reach),
+                    "cells_within_reach": mean(&|c| c.cells_within_reach),
+                    "dem_worn_cells": mean(&|c| c.dem_worn_cells),
+                },
+                "worn_cells_after": finnie_crop.iter().filter(|w| **w > 0.0).count() as f64 / finnie_crop.len().max(1) as f64,
+            })
+        } else { Value::Null },
+        "paper": {
+            "before": {"Sa": 1.272, "Sq": 1.624, "Sz": 15.262},
+            "after": {"Sa": 0.565, "Sq": 0.708, "Sz": 6.162},
+            "process_time_s": 300,
         },
         "before": before,
         "after": after,

@@ -15,7 +15,10 @@ use std::sync::atomic::AtomicBool;
 
 use surfstream_finish::engine::{run_engine, EngineCommand};
 use surfstream_finish::grid::{mesh_patch, volume_um3, Window};
-use surfstream_finish::run::{run_segment, surface_params, timestep_s, SegmentPlan};
+use surfstream_finish::run::WearModel;
+use surfstream_finish::run::{
+    run_segment, surface_params, timestep_s, SegmentPlan, CALIBRATION_TOLERANCE_PERCENT,
+};
 use surfstream_finish::script::{self, input_script, Pass, Segment};
 use surfstream_finish::setting::{effective_modulus_pa, BarrelMachine, Media, Workpiece};
 use surfstream_finish::vtk::read_vtk;
@@ -250,7 +253,10 @@ fn a_flat_surface_wears_without_pattern() {
         max_triangles: 6_000,
         impact_angle_deg: 30.0,
         // A constant that wears the flat by a fraction of a micrometre in the process time.
-        k_finnie_per_pa: 1e-18,
+        k_finnie_per_pa: Some(1e-18),
+        // The DEM's own map is what this test looks at (the contact field of a flat is
+        // uniform by construction: field::tests).
+        wear_model: WearModel::SampledMap,
         ..Default::default()
     };
     let stop = AtomicBool::new(false);
@@ -355,6 +361,18 @@ fn a_sinusoidal_surface_loses_its_peaks_first() {
         "the calibration did not wear the surface"
     );
     assert!(share("Spk") > share("Svk") + 0.05, "peaks did not go first");
+    // The contact field (the default) reaches the target within the tolerance, fitted once.
+    assert_eq!(s["wear_model"], "contact-field");
+    let c = &s["calibration"];
+    assert_eq!(c["reached"], true, "{c}");
+    assert!(c["relative_error"].as_f64().unwrap().abs() * 100.0 <= CALIBRATION_TOLERANCE_PERCENT);
+    let auc = s["contact_field"]["check_mean"]["auc_gap_predicts_worn"]
+        .as_f64()
+        .unwrap();
+    assert!(
+        auc > 0.5,
+        "the contact field does not predict where the DEM wore: AUC {auc}"
+    );
     let (_, p) = surface_params(
         &surfstream_io::npy::read_npy_f64(tmp.path().join("worn.npy"))
             .unwrap()

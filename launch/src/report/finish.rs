@@ -1,0 +1,251 @@
+//! The finishing simulation's section of report.html, for a graph with a `finish` node
+//! (launch/graphs/finish.toml): the wear map, the worn against the original profile, the
+//! Abbott-Firestone curves before/after, the parameters beside the paper's and the
+//! calibration table. finish.json is read through the finish crate's typed records
+//! ([`surfstream_finish::summary::FinishSummary`]); the figures are the finish crate's own
+//! (the same as its finish.html), from wear.npy, original.npy and worn.npy in the node's
+//! folder.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use anyhow::{anyhow, Context, Result};
+use serde_json::Value;
+use surfstream_core::record::RunRecord;
+use surfstream_finish::summary::FinishSummary;
+
+use super::html::esc;
+
+/// The folders of `out` where a finish node wrote: its `dir` parameter (run.json
+/// `parameters.ID.dir`, "finish" by default) holding finish.json and wear.npy; in name order.
+fn finish_dirs(parameters: &BTreeMap<String, Value>, out: &Path) -> Vec<PathBuf> {
+    let mut names: Vec<String> = vec!["finish".into()];
+    names.extend(
+        parameters
+            .values()
+            .filter_map(|v| v["dir"].as_str().map(String::from)),
+    );
+    names.sort();
+    names.dedup();
+    names
+        .into_iter()
+        .map(|n| out.join(n))
+        .filter(|d| d.join("finish.json").is_file() && d.join("wear.npy").is_file())
+        .collect()
+}
+
+/// The section, or "" when the run has no finish output.
+pub fn section(run: &RunRecord, out: &Path) -> String {
+    section_of(&run.parameters, out)
+}
+
+/// The section for a run whose nodes' parameters are `parameters`.
+fn section_of(parameters: &BTreeMap<String, Value>, out: &Path) -> String {
+    let mut h = String::new();
+    for dir in finish_dirs(parameters, out) {
+        let rel = dir.strip_prefix(out).unwrap_or(&dir).display().to_string();
+        match render(&dir, &rel) {
+            Ok(s) => h.push_str(&s),
+            Err(e) => {
+                let _ = writeln!(
+                    h,
+                    "<section id=\"finish\"><h2>Finishing simulation</h2>\
+                     <p class=\"bad\">Not shown: {}</p></section>",
+                    esc(&format!("{e:#}"))
+                );
+            }
+        }
+    }
+    h
+}
+
+fn read_map(path: &Path) -> Result<(Vec<f64>, usize, usize)> {
+    let a =
+        surfstream_io::npy::read_npy_f64(path).map_err(|e| anyhow!("{}: {e}", path.display()))?;
+    Ok((a.data, a.rows, a.cols))
+}
+
+fn render(dir: &Path, rel: &str) -> Result<String> {
+    let path = dir.join("finish.json");
+    let s = FinishSummary::read(&path)?;
+    // The figures are drawn by the finish crate from the raw JSON (the same page code as
+    // finish.html); the numbers below come from the typed records.
+    let raw: Value = serde_json::from_str(
+        &std::fs::read_to_string(&path).with_context(|| format!("{}", path.display()))?,
+    )
+    .with_context(|| format!("{}: not JSON", path.display()))?;
+    let (wear, rows, cols) = read_map(&dir.join("wear.npy"))?;
+    let (original, r2, c2) = read_map(&dir.join("original.npy"))?;
+    let (worn, r3, c3) = read_map(&dir.join("worn.npy"))?;
+    if (r2, c2) != (rows, cols) || (r3, c3) != (rows, cols) {
+        return Err(anyhow!(
+            "{}: wear.npy is {rows} x {cols}, original.npy {r2} x {c2}, worn.npy {r3} x {c3}: expected one shape",
+            dir.display()
+        ));
+    }
+    let f = surfstream_finish::html::figures(&raw, &original, &worn, &wear, rows, cols)?;
+    let mut h = String::new();
+    let (b, a) = (&s.before, &s.after);
+    let _ = write!(
+        h,
+        "<section id=\"finish\"><h2>Finishing simulation{}</h2>\
+         <p class=\"sub\">{} of {} cycle(s), wear model {}; Sa {:.3} → {:.3} µm. \
+         The page of this run alone: <a href=\"{rel}/finish.html\">{rel}/finish.html</a>; \
+         the numbers: <code>{rel}/finish.json</code> (docs/finish.md).</p>",
+        if s.partial {
+            " (partial: stopped early)"
+        } else {
+            ""
+        },
+        s.cycles_completed,
+        s.cycles_requested,
+        esc(s.wear_model.as_deref().unwrap_or("sampled-map")),
+        b.sa,
+        a.sa,
+    );
+    let _ = write!(
+        h,
+        "<div class=\"flex\"><figure>{}<figcaption>Wear depth along z, µm (the dashed line \
+         marks the profile row).</figcaption></figure><figure>{}<figcaption>Before.</figcaption>\
+         </figure><figure>{}<figcaption>After, same colour scale.</figcaption></figure></div>\
+         <div class=\"flex\"><figure>{}<figcaption>Worn (thin red) on the original (thick grey).\
+         </figcaption></figure><figure>{}<figcaption>Removed depth along the row (worn.npy is \
+         re-levelled: {:+.4} µm shift).</figcaption></figure></div>\
+         <div class=\"flex\"><figure>{}<figcaption>Abbott-Firestone curves before (grey) and \
+         after (red).</figcaption></figure><figure>{}<figcaption>The peak region.</figcaption>\
+         </figure><figure>{}<figcaption>Height lost at each material ratio.</figcaption></figure></div>",
+        f.wear_map,
+        f.original_map,
+        f.worn_map,
+        f.profile_svg,
+        f.removed_svg,
+        f.level_shift_um,
+        f.abbott_svg,
+        f.abbott_peak_svg,
+        f.abbott_diff_svg,
+    );
+    // Parameters beside the paper's measured part.
+    let paper = |side: &str, k: &str| -> String {
+        s.paper
+            .as_ref()
+            .and_then(|p| {
+                if side == "before" {
+                    &p.before
+                } else {
+                    &p.after
+                }
+                .get(k)
+                .copied()
+            })
+            .map_or("–".into(), |v| format!("{v:.3}"))
+    };
+    let _ = write!(
+        h,
+        "<h3>Parameters (µm)</h3><table><tr><th class=\"k\">param</th><th>model before</th>\
+         <th>predicted after</th><th>paper before</th><th>paper after 5 min</th></tr>"
+    );
+    for (k, bv, av) in [
+        ("Sa", b.sa, a.sa),
+        ("Sq", b.sq, a.sq),
+        ("Sz", b.sz, a.sz),
+        ("Spk", b.spk, a.spk),
+        ("Svk", b.svk, a.svk),
+        ("Sk", b.sk, a.sk),
+    ] {
+        let _ = write!(
+            h,
+            "<tr><td class=\"k\">{k}</td><td>{bv:.3}</td><td>{av:.3}</td><td>{}</td><td>{}</td></tr>",
+            paper("before", k),
+            paper("after", k)
+        );
+    }
+    h.push_str("</table>");
+    // The calibration table.
+    if let Some(c) = &s.calibration {
+        let opt = |v: Option<f64>, dp: usize| v.map_or("–".into(), |x| format!("{x:.dp$}"));
+        let _ = write!(
+            h,
+            "<h3>Calibration</h3><table><tr><th class=\"k\">quantity</th><th>value</th></tr>\
+             <tr><td class=\"k\">kind</td><td>{}</td></tr>\
+             <tr><td class=\"k\">target Sa (µm)</td><td>{}</td></tr>\
+             <tr><td class=\"k\">predicted Sa (µm)</td><td>{}</td></tr>\
+             <tr><td class=\"k\">relative error (tolerance ±{} %)</td><td>{}</td></tr>\
+             <tr><td class=\"k\">reached</td><td>{}</td></tr>\
+             <tr><td class=\"k\">fitted k_finnie (1/Pa)</td><td>{}</td></tr>",
+            esc(&c.kind),
+            opt(c.target_sa_um, 4),
+            opt(c.sa_after_um, 4),
+            opt(c.tolerance_percent, 0),
+            c.relative_error
+                .map_or("–".into(), |e| format!("{:+.2} %", e * 100.0)),
+            c.reached.map_or("–", |r| if r { "yes" } else { "no" }),
+            c.k_finnie_fitted_per_pa
+                .map_or("–".into(), |k| format!("{k:.3e}")),
+        );
+        if let Some(cf) = &s.contact_field {
+            let _ = write!(
+                h,
+                "<tr><td class=\"k\">impacts over the process (patch)</td><td>{:.0}</td></tr>\
+                 <tr><td class=\"k\">DEM impacts measured</td><td>{}</td></tr>\
+                 <tr><td class=\"k\">AUC: the contact field ranks the DEM's worn cells</td><td>{}</td></tr>\
+                 <tr><td class=\"k\">DEM wear volume within reach</td><td>{}</td></tr>\
+                 <tr><td class=\"k\">cells worn after the process</td><td>{}</td></tr>",
+                cf.impacts_over_process,
+                cf.table.impacts,
+                opt(cf.check_mean.auc_gap_predicts_worn, 3),
+                opt(cf.check_mean.dem_volume_within_reach, 3),
+                opt(cf.worn_cells_after, 3),
+            );
+        }
+        h.push_str("</table>");
+    }
+    if let Some(cf) = &s.contact_field {
+        h.push_str(
+            "<h3>Wear per contact measured by the DEM</h3><table><tr><th>gap below the ball's \
+             envelope (µm)</th><th>cells</th><th>expected contacts</th><th>DEM worn cells</th>\
+             <th>wear per contact (µm, DEM k)</th></tr>",
+        );
+        for bin in &cf.table.bins {
+            let _ = write!(
+                h,
+                "<tr><td>{:.3}–{:.3}</td><td>{}</td><td>{:.1}</td><td>{}</td><td>{:.3e}</td></tr>",
+                bin.gap_from_um,
+                bin.gap_to_um,
+                bin.cells,
+                bin.expected_contacts,
+                bin.dem_worn_cells,
+                bin.wear_per_contact_um
+            );
+        }
+        let _ = write!(
+            h,
+            "</table><p class=\"note\">Ball radius {:.0} µm; engine {:.1} s of {:.1} s.</p>",
+            cf.ball_radius_um, s.timings.engine_s, s.timings.total_s
+        );
+    }
+    h.push_str("</section>\n");
+    Ok(h)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_run_without_finish_output_has_no_section_and_a_broken_one_says_why() {
+        let dir = tempfile::tempdir().unwrap();
+        let run = BTreeMap::from([("fin".to_string(), serde_json::json!({"dir": "f2"}))]);
+        assert_eq!(section_of(&run, dir.path()), "");
+        // A node's record (nodes/finish.json) is not a finish output.
+        std::fs::create_dir_all(dir.path().join("nodes")).unwrap();
+        std::fs::write(dir.path().join("nodes/finish.json"), "{}").unwrap();
+        assert_eq!(section_of(&run, dir.path()), "");
+        let f = dir.path().join("f2");
+        std::fs::create_dir_all(&f).unwrap();
+        std::fs::write(f.join("finish.json"), "{\"model\": 3}").unwrap();
+        std::fs::write(f.join("wear.npy"), "").unwrap();
+        let s = section_of(&run, dir.path());
+        assert!(s.contains("Not shown") && s.contains("finish.json"), "{s}");
+    }
+}

@@ -1,0 +1,791 @@
+//! The contact-field wear model: where the media can reach, how much one contact wears there,
+//! and the process time extrapolated over every reachable peak (docs/finish.md, "The contact
+//! field").
+//!
+//! 1. **Contact field.** A medium of radius R lowered onto the surface rests on the envelope of
+//!    the rolling ball: the morphological closing of the surface with the ball (dilation with
+//!    the ball from above, then erosion). A cell lies at gap g = envelope - height below it
+//!    and is reached only by an impact whose elastic approach exceeds g. The sphere is
+//!    approximated by its paraboloid r^2 / 2R, which makes the closing separable and exact in
+//!    O(n) per line (the lower envelope of parabolas); the paraboloid differs from the sphere
+//!    by r^4 / 8R^3, 0.06 um at 200 um from the contact for R = 1.5 mm.
+//! 2. **Approach distribution.** Hertz: a sphere striking at normal speed v_n approaches by
+//!    (15 m v_n^2 / (16 E* sqrt(R)))^(2/5). The impact angle is spread uniformly over
+//!    [0, 2 x the setting's angle] (mean: the setting's angle) at the media speed, and the
+//!    static press of the load is a floor; P(approach > g) is the contact probability p(g).
+//! 3. **Wear per contact** is measured from each DEM segment: the DEM's wear on the cells of a
+//!    gap bin, per impact, divided by the bin's summed contact probability ([`WearTable`]).
+//! 4. **Extrapolation.** The process delivers Gamma impacts per area and second (barrel
+//!    kinematics, [`impact_rate_per_m2_s`]); over the process time the surface loses
+//!    s x p(g) x w(g) per impact, re-closed after every small step, so the envelope comes
+//!    down as peaks are cut and the contact set grows. The scale s (Finnie's k over the DEM's
+//!    k) is fitted once to the calibration target ([`fit_scale`]).
+
+use anyhow::{bail, Result};
+use serde::{Deserialize, Serialize};
+
+use crate::setting::{effective_modulus_pa, Action, Media, Workpiece};
+
+/// The lower envelope of parabolas along one line: out[i] = min_j f[j] + ((i - j) pitch)^2 / 2R
+/// (Felzenszwalb and Huttenlocher's distance transform; exact, O(n)).
+fn parabola_envelope(f: &[f64], pitch_um: f64, radius_um: f64, out: &mut [f64]) {
+    let n = f.len();
+    if n == 0 {
+        return;
+    }
+    // Work in units where the parabola is (x - q)^2: F = 2R f, x = i * pitch.
+    let two_r = 2.0 * radius_um;
+    let x = |i: usize| i as f64 * pitch_um;
+    let g = |i: usize| two_r * f[i] + x(i) * x(i);
+    let mut v = vec![0usize; n];
+    let mut z = vec![0f64; n + 1];
+    let mut k = 0usize;
+    z[0] = f64::NEG_INFINITY;
+    z[1] = f64::INFINITY;
+    for q in 1..n {
+        // z[0] = -inf: the pop stops at k = 0 at the latest.
+        let mut s = (g(q) - g(v[k])) / (2.0 * (x(q) - x(v[k])));
+        while s <= z[k] {
+            k -= 1;
+            s = (g(q) - g(v[k])) / (2.0 * (x(q) - x(v[k])));
+        }
+        k += 1;
+        v[k] = q;
+        z[k] = s;
+        z[k + 1] = f64::INFINITY;
+    }
+    k = 0;
+    for (i, o) in out.iter_mut().enumerate() {
+        while z[k + 1] < x(i) {
+            k += 1;
+        }
+        let d = x(i) - x(v[k]);
+        *o = f[v[k]] + d * d / two_r;
+    }
+}
+
+/// min over (j, l) of z[j, l] + |(i, k) - (j, l)|^2 / 2R on a rows x cols grid (separable).
+fn envelope_2d(z: &[f64], rows: usize, cols: usize, px: f64, py: f64, r: f64) -> Vec<f64> {
+    let mut tmp = vec![0.0; z.len()];
+    for i in 0..rows {
+        parabola_envelope(
+            &z[i * cols..(i + 1) * cols],
+            px,
+            r,
+            &mut tmp[i * cols..(i + 1) * cols],
+        );
+    }
+    let mut out = vec![0.0; z.len()];
+    let mut col = vec![0.0; rows];
+    let mut res = vec![0.0; rows];
+    for j in 0..cols {
+        for i in 0..rows {
+            col[i] = tmp[i * cols + j];
+        }
+        parabola_envelope(&col, py, r, &mut res);
+        for i in 0..rows {
+            out[i * cols + j] = res[i];
+        }
+    }
+    out
+}
+
+/// The gap of every cell below the envelope of a ball of `radius_um` rolled over the surface
+/// from above (the closing with the paraboloid r^2 / 2R, minus the surface), um, >= 0.
+pub fn ball_gap_um(
+    heights_um: &[f64],
+    rows: usize,
+    cols: usize,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+    radius_um: f64,
+) -> Vec<f64> {
+    // Dilation: the ball's lowest point over (x) = max_y h(y) - |x - y|^2 / 2R.
+    let neg: Vec<f64> = heights_um.iter().map(|h| -h).collect();
+    let lowest: Vec<f64> = envelope_2d(&neg, rows, cols, pitch_x_um, pitch_y_um, radius_um)
+        .into_iter()
+        .map(|v| -v)
+        .collect();
+    // Erosion: the envelope at y = min_x lowest(x) + |x - y|^2 / 2R.
+    let env = envelope_2d(&lowest, rows, cols, pitch_x_um, pitch_y_um, radius_um);
+    env.iter()
+        .zip(heights_um)
+        .map(|(e, h)| (e - h).max(0.0))
+        .collect()
+}
+
+/// The distribution of the media's elastic approach at impact (Hertz), um.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ApproachDistribution {
+    /// Approach of an impact at the full media speed, normal to the part, um.
+    pub full_speed_approach_um: f64,
+    /// Largest impact angle: angles are uniform on [0, this], degrees.
+    pub max_impact_angle_deg: f64,
+    /// The static approach under the press load: every reachable cell within it is touched.
+    pub static_approach_um: f64,
+    /// Approach at the setting's (mean) impact angle, um (reported).
+    pub mean_angle_approach_um: f64,
+}
+
+/// Hertz approach of a sphere striking a flat at normal speed `v_n` (m/s), um.
+pub fn hertz_approach_um(media: &Media, part: &Workpiece, v_n: f64) -> f64 {
+    let e = effective_modulus_pa(media, part);
+    let m = media.mass_kg();
+    (15.0 * m * v_n * v_n / (16.0 * e * media.radius_m().sqrt())).powf(0.4) * 1e6
+}
+
+impl ApproachDistribution {
+    pub fn of(media: &Media, part: &Workpiece, action: &Action, press_force_n: f64) -> Self {
+        let v = action.media_velocity_m_s;
+        let e = effective_modulus_pa(media, part);
+        let r = media.radius_m();
+        // Hertz: F = 4/3 E* sqrt(R) d^(3/2).
+        let static_m = (3.0 * press_force_n.max(0.0) / (4.0 * e * r.sqrt())).powf(2.0 / 3.0);
+        ApproachDistribution {
+            full_speed_approach_um: hertz_approach_um(media, part, v),
+            max_impact_angle_deg: (2.0 * action.impact_angle_deg).min(90.0),
+            static_approach_um: static_m * 1e6,
+            mean_angle_approach_um: hertz_approach_um(
+                media,
+                part,
+                v * action.impact_angle_deg.to_radians().sin(),
+            ),
+        }
+    }
+
+    /// The largest approach, um: cells deeper below the envelope are never touched.
+    pub fn max_um(&self) -> f64 {
+        let s = self.max_impact_angle_deg.to_radians().sin();
+        (self.full_speed_approach_um * s.powf(0.8)).max(self.static_approach_um)
+    }
+
+    /// P(approach > gap): the share of impact angles whose Hertz approach reaches `gap_um`.
+    pub fn probability(&self, gap_um: f64) -> f64 {
+        if gap_um <= self.static_approach_um {
+            return 1.0;
+        }
+        let a = self.full_speed_approach_um;
+        if a <= 0.0 || gap_um >= a {
+            return 0.0;
+        }
+        // approach(theta) = a sin(theta)^(4/5) >= g  <=>  sin(theta) >= (g / a)^(5/4).
+        let theta_min = (gap_um / a).powf(1.25).asin();
+        let theta_max = self.max_impact_angle_deg.to_radians();
+        if theta_min >= theta_max {
+            0.0
+        } else {
+            (theta_max - theta_min) / theta_max
+        }
+    }
+}
+
+/// Impacts of the media bed per area of the part and second, 1/(m^2 s): the contact layer
+/// holds one medium per 2 sqrt(3) r^2 (hexagonal), and each strikes afresh once per diameter
+/// it travels at the relative media speed (an assumption, stated in finish.json).
+pub fn impact_rate_per_m2_s(media: &Media, action: &Action) -> f64 {
+    let r = media.radius_m();
+    let layer_per_m2 = 1.0 / (2.0 * 3f64.sqrt() * r * r);
+    layer_per_m2 * action.media_velocity_m_s / (2.0 * r)
+}
+
+/// One gap bin of the wear-per-contact table.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct WearBin {
+    pub gap_from_um: f64,
+    pub gap_to_um: f64,
+    /// Cells of the evaluated patch in the bin (summed over the segments pooled).
+    pub cells: usize,
+    /// Summed contact probability of those cells x impacts: the expected contacts.
+    pub expected_contacts: f64,
+    /// DEM wear depth summed over the bin's cells, um (at the DEM's k).
+    pub dem_depth_sum_um: f64,
+    /// Cells the DEM wore (depth > 0).
+    pub dem_worn_cells: usize,
+    /// Wear depth per expected contact, um (at the DEM's k): the table's value.
+    pub wear_per_contact_um: f64,
+}
+
+/// The wear per contact as a function of the gap, measured from DEM segments.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct WearTable {
+    pub bins: Vec<WearBin>,
+    /// DEM impacts (passes) the table was measured from.
+    pub impacts: usize,
+    /// DEM wear volume on cells the contact field says no impact reaches (gap beyond the
+    /// largest approach), um^3: spread over the reachable bins in proportion to their wear
+    /// so the table reproduces the DEM's volume.
+    pub dem_volume_beyond_reach_um3: f64,
+    pub dem_volume_um3: f64,
+}
+
+/// How well the contact field predicts where the DEM wore (one segment).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct FieldCheck {
+    /// P(gap of a DEM-worn cell < gap of an unworn cell), ties half: 1 = the gap ranks every
+    /// worn cell first, 0.5 = no better than chance.
+    pub auc_gap_predicts_worn: f64,
+    /// Share of the DEM's wear volume on cells the contact field reaches (p > 0).
+    pub dem_volume_within_reach: f64,
+    /// Share of the cells the contact field reaches (p > 0).
+    pub cells_within_reach: f64,
+    /// Share of the cells the DEM wore.
+    pub dem_worn_cells: f64,
+    /// Median gap of the DEM-worn cells and of all cells, um.
+    pub median_gap_worn_um: f64,
+    pub median_gap_all_um: f64,
+}
+
+/// Bins of the gap: `BINS` equal bins over [0, the largest approach].
+pub const BINS: usize = 12;
+
+fn bin_of(gap_um: f64, reach_um: f64) -> Option<usize> {
+    if gap_um > reach_um || reach_um <= 0.0 {
+        return None;
+    }
+    Some(((gap_um / reach_um * BINS as f64) as usize).min(BINS - 1))
+}
+
+impl WearTable {
+    pub fn empty(reach_um: f64) -> Self {
+        WearTable {
+            bins: (0..BINS)
+                .map(|b| WearBin {
+                    gap_from_um: reach_um * b as f64 / BINS as f64,
+                    gap_to_um: reach_um * (b + 1) as f64 / BINS as f64,
+                    ..Default::default()
+                })
+                .collect(),
+            ..Default::default()
+        }
+    }
+
+    /// Adds a DEM segment: `impacts` passes gave `dem_depth_um` on cells of gap `gap_um`
+    /// (same length, the evaluated patch), each cell `cell_area_um2`.
+    pub fn add_segment(
+        &mut self,
+        dist: &ApproachDistribution,
+        gap_um: &[f64],
+        dem_depth_um: &[f64],
+        impacts: usize,
+        cell_area_um2: f64,
+    ) -> Result<()> {
+        if gap_um.len() != dem_depth_um.len() {
+            bail!(
+                "wear table: {} gaps for {} wear depths",
+                gap_um.len(),
+                dem_depth_um.len()
+            );
+        }
+        let reach = dist.max_um();
+        let mut beyond = 0.0;
+        for (g, w) in gap_um.iter().zip(dem_depth_um) {
+            self.dem_volume_um3 += w * cell_area_um2;
+            match bin_of(*g, reach) {
+                Some(b) => {
+                    let bin = &mut self.bins[b];
+                    bin.cells += 1;
+                    bin.expected_contacts += dist.probability(*g) * impacts as f64;
+                    bin.dem_depth_sum_um += w;
+                    bin.dem_worn_cells += usize::from(*w > 0.0);
+                }
+                None => beyond += w * cell_area_um2,
+            }
+        }
+        self.dem_volume_beyond_reach_um3 += beyond;
+        self.impacts += impacts;
+        // The beyond-reach volume goes to the reachable bins in proportion to their wear.
+        let inside: f64 = self.bins.iter().map(|b| b.dem_depth_sum_um).sum();
+        let factor = if inside > 0.0 {
+            self.dem_volume_um3 / (inside * cell_area_um2)
+        } else {
+            0.0
+        };
+        for b in &mut self.bins {
+            b.wear_per_contact_um = if b.expected_contacts > 0.0 {
+                b.dem_depth_sum_um * factor / b.expected_contacts
+            } else {
+                0.0
+            };
+        }
+        Ok(())
+    }
+
+    /// Expected wear depth of a cell at `gap_um` per impact aimed over the patch, um.
+    pub fn depth_per_impact_um(&self, dist: &ApproachDistribution, gap_um: f64) -> f64 {
+        match bin_of(gap_um, dist.max_um()) {
+            Some(b) => dist.probability(gap_um) * self.bins[b].wear_per_contact_um,
+            None => 0.0,
+        }
+    }
+}
+
+/// The check of one DEM segment against the contact field (on the evaluated patch).
+pub fn check_field(
+    dist: &ApproachDistribution,
+    gap_um: &[f64],
+    dem_depth_um: &[f64],
+) -> FieldCheck {
+    let n = gap_um.len();
+    if n == 0 {
+        return FieldCheck::default();
+    }
+    let reach = dist.max_um();
+    let total: f64 = dem_depth_um.iter().sum();
+    let within: f64 = gap_um
+        .iter()
+        .zip(dem_depth_um)
+        .filter(|(g, _)| dist.probability(**g) > 0.0 || **g <= reach)
+        .map(|(_, w)| *w)
+        .sum();
+    // AUC by ranks (Mann-Whitney): sort by gap, ties share their mean rank.
+    let mut idx: Vec<usize> = (0..n).collect();
+    idx.sort_by(|a, b| gap_um[*a].total_cmp(&gap_um[*b]));
+    let worn: Vec<bool> = dem_depth_um.iter().map(|w| *w > 0.0).collect();
+    let n_pos = worn.iter().filter(|w| **w).count();
+    let n_neg = n - n_pos;
+    let mut rank_sum_pos = 0.0;
+    let mut i = 0;
+    while i < n {
+        let mut j = i;
+        while j + 1 < n && gap_um[idx[j + 1]] == gap_um[idx[i]] {
+            j += 1;
+        }
+        let mean_rank = (i + j) as f64 / 2.0 + 1.0;
+        for k in &idx[i..=j] {
+            if worn[*k] {
+                rank_sum_pos += mean_rank;
+            }
+        }
+        i = j + 1;
+    }
+    // Ranks ascend with the gap: a worn cell ranked low (small gap) counts as predicted.
+    let auc = if n_pos > 0 && n_neg > 0 {
+        let u_pos = rank_sum_pos - (n_pos * (n_pos + 1)) as f64 / 2.0;
+        1.0 - u_pos / (n_pos as f64 * n_neg as f64)
+    } else {
+        f64::NAN
+    };
+    let median = |mut v: Vec<f64>| -> f64 {
+        if v.is_empty() {
+            return f64::NAN;
+        }
+        v.sort_by(|a, b| a.total_cmp(b));
+        v[v.len() / 2]
+    };
+    FieldCheck {
+        auc_gap_predicts_worn: auc,
+        dem_volume_within_reach: if total > 0.0 {
+            within / total
+        } else {
+            f64::NAN
+        },
+        cells_within_reach: gap_um.iter().filter(|g| **g <= reach).count() as f64 / n as f64,
+        dem_worn_cells: n_pos as f64 / n as f64,
+        median_gap_worn_um: median(
+            gap_um
+                .iter()
+                .zip(&worn)
+                .filter(|(_, w)| **w)
+                .map(|(g, _)| *g)
+                .collect(),
+        ),
+        median_gap_all_um: median(gap_um.to_vec()),
+    }
+}
+
+/// The surface and its geometry for the extrapolation.
+#[derive(Debug, Clone, Copy)]
+pub struct FieldGrid {
+    pub rows: usize,
+    pub cols: usize,
+    pub pitch_x_um: f64,
+    pub pitch_y_um: f64,
+    pub radius_um: f64,
+}
+
+/// Deepest wear of one step of the extrapolation, um: small against the approach (about
+/// 1 um) so that a cut peak lets its neighbours into contact before it is cut further.
+pub const STEP_DEPTH_UM: f64 = 0.1;
+/// Most steps of one extrapolation (a guard; the demo takes about sixty).
+pub const MAX_STEPS: usize = 5_000;
+/// [`wear_to_target`] gives up when Sa fell by less than this share of the way to the
+/// target over the last [`STALL_STEPS`] steps (the surface wears without getting smoother,
+/// e.g. a form the ball follows).
+pub const STALL_SHARE: f64 = 0.002;
+pub const STALL_STEPS: usize = 100;
+
+/// What an extrapolation did.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Extrapolation {
+    pub steps: usize,
+    /// Volume removed, um^3 (= the sum of the applied depths x cell area).
+    pub volume_um3: f64,
+    /// Share of the cells worn at all.
+    pub worn_cells: f64,
+}
+
+/// Wears `heights_um` by `impacts` impacts (each spread over the whole grid by the contact
+/// field) at scale `scale`, re-closing after each step of at most [`STEP_DEPTH_UM`].
+/// Adds the removed depth to `wear_um`.
+pub fn extrapolate(
+    heights_um: &mut [f64],
+    wear_um: &mut [f64],
+    g: FieldGrid,
+    dist: &ApproachDistribution,
+    table: &WearTable,
+    impacts: f64,
+    scale: f64,
+) -> Extrapolation {
+    let mut left = impacts * scale;
+    let mut out = Extrapolation::default();
+    let cell = g.pitch_x_um * g.pitch_y_um;
+    let mut rate = vec![0.0; heights_um.len()];
+    while left > 0.0 && out.steps < MAX_STEPS {
+        let gap = ball_gap_um(
+            heights_um,
+            g.rows,
+            g.cols,
+            g.pitch_x_um,
+            g.pitch_y_um,
+            g.radius_um,
+        );
+        let mut max_rate: f64 = 0.0;
+        for (r, gp) in rate.iter_mut().zip(&gap) {
+            *r = table.depth_per_impact_um(dist, *gp);
+            max_rate = max_rate.max(*r);
+        }
+        if max_rate <= 0.0 {
+            break;
+        }
+        let n = left.min(STEP_DEPTH_UM / max_rate);
+        for ((h, w), r) in heights_um.iter_mut().zip(wear_um.iter_mut()).zip(&rate) {
+            let d = n * r;
+            *h -= d;
+            *w += d;
+            out.volume_um3 += d * cell;
+        }
+        left -= n;
+        out.steps += 1;
+    }
+    out.worn_cells =
+        wear_um.iter().filter(|w| **w > 0.0).count() as f64 / wear_um.len().max(1) as f64;
+    out
+}
+
+/// Wears `heights_um` with the contact field, step by step as [`extrapolate`] at scale 1,
+/// until `sa_of` (Sa of the evaluated patch of a surface, um) falls to `target_sa_um` or
+/// `max_impacts` are spent; the step that crosses the target is cut by bisection (within a
+/// step the wear is linear). Returns the impacts used (the fitted scale is their ratio to
+/// the process's impacts), the extrapolation, and whether the target was reached. Running
+/// [`extrapolate`] from the same surface with scale = used / N over N impacts takes the
+/// same steps. A set `stop` (Ctrl-C) ends it early, not reached.
+#[allow(clippy::too_many_arguments)]
+pub fn wear_to_target(
+    heights_um: &mut [f64],
+    wear_um: &mut [f64],
+    g: FieldGrid,
+    dist: &ApproachDistribution,
+    table: &WearTable,
+    max_impacts: f64,
+    target_sa_um: f64,
+    stop: &std::sync::atomic::AtomicBool,
+    mut sa_of: impl FnMut(&[f64]) -> Result<f64>,
+) -> Result<(f64, Extrapolation, bool)> {
+    let mut used = 0.0;
+    let mut out = Extrapolation::default();
+    let cell = g.pitch_x_um * g.pitch_y_um;
+    let mut rate = vec![0.0; heights_um.len()];
+    let mut trial = vec![0.0; heights_um.len()];
+    let sa_start = sa_of(heights_um)?;
+    let mut reached = sa_start <= target_sa_um;
+    let mut sa_mark = sa_start;
+    while !reached
+        && used < max_impacts
+        && out.steps < MAX_STEPS
+        && !stop.load(std::sync::atomic::Ordering::Relaxed)
+    {
+        let gap = ball_gap_um(
+            heights_um,
+            g.rows,
+            g.cols,
+            g.pitch_x_um,
+            g.pitch_y_um,
+            g.radius_um,
+        );
+        let mut max_rate: f64 = 0.0;
+        for (r, gp) in rate.iter_mut().zip(&gap) {
+            *r = table.depth_per_impact_um(dist, *gp);
+            max_rate = max_rate.max(*r);
+        }
+        if max_rate <= 0.0 {
+            break;
+        }
+        let mut n = (max_impacts - used).min(STEP_DEPTH_UM / max_rate);
+        let worn = |t: f64, trial: &mut [f64]| {
+            for ((o, h), r) in trial.iter_mut().zip(heights_um.iter()).zip(&rate) {
+                *o = h - t * r;
+            }
+        };
+        worn(n, &mut trial);
+        let sa_step = sa_of(&trial)?;
+        if sa_step <= target_sa_um {
+            let (mut a, mut b) = (0.0, n);
+            for _ in 0..30 {
+                let m = 0.5 * (a + b);
+                worn(m, &mut trial);
+                if sa_of(&trial)? > target_sa_um {
+                    a = m;
+                } else {
+                    b = m;
+                }
+            }
+            n = b;
+            reached = true;
+        }
+        for ((h, w), r) in heights_um.iter_mut().zip(wear_um.iter_mut()).zip(&rate) {
+            let d = n * r;
+            *h -= d;
+            *w += d;
+            out.volume_um3 += d * cell;
+        }
+        used += n;
+        out.steps += 1;
+        if out.steps % STALL_STEPS == 0 {
+            if sa_mark - sa_step < STALL_SHARE * (sa_start - target_sa_um) {
+                break;
+            }
+            sa_mark = sa_step;
+        }
+    }
+    out.worn_cells =
+        wear_um.iter().filter(|w| **w > 0.0).count() as f64 / wear_um.len().max(1) as f64;
+    Ok((used, out, reached))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_envelope_of_parabolas_matches_brute_force() {
+        let f: Vec<f64> = (0..57)
+            .map(|i| ((i * 37 % 11) as f64 - 5.0) * 0.7 + (i as f64 * 0.3).sin())
+            .collect();
+        let mut out = vec![0.0; f.len()];
+        parabola_envelope(&f, 2.5, 40.0, &mut out);
+        for (i, o) in out.iter().enumerate() {
+            let b = (0..f.len())
+                .map(|j| {
+                    let d = (i as f64 - j as f64) * 2.5;
+                    f[j] + d * d / 80.0
+                })
+                .fold(f64::INFINITY, f64::min);
+            assert!((o - b).abs() < 1e-9, "{i}: {o} vs {b}");
+        }
+    }
+
+    #[test]
+    fn a_flat_surface_has_a_uniform_contact_field() {
+        let (rows, cols) = (40, 50);
+        let z = vec![3.25; rows * cols];
+        let gap = ball_gap_um(&z, rows, cols, 1.0, 1.5, 1500.0);
+        assert!(gap.iter().all(|g| g.abs() < 1e-9), "{gap:?}");
+        let d = ApproachDistribution {
+            full_speed_approach_um: 2.0,
+            max_impact_angle_deg: 40.0,
+            static_approach_um: 0.05,
+            mean_angle_approach_um: 1.0,
+        };
+        assert!(gap.iter().all(|g| d.probability(*g) == 1.0));
+    }
+
+    #[test]
+    fn a_sinusoid_is_touched_at_its_crests_first_and_bridged_over_its_troughs() {
+        // z = A cos(2 pi x / L) along x, constant along y: the ball (curvature 1/R far below
+        // A (2 pi / L)^2) rests on the flanks next to neighbouring crests and bridges the
+        // troughs. Reference: the closing of the profile by brute force (O(n^2)).
+        let (rows, cols, p) = (8, 400, 1.0);
+        let (a, l, r) = (1.0, 100.0, 1500.0);
+        let prof: Vec<f64> = (0..cols)
+            .map(|c| a * (std::f64::consts::TAU * c as f64 * p / l).cos())
+            .collect();
+        let z: Vec<f64> = (0..rows * cols).map(|k| prof[k % cols]).collect();
+        let gap = ball_gap_um(&z, rows, cols, p, p, r);
+        let par = |i: usize, j: usize| {
+            let d = (i as f64 - j as f64) * p;
+            d * d / (2.0 * r)
+        };
+        let lowest: Vec<f64> = (0..cols)
+            .map(|i| {
+                (0..cols)
+                    .map(|j| prof[j] - par(i, j))
+                    .fold(f64::MIN, f64::max)
+            })
+            .collect();
+        let env: Vec<f64> = (0..cols)
+            .map(|j| {
+                (0..cols)
+                    .map(|i| lowest[i] + par(i, j))
+                    .fold(f64::MAX, f64::min)
+            })
+            .collect();
+        let row = &gap[3 * cols..4 * cols];
+        for c in 0..cols {
+            assert!(
+                (row[c] - (env[c] - prof[c])).abs() < 1e-9,
+                "{c}: {} vs {}",
+                row[c],
+                env[c] - prof[c]
+            );
+        }
+        for c in [100, 200, 300] {
+            assert!(row[c].abs() < 1e-9, "crest {c}: {}", row[c]);
+        }
+        // The trough lies below the chord over the crests: at least 2A - (L/2)^2 / 2R.
+        let chord = 2.0 * a - (l / 2.0) * (l / 2.0) / (2.0 * r);
+        for c in [150, 250] {
+            assert!(row[c] >= chord, "trough {c}: {} vs {chord}", row[c]);
+        }
+        // Contact probability falls from crest to trough.
+        let d = ApproachDistribution {
+            full_speed_approach_um: 2.5,
+            max_impact_angle_deg: 40.0,
+            static_approach_um: 0.05,
+            mean_angle_approach_um: 1.0,
+        };
+        let p_of = |c: usize| d.probability(row[c]);
+        assert_eq!(p_of(200), 1.0);
+        for c in 200..250 {
+            assert!(p_of(c) >= p_of(c + 1), "{c}: {} < {}", p_of(c), p_of(c + 1));
+        }
+        assert!(p_of(250) < 0.5, "{}", p_of(250));
+    }
+
+    #[test]
+    fn hertz_approach_of_the_papers_media_is_about_one_and_a_half_micrometres() {
+        // docs/finish.md: 0.537 m/s normal (1.571 m/s at 20 deg) gives 1.63 um.
+        let a = hertz_approach_um(&Media::default(), &Workpiece::default(), 0.537);
+        assert!((a - 1.63).abs() < 0.02, "{a}");
+    }
+
+    fn rough(rows: usize, cols: usize) -> Vec<f64> {
+        (0..rows * cols)
+            .map(|k| {
+                let (i, j) = ((k / cols) as f64, (k % cols) as f64);
+                (i * 0.31).sin() * (j * 0.23).cos() * 2.0 + (i * 0.07 + j * 0.11).sin() * 1.5
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_table_reproduces_the_dem_volume_and_the_extrapolation_conserves_it() {
+        let (rows, cols, p, r) = (60, 70, 2.0, 1500.0);
+        let z = rough(rows, cols);
+        let gap = ball_gap_um(&z, rows, cols, p, p, r);
+        let d = ApproachDistribution {
+            full_speed_approach_um: 3.0,
+            max_impact_angle_deg: 40.0,
+            static_approach_um: 0.05,
+            mean_angle_approach_um: 1.5,
+        };
+        // A "DEM" map: wear where the gap is small, some beyond reach too.
+        let dem: Vec<f64> = gap
+            .iter()
+            .enumerate()
+            .map(|(k, g)| {
+                if *g < 1.0 || k % 97 == 0 {
+                    0.01 * (1.0 + (k % 7) as f64)
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let mut t = WearTable::empty(d.max_um());
+        t.add_segment(&d, &gap, &dem, 17, p * p).unwrap();
+        let dem_volume: f64 = dem.iter().sum::<f64>() * p * p;
+        assert!(t.dem_volume_beyond_reach_um3 > 0.0);
+        // The table evaluated on the DEM's own surface and impact count gives its volume.
+        let model_volume: f64 = gap
+            .iter()
+            .map(|g| 17.0 * t.depth_per_impact_um(&d, *g))
+            .sum::<f64>()
+            * p
+            * p;
+        assert!(
+            (model_volume / dem_volume - 1.0).abs() < 1e-12,
+            "{model_volume} vs {dem_volume}"
+        );
+        // The extrapolation removes exactly the depth it records, and wears peaks first.
+        let mut h = z.clone();
+        let mut wear = vec![0.0; h.len()];
+        let g = FieldGrid {
+            rows,
+            cols,
+            pitch_x_um: p,
+            pitch_y_um: p,
+            radius_um: r,
+        };
+        let e = extrapolate(&mut h, &mut wear, g, &d, &t, 40.0, 1.0);
+        let lost: f64 = z.iter().zip(&h).map(|(a, b)| a - b).sum::<f64>() * p * p;
+        let recorded: f64 = wear.iter().sum::<f64>() * p * p;
+        assert!((lost / e.volume_um3 - 1.0).abs() < 1e-12 && (recorded / lost - 1.0).abs() < 1e-12);
+        assert!(e.steps > 1, "{e:?}");
+        // Step-wise re-closing: the first step's volume at the first surface equals the table's.
+        let hi = z.iter().cloned().fold(f64::MIN, f64::max);
+        let top = z.iter().position(|v| *v == hi).unwrap();
+        assert!(wear[top] > 0.0);
+    }
+
+    #[test]
+    fn wearing_to_a_target_stops_at_it_and_matches_the_plain_extrapolation() {
+        let (rows, cols, p, r) = (50, 60, 2.0, 1500.0);
+        let z = rough(rows, cols);
+        let gap = ball_gap_um(&z, rows, cols, p, p, r);
+        let d = ApproachDistribution {
+            full_speed_approach_um: 3.0,
+            max_impact_angle_deg: 40.0,
+            static_approach_um: 0.05,
+            mean_angle_approach_um: 1.5,
+        };
+        let dem: Vec<f64> = gap
+            .iter()
+            .map(|g| if *g < 1.5 { 0.02 } else { 0.0 })
+            .collect();
+        let mut t = WearTable::empty(d.max_um());
+        t.add_segment(&d, &gap, &dem, 10, p * p).unwrap();
+        let sa = |h: &[f64]| -> Result<f64> {
+            let m = h.iter().sum::<f64>() / h.len() as f64;
+            Ok(h.iter().map(|v| (v - m).abs()).sum::<f64>() / h.len() as f64)
+        };
+        let sa0 = sa(&z).unwrap();
+        let target = 0.6 * sa0;
+        let g = FieldGrid {
+            rows,
+            cols,
+            pitch_x_um: p,
+            pitch_y_um: p,
+            radius_um: r,
+        };
+        let mut h = z.clone();
+        let mut w = vec![0.0; h.len()];
+        let stop = std::sync::atomic::AtomicBool::new(false);
+        let (used, _, ok) =
+            wear_to_target(&mut h, &mut w, g, &d, &t, 1e9, target, &stop, sa).unwrap();
+        assert!(ok, "target not reached");
+        assert!(
+            (sa(&h).unwrap() / target - 1.0).abs() < 1e-6,
+            "{} vs {target}",
+            sa(&h).unwrap()
+        );
+        // The plain extrapolation with the fitted impacts lands on the same surface.
+        let mut h2 = z.clone();
+        let mut w2 = vec![0.0; h2.len()];
+        extrapolate(&mut h2, &mut w2, g, &d, &t, used, 1.0);
+        let diff = h
+            .iter()
+            .zip(&h2)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        assert!(diff < 1e-9, "{diff}");
+    }
+}
