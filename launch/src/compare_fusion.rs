@@ -17,6 +17,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use serde_json::Value;
 use surfstream_core::metrology::{level_plane, Grid, MetrologyError};
 use surfstream_core::raster::Shape;
+use surfstream_core::record::{self, FusionReport, RunRecord};
 use surfstream_core::similarity::ssim;
 
 use crate::{launcher, stitch_graph};
@@ -95,14 +96,14 @@ fn num(v: &Value, path: &Path, field: &str) -> Result<f64> {
 
 fn score(method: &'static str, dir: &Path, truth: Option<&Truth>) -> Result<Row> {
     let fpath = dir.join("nodes").join("fusion.json");
-    let fusion = read_json(&fpath)?;
-    let pairs = fusion
-        .pointer("/report/fusion_pairs")
-        .and_then(Value::as_array)
-        .ok_or_else(|| anyhow!("{}: report.fusion_pairs missing", fpath.display()))?;
-    let ssims: Vec<f64> = pairs
-        .iter()
-        .filter_map(|p| p.get("ssim_mean").and_then(Value::as_f64))
+    let node: surfstream_runtime::node::NodeReport = serde_json::from_value(read_json(&fpath)?)
+        .with_context(|| format!("{}: not a node report", fpath.display()))?;
+    let fusion: FusionReport = record::from_value(&node.report, &fpath.display().to_string())
+        .map_err(|e| anyhow!("{e} (the fusion's report)"))?;
+    // A pair without a valid pixel has no SSIM (NaN, written as null).
+    let ssims: Vec<f64> = (fusion.fusion_pairs.iter())
+        .map(|p| p.ssim_mean)
+        .filter(|s| !s.is_nan())
         .collect();
     let mean_ssim = ssims.iter().sum::<f64>() / ssims.len().max(1) as f64;
     let min_ssim = ssims.iter().copied().fold(f64::NAN, f64::min);
@@ -165,15 +166,22 @@ impl Truth {
     }
 
     /// (height RMS error, SSIM) of `dir`'s panorama against the specimen.
-    fn compare(&self, dir: &Path, fusion: &Value, fpath: &Path) -> Result<(f64, Option<f64>)> {
+    fn compare(
+        &self,
+        dir: &Path,
+        fusion: &FusionReport,
+        fpath: &Path,
+    ) -> Result<(f64, Option<f64>)> {
         let run_path = dir.join("run.json");
-        let run = read_json(&run_path)?;
-        let x0_um = num(&run, &run_path, "/tiles/0/x_um")?;
-        let y0_um = num(&run, &run_path, "/tiles/0/y_um")?;
-        let ox = num(fusion, fpath, "/report/panorama/origin_x_um")?;
-        let oy = num(fusion, fpath, "/report/panorama/origin_y_um")?;
-        let px = num(fusion, fpath, "/report/panorama/pitch_x_um")?;
-        let py = num(fusion, fpath, "/report/panorama/pitch_y_um")?;
+        let run = RunRecord::read(&run_path).map_err(|e| anyhow!(e))?;
+        let Some(tile0) = run.tiles.first().and_then(|t| t.placement.as_ref()) else {
+            bail!("{}: tiles[0] has no final position", run_path.display());
+        };
+        let (x0_um, y0_um) = (tile0.x_um, tile0.y_um);
+        let Some(g) = fusion.panorama else {
+            bail!("{}: report.panorama missing", fpath.display());
+        };
+        let (ox, oy, px, py) = (g.origin_x_um, g.origin_y_um, g.pitch_x_um, g.pitch_y_um);
         let pano = surfstream_io::npy::read_npy(dir.join("panorama.npy"))?;
         let shape = Shape {
             rows: pano.rows,
@@ -224,5 +232,55 @@ impl Truth {
         let (rows, cols) = (shape.rows, shape.cols);
         let s = ssim(&a, &b, rows, cols, None).ok().map(|s| s.mssim);
         Ok(((sq / n.max(1) as f64).sqrt(), s))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use surfstream_core::record::{FusionMemory, PairQuality};
+
+    /// Table 2's SSIM columns from the fusion's node report as the node writes it (a pair
+    /// without a valid pixel has a NaN SSIM, written as null, and is left out).
+    #[test]
+    fn ssim_of_the_overlaps_comes_from_the_fusion_node_report() {
+        let pair = |ssim_mean| PairQuality {
+            tile_a: 0,
+            tile_b: 1,
+            width_px: 10,
+            height_px: 100,
+            valid_px: 1000,
+            ssim_a: ssim_mean,
+            ssim_b: ssim_mean,
+            ssim_mean,
+        };
+        let report = FusionReport {
+            method: "gradual".into(),
+            patches: 2,
+            panorama: None,
+            files: Vec::new(),
+            rerendered_from_final_registrations: true,
+            final_registrations: 2,
+            ssim: String::new(),
+            fusion_pairs: vec![pair(0.9), pair(f64::NAN), pair(0.7)],
+            memory: FusionMemory {
+                chunk_px: 512,
+                chunk_budget_bytes: None,
+                chunks: Value::Null,
+            },
+        };
+        let node = serde_json::json!({ "node_id": "fusion", "node_kind": "fusion",
+            "stats": { "received": {}, "sent": {}, "deliveries": {} },
+            "report": record::to_value(&report), "t_finished_ns": 1 });
+        let d = tempfile::tempdir().unwrap();
+        std::fs::create_dir(d.path().join("nodes")).unwrap();
+        std::fs::write(d.path().join("nodes/fusion.json"), node.to_string()).unwrap();
+        let row = score("gradual", d.path(), None).unwrap();
+        assert_eq!(row.pairs, 2);
+        assert!((row.mean_ssim - 0.8).abs() < 1e-12 && row.min_ssim == 0.7);
+        // A report that is not the fusion's is named.
+        std::fs::write(d.path().join("nodes/fusion.json"), "{}").unwrap();
+        let e = score("gradual", d.path(), None).err().unwrap().to_string();
+        assert!(e.contains("fusion.json: not a node report"), "{e}");
     }
 }

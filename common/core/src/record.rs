@@ -11,7 +11,7 @@
 //! What stays a JSON value inside a record, and why: the mesher's, the wavelet's final and the
 //! finishing node's summaries (their fields depend on the method and the target, and they are
 //! shown as they are), the matcher's pairs and global solve (the matcher's own diagnostics),
-//! the fusion's pair qualities and chunk statistics (fusion types), each node's parameters (the
+//! the fusion's chunk statistics (a fusion type), each node's parameters (the
 //! graph file's table) and Table 6 (`deviation`, written and read by the launcher alone).
 
 use std::collections::BTreeMap;
@@ -233,6 +233,27 @@ pub struct PanoramaSummary {
     pub invalid_px: usize,
 }
 
+/// SSIM of one overlap (the fusion's `fusion_pairs`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PairQuality {
+    /// Tile indices, `tile_a < tile_b`.
+    pub tile_a: u32,
+    pub tile_b: u32,
+    /// Overlap rectangle in panorama pixels.
+    pub width_px: usize,
+    pub height_px: usize,
+    /// Pixels of the rectangle both tiles measured.
+    pub valid_px: usize,
+    /// SSIM(fused, tile a), SSIM(fused, tile b) over the overlap, and their mean (NaN
+    /// without a valid pixel).
+    #[serde(deserialize_with = "nan_if_null")]
+    pub ssim_a: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub ssim_b: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub ssim_mean: f64,
+}
+
 /// The fusion's chunked canvas.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FusionMemory {
@@ -255,7 +276,7 @@ pub struct FusionReport {
     /// How the SSIM of overlaps is defined.
     pub ssim: String,
     /// SSIM of every overlap.
-    pub fusion_pairs: Vec<Value>,
+    pub fusion_pairs: Vec<PairQuality>,
     pub memory: FusionMemory,
 }
 

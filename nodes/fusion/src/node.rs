@@ -163,7 +163,7 @@ impl NodeLogic for FusionNode {
             rerendered_from_final_registrations: r.is_some_and(|r| r.rerendered),
             final_registrations: self.fusion.final_registrations() as u64,
             ssim: "Wang et al. 2004 (paper eq. 7): 11x11 Gaussian window, sigma 1.5, K1 0.01, K2 0.03, L = height range of the overlap; SSIM(fused, each tile) over pixels both tiles measured".into(),
-            fusion_pairs: r.map_or(Vec::new(), |r| r.pairs.iter().map(record::to_value).collect()),
+            fusion_pairs: r.map_or(Vec::new(), |r| r.pairs.clone()),
             memory: FusionMemory {
                 chunk_px: crate::CHUNK_PX,
                 chunk_budget_bytes: self.chunk_budget_bytes.map(|b| b as u64),

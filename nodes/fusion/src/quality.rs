@@ -12,29 +12,14 @@
 
 use std::collections::HashMap;
 
-use serde::Serialize;
 use surfstream_core::similarity::{ssim, WINDOW_PX};
 
 use crate::error::Result;
 use crate::input::TileInput;
 use crate::panorama::{Panorama, PlacedRaster, Region};
 
-/// SSIM of one overlap.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct PairQuality {
-    /// Tile indices, `tile_a < tile_b`.
-    pub tile_a: u32,
-    pub tile_b: u32,
-    /// Overlap rectangle in panorama pixels.
-    pub width_px: usize,
-    pub height_px: usize,
-    /// Pixels of the rectangle both tiles measured.
-    pub valid_px: usize,
-    /// SSIM(fused, tile a), SSIM(fused, tile b) over the overlap, and their mean.
-    pub ssim_a: f64,
-    pub ssim_b: f64,
-    pub ssim_mean: f64,
-}
+/// SSIM of one overlap: a record of the fusion's report (run.json readers share it).
+pub use surfstream_core::record::PairQuality;
 
 /// Where a tile sits, without its heights: what pairing the overlaps needs.
 #[derive(Debug, Clone, Copy, PartialEq)]
