@@ -76,8 +76,16 @@ fn main() -> Result<()> {
                 g.wrong += (e > 1.0) as usize;
             }
             if verbose && err.is_none_or(|e| e > 0.3) {
+                // How far the best candidate (refined) is from the truth, answered or not, and
+                // the NCC of the runner-up candidate.
+                let best_err = r.shift_from_nominal_px.map(|s| {
+                    let e = (nominal[0] + s[0] - t[0]).hypot(nominal[1] + s[1] - t[1]);
+                    (e * 1000.0).round() / 1000.0
+                });
+                let second = r.candidates.get(1).map_or(f64::NAN, |c| c.ncc);
                 println!(
-                    "{name} {a}-{b}: err {:?} across {:?} shift {:?} ncc {:.3} round {:.3} {}",
+                    "{name} {a}-{b}: err {:?} best {best_err:?} 2nd ncc {second:.3} across {:?} \
+                     shift {:?} ncc {:.3} round {:.3} {}",
                     err.map(|e| (e * 1000.0).round() / 1000.0),
                     dir_err.map(|e| (e * 1000.0).round() / 1000.0),
                     r.shift_from_nominal_px

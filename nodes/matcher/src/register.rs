@@ -71,6 +71,15 @@ pub struct PhaseParams {
     /// matches measure 0.85-0.99 on the synthetic tests (noise up to 10 % of the roughness,
     /// 30 % dropouts), unrelated overlaps below 0.1.
     pub min_ncc: f64,
+    /// Smallest NCC of an answer below `min_ncc` that is still accepted because it stands out:
+    /// a round peak (roundness at least 0.3) whose NCC is at least `distinct_ncc_ratio` times
+    /// every other candidate's. A strip holding one or two isolated features in noise (a
+    /// polished plane with a few pits at 10 % overlap) measures 0.16-0.48 at the true offset
+    /// with every other candidate below 0.05; unrelated overlaps measure below 0.05 throughout
+    /// (`scripts/bench_sparse.py`). 1 or more disables it.
+    pub min_ncc_distinct: f64,
+    /// See `min_ncc_distinct`.
+    pub distinct_ncc_ratio: f64,
     /// Largest accepted |shift from nominal| per axis, px.
     pub max_shift_px: f64,
     /// The shift limit along an axis is also at most this fraction of the overlap extent
@@ -115,6 +124,8 @@ impl Default for PhaseParams {
     fn default() -> Self {
         PhaseParams {
             min_ncc: 0.5,
+            min_ncc_distinct: 0.15,
+            distinct_ncc_ratio: 3.0,
             max_shift_px: 30.0,
             max_shift_fraction: 0.45,
             min_overlap_side_px: 8,
@@ -143,6 +154,12 @@ impl PhaseParams {
         };
         if !(self.min_ncc.is_finite() && self.min_ncc <= 1.0) {
             return bad("min_ncc", "must be a finite number <= 1");
+        }
+        if !(self.min_ncc_distinct.is_finite() && self.min_ncc_distinct > 0.0) {
+            return bad("min_ncc_distinct", "must be finite and > 0");
+        }
+        if !(self.distinct_ncc_ratio.is_finite() && self.distinct_ncc_ratio >= 1.0) {
+            return bad("distinct_ncc_ratio", "must be finite and >= 1");
         }
         if !(self.max_shift_px.is_finite() && self.max_shift_px >= 0.0) {
             return bad("max_shift_px", "must be finite and >= 0");
@@ -658,7 +675,9 @@ impl PhaseCorrelator {
         (alternatives, rival_peaks): (&mut Vec<Alternative>, &mut Vec<[i64; 2]>),
     ) -> Option<Rejection> {
         let best = cands[0];
-        if valid_overlap_px < params.min_valid_px.max(3) || ncc < params.min_ncc {
+        if valid_overlap_px < params.min_valid_px.max(3)
+            || (ncc < params.min_ncc && !stands_out(ncc, cands, peak, params))
+        {
             return Some(Rejection::LowNcc {
                 ncc,
                 min_ncc: params.min_ncc,
@@ -945,6 +964,20 @@ fn directional_offset(
         curvature_per_px2: [across, along],
         ncc,
     })
+}
+
+/// Whether an answer whose NCC is below `min_ncc` is accepted all the same (see
+/// [`PhaseParams::min_ncc_distinct`]): a round peak far above every other candidate at least
+/// 3 px from it.
+fn stands_out(ncc: f64, cands: &[Candidate], peak: &NccPeak, params: &PhaseParams) -> bool {
+    let runner_up = cands
+        .iter()
+        .filter(|c| chebyshev(c.offset_px, peak.offset_px) >= 3)
+        .map(|c| c.ncc)
+        .fold(0.0, f64::max);
+    ncc >= params.min_ncc_distinct
+        && peak.roundness >= RIDGE_MAX_ROUNDNESS
+        && ncc >= params.distinct_ncc_ratio * runner_up
 }
 
 /// The quadric of ln NCC (the Gaussian model of the sub-pixel fit; NCC itself when a sample
