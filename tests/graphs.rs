@@ -56,6 +56,11 @@ fn height_rms_vs_specimen(out: &Path, run: &Value, truth: &Value) -> (f64, usize
     let pano = surfstream_io::npy::read_npy(out.join("panorama.npy")).unwrap();
     let spec = surfstream_io::npy::read_npy(out.join("specimen.npy")).unwrap();
     let pitch = truth["pixel_pitch_um"]["x"].as_f64().unwrap();
+    // The specimen's pitch travels with it (specimen.npy.json), equal to the truth's.
+    let g = surfstream_io::sidecar::read_sidecar(&out.join("specimen.npy"))
+        .unwrap()
+        .expect("specimen.npy.json");
+    assert_eq!((g.pitch_x_um, g.pitch_y_um), (pitch, pitch));
     let p = &run["stages"]["fusion"]["panorama"];
     let (ox, oy) = (
         p["origin_x_um"].as_f64().unwrap(),

@@ -86,6 +86,7 @@ pub const OUTPUTS: &[&str] = &[
     "pooled.npy",
     "surface.stl",
     "mesh_resampled.npy",
+    "mesh_resampled.npy.json",
     "panorama.png",
     "datum.png",
     "roughness.png",

@@ -6,7 +6,7 @@
 //! `height_histogram` and `radial_psd` are meant to be replaced by the library's, with the
 //! charts unchanged.
 
-use rustfft::{num_complex::Complex, FftPlanner};
+use surfstream_core::metrology::psd::real_dft2_half_plane;
 use surfstream_core::metrology::{level_plane, Grid};
 
 /// Counts of heights in `bins` equal bins over `lo..=hi` (the valid heights' full range).
@@ -132,32 +132,20 @@ pub fn radial_psd(
     };
     let (wr, wc) = (hann(rows), hann(cols));
     let mut w2 = 0.0;
-    let mut data: Vec<Complex<f64>> = Vec::with_capacity(rows * cols);
+    let mut data: Vec<f64> = Vec::with_capacity(rows * cols);
     for r in 0..rows {
         for c in 0..cols {
             let w = wr[r] * wc[c];
             w2 += w * w;
             let v = levelled[r * cols + c];
-            data.push(Complex::new(if v.is_finite() { v * w } else { 0.0 }, 0.0));
+            data.push(if v.is_finite() { v * w } else { 0.0 });
         }
     }
     let mean_w2 = w2 / (rows * cols) as f64;
-    let mut planner = FftPlanner::<f64>::new();
-    let row_fft = planner.plan_fft_forward(cols);
-    for row in data.chunks_exact_mut(cols) {
-        row_fft.process(row);
-    }
-    let col_fft = planner.plan_fft_forward(rows);
-    let mut column = vec![Complex::new(0.0, 0.0); rows];
-    for c in 0..cols {
-        for r in 0..rows {
-            column[r] = data[r * cols + c];
-        }
-        col_fft.process(&mut column);
-        for r in 0..rows {
-            data[r * cols + c] = column[r];
-        }
-    }
+    // The real field's DFT on the half plane kx = 0..cols/2 (core's parallel real FFT): the
+    // other half is its point mirror, with the same |X|^2 at the same |f|.
+    let half = cols / 2 + 1;
+    let data = real_dft2_half_plane(&data, rows, cols);
     let scale = pitch_x_um * pitch_y_um / (rows * cols) as f64 / mean_w2;
     let (dfx, dfy) = (
         1.0 / (cols as f64 * pitch_x_um),
@@ -180,16 +168,22 @@ pub fn radial_psd(
     };
     for r in 0..rows {
         let fy = signed(r, rows) * dfy;
-        for c in 0..cols {
-            let fx = signed(c, cols) * dfx;
+        for c in 0..half {
+            let fx = c as f64 * dfx;
             let f = (fx * fx + fy * fy).sqrt();
             if f < f_lo || f > f_hi {
                 continue;
             }
             let b = (((f.ln() - l0) / (l1 - l0)) * bins as f64) as usize;
             let b = b.min(bins - 1);
-            sum[b] += data[r * cols + c].norm_sqr() * scale;
-            count[b] += 1;
+            // kx = 0 and an even width's Nyquist column have no mirror in the other half.
+            let weight = if c == 0 || (cols.is_multiple_of(2) && c == cols / 2) {
+                1
+            } else {
+                2
+            };
+            sum[b] += weight as f64 * data[r * half + c].norm_sqr() * scale;
+            count[b] += weight;
         }
     }
     (0..bins)

@@ -17,6 +17,7 @@ use surfstream_core::frame::{flags, from_frame_heights, FrameHeader, FrameView, 
 use surfstream_core::fsutil::write_atomic;
 use surfstream_core::raster::{Raster, RasterView, Shape};
 use surfstream_io::npy::{write_npy_abs_f64, write_npy_f64};
+use surfstream_io::sidecar::{write_sidecar, NpyGeometry};
 
 use crate::outliers::{find_spikes, OutlierPolicy, OutlierReport};
 use crate::target::{block_values_on_grid, DemEngine, EngineProfile, TargetMethod};
@@ -581,6 +582,12 @@ impl MeshJob {
         let spikes = self.spikes(&mut s);
         let (h, format) = (s.header, self.settings.format);
         let shape = Shape::new(h.height as usize, h.width as usize);
+        // The re-sampled mesh is on the frame's grid: its pitch travels in the sidecar.
+        let geometry = NpyGeometry {
+            pitch_x_um: h.pitch_x_um,
+            pitch_y_um: h.pitch_y_um,
+            origin_um: Some([h.origin_x_um, h.origin_y_um]),
+        };
         let params = match (&self.settings.adaptive, self.grid_target()) {
             (Some(p), None) => p.clone(),
             (None, None) => {
@@ -596,6 +603,7 @@ impl MeshJob {
                     shape.cols,
                     h.z_offset_um,
                 )?;
+                write_sidecar(resampled_npy, &geometry)?;
                 let mut check = None;
                 write_atomic(stl, |w| {
                     check = Some(g.write_stl(w, format == StlFormat::Ascii, STL_LABEL, heights)?);
@@ -615,6 +623,7 @@ impl MeshJob {
                 drop(s);
                 let r = &m.resampled_um;
                 write_npy_f64(resampled_npy, r.values(), r.rows(), r.cols())?;
+                write_sidecar(resampled_npy, &geometry)?;
                 write_atomic(stl, |w| Ok(m.write_stl(w, format)?))?;
                 return Ok(MeshFiles {
                     summary: m.summary(&self.settings),
@@ -649,6 +658,7 @@ impl MeshJob {
             shape.cols,
             h.z_offset_um,
         )?;
+        write_sidecar(resampled_npy, &geometry)?;
         let mut check = None;
         write_atomic(stl, |w| {
             check = Some(m.write_stl(w, format == StlFormat::Ascii, STL_LABEL, heights)?);

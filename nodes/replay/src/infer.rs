@@ -167,11 +167,27 @@ fn stored_positions(tiles: &[TileFile]) -> Option<Vec<[f64; 2]>> {
     positions.filter(|p| p.len() > 1 && p.iter().any(|q| *q != p[0]))
 }
 
-/// Pitch from `--pitch-um` or from the first file.
+/// Pitch from the first file, or from `--pitch-um` for files that carry none. A `--pitch-um`
+/// that disagrees with a file's own calibration is refused, as every verb does (it used to
+/// override the file silently, so a typo rescaled the whole panorama).
 fn scan_pitch(first: &TileFile, pitch_um: Option<f64>) -> Result<(f64, f64)> {
     match (pitch_um, first.pitch_known) {
-        (Some(p), _) if p.is_finite() && p > 0.0 => Ok((p, p)),
-        (Some(p), _) => bail!("--pitch-um {p}: expected a positive pitch in micrometres"),
+        (Some(p), _) if !(p.is_finite() && p > 0.0) => {
+            bail!("--pitch-um {p}: expected a positive pitch in micrometres")
+        }
+        (Some(p), true) => {
+            let same = |a: f64| (a - p).abs() <= 1e-6 * p;
+            let (x, y) = first.pitch_um;
+            if !(same(x) && same(y)) {
+                bail!(
+                    "{}: the file carries its pitch, {x} x {y} um; --pitch-um {p} disagrees: \
+                     --pitch-um is only for tiles without a pitch (leave it out)",
+                    first.path.display()
+                );
+            }
+            Ok(first.pitch_um)
+        }
+        (Some(p), false) => Ok((p, p)),
         (None, true) => Ok(first.pitch_um),
         (None, false) => bail!(
             "{}: a {} file carries no lateral calibration: give --pitch-um",
@@ -580,6 +596,33 @@ mod tests {
             .unwrap_err()
         );
         assert!(e.contains("t_2.gsf"), "{e}");
+    }
+
+    /// The gsf tiles carry 1 um: `--pitch-um 1` agrees and is accepted, `--pitch-um 0.8` is
+    /// refused naming the file and both pitches (it used to rescale the scan silently).
+    #[test]
+    fn a_pitch_that_disagrees_with_the_files_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        for i in 0..4 {
+            gsf(&dir.path().join(format!("t_{i}.gsf")), None);
+        }
+        let layout = GridLayout {
+            rows: 2,
+            cols: 2,
+            overlap_x: 0.25,
+            overlap_y: 0.25,
+            serpentine: false,
+        };
+        let text = infer_manifest(dir.path(), &layout, Some(1.0)).unwrap();
+        assert!(text.contains("pitch_x_um = 1\n"), "{text}");
+        let e = format!(
+            "{:#}",
+            infer_manifest(dir.path(), &layout, Some(0.8)).unwrap_err()
+        );
+        assert!(
+            e.contains("t_0.gsf") && e.contains("1 x 1 um") && e.contains("--pitch-um 0.8"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -55,6 +55,16 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
             specimen.shape.rows,
             specimen.shape.cols,
         )?;
+        // The specimen is sampled at the stage's pitch from the scan origin: its pitch travels in
+        // the sidecar, so `params` or `convert` of it measure in um, not at an assumed 1 um.
+        surfstream_io::sidecar::write_sidecar(
+            &path,
+            &surfstream_io::sidecar::NpyGeometry {
+                pitch_x_um: specimen.pitch_um,
+                pitch_y_um: specimen.pitch_um,
+                origin_um: None,
+            },
+        )?;
     }
     Ok(Box::new(ReplayNode {
         run: source.run,

@@ -19,6 +19,17 @@ use super::spectrum::spectrum2;
 use super::{Grid, MetrologyError};
 use crate::raster::RasterView;
 
+/// The 2-D DFT of a real field (rows x cols, row-major, no NaN) on the half plane
+/// kx = 0..cols/2: rows x (cols/2 + 1), unnormalised; rows in parallel. For a caller that
+/// prepares the field its own way (the report windows it before its log-binned PSD).
+pub fn real_dft2_half_plane(
+    field: &[f64],
+    rows: usize,
+    cols: usize,
+) -> Vec<rustfft::num_complex::Complex<f64>> {
+    spectrum2(field, rows, cols)
+}
+
 /// The areal PSD on the half plane kx = 0..cols/2 (the other half is its point mirror).
 #[derive(Debug, Clone)]
 pub struct ArealPsd {
