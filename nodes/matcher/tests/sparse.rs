@@ -238,7 +238,7 @@ fn a_lone_scratch_gives_a_constraint_across_it_and_none_along() {
 #[test]
 fn a_solve_with_ridge_links_recovers_the_offsets_across() {
     use surfstream_matcher::{solve_positions_anisotropic, AnisotropicLink, SolveParams};
-    // Three tiles in a row, each pair crossed by one scratch along x (no other texture): the
+    // Three tiles in a row, each pair crossed by one scratch 0.1 rad off x (no other texture): the
     // pairs fix y only.
     let mut truth = vec![[0.0, 0.0]];
     let mut ridges = Vec::new();
