@@ -749,7 +749,11 @@ fn register_link(
             (r, alt, None)
         }
     };
-    let report = pair_report(&a.tile, t, nominal, &r, features.as_ref());
+    let mut report = pair_report(&a.tile, t, nominal, &r, features.as_ref());
+    if features.is_none() && r.offset_px.is_some() && r.ncc < params.phase.min_ncc {
+        // Accepted as a distinct peak below min_ncc (PhaseParams::min_ncc_distinct): said so.
+        report["accepted_below_min_ncc"] = json!(true);
+    }
     let stage_vote = (
         1.0,
         [
