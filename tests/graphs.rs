@@ -200,6 +200,7 @@ fn demo_launch_run_and_replay_agree_and_match_the_truth() {
     );
     let run_json = read_json(&a.join("run.json"));
     let truth = read_json(&a.join("truth.json"));
+    typed_records_round_trip(&a);
 
     // Every tile reached every subscriber: 4 tiles + end of scan, to matcher, fusion, recorder.
     let msgs = &run_json["messages"];
@@ -686,4 +687,30 @@ fn deviation_threshold_comes_from_the_command_line_or_the_graph_file() {
     assert!(out.status.success(), "run failed:\n{}", stderr(&out));
     let run_json = read_json(&out_dir.join("run.json"));
     assert_eq!(run_json["deviation"]["threshold_pct"], 7.5);
+}
+
+/// run.json and the node reports are typed records (surfstream_core::record): each reads as
+/// its record, and the record written back is the same bytes (run.json) or the same value.
+fn typed_records_round_trip(out: &std::path::Path) {
+    use surfstream_core::record::{
+        self, FusionReport, MatcherReport, RecorderReport, ReplayReport, RunRecord, WaveletReport,
+    };
+    let text = std::fs::read_to_string(out.join("run.json")).expect("run.json");
+    let run: RunRecord = serde_json::from_str(&text).expect("run.json reads as a RunRecord");
+    let again = serde_json::to_string_pretty(&record::to_value(&run)).expect("serialize");
+    assert!(
+        again == text,
+        "run.json written back from its record differs"
+    );
+    macro_rules! same {
+        ($t:ty, $v:expr) => {{
+            let r: $t = record::from_value($v, stringify!($t)).expect("reads as its record");
+            assert_eq!(&record::to_value(&r), $v, "{}", stringify!($t));
+        }};
+    }
+    same!(ReplayReport, &run.stages["stage"]);
+    same!(MatcherReport, &run.stages["matcher"]);
+    same!(FusionReport, &run.stages["fusion"]);
+    same!(WaveletReport, &run.stages["wavelet"]);
+    same!(RecorderReport, &run.stages["recorder"]);
 }

@@ -34,6 +34,7 @@ use surfstream_core::deviation::{
 };
 use surfstream_core::metrology::Params;
 use surfstream_core::raster::Shape;
+use surfstream_core::record::{FusionReport, RunRecord};
 use surfstream_io::formats::{x3p, Metadata, Surface};
 use surfstream_io::npy::NpyRows;
 use surfstream_runtime::graph::GraphFile;
@@ -146,42 +147,30 @@ struct Geometry {
     pitch_um: (f64, f64),
 }
 
-fn geometry(run: &Value) -> Result<Geometry> {
-    let g = run["stages"]
-        .as_object()
-        .and_then(|s| {
-            s.values()
-                .find_map(|r| r.get("panorama").filter(|p| p.get("origin_x_um").is_some()))
-        })
+fn geometry(run: &RunRecord) -> Result<Geometry> {
+    let g = run
+        .stage::<FusionReport>()
+        .and_then(|f| f.panorama)
         .context("no node report carries the panorama geometry (origin, pitch)")?;
-    let f = |k: &str| g[k].as_f64().with_context(|| format!("panorama {k}"));
     Ok(Geometry {
-        pitch_um: (f("pitch_x_um")?, f("pitch_y_um")?),
-        // Without an origin there are no tile footprints, only the whole map.
-        origin_um: (
-            g["origin_x_um"].as_f64().unwrap_or(f64::NAN),
-            g["origin_y_um"].as_f64().unwrap_or(f64::NAN),
-        ),
+        pitch_um: (g.pitch_x_um, g.pitch_y_um),
+        // Without a finite origin there are no tile footprints, only the whole map.
+        origin_um: (g.origin_x_um, g.origin_y_um),
     })
 }
 
 /// S1..Sn from run.json's tiles (final x_um / y_um) and scan (tile size), then the whole map.
-fn regions(run: &Value, geometry: &Geometry, panorama: Shape) -> Vec<Region> {
+fn regions(run: &RunRecord, geometry: &Geometry, panorama: Shape) -> Vec<Region> {
     let mut out = Vec::new();
-    if let (Some(tiles), Some(tw), Some(th)) = (
-        run["tiles"].as_array(),
-        run["scan"]["tile_width_px"].as_u64(),
-        run["scan"]["tile_height_px"].as_u64(),
-    ) {
-        let tile = Shape {
-            rows: th as usize,
-            cols: tw as usize,
-        };
+    if let Some(scan) = &run.scan {
+        let (tw, th) = scan.tile_px();
+        let tile = Shape { rows: th, cols: tw };
         let origin_known = geometry.origin_um.0.is_finite() && geometry.origin_um.1.is_finite();
-        for (k, t) in tiles.iter().enumerate().filter(|_| origin_known) {
-            let (Some(x), Some(y)) = (t["x_um"].as_f64(), t["y_um"].as_f64()) else {
+        for (k, t) in run.tiles.iter().enumerate().filter(|_| origin_known) {
+            let Some(p) = &t.placement else {
                 continue;
             };
+            let (x, y) = (p.x_um, p.y_um);
             out.extend(Region::tile_footprint(
                 format!("S{}", k + 1),
                 (x, y),
@@ -225,11 +214,11 @@ struct MeshInfo {
     tolerance: Option<[f64; 3]>,
 }
 
-fn mesh_info(run: &Value) -> MeshInfo {
-    let m = run["stages"].as_object().and_then(|s| {
-        s.values()
-            .find(|st| st.get("surface").is_some() && st.get("triangles").is_some())
-    });
+fn mesh_info(run: &RunRecord) -> MeshInfo {
+    let m = run
+        .stages
+        .values()
+        .find(|st| st.get("surface").is_some() && st.get("triangles").is_some());
     let t = m.map(|m| &m["tolerance"]["tolerance"]);
     let tolerance = t.and_then(|t| {
         Some([
@@ -392,7 +381,7 @@ fn write_x3p(out: &Path, pano: &mut NpySource, geometry: &Geometry) -> Result<()
 /// Computes Table 6 from the out dir's rasters, read by rows.
 fn evaluate(
     out: &Path,
-    run: &Value,
+    run: &RunRecord,
     threshold_pct: f64,
     pano: &mut NpySource,
     geometry: &Geometry,
@@ -500,20 +489,18 @@ fn evaluate(
 /// Adds "deviation" (Table 6) to run.json and writes panorama.x3p when the out dir holds a
 /// panorama. An output that cannot be written (panorama.x3p on a full disk) fails the run;
 /// a Table 6 that cannot be computed is recorded in run.json (and on stderr).
-pub fn attach(out: &Path, mut run: Value, threshold_percent: f64) -> Result<Value> {
+pub fn attach(out: &Path, run: &mut RunRecord, threshold_percent: f64) -> Result<()> {
     if !out.join("panorama.npy").exists() {
-        return Ok(run);
+        return Ok(());
     }
-    let inputs = NpySource::open(&out.join("panorama.npy")).and_then(|p| Ok((p, geometry(&run)?)));
+    let inputs = NpySource::open(&out.join("panorama.npy")).and_then(|p| Ok((p, geometry(run)?)));
     let entry = match inputs {
         Ok((mut pano, geometry)) => {
             write_x3p(out, &mut pano, &geometry)?;
-            if let Some(files) = run["files"].as_array_mut() {
-                files.push(json!("panorama.x3p"));
-                files.sort_by(|a, b| a.as_str().cmp(&b.as_str()));
-                files.dedup();
-            }
-            evaluate(out, &run, threshold_percent, &mut pano, &geometry)
+            run.files.push("panorama.x3p".into());
+            run.files.sort();
+            run.files.dedup();
+            evaluate(out, run, threshold_percent, &mut pano, &geometry)
         }
         Err(e) => Err(e),
     };
@@ -521,10 +508,8 @@ pub fn attach(out: &Path, mut run: Value, threshold_percent: f64) -> Result<Valu
         eprintln!("surfstream: model-vs-measurement deviation not computed: {e:#}");
         json!({ "error": format!("{e:#}") })
     });
-    if let Some(o) = run.as_object_mut() {
-        o.insert("deviation".into(), entry);
-    }
-    Ok(run)
+    run.deviation = Some(entry);
+    Ok(())
 }
 
 #[cfg(test)]

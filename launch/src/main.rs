@@ -118,7 +118,8 @@ enum Command {
         /// With --grid: odd rows run right to left (the stage's serpentine).
         #[arg(long, requires = "grid")]
         serpentine: bool,
-        /// With --grid: the pitch, um, for tiles that carry none (.npy).
+        /// With --grid: the pitch, um, for tiles that carry none (.npy without a NAME.npy.json
+        /// sidecar); refused when it disagrees with the tiles' own (the rule of every verb).
         #[arg(long, requires = "grid")]
         pitch_um: Option<f64>,
         /// Replace an existing output directory even though it is not a surfstream run (its

@@ -6,7 +6,11 @@ use std::path::Path;
 use std::time::Duration;
 
 use anyhow::{anyhow, Result};
-use serde_json::{json, Map, Value};
+use serde_json::Value;
+use surfstream_core::record::{
+    self, GraphRef, MatcherReport, MeshWritten, MessageCounts, PeakRss, ReplayReport, RunRecord,
+    TileRecord,
+};
 use surfstream_runtime::graph::GraphFile;
 use surfstream_runtime::latency;
 use surfstream_runtime::node::NodeReport;
@@ -22,48 +26,50 @@ pub fn write(
 ) -> Result<()> {
     let out = &graph.graph.out_dir;
     let by_kind = |k: &str| reports.iter().find(|r| r.node_kind == k).map(|r| &r.report);
+    let replay: Option<ReplayReport> = read_report(reports, "replay")?;
+    let matcher: Option<MatcherReport> = read_report(reports, "matcher")?;
 
     // Tiles: stage facts from the source, placement from the matcher, joined on index.
-    let mut tiles: BTreeMap<u64, Map<String, Value>> = BTreeMap::new();
-    for kind in ["replay", "matcher"] {
-        if let Some(Value::Array(list)) = by_kind(kind).and_then(|r| r.get("tiles")) {
-            for t in list {
-                if let (Some(i), Some(obj)) =
-                    (t.get("index").and_then(Value::as_u64), t.as_object())
-                {
-                    tiles.entry(i).or_default().extend(obj.clone());
-                }
-            }
-        }
-    }
-    let mesh_done = by_kind("mesher").and_then(|m| {
-        Some((
-            m.get("t_acquired_ns")?.as_u64()?,
-            m.get("t_written_ns")?.as_u64()?,
-        ))
-    });
-    let lat = latency::summarize(reports, mesh_done);
-    let messages: Map<String, Value> = reports
+    let mut tiles: BTreeMap<u32, TileRecord> = replay
         .iter()
-        .map(|r| {
-            let count = |m: &BTreeMap<String, Vec<_>>| -> Map<String, Value> {
-                m.iter().map(|(k, v)| (k.clone(), json!(v.len()))).collect()
+        .flat_map(|r| &r.tiles)
+        .map(|t| {
+            let tile = TileRecord {
+                source: t.clone(),
+                placement: None,
             };
-            (
-                r.node_id.clone(),
-                json!({
-                    "received": count(&r.stats.received),
-                    "sent": count(&r.stats.sent),
-                    "deliveries": r.stats.deliveries,
-                }),
-            )
+            (t.index, tile)
         })
         .collect();
-    let stages: Map<String, Value> = reports
+    for t in matcher.iter().flat_map(|m| &m.tiles) {
+        if let Some(tile) = tiles.get_mut(&t.index) {
+            tile.placement = Some(t.placement.clone());
+        }
+    }
+    // The mesher's report is read for its two times only (its other fields depend on the
+    // target and are shown as they are).
+    let mesh_done = by_kind("mesher")
+        .and_then(|m| record::from_value::<MeshWritten>(m, "mesher").ok())
+        .map(|m| (m.t_acquired_ns, m.t_written_ns));
+    let messages = reports
+        .iter()
+        .map(|r| {
+            let count = |m: &BTreeMap<String, Vec<_>>| -> BTreeMap<String, u64> {
+                m.iter().map(|(k, v)| (k.clone(), v.len() as u64)).collect()
+            };
+            let counts = MessageCounts {
+                received: count(&r.stats.received),
+                sent: count(&r.stats.sent),
+                deliveries: r.stats.deliveries.clone(),
+            };
+            (r.node_id.clone(), counts)
+        })
+        .collect();
+    let stages = reports
         .iter()
         .map(|r| (r.node_id.clone(), r.report.clone()))
         .collect();
-    let parameters: Map<String, Value> = graph
+    let parameters = graph
         .nodes
         .iter()
         .map(|n| {
@@ -76,53 +82,73 @@ pub fn write(
     let mut files = list_files(out)?;
     files.push("run.json".into());
     files.sort();
-    let run = json!({
-        "surfstream_version": env!("CARGO_PKG_VERSION"),
-        "mode": mode,
-        "graph": { "name": graph.graph.name, "file": origin.display().to_string() },
-        "scan": by_kind("replay").and_then(|r| r.get("scan")).cloned().unwrap_or(Value::Null),
-        "tiles": tiles.into_values().collect::<Vec<_>>(),
-        "pairs": by_kind("matcher").and_then(|r| r.get("pairs")).cloned().unwrap_or(json!([])),
-        "latency_ms": lat,
-        "messages": messages,
-        "stages": stages,
-        "parameters": parameters,
-        "files": files,
-        "elapsed_s": elapsed.as_secs_f64(),
-    });
-    let mut run = crate::deviation::attach(out, run, deviation.threshold_percent)?;
+    let mut run = RunRecord {
+        surfstream_version: env!("CARGO_PKG_VERSION").into(),
+        mode: mode.into(),
+        graph: GraphRef {
+            name: graph.graph.name.clone(),
+            file: origin.display().to_string(),
+        },
+        scan: replay.map(|r| r.scan),
+        tiles: tiles.into_values().collect(),
+        pairs: matcher.map(|m| m.pairs).unwrap_or_default(),
+        latency_ms: latency::summarize(reports, mesh_done),
+        messages,
+        stages,
+        parameters,
+        files,
+        elapsed_s: elapsed.as_secs_f64(),
+        deviation: None,
+        peak_rss: None,
+    };
+    crate::deviation::attach(out, &mut run, deviation.threshold_percent)?;
     // After the deviation pass, which loads whole rasters in the launcher.
-    run["peak_rss"] = peak_rss(graph, reports, mode);
+    run.peak_rss = Some(peak_rss(graph, reports, mode));
     let path = out.join("run.json");
+    // Through a JSON value: its keys come out sorted, as in every run.json so far.
+    let value = record::to_value(&run);
     surfstream_core::fsutil::write_atomic(&path, |w| {
-        serde_json::to_writer_pretty(w, &run).map_err(|e| anyhow!("{}: {e}", path.display()))
+        serde_json::to_writer_pretty(w, &value).map_err(|e| anyhow!("{}: {e}", path.display()))
     })?;
     crate::report::write(out)?;
     Ok(())
 }
 
+/// The report of the first node of `kind` as its record; a report that does not read as its
+/// record is a bug in that node, named.
+fn read_report<T: for<'de> serde::Deserialize<'de>>(
+    reports: &[NodeReport],
+    kind: &str,
+) -> Result<Option<T>> {
+    reports
+        .iter()
+        .find(|r| r.node_kind == kind && !r.report.is_null())
+        .map(|r| record::from_value(&r.report, &format!("node '{}' report", r.node_id)))
+        .transpose()
+        .map_err(|e| anyhow!(e))
+}
+
 /// Peak resident memory (VmHWM) of the launcher and of every node as it finished, bytes. Under
 /// `run` the nodes are threads of the launcher's process, so `process_bytes` is the run's
 /// peak; under `launch` each node is its own process and the run held at most the sum.
-fn peak_rss(graph: &GraphFile, reports: &[NodeReport], mode: &str) -> Value {
+fn peak_rss(graph: &GraphFile, reports: &[NodeReport], mode: &str) -> PeakRss {
     let launcher = surfstream_runtime::node::peak_rss_bytes();
-    let nodes: Map<String, Value> = reports
-        .iter()
-        .map(|r| (r.node_id.clone(), json!(r.peak_rss_bytes)))
-        .collect();
     let node_sum: u64 = reports.iter().filter_map(|r| r.peak_rss_bytes).sum();
     let run_peak = if mode == "launch" {
         launcher.map(|l| l + node_sum)
     } else {
         launcher
     };
-    json!({
-        "process_bytes": launcher,
-        "nodes_bytes": nodes,
-        "run_bytes_at_most": run_peak,
-        "memory_budget_gb": graph.graph.memory_budget_gb,
-        "source": "VmHWM of /proc/self/status, read by each node as it finished and by the launcher after the deviation pass (the report.html written after it is not included)",
-    })
+    PeakRss {
+        process_bytes: launcher,
+        nodes_bytes: reports
+            .iter()
+            .map(|r| (r.node_id.clone(), r.peak_rss_bytes))
+            .collect(),
+        run_bytes_at_most: run_peak,
+        memory_budget_gb: graph.graph.memory_budget_gb,
+        source: "VmHWM of /proc/self/status, read by each node as it finished and by the launcher after the deviation pass (the report.html written after it is not included)".into(),
+    }
 }
 
 fn list_files(dir: &Path) -> Result<Vec<String>> {
@@ -147,4 +173,56 @@ fn list_files(dir: &Path) -> Result<Vec<String>> {
         }
     }
     Ok(files)
+}
+
+/// A whole run record from the fields a test cares about: `partial`'s keys over a complete
+/// record; its scan, tiles and latency merged over complete ones (a tile with `placed_by` gets
+/// a matcher placement).
+#[cfg(test)]
+pub(crate) fn test_record(partial: Value) -> RunRecord {
+    use serde_json::json;
+    fn merge(base: &mut Value, over: &Value) {
+        if let (Some(b), Some(o)) = (base.as_object_mut(), over.as_object()) {
+            for (k, v) in o {
+                b.insert(k.clone(), v.clone());
+            }
+        }
+    }
+    let mut run = json!({
+        "surfstream_version": "0", "mode": "run", "graph": { "name": "g", "file": "g.toml" },
+        "scan": null, "tiles": [], "pairs": [], "messages": {}, "stages": {}, "parameters": {},
+        "files": [], "elapsed_s": 0.0,
+    });
+    merge(&mut run, &partial);
+    if partial["scan"].is_object() {
+        let mut scan = json!({ "source": "simulated", "name": "g", "rows": 1, "cols": 1,
+            "tile_width_px": 8, "tile_height_px": 8, "pitch_x_um": 1.0, "pitch_y_um": 1.0,
+            "overlap": [0.1, 0.1], "specimen": "generated", "truth_file": "truth.json" });
+        merge(&mut scan, &partial["scan"]);
+        run["scan"] = scan;
+    }
+    let tiles: Vec<Value> = partial["tiles"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .map(|t| {
+            let mut tile = json!({ "index": 0, "row": 0, "col": 0, "stage_x_um": 0.0,
+                "stage_y_um": 0.0 });
+            if t.get("placed_by").is_some() {
+                let placed = json!({ "x_um": 0.0, "y_um": 0.0, "placed_by": "registration",
+                    "links_tried": 1, "piston_um": 0.0, "tilt_x_um_per_px": 0.0,
+                    "tilt_y_um_per_px": 0.0 });
+                merge(&mut tile, &placed);
+                tile["streaming"] = placed;
+                merge(&mut tile, &json!({ "links_accepted": 1, "quality": 0.9 }));
+            }
+            merge(&mut tile, t);
+            tile
+        })
+        .collect();
+    run["tiles"] = json!(tiles);
+    let mut latency = json!({ "final_frames": {}, "hops": {}, "transport": {} });
+    merge(&mut latency, &partial["latency_ms"]);
+    run["latency_ms"] = latency;
+    serde_json::from_value(run).expect("a complete run record")
 }

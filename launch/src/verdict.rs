@@ -11,6 +11,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use serde_json::Value;
+use surfstream_core::record::{LatencySummary, Percentiles, RunRecord, TileRecord};
 
 /// Exit code of a run whose outputs were written but a check failed under `--strict`
 /// (1 stays "error, no result"; 2 is clap's usage error).
@@ -73,27 +74,25 @@ pub fn from_out_dir(out: &Path, verbose: bool) -> anyhow::Result<Verdict> {
     let path = out.join("run.json");
     let text = std::fs::read_to_string(&path)
         .map_err(|e| anyhow::anyhow!("{}: cannot read run.json: {e}", path.display()))?;
-    let run: Value = serde_json::from_str(&text)
-        .map_err(|e| anyhow::anyhow!("{}: not valid JSON: {e}", path.display()))?;
+    let run: RunRecord = serde_json::from_str(&text)
+        .map_err(|e| anyhow::anyhow!("{}: not a run record: {e}", path.display()))?;
     Ok(verdict(&run, out, verbose))
 }
 
 /// The verdict of one run.json (the out dir only names the files).
-pub fn verdict(run: &Value, out: &Path, verbose: bool) -> Verdict {
+pub fn verdict(run: &RunRecord, out: &Path, verbose: bool) -> Verdict {
     let mut s = String::new();
     let mut failures = Vec::new();
-    let tiles = run["tiles"].as_array().cloned().unwrap_or_default();
-    let fallback: Vec<&Value> = tiles.iter().filter(|t| t["placed_by"] == "stage").collect();
-    let scan = &run["scan"];
-    let grid = match (scan["rows"].as_u64(), scan["cols"].as_u64()) {
-        (Some(r), Some(c)) => format!("{r} x {c} tiles (rows x cols)"),
-        _ => format!("{} tiles", tiles.len()),
+    let tiles = &run.tiles;
+    let fallback: Vec<&TileRecord> = tiles
+        .iter()
+        .filter(|t| t.placement.as_ref().is_some_and(|p| p.placed_by == "stage"))
+        .collect();
+    let grid = match run.scan.as_ref().and_then(|s| s.grid()) {
+        Some((r, c)) => format!("{r} x {c} tiles (rows x cols)"),
+        None => format!("{} tiles", tiles.len()),
     };
-    let _ = writeln!(
-        s,
-        "surfstream: done in {:.2} s",
-        run["elapsed_s"].as_f64().unwrap_or(0.0)
-    );
+    let _ = writeln!(s, "surfstream: done in {:.2} s", run.elapsed_s);
     let _ = writeln!(
         s,
         "  scan        {grid}: {} by registration, {} by stage fallback (end-of-scan solve)",
@@ -112,7 +111,7 @@ pub fn verdict(run: &Value, out: &Path, verbose: bool) -> Verdict {
             failures.push(format!("model: {line}"));
         }
     }
-    match deviation_line(&run["deviation"]) {
+    match deviation_line(run.deviation.as_ref().unwrap_or(&Value::Null)) {
         Some((line, failed)) => {
             let _ = writeln!(s, "  deviation   {line}");
             if failed {
@@ -136,7 +135,7 @@ pub fn verdict(run: &Value, out: &Path, verbose: bool) -> Verdict {
     }
     let _ = writeln!(s, "  outputs     {}", outputs_line(run, out));
     if verbose {
-        s.push_str(&latency_table(&run["latency_ms"]));
+        s.push_str(&latency_table(&run.latency_ms));
     }
     let _ = write!(
         s,
@@ -152,8 +151,8 @@ pub fn verdict(run: &Value, out: &Path, verbose: bool) -> Verdict {
 
 /// The likely cause when registration placed few tiles: a layout that does not match the
 /// scan (overlaps computed where the fields do not overlap).
-fn fallback_hint(fallback: &[&Value], tiles: usize) -> String {
-    let anchor = fallback.iter().any(|t| t["index"].as_u64() == Some(0));
+fn fallback_hint(fallback: &[&TileRecord], tiles: usize) -> String {
+    let anchor = fallback.iter().any(|t| t.source.index == 0);
     let share = match (fallback.len() * 2 >= tiles, anchor) {
         (true, true) => "most tiles (the anchor too) were",
         (true, false) => "half the tiles or more were",
@@ -167,13 +166,14 @@ fn fallback_hint(fallback: &[&Value], tiles: usize) -> String {
     )
 }
 
-fn tile_name(t: &Value) -> String {
-    format!("tile {} (row {} x col {})", t["index"], t["row"], t["col"])
+fn tile_name(t: &TileRecord) -> String {
+    let t = &t.source;
+    format!("tile {} (row {} x col {})", t.index, t.row, t.col)
 }
 
 /// Sa, Sq, Sz of the measured panorama: Table 6's "measured" for the whole-panorama region.
-fn surface_line(run: &Value) -> Option<String> {
-    let dev = &run["deviation"];
+fn surface_line(run: &RunRecord) -> Option<String> {
+    let dev = run.deviation.as_ref()?;
     let measured_file = dev["measured"].as_str().unwrap_or("panorama.npy");
     let stages = dev["stages"].as_object()?;
     let measured = stages
@@ -185,7 +185,7 @@ fn surface_line(run: &Value) -> Option<String> {
     if params.is_empty() {
         return None;
     }
-    let shape = run["deviation"]["regions"]
+    let shape = dev["regions"]
         .as_array()
         .and_then(|rs| rs.iter().find(|r| r["name"] == "panorama"))
         .map(|r| format!(", {} x {} px", r["rows"], r["cols"]))
@@ -197,9 +197,9 @@ fn surface_line(run: &Value) -> Option<String> {
 }
 
 /// The STL: file, triangles, vertices, units and the vertical error against its bound.
-fn mesh_line(run: &Value) -> Option<String> {
-    let stages = run["stages"].as_object()?;
-    let m = stages
+fn mesh_line(run: &RunRecord) -> Option<String> {
+    let m = run
+        .stages
         .values()
         .find(|st| st.get("triangles").is_some() && st.get("file").is_some())?;
     let mut line = format!(
@@ -291,9 +291,9 @@ fn deviation_line(dev: &Value) -> Option<(String, bool)> {
 
 /// The model made from a tolerance: triangles, the worst region at the measured points and,
 /// when the tolerance is not met, which region and why.
-fn model_line(run: &Value) -> Option<(String, bool)> {
-    let t = run["stages"]
-        .as_object()?
+fn model_line(run: &RunRecord) -> Option<(String, bool)> {
+    let t = run
+        .stages
         .values()
         .find_map(|st| st.get("tolerance").filter(|t| t.is_object()))?;
     let tol = &t["tolerance"];
@@ -324,9 +324,10 @@ fn model_line(run: &Value) -> Option<(String, bool)> {
     if let Some(r) = t["reason"].as_str() {
         let _ = write!(line, " ({r})");
     }
-    let spikes = run["stages"]
-        .as_object()
-        .and_then(|s| s.values().find_map(|st| st.get("outliers")))
+    let spikes = run
+        .stages
+        .values()
+        .find_map(|st| st.get("outliers"))
         .filter(|o| o.is_object());
     if let Some(o) = spikes {
         let n = o["count"].as_u64().unwrap_or(0);
@@ -345,11 +346,8 @@ fn model_line(run: &Value) -> Option<(String, bool)> {
     Some((line, failed))
 }
 
-fn outputs_line(run: &Value, out: &Path) -> String {
-    let files: Vec<&str> = run["files"]
-        .as_array()
-        .map(|a| a.iter().filter_map(Value::as_str).collect())
-        .unwrap_or_default();
+fn outputs_line(run: &RunRecord, out: &Path) -> String {
+    let files: Vec<&str> = run.files.iter().map(String::as_str).collect();
     let key: Vec<&str> = [
         "surface.stl",
         "report.html",
@@ -362,9 +360,10 @@ fn outputs_line(run: &Value, out: &Path) -> String {
     // report.html is written after run.json lists the files: look on disk.
     .filter(|k| files.contains(k) || out.join(k).is_file())
     .collect();
-    let stl = run["stages"]
-        .as_object()
-        .and_then(|st| st.values().find_map(|m| m["file"].as_str()))
+    let stl = run
+        .stages
+        .values()
+        .find_map(|m| m["file"].as_str())
         .filter(|f| f.ends_with(".stl"))
         .map(|f| format!("; STL {}", out.join(f).display()))
         .unwrap_or_default();
@@ -377,35 +376,20 @@ fn outputs_line(run: &Value, out: &Path) -> String {
 }
 
 /// The latency tables of run.json (`--verbose`), in ms.
-fn latency_table(lat: &Value) -> String {
+fn latency_table(lat: &LatencySummary) -> String {
     let mut s = String::new();
-    let Some(obj) = lat.as_object() else {
-        return s;
-    };
     let _ = writeln!(
         s,
         "  latency (ms)                          p50       p95       max     n"
     );
-    let mut rows: Vec<(&str, &Value)> = Vec::new();
-    for (k, v) in obj {
-        if v.get("p50").is_some() {
-            rows.push((k, v));
-        }
-    }
-    for group in ["hops", "final_frames"] {
-        if let Some(g) = obj.get(group).and_then(Value::as_object) {
-            rows.extend(g.iter().map(|(k, v)| (k.as_str(), v)));
-        }
-    }
+    let rows = (lat.end_to_end.iter())
+        .chain(&lat.hops)
+        .chain(&lat.final_frames);
     for (name, p) in rows {
-        let n = |k: &str| f(&p[k]).unwrap_or(f64::NAN);
+        let Percentiles { p50, p95, max, n } = p;
         let _ = writeln!(
             s,
-            "    {name:<34} {:>8.2}  {:>8.2}  {:>8.2}  {:>4}",
-            n("p50"),
-            n("p95"),
-            n("max"),
-            p["n"]
+            "    {name:<34} {p50:>8.2}  {p95:>8.2}  {max:>8.2}  {n:>4}"
         );
     }
     s
@@ -442,9 +426,13 @@ mod tests {
         })
     }
 
+    fn record(v: Value) -> RunRecord {
+        crate::runjson::test_record(v)
+    }
+
     #[test]
     fn a_passing_run_names_parameters_mesh_and_outputs_in_fixed_precision() {
-        let v = verdict(&run_json(true, false), Path::new("/o"), false);
+        let v = verdict(&record(run_json(true, false)), Path::new("/o"), false);
         assert!(v.failures.is_empty(), "{:?}", v.failures);
         let t = &v.text;
         assert!(t.contains("Sa 1.363 um, Sq 1.700 um, Sz 14.190 um"), "{t}");
@@ -466,7 +454,7 @@ mod tests {
 
     #[test]
     fn a_failing_run_says_which_parameter_by_how_much_against_which_limit() {
-        let v = verdict(&run_json(false, true), Path::new("/o"), true);
+        let v = verdict(&record(run_json(false, true)), Path::new("/o"), true);
         assert_eq!(v.failures.len(), 2, "{:?}", v.failures);
         let t = &v.text;
         assert!(
@@ -498,7 +486,7 @@ mod tests {
         });
         run["stages"]["mesher"]["outliers"] =
             json!({ "count": 3, "sz_effect_pct": 12.5, "policy": "keep" });
-        let v = verdict(&run, Path::new("/o"), false);
+        let v = verdict(&record(run), Path::new("/o"), false);
         let t = &v.text;
         assert_eq!(v.failures.len(), 1, "{t}");
         assert!(t.contains("model       tolerance Sa 1 %, Sq 1 %, Sz 3 % per region: NOT met at 1 200 surface triangles"), "{t}");

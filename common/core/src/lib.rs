@@ -4,7 +4,8 @@
 //! the tile plane correction ([`plane`]), atomic output files ([`fsutil`]), ISO 25178
 //! parameters ([`metrology`]), image similarity ([`similarity`]), FFT sizes ([`fft`]), ISO 16610 filters and form removal ([`filter`]) and the
 //! AVX2 dispatch of hot loops ([`simd`]); the model-vs-measurement table (Table 6,
-//! [`deviation`]); spill files for data that need not stay in memory ([`store`]).
+//! [`deviation`]); spill files for data that need not stay in memory ([`store`]); the typed run.json and node
+//! reports ([`record`]).
 
 pub mod canvas;
 pub mod deviation;
@@ -16,6 +17,7 @@ pub mod liveness;
 pub mod metrology;
 pub mod plane;
 pub mod raster;
+pub mod record;
 pub mod simd;
 pub mod similarity;
 pub mod store;

@@ -6,19 +6,10 @@
 
 use std::collections::BTreeMap;
 
-use serde::Serialize;
-
 use crate::node::NodeReport;
 use surfstream_core::frame::flags;
-
-/// p50 / p95 / max in milliseconds, and the sample count.
-#[derive(Debug, Clone, Copy, Serialize, PartialEq)]
-pub struct Percentiles {
-    pub p50: f64,
-    pub p95: f64,
-    pub max: f64,
-    pub n: usize,
-}
+/// The records run.json's `latency_ms` is made of (shared with its readers).
+pub use surfstream_core::record::{LatencySummary, Percentiles};
 
 /// Nearest-rank percentiles of durations in nanoseconds, reported in ms.
 pub fn percentiles_ms(samples_ns: &[u64]) -> Option<Percentiles> {
@@ -47,20 +38,6 @@ const STAGES: &[(&str, &str, &str)] = &[
     ("roughness", "wavelet", "roughness"),
     ("pooled", "wavelet", "pooled"),
 ];
-
-/// Latency figures for run.json.
-#[derive(Debug, Clone, Serialize, Default)]
-pub struct LatencySummary {
-    /// "tile_to_<stage>": acquisition of the causing tile -> the stage's live frame sent.
-    #[serde(flatten)]
-    pub end_to_end: BTreeMap<String, Percentiles>,
-    /// "last_tile_to_final_<stage>": acquisition of the last tile -> the stage's final frame.
-    pub final_frames: BTreeMap<String, Percentiles>,
-    /// "<stage>_to_<stage>": between consecutive stages, for the same causing tile.
-    pub hops: BTreeMap<String, Percentiles>,
-    /// "<node>/<port> -> <node>": send -> receive of every channel.
-    pub transport: BTreeMap<String, Percentiles>,
-}
 
 /// Computes the summary from all node reports of one run. `mesh_done` is the mesher's
 /// (causing tile's acquisition time, mesh written time) if a mesh was written.

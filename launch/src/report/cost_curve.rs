@@ -5,6 +5,7 @@
 use std::fmt::Write as _;
 
 use serde_json::Value;
+use surfstream_core::record::RunRecord;
 
 use super::html::esc;
 use super::plot::{Axis, Panel};
@@ -18,10 +19,11 @@ pub const LIGGGHTS_US_PER_TRIANGLE_STEP: f64 = 0.022;
 const COLOURS: [(&str, &str); 3] = [("Sa", "#1f77b4"), ("Sq", "#2ca02c"), ("Sz", "#d62728")];
 
 /// The section, or nothing when the mesher made no curve.
-pub fn section(run: &Value) -> String {
-    let Some(t) = run["stages"]
-        .as_object()
-        .and_then(|s| s.values().find_map(|st| st.get("tolerance")))
+pub fn section(run: &RunRecord) -> String {
+    let Some(t) = run
+        .stages
+        .values()
+        .find_map(|st| st.get("tolerance"))
         .filter(|t| t.is_object())
     else {
         return String::new();

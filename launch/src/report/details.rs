@@ -2,52 +2,51 @@
 //! latencies (with human names), the node reports (internal bookkeeping left out) and the node
 //! parameters.
 
+use std::collections::BTreeMap;
 use std::fmt::Write as _;
 
 use serde_json::Value;
+use surfstream_core::record::{Percentiles, RunRecord, ScanRecord, TileRecord};
 
 use super::html::{esc, fixed, num, table, table_raw, um};
 
 /// Stage vs registered tile positions (an SVG to scale) and a table per tile.
-pub fn tile_layout(run: &Value) -> String {
-    let Some(tiles) = run["tiles"].as_array().filter(|t| !t.is_empty()) else {
+pub fn tile_layout(run: &RunRecord) -> String {
+    let tiles = &run.tiles;
+    if tiles.is_empty() {
         return String::new();
-    };
+    }
     let mut h = String::from("<section id=\"tiles\"><h2>Tile layout</h2><div class=\"flex\">");
-    h.push_str(&layout_svg(tiles, &run["scan"]));
+    h.push_str(&layout_svg(tiles, run.scan.as_ref()));
     let rows: Vec<(String, Vec<String>)> = tiles
         .iter()
         .map(|t| {
-            let f = |k: &str| t[k].as_f64();
-            let shift = match (f("x_um"), f("y_um"), f("stage_x_um"), f("stage_y_um")) {
-                (Some(x), Some(y), Some(sx), Some(sy)) => {
-                    format!("{} / {}", fixed(x - sx, 2), fixed(y - sy, 2))
-                }
-                _ => "-".into(),
+            let (s, p) = (&t.source, t.placement.as_ref());
+            let shift = match p {
+                Some(p) => format!(
+                    "{} / {}",
+                    fixed(p.x_um - s.stage_x_um, 2),
+                    fixed(p.y_um - s.stage_y_um, 2)
+                ),
+                None => "-".into(),
             };
-            let by_stage = t["placed_by"] == "stage";
+            let by_stage = p.is_some_and(|p| p.placed_by == "stage");
             (
                 if by_stage { "fail" } else { "" }.to_string(),
                 vec![
-                    num(&t["index"]),
-                    format!("{} / {}", num(&t["row"]), num(&t["col"])),
-                    format!(
-                        "{} / {}",
-                        f("stage_x_um").map(|v| fixed(v, 2)).unwrap_or("-".into()),
-                        f("stage_y_um").map(|v| fixed(v, 2)).unwrap_or("-".into())
-                    ),
-                    format!(
-                        "{} / {}",
-                        f("x_um").map(|v| fixed(v, 2)).unwrap_or("-".into()),
-                        f("y_um").map(|v| fixed(v, 2)).unwrap_or("-".into())
-                    ),
+                    s.index.to_string(),
+                    format!("{} / {}", s.row, s.col),
+                    format!("{} / {}", fixed(s.stage_x_um, 2), fixed(s.stage_y_um, 2)),
+                    p.map_or("- / -".into(), |p| {
+                        format!("{} / {}", fixed(p.x_um, 2), fixed(p.y_um, 2))
+                    }),
                     shift,
-                    if by_stage {
-                        "<b>stage (fallback)</b>".into()
-                    } else {
-                        esc(t["placed_by"].as_str().unwrap_or("?"))
+                    match p {
+                        _ if by_stage => "<b>stage (fallback)</b>".into(),
+                        Some(p) => esc(&p.placed_by),
+                        None => "?".into(),
                     },
-                    f("quality").map(|q| fixed(q, 4)).unwrap_or("-".into()),
+                    p.map_or("-".into(), |p| fixed(p.quality, 4)),
                 ],
             )
         })
@@ -65,7 +64,7 @@ pub fn tile_layout(run: &Value) -> String {
         &rows,
     ));
     h.push_str("</div>");
-    if let Some(pairs) = run["pairs"].as_array().filter(|p| !p.is_empty()) {
+    if let Some(pairs) = Some(&run.pairs).filter(|p| !p.is_empty()) {
         let rows: Vec<(String, Vec<String>)> = pairs
             .iter()
             .map(|p| {
@@ -121,11 +120,8 @@ pub fn tile_layout(run: &Value) -> String {
 }
 
 /// The mesher's report: size, closure and fidelity (height field vs the re-sampled mesh).
-pub fn mesh(run: &Value) -> String {
-    let Some(m) = run["stages"]
-        .as_object()
-        .and_then(|s| s.values().find(|v| v.get("triangles").is_some()))
-    else {
+pub fn mesh(run: &RunRecord) -> String {
+    let Some(m) = run.stages.values().find(|v| v.get("triangles").is_some()) else {
         return String::new();
     };
     let mut h = String::from("<section id=\"mesh\"><h2>Mesh</h2><div class=\"flex\">");
@@ -246,10 +242,8 @@ fn human(path: &str) -> String {
 }
 
 /// Latency percentiles per path, grouped, in ms, collapsed.
-pub fn latencies(run: &Value) -> String {
-    let Some(lat) = run["latency_ms"].as_object() else {
-        return String::new();
-    };
+pub fn latencies(run: &RunRecord) -> String {
+    let lat = &run.latency_ms;
     let group_name = |k: &str| match k {
         "hops" => "between stages",
         "final_frames" => "to the final results",
@@ -257,22 +251,39 @@ pub fn latencies(run: &Value) -> String {
         _ => "end to end",
     };
     let mut groups: Vec<(&str, Vec<Vec<String>>)> = Vec::new();
-    let mut push = |group: &'static str, path: &str, p: &Value| {
-        let ms = |k: &str| p[k].as_f64().map(|v| fixed(v, 2)).unwrap_or("-".into());
-        let row = vec![human(path), ms("p50"), ms("p95"), ms("max"), num(&p["n"])];
+    let mut push = |group: &'static str, path: &str, p: &Percentiles| {
+        let ms = |v: f64| fixed(v, 2);
+        let row = vec![
+            human(path),
+            ms(p.p50),
+            ms(p.p95),
+            ms(p.max),
+            p.n.to_string(),
+        ];
         match groups.iter_mut().find(|g| g.0 == group) {
             Some(g) => g.1.push(row),
             None => groups.push((group, vec![row])),
         }
     };
-    for (name, v) in lat {
-        if v.get("p50").is_some() {
-            push(group_name("end"), name, v);
-        } else if let Some(m) = v.as_object() {
-            for (path, p) in m.iter().filter(|(_, p)| p.get("p50").is_some()) {
-                push(group_name(name), path, p);
-            }
-        }
+    // In run.json's key order (the group names sort among the end-to-end paths), which is
+    // the order the groups first appear in.
+    type Row<'a> = (&'static str, &'a str, &'a Percentiles);
+    let mut rows: BTreeMap<&str, Vec<Row>> = BTreeMap::new();
+    for (path, p) in &lat.end_to_end {
+        rows.insert(path, vec![(group_name("end"), path, p)]);
+    }
+    for (key, group) in [
+        ("final_frames", &lat.final_frames),
+        ("hops", &lat.hops),
+        ("transport", &lat.transport),
+    ] {
+        let group_rows = group
+            .iter()
+            .map(|(path, p)| (group_name(key), path.as_str(), p));
+        rows.insert(key, group_rows.collect());
+    }
+    for (group, path, p) in rows.into_values().flatten() {
+        push(group, path, p);
     }
     let mut h = String::from(
         "<details id=\"latencies\"><summary>Latencies (p50 / p95 / max, ms)</summary><div class=\"flex\">",
@@ -307,14 +318,14 @@ fn internal(key: &str) -> bool {
 }
 
 /// Every node's report (internal fields left out) and parameters, collapsed.
-pub fn node_reports(run: &Value) -> String {
+pub fn node_reports(run: &RunRecord) -> String {
     let mut h = String::from(
         "<details id=\"nodes\"><summary>Node reports and parameters</summary><div class=\"flex\">",
     );
-    for (id, r) in run["stages"].as_object().into_iter().flatten() {
+    for (id, r) in &run.stages {
         let mut rows = Vec::new();
         flatten("", r, &mut rows);
-        if let Some(p) = run["parameters"][id.as_str()].as_object() {
+        if let Some(p) = run.parameters.get(id).and_then(Value::as_object) {
             for (k, v) in p {
                 rows.push(vec![format!("parameter {k}"), num(v)]);
             }
@@ -349,20 +360,22 @@ fn flatten(prefix: &str, v: &Value, rows: &mut Vec<Vec<String>>) {
     }
 }
 
+fn placed_by(t: &TileRecord) -> &str {
+    t.placement.as_ref().map_or("?", |p| &p.placed_by)
+}
+
 /// Stage (dashed) and registered (solid) tile outlines, to scale, y down as in the maps.
-fn layout_svg(tiles: &[Value], scan: &Value) -> String {
-    let pitch_x = scan["pitch_x_um"].as_f64().unwrap_or(1.0);
-    let pitch_y = scan["pitch_y_um"].as_f64().unwrap_or(1.0);
-    let w_um = scan["tile_width_px"].as_f64().unwrap_or(0.0) * pitch_x;
-    let h_um = scan["tile_height_px"].as_f64().unwrap_or(0.0) * pitch_y;
-    let pos = |t: &Value, x: &str, y: &str| Some((t[x].as_f64()?, t[y].as_f64()?));
+fn layout_svg(tiles: &[TileRecord], scan: Option<&ScanRecord>) -> String {
+    let (pitch_x, pitch_y) = scan.map_or((1.0, 1.0), ScanRecord::pitch_um);
+    let (w_px, h_px) = scan.map_or((0, 0), ScanRecord::tile_px);
+    let w_um = w_px as f64 * pitch_x;
+    let h_um = h_px as f64 * pitch_y;
+    let stage = |t: &TileRecord| Some((t.source.stage_x_um, t.source.stage_y_um));
+    let placed = |t: &TileRecord| t.placement.as_ref().map(|p| (p.x_um, p.y_um));
     let mut xs = Vec::new();
     let mut ys = Vec::new();
     for t in tiles {
-        for (x, y) in [pos(t, "stage_x_um", "stage_y_um"), pos(t, "x_um", "y_um")]
-            .into_iter()
-            .flatten()
-        {
+        for (x, y) in [stage(t), placed(t)].into_iter().flatten() {
             xs.extend([x, x + w_um]);
             ys.extend([y, y + h_um]);
         }
@@ -389,7 +402,7 @@ fn layout_svg(tiles: &[Value], scan: &Value) -> String {
     ];
     for (k, t) in tiles.iter().enumerate() {
         let c = colours[k % colours.len()];
-        if let Some((x, y)) = pos(t, "stage_x_um", "stage_y_um") {
+        if let Some((x, y)) = stage(t) {
             let _ = write!(
                 s,
                 "<rect x=\"{:.1}\" y=\"{:.1}\" width=\"{:.1}\" height=\"{:.1}\" fill=\"none\" \
@@ -400,7 +413,7 @@ fn layout_svg(tiles: &[Value], scan: &Value) -> String {
                 h_um * scale
             );
         }
-        if let Some((x, y)) = pos(t, "x_um", "y_um") {
+        if let Some((x, y)) = placed(t) {
             let _ = write!(
                 s,
                 "<rect x=\"{:.1}\" y=\"{:.1}\" width=\"{:.1}\" height=\"{:.1}\" fill=\"{c}\" \
@@ -412,8 +425,8 @@ fn layout_svg(tiles: &[Value], scan: &Value) -> String {
                 h_um * scale,
                 16.0 + (x - x0) * scale,
                 28.0 + (y - y0) * scale,
-                num(&t["index"]),
-                esc(t["placed_by"].as_str().unwrap_or("?")),
+                t.source.index,
+                esc(placed_by(t)),
             );
         }
     }

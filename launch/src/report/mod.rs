@@ -32,6 +32,7 @@ use std::path::Path;
 use anyhow::{anyhow, Context, Result};
 use rayon::prelude::*;
 use serde_json::Value;
+use surfstream_core::record::RunRecord;
 
 use html::{esc, um};
 use surfaces::Surfaces;
@@ -41,8 +42,8 @@ pub fn write(out: &Path) -> Result<()> {
     let run_path = out.join("run.json");
     let text = std::fs::read_to_string(&run_path)
         .with_context(|| format!("{}: reading run.json", run_path.display()))?;
-    let run: Value = serde_json::from_str(&text)
-        .with_context(|| format!("{}: not valid JSON", run_path.display()))?;
+    let run: RunRecord = serde_json::from_str(&text)
+        .with_context(|| format!("{}: not a run record", run_path.display()))?;
     let html = render(&run, out)?;
     let path = out.join("report.html");
     surfstream_core::fsutil::write_atomic(&path, |w| {
@@ -96,9 +97,9 @@ document.documentElement.setAttribute('data-report-ready','1');\
 
 /// The page for one run; `out` is where the height maps are read. A section whose data is
 /// missing is left out.
-pub fn render(run: &Value, out: &Path) -> Result<String> {
+pub fn render(run: &RunRecord, out: &Path) -> Result<String> {
     let surfaces = Surfaces::load(out, run);
-    let name = run["graph"]["name"].as_str().unwrap_or("run");
+    let name = &run.graph.name;
     let mut h = String::new();
     let _ = writeln!(
         h,
@@ -142,9 +143,10 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
     };
     let distribution = || {
         let p = surfaces.panorama.as_ref()?;
-        let level = run["stages"]
-            .as_object()
-            .and_then(|s| s.values().find_map(|v| v["final"]["level"].as_u64()));
+        let level = run
+            .stages
+            .values()
+            .find_map(|v| v["final"]["level"].as_u64());
         let scale = level.map(|l| (l, 2f64.powi(l as i32) * p.pitch_x_um / p.block as f64));
         Some(format!(
             "<section id=\"distribution\"><h2>Height distribution and power spectral density \
@@ -171,7 +173,9 @@ pub fn render(run: &Value, out: &Path) -> Result<String> {
     for section in [view, profile, distribution].into_iter().flatten() {
         h.push_str(&section);
     }
-    h.push_str(&table6::section(&run["deviation"]));
+    h.push_str(&table6::section(
+        run.deviation.as_ref().unwrap_or(&Value::Null),
+    ));
     h.push_str(&cost_curve::section(run));
     h.push_str(&details::tile_layout(run));
     h.push_str(&details::mesh(run));
@@ -252,7 +256,7 @@ mod tests {
                     "measured": {"Sa": 2.0, "Sdr": 10.0}, "model": {"Sa": 2.5, "Sdr": 9.0},
                     "deviation_pct": {"Sa": 25.0, "Sdr": -10.0}}}}}},
         });
-        let h = render(&run, Path::new("/nonexistent")).unwrap();
+        let h = render(&crate::runjson::test_record(run), Path::new("/nonexistent")).unwrap();
         assert!(h.contains("t&lt;x&gt;") && !h.contains("t<x>"));
         assert!(h.contains("<div class=\"verdict fail\"><b>FAIL</b>"));
         assert!(
@@ -305,7 +309,7 @@ mod tests {
             "stages": {"mesher": {"triangles": 10, "grid_px": [325, 275],
                 "fidelity": {"field": {"sq_um": 1.0}, "mesh": {"sq_um": 0.99}}}},
         });
-        let h = render(&run, d.path()).unwrap();
+        let h = render(&crate::runjson::test_record(run), d.path()).unwrap();
         assert!(h.contains("Key parameters (ISO 25178-2): mean removed, not levelled"));
         assert!(h.contains("<b>no levelling</b>"));
         for p in ["Sk", "Spk", "Svk", "Smr1", "Smr2"] {

@@ -6,20 +6,21 @@ use std::fmt::Write as _;
 
 use serde_json::Value;
 use surfstream_core::metrology::{FunctionalParams, Params};
+use surfstream_core::record::{RunRecord, ScanRecord};
 
 use super::html::{esc, fixed, length, pitch, signed, table_raw, um};
 use super::surfaces::Surfaces;
 
 /// The verdict banner and the facts table.
-pub fn section(run: &Value, surfaces: &Surfaces) -> String {
+pub fn section(run: &RunRecord, surfaces: &Surfaces) -> String {
     let mut h = String::new();
-    verdict(&mut h, run);
-    let scan = &run["scan"];
+    verdict(&mut h, run.deviation.as_ref().unwrap_or(&Value::Null));
+    let scan = run.scan.as_ref();
     let mut rows: Vec<(String, Vec<String>)> = Vec::new();
     let mut row = |k: &str, v: String| rows.push((String::new(), vec![esc(k), v]));
     row("input", input(run));
     row("instrument", instrument(scan));
-    if let (Some(px), Some(py)) = (scan["pitch_x_um"].as_f64(), scan["pitch_y_um"].as_f64()) {
+    if let Some((px, py)) = scan.map(ScanRecord::pitch_um) {
         row(
             "pitch (x, y)",
             if px == py {
@@ -29,31 +30,27 @@ pub fn section(run: &Value, surfaces: &Surfaces) -> String {
             },
         );
     }
-    let tiles = run["tiles"].as_array().map(Vec::len).unwrap_or(0);
-    let (tw, th) = (
-        scan["tile_width_px"].as_u64(),
-        scan["tile_height_px"].as_u64(),
-    );
-    let grid = match (scan["rows"].as_u64(), scan["cols"].as_u64()) {
-        (Some(r), Some(c)) => format!("{r} x {c} tiles (rows x cols)"),
-        _ => format!("{tiles} tiles"),
+    let tiles = run.tiles.len();
+    let grid = match scan.and_then(ScanRecord::grid) {
+        Some((r, c)) => format!("{r} x {c} tiles (rows x cols)"),
+        None => format!("{tiles} tiles"),
     };
-    let tile = match (
-        th,
-        tw,
-        scan["pitch_x_um"].as_f64(),
-        scan["pitch_y_um"].as_f64(),
-    ) {
-        (Some(h), Some(w), Some(px), Some(py)) => format!(
-            ", each {h} x {w} px = {} x {}",
-            length(h as f64 * py),
-            length(w as f64 * px)
-        ),
-        _ => String::new(),
+    let tile = match scan {
+        Some(s) => {
+            let ((w, h), (px, py)) = (s.tile_px(), s.pitch_um());
+            format!(
+                ", each {h} x {w} px = {} x {}",
+                length(h as f64 * py),
+                length(w as f64 * px)
+            )
+        }
+        None => String::new(),
     };
-    let overlap = scan["overlap"]
-        .as_array()
-        .and_then(|o| Some((o.first()?.as_f64()?, o.get(1)?.as_f64()?)))
+    let overlap = match scan {
+        Some(ScanRecord::Simulated { overlap, .. }) => Some((overlap[0], overlap[1])),
+        _ => None,
+    };
+    let overlap = overlap
         .map(|(x, y)| {
             if x == y {
                 format!(", {} % nominal overlap", fixed(x * 100.0, 0))
@@ -81,12 +78,11 @@ pub fn section(run: &Value, surfaces: &Surfaces) -> String {
             )),
         );
     }
-    let by_stage: Vec<String> = run["tiles"]
-        .as_array()
-        .into_iter()
-        .flatten()
-        .filter(|t| t["placed_by"] == "stage")
-        .map(|t| format!("tile {}", super::html::num(&t["index"])))
+    let by_stage: Vec<String> = run
+        .tiles
+        .iter()
+        .filter(|t| t.placement.as_ref().is_some_and(|p| p.placed_by == "stage"))
+        .map(|t| format!("tile {}", t.source.index))
         .collect();
     row(
         "tile placement",
@@ -108,11 +104,11 @@ pub fn section(run: &Value, surfaces: &Surfaces) -> String {
         "run",
         esc(&format!(
             "{} mode, {} s, surfstream {}, graph {} ({})",
-            run["mode"].as_str().unwrap_or("?"),
-            fixed(run["elapsed_s"].as_f64().unwrap_or(f64::NAN), 2),
-            run["surfstream_version"].as_str().unwrap_or("?"),
-            run["graph"]["name"].as_str().unwrap_or("?"),
-            run["graph"]["file"].as_str().unwrap_or("?"),
+            run.mode,
+            fixed(run.elapsed_s, 2),
+            run.surfstream_version,
+            run.graph.name,
+            run.graph.file,
         )),
     );
     h.push_str("<section id=\"summary\"><h2>Summary</h2>");
@@ -123,42 +119,30 @@ pub fn section(run: &Value, surfaces: &Surfaces) -> String {
     h
 }
 
-fn input(run: &Value) -> String {
-    let scan = &run["scan"];
-    let graph = esc(run["graph"]["file"].as_str().unwrap_or("?"));
-    match scan["source"].as_str() {
-        Some("simulated") => format!(
+fn input(run: &RunRecord) -> String {
+    let graph = esc(&run.graph.file);
+    match &run.scan {
+        Some(ScanRecord::Simulated { specimen, .. }) => format!(
             "simulated profiler stage (graph {graph}), specimen {}",
-            esc(scan["specimen"].as_str().unwrap_or("generated"))
+            esc(specimen)
         ),
-        Some("scan") => format!(
-            "scan directory {}",
-            esc(scan["manifest"].as_str().unwrap_or("?"))
-        ),
-        Some("mcap") => format!(
-            "recording {}",
-            esc(scan["recording"].as_str().unwrap_or("?"))
-        ),
-        Some(other) => format!("{} (graph {graph})", esc(other)),
+        Some(ScanRecord::Scan { manifest, .. }) => format!("scan directory {}", esc(manifest)),
+        Some(ScanRecord::Mcap { recording, .. }) => format!("recording {}", esc(recording)),
         None => format!("graph {graph}"),
     }
 }
 
-fn instrument(scan: &Value) -> String {
-    if let Some(i) = scan["instrument"].as_str() {
-        return esc(i);
-    }
-    match scan["source"].as_str() {
-        Some("simulated") => "simulated optical profiler (noise, dropouts, stage error)".into(),
+fn instrument(scan: Option<&ScanRecord>) -> String {
+    match scan {
+        Some(ScanRecord::Simulated { .. }) => {
+            "simulated optical profiler (noise, dropouts, stage error)".into()
+        }
         _ => "not recorded in the scan files".into(),
     }
 }
 
-fn mesh(run: &Value) -> Option<String> {
-    let m = run["stages"]
-        .as_object()?
-        .values()
-        .find(|v| v.get("triangles").is_some())?;
+fn mesh(run: &RunRecord) -> Option<String> {
+    let m = run.stages.values().find(|v| v.get("triangles").is_some())?;
     let f = &m["fidelity"];
     Some(esc(&format!(
         "{}: {} triangles, {} vertices, {}, {} {}, max vertical error {} (bound {}, {})",
@@ -186,8 +170,7 @@ fn mesh(run: &Value) -> Option<String> {
 }
 
 /// The Table-6 verdict as a banner: pass, or which stage failed where and by how much.
-fn verdict(h: &mut String, run: &Value) {
-    let dev = &run["deviation"];
+fn verdict(h: &mut String, dev: &Value) {
     if let Some(e) = dev["error"].as_str() {
         let _ = write!(
             h,
@@ -345,10 +328,11 @@ pub fn key_parameters(s: &Surfaces) -> String {
 }
 
 /// The output files, linked (relative links: the page sits beside them).
-pub fn outputs(run: &Value) -> String {
-    let Some(files) = run["files"].as_array().filter(|f| !f.is_empty()) else {
+pub fn outputs(run: &RunRecord) -> String {
+    let files = &run.files;
+    if files.is_empty() {
         return String::new();
-    };
+    }
     let describe = |f: &str| -> &str {
         match f {
             "panorama.npy" => {
@@ -374,7 +358,7 @@ pub fn outputs(run: &Value) -> String {
     };
     let mut main = String::new();
     let mut other = String::new();
-    for f in files.iter().filter_map(Value::as_str) {
+    for f in files.iter().map(String::as_str) {
         let link = format!(
             "<li><a href=\"{0}\">{0}</a> <span class=\"note\">{1}</span></li>",
             esc(f),

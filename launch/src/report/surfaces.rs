@@ -13,8 +13,8 @@
 use std::path::Path;
 
 use anyhow::Result;
-use serde_json::Value;
 use surfstream_core::metrology::{functional_params, FunctionalParams, Grid, Params, ParamsByRows};
+use surfstream_core::record::{FusionReport, RunRecord};
 use surfstream_io::npy::{read_npy_f64, NpyRows};
 
 use super::surface_stats::Histogram;
@@ -224,23 +224,17 @@ fn file_row(path: &Path, row: usize, shift: f64) -> Option<Vec<f64>> {
 }
 
 /// The panorama's pitch from the node report that carries its geometry.
-pub fn panorama_pitch_um(run: &Value) -> Option<(f64, f64)> {
-    let g = run["stages"]
-        .as_object()?
-        .values()
-        .find_map(|r| r.get("panorama").filter(|p| p.get("pitch_x_um").is_some()))?;
-    Some((g["pitch_x_um"].as_f64()?, g["pitch_y_um"].as_f64()?))
+pub fn panorama_pitch_um(run: &RunRecord) -> Option<(f64, f64)> {
+    let g = run.stage::<FusionReport>()?.panorama?;
+    Some((g.pitch_x_um, g.pitch_y_um))
 }
 
 impl Surfaces {
-    pub fn load(out: &Path, run: &Value) -> Self {
+    pub fn load(out: &Path, run: &RunRecord) -> Self {
         let mut s = Surfaces::default();
-        let Some((px, py)) = panorama_pitch_um(run).or_else(|| {
-            Some((
-                run["scan"]["pitch_x_um"].as_f64()?,
-                run["scan"]["pitch_y_um"].as_f64()?,
-            ))
-        }) else {
+        let Some((px, py)) =
+            panorama_pitch_um(run).or_else(|| run.scan.as_ref().map(|s| s.pitch_um()))
+        else {
             return s;
         };
         // One block size for the panorama and the maps on its grid; the pooled map its own.

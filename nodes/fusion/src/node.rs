@@ -4,8 +4,8 @@
 
 use anyhow::{anyhow, bail, Result};
 use serde::Deserialize;
-use serde_json::json;
 use surfstream_core::frame::flags;
+use surfstream_core::record::{self, FusionMemory, FusionReport};
 use surfstream_io::output::OutputWriter;
 use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
@@ -155,19 +155,19 @@ impl NodeLogic for FusionNode {
 
     fn report(&self) -> serde_json::Value {
         let r = self.result.as_ref();
-        json!({
-            "method": self.fusion.settings().method.name(),
-            "patches": self.patches,
-            "panorama": r.map_or(serde_json::Value::Null, |r| r.summary.clone()),
-            "files": r.map_or(&[][..], |r| &r.files[..]),
-            "rerendered_from_final_registrations": r.is_some_and(|r| r.rerendered),
-            "final_registrations": self.fusion.final_registrations(),
-            "ssim": "Wang et al. 2004 (paper eq. 7): 11x11 Gaussian window, sigma 1.5, K1 0.01, K2 0.03, L = height range of the overlap; SSIM(fused, each tile) over pixels both tiles measured",
-            "fusion_pairs": r.map_or(&[][..], |r| &r.pairs[..]),
-            "memory": {
-                "chunk_px": crate::CHUNK_PX,
-                "chunk_budget_bytes": self.chunk_budget_bytes,
-                "chunks": self.fusion.chunk_stats(),
+        record::to_value(&FusionReport {
+            method: self.fusion.settings().method.name().into(),
+            patches: self.patches,
+            panorama: r.map(|r| r.summary),
+            files: r.map_or(Vec::new(), |r| r.files.clone()),
+            rerendered_from_final_registrations: r.is_some_and(|r| r.rerendered),
+            final_registrations: self.fusion.final_registrations() as u64,
+            ssim: "Wang et al. 2004 (paper eq. 7): 11x11 Gaussian window, sigma 1.5, K1 0.01, K2 0.03, L = height range of the overlap; SSIM(fused, each tile) over pixels both tiles measured".into(),
+            fusion_pairs: r.map_or(Vec::new(), |r| r.pairs.iter().map(record::to_value).collect()),
+            memory: FusionMemory {
+                chunk_px: crate::CHUNK_PX,
+                chunk_budget_bytes: self.chunk_budget_bytes.map(|b| b as u64),
+                chunks: record::to_value(&self.fusion.chunk_stats()),
             },
         })
     }

@@ -22,9 +22,9 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use anyhow::{anyhow, bail, Result};
-use serde_json::json;
 use surfstream_core::frame::{flags, FrameHeader, FrameKind, HeightMap, TileRegistration};
 use surfstream_core::raster::{RasterView, Shape};
+use surfstream_core::record::PanoramaSummary;
 use surfstream_io::output::{NpyHeights, OutputWriter, SurfaceOutput};
 
 use crate::{
@@ -97,7 +97,7 @@ pub struct FinalPanorama {
 #[derive(Debug, Clone)]
 pub struct FinalReport {
     /// Size, place, offset and invalid pixels of the panorama.
-    pub summary: serde_json::Value,
+    pub summary: PanoramaSummary,
     pub pairs: Vec<PairQuality>,
     /// Re-rendered from FINAL registrations.
     pub rerendered: bool,
@@ -402,12 +402,16 @@ impl StreamingFusion {
             }
         }
         let invalid = r.heights.values().iter().filter(|z| z.is_nan()).count();
-        let summary = json!({
-            "width_px": cols, "height_px": rows,
-            "origin_x_um": r.origin_x_um, "origin_y_um": r.origin_y_um,
-            "pitch_x_um": r.pitch_x_um, "pitch_y_um": r.pitch_y_um,
-            "z_offset_um": r.z_offset_um, "invalid_px": invalid,
-        });
+        let summary = PanoramaSummary {
+            width_px: cols,
+            height_px: rows,
+            origin_x_um: r.origin_x_um,
+            origin_y_um: r.origin_y_um,
+            pitch_x_um: r.pitch_x_um,
+            pitch_y_um: r.pitch_y_um,
+            z_offset_um: r.z_offset_um,
+            invalid_px: invalid,
+        };
         let header = FrameHeader {
             kind: FrameKind::Panorama as u32,
             flags: flags::FINAL,

@@ -29,6 +29,9 @@ use std::path::PathBuf;
 use serde_json::json;
 use surfstream_core::frame::{flags, placed_by, TileRegistration};
 use surfstream_core::raster::{Raster, RasterView, Shape};
+use surfstream_core::record::{
+    self, MatcherReport, MatcherTile, StreamingPlacement, TilePlacement,
+};
 use surfstream_core::store::{AppendLog, StoreError};
 use thiserror::Error;
 
@@ -191,7 +194,7 @@ pub struct ScanRegistration {
     spill: AppendLog<f32>,
     by_grid: BTreeMap<(u32, u32), usize>,
     pairs: Vec<PairRecord>,
-    tiles_report: Vec<serde_json::Value>,
+    tiles_report: Vec<MatcherTile>,
     pairs_report: Vec<serde_json::Value>,
     global_report: serde_json::Value,
 }
@@ -608,24 +611,37 @@ impl ScanRegistration {
                 t_acquired_ns: t.tile.t_acquired_ns,
                 ..Default::default()
             });
-            self.tiles_report.push(json!({
-                "index": t.tile.index, "row": t.tile.row, "col": t.tile.col,
-                "x_um": pos_um[0], "y_um": pos_um[1],
-                "placed_by": placed_name(how),
-                "registered_directions": directions,
-                "stage_direction": if single { None } else { g.sol.stage_direction[i] },
-                "links_accepted": accepted_per_tile[i], "links_tried": tried_per_tile[i],
-                "quality": quality,
-                "piston_um": plane.piston_um, "tilt_x_um_per_px": plane.tilt_x_um_per_px,
-                "tilt_y_um_per_px": plane.tilt_y_um_per_px,
-                "streaming": {
-                    "x_um": t.position_um[0], "y_um": t.position_um[1],
-                    "placed_by": placed_name(t.placed_by), "links_tried": t.links_tried,
-                    "piston_um": t.plane.piston_um,
-                    "tilt_x_um_per_px": t.plane.tilt_x_um_per_px,
-                    "tilt_y_um_per_px": t.plane.tilt_y_um_per_px,
+            self.tiles_report.push(MatcherTile {
+                index: t.tile.index,
+                row: t.tile.row,
+                col: t.tile.col,
+                placement: TilePlacement {
+                    x_um: pos_um[0],
+                    y_um: pos_um[1],
+                    placed_by: placed_name(how).into(),
+                    links_accepted: accepted_per_tile[i],
+                    links_tried: tried_per_tile[i],
+                    quality,
+                    piston_um: plane.piston_um,
+                    tilt_x_um_per_px: plane.tilt_x_um_per_px,
+                    tilt_y_um_per_px: plane.tilt_y_um_per_px,
+                    streaming: StreamingPlacement {
+                        x_um: t.position_um[0],
+                        y_um: t.position_um[1],
+                        placed_by: placed_name(t.placed_by).into(),
+                        links_tried: t.links_tried,
+                        piston_um: t.plane.piston_um,
+                        tilt_x_um_per_px: t.plane.tilt_x_um_per_px,
+                        tilt_y_um_per_px: t.plane.tilt_y_um_per_px,
+                    },
+                    registered_directions: Some(directions),
+                    stage_direction: if single {
+                        None
+                    } else {
+                        g.sol.stage_direction[i]
+                    },
                 },
-            }));
+            });
         }
         regs
     }
@@ -699,11 +715,11 @@ impl ScanRegistration {
     /// The run report: the method, per tile and per pair outcomes, and the global solve's
     /// summary (empty until [`ScanRegistration::finish`]).
     pub fn report(&self) -> serde_json::Value {
-        json!({
-            "method": self.method(),
-            "tiles": self.tiles_report,
-            "pairs": self.pairs_report,
-            "global": self.global_report,
+        record::to_value(&MatcherReport {
+            method: self.method().into(),
+            tiles: self.tiles_report.clone(),
+            pairs: self.pairs_report.clone(),
+            global: self.global_report.clone(),
         })
     }
 }

@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, Result};
-use serde_json::json;
+use surfstream_core::record::{self, RecorderReport};
 use surfstream_io::recording::{ChannelId, Recorder};
 use surfstream_runtime::graph::{InputSpec, PortKind};
 use surfstream_runtime::node::Input;
@@ -106,6 +106,12 @@ impl RecordingSession {
             .values()
             .map(|c| (c.topic.clone(), c.messages))
             .collect();
-        json!({ "file": self.path.file_name().map(|f| f.to_string_lossy().to_string()), "messages": topics })
+        record::to_value(&RecorderReport {
+            file: self
+                .path
+                .file_name()
+                .map(|f| f.to_string_lossy().to_string()),
+            messages: topics,
+        })
     }
 }

@@ -9,8 +9,8 @@ use std::collections::BTreeMap;
 use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
-use serde_json::json;
 use surfstream_core::frame::monotonic_ns;
+use surfstream_core::record::{self, ReplayReport, ScanRecord, SourceTile};
 use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
@@ -23,8 +23,8 @@ const PORT: &str = "tiles";
 pub struct ReplayNode {
     run: StageRun,
     done: bool,
-    scan: serde_json::Value,
-    tiles: Vec<serde_json::Value>,
+    scan: ScanRecord,
+    tiles: Vec<SourceTile>,
 }
 
 /// Builds the node from its graph parameters.
@@ -118,8 +118,10 @@ impl NodeLogic for ReplayNode {
     }
 
     fn report(&self) -> serde_json::Value {
-        let mut sent = BTreeMap::new();
-        sent.insert("tiles", self.run.sent());
-        json!({ "scan": self.scan, "tiles": self.tiles, "sent": sent })
+        record::to_value(&ReplayReport {
+            scan: self.scan.clone(),
+            tiles: self.tiles.clone(),
+            sent: BTreeMap::from([(PORT.to_string(), self.run.sent() as u64)]),
+        })
     }
 }

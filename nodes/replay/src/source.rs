@@ -10,8 +10,8 @@ use std::path::PathBuf;
 
 use anyhow::{anyhow, bail, Result};
 use serde::Deserialize;
-use serde_json::json;
 use surfstream_core::frame::{FrameHeader, FrameKind, HeightMap};
+use surfstream_core::record::{ScanRecord, SourceTile};
 use surfstream_io::recording::{read_recording, Recorded};
 use surfstream_runtime::graph::{params_from_table, NodeContext};
 
@@ -23,9 +23,9 @@ use crate::{generate_virtual_specimen, plan_scan, SpecimenParams, StageParams, V
 pub struct OpenedSource {
     pub run: StageRun,
     /// The scan: name, source, grid, tile size, pitch, ...
-    pub scan: serde_json::Value,
+    pub scan: ScanRecord,
     /// One entry per tile in acquisition order: index, grid row / col, stage position.
-    pub tiles: Vec<serde_json::Value>,
+    pub tiles: Vec<SourceTile>,
     /// The graph asked for the specimen to be saved beside the outputs (simulated only).
     pub save_specimen: bool,
 }
@@ -245,25 +245,32 @@ fn simulated(ctx: &NodeContext) -> Result<OpenedSource> {
     };
     plan.check_specimen(&specimen).map_err(|e| err_in(ctx, e))?;
     let (tw, th) = (plan.tile_width_px, plan.tile_height_px);
-    let scan = json!({
-        "name": ctx.graph_name,
-        "source": "simulated",
-        "rows": stage.rows,
-        "cols": stage.cols,
-        "tile_width_px": tw,
-        "tile_height_px": th,
-        "pitch_x_um": stage.pitch_um,
-        "pitch_y_um": stage.pitch_um,
-        "overlap": stage.overlap_xy(),
-        "specimen": specimen_file.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "generated".into()),
-        "truth_file": "truth.json",
-    });
+    let (overlap_x, overlap_y) = stage.overlap_xy();
+    let scan = ScanRecord::Simulated {
+        name: ctx.graph_name.clone(),
+        rows: stage.rows,
+        cols: stage.cols,
+        tile_width_px: tw,
+        tile_height_px: th,
+        pitch_x_um: stage.pitch_um,
+        pitch_y_um: stage.pitch_um,
+        overlap: [overlap_x, overlap_y],
+        specimen: specimen_file
+            .as_ref()
+            .map(|p| p.display().to_string())
+            .unwrap_or_else(|| "generated".into()),
+        truth_file: "truth.json".into(),
+    };
     let tiles = plan
         .tiles
         .iter()
-        .map(|t| {
-            json!({ "index": t.index, "row": t.row, "col": t.col,
-                    "stage_x_um": t.stage_position_um[0], "stage_y_um": t.stage_position_um[1] })
+        .map(|t| SourceTile {
+            index: t.index as u32,
+            row: t.row as u32,
+            col: t.col as u32,
+            file: None,
+            stage_x_um: t.stage_position_um[0],
+            stage_y_um: t.stage_position_um[1],
         })
         .collect();
     let pacing = pacing_from(&pacing, field_time_s, ctx)?;
@@ -301,28 +308,31 @@ fn scan(ctx: &NodeContext, p: ScanParams) -> Result<OpenedSource> {
             z_offset_um: dir.z_offset_um,
             ..Default::default()
         };
-        tiles.push(
-            json!({ "index": k, "row": t.entry.row, "col": t.entry.col, "file": t.entry.file,
-                           "stage_x_um": t.entry.stage_x_um, "stage_y_um": t.entry.stage_y_um }),
-        );
+        tiles.push(SourceTile {
+            index: k as u32,
+            row: t.entry.row as u32,
+            col: t.entry.col as u32,
+            file: Some(t.entry.file.clone()),
+            stage_x_um: t.entry.stage_x_um,
+            stage_y_um: t.entry.stage_y_um,
+        });
         frames.push(HeightMap {
             header,
             heights: t.heights_um,
         });
     }
-    let scan = json!({
-        "name": dir.scan.name,
-        "source": "scan",
-        "manifest": dir.manifest_path.display().to_string(),
-        "rows": dir.scan.rows,
-        "cols": dir.scan.cols,
-        "tile_width_px": dir.tile_width_px,
-        "tile_height_px": dir.tile_height_px,
-        "pitch_x_um": dir.scan.pitch_x_um,
-        "pitch_y_um": dir.scan.pitch_y_um,
-        "height_unit": dir.scan.height_unit,
-        "z_offset_um": dir.z_offset_um,
-    });
+    let scan = ScanRecord::Scan {
+        name: dir.scan.name.clone(),
+        manifest: dir.manifest_path.display().to_string(),
+        rows: dir.scan.rows,
+        cols: dir.scan.cols,
+        tile_width_px: dir.tile_width_px,
+        tile_height_px: dir.tile_height_px,
+        pitch_x_um: dir.scan.pitch_x_um,
+        pitch_y_um: dir.scan.pitch_y_um,
+        height_unit: dir.scan.height_unit.clone(),
+        z_offset_um: dir.z_offset_um,
+    };
     Ok(OpenedSource {
         run: StageRun::new(
             TileSource::Frames(frames),
@@ -433,22 +443,25 @@ fn mcap(ctx: &NodeContext, p: McapParams) -> Result<OpenedSource> {
     };
     let tiles = frames
         .iter()
-        .map(|f| {
-            json!({ "index": f.header.tile_index, "row": f.header.tile_row, "col": f.header.tile_col,
-                    "stage_x_um": f.header.origin_x_um, "stage_y_um": f.header.origin_y_um })
+        .map(|f| SourceTile {
+            index: f.header.tile_index,
+            row: f.header.tile_row,
+            col: f.header.tile_col,
+            file: None,
+            stage_x_um: f.header.origin_x_um,
+            stage_y_um: f.header.origin_y_um,
         })
         .collect();
-    let scan = json!({
-        "name": ctx.graph_name,
-        "source": "mcap",
-        "recording": p.path.display().to_string(),
-        "topic": p.topic,
-        "tiles": frames.len(),
-        "tile_width_px": first.width,
-        "tile_height_px": first.height,
-        "pitch_x_um": first.pitch_x_um,
-        "pitch_y_um": first.pitch_y_um,
-    });
+    let scan = ScanRecord::Mcap {
+        name: ctx.graph_name.clone(),
+        recording: p.path.display().to_string(),
+        topic: p.topic.clone(),
+        tiles: frames.len(),
+        tile_width_px: first.width as usize,
+        tile_height_px: first.height as usize,
+        pitch_x_um: first.pitch_x_um,
+        pitch_y_um: first.pitch_y_um,
+    };
     let pacing = pacing_from(&p.pacing, 1.0, ctx)?;
     Ok(OpenedSource {
         run: StageRun::new(TileSource::Frames(frames), pacing, offsets_ns),

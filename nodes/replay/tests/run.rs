@@ -157,8 +157,13 @@ fn simulated_source_from_graph_params() {
     assert_eq!(s.run.tile_count(), 2);
     assert_eq!(s.tiles.len(), 2);
     assert!(s.save_specimen && s.specimen().is_some());
-    assert_eq!(s.scan["source"], "simulated");
-    assert_eq!(s.scan["tile_width_px"], 32);
+    assert!(matches!(
+        s.scan,
+        surfstream_core::record::ScanRecord::Simulated {
+            tile_width_px: 32,
+            ..
+        }
+    ));
 
     let e = open_source(&context("source = \"simulated\"\npacing = \"slow\""));
     let e = e.err().unwrap().to_string();

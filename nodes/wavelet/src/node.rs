@@ -9,8 +9,8 @@
 //! demo wires only `pooled`): the streamed final pass never holds them otherwise.
 
 use anyhow::{anyhow, bail, Result};
-use serde_json::json;
 use surfstream_core::frame::{flags, FrameKind, FrameView};
+use surfstream_core::record::{self, WaveletReport};
 use surfstream_io::output::OutputWriter;
 use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
@@ -165,6 +165,9 @@ impl NodeLogic for WaveletNode {
     }
 
     fn report(&self) -> serde_json::Value {
-        json!({ "live_patches": self.live_patches, "final": self.summary })
+        record::to_value(&WaveletReport {
+            live_patches: self.live_patches,
+            final_pass: self.summary.clone(),
+        })
     }
 }

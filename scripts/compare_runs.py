@@ -1,0 +1,83 @@
+#!/usr/bin/env python3
+"""Compares two out dirs of surfstream runs file by file (issue 24's byte-identity check).
+
+    python3 scripts/compare_runs.py BEFORE AFTER
+
+Every file must be byte-identical except the ones that carry times, which are compared as
+JSON with the timing fields removed (listed in TIMING below):
+  run.json, graph.resolved.json, nodes/<id>.json
+                                        JSON without TIMING keys (any depth), key order kept
+  report.html                           not compared here: re-render it from BEFORE's run.json
+  logs/*, recording.mcap                skipped (stderr text, recording times)
+Exit status 0 when everything matches; every difference is printed.
+"""
+import json
+import os
+import sys
+
+# Keys whose values differ between two runs of the same command on the same commit (found by
+# running each command twice): times, what the machine's load paces (coalesced live work,
+# the live frames sent and the nodes' message traces), memory figures (peak RSS; the fusion's chunk budget is an eighth of
+# MemAvailable without a memory_budget_gb) and the run's random scan id.
+TIMING = {
+    "scan_id", "chunk_budget_bytes", "elapsed_s", "latency_ms", "peak_rss", "peak_rss_bytes",
+    "t_acquired_ns", "t_written_ns", "t_finished_ns", "stats", "live_patches",
+    "live_frames_skipped", "messages",
+}
+SKIP_PREFIX = ("logs/",)
+SKIP = {"recording.mcap", "report.html"}
+
+
+def strip(v):
+    if isinstance(v, dict):
+        return {k: strip(x) for k, x in v.items() if k not in TIMING}
+    if isinstance(v, list):
+        return [strip(x) for x in v]
+    return v
+
+
+def files(root):
+    out = set()
+    for d, _, names in os.walk(root):
+        for n in names:
+            out.add(os.path.relpath(os.path.join(d, n), root))
+    return out
+
+
+def main(a, b):
+    fa, fb = files(a), files(b)
+    bad = 0
+    for f in sorted(fa ^ fb):
+        print(f"only in {'BEFORE' if f in fa else 'AFTER'}: {f}")
+        bad += 1
+    same = 0
+    for f in sorted(fa & fb):
+        if f in SKIP or f.startswith(SKIP_PREFIX):
+            continue
+        pa, pb = os.path.join(a, f), os.path.join(b, f)
+        if f in ("run.json", "graph.resolved.json") or (
+            f.startswith("nodes/") and f.endswith(".json")
+        ):
+            # Python keeps the files' key order and tells 1 from 1.0: comparing the dumps
+            # compares order, types and values at every depth.
+            ja, jb = strip(json.load(open(pa))), strip(json.load(open(pb)))
+            if json.dumps(ja, indent=1) != json.dumps(jb, indent=1):
+                print(f"differs (timing fields removed): {f}")
+                for k in ja if isinstance(ja, dict) else []:
+                    if json.dumps(ja.get(k)) != json.dumps(jb.get(k)):
+                        print(f"   key {k}")
+                bad += 1
+            else:
+                same += 1
+            continue
+        if open(pa, "rb").read() != open(pb, "rb").read():
+            print(f"differs: {f}")
+            bad += 1
+        else:
+            same += 1
+    print(f"{same} files identical, {bad} differences")
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1], sys.argv[2]))
