@@ -182,11 +182,16 @@ def main():
         pe = pair_errors(d, out)
         s = score(python, d, out)
         g = groups.setdefault((name, ov), {"errs": [], "rms": [], "stage": 0, "rejected": 0,
-                                           "tiles": 0})
+                                           "tiles": 0, "partial": 0, "directional": 0})
         g["errs"] += [e for _, _, e, _, _ in pe]
         g["rms"].append(s["global_rms_px"])
-        g["stage"] += sum(1 for t in json.load(open(os.path.join(out, "run.json")))["tiles"]
-                          if t.get("placed_by") != "registration")
+        run = json.load(open(os.path.join(out, "run.json")))
+        g["stage"] += sum(1 for t in run["tiles"] if t.get("placed_by") != "registration")
+        # Tiles placed along one direction by links and along the other by the stage.
+        g["partial"] += sum(1 for t in run["tiles"] if t.get("registered_directions") == 1)
+        # Refused pairs given to the global solve as one-direction (ridge) constraints.
+        g["directional"] += sum(1 for p in run.get("pairs", [])
+                                if (p.get("directional") or {}).get("kept_by_global_solve"))
         g["tiles"] += 9
         g["rejected"] += sum(1 for *_, acc, _ in pe if not acc)
         if a.pairs:
@@ -197,8 +202,9 @@ def main():
     rows = []
     print(f"\n{a.label}: {len(sets)} sets in {time.time() - t0:.0f} s\n")
     print("| specimen | overlap | pairs | within 0.5 px | max pair error px | global RMS px "
-          "(mean over sets) | worst set RMS px | pairs rejected | tiles placed by stage |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "(mean over sets) | worst set RMS px | pairs rejected | one-direction links kept | "
+          "tiles placed by stage (of which one direction) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     all_errs, all_rms = [], []
     for (name, ov), g in groups.items():
         e = np.array(g["errs"])
@@ -207,17 +213,20 @@ def main():
         rows.append({"specimen": name, "overlap": ov, "pairs": len(e), "within_0p5_pct": within,
                      "max_pair_px": float(e.max()), "global_rms_px_mean": rms,
                      "global_rms_px_max": float(np.max(g["rms"])), "rejected": g["rejected"],
-                     "stage_placed": g["stage"], "tiles": g["tiles"]})
+                     "stage_placed": g["stage"], "tiles": g["tiles"],
+                     "one_direction_by_stage": g["partial"], "directional_kept": g["directional"]})
         all_errs += list(e)
         all_rms += g["rms"]
         print(f"| {name} | {int(ov * 100)} % | {len(e)} | {within:.0f} % | {e.max():.2f} | "
-              f"{rms:.3f} | {np.max(g['rms']):.3f} | {g['rejected']} | {g['stage']}/{g['tiles']} |")
+              f"{rms:.3f} | {np.max(g['rms']):.3f} | {g['rejected']} | {g['directional']} | "
+              f"{g['stage']}/{g['tiles']} ({g['partial']}) |")
     e = np.array(all_errs)
     if len(e):
         print(f"| **all** | | {len(e)} | {(e <= 0.5).mean() * 100:.1f} % | {e.max():.2f} | "
               f"{np.mean(all_rms):.3f} | {np.max(all_rms):.3f} | "
-              f"{sum(r['rejected'] for r in rows)} | {sum(r['stage_placed'] for r in rows)}/"
-              f"{sum(r['tiles'] for r in rows)} |")
+              f"{sum(r['rejected'] for r in rows)} | {sum(r['directional_kept'] for r in rows)} | "
+              f"{sum(r['stage_placed'] for r in rows)}/{sum(r['tiles'] for r in rows)} "
+              f"({sum(r['one_direction_by_stage'] for r in rows)}) |")
     os.makedirs(a.out, exist_ok=True)
     with open(os.path.join(a.out, f"{a.label}.json"), "w") as f:
         json.dump({"label": a.label, "bin": a.bin, "rows": rows}, f, indent=1)

@@ -194,6 +194,14 @@ pub struct TilePlacement {
     #[serde(deserialize_with = "nan_if_null")]
     pub tilt_y_um_per_px: f64,
     pub streaming: StreamingPlacement,
+    /// How many directions the tile's kept links fix: 2, 1 (the other from the stage, along
+    /// `stage_direction`) or 0. Absent in reports written before it existed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub registered_directions: Option<u8>,
+    /// With `registered_directions` 1: the unit direction (x, y) the stage alone placed the
+    /// tile along.
+    #[serde(default)]
+    pub stage_direction: Option<[f64; 2]>,
 }
 
 /// One tile of the matcher's report.
@@ -437,6 +445,8 @@ mod tests {
                 tilt_x_um_per_px: 0.0,
                 tilt_y_um_per_px: 0.0,
             },
+            registered_directions: Some(2),
+            stage_direction: None,
         }
     }
 
@@ -465,7 +475,9 @@ mod tests {
                 "piston_um",
                 "placed_by",
                 "quality",
+                "registered_directions",
                 "row",
+                "stage_direction",
                 "stage_x_um",
                 "stage_y_um",
                 "streaming",

@@ -24,6 +24,11 @@ struct Tally {
     within: usize,
     wrong: usize,
     sq: f64,
+    /// Refused pairs with a one-direction (ridge) answer, those within 0.5 px across, and the
+    /// sum of squared errors across.
+    directional: usize,
+    dir_within: usize,
+    dir_sq: f64,
 }
 
 fn main() -> Result<()> {
@@ -56,6 +61,14 @@ fn main() -> Result<()> {
             let r = corr.register(tiles.raster(a)?, tiles.raster(b)?, nominal, &params);
             g.pairs += 1;
             let err = r.offset_px.map(|o| (o[0] - t[0]).hypot(o[1] - t[1]));
+            let dir_err = r.directional.filter(|_| r.offset_px.is_none()).map(|d| {
+                (d.offset_px[0] - t[0]) * d.normal[0] + (d.offset_px[1] - t[1]) * d.normal[1]
+            });
+            if let Some(e) = dir_err {
+                g.directional += 1;
+                g.dir_within += (e.abs() <= 0.5) as usize;
+                g.dir_sq += e * e;
+            }
             if let Some(e) = err {
                 g.answered += 1;
                 g.sq += e * e;
@@ -63,9 +76,18 @@ fn main() -> Result<()> {
                 g.wrong += (e > 1.0) as usize;
             }
             if verbose && err.is_none_or(|e| e > 0.3) {
+                // How far the best candidate (refined) is from the truth, answered or not, and
+                // the NCC of the runner-up candidate.
+                let best_err = r.shift_from_nominal_px.map(|s| {
+                    let e = (nominal[0] + s[0] - t[0]).hypot(nominal[1] + s[1] - t[1]);
+                    (e * 1000.0).round() / 1000.0
+                });
+                let second = r.candidates.get(1).map_or(f64::NAN, |c| c.ncc);
                 println!(
-                    "{name} {a}-{b}: err {:?} shift {:?} ncc {:.3} round {:.3} {}",
+                    "{name} {a}-{b}: err {:?} best {best_err:?} 2nd ncc {second:.3} across {:?} \
+                     shift {:?} ncc {:.3} round {:.3} {}",
                     err.map(|e| (e * 1000.0).round() / 1000.0),
+                    dir_err.map(|e| (e * 1000.0).round() / 1000.0),
                     r.shift_from_nominal_px
                         .map(|s| [(s[0] * 10.0).round() / 10.0, (s[1] * 10.0).round() / 10.0]),
                     r.ncc,
@@ -75,18 +97,27 @@ fn main() -> Result<()> {
             }
         }
     }
-    println!("| group | pairs | answered | within 0.5 px | wrong > 1 px | rms of answered px |");
-    println!("|---|---|---|---|---|---|");
+    println!(
+        "| group | pairs | answered | within 0.5 px | wrong > 1 px | rms of answered px | \
+         one-direction answers | within 0.5 px across | rms across px |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|");
     let mut all = Tally::default();
     for (k, g) in &groups {
         println!(
-            "| {k} | {} | {} | {} | {} | {:.3} |",
+            "| {k} | {} | {} | {} | {} | {:.3} | {} | {} | {:.3} |",
             g.pairs,
             g.answered,
             g.within,
             g.wrong,
-            (g.sq / g.answered.max(1) as f64).sqrt()
+            (g.sq / g.answered.max(1) as f64).sqrt(),
+            g.directional,
+            g.dir_within,
+            (g.dir_sq / g.directional.max(1) as f64).sqrt()
         );
+        all.directional += g.directional;
+        all.dir_within += g.dir_within;
+        all.dir_sq += g.dir_sq;
         all.pairs += g.pairs;
         all.answered += g.answered;
         all.within += g.within;
@@ -94,12 +125,15 @@ fn main() -> Result<()> {
         all.sq += g.sq;
     }
     println!(
-        "| all | {} | {} | {} | {} | {:.3} |",
+        "| all | {} | {} | {} | {} | {:.3} | {} | {} | {:.3} |",
         all.pairs,
         all.answered,
         all.within,
         all.wrong,
-        (all.sq / all.answered.max(1) as f64).sqrt()
+        (all.sq / all.answered.max(1) as f64).sqrt(),
+        all.directional,
+        all.dir_within,
+        (all.dir_sq / all.directional.max(1) as f64).sqrt()
     );
     Ok(())
 }

@@ -16,6 +16,15 @@
 //! removal leaves the smallest total cost, links and prior together, is dropped. In a single
 //! loop every link carries the same residual; the prior then decides, since removing the wrong
 //! link leaves positions that agree with the stage and removing a right one does not.
+//!
+//! One-direction links ([`AnisotropicLink`], [`solve_positions_anisotropic`]): a pair whose NCC
+//! peak is a ridge (a lone scratch, a straight flank across a featureless strip) knows its
+//! offset across the ridge only. Its residual costs `r^T I r` with `I` its 2 x 2 information
+//! (rank 1 for a ridge), which couples x and y: with such links the solve is one system over
+//! (x, y) of every tile. A tile whose kept links fix one direction only is placed along the
+//! other by the prior alone and is reported so ([`GlobalSolution::registered_directions`],
+//! [`GlobalSolution::stage_direction`]); the outlier test uses a one-direction link's residual
+//! across its ridge only.
 
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
@@ -36,6 +45,67 @@ pub struct Link {
     pub offset_px: [f64; 2],
     /// Standard deviation (px) the offset is trusted to; its weight is `1 / sigma^2`.
     pub sigma_px: f64,
+}
+
+/// A pair offset known in one direction better than in the other: `position(b) -
+/// position(a) = offset_px` with the residual `r` costing `r^T I r`, `I` the offset's
+/// information (inverse covariance). A ridge of the NCC (a lone scratch, a straight flank)
+/// fixes the offset across it only: `I` has rank 1 ([`AnisotropicLink::across`]) and the solve
+/// takes nothing from it along the ridge, where the tile's other links (or, failing those,
+/// its stage position) place it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct AnisotropicLink {
+    /// Tile indices into the stage-position slice.
+    pub a: usize,
+    pub b: usize,
+    /// Measured offset of b's pixel (0, 0) from a's, px, (x, y); only its components in the
+    /// directions `information_per_px2` weights are used.
+    pub offset_px: [f64; 2],
+    /// Symmetric positive semi-definite 2 x 2 information matrix, 1/px^2, rows (x, y).
+    pub information_per_px2: [[f64; 2]; 2],
+}
+
+impl AnisotropicLink {
+    /// The one-direction link `normal . (p_b - p_a) = normal . offset_px` trusted to
+    /// `sigma_px` across (`normal` need not be of unit length) and not at all along.
+    pub fn across(
+        a: usize,
+        b: usize,
+        offset_px: [f64; 2],
+        normal: [f64; 2],
+        sigma_px: f64,
+    ) -> Self {
+        let len = normal[0].hypot(normal[1]);
+        let n = [normal[0] / len, normal[1] / len];
+        let w = 1.0 / (sigma_px * sigma_px);
+        AnisotropicLink {
+            a,
+            b,
+            offset_px,
+            information_per_px2: [
+                [w * n[0] * n[0], w * n[0] * n[1]],
+                [w * n[0] * n[1], w * n[1] * n[1]],
+            ],
+        }
+    }
+}
+
+/// Eigenvalues (larger first) and the unit eigenvector of the larger one of a symmetric 2 x 2
+/// matrix.
+fn eigen2(m: [[f64; 2]; 2]) -> ([f64; 2], [f64; 2]) {
+    let (p, q, r) = (m[0][0], m[1][1], 0.5 * (m[0][1] + m[1][0]));
+    let mean = 0.5 * (p + q);
+    let disc = (0.25 * (p - q) * (p - q) + r * r).sqrt();
+    let (hi, lo) = (mean + disc, mean - disc);
+    let v = if r.abs() > 1e-12 * hi.abs().max(1e-300) {
+        [hi - q, r]
+    } else if p >= q {
+        [1.0, 0.0]
+    } else {
+        [0.0, 1.0]
+    };
+    let len = v[0].hypot(v[1]);
+    ([hi, lo], [v[0] / len, v[1] / len])
 }
 
 /// Parameters of [`solve_positions`].
@@ -74,9 +144,30 @@ pub struct GlobalSolution {
     pub linked: Vec<bool>,
     /// One outcome per input link, in input order.
     pub links: Vec<LinkOutcome>,
-    /// Largest residual of a kept link, px (0 without links).
+    /// Largest residual of a kept link, px (0 without links); for an anisotropic link, its
+    /// residual in the direction it measures.
     pub max_residual_px: f64,
+    /// One outcome per anisotropic link, in input order; the residual is its component in the
+    /// direction the link measures (the one of its largest information).
+    #[serde(default)]
+    pub anisotropic_links: Vec<LinkOutcome>,
+    /// Per tile, how many independent directions its kept links fix: 2 (placed by links), 1
+    /// (one direction from links, the other from the stage prior, see `stage_direction`) or 0
+    /// (placed by the stage prior alone).
+    #[serde(default)]
+    pub registered_directions: Vec<u8>,
+    /// Per tile with `registered_directions` 1: the unit direction (x, y) along which the stage
+    /// prior alone placed it (the links fix the perpendicular one).
+    #[serde(default)]
+    pub stage_direction: Vec<Option<[f64; 2]>>,
 }
+
+/// Smallest eigenvalue, per unit of a link, of a tile's summed link directions for a
+/// direction to count as fixed by its links ([`GlobalSolution::registered_directions`]): two
+/// ridge links fix a tile fully once their normals are at least 26 degrees apart
+/// (1 - cos 26 deg = 0.1); closer, the position along their common ridge is a division by
+/// almost nothing.
+const MIN_DIRECTION_STRENGTH: f64 = 0.1;
 
 /// Why there is no global solution.
 #[derive(Debug, Clone, PartialEq, Error, Serialize, Deserialize)]
@@ -119,6 +210,90 @@ pub fn solve_positions(
     links: &[Link],
     params: &SolveParams,
 ) -> Result<GlobalSolution, SolveError> {
+    solve_positions_anisotropic(stage_px, links, &[], params)
+}
+
+/// One link of the solve: an isotropic [`Link`] (weight `w` in x and y) or an
+/// [`AnisotropicLink`] (information `info`).
+#[derive(Debug, Clone, Copy)]
+struct Edge {
+    a: usize,
+    b: usize,
+    d: [f64; 2],
+    /// Information matrix, 1/px^2 (`w` times the identity for an isotropic link).
+    info: [[f64; 2]; 2],
+    /// The direction the link measures best (unit) and its information there.
+    strong: [f64; 2],
+    w_strong: f64,
+    isotropic: bool,
+}
+
+impl Edge {
+    fn iso(l: &Link) -> Edge {
+        let w = 1.0 / (l.sigma_px * l.sigma_px);
+        Edge {
+            a: l.a,
+            b: l.b,
+            d: l.offset_px,
+            info: [[w, 0.0], [0.0, w]],
+            strong: [1.0, 0.0],
+            w_strong: w,
+            isotropic: true,
+        }
+    }
+
+    fn aniso(l: &AnisotropicLink) -> Edge {
+        let ([hi, _], v) = eigen2(l.information_per_px2);
+        Edge {
+            a: l.a,
+            b: l.b,
+            d: l.offset_px,
+            info: l.information_per_px2,
+            strong: v,
+            w_strong: hi,
+            isotropic: false,
+        }
+    }
+
+    /// `(p_b - p_a) - d`, px.
+    fn residual(&self, pos: &[[f64; 2]]) -> [f64; 2] {
+        [
+            pos[self.b][0] - pos[self.a][0] - self.d[0],
+            pos[self.b][1] - pos[self.a][1] - self.d[1],
+        ]
+    }
+
+    /// The residual as reported and tested against `outlier_px`: the whole vector for an
+    /// isotropic link, its component along the measured direction for an anisotropic one
+    /// (along a ridge the link says nothing, so a misfit there is no inconsistency).
+    fn reported_residual(&self, pos: &[[f64; 2]]) -> [f64; 2] {
+        let r = self.residual(pos);
+        if self.isotropic {
+            return r;
+        }
+        let s = r[0] * self.strong[0] + r[1] * self.strong[1];
+        [s * self.strong[0], s * self.strong[1]]
+    }
+
+    /// `r^T I r`.
+    fn cost(&self, pos: &[[f64; 2]]) -> f64 {
+        let r = self.residual(pos);
+        let i = &self.info;
+        r[0] * (i[0][0] * r[0] + i[0][1] * r[1]) + r[1] * (i[1][0] * r[0] + i[1][1] * r[1])
+    }
+}
+
+/// [`solve_positions`] with anisotropic links besides the isotropic ones (see
+/// [`AnisotropicLink`]). A tile whose kept links fix one direction only is placed along the
+/// other by the stage prior alone, and says so ([`GlobalSolution::registered_directions`],
+/// [`GlobalSolution::stage_direction`]). Without anisotropic links this is exactly
+/// [`solve_positions`].
+pub fn solve_positions_anisotropic(
+    stage_px: &[[f64; 2]],
+    links: &[Link],
+    anisotropic: &[AnisotropicLink],
+    params: &SolveParams,
+) -> Result<GlobalSolution, SolveError> {
     if !(params.stage_sigma_px.is_finite() && params.stage_sigma_px > 0.0) {
         return Err(bad("stage_sigma_px", "must be finite and > 0"));
     }
@@ -131,8 +306,12 @@ pub fn solve_positions(
             return Err(SolveError::BadStage { tile });
         }
     }
-    for (i, l) in links.iter().enumerate() {
-        for tile in [l.a, l.b] {
+    let ends = links
+        .iter()
+        .map(|l| (l.a, l.b))
+        .chain(anisotropic.iter().map(|l| (l.a, l.b)));
+    for (i, (a, b)) in ends.enumerate() {
+        for tile in [a, b] {
             if tile >= n {
                 return Err(SolveError::TileOutOfRange {
                     link: i,
@@ -141,12 +320,34 @@ pub fn solve_positions(
                 });
             }
         }
-        if l.a == l.b {
-            return Err(SolveError::SelfLink { link: i, tile: l.a });
+        if a == b {
+            return Err(SolveError::SelfLink { link: i, tile: a });
         }
+    }
+    for (i, l) in links.iter().enumerate() {
         let finite = l.offset_px.iter().all(|v| v.is_finite());
         if !(finite && l.sigma_px.is_finite() && l.sigma_px > 0.0) {
             return Err(SolveError::BadLink { link: i });
+        }
+    }
+    for (i, l) in anisotropic.iter().enumerate() {
+        let m = l.information_per_px2;
+        let finite = l
+            .offset_px
+            .iter()
+            .chain(m.iter().flatten())
+            .all(|v| v.is_finite());
+        // Symmetric, positive semi-definite and not zero.
+        let psd = finite
+            && (m[0][1] - m[1][0]).abs() <= 1e-9 * (m[0][0] + m[1][1]).abs()
+            && m[0][0] >= 0.0
+            && m[1][1] >= 0.0
+            && m[0][0] * m[1][1] - m[0][1] * m[1][0] >= -1e-9 * (m[0][0] + m[1][1]).powi(2)
+            && m[0][0] + m[1][1] > 0.0;
+        if !psd {
+            return Err(SolveError::BadLink {
+                link: links.len() + i,
+            });
         }
     }
     if n == 0 {
@@ -155,8 +356,16 @@ pub fn solve_positions(
             linked: Vec::new(),
             links: Vec::new(),
             max_residual_px: 0.0,
+            anisotropic_links: Vec::new(),
+            registered_directions: Vec::new(),
+            stage_direction: Vec::new(),
         });
     }
+    let edges: Vec<Edge> = links
+        .iter()
+        .map(Edge::iso)
+        .chain(anisotropic.iter().map(Edge::aniso))
+        .collect();
     // Relative to the mean stage position: small numbers, well conditioned.
     let mean = [0, 1].map(|k| stage_px.iter().map(|s| s[k]).sum::<f64>() / n as f64);
     let stage: Vec<[f64; 2]> = stage_px
@@ -164,11 +373,11 @@ pub fn solve_positions(
         .map(|s| [s[0] - mean[0], s[1] - mean[1]])
         .collect();
     let w_stage = 1.0 / (params.stage_sigma_px * params.stage_sigma_px);
-    let mut kept = vec![true; links.len()];
-    let mut sol = solve_once(&stage, links, &kept, w_stage)?;
+    let mut kept = vec![true; edges.len()];
+    let mut sol = solve_once(&stage, &edges, &kept, w_stage)?;
     loop {
-        let suspects: Vec<usize> = (0..links.len())
-            .filter(|&i| kept[i] && norm(residual(&sol.0, &links[i])) > params.outlier_px)
+        let suspects: Vec<usize> = (0..edges.len())
+            .filter(|&i| kept[i] && norm(edges[i].reported_residual(&sol.0)) > params.outlier_px)
             .collect();
         if suspects.is_empty() {
             break;
@@ -176,7 +385,7 @@ pub fn solve_positions(
         let mut best: Option<(usize, Trial)> = None;
         for &i in &suspects {
             kept[i] = false;
-            let trial = solve_once(&stage, links, &kept, w_stage)?;
+            let trial = solve_once(&stage, &edges, &kept, w_stage)?;
             kept[i] = true;
             if best.as_ref().is_none_or(|b| trial.1 < b.1 .1) {
                 best = Some((i, trial));
@@ -186,16 +395,15 @@ pub fn solve_positions(
         kept[i] = false;
         sol = trial;
     }
-    let mut linked = vec![false; n];
+    let (registered_directions, stage_direction) = directions(n, &edges, &kept);
+    let linked: Vec<bool> = registered_directions.iter().map(|&d| d == 2).collect();
     let mut max_residual_px: f64 = 0.0;
-    let outcomes = links
+    let mut outcomes: Vec<LinkOutcome> = edges
         .iter()
         .zip(&kept)
-        .map(|(l, &k)| {
-            let r = residual(&sol.0, l);
+        .map(|(e, &k)| {
+            let r = e.reported_residual(&sol.0);
             if k {
-                linked[l.a] = true;
-                linked[l.b] = true;
                 max_residual_px = max_residual_px.max(norm(r));
             }
             LinkOutcome {
@@ -204,6 +412,7 @@ pub fn solve_positions(
             }
         })
         .collect();
+    let anisotropic_links = outcomes.split_off(links.len());
     Ok(GlobalSolution {
         positions_px: sol
             .0
@@ -213,7 +422,54 @@ pub fn solve_positions(
         linked,
         links: outcomes,
         max_residual_px,
+        anisotropic_links,
+        registered_directions,
+        stage_direction,
     })
+}
+
+/// Per tile, the directions its kept links fix (2, 1 or 0) and, with 1, the unit direction
+/// left to the stage. Each link counts with unit strength: an isotropic one in every
+/// direction, an anisotropic one along its measured direction in proportion to its
+/// information there (a rank-1 link adds `n n^T`).
+fn directions(n: usize, edges: &[Edge], kept: &[bool]) -> (Vec<u8>, Vec<Option<[f64; 2]>>) {
+    let mut sum = vec![[[0.0f64; 2]; 2]; n];
+    let mut full = vec![false; n];
+    for (e, _) in edges.iter().zip(kept).filter(|(_, &k)| k) {
+        for t in [e.a, e.b] {
+            if e.isotropic {
+                full[t] = true;
+            } else {
+                for (row, info) in sum[t].iter_mut().zip(&e.info) {
+                    for (v, i) in row.iter_mut().zip(info) {
+                        *v += i / e.w_strong;
+                    }
+                }
+            }
+        }
+    }
+    let mut dirs = Vec::with_capacity(n);
+    let mut stage_dir = Vec::with_capacity(n);
+    for t in 0..n {
+        if full[t] {
+            dirs.push(2);
+            stage_dir.push(None);
+            continue;
+        }
+        let ([hi, lo], v) = eigen2(sum[t]);
+        if lo >= MIN_DIRECTION_STRENGTH {
+            dirs.push(2);
+            stage_dir.push(None);
+        } else if hi >= MIN_DIRECTION_STRENGTH {
+            dirs.push(1);
+            // Perpendicular to the fixed direction.
+            stage_dir.push(Some([-v[1], v[0]]));
+        } else {
+            dirs.push(0);
+            stage_dir.push(None);
+        }
+    }
+    (dirs, stage_dir)
 }
 
 /// A pair the pairwise test found ambiguous (several distinct, equally good NCC maxima, as on
@@ -249,12 +505,27 @@ pub fn solve_positions_with_alternatives(
     ambiguous: &[AmbiguousLink],
     params: &SolveParams,
 ) -> Result<(GlobalSolution, Vec<Option<usize>>), SolveError> {
+    solve_scan_positions(stage_px, links, &[], ambiguous, params)
+}
+
+/// [`solve_positions_with_alternatives`] with anisotropic links as well
+/// ([`solve_positions_anisotropic`]); a tile counts as placed (for resolving ambiguous pairs)
+/// when its links fix both directions. Link numbers in errors count `links`, then
+/// `anisotropic`, then `ambiguous`.
+pub fn solve_scan_positions(
+    stage_px: &[[f64; 2]],
+    links: &[Link],
+    anisotropic: &[AnisotropicLink],
+    ambiguous: &[AmbiguousLink],
+    params: &SolveParams,
+) -> Result<(GlobalSolution, Vec<Option<usize>>), SolveError> {
+    let first = links.len() + anisotropic.len();
     for (i, l) in ambiguous.iter().enumerate() {
         let n = stage_px.len();
         for tile in [l.a, l.b] {
             if tile >= n {
                 return Err(SolveError::TileOutOfRange {
-                    link: links.len() + i,
+                    link: first + i,
                     tile,
                     tiles: n,
                 });
@@ -262,15 +533,13 @@ pub fn solve_positions_with_alternatives(
         }
         if l.a == l.b {
             return Err(SolveError::SelfLink {
-                link: links.len() + i,
+                link: first + i,
                 tile: l.a,
             });
         }
         let finite = l.offsets_px.iter().flatten().all(|v| v.is_finite());
         if !(finite && l.sigma_px.is_finite() && l.sigma_px > 0.0) {
-            return Err(SolveError::BadLink {
-                link: links.len() + i,
-            });
+            return Err(SolveError::BadLink { link: first + i });
         }
     }
     let mut chosen: Vec<Option<usize>> = vec![None; ambiguous.len()];
@@ -290,7 +559,7 @@ pub fn solve_positions_with_alternatives(
         v
     };
     loop {
-        let sol = solve_positions(stage_px, &all_links(&chosen), params)?;
+        let sol = solve_positions_anisotropic(stage_px, &all_links(&chosen), anisotropic, params)?;
         let pos = &sol.positions_px;
         let mut progress = false;
         // Pairs between placed tiles: the one consistent offset.
@@ -394,13 +663,6 @@ fn agreeing_position(
     found.map(|(m, _)| m)
 }
 
-fn residual(pos: &[[f64; 2]], l: &Link) -> [f64; 2] {
-    [
-        pos[l.b][0] - pos[l.a][0] - l.offset_px[0],
-        pos[l.b][1] - pos[l.a][1] - l.offset_px[1],
-    ]
-}
-
 fn norm(v: [f64; 2]) -> f64 {
     v[0].hypot(v[1])
 }
@@ -411,42 +673,89 @@ type Trial = (Vec<[f64; 2]>, f64);
 /// One weighted least-squares solve with the links marked `kept`.
 fn solve_once(
     stage: &[[f64; 2]],
-    links: &[Link],
+    edges: &[Edge],
     kept: &[bool],
     w_stage: f64,
 ) -> Result<Trial, SolveError> {
+    let kept_edges = || edges.iter().zip(kept).filter(|(_, &k)| k).map(|(e, _)| e);
+    let pos = if kept_edges().all(|e| e.isotropic) {
+        solve_separable(stage, kept_edges(), w_stage)?
+    } else {
+        solve_coupled(stage, kept_edges(), w_stage)?
+    };
+    let mut cost = 0.0;
+    for (i, p) in pos.iter().enumerate() {
+        cost += w_stage * ((p[0] - stage[i][0]).powi(2) + (p[1] - stage[i][1]).powi(2));
+    }
+    for e in kept_edges() {
+        cost += e.cost(&pos);
+    }
+    Ok((pos, cost))
+}
+
+/// Isotropic links only: x and y do not couple, and the normal matrix (a weighted graph
+/// Laplacian plus the prior's diagonal) is the same for both: one factorisation, two
+/// right-hand sides.
+fn solve_separable<'a>(
+    stage: &[[f64; 2]],
+    edges: impl Iterator<Item = &'a Edge>,
+    w_stage: f64,
+) -> Result<Vec<[f64; 2]>, SolveError> {
     let n = stage.len();
-    // The normal matrix (a weighted graph Laplacian plus the prior's diagonal) is the same for
-    // x and y: one factorisation, two right-hand sides.
     let mut m = DMatrix::<f64>::from_diagonal_element(n, n, w_stage);
     let mut rhs = DMatrix::<f64>::zeros(n, 2);
     for i in 0..n {
         rhs[(i, 0)] = w_stage * stage[i][0];
         rhs[(i, 1)] = w_stage * stage[i][1];
     }
-    for (l, _) in links.iter().zip(kept).filter(|(_, &k)| k) {
-        let w = 1.0 / (l.sigma_px * l.sigma_px);
-        m[(l.a, l.a)] += w;
-        m[(l.b, l.b)] += w;
-        m[(l.a, l.b)] -= w;
-        m[(l.b, l.a)] -= w;
+    for e in edges {
+        let w = e.info[0][0];
+        m[(e.a, e.a)] += w;
+        m[(e.b, e.b)] += w;
+        m[(e.a, e.b)] -= w;
+        m[(e.b, e.a)] -= w;
         for k in 0..2 {
-            rhs[(l.b, k)] += w * l.offset_px[k];
-            rhs[(l.a, k)] -= w * l.offset_px[k];
+            rhs[(e.b, k)] += w * e.d[k];
+            rhs[(e.a, k)] -= w * e.d[k];
         }
     }
     let chol = m.cholesky().ok_or(SolveError::Singular)?;
     let x = chol.solve(&rhs);
-    let pos: Vec<[f64; 2]> = (0..n).map(|i| [x[(i, 0)], x[(i, 1)]]).collect();
-    let mut cost = 0.0;
-    for (i, p) in pos.iter().enumerate() {
-        cost += w_stage * ((p[0] - stage[i][0]).powi(2) + (p[1] - stage[i][1]).powi(2));
+    Ok((0..n).map(|i| [x[(i, 0)], x[(i, 1)]]).collect())
+}
+
+/// With anisotropic links x and y couple: one system over (x_0, y_0, x_1, y_1, ...), each link
+/// adding its 2 x 2 information in the Laplacian's four blocks.
+fn solve_coupled<'a>(
+    stage: &[[f64; 2]],
+    edges: impl Iterator<Item = &'a Edge>,
+    w_stage: f64,
+) -> Result<Vec<[f64; 2]>, SolveError> {
+    let n = stage.len();
+    let mut m = DMatrix::<f64>::from_diagonal_element(2 * n, 2 * n, w_stage);
+    let mut rhs = DVector::<f64>::zeros(2 * n);
+    for i in 0..n {
+        rhs[2 * i] = w_stage * stage[i][0];
+        rhs[2 * i + 1] = w_stage * stage[i][1];
     }
-    for (l, _) in links.iter().zip(kept).filter(|(_, &k)| k) {
-        let r = residual(&pos, l);
-        cost += (r[0] * r[0] + r[1] * r[1]) / (l.sigma_px * l.sigma_px);
+    for e in edges {
+        let (a, b) = (2 * e.a, 2 * e.b);
+        for r in 0..2 {
+            for c in 0..2 {
+                let w = e.info[r][c];
+                m[(a + r, a + c)] += w;
+                m[(b + r, b + c)] += w;
+                m[(a + r, b + c)] -= w;
+                m[(b + r, a + c)] -= w;
+            }
+            let id = e.info[r][0] * e.d[0] + e.info[r][1] * e.d[1];
+            rhs[b + r] += id;
+            rhs[a + r] -= id;
+        }
     }
-    Ok((pos, cost))
+    let chol = m.cholesky().ok_or(SolveError::Singular)?;
+    let x = chol.solve(&rhs);
+    Ok((0..n).map(|i| [x[2 * i], x[2 * i + 1]]).collect())
 }
 
 /// One overlap's normal block over (p_a, tx_a, ty_a, p_b, tx_b, ty_b): A^T A, A^T d, d^T d and
@@ -957,6 +1266,171 @@ mod tests {
         let p = &sol.positions_px;
         assert!((p[1][0] - p[0][0] - 98.0).abs() < 1e-3);
         assert!((p[2][0] - 200.0).abs() < 1e-9 && (p[2][1]).abs() < 1e-9);
+    }
+
+    /// Tiles 100 px apart in a row, the stage off by a few px: the truth, the stage.
+    fn row_with_stage_error() -> (Vec<[f64; 2]>, Vec<[f64; 2]>) {
+        let truth = vec![[0.0, 0.0], [97.3, 1.6], [195.1, -0.7]];
+        let stage = grid(1, 3, 100.0);
+        (truth, stage)
+    }
+
+    fn rel(p: &[[f64; 2]], a: usize, b: usize) -> [f64; 2] {
+        [p[b][0] - p[a][0], p[b][1] - p[a][1]]
+    }
+
+    #[test]
+    fn a_ridge_link_fixes_the_across_offset_and_leaves_the_along_one_to_the_stage() {
+        let (truth, stage) = row_with_stage_error();
+        // A scratch along x: the pair's offset is known in y only; the point given on the
+        // ridge is 6 px off along it (where the NCC climb happened to stop).
+        let t = rel(&truth, 0, 1);
+        let ridge = AnisotropicLink::across(0, 1, [t[0] + 6.0, t[1]], [0.0, 1.0], 0.05);
+        let sol =
+            solve_positions_anisotropic(&stage, &[], &[ridge], &SolveParams::default()).unwrap();
+        let r = rel(&sol.positions_px, 0, 1);
+        assert!((r[1] - t[1]).abs() < 1e-3, "across: {r:?} vs {t:?}");
+        // Along the ridge the link says nothing: the stage's relative offset stays.
+        assert!((r[0] - 100.0).abs() < 1e-3, "along: {r:?}");
+        assert_eq!(sol.registered_directions, vec![1, 1, 0]);
+        let d = sol.stage_direction[0].unwrap();
+        assert!(d[0].abs() > 0.999 && d[1].abs() < 1e-6, "{d:?}");
+        assert_eq!(sol.linked, vec![false, false, false]);
+        assert!(sol.anisotropic_links[0].kept);
+        assert!(norm(sol.anisotropic_links[0].residual_px) < 1e-3);
+    }
+
+    #[test]
+    fn a_slanted_ridge_fixes_its_normal_component_only() {
+        let (truth, stage) = row_with_stage_error();
+        let t = rel(&truth, 1, 2);
+        let a: f64 = 0.35;
+        let n = [-a.sin(), a.cos()];
+        // Any point on the ridge: the truth moved 9 px along it.
+        let along = [a.cos() * 9.0, a.sin() * 9.0];
+        let ridge = AnisotropicLink::across(1, 2, [t[0] + along[0], t[1] + along[1]], n, 0.05);
+        let sol =
+            solve_positions_anisotropic(&stage, &[], &[ridge], &SolveParams::default()).unwrap();
+        let r = rel(&sol.positions_px, 1, 2);
+        let across = (r[0] - t[0]) * n[0] + (r[1] - t[1]) * n[1];
+        assert!(across.abs() < 1e-3, "across error {across}");
+        // Along: where the stage put it.
+        let s = rel(&stage, 1, 2);
+        let along_err = (r[0] - s[0]) * n[1] - (r[1] - s[1]) * n[0];
+        assert!(along_err.abs() < 1e-3, "along {along_err}");
+        assert_eq!(sol.registered_directions, vec![0, 1, 1]);
+    }
+
+    #[test]
+    fn two_crossing_ridges_place_a_tile_fully() {
+        // 2 x 2 grid; tile 3's only links are a ridge across x (to tile 2, left of it) and a
+        // ridge across y (to tile 1, above it): together they fix it.
+        let truth = vec![[0.0, 0.0], [101.2, -1.1], [0.8, 98.9], [102.4, 99.6]];
+        let stage = grid(2, 2, 100.0);
+        let full = |a: usize, b: usize| Link {
+            a,
+            b,
+            offset_px: rel(&truth, a, b),
+            sigma_px: 0.05,
+        };
+        let links = [full(0, 1), full(0, 2)];
+        let t23 = rel(&truth, 2, 3);
+        let t13 = rel(&truth, 1, 3);
+        let ridges = [
+            AnisotropicLink::across(2, 3, [t23[0], t23[1] + 4.0], [1.0, 0.0], 0.05),
+            AnisotropicLink::across(1, 3, [t13[0] - 5.0, t13[1]], [0.0, 1.0], 0.05),
+        ];
+        let sol =
+            solve_positions_anisotropic(&stage, &links, &ridges, &SolveParams::default()).unwrap();
+        for i in 0..4 {
+            let (p, t) = (rel(&sol.positions_px, 0, i), rel(&truth, 0, i));
+            assert!(
+                (p[0] - t[0]).abs() < 1e-3 && (p[1] - t[1]).abs() < 1e-3,
+                "{i}: {p:?} {t:?}"
+            );
+        }
+        assert_eq!(sol.registered_directions, vec![2, 2, 2, 2]);
+        assert!(sol.linked.iter().all(|&l| l));
+        assert!(sol.stage_direction.iter().all(|d| d.is_none()));
+    }
+
+    #[test]
+    fn a_ridge_link_wrong_across_is_removed_and_one_wrong_along_is_not() {
+        // A loop 0-1-3-2-0 of full links plus a ridge between 0 and 3 (diagonal, for the test).
+        let truth = vec![[0.0, 0.0], [101.2, -1.1], [0.8, 98.9], [102.4, 99.6]];
+        let stage = grid(2, 2, 100.0);
+        let full = |a: usize, b: usize| Link {
+            a,
+            b,
+            offset_px: rel(&truth, a, b),
+            sigma_px: 0.05,
+        };
+        let links = [full(0, 1), full(0, 2), full(1, 3), full(2, 3)];
+        let t = rel(&truth, 0, 3);
+        for (shift, removed) in [([0.0, 3.0], true), ([12.0, 0.0], false)] {
+            let ridge =
+                AnisotropicLink::across(0, 3, [t[0] + shift[0], t[1] + shift[1]], [0.0, 1.0], 0.05);
+            let sol =
+                solve_positions_anisotropic(&stage, &links, &[ridge], &SolveParams::default())
+                    .unwrap();
+            assert_eq!(!sol.anisotropic_links[0].kept, removed, "{shift:?}");
+            assert!(sol.links.iter().all(|l| l.kept));
+            let p = rel(&sol.positions_px, 0, 3);
+            assert!(
+                (p[0] - t[0]).abs() < 1e-3 && (p[1] - t[1]).abs() < 1e-3,
+                "{p:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn without_anisotropic_links_the_solve_is_the_isotropic_one() {
+        let (truth, stage) = row_with_stage_error();
+        let links = [Link {
+            a: 0,
+            b: 1,
+            offset_px: rel(&truth, 0, 1),
+            sigma_px: 0.05,
+        }];
+        let p = SolveParams::default();
+        let a = solve_positions(&stage, &links, &p).unwrap();
+        let b = solve_positions_anisotropic(&stage, &links, &[], &p).unwrap();
+        assert_eq!(a, b);
+        assert_eq!(a.registered_directions, vec![2, 2, 0]);
+        assert_eq!(a.linked, vec![true, true, false]);
+    }
+
+    #[test]
+    fn malformed_anisotropic_links_are_refused() {
+        let stage = grid(1, 2, 100.0);
+        let p = SolveParams::default();
+        let with = |m: [[f64; 2]; 2]| AnisotropicLink {
+            a: 0,
+            b: 1,
+            offset_px: [100.0, 0.0],
+            information_per_px2: m,
+        };
+        for m in [
+            [[1.0, 0.0], [0.0, -1.0]],
+            [[1.0, 2.0], [2.0, 1.0]],
+            [[1.0, 0.5], [0.0, 1.0]],
+            [[0.0, 0.0], [0.0, 0.0]],
+            [[f64::NAN, 0.0], [0.0, 1.0]],
+        ] {
+            assert!(
+                matches!(
+                    solve_positions_anisotropic(&stage, &[], &[with(m)], &p),
+                    Err(SolveError::BadLink { link: 0 })
+                ),
+                "{m:?}"
+            );
+        }
+        let mut l = with([[1.0, 0.0], [0.0, 0.0]]);
+        l.b = 7;
+        assert!(matches!(
+            solve_positions_anisotropic(&stage, &[], &[l], &p),
+            Err(SolveError::TileOutOfRange { tile: 7, .. })
+        ));
     }
 
     #[test]

@@ -176,8 +176,9 @@ pub use feature_match::{
     register_pair_features, FeatureMatch, FeatureMethod, FeatureParams, FeatureRegistration,
 };
 pub use global::{
-    solve_planes, solve_planes_in, solve_positions, GlobalSolution, Link, LinkOutcome,
-    PlaneSolution, PlaneTiles, SolveError, SolveParams,
+    solve_planes, solve_planes_in, solve_positions, solve_positions_anisotropic,
+    solve_scan_positions, AnisotropicLink, GlobalSolution, Link, LinkOutcome, PlaneSolution,
+    PlaneTiles, SolveError, SolveParams,
 };
 pub use harris::{harris_corners, Corner, HarrisParams};
 pub use params::{MatcherParams, RegistrationMethod};
@@ -187,8 +188,8 @@ pub use plane::{
 };
 pub use raster::InputError;
 pub use register::{
-    register_pair, Candidate, PairRegistration, PhaseCorrelator, PhaseParams, Rejection, SubPixel,
-    Window,
+    register_pair, Candidate, DirectionalOffset, PairRegistration, PhaseCorrelator, PhaseParams,
+    Rejection, SubPixel, Window,
 };
 pub use scan::{ScanError, ScanParams, ScanRegistration, ScanTile};
 pub use sift::{sift_keypoints, Keypoint, SiftParams};

@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::fft2::Fft2;
-use crate::ncc::{ncc_at, ncc_stencil, overlap_in_a, LevelledTile};
+use crate::ncc::{ncc_at, ncc_in, ncc_stencil, overlap_in_a, LevelledTile};
 use crate::plane::{PlaneCorrection, PlaneSums};
 use crate::raster::{validate_offset, InputError};
 use surfstream_core::fft::fast_len;
@@ -71,6 +71,15 @@ pub struct PhaseParams {
     /// matches measure 0.85-0.99 on the synthetic tests (noise up to 10 % of the roughness,
     /// 30 % dropouts), unrelated overlaps below 0.1.
     pub min_ncc: f64,
+    /// Smallest NCC of an answer below `min_ncc` that is still accepted because it stands out:
+    /// a round peak (roundness at least 0.3) whose NCC is at least `distinct_ncc_ratio` times
+    /// every other candidate's. A strip holding one or two isolated features in noise (a
+    /// polished plane with a few pits at 10 % overlap) measures 0.16-0.48 at the true offset
+    /// with every other candidate below 0.05; unrelated overlaps measure below 0.05 throughout
+    /// (`scripts/bench_sparse.py`). 1 or more disables it.
+    pub min_ncc_distinct: f64,
+    /// See `min_ncc_distinct`.
+    pub distinct_ncc_ratio: f64,
     /// Largest accepted |shift from nominal| per axis, px.
     pub max_shift_px: f64,
     /// The shift limit along an axis is also at most this fraction of the overlap extent
@@ -115,6 +124,8 @@ impl Default for PhaseParams {
     fn default() -> Self {
         PhaseParams {
             min_ncc: 0.5,
+            min_ncc_distinct: 0.15,
+            distinct_ncc_ratio: 3.0,
             max_shift_px: 30.0,
             max_shift_fraction: 0.45,
             min_overlap_side_px: 8,
@@ -143,6 +154,12 @@ impl PhaseParams {
         };
         if !(self.min_ncc.is_finite() && self.min_ncc <= 1.0) {
             return bad("min_ncc", "must be a finite number <= 1");
+        }
+        if !(self.min_ncc_distinct.is_finite() && self.min_ncc_distinct > 0.0) {
+            return bad("min_ncc_distinct", "must be finite and > 0");
+        }
+        if !(self.distinct_ncc_ratio.is_finite() && self.distinct_ncc_ratio >= 1.0) {
+            return bad("distinct_ncc_ratio", "must be finite and >= 1");
         }
         if !(self.max_shift_px.is_finite() && self.max_shift_px >= 0.0) {
             return bad("max_shift_px", "must be finite and >= 0");
@@ -267,6 +284,28 @@ pub struct PairRegistration {
     pub rejection: Option<Rejection>,
     /// The verified candidates, best NCC first.
     pub candidates: Vec<Candidate>,
+    /// For a pair refused because its NCC peak is a ridge (or an ambiguous row of maxima along
+    /// one line), the one direction the texture does fix: the global solve uses it as a
+    /// one-direction constraint. `None` otherwise (and for every accepted pair).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub directional: Option<DirectionalOffset>,
+}
+
+/// The offset of a pair known across a feature only: a lone scratch or a straight flank makes
+/// an NCC ridge, whose top is fixed across it (along `normal`) and free along it.
+/// `normal . (position(b) - position(a)) = normal . offset_px`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct DirectionalOffset {
+    /// A point on the ridge top (b's pixel (0, 0) minus a's, px, (x, y)); only its component
+    /// along `normal` is measured.
+    pub offset_px: [f64; 2],
+    /// Unit vector across the ridge (the Hessian's direction of largest curvature).
+    pub normal: [f64; 2],
+    /// Curvature of ln NCC across the ridge and along it, 1/px^2 (eigenvalues of minus the
+    /// Hessian of the 3 x 3 samples' logarithms): the peak's information in each direction.
+    pub curvature_per_px2: [f64; 2],
+    /// NCC at the ridge point.
+    pub ncc: f64,
 }
 
 impl PairRegistration {
@@ -282,6 +321,7 @@ impl PairRegistration {
             valid_overlap_px: 0,
             rejection: Some(rejection),
             candidates: Vec::new(),
+            directional: None,
         }
     }
 
@@ -450,7 +490,16 @@ impl PhaseCorrelator {
         // overlap, and their planes then differ by a slope that shifts the NCC peak (0.4 px
         // on 22 px overlaps of a wavy specimen).
         let (lev_a, lev_b) = relevelled(a, b, best.offset_px).unwrap_or((lev_a, lev_b));
-        let (peak, lev_a, lev_b) = settled_peak(a, b, best.offset_px, lev_a, lev_b);
+        let (mut peak, lev_a, lev_b) = settled_peak(a, b, best.offset_px, lev_a, lev_b);
+        if peak.roundness >= params.min_peak_roundness && peak.roundness < RIDGE_MAX_ROUNDNESS {
+            // A 3 x 3 stencil cannot tell a sharp slanted ridge from a peak: its roundness
+            // reads 0.06-0.07 on a lone scratch, whose 2-D answer is then 3-4 px wrong along
+            // it. The fall-off farther out along the weak direction can.
+            let far = far_roundness(&lev_a, &lev_b, &peak);
+            if far < RIDGE_FAR_ROUNDNESS {
+                peak.roundness = far;
+            }
+        }
         let (int_offset, frac) = self.subpixel(&a, &b, &peak, params);
         let (ncc, valid_overlap_px) = if int_offset == best.offset_px {
             (best.ncc, best.valid_px)
@@ -475,8 +524,10 @@ impl PhaseCorrelator {
             valid_overlap_px,
             rejection: None,
             candidates: cands.clone(),
+            directional: None,
         };
         let limit = shift_limit_px(params, overlap_px);
+        let mut line = Vec::new();
         out.rejection = self.decide(
             (&a, &b),
             nominal_offset_px,
@@ -484,10 +535,19 @@ impl PhaseCorrelator {
             (&cands, &peak),
             (ncc, valid_overlap_px),
             (shift, limit),
-            alternatives,
+            (alternatives, &mut line),
         );
-        if out.rejection.is_none() {
-            out.offset_px = Some(offset);
+        match &out.rejection {
+            None => out.offset_px = Some(offset),
+            Some(Rejection::NotLocalized { .. }) | Some(Rejection::Ambiguous { .. }) => {
+                out.directional =
+                    directional_offset(&peak, &line, nominal_offset_px, params, limit);
+                if out.directional.is_some() {
+                    // The maxima along the ridge are one answer, not several to choose from.
+                    alternatives.clear();
+                }
+            }
+            Some(_) => {}
         }
         out
     }
@@ -612,16 +672,19 @@ impl PhaseCorrelator {
         (cands, peak): (&[Candidate], &NccPeak),
         (ncc, valid_overlap_px): (f64, usize),
         (shift, limit): ([f64; 2], [f64; 2]),
-        alternatives: &mut Vec<Alternative>,
+        (alternatives, rival_peaks): (&mut Vec<Alternative>, &mut Vec<[i64; 2]>),
     ) -> Option<Rejection> {
         let best = cands[0];
-        if valid_overlap_px < params.min_valid_px.max(3) || ncc < params.min_ncc {
+        if valid_overlap_px < params.min_valid_px.max(3)
+            || (ncc < params.min_ncc && !stands_out(ncc, cands, peak, params))
+        {
             return Some(Rejection::LowNcc {
                 ncc,
                 min_ncc: params.min_ncc,
             });
         }
         let rivals = rivals(*a, *b, cands, peak, params);
+        rival_peaks.extend(rivals.iter().map(|(_, q)| q.offset_px));
         if let Some((r, _)) = rivals.first() {
             // The distinct maxima that would each pass every other check are kept for the
             // global solve, which may pick the one consistent with the rest of the scan.
@@ -831,6 +894,197 @@ impl PhaseCorrelator {
             ],
         )
     }
+}
+
+/// Largest distance (px) of an ambiguous pair's rival maximum from the line along the ridge
+/// through the best one for the rivals to count as the same ridge.
+const RIDGE_LINE_PX: f64 = 1.5;
+
+/// Largest roundness of a peak treated as a ridge when its rivals lie along it: the
+/// near-ridge peaks that pass `min_peak_roundness` (0.05) but sit on a row of equal maxima.
+const RIDGE_MAX_ROUNDNESS: f64 = 0.3;
+
+/// The one-direction answer of a pair refused as a ridge or as ambiguous (`rival_peaks`: the
+/// rivals' NCC maxima): the top of the NCC ridge across it. `None` unless the peak is concave
+/// across, every rival lies on the ridge line through it (within [`RIDGE_LINE_PX`]; a row of
+/// maxima across the ridge is a periodic texture's aliases, not one ridge), and the shift
+/// across stays within the shift limit.
+fn directional_offset(
+    peak: &NccPeak,
+    rival_peaks: &[[i64; 2]],
+    nominal_offset_px: [f64; 2],
+    params: &PhaseParams,
+    limit: [f64; 2],
+) -> Option<DirectionalOffset> {
+    let c = &peak.c;
+    let ncc = c[1][1];
+    if ncc.is_nan() || ncc < params.min_ncc {
+        return None;
+    }
+    if !rival_peaks.is_empty() && peak.roundness > RIDGE_MAX_ROUNDNESS {
+        return None;
+    }
+    let (g, [across, along], n) = peak_axes(c)?;
+    for o in rival_peaks {
+        let d = [
+            (o[0] - peak.offset_px[0]) as f64,
+            (o[1] - peak.offset_px[1]) as f64,
+        ];
+        if (d[0] * n[0] + d[1] * n[1]).abs() > RIDGE_LINE_PX {
+            return None;
+        }
+    }
+    // The top across the ridge from the integer maximum: the quadric along `normal`.
+    let t = (g[0] * n[0] + g[1] * n[1]) / across;
+    if !(t.is_finite() && t.abs() <= 1.0) {
+        return None;
+    }
+    let offset_px = [
+        peak.offset_px[0] as f64 + t * n[0],
+        peak.offset_px[1] as f64 + t * n[1],
+    ];
+    // The shift limit applies to the shift across (the one measured), as in `decide`.
+    let s =
+        (offset_px[0] - nominal_offset_px[0]) * n[0] + (offset_px[1] - nominal_offset_px[1]) * n[1];
+    for k in 0..2 {
+        let sk = s * n[k];
+        let widening = nominal_offset_px[k].abs() >= 1.0 && sk * nominal_offset_px[k] < 0.0;
+        let lim = if widening {
+            params.max_shift_px
+        } else {
+            limit[k]
+        };
+        if sk.abs() > lim {
+            return None;
+        }
+    }
+    Some(DirectionalOffset {
+        offset_px,
+        normal: n,
+        curvature_per_px2: [across, along],
+        ncc,
+    })
+}
+
+/// Whether an answer whose NCC is below `min_ncc` is accepted all the same (see
+/// [`PhaseParams::min_ncc_distinct`]): a round peak far above every other candidate at least
+/// 3 px from it.
+fn stands_out(ncc: f64, cands: &[Candidate], peak: &NccPeak, params: &PhaseParams) -> bool {
+    let runner_up = cands
+        .iter()
+        .filter(|c| chebyshev(c.offset_px, peak.offset_px) >= 3)
+        .map(|c| c.ncc)
+        .fold(0.0, f64::max);
+    ncc >= params.min_ncc_distinct
+        && peak.roundness >= RIDGE_MAX_ROUNDNESS
+        && ncc >= params.distinct_ncc_ratio * runner_up
+}
+
+/// The quadric of ln NCC (the Gaussian model of the sub-pixel fit; NCC itself when a sample
+/// is not positive) through the 3 x 3 samples: its gradient, its curvatures (eigenvalues of
+/// minus the Hessian, larger first) and the unit direction of the larger. `None` unless the
+/// larger curvature is positive.
+fn peak_axes(c: &[[f64; 3]; 3]) -> Option<([f64; 2], [f64; 2], [f64; 2])> {
+    let logs = c.iter().flatten().all(|&v| v > 0.0);
+    let f = |r: usize, k: usize| if logs { c[r][k].ln() } else { c[r][k] };
+    let g = [0.5 * (f(1, 2) - f(1, 0)), 0.5 * (f(2, 1) - f(0, 1))];
+    // Minus the Hessian: positive curvature where the peak falls off.
+    let p = -(f(1, 0) - 2.0 * f(1, 1) + f(1, 2));
+    let q = -(f(0, 1) - 2.0 * f(1, 1) + f(2, 1));
+    let r = -0.25 * (f(2, 2) + f(0, 0) - f(0, 2) - f(2, 0));
+    let mean = 0.5 * (p + q);
+    let disc = (0.25 * (p - q) * (p - q) + r * r).sqrt();
+    let (across, along) = (mean + disc, mean - disc);
+    if !(across.is_finite() && across > 0.0) {
+        return None;
+    }
+    // Eigenvector of the larger eigenvalue of [[p, r], [r, q]].
+    let n = if r.abs() > 1e-12 * across {
+        [across - q, r]
+    } else if p >= q {
+        [1.0, 0.0]
+    } else {
+        [0.0, 1.0]
+    };
+    let len = n[0].hypot(n[1]);
+    Some((g, [across, along], [n[0] / len, n[1] / len]))
+}
+
+/// A peak whose [`far_roundness`] is below this is a ridge whatever its stencil says. A lone
+/// scratch measures 0.000 there (`tests/sparse.rs`); the probed peaks of
+/// `scripts/bench_sparse.py` 0.011-0.42, and with this threshold no set there changes.
+const RIDGE_FAR_ROUNDNESS: f64 = 0.02;
+
+/// Distances (px) along the peak's weak direction at which [`far_roundness`] samples the NCC.
+const FAR_PROBES_PX: [f64; 2] = [2.0, 3.0];
+
+/// The roundness of the NCC peak measured 2-3 px out along its weak direction: the curvature
+/// of ln NCC there (from its fall-off at integer offsets on both sides, the part due to their
+/// rounding off the ridge line removed by the stencil's quadric across) over the curvature
+/// across. All samples use one region of a (the overlap common to every probe), so a change
+/// of the overlap with the shift does not read as texture. The peak's own roundness when the
+/// probes cannot be taken.
+fn far_roundness(a: &LevelledTile<'_>, b: &LevelledTile<'_>, peak: &NccPeak) -> f64 {
+    let Some((g, [across, _], n)) = peak_axes(&peak.c) else {
+        return peak.roundness;
+    };
+    let t = [-n[1], n[0]];
+    let mut probes: Vec<[i64; 2]> = Vec::new();
+    for k in FAR_PROBES_PX {
+        for sign in [-1.0, 1.0] {
+            probes.push([
+                (sign * k * t[0]).round() as i64,
+                (sign * k * t[1]).round() as i64,
+            ]);
+        }
+    }
+    let at = |p: [i64; 2]| [peak.offset_px[0] + p[0], peak.offset_px[1] + p[1]];
+    let mut region = overlap_in_a(a, b, peak.offset_px[0], peak.offset_px[1]);
+    for &p in &probes {
+        let o = overlap_in_a(a, b, at(p)[0], at(p)[1]);
+        region = [
+            region[0].max(o[0]),
+            region[1].min(o[1]),
+            region[2].max(o[2]),
+            region[3].min(o[3]),
+        ];
+    }
+    if region[1] - region[0] < 3 || region[3] - region[2] < 3 {
+        return peak.roundness;
+    }
+    let (c0, n0) = ncc_in(a, b, peak.offset_px[0], peak.offset_px[1], region);
+    if c0.is_nan() || c0 <= 0.0 || n0 < 3 {
+        return peak.roundness;
+    }
+    let g_n = g[0] * n[0] + g[1] * n[1];
+    let mut sum = 0.0;
+    for &p in &probes {
+        let (c, m) = ncc_in(a, b, at(p)[0], at(p)[1], region);
+        if m < 3 {
+            return peak.roundness;
+        }
+        // A probe that falls to zero or below: the peak is no ridge.
+        if c.is_nan() || c <= 0.0 {
+            return 1.0;
+        }
+        let pf = [p[0] as f64, p[1] as f64];
+        let across_px = pf[0] * n[0] + pf[1] * n[1];
+        let along_px = pf[0] * t[0] + pf[1] * t[1];
+        // What the quadric across predicts for the probe's offset off the ridge line.
+        let expected = g_n * across_px - 0.5 * across * across_px * across_px;
+        let drop = expected - (c / c0).ln();
+        sum += 2.0 * drop / (along_px * along_px);
+    }
+    let curvature_along = sum / probes.len() as f64;
+    if std::env::var_os("SURFSTREAM_DEBUG_RIDGE").is_some() {
+        eprintln!(
+            "far_roundness: stencil {:.3} far {:.3} across {:.3}",
+            peak.roundness,
+            curvature_along / across,
+            across
+        );
+    }
+    (curvature_along / across).clamp(0.0, 1.0)
 }
 
 /// The best candidate's correlation peak over the strongest other one (capped at 1000).

@@ -36,9 +36,10 @@ use surfstream_core::store::{AppendLog, StoreError};
 use thiserror::Error;
 
 use crate::global::{
-    solve_planes_in, solve_positions_with_alternatives, AmbiguousLink, GlobalSolution, Link,
+    solve_planes_in, solve_scan_positions, AmbiguousLink, AnisotropicLink, GlobalSolution, Link,
     PlaneSolution, PlaneTiles, SolveError, SolveParams,
 };
+use crate::register::DirectionalOffset;
 use crate::{
     estimate_plane, register_pair_features, FeatureParams, FeatureRegistration, PairRegistration,
     PhaseCorrelator, PhaseParams, PlaneCorrection,
@@ -161,6 +162,8 @@ struct PairRecord {
     ncc: f64,
     /// An ambiguous pair's distinct NCC maxima, for the global solve to choose from.
     alternatives: Vec<[f64; 2]>,
+    /// A refused pair's one-direction answer (an NCC ridge), for the global solve.
+    directional: Option<DirectionalOffset>,
     /// The feature matcher's outcome (methods "harris", "sift").
     features: Option<FeatureRegistration>,
     report: serde_json::Value,
@@ -179,6 +182,8 @@ struct GlobalPlacement {
     link_pairs: Vec<usize>,
     ambiguous_pairs: Vec<usize>,
     chosen: Vec<Option<usize>>,
+    /// Pair number of each anisotropic (one-direction) link, in the solve's order.
+    directional_pairs: Vec<usize>,
 }
 
 /// The registration of one scan; see the module documentation.
@@ -271,13 +276,14 @@ impl ScanRegistration {
         drop(views);
         drop(loaded);
         let b = self.tiles.len();
-        for (ai, (offset_px, ncc, alternatives, features, report)) in records {
+        for (ai, (offset_px, ncc, alternatives, directional, features, report)) in records {
             self.pairs.push(PairRecord {
                 a: ai,
                 b,
                 offset_px,
                 ncc,
                 alternatives,
+                directional,
                 features,
                 report,
             });
@@ -420,6 +426,9 @@ impl ScanRegistration {
             "links_removed": placement.sol.links.iter().filter(|l| !l.kept).count(),
             "max_residual_px": placement.sol.max_residual_px,
             "tiles_placed_by_stage": regs.iter().filter(|r| r.placed_by == placed_by::STAGE).count(),
+            "directional_links": placement.directional_pairs.len(),
+            "directional_links_removed": placement.sol.anisotropic_links.iter().filter(|l| !l.kept).count(),
+            "tiles_one_direction_by_stage": placement.sol.registered_directions.iter().filter(|&&d| d == 1).count(),
             "stage_sigma_px": self.params.solve.stage_sigma_px,
             "outlier_px": self.params.solve.outlier_px,
             "z_rms_before_um": planes.rms_before_um,
@@ -468,9 +477,33 @@ impl ScanRegistration {
                 }
             })
             .collect();
-        let (sol, chosen) =
-            solve_positions_with_alternatives(&stage_px, &links, &ambiguous, &self.params.solve)
-                .map_err(ScanError::Positions)?;
+        // Refused pairs whose NCC ridge fixes one direction: one-direction links, trusted
+        // across as an accepted link of the same NCC is.
+        let directional_pairs: Vec<usize> = (0..self.pairs.len())
+            .filter(|&k| self.pairs[k].offset_px.is_none() && self.pairs[k].directional.is_some())
+            .collect();
+        let anisotropic: Vec<AnisotropicLink> = directional_pairs
+            .iter()
+            .filter_map(|&k| {
+                let p = &self.pairs[k];
+                let d = p.directional?;
+                Some(AnisotropicLink::across(
+                    p.a,
+                    p.b,
+                    d.offset_px,
+                    d.normal,
+                    link_sigma_px(d.ncc),
+                ))
+            })
+            .collect();
+        let (sol, chosen) = solve_scan_positions(
+            &stage_px,
+            &links,
+            &anisotropic,
+            &ambiguous,
+            &self.params.solve,
+        )
+        .map_err(ScanError::Positions)?;
         // The solution's links: the accepted pairs, then the chosen ambiguous ones in input
         // order (as the solve appends them).
         for (i, c) in chosen.iter().enumerate() {
@@ -503,6 +536,7 @@ impl ScanRegistration {
             link_pairs,
             ambiguous_pairs,
             chosen,
+            directional_pairs,
         })
     }
 
@@ -529,6 +563,13 @@ impl ScanRegistration {
             tried_per_tile[p.b] += 1;
         }
         for (i, t) in self.tiles.iter().enumerate() {
+            let directions = if single {
+                2
+            } else {
+                g.sol.registered_directions[i]
+            };
+            // A tile with one direction from the stage is flagged as placed by the stage (never
+            // silently half-registered); the record says which direction.
             let how = if g.sol.linked[i] || single {
                 placed_by::REGISTRATION
             } else {
@@ -593,6 +634,12 @@ impl ScanRegistration {
                         tilt_x_um_per_px: t.plane.tilt_x_um_per_px,
                         tilt_y_um_per_px: t.plane.tilt_y_um_per_px,
                     },
+                    registered_directions: Some(directions),
+                    stage_direction: if single {
+                        None
+                    } else {
+                        g.sol.stage_direction[i]
+                    },
                 },
             });
         }
@@ -641,6 +688,18 @@ impl ScanRegistration {
                 r["alternatives_px"] = json!(p.alternatives);
                 r["chosen_alternative"] = json!(g.chosen[i]);
             }
+            if let Some(d) = &p.directional {
+                let mut dj = json!({
+                    "offset_px": d.offset_px, "normal": d.normal,
+                    "curvature_per_px2": d.curvature_per_px2, "ncc": d.ncc,
+                });
+                if let Some(li) = g.directional_pairs.iter().position(|&a| a == k) {
+                    let o = g.sol.anisotropic_links[li];
+                    dj["kept_by_global_solve"] = json!(o.kept);
+                    dj["residual_px"] = json!(o.residual_px);
+                }
+                r["directional"] = dj;
+            }
             if let Some(li) = g.link_pairs.iter().position(|&a| a == k) {
                 let o = g.sol.links[li];
                 r["kept_by_global_solve"] = json!(o.kept);
@@ -665,11 +724,13 @@ impl ScanRegistration {
     }
 }
 
-/// A pair's outcome while streaming: offset, NCC, alternatives, feature outcome, report.
+/// A pair's outcome while streaming: offset, NCC, alternatives, one-direction answer,
+/// feature outcome, report.
 type LinkRecord = (
     Option<[f64; 2]>,
     f64,
     Vec<[f64; 2]>,
+    Option<DirectionalOffset>,
     Option<FeatureRegistration>,
     serde_json::Value,
 );
@@ -704,7 +765,11 @@ fn register_link(
             (r, alt, None)
         }
     };
-    let report = pair_report(&a.tile, t, nominal, &r, features.as_ref());
+    let mut report = pair_report(&a.tile, t, nominal, &r, features.as_ref());
+    if features.is_none() && r.offset_px.is_some() && r.ncc < params.phase.min_ncc {
+        // Accepted as a distinct peak below min_ncc (PhaseParams::min_ncc_distinct): said so.
+        report["accepted_below_min_ncc"] = json!(true);
+    }
     let stage_vote = (
         1.0,
         [
@@ -725,6 +790,7 @@ fn register_link(
         r.offset_px,
         r.ncc,
         alternatives.iter().map(|c| c.offset_px).collect(),
+        r.directional,
         features,
         report,
     );

@@ -38,7 +38,19 @@ impl Feature {
 /// Tile of `n x n` px whose pixel (0, 0) sits at (x0, y0) of the field: the features, the
 /// tile's own piston and tilt, and white noise.
 fn tile(features: &[Feature], x0: f64, y0: f64, n: usize, rng: &mut ChaCha8Rng) -> Vec<f32> {
-    let noise = Normal::new(0.0, 0.002).unwrap();
+    noisy_tile(features, x0, y0, n, rng, 0.002)
+}
+
+/// [`tile`] with white noise of standard deviation `noise_um`.
+fn noisy_tile(
+    features: &[Feature],
+    x0: f64,
+    y0: f64,
+    n: usize,
+    rng: &mut ChaCha8Rng,
+    noise_um: f64,
+) -> Vec<f32> {
+    let noise = Normal::new(0.0, noise_um).unwrap();
     let piston = rng.gen_range(-2.0..2.0);
     let (tx, ty) = (rng.gen_range(-0.002..0.002), rng.gen_range(-0.002..0.002));
     let mut out = Vec::with_capacity(n * n);
@@ -54,7 +66,7 @@ fn tile(features: &[Feature], x0: f64, y0: f64, n: usize, rng: &mut ChaCha8Rng) 
 
 /// Errors (px) of 16 horizontal and vertical pairs of 128 px tiles at 20 % overlap, each with
 /// three slanted scratches and two pits crossing the overlap, and a 0-3 px stage error.
-fn pair_errors() -> Vec<Option<f64>> {
+fn pair_errors() -> Vec<(Option<f64>, Option<f64>)> {
     let n = 128;
     let step = 102.0;
     let mut errors = Vec::new();
@@ -99,29 +111,235 @@ fn pair_errors() -> Vec<Option<f64>> {
             &PhaseParams::default(),
         );
         // A refusal (a ridge where the scratches run nearly parallel) is an answer the global
-        // solve can live with; a wrong offset is not.
-        errors.push(
+        // solve can live with, with its error across the ridge; a wrong offset is not.
+        let across = r.directional.map(|d| {
+            ((d.offset_px[0] - truth[0]) * d.normal[0] + (d.offset_px[1] - truth[1]) * d.normal[1])
+                .abs()
+        });
+        errors.push((
             r.offset_px
                 .map(|o| (o[0] - truth[0]).hypot(o[1] - truth[1])),
-        );
+            across,
+        ));
     }
     errors
 }
 
 /// Measured: with the cross term 15 of 16 pairs within 0.1 px (median 0.03 px); fitting x and
 /// y apart, 5 of 16 (median 0.14 px). The one pair beyond (0.67 px either way, NCC peak
-/// roundness 0.13) is a scratch crossing that leaves the peak nearly a ridge: see
-/// docs/registration.md, "what is left".
+/// roundness 0.13 on the 3 x 3 stencil, 0.04 measured 2-3 px out along the ridge) is a
+/// scratch crossing that leaves the peak nearly a ridge: it is now refused with a
+/// one-direction answer (docs/registration.md).
 #[test]
 fn slanted_scratches_on_a_polished_field_register_within_a_tenth_of_a_pixel() {
     let all = pair_errors();
-    let e: Vec<f64> = all.iter().flatten().copied().collect();
+    let e: Vec<f64> = all.iter().filter_map(|p| p.0).collect();
     eprintln!("errors px: {e:.3?}");
-    assert_eq!(e.len(), all.len(), "every pair answered");
+    for (k, p) in all.iter().enumerate() {
+        match p {
+            (Some(_), _) => {}
+            (None, Some(across)) => assert!(*across < 0.1, "pair {k}: {across} px across"),
+            (None, None) => panic!("pair {k}: neither an offset nor a one-direction answer"),
+        }
+    }
+    assert!(e.len() >= 14, "{} of {} pairs answered", e.len(), all.len());
     let within = e.iter().filter(|&&v| v <= 0.1).count();
     assert!(within >= 14, "{within} of {} pairs within 0.1 px", e.len());
     assert!(
         e.iter().all(|&v| v < 1.0),
         "no pair wrong by a pixel or more"
     );
+}
+
+/// One pair of 128 px tiles at 20 % overlap whose overlap a single long scratch crosses at
+/// `angle` (radians from x), with white noise only: the texture fixes the offset across the
+/// scratch and not along it. Returns the registration and the true offset.
+fn ridge_pair(
+    seed: u64,
+    horizontal: bool,
+    angle: f64,
+) -> (surfstream_matcher::PairRegistration, [f64; 2]) {
+    let n = 128;
+    let step = 102.0;
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let (sx, sy) = if horizontal {
+        (step + 13.0, 64.0)
+    } else {
+        (64.0, step + 13.0)
+    };
+    let features = [Feature {
+        x: sx + rng.gen_range(-3.0..3.0),
+        y: sy + rng.gen_range(-3.0..3.0),
+        angle: Some(angle),
+        width_px: rng.gen_range(0.8..1.6),
+        depth_um: rng.gen_range(0.1..0.3),
+    }];
+    let err = [rng.gen_range(-3.0..3.0), rng.gen_range(-3.0..3.0)];
+    let nominal = if horizontal { [step, 0.0] } else { [0.0, step] };
+    let truth = [nominal[0] + err[0], nominal[1] + err[1]];
+    let a = tile(&features, 0.0, 0.0, n, &mut rng);
+    let b = tile(&features, truth[0], truth[1], n, &mut rng);
+    let r = register_pair(
+        RasterView::new(&a, Shape::new(n, n)).unwrap(),
+        RasterView::new(&b, Shape::new(n, n)).unwrap(),
+        nominal,
+        &PhaseParams::default(),
+    );
+    (r, truth)
+}
+
+/// A lone scratch across the overlap: no offset (nothing fixes it along the scratch), but a
+/// one-direction answer whose normal is across the scratch and whose component along it is
+/// the truth's.
+#[test]
+fn a_lone_scratch_gives_a_constraint_across_it_and_none_along() {
+    let mut answered = 0;
+    let cases = [
+        (true, 0.0),
+        (true, 0.3),
+        (true, -0.45),
+        (false, std::f64::consts::FRAC_PI_2),
+        (false, 1.2),
+        (false, 2.0),
+    ];
+    for (k, &(horizontal, angle)) in cases.iter().enumerate() {
+        for seed in 0..3u64 {
+            let (r, truth) = ridge_pair(100 + 10 * k as u64 + seed, horizontal, angle);
+            assert!(
+                r.offset_px.is_none(),
+                "{angle}: a ridge gave a 2-D answer {r:?}"
+            );
+            let Some(d) = r.directional else {
+                eprintln!(
+                    "{horizontal} {angle} seed {seed}: no directional answer: {:?}",
+                    r.rejection
+                );
+                continue;
+            };
+            answered += 1;
+            let across = [-angle.sin(), angle.cos()];
+            let cos = (d.normal[0] * across[0] + d.normal[1] * across[1]).abs();
+            assert!(
+                cos > 0.97,
+                "{angle}: normal {:?} vs across {across:?}",
+                d.normal
+            );
+            let e = [d.offset_px[0] - truth[0], d.offset_px[1] - truth[1]];
+            let e_across = e[0] * d.normal[0] + e[1] * d.normal[1];
+            eprintln!(
+                "{horizontal} {angle:.2} seed {seed}: across error {e_across:.3} px, curvature {:?}",
+                d.curvature_per_px2
+            );
+            assert!(e_across.abs() < 0.2, "{angle}: across error {e_across} px");
+            // Nothing along: the curvature across is many times the one along.
+            assert!(
+                d.curvature_per_px2[1] < 0.3 * d.curvature_per_px2[0],
+                "{d:?}"
+            );
+        }
+    }
+    assert!(
+        answered >= 17,
+        "{answered} of 18 ridge pairs gave a one-direction answer"
+    );
+}
+
+/// The one-direction answers of ridge pairs, given to the global solve with the ordinary
+/// links, place a row of tiles across the scratches as the truth does; along them the stage
+/// does, and the solve says so.
+#[test]
+fn a_solve_with_ridge_links_recovers_the_offsets_across() {
+    use surfstream_matcher::{solve_positions_anisotropic, AnisotropicLink, SolveParams};
+    // Three tiles in a row, each pair crossed by one scratch 0.1 rad off x (no other texture): the
+    // pairs fix y only.
+    let mut truth = vec![[0.0, 0.0]];
+    let mut ridges = Vec::new();
+    let mut normals = Vec::new();
+    for k in 0..2usize {
+        let (r, t) = ridge_pair(300 + k as u64, true, 0.1);
+        let d = r
+            .directional
+            .expect("a ridge pair gives a one-direction answer");
+        let prev = truth[k];
+        truth.push([prev[0] + t[0], prev[1] + t[1]]);
+        ridges.push(AnisotropicLink::across(
+            k,
+            k + 1,
+            d.offset_px,
+            d.normal,
+            0.05,
+        ));
+        normals.push(d.normal);
+    }
+    let stage: Vec<[f64; 2]> = (0..3).map(|i| [102.0 * i as f64, 0.0]).collect();
+    let sol = solve_positions_anisotropic(&stage, &[], &ridges, &SolveParams::default()).unwrap();
+    for (k, n) in normals.iter().enumerate() {
+        let p = &sol.positions_px;
+        let got = [p[k + 1][0] - p[k][0], p[k + 1][1] - p[k][1]];
+        let want = [truth[k + 1][0] - truth[k][0], truth[k + 1][1] - truth[k][1]];
+        let across = (got[0] - want[0]) * n[0] + (got[1] - want[1]) * n[1];
+        assert!(across.abs() < 0.2, "pair {k}: across error {across} px");
+        // Along the scratch: the stage's offset (102, 0), not the truth's.
+        let along = (got[0] - 102.0) * n[1] - got[1] * n[0];
+        assert!(along.abs() < 0.05, "pair {k}: along {along} px");
+    }
+    assert_eq!(sol.registered_directions, vec![1, 1, 1]);
+    assert!(sol
+        .stage_direction
+        .iter()
+        .all(|d| d.is_some_and(|d| d[0].abs() > 0.95)));
+}
+
+/// A strip holding one isolated pit in strong noise: the true match measures an NCC well below
+/// `min_ncc` (0.5) but stands out from every other candidate, and is answered, never by a pit
+/// diameter wrong (measured up to 1.19 px at NCC 0.24: much worse than the 0.22 px of
+/// bench_sparse's lone features); the same tile against noise alone is refused. Not tested
+/// because it fails: a tile holding a *different* lone pit can be matched pit to pit (NCC 0.30
+/// in one of 8 pairs), see docs/registration.md, "What is left".
+#[test]
+fn a_lone_pit_in_noise_is_answered_below_min_ncc_and_noise_alone_is_not() {
+    let n = 128;
+    let step = 102.0;
+    let mut answered = 0;
+    for seed in 0..8u64 {
+        let mut rng = ChaCha8Rng::seed_from_u64(500 + seed);
+        let pit = |rng: &mut ChaCha8Rng| Feature {
+            x: step + 13.0 + rng.gen_range(-4.0..4.0),
+            y: rng.gen_range(20.0..108.0),
+            angle: None,
+            width_px: rng.gen_range(1.5..2.5),
+            depth_um: rng.gen_range(0.15..0.25),
+        };
+        let features = [pit(&mut rng)];
+        let elsewhere: [Feature; 0] = [];
+        let err = [rng.gen_range(-3.0..3.0), rng.gen_range(-3.0..3.0)];
+        let truth = [step + err[0], err[1]];
+        let a = noisy_tile(&features, 0.0, 0.0, n, &mut rng, 0.02);
+        let b = noisy_tile(&features, truth[0], truth[1], n, &mut rng, 0.02);
+        let unrelated = noisy_tile(&elsewhere, truth[0], truth[1], n, &mut rng, 0.02);
+        fn view(t: &[f32], n: usize) -> RasterView<'_, f32> {
+            RasterView::new(t, Shape::new(n, n)).unwrap()
+        }
+        let p = PhaseParams::default();
+        let r = register_pair(view(&a, n), view(&b, n), [step, 0.0], &p);
+        eprintln!(
+            "seed {seed}: ncc {:.3} offset {:?} truth {truth:?}",
+            r.ncc, r.offset_px
+        );
+        if let Some(o) = r.offset_px {
+            answered += 1;
+            let e = (o[0] - truth[0]).hypot(o[1] - truth[1]);
+            assert!(e < 1.5, "seed {seed}: {e} px wrong");
+            assert!(
+                r.ncc < p.min_ncc,
+                "seed {seed}: the test wants NCC below min_ncc"
+            );
+        }
+        let u = register_pair(view(&a, n), view(&unrelated, n), [step, 0.0], &p);
+        assert!(
+            u.offset_px.is_none(),
+            "seed {seed}: unrelated pair answered {u:?}"
+        );
+    }
+    assert!(answered >= 6, "{answered} of 8 lone-pit pairs answered");
 }
