@@ -424,6 +424,31 @@ pub struct Extrapolation {
     pub worn_cells: f64,
 }
 
+/// The depth one impact wears at each cell of the current surface (re-closed with the ball),
+/// into `rate`; returns the largest.
+fn wear_rates(
+    heights_um: &[f64],
+    g: FieldGrid,
+    dist: &ApproachDistribution,
+    table: &WearTable,
+    rate: &mut [f64],
+) -> f64 {
+    let gap = ball_gap_um(
+        heights_um,
+        g.rows,
+        g.cols,
+        g.pitch_x_um,
+        g.pitch_y_um,
+        g.radius_um,
+    );
+    let mut max_rate: f64 = 0.0;
+    for (r, gp) in rate.iter_mut().zip(&gap) {
+        *r = table.depth_per_impact_um(dist, *gp);
+        max_rate = max_rate.max(*r);
+    }
+    max_rate
+}
+
 /// Wears `heights_um` by `impacts` impacts (each spread over the whole grid by the contact
 /// field) at scale `scale`, re-closing after each step of at most [`STEP_DEPTH_UM`].
 /// Adds the removed depth to `wear_um`.
@@ -441,19 +466,7 @@ pub fn extrapolate(
     let cell = g.pitch_x_um * g.pitch_y_um;
     let mut rate = vec![0.0; heights_um.len()];
     while left > 0.0 && out.steps < MAX_STEPS {
-        let gap = ball_gap_um(
-            heights_um,
-            g.rows,
-            g.cols,
-            g.pitch_x_um,
-            g.pitch_y_um,
-            g.radius_um,
-        );
-        let mut max_rate: f64 = 0.0;
-        for (r, gp) in rate.iter_mut().zip(&gap) {
-            *r = table.depth_per_impact_um(dist, *gp);
-            max_rate = max_rate.max(*r);
-        }
+        let max_rate = wear_rates(heights_um, g, dist, table, &mut rate);
         if max_rate <= 0.0 {
             break;
         }
@@ -504,19 +517,7 @@ pub fn wear_to_target(
         && out.steps < MAX_STEPS
         && !stop.load(std::sync::atomic::Ordering::Relaxed)
     {
-        let gap = ball_gap_um(
-            heights_um,
-            g.rows,
-            g.cols,
-            g.pitch_x_um,
-            g.pitch_y_um,
-            g.radius_um,
-        );
-        let mut max_rate: f64 = 0.0;
-        for (r, gp) in rate.iter_mut().zip(&gap) {
-            *r = table.depth_per_impact_um(dist, *gp);
-            max_rate = max_rate.max(*r);
-        }
+        let max_rate = wear_rates(heights_um, g, dist, table, &mut rate);
         if max_rate <= 0.0 {
             break;
         }
