@@ -133,6 +133,30 @@ pub fn verdict(run: &RunRecord, out: &Path, verbose: bool) -> Verdict {
         let _ = writeln!(s, "  hint        {}", fallback_hint(&fallback, tiles.len()));
         failures.push(format!("fallback: {line}"));
     }
+    // Pairs the matcher accepted below its NCC floor because the peak stood out: usually
+    // right on sparse texture, but a weak link, so named (never a failure).
+    let weak: Vec<String> = run
+        .pairs
+        .iter()
+        .filter(|p| p["accepted_below_min_ncc"].as_bool() == Some(true))
+        .map(|p| {
+            format!(
+                "tiles {}-{} (NCC {:.2})",
+                p["a"].as_u64().unwrap_or(0),
+                p["b"].as_u64().unwrap_or(0),
+                p["ncc"].as_f64().unwrap_or(f64::NAN)
+            )
+        })
+        .collect();
+    if !weak.is_empty() {
+        let _ = writeln!(
+            s,
+            "  weak links  {} pair(s) accepted below the matcher's min_ncc as a distinct peak \
+             (check their overlap; --set matcher.min_ncc_distinct=1 refuses them): {}",
+            weak.len(),
+            weak.join(", ")
+        );
+    }
     let _ = writeln!(s, "  outputs     {}", outputs_line(run, out));
     if verbose {
         s.push_str(&latency_table(&run.latency_ms));
@@ -496,6 +520,28 @@ mod tests {
             t.contains("3 spike(s) (they add +12.50 % to Sz), kept as measured"),
             "{t}"
         );
+    }
+
+    /// A pair accepted below min_ncc as a distinct peak is named, and is not a failure.
+    #[test]
+    fn a_weak_link_is_named_but_does_not_fail() {
+        let mut run = run_json(true, false);
+        run["pairs"] = json!([
+            { "a": 0, "b": 1, "ncc": 0.31, "accepted": true, "accepted_below_min_ncc": true },
+            { "a": 1, "b": 2, "ncc": 0.93, "accepted": true },
+        ]);
+        let v = verdict(&record(run), Path::new("/o"), false);
+        assert!(v.failures.is_empty(), "{:?}", v.failures);
+        assert!(
+            v.text
+                .contains("weak links  1 pair(s) accepted below the matcher's min_ncc")
+                && v.text.contains("tiles 0-1 (NCC 0.31)")
+                && !v.text.contains("tiles 1-2"),
+            "{}",
+            v.text
+        );
+        let v = verdict(&record(run_json(true, false)), Path::new("/o"), false);
+        assert!(!v.text.contains("weak links"), "{}", v.text);
     }
 
     #[test]

@@ -47,6 +47,10 @@ pub struct MatcherParams {
     pub method: String,
     /// Lowest NCC of the overlap at the chosen shift for a link to be trusted.
     pub min_ncc: Option<f64>,
+    /// A round peak whose NCC is below `min_ncc` but at least this, and well above every
+    /// other candidate, is accepted and flagged in the pair's record and the verdict (0.15;
+    /// 1 refuses every link below `min_ncc`).
+    pub min_ncc_distinct: Option<f64>,
     /// Largest accepted deviation from the stage's nominal offset, px.
     pub max_shift_px: Option<f64>,
     /// Standard deviation of the stage positions, px: the weight of the prior in the global
@@ -80,6 +84,9 @@ impl MatcherParams {
         };
         if let Some(v) = self.min_ncc {
             params.phase.min_ncc = v;
+        }
+        if let Some(v) = self.min_ncc_distinct {
+            params.phase.min_ncc_distinct = v;
         }
         if let Some(v) = self.max_shift_px {
             params.phase.max_shift_px = v;
@@ -115,6 +122,7 @@ mod tests {
         MatcherParams {
             method: method.into(),
             min_ncc: None,
+            min_ncc_distinct: None,
             max_shift_px: None,
             stage_sigma_px: None,
             outlier_px: None,
