@@ -738,6 +738,42 @@ fn balance_of(s: &ToleranceSettings) -> Option<Balance> {
     })
 }
 
+/// What both searches (in memory and streamed) start from: the map's scale, the settings and
+/// regions for its shape, the insertion's parameters and its one insertion order.
+struct SearchSetup<'a> {
+    sq: f64,
+    measured_px: usize,
+    settings: ToleranceSettings,
+    regions: Vec<Window>,
+    p: MeshParams,
+    plan: BlockPlan<'a>,
+}
+
+fn search_setup<'a>(
+    heights: RasterView<'a, f32>,
+    at: &ScanPlacement,
+    params: &MeshParams,
+    settings: &ToleranceSettings,
+) -> Result<SearchSetup<'a>> {
+    check_adaptive(heights, at, params)?;
+    let (sq, measured_px) = scale_of(heights, at);
+    let (settings, regions) = settings_for(settings, heights.shape());
+    let mut p = params.clone();
+    p.max_triangles = None;
+    if settings.method == ModelMethod::Balanced && p.block_samples.is_none() {
+        p.block_samples = Some(balance_block_px(&settings));
+    }
+    let plan = order_plan(heights, &p, sq)?;
+    Ok(SearchSetup {
+        sq,
+        measured_px,
+        settings,
+        regions,
+        p,
+        plan,
+    })
+}
+
 /// The adaptive mesh of `heights` with the fewest triangles the search finds within the
 /// tolerance (in memory; `params.epsilon` is replaced by the search's bounds and
 /// `params.max_triangles` bounds the search, not the insertion).
@@ -747,16 +783,15 @@ pub fn mesh_to_tolerance(
     params: &MeshParams,
     settings: &ToleranceSettings,
 ) -> Result<(AdaptiveMesh, ToleranceReport)> {
-    check_adaptive(heights, at, params)?;
-    let (sq, measured_px) = scale_of(heights, at);
-    let (settings, regions) = settings_for(settings, heights.shape());
+    let SearchSetup {
+        sq,
+        measured_px,
+        settings,
+        regions,
+        mut p,
+        plan,
+    } = search_setup(heights, at, params, settings)?;
     let settings = &settings;
-    let mut p = params.clone();
-    p.max_triangles = None;
-    if settings.method == ModelMethod::Balanced && p.block_samples.is_none() {
-        p.block_samples = Some(balance_block_px(settings));
-    }
-    let plan = order_plan(heights, &p, sq)?;
     let mut live = Vec::new();
     search(
         sq,
@@ -792,16 +827,15 @@ pub fn mesh_streaming_to_tolerance(
     settings: &ToleranceSettings,
     spill_dir: &Path,
 ) -> Result<(StreamedMesh, ToleranceReport)> {
-    check_adaptive(heights, at, params)?;
-    let (sq, measured_px) = scale_of(heights, at);
-    let (settings, regions) = settings_for(settings, heights.shape());
+    let SearchSetup {
+        sq,
+        measured_px,
+        settings,
+        regions,
+        mut p,
+        plan,
+    } = search_setup(heights, at, params, settings)?;
     let settings = &settings;
-    let mut p = params.clone();
-    p.max_triangles = None;
-    if settings.method == ModelMethod::Balanced && p.block_samples.is_none() {
-        p.block_samples = Some(balance_block_px(settings));
-    }
-    let plan = order_plan(heights, &p, sq)?;
     let level = field_level(heights, at);
     let mut live = Vec::new();
     search(
