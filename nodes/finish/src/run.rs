@@ -578,6 +578,45 @@ struct FieldFit {
     reached: bool,
 }
 
+impl FieldFit {
+    /// Wears a copy of the original surface along the contact field until the crop's Sa
+    /// reaches `target_sa_um` (or `max_impacts`): the fit of the tables so far.
+    #[allow(clippy::too_many_arguments)]
+    fn from_original(
+        cycle: usize,
+        original_um: &[f64],
+        g: field::FieldGrid,
+        dist: &field::ApproachDistribution,
+        table: &field::WearTable,
+        max_impacts: f64,
+        target_sa_um: f64,
+        stop: &std::sync::atomic::AtomicBool,
+        sa_of_crop: impl FnMut(&[f64]) -> Result<f64>,
+    ) -> Result<Self> {
+        let mut heights_um = original_um.to_vec();
+        let mut wear_um = vec![0.0; original_um.len()];
+        let (impacts, extrapolation, reached) = field::wear_to_target(
+            &mut heights_um,
+            &mut wear_um,
+            g,
+            dist,
+            table,
+            max_impacts,
+            target_sa_um,
+            stop,
+            sa_of_crop,
+        )?;
+        Ok(Self {
+            cycle,
+            heights_um,
+            wear_um,
+            impacts,
+            extrapolation,
+            reached,
+        })
+    }
+}
+
 fn add_scaled(acc: &mut [f64], x: &[f64], s: f64) {
     for (a, v) in acc.iter_mut().zip(x) {
         *a += s * v;
@@ -946,11 +985,9 @@ pub fn finish(
                 // The scale that steers the next segments' surfaces: refitted on the tables
                 // so far over the whole process (the final fit, once, uses every table).
                 if let Some(t) = target_sa {
-                    let mut h0 = patch.heights_um.clone();
-                    let mut w0 = vec![0.0; n];
-                    let (used, e, ok) = field::wear_to_target(
-                        &mut h0,
-                        &mut w0,
+                    let fit = FieldFit::from_original(
+                        c,
+                        &patch.heights_um,
                         field_grid,
                         &dist,
                         &table,
@@ -959,16 +996,9 @@ pub fn finish(
                         stop,
                         &mut sa_of_crop,
                     )?;
-                    provisional_scale = Some(used / impacts_process);
+                    provisional_scale = Some(fit.impacts / impacts_process);
                     // After the last cycle this is the final fit (same tables): kept.
-                    last_fit = Some(FieldFit {
-                        cycle: c,
-                        heights_um: h0,
-                        wear_um: w0,
-                        impacts: used,
-                        extrapolation: e,
-                        reached: ok,
-                    });
+                    last_fit = Some(fit);
                 }
                 let scale = provisional_scale.unwrap_or(1.0);
                 // The next segment's surface: the model's estimate at the end of this cycle's
@@ -1076,29 +1106,17 @@ pub fn finish(
         if let (Some(t), false) = (target_sa, partial) {
             let fit = match last_fit.take().filter(|f| f.cycle == completed) {
                 Some(f) => f,
-                None => {
-                    let mut heights_um = patch.heights_um.clone();
-                    let mut wear_um = vec![0.0; n];
-                    let (impacts, extrapolation, reached) = field::wear_to_target(
-                        &mut heights_um,
-                        &mut wear_um,
-                        field_grid,
-                        &dist,
-                        &table,
-                        impacts_process * MAX_FIELD_SCALE,
-                        t,
-                        stop,
-                        &mut sa_of_crop,
-                    )?;
-                    FieldFit {
-                        cycle: completed,
-                        heights_um,
-                        wear_um,
-                        impacts,
-                        extrapolation,
-                        reached,
-                    }
-                }
+                None => FieldFit::from_original(
+                    completed,
+                    &patch.heights_um,
+                    field_grid,
+                    &dist,
+                    &table,
+                    impacts_process * MAX_FIELD_SCALE,
+                    t,
+                    stop,
+                    &mut sa_of_crop,
+                )?,
             };
             let FieldFit {
                 heights_um: h0,
