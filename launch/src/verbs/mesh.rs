@@ -197,7 +197,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
                 Some(other) => bail!("--model-method {other}: expected balanced or greedy"),
             },
         };
-        let (m, r) = mesh_to_tolerance(heights, &at, &params, &settings)
+        let (m, r) = mesh_to_tolerance(heights, None, &at, &params, &settings)
             .with_context(|| format!("{}", a.file.display()))?;
         (m, Some(r))
     };
