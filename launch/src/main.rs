@@ -111,7 +111,7 @@ enum Command {
         /// tiles in file-name order are the acquisition order. The inferred scan.toml is
         /// written to OUT.
         #[arg(long, value_name = "ROWSxCOLS", requires = "overlap")]
-        grid: Option<surfstream_replay::infer::Grid>,
+        grid: Option<surfstream_replay::infer::TileGrid>,
         /// With --grid: the overlap of neighbouring fields, "20%" or "0.2".
         #[arg(long, requires = "grid")]
         overlap: Option<surfstream_replay::infer::Overlap>,
@@ -565,7 +565,7 @@ fn warn_assumed_height_unit(manifest: &std::path::Path) {
 fn infer_scan(
     dir: &std::path::Path,
     out: &std::path::Path,
-    grid: surfstream_replay::infer::Grid,
+    grid: surfstream_replay::infer::TileGrid,
     overlap: surfstream_replay::infer::Overlap,
     serpentine: bool,
     pitch_um: Option<f64>,

@@ -17,9 +17,10 @@ use numpy::{IntoPyArray, PyArray2, PyReadonlyArray2};
 use pyo3::prelude::*;
 use pyo3::types::PyBytes;
 
-use surfstream_core::filter::{self, Grid as FilterGrid, RobustSettings};
+use surfstream_core::filter::{self, RobustSettings};
 use surfstream_core::frame::{from_frame_heights, to_frame_heights};
 use surfstream_core::metrology::{self, ArealPsd, Grid};
+use surfstream_core::{Sampling, Shape};
 use surfstream_io::formats::{read_surface, write_surface, Metadata, Surface};
 use surfstream_io::preview::{encode_map_png, robust_range_um};
 use surfstream_wavelet::{
@@ -95,7 +96,7 @@ fn read_failure(e: anyhow::Error) -> Failure {
 
 fn metrology_failure(e: metrology::MetrologyError) -> Failure {
     let kind = match e {
-        metrology::MetrologyError::BadPitch { .. } => Kind::Parameter,
+        metrology::MetrologyError::Param(_) => Kind::Parameter,
         _ => Kind::Other,
     };
     Failure::new(kind, e)
@@ -103,7 +104,7 @@ fn metrology_failure(e: metrology::MetrologyError) -> Failure {
 
 fn filter_failure(e: filter::FilterError) -> Failure {
     let kind = match e {
-        filter::FilterError::BadValue { .. } => Kind::Parameter,
+        filter::FilterError::Param(_) => Kind::Parameter,
         _ => Kind::Other,
     };
     Failure::new(kind, e)
@@ -155,14 +156,12 @@ fn filter_grid(
     cols: usize,
     pitch_x_um: f64,
     pitch_y_um: f64,
-) -> Result<FilterGrid, Failure> {
-    let g = FilterGrid {
-        rows,
-        cols,
-        pitch_x_um,
-        pitch_y_um,
-    };
-    g.check(rows * cols).map_err(filter_failure)?;
+) -> Result<Sampling, Failure> {
+    let g = Sampling::new(Shape::new(rows, cols), pitch_x_um, pitch_y_um)
+        .map_err(|e| filter_failure(e.into()))?;
+    g.shape()
+        .check(rows * cols)
+        .map_err(|e| filter_failure(e.into()))?;
     Ok(g)
 }
 

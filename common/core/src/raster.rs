@@ -36,6 +36,10 @@ impl Shape {
     pub fn index(self, row: usize, col: usize) -> usize {
         row * self.cols + col
     }
+    /// Errors unless `found` samples fill this shape and it has at least one row and column.
+    pub fn check(self, found: usize) -> Result<(), ShapeError> {
+        check(self, found)
+    }
     /// The pixel centre, (col, row), of a raster of this shape: the pivot of tilts.
     #[inline]
     pub fn centre_px(self) -> (f64, f64) {

@@ -9,35 +9,36 @@ use std::process::Command;
 
 use surfstream_core::filter::{
     fit_polynomial, gaussian_filter, robust_gaussian_filter, scale_limited, sigma_px,
-    weighting_function, Grid, LFilter, RobustSettings,
+    weighting_function, LFilter, RobustSettings,
 };
+use surfstream_core::{Sampling, Shape};
 
 /// A `rows x cols` map from `f(x_um, y_um)`.
-fn map(grid: Grid, mut f: impl FnMut(f64, f64) -> f64) -> Vec<f32> {
-    (0..grid.rows * grid.cols)
+fn map(grid: Sampling, mut f: impl FnMut(f64, f64) -> f64) -> Vec<f32> {
+    (0..grid.rows() * grid.cols())
         .map(|i| {
-            let (r, c) = (i / grid.cols, i % grid.cols);
-            f(c as f64 * grid.pitch_x_um, r as f64 * grid.pitch_y_um) as f32
+            let (r, c) = (i / grid.cols(), i % grid.cols());
+            f(c as f64 * grid.pitch_x_um(), r as f64 * grid.pitch_y_um()) as f32
         })
         .collect()
 }
 
 /// Amplitude of the sinusoid of wavelength `lambda_um` along x (or y) in `z`, over the points
 /// at least `margin` px from every edge: least squares on sin and cos.
-fn amplitude(z: &[f32], grid: Grid, lambda_um: f64, along_x: bool, margin: usize) -> f64 {
+fn amplitude(z: &[f32], grid: Sampling, lambda_um: f64, along_x: bool, margin: usize) -> f64 {
     let (mut ss, mut cc, mut sc, mut zs, mut zc) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    for r in margin..grid.rows - margin {
-        for c in margin..grid.cols - margin {
+    for r in margin..grid.rows() - margin {
+        for c in margin..grid.cols() - margin {
             let t = if along_x {
-                c as f64 * grid.pitch_x_um
+                c as f64 * grid.pitch_x_um()
             } else {
-                r as f64 * grid.pitch_y_um
+                r as f64 * grid.pitch_y_um()
             };
             let (s, k) = (
                 (2.0 * PI * t / lambda_um).sin(),
                 (2.0 * PI * t / lambda_um).cos(),
             );
-            let v = f64::from(z[r * grid.cols + c]);
+            let v = f64::from(z[r * grid.cols() + c]);
             ss += s * s;
             cc += k * k;
             sc += s * k;
@@ -54,12 +55,7 @@ fn amplitude(z: &[f32], grid: Grid, lambda_um: f64, along_x: bool, margin: usize
 #[test]
 fn gaussian_transmission_is_50_percent_at_the_cutoff() {
     // lambda_c = 40 um at 0.5 um pitch (x) and 0.4 um (y): the kernel spans 80 / 100 px.
-    let grid = Grid {
-        rows: 400,
-        cols: 512,
-        pitch_x_um: 0.5,
-        pitch_y_um: 0.4,
-    };
+    let grid = Sampling::new(Shape::new(400, 512), 0.5, 0.4).unwrap();
     let lc = 40.0;
     let margin = 110;
     for (lambda, along_x) in [(lc, true), (lc, false), (2.0 * lc, true), (lc / 2.0, false)] {
@@ -86,7 +82,7 @@ fn gaussian_transmission_is_50_percent_at_the_cutoff() {
 
 #[test]
 fn a_plane_is_kept_away_from_edges_and_with_form_removal_up_to_them() {
-    let grid = Grid::square(200, 260, 0.5);
+    let grid = Sampling::square(Shape::new(200, 260), 0.5).unwrap();
     let lc = 25.0;
     let (sx, sy) = (0.03, -0.02); // um per um
     let plane = |x: f64, y: f64| 5.0 + sx * x + sy * y;
@@ -94,17 +90,17 @@ fn a_plane_is_kept_away_from_edges_and_with_form_removal_up_to_them() {
     let out = gaussian_filter(&z, grid, lc).unwrap();
     let h = (lc / 0.5) as usize;
     let mut interior_err = 0.0f64;
-    for r in h..grid.rows - h {
-        for c in h..grid.cols - h {
+    for r in h..grid.rows() - h {
+        for c in h..grid.cols() - h {
             let want = plane(c as f64 * 0.5, r as f64 * 0.5);
-            interior_err = interior_err.max((f64::from(out[r * grid.cols + c]) - want).abs());
+            interior_err = interior_err.max((f64::from(out[r * grid.cols() + c]) - want).abs());
         }
     }
     assert!(interior_err < 2e-5, "interior error {interior_err} um");
     // At the left edge the normalised weights are one-sided: the mean moves inwards by the
     // centroid of the half kernel (sampled at the pitch, centre included), so the plane is
     // biased by slope x shift (the documented zeroth-order end correction).
-    let r = grid.rows / 2;
+    let r = grid.rows() / 2;
     let taps: Vec<(f64, f64)> = (0..=h)
         .map(|j| (j as f64 * 0.5, weighting_function(j as f64 * 0.5, lc)))
         .collect();
@@ -113,7 +109,7 @@ fn a_plane_is_kept_away_from_edges_and_with_form_removal_up_to_them() {
     // ~ sigma sqrt(2 / pi) of the continuous half-Gaussian, less for the centre sample.
     assert!((shift_um / (sigma_px(lc, 0.5) * 0.5 * (2.0 / PI).sqrt()) - 0.96).abs() < 0.02);
     let want_bias = sx * shift_um;
-    let bias = f64::from(out[r * grid.cols]) - plane(0.0, r as f64 * 0.5);
+    let bias = f64::from(out[r * grid.cols()]) - plane(0.0, r as f64 * 0.5);
     assert!(
         (bias - want_bias).abs() < 1e-3 * want_bias,
         "edge bias {bias}, expected {want_bias}"
@@ -131,7 +127,7 @@ fn a_plane_is_kept_away_from_edges_and_with_form_removal_up_to_them() {
 
 #[test]
 fn holes_do_not_spread_beyond_the_kernel() {
-    let grid = Grid::square(180, 220, 0.5);
+    let grid = Sampling::square(Shape::new(180, 220), 0.5).unwrap();
     let lc = 20.0;
     let z = map(grid, |x, y| {
         (2.0 * PI * x / 15.0).sin() + 0.5 * (2.0 * PI * y / 33.0).cos() + 0.01 * x
@@ -140,14 +136,14 @@ fn holes_do_not_spread_beyond_the_kernel() {
     let mut holed = z.clone();
     let (r0, r1, c0, c1) = (70, 95, 100, 130);
     for r in r0..r1 {
-        holed[r * grid.cols + c0..r * grid.cols + c1].fill(f32::NAN);
+        holed[r * grid.cols() + c0..r * grid.cols() + c1].fill(f32::NAN);
     }
     let out = gaussian_filter(&holed, grid, lc).unwrap();
     let reach = (lc / 0.5).ceil() as usize; // the kernel's half width, px
     let (mut far, mut near_changed) = (0.0f32, 0.0f32);
-    for r in 0..grid.rows {
-        for c in 0..grid.cols {
-            let i = r * grid.cols + c;
+    for r in 0..grid.rows() {
+        for c in 0..grid.cols() {
+            let i = r * grid.cols() + c;
             let inside = (r0..r1).contains(&r) && (c0..c1).contains(&c);
             assert_eq!(
                 out[i].is_nan(),
@@ -173,7 +169,7 @@ fn holes_do_not_spread_beyond_the_kernel() {
 
 #[test]
 fn robust_filter_ignores_spikes_and_a_deep_scratch_the_gaussian_follows() {
-    let grid = Grid::square(256, 256, 0.5);
+    let grid = Sampling::square(Shape::new(256, 256), 0.5).unwrap();
     let lc = 25.0;
     // Fine texture (0.2 um) on a level surface, 0.5 % of the points spiked by +40 um, and a
     // 3 px wide scratch 15 um deep along y.
@@ -187,9 +183,9 @@ fn robust_filter_ignores_spikes_and_a_deep_scratch_the_gaussian_follows() {
             *v += 40.0;
         }
     }
-    for r in 0..grid.rows {
+    for r in 0..grid.rows() {
         for c in 120..123 {
-            z[r * grid.cols + c] -= 15.0;
+            z[r * grid.cols() + c] -= 15.0;
         }
     }
     z[5] = f32::NAN;
@@ -224,12 +220,7 @@ fn robust_filter_ignores_spikes_and_a_deep_scratch_the_gaussian_follows() {
 
 #[test]
 fn polynomial_form_recovers_known_coefficients() {
-    let grid = Grid {
-        rows: 150,
-        cols: 210,
-        pitch_x_um: 0.8,
-        pitch_y_um: 0.6,
-    };
+    let grid = Sampling::new(Shape::new(150, 210), 0.8, 0.6).unwrap();
     // Third order in the normalised coordinates (u, v in [-1, 1]).
     let want: [((usize, usize), f64); 10] = [
         ((0, 0), 12.0),
@@ -269,8 +260,18 @@ fn polynomial_form_recovers_known_coefficients() {
     assert_eq!(plane.terms, vec![(0, 0), (1, 0), (0, 1)]);
     assert!(plane.residual_rms_um > 0.05);
     assert!(fit_polynomial(&z, grid, 11).is_err());
-    assert!(fit_polynomial(&[1.0, f32::NAN, 2.0, 3.0], Grid::square(2, 2, 1.0), 1).is_ok());
-    assert!(fit_polynomial(&[1.0, f32::NAN, f32::NAN, 3.0], Grid::square(2, 2, 1.0), 1).is_err());
+    assert!(fit_polynomial(
+        &[1.0, f32::NAN, 2.0, 3.0],
+        Sampling::square(Shape::new(2, 2), 1.0).unwrap(),
+        1
+    )
+    .is_ok());
+    assert!(fit_polynomial(
+        &[1.0, f32::NAN, f32::NAN, 3.0],
+        Sampling::square(Shape::new(2, 2), 1.0).unwrap(),
+        1
+    )
+    .is_err());
 }
 
 fn python() -> PathBuf {
@@ -304,12 +305,7 @@ fn write_npy(path: &Path, v: &[f64], rows: usize, cols: usize) {
 
 #[test]
 fn parity_with_scipy_gaussian_filter_and_surfalizes_old_sigma() {
-    let grid = Grid {
-        rows: 160,
-        cols: 200,
-        pitch_x_um: 0.5,
-        pitch_y_um: 0.7,
-    };
+    let grid = Sampling::new(Shape::new(160, 200), 0.5, 0.7).unwrap();
     let lc = 16.0;
     let mut state = 7u64;
     let z = map(grid, |x, y| {
@@ -322,8 +318,8 @@ fn parity_with_scipy_gaussian_filter_and_surfalizes_old_sigma() {
     write_npy(
         &input,
         &z.iter().map(|&v| f64::from(v)).collect::<Vec<_>>(),
-        grid.rows,
-        grid.cols,
+        grid.rows(),
+        grid.cols(),
     );
     let (sx, sy) = (sigma_px(lc, 0.5), sigma_px(lc, 0.7));
     let (hx, hy) = ((lc / 0.5).ceil(), (lc / 0.7).ceil());
@@ -368,9 +364,9 @@ for name, sigma in (('old', {lc} / 0.5 / (2 * np.sqrt(2 * np.log(2)))), ('fixed'
     assert_eq!(reference.len(), z.len());
     let (mx, my) = (hx as usize, hy as usize);
     let mut worst = 0.0f64;
-    for r in my..grid.rows - my {
-        for c in mx..grid.cols - mx {
-            let i = r * grid.cols + c;
+    for r in my..grid.rows() - my {
+        for c in mx..grid.cols() - mx {
+            let i = r * grid.cols() + c;
             worst = worst.max((f64::from(ours[i]) - reference[i]).abs());
         }
     }

@@ -46,10 +46,7 @@ fn main() -> Result<()> {
             let (hybrid2, _) = time(reps, || Ok(hybrid_params(&g)))?;
             let (lev, _) = time(reps, || {
                 let l = level_plane(&g)?;
-                Ok(params(&Grid {
-                    heights_um: &l,
-                    ..g
-                })?)
+                Ok(params(&Grid::of(&l, g.sampling())?)?)
             })?;
             println!(
                 "{}",

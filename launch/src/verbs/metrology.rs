@@ -265,10 +265,7 @@ fn params_of(path: &Path, a: &ParamsArgs) -> Result<ParamsRecord> {
     let levelled;
     let g = if a.level {
         levelled = metrology::level_plane(&g)?;
-        Grid {
-            heights_um: &levelled,
-            ..g
-        }
+        Grid::of(&levelled, g.sampling())?
     } else {
         g
     };

@@ -12,9 +12,10 @@ use std::path::PathBuf;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
-use surfstream_core::filter::Grid;
+use surfstream_core::filter::FilterError;
 use surfstream_core::frame::{from_frame_heights, to_frame_heights};
 use surfstream_core::fsutil::write_atomic;
+use surfstream_core::{Sampling, Shape};
 use surfstream_io::npy::{write_npy_abs_f64, write_npy_f32, write_npy_f64};
 use surfstream_io::sidecar::{write_sidecar, NpyGeometry};
 
@@ -129,12 +130,6 @@ pub fn run(a: SeparateArgs) -> Result<()> {
     // mean is the same as skipping non-finite heights.
     let (z_offset_um, heights) = to_frame_heights(&s.heights_um);
     let with_offset = |v: &[f32]| from_frame_heights(z_offset_um, v);
-    let grid = Grid {
-        rows: s.height,
-        cols: s.width,
-        pitch_x_um: s.pitch_x_um,
-        pitch_y_um: s.pitch_y_um,
-    };
     let (datum, roughness, pooled, mut summary, line) = if method == SeparationMethod::Wavelet {
         let an = analyse(
             &heights, s.height, s.width, base, level, mode, a.pool, pool_op,
@@ -173,7 +168,9 @@ pub fn run(a: SeparateArgs) -> Result<()> {
         let sep = an.separation;
         (sep.datum, sep.roughness, an.pooled, summary, line)
     } else {
-        let f = filter_separation(&heights, grid, method, lambda_s_um)
+        let f = Sampling::new(Shape::new(s.height, s.width), s.pitch_x_um, s.pitch_y_um)
+            .map_err(FilterError::from)
+            .and_then(|grid| filter_separation(&heights, grid, method, lambda_s_um))
             .map_err(|e| anyhow!("{}: {} separation: {e}", a.file.display(), method.name()))?;
         let pooled = pool(&heights, s.height, s.width, a.pool, pool_op)
             .with_context(|| format!("{}: pooling", a.file.display()))?;

@@ -9,12 +9,8 @@ pub type Result<T, E = FusionError> = std::result::Result<T, E>;
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum FusionError {
     /// A numeric parameter (pitch, blend ramp, ...) is out of its domain.
-    #[error("{field} = {value}: expected {expected}")]
-    InvalidParameter {
-        field: &'static str,
-        value: f64,
-        expected: &'static str,
-    },
+    #[error(transparent)]
+    Param(#[from] surfstream_core::ParamError),
 
     /// A position, offset or plane coefficient of a tile is NaN or infinite.
     #[error("tile {index}: {field} = {value}: expected a finite number")]

@@ -5,6 +5,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use surfstream_core::raster::RasterView;
+use surfstream_core::ParamError;
 pub use surfstream_core::PlaneCorrection;
 
 use crate::error::{FusionError, Result};
@@ -92,11 +93,7 @@ impl BlendParams {
             if let Some(value) = value {
                 // Also refuses NaN: every comparison with NaN is false.
                 if !(0.0..=MAX_RAMP_PX).contains(&value) {
-                    return Err(FusionError::InvalidParameter {
-                        field,
-                        value,
-                        expected: EXPECTED,
-                    });
+                    return Err(FusionError::from(ParamError::new(field, value, EXPECTED)));
                 }
             }
         }
@@ -173,17 +170,4 @@ fn first_infinite(values: &[f32]) -> Option<usize> {
     let start = block * BLOCK;
     let at = values[start..].iter().position(|v| v.is_infinite())?;
     Some(start + at)
-}
-
-/// Refuse a pitch that is not a finite positive length.
-pub(crate) fn validate_pitch(field: &'static str, value: f64) -> Result<()> {
-    if value.is_finite() && value > 0.0 {
-        Ok(())
-    } else {
-        Err(FusionError::InvalidParameter {
-            field,
-            value,
-            expected: "a finite pitch in um > 0",
-        })
-    }
 }

@@ -9,10 +9,11 @@ use serde::{Deserialize, Serialize};
 
 use surfstream_core::canvas::{amortised_growth, GridRect};
 use surfstream_core::raster::{Raster, Shape};
+use surfstream_core::{ParamError, Sampling};
 
 use crate::chunks::{ChunkStats, ChunkStore, CHUNK_PX};
 use crate::error::{FusionError, Result};
-use crate::input::{validate_pitch, BlendParams, TileInput};
+use crate::input::{BlendParams, TileInput};
 use crate::method::{fuse_wavelet_in, WaveletFusion};
 use crate::resample::{AxisPlan, Resampler, MAX_OFFSET_PX};
 
@@ -118,8 +119,8 @@ impl Panorama {
     /// An empty panorama on a grid of the given pitch (um). The grid is anchored by the first
     /// placed tile: canvas pixel centres lie at `x = first.x_um + k * pitch_x_um` (likewise y).
     pub fn new(pitch_x_um: f64, pitch_y_um: f64, params: BlendParams) -> Result<Self> {
-        validate_pitch("pitch_x_um", pitch_x_um)?;
-        validate_pitch("pitch_y_um", pitch_y_um)?;
+        // The one pitch check; the canvas's shape grows with the tiles.
+        Sampling::new(Shape::default(), pitch_x_um, pitch_y_um)?;
         params.validate()?;
         Ok(Self {
             pitch_x_um,
@@ -246,11 +247,11 @@ impl Panorama {
             ("y_max_um", y_max_um),
         ] {
             if !value.is_finite() {
-                return Err(FusionError::InvalidParameter {
+                return Err(FusionError::from(ParamError::new(
                     field,
                     value,
-                    expected: "a finite scan position in um",
-                });
+                    "a finite scan position in um",
+                )));
             }
         }
         if x_max_um < x_min_um || y_max_um < y_min_um {
@@ -259,11 +260,11 @@ impl Panorama {
             } else {
                 ("y_max_um", y_max_um)
             };
-            return Err(FusionError::InvalidParameter {
+            return Err(FusionError::from(ParamError::new(
                 field,
                 value,
-                expected: "max >= min",
-            });
+                "max >= min",
+            )));
         }
         let rect = [x_min_um, y_min_um, x_max_um, y_max_um];
         if self.rect.is_empty() {

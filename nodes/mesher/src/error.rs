@@ -19,12 +19,8 @@ pub enum MeshError {
     Shape(#[from] surfstream_core::raster::ShapeError),
 
     /// A numeric parameter is out of its domain.
-    #[error("{name} = {value}: expected {expected}")]
-    InvalidParameter {
-        name: &'static str,
-        value: f64,
-        expected: &'static str,
-    },
+    #[error(transparent)]
+    Param(#[from] surfstream_core::ParamError),
 
     /// Every sample is NaN: there is no surface to mesh.
     #[error("height field has no measured sample: all {samples} samples are NaN")]

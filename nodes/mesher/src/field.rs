@@ -6,6 +6,7 @@ use std::borrow::Cow;
 
 use surfstream_core::frame::FrameHeader;
 use surfstream_core::raster::RasterView;
+use surfstream_core::{ParamError, Sampling};
 
 use crate::error::{MeshError, Result};
 
@@ -76,10 +77,8 @@ pub(crate) fn validate(heights: RasterView<'_, f32>, at: &ScanPlacement) -> Resu
     }
     // A non-positive pitch would mirror the grid and invert every triangle's winding; the
     // readers guarantee rows grow with y (DESIGN §2), so refuse rather than flip silently.
-    positive_finite("pitch_x_um", at.pitch_x_um)?;
-    positive_finite("pitch_y_um", at.pitch_y_um)?;
-    finite("origin_x_um", at.origin_x_um)?;
-    finite("origin_y_um", at.origin_y_um)?;
+    Sampling::new(heights.shape(), at.pitch_x_um, at.pitch_y_um)?
+        .with_origin(at.origin_x_um, at.origin_y_um)?;
     finite("z_offset_um", at.z_offset_um)?;
     Ok(())
 }
@@ -88,11 +87,11 @@ pub(crate) fn positive_finite(name: &'static str, value: f64) -> Result<()> {
     if value.is_finite() && value > 0.0 {
         Ok(())
     } else {
-        Err(MeshError::InvalidParameter {
+        Err(MeshError::from(ParamError::new(
             name,
             value,
-            expected: "a finite number > 0",
-        })
+            "a finite number > 0",
+        )))
     }
 }
 
@@ -100,11 +99,11 @@ pub(crate) fn finite(name: &'static str, value: f64) -> Result<()> {
     if value.is_finite() {
         Ok(())
     } else {
-        Err(MeshError::InvalidParameter {
+        Err(MeshError::from(ParamError::new(
             name,
             value,
-            expected: "a finite number",
-        })
+            "a finite number",
+        )))
     }
 }
 

@@ -31,6 +31,7 @@ use crate::error::{MeshError, Result};
 use surfstream_core::raster::{RasterView, Shape};
 
 use crate::field::{fill_missing, positive_finite};
+use surfstream_core::ParamError;
 
 const NONE: u32 = u32::MAX;
 
@@ -1362,19 +1363,19 @@ impl<'a> BlockPlan<'a> {
         positive_finite("epsilon_um", params.epsilon_um)?;
         if let Some(n) = params.max_triangles {
             if n < 2 {
-                return Err(MeshError::InvalidParameter {
-                    name: "max_triangles",
-                    value: n as f64,
-                    expected: "at least 2 (the two triangles spanning the grid)",
-                });
+                return Err(MeshError::from(ParamError::new(
+                    "max_triangles",
+                    n,
+                    "at least 2 (the two triangles spanning the grid)",
+                )));
             }
         }
         if params.block_samples == Some(0) {
-            return Err(MeshError::InvalidParameter {
-                name: "block_samples",
-                value: 0.0,
-                expected: "at least 1 (samples per block side)",
-            });
+            return Err(MeshError::from(ParamError::new(
+                "block_samples",
+                0.0,
+                "at least 1 (samples per block side)",
+            )));
         }
         let (rows, cols) = (heights.rows(), heights.cols());
         if cols > i32::MAX as usize || rows > i32::MAX as usize || cols * rows >= NONE as usize {

@@ -243,10 +243,10 @@ fn bad_inputs_give_clear_errors() {
         assert!(
             matches!(
                 err,
-                MeshError::InvalidParameter {
-                    name: "pitch_x_um",
+                MeshError::Param(surfstream_core::ParamError {
+                    field: "pitch_x_um",
                     ..
-                }
+                })
             ),
             "{err}"
         );

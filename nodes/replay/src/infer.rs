@@ -25,14 +25,14 @@ pub struct GridLayout {
     pub serpentine: bool,
 }
 
-/// `RxC` (rows x cols), e.g. "3x4".
+/// The layout of fields, `RxC` (rows x cols of tiles), e.g. "3x4" (not a raster's sampling).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Grid {
+pub struct TileGrid {
     pub rows: usize,
     pub cols: usize,
 }
 
-impl FromStr for Grid {
+impl FromStr for TileGrid {
     type Err = String;
     fn from_str(s: &str) -> std::result::Result<Self, String> {
         let bad = || format!("grid {s:?}: expected ROWSxCOLS, e.g. 3x4 (3 rows of 4 fields)");
@@ -44,7 +44,7 @@ impl FromStr for Grid {
         if rows == 0 || cols == 0 {
             return Err(bad());
         }
-        Ok(Grid { rows, cols })
+        Ok(TileGrid { rows, cols })
     }
 }
 
@@ -462,9 +462,12 @@ mod tests {
 
     #[test]
     fn grids_overlaps_and_file_order_parse() {
-        assert_eq!("3x4".parse::<Grid>(), Ok(Grid { rows: 3, cols: 4 }));
-        assert!("3by4".parse::<Grid>().unwrap_err().contains("ROWSxCOLS"));
-        assert!("0x4".parse::<Grid>().is_err());
+        assert_eq!("3x4".parse::<TileGrid>(), Ok(TileGrid { rows: 3, cols: 4 }));
+        assert!("3by4"
+            .parse::<TileGrid>()
+            .unwrap_err()
+            .contains("ROWSxCOLS"));
+        assert!("0x4".parse::<TileGrid>().is_err());
         assert_eq!("20%".parse::<Overlap>(), Ok(Overlap(0.2)));
         assert_eq!("0.15".parse::<Overlap>(), Ok(Overlap(0.15)));
         assert!("95%".parse::<Overlap>().is_err());

@@ -13,7 +13,8 @@
 use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
-use surfstream_core::filter::{gaussian_filter, robust_gaussian_filter, Grid, RobustSettings};
+use surfstream_core::filter::{gaussian_filter, robust_gaussian_filter, RobustSettings};
+use surfstream_core::{Sampling, Shape};
 
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -29,7 +30,7 @@ fn main() -> Result<()> {
         Some("robust") => true,
         Some(o) => bail!("filter {o:?}: expected gaussian or robust"),
     };
-    let grid = Grid::square(a.rows, a.cols, pitch);
+    let grid = Sampling::square(Shape::new(a.rows, a.cols), pitch)?;
     let mut times = Vec::new();
     let mut check = 0.0f64;
     for i in 0..=reps {

@@ -25,7 +25,8 @@ use surfstream_core::raster::{RasterView, Shape};
 use surfstream_core::store::{self, ChunkedGrid, GridChunk};
 use surfstream_io::output::{NpyHeights, OutputWriter, SurfaceOutput};
 
-use surfstream_core::filter::Grid;
+use surfstream_core::filter::FilterError;
+use surfstream_core::Sampling;
 
 use crate::method::{equivalent_cutoff_um, filter_separation, level_lowered_warning};
 use crate::select::SummaryParts;
@@ -455,13 +456,9 @@ impl LiveSeparation {
             .map_err(|e| anyhow!("wavelet: live separation: {e}"))?;
             (d, r)
         } else {
-            let grid = Grid {
-                rows,
-                cols,
-                pitch_x_um: m.pitch_um[0],
-                pitch_y_um: m.pitch_um[1],
-            };
-            let s = filter_separation(&heights, grid, self.method, self.lambda_s_um)
+            let s = Sampling::new(Shape::new(rows, cols), m.pitch_um[0], m.pitch_um[1])
+                .map_err(FilterError::from)
+                .and_then(|grid| filter_separation(&heights, grid, self.method, self.lambda_s_um))
                 .map_err(|e| anyhow!("wavelet: live {} separation: {e}", self.method.name()))?;
             (crop(&s.datum), crop(&s.roughness))
         };
@@ -705,13 +702,11 @@ pub fn final_separation_with(
             )
         }
         (method, _) => {
-            let grid = Grid {
-                rows,
-                cols,
-                pitch_x_um: h.pitch_x_um,
-                pitch_y_um: h.pitch_y_um,
-            };
-            let s = filter_separation(panorama.heights, grid, method, settings.lambda_s_um)
+            let s = Sampling::new(Shape::new(rows, cols), h.pitch_x_um, h.pitch_y_um)
+                .map_err(FilterError::from)
+                .and_then(|grid| {
+                    filter_separation(panorama.heights, grid, method, settings.lambda_s_um)
+                })
                 .map_err(|e| anyhow!("wavelet: {} separation: {e}", method.name()))?;
             let pooled = pool(
                 panorama.heights,

@@ -20,8 +20,9 @@
 use std::f64::consts::PI;
 
 use surfstream_core::filter::{
-    fit_polynomial, gaussian_filter, robust_gaussian_filter, FilterError, Grid, RobustSettings,
+    fit_polynomial, gaussian_filter, robust_gaussian_filter, FilterError, RobustSettings,
 };
+use surfstream_core::{ParamError, Sampling};
 
 use crate::Wavelet;
 
@@ -102,22 +103,22 @@ pub struct FilterSeparation {
 /// (not [`SeparationMethod::Wavelet`]) and optional S-filter `lambda_s_um`.
 pub fn filter_separation(
     heights: &[f32],
-    grid: Grid,
+    grid: Sampling,
     method: SeparationMethod,
     lambda_s_um: Option<f64>,
 ) -> Result<FilterSeparation, FilterError> {
-    let cutoff = method.cutoff_um().ok_or(FilterError::BadValue {
-        name: "method",
-        value: f64::NAN,
-        expected: "a filter method (gaussian or robust-gaussian)",
-    })?;
+    let cutoff = method.cutoff_um().ok_or(FilterError::from(ParamError::new(
+        "method",
+        f64::NAN,
+        "a filter method (gaussian or robust-gaussian)",
+    )))?;
     if let Some(ls) = lambda_s_um {
         if !(ls.is_finite() && ls > 0.0 && ls < cutoff) {
-            return Err(FilterError::BadValue {
-                name: "lambda_s_um",
-                value: ls,
-                expected: "a positive S-filter cutoff shorter than cutoff_um",
-            });
+            return Err(FilterError::from(ParamError::new(
+                "lambda_s_um",
+                ls,
+                "a positive S-filter cutoff shorter than cutoff_um",
+            )));
         }
     }
     let primary = match lambda_s_um {
@@ -317,7 +318,7 @@ mod tests {
 
     #[test]
     fn gaussian_separation_keeps_a_tilted_plane_in_the_datum_to_the_edges() {
-        let grid = Grid::square(90, 120, 0.5);
+        let grid = Sampling::square(surfstream_core::Shape::new(90, 120), 0.5).unwrap();
         let h: Vec<f32> = (0..90 * 120)
             .map(|i| (3.0 + 0.02 * (i % 120) as f64 - 0.01 * (i / 120) as f64) as f32)
             .collect();

@@ -15,7 +15,9 @@ use rayon::prelude::*;
 
 use super::gaussian::gaussian_filter;
 use super::robust::{robust_gaussian_filter, RobustSettings};
-use super::{FilterError, Grid};
+use super::FilterError;
+use crate::sampling::Sampling;
+use crate::ParamError;
 
 /// Highest polynomial order [`fit_polynomial`] accepts.
 pub const MAX_ORDER: usize = 10;
@@ -68,20 +70,20 @@ fn powers(x: f64, n: usize) -> Vec<f64> {
 /// of `heights`.
 pub fn fit_polynomial(
     heights: &[f32],
-    grid: Grid,
+    grid: Sampling,
     order: usize,
 ) -> Result<PolynomialForm, FilterError> {
-    grid.check(heights.len())?;
+    grid.shape().check(heights.len())?;
     if order > MAX_ORDER {
-        return Err(FilterError::BadValue {
-            name: "form_order",
-            value: order as f64,
-            expected: "a polynomial order from 0 to 10",
-        });
+        return Err(FilterError::from(ParamError::new(
+            "form_order",
+            order as f64,
+            "a polynomial order from 0 to 10",
+        )));
     }
-    let Grid { rows, cols, .. } = grid;
-    let (u, cx, hx) = axis(cols, grid.pitch_x_um);
-    let (v, cy, hy) = axis(rows, grid.pitch_y_um);
+    let (rows, cols) = (grid.rows(), grid.cols());
+    let (u, cx, hx) = axis(cols, grid.pitch_x_um());
+    let (v, cy, hy) = axis(rows, grid.pitch_y_um());
     let terms = terms(order);
     let have = heights.par_iter().filter(|z| z.is_finite()).count();
     if have < terms.len() {
@@ -190,21 +192,21 @@ impl PolynomialForm {
     }
 
     /// The form on every point of `grid`, f64, row-major.
-    pub fn evaluate(&self, grid: Grid) -> Vec<f64> {
-        let mut out = vec![0.0f64; grid.rows * grid.cols];
-        out.par_chunks_mut(grid.cols)
+    pub fn evaluate(&self, grid: Sampling) -> Vec<f64> {
+        let mut out = vec![0.0f64; grid.rows() * grid.cols()];
+        out.par_chunks_mut(grid.cols())
             .enumerate()
             .for_each(|(r, line)| {
-                let y = r as f64 * grid.pitch_y_um;
+                let y = r as f64 * grid.pitch_y_um();
                 for (c, o) in line.iter_mut().enumerate() {
-                    *o = self.at(c as f64 * grid.pitch_x_um, y);
+                    *o = self.at(c as f64 * grid.pitch_x_um(), y);
                 }
             });
         out
     }
 
     /// `heights - form` (NaN stays NaN).
-    pub fn remove(&self, heights: &[f32], grid: Grid) -> Vec<f32> {
+    pub fn remove(&self, heights: &[f32], grid: Sampling) -> Vec<f32> {
         let form = self.evaluate(grid);
         heights
             .par_iter()
@@ -239,20 +241,20 @@ pub struct ScaleLimited {
 /// `form_order`, gives S-F; minus its L-filter (`lambda_c_um`, if given) gives S-L.
 pub fn scale_limited(
     heights: &[f32],
-    grid: Grid,
+    grid: Sampling,
     form_order: usize,
     lambda_s_um: Option<f64>,
     lambda_c_um: Option<f64>,
     l_filter: LFilter,
 ) -> Result<ScaleLimited, FilterError> {
-    grid.check(heights.len())?;
+    grid.shape().check(heights.len())?;
     if let (Some(ls), Some(lc)) = (lambda_s_um, lambda_c_um) {
         if lc <= ls {
-            return Err(FilterError::BadValue {
-                name: "lambda_c_um",
-                value: lc,
-                expected: "a cutoff longer than lambda_s",
-            });
+            return Err(FilterError::from(ParamError::new(
+                "lambda_c_um",
+                lc,
+                "a cutoff longer than lambda_s",
+            )));
         }
     }
     let primary = match lambda_s_um {

@@ -37,8 +37,10 @@ use rayon::prelude::*;
 use rustfft::num_complex::Complex32;
 use rustfft::{Fft, FftPlanner};
 
-use super::{FilterError, Grid};
+use super::FilterError;
 use crate::fft::fast_len;
+use crate::sampling::Sampling;
+use crate::ParamError;
 
 /// `sqrt(ln 2 / pi)`: the constant of the Gaussian weighting function (ISO 16610-61).
 pub const ALPHA: f64 = 0.469_718_639_349_825_8;
@@ -96,11 +98,11 @@ impl AxisPass {
     ) -> Result<Self, FilterError> {
         let half = (cutoff_um / pitch_um).ceil();
         if !(half.is_finite() && half <= MAX_HALF_WIDTH) {
-            return Err(FilterError::BadValue {
-                name: "cutoff_um",
-                value: cutoff_um,
-                expected: "a cutoff of at most 1e7 pitches",
-            });
+            return Err(FilterError::from(ParamError::new(
+                "cutoff_um",
+                cutoff_um,
+                "a cutoff of at most 1e7 pitches",
+            )));
         }
         let half = (half as usize).max(1);
         let weights: Vec<f64> = (0..=half)
@@ -198,7 +200,7 @@ impl ColumnsOut {
 /// An areal Gaussian filter planned for one grid and cutoff; apply it to any number of maps
 /// of that grid (the robust filter applies it once per iteration).
 pub struct GaussianFilter {
-    grid: Grid,
+    grid: Sampling,
     cutoff_um: f64,
     rows_pass: AxisPass,
     cols_pass: AxisPass,
@@ -206,21 +208,22 @@ pub struct GaussianFilter {
 
 impl GaussianFilter {
     /// Plans the filter with cutoff `cutoff_um` (`lambda_c` or `lambda_s`, µm) for `grid`.
-    pub fn new(grid: Grid, cutoff_um: f64) -> Result<Self, FilterError> {
-        grid.check(grid.rows.saturating_mul(grid.cols))?;
+    pub fn new(grid: Sampling, cutoff_um: f64) -> Result<Self, FilterError> {
+        grid.shape()
+            .check(grid.rows().saturating_mul(grid.cols()))?;
         if !(cutoff_um.is_finite() && cutoff_um > 0.0) {
-            return Err(FilterError::BadValue {
-                name: "cutoff_um",
-                value: cutoff_um,
-                expected: "a positive cutoff wavelength in µm",
-            });
+            return Err(FilterError::from(ParamError::new(
+                "cutoff_um",
+                cutoff_um,
+                "a positive cutoff wavelength in µm",
+            )));
         }
         let mut planner = FftPlanner::new();
         Ok(Self {
             grid,
             cutoff_um,
-            rows_pass: AxisPass::new(&mut planner, grid.cols, cutoff_um, grid.pitch_x_um)?,
-            cols_pass: AxisPass::new(&mut planner, grid.rows, cutoff_um, grid.pitch_y_um)?,
+            rows_pass: AxisPass::new(&mut planner, grid.cols(), cutoff_um, grid.pitch_x_um())?,
+            cols_pass: AxisPass::new(&mut planner, grid.rows(), cutoff_um, grid.pitch_y_um())?,
         })
     }
 
@@ -230,7 +233,7 @@ impl GaussianFilter {
     }
 
     /// The grid the filter was planned for.
-    pub fn grid(&self) -> Grid {
+    pub fn grid(&self) -> Sampling {
         self.grid
     }
 
@@ -249,7 +252,7 @@ impl GaussianFilter {
         weights: &[f32],
         min_support: f64,
     ) -> Result<WeightedMean, FilterError> {
-        self.grid.check(weights.len())?;
+        self.grid.shape().check(weights.len())?;
         let (mean, support) = self.run(heights, Some(weights), min_support, true)?;
         Ok(WeightedMean {
             mean,
@@ -265,8 +268,8 @@ impl GaussianFilter {
         min_support: f64,
         want_support: bool,
     ) -> Result<(Vec<f32>, Option<Vec<f32>>), FilterError> {
-        let Grid { rows, cols, .. } = self.grid;
-        self.grid.check(heights.len())?;
+        let (rows, cols) = (self.grid.rows(), self.grid.cols());
+        self.grid.shape().check(heights.len())?;
         let weight = |i: usize, z: f32| -> f32 {
             let w = weights.map_or(1.0, |w| w[i]);
             if z.is_finite() && w.is_finite() && w > 0.0 {
@@ -385,7 +388,7 @@ impl GaussianFilter {
         min_support: f64,
         want_support: bool,
     ) -> (Vec<f32>, Option<Vec<f32>>) {
-        let Grid { rows, cols, .. } = self.grid;
+        let (rows, cols) = (self.grid.rows(), self.grid.cols());
         let zero = Complex32::default();
         // Pass 1: rows 2p and 2p + 1 as the real and imaginary part of line p.
         let pairs = rows.div_ceil(2);
@@ -468,7 +471,7 @@ impl GaussianFilter {
 /// output for `lambda_c`, the S-filter's output (the primary surface) for `lambda_s`.
 pub fn gaussian_filter(
     heights: &[f32],
-    grid: Grid,
+    grid: Sampling,
     cutoff_um: f64,
 ) -> Result<Vec<f32>, FilterError> {
     GaussianFilter::new(grid, cutoff_um)?.apply(heights)
@@ -478,7 +481,7 @@ pub fn gaussian_filter(
 pub fn normalised_gaussian(
     heights: &[f32],
     weights: &[f32],
-    grid: Grid,
+    grid: Sampling,
     cutoff_um: f64,
     min_support: f64,
 ) -> Result<WeightedMean, FilterError> {
@@ -488,6 +491,7 @@ pub fn normalised_gaussian(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::Shape;
 
     #[test]
     fn alpha_and_sigma() {
@@ -506,12 +510,14 @@ mod tests {
 
     #[test]
     fn refuses_bad_arguments() {
-        let g = Grid::square(4, 5, 1.0);
+        let g = Sampling::square(Shape::new(4, 5), 1.0).unwrap();
         assert!(GaussianFilter::new(g, 0.0).is_err());
         assert!(GaussianFilter::new(g, f64::NAN).is_err());
         assert!(GaussianFilter::new(g, 1e30).is_err());
-        assert!(GaussianFilter::new(Grid::square(0, 5, 1.0), 3.0).is_err());
-        assert!(GaussianFilter::new(Grid::square(4, 5, -1.0), 3.0).is_err());
+        assert!(
+            GaussianFilter::new(Sampling::square(Shape::new(0, 5), 1.0).unwrap(), 3.0).is_err()
+        );
+        assert!(Sampling::square(Shape::new(4, 5), -1.0).is_err());
         let f = GaussianFilter::new(g, 3.0).unwrap();
         assert!(f.apply(&[0.0; 19]).is_err());
         assert_eq!(f.apply(&[f32::NAN; 20]), Err(FilterError::AllNan));
@@ -520,12 +526,7 @@ mod tests {
     #[test]
     fn the_complete_map_shortcut_equals_the_general_path() {
         // Odd sizes: the last row / column rides alone in its complex line.
-        let g = Grid {
-            rows: 41,
-            cols: 29,
-            pitch_x_um: 0.5,
-            pitch_y_um: 0.7,
-        };
+        let g = Sampling::new(Shape::new(41, 29), 0.5, 0.7).unwrap();
         let h: Vec<f32> = (0..41 * 29)
             .map(|i| ((i % 29) as f32 * 0.4).sin() + ((i / 29) as f32 * 0.3).cos() + 50.0)
             .collect();
@@ -537,12 +538,12 @@ mod tests {
         for (a, b) in fast.iter().zip(&general.mean) {
             assert!((a - b).abs() < 2e-5, "{a} vs {b}");
         }
-        assert!((general.support[0] - general.support[g.cols - 1]).abs() < 1e-6);
+        assert!((general.support[0] - general.support[g.cols() - 1]).abs() < 1e-6);
     }
 
     #[test]
     fn a_constant_stays_constant_to_the_edges_and_around_holes() {
-        let g = Grid::square(37, 53, 0.5);
+        let g = Sampling::square(Shape::new(37, 53), 0.5).unwrap();
         let mut h = vec![4.25f32; 37 * 53];
         for r in 10..20 {
             h[r * 53 + 20..r * 53 + 31].fill(f32::NAN);

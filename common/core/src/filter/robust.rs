@@ -22,7 +22,9 @@
 use rayon::prelude::*;
 
 use super::gaussian::{GaussianFilter, MIN_SUPPORT};
-use super::{FilterError, Grid};
+use super::FilterError;
+use crate::sampling::Sampling;
+use crate::ParamError;
 
 /// Tukey biweight scale factor: `c = TUKEY_C x median(|r|)`.
 pub const TUKEY_C: f64 = 4.4478;
@@ -83,15 +85,15 @@ fn median_abs_residual(heights: &[f32], mean: &[f32]) -> f64 {
 /// The ISO 16610-71 robust Gaussian regression filter (zeroth order; module doc) of `heights`.
 pub fn robust_gaussian_filter(
     heights: &[f32],
-    grid: Grid,
+    grid: Sampling,
     settings: &RobustSettings,
 ) -> Result<RobustFit, FilterError> {
     if !(settings.tolerance.is_finite() && settings.tolerance > 0.0) {
-        return Err(FilterError::BadValue {
-            name: "tolerance",
-            value: settings.tolerance,
-            expected: "a positive fraction",
-        });
+        return Err(FilterError::from(ParamError::new(
+            "tolerance",
+            settings.tolerance,
+            "a positive fraction",
+        )));
     }
     let filter = GaussianFilter::new(grid, settings.cutoff_um)?;
     let valid: Vec<f32> = heights

@@ -426,7 +426,7 @@ fn top_five_mean(mut v: Vec<f64>) -> f64 {
 /// The feature parameters of `g` with Wolf pruning at `pruning_pct` % of Sz.
 pub fn feature_params(g: &Grid, pruning_pct: f64) -> Result<FeatureParams, MetrologyError> {
     let z = g.heights_um;
-    let (rows, cols) = (g.rows, g.cols);
+    let (rows, cols) = (g.rows(), g.cols());
     let (mut lo, mut hi, mut valid) = (f64::INFINITY, f64::NEG_INFINITY, 0usize);
     for &v in z {
         if !v.is_nan() {
@@ -446,7 +446,7 @@ pub fn feature_params(g: &Grid, pruning_pct: f64) -> Result<FeatureParams, Metro
         || segment_dales(z, rows, cols, pruning_pct, sz),
     );
     drop(inverted);
-    let (px, py) = (g.pitch_x_um, g.pitch_y_um);
+    let (px, py) = (g.pitch_x_um(), g.pitch_y_um());
     let curvature = |i: usize| -> Option<f64> {
         let (r, c) = (i / cols, i % cols);
         if r == 0 || c == 0 || r + 1 >= rows || c + 1 >= cols {

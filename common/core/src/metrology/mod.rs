@@ -26,6 +26,8 @@ use rayon::prelude::*;
 use serde::Serialize;
 use wide::{f64x4, CmpEq, CmpGt, CmpLt};
 
+use crate::{ParamError, Sampling, Shape, ShapeError};
+
 mod all;
 pub mod feature;
 pub mod functional;
@@ -104,16 +106,12 @@ impl Params {
 /// Why parameters could not be computed.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum MetrologyError {
-    #[error("height map has {found} values, expected {rows} x {cols}")]
-    Shape {
-        rows: usize,
-        cols: usize,
-        found: usize,
-    },
+    #[error("height map: {0}")]
+    Shape(#[from] ShapeError),
     #[error("no valid (non-NaN) height")]
     NoValidPoint,
-    #[error("pitch {x_um} x {y_um} um: expected finite positive values")]
-    BadPitch { x_um: f64, y_um: f64 },
+    #[error(transparent)]
+    Param(#[from] ParamError),
     #[error("the two maps differ in shape: {a_rows} x {a_cols} vs {b_rows} x {b_cols}")]
     ShapeMismatch {
         a_rows: usize,
@@ -123,17 +121,16 @@ pub enum MetrologyError {
     },
 }
 
-/// A height map borrowed for computing: row-major `rows x cols`, um, NaN = not measured.
+/// A height map borrowed for computing: row-major heights (um, NaN = not measured) and their
+/// [`Sampling`] (the one `Grid`: a view of a surface with its pitch).
 #[derive(Debug, Clone, Copy)]
 pub struct Grid<'a> {
-    pub heights_um: &'a [f64],
-    pub rows: usize,
-    pub cols: usize,
-    pub pitch_x_um: f64,
-    pub pitch_y_um: f64,
+    heights_um: &'a [f64],
+    sampling: Sampling,
 }
 
 impl<'a> Grid<'a> {
+    /// `rows x cols` heights at the given pitch (the pitch checked by [`Sampling::new`]).
     pub fn new(
         heights_um: &'a [f64],
         rows: usize,
@@ -141,34 +138,50 @@ impl<'a> Grid<'a> {
         pitch_x_um: f64,
         pitch_y_um: f64,
     ) -> Result<Self, MetrologyError> {
-        if rows.checked_mul(cols) != Some(heights_um.len()) {
-            return Err(MetrologyError::Shape {
-                rows,
-                cols,
+        let sampling = Sampling::new(Shape::new(rows, cols), pitch_x_um, pitch_y_um)?;
+        Self::of(heights_um, sampling)
+    }
+
+    /// Heights on `sampling`; errors unless they fill its shape (an empty map is a map: its
+    /// parameters are [`MetrologyError::NoValidPoint`]).
+    pub fn of(heights_um: &'a [f64], sampling: Sampling) -> Result<Self, MetrologyError> {
+        let shape = sampling.shape();
+        if shape.checked_len() != Some(heights_um.len()) {
+            return Err(ShapeError::Length {
+                shape,
+                expected: shape.len(),
                 found: heights_um.len(),
-            });
-        }
-        if !(pitch_x_um.is_finite()
-            && pitch_x_um > 0.0
-            && pitch_y_um.is_finite()
-            && pitch_y_um > 0.0)
-        {
-            return Err(MetrologyError::BadPitch {
-                x_um: pitch_x_um,
-                y_um: pitch_y_um,
-            });
+            }
+            .into());
         }
         Ok(Self {
             heights_um,
-            rows,
-            cols,
-            pitch_x_um,
-            pitch_y_um,
+            sampling,
         })
     }
 
+    pub fn heights_um(&self) -> &'a [f64] {
+        self.heights_um
+    }
+    pub fn sampling(&self) -> Sampling {
+        self.sampling
+    }
+    pub fn rows(&self) -> usize {
+        self.sampling.rows()
+    }
+    pub fn cols(&self) -> usize {
+        self.sampling.cols()
+    }
+    pub fn pitch_x_um(&self) -> f64 {
+        self.sampling.pitch_x_um()
+    }
+    pub fn pitch_y_um(&self) -> f64 {
+        self.sampling.pitch_y_um()
+    }
+
     fn row(&self, r: usize) -> &'a [f64] {
-        &self.heights_um[r * self.cols..(r + 1) * self.cols]
+        let cols = self.cols();
+        &self.heights_um[r * cols..(r + 1) * cols]
     }
 }
 
@@ -387,21 +400,21 @@ fn row_pair_sums(a: &[f64], b: &[f64], c: CellPitch) -> [f64; 6] {
 /// Everything that does not need the mean, one pass: the sums of row r and of the cells
 /// between rows r and r+1 (`hybrid` = false skips the difference and cell sums).
 fn pass_independent(g: &Grid, hybrid: bool) -> RowSums {
-    let (px, py) = (g.pitch_x_um, g.pitch_y_um);
+    let (px, py) = (g.pitch_x_um(), g.pitch_y_um());
     let c = CellPitch {
         py2: py * py,
         px2: px * px,
         cell2: (px * py) * (px * py),
         four_cells: 4.0 * (px * py),
     };
-    let per_row: Vec<RowSums> = (0..g.rows)
+    let per_row: Vec<RowSums> = (0..g.rows())
         .into_par_iter()
         .map(|r| {
             let a = g.row(r);
             let (n, s, lo, hi) = row_count_sum_min_max(a);
             let mut sums = [n, s, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
             if hybrid {
-                let pair = if r + 1 < g.rows {
+                let pair = if r + 1 < g.rows() {
                     row_pair_sums(a, g.row(r + 1), c)
                 } else {
                     let (sx, nx) = row_dx2(a);
@@ -433,7 +446,11 @@ fn pass_independent(g: &Grid, hybrid: bool) -> RowSums {
 /// one pass about `mean0` (the first, rounded mean) corrected algebraically by the mean of
 /// the residuals d (so no third pass is needed to refine the mean).
 fn pass_central(g: &Grid, n: f64, mean0: f64) -> (f64, [f64; 4]) {
-    central_about_mean(n, mean0, row_sums(g.rows, |r| row_central(g.row(r), mean0)))
+    central_about_mean(
+        n,
+        mean0,
+        row_sums(g.rows(), |r| row_central(g.row(r), mean0)),
+    )
 }
 
 /// One row's sums about `mean0`: sum |c|, c, c^2, c^3, c^4 and sum sign(c).
@@ -516,7 +533,7 @@ fn heights_of(p1: &RowSums, (mean, [s1, s2, s3, s4]): (f64, [f64; 4])) -> [f64; 
 }
 
 fn hybrid_from(g: &Grid, p1: &RowSums) -> (f64, f64) {
-    hybrid_of(g.pitch_x_um, g.pitch_y_um, p1)
+    hybrid_of(g.pitch_x_um(), g.pitch_y_um(), p1)
 }
 
 fn hybrid_of(px: f64, py: f64, p1: &RowSums) -> (f64, f64) {
@@ -582,7 +599,7 @@ pub fn params(g: &Grid) -> Result<Params, MetrologyError> {
 /// y = row * pitch_y, um), as (a, b, c); fitted on centred coordinates for conditioning.
 pub fn fit_plane(g: &Grid) -> Result<(f64, f64, f64), MetrologyError> {
     // Pass 1: count and the sums of z, x, y over the valid points.
-    let [n, sz, sx, sy] = row_sums(g.rows, |r| {
+    let [n, sz, sx, sy] = row_sums(g.rows(), |r| {
         let row = g.row(r);
         let [n, sz, sx] = lanes(row.len(), |i| {
             let z = row[i];
@@ -596,7 +613,7 @@ pub fn fit_plane(g: &Grid) -> Result<(f64, f64, f64), MetrologyError> {
     }
     let (zmean, xm, ym) = (sz / n, sx / n, sy / n);
     // Pass 2: centred second moments and cross products.
-    let [sxx, sxy, syy, sxz, syz] = row_sums(g.rows, |r| {
+    let [sxx, sxy, syy, sxz, syz] = row_sums(g.rows(), |r| {
         let row = g.row(r);
         let y = r as f64 - ym;
         lanes(row.len(), |i| {
@@ -621,7 +638,7 @@ pub fn fit_plane(g: &Grid) -> Result<(f64, f64, f64), MetrologyError> {
         (0.0, 0.0)
     };
     // Per-pixel slopes to per-um slopes; intercept at pixel (0, 0).
-    let (b, c) = (bx / g.pitch_x_um, by / g.pitch_y_um);
+    let (b, c) = (bx / g.pitch_x_um(), by / g.pitch_y_um());
     let a = zmean - bx * xm - by * ym;
     Ok((a, b, c))
 }
@@ -629,9 +646,9 @@ pub fn fit_plane(g: &Grid) -> Result<(f64, f64, f64), MetrologyError> {
 /// The heights minus their least-squares plane (NaN stays NaN).
 pub fn level_plane(g: &Grid) -> Result<Vec<f64>, MetrologyError> {
     let (a, b, c) = fit_plane(g)?;
-    let (bx, by) = (b * g.pitch_x_um, c * g.pitch_y_um);
+    let (bx, by) = (b * g.pitch_x_um(), c * g.pitch_y_um());
     let mut out = vec![0.0; g.heights_um.len()];
-    out.par_chunks_mut(g.cols.max(1))
+    out.par_chunks_mut(g.cols().max(1))
         .enumerate()
         .for_each(|(r, o)| {
             let row = g.row(r);
@@ -746,8 +763,7 @@ pub struct ParamsByRows {
 impl ParamsByRows {
     /// For rows of `cols` heights at the given pitch (um, finite and positive).
     pub fn new(cols: usize, pitch_x_um: f64, pitch_y_um: f64) -> Result<Self, MetrologyError> {
-        // The same checks as Grid::new.
-        Grid::new(&[], 0, cols, pitch_x_um, pitch_y_um)?;
+        Sampling::new(Shape::new(0, cols), pitch_x_um, pitch_y_um)?;
         let (px, py) = (pitch_x_um, pitch_y_um);
         Ok(Self {
             cols,
@@ -770,11 +786,12 @@ impl ParamsByRows {
 
     fn check(&self, row: &[f64]) -> Result<(), MetrologyError> {
         if row.len() != self.cols {
-            return Err(MetrologyError::Shape {
-                rows: 1,
-                cols: self.cols,
+            return Err(ShapeError::Length {
+                shape: Shape::new(1, self.cols),
+                expected: self.cols,
                 found: row.len(),
-            });
+            }
+            .into());
         }
         Ok(())
     }
@@ -825,11 +842,12 @@ impl ParamsByRows {
     pub fn push_second(&mut self, row: &[f64]) -> Result<(), MetrologyError> {
         self.check(row)?;
         let Some(p1) = &self.p1 else {
-            return Err(MetrologyError::Shape {
-                rows: 0,
-                cols: self.cols,
+            return Err(ShapeError::Length {
+                shape: Shape::new(0, self.cols),
+                expected: 0,
                 found: row.len(),
-            });
+            }
+            .into());
         };
         let mean0 = p1.sums[1] / p1.sums[0];
         for (a, v) in self.second.iter_mut().zip(row_central(row, mean0)) {

@@ -47,16 +47,16 @@ impl ArealPsd {
     /// The areal PSD of `g` (see the module documentation).
     pub fn of(g: &Grid) -> Result<Self, MetrologyError> {
         let (c, valid) = centred(g)?;
-        let spec = spectrum2(&c, g.rows, g.cols);
-        let n = (g.rows * g.cols) as f64;
-        let scale = g.pitch_x_um * g.pitch_y_um / n * (n / valid as f64);
+        let spec = spectrum2(&c, g.rows(), g.cols());
+        let n = (g.rows() * g.cols()) as f64;
+        let scale = g.pitch_x_um() * g.pitch_y_um() / n * (n / valid as f64);
         Ok(Self {
             values_um4: spec.par_iter().map(|v| v.norm_sqr() * scale).collect(),
-            rows: g.rows,
-            half_cols: g.cols / 2 + 1,
-            df_x: 1.0 / (g.cols as f64 * g.pitch_x_um),
-            df_y: 1.0 / (g.rows as f64 * g.pitch_y_um),
-            cols: g.cols,
+            rows: g.rows(),
+            half_cols: g.cols() / 2 + 1,
+            df_x: 1.0 / (g.cols() as f64 * g.pitch_x_um()),
+            df_y: 1.0 / (g.rows() as f64 * g.pitch_y_um()),
+            cols: g.cols(),
         })
     }
 

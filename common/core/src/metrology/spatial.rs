@@ -76,7 +76,7 @@ impl Acf {
     /// The ACF of `g` (see the module documentation).
     pub fn of(g: &Grid) -> Result<Self, MetrologyError> {
         let (c, n) = centred(g)?;
-        let (rows, cols) = (g.rows, g.cols);
+        let (rows, cols) = (g.rows(), g.cols());
         let mut half = correlation_half_plane(&c, rows, cols);
         let w = 2 * cols - 1;
         if n == rows * cols {
@@ -103,8 +103,8 @@ impl Acf {
         Ok(Self {
             rows,
             cols,
-            pitch_x_um: g.pitch_x_um,
-            pitch_y_um: g.pitch_y_um,
+            pitch_x_um: g.pitch_x_um(),
+            pitch_y_um: g.pitch_y_um(),
             half,
         })
     }
@@ -211,7 +211,7 @@ impl Acf {
 pub fn angular_amplitude(g: &Grid, step_deg: f64) -> Result<Vec<(f64, f64)>, MetrologyError> {
     let (c, _) = centred(g)?;
     Ok(angular_from_spectrum(
-        &spectrum2(&c, g.rows, g.cols),
+        &spectrum2(&c, g.rows(), g.cols()),
         g,
         step_deg,
     ))
@@ -222,7 +222,7 @@ pub(crate) fn angular_from_spectrum(
     g: &Grid,
     step_deg: f64,
 ) -> Vec<(f64, f64)> {
-    let (rows, cols) = (g.rows, g.cols);
+    let (rows, cols) = (g.rows(), g.cols());
     let h = cols / 2 + 1;
     let bins = (180.0 / step_deg).ceil() as usize;
     let per_row: Vec<Vec<f64>> = (0..rows)
@@ -234,7 +234,7 @@ pub(crate) fn angular_from_spectrum(
             } else {
                 ky as f64 - rows as f64
             };
-            let fy = ky_s / (rows as f64 * g.pitch_y_um);
+            let fy = ky_s / (rows as f64 * g.pitch_y_um());
             for kx in 0..h {
                 // Columns 1..cols/2 stand for their conjugate mirror too (same |F|, same angle
                 // mod 180); column 0 and, for even cols, column cols/2 hold both signs already.
@@ -243,7 +243,7 @@ pub(crate) fn angular_from_spectrum(
                 } else {
                     2.0
                 };
-                let fx = kx as f64 / (cols as f64 * g.pitch_x_um);
+                let fx = kx as f64 / (cols as f64 * g.pitch_x_um());
                 let theta = fy.atan2(fx).to_degrees().rem_euclid(180.0);
                 let b = ((theta / step_deg) as usize).min(bins - 1);
                 acc[b] += weight * spec[ky * h + kx].norm();
