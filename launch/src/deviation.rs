@@ -25,16 +25,18 @@
 //! streamed from panorama.npy by rows ([`x3p::write_by_rows`]: the same file as the in-memory
 //! writer's, byte for byte where data.bin is stored; the same entries where it is deflated).
 
+use std::collections::BTreeMap;
 use std::path::Path;
 
 use anyhow::{anyhow, bail, Context, Result};
-use serde_json::{json, Map, Value};
 use surfstream_core::deviation::{
     residual_pct_of_sq, Region, RowSource, StageVerdict, StreamedStage, Table6, JUDGED,
 };
-use surfstream_core::metrology::Params;
 use surfstream_core::raster::Shape;
-use surfstream_core::record::{FusionReport, RunRecord};
+use surfstream_core::record::{
+    DeviationRecord, FusionReport, JudgedPct, RegionDeviation, RegionRecord, RunRecord,
+    StageDeviation, StageGrid, Table6Record,
+};
 use surfstream_io::formats::{x3p, Metadata, Surface};
 use surfstream_io::npy::NpyRows;
 use surfstream_runtime::graph::GraphFile;
@@ -263,32 +265,24 @@ fn model_stages(out: &Path, panorama: Shape) -> Result<Vec<StreamedStage<'static
     Ok(stages)
 }
 
-fn params_json(p: &Option<Params>) -> Value {
-    match p {
-        Some(p) => serde_json::to_value(p).unwrap_or(Value::Null),
-        None => Value::Null,
-    }
-}
-
-/// run.json's layout of one stage's verdict; `pitch_um` is the measured (panorama) pitch,
+/// run.json's record of one stage's verdict; `pitch_um` is the measured (panorama) pitch,
 /// `residuals` the pointwise residual per region (percent of Sq; stages on the measured grid).
-fn stage_json(
+/// Also whether it leaves the table passing (a stage not judged does not count).
+fn stage_record(
     s: &StageVerdict,
     pitch_um: (f64, f64),
     rule: &StageRule,
     residuals: &[Option<f64>],
-) -> (Value, bool) {
+) -> (StageDeviation, bool) {
     let mut worst: Option<(String, f64)> = None;
     let mut stage_pass = true;
-    let regions: Map<String, Value> = s
+    let regions: BTreeMap<String, RegionDeviation> = s
         .regions
         .iter()
         .enumerate()
         .map(|(k, r)| {
-            let deviation: Map<String, Value> = r
-                .deviation_pct
-                .iter()
-                .map(|(name, d)| (name.to_string(), d.map_or(Value::Null, |d| json!(d))))
+            let deviation_pct = (r.deviation_pct.iter())
+                .map(|(name, d)| (name.to_string(), *d))
                 .collect();
             // Judged at the stage's limits (Sa, Sq, Sz).
             let mut ratio = 0.0f64;
@@ -311,48 +305,46 @@ fn stage_json(
                 worst = Some((r.region.clone(), ratio));
             }
             stage_pass &= pass;
-            let residual = residuals.get(k).copied().flatten();
-            (
-                r.region.clone(),
-                json!({
-                    "measured": params_json(&r.measured),
-                    "model": params_json(&r.model),
-                    "deviation_pct": deviation,
-                    "residual_rms_pct_of_sq": residual,
-                    "pass": pass,
-                }),
-            )
+            let region = RegionDeviation {
+                measured: r.measured,
+                model: r.model,
+                deviation_pct,
+                residual_rms_pct_of_sq: residuals.get(k).copied().flatten(),
+                pass,
+            };
+            (r.region.clone(), region)
         })
         .collect();
-    let grid = json!({
-        "rows": s.grid.rows,
-        "cols": s.grid.cols,
-        "cell_px": s.cell_px,
-        "pitch_x_um": pitch_um.0 * s.cell_px as f64,
-        "pitch_y_um": pitch_um.1 * s.cell_px as f64,
-        "name": if s.cell_px == 1 {
+    let grid = StageGrid {
+        rows: s.grid.rows,
+        cols: s.grid.cols,
+        cell_px: s.cell_px,
+        pitch_x_um: pitch_um.0 * s.cell_px as f64,
+        pitch_y_um: pitch_um.1 * s.cell_px as f64,
+        name: if s.cell_px == 1 {
             "panorama grid".to_string()
         } else {
             format!("own grid, {0} x {0} px cells", s.cell_px)
         },
-    });
+    };
     let worst_residual = residuals
         .iter()
         .flatten()
         .copied()
         .fold(None, |a: Option<f64>, r| Some(a.map_or(r, |a| a.max(r))));
+    let [sa, sq, sz] = rule.limits;
     (
-        json!({
-            "regions": regions,
-            "pass": stage_pass,
-            "judged": rule.judged,
-            "note": rule.note,
-            "measured": rule.measured,
-            "limits_pct": { "Sa": rule.limits[0], "Sq": rule.limits[1], "Sz": rule.limits[2] },
-            "worst_region": worst.map(|w| w.0),
-            "worst_residual_rms_pct_of_sq": worst_residual,
-            "grid": grid,
-        }),
+        StageDeviation {
+            regions,
+            pass: stage_pass,
+            judged: rule.judged,
+            note: rule.note.into(),
+            measured: rule.measured.into(),
+            limits_pct: JudgedPct { sa, sq, sz },
+            worst_region: worst.map(|w| w.0),
+            worst_residual_rms_pct_of_sq: worst_residual,
+            grid,
+        },
         stage_pass || !rule.judged,
     )
 }
@@ -385,7 +377,7 @@ fn evaluate(
     threshold_pct: f64,
     pano: &mut NpySource,
     geometry: &Geometry,
-) -> Result<Value> {
+) -> Result<Table6Record> {
     let shape = pano.shape();
     let regions = regions(run, geometry, shape);
     let info = mesh_info(run);
@@ -401,7 +393,7 @@ fn evaluate(
     let model_limits = info.tolerance.unwrap_or([threshold_pct; 3]);
     let meshed_pooled = info.surface.as_deref() == Some("pooled");
     let mesh_path = out.join("mesh_resampled.npy");
-    let mut out_stages = Map::new();
+    let mut out_stages = BTreeMap::new();
     let mut pass = true;
     for s in &table.stages {
         let rule = match s.stage.as_str() {
@@ -428,7 +420,7 @@ fn evaluate(
         } else {
             Vec::new()
         };
-        let (v, ok) = stage_json(s, geometry.pitch_um, &rule, &residuals);
+        let (v, ok) = stage_record(s, geometry.pitch_um, &rule, &residuals);
         pass &= ok;
         out_stages.insert(s.stage.clone(), v);
     }
@@ -468,23 +460,34 @@ fn evaluate(
                 note: "the roughness the simulator sees: mesh minus datum against the measured roughness",
             };
             for s in &t.stages {
-                let (v, ok) = stage_json(s, geometry.pitch_um, &rule, &residuals);
+                let (v, ok) = stage_record(s, geometry.pitch_um, &rule, &residuals);
                 pass &= ok;
                 out_stages.insert(s.stage.clone(), v);
             }
         }
     }
-    Ok(json!({
-            "measured": "panorama.npy",
-            "threshold_pct": threshold_pct,
-            "model_tolerance_pct": info.tolerance.map(|t| json!({"Sa": t[0], "Sq": t[1], "Sz": t[2]})),
-            "judged": JUDGED,
-            "conventions": "ISO 25178 over points valid in both maps, mean removed, no levelling; each stage on its own grid at its own pitch (grid); deviation = (model - measured) / measured * 100; the mesh passes when |deviation| <= the model's tolerance (else the threshold) for Sa, Sq, Sz, the other stages at the threshold; residual_rms_pct_of_sq = RMS of the pointwise difference (means removed) / measured Sq * 100; a stage with judged = false is reported, not counted",
-            "regions": regions.iter().map(|r| json!({"name": r.name, "row0": r.row0, "col0": r.col0, "rows": r.rows, "cols": r.cols})).collect::<Vec<_>>(),
-            "stages": out_stages,
-            "pass": pass,
-    }))
+    Ok(Table6Record {
+        measured: "panorama.npy".into(),
+        threshold_pct,
+        model_tolerance_pct: info.tolerance.map(|[sa, sq, sz]| JudgedPct { sa, sq, sz }),
+        judged: JUDGED.iter().map(|j| j.to_string()).collect(),
+        conventions: CONVENTIONS.into(),
+        regions: (regions.iter())
+            .map(|r| RegionRecord {
+                name: r.name.clone(),
+                row0: r.row0,
+                col0: r.col0,
+                rows: r.rows,
+                cols: r.cols,
+            })
+            .collect(),
+        stages: out_stages,
+        pass,
+    })
 }
+
+/// How Table 6 is computed, as run.json states it.
+const CONVENTIONS: &str = "ISO 25178 over points valid in both maps, mean removed, no levelling; each stage on its own grid at its own pitch (grid); deviation = (model - measured) / measured * 100; the mesh passes when |deviation| <= the model's tolerance (else the threshold) for Sa, Sq, Sz, the other stages at the threshold; residual_rms_pct_of_sq = RMS of the pointwise difference (means removed) / measured Sq * 100; a stage with judged = false is reported, not counted";
 
 /// Adds "deviation" (Table 6) to run.json and writes panorama.x3p when the out dir holds a
 /// panorama. An output that cannot be written (panorama.x3p on a full disk) fails the run;
@@ -501,12 +504,15 @@ pub fn attach(out: &Path, run: &mut RunRecord, threshold_percent: f64) -> Result
             run.files.sort();
             run.files.dedup();
             evaluate(out, run, threshold_percent, &mut pano, &geometry)
+                .map(|t| DeviationRecord::Table(Box::new(t)))
         }
         Err(e) => Err(e),
     };
     let entry = entry.unwrap_or_else(|e| {
         eprintln!("surfstream: model-vs-measurement deviation not computed: {e:#}");
-        json!({ "error": format!("{e:#}") })
+        DeviationRecord::NotComputed {
+            error: format!("{e:#}"),
+        }
     });
     run.deviation = Some(entry);
     Ok(())

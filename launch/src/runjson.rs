@@ -224,5 +224,76 @@ pub(crate) fn test_record(partial: Value) -> RunRecord {
     let mut latency = json!({ "final_frames": {}, "hops": {}, "transport": {} });
     merge(&mut latency, &partial["latency_ms"]);
     run["latency_ms"] = latency;
+    if partial["deviation"].is_object() {
+        run["deviation"] = test_table6(&partial["deviation"], merge);
+    }
     serde_json::from_value(run).expect("a complete run record")
+}
+
+/// A complete Table 6 from the fields a test gives (the rest: empty, passing, 5 %).
+#[cfg(test)]
+fn test_table6(partial: &Value, merge: fn(&mut Value, &Value)) -> Value {
+    use serde_json::json;
+    let complete = |base: Value, over: &Value| {
+        let mut base = base;
+        merge(&mut base, over);
+        base
+    };
+    let mut dev = complete(
+        json!({ "measured": "panorama.npy", "threshold_pct": 5.0, "model_tolerance_pct": null,
+            "judged": ["Sa", "Sq", "Sz"], "conventions": "", "regions": [], "stages": {},
+            "pass": true }),
+        partial,
+    );
+    let regions: Vec<Value> = (partial["regions"].as_array().into_iter().flatten())
+        .map(|r| {
+            complete(
+                json!({ "name": "", "row0": 0, "col0": 0, "rows": 0, "cols": 0 }),
+                r,
+            )
+        })
+        .collect();
+    dev["regions"] = json!(regions);
+    let params = |p: &Value| {
+        p.is_object().then(|| {
+            let none = ["Sa", "Sq", "Sp", "Sv", "Sz", "Ssk", "Sku", "Sdq", "Sdr"]
+                .map(|k| (k.to_string(), Value::Null));
+            complete(Value::Object(none.into_iter().collect()), p)
+        })
+    };
+    for st in dev["stages"]
+        .as_object_mut()
+        .into_iter()
+        .flat_map(|s| s.values_mut())
+    {
+        let grid = complete(
+            json!({ "name": "panorama grid", "rows": 0, "cols": 0, "cell_px": 1,
+                "pitch_x_um": 1.0, "pitch_y_um": 1.0 }),
+            &st["grid"],
+        );
+        let mut full = complete(
+            json!({ "regions": {}, "pass": true, "judged": true, "note": "",
+                "measured": "panorama.npy", "limits_pct": { "Sa": 5.0, "Sq": 5.0, "Sz": 5.0 },
+                "worst_region": null, "worst_residual_rms_pct_of_sq": null }),
+            st,
+        );
+        full["grid"] = grid;
+        for r in full["regions"]
+            .as_object_mut()
+            .into_iter()
+            .flat_map(|r| r.values_mut())
+        {
+            let mut region = complete(
+                json!({ "measured": null, "model": null, "deviation_pct": {},
+                    "residual_rms_pct_of_sq": null, "pass": true }),
+                r,
+            );
+            for side in ["measured", "model"] {
+                region[side] = params(&region[side]).unwrap_or(Value::Null);
+            }
+            *r = region;
+        }
+        *st = full;
+    }
+    dev
 }

@@ -11,7 +11,9 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use serde_json::Value;
-use surfstream_core::record::{LatencySummary, Percentiles, RunRecord, TileRecord};
+use surfstream_core::record::{
+    DeviationRecord, LatencySummary, Percentiles, RunRecord, Table6Record, TileRecord,
+};
 
 /// Exit code of a run whose outputs were written but a check failed under `--strict`
 /// (1 stays "error, no result"; 2 is clap's usage error).
@@ -111,7 +113,7 @@ pub fn verdict(run: &RunRecord, out: &Path, verbose: bool) -> Verdict {
             failures.push(format!("model: {line}"));
         }
     }
-    match deviation_line(run.deviation.as_ref().unwrap_or(&Value::Null)) {
+    match run.deviation.as_ref().and_then(deviation_line) {
         Some((line, failed)) => {
             let _ = writeln!(s, "  deviation   {line}");
             if failed {
@@ -195,29 +197,38 @@ fn tile_name(t: &TileRecord) -> String {
     format!("tile {} (row {} x col {})", t.index, t.row, t.col)
 }
 
+/// Table 6, when it was computed.
+fn table6(run: &RunRecord) -> Option<&Table6Record> {
+    match run.deviation.as_ref()? {
+        DeviationRecord::Table(t) => Some(t),
+        DeviationRecord::NotComputed { .. } => None,
+    }
+}
+
 /// Sa, Sq, Sz of the measured panorama: Table 6's "measured" for the whole-panorama region.
 fn surface_line(run: &RunRecord) -> Option<String> {
-    let dev = run.deviation.as_ref()?;
-    let measured_file = dev["measured"].as_str().unwrap_or("panorama.npy");
-    let stages = dev["stages"].as_object()?;
-    let measured = stages
-        .values()
-        .map(|st| &st["regions"]["panorama"]["measured"])
-        .find(|m| m.is_object())?;
-    let p = |k: &str| f(&measured[k]).map(|v| format!("{k} {}", um(v)));
+    let dev = table6(run)?;
+    let measured =
+        (dev.stages.values()).find_map(|st| st.regions.get("panorama").and_then(|r| r.measured))?;
+    let p = |k: &str| finite(measured.by_name(k)).map(|v| format!("{k} {}", um(v)));
     let params: Vec<String> = ["Sa", "Sq", "Sz"].iter().filter_map(|k| p(k)).collect();
     if params.is_empty() {
         return None;
     }
-    let shape = dev["regions"]
-        .as_array()
-        .and_then(|rs| rs.iter().find(|r| r["name"] == "panorama"))
-        .map(|r| format!(", {} x {} px", r["rows"], r["cols"]))
+    let shape = (dev.regions.iter())
+        .find(|r| r.name == "panorama")
+        .map(|r| format!(", {} x {} px", r.rows, r.cols))
         .unwrap_or_default();
     Some(format!(
-        "{} of {measured_file}{shape} (rows x cols), mean removed",
-        params.join(", ")
+        "{} of {}{shape} (rows x cols), mean removed",
+        params.join(", "),
+        dev.measured
     ))
+}
+
+/// A value JSON can carry (run.json writes NaN as null).
+fn finite(v: Option<f64>) -> Option<f64> {
+    v.filter(|v| v.is_finite())
 }
 
 /// The STL: file, triangles, vertices, units and the vertical error against its bound.
@@ -250,38 +261,35 @@ fn mesh_line(run: &RunRecord) -> Option<String> {
     Some(line)
 }
 
-/// Table 6 in one line: PASS, or FAIL with the worst judged parameter of every failing stage.
-fn deviation_line(dev: &Value) -> Option<(String, bool)> {
-    let stages = dev["stages"].as_object()?;
-    let limit = f(&dev["threshold_pct"]).unwrap_or(f64::NAN);
-    let judged: Vec<&str> = dev["judged"]
-        .as_array()
-        .map(|a| a.iter().filter_map(Value::as_str).collect())
-        .unwrap_or_else(|| vec!["Sa", "Sq", "Sz"]);
+/// Table 6 in one line: PASS, or FAIL with the worst judged parameter of every failing stage
+/// (None when it was not computed).
+fn deviation_line(dev: &DeviationRecord) -> Option<(String, bool)> {
+    let DeviationRecord::Table(dev) = dev else {
+        return None;
+    };
+    let limit = dev.threshold_pct;
+    let judged: Vec<&str> = dev.judged.iter().map(String::as_str).collect();
     let mut reasons = Vec::new();
-    for (name, st) in stages {
+    for (name, st) in &dev.stages {
         // A stage reported but not judged (the pooled map when the STL is not made from it).
-        if st["pass"] != false || st["judged"] == false {
+        if st.pass || !st.judged {
             continue;
         }
-        let Some(regions) = st["regions"].as_object() else {
-            reasons.push(format!("{name} fails"));
-            continue;
-        };
-        let failing = regions.values().filter(|r| r["pass"] == false).count();
+        let regions = &st.regions;
+        let failing = regions.values().filter(|r| !r.pass).count();
         // The worst judged parameter over the failing regions.
         let worst = regions
             .iter()
-            .filter(|(_, r)| r["pass"] == false)
+            .filter(|(_, r)| !r.pass)
             .flat_map(|(region, r)| {
                 judged
                     .iter()
-                    .filter_map(move |k| f(&r["deviation_pct"][*k]).map(|d| (region, *k, d)))
+                    .filter_map(move |k| r.deviation(k).map(|d| (region, *k, d)))
             })
             .max_by(|a, b| a.2.abs().total_cmp(&b.2.abs()));
         match worst {
             Some((region, param, d)) => {
-                let limit = f(&st["limits_pct"][param]).unwrap_or(limit);
+                let limit = st.limits_pct.get(param).unwrap_or(limit);
                 reasons.push(format!(
                     "{name}: {param} {d:+.2} % in {region}, beyond the limit of +/-{limit:.2} % \
                      ({failing} of {} regions fail)",
@@ -291,13 +299,14 @@ fn deviation_line(dev: &Value) -> Option<(String, bool)> {
             None => reasons.push(format!("{name} fails")),
         }
     }
-    let pass = dev["pass"] != false && reasons.is_empty();
+    let pass = dev.pass && reasons.is_empty();
     let judged_text = judged.join(", ");
-    let mesh_limits = &stages.get("mesh").map(|m| &m["limits_pct"]);
-    let limits_text = match mesh_limits {
-        Some(l) if l.is_object() && f(&dev["model_tolerance_pct"]["Sa"]).is_some() => format!(
+    // The limits as run.json writes them (1.0, not 1).
+    let json = |v: f64| Value::from(v).to_string();
+    let limits_text = match (dev.stages.get("mesh"), dev.model_tolerance_pct) {
+        (Some(m), Some(_)) => format!(
             "the mesh within its tolerance (Sa {} %, Sq {} %, Sz {} %), the other judged stages within +/-{limit:.2} %",
-            l["Sa"], l["Sq"], l["Sz"]
+            json(m.limits_pct.sa), json(m.limits_pct.sq), json(m.limits_pct.sz)
         ),
         _ => format!("every judged model stage within +/-{limit:.2} %"),
     };

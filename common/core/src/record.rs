@@ -19,6 +19,8 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Deserializer, Serialize};
 use serde_json::Value;
 
+use crate::metrology::Params;
+
 /// A record as a JSON value with its keys sorted (how every report and run.json is written).
 pub fn to_value<T: Serialize>(record: &T) -> Value {
     // Serializing these structs cannot fail (string keys, no custom serializers that error).
@@ -31,7 +33,7 @@ pub fn from_value<T: for<'de> Deserialize<'de>>(value: &Value, what: &str) -> Re
 }
 
 /// Reads an f64 that serde_json wrote as `null` (NaN and infinities) back as NaN.
-fn nan_if_null<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+pub(crate) fn nan_if_null<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
     Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
 }
 
@@ -314,6 +316,124 @@ pub struct MeshWritten {
 }
 
 // ---------------------------------------------------------------------------------------
+// Table 6 (run.json's `deviation`, written by the launcher's deviation pass)
+
+/// Limits or tolerances on the three judged parameters, percent.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct JudgedPct {
+    #[serde(rename = "Sa")]
+    pub sa: f64,
+    #[serde(rename = "Sq")]
+    pub sq: f64,
+    #[serde(rename = "Sz")]
+    pub sz: f64,
+}
+
+impl JudgedPct {
+    /// The same limit for the three.
+    pub fn all(pct: f64) -> Self {
+        Self {
+            sa: pct,
+            sq: pct,
+            sz: pct,
+        }
+    }
+    /// The limit of a judged parameter by name ("Sa", "Sq", "Sz").
+    pub fn get(&self, name: &str) -> Option<f64> {
+        match name {
+            "Sa" => Some(self.sa),
+            "Sq" => Some(self.sq),
+            "Sz" => Some(self.sz),
+            _ => None,
+        }
+    }
+}
+
+/// One region of Table 6, in panorama pixels.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RegionRecord {
+    pub name: String,
+    pub row0: usize,
+    pub col0: usize,
+    pub rows: usize,
+    pub cols: usize,
+}
+
+/// The grid a stage was judged on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StageGrid {
+    /// "panorama grid" or "own grid, N x N px cells".
+    pub name: String,
+    pub rows: usize,
+    pub cols: usize,
+    /// Panorama pixels per cell.
+    pub cell_px: usize,
+    pub pitch_x_um: f64,
+    pub pitch_y_um: f64,
+}
+
+/// One stage in one region.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RegionDeviation {
+    /// Null when no point is valid in both maps.
+    pub measured: Option<Params>,
+    pub model: Option<Params>,
+    /// (model - measured) / measured * 100 per parameter, null where not finite.
+    pub deviation_pct: BTreeMap<String, Option<f64>>,
+    /// RMS of the pointwise difference / measured Sq * 100 (stages on the measured grid).
+    pub residual_rms_pct_of_sq: Option<f64>,
+    pub pass: bool,
+}
+
+impl RegionDeviation {
+    /// The deviation of a parameter, percent, when finite.
+    pub fn deviation(&self, name: &str) -> Option<f64> {
+        self.deviation_pct.get(name).copied().flatten()
+    }
+}
+
+/// One model stage over every region.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StageDeviation {
+    /// By region name.
+    pub regions: BTreeMap<String, RegionDeviation>,
+    pub pass: bool,
+    /// False: reported, not counted in the verdict.
+    pub judged: bool,
+    pub note: String,
+    /// The measured file it is compared with.
+    pub measured: String,
+    pub limits_pct: JudgedPct,
+    pub worst_region: Option<String>,
+    pub worst_residual_rms_pct_of_sq: Option<f64>,
+    pub grid: StageGrid,
+}
+
+/// Table 6: every model stage against the measurement.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Table6Record {
+    pub measured: String,
+    pub threshold_pct: f64,
+    /// The model's tolerance when the mesher made it from one.
+    pub model_tolerance_pct: Option<JudgedPct>,
+    /// The judged parameters.
+    pub judged: Vec<String>,
+    pub conventions: String,
+    pub regions: Vec<RegionRecord>,
+    /// By stage name.
+    pub stages: BTreeMap<String, StageDeviation>,
+    pub pass: bool,
+}
+
+/// run.json's `deviation`: Table 6, or why it could not be computed.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum DeviationRecord {
+    Table(Box<Table6Record>),
+    NotComputed { error: String },
+}
+
+// ---------------------------------------------------------------------------------------
 // run.json
 
 /// The graph that ran.
@@ -401,7 +521,7 @@ pub struct RunRecord {
     pub elapsed_s: f64,
     /// Table 6 (absent when no panorama was written).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub deviation: Option<Value>,
+    pub deviation: Option<DeviationRecord>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub peak_rss: Option<PeakRss>,
 }

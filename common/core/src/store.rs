@@ -60,6 +60,16 @@ impl Element for f32 {
     }
 }
 
+impl Element for u32 {
+    const BYTES: usize = 4;
+    fn put(self, out: &mut Vec<u8>) {
+        out.extend_from_slice(&self.to_le_bytes());
+    }
+    fn get(b: &[u8]) -> Self {
+        u32::from_le_bytes([b[0], b[1], b[2], b[3]])
+    }
+}
+
 impl Element for f64 {
     const BYTES: usize = 8;
     fn put(self, out: &mut Vec<u8>) {

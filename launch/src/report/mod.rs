@@ -32,7 +32,6 @@ use std::path::Path;
 
 use anyhow::{anyhow, Context, Result};
 use rayon::prelude::*;
-use serde_json::Value;
 use surfstream_core::record::RunRecord;
 
 use html::{esc, um};
@@ -174,9 +173,7 @@ pub fn render(run: &RunRecord, out: &Path) -> Result<String> {
     for section in [view, profile, distribution].into_iter().flatten() {
         h.push_str(&section);
     }
-    h.push_str(&table6::section(
-        run.deviation.as_ref().unwrap_or(&Value::Null),
-    ));
+    h.push_str(&table6::section(run.deviation.as_ref()));
     h.push_str(&cost_curve::section(run));
     h.push_str(&finish::section(run, out));
     h.push_str(&details::tile_layout(run));

@@ -4,9 +4,8 @@
 
 use std::fmt::Write as _;
 
-use serde_json::Value;
 use surfstream_core::metrology::{FunctionalParams, Params};
-use surfstream_core::record::{RunRecord, ScanRecord};
+use surfstream_core::record::{DeviationRecord, RunRecord, ScanRecord};
 
 use super::html::{esc, fixed, length, pitch, signed, table_raw, um};
 use super::surfaces::Surfaces;
@@ -14,7 +13,7 @@ use super::surfaces::Surfaces;
 /// The verdict banner and the facts table.
 pub fn section(run: &RunRecord, surfaces: &Surfaces) -> String {
     let mut h = String::new();
-    verdict(&mut h, run.deviation.as_ref().unwrap_or(&Value::Null));
+    verdict(&mut h, run.deviation.as_ref());
     let scan = run.scan.as_ref();
     let mut rows: Vec<(String, Vec<String>)> = Vec::new();
     let mut row = |k: &str, v: String| rows.push((String::new(), vec![esc(k), v]));
@@ -170,25 +169,23 @@ fn mesh(run: &RunRecord) -> Option<String> {
 }
 
 /// The Table-6 verdict as a banner: pass, or which stage failed where and by how much.
-fn verdict(h: &mut String, dev: &Value) {
-    if let Some(e) = dev["error"].as_str() {
-        let _ = write!(
+fn verdict(h: &mut String, dev: Option<&DeviationRecord>) {
+    let dev = match dev {
+        None => return,
+        Some(DeviationRecord::Table(t)) => t,
+        Some(DeviationRecord::NotComputed { error: e }) => {
+            let _ = write!(
             h,
             "<div class=\"verdict warn\"><b>No verdict:</b> the model-vs-measurement deviation \
              could not be computed: {}</div>",
             esc(e)
-        );
-        return;
-    }
-    let Some(pass) = dev["pass"].as_bool() else {
-        return;
+            );
+            return;
+        }
     };
-    let e = dev["threshold_pct"].as_f64().unwrap_or(f64::NAN);
-    let judged: Vec<&str> = dev["judged"]
-        .as_array()
-        .map(|j| j.iter().filter_map(Value::as_str).collect())
-        .unwrap_or_default();
-    if pass {
+    let e = dev.threshold_pct;
+    let judged: Vec<&str> = dev.judged.iter().map(String::as_str).collect();
+    if dev.pass {
         let _ = write!(
             h,
             "<div class=\"verdict pass\"><b>PASS</b>: every model stage is within ±{} % of the \
@@ -199,25 +196,25 @@ fn verdict(h: &mut String, dev: &Value) {
         return;
     }
     let mut reasons = Vec::new();
-    for (stage, st) in dev["stages"].as_object().into_iter().flatten() {
-        if st["pass"] == true {
+    for (stage, st) in &dev.stages {
+        if st.pass {
             continue;
         }
         let mut worst: Option<(String, String, f64)> = None;
         let mut failed = 0;
-        for (region, r) in st["regions"].as_object().into_iter().flatten() {
-            if r["pass"] == false {
+        for (region, r) in &st.regions {
+            if !r.pass {
                 failed += 1;
             }
             for p in &judged {
-                if let Some(d) = r["deviation_pct"][*p].as_f64() {
+                if let Some(d) = r.deviation(p) {
                     if worst.as_ref().is_none_or(|w| d.abs() > w.2.abs()) {
                         worst = Some((region.clone(), p.to_string(), d));
                     }
                 }
             }
         }
-        let grid = st["grid"]["name"].as_str().unwrap_or("");
+        let grid = &st.grid.name;
         reasons.push(match worst {
             Some((region, p, d)) => format!(
                 "<b>{}</b> ({}): {failed} region(s) outside ±{} %, worst {p} {} % in {}",

@@ -5,15 +5,17 @@
 
 use std::fmt::Write as _;
 
-use serde_json::Value;
+use surfstream_core::metrology::Params;
+use surfstream_core::record::{DeviationRecord, StageDeviation};
 
 use super::html::{esc, fixed, pitch, signed, table_raw, um};
 
 const PARAMS: [&str; 9] = ["Sa", "Sq", "Sp", "Sv", "Sz", "Ssk", "Sku", "Sdq", "Sdr"];
 
-/// A parameter value with its unit's precision.
-fn value(p: &str, v: &Value) -> String {
-    match v.as_f64() {
+/// A parameter value with its unit's precision ("-" where not measured).
+fn value(p: &str, params: &Option<Params>) -> String {
+    let v = params.and_then(|m| m.by_name(p)).filter(|v| v.is_finite());
+    match v {
         None => "-".into(),
         Some(x) => match p {
             "Ssk" | "Sku" => fixed(x, 3),
@@ -33,17 +35,17 @@ fn badge(pass: bool) -> &'static str {
 }
 
 /// Whether a stage is judged (a stage that is not meshed is reported only).
-fn stage_judged(st: &Value) -> bool {
-    st["judged"] != false
+fn stage_judged(st: &StageDeviation) -> bool {
+    st.judged
 }
 
 /// The stage's own limit for `p` (the mesh: the model's tolerance), else the threshold.
-fn limit(st: &Value, p: &str, threshold: f64) -> f64 {
-    st["limits_pct"][p].as_f64().unwrap_or(threshold)
+fn limit(st: &StageDeviation, p: &str, threshold: f64) -> f64 {
+    st.limits_pct.get(p).unwrap_or(threshold)
 }
 
 /// The verdict badge of a stage or region; "reported" where the stage is not judged.
-fn verdict_badge(st: &Value, pass: bool) -> &'static str {
+fn verdict_badge(st: &StageDeviation, pass: bool) -> &'static str {
     if stage_judged(st) {
         badge(pass)
     } else {
@@ -52,7 +54,7 @@ fn verdict_badge(st: &Value, pass: bool) -> &'static str {
 }
 
 /// The row class: pass / fail, nothing where the stage is not judged.
-fn row_class(st: &Value, pass: bool) -> String {
+fn row_class(st: &StageDeviation, pass: bool) -> String {
     match (stage_judged(st), pass) {
         (false, _) => String::new(),
         (true, true) => "pass".into(),
@@ -60,57 +62,53 @@ fn row_class(st: &Value, pass: bool) -> String {
     }
 }
 
-pub fn section(dev: &Value) -> String {
-    if let Some(e) = dev["error"].as_str() {
-        return format!(
+pub fn section(dev: Option<&DeviationRecord>) -> String {
+    let dev = match dev {
+        None => return String::new(),
+        Some(DeviationRecord::Table(t)) => t,
+        Some(DeviationRecord::NotComputed { error: e }) => {
+            return format!(
             "<section id=\"table6\"><h2>Model vs measurement (Table 6)</h2><p class=\"bad\">Not \
              computed: {}</p></section>\n",
             esc(e)
-        );
-    }
-    let Some(stages) = dev["stages"].as_object().filter(|s| !s.is_empty()) else {
-        return String::new();
+        )
+        }
     };
-    let e = dev["threshold_pct"].as_f64().unwrap_or(f64::NAN);
-    let judged: Vec<&str> = dev["judged"]
-        .as_array()
-        .map(|j| j.iter().filter_map(Value::as_str).collect())
-        .unwrap_or_default();
+    let stages = &dev.stages;
+    if stages.is_empty() {
+        return String::new();
+    }
+    let e = dev.threshold_pct;
+    let judged: Vec<&str> = dev.judged.iter().map(String::as_str).collect();
     let mut h = String::new();
     let _ = write!(
         h,
         "<section id=\"table6\"><h2>Model vs measurement (Table 6) {}</h2><p>Measured: <code>{}</code>. \
          A stage passes a region when |deviation| ≤ {} % for {}; the other parameters are \
          reported, not judged. {}</p>",
-        badge(dev["pass"] == true),
-        esc(dev["measured"].as_str().unwrap_or("?")),
+        badge(dev.pass),
+        esc(&dev.measured),
         fixed(e, 1),
         judged.join(", "),
-        esc(dev["conventions"].as_str().unwrap_or("")),
+        esc(&dev.conventions),
     );
 
     // Stages: grid and verdict.
     let rows: Vec<(String, Vec<String>)> = stages
         .iter()
         .map(|(name, st)| {
-            let g = &st["grid"];
-            let regions = st["regions"].as_object();
-            let failed = regions
-                .map(|r| r.values().filter(|r| r["pass"] != true).count())
-                .unwrap_or(0);
-            let total = regions.map(|r| r.len()).unwrap_or(0);
+            let g = &st.grid;
+            let failed = st.regions.values().filter(|r| !r.pass).count();
+            let total = st.regions.len();
             (
-                row_class(st, st["pass"] == true),
+                row_class(st, st.pass),
                 vec![
                     format!("<b>{}</b>", esc(name)),
-                    esc(g["name"].as_str().unwrap_or("?")),
-                    match (g["rows"].as_u64(), g["cols"].as_u64()) {
-                        (Some(r), Some(c)) => format!("{r} x {c}"),
-                        _ => "-".into(),
-                    },
-                    g["pitch_x_um"].as_f64().map(pitch).unwrap_or("-".into()),
+                    esc(&g.name),
+                    format!("{} x {}", g.rows, g.cols),
+                    pitch(g.pitch_x_um),
                     format!("{} of {total}", total - failed),
-                    verdict_badge(st, st["pass"] == true).to_string(),
+                    verdict_badge(st, st.pass).to_string(),
                 ],
             )
         })
@@ -133,13 +131,13 @@ pub fn section(dev: &Value) -> String {
         if !stage_judged(st) {
             continue;
         }
-        for (region, r) in st["regions"].as_object().into_iter().flatten() {
-            if r["pass"] == true {
+        for (region, r) in &st.regions {
+            if r.pass {
                 continue;
             }
             let mut any = false;
             for p in &judged {
-                let d = r["deviation_pct"][*p].as_f64();
+                let d = r.deviation(p);
                 if d.is_some_and(|d| d.abs() <= limit(st, p, e)) {
                     continue;
                 }
@@ -150,8 +148,8 @@ pub fn section(dev: &Value) -> String {
                         esc(stage),
                         esc(region),
                         p.to_string(),
-                        value(p, &r["measured"][*p]),
-                        value(p, &r["model"][*p]),
+                        value(p, &r.measured),
+                        value(p, &r.model),
                         d.map(|d| format!("{} %", signed(d, 2)))
                             .unwrap_or("-".into()),
                     ],
@@ -195,19 +193,16 @@ pub fn section(dev: &Value) -> String {
         let mut head = vec!["region"];
         head.extend(PARAMS);
         head.push("");
-        let rows: Vec<(String, Vec<String>)> = st["regions"]
-            .as_object()
-            .into_iter()
-            .flatten()
+        let rows: Vec<(String, Vec<String>)> = (st.regions.iter())
             .map(|(region, r)| {
                 let mut cells = vec![esc(region)];
                 for p in PARAMS {
-                    let d = r["deviation_pct"][p].as_f64();
+                    let d = r.deviation(p);
                     let text = d.map(|d| signed(d, 1)).unwrap_or("-".into());
                     let tip = format!(
                         "{p}: measured {}, model {}",
-                        value(p, &r["measured"][p]),
-                        value(p, &r["model"][p])
+                        value(p, &r.measured),
+                        value(p, &r.model)
                     );
                     cells.push(if judged.contains(&p) && stage_judged(st) {
                         let ok = d.is_some_and(|d| d.abs() <= limit(st, p, e));
@@ -223,17 +218,16 @@ pub fn section(dev: &Value) -> String {
                         )
                     });
                 }
-                cells.push(verdict_badge(st, r["pass"] == true).to_string());
-                (row_class(st, r["pass"] == true), cells)
+                cells.push(verdict_badge(st, r.pass).to_string());
+                (row_class(st, r.pass), cells)
             })
             .collect();
-        let g = &st["grid"];
         let _ = write!(
             h,
             "<div><h4>{} {} <span class=\"note\">on the {}</span></h4>{}</div>",
             esc(stage),
-            verdict_badge(st, st["pass"] == true),
-            esc(g["name"].as_str().unwrap_or("?")),
+            verdict_badge(st, st.pass),
+            esc(&st.grid.name),
             table_raw(&head, &rows)
         );
     }
@@ -249,9 +243,9 @@ pub fn section(dev: &Value) -> String {
     // The full table.
     let mut all = Vec::new();
     for (stage, st) in stages {
-        for (region, r) in st["regions"].as_object().into_iter().flatten() {
+        for (region, r) in &st.regions {
             for p in PARAMS {
-                let d = r["deviation_pct"][p].as_f64();
+                let d = r.deviation(p);
                 let class = if !judged.contains(&p) || !stage_judged(st) {
                     ""
                 } else if d.is_some_and(|d| d.abs() <= limit(st, p, e)) {
@@ -269,8 +263,8 @@ pub fn section(dev: &Value) -> String {
                         } else {
                             p.to_string()
                         },
-                        value(p, &r["measured"][p]),
-                        value(p, &r["model"][p]),
+                        value(p, &r.measured),
+                        value(p, &r.model),
                         d.map(|d| format!("{} %", signed(d, 2)))
                             .unwrap_or("-".into()),
                     ],

@@ -13,6 +13,7 @@
 //!
 //! Plain functions; `node` is the graph node, `surfstream-finish` its process.
 
+pub mod config;
 pub mod contacts;
 pub mod engine;
 pub mod field;

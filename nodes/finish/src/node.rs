@@ -5,98 +5,12 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::sync::atomic::AtomicBool;
 
 use anyhow::{anyhow, bail, Result};
-use serde::Deserialize;
 use surfstream_core::frame::{flags, HeightMap};
 use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
-use crate::run::{finish, Calibration, FinishOptions, Model};
-
-/// The node's graph parameters.
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct FinishConfig {
-    /// Sub-folder of the out dir for the outputs.
-    #[serde(default = "default_dir")]
-    pub dir: String,
-    #[serde(default = "default_budget")]
-    pub time_budget_s: f64,
-    #[serde(default = "default_cycles")]
-    pub cycles: usize,
-    /// [width, height] um, or [side] um.
-    #[serde(default)]
-    pub patch_um: Option<Vec<f64>>,
-    #[serde(default)]
-    pub media_diameter_mm: Option<f64>,
-    #[serde(default = "default_ranks")]
-    pub ranks: usize,
-    #[serde(default)]
-    pub max_triangles: Option<usize>,
-    #[serde(default)]
-    pub passes: Option<usize>,
-    /// Fit the wear coefficient so that Sa falls from `calibrate_sa_um[0]` to `[1]` (relative
-    /// reduction applied to the model's own Sa) over the process time.
-    #[serde(default)]
-    pub calibrate_sa_um: Option<[f64; 2]>,
-    #[serde(default)]
-    pub k_finnie_per_pa: Option<f64>,
-    /// "contact-field" (default) or "sampled-map".
-    #[serde(default)]
-    pub wear_model: Option<String>,
-}
-
-fn default_dir() -> String {
-    "finish".into()
-}
-fn default_budget() -> f64 {
-    300.0
-}
-fn default_cycles() -> usize {
-    4
-}
-fn default_ranks() -> usize {
-    1
-}
-
-impl FinishConfig {
-    pub fn options(&self) -> Result<FinishOptions> {
-        let mut o = FinishOptions {
-            time_budget_s: self.time_budget_s,
-            cycles: self.cycles,
-            ranks: self.ranks,
-            passes: self.passes,
-            ..Default::default()
-        };
-        if let Some(p) = &self.patch_um {
-            o.patch_um = Some(match p.as_slice() {
-                [s] => (*s, *s),
-                [w, h] => (*w, *h),
-                _ => bail!("params.patch_um = {p:?}: expected [side] or [width, height] in um"),
-            });
-        }
-        if let Some(d) = self.media_diameter_mm {
-            o.media.diameter_mm = d;
-        }
-        if let Some(t) = self.max_triangles {
-            o.max_triangles = t;
-        }
-        if let Some(k) = self.k_finnie_per_pa {
-            o.k_finnie_per_pa = Some(k);
-        }
-        if let Some([b, a]) = self.calibrate_sa_um {
-            o.calibrate = Some(Calibration::Sa {
-                before_um: Some(b),
-                after_um: a,
-            });
-        }
-        if let Some(m) = &self.wear_model {
-            o.wear_model = crate::run::WearModel::parse(m)
-                .map_err(|e| anyhow::anyhow!("params.wear_model: {e}"))?;
-        }
-        o.media.validate()?;
-        Ok(o)
-    }
-}
+pub use crate::config::FinishConfig;
+use crate::run::{finish, FinishOptions, Model};
 
 pub struct FinishNode {
     config: FinishConfig,
@@ -207,6 +121,7 @@ impl NodeLogic for FinishNode {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::run::Calibration;
 
     #[test]
     fn graph_parameters_become_options_and_typos_are_refused() {

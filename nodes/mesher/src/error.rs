@@ -52,8 +52,8 @@ pub enum MeshError {
 
     /// The streaming mesher's spill file (its triangles, 12 bytes each) could not be created,
     /// written or read back.
-    #[error("{dir}: the mesher's spill file (12 bytes per triangle): {source}")]
-    Spill { dir: String, source: std::io::Error },
+    #[error("the mesher's triangles (12 bytes each): {0}")]
+    Spill(#[from] surfstream_core::store::StoreError),
 
     /// Writing the STL stream failed.
     #[error("writing STL: {0}")]

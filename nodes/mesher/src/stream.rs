@@ -30,11 +30,12 @@
 //! metrology takes an f64 grid.
 
 use std::collections::HashSet;
-use std::io::{BufReader, BufWriter, Read, Seek, SeekFrom, Write};
+use std::io::Write;
 use std::path::Path;
 
 use rayon::prelude::*;
 use surfstream_core::raster::{RasterView, Shape};
+use surfstream_core::store::AppendLog;
 
 use crate::adaptive::{adaptive_summary, Fidelity, MeshCounts, VertexPlacement};
 use crate::check::MeshCheck;
@@ -57,6 +58,18 @@ const BANDS_AT_ONCE: usize = 2;
 /// Triangles read back from the spill file per step of the second pass.
 const READ_TRIANGLES: usize = 1 << 15;
 
+/// Sample indices (three per triangle) written to the spill file at a time: 1 MiB.
+const SPILL_BATCH_VALUES: usize = 1 << 18;
+
+/// The second pass's reads of `triangles` spilled triangles: (byte offset, triangles), in
+/// order, [`READ_TRIANGLES`] at a time.
+fn spill_steps(triangles: usize) -> impl Iterator<Item = (u64, usize)> {
+    (0..triangles).step_by(READ_TRIANGLES).map(move |t| {
+        let n = READ_TRIANGLES.min(triangles - t);
+        ((t * 12) as u64, n)
+    })
+}
+
 /// An edge as its two vertex keys (low, high) packed in a u128, and whether a triangle
 /// traverses it low -> high. Top vertices are keyed by their grid sample, the walls' base
 /// vertices by `BASE_KEY + k`.
@@ -74,7 +87,8 @@ pub struct StreamedMesh {
     /// The statistics [`crate::AdaptiveMesh::summary`] gives.
     pub summary: serde_json::Value,
     pub fidelity: Fidelity,
-    spill: std::fs::File,
+    /// The kept top triangles, three grid sample indices each, in order from offset 0.
+    spill: AppendLog<u32>,
     place: VertexPlacement,
     filled: Filled,
     /// The walls and base in local indices: the first `rim.len()` vertices are the rim's top
@@ -280,12 +294,9 @@ pub(crate) fn stream_blocks(
     let filled: &[f32] = &plan.filled;
     let measured = heights.values();
 
-    let spill_error = |source: std::io::Error| MeshError::Spill {
-        dir: spill_dir.display().to_string(),
-        source,
-    };
-    let spill_file = tempfile::tempfile_in(spill_dir).map_err(spill_error)?;
-    let mut spill = BufWriter::with_capacity(1 << 20, spill_file);
+    // Triangles go to the log in batches of about a megabyte (one write each).
+    let mut spill = AppendLog::<u32>::new(Some(spill_dir.to_path_buf()));
+    let mut batch: Vec<u32> = Vec::with_capacity(SPILL_BATCH_VALUES);
     let mut resampled_um = vec![f32::NAN; rows * cols];
     let mut used = Bits::new(rows * cols);
     let (mut min_um, mut max_um) = (f64::INFINITY, f64::NEG_INFINITY);
@@ -324,11 +335,11 @@ pub(crate) fn stream_blocks(
                         min_um = min_um.min(h);
                         max_um = max_um.max(h);
                     }
-                    let mut record = [0u8; 12];
-                    for (slot, s) in record.chunks_exact_mut(4).zip(t) {
-                        slot.copy_from_slice(&s.to_le_bytes());
+                    batch.extend_from_slice(t);
+                    if batch.len() >= SPILL_BATCH_VALUES {
+                        spill.append(&batch)?;
+                        batch.clear();
                     }
-                    spill.write_all(&record).map_err(spill_error)?;
                 }
                 top_triangles += p.triangles.len();
                 own.append(&mut p.triangles);
@@ -366,9 +377,10 @@ pub(crate) fn stream_blocks(
         topology.pending = pending;
     }
     let error = ErrorStats::combine(&band_errors);
-    let spill_file = spill
-        .into_inner()
-        .map_err(|e| spill_error(e.into_error()))?;
+    if !batch.is_empty() {
+        spill.append(&batch)?;
+    }
+    drop(batch);
 
     if top_triangles == 0 {
         return Err(MeshError::Incompatible(
@@ -456,7 +468,7 @@ pub(crate) fn stream_blocks(
         resampled_um,
         summary,
         fidelity,
-        spill: spill_file,
+        spill,
         place,
         filled,
         walls,
@@ -582,28 +594,16 @@ impl StreamedMesh {
             header_text,
             self.counts.triangles as u32,
         )?;
-        let spill_error = |source: std::io::Error| MeshError::Spill {
-            dir: "(unnamed)".into(),
-            source,
-        };
-        self.spill.seek(SeekFrom::Start(0)).map_err(spill_error)?;
-        let mut reader = BufReader::with_capacity(1 << 20, &self.spill);
-        let mut left = self.counts.top_triangles;
-        let mut bytes = vec![0u8; READ_TRIANGLES * 12];
         let (mut degenerate, mut volume6) = (0usize, 0.0f64);
         let place = &self.place;
-        while left > 0 {
+        for read in spill_steps(self.counts.top_triangles) {
             surfstream_core::liveness::beat();
-            let n = left.min(READ_TRIANGLES);
-            reader
-                .read_exact(&mut bytes[..n * 12])
-                .map_err(spill_error)?;
-            let corners: Vec<([[f64; 3]; 3], [u32; 3])> = bytes[..n * 12]
-                .par_chunks_exact(12)
+            let (offset, n) = read;
+            let samples = self.spill.read(offset, 3 * n)?;
+            let corners: Vec<([[f64; 3]; 3], [u32; 3])> = samples
+                .par_chunks_exact(3)
                 .map(|r| {
-                    let t = [0, 1, 2].map(|k| {
-                        u32::from_le_bytes([r[4 * k], r[4 * k + 1], r[4 * k + 2], r[4 * k + 3]])
-                    });
+                    let t = [r[0], r[1], r[2]];
                     (t.map(|s| place.vertex(s as usize, filled[s as usize])), t)
                 })
                 .collect();
@@ -613,7 +613,6 @@ impl StreamedMesh {
             for (c, _) in &corners {
                 out.push(*c)?;
             }
-            left -= n;
         }
         if let Some(walls) = &self.walls {
             let corners: Vec<([[f64; 3]; 3], [u32; 3])> = walls
@@ -647,18 +646,14 @@ impl StreamedMesh {
             |visit| {
                 // Every used vertex: the samples the spill file names.
                 let mut seen: HashSet<u32> = HashSet::new();
-                let mut reader = BufReader::new(&self.spill);
-                if reader.seek(SeekFrom::Start(0)).is_err() {
-                    return;
-                }
-                let mut r = [0u8; 4];
-                for _ in 0..3 * self.counts.top_triangles {
-                    if reader.read_exact(&mut r).is_err() {
+                for (offset, n) in spill_steps(self.counts.top_triangles) {
+                    let Ok(samples) = self.spill.read(offset, 3 * n) else {
                         break;
-                    }
-                    let s = u32::from_le_bytes(r);
-                    if seen.insert(s) {
-                        visit(self.place.vertex(s as usize, filled[s as usize]));
+                    };
+                    for s in samples {
+                        if seen.insert(s) {
+                            visit(self.place.vertex(s as usize, filled[s as usize]));
+                        }
                     }
                 }
             },

@@ -64,25 +64,25 @@ impl Compensated {
 }
 
 /// The nine parameters; heights in um, Sdq dimensionless, Sdr in %.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
 pub struct Params {
-    #[serde(rename = "Sa")]
+    #[serde(rename = "Sa", deserialize_with = "crate::record::nan_if_null")]
     pub sa: f64,
-    #[serde(rename = "Sq")]
+    #[serde(rename = "Sq", deserialize_with = "crate::record::nan_if_null")]
     pub sq: f64,
-    #[serde(rename = "Sp")]
+    #[serde(rename = "Sp", deserialize_with = "crate::record::nan_if_null")]
     pub sp: f64,
-    #[serde(rename = "Sv")]
+    #[serde(rename = "Sv", deserialize_with = "crate::record::nan_if_null")]
     pub sv: f64,
-    #[serde(rename = "Sz")]
+    #[serde(rename = "Sz", deserialize_with = "crate::record::nan_if_null")]
     pub sz: f64,
-    #[serde(rename = "Ssk")]
+    #[serde(rename = "Ssk", deserialize_with = "crate::record::nan_if_null")]
     pub ssk: f64,
-    #[serde(rename = "Sku")]
+    #[serde(rename = "Sku", deserialize_with = "crate::record::nan_if_null")]
     pub sku: f64,
-    #[serde(rename = "Sdq")]
+    #[serde(rename = "Sdq", deserialize_with = "crate::record::nan_if_null")]
     pub sdq: f64,
-    #[serde(rename = "Sdr")]
+    #[serde(rename = "Sdr", deserialize_with = "crate::record::nan_if_null")]
     pub sdr: f64,
 }
 
@@ -100,6 +100,14 @@ impl Params {
             ("Sdq", self.sdq),
             ("Sdr", self.sdr),
         ]
+    }
+
+    /// One parameter by its ISO 25178 name ("Sa" .. "Sdr").
+    pub fn by_name(&self, name: &str) -> Option<f64> {
+        self.named()
+            .into_iter()
+            .find(|(n, _)| *n == name)
+            .map(|(_, v)| v)
     }
 }
 
