@@ -189,9 +189,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
     let t0 = Instant::now();
     let fixed = a.epsilon_um.is_some() || a.epsilon_sq.is_some();
     // An engine that refuses slivers gets the tolerance mesh with its angles bounded.
-    let min_angle_deg = profile
-        .map(|p| p.min_angle_deg)
-        .filter(|&deg| deg > 0.0);
+    let min_angle_deg = profile.map(|p| p.min_angle_deg).filter(|&deg| deg > 0.0);
     if let (true, Some(p), Some(_)) = (fixed, profile, min_angle_deg) {
         bail!(
             "--target {} needs the model from a tolerance (its smallest angle is bounded \

@@ -992,21 +992,7 @@ impl Builder<'_> {
                 break;
             }
         }
-        let left = below(self);
-        if std::env::var_os("SURFSTREAM_DEBUG_ANGLES").is_some() {
-            let sides = self.side_vertices();
-            for &t in &left {
-                let p = self.tris[t].v.map(|v| self.verts[v as usize]);
-                let fix = match self.sliver_fix(t, &sides) {
-                    SliverFix::Inside(s) => format!("inside {} {}", s % self.width, s / self.width),
-                    SliverFix::Side(k, s) => format!("side {k} {} {}", s % self.width, s / self.width),
-                    SliverFix::Stuck => "stuck".into(),
-                };
-                let inside: Vec<_> = self.verts.iter().filter(|&&q| incircle(p[0], p[1], p[2], q) > 0).collect();
-                eprintln!("angle left: block {:?} tri {p:?} n {:?} {:.3} deg; fix {fix}; in circle {inside:?}", self.block, self.tris[t].n, self.min_angle(t, bound));
-            }
-        }
-        left.len()
+        below(self).len()
     }
 }
 
@@ -1469,7 +1455,6 @@ impl LiveBlock<'_> {
         self.border.dedup();
         (out, left)
     }
-
 
     /// Balances the block's Sa and Sq (module [`crate::tolerance`]): while the mesh's Sa or
     /// Sq over the block's measured samples (each about its own mean) is off the
@@ -2330,68 +2315,62 @@ mod tests {
         assert!(balanced.triangles.len() > greedy.triangles.len());
     }
 
+    /// Triangles of the block whose circumcircle holds a vertex strictly inside.
+    fn not_delaunay(b: &Builder<'_>) -> usize {
+        b.tris
+            .iter()
+            .filter(|t| {
+                let p = t.v.map(|v| b.verts[v as usize]);
+                b.verts.iter().any(|&q| incircle(p[0], p[1], p[2], q) > 0)
+            })
+            .count()
+    }
+
+    #[test]
+    fn a_live_block_stays_delaunay_and_the_angle_bound_holds_in_it() {
+        let (rows, cols) = (130, 130);
+        let z = lcg_field(rows, cols, 5);
+        let heights = RasterView::new(&z, Shape::new(rows, cols)).unwrap();
+        let plan = BlockPlan::new(heights, &params_at(0.5, 64)).unwrap();
+        let mut b = plan.start(&plan.sides_at(0.5), 0);
+        // Finer bounds insert more vertices on the shared sides, several per call.
+        for e in [0.4, 0.3, 0.2, 0.1] {
+            b.refine(&plan, &plan.sides_at(e), 0);
+            b.balance(
+                &plan,
+                Balance {
+                    sa: 0.005,
+                    sq: 0.005,
+                },
+            );
+            assert_eq!(not_delaunay(&b.b), 0, "bound {e}");
+        }
+        let bound = AngleBound {
+            min_angle_deg: 12.0,
+            pitch_x_um: 1.0,
+            pitch_y_um: 1.2,
+        };
+        let before = b.b.tris.len();
+        let (added, left) = b.bound_angles(&plan, 0, &[], &bound, true);
+        assert_eq!(left, 0);
+        assert_eq!(not_delaunay(&b.b), 0);
+        assert!(b.b.tris.len() > before, "12 deg needs some refinement here");
+        let smallest = (0..b.b.tris.len())
+            .map(|t| b.b.min_angle(t, &bound))
+            .fold(f64::INFINITY, f64::min);
+        assert!(smallest >= 12.0, "{smallest}");
+        // What it added on its shared sides (right and top) is for the blocks across.
+        for &s in &added {
+            let (x, y) = (s as usize % cols, s as usize / cols);
+            assert!(x == b.b.block.x1 || y == b.b.block.y1, "({x}, {y})");
+            assert!(plan.across(0, s).is_some());
+        }
+    }
+
     #[test]
     fn incircle_is_exact_on_cocircular_grid_points() {
         assert_eq!(incircle((0, 0), (1, 0), (1, 1), (0, 1)), 0);
         assert!(incircle((0, 0), (2, 0), (2, 2), (1, 1)) > 0);
         assert!(incircle((0, 0), (2, 0), (2, 2), (3, -1)) < 0);
-    }
-}
-
-
-#[cfg(test)]
-mod delaunay_probe {
-    use super::*;
-
-    fn field(rows: usize, cols: usize, seed: u64) -> Vec<f32> {
-        let mut state = seed;
-        (0..rows * cols)
-            .map(|k| {
-                state = state
-                    .wrapping_mul(6_364_136_223_846_793_005)
-                    .wrapping_add(1_442_695_040_888_963_407);
-                let r = (state >> 11) as f64 / (1u64 << 53) as f64 - 0.5;
-                let (x, y) = ((k % cols) as f64, (k / cols) as f64);
-                ((x / 7.0).sin() * (y / 5.0).cos() + 0.5 * r) as f32
-            })
-            .collect()
-    }
-
-    fn non_delaunay(b: &Builder<'_>) -> usize {
-        let mut bad = 0;
-        for t in &b.tris {
-            let p = t.v.map(|v| b.verts[v as usize]);
-            if b.verts.iter().any(|&q| incircle(p[0], p[1], p[2], q) > 0) {
-                bad += 1;
-            }
-        }
-        bad
-    }
-
-    #[test]
-    fn probe() {
-        let (rows, cols) = (130, 130);
-        let z = field(rows, cols, 5);
-        let heights = RasterView::new(&z, Shape::new(rows, cols)).unwrap();
-        let params = TinParams {
-            epsilon_um: 0.5,
-            max_triangles: None,
-            missing: MissingSamples::Fill,
-            block_samples: Some(64),
-            keep_extremes: true,
-        };
-        let plan = BlockPlan::new(heights, &params).unwrap();
-        let sides = plan.sides_at(0.5);
-        let mut b = plan.start(&sides, 0);
-        for e in [0.4, 0.3, 0.2, 0.1] {
-            let sides = plan.sides_at(e);
-            b.refine(&plan, &sides, 0);
-            eprintln!("after refine {e}: {} of {}", non_delaunay(&b.b), b.b.tris.len());
-            b.balance(&plan, Balance { sa: 0.005, sq: 0.005 });
-        }
-        let bound = AngleBound { min_angle_deg: 1.0, pitch_x_um: 1.0, pitch_y_um: 1.0 };
-        let (out, left) = b.bound_angles(&plan, 0, &[], &bound, true);
-        eprintln!("after angles: {} of {}; {} out {left} left", non_delaunay(&b.b), b.b.tris.len(), out.len());
-        panic!();
     }
 }

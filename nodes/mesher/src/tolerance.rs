@@ -496,38 +496,39 @@ pub fn search<M>(
     let budget = max_triangles.unwrap_or(usize::MAX);
     type Judged = (CurvePoint, Vec<RegionFit>, Option<AngleStats>);
     let mut curve: Vec<Judged> = Vec::new();
-    let mut run = |f: f64, stage: Stage, curve: &mut Vec<Judged>|
-     -> Result<(bool, bool, Option<M>)> {
-        surfstream_core::liveness::beat();
-        let trial = checkpoint(f * sq_um, stage)?;
-        let mut fits = trial.fits;
-        fits.sort_by(|a, b| b.worst_ratio(&t).total_cmp(&a.worst_ratio(&t)));
-        let pass = !fits.is_empty() && fits.iter().all(|r| r.excess(&t, TARGET_SHARE).is_none());
-        let over = trial.surface_triangles > budget;
-        curve.push((
-            CurvePoint {
-                epsilon_um: f * sq_um,
-                epsilon_sq_fraction: f,
-                surface_triangles: trial.surface_triangles,
-                triangles_per_measured_px: trial.surface_triangles as f64
-                    / measured_px.max(1) as f64,
-                worst_sa_pct: worst_signed(&fits, 0),
-                worst_sq_pct: worst_signed(&fits, 1),
-                worst_sz_pct: worst_signed(&fits, 2),
-                worst_residual_pct_of_sq: fits
-                    .iter()
-                    .map(|r| r.residual_pct_of_sq)
-                    .fold(0.0, f64::max),
-                worst_region: fits.first().map(|r| r.region.clone()).unwrap_or_default(),
-                pass,
-                over_budget: over,
-                chosen: false,
-            },
-            fits,
-            trial.angles,
-        ));
-        Ok((pass, over, (!over).then_some(trial.mesh)))
-    };
+    let mut run =
+        |f: f64, stage: Stage, curve: &mut Vec<Judged>| -> Result<(bool, bool, Option<M>)> {
+            surfstream_core::liveness::beat();
+            let trial = checkpoint(f * sq_um, stage)?;
+            let mut fits = trial.fits;
+            fits.sort_by(|a, b| b.worst_ratio(&t).total_cmp(&a.worst_ratio(&t)));
+            let pass =
+                !fits.is_empty() && fits.iter().all(|r| r.excess(&t, TARGET_SHARE).is_none());
+            let over = trial.surface_triangles > budget;
+            curve.push((
+                CurvePoint {
+                    epsilon_um: f * sq_um,
+                    epsilon_sq_fraction: f,
+                    surface_triangles: trial.surface_triangles,
+                    triangles_per_measured_px: trial.surface_triangles as f64
+                        / measured_px.max(1) as f64,
+                    worst_sa_pct: worst_signed(&fits, 0),
+                    worst_sq_pct: worst_signed(&fits, 1),
+                    worst_sz_pct: worst_signed(&fits, 2),
+                    worst_residual_pct_of_sq: fits
+                        .iter()
+                        .map(|r| r.residual_pct_of_sq)
+                        .fold(0.0, f64::max),
+                    worst_region: fits.first().map(|r| r.region.clone()).unwrap_or_default(),
+                    pass,
+                    over_budget: over,
+                    chosen: false,
+                },
+                fits,
+                trial.angles,
+            ));
+            Ok((pass, over, (!over).then_some(trial.mesh)))
+        };
     // One insertion order, judged at every checkpoint: the first that passes is the fewest
     // triangles this order can give (the parameters do not move monotonically with the
     // triangles, so the first pass is taken, not a bisection).
