@@ -58,12 +58,16 @@ pub struct MeshArgs {
     /// A fixed bound as a fraction of the map's Sq (about its least-squares plane).
     #[arg(long)]
     pub epsilon_sq: Option<f64>,
-    /// Write what this DEM engine imports: liggghts (ASCII sheet in m on a regular grid, no
-    /// slivers), mercurydpm (binary sheet in m), edem (binary solid in mm), yade (small ASCII
-    /// sheet in m). Sets the format, kind, units, method and triangle budget; the target is
-    /// recorded in OUT.json.
+    /// Write what this DEM engine imports: liggghts (ASCII sheet in m, the model from the
+    /// tolerance with no angle below 1 deg), mercurydpm (binary sheet in m on a regular grid),
+    /// edem (binary solid in mm), yade (small ASCII sheet in m on a regular grid). Sets the
+    /// format, kind, units, method and triangle budget; the target is recorded in OUT.json.
     #[arg(long, conflicts_with_all = ["solid", "sheet", "holes", "ascii", "units"])]
     pub target: Option<DemEngine>,
+    /// With --target: the engine's regular grid (block means within its triangle budget)
+    /// instead of the model from the tolerance.
+    #[arg(long, requires = "target", conflicts_with_all = ["tolerance", "epsilon_um", "epsilon_sq"])]
+    pub grid: bool,
     /// Stop refining at this many surface triangles (the bound may then not hold; OUT.json says);
     /// with a tolerance, the most the search may use.
     #[arg(long)]
@@ -148,9 +152,13 @@ pub fn run(a: MeshArgs) -> Result<()> {
     }
     let heights = RasterView::new(&heights_um, shape)?;
     let at = ScanPlacement::new(pitch_x_um, pitch_y_um).with_z_offset(z_offset_um);
-    let profile = a
-        .target
-        .map(|engine| EngineProfile::with_budget(engine, a.max_triangles));
+    let profile = a.target.map(|engine| {
+        let mut p = EngineProfile::with_budget(engine, a.max_triangles);
+        if a.grid {
+            p.method = TargetMethod::Grid;
+        }
+        p
+    });
     if let Some(profile) = profile.filter(|p| p.method == TargetMethod::Grid) {
         return write_grid_target(&a, &surface.metadata.format, heights, &at, &profile);
     }
@@ -185,6 +193,15 @@ pub fn run(a: MeshArgs) -> Result<()> {
     };
     let t0 = Instant::now();
     let fixed = a.epsilon_um.is_some() || a.epsilon_sq.is_some();
+    // An engine that refuses slivers gets the tolerance mesh with its angles bounded.
+    let min_angle_deg = profile.map(|p| p.min_angle_deg).filter(|&deg| deg > 0.0);
+    if let (true, Some(p), Some(_)) = (fixed, profile, min_angle_deg) {
+        bail!(
+            "--target {} needs the model from a tolerance (its smallest angle is bounded \
+             there) or --grid; remove --epsilon-um / --epsilon-sq",
+            p.engine.name()
+        );
+    }
     if let Some(px) = a.region_px.filter(|&p| p < 16) {
         bail!("--region-px {px}: expected at least 16 samples");
     }
@@ -206,6 +223,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
                 Some("greedy") => surfstream_mesher::tolerance::ModelMethod::Greedy,
                 Some(other) => bail!("--model-method {other}: expected balanced or greedy"),
             },
+            min_angle_deg,
         };
         let roughness = a
             .roughness
@@ -267,6 +285,16 @@ pub fn run(a: MeshArgs) -> Result<()> {
     o.insert("mesh_s".into(), json!(mesh_s));
     if let Some(r) = &tolerance {
         o.insert("tolerance".into(), json!(r));
+        if let Some(q) = &r.angles {
+            o.insert(
+                "element_quality".into(),
+                json!({
+                    "min_angle_deg": q.min_angle_deg,
+                    "min_angle_bound_deg": q.bound_deg,
+                    "below_bound": q.below_bound,
+                }),
+            );
+        }
     }
     o.insert("outliers".into(), json!(spikes));
     surfstream_core::fsutil::write_atomic(&json_path, |w| {
@@ -293,6 +321,17 @@ pub fn run(a: MeshArgs) -> Result<()> {
                 w.residual_pct_of_sq
             ))
         );
+        if let Some(q) = &r.angles {
+            eprintln!(
+                "mesh: smallest angle {:.2} deg (bound {} deg; {:.3} deg before the refinement, \
+                 which added {} triangles); {} below the bound",
+                q.min_angle_deg,
+                q.bound_deg,
+                q.min_angle_before_deg,
+                q.triangles.saturating_sub(q.triangles_before),
+                q.below_bound
+            );
+        }
         if let Some(reason) = &r.reason {
             eprintln!("mesh: warning: {reason}");
         }

@@ -38,3 +38,19 @@ pub(crate) fn unit_normal(a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> [f64; 3] {
         [0.0; 3]
     }
 }
+
+/// The smallest interior angle of triangle `p`, degrees (0 for a degenerate one): what the DEM
+/// engines check at import ([`crate::target`]).
+pub(crate) fn min_angle_deg(p: [[f64; 3]; 3]) -> f64 {
+    let mut min = f64::INFINITY;
+    for k in 0..3 {
+        let (u, v) = (sub(p[(k + 1) % 3], p[k]), sub(p[(k + 2) % 3], p[k]));
+        let c = cross(u, v);
+        min = min.min(dot(c, c).sqrt().atan2(dot(u, v)).to_degrees());
+    }
+    if min.is_finite() {
+        min
+    } else {
+        0.0
+    }
+}

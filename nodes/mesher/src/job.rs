@@ -250,6 +250,7 @@ impl MesherConfig {
                 tolerance: self.tolerance.unwrap_or_default(),
                 region_px: self.region_px,
                 method: self.model_method,
+                min_angle_deg: None,
             });
         let adaptive = match self.method.as_str() {
             "grid" => None,
@@ -286,18 +287,37 @@ impl MesherConfig {
             outliers: self.outliers,
         };
         if let Some(engine) = self.target {
+            let mut profile = EngineProfile::with_budget(engine, self.max_triangles);
+            // method = "grid" asks for the engine's regular grid instead of its adaptive mesh.
+            if self.method == "grid" {
+                profile.method = TargetMethod::Grid;
+            }
             // An engine's regular grid is sized by its budget, not by a tolerance.
-            if EngineProfile::for_engine(engine).method == TargetMethod::Grid {
+            if profile.method == TargetMethod::Grid {
                 if self.tolerance.is_some() {
                     return Err(format!(
-                        "target = {:?} meshes a regular grid within its triangle budget; a \
-                         tolerance applies to the adaptive mesh (remove one of them)",
+                        "target = {:?} with method = \"grid\" meshes a regular grid within \
+                         its triangle budget; a tolerance applies to the adaptive mesh \
+                         (remove one of them)",
                         engine.name()
                     ));
                 }
                 tolerance = None;
+            } else if profile.min_angle_deg > 0.0 {
+                // The angle bound refines the tolerance search's meshes; a fixed bound's
+                // mesh has none.
+                match tolerance.as_mut() {
+                    Some(t) => t.min_angle_deg = Some(profile.min_angle_deg),
+                    None => {
+                        return Err(format!(
+                            "target = {:?} needs the model from a tolerance (its smallest \
+                             triangle angle is bounded there) or method = \"grid\"; remove \
+                             epsilon_um / epsilon_sq_fraction",
+                            engine.name()
+                        ))
+                    }
+                }
             }
-            let profile = EngineProfile::with_budget(engine, self.max_triangles);
             settings.format = if profile.ascii {
                 StlFormat::Ascii
             } else {
@@ -398,9 +418,21 @@ fn surface_summary(
 }
 
 /// Adds the tolerance search's report to an adaptive mesh's statistics ("tolerance").
+/// With an angle bound (an engine's target) also the element quality of the mesh written, as
+/// the grid targets report it ("element_quality").
 fn add_tolerance(summary: &mut serde_json::Value, report: Option<&crate::ToleranceReport>) {
     if let (Some(o), Some(r)) = (summary.as_object_mut(), report) {
         o.insert("tolerance".into(), json!(r));
+        if let Some(a) = &r.angles {
+            o.insert(
+                "element_quality".into(),
+                json!({
+                    "min_angle_deg": a.min_angle_deg,
+                    "min_angle_bound_deg": a.bound_deg,
+                    "below_bound": a.below_bound,
+                }),
+            );
+        }
     }
 }
 

@@ -4,7 +4,7 @@
 //!
 //! | engine | reads | wall as | units | limits |
 //! |---|---|---|---|---|
-//! | LIGGGHTS-PUBLIC 3.8 | ASCII STL only | open sheet (`mesh/surface`); a closed solid aborts the run | SI (m) | smallest angle > 0.5 deg (else "high aspect ratio"), no duplicate elements; the error-bounded Delaunay mesh's slivers abort it at setup, a regular grid imports |
+//! | LIGGGHTS-PUBLIC 3.8 | ASCII STL only | open sheet (`mesh/surface`); a closed solid aborts the run | SI (m) | smallest angle: below 0.5 deg a "high aspect ratio" warning, below the `curvature` angle (default acos(1 - 1e-5) = 0.256 deg) an abort at setup, below acos(0.9999995) = 0.057 deg always an abort (`src/surface_mesh_I.h`); no duplicate elements. The tolerance mesh is refined to 1 deg ([`crate::tin::AngleBound`]) |
 //! | MercuryDPM | binary STL only (`readTriangleWall`) | sheet | SI (m) | none documented |
 //! | EDEM | binary or ASCII STL | closed solid (geometry import) | mm (the import dialog's default) | none documented |
 //! | Yade | ASCII STL (`ymport.stl`) | sheet | SI (m) | vertices are welded in O(V^2): keep the mesh small |
@@ -12,6 +12,9 @@
 //! A target therefore fixes the format, the kind, the units, the meshing method and a
 //! triangle budget; [`EngineProfile::for_engine`] is the table above as data. Regular grids are
 //! made to fit the budget by block means over `stride x stride` samples ([`block_mean`]).
+//! LIGGGHTS gets the model from the tolerance ([`crate::tolerance`]) with its smallest angle
+//! bounded (each checkpoint's mesh refined, then judged); its regular grid stays available
+//! (`method = "grid"`, `surfstream mesh --target liggghts --grid`).
 
 use std::str::FromStr;
 
@@ -65,7 +68,8 @@ impl DemEngine {
 pub enum TargetMethod {
     /// Two triangles per (block-averaged) grid cell: no slivers, at most 6 triangles per vertex.
     Grid,
-    /// The error-bounded greedy insertion (fewest triangles for a given error).
+    /// The model from the tolerance (fewest triangles within it), with its smallest angle
+    /// bounded by `min_angle_deg` when that is above 0.
     Adaptive,
 }
 
@@ -103,9 +107,10 @@ impl EngineProfile {
                 ascii: true,
                 solid: false,
                 units: LengthUnit::M,
-                method: TargetMethod::Grid,
+                method: TargetMethod::Adaptive,
                 max_triangles: 400_000,
-                // LIGGGHTS' soft limit is 0.5 deg; keep a margin.
+                // LIGGGHTS aborts below 0.256 deg (its default `curvature`) and warns below
+                // 0.5 deg; 1 deg keeps clear of both.
                 min_angle_deg: 1.0,
             },
             DemEngine::MercuryDpm => Self {
@@ -372,7 +377,8 @@ mod tests {
         let p = EngineProfile::for_engine(DemEngine::Liggghts);
         assert!(p.ascii && !p.solid);
         assert_eq!(p.units, LengthUnit::M);
-        assert_eq!(p.method, TargetMethod::Grid);
+        assert_eq!(p.method, TargetMethod::Adaptive);
+        assert!(p.min_angle_deg > 0.256, "LIGGGHTS aborts below 0.256 deg");
         let m = EngineProfile::for_engine(DemEngine::MercuryDpm);
         assert!(!m.ascii, "MercuryDPM reads binary STL only");
     }

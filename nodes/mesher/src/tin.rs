@@ -31,6 +31,7 @@ use crate::error::{MeshError, Result};
 use surfstream_core::raster::{RasterView, Shape};
 
 use crate::field::{fill_missing, positive_finite};
+use crate::geom;
 use surfstream_core::ParamError;
 
 const NONE: u32 = u32::MAX;
@@ -88,6 +89,28 @@ pub struct Tin {
     /// Triangles left out because they still span a missing sample when the budget stopped
     /// the insertion (holes mode only).
     pub dropped_spanning: usize,
+}
+
+/// The smallest interior angle every triangle must have, measured in x, y, z (um) with the
+/// grid's pitches: LIGGGHTS refuses slivers at import ([`crate::target`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AngleBound {
+    pub min_angle_deg: f64,
+    pub pitch_x_um: f64,
+    pub pitch_y_um: f64,
+}
+
+/// Rounds of [`Builder::bound_angles`] at most (each treats every triangle below the bound).
+const ANGLE_ROUNDS: usize = 32;
+
+/// The vertex [`Builder::sliver_fix`] chooses.
+enum SliverFix {
+    /// A sample strictly inside the block.
+    Inside(usize),
+    /// The middle of a segment of side `0` (bottom, right, top, left): sample `1`.
+    Side(usize, usize),
+    /// No sample improves it (its edges are a pixel or two long).
+    Stuck,
 }
 
 /// Exact orientation of (a, b, c): > 0 counter-clockwise, 0 collinear.
@@ -787,6 +810,191 @@ impl Builder<'_> {
             }
         }
     }
+
+    /// The smallest interior angle of triangle `t` in physical (x, y, z), degrees.
+    fn min_angle(&self, t: usize, bound: &AngleBound) -> f64 {
+        let p = self.tris[t].v.map(|v| {
+            let (x, y, z) = self.corner(v);
+            [x as f64 * bound.pitch_x_um, y as f64 * bound.pitch_y_um, z]
+        });
+        geom::min_angle_deg(p)
+    }
+
+    /// The vertices on each side of the block's rectangle (bottom, right, top, left), as
+    /// their coordinate along the side, sorted.
+    fn side_vertices(&self) -> [Vec<i64>; 4] {
+        let b = self.block;
+        let (x0, x1, y0, y1) = (b.x0 as i64, b.x1 as i64, b.y0 as i64, b.y1 as i64);
+        let mut sides: [Vec<i64>; 4] = Default::default();
+        for &(x, y) in &self.verts {
+            if y == y0 {
+                sides[0].push(x);
+            }
+            if x == x1 {
+                sides[1].push(y);
+            }
+            if y == y1 {
+                sides[2].push(x);
+            }
+            if x == x0 {
+                sides[3].push(y);
+            }
+        }
+        for s in &mut sides {
+            s.sort_unstable();
+            s.dedup();
+        }
+        sides
+    }
+
+    /// Where to insert a vertex that removes the sliver `t` (Ruppert's refinement on the grid):
+    /// its circumcentre, rounded to a sample, unless that lies beyond a side of the block or
+    /// within the diametral circle of a side's segment: then that segment's midpoint.
+    fn sliver_fix(&self, t: usize, sides: &[Vec<i64>; 4]) -> SliverFix {
+        let b = self.block;
+        let (x0, x1, y0, y1) = (b.x0 as i64, b.x1 as i64, b.y0 as i64, b.y1 as i64);
+        let p = self.tris[t].v.map(|v| self.verts[v as usize]);
+        // Circumcentre, relative to p[0] (exact integers up to the division).
+        let (bx, by) = ((p[1].0 - p[0].0) as f64, (p[1].1 - p[0].1) as f64);
+        let (cx, cy) = ((p[2].0 - p[0].0) as f64, (p[2].1 - p[0].1) as f64);
+        let d = 2.0 * (bx * cy - by * cx);
+        if d == 0.0 {
+            return SliverFix::Stuck;
+        }
+        let (b2, c2) = (bx * bx + by * by, cx * cx + cy * cy);
+        let ux = p[0].0 as f64 + (cy * b2 - by * c2) / d;
+        let uy = p[0].1 as f64 + (bx * c2 - cx * b2) / d;
+        // Per side: the line, the coordinate along it, the range along it, and how far the
+        // centre lies beyond it (> 0: outside the block).
+        let lines = [
+            (uy, ux, x0, x1, y0 as f64 - uy),
+            (ux, uy, y0, y1, ux - x1 as f64),
+            (uy, ux, x0, x1, uy - y1 as f64),
+            (ux, uy, y0, y1, x0 as f64 - ux),
+        ];
+        let fixed = [y0, x1, y1, x0];
+        let mut split: Option<(f64, usize, i64)> = None;
+        for (k, &(across, along, lo, hi, beyond)) in lines.iter().enumerate() {
+            let a = along.clamp(lo as f64, hi as f64);
+            let verts = &sides[k];
+            // The segment [s0, s1] of the side that holds `a`.
+            let i = verts.partition_point(|&v| (v as f64) <= a);
+            let (s0, s1) = match (i.checked_sub(1).map(|j| verts[j]), verts.get(i)) {
+                (Some(s0), Some(&s1)) => (s0, s1),
+                (Some(s0), None) if i >= 2 => (verts[i - 2], s0),
+                _ => continue,
+            };
+            let (mid, half) = ((s0 + s1) as f64 * 0.5, (s1 - s0) as f64 * 0.5);
+            let dist2 = (along - mid).powi(2) + (across - fixed[k] as f64).powi(2);
+            let score = if beyond > 0.0 {
+                1e9 + beyond
+            } else if dist2 < half * half {
+                half * half - dist2
+            } else {
+                continue;
+            };
+            if s1 - s0 >= 2 && split.is_none_or(|(best, _, _)| score > best) {
+                split = Some((score, k, (s0 + s1).div_euclid(2)));
+            }
+        }
+        let at = |x: i64, y: i64| (y * self.width as i64 + x) as usize;
+        if let Some((_, k, m)) = split {
+            let s = match k {
+                0 => at(m, y0),
+                1 => at(x1, m),
+                2 => at(m, y1),
+                _ => at(x0, m),
+            };
+            return SliverFix::Side(k, s);
+        }
+        // Inside: the rounded centre, strictly inside the block (a side sample is only
+        // inserted as a split), unless it is a vertex already; then the longest edge's middle.
+        let inside = |x: f64, y: f64| {
+            if x1 - x0 < 2 || y1 - y0 < 2 {
+                return None;
+            }
+            let (x, y) = (
+                (x.round() as i64).clamp(x0 + 1, x1 - 1),
+                (y.round() as i64).clamp(y0 + 1, y1 - 1),
+            );
+            (!self.settled[self.local(x, y)]).then(|| at(x, y))
+        };
+        if let Some(s) = inside(ux, uy) {
+            return SliverFix::Inside(s);
+        }
+        let (mut longest, mut mid) = (0i64, (0.0, 0.0));
+        for k in 0..3 {
+            let (a, c) = (p[k], p[(k + 1) % 3]);
+            let len2 = (a.0 - c.0).pow(2) + (a.1 - c.1).pow(2);
+            if len2 > longest {
+                longest = len2;
+                mid = ((a.0 + c.0) as f64 * 0.5, (a.1 + c.1) as f64 * 0.5);
+            }
+        }
+        inside(mid.0, mid.1).map_or(SliverFix::Stuck, SliverFix::Inside)
+    }
+
+    /// Inserts grid samples until every triangle's smallest angle (in x, y, z) reaches the
+    /// bound, or no sample can improve the ones left: Ruppert's refinement with the points
+    /// rounded to the grid. The triangulation stays Delaunay (the insertion is Bowyer-Watson),
+    /// so the flips a sliver allows are made by every insertion. Samples on a shared side
+    /// (`shared`: bottom, right, top, left) are pushed to `shared_out`: the neighbour must
+    /// insert them too. Returns the triangles left below the bound.
+    fn bound_angles(
+        &mut self,
+        bound: &AngleBound,
+        shared: [bool; 4],
+        shared_out: &mut Vec<u32>,
+    ) -> usize {
+        let below = |b: &Self| {
+            (0..b.tris.len())
+                .filter(|&t| b.min_angle(t, bound) < bound.min_angle_deg)
+                .collect::<Vec<_>>()
+        };
+        // Every insertion removes at least the sliver it was made for; the cap only stops a
+        // pathological cascade (it is far above what the measured surfaces need).
+        let mut budget = 4 * self.tris.len() + 1024;
+        let mut sides = self.side_vertices();
+        for _ in 0..ANGLE_ROUNDS {
+            let bad = below(self);
+            if bad.is_empty() {
+                return 0;
+            }
+            let mut progress = false;
+            for t in bad {
+                if budget == 0 {
+                    break;
+                }
+                if self.min_angle(t, bound) >= bound.min_angle_deg {
+                    continue; // replaced by an earlier insertion of this round
+                }
+                let s = match self.sliver_fix(t, &sides) {
+                    SliverFix::Inside(s) => s,
+                    SliverFix::Side(k, s) => {
+                        let along = if k % 2 == 0 {
+                            s % self.width
+                        } else {
+                            s / self.width
+                        } as i64;
+                        let i = sides[k].partition_point(|&v| v < along);
+                        sides[k].insert(i, along);
+                        if shared[k] {
+                            shared_out.push(s as u32);
+                        }
+                        s
+                    }
+                    SliverFix::Stuck => continue,
+                };
+                self.insert_at(s, t as u32);
+                budget -= 1;
+                progress = true;
+            }
+            if !progress || budget == 0 {
+                break;
+            }
+        }
+        below(self).len()
+    }
 }
 
 /// Greedy insertion inside one block. `border` lists the samples on the block's shared sides
@@ -1201,14 +1409,52 @@ impl LiveBlock<'_> {
         border.sort_unstable();
         border.dedup();
         self.b.set_epsilon(sides.epsilon_um);
+        self.insert_border(&border);
+        self.budget_reached |= self.b.refine(sides.epsilon_um, plan.max_triangles);
+    }
+
+    /// Inserts the shared-side samples of `samples` the block does not have yet (kept in
+    /// `border`, so that a sample is never inserted twice: the sides' simplification at a
+    /// finer bound and the angle bound may both ask for it).
+    fn insert_border(&mut self, samples: &[u32]) {
         let mut last = 0;
-        for &s in &border {
-            if self.border.binary_search(&s).is_err() {
+        let mut added = Vec::new();
+        for &s in samples {
+            // `border` stays sorted while the loop searches it; `added` is small.
+            if self.border.binary_search(&s).is_err() && !added.contains(&s) {
                 last = self.b.insert_at(s as usize, last);
+                added.push(s);
             }
         }
-        self.border = border;
-        self.budget_reached |= self.b.refine(sides.epsilon_um, plan.max_triangles);
+        if !added.is_empty() {
+            self.border.extend(added);
+            self.border.sort_unstable();
+        }
+    }
+
+    /// Inserts the shared-side samples its neighbours added for their angle bound
+    /// (`incoming`), then, when `improve`, refines the block until every triangle's smallest
+    /// angle reaches `bound` ([`Builder::bound_angles`]). Returns the shared-side samples it
+    /// added (for the neighbours) and the triangles left below the bound.
+    pub(crate) fn bound_angles(
+        &mut self,
+        plan: &BlockPlan<'_>,
+        k: usize,
+        incoming: &[u32],
+        bound: &AngleBound,
+        improve: bool,
+    ) -> (Vec<u32>, usize) {
+        self.insert_border(incoming);
+        if !improve {
+            return (Vec::new(), 0);
+        }
+        let (_, shared) = plan.block(k);
+        let mut out = Vec::new();
+        let left = self.b.bound_angles(bound, shared, &mut out);
+        self.border.extend_from_slice(&out);
+        self.border.sort_unstable();
+        self.border.dedup();
+        (out, left)
     }
 
     /// Balances the block's Sa and Sq (module [`crate::tolerance`]): while the mesh's Sa or
@@ -1306,6 +1552,87 @@ impl LiveBlock<'_> {
             tris: self.b.tris.clone(),
             budget_reached: self.budget_reached,
         }
+    }
+}
+
+/// What the angle bound did to a mesh ([`bound_block_angles`]).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct AngleStats {
+    /// The bound, degrees (x, y, z).
+    pub bound_deg: f64,
+    /// Smallest angle of any triangle before and after the refinement, degrees.
+    pub min_angle_before_deg: f64,
+    pub min_angle_deg: f64,
+    /// Triangles below the bound before and after.
+    pub below_bound_before: usize,
+    pub below_bound: usize,
+    /// Triangles before and after (the refinement's cost).
+    pub triangles_before: usize,
+    pub triangles: usize,
+}
+
+/// Rounds between the blocks at most: each round every block refines its slivers and its
+/// neighbours then insert the samples it added on their shared sides.
+const ANGLE_BLOCK_ROUNDS: usize = 64;
+
+/// Refines every live block until no triangle's smallest angle is below `bound`, keeping the
+/// shared sides exact: a sample one block adds on a side is inserted by the block across it
+/// in the next round, which may refine in turn. Side segments only get shorter, so the rounds
+/// end; the last one only inserts the neighbours' samples (the mesh stays conforming whatever
+/// the cap).
+pub(crate) fn bound_block_angles(
+    plan: &BlockPlan<'_>,
+    live: &mut [LiveBlock<'_>],
+    bound: &AngleBound,
+) -> AngleStats {
+    let stats = |live: &[LiveBlock<'_>]| {
+        live.par_iter()
+            .map(|b| {
+                let angles: Vec<f64> = (0..b.b.tris.len())
+                    .map(|t| b.b.min_angle(t, bound))
+                    .collect();
+                let below = angles.iter().filter(|&&a| a < bound.min_angle_deg).count();
+                let min = angles.into_iter().fold(f64::INFINITY, f64::min);
+                (b.b.tris.len(), min, below)
+            })
+            .reduce(
+                || (0, f64::INFINITY, 0),
+                |a, b| (a.0 + b.0, a.1.min(b.1), a.2 + b.2),
+            )
+    };
+    let before = stats(live);
+    let mut incoming: Vec<Vec<u32>> = vec![Vec::new(); live.len()];
+    for round in 0..=ANGLE_BLOCK_ROUNDS {
+        let improve = round < ANGLE_BLOCK_ROUNDS;
+        let added: Vec<Vec<u32>> = live
+            .par_iter_mut()
+            .zip(incoming.par_iter())
+            .enumerate()
+            .map(|(k, (b, inc))| b.bound_angles(plan, k, inc, bound, improve).0)
+            .collect();
+        incoming.iter_mut().for_each(Vec::clear);
+        let mut any = false;
+        for (k, samples) in added.iter().enumerate() {
+            for &s in samples {
+                if let Some(j) = plan.across(k, s) {
+                    incoming[j].push(s);
+                    any = true;
+                }
+            }
+        }
+        if !any {
+            break;
+        }
+    }
+    let after = stats(live);
+    AngleStats {
+        bound_deg: bound.min_angle_deg,
+        min_angle_before_deg: before.1,
+        min_angle_deg: after.1,
+        below_bound_before: before.2,
+        below_bound: after.2,
+        triangles_before: before.0,
+        triangles: after.0,
     }
 }
 
@@ -1480,6 +1807,25 @@ impl<'a> BlockPlan<'a> {
             y1: ys[j + 1],
         };
         (block, [j > 0, i + 1 < nbx, j + 1 < nby, i > 0])
+    }
+
+    /// The other block that holds sample `s`, which lies on a shared side of block `k` (not
+    /// at a corner); None when it lies on the grid's rim or inside the block.
+    pub(crate) fn across(&self, k: usize, s: u32) -> Option<usize> {
+        let (nbx, _) = self.blocks_x_y();
+        let (block, [bottom, right, top, left]) = self.block(k);
+        let (x, y) = (s as usize % self.cols, s as usize / self.cols);
+        if x == block.x0 && left {
+            Some(k - 1)
+        } else if x == block.x1 && right {
+            Some(k + 1)
+        } else if y == block.y0 && bottom {
+            Some(k - nbx)
+        } else if y == block.y1 && top {
+            Some(k + nbx)
+        } else {
+            None
+        }
     }
 
     /// The vertices block `k` must have on its shared sides simplified as `sides`.
@@ -1968,6 +2314,58 @@ mod tests {
         assert!((bq / sq - 1.0).abs() <= 0.005, "Sq {bq} vs {sq}");
         assert!(err.max_um <= 0.9);
         assert!(balanced.triangles.len() > greedy.triangles.len());
+    }
+
+    /// Triangles of the block whose circumcircle holds a vertex strictly inside.
+    fn not_delaunay(b: &Builder<'_>) -> usize {
+        b.tris
+            .iter()
+            .filter(|t| {
+                let p = t.v.map(|v| b.verts[v as usize]);
+                b.verts.iter().any(|&q| incircle(p[0], p[1], p[2], q) > 0)
+            })
+            .count()
+    }
+
+    #[test]
+    fn a_live_block_stays_delaunay_and_the_angle_bound_holds_in_it() {
+        let (rows, cols) = (130, 130);
+        let z = lcg_field(rows, cols, 5);
+        let heights = RasterView::new(&z, Shape::new(rows, cols)).unwrap();
+        let plan = BlockPlan::new(heights, &params_at(0.5, 64)).unwrap();
+        let mut b = plan.start(&plan.sides_at(0.5), 0);
+        // Finer bounds insert more vertices on the shared sides, several per call.
+        for e in [0.4, 0.3, 0.2, 0.1] {
+            b.refine(&plan, &plan.sides_at(e), 0);
+            b.balance(
+                &plan,
+                Balance {
+                    sa: 0.005,
+                    sq: 0.005,
+                },
+            );
+            assert_eq!(not_delaunay(&b.b), 0, "bound {e}");
+        }
+        let bound = AngleBound {
+            min_angle_deg: 12.0,
+            pitch_x_um: 1.0,
+            pitch_y_um: 1.2,
+        };
+        let before = b.b.tris.len();
+        let (added, left) = b.bound_angles(&plan, 0, &[], &bound, true);
+        assert_eq!(left, 0);
+        assert_eq!(not_delaunay(&b.b), 0);
+        assert!(b.b.tris.len() > before, "12 deg needs some refinement here");
+        let smallest = (0..b.b.tris.len())
+            .map(|t| b.b.min_angle(t, &bound))
+            .fold(f64::INFINITY, f64::min);
+        assert!(smallest >= 12.0, "{smallest}");
+        // What it added on its shared sides (right and top) is for the blocks across.
+        for &s in &added {
+            let (x, y) = (s as usize % cols, s as usize / cols);
+            assert!(x == b.b.block.x1 || y == b.b.block.y1, "({x}, {y})");
+            assert!(plan.across(0, s).is_some());
+        }
     }
 
     #[test]

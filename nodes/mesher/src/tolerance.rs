@@ -32,7 +32,9 @@ use crate::error::{MeshError, Result};
 use crate::fidelity::field_params;
 use crate::field::ScanPlacement;
 use crate::stream::{field_level, stream_blocks, StreamedMesh};
-use crate::tin::{assemble, Balance, BlockPlan, LiveBlock, TinParams};
+use crate::tin::{
+    assemble, bound_block_angles, AngleBound, AngleStats, Balance, BlockPlan, LiveBlock, TinParams,
+};
 use crate::{AdaptiveMesh, Epsilon, MeshParams};
 
 /// The tolerance, percent of the measured value, per region.
@@ -211,6 +213,11 @@ pub struct ToleranceSettings {
     pub region_px: Option<usize>,
     /// How the insertion order is made.
     pub method: ModelMethod,
+    /// The smallest interior angle every triangle must have, degrees (x, y, z): each
+    /// checkpoint's mesh is refined until it holds ([`crate::tin::bound_block_angles`]) and
+    /// judged after that, so the mesh written is the one judged. `None`: no bound (LIGGGHTS
+    /// needs one, [`crate::target`]).
+    pub min_angle_deg: Option<f64>,
 }
 
 impl Default for ToleranceSettings {
@@ -219,6 +226,7 @@ impl Default for ToleranceSettings {
             tolerance: DEFAULT_TOLERANCE,
             region_px: None,
             method: ModelMethod::default(),
+            min_angle_deg: None,
         }
     }
 }
@@ -552,6 +560,9 @@ pub struct ToleranceReport {
     pub region_fits: Vec<RegionFit>,
     /// The fidelity-cost curve: every mesh the search made, by triangle count.
     pub curve: Vec<CurvePoint>,
+    /// The angle bound's refinement of the chosen mesh (with a bound only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub angles: Option<AngleStats>,
 }
 
 /// Finest bound the search tries, as a fraction of Sq.
@@ -569,6 +580,8 @@ pub struct Trial<M> {
     pub mesh: M,
     pub surface_triangles: usize,
     pub fits: Vec<RegionFit>,
+    /// What the angle bound did to it (with a bound only).
+    pub angles: Option<AngleStats>,
 }
 
 /// Why a checkpoint is made.
@@ -603,45 +616,46 @@ pub fn search<M>(
     let t = settings.tolerance;
     let region_px = settings.region_px.unwrap_or(DEFAULT_REGION_PX);
     let budget = max_triangles.unwrap_or(usize::MAX);
-    let mut curve: Vec<(CurvePoint, Vec<RegionFit>)> = Vec::new();
-    let mut run = |f: f64,
-                   stage: Stage,
-                   curve: &mut Vec<(CurvePoint, Vec<RegionFit>)>|
-     -> Result<(bool, bool, Option<M>)> {
-        surfstream_core::liveness::beat();
-        let trial = checkpoint(f * sq_um, stage)?;
-        let mut fits = trial.fits;
-        fits.sort_by(|a, b| b.worst_ratio(&t).total_cmp(&a.worst_ratio(&t)));
-        let pass = !fits.is_empty() && fits.iter().all(|r| r.excess(&t, TARGET_SHARE).is_none());
-        let over = trial.surface_triangles > budget;
-        curve.push((
-            CurvePoint {
-                epsilon_um: f * sq_um,
-                epsilon_sq_fraction: f,
-                surface_triangles: trial.surface_triangles,
-                triangles_per_measured_px: trial.surface_triangles as f64
-                    / measured_px.max(1) as f64,
-                worst_sa_pct: worst_signed(&fits, 0),
-                worst_sq_pct: worst_signed(&fits, 1),
-                worst_sz_pct: worst_signed(&fits, 2),
-                worst_residual_pct_of_sq: fits
-                    .iter()
-                    .map(|r| r.residual_pct_of_sq)
-                    .fold(0.0, f64::max),
-                worst_roughness_pct: fits
-                    .iter()
-                    .filter_map(|r| r.roughness_deviation_pct)
-                    .flatten()
-                    .max_by(|a, b| a.abs().total_cmp(&b.abs())),
-                worst_region: fits.first().map(|r| r.region.clone()).unwrap_or_default(),
-                pass,
-                over_budget: over,
-                chosen: false,
-            },
-            fits,
-        ));
-        Ok((pass, over, (!over).then_some(trial.mesh)))
-    };
+    type Judged = (CurvePoint, Vec<RegionFit>, Option<AngleStats>);
+    let mut curve: Vec<Judged> = Vec::new();
+    let mut run =
+        |f: f64, stage: Stage, curve: &mut Vec<Judged>| -> Result<(bool, bool, Option<M>)> {
+            surfstream_core::liveness::beat();
+            let trial = checkpoint(f * sq_um, stage)?;
+            let mut fits = trial.fits;
+            fits.sort_by(|a, b| b.worst_ratio(&t).total_cmp(&a.worst_ratio(&t)));
+            let pass =
+                !fits.is_empty() && fits.iter().all(|r| r.excess(&t, TARGET_SHARE).is_none());
+            let over = trial.surface_triangles > budget;
+            curve.push((
+                CurvePoint {
+                    epsilon_um: f * sq_um,
+                    epsilon_sq_fraction: f,
+                    surface_triangles: trial.surface_triangles,
+                    triangles_per_measured_px: trial.surface_triangles as f64
+                        / measured_px.max(1) as f64,
+                    worst_sa_pct: worst_signed(&fits, 0),
+                    worst_sq_pct: worst_signed(&fits, 1),
+                    worst_sz_pct: worst_signed(&fits, 2),
+                    worst_residual_pct_of_sq: fits
+                        .iter()
+                        .map(|r| r.residual_pct_of_sq)
+                        .fold(0.0, f64::max),
+                    worst_roughness_pct: fits
+                        .iter()
+                        .filter_map(|r| r.roughness_deviation_pct)
+                        .flatten()
+                        .max_by(|a, b| a.abs().total_cmp(&b.abs())),
+                    worst_region: fits.first().map(|r| r.region.clone()).unwrap_or_default(),
+                    pass,
+                    over_budget: over,
+                    chosen: false,
+                },
+                fits,
+                trial.angles,
+            ));
+            Ok((pass, over, (!over).then_some(trial.mesh)))
+        };
     // One insertion order, judged at every checkpoint: the first that passes is the fewest
     // triangles this order can give (the parameters do not move monotonically with the
     // triangles, so the first pass is taken, not a bisection).
@@ -686,6 +700,7 @@ pub fn search<M>(
     curve[k].0.chosen = true;
     let chosen = curve[k].0.clone();
     let fits = curve[k].1.clone();
+    let angles = curve[k].2;
     let met = fits.iter().all(|r| r.excess(&t, 1.0).is_none());
     let reason = (!met).then(|| {
         let worst = &fits[0];
@@ -710,7 +725,7 @@ pub fn search<M>(
             worst.region
         )
     });
-    let mut points: Vec<CurvePoint> = curve.into_iter().map(|(c, _)| c).collect();
+    let mut points: Vec<CurvePoint> = curve.into_iter().map(|(c, _, _)| c).collect();
     points.sort_by(|a, b| {
         a.surface_triangles
             .cmp(&b.surface_triangles)
@@ -731,6 +746,7 @@ pub fn search<M>(
             reason,
             region_fits: fits,
             curve: thin_curve(points, MAX_CURVE_POINTS),
+            angles,
         },
     ))
 }
@@ -834,7 +850,8 @@ fn refine_blocks<'p>(
     live: &mut Vec<LiveBlock<'p>>,
     epsilon_um: f64,
     balance: Option<Balance>,
-) {
+    angles: Option<&AngleBound>,
+) -> Option<AngleStats> {
     let sides = plan.sides_at(epsilon_um);
     if live.is_empty() {
         *live = (0..plan.block_count())
@@ -848,6 +865,7 @@ fn refine_blocks<'p>(
             b.balance(plan, target);
         }
     });
+    angles.map(|bound| bound_block_angles(plan, live, bound))
 }
 
 /// Side of the blocks when they are balanced: a quarter of the judged windows (a window
@@ -863,6 +881,27 @@ fn balance_of(s: &ToleranceSettings) -> Option<Balance> {
         sa: s.tolerance.sa_pct / 100.0 * BLOCK_BALANCE_SHARE,
         sq: s.tolerance.sq_pct / 100.0 * BLOCK_BALANCE_SHARE,
     })
+}
+
+/// The angle bound the settings ask for, on the map's pitches. Errors: a bound outside
+/// 0..30 deg (Ruppert's refinement ends for bounds up to about 20.7 deg; LIGGGHTS needs
+/// 0.26, [`crate::target`]).
+fn angle_bound(s: &ToleranceSettings, at: &ScanPlacement) -> Result<Option<AngleBound>> {
+    let Some(deg) = s.min_angle_deg else {
+        return Ok(None);
+    };
+    if !(deg.is_finite() && deg > 0.0 && deg <= 20.0) {
+        return Err(MeshError::from(surfstream_core::ParamError::new(
+            "min_angle_deg",
+            deg,
+            "a smallest triangle angle above 0 and at most 20 degrees",
+        )));
+    }
+    Ok(Some(AngleBound {
+        min_angle_deg: deg,
+        pitch_x_um: at.pitch_x_um,
+        pitch_y_um: at.pitch_y_um,
+    }))
 }
 
 /// What both searches (in memory and streamed) start from: the map's scale, the settings and
@@ -920,6 +959,7 @@ pub fn mesh_to_tolerance(
         plan,
     } = search_setup(heights, at, params, settings)?;
     let settings = &settings;
+    let bound = angle_bound(settings, at)?;
     let mut live = Vec::new();
     search(
         sq,
@@ -929,7 +969,7 @@ pub fn mesh_to_tolerance(
         params.max_triangles,
         |eps, stage| {
             let balance = balance_of(settings).filter(|_| stage == Stage::Search);
-            refine_blocks(&plan, &mut live, eps, balance);
+            let angles = refine_blocks(&plan, &mut live, eps, balance, bound.as_ref());
             let meshed: Vec<_> = live.par_iter().map(LiveBlock::snapshot).collect();
             let tin = assemble(&plan, &meshed);
             drop(meshed);
@@ -946,6 +986,7 @@ pub fn mesh_to_tolerance(
                 surface_triangles: m.surface_triangles,
                 fits,
                 mesh: m,
+                angles,
             })
         },
     )
@@ -971,6 +1012,7 @@ pub fn mesh_streaming_to_tolerance(
         plan,
     } = search_setup(heights, at, params, settings)?;
     let settings = &settings;
+    let bound = angle_bound(settings, at)?;
     let level = field_level(heights, at);
     let mut live = Vec::new();
     search(
@@ -981,7 +1023,7 @@ pub fn mesh_streaming_to_tolerance(
         params.max_triangles,
         |eps, stage| {
             let balance = balance_of(settings).filter(|_| stage == Stage::Search);
-            refine_blocks(&plan, &mut live, eps, balance);
+            let angles = refine_blocks(&plan, &mut live, eps, balance, bound.as_ref());
             let blocks = &live;
             p.epsilon = Epsilon::Um(eps);
             let m = stream_blocks(heights, at, &p, spill_dir, &plan, level, eps, &|k| {
@@ -998,6 +1040,7 @@ pub fn mesh_streaming_to_tolerance(
                 surface_triangles: m.counts.top_triangles,
                 fits,
                 mesh: m,
+                angles,
             })
         },
     )

@@ -78,6 +78,24 @@ surface = \"pooled\"",
         .unwrap()
         .adaptive
         .is_none());
+    // LIGGGHTS: the model from the tolerance with its angles bounded, or its regular grid.
+    let lig = config("target = \"liggghts\"\ntolerance = \"sa=2\"")
+        .settings()
+        .unwrap();
+    let t = lig.tolerance.unwrap();
+    assert_eq!((t.tolerance.sa_pct, t.min_angle_deg), (2.0, Some(1.0)));
+    assert_eq!(
+        lig.adaptive.unwrap().kind,
+        surfstream_mesher::MeshKind::Sheet
+    );
+    let grid = config("target = \"liggghts\"\nmethod = \"grid\"")
+        .settings()
+        .unwrap();
+    assert!(grid.tolerance.is_none() && grid.adaptive.is_none());
+    assert_eq!(
+        grid.target.unwrap().method,
+        surfstream_mesher::TargetMethod::Grid
+    );
     for (bad, says) in [
         ("format = \"obj\"", "format = \"obj\""),
         ("method = \"poisson\"", "method = \"poisson\""),
@@ -86,9 +104,10 @@ surface = \"pooled\"",
         ("method = \"grid\"\ntolerance = \"sa=1\"", "needs method"),
         ("region_px = 4", "region_px = 4"),
         (
-            "target = \"liggghts\"\ntolerance = \"sa=1\"",
-            "regular grid",
+            "target = \"liggghts\"\nepsilon_um = 0.1",
+            "needs the model from a tolerance",
         ),
+        ("target = \"yade\"\ntolerance = \"sa=1\"", "regular grid"),
     ] {
         let e = config(bad).settings().unwrap_err();
         assert!(e.contains(says), "{bad}: {e}");
