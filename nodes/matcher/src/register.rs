@@ -477,11 +477,11 @@ impl PhaseCorrelator {
                 self.verified_candidates(a, b, &g, (&stats_a, &stats_b), (pw, ph), params)
             },
         );
-        let (cands, lev_a, lev_b) = match verified {
+        let (mut cands, lev_a, lev_b) = match verified {
             Ok(v) => v,
             Err(rejection) => return PairRegistration::rejected(rejection, overlap_px),
         };
-        let best = cands[0];
+        within_stage_range(&mut cands, nominal_offset_px, params);
         let peak_ratio = peak_ratio(&cands);
 
         // The NCC peak around the best candidate, then the sub-pixel refinement. Each tile is
@@ -489,8 +489,20 @@ impl PhaseCorrelator {
         // different parts of the surface when the stage error is a large fraction of a narrow
         // overlap, and their planes then differ by a slope that shifts the NCC peak (0.4 px
         // on 22 px overlaps of a wavy specimen).
-        let (lev_a, lev_b) = relevelled(a, b, best.offset_px).unwrap_or((lev_a, lev_b));
-        let (mut peak, lev_a, lev_b) = settled_peak(a, b, best.offset_px, lev_a, lev_b);
+        let (lev_a, lev_b) = relevelled(a, b, cands[0].offset_px).unwrap_or((lev_a, lev_b));
+        let (mut peak, mut lev_a, mut lev_b) = settled_peak(a, b, cands[0].offset_px, lev_a, lev_b);
+        // The candidates are ranked by the NCC at their integer offsets; a rival's own
+        // maximum may be the higher one once both are climbed (a ridge's maxima, or a periodic
+        // alias ranked first): the answer is the highest maximum.
+        if let Some(k) = higher_rival(a, b, &cands, &peak, params) {
+            // A rival was relevelled at its offset to be one, so this succeeds.
+            if let Some((la, lb)) = relevelled(a, b, cands[k].offset_px) {
+                let c = cands.remove(k);
+                cands.insert(0, c);
+                (peak, lev_a, lev_b) = settled_peak(a, b, c.offset_px, la, lb);
+            }
+        }
+        let best = cands[0];
         if peak.roundness >= params.min_peak_roundness && peak.roundness < RIDGE_MAX_ROUNDNESS {
             // A 3 x 3 stencil cannot tell a sharp slanted ridge from a peak: its roundness
             // reads 0.06-0.07 on a lone scratch, whose 2-D answer is then 3-4 px wrong along
@@ -1119,6 +1131,42 @@ fn shift_limit_px(params: &PhaseParams, overlap_px: [usize; 2]) -> [f64; 2] {
             .max_shift_px
             .min(params.max_shift_fraction * overlap_px[1] as f64),
     ]
+}
+
+/// Drops the candidates that no climb can bring within `max_shift_px` of the nominal offset
+/// (the stage error's bound: an answer there is refused whatever its NCC). On a periodic
+/// texture seen through a full-width strip, an alias 80 px along the strip scored as the best
+/// candidate or as a rival and cost the pair its true answer (the pills specimen,
+/// docs/registration.md). Nothing is dropped when nothing would remain.
+fn within_stage_range(
+    cands: &mut Vec<Candidate>,
+    nominal_offset_px: [f64; 2],
+    params: &PhaseParams,
+) {
+    let reach = params.max_shift_px + MAX_CLIMB_STEPS as f64;
+    let inside = |c: &Candidate| {
+        let s = shift_from(c.offset_px, nominal_offset_px);
+        s[0].abs() <= reach && s[1].abs() <= reach
+    };
+    if cands.iter().any(inside) {
+        cands.retain(inside);
+    }
+}
+
+/// The index of the rival (see [`rivals`]) whose climbed NCC maximum is higher than the
+/// best's (`peak`), the highest if several.
+fn higher_rival(
+    a: RasterView<'_, f32>,
+    b: RasterView<'_, f32>,
+    cands: &[Candidate],
+    peak: &NccPeak,
+    params: &PhaseParams,
+) -> Option<usize> {
+    let best = rivals(a, b, cands, peak, params)
+        .into_iter()
+        .filter(|(_, q)| q.c[1][1] > peak.c[1][1])
+        .max_by(|p, q| p.1.c[1][1].total_cmp(&q.1.c[1][1]))?;
+    cands.iter().position(|c| c.offset_px == best.0.offset_px)
 }
 
 /// Rivals of the best candidate: other correlation peaks at least 3 px away with similar NCC
