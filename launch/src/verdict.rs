@@ -46,10 +46,6 @@ pub fn count(n: u64) -> String {
     out
 }
 
-fn f(v: &Value) -> Option<f64> {
-    v.as_f64()
-}
-
 /// The verdict's first line with the time the user waited (`wall_s`: the whole command,
 /// Table 6, x3p and report included) and, beside it, the pipeline's own (run.json).
 pub fn with_wall_time(text: &str, wall_s: f64) -> String {
@@ -323,8 +319,22 @@ fn model_line(run: &RunRecord) -> Option<(String, bool)> {
     let m = run.stage::<MeshReport>()?;
     let t = m.tolerance.as_ref()?;
     let tol = &t.tolerance;
+    // The optional bounds, named with their limits so the worst region's figures below read
+    // against them.
+    let mut extra = String::new();
+    if let Some(r) = tol.residual_pct.filter(|r| !r.is_nan()) {
+        let _ = write!(extra, ", residual {r} % of Sq");
+    }
+    let judges_roughness =
+        (t.region_fits.first()).is_some_and(|w| w.roughness_deviation_pct.is_some());
+    if let Some(r) = tol
+        .roughness_pct
+        .filter(|r| !r.is_nan() && judges_roughness)
+    {
+        let _ = write!(extra, ", roughness (mesh - datum) {r} %");
+    }
     let mut line = format!(
-        "tolerance Sa {} %, Sq {} %, Sz {} % per region: {} at {} surface triangles ({:.3} per measured px)",
+        "tolerance Sa {} %, Sq {} %, Sz {} %{extra} per region: {} at {} surface triangles ({:.3} per measured px)",
         tol.sa_pct,
         tol.sq_pct,
         tol.sz_pct,
@@ -339,6 +349,13 @@ fn model_line(run: &RunRecord) -> Option<(String, bool)> {
             "; worst of {} regions {}: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %, residual {:.1} % of Sq",
             t.regions, w.region, d[0], d[1], d[2], w.residual_pct_of_sq,
         );
+        if let Some(d) = w.roughness_deviation_pct {
+            let _ = write!(
+                line,
+                ", roughness Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %",
+                d[0], d[1], d[2]
+            );
+        }
     }
     let failed = !t.met;
     if let Some(r) = &t.reason {
@@ -511,6 +528,37 @@ mod tests {
         assert!(t.contains("beyond max_triangles = 2000"), "{t}");
         assert!(
             t.contains("3 spike(s) (they add +12.50 % to Sz), kept as measured"),
+            "{t}"
+        );
+    }
+
+    /// The limits of the residual and of the roughness the mesh carries are printed beside the
+    /// worst region's figures, and a miss on the roughness names it.
+    #[test]
+    fn the_model_line_names_the_residual_and_roughness_limits() {
+        let mut run = run_json(true, false);
+        run["stages"]["mesher"]["tolerance"] = json!({
+            "tolerance": { "sa_pct": 1.0, "sq_pct": 1.0, "sz_pct": 3.0, "residual_pct": 50.0,
+                "roughness_pct": 5.0 },
+            "met": false, "surface_triangles": 1200, "triangles_per_measured_px": 0.012,
+            "regions": 5,
+            "region_fits": [{ "region": "W1.2", "deviation_pct": [0.5, 0.4, 0.0],
+                "residual_pct_of_sq": 31.0, "roughness_deviation_pct": [20.17, 16.2, 0.0] }],
+            "reason": "region W1.2: roughness Sa +20.17 % beyond the tolerance of 5 %: the next finer mesh needs 5000 surface triangles, beyond max_triangles = 2000",
+        });
+        let v = verdict(&record(run), Path::new("/o"), false);
+        let t = &v.text;
+        assert_eq!(v.failures.len(), 1, "{t}");
+        assert!(
+            t.contains("tolerance Sa 1 %, Sq 1 %, Sz 3 %, residual 50 % of Sq, roughness (mesh - datum) 5 % per region: NOT met"),
+            "{t}"
+        );
+        assert!(
+            t.contains("residual 31.0 % of Sq, roughness Sa +20.17 %, Sq +16.20 %, Sz +0.00 %"),
+            "{t}"
+        );
+        assert!(
+            t.contains("roughness Sa +20.17 % beyond the tolerance of 5 %"),
             "{t}"
         );
     }

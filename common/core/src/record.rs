@@ -331,6 +331,19 @@ fn nan_array<'de, D: Deserializer<'de>, const N: usize>(d: D) -> Result<[f64; N]
     Ok(a.map(|v| v.unwrap_or(f64::NAN)))
 }
 
+/// Reads an optional f64 whose key, when present, may be null (NaN): `Some(NaN)`, so that it
+/// is written back as the null it was.
+fn some_nan_if_null<'de, D: Deserializer<'de>>(d: D) -> Result<Option<f64>, D::Error> {
+    nan_if_null(d).map(Some)
+}
+
+/// [`nan_array`] of an optional key.
+fn some_nan_array<'de, D: Deserializer<'de>, const N: usize>(
+    d: D,
+) -> Result<Option<[f64; N]>, D::Error> {
+    nan_array(d).map(Some)
+}
+
 /// Sa, Sq, Sz (um) and Sdr (%) of a levelled surface (the mesher's fidelity).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct LevelledParams {
@@ -375,8 +388,20 @@ pub struct ModelTolerance {
     pub sq_pct: f64,
     pub sz_pct: f64,
     /// The limit on the pointwise residual RMS, percent of Sq.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        deserialize_with = "some_nan_if_null",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub residual_pct: Option<f64>,
+    /// The limit on the roughness the mesh carries (mesh - datum against the measured
+    /// roughness), percent, per parameter.
+    #[serde(
+        default,
+        deserialize_with = "some_nan_if_null",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub roughness_pct: Option<f64>,
 }
 
 /// One region of the chosen mesh against the measurement.
@@ -392,6 +417,14 @@ pub struct RegionFitRecord {
     pub deviation_pct: [f64; 3],
     #[serde(deserialize_with = "nan_if_null")]
     pub residual_pct_of_sq: f64,
+    /// (model - measured) / measured * 100 of the roughness the mesh carries, Sa, Sq, Sz
+    /// (when the roughness is judged).
+    #[serde(
+        default,
+        deserialize_with = "some_nan_array",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub roughness_deviation_pct: Option<[f64; 3]>,
 }
 
 /// One mesh of the tolerance search (the fidelity-cost curve).
@@ -412,6 +445,13 @@ pub struct CurvePointRecord {
     pub worst_sz_pct: f64,
     #[serde(deserialize_with = "nan_if_null")]
     pub worst_residual_pct_of_sq: f64,
+    /// Worst |deviation| of the roughness the mesh carries (when it is judged), percent.
+    #[serde(
+        default,
+        deserialize_with = "some_nan_if_null",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub worst_roughness_pct: Option<f64>,
     pub worst_region: String,
     pub pass: bool,
     pub over_budget: bool,

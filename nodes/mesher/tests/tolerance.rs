@@ -137,7 +137,7 @@ fn model_with(
         method,
         ..settings(t)
     };
-    let (m, r) = mesh_to_tolerance(heights, &at, &p, &s).unwrap();
+    let (m, r) = mesh_to_tolerance(heights, None, &at, &p, &s).unwrap();
     let mesh = interpolate(&m);
     let valid: Vec<bool> = z
         .iter()
@@ -201,6 +201,14 @@ fn white_noise_within_a_small_budget_names_the_region_and_the_cause() {
     assert!(coarsest < free.surface_triangles);
     let (m, r, dev) = model(&z, "sa=1,sq=1,sz=3", Some(coarsest));
     assert!(m.surface_triangles <= coarsest);
+    // The report reads as the record run.json's readers use (verdict, report.html) and is
+    // written back the same: a field added here and not there fails this.
+    for report in [&free, &r] {
+        let v = serde_json::to_value(report).unwrap();
+        let rec: surfstream_core::record::ToleranceRecord =
+            surfstream_core::record::from_value(&v, "tolerance").unwrap();
+        assert_eq!(surfstream_core::record::to_value(&rec), v);
+    }
     assert!(!r.met);
     let reason = r.reason.unwrap();
     // The region named is beyond the tolerance, found here too (or the residual bound).
@@ -255,15 +263,22 @@ fn the_streamed_search_chooses_the_same_mesh() {
     let heights = RasterView::new(&z, Shape::new(ROWS, COLS)).unwrap();
     let at = ScanPlacement::new(1.0, 1.0);
     let s = settings("sa=1,sq=1,sz=3");
-    let (m, r) = mesh_to_tolerance(heights, &at, &params(), &s).unwrap();
+    let (m, r) = mesh_to_tolerance(heights, None, &at, &params(), &s).unwrap();
     let dir = tempfile::tempdir().unwrap();
-    let (sm, sr) = mesh_streaming_to_tolerance(heights, &at, &params(), &s, dir.path()).unwrap();
+    let (sm, sr) =
+        mesh_streaming_to_tolerance(heights, None, &at, &params(), &s, dir.path()).unwrap();
     assert_eq!(sm.counts.top_triangles, m.surface_triangles);
     assert_eq!(sr.curve, r.curve);
     assert_eq!(sm.resampled_um.len(), m.resampled_um.len());
     // A tighter tolerance never needs fewer triangles at its chosen point.
-    let (_, tight) =
-        mesh_to_tolerance(heights, &at, &params(), &settings("sa=0.2,sq=0.2,sz=1")).unwrap();
+    let (_, tight) = mesh_to_tolerance(
+        heights,
+        None,
+        &at,
+        &params(),
+        &settings("sa=0.2,sq=0.2,sz=1"),
+    )
+    .unwrap();
     assert!(tight.surface_triangles >= r.surface_triangles || !tight.met);
 }
 
