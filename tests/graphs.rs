@@ -693,7 +693,8 @@ fn deviation_threshold_comes_from_the_command_line_or_the_graph_file() {
 /// its record, and the record written back is the same bytes (run.json) or the same value.
 fn typed_records_round_trip(out: &std::path::Path) {
     use surfstream_core::record::{
-        self, FusionReport, MatcherReport, RecorderReport, ReplayReport, RunRecord, WaveletReport,
+        self, FusionReport, MatcherReport, MeshReport, RecorderReport, ReplayReport, RunRecord,
+        WaveletReport,
     };
     let text = std::fs::read_to_string(out.join("run.json")).expect("run.json");
     let run: RunRecord = serde_json::from_str(&text).expect("run.json reads as a RunRecord");
@@ -713,4 +714,6 @@ fn typed_records_round_trip(out: &std::path::Path) {
     same!(FusionReport, &run.stages["fusion"]);
     same!(WaveletReport, &run.stages["wavelet"]);
     same!(RecorderReport, &run.stages["recorder"]);
+    // The mesher writes its report as a JSON value; this ties it to the record its readers use.
+    same!(MeshReport, &run.stages["mesher"]);
 }

@@ -34,7 +34,7 @@ use surfstream_core::deviation::{
 };
 use surfstream_core::raster::Shape;
 use surfstream_core::record::{
-    DeviationRecord, FusionReport, JudgedPct, RegionDeviation, RegionRecord, RunRecord,
+    DeviationRecord, FusionReport, JudgedPct, MeshReport, RegionDeviation, RegionRecord, RunRecord,
     StageDeviation, StageGrid, Table6Record,
 };
 use surfstream_io::formats::{x3p, Metadata, Surface};
@@ -217,20 +217,11 @@ struct MeshInfo {
 }
 
 fn mesh_info(run: &RunRecord) -> MeshInfo {
-    let m = run
-        .stages
-        .values()
-        .find(|st| st.get("surface").is_some() && st.get("triangles").is_some());
-    let t = m.map(|m| &m["tolerance"]["tolerance"]);
-    let tolerance = t.and_then(|t| {
-        Some([
-            t["sa_pct"].as_f64()?,
-            t["sq_pct"].as_f64()?,
-            t["sz_pct"].as_f64()?,
-        ])
-    });
+    let m = run.stage::<MeshReport>();
+    let tolerance = (m.as_ref().and_then(|m| m.tolerance.as_ref()))
+        .map(|t| [t.tolerance.sa_pct, t.tolerance.sq_pct, t.tolerance.sz_pct]);
     MeshInfo {
-        surface: m.and_then(|m| m["surface"].as_str().map(str::to_owned)),
+        surface: m.map(|m| m.surface),
         tolerance,
     }
 }

@@ -224,6 +224,15 @@ pub(crate) fn test_record(partial: Value) -> RunRecord {
     let mut latency = json!({ "final_frames": {}, "hops": {}, "transport": {} });
     merge(&mut latency, &partial["latency_ms"]);
     run["latency_ms"] = latency;
+    for st in run["stages"]
+        .as_object_mut()
+        .into_iter()
+        .flat_map(|s| s.values_mut())
+    {
+        if st.get("triangles").is_some() {
+            *st = test_mesh_report(st, merge);
+        }
+    }
     if partial["deviation"].is_object() {
         run["deviation"] = test_table6(&partial["deviation"], merge);
     }
@@ -296,4 +305,82 @@ fn test_table6(partial: &Value, merge: fn(&mut Value, &Value)) -> Value {
         *st = full;
     }
     dev
+}
+
+/// A complete mesher report from the fields a test gives (the rest: zero, empty or null).
+#[cfg(test)]
+fn test_mesh_report(partial: &Value, merge: fn(&mut Value, &Value)) -> Value {
+    use serde_json::json;
+    let complete = |base: Value, over: &Value| {
+        let mut base = base;
+        merge(&mut base, over);
+        base
+    };
+    let mut m = complete(
+        json!({ "file": "surface.stl", "resampled": "mesh_resampled.npy", "sources": {},
+            "t_acquired_ns": 0, "t_written_ns": 0, "live_frames_skipped": 0,
+            "format": "binary", "units": "mm", "offset_um": [0.0, 0.0, 0.0], "triangles": 0,
+            "top_triangles": 0, "vertices": 0, "filled_samples": 0, "base_depth_um": null,
+            "watertight": true, "consistently_oriented": true, "grid_px": [0, 0],
+            "pitch_um": [1.0, 1.0], "surface": "panorama", "method": "grid" }),
+        partial,
+    );
+    let params = |p: &Value| {
+        p.is_object().then(|| {
+            let none = json!({ "sa_um": null, "sq_um": null, "sz_um": null, "sdr_percent": null });
+            complete(none, p)
+        })
+    };
+    if partial["fidelity"].is_object() {
+        let f = &partial["fidelity"];
+        let mut fidelity = complete(
+            json!({ "epsilon_um": null, "bound_met": true, "field": null, "mesh": null }),
+            f,
+        );
+        fidelity["error"] = complete(
+            json!({ "max_um": null, "rms_um": null, "samples": 0, "uncovered": 0 }),
+            &f["error"],
+        );
+        for side in ["field", "mesh"] {
+            fidelity[side] = params(&f[side]).unwrap_or(Value::Null);
+        }
+        m = complete(
+            json!({ "kind": "solid", "offset_rule": "", "surface_triangles": 0,
+                "missing_samples": 0, "missing": "fill", "budget_reached": false }),
+            &m,
+        );
+        if partial.get("method").is_none() {
+            m["method"] = json!("adaptive");
+        }
+        m["fidelity"] = fidelity;
+    }
+    if partial["tolerance"].is_object() {
+        let t = &partial["tolerance"];
+        let mut tolerance = complete(
+            json!({ "target_share": 0.5, "region_px": 0, "regions": 0, "measured_px": 0,
+                "met": true, "surface_triangles": 0, "triangles_per_measured_px": null,
+                "epsilon_um": null, "reason": null, "region_fits": [], "curve": [] }),
+            t,
+        );
+        let fits: Vec<Value> = (t["region_fits"].as_array().into_iter().flatten())
+            .map(|w| {
+                complete(
+                    json!({ "region": "", "samples": 0, "measured_um": [null, null, null],
+                        "deviation_pct": [null, null, null], "residual_pct_of_sq": null }),
+                    w,
+                )
+            })
+            .collect();
+        tolerance["region_fits"] = json!(fits);
+        m["tolerance"] = tolerance;
+    }
+    if partial["outliers"].is_object() {
+        m["outliers"] = complete(
+            json!({ "rule": "", "threshold_um": null, "count": 0, "largest": [], "sz_um": null,
+                "sz_without_spikes_um": null, "sz_effect_pct": null, "policy": "keep",
+                "removed": 0 }),
+            &partial["outliers"],
+        );
+    }
+    m
 }

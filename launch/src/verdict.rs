@@ -12,7 +12,7 @@ use std::path::Path;
 
 use serde_json::Value;
 use surfstream_core::record::{
-    DeviationRecord, LatencySummary, Percentiles, RunRecord, Table6Record, TileRecord,
+    DeviationRecord, LatencySummary, MeshReport, Percentiles, RunRecord, Table6Record, TileRecord,
 };
 
 /// Exit code of a run whose outputs were written but a check failed under `--strict`
@@ -44,10 +44,6 @@ pub fn count(n: u64) -> String {
         out.push(c);
     }
     out
-}
-
-fn f(v: &Value) -> Option<f64> {
-    v.as_f64()
 }
 
 /// The verdict's first line with the time the user waited (`wall_s`: the whole command,
@@ -233,30 +229,25 @@ fn finite(v: Option<f64>) -> Option<f64> {
 
 /// The STL: file, triangles, vertices, units and the vertical error against its bound.
 fn mesh_line(run: &RunRecord) -> Option<String> {
-    let m = run
-        .stages
-        .values()
-        .find(|st| st.get("triangles").is_some() && st.get("file").is_some())?;
+    let m = run.stage::<MeshReport>()?;
     let mut line = format!(
         "{}: {} triangles, {} vertices, units {}",
-        m["file"].as_str().unwrap_or("?"),
-        count(m["triangles"].as_u64().unwrap_or(0)),
-        count(m["vertices"].as_u64().unwrap_or(0)),
-        m["units"].as_str().unwrap_or("?"),
+        m.file,
+        count(m.triangles),
+        count(m.vertices),
+        m.units,
     );
-    let fid = &m["fidelity"];
-    if let (Some(max), Some(eps)) = (f(&fid["error"]["max_um"]), f(&fid["epsilon_um"])) {
-        let _ = write!(
-            line,
-            "; max vertical error {} (bound {}{})",
-            um(max),
-            um(eps),
-            if fid["bound_met"] == false {
-                ", NOT met"
-            } else {
-                ""
-            }
-        );
+    if let Some(fid) = m.adaptive.map(|a| a.fidelity) {
+        let (max, eps) = (fid.error.max_um, fid.epsilon_um);
+        if !max.is_nan() && !eps.is_nan() {
+            let _ = write!(
+                line,
+                "; max vertical error {} (bound {}{})",
+                um(max),
+                um(eps),
+                if fid.bound_met { "" } else { ", NOT met" }
+            );
+        }
     }
     Some(line)
 }
@@ -325,74 +316,63 @@ fn deviation_line(dev: &DeviationRecord) -> Option<(String, bool)> {
 /// The model made from a tolerance: triangles, the worst region at the measured points and,
 /// when the tolerance is not met, which region and why.
 fn model_line(run: &RunRecord) -> Option<(String, bool)> {
-    let t = run
-        .stages
-        .values()
-        .find_map(|st| st.get("tolerance").filter(|t| t.is_object()))?;
-    let tol = &t["tolerance"];
-    let pct = |v: &Value| f(v).map_or("?".to_string(), |v| format!("{v}"));
+    let m = run.stage::<MeshReport>()?;
+    let t = m.tolerance.as_ref()?;
+    let tol = &t.tolerance;
     // The optional bounds, named with their limits so the worst region's figures below read
     // against them.
     let mut extra = String::new();
-    if let Some(r) = f(&tol["residual_pct"]) {
+    if let Some(r) = tol.residual_pct.filter(|r| !r.is_nan()) {
         let _ = write!(extra, ", residual {r} % of Sq");
     }
-    let judges_roughness = t["region_fits"]
-        .as_array()
-        .and_then(|r| r.first())
-        .is_some_and(|w| w["roughness_deviation_pct"].is_array());
-    if let Some(r) = f(&tol["roughness_pct"]).filter(|_| judges_roughness) {
+    let judges_roughness =
+        (t.region_fits.first()).is_some_and(|w| w.roughness_deviation_pct.is_some());
+    if let Some(r) = tol
+        .roughness_pct
+        .filter(|r| !r.is_nan() && judges_roughness)
+    {
         let _ = write!(extra, ", roughness (mesh - datum) {r} %");
     }
     let mut line = format!(
         "tolerance Sa {} %, Sq {} %, Sz {} %{extra} per region: {} at {} surface triangles ({:.3} per measured px)",
-        pct(&tol["sa_pct"]),
-        pct(&tol["sq_pct"]),
-        pct(&tol["sz_pct"]),
-        if t["met"] == true { "met" } else { "NOT met" },
-        count(t["surface_triangles"].as_u64().unwrap_or(0)),
-        f(&t["triangles_per_measured_px"]).unwrap_or(f64::NAN),
+        tol.sa_pct,
+        tol.sq_pct,
+        tol.sz_pct,
+        if t.met { "met" } else { "NOT met" },
+        count(t.surface_triangles),
+        t.triangles_per_measured_px,
     );
-    if let Some(w) = t["region_fits"].as_array().and_then(|r| r.first()) {
-        let d = |k: usize| f(&w["deviation_pct"][k]).unwrap_or(f64::NAN);
+    if let Some(w) = t.region_fits.first() {
+        let d = w.deviation_pct;
         let _ = write!(
             line,
             "; worst of {} regions {}: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %, residual {:.1} % of Sq",
-            t["regions"],
-            w["region"].as_str().unwrap_or("?"),
-            d(0),
-            d(1),
-            d(2),
-            f(&w["residual_pct_of_sq"]).unwrap_or(f64::NAN),
+            t.regions, w.region, d[0], d[1], d[2], w.residual_pct_of_sq,
         );
-        if let Some(r) = w["roughness_deviation_pct"].as_array() {
-            let d = |k: usize| r.get(k).and_then(f).unwrap_or(f64::NAN);
+        if let Some(d) = w.roughness_deviation_pct {
             let _ = write!(
                 line,
                 ", roughness Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %",
-                d(0),
-                d(1),
-                d(2)
+                d[0], d[1], d[2]
             );
         }
     }
-    let failed = t["met"] != true;
-    if let Some(r) = t["reason"].as_str() {
+    let failed = !t.met;
+    if let Some(r) = &t.reason {
         let _ = write!(line, " ({r})");
     }
-    let spikes = run
-        .stages
-        .values()
-        .find_map(|st| st.get("outliers"))
-        .filter(|o| o.is_object());
-    if let Some(o) = spikes {
-        let n = o["count"].as_u64().unwrap_or(0);
+    if let Some(o) = &m.outliers {
         let _ = write!(
             line,
             "; {} spike(s) (they add {:+.2} % to Sz), {}",
-            count(n),
-            f(&o["sz_effect_pct"]).unwrap_or(0.0),
-            if o["policy"] == "remove" {
+            count(o.count),
+            // Not computed (no Sz without spikes): nothing added.
+            if o.sz_effect_pct.is_nan() {
+                0.0
+            } else {
+                o.sz_effect_pct
+            },
+            if o.policy == "remove" {
                 "removed on request (outliers = \"remove\")"
             } else {
                 "kept as measured"
@@ -416,10 +396,8 @@ fn outputs_line(run: &RunRecord, out: &Path) -> String {
     // report.html is written after run.json lists the files: look on disk.
     .filter(|k| files.contains(k) || out.join(k).is_file())
     .collect();
-    let stl = run
-        .stages
-        .values()
-        .find_map(|m| m["file"].as_str())
+    let stl = (run.stage::<MeshReport>())
+        .map(|m| m.file)
         .filter(|f| f.ends_with(".stl"))
         .map(|f| format!("; STL {}", out.join(f).display()))
         .unwrap_or_default();

@@ -8,11 +8,13 @@
 //! into a value with [`to_value`] before writing it, which keeps that order whatever the
 //! declaration order here (and keeps run.json byte-identical to the `json!` it replaces).
 //!
-//! What stays a JSON value inside a record, and why: the mesher's, the wavelet's final and the
-//! finishing node's summaries (their fields depend on the method and the target, and they are
-//! shown as they are), the matcher's pairs and global solve (the matcher's own diagnostics),
-//! the fusion's chunk statistics (a fusion type), each node's parameters (the
-//! graph file's table) and Table 6 (`deviation`, written and read by the launcher alone).
+//! What stays a JSON value inside a record, and why: the wavelet's final and the finishing
+//! node's summaries (their fields depend on the method; the finishing node's has its own typed
+//! reader, `surfstream_finish::summary`), the matcher's pairs and global solve (the matcher's own
+//! diagnostics), the fusion's chunk statistics (a fusion type), the mesher's largest spikes and
+//! target, and each node's parameters (the graph file's table). The mesher builds its report as
+//! a JSON value; its readers read it as a [`MeshReport`] (the demo's end-to-end test checks that
+//! the report reads as one and writes back the same).
 
 use std::collections::BTreeMap;
 
@@ -313,6 +315,250 @@ pub struct RecorderReport {
 pub struct MeshWritten {
     pub t_acquired_ns: u64,
     pub t_written_ns: u64,
+}
+
+// ---------------------------------------------------------------------------------------
+// The mesher's report (its `summary`: the job's statistics of the mesh and the node's
+// files, wiring and times; run.json's `stages.<mesher>`)
+
+/// Reads `[f64; N]` written with NaN as null.
+fn nan_array<'de, D: Deserializer<'de>, const N: usize>(d: D) -> Result<[f64; N], D::Error> {
+    let v: Vec<Option<f64>> = Vec::deserialize(d)?;
+    let n = v.len();
+    let a: [Option<f64>; N] = v
+        .try_into()
+        .map_err(|_| serde::de::Error::invalid_length(n, &format!("{N} numbers").as_str()))?;
+    Ok(a.map(|v| v.unwrap_or(f64::NAN)))
+}
+
+/// Reads an optional f64 whose key, when present, may be null (NaN): `Some(NaN)`, so that it
+/// is written back as the null it was.
+fn some_nan_if_null<'de, D: Deserializer<'de>>(d: D) -> Result<Option<f64>, D::Error> {
+    nan_if_null(d).map(Some)
+}
+
+/// [`nan_array`] of an optional key.
+fn some_nan_array<'de, D: Deserializer<'de>, const N: usize>(
+    d: D,
+) -> Result<Option<[f64; N]>, D::Error> {
+    nan_array(d).map(Some)
+}
+
+/// Sa, Sq, Sz (um) and Sdr (%) of a levelled surface (the mesher's fidelity).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LevelledParams {
+    #[serde(deserialize_with = "nan_if_null")]
+    pub sa_um: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub sq_um: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub sz_um: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub sdr_percent: f64,
+}
+
+/// The mesh's vertical error over the measured samples.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct VerticalError {
+    #[serde(deserialize_with = "nan_if_null")]
+    pub max_um: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub rms_um: f64,
+    pub samples: u64,
+    /// Measured samples no triangle covers.
+    pub uncovered: u64,
+}
+
+/// An adaptive mesh's fidelity: the bound, the error reached, the parameters of the field and
+/// of the mesh re-sampled on it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MeshFidelity {
+    #[serde(deserialize_with = "nan_if_null")]
+    pub epsilon_um: f64,
+    pub error: VerticalError,
+    pub bound_met: bool,
+    pub field: Option<LevelledParams>,
+    pub mesh: Option<LevelledParams>,
+}
+
+/// The tolerance a model was made to, percent of the measured value per region.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ModelTolerance {
+    pub sa_pct: f64,
+    pub sq_pct: f64,
+    pub sz_pct: f64,
+    /// The limit on the pointwise residual RMS, percent of Sq.
+    #[serde(
+        default,
+        deserialize_with = "some_nan_if_null",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub residual_pct: Option<f64>,
+    /// The limit on the roughness the mesh carries (mesh - datum against the measured
+    /// roughness), percent, per parameter.
+    #[serde(
+        default,
+        deserialize_with = "some_nan_if_null",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub roughness_pct: Option<f64>,
+}
+
+/// One region of the chosen mesh against the measurement.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RegionFitRecord {
+    pub region: String,
+    pub samples: u64,
+    /// Sa, Sq, Sz of the measurement, um.
+    #[serde(deserialize_with = "nan_array")]
+    pub measured_um: [f64; 3],
+    /// (model - measured) / measured * 100 for Sa, Sq, Sz.
+    #[serde(deserialize_with = "nan_array")]
+    pub deviation_pct: [f64; 3],
+    #[serde(deserialize_with = "nan_if_null")]
+    pub residual_pct_of_sq: f64,
+    /// (model - measured) / measured * 100 of the roughness the mesh carries, Sa, Sq, Sz
+    /// (when the roughness is judged).
+    #[serde(
+        default,
+        deserialize_with = "some_nan_array",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub roughness_deviation_pct: Option<[f64; 3]>,
+}
+
+/// One mesh of the tolerance search (the fidelity-cost curve).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CurvePointRecord {
+    #[serde(deserialize_with = "nan_if_null")]
+    pub epsilon_um: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub epsilon_sq_fraction: f64,
+    pub surface_triangles: u64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub triangles_per_measured_px: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub worst_sa_pct: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub worst_sq_pct: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub worst_sz_pct: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub worst_residual_pct_of_sq: f64,
+    /// Worst |deviation| of the roughness the mesh carries (when it is judged), percent.
+    #[serde(
+        default,
+        deserialize_with = "some_nan_if_null",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub worst_roughness_pct: Option<f64>,
+    pub worst_region: String,
+    pub pass: bool,
+    pub over_budget: bool,
+    pub chosen: bool,
+}
+
+/// What the tolerance search found (the mesher's `tolerance`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ToleranceRecord {
+    pub tolerance: ModelTolerance,
+    pub target_share: f64,
+    pub region_px: u64,
+    pub regions: u64,
+    pub measured_px: u64,
+    pub met: bool,
+    pub surface_triangles: u64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub triangles_per_measured_px: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub epsilon_um: f64,
+    /// Why the tolerance is not met; None when it is.
+    pub reason: Option<String>,
+    /// Every region of the chosen mesh, worst first.
+    pub region_fits: Vec<RegionFitRecord>,
+    pub curve: Vec<CurvePointRecord>,
+}
+
+/// The spikes the mesher found (its `outliers`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct OutliersRecord {
+    pub rule: String,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub threshold_um: f64,
+    pub count: u64,
+    /// The largest spikes (the mesher's own layout).
+    pub largest: Vec<Value>,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub sz_um: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub sz_without_spikes_um: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub sz_effect_pct: f64,
+    /// "keep" or "remove".
+    pub policy: String,
+    pub removed: u64,
+}
+
+/// What an adaptive mesh adds to the mesher's report.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AdaptiveMeshRecord {
+    /// "solid" or "sheet".
+    pub kind: String,
+    pub offset_rule: String,
+    pub surface_triangles: u64,
+    pub missing_samples: u64,
+    /// How missing samples were treated ("fill", "holes").
+    pub missing: String,
+    pub budget_reached: bool,
+    pub fidelity: MeshFidelity,
+}
+
+/// The mesher's report.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MeshReport {
+    /// The STL, relative to the out dir.
+    pub file: String,
+    /// The mesh re-sampled on the grid it meshed (`.npy`).
+    #[serde(default)]
+    pub resampled: String,
+    /// The graph channel each input port read.
+    #[serde(default)]
+    pub sources: BTreeMap<String, String>,
+    pub t_acquired_ns: u64,
+    pub t_written_ns: u64,
+    #[serde(default)]
+    pub live_frames_skipped: u64,
+    /// "binary" or "ascii".
+    pub format: String,
+    /// The STL's length unit ("mm", "um").
+    pub units: String,
+    /// scan_um = vertex * um_per_unit + offset_um.
+    #[serde(deserialize_with = "nan_array")]
+    pub offset_um: [f64; 3],
+    pub triangles: u64,
+    pub top_triangles: u64,
+    pub vertices: u64,
+    pub filled_samples: u64,
+    pub base_depth_um: Option<f64>,
+    pub watertight: bool,
+    pub consistently_oriented: bool,
+    /// [cols, rows] of the grid meshed.
+    pub grid_px: [u64; 2],
+    #[serde(deserialize_with = "nan_array")]
+    pub pitch_um: [f64; 2],
+    /// The surface meshed ("panorama", "pooled", ...).
+    pub surface: String,
+    /// The simulator the mesh was made for (absent: none named).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub target: Option<Value>,
+    /// "adaptive" or "grid".
+    pub method: String,
+    #[serde(flatten)]
+    pub adaptive: Option<AdaptiveMeshRecord>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tolerance: Option<ToleranceRecord>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub outliers: Option<OutliersRecord>,
 }
 
 // ---------------------------------------------------------------------------------------
@@ -632,5 +878,95 @@ mod tests {
         bad["tiles"] = json!("four");
         let e = from_value::<ScanRecord>(&bad, "run.json scan").unwrap_err();
         assert!(e.starts_with("run.json scan: "), "{e}");
+    }
+
+    #[test]
+    fn table6_reads_back_with_unmeasured_parameters_and_an_error_is_its_own_variant() {
+        let nine = |v: Value| {
+            let keys = ["Sa", "Sq", "Sp", "Sv", "Sz", "Ssk", "Sku", "Sdq", "Sdr"];
+            Value::Object(keys.iter().map(|k| (k.to_string(), v.clone())).collect())
+        };
+        let mut measured = nine(json!(1.5));
+        measured["Ssk"] = Value::Null;
+        let v = json!({ "measured": "panorama.npy", "threshold_pct": 5.0,
+            "model_tolerance_pct": { "Sa": 1.0, "Sq": 1.0, "Sz": 3.0 },
+            "judged": ["Sa", "Sq", "Sz"], "conventions": "c",
+            "regions": [{ "name": "panorama", "row0": 0, "col0": 0, "rows": 4, "cols": 5 }],
+            "stages": { "mesh": { "pass": false, "judged": true, "note": "n",
+                "measured": "panorama.npy", "limits_pct": { "Sa": 1.0, "Sq": 1.0, "Sz": 3.0 },
+                "worst_region": "panorama", "worst_residual_rms_pct_of_sq": null,
+                "grid": { "name": "panorama grid", "rows": 4, "cols": 5, "cell_px": 1,
+                    "pitch_x_um": 0.5, "pitch_y_um": 0.5 },
+                "regions": { "panorama": { "measured": measured, "model": null,
+                    "deviation_pct": { "Sa": 2.5, "Ssk": null },
+                    "residual_rms_pct_of_sq": 40.0, "pass": false } } } },
+            "pass": false });
+        let d: DeviationRecord = from_value(&v, "deviation").unwrap();
+        let DeviationRecord::Table(t) = &d else {
+            panic!("a table reads as a table: {d:?}")
+        };
+        let r = &t.stages["mesh"].regions["panorama"];
+        assert!(r.measured.unwrap().ssk.is_nan());
+        assert_eq!(r.measured.unwrap().by_name("Sa"), Some(1.5));
+        assert_eq!(
+            (r.deviation("Sa"), r.deviation("Ssk"), r.deviation("Sz")),
+            (Some(2.5), None, None)
+        );
+        assert_eq!(t.stages["mesh"].limits_pct.get("Sz"), Some(3.0));
+        // Written back: the same value (NaN as null).
+        assert_eq!(to_value(&d), v);
+        let e = json!({ "error": "panorama.npy: no such file" });
+        let d: DeviationRecord = from_value(&e, "deviation").unwrap();
+        assert!(matches!(&d, DeviationRecord::NotComputed { error } if error.contains("no such")));
+        assert_eq!(to_value(&d), e);
+        // A table missing a field is not silently read as something else.
+        let mut bad = v.clone();
+        bad.as_object_mut().unwrap().remove("stages");
+        assert!(from_value::<DeviationRecord>(&bad, "deviation").is_err());
+    }
+
+    fn grid_mesh() -> Value {
+        json!({ "file": "surface.stl", "resampled": "mesh_resampled.npy",
+            "sources": { "surface": "fusion/panorama" }, "t_acquired_ns": 1, "t_written_ns": 2,
+            "live_frames_skipped": 0, "format": "binary", "units": "mm",
+            "offset_um": [1.0, 2.0, 3.0], "triangles": 12, "top_triangles": 8, "vertices": 8,
+            "filled_samples": 0, "base_depth_um": 10.0, "watertight": true,
+            "consistently_oriented": true, "grid_px": [3, 2], "pitch_um": [0.5, 0.5],
+            "surface": "panorama", "method": "grid" })
+    }
+
+    #[test]
+    fn a_grid_mesh_has_no_adaptive_part_and_an_adaptive_one_reads_its_fidelity() {
+        let g = grid_mesh();
+        let m: MeshReport = from_value(&g, "mesher").unwrap();
+        assert!(m.adaptive.is_none() && m.tolerance.is_none() && m.outliers.is_none());
+        assert_eq!(to_value(&m), g);
+        let mut a = grid_mesh();
+        let extra = json!({ "method": "adaptive", "kind": "solid", "offset_rule": "r",
+            "surface_triangles": 8, "missing_samples": 0, "missing": "fill",
+            "budget_reached": false,
+            "fidelity": { "epsilon_um": 0.1, "bound_met": true, "field": null,
+                "mesh": { "sa_um": 1.0, "sq_um": 1.2, "sz_um": 5.0, "sdr_percent": null },
+                "error": { "max_um": null, "rms_um": 0.01, "samples": 6, "uncovered": 0 } },
+            "tolerance": { "tolerance": { "sa_pct": 1.0, "sq_pct": 1.0, "sz_pct": 3.0 },
+                "target_share": 0.5, "region_px": 64, "regions": 1, "measured_px": 6,
+                "met": true, "surface_triangles": 8, "triangles_per_measured_px": 1.3,
+                "epsilon_um": 0.1, "reason": null,
+                "region_fits": [{ "region": "whole", "samples": 6,
+                    "measured_um": [1.0, 1.2, null], "deviation_pct": [0.1, -0.1, 0.0],
+                    "residual_pct_of_sq": 20.0 }],
+                "curve": [] } });
+        for (k, v) in extra.as_object().unwrap() {
+            a[k] = v.clone();
+        }
+        let m: MeshReport = from_value(&a, "mesher").unwrap();
+        let f = m.adaptive.as_ref().unwrap().fidelity;
+        assert!(f.error.max_um.is_nan() && f.mesh.unwrap().sdr_percent.is_nan());
+        assert!(m.tolerance.as_ref().unwrap().region_fits[0].measured_um[2].is_nan());
+        assert_eq!(to_value(&m), a);
+        // Not a mesher's report: no triangles.
+        let mut other = grid_mesh();
+        other.as_object_mut().unwrap().remove("triangles");
+        assert!(from_value::<MeshReport>(&other, "mesher").is_err());
     }
 }

@@ -4,8 +4,7 @@
 
 use std::fmt::Write as _;
 
-use serde_json::Value;
-use surfstream_core::record::RunRecord;
+use surfstream_core::record::{CurvePointRecord, MeshReport, RunRecord};
 
 use super::html::esc;
 use super::plot::{Axis, Panel};
@@ -20,30 +19,20 @@ const COLOURS: [(&str, &str); 3] = [("Sa", "#1f77b4"), ("Sq", "#2ca02c"), ("Sz",
 
 /// The section, or nothing when the mesher made no curve.
 pub fn section(run: &RunRecord) -> String {
-    let Some(t) = run
-        .stages
-        .values()
-        .find_map(|st| st.get("tolerance"))
-        .filter(|t| t.is_object())
-    else {
+    let Some(t) = run.stage::<MeshReport>().and_then(|m| m.tolerance) else {
         return String::new();
     };
-    let Some(curve) = t["curve"].as_array().filter(|c| !c.is_empty()) else {
-        return String::new();
-    };
-    let f = |v: &Value| v.as_f64().unwrap_or(f64::NAN);
-    let pts: Vec<(f64, [f64; 4], bool, &Value)> = curve
-        .iter()
+    let pts: Vec<(f64, [f64; 4], bool, &CurvePointRecord)> = (t.curve.iter())
         .map(|c| {
             (
-                f(&c["surface_triangles"]),
+                c.surface_triangles as f64,
                 [
-                    f(&c["worst_sa_pct"]).abs(),
-                    f(&c["worst_sq_pct"]).abs(),
-                    f(&c["worst_sz_pct"]).abs(),
-                    f(&c["worst_residual_pct_of_sq"]),
+                    c.worst_sa_pct.abs(),
+                    c.worst_sq_pct.abs(),
+                    c.worst_sz_pct.abs(),
+                    c.worst_residual_pct_of_sq,
                 ],
-                c["chosen"] == true,
+                c.chosen,
                 c,
             )
         })
@@ -52,8 +41,8 @@ pub fn section(run: &RunRecord) -> String {
     if pts.is_empty() {
         return String::new();
     }
-    let tol = &t["tolerance"];
-    let limits = [f(&tol["sa_pct"]), f(&tol["sq_pct"]), f(&tol["sz_pct"])];
+    let tol = &t.tolerance;
+    let limits = [tol.sa_pct, tol.sq_pct, tol.sz_pct];
     let (lo, hi) = pts.iter().fold((f64::INFINITY, 0.0f64), |(a, b), p| {
         (a.min(p.0), b.max(p.0))
     });
@@ -138,19 +127,19 @@ pub fn section(run: &RunRecord) -> String {
             table,
             "<tr class=\"{}\"><td>{}{}</td><td>{:.3}</td><td>{:.3}</td><td>{:+.2}</td><td>{:+.2}</td>\
              <td>{:+.2}</td><td>{:.1}</td><td class=\"k\">{}</td><td>{}</td><td>{:.1} ms</td></tr>",
-            if c["pass"] == true { "pass" } else { "fail" },
+            if c.pass { "pass" } else { "fail" },
             *tri as u64,
             if *chosen { " (chosen)" } else { "" },
-            f(&c["triangles_per_measured_px"]),
-            f(&c["epsilon_sq_fraction"]),
-            f(&c["worst_sa_pct"]),
-            f(&c["worst_sq_pct"]),
-            f(&c["worst_sz_pct"]),
-            f(&c["worst_residual_pct_of_sq"]),
-            esc(c["worst_region"].as_str().unwrap_or("")),
-            if c["over_budget"] == true {
+            c.triangles_per_measured_px,
+            c.epsilon_sq_fraction,
+            c.worst_sa_pct,
+            c.worst_sq_pct,
+            c.worst_sz_pct,
+            c.worst_residual_pct_of_sq,
+            esc(&c.worst_region),
+            if c.over_budget {
                 "over budget"
-            } else if c["pass"] == true {
+            } else if c.pass {
                 "yes"
             } else {
                 "no"
@@ -159,8 +148,7 @@ pub fn section(run: &RunRecord) -> String {
         );
     }
     table.push_str("</table>");
-    let reason = t["reason"]
-        .as_str()
+    let reason = (t.reason.as_deref())
         .map(|r| format!("<p class=\"bad\">Tolerance not met: {}</p>", esc(r)))
         .unwrap_or_default();
     format!(
@@ -173,8 +161,8 @@ pub fn section(run: &RunRecord) -> String {
          region (vertical line). A DEM step's cost grows with the triangles: in LIGGGHTS about \
          {LIGGGHTS_US_PER_TRIANGLE_STEP} µs per triangle per time step (measured, \
          docs/model.md), the last column.</figcaption></figure>{table}</section>",
-        t["regions"],
-        f(&t["target_share"]) * 100.0,
+        t.regions,
+        t.target_share * 100.0,
     )
 }
 

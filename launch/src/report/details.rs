@@ -6,7 +6,9 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 
 use serde_json::Value;
-use surfstream_core::record::{Percentiles, RunRecord, ScanRecord, TileRecord};
+use surfstream_core::record::{
+    LevelledParams, MeshReport, Percentiles, RunRecord, ScanRecord, TileRecord,
+};
 
 use super::html::{esc, fixed, num, table, table_raw, um};
 
@@ -121,54 +123,60 @@ pub fn tile_layout(run: &RunRecord) -> String {
 
 /// The mesher's report: size, closure and fidelity (height field vs the re-sampled mesh).
 pub fn mesh(run: &RunRecord) -> String {
-    let Some(m) = run.stages.values().find(|v| v.get("triangles").is_some()) else {
+    let Some(m) = run.stage::<MeshReport>() else {
         return String::new();
     };
+    let adaptive = m.adaptive.as_ref();
+    // Each fact as the page showed the report's value ("-": not in this mesher's report).
+    let shown = |v: Option<Value>| v.map_or("-".into(), |v| num(&v));
     let mut h = String::from("<section id=\"mesh\"><h2>Mesh</h2><div class=\"flex\">");
     let facts: Vec<Vec<String>> = [
-        ("file", num(&m["file"])),
-        ("surface meshed", num(&m["surface"])),
-        ("method", num(&m["method"])),
-        ("triangles", num(&m["triangles"])),
-        ("vertices", num(&m["vertices"])),
-        ("watertight", num(&m["watertight"])),
-        ("consistently oriented", num(&m["consistently_oriented"])),
-        ("kind", num(&m["kind"])),
+        ("file", num(&Value::from(m.file.as_str()))),
+        ("surface meshed", num(&Value::from(m.surface.as_str()))),
+        ("method", num(&Value::from(m.method.as_str()))),
+        ("triangles", num(&Value::from(m.triangles))),
+        ("vertices", num(&Value::from(m.vertices))),
+        ("watertight", num(&Value::from(m.watertight))),
+        (
+            "consistently oriented",
+            num(&Value::from(m.consistently_oriented)),
+        ),
+        (
+            "kind",
+            shown(adaptive.map(|a| Value::from(a.kind.as_str()))),
+        ),
         (
             "format, units",
-            format!("{}, {}", num(&m["format"]), num(&m["units"])),
+            format!(
+                "{}, {}",
+                num(&Value::from(m.format.as_str())),
+                num(&Value::from(m.units.as_str()))
+            ),
         ),
         (
             "grid (rows x cols)",
             // The mesher's grid_px is [cols, rows].
-            match (m["grid_px"][1].as_u64(), m["grid_px"][0].as_u64()) {
-                (Some(r), Some(c)) => format!("{r} x {c}"),
-                _ => "-".into(),
-            },
+            format!("{} x {}", m.grid_px[1], m.grid_px[0]),
+        ),
+        ("pitch", um(m.pitch_um[0])),
+        ("base depth", m.base_depth_um.map(um).unwrap_or("-".into())),
+        (
+            "not-measured samples filled",
+            num(&Value::from(m.filled_samples)),
         ),
         (
-            "pitch",
-            m["pitch_um"][0].as_f64().map(um).unwrap_or("-".into()),
+            "triangle budget reached",
+            shown(adaptive.map(|a| Value::from(a.budget_reached))),
         ),
-        (
-            "base depth",
-            m["base_depth_um"].as_f64().map(um).unwrap_or("-".into()),
-        ),
-        ("not-measured samples filled", num(&m["filled_samples"])),
-        ("triangle budget reached", num(&m["budget_reached"])),
         (
             "vertex to scan coordinates",
             format!(
                 "{} with offset {} µm",
-                num(&m["offset_rule"]),
-                m["offset_um"]
-                    .as_array()
-                    .map(|a| a
-                        .iter()
-                        .map(|v| v.as_f64().map(|v| fixed(v, 3)).unwrap_or("-".into()))
-                        .collect::<Vec<_>>()
-                        .join(", "))
-                    .unwrap_or("-".into())
+                shown(adaptive.map(|a| Value::from(a.offset_rule.as_str()))),
+                (m.offset_um.iter())
+                    .map(|&v| fixed(v, 3))
+                    .collect::<Vec<_>>()
+                    .join(", ")
             ),
         ),
     ]
@@ -177,35 +185,38 @@ pub fn mesh(run: &RunRecord) -> String {
     .map(|(k, v)| vec![k.to_string(), v])
     .collect();
     h.push_str(&table(&["", ""], &facts).replace("<thead><tr><th></th><th></th></tr></thead>", ""));
-    let f = &m["fidelity"];
-    if f.is_object() {
-        let rows: Vec<Vec<String>> = [
-            ("Sa", "sa_um"),
-            ("Sq", "sq_um"),
-            ("Sz", "sz_um"),
-            ("Sdr", "sdr_percent"),
-        ]
-        .iter()
-        .map(|(label, k)| {
-            let show = |v: &Value| {
-                v.as_f64()
-                    .map(|x| {
-                        if *label == "Sdr" {
-                            format!("{} %", fixed(x, 3))
-                        } else {
-                            um(x)
-                        }
+    if let Some(f) = adaptive.map(|a| a.fidelity) {
+        let rows: Vec<Vec<String>> = ["Sa", "Sq", "Sz", "Sdr"]
+            .iter()
+            .map(|label| {
+                let pick = |p: Option<LevelledParams>| {
+                    p.map(|p| match *label {
+                        "Sa" => p.sa_um,
+                        "Sq" => p.sq_um,
+                        "Sz" => p.sz_um,
+                        _ => p.sdr_percent,
                     })
-                    .unwrap_or("-".into())
-            };
-            vec![
-                (*label).to_string(),
-                show(&f["field"][k]),
-                show(&f["mesh"][k]),
-            ]
-        })
-        .collect();
-        let meshed = m["surface"].as_str().unwrap_or("pooled");
+                };
+                let show = |v: Option<f64>| {
+                    v.filter(|x| !x.is_nan())
+                        .map(|x| {
+                            if *label == "Sdr" {
+                                format!("{} %", fixed(x, 3))
+                            } else {
+                                um(x)
+                            }
+                        })
+                        .unwrap_or("-".into())
+                };
+                vec![
+                    (*label).to_string(),
+                    show(pick(f.field)),
+                    show(pick(f.mesh)),
+                ]
+            })
+            .collect();
+        let meshed = &m.surface;
+        let finite = |v: f64| if v.is_nan() { "-".into() } else { um(v) };
         let _ = write!(
             h,
             "<div><h3>Fidelity of the mesh ({meshed}, levelled)</h3>{}<p class=\"note\">Both \
@@ -220,14 +231,10 @@ pub fn mesh(run: &RunRecord) -> String {
                 ],
                 &rows
             ),
-            f["error"]["max_um"].as_f64().map(um).unwrap_or("-".into()),
-            f["error"]["rms_um"].as_f64().map(um).unwrap_or("-".into()),
-            f["epsilon_um"].as_f64().map(um).unwrap_or("-".into()),
-            if f["bound_met"] == true {
-                "met"
-            } else {
-                "NOT met"
-            },
+            finite(f.error.max_um),
+            finite(f.error.rms_um),
+            finite(f.epsilon_um),
+            if f.bound_met { "met" } else { "NOT met" },
         );
     }
     h.push_str("</div></section>\n");

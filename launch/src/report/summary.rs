@@ -5,7 +5,7 @@
 use std::fmt::Write as _;
 
 use surfstream_core::metrology::{FunctionalParams, Params};
-use surfstream_core::record::{DeviationRecord, RunRecord, ScanRecord};
+use surfstream_core::record::{DeviationRecord, MeshReport, RunRecord, ScanRecord};
 
 use super::html::{esc, fixed, length, pitch, signed, table_raw, um};
 use super::surfaces::Surfaces;
@@ -141,26 +141,25 @@ fn instrument(scan: Option<&ScanRecord>) -> String {
 }
 
 fn mesh(run: &RunRecord) -> Option<String> {
-    let m = run.stages.values().find(|v| v.get("triangles").is_some())?;
-    let f = &m["fidelity"];
+    let m = run.stage::<MeshReport>()?;
+    let f = m.adaptive.as_ref().map(|a| a.fidelity);
+    let units = format!("STL in {}", m.units);
+    let shown = |v: Option<f64>| v.filter(|v| !v.is_nan()).map(um).unwrap_or("-".into());
     Some(esc(&format!(
         "{}: {} triangles, {} vertices, {}, {} {}, max vertical error {} (bound {}, {})",
-        m["file"].as_str().unwrap_or("?"),
-        m["triangles"].as_u64().unwrap_or(0),
-        m["vertices"].as_u64().unwrap_or(0),
-        if m["watertight"] == true {
+        m.file,
+        m.triangles,
+        m.vertices,
+        if m.watertight {
             "watertight"
         } else {
             "not watertight"
         },
-        m["format"].as_str().unwrap_or("?"),
-        m["units"]
-            .as_str()
-            .map(|u| format!("STL in {u}"))
-            .unwrap_or_default(),
-        f["error"]["max_um"].as_f64().map(um).unwrap_or("-".into()),
-        f["epsilon_um"].as_f64().map(um).unwrap_or("-".into()),
-        if f["bound_met"] == true {
+        m.format,
+        units,
+        shown(f.map(|f| f.error.max_um)),
+        shown(f.map(|f| f.epsilon_um)),
+        if f.is_some_and(|f| f.bound_met) {
             "met"
         } else {
             "NOT met"

@@ -201,6 +201,14 @@ fn white_noise_within_a_small_budget_names_the_region_and_the_cause() {
     assert!(coarsest < free.surface_triangles);
     let (m, r, dev) = model(&z, "sa=1,sq=1,sz=3", Some(coarsest));
     assert!(m.surface_triangles <= coarsest);
+    // The report reads as the record run.json's readers use (verdict, report.html) and is
+    // written back the same: a field added here and not there fails this.
+    for report in [&free, &r] {
+        let v = serde_json::to_value(report).unwrap();
+        let rec: surfstream_core::record::ToleranceRecord =
+            surfstream_core::record::from_value(&v, "tolerance").unwrap();
+        assert_eq!(surfstream_core::record::to_value(&rec), v);
+    }
     assert!(!r.met);
     let reason = r.reason.unwrap();
     // The region named is beyond the tolerance, found here too (or the residual bound).
