@@ -16,6 +16,8 @@ use super::plot::{Axis, Panel};
 pub const LIGGGHTS_US_PER_TRIANGLE_STEP: f64 = 0.022;
 
 const COLOURS: [(&str, &str); 3] = [("Sa", "#1f77b4"), ("Sq", "#2ca02c"), ("Sz", "#d62728")];
+/// The roughness the mesh carries (mesh - datum), when the mesher judged it.
+const ROUGHNESS_COLOUR: &str = "#ff7f0e";
 
 /// The section, or nothing when the mesher made no curve.
 pub fn section(run: &RunRecord) -> String {
@@ -43,6 +45,12 @@ pub fn section(run: &RunRecord) -> String {
     }
     let tol = &t.tolerance;
     let limits = [tol.sa_pct, tol.sq_pct, tol.sz_pct];
+    // The worst roughness deviation per mesh, and its limit, when the search judged it.
+    let roughness: Vec<(f64, f64)> = pts
+        .iter()
+        .filter_map(|p| p.3.worst_roughness_pct.map(|r| (p.0, r.abs())))
+        .collect();
+    let roughness_limit = tol.roughness_pct.filter(|_| !roughness.is_empty());
     let (lo, hi) = pts.iter().fold((f64::INFINITY, 0.0f64), |(a, b), p| {
         (a.min(p.0), b.max(p.0))
     });
@@ -50,11 +58,14 @@ pub fn section(run: &RunRecord) -> String {
         .iter()
         .flat_map(|p| p.1[..3].iter().copied())
         .chain(limits)
+        .chain(roughness.iter().map(|r| r.1))
+        .chain(roughness_limit)
         .filter(|v| v.is_finite())
         .fold(0.0f64, f64::max);
     let res_hi = pts
         .iter()
         .map(|p| p.1[3])
+        .chain(tol.residual_pct)
         .filter(|v| v.is_finite())
         .fold(0.0f64, f64::max);
     let top = Panel {
@@ -82,16 +93,7 @@ pub fn section(run: &RunRecord) -> String {
         for &(x, y) in &line {
             dot(&mut g, &top, x, y, colour);
         }
-        if limits[k].is_finite() {
-            let y = top.py(limits[k]);
-            let _ = write!(
-                g,
-                "<line x1=\"{:.1}\" y1=\"{y:.1}\" x2=\"{:.1}\" y2=\"{y:.1}\" stroke=\"{colour}\" \
-                 stroke-dasharray=\"5,4\" stroke-width=\"1.2\"/>",
-                top.x,
-                top.x + top.w
-            );
-        }
+        dashed(&mut g, &top, limits[k], colour);
         top.legend(
             &mut g,
             k,
@@ -99,7 +101,23 @@ pub fn section(run: &RunRecord) -> String {
             &format!("worst |{name}| (dashed: tolerance {} %)", limits[k]),
         );
     }
+    if let Some(limit) = roughness_limit {
+        top.line(&mut g, &roughness, ROUGHNESS_COLOUR, 2.0);
+        for &(x, y) in &roughness {
+            dot(&mut g, &top, x, y, ROUGHNESS_COLOUR);
+        }
+        dashed(&mut g, &top, limit, ROUGHNESS_COLOUR);
+        top.legend(
+            &mut g,
+            COLOURS.len(),
+            ROUGHNESS_COLOUR,
+            &format!("worst |roughness| (dashed: {limit} %)"),
+        );
+    }
     let res: Vec<(f64, f64)> = pts.iter().map(|p| (p.0, p.1[3])).collect();
+    if let Some(limit) = tol.residual_pct {
+        dashed(&mut g, &bottom, limit, "#6c3483");
+    }
     bottom.line(&mut g, &res, "#6c3483", 2.0);
     for &(x, y) in &res {
         dot(&mut g, &bottom, x, y, "#6c3483");
@@ -120,13 +138,13 @@ pub fn section(run: &RunRecord) -> String {
     let mut table = String::from(
         "<table><tr><th>surface triangles</th><th>per measured px</th><th>bound (x Sq)</th>\
          <th>worst Sa %</th><th>worst Sq %</th><th>worst Sz %</th><th>worst residual (% of Sq)</th>\
-         <th>worst region</th><th>passes</th><th>LIGGGHTS mesh cost per step</th></tr>",
+         <th>worst roughness %</th><th>worst region</th><th>passes</th><th>LIGGGHTS mesh cost per step</th></tr>",
     );
     for (tri, _, chosen, c) in &pts {
         let _ = write!(
             table,
             "<tr class=\"{}\"><td>{}{}</td><td>{:.3}</td><td>{:.3}</td><td>{:+.2}</td><td>{:+.2}</td>\
-             <td>{:+.2}</td><td>{:.1}</td><td class=\"k\">{}</td><td>{}</td><td>{:.1} ms</td></tr>",
+             <td>{:+.2}</td><td>{:.1}</td><td>{}</td><td class=\"k\">{}</td><td>{}</td><td>{:.1} ms</td></tr>",
             if c.pass { "pass" } else { "fail" },
             *tri as u64,
             if *chosen { " (chosen)" } else { "" },
@@ -136,6 +154,8 @@ pub fn section(run: &RunRecord) -> String {
             c.worst_sq_pct,
             c.worst_sz_pct,
             c.worst_residual_pct_of_sq,
+            c.worst_roughness_pct
+                .map_or("-".to_string(), |r| format!("{r:+.2}")),
             esc(&c.worst_region),
             if c.over_budget {
                 "over budget"
@@ -156,7 +176,9 @@ pub fn section(run: &RunRecord) -> String {
          <figcaption>Every mesh the tolerance search made (greedy insertion on the full-resolution \
          surface at a series of vertical bounds): top, the worst |deviation| of Sa, Sq and Sz over \
          the {} judged regions (mesh interpolated at every measured point, mean removed), dashed \
-         the tolerance; bottom, the worst pointwise residual RMS in percent of the region's Sq. The \
+         the tolerance; in orange, when the measured roughness was given, the worst deviation of \
+         the roughness the mesh carries (mesh - datum against the measured roughness); bottom, \
+         the worst pointwise residual RMS in percent of the region's Sq, dashed its bound. The \
          search keeps the mesh with the fewest triangles within {:.0} % of the tolerance in every \
          region (vertical line). A DEM step's cost grows with the triangles: in LIGGGHTS about \
          {LIGGGHTS_US_PER_TRIANGLE_STEP} µs per triangle per time step (measured, \
@@ -184,6 +206,20 @@ fn dot(g: &mut String, p: &Panel, x: f64, y: f64, colour: &str) {
             "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"3\" fill=\"{colour}\"/>",
             p.px(x),
             p.py(y)
+        );
+    }
+}
+
+/// A dashed horizontal line at `value` across the panel (a limit).
+fn dashed(g: &mut String, p: &Panel, value: f64, colour: &str) {
+    if value.is_finite() {
+        let y = p.py(value);
+        let _ = write!(
+            g,
+            "<line x1=\"{:.1}\" y1=\"{y:.1}\" x2=\"{:.1}\" y2=\"{y:.1}\" stroke=\"{colour}\" \
+             stroke-dasharray=\"5,4\" stroke-width=\"1.2\"/>",
+            p.x,
+            p.x + p.w
         );
     }
 }
