@@ -272,6 +272,7 @@ def main() -> int:
     ap.add_argument("--only", default="", help="comma-separated substrings of the set names to run")
     ap.add_argument("--quadric", action="store_true",
                     help="also search the fewest faces that quadric edge-collapse decimation (pymeshlab) needs")
+    ap.add_argument("--quadric-again", action="store_true", help="redo the quadric searches kept in OUT")
     a = ap.parse_args()
     suffix = f"-{a.label}" if a.label else ""
     a.out.mkdir(parents=True, exist_ok=True)
@@ -310,10 +311,16 @@ def main() -> int:
         need = next(((p, paper[p][1]) for p in [8, 4, 2, 1] if passes(paper[p][0])), None)
         quadric = None
         if a.quadric:
-            pitch = run["stages"]["mesher"].get("pitch_um", [1.0, 1.0])
-            print(f"{name}: quadric decimation of the full grid", file=sys.stderr)
-            quadric = quadric_search(pano, (float(pitch[0]), float(pitch[1])), regions,
-                                     int(tol.get("surface_triangles") or 1000))
+            # Kept per set (the decimations take minutes on a full grid); --quadric-again redoes.
+            cache = a.out / f"quadric-{o.name}.json"
+            if cache.exists() and not a.quadric_again:
+                quadric = json.loads(cache.read_text())
+            else:
+                pitch = run["stages"]["mesher"].get("pitch_um", [1.0, 1.0])
+                print(f"{name}: quadric decimation of the full grid", file=sys.stderr)
+                quadric = quadric_search(pano, (float(pitch[0]), float(pitch[1])), regions,
+                                         int(tol.get("surface_triangles") or 1000))
+                cache.write_text(json.dumps(quadric, indent=1))
         p4, p4_tri = paper[4]
         rows.append({
             "set": name,
