@@ -334,9 +334,8 @@ fn model_line(run: &RunRecord) -> Option<(String, bool)> {
     if let Some(w) = t["region_fits"].as_array().and_then(|r| r.first()) {
         let d = |k: usize| f(&w["deviation_pct"][k]).unwrap_or(f64::NAN);
         // The residual's limit beside it ("res=off" in the tolerance: none).
-        let residual_limit = f(&tol["residual_pct"]).map_or("no limit".to_string(), |l| {
-            format!("limit {l} %")
-        });
+        let residual_limit =
+            f(&tol["residual_pct"]).map_or("no limit".to_string(), |l| format!("limit {l} %"));
         let _ = write!(
             line,
             "; worst of {} regions {}: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %, residual {:.1} % of Sq ({residual_limit})",
