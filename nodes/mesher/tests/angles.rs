@@ -153,7 +153,7 @@ fn the_angle_bound_removes_the_slivers_and_keeps_the_tolerance() {
     let at = ScanPlacement::new(PITCH[0], PITCH[1]);
     // Without the bound this surface's model has slivers: the test can fail.
     let (plain, plain_report) =
-        mesh_to_tolerance(heights, &at, &params(), &settings(None)).unwrap();
+        mesh_to_tolerance(heights, None, &at, &params(), &settings(None)).unwrap();
     let (plain_min, plain_below) = smallest_angle(&plain);
     assert!(plain_report.met && plain_report.angles.is_none());
     assert!(
@@ -161,7 +161,8 @@ fn the_angle_bound_removes_the_slivers_and_keeps_the_tolerance() {
         "the surface must make slivers without the bound: smallest angle {plain_min}"
     );
 
-    let (m, r) = mesh_to_tolerance(heights, &at, &params(), &settings(Some(BOUND_DEG))).unwrap();
+    let (m, r) =
+        mesh_to_tolerance(heights, None, &at, &params(), &settings(Some(BOUND_DEG))).unwrap();
     let (min, below) = smallest_angle(&m);
     assert_eq!(below, 0, "smallest angle {min} deg");
     assert!(min >= BOUND_DEG, "{min}");
@@ -191,6 +192,7 @@ fn the_angle_bound_removes_the_slivers_and_keeps_the_tolerance() {
     let dir = tempfile::tempdir().unwrap();
     let (sm, sr) = mesh_streaming_to_tolerance(
         heights,
+        None,
         &at,
         &params(),
         &settings(Some(BOUND_DEG)),
