@@ -196,12 +196,14 @@ def rasterize(xy_px: np.ndarray, z: np.ndarray, faces: np.ndarray, shape: tuple[
     return out.reshape(rows, cols)
 
 
-def quadric_search(pano: np.ndarray, pitch: tuple[float, float], regions: list[dict], start_faces: int) -> dict:
+def quadric_search(pano: np.ndarray, pitch: tuple[float, float], regions: list[dict], start_faces: int,
+                   optimal_placement: bool = True) -> dict:
     """Quadric edge-collapse decimation (Garland-Heckbert; pymeshlab's
     meshing_decimation_quadric_edge_collapse, boundary preserved) of the full-grid mesh of the
     panorama (missing pixels filled), judged like the others: the fewest faces found that meet
     the tolerance and the residual bound. Target counts: from `start_faces`, doubled or halved
-    until the result changes, then bisected (geometric) to within 10 %."""
+    until the result changes, then bisected (geometric) to within 10 %. `optimal_placement`
+    False keeps every vertex on a measured sample (collapse to an end point)."""
     import pymeshlab
 
     rows, cols = pano.shape
@@ -221,7 +223,8 @@ def quadric_search(pano: np.ndarray, pitch: tuple[float, float], regions: list[d
         ms.add_mesh(pymeshlab.Mesh(vertex_matrix=verts, face_matrix=faces))
         t0 = time.perf_counter()
         ms.meshing_decimation_quadric_edge_collapse(targetfacenum=n, preserveboundary=True, boundaryweight=1.0,
-                                                    preservenormal=True, preservetopology=True, planarquadric=True)
+                                                    preservenormal=True, preservetopology=True, planarquadric=True,
+                                                    optimalplacement=optimal_placement)
         secs = time.perf_counter() - t0
         m = ms.current_mesh()
         v, f = m.vertex_matrix(), m.face_matrix()
@@ -273,6 +276,8 @@ def main() -> int:
     ap.add_argument("--quadric", action="store_true",
                     help="also search the fewest faces that quadric edge-collapse decimation (pymeshlab) needs")
     ap.add_argument("--quadric-again", action="store_true", help="redo the quadric searches kept in OUT")
+    ap.add_argument("--quadric-on-samples", action="store_true",
+                    help="quadric collapses to an end point (vertices stay on measured samples) instead of the optimal placement")
     a = ap.parse_args()
     suffix = f"-{a.label}" if a.label else ""
     a.out.mkdir(parents=True, exist_ok=True)
@@ -312,14 +317,15 @@ def main() -> int:
         quadric = None
         if a.quadric:
             # Kept per set (the decimations take minutes on a full grid); --quadric-again redoes.
-            cache = a.out / f"quadric-{o.name}.json"
+            cache = a.out / f"quadric{'-samples' if a.quadric_on_samples else ''}-{o.name}.json"
             if cache.exists() and not a.quadric_again:
                 quadric = json.loads(cache.read_text())
             else:
                 pitch = run["stages"]["mesher"].get("pitch_um", [1.0, 1.0])
                 print(f"{name}: quadric decimation of the full grid", file=sys.stderr)
                 quadric = quadric_search(pano, (float(pitch[0]), float(pitch[1])), regions,
-                                         int(tol.get("surface_triangles") or 1000))
+                                         int(tol.get("surface_triangles") or 1000),
+                                         optimal_placement=not a.quadric_on_samples)
                 cache.write_text(json.dumps(quadric, indent=1))
         p4, p4_tri = paper[4]
         rows.append({

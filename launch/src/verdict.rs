@@ -346,12 +346,9 @@ fn model_line(run: &RunRecord) -> Option<(String, bool)> {
     );
     if let Some(w) = t["region_fits"].as_array().and_then(|r| r.first()) {
         let d = |k: usize| f(&w["deviation_pct"][k]).unwrap_or(f64::NAN);
-        // The residual's limit beside it ("res=off" in the tolerance: none).
-        let residual_limit =
-            f(&tol["residual_pct"]).map_or("no limit".to_string(), |l| format!("limit {l} %"));
         let _ = write!(
             line,
-            "; worst of {} regions {}: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %, residual {:.1} % of Sq ({residual_limit})",
+            "; worst of {} regions {}: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %, residual {:.1} % of Sq",
             t["regions"],
             w["region"].as_str().unwrap_or("?"),
             d(0),
@@ -536,8 +533,9 @@ mod tests {
     fn a_model_that_misses_its_tolerance_names_the_region_and_fails() {
         let mut run = run_json(true, false);
         run["stages"]["mesher"]["tolerance"] = json!({
-            "tolerance": { "sa_pct": 1.0, "sq_pct": 1.0, "sz_pct": 3.0, "residual_pct": 50.0 },
+            "tolerance": { "sa_pct": 1.0, "sq_pct": 1.0, "sz_pct": 3.0 },
             "met": false, "surface_triangles": 1200, "triangles_per_measured_px": 0.012,
+            "angles": { "min_angle_deg": 1.047, "bound_deg": 1.0 },
             "regions": 5,
             "region_fits": [{ "region": "W1.2", "deviation_pct": [-1.5, -1.2, 0.0],
                 "residual_pct_of_sq": 31.0 }],
@@ -550,7 +548,8 @@ mod tests {
         assert_eq!(v.failures.len(), 1, "{t}");
         assert!(t.contains("model       tolerance Sa 1 %, Sq 1 %, Sz 3 % per region: NOT met at 1 200 surface triangles"), "{t}");
         assert!(t.contains("worst of 5 regions W1.2: Sa -1.50 %"), "{t}");
-        assert!(t.contains("residual 31.0 % of Sq (limit 50 %)"), "{t}");
+        // LIGGGHTS' angle bound: the smallest angle of the mesh written.
+        assert!(t.contains("; smallest angle 1.05 deg (bound 1 deg)"), "{t}");
         assert!(t.contains("beyond max_triangles = 2000"), "{t}");
         assert!(
             t.contains("3 spike(s) (they add +12.50 % to Sz), kept as measured"),
