@@ -357,6 +357,14 @@ fn model_line(run: &RunRecord) -> Option<(String, bool)> {
             );
         }
     }
+    // With an engine's angle bound (LIGGGHTS): the smallest angle of the mesh written.
+    if let Some(a) = &t.angles {
+        let _ = write!(
+            line,
+            "; smallest angle {:.2} deg (bound {} deg)",
+            a.min_angle_deg, a.bound_deg,
+        );
+    }
     let failed = !t.met;
     if let Some(r) = &t.reason {
         let _ = write!(line, " ({r})");
@@ -513,6 +521,7 @@ mod tests {
         run["stages"]["mesher"]["tolerance"] = json!({
             "tolerance": { "sa_pct": 1.0, "sq_pct": 1.0, "sz_pct": 3.0 },
             "met": false, "surface_triangles": 1200, "triangles_per_measured_px": 0.012,
+            "angles": { "min_angle_deg": 1.047, "bound_deg": 1.0 },
             "regions": 5,
             "region_fits": [{ "region": "W1.2", "deviation_pct": [-1.5, -1.2, 0.0],
                 "residual_pct_of_sq": 31.0 }],
@@ -525,6 +534,8 @@ mod tests {
         assert_eq!(v.failures.len(), 1, "{t}");
         assert!(t.contains("model       tolerance Sa 1 %, Sq 1 %, Sz 3 % per region: NOT met at 1 200 surface triangles"), "{t}");
         assert!(t.contains("worst of 5 regions W1.2: Sa -1.50 %"), "{t}");
+        // LIGGGHTS' angle bound: the smallest angle of the mesh written.
+        assert!(t.contains("; smallest angle 1.05 deg (bound 1 deg)"), "{t}");
         assert!(t.contains("beyond max_triangles = 2000"), "{t}");
         assert!(
             t.contains("3 spike(s) (they add +12.50 % to Sz), kept as measured"),

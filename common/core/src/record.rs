@@ -477,6 +477,25 @@ pub struct ToleranceRecord {
     /// Every region of the chosen mesh, worst first.
     pub region_fits: Vec<RegionFitRecord>,
     pub curve: Vec<CurvePointRecord>,
+    /// The angle bound's refinement of the chosen mesh (an engine's bound, e.g. LIGGGHTS').
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub angles: Option<AngleRecord>,
+}
+
+/// What the angle bound did to the chosen mesh (the mesher's `tolerance.angles`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct AngleRecord {
+    /// The bound, degrees.
+    pub bound_deg: f64,
+    /// Smallest angle of any triangle before and after the refinement, degrees.
+    pub min_angle_before_deg: f64,
+    pub min_angle_deg: f64,
+    /// Triangles below the bound before and after.
+    pub below_bound_before: u64,
+    pub below_bound: u64,
+    /// Triangles before and after (the refinement's cost).
+    pub triangles_before: u64,
+    pub triangles: u64,
 }
 
 /// The spikes the mesher found (its `outliers`).

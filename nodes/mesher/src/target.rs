@@ -354,7 +354,11 @@ pub fn grid_sheet_for(
         mesh,
         measured: field_params(heights, at.pitch_x_um, at.pitch_y_um),
         meshed: field_params(reduced.view(), reduced_at.pitch_x_um, reduced_at.pitch_y_um),
-        profile: *profile,
+        // Recorded as what was made: the regular grid, whatever the engine's default.
+        profile: EngineProfile {
+            method: TargetMethod::Grid,
+            ..*profile
+        },
         stride,
         grid: reduced.shape(),
         block_means: reduced,
