@@ -646,9 +646,70 @@ pub fn solve_scan_positions(
             }
         }
         if !progress {
+            // A pair with a half-placed tile (its links fix one direction): the one offset
+            // that agrees with that tile's ridge links across.
+            for (k, l) in ambiguous.iter().enumerate() {
+                if chosen[k].is_some() || (sol.linked[l.a] && sol.linked[l.b]) {
+                    continue;
+                }
+                let half_placed = |t: usize| sol.registered_directions[t] == 1;
+                if !(half_placed(l.a) || half_placed(l.b)) {
+                    continue;
+                }
+                let misfit = |c: usize| -> Result<f64, SolveError> {
+                    let mut trial = chosen.clone();
+                    trial[k] = Some(c);
+                    let with = all_links(&trial);
+                    let s = solve_positions_anisotropic(stage_px, &with, anisotropic, params)?;
+                    let own = s.links[with.len() - 1];
+                    let mut worst = if own.kept {
+                        norm(own.residual_px)
+                    } else {
+                        f64::INFINITY
+                    };
+                    for (r, o) in anisotropic.iter().zip(&s.anisotropic_links) {
+                        if [r.a, r.b].iter().any(|t| [l.a, l.b].contains(t)) {
+                            worst = worst.max(if o.kept {
+                                norm(o.residual_px)
+                            } else {
+                                f64::INFINITY
+                            });
+                        }
+                    }
+                    Ok(worst)
+                };
+                let m: Vec<f64> = (0..l.offsets_px.len())
+                    .map(misfit)
+                    .collect::<Result<_, _>>()?;
+                if let Some(c) = consistent_across(&m) {
+                    chosen[k] = Some(c);
+                    progress = true;
+                    break;
+                }
+            }
+        }
+        if !progress {
             return Ok((sol, chosen));
         }
     }
+}
+
+/// Largest misfit (px) of an ambiguous pair's offset with the ridge links of its half-placed
+/// tile for that offset to be taken, and smallest misfit of every other offset
+/// ([`solve_scan_positions`]): the 32 one-direction answers of `scripts/bench_sparse.py` are
+/// within 0.088 px across (RMS 0.026 px), so 0.1 px is 4 standard deviations.
+const RIDGE_CONSISTENT_PX: f64 = 0.1;
+
+/// Of an ambiguous pair's offsets with misfits `m` (the largest residual of the offset and
+/// of the ridge links it meets, px), the one within [`RIDGE_CONSISTENT_PX`] when every other
+/// misfits by at least twice as much and by more than [`RIDGE_CONSISTENT_PX`].
+fn consistent_across(m: &[f64]) -> Option<usize> {
+    let (best, &mb) = m.iter().enumerate().min_by(|p, q| p.1.total_cmp(q.1))?;
+    let clear = m
+        .iter()
+        .enumerate()
+        .all(|(i, &v)| i == best || v >= (2.0 * mb).max(RIDGE_CONSISTENT_PX));
+    (mb <= RIDGE_CONSISTENT_PX && clear).then_some(best)
 }
 
 /// Hypotheses that agree on one position: (ambiguous link, offset index) pairs and the position.
@@ -1410,6 +1471,46 @@ mod tests {
         // along, and the link's normal is 1 degree off the fixed direction).
         assert!((p[0] - 50.0).abs() < 0.1, "{p:?}");
         assert!((p[1] - 100.0).abs() < 0.1, "{p:?}");
+    }
+
+    #[test]
+    fn a_ridge_link_picks_the_ambiguous_offset_that_agrees_across_it() {
+        // Tiles 0 and 1 placed by a full link. Tile 2 has a ridge link to tile 0 (a scratch
+        // along y, fixing x to 0.02 px) and an ambiguous pair to tile 1: the truth, or a
+        // maximum 10 px along the scratch and 0.3 px across it, nearer the stage. Only the
+        // truth agrees with the ridge across (the pills specimen's tile 8, docs/registration.md).
+        let truth = vec![[0.0, 0.0], [100.0, 0.0], [50.3, 89.0]];
+        let stage = vec![[0.0, 0.0], [100.0, 0.0], [50.0, 100.0]];
+        let full = Link {
+            a: 0,
+            b: 1,
+            offset_px: rel(&truth, 0, 1),
+            sigma_px: 0.05,
+        };
+        let t02 = rel(&truth, 0, 2);
+        let ridge = AnisotropicLink::across(0, 2, [t02[0] + 0.02, t02[1] + 4.0], [1.0, 0.0], 0.05);
+        let t12 = rel(&truth, 1, 2);
+        let ambiguous = AmbiguousLink {
+            a: 1,
+            b: 2,
+            offsets_px: vec![[t12[0] - 0.3, t12[1] + 10.0], t12],
+            sigma_px: 0.05,
+        };
+        let (sol, chosen) = solve_scan_positions(
+            &stage,
+            &[full],
+            &[ridge],
+            &[ambiguous],
+            &SolveParams::default(),
+        )
+        .unwrap();
+        assert_eq!(chosen, vec![Some(1)]);
+        let p = rel(&sol.positions_px, 0, 2);
+        assert!(
+            (p[0] - t02[0]).abs() < 0.05 && (p[1] - t02[1]).abs() < 0.05,
+            "{p:?}"
+        );
+        assert_eq!(sol.registered_directions[2], 2);
     }
 
     #[test]
