@@ -686,7 +686,7 @@ inputs = {{ panorama = "fusion/panorama" }}
 [[node]]
 id = "mesher"
 node = "mesher"
-inputs = {{ surface = "fusion/panorama" }}
+inputs = {{ surface = "fusion/panorama", roughness = "wavelet/roughness" }}
 "#,
         path = path_str
     );

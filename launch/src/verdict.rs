@@ -322,8 +322,21 @@ fn model_line(run: &RunRecord) -> Option<(String, bool)> {
         .find_map(|st| st.get("tolerance").filter(|t| t.is_object()))?;
     let tol = &t["tolerance"];
     let pct = |v: &Value| f(v).map_or("?".to_string(), |v| format!("{v}"));
+    // The optional bounds, named with their limits so the worst region's figures below read
+    // against them.
+    let mut extra = String::new();
+    if let Some(r) = f(&tol["residual_pct"]) {
+        let _ = write!(extra, ", residual {r} % of Sq");
+    }
+    let judges_roughness = t["region_fits"]
+        .as_array()
+        .and_then(|r| r.first())
+        .is_some_and(|w| w["roughness_deviation_pct"].is_array());
+    if let Some(r) = f(&tol["roughness_pct"]).filter(|_| judges_roughness) {
+        let _ = write!(extra, ", roughness (mesh - datum) {r} %");
+    }
     let mut line = format!(
-        "tolerance Sa {} %, Sq {} %, Sz {} % per region: {} at {} surface triangles ({:.3} per measured px)",
+        "tolerance Sa {} %, Sq {} %, Sz {} %{extra} per region: {} at {} surface triangles ({:.3} per measured px)",
         pct(&tol["sa_pct"]),
         pct(&tol["sq_pct"]),
         pct(&tol["sz_pct"]),
@@ -343,6 +356,16 @@ fn model_line(run: &RunRecord) -> Option<(String, bool)> {
             d(2),
             f(&w["residual_pct_of_sq"]).unwrap_or(f64::NAN),
         );
+        if let Some(r) = w["roughness_deviation_pct"].as_array() {
+            let d = |k: usize| r.get(k).and_then(f).unwrap_or(f64::NAN);
+            let _ = write!(
+                line,
+                ", roughness Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %",
+                d(0),
+                d(1),
+                d(2)
+            );
+        }
     }
     let failed = t["met"] != true;
     if let Some(r) = t["reason"].as_str() {
@@ -518,6 +541,37 @@ mod tests {
         assert!(t.contains("beyond max_triangles = 2000"), "{t}");
         assert!(
             t.contains("3 spike(s) (they add +12.50 % to Sz), kept as measured"),
+            "{t}"
+        );
+    }
+
+    /// The limits of the residual and of the roughness the mesh carries are printed beside the
+    /// worst region's figures, and a miss on the roughness names it.
+    #[test]
+    fn the_model_line_names_the_residual_and_roughness_limits() {
+        let mut run = run_json(true, false);
+        run["stages"]["mesher"]["tolerance"] = json!({
+            "tolerance": { "sa_pct": 1.0, "sq_pct": 1.0, "sz_pct": 3.0, "residual_pct": 50.0,
+                "roughness_pct": 5.0 },
+            "met": false, "surface_triangles": 1200, "triangles_per_measured_px": 0.012,
+            "regions": 5,
+            "region_fits": [{ "region": "W1.2", "deviation_pct": [0.5, 0.4, 0.0],
+                "residual_pct_of_sq": 31.0, "roughness_deviation_pct": [20.17, 16.2, 0.0] }],
+            "reason": "region W1.2: roughness Sa +20.17 % beyond the tolerance of 5 %: the next finer mesh needs 5000 surface triangles, beyond max_triangles = 2000",
+        });
+        let v = verdict(&record(run), Path::new("/o"), false);
+        let t = &v.text;
+        assert_eq!(v.failures.len(), 1, "{t}");
+        assert!(
+            t.contains("tolerance Sa 1 %, Sq 1 %, Sz 3 %, residual 50 % of Sq, roughness (mesh - datum) 5 % per region: NOT met"),
+            "{t}"
+        );
+        assert!(
+            t.contains("residual 31.0 % of Sq, roughness Sa +20.17 %, Sq +16.20 %, Sz +0.00 %"),
+            "{t}"
+        );
+        assert!(
+            t.contains("roughness Sa +20.17 % beyond the tolerance of 5 %"),
             "{t}"
         );
     }

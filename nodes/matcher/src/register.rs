@@ -687,9 +687,16 @@ impl PhaseCorrelator {
         (alternatives, rival_peaks): (&mut Vec<Alternative>, &mut Vec<[i64; 2]>),
     ) -> Option<Rejection> {
         let best = cands[0];
-        if valid_overlap_px < params.min_valid_px.max(3)
-            || (ncc < params.min_ncc && !stands_out(ncc, cands, peak, params))
-        {
+        // The answer's own overlap: a peak far from nominal can leave too few samples in common
+        // even when the nominal overlap had enough (named as such, not as a low NCC).
+        let required_px = params.min_valid_px.max(3);
+        if valid_overlap_px < required_px {
+            return Some(Rejection::TooFewValidPixels {
+                valid_px: valid_overlap_px,
+                required_px,
+            });
+        }
+        if ncc < params.min_ncc && !stands_out(ncc, cands, peak, params) {
             return Some(Rejection::LowNcc {
                 ncc,
                 min_ncc: params.min_ncc,

@@ -139,6 +139,16 @@ impl SurfaceChoice {
         }
     }
 
+    /// The inputs this choice may also take: the panorama's measured roughness
+    /// (`wavelet/roughness`), the reference that judges the roughness the mesh carries
+    /// ([`crate::Tolerance::roughness_pct`]).
+    pub fn optional_ports(self) -> &'static [&'static str] {
+        match self {
+            Self::Panorama => &["roughness"],
+            _ => &[],
+        }
+    }
+
     /// The wiring must match the choice: a missing or an unused input is an error.
     pub fn check_wiring(self, wired: &[&str]) -> std::result::Result<(), String> {
         let needed = self.ports();
@@ -148,10 +158,14 @@ impl SurfaceChoice {
                 self.name()
             ));
         }
-        if let Some(extra) = wired.iter().find(|w| !needed.contains(w)) {
+        let optional = self.optional_ports();
+        if let Some(extra) = wired
+            .iter()
+            .find(|w| !needed.contains(w) && !optional.contains(w))
+        {
             return Err(format!(
                 "input '{extra}' is wired but surface = \"{}\" does not use it (it uses \
-                 {needed:?})",
+                 {needed:?}, and may take {optional:?})",
                 self.name()
             ));
         }
@@ -413,6 +427,8 @@ pub struct MeshJob {
     finals: BTreeMap<String, HeightMap>,
     ended: BTreeSet<String>,
     live_frames: u64,
+    /// The measured roughness is wired: the tolerance judges the roughness the mesh carries.
+    roughness_reference: bool,
 }
 
 impl MeshJob {
@@ -422,7 +438,40 @@ impl MeshJob {
             finals: BTreeMap::new(),
             ended: BTreeSet::new(),
             live_frames: 0,
+            roughness_reference: false,
         }
+    }
+
+    /// Waits for the measured roughness on the input `roughness` too, and judges the
+    /// roughness the mesh carries against it (surface = "panorama", a tolerance).
+    pub fn with_roughness_reference(mut self) -> Self {
+        self.roughness_reference = self.settings.surface == SurfaceChoice::Panorama;
+        self
+    }
+
+    /// The tolerance the search meets: without the measured roughness wired there is nothing
+    /// to judge the roughness against, and the report does not claim that bound.
+    fn tolerance(&self) -> Option<ToleranceSettings> {
+        let mut t = self.settings.tolerance?;
+        if !self.roughness_reference {
+            t.tolerance.roughness_pct = None;
+        }
+        Some(t)
+    }
+
+    /// The input ports whose end of scan the job waits for.
+    fn awaited_ports(&self) -> impl Iterator<Item = &'static str> + '_ {
+        let reference: &[&str] = if self.roughness_reference {
+            &["roughness"]
+        } else {
+            &[]
+        };
+        self.settings
+            .surface
+            .ports()
+            .iter()
+            .chain(reference)
+            .copied()
     }
 
     pub fn settings(&self) -> &MeshSettings {
@@ -439,12 +488,7 @@ impl MeshJob {
     pub fn accept(&mut self, port: &str, frame: FrameView<'_>) -> bool {
         if frame.header.has(flags::END_OF_SCAN) {
             self.ended.insert(port.to_owned());
-            return self
-                .settings
-                .surface
-                .ports()
-                .iter()
-                .all(|p| self.ended.contains(*p));
+            return self.awaited_ports().all(|p| self.ended.contains(p));
         }
         if frame.header.has(flags::FINAL) {
             self.finals.insert(port.to_owned(), frame.to_owned());
@@ -470,32 +514,7 @@ impl MeshJob {
             SurfaceChoice::DatumPlusRoughness => {
                 let mut d = take("datum")?;
                 let r = take("roughness")?;
-                let (a, b) = (&d.header, &r.header);
-                if (a.width, a.height) != (b.width, b.height)
-                    || a.pitch_x_um != b.pitch_x_um
-                    || a.pitch_y_um != b.pitch_y_um
-                    || a.origin_x_um != b.origin_x_um
-                    || a.origin_y_um != b.origin_y_um
-                    || d.heights.len() != r.heights.len()
-                {
-                    bail!(
-                        "mesher: datum ({} x {} px (rows x cols), pitch {} x {} um, origin {}, \
-                         {} um) and roughness ({} x {} px, pitch {} x {} um, origin {}, {} um) \
-                         are not on the same grid",
-                        a.height,
-                        a.width,
-                        a.pitch_x_um,
-                        a.pitch_y_um,
-                        a.origin_x_um,
-                        a.origin_y_um,
-                        b.height,
-                        b.width,
-                        b.pitch_x_um,
-                        b.pitch_y_um,
-                        b.origin_x_um,
-                        b.origin_y_um
-                    );
-                }
+                check_same_grid(("datum", &d), ("roughness", &r))?;
                 for (z, &r) in d.heights.iter_mut().zip(&r.heights) {
                     *z += r;
                 }
@@ -504,11 +523,26 @@ impl MeshJob {
         }
     }
 
+    /// The measured roughness wired as the reference, on the surface's grid (takes its final
+    /// frame); `None` when it is not wired.
+    fn roughness_reference(&mut self, surface: &HeightMap) -> Result<Option<HeightMap>> {
+        if !self.roughness_reference {
+            return Ok(None);
+        }
+        let r = self
+            .finals
+            .remove("roughness")
+            .ok_or_else(|| anyhow!("mesher: end of scan without a final 'roughness' frame"))?;
+        check_same_grid(("panorama", surface), ("roughness", &r))?;
+        Ok(Some(r))
+    }
+
     /// Meshes the chosen surface (takes its final frames).
     pub fn mesh(&mut self) -> Result<MeshedSurface> {
         let mut s = self.surface_to_mesh()?;
+        let reference = self.roughness_reference(&s)?;
         let spikes = self.spikes(&mut s);
-        let mut m = self.mesh_in_memory(&s)?;
+        let mut m = self.mesh_in_memory(&s, reference.as_ref())?;
         add_outliers(&mut m.adaptive, spikes.as_ref());
         Ok(m)
     }
@@ -531,7 +565,11 @@ impl MeshJob {
         Some(report)
     }
 
-    fn mesh_in_memory(&self, s: &HeightMap) -> Result<MeshedSurface> {
+    fn mesh_in_memory(
+        &self,
+        s: &HeightMap,
+        roughness: Option<&HeightMap>,
+    ) -> Result<MeshedSurface> {
         let h = s.header;
         // The frame's grid: rows along y (header height), columns along x (header width).
         let shape = Shape::new(h.height as usize, h.width as usize);
@@ -546,9 +584,10 @@ impl MeshJob {
             }
             (None, None) => (grid_solid(heights, &at, &self.settings.solid)?, None, None),
             (Some(p), None) => {
-                let (m, report) = match &self.settings.tolerance {
+                let (m, report) = match &self.tolerance() {
                     Some(t) => {
-                        let (m, r) = mesh_to_tolerance(heights, &at, p, t)?;
+                        let reference = roughness.map(|r| &r.heights[..]);
+                        let (m, r) = mesh_to_tolerance(heights, reference, &at, p, t)?;
                         (m, Some(r))
                     }
                     None => (mesh_height_field(heights, &at, p)?, None),
@@ -584,6 +623,7 @@ impl MeshJob {
     /// beside `stl`, so the memory held is a few bytes per sample whatever the triangle count.
     pub fn mesh_to_files(&mut self, stl: &Path, resampled_npy: &Path) -> Result<MeshFiles> {
         let mut s = self.surface_to_mesh()?;
+        let reference = self.roughness_reference(&s)?;
         let spikes = self.spikes(&mut s);
         let (h, format) = (s.header, self.settings.format);
         let shape = Shape::new(h.height as usize, h.width as usize);
@@ -624,7 +664,7 @@ impl MeshJob {
             }
             _ => {
                 // The engines' grid sheets: bounded by their triangle budgets, made in memory.
-                let m = self.mesh_in_memory(&s)?;
+                let m = self.mesh_in_memory(&s, None)?;
                 drop(s);
                 let r = &m.resampled_um;
                 write_npy_f64(resampled_npy, r.values(), r.rows(), r.cols())?;
@@ -645,9 +685,11 @@ impl MeshJob {
         };
         std::fs::create_dir_all(spill_dir)
             .map_err(|e| anyhow!("{}: cannot create the folder: {e}", spill_dir.display()))?;
-        let (mut m, report) = match &self.settings.tolerance {
+        let (mut m, report) = match &self.tolerance() {
             Some(t) => {
-                let (m, r) = mesh_streaming_to_tolerance(heights, &at, &params, t, spill_dir)?;
+                let reference = reference.as_ref().map(|r| &r.heights[..]);
+                let (m, r) =
+                    mesh_streaming_to_tolerance(heights, reference, &at, &params, t, spill_dir)?;
                 (m, Some(r))
             }
             None => (mesh_streaming(heights, &at, &params, spill_dir)?, None),
@@ -676,4 +718,34 @@ impl MeshJob {
             streamed: true,
         })
     }
+}
+
+/// Two final frames must share one grid (size, pitch, origin) to be combined sample by sample.
+fn check_same_grid((a_name, a): (&str, &HeightMap), (b_name, b): (&str, &HeightMap)) -> Result<()> {
+    let (x, y) = (&a.header, &b.header);
+    if (x.width, x.height) != (y.width, y.height)
+        || x.pitch_x_um != y.pitch_x_um
+        || x.pitch_y_um != y.pitch_y_um
+        || x.origin_x_um != y.origin_x_um
+        || x.origin_y_um != y.origin_y_um
+        || a.heights.len() != b.heights.len()
+    {
+        bail!(
+            "mesher: {a_name} ({} x {} px (rows x cols), pitch {} x {} um, origin {}, {} um) and \
+             {b_name} ({} x {} px, pitch {} x {} um, origin {}, {} um) are not on the same grid",
+            x.height,
+            x.width,
+            x.pitch_x_um,
+            x.pitch_y_um,
+            x.origin_x_um,
+            x.origin_y_um,
+            y.height,
+            y.width,
+            y.pitch_x_um,
+            y.pitch_y_um,
+            y.origin_x_um,
+            y.origin_y_um
+        );
+    }
+    Ok(())
 }

@@ -46,8 +46,12 @@ impl MesherNode {
             .iter()
             .map(|i| (i.port.clone(), format!("{}/{}", i.from_node, i.from_port)))
             .collect();
+        let mut job = MeshJob::new(settings);
+        if wired.contains(&"roughness") && config.surface == SurfaceChoice::Panorama {
+            job = job.with_roughness_reference();
+        }
         Ok(MesherNode {
-            job: MeshJob::new(settings),
+            job,
             path: ctx.out_dir.join(&config.file),
             file: config.file,
             sources,

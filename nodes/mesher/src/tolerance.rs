@@ -46,6 +46,13 @@ pub struct Tolerance {
     /// peaks and its smoothing cancel in the parameters); this asks for pointwise fidelity too.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub residual_pct: Option<f64>,
+    /// Limit on Sa, Sq and Sz of the roughness the simulator sees (mesh minus datum) against
+    /// the measured roughness, percent ("rough=5"), judged when the measured roughness is wired
+    /// to the mesher: on a smooth part the roughness is a small share of the heights, and a
+    /// mesh within 1 % on the heights can still add a fifth to the roughness's Sa. The
+    /// default is Table 6's threshold for the other stages.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub roughness_pct: Option<f64>,
 }
 
 /// The default tolerance: Sa 1 %, Sq 1 %, Sz 3 % (the reference study's Table 6 reached
@@ -58,7 +65,11 @@ pub const DEFAULT_TOLERANCE: Tolerance = Tolerance {
     sq_pct: 1.0,
     sz_pct: 3.0,
     residual_pct: Some(DEFAULT_RESIDUAL_PCT),
+    roughness_pct: Some(DEFAULT_ROUGHNESS_PCT),
 };
+
+/// The default limit on the roughness the mesh carries, percent (Table 6's threshold).
+pub const DEFAULT_ROUGHNESS_PCT: f64 = 5.0;
 
 /// The default bound on the pointwise residual, percent of Sq.
 pub const DEFAULT_RESIDUAL_PCT: f64 = 50.0;
@@ -95,10 +106,16 @@ impl FromStr for Tolerance {
                 format!("tolerance {s:?}: expected NAME=PERCENT pairs, e.g. sa=1,sq=1,sz=3")
             })?;
             let key = k.trim().to_ascii_lowercase();
-            if matches!(key.as_str(), "res" | "residual")
-                && matches!(v.trim().to_ascii_lowercase().as_str(), "off" | "none")
-            {
-                t.residual_pct = None;
+            if matches!(v.trim().to_ascii_lowercase().as_str(), "off" | "none") {
+                match key.as_str() {
+                    "res" | "residual" => t.residual_pct = None,
+                    "rough" | "roughness" => t.roughness_pct = None,
+                    _ => {
+                        return Err(format!(
+                            "tolerance {s:?}: {k} = {v}: only res and rough can be off"
+                        ))
+                    }
+                }
                 continue;
             }
             let v: f64 = v
@@ -117,9 +134,11 @@ impl FromStr for Tolerance {
                 "sq" => t.sq_pct = v,
                 "sz" => t.sz_pct = v,
                 "res" | "residual" => t.residual_pct = Some(v),
+                "rough" | "roughness" => t.roughness_pct = Some(v),
                 other => {
                     return Err(format!(
-                        "tolerance {s:?}: unknown parameter {other:?} (known: sa, sq, sz, res)"
+                        "tolerance {s:?}: unknown parameter {other:?} (known: sa, sq, sz, res, \
+                         rough)"
                     ))
                 }
             }
@@ -140,15 +159,28 @@ impl<'de> Deserialize<'de> for Tolerance {
                 sq: Option<f64>,
                 sz: Option<f64>,
                 res: Option<f64>,
+                rough: Option<f64>,
             },
         }
         let text = match Raw::deserialize(d)? {
             Raw::Text(s) => s,
-            Raw::Table { sa, sq, sz, res } => [("sa", sa), ("sq", sq), ("sz", sz), ("res", res)]
-                .iter()
-                .filter_map(|(k, v)| v.map(|v| format!("{k}={v}")))
-                .collect::<Vec<_>>()
-                .join(","),
+            Raw::Table {
+                sa,
+                sq,
+                sz,
+                res,
+                rough,
+            } => [
+                ("sa", sa),
+                ("sq", sq),
+                ("sz", sz),
+                ("res", res),
+                ("rough", rough),
+            ]
+            .iter()
+            .filter_map(|(k, v)| v.map(|v| format!("{k}={v}")))
+            .collect::<Vec<_>>()
+            .join(","),
         };
         text.parse().map_err(serde::de::Error::custom)
     }
@@ -161,8 +193,11 @@ impl std::fmt::Display for Tolerance {
             "Sa {} %, Sq {} %, Sz {} %",
             self.sa_pct, self.sq_pct, self.sz_pct
         )?;
-        match self.residual_pct {
-            Some(r) => write!(f, ", residual {r} % of Sq"),
+        if let Some(r) = self.residual_pct {
+            write!(f, ", residual {r} % of Sq")?;
+        }
+        match self.roughness_pct {
+            Some(r) => write!(f, ", roughness {r} %"),
             None => Ok(()),
         }
     }
@@ -269,6 +304,10 @@ pub struct RegionFit {
     pub deviation_pct: [f64; 3],
     /// RMS of the pointwise residual (both means removed), percent of the measured Sq.
     pub residual_pct_of_sq: f64,
+    /// Sa, Sq, Sz of the roughness the mesh carries (measured roughness plus the mesh's
+    /// pointwise error) against the measured roughness, percent; when the roughness is wired.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub roughness_deviation_pct: Option<[f64; 3]>,
 }
 
 impl RegionFit {
@@ -284,16 +323,29 @@ impl RegionFit {
             .zip(limits)
             .map(|((n, d), l)| (n, d, l * share))
             .chain(residual)
+            .chain(self.roughness_terms(t).map(|(n, d, l)| (n, d, l * share)))
             .filter(|(_, d, l)| d.is_nan() || d.abs() > *l)
             .max_by(|a, b| (a.1.abs() / a.2).total_cmp(&(b.1.abs() / b.2)))
     }
 
-    /// The largest |deviation| / limit over Sa, Sq, Sz (<= 1: within the tolerance).
+    /// The roughness's (name, deviation, limit), when it is judged.
+    fn roughness_terms(&self, t: &Tolerance) -> impl Iterator<Item = (&'static str, f64, f64)> {
+        let judged = self.roughness_deviation_pct.zip(t.roughness_pct);
+        ["roughness Sa", "roughness Sq", "roughness Sz"]
+            .into_iter()
+            .enumerate()
+            .filter_map(move |(k, n)| judged.map(|(d, l)| (n, d[k], l)))
+    }
+
+    /// The largest |deviation| / limit over Sa, Sq, Sz (and the roughness's when judged;
+    /// <= 1: within the tolerance).
     pub fn worst_ratio(&self, t: &Tolerance) -> f64 {
         let limits = [t.sa_pct, t.sq_pct, t.sz_pct];
         self.deviation_pct
             .iter()
             .zip(limits)
+            .map(|(&d, l)| (d, l))
+            .chain(self.roughness_terms(t).map(|(_, d, l)| (d, l)))
             .map(|(d, l)| {
                 if d.is_finite() {
                     d.abs() / l
@@ -308,17 +360,82 @@ impl RegionFit {
 /// Sa, Sq, Sz of the mesh (`mesh_um`, on the same grid and z offset) against the measured
 /// samples (`measured_um`, NaN = not measured) in every region: both over the samples valid
 /// in both, mean removed, no levelling (Table 6's conventions). Regions without a valid sample
-/// are left out.
+/// are left out. With `roughness_um` (the measured roughness on the same grid), each region
+/// also judges the roughness the simulator sees: that roughness plus the mesh's pointwise
+/// error (mesh minus datum = roughness + mesh - measured), against the roughness alone.
 pub fn judge_regions(
     measured_um: &[f32],
     mesh_um: &[f32],
+    roughness_um: Option<&[f32]>,
     shape: Shape,
     regions: &[Window],
 ) -> Vec<RegionFit> {
     regions
         .par_iter()
-        .filter_map(|r| judge_region(measured_um, mesh_um, shape.cols, r))
+        .filter_map(|r| {
+            let mut fit = judge_region(measured_um, mesh_um, shape.cols, r)?;
+            fit.roughness_deviation_pct = roughness_um
+                .and_then(|g| roughness_deviation(measured_um, mesh_um, g, shape.cols, r));
+            Some(fit)
+        })
         .collect()
+}
+
+/// Sa, Sq, Sz of `roughness + mesh - measured` against those of `roughness`, percent, over the
+/// samples of the window valid in all three (means removed).
+fn roughness_deviation(
+    z: &[f32],
+    m: &[f32],
+    g: &[f32],
+    cols: usize,
+    r: &Window,
+) -> Option<[f64; 3]> {
+    let samples = || {
+        (r.row0..r.row0 + r.rows).flat_map(move |y| {
+            let k = y * cols + r.col0;
+            (k..k + r.cols).filter_map(move |i| {
+                let (a, b, c) = (z[i], m[i], g[i]);
+                (!(a.is_nan() || b.is_nan() || c.is_nan())).then(|| {
+                    let c = f64::from(c);
+                    (c, c + f64::from(b) - f64::from(a))
+                })
+            })
+        })
+    };
+    let (mut n, mut s_meas, mut s_model) = (0usize, 0.0, 0.0);
+    let mut range = [[f64::INFINITY, f64::NEG_INFINITY]; 2];
+    for (a, b) in samples() {
+        n += 1;
+        s_meas += a;
+        s_model += b;
+        for (lim, v) in range.iter_mut().zip([a, b]) {
+            lim[0] = lim[0].min(v);
+            lim[1] = lim[1].max(v);
+        }
+    }
+    if n == 0 {
+        return None;
+    }
+    let nf = n as f64;
+    let (mean_meas, mean_model) = (s_meas / nf, s_model / nf);
+    let (mut sums_meas, mut sums_model) = ([0.0; 2], [0.0; 2]);
+    for (a, b) in samples() {
+        let (da, db) = (a - mean_meas, b - mean_model);
+        sums_meas[0] += da.abs();
+        sums_meas[1] += da * da;
+        sums_model[0] += db.abs();
+        sums_model[1] += db * db;
+    }
+    let params = |s: [f64; 2], lim: [f64; 2]| [s[0] / nf, (s[1] / nf).sqrt(), lim[1] - lim[0]];
+    let (measured, model) = (params(sums_meas, range[0]), params(sums_model, range[1]));
+    Some([0, 1, 2].map(|k| {
+        let d = (model[k] - measured[k]) / measured[k] * 100.0;
+        if d.is_finite() {
+            d
+        } else {
+            f64::NAN
+        }
+    }))
 }
 
 fn judge_region(z: &[f32], m: &[f32], cols: usize, r: &Window) -> Option<RegionFit> {
@@ -377,6 +494,7 @@ fn judge_region(z: &[f32], m: &[f32], cols: usize, r: &Window) -> Option<RegionF
         measured_um: measured,
         deviation_pct: dev.map(|d| if d.is_finite() { d } else { f64::NAN }),
         residual_pct_of_sq: (rq / nf).sqrt() / measured[1] * 100.0,
+        roughness_deviation_pct: None,
     })
 }
 
@@ -394,6 +512,10 @@ pub struct CurvePoint {
     pub worst_sz_pct: f64,
     /// Largest pointwise residual RMS over the regions, percent of the region's Sq.
     pub worst_residual_pct_of_sq: f64,
+    /// Worst |deviation| of the roughness the mesh carries over the regions and Sa, Sq, Sz,
+    /// percent, signed as found (when the roughness is judged).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub worst_roughness_pct: Option<f64>,
     /// The region with the largest deviation relative to its limit.
     pub worst_region: String,
     /// Every region within [`TARGET_SHARE`] of the tolerance.
@@ -506,6 +628,11 @@ pub fn search<M>(
                     .iter()
                     .map(|r| r.residual_pct_of_sq)
                     .fold(0.0, f64::max),
+                worst_roughness_pct: fits
+                    .iter()
+                    .filter_map(|r| r.roughness_deviation_pct)
+                    .flatten()
+                    .max_by(|a, b| a.abs().total_cmp(&b.abs())),
                 worst_region: fits.first().map(|r| r.region.clone()).unwrap_or_default(),
                 pass,
                 over_budget: over,
@@ -779,6 +906,7 @@ fn search_setup<'a>(
 /// `params.max_triangles` bounds the search, not the insertion).
 pub fn mesh_to_tolerance(
     heights: RasterView<'_, f32>,
+    roughness_um: Option<&[f32]>,
     at: &ScanPlacement,
     params: &MeshParams,
     settings: &ToleranceSettings,
@@ -807,7 +935,13 @@ pub fn mesh_to_tolerance(
             drop(meshed);
             p.epsilon = Epsilon::Um(eps);
             let m = finish_adaptive(heights, at, &p, &tin, eps)?;
-            let fits = judge_regions(heights.values(), &m.resampled_um, heights.shape(), &regions);
+            let fits = judge_regions(
+                heights.values(),
+                &m.resampled_um,
+                roughness_um,
+                heights.shape(),
+                &regions,
+            );
             Ok(Trial {
                 surface_triangles: m.surface_triangles,
                 fits,
@@ -822,6 +956,7 @@ pub fn mesh_to_tolerance(
 /// (the chosen or the last failing one, the current, and the live insertion order).
 pub fn mesh_streaming_to_tolerance(
     heights: RasterView<'_, f32>,
+    roughness_um: Option<&[f32]>,
     at: &ScanPlacement,
     params: &MeshParams,
     settings: &ToleranceSettings,
@@ -852,7 +987,13 @@ pub fn mesh_streaming_to_tolerance(
             let m = stream_blocks(heights, at, &p, spill_dir, &plan, level, eps, &|k| {
                 blocks[k].snapshot()
             })?;
-            let fits = judge_regions(heights.values(), &m.resampled_um, heights.shape(), &regions);
+            let fits = judge_regions(
+                heights.values(),
+                &m.resampled_um,
+                roughness_um,
+                heights.shape(),
+                &regions,
+            );
             Ok(Trial {
                 surface_triangles: m.counts.top_triangles,
                 fits,
@@ -894,6 +1035,64 @@ mod tests {
     }
 
     #[test]
+    fn roughness_bound_parses_and_turns_off() {
+        assert_eq!(DEFAULT_TOLERANCE.roughness_pct, Some(5.0));
+        let t: Tolerance = "rough=2".parse().unwrap();
+        assert_eq!(t.roughness_pct, Some(2.0));
+        assert_eq!(
+            "rough=off".parse::<Tolerance>().unwrap().roughness_pct,
+            None
+        );
+        assert!("sa=off".parse::<Tolerance>().is_err());
+        assert!(t.to_string().ends_with(", roughness 2 %"), "{t}");
+    }
+
+    /// A smooth form carrying a small roughness: a mesh error far below the heights' Sq (so Sa,
+    /// Sq, Sz of the heights are within 1 %) is still large against the roughness, and only the
+    /// roughness judgement sees it.
+    #[test]
+    fn a_mesh_close_on_the_heights_can_miss_the_roughness() {
+        let shape = Shape::new(64, 64);
+        let (form, rough): (Vec<f32>, Vec<f32>) = (0..shape.len())
+            .map(|k| {
+                let (y, x) = ((k / 64) as f32, (k % 64) as f32);
+                let r = 0.01 * ((x * 1.7).sin() * (y * 2.3).cos());
+                (
+                    10.0 * (x / 64.0 * 3.1).sin() + 5.0 * (y / 20.0).cos() + r,
+                    r,
+                )
+            })
+            .unzip();
+        // The model's error: a smooth bump of 0.02, 0.2 % of the heights' Sq (about 5).
+        let model: Vec<f32> = form
+            .iter()
+            .enumerate()
+            .map(|(k, &z)| z + 0.02 * (((k % 64) as f32) / 10.0).sin())
+            .collect();
+        let r = windows(shape, 64);
+        let fit = &judge_regions(&form, &model, Some(&rough), shape, &r[..1])[0];
+        let t = DEFAULT_TOLERANCE;
+        assert!(fit.deviation_pct.iter().all(|d| d.abs() < 1.0), "{fit:?}");
+        let rd = fit.roughness_deviation_pct.expect("roughness judged");
+        assert!(rd[0].abs() > 5.0, "{rd:?}");
+        assert_eq!(
+            fit.excess(&t, 1.0).map(|e| e.0.starts_with("roughness")),
+            Some(true)
+        );
+        // Without the reference the same mesh passes; with the roughness off too.
+        let blind = &judge_regions(&form, &model, None, shape, &r[..1])[0];
+        assert!(blind.roughness_deviation_pct.is_none());
+        let off = Tolerance {
+            roughness_pct: None,
+            ..t
+        };
+        assert!(fit.excess(&off, 1.0).is_none(), "{fit:?}");
+        // A mesh equal to the measurement carries the roughness exactly.
+        let same = &judge_regions(&form, &form, Some(&rough), shape, &r[..1])[0];
+        assert_eq!(same.roughness_deviation_pct, Some([0.0; 3]));
+    }
+
+    #[test]
     fn windows_cover_the_map_at_half_steps() {
         let w = windows(Shape::new(100, 60), 40);
         assert_eq!(w[0].rows, 100);
@@ -910,13 +1109,13 @@ mod tests {
         let shape = Shape::new(20, 20);
         let z: Vec<f32> = (0..400).map(|k| ((k * 37 % 11) as f32) - 5.0).collect();
         let r = windows(shape, 10);
-        let same = judge_regions(&z, &z, shape, &r);
+        let same = judge_regions(&z, &z, None, shape, &r);
         assert_eq!(same.len(), r.len());
         assert!(same
             .iter()
             .all(|f| f.deviation_pct == [0.0; 3] && f.residual_pct_of_sq == 0.0));
         let half: Vec<f32> = z.iter().map(|v| 0.5 * v).collect();
-        let f = &judge_regions(&z, &half, shape, &r[..1])[0];
+        let f = &judge_regions(&z, &half, None, shape, &r[..1])[0];
         for d in f.deviation_pct {
             assert!((d + 50.0).abs() < 1e-9, "{d}");
         }

@@ -103,6 +103,15 @@ surface = \"pooled\"",
         .check_wiring(&["datum", "surface"])
         .unwrap_err()
         .contains("input 'surface' is wired but"));
+    // The panorama may take its measured roughness (the roughness judgement's reference);
+    // no other surface may.
+    assert!(SurfaceChoice::Panorama
+        .check_wiring(&["surface", "roughness"])
+        .is_ok());
+    assert!(SurfaceChoice::Pooled
+        .check_wiring(&["surface", "roughness"])
+        .unwrap_err()
+        .contains("input 'roughness' is wired but"));
 }
 
 #[test]
@@ -147,6 +156,36 @@ fn meshes_the_sum_once_both_inputs_have_ended() {
     assert!(stl.starts_with(b"solid"));
     // The frames were taken: a second mesh has nothing to mesh.
     assert!(job.mesh().is_err());
+}
+
+/// With its measured roughness wired, the panorama's mesh waits for both ends of scan and
+/// every judged region reports the roughness the mesh carries.
+#[test]
+fn a_wired_roughness_is_awaited_and_judged() {
+    let mut job = MeshJob::new(config("").settings().unwrap()).with_roughness_reference();
+    let (surface, roughness) = (wavy(1.0), wavy(0.1));
+    job.accept(
+        "surface",
+        frame(FrameKind::Panorama, flags::FINAL, surface).view(),
+    );
+    assert!(
+        !job.accept("surface", eos().view()),
+        "the roughness has not ended"
+    );
+    job.accept(
+        "roughness",
+        frame(FrameKind::Roughness, flags::FINAL, roughness).view(),
+    );
+    assert!(job.accept("roughness", eos().view()));
+    let m = job.mesh().unwrap();
+    let report = &m.adaptive.unwrap()["tolerance"];
+    let fits = report["region_fits"].as_array().unwrap();
+    assert!(!fits.is_empty());
+    assert!(
+        fits.iter().all(|f| f["roughness_deviation_pct"].is_array()),
+        "{report}"
+    );
+    assert_eq!(report["tolerance"]["roughness_pct"], 5.0);
 }
 
 #[test]

@@ -137,7 +137,7 @@ fn model_with(
         method,
         ..settings(t)
     };
-    let (m, r) = mesh_to_tolerance(heights, &at, &p, &s).unwrap();
+    let (m, r) = mesh_to_tolerance(heights, None, &at, &p, &s).unwrap();
     let mesh = interpolate(&m);
     let valid: Vec<bool> = z
         .iter()
@@ -255,15 +255,22 @@ fn the_streamed_search_chooses_the_same_mesh() {
     let heights = RasterView::new(&z, Shape::new(ROWS, COLS)).unwrap();
     let at = ScanPlacement::new(1.0, 1.0);
     let s = settings("sa=1,sq=1,sz=3");
-    let (m, r) = mesh_to_tolerance(heights, &at, &params(), &s).unwrap();
+    let (m, r) = mesh_to_tolerance(heights, None, &at, &params(), &s).unwrap();
     let dir = tempfile::tempdir().unwrap();
-    let (sm, sr) = mesh_streaming_to_tolerance(heights, &at, &params(), &s, dir.path()).unwrap();
+    let (sm, sr) =
+        mesh_streaming_to_tolerance(heights, None, &at, &params(), &s, dir.path()).unwrap();
     assert_eq!(sm.counts.top_triangles, m.surface_triangles);
     assert_eq!(sr.curve, r.curve);
     assert_eq!(sm.resampled_um.len(), m.resampled_um.len());
     // A tighter tolerance never needs fewer triangles at its chosen point.
-    let (_, tight) =
-        mesh_to_tolerance(heights, &at, &params(), &settings("sa=0.2,sq=0.2,sz=1")).unwrap();
+    let (_, tight) = mesh_to_tolerance(
+        heights,
+        None,
+        &at,
+        &params(),
+        &settings("sa=0.2,sq=0.2,sz=1"),
+    )
+    .unwrap();
     assert!(tight.surface_triangles >= r.surface_triangles || !tight.met);
 }
 
