@@ -275,6 +275,45 @@ impl Edge {
         [s * self.strong[0], s * self.strong[1]]
     }
 
+    /// For an anisotropic link with an end tile whose links fix one direction only (`free`:
+    /// the unit direction left to the stage, per tile), the same link measuring exactly that
+    /// tile's fixed direction `v`: `v . (p_b - p_a) = alpha` with `alpha` what the link
+    /// measures across when the tiles sit at their stage positions along `free`. Other links
+    /// unchanged.
+    fn turned_to_fixed_direction(&self, stage: &[[f64; 2]], free: &[Option<[f64; 2]>]) -> Edge {
+        let Some(t) = (if self.isotropic {
+            None
+        } else {
+            free[self.a].or(free[self.b])
+        }) else {
+            return *self;
+        };
+        let v = [-t[1], t[0]];
+        let n = self.strong;
+        let nv = n[0] * v[0] + n[1] * v[1];
+        if nv.abs() < 0.5 {
+            return *self;
+        }
+        let nt = n[0] * t[0] + n[1] * t[1];
+        let along_stage = t[0] * (stage[self.b][0] - stage[self.a][0])
+            + t[1] * (stage[self.b][1] - stage[self.a][1]);
+        let nd = n[0] * self.d[0] + n[1] * self.d[1];
+        let alpha = (nd - nt * along_stage) / nv;
+        let w = self.w_strong;
+        Edge {
+            d: [
+                alpha * v[0] + along_stage * t[0],
+                alpha * v[1] + along_stage * t[1],
+            ],
+            info: [
+                [w * v[0] * v[0], w * v[0] * v[1]],
+                [w * v[0] * v[1], w * v[1] * v[1]],
+            ],
+            strong: v,
+            ..*self
+        }
+    }
+
     /// `r^T I r`.
     fn cost(&self, pos: &[[f64; 2]]) -> f64 {
         let r = self.residual(pos);
@@ -396,6 +435,18 @@ pub fn solve_positions_anisotropic(
         sol = trial;
     }
     let (registered_directions, stage_direction) = directions(n, &edges, &kept);
+    if stage_direction.iter().any(Option::is_some) {
+        // Two ridge links of one tile whose normals are a degree or two apart (one scratch
+        // seen in both its strips, the normals differing by estimation noise) would place
+        // the tile along the ridge where the two nearly parallel lines cross: a 0.05 px
+        // misfit across becomes 3 px along. Each such link is turned to the tile's fixed
+        // direction, so that the stage alone places the tile along it, as reported.
+        let turned: Vec<Edge> = edges
+            .iter()
+            .map(|e| e.turned_to_fixed_direction(&stage, &stage_direction))
+            .collect();
+        sol = solve_once(&stage, &turned, &kept, w_stage)?;
+    }
     let linked: Vec<bool> = registered_directions.iter().map(|&d| d == 2).collect();
     let mut max_residual_px: f64 = 0.0;
     let mut outcomes: Vec<LinkOutcome> = edges
@@ -595,9 +646,70 @@ pub fn solve_scan_positions(
             }
         }
         if !progress {
+            // A pair with a half-placed tile (its links fix one direction): the one offset
+            // that agrees with that tile's ridge links across.
+            for (k, l) in ambiguous.iter().enumerate() {
+                if chosen[k].is_some() || (sol.linked[l.a] && sol.linked[l.b]) {
+                    continue;
+                }
+                let half_placed = |t: usize| sol.registered_directions[t] == 1;
+                if !(half_placed(l.a) || half_placed(l.b)) {
+                    continue;
+                }
+                let misfit = |c: usize| -> Result<f64, SolveError> {
+                    let mut trial = chosen.clone();
+                    trial[k] = Some(c);
+                    let with = all_links(&trial);
+                    let s = solve_positions_anisotropic(stage_px, &with, anisotropic, params)?;
+                    let own = s.links[with.len() - 1];
+                    let mut worst = if own.kept {
+                        norm(own.residual_px)
+                    } else {
+                        f64::INFINITY
+                    };
+                    for (r, o) in anisotropic.iter().zip(&s.anisotropic_links) {
+                        if [r.a, r.b].iter().any(|t| [l.a, l.b].contains(t)) {
+                            worst = worst.max(if o.kept {
+                                norm(o.residual_px)
+                            } else {
+                                f64::INFINITY
+                            });
+                        }
+                    }
+                    Ok(worst)
+                };
+                let m: Vec<f64> = (0..l.offsets_px.len())
+                    .map(misfit)
+                    .collect::<Result<_, _>>()?;
+                if let Some(c) = consistent_across(&m) {
+                    chosen[k] = Some(c);
+                    progress = true;
+                    break;
+                }
+            }
+        }
+        if !progress {
             return Ok((sol, chosen));
         }
     }
+}
+
+/// Largest misfit (px) of an ambiguous pair's offset with the ridge links of its half-placed
+/// tile for that offset to be taken, and smallest misfit of every other offset
+/// ([`solve_scan_positions`]): the 32 one-direction answers of `scripts/bench_sparse.py` are
+/// within 0.088 px across (RMS 0.026 px), so 0.1 px is 4 standard deviations.
+const RIDGE_CONSISTENT_PX: f64 = 0.1;
+
+/// Of an ambiguous pair's offsets with misfits `m` (the largest residual of the offset and
+/// of the ridge links it meets, px), the one within [`RIDGE_CONSISTENT_PX`] when every other
+/// misfits by at least twice as much and by more than [`RIDGE_CONSISTENT_PX`].
+fn consistent_across(m: &[f64]) -> Option<usize> {
+    let (best, &mb) = m.iter().enumerate().min_by(|p, q| p.1.total_cmp(q.1))?;
+    let clear = m
+        .iter()
+        .enumerate()
+        .all(|(i, &v)| i == best || v >= (2.0 * mb).max(RIDGE_CONSISTENT_PX));
+    (mb <= RIDGE_CONSISTENT_PX && clear).then_some(best)
 }
 
 /// Hypotheses that agree on one position: (ambiguous link, offset index) pairs and the position.
@@ -1319,6 +1431,86 @@ mod tests {
         let along_err = (r[0] - s[0]) * n[1] - (r[1] - s[1]) * n[0];
         assert!(along_err.abs() < 1e-3, "along {along_err}");
         assert_eq!(sol.registered_directions, vec![0, 1, 1]);
+    }
+
+    #[test]
+    fn two_ridges_a_degree_apart_leave_the_tile_to_the_stage_along_them() {
+        // Tiles 0 and 1 are placed by a full link; tile 2 hangs from both by ridge links of one
+        // scratch whose measured normals differ by 1 degree, with 0.05 px of misfit across
+        // (estimation noise). Nothing fixes tile 2 along the scratch: it must sit there at its
+        // stage position, not 2-3 px off where the two nearly parallel lines cross.
+        let truth = vec![[0.0, 0.0], [100.0, 0.0], [50.0, 97.0]];
+        let stage = vec![[0.0, 0.0], [100.0, 0.0], [50.0, 100.0]];
+        // Tiles 0 and 1 firmly placed (in a scan, by many full links), so the misfit cannot
+        // be shared with their link.
+        let full = Link {
+            a: 0,
+            b: 1,
+            offset_px: rel(&truth, 0, 1),
+            sigma_px: 0.005,
+        };
+        // The scratch runs along y: normals near x.
+        let deg = std::f64::consts::PI / 180.0;
+        let (n0, n1) = ([1.0, 0.0], [deg.cos(), deg.sin()]);
+        let ridges = [
+            AnisotropicLink::across(0, 2, rel(&truth, 0, 2), n0, 0.05),
+            AnisotropicLink::across(
+                1,
+                2,
+                [rel(&truth, 1, 2)[0] - 0.05, rel(&truth, 1, 2)[1]],
+                n1,
+                0.05,
+            ),
+        ];
+        let sol =
+            solve_positions_anisotropic(&stage, &[full], &ridges, &SolveParams::default()).unwrap();
+        assert_eq!(sol.registered_directions[2], 1);
+        let p = rel(&sol.positions_px, 0, 2);
+        // Along (y): the stage's 100, not where the two lines cross (95.9 before the links
+        // were turned). Across (x): within 0.1 px (measured 0.051: the stage is 3 px off
+        // along, and the link's normal is 1 degree off the fixed direction).
+        assert!((p[0] - 50.0).abs() < 0.1, "{p:?}");
+        assert!((p[1] - 100.0).abs() < 0.1, "{p:?}");
+    }
+
+    #[test]
+    fn a_ridge_link_picks_the_ambiguous_offset_that_agrees_across_it() {
+        // Tiles 0 and 1 placed by a full link. Tile 2 has a ridge link to tile 0 (a scratch
+        // along y, fixing x to 0.02 px) and an ambiguous pair to tile 1: the truth, or a
+        // maximum 10 px along the scratch and 0.3 px across it, nearer the stage. Only the
+        // truth agrees with the ridge across (the pills specimen's tile 8, docs/registration.md).
+        let truth = vec![[0.0, 0.0], [100.0, 0.0], [50.3, 89.0]];
+        let stage = vec![[0.0, 0.0], [100.0, 0.0], [50.0, 100.0]];
+        let full = Link {
+            a: 0,
+            b: 1,
+            offset_px: rel(&truth, 0, 1),
+            sigma_px: 0.05,
+        };
+        let t02 = rel(&truth, 0, 2);
+        let ridge = AnisotropicLink::across(0, 2, [t02[0] + 0.02, t02[1] + 4.0], [1.0, 0.0], 0.05);
+        let t12 = rel(&truth, 1, 2);
+        let ambiguous = AmbiguousLink {
+            a: 1,
+            b: 2,
+            offsets_px: vec![[t12[0] - 0.3, t12[1] + 10.0], t12],
+            sigma_px: 0.05,
+        };
+        let (sol, chosen) = solve_scan_positions(
+            &stage,
+            &[full],
+            &[ridge],
+            &[ambiguous],
+            &SolveParams::default(),
+        )
+        .unwrap();
+        assert_eq!(chosen, vec![Some(1)]);
+        let p = rel(&sol.positions_px, 0, 2);
+        assert!(
+            (p[0] - t02[0]).abs() < 0.05 && (p[1] - t02[1]).abs() < 0.05,
+            "{p:?}"
+        );
+        assert_eq!(sol.registered_directions[2], 2);
     }
 
     #[test]

@@ -1137,7 +1137,10 @@ fn shift_limit_px(params: &PhaseParams, overlap_px: [usize; 2]) -> [f64; 2] {
 /// (the stage error's bound: an answer there is refused whatever its NCC). On a periodic
 /// texture seen through a full-width strip, an alias 80 px along the strip scored as the best
 /// candidate or as a rival and cost the pair its true answer (the pills specimen,
-/// docs/registration.md). Nothing is dropped when nothing would remain.
+/// docs/registration.md). Nothing is dropped unless a candidate within reach scores within
+/// `ambiguity_margin` of the best: a true shift beyond the bound, far better than anything
+/// within it, is still found and refused with its measured shift (which tells the user to
+/// raise `max_shift_px`).
 fn within_stage_range(
     cands: &mut Vec<Candidate>,
     nominal_offset_px: [f64; 2],
@@ -1148,7 +1151,11 @@ fn within_stage_range(
         let s = shift_from(c.offset_px, nominal_offset_px);
         s[0].abs() <= reach && s[1].abs() <= reach
     };
-    if cands.iter().any(inside) {
+    let top = cands.first().map_or(f64::NEG_INFINITY, |c| c.ncc);
+    if cands
+        .iter()
+        .any(|c| inside(c) && c.ncc >= top - params.ambiguity_margin)
+    {
         cands.retain(inside);
     }
 }

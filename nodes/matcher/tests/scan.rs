@@ -192,11 +192,28 @@ fn an_ambiguous_pair_between_placed_tiles_is_resolved_at_finish() {
         .iter()
         .find(|p| p["a"] == 2 && p["b"] == 3)
         .expect("pair 2-3");
-    assert_eq!(p23["accepted"], false, "{p23}");
+    let want = [tiles[3].3[0] - tiles[2].3[0], tiles[3].3[1] - tiles[2].3[1]];
+    if p23["accepted"] == true {
+        // Since the answer is the highest climbed NCC maximum (docs/registration.md, third
+        // session), this pair is answered directly: the truth climbs to NCC 1.0 and the
+        // aliases one period away stay more than `ambiguity_margin` below it (before, an
+        // alias ranked first by its integer NCC and the truth counted as its rival). The
+        // resolution of ambiguous pairs is covered by `global.rs`'s tests.
+        let o = &p23["offset_px"];
+        let got = [
+            o[0].as_f64().unwrap_or(f64::NAN),
+            o[1].as_f64().unwrap_or(f64::NAN),
+        ];
+        assert!(
+            (got[0] - want[0]).abs() < 0.2 && (got[1] - want[1]).abs() < 0.2,
+            "answered {got:?}, truth {want:?}: {p23}"
+        );
+        assert_eq!(p23["kept_by_global_solve"], true, "{p23}");
+        return;
+    }
     let alternatives = p23["alternatives_px"].as_array().expect("alternatives");
     assert!(alternatives.len() >= 2, "{p23}");
     let chosen = p23["chosen_alternative"].as_u64().expect("resolved") as usize;
-    let want = [tiles[3].3[0] - tiles[2].3[0], tiles[3].3[1] - tiles[2].3[1]];
     let got = &alternatives[chosen];
     let got = [
         got[0].as_f64().unwrap_or(f64::NAN),
