@@ -150,6 +150,35 @@ assert abs(float(np.nanmean(r))) < 1e-3, np.nanmean(r)  # roughness has no offse
         "{m}"
     );
     assert!(std::fs::metadata(&stl).unwrap().len() > 84);
+
+    // The file at its default tolerance, judged on the heights, then also on the roughness
+    // the mesh carries against the separated roughness: the second needs more triangles and
+    // keeps the roughness within its 5 % in every window.
+    let tolerance = |extra: &[&str], name: &str| {
+        let stl = d.path().join(name);
+        let mut args = vec!["mesh", s(&dat), "--out", s(&stl)];
+        args.extend_from_slice(extra);
+        ok(&args);
+        read_json(&stl.with_extension("json"))["tolerance"].clone()
+    };
+    let heights_only = tolerance(&[], "heights.stl");
+    let rough = sep.join("roughness.npy");
+    let with_roughness = tolerance(&["--roughness", s(&rough)], "rough.stl");
+    assert!(
+        heights_only["tolerance"].get("roughness_pct").is_none(),
+        "{heights_only}"
+    );
+    assert_eq!(with_roughness["tolerance"]["roughness_pct"], 5.0);
+    assert_eq!(with_roughness["met"], true, "{with_roughness}");
+    for w in with_roughness["region_fits"].as_array().unwrap() {
+        for d in w["roughness_deviation_pct"].as_array().unwrap() {
+            assert!(d.as_f64().unwrap().abs() <= 5.0, "{w}");
+        }
+    }
+    assert!(
+        with_roughness["surface_triangles"].as_u64() > heights_only["surface_triangles"].as_u64(),
+        "{heights_only} vs {with_roughness}"
+    );
 }
 
 #[test]

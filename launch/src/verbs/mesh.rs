@@ -42,6 +42,11 @@ pub struct MeshArgs {
     /// a per-block Sa/Sq balance) or "greedy" (the pointwise bound only); docs/model.md.
     #[arg(long, value_name = "balanced|greedy")]
     pub model_method: Option<String>,
+    /// The map's measured roughness (e.g. a run's roughness.npy, on the same grid): the
+    /// tolerance then also judges the roughness the mesh carries (mesh minus datum) against it,
+    /// within `rough` (default 5 %), as the graphs do (docs/model.md).
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["epsilon_um", "epsilon_sq"])]
+    pub roughness: Option<PathBuf>,
     /// Treat isolated spikes as not measured before meshing (ISO 25178-3 style outlier
     /// removal; they are always reported in OUT.json, and kept by default).
     #[arg(long)]
@@ -188,8 +193,13 @@ pub fn run(a: MeshArgs) -> Result<()> {
             .with_context(|| format!("{}", a.file.display()))?;
         (m, None)
     } else {
+        let mut tolerance = a.tolerance.unwrap_or_default();
+        if a.roughness.is_none() {
+            // Nothing to judge the roughness against: the report does not claim a bound.
+            tolerance.roughness_pct = None;
+        }
         let settings = ToleranceSettings {
-            tolerance: a.tolerance.unwrap_or_default(),
+            tolerance,
             region_px: a.region_px,
             method: match a.model_method.as_deref() {
                 None | Some("balanced") => surfstream_mesher::tolerance::ModelMethod::Balanced,
@@ -197,7 +207,12 @@ pub fn run(a: MeshArgs) -> Result<()> {
                 Some(other) => bail!("--model-method {other}: expected balanced or greedy"),
             },
         };
-        let (m, r) = mesh_to_tolerance(heights, None, &at, &params, &settings)
+        let roughness = a
+            .roughness
+            .as_deref()
+            .map(|path| roughness_reference(path, a.pitch_um, shape))
+            .transpose()?;
+        let (m, r) = mesh_to_tolerance(heights, roughness.as_deref(), &at, &params, &settings)
             .with_context(|| format!("{}", a.file.display()))?;
         (m, Some(r))
     };
@@ -411,4 +426,20 @@ fn file_name(p: &Path) -> String {
     p.file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default()
+}
+
+/// The measured roughness that judges the roughness the mesh carries: the same grid as the
+/// meshed map (its values relative to their mean, as the heights are).
+fn roughness_reference(path: &Path, pitch_um: Option<f64>, shape: Shape) -> Result<Vec<f32>> {
+    let r = super::load_surface(path, pitch_um, "mesh", true)?.surface;
+    if (r.height, r.width) != (shape.rows, shape.cols) {
+        bail!(
+            "{}: --roughness is {} x {} px (rows x cols); the meshed map is {shape}: expected the \
+             same grid",
+            path.display(),
+            r.height,
+            r.width
+        );
+    }
+    Ok(to_frame_heights(&r.heights_um).1)
 }

@@ -449,6 +449,16 @@ impl MeshJob {
         self
     }
 
+    /// The tolerance the search meets: without the measured roughness wired there is nothing
+    /// to judge the roughness against, and the report does not claim that bound.
+    fn tolerance(&self) -> Option<ToleranceSettings> {
+        let mut t = self.settings.tolerance?;
+        if !self.roughness_reference {
+            t.tolerance.roughness_pct = None;
+        }
+        Some(t)
+    }
+
     /// The input ports whose end of scan the job waits for.
     fn awaited_ports(&self) -> impl Iterator<Item = &'static str> + '_ {
         let reference: &[&str] = if self.roughness_reference {
@@ -574,7 +584,7 @@ impl MeshJob {
             }
             (None, None) => (grid_solid(heights, &at, &self.settings.solid)?, None, None),
             (Some(p), None) => {
-                let (m, report) = match &self.settings.tolerance {
+                let (m, report) = match &self.tolerance() {
                     Some(t) => {
                         let reference = roughness.map(|r| &r.heights[..]);
                         let (m, r) = mesh_to_tolerance(heights, reference, &at, p, t)?;
@@ -675,7 +685,7 @@ impl MeshJob {
         };
         std::fs::create_dir_all(spill_dir)
             .map_err(|e| anyhow!("{}: cannot create the folder: {e}", spill_dir.display()))?;
-        let (mut m, report) = match &self.settings.tolerance {
+        let (mut m, report) = match &self.tolerance() {
             Some(t) => {
                 let reference = reference.as_ref().map(|r| &r.heights[..]);
                 let (m, r) =
