@@ -10,6 +10,8 @@ use iceoryx2_bb_derive_macros::ZeroCopySend;
 use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 use serde::{Deserialize, Serialize};
 
+use crate::{ParamError, Sampling, Shape};
+
 /// Versioned type name: two binaries with different header layouts refuse to connect.
 pub const FRAME_TYPE_NAME: &str = "surfstream.FrameHeader.v1";
 /// Versioned type name of [`TileRegistration`].
@@ -113,6 +115,16 @@ impl FrameHeader {
     }
     pub fn is_empty(&self) -> bool {
         self.len() == 0
+    }
+    /// Where the payload's samples lie: `height x width`, the pitch and the origin, checked
+    /// by [`Sampling::new`] (a marker has no payload: its pitch is 0, an error).
+    pub fn sampling(&self) -> Result<Sampling, ParamError> {
+        Sampling::new(
+            Shape::new(self.height as usize, self.width as usize),
+            self.pitch_x_um,
+            self.pitch_y_um,
+        )?
+        .with_origin(self.origin_x_um, self.origin_y_um)
     }
     /// The end-of-scan marker that closes a frame channel.
     pub fn end_of_scan(scan_id: u64, sequence: u64, tile_index: u32, t_acquired_ns: u64) -> Self {

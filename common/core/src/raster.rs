@@ -57,8 +57,9 @@ impl std::fmt::Display for Shape {
     }
 }
 
-/// Why samples and a shape do not make a raster.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+/// Why samples and a shape do not make a raster: the one shape error, which the crates' errors
+/// wrap (serde: a registration's rejection carries it into the matcher's report).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error, Serialize, Deserialize)]
 pub enum ShapeError {
     #[error("a {shape} (rows x cols) raster needs {expected} samples, found {found}")]
     Length {

@@ -16,6 +16,7 @@
 use std::fmt;
 
 use serde::{Deserialize, Serialize};
+use surfstream_core::raster::{Shape, ShapeError};
 use surfstream_wavelet::{
     dwt_max_level, fill_invalid, wavedec2, waverec2, Coeffs2, Mode, Wavelet, WaveletError,
 };
@@ -109,12 +110,16 @@ pub fn fuse_wavelet_in(
     a_beyond: impl Fn(isize, isize) -> bool,
 ) -> Result<Vec<f32>, WaveletError> {
     let n = rows * cols;
-    if a.len() != n || b.len() != n {
-        return Err(WaveletError::SizeMismatch {
-            len: a.len().min(b.len()),
-            rows,
-            cols,
-        });
+    for found in [a.len(), b.len()] {
+        if found != n {
+            let shape = Shape::new(rows, cols);
+            return Err(ShapeError::Length {
+                shape,
+                expected: n,
+                found,
+            }
+            .into());
+        }
     }
     let mut out: Vec<f32> = a
         .iter()

@@ -10,47 +10,17 @@ use thiserror::Error;
 
 /// Why an input was refused. Every public entry point validates its offsets and parameters
 /// first and reports one of these instead of panicking; a raster's shape was checked when its
-/// `RasterView` was built, and a `ShapeError` from there converts into the first two variants.
+/// `RasterView` was built, and the `ShapeError` from there is wrapped as it is.
 #[derive(Debug, Clone, PartialEq, Error, Serialize, Deserialize)]
 pub enum InputError {
-    #[error("raster has zero size ({height} x {width} px, rows x cols)")]
-    ZeroSize { width: usize, height: usize },
-    #[error(
-        "raster of {height} x {width} px (rows x cols) needs {expected} heights, got {actual}"
-    )]
-    SliceLength {
-        width: usize,
-        height: usize,
-        expected: usize,
-        actual: usize,
-    },
+    #[error("raster: {0}")]
+    Shape(#[from] ShapeError),
     #[error("offset ({x_px}, {y_px}) px is not finite")]
     NonFiniteOffset { x_px: f64, y_px: f64 },
     #[error("offset ({x_px}, {y_px}) px is too large to be a tile offset")]
     OffsetOutOfRange { x_px: f64, y_px: f64 },
     #[error("invalid parameter {name}: {reason}")]
     InvalidParameter { name: String, reason: String },
-}
-
-impl From<ShapeError> for InputError {
-    fn from(e: ShapeError) -> Self {
-        match e {
-            ShapeError::Empty(shape) => InputError::ZeroSize {
-                width: shape.cols,
-                height: shape.rows,
-            },
-            ShapeError::Length {
-                shape,
-                expected,
-                found,
-            } => InputError::SliceLength {
-                width: shape.cols,
-                height: shape.rows,
-                expected,
-                actual: found,
-            },
-        }
-    }
 }
 
 /// Checks that an offset in pixels is finite and small enough that integer arithmetic on it

@@ -33,6 +33,7 @@ use surfstream_core::record::{
     self, MatcherReport, MatcherTile, StreamingPlacement, TilePlacement,
 };
 use surfstream_core::store::{AppendLog, StoreError};
+use surfstream_core::{ParamError, Sampling};
 use thiserror::Error;
 
 use crate::global::{
@@ -92,12 +93,11 @@ pub struct ScanTile {
 impl ScanTile {
     /// Refuses a pitch or stage position that no placement can use.
     pub fn validate(&self) -> Result<(), ScanError> {
-        if !self.pitch_um.iter().all(|p| p.is_finite() && *p > 0.0) {
-            return Err(ScanError::BadPitch {
-                index: self.index,
-                pitch_um: self.pitch_um,
-            });
-        }
+        let [px, py] = self.pitch_um;
+        Sampling::new(self.heights.shape(), px, py).map_err(|source| ScanError::BadPitch {
+            index: self.index,
+            source,
+        })?;
         if !self.stage_um.iter().all(|v| v.is_finite()) {
             return Err(ScanError::BadStage {
                 index: self.index,
@@ -115,8 +115,8 @@ impl ScanTile {
 /// Why a tile or the scan could not be registered.
 #[derive(Debug, Error)]
 pub enum ScanError {
-    #[error("tile {index}: pitch {pitch_um:?} um, expected finite and > 0")]
-    BadPitch { index: u32, pitch_um: [f64; 2] },
+    #[error("tile {index}: {source}")]
+    BadPitch { index: u32, source: ParamError },
     #[error("tile {index}: stage position ({}, {}) um is not finite", stage_um[0], stage_um[1])]
     BadStage { index: u32, stage_um: [f64; 2] },
     #[error(

@@ -9,7 +9,7 @@
 mod support;
 
 use support::{make_pair, rough_pair, Pair, PairSpec};
-use surfstream_core::raster::{RasterView, Shape};
+use surfstream_core::raster::{RasterView, Shape, ShapeError};
 use surfstream_matcher::{
     register_pair, InputError, PairRegistration, PhaseCorrelator, PhaseParams, Rejection,
 };
@@ -358,17 +358,20 @@ fn bad_input_is_refused_with_a_reason() {
     assert!(
         matches!(
             e,
-            InputError::SliceLength {
+            InputError::Shape(ShapeError::Length {
                 expected: 4096,
-                actual: 4095,
+                found: 4095,
                 ..
-            }
+            })
         ),
         "{e:?}"
     );
     let refused = RasterView::<f32>::new(&[], Shape::new(10, 0)).expect_err("zero size");
     let e = InputError::from(refused);
-    assert!(matches!(e, InputError::ZeroSize { .. }), "{e:?}");
+    assert!(
+        matches!(e, InputError::Shape(ShapeError::Empty(_))),
+        "{e:?}"
+    );
     // Non-finite nominal offset.
     let rej = reason(
         raster(&good, w, w),

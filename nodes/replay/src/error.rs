@@ -32,19 +32,8 @@ pub enum ReplayError {
         limit: String,
     },
     /// A height buffer's length does not match its stated shape.
-    #[error(
-        "height buffer holds {len} values but {rows} x {cols} px (rows x cols) needs {expected}"
-    )]
-    ShapeMismatch {
-        /// Values present.
-        len: usize,
-        /// Stated rows (y).
-        rows: usize,
-        /// Stated columns (x).
-        cols: usize,
-        /// `rows * cols`.
-        expected: usize,
-    },
+    #[error("height buffer: {0}")]
+    Shape(#[from] surfstream_core::raster::ShapeError),
     /// The specimen does not match the scan plan (too small, or a different pixel pitch).
     #[error("specimen does not fit the scan plan: {0}")]
     SpecimenMismatch(String),

@@ -255,15 +255,7 @@ pub struct Specimen {
 impl Specimen {
     /// Wraps an existing height map (e.g. one loaded from a file), checking its shape and pitch.
     pub fn from_heights(heights: Vec<f32>, shape: Shape, pitch_um: f64) -> Result<Self> {
-        let expected = shape.checked_len();
-        if expected != Some(heights.len()) || shape.is_empty() {
-            return Err(ReplayError::ShapeMismatch {
-                len: heights.len(),
-                rows: shape.rows,
-                cols: shape.cols,
-                expected: expected.unwrap_or(usize::MAX),
-            });
-        }
+        shape.check(heights.len())?;
         check_positive("pitch_um", pitch_um)?;
         Ok(Self {
             heights,

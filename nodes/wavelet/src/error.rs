@@ -1,22 +1,15 @@
 //! The crate's error type: every bad size or argument is reported, never a panic.
 
+use surfstream_core::raster::{Shape, ShapeError};
 use thiserror::Error;
 
 /// What can go wrong in this crate. All variants come from the caller's arguments (sizes,
 /// levels, coefficient shapes, all-NaN maps); the algorithms themselves do not fail.
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
 pub enum WaveletError {
-    /// A raster has a zero dimension.
-    #[error("empty raster: {rows} x {cols}")]
-    Empty { rows: usize, cols: usize },
-
-    /// The buffer length does not equal `rows * cols` (or `rows * cols` overflows).
-    #[error("buffer holds {len} values but the raster is {rows} x {cols}")]
-    SizeMismatch {
-        len: usize,
-        rows: usize,
-        cols: usize,
-    },
+    /// A raster has a zero dimension, or its buffer does not hold `rows * cols` values.
+    #[error(transparent)]
+    Shape(#[from] ShapeError),
 
     /// The map is too small for even one useful decomposition level with this wavelet: its
     /// smaller side must be at least `2 * (filter_len - 1)` samples (`dwt_max_level >= 1`).
@@ -53,11 +46,5 @@ pub type Result<T> = std::result::Result<T, WaveletError>;
 
 /// Check that `len == rows * cols` and that neither dimension is zero.
 pub(crate) fn check_raster(len: usize, rows: usize, cols: usize) -> Result<()> {
-    if rows == 0 || cols == 0 {
-        return Err(WaveletError::Empty { rows, cols });
-    }
-    match rows.checked_mul(cols) {
-        Some(n) if n == len => Ok(()),
-        _ => Err(WaveletError::SizeMismatch { len, rows, cols }),
-    }
+    Ok(Shape::new(rows, cols).check(len)?)
 }

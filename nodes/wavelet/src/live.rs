@@ -702,7 +702,8 @@ pub fn final_separation_with(
             )
         }
         (method, _) => {
-            let s = Sampling::new(Shape::new(rows, cols), h.pitch_x_um, h.pitch_y_um)
+            let s = h
+                .sampling()
                 .map_err(FilterError::from)
                 .and_then(|grid| {
                     filter_separation(panorama.heights, grid, method, settings.lambda_s_um)

@@ -20,6 +20,7 @@
 //! finite value is an error.
 
 use rayon::prelude::*;
+use surfstream_core::raster::{Shape, ShapeError};
 
 use crate::dwt::lowpass_final;
 use crate::error::{check_raster, Result, WaveletError};
@@ -52,7 +53,7 @@ pub fn default_level(
     requested: Option<usize>,
 ) -> Result<usize> {
     if rows == 0 || cols == 0 {
-        return Err(WaveletError::Empty { rows, cols });
+        return Err(ShapeError::Empty(Shape::new(rows, cols)).into());
     }
     let flen = wavelet.filter_len();
     let max = dwt_max_level(rows.min(cols), flen);
