@@ -521,7 +521,9 @@ mod tests {
         run["stages"]["mesher"]["tolerance"] = json!({
             "tolerance": { "sa_pct": 1.0, "sq_pct": 1.0, "sz_pct": 3.0 },
             "met": false, "surface_triangles": 1200, "triangles_per_measured_px": 0.012,
-            "angles": { "min_angle_deg": 1.047, "bound_deg": 1.0 },
+            "angles": { "min_angle_deg": 1.047, "bound_deg": 1.0, "min_angle_before_deg": 0.168,
+                "below_bound_before": 37, "below_bound": 0, "triangles_before": 1150,
+                "triangles": 1200 },
             "regions": 5,
             "region_fits": [{ "region": "W1.2", "deviation_pct": [-1.5, -1.2, 0.0],
                 "residual_pct_of_sq": 31.0 }],
