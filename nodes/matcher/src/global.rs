@@ -484,17 +484,29 @@ pub fn solve_positions_anisotropic(
 /// direction, an anisotropic one along its measured direction in proportion to its
 /// information there (a rank-1 link adds `n n^T`).
 fn directions(n: usize, edges: &[Edge], kept: &[bool]) -> (Vec<u8>, Vec<Option<[f64; 2]>>) {
+    // Tiles joined by kept full links move as one group: a full link to a partner that is
+    // itself free fixes nothing relative to the scan (two tiles linked to each other, hanging
+    // from the rest by ridges of one direction, are free along them together). So the
+    // directions are counted per group, from the ridge links that leave it; the largest group
+    // (of two or more tiles; ties: the one holding the lowest tile) is the scan's frame.
+    let group = full_link_groups(n, edges, kept);
+    let mut size = vec![0usize; n];
+    for &g in &group {
+        size[g] += 1;
+    }
+    let frame = (0..n)
+        .filter(|&t| size[group[t]] >= 2)
+        .max_by(|&a, &b| size[group[a]].cmp(&size[group[b]]).then(b.cmp(&a)))
+        .map(|t| group[t]);
     let mut sum = vec![[[0.0f64; 2]; 2]; n];
-    let mut full = vec![false; n];
-    for (e, _) in edges.iter().zip(kept).filter(|(_, &k)| k) {
-        for t in [e.a, e.b] {
-            if e.isotropic {
-                full[t] = true;
-            } else {
-                for (row, info) in sum[t].iter_mut().zip(&e.info) {
-                    for (v, i) in row.iter_mut().zip(info) {
-                        *v += i / e.w_strong;
-                    }
+    for (e, _) in edges.iter().zip(kept).filter(|(e, &k)| k && !e.isotropic) {
+        if group[e.a] == group[e.b] {
+            continue;
+        }
+        for g in [group[e.a], group[e.b]] {
+            for (row, info) in sum[g].iter_mut().zip(&e.info) {
+                for (v, i) in row.iter_mut().zip(info) {
+                    *v += i / e.w_strong;
                 }
             }
         }
@@ -502,12 +514,12 @@ fn directions(n: usize, edges: &[Edge], kept: &[bool]) -> (Vec<u8>, Vec<Option<[
     let mut dirs = Vec::with_capacity(n);
     let mut stage_dir = Vec::with_capacity(n);
     for t in 0..n {
-        if full[t] {
+        if Some(group[t]) == frame {
             dirs.push(2);
             stage_dir.push(None);
             continue;
         }
-        let ([hi, lo], v) = eigen2(sum[t]);
+        let ([hi, lo], v) = eigen2(sum[group[t]]);
         if lo >= MIN_DIRECTION_STRENGTH {
             dirs.push(2);
             stage_dir.push(None);
@@ -521,6 +533,24 @@ fn directions(n: usize, edges: &[Edge], kept: &[bool]) -> (Vec<u8>, Vec<Option<[
         }
     }
     (dirs, stage_dir)
+}
+
+/// Per tile, the smallest tile index of its group: the tiles joined by kept full links.
+fn full_link_groups(n: usize, edges: &[Edge], kept: &[bool]) -> Vec<usize> {
+    fn root(parent: &mut [usize], mut t: usize) -> usize {
+        while parent[t] != t {
+            parent[t] = parent[parent[t]];
+            t = parent[t];
+        }
+        t
+    }
+    let mut parent: Vec<usize> = (0..n).collect();
+    for (e, _) in edges.iter().zip(kept).filter(|(e, &k)| k && e.isotropic) {
+        let (a, b) = (root(&mut parent, e.a), root(&mut parent, e.b));
+        // The smaller index is the root, so a group is named by its lowest tile.
+        parent[a.max(b)] = a.min(b);
+    }
+    (0..n).map(|t| root(&mut parent, t)).collect()
 }
 
 /// A pair the pairwise test found ambiguous (several distinct, equally good NCC maxima, as on
@@ -1471,6 +1501,42 @@ mod tests {
         // along, and the link's normal is 1 degree off the fixed direction).
         assert!((p[0] - 50.0).abs() < 0.1, "{p:?}");
         assert!((p[1] - 100.0).abs() < 0.1, "{p:?}");
+    }
+
+    #[test]
+    fn a_linked_pair_hanging_by_ridges_of_one_direction_is_free_along_them() {
+        // Tiles 0-1 and 2-3 are two groups joined inside by full links; between the groups
+        // only ridge links of one scratch along x (normals along y: they fix y). Tiles 2 and 3
+        // have a full link each, yet nothing fixes the group along x: both are reported with
+        // one direction, x left to the stage (sur-3 cut at 20 %, docs/registration.md).
+        let truth = vec![[0.0, 0.0], [100.0, 0.0], [0.0, 97.0], [100.0, 97.0]];
+        let stage = vec![[0.0, 0.0], [100.0, 0.0], [4.0, 100.0], [104.0, 100.0]];
+        let full = |a, b| Link {
+            a,
+            b,
+            offset_px: rel(&truth, a, b),
+            sigma_px: 0.05,
+        };
+        let ridges = [
+            AnisotropicLink::across(0, 2, rel(&truth, 0, 2), [0.0, 1.0], 0.05),
+            AnisotropicLink::across(1, 3, rel(&truth, 1, 3), [0.0, 1.0], 0.05),
+        ];
+        let sol = solve_positions_anisotropic(
+            &stage,
+            &[full(0, 1), full(2, 3)],
+            &ridges,
+            &SolveParams::default(),
+        )
+        .unwrap();
+        assert_eq!(sol.registered_directions, vec![2, 2, 1, 1]);
+        assert_eq!(sol.linked, vec![true, true, false, false]);
+        for t in [2, 3] {
+            let d = sol.stage_direction[t].expect("the free direction");
+            assert!(d[0].abs() > 0.99, "free along x: {d:?}");
+        }
+        // y is fixed by the ridges (97, not the stage's 100).
+        let p = rel(&sol.positions_px, 0, 2);
+        assert!((p[1] - 97.0).abs() < 0.1, "{p:?}");
     }
 
     #[test]
