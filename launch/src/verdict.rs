@@ -181,6 +181,20 @@ fn fallback_hint(fallback: &[&TileRecord], tiles: usize) -> String {
         (false, true) => "some tiles (the anchor too) were",
         (false, false) => "some tiles were",
     };
+    // Tiles whose links fix one direction: the layout is right, the texture is a lay or a
+    // scratch that fixes nothing along itself.
+    let one_direction = fallback.iter().all(|t| {
+        t.placement
+            .as_ref()
+            .is_some_and(|p| p.registered_directions == Some(1))
+    });
+    if one_direction {
+        return format!(
+            "{share} registered across a ridge only (a lay or a scratch seen in every overlap \
+             they share): the stage placed them along it (run.json's stage_direction); more \
+             overlap or a feature off the ridge fixes them"
+        );
+    }
     format!(
         "{share} not registered: check the layout: a serpentine scan stitched without \
          --serpentine (or with it, when rows all run one way), a wrong --overlap, or the \
@@ -574,6 +588,22 @@ mod tests {
             t.contains("roughness Sa +20.17 % beyond the tolerance of 5 %"),
             "{t}"
         );
+    }
+
+    /// A tile the stage placed along a ridge (its links fix one direction) gets the ridge
+    /// hint, not the layout one: the layout is right.
+    #[test]
+    fn a_tile_placed_along_a_ridge_gets_the_ridge_hint() {
+        let mut run = run_json(true, true);
+        run["tiles"][1]["registered_directions"] = json!(1);
+        run["tiles"][1]["stage_direction"] = json!([1.0, 0.0]);
+        let v = verdict(&record(run), Path::new("/o"), false);
+        let t = &v.text;
+        assert!(t.contains("registered across a ridge only"), "{t}");
+        assert!(!t.contains("--serpentine"), "{t}");
+        // Without the direction count the layout hint stays.
+        let v = verdict(&record(run_json(true, true)), Path::new("/o"), false);
+        assert!(v.text.contains("--serpentine"), "{}", v.text);
     }
 
     /// A pair accepted below min_ncc as a distinct peak is named, and is not a failure.
