@@ -14,6 +14,7 @@ use super::surfaces::Surfaces;
 pub fn section(run: &RunRecord, surfaces: &Surfaces) -> String {
     let mut h = String::new();
     verdict(&mut h, run.deviation.as_ref());
+    stage_placed(&mut h, run);
     let scan = run.scan.as_ref();
     let mut rows: Vec<(String, Vec<String>)> = Vec::new();
     let mut row = |k: &str, v: String| rows.push((String::new(), vec![esc(k), v]));
@@ -167,6 +168,33 @@ fn mesh(run: &RunRecord) -> Option<String> {
     )))
 }
 
+/// Tiles the stage placed (no registration, or one direction only): a banner of their own,
+/// since the run's verdict fails on them whatever Table 6 says.
+fn stage_placed(h: &mut String, run: &RunRecord) {
+    let tiles: Vec<String> = run
+        .tiles
+        .iter()
+        .filter(|t| t.placement.as_ref().is_some_and(|p| p.placed_by == "stage"))
+        .map(|t| {
+            format!(
+                "tile {} (row {} x col {})",
+                t.source.index, t.source.row, t.source.col
+            )
+        })
+        .collect();
+    if tiles.is_empty() {
+        return;
+    }
+    let _ = write!(
+        h,
+        "<div class=\"verdict fail\"><b>FAIL</b>: {} tile(s) placed by the stage position, not \
+         (or in one direction only) by registration: {}. Their place in the panorama is as good \
+         as the stage (Tile layout below).</div>",
+        tiles.len(),
+        esc(&tiles.join(", "))
+    );
+}
+
 /// The Table-6 verdict as a banner: pass, or which stage failed where and by how much.
 fn verdict(h: &mut String, dev: Option<&DeviationRecord>) {
     let dev = match dev {
@@ -184,19 +212,50 @@ fn verdict(h: &mut String, dev: Option<&DeviationRecord>) {
     };
     let e = dev.threshold_pct;
     let judged: Vec<&str> = dev.judged.iter().map(String::as_str).collect();
+    // A stage's limits: the threshold, or the model's tolerance (the mesh made from one).
+    let limits = |st: &surfstream_core::record::StageDeviation| {
+        let l: Vec<f64> = judged.iter().filter_map(|p| st.limits_pct.get(p)).collect();
+        if l.iter().all(|&v| v == e) {
+            format!("±{} %", fixed(e, 1))
+        } else {
+            let parts: Vec<String> = judged
+                .iter()
+                .filter_map(|p| st.limits_pct.get(p).map(|v| format!("{p} {v} %")))
+                .collect();
+            format!("its tolerance ({})", parts.join(", "))
+        }
+    };
     if dev.pass {
-        let _ = write!(
-            h,
-            "<div class=\"verdict pass\"><b>PASS</b>: every model stage is within ±{} % of the \
-             measurement for {} in every region (Table 6 below).</div>",
-            fixed(e, 1),
-            judged.join(", ")
-        );
+        let mesh = dev
+            .stages
+            .get("mesh")
+            .filter(|m| m.judged)
+            .map(|m| limits(m))
+            .filter(|l| !l.starts_with('±'));
+        let _ = match mesh {
+            Some(l) => write!(
+                h,
+                "<div class=\"verdict pass\"><b>PASS</b>: the mesh is within {l} and every other \
+                 judged model stage within ±{} % of the measurement for {} in every region \
+                 (Table 6 below).</div>",
+                fixed(e, 1),
+                judged.join(", ")
+            ),
+            None => write!(
+                h,
+                "<div class=\"verdict pass\"><b>PASS</b>: every model stage is within ±{} % of \
+                 the measurement for {} in every region (Table 6 below).</div>",
+                fixed(e, 1),
+                judged.join(", ")
+            ),
+        };
         return;
     }
     let mut reasons = Vec::new();
     for (stage, st) in &dev.stages {
-        if st.pass {
+        // A stage reported but not judged (the pooled map when the STL is not made from it)
+        // is not a reason.
+        if st.pass || !st.judged {
             continue;
         }
         let mut worst: Option<(String, String, f64)> = None;
@@ -216,10 +275,10 @@ fn verdict(h: &mut String, dev: Option<&DeviationRecord>) {
         let grid = &st.grid.name;
         reasons.push(match worst {
             Some((region, p, d)) => format!(
-                "<b>{}</b> ({}): {failed} region(s) outside ±{} %, worst {p} {} % in {}",
+                "<b>{}</b> ({}): {failed} region(s) outside {}, worst {p} {} % in {}",
                 esc(stage),
                 esc(grid),
-                fixed(e, 1),
+                limits(st),
                 signed(d, 1),
                 esc(&region)
             ),
@@ -228,9 +287,8 @@ fn verdict(h: &mut String, dev: Option<&DeviationRecord>) {
     }
     let _ = write!(
         h,
-        "<div class=\"verdict fail\"><b>FAIL</b>: the model deviates from the measurement by \
-         more than ±{} % in {} (Table 6 below):<ul>",
-        fixed(e, 1),
+        "<div class=\"verdict fail\"><b>FAIL</b>: the model deviates from the measurement \
+         beyond its limits in {} (Table 6 below):<ul>",
         judged.join(" / ")
     );
     for r in reasons {
@@ -258,7 +316,7 @@ pub fn key_parameters(s: &Surfaces) -> String {
             s.functional[1],
         ),
         (
-            "pooled map (model)",
+            "pooled map",
             s.pooled.as_ref(),
             s.params[2],
             s.functional[2],
