@@ -230,7 +230,7 @@ fn verdict(h: &mut String, dev: Option<&DeviationRecord>) {
             .stages
             .get("mesh")
             .filter(|m| m.judged)
-            .map(|m| limits(m))
+            .map(&limits)
             .filter(|l| !l.starts_with('±'));
         let _ = match mesh {
             Some(l) => write!(
