@@ -219,15 +219,7 @@ pub(crate) fn mesh_streaming_with(
     spill_dir: &Path,
     keep_extremes: bool,
 ) -> Result<StreamedMesh> {
-    validate(heights, at)?;
-    params.solid.validate()?;
-    if params.kind == MeshKind::Solid && params.missing == MissingSamples::Holes {
-        return Err(MeshError::Incompatible(
-            "a solid needs a closed top surface: missing samples must be filled (use a sheet \
-             to keep them as holes)"
-                .into(),
-        ));
-    }
+    crate::adaptive::check_adaptive(heights, at, params)?;
     // The field's plane and parameters, once (the in-memory mesher computes them twice, the
     // same way); one f64 copy of the field while it runs.
     let level = level_field(heights, at.pitch_x_um, at.pitch_y_um);

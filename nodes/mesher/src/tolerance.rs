@@ -913,6 +913,8 @@ struct SearchSetup<'a> {
     regions: Vec<Window>,
     p: MeshParams,
     plan: BlockPlan<'a>,
+    /// The angle bound every checkpoint's mesh is refined to (an engine's; `None`: none).
+    bound: Option<AngleBound>,
 }
 
 fn search_setup<'a>(
@@ -930,6 +932,7 @@ fn search_setup<'a>(
         p.block_samples = Some(balance_block_px(&settings));
     }
     let plan = order_plan(heights, &p, sq)?;
+    let bound = angle_bound(&settings, at)?;
     Ok(SearchSetup {
         sq,
         measured_px,
@@ -937,7 +940,25 @@ fn search_setup<'a>(
         regions,
         p,
         plan,
+        bound,
     })
+}
+
+/// The regions of one checkpoint's mesh (`resampled_um`, on the grid of `heights`), the
+/// roughness it carries judged too when the measured roughness is given.
+fn judge_checkpoint(
+    heights: RasterView<'_, f32>,
+    resampled_um: &[f32],
+    roughness_um: Option<&[f32]>,
+    regions: &[Window],
+) -> Vec<RegionFit> {
+    judge_regions(
+        heights.values(),
+        resampled_um,
+        roughness_um,
+        heights.shape(),
+        regions,
+    )
 }
 
 /// The adaptive mesh of `heights` with the fewest triangles the search finds within the
@@ -957,9 +978,9 @@ pub fn mesh_to_tolerance(
         regions,
         mut p,
         plan,
+        bound,
     } = search_setup(heights, at, params, settings)?;
     let settings = &settings;
-    let bound = angle_bound(settings, at)?;
     let mut live = Vec::new();
     search(
         sq,
@@ -975,13 +996,7 @@ pub fn mesh_to_tolerance(
             drop(meshed);
             p.epsilon = Epsilon::Um(eps);
             let m = finish_adaptive(heights, at, &p, &tin, eps)?;
-            let fits = judge_regions(
-                heights.values(),
-                &m.resampled_um,
-                roughness_um,
-                heights.shape(),
-                &regions,
-            );
+            let fits = judge_checkpoint(heights, &m.resampled_um, roughness_um, &regions);
             Ok(Trial {
                 surface_triangles: m.surface_triangles,
                 fits,
@@ -1010,9 +1025,9 @@ pub fn mesh_streaming_to_tolerance(
         regions,
         mut p,
         plan,
+        bound,
     } = search_setup(heights, at, params, settings)?;
     let settings = &settings;
-    let bound = angle_bound(settings, at)?;
     let level = field_level(heights, at);
     let mut live = Vec::new();
     search(
@@ -1029,13 +1044,7 @@ pub fn mesh_streaming_to_tolerance(
             let m = stream_blocks(heights, at, &p, spill_dir, &plan, level, eps, &|k| {
                 blocks[k].snapshot()
             })?;
-            let fits = judge_regions(
-                heights.values(),
-                &m.resampled_um,
-                roughness_um,
-                heights.shape(),
-                &regions,
-            );
+            let fits = judge_checkpoint(heights, &m.resampled_um, roughness_um, &regions);
             Ok(Trial {
                 surface_triangles: m.counts.top_triangles,
                 fits,
