@@ -251,7 +251,7 @@ fn mesh_line(run: &RunRecord) -> Option<String> {
         count(m.vertices),
         m.units,
     );
-    if let Some(fid) = m.adaptive.map(|a| a.fidelity) {
+    if let Some(fid) = m.adaptive().map(|a| a.fidelity) {
         let (max, eps) = (fid.error.max_um, fid.epsilon_um);
         if !max.is_nan() && !eps.is_nan() {
             let _ = write!(

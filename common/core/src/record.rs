@@ -487,8 +487,11 @@ pub struct ToleranceRecord {
 pub struct AngleRecord {
     /// The bound, degrees.
     pub bound_deg: f64,
-    /// Smallest angle of any triangle before and after the refinement, degrees.
+    /// Smallest angle of any triangle before and after the refinement, degrees (null: no
+    /// triangle).
+    #[serde(deserialize_with = "nan_if_null")]
     pub min_angle_before_deg: f64,
+    #[serde(deserialize_with = "nan_if_null")]
     pub min_angle_deg: f64,
     /// Triangles below the bound before and after.
     pub below_bound_before: u64,
@@ -530,6 +533,75 @@ pub struct AdaptiveMeshRecord {
     pub missing: String,
     pub budget_reached: bool,
     pub fidelity: MeshFidelity,
+    /// With an angle bound (an engine's target): the element quality of the mesh written, as
+    /// the engines' grid sheets report theirs.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub element_quality: Option<AngleQuality>,
+}
+
+/// The angle bound's outcome as element quality (an adaptive mesh's `element_quality`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct AngleQuality {
+    #[serde(deserialize_with = "nan_if_null")]
+    pub min_angle_deg: f64,
+    pub min_angle_bound_deg: f64,
+    pub below_bound: u64,
+}
+
+impl From<&AngleRecord> for AngleQuality {
+    fn from(a: &AngleRecord) -> Self {
+        Self {
+            min_angle_deg: a.min_angle_deg,
+            min_angle_bound_deg: a.bound_deg,
+            below_bound: a.below_bound,
+        }
+    }
+}
+
+/// The element quality of an engine's regular-grid sheet (its `element_quality`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ElementQuality {
+    /// Smallest interior angle of any triangle, degrees.
+    pub min_angle_deg: f64,
+    /// Most triangles sharing one vertex.
+    pub max_triangles_per_vertex: u64,
+    /// Triangles with the same three vertices as another.
+    pub duplicate_triangles: u64,
+}
+
+/// What block averaging cost an engine's grid sheet: Sa, Sq, Sz, Sdr of the measured field and
+/// of the meshed grid.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct GridSheetFidelity {
+    pub measured: Option<LevelledParams>,
+    pub meshed_grid: Option<LevelledParams>,
+}
+
+/// What an engine's regular-grid sheet (a target with `method = "grid"`) adds to the mesher's
+/// report.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GridSheetRecord {
+    /// "sheet".
+    pub kind: String,
+    /// Side of the blocks averaged into one grid sample.
+    pub block_stride: u64,
+    /// The meshed grid, [rows, cols].
+    pub grid_rows_cols: [u64; 2],
+    /// Sample spacing of the meshed grid, um (x, y).
+    pub meshed_pitch_um: [f64; 2],
+    pub element_quality: ElementQuality,
+    pub fidelity: GridSheetFidelity,
+}
+
+/// The method's own part of the mesher's report, keyed beside the common fields: an adaptive
+/// mesh or an engine's grid sheet (the full-grid solid has none). Untagged and flattened: the
+/// two share key names (`kind`, `fidelity`) with different contents, and an untagged enum tries
+/// each layout on every key, where a flattened struct would take the keys it knows.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum MeshMethodRecord {
+    Adaptive(AdaptiveMeshRecord),
+    GridSheet(GridSheetRecord),
 }
 
 /// The mesher's report.
@@ -572,12 +644,23 @@ pub struct MeshReport {
     pub target: Option<Value>,
     /// "adaptive" or "grid".
     pub method: String,
+    /// The adaptive mesh's or the engine grid sheet's own fields.
     #[serde(flatten)]
-    pub adaptive: Option<AdaptiveMeshRecord>,
+    pub method_record: Option<MeshMethodRecord>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tolerance: Option<ToleranceRecord>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub outliers: Option<OutliersRecord>,
+}
+
+impl MeshReport {
+    /// The adaptive mesh's part (None for a grid).
+    pub fn adaptive(&self) -> Option<&AdaptiveMeshRecord> {
+        match &self.method_record {
+            Some(MeshMethodRecord::Adaptive(a)) => Some(a),
+            _ => None,
+        }
+    }
 }
 
 // ---------------------------------------------------------------------------------------
@@ -958,7 +1041,7 @@ mod tests {
     fn a_grid_mesh_has_no_adaptive_part_and_an_adaptive_one_reads_its_fidelity() {
         let g = grid_mesh();
         let m: MeshReport = from_value(&g, "mesher").unwrap();
-        assert!(m.adaptive.is_none() && m.tolerance.is_none() && m.outliers.is_none());
+        assert!(m.adaptive().is_none() && m.tolerance.is_none() && m.outliers.is_none());
         assert_eq!(to_value(&m), g);
         let mut a = grid_mesh();
         let extra = json!({ "method": "adaptive", "kind": "solid", "offset_rule": "r",
@@ -979,7 +1062,7 @@ mod tests {
             a[k] = v.clone();
         }
         let m: MeshReport = from_value(&a, "mesher").unwrap();
-        let f = m.adaptive.as_ref().unwrap().fidelity;
+        let f = m.adaptive().unwrap().fidelity;
         assert!(f.error.max_um.is_nan() && f.mesh.unwrap().sdr_percent.is_nan());
         assert!(m.tolerance.as_ref().unwrap().region_fits[0].measured_um[2].is_nan());
         assert_eq!(to_value(&m), a);

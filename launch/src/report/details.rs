@@ -126,7 +126,7 @@ pub fn mesh(run: &RunRecord) -> String {
     let Some(m) = run.stage::<MeshReport>() else {
         return String::new();
     };
-    let adaptive = m.adaptive.as_ref();
+    let adaptive = m.adaptive();
     // Each fact as the page showed the report's value ("-": not in this mesher's report).
     let shown = |v: Option<Value>| v.map_or("-".into(), |v| num(&v));
     let mut h = String::from("<section id=\"mesh\"><h2>Mesh</h2><div class=\"flex\">");
