@@ -218,13 +218,95 @@ pub struct MatcherTile {
     pub placement: TilePlacement,
 }
 
+/// A one-direction answer of a refused pair (its NCC ridge fixes one direction).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DirectionalPair {
+    pub offset_px: [f64; 2],
+    /// The unit direction the ridge fixes.
+    pub normal: [f64; 2],
+    pub curvature_per_px2: [f64; 2],
+    #[serde(deserialize_with = "nan_if_null")]
+    pub ncc: f64,
+    /// After the global solve, when it took the link.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kept_by_global_solve: Option<bool>,
+    #[serde(
+        default,
+        deserialize_with = "some_nan_array",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub residual_px: Option<[f64; 2]>,
+}
+
+/// One neighbour pair's registration and outcome (the matcher's `pairs`, run.json's `pairs`):
+/// what streaming found, and what the global solve made of it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MatcherPair {
+    /// Tile indices.
+    pub a: u32,
+    pub b: u32,
+    /// "horizontal" or "vertical".
+    pub direction: String,
+    /// b's offset from a by the stage, px.
+    pub nominal_offset_px: [f64; 2],
+    /// b's offset from a by the registration (null: refused).
+    pub offset_px: Option<[f64; 2]>,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub ncc: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub peak_ratio: f64,
+    pub accepted: bool,
+    /// Why the pair was refused (null: accepted).
+    pub reason: Option<String>,
+    /// Accepted as a distinct peak below the matcher's min_ncc (only written when true).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub accepted_below_min_ncc: bool,
+    /// The feature matcher's diagnostics (feature methods only; the matcher's own layout).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub features: Option<Value>,
+    /// After the global solve: b's offset from a in the final placement, px.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub final_offset_px: Option<[f64; 2]>,
+    /// Height-difference samples of the overlap used by the plane solve.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub z_samples: Option<u64>,
+    /// An ambiguous pair's candidate offsets, and the one the global solve took (null: none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alternatives_px: Option<Vec<[f64; 2]>>,
+    #[serde(
+        default,
+        deserialize_with = "present",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub chosen_alternative: Option<Option<u64>>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub directional: Option<DirectionalPair>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kept_by_global_solve: Option<bool>,
+    /// (p_b - p_a) - offset in the final solution, px (links the solve took).
+    #[serde(
+        default,
+        deserialize_with = "some_nan_array",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub residual_px: Option<[f64; 2]>,
+}
+
+/// Reads a key that is present, null or not: `Some(None)` for null (absent: the default,
+/// `None`), so that it is written back as it was.
+fn present<'de, D: Deserializer<'de>, T: Deserialize<'de>>(
+    d: D,
+) -> Result<Option<Option<T>>, D::Error> {
+    Option::<T>::deserialize(d).map(Some)
+}
+
 /// The matcher's report.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MatcherReport {
     pub method: String,
     pub tiles: Vec<MatcherTile>,
-    /// Every neighbour pair's registration and outcome (the matcher's own diagnostics).
-    pub pairs: Vec<Value>,
+    /// Every neighbour pair's registration and outcome.
+    pub pairs: Vec<MatcherPair>,
     /// The global solve's summary (null until the end of scan).
     pub global: Value,
 }
@@ -857,7 +939,7 @@ pub struct RunRecord {
     pub scan: Option<ScanRecord>,
     pub tiles: Vec<TileRecord>,
     /// The matcher's pairs.
-    pub pairs: Vec<Value>,
+    pub pairs: Vec<MatcherPair>,
     pub latency_ms: LatencySummary,
     pub messages: BTreeMap<String, MessageCounts>,
     /// Each node's report by node id.
