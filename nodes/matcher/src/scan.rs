@@ -30,7 +30,8 @@ use serde_json::json;
 use surfstream_core::frame::{flags, placed_by, TileRegistration};
 use surfstream_core::raster::{Raster, RasterView, Shape};
 use surfstream_core::record::{
-    self, MatcherReport, MatcherTile, StreamingPlacement, TilePlacement,
+    self, DirectionalPair, MatcherPair, MatcherReport, MatcherTile, StreamingPlacement,
+    TilePlacement,
 };
 use surfstream_core::store::{AppendLog, StoreError};
 use surfstream_core::{ParamError, Sampling};
@@ -166,7 +167,7 @@ struct PairRecord {
     directional: Option<DirectionalOffset>,
     /// The feature matcher's outcome (methods "harris", "sift").
     features: Option<FeatureRegistration>,
-    report: serde_json::Value,
+    report: MatcherPair,
 }
 
 /// Candidate positions of a new tile, um, weighted: one per neighbour.
@@ -195,7 +196,7 @@ pub struct ScanRegistration {
     by_grid: BTreeMap<(u32, u32), usize>,
     pairs: Vec<PairRecord>,
     tiles_report: Vec<MatcherTile>,
-    pairs_report: Vec<serde_json::Value>,
+    pairs_report: Vec<MatcherPair>,
     global_report: serde_json::Value,
 }
 
@@ -675,38 +676,40 @@ impl ScanRegistration {
         for (k, p) in self.pairs.iter().enumerate() {
             let mut r = p.report.clone();
             if let Some(f) = &p.features {
-                r["features"] = f.report(feature_truth.next().flatten().as_ref());
+                r.features = Some(f.report(feature_truth.next().flatten().as_ref()));
             }
-            let final_offset = [
+            r.final_offset_px = Some([
                 g.positions_px[p.b][0] - g.positions_px[p.a][0],
                 g.positions_px[p.b][1] - g.positions_px[p.a][1],
-            ];
-            r["final_offset_px"] = json!(final_offset);
-            r["z_samples"] = json!(planes.samples[k]);
+            ]);
+            r.z_samples = Some(planes.samples[k] as u64);
             if let Some(i) = g.ambiguous_pairs.iter().position(|&a| a == k) {
                 // An ambiguous pair: its candidate offsets, and the one the global solve took.
-                r["alternatives_px"] = json!(p.alternatives);
-                r["chosen_alternative"] = json!(g.chosen[i]);
+                r.alternatives_px = Some(p.alternatives.clone());
+                r.chosen_alternative = Some(g.chosen[i].map(|c| c as u64));
             }
             if let Some(d) = &p.directional {
-                let mut dj = json!({
-                    "offset_px": d.offset_px, "normal": d.normal,
-                    "curvature_per_px2": d.curvature_per_px2, "ncc": d.ncc,
+                let outcome = g
+                    .directional_pairs
+                    .iter()
+                    .position(|&a| a == k)
+                    .map(|li| g.sol.anisotropic_links[li]);
+                r.directional = Some(DirectionalPair {
+                    offset_px: d.offset_px,
+                    normal: d.normal,
+                    curvature_per_px2: d.curvature_per_px2,
+                    ncc: d.ncc,
+                    kept_by_global_solve: outcome.map(|o| o.kept),
+                    residual_px: outcome.map(|o| o.residual_px),
                 });
-                if let Some(li) = g.directional_pairs.iter().position(|&a| a == k) {
-                    let o = g.sol.anisotropic_links[li];
-                    dj["kept_by_global_solve"] = json!(o.kept);
-                    dj["residual_px"] = json!(o.residual_px);
-                }
-                r["directional"] = dj;
             }
-            if let Some(li) = g.link_pairs.iter().position(|&a| a == k) {
-                let o = g.sol.links[li];
-                r["kept_by_global_solve"] = json!(o.kept);
-                r["residual_px"] = json!(o.residual_px);
-            } else {
-                r["kept_by_global_solve"] = json!(false);
-            }
+            let outcome = g
+                .link_pairs
+                .iter()
+                .position(|&a| a == k)
+                .map(|li| g.sol.links[li]);
+            r.kept_by_global_solve = Some(outcome.is_some_and(|o| o.kept));
+            r.residual_px = outcome.map(|o| o.residual_px);
             self.pairs_report.push(r);
         }
         Ok(feature_summary)
@@ -732,7 +735,7 @@ type LinkRecord = (
     Vec<[f64; 2]>,
     Option<DirectionalOffset>,
     Option<FeatureRegistration>,
-    serde_json::Value,
+    MatcherPair,
 );
 
 /// Registers the new tile `t` against the placed tile `a` (its heights `a_heights`): the
@@ -768,7 +771,7 @@ fn register_link(
     let mut report = pair_report(&a.tile, t, nominal, &r, features.as_ref());
     if features.is_none() && r.offset_px.is_some() && r.ncc < params.phase.min_ncc {
         // Accepted as a distinct peak below min_ncc (PhaseParams::min_ncc_distinct): said so.
-        report["accepted_below_min_ncc"] = json!(true);
+        report.accepted_below_min_ncc = true;
     }
     let stage_vote = (
         1.0,
@@ -900,25 +903,36 @@ fn pair_report(
     nominal: [f64; 2],
     r: &PairRegistration,
     features: Option<&FeatureRegistration>,
-) -> serde_json::Value {
+) -> MatcherPair {
     let direction = if a.row == b.row {
         "horizontal"
     } else {
         "vertical"
     };
-    let mut report = json!({
-        "a": a.index, "b": b.index, "direction": direction,
-        "nominal_offset_px": nominal,
-        "offset_px": r.offset_px,
-        "ncc": r.ncc, "peak_ratio": r.peak_ratio,
-        "accepted": r.offset_px.is_some(),
-        "reason": r.rejection.as_ref().map(|e| e.to_string()),
-    });
-    if let Some(f) = features {
-        report["reason"] = json!(f.reason());
-        report["features"] = f.report(None);
+    let (reason, features) = match features {
+        Some(f) => (f.reason(), Some(f.report(None))),
+        None => (r.rejection.as_ref().map(|e| e.to_string()), None),
+    };
+    MatcherPair {
+        a: a.index,
+        b: b.index,
+        direction: direction.into(),
+        nominal_offset_px: nominal,
+        offset_px: r.offset_px,
+        ncc: r.ncc,
+        peak_ratio: r.peak_ratio,
+        accepted: r.offset_px.is_some(),
+        reason,
+        accepted_below_min_ncc: false,
+        features,
+        final_offset_px: None,
+        z_samples: None,
+        alternatives_px: None,
+        chosen_alternative: None,
+        directional: None,
+        kept_by_global_solve: None,
+        residual_px: None,
     }
-    report
 }
 
 fn weighted_mean(votes: &[Vote]) -> Option<[f64; 2]> {
