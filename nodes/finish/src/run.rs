@@ -11,6 +11,7 @@ use serde::Serialize;
 use serde_json::Value;
 use surfstream_core::metrology::{functional_params, level_plane, params, sim, AbbottCurve, Grid};
 use surfstream_core::record;
+use surfstream_core::{Sampling, Shape};
 
 use crate::contacts::{archard_from_dump, ContactSummary};
 use crate::engine::{run_engine, EngineCommand, EngineProgress};
@@ -261,16 +262,10 @@ pub struct SurfaceParams {
 }
 
 /// The levelled heights and parameters of `z` (rows x cols).
-pub fn surface_params(
-    z: &[f64],
-    rows: usize,
-    cols: usize,
-    pitch_x_um: f64,
-    pitch_y_um: f64,
-) -> Result<(Vec<f64>, SurfaceParams)> {
-    let g = Grid::new(z, rows, cols, pitch_x_um, pitch_y_um)?;
+pub fn surface_params(z: &[f64], at: Sampling) -> Result<(Vec<f64>, SurfaceParams)> {
+    let g = Grid::of(z, at)?;
     let l = level_plane(&g)?;
-    let g = Grid::new(&l, rows, cols, pitch_x_um, pitch_y_um)?;
+    let g = Grid::of(&l, at)?;
     let p = params(&g)?;
     let f = functional_params(&g)?;
     let out = SurfaceParams {
@@ -339,30 +334,21 @@ pub struct SegmentPlan<'a> {
     pub contact_every: usize,
 }
 
-/// Meshes `heights_um` (the patch + guard, `rows x cols`), writes the segment's STL and script
+/// Meshes `heights_um` (the patch + guard, sampled as `at` says), writes the segment's STL and script
 /// into `dir`, runs LIGGGHTS and maps its wear back to the grid.
 #[allow(clippy::too_many_arguments)]
 pub fn run_segment(
     plan: &SegmentPlan<'_>,
     heights_um: &[f64],
-    rows: usize,
-    cols: usize,
-    pitch_x_um: f64,
-    pitch_y_um: f64,
+    at: Sampling,
     aim_window: crate::grid::Window,
     dir: &Path,
     stop: &AtomicBool,
     progress: &mut dyn FnMut(EngineProgress, &Segment),
 ) -> Result<SegmentResult> {
     std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
-    let pm = mesh_patch(
-        heights_um,
-        rows,
-        cols,
-        pitch_x_um,
-        pitch_y_um,
-        plan.max_triangles,
-    )?;
+    let pm = mesh_patch(heights_um, at, plan.max_triangles)?;
+    let (pitch_x_um, pitch_y_um) = (at.pitch_x_um(), at.pitch_y_um());
     let mesh = &pm.target.mesh;
     let stl = dir.join(script::STL);
     surfstream_core::fsutil::write_atomic(&stl, |w| {
@@ -472,7 +458,7 @@ pub fn run_segment(
     let volume_m3: Vec<f64> = wear.iter().zip(area).map(|(w, a)| w * a).collect();
     let liggghts_volume_um3 = volume_m3.iter().sum::<f64>() * 1e18;
     let (finnie_um, unmapped) = pm.map.triangle_volumes_to_depth(&vtk.triangles, &volume_m3);
-    let grid_volume_um3 = volume_um3(&finnie_um, pitch_x_um, pitch_y_um);
+    let grid_volume_um3 = volume_um3(&finnie_um, at.pitch());
     let (contacts, contact_summary) = archard_from_dump(
         &dir.join(script::CONTACTS),
         plan.archard_k_over_h_per_pa,
@@ -514,13 +500,7 @@ pub fn timestep_s(media: &Media, workpiece: &Workpiece, action: &Action) -> f64 
 fn sa_after(patch: &Patch, h: &[f64], wear: &[f64], s: f64) -> Result<f64> {
     let z: Vec<f64> = h.iter().zip(wear).map(|(a, w)| a - s * w).collect();
     let c = patch.cropped(&z);
-    let (_, p) = surface_params(
-        &c,
-        patch.crop.rows,
-        patch.crop.cols,
-        patch.pitch_x_um,
-        patch.pitch_y_um,
-    )?;
+    let (_, p) = surface_params(&c, patch.crop_sampling())?;
     Ok(p.sa)
 }
 
@@ -535,13 +515,7 @@ fn fit_scale(patch: &Patch, h: &[f64], wear: &[f64], target: f64) -> Result<(f64
         return Ok((0.0, false));
     }
     let c = patch.cropped(h);
-    let (_, p0) = surface_params(
-        &c,
-        patch.crop.rows,
-        patch.crop.cols,
-        patch.pitch_x_um,
-        patch.pitch_y_um,
-    )?;
+    let (_, p0) = surface_params(&c, patch.crop_sampling())?;
     if p0.sa <= target {
         return Ok((0.0, true));
     }
@@ -690,17 +664,14 @@ pub fn finish(
         (side_samples * model.pitch_y_um).min(model.rows as f64 * model.pitch_y_um * 0.7),
     ));
     let guard = opts.guard_um.unwrap_or(0.15 * pw.max(ph));
-    let patch = Patch::cut(
-        &model.heights_um,
-        model.rows,
-        model.cols,
+    let model_at = Sampling::new(
+        Shape::new(model.rows, model.cols),
         model.pitch_x_um,
         model.pitch_y_um,
-        pw,
-        ph,
-        guard,
     )
     .with_context(|| model.source.clone())?;
+    let patch = Patch::cut(&model.heights_um, model_at, pw, ph, guard)
+        .with_context(|| model.source.clone())?;
     let dt = timestep_s(&opts.media, &opts.workpiece, &action);
     let segments = opts.cycles + usize::from(opts.ideal.is_some());
     let plan = SegmentPlan {
@@ -723,10 +694,10 @@ pub fn finish(
          media {} mm at {:.2} m/s, {:.0} Pa, dt {:.2e} s, engine {}",
         patch.crop.rows,
         patch.crop.cols,
-        patch.crop.cols as f64 * patch.pitch_x_um,
-        patch.crop.rows as f64 * patch.pitch_y_um,
-        patch.rows,
-        patch.cols,
+        patch.crop.cols as f64 * patch.sampling.pitch_x_um(),
+        patch.crop.rows as f64 * patch.sampling.pitch_y_um(),
+        patch.sampling.rows(),
+        patch.sampling.cols(),
         opts.media.diameter_mm,
         action.media_velocity_m_s,
         action.pressure_pa,
@@ -734,13 +705,8 @@ pub fn finish(
         engine.argv(script::INPUT, script::LOG).join(" ")
     ));
 
-    let (original_crop, before) = surface_params(
-        &patch.cropped(&patch.heights_um),
-        patch.crop.rows,
-        patch.crop.cols,
-        patch.pitch_x_um,
-        patch.pitch_y_um,
-    )?;
+    let (original_crop, before) =
+        surface_params(&patch.cropped(&patch.heights_um), patch.crop_sampling())?;
     // The calibration target: Sa after the whole process.
     let measured_after = match &opts.calibrate {
         Some(Calibration::Measured(m)) => {
@@ -753,13 +719,7 @@ pub fn finish(
             let w = patch.in_model;
             let area = crop(&m.heights_um, m.cols, w);
             let inner = crop(&area, w.cols, patch.crop);
-            Some(surface_params(
-                &inner,
-                patch.crop.rows,
-                patch.crop.cols,
-                patch.pitch_x_um,
-                patch.pitch_y_um,
-            )?)
+            Some(surface_params(&inner, patch.crop_sampling())?)
         }
         _ => None,
     };
@@ -798,13 +758,10 @@ pub fn finish(
         opts.media.load_n(action.pressure_pa) + opts.media.mass_kg() * action.acceleration_m_s2;
     let dist = ApproachDistribution::of(&opts.media, &opts.workpiece, &action, press_force_n);
     let field_grid = FieldGrid {
-        rows: patch.rows,
-        cols: patch.cols,
-        pitch_x_um: patch.pitch_x_um,
-        pitch_y_um: patch.pitch_y_um,
+        sampling: patch.sampling,
         radius_um: opts.media.radius_m() * 1e6,
     };
-    let cell_area_um2 = patch.pitch_x_um * patch.pitch_y_um;
+    let cell_area_um2 = patch.sampling.pitch().cell_area_um2();
     let aim_area_um2 = cell_area_um2 * (patch.crop.rows * patch.crop.cols) as f64;
     let impact_rate = impact_rate_per_m2_s(&opts.media, &action);
     let impacts_process = impact_rate * aim_area_um2 * 1e-12 * opts.process_time_s;
@@ -815,21 +772,9 @@ pub fn finish(
     let mut checks: Vec<field::FieldCheck> = Vec::new();
     let mut sa_of_crop = |z: &[f64]| -> Result<f64> {
         let c = patch.cropped(z);
-        let g = Grid::new(
-            &c,
-            patch.crop.rows,
-            patch.crop.cols,
-            patch.pitch_x_um,
-            patch.pitch_y_um,
-        )?;
+        let g = Grid::of(&c, patch.crop_sampling())?;
         let l = level_plane(&g)?;
-        let g = Grid::new(
-            &l,
-            patch.crop.rows,
-            patch.crop.cols,
-            patch.pitch_x_um,
-            patch.pitch_y_um,
-        )?;
+        let g = Grid::of(&l, patch.crop_sampling())?;
         Ok(params(&g)?.sa)
     };
     // Planning passes within the budget needs the engine's cost on this machine now (a busy
@@ -842,10 +787,7 @@ pub fn finish(
                 ..plan.clone_with_engine(&engine)
             },
             &h,
-            patch.rows,
-            patch.cols,
-            patch.pitch_x_um,
-            patch.pitch_y_um,
+            patch.sampling,
             patch.crop,
             &out_dir.join("probe"),
             stop,
@@ -894,10 +836,7 @@ pub fn finish(
         let r = run_segment(
             &seg_plan,
             &h,
-            patch.rows,
-            patch.cols,
-            patch.pitch_x_um,
-            patch.pitch_y_um,
+            patch.sampling,
             patch.crop,
             &dir,
             stop,
@@ -955,13 +894,7 @@ pub fn finish(
                     .cropped(&r.finnie_um)
                     .iter()
                     .fold(0.0f64, |m, w| m.max(w * scale));
-                let (_, now) = surface_params(
-                    &patch.cropped(&h),
-                    patch.crop.rows,
-                    patch.crop.cols,
-                    patch.pitch_x_um,
-                    patch.pitch_y_um,
-                )?;
+                let (_, now) = surface_params(&patch.cropped(&h), patch.crop_sampling())?;
                 if deepest > (2.0 * now.sz).max(0.5) {
                     bail!(
                         "cycle {c}: the wear is {deepest:.3e} um deep at its deepest, more than twice the \
@@ -980,14 +913,7 @@ pub fn finish(
             WearModel::ContactField => {
                 // The contact field of the surface this segment ran on, checked against
                 // where the DEM wore, and the wear per contact it measured.
-                let gap = field::ball_gap_um(
-                    &h,
-                    patch.rows,
-                    patch.cols,
-                    patch.pitch_x_um,
-                    patch.pitch_y_um,
-                    field_grid.radius_um,
-                );
+                let gap = field::ball_gap_um(&h, patch.sampling, field_grid.radius_um);
                 let gap_crop = patch.cropped(&gap);
                 let dem_crop = patch.cropped(&r.finnie_um);
                 let check = field::check_field(&dist, &gap_crop, &dem_crop);
@@ -1054,13 +980,7 @@ pub fn finish(
                 )
             }
         };
-        let (_, after_c) = surface_params(
-            &patch.cropped(&h),
-            patch.crop.rows,
-            patch.crop.cols,
-            patch.pitch_x_um,
-            patch.pitch_y_um,
-        )?;
+        let (_, after_c) = surface_params(&patch.cropped(&h), patch.crop_sampling())?;
         worst_volume_error = worst_volume_error.max(r.volume_relative_error().abs());
         say(&format!(
             "finish: cycle {c}/{} ({}): {} passes, {:.3} ms simulated in {:.1} s; wear x {:.3e}{}; Sa {:.3} um (volume check {:+.2e})",
@@ -1100,7 +1020,7 @@ pub fn finish(
                 unmapped_um3: r.unmapped_volume_um3,
                 relative_error: r.volume_relative_error(),
             },
-            archard_volume_um3: volume_um3(&r.archard_um, patch.pitch_x_um, patch.pitch_y_um),
+            archard_volume_um3: volume_um3(&r.archard_um, patch.sampling.pitch()),
             contacts: record::to_value(&r.contacts),
             contact_field: cycle_field,
             after: after_c,
@@ -1183,7 +1103,7 @@ pub fn finish(
         }
         let w = patch.in_model;
         let area = crop(&ideal.heights_um, ideal.cols, w);
-        let g = Grid::new(&area, w.rows, w.cols, patch.pitch_x_um, patch.pitch_y_um)?;
+        let g = Grid::of(&area, patch.sampling.with_shape(Shape::new(w.rows, w.cols)))?;
         let levelled = level_plane(&g)?;
         let dir = out_dir.join("ideal");
         let mut last_say = Instant::now();
@@ -1195,10 +1115,7 @@ pub fn finish(
                 ..plan.clone_with_engine(&engine)
             },
             &levelled,
-            w.rows,
-            w.cols,
-            patch.pitch_x_um,
-            patch.pitch_y_um,
+            patch.sampling.with_shape(Shape::new(w.rows, w.cols)),
             patch.crop,
             &dir,
             stop,
@@ -1244,12 +1161,11 @@ pub fn finish(
     let finnie_crop = patch.cropped(&finnie_total);
     let archard_crop = patch.cropped(&archard_total);
     let worn_raw = patch.cropped(&h);
-    let (worn_crop, after) =
-        surface_params(&worn_raw, rows, cols, patch.pitch_x_um, patch.pitch_y_um)?;
+    let (worn_crop, after) = surface_params(&worn_raw, patch.crop_sampling())?;
     // Every .npy keeps its pitch in its sidecar, as every other writer of the project does.
     let geometry = surfstream_io::sidecar::NpyGeometry {
-        pitch_x_um: patch.pitch_x_um,
-        pitch_y_um: patch.pitch_y_um,
+        pitch_x_um: patch.sampling.pitch_x_um(),
+        pitch_y_um: patch.sampling.pitch_y_um(),
         origin_um: None,
     };
     let write = |name: &str, z: &[f64]| -> Result<()> {
@@ -1266,8 +1182,8 @@ pub fn finish(
     let x3p = surfstream_io::formats::Surface {
         width: cols,
         height: rows,
-        pitch_x_um: patch.pitch_x_um,
-        pitch_y_um: patch.pitch_y_um,
+        pitch_x_um: patch.sampling.pitch_x_um(),
+        pitch_y_um: patch.sampling.pitch_y_um(),
         heights_um: worn_crop.clone(),
         metadata: surfstream_io::formats::Metadata {
             format: "x3p".into(),
@@ -1286,7 +1202,7 @@ pub fn finish(
         .filter(|s| s.is_finite());
     let total_s = t_start.elapsed().as_secs_f64();
     let abbott = |z: &[f64]| -> Result<AbbottSummary> {
-        let g = Grid::new(z, rows, cols, patch.pitch_x_um, patch.pitch_y_um)?;
+        let g = Grid::of(z, patch.crop_sampling())?;
         let a = AbbottCurve::of(&g)?;
         Ok(AbbottSummary {
             material_ratio_pct: a.material_ratio_pct,
@@ -1305,11 +1221,11 @@ pub fn finish(
         setting: Some(FinishSetting {
             patch: PatchRecord {
                 rows_cols: [rows, cols],
-                size_um: [cols as f64 * patch.pitch_x_um, rows as f64 * patch.pitch_y_um],
-                pitch_um: [patch.pitch_x_um, patch.pitch_y_um],
+                size_um: [cols as f64 * patch.sampling.pitch_x_um(), rows as f64 * patch.sampling.pitch_y_um()],
+                pitch_um: [patch.sampling.pitch_x_um(), patch.sampling.pitch_y_um()],
                 in_model_rows_cols_origin: [patch.in_model.row0 + patch.crop.row0, patch.in_model.col0 + patch.crop.col0],
                 guard_band_um: guard,
-                meshed_area_rows_cols: [patch.rows, patch.cols],
+                meshed_area_rows_cols: [patch.sampling.rows(), patch.sampling.cols()],
                 boundary: "guard band of real neighbouring surface, meshed and worn, then cropped (not periodic: a mirrored seam is an artificial ridge, and a 3 mm medium spans the whole patch)".into(),
                 levelled: "least-squares plane of the meshed area removed".into(),
                 filled_samples: patch.filled_samples,
@@ -1382,8 +1298,8 @@ pub fn finish(
             what: "largest |grid volume / LIGGGHTS' sum of wear x area - 1| over the cycles".into(),
         }),
         wear: Some(WearVolumes {
-            finnie_volume_um3: volume_um3(&finnie_crop, patch.pitch_x_um, patch.pitch_y_um),
-            archard_volume_um3: volume_um3(&archard_crop, patch.pitch_x_um, patch.pitch_y_um),
+            finnie_volume_um3: volume_um3(&finnie_crop, patch.sampling.pitch()),
+            archard_volume_um3: volume_um3(&archard_crop, patch.sampling.pitch()),
             max_depth_um: finnie_crop.iter().cloned().fold(0.0, f64::max),
             mean_depth_um: finnie_crop.iter().sum::<f64>() / finnie_crop.len() as f64,
         }),

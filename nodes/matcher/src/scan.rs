@@ -34,7 +34,7 @@ use surfstream_core::record::{
     TilePlacement,
 };
 use surfstream_core::store::{AppendLog, StoreError};
-use surfstream_core::{ParamError, Sampling};
+use surfstream_core::Pitch;
 use thiserror::Error;
 
 use crate::global::{
@@ -81,8 +81,8 @@ pub struct ScanTile {
     /// Grid row and column: the neighbours are the grid's 4-neighbours.
     pub row: u32,
     pub col: u32,
-    /// Pixel pitch `[x, y]`, um.
-    pub pitch_um: [f64; 2],
+    /// Pixel pitch (checked when made; the tile's shape is `heights`').
+    pub pitch: Pitch,
     /// Nominal stage position of pixel (0, 0) `[x, y]`, um.
     pub stage_um: [f64; 2],
     /// Passed through to the registrations (the trace of the tile).
@@ -92,13 +92,9 @@ pub struct ScanTile {
 }
 
 impl ScanTile {
-    /// Refuses a pitch or stage position that no placement can use.
+    /// Refuses a stage position that no placement can use (the pitch was checked when
+    /// made).
     pub fn validate(&self) -> Result<(), ScanError> {
-        let [px, py] = self.pitch_um;
-        Sampling::new(self.heights.shape(), px, py).map_err(|source| ScanError::BadPitch {
-            index: self.index,
-            source,
-        })?;
         if !self.stage_um.iter().all(|v| v.is_finite()) {
             return Err(ScanError::BadStage {
                 index: self.index,
@@ -116,19 +112,18 @@ impl ScanTile {
 /// Why a tile or the scan could not be registered.
 #[derive(Debug, Error)]
 pub enum ScanError {
-    #[error("tile {index}: {source}")]
-    BadPitch { index: u32, source: ParamError },
     #[error("tile {index}: stage position ({}, {}) um is not finite", stage_um[0], stage_um[1])]
     BadStage { index: u32, stage_um: [f64; 2] },
     #[error(
-        "tile {index} has pitch {pitch_um:?} um, tile {first} has {first_pitch_um:?} um: \
-         one scan needs one pitch"
+        "tile {index} has pitch {:?} um, tile {first} has {:?} um: one scan needs one pitch",
+        pitch.um(),
+        first_pitch.um()
     )]
     PitchMismatch {
         index: u32,
-        pitch_um: [f64; 2],
+        pitch: Pitch,
         first: u32,
-        first_pitch_um: [f64; 2],
+        first_pitch: Pitch,
     },
     #[error("global position solve: {0}")]
     Positions(SolveError),
@@ -234,12 +229,12 @@ impl ScanRegistration {
     pub fn register(&mut self, tile: ScanTile) -> Result<TileRegistration, ScanError> {
         tile.validate()?;
         if let Some(first) = self.tiles.first() {
-            if first.tile.pitch_um != tile.pitch_um {
+            if first.tile.pitch != tile.pitch {
                 return Err(ScanError::PitchMismatch {
                     index: tile.index,
-                    pitch_um: tile.pitch_um,
+                    pitch: tile.pitch,
                     first: first.tile.index,
-                    first_pitch_um: first.tile.pitch_um,
+                    first_pitch: first.tile.pitch,
                 });
             }
         }
@@ -379,7 +374,7 @@ impl ScanRegistration {
         heights: &[RasterView<'_, f32>],
         position_um: [f64; 2],
     ) -> PlaneCorrection {
-        let pitch = t.pitch_um;
+        let pitch = t.pitch.um();
         let levels: Vec<_> = neighbours
             .iter()
             .zip(heights)
@@ -442,7 +437,7 @@ impl ScanRegistration {
     /// Positions of all tiles from all accepted and ambiguous pairs, shifted so that tile 0
     /// keeps its streaming position (the scan frame is the first tile's stage position).
     fn solve_positions(&self) -> Result<GlobalPlacement, ScanError> {
-        let pitch = self.tiles[0].tile.pitch_um;
+        let pitch = self.tiles[0].tile.pitch.um();
         let stage_px: Vec<[f64; 2]> = self
             .tiles
             .iter()
@@ -548,7 +543,7 @@ impl ScanRegistration {
         g: &GlobalPlacement,
         planes: &PlaneSolution,
     ) -> Vec<TileRegistration> {
-        let pitch = self.tiles[0].tile.pitch_um;
+        let pitch = self.tiles[0].tile.pitch.um();
         let single = self.tiles.len() == 1;
         let mut regs = Vec::with_capacity(self.tiles.len());
         let mut accepted_per_tile = vec![0u32; self.tiles.len()];
@@ -748,7 +743,7 @@ fn register_link(
     a_heights: RasterView<'_, f32>,
     t: &ScanTile,
 ) -> (Option<Vote>, Vote, LinkRecord) {
-    let pitch = t.pitch_um;
+    let pitch = t.pitch.um();
     let nominal = [
         (t.stage_um[0] - a.tile.stage_um[0]) / pitch[0],
         (t.stage_um[1] - a.tile.stage_um[1]) / pitch[1],
