@@ -2398,6 +2398,56 @@ mod tests {
     }
 
     #[test]
+    fn the_balance_holds_the_roughness_the_mesh_carries_when_given() {
+        let n = 64;
+        let z = lcg_field(n, n, 9);
+        // The roughness: the field minus its waviness (what lcg_field adds as noise).
+        let g: Vec<f32> = z
+            .iter()
+            .enumerate()
+            .map(|(k, &h)| {
+                let (x, y) = ((k % n) as f64, (k / n) as f64);
+                (f64::from(h) - (x / 7.0).sin() * (y / 5.0).cos()) as f32
+            })
+            .collect();
+        let view = RasterView::new(&z, Shape::new(n, n)).unwrap();
+        let plan = BlockPlan::new(view, &params_at(0.6, 64)).unwrap();
+        let stats = |v: &[f64]| {
+            let mean = v.iter().sum::<f64>() / v.len() as f64;
+            let sa = v.iter().map(|h| (h - mean).abs()).sum::<f64>() / v.len() as f64;
+            let sq = (v.iter().map(|h| (h - mean).powi(2)).sum::<f64>() / v.len() as f64).sqrt();
+            (sa, sq)
+        };
+        let (ra, rq) = stats(&g.iter().map(|&v| f64::from(v)).collect::<Vec<_>>());
+        // Sa and Sq of the roughness a mesh carries (roughness + mesh - measurement), as
+        // fractions off the measured roughness's.
+        let carried = |tin: &Tin| {
+            let (m, _) = resample_with_error(tin, &z);
+            let c: Vec<f64> = (0..z.len())
+                .map(|k| f64::from(g[k]) + f64::from(m[k]) - f64::from(z[k]))
+                .collect();
+            let (ca, cq) = stats(&c);
+            (ca / ra - 1.0, cq / rq - 1.0)
+        };
+        let heights_only = Balance {
+            sa: 0.005,
+            sq: 0.005,
+            roughness: None,
+        };
+        let (ha, hq) = carried(&refined(&plan, &[0.6], Some(heights_only)));
+        let both = Balance {
+            roughness: Some((&g, 0.025)),
+            ..heights_only
+        };
+        let balanced = refined(&plan, &[0.6], Some(both));
+        let (ba, bq) = carried(&balanced);
+        // The heights' balance alone leaves the roughness off by more than the target ...
+        assert!(ha.abs().max(hq.abs()) > 0.025, "{ha} {hq}");
+        // ... the balance given the roughness brings it within.
+        assert!(ba.abs() <= 0.025 && bq.abs() <= 0.025, "{ba} {bq}");
+    }
+
+    #[test]
     fn a_live_block_stays_delaunay_and_the_angle_bound_holds_in_it() {
         let (rows, cols) = (130, 130);
         let z = lcg_field(rows, cols, 5);

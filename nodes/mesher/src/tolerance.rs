@@ -3,16 +3,19 @@
 //! sees the surface: the mesh interpolated linearly at every measured (non-NaN) sample, mean
 //! removed, per region.
 //!
-//! How: the error-bounded greedy insertion ([`crate::tin`]) on the full-resolution grid, with
+//! How: one error-bounded greedy insertion order ([`crate::tin`]) on the full-resolution grid,
 //! every block's peak and valley inserted first ([`crate::tin::TinParams::keep_extremes`]: a
-//! region's Sz is then exact or within the bound), run at a geometric series of bounds
-//! epsilon = 2, 1.2, 0.72, ... x Sq (coarse to fine, each run a few seconds on a 2k x 2k map);
-//! each run is judged per region ([`judge_regions`]); the first bound that passes is refined by
-//! two bisections (geometric) against the last that failed. Every run is a point of the
-//! fidelity-cost curve ([`CurvePoint`]): triangles against the worst Sa / Sq / Sz deviation and
-//! the pointwise residual. The search stops at `max_triangles`; when no run within it passes,
-//! the finest one within it is kept and [`ToleranceReport::reason`] names the region, the
-//! parameter and why.
+//! region's Sz is then exact or within the bound), refined through a geometric series of
+//! bounds epsilon = 2, 1.6, 1.28, ... x Sq, each step's blocks balanced against the
+//! measurement (their Sa, Sq, mean and, when the measured roughness is given, the Sa and Sq of
+//! the roughness the mesh carries); each checkpoint is judged per region ([`judge_regions`]).
+//! Between the last failing and the first passing checkpoint the bound is bisected
+//! (geometric), each step refined from the failing one's kept state, until the two are within
+//! 5 % in triangles; the passing mesh with the fewest triangles is written. Every checkpoint is
+//! a point of the fidelity-cost curve ([`CurvePoint`]): triangles against the worst Sa / Sq /
+//! Sz deviation and the pointwise residual. The search stops at `max_triangles`; when no mesh
+//! within it passes, the finest one within it is kept and [`ToleranceReport::reason`] names
+//! the region, the parameter and why.
 //!
 //! Regions: the whole map and square windows of `region_px` samples at half-window steps
 //! (the tiles of a scan are not known to the mesher; a window of a tile's size at half steps
