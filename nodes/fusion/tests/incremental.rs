@@ -32,7 +32,7 @@ fn ctx(kind: &str, params: &str) -> NodeContext {
         backpressure_timeout_s: 60.0,
         startup_timeout_s: 30.0,
         scan_id: 1,
-        memory_budget_bytes: None,
+        memory: surfstream_runtime::memory::MemoryPlan::unlimited(std::env::temp_dir()),
     }
 }
 
