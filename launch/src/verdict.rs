@@ -178,16 +178,10 @@ fn imprecise_links_line(run: &RunRecord) -> Option<String> {
     let list: Vec<String> = run
         .pairs
         .iter()
-        .filter(|p| p["kept_by_global_solve"].as_bool() != Some(false))
+        .filter(|p| p.kept_by_global_solve != Some(false))
         .filter_map(|p| {
-            let sd = p["offset_sd_px"].as_f64()?;
-            (sd > IMPRECISE_LINK_SD_PX).then(|| {
-                format!(
-                    "tiles {}-{} ({sd:.2} px)",
-                    p["a"].as_u64().unwrap_or(0),
-                    p["b"].as_u64().unwrap_or(0)
-                )
-            })
+            let sd = p.offset_sd_px?;
+            (sd > IMPRECISE_LINK_SD_PX).then(|| format!("tiles {}-{} ({sd:.2} px)", p.a, p.b))
         })
         .collect();
     (!list.is_empty()).then(|| {

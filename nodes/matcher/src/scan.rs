@@ -795,8 +795,8 @@ fn register_link(
     // the pair's record so that an imprecise link is visible.
     let sd_px = r.covariance_px2.map(|c| {
         let sd = crate::refine::worst_sd_px(c);
-        report["offset_covariance_px2"] = json!(c);
-        report["offset_sd_px"] = json!(sd);
+        report.offset_covariance_px2 = Some(c);
+        report.offset_sd_px = Some(sd);
         sd
     });
     let record = (
@@ -947,6 +947,8 @@ fn pair_report(
         directional: None,
         kept_by_global_solve: None,
         residual_px: None,
+        offset_covariance_px2: None,
+        offset_sd_px: None,
     }
 }
 
