@@ -8,13 +8,12 @@
 //! into a value with [`to_value`] before writing it, which keeps that order whatever the
 //! declaration order here (and keeps run.json byte-identical to the `json!` it replaces).
 //!
-//! What stays a JSON value inside a record, and why: the wavelet's final and the finishing
-//! node's summaries (their fields depend on the method; the finishing node's has its own typed
-//! reader, `surfstream_finish::summary`), the matcher's pairs and global solve (the matcher's own
-//! diagnostics), the fusion's chunk statistics (a fusion type), the mesher's largest spikes and
-//! target, and each node's parameters (the graph file's table). The mesher builds its report as
-//! a JSON value; its readers read it as a [`MeshReport`] (the demo's end-to-end test checks that
-//! the report reads as one and writes back the same).
+//! What stays a JSON value inside a record, and why: the wavelet's final summary (its fields
+//! depend on the method), the feature matchers' diagnostics and scores inside the matcher's
+//! pairs and global solve, the fusion's chunk statistics (a fusion type), the mesher's largest
+//! spikes and target (mesher types), and each node's parameters (the graph file's table). The
+//! finishing node's finish.json has its own typed record in its crate
+//! (`surfstream_finish::summary`), the one its writer and report.html use.
 
 use std::collections::BTreeMap;
 
@@ -300,6 +299,30 @@ fn present<'de, D: Deserializer<'de>, T: Deserialize<'de>>(
     Option::<T>::deserialize(d).map(Some)
 }
 
+/// The matcher's global solve over the whole scan (its `global`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GlobalSolveRecord {
+    /// Links (accepted and chosen ambiguous pairs) and how many the solve removed.
+    pub links: u64,
+    pub links_removed: u64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub max_residual_px: f64,
+    pub tiles_placed_by_stage: u64,
+    /// One-direction links (refused pairs with a ridge) and how many were removed.
+    pub directional_links: u64,
+    pub directional_links_removed: u64,
+    pub tiles_one_direction_by_stage: u64,
+    pub stage_sigma_px: f64,
+    pub outlier_px: f64,
+    /// RMS of the overlaps' height differences before and after the plane solve, um.
+    #[serde(deserialize_with = "nan_if_null")]
+    pub z_rms_before_um: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub z_rms_residual_um: f64,
+    /// The feature matchers' scores against a truth file (null otherwise; their own layout).
+    pub features: Value,
+}
+
 /// The matcher's report.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MatcherReport {
@@ -308,7 +331,7 @@ pub struct MatcherReport {
     /// Every neighbour pair's registration and outcome.
     pub pairs: Vec<MatcherPair>,
     /// The global solve's summary (null until the end of scan).
-    pub global: Value,
+    pub global: Option<GlobalSolveRecord>,
 }
 
 /// The final panorama's size, place, offset and invalid pixels (the fusion's `panorama`).
