@@ -1176,4 +1176,72 @@ mod tests {
         other.as_object_mut().unwrap().remove("triangles");
         assert!(from_value::<MeshReport>(&other, "mesher").is_err());
     }
+
+    #[test]
+    fn an_engine_grid_sheet_reads_as_its_own_part_beside_the_adaptive_one() {
+        // The grid sheet shares `kind` and `fidelity` with the adaptive part, with other
+        // contents: the untagged part must read each layout whole and write it back as it was.
+        let mut g = grid_mesh();
+        let extra = json!({ "target": { "engine": "edem" }, "kind": "sheet", "block_stride": 2,
+            "grid_rows_cols": [2, 3], "meshed_pitch_um": [1.0, 1.0],
+            "element_quality": { "min_angle_deg": 45.0, "max_triangles_per_vertex": 6,
+                "duplicate_triangles": 0 },
+            "fidelity": { "measured": { "sa_um": 1.0, "sq_um": 1.2, "sz_um": 5.0,
+                "sdr_percent": 2.0 }, "meshed_grid": null } });
+        for (k, v) in extra.as_object().unwrap() {
+            g[k] = v.clone();
+        }
+        let m: MeshReport = from_value(&g, "mesher").unwrap();
+        assert!(m.adaptive().is_none());
+        let Some(MeshMethodRecord::GridSheet(s)) = &m.method_record else {
+            panic!("a grid sheet reads as one: {:?}", m.method_record)
+        };
+        assert_eq!(
+            (s.block_stride, s.element_quality.max_triangles_per_vertex),
+            (2, 6)
+        );
+        assert!(s.fidelity.meshed_grid.is_none());
+        assert_eq!(to_value(&m), g);
+        // An adaptive mesh with an angle bound carries the element quality of the bound.
+        let mut a = grid_mesh();
+        let extra = json!({ "method": "adaptive", "kind": "sheet", "offset_rule": "r",
+            "surface_triangles": 8, "missing_samples": 0, "missing": "fill",
+            "budget_reached": false,
+            "element_quality": { "min_angle_deg": 1.5, "min_angle_bound_deg": 1.0,
+                "below_bound": 0 },
+            "fidelity": { "epsilon_um": 0.1, "bound_met": true, "field": null, "mesh": null,
+                "error": { "max_um": 0.05, "rms_um": 0.01, "samples": 6, "uncovered": 0 } } });
+        for (k, v) in extra.as_object().unwrap() {
+            a[k] = v.clone();
+        }
+        let m: MeshReport = from_value(&a, "mesher").unwrap();
+        let q = m.adaptive().and_then(|r| r.element_quality);
+        assert_eq!(q.map(|q| q.min_angle_bound_deg), Some(1.0));
+        assert_eq!(to_value(&m), a);
+    }
+
+    #[test]
+    fn a_pair_writes_back_the_keys_it_was_read_with() {
+        // Streaming's keys alone, then the global solve's (a null chosen alternative and a
+        // NaN residual stay present, as null).
+        let streamed = json!({ "a": 0, "b": 1, "direction": "horizontal",
+            "nominal_offset_px": [900.0, 0.0], "offset_px": null, "ncc": 0.2,
+            "peak_ratio": 1.1, "accepted": false, "reason": "low NCC" });
+        let p: MatcherPair = from_value(&streamed, "pair").unwrap();
+        assert!(!p.accepted_below_min_ncc && p.kept_by_global_solve.is_none());
+        assert_eq!(to_value(&p), streamed);
+        let mut solved = streamed.clone();
+        for (k, v) in json!({ "final_offset_px": [900.5, 0.25], "z_samples": 40,
+            "alternatives_px": [[900.0, 0.0], [880.0, 1.0]], "chosen_alternative": null,
+            "kept_by_global_solve": false, "residual_px": [null, 0.5] })
+        .as_object()
+        .unwrap()
+        {
+            solved[k] = v.clone();
+        }
+        let p: MatcherPair = from_value(&solved, "pair").unwrap();
+        assert_eq!(p.chosen_alternative, Some(None));
+        assert!(p.residual_px.unwrap()[0].is_nan());
+        assert_eq!(to_value(&p), solved);
+    }
 }
