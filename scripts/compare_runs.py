@@ -18,9 +18,10 @@ import sys
 # Keys whose values differ between two runs of the same command on the same commit (found by
 # running each command twice): times, what the machine's load paces (coalesced live work,
 # the live frames sent and the nodes' message traces), memory figures (peak RSS; the fusion's chunk budget is an eighth of
-# MemAvailable without a memory_budget_gb) and the run's random scan id.
+# MemAvailable without a memory_budget_gb; the memory plan's MemAvailable in graph.resolved.json)
+# and the run's random scan id.
 TIMING = {
-    "scan_id", "chunk_budget_bytes", "elapsed_s", "latency_ms", "peak_rss", "peak_rss_bytes",
+    "scan_id", "chunk_budget_bytes", "available_bytes", "elapsed_s", "latency_ms", "peak_rss", "peak_rss_bytes",
     "t_acquired_ns", "t_written_ns", "t_finished_ns", "stats", "live_patches",
     "live_frames_skipped", "messages",
 }

@@ -59,7 +59,7 @@ fn prepare(graph: &mut GraphFile, staged: &outdir::StagedOut) -> Result<Vec<Node
         .unwrap_or(0);
     let mut contexts = graph.resolve(scan_id, &crate::nodes::registry())?;
     // This process runs every node under `run`, and the Table 6 pass under both.
-    let budget = contexts.first().and_then(|c| c.memory_budget_bytes);
+    let budget = contexts.first().and_then(|c| c.memory.budget_bytes);
     surfstream_runtime::memory::return_freed_buffers(budget);
     crate::progress::attach_observer(&mut contexts);
     write_resolved(&staged.staging, &contexts)?;

@@ -423,7 +423,7 @@ mod tests {
             backpressure_timeout_s: 1.0,
             startup_timeout_s: 1.0,
             scan_id: 7,
-            memory_budget_bytes: None,
+            memory: surfstream_runtime::memory::MemoryPlan::unlimited("/tmp/x".into()),
         }
     }
 

@@ -148,6 +148,9 @@ pub fn verdict(run: &RunRecord, out: &Path, verbose: bool) -> Verdict {
             weak.join(", ")
         );
     }
+    if let Some(line) = imprecise_links_line(run) {
+        let _ = writeln!(s, "  imprecise   {line}");
+    }
     let _ = writeln!(s, "  outputs     {}", outputs_line(run, out));
     if verbose {
         s.push_str(&latency_table(&run.latency_ms));
@@ -162,6 +165,34 @@ pub fn verdict(run: &RunRecord, out: &Path, verbose: bool) -> Verdict {
         }
     );
     Verdict { text: s, failures }
+}
+
+/// A kept link whose offset the matcher measured to worse than this (one standard deviation,
+/// px, the Lucas-Kanade covariance's worst direction) is named: three of them reach 0.5 px.
+const IMPRECISE_LINK_SD_PX: f64 = 0.17;
+
+/// The kept links measured to worse than [`IMPRECISE_LINK_SD_PX`] (`pairs[].offset_sd_px`):
+/// a sparse or noisy overlap whose offset the data fix only to a few tenths of a pixel. Named
+/// so that such an error is never silent; not a failure.
+fn imprecise_links_line(run: &RunRecord) -> Option<String> {
+    let list: Vec<String> = run
+        .pairs
+        .iter()
+        .filter(|p| p.kept_by_global_solve != Some(false))
+        .filter_map(|p| {
+            let sd = p.offset_sd_px?;
+            (sd > IMPRECISE_LINK_SD_PX).then(|| format!("tiles {}-{} ({sd:.2} px)", p.a, p.b))
+        })
+        .collect();
+    (!list.is_empty()).then(|| {
+        format!(
+            "{} link(s) measured to worse than {IMPRECISE_LINK_SD_PX} px (one standard \
+             deviation, pairs[].offset_sd_px in run.json): the tiles they hold may be a few \
+             tenths of a pixel off; more overlap or less noise fixes them: {}",
+            list.len(),
+            list.join(", ")
+        )
+    })
 }
 
 /// The likely cause when registration placed few tiles: a layout that does not match the
@@ -623,6 +654,32 @@ mod tests {
         );
         let v = verdict(&record(run_json(true, false)), Path::new("/o"), false);
         assert!(!v.text.contains("weak links"), "{}", v.text);
+    }
+
+    /// A kept link with a large standard deviation is named, and is not a failure; a dropped
+    /// one is not named.
+    #[test]
+    fn an_imprecise_link_is_named_but_does_not_fail() {
+        let mut run = run_json(true, false);
+        run["pairs"] = json!([
+            { "a": 3, "b": 4, "ncc": 0.61, "accepted": true, "offset_sd_px": 0.23 },
+            { "a": 1, "b": 2, "ncc": 0.99, "accepted": true, "offset_sd_px": 0.05 },
+            { "a": 2, "b": 5, "ncc": 0.7, "accepted": true, "offset_sd_px": 0.4,
+              "kept_by_global_solve": false },
+        ]);
+        let v = verdict(&record(run), Path::new("/o"), false);
+        assert!(v.failures.is_empty(), "{:?}", v.failures);
+        assert!(
+            v.text
+                .contains("imprecise   1 link(s) measured to worse than 0.17 px")
+                && v.text.contains("tiles 3-4 (0.23 px)")
+                && !v.text.contains("tiles 1-2")
+                && !v.text.contains("tiles 2-5"),
+            "{}",
+            v.text
+        );
+        let v = verdict(&record(run_json(true, false)), Path::new("/o"), false);
+        assert!(!v.text.contains("imprecise"), "{}", v.text);
     }
 
     #[test]

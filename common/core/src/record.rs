@@ -289,6 +289,12 @@ pub struct MatcherPair {
         skip_serializing_if = "Option::is_none"
     )]
     pub residual_px: Option<[f64; 2]>,
+    /// The Lucas-Kanade refinement's covariance of `offset_px`, px², when it ran.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub offset_covariance_px2: Option<[[f64; 2]; 2]>,
+    /// Its worst direction's standard deviation, px: the link's weight in the global solve.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub offset_sd_px: Option<f64>,
 }
 
 /// Reads a key that is present, null or not: `Some(None)` for null (absent: the default,

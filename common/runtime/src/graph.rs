@@ -276,18 +276,12 @@ pub struct NodeContext {
     pub startup_timeout_s: f64,
     /// Identifies this run's scan in every frame header.
     pub scan_id: u64,
-    /// `[graph] memory_budget_gb` in bytes; `None`: no limit.
-    #[serde(default)]
-    pub memory_budget_bytes: Option<u64>,
+    /// The run's memory plan (`[graph] memory_budget_gb`, MemAvailable, spill folder),
+    /// resolved once by the launcher for every node.
+    pub memory: crate::memory::MemoryPlan,
 }
 
 impl NodeContext {
-    /// This node's memory plan: the budget, each node's share of it, the spill folder (the
-    /// out dir), MemAvailable read now ([`crate::memory::MemoryPlan`]).
-    pub fn memory_plan(&self) -> crate::memory::MemoryPlan {
-        crate::memory::MemoryPlan::resolve(self.memory_budget_bytes, self.out_dir.clone())
-    }
-
     /// Deserialises the node's parameters, naming the node and the field on error.
     pub fn params<T: serde::de::DeserializeOwned>(&self) -> Result<T> {
         params_from_table(&self.params).map_err(|e| {
@@ -610,6 +604,11 @@ impl GraphFile {
     /// Resolves every node's wiring. `out_dir` must already be final (absolute for processes).
     pub fn resolve(&self, scan_id: u64, registry: &NodeRegistry) -> Result<Vec<NodeContext>> {
         let mut contexts = Vec::with_capacity(self.nodes.len());
+        // One plan for the run: every node divides the same budget and MemAvailable.
+        let memory = crate::memory::MemoryPlan::resolve(
+            self.graph.memory_budget_gb.map(|gb| (gb * 1e9) as u64),
+            self.graph.out_dir.clone(),
+        );
         for n in &self.nodes {
             let outs = registry
                 .ports(&n.node)
@@ -663,7 +662,7 @@ impl GraphFile {
                 backpressure_timeout_s: self.graph.backpressure_timeout_s,
                 startup_timeout_s: self.graph.startup_timeout_s,
                 scan_id,
-                memory_budget_bytes: self.graph.memory_budget_gb.map(|gb| (gb * 1e9) as u64),
+                memory: memory.clone(),
             });
         }
         Ok(contexts)
@@ -759,7 +758,8 @@ inputs = { tiles = "stage/tiles", panorama = "fusion/panorama" }
     fn memory_budget_reaches_every_node_and_is_checked() {
         let g = GraphFile::parse(DEMO, "demo.toml", &registry()).unwrap();
         assert!(g.resolve(7, &registry()).unwrap()[2]
-            .memory_budget_bytes
+            .memory
+            .budget_bytes
             .is_none());
         let with = DEMO.replace(
             "out_dir = \"out/demo\"",
@@ -769,7 +769,9 @@ inputs = { tiles = "stage/tiles", panorama = "fusion/panorama" }
         let ctx = g.resolve(7, &registry()).unwrap();
         assert!(ctx
             .iter()
-            .all(|c| c.memory_budget_bytes == Some(2_500_000_000)));
+            .all(|c| c.memory.budget_bytes == Some(2_500_000_000)
+                && c.memory == ctx[0].memory
+                && c.memory.spill_dir == c.out_dir));
         g.apply_override("graph.memory_budget_gb=0.5").unwrap();
         assert_eq!(g.graph.memory_budget_gb, Some(0.5));
         assert!(g.apply_override("graph.memory_budget_gb=lots").is_err());

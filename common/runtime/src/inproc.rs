@@ -446,7 +446,7 @@ mod tests {
                 backpressure_timeout_s: 5.0,
                 startup_timeout_s: 5.0,
                 scan_id: 1,
-                memory_budget_bytes: None,
+                memory: crate::memory::MemoryPlan::unlimited("/nonexistent".into()),
             },
             logic: Box::new(Hangs { hang, done: false }),
         }

@@ -43,9 +43,11 @@ fn set_mmap_threshold(_bytes: usize) -> bool {
 
 /// How a run's memory is shared among its nodes, decided in one place: the budget
 /// (`[graph] memory_budget_gb`), each node's share of it, the default without one, and the
-/// folder every spill file goes to. Nodes get it from [`crate::graph::NodeContext::memory_plan`]
-/// and take their share by name, so no node parses /proc or divides the budget itself.
-#[derive(Debug, Clone, PartialEq, Eq)]
+/// folder every spill file goes to. The launcher resolves it once per run (MemAvailable is read
+/// then, so every node plans with the same figure), and it travels to each node inside its
+/// [`crate::graph::NodeContext`] (`memory` in graph.resolved.json); nodes take their share by
+/// name, so no node parses /proc or divides the budget itself.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct MemoryPlan {
     /// `[graph] memory_budget_gb` in bytes; `None`: no budget.
     pub budget_bytes: Option<u64>,
@@ -66,7 +68,7 @@ impl MemoryPlan {
     /// of chunks in memory, larger scans spill), so a scan of any size runs without a setting.
     pub const CHUNK_SHARE_OF_AVAILABLE: u64 = 8;
 
-    /// The plan for a node: the budget, MemAvailable read now, the spill folder.
+    /// The plan for a run: the budget, MemAvailable read now, the spill folder.
     pub fn resolve(budget_bytes: Option<u64>, spill_dir: PathBuf) -> Self {
         let available_bytes = std::fs::read_to_string("/proc/meminfo")
             .ok()
@@ -74,6 +76,16 @@ impl MemoryPlan {
         Self {
             budget_bytes,
             available_bytes,
+            spill_dir,
+        }
+    }
+
+    /// A plan without a budget and without MemAvailable (no limit anywhere): for tests and
+    /// tools that build a node's context by hand.
+    pub fn unlimited(spill_dir: PathBuf) -> Self {
+        Self {
+            budget_bytes: None,
+            available_bytes: None,
             spill_dir,
         }
     }

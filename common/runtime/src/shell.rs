@@ -106,7 +106,7 @@ fn run(kind: &str, build: fn(&NodeContext) -> Result<Box<dyn NodeLogic + Send>>)
         .map_err(|e| anyhow!("cannot install the termination handler: {e}"))?;
     ipc::validate_prefix(&args.domain)?;
     let ctx = load_context(&args.graph, &args.node)?;
-    crate::memory::return_freed_buffers(ctx.memory_budget_bytes);
+    crate::memory::return_freed_buffers(ctx.memory.budget_bytes);
     if ctx.node_kind != kind {
         bail!(
             "node '{}' is a {} node, not {kind}",

@@ -90,9 +90,9 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
         wavelet,
         ramp_px: p.ramp_px,
     });
-    let memory = ctx.memory_plan();
+    let memory = &ctx.memory;
     let chunk_budget_bytes = memory.panorama_chunks_bytes().map(|b| b as usize);
-    fusion.set_memory_budget(chunk_budget_bytes, Some(memory.spill_dir));
+    fusion.set_memory_budget(chunk_budget_bytes, Some(memory.spill_dir.clone()));
     fusion.set_zarr_min_px(match p.zarr.as_str() {
         "auto" => Some(ZARR_AUTO_MIN_PX),
         "always" => Some(0),

@@ -27,9 +27,11 @@ pub struct MatcherNode {
 
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
     let p: MatcherParams = ctx.params()?;
-    let params = p
+    let mut params = p
         .scan_params(&ctx.out_dir)
         .map_err(|e| anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id))?;
+    // Placed tiles spill where the run's memory plan says (the out dir, beside the outputs).
+    params.spill_dir = Some(ctx.memory.spill_dir.clone());
     Ok(Box::new(MatcherNode {
         scan: ScanRegistration::new(params),
         pending: Vec::new(),
@@ -61,7 +63,9 @@ impl NodeLogic for MatcherNode {
             index: h.tile_index,
             row: h.tile_row,
             col: h.tile_col,
-            pitch_um: [h.pitch_x_um, h.pitch_y_um],
+            pitch: h
+                .pitch()
+                .map_err(|e| anyhow!("matcher: tile {}: {e}", h.tile_index))?,
             stage_um: [h.origin_x_um, h.origin_y_um],
             t_acquired_ns: h.t_acquired_ns,
             heights: Raster::new(f.heights.to_vec(), shape)

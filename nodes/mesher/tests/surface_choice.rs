@@ -39,7 +39,7 @@ fn ctx(surface: &str, ports: &[(&str, &str)], out_dir: &std::path::Path) -> Node
         backpressure_timeout_s: 60.0,
         startup_timeout_s: 30.0,
         scan_id: 7,
-        memory_budget_bytes: None,
+        memory: surfstream_runtime::memory::MemoryPlan::unlimited(std::env::temp_dir()),
     }
 }
 

@@ -144,7 +144,7 @@ fn context(params: &str) -> NodeContext {
         backpressure_timeout_s: 1.0,
         startup_timeout_s: 1.0,
         scan_id: 1,
-        memory_budget_bytes: None,
+        memory: surfstream_runtime::memory::MemoryPlan::unlimited(std::env::temp_dir()),
     }
 }
 

@@ -49,14 +49,14 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
             .any(|o| o.port == port && o.subscribers > 0)
     };
     let mut live = LiveSeparation::new(&settings, p.live_margin_px)?;
-    let memory = ctx.memory_plan();
+    let memory = &ctx.memory;
     if let Some(bytes) = memory.live_mirror_bytes() {
         live.limit_mirror(bytes, memory.spill_dir.clone());
     }
     Ok(Box::new(WaveletNode {
         publish_datum: wired("datum"),
         publish_roughness: wired("roughness"),
-        spill_dir: memory.spill_dir,
+        spill_dir: memory.spill_dir.clone(),
         live,
         settings,
         publish_live: p.live,
