@@ -8,13 +8,12 @@
 //! into a value with [`to_value`] before writing it, which keeps that order whatever the
 //! declaration order here (and keeps run.json byte-identical to the `json!` it replaces).
 //!
-//! What stays a JSON value inside a record, and why: the wavelet's final and the finishing
-//! node's summaries (their fields depend on the method; the finishing node's has its own typed
-//! reader, `surfstream_finish::summary`), the matcher's pairs and global solve (the matcher's own
-//! diagnostics), the fusion's chunk statistics (a fusion type), the mesher's largest spikes and
-//! target, and each node's parameters (the graph file's table). The mesher builds its report as
-//! a JSON value; its readers read it as a [`MeshReport`] (the demo's end-to-end test checks that
-//! the report reads as one and writes back the same).
+//! What stays a JSON value inside a record, and why: the wavelet's final summary (its fields
+//! depend on the method), the feature matchers' diagnostics and scores inside the matcher's
+//! pairs and global solve, the fusion's chunk statistics (a fusion type), the mesher's largest
+//! spikes and target (mesher types), and each node's parameters (the graph file's table). The
+//! finishing node's finish.json has its own typed record in its crate
+//! (`surfstream_finish::summary`), the one its writer and report.html use.
 
 use std::collections::BTreeMap;
 
@@ -306,6 +305,30 @@ fn present<'de, D: Deserializer<'de>, T: Deserialize<'de>>(
     Option::<T>::deserialize(d).map(Some)
 }
 
+/// The matcher's global solve over the whole scan (its `global`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GlobalSolveRecord {
+    /// Links (accepted and chosen ambiguous pairs) and how many the solve removed.
+    pub links: u64,
+    pub links_removed: u64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub max_residual_px: f64,
+    pub tiles_placed_by_stage: u64,
+    /// One-direction links (refused pairs with a ridge) and how many were removed.
+    pub directional_links: u64,
+    pub directional_links_removed: u64,
+    pub tiles_one_direction_by_stage: u64,
+    pub stage_sigma_px: f64,
+    pub outlier_px: f64,
+    /// RMS of the overlaps' height differences before and after the plane solve, um.
+    #[serde(deserialize_with = "nan_if_null")]
+    pub z_rms_before_um: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub z_rms_residual_um: f64,
+    /// The feature matchers' scores against a truth file (null otherwise; their own layout).
+    pub features: Value,
+}
+
 /// The matcher's report.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MatcherReport {
@@ -314,7 +337,7 @@ pub struct MatcherReport {
     /// Every neighbour pair's registration and outcome.
     pub pairs: Vec<MatcherPair>,
     /// The global solve's summary (null until the end of scan).
-    pub global: Value,
+    pub global: Option<GlobalSolveRecord>,
 }
 
 /// The final panorama's size, place, offset and invalid pixels (the fusion's `panorama`).
@@ -1158,5 +1181,73 @@ mod tests {
         let mut other = grid_mesh();
         other.as_object_mut().unwrap().remove("triangles");
         assert!(from_value::<MeshReport>(&other, "mesher").is_err());
+    }
+
+    #[test]
+    fn an_engine_grid_sheet_reads_as_its_own_part_beside_the_adaptive_one() {
+        // The grid sheet shares `kind` and `fidelity` with the adaptive part, with other
+        // contents: the untagged part must read each layout whole and write it back as it was.
+        let mut g = grid_mesh();
+        let extra = json!({ "target": { "engine": "edem" }, "kind": "sheet", "block_stride": 2,
+            "grid_rows_cols": [2, 3], "meshed_pitch_um": [1.0, 1.0],
+            "element_quality": { "min_angle_deg": 45.0, "max_triangles_per_vertex": 6,
+                "duplicate_triangles": 0 },
+            "fidelity": { "measured": { "sa_um": 1.0, "sq_um": 1.2, "sz_um": 5.0,
+                "sdr_percent": 2.0 }, "meshed_grid": null } });
+        for (k, v) in extra.as_object().unwrap() {
+            g[k] = v.clone();
+        }
+        let m: MeshReport = from_value(&g, "mesher").unwrap();
+        assert!(m.adaptive().is_none());
+        let Some(MeshMethodRecord::GridSheet(s)) = &m.method_record else {
+            panic!("a grid sheet reads as one: {:?}", m.method_record)
+        };
+        assert_eq!(
+            (s.block_stride, s.element_quality.max_triangles_per_vertex),
+            (2, 6)
+        );
+        assert!(s.fidelity.meshed_grid.is_none());
+        assert_eq!(to_value(&m), g);
+        // An adaptive mesh with an angle bound carries the element quality of the bound.
+        let mut a = grid_mesh();
+        let extra = json!({ "method": "adaptive", "kind": "sheet", "offset_rule": "r",
+            "surface_triangles": 8, "missing_samples": 0, "missing": "fill",
+            "budget_reached": false,
+            "element_quality": { "min_angle_deg": 1.5, "min_angle_bound_deg": 1.0,
+                "below_bound": 0 },
+            "fidelity": { "epsilon_um": 0.1, "bound_met": true, "field": null, "mesh": null,
+                "error": { "max_um": 0.05, "rms_um": 0.01, "samples": 6, "uncovered": 0 } } });
+        for (k, v) in extra.as_object().unwrap() {
+            a[k] = v.clone();
+        }
+        let m: MeshReport = from_value(&a, "mesher").unwrap();
+        let q = m.adaptive().and_then(|r| r.element_quality);
+        assert_eq!(q.map(|q| q.min_angle_bound_deg), Some(1.0));
+        assert_eq!(to_value(&m), a);
+    }
+
+    #[test]
+    fn a_pair_writes_back_the_keys_it_was_read_with() {
+        // Streaming's keys alone, then the global solve's (a null chosen alternative and a
+        // NaN residual stay present, as null).
+        let streamed = json!({ "a": 0, "b": 1, "direction": "horizontal",
+            "nominal_offset_px": [900.0, 0.0], "offset_px": null, "ncc": 0.2,
+            "peak_ratio": 1.1, "accepted": false, "reason": "low NCC" });
+        let p: MatcherPair = from_value(&streamed, "pair").unwrap();
+        assert!(!p.accepted_below_min_ncc && p.kept_by_global_solve.is_none());
+        assert_eq!(to_value(&p), streamed);
+        let mut solved = streamed.clone();
+        for (k, v) in json!({ "final_offset_px": [900.5, 0.25], "z_samples": 40,
+            "alternatives_px": [[900.0, 0.0], [880.0, 1.0]], "chosen_alternative": null,
+            "kept_by_global_solve": false, "residual_px": [null, 0.5] })
+        .as_object()
+        .unwrap()
+        {
+            solved[k] = v.clone();
+        }
+        let p: MatcherPair = from_value(&solved, "pair").unwrap();
+        assert_eq!(p.chosen_alternative, Some(None));
+        assert!(p.residual_px.unwrap()[0].is_nan());
+        assert_eq!(to_value(&p), solved);
     }
 }

@@ -26,12 +26,11 @@
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
-use serde_json::json;
 use surfstream_core::frame::{flags, placed_by, TileRegistration};
 use surfstream_core::raster::{Raster, RasterView, Shape};
 use surfstream_core::record::{
-    self, DirectionalPair, MatcherPair, MatcherReport, MatcherTile, StreamingPlacement,
-    TilePlacement,
+    self, DirectionalPair, GlobalSolveRecord, MatcherPair, MatcherReport, MatcherTile,
+    StreamingPlacement, TilePlacement,
 };
 use surfstream_core::store::{AppendLog, StoreError};
 use surfstream_core::Pitch;
@@ -195,7 +194,7 @@ pub struct ScanRegistration {
     pairs: Vec<PairRecord>,
     tiles_report: Vec<MatcherTile>,
     pairs_report: Vec<MatcherPair>,
-    global_report: serde_json::Value,
+    global_report: Option<GlobalSolveRecord>,
 }
 
 impl ScanRegistration {
@@ -209,7 +208,7 @@ impl ScanRegistration {
             pairs: Vec::new(),
             tiles_report: Vec::new(),
             pairs_report: Vec::new(),
-            global_report: serde_json::Value::Null,
+            global_report: None,
         }
     }
 
@@ -422,19 +421,38 @@ impl ScanRegistration {
         })?;
         let regs = self.final_registrations(&placement, &planes);
         let feature_summary = self.report_pairs(&placement, &planes)?;
-        self.global_report = json!({
-            "links": placement.links.len(),
-            "links_removed": placement.sol.links.iter().filter(|l| !l.kept).count(),
-            "max_residual_px": placement.sol.max_residual_px,
-            "tiles_placed_by_stage": regs.iter().filter(|r| r.placed_by == placed_by::STAGE).count(),
-            "directional_links": placement.directional_pairs.len(),
-            "directional_links_removed": placement.sol.anisotropic_links.iter().filter(|l| !l.kept).count(),
-            "tiles_one_direction_by_stage": placement.sol.registered_directions.iter().filter(|&&d| d == 1).count(),
-            "stage_sigma_px": self.params.solve.stage_sigma_px,
-            "outlier_px": self.params.solve.outlier_px,
-            "z_rms_before_um": planes.rms_before_um,
-            "z_rms_residual_um": planes.rms_residual_um,
-            "features": feature_summary,
+        let count = |n: usize| n as u64;
+        self.global_report = Some(GlobalSolveRecord {
+            links: count(placement.links.len()),
+            links_removed: count(placement.sol.links.iter().filter(|l| !l.kept).count()),
+            max_residual_px: placement.sol.max_residual_px,
+            tiles_placed_by_stage: count(
+                regs.iter()
+                    .filter(|r| r.placed_by == placed_by::STAGE)
+                    .count(),
+            ),
+            directional_links: count(placement.directional_pairs.len()),
+            directional_links_removed: count(
+                placement
+                    .sol
+                    .anisotropic_links
+                    .iter()
+                    .filter(|l| !l.kept)
+                    .count(),
+            ),
+            tiles_one_direction_by_stage: count(
+                placement
+                    .sol
+                    .registered_directions
+                    .iter()
+                    .filter(|&&d| d == 1)
+                    .count(),
+            ),
+            stage_sigma_px: self.params.solve.stage_sigma_px,
+            outlier_px: self.params.solve.outlier_px,
+            z_rms_before_um: planes.rms_before_um,
+            z_rms_residual_um: planes.rms_residual_um,
+            features: feature_summary,
         });
         Ok(regs)
     }
