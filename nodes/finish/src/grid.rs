@@ -156,11 +156,7 @@ pub fn mesh_patch(heights_um: &[f64], at: Sampling, max_triangles: usize) -> Res
     let view = RasterView::new(&h32, at.shape())?;
     let profile =
         EngineProfile::with_budget(surfstream_mesher::DemEngine::Liggghts, Some(max_triangles));
-    let mut target = grid_sheet_for(
-        view,
-        &ScanPlacement::new(at.pitch_x_um(), at.pitch_y_um()),
-        &profile,
-    )?;
+    let mut target = grid_sheet_for(view, &ScanPlacement::new(at.pitch()), &profile)?;
     // LIGGGHTS refuses a mesh whose coordinates span less than 1e-4 m ("dimensions too
     // small", a round-off guard over all of x, y, z): a sub-100-um patch recentred on the
     // origin would. Moving it by +100 um in x and y makes the span at least 100 um.

@@ -102,7 +102,7 @@ pub(crate) fn mesh_height_field_with(
         Epsilon::Um(e) => e,
         Epsilon::SqFraction(f) => {
             crate::field::positive_finite("epsilon_sq_fraction", f)?;
-            let field = field_params(heights, at.pitch_x_um, at.pitch_y_um);
+            let field = field_params(heights, at.pitch.x_um(), at.pitch.y_um());
             let sq = field.map_or(0.0, |p| p.sq_um);
             if sq <= 0.0 {
                 return Err(MeshError::Incompatible(format!(
@@ -162,7 +162,7 @@ pub(crate) fn finish_adaptive(
         .map(|(&m, h)| if h.is_nan() { f32::NAN } else { m })
         .collect();
     let (field_params, mesh_params) =
-        compare(heights, &mesh_at_measured, at.pitch_x_um, at.pitch_y_um);
+        compare(heights, &mesh_at_measured, at.pitch.x_um(), at.pitch.y_um());
 
     // Place the vertices as the grid solid does: x, y from the sample's index, z from its
     // height; re-centred from small numbers so that no precision is lost.
@@ -290,8 +290,8 @@ impl VertexPlacement {
         let at = &self.at;
         if self.recentre {
             [
-                at.origin_x_um + self.centre_col * at.pitch_x_um,
-                at.origin_y_um + self.centre_row * at.pitch_y_um,
+                at.origin_x_um + self.centre_col * at.pitch.x_um(),
+                at.origin_y_um + self.centre_row * at.pitch.y_um(),
                 at.z_offset_um + self.min_um - self.base_depth_um,
             ]
         } else {
@@ -316,14 +316,14 @@ impl VertexPlacement {
         let h = f64::from(h_um);
         let p = if self.recentre {
             [
-                (j - self.centre_col) * at.pitch_x_um,
-                (i - self.centre_row) * at.pitch_y_um,
+                (j - self.centre_col) * at.pitch.x_um(),
+                (i - self.centre_row) * at.pitch.y_um(),
                 (h - self.min_um) + self.base_depth_um,
             ]
         } else {
             [
-                at.origin_x_um + j * at.pitch_x_um,
-                at.origin_y_um + i * at.pitch_y_um,
+                at.origin_x_um + j * at.pitch.x_um(),
+                at.origin_y_um + i * at.pitch.y_um(),
                 at.z_offset_um + h,
             ]
         };

@@ -648,7 +648,7 @@ impl MeshJob {
         // The frame's grid: rows along y (header height), columns along x (header width).
         let shape = Shape::new(h.height as usize, h.width as usize);
         let heights = RasterView::new(&s.heights, shape).map_err(|e| anyhow!("mesher: {e}"))?;
-        let at = ScanPlacement::of_frame(&h);
+        let at = ScanPlacement::of_frame(&h).map_err(|e| anyhow!("mesher: {e}"))?;
         let (solid, adaptive, resampled) = match (&self.settings.adaptive, self.grid_target()) {
             (_, Some(profile)) => {
                 let t = grid_sheet_for(heights, &at, &profile)?;
@@ -712,8 +712,11 @@ impl MeshJob {
                 // The full-grid solid, streamed: its mesh on the grid is the samples themselves.
                 let heights =
                     RasterView::new(&s.heights, shape).map_err(|e| anyhow!("mesher: {e}"))?;
-                let g =
-                    grid_streaming(heights, &ScanPlacement::of_frame(&h), &self.settings.solid)?;
+                let g = grid_streaming(
+                    heights,
+                    &ScanPlacement::of_frame(&h).map_err(|e| anyhow!("mesher: {e}"))?,
+                    &self.settings.solid,
+                )?;
                 write_npy_abs_f64(
                     resampled_npy,
                     &s.heights,
@@ -751,7 +754,7 @@ impl MeshJob {
             }
         };
         let heights = RasterView::new(&s.heights, shape).map_err(|e| anyhow!("mesher: {e}"))?;
-        let at = ScanPlacement::of_frame(&h);
+        let at = ScanPlacement::of_frame(&h).map_err(|e| anyhow!("mesher: {e}"))?;
         let spill_dir = match stl.parent() {
             Some(d) if !d.as_os_str().is_empty() => d,
             _ => Path::new("."),

@@ -312,10 +312,9 @@ pub fn grid_sheet_for(
     // A block's mean stands at the block's centre.
     let half = (stride as f64 - 1.0) * 0.5;
     let reduced_at = ScanPlacement {
-        pitch_x_um: at.pitch_x_um * stride as f64,
-        pitch_y_um: at.pitch_y_um * stride as f64,
-        origin_x_um: at.origin_x_um + half * at.pitch_x_um,
-        origin_y_um: at.origin_y_um + half * at.pitch_y_um,
+        pitch: at.pitch.times(stride)?,
+        origin_x_um: at.origin_x_um + half * at.pitch.x_um(),
+        origin_y_um: at.origin_y_um + half * at.pitch.y_um(),
         z_offset_um: at.z_offset_um,
     };
     let params = SolidParams {
@@ -352,14 +351,18 @@ pub fn grid_sheet_for(
             quality.min_angle_deg,
             quality.duplicate_triangles,
             profile.min_angle_deg,
-            reduced_at.pitch_x_um,
-            reduced_at.pitch_y_um
+            reduced_at.pitch.x_um(),
+            reduced_at.pitch.y_um()
         )));
     }
     Ok(TargetMesh {
         mesh,
-        measured: field_params(heights, at.pitch_x_um, at.pitch_y_um),
-        meshed: field_params(reduced.view(), reduced_at.pitch_x_um, reduced_at.pitch_y_um),
+        measured: field_params(heights, at.pitch.x_um(), at.pitch.y_um()),
+        meshed: field_params(
+            reduced.view(),
+            reduced_at.pitch.x_um(),
+            reduced_at.pitch.y_um(),
+        ),
         // Recorded as what was made: the regular grid, whatever the engine's default.
         profile: EngineProfile {
             method: TargetMethod::Grid,
@@ -368,7 +371,7 @@ pub fn grid_sheet_for(
         stride,
         grid: reduced.shape(),
         block_means: reduced,
-        pitch_um: [reduced_at.pitch_x_um, reduced_at.pitch_y_um],
+        pitch_um: [reduced_at.pitch.x_um(), reduced_at.pitch.y_um()],
         quality,
     })
 }
@@ -376,6 +379,7 @@ pub fn grid_sheet_for(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use surfstream_core::Pitch;
 
     #[test]
     fn engines_parse_and_liggghts_gets_an_ascii_sheet_in_metres() {
@@ -436,7 +440,7 @@ mod tests {
         profile.max_triangles = 2000;
         let t = grid_sheet_for(
             RasterView::new(&z, shape).unwrap(),
-            &ScanPlacement::new(0.5, 1.0),
+            &ScanPlacement::new(Pitch::new(0.5, 1.0).expect("a positive pitch")),
             &profile,
         )
         .unwrap();
