@@ -223,20 +223,31 @@ def decimate(verts: np.ndarray, faces: np.ndarray, n: int, optimal_placement: bo
     return m.vertex_matrix(), m.face_matrix(), secs
 
 
-def judge_mesh(pano: np.ndarray, pitch: tuple[float, float], regions: list[dict], v: np.ndarray, f: np.ndarray) -> dict:
+ROUGHNESS_LIMIT = 5.0  # the model's default bound on the roughness the mesh carries (%)
+
+
+def judge_mesh(pano: np.ndarray, pitch: tuple[float, float], regions: list[dict], v: np.ndarray, f: np.ndarray,
+               roughness: np.ndarray | None = None) -> dict:
     """A decimated mesh judged like the others (interpolated at every measured pixel, Table 6
-    regions, the residual bound; every measured pixel must be covered)."""
+    regions, the residual bound; every measured pixel must be covered). With `roughness` (the
+    run's roughness.npy) also the roughness the mesh carries (roughness + mesh - panorama)
+    against it, Sa, Sq, Sz within ROUGHNESS_LIMIT, as the model's default tolerance asks."""
     rows, cols = pano.shape
     xy = np.column_stack([v[:, 0] / pitch[0], v[:, 1] / pitch[1]])
     model = rasterize(xy, v[:, 2], f, (rows, cols))
     w = judge(pano, model, regions)
     ok = passes(w) and w["residual"] <= RESIDUAL_LIMIT
+    if roughness is not None:
+        r = judge(roughness, roughness + model - pano, regions)
+        w["roughness"] = max((r[k] for k in ("Sa", "Sq", "Sz")), key=abs)
+        ok = ok and abs(w["roughness"]) <= ROUGHNESS_LIMIT
     uncovered = int((np.isnan(model) & ~np.isnan(pano)).sum())
     return {"faces": int(len(f)), "pass": bool(ok and uncovered == 0), "worst": w, "uncovered_px": uncovered}
 
 
 def quadric_search(pano: np.ndarray, pitch: tuple[float, float], regions: list[dict], start_faces: int,
-                   optimal_placement: bool = True, progressive: bool = False) -> dict:
+                   optimal_placement: bool = True, progressive: bool = False,
+                   roughness: np.ndarray | None = None) -> dict:
     """Quadric edge-collapse decimation (Garland-Heckbert; pymeshlab's
     meshing_decimation_quadric_edge_collapse, boundary preserved) of the full-grid mesh of the
     panorama (missing pixels filled), judged like the others: the fewest faces found that meet
@@ -262,13 +273,14 @@ def quadric_search(pano: np.ndarray, pitch: tuple[float, float], regions: list[d
         src_n = min((k for k in passing if k > n), default=None) if progressive else None
         sv, sf = passing[src_n] if src_n is not None else (verts, faces)
         v, f, secs = decimate(sv, sf, n, optimal_placement)
-        j = judge_mesh(pano, pitch, regions, v, f)
+        j = judge_mesh(pano, pitch, regions, v, f, roughness)
         tried[n] = {"target": n, **j, "decimation_s": secs, "from_faces": int(len(sf))}
         if progressive and j["pass"]:
             passing[n] = (v, f)
         w = j["worst"]
         print(f"    quadric {n} (from {len(sf)}) -> {len(f)} faces: Sa {w['Sa']:+.2f} Sq {w['Sq']:+.2f} Sz {w['Sz']:+.2f} "
-              f"res {w['residual']:.1f} {'pass' if j['pass'] else 'fail'} ({secs:.1f} s)", file=sys.stderr)
+              f"res {w['residual']:.1f} rough {w.get('roughness', float('nan')):+.2f} {'pass' if j['pass'] else 'fail'} ({secs:.1f} s)",
+              file=sys.stderr)
         return j["pass"]
 
     # Progressive: start well above (a passing mesh is the source of every smaller target).
@@ -336,6 +348,8 @@ def main() -> int:
                     help="quadric collapses to an end point (vertices stay on measured samples) instead of the optimal placement")
     ap.add_argument("--quadric-progressive", action="store_true",
                     help="decimate each target below a passing one from that passing mesh, not from the full grid")
+    ap.add_argument("--quadric-rough", action="store_true",
+                    help="quadric must also keep the roughness it carries within 5 %% (the model's default), judged against roughness.npy")
     ap.add_argument("--quadric-check", action="store_true",
                     help="decimate the targets of the kept direct search progressively and print both")
     a = ap.parse_args()
@@ -377,7 +391,8 @@ def main() -> int:
         quadric = None
         if a.quadric:
             # Kept per set (the decimations take minutes on a full grid); --quadric-again redoes.
-            variant = ("-samples" if a.quadric_on_samples else "") + ("-progressive" if a.quadric_progressive else "")
+            variant = (("-samples" if a.quadric_on_samples else "") + ("-progressive" if a.quadric_progressive else "")
+                       + ("-rough" if a.quadric_rough else ""))
             cache = a.out / f"quadric{variant}-{o.name}.json"
             pitch = run["stages"]["mesher"].get("pitch_um", [1.0, 1.0])
             if a.quadric_check:
@@ -397,7 +412,8 @@ def main() -> int:
                 quadric = quadric_search(pano, (float(pitch[0]), float(pitch[1])), regions,
                                          int(tol.get("surface_triangles") or 1000),
                                          optimal_placement=not a.quadric_on_samples,
-                                         progressive=a.quadric_progressive)
+                                         progressive=a.quadric_progressive,
+                                         roughness=np.load(o / "roughness.npy").astype(np.float64) if a.quadric_rough else None)
                 cache.write_text(json.dumps(quadric, indent=1))
         p4, p4_tri = paper[4]
         rows.append({
@@ -435,7 +451,8 @@ def main() -> int:
             best = q and q["fewest_passing"]
             qtext = "not met" if not best else f"{best['faces']} ({best['faces'] / mp:.3f})"
             wtext = "" if not best else (f"{best['worst']['Sa']:+.2f} / {best['worst']['Sq']:+.2f} / "
-                                         f"{best['worst']['Sz']:+.2f}, {best['worst']['residual']:.1f}")
+                                         f"{best['worst']['Sz']:+.2f}, {best['worst']['residual']:.1f}"
+                                         + (f", roughness {best['worst']['roughness']:+.2f}" if "roughness" in best["worst"] else ""))
             ntext = "not met" if n is None else f"pool {n['pool']}: {n['triangles']} ({n['triangles_per_measured_px']:.3f})"
             print(f"| {r['set']} | {o['surface_triangles']} ({o['triangles_per_measured_px'] or float('nan'):.3f}) | "
                   f"{qtext} | {wtext} | {ntext} |")

@@ -1443,6 +1443,30 @@ impl LiveBlock<'_> {
         self.budget_reached |= self.b.refine(sides.epsilon_um, plan.max_triangles);
     }
 
+    /// Inserts the samples of `samples` that lie inside block `k`, not on its sides (a
+    /// side's vertices come from its own simplification, which keeps its peak and valley).
+    pub(crate) fn insert_samples(&mut self, plan: &BlockPlan<'_>, k: usize, samples: &[u32]) {
+        let (b, _) = plan.block(k);
+        let w = plan.cols;
+        let mut inside: Vec<u32> = samples
+            .iter()
+            .copied()
+            .filter(|&s| {
+                let (x, y) = (s as usize % w, s as usize / w);
+                (b.x0 + 1..b.x1).contains(&x)
+                    && (b.y0 + 1..b.y1).contains(&y)
+                    // Inside, settled means a vertex already (the block's own extremes).
+                    && !self.b.settled[self.b.local(x as i64, y as i64)]
+            })
+            .collect();
+        inside.sort_unstable();
+        inside.dedup();
+        let mut last = 0;
+        for s in inside {
+            last = self.b.insert_at(s as usize, last);
+        }
+    }
+
     /// Inserts the shared-side samples of `samples` the block does not have yet (kept in
     /// `border`, so that a sample is never inserted twice: the sides' simplification at a
     /// finer bound and the angle bound may both ask for it).
