@@ -196,50 +196,83 @@ def rasterize(xy_px: np.ndarray, z: np.ndarray, faces: np.ndarray, shape: tuple[
     return out.reshape(rows, cols)
 
 
-def quadric_search(pano: np.ndarray, pitch: tuple[float, float], regions: list[dict], start_faces: int,
-                   optimal_placement: bool = True) -> dict:
-    """Quadric edge-collapse decimation (Garland-Heckbert; pymeshlab's
-    meshing_decimation_quadric_edge_collapse, boundary preserved) of the full-grid mesh of the
-    panorama (missing pixels filled), judged like the others: the fewest faces found that meet
-    the tolerance and the residual bound. Target counts: from `start_faces`, doubled or halved
-    until the result changes, then bisected (geometric) to within 10 %. `optimal_placement`
-    False keeps every vertex on a measured sample (collapse to an end point)."""
-    import pymeshlab
-
+def full_grid(pano: np.ndarray, pitch: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """The full-grid mesh of the panorama (x, y in um, missing pixels filled smoothly, two
+    triangles per pixel): vertices and faces."""
     rows, cols = pano.shape
     z = filled(pano)
     yy, xx = np.mgrid[0:rows, 0:cols]
     verts = np.column_stack([xx.ravel() * pitch[0], yy.ravel() * pitch[1], z.ravel()]).astype(np.float64)
     i = (yy[:-1, :-1] * cols + xx[:-1, :-1]).ravel()
     faces = np.concatenate([np.column_stack([i, i + 1, i + cols + 1]), np.column_stack([i, i + cols + 1, i + cols])]).astype(np.int32)
+    return verts, faces
+
+
+def decimate(verts: np.ndarray, faces: np.ndarray, n: int, optimal_placement: bool) -> tuple[np.ndarray, np.ndarray, float]:
+    """Quadric edge collapse (pymeshlab) of a mesh to `n` faces: vertices, faces, seconds."""
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=verts, face_matrix=faces))
+    t0 = time.perf_counter()
+    ms.meshing_decimation_quadric_edge_collapse(targetfacenum=n, preserveboundary=True, boundaryweight=1.0,
+                                                preservenormal=True, preservetopology=True, planarquadric=True,
+                                                optimalplacement=optimal_placement)
+    secs = time.perf_counter() - t0
+    m = ms.current_mesh()
+    return m.vertex_matrix(), m.face_matrix(), secs
+
+
+def judge_mesh(pano: np.ndarray, pitch: tuple[float, float], regions: list[dict], v: np.ndarray, f: np.ndarray) -> dict:
+    """A decimated mesh judged like the others (interpolated at every measured pixel, Table 6
+    regions, the residual bound; every measured pixel must be covered)."""
+    rows, cols = pano.shape
+    xy = np.column_stack([v[:, 0] / pitch[0], v[:, 1] / pitch[1]])
+    model = rasterize(xy, v[:, 2], f, (rows, cols))
+    w = judge(pano, model, regions)
+    ok = passes(w) and w["residual"] <= RESIDUAL_LIMIT
+    uncovered = int((np.isnan(model) & ~np.isnan(pano)).sum())
+    return {"faces": int(len(f)), "pass": bool(ok and uncovered == 0), "worst": w, "uncovered_px": uncovered}
+
+
+def quadric_search(pano: np.ndarray, pitch: tuple[float, float], regions: list[dict], start_faces: int,
+                   optimal_placement: bool = True, progressive: bool = False) -> dict:
+    """Quadric edge-collapse decimation (Garland-Heckbert; pymeshlab's
+    meshing_decimation_quadric_edge_collapse, boundary preserved) of the full-grid mesh of the
+    panorama (missing pixels filled), judged like the others: the fewest faces found that meet
+    the tolerance and the residual bound. Target counts: from `start_faces`, doubled or halved
+    until the result changes, then bisected (geometric) to within 10 %. `optimal_placement`
+    False keeps every vertex on a measured sample (collapse to an end point).
+
+    `progressive`: every target below a passing one is decimated from the smallest passing
+    mesh found so far instead of from the full grid (a 1.5 M-face grid takes minutes per
+    decimation; a decimated mesh of a few hundred thousand faces seconds). Only the first
+    decimation (at 8 x `start_faces`, halved from there), and any target above every passing
+    one, starts from the full grid.
+    `--quadric-check` measures what this changes against the direct decimation."""
+    verts, faces = full_grid(pano, pitch)
     full = len(faces)
     tried = {}
+    passing: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # target -> mesh, kept when progressive
 
     def trial(n: int) -> bool:
         n = int(min(max(n, 2), full))
         if n in tried:
             return tried[n]["pass"]
-        ms = pymeshlab.MeshSet()
-        ms.add_mesh(pymeshlab.Mesh(vertex_matrix=verts, face_matrix=faces))
-        t0 = time.perf_counter()
-        ms.meshing_decimation_quadric_edge_collapse(targetfacenum=n, preserveboundary=True, boundaryweight=1.0,
-                                                    preservenormal=True, preservetopology=True, planarquadric=True,
-                                                    optimalplacement=optimal_placement)
-        secs = time.perf_counter() - t0
-        m = ms.current_mesh()
-        v, f = m.vertex_matrix(), m.face_matrix()
-        xy = np.column_stack([v[:, 0] / pitch[0], v[:, 1] / pitch[1]])
-        model = rasterize(xy, v[:, 2], f, (rows, cols))
-        w = judge(pano, model, regions)
-        ok = passes(w) and w["residual"] <= RESIDUAL_LIMIT
-        uncovered = int((np.isnan(model) & ~np.isnan(pano)).sum())
-        tried[n] = {"target": n, "faces": int(len(f)), "pass": bool(ok and uncovered == 0), "worst": w,
-                    "uncovered_px": uncovered, "decimation_s": secs}
-        print(f"    quadric {n} -> {len(f)} faces: Sa {w['Sa']:+.2f} Sq {w['Sq']:+.2f} Sz {w['Sz']:+.2f} "
-              f"res {w['residual']:.1f} {'pass' if tried[n]['pass'] else 'fail'} ({secs:.1f} s)", file=sys.stderr)
-        return tried[n]["pass"]
+        src_n = min((k for k in passing if k > n), default=None) if progressive else None
+        sv, sf = passing[src_n] if src_n is not None else (verts, faces)
+        v, f, secs = decimate(sv, sf, n, optimal_placement)
+        j = judge_mesh(pano, pitch, regions, v, f)
+        tried[n] = {"target": n, **j, "decimation_s": secs, "from_faces": int(len(sf))}
+        if progressive and j["pass"]:
+            passing[n] = (v, f)
+        w = j["worst"]
+        print(f"    quadric {n} (from {len(sf)}) -> {len(f)} faces: Sa {w['Sa']:+.2f} Sq {w['Sq']:+.2f} Sz {w['Sz']:+.2f} "
+              f"res {w['residual']:.1f} {'pass' if j['pass'] else 'fail'} ({secs:.1f} s)", file=sys.stderr)
+        return j["pass"]
 
-    n = max(start_faces, 64)
+    # Progressive: start well above (a passing mesh is the source of every smaller target).
+    n = max(start_faces, 64) if not progressive else min(8 * max(start_faces, 64), full // 2)
     lo, hi = None, None  # largest failing, smallest passing
     for _ in range(8):
         if trial(n):
@@ -259,8 +292,31 @@ def quadric_search(pano: np.ndarray, pitch: tuple[float, float], regions: list[d
         else:
             lo = mid
     best = tried.get(hi) if hi is not None else None
-    return {"full_grid_faces": full, "tried": sorted(tried.values(), key=lambda t: t["target"]),
-            "fewest_passing": best}
+    return {"full_grid_faces": full, "progressive": progressive,
+            "tried": sorted(tried.values(), key=lambda t: t["target"]), "fewest_passing": best}
+
+
+def quadric_check(pano: np.ndarray, pitch: tuple[float, float], regions: list[dict], direct: dict,
+                  optimal_placement: bool) -> list[dict]:
+    """The targets a direct search tried, decimated progressively instead (largest from the
+    full grid, each next one from the previous result), judged the same way: what the
+    progressive search changes, side by side."""
+    verts, faces = full_grid(pano, pitch)
+    out = []
+    src = (verts, faces)
+    for t in sorted(direct["tried"], key=lambda t: -t["target"]):
+        v, f, secs = decimate(src[0], src[1], t["target"], optimal_placement)
+        j = judge_mesh(pano, pitch, regions, v, f)
+        out.append({"target": t["target"], "direct": {k: t[k] for k in ("faces", "pass", "worst")},
+                    "progressive": {**j, "from_faces": int(len(src[1])), "decimation_s": secs},
+                    "direct_s": t.get("decimation_s")})
+        w, d = j["worst"], t["worst"]
+        print(f"    {t['target']}: direct {t['faces']} {'pass' if t['pass'] else 'fail'} Sa {d['Sa']:+.2f} Sq {d['Sq']:+.2f} "
+              f"Sz {d['Sz']:+.2f} res {d['residual']:.1f} ({t.get('decimation_s', 0):.1f} s) | progressive from {len(src[1])}: "
+              f"{len(f)} {'pass' if j['pass'] else 'fail'} Sa {w['Sa']:+.2f} Sq {w['Sq']:+.2f} Sz {w['Sz']:+.2f} "
+              f"res {w['residual']:.1f} ({secs:.1f} s)", file=sys.stderr)
+        src = (v, f)
+    return out
 
 
 def main() -> int:
@@ -278,6 +334,10 @@ def main() -> int:
     ap.add_argument("--quadric-again", action="store_true", help="redo the quadric searches kept in OUT")
     ap.add_argument("--quadric-on-samples", action="store_true",
                     help="quadric collapses to an end point (vertices stay on measured samples) instead of the optimal placement")
+    ap.add_argument("--quadric-progressive", action="store_true",
+                    help="decimate each target below a passing one from that passing mesh, not from the full grid")
+    ap.add_argument("--quadric-check", action="store_true",
+                    help="decimate the targets of the kept direct search progressively and print both")
     a = ap.parse_args()
     suffix = f"-{a.label}" if a.label else ""
     a.out.mkdir(parents=True, exist_ok=True)
@@ -317,15 +377,27 @@ def main() -> int:
         quadric = None
         if a.quadric:
             # Kept per set (the decimations take minutes on a full grid); --quadric-again redoes.
-            cache = a.out / f"quadric{'-samples' if a.quadric_on_samples else ''}-{o.name}.json"
+            variant = ("-samples" if a.quadric_on_samples else "") + ("-progressive" if a.quadric_progressive else "")
+            cache = a.out / f"quadric{variant}-{o.name}.json"
+            pitch = run["stages"]["mesher"].get("pitch_um", [1.0, 1.0])
+            if a.quadric_check:
+                direct = a.out / f"quadric{'-samples' if a.quadric_on_samples else ''}-{o.name}.json"
+                if not direct.exists():
+                    print(f"{name}: --quadric-check needs the direct search kept in {direct}", file=sys.stderr)
+                else:
+                    print(f"{name}: direct against progressive decimation", file=sys.stderr)
+                    check = quadric_check(pano, (float(pitch[0]), float(pitch[1])), regions,
+                                          json.loads(direct.read_text()), not a.quadric_on_samples)
+                    (a.out / f"quadric-check{'-samples' if a.quadric_on_samples else ''}-{o.name}.json").write_text(
+                        json.dumps(check, indent=1))
             if cache.exists() and not a.quadric_again:
                 quadric = json.loads(cache.read_text())
             else:
-                pitch = run["stages"]["mesher"].get("pitch_um", [1.0, 1.0])
                 print(f"{name}: quadric decimation of the full grid", file=sys.stderr)
                 quadric = quadric_search(pano, (float(pitch[0]), float(pitch[1])), regions,
                                          int(tol.get("surface_triangles") or 1000),
-                                         optimal_placement=not a.quadric_on_samples)
+                                         optimal_placement=not a.quadric_on_samples,
+                                         progressive=a.quadric_progressive)
                 cache.write_text(json.dumps(quadric, indent=1))
         p4, p4_tri = paper[4]
         rows.append({

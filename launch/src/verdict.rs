@@ -136,15 +136,8 @@ pub fn verdict(run: &RunRecord, out: &Path, verbose: bool) -> Verdict {
     let weak: Vec<String> = run
         .pairs
         .iter()
-        .filter(|p| p["accepted_below_min_ncc"].as_bool() == Some(true))
-        .map(|p| {
-            format!(
-                "tiles {}-{} (NCC {:.2})",
-                p["a"].as_u64().unwrap_or(0),
-                p["b"].as_u64().unwrap_or(0),
-                p["ncc"].as_f64().unwrap_or(f64::NAN)
-            )
-        })
+        .filter(|p| p.accepted_below_min_ncc)
+        .map(|p| format!("tiles {}-{} (NCC {:.2})", p.a, p.b, p.ncc))
         .collect();
     if !weak.is_empty() {
         let _ = writeln!(
@@ -185,16 +178,10 @@ fn imprecise_links_line(run: &RunRecord) -> Option<String> {
     let list: Vec<String> = run
         .pairs
         .iter()
-        .filter(|p| p["kept_by_global_solve"].as_bool() != Some(false))
+        .filter(|p| p.kept_by_global_solve != Some(false))
         .filter_map(|p| {
-            let sd = p["offset_sd_px"].as_f64()?;
-            (sd > IMPRECISE_LINK_SD_PX).then(|| {
-                format!(
-                    "tiles {}-{} ({sd:.2} px)",
-                    p["a"].as_u64().unwrap_or(0),
-                    p["b"].as_u64().unwrap_or(0)
-                )
-            })
+            let sd = p.offset_sd_px?;
+            (sd > IMPRECISE_LINK_SD_PX).then(|| format!("tiles {}-{} ({sd:.2} px)", p.a, p.b))
         })
         .collect();
     (!list.is_empty()).then(|| {
@@ -288,7 +275,7 @@ fn mesh_line(run: &RunRecord) -> Option<String> {
         count(m.vertices),
         m.units,
     );
-    if let Some(fid) = m.adaptive.map(|a| a.fidelity) {
+    if let Some(fid) = m.adaptive().map(|a| a.fidelity) {
         let (max, eps) = (fid.error.max_um, fid.epsilon_um);
         if !max.is_nan() && !eps.is_nan() {
             let _ = write!(
@@ -647,10 +634,14 @@ mod tests {
     #[test]
     fn a_weak_link_is_named_but_does_not_fail() {
         let mut run = run_json(true, false);
-        run["pairs"] = json!([
-            { "a": 0, "b": 1, "ncc": 0.31, "accepted": true, "accepted_below_min_ncc": true },
-            { "a": 1, "b": 2, "ncc": 0.93, "accepted": true },
-        ]);
+        let pair = |a: u32, ncc: f64| {
+            json!({ "a": a, "b": a + 1, "direction": "horizontal",
+                "nominal_offset_px": [900.0, 0.0], "offset_px": [901.0, 0.5], "ncc": ncc,
+                "peak_ratio": 2.0, "accepted": true, "reason": null })
+        };
+        let mut weak = pair(0, 0.31);
+        weak["accepted_below_min_ncc"] = json!(true);
+        run["pairs"] = json!([weak, pair(1, 0.93)]);
         let v = verdict(&record(run), Path::new("/o"), false);
         assert!(v.failures.is_empty(), "{:?}", v.failures);
         assert!(

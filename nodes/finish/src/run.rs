@@ -8,8 +8,10 @@ use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
 use serde::Serialize;
-use serde_json::{json, Value};
+use serde_json::Value;
 use surfstream_core::metrology::{functional_params, level_plane, params, sim, AbbottCurve, Grid};
+use surfstream_core::record;
+use surfstream_core::{Sampling, Shape};
 
 use crate::contacts::{archard_from_dump, ContactSummary};
 use crate::engine::{run_engine, EngineCommand, EngineProgress};
@@ -19,6 +21,11 @@ use crate::script::{self, input_script, plan_passes, AimArea, Segment};
 use crate::setting::{
     hertz_contact_time_s, rayleigh_time_s, Action, BarrelMachine, Media, Workpiece,
     DEFAULT_IMPACT_ANGLE_DEG,
+};
+use crate::summary::{
+    AbbottSummary, CalibrationSummary, CheckMean, ContactFieldSummary, CycleField, CycleRecord,
+    CycleVolumeCheck, FinalFit, FinishSetting, FinishSummary, IdealModelRun, PaperValues,
+    PatchRecord, ProbeRecord, SimValues, Timings, VolumeCheck, WearVolumes,
 };
 use crate::vtk::read_vtk;
 
@@ -255,16 +262,10 @@ pub struct SurfaceParams {
 }
 
 /// The levelled heights and parameters of `z` (rows x cols).
-pub fn surface_params(
-    z: &[f64],
-    rows: usize,
-    cols: usize,
-    pitch_x_um: f64,
-    pitch_y_um: f64,
-) -> Result<(Vec<f64>, SurfaceParams)> {
-    let g = Grid::new(z, rows, cols, pitch_x_um, pitch_y_um)?;
+pub fn surface_params(z: &[f64], at: Sampling) -> Result<(Vec<f64>, SurfaceParams)> {
+    let g = Grid::of(z, at)?;
     let l = level_plane(&g)?;
-    let g = Grid::new(&l, rows, cols, pitch_x_um, pitch_y_um)?;
+    let g = Grid::of(&l, at)?;
     let p = params(&g)?;
     let f = functional_params(&g)?;
     let out = SurfaceParams {
@@ -333,30 +334,21 @@ pub struct SegmentPlan<'a> {
     pub contact_every: usize,
 }
 
-/// Meshes `heights_um` (the patch + guard, `rows x cols`), writes the segment's STL and script
+/// Meshes `heights_um` (the patch + guard, sampled as `at` says), writes the segment's STL and script
 /// into `dir`, runs LIGGGHTS and maps its wear back to the grid.
 #[allow(clippy::too_many_arguments)]
 pub fn run_segment(
     plan: &SegmentPlan<'_>,
     heights_um: &[f64],
-    rows: usize,
-    cols: usize,
-    pitch_x_um: f64,
-    pitch_y_um: f64,
+    at: Sampling,
     aim_window: crate::grid::Window,
     dir: &Path,
     stop: &AtomicBool,
     progress: &mut dyn FnMut(EngineProgress, &Segment),
 ) -> Result<SegmentResult> {
     std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
-    let pm = mesh_patch(
-        heights_um,
-        rows,
-        cols,
-        pitch_x_um,
-        pitch_y_um,
-        plan.max_triangles,
-    )?;
+    let pm = mesh_patch(heights_um, at, plan.max_triangles)?;
+    let (pitch_x_um, pitch_y_um) = (at.pitch_x_um(), at.pitch_y_um());
     let mesh = &pm.target.mesh;
     let stl = dir.join(script::STL);
     surfstream_core::fsutil::write_atomic(&stl, |w| {
@@ -466,7 +458,7 @@ pub fn run_segment(
     let volume_m3: Vec<f64> = wear.iter().zip(area).map(|(w, a)| w * a).collect();
     let liggghts_volume_um3 = volume_m3.iter().sum::<f64>() * 1e18;
     let (finnie_um, unmapped) = pm.map.triangle_volumes_to_depth(&vtk.triangles, &volume_m3);
-    let grid_volume_um3 = volume_um3(&finnie_um, pitch_x_um, pitch_y_um);
+    let grid_volume_um3 = volume_um3(&finnie_um, at.pitch());
     let (contacts, contact_summary) = archard_from_dump(
         &dir.join(script::CONTACTS),
         plan.archard_k_over_h_per_pa,
@@ -508,13 +500,7 @@ pub fn timestep_s(media: &Media, workpiece: &Workpiece, action: &Action) -> f64 
 fn sa_after(patch: &Patch, h: &[f64], wear: &[f64], s: f64) -> Result<f64> {
     let z: Vec<f64> = h.iter().zip(wear).map(|(a, w)| a - s * w).collect();
     let c = patch.cropped(&z);
-    let (_, p) = surface_params(
-        &c,
-        patch.crop.rows,
-        patch.crop.cols,
-        patch.pitch_x_um,
-        patch.pitch_y_um,
-    )?;
+    let (_, p) = surface_params(&c, patch.crop_sampling())?;
     Ok(p.sa)
 }
 
@@ -529,13 +515,7 @@ fn fit_scale(patch: &Patch, h: &[f64], wear: &[f64], target: f64) -> Result<(f64
         return Ok((0.0, false));
     }
     let c = patch.cropped(h);
-    let (_, p0) = surface_params(
-        &c,
-        patch.crop.rows,
-        patch.crop.cols,
-        patch.pitch_x_um,
-        patch.pitch_y_um,
-    )?;
+    let (_, p0) = surface_params(&c, patch.crop_sampling())?;
     if p0.sa <= target {
         return Ok((0.0, true));
     }
@@ -684,17 +664,14 @@ pub fn finish(
         (side_samples * model.pitch_y_um).min(model.rows as f64 * model.pitch_y_um * 0.7),
     ));
     let guard = opts.guard_um.unwrap_or(0.15 * pw.max(ph));
-    let patch = Patch::cut(
-        &model.heights_um,
-        model.rows,
-        model.cols,
+    let model_at = Sampling::new(
+        Shape::new(model.rows, model.cols),
         model.pitch_x_um,
         model.pitch_y_um,
-        pw,
-        ph,
-        guard,
     )
     .with_context(|| model.source.clone())?;
+    let patch = Patch::cut(&model.heights_um, model_at, pw, ph, guard)
+        .with_context(|| model.source.clone())?;
     let dt = timestep_s(&opts.media, &opts.workpiece, &action);
     let segments = opts.cycles + usize::from(opts.ideal.is_some());
     let plan = SegmentPlan {
@@ -717,10 +694,10 @@ pub fn finish(
          media {} mm at {:.2} m/s, {:.0} Pa, dt {:.2e} s, engine {}",
         patch.crop.rows,
         patch.crop.cols,
-        patch.crop.cols as f64 * patch.pitch_x_um,
-        patch.crop.rows as f64 * patch.pitch_y_um,
-        patch.rows,
-        patch.cols,
+        patch.crop.cols as f64 * patch.sampling.pitch_x_um(),
+        patch.crop.rows as f64 * patch.sampling.pitch_y_um(),
+        patch.sampling.rows(),
+        patch.sampling.cols(),
         opts.media.diameter_mm,
         action.media_velocity_m_s,
         action.pressure_pa,
@@ -728,13 +705,8 @@ pub fn finish(
         engine.argv(script::INPUT, script::LOG).join(" ")
     ));
 
-    let (original_crop, before) = surface_params(
-        &patch.cropped(&patch.heights_um),
-        patch.crop.rows,
-        patch.crop.cols,
-        patch.pitch_x_um,
-        patch.pitch_y_um,
-    )?;
+    let (original_crop, before) =
+        surface_params(&patch.cropped(&patch.heights_um), patch.crop_sampling())?;
     // The calibration target: Sa after the whole process.
     let measured_after = match &opts.calibrate {
         Some(Calibration::Measured(m)) => {
@@ -747,13 +719,7 @@ pub fn finish(
             let w = patch.in_model;
             let area = crop(&m.heights_um, m.cols, w);
             let inner = crop(&area, w.cols, patch.crop);
-            Some(surface_params(
-                &inner,
-                patch.crop.rows,
-                patch.crop.cols,
-                patch.pitch_x_um,
-                patch.pitch_y_um,
-            )?)
+            Some(surface_params(&inner, patch.crop_sampling())?)
         }
         _ => None,
     };
@@ -792,13 +758,10 @@ pub fn finish(
         opts.media.load_n(action.pressure_pa) + opts.media.mass_kg() * action.acceleration_m_s2;
     let dist = ApproachDistribution::of(&opts.media, &opts.workpiece, &action, press_force_n);
     let field_grid = FieldGrid {
-        rows: patch.rows,
-        cols: patch.cols,
-        pitch_x_um: patch.pitch_x_um,
-        pitch_y_um: patch.pitch_y_um,
+        sampling: patch.sampling,
         radius_um: opts.media.radius_m() * 1e6,
     };
-    let cell_area_um2 = patch.pitch_x_um * patch.pitch_y_um;
+    let cell_area_um2 = patch.sampling.pitch().cell_area_um2();
     let aim_area_um2 = cell_area_um2 * (patch.crop.rows * patch.crop.cols) as f64;
     let impact_rate = impact_rate_per_m2_s(&opts.media, &action);
     let impacts_process = impact_rate * aim_area_um2 * 1e-12 * opts.process_time_s;
@@ -809,26 +772,14 @@ pub fn finish(
     let mut checks: Vec<field::FieldCheck> = Vec::new();
     let mut sa_of_crop = |z: &[f64]| -> Result<f64> {
         let c = patch.cropped(z);
-        let g = Grid::new(
-            &c,
-            patch.crop.rows,
-            patch.crop.cols,
-            patch.pitch_x_um,
-            patch.pitch_y_um,
-        )?;
+        let g = Grid::of(&c, patch.crop_sampling())?;
         let l = level_plane(&g)?;
-        let g = Grid::new(
-            &l,
-            patch.crop.rows,
-            patch.crop.cols,
-            patch.pitch_x_um,
-            patch.pitch_y_um,
-        )?;
+        let g = Grid::of(&l, patch.crop_sampling())?;
         Ok(params(&g)?.sa)
     };
     // Planning passes within the budget needs the engine's cost on this machine now (a busy
     // machine makes it several times the quiet estimate): a probe of two passes measures it.
-    let mut probe_json = Value::Null;
+    let mut probe: Option<ProbeRecord> = None;
     if opts.passes.is_none() {
         let r = run_segment(
             &SegmentPlan {
@@ -836,10 +787,7 @@ pub fn finish(
                 ..plan.clone_with_engine(&engine)
             },
             &h,
-            patch.rows,
-            patch.cols,
-            patch.pitch_x_um,
-            patch.pitch_y_um,
+            patch.sampling,
             patch.crop,
             &out_dir.join("probe"),
             stop,
@@ -858,7 +806,14 @@ pub fn finish(
             r.engine_s,
             cost
         ));
-        probe_json = json!({"dir": "probe", "engine_s": r.engine_s, "engine_cpu_s": r.engine_cpu_s, "triangles": r.triangles, "steps": r.segment.total_steps(), "cost_per_triangle_step_s": cost});
+        probe = Some(ProbeRecord {
+            dir: "probe".into(),
+            engine_s: r.engine_s,
+            engine_cpu_s: r.engine_cpu_s,
+            triangles: r.triangles,
+            steps: r.segment.total_steps(),
+            cost_per_triangle_step_s: cost,
+        });
         partial |= r.stopped;
     }
     for c in 1..=opts.cycles {
@@ -881,10 +836,7 @@ pub fn finish(
         let r = run_segment(
             &seg_plan,
             &h,
-            patch.rows,
-            patch.cols,
-            patch.pitch_x_um,
-            patch.pitch_y_um,
+            patch.sampling,
             patch.crop,
             &dir,
             stop,
@@ -923,7 +875,7 @@ pub fn finish(
             first_finnie_map = Some(r.finnie_um.clone());
         }
         let dem_passes = r.segment.passes.len();
-        let (scale, reached, acceleration, fitted_k, field_json) = match opts.wear_model {
+        let (scale, reached, acceleration, fitted_k, cycle_field) = match opts.wear_model {
             WearModel::SampledMap => {
                 // The acceleration factor: each cycle stands for its share of the process time.
                 let acceleration = opts.process_time_s / opts.cycles as f64 / sim_s;
@@ -942,13 +894,7 @@ pub fn finish(
                     .cropped(&r.finnie_um)
                     .iter()
                     .fold(0.0f64, |m, w| m.max(w * scale));
-                let (_, now) = surface_params(
-                    &patch.cropped(&h),
-                    patch.crop.rows,
-                    patch.crop.cols,
-                    patch.pitch_x_um,
-                    patch.pitch_y_um,
-                )?;
+                let (_, now) = surface_params(&patch.cropped(&h), patch.crop_sampling())?;
                 if deepest > (2.0 * now.sz).max(0.5) {
                     bail!(
                         "cycle {c}: the wear is {deepest:.3e} um deep at its deepest, more than twice the \
@@ -962,19 +908,12 @@ pub fn finish(
                 add_scaled(&mut finnie_total, &r.finnie_um, scale);
                 add_scaled(&mut archard_total, &r.archard_um, scale);
                 add_scaled(&mut h, &r.finnie_um, -scale);
-                (scale, reached, acceleration, fitted_k, Value::Null)
+                (scale, reached, acceleration, fitted_k, None)
             }
             WearModel::ContactField => {
                 // The contact field of the surface this segment ran on, checked against
                 // where the DEM wore, and the wear per contact it measured.
-                let gap = field::ball_gap_um(
-                    &h,
-                    patch.rows,
-                    patch.cols,
-                    patch.pitch_x_um,
-                    patch.pitch_y_um,
-                    field_grid.radius_um,
-                );
+                let gap = field::ball_gap_um(&h, patch.sampling, field_grid.radius_um);
                 let gap_crop = patch.cropped(&gap);
                 let dem_crop = patch.cropped(&r.finnie_um);
                 let check = field::check_field(&dist, &gap_crop, &dem_crop);
@@ -1030,24 +969,18 @@ pub fn finish(
                     true,
                     acceleration,
                     k_finnie * scale,
-                    json!({
-                        "check": check,
-                        "table": own,
-                        "impacts": impacts_cycle,
-                        "dem_impacts": dem_passes,
-                        "extrapolation": e,
-                        "scale_is": if target_sa.is_some() { "provisional (fitted on the tables so far); the final fit uses every table" } else { "1: k_finnie as given" },
+                    Some(CycleField {
+                        check,
+                        table: own,
+                        impacts: impacts_cycle,
+                        dem_impacts: dem_passes,
+                        extrapolation: e,
+                        scale_is: if target_sa.is_some() { "provisional (fitted on the tables so far); the final fit uses every table" } else { "1: k_finnie as given" }.into(),
                     }),
                 )
             }
         };
-        let (_, after_c) = surface_params(
-            &patch.cropped(&h),
-            patch.crop.rows,
-            patch.crop.cols,
-            patch.pitch_x_um,
-            patch.pitch_y_um,
-        )?;
+        let (_, after_c) = surface_params(&patch.cropped(&h), patch.crop_sampling())?;
         worst_volume_error = worst_volume_error.max(r.volume_relative_error().abs());
         say(&format!(
             "finish: cycle {c}/{} ({}): {} passes, {:.3} ms simulated in {:.1} s; wear x {:.3e}{}; Sa {:.3} um (volume check {:+.2e})",
@@ -1061,35 +994,37 @@ pub fn finish(
             after_c.sa,
             r.volume_relative_error()
         ));
-        cycles_json.push(json!({
-            "cycle": c,
-            "dir": format!("cycle_{c:02}"),
-            "command": r.command,
-            "triangles": r.triangles,
-            "mesh_block_stride": r.mesh_stride,
-            "passes": r.segment.passes.len(),
-            "steps_per_pass": r.segment.steps_per_pass,
-            "timestep_s": r.segment.timestep_s,
-            "simulated_s": sim_s,
-            "engine_s": r.engine_s,
-            "engine_cpu_s": r.engine_cpu_s,
-            "cost_per_triangle_step_s": r.engine_s / (r.triangles as f64 * r.segment.total_steps() as f64),
-            "cpu_per_triangle_step_s": r.engine_cpu_s / (r.triangles as f64 * r.segment.total_steps() as f64),
-            "acceleration_factor": acceleration,
-            "wear_scale": scale,
-            "target_reached": reached,
-            "k_finnie_equivalent_per_pa": fitted_k,
-            "volume_check": {
-                "liggghts_um3": r.liggghts_volume_um3,
-                "grid_um3": r.grid_volume_um3,
-                "unmapped_um3": r.unmapped_volume_um3,
-                "relative_error": r.volume_relative_error(),
+        cycles_json.push(CycleRecord {
+            cycle: c,
+            dir: format!("cycle_{c:02}"),
+            command: r.command.clone(),
+            triangles: r.triangles,
+            mesh_block_stride: r.mesh_stride,
+            passes: r.segment.passes.len(),
+            steps_per_pass: r.segment.steps_per_pass,
+            timestep_s: r.segment.timestep_s,
+            simulated_s: sim_s,
+            engine_s: r.engine_s,
+            engine_cpu_s: r.engine_cpu_s,
+            cost_per_triangle_step_s: r.engine_s
+                / (r.triangles as f64 * r.segment.total_steps() as f64),
+            cpu_per_triangle_step_s: r.engine_cpu_s
+                / (r.triangles as f64 * r.segment.total_steps() as f64),
+            acceleration_factor: acceleration,
+            wear_scale: scale,
+            target_reached: reached,
+            k_finnie_equivalent_per_pa: fitted_k,
+            volume_check: CycleVolumeCheck {
+                liggghts_um3: r.liggghts_volume_um3,
+                grid_um3: r.grid_volume_um3,
+                unmapped_um3: r.unmapped_volume_um3,
+                relative_error: r.volume_relative_error(),
             },
-            "archard_volume_um3": volume_um3(&r.archard_um, patch.pitch_x_um, patch.pitch_y_um),
-            "contacts": r.contacts,
-            "contact_field": field_json,
-            "after": after_c,
-        }));
+            archard_volume_um3: volume_um3(&r.archard_um, patch.sampling.pitch()),
+            contacts: record::to_value(&r.contacts),
+            contact_field: cycle_field,
+            after: after_c,
+        });
     }
     let completed = cycles_json.len();
     // A stop during the contact field's fit (no engine running) ends the run the same way.
@@ -1100,7 +1035,7 @@ pub fn finish(
     // The contact field's final fit, once, with every cycle's table, from the original
     // surface over the whole process time; without a target the cycles' wear stands (k as
     // given).
-    let mut final_fit = Value::Null;
+    let mut final_fit: Option<FinalFit> = None;
     if opts.wear_model == WearModel::ContactField && completed > 0 {
         let mut scale = provisional_scale.unwrap_or(1.0);
         if let (Some(t), false) = (target_sa, partial) {
@@ -1138,13 +1073,13 @@ pub fn finish(
                 err * 100.0,
                 if reached { "" } else { ": target NOT reached" }
             ));
-            final_fit = json!({
-                "scale": scale,
-                "k_finnie_fitted_per_pa": k_finnie * scale,
-                "sa_after_um": sa,
-                "relative_error": err,
-                "reached": reached && err.abs() * 100.0 <= CALIBRATION_TOLERANCE_PERCENT,
-                "extrapolation": e,
+            final_fit = Some(FinalFit {
+                scale,
+                k_finnie_fitted_per_pa: k_finnie * scale,
+                sa_after_um: sa,
+                relative_error: err,
+                reached: reached && err.abs() * 100.0 <= CALIBRATION_TOLERANCE_PERCENT,
+                extrapolation: e,
             });
         }
         archard_total = vec![0.0; n];
@@ -1154,7 +1089,7 @@ pub fn finish(
     }
 
     // The paper's comparison: the ideal model (form only) under the same first segment.
-    let mut ideal_json = Value::Null;
+    let mut ideal_run: Option<IdealModelRun> = None;
     if let (Some(ideal), false, Some(hifi_map)) = (&opts.ideal, partial, &first_finnie_map) {
         if (ideal.rows, ideal.cols) != (model.rows, model.cols) {
             bail!(
@@ -1168,7 +1103,7 @@ pub fn finish(
         }
         let w = patch.in_model;
         let area = crop(&ideal.heights_um, ideal.cols, w);
-        let g = Grid::new(&area, w.rows, w.cols, patch.pitch_x_um, patch.pitch_y_um)?;
+        let g = Grid::of(&area, patch.sampling.with_shape(Shape::new(w.rows, w.cols)))?;
         let levelled = level_plane(&g)?;
         let dir = out_dir.join("ideal");
         let mut last_say = Instant::now();
@@ -1180,10 +1115,7 @@ pub fn finish(
                 ..plan.clone_with_engine(&engine)
             },
             &levelled,
-            w.rows,
-            w.cols,
-            patch.pitch_x_um,
-            patch.pitch_y_um,
+            patch.sampling.with_shape(Shape::new(w.rows, w.cols)),
             patch.crop,
             &dir,
             stop,
@@ -1213,13 +1145,13 @@ pub fn finish(
             say(&format!(
                 "finish: SIM(wear map of the model, wear map of the ideal model) = {s:.3}"
             ));
-            ideal_json = json!({
-                "source": ideal.source,
-                "dir": "ideal",
-                "engine_s": r.engine_s,
-                "volume_um3": r.grid_volume_um3,
-                "sim_wear_maps": if s.is_finite() { json!(s) } else { Value::Null },
-                "note": "SIM (eq. 12) between the first cycle's Finnie map on the model and on the ideal model, same passes",
+            ideal_run = Some(IdealModelRun {
+                source: ideal.source.clone(),
+                dir: "ideal".into(),
+                engine_s: r.engine_s,
+                volume_um3: r.grid_volume_um3,
+                sim_wear_maps: s.is_finite().then_some(s),
+                note: "SIM (eq. 12) between the first cycle's Finnie map on the model and on the ideal model, same passes".into(),
             });
         }
     }
@@ -1229,12 +1161,11 @@ pub fn finish(
     let finnie_crop = patch.cropped(&finnie_total);
     let archard_crop = patch.cropped(&archard_total);
     let worn_raw = patch.cropped(&h);
-    let (worn_crop, after) =
-        surface_params(&worn_raw, rows, cols, patch.pitch_x_um, patch.pitch_y_um)?;
+    let (worn_crop, after) = surface_params(&worn_raw, patch.crop_sampling())?;
     // Every .npy keeps its pitch in its sidecar, as every other writer of the project does.
     let geometry = surfstream_io::sidecar::NpyGeometry {
-        pitch_x_um: patch.pitch_x_um,
-        pitch_y_um: patch.pitch_y_um,
+        pitch_x_um: patch.sampling.pitch_x_um(),
+        pitch_y_um: patch.sampling.pitch_y_um(),
         origin_um: None,
     };
     let write = |name: &str, z: &[f64]| -> Result<()> {
@@ -1251,8 +1182,8 @@ pub fn finish(
     let x3p = surfstream_io::formats::Surface {
         width: cols,
         height: rows,
-        pitch_x_um: patch.pitch_x_um,
-        pitch_y_um: patch.pitch_y_um,
+        pitch_x_um: patch.sampling.pitch_x_um(),
+        pitch_y_um: patch.sampling.pitch_y_um(),
         heights_um: worn_crop.clone(),
         metadata: surfstream_io::formats::Metadata {
             format: "x3p".into(),
@@ -1270,126 +1201,127 @@ pub fn finish(
         .and_then(|(m, _)| sim(&worn_crop, m).ok())
         .filter(|s| s.is_finite());
     let total_s = t_start.elapsed().as_secs_f64();
-    let abbott = |z: &[f64]| -> Result<Value> {
-        let g = Grid::new(z, rows, cols, patch.pitch_x_um, patch.pitch_y_um)?;
+    let abbott = |z: &[f64]| -> Result<AbbottSummary> {
+        let g = Grid::of(z, patch.crop_sampling())?;
         let a = AbbottCurve::of(&g)?;
-        Ok(json!({"material_ratio_pct": a.material_ratio_pct, "height_um": a.height_um}))
+        Ok(AbbottSummary {
+            material_ratio_pct: a.material_ratio_pct,
+            height_um: a.height_um,
+        })
     };
-    let summary = json!({
-        "model": model.source,
-        "partial": partial,
-        "cycles_completed": completed,
-        "cycles_requested": opts.cycles,
-        "setting": {
-            "patch": {
-                "rows_cols": [rows, cols],
-                "size_um": [cols as f64 * patch.pitch_x_um, rows as f64 * patch.pitch_y_um],
-                "pitch_um": [patch.pitch_x_um, patch.pitch_y_um],
-                "in_model_rows_cols_origin": [patch.in_model.row0 + patch.crop.row0, patch.in_model.col0 + patch.crop.col0],
-                "guard_band_um": guard,
-                "meshed_area_rows_cols": [patch.rows, patch.cols],
-                "boundary": "guard band of real neighbouring surface, meshed and worn, then cropped (not periodic: a mirrored seam is an artificial ridge, and a 3 mm medium spans the whole patch)",
-                "levelled": "least-squares plane of the meshed area removed",
-                "filled_samples": patch.filled_samples,
+    let check_mean = |f: &dyn Fn(&field::FieldCheck) -> f64| -> Option<f64> {
+        let v: Vec<f64> = checks.iter().map(f).filter(|x| x.is_finite()).collect();
+        (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+    };
+    let summary = FinishSummary {
+        model: model.source.clone(),
+        partial,
+        cycles_completed: completed,
+        cycles_requested: opts.cycles,
+        setting: Some(FinishSetting {
+            patch: PatchRecord {
+                rows_cols: [rows, cols],
+                size_um: [cols as f64 * patch.sampling.pitch_x_um(), rows as f64 * patch.sampling.pitch_y_um()],
+                pitch_um: [patch.sampling.pitch_x_um(), patch.sampling.pitch_y_um()],
+                in_model_rows_cols_origin: [patch.in_model.row0 + patch.crop.row0, patch.in_model.col0 + patch.crop.col0],
+                guard_band_um: guard,
+                meshed_area_rows_cols: [patch.sampling.rows(), patch.sampling.cols()],
+                boundary: "guard band of real neighbouring surface, meshed and worn, then cropped (not periodic: a mirrored seam is an artificial ridge, and a 3 mm medium spans the whole patch)".into(),
+                levelled: "least-squares plane of the meshed area removed".into(),
+                filled_samples: patch.filled_samples,
             },
-            "media": opts.media,
-            "workpiece": opts.workpiece,
-            "machine": opts.machine,
-            "action": action,
-            "press_force_n": opts.media.load_n(action.pressure_pa) + opts.media.mass_kg() * action.acceleration_m_s2,
-            "k_finnie_per_pa": k_finnie,
-            "archard_k_over_h_per_pa": opts.archard_k_over_h_per_pa,
-            "process_time_s": opts.process_time_s,
-            "timestep_s": dt,
-            "ranks": opts.ranks,
-            "max_triangles": opts.max_triangles,
-            "time_budget_s": opts.time_budget_s,
-            "seed": opts.seed,
-            "wear_depth": "volume (LIGGGHTS' normal wear x triangle area) spread to the grid: depth along z = normal wear / cos(slope)",
-            "acceleration": "each cycle's wear x (process time / cycles) / simulated time, or x the scale fitted to the calibration target",
+            media: opts.media,
+            workpiece: opts.workpiece,
+            machine: opts.machine,
+            action: action.clone(),
+            press_force_n: opts.media.load_n(action.pressure_pa) + opts.media.mass_kg() * action.acceleration_m_s2,
+            k_finnie_per_pa: k_finnie,
+            archard_k_over_h_per_pa: opts.archard_k_over_h_per_pa,
+            process_time_s: opts.process_time_s,
+            timestep_s: dt,
+            ranks: opts.ranks,
+            max_triangles: opts.max_triangles,
+            time_budget_s: opts.time_budget_s,
+            seed: opts.seed,
+            wear_depth: "volume (LIGGGHTS' normal wear x triangle area) spread to the grid: depth along z = normal wear / cos(slope)".into(),
+            acceleration: "each cycle's wear x (process time / cycles) / simulated time, or x the scale fitted to the calibration target".into(),
+        }),
+        calibration: opts.calibrate.as_ref().map(|c| CalibrationSummary {
+            kind: match c { Calibration::Sa{..} => "Sa before/after", Calibration::Measured(_) => "measured after-finish scan" }.into(),
+            target_sa_um: target_sa,
+            wear_model: Some(opts.wear_model.name().into()),
+            tolerance_percent: Some(CALIBRATION_TOLERANCE_PERCENT),
+            k_finnie_fitted_per_pa: if opts.wear_model == WearModel::ContactField {
+                final_fit.as_ref().map(|f| f.k_finnie_fitted_per_pa)
+            } else if completed > 0 {
+                // Cycles whose constant is not finite were written as null and left out.
+                Some(cycles_json.iter().map(|c| c.k_finnie_equivalent_per_pa).filter(|k| k.is_finite()).sum::<f64>() / completed as f64)
+            } else { None },
+            sa_after_um: Some(after.sa),
+            relative_error: target_sa.map(|t| after.sa / t - 1.0),
+            reached: target_sa.map(|t| !partial && (after.sa / t - 1.0).abs() * 100.0 <= CALIBRATION_TOLERANCE_PERCENT),
+            fit: final_fit.clone(),
+            provisional_scale,
+            measured_after: measured_after.as_ref().map(|(_, p)| p.clone()),
+        }),
+        wear_model: Some(opts.wear_model.name().into()),
+        contact_field: (opts.wear_model == WearModel::ContactField).then(|| ContactFieldSummary {
+            ball_radius_um: field_grid.radius_um,
+            closing: "the surface closed with the paraboloid r^2/2R of the media's radius (separable lower envelope of parabolas, exact, at the model's full resolution, over the patch and its guard band); the sphere differs from it by r^4/8R^3 (0.06 um at 200 um for R = 1.5 mm)".into(),
+            approach: Some(dist),
+            approach_model: "Hertz approach (15 m v_n^2 / (16 E* sqrt R))^(2/5), impact angle uniform on [0, max_impact_angle_deg] at the media speed; the press load's static approach a floor; p(gap) = P(approach > gap)".into(),
+            impact_rate_per_m2_s: impact_rate,
+            impact_rate_model: "the bed's contact layer holds one medium per 2 sqrt(3) r^2 and each strikes afresh once per diameter travelled at the media speed (an assumption)".into(),
+            patch_area_um2: aim_area_um2,
+            impacts_over_process: impacts_process,
+            step_depth_um: field::STEP_DEPTH_UM,
+            table: table.clone(),
+            check_mean: CheckMean {
+                auc_gap_predicts_worn: check_mean(&|c| c.auc_gap_predicts_worn),
+                dem_volume_within_reach: check_mean(&|c| c.dem_volume_within_reach),
+                cells_within_reach: check_mean(&|c| c.cells_within_reach),
+                dem_worn_cells: check_mean(&|c| c.dem_worn_cells),
+            },
+            worn_cells_after: Some(finnie_crop.iter().filter(|w| **w > 0.0).count() as f64 / finnie_crop.len().max(1) as f64),
+        }),
+        paper: Some(PaperValues {
+            before: [("Sa", 1.272), ("Sq", 1.624), ("Sz", 15.262)].map(|(k, v)| (k.to_string(), v)).into(),
+            after: [("Sa", 0.565), ("Sq", 0.708), ("Sz", 6.162)].map(|(k, v)| (k.to_string(), v)).into(),
+            process_time_s: 300,
+        }),
+        before,
+        after,
+        abbott_before: abbott(&original_crop)?,
+        abbott_after: abbott(&worn_crop)?,
+        volume_check: Some(VolumeCheck {
+            relative_error: worst_volume_error,
+            what: "largest |grid volume / LIGGGHTS' sum of wear x area - 1| over the cycles".into(),
+        }),
+        wear: Some(WearVolumes {
+            finnie_volume_um3: volume_um3(&finnie_crop, patch.sampling.pitch()),
+            archard_volume_um3: volume_um3(&archard_crop, patch.sampling.pitch()),
+            max_depth_um: finnie_crop.iter().cloned().fold(0.0, f64::max),
+            mean_depth_um: finnie_crop.iter().sum::<f64>() / finnie_crop.len() as f64,
+        }),
+        sim: Some(SimValues {
+            finnie_vs_archard: sim_finnie_archard,
+            worn_vs_measured_after: sim_measured,
+        }),
+        ideal_model: ideal_run,
+        cycles: cycles_json,
+        probe,
+        timings: Timings {
+            engine_s,
+            engine_cpu_s,
+            total_s,
+            surfstream_overhead_s: total_s - engine_s,
+            overhead_share_of_engine: (engine_s > 0.0).then(|| (total_s - engine_s) / engine_s),
+            simulated_s: sim_time_total,
         },
-        "calibration": match &opts.calibrate {
-            None => Value::Null,
-            Some(c) => json!({
-                "kind": match c { Calibration::Sa{..} => "Sa before/after", Calibration::Measured(_) => "measured after-finish scan" },
-                "target_sa_um": target_sa,
-                "wear_model": opts.wear_model.name(),
-                "tolerance_percent": CALIBRATION_TOLERANCE_PERCENT,
-                "k_finnie_fitted_per_pa": if opts.wear_model == WearModel::ContactField {
-                    final_fit.get("k_finnie_fitted_per_pa").cloned().unwrap_or(Value::Null)
-                } else if completed > 0 {
-                    json!(cycles_json.iter().filter_map(|c| c["k_finnie_equivalent_per_pa"].as_f64()).sum::<f64>() / completed as f64)
-                } else { Value::Null },
-                "sa_after_um": after.sa,
-                "relative_error": target_sa.map(|t| after.sa / t - 1.0),
-                "reached": target_sa.map(|t| !partial && (after.sa / t - 1.0).abs() * 100.0 <= CALIBRATION_TOLERANCE_PERCENT),
-                "fit": final_fit,
-                "provisional_scale": provisional_scale,
-                "measured_after": measured_after.as_ref().map(|(_, p)| p),
-            }),
-        },
-        "wear_model": opts.wear_model.name(),
-        "contact_field": if opts.wear_model == WearModel::ContactField {
-            let mean = |f: &dyn Fn(&field::FieldCheck) -> f64| -> Value {
-                let v: Vec<f64> = checks.iter().map(f).filter(|x| x.is_finite()).collect();
-                if v.is_empty() { Value::Null } else { json!(v.iter().sum::<f64>() / v.len() as f64) }
-            };
-            json!({
-                "ball_radius_um": field_grid.radius_um,
-                "closing": "the surface closed with the paraboloid r^2/2R of the media's radius (separable lower envelope of parabolas, exact, at the model's full resolution, over the patch and its guard band); the sphere differs from it by r^4/8R^3 (0.06 um at 200 um for R = 1.5 mm)",
-                "approach": dist,
-                "approach_model": "Hertz approach (15 m v_n^2 / (16 E* sqrt R))^(2/5), impact angle uniform on [0, max_impact_angle_deg] at the media speed; the press load's static approach a floor; p(gap) = P(approach > gap)",
-                "impact_rate_per_m2_s": impact_rate,
-                "impact_rate_model": "the bed's contact layer holds one medium per 2 sqrt(3) r^2 and each strikes afresh once per diameter travelled at the media speed (an assumption)",
-                "patch_area_um2": aim_area_um2,
-                "impacts_over_process": impacts_process,
-                "step_depth_um": field::STEP_DEPTH_UM,
-                "table": table,
-                "check_mean": {
-                    "auc_gap_predicts_worn": mean(&|c| c.auc_gap_predicts_worn),
-                    "dem_volume_within_reach": mean(&|c| c.dem_volume_within_reach),
-                    "cells_within_reach": mean(&|c| c.cells_within_reach),
-                    "dem_worn_cells": mean(&|c| c.dem_worn_cells),
-                },
-                "worn_cells_after": finnie_crop.iter().filter(|w| **w > 0.0).count() as f64 / finnie_crop.len().max(1) as f64,
-            })
-        } else { Value::Null },
-        "paper": {
-            "before": {"Sa": 1.272, "Sq": 1.624, "Sz": 15.262},
-            "after": {"Sa": 0.565, "Sq": 0.708, "Sz": 6.162},
-            "process_time_s": 300,
-        },
-        "before": before,
-        "after": after,
-        "abbott_before": abbott(&original_crop)?,
-        "abbott_after": abbott(&worn_crop)?,
-        "volume_check": {
-            "relative_error": worst_volume_error,
-            "what": "largest |grid volume / LIGGGHTS' sum of wear x area - 1| over the cycles",
-        },
-        "wear": {
-            "finnie_volume_um3": volume_um3(&finnie_crop, patch.pitch_x_um, patch.pitch_y_um),
-            "archard_volume_um3": volume_um3(&archard_crop, patch.pitch_x_um, patch.pitch_y_um),
-            "max_depth_um": finnie_crop.iter().cloned().fold(0.0, f64::max),
-            "mean_depth_um": finnie_crop.iter().sum::<f64>() / finnie_crop.len() as f64,
-        },
-        "sim": {
-            "finnie_vs_archard": sim_finnie_archard,
-            "worn_vs_measured_after": sim_measured,
-        },
-        "ideal_model": ideal_json,
-        "cycles": cycles_json,
-        "probe": probe_json,
-        "timings": {
-            "engine_s": engine_s,
-            "engine_cpu_s": engine_cpu_s,
-            "total_s": total_s,
-            "surfstream_overhead_s": total_s - engine_s,
-            "overhead_share_of_engine": if engine_s > 0.0 { json!((total_s - engine_s) / engine_s) } else { Value::Null },
-            "simulated_s": sim_time_total,
-        },
-        "outputs": [outputs::WEAR, outputs::WEAR_FINNIE, outputs::WEAR_ARCHARD, outputs::WORN, outputs::WORN_X3P, outputs::ORIGINAL, outputs::SUMMARY, outputs::HTML],
-    });
+        outputs: [outputs::WEAR, outputs::WEAR_FINNIE, outputs::WEAR_ARCHARD, outputs::WORN, outputs::WORN_X3P, outputs::ORIGINAL, outputs::SUMMARY, outputs::HTML].map(String::from).into(),
+    };
+    // Written as a JSON value: its keys sorted, as finish.json has always had them.
+    let summary = record::to_value(&summary);
     let path = out_dir.join(outputs::SUMMARY);
     surfstream_core::fsutil::write_atomic(&path, |w| {
         serde_json::to_writer_pretty(w, &summary).map_err(|e| anyhow!("{}: {e}", path.display()))

@@ -6,7 +6,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{MeshError, Result};
 use crate::fidelity::{compare, field_params, AreaParams};
+use crate::report::{serde_name, AdaptiveSummary, OFFSET_RULE};
 use surfstream_core::raster::RasterView;
+use surfstream_core::record::AdaptiveMeshRecord;
 
 use crate::field::{validate, ScanPlacement};
 use crate::solid::{close_top_surface, default_base_depth_um, SolidMesh, SolidParams};
@@ -330,8 +332,8 @@ impl VertexPlacement {
 }
 
 impl AdaptiveMesh {
-    /// The statistics written to run.json and OUT.json (everything but the file names).
-    pub fn summary(&self) -> serde_json::Value {
+    /// The statistics written to run.json (everything but the file names).
+    pub fn record(&self) -> AdaptiveSummary {
         adaptive_summary(
             self.kind,
             &MeshCounts::of(&self.mesh),
@@ -340,6 +342,11 @@ impl AdaptiveMesh {
             self.budget_reached,
             &self.fidelity,
         )
+    }
+
+    /// [`AdaptiveMesh::record`] as a JSON object (the mesh verb's OUT.json starts from it).
+    pub fn summary(&self) -> serde_json::Value {
+        self.record().to_value()
     }
 }
 
@@ -379,19 +386,18 @@ pub(crate) fn adaptive_summary(
     missing: MissingSamples,
     budget_reached: bool,
     fidelity: &Fidelity,
-) -> serde_json::Value {
-    serde_json::json!({
-        "kind": kind,
-        "units": mesh.units.symbol(),
-        "offset_um": mesh.offset_um,
-        "offset_rule": "scan_um = vertex * um_per_unit + offset_um",
-        "triangles": mesh.triangles,
-        "surface_triangles": mesh.top_triangles,
-        "vertices": mesh.vertices,
-        "base_depth_um": mesh.base_depth_um,
-        "missing_samples": missing_samples,
-        "missing": missing,
-        "budget_reached": budget_reached,
-        "fidelity": fidelity,
-    })
+) -> AdaptiveSummary {
+    AdaptiveSummary {
+        counts: *mesh,
+        record: AdaptiveMeshRecord {
+            kind: serde_name(&kind),
+            offset_rule: OFFSET_RULE.into(),
+            surface_triangles: mesh.top_triangles as u64,
+            missing_samples: missing_samples as u64,
+            missing: serde_name(&missing),
+            budget_reached,
+            fidelity: fidelity.into(),
+            element_quality: None,
+        },
+    }
 }

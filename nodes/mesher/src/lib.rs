@@ -59,6 +59,7 @@ pub mod field;
 mod geom;
 pub mod job;
 pub mod outliers;
+pub mod report;
 pub mod solid;
 pub mod stl;
 pub mod stream;

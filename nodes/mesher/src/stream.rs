@@ -84,8 +84,8 @@ pub struct StreamedMesh {
     /// The mesh re-sampled on the grid, um relative to the field's z offset (NaN: not covered):
     /// what [`crate::AdaptiveMesh::resampled_um`] holds.
     pub resampled_um: Vec<f32>,
-    /// The statistics [`crate::AdaptiveMesh::summary`] gives.
-    pub summary: serde_json::Value,
+    /// The statistics [`crate::AdaptiveMesh::record`] gives.
+    pub summary: crate::report::AdaptiveSummary,
     pub fidelity: Fidelity,
     /// The kept top triangles, three grid sample indices each, in order from offset 0.
     spill: AppendLog<u32>,

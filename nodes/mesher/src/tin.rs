@@ -312,6 +312,7 @@ impl Plane {
 /// where a binary heap over a million triangles spent most of the run on cache misses.
 /// Entries carry the triangle's stamp at queueing time; a rescanned triangle leaves a stale
 /// entry that is skipped when popped.
+#[derive(Clone)]
 struct BucketQueue {
     buckets: Vec<Vec<(u32, u32)>>,
     top: usize,
@@ -366,6 +367,7 @@ pub struct Block {
 /// fixed borders cost stay well under 1 % on rough fields.
 pub const DEFAULT_BLOCK_SAMPLES: usize = 128;
 
+#[derive(Clone)]
 struct Builder<'a> {
     /// Width of the whole grid (global sample index = row * width + column).
     width: usize,
@@ -599,10 +601,14 @@ impl Builder<'_> {
     }
 
     /// Per triangle, the unsettled measured sample that most reduces (`down`) or raises the
-    /// mesh's spread about its mean if it became a vertex: (score, sample), score > 0.
+    /// mesh's spread about its mean if it became a vertex: (score, sample), score > 0. With
+    /// `roughness` (the Rough pulls), the spread of the roughness the mesh carries
+    /// (roughness + mesh - measurement) against the roughness's; `mean` and `mesh_mean` are
+    /// then theirs.
     fn balance_candidates(
         &self,
         m: &[f64],
+        roughness: Option<&[f32]>,
         mean: f64,
         mesh_mean: f64,
         mode: Pull,
@@ -618,7 +624,7 @@ impl Builder<'_> {
                     .map(|t| (t.err, t.candidate)),
             );
         }
-        let down = mode == Pull::Down;
+        let down = matches!(mode, Pull::Down | Pull::RoughDown);
         for tri in self.tris.iter().filter(|_| mode != Pull::Pointwise) {
             let c = tri.v.map(|v| self.corner(v));
             let mut best = (0.0f64, NONE);
@@ -634,7 +640,16 @@ impl Builder<'_> {
                             continue;
                         }
                         let z = f64::from(self.z[s]);
-                        let spread = (m[l] - mesh_mean).abs() - (z - mean).abs();
+                        let spread = match roughness {
+                            Some(g) => {
+                                let g = f64::from(g[s]);
+                                (m[l] - z + g - mesh_mean).abs() - (g - mean).abs()
+                            }
+                            None => (m[l] - mesh_mean).abs() - (z - mean).abs(),
+                        };
+                        if spread.is_nan() {
+                            continue;
+                        }
                         let score = match mode {
                             Pull::Mean { high: true } => m[l] - z,
                             Pull::Mean { high: false } => z - m[l],
@@ -1350,6 +1365,8 @@ pub(crate) struct Sides {
 
 /// A block kept alive from one bound to the next finer one: one greedy insertion order,
 /// refined step by step, so that a series of bounds costs about one mesh ([`crate::tolerance`]).
+/// Cloned to bisect between two checkpoints from the coarser one's state.
+#[derive(Clone)]
 pub(crate) struct LiveBlock<'a> {
     b: Builder<'a>,
     /// The shared sides' vertices inserted so far, sorted.
@@ -1362,9 +1379,14 @@ pub(crate) struct LiveBlock<'a> {
 /// How close a block's Sa and Sq must come to the measurement's, as fractions
 /// ([`LiveBlock::balance`]).
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct Balance {
+pub(crate) struct Balance<'r> {
     pub(crate) sa: f64,
     pub(crate) sq: f64,
+    /// The measured roughness on the same grid and how close the Sa and Sq of the roughness
+    /// the mesh carries (the roughness plus the mesh's pointwise error) must come to its own,
+    /// as a fraction: the tolerance judges it too, and on a noisy surface a mesh can keep the
+    /// heights' Sa and Sq by exaggerating the noise where it flattens the waviness.
+    pub(crate) roughness: Option<(&'r [f32], f64)>,
 }
 
 /// What a round of [`LiveBlock::balance`] inserts.
@@ -1378,14 +1400,22 @@ enum Pull {
     Pointwise,
     /// Samples farthest below (`high`: the mesh's mean is above the measurement's) or above
     /// the mesh.
-    Mean { high: bool },
+    Mean {
+        high: bool,
+    },
+    /// Down and Up on the roughness the mesh carries against the measured roughness.
+    RoughDown,
+    RoughUp,
 }
 
 impl Pull {
     fn opposes(self, other: Pull) -> bool {
         matches!(
             (self, other),
-            (Pull::Down, Pull::Up) | (Pull::Up, Pull::Down)
+            (Pull::Down, Pull::Up)
+                | (Pull::Up, Pull::Down)
+                | (Pull::RoughDown, Pull::RoughUp)
+                | (Pull::RoughUp, Pull::RoughDown)
         ) || matches!((self, other), (Pull::Mean { high: a }, Pull::Mean { high: b }) if a != b)
     }
 }
@@ -1465,10 +1495,16 @@ impl LiveBlock<'_> {
     /// under-shoots (it smooths what it does not follow); one per triangle, the largest
     /// first, then restores the pointwise bound. Rounds are capped; the batch halves when
     /// the direction flips.
-    pub(crate) fn balance(&mut self, plan: &BlockPlan<'_>, target: Balance) {
+    pub(crate) fn balance(&mut self, plan: &BlockPlan<'_>, target: Balance<'_>) {
         let Some(measured) = self.measured_stats() else {
             return;
         };
+        let rough = target.roughness.and_then(|(g, share)| {
+            let z = self.b.z;
+            // Both over the measured samples where the roughness is known.
+            let stats = self.b.stats(|_, s| f64::from(g[s]))?;
+            Some((g, share, stats, z))
+        });
         let mut batch = (self.b.vertex_samples.len() / 16).max(4);
         // (direction, excess over the target, vertices inserted) of the last round.
         let mut last: Option<(Pull, f64, usize)> = None;
@@ -1484,14 +1520,42 @@ impl LiveBlock<'_> {
             // its own Sa and Sq).
             let dm = mesh.mean - measured.mean;
             let rm = dm.abs() / (target.sq * measured.sq);
-            if ra <= 1.0 && rq <= 1.0 && rm <= 1.0 {
+            // The roughness the mesh carries: measured roughness + mesh - measurement.
+            let carried = rough.and_then(|(g, share, r, z)| {
+                let c = self
+                    .b
+                    .stats(|l, s| m[l] - f64::from(z[s]) + f64::from(g[s]))?;
+                let (da, dq) = (c.sa / r.sa - 1.0, c.sq / r.sq - 1.0);
+                Some((
+                    da,
+                    dq,
+                    (da.abs() / share).max(dq.abs() / share),
+                    c.mean,
+                    r.mean,
+                ))
+            });
+            let rr = carried.map_or(0.0, |c| c.2);
+            if ra <= 1.0 && rq <= 1.0 && rm <= 1.0 && rr <= 1.0 {
                 return;
             }
             // Sa and Sq off in opposite directions (the mesh has the spread but not the
             // shape of the distribution): neither direction helps both, the largest
             // pointwise errors do.
             let split = da * dq < 0.0 && ra.min(rq) > 1.0;
-            let (mode, ratio) = if rm >= ra.max(rq) {
+            let (mode, ratio) = if rr > rm.max(ra).max(rq) {
+                // Sa and Sq of the roughness off in opposite directions are rare (it is
+                // close to normal); the larger one decides.
+                let (da, dq, ..) = carried.unwrap_or_default();
+                let d = if da.abs() >= dq.abs() { da } else { dq };
+                (
+                    if d > 0.0 {
+                        Pull::RoughDown
+                    } else {
+                        Pull::RoughUp
+                    },
+                    rr,
+                )
+            } else if rm >= ra.max(rq) {
                 (Pull::Mean { high: dm > 0.0 }, rm)
             } else if split {
                 (Pull::Pointwise, ra.max(rq))
@@ -1514,9 +1578,14 @@ impl LiveBlock<'_> {
                 Some((_, _, n)) => n,
                 None => batch,
             };
-            let mut cands = self
-                .b
-                .balance_candidates(&m, measured.mean, mesh.mean, mode);
+            let mut cands = match (mode, rough, carried) {
+                (Pull::RoughDown | Pull::RoughUp, Some((g, ..)), Some(c)) => {
+                    self.b.balance_candidates(&m, Some(g), c.4, c.3, mode)
+                }
+                _ => self
+                    .b
+                    .balance_candidates(&m, None, measured.mean, mesh.mean, mode),
+            };
             drop(m);
             if cands.is_empty() {
                 return;
@@ -1555,21 +1624,8 @@ impl LiveBlock<'_> {
     }
 }
 
-/// What the angle bound did to a mesh ([`bound_block_angles`]).
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
-pub struct AngleStats {
-    /// The bound, degrees (x, y, z).
-    pub bound_deg: f64,
-    /// Smallest angle of any triangle before and after the refinement, degrees.
-    pub min_angle_before_deg: f64,
-    pub min_angle_deg: f64,
-    /// Triangles below the bound before and after.
-    pub below_bound_before: usize,
-    pub below_bound: usize,
-    /// Triangles before and after (the refinement's cost).
-    pub triangles_before: usize,
-    pub triangles: usize,
-}
+/// What the angle bound did to a mesh ([`bound_block_angles`]): the report's record itself.
+pub use surfstream_core::record::AngleRecord as AngleStats;
 
 /// Rounds between the blocks at most: each round every block refines its slivers and its
 /// neighbours then insert the samples it added on their shared sides.
@@ -1629,10 +1685,10 @@ pub(crate) fn bound_block_angles(
         bound_deg: bound.min_angle_deg,
         min_angle_before_deg: before.1,
         min_angle_deg: after.1,
-        below_bound_before: before.2,
-        below_bound: after.2,
-        triangles_before: before.0,
-        triangles: after.0,
+        below_bound_before: before.2 as u64,
+        below_bound: after.2 as u64,
+        triangles_before: before.0 as u64,
+        triangles: after.0 as u64,
     }
 }
 
@@ -2305,6 +2361,7 @@ mod tests {
         let target = Balance {
             sa: 0.005,
             sq: 0.005,
+            roughness: None,
         };
         let balanced = refined(&plan, &[0.9], Some(target));
         let (bm, err) = resample_with_error(&balanced, &z);
@@ -2328,6 +2385,56 @@ mod tests {
     }
 
     #[test]
+    fn the_balance_holds_the_roughness_the_mesh_carries_when_given() {
+        let n = 64;
+        let z = lcg_field(n, n, 9);
+        // The roughness: the field minus its waviness (what lcg_field adds as noise).
+        let g: Vec<f32> = z
+            .iter()
+            .enumerate()
+            .map(|(k, &h)| {
+                let (x, y) = ((k % n) as f64, (k / n) as f64);
+                (f64::from(h) - (x / 7.0).sin() * (y / 5.0).cos()) as f32
+            })
+            .collect();
+        let view = RasterView::new(&z, Shape::new(n, n)).unwrap();
+        let plan = BlockPlan::new(view, &params_at(0.6, 64)).unwrap();
+        let stats = |v: &[f64]| {
+            let mean = v.iter().sum::<f64>() / v.len() as f64;
+            let sa = v.iter().map(|h| (h - mean).abs()).sum::<f64>() / v.len() as f64;
+            let sq = (v.iter().map(|h| (h - mean).powi(2)).sum::<f64>() / v.len() as f64).sqrt();
+            (sa, sq)
+        };
+        let (ra, rq) = stats(&g.iter().map(|&v| f64::from(v)).collect::<Vec<_>>());
+        // Sa and Sq of the roughness a mesh carries (roughness + mesh - measurement), as
+        // fractions off the measured roughness's.
+        let carried = |tin: &Tin| {
+            let (m, _) = resample_with_error(tin, &z);
+            let c: Vec<f64> = (0..z.len())
+                .map(|k| f64::from(g[k]) + f64::from(m[k]) - f64::from(z[k]))
+                .collect();
+            let (ca, cq) = stats(&c);
+            (ca / ra - 1.0, cq / rq - 1.0)
+        };
+        let heights_only = Balance {
+            sa: 0.005,
+            sq: 0.005,
+            roughness: None,
+        };
+        let (ha, hq) = carried(&refined(&plan, &[0.6], Some(heights_only)));
+        let both = Balance {
+            roughness: Some((&g, 0.025)),
+            ..heights_only
+        };
+        let balanced = refined(&plan, &[0.6], Some(both));
+        let (ba, bq) = carried(&balanced);
+        // The heights' balance alone leaves the roughness off by more than the target ...
+        assert!(ha.abs().max(hq.abs()) > 0.025, "{ha} {hq}");
+        // ... the balance given the roughness brings it within.
+        assert!(ba.abs() <= 0.025 && bq.abs() <= 0.025, "{ba} {bq}");
+    }
+
+    #[test]
     fn a_live_block_stays_delaunay_and_the_angle_bound_holds_in_it() {
         let (rows, cols) = (130, 130);
         let z = lcg_field(rows, cols, 5);
@@ -2342,6 +2449,7 @@ mod tests {
                 Balance {
                     sa: 0.005,
                     sq: 0.005,
+                    roughness: None,
                 },
             );
             assert_eq!(not_delaunay(&b.b), 0, "bound {e}");

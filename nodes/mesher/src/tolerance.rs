@@ -3,16 +3,19 @@
 //! sees the surface: the mesh interpolated linearly at every measured (non-NaN) sample, mean
 //! removed, per region.
 //!
-//! How: the error-bounded greedy insertion ([`crate::tin`]) on the full-resolution grid, with
+//! How: one error-bounded greedy insertion order ([`crate::tin`]) on the full-resolution grid,
 //! every block's peak and valley inserted first ([`crate::tin::TinParams::keep_extremes`]: a
-//! region's Sz is then exact or within the bound), run at a geometric series of bounds
-//! epsilon = 2, 1.2, 0.72, ... x Sq (coarse to fine, each run a few seconds on a 2k x 2k map);
-//! each run is judged per region ([`judge_regions`]); the first bound that passes is refined by
-//! two bisections (geometric) against the last that failed. Every run is a point of the
-//! fidelity-cost curve ([`CurvePoint`]): triangles against the worst Sa / Sq / Sz deviation and
-//! the pointwise residual. The search stops at `max_triangles`; when no run within it passes,
-//! the finest one within it is kept and [`ToleranceReport::reason`] names the region, the
-//! parameter and why.
+//! region's Sz is then exact or within the bound), refined through a geometric series of
+//! bounds epsilon = 2, 1.6, 1.28, ... x Sq, each step's blocks balanced against the
+//! measurement (their Sa, Sq, mean and, when the measured roughness is given, the Sa and Sq of
+//! the roughness the mesh carries); each checkpoint is judged per region ([`judge_regions`]).
+//! Between the last failing and the first passing checkpoint the bound is bisected
+//! (geometric), each step refined from the failing one's kept state, until the two are within
+//! 5 % in triangles; the passing mesh with the fewest triangles is written. Every checkpoint is
+//! a point of the fidelity-cost curve ([`CurvePoint`]): triangles against the worst Sa / Sq /
+//! Sz deviation and the pointwise residual. The search stops at `max_triangles`; when no mesh
+//! within it passes, the finest one within it is kept and [`ToleranceReport::reason`] names
+//! the region, the parameter and why.
 //!
 //! Regions: the whole map and square windows of `region_px` samples at half-window steps
 //! (the tiles of a scan are not known to the mesher; a window of a tile's size at half steps
@@ -592,7 +595,27 @@ pub enum Stage {
     /// After: a finer point for the fidelity-cost curve only (the insertion continues
     /// greedily, without the block balance: what more triangles buy pointwise).
     Curve,
+    /// A bound between the last failing checkpoint and the first passing one, refined (with
+    /// the balance) from the state the order had at the failing one ([`Checkpoints::keep`]):
+    /// the coarse series' steps are 25 % apart in the bound and up to 40 % in triangles.
+    Bisect,
 }
+
+/// The one insertion order as the search drives it.
+pub trait Checkpoints<M> {
+    /// Refines the order down to `epsilon_um` and judges the mesh: from where it stands
+    /// (a finer bound than the last) for [`Stage::Search`] and [`Stage::Curve`], from the
+    /// kept state for [`Stage::Bisect`].
+    fn checkpoint(&mut self, epsilon_um: f64, stage: Stage) -> Result<Trial<M>>;
+    /// Keeps the order's state as it stands (a failing checkpoint a bisection starts from).
+    fn keep(&mut self);
+}
+
+/// Bisection steps at most between the last failing and the first passing checkpoint.
+const MAX_BISECTIONS: usize = 4;
+/// The bisection stops when the passing mesh has at most this share more triangles than the
+/// failing one.
+const BISECT_WITHIN: f64 = 0.05;
 
 /// The bounds the search walks through, as fractions of Sq: 2, 1.6, 1.28, ... down to
 /// [`FINEST_SQ_FRACTION`].
@@ -601,16 +624,16 @@ pub fn checkpoint_fractions() -> impl Iterator<Item = f64> {
         .take_while(|&f| f >= FINEST_SQ_FRACTION)
 }
 
-/// The search (module docs): `checkpoint(epsilon_um)` refines the one insertion order down to
-/// the bound (called with decreasing bounds only) and judges the mesh. Returns the chosen
-/// mesh and the report. `sq_um` is the measured Sq the bounds are scaled by.
+/// The search (module docs): `order.checkpoint(epsilon_um, stage)` refines the one insertion
+/// order down to the bound and judges the mesh. Returns the chosen mesh and the report.
+/// `sq_um` is the measured Sq the bounds are scaled by.
 pub fn search<M>(
     sq_um: f64,
     measured_px: usize,
     settings: &ToleranceSettings,
     regions: usize,
     max_triangles: Option<usize>,
-    mut checkpoint: impl FnMut(f64, Stage) -> Result<Trial<M>>,
+    order: &mut impl Checkpoints<M>,
 ) -> Result<(M, ToleranceReport)> {
     check_scale(sq_um)?;
     let t = settings.tolerance;
@@ -618,52 +641,56 @@ pub fn search<M>(
     let budget = max_triangles.unwrap_or(usize::MAX);
     type Judged = (CurvePoint, Vec<RegionFit>, Option<AngleStats>);
     let mut curve: Vec<Judged> = Vec::new();
-    let mut run =
-        |f: f64, stage: Stage, curve: &mut Vec<Judged>| -> Result<(bool, bool, Option<M>)> {
-            surfstream_core::liveness::beat();
-            let trial = checkpoint(f * sq_um, stage)?;
-            let mut fits = trial.fits;
-            fits.sort_by(|a, b| b.worst_ratio(&t).total_cmp(&a.worst_ratio(&t)));
-            let pass =
-                !fits.is_empty() && fits.iter().all(|r| r.excess(&t, TARGET_SHARE).is_none());
-            let over = trial.surface_triangles > budget;
-            curve.push((
-                CurvePoint {
-                    epsilon_um: f * sq_um,
-                    epsilon_sq_fraction: f,
-                    surface_triangles: trial.surface_triangles,
-                    triangles_per_measured_px: trial.surface_triangles as f64
-                        / measured_px.max(1) as f64,
-                    worst_sa_pct: worst_signed(&fits, 0),
-                    worst_sq_pct: worst_signed(&fits, 1),
-                    worst_sz_pct: worst_signed(&fits, 2),
-                    worst_residual_pct_of_sq: fits
-                        .iter()
-                        .map(|r| r.residual_pct_of_sq)
-                        .fold(0.0, f64::max),
-                    worst_roughness_pct: fits
-                        .iter()
-                        .filter_map(|r| r.roughness_deviation_pct)
-                        .flatten()
-                        .max_by(|a, b| a.abs().total_cmp(&b.abs())),
-                    worst_region: fits.first().map(|r| r.region.clone()).unwrap_or_default(),
-                    pass,
-                    over_budget: over,
-                    chosen: false,
-                },
-                fits,
-                trial.angles,
-            ));
-            Ok((pass, over, (!over).then_some(trial.mesh)))
-        };
+    let run = |order: &mut dyn Checkpoints<M>,
+               f: f64,
+               stage: Stage,
+               curve: &mut Vec<Judged>|
+     -> Result<(bool, bool, Option<M>)> {
+        surfstream_core::liveness::beat();
+        let trial = order.checkpoint(f * sq_um, stage)?;
+        let mut fits = trial.fits;
+        fits.sort_by(|a, b| b.worst_ratio(&t).total_cmp(&a.worst_ratio(&t)));
+        let pass = !fits.is_empty() && fits.iter().all(|r| r.excess(&t, TARGET_SHARE).is_none());
+        let over = trial.surface_triangles > budget;
+        curve.push((
+            CurvePoint {
+                epsilon_um: f * sq_um,
+                epsilon_sq_fraction: f,
+                surface_triangles: trial.surface_triangles,
+                triangles_per_measured_px: trial.surface_triangles as f64
+                    / measured_px.max(1) as f64,
+                worst_sa_pct: worst_signed(&fits, 0),
+                worst_sq_pct: worst_signed(&fits, 1),
+                worst_sz_pct: worst_signed(&fits, 2),
+                worst_residual_pct_of_sq: fits
+                    .iter()
+                    .map(|r| r.residual_pct_of_sq)
+                    .fold(0.0, f64::max),
+                worst_roughness_pct: fits
+                    .iter()
+                    .filter_map(|r| r.roughness_deviation_pct)
+                    .flatten()
+                    .max_by(|a, b| a.abs().total_cmp(&b.abs())),
+                worst_region: fits.first().map(|r| r.region.clone()).unwrap_or_default(),
+                pass,
+                over_budget: over,
+                chosen: false,
+            },
+            fits,
+            trial.angles,
+        ));
+        Ok((pass, over, (!over).then_some(trial.mesh)))
+    };
     // One insertion order, judged at every checkpoint: the first that passes is the fewest
-    // triangles this order can give (the parameters do not move monotonically with the
-    // triangles, so the first pass is taken, not a bisection).
+    // triangles the coarse series gives (the parameters do not move monotonically with the
+    // triangles over the whole series, so it is walked, not bisected from the start).
     let mut best: Option<(usize, M)> = None;
     let mut fallback: Option<(usize, M)> = None;
+    // The last failing checkpoint (bound fraction, curve index), its state kept by `order`.
+    let mut last_fail: Option<(f64, usize)> = None;
     let mut fractions = checkpoint_fractions();
     for f in fractions.by_ref() {
-        let (pass, over, mesh) = run(f, Stage::Search, &mut curve)?;
+        let (pass, over, mesh) = run(order, f, Stage::Search, &mut curve)?;
         if over {
             break;
         }
@@ -673,6 +700,8 @@ pub fn search<M>(
             break;
         }
         fallback = mesh.map(|m| (k, m));
+        order.keep();
+        last_fail = Some((f, k));
     }
     // A few finer meshes for the curve when the search stopped early.
     if best.is_some() {
@@ -680,9 +709,41 @@ pub fn search<M>(
             if curve.len() >= MIN_CURVE_POINTS {
                 break;
             }
-            let (_, over, _) = run(f, Stage::Curve, &mut curve)?;
+            let (_, over, _) = run(order, f, Stage::Curve, &mut curve)?;
             if over {
                 break;
+            }
+        }
+    }
+    // Between the last failing and the first passing checkpoint the triangles differ by up
+    // to 40 %: bisect the bound there (geometric), each step refined from the kept state of
+    // the finest failing one, until the two are within BISECT_WITHIN in triangles. The
+    // passing mesh with the fewest triangles is written. A passing step with no fewer
+    // triangles than the best ends it: the balance, not the bound, sets the count there.
+    if let (Some((mut lo_f, lo_k)), Some((hi_k, _))) = (last_fail, best.as_ref()) {
+        let count = |curve: &Vec<Judged>, k: usize| curve[k].0.surface_triangles;
+        let (mut lo_n, mut hi_n) = (count(&curve, lo_k), count(&curve, *hi_k));
+        let mut hi_f = curve[*hi_k].0.epsilon_sq_fraction;
+        for _ in 0..MAX_BISECTIONS {
+            if hi_n as f64 <= lo_n as f64 * (1.0 + BISECT_WITHIN) {
+                break;
+            }
+            let mid = (lo_f * hi_f).sqrt();
+            let (pass, _, mesh) = run(order, mid, Stage::Bisect, &mut curve)?;
+            let k = curve.len() - 1;
+            let n = count(&curve, k);
+            match mesh {
+                Some(m) if pass => {
+                    if best.as_ref().is_some_and(|(b, _)| n >= count(&curve, *b)) {
+                        break;
+                    }
+                    best = Some((k, m));
+                    (hi_f, hi_n) = (mid, n);
+                }
+                _ => {
+                    order.keep();
+                    (lo_f, lo_n) = (mid, n);
+                }
             }
         }
     }
@@ -849,7 +910,7 @@ fn refine_blocks<'p>(
     plan: &'p BlockPlan<'_>,
     live: &mut Vec<LiveBlock<'p>>,
     epsilon_um: f64,
-    balance: Option<Balance>,
+    balance: Option<Balance<'_>>,
     angles: Option<&AngleBound>,
 ) -> Option<AngleStats> {
     let sides = plan.sides_at(epsilon_um);
@@ -875,11 +936,15 @@ fn balance_block_px(s: &ToleranceSettings) -> usize {
     (s.region_px.unwrap_or(DEFAULT_REGION_PX) / 4).clamp(64, crate::tin::DEFAULT_BLOCK_SAMPLES)
 }
 
-/// The block balance the settings ask for.
-fn balance_of(s: &ToleranceSettings) -> Option<Balance> {
+/// The block balance the settings ask for; the roughness the mesh carries is balanced too
+/// when the measured roughness is given and judged.
+fn balance_of<'r>(s: &ToleranceSettings, roughness_um: Option<&'r [f32]>) -> Option<Balance<'r>> {
     (s.method == ModelMethod::Balanced).then(|| Balance {
         sa: s.tolerance.sa_pct / 100.0 * BLOCK_BALANCE_SHARE,
         sq: s.tolerance.sq_pct / 100.0 * BLOCK_BALANCE_SHARE,
+        roughness: roughness_um
+            .zip(s.tolerance.roughness_pct)
+            .map(|(g, pct)| (g, pct / 100.0 * BLOCK_BALANCE_SHARE)),
     })
 }
 
@@ -919,11 +984,19 @@ struct SearchSetup<'a> {
 
 fn search_setup<'a>(
     heights: RasterView<'a, f32>,
+    roughness_um: Option<&[f32]>,
     at: &ScanPlacement,
     params: &MeshParams,
     settings: &ToleranceSettings,
 ) -> Result<SearchSetup<'a>> {
     check_adaptive(heights, at, params)?;
+    if let Some(g) = roughness_um.filter(|g| g.len() != heights.values().len()) {
+        return Err(MeshError::Incompatible(format!(
+            "the measured roughness has {} samples, the surface {}: expected the same grid",
+            g.len(),
+            heights.values().len()
+        )));
+    }
     let (sq, measured_px) = scale_of(heights, at);
     let (settings, regions) = settings_for(settings, heights.shape());
     let mut p = params.clone();
@@ -979,18 +1052,13 @@ pub fn mesh_to_tolerance(
         mut p,
         plan,
         bound,
-    } = search_setup(heights, at, params, settings)?;
-    let settings = &settings;
-    let mut live = Vec::new();
-    search(
-        sq,
-        measured_px,
-        settings,
-        regions.len(),
-        params.max_triangles,
-        |eps, stage| {
-            let balance = balance_of(settings).filter(|_| stage == Stage::Search);
-            let angles = refine_blocks(&plan, &mut live, eps, balance, bound.as_ref());
+    } = search_setup(heights, roughness_um, at, params, settings)?;
+    let mut order = LiveOrder::new(
+        &plan,
+        &settings,
+        roughness_um,
+        bound,
+        |eps, live, angles| {
             let meshed: Vec<_> = live.par_iter().map(LiveBlock::snapshot).collect();
             let tin = assemble(&plan, &meshed);
             drop(meshed);
@@ -1004,7 +1072,78 @@ pub fn mesh_to_tolerance(
                 angles,
             })
         },
+    );
+    search(
+        sq,
+        measured_px,
+        &settings,
+        regions.len(),
+        params.max_triangles,
+        &mut order,
     )
+}
+
+/// The one insertion order of both searches: the live blocks, the state kept at the last
+/// failing checkpoint, and what makes and judges a mesh from the blocks (`judge`).
+struct LiveOrder<'p, 'a, F> {
+    plan: &'p BlockPlan<'a>,
+    live: Vec<LiveBlock<'p>>,
+    kept: Option<Vec<LiveBlock<'p>>>,
+    balance: Option<Balance<'a>>,
+    bound: Option<AngleBound>,
+    judge: F,
+}
+
+impl<'p, 'a, F> LiveOrder<'p, 'a, F> {
+    fn new<M>(
+        plan: &'p BlockPlan<'a>,
+        settings: &ToleranceSettings,
+        roughness_um: Option<&'a [f32]>,
+        bound: Option<AngleBound>,
+        judge: F,
+    ) -> Self
+    where
+        F: FnMut(f64, &[LiveBlock<'p>], Option<AngleStats>) -> Result<Trial<M>>,
+    {
+        Self {
+            plan,
+            live: Vec::new(),
+            kept: None,
+            balance: balance_of(settings, roughness_um),
+            bound,
+            judge,
+        }
+    }
+}
+
+impl<'p, M, F> Checkpoints<M> for LiveOrder<'p, '_, F>
+where
+    F: FnMut(f64, &[LiveBlock<'p>], Option<AngleStats>) -> Result<Trial<M>>,
+{
+    fn checkpoint(&mut self, epsilon_um: f64, stage: Stage) -> Result<Trial<M>> {
+        if stage == Stage::Bisect {
+            if let Some(kept) = &self.kept {
+                self.live.clone_from(kept);
+            }
+        }
+        // The curve's points past the chosen mesh continue greedily (module docs).
+        let balance = self.balance.filter(|_| stage != Stage::Curve);
+        let angles = refine_blocks(
+            self.plan,
+            &mut self.live,
+            epsilon_um,
+            balance,
+            self.bound.as_ref(),
+        );
+        (self.judge)(epsilon_um, &self.live, angles)
+    }
+
+    fn keep(&mut self) {
+        match &mut self.kept {
+            Some(kept) => kept.clone_from(&self.live),
+            None => self.kept = Some(self.live.clone()),
+        }
+    }
 }
 
 /// [`mesh_to_tolerance`] through the streaming mesher ([`crate::stream`]): each checkpoint's
@@ -1026,20 +1165,14 @@ pub fn mesh_streaming_to_tolerance(
         mut p,
         plan,
         bound,
-    } = search_setup(heights, at, params, settings)?;
-    let settings = &settings;
+    } = search_setup(heights, roughness_um, at, params, settings)?;
     let level = field_level(heights, at);
-    let mut live = Vec::new();
-    search(
-        sq,
-        measured_px,
-        settings,
-        regions.len(),
-        params.max_triangles,
-        |eps, stage| {
-            let balance = balance_of(settings).filter(|_| stage == Stage::Search);
-            let angles = refine_blocks(&plan, &mut live, eps, balance, bound.as_ref());
-            let blocks = &live;
+    let mut order = LiveOrder::new(
+        &plan,
+        &settings,
+        roughness_um,
+        bound,
+        |eps, blocks, angles| {
             p.epsilon = Epsilon::Um(eps);
             let m = stream_blocks(heights, at, &p, spill_dir, &plan, level, eps, &|k| {
                 blocks[k].snapshot()
@@ -1052,6 +1185,14 @@ pub fn mesh_streaming_to_tolerance(
                 angles,
             })
         },
+    );
+    search(
+        sq,
+        measured_px,
+        &settings,
+        regions.len(),
+        params.max_triangles,
+        &mut order,
     )
 }
 

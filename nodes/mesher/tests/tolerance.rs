@@ -319,3 +319,82 @@ fn the_balance_meets_the_tolerance_on_noise_with_fewer_triangles_than_greedy_ins
         .all(|f| f.residual_pct_of_sq <= 50.0));
     assert!(bounded.surface_triangles >= balanced.surface_triangles);
 }
+
+/// A waviness under white noise (um) and its noise (the roughness a separation would find).
+fn wavy_noise(seed: u64, noise_amp: f64) -> (Vec<f32>, Vec<f32>) {
+    let r = noise(ROWS * COLS, seed);
+    (0..ROWS * COLS)
+        .map(|k| {
+            let (x, y) = ((k % COLS) as f64 / 14.0, (k / COLS) as f64 / 17.0);
+            let g = noise_amp * r[k];
+            ((x.sin() * y.cos() + g) as f32, g as f32)
+        })
+        .unzip()
+}
+
+#[test]
+fn a_bisected_checkpoint_passes_with_fewer_triangles_than_the_coarse_one_above_it() {
+    // Waviness under noise, the roughness judged: the first passing coarse checkpoint is
+    // well above the last failing one, and a bound between them passes with fewer triangles.
+    let (z, g) = wavy_noise(22, 0.5);
+    let heights = RasterView::new(&z, Shape::new(ROWS, COLS)).unwrap();
+    let at = ScanPlacement::new(1.0, 1.0);
+    let s = settings("sa=1,sq=1,sz=3");
+    let (m, r) = mesh_to_tolerance(heights, Some(&g), &at, &params(), &s).unwrap();
+    assert!(r.met, "{:?}", r.reason);
+    let coarse: Vec<f64> = surfstream_mesher::tolerance::checkpoint_fractions().collect();
+    let is_coarse = |f: f64| coarse.iter().any(|c| (c - f).abs() < 1e-12);
+    let chosen = r.curve.iter().find(|c| c.chosen).unwrap();
+    assert!(
+        !is_coarse(chosen.epsilon_sq_fraction),
+        "chosen at a coarse checkpoint: {:?}",
+        r.curve
+    );
+    // The coarse checkpoint just above it in the bound passes too, with more triangles;
+    // the one below it fails.
+    let above = r
+        .curve
+        .iter()
+        .filter(|c| {
+            is_coarse(c.epsilon_sq_fraction) && c.epsilon_sq_fraction < chosen.epsilon_sq_fraction
+        })
+        .max_by(|a, b| a.epsilon_sq_fraction.total_cmp(&b.epsilon_sq_fraction))
+        .unwrap();
+    assert!(
+        above.pass && above.surface_triangles > chosen.surface_triangles,
+        "{above:?}"
+    );
+    let below = r
+        .curve
+        .iter()
+        .filter(|c| {
+            is_coarse(c.epsilon_sq_fraction) && c.epsilon_sq_fraction > chosen.epsilon_sq_fraction
+        })
+        .min_by(|a, b| a.epsilon_sq_fraction.total_cmp(&b.epsilon_sq_fraction))
+        .unwrap();
+    assert!(!below.pass, "{below:?}");
+    assert_eq!(m.surface_triangles, chosen.surface_triangles);
+    // Judged here: the heights and the roughness the mesh carries (roughness + mesh -
+    // measurement) over the whole map.
+    let mesh = interpolate(&m);
+    let valid: Vec<bool> = mesh.iter().map(|v| !v.is_nan()).collect();
+    assert!(valid.iter().all(|&v| v));
+    let zf: Vec<f64> = z.iter().map(|&v| f64::from(v)).collect();
+    let (a, b) = (params_of(&zf, &valid), params_of(&mesh, &valid));
+    let dev = [0, 1, 2].map(|k| (b[k] - a[k]) / a[k] * 100.0);
+    assert!(within(dev, &r.tolerance), "{dev:?}");
+    let gf: Vec<f64> = g.iter().map(|&v| f64::from(v)).collect();
+    let carried: Vec<f64> = (0..gf.len()).map(|k| gf[k] + mesh[k] - zf[k]).collect();
+    let (ga, gb) = (params_of(&gf, &valid), params_of(&carried, &valid));
+    for k in 0..2 {
+        let d = (gb[k] - ga[k]) / ga[k] * 100.0;
+        assert!(d.abs() <= 5.0, "roughness {k}: {d}");
+    }
+    // The streamed search makes the same checkpoints and writes the same mesh.
+    let dir = tempfile::tempdir().unwrap();
+    let (sm, sr) =
+        mesh_streaming_to_tolerance(heights, Some(&g), &at, &params(), &s, dir.path()).unwrap();
+    assert_eq!(sr.curve, r.curve);
+    assert_eq!(sm.counts.top_triangles, m.surface_triangles);
+    assert_eq!(sm.resampled_um, m.resampled_um);
+}
