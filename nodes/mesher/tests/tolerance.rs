@@ -342,7 +342,7 @@ fn a_bisected_checkpoint_passes_with_fewer_triangles_than_the_coarse_one_above_i
     // well above the last failing one, and a bound between them passes with fewer triangles.
     let (z, g) = wavy_noise(22, 0.5);
     let heights = RasterView::new(&z, Shape::new(ROWS, COLS)).unwrap();
-    let at = ScanPlacement::new(1.0, 1.0);
+    let at = ScanPlacement::new(Pitch::new(1.0, 1.0).expect("a positive pitch"));
     let s = settings("sa=1,sq=1,sz=3");
     let (m, r) = mesh_to_tolerance(heights, Some(&g), &at, &params(), &s).unwrap();
     assert!(r.met, "{:?}", r.reason);
