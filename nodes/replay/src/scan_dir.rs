@@ -239,8 +239,20 @@ impl<'a> MaskExclusion<'a> {
     }
 }
 
-/// Reads `scan.toml` (or a directory holding one) and every tile it lists.
-pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
+/// The manifest, read and checked before any tile is: `[scan]` (a pitch it leaves out is NaN
+/// until a tile file gives it), the height unit's scale, and the `[[tile]]` entries (grid
+/// size, count, one file per field).
+struct Manifest {
+    path: PathBuf,
+    scan: ScanFields,
+    /// Heights in the manifest's `height_unit` times this are um.
+    scale: f64,
+    unit_given: bool,
+    tile_dir: Option<String>,
+    tiles: Vec<TileEntry>,
+}
+
+fn read_manifest(path: &Path) -> Result<Manifest> {
     let manifest_path = if path.is_dir() {
         path.join("scan.toml")
     } else {
@@ -270,7 +282,7 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
     }
     let unit_given = raw.height_unit.is_some();
     let tile_dir = raw.tile_dir;
-    let mut scan = ScanFields {
+    let scan = ScanFields {
         name: raw.name,
         pitch_x_um: raw.pitch_x_um.unwrap_or(f64::NAN),
         pitch_y_um: raw.pitch_y_um.unwrap_or(f64::NAN),
@@ -348,6 +360,107 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
             );
         }
     }
+    Ok(Manifest {
+        path: manifest_path,
+        scan,
+        scale,
+        unit_given,
+        tile_dir,
+        tiles: file.tile,
+    })
+}
+
+/// The tile's file, checked before it is read: it exists, is a regular file inside the scan
+/// directory `dir` (`dir_real` resolved) and of a format the readers know.
+fn checked_tile_file(at: &str, dir: &Path, dir_real: &Path, t: &TileEntry) -> Result<PathBuf> {
+    let tile_path = dir.join(&t.file);
+    if !tile_path.exists() {
+        bail!("{at}: {}: no such tile file", tile_path.display());
+    }
+    // A manifest reads its own folder only: `../` or an absolute path elsewhere would
+    // read (and copy into the outputs) any file the user can read.
+    let real = tile_path
+        .canonicalize()
+        .with_context(|| format!("{at}: cannot resolve {}", tile_path.display()))?;
+    // A FIFO or a device would block the reader forever (a hang, not an error).
+    if !std::fs::metadata(&real).is_ok_and(|md| md.is_file()) {
+        bail!(
+            "{at}: {}: not a regular file (a FIFO, device or folder): expected a height-map file",
+            tile_path.display()
+        );
+    }
+    if !real.starts_with(dir_real) {
+        bail!(
+            "{at}: file = {:?} resolves to {}, outside the scan directory {}: tile files must be inside it",
+            t.file,
+            real.display(),
+            dir_real.display()
+        );
+    }
+    if !formats::is_surface_file(&tile_path) {
+        bail!(
+            "{at}: unsupported tile format: expected {}",
+            supported_extensions()
+        );
+    }
+    Ok(tile_path)
+}
+
+/// A tile file that carries its own lateral calibration and height unit: its pitch must agree
+/// with the manifest's and with the first such tile's (`file_pitch`, set here).
+fn check_file_calibration(
+    at: &str,
+    manifest: &str,
+    surface: &formats::Surface,
+    scan: &ScanFields,
+    (unit_given, scale): (bool, f64),
+    file_pitch: &mut Option<(f64, f64, String)>,
+    tile_file: &str,
+) -> Result<()> {
+    let carries_units = surface.metadata.pitch_known;
+    if carries_units && unit_given && scale != 1.0 {
+        bail!(
+            "{at}: [scan] height_unit = {:?}, but a {} file carries its own height unit: leave height_unit out",
+            scan.height_unit,
+            surface.metadata.format
+        );
+    }
+    if carries_units {
+        let (px, py) = (surface.pitch_x_um, surface.pitch_y_um);
+        for (field, manifest, file) in [
+            ("pitch_x_um", scan.pitch_x_um, px),
+            ("pitch_y_um", scan.pitch_y_um, py),
+        ] {
+            if manifest.is_finite() && !same_pitch(manifest, file) {
+                bail!("{at}: [scan] {field} = {manifest} but the file says {file} um: manifest and file disagree");
+            }
+        }
+        match file_pitch {
+            None => *file_pitch = Some((px, py, tile_file.to_string())),
+            Some((fx, fy, first)) if !same_pitch(*fx, px) || !same_pitch(*fy, py) => bail!(
+                "{at}: pitch {px} x {py} um, but {first} says {fx} x {fy} um: all tiles of a scan have one pitch"
+            ),
+            Some(_) => {}
+        }
+    } else if !(scan.pitch_x_um.is_finite() && scan.pitch_y_um.is_finite()) {
+        bail!(
+            "{manifest}: [scan] pitch_x_um / pitch_y_um missing, and {tile_file} carries no pitch: give the pitch in micrometres"
+        );
+    }
+    Ok(())
+}
+
+/// Reads `scan.toml` (or a directory holding one) and every tile it lists.
+pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
+    let Manifest {
+        path: manifest_path,
+        mut scan,
+        scale,
+        unit_given,
+        tile_dir,
+        tiles: entries,
+    } = read_manifest(path)?;
+    let m = manifest_path.display();
     let manifest_dir = manifest_path.parent().unwrap_or(Path::new("."));
     let dir_buf = match &tile_dir {
         Some(t) => manifest_dir.join(t),
@@ -358,13 +471,13 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         .canonicalize()
         .with_context(|| format!("{}: cannot resolve the scan directory", dir.display()))?;
     let mut seen = std::collections::BTreeSet::new();
-    let mut tiles = Vec::with_capacity(file.tile.len());
+    let mut tiles = Vec::with_capacity(entries.len());
     let mut z_offset_um: Option<f64> = None;
     let mut shape: Option<(usize, usize, String)> = None;
     // (pitch x, pitch y, file) of the first tile that carries a lateral calibration.
     let mut file_pitch: Option<(f64, f64, String)> = None;
     let mut masks = MaskExclusion::new(&scan.mask_exclude);
-    for (k, t) in file.tile.into_iter().enumerate() {
+    for (k, t) in entries.into_iter().enumerate() {
         let at = format!("{m}: [[tile]] #{} (file {:?})", k + 1, t.file);
         if t.row >= scan.rows || t.col >= scan.cols {
             bail!(
@@ -383,36 +496,7 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
                 bail!("{at}: {field} = {v}: expected a finite position in micrometres");
             }
         }
-        let tile_path = dir.join(&t.file);
-        if !tile_path.exists() {
-            bail!("{at}: {}: no such tile file", tile_path.display());
-        }
-        // A manifest reads its own folder only: `../` or an absolute path elsewhere would
-        // read (and copy into the outputs) any file the user can read.
-        let real = tile_path
-            .canonicalize()
-            .with_context(|| format!("{at}: cannot resolve {}", tile_path.display()))?;
-        // A FIFO or a device would block the reader forever (a hang, not an error).
-        if !std::fs::metadata(&real).is_ok_and(|md| md.is_file()) {
-            bail!(
-                "{at}: {}: not a regular file (a FIFO, device or folder): expected a height-map file",
-                tile_path.display()
-            );
-        }
-        if !real.starts_with(&dir_real) {
-            bail!(
-                "{at}: file = {:?} resolves to {}, outside the scan directory {}: tile files must be inside it",
-                t.file,
-                real.display(),
-                dir_real.display()
-            );
-        }
-        if !formats::is_surface_file(&tile_path) {
-            bail!(
-                "{at}: unsupported tile format: expected {}",
-                supported_extensions()
-            );
-        }
+        let tile_path = checked_tile_file(&at, dir, &dir_real, &t)?;
         let mut surface = formats::read_surface(&tile_path).with_context(|| at.clone())?;
         masks.apply(&mut surface).with_context(|| at.clone())?;
         let (rows, cols) = (surface.height, surface.width);
@@ -426,37 +510,16 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
             ),
             Some(_) => {}
         }
+        check_file_calibration(
+            &at,
+            &m.to_string(),
+            &surface,
+            &scan,
+            (unit_given, scale),
+            &mut file_pitch,
+            &t.file,
+        )?;
         let carries_units = surface.metadata.pitch_known;
-        if carries_units && unit_given && scale != 1.0 {
-            bail!(
-                "{at}: [scan] height_unit = {:?}, but a {} file carries its own height unit: leave height_unit out",
-                scan.height_unit,
-                surface.metadata.format
-            );
-        }
-        if carries_units {
-            let (px, py) = (surface.pitch_x_um, surface.pitch_y_um);
-            for (field, manifest, file) in [
-                ("pitch_x_um", scan.pitch_x_um, px),
-                ("pitch_y_um", scan.pitch_y_um, py),
-            ] {
-                if manifest.is_finite() && !same_pitch(manifest, file) {
-                    bail!("{at}: [scan] {field} = {manifest} but the file says {file} um: manifest and file disagree");
-                }
-            }
-            match &file_pitch {
-                None => file_pitch = Some((px, py, t.file.clone())),
-                Some((fx, fy, first)) if !same_pitch(*fx, px) || !same_pitch(*fy, py) => bail!(
-                    "{at}: pitch {px} x {py} um, but {first} says {fx} x {fy} um: all tiles of a scan have one pitch"
-                ),
-                Some(_) => {}
-            }
-        } else if !(scan.pitch_x_um.is_finite() && scan.pitch_y_um.is_finite()) {
-            bail!(
-                "{m}: [scan] pitch_x_um / pitch_y_um missing, and {} carries no pitch: give the pitch in micrometres",
-                t.file
-            );
-        }
         let file_scale = if carries_units { 1.0 } else { scale };
         let mut heights = surface.heights_um;
         heights.iter_mut().for_each(|z| *z *= file_scale);
