@@ -55,9 +55,11 @@ struct GraphArgs {
     /// files are deleted). Never needed for a new folder or an earlier run's folder.
     #[arg(long)]
     force: bool,
-    /// The model's tolerance per region, percent, e.g. sa=1,sq=1,sz=3 (add res=20 to bound the
-    /// pointwise residual, % of Sq): the mesher makes the fewest triangles that meet it
-    /// (docs/model.md). Sets `tolerance` on every mesher node.
+    /// The model's tolerance per region, percent: sa, sq, sz (default 1, 1, 3), res (the
+    /// pointwise residual, % of Sq, default 50) and rough (the roughness the mesh carries,
+    /// default 5 when the graph wires the measured roughness); `=off` drops a bound. The mesher
+    /// makes the fewest triangles that meet it (docs/model.md). Sets `tolerance` on every
+    /// mesher node.
     #[arg(long, value_name = "sa=1,sq=1,sz=3")]
     tolerance: Option<String>,
     #[command(flatten)]
@@ -94,7 +96,8 @@ enum Command {
         /// the Table-6 threshold: --set deviation.threshold_percent=2.
         #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
         set: Vec<String>,
-        /// The model's tolerance per region, percent, e.g. sa=1,sq=1,sz=3 (docs/model.md).
+        /// The model's tolerance per region, percent: sa, sq, sz (default 1, 1, 3), res
+        /// (default 50, % of Sq), rough (default 5); `=off` drops a bound (docs/model.md).
         #[arg(long, value_name = "sa=1,sq=1,sz=3")]
         tolerance: Option<String>,
         /// Registration method of the matcher: auto | phase | harris | sift (auto = the best

@@ -516,7 +516,9 @@ fn mesh(
         let (z_offset_um, h32) = to_frame_heights(h);
         let view = RasterView::new(&h32, Shape::new(rows, cols))
             .map_err(|e| Failure::new(Kind::Other, e))?;
-        let at = ScanPlacement::new(pitch_x_um, pitch_y_um).with_z_offset(z_offset_um);
+        let pitch = surfstream_core::Pitch::new(pitch_x_um, pitch_y_um)
+            .map_err(|e| Failure::new(Kind::Parameter, e))?;
+        let at = ScanPlacement::new(pitch).with_z_offset(z_offset_um);
         let profile = engine.map(|e| EngineProfile::with_budget(e, max_triangles));
         let write = |w: &mut dyn std::io::Write,
                      m: &surfstream_mesher::SolidMesh,

@@ -10,7 +10,7 @@ use iceoryx2_bb_derive_macros::ZeroCopySend;
 use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 use serde::{Deserialize, Serialize};
 
-use crate::{ParamError, Sampling, Shape};
+use crate::{ParamError, Pitch, Sampling, Shape};
 
 /// Versioned type name: two binaries with different header layouts refuse to connect.
 pub const FRAME_TYPE_NAME: &str = "surfstream.FrameHeader.v1";
@@ -119,12 +119,28 @@ impl FrameHeader {
     /// Where the payload's samples lie: `height x width`, the pitch and the origin, checked
     /// by [`Sampling::new`] (a marker has no payload: its pitch is 0, an error).
     pub fn sampling(&self) -> Result<Sampling, ParamError> {
-        Sampling::new(
+        Sampling::of(
             Shape::new(self.height as usize, self.width as usize),
-            self.pitch_x_um,
-            self.pitch_y_um,
-        )?
+            self.pitch()?,
+        )
         .with_origin(self.origin_x_um, self.origin_y_um)
+    }
+    /// The payload's pitch, checked by [`Pitch::new`] (a marker's pitch is 0, an error).
+    pub fn pitch(&self) -> Result<Pitch, ParamError> {
+        Pitch::new(self.pitch_x_um, self.pitch_y_um)
+    }
+    /// A header whose `width`, `height`, pitch and origin are `sampling`'s, every other field
+    /// default: the typed way into the wire fields (`FrameHeader { kind, .., ..at(s) }`).
+    pub fn at(sampling: &Sampling) -> Self {
+        Self {
+            width: sampling.cols() as u32,
+            height: sampling.rows() as u32,
+            pitch_x_um: sampling.pitch_x_um(),
+            pitch_y_um: sampling.pitch_y_um(),
+            origin_x_um: sampling.origin_x_um(),
+            origin_y_um: sampling.origin_y_um(),
+            ..Default::default()
+        }
     }
     /// The end-of-scan marker that closes a frame channel.
     pub fn end_of_scan(scan_id: u64, sequence: u64, tile_index: u32, t_acquired_ns: u64) -> Self {

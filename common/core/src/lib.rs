@@ -26,4 +26,4 @@ pub mod store;
 pub use frame::{flags, FrameHeader, FrameKind, FrameView, HeightMap, TileRegistration};
 pub use plane::PlaneCorrection;
 pub use raster::{Raster, RasterView, Shape, ShapeError};
-pub use sampling::{ParamError, Sampling};
+pub use sampling::{ParamError, Pitch, Sampling};

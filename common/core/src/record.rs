@@ -8,13 +8,12 @@
 //! into a value with [`to_value`] before writing it, which keeps that order whatever the
 //! declaration order here (and keeps run.json byte-identical to the `json!` it replaces).
 //!
-//! What stays a JSON value inside a record, and why: the wavelet's final and the finishing
-//! node's summaries (their fields depend on the method; the finishing node's has its own typed
-//! reader, `surfstream_finish::summary`), the matcher's pairs and global solve (the matcher's own
-//! diagnostics), the fusion's chunk statistics (a fusion type), the mesher's largest spikes and
-//! target, and each node's parameters (the graph file's table). The mesher builds its report as
-//! a JSON value; its readers read it as a [`MeshReport`] (the demo's end-to-end test checks that
-//! the report reads as one and writes back the same).
+//! What stays a JSON value inside a record, and why: the wavelet's final summary (its fields
+//! depend on the method), the feature matchers' diagnostics and scores inside the matcher's
+//! pairs and global solve, the fusion's chunk statistics (a fusion type), the mesher's largest
+//! spikes and target (mesher types), and each node's parameters (the graph file's table). The
+//! finishing node's finish.json has its own typed record in its crate
+//! (`surfstream_finish::summary`), the one its writer and report.html use.
 
 use std::collections::BTreeMap;
 
@@ -218,15 +217,127 @@ pub struct MatcherTile {
     pub placement: TilePlacement,
 }
 
+/// A one-direction answer of a refused pair (its NCC ridge fixes one direction).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DirectionalPair {
+    pub offset_px: [f64; 2],
+    /// The unit direction the ridge fixes.
+    pub normal: [f64; 2],
+    pub curvature_per_px2: [f64; 2],
+    #[serde(deserialize_with = "nan_if_null")]
+    pub ncc: f64,
+    /// After the global solve, when it took the link.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kept_by_global_solve: Option<bool>,
+    #[serde(
+        default,
+        deserialize_with = "some_nan_array",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub residual_px: Option<[f64; 2]>,
+}
+
+/// One neighbour pair's registration and outcome (the matcher's `pairs`, run.json's `pairs`):
+/// what streaming found, and what the global solve made of it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MatcherPair {
+    /// Tile indices.
+    pub a: u32,
+    pub b: u32,
+    /// "horizontal" or "vertical".
+    pub direction: String,
+    /// b's offset from a by the stage, px.
+    pub nominal_offset_px: [f64; 2],
+    /// b's offset from a by the registration (null: refused).
+    pub offset_px: Option<[f64; 2]>,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub ncc: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub peak_ratio: f64,
+    pub accepted: bool,
+    /// Why the pair was refused (null: accepted).
+    pub reason: Option<String>,
+    /// Accepted as a distinct peak below the matcher's min_ncc (only written when true).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub accepted_below_min_ncc: bool,
+    /// The feature matcher's diagnostics (feature methods only; the matcher's own layout).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub features: Option<Value>,
+    /// After the global solve: b's offset from a in the final placement, px.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub final_offset_px: Option<[f64; 2]>,
+    /// Height-difference samples of the overlap used by the plane solve.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub z_samples: Option<u64>,
+    /// An ambiguous pair's candidate offsets, and the one the global solve took (null: none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alternatives_px: Option<Vec<[f64; 2]>>,
+    #[serde(
+        default,
+        deserialize_with = "present",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub chosen_alternative: Option<Option<u64>>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub directional: Option<DirectionalPair>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kept_by_global_solve: Option<bool>,
+    /// (p_b - p_a) - offset in the final solution, px (links the solve took).
+    #[serde(
+        default,
+        deserialize_with = "some_nan_array",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub residual_px: Option<[f64; 2]>,
+    /// The Lucas-Kanade refinement's covariance of `offset_px`, px², when it ran.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub offset_covariance_px2: Option<[[f64; 2]; 2]>,
+    /// Its worst direction's standard deviation, px: the link's weight in the global solve.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub offset_sd_px: Option<f64>,
+}
+
+/// Reads a key that is present, null or not: `Some(None)` for null (absent: the default,
+/// `None`), so that it is written back as it was.
+fn present<'de, D: Deserializer<'de>, T: Deserialize<'de>>(
+    d: D,
+) -> Result<Option<Option<T>>, D::Error> {
+    Option::<T>::deserialize(d).map(Some)
+}
+
+/// The matcher's global solve over the whole scan (its `global`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GlobalSolveRecord {
+    /// Links (accepted and chosen ambiguous pairs) and how many the solve removed.
+    pub links: u64,
+    pub links_removed: u64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub max_residual_px: f64,
+    pub tiles_placed_by_stage: u64,
+    /// One-direction links (refused pairs with a ridge) and how many were removed.
+    pub directional_links: u64,
+    pub directional_links_removed: u64,
+    pub tiles_one_direction_by_stage: u64,
+    pub stage_sigma_px: f64,
+    pub outlier_px: f64,
+    /// RMS of the overlaps' height differences before and after the plane solve, um.
+    #[serde(deserialize_with = "nan_if_null")]
+    pub z_rms_before_um: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub z_rms_residual_um: f64,
+    /// The feature matchers' scores against a truth file (null otherwise; their own layout).
+    pub features: Value,
+}
+
 /// The matcher's report.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MatcherReport {
     pub method: String,
     pub tiles: Vec<MatcherTile>,
-    /// Every neighbour pair's registration and outcome (the matcher's own diagnostics).
-    pub pairs: Vec<Value>,
+    /// Every neighbour pair's registration and outcome.
+    pub pairs: Vec<MatcherPair>,
     /// The global solve's summary (null until the end of scan).
-    pub global: Value,
+    pub global: Option<GlobalSolveRecord>,
 }
 
 /// The final panorama's size, place, offset and invalid pixels (the fusion's `panorama`).
@@ -487,8 +598,11 @@ pub struct ToleranceRecord {
 pub struct AngleRecord {
     /// The bound, degrees.
     pub bound_deg: f64,
-    /// Smallest angle of any triangle before and after the refinement, degrees.
+    /// Smallest angle of any triangle before and after the refinement, degrees (null: no
+    /// triangle).
+    #[serde(deserialize_with = "nan_if_null")]
     pub min_angle_before_deg: f64,
+    #[serde(deserialize_with = "nan_if_null")]
     pub min_angle_deg: f64,
     /// Triangles below the bound before and after.
     pub below_bound_before: u64,
@@ -530,6 +644,75 @@ pub struct AdaptiveMeshRecord {
     pub missing: String,
     pub budget_reached: bool,
     pub fidelity: MeshFidelity,
+    /// With an angle bound (an engine's target): the element quality of the mesh written, as
+    /// the engines' grid sheets report theirs.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub element_quality: Option<AngleQuality>,
+}
+
+/// The angle bound's outcome as element quality (an adaptive mesh's `element_quality`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct AngleQuality {
+    #[serde(deserialize_with = "nan_if_null")]
+    pub min_angle_deg: f64,
+    pub min_angle_bound_deg: f64,
+    pub below_bound: u64,
+}
+
+impl From<&AngleRecord> for AngleQuality {
+    fn from(a: &AngleRecord) -> Self {
+        Self {
+            min_angle_deg: a.min_angle_deg,
+            min_angle_bound_deg: a.bound_deg,
+            below_bound: a.below_bound,
+        }
+    }
+}
+
+/// The element quality of an engine's regular-grid sheet (its `element_quality`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ElementQuality {
+    /// Smallest interior angle of any triangle, degrees.
+    pub min_angle_deg: f64,
+    /// Most triangles sharing one vertex.
+    pub max_triangles_per_vertex: u64,
+    /// Triangles with the same three vertices as another.
+    pub duplicate_triangles: u64,
+}
+
+/// What block averaging cost an engine's grid sheet: Sa, Sq, Sz, Sdr of the measured field and
+/// of the meshed grid.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct GridSheetFidelity {
+    pub measured: Option<LevelledParams>,
+    pub meshed_grid: Option<LevelledParams>,
+}
+
+/// What an engine's regular-grid sheet (a target with `method = "grid"`) adds to the mesher's
+/// report.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GridSheetRecord {
+    /// "sheet".
+    pub kind: String,
+    /// Side of the blocks averaged into one grid sample.
+    pub block_stride: u64,
+    /// The meshed grid, [rows, cols].
+    pub grid_rows_cols: [u64; 2],
+    /// Sample spacing of the meshed grid, um (x, y).
+    pub meshed_pitch_um: [f64; 2],
+    pub element_quality: ElementQuality,
+    pub fidelity: GridSheetFidelity,
+}
+
+/// The method's own part of the mesher's report, keyed beside the common fields: an adaptive
+/// mesh or an engine's grid sheet (the full-grid solid has none). Untagged and flattened: the
+/// two share key names (`kind`, `fidelity`) with different contents, and an untagged enum tries
+/// each layout on every key, where a flattened struct would take the keys it knows.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum MeshMethodRecord {
+    Adaptive(AdaptiveMeshRecord),
+    GridSheet(GridSheetRecord),
 }
 
 /// The mesher's report.
@@ -572,12 +755,23 @@ pub struct MeshReport {
     pub target: Option<Value>,
     /// "adaptive" or "grid".
     pub method: String,
+    /// The adaptive mesh's or the engine grid sheet's own fields.
     #[serde(flatten)]
-    pub adaptive: Option<AdaptiveMeshRecord>,
+    pub method_record: Option<MeshMethodRecord>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tolerance: Option<ToleranceRecord>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub outliers: Option<OutliersRecord>,
+}
+
+impl MeshReport {
+    /// The adaptive mesh's part (None for a grid).
+    pub fn adaptive(&self) -> Option<&AdaptiveMeshRecord> {
+        match &self.method_record {
+            Some(MeshMethodRecord::Adaptive(a)) => Some(a),
+            _ => None,
+        }
+    }
 }
 
 // ---------------------------------------------------------------------------------------
@@ -774,7 +968,7 @@ pub struct RunRecord {
     pub scan: Option<ScanRecord>,
     pub tiles: Vec<TileRecord>,
     /// The matcher's pairs.
-    pub pairs: Vec<Value>,
+    pub pairs: Vec<MatcherPair>,
     pub latency_ms: LatencySummary,
     pub messages: BTreeMap<String, MessageCounts>,
     /// Each node's report by node id.
@@ -958,7 +1152,7 @@ mod tests {
     fn a_grid_mesh_has_no_adaptive_part_and_an_adaptive_one_reads_its_fidelity() {
         let g = grid_mesh();
         let m: MeshReport = from_value(&g, "mesher").unwrap();
-        assert!(m.adaptive.is_none() && m.tolerance.is_none() && m.outliers.is_none());
+        assert!(m.adaptive().is_none() && m.tolerance.is_none() && m.outliers.is_none());
         assert_eq!(to_value(&m), g);
         let mut a = grid_mesh();
         let extra = json!({ "method": "adaptive", "kind": "solid", "offset_rule": "r",
@@ -979,7 +1173,7 @@ mod tests {
             a[k] = v.clone();
         }
         let m: MeshReport = from_value(&a, "mesher").unwrap();
-        let f = m.adaptive.as_ref().unwrap().fidelity;
+        let f = m.adaptive().unwrap().fidelity;
         assert!(f.error.max_um.is_nan() && f.mesh.unwrap().sdr_percent.is_nan());
         assert!(m.tolerance.as_ref().unwrap().region_fits[0].measured_um[2].is_nan());
         assert_eq!(to_value(&m), a);
@@ -987,5 +1181,73 @@ mod tests {
         let mut other = grid_mesh();
         other.as_object_mut().unwrap().remove("triangles");
         assert!(from_value::<MeshReport>(&other, "mesher").is_err());
+    }
+
+    #[test]
+    fn an_engine_grid_sheet_reads_as_its_own_part_beside_the_adaptive_one() {
+        // The grid sheet shares `kind` and `fidelity` with the adaptive part, with other
+        // contents: the untagged part must read each layout whole and write it back as it was.
+        let mut g = grid_mesh();
+        let extra = json!({ "target": { "engine": "edem" }, "kind": "sheet", "block_stride": 2,
+            "grid_rows_cols": [2, 3], "meshed_pitch_um": [1.0, 1.0],
+            "element_quality": { "min_angle_deg": 45.0, "max_triangles_per_vertex": 6,
+                "duplicate_triangles": 0 },
+            "fidelity": { "measured": { "sa_um": 1.0, "sq_um": 1.2, "sz_um": 5.0,
+                "sdr_percent": 2.0 }, "meshed_grid": null } });
+        for (k, v) in extra.as_object().unwrap() {
+            g[k] = v.clone();
+        }
+        let m: MeshReport = from_value(&g, "mesher").unwrap();
+        assert!(m.adaptive().is_none());
+        let Some(MeshMethodRecord::GridSheet(s)) = &m.method_record else {
+            panic!("a grid sheet reads as one: {:?}", m.method_record)
+        };
+        assert_eq!(
+            (s.block_stride, s.element_quality.max_triangles_per_vertex),
+            (2, 6)
+        );
+        assert!(s.fidelity.meshed_grid.is_none());
+        assert_eq!(to_value(&m), g);
+        // An adaptive mesh with an angle bound carries the element quality of the bound.
+        let mut a = grid_mesh();
+        let extra = json!({ "method": "adaptive", "kind": "sheet", "offset_rule": "r",
+            "surface_triangles": 8, "missing_samples": 0, "missing": "fill",
+            "budget_reached": false,
+            "element_quality": { "min_angle_deg": 1.5, "min_angle_bound_deg": 1.0,
+                "below_bound": 0 },
+            "fidelity": { "epsilon_um": 0.1, "bound_met": true, "field": null, "mesh": null,
+                "error": { "max_um": 0.05, "rms_um": 0.01, "samples": 6, "uncovered": 0 } } });
+        for (k, v) in extra.as_object().unwrap() {
+            a[k] = v.clone();
+        }
+        let m: MeshReport = from_value(&a, "mesher").unwrap();
+        let q = m.adaptive().and_then(|r| r.element_quality);
+        assert_eq!(q.map(|q| q.min_angle_bound_deg), Some(1.0));
+        assert_eq!(to_value(&m), a);
+    }
+
+    #[test]
+    fn a_pair_writes_back_the_keys_it_was_read_with() {
+        // Streaming's keys alone, then the global solve's (a null chosen alternative and a
+        // NaN residual stay present, as null).
+        let streamed = json!({ "a": 0, "b": 1, "direction": "horizontal",
+            "nominal_offset_px": [900.0, 0.0], "offset_px": null, "ncc": 0.2,
+            "peak_ratio": 1.1, "accepted": false, "reason": "low NCC" });
+        let p: MatcherPair = from_value(&streamed, "pair").unwrap();
+        assert!(!p.accepted_below_min_ncc && p.kept_by_global_solve.is_none());
+        assert_eq!(to_value(&p), streamed);
+        let mut solved = streamed.clone();
+        for (k, v) in json!({ "final_offset_px": [900.5, 0.25], "z_samples": 40,
+            "alternatives_px": [[900.0, 0.0], [880.0, 1.0]], "chosen_alternative": null,
+            "kept_by_global_solve": false, "residual_px": [null, 0.5] })
+        .as_object()
+        .unwrap()
+        {
+            solved[k] = v.clone();
+        }
+        let p: MatcherPair = from_value(&solved, "pair").unwrap();
+        assert_eq!(p.chosen_alternative, Some(None));
+        assert!(p.residual_px.unwrap()[0].is_nan());
+        assert_eq!(to_value(&p), solved);
     }
 }

@@ -93,29 +93,15 @@ pub fn figure(
     let n_nan = values.len() - n_valid;
     let pct = |k: usize| 100.0 * k as f64 / values.len().max(1) as f64;
 
-    // Geometry: the map keeps its aspect ratio in um.
-    let (w_um, h_um) = (s.width_um(), s.height_um());
-    let mut mw = MAP_W;
-    let mut mh = mw * h_um / w_um;
-    if mh > MAP_H_MAX {
-        mh = MAP_H_MAX;
-        mw = mh * w_um / h_um;
-    }
-    let bar_x = LEFT + mw + 28.0;
-    let bar_w = 22.0;
-    let bar_top = TOP + 24.0;
-    let bar_h = (mh - 24.0).max(160.0);
-    let width = bar_x + bar_w + 78.0;
-    let height = TOP + mh.max(bar_h + 24.0) + 58.0;
-    let to_mm = w_um.max(h_um) >= 2000.0;
-    let (unit, div) = if to_mm { ("mm", 1000.0) } else { ("µm", 1.0) };
-
+    let at = MapLayout::of(s);
     let id = s.name;
     let mut g = String::new();
     let _ = write!(
         g,
-        "<svg class=\"mapsvg\" viewBox=\"0 0 {width:.0} {height:.0}\" role=\"img\" \
+        "<svg class=\"mapsvg\" viewBox=\"0 0 {:.0} {:.0}\" role=\"img\" \
          aria-label=\"{t}\"><defs><linearGradient id=\"cb-{id}\" x1=\"0\" y1=\"1\" x2=\"0\" y2=\"0\">",
+        at.width,
+        at.height,
         t = esc(title)
     );
     for k in 0..=16 {
@@ -126,6 +112,7 @@ pub fn figure(
             "<stop offset=\"{t:.4}\" stop-color=\"rgb({r},{gg},{b})\"/>"
         );
     }
+    let (mw, mh) = (at.mw, at.mh);
     let _ = write!(
         g,
         "</linearGradient></defs><image class=\"zoomable\" x=\"{LEFT}\" y=\"{TOP}\" \
@@ -142,125 +129,14 @@ pub fn figure(
             .as_ref()
             .map_or(String::new(), |f| format!(" data-full=\"{}\"", esc(&f.0)))
     );
-
-    // Axes: x along the bottom, y up the left, from the bottom-left corner (y up).
-    let (xt, xd) = ticks(0.0, w_um / div, 8);
-    for v in &xt {
-        let x = LEFT + v * div / w_um * mw;
-        let _ = write!(
-            g,
-            "<line x1=\"{x:.1}\" y1=\"{y0:.1}\" x2=\"{x:.1}\" y2=\"{y1:.1}\" stroke=\"#333\"/>\
-             <text x=\"{x:.1}\" y=\"{ty:.1}\" class=\"tick\" text-anchor=\"middle\">{}</text>",
-            fixed(*v, xd),
-            y0 = TOP + mh,
-            y1 = TOP + mh + 5.0,
-            ty = TOP + mh + 18.0
-        );
-    }
-    let _ = write!(
-        g,
-        "<text x=\"{:.1}\" y=\"{:.1}\" class=\"axis\" text-anchor=\"middle\">x ({unit})</text>",
-        LEFT + mw / 2.0,
-        TOP + mh + 36.0
-    );
-    let (yt, yd) = ticks(0.0, h_um / div, 8);
-    for v in &yt {
-        let y = TOP + mh - v * div / h_um * mh;
-        let _ = write!(
-            g,
-            "<line x1=\"{x0:.1}\" y1=\"{y:.1}\" x2=\"{LEFT}\" y2=\"{y:.1}\" stroke=\"#333\"/>\
-             <text x=\"{tx:.1}\" y=\"{ty:.1}\" class=\"tick\" text-anchor=\"end\">{}</text>",
-            fixed(*v, yd),
-            x0 = LEFT - 5.0,
-            tx = LEFT - 8.0,
-            ty = y + 4.0
-        );
-    }
-    let _ = write!(
-        g,
-        "<text transform=\"translate(16 {:.1}) rotate(-90)\" class=\"axis\" \
-         text-anchor=\"middle\">y ({unit})</text>",
-        TOP + mh / 2.0
-    );
-
-    // Scale bar: a round length of about a fifth of the width, bottom right inside the map.
-    let target = w_um / 5.0;
-    let mag = 10f64.powf(target.log10().floor());
-    let bar_um = [5.0, 2.0, 1.0]
-        .iter()
-        .map(|m| m * mag)
-        .find(|l| *l <= target)
-        .unwrap_or(mag);
-    let sb_w = bar_um / w_um * mw;
-    let (sb_x, sb_y) = (LEFT + mw - sb_w - 14.0, TOP + mh - 16.0);
-    let _ = write!(
-        g,
-        "<rect x=\"{:.1}\" y=\"{:.1}\" width=\"{:.1}\" height=\"30\" fill=\"#fff\" \
-         fill-opacity=\"0.8\" rx=\"3\"/><rect x=\"{sb_x:.1}\" y=\"{sb_y:.1}\" width=\"{sb_w:.1}\" \
-         height=\"5\" fill=\"#111\"/><text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\" \
-         text-anchor=\"middle\">{}</text>",
-        sb_x - 8.0,
-        sb_y - 18.0,
-        sb_w + 16.0,
-        sb_x + sb_w / 2.0,
-        sb_y - 4.0,
-        round_length(bar_um)
-    );
-
+    at.axes(&mut g);
+    at.scale_bar(&mut g);
     if let Some(cut) = cut {
-        let y = TOP + mh - (cut.row as f64 + 0.5) / s.rows as f64 * mh;
-        let _ = write!(
-            g,
-            "<line x1=\"{LEFT}\" y1=\"{y:.1}\" x2=\"{:.1}\" y2=\"{y:.1}\" stroke=\"#fff\" \
-             stroke-width=\"2\" stroke-dasharray=\"8,5\"/><rect x=\"{:.1}\" y=\"{:.1}\" \
-             width=\"{:.1}\" height=\"18\" fill=\"#fff\" fill-opacity=\"0.85\" rx=\"3\"/>\
-             <text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\">{}</text>",
-            LEFT + mw,
-            LEFT + 6.0,
-            y - 22.0,
-            7.0 * cut.label.len() as f64 + 10.0,
-            LEFT + 11.0,
-            y - 9.0,
-            esc(&cut.label)
-        );
+        at.cut_line(&mut g, cut, s.rows);
     }
+    at.colour_bar(&mut g, id, (lo, hi));
 
-    // Colour bar: unit on top, ticks on the right, "not measured" swatch below.
-    let _ = write!(
-        g,
-        "<text x=\"{:.1}\" y=\"{:.1}\" class=\"axis\" text-anchor=\"middle\">z (µm)</text>\
-         <rect x=\"{bar_x:.1}\" y=\"{bar_top:.1}\" width=\"{bar_w}\" height=\"{bar_h:.1}\" \
-         fill=\"url(#cb-{id})\" stroke=\"#333\"/>",
-        bar_x + bar_w / 2.0,
-        TOP + 12.0
-    );
-    let (zt, zd) = ticks(lo, hi, 8);
-    for v in &zt {
-        let y = bar_top + bar_h - (v - lo) / (hi - lo) * bar_h;
-        let _ = write!(
-            g,
-            "<line x1=\"{x0:.1}\" y1=\"{y:.1}\" x2=\"{x1:.1}\" y2=\"{y:.1}\" stroke=\"#333\"/>\
-             <text x=\"{tx:.1}\" y=\"{ty:.1}\" class=\"tick\">{}</text>",
-            fixed(*v, zd),
-            x0 = bar_x + bar_w,
-            x1 = bar_x + bar_w + 5.0,
-            tx = bar_x + bar_w + 8.0,
-            ty = y + 4.0
-        );
-    }
-    let sw_y = bar_top + bar_h + 14.0;
-    let [r, gg, b] = NAN_RGB;
-    let _ = write!(
-        g,
-        "<rect x=\"{bar_x:.1}\" y=\"{sw_y:.1}\" width=\"{bar_w}\" height=\"14\" \
-         fill=\"rgb({r},{gg},{b})\" stroke=\"#333\"/><text x=\"{:.1}\" y=\"{:.1}\" \
-         class=\"tick\">not</text><text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\">measured</text></svg>",
-        bar_x + bar_w + 6.0,
-        sw_y + 6.0,
-        bar_x + bar_w + 6.0,
-        sw_y + 19.0,
-    );
-
+    let (w_um, h_um) = (at.w_um, at.h_um);
     let caption = format!(
         "<b>{}</b>: {} x {} px (rows x cols), {} x {} at {} pitch, y up (row 0 at the bottom); heights {}. \
          Colour scale clipped to the {ROBUST_LOW_PERCENT} / {ROBUST_HIGH_PERCENT} percentiles \
@@ -305,4 +181,185 @@ pub fn figure(
         }
     );
     format!("<figure class=\"map\" id=\"map-{id}\">{g}<figcaption>{caption}</figcaption></figure>")
+}
+
+/// Where a map figure's parts go (SVG user units): the map keeps its aspect ratio in um, the
+/// colour bar stands to its right, lengths are in mm from 2 mm up.
+struct MapLayout {
+    w_um: f64,
+    h_um: f64,
+    /// The map's drawn width and height.
+    mw: f64,
+    mh: f64,
+    bar_x: f64,
+    bar_w: f64,
+    bar_top: f64,
+    bar_h: f64,
+    width: f64,
+    height: f64,
+    unit: &'static str,
+    /// um per axis unit.
+    div: f64,
+}
+
+impl MapLayout {
+    fn of(s: &Surface) -> Self {
+        let (w_um, h_um) = (s.width_um(), s.height_um());
+        let mut mw = MAP_W;
+        let mut mh = mw * h_um / w_um;
+        if mh > MAP_H_MAX {
+            mh = MAP_H_MAX;
+            mw = mh * w_um / h_um;
+        }
+        let bar_x = LEFT + mw + 28.0;
+        let bar_w = 22.0;
+        let bar_top = TOP + 24.0;
+        let bar_h = (mh - 24.0).max(160.0);
+        let to_mm = w_um.max(h_um) >= 2000.0;
+        let (unit, div) = if to_mm { ("mm", 1000.0) } else { ("µm", 1.0) };
+        Self {
+            w_um,
+            h_um,
+            mw,
+            mh,
+            bar_x,
+            bar_w,
+            bar_top,
+            bar_h,
+            width: bar_x + bar_w + 78.0,
+            height: TOP + mh.max(bar_h + 24.0) + 58.0,
+            unit,
+            div,
+        }
+    }
+
+    /// x along the bottom, y up the left, from the bottom-left corner (y up).
+    fn axes(&self, g: &mut String) {
+        let (mw, mh, w_um, h_um) = (self.mw, self.mh, self.w_um, self.h_um);
+        let (unit, div) = (self.unit, self.div);
+        let (xt, xd) = ticks(0.0, w_um / div, 8);
+        for v in &xt {
+            let x = LEFT + v * div / w_um * mw;
+            let _ = write!(
+                g,
+                "<line x1=\"{x:.1}\" y1=\"{y0:.1}\" x2=\"{x:.1}\" y2=\"{y1:.1}\" stroke=\"#333\"/>\
+                 <text x=\"{x:.1}\" y=\"{ty:.1}\" class=\"tick\" text-anchor=\"middle\">{}</text>",
+                fixed(*v, xd),
+                y0 = TOP + mh,
+                y1 = TOP + mh + 5.0,
+                ty = TOP + mh + 18.0
+            );
+        }
+        let _ = write!(
+            g,
+            "<text x=\"{:.1}\" y=\"{:.1}\" class=\"axis\" text-anchor=\"middle\">x ({unit})</text>",
+            LEFT + mw / 2.0,
+            TOP + mh + 36.0
+        );
+        let (yt, yd) = ticks(0.0, h_um / div, 8);
+        for v in &yt {
+            let y = TOP + mh - v * div / h_um * mh;
+            let _ = write!(
+                g,
+                "<line x1=\"{x0:.1}\" y1=\"{y:.1}\" x2=\"{LEFT}\" y2=\"{y:.1}\" stroke=\"#333\"/>\
+                 <text x=\"{tx:.1}\" y=\"{ty:.1}\" class=\"tick\" text-anchor=\"end\">{}</text>",
+                fixed(*v, yd),
+                x0 = LEFT - 5.0,
+                tx = LEFT - 8.0,
+                ty = y + 4.0
+            );
+        }
+        let _ = write!(
+            g,
+            "<text transform=\"translate(16 {:.1}) rotate(-90)\" class=\"axis\" \
+             text-anchor=\"middle\">y ({unit})</text>",
+            TOP + mh / 2.0
+        );
+    }
+
+    /// A round length of about a fifth of the width, bottom right inside the map.
+    fn scale_bar(&self, g: &mut String) {
+        let (mw, mh, w_um) = (self.mw, self.mh, self.w_um);
+        let target = w_um / 5.0;
+        let mag = 10f64.powf(target.log10().floor());
+        let bar_um = [5.0, 2.0, 1.0]
+            .iter()
+            .map(|m| m * mag)
+            .find(|l| *l <= target)
+            .unwrap_or(mag);
+        let sb_w = bar_um / w_um * mw;
+        let (sb_x, sb_y) = (LEFT + mw - sb_w - 14.0, TOP + mh - 16.0);
+        let _ = write!(
+            g,
+            "<rect x=\"{:.1}\" y=\"{:.1}\" width=\"{:.1}\" height=\"30\" fill=\"#fff\" \
+             fill-opacity=\"0.8\" rx=\"3\"/><rect x=\"{sb_x:.1}\" y=\"{sb_y:.1}\" width=\"{sb_w:.1}\" \
+             height=\"5\" fill=\"#111\"/><text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\" \
+             text-anchor=\"middle\">{}</text>",
+            sb_x - 8.0,
+            sb_y - 18.0,
+            sb_w + 16.0,
+            sb_x + sb_w / 2.0,
+            sb_y - 4.0,
+            round_length(bar_um)
+        );
+    }
+
+    /// The profile cut: a dashed line across the map at its row, labelled.
+    fn cut_line(&self, g: &mut String, cut: &Cut, rows: usize) {
+        let (mw, mh) = (self.mw, self.mh);
+        let y = TOP + mh - (cut.row as f64 + 0.5) / rows as f64 * mh;
+        let _ = write!(
+            g,
+            "<line x1=\"{LEFT}\" y1=\"{y:.1}\" x2=\"{:.1}\" y2=\"{y:.1}\" stroke=\"#fff\" \
+             stroke-width=\"2\" stroke-dasharray=\"8,5\"/><rect x=\"{:.1}\" y=\"{:.1}\" \
+             width=\"{:.1}\" height=\"18\" fill=\"#fff\" fill-opacity=\"0.85\" rx=\"3\"/>\
+             <text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\">{}</text>",
+            LEFT + mw,
+            LEFT + 6.0,
+            y - 22.0,
+            7.0 * cut.label.len() as f64 + 10.0,
+            LEFT + 11.0,
+            y - 9.0,
+            esc(&cut.label)
+        );
+    }
+
+    /// Unit on top, ticks on the right, "not measured" swatch below; closes the SVG.
+    fn colour_bar(&self, g: &mut String, id: &str, (lo, hi): (f64, f64)) {
+        let (bar_x, bar_w, bar_top, bar_h) = (self.bar_x, self.bar_w, self.bar_top, self.bar_h);
+        let _ = write!(
+            g,
+            "<text x=\"{:.1}\" y=\"{:.1}\" class=\"axis\" text-anchor=\"middle\">z (µm)</text>\
+             <rect x=\"{bar_x:.1}\" y=\"{bar_top:.1}\" width=\"{bar_w}\" height=\"{bar_h:.1}\" \
+             fill=\"url(#cb-{id})\" stroke=\"#333\"/>",
+            bar_x + bar_w / 2.0,
+            TOP + 12.0
+        );
+        let (zt, zd) = ticks(lo, hi, 8);
+        for v in &zt {
+            let y = bar_top + bar_h - (v - lo) / (hi - lo) * bar_h;
+            let _ = write!(
+                g,
+                "<line x1=\"{x0:.1}\" y1=\"{y:.1}\" x2=\"{x1:.1}\" y2=\"{y:.1}\" stroke=\"#333\"/>\
+                 <text x=\"{tx:.1}\" y=\"{ty:.1}\" class=\"tick\">{}</text>",
+                fixed(*v, zd),
+                x0 = bar_x + bar_w,
+                x1 = bar_x + bar_w + 5.0,
+                tx = bar_x + bar_w + 8.0,
+                ty = y + 4.0
+            );
+        }
+        let sw_y = bar_top + bar_h + 14.0;
+        let [r, gg, b] = NAN_RGB;
+        let _ = write!(
+            g,
+            "<rect x=\"{bar_x:.1}\" y=\"{sw_y:.1}\" width=\"{bar_w}\" height=\"14\" \
+             fill=\"rgb({r},{gg},{b})\" stroke=\"#333\"/><text x=\"{:.1}\" y=\"{:.1}\" \
+             class=\"tick\">not</text><text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\">measured</text></svg>",
+            bar_x + bar_w + 6.0,
+            sw_y + 6.0,
+            bar_x + bar_w + 6.0,
+            sw_y + 19.0,
+        );
+    }
 }

@@ -143,7 +143,7 @@ fn instrument(scan: Option<&ScanRecord>) -> String {
 
 fn mesh(run: &RunRecord) -> Option<String> {
     let m = run.stage::<MeshReport>()?;
-    let f = m.adaptive.as_ref().map(|a| a.fidelity);
+    let f = m.adaptive().map(|a| a.fidelity);
     let units = format!("STL in {}", m.units);
     let shown = |v: Option<f64>| v.filter(|v| !v.is_nan()).map(um).unwrap_or("-".into());
     Some(esc(&format!(

@@ -10,6 +10,9 @@ use surfstream_core::record::{DeviationRecord, StageDeviation};
 
 use super::html::{esc, fixed, pitch, signed, table_raw, um};
 
+/// Table 6's stages by name.
+type Stages = std::collections::BTreeMap<String, StageDeviation>;
+
 const PARAMS: [&str; 9] = ["Sa", "Sq", "Sp", "Sv", "Sz", "Ssk", "Sku", "Sdq", "Sdr"];
 
 /// A parameter value with its unit's precision ("-" where not measured).
@@ -93,7 +96,15 @@ pub fn section(dev: Option<&DeviationRecord>) -> String {
         esc(&dev.conventions),
     );
 
-    // Stages: grid and verdict.
+    h.push_str(&stages_table(stages));
+    failures(&mut h, stages, &judged, e);
+    at_a_glance(&mut h, stages, &judged, e);
+    full_table(&mut h, stages, &judged, e);
+    h
+}
+
+/// The stages: what each is judged on, its grid and pitch, regions passed, verdict.
+fn stages_table(stages: &Stages) -> String {
     let rows: Vec<(String, Vec<String>)> = stages
         .iter()
         .map(|(name, st)| {
@@ -113,7 +124,7 @@ pub fn section(dev: Option<&DeviationRecord>) -> String {
             )
         })
         .collect();
-    h.push_str(&table_raw(
+    table_raw(
         &[
             "stage",
             "judged on",
@@ -123,9 +134,11 @@ pub fn section(dev: Option<&DeviationRecord>) -> String {
             "verdict",
         ],
         &rows,
-    ));
+    )
+}
 
-    // The failures, one row per judged parameter out of bounds.
+/// The failures, one row per judged parameter out of bounds.
+fn failures(h: &mut String, stages: &Stages, judged: &[&str], e: f64) {
     let mut fails = Vec::new();
     for (stage, st) in stages {
         if !stage_judged(st) {
@@ -136,7 +149,7 @@ pub fn section(dev: Option<&DeviationRecord>) -> String {
                 continue;
             }
             let mut any = false;
-            for p in &judged {
+            for p in judged {
                 let d = r.deviation(p);
                 if d.is_some_and(|d| d.abs() <= limit(st, p, e)) {
                     continue;
@@ -186,8 +199,10 @@ pub fn section(dev: Option<&DeviationRecord>) -> String {
             &fails,
         ));
     }
+}
 
-    // Deviations at a glance: regions x parameters per stage.
+/// Deviations at a glance: regions x parameters per stage.
+fn at_a_glance(h: &mut String, stages: &Stages, judged: &[&str], e: f64) {
     h.push_str("<h3>Deviation (model - measured) / measured, %</h3><div class=\"flex\">");
     for (stage, st) in stages {
         let mut head = vec!["region"];
@@ -239,8 +254,10 @@ pub fn section(dev: Option<&DeviationRecord>) -> String {
          construction). Hover a cell for the two values.</p>",
         fixed(e, 1)
     );
+}
 
-    // The full table.
+/// The full table: every stage, region and parameter.
+fn full_table(h: &mut String, stages: &Stages, judged: &[&str], e: f64) {
     let mut all = Vec::new();
     for (stage, st) in stages {
         for (region, r) in &st.regions {
@@ -281,5 +298,4 @@ pub fn section(dev: Option<&DeviationRecord>) -> String {
             &all
         )
     );
-    h
 }

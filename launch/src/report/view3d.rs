@@ -116,144 +116,292 @@ fn round2(v: f64) -> f64 {
     (v / mag).round() * mag
 }
 
-pub fn render(s: &Surface) -> Option<Render> {
-    let block = s.rows.max(s.cols).div_ceil(MAX_GRID).max(1);
-    let (z, rows, cols) = block_mean(s, block);
-    if rows < 2 || cols < 2 {
-        return None;
-    }
-    let (dx, dy) = (s.pitch_x_um * block as f64, s.pitch_y_um * block as f64);
-    let zf: Vec<f32> = z.iter().map(|&v| v as f32).collect();
-    let (lo, hi) = robust_range_um(&zf)?;
-    let (w_um, h_um) = (cols as f64 * dx, rows as f64 * dy);
-    let ex = round2(RELIEF * w_um.max(h_um) / (hi - lo));
-    if !(ex.is_finite() && ex > 0.0) {
-        return None;
-    }
-    let base_z = (lo - 0.25 * (hi - lo)) * ex;
-    let (a, e) = (AZIMUTH_DEG.to_radians(), ELEVATION_DEG.to_radians());
-    let (ca, sa, ce, se) = (a.cos(), a.sin(), e.cos(), e.sin());
-    let (cx, cy) = (w_um / 2.0, h_um / 2.0);
-    // World (x right, y away from the viewer, z up: row 0, the maps' bottom edge, in front,
-    // as the maps are drawn y up) -> (u right, v up, depth toward the viewer).
-    let project = |x: f64, y: f64, zz: f64| -> (f64, f64, f64) {
-        let (xw, yw) = (x - cx, cy - y);
-        let xr = xw * ca + yw * sa;
-        let yr = -xw * sa + yw * ca;
-        (xr, zz * ce - yr * se, yr * ce + zz * se)
-    };
-    // Fit the block's corners (top at the colour range's top, bottom at the base).
-    let mut bounds = (
-        f64::INFINITY,
-        f64::NEG_INFINITY,
-        f64::INFINITY,
-        f64::NEG_INFINITY,
-    );
-    for (x, y) in [(0.0, 0.0), (w_um, 0.0), (0.0, h_um), (w_um, h_um)] {
-        for zz in [base_z, hi * ex] {
-            let (u, v, _) = project(x, y, zz);
-            bounds = (
-                bounds.0.min(u),
-                bounds.1.max(u),
-                bounds.2.min(v),
-                bounds.3.max(v),
-            );
+/// The camera: the orthographic projection of world points (um, heights already exaggerated)
+/// to supersampled screen pixels, fitted so the whole block fills the image.
+struct Camera {
+    /// cos / sin of the azimuth and the elevation.
+    ca: f64,
+    sa: f64,
+    ce: f64,
+    se: f64,
+    /// The block's centre, um.
+    cx: f64,
+    cy: f64,
+    /// Screen px per um, and the screen origin.
+    k: f64,
+    ox: f64,
+    oy: f64,
+}
+
+impl Camera {
+    /// A camera that fits the block (`w_um` x `h_um`, from `base_z` up to `top_z`) in the
+    /// supersampled image.
+    fn fitted(w_um: f64, h_um: f64, base_z: f64, top_z: f64) -> Self {
+        let (a, e) = (AZIMUTH_DEG.to_radians(), ELEVATION_DEG.to_radians());
+        let mut cam = Self {
+            ca: a.cos(),
+            sa: a.sin(),
+            ce: e.cos(),
+            se: e.sin(),
+            cx: w_um / 2.0,
+            cy: h_um / 2.0,
+            k: 1.0,
+            ox: 0.0,
+            oy: 0.0,
+        };
+        // Fit the block's corners (top at the colour range's top, bottom at the base).
+        let mut bounds = (
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+        );
+        for (x, y) in [(0.0, 0.0), (w_um, 0.0), (0.0, h_um), (w_um, h_um)] {
+            for zz in [base_z, top_z] {
+                let (u, v, _) = cam.project(x, y, zz);
+                bounds = (
+                    bounds.0.min(u),
+                    bounds.1.max(u),
+                    bounds.2.min(v),
+                    bounds.3.max(v),
+                );
+            }
         }
+        let (w, h) = (WIDTH * SS, HEIGHT * SS);
+        let margin = 24.0 * SS as f64;
+        cam.k = ((w as f64 - 2.0 * margin) / (bounds.1 - bounds.0))
+            .min((h as f64 - 2.0 * margin) / (bounds.3 - bounds.2));
+        cam.ox = (w as f64 - cam.k * (bounds.1 - bounds.0)) / 2.0 - cam.k * bounds.0;
+        cam.oy = (h as f64 + cam.k * (bounds.3 - bounds.2)) / 2.0 + cam.k * bounds.2;
+        cam
     }
-    let (w, h) = (WIDTH * SS, HEIGHT * SS);
-    let margin = 24.0 * SS as f64;
-    let k = ((w as f64 - 2.0 * margin) / (bounds.1 - bounds.0))
-        .min((h as f64 - 2.0 * margin) / (bounds.3 - bounds.2));
-    let ox = (w as f64 - k * (bounds.1 - bounds.0)) / 2.0 - k * bounds.0;
-    let oy = (h as f64 + k * (bounds.3 - bounds.2)) / 2.0 + k * bounds.2;
-    let screen = |x: f64, y: f64, zz: f64| {
-        let (u, v, d) = project(x, y, zz);
-        (ox + k * u, oy - k * v, d)
-    };
-    let mut ras = Raster {
-        w,
-        h,
-        rgb: vec![1.0; w * h * 3],
-        depth: vec![f64::NEG_INFINITY; w * h],
-    };
+
+    /// World (x right, y away from the viewer, z up: row 0, the maps' bottom edge, in front,
+    /// as the maps are drawn y up) -> (u right, v up, depth toward the viewer).
+    fn project(&self, x: f64, y: f64, zz: f64) -> (f64, f64, f64) {
+        let (xw, yw) = (x - self.cx, self.cy - y);
+        let xr = xw * self.ca + yw * self.sa;
+        let yr = -xw * self.sa + yw * self.ca;
+        (xr, zz * self.ce - yr * self.se, yr * self.ce + zz * self.se)
+    }
+
+    /// Supersampled screen pixels and depth.
+    fn screen(&self, x: f64, y: f64, zz: f64) -> (f64, f64, f64) {
+        let (u, v, d) = self.project(x, y, zz);
+        (self.ox + self.k * u, self.oy - self.k * v, d)
+    }
+
+    /// Output pixels (after the box filter).
+    fn px(&self, x: f64, y: f64, zz: f64) -> (f64, f64) {
+        let (u, v, _) = self.screen(x, y, zz);
+        (u / SS as f64, v / SS as f64)
+    }
+}
+
+/// Flat Lambert shading, light from the far left (y grows away from the viewer), above.
+fn shade(nx: f64, ny: f64, nz: f64) -> f32 {
     let light = {
-        // From the far left (y grows away from the viewer).
         let l = [-0.8f64, 1.0, 1.3];
         let n = (l[0] * l[0] + l[1] * l[1] + l[2] * l[2]).sqrt();
         [l[0] / n, l[1] / n, l[2] / n]
     };
-    let shade = |nx: f64, ny: f64, nz: f64| -> f32 {
-        let n = (nx * nx + ny * ny + nz * nz).sqrt();
-        (0.45 + 0.55 * ((nx * light[0] + ny * light[1] + nz * light[2]) / n).max(0.0)) as f32
-    };
-    let at = |r: usize, c: usize| z[r * cols + c];
-    // The surface.
-    for r in 0..rows - 1 {
-        for c in 0..cols - 1 {
-            let q = [at(r, c), at(r, c + 1), at(r + 1, c), at(r + 1, c + 1)];
-            if q.iter().any(|v| !v.is_finite()) {
-                continue;
+    let n = (nx * nx + ny * ny + nz * nz).sqrt();
+    (0.45 + 0.55 * ((nx * light[0] + ny * light[1] + nz * light[2]) / n).max(0.0)) as f32
+}
+
+/// The grid to draw: block means of the surface, their spacing and the colour range.
+struct ViewGrid {
+    z: Vec<f64>,
+    rows: usize,
+    cols: usize,
+    /// Spacing, um.
+    dx: f64,
+    dy: f64,
+    /// The colour range, um.
+    lo: f64,
+    hi: f64,
+    /// Height exaggeration.
+    ex: f64,
+    /// The base block's bottom (exaggerated).
+    base_z: f64,
+}
+
+impl ViewGrid {
+    fn at(&self, r: usize, c: usize) -> f64 {
+        self.z[r * self.cols + c]
+    }
+
+    /// Two triangles per cell, coloured by the cell's mean height, shaded by its slope.
+    fn draw_surface(&self, ras: &mut Raster, cam: &Camera) {
+        let (dx, dy, ex) = (self.dx, self.dy, self.ex);
+        for r in 0..self.rows - 1 {
+            for c in 0..self.cols - 1 {
+                let q = [
+                    self.at(r, c),
+                    self.at(r, c + 1),
+                    self.at(r + 1, c),
+                    self.at(r + 1, c + 1),
+                ];
+                if q.iter().any(|v| !v.is_finite()) {
+                    continue;
+                }
+                let dzdx = (q[1] - q[0] + q[3] - q[2]) / (2.0 * dx) * ex;
+                let dzdy = (q[2] - q[0] + q[3] - q[1]) / (2.0 * dy) * ex;
+                let mean = (q[0] + q[1] + q[2] + q[3]) / 4.0;
+                let rgb = viridis((mean - self.lo) / (self.hi - self.lo));
+                let s = shade(-dzdx, -dzdy, 1.0);
+                let colour = [
+                    rgb[0] as f32 / 255.0 * s,
+                    rgb[1] as f32 / 255.0 * s,
+                    rgb[2] as f32 / 255.0 * s,
+                ];
+                let (x0, x1, y0, y1) = (
+                    c as f64 * dx,
+                    (c + 1) as f64 * dx,
+                    r as f64 * dy,
+                    (r + 1) as f64 * dy,
+                );
+                let p00 = cam.screen(x0, y0, q[0] * ex);
+                let p01 = cam.screen(x1, y0, q[1] * ex);
+                let p10 = cam.screen(x0, y1, q[2] * ex);
+                let p11 = cam.screen(x1, y1, q[3] * ex);
+                ras.triangle([p00, p01, p11], colour);
+                ras.triangle([p00, p11, p10], colour);
             }
-            let dzdx = (q[1] - q[0] + q[3] - q[2]) / (2.0 * dx) * ex;
-            let dzdy = (q[2] - q[0] + q[3] - q[1]) / (2.0 * dy) * ex;
-            let mean = (q[0] + q[1] + q[2] + q[3]) / 4.0;
-            let rgb = viridis((mean - lo) / (hi - lo));
-            let s = shade(-dzdx, -dzdy, 1.0);
-            let colour = [
-                rgb[0] as f32 / 255.0 * s,
-                rgb[1] as f32 / 255.0 * s,
-                rgb[2] as f32 / 255.0 * s,
-            ];
-            let (x0, x1, y0, y1) = (
-                c as f64 * dx,
-                (c + 1) as f64 * dx,
-                r as f64 * dy,
-                (r + 1) as f64 * dy,
-            );
-            let p00 = screen(x0, y0, q[0] * ex);
-            let p01 = screen(x1, y0, q[1] * ex);
-            let p10 = screen(x0, y1, q[2] * ex);
-            let p11 = screen(x1, y1, q[3] * ex);
-            ras.triangle([p00, p01, p11], colour);
-            ras.triangle([p00, p11, p10], colour);
         }
     }
-    // The base block's four sides, from the surface edge down to the base.
-    let side = |ras: &mut Raster, pts: &[(f64, f64, f64)], normal: (f64, f64)| {
-        let s = shade(normal.0, normal.1, 0.0) * 0.9;
-        let colour = [0.72 * s, 0.72 * s, 0.74 * s];
-        for p in pts.windows(2) {
-            let (a0, b0) = (p[0], p[1]);
-            if !(a0.2.is_finite() && b0.2.is_finite()) {
-                continue;
-            }
-            let ta = screen(a0.0, a0.1, a0.2 * ex);
-            let tb = screen(b0.0, b0.1, b0.2 * ex);
-            let ba = screen(a0.0, a0.1, base_z);
-            let bb = screen(b0.0, b0.1, base_z);
-            ras.triangle([ta, tb, bb], colour);
-            ras.triangle([ta, bb, ba], colour);
-        }
-    };
-    let edge = |f: &dyn Fn(usize) -> (usize, usize), n: usize| -> Vec<(f64, f64, f64)> {
-        (0..n)
-            .map(|i| {
-                let (r, c) = f(i);
-                // Corners at cell positions: the edge sits at the outer cell boundary.
-                (
-                    c as f64 * dx,
-                    r as f64 * dy,
-                    at(r.min(rows - 1), c.min(cols - 1)),
-                )
-            })
-            .collect()
-    };
-    side(&mut ras, &edge(&|i| (rows - 1, i), cols), (0.0, 1.0));
-    side(&mut ras, &edge(&|i| (0, i), cols), (0.0, -1.0));
-    side(&mut ras, &edge(&|i| (i, 0), rows), (-1.0, 0.0));
-    side(&mut ras, &edge(&|i| (i, cols - 1), rows), (1.0, 0.0));
 
-    // Box filter SS x SS down to the output size.
+    /// The base block's four sides, from the surface edge down to the base.
+    fn draw_sides(&self, ras: &mut Raster, cam: &Camera) {
+        let (rows, cols) = (self.rows, self.cols);
+        let side = |ras: &mut Raster, pts: &[(f64, f64, f64)], normal: (f64, f64)| {
+            let s = shade(normal.0, normal.1, 0.0) * 0.9;
+            let colour = [0.72 * s, 0.72 * s, 0.74 * s];
+            for p in pts.windows(2) {
+                let (a0, b0) = (p[0], p[1]);
+                if !(a0.2.is_finite() && b0.2.is_finite()) {
+                    continue;
+                }
+                let ta = cam.screen(a0.0, a0.1, a0.2 * self.ex);
+                let tb = cam.screen(b0.0, b0.1, b0.2 * self.ex);
+                let ba = cam.screen(a0.0, a0.1, self.base_z);
+                let bb = cam.screen(b0.0, b0.1, self.base_z);
+                ras.triangle([ta, tb, bb], colour);
+                ras.triangle([ta, bb, ba], colour);
+            }
+        };
+        let edge = |f: &dyn Fn(usize) -> (usize, usize), n: usize| -> Vec<(f64, f64, f64)> {
+            (0..n)
+                .map(|i| {
+                    let (r, c) = f(i);
+                    // Corners at cell positions: the edge sits at the outer cell boundary.
+                    (
+                        c as f64 * self.dx,
+                        r as f64 * self.dy,
+                        self.at(r.min(rows - 1), c.min(cols - 1)),
+                    )
+                })
+                .collect()
+        };
+        side(ras, &edge(&|i| (rows - 1, i), cols), (0.0, 1.0));
+        side(ras, &edge(&|i| (0, i), cols), (0.0, -1.0));
+        side(ras, &edge(&|i| (i, 0), rows), (-1.0, 0.0));
+        side(ras, &edge(&|i| (i, cols - 1), rows), (1.0, 0.0));
+    }
+
+    /// Axes along the base's front and left edges, and a z scale bar at the front-left
+    /// corner, as SVG in output pixels.
+    fn overlay(&self, cam: &Camera) -> String {
+        let (w_um, h_um) = (self.cols as f64 * self.dx, self.rows as f64 * self.dy);
+        let (base_z, hi, ex) = (self.base_z, self.hi, self.ex);
+        let mut overlay = String::new();
+        let xs: Vec<(f64, (f64, f64))> = [0.0, 0.5, 1.0]
+            .iter()
+            .map(|f| (f * w_um, cam.px(f * w_um, 0.0, base_z)))
+            .collect();
+        axis(
+            &mut overlay,
+            cam.px(0.0, 0.0, base_z),
+            cam.px(w_um, 0.0, base_z),
+            "x (µm)",
+            &xs,
+            (0.0, 16.0),
+            "middle",
+        );
+        let ys: Vec<(f64, (f64, f64))> = [0.5, 1.0]
+            .iter()
+            .map(|f| (f * h_um, cam.px(0.0, f * h_um, base_z)))
+            .collect();
+        axis(
+            &mut overlay,
+            cam.px(0.0, 0.0, base_z),
+            cam.px(0.0, h_um, base_z),
+            "y (µm)",
+            &ys,
+            (-10.0, 10.0),
+            "end",
+        );
+        // z: a bar of a round height, drawn at the exaggerated scale, labelled in true µm.
+        let z_bar = round2((hi - self.lo) / 2.0);
+        if z_bar.is_finite() && z_bar > 0.0 {
+            let top = cam.px(0.0, 0.0, hi * ex);
+            let bottom = cam.px(0.0, 0.0, hi * ex - z_bar * ex);
+            let x = top.0 - 14.0;
+            let _ = write!(
+                overlay,
+                "<line x1=\"{x:.1}\" y1=\"{:.1}\" x2=\"{x:.1}\" y2=\"{:.1}\" stroke=\"#222\" stroke-width=\"3\"/>\
+                 <text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\" text-anchor=\"end\">z {} µm</text>",
+                top.1,
+                bottom.1,
+                x - 6.0,
+                (top.1 + bottom.1) / 2.0 + 4.0,
+                fixed(z_bar, if z_bar >= 10.0 { 0 } else { 2 })
+            );
+        }
+        overlay
+    }
+}
+
+/// One axis: a line from `a` to `b`, a dot and a label at each tick, the axis' name at its
+/// middle. Tick labels sit outside the block: below the front (x) edge, left of the left (y)
+/// edge, the two visible base edges; their shared corner is labelled once (by x).
+fn axis(
+    o: &mut String,
+    a: (f64, f64),
+    b: (f64, f64),
+    label: &str,
+    ticks_um: &[(f64, (f64, f64))],
+    off: (f64, f64),
+    anchor: &str,
+) {
+    let _ = write!(
+        o,
+        "<line x1=\"{:.1}\" y1=\"{:.1}\" x2=\"{:.1}\" y2=\"{:.1}\" stroke=\"#222\" stroke-width=\"1.5\"/>",
+        a.0, a.1, b.0, b.1
+    );
+    for (v, p) in ticks_um {
+        let _ = write!(
+            o,
+            "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"2.5\" fill=\"#222\"/><text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\" text-anchor=\"{anchor}\">{}</text>",
+            p.0,
+            p.1,
+            p.0 + off.0,
+            p.1 + off.1,
+            fixed(*v, if *v >= 100.0 { 0 } else { 1 })
+        );
+    }
+    let (mx, my) = ((a.0 + b.0) / 2.0, (a.1 + b.1) / 2.0);
+    let _ = write!(
+        o,
+        "<text x=\"{:.1}\" y=\"{:.1}\" class=\"axis\" text-anchor=\"{anchor}\">{label}</text>",
+        mx + 2.2 * off.0,
+        my + 2.2 * off.1
+    );
+}
+
+/// Box filter SS x SS down to the output size, 8-bit RGB.
+fn box_filter(ras: &Raster) -> Vec<u8> {
+    let w = ras.w;
     let mut out = vec![0u8; WIDTH * HEIGHT * 3];
     for y in 0..HEIGHT {
         for x in 0..WIDTH {
@@ -269,95 +417,54 @@ pub fn render(s: &Surface) -> Option<Render> {
             }
         }
     }
-    // Axes along the base's front and left edges, and a z scale bar at the front-left
-    // corner, in output pixels.
-    let px = |x: f64, y: f64, zz: f64| {
-        let (u, v, _) = screen(x, y, zz);
-        (u / SS as f64, v / SS as f64)
-    };
-    let mut overlay = String::new();
-    // Tick labels sit outside the block: below the front (x) edge, left of the left (y)
-    // edge, the two visible base edges; their shared corner is labelled once (by x).
-    let axis = |o: &mut String,
-                a: (f64, f64),
-                b: (f64, f64),
-                label: &str,
-                ticks_um: &[(f64, (f64, f64))],
-                off: (f64, f64),
-                anchor: &str| {
-        let _ = write!(
-            o,
-            "<line x1=\"{:.1}\" y1=\"{:.1}\" x2=\"{:.1}\" y2=\"{:.1}\" stroke=\"#222\" stroke-width=\"1.5\"/>",
-            a.0, a.1, b.0, b.1
-        );
-        for (v, p) in ticks_um {
-            let _ = write!(
-                o,
-                "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"2.5\" fill=\"#222\"/><text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\" text-anchor=\"{anchor}\">{}</text>",
-                p.0,
-                p.1,
-                p.0 + off.0,
-                p.1 + off.1,
-                fixed(*v, if *v >= 100.0 { 0 } else { 1 })
-            );
-        }
-        let (mx, my) = ((a.0 + b.0) / 2.0, (a.1 + b.1) / 2.0);
-        let _ = write!(
-            o,
-            "<text x=\"{:.1}\" y=\"{:.1}\" class=\"axis\" text-anchor=\"{anchor}\">{label}</text>",
-            mx + 2.2 * off.0,
-            my + 2.2 * off.1
-        );
-    };
-    let xs: Vec<(f64, (f64, f64))> = [0.0, 0.5, 1.0]
-        .iter()
-        .map(|f| (f * w_um, px(f * w_um, 0.0, base_z)))
-        .collect();
-    axis(
-        &mut overlay,
-        px(0.0, 0.0, base_z),
-        px(w_um, 0.0, base_z),
-        "x (µm)",
-        &xs,
-        (0.0, 16.0),
-        "middle",
-    );
-    let ys: Vec<(f64, (f64, f64))> = [0.5, 1.0]
-        .iter()
-        .map(|f| (f * h_um, px(0.0, f * h_um, base_z)))
-        .collect();
-    axis(
-        &mut overlay,
-        px(0.0, 0.0, base_z),
-        px(0.0, h_um, base_z),
-        "y (µm)",
-        &ys,
-        (-10.0, 10.0),
-        "end",
-    );
-    // z: a bar of a round height, drawn at the exaggerated scale, labelled in true µm.
-    let z_bar = round2((hi - lo) / 2.0);
-    if z_bar.is_finite() && z_bar > 0.0 {
-        let top = px(0.0, 0.0, hi * ex);
-        let bottom = px(0.0, 0.0, hi * ex - z_bar * ex);
-        let x = top.0 - 14.0;
-        let _ = write!(
-            overlay,
-            "<line x1=\"{x:.1}\" y1=\"{:.1}\" x2=\"{x:.1}\" y2=\"{:.1}\" stroke=\"#222\" stroke-width=\"3\"/>\
-             <text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\" text-anchor=\"end\">z {} µm</text>",
-            top.1,
-            bottom.1,
-            x - 6.0,
-            (top.1 + bottom.1) / 2.0 + 4.0,
-            fixed(z_bar, if z_bar >= 10.0 { 0 } else { 2 })
-        );
+    out
+}
+
+/// The oblique view of `s` (see the module doc); `None` when there is nothing to draw (fewer
+/// than 2 x 2 cells, no measured point, a flat surface).
+pub fn render(s: &Surface) -> Option<Render> {
+    let block = s.rows.max(s.cols).div_ceil(MAX_GRID).max(1);
+    let (z, rows, cols) = block_mean(s, block);
+    if rows < 2 || cols < 2 {
+        return None;
     }
+    let (dx, dy) = (s.pitch_x_um * block as f64, s.pitch_y_um * block as f64);
+    let zf: Vec<f32> = z.iter().map(|&v| v as f32).collect();
+    let (lo, hi) = robust_range_um(&zf)?;
+    let (w_um, h_um) = (cols as f64 * dx, rows as f64 * dy);
+    let ex = round2(RELIEF * w_um.max(h_um) / (hi - lo));
+    if !(ex.is_finite() && ex > 0.0) {
+        return None;
+    }
+    let base_z = (lo - 0.25 * (hi - lo)) * ex;
+    let grid = ViewGrid {
+        z,
+        rows,
+        cols,
+        dx,
+        dy,
+        lo,
+        hi,
+        ex,
+        base_z,
+    };
+    let cam = Camera::fitted(w_um, h_um, base_z, hi * ex);
+    let (w, h) = (WIDTH * SS, HEIGHT * SS);
+    let mut ras = Raster {
+        w,
+        h,
+        rgb: vec![1.0; w * h * 3],
+        depth: vec![f64::NEG_INFINITY; w * h],
+    };
+    grid.draw_surface(&mut ras, &cam);
+    grid.draw_sides(&mut ras, &cam);
+    let out = box_filter(&ras);
     Some(Render {
         png: png_rgb(&out, WIDTH, HEIGHT).ok()?,
         exaggeration: ex,
         grid: (rows, cols),
         block,
-        overlay,
+        overlay: grid.overlay(&cam),
     })
 }
 

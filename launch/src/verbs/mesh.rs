@@ -151,7 +151,9 @@ pub fn run(a: MeshArgs) -> Result<()> {
         );
     }
     let heights = RasterView::new(&heights_um, shape)?;
-    let at = ScanPlacement::new(pitch_x_um, pitch_y_um).with_z_offset(z_offset_um);
+    let pitch = surfstream_core::Pitch::new(pitch_x_um, pitch_y_um)
+        .map_err(|e| anyhow!("{}: {e}", a.file.display()))?;
+    let at = ScanPlacement::new(pitch).with_z_offset(z_offset_um);
     let profile = a.target.map(|engine| {
         let mut p = EngineProfile::with_budget(engine, a.max_triangles);
         if a.grid {
@@ -411,7 +413,7 @@ fn write_grid_target(
             "measured_grid_rows_cols",
             json!([heights.rows(), heights.cols()]),
         ),
-        ("pitch_um", json!([at.pitch_x_um, at.pitch_y_um])),
+        ("pitch_um", json!([at.pitch.x_um(), at.pitch.y_um()])),
         ("offset_um", json!(t.mesh.offset_um)),
         (
             "offset_rule",

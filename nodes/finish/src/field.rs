@@ -23,6 +23,7 @@
 
 use anyhow::{bail, Result};
 use serde::{Deserialize, Serialize};
+use surfstream_core::Sampling;
 
 use crate::setting::{effective_modulus_pa, Action, Media, Workpiece};
 
@@ -92,14 +93,9 @@ fn envelope_2d(z: &[f64], rows: usize, cols: usize, px: f64, py: f64, r: f64) ->
 
 /// The gap of every cell below the envelope of a ball of `radius_um` rolled over the surface
 /// from above (the closing with the paraboloid r^2 / 2R, minus the surface), um, >= 0.
-pub fn ball_gap_um(
-    heights_um: &[f64],
-    rows: usize,
-    cols: usize,
-    pitch_x_um: f64,
-    pitch_y_um: f64,
-    radius_um: f64,
-) -> Vec<f64> {
+pub fn ball_gap_um(heights_um: &[f64], at: Sampling, radius_um: f64) -> Vec<f64> {
+    let (rows, cols) = (at.rows(), at.cols());
+    let (pitch_x_um, pitch_y_um) = (at.pitch_x_um(), at.pitch_y_um());
     // Dilation: the ball's lowest point over (x) = max_y h(y) - |x - y|^2 / 2R.
     let neg: Vec<f64> = heights_um.iter().map(|h| -h).collect();
     let lowest: Vec<f64> = envelope_2d(&neg, rows, cols, pitch_x_um, pitch_y_um, radius_um)
@@ -396,10 +392,7 @@ pub fn check_field(
 /// The surface and its geometry for the extrapolation.
 #[derive(Debug, Clone, Copy)]
 pub struct FieldGrid {
-    pub rows: usize,
-    pub cols: usize,
-    pub pitch_x_um: f64,
-    pub pitch_y_um: f64,
+    pub sampling: Sampling,
     pub radius_um: f64,
 }
 
@@ -433,14 +426,7 @@ fn wear_rates(
     table: &WearTable,
     rate: &mut [f64],
 ) -> f64 {
-    let gap = ball_gap_um(
-        heights_um,
-        g.rows,
-        g.cols,
-        g.pitch_x_um,
-        g.pitch_y_um,
-        g.radius_um,
-    );
+    let gap = ball_gap_um(heights_um, g.sampling, g.radius_um);
     let mut max_rate: f64 = 0.0;
     for (r, gp) in rate.iter_mut().zip(&gap) {
         *r = table.depth_per_impact_um(dist, *gp);
@@ -463,7 +449,7 @@ pub fn extrapolate(
 ) -> Extrapolation {
     let mut left = impacts * scale;
     let mut out = Extrapolation::default();
-    let cell = g.pitch_x_um * g.pitch_y_um;
+    let cell = g.sampling.pitch().cell_area_um2();
     let mut rate = vec![0.0; heights_um.len()];
     while left > 0.0 && out.steps < MAX_STEPS {
         let max_rate = wear_rates(heights_um, g, dist, table, &mut rate);
@@ -506,7 +492,7 @@ pub fn wear_to_target(
 ) -> Result<(f64, Extrapolation, bool)> {
     let mut used = 0.0;
     let mut out = Extrapolation::default();
-    let cell = g.pitch_x_um * g.pitch_y_um;
+    let cell = g.sampling.pitch().cell_area_um2();
     let mut rate = vec![0.0; heights_um.len()];
     let mut trial = vec![0.0; heights_um.len()];
     let sa_start = sa_of(heights_um)?;
@@ -566,6 +552,7 @@ pub fn wear_to_target(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use surfstream_core::Shape;
 
     #[test]
     fn the_envelope_of_parabolas_matches_brute_force() {
@@ -589,7 +576,8 @@ mod tests {
     fn a_flat_surface_has_a_uniform_contact_field() {
         let (rows, cols) = (40, 50);
         let z = vec![3.25; rows * cols];
-        let gap = ball_gap_um(&z, rows, cols, 1.0, 1.5, 1500.0);
+        let at = Sampling::new(Shape::new(rows, cols), 1.0, 1.5).unwrap();
+        let gap = ball_gap_um(&z, at, 1500.0);
         assert!(gap.iter().all(|g| g.abs() < 1e-9), "{gap:?}");
         let d = ApproachDistribution {
             full_speed_approach_um: 2.0,
@@ -611,7 +599,7 @@ mod tests {
             .map(|c| a * (std::f64::consts::TAU * c as f64 * p / l).cos())
             .collect();
         let z: Vec<f64> = (0..rows * cols).map(|k| prof[k % cols]).collect();
-        let gap = ball_gap_um(&z, rows, cols, p, p, r);
+        let gap = ball_gap_um(&z, Sampling::square(Shape::new(rows, cols), p).unwrap(), r);
         let par = |i: usize, j: usize| {
             let d = (i as f64 - j as f64) * p;
             d * d / (2.0 * r)
@@ -682,7 +670,7 @@ mod tests {
     fn the_table_reproduces_the_dem_volume_and_the_extrapolation_conserves_it() {
         let (rows, cols, p, r) = (60, 70, 2.0, 1500.0);
         let z = rough(rows, cols);
-        let gap = ball_gap_um(&z, rows, cols, p, p, r);
+        let gap = ball_gap_um(&z, Sampling::square(Shape::new(rows, cols), p).unwrap(), r);
         let d = ApproachDistribution {
             full_speed_approach_um: 3.0,
             max_impact_angle_deg: 40.0,
@@ -720,10 +708,7 @@ mod tests {
         let mut h = z.clone();
         let mut wear = vec![0.0; h.len()];
         let g = FieldGrid {
-            rows,
-            cols,
-            pitch_x_um: p,
-            pitch_y_um: p,
+            sampling: Sampling::square(Shape::new(rows, cols), p).unwrap(),
             radius_um: r,
         };
         let e = extrapolate(&mut h, &mut wear, g, &d, &t, 40.0, 1.0);
@@ -741,7 +726,7 @@ mod tests {
     fn wearing_to_a_target_stops_at_it_and_matches_the_plain_extrapolation() {
         let (rows, cols, p, r) = (50, 60, 2.0, 1500.0);
         let z = rough(rows, cols);
-        let gap = ball_gap_um(&z, rows, cols, p, p, r);
+        let gap = ball_gap_um(&z, Sampling::square(Shape::new(rows, cols), p).unwrap(), r);
         let d = ApproachDistribution {
             full_speed_approach_um: 3.0,
             max_impact_angle_deg: 40.0,
@@ -761,10 +746,7 @@ mod tests {
         let sa0 = sa(&z).unwrap();
         let target = 0.6 * sa0;
         let g = FieldGrid {
-            rows,
-            cols,
-            pitch_x_um: p,
-            pitch_y_um: p,
+            sampling: Sampling::square(Shape::new(rows, cols), p).unwrap(),
             radius_um: r,
         };
         let mut h = z.clone();

@@ -17,6 +17,7 @@
 use anyhow::{bail, Result};
 use surfstream_core::metrology::{level_plane, Grid};
 use surfstream_core::raster::{RasterView, Shape};
+use surfstream_core::{Pitch, Sampling};
 use surfstream_mesher::{fill_missing, grid_sheet_for, EngineProfile, ScanPlacement, TargetMesh};
 
 /// A rectangle of samples.
@@ -31,12 +32,10 @@ pub struct Window {
 /// The simulated area: the patch and its guard band, levelled, without missing samples.
 #[derive(Debug, Clone)]
 pub struct Patch {
-    /// Heights of patch + guard band, um, row-major.
+    /// Heights of patch + guard band, um, row-major, sampled as `sampling` says.
     pub heights_um: Vec<f64>,
-    pub rows: usize,
-    pub cols: usize,
-    pub pitch_x_um: f64,
-    pub pitch_y_um: f64,
+    /// The meshed area's shape and the model's pitch (origin 0: patch coordinates).
+    pub sampling: Sampling,
     /// Where the meshed area sits in the model.
     pub in_model: Window,
     /// The evaluated patch inside the meshed area (the guard band cropped).
@@ -46,21 +45,19 @@ pub struct Patch {
 }
 
 impl Patch {
-    /// Cuts the patch of `width_um x height_um` centred in the model (`rows x cols`, pitch
-    /// x/y), with `guard_um` of neighbouring surface around it where the model has it,
+    /// Cuts the patch of `width_um x height_um` centred in the model (sampled as `model`
+    /// says), with `guard_um` of neighbouring surface around it where the model has it,
     /// fills missing samples and levels the whole by its least-squares plane (the part's form
     /// tilt is not the media's business; the media act along the local normal).
-    #[allow(clippy::too_many_arguments)]
     pub fn cut(
         model_um: &[f64],
-        rows: usize,
-        cols: usize,
-        pitch_x_um: f64,
-        pitch_y_um: f64,
+        model: Sampling,
         width_um: f64,
         height_um: f64,
         guard_um: f64,
     ) -> Result<Patch> {
+        let (rows, cols) = (model.rows(), model.cols());
+        let (pitch_x_um, pitch_y_um) = (model.pitch_x_um(), model.pitch_y_um());
         if rows * cols != model_um.len() || rows < 4 || cols < 4 {
             bail!(
                 "model of {} samples is not {rows} x {cols} (rows x cols, at least 4 x 4)",
@@ -90,14 +87,12 @@ impl Patch {
         let view = RasterView::new(&h32, Shape::new(mrows, mcols))?;
         let (filled, filled_samples) = fill_missing(view)?;
         let raw: Vec<f64> = filled.iter().map(|&h| f64::from(h)).collect();
-        let g = Grid::new(&raw, mrows, mcols, pitch_x_um, pitch_y_um)?;
+        let sampling = Sampling::of(Shape::new(mrows, mcols), model.pitch());
+        let g = Grid::of(&raw, sampling)?;
         let heights_um = level_plane(&g)?;
         Ok(Patch {
             heights_um,
-            rows: mrows,
-            cols: mcols,
-            pitch_x_um,
-            pitch_y_um,
+            sampling,
             in_model: Window {
                 row0: mr0,
                 col0: mc0,
@@ -114,9 +109,15 @@ impl Patch {
         })
     }
 
+    /// The crop's samples: its shape at the patch's pitch.
+    pub fn crop_sampling(&self) -> Sampling {
+        self.sampling
+            .with_shape(Shape::new(self.crop.rows, self.crop.cols))
+    }
+
     /// The values of `field` (on the meshed area) inside the crop.
     pub fn cropped(&self, field: &[f64]) -> Vec<f64> {
-        crop(field, self.cols, self.crop)
+        crop(field, self.sampling.cols(), self.crop)
     }
 }
 
@@ -141,10 +142,8 @@ pub struct NodeMap {
     pub stride: usize,
     pub node_rows: usize,
     pub node_cols: usize,
-    pub rows: usize,
-    pub cols: usize,
-    pub pitch_x_um: f64,
-    pub pitch_y_um: f64,
+    /// The patch's samples.
+    pub sampling: Sampling,
     /// Mesh vertex (m) to patch position (um): um = m * 1e6 + offset.
     pub offset_um: [f64; 3],
 }
@@ -152,19 +151,12 @@ pub struct NodeMap {
 /// Shift of the mesh in x and y, m (see [`mesh_patch`]).
 pub const MESH_SHIFT_M: f64 = 1e-4;
 
-pub fn mesh_patch(
-    heights_um: &[f64],
-    rows: usize,
-    cols: usize,
-    pitch_x_um: f64,
-    pitch_y_um: f64,
-    max_triangles: usize,
-) -> Result<PatchMesh> {
+pub fn mesh_patch(heights_um: &[f64], at: Sampling, max_triangles: usize) -> Result<PatchMesh> {
     let h32: Vec<f32> = heights_um.iter().map(|&h| h as f32).collect();
-    let view = RasterView::new(&h32, Shape::new(rows, cols))?;
+    let view = RasterView::new(&h32, at.shape())?;
     let profile =
         EngineProfile::with_budget(surfstream_mesher::DemEngine::Liggghts, Some(max_triangles));
-    let mut target = grid_sheet_for(view, &ScanPlacement::new(pitch_x_um, pitch_y_um), &profile)?;
+    let mut target = grid_sheet_for(view, &ScanPlacement::new(at.pitch()), &profile)?;
     // LIGGGHTS refuses a mesh whose coordinates span less than 1e-4 m ("dimensions too
     // small", a round-off guard over all of x, y, z): a sub-100-um patch recentred on the
     // origin would. Moving it by +100 um in x and y makes the span at least 100 um.
@@ -178,10 +170,7 @@ pub fn mesh_patch(
         stride: target.stride,
         node_rows: target.grid.rows,
         node_cols: target.grid.cols,
-        rows,
-        cols,
-        pitch_x_um,
-        pitch_y_um,
+        sampling: at,
         offset_um: target.mesh.offset_um,
     };
     Ok(PatchMesh { target, map })
@@ -192,8 +181,8 @@ impl NodeMap {
     fn node_position_um(&self, r: usize, c: usize) -> (f64, f64) {
         let half = (self.stride as f64 - 1.0) * 0.5;
         (
-            (c as f64 * self.stride as f64 + half) * self.pitch_x_um,
-            (r as f64 * self.stride as f64 + half) * self.pitch_y_um,
+            (c as f64 * self.stride as f64 + half) * self.sampling.pitch_x_um(),
+            (r as f64 * self.stride as f64 + half) * self.sampling.pitch_y_um(),
         )
     }
 
@@ -203,8 +192,8 @@ impl NodeMap {
         let x_um = x_m * 1e6 + self.offset_um[0];
         let y_um = y_m * 1e6 + self.offset_um[1];
         (
-            (y_um - y0) / (self.stride as f64 * self.pitch_y_um),
-            (x_um - x0) / (self.stride as f64 * self.pitch_x_um),
+            (y_um - y0) / (self.stride as f64 * self.sampling.pitch_y_um()),
+            (x_um - x0) / (self.stride as f64 * self.sampling.pitch_x_um()),
         )
     }
 
@@ -222,18 +211,19 @@ impl NodeMap {
     /// Node volumes (um^3) spread evenly over each node's block of samples: depth (um) along
     /// z per sample.
     pub fn nodes_to_samples(&self, node_volume_um3: &[f64]) -> Vec<f64> {
-        let mut depth = vec![0.0; self.rows * self.cols];
-        let cell = self.pitch_x_um * self.pitch_y_um;
+        let (rows, cols) = (self.sampling.rows(), self.sampling.cols());
+        let mut depth = vec![0.0; rows * cols];
+        let cell = self.sampling.pitch().cell_area_um2();
         for nr in 0..self.node_rows {
             let r0 = nr * self.stride;
-            let r1 = (r0 + self.stride).min(self.rows);
+            let r1 = (r0 + self.stride).min(rows);
             for nc in 0..self.node_cols {
                 let c0 = nc * self.stride;
-                let c1 = (c0 + self.stride).min(self.cols);
+                let c1 = (c0 + self.stride).min(cols);
                 let n = ((r1 - r0) * (c1 - c0)) as f64;
                 let d = node_volume_um3[nr * self.node_cols + nc] / (n * cell);
                 for r in r0..r1 {
-                    for x in &mut depth[r * self.cols + c0..r * self.cols + c1] {
+                    for x in &mut depth[r * cols + c0..r * cols + c1] {
                         *x += d;
                     }
                 }
@@ -297,8 +287,8 @@ impl NodeMap {
 }
 
 /// Volume of a depth map (um) over samples of `pitch` (um^2 per sample), um^3.
-pub fn volume_um3(depth_um: &[f64], pitch_x_um: f64, pitch_y_um: f64) -> f64 {
-    depth_um.iter().sum::<f64>() * pitch_x_um * pitch_y_um
+pub fn volume_um3(depth_um: &[f64], pitch: Pitch) -> f64 {
+    depth_um.iter().sum::<f64>() * pitch.x_um() * pitch.y_um()
 }
 
 #[cfg(test)]
@@ -319,9 +309,11 @@ mod tests {
             *v += 0.05 * (k % cols) as f64; // a tilt the levelling removes
         }
         z[30 * cols + 40] = f64::NAN;
-        let p = Patch::cut(&z, rows, cols, 2.0, 2.0, 40.0, 30.0, 10.0).unwrap();
+        let model = Sampling::square(Shape::new(rows, cols), 2.0).unwrap();
+        let p = Patch::cut(&z, model, 40.0, 30.0, 10.0).unwrap();
         assert_eq!((p.crop.rows, p.crop.cols), (15, 20));
-        assert_eq!((p.rows, p.cols), (25, 30));
+        assert_eq!((p.sampling.rows(), p.sampling.cols()), (25, 30));
+        assert_eq!(p.sampling.pitch(), model.pitch());
         assert_eq!((p.crop.row0, p.crop.col0), (5, 5));
         assert_eq!((p.in_model.row0, p.in_model.col0), (17, 25));
         assert_eq!(p.filled_samples, 1);
@@ -329,9 +321,9 @@ mod tests {
         assert!(mean.abs() < 1e-9);
         assert_eq!(p.cropped(&p.heights_um).len(), 300);
         // A band that does not fit is cut at the model's edge.
-        let p = Patch::cut(&z, rows, cols, 2.0, 2.0, 150.0, 100.0, 20.0).unwrap();
+        let p = Patch::cut(&z, model, 150.0, 100.0, 20.0).unwrap();
         assert_eq!((p.in_model.row0, p.in_model.col0), (0, 0));
-        assert_eq!((p.rows, p.cols), (60, 80));
+        assert_eq!((p.sampling.rows(), p.sampling.cols()), (60, 80));
     }
 
     #[test]
@@ -339,7 +331,8 @@ mod tests {
         let (rows, cols) = (21, 31);
         let z = bumpy(rows, cols);
         for budget in [2 * 20 * 30, 300] {
-            let pm = mesh_patch(&z, rows, cols, 1.5, 1.5, budget).unwrap();
+            let at = Sampling::square(Shape::new(rows, cols), 1.5).unwrap();
+            let pm = mesh_patch(&z, at, budget).unwrap();
             let m = &pm.target.mesh;
             let tris: Vec<[[f64; 3]; 3]> = m
                 .triangles
@@ -350,7 +343,7 @@ mod tests {
             let (depth, unmapped) = pm.map.triangle_volumes_to_depth(&tris, &vols);
             assert_eq!(unmapped, 0.0, "stride {}", pm.map.stride);
             let total: f64 = vols.iter().sum::<f64>() * 1e18;
-            let got = volume_um3(&depth, 1.5, 1.5);
+            let got = volume_um3(&depth, at.pitch());
             assert!((got / total - 1.0).abs() < 1e-12, "{got} vs {total}");
             // Points anywhere (even off the mesh) keep their volume too.
             let pts: Vec<(f64, f64, f64)> = tris
@@ -358,7 +351,7 @@ mod tests {
                 .map(|t| (t[0][0] + 1e-7, t[0][1], 1e-18))
                 .collect();
             let d = pm.map.point_volumes_to_depth(&pts);
-            let got = volume_um3(&d, 1.5, 1.5);
+            let got = volume_um3(&d, at.pitch());
             assert!((got / tris.len() as f64 - 1.0).abs() < 1e-12);
         }
     }

@@ -9,7 +9,7 @@
 //! (`fix mesh/surface/stress ... wear finnie`); Archard wear comes from its contact dump
 //! ([`contacts`]). Both are mapped to the grid keeping the volume ([`grid::NodeMap`]), scaled
 //! by the acceleration factor (process time / simulated time) or fitted to a calibration
-//! target, and subtracted; the worn surface is re-meshed for the next cycle ([`run::finish`]).
+//! target, and subtracted; the worn surface is re-meshed for the next cycle ([`process::finish`]).
 //!
 //! Plain functions; `node` is the graph node, `surfstream-finish` its process.
 
@@ -19,6 +19,7 @@ pub mod engine;
 pub mod field;
 pub mod grid;
 pub mod html;
+pub mod process;
 pub mod run;
 pub mod script;
 pub mod setting;
@@ -30,4 +31,5 @@ pub mod node;
 #[cfg(feature = "node")]
 pub mod ports;
 
-pub use run::{finish, Calibration, FinishOptions, Model};
+pub use process::finish;
+pub use run::{Calibration, FinishOptions, Model};

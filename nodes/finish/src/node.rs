@@ -10,7 +10,8 @@ use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
 pub use crate::config::FinishConfig;
-use crate::run::{finish, FinishOptions, Model};
+use crate::process::finish;
+use crate::run::{FinishOptions, Model};
 
 pub struct FinishNode {
     config: FinishConfig,

@@ -5,6 +5,7 @@
 //! synthetic rough surface of the demo's size, pitch and Sa. The fit must reach the paper's
 //! ratio of Sa within the tolerance, and the peaks must go first.
 
+use surfstream_core::{Sampling, Shape};
 use surfstream_finish::field::{
     ball_gap_um, extrapolate, impact_rate_per_m2_s, wear_to_target, ApproachDistribution,
     FieldGrid, WearTable,
@@ -83,14 +84,12 @@ fn the_recorded_wear_table_calibrates_a_demo_like_patch_to_the_papers_sa() {
             .flat_map(|r| f[r * side + guard..r * side + guard + n].to_vec())
             .collect()
     };
-    let params = |f: &[f64]| surface_params(&crop(f), n, n, pitch, pitch).unwrap().1;
+    let at = |rows: usize, cols: usize| Sampling::square(Shape::new(rows, cols), pitch).unwrap();
+    let params = |f: &[f64]| surface_params(&crop(f), at(n, n)).unwrap().1;
     let before = params(&z);
     let target = before.sa * 0.565 / 1.272;
     let g = FieldGrid {
-        rows: side,
-        cols: side,
-        pitch_x_um: pitch,
-        pitch_y_um: pitch,
+        sampling: at(side, side),
         radius_um: media.radius_m() * 1e6,
     };
     let impacts =
@@ -131,7 +130,7 @@ fn the_recorded_wear_table_calibrates_a_demo_like_patch_to_the_papers_sa() {
     assert!((params(&h2).sa / after.sa - 1.0).abs() < 1e-6);
     // The contact field of the worn patch: more of it in reach than before.
     let reach = |f: &[f64]| {
-        let gap = crop(&ball_gap_um(f, side, side, pitch, pitch, g.radius_um));
+        let gap = crop(&ball_gap_um(f, g.sampling, g.radius_um));
         gap.iter().filter(|v| **v <= dist.max_um()).count() as f64 / gap.len() as f64
     };
     assert!(reach(&h) > reach(&z), "{} vs {}", reach(&h), reach(&z));

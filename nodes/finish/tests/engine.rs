@@ -13,6 +13,7 @@
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
 
+use surfstream_core::{Pitch, Sampling, Shape};
 use surfstream_finish::engine::{run_engine, EngineCommand};
 use surfstream_finish::grid::{mesh_patch, volume_um3, Window};
 use surfstream_finish::run::WearModel;
@@ -67,7 +68,8 @@ fn analytic_finnie_m3(media: &Media, part: &Workpiece, k: f64, vt: f64, vn0: f64
 
 fn flat_segment(dir: &Path, media: Media, k: f64, vt: f64, vn: f64) -> Segment {
     let (rows, cols) = (21, 21);
-    let pm = mesh_patch(&vec![0.0; rows * cols], rows, cols, 10.0, 10.0, 10_000).unwrap();
+    let at = Sampling::square(Shape::new(rows, cols), 10.0).unwrap();
+    let pm = mesh_patch(&vec![0.0; rows * cols], at, 10_000).unwrap();
     std::fs::create_dir_all(dir).unwrap();
     let f = std::fs::File::create(dir.join(script::STL)).unwrap();
     surfstream_mesher::write_stl_ascii(f, &pm.target.mesh, "flat").unwrap();
@@ -194,10 +196,7 @@ fn grid_wear_sums_to_liggghts_total_and_is_linear_in_k() {
         let r = run_segment(
             &plan(&e, k, 6),
             &z,
-            rows,
-            cols,
-            pitch,
-            pitch,
+            Sampling::square(Shape::new(rows, cols), pitch).unwrap(),
             aim,
             &tmp.path().join(format!("k{i}")),
             &stop,
@@ -210,12 +209,15 @@ fn grid_wear_sums_to_liggghts_total_and_is_linear_in_k() {
             "k = {k:e}: LIGGGHTS {:.6e} um^3, grid {:.6e} um^3 (error {err:.2e}), Archard {:.3e} um^3, {} contact samples",
             r.liggghts_volume_um3,
             r.grid_volume_um3,
-            volume_um3(&r.archard_um, pitch, pitch),
+            volume_um3(&r.archard_um, Pitch::square(pitch).unwrap()),
             r.contacts.samples
         );
         assert!(err.abs() < 0.005, "grid vs LIGGGHTS: {err}");
         assert_eq!(r.unmapped_volume_um3, 0.0);
-        assert!(r.contacts.samples > 0 && volume_um3(&r.archard_um, pitch, pitch) > 0.0);
+        assert!(
+            r.contacts.samples > 0
+                && volume_um3(&r.archard_um, Pitch::square(pitch).unwrap()) > 0.0
+        );
         maps.push(r.finnie_um);
     }
     // Same passes, three times k: three times the wear, sample by sample.
@@ -377,10 +379,7 @@ fn a_sinusoidal_surface_loses_its_peaks_first() {
         &surfstream_io::npy::read_npy_f64(tmp.path().join("worn.npy"))
             .unwrap()
             .data,
-        45,
-        45,
-        pitch,
-        pitch,
+        Sampling::square(Shape::new(45, 45), pitch).unwrap(),
     )
     .unwrap();
     assert!((p.sa - a["Sa"].as_f64().unwrap()).abs() < 1e-9);

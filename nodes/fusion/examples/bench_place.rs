@@ -12,12 +12,17 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use surfstream_core::raster::{RasterView, Shape};
+use surfstream_core::Pitch;
 use surfstream_fusion::{render, BlendParams, Panorama, PlaneCorrection, TileInput};
 
 const COLS: usize = 10;
 const ROWS: usize = 5;
 const TILE_PX: usize = 1024;
 const OVERLAP: f64 = 0.10;
+fn pitch() -> Pitch {
+    Pitch::square(PITCH_UM).expect("a positive pitch")
+}
+
 const PITCH_UM: f64 = 0.8148;
 
 struct Tile {
@@ -114,7 +119,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     // blending cost, without the kernel's first-touch page faults of fresh canvas memory.
     let mut warm_ms = [f64::INFINITY; 2];
     for _ in 0..repeats {
-        let mut pano = Panorama::new(PITCH_UM, PITCH_UM, params)?;
+        let mut pano = Panorama::new(pitch(), params)?;
         for (i, t) in tiles.iter().enumerate() {
             let before = (pano.width(), pano.height());
             let cpu_start = cpu_ns();
@@ -143,7 +148,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     // growth, so every tile pays only for its own pixels plus first touch of canvas memory.
     let mut reserved_ms = vec![f64::INFINITY; n];
     for _ in 0..repeats {
-        let mut pano = Panorama::new(PITCH_UM, PITCH_UM, params)?;
+        let mut pano = Panorama::new(pitch(), params)?;
         let step_um = TILE_PX as f64 * (1.0 - OVERLAP) * PITCH_UM;
         let tile_um = TILE_PX as f64 * PITCH_UM;
         pano.reserve_um(
@@ -162,7 +167,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let inputs: Vec<TileInput> = tiles.iter().enumerate().map(|(i, t)| input(i, t)).collect();
     let cpu_start = cpu_ns();
     let start = Instant::now();
-    let raster = render(PITCH_UM, PITCH_UM, &inputs, params)?;
+    let raster = render(pitch(), &inputs, params)?;
     let render_ms = start.elapsed().as_secs_f64() * 1e3;
     let render_cpu_ms = match (cpu_start, cpu_ns()) {
         (Some(a), Some(b)) => b.saturating_sub(a) as f64 / 1e6,

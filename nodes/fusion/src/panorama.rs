@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 
 use surfstream_core::canvas::{amortised_growth, GridRect};
 use surfstream_core::raster::{Raster, Shape};
-use surfstream_core::{ParamError, Sampling};
+use surfstream_core::{ParamError, Pitch};
 
 use crate::chunks::{ChunkStats, ChunkStore, CHUNK_PX};
 use crate::error::{FusionError, Result};
@@ -52,8 +52,8 @@ pub struct PlacedRaster {
     /// Scan position (um) of the centre of pixel (0, 0).
     pub origin_x_um: f64,
     pub origin_y_um: f64,
-    pub pitch_x_um: f64,
-    pub pitch_y_um: f64,
+    /// The canvas grid's pitch (the raster's shape is `heights`').
+    pub pitch: Pitch,
     /// Absolute height (um) that `heights` are relative to.
     pub z_offset_um: f64,
 }
@@ -95,8 +95,7 @@ pub const DEFAULT_MAX_CANVAS_PX: usize = 1 << 31;
 /// file instead of memory, with the same result bit for bit.
 #[derive(Debug, Clone)]
 pub struct Panorama {
-    pitch_x_um: f64,
-    pitch_y_um: f64,
+    pitch: Pitch,
     params: BlendParams,
     max_canvas_px: usize,
     /// Set by the first placed tile.
@@ -116,15 +115,14 @@ pub struct Panorama {
 }
 
 impl Panorama {
-    /// An empty panorama on a grid of the given pitch (um). The grid is anchored by the first
-    /// placed tile: canvas pixel centres lie at `x = first.x_um + k * pitch_x_um` (likewise y).
-    pub fn new(pitch_x_um: f64, pitch_y_um: f64, params: BlendParams) -> Result<Self> {
-        // The one pitch check; the canvas's shape grows with the tiles.
-        Sampling::new(Shape::default(), pitch_x_um, pitch_y_um)?;
+    /// An empty panorama on a grid of the given pitch. The grid is anchored by the first
+    /// placed tile: canvas pixel centres lie at `x = first.x_um + k * pitch.x_um()` (likewise
+    /// y). A pitch and not a [`surfstream_core::Sampling`]: the canvas's shape grows with the
+    /// tiles and its origin is the first tile's.
+    pub fn new(pitch: Pitch, params: BlendParams) -> Result<Self> {
         params.validate()?;
         Ok(Self {
-            pitch_x_um,
-            pitch_y_um,
+            pitch,
             params,
             max_canvas_px: DEFAULT_MAX_CANVAS_PX,
             anchor: None,
@@ -177,9 +175,9 @@ impl Panorama {
         &self.params
     }
 
-    /// Grid pitch (x, y) in um.
-    pub fn pitch_um(&self) -> (f64, f64) {
-        (self.pitch_x_um, self.pitch_y_um)
+    /// The canvas grid's pitch.
+    pub fn pitch(&self) -> Pitch {
+        self.pitch
     }
 
     /// Absolute height (um) that the canvas heights are relative to: the first tile's
@@ -218,8 +216,8 @@ impl Panorama {
     pub fn region_origin_um(&self, region: &Region) -> (f64, f64) {
         let (x, y) = self.canvas_origin_um();
         (
-            x + region.x0 as f64 * self.pitch_x_um,
-            y + region.y0 as f64 * self.pitch_y_um,
+            x + region.x0 as f64 * self.pitch.x_um(),
+            y + region.y0 as f64 * self.pitch.y_um(),
         )
     }
 
@@ -295,10 +293,10 @@ impl Panorama {
                 .then_some(px as i64)
         };
         Some(GridRect {
-            x0: to_grid(r[0], a.x_um, self.pitch_x_um, true)?,
-            y0: to_grid(r[1], a.y_um, self.pitch_y_um, true)?,
-            x1: to_grid(r[2], a.x_um, self.pitch_x_um, false)? + 1,
-            y1: to_grid(r[3], a.y_um, self.pitch_y_um, false)? + 1,
+            x0: to_grid(r[0], a.x_um, self.pitch.x_um(), true)?,
+            y0: to_grid(r[1], a.y_um, self.pitch.y_um(), true)?,
+            x1: to_grid(r[2], a.x_um, self.pitch.x_um(), false)? + 1,
+            y1: to_grid(r[3], a.y_um, self.pitch.y_um(), false)? + 1,
         })
         .filter(|g| g.x1 > g.x0 && g.y1 > g.y0)
     }
@@ -306,8 +304,8 @@ impl Panorama {
     fn grid_to_um(&self, gx: i64, gy: i64) -> (f64, f64) {
         match self.anchor {
             Some(a) => (
-                a.x_um + gx as f64 * self.pitch_x_um,
-                a.y_um + gy as f64 * self.pitch_y_um,
+                a.x_um + gx as f64 * self.pitch.x_um(),
+                a.y_um + gy as f64 * self.pitch.y_um(),
             ),
             None => (0.0, 0.0),
         }
@@ -326,8 +324,8 @@ impl Panorama {
 
     /// Where a (validated) tile lands on the grid anchored at `anchor`.
     fn plan(&self, tile: &TileInput<'_>, anchor: &Anchor) -> Result<(AxisPlan, AxisPlan)> {
-        let offset_x_px = (tile.x_um - anchor.x_um) / self.pitch_x_um;
-        let offset_y_px = (tile.y_um - anchor.y_um) / self.pitch_y_um;
+        let offset_x_px = (tile.x_um - anchor.x_um) / self.pitch.x_um();
+        let offset_y_px = (tile.y_um - anchor.y_um) / self.pitch.y_um();
         for (field, value, offset_px) in [
             ("x_um", tile.x_um, offset_x_px),
             ("y_um", tile.y_um, offset_y_px),
@@ -551,7 +549,7 @@ impl Panorama {
     /// in [`Panorama::place`]): what this tile contributes, for overlap quality. Before any tile
     /// is placed the tile anchors its own grid.
     pub fn resample_alone(&self, tile: TileInput<'_>) -> Result<PlacedRaster> {
-        let mut alone = Panorama::new(self.pitch_x_um, self.pitch_y_um, BlendParams::average())?;
+        let mut alone = Panorama::new(self.pitch, BlendParams::average())?;
         alone.anchor = self.anchor;
         alone.max_canvas_px = self.max_canvas_px;
         alone.place(tile)?;
@@ -583,8 +581,8 @@ impl Panorama {
         if cols == 0 || rows == 0 {
             return None;
         }
-        let ox = (x_um - anchor.x_um) / self.pitch_x_um;
-        let oy = (y_um - anchor.y_um) / self.pitch_y_um;
+        let ox = (x_um - anchor.x_um) / self.pitch.x_um();
+        let oy = (y_um - anchor.y_um) / self.pitch.y_um();
         if !(-MAX_OFFSET_PX..=MAX_OFFSET_PX).contains(&ox)
             || !(-MAX_OFFSET_PX..=MAX_OFFSET_PX).contains(&oy)
         {
@@ -666,8 +664,7 @@ impl Panorama {
             heights,
             origin_x_um: origin.0,
             origin_y_um: origin.1,
-            pitch_x_um: self.pitch_x_um,
-            pitch_y_um: self.pitch_y_um,
+            pitch: self.pitch,
             z_offset_um: self.z_offset_um(),
         }
     }
@@ -678,25 +675,19 @@ impl Panorama {
 /// the result equals placing them one by one in that order and taking
 /// [`Panorama::to_raster`], bit for bit. The canvas is sized once from all footprints instead
 /// of growing.
-pub fn render(
-    pitch_x_um: f64,
-    pitch_y_um: f64,
-    tiles: &[TileInput<'_>],
-    params: BlendParams,
-) -> Result<PlacedRaster> {
-    Ok(render_panorama(pitch_x_um, pitch_y_um, tiles, params, None)?.to_raster())
+pub fn render(pitch: Pitch, tiles: &[TileInput<'_>], params: BlendParams) -> Result<PlacedRaster> {
+    Ok(render_panorama(pitch, tiles, params, None)?.to_raster())
 }
 
 /// [`render`] with an optional wavelet fusion, returning the panorama itself (for
 /// [`crate::overlap_quality`]). Equals placing the tiles one by one in index order.
 pub fn render_panorama(
-    pitch_x_um: f64,
-    pitch_y_um: f64,
+    pitch: Pitch,
     tiles: &[TileInput<'_>],
     params: BlendParams,
     wavelet: Option<WaveletFusion>,
 ) -> Result<Panorama> {
-    let mut pano = Panorama::new(pitch_x_um, pitch_y_um, params)?;
+    let mut pano = Panorama::new(pitch, params)?;
     pano.set_wavelet_fusion(wavelet);
     let mut order: Vec<&TileInput<'_>> = tiles.iter().collect();
     // Stable: equal indices keep their slice order (and then fail as duplicates in place()).

@@ -25,6 +25,7 @@ use anyhow::{anyhow, bail, Result};
 use surfstream_core::frame::{flags, FrameHeader, FrameKind, HeightMap, TileRegistration};
 use surfstream_core::raster::{RasterView, Shape};
 use surfstream_core::record::PanoramaSummary;
+use surfstream_core::{Pitch, Sampling};
 use surfstream_io::output::{NpyHeights, OutputWriter, SurfaceOutput};
 
 use crate::{
@@ -186,13 +187,8 @@ impl StreamingFusion {
             .or(self.final_chunk_stats)
     }
 
-    fn new_panorama(
-        &self,
-        pitch_x_um: f64,
-        pitch_y_um: f64,
-        params: BlendParams,
-    ) -> Result<Panorama> {
-        let mut p = Panorama::new(pitch_x_um, pitch_y_um, params)?;
+    fn new_panorama(&self, pitch: Pitch, params: BlendParams) -> Result<Panorama> {
+        let mut p = Panorama::new(pitch, params)?;
         if self.settings.method == FusionMethod::Wavelet {
             p.set_wavelet_fusion(Some(self.settings.wavelet));
         }
@@ -243,8 +239,10 @@ impl StreamingFusion {
         ) {
             let h = tile.header;
             if self.panorama.is_none() {
-                let p =
-                    self.new_panorama(h.pitch_x_um, h.pitch_y_um, self.settings.blend_params(&h))?;
+                let pitch = h
+                    .pitch()
+                    .map_err(|e| anyhow!("fusion: tile {}: {e}", h.tile_index))?;
+                let p = self.new_panorama(pitch, self.settings.blend_params(&h))?;
                 self.panorama = Some(p);
             }
             let Some(pano) = self.panorama.as_mut() else {
@@ -253,22 +251,17 @@ impl StreamingFusion {
             let region = pano.place(tile_input(tile, reg)?)?;
             let (ox, oy) = pano.region_origin_um(&region);
             let heights = pano.try_extract(region)?;
-            let (px, py) = pano.pitch_um();
+            let at = Sampling::of(Shape::new(region.height, region.width), pano.pitch())
+                .with_origin(ox, oy)?;
             let header = FrameHeader {
                 kind: FrameKind::PanoramaPatch as u32,
                 flags: reg.flags & flags::PLACED_BY_STAGE,
                 tile_index: h.tile_index,
                 tile_row: h.tile_row,
                 tile_col: h.tile_col,
-                width: region.width as u32,
-                height: region.height as u32,
-                pitch_x_um: px,
-                pitch_y_um: py,
-                origin_x_um: ox,
-                origin_y_um: oy,
                 z_offset_um: pano.z_offset_um(),
                 t_acquired_ns: h.t_acquired_ns,
-                ..Default::default()
+                ..FrameHeader::at(&at)
             };
             let preview = decimate(&header, &heights, PREVIEW_STEP);
             patches.push(PanoramaPatch {
@@ -330,10 +323,10 @@ impl StreamingFusion {
             // Placed one by one in index order, read back one at a time: the same result, bit
             // for bit, as rendering from all tiles in memory ([`crate::render_panorama`]). The
             // streaming panorama goes first, so the two never take memory at once.
-            let (px, py) = pano.pitch_um();
-            let (params, wavelet) = (*pano.params(), pano.wavelet_fusion().copied());
+            let (pitch, params, wavelet) =
+                (pano.pitch(), *pano.params(), pano.wavelet_fusion().copied());
             self.panorama = None;
-            let mut fresh = self.new_panorama(px, py, params)?;
+            let mut fresh = self.new_panorama(pitch, params)?;
             fresh.set_wavelet_fusion(wavelet);
             for (t, reg) in &positions {
                 let tile = self.load(t)?;
@@ -371,9 +364,11 @@ impl StreamingFusion {
         self.panorama = None;
         let mut written = Vec::new();
         let (rows, cols) = (r.heights.rows(), r.heights.cols());
+        let at =
+            Sampling::of(r.heights.shape(), r.pitch).with_origin(r.origin_x_um, r.origin_y_um)?;
         if let Some(w) = files {
             // The pitch travels with panorama.npy (its sidecar panorama.npy.json).
-            w.set_pitch_um(r.pitch_x_um, r.pitch_y_um);
+            w.set_pitch_um(at.pitch_x_um(), at.pitch_y_um());
             w.write_surface(&SurfaceOutput {
                 name: "panorama",
                 heights: r.heights.view(),
@@ -384,20 +379,12 @@ impl StreamingFusion {
             })?;
             written = w.files().to_vec();
             if self.zarr_min_px.is_some_and(|min| rows * cols >= min) {
-                let geometry = crate::zarr::ZarrGeometry {
-                    pitch_x_um: r.pitch_x_um,
-                    pitch_y_um: r.pitch_y_um,
-                    origin_x_um: r.origin_x_um,
-                    origin_y_um: r.origin_y_um,
-                };
                 written.push(crate::zarr::write_zarr_abs_f64(
                     w.dir(),
                     "panorama",
                     r.heights.values(),
-                    rows,
-                    cols,
+                    &at,
                     r.z_offset_um,
-                    geometry,
                 )?);
             }
         }
@@ -405,10 +392,10 @@ impl StreamingFusion {
         let summary = PanoramaSummary {
             width_px: cols,
             height_px: rows,
-            origin_x_um: r.origin_x_um,
-            origin_y_um: r.origin_y_um,
-            pitch_x_um: r.pitch_x_um,
-            pitch_y_um: r.pitch_y_um,
+            origin_x_um: at.origin_x_um(),
+            origin_y_um: at.origin_y_um(),
+            pitch_x_um: at.pitch_x_um(),
+            pitch_y_um: at.pitch_y_um(),
             z_offset_um: r.z_offset_um,
             invalid_px: invalid,
         };
@@ -416,15 +403,9 @@ impl StreamingFusion {
             kind: FrameKind::Panorama as u32,
             flags: flags::FINAL,
             tile_index: self.last.0,
-            width: cols as u32,
-            height: rows as u32,
-            pitch_x_um: r.pitch_x_um,
-            pitch_y_um: r.pitch_y_um,
-            origin_x_um: r.origin_x_um,
-            origin_y_um: r.origin_y_um,
             z_offset_um: r.z_offset_um,
             t_acquired_ns: self.last.1,
-            ..Default::default()
+            ..FrameHeader::at(&at)
         };
         Ok(FinalPanorama {
             panorama: HeightMap {
@@ -618,8 +599,7 @@ mod tests {
             .map(|(t, r)| tile_input(t, r).unwrap())
             .collect();
         let reference = crate::render(
-            PITCH,
-            PITCH,
+            Pitch::square(PITCH).unwrap(),
             &inputs,
             settings().blend_params(&tiles[0].header),
         )

@@ -23,31 +23,23 @@ use std::path::Path;
 
 use anyhow::{Context, Result};
 use serde_json::json;
+use surfstream_core::Sampling;
 
 /// Chunk side of the written array, px.
 pub const ZARR_CHUNK_PX: usize = 512;
 
-/// Where the array sits: pitch and scan position of pixel (0, 0), um.
-#[derive(Debug, Clone, Copy)]
-pub struct ZarrGeometry {
-    pub pitch_x_um: f64,
-    pub pitch_y_um: f64,
-    pub origin_x_um: f64,
-    pub origin_y_um: f64,
-}
-
-/// Writes `dir/NAME.zarr` from f32 frame heights (`rows` x `cols`, row-major, relative to
-/// `z_offset_um`) as absolute float64 heights `f64::from(z) + z_offset_um`, the same values as
-/// the `.npy`. Returns the store's name.
+/// Writes `dir/NAME.zarr` from f32 frame heights (row-major, relative to `z_offset_um`,
+/// sampled as `at` says: its shape, and the pitch and origin written to the attributes) as
+/// absolute float64 heights `f64::from(z) + z_offset_um`, the same values as the `.npy`.
+/// Returns the store's name.
 pub fn write_zarr_abs_f64(
     dir: &Path,
     name: &str,
     heights: &[f32],
-    rows: usize,
-    cols: usize,
+    at: &Sampling,
     z_offset_um: f64,
-    geometry: ZarrGeometry,
 ) -> Result<String> {
+    let (rows, cols) = (at.rows(), at.cols());
     let store = format!("{name}.zarr");
     let final_path = dir.join(&store);
     let partial = dir.join(format!("{store}.partial"));
@@ -78,10 +70,10 @@ pub fn write_zarr_abs_f64(
         "attributes": {
             "surfstream": {
                 "what": "panorama: absolute heights in um, NaN = not measured, row index grows with y",
-                "pitch_x_um": geometry.pitch_x_um,
-                "pitch_y_um": geometry.pitch_y_um,
-                "origin_x_um": geometry.origin_x_um,
-                "origin_y_um": geometry.origin_y_um,
+                "pitch_x_um": at.pitch_x_um(),
+                "pitch_y_um": at.pitch_y_um(),
+                "origin_x_um": at.origin_x_um(),
+                "origin_y_um": at.origin_y_um(),
             }
         },
     });
@@ -132,6 +124,7 @@ pub fn write_zarr_abs_f64(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use surfstream_core::Shape;
 
     #[test]
     fn chunks_are_padded_and_empty_ones_left_out() {
@@ -139,13 +132,11 @@ mod tests {
         let (rows, cols) = (3, ZARR_CHUNK_PX + 2);
         let mut h = vec![f32::NAN; rows * cols];
         h[1] = 1.5; // chunk (0, 0)
-        let geometry = ZarrGeometry {
-            pitch_x_um: 0.5,
-            pitch_y_um: 0.25,
-            origin_x_um: 1.0,
-            origin_y_um: -2.0,
-        };
-        let name = write_zarr_abs_f64(dir.path(), "p", &h, rows, cols, 100.0, geometry).unwrap();
+        let at = Sampling::new(Shape::new(rows, cols), 0.5, 0.25)
+            .unwrap()
+            .with_origin(1.0, -2.0)
+            .unwrap();
+        let name = write_zarr_abs_f64(dir.path(), "p", &h, &at, 100.0).unwrap();
         let store = dir.path().join(name);
         let meta: serde_json::Value =
             serde_json::from_slice(&std::fs::read(store.join("zarr.json")).unwrap()).unwrap();

@@ -11,10 +11,15 @@ use surfstream_core::frame::{
     flags, FrameHeader, FrameKind, FrameView, HeightMap, TileRegistration,
 };
 use surfstream_core::raster::{RasterView, Shape};
+use surfstream_core::Pitch;
 use surfstream_fusion::{render, BlendParams, FusionMethod, PlaneCorrection, TileInput};
 use surfstream_runtime::graph::{Delivery, NodeContext, OutputSpec, PortKind};
 use surfstream_runtime::node::{Input, NodeLogic, Outbox, Output};
 use surfstream_wavelet::{separate, Mode, Wavelet};
+
+fn pitch() -> Pitch {
+    Pitch::square(PITCH_UM).expect("a positive pitch")
+}
 
 const PITCH_UM: f64 = 0.8;
 const TILE_PX: usize = 64;
@@ -262,17 +267,12 @@ fn streamed_3x3_scan_ends_bit_identical_to_batch() {
             _ => BlendParams::average(),
         };
         let wf = (m == FusionMethod::Wavelet).then(surfstream_fusion::WaveletFusion::default);
-        let pano = surfstream_fusion::render_panorama(PITCH_UM, PITCH_UM, &inputs, params, wf)
+        let pano = surfstream_fusion::render_panorama(pitch(), &inputs, params, wf)
             .unwrap()
             .to_raster();
         if m == FusionMethod::Gradual {
             assert_eq!(
-                bits(
-                    render(PITCH_UM, PITCH_UM, &inputs, params)
-                        .unwrap()
-                        .heights
-                        .values()
-                ),
+                bits(render(pitch(), &inputs, params).unwrap().heights.values()),
                 bits(pano.heights.values())
             );
         }

@@ -4,6 +4,7 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use surfstream_core::raster::{RasterView, Shape};
+use surfstream_core::Pitch;
 use surfstream_fusion::{
     overlap_quality, render, render_panorama, BlendParams, FusionError, FusionMethod, Panorama,
     PlacedRaster, PlaneCorrection, Region, TileInput, WaveletFusion,
@@ -11,6 +12,10 @@ use surfstream_fusion::{
 
 const PITCH_X_UM: f64 = 0.8148;
 const PITCH_Y_UM: f64 = 0.75;
+
+fn pitch() -> Pitch {
+    Pitch::new(PITCH_X_UM, PITCH_Y_UM).unwrap()
+}
 
 /// A smooth random surface: a sum of plane waves with wavelengths of 25..200 px.
 struct Surface {
@@ -191,8 +196,8 @@ fn value_at(raster: &PlacedRaster, col: usize, row: usize) -> f32 {
 /// Scan position of raster pixel (col, row).
 fn pos_um(raster: &PlacedRaster, col: usize, row: usize) -> (f64, f64) {
     (
-        raster.origin_x_um + col as f64 * raster.pitch_x_um,
-        raster.origin_y_um + row as f64 * raster.pitch_y_um,
+        raster.origin_x_um + col as f64 * raster.pitch.x_um(),
+        raster.origin_y_um + row as f64 * raster.pitch.y_um(),
     )
 }
 
@@ -202,7 +207,7 @@ fn reproduces_a_smooth_surface_across_seams_and_corners() {
     let (w, h) = (64, 48);
     let tiles = serpentine(&surface, 3, 3, (w, h), 0.2, 3.0, 2);
     let params = BlendParams::from_overlap_fraction(w, h, 0.2);
-    let mut pano = Panorama::new(PITCH_X_UM, PITCH_Y_UM, params).unwrap();
+    let mut pano = Panorama::new(pitch(), params).unwrap();
     place_all(&mut pano, &tiles);
     let raster = pano.to_raster();
     assert_eq!(raster.z_offset_um, tiles[0].z_offset_um);
@@ -278,8 +283,7 @@ fn on_grid_tile_is_copied_exactly() {
     let z_abs = |x: f64, y: f64| surface.at(x, y);
     let tile = Tile::cut(0, &z_abs, 5.0, 7.0, 20, 10, PlaneCorrection::default(), 0.0);
     let raster = render(
-        PITCH_X_UM,
-        PITCH_Y_UM,
+        pitch(),
         &[tile.input()],
         BlendParams::from_overlap_px(4.0, 4.0),
     )
@@ -304,7 +308,7 @@ fn growth_left_and_up_keeps_content() {
         z_offset_um: 0.0,
     };
     let a = random_tile(0, 100.0, 200.0);
-    let mut pano = Panorama::new(PITCH_X_UM, PITCH_Y_UM, BlendParams::average()).unwrap();
+    let mut pano = Panorama::new(pitch(), BlendParams::average()).unwrap();
     let region_a = pano.place(a.input()).unwrap();
     assert_eq!(
         region_a,
@@ -401,8 +405,7 @@ fn pistons_tilts_and_z_offsets_corrected_give_an_exactly_flat_panorama() {
     }
     let params = BlendParams::from_overlap_px(24.0, 18.0);
     let raster = render(
-        PITCH_X_UM,
-        PITCH_Y_UM,
+        pitch(),
         &tiles.iter().map(Tile::input).collect::<Vec<_>>(),
         params,
     )
@@ -447,12 +450,7 @@ fn nan_pixels_are_filled_from_the_other_tile_and_stay_nan_where_none_has_data() 
         a.set_nan(5..9, 5..10); // outside the overlap: nobody has data
         b.set_nan(18..24, 2..7); // in the overlap: A has data there
         b.set_nan(0..30, 0..1); // B's first column: A covers it
-        let mut pano = Panorama::new(
-            PITCH_X_UM,
-            PITCH_Y_UM,
-            BlendParams::from_overlap_px(12.0, 9.0),
-        )
-        .unwrap();
+        let mut pano = Panorama::new(pitch(), BlendParams::from_overlap_px(12.0, 9.0)).unwrap();
         place_all(&mut pano, &[a.clone(), b.clone()]);
         let raster = pano.to_raster();
         assert_eq!((raster.origin_x_um, raster.origin_y_um), (0.0, 0.0));
@@ -524,7 +522,7 @@ fn blend_is_linear_across_a_horizontal_overlap() {
         );
         // Ramp = overlap (10 px); the vertical ramp is the same for both tiles, so it cancels.
         let params = BlendParams::from_overlap_px(10.0, 5.0);
-        let raster = render(PITCH_X_UM, PITCH_Y_UM, &[a.input(), b.input()], params).unwrap();
+        let raster = render(pitch(), &[a.input(), b.input()], params).unwrap();
         let first_b = dx_px.ceil() as usize;
         for row in 0..h {
             let line: Vec<f64> = (0..raster.heights.cols())
@@ -585,15 +583,9 @@ fn four_tile_corner_fades_smoothly() {
         }
         jump
     };
-    let ramped = render(
-        PITCH_X_UM,
-        PITCH_Y_UM,
-        &inputs,
-        BlendParams::from_overlap_px(20.0, 20.0),
-    )
-    .unwrap();
+    let ramped = render(pitch(), &inputs, BlendParams::from_overlap_px(20.0, 20.0)).unwrap();
     assert!(ramped.heights.values().iter().all(|v| !v.is_nan()));
-    let averaged = render(PITCH_X_UM, PITCH_Y_UM, &inputs, BlendParams::average()).unwrap();
+    let averaged = render(pitch(), &inputs, BlendParams::average()).unwrap();
     // A 0..3 step spread over a 20 px ramp moves at most ~3 / 20 per pixel, even at the
     // corner where all four tiles meet; a plain average jumps wherever a tile begins.
     let (jr, ja) = (max_jump(&ramped), max_jump(&averaged));
@@ -617,7 +609,7 @@ fn render_equals_sequential_place_bit_for_bit() {
         t.set_nan(r..r + 6, c..c + 6);
     }
     let params = BlendParams::from_overlap_fraction(w, h, 0.15);
-    let mut pano = Panorama::new(PITCH_X_UM, PITCH_Y_UM, params).unwrap();
+    let mut pano = Panorama::new(pitch(), params).unwrap();
     place_all(&mut pano, &tiles);
     let sequential = pano.to_raster();
 
@@ -625,13 +617,13 @@ fn render_equals_sequential_place_bit_for_bit() {
     let mut shuffled: Vec<TileInput> = tiles.iter().map(Tile::input).collect();
     shuffled.reverse();
     shuffled.swap(1, 5);
-    let rendered = render(PITCH_X_UM, PITCH_Y_UM, &shuffled, params).unwrap();
+    let rendered = render(pitch(), &shuffled, params).unwrap();
     // And the thread count does not matter either.
     let single = rayon::ThreadPoolBuilder::new()
         .num_threads(1)
         .build()
         .unwrap()
-        .install(|| render(PITCH_X_UM, PITCH_Y_UM, &shuffled, params).unwrap());
+        .install(|| render(pitch(), &shuffled, params).unwrap());
 
     for other in [&rendered, &single] {
         assert_eq!(
@@ -682,12 +674,7 @@ fn place_changes_only_the_returned_region() {
     let p = PlaneCorrection::default();
     let big = Tile::cut(0, &z_abs, 0.0, 0.0, 60, 50, p, 0.0);
     let small = Tile::cut(1, &|x, y| z_abs(x, y) + 0.5, 20.3, 15.1, 12, 9, p, 0.0);
-    let mut pano = Panorama::new(
-        PITCH_X_UM,
-        PITCH_Y_UM,
-        BlendParams::from_overlap_px(3.0, 3.0),
-    )
-    .unwrap();
+    let mut pano = Panorama::new(pitch(), BlendParams::from_overlap_px(3.0, 3.0)).unwrap();
     pano.place(big.input()).unwrap();
     let all = Region {
         x0: 0,
@@ -742,9 +729,9 @@ fn bad_input_is_a_clear_error_naming_the_field() {
         (f64::NAN, 1.0, "pitch_x_um"),
         (1.0, f64::INFINITY, "pitch_y_um"),
     ] {
-        let err = Panorama::new(px, py, ok_params).unwrap_err();
-        assert!(err.to_string().contains(field), "{err}");
-        let err = render(px, py, &[], ok_params).unwrap_err();
+        // The panorama takes a checked Pitch: a bad one cannot reach it, and the error of the
+        // one check names the axis.
+        let err = Pitch::new(px, py).unwrap_err();
         assert!(err.to_string().contains(field), "{err}");
     }
     for (params, field) in [
@@ -752,11 +739,11 @@ fn bad_input_is_a_clear_error_naming_the_field() {
         (BlendParams::from_overlap_px(4.0, f64::NAN), "overlap_y_px"),
         (ok_params.with_ramp_px(1e9, 1.0), "ramp_x_px"),
     ] {
-        let err = Panorama::new(1.0, 1.0, params).unwrap_err();
+        let err = Panorama::new(Pitch::square(1.0).unwrap(), params).unwrap_err();
         assert!(err.to_string().contains(field), "{err}");
     }
     assert_eq!(
-        render(1.0, 1.0, &[], ok_params).unwrap_err(),
+        render(Pitch::square(1.0).unwrap(), &[], ok_params).unwrap_err(),
         FusionError::NoTiles
     );
 
@@ -820,18 +807,18 @@ fn bad_input_is_a_clear_error_naming_the_field() {
         ),
     ];
     for (tile, needle) in cases {
-        let mut pano = Panorama::new(1.0, 1.0, ok_params).unwrap();
+        let mut pano = Panorama::new(Pitch::square(1.0).unwrap(), ok_params).unwrap();
         let err = pano.place(tile).unwrap_err();
         let msg = err.to_string();
         assert!(msg.contains(needle) && msg.contains("tile 3"), "{msg}");
         assert_eq!(pano.tiles_placed(), 0);
         assert_eq!((pano.width(), pano.height()), (0, 0));
-        let err = render(1.0, 1.0, &[good, tile], ok_params).unwrap_err();
+        let err = render(Pitch::square(1.0).unwrap(), &[good, tile], ok_params).unwrap_err();
         assert!(err.to_string().contains(needle), "{err}");
     }
 
     // Errors after the first tile leave the panorama unchanged.
-    let mut pano = Panorama::new(1.0, 1.0, ok_params).unwrap();
+    let mut pano = Panorama::new(Pitch::square(1.0).unwrap(), ok_params).unwrap();
     pano.place(good).unwrap();
     let before = pano.to_raster();
     let err = pano.place(good).unwrap_err();
@@ -860,7 +847,7 @@ fn bad_input_is_a_clear_error_naming_the_field() {
 
 #[test]
 fn empty_panorama_is_a_zero_raster() {
-    let pano = Panorama::new(1.0, 1.0, BlendParams::average()).unwrap();
+    let pano = Panorama::new(Pitch::square(1.0).unwrap(), BlendParams::average()).unwrap();
     let raster = pano.to_raster();
     assert_eq!((raster.heights.cols(), raster.heights.rows()), (0, 0));
     assert!(raster.heights.values().is_empty());
@@ -882,10 +869,10 @@ fn reserve_pre_sizes_the_canvas_and_changes_no_value() {
     let (w, h) = (40, 30);
     let tiles = serpentine(&surface, 2, 3, (w, h), 0.2, 1.5, 11);
     let params = BlendParams::from_overlap_fraction(w, h, 0.2);
-    let mut grown = Panorama::new(PITCH_X_UM, PITCH_Y_UM, params).unwrap();
+    let mut grown = Panorama::new(pitch(), params).unwrap();
     place_all(&mut grown, &tiles);
 
-    let mut reserved = Panorama::new(PITCH_X_UM, PITCH_Y_UM, params).unwrap();
+    let mut reserved = Panorama::new(pitch(), params).unwrap();
     let err = reserved.reserve_um(0.0, 0.0, -1.0, 5.0).unwrap_err();
     assert!(err.to_string().contains("x_max_um"), "{err}");
     let err = reserved.reserve_um(f64::NAN, 0.0, 1.0, 5.0).unwrap_err();
@@ -918,7 +905,7 @@ fn reserve_pre_sizes_the_canvas_and_changes_no_value() {
 
     // After the first tile a reservation grows the canvas at once; one over the limit is
     // ignored.
-    let mut late = Panorama::new(PITCH_X_UM, PITCH_Y_UM, params).unwrap();
+    let mut late = Panorama::new(pitch(), params).unwrap();
     late.place(tiles[0].input()).unwrap();
     late.reserve_um(-50.0, 0.0, 10.0, 10.0).unwrap();
     assert!(late.canvas_origin_um().0 <= -50.0 + PITCH_X_UM);
@@ -951,12 +938,12 @@ fn three_methods_reproduce_the_truth_and_score_every_overlap() {
             _ => BlendParams::average(),
         };
         let wavelet = (method == FusionMethod::Wavelet).then(WaveletFusion::default);
-        let mut pano = Panorama::new(PITCH_X_UM, PITCH_Y_UM, params).unwrap();
+        let mut pano = Panorama::new(pitch(), params).unwrap();
         pano.set_wavelet_fusion(wavelet);
         place_all(&mut pano, &tiles);
         let raster = pano.to_raster();
         let inputs: Vec<TileInput<'_>> = tiles.iter().map(Tile::input).collect();
-        let rendered = render_panorama(PITCH_X_UM, PITCH_Y_UM, &inputs, params, wavelet)
+        let rendered = render_panorama(pitch(), &inputs, params, wavelet)
             .unwrap()
             .to_raster();
         assert!(
@@ -1032,7 +1019,7 @@ fn chunked_panorama_is_exact_and_a_budget_changes_no_bit() {
     let spill_dir = tempfile::tempdir().unwrap();
     for wavelet in [None, Some(WaveletFusion::default())] {
         let build = |budget: Option<usize>| {
-            let mut p = Panorama::new(PITCH_X_UM, PITCH_Y_UM, params).unwrap();
+            let mut p = Panorama::new(pitch(), params).unwrap();
             p.set_wavelet_fusion(wavelet);
             p.set_memory_budget_bytes(budget, Some(spill_dir.path().into()));
             place_all(&mut p, &tiles);
@@ -1062,7 +1049,7 @@ fn chunked_panorama_is_exact_and_a_budget_changes_no_bit() {
             continue;
         }
         // Without holes (their renormalised edges are not bilinear), against the truth.
-        let mut p = Panorama::new(PITCH_X_UM, PITCH_Y_UM, params).unwrap();
+        let mut p = Panorama::new(pitch(), params).unwrap();
         place_all(&mut p, &clean);
         let a = p.to_raster();
         let bound = surface.bilinear_bound_um() + 1e-5;

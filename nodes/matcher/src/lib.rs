@@ -166,6 +166,7 @@ mod ncc;
 pub mod params;
 pub mod plane;
 pub mod raster;
+pub mod refine;
 pub mod register;
 pub mod scan;
 pub mod sift;

@@ -63,7 +63,9 @@ impl NodeLogic for MatcherNode {
             index: h.tile_index,
             row: h.tile_row,
             col: h.tile_col,
-            pitch_um: [h.pitch_x_um, h.pitch_y_um],
+            pitch: h
+                .pitch()
+                .map_err(|e| anyhow!("matcher: tile {}: {e}", h.tile_index))?,
             stage_um: [h.origin_x_um, h.origin_y_um],
             t_acquired_ns: h.t_acquired_ns,
             heights: Raster::new(f.heights.to_vec(), shape)

@@ -53,6 +53,9 @@ pub struct MatcherParams {
     pub min_ncc_distinct: Option<f64>,
     /// Largest accepted deviation from the stage's nominal offset, px.
     pub max_shift_px: Option<f64>,
+    /// Refine each accepted pair by Lucas-Kanade on the heights, with its covariance (true;
+    /// false keeps the NCC peak's sub-pixel fit and the NCC-based weight).
+    pub lucas_kanade: Option<bool>,
     /// Standard deviation of the stage positions, px: the weight of the prior in the global
     /// solve (5).
     pub stage_sigma_px: Option<f64>,
@@ -91,6 +94,9 @@ impl MatcherParams {
         if let Some(v) = self.max_shift_px {
             params.phase.max_shift_px = v;
         }
+        if let Some(v) = self.lucas_kanade {
+            params.phase.lucas_kanade = v;
+        }
         params.phase.validate()?;
         for (name, value, field) in [
             (
@@ -123,6 +129,7 @@ mod tests {
             method: method.into(),
             min_ncc: None,
             min_ncc_distinct: None,
+            lucas_kanade: None,
             max_shift_px: None,
             stage_sigma_px: None,
             outlier_px: None,

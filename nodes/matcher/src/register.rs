@@ -10,6 +10,7 @@ use crate::fft2::Fft2;
 use crate::ncc::{ncc_at, ncc_in, ncc_stencil, overlap_in_a, LevelledTile};
 use crate::plane::{PlaneCorrection, PlaneSums};
 use crate::raster::{validate_offset, InputError};
+use crate::refine::refine_offset;
 use surfstream_core::fft::fast_len;
 use surfstream_core::raster::RasterView;
 
@@ -118,6 +119,10 @@ pub struct PhaseParams {
     /// neighbourhood instead of 0 in the second pass (zero-filled dropouts act as strong
     /// white noise there).
     pub fill_dropouts: bool,
+    /// Refine an accepted pair's offset by Lucas-Kanade on the smoothed heights of the overlap
+    /// (piston and tilt solved with it; [`crate::refine`]) and report its covariance. The
+    /// NCC's answer stays when the refinement fails or moves more than 1 px.
+    pub lucas_kanade: bool,
 }
 
 impl Default for PhaseParams {
@@ -139,6 +144,7 @@ impl Default for PhaseParams {
             peak_sigma_px: 1.0,
             subpixel: SubPixel::NccGaussian,
             fill_dropouts: true,
+            lucas_kanade: true,
         }
     }
 }
@@ -289,6 +295,10 @@ pub struct PairRegistration {
     /// one-direction constraint. `None` otherwise (and for every accepted pair).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub directional: Option<DirectionalOffset>,
+    /// Covariance of `offset_px`, px^2, rows (x, y), when the Lucas-Kanade refinement gave it
+    /// ([`PhaseParams::lucas_kanade`]); `None` otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub covariance_px2: Option<[[f64; 2]; 2]>,
 }
 
 /// The offset of a pair known across a feature only: a lone scratch or a straight flank makes
@@ -322,6 +332,7 @@ impl PairRegistration {
             rejection: Some(rejection),
             candidates: Vec::new(),
             directional: None,
+            covariance_px2: None,
         }
     }
 
@@ -537,6 +548,7 @@ impl PhaseCorrelator {
             rejection: None,
             candidates: cands.clone(),
             directional: None,
+            covariance_px2: None,
         };
         let limit = shift_limit_px(params, overlap_px);
         let mut line = Vec::new();
@@ -550,7 +562,15 @@ impl PhaseCorrelator {
             (alternatives, &mut line),
         );
         match &out.rejection {
-            None => out.offset_px = Some(offset),
+            None => {
+                out.offset_px = Some(offset);
+                if params.lucas_kanade {
+                    if let Some(r) = refine_offset(a, b, offset) {
+                        out.offset_px = Some(r.offset_px);
+                        out.covariance_px2 = Some(r.covariance_px2);
+                    }
+                }
+            }
             Some(Rejection::NotLocalized { .. }) | Some(Rejection::Ambiguous { .. }) => {
                 out.directional =
                     directional_offset(&peak, &line, nominal_offset_px, params, limit);

@@ -7,6 +7,7 @@ mod support;
 use support::Surface;
 use surfstream_core::frame::{flags, placed_by};
 use surfstream_core::raster::{Raster, Shape};
+use surfstream_core::Pitch;
 use surfstream_matcher::{solve_planes, ScanParams, ScanRegistration, ScanTile};
 
 const TILE: usize = 256;
@@ -43,7 +44,7 @@ fn tile(field: &[f64], index: usize, nominal: [f64; 2], truth: [f64; 2]) -> Scan
         index: index as u32,
         row,
         col,
-        pitch_um: [PITCH_UM; 2],
+        pitch: Pitch::square(PITCH_UM).expect("a positive pitch"),
         stage_um: [nominal[0] * PITCH_UM, nominal[1] * PITCH_UM],
         t_acquired_ns: 1000 + index as u64,
         heights: Raster::new(heights, Shape::new(TILE, TILE)).expect("tile shape"),
@@ -235,7 +236,7 @@ fn a_second_pitch_and_a_bad_stage_position_are_refused() {
     scan.register(tile(&field, 0, nominal, truth))
         .expect("first tile");
     let mut t = tile(&field, 1, tiles[1].2, tiles[1].3);
-    t.pitch_um = [0.25, 0.25];
+    t.pitch = Pitch::square(0.25).expect("a positive pitch");
     let e = scan.register(t).expect_err("second pitch").to_string();
     assert!(e.contains("one scan needs one pitch"), "{e}");
     let mut t = tile(&field, 1, tiles[1].2, tiles[1].3);

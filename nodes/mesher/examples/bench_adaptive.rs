@@ -10,6 +10,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use surfstream_core::raster::{RasterView, Shape};
+use surfstream_core::Pitch;
 use surfstream_mesher::{
     check_closed, mesh_height_field, Epsilon, LengthUnit, MeshKind, MeshParams, MissingSamples,
     ScanPlacement, SolidParams,
@@ -29,7 +30,7 @@ fn main() -> Result<()> {
         .context("REPEATS")?;
     let heights_um: Vec<f32> = a.data.iter().map(|&h| h as f32).collect();
     let heights = RasterView::new(&heights_um, Shape::new(a.rows, a.cols))?;
-    let at = ScanPlacement::new(step_um, step_um);
+    let at = ScanPlacement::new(Pitch::new(step_um, step_um).expect("a positive pitch"));
     let params = MeshParams {
         epsilon: Epsilon::Um(epsilon_um),
         max_triangles: None,

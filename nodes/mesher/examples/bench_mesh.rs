@@ -9,6 +9,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use surfstream_core::raster::{RasterView, Shape};
+use surfstream_core::Pitch;
 use surfstream_mesher::{
     grid_solid, write_stl_ascii, write_stl_binary, ScanPlacement, SolidParams,
 };
@@ -37,7 +38,7 @@ fn main() -> anyhow::Result<()> {
         })
         .collect();
     let heights = RasterView::new(&heights_um, Shape::new(size, size))?;
-    let at = ScanPlacement::new(0.8148, 0.8148)
+    let at = ScanPlacement::new(Pitch::new(0.8148, 0.8148).expect("a positive pitch"))
         .with_origin(114.21, 26.36)
         .with_z_offset(12_000.0);
     let params = SolidParams::default();

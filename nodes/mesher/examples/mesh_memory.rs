@@ -16,6 +16,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use surfstream_core::raster::{RasterView, Shape};
+use surfstream_core::Pitch;
 use surfstream_mesher::{
     check_closed, grid_solid, grid_streaming, mesh_height_field, mesh_streaming, write_stl_binary,
     Epsilon, MeshKind, MeshParams, MissingSamples, ScanPlacement, SolidParams,
@@ -53,7 +54,8 @@ fn main() -> Result<()> {
         })
         .collect();
     let heights = RasterView::new(&heights_um, Shape::new(rows, cols))?;
-    let at = ScanPlacement::new(3.2592, 3.2592).with_z_offset(100.0);
+    let at = ScanPlacement::new(Pitch::new(3.2592, 3.2592).expect("a positive pitch"))
+        .with_z_offset(100.0);
     let params = MeshParams {
         epsilon: Epsilon::SqFraction(0.05),
         max_triangles: None,

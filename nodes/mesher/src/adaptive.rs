@@ -6,7 +6,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{MeshError, Result};
 use crate::fidelity::{compare, field_params, AreaParams};
+use crate::report::{serde_name, AdaptiveSummary, OFFSET_RULE};
 use surfstream_core::raster::RasterView;
+use surfstream_core::record::AdaptiveMeshRecord;
 
 use crate::field::{validate, ScanPlacement};
 use crate::solid::{close_top_surface, default_base_depth_um, SolidMesh, SolidParams};
@@ -100,7 +102,7 @@ pub(crate) fn mesh_height_field_with(
         Epsilon::Um(e) => e,
         Epsilon::SqFraction(f) => {
             crate::field::positive_finite("epsilon_sq_fraction", f)?;
-            let field = field_params(heights, at.pitch_x_um, at.pitch_y_um);
+            let field = field_params(heights, at.pitch.x_um(), at.pitch.y_um());
             let sq = field.map_or(0.0, |p| p.sq_um);
             if sq <= 0.0 {
                 return Err(MeshError::Incompatible(format!(
@@ -160,7 +162,7 @@ pub(crate) fn finish_adaptive(
         .map(|(&m, h)| if h.is_nan() { f32::NAN } else { m })
         .collect();
     let (field_params, mesh_params) =
-        compare(heights, &mesh_at_measured, at.pitch_x_um, at.pitch_y_um);
+        compare(heights, &mesh_at_measured, at.pitch.x_um(), at.pitch.y_um());
 
     // Place the vertices as the grid solid does: x, y from the sample's index, z from its
     // height; re-centred from small numbers so that no precision is lost.
@@ -288,8 +290,8 @@ impl VertexPlacement {
         let at = &self.at;
         if self.recentre {
             [
-                at.origin_x_um + self.centre_col * at.pitch_x_um,
-                at.origin_y_um + self.centre_row * at.pitch_y_um,
+                at.origin_x_um + self.centre_col * at.pitch.x_um(),
+                at.origin_y_um + self.centre_row * at.pitch.y_um(),
                 at.z_offset_um + self.min_um - self.base_depth_um,
             ]
         } else {
@@ -314,14 +316,14 @@ impl VertexPlacement {
         let h = f64::from(h_um);
         let p = if self.recentre {
             [
-                (j - self.centre_col) * at.pitch_x_um,
-                (i - self.centre_row) * at.pitch_y_um,
+                (j - self.centre_col) * at.pitch.x_um(),
+                (i - self.centre_row) * at.pitch.y_um(),
                 (h - self.min_um) + self.base_depth_um,
             ]
         } else {
             [
-                at.origin_x_um + j * at.pitch_x_um,
-                at.origin_y_um + i * at.pitch_y_um,
+                at.origin_x_um + j * at.pitch.x_um(),
+                at.origin_y_um + i * at.pitch.y_um(),
                 at.z_offset_um + h,
             ]
         };
@@ -330,8 +332,8 @@ impl VertexPlacement {
 }
 
 impl AdaptiveMesh {
-    /// The statistics written to run.json and OUT.json (everything but the file names).
-    pub fn summary(&self) -> serde_json::Value {
+    /// The statistics written to run.json (everything but the file names).
+    pub fn record(&self) -> AdaptiveSummary {
         adaptive_summary(
             self.kind,
             &MeshCounts::of(&self.mesh),
@@ -340,6 +342,11 @@ impl AdaptiveMesh {
             self.budget_reached,
             &self.fidelity,
         )
+    }
+
+    /// [`AdaptiveMesh::record`] as a JSON object (the mesh verb's OUT.json starts from it).
+    pub fn summary(&self) -> serde_json::Value {
+        self.record().to_value()
     }
 }
 
@@ -379,19 +386,18 @@ pub(crate) fn adaptive_summary(
     missing: MissingSamples,
     budget_reached: bool,
     fidelity: &Fidelity,
-) -> serde_json::Value {
-    serde_json::json!({
-        "kind": kind,
-        "units": mesh.units.symbol(),
-        "offset_um": mesh.offset_um,
-        "offset_rule": "scan_um = vertex * um_per_unit + offset_um",
-        "triangles": mesh.triangles,
-        "surface_triangles": mesh.top_triangles,
-        "vertices": mesh.vertices,
-        "base_depth_um": mesh.base_depth_um,
-        "missing_samples": missing_samples,
-        "missing": missing,
-        "budget_reached": budget_reached,
-        "fidelity": fidelity,
-    })
+) -> AdaptiveSummary {
+    AdaptiveSummary {
+        counts: *mesh,
+        record: AdaptiveMeshRecord {
+            kind: serde_name(&kind),
+            offset_rule: OFFSET_RULE.into(),
+            surface_triangles: mesh.top_triangles as u64,
+            missing_samples: missing_samples as u64,
+            missing: serde_name(&missing),
+            budget_reached,
+            fidelity: fidelity.into(),
+            element_quality: None,
+        },
+    }
 }

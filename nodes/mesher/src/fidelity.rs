@@ -9,22 +9,12 @@
 //! cells with four measured corners.
 
 use rayon::prelude::*;
-use serde::Serialize;
 use surfstream_core::metrology::{fit_plane, params, Grid};
 use surfstream_core::raster::{Raster, RasterView, Shape};
 
-/// Areal parameters of one surface, um (Sdr in %).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct AreaParams {
-    /// Arithmetic mean height, um.
-    pub sa_um: f64,
-    /// Root mean square height, um.
-    pub sq_um: f64,
-    /// Maximum height (highest peak to deepest valley), um.
-    pub sz_um: f64,
-    /// Developed interfacial area ratio, %.
-    pub sdr_percent: f64,
-}
+/// Areal parameters of one surface, um (Sdr in %): the report's record itself, so the
+/// fidelity written is the one its readers read.
+pub use surfstream_core::record::LevelledParams as AreaParams;
 
 /// `heights` widened to f64 as a metrology grid's samples.
 fn widened(heights: RasterView<'_, f32>) -> Raster<f64> {

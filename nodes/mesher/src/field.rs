@@ -6,7 +6,7 @@ use std::borrow::Cow;
 
 use surfstream_core::frame::FrameHeader;
 use surfstream_core::raster::RasterView;
-use surfstream_core::{ParamError, Sampling};
+use surfstream_core::{ParamError, Pitch, Sampling};
 
 use crate::error::{MeshError, Result};
 
@@ -19,10 +19,9 @@ use crate::error::{MeshError, Result};
 /// `z = z_offset_um + heights[(i, j)]`. Row index grows with y, column index with x.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ScanPlacement {
-    /// Sample spacing along x (columns), um.
-    pub pitch_x_um: f64,
-    /// Sample spacing along y (rows), um.
-    pub pitch_y_um: f64,
+    /// Sample spacing along x (columns) and y (rows), checked when made; the shape is the
+    /// [`RasterView`]'s.
+    pub pitch: Pitch,
     /// Scan x of sample (0, 0), um.
     pub origin_x_um: f64,
     /// Scan y of sample (0, 0), um.
@@ -33,25 +32,23 @@ pub struct ScanPlacement {
 
 impl ScanPlacement {
     /// Sample (0, 0) at the scan origin and heights relative to z = 0.
-    pub fn new(pitch_x_um: f64, pitch_y_um: f64) -> Self {
+    pub fn new(pitch: Pitch) -> Self {
         Self {
-            pitch_x_um,
-            pitch_y_um,
+            pitch,
             origin_x_um: 0.0,
             origin_y_um: 0.0,
             z_offset_um: 0.0,
         }
     }
 
-    /// The placement a frame header carries.
-    pub fn of_frame(h: &FrameHeader) -> Self {
-        Self {
-            pitch_x_um: h.pitch_x_um,
-            pitch_y_um: h.pitch_y_um,
+    /// The placement a frame header carries; its pitch checked by [`FrameHeader::pitch`].
+    pub fn of_frame(h: &FrameHeader) -> std::result::Result<Self, ParamError> {
+        Ok(Self {
+            pitch: h.pitch()?,
             origin_x_um: h.origin_x_um,
             origin_y_um: h.origin_y_um,
             z_offset_um: h.z_offset_um,
-        }
+        })
     }
 
     /// The same placement with sample (0, 0) at (`origin_x_um`, `origin_y_um`).
@@ -75,10 +72,9 @@ pub(crate) fn validate(heights: RasterView<'_, f32>, at: &ScanPlacement) -> Resu
     if rows < 2 || cols < 2 {
         return Err(MeshError::TooSmall { rows, cols });
     }
-    // A non-positive pitch would mirror the grid and invert every triangle's winding; the
-    // readers guarantee rows grow with y (DESIGN §2), so refuse rather than flip silently.
-    Sampling::new(heights.shape(), at.pitch_x_um, at.pitch_y_um)?
-        .with_origin(at.origin_x_um, at.origin_y_um)?;
+    // The pitch is a checked Pitch (a non-positive one would mirror the grid and invert every
+    // triangle's winding); the origin is checked here.
+    Sampling::of(heights.shape(), at.pitch).with_origin(at.origin_x_um, at.origin_y_um)?;
     finite("z_offset_um", at.z_offset_um)?;
     Ok(())
 }

@@ -12,14 +12,17 @@ use std::path::Path;
 
 use anyhow::{anyhow, bail, Result};
 use serde::Deserialize;
-use serde_json::json;
 use surfstream_core::frame::{flags, from_frame_heights, FrameHeader, FrameView, HeightMap};
 use surfstream_core::fsutil::write_atomic;
 use surfstream_core::raster::{Raster, RasterView, Shape};
+use surfstream_core::record::{
+    self, GridSheetRecord, MeshMethodRecord, MeshReport, OutliersRecord, ToleranceRecord,
+};
 use surfstream_io::npy::{write_npy_abs_f64, write_npy_f64};
 use surfstream_io::sidecar::{write_sidecar, NpyGeometry};
 
 use crate::outliers::{find_spikes, OutlierPolicy, OutlierReport};
+use crate::report::{tolerance_parts, AdaptiveSummary};
 use crate::target::{block_values_on_grid, DemEngine, EngineProfile, TargetMethod};
 use crate::tolerance::{mesh_streaming_to_tolerance, mesh_to_tolerance, ToleranceSettings};
 use crate::{
@@ -344,8 +347,9 @@ impl MesherConfig {
 pub struct MeshedSurface {
     pub solid: SolidMesh,
     pub check: MeshCheck,
-    /// The adaptive mesh's statistics and fidelity report (`None` for the grid solid).
-    pub adaptive: Option<serde_json::Value>,
+    /// The adaptive mesh's or the engine grid sheet's own statistics (`None` for the grid
+    /// solid).
+    pub adaptive: Option<MethodSummary>,
     /// The mesh re-sampled on the meshed grid, absolute heights (um): for the grid mesh the
     /// samples themselves, for the adaptive one its interpolation (NaN where not covered). It
     /// is the "mesh" stage of the model-vs-measurement table (Table 6) in run.json.
@@ -365,7 +369,7 @@ impl MeshedSurface {
     }
 
     /// The statistics for run.json (the caller adds files, wiring and times).
-    pub fn summary(&self, settings: &MeshSettings) -> serde_json::Value {
+    pub fn summary(&self, settings: &MeshSettings) -> MeshReport {
         surface_summary(
             &MeshCounts::of(&self.solid),
             &self.check,
@@ -376,77 +380,115 @@ impl MeshedSurface {
     }
 }
 
-/// The statistics for run.json of a mesh in memory or streamed to its file.
+/// What a method adds to the mesher's report.
+// One value per mesh made: the variants' sizes do not matter.
+#[allow(clippy::large_enum_variant)]
+#[derive(Debug, Clone, PartialEq)]
+pub enum MethodSummary {
+    /// An adaptive mesh: its statistics, the tolerance search's record and the spikes found.
+    Adaptive {
+        summary: AdaptiveSummary,
+        tolerance: Option<ToleranceRecord>,
+        outliers: Option<OutliersRecord>,
+    },
+    /// An engine's regular-grid sheet.
+    GridSheet(GridSheetRecord),
+}
+
+/// The statistics for run.json of a mesh in memory or streamed to its file; the node fills in
+/// the files, the wiring and the times (`file`, `resampled`, `sources`, `t_written_ns`,
+/// `live_frames_skipped`).
 fn surface_summary(
     counts: &MeshCounts,
     check: &MeshCheck,
-    adaptive: Option<&serde_json::Value>,
+    method: Option<&MethodSummary>,
     h: &FrameHeader,
     settings: &MeshSettings,
-) -> serde_json::Value {
-    let mut summary = json!({
-        "format": settings.format.name(),
-        "units": settings.solid.units.symbol(),
-        "offset_um": counts.offset_um,
-        "triangles": counts.triangles,
-        "top_triangles": counts.top_triangles,
-        "vertices": counts.vertices,
-        "filled_samples": counts.filled_samples,
-        "base_depth_um": counts.base_depth_um,
-        "watertight": check.watertight,
-        "consistently_oriented": check.consistently_oriented,
-        "grid_px": [h.width, h.height],
-        "pitch_um": [h.pitch_x_um, h.pitch_y_um],
-        "t_acquired_ns": h.t_acquired_ns,
-        "surface": settings.surface.name(),
-    });
-    if let (Some(o), Some(t)) = (summary.as_object_mut(), settings.target) {
-        o.insert("target".into(), json!(t));
-    }
-    if let Some(o) = summary.as_object_mut() {
-        match adaptive {
-            Some(serde_json::Value::Object(a)) => {
-                o.insert("method".into(), json!("adaptive"));
-                o.extend(a.clone());
-            }
-            _ => {
-                o.insert("method".into(), json!("grid"));
-            }
+) -> MeshReport {
+    // An adaptive mesh's own sizes stand for the mesh's (they are the same mesh's).
+    let (counts, units) = match method {
+        Some(MethodSummary::Adaptive { summary, .. }) => {
+            (&summary.counts, summary.counts.units.symbol())
         }
+        _ => (counts, settings.solid.units.symbol()),
+    };
+    let (method_name, method_record, tolerance, outliers) = match method {
+        Some(MethodSummary::Adaptive {
+            summary,
+            tolerance,
+            outliers,
+        }) => (
+            "adaptive",
+            Some(MeshMethodRecord::Adaptive(summary.record.clone())),
+            tolerance.clone(),
+            outliers.clone(),
+        ),
+        Some(MethodSummary::GridSheet(g)) => (
+            "grid",
+            Some(MeshMethodRecord::GridSheet(g.clone())),
+            None,
+            None,
+        ),
+        None => ("grid", None, None, None),
+    };
+    MeshReport {
+        file: String::new(),
+        resampled: String::new(),
+        sources: BTreeMap::new(),
+        t_acquired_ns: h.t_acquired_ns,
+        t_written_ns: 0,
+        live_frames_skipped: 0,
+        format: settings.format.name().into(),
+        units: units.into(),
+        offset_um: counts.offset_um,
+        triangles: counts.triangles as u64,
+        top_triangles: counts.top_triangles as u64,
+        vertices: counts.vertices as u64,
+        filled_samples: counts.filled_samples as u64,
+        base_depth_um: Some(counts.base_depth_um),
+        watertight: check.watertight,
+        consistently_oriented: check.consistently_oriented,
+        grid_px: [u64::from(h.width), u64::from(h.height)],
+        pitch_um: [h.pitch_x_um, h.pitch_y_um],
+        surface: settings.surface.name().into(),
+        target: settings.target.as_ref().map(record::to_value),
+        method: method_name.into(),
+        method_record,
+        tolerance,
+        outliers,
     }
-    summary
 }
 
-/// Adds the tolerance search's report to an adaptive mesh's statistics ("tolerance").
-/// With an angle bound (an engine's target) also the element quality of the mesh written, as
-/// the grid targets report it ("element_quality").
-fn add_tolerance(summary: &mut serde_json::Value, report: Option<&crate::ToleranceReport>) {
-    if let (Some(o), Some(r)) = (summary.as_object_mut(), report) {
-        o.insert("tolerance".into(), json!(r));
-        if let Some(a) = &r.angles {
-            o.insert(
-                "element_quality".into(),
-                json!({
-                    "min_angle_deg": a.min_angle_deg,
-                    "min_angle_bound_deg": a.bound_deg,
-                    "below_bound": a.below_bound,
-                }),
-            );
-        }
+/// An adaptive mesh's statistics with the tolerance search's report ("tolerance") and, with
+/// an angle bound (an engine's target), the element quality of the mesh written
+/// ("element_quality", as the grid targets report it).
+fn adaptive_method(
+    mut summary: AdaptiveSummary,
+    report: Option<&crate::ToleranceReport>,
+) -> MethodSummary {
+    let tolerance = report.map(|r| {
+        let (record, quality) = tolerance_parts(r);
+        summary.record.element_quality = quality;
+        record
+    });
+    MethodSummary::Adaptive {
+        summary,
+        tolerance,
+        outliers: None,
     }
 }
 
 /// Adds the spike report to an adaptive mesh's statistics ("outliers").
-fn add_outliers(summary: &mut Option<serde_json::Value>, report: Option<&OutlierReport>) {
-    if let (Some(o), Some(r)) = (summary.as_mut().and_then(|v| v.as_object_mut()), report) {
-        o.insert("outliers".into(), json!(r));
+fn add_outliers(method: &mut Option<MethodSummary>, report: Option<&OutlierReport>) {
+    if let (Some(MethodSummary::Adaptive { outliers, .. }), Some(r)) = (method.as_mut(), report) {
+        *outliers = Some(r.into());
     }
 }
 
 /// What [`MeshJob::mesh_to_files`] wrote.
 pub struct MeshFiles {
     /// The statistics for run.json (as [`MeshedSurface::summary`]).
-    pub summary: serde_json::Value,
+    pub summary: MeshReport,
     pub check: MeshCheck,
     /// True when the adaptive mesh went through the streaming mesher ([`crate::stream`]).
     pub streamed: bool,
@@ -606,12 +648,12 @@ impl MeshJob {
         // The frame's grid: rows along y (header height), columns along x (header width).
         let shape = Shape::new(h.height as usize, h.width as usize);
         let heights = RasterView::new(&s.heights, shape).map_err(|e| anyhow!("mesher: {e}"))?;
-        let at = ScanPlacement::of_frame(&h);
+        let at = ScanPlacement::of_frame(&h).map_err(|e| anyhow!("mesher: {e}"))?;
         let (solid, adaptive, resampled) = match (&self.settings.adaptive, self.grid_target()) {
             (_, Some(profile)) => {
                 let t = grid_sheet_for(heights, &at, &profile)?;
                 let on_grid = block_values_on_grid(t.block_means.view(), t.stride, shape);
-                let summary = t.summary();
+                let summary = MethodSummary::GridSheet(t.record());
                 (t.mesh, Some(summary), Some(on_grid.into_values()))
             }
             (None, None) => (grid_solid(heights, &at, &self.settings.solid)?, None, None),
@@ -624,8 +666,7 @@ impl MeshJob {
                     }
                     None => (mesh_height_field(heights, &at, p)?, None),
                 };
-                let mut summary = m.summary();
-                add_tolerance(&mut summary, report.as_ref());
+                let summary = adaptive_method(m.record(), report.as_ref());
                 (m.mesh, Some(summary), Some(m.resampled_um))
             }
         };
@@ -671,8 +712,11 @@ impl MeshJob {
                 // The full-grid solid, streamed: its mesh on the grid is the samples themselves.
                 let heights =
                     RasterView::new(&s.heights, shape).map_err(|e| anyhow!("mesher: {e}"))?;
-                let g =
-                    grid_streaming(heights, &ScanPlacement::of_frame(&h), &self.settings.solid)?;
+                let g = grid_streaming(
+                    heights,
+                    &ScanPlacement::of_frame(&h).map_err(|e| anyhow!("mesher: {e}"))?,
+                    &self.settings.solid,
+                )?;
                 write_npy_abs_f64(
                     resampled_npy,
                     &s.heights,
@@ -710,7 +754,7 @@ impl MeshJob {
             }
         };
         let heights = RasterView::new(&s.heights, shape).map_err(|e| anyhow!("mesher: {e}"))?;
-        let at = ScanPlacement::of_frame(&h);
+        let at = ScanPlacement::of_frame(&h).map_err(|e| anyhow!("mesher: {e}"))?;
         let spill_dir = match stl.parent() {
             Some(d) if !d.as_os_str().is_empty() => d,
             _ => Path::new("."),
@@ -726,10 +770,8 @@ impl MeshJob {
             }
             None => (mesh_streaming(heights, &at, &params, spill_dir)?, None),
         };
-        add_tolerance(&mut m.summary, report.as_ref());
-        if let (Some(o), Some(r)) = (m.summary.as_object_mut(), &spikes) {
-            o.insert("outliers".into(), json!(r));
-        }
+        let mut method = Some(adaptive_method(m.summary.clone(), report.as_ref()));
+        add_outliers(&mut method, spikes.as_ref());
         write_npy_abs_f64(
             resampled_npy,
             &m.resampled_um,
@@ -745,7 +787,7 @@ impl MeshJob {
         })?;
         let check = check.ok_or_else(|| anyhow!("mesher: {}: nothing written", stl.display()))?;
         Ok(MeshFiles {
-            summary: surface_summary(&m.counts, &check, Some(&m.summary), &h, &self.settings),
+            summary: surface_summary(&m.counts, &check, method.as_ref(), &h, &self.settings),
             check,
             streamed: true,
         })

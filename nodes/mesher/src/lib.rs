@@ -36,12 +36,13 @@
 //!
 //! ```
 //! use surfstream_core::raster::{RasterView, Shape};
+//! use surfstream_core::Pitch;
 //! use surfstream_mesher::{check_closed, grid_solid, write_stl_binary, ScanPlacement, SolidParams};
 //!
 //! // 2 rows x 3 columns, one missing sample.
 //! let heights_um = [0.0f32, 1.0, 2.0, 0.5, f32::NAN, 1.5];
 //! let heights = RasterView::new(&heights_um, Shape::new(2, 3))?;
-//! let at = ScanPlacement::new(0.8148, 0.8148).with_origin(100.0, 20.0);
+//! let at = ScanPlacement::new(Pitch::square(0.8148)?).with_origin(100.0, 20.0);
 //! let solid = grid_solid(heights, &at, &SolidParams::default())?;
 //! assert_eq!(solid.filled_samples, 1);
 //! assert!(check_closed(&solid).watertight);
@@ -59,6 +60,7 @@ pub mod field;
 mod geom;
 pub mod job;
 pub mod outliers;
+pub mod report;
 pub mod solid;
 pub mod stl;
 pub mod stream;

@@ -6,8 +6,8 @@
 //! STL, the resampled mesh and the summary for run.json.
 
 use anyhow::{anyhow, bail, Result};
-use serde_json::json;
 use surfstream_core::frame::monotonic_ns;
+use surfstream_core::record::{self, MeshReport};
 use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
@@ -25,7 +25,8 @@ pub struct MesherNode {
     /// Where each input comes from ("node/port"), for run.json.
     sources: Vec<(String, String)>,
     done: bool,
-    summary: serde_json::Value,
+    /// The report once the mesh is written.
+    summary: Option<MeshReport>,
 }
 
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
@@ -56,7 +57,7 @@ impl MesherNode {
             file: config.file,
             sources,
             done: false,
-            summary: serde_json::Value::Null,
+            summary: None,
         })
     }
 
@@ -66,22 +67,14 @@ impl MesherNode {
         let written = self
             .job
             .mesh_to_files(&self.path, &dir.join(MESH_RESAMPLED))?;
-        self.summary = written.summary;
-        if let Some(o) = self.summary.as_object_mut() {
-            let sources: serde_json::Map<_, _> = self
-                .sources
-                .iter()
-                .map(|(p, f)| (p.clone(), json!(f)))
-                .collect();
-            o.insert("file".into(), json!(self.file));
-            o.insert("resampled".into(), json!(MESH_RESAMPLED));
-            o.insert("t_written_ns".into(), json!(monotonic_ns()));
-            o.insert(
-                "live_frames_skipped".into(),
-                json!(self.job.live_frames_skipped()),
-            );
-            o.insert("sources".into(), json!(sources));
-        }
+        self.summary = Some(MeshReport {
+            file: self.file.clone(),
+            resampled: MESH_RESAMPLED.into(),
+            sources: self.sources.iter().cloned().collect(),
+            t_written_ns: monotonic_ns(),
+            live_frames_skipped: self.job.live_frames_skipped(),
+            ..written.summary
+        });
         Ok(())
     }
 }
@@ -107,12 +100,8 @@ impl NodeLogic for MesherNode {
     }
 
     fn report(&self) -> serde_json::Value {
-        let mut r = self.summary.clone();
-        if let Some(o) = r.as_object_mut() {
-            // Latency trace: lifted into run.json's latency_ms by the launcher.
-            o.entry("live_frames_skipped")
-                .or_insert(json!(self.job.live_frames_skipped()));
-        }
-        r
+        // Null until the mesh is written; its times are lifted into run.json's latency_ms by
+        // the launcher.
+        record::to_value(&self.summary)
     }
 }

@@ -304,7 +304,7 @@ impl GridPlacement {
         let base_depth_um = params
             .base_depth_um
             .unwrap_or_else(|| default_base_depth_um(max_um - min_um));
-        let (px, py) = (at.pitch_x_um, at.pitch_y_um);
+        let (px, py) = (at.pitch.x_um(), at.pitch.y_um());
         let centre_col = (cols - 1) as f64 / 2.0;
         let centre_row = (rows - 1) as f64 / 2.0;
         // Position of a sample relative to the output origin, um. Recentred coordinates are
@@ -372,7 +372,7 @@ impl GridPlacement {
     #[inline]
     pub(crate) fn place(&self, i: usize, j: usize, h_um: f32) -> [f64; 3] {
         let at = &self.at;
-        let (px, py) = (at.pitch_x_um, at.pitch_y_um);
+        let (px, py) = (at.pitch.x_um(), at.pitch.y_um());
         let h_um = f64::from(h_um);
         let (x_um, y_um, z_um) = if self.recentre {
             (

@@ -84,8 +84,8 @@ pub struct StreamedMesh {
     /// The mesh re-sampled on the grid, um relative to the field's z offset (NaN: not covered):
     /// what [`crate::AdaptiveMesh::resampled_um`] holds.
     pub resampled_um: Vec<f32>,
-    /// The statistics [`crate::AdaptiveMesh::summary`] gives.
-    pub summary: serde_json::Value,
+    /// The statistics [`crate::AdaptiveMesh::record`] gives.
+    pub summary: crate::report::AdaptiveSummary,
     pub fidelity: Fidelity,
     /// The kept top triangles, three grid sample indices each, in order from offset 0.
     spill: AppendLog<u32>,
@@ -222,7 +222,7 @@ pub(crate) fn mesh_streaming_with(
     crate::adaptive::check_adaptive(heights, at, params)?;
     // The field's plane and parameters, once (the in-memory mesher computes them twice, the
     // same way); one f64 copy of the field while it runs.
-    let level = level_field(heights, at.pitch_x_um, at.pitch_y_um);
+    let level = level_field(heights, at.pitch.x_um(), at.pitch.y_um());
     let epsilon_um = match params.epsilon {
         Epsilon::Um(e) => e,
         Epsilon::SqFraction(f) => {
@@ -261,7 +261,7 @@ pub(crate) fn mesh_streaming_with(
 
 /// The level of the field, for [`stream_blocks`] (one f64 copy of the field while it runs).
 pub(crate) fn field_level(heights: RasterView<'_, f32>, at: &ScanPlacement) -> Option<FieldLevel> {
-    level_field(heights, at.pitch_x_um, at.pitch_y_um)
+    level_field(heights, at.pitch.x_um(), at.pitch.y_um())
 }
 
 /// The first pass of the streaming mesher over the blocks of `plan`, each triangulated by

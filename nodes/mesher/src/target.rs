@@ -20,6 +20,7 @@ use std::str::FromStr;
 
 use serde::{Deserialize, Serialize};
 use surfstream_core::raster::{Raster, RasterView, Shape};
+use surfstream_core::record::{self, GridSheetFidelity, GridSheetRecord};
 
 use crate::error::{MeshError, Result};
 use crate::fidelity::{field_params, AreaParams};
@@ -206,16 +207,8 @@ pub fn block_values_on_grid(
     out
 }
 
-/// Element quality as the engines judge it.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct ElementQuality {
-    /// Smallest interior angle of any triangle, degrees.
-    pub min_angle_deg: f64,
-    /// Most triangles sharing one vertex.
-    pub max_triangles_per_vertex: usize,
-    /// Triangles with the same three vertices as another.
-    pub duplicate_triangles: usize,
-}
+/// Element quality of a mesh: the one record the report carries ([`record::ElementQuality`]).
+pub use surfstream_core::record::ElementQuality;
 
 /// Measures the quality of the first `count` triangles of `mesh`.
 pub fn element_quality(mesh: &SolidMesh, count: usize) -> ElementQuality {
@@ -252,8 +245,8 @@ pub fn element_quality(mesh: &SolidMesh, count: usize) -> ElementQuality {
         } else {
             0.0
         },
-        max_triangles_per_vertex: per_vertex.into_iter().max().unwrap_or(0),
-        duplicate_triangles,
+        max_triangles_per_vertex: per_vertex.into_iter().max().unwrap_or(0) as u64,
+        duplicate_triangles: duplicate_triangles as u64,
     }
 }
 
@@ -278,18 +271,31 @@ pub struct TargetMesh {
 }
 
 impl TargetMesh {
-    /// What run.json and the mesh JSON record of a grid target beside the common fields.
+    /// What run.json and the mesh JSON record of a grid target beside the common fields
+    /// (`target` and `method` are the report's own).
+    pub fn record(&self) -> GridSheetRecord {
+        GridSheetRecord {
+            kind: "sheet".into(),
+            block_stride: self.stride as u64,
+            grid_rows_cols: [self.grid.rows as u64, self.grid.cols as u64],
+            meshed_pitch_um: self.pitch_um,
+            element_quality: self.quality,
+            fidelity: GridSheetFidelity {
+                measured: self.measured,
+                meshed_grid: self.meshed,
+            },
+        }
+    }
+
+    /// [`TargetMesh::record`] with the engine and the method, as a JSON object (the mesh
+    /// verb's and the Python binding's report start from it).
     pub fn summary(&self) -> serde_json::Value {
-        serde_json::json!({
-            "target": self.profile,
-            "method": "grid",
-            "kind": "sheet",
-            "block_stride": self.stride,
-            "grid_rows_cols": [self.grid.rows, self.grid.cols],
-            "meshed_pitch_um": self.pitch_um,
-            "element_quality": self.quality,
-            "fidelity": { "measured": self.measured, "meshed_grid": self.meshed },
-        })
+        let mut v = record::to_value(&self.record());
+        if let Some(o) = v.as_object_mut() {
+            o.insert("target".into(), record::to_value(&self.profile));
+            o.insert("method".into(), "grid".into());
+        }
+        v
     }
 }
 
@@ -306,10 +312,9 @@ pub fn grid_sheet_for(
     // A block's mean stands at the block's centre.
     let half = (stride as f64 - 1.0) * 0.5;
     let reduced_at = ScanPlacement {
-        pitch_x_um: at.pitch_x_um * stride as f64,
-        pitch_y_um: at.pitch_y_um * stride as f64,
-        origin_x_um: at.origin_x_um + half * at.pitch_x_um,
-        origin_y_um: at.origin_y_um + half * at.pitch_y_um,
+        pitch: at.pitch.times(stride)?,
+        origin_x_um: at.origin_x_um + half * at.pitch.x_um(),
+        origin_y_um: at.origin_y_um + half * at.pitch.y_um(),
         z_offset_um: at.z_offset_um,
     };
     let params = SolidParams {
@@ -346,14 +351,18 @@ pub fn grid_sheet_for(
             quality.min_angle_deg,
             quality.duplicate_triangles,
             profile.min_angle_deg,
-            reduced_at.pitch_x_um,
-            reduced_at.pitch_y_um
+            reduced_at.pitch.x_um(),
+            reduced_at.pitch.y_um()
         )));
     }
     Ok(TargetMesh {
         mesh,
-        measured: field_params(heights, at.pitch_x_um, at.pitch_y_um),
-        meshed: field_params(reduced.view(), reduced_at.pitch_x_um, reduced_at.pitch_y_um),
+        measured: field_params(heights, at.pitch.x_um(), at.pitch.y_um()),
+        meshed: field_params(
+            reduced.view(),
+            reduced_at.pitch.x_um(),
+            reduced_at.pitch.y_um(),
+        ),
         // Recorded as what was made: the regular grid, whatever the engine's default.
         profile: EngineProfile {
             method: TargetMethod::Grid,
@@ -362,7 +371,7 @@ pub fn grid_sheet_for(
         stride,
         grid: reduced.shape(),
         block_means: reduced,
-        pitch_um: [reduced_at.pitch_x_um, reduced_at.pitch_y_um],
+        pitch_um: [reduced_at.pitch.x_um(), reduced_at.pitch.y_um()],
         quality,
     })
 }
@@ -370,6 +379,7 @@ pub fn grid_sheet_for(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use surfstream_core::Pitch;
 
     #[test]
     fn engines_parse_and_liggghts_gets_an_ascii_sheet_in_metres() {
@@ -430,7 +440,7 @@ mod tests {
         profile.max_triangles = 2000;
         let t = grid_sheet_for(
             RasterView::new(&z, shape).unwrap(),
-            &ScanPlacement::new(0.5, 1.0),
+            &ScanPlacement::new(Pitch::new(0.5, 1.0).expect("a positive pitch")),
             &profile,
         )
         .unwrap();

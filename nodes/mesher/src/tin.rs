@@ -1648,21 +1648,8 @@ impl LiveBlock<'_> {
     }
 }
 
-/// What the angle bound did to a mesh ([`bound_block_angles`]).
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
-pub struct AngleStats {
-    /// The bound, degrees (x, y, z).
-    pub bound_deg: f64,
-    /// Smallest angle of any triangle before and after the refinement, degrees.
-    pub min_angle_before_deg: f64,
-    pub min_angle_deg: f64,
-    /// Triangles below the bound before and after.
-    pub below_bound_before: usize,
-    pub below_bound: usize,
-    /// Triangles before and after (the refinement's cost).
-    pub triangles_before: usize,
-    pub triangles: usize,
-}
+/// What the angle bound did to a mesh ([`bound_block_angles`]): the report's record itself.
+pub use surfstream_core::record::AngleRecord as AngleStats;
 
 /// Rounds between the blocks at most: each round every block refines its slivers and its
 /// neighbours then insert the samples it added on their shared sides.
@@ -1722,10 +1709,10 @@ pub(crate) fn bound_block_angles(
         bound_deg: bound.min_angle_deg,
         min_angle_before_deg: before.1,
         min_angle_deg: after.1,
-        below_bound_before: before.2,
-        below_bound: after.2,
-        triangles_before: before.0,
-        triangles: after.0,
+        below_bound_before: before.2 as u64,
+        below_bound: after.2 as u64,
+        triangles_before: before.0 as u64,
+        triangles: after.0 as u64,
     }
 }
 

@@ -63,8 +63,8 @@ fn independent_check(m: &AdaptiveMesh, map: &Map<'_>) -> (f64, usize, usize) {
         // Back to fractional grid indices.
         let g = p.map(|q| {
             (
-                (q[0] - map.at.origin_x_um) / map.at.pitch_x_um,
-                (q[1] - map.at.origin_y_um) / map.at.pitch_y_um,
+                (q[0] - map.at.origin_x_um) / map.at.pitch.x_um(),
+                (q[1] - map.at.origin_y_um) / map.at.pitch.y_um(),
                 q[2] - map.at.z_offset_um,
             )
         });

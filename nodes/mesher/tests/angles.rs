@@ -5,6 +5,7 @@
 //! interpolated at every sample by a brute-force barycentric search).
 
 use surfstream_core::raster::{RasterView, Shape};
+use surfstream_core::Pitch;
 use surfstream_mesher::{
     check_closed, mesh_streaming_to_tolerance, mesh_to_tolerance, AdaptiveMesh, Epsilon,
     LengthUnit, MeshKind, MeshParams, MissingSamples, ScanPlacement, SolidParams,
@@ -150,7 +151,7 @@ fn deviations(z: &[f32], mesh: &[f64]) -> [f64; 3] {
 fn the_angle_bound_removes_the_slivers_and_keeps_the_tolerance() {
     let z = surface();
     let heights = RasterView::new(&z, Shape::new(ROWS, COLS)).unwrap();
-    let at = ScanPlacement::new(PITCH[0], PITCH[1]);
+    let at = ScanPlacement::new(Pitch::new(PITCH[0], PITCH[1]).expect("a positive pitch"));
     // Without the bound this surface's model has slivers: the test can fail.
     let (plain, plain_report) =
         mesh_to_tolerance(heights, None, &at, &params(), &settings(None)).unwrap();

@@ -4,6 +4,7 @@ mod common;
 
 use common::*;
 use surfstream_core::raster::{RasterView, Shape, ShapeError};
+use surfstream_core::Pitch;
 use surfstream_mesher::{
     check_closed, grid_solid, LengthUnit, MeshError, ScanPlacement, SolidMesh, SolidParams,
 };
@@ -221,7 +222,7 @@ fn bad_inputs_give_clear_errors() {
 
     // A payload that does not fill its shape, an empty or an overflowing shape never becomes
     // a raster, so it never reaches the mesher; the error converts into the mesher's.
-    let at = ScanPlacement::new(1.0, 1.0);
+    let at = ScanPlacement::new(Pitch::new(1.0, 1.0).expect("a positive pitch"));
     for (values, shape) in [
         (&row[..], Shape::new(2, 2)),
         (&[][..], Shape::new(0, 0)),
@@ -238,8 +239,10 @@ fn bad_inputs_give_clear_errors() {
     let short = RasterView::new(&row[..4], Shape::new(2, 2)).unwrap();
     assert!(grid_solid(short, &at, &params).is_ok());
 
+    // A bad pitch never becomes a Pitch, so it never reaches the mesher; the error of the one
+    // check converts into the mesher's, naming the axis.
     for bad in [f64::NAN, f64::INFINITY, 0.0, -0.8] {
-        let err = solid(Map::new(&HEIGHTS_3X4_UM, 3, 4, bad, 1.0), &params).unwrap_err();
+        let err = MeshError::from(Pitch::new(bad, 1.0).unwrap_err());
         assert!(
             matches!(
                 err,
@@ -250,7 +253,7 @@ fn bad_inputs_give_clear_errors() {
             ),
             "{err}"
         );
-        let err = solid(Map::new(&HEIGHTS_3X4_UM, 3, 4, 1.0, bad), &params).unwrap_err();
+        let err = MeshError::from(Pitch::new(1.0, bad).unwrap_err());
         assert!(err.to_string().starts_with("pitch_y_um"), "{err}");
     }
     let map = field_3x4(&HEIGHTS_3X4_UM).with_origin(f64::NAN, 0.0);

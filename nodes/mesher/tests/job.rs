@@ -3,6 +3,7 @@
 //! roughness summed, and the mesh + fidelity report it produces.
 
 use surfstream_core::frame::{flags, FrameHeader, FrameKind, HeightMap};
+use surfstream_core::record;
 use surfstream_mesher::{MeshJob, MesherConfig, StlFormat, SurfaceChoice};
 
 const ROWS: usize = 24;
@@ -164,7 +165,8 @@ fn meshes_the_sum_once_both_inputs_have_ended() {
         let sum = 500.0 + f64::from(d + q);
         assert!((r - sum).abs() <= 0.02 + 1e-4, "{r} vs {sum}");
     }
-    let summary = m.summary(job.settings());
+    // The report as it is written (a JSON object).
+    let summary = record::to_value(&m.summary(job.settings()));
     assert_eq!(summary["method"], "adaptive");
     assert_eq!(summary["surface"], "datum+roughness");
     assert_eq!(summary["grid_px"], serde_json::json!([COLS, ROWS]));
@@ -197,7 +199,8 @@ fn a_wired_roughness_is_awaited_and_judged() {
     );
     assert!(job.accept("roughness", eos().view()));
     let m = job.mesh().unwrap();
-    let report = &m.adaptive.unwrap()["tolerance"];
+    let summary = record::to_value(&m.summary(job.settings()));
+    let report = &summary["tolerance"];
     let fits = report["region_fits"].as_array().unwrap();
     assert!(!fits.is_empty());
     assert!(
@@ -218,7 +221,7 @@ fn grid_method_resamples_to_the_samples_themselves() {
     assert!(job.accept("surface", eos().view()));
     let m = job.mesh().unwrap();
     assert!(m.adaptive.is_none());
-    assert_eq!(m.summary(job.settings())["method"], "grid");
+    assert_eq!(m.summary(job.settings()).method, "grid");
     for (&r, &z) in m.resampled_um.values().iter().zip(&h) {
         assert_eq!(r, f64::from(z) + 500.0);
     }

@@ -3,6 +3,7 @@
 //! columns cannot be swapped anywhere between the raster and the file.
 
 use surfstream_core::raster::{RasterView, Shape};
+use surfstream_core::Pitch;
 use surfstream_mesher::{
     grid_solid, mesh_height_field, write_stl_binary, Epsilon, LengthUnit, MeshKind, MeshParams,
     MissingSamples, ScanPlacement, SolidMesh, SolidParams,
@@ -66,7 +67,8 @@ fn stl_x_spans_the_columns_and_y_the_rows() {
     let h = heights_um();
     let heights = RasterView::new(&h, Shape::new(ROWS, COLS)).unwrap();
     let origin = [100.0, -20.0];
-    let at = ScanPlacement::new(PITCH_X_UM, PITCH_Y_UM).with_origin(origin[0], origin[1]);
+    let at = ScanPlacement::new(Pitch::new(PITCH_X_UM, PITCH_Y_UM).expect("a positive pitch"))
+        .with_origin(origin[0], origin[1]);
     let solid = SolidParams {
         units: LengthUnit::Um,
         base_depth_um: None,

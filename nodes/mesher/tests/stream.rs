@@ -6,6 +6,8 @@
 
 use surfstream_core::frame::{flags, FrameHeader, FrameKind, HeightMap};
 use surfstream_core::raster::{RasterView, Shape};
+use surfstream_core::record;
+use surfstream_core::Pitch;
 use surfstream_mesher::{
     check_closed, grid_solid, grid_streaming, mesh_height_field, mesh_streaming, write_stl_ascii,
     write_stl_binary, Epsilon, LengthUnit, MeshCheck, MeshCounts, MeshJob, MeshKind, MeshParams,
@@ -76,7 +78,7 @@ fn streamed(
     let mut m = mesh_streaming(heights, at, p, dir.path()).unwrap();
     let mut stl = Vec::new();
     let check = m.write_stl(&mut stl, ascii, LABEL, heights).unwrap();
-    (stl, m.summary.clone(), m.resampled_um.clone(), check)
+    (stl, m.summary.to_value(), m.resampled_um.clone(), check)
 }
 
 fn bits(v: &[f32]) -> Vec<u32> {
@@ -131,7 +133,7 @@ fn same_check(a: &MeshCheck, b: &MeshCheck) {
 #[test]
 fn streamed_equals_in_memory_on_solids_sheets_holes_and_formats() {
     let (rows, cols) = (157, 213);
-    let at = ScanPlacement::new(0.8148, 0.91)
+    let at = ScanPlacement::new(Pitch::new(0.8148, 0.91).expect("a positive pitch"))
         .with_origin(1234.5, -87.25)
         .with_z_offset(-310.0);
     let full = surface(rows, cols, false);
@@ -204,7 +206,8 @@ fn streamed_equals_in_memory_with_a_budget_and_without_recentring() {
     let (rows, cols) = (90, 120);
     let z = surface(rows, cols, true);
     let heights = RasterView::new(&z, Shape::new(rows, cols)).unwrap();
-    let at = ScanPlacement::new(2.5, 2.5).with_origin(5.0e4, 3.0e4);
+    let at = ScanPlacement::new(Pitch::new(2.5, 2.5).expect("a positive pitch"))
+        .with_origin(5.0e4, 3.0e4);
     let mut p = params(MeshKind::Solid, MissingSamples::Fill, Some(30));
     p.max_triangles = Some(900);
     p.epsilon = Epsilon::Um(0.01);
@@ -227,7 +230,7 @@ fn streamed_equals_in_memory_with_a_budget_and_without_recentring() {
     same_check(&check_a, &check_b);
 
     // 10 m from the origin in mm without recentring: f32 welds vertices; counted alike.
-    let at = ScanPlacement::new(0.5, 0.5)
+    let at = ScanPlacement::new(Pitch::new(0.5, 0.5).expect("a positive pitch"))
         .with_origin(1.0e7, 1.0e7)
         .with_z_offset(1.0e7);
     p.solid.units = LengthUnit::Mm;
@@ -242,7 +245,7 @@ fn streamed_equals_in_memory_with_a_budget_and_without_recentring() {
 fn streamed_refuses_what_the_in_memory_mesher_refuses() {
     let z = vec![f32::NAN; 12];
     let heights = RasterView::new(&z, Shape::new(3, 4)).unwrap();
-    let at = ScanPlacement::new(1.0, 1.0);
+    let at = ScanPlacement::new(Pitch::new(1.0, 1.0).expect("a positive pitch"));
     let dir = tempfile::tempdir().unwrap();
     for p in [
         params(MeshKind::Solid, MissingSamples::Holes, None),
@@ -276,7 +279,7 @@ fn streamed_grid_equals_grid_solid() {
     ] {
         let z = surface(rows, cols, holes);
         let heights = RasterView::new(&z, Shape::new(rows, cols)).unwrap();
-        let at = ScanPlacement::new(1.5, 0.75)
+        let at = ScanPlacement::new(Pitch::new(1.5, 0.75).expect("a positive pitch"))
             .with_origin(origin_um, origin_um)
             .with_z_offset(origin_um);
         let p = SolidParams {
@@ -359,7 +362,12 @@ fn mesh_to_files_matches_the_in_memory_job() {
         let grid_target = text.contains("target") && text.contains("grid");
         assert_eq!(files.streamed, !grid_target, "{text}");
         assert!(std::fs::read(&stl).unwrap() == stl_a, "{text}: STL differs");
-        assert_eq!(files.summary, m.summary(&settings), "{text}");
+        // Compared as written (NaN as null).
+        assert_eq!(
+            record::to_value(&files.summary),
+            record::to_value(&m.summary(&settings)),
+            "{text}"
+        );
         assert_eq!(files.check.watertight, m.check.watertight, "{text}");
         let back = surfstream_io::npy::read_npy_f64(&npy).unwrap();
         assert_eq!((back.rows, back.cols), (rows, cols));

@@ -6,6 +6,7 @@
 //! region fails and why.
 
 use surfstream_core::raster::{RasterView, Shape};
+use surfstream_core::Pitch;
 use surfstream_mesher::tolerance::ModelMethod;
 use surfstream_mesher::{
     mesh_streaming_to_tolerance, mesh_to_tolerance, AdaptiveMesh, Epsilon, LengthUnit, MeshKind,
@@ -130,7 +131,7 @@ fn model_with(
     method: ModelMethod,
 ) -> (AdaptiveMesh, surfstream_mesher::ToleranceReport, [f64; 3]) {
     let heights = RasterView::new(z, Shape::new(ROWS, COLS)).unwrap();
-    let at = ScanPlacement::new(1.0, 1.0);
+    let at = ScanPlacement::new(Pitch::new(1.0, 1.0).expect("a positive pitch"));
     let mut p = params();
     p.max_triangles = max_triangles;
     let s = ToleranceSettings {
@@ -261,7 +262,7 @@ fn a_tilted_plane_is_two_triangles() {
 fn the_streamed_search_chooses_the_same_mesh() {
     let z = rough();
     let heights = RasterView::new(&z, Shape::new(ROWS, COLS)).unwrap();
-    let at = ScanPlacement::new(1.0, 1.0);
+    let at = ScanPlacement::new(Pitch::new(1.0, 1.0).expect("a positive pitch"));
     let s = settings("sa=1,sq=1,sz=3");
     let (m, r) = mesh_to_tolerance(heights, None, &at, &params(), &s).unwrap();
     let dir = tempfile::tempdir().unwrap();
@@ -341,7 +342,7 @@ fn a_bisected_checkpoint_passes_with_fewer_triangles_than_the_coarse_one_above_i
     // well above the last failing one, and a bound between them passes with fewer triangles.
     let (z, g) = wavy_noise(22, 0.5);
     let heights = RasterView::new(&z, Shape::new(ROWS, COLS)).unwrap();
-    let at = ScanPlacement::new(1.0, 1.0);
+    let at = ScanPlacement::new(Pitch::new(1.0, 1.0).expect("a positive pitch"));
     let s = settings("sa=1,sq=1,sz=3");
     let (m, r) = mesh_to_tolerance(heights, Some(&g), &at, &params(), &s).unwrap();
     assert!(r.met, "{:?}", r.reason);

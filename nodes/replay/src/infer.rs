@@ -11,6 +11,7 @@ use std::path::{Path, PathBuf};
 use std::str::FromStr;
 
 use anyhow::{anyhow, bail, Context, Result};
+use surfstream_core::Pitch;
 use surfstream_io::formats;
 
 /// The scan as the user describes it on the command line.
@@ -116,8 +117,8 @@ struct TileFile {
     path: PathBuf,
     rows: usize,
     cols: usize,
-    pitch_um: (f64, f64),
-    pitch_known: bool,
+    /// The file's own lateral calibration; `None` when it carries none.
+    pitch: Option<Pitch>,
     format: String,
     position_um: Option<[f64; 2]>,
 }
@@ -135,8 +136,12 @@ fn read_tiles(dir: &Path) -> Result<Vec<TileFile>> {
         let t = TileFile {
             rows: s.height,
             cols: s.width,
-            pitch_um: (s.pitch_x_um, s.pitch_y_um),
-            pitch_known: s.metadata.pitch_known,
+            pitch: s
+                .metadata
+                .pitch_known
+                .then(|| Pitch::new(s.pitch_x_um, s.pitch_y_um))
+                .transpose()
+                .map_err(|e| anyhow!("{}: {e}", path.display()))?,
             format: s.metadata.format,
             position_um: s.metadata.stage_position_um,
             path,
@@ -170,14 +175,18 @@ fn stored_positions(tiles: &[TileFile]) -> Option<Vec<[f64; 2]>> {
 /// Pitch from the first file, or from `--pitch-um` for files that carry none. A `--pitch-um`
 /// that disagrees with a file's own calibration is refused, as every verb does (it used to
 /// override the file silently, so a typo rescaled the whole panorama).
-fn scan_pitch(first: &TileFile, pitch_um: Option<f64>) -> Result<(f64, f64)> {
-    match (pitch_um, first.pitch_known) {
-        (Some(p), _) if !(p.is_finite() && p > 0.0) => {
-            bail!("--pitch-um {p}: expected a positive pitch in micrometres")
-        }
-        (Some(p), true) => {
+fn scan_pitch(first: &TileFile, pitch_um: Option<f64>) -> Result<Pitch> {
+    let given = pitch_um
+        .map(|p| {
+            Pitch::square(p)
+                .map_err(|_| anyhow!("--pitch-um {p}: expected a positive pitch in micrometres"))
+        })
+        .transpose()?;
+    match (given, first.pitch) {
+        (Some(given), Some(file)) => {
+            let p = given.x_um();
             let same = |a: f64| (a - p).abs() <= 1e-6 * p;
-            let (x, y) = first.pitch_um;
+            let [x, y] = file.um();
             if !(same(x) && same(y)) {
                 bail!(
                     "{}: the file carries its pitch, {x} x {y} um; --pitch-um {p} disagrees: \
@@ -185,11 +194,11 @@ fn scan_pitch(first: &TileFile, pitch_um: Option<f64>) -> Result<(f64, f64)> {
                     first.path.display()
                 );
             }
-            Ok(first.pitch_um)
+            Ok(file)
         }
-        (Some(p), false) => Ok((p, p)),
-        (None, true) => Ok(first.pitch_um),
-        (None, false) => bail!(
+        (Some(given), None) => Ok(given),
+        (None, Some(file)) => Ok(file),
+        (None, None) => bail!(
             "{}: a {} file carries no lateral calibration: give --pitch-um",
             first.path.display(),
             first.format
@@ -216,7 +225,7 @@ fn manifest_text(
     dir: &Path,
     rows: usize,
     cols: usize,
-    pitch_um: Option<(f64, f64)>,
+    pitch: Option<Pitch>,
     tiles: &[Placed],
 ) -> Result<String> {
     let name = dir
@@ -234,8 +243,8 @@ fn manifest_text(
     let mut toml = format!(
         "{comment}[scan]\nname = \"{name}\"\nrows = {rows}\ncols = {cols}\ntile_dir = {dir_text:?}\n"
     );
-    if let Some((px, py)) = pitch_um {
-        toml += &format!("pitch_x_um = {px}\npitch_y_um = {py}\n");
+    if let Some(p) = pitch {
+        toml += &format!("pitch_x_um = {}\npitch_y_um = {}\n", p.x_um(), p.y_um());
     }
     for t in tiles {
         let real = t
@@ -273,9 +282,12 @@ pub fn infer_manifest(dir: &Path, layout: &GridLayout, pitch_um: Option<f64>) ->
             layout.cols
         );
     }
-    let (pitch_x_um, pitch_y_um) = scan_pitch(&tiles[0], pitch_um)?;
+    let pitch = scan_pitch(&tiles[0], pitch_um)?;
     let (tile_rows, tile_cols) = (tiles[0].rows, tiles[0].cols);
-    let field_um = [tile_cols as f64 * pitch_x_um, tile_rows as f64 * pitch_y_um];
+    let field_um = [
+        tile_cols as f64 * pitch.x_um(),
+        tile_rows as f64 * pitch.y_um(),
+    ];
     let step_um = [
         field_um[0] * (1.0 - layout.overlap_x),
         field_um[1] * (1.0 - layout.overlap_y),
@@ -352,7 +364,7 @@ pub fn infer_manifest(dir: &Path, layout: &GridLayout, pitch_um: Option<f64>) ->
         dir,
         layout.rows,
         layout.cols,
-        pitch_um.map(|_| (pitch_x_um, pitch_y_um)),
+        pitch_um.map(|_| pitch),
         &placed,
     )
 }
@@ -392,10 +404,10 @@ pub fn infer_manifest_from_positions(
             formats.into_iter().collect::<Vec<_>>().join(", ")
         );
     };
-    let (pitch_x_um, pitch_y_um) = scan_pitch(&tiles[0], pitch_um)?;
+    let pitch = scan_pitch(&tiles[0], pitch_um)?;
     let field_um = [
-        tiles[0].cols as f64 * pitch_x_um,
-        tiles[0].rows as f64 * pitch_y_um,
+        tiles[0].cols as f64 * pitch.x_um(),
+        tiles[0].rows as f64 * pitch.y_um(),
     ];
     let xs: Vec<f64> = stored.iter().map(|p| p[0]).collect();
     let ys: Vec<f64> = stored.iter().map(|p| p[1]).collect();
@@ -445,14 +457,7 @@ pub fn infer_manifest_from_positions(
         tiles[0].rows,
         tiles[0].cols
     );
-    let text = manifest_text(
-        &comment,
-        dir,
-        rows,
-        cols,
-        pitch_um.map(|_| (pitch_x_um, pitch_y_um)),
-        &placed,
-    )?;
+    let text = manifest_text(&comment, dir, rows, cols, pitch_um.map(|_| pitch), &placed)?;
     Ok((text, rows, cols))
 }
 

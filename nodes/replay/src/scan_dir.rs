@@ -20,6 +20,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{anyhow, bail, Context, Result};
 use serde::Deserialize;
 use surfstream_core::frame::{to_frame_heights_at, valid_mean};
+use surfstream_core::{ParamError, Pitch};
 use surfstream_io::formats;
 
 /// Pitches agree when within 1e-6 relative (files store f32 calibrations).
@@ -50,8 +51,9 @@ struct RawScanSection {
 #[derive(Debug, Clone)]
 pub struct ScanSection {
     pub name: String,
-    pub pitch_x_um: f64,
-    pub pitch_y_um: f64,
+    /// The tiles' pitch (their shape is the tiles': [`ScanDirectory::tile_width_px`] x
+    /// [`ScanDirectory::tile_height_px`]).
+    pub pitch: Pitch,
     /// Height unit of files without one (.npy, .xyz); "um" when not given.
     pub height_unit: String,
     pub rows: usize,
@@ -60,6 +62,32 @@ pub struct ScanSection {
     /// points are read as not measured (x3ptools / FiX3P labels; by default every point is
     /// measured). Each name must be a region of at least one tile's mask.
     pub mask_exclude: Vec<String>,
+}
+
+/// `[scan]` while the tiles are read: a pitch the manifest leaves out is NaN until a tile
+/// file gives it.
+struct ScanFields {
+    name: String,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+    height_unit: String,
+    rows: usize,
+    cols: usize,
+    mask_exclude: Vec<String>,
+}
+
+impl ScanFields {
+    /// The section with its pitch checked by [`Pitch::new`].
+    fn resolved(self) -> Result<ScanSection, ParamError> {
+        Ok(ScanSection {
+            pitch: Pitch::new(self.pitch_x_um, self.pitch_y_um)?,
+            name: self.name,
+            height_unit: self.height_unit,
+            rows: self.rows,
+            cols: self.cols,
+            mask_exclude: self.mask_exclude,
+        })
+    }
 }
 
 /// One `[[tile]]`.
@@ -242,7 +270,7 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
     }
     let unit_given = raw.height_unit.is_some();
     let tile_dir = raw.tile_dir;
-    let mut scan = ScanSection {
+    let mut scan = ScanFields {
         name: raw.name,
         pitch_x_um: raw.pitch_x_um.unwrap_or(f64::NAN),
         pitch_y_um: raw.pitch_y_um.unwrap_or(f64::NAN),
@@ -451,6 +479,7 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         scan.pitch_x_um = px;
         scan.pitch_y_um = py;
     }
+    let scan = scan.resolved().map_err(|e| anyhow!("{m}: [scan] {e}"))?;
     check_pitch_against_truth(&manifest_path, &scan)?;
     check_stage_steps(&m.to_string(), &scan, &tiles, cols, rows)?;
     Ok(ScanDirectory {
@@ -474,7 +503,7 @@ fn check_pitch_against_truth(manifest: &Path, scan: &ScanSection) -> Result<()> 
     let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) else {
         return Ok(()); // not ours to judge; the matcher's scorer names a bad file
     };
-    for (axis, manifest_pitch) in [("x", scan.pitch_x_um), ("y", scan.pitch_y_um)] {
+    for (axis, manifest_pitch) in [("x", scan.pitch.x_um()), ("y", scan.pitch.y_um())] {
         let Some(truth_pitch) = v["pixel_pitch_um"][axis].as_f64() else {
             continue;
         };
@@ -505,8 +534,8 @@ fn check_stage_steps(
         .collect();
     for (&(r, c), a) in &at {
         for (b, axis, side_px, pitch) in [
-            (at.get(&(r, c + 1)), "x", width_px, scan.pitch_x_um),
-            (at.get(&(r + 1, c)), "y", height_px, scan.pitch_y_um),
+            (at.get(&(r, c + 1)), "x", width_px, scan.pitch.x_um()),
+            (at.get(&(r + 1, c)), "y", height_px, scan.pitch.y_um()),
         ] {
             let Some(b) = b else { continue };
             let step_um = match axis {
@@ -716,7 +745,7 @@ stage_y_um = 0.0
         x3p_tile(d.path(), "a.x3p", 0.8148);
         x3p_tile(d.path(), "b.x3p", 0.8148);
         let s = load_scan(d.path()).unwrap();
-        assert!((s.scan.pitch_x_um - 0.8148).abs() < 1e-12);
+        assert!((s.scan.pitch.x_um() - 0.8148).abs() < 1e-12);
         let absolute = f64::from(s.tiles[1].heights_um[5]) + s.z_offset_um;
         assert!((absolute - 1.25).abs() < 1e-9, "{absolute}");
         // Manifest says 0.5, files say 0.8148: an error naming both.

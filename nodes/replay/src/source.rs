@@ -12,6 +12,7 @@ use anyhow::{anyhow, bail, Result};
 use serde::Deserialize;
 use surfstream_core::frame::{FrameHeader, FrameKind, HeightMap};
 use surfstream_core::record::{ScanRecord, SourceTile};
+use surfstream_core::{Sampling, Shape};
 use surfstream_io::recording::{read_recording, Recorded};
 use surfstream_runtime::graph::{params_from_table, NodeContext};
 
@@ -293,20 +294,19 @@ fn scan(ctx: &NodeContext, p: ScanParams) -> Result<OpenedSource> {
     let dir = load_scan(&p.path)?;
     let mut frames = Vec::with_capacity(dir.tiles.len());
     let mut tiles = Vec::with_capacity(dir.tiles.len());
+    // Every tile's sampling but its origin (the tile's stage position).
+    let tile = Sampling::of(
+        Shape::new(dir.tile_height_px, dir.tile_width_px),
+        dir.scan.pitch,
+    );
     for (k, t) in dir.tiles.into_iter().enumerate() {
         let header = FrameHeader {
             kind: FrameKind::Tile as u32,
             tile_index: k as u32,
             tile_row: t.entry.row as u32,
             tile_col: t.entry.col as u32,
-            width: dir.tile_width_px as u32,
-            height: dir.tile_height_px as u32,
-            pitch_x_um: dir.scan.pitch_x_um,
-            pitch_y_um: dir.scan.pitch_y_um,
-            origin_x_um: t.entry.stage_x_um,
-            origin_y_um: t.entry.stage_y_um,
             z_offset_um: dir.z_offset_um,
-            ..Default::default()
+            ..FrameHeader::at(&tile.with_origin(t.entry.stage_x_um, t.entry.stage_y_um)?)
         };
         tiles.push(SourceTile {
             index: k as u32,
@@ -328,8 +328,8 @@ fn scan(ctx: &NodeContext, p: ScanParams) -> Result<OpenedSource> {
         cols: dir.scan.cols,
         tile_width_px: dir.tile_width_px,
         tile_height_px: dir.tile_height_px,
-        pitch_x_um: dir.scan.pitch_x_um,
-        pitch_y_um: dir.scan.pitch_y_um,
+        pitch_x_um: dir.scan.pitch.x_um(),
+        pitch_y_um: dir.scan.pitch.y_um(),
         height_unit: dir.scan.height_unit.clone(),
         z_offset_um: dir.z_offset_um,
     };

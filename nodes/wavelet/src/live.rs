@@ -26,7 +26,7 @@ use surfstream_core::store::{self, ChunkedGrid, GridChunk};
 use surfstream_io::output::{NpyHeights, OutputWriter, SurfaceOutput};
 
 use surfstream_core::filter::FilterError;
-use surfstream_core::Sampling;
+use surfstream_core::{Pitch, Sampling};
 
 use crate::method::{equivalent_cutoff_um, filter_separation, level_lowered_warning};
 use crate::select::SummaryParts;
@@ -79,7 +79,7 @@ impl SeparationSettings {
 #[derive(Debug)]
 struct PanoramaMirror {
     anchor_um: [f64; 2],
-    pitch_um: [f64; 2],
+    pitch: Pitch,
     z_offset_um: f64,
     /// What patches have covered so far.
     extent: Option<GridRect>,
@@ -224,19 +224,24 @@ impl ChunkedHeights {
 }
 
 impl PanoramaMirror {
-    fn new(h: &FrameHeader) -> Self {
-        Self {
+    /// The mirror of the panorama whose first patch `h` is; its pitch is checked here, once.
+    fn new(h: &FrameHeader) -> Result<Self> {
+        Ok(Self {
             anchor_um: [h.origin_x_um, h.origin_y_um],
-            pitch_um: [h.pitch_x_um, h.pitch_y_um],
+            pitch: h
+                .pitch()
+                .map_err(|e| anyhow!("wavelet: panorama patch {}: {e}", h.sequence))?,
             z_offset_um: h.z_offset_um,
             extent: None,
             heights: ChunkedHeights::default(),
-        }
+        })
     }
 
     /// Copies a patch in, growing the mirror as needed; returns the patch's grid rectangle.
     fn apply(&mut self, h: &FrameHeader, heights: &[f32]) -> Result<GridRect> {
-        if (h.pitch_x_um - self.pitch_um[0]).abs() > 1e-9 * self.pitch_um[0]
+        let other = |um: f64, mirror_um: f64| (um - mirror_um).abs() > 1e-9 * mirror_um;
+        if other(h.pitch_x_um, self.pitch.x_um())
+            || other(h.pitch_y_um, self.pitch.y_um())
             || (h.z_offset_um - self.z_offset_um).abs() > 0.0
         {
             bail!(
@@ -249,8 +254,8 @@ impl PanoramaMirror {
             (k.abs() <= MAX_MIRROR_PX as f64).then_some(k as i64)
         };
         let (Some(x0), Some(y0)) = (
-            grid(h.origin_x_um, self.anchor_um[0], self.pitch_um[0]),
-            grid(h.origin_y_um, self.anchor_um[1], self.pitch_um[1]),
+            grid(h.origin_x_um, self.anchor_um[0], self.pitch.x_um()),
+            grid(h.origin_y_um, self.anchor_um[1], self.pitch.y_um()),
         ) else {
             bail!(
                 "wavelet: panorama patch {} lies off the panorama's grid",
@@ -280,18 +285,17 @@ impl PanoramaMirror {
     }
 
     /// A frame header for grid rectangle `r` of this panorama, pooled by `scale`.
-    fn header_for(&self, r: GridRect, kind: FrameKind, scale: usize) -> FrameHeader {
-        FrameHeader {
+    fn header_for(&self, r: GridRect, kind: FrameKind, scale: usize) -> Result<FrameHeader> {
+        let shape = Shape::new(r.rows().div_ceil(scale), r.cols().div_ceil(scale));
+        let at = Sampling::of(shape, self.pitch.times(scale)?).with_origin(
+            self.anchor_um[0] + r.x0 as f64 * self.pitch.x_um(),
+            self.anchor_um[1] + r.y0 as f64 * self.pitch.y_um(),
+        )?;
+        Ok(FrameHeader {
             kind: kind as u32,
-            width: r.cols().div_ceil(scale) as u32,
-            height: r.rows().div_ceil(scale) as u32,
-            pitch_x_um: self.pitch_um[0] * scale as f64,
-            pitch_y_um: self.pitch_um[1] * scale as f64,
-            origin_x_um: self.anchor_um[0] + r.x0 as f64 * self.pitch_um[0],
-            origin_y_um: self.anchor_um[1] + r.y0 as f64 * self.pitch_um[1],
             z_offset_um: self.z_offset_um,
-            ..Default::default()
-        }
+            ..FrameHeader::at(&at)
+        })
     }
 }
 
@@ -363,14 +367,16 @@ impl LiveSeparation {
 
     /// Folds a panorama patch into the mirror and marks its region changed.
     pub fn apply_patch(&mut self, header: &FrameHeader, heights: &[f32]) -> Result<()> {
-        let limit = self.mirror_limit.clone();
-        let m = self.mirror.get_or_insert_with(|| {
-            let mut m = PanoramaMirror::new(header);
-            if let Some((chunks, dir)) = limit {
-                m.heights.set_limit(chunks, dir);
+        let m = match &mut self.mirror {
+            Some(m) => m,
+            none => {
+                let mut m = PanoramaMirror::new(header)?;
+                if let Some((chunks, dir)) = self.mirror_limit.clone() {
+                    m.heights.set_limit(chunks, dir);
+                }
+                none.insert(m)
             }
-            m
-        });
+        };
         let r = m.apply(header, heights)?;
         self.dirty = Some(self.dirty.map_or(r, |d| d.union(&r)));
         let t = self
@@ -397,7 +403,7 @@ impl LiveSeparation {
         // A filter's datum depends on lambda_c around each point: take at least that much.
         let margin = match self.method.cutoff_um() {
             Some(lc) => {
-                let reach = (lc / m.pitch_um[0].min(m.pitch_um[1])).ceil();
+                let reach = (lc / m.pitch.min_um()).ceil();
                 self.margin_px.max(reach.min(1e6) as usize)
             }
             None => self.margin_px,
@@ -456,9 +462,8 @@ impl LiveSeparation {
             .map_err(|e| anyhow!("wavelet: live separation: {e}"))?;
             (d, r)
         } else {
-            let s = Sampling::new(Shape::new(rows, cols), m.pitch_um[0], m.pitch_um[1])
-                .map_err(FilterError::from)
-                .and_then(|grid| filter_separation(&heights, grid, self.method, self.lambda_s_um))
+            let grid = Sampling::of(Shape::new(rows, cols), m.pitch);
+            let s = filter_separation(&heights, grid, self.method, self.lambda_s_um)
                 .map_err(|e| anyhow!("wavelet: live {} separation: {e}", self.method.name()))?;
             (crop(&s.datum), crop(&s.roughness))
         };
@@ -469,11 +474,11 @@ impl LiveSeparation {
             h
         };
         let datum = HeightMap {
-            header: stamp(m.header_for(dirty, FrameKind::Datum, 1)),
+            header: stamp(m.header_for(dirty, FrameKind::Datum, 1)?),
             heights: sep.0,
         };
         let roughness = HeightMap {
-            header: stamp(m.header_for(dirty, FrameKind::Roughness, 1)),
+            header: stamp(m.header_for(dirty, FrameKind::Roughness, 1)?),
             heights: sep.1,
         };
         // Pooled blocks stay aligned to the mirror's grid so live patches tile seamlessly.
@@ -489,7 +494,7 @@ impl LiveSeparation {
                     self.pool_block,
                     self.pool_op,
                 )?;
-                let mut h = stamp(m.header_for(a, FrameKind::Pooled, self.pool_block));
+                let mut h = stamp(m.header_for(a, FrameKind::Pooled, self.pool_block)?);
                 h.width = p.cols as u32;
                 h.height = p.rows as u32;
                 Some(HeightMap {
@@ -741,9 +746,14 @@ pub fn final_separation_with(
             )
         }
     };
+    // The pooled map's pitch: the panorama's times the block, checked once for both uses.
+    let pooled_pitch = h
+        .pitch()
+        .and_then(|p| p.times(settings.pool_block))
+        .map_err(|e| anyhow!("wavelet: pooled map: {e}"))?;
     if let Some(fw) = files {
         let block = settings.pool_block;
-        fw.set_pitch_um(h.pitch_x_um * block as f64, h.pitch_y_um * block as f64);
+        fw.set_pitch_um(pooled_pitch.x_um(), pooled_pitch.y_um());
         fw.write_surface(&SurfaceOutput {
             name: "pooled",
             heights: RasterView::new(&pooled.heights, Shape::new(pooled.rows, pooled.cols))?,
@@ -768,8 +778,8 @@ pub fn final_separation_with(
     let mut pooled_header = header(FrameKind::Pooled);
     pooled_header.width = pooled.cols as u32;
     pooled_header.height = pooled.rows as u32;
-    pooled_header.pitch_x_um *= settings.pool_block as f64;
-    pooled_header.pitch_y_um *= settings.pool_block as f64;
+    pooled_header.pitch_x_um = pooled_pitch.x_um();
+    pooled_header.pitch_y_um = pooled_pitch.y_um();
     Ok(FinalSeparation {
         datum: datum.map(|heights| HeightMap {
             header: header(FrameKind::Datum),
@@ -902,10 +912,33 @@ mod tests {
         (x as f32 * 0.3).sin() + 0.01 * y as f32
     }
 
+    /// The mirror checks the first patch's pitch once, and refuses a later patch whose pitch
+    /// differs along either axis (only x used to be compared).
+    #[test]
+    fn the_mirror_checks_its_pitch_once_and_refuses_another() {
+        let mut bad = patch(0, 0, 4, 3, |_, _| 1.0);
+        bad.header.pitch_y_um = 0.0;
+        let e = PanoramaMirror::new(&bad.header).unwrap_err().to_string();
+        assert!(e.contains("pitch_y_um = 0"), "{e}");
+        let first = patch(0, 0, 4, 3, |_, _| 1.0);
+        let mut m = PanoramaMirror::new(&first.header).unwrap();
+        m.apply(&first.header, &first.heights).unwrap();
+        let mut other = patch(4, 0, 4, 3, |_, _| 1.0);
+        other.header.pitch_y_um = 0.25;
+        let e = m.apply(&other.header, &other.heights).unwrap_err();
+        assert!(e.to_string().contains("changes pitch"), "{e}");
+        // A pooled header: the pitch times the block, the origin on the mirror's grid.
+        let r = GridRect::at(2, 1, Shape::new(5, 6));
+        let h = m.header_for(r, FrameKind::Pooled, 4).unwrap();
+        assert_eq!((h.width, h.height), (2, 2));
+        assert_eq!((h.pitch_x_um, h.pitch_y_um), (2.0, 2.0));
+        assert_eq!((h.origin_x_um, h.origin_y_um), (11.0, 20.5));
+    }
+
     #[test]
     fn mirror_grows_in_every_direction_and_keeps_content() {
         let first = patch(0, 0, 4, 3, |_, _| 1.0);
-        let mut m = PanoramaMirror::new(&first.header);
+        let mut m = PanoramaMirror::new(&first.header).unwrap();
         m.apply(&first.header, &first.heights).unwrap();
         for (x0, y0, v) in [(-5, 0, 2.0), (0, -4, 3.0), (6, 5, 4.0), (2, 1, 5.0)] {
             let p = patch(x0, y0, 4, 3, |_, _| v);

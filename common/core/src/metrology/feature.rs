@@ -109,19 +109,19 @@ fn find(parent: &mut [u32], mut a: u32) -> u32 {
     a
 }
 
-/// Watershed + Wolf pruning of the dales of `d` (NaN = gap); the significant motifs.
-/// `sz` is the range of the valid heights (the pruning reference).
-pub fn segment_dales(d: &[f64], rows: usize, cols: usize, pruning_pct: f64, sz: f64) -> Vec<Motif> {
-    let n = rows * cols;
-    let at = |r: isize, c: isize| -> Option<usize> {
-        if r < 0 || c < 0 || r >= rows as isize || c >= cols as isize {
-            None
-        } else {
-            Some(r as usize * cols + c as usize)
-        }
-    };
-    // 1. Steepest descent: each pixel's drain (itself for a sink; u32::MAX for a gap).
-    let mut drain = vec![0u32; n];
+/// Index of (r, c) in a `rows` x `cols` grid, `None` outside it.
+fn cell(r: isize, c: isize, rows: usize, cols: usize) -> Option<usize> {
+    if r < 0 || c < 0 || r >= rows as isize || c >= cols as isize {
+        None
+    } else {
+        Some(r as usize * cols + c as usize)
+    }
+}
+
+/// Step 1, steepest descent: each pixel's drain (itself for a sink; u32::MAX for a gap).
+fn drains(d: &[f64], rows: usize, cols: usize) -> Vec<u32> {
+    let at = |r: isize, c: isize| cell(r, c, rows, cols);
+    let mut drain = vec![0u32; rows * cols];
     drain.par_chunks_mut(cols).enumerate().for_each(|(r, out)| {
         for (c, o) in out.iter_mut().enumerate() {
             let i = r * cols + c;
@@ -164,7 +164,15 @@ pub fn segment_dales(d: &[f64], rows: usize, cols: usize, pruning_pct: f64, sz: 
             *o = if lo < z { li as u32 } else { i as u32 };
         }
     });
-    // 2. Sinks, 8-connected, numbered by their first pixel in scan order (1-based).
+    drain
+}
+
+/// Steps 2-3: sinks, 8-connected, numbered by their first pixel in scan order (1-based),
+/// and every pixel labelled with its sink's number (0: a gap). Returns the labels and the
+/// number of basins.
+fn label_basins(drain: Vec<u32>, rows: usize, cols: usize) -> (Vec<u32>, usize) {
+    let n = rows * cols;
+    let at = |r: isize, c: isize| cell(r, c, rows, cols);
     let mut parent: Vec<u32> = (0..n as u32).collect();
     for i in 0..n {
         if drain[i] != i as u32 {
@@ -214,8 +222,22 @@ pub fn segment_dales(d: &[f64], rows: usize, cols: usize, pruning_pct: f64, sz: 
         path.clear();
     }
     drop(drain);
-    let m = count as usize;
-    // 4. Per basin: pit (value, first index in scan order), pixel count, incomplete flag.
+    (label, count as usize)
+}
+
+/// Per basin (index = label): its pit.
+struct Basins {
+    /// The pit: value and first index in scan order.
+    crit: Vec<(f64, usize)>,
+    /// Pixels.
+    area: Vec<usize>,
+    /// On the map's border or beside a gap: not a whole motif.
+    incomplete: Vec<bool>,
+}
+
+/// Step 4: per basin, the pit, the pixel count and whether it is incomplete.
+fn basin_stats(d: &[f64], label: &[u32], rows: usize, cols: usize, m: usize) -> Basins {
+    let at = |r: isize, c: isize| cell(r, c, rows, cols);
     let any_gap = d.par_iter().any(|v| v.is_nan());
     let mut crit = vec![(f64::INFINITY, usize::MAX); m + 1];
     let mut area = vec![0usize; m + 1];
@@ -241,9 +263,25 @@ pub fn segment_dales(d: &[f64], rows: usize, cols: usize, pruning_pct: f64, sz: 
             }
         }
     }
-    // 5. Saddles between adjacent basins (8-neighbours): min over the border of the higher height.
-    // Blocks of rows collect their pairs in a map (a border repeats one pair many times), so
-    // only distinct pairs per block are sorted.
+    Basins {
+        crit,
+        area,
+        incomplete,
+    }
+}
+
+/// Step 5, saddles between adjacent basins (8-neighbours): min over the border of the higher
+/// height, as each basin's map of neighbour -> saddle.
+/// Blocks of rows collect their pairs in a map (a border repeats one pair many times), so
+/// only distinct pairs per block are sorted.
+fn saddles(
+    d: &[f64],
+    label: &[u32],
+    rows: usize,
+    cols: usize,
+    m: usize,
+) -> Vec<FxHashMap<u32, f64>> {
+    let at = |r: isize, c: isize| cell(r, c, rows, cols);
     const ROWS_PER_BLOCK: usize = 32;
     let mut pairs: Vec<(u64, f64)> = (0..rows.div_ceil(ROWS_PER_BLOCK))
         .into_par_iter()
@@ -286,8 +324,25 @@ pub fn segment_dales(d: &[f64], rows: usize, cols: usize, pruning_pct: f64, sz: 
         adj[b as usize].insert(a, s);
     }
     drop(pairs);
-    // 6. Wolf pruning.
-    let threshold = pruning_pct / 100.0 * sz;
+    adj
+}
+
+/// What Wolf pruning leaves: per basin whether it survives, where it merged, its lowest
+/// saddle; `crit` is updated to the merged basins' pits.
+struct Pruned {
+    min_saddle: Vec<f64>,
+    alive: Vec<bool>,
+    merged_into: Vec<u32>,
+}
+
+/// Step 6, Wolf pruning: the basin of the smallest depth (lowest saddle - pit) below
+/// `threshold` merges into its neighbour over that saddle, until none is left.
+fn wolf_prune(
+    mut adj: Vec<FxHashMap<u32, f64>>,
+    crit: &mut [(f64, usize)],
+    threshold: f64,
+    m: usize,
+) -> Pruned {
     let mut min_saddle = vec![f64::INFINITY; m + 1];
     let mut min_nb = vec![0u32; m + 1];
     let rescan = |adj: &FxHashMap<u32, f64>| {
@@ -362,6 +417,29 @@ pub fn segment_dales(d: &[f64], rows: usize, cols: usize, pruning_pct: f64, sz: 
         )));
     }
     drop(heap);
+    Pruned {
+        min_saddle,
+        alive,
+        merged_into,
+    }
+}
+
+/// Watershed + Wolf pruning of the dales of `d` (NaN = gap); the significant motifs.
+/// `sz` is the range of the valid heights (the pruning reference).
+pub fn segment_dales(d: &[f64], rows: usize, cols: usize, pruning_pct: f64, sz: f64) -> Vec<Motif> {
+    let drain = drains(d, rows, cols);
+    let (label, m) = label_basins(drain, rows, cols);
+    let Basins {
+        mut crit,
+        area,
+        incomplete,
+    } = basin_stats(d, &label, rows, cols, m);
+    let adj = saddles(d, &label, rows, cols, m);
+    let Pruned {
+        min_saddle,
+        alive,
+        merged_into,
+    } = wolf_prune(adj, &mut crit, pruning_pct / 100.0 * sz, m);
     // 7. Roots, their areas and incompleteness.
     let mut root = vec![0u32; m + 1];
     for (r, out) in root.iter_mut().enumerate().skip(1) {

@@ -6,11 +6,12 @@ use std::path::Path;
 
 use anyhow::Result;
 use surfstream_core::raster::{RasterView, Shape};
+use surfstream_core::Pitch;
 use surfstream_replay::scan_dir::{load_scan, LoadedTile};
 
 pub struct Scan {
     pub tiles: Vec<LoadedTile>,
-    pub pitch_um: [f64; 2],
+    pub pitch: Pitch,
     /// Every tile's shape (the scan's one tile size).
     pub shape: Shape,
 }
@@ -20,7 +21,7 @@ impl Scan {
         let s = load_scan(path)?;
         Ok(Scan {
             tiles: s.tiles,
-            pitch_um: [s.scan.pitch_x_um, s.scan.pitch_y_um],
+            pitch: s.scan.pitch,
             shape: Shape::new(s.tile_height_px, s.tile_width_px),
         })
     }
@@ -47,8 +48,8 @@ impl Scan {
     pub fn stage_px(&self, i: usize) -> [f64; 2] {
         let e = &self.tiles[i].entry;
         [
-            e.stage_x_um / self.pitch_um[0],
-            e.stage_y_um / self.pitch_um[1],
+            e.stage_x_um / self.pitch.x_um(),
+            e.stage_y_um / self.pitch.y_um(),
         ]
     }
 

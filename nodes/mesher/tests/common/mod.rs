@@ -2,6 +2,7 @@
 #![allow(dead_code)]
 
 use surfstream_core::raster::{RasterView, Shape};
+use surfstream_core::Pitch;
 use surfstream_mesher::{grid_solid, MeshError, ScanPlacement, SolidMesh, SolidParams};
 
 /// A height field for the tests: the raster and where it sits in scan coordinates.
@@ -22,7 +23,7 @@ impl<'a> Map<'a> {
     ) -> Self {
         Self {
             heights: RasterView::new(heights_um, Shape::new(rows, cols)).expect("fixture shape"),
-            at: ScanPlacement::new(pitch_x_um, pitch_y_um),
+            at: ScanPlacement::new(Pitch::new(pitch_x_um, pitch_y_um).expect("a positive pitch")),
         }
     }
     pub fn with_origin(mut self, x_um: f64, y_um: f64) -> Self {

@@ -1,0 +1,1134 @@
+//! The finishing process from start to finish.json, step by step: the set-up (options
+//! checked, the patch cut, the targets), an engine probe, the cycles (a DEM segment, then the
+//! wear model of the run: the sampled map or the contact field), the contact field's final
+//! fit, the ideal model's comparison, the outputs and the summary. [`finish`] runs them in
+//! that order; each step is a function of the set-up and the state the cycles carry.
+
+use std::path::Path;
+use std::sync::atomic::AtomicBool;
+use std::time::Instant;
+
+use anyhow::{anyhow, bail, Context, Result};
+use serde_json::Value;
+use surfstream_core::metrology::{level_plane, params, sim, AbbottCurve, Grid};
+use surfstream_core::record;
+use surfstream_core::{Sampling, Shape};
+
+use crate::engine::EngineCommand;
+use crate::field::{self, impact_rate_per_m2_s, ApproachDistribution, FieldGrid, WearTable};
+use crate::grid::{crop, volume_um3, Patch};
+use crate::run::{
+    outputs, run_segment, surface_params, timestep_s, Calibration, FinishOptions, Model, Progress,
+    SegmentPlan, SegmentResult, SurfaceParams, WearModel, CALIBRATION_TOLERANCE_PERCENT,
+    DEFAULT_K_FINNIE_PER_PA, DEFAULT_K_FINNIE_SAMPLED_MAP_PER_PA, MAX_FIELD_SCALE,
+};
+use crate::script;
+use crate::setting::Action;
+use crate::summary::{
+    AbbottSummary, CalibrationSummary, CheckMean, ContactFieldSummary, CycleField, CycleRecord,
+    CycleVolumeCheck, FinalFit, FinishSetting, FinishSummary, IdealModelRun, PaperValues,
+    PatchRecord, ProbeRecord, SimValues, Timings, VolumeCheck, WearVolumes,
+};
+
+/// Runs the finishing simulation of `model` into `out_dir`; see the crate doc. `say` gets
+/// progress lines (stderr for the CLI). A set `stop` ends the engine; completed cycles are
+/// kept and finish.json says `partial`.
+pub fn finish(
+    model: &Model,
+    opts: &FinishOptions,
+    out_dir: &Path,
+    stop: &AtomicBool,
+    say: &mut dyn FnMut(&str),
+) -> Result<Value> {
+    let t_start = Instant::now();
+    let setup = Setup::new(model, opts, out_dir, say)?;
+    let mut st = State::new(&setup);
+    // Planning passes within the budget needs the engine's cost on this machine now (a busy
+    // machine makes it several times the quiet estimate): a probe of two passes measures it.
+    let probe = match opts.passes {
+        None => Some(probe(&setup, &mut st, stop, say)?),
+        Some(_) => None,
+    };
+    for c in 1..=opts.cycles {
+        if st.partial || !run_cycle(&setup, &mut st, c, stop, say)? {
+            break;
+        }
+    }
+    // A stop during the contact field's fit (no engine running) ends the run the same way.
+    if stop.load(std::sync::atomic::Ordering::Relaxed) {
+        st.partial = true;
+    }
+    let final_fit = final_field_fit(&setup, &mut st, stop, say)?;
+    let ideal_run = ideal_comparison(&setup, &mut st, stop, say)?;
+    let crops = write_outputs(&setup, &st)?;
+    let total_s = t_start.elapsed().as_secs_f64();
+    let summary = summary(&setup, st, &crops, final_fit, ideal_run, probe, total_s)?;
+    // Written as a JSON value: its keys sorted, as finish.json has always had them.
+    let summary = record::to_value(&summary);
+    let path = out_dir.join(outputs::SUMMARY);
+    surfstream_core::fsutil::write_atomic(&path, |w| {
+        serde_json::to_writer_pretty(w, &summary).map_err(|e| anyhow!("{}: {e}", path.display()))
+    })?;
+    let (rows, cols) = (setup.patch.crop.rows, setup.patch.crop.cols);
+    crate::html::write_report(
+        &out_dir.join(outputs::HTML),
+        &summary,
+        &crops.original,
+        &crops.worn,
+        &crops.finnie,
+        rows,
+        cols,
+    )?;
+    Ok(summary)
+}
+
+/// What a finish is set up with, fixed for the whole process.
+struct Setup<'a> {
+    model: &'a Model,
+    opts: &'a FinishOptions,
+    out_dir: &'a Path,
+    engine: EngineCommand,
+    action: Action,
+    k_finnie: f64,
+    /// The patch (meshed area with its guard band) and the guard's width, um.
+    patch: Patch,
+    guard_um: f64,
+    timestep_s: f64,
+    /// Engine segments in all: the cycles and the ideal model's.
+    segments: usize,
+    /// The evaluated patch before: levelled heights and parameters.
+    original_crop: Vec<f64>,
+    before: SurfaceParams,
+    /// The measured after-finish scan's crop, levelled, and its parameters.
+    measured_after: Option<(Vec<f64>, SurfaceParams)>,
+    /// The calibration target: Sa after the whole process, um.
+    target_sa: Option<f64>,
+    /// The contact-field model (crate::field): the approach distribution, the grid, the
+    /// impacts the process makes on the evaluated patch.
+    dist: ApproachDistribution,
+    field_grid: FieldGrid,
+    cell_area_um2: f64,
+    aim_area_um2: f64,
+    impact_rate: f64,
+    impacts_process: f64,
+}
+
+impl<'a> Setup<'a> {
+    /// Checks the options, cuts the patch, says what will run, and reads the targets.
+    fn new(
+        model: &'a Model,
+        opts: &'a FinishOptions,
+        out_dir: &'a Path,
+        say: &mut dyn FnMut(&str),
+    ) -> Result<Self> {
+        let (k_finnie, action) = checked_options(opts)?;
+        let engine = EngineCommand::locate(opts.ranks, opts.hostfile.clone())?;
+        std::fs::create_dir_all(out_dir)
+            .with_context(|| format!("{}: cannot create", out_dir.display()))?;
+
+        // The patch: default a square meshed at full resolution within the triangle budget.
+        let side_samples = ((opts.max_triangles as f64 / 2.0).sqrt()).floor().max(4.0);
+        let (pw, ph) = opts.patch_um.unwrap_or((
+            (side_samples * model.pitch_x_um).min(model.cols as f64 * model.pitch_x_um * 0.7),
+            (side_samples * model.pitch_y_um).min(model.rows as f64 * model.pitch_y_um * 0.7),
+        ));
+        let guard_um = opts.guard_um.unwrap_or(0.15 * pw.max(ph));
+        let model_at = Sampling::new(
+            Shape::new(model.rows, model.cols),
+            model.pitch_x_um,
+            model.pitch_y_um,
+        )
+        .with_context(|| model.source.clone())?;
+        let patch = Patch::cut(&model.heights_um, model_at, pw, ph, guard_um)
+            .with_context(|| model.source.clone())?;
+        let dt = timestep_s(&opts.media, &opts.workpiece, &action);
+        say(&format!(
+            "finish: patch {} x {} samples ({:.0} x {:.0} um) in a {} x {} area with its guard band, \
+             media {} mm at {:.2} m/s, {:.0} Pa, dt {:.2e} s, engine {}",
+            patch.crop.rows,
+            patch.crop.cols,
+            patch.crop.cols as f64 * patch.sampling.pitch_x_um(),
+            patch.crop.rows as f64 * patch.sampling.pitch_y_um(),
+            patch.sampling.rows(),
+            patch.sampling.cols(),
+            opts.media.diameter_mm,
+            action.media_velocity_m_s,
+            action.pressure_pa,
+            dt,
+            engine.argv(script::INPUT, script::LOG).join(" ")
+        ));
+
+        let (original_crop, before) =
+            surface_params(&patch.cropped(&patch.heights_um), patch.crop_sampling())?;
+        let measured_after = match &opts.calibrate {
+            Some(Calibration::Measured(m)) => {
+                if (m.rows, m.cols) != (model.rows, model.cols) {
+                    bail!(
+                        "{}: the measured after-finish scan is {} x {} (rows x cols); the model is {} x {}",
+                        m.source, m.rows, m.cols, model.rows, model.cols
+                    );
+                }
+                let w = patch.in_model;
+                let area = crop(&m.heights_um, m.cols, w);
+                let inner = crop(&area, w.cols, patch.crop);
+                Some(surface_params(&inner, patch.crop_sampling())?)
+            }
+            _ => None,
+        };
+        let target_sa = match &opts.calibrate {
+            None => None,
+            Some(Calibration::Sa {
+                before_um,
+                after_um,
+            }) => {
+                if !(after_um.is_finite() && *after_um > 0.0) {
+                    bail!("--calibrate: Sa after {after_um}: expected um > 0");
+                }
+                Some(match before_um {
+                    Some(b) if *b > 0.0 => before.sa * after_um / b,
+                    _ => *after_um,
+                })
+            }
+            Some(Calibration::Measured(_)) => measured_after.as_ref().map(|(_, p)| p.sa),
+        };
+
+        let press_force_n = press_force_n(opts, &action);
+        let dist = ApproachDistribution::of(&opts.media, &opts.workpiece, &action, press_force_n);
+        let field_grid = FieldGrid {
+            sampling: patch.sampling,
+            radius_um: opts.media.radius_m() * 1e6,
+        };
+        let cell_area_um2 = patch.sampling.pitch().cell_area_um2();
+        let aim_area_um2 = cell_area_um2 * (patch.crop.rows * patch.crop.cols) as f64;
+        let impact_rate = impact_rate_per_m2_s(&opts.media, &action);
+        let impacts_process = impact_rate * aim_area_um2 * 1e-12 * opts.process_time_s;
+        Ok(Self {
+            model,
+            opts,
+            out_dir,
+            engine,
+            action,
+            k_finnie,
+            patch,
+            guard_um,
+            timestep_s: dt,
+            segments: opts.cycles + usize::from(opts.ideal.is_some()),
+            original_crop,
+            before,
+            measured_after,
+            target_sa,
+            dist,
+            field_grid,
+            cell_area_um2,
+            aim_area_um2,
+            impact_rate,
+            impacts_process,
+        })
+    }
+
+    /// The segments' common inputs; each segment sets its seed, budget and cost.
+    fn plan(&self) -> SegmentPlan<'_> {
+        let opts = self.opts;
+        SegmentPlan {
+            engine: &self.engine,
+            media: opts.media,
+            workpiece: opts.workpiece,
+            action: self.action.clone(),
+            k_finnie_per_pa: self.k_finnie,
+            archard_k_over_h_per_pa: opts.archard_k_over_h_per_pa,
+            max_triangles: opts.max_triangles,
+            timestep_s: self.timestep_s,
+            passes: opts.passes,
+            engine_budget_s: opts.time_budget_s / self.segments as f64,
+            cost_per_triangle_step_s: opts.cost_per_triangle_step_s,
+            seed: opts.seed,
+            contact_every: 5,
+        }
+    }
+
+    /// Sa of the evaluated patch of `z`, levelled.
+    fn sa_of_crop(&self, z: &[f64]) -> Result<f64> {
+        let c = self.patch.cropped(z);
+        let g = Grid::of(&c, self.patch.crop_sampling())?;
+        let l = level_plane(&g)?;
+        let g = Grid::of(&l, self.patch.crop_sampling())?;
+        Ok(params(&g)?.sa)
+    }
+
+    /// A contact-field fit of the tables so far from the original surface (see [`FieldFit`]).
+    fn field_fit(
+        &self,
+        cycle: usize,
+        table: &WearTable,
+        target_sa_um: f64,
+        stop: &AtomicBool,
+    ) -> Result<FieldFit> {
+        FieldFit::from_original(
+            cycle,
+            &self.patch.heights_um,
+            self.field_grid,
+            &self.dist,
+            table,
+            self.impacts_process * MAX_FIELD_SCALE,
+            target_sa_um,
+            stop,
+            |z| self.sa_of_crop(z),
+        )
+    }
+}
+
+/// The Finnie constant and the machine's action, from options that are checked here.
+fn checked_options(opts: &FinishOptions) -> Result<(f64, Action)> {
+    if opts.cycles == 0 {
+        bail!("--cycles 0: expected at least one cycle");
+    }
+    if !(opts.time_budget_s.is_finite() && opts.time_budget_s > 0.0) {
+        bail!(
+            "--time-budget-s {}: expected seconds > 0",
+            opts.time_budget_s
+        );
+    }
+    let k_finnie = opts.k_finnie_per_pa.unwrap_or(match opts.wear_model {
+        WearModel::ContactField => DEFAULT_K_FINNIE_PER_PA,
+        WearModel::SampledMap => DEFAULT_K_FINNIE_SAMPLED_MAP_PER_PA,
+    });
+    if !(k_finnie.is_finite() && k_finnie > 0.0) {
+        bail!("--k-finnie {}: expected a number > 0 (1/Pa)", k_finnie);
+    }
+    if !(opts.process_time_s.is_finite() && opts.process_time_s > 0.0) {
+        bail!(
+            "--process-time-s {}: expected seconds > 0",
+            opts.process_time_s
+        );
+    }
+    opts.media.validate()?;
+    let mut action = opts.machine.action(&opts.media, opts.impact_angle_deg)?;
+    if opts.media_velocity_m_s.is_some() || opts.pressure_pa.is_some() {
+        if let Some(v) = opts.media_velocity_m_s {
+            if !(v.is_finite() && v > 0.0) {
+                bail!("--media-velocity-m-s {v}: expected > 0");
+            }
+            action.media_velocity_m_s = v;
+        }
+        if let Some(p) = opts.pressure_pa {
+            if !(p.is_finite() && p >= 0.0) {
+                bail!("--pressure-pa {p}: expected >= 0");
+            }
+            action.pressure_pa = p;
+        }
+        action.source = format!("given directly (the rest from {})", action.source);
+    }
+    Ok((k_finnie, action))
+}
+
+/// The press load plus the media's inertia under the machine's acceleration, N.
+fn press_force_n(opts: &FinishOptions, action: &Action) -> f64 {
+    opts.media.load_n(action.pressure_pa) + opts.media.mass_kg() * action.acceleration_m_s2
+}
+
+/// What the cycles carry from one to the next.
+struct State {
+    /// The surface now (patch + guard) and the wear so far.
+    h: Vec<f64>,
+    finnie_total: Vec<f64>,
+    archard_total: Vec<f64>,
+    cycles: Vec<CycleRecord>,
+    engine_s: f64,
+    engine_cpu_s: f64,
+    /// The engine's cost per triangle-step, as last measured.
+    cost: f64,
+    partial: bool,
+    first_finnie_map: Option<Vec<f64>>,
+    worst_volume_error: f64,
+    sim_time_total: f64,
+    /// The contact field's wear-per-contact table, pooled over the cycles.
+    table: WearTable,
+    provisional_scale: Option<f64>,
+    last_fit: Option<FieldFit>,
+    /// Each cycle's Archard map and the impacts one of its passes stands for.
+    archard_sampled: Vec<(Vec<f64>, f64)>,
+    checks: Vec<field::FieldCheck>,
+}
+
+impl State {
+    fn new(setup: &Setup) -> Self {
+        let n = setup.patch.heights_um.len();
+        Self {
+            h: setup.patch.heights_um.clone(),
+            finnie_total: vec![0.0; n],
+            archard_total: vec![0.0; n],
+            cycles: Vec::new(),
+            engine_s: 0.0,
+            engine_cpu_s: 0.0,
+            cost: setup.opts.cost_per_triangle_step_s,
+            partial: false,
+            first_finnie_map: None,
+            worst_volume_error: 0.0,
+            sim_time_total: 0.0,
+            table: WearTable::empty(setup.dist.max_um()),
+            provisional_scale: None,
+            last_fit: None,
+            archard_sampled: Vec::new(),
+            checks: Vec::new(),
+        }
+    }
+
+    /// Adds a segment's engine time and, unless it was stopped, its measured cost.
+    fn count_engine(&mut self, r: &SegmentResult) {
+        self.engine_s += r.engine_s;
+        self.engine_cpu_s += r.engine_cpu_s;
+        let steps = r.triangles as f64 * r.segment.total_steps() as f64;
+        if !r.stopped && steps > 0.0 {
+            self.cost = r.engine_s / steps;
+        }
+    }
+}
+
+/// Two passes on the original surface to measure the engine's cost on this machine now.
+fn probe(
+    setup: &Setup,
+    st: &mut State,
+    stop: &AtomicBool,
+    say: &mut dyn FnMut(&str),
+) -> Result<ProbeRecord> {
+    let r = run_segment(
+        &SegmentPlan {
+            passes: Some(2),
+            ..setup.plan()
+        },
+        &st.h,
+        setup.patch.sampling,
+        setup.patch.crop,
+        &setup.out_dir.join("probe"),
+        stop,
+        &mut |_, _| {},
+    )?;
+    st.count_engine(&r);
+    say(&format!(
+        "finish: probe: {} triangles x {} steps in {:.1} s ({:.2e} s per triangle-step, start-up included)",
+        r.triangles,
+        r.segment.total_steps(),
+        r.engine_s,
+        st.cost
+    ));
+    st.partial |= r.stopped;
+    Ok(ProbeRecord {
+        dir: "probe".into(),
+        engine_s: r.engine_s,
+        engine_cpu_s: r.engine_cpu_s,
+        triangles: r.triangles,
+        steps: r.segment.total_steps(),
+        cost_per_triangle_step_s: st.cost,
+    })
+}
+
+/// What a cycle's wear model made of its segment.
+struct CycleWear {
+    scale: f64,
+    reached: bool,
+    acceleration: f64,
+    fitted_k: f64,
+    field: Option<CycleField>,
+}
+
+/// Cycle `c`: a DEM segment on the surface now, its wear applied by the run's wear model.
+/// Returns false when the engine was stopped (the completed cycles stand).
+fn run_cycle(
+    setup: &Setup,
+    st: &mut State,
+    c: usize,
+    stop: &AtomicBool,
+    say: &mut dyn FnMut(&str),
+) -> Result<bool> {
+    let opts = setup.opts;
+    let dir = setup.out_dir.join(format!("cycle_{c:02}"));
+    // The budget left, shared by the segments left, at the cost measured so far (the
+    // machine may be busier than the planning estimate assumes).
+    let left = setup.segments - (c - 1);
+    let seg_plan = SegmentPlan {
+        seed: opts.seed.wrapping_add(c as u64 - 1),
+        engine_budget_s: ((opts.time_budget_s - st.engine_s) / left as f64)
+            .max(0.02 * opts.time_budget_s),
+        cost_per_triangle_step_s: st.cost,
+        ..setup.plan()
+    };
+    let cycles = opts.cycles;
+    let mut last_say = Instant::now();
+    let r = run_segment(
+        &seg_plan,
+        &st.h,
+        setup.patch.sampling,
+        setup.patch.crop,
+        &dir,
+        stop,
+        &mut |p, seg| {
+            if last_say.elapsed().as_secs_f64() >= 2.0 || p.steps_done == p.steps_total {
+                last_say = Instant::now();
+                say(&Progress {
+                    label: "cycle".into(),
+                    cycle: c,
+                    cycles,
+                    engine: p,
+                    simulated_s: p.steps_done as f64 * seg.timestep_s,
+                    segment_simulated_s: seg.simulated_time_s(),
+                }
+                .line());
+            }
+        },
+    )?;
+    st.count_engine(&r);
+    if r.stopped {
+        st.partial = true;
+        say(&format!(
+            "finish: stopped during cycle {c}; keeping {} completed cycle(s)",
+            c - 1
+        ));
+        return Ok(false);
+    }
+    let sim_s = r.segment.simulated_time_s();
+    st.sim_time_total += sim_s;
+    if st.first_finnie_map.is_none() {
+        st.first_finnie_map = Some(r.finnie_um.clone());
+    }
+    let wear = match opts.wear_model {
+        WearModel::SampledMap => sampled_map_wear(setup, st, c, &r, sim_s)?,
+        WearModel::ContactField => contact_field_wear(setup, st, c, &r, stop, say)?,
+    };
+    let patch = &setup.patch;
+    let (_, after_c) = surface_params(&patch.cropped(&st.h), patch.crop_sampling())?;
+    st.worst_volume_error = st.worst_volume_error.max(r.volume_relative_error().abs());
+    let CycleWear {
+        scale,
+        reached,
+        acceleration,
+        fitted_k,
+        field: cycle_field,
+    } = wear;
+    say(&format!(
+        "finish: cycle {c}/{} ({}): {} passes, {:.3} ms simulated in {:.1} s; wear x {:.3e}{}; Sa {:.3} um (volume check {:+.2e})",
+        opts.cycles,
+        opts.wear_model.name(),
+        r.segment.passes.len(),
+        sim_s * 1e3,
+        r.engine_s,
+        scale,
+        if setup.target_sa.is_some() { format!(" (fitted k_finnie {fitted_k:.3e} 1/Pa{})", if reached { "" } else { ", target NOT reached" }) } else { String::new() },
+        after_c.sa,
+        r.volume_relative_error()
+    ));
+    st.cycles.push(CycleRecord {
+        cycle: c,
+        dir: format!("cycle_{c:02}"),
+        command: r.command.clone(),
+        triangles: r.triangles,
+        mesh_block_stride: r.mesh_stride,
+        passes: r.segment.passes.len(),
+        steps_per_pass: r.segment.steps_per_pass,
+        timestep_s: r.segment.timestep_s,
+        simulated_s: sim_s,
+        engine_s: r.engine_s,
+        engine_cpu_s: r.engine_cpu_s,
+        cost_per_triangle_step_s: r.engine_s
+            / (r.triangles as f64 * r.segment.total_steps() as f64),
+        cpu_per_triangle_step_s: r.engine_cpu_s
+            / (r.triangles as f64 * r.segment.total_steps() as f64),
+        acceleration_factor: acceleration,
+        wear_scale: scale,
+        target_reached: reached,
+        k_finnie_equivalent_per_pa: fitted_k,
+        volume_check: CycleVolumeCheck {
+            liggghts_um3: r.liggghts_volume_um3,
+            grid_um3: r.grid_volume_um3,
+            unmapped_um3: r.unmapped_volume_um3,
+            relative_error: r.volume_relative_error(),
+        },
+        archard_volume_um3: volume_um3(&r.archard_um, patch.sampling.pitch()),
+        contacts: record::to_value(&r.contacts),
+        contact_field: cycle_field,
+        after: after_c,
+    });
+    Ok(true)
+}
+
+/// The sampled map: the segment's Finnie map, scaled to the cycle's share of the process
+/// time (or fitted to the target's share), worn into the surface.
+fn sampled_map_wear(
+    setup: &Setup,
+    st: &mut State,
+    c: usize,
+    r: &SegmentResult,
+    sim_s: f64,
+) -> Result<CycleWear> {
+    let (opts, patch, k_finnie) = (setup.opts, &setup.patch, setup.k_finnie);
+    // The acceleration factor: each cycle stands for its share of the process time.
+    let acceleration = opts.process_time_s / opts.cycles as f64 / sim_s;
+    let (scale, reached) = match setup.target_sa {
+        Some(t) => {
+            let sa0 = setup.before.sa;
+            let goal = sa0 * (t / sa0).powf(c as f64 / opts.cycles as f64);
+            fit_scale(patch, &st.h, &r.finnie_um, goal)?
+        }
+        None => (acceleration, true),
+    };
+    let fitted_k = k_finnie * scale / acceleration;
+    // A wear deeper than the whole roughness in one cycle is not a finishing step:
+    // the constant does not fit the process time (and the re-mesh would be slivers).
+    let deepest = patch
+        .cropped(&r.finnie_um)
+        .iter()
+        .fold(0.0f64, |m, w| m.max(w * scale));
+    let (_, now) = surface_params(&patch.cropped(&st.h), patch.crop_sampling())?;
+    if deepest > (2.0 * now.sz).max(0.5) {
+        bail!(
+            "cycle {c}: the wear is {deepest:.3e} um deep at its deepest, more than twice the \
+             patch's Sz ({:.3} um) and 0.5 um: k_finnie {:.3e} 1/Pa is far too large for a process \
+             time of {} s; fit it with --calibrate SA_BEFORE,SA_AFTER or give a smaller --k-finnie",
+            now.sz,
+            k_finnie,
+            opts.process_time_s
+        );
+    }
+    add_scaled(&mut st.finnie_total, &r.finnie_um, scale);
+    add_scaled(&mut st.archard_total, &r.archard_um, scale);
+    add_scaled(&mut st.h, &r.finnie_um, -scale);
+    Ok(CycleWear {
+        scale,
+        reached,
+        acceleration,
+        fitted_k,
+        field: None,
+    })
+}
+
+/// The contact field: the field of the surface this segment ran on, checked against where
+/// the DEM wore, its wear per contact pooled into the table, and the next segment's surface
+/// extrapolated from the original with the tables so far.
+fn contact_field_wear(
+    setup: &Setup,
+    st: &mut State,
+    c: usize,
+    r: &SegmentResult,
+    stop: &AtomicBool,
+    say: &mut dyn FnMut(&str),
+) -> Result<CycleWear> {
+    let (opts, patch, dist) = (setup.opts, &setup.patch, &setup.dist);
+    let dem_passes = r.segment.passes.len();
+    let gap = field::ball_gap_um(&st.h, patch.sampling, setup.field_grid.radius_um);
+    let gap_crop = patch.cropped(&gap);
+    let dem_crop = patch.cropped(&r.finnie_um);
+    let check = field::check_field(dist, &gap_crop, &dem_crop);
+    let mut own = WearTable::empty(dist.max_um());
+    own.add_segment(dist, &gap_crop, &dem_crop, dem_passes, setup.cell_area_um2)?;
+    st.table
+        .add_segment(dist, &gap_crop, &dem_crop, dem_passes, setup.cell_area_um2)?;
+    let impacts_cycle = setup.impacts_process / opts.cycles as f64;
+    // The scale that steers the next segments' surfaces: refitted on the tables
+    // so far over the whole process (the final fit, once, uses every table).
+    if let Some(t) = setup.target_sa {
+        let fit = setup.field_fit(c, &st.table, t, stop)?;
+        st.provisional_scale = Some(fit.impacts / setup.impacts_process);
+        // After the last cycle this is the final fit (same tables): kept.
+        st.last_fit = Some(fit);
+    }
+    let scale = st.provisional_scale.unwrap_or(1.0);
+    // The next segment's surface: the model's estimate at the end of this cycle's
+    // share of the process, from the original with the tables so far.
+    let mut h_next = patch.heights_um.clone();
+    let mut w_next = vec![0.0; h_next.len()];
+    let e = field::extrapolate(
+        &mut h_next,
+        &mut w_next,
+        setup.field_grid,
+        dist,
+        &st.table,
+        impacts_cycle * c as f64,
+        scale,
+    );
+    st.h = h_next;
+    st.finnie_total = w_next;
+    st.archard_sampled
+        .push((r.archard_um.clone(), impacts_cycle / dem_passes as f64));
+    say(&format!(
+        "finish: cycle {c}: contact field: AUC {:.3} (gap ranks the DEM's worn cells), {:.1} % of the DEM wear within reach; {} extrapolation steps",
+        check.auc_gap_predicts_worn,
+        check.dem_volume_within_reach * 100.0,
+        e.steps
+    ));
+    st.checks.push(check.clone());
+    Ok(CycleWear {
+        scale,
+        reached: true,
+        acceleration: impacts_cycle / dem_passes as f64,
+        fitted_k: setup.k_finnie * scale,
+        field: Some(CycleField {
+            check,
+            table: own,
+            impacts: impacts_cycle,
+            dem_impacts: dem_passes,
+            extrapolation: e,
+            scale_is: if setup.target_sa.is_some() {
+                "provisional (fitted on the tables so far); the final fit uses every table"
+            } else {
+                "1: k_finnie as given"
+            }
+            .into(),
+        }),
+    })
+}
+
+/// The contact field's final fit, once, with every cycle's table, from the original
+/// surface over the whole process time; without a target the cycles' wear stands (k as
+/// given). The Archard map is rebuilt at the final scale.
+fn final_field_fit(
+    setup: &Setup,
+    st: &mut State,
+    stop: &AtomicBool,
+    say: &mut dyn FnMut(&str),
+) -> Result<Option<FinalFit>> {
+    let completed = st.cycles.len();
+    if setup.opts.wear_model != WearModel::ContactField || completed == 0 {
+        return Ok(None);
+    }
+    let (k_finnie, impacts_process) = (setup.k_finnie, setup.impacts_process);
+    let mut final_fit = None;
+    let mut scale = st.provisional_scale.unwrap_or(1.0);
+    if let (Some(t), false) = (setup.target_sa, st.partial) {
+        let fit = match st.last_fit.take().filter(|f| f.cycle == completed) {
+            Some(f) => f,
+            None => setup.field_fit(completed, &st.table, t, stop)?,
+        };
+        let FieldFit {
+            heights_um: h0,
+            wear_um: w0,
+            impacts: used,
+            extrapolation: e,
+            reached,
+            ..
+        } = fit;
+        scale = used / impacts_process;
+        st.h = h0;
+        st.finnie_total = w0;
+        let sa = setup.sa_of_crop(&st.h)?;
+        let err = sa / t - 1.0;
+        say(&format!(
+            "finish: contact field fitted once over {} impacts on the patch: scale {scale:.4e} (k_finnie {:.3e} 1/Pa), Sa {sa:.4} um for the target {t:.4} ({:+.2} %){}",
+            impacts_process,
+            k_finnie * scale,
+            err * 100.0,
+            if reached { "" } else { ": target NOT reached" }
+        ));
+        final_fit = Some(FinalFit {
+            scale,
+            k_finnie_fitted_per_pa: k_finnie * scale,
+            sa_after_um: sa,
+            relative_error: err,
+            reached: reached && err.abs() * 100.0 <= CALIBRATION_TOLERANCE_PERCENT,
+            extrapolation: e,
+        });
+    }
+    st.archard_total = vec![0.0; st.h.len()];
+    for (map, factor) in &st.archard_sampled {
+        add_scaled(&mut st.archard_total, map, factor * scale);
+    }
+    Ok(final_fit)
+}
+
+/// The paper's comparison: the ideal model (form only) under the same first segment, its
+/// wear map against the model's by SIM.
+fn ideal_comparison(
+    setup: &Setup,
+    st: &mut State,
+    stop: &AtomicBool,
+    say: &mut dyn FnMut(&str),
+) -> Result<Option<IdealModelRun>> {
+    let (model, opts, patch) = (setup.model, setup.opts, &setup.patch);
+    let (Some(ideal), false, Some(hifi_map)) = (&opts.ideal, st.partial, &st.first_finnie_map)
+    else {
+        return Ok(None);
+    };
+    if (ideal.rows, ideal.cols) != (model.rows, model.cols) {
+        bail!(
+            "{}: the ideal model is {} x {}; the model is {} x {}",
+            ideal.source,
+            ideal.rows,
+            ideal.cols,
+            model.rows,
+            model.cols
+        );
+    }
+    let w = patch.in_model;
+    let area = crop(&ideal.heights_um, ideal.cols, w);
+    let g = Grid::of(&area, patch.sampling.with_shape(Shape::new(w.rows, w.cols)))?;
+    let levelled = level_plane(&g)?;
+    let dir = setup.out_dir.join("ideal");
+    let mut last_say = Instant::now();
+    let r = run_segment(
+        &SegmentPlan {
+            seed: opts.seed,
+            engine_budget_s: (opts.time_budget_s - st.engine_s).max(0.02 * opts.time_budget_s),
+            cost_per_triangle_step_s: st.cost,
+            ..setup.plan()
+        },
+        &levelled,
+        patch.sampling.with_shape(Shape::new(w.rows, w.cols)),
+        patch.crop,
+        &dir,
+        stop,
+        &mut |p, seg| {
+            if last_say.elapsed().as_secs_f64() >= 2.0 {
+                last_say = Instant::now();
+                say(&Progress {
+                    label: "ideal model".into(),
+                    cycle: 1,
+                    cycles: 1,
+                    engine: p,
+                    simulated_s: p.steps_done as f64 * seg.timestep_s,
+                    segment_simulated_s: seg.simulated_time_s(),
+                }
+                .line());
+            }
+        },
+    )?;
+    st.engine_s += r.engine_s;
+    st.engine_cpu_s += r.engine_cpu_s;
+    if r.stopped {
+        st.partial = true;
+        return Ok(None);
+    }
+    let a = patch.cropped(hifi_map);
+    let b = patch.cropped(&r.finnie_um);
+    let s = sim(&a, &b).unwrap_or(f64::NAN);
+    say(&format!(
+        "finish: SIM(wear map of the model, wear map of the ideal model) = {s:.3}"
+    ));
+    Ok(Some(IdealModelRun {
+        source: ideal.source.clone(),
+        dir: "ideal".into(),
+        engine_s: r.engine_s,
+        volume_um3: r.grid_volume_um3,
+        sim_wear_maps: s.is_finite().then_some(s),
+        note: "SIM (eq. 12) between the first cycle's Finnie map on the model and on the ideal model, same passes".into(),
+    }))
+}
+
+/// The evaluated patch's maps as written, and the worn surface's parameters.
+struct Crops {
+    finnie: Vec<f64>,
+    archard: Vec<f64>,
+    worn: Vec<f64>,
+    original: Vec<f64>,
+    after: SurfaceParams,
+}
+
+/// Outputs on the crop: the wear maps, the worn and original surfaces (.npy with their
+/// sidecars) and worn.x3p.
+fn write_outputs(setup: &Setup, st: &State) -> Result<Crops> {
+    let (patch, out_dir) = (&setup.patch, setup.out_dir);
+    let (rows, cols) = (patch.crop.rows, patch.crop.cols);
+    let finnie_crop = patch.cropped(&st.finnie_total);
+    let archard_crop = patch.cropped(&st.archard_total);
+    let worn_raw = patch.cropped(&st.h);
+    let (worn_crop, after) = surface_params(&worn_raw, patch.crop_sampling())?;
+    // Every .npy keeps its pitch in its sidecar, as every other writer of the project does.
+    let geometry = surfstream_io::sidecar::NpyGeometry {
+        pitch_x_um: patch.sampling.pitch_x_um(),
+        pitch_y_um: patch.sampling.pitch_y_um(),
+        origin_um: None,
+    };
+    let write = |name: &str, z: &[f64]| -> Result<()> {
+        let path = out_dir.join(name);
+        surfstream_io::npy::write_npy_f64(&path, z, rows, cols)
+            .map_err(|e| anyhow!("{}: {e}", path.display()))?;
+        surfstream_io::sidecar::write_sidecar(&path, &geometry)
+    };
+    write(outputs::WEAR, &finnie_crop)?;
+    write(outputs::WEAR_FINNIE, &finnie_crop)?;
+    write(outputs::WEAR_ARCHARD, &archard_crop)?;
+    write(outputs::WORN, &worn_crop)?;
+    write(outputs::ORIGINAL, &setup.original_crop)?;
+    let x3p = surfstream_io::formats::Surface {
+        width: cols,
+        height: rows,
+        pitch_x_um: patch.sampling.pitch_x_um(),
+        pitch_y_um: patch.sampling.pitch_y_um(),
+        heights_um: worn_crop.clone(),
+        metadata: surfstream_io::formats::Metadata {
+            format: "x3p".into(),
+            pitch_known: true,
+            ..Default::default()
+        },
+    };
+    surfstream_io::formats::write_surface(&out_dir.join(outputs::WORN_X3P), &x3p)?;
+    Ok(Crops {
+        finnie: finnie_crop,
+        archard: archard_crop,
+        worn: worn_crop,
+        original: setup.original_crop.clone(),
+        after,
+    })
+}
+
+/// finish.json's record of the whole process.
+fn summary(
+    setup: &Setup,
+    st: State,
+    crops: &Crops,
+    final_fit: Option<FinalFit>,
+    ideal_run: Option<IdealModelRun>,
+    probe: Option<ProbeRecord>,
+    total_s: f64,
+) -> Result<FinishSummary> {
+    let Setup {
+        model,
+        opts,
+        action,
+        patch,
+        ..
+    } = setup;
+    let (k_finnie, target_sa, dt, guard) = (
+        setup.k_finnie,
+        setup.target_sa,
+        setup.timestep_s,
+        setup.guard_um,
+    );
+    let (rows, cols) = (patch.crop.rows, patch.crop.cols);
+    let (finnie_crop, archard_crop, worn_crop, after) =
+        (&crops.finnie, &crops.archard, &crops.worn, &crops.after);
+    let original_crop = &setup.original_crop;
+    let (partial, completed, checks) = (st.partial, st.cycles.len(), &st.checks);
+    let sim_finnie_archard = sim(finnie_crop, archard_crop)
+        .ok()
+        .filter(|s| s.is_finite());
+    let sim_measured = setup
+        .measured_after
+        .as_ref()
+        .and_then(|(m, _)| sim(worn_crop, m).ok())
+        .filter(|s| s.is_finite());
+    let abbott = |z: &[f64]| -> Result<AbbottSummary> {
+        let g = Grid::of(z, patch.crop_sampling())?;
+        let a = AbbottCurve::of(&g)?;
+        Ok(AbbottSummary {
+            material_ratio_pct: a.material_ratio_pct,
+            height_um: a.height_um,
+        })
+    };
+    let check_mean = |f: &dyn Fn(&field::FieldCheck) -> f64| -> Option<f64> {
+        let v: Vec<f64> = checks.iter().map(f).filter(|x| x.is_finite()).collect();
+        (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+    };
+    let (engine_s, engine_cpu_s) = (st.engine_s, st.engine_cpu_s);
+    Ok(FinishSummary {
+        model: model.source.clone(),
+        partial,
+        cycles_completed: completed,
+        cycles_requested: opts.cycles,
+        setting: Some(FinishSetting {
+            patch: PatchRecord {
+                rows_cols: [rows, cols],
+                size_um: [cols as f64 * patch.sampling.pitch_x_um(), rows as f64 * patch.sampling.pitch_y_um()],
+                pitch_um: [patch.sampling.pitch_x_um(), patch.sampling.pitch_y_um()],
+                in_model_rows_cols_origin: [patch.in_model.row0 + patch.crop.row0, patch.in_model.col0 + patch.crop.col0],
+                guard_band_um: guard,
+                meshed_area_rows_cols: [patch.sampling.rows(), patch.sampling.cols()],
+                boundary: "guard band of real neighbouring surface, meshed and worn, then cropped (not periodic: a mirrored seam is an artificial ridge, and a 3 mm medium spans the whole patch)".into(),
+                levelled: "least-squares plane of the meshed area removed".into(),
+                filled_samples: patch.filled_samples,
+            },
+            media: opts.media,
+            workpiece: opts.workpiece,
+            machine: opts.machine,
+            action: action.clone(),
+            press_force_n: press_force_n(opts, action),
+            k_finnie_per_pa: k_finnie,
+            archard_k_over_h_per_pa: opts.archard_k_over_h_per_pa,
+            process_time_s: opts.process_time_s,
+            timestep_s: dt,
+            ranks: opts.ranks,
+            max_triangles: opts.max_triangles,
+            time_budget_s: opts.time_budget_s,
+            seed: opts.seed,
+            wear_depth: "volume (LIGGGHTS' normal wear x triangle area) spread to the grid: depth along z = normal wear / cos(slope)".into(),
+            acceleration: "each cycle's wear x (process time / cycles) / simulated time, or x the scale fitted to the calibration target".into(),
+        }),
+        calibration: opts.calibrate.as_ref().map(|c| CalibrationSummary {
+            kind: match c { Calibration::Sa{..} => "Sa before/after", Calibration::Measured(_) => "measured after-finish scan" }.into(),
+            target_sa_um: target_sa,
+            wear_model: Some(opts.wear_model.name().into()),
+            tolerance_percent: Some(CALIBRATION_TOLERANCE_PERCENT),
+            k_finnie_fitted_per_pa: if opts.wear_model == WearModel::ContactField {
+                final_fit.as_ref().map(|f| f.k_finnie_fitted_per_pa)
+            } else if completed > 0 {
+                // Cycles whose constant is not finite were written as null and left out.
+                Some(st.cycles.iter().map(|c| c.k_finnie_equivalent_per_pa).filter(|k| k.is_finite()).sum::<f64>() / completed as f64)
+            } else { None },
+            sa_after_um: Some(after.sa),
+            relative_error: target_sa.map(|t| after.sa / t - 1.0),
+            reached: target_sa.map(|t| !partial && (after.sa / t - 1.0).abs() * 100.0 <= CALIBRATION_TOLERANCE_PERCENT),
+            fit: final_fit.clone(),
+            provisional_scale: st.provisional_scale,
+            measured_after: setup.measured_after.as_ref().map(|(_, p)| p.clone()),
+        }),
+        wear_model: Some(opts.wear_model.name().into()),
+        contact_field: (opts.wear_model == WearModel::ContactField).then(|| ContactFieldSummary {
+            ball_radius_um: setup.field_grid.radius_um,
+            closing: "the surface closed with the paraboloid r^2/2R of the media's radius (separable lower envelope of parabolas, exact, at the model's full resolution, over the patch and its guard band); the sphere differs from it by r^4/8R^3 (0.06 um at 200 um for R = 1.5 mm)".into(),
+            approach: Some(setup.dist),
+            approach_model: "Hertz approach (15 m v_n^2 / (16 E* sqrt R))^(2/5), impact angle uniform on [0, max_impact_angle_deg] at the media speed; the press load's static approach a floor; p(gap) = P(approach > gap)".into(),
+            impact_rate_per_m2_s: setup.impact_rate,
+            impact_rate_model: "the bed's contact layer holds one medium per 2 sqrt(3) r^2 and each strikes afresh once per diameter travelled at the media speed (an assumption)".into(),
+            patch_area_um2: setup.aim_area_um2,
+            impacts_over_process: setup.impacts_process,
+            step_depth_um: field::STEP_DEPTH_UM,
+            table: st.table.clone(),
+            check_mean: CheckMean {
+                auc_gap_predicts_worn: check_mean(&|c| c.auc_gap_predicts_worn),
+                dem_volume_within_reach: check_mean(&|c| c.dem_volume_within_reach),
+                cells_within_reach: check_mean(&|c| c.cells_within_reach),
+                dem_worn_cells: check_mean(&|c| c.dem_worn_cells),
+            },
+            worn_cells_after: Some(finnie_crop.iter().filter(|w| **w > 0.0).count() as f64 / finnie_crop.len().max(1) as f64),
+        }),
+        paper: Some(PaperValues {
+            before: [("Sa", 1.272), ("Sq", 1.624), ("Sz", 15.262)].map(|(k, v)| (k.to_string(), v)).into(),
+            after: [("Sa", 0.565), ("Sq", 0.708), ("Sz", 6.162)].map(|(k, v)| (k.to_string(), v)).into(),
+            process_time_s: 300,
+        }),
+        before: setup.before.clone(),
+        after: after.clone(),
+        abbott_before: abbott(original_crop)?,
+        abbott_after: abbott(worn_crop)?,
+        volume_check: Some(VolumeCheck {
+            relative_error: st.worst_volume_error,
+            what: "largest |grid volume / LIGGGHTS' sum of wear x area - 1| over the cycles".into(),
+        }),
+        wear: Some(WearVolumes {
+            finnie_volume_um3: volume_um3(finnie_crop, patch.sampling.pitch()),
+            archard_volume_um3: volume_um3(archard_crop, patch.sampling.pitch()),
+            max_depth_um: finnie_crop.iter().cloned().fold(0.0, f64::max),
+            mean_depth_um: finnie_crop.iter().sum::<f64>() / finnie_crop.len() as f64,
+        }),
+        sim: Some(SimValues {
+            finnie_vs_archard: sim_finnie_archard,
+            worn_vs_measured_after: sim_measured,
+        }),
+        ideal_model: ideal_run,
+        probe,
+        timings: Timings {
+            engine_s,
+            engine_cpu_s,
+            total_s,
+            surfstream_overhead_s: total_s - engine_s,
+            overhead_share_of_engine: (engine_s > 0.0).then(|| (total_s - engine_s) / engine_s),
+            simulated_s: st.sim_time_total,
+        },
+        outputs: [outputs::WEAR, outputs::WEAR_FINNIE, outputs::WEAR_ARCHARD, outputs::WORN, outputs::WORN_X3P, outputs::ORIGINAL, outputs::SUMMARY, outputs::HTML].map(String::from).into(),
+        cycles: st.cycles,
+    })
+}
+
+/// Sa of the crop of `h - s * wear` (levelled).
+fn sa_after(patch: &Patch, h: &[f64], wear: &[f64], s: f64) -> Result<f64> {
+    let z: Vec<f64> = h.iter().zip(wear).map(|(a, w)| a - s * w).collect();
+    let c = patch.cropped(&z);
+    let (_, p) = surface_params(&c, patch.crop_sampling())?;
+    Ok(p.sa)
+}
+
+/// The scale `s` such that the crop of `h - s * wear` has Sa = `target`: the first crossing
+/// on a scan of s up to the scale that wears the deepest point by the crop's Sq, then
+/// bisection. Returns the scale and whether the target was reached (else the scale of the
+/// smallest Sa within that cap).
+fn fit_scale(patch: &Patch, h: &[f64], wear: &[f64], target: f64) -> Result<(f64, bool)> {
+    let crop_wear = patch.cropped(wear);
+    let max_w = crop_wear.iter().cloned().fold(0.0, f64::max);
+    if max_w <= 0.0 {
+        return Ok((0.0, false));
+    }
+    let c = patch.cropped(h);
+    let (_, p0) = surface_params(&c, patch.crop_sampling())?;
+    if p0.sa <= target {
+        return Ok((0.0, true));
+    }
+    // No point is worn by more than the crop's Sq in one cycle: deeper would cut a touched
+    // peak below untouched neighbours, which only the next DEM segment can tell.
+    let s_max = p0.sq / max_w;
+    let n = 64;
+    let mut prev = 0.0;
+    let mut best = (0.0, p0.sa);
+    for i in 1..=n {
+        let s = s_max * i as f64 / n as f64;
+        let sa = sa_after(patch, h, wear, s)?;
+        if sa < best.1 {
+            best = (s, sa);
+        }
+        if sa <= target {
+            let (mut a, mut b) = (prev, s);
+            for _ in 0..40 {
+                let m = 0.5 * (a + b);
+                if sa_after(patch, h, wear, m)? > target {
+                    a = m;
+                } else {
+                    b = m;
+                }
+            }
+            return Ok((0.5 * (a + b), true));
+        }
+        prev = s;
+    }
+    Ok((best.0, false))
+}
+
+/// A fit of the contact field's scale: the worn surface it ends on and what it took.
+struct FieldFit {
+    cycle: usize,
+    heights_um: Vec<f64>,
+    wear_um: Vec<f64>,
+    impacts: f64,
+    extrapolation: field::Extrapolation,
+    reached: bool,
+}
+
+impl FieldFit {
+    /// Wears a copy of the original surface along the contact field until the crop's Sa
+    /// reaches `target_sa_um` (or `max_impacts`): the fit of the tables so far.
+    #[allow(clippy::too_many_arguments)]
+    fn from_original(
+        cycle: usize,
+        original_um: &[f64],
+        g: field::FieldGrid,
+        dist: &field::ApproachDistribution,
+        table: &field::WearTable,
+        max_impacts: f64,
+        target_sa_um: f64,
+        stop: &std::sync::atomic::AtomicBool,
+        sa_of_crop: impl FnMut(&[f64]) -> Result<f64>,
+    ) -> Result<Self> {
+        let mut heights_um = original_um.to_vec();
+        let mut wear_um = vec![0.0; original_um.len()];
+        let (impacts, extrapolation, reached) = field::wear_to_target(
+            &mut heights_um,
+            &mut wear_um,
+            g,
+            dist,
+            table,
+            max_impacts,
+            target_sa_um,
+            stop,
+            sa_of_crop,
+        )?;
+        Ok(Self {
+            cycle,
+            heights_um,
+            wear_um,
+            impacts,
+            extrapolation,
+            reached,
+        })
+    }
+}
+
+fn add_scaled(acc: &mut [f64], x: &[f64], s: f64) {
+    for (a, v) in acc.iter_mut().zip(x) {
+        *a += s * v;
+    }
+}

@@ -1,0 +1,168 @@
+//! The mesher's report as the records its readers read ([`surfstream_core::record`]): the
+//! search's and the mesh's own types turned into [`MeshReport`]'s parts, field by field, so a
+//! field added to a record must be written here before the mesher compiles.
+//!
+//! The computation keeps its own types where they carry more than the report (`usize` counts,
+//! the search's state); the ones that are the report's layout and nothing else are the records
+//! themselves (`AreaParams` = [`LevelledParams`], `AngleStats` = [`AngleRecord`],
+//! `ElementQuality`).
+
+use serde::Serialize;
+use surfstream_core::record::{
+    self, AdaptiveMeshRecord, AngleQuality, CurvePointRecord, MeshFidelity, ModelTolerance,
+    OutliersRecord, RegionFitRecord, ToleranceRecord, VerticalError,
+};
+
+use crate::adaptive::{Fidelity, MeshCounts};
+use crate::outliers::OutlierReport;
+use crate::tin::ErrorStats;
+use crate::tolerance::{CurvePoint, RegionFit, Tolerance, ToleranceReport};
+
+/// How `offset_um` maps the STL's vertices to scan coordinates (the report's `offset_rule`).
+pub const OFFSET_RULE: &str = "scan_um = vertex * um_per_unit + offset_um";
+
+/// The name serde gives a unit-like enum value ("solid", "fill", "keep"), the one the report
+/// has always carried.
+pub(crate) fn serde_name<T: Serialize>(v: &T) -> String {
+    match record::to_value(v) {
+        serde_json::Value::String(s) => s,
+        other => other.to_string(),
+    }
+}
+
+/// An adaptive mesh's statistics: the sizes (they stand among the report's common fields) and
+/// the adaptive mesh's own part.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AdaptiveSummary {
+    pub counts: MeshCounts,
+    pub record: AdaptiveMeshRecord,
+}
+
+impl AdaptiveSummary {
+    /// As a JSON object: the record and the sizes it is written with (the mesh verb's
+    /// report starts from it).
+    pub fn to_value(&self) -> serde_json::Value {
+        let mut v = record::to_value(&self.record);
+        if let Some(o) = v.as_object_mut() {
+            let c = &self.counts;
+            o.insert("units".into(), c.units.symbol().into());
+            o.insert("offset_um".into(), record::to_value(&c.offset_um));
+            o.insert("triangles".into(), c.triangles.into());
+            o.insert("vertices".into(), c.vertices.into());
+            o.insert("base_depth_um".into(), record::to_value(&c.base_depth_um));
+        }
+        v
+    }
+}
+
+impl From<&ErrorStats> for VerticalError {
+    fn from(e: &ErrorStats) -> Self {
+        Self {
+            max_um: e.max_um,
+            rms_um: e.rms_um,
+            samples: e.samples as u64,
+            uncovered: e.uncovered as u64,
+        }
+    }
+}
+
+impl From<&Fidelity> for MeshFidelity {
+    fn from(f: &Fidelity) -> Self {
+        Self {
+            epsilon_um: f.epsilon_um,
+            error: (&f.error).into(),
+            bound_met: f.bound_met,
+            field: f.field,
+            mesh: f.mesh,
+        }
+    }
+}
+
+impl From<&Tolerance> for ModelTolerance {
+    fn from(t: &Tolerance) -> Self {
+        Self {
+            sa_pct: t.sa_pct,
+            sq_pct: t.sq_pct,
+            sz_pct: t.sz_pct,
+            residual_pct: t.residual_pct,
+            roughness_pct: t.roughness_pct,
+        }
+    }
+}
+
+impl From<&RegionFit> for RegionFitRecord {
+    fn from(f: &RegionFit) -> Self {
+        Self {
+            region: f.region.clone(),
+            samples: f.samples as u64,
+            measured_um: f.measured_um,
+            deviation_pct: f.deviation_pct,
+            residual_pct_of_sq: f.residual_pct_of_sq,
+            roughness_deviation_pct: f.roughness_deviation_pct,
+        }
+    }
+}
+
+impl From<&CurvePoint> for CurvePointRecord {
+    fn from(p: &CurvePoint) -> Self {
+        Self {
+            epsilon_um: p.epsilon_um,
+            epsilon_sq_fraction: p.epsilon_sq_fraction,
+            surface_triangles: p.surface_triangles as u64,
+            triangles_per_measured_px: p.triangles_per_measured_px,
+            worst_sa_pct: p.worst_sa_pct,
+            worst_sq_pct: p.worst_sq_pct,
+            worst_sz_pct: p.worst_sz_pct,
+            worst_residual_pct_of_sq: p.worst_residual_pct_of_sq,
+            worst_roughness_pct: p.worst_roughness_pct,
+            worst_region: p.worst_region.clone(),
+            pass: p.pass,
+            over_budget: p.over_budget,
+            chosen: p.chosen,
+        }
+    }
+}
+
+impl From<&ToleranceReport> for ToleranceRecord {
+    fn from(r: &ToleranceReport) -> Self {
+        Self {
+            tolerance: (&r.tolerance).into(),
+            target_share: r.target_share,
+            region_px: r.region_px as u64,
+            regions: r.regions as u64,
+            measured_px: r.measured_px as u64,
+            met: r.met,
+            surface_triangles: r.surface_triangles as u64,
+            triangles_per_measured_px: r.triangles_per_measured_px,
+            epsilon_um: r.epsilon_um,
+            reason: r.reason.clone(),
+            region_fits: r.region_fits.iter().map(Into::into).collect(),
+            curve: r.curve.iter().map(Into::into).collect(),
+            angles: r.angles,
+        }
+    }
+}
+
+impl From<&OutlierReport> for OutliersRecord {
+    fn from(r: &OutlierReport) -> Self {
+        Self {
+            rule: r.rule.clone(),
+            threshold_um: r.threshold_um,
+            count: r.count as u64,
+            largest: r.largest.iter().map(record::to_value).collect(),
+            sz_um: r.sz_um,
+            sz_without_spikes_um: r.sz_without_spikes_um,
+            sz_effect_pct: r.sz_effect_pct,
+            policy: serde_name(&r.policy),
+            removed: r.removed as u64,
+        }
+    }
+}
+
+/// The tolerance search's record, and with an angle bound the element quality of the mesh
+/// written (as the engines' grid sheets report theirs).
+pub(crate) fn tolerance_parts(r: &ToleranceReport) -> (ToleranceRecord, Option<AngleQuality>) {
+    let record = ToleranceRecord::from(r);
+    let quality = record.angles.as_ref().map(AngleQuality::from);
+    (record, quality)
+}
