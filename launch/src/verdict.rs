@@ -661,12 +661,15 @@ mod tests {
     #[test]
     fn an_imprecise_link_is_named_but_does_not_fail() {
         let mut run = run_json(true, false);
-        run["pairs"] = json!([
-            { "a": 3, "b": 4, "ncc": 0.61, "accepted": true, "offset_sd_px": 0.23 },
-            { "a": 1, "b": 2, "ncc": 0.99, "accepted": true, "offset_sd_px": 0.05 },
-            { "a": 2, "b": 5, "ncc": 0.7, "accepted": true, "offset_sd_px": 0.4,
-              "kept_by_global_solve": false },
-        ]);
+        // Complete pairs, as the matcher writes them (a MatcherPair has no optional core).
+        let pair = |a: u32, b: u32, ncc: f64, sd: f64| {
+            json!({ "a": a, "b": b, "direction": "horizontal",
+                "nominal_offset_px": [900.0, 0.0], "offset_px": [901.0, 0.5], "ncc": ncc,
+                "peak_ratio": 2.0, "accepted": true, "reason": null, "offset_sd_px": sd })
+        };
+        let mut dropped = pair(2, 5, 0.7, 0.4);
+        dropped["kept_by_global_solve"] = json!(false);
+        run["pairs"] = json!([pair(3, 4, 0.61, 0.23), pair(1, 2, 0.99, 0.05), dropped]);
         let v = verdict(&record(run), Path::new("/o"), false);
         assert!(v.failures.is_empty(), "{:?}", v.failures);
         assert!(
