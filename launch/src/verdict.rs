@@ -661,6 +661,7 @@ mod tests {
     #[test]
     fn an_imprecise_link_is_named_but_does_not_fail() {
         let mut run = run_json(true, false);
+        // Complete pairs, as the matcher writes them (a MatcherPair has no optional core).
         let pair = |a: u32, b: u32, ncc: f64, sd: f64| {
             json!({ "a": a, "b": b, "direction": "horizontal",
                 "nominal_offset_px": [900.0, 0.0], "offset_px": [901.0, 0.5], "ncc": ncc,
