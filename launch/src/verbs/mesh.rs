@@ -9,13 +9,15 @@ use clap::{Args, ValueEnum};
 use serde_json::json;
 use surfstream_core::frame::to_frame_heights;
 use surfstream_core::raster::{RasterView, Shape};
-use surfstream_mesher::outliers::{find_spikes, OutlierPolicy};
+use surfstream_mesher::outliers::{find_spikes, OutlierPolicy, OutlierReport};
 use surfstream_mesher::{
     check_closed, grid_sheet_for, job::DEFAULT_EPSILON_SQ_FRACTION, mesh_height_field, DemEngine,
     EngineProfile, Epsilon, LengthUnit, MeshError, MeshKind, MeshParams, MissingSamples,
     ScanPlacement, SolidParams, TargetMethod,
 };
-use surfstream_mesher::{mesh_to_tolerance, ToleranceSettings};
+use surfstream_mesher::{
+    mesh_to_tolerance, AdaptiveMesh, MeshCheck, ToleranceReport, ToleranceSettings,
+};
 
 #[derive(Clone, Copy, ValueEnum)]
 pub enum Units {
@@ -28,10 +30,11 @@ pub enum Units {
 pub struct MeshArgs {
     #[arg(help = super::file_help())]
     pub file: PathBuf,
-    /// The model's tolerance per region, percent (default sa=1,sq=1,sz=3 when no epsilon is
-    /// given): the fewest triangles whose mesh, interpolated at every measured sample, keeps
-    /// Sa, Sq and Sz within it in every window (docs/model.md); res=20 also bounds the
-    /// pointwise residual (% of Sq).
+    /// The model's tolerance per region, percent (default sa=1,sq=1,sz=3,res=50 when no
+    /// epsilon is given, plus rough=5 with --roughness): the fewest triangles whose mesh,
+    /// interpolated at every measured sample, keeps Sa, Sq and Sz within it in every window
+    /// (docs/model.md); res bounds the pointwise residual (% of Sq), rough the roughness the
+    /// mesh carries (% of the measured one); `=off` drops a bound.
     #[arg(long, value_name = "sa=1,sq=1,sz=3", conflicts_with_all = ["epsilon_um", "epsilon_sq"])]
     pub tolerance: Option<surfstream_mesher::Tolerance>,
     /// Side of the windows the tolerance is judged in, samples (default: half the map's
@@ -103,9 +106,78 @@ pub struct MeshArgs {
 
 pub fn run(a: MeshArgs) -> Result<()> {
     check_stl_name(&a.out)?;
+    let Prepared {
+        surface,
+        heights_um,
+        z_offset_um,
+        shape,
+        spikes,
+    } = prepared_heights(&a)?;
+    let heights = RasterView::new(&heights_um, shape)?;
+    let pitch = surfstream_core::Pitch::new(surface.pitch_x_um, surface.pitch_y_um)
+        .map_err(|e| anyhow!("{}: {e}", a.file.display()))?;
+    let at = ScanPlacement::new(pitch).with_z_offset(z_offset_um);
+    let profile = a.target.map(|engine| {
+        let mut p = EngineProfile::with_budget(engine, a.max_triangles);
+        if a.grid {
+            p.method = TargetMethod::Grid;
+        }
+        p
+    });
+    if let Some(profile) = profile.filter(|p| p.method == TargetMethod::Grid) {
+        return write_grid_target(&a, &surface.metadata.format, heights, &at, &profile);
+    }
+    let params = mesh_params(&a, profile);
+    let t0 = Instant::now();
+    let (m, tolerance) = mesh_model(&a, heights, &at, &params, profile, shape)?;
+    let mesh_s = t0.elapsed().as_secs_f64();
+    let check = check_closed(&m.mesh);
+
+    let ascii = profile.map_or(a.ascii, |p| p.ascii);
+    // The writers add units and offset to the label (stl::stl_header).
+    let label = "surfstream mesh";
+    surfstream_core::fsutil::write_atomic(&a.out, |w| {
+        if ascii {
+            surfstream_mesher::write_stl_ascii(w, &m.mesh, label)?;
+        } else {
+            surfstream_mesher::write_stl_binary(w, &m.mesh, label)?;
+        }
+        Ok(())
+    })?;
+    let written = Written {
+        surface: &surface,
+        profile,
+        ascii,
+        check,
+        mesh_s,
+        spikes: &spikes,
+    };
+    let json_path = write_report(&a, &m, tolerance.as_ref(), &written)?;
+    say_result(
+        &a,
+        &m,
+        tolerance.as_ref(),
+        &params,
+        profile,
+        mesh_s,
+        &json_path,
+    );
+    Ok(())
+}
+
+/// The heights to mesh: the file read (its mask applied), refused when nothing is measured or
+/// a sample is infinite, as f32 about their mean, spikes found (and removed on request).
+struct Prepared {
+    surface: surfstream_io::formats::Surface,
+    heights_um: Vec<f32>,
+    z_offset_um: f64,
+    shape: Shape,
+    spikes: OutlierReport,
+}
+
+fn prepared_heights(a: &MeshArgs) -> Result<Prepared> {
     let mut surface = super::load_surface(&a.file, a.pitch_um, "mesh", true)?.surface;
     a.mask.apply(&a.file, &mut surface)?;
-    let (pitch_x_um, pitch_y_um) = (surface.pitch_x_um, surface.pitch_y_um);
     // Heights as f32 relative to their mean, so that f32 keeps nanometres however far up the
     // z axis the part sits; the mean goes into z_offset_um and comes back in the offset.
     if !surface.heights_um.iter().any(|h| h.is_finite()) {
@@ -150,26 +222,23 @@ pub fn run(a: MeshArgs) -> Result<()> {
             }
         );
     }
-    let heights = RasterView::new(&heights_um, shape)?;
-    let pitch = surfstream_core::Pitch::new(pitch_x_um, pitch_y_um)
-        .map_err(|e| anyhow!("{}: {e}", a.file.display()))?;
-    let at = ScanPlacement::new(pitch).with_z_offset(z_offset_um);
-    let profile = a.target.map(|engine| {
-        let mut p = EngineProfile::with_budget(engine, a.max_triangles);
-        if a.grid {
-            p.method = TargetMethod::Grid;
-        }
-        p
-    });
-    if let Some(profile) = profile.filter(|p| p.method == TargetMethod::Grid) {
-        return write_grid_target(&a, &surface.metadata.format, heights, &at, &profile);
-    }
+    Ok(Prepared {
+        surface,
+        heights_um,
+        z_offset_um,
+        shape,
+        spikes,
+    })
+}
+
+/// The mesher's parameters from the flags and the engine's profile.
+fn mesh_params(a: &MeshArgs, profile: Option<EngineProfile>) -> MeshParams {
     let units = match a.units.unwrap_or(Units::Mm) {
         Units::M => LengthUnit::M,
         Units::Mm => LengthUnit::Mm,
         Units::Um => LengthUnit::Um,
     };
-    let params = MeshParams {
+    MeshParams {
         epsilon: match (a.epsilon_um, a.epsilon_sq) {
             (Some(e), _) => Epsilon::Um(e),
             (None, Some(f)) => Epsilon::SqFraction(f),
@@ -192,8 +261,19 @@ pub fn run(a: MeshArgs) -> Result<()> {
             recentre: true,
         },
         block_samples: None,
-    };
-    let t0 = Instant::now();
+    }
+}
+
+/// The mesh: at a fixed vertical bound when one is given, else the fewest triangles that meet
+/// the tolerance (judged against the measured roughness with --roughness).
+fn mesh_model(
+    a: &MeshArgs,
+    heights: RasterView<'_, f32>,
+    at: &ScanPlacement,
+    params: &MeshParams,
+    profile: Option<EngineProfile>,
+    shape: Shape,
+) -> Result<(AdaptiveMesh, Option<ToleranceReport>)> {
     let fixed = a.epsilon_um.is_some() || a.epsilon_sq.is_some();
     // An engine that refuses slivers gets the tolerance mesh with its angles bounded.
     let min_angle_deg = profile.map(|p| p.min_angle_deg).filter(|&deg| deg > 0.0);
@@ -207,8 +287,8 @@ pub fn run(a: MeshArgs) -> Result<()> {
     if let Some(px) = a.region_px.filter(|&p| p < 16) {
         bail!("--region-px {px}: expected at least 16 samples");
     }
-    let (m, tolerance) = if fixed {
-        let m = mesh_height_field(heights, &at, &params)
+    Ok(if fixed {
+        let m = mesh_height_field(heights, at, params)
             .with_context(|| format!("{}", a.file.display()))?;
         (m, None)
     } else {
@@ -232,24 +312,38 @@ pub fn run(a: MeshArgs) -> Result<()> {
             .as_deref()
             .map(|path| roughness_reference(path, a.pitch_um, shape))
             .transpose()?;
-        let (m, r) = mesh_to_tolerance(heights, roughness.as_deref(), &at, &params, &settings)
+        let (m, r) = mesh_to_tolerance(heights, roughness.as_deref(), at, params, &settings)
             .with_context(|| format!("{}", a.file.display()))?;
         (m, Some(r))
-    };
-    let mesh_s = t0.elapsed().as_secs_f64();
-    let check = check_closed(&m.mesh);
+    })
+}
 
-    let ascii = profile.map_or(a.ascii, |p| p.ascii);
-    // The writers add units and offset to the label (stl::stl_header).
-    let label = "surfstream mesh";
-    surfstream_core::fsutil::write_atomic(&a.out, |w| {
-        if ascii {
-            surfstream_mesher::write_stl_ascii(w, &m.mesh, label)?;
-        } else {
-            surfstream_mesher::write_stl_binary(w, &m.mesh, label)?;
-        }
-        Ok(())
-    })?;
+/// What the report says besides the mesh's own summary.
+struct Written<'a> {
+    surface: &'a surfstream_io::formats::Surface,
+    profile: Option<EngineProfile>,
+    ascii: bool,
+    check: MeshCheck,
+    mesh_s: f64,
+    spikes: &'a OutlierReport,
+}
+
+/// OUT.json beside the STL: the mesh's summary, the input, the checks, the tolerance search.
+fn write_report(
+    a: &MeshArgs,
+    m: &AdaptiveMesh,
+    tolerance: Option<&ToleranceReport>,
+    w: &Written,
+) -> Result<PathBuf> {
+    let Written {
+        surface,
+        profile,
+        ascii,
+        ref check,
+        mesh_s,
+        spikes,
+    } = *w;
+    let (pitch_x_um, pitch_y_um) = (surface.pitch_x_um, surface.pitch_y_um);
     let json_path = a.out.with_extension("json");
     let mut report = m.summary();
     let o = report
@@ -285,7 +379,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
         json!(check.duplicate_triangles),
     );
     o.insert("mesh_s".into(), json!(mesh_s));
-    if let Some(r) = &tolerance {
+    if let Some(r) = tolerance {
         o.insert("tolerance".into(), json!(r));
         if let Some(q) = &r.angles {
             o.insert(
@@ -303,7 +397,20 @@ pub fn run(a: MeshArgs) -> Result<()> {
         serde_json::to_writer_pretty(w, &report)
             .map_err(|e| anyhow!("{}: {e}", json_path.display()))
     })?;
-    if let Some(r) = &tolerance {
+    Ok(json_path)
+}
+
+/// The lines the verb prints: the tolerance met (or not), the angles, the mesh.
+fn say_result(
+    a: &MeshArgs,
+    m: &AdaptiveMesh,
+    tolerance: Option<&ToleranceReport>,
+    params: &MeshParams,
+    profile: Option<EngineProfile>,
+    mesh_s: f64,
+    json_path: &Path,
+) {
+    if let Some(r) = tolerance {
         let worst = r.region_fits.first();
         eprintln!(
             "mesh: tolerance {} {} at {} surface triangles ({:.3} per measured px, {} meshes \
@@ -368,7 +475,6 @@ pub fn run(a: MeshArgs) -> Result<()> {
         a.out.display(),
         json_path.display()
     );
-    Ok(())
 }
 
 /// `--target` for an engine that wants a regular-grid sheet: block-averaged to the engine's
