@@ -84,9 +84,10 @@ pub fn tile_layout(run: &RunRecord) -> String {
                         if accepted { "yes" } else { "<b>no</b>" }.into(),
                         off(Some(p.nominal_offset_px)),
                         off(p.offset_px),
-                        // The residual is a vector (x, y); the page has always shown it as
-                        // "-" (it was read as one number). Kept so for byte identity.
-                        "-".into(),
+                        // Hundredths of a pixel and below: four decimals.
+                        p.offset_sd_px.map_or("-".into(), |sd| fixed(sd, 4)),
+                        p.residual_px
+                            .map_or("-".into(), |r| r.map(|v| fixed(v, 4)).join(" / ")),
                     ],
                 )
             })
@@ -98,14 +99,22 @@ pub fn tile_layout(run: &RunRecord) -> String {
             "accepted",
             "nominal offset x / y (px)",
             "measured offset x / y (px)",
-            "residual (px)",
+            "sd (px)",
+            "residual x / y (px)",
         ];
         let mut rows = rows;
-        if pairs.iter().all(|p| p.residual_px.is_none()) {
-            head.pop();
-            rows.iter_mut().for_each(|r| {
-                r.1.pop();
-            });
+        // Columns no pair has: the residual (links the global solve took) and the
+        // Lucas-Kanade refinement's standard deviation (pairs it refined).
+        for (column, absent) in [
+            (7, pairs.iter().all(|p| p.residual_px.is_none())),
+            (6, pairs.iter().all(|p| p.offset_sd_px.is_none())),
+        ] {
+            if absent {
+                head.remove(column);
+                rows.iter_mut().for_each(|r| {
+                    r.1.remove(column);
+                });
+            }
         }
         h.push_str("<h3>Registrations (neighbour pairs)</h3>");
         h.push_str(&table_raw(&head, &rows));
@@ -440,4 +449,45 @@ fn layout_svg(tiles: &[TileRecord], scan: Option<&ScanRecord>) -> String {
         fixed(x1 - x0, 0)
     );
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use serde_json::json;
+
+    /// The pair table shows the refinement's standard deviation and the global solve's
+    /// residual vector (it once printed "-" for every residual), and leaves out a column no
+    /// pair has.
+    #[test]
+    fn the_pair_table_shows_sd_and_residual_vectors() {
+        let pair = json!({ "a": 0, "b": 1, "direction": "horizontal",
+            "nominal_offset_px": [921.6, 0.0], "offset_px": [919.78, 4.08], "ncc": 0.9978,
+            "peak_ratio": 2.0, "accepted": true, "reason": null,
+            "offset_sd_px": 0.00045, "residual_px": [0.00268, -0.00054] });
+        let run = |pairs: serde_json::Value| {
+            crate::runjson::test_record(json!({ "elapsed_s": 1.0,
+                "scan": { "rows": 1, "cols": 2 }, "pairs": pairs, "files": [],
+                "tiles": [
+                    { "index": 0, "row": 0, "col": 0, "placed_by": "registration" },
+                    { "index": 1, "row": 0, "col": 1, "placed_by": "registration" },
+                ] }))
+        };
+        let h = super::tile_layout(&run(json!([pair.clone()])));
+        assert!(h.contains("sd (px)"), "{h}");
+        assert!(
+            h.contains("0.0005") && h.contains("0.0027 / -0.0005"),
+            "{h}"
+        );
+        let mut bare = pair;
+        bare.as_object_mut().map(|o| {
+            o.remove("offset_sd_px");
+            o.remove("residual_px")
+        });
+        let h = super::tile_layout(&run(json!([bare])));
+        assert!(
+            !h.contains("sd (px)") && !h.contains("residual x / y"),
+            "{h}"
+        );
+        assert!(h.contains("919.78 / 4.08"), "{h}");
+    }
 }
