@@ -260,16 +260,7 @@ impl Table6 {
         threshold_pct: f64,
     ) -> Result<Self, DeviationError> {
         let shape = measured.heights_um.shape();
-        if let Some(r) = regions.iter().find(|r| !r.fits(shape)) {
-            return Err(DeviationError::RegionOutside {
-                region: r.name.clone(),
-                row0: r.row0,
-                col0: r.col0,
-                rows: r.rows,
-                cols: r.cols,
-                measured: shape,
-            });
-        }
+        check_regions(regions, shape)?;
         let stages = stages
             .iter()
             .map(|stage| judge_stage(&measured, stage, regions, threshold_pct))
@@ -282,31 +273,57 @@ impl Table6 {
     }
 }
 
+/// Every region lies inside the measured surface.
+fn check_regions(regions: &[Region], measured: Shape) -> Result<(), DeviationError> {
+    match regions.iter().find(|r| !r.fits(measured)) {
+        Some(r) => Err(DeviationError::RegionOutside {
+            region: r.name.clone(),
+            row0: r.row0,
+            col0: r.col0,
+            rows: r.rows,
+            cols: r.cols,
+            measured,
+        }),
+        None => Ok(()),
+    }
+}
+
+/// A stage's grid is the measured grid divided by its cell (rounded up); a stage at the
+/// measured pitch has the measured shape.
+fn check_stage_grid(
+    stage: &str,
+    cell_px: usize,
+    model: Shape,
+    measured: Shape,
+) -> Result<(), DeviationError> {
+    if cell_px <= 1 && model != measured {
+        return Err(DeviationError::StageShape {
+            stage: stage.to_string(),
+            model,
+            measured,
+        });
+    }
+    let expected = ModelStage::expected_shape(cell_px, measured);
+    if model != expected {
+        return Err(DeviationError::StageGrid {
+            stage: stage.to_string(),
+            model,
+            cell_px,
+            expected,
+            measured,
+        });
+    }
+    Ok(())
+}
+
 fn judge_stage(
     m: &Measured,
     stage: &ModelStage,
     regions: &[Region],
     threshold_pct: f64,
 ) -> Result<StageVerdict, DeviationError> {
-    let measured = m.heights_um.shape();
     let model = stage.heights_um.shape();
-    if stage.cell_px <= 1 && model != measured {
-        return Err(DeviationError::StageShape {
-            stage: stage.name.to_string(),
-            model,
-            measured,
-        });
-    }
-    let expected = ModelStage::expected_shape(stage.cell_px, measured);
-    if model != expected {
-        return Err(DeviationError::StageGrid {
-            stage: stage.name.to_string(),
-            model,
-            cell_px: stage.cell_px,
-            expected,
-            measured,
-        });
-    }
+    check_stage_grid(stage.name, stage.cell_px, model, m.heights_um.shape())?;
     let regions: Vec<RegionVerdict> = regions
         .iter()
         .map(|r| judge_region(m, stage, r, threshold_pct))
@@ -532,36 +549,10 @@ impl Table6 {
         threshold_pct: f64,
     ) -> Result<Self, DeviationError> {
         let shape = measured.shape();
-        if let Some(r) = regions.iter().find(|r| !r.fits(shape)) {
-            return Err(DeviationError::RegionOutside {
-                region: r.name.clone(),
-                row0: r.row0,
-                col0: r.col0,
-                rows: r.rows,
-                cols: r.cols,
-                measured: shape,
-            });
-        }
+        check_regions(regions, shape)?;
         // The same checks, in the same order, as judge_stage.
         for stage in stages.iter() {
-            let model = stage.heights_um.shape();
-            if stage.cell_px <= 1 && model != shape {
-                return Err(DeviationError::StageShape {
-                    stage: stage.name.to_string(),
-                    model,
-                    measured: shape,
-                });
-            }
-            let expected = ModelStage::expected_shape(stage.cell_px, shape);
-            if model != expected {
-                return Err(DeviationError::StageGrid {
-                    stage: stage.name.to_string(),
-                    model,
-                    cell_px: stage.cell_px,
-                    expected,
-                    measured: shape,
-                });
-            }
+            check_stage_grid(stage.name, stage.cell_px, stage.heights_um.shape(), shape)?;
         }
         let (px, py) = pitch_um;
         let mut streams: Vec<RegionStream> = Vec::new();

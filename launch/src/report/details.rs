@@ -7,7 +7,7 @@ use std::fmt::Write as _;
 
 use serde_json::Value;
 use surfstream_core::record::{
-    LevelledParams, MeshReport, Percentiles, RunRecord, ScanRecord, TileRecord,
+    LevelledParams, MatcherPair, MeshReport, Percentiles, RunRecord, ScanRecord, TileRecord,
 };
 
 use super::html::{esc, fixed, num, table, table_raw, um};
@@ -67,60 +67,89 @@ pub fn tile_layout(run: &RunRecord) -> String {
     ));
     h.push_str("</div>");
     if let Some(pairs) = Some(&run.pairs).filter(|p| !p.is_empty()) {
-        let rows: Vec<(String, Vec<String>)> = pairs
-            .iter()
-            .map(|p| {
-                let off = |o: Option<[f64; 2]>| {
-                    o.map(|o| o.map(|v| fixed(v, 2)).join(" / "))
-                        .unwrap_or("-".into())
-                };
-                let accepted = p.accepted;
-                (
-                    if accepted { "" } else { "fail" }.to_string(),
-                    vec![
-                        format!("{} - {}", p.a, p.b),
-                        esc(&p.direction),
-                        fixed(p.ncc, 4),
-                        if accepted { "yes" } else { "<b>no</b>" }.into(),
-                        off(Some(p.nominal_offset_px)),
-                        off(p.offset_px),
-                        // Hundredths of a pixel and below: four decimals.
-                        p.offset_sd_px.map_or("-".into(), |sd| fixed(sd, 4)),
-                        p.residual_px
-                            .map_or("-".into(), |r| r.map(|v| fixed(v, 4)).join(" / ")),
-                    ],
-                )
-            })
-            .collect();
-        let mut head = vec![
-            "pair",
-            "direction",
-            "NCC",
-            "accepted",
-            "nominal offset x / y (px)",
-            "measured offset x / y (px)",
-            "sd (px)",
-            "residual x / y (px)",
-        ];
-        let mut rows = rows;
-        // Columns no pair has: the residual (links the global solve took) and the
-        // Lucas-Kanade refinement's standard deviation (pairs it refined).
-        for (column, absent) in [
-            (7, pairs.iter().all(|p| p.residual_px.is_none())),
-            (6, pairs.iter().all(|p| p.offset_sd_px.is_none())),
-        ] {
-            if absent {
-                head.remove(column);
-                rows.iter_mut().for_each(|r| {
-                    r.1.remove(column);
-                });
-            }
-        }
         h.push_str("<h3>Registrations (neighbour pairs)</h3>");
-        h.push_str(&table_raw(&head, &rows));
+        h.push_str(&pair_table(pairs));
     }
     h.push_str("</section>\n");
     h
+}
+
+/// One column of the pair table: its title, whether a pair has it (a column no pair has is
+/// left out), and the cell.
+struct PairColumn {
+    title: &'static str,
+    present: fn(&MatcherPair) -> bool,
+    cell: fn(&MatcherPair) -> String,
+}
+
+fn offset_cell(o: Option<[f64; 2]>, dp: usize) -> String {
+    o.map_or("-".into(), |o| o.map(|v| fixed(v, dp)).join(" / "))
+}
+
+const PAIR_COLUMNS: [PairColumn; 8] = [
+    PairColumn {
+        title: "pair",
+        present: |_| true,
+        cell: |p| format!("{} - {}", p.a, p.b),
+    },
+    PairColumn {
+        title: "direction",
+        present: |_| true,
+        cell: |p| esc(&p.direction),
+    },
+    PairColumn {
+        title: "NCC",
+        present: |_| true,
+        cell: |p| fixed(p.ncc, 4),
+    },
+    PairColumn {
+        title: "accepted",
+        present: |_| true,
+        cell: |p| if p.accepted { "yes" } else { "<b>no</b>" }.into(),
+    },
+    PairColumn {
+        title: "nominal offset x / y (px)",
+        present: |_| true,
+        cell: |p| offset_cell(Some(p.nominal_offset_px), 2),
+    },
+    PairColumn {
+        title: "measured offset x / y (px)",
+        present: |_| true,
+        cell: |p| offset_cell(p.offset_px, 2),
+    },
+    // The Lucas-Kanade refinement's standard deviation (pairs it refined); hundredths of a
+    // pixel and below: four decimals.
+    PairColumn {
+        title: "sd (px)",
+        present: |p| p.offset_sd_px.is_some(),
+        cell: |p| p.offset_sd_px.map_or("-".into(), |sd| fixed(sd, 4)),
+    },
+    // The global solve's residual (links it took).
+    PairColumn {
+        title: "residual x / y (px)",
+        present: |p| p.residual_px.is_some(),
+        cell: |p| offset_cell(p.residual_px, 4),
+    },
+];
+
+/// The neighbour pairs, one row each; a failed pair's row is marked.
+fn pair_table(pairs: &[MatcherPair]) -> String {
+    let columns: Vec<&PairColumn> = PAIR_COLUMNS
+        .iter()
+        .filter(|c| pairs.iter().any(c.present))
+        .collect();
+    let head: Vec<&str> = columns.iter().map(|c| c.title).collect();
+    let rows: Vec<(String, Vec<String>)> = pairs
+        .iter()
+        .map(|p| {
+            let class = if p.accepted { "" } else { "fail" };
+            (
+                class.to_string(),
+                columns.iter().map(|c| (c.cell)(p)).collect(),
+            )
+        })
+        .collect();
+    table_raw(&head, &rows)
 }
 
 /// The mesher's report: size, closure and fidelity (height field vs the re-sampled mesh).

@@ -200,11 +200,13 @@ impl Camera {
 
 /// Flat Lambert shading, light from the far left (y grows away from the viewer), above.
 fn shade(nx: f64, ny: f64, nz: f64) -> f32 {
-    let light = {
+    // Normalised once, not per drawn cell.
+    static LIGHT: std::sync::LazyLock<[f64; 3]> = std::sync::LazyLock::new(|| {
         let l = [-0.8f64, 1.0, 1.3];
         let n = (l[0] * l[0] + l[1] * l[1] + l[2] * l[2]).sqrt();
         [l[0] / n, l[1] / n, l[2] / n]
-    };
+    });
+    let light = &*LIGHT;
     let n = (nx * nx + ny * ny + nz * nz).sqrt();
     (0.45 + 0.55 * ((nx * light[0] + ny * light[1] + nz * light[2]) / n).max(0.0)) as f32
 }

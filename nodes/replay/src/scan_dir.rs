@@ -460,7 +460,8 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         tile_dir,
         tiles: entries,
     } = read_manifest(path)?;
-    let m = manifest_path.display();
+    // The manifest's name, formatted once for every message below.
+    let m = manifest_path.display().to_string();
     let manifest_dir = manifest_path.parent().unwrap_or(Path::new("."));
     let dir_buf = match &tile_dir {
         Some(t) => manifest_dir.join(t),
@@ -512,7 +513,7 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         }
         check_file_calibration(
             &at,
-            &m.to_string(),
+            &m,
             &surface,
             &scan,
             (unit_given, scale),
@@ -544,7 +545,7 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
     }
     let scan = scan.resolved().map_err(|e| anyhow!("{m}: [scan] {e}"))?;
     check_pitch_against_truth(&manifest_path, &scan)?;
-    check_stage_steps(&m.to_string(), &scan, &tiles, cols, rows)?;
+    check_stage_steps(&m, &scan, &tiles, cols, rows)?;
     Ok(ScanDirectory {
         manifest_path,
         scan,
