@@ -260,9 +260,9 @@ pub struct MatcherPair {
     /// Accepted as a distinct peak below the matcher's min_ncc (only written when true).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub accepted_below_min_ncc: bool,
-    /// The feature matcher's diagnostics (feature methods only; the matcher's own layout).
+    /// The feature matcher's diagnostics (feature methods only).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub features: Option<Value>,
+    pub features: Option<FeaturePairRecord>,
     /// After the global solve: b's offset from a in the final placement, px.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub final_offset_px: Option<[f64; 2]>,
@@ -325,8 +325,56 @@ pub struct GlobalSolveRecord {
     pub z_rms_before_um: f64,
     #[serde(deserialize_with = "nan_if_null")]
     pub z_rms_residual_um: f64,
-    /// The feature matchers' scores against a truth file (null otherwise; their own layout).
-    pub features: Value,
+    /// The feature matchers' scores against a truth file (null otherwise).
+    pub features: Option<FeatureSummaryRecord>,
+}
+
+/// r and AP of one feature-matched pair against a truth file (the matcher's `efficiency`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MatchQuality {
+    pub matches: usize,
+    pub correct: usize,
+    /// Matching efficiency r (the paper's eq. 2).
+    pub r: Option<f64>,
+    /// Average precision of the ranked matches.
+    pub average_precision: Option<f64>,
+    pub tolerance_px: f64,
+}
+
+/// One pair's feature-matcher diagnostics (run.json `pairs[].features`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FeaturePairRecord {
+    /// "harris" or "sift".
+    pub method: String,
+    /// Features detected in a's and in b's overlap.
+    pub features_a: usize,
+    pub features_b: usize,
+    pub one_way_matches: usize,
+    pub two_way_matches: usize,
+    /// RANSAC inliers.
+    pub inliers: usize,
+    /// Residual rotation (degrees) and scale of b against a by a similarity fit of the inliers.
+    pub rotation_deg: Option<f64>,
+    pub scale: Option<f64>,
+    /// Why the pair was refused (null: accepted).
+    pub reason: Option<String>,
+    /// r and AP against the truth file, when one is given.
+    pub truth: Option<MatchQuality>,
+}
+
+/// The feature matchers' scores over the scan against a truth file (run.json
+/// `global.features`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FeatureSummaryRecord {
+    /// The truth file.
+    pub truth: String,
+    pub pairs_with_truth: usize,
+    /// Pairs with at least one match (the means are over these).
+    pub pairs_with_matches: usize,
+    pub mean_r: Option<f64>,
+    /// Mean average precision.
+    pub map: Option<f64>,
+    pub correct_match_tolerance_px: f64,
 }
 
 /// The matcher's report.

@@ -14,7 +14,7 @@
 //! - **MAP** = the mean of AP over the pairs that have an AP; the aggregate r is the mean of r
 //!   over the same pairs.
 
-use serde::Serialize;
+use surfstream_core::record::FeatureSummaryRecord;
 
 /// One match as the figures see it.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -25,17 +25,7 @@ pub struct RankedMatch {
     pub score: f64,
 }
 
-/// r and AP of one pair.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct MatchQuality {
-    pub matches: usize,
-    pub correct: usize,
-    /// Matching efficiency r (eq. 2).
-    pub r: Option<f64>,
-    /// Average precision of the ranked matches.
-    pub average_precision: Option<f64>,
-    pub tolerance_px: f64,
-}
+pub use surfstream_core::record::MatchQuality;
 
 /// Whether a displacement is within `tolerance_px` of the truth.
 pub fn is_correct(displacement_px: [f64; 2], true_offset_px: [f64; 2], tolerance_px: f64) -> bool {
@@ -98,7 +88,7 @@ pub const CORRECT_MATCH_TOLERANCE_PX: f64 = 1.0;
 pub fn score_feature_pairs(
     truth_path: &std::path::Path,
     pairs: &[(u64, u64, &crate::feature_match::FeatureRegistration)],
-) -> Result<(Vec<Option<MatchQuality>>, serde_json::Value), surfstream_io::truth::TruthError> {
+) -> Result<(Vec<Option<MatchQuality>>, FeatureSummaryRecord), surfstream_io::truth::TruthError> {
     let truth = surfstream_io::truth::ScanTruth::read(truth_path)?;
     let per_pair: Vec<Option<MatchQuality>> = pairs
         .iter()
@@ -110,13 +100,13 @@ pub fn score_feature_pairs(
         .collect();
     let scored: Vec<MatchQuality> = per_pair.iter().flatten().copied().collect();
     let (r, map, n) = aggregate(&scored);
-    let summary = serde_json::json!({
-        "truth": truth_path.display().to_string(),
-        "pairs_with_truth": scored.len(),
-        "pairs_with_matches": n,
-        "mean_r": r,
-        "map": map,
-        "correct_match_tolerance_px": CORRECT_MATCH_TOLERANCE_PX,
-    });
+    let summary = FeatureSummaryRecord {
+        truth: truth_path.display().to_string(),
+        pairs_with_truth: scored.len(),
+        pairs_with_matches: n,
+        mean_r: r,
+        map,
+        correct_match_tolerance_px: CORRECT_MATCH_TOLERANCE_PX,
+    };
     Ok((per_pair, summary))
 }

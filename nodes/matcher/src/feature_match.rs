@@ -856,19 +856,22 @@ impl FeatureRegistration {
 impl FeatureRegistration {
     /// The per-pair report (run.json `pairs[].features`): counts, residual rotation and, when
     /// `truth` is given, r and AP against it.
-    pub fn report(&self, truth: Option<&crate::efficiency::MatchQuality>) -> serde_json::Value {
-        serde_json::json!({
-            "method": self.method.name(),
-            "features_a": self.features[0],
-            "features_b": self.features[1],
-            "one_way_matches": self.one_way_matches,
-            "two_way_matches": self.matches.len(),
-            "inliers": self.inliers,
-            "rotation_deg": self.rotation_deg,
-            "scale": self.scale,
-            "reason": self.reason(),
-            "truth": truth,
-        })
+    pub fn report(
+        &self,
+        truth: Option<&crate::efficiency::MatchQuality>,
+    ) -> surfstream_core::record::FeaturePairRecord {
+        surfstream_core::record::FeaturePairRecord {
+            method: self.method.name().to_string(),
+            features_a: self.features[0],
+            features_b: self.features[1],
+            one_way_matches: self.one_way_matches,
+            two_way_matches: self.matches.len(),
+            inliers: self.inliers,
+            rotation_deg: self.rotation_deg,
+            scale: self.scale,
+            reason: self.reason(),
+            truth: truth.copied(),
+        }
     }
 
     /// r and AP of the two-way matches against a true offset (see [`crate::efficiency`]).

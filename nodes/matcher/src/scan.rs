@@ -29,8 +29,8 @@ use std::path::PathBuf;
 use surfstream_core::frame::{flags, placed_by, TileRegistration};
 use surfstream_core::raster::{Raster, RasterView, Shape};
 use surfstream_core::record::{
-    self, DirectionalPair, GlobalSolveRecord, MatcherPair, MatcherReport, MatcherTile,
-    StreamingPlacement, TilePlacement,
+    self, DirectionalPair, FeatureSummaryRecord, GlobalSolveRecord, MatcherPair, MatcherReport,
+    MatcherTile, StreamingPlacement, TilePlacement,
 };
 use surfstream_core::store::{AppendLog, StoreError};
 use surfstream_core::Pitch;
@@ -673,7 +673,7 @@ impl ScanRegistration {
         &mut self,
         g: &GlobalPlacement,
         planes: &PlaneSolution,
-    ) -> Result<serde_json::Value, ScanError> {
+    ) -> Result<Option<FeatureSummaryRecord>, ScanError> {
         let (feature_truth, feature_summary) = match (&self.params.truth, &self.params.features) {
             (Some(path), Some(_)) => {
                 let scored: Vec<(u64, u64, &FeatureRegistration)> = self
@@ -688,9 +688,10 @@ impl ScanRegistration {
                         ))
                     })
                     .collect();
-                crate::efficiency::score_feature_pairs(path, &scored)?
+                let (per_pair, summary) = crate::efficiency::score_feature_pairs(path, &scored)?;
+                (per_pair, Some(summary))
             }
-            _ => (Vec::new(), serde_json::Value::Null),
+            _ => (Vec::new(), None),
         };
         let mut feature_truth = feature_truth.into_iter();
         for (k, p) in self.pairs.iter().enumerate() {
