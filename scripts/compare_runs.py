@@ -6,13 +6,15 @@
 Every file must be byte-identical except the ones that carry times, which are compared as
 JSON with the timing fields removed (listed in TIMING below):
   run.json, graph.resolved.json, nodes/<id>.json
-                                        JSON without TIMING keys (any depth), key order kept
+                                        JSON without TIMING keys (any depth), key order kept,
+                                        each run's out dir path written as OUT
   report.html                           not compared here: re-render it from BEFORE's run.json
   logs/*, recording.mcap                skipped (stderr text, recording times)
 Exit status 0 when everything matches; every difference is printed.
 """
 import json
 import os
+import re
 import sys
 
 # Keys whose values differ between two runs of the same command on the same commit (found by
@@ -29,11 +31,15 @@ SKIP_PREFIX = ("logs/",)
 SKIP = {"recording.mcap", "report.html"}
 
 
-def strip(v):
+def strip(v, root):
+    """v without the TIMING keys, and with the run's own out dir (and its staging folder,
+    named by the process id) written as OUT: two runs write to two folders."""
     if isinstance(v, dict):
-        return {k: strip(x) for k, x in v.items() if k not in TIMING}
+        return {k: strip(x, root) for k, x in v.items() if k not in TIMING}
     if isinstance(v, list):
-        return [strip(x) for x in v]
+        return [strip(x, root) for x in v]
+    if isinstance(v, str) and v.startswith(root):
+        return re.sub(r"^OUT\.staging-\d+", "OUT.staging", "OUT" + v[len(root):])
     return v
 
 
@@ -61,11 +67,14 @@ def main(a, b):
         ):
             # Python keeps the files' key order and tells 1 from 1.0: comparing the dumps
             # compares order, types and values at every depth.
-            ja, jb = strip(json.load(open(pa))), strip(json.load(open(pb)))
+            ja = strip(json.load(open(pa)), os.path.abspath(a))
+            jb = strip(json.load(open(pb)), os.path.abspath(b))
             if json.dumps(ja, indent=1) != json.dumps(jb, indent=1):
                 print(f"differs (timing fields removed): {f}")
-                for k in ja if isinstance(ja, dict) else []:
-                    if json.dumps(ja.get(k)) != json.dumps(jb.get(k)):
+                keys = ja.items() if isinstance(ja, dict) else enumerate(ja)
+                for k, x in keys:
+                    y = jb.get(k) if isinstance(jb, dict) else (jb[k] if k < len(jb) else None)
+                    if json.dumps(x) != json.dumps(y):
                         print(f"   key {k}")
                 bad += 1
             else:
