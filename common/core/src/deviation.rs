@@ -253,6 +253,9 @@ impl Table6 {
     /// Judges each model stage, on its own grid, against `measured` in `regions` at
     /// `threshold_pct`. A model's shape must be the measured shape divided by its `cell_px`
     /// (rounded up) and regions must lie inside the measured surface.
+    ///
+    /// The in-memory definition, kept as the test oracle: the launcher judges through
+    /// [`Table6::judge_streamed`], which the tests hold to this bit for bit.
     pub fn judge(
         measured: Measured,
         stages: &[ModelStage],
