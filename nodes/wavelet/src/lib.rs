@@ -38,6 +38,7 @@
 mod dwt;
 mod error;
 mod filters;
+pub mod final_pass;
 pub mod live;
 pub mod method;
 pub mod options;
@@ -49,9 +50,12 @@ mod wavelet;
 
 pub use dwt::{wavedec2, waverec2, Coeffs2, Details2, MAX_LEVEL};
 pub use error::{Result, WaveletError};
+pub use final_pass::{
+    separate_map, FilterSummary, MapSummary, SeparatedMap, SeparationSink, WaveletSummary,
+};
 pub use live::{
     final_pass_streams, final_separation, final_separation_with, FinalRequest, FinalSeparation,
-    LivePatches, LiveSeparation, SeparationSettings,
+    FinalSummary, LivePatches, LiveSeparation, SeparationSettings,
 };
 pub use method::{
     equivalent_cutoff_um, filter_separation, level_lowered_warning, FilterSeparation,
@@ -62,6 +66,7 @@ pub use pool::{pool, PoolOp, Pooled};
 pub use select::{
     analyse, energy_curve, height_stats, level_by_min_energy, pooling_bias, rmse_per_base,
     Analysis, BaseChoice, BaseRmse, EnergyPoint, HeightStats, LevelChoice, PoolingBias,
+    SeparationChoices,
 };
 pub use separate::{default_level, fill_invalid, separate, Separation, DEFAULT_LEVEL};
 pub use stream::{energy_curve_streamed, separate_streamed, StreamError, StreamOptions};
