@@ -373,4 +373,81 @@ mod tests {
         );
         assert!(j.get("input_px").is_none() && j.get("pooled_px").is_none());
     }
+
+    /// The verb's datum / roughness files hold the in-memory oracle's bits ([`analyse`]), on
+    /// the streamed path (a fixed level) and on the in-memory one (level auto), for a map of
+    /// more rows than one band of the whole-map writer and with holes.
+    #[test]
+    fn files_hold_the_oracles_bits_streamed_and_in_memory() {
+        use surfstream_wavelet::{analyse, BaseChoice, LevelChoice, Mode, PoolOp, Wavelet};
+        let d = tempfile::tempdir().unwrap();
+        let input = d.path().join("in.npy");
+        let (rows, cols) = (300, 90);
+        let z: Vec<f64> = (0..rows * cols)
+            .map(|i| {
+                let (r, c) = ((i / cols) as f64, (i % cols) as f64);
+                if i % 997 == 5 || i / cols == 150 {
+                    f64::NAN
+                } else {
+                    40.0 + (c * 0.3).sin() + r * 0.05 + ((i * 7919) % 89) as f64 * 1e-3
+                }
+            })
+            .collect();
+        surfstream_io::npy::write_npy_f64(&input, &z, rows, cols).unwrap();
+        let (z_offset_um, heights) = to_frame_heights(&z);
+        let sym5 = Wavelet::by_name("sym5").unwrap();
+        for (level, choice) in [
+            ("3", LevelChoice::Fixed(3)),
+            ("auto", LevelChoice::MinEnergy),
+        ] {
+            let out = d.path().join(format!("sep-{level}"));
+            run(SeparateArgs {
+                mask: Default::default(),
+                file: input.clone(),
+                method: "wavelet".into(),
+                cutoff_um: None,
+                lambda_s_um: None,
+                wavelet: "sym5".into(),
+                level: level.into(),
+                mode: "symmetric".into(),
+                pool: 4,
+                pool_op: "max".into(),
+                pitch_um: Some(0.5),
+                out: out.clone(),
+            })
+            .unwrap();
+            let oracle = analyse(
+                &heights,
+                rows,
+                cols,
+                BaseChoice::Named(sym5),
+                choice,
+                Mode::Symmetric,
+                4,
+                PoolOp::Max,
+            )
+            .unwrap();
+            let datum = surfstream_io::npy::read_npy_f64(out.join("datum.npy")).unwrap();
+            let roughness = surfstream_io::npy::read_npy(out.join("roughness.npy")).unwrap();
+            let expected: Vec<u64> = from_frame_heights(z_offset_um, &oracle.separation.datum)
+                .iter()
+                .map(|v| v.to_bits())
+                .collect();
+            let got: Vec<u64> = datum.data.iter().map(|v| v.to_bits()).collect();
+            assert!(got == expected, "level {level}: datum.npy");
+            let expected: Vec<u32> = oracle
+                .separation
+                .roughness
+                .iter()
+                .map(|v| v.to_bits())
+                .collect();
+            let got: Vec<u32> = roughness.data.iter().map(|v| v.to_bits()).collect();
+            assert!(got == expected, "level {level}: roughness.npy");
+            let j: serde_json::Value =
+                serde_json::from_str(&std::fs::read_to_string(out.join("separate.json")).unwrap())
+                    .unwrap();
+            assert_eq!(j["level"], oracle.separation.level, "level {level}");
+            assert!(j["warning"].is_null(), "level {level}");
+        }
+    }
 }

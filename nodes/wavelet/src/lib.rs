@@ -6,9 +6,14 @@
 //!   orthogonal wavelets db1..db10, sym2..sym10, coif1..coif5 with PyWavelets' own filter
 //!   values ([`Wavelet`]), in [`Mode::Symmetric`] or [`Mode::Periodization`]. f64 throughout;
 //!   parity with PyWavelets 1.9.0 is tested to 1e-12 relative against stored golden files.
-//! * [`separate`]: datum / roughness separation of a height map (f32, NaN = not measured):
-//!   datum = approximation-only reconstruction at a level chosen by [`default_level`],
-//!   roughness = heights - datum.
+//! * [`separate_map`]: the separation of a whole map as the node's final pass and the
+//!   `separate` verb run it (one function for both): streamed ([`separate_streamed`], band by
+//!   band, rows to a [`SeparationSink`]) for a named wavelet at a fixed / default level, in
+//!   memory ([`analyse`]) for the base by RMSE and the level by minimum energy, an ISO filter
+//!   ([`filter_separation`]) otherwise; its summary is a typed [`MapSummary`].
+//! * [`separate`]: datum / roughness separation of a height map in memory (f32, NaN = not
+//!   measured): datum = approximation-only reconstruction at a level chosen by
+//!   [`default_level`], roughness = heights - datum. The test oracle of the streamed pass.
 //! * [`filter_separation`]: the same split by an ISO 16610 filter (Gaussian or robust
 //!   Gaussian L-filter, `surfstream_core::filter`), the node's `method = "gaussian"` /
 //!   `"robust-gaussian"`; [`equivalent_cutoff_um`]: the wavelet level's cutoff wavelength.

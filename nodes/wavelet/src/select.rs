@@ -275,6 +275,12 @@ pub struct Analysis {
 }
 
 /// Choose base and level as asked, separate, pool `pool_block x pool_block` with `pool_op`.
+///
+/// In memory, over the whole map. [`crate::separate_map`] (the node's final pass and the
+/// `separate` verb) runs it only where a choice needs the whole map: the base by RMSE (every
+/// base) and the level by minimum energy (every level); a named wavelet at a fixed / default
+/// level streams. Otherwise it is the test oracle of the streamed pass (same datum and
+/// roughness bits, the energy curve to round-off) and the Python binding's entry point.
 #[allow(clippy::too_many_arguments)]
 pub fn analyse(
     heights: &[f32],
