@@ -518,12 +518,13 @@ pub struct FinalSeparation {
     pub datum: Option<HeightMap>,
     pub roughness: Option<HeightMap>,
     pub pooled: HeightMap,
-    /// [`FinalSummary`] as the node reports it (run.json's `stages.wavelet.final`).
-    pub summary: serde_json::Value,
+    /// What the node reports (run.json's `stages.wavelet.final`).
+    pub summary: FinalSummary,
 }
 
 /// The final pass's summary: the separation's ([`MapSummary`]) with what only the node
-/// knows. Keys sorted when written (a JSON value, §6.1 of docs/architecture.md).
+/// knows. The node reports it as a JSON value (`surfstream_core::record::to_value`), keys
+/// sorted (§6.1 of docs/architecture.md).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct FinalSummary {
     #[serde(flatten)]
@@ -693,8 +694,7 @@ fn finish_final(
             header: pooled_header,
             heights: pooled.heights,
         },
-        summary: serde_json::to_value(&summary)
-            .map_err(|e| anyhow!("wavelet: final summary: {e}"))?,
+        summary,
     })
 }
 
@@ -798,6 +798,10 @@ mod tests {
     use super::*;
     use crate::analyse;
     use serde_json::json;
+
+    fn json_of(s: &FinalSummary) -> serde_json::Value {
+        serde_json::to_value(s).unwrap()
+    }
 
     fn settings() -> SeparationSettings {
         SeparationSettings {
@@ -1006,8 +1010,8 @@ mod tests {
         let mut s = settings();
         s.method = SeparationMethod::Gaussian { cutoff_um: 8.0 };
         let f = final_separation(&s, &pano, None).unwrap();
-        assert_eq!(f.summary["method"], "gaussian");
-        assert_eq!(f.summary["cutoff_um"], 8.0);
+        assert_eq!(json_of(&f.summary)["method"], "gaussian");
+        assert_eq!(json_of(&f.summary)["cutoff_um"], 8.0);
         let (fd, fr) = (f.datum.unwrap(), f.roughness.unwrap());
         for ((d, r), h) in fd.heights.iter().zip(&fr.heights).zip(&pano.heights) {
             assert!((d + r - h).abs() < 1e-5);
@@ -1015,13 +1019,18 @@ mod tests {
         // The wavelet: db2 level 2 at 0.5 um is 8 pitches (4 um), reported with a warning
         // when the level asked for does not fit.
         let w = final_separation(&settings(), &pano, None).unwrap();
-        let cutoff = w.summary["equivalent_cutoff_um"].as_f64().unwrap();
+        let cutoff = json_of(&w.summary)["equivalent_cutoff_um"]
+            .as_f64()
+            .unwrap();
         assert!((cutoff - 4.0).abs() < 0.2, "{cutoff}");
-        assert!(w.summary["warning"].is_null());
+        assert!(json_of(&w.summary)["warning"].is_null());
         s = settings();
         s.level = LevelChoice::Fixed(9);
         let lowered = final_separation(&s, &pano, None).unwrap();
-        let text = lowered.summary["warning"].as_str().unwrap().to_string();
+        let text = json_of(&lowered.summary)["warning"]
+            .as_str()
+            .unwrap()
+            .to_string();
         assert!(text.contains("level 9 lowered to"), "{text}");
     }
 
@@ -1053,8 +1062,8 @@ mod tests {
             (f.pooled.header.width, f.pooled.header.pitch_x_um),
             (12, 2.0)
         );
-        assert_eq!(f.summary["files"].as_array().unwrap().len(), 6);
-        assert_eq!(f.summary["level_requested"], 2);
+        assert_eq!(json_of(&f.summary)["files"].as_array().unwrap().len(), 6);
+        assert_eq!(json_of(&f.summary)["level_requested"], 2);
         let datum = surfstream_io::npy::read_npy_f64(dir.path().join("datum.npy")).unwrap();
         assert_eq!(datum.data[0], f64::from(datum_frame.heights[0]) + 100.0);
     }
@@ -1128,7 +1137,7 @@ mod tests {
             std::fs::create_dir_all(&b).unwrap();
             let mut wa = OutputWriter::new(&a);
             let f = final_separation(&s, &pano, Some(&mut wa)).unwrap();
-            assert_eq!(f.summary["streamed"], true);
+            assert_eq!(json_of(&f.summary)["streamed"], true);
             // What the node wrote before streaming: analyse(), then whole-map writers.
             let (r, c) = (rows as usize, cols as usize);
             let batch =
@@ -1169,7 +1178,7 @@ mod tests {
             // The summary: the same choices; the energy curve to round-off.
             let reference = serde_json::to_value(batch.summary()).unwrap();
             assert_eq!(
-                f.summary["pooled_px"],
+                json_of(&f.summary)["pooled_px"],
                 json!([batch.pooled.cols, batch.pooled.rows])
             );
             for key in [
@@ -1179,9 +1188,10 @@ mod tests {
                 "level_min_energy",
                 "pooling_bias",
             ] {
-                assert_eq!(f.summary[key], reference[key], "{key}");
+                assert_eq!(json_of(&f.summary)[key], reference[key], "{key}");
             }
-            let (ea, eb) = (&f.summary["energy_curve"], &reference["energy_curve"]);
+            let fj = json_of(&f.summary);
+            let (ea, eb) = (&fj["energy_curve"], &reference["energy_curve"]);
             assert_eq!(ea.as_array().unwrap().len(), eb.as_array().unwrap().len());
             for (p, q) in ea.as_array().unwrap().iter().zip(eb.as_array().unwrap()) {
                 let (x, y) = (
@@ -1211,13 +1221,13 @@ mod tests {
         .unwrap();
         assert!(f.datum.is_none());
         assert_eq!(f.roughness.unwrap().heights.len(), 120 * 90);
-        assert_eq!(f.summary["files"].as_array().unwrap().len(), 6);
+        assert_eq!(json_of(&f.summary)["files"].as_array().unwrap().len(), 6);
         assert!(dir.path().join("datum.npy").exists());
         let mut s = settings();
         s.level = LevelChoice::MinEnergy;
         assert!(!final_pass_streams(&s));
         let f = final_separation(&s, &pano, None).unwrap();
-        assert_eq!(f.summary["streamed"], false);
+        assert_eq!(json_of(&f.summary)["streamed"], false);
         s = settings();
         s.base = BaseChoice::MinRmse;
         assert!(!final_pass_streams(&s));
