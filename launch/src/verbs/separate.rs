@@ -1,28 +1,32 @@
 //! `surfstream separate`: datum / roughness separation of one height map, on its own.
 //!
-//! Reads any map `formats::read_surface` reads, runs the wavelet node's library
-//! ([`surfstream_wavelet::analyse`]: the same code as the pipeline's final pass) and writes
+//! Reads any map `formats::read_surface` reads, runs the pipeline's final separation
+//! ([`surfstream_wavelet::separate_map`], the function the wavelet node's final pass calls:
+//! streamed for a named wavelet at a fixed / default level, in memory for `auto` choices and
+//! the filters) and writes
 //! `datum.npy`, `roughness.npy`, `pooled.npy` (each with its pitch sidecar `NAME.npy.json`,
 //! so `params` on them runs at the input's pitch) and `separate.json` (base, level, mode, energy
 //! curve, RMSE ranking when the base is "auto", the level's equivalent cutoff, pooling bias)
 //! into `--out`. `--method gaussian | robust-gaussian --cutoff-um L` separates by an ISO 16610
-//! L-filter instead ([`surfstream_wavelet::filter_separation`], the node's code too).
+//! L-filter instead. datum.npy and roughness.npy are written row by row as the separation
+//! gives them.
 
 use std::path::PathBuf;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
-use surfstream_core::filter::FilterError;
+use serde::Serialize;
 use surfstream_core::frame::{from_frame_heights, to_frame_heights};
 use surfstream_core::fsutil::write_atomic;
 use surfstream_core::{Sampling, Shape};
-use surfstream_io::npy::{write_npy_abs_f64, write_npy_f32, write_npy_f64};
+use surfstream_io::formats::Surface;
+use surfstream_io::npy::{write_npy_f64, NpyRowWriter};
 use surfstream_io::sidecar::{write_sidecar, NpyGeometry};
 
 use super::{file_help, load_surface, pitch_text, sig};
 use surfstream_wavelet::{
-    analyse, equivalent_cutoff_um, filter_separation, level_lowered_warning, pool, pooling_bias,
-    BaseChoice, LevelChoice, Mode, PoolOp, SeparationMethod, DEFAULT_LEVEL,
+    separate_map, MapSummary, Pooled, SeparationMethod, SeparationSettings, SeparationSink,
+    StreamOptions,
 };
 
 #[derive(Args)]
@@ -84,7 +88,8 @@ fn length_um(flag: &str, text: &str) -> Result<f64> {
     }
 }
 
-pub fn run(a: SeparateArgs) -> Result<()> {
+/// The options as the wavelet node's settings (one parser per option, shared with the node).
+fn settings(a: &SeparateArgs) -> Result<SeparationSettings> {
     let cutoff_um = a
         .cutoff_um
         .as_deref()
@@ -111,15 +116,54 @@ pub fn run(a: SeparateArgs) -> Result<()> {
             Some(_) => {}
         }
     }
-    // One parser per option, shared with the wavelet node's params.
-    let base: BaseChoice = a.wavelet.parse().map_err(|e| anyhow!("--wavelet {e}"))?;
-    let level: LevelChoice = a.level.parse().map_err(|e| anyhow!("--level {e}"))?;
-    let mode: Mode = a.mode.parse().map_err(|e| anyhow!("--mode {e}"))?;
-    let pool_op: PoolOp = a.pool_op.parse().map_err(|e| anyhow!("--pool-op {e}"))?;
     if a.pool == 0 {
         bail!("--pool 0: expected a block size of at least 1 px");
     }
+    Ok(SeparationSettings {
+        method,
+        lambda_s_um,
+        base: a.wavelet.parse().map_err(|e| anyhow!("--wavelet {e}"))?,
+        level: a.level.parse().map_err(|e| anyhow!("--level {e}"))?,
+        mode: a.mode.parse().map_err(|e| anyhow!("--mode {e}"))?,
+        pool_block: a.pool,
+        pool_op: a.pool_op.parse().map_err(|e| anyhow!("--pool-op {e}"))?,
+    })
+}
 
+/// `separate.json`: the separation's summary ([`MapSummary`], the node's too) with the input
+/// and the files. Keys sorted when written, as run.json's.
+#[derive(Serialize)]
+struct SeparateJson {
+    #[serde(flatten)]
+    separation: MapSummary,
+    /// Wavelet only, and then always (null when the level was not lowered); the filter
+    /// methods have no level to lower.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    warning: Option<Option<String>>,
+    input: String,
+    input_rows_cols: [usize; 2],
+    pooled_rows_cols: [usize; 2],
+    /// Heights inside the summary (pooling bias means) are relative to this; datum.npy and
+    /// pooled.npy are absolute (f64), roughness.npy has no offset.
+    z_offset_um: f64,
+    pitch_um: [f64; 2],
+    pooled_pitch_um: [f64; 2],
+    files: [&'static str; 7],
+}
+
+/// The outputs' names, in `separate.json`'s `files`.
+const FILES: [&str; 7] = [
+    "datum.npy",
+    "datum.npy.json",
+    "roughness.npy",
+    "roughness.npy.json",
+    "pooled.npy",
+    "pooled.npy.json",
+    "separate.json",
+];
+
+pub fn run(a: SeparateArgs) -> Result<()> {
+    let settings = settings(&a)?;
     let mut s = load_surface(&a.file, a.pitch_um, "separate", true)?.surface;
     a.mask.apply(&a.file, &mut s)?;
     // The separation takes f32 heights (as frames carry them, DESIGN §2) and runs in f64.
@@ -127,145 +171,42 @@ pub fn run(a: SeparateArgs) -> Result<()> {
     // ~4e-6 um: remove the mean first, as frames do with z_offset_um, and add it back to
     // the datum and the pooled map, which are written in f64.
     // read_surface already made every non-finite height NaN, so the frame's NaN-skipping
-    // mean is the same as skipping non-finite heights.
-    let (z_offset_um, heights) = to_frame_heights(&s.heights_um);
-    let with_offset = |v: &[f32]| from_frame_heights(z_offset_um, v);
-    let (datum, roughness, pooled, mut summary, line) = if method == SeparationMethod::Wavelet {
-        let an = analyse(
-            &heights, s.height, s.width, base, level, mode, a.pool, pool_op,
-        )
-        .with_context(|| format!("{}: separation", a.file.display()))?;
-        let used = an.separation.level;
-        let cutoff = equivalent_cutoff_um(&an.wavelet, used, s.pitch_x_um);
-        let requested = match level {
-            LevelChoice::Fixed(l) => Some(l),
-            LevelChoice::Default => Some(DEFAULT_LEVEL),
-            LevelChoice::MinEnergy => None,
-        };
-        let warning =
-            requested.and_then(|r| level_lowered_warning(&an.wavelet, r, used, s.pitch_x_um));
-        if let Some(w) = &warning {
-            eprintln!("{}: {w}", a.file.display());
-        }
-        let mut summary = an.summary();
-        if let Some(o) = summary.as_object_mut() {
-            o.insert("method".into(), serde_json::json!("wavelet"));
-            o.insert("equivalent_cutoff_um".into(), serde_json::json!(cutoff));
-            o.insert(
-                "equivalent_cutoff_definition".into(),
-                serde_json::json!(surfstream_wavelet::live::CUTOFF_DEFINITION),
-            );
-            o.insert("warning".into(), serde_json::json!(warning));
-        }
-        let line = format!(
-            "{} level {used} ({}, equivalent cutoff {} um), level by min energy {}",
-            an.wavelet.name(),
-            mode.name(),
-            sig(cutoff, 4),
-            an.level_min_energy
-                .map_or("-".to_string(), |l| l.to_string()),
-        );
-        let sep = an.separation;
-        (sep.datum, sep.roughness, an.pooled, summary, line)
-    } else {
-        let f = Sampling::new(Shape::new(s.height, s.width), s.pitch_x_um, s.pitch_y_um)
-            .map_err(FilterError::from)
-            .and_then(|grid| filter_separation(&heights, grid, method, lambda_s_um))
-            .map_err(|e| anyhow!("{}: {} separation: {e}", a.file.display(), method.name()))?;
-        let pooled = pool(&heights, s.height, s.width, a.pool, pool_op)
-            .with_context(|| format!("{}: pooling", a.file.display()))?;
-        let cutoff = method.cutoff_um().unwrap_or(f64::NAN);
-        let summary = serde_json::json!({
-            "method": method.name(),
-            "cutoff_um": cutoff,
-            "lambda_s_um": lambda_s_um,
-            "plane_removed_um": f.plane_um,
-            "robust_iterations": f.robust_iterations.map(|r| r.0),
-            "robust_converged": f.robust_iterations.map(|r| r.1),
-            "pool": a.pool,
-            "pool_op": pool_op.name(),
-            "pooled_rows_cols": [pooled.rows, pooled.cols],
-            "pooling_bias": pooling_bias(&heights, &pooled.heights),
-        });
-        let line = format!(
-            "{} lambda_c {} um{}",
-            method.name(),
-            sig(cutoff, 4),
-            lambda_s_um.map_or(String::new(), |l| format!(", lambda_s {} um", sig(l, 4)))
-        );
-        (f.datum, f.roughness, pooled, summary, line)
-    };
-
+    // mean is the same as skipping non-finite heights. The f64 heights are freed here.
+    let (z_offset_um, heights) = to_frame_heights(&std::mem::take(&mut s.heights_um));
+    let grid = Sampling::new(Shape::new(s.height, s.width), s.pitch_x_um, s.pitch_y_um)
+        .with_context(|| format!("{}: pitch", a.file.display()))?;
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("{}: cannot create the output directory", a.out.display()))?;
-    // Absolute f64 converted as it is written: no f64 copy of the whole datum.
-    write_npy_abs_f64(
-        a.out.join("datum.npy"),
-        &datum,
-        s.height,
-        s.width,
-        z_offset_um,
-    )?;
-    write_npy_f32(a.out.join("roughness.npy"), &roughness, s.height, s.width)?;
-    write_npy_f64(
-        a.out.join("pooled.npy"),
-        &with_offset(&pooled.heights),
-        pooled.rows,
-        pooled.cols,
-    )?;
-    // The pitch travels with every output: NAME.npy.json beside each .npy.
-    let at = |scale: f64| NpyGeometry {
-        pitch_x_um: s.pitch_x_um * scale,
-        pitch_y_um: s.pitch_y_um * scale,
-        origin_um: s.metadata.stage_position_um,
+    // The same separation as the pipeline's final pass (streamed where the node streams);
+    // level stores beyond a few MiB spill into the output folder, as the node's do.
+    let stream = StreamOptions {
+        spill_dir: Some(a.out.clone()),
+        ..StreamOptions::default()
     };
-    for (name, scale) in [
-        ("datum.npy", 1.0),
-        ("roughness.npy", 1.0),
-        ("pooled.npy", a.pool as f64),
-    ] {
-        write_sidecar(&a.out.join(name), &at(scale))?;
+    let mut sink = NpyPair::new(&a.out, z_offset_um, grid.rows(), grid.cols());
+    let map = separate_map(&settings, &heights, &grid, &stream, &mut sink)
+        .with_context(|| format!("{}: separation", a.file.display()))?;
+    drop(heights);
+    sink.finish()?;
+    if let Some(w) = &map.warning {
+        eprintln!("{}: {w}", a.file.display());
     }
-    if let Some(o) = summary.as_object_mut() {
-        o.insert(
-            "input".into(),
-            serde_json::json!(a.file.display().to_string()),
-        );
-        o.insert(
-            "input_rows_cols".into(),
-            serde_json::json!([s.height, s.width]),
-        );
-        if let Some(p) = o.remove("pooled_px") {
-            // The library's [cols, rows]: as rows, cols like every size here.
-            if let Some([c, r]) = p.as_array().map(|v| [v[0].clone(), v[1].clone()]) {
-                o.insert("pooled_rows_cols".into(), serde_json::json!([r, c]));
-            }
-        }
-        // Heights inside the summary (pooling bias means) are relative to this; datum.npy and
-        // pooled.npy are absolute (f64), roughness.npy has no offset.
-        o.insert("z_offset_um".into(), serde_json::json!(z_offset_um));
-        o.insert(
-            "pitch_um".into(),
-            serde_json::json!([s.pitch_x_um, s.pitch_y_um]),
-        );
-        o.insert(
-            "pooled_pitch_um".into(),
-            serde_json::json!([s.pitch_x_um * a.pool as f64, s.pitch_y_um * a.pool as f64]),
-        );
-        o.insert(
-            "files".into(),
-            serde_json::json!([
-                "datum.npy",
-                "datum.npy.json",
-                "roughness.npy",
-                "roughness.npy.json",
-                "pooled.npy",
-                "pooled.npy.json",
-                "separate.json"
-            ]),
-        );
-    }
-    let json = serde_json::to_string_pretty(&summary)?;
+    write_pooled(&a, &s, z_offset_um, &map.pooled)?;
+    let line = summary_line(&map.summary);
+    let pooled = [map.pooled.rows, map.pooled.cols];
+    let pooled_pitch_um = [s.pitch_x_um * a.pool as f64, s.pitch_y_um * a.pool as f64];
+    let record = SeparateJson {
+        warning: matches!(map.summary, MapSummary::Wavelet(_)).then_some(map.warning),
+        separation: map.summary,
+        input: a.file.display().to_string(),
+        input_rows_cols: [s.height, s.width],
+        pooled_rows_cols: pooled,
+        z_offset_um,
+        pitch_um: [s.pitch_x_um, s.pitch_y_um],
+        pooled_pitch_um,
+        files: FILES,
+    };
+    let json = serde_json::to_string_pretty(&serde_json::to_value(&record)?)?;
     write_atomic(&a.out.join("separate.json"), |w| {
         use std::io::Write;
         w.write_all(json.as_bytes())?;
@@ -278,12 +219,109 @@ pub fn run(a: SeparateArgs) -> Result<()> {
         s.height,
         s.width,
         pitch_text(s.pitch_x_um, s.pitch_y_um),
-        pooled.rows,
-        pooled.cols,
-        pitch_text(s.pitch_x_um * a.pool as f64, s.pitch_y_um * a.pool as f64),
+        pooled[0],
+        pooled[1],
+        pitch_text(pooled_pitch_um[0], pooled_pitch_um[1]),
         a.out.display()
     );
     Ok(())
+}
+
+/// datum.npy (absolute f64) and roughness.npy (f32) written row by row as the separation
+/// gives them.
+struct NpyPair {
+    dir: PathBuf,
+    z_offset_um: f64,
+    rows: usize,
+    cols: usize,
+    writers: Option<(NpyRowWriter, NpyRowWriter)>,
+}
+
+impl NpyPair {
+    fn new(dir: &std::path::Path, z_offset_um: f64, rows: usize, cols: usize) -> Self {
+        Self {
+            dir: dir.to_path_buf(),
+            z_offset_um,
+            rows,
+            cols,
+            writers: None,
+        }
+    }
+
+    /// Moves both files into place (every row must have arrived).
+    fn finish(&mut self) -> Result<()> {
+        let (d, r) = self
+            .writers
+            .take()
+            .ok_or_else(|| anyhow!("{}: no datum was written", self.dir.display()))?;
+        d.finish()?;
+        r.finish()
+    }
+}
+
+impl SeparationSink for NpyPair {
+    fn begin(&mut self, _datum_title: &str) -> Result<()> {
+        self.writers = Some((
+            NpyRowWriter::create_f64(self.dir.join("datum.npy"), self.rows, self.cols)?,
+            NpyRowWriter::create_f32(self.dir.join("roughness.npy"), self.rows, self.cols)?,
+        ));
+        Ok(())
+    }
+
+    fn push_rows(&mut self, datum: &[f32], roughness: &[f32]) -> Result<()> {
+        let (d, r) = self
+            .writers
+            .as_mut()
+            .ok_or_else(|| anyhow!("{}: rows before the files", self.dir.display()))?;
+        d.push_abs_f64(datum, self.z_offset_um)?;
+        r.push_f32(roughness)
+    }
+}
+
+/// pooled.npy (absolute f64) and the pitch sidecar NAME.npy.json of every .npy.
+fn write_pooled(a: &SeparateArgs, s: &Surface, z_offset_um: f64, pooled: &Pooled) -> Result<()> {
+    write_npy_f64(
+        a.out.join("pooled.npy"),
+        &from_frame_heights(z_offset_um, &pooled.heights),
+        pooled.rows,
+        pooled.cols,
+    )?;
+    let at = |scale: f64| NpyGeometry {
+        pitch_x_um: s.pitch_x_um * scale,
+        pitch_y_um: s.pitch_y_um * scale,
+        origin_um: s.metadata.stage_position_um,
+    };
+    for (name, scale) in [
+        ("datum.npy", 1.0),
+        ("roughness.npy", 1.0),
+        ("pooled.npy", a.pool as f64),
+    ] {
+        write_sidecar(&a.out.join(name), &at(scale))?;
+    }
+    Ok(())
+}
+
+/// The choices in one line, for the terminal.
+fn summary_line(summary: &MapSummary) -> String {
+    match summary {
+        MapSummary::Wavelet(w) => format!(
+            "{} level {} ({}, equivalent cutoff {} um), level by min energy {}",
+            w.choices.wavelet,
+            w.choices.level,
+            w.choices.mode,
+            sig(w.equivalent_cutoff_um, 4),
+            w.choices
+                .level_min_energy
+                .map_or("-".to_string(), |l| l.to_string()),
+        ),
+        MapSummary::Filter(f) => format!(
+            "{} lambda_c {} um{}",
+            f.method,
+            sig(f.cutoff_um, 4),
+            f.lambda_s_um
+                .map_or(String::new(), |l| format!(", lambda_s {} um", sig(l, 4)))
+        ),
+    }
 }
 
 #[cfg(test)]
@@ -334,5 +372,82 @@ mod tests {
             serde_json::json!([rows / 4, cols / 4])
         );
         assert!(j.get("input_px").is_none() && j.get("pooled_px").is_none());
+    }
+
+    /// The verb's datum / roughness files hold the in-memory oracle's bits ([`analyse`]), on
+    /// the streamed path (a fixed level) and on the in-memory one (level auto), for a map of
+    /// more rows than one band of the whole-map writer and with holes.
+    #[test]
+    fn files_hold_the_oracles_bits_streamed_and_in_memory() {
+        use surfstream_wavelet::{analyse, BaseChoice, LevelChoice, Mode, PoolOp, Wavelet};
+        let d = tempfile::tempdir().unwrap();
+        let input = d.path().join("in.npy");
+        let (rows, cols) = (300, 90);
+        let z: Vec<f64> = (0..rows * cols)
+            .map(|i| {
+                let (r, c) = ((i / cols) as f64, (i % cols) as f64);
+                if i % 997 == 5 || i / cols == 150 {
+                    f64::NAN
+                } else {
+                    40.0 + (c * 0.3).sin() + r * 0.05 + ((i * 7919) % 89) as f64 * 1e-3
+                }
+            })
+            .collect();
+        surfstream_io::npy::write_npy_f64(&input, &z, rows, cols).unwrap();
+        let (z_offset_um, heights) = to_frame_heights(&z);
+        let sym5 = Wavelet::by_name("sym5").unwrap();
+        for (level, choice) in [
+            ("3", LevelChoice::Fixed(3)),
+            ("auto", LevelChoice::MinEnergy),
+        ] {
+            let out = d.path().join(format!("sep-{level}"));
+            run(SeparateArgs {
+                mask: Default::default(),
+                file: input.clone(),
+                method: "wavelet".into(),
+                cutoff_um: None,
+                lambda_s_um: None,
+                wavelet: "sym5".into(),
+                level: level.into(),
+                mode: "symmetric".into(),
+                pool: 4,
+                pool_op: "max".into(),
+                pitch_um: Some(0.5),
+                out: out.clone(),
+            })
+            .unwrap();
+            let oracle = analyse(
+                &heights,
+                rows,
+                cols,
+                BaseChoice::Named(sym5),
+                choice,
+                Mode::Symmetric,
+                4,
+                PoolOp::Max,
+            )
+            .unwrap();
+            let datum = surfstream_io::npy::read_npy_f64(out.join("datum.npy")).unwrap();
+            let roughness = surfstream_io::npy::read_npy(out.join("roughness.npy")).unwrap();
+            let expected: Vec<u64> = from_frame_heights(z_offset_um, &oracle.separation.datum)
+                .iter()
+                .map(|v| v.to_bits())
+                .collect();
+            let got: Vec<u64> = datum.data.iter().map(|v| v.to_bits()).collect();
+            assert!(got == expected, "level {level}: datum.npy");
+            let expected: Vec<u32> = oracle
+                .separation
+                .roughness
+                .iter()
+                .map(|v| v.to_bits())
+                .collect();
+            let got: Vec<u32> = roughness.data.iter().map(|v| v.to_bits()).collect();
+            assert!(got == expected, "level {level}: roughness.npy");
+            let j: serde_json::Value =
+                serde_json::from_str(&std::fs::read_to_string(out.join("separate.json")).unwrap())
+                    .unwrap();
+            assert_eq!(j["level"], oracle.separation.level, "level {level}");
+            assert!(j["warning"].is_null(), "level {level}");
+        }
     }
 }

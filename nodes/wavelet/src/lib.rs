@@ -6,9 +6,14 @@
 //!   orthogonal wavelets db1..db10, sym2..sym10, coif1..coif5 with PyWavelets' own filter
 //!   values ([`Wavelet`]), in [`Mode::Symmetric`] or [`Mode::Periodization`]. f64 throughout;
 //!   parity with PyWavelets 1.9.0 is tested to 1e-12 relative against stored golden files.
-//! * [`separate`]: datum / roughness separation of a height map (f32, NaN = not measured):
-//!   datum = approximation-only reconstruction at a level chosen by [`default_level`],
-//!   roughness = heights - datum.
+//! * [`separate_map`]: the separation of a whole map as the node's final pass and the
+//!   `separate` verb run it (one function for both): streamed ([`separate_streamed`], band by
+//!   band, rows to a [`SeparationSink`]) for a named wavelet at a fixed / default level, in
+//!   memory ([`analyse`]) for the base by RMSE and the level by minimum energy, an ISO filter
+//!   ([`filter_separation`]) otherwise; its summary is a typed [`MapSummary`].
+//! * [`separate`]: datum / roughness separation of a height map in memory (f32, NaN = not
+//!   measured): datum = approximation-only reconstruction at a level chosen by
+//!   [`default_level`], roughness = heights - datum. The test oracle of the streamed pass.
 //! * [`filter_separation`]: the same split by an ISO 16610 filter (Gaussian or robust
 //!   Gaussian L-filter, `surfstream_core::filter`), the node's `method = "gaussian"` /
 //!   `"robust-gaussian"`; [`equivalent_cutoff_um`]: the wavelet level's cutoff wavelength.
@@ -38,6 +43,7 @@
 mod dwt;
 mod error;
 mod filters;
+pub mod final_pass;
 pub mod live;
 pub mod method;
 pub mod options;
@@ -49,9 +55,12 @@ mod wavelet;
 
 pub use dwt::{wavedec2, waverec2, Coeffs2, Details2, MAX_LEVEL};
 pub use error::{Result, WaveletError};
+pub use final_pass::{
+    separate_map, FilterSummary, MapSummary, SeparatedMap, SeparationSink, WaveletSummary,
+};
 pub use live::{
     final_pass_streams, final_separation, final_separation_with, FinalRequest, FinalSeparation,
-    LivePatches, LiveSeparation, SeparationSettings,
+    FinalSummary, LivePatches, LiveSeparation, SeparationSettings,
 };
 pub use method::{
     equivalent_cutoff_um, filter_separation, level_lowered_warning, FilterSeparation,
@@ -62,6 +71,7 @@ pub use pool::{pool, PoolOp, Pooled};
 pub use select::{
     analyse, energy_curve, height_stats, level_by_min_energy, pooling_bias, rmse_per_base,
     Analysis, BaseChoice, BaseRmse, EnergyPoint, HeightStats, LevelChoice, PoolingBias,
+    SeparationChoices,
 };
 pub use separate::{default_level, fill_invalid, separate, Separation, DEFAULT_LEVEL};
 pub use stream::{energy_curve_streamed, separate_streamed, StreamError, StreamOptions};

@@ -18,23 +18,21 @@
 use std::path::PathBuf;
 
 use anyhow::{anyhow, bail, Result};
-use serde_json::json;
+use serde::Serialize;
 use surfstream_core::canvas::GridRect;
 use surfstream_core::frame::{flags, FrameHeader, FrameKind, FrameView, HeightMap};
 use surfstream_core::raster::{RasterView, Shape};
 use surfstream_core::store::{self, ChunkedGrid, GridChunk};
-use surfstream_io::output::{NpyHeights, OutputWriter, SurfaceOutput};
+use surfstream_io::output::{NpyHeights, OutputWriter, SurfaceOutput, SurfaceStream};
 
-use surfstream_core::filter::FilterError;
 use surfstream_core::{Pitch, Sampling};
 
-use crate::method::{equivalent_cutoff_um, filter_separation, level_lowered_warning};
-use crate::select::SummaryParts;
+use crate::final_pass::{push_in_bands, separate_map, MapSummary, SeparatedMap, SeparationSink};
+use crate::method::filter_separation;
 use crate::stream::StreamOptions;
 use crate::{
-    analyse, default_level, energy_curve_streamed, level_by_min_energy, pool, pooling_bias,
-    separate_streamed, BaseChoice, LevelChoice, Mode, PoolOp, SeparationMethod, Wavelet,
-    DEFAULT_LEVEL,
+    default_level, pool, separate_streamed, BaseChoice, LevelChoice, Mode, PoolOp,
+    SeparationMethod, Wavelet,
 };
 
 /// Largest mirror the live pass keeps, px (as the fusion's canvas limit): a patch whose
@@ -520,9 +518,27 @@ pub struct FinalSeparation {
     pub datum: Option<HeightMap>,
     pub roughness: Option<HeightMap>,
     pub pooled: HeightMap,
-    /// The choices and the evidence ([`crate::Analysis::summary`]), the level asked for, the
-    /// panorama's size and the files written.
-    pub summary: serde_json::Value,
+    /// What the node reports (run.json's `stages.wavelet.final`).
+    pub summary: FinalSummary,
+}
+
+/// The final pass's summary: the separation's ([`MapSummary`]) with what only the node
+/// knows. The node reports it as a JSON value (`surfstream_core::record::to_value`), keys
+/// sorted (§6.1 of docs/architecture.md).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FinalSummary {
+    #[serde(flatten)]
+    pub separation: MapSummary,
+    /// Why the level asked for was lowered; absent when it was not.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub warning: Option<String>,
+    pub level_requested: Option<usize>,
+    /// (cols, rows).
+    pub panorama_px: [usize; 2],
+    /// (cols, rows).
+    pub pooled_px: [usize; 2],
+    pub files: Vec<String>,
+    pub streamed: bool,
 }
 
 /// What the final pass should produce besides its summary and pooled map.
@@ -537,8 +553,7 @@ pub struct FinalRequest<'a> {
     pub stream: StreamOptions,
 }
 
-/// How run.json and `separate.json` define the wavelet's equivalent cutoff.
-pub const CUTOFF_DEFINITION: &str = "wavelength at which the level's approximation passes 50 % amplitude: T(w) = prod_{k<level} |H(2^k w)|^2 / 2, H the decomposition low-pass, aliasing ignored (nodes/wavelet/src/method.rs)";
+pub use crate::final_pass::CUTOFF_DEFINITION;
 
 /// [`final_separation_with`] building both frames, level stores beside the files.
 pub fn final_separation(
@@ -571,19 +586,22 @@ pub fn final_pass_streams(settings: &SeparationSettings) -> bool {
         && matches!(settings.level, LevelChoice::Fixed(_) | LevelChoice::Default)
 }
 
-/// The exact separation of the final panorama; with a writer, also `datum`, `roughness` and
-/// `pooled` as .npy + .png (datum and pooled absolute f64: they carry the panorama's offset;
-/// roughness relative f32: it has none by nature). Borrows the panorama (the received
-/// frame itself: no copy of it is made). A named wavelet at a fixed / default
-/// level streams ([`final_pass_streams`]): memory is a band of rows plus the panorama, and
-/// the datum / roughness frames are built only when asked for.
+/// The exact separation of the final panorama ([`separate_map`], the `separate` verb's code
+/// too); with a writer, also `datum`, `roughness` and `pooled` as .npy + .png (datum and
+/// pooled absolute f64: they carry the panorama's offset; roughness relative f32: it has none
+/// by nature). Borrows the panorama (the received frame itself: no copy of it is made). A
+/// named wavelet at a fixed / default level streams ([`final_pass_streams`]): memory is a
+/// band of rows plus the panorama, and the datum / roughness frames are built only when
+/// asked for.
 pub fn final_separation_with(
     settings: &SeparationSettings,
     panorama: FrameView<'_>,
     req: FinalRequest<'_>,
 ) -> Result<FinalSeparation> {
     let h = *panorama.header;
-    let (rows, cols) = (h.height as usize, h.width as usize);
+    let grid = h
+        .sampling()
+        .map_err(|e| anyhow!("wavelet: panorama frame: {e}"))?;
     let FinalRequest {
         mut files,
         publish_datum,
@@ -594,164 +612,44 @@ pub fn final_separation_with(
     if let Some(fw) = files.as_deref_mut() {
         fw.set_pitch_um(h.pitch_x_um, h.pitch_y_um);
     }
-    let mut written = Vec::new();
-    let (datum, roughness, pooled, mut summary) = match (settings.method, settings.base) {
-        (SeparationMethod::Wavelet, BaseChoice::Named(w)) if final_pass_streams(settings) => {
-            let heights = panorama.heights;
-            if heights.len() != rows * cols {
-                bail!(
-                    "wavelet: panorama frame holds {} heights, its header says {rows} x {cols}",
-                    heights.len()
-                );
-            }
-            let requested = settings.fixed_level();
-            let level = default_level(rows, cols, &w, requested)?;
-            let curve = energy_curve_streamed(heights, rows, cols, &w, settings.mode, &stream)?;
-            let pooled = pool(heights, rows, cols, settings.pool_block, settings.pool_op)?;
-            let mut summary = SummaryParts {
-                wavelet: &w,
-                mode: settings.mode,
-                level,
-                level_min_energy: level_by_min_energy(&curve),
-                energy_curve: &curve,
-                base_rmse: None,
-                pool_block: settings.pool_block,
-                pool_op: settings.pool_op,
-                pooled_px: [pooled.cols, pooled.rows],
-                pooling_bias: pooling_bias(heights, &pooled.heights),
-            }
-            .json();
-            add_wavelet_notes(&mut summary, settings, &w, level, &h);
-            let title = datum_title(&w, level);
-            let mut out = match files.as_deref() {
-                Some(fw) => Some((
-                    fw.begin_surface(
-                        "datum",
-                        rows,
-                        cols,
-                        h.z_offset_um,
-                        NpyHeights::AbsoluteF64,
-                        &title,
-                    )?,
-                    fw.begin_surface(
-                        "roughness",
-                        rows,
-                        cols,
-                        h.z_offset_um,
-                        NpyHeights::RelativeF32,
-                        ROUGHNESS_TITLE,
-                    )?,
-                )),
-                None => None,
-            };
-            let mut datum = Vec::new();
-            let mut roughness = Vec::new();
-            separate_streamed(
-                heights,
-                rows,
-                cols,
-                &w,
-                settings.mode,
-                Some(level),
-                &stream,
-                |_, d, r| {
-                    if let Some((ds, rs)) = out.as_mut() {
-                        ds.push_rows(d)?;
-                        rs.push_rows(r)?;
-                    }
-                    if publish_datum {
-                        datum.extend_from_slice(d);
-                    }
-                    if publish_roughness {
-                        roughness.extend_from_slice(r);
-                    }
-                    Ok(())
-                },
-            )
-            .map_err(|e| anyhow!("wavelet: streamed separation: {e}"))?;
-            if let (Some(fw), Some((ds, rs))) = (files.as_deref_mut(), out) {
-                fw.finish_surface(ds)?;
-                fw.finish_surface(rs)?;
-            }
-            (
-                publish_datum.then_some(datum),
-                publish_roughness.then_some(roughness),
-                pooled,
-                summary,
-            )
-        }
-        (SeparationMethod::Wavelet, _) => {
-            let analysis = analyse(
-                panorama.heights,
-                rows,
-                cols,
-                settings.base,
-                settings.level,
-                settings.mode,
-                settings.pool_block,
-                settings.pool_op,
-            )?;
-            let mut summary = analysis.summary();
-            let level = analysis.separation.level;
-            let w = analysis.wavelet;
-            add_wavelet_notes(&mut summary, settings, &w, level, &h);
-            let sep = analysis.separation;
-            if let Some(fw) = files.as_deref_mut() {
-                write_pair(fw, &sep.datum, &sep.roughness, &datum_title(&w, level), &h)?;
-            }
-            (
-                publish_datum.then_some(sep.datum),
-                publish_roughness.then_some(sep.roughness),
-                analysis.pooled,
-                summary,
-            )
-        }
-        (method, _) => {
-            let s = h
-                .sampling()
-                .map_err(FilterError::from)
-                .and_then(|grid| {
-                    filter_separation(panorama.heights, grid, method, settings.lambda_s_um)
-                })
-                .map_err(|e| anyhow!("wavelet: {} separation: {e}", method.name()))?;
-            let pooled = pool(
-                panorama.heights,
-                rows,
-                cols,
-                settings.pool_block,
-                settings.pool_op,
-            )?;
-            let cutoff = method.cutoff_um().unwrap_or(f64::NAN);
-            let summary = json!({
-                "method": method.name(),
-                "cutoff_um": cutoff,
-                "lambda_s_um": settings.lambda_s_um,
-                "plane_removed_um": s.plane_um,
-                "robust_iterations": s.robust_iterations.map(|r| r.0),
-                "robust_converged": s.robust_iterations.map(|r| r.1),
-                "pool": settings.pool_block,
-                "pool_op": settings.pool_op.name(),
-                "pooled_px": [pooled.cols, pooled.rows],
-                "pooling_bias": pooling_bias(panorama.heights, &pooled.heights),
-            });
-            let title = format!("datum, {} lambda_c {cutoff} um (um)", method.name());
-            if let Some(fw) = files.as_deref_mut() {
-                write_pair(fw, &s.datum, &s.roughness, &title, &h)?;
-            }
-            (
-                publish_datum.then_some(s.datum),
-                publish_roughness.then_some(s.roughness),
-                pooled,
-                summary,
-            )
-        }
+    let mut sink = FinalSink {
+        files,
+        streams: None,
+        h,
+        publish_datum,
+        publish_roughness,
+        datum: Vec::new(),
+        roughness: Vec::new(),
     };
+    let map = separate_map(settings, panorama.heights, &grid, &stream, &mut sink)?;
+    if let Some(w) = &map.warning {
+        eprintln!("wavelet: {w}");
+    }
+    sink.finish()?;
+    finish_final(settings, &grid, &h, map, sink)
+}
+
+/// The shared tail: `pooled` written, the summary completed, the frames built.
+fn finish_final(
+    settings: &SeparationSettings,
+    grid: &Sampling,
+    h: &FrameHeader,
+    map: SeparatedMap,
+    sink: FinalSink<'_>,
+) -> Result<FinalSeparation> {
+    let SeparatedMap {
+        summary: separation,
+        warning,
+        pooled,
+        streamed,
+    } = map;
     // The pooled map's pitch: the panorama's times the block, checked once for both uses.
-    let pooled_pitch = h
+    let pooled_pitch = grid
         .pitch()
-        .and_then(|p| p.times(settings.pool_block))
+        .times(settings.pool_block)
         .map_err(|e| anyhow!("wavelet: pooled map: {e}"))?;
-    if let Some(fw) = files {
+    let mut written = Vec::new();
+    if let Some(fw) = sink.files {
         let block = settings.pool_block;
         fw.set_pitch_um(pooled_pitch.x_um(), pooled_pitch.y_um());
         fw.write_surface(&SurfaceOutput {
@@ -764,31 +662,34 @@ pub fn final_separation_with(
         })?;
         written = fw.files().to_vec();
     }
-    if let Some(o) = summary.as_object_mut() {
-        o.insert("level_requested".into(), json!(settings.fixed_level()));
-        o.insert("panorama_px".into(), json!([cols, rows]));
-        o.insert("files".into(), json!(written));
-        o.insert("streamed".into(), json!(final_pass_streams(settings)));
-    }
+    let summary = FinalSummary {
+        separation,
+        warning,
+        level_requested: settings.fixed_level(),
+        panorama_px: [grid.cols(), grid.rows()],
+        pooled_px: [pooled.cols, pooled.rows],
+        files: written,
+        streamed,
+    };
     let header = |kind: FrameKind| FrameHeader {
         kind: kind as u32,
         flags: flags::FINAL,
-        ..h
+        ..*h
     };
     let mut pooled_header = header(FrameKind::Pooled);
     pooled_header.width = pooled.cols as u32;
     pooled_header.height = pooled.rows as u32;
     pooled_header.pitch_x_um = pooled_pitch.x_um();
     pooled_header.pitch_y_um = pooled_pitch.y_um();
+    let frame = |kind: FrameKind, keep: bool, heights: Vec<f32>| {
+        keep.then(|| HeightMap {
+            header: header(kind),
+            heights,
+        })
+    };
     Ok(FinalSeparation {
-        datum: datum.map(|heights| HeightMap {
-            header: header(FrameKind::Datum),
-            heights,
-        }),
-        roughness: roughness.map(|heights| HeightMap {
-            header: header(FrameKind::Roughness),
-            heights,
-        }),
+        datum: frame(FrameKind::Datum, sink.publish_datum, sink.datum),
+        roughness: frame(FrameKind::Roughness, sink.publish_roughness, sink.roughness),
         pooled: HeightMap {
             header: pooled_header,
             heights: pooled.heights,
@@ -799,81 +700,108 @@ pub fn final_separation_with(
 
 const ROUGHNESS_TITLE: &str = "roughness (um)";
 
-fn datum_title(w: &Wavelet, level: usize) -> String {
-    format!("datum, {} level {level} (um)", w.name())
+/// The node's rows: datum and roughness .npy + .png as they arrive, and the whole frames
+/// when a consumer is wired.
+struct FinalSink<'a> {
+    files: Option<&'a mut OutputWriter>,
+    streams: Option<(SurfaceStream, SurfaceStream)>,
+    h: FrameHeader,
+    publish_datum: bool,
+    publish_roughness: bool,
+    datum: Vec<f32>,
+    roughness: Vec<f32>,
 }
 
-/// Whole datum and roughness maps (the in-memory paths) as .npy + .png.
-fn write_pair(
-    fw: &mut OutputWriter,
-    datum: &[f32],
-    roughness: &[f32],
-    title: &str,
-    h: &FrameHeader,
-) -> Result<()> {
-    let shape = Shape::new(h.height as usize, h.width as usize);
-    for (name, values, npy, title) in [
-        ("datum", datum, NpyHeights::AbsoluteF64, title),
-        (
-            "roughness",
-            roughness,
-            NpyHeights::RelativeF32,
-            ROUGHNESS_TITLE,
-        ),
-    ] {
-        fw.write_surface(&SurfaceOutput {
-            name,
-            heights: RasterView::new(values, shape)?,
-            z_offset_um: h.z_offset_um,
-            npy,
-            title,
-            x3p_pitch_um: None,
-        })?;
+impl FinalSink<'_> {
+    fn write_rows(&mut self, datum: &[f32], roughness: &[f32]) -> Result<()> {
+        if let Some((ds, rs)) = self.streams.as_mut() {
+            ds.push_rows(datum)?;
+            rs.push_rows(roughness)?;
+        }
+        Ok(())
     }
-    Ok(())
+
+    /// Completes the two files (every row must have arrived).
+    fn finish(&mut self) -> Result<()> {
+        if let (Some(fw), Some((ds, rs))) = (self.files.as_deref_mut(), self.streams.take()) {
+            fw.finish_surface(ds)?;
+            fw.finish_surface(rs)?;
+        }
+        Ok(())
+    }
 }
 
-/// The wavelet's method, equivalent cutoff and, when the level asked for was lowered, why.
-fn add_wavelet_notes(
-    summary: &mut serde_json::Value,
-    settings: &SeparationSettings,
-    w: &Wavelet,
-    level: usize,
-    h: &FrameHeader,
-) {
-    let Some(o) = summary.as_object_mut() else {
-        return;
-    };
-    o.insert("method".into(), json!("wavelet"));
-    o.insert(
-        "equivalent_cutoff_um".into(),
-        json!(equivalent_cutoff_um(w, level, h.pitch_x_um)),
-    );
-    if h.pitch_y_um != h.pitch_x_um {
-        o.insert(
-            "equivalent_cutoff_y_um".into(),
-            json!(equivalent_cutoff_um(w, level, h.pitch_y_um)),
+impl SeparationSink for FinalSink<'_> {
+    fn begin(&mut self, datum_title: &str) -> Result<()> {
+        let Some(fw) = self.files.as_deref() else {
+            return Ok(());
+        };
+        let (rows, cols, z) = (
+            self.h.height as usize,
+            self.h.width as usize,
+            self.h.z_offset_um,
         );
+        self.streams = Some((
+            fw.begin_surface("datum", rows, cols, z, NpyHeights::AbsoluteF64, datum_title)?,
+            fw.begin_surface(
+                "roughness",
+                rows,
+                cols,
+                z,
+                NpyHeights::RelativeF32,
+                ROUGHNESS_TITLE,
+            )?,
+        ));
+        Ok(())
     }
-    o.insert(
-        "equivalent_cutoff_definition".into(),
-        json!(CUTOFF_DEFINITION),
-    );
-    let requested = match settings.level {
-        LevelChoice::Fixed(l) => Some(l),
-        LevelChoice::Default => Some(DEFAULT_LEVEL),
-        LevelChoice::MinEnergy => None,
-    };
-    if let Some(warning) = requested.and_then(|r| level_lowered_warning(w, r, level, h.pitch_x_um))
-    {
-        eprintln!("wavelet: {warning}");
-        o.insert("warning".into(), json!(warning));
+
+    fn push_rows(&mut self, datum: &[f32], roughness: &[f32]) -> Result<()> {
+        self.write_rows(datum, roughness)?;
+        if self.publish_datum {
+            self.datum.extend_from_slice(datum);
+        }
+        if self.publish_roughness {
+            self.roughness.extend_from_slice(roughness);
+        }
+        Ok(())
+    }
+
+    /// The in-memory paths: the files by rows, the frames take the maps themselves.
+    fn whole(&mut self, datum: Vec<f32>, roughness: Vec<f32>, cols: usize) -> Result<()> {
+        if self.streams.is_some() {
+            push_in_bands(&mut Files(self), &datum, &roughness, cols)?;
+        }
+        if self.publish_datum {
+            self.datum = datum;
+        }
+        if self.publish_roughness {
+            self.roughness = roughness;
+        }
+        Ok(())
+    }
+}
+
+/// [`FinalSink`]'s files alone (the rows of a whole map, whose frames are moved, not copied).
+struct Files<'s, 'a>(&'s mut FinalSink<'a>);
+
+impl SeparationSink for Files<'_, '_> {
+    fn begin(&mut self, _: &str) -> Result<()> {
+        Ok(())
+    }
+    fn push_rows(&mut self, datum: &[f32], roughness: &[f32]) -> Result<()> {
+        self.0.write_rows(datum, roughness)
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::analyse;
+    use serde_json::json;
+
+    fn json_of(s: &FinalSummary) -> serde_json::Value {
+        serde_json::to_value(s).unwrap()
+    }
 
     fn settings() -> SeparationSettings {
         SeparationSettings {
@@ -1082,8 +1010,8 @@ mod tests {
         let mut s = settings();
         s.method = SeparationMethod::Gaussian { cutoff_um: 8.0 };
         let f = final_separation(&s, &pano, None).unwrap();
-        assert_eq!(f.summary["method"], "gaussian");
-        assert_eq!(f.summary["cutoff_um"], 8.0);
+        assert_eq!(json_of(&f.summary)["method"], "gaussian");
+        assert_eq!(json_of(&f.summary)["cutoff_um"], 8.0);
         let (fd, fr) = (f.datum.unwrap(), f.roughness.unwrap());
         for ((d, r), h) in fd.heights.iter().zip(&fr.heights).zip(&pano.heights) {
             assert!((d + r - h).abs() < 1e-5);
@@ -1091,13 +1019,18 @@ mod tests {
         // The wavelet: db2 level 2 at 0.5 um is 8 pitches (4 um), reported with a warning
         // when the level asked for does not fit.
         let w = final_separation(&settings(), &pano, None).unwrap();
-        let cutoff = w.summary["equivalent_cutoff_um"].as_f64().unwrap();
+        let cutoff = json_of(&w.summary)["equivalent_cutoff_um"]
+            .as_f64()
+            .unwrap();
         assert!((cutoff - 4.0).abs() < 0.2, "{cutoff}");
-        assert!(w.summary["warning"].is_null());
+        assert!(json_of(&w.summary)["warning"].is_null());
         s = settings();
         s.level = LevelChoice::Fixed(9);
         let lowered = final_separation(&s, &pano, None).unwrap();
-        let text = lowered.summary["warning"].as_str().unwrap().to_string();
+        let text = json_of(&lowered.summary)["warning"]
+            .as_str()
+            .unwrap()
+            .to_string();
         assert!(text.contains("level 9 lowered to"), "{text}");
     }
 
@@ -1129,10 +1062,41 @@ mod tests {
             (f.pooled.header.width, f.pooled.header.pitch_x_um),
             (12, 2.0)
         );
-        assert_eq!(f.summary["files"].as_array().unwrap().len(), 6);
-        assert_eq!(f.summary["level_requested"], 2);
+        assert_eq!(json_of(&f.summary)["files"].as_array().unwrap().len(), 6);
+        assert_eq!(json_of(&f.summary)["level_requested"], 2);
         let datum = surfstream_io::npy::read_npy_f64(dir.path().join("datum.npy")).unwrap();
         assert_eq!(datum.data[0], f64::from(datum_frame.heights[0]) + 100.0);
+    }
+
+    /// Whole datum and roughness maps as .npy + .png by the whole-map writer (what the node
+    /// wrote before it streamed): the reference of the streamed files.
+    fn write_pair(
+        fw: &mut OutputWriter,
+        datum: &[f32],
+        roughness: &[f32],
+        title: &str,
+        h: &FrameHeader,
+    ) -> Result<()> {
+        let shape = Shape::new(h.height as usize, h.width as usize);
+        for (name, values, npy, title) in [
+            ("datum", datum, NpyHeights::AbsoluteF64, title),
+            (
+                "roughness",
+                roughness,
+                NpyHeights::RelativeF32,
+                ROUGHNESS_TITLE,
+            ),
+        ] {
+            fw.write_surface(&SurfaceOutput {
+                name,
+                heights: RasterView::new(values, shape)?,
+                z_offset_um: h.z_offset_um,
+                npy,
+                title,
+                x3p_pitch_um: None,
+            })?;
+        }
+        Ok(())
     }
 
     /// A demo-size panorama (a 3x3 scan of 1024^2 tiles is ~2.8k px a side; this is a
@@ -1173,7 +1137,7 @@ mod tests {
             std::fs::create_dir_all(&b).unwrap();
             let mut wa = OutputWriter::new(&a);
             let f = final_separation(&s, &pano, Some(&mut wa)).unwrap();
-            assert_eq!(f.summary["streamed"], true);
+            assert_eq!(json_of(&f.summary)["streamed"], true);
             // What the node wrote before streaming: analyse(), then whole-map writers.
             let (r, c) = (rows as usize, cols as usize);
             let batch =
@@ -1212,18 +1176,22 @@ mod tests {
             assert!(bits(&f.datum.unwrap().heights) == bits(&batch.separation.datum));
             assert!(bits(&f.roughness.unwrap().heights) == bits(&batch.separation.roughness));
             // The summary: the same choices; the energy curve to round-off.
-            let reference = batch.summary();
+            let reference = serde_json::to_value(batch.summary()).unwrap();
+            assert_eq!(
+                json_of(&f.summary)["pooled_px"],
+                json!([batch.pooled.cols, batch.pooled.rows])
+            );
             for key in [
                 "wavelet",
                 "mode",
                 "level",
                 "level_min_energy",
-                "pooled_px",
                 "pooling_bias",
             ] {
-                assert_eq!(f.summary[key], reference[key], "{key}");
+                assert_eq!(json_of(&f.summary)[key], reference[key], "{key}");
             }
-            let (ea, eb) = (&f.summary["energy_curve"], &reference["energy_curve"]);
+            let fj = json_of(&f.summary);
+            let (ea, eb) = (&fj["energy_curve"], &reference["energy_curve"]);
             assert_eq!(ea.as_array().unwrap().len(), eb.as_array().unwrap().len());
             for (p, q) in ea.as_array().unwrap().iter().zip(eb.as_array().unwrap()) {
                 let (x, y) = (
@@ -1253,13 +1221,13 @@ mod tests {
         .unwrap();
         assert!(f.datum.is_none());
         assert_eq!(f.roughness.unwrap().heights.len(), 120 * 90);
-        assert_eq!(f.summary["files"].as_array().unwrap().len(), 6);
+        assert_eq!(json_of(&f.summary)["files"].as_array().unwrap().len(), 6);
         assert!(dir.path().join("datum.npy").exists());
         let mut s = settings();
         s.level = LevelChoice::MinEnergy;
         assert!(!final_pass_streams(&s));
         let f = final_separation(&s, &pano, None).unwrap();
-        assert_eq!(f.summary["streamed"], false);
+        assert_eq!(json_of(&f.summary)["streamed"], false);
         s = settings();
         s.base = BaseChoice::MinRmse;
         assert!(!final_pass_streams(&s));

@@ -85,7 +85,7 @@ impl WaveletNode {
             },
         };
         let f = final_separation_with(&self.settings, pano, request)?;
-        self.summary = f.summary;
+        self.summary = record::to_value(&f.summary);
         if let Some(datum) = f.datum {
             out.send_frame("datum", datum);
         }

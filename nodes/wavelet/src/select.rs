@@ -275,6 +275,12 @@ pub struct Analysis {
 }
 
 /// Choose base and level as asked, separate, pool `pool_block x pool_block` with `pool_op`.
+///
+/// In memory, over the whole map. [`crate::separate_map`] (the node's final pass and the
+/// `separate` verb) runs it only where a choice needs the whole map: the base by RMSE (every
+/// base) and the level by minimum energy (every level); a named wavelet at a fixed / default
+/// level streams. Otherwise it is the test oracle of the streamed pass (same datum and
+/// roughness bits, the energy curve to round-off) and the Python binding's entry point.
 #[allow(clippy::too_many_arguments)]
 pub fn analyse(
     heights: &[f32],
@@ -328,55 +334,62 @@ pub fn analyse(
 
 impl Analysis {
     /// The choices and the evidence, for run.json and the `separate` summary.
-    pub fn summary(&self) -> serde_json::Value {
-        SummaryParts {
-            wavelet: &self.wavelet,
-            mode: self.mode,
+    pub fn summary(&self) -> SeparationChoices {
+        SeparationChoices {
+            wavelet: self.wavelet.name(),
+            mode: self.mode.name(),
             level: self.separation.level,
             level_min_energy: self.level_min_energy,
-            energy_curve: &self.energy_curve,
-            base_rmse: self.base_rmse.as_deref(),
-            pool_block: self.pool_block,
-            pool_op: self.pool_op,
-            pooled_px: [self.pooled.cols, self.pooled.rows],
+            energy_curve: self.energy_curve.clone(),
+            energy_curve_note: ENERGY_CURVE_NOTE,
+            base_rmse_note: self.base_rmse.as_ref().map(|_| BASE_RMSE_NOTE),
+            base_rmse: self.base_rmse.clone(),
+            pool: self.pool_block,
+            pool_op: self.pool_op.name(),
             pooling_bias: self.pooling_bias,
         }
-        .json()
+    }
+
+    /// [`Analysis::summary`], the separation and the pooled map, without copying the maps.
+    pub fn into_parts(self) -> (SeparationChoices, crate::Separation, crate::Pooled) {
+        let choices = SeparationChoices {
+            wavelet: self.wavelet.name(),
+            mode: self.mode.name(),
+            level: self.separation.level,
+            level_min_energy: self.level_min_energy,
+            energy_curve: self.energy_curve,
+            energy_curve_note: ENERGY_CURVE_NOTE,
+            base_rmse_note: self.base_rmse.as_ref().map(|_| BASE_RMSE_NOTE),
+            base_rmse: self.base_rmse,
+            pool: self.pool_block,
+            pool_op: self.pool_op.name(),
+            pooling_bias: self.pooling_bias,
+        };
+        (choices, self.separation, self.pooled)
     }
 }
 
-/// What [`Analysis::summary`] reports, for the streamed final pass that has no [`Analysis`].
-pub(crate) struct SummaryParts<'a> {
-    pub wavelet: &'a Wavelet,
-    pub mode: Mode,
+pub(crate) const ENERGY_CURVE_NOTE: &str = "approximation energy / total energy per level, after filling holes and removing the least-squares plane (paper Fig. 13)";
+const BASE_RMSE_NOTE: &str = "eq. 10: every base is orthogonal, so this RMSE is floating-point round-off, not a measure of fit";
+
+/// The wavelet separation's choices and their evidence, as run.json's `stages.wavelet.final`
+/// and `separate.json` write them (the streamed pass fills it without an [`Analysis`]).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SeparationChoices {
+    pub wavelet: &'static str,
+    pub mode: &'static str,
     pub level: usize,
+    /// The level the energy rule picks (whether or not it was used).
     pub level_min_energy: Option<usize>,
-    pub energy_curve: &'a [EnergyPoint],
-    pub base_rmse: Option<&'a [BaseRmse]>,
-    pub pool_block: usize,
-    pub pool_op: crate::PoolOp,
-    /// (cols, rows).
-    pub pooled_px: [usize; 2],
+    pub energy_curve: Vec<EnergyPoint>,
+    pub energy_curve_note: &'static str,
+    /// Eq. 10 per base, when the base was chosen by it.
+    pub base_rmse: Option<Vec<BaseRmse>>,
+    pub base_rmse_note: Option<&'static str>,
+    /// Pooling block, px.
+    pub pool: usize,
+    pub pool_op: &'static str,
     pub pooling_bias: Option<PoolingBias>,
-}
-
-impl SummaryParts<'_> {
-    pub(crate) fn json(&self) -> serde_json::Value {
-        serde_json::json!({
-            "wavelet": self.wavelet.name(),
-            "mode": self.mode.name(),
-            "level": self.level,
-            "level_min_energy": self.level_min_energy,
-            "energy_curve": self.energy_curve,
-            "energy_curve_note": "approximation energy / total energy per level, after filling holes and removing the least-squares plane (paper Fig. 13)",
-            "base_rmse": self.base_rmse,
-            "base_rmse_note": self.base_rmse.as_ref().map(|_| "eq. 10: every base is orthogonal, so this RMSE is floating-point round-off, not a measure of fit"),
-            "pool": self.pool_block,
-            "pool_op": self.pool_op.name(),
-            "pooled_px": self.pooled_px,
-            "pooling_bias": self.pooling_bias,
-        })
-    }
 }
 
 #[cfg(test)]

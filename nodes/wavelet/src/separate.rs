@@ -74,6 +74,12 @@ pub fn default_level(
 /// Matches PyWavelets: `datum = waverec2([cA_l, zeros...], wavelet, mode)[:rows, :cols]` of
 /// `wavedec2(filled, wavelet, mode, level)`. Non-finite pixels are handled as the module doc
 /// says.
+///
+/// The whole map in memory (its coefficients too): the product path is the streamed
+/// [`crate::separate_streamed`] (through [`crate::separate_map`], the node's final pass and
+/// the `separate` verb), which gives the same bits band by band. This one stays as the test
+/// oracle of that pass, for the level chosen by minimum energy and the base by RMSE
+/// ([`crate::analyse`]) and for the Python binding.
 pub fn separate(
     heights: &[f32],
     rows: usize,

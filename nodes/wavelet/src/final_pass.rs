@@ -1,0 +1,300 @@
+//! The separation of one whole map, shared by the wavelet node's final pass
+//! ([`crate::final_separation_with`]) and the `surfstream separate` verb, so the two cannot
+//! drift: [`separate_map`] chooses the path, computes, hands datum / roughness rows to a
+//! [`SeparationSink`] (each caller writes its own files) and returns the pooled map and the
+//! typed summary ([`MapSummary`]).
+//!
+//! Three paths, as [`crate::final_pass_streams`] decides:
+//! * a named wavelet at a fixed or the default level streams ([`crate::separate_streamed`]):
+//!   memory is a band of rows plus the map, rows reach the sink in order;
+//! * base by RMSE or level by minimum energy runs the in-memory [`crate::analyse`] (both
+//!   choices look at the whole map, every base / every level);
+//! * the ISO 16610 filter methods run [`crate::filter_separation`] (FFT over the whole map).
+//!
+//! The in-memory paths hand the sink their whole maps ([`SeparationSink::whole`]).
+
+use anyhow::{anyhow, bail, Result};
+use serde::Serialize;
+use surfstream_core::Sampling;
+
+use crate::live::{final_pass_streams, SeparationSettings};
+use crate::method::{equivalent_cutoff_um, filter_separation, level_lowered_warning};
+use crate::select::SeparationChoices;
+use crate::stream::StreamOptions;
+use crate::{
+    analyse, default_level, energy_curve_streamed, level_by_min_energy, pool, pooling_bias,
+    separate_streamed, BaseChoice, LevelChoice, Pooled, PoolingBias, SeparationMethod, Wavelet,
+    DEFAULT_LEVEL,
+};
+
+/// How run.json and `separate.json` define the wavelet's equivalent cutoff.
+pub const CUTOFF_DEFINITION: &str = "wavelength at which the level's approximation passes 50 % amplitude: T(w) = prod_{k<level} |H(2^k w)|^2 / 2, H the decomposition low-pass, aliasing ignored (nodes/wavelet/src/method.rs)";
+
+/// Rows per call when a whole map is handed on as rows ([`push_in_bands`]): bounds the
+/// writers' conversion buffers, not the map.
+const WHOLE_MAP_BAND_ROWS: usize = 256;
+
+/// Where the datum and roughness of [`separate_map`] go, row by row in order.
+pub trait SeparationSink {
+    /// Called once, before the first row, with the datum's title (previews).
+    fn begin(&mut self, datum_title: &str) -> Result<()>;
+    /// The next whole rows of datum and roughness (same length, a multiple of the columns).
+    fn push_rows(&mut self, datum: &[f32], roughness: &[f32]) -> Result<()>;
+    /// The in-memory paths' whole maps (after [`SeparationSink::begin`]); by default handed
+    /// on as rows ([`push_in_bands`]). A sink that keeps the maps takes them here uncopied.
+    fn whole(&mut self, datum: Vec<f32>, roughness: Vec<f32>, cols: usize) -> Result<()> {
+        push_in_bands(self, &datum, &roughness, cols)
+    }
+}
+
+/// `datum` and `roughness` (`cols` columns) to `sink` in bands of rows.
+pub fn push_in_bands<S: SeparationSink + ?Sized>(
+    sink: &mut S,
+    datum: &[f32],
+    roughness: &[f32],
+    cols: usize,
+) -> Result<()> {
+    let band = WHOLE_MAP_BAND_ROWS * cols.max(1);
+    for (d, r) in datum.chunks(band).zip(roughness.chunks(band)) {
+        sink.push_rows(d, r)?;
+    }
+    Ok(())
+}
+
+/// What [`separate_map`] reports: the wavelet's choices or the filter's.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(untagged)]
+pub enum MapSummary {
+    Wavelet(WaveletSummary),
+    Filter(FilterSummary),
+}
+
+/// A wavelet separation: the choices and their evidence, and the level's equivalent cutoff.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct WaveletSummary {
+    #[serde(flatten)]
+    pub choices: SeparationChoices,
+    /// "wavelet".
+    pub method: &'static str,
+    /// Along x, at the map's x pitch ([`equivalent_cutoff_um`]).
+    pub equivalent_cutoff_um: f64,
+    /// Along y, only when the y pitch differs from the x pitch.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub equivalent_cutoff_y_um: Option<f64>,
+    pub equivalent_cutoff_definition: &'static str,
+}
+
+/// An ISO 16610 L-filter separation.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FilterSummary {
+    pub method: &'static str,
+    /// lambda_c, µm.
+    pub cutoff_um: f64,
+    /// lambda_s, µm (none: no S-filter).
+    pub lambda_s_um: Option<f64>,
+    /// [a, b, c] of the plane removed before filtering and added back, µm.
+    pub plane_removed_um: [f64; 3],
+    /// Robust filter only.
+    pub robust_iterations: Option<usize>,
+    pub robust_converged: Option<bool>,
+    pub pool: usize,
+    pub pool_op: &'static str,
+    pub pooling_bias: Option<PoolingBias>,
+}
+
+/// The result of [`separate_map`] besides the rows given to the sink.
+#[derive(Debug)]
+pub struct SeparatedMap {
+    pub summary: MapSummary,
+    /// Why the level asked for was lowered (wavelet only; each caller prints it its way).
+    pub warning: Option<String>,
+    pub pooled: Pooled,
+    /// The streamed path ran ([`final_pass_streams`]).
+    pub streamed: bool,
+}
+
+impl MapSummary {
+    /// The datum's title in previews.
+    pub fn datum_title(&self) -> String {
+        match self {
+            MapSummary::Wavelet(w) => {
+                format!(
+                    "datum, {} level {} (um)",
+                    w.choices.wavelet, w.choices.level
+                )
+            }
+            MapSummary::Filter(f) => {
+                format!("datum, {} lambda_c {} um (um)", f.method, f.cutoff_um)
+            }
+        }
+    }
+}
+
+/// Separates `heights` (row-major on `grid`, µm relative to the caller's offset, NaN = not
+/// measured) as `settings` say: datum / roughness rows go to `sink`, the pooled map and the
+/// summary are returned. Streams where [`final_pass_streams`] says so.
+pub fn separate_map(
+    settings: &SeparationSettings,
+    heights: &[f32],
+    grid: &Sampling,
+    stream: &StreamOptions,
+    sink: &mut dyn SeparationSink,
+) -> Result<SeparatedMap> {
+    if heights.len() != grid.rows() * grid.cols() {
+        bail!(
+            "wavelet: the map holds {} heights, its shape says {} x {}",
+            heights.len(),
+            grid.rows(),
+            grid.cols()
+        );
+    }
+    match (settings.method, settings.base) {
+        (SeparationMethod::Wavelet, BaseChoice::Named(w)) if final_pass_streams(settings) => {
+            streamed_wavelet(settings, &w, heights, grid, stream, sink)
+        }
+        (SeparationMethod::Wavelet, _) => in_memory_wavelet(settings, heights, grid, sink),
+        (method, _) => filter(settings, method, heights, grid, sink),
+    }
+}
+
+/// A named wavelet at a fixed / default level, band by band ([`separate_streamed`]).
+fn streamed_wavelet(
+    settings: &SeparationSettings,
+    w: &Wavelet,
+    heights: &[f32],
+    grid: &Sampling,
+    stream: &StreamOptions,
+    sink: &mut dyn SeparationSink,
+) -> Result<SeparatedMap> {
+    let (rows, cols) = (grid.rows(), grid.cols());
+    let level = default_level(rows, cols, w, settings.fixed_level())?;
+    let curve = energy_curve_streamed(heights, rows, cols, w, settings.mode, stream)?;
+    let pooled = pool(heights, rows, cols, settings.pool_block, settings.pool_op)?;
+    let choices = SeparationChoices {
+        wavelet: w.name(),
+        mode: settings.mode.name(),
+        level,
+        level_min_energy: level_by_min_energy(&curve),
+        energy_curve: curve,
+        energy_curve_note: crate::select::ENERGY_CURVE_NOTE,
+        base_rmse: None,
+        base_rmse_note: None,
+        pool: settings.pool_block,
+        pool_op: settings.pool_op.name(),
+        pooling_bias: pooling_bias(heights, &pooled.heights),
+    };
+    let (summary, warning) = wavelet_summary(choices, settings, w, grid);
+    sink.begin(&summary.datum_title())?;
+    separate_streamed(
+        heights,
+        rows,
+        cols,
+        w,
+        settings.mode,
+        Some(level),
+        stream,
+        |_, d, r| sink.push_rows(d, r),
+    )
+    .map_err(|e| anyhow!("wavelet: streamed separation: {e}"))?;
+    Ok(SeparatedMap {
+        summary,
+        warning,
+        pooled,
+        streamed: true,
+    })
+}
+
+/// Base by RMSE or level by minimum energy: [`analyse`] over the whole map.
+fn in_memory_wavelet(
+    settings: &SeparationSettings,
+    heights: &[f32],
+    grid: &Sampling,
+    sink: &mut dyn SeparationSink,
+) -> Result<SeparatedMap> {
+    let analysis = analyse(
+        heights,
+        grid.rows(),
+        grid.cols(),
+        settings.base,
+        settings.level,
+        settings.mode,
+        settings.pool_block,
+        settings.pool_op,
+    )?;
+    let w = analysis.wavelet;
+    let (choices, separation, pooled) = analysis.into_parts();
+    let (summary, warning) = wavelet_summary(choices, settings, &w, grid);
+    sink.begin(&summary.datum_title())?;
+    sink.whole(separation.datum, separation.roughness, grid.cols())?;
+    Ok(SeparatedMap {
+        summary,
+        warning,
+        pooled,
+        streamed: false,
+    })
+}
+
+/// An ISO 16610 L-filter ([`filter_separation`]) over the whole map.
+fn filter(
+    settings: &SeparationSettings,
+    method: SeparationMethod,
+    heights: &[f32],
+    grid: &Sampling,
+    sink: &mut dyn SeparationSink,
+) -> Result<SeparatedMap> {
+    let s = filter_separation(heights, *grid, method, settings.lambda_s_um)
+        .map_err(|e| anyhow!("wavelet: {} separation: {e}", method.name()))?;
+    let pooled = pool(
+        heights,
+        grid.rows(),
+        grid.cols(),
+        settings.pool_block,
+        settings.pool_op,
+    )?;
+    let summary = MapSummary::Filter(FilterSummary {
+        method: method.name(),
+        cutoff_um: method.cutoff_um().unwrap_or(f64::NAN),
+        lambda_s_um: settings.lambda_s_um,
+        plane_removed_um: s.plane_um,
+        robust_iterations: s.robust_iterations.map(|r| r.0),
+        robust_converged: s.robust_iterations.map(|r| r.1),
+        pool: settings.pool_block,
+        pool_op: settings.pool_op.name(),
+        pooling_bias: pooling_bias(heights, &pooled.heights),
+    });
+    sink.begin(&summary.datum_title())?;
+    sink.whole(s.datum, s.roughness, grid.cols())?;
+    Ok(SeparatedMap {
+        summary,
+        warning: None,
+        pooled,
+        streamed: false,
+    })
+}
+
+/// The wavelet's choices with its equivalent cutoff and, when the level asked for (or the
+/// default) was lowered, why.
+fn wavelet_summary(
+    choices: SeparationChoices,
+    settings: &SeparationSettings,
+    w: &Wavelet,
+    grid: &Sampling,
+) -> (MapSummary, Option<String>) {
+    let level = choices.level;
+    let (pitch_x_um, pitch_y_um) = (grid.pitch_x_um(), grid.pitch_y_um());
+    let requested = match settings.level {
+        LevelChoice::Fixed(l) => Some(l),
+        LevelChoice::Default => Some(DEFAULT_LEVEL),
+        LevelChoice::MinEnergy => None,
+    };
+    let warning = requested.and_then(|r| level_lowered_warning(w, r, level, pitch_x_um));
+    let summary = MapSummary::Wavelet(WaveletSummary {
+        choices,
+        method: "wavelet",
+        equivalent_cutoff_um: equivalent_cutoff_um(w, level, pitch_x_um),
+        equivalent_cutoff_y_um: (pitch_y_um != pitch_x_um)
+            .then(|| equivalent_cutoff_um(w, level, pitch_y_um)),
+        equivalent_cutoff_definition: CUTOFF_DEFINITION,
+    });
+    (summary, warning)
+}
