@@ -137,8 +137,13 @@ pub fn rmse_per_base(
     Ok(out)
 }
 
+/// Sum of squares, in fixed blocks added in order (the same bits whatever the threads).
 fn energy(v: &[f64]) -> f64 {
-    v.par_iter().map(|x| x * x).sum()
+    v.par_chunks(1 << 14)
+        .map(|b| b.iter().map(|x| x * x).sum::<f64>())
+        .collect::<Vec<f64>>()
+        .iter()
+        .sum()
 }
 
 /// The filled map minus the least-squares plane `a + b x + c y` of its valid pixels.

@@ -284,7 +284,11 @@ fn dec_step(
                     k.dec_rows(&rows, k0 + t * sub, a, Some([&mut *h, &mut *v, &mut *d]));
                     (sq(a), sq(h) + sq(v) + sq(d))
                 })
-                .reduce(|| (0.0, 0.0), |x, y| (x.0 + y.0, x.1 + y.1));
+                // Added in band order: rayon's reduce would pair the bands as the threads
+                // split the work, and the energy's last bits would vary run to run.
+                .collect::<Vec<(f64, f64)>>()
+                .into_iter()
+                .fold((0.0, 0.0), |x, y| (x.0 + y.0, x.1 + y.1));
             energy.approx += ea;
             energy.details += ed;
         } else {

@@ -131,8 +131,13 @@ pub fn fit_polynomial(
             }
             (s, t)
         })
-        .reduce(
-            || (vec![0.0; m2 * m2], vec![0.0; m1 * m1]),
+        // Rows' moments collected in row order and added in that order: rayon's reduce
+        // pairs them as the threads happen to split the work, which made the fit (and every
+        // filtered map) differ in its last bits from run to run.
+        .collect::<Vec<_>>()
+        .into_iter()
+        .fold(
+            (vec![0.0; m2 * m2], vec![0.0; m1 * m1]),
             |(mut s, mut t), (s2, t2)| {
                 s.iter_mut().zip(s2).for_each(|(a, b)| *a += b);
                 t.iter_mut().zip(t2).for_each(|(a, b)| *a += b);
@@ -168,11 +173,19 @@ pub fn fit_polynomial(
         residual_rms_um: 0.0,
     };
     let surface = form.evaluate(grid);
+    // Rows summed in parallel, added in row order (the same bits whatever the threads).
     let ss: f64 = heights
-        .par_iter()
-        .zip(&surface)
-        .filter(|(z, _)| z.is_finite())
-        .map(|(&z, &f)| (f64::from(z) - f).powi(2))
+        .par_chunks(cols)
+        .zip(surface.par_chunks(cols))
+        .map(|(line, fit)| {
+            line.iter()
+                .zip(fit)
+                .filter(|(z, _)| z.is_finite())
+                .map(|(&z, &f)| (f64::from(z) - f).powi(2))
+                .sum::<f64>()
+        })
+        .collect::<Vec<f64>>()
+        .iter()
         .sum();
     form.residual_rms_um = (ss / have as f64).sqrt();
     Ok(form)

@@ -280,18 +280,28 @@ impl GaussianFilter {
         };
         // Filter around the weighted mean height: f32 then keeps µm-scale detail even for
         // maps that sit tens of µm up.
+        // Summed in fixed blocks, and the blocks in order, so the mean (and with it every
+        // output bit) does not depend on how rayon splits the work.
+        const BLOCK: usize = 1 << 14;
         let (sw, swz) = heights
-            .par_iter()
+            .par_chunks(BLOCK)
             .enumerate()
-            .map(|(i, &z)| {
-                let w = f64::from(weight(i, z));
-                if w > 0.0 {
-                    (w, w * f64::from(z))
-                } else {
-                    (0.0, 0.0)
-                }
+            .map(|(b, block)| {
+                block
+                    .iter()
+                    .enumerate()
+                    .fold((0.0, 0.0), |(sw, swz), (k, &z)| {
+                        let w = f64::from(weight(b * BLOCK + k, z));
+                        if w > 0.0 {
+                            (sw + w, swz + w * f64::from(z))
+                        } else {
+                            (sw, swz)
+                        }
+                    })
             })
-            .reduce(|| (0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
+            .collect::<Vec<(f64, f64)>>()
+            .into_iter()
+            .fold((0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
         if sw <= 0.0 {
             return Err(FilterError::AllNan);
         }
