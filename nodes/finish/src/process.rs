@@ -62,9 +62,9 @@ pub fn finish(
     let ideal_run = ideal_comparison(&setup, &mut st, stop, say)?;
     let crops = write_outputs(&setup, &st)?;
     let total_s = t_start.elapsed().as_secs_f64();
-    let summary = summary(&setup, st, &crops, final_fit, ideal_run, probe, total_s)?;
+    let record = summary(&setup, st, &crops, final_fit, ideal_run, probe, total_s)?;
     // Written as a JSON value: its keys sorted, as finish.json has always had them.
-    let summary = record::to_value(&summary);
+    let summary = record::to_value(&record);
     let path = out_dir.join(outputs::SUMMARY);
     surfstream_core::fsutil::write_atomic(&path, |w| {
         serde_json::to_writer_pretty(w, &summary).map_err(|e| anyhow!("{}: {e}", path.display()))
@@ -72,7 +72,7 @@ pub fn finish(
     let (rows, cols) = (setup.patch.crop.rows, setup.patch.crop.cols);
     crate::html::write_report(
         &out_dir.join(outputs::HTML),
-        &summary,
+        &record,
         &crops.original,
         &crops.worn,
         &crops.finnie,
