@@ -76,13 +76,50 @@ pub fn figures(
             wear.len()
         ));
     }
-    let pitch = (summary.setting.as_ref())
-        .map(|st| st.patch.pitch_um[0])
-        .filter(|p| *p > 0.0)
-        .unwrap_or(1.0);
-    // The profile row: the one that lost most material, so the worn line visibly departs from
-    // the original (a middle row may not have been touched at all by the few passes).
-    let mid = (0..rows)
+    let patch = PatchMaps {
+        original,
+        worn,
+        wear,
+        rows,
+        cols,
+        pitch_um: (summary.setting.as_ref())
+            .map(|st| st.patch.pitch_um[0])
+            .filter(|p| *p > 0.0)
+            .unwrap_or(1.0),
+        profile_row: most_worn_row(wear, rows, cols),
+    };
+    let [wear_map, original_map, worn_map] = patch.maps()?;
+    let level_shift_um = patch.level_shift_um();
+    let [profile_svg, removed_svg] = patch.profiles();
+    let [abbott_svg, abbott_peak_svg, abbott_diff_svg] = abbott_figures(summary, level_shift_um);
+    Ok(Figures {
+        wear_map,
+        original_map,
+        worn_map,
+        profile_svg,
+        removed_svg,
+        abbott_svg,
+        abbott_peak_svg,
+        abbott_diff_svg,
+        level_shift_um,
+    })
+}
+
+/// The patch's maps (rows x cols, checked), their pitch and the row the profiles follow.
+struct PatchMaps<'a> {
+    original: &'a [f64],
+    worn: &'a [f64],
+    wear: &'a [f64],
+    rows: usize,
+    cols: usize,
+    pitch_um: f64,
+    profile_row: usize,
+}
+
+/// The profile row: the one that lost most material, so the worn line visibly departs from
+/// the original (a middle row may not have been touched at all by the few passes).
+fn most_worn_row(wear: &[f64], rows: usize, cols: usize) -> usize {
+    (0..rows)
         .map(|r| {
             let v: f64 = wear[r * cols..(r + 1) * cols]
                 .iter()
@@ -93,70 +130,59 @@ pub fn figures(
         .fold(
             (rows / 2, 0.0),
             |best, (r, v)| if v > best.1 { (r, v) } else { best },
-        );
-    let mid = mid.0;
+        )
+        .0
+}
 
-    // Maps: the wear on its own scale, before and after on one shared height scale so the
-    // two are compared colour for colour.
-    let wear_max = finite_max(wear).max(0.0);
-    let wear_map = map_figure(
-        wear,
-        rows,
-        cols,
-        pitch,
-        (0.0, if wear_max > 0.0 { wear_max } else { 1.0 }),
-        Ramp::Heat,
-        "wear depth along z (µm)",
-        mid,
-    )?;
-    let (h0, h1) = {
-        let (a0, a1) = finite_range(original);
-        let (b0, b1) = finite_range(worn);
-        let (lo, hi) = (a0.min(b0), a1.max(b1));
-        if lo < hi {
-            (lo, hi)
-        } else {
-            (lo, lo + 1.0)
-        }
-    };
-    let original_map = map_figure(
-        original,
-        rows,
-        cols,
-        pitch,
-        (h0, h1),
-        Ramp::Viridis,
-        "height (µm)",
-        mid,
-    )?;
-    let worn_map = map_figure(
-        worn,
-        rows,
-        cols,
-        pitch,
-        (h0, h1),
-        Ramp::Viridis,
-        "height (µm)",
-        mid,
-    )?;
+impl PatchMaps<'_> {
+    /// The wear on its own scale, before and after on one shared height scale so the two are
+    /// compared colour for colour.
+    fn maps(&self) -> Result<[String; 3]> {
+        let (rows, cols, pitch, mid) = (self.rows, self.cols, self.pitch_um, self.profile_row);
+        let wear_max = finite_max(self.wear).max(0.0);
+        let wear_map = map_figure(
+            self.wear,
+            rows,
+            cols,
+            pitch,
+            (0.0, if wear_max > 0.0 { wear_max } else { 1.0 }),
+            Ramp::Heat,
+            "wear depth along z (µm)",
+            mid,
+        )?;
+        let (h0, h1) = {
+            let (a0, a1) = finite_range(self.original);
+            let (b0, b1) = finite_range(self.worn);
+            let (lo, hi) = (a0.min(b0), a1.max(b1));
+            if lo < hi {
+                (lo, hi)
+            } else {
+                (lo, lo + 1.0)
+            }
+        };
+        let height = |z: &[f64]| {
+            map_figure(
+                z,
+                rows,
+                cols,
+                pitch,
+                (h0, h1),
+                Ramp::Viridis,
+                "height (µm)",
+                mid,
+            )
+        };
+        // In page order: the colour bars' gradient ids count up.
+        let original_map = height(self.original)?;
+        let worn_map = height(self.worn)?;
+        Ok([wear_map, original_map, worn_map])
+    }
 
-    // Profiles along the middle row: the original drawn thick underneath so the worn line on
-    // top never hides it; the removed depth in its own panel because it is ~100x smaller.
-    let row_x = |c: usize| c as f64 * pitch;
-    let prof_a: Vec<(f64, f64)> = (0..cols)
-        .map(|c| (row_x(c), original[mid * cols + c]))
-        .collect();
-    let prof_b: Vec<(f64, f64)> = (0..cols)
-        .map(|c| (row_x(c), worn[mid * cols + c]))
-        .collect();
-    // The removed depth from the wear map itself: worn.npy is re-levelled, so original − worn
-    // carries the levelling shift (stated in the caption) on top of the wear.
-    let removed: Vec<(f64, f64)> = (0..cols)
-        .map(|c| (row_x(c), wear[mid * cols + c]))
-        .collect();
-    let level_shift_um = {
-        let d: Vec<f64> = (0..n)
-            .map(|k| original[k] - worn[k] - wear[k])
+    /// The mean of original - worn - wear: worn.npy is re-levelled, so original − worn carries
+    /// this shift on top of the wear.
+    fn level_shift_um(&self) -> f64 {
+        let d: Vec<f64> = (0..self.rows * self.cols)
+            .map(|k| self.original[k] - self.worn[k] - self.wear[k])
             .filter(|v| v.is_finite())
             .collect();
         if d.is_empty() {
@@ -164,44 +190,62 @@ pub fn figures(
         } else {
             d.iter().sum::<f64>() / d.len() as f64
         }
-    };
-    let profile_svg = Plot {
-        title: format!("Profile along row {mid} (y = {:.1} µm)", mid as f64 * pitch),
-        xlabel: "x (µm)",
-        ylabel: "height (µm)",
-        series: vec![
-            Series::line(&prof_a, GREY, 4.0, "original"),
-            Series::line(&prof_b, RED, 1.2, "worn"),
-        ],
-        ..Plot::default()
     }
-    .svg();
-    let removed_svg = Plot {
-        title: "Removed depth along the same row".into(),
-        xlabel: "x (µm)",
-        ylabel: "wear depth along z (µm)",
-        series: vec![Series::area(&removed, BLUE, "removed")],
-        y_from_zero: true,
-        height: 190.0,
-        ..Plot::default()
-    }
-    .svg();
 
-    // Abbott-Firestone: the two curves differ by a fraction of a µm over a range of ~12 µm, so
-    // the difference and a zoom on the peak region (material ratio 0-20 %) carry the message.
-    let curve = |a: &AbbottSummary| -> Vec<(f64, f64)> {
-        let (mr, h) = (&a.material_ratio_pct, &a.height_um);
-        // Finish.json holds ~10^4 points; ~1000 draw the same curve and keep the page light.
-        let step = (mr.len() / 1000).max(1);
-        mr.iter()
-            .zip(h)
-            .enumerate()
-            .filter(|(k, _)| k % step == 0 || *k + 1 == mr.len())
-            .filter_map(|(_, (&m, &h))| Some((finite(m)?, finite(h)?)))
-            .collect()
-    };
-    let ab_before = curve(&summary.abbott_before);
-    let ab_after = curve(&summary.abbott_after);
+    /// Profiles along the profile row: the original drawn thick underneath so the worn line on
+    /// top never hides it; the removed depth (from the wear map itself, without the levelling
+    /// shift) in its own panel because it is ~100x smaller.
+    fn profiles(&self) -> [String; 2] {
+        let (cols, mid, pitch) = (self.cols, self.profile_row, self.pitch_um);
+        let along = |z: &[f64]| -> Vec<(f64, f64)> {
+            (0..cols)
+                .map(|c| (c as f64 * pitch, z[mid * cols + c]))
+                .collect()
+        };
+        let (prof_a, prof_b, removed) = (along(self.original), along(self.worn), along(self.wear));
+        let profile_svg = Plot {
+            title: format!("Profile along row {mid} (y = {:.1} µm)", mid as f64 * pitch),
+            xlabel: "x (µm)",
+            ylabel: "height (µm)",
+            series: vec![
+                Series::line(&prof_a, GREY, 4.0, "original"),
+                Series::line(&prof_b, RED, 1.2, "worn"),
+            ],
+            ..Plot::default()
+        }
+        .svg();
+        let removed_svg = Plot {
+            title: "Removed depth along the same row".into(),
+            xlabel: "x (µm)",
+            ylabel: "wear depth along z (µm)",
+            series: vec![Series::area(&removed, BLUE, "removed")],
+            y_from_zero: true,
+            height: 190.0,
+            ..Plot::default()
+        }
+        .svg();
+        [profile_svg, removed_svg]
+    }
+}
+
+/// An Abbott-Firestone curve as (material ratio %, height um), thinned: finish.json holds
+/// ~10^4 points; ~1000 draw the same curve and keep the page light.
+fn abbott_points(a: &AbbottSummary) -> Vec<(f64, f64)> {
+    let (mr, h) = (&a.material_ratio_pct, &a.height_um);
+    let step = (mr.len() / 1000).max(1);
+    mr.iter()
+        .zip(h)
+        .enumerate()
+        .filter(|(k, _)| k % step == 0 || *k + 1 == mr.len())
+        .filter_map(|(_, (&m, &h))| Some((finite(m)?, finite(h)?)))
+        .collect()
+}
+
+/// Abbott-Firestone: the two curves differ by a fraction of a µm over a range of ~12 µm, so
+/// the difference and a zoom on the peak region (material ratio 0-20 %) carry the message.
+fn abbott_figures(summary: &FinishSummary, level_shift_um: f64) -> [String; 3] {
+    let ab_before = abbott_points(&summary.abbott_before);
+    let ab_after = abbott_points(&summary.abbott_after);
     let ab_diff: Vec<(f64, f64)> = ab_before
         .iter()
         .zip(&ab_after)
@@ -243,18 +287,7 @@ pub fn figures(
         ..Plot::default()
     }
     .svg();
-
-    Ok(Figures {
-        wear_map,
-        original_map,
-        worn_map,
-        profile_svg,
-        removed_svg,
-        abbott_svg,
-        abbott_peak_svg,
-        abbott_diff_svg,
-        level_shift_um,
-    })
+    [abbott_svg, abbott_peak_svg, abbott_diff_svg]
 }
 
 /// The page as a string (the file writer above and the tests share it).
@@ -372,28 +405,37 @@ fn text(v: Option<impl std::fmt::Display>) -> String {
 
 /// The setting (media, action, patch, wear model), the timings and the checks as tables.
 fn setting_table(s: &FinishSummary) -> String {
-    let st = s.setting.as_ref();
-    let m = st.map(|st| &st.media);
-    let a = st.map(|st| &st.action);
-    let p = st.map(|st| &st.patch);
-    let t = &s.timings;
-    let cal = s.calibration.as_ref();
+    format!("{}{}", setting_rows(s), timing_rows(s))
+}
+
+/// A row of the setting's tables: name, value, note.
+fn row(k: &str, v: String, note: String) -> String {
+    format!("<tr><td class=\"k\">{k}</td><td>{v}</td><td class=\"t\">{note}</td></tr>")
+}
+
+/// The cycles' acceleration factor: one value, or its range when the cycles differ.
+fn acceleration_factors(s: &FinishSummary) -> String {
     let factors: Vec<f64> = s
         .cycles
         .iter()
         .filter_map(|c| finite(c.acceleration_factor))
         .collect();
-    let factor = match (
+    match (
         factors.iter().cloned().reduce(f64::min),
         factors.iter().cloned().reduce(f64::max),
     ) {
         (Some(lo), Some(hi)) if (hi - lo).abs() <= 1e-9 * hi.abs() => format!("{lo:.0}"),
         (Some(lo), Some(hi)) => format!("{lo:.0} – {hi:.0} (per cycle below)"),
         _ => "–".into(),
-    };
-    let row = |k: &str, v: String, note: String| {
-        format!("<tr><td class=\"k\">{k}</td><td>{v}</td><td class=\"t\">{note}</td></tr>")
-    };
+    }
+}
+
+/// The setting's table: media, action, patch, cycles, wear constants.
+fn setting_rows(s: &FinishSummary) -> String {
+    let st = s.setting.as_ref();
+    let m = st.map(|st| &st.media);
+    let a = st.map(|st| &st.action);
+    let p = st.map(|st| &st.patch);
     let mut left = String::from("<table><tr><th class=\"k\" colspan=\"3\">Setting</th></tr>");
     left += &row(
         "media",
@@ -465,12 +507,16 @@ fn setting_table(s: &FinishSummary) -> String {
     );
     left += &row(
         "acceleration factor",
-        factor,
+        acceleration_factors(s),
         text(st.map(|st| &st.acceleration)),
     );
     left += "</table>";
+    left
+}
 
-    let engine_s = finite(t.engine_s);
+/// The timings' and checks' table: engine and own time, volume check, calibration, SIM, wear.
+fn timing_rows(s: &FinishSummary) -> String {
+    let t = &s.timings;
     let mut right =
         String::from("<table><tr><th class=\"k\" colspan=\"3\">Timings and checks</th></tr>");
     right += &row(
@@ -494,7 +540,10 @@ fn setting_table(s: &FinishSummary) -> String {
     right += &row(
         "total",
         format!("{} s", num(t.total_s, 1)),
-        match (engine_s, finite(s.probe.as_ref().map(|p| p.engine_s))) {
+        match (
+            finite(t.engine_s),
+            finite(s.probe.as_ref().map(|p| p.engine_s)),
+        ) {
             (Some(_), Some(pr)) => format!("includes a cost probe of {pr:.1} s"),
             _ => String::new(),
         },
@@ -505,31 +554,7 @@ fn setting_table(s: &FinishSummary) -> String {
         sci(vc.map(|v| v.relative_error)),
         text(vc.map(|v| &v.what)),
     );
-    right += &row(
-        "calibration",
-        match cal {
-            None => "none".into(),
-            Some(cal) => html_escape(&cal.kind),
-        },
-        match cal {
-            None => "k as given".into(),
-            Some(cal) => {
-                let target = finite(cal.target_sa_um);
-                let got = finite(s.after.sa);
-                format!(
-                    "target Sa {} µm, reached {} µm{}; fitted k {} 1/Pa",
-                    num(cal.target_sa_um, 3),
-                    num(s.after.sa, 3),
-                    match (target, got) {
-                        (Some(tg), Some(g)) if g > tg * 1.02 =>
-                            " <span class=\"warn\">(short of the target)</span>",
-                        _ => "",
-                    },
-                    sci(cal.k_finnie_fitted_per_pa)
-                )
-            }
-        },
-    );
+    right += &calibration_row(s);
     right += &row(
         "SIM model vs ideal",
         num(s.ideal_model.as_ref().and_then(|i| i.sim_wear_maps), 3),
@@ -555,7 +580,30 @@ fn setting_table(s: &FinishSummary) -> String {
         ),
     );
     right += "</table>";
-    format!("{left}{right}")
+    right
+}
+
+/// The calibration's row: its kind, the target against the Sa reached, the fitted k.
+fn calibration_row(s: &FinishSummary) -> String {
+    let Some(cal) = &s.calibration else {
+        return row("calibration", "none".into(), "k as given".into());
+    };
+    let short = match (finite(cal.target_sa_um), finite(s.after.sa)) {
+        (Some(tg), Some(g)) if g > tg * 1.02 => {
+            " <span class=\"warn\">(short of the target)</span>"
+        }
+        _ => "",
+    };
+    row(
+        "calibration",
+        html_escape(&cal.kind),
+        format!(
+            "target Sa {} µm, reached {} µm{short}; fitted k {} 1/Pa",
+            num(cal.target_sa_um, 3),
+            num(s.after.sa, 3),
+            sci(cal.k_finnie_fitted_per_pa)
+        ),
+    )
 }
 
 fn cycles_table(s: &FinishSummary) -> String {
