@@ -1226,8 +1226,7 @@ impl Plot<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::setting::{BarrelMachine, Media, Workpiece};
-    use serde_json::{json, Value};
+    use crate::summary::example::{minimal, summary, typed};
 
     #[test]
     fn ticks_are_round_and_cover_the_range() {
@@ -1247,79 +1246,6 @@ mod tests {
         let wear: Vec<f64> = original.iter().map(|&h| (h - 1.0).max(0.0) * 0.5).collect();
         let worn: Vec<f64> = original.iter().zip(&wear).map(|(h, w)| h - w).collect();
         render(summary, &original, &worn, &wear, rows, cols).expect("page renders")
-    }
-
-    /// Surface parameters: Sa, Sq, Spk as given, the others 1.
-    fn params(sa: f64, sq: f64, spk: f64) -> Value {
-        json!({"Sa": sa, "Sq": sq, "Spk": spk, "Sp": 1.0, "Sv": 1.0, "Sz": 1.0, "Ssk": 1.0,
-               "Sku": 1.0, "Sdq": 1.0, "Sk": 1.0, "Svk": 1.0, "Smr1": 1.0, "Smr2": 1.0})
-    }
-
-    fn cycle(n: usize, acceleration_factor: f64, sa: f64) -> Value {
-        json!({
-            "cycle": n, "dir": format!("cycle_{n:02}"), "command": "liggghts", "triangles": 800,
-            "mesh_block_stride": 1, "passes": 3, "steps_per_pass": 200, "timestep_s": 1.8e-7,
-            "simulated_s": 1e-4, "engine_s": 2.0, "engine_cpu_s": 1.0,
-            "cost_per_triangle_step_s": 1e-8, "cpu_per_triangle_step_s": 5e-9,
-            "acceleration_factor": acceleration_factor, "wear_scale": 1.0, "target_reached": false,
-            "k_finnie_equivalent_per_pa": 1e-12,
-            "volume_check": {"liggghts_um3": 1.0, "grid_um3": 1.0, "unmapped_um3": 0.0,
-                             "relative_error": 1e-15},
-            "archard_volume_um3": 0.5, "contacts": {}, "contact_field": null,
-            "after": params(sa, 1.6, 1.2),
-        })
-    }
-
-    /// The fields every finish.json has, the curves straight lines.
-    fn minimal() -> Value {
-        let curve = |scale: f64| {
-            json!({
-                "material_ratio_pct": (0..=100).map(|k| k as f64).collect::<Vec<_>>(),
-                "height_um": (0..=100).map(|k| scale * (50.0 - k as f64) / 25.0).collect::<Vec<_>>(),
-            })
-        };
-        json!({
-            "model": "out/demo/panorama.x3p", "cycles_completed": 0, "cycles_requested": 1,
-            "before": params(1.3157, 1.64, 1.51), "after": params(1.2692, 1.57, 1.10),
-            "abbott_before": curve(1.0), "abbott_after": curve(0.9),
-            "timings": {"engine_s": 0.0, "total_s": 1.0},
-        })
-    }
-
-    fn typed(v: Value) -> FinishSummary {
-        serde_json::from_value(v).expect("a finish.json")
-    }
-
-    fn summary() -> FinishSummary {
-        let mut s = minimal();
-        let extra = json!({
-            "cycles_completed": 2, "cycles_requested": 3, "partial": true,
-            "setting": {
-                "patch": {"pitch_um": [0.5, 0.5], "size_um": [20.0, 15.0], "rows_cols": [30, 40],
-                          "in_model_rows_cols_origin": [0, 0], "meshed_area_rows_cols": [48, 58],
-                          "guard_band_um": 45.0, "boundary": "guard band", "levelled": "plane",
-                          "filled_samples": 0},
-                "media": Media::default(),
-                "workpiece": Workpiece::default(),
-                "machine": BarrelMachine::default(),
-                "action": {"media_velocity_m_s": 1.618, "pressure_pa": 3997.19,
-                           "impact_angle_deg": 20.0, "acceleration_m_s2": 133.2, "source": "barrel"},
-                "press_force_n": 0.0358, "k_finnie_per_pa": 1e-10, "archard_k_over_h_per_pa": 5e-14,
-                "process_time_s": 300.0, "timestep_s": 1.8e-7, "ranks": 1, "max_triangles": 20000,
-                "time_budget_s": 60.0, "seed": 1, "wear_depth": "along z",
-                "acceleration": "process time / cycles / simulated time",
-            },
-            "cycles": [cycle(1, 97095.8, 1.3), cycle(2, 37759.5, 1.2)],
-            "timings": {"engine_s": 314.4, "engine_cpu_s": 42.5, "surfstream_overhead_s": 9.6,
-                        "overhead_share_of_engine": 0.0306, "total_s": 324.0, "simulated_s": 0.006},
-            "volume_check": {"relative_error": 2.7e-14, "what": "largest error"},
-            "calibration": {"kind": "Sa before/after", "target_sa_um": 0.5844,
-                            "k_finnie_fitted_per_pa": 9.01e-17},
-        });
-        for (k, v) in extra.as_object().unwrap() {
-            s[k] = v.clone();
-        }
-        typed(s)
     }
 
     #[test]
@@ -1368,6 +1294,10 @@ mod tests {
             "short of the target",
             "9.010e-17",
             "partial",
+            "includes a cost probe of 1.5 s",
+            "<td>0.025</td>",
+            "SIM worn vs measured after: –",
+            "120 µm³",
             "<td>1.300</td><td>1.200</td>",
         ] {
             assert!(html.contains(needle), "page lacks {needle:?}");

@@ -30,9 +30,7 @@ use crate::summary::{
     PatchRecord, ProbeRecord, SimValues, Timings, VolumeCheck, WearVolumes,
 };
 
-/// Runs the finishing simulation of `model` into `out_dir`; see the crate doc. `say` gets
-/// progress lines (stderr for the CLI). A set `stop` ends the engine; completed cycles are
-/// kept and finish.json says `partial`.
+/// [`finish_record`] with finish.json's content as a JSON value (what the CLI prints from).
 pub fn finish(
     model: &Model,
     opts: &FinishOptions,
@@ -40,6 +38,19 @@ pub fn finish(
     stop: &AtomicBool,
     say: &mut dyn FnMut(&str),
 ) -> Result<Value> {
+    finish_record(model, opts, out_dir, stop, say).map(|r| record::to_value(&r))
+}
+
+/// Runs the finishing simulation of `model` into `out_dir`; see the crate doc. `say` gets
+/// progress lines (stderr for the CLI). A set `stop` ends the engine; completed cycles are
+/// kept and finish.json says `partial`. Returns finish.json's record.
+pub fn finish_record(
+    model: &Model,
+    opts: &FinishOptions,
+    out_dir: &Path,
+    stop: &AtomicBool,
+    say: &mut dyn FnMut(&str),
+) -> Result<FinishSummary> {
     let t_start = Instant::now();
     let setup = Setup::new(model, opts, out_dir, say)?;
     let mut st = State::new(&setup);
@@ -79,7 +90,7 @@ pub fn finish(
         rows,
         cols,
     )?;
-    Ok(summary)
+    Ok(record)
 }
 
 /// What a finish is set up with, fixed for the whole process.

@@ -22,8 +22,9 @@ use surfstream_finish::run::{
 };
 use surfstream_finish::script::{self, input_script, Pass, Segment};
 use surfstream_finish::setting::{effective_modulus_pa, BarrelMachine, Media, Workpiece};
+use surfstream_finish::summary::FinishReport;
 use surfstream_finish::vtk::read_vtk;
-use surfstream_finish::{finish, Calibration, FinishOptions, Model};
+use surfstream_finish::{finish, finish_record, Calibration, FinishOptions, Model};
 
 fn engine() -> EngineCommand {
     EngineCommand::locate(1, None).unwrap_or_else(|e| {
@@ -343,7 +344,21 @@ fn a_sinusoidal_surface_loses_its_peaks_first() {
         ..Default::default()
     };
     let stop = AtomicBool::new(false);
-    let s = finish(&model, &opts, tmp.path(), &stop, &mut |l| eprintln!("{l}")).unwrap();
+    let rec = finish_record(&model, &opts, tmp.path(), &stop, &mut |l| eprintln!("{l}")).unwrap();
+    let s = surfstream_core::record::to_value(&rec);
+    // The node's report (run.json) is finish.json without the curves and cycles, plus `dir`:
+    // the typed record against the same value edited by key.
+    let mut by_key = s.clone();
+    for k in ["abbott_before", "abbott_after", "cycles"] {
+        by_key.as_object_mut().unwrap().remove(k).unwrap();
+    }
+    by_key["dir"] = "finish".into();
+    let report = surfstream_core::record::to_value(&FinishReport::of(rec, "finish"));
+    assert_eq!(
+        serde_json::to_string_pretty(&report).unwrap(),
+        serde_json::to_string_pretty(&by_key).unwrap()
+    );
+    assert!(!report["contact_field"].is_null() && !report["calibration"].is_null());
     let b = &s["before"];
     let a = &s["after"];
     let share = |k: &str| 1.0 - a[k].as_f64().unwrap() / b[k].as_f64().unwrap();
