@@ -384,15 +384,26 @@ impl State {
         }
     }
 
-    /// Adds a segment's engine time and, unless it was stopped, its measured cost.
-    fn count_engine(&mut self, r: &SegmentResult) {
+    /// Adds a segment's engine time (wall and CPU) and, for [`CostEstimate::Update`] unless it
+    /// was stopped, makes its measured cost the estimate later segments are planned with.
+    fn count_engine(&mut self, r: &SegmentResult, estimate: CostEstimate) {
         self.engine_s += r.engine_s;
         self.engine_cpu_s += r.engine_cpu_s;
         let steps = r.triangles as f64 * r.segment.total_steps() as f64;
-        if !r.stopped && steps > 0.0 {
+        if estimate == CostEstimate::Update && !r.stopped && steps > 0.0 {
             self.cost = r.engine_s / steps;
         }
     }
+}
+
+/// Whether a segment's engine time per triangle-step becomes the cost estimate.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum CostEstimate {
+    /// The probe and the cycles: segments of the process, on its surface.
+    Update,
+    /// The ideal model's segment: counted in the engine time, but it runs on the form-only
+    /// surface after the cycles, so its cost stands for nothing planned.
+    Keep,
 }
 
 /// Two passes on the original surface to measure the engine's cost on this machine now.
@@ -414,7 +425,7 @@ fn probe(
         stop,
         &mut |_, _| {},
     )?;
-    st.count_engine(&r);
+    st.count_engine(&r, CostEstimate::Update);
     say(&format!(
         "finish: probe: {} triangles x {} steps in {:.1} s ({:.2e} s per triangle-step, start-up included)",
         r.triangles,
@@ -487,7 +498,7 @@ fn run_cycle(
             }
         },
     )?;
-    st.count_engine(&r);
+    st.count_engine(&r, CostEstimate::Update);
     if r.stopped {
         st.partial = true;
         say(&format!(
@@ -771,6 +782,8 @@ fn ideal_comparison(
     let area = crop(&ideal.heights_um, ideal.cols, w);
     let g = Grid::of(&area, patch.sampling.with_shape(Shape::new(w.rows, w.cols)))?;
     let levelled = level_plane(&g)?;
+    // Cropped now: the borrow of `st` must end before the segment is counted into it.
+    let a = patch.cropped(hifi_map);
     let dir = setup.out_dir.join("ideal");
     let mut last_say = Instant::now();
     let r = run_segment(
@@ -800,13 +813,11 @@ fn ideal_comparison(
             }
         },
     )?;
-    st.engine_s += r.engine_s;
-    st.engine_cpu_s += r.engine_cpu_s;
+    st.count_engine(&r, CostEstimate::Keep);
     if r.stopped {
         st.partial = true;
         return Ok(None);
     }
-    let a = patch.cropped(hifi_map);
     let b = patch.cropped(&r.finnie_um);
     let s = sim(&a, &b).unwrap_or(f64::NAN);
     say(&format!(
