@@ -10,7 +10,7 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-use anyhow::{anyhow, Context, Result};
+use anyhow::{anyhow, Result};
 use serde_json::Value;
 use surfstream_core::record::RunRecord;
 use surfstream_finish::summary::FinishSummary;
@@ -68,13 +68,8 @@ fn read_map(path: &Path) -> Result<(Vec<f64>, usize, usize)> {
 
 fn render(dir: &Path, rel: &str) -> Result<String> {
     let path = dir.join("finish.json");
+    // The typed record; the figures are the finish crate's (the same page code as finish.html).
     let s = FinishSummary::read(&path)?;
-    // The figures are drawn by the finish crate from the raw JSON (the same page code as
-    // finish.html); the numbers below come from the typed records.
-    let raw: Value = serde_json::from_str(
-        &std::fs::read_to_string(&path).with_context(|| format!("{}", path.display()))?,
-    )
-    .with_context(|| format!("{}: not JSON", path.display()))?;
     let (wear, rows, cols) = read_map(&dir.join("wear.npy"))?;
     let (original, r2, c2) = read_map(&dir.join("original.npy"))?;
     let (worn, r3, c3) = read_map(&dir.join("worn.npy"))?;
@@ -84,7 +79,7 @@ fn render(dir: &Path, rel: &str) -> Result<String> {
             dir.display()
         ));
     }
-    let f = surfstream_finish::html::figures(&raw, &original, &worn, &wear, rows, cols)?;
+    let f = surfstream_finish::html::figures(&s, &original, &worn, &wear, rows, cols)?;
     let mut h = String::new();
     let (b, a) = (&s.before, &s.after);
     let _ = write!(

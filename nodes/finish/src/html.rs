@@ -3,6 +3,10 @@
 //! colour bars, the worn against the original profile with the removed depth along the row,
 //! the Abbott-Firestone curves before/after with their difference and a zoom on the peaks, and
 //! the parameters beside the paper's.
+//!
+//! Every number comes from finish.json's typed record ([`FinishSummary`]), so a renamed field
+//! fails to compile here. A field finish.json holds as null (absent, or a NaN that serde_json
+//! writes as null) prints "–".
 
 use std::fmt::Write as _;
 use std::io::Write;
@@ -10,7 +14,9 @@ use std::path::Path;
 
 use anyhow::{anyhow, Context, Result};
 use base64::Engine;
-use serde_json::Value;
+
+use crate::run::SurfaceParams;
+use crate::summary::{AbbottSummary, FinishSummary};
 
 /// The paper's measured part before and after 5 min of finishing, um.
 pub const PAPER_BEFORE: [(&str, f64); 3] = [("Sa", 1.272), ("Sq", 1.624), ("Sz", 15.262)];
@@ -22,7 +28,7 @@ const BLUE: &str = "#1f5fa8";
 
 pub fn write_report(
     path: &Path,
-    summary: &Value,
+    summary: &FinishSummary,
     original: &[f64],
     worn: &[f64],
     wear: &[f64],
@@ -53,7 +59,7 @@ pub struct Figures {
 
 /// The figures from finish.json (`summary`) and the patch's maps (rows x cols).
 pub fn figures(
-    summary: &Value,
+    summary: &FinishSummary,
     original: &[f64],
     worn: &[f64],
     wear: &[f64],
@@ -70,13 +76,50 @@ pub fn figures(
             wear.len()
         ));
     }
-    let pitch = summary["setting"]["patch"]["pitch_um"][0]
-        .as_f64()
-        .filter(|p| *p > 0.0)
-        .unwrap_or(1.0);
-    // The profile row: the one that lost most material, so the worn line visibly departs from
-    // the original (a middle row may not have been touched at all by the few passes).
-    let mid = (0..rows)
+    let patch = PatchMaps {
+        original,
+        worn,
+        wear,
+        rows,
+        cols,
+        pitch_um: (summary.setting.as_ref())
+            .map(|st| st.patch.pitch_um[0])
+            .filter(|p| *p > 0.0)
+            .unwrap_or(1.0),
+        profile_row: most_worn_row(wear, rows, cols),
+    };
+    let [wear_map, original_map, worn_map] = patch.maps()?;
+    let level_shift_um = patch.level_shift_um();
+    let [profile_svg, removed_svg] = patch.profiles();
+    let [abbott_svg, abbott_peak_svg, abbott_diff_svg] = abbott_figures(summary, level_shift_um);
+    Ok(Figures {
+        wear_map,
+        original_map,
+        worn_map,
+        profile_svg,
+        removed_svg,
+        abbott_svg,
+        abbott_peak_svg,
+        abbott_diff_svg,
+        level_shift_um,
+    })
+}
+
+/// The patch's maps (rows x cols, checked), their pitch and the row the profiles follow.
+struct PatchMaps<'a> {
+    original: &'a [f64],
+    worn: &'a [f64],
+    wear: &'a [f64],
+    rows: usize,
+    cols: usize,
+    pitch_um: f64,
+    profile_row: usize,
+}
+
+/// The profile row: the one that lost most material, so the worn line visibly departs from
+/// the original (a middle row may not have been touched at all by the few passes).
+fn most_worn_row(wear: &[f64], rows: usize, cols: usize) -> usize {
+    (0..rows)
         .map(|r| {
             let v: f64 = wear[r * cols..(r + 1) * cols]
                 .iter()
@@ -87,70 +130,59 @@ pub fn figures(
         .fold(
             (rows / 2, 0.0),
             |best, (r, v)| if v > best.1 { (r, v) } else { best },
-        );
-    let mid = mid.0;
+        )
+        .0
+}
 
-    // Maps: the wear on its own scale, before and after on one shared height scale so the
-    // two are compared colour for colour.
-    let wear_max = finite_max(wear).max(0.0);
-    let wear_map = map_figure(
-        wear,
-        rows,
-        cols,
-        pitch,
-        (0.0, if wear_max > 0.0 { wear_max } else { 1.0 }),
-        Ramp::Heat,
-        "wear depth along z (µm)",
-        mid,
-    )?;
-    let (h0, h1) = {
-        let (a0, a1) = finite_range(original);
-        let (b0, b1) = finite_range(worn);
-        let (lo, hi) = (a0.min(b0), a1.max(b1));
-        if lo < hi {
-            (lo, hi)
-        } else {
-            (lo, lo + 1.0)
-        }
-    };
-    let original_map = map_figure(
-        original,
-        rows,
-        cols,
-        pitch,
-        (h0, h1),
-        Ramp::Viridis,
-        "height (µm)",
-        mid,
-    )?;
-    let worn_map = map_figure(
-        worn,
-        rows,
-        cols,
-        pitch,
-        (h0, h1),
-        Ramp::Viridis,
-        "height (µm)",
-        mid,
-    )?;
+impl PatchMaps<'_> {
+    /// The wear on its own scale, before and after on one shared height scale so the two are
+    /// compared colour for colour.
+    fn maps(&self) -> Result<[String; 3]> {
+        let (rows, cols, pitch, mid) = (self.rows, self.cols, self.pitch_um, self.profile_row);
+        let wear_max = finite_max(self.wear).max(0.0);
+        let wear_map = map_figure(
+            self.wear,
+            rows,
+            cols,
+            pitch,
+            (0.0, if wear_max > 0.0 { wear_max } else { 1.0 }),
+            Ramp::Heat,
+            "wear depth along z (µm)",
+            mid,
+        )?;
+        let (h0, h1) = {
+            let (a0, a1) = finite_range(self.original);
+            let (b0, b1) = finite_range(self.worn);
+            let (lo, hi) = (a0.min(b0), a1.max(b1));
+            if lo < hi {
+                (lo, hi)
+            } else {
+                (lo, lo + 1.0)
+            }
+        };
+        let height = |z: &[f64]| {
+            map_figure(
+                z,
+                rows,
+                cols,
+                pitch,
+                (h0, h1),
+                Ramp::Viridis,
+                "height (µm)",
+                mid,
+            )
+        };
+        // In page order: the colour bars' gradient ids count up.
+        let original_map = height(self.original)?;
+        let worn_map = height(self.worn)?;
+        Ok([wear_map, original_map, worn_map])
+    }
 
-    // Profiles along the middle row: the original drawn thick underneath so the worn line on
-    // top never hides it; the removed depth in its own panel because it is ~100x smaller.
-    let row_x = |c: usize| c as f64 * pitch;
-    let prof_a: Vec<(f64, f64)> = (0..cols)
-        .map(|c| (row_x(c), original[mid * cols + c]))
-        .collect();
-    let prof_b: Vec<(f64, f64)> = (0..cols)
-        .map(|c| (row_x(c), worn[mid * cols + c]))
-        .collect();
-    // The removed depth from the wear map itself: worn.npy is re-levelled, so original − worn
-    // carries the levelling shift (stated in the caption) on top of the wear.
-    let removed: Vec<(f64, f64)> = (0..cols)
-        .map(|c| (row_x(c), wear[mid * cols + c]))
-        .collect();
-    let level_shift_um = {
-        let d: Vec<f64> = (0..n)
-            .map(|k| original[k] - worn[k] - wear[k])
+    /// The mean of original - worn - wear: worn.npy is re-levelled, so original − worn carries
+    /// this shift on top of the wear.
+    fn level_shift_um(&self) -> f64 {
+        let d: Vec<f64> = (0..self.rows * self.cols)
+            .map(|k| self.original[k] - self.worn[k] - self.wear[k])
             .filter(|v| v.is_finite())
             .collect();
         if d.is_empty() {
@@ -158,49 +190,62 @@ pub fn figures(
         } else {
             d.iter().sum::<f64>() / d.len() as f64
         }
-    };
-    let profile_svg = Plot {
-        title: format!("Profile along row {mid} (y = {:.1} µm)", mid as f64 * pitch),
-        xlabel: "x (µm)",
-        ylabel: "height (µm)",
-        series: vec![
-            Series::line(&prof_a, GREY, 4.0, "original"),
-            Series::line(&prof_b, RED, 1.2, "worn"),
-        ],
-        ..Plot::default()
     }
-    .svg();
-    let removed_svg = Plot {
-        title: "Removed depth along the same row".into(),
-        xlabel: "x (µm)",
-        ylabel: "wear depth along z (µm)",
-        series: vec![Series::area(&removed, BLUE, "removed")],
-        y_from_zero: true,
-        height: 190.0,
-        ..Plot::default()
-    }
-    .svg();
 
-    // Abbott-Firestone: the two curves differ by a fraction of a µm over a range of ~12 µm, so
-    // the difference and a zoom on the peak region (material ratio 0-20 %) carry the message.
-    let curve = |k: &str| -> Vec<(f64, f64)> {
-        let a = &summary[k];
-        let mr = a["material_ratio_pct"]
-            .as_array()
-            .cloned()
-            .unwrap_or_default();
-        let h = a["height_um"].as_array().cloned().unwrap_or_default();
-        // Finish.json holds ~10^4 points; ~1000 draw the same curve and keep the page light.
-        let step = (mr.len() / 1000).max(1);
-        mr.iter()
-            .zip(&h)
-            .enumerate()
-            .filter(|(k, _)| k % step == 0 || *k + 1 == mr.len())
-            .filter_map(|(_, (m, h))| Some((m.as_f64()?, h.as_f64()?)))
-            .collect()
-    };
-    let ab_before = curve("abbott_before");
-    let ab_after = curve("abbott_after");
+    /// Profiles along the profile row: the original drawn thick underneath so the worn line on
+    /// top never hides it; the removed depth (from the wear map itself, without the levelling
+    /// shift) in its own panel because it is ~100x smaller.
+    fn profiles(&self) -> [String; 2] {
+        let (cols, mid, pitch) = (self.cols, self.profile_row, self.pitch_um);
+        let along = |z: &[f64]| -> Vec<(f64, f64)> {
+            (0..cols)
+                .map(|c| (c as f64 * pitch, z[mid * cols + c]))
+                .collect()
+        };
+        let (prof_a, prof_b, removed) = (along(self.original), along(self.worn), along(self.wear));
+        let profile_svg = Plot {
+            title: format!("Profile along row {mid} (y = {:.1} µm)", mid as f64 * pitch),
+            xlabel: "x (µm)",
+            ylabel: "height (µm)",
+            series: vec![
+                Series::line(&prof_a, GREY, 4.0, "original"),
+                Series::line(&prof_b, RED, 1.2, "worn"),
+            ],
+            ..Plot::default()
+        }
+        .svg();
+        let removed_svg = Plot {
+            title: "Removed depth along the same row".into(),
+            xlabel: "x (µm)",
+            ylabel: "wear depth along z (µm)",
+            series: vec![Series::area(&removed, BLUE, "removed")],
+            y_from_zero: true,
+            height: 190.0,
+            ..Plot::default()
+        }
+        .svg();
+        [profile_svg, removed_svg]
+    }
+}
+
+/// An Abbott-Firestone curve as (material ratio %, height um), thinned: finish.json holds
+/// ~10^4 points; ~1000 draw the same curve and keep the page light.
+fn abbott_points(a: &AbbottSummary) -> Vec<(f64, f64)> {
+    let (mr, h) = (&a.material_ratio_pct, &a.height_um);
+    let step = (mr.len() / 1000).max(1);
+    mr.iter()
+        .zip(h)
+        .enumerate()
+        .filter(|(k, _)| k % step == 0 || *k + 1 == mr.len())
+        .filter_map(|(_, (&m, &h))| Some((finite(m)?, finite(h)?)))
+        .collect()
+}
+
+/// Abbott-Firestone: the two curves differ by a fraction of a µm over a range of ~12 µm, so
+/// the difference and a zoom on the peak region (material ratio 0-20 %) carry the message.
+fn abbott_figures(summary: &FinishSummary, level_shift_um: f64) -> [String; 3] {
+    let ab_before = abbott_points(&summary.abbott_before);
+    let ab_after = abbott_points(&summary.abbott_after);
     let ab_diff: Vec<(f64, f64)> = ab_before
         .iter()
         .zip(&ab_after)
@@ -242,23 +287,12 @@ pub fn figures(
         ..Plot::default()
     }
     .svg();
-
-    Ok(Figures {
-        wear_map,
-        original_map,
-        worn_map,
-        profile_svg,
-        removed_svg,
-        abbott_svg,
-        abbott_peak_svg,
-        abbott_diff_svg,
-        level_shift_um,
-    })
+    [abbott_svg, abbott_peak_svg, abbott_diff_svg]
 }
 
 /// The page as a string (the file writer above and the tests share it).
 pub fn render(
-    summary: &Value,
+    summary: &FinishSummary,
     original: &[f64],
     worn: &[f64],
     wear: &[f64],
@@ -280,18 +314,15 @@ pub fn render(
     let setting = setting_table(summary);
     let cycles = cycles_table(summary);
     let field = field_section(summary);
-    let partial = summary["partial"].as_bool().unwrap_or(false);
-    let (sa_b, sa_a) = (
-        summary["before"]["Sa"].as_f64(),
-        summary["after"]["Sa"].as_f64(),
-    );
+    let partial = summary.partial;
+    let (sa_b, sa_a) = (finite(summary.before.sa), finite(summary.after.sa));
     let headline = match (sa_b, sa_a) {
         (Some(b), Some(a)) => format!(
             "Sa {b:.3} → {a:.3} µm ({:+.1} %) over {} of {} cycle(s) standing for {} s of process time.",
             if b != 0.0 { (a - b) / b * 100.0 } else { 0.0 },
-            summary["cycles_completed"],
-            summary["cycles_requested"],
-            num(&summary["setting"]["process_time_s"], 0),
+            summary.cycles_completed,
+            summary.cycles_requested,
+            num(summary.setting.as_ref().map(|st| st.process_time_s), 0),
         ),
         _ => "No roughness parameters in finish.json.".into(),
     };
@@ -314,7 +345,7 @@ h2{{margin-top:26px;border-bottom:1px solid #ddd}}.warn{{color:#b03a00}}</style>
             ""
         },
         headline,
-        html_escape(summary["model"].as_str().unwrap_or("(not named)")),
+        html_escape(&summary.model),
     )
     .ok();
     write!(
@@ -352,235 +383,253 @@ fn html_escape(s: &str) -> String {
         .replace('>', "&gt;")
 }
 
-/// A JSON number with `dp` decimals, or "–" when absent.
-fn num(v: &Value, dp: usize) -> String {
-    v.as_f64()
-        .map_or_else(|| "–".to_string(), |x| format!("{x:.dp$}"))
+/// A finite number (finish.json writes NaN and infinities as null, which reads as absent).
+fn finite(x: impl Into<Option<f64>>) -> Option<f64> {
+    x.into().filter(|x| x.is_finite())
 }
 
-/// A JSON number in scientific notation, or "–".
-fn sci(v: &Value) -> String {
-    v.as_f64()
-        .map_or_else(|| "–".to_string(), |x| format!("{x:.3e}"))
+/// A number with `dp` decimals, or "–" when absent.
+fn num(x: impl Into<Option<f64>>, dp: usize) -> String {
+    finite(x).map_or_else(|| "–".to_string(), |x| format!("{x:.dp$}"))
 }
 
-fn text(v: &Value) -> String {
-    match v {
-        Value::Null => "–".into(),
-        Value::String(s) => html_escape(s),
-        other => html_escape(&other.to_string()),
-    }
+/// A number in scientific notation, or "–".
+fn sci(x: impl Into<Option<f64>>) -> String {
+    finite(x).map_or_else(|| "–".to_string(), |x| format!("{x:.3e}"))
+}
+
+/// A text, count or flag, escaped, or "–" when absent.
+fn text(v: Option<impl std::fmt::Display>) -> String {
+    v.map_or_else(|| "–".into(), |v| html_escape(&v.to_string()))
 }
 
 /// The setting (media, action, patch, wear model), the timings and the checks as tables.
-fn setting_table(s: &Value) -> String {
-    let st = &s["setting"];
-    let m = &st["media"];
-    let a = &st["action"];
-    let p = &st["patch"];
-    let t = &s["timings"];
-    let cal = &s["calibration"];
-    let factors: Vec<f64> = s["cycles"]
-        .as_array()
-        .map(|c| {
-            c.iter()
-                .filter_map(|c| c["acceleration_factor"].as_f64())
-                .collect()
-        })
-        .unwrap_or_default();
-    let factor = match (
+fn setting_table(s: &FinishSummary) -> String {
+    format!("{}{}", setting_rows(s), timing_rows(s))
+}
+
+/// A row of the setting's tables: name, value, note.
+fn row(k: &str, v: String, note: String) -> String {
+    format!("<tr><td class=\"k\">{k}</td><td>{v}</td><td class=\"t\">{note}</td></tr>")
+}
+
+/// The cycles' acceleration factor: one value, or its range when the cycles differ.
+fn acceleration_factors(s: &FinishSummary) -> String {
+    let factors: Vec<f64> = s
+        .cycles
+        .iter()
+        .filter_map(|c| finite(c.acceleration_factor))
+        .collect();
+    match (
         factors.iter().cloned().reduce(f64::min),
         factors.iter().cloned().reduce(f64::max),
     ) {
         (Some(lo), Some(hi)) if (hi - lo).abs() <= 1e-9 * hi.abs() => format!("{lo:.0}"),
         (Some(lo), Some(hi)) => format!("{lo:.0} – {hi:.0} (per cycle below)"),
         _ => "–".into(),
-    };
-    let row = |k: &str, v: String, note: String| {
-        format!("<tr><td class=\"k\">{k}</td><td>{v}</td><td class=\"t\">{note}</td></tr>")
-    };
+    }
+}
+
+/// The setting's table: media, action, patch, cycles, wear constants.
+fn setting_rows(s: &FinishSummary) -> String {
+    let st = s.setting.as_ref();
+    let m = st.map(|st| &st.media);
+    let a = st.map(|st| &st.action);
+    let p = st.map(|st| &st.patch);
     let mut left = String::from("<table><tr><th class=\"k\" colspan=\"3\">Setting</th></tr>");
     left += &row(
         "media",
         format!(
             "{} mm, {} kg/m³",
-            num(&m["diameter_mm"], 2),
-            num(&m["density_kg_m3"], 0)
+            num(m.map(|m| m.diameter_mm), 2),
+            num(m.map(|m| m.density_kg_m3), 0)
         ),
         format!(
             "E {} Pa, ν {}, restitution {}, friction {}",
-            sci(&m["youngs_modulus_pa"]),
-            num(&m["poisson_ratio"], 2),
-            num(&m["restitution"], 2),
-            num(&m["friction"], 2)
+            sci(m.map(|m| m.youngs_modulus_pa)),
+            num(m.map(|m| m.poisson_ratio), 2),
+            num(m.map(|m| m.restitution), 2),
+            num(m.map(|m| m.friction), 2)
         ),
     );
     left += &row(
         "media velocity",
-        format!("{} m/s", num(&a["media_velocity_m_s"], 3)),
+        format!("{} m/s", num(a.map(|a| a.media_velocity_m_s), 3)),
         format!(
             "impact angle {}°; {}",
-            num(&a["impact_angle_deg"], 1),
-            text(&a["source"])
+            num(a.map(|a| a.impact_angle_deg), 1),
+            text(a.map(|a| &a.source))
         ),
     );
     left += &row(
         "pressure",
-        format!("{} Pa", num(&a["pressure_pa"], 0)),
+        format!("{} Pa", num(a.map(|a| a.pressure_pa), 0)),
         format!(
             "acceleration {} m/s²; press force on the patch {} N",
-            num(&a["acceleration_m_s2"], 1),
-            num(&st["press_force_n"], 4)
+            num(a.map(|a| a.acceleration_m_s2), 1),
+            num(st.map(|st| st.press_force_n), 4)
         ),
     );
     left += &row(
         "patch",
         format!(
             "{} × {} µm",
-            num(&p["size_um"][0], 1),
-            num(&p["size_um"][1], 1)
+            num(p.map(|p| p.size_um[0]), 1),
+            num(p.map(|p| p.size_um[1]), 1)
         ),
         format!(
             "{} × {} samples at {} µm; guard band {} µm; {}",
-            num(&p["rows_cols"][0], 0),
-            num(&p["rows_cols"][1], 0),
-            num(&p["pitch_um"][0], 4),
-            num(&p["guard_band_um"], 1),
-            text(&p["boundary"])
+            num(p.map(|p| p.rows_cols[0] as f64), 0),
+            num(p.map(|p| p.rows_cols[1] as f64), 0),
+            num(p.map(|p| p.pitch_um[0]), 4),
+            num(p.map(|p| p.guard_band_um), 1),
+            text(p.map(|p| &p.boundary))
         ),
     );
     left += &row(
         "cycles",
-        format!("{} of {}", s["cycles_completed"], s["cycles_requested"]),
+        format!("{} of {}", s.cycles_completed, s.cycles_requested),
         format!(
             "process time {} s; time budget {} s; {} MPI rank(s)",
-            num(&st["process_time_s"], 0),
-            num(&st["time_budget_s"], 0),
-            text(&st["ranks"])
+            num(st.map(|st| st.process_time_s), 0),
+            num(st.map(|st| st.time_budget_s), 0),
+            text(st.map(|st| st.ranks))
         ),
     );
     left += &row(
         "k (Finnie)",
-        format!("{} 1/Pa", sci(&st["k_finnie_per_pa"])),
+        format!("{} 1/Pa", sci(st.map(|st| st.k_finnie_per_pa))),
         format!(
             "Archard K/H {} 1/Pa; {}",
-            sci(&st["archard_k_over_h_per_pa"]),
-            text(&st["wear_depth"])
+            sci(st.map(|st| st.archard_k_over_h_per_pa)),
+            text(st.map(|st| &st.wear_depth))
         ),
     );
-    left += &row("acceleration factor", factor, text(&st["acceleration"]));
+    left += &row(
+        "acceleration factor",
+        acceleration_factors(s),
+        text(st.map(|st| &st.acceleration)),
+    );
     left += "</table>";
+    left
+}
 
-    let engine_s = t["engine_s"].as_f64();
+/// The timings' and checks' table: engine and own time, volume check, calibration, SIM, wear.
+fn timing_rows(s: &FinishSummary) -> String {
+    let t = &s.timings;
     let mut right =
         String::from("<table><tr><th class=\"k\" colspan=\"3\">Timings and checks</th></tr>");
     right += &row(
         "engine (LIGGGHTS)",
-        format!("{} s", num(&t["engine_s"], 1)),
+        format!("{} s", num(t.engine_s, 1)),
         format!(
             "wall time; CPU {} s; {} s simulated",
-            num(&t["engine_cpu_s"], 1),
-            sci(&t["simulated_s"])
+            num(t.engine_cpu_s, 1),
+            sci(t.simulated_s)
         ),
     );
     right += &row(
         "surfstream overhead",
-        format!("{} s", num(&t["surfstream_overhead_s"], 1)),
+        format!("{} s", num(t.surfstream_overhead_s, 1)),
         format!(
             "{} % of the engine's time (meshing, mapping, writing)",
-            t["overhead_share_of_engine"]
-                .as_f64()
+            finite(t.overhead_share_of_engine)
                 .map_or("–".into(), |x| format!("{:.1}", x * 100.0))
         ),
     );
     right += &row(
         "total",
-        format!("{} s", num(&t["total_s"], 1)),
-        match (engine_s, s["probe"]["engine_s"].as_f64()) {
+        format!("{} s", num(t.total_s, 1)),
+        match (
+            finite(t.engine_s),
+            finite(s.probe.as_ref().map(|p| p.engine_s)),
+        ) {
             (Some(_), Some(pr)) => format!("includes a cost probe of {pr:.1} s"),
             _ => String::new(),
         },
     );
+    let vc = s.volume_check.as_ref();
     right += &row(
         "volume check",
-        sci(&s["volume_check"]["relative_error"]),
-        text(&s["volume_check"]["what"]),
+        sci(vc.map(|v| v.relative_error)),
+        text(vc.map(|v| &v.what)),
     );
-    right += &row(
-        "calibration",
-        if cal.is_null() {
-            "none".into()
-        } else {
-            text(&cal["kind"])
-        },
-        if cal.is_null() {
-            "k as given".into()
-        } else {
-            let target = cal["target_sa_um"].as_f64();
-            let got = s["after"]["Sa"].as_f64();
-            format!(
-                "target Sa {} µm, reached {} µm{}; fitted k {} 1/Pa",
-                num(&cal["target_sa_um"], 3),
-                num(&s["after"]["Sa"], 3),
-                match (target, got) {
-                    (Some(tg), Some(g)) if g > tg * 1.02 =>
-                        " <span class=\"warn\">(short of the target)</span>",
-                    _ => "",
-                },
-                sci(&cal["k_finnie_fitted_per_pa"])
-            )
-        },
-    );
+    right += &calibration_row(s);
     right += &row(
         "SIM model vs ideal",
-        num(&s["ideal_model"]["sim_wear_maps"], 3),
+        num(s.ideal_model.as_ref().and_then(|i| i.sim_wear_maps), 3),
         "paper's eq. 12 between the wear maps of the model and of the form-only model".into(),
     );
+    let sim = s.sim.as_ref();
     right += &row(
         "SIM Finnie vs Archard",
-        num(&s["sim"]["finnie_vs_archard"], 3),
+        num(sim.and_then(|s| s.finnie_vs_archard), 3),
         format!(
             "SIM worn vs measured after: {}",
-            num(&s["sim"]["worn_vs_measured_after"], 3)
+            num(sim.and_then(|s| s.worn_vs_measured_after), 3)
         ),
     );
+    let w = s.wear.as_ref();
     right += &row(
         "wear",
-        format!("{} µm³", num(&s["wear"]["finnie_volume_um3"], 0)),
+        format!("{} µm³", num(w.map(|w| w.finnie_volume_um3), 0)),
         format!(
             "max depth {} µm, mean {} µm",
-            num(&s["wear"]["max_depth_um"], 3),
-            num(&s["wear"]["mean_depth_um"], 4)
+            num(w.map(|w| w.max_depth_um), 3),
+            num(w.map(|w| w.mean_depth_um), 4)
         ),
     );
     right += "</table>";
-    format!("{left}{right}")
+    right
 }
 
-fn cycles_table(s: &Value) -> String {
-    let Some(cycles) = s["cycles"].as_array().filter(|c| !c.is_empty()) else {
-        return "<p>No completed cycle.</p>".into();
+/// The calibration's row: its kind, the target against the Sa reached, the fitted k.
+fn calibration_row(s: &FinishSummary) -> String {
+    let Some(cal) = &s.calibration else {
+        return row("calibration", "none".into(), "k as given".into());
     };
+    let short = match (finite(cal.target_sa_um), finite(s.after.sa)) {
+        (Some(tg), Some(g)) if g > tg * 1.02 => {
+            " <span class=\"warn\">(short of the target)</span>"
+        }
+        _ => "",
+    };
+    row(
+        "calibration",
+        html_escape(&cal.kind),
+        format!(
+            "target Sa {} µm, reached {} µm{short}; fitted k {} 1/Pa",
+            num(cal.target_sa_um, 3),
+            num(s.after.sa, 3),
+            sci(cal.k_finnie_fitted_per_pa)
+        ),
+    )
+}
+
+fn cycles_table(s: &FinishSummary) -> String {
+    if s.cycles.is_empty() {
+        return "<p>No completed cycle.</p>".into();
+    }
     let mut t = String::from(
         "<table><tr><th>cycle</th><th>passes</th><th>simulated (s)</th><th>engine (s)</th>\
 <th>triangles</th><th>acceleration factor</th><th>k equivalent (1/Pa)</th><th>Sa after (µm)</th>\
 <th>Spk after (µm)</th><th>volume check</th></tr>",
     );
-    for c in cycles {
+    for c in &s.cycles {
         write!(
             t,
             "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td>\
 <td>{}</td><td>{}</td><td>{}</td></tr>",
-            text(&c["cycle"]),
-            text(&c["passes"]),
-            sci(&c["simulated_s"]),
-            num(&c["engine_s"], 1),
-            text(&c["triangles"]),
-            num(&c["acceleration_factor"], 0),
-            sci(&c["k_finnie_equivalent_per_pa"]),
-            num(&c["after"]["Sa"], 3),
-            num(&c["after"]["Spk"], 3),
-            sci(&c["volume_check"]["relative_error"]),
+            c.cycle,
+            c.passes,
+            sci(c.simulated_s),
+            num(c.engine_s, 1),
+            c.triangles,
+            num(c.acceleration_factor, 0),
+            sci(c.k_finnie_equivalent_per_pa),
+            num(c.after.sa, 3),
+            num(c.after.spk, 3),
+            sci(c.volume_check.relative_error),
         )
         .ok();
     }
@@ -591,11 +640,12 @@ fn cycles_table(s: &Value) -> String {
 /// The contact-field model's calibration (finish.json `calibration`, `contact_field`): the
 /// fit, how well the contact field predicts where the DEM wore, and the wear-per-contact
 /// table.
-pub fn field_section(s: &Value) -> String {
-    let c = &s["calibration"];
-    let f = &s["contact_field"];
-    let mut t = format!("<p>Wear model: <b>{}</b>.</p>", text(&s["wear_model"]));
-    if !c.is_null() {
+pub fn field_section(s: &FinishSummary) -> String {
+    let mut t = format!(
+        "<p>Wear model: <b>{}</b>.</p>",
+        text(s.wear_model.as_deref())
+    );
+    if let Some(c) = &s.calibration {
         write!(
             t,
             "<table><tr><th class=\"k\">calibration</th><th>value</th></tr>\
@@ -605,22 +655,21 @@ pub fn field_section(s: &Value) -> String {
 <tr><td class=\"k\">reached</td><td>{}</td></tr>\
 <tr><td class=\"k\">fitted k_finnie (1/Pa)</td><td>{}</td></tr>\
 <tr><td class=\"k\">fitted scale (× DEM k)</td><td>{}</td></tr></table>",
-            num(&c["target_sa_um"], 4),
-            num(&c["sa_after_um"], 4),
-            num(&c["tolerance_percent"], 0),
-            c["relative_error"]
-                .as_f64()
-                .map_or("–".into(), |e| format!("{:+.2} %", e * 100.0)),
-            text(&c["reached"]),
-            sci(&c["k_finnie_fitted_per_pa"]),
-            sci(&c["fit"]["scale"]),
+            num(c.target_sa_um, 4),
+            num(c.sa_after_um, 4),
+            num(c.tolerance_percent, 0),
+            finite(c.relative_error).map_or("–".into(), |e| format!("{:+.2} %", e * 100.0)),
+            text(c.reached),
+            sci(c.k_finnie_fitted_per_pa),
+            sci(c.fit.as_ref().map(|f| f.scale)),
         )
         .ok();
     }
-    if f.is_null() {
+    let Some(f) = &s.contact_field else {
         return t;
-    }
-    let m = &f["check_mean"];
+    };
+    let m = &f.check_mean;
+    let ap = f.approach.as_ref();
     write!(
         t,
         "<table><tr><th class=\"k\">contact field</th><th>value</th></tr>\
@@ -632,32 +681,32 @@ pub fn field_section(s: &Value) -> String {
 <tr><td class=\"k\">DEM wear volume within reach</td><td>{}</td></tr>\
 <tr><td class=\"k\">cells within reach / worn by the DEM</td><td>{} / {}</td></tr>\
 <tr><td class=\"k\">cells worn after the process</td><td>{}</td></tr></table>",
-        num(&f["ball_radius_um"], 0),
-        num(&f["approach"]["full_speed_approach_um"], 3),
-        num(&f["approach"]["mean_angle_approach_um"], 3),
-        num(&f["approach"]["static_approach_um"], 3),
-        num(&f["impacts_over_process"], 0),
-        text(&f["table"]["impacts"]),
-        num(&m["auc_gap_predicts_worn"], 3),
-        num(&m["dem_volume_within_reach"], 3),
-        num(&m["cells_within_reach"], 3),
-        num(&m["dem_worn_cells"], 3),
-        num(&f["worn_cells_after"], 3),
+        num(f.ball_radius_um, 0),
+        num(ap.map(|a| a.full_speed_approach_um), 3),
+        num(ap.map(|a| a.mean_angle_approach_um), 3),
+        num(ap.map(|a| a.static_approach_um), 3),
+        num(f.impacts_over_process, 0),
+        f.table.impacts,
+        num(m.auc_gap_predicts_worn, 3),
+        num(m.dem_volume_within_reach, 3),
+        num(m.cells_within_reach, 3),
+        num(m.dem_worn_cells, 3),
+        num(f.worn_cells_after, 3),
     )
     .ok();
     t += "<table><tr><th>gap from (µm)</th><th>to</th><th>cells</th><th>expected contacts</th>\
 <th>DEM worn cells</th><th>DEM depth sum (µm)</th><th>wear per contact (µm, DEM k)</th></tr>";
-    for b in f["table"]["bins"].as_array().into_iter().flatten() {
+    for b in &f.table.bins {
         write!(
             t,
             "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
-            num(&b["gap_from_um"], 3),
-            num(&b["gap_to_um"], 3),
-            text(&b["cells"]),
-            num(&b["expected_contacts"], 1),
-            text(&b["dem_worn_cells"]),
-            num(&b["dem_depth_sum_um"], 4),
-            sci(&b["wear_per_contact_um"]),
+            num(b.gap_from_um, 3),
+            num(b.gap_to_um, 3),
+            b.cells,
+            num(b.expected_contacts, 1),
+            b.dem_worn_cells,
+            num(b.dem_depth_sum_um, 4),
+            sci(b.wear_per_contact_um),
         )
         .ok();
     }
@@ -665,13 +714,31 @@ pub fn field_section(s: &Value) -> String {
     t
 }
 
-pub fn parameter_table(s: &Value) -> String {
+/// A parameter's name and its field in [`SurfaceParams`].
+type Parameter = (&'static str, fn(&SurfaceParams) -> f64);
+
+/// The parameters of the page's table, in its order.
+const PARAMETERS: [Parameter; 13] = [
+    ("Sa", |p| p.sa),
+    ("Sq", |p| p.sq),
+    ("Sz", |p| p.sz),
+    ("Sp", |p| p.sp),
+    ("Sv", |p| p.sv),
+    ("Sk", |p| p.sk),
+    ("Spk", |p| p.spk),
+    ("Svk", |p| p.svk),
+    ("Ssk", |p| p.ssk),
+    ("Sku", |p| p.sku),
+    ("Smr1", |p| p.smr1),
+    ("Smr2", |p| p.smr2),
+    ("Sdq", |p| p.sdq),
+];
+
+pub fn parameter_table(s: &FinishSummary) -> String {
     let mut out = String::new();
-    for key in [
-        "Sa", "Sq", "Sz", "Sp", "Sv", "Sk", "Spk", "Svk", "Ssk", "Sku", "Smr1", "Smr2", "Sdq",
-    ] {
-        let b = s["before"][key].as_f64();
-        let a = s["after"][key].as_f64();
+    for (key, field) in PARAMETERS {
+        let b = finite(field(&s.before));
+        let a = finite(field(&s.after));
         if b.is_none() && a.is_none() {
             continue;
         }
@@ -1159,7 +1226,7 @@ impl Plot<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use serde_json::json;
+    use crate::summary::example::{minimal, summary, typed};
 
     #[test]
     fn ticks_are_round_and_cover_the_range() {
@@ -1170,7 +1237,7 @@ mod tests {
         assert!((spacing(&t) - 0.05).abs() < 1e-12, "{t:?}");
     }
 
-    fn page(summary: &Value, rows: usize, cols: usize) -> String {
+    fn page(summary: &FinishSummary, rows: usize, cols: usize) -> String {
         let original: Vec<f64> = (0..rows * cols)
             .map(|k| ((k % cols) as f64 * 0.3).sin() * 2.0)
             .collect();
@@ -1179,42 +1246,6 @@ mod tests {
         let wear: Vec<f64> = original.iter().map(|&h| (h - 1.0).max(0.0) * 0.5).collect();
         let worn: Vec<f64> = original.iter().zip(&wear).map(|(h, w)| h - w).collect();
         render(summary, &original, &worn, &wear, rows, cols).expect("page renders")
-    }
-
-    fn summary() -> Value {
-        let curve = |scale: f64| {
-            json!({
-                "material_ratio_pct": (0..=100).map(|k| k as f64).collect::<Vec<_>>(),
-                "height_um": (0..=100).map(|k| scale * (50.0 - k as f64) / 25.0).collect::<Vec<_>>(),
-            })
-        };
-        json!({
-            "model": "out/demo/panorama.x3p",
-            "cycles_completed": 2, "cycles_requested": 3, "partial": true,
-            "setting": {
-                "patch": {"pitch_um": [0.5, 0.5], "size_um": [20.0, 15.0], "rows_cols": [30, 40],
-                          "guard_band_um": 45.0, "boundary": "guard band"},
-                "media": {"diameter_mm": 3.0, "density_kg_m3": 2500.0, "youngs_modulus_pa": 1e11,
-                          "poisson_ratio": 0.25, "restitution": 0.6, "friction": 0.3},
-                "action": {"media_velocity_m_s": 1.618, "pressure_pa": 3997.19,
-                           "impact_angle_deg": 20.0, "acceleration_m_s2": 133.2, "source": "barrel"},
-                "k_finnie_per_pa": 1e-10, "archard_k_over_h_per_pa": 5e-14,
-                "process_time_s": 300.0, "time_budget_s": 60.0, "ranks": 1,
-            },
-            "cycles": [
-                {"cycle": 1, "acceleration_factor": 97095.8, "after": {"Sa": 1.3}},
-                {"cycle": 2, "acceleration_factor": 37759.5, "after": {"Sa": 1.2}},
-            ],
-            "timings": {"engine_s": 314.4, "engine_cpu_s": 42.5, "surfstream_overhead_s": 9.6,
-                        "overhead_share_of_engine": 0.0306, "total_s": 324.0, "simulated_s": 0.006},
-            "volume_check": {"relative_error": 2.7e-14, "what": "largest error"},
-            "calibration": {"kind": "Sa before/after", "target_sa_um": 0.5844,
-                            "k_finnie_fitted_per_pa": 9.01e-17},
-            "before": {"Sa": 1.3157, "Sq": 1.64, "Spk": 1.51},
-            "after": {"Sa": 1.2692, "Sq": 1.57, "Spk": 1.10},
-            "abbott_before": curve(1.0),
-            "abbott_after": curve(0.9),
-        })
     }
 
     #[test]
@@ -1250,7 +1281,9 @@ mod tests {
             "1.618 m/s",
             "3997 Pa",
             "20.0 × 15.0 µm",
+            "30 × 40 samples at 0.5000 µm",
             "2 of 3",
+            "1 MPI rank(s)",
             "1.000e-10 1/Pa",
             "37760 – 97096",
             "314.4 s",
@@ -1261,6 +1294,11 @@ mod tests {
             "short of the target",
             "9.010e-17",
             "partial",
+            "includes a cost probe of 1.5 s",
+            "<td>0.025</td>",
+            "SIM worn vs measured after: –",
+            "120 µm³",
+            "<td>1.300</td><td>1.200</td>",
         ] {
             assert!(html.contains(needle), "page lacks {needle:?}");
         }
@@ -1288,11 +1326,29 @@ mod tests {
 
     #[test]
     fn a_summary_without_a_setting_or_calibration_still_renders() {
-        let html = page(&json!({}), 8, 8);
+        let s = typed(minimal());
+        let html = page(&s, 8, 8);
         assert!(html.contains("<g class=\"colorbar\">"));
         assert!(html.contains("calibration"));
         assert!(html.contains("No completed cycle."));
-        assert!(render(&json!({}), &[0.0; 3], &[0.0; 4], &[0.0; 4], 2, 2).is_err());
+        assert!(
+            html.contains("<td>– mm, – kg/m³</td>"),
+            "absent setting as –"
+        );
+        assert!(render(&s, &[0.0; 3], &[0.0; 4], &[0.0; 4], 2, 2).is_err());
+    }
+
+    #[test]
+    fn a_number_finish_json_holds_as_null_prints_as_absent() {
+        // serde_json writes NaN as null: the page shows the same "–" for the value in memory
+        // (process.rs renders the record) as for the file read back (the launcher's report).
+        let mut s = summary();
+        s.timings.engine_cpu_s = f64::NAN;
+        s.after.spk = f64::NAN;
+        let html = page(&s, 8, 8);
+        assert!(!html.contains("NaN"), "NaN printed");
+        assert!(html.contains("wall time; CPU – s"));
+        assert!(html.contains("<td class=\"k\">Spk</td><td>1.510</td><td>–</td><td>–</td>"));
     }
 }
 
@@ -1303,9 +1359,7 @@ mod rerender {
     #[ignore]
     fn rerender_an_out_dir() {
         let dir = std::path::PathBuf::from(std::env::var("FINISH_OUT").expect("FINISH_OUT"));
-        let s: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(dir.join("finish.json")).unwrap())
-                .unwrap();
+        let s = crate::summary::FinishSummary::read(&dir.join("finish.json")).unwrap();
         let rd = |f: &str| surfstream_io::npy::read_npy_f64(dir.join(f)).unwrap();
         let (o, w, f) = (rd("original.npy"), rd("worn.npy"), rd("wear_finnie.npy"));
         let out = std::path::PathBuf::from(std::env::var("FINISH_HTML").expect("FINISH_HTML"));

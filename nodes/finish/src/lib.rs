@@ -31,5 +31,5 @@ pub mod node;
 #[cfg(feature = "node")]
 pub mod ports;
 
-pub use process::finish;
+pub use process::{finish, finish_record};
 pub use run::{Calibration, FinishOptions, Model};

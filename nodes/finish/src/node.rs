@@ -10,8 +10,9 @@ use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
 pub use crate::config::FinishConfig;
-use crate::process::finish;
+use crate::process::finish_record;
 use crate::run::{FinishOptions, Model};
+use crate::summary::FinishReport;
 
 pub struct FinishNode {
     config: FinishConfig,
@@ -21,7 +22,8 @@ pub struct FinishNode {
     ended: BTreeSet<String>,
     finals: BTreeMap<String, HeightMap>,
     done: bool,
-    summary: serde_json::Value,
+    /// Null in run.json until the simulation has run.
+    report: Option<FinishReport>,
 }
 
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
@@ -42,7 +44,7 @@ impl FinishNode {
             ended: BTreeSet::new(),
             finals: BTreeMap::new(),
             done: false,
-            summary: serde_json::Value::Null,
+            report: None,
         })
     }
 
@@ -72,12 +74,10 @@ impl FinishNode {
         let mut options = self.options.clone();
         options.ideal = self.model("datum")?;
         let stop = AtomicBool::new(false);
-        self.summary = finish(&model, &options, &self.out_dir, &stop, &mut |l| {
+        let summary = finish_record(&model, &options, &self.out_dir, &stop, &mut |l| {
             eprintln!("{l}")
         })?;
-        if let Some(o) = self.summary.as_object_mut() {
-            o.insert("dir".into(), serde_json::json!(self.config.dir));
-        }
+        self.report = Some(FinishReport::of(summary, &self.config.dir));
         Ok(())
     }
 }
@@ -108,14 +108,7 @@ impl NodeLogic for FinishNode {
     }
 
     fn report(&self) -> serde_json::Value {
-        // The summary without the bulky curves (they are in finish.json).
-        let mut r = self.summary.clone();
-        if let Some(o) = r.as_object_mut() {
-            o.remove("abbott_before");
-            o.remove("abbott_after");
-            o.remove("cycles");
-        }
-        r
+        surfstream_core::record::to_value(&self.report)
     }
 }
 

@@ -30,9 +30,7 @@ use crate::summary::{
     PatchRecord, ProbeRecord, SimValues, Timings, VolumeCheck, WearVolumes,
 };
 
-/// Runs the finishing simulation of `model` into `out_dir`; see the crate doc. `say` gets
-/// progress lines (stderr for the CLI). A set `stop` ends the engine; completed cycles are
-/// kept and finish.json says `partial`.
+/// [`finish_record`] with finish.json's content as a JSON value (what the CLI prints from).
 pub fn finish(
     model: &Model,
     opts: &FinishOptions,
@@ -40,6 +38,19 @@ pub fn finish(
     stop: &AtomicBool,
     say: &mut dyn FnMut(&str),
 ) -> Result<Value> {
+    finish_record(model, opts, out_dir, stop, say).map(|r| record::to_value(&r))
+}
+
+/// Runs the finishing simulation of `model` into `out_dir`; see the crate doc. `say` gets
+/// progress lines (stderr for the CLI). A set `stop` ends the engine; completed cycles are
+/// kept and finish.json says `partial`. Returns finish.json's record.
+pub fn finish_record(
+    model: &Model,
+    opts: &FinishOptions,
+    out_dir: &Path,
+    stop: &AtomicBool,
+    say: &mut dyn FnMut(&str),
+) -> Result<FinishSummary> {
     let t_start = Instant::now();
     let setup = Setup::new(model, opts, out_dir, say)?;
     let mut st = State::new(&setup);
@@ -62,9 +73,9 @@ pub fn finish(
     let ideal_run = ideal_comparison(&setup, &mut st, stop, say)?;
     let crops = write_outputs(&setup, &st)?;
     let total_s = t_start.elapsed().as_secs_f64();
-    let summary = summary(&setup, st, &crops, final_fit, ideal_run, probe, total_s)?;
+    let record = summary(&setup, st, &crops, final_fit, ideal_run, probe, total_s)?;
     // Written as a JSON value: its keys sorted, as finish.json has always had them.
-    let summary = record::to_value(&summary);
+    let summary = record::to_value(&record);
     let path = out_dir.join(outputs::SUMMARY);
     surfstream_core::fsutil::write_atomic(&path, |w| {
         serde_json::to_writer_pretty(w, &summary).map_err(|e| anyhow!("{}: {e}", path.display()))
@@ -72,14 +83,14 @@ pub fn finish(
     let (rows, cols) = (setup.patch.crop.rows, setup.patch.crop.cols);
     crate::html::write_report(
         &out_dir.join(outputs::HTML),
-        &summary,
+        &record,
         &crops.original,
         &crops.worn,
         &crops.finnie,
         rows,
         cols,
     )?;
-    Ok(summary)
+    Ok(record)
 }
 
 /// What a finish is set up with, fixed for the whole process.
@@ -373,15 +384,26 @@ impl State {
         }
     }
 
-    /// Adds a segment's engine time and, unless it was stopped, its measured cost.
-    fn count_engine(&mut self, r: &SegmentResult) {
+    /// Adds a segment's engine time (wall and CPU) and, for [`CostEstimate::Update`] unless it
+    /// was stopped, makes its measured cost the estimate later segments are planned with.
+    fn count_engine(&mut self, r: &SegmentResult, estimate: CostEstimate) {
         self.engine_s += r.engine_s;
         self.engine_cpu_s += r.engine_cpu_s;
         let steps = r.triangles as f64 * r.segment.total_steps() as f64;
-        if !r.stopped && steps > 0.0 {
+        if estimate == CostEstimate::Update && !r.stopped && steps > 0.0 {
             self.cost = r.engine_s / steps;
         }
     }
+}
+
+/// Whether a segment's engine time per triangle-step becomes the cost estimate.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum CostEstimate {
+    /// The probe and the cycles: segments of the process, on its surface.
+    Update,
+    /// The ideal model's segment: counted in the engine time, but it runs on the form-only
+    /// surface after the cycles, so its cost stands for nothing planned.
+    Keep,
 }
 
 /// Two passes on the original surface to measure the engine's cost on this machine now.
@@ -403,7 +425,7 @@ fn probe(
         stop,
         &mut |_, _| {},
     )?;
-    st.count_engine(&r);
+    st.count_engine(&r, CostEstimate::Update);
     say(&format!(
         "finish: probe: {} triangles x {} steps in {:.1} s ({:.2e} s per triangle-step, start-up included)",
         r.triangles,
@@ -476,7 +498,7 @@ fn run_cycle(
             }
         },
     )?;
-    st.count_engine(&r);
+    st.count_engine(&r, CostEstimate::Update);
     if r.stopped {
         st.partial = true;
         say(&format!(
@@ -760,6 +782,8 @@ fn ideal_comparison(
     let area = crop(&ideal.heights_um, ideal.cols, w);
     let g = Grid::of(&area, patch.sampling.with_shape(Shape::new(w.rows, w.cols)))?;
     let levelled = level_plane(&g)?;
+    // Cropped now: the borrow of `st` must end before the segment is counted into it.
+    let a = patch.cropped(hifi_map);
     let dir = setup.out_dir.join("ideal");
     let mut last_say = Instant::now();
     let r = run_segment(
@@ -789,13 +813,11 @@ fn ideal_comparison(
             }
         },
     )?;
-    st.engine_s += r.engine_s;
-    st.engine_cpu_s += r.engine_cpu_s;
+    st.count_engine(&r, CostEstimate::Keep);
     if r.stopped {
         st.partial = true;
         return Ok(None);
     }
-    let a = patch.cropped(hifi_map);
     let b = patch.cropped(&r.finnie_um);
     let s = sim(&a, &b).unwrap_or(f64::NAN);
     say(&format!(

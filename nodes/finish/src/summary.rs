@@ -296,6 +296,97 @@ pub struct Timings {
     pub simulated_s: f64,
 }
 
+/// The finish node's report (run.json `stages.<id>`, `nodes/<id>.json`): finish.json without
+/// its bulky parts (the Abbott curves and the per-cycle records, which stay in finish.json),
+/// plus the node's folder. Built by [`FinishReport::of`], which names every field of
+/// [`FinishSummary`], so a field added there must be placed here (or left out) to compile.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct FinishReport {
+    /// The node's folder under the run's out dir, holding finish.json.
+    pub dir: String,
+    pub model: String,
+    #[serde(default)]
+    pub partial: bool,
+    pub cycles_completed: usize,
+    pub cycles_requested: usize,
+    #[serde(default)]
+    pub setting: Option<FinishSetting>,
+    #[serde(default)]
+    pub calibration: Option<CalibrationSummary>,
+    #[serde(default)]
+    pub wear_model: Option<String>,
+    #[serde(default)]
+    pub contact_field: Option<ContactFieldSummary>,
+    #[serde(default)]
+    pub paper: Option<PaperValues>,
+    pub before: SurfaceParams,
+    pub after: SurfaceParams,
+    #[serde(default)]
+    pub volume_check: Option<VolumeCheck>,
+    #[serde(default)]
+    pub wear: Option<WearVolumes>,
+    #[serde(default)]
+    pub sim: Option<SimValues>,
+    #[serde(default)]
+    pub ideal_model: Option<IdealModelRun>,
+    #[serde(default)]
+    pub probe: Option<ProbeRecord>,
+    pub timings: Timings,
+    #[serde(default)]
+    pub outputs: Vec<String>,
+}
+
+impl FinishReport {
+    /// The report of the run that wrote `summary` into the node's folder `dir`.
+    pub fn of(summary: FinishSummary, dir: &str) -> Self {
+        // No `..`: every field of finish.json is either reported or left out here by name.
+        let FinishSummary {
+            model,
+            partial,
+            cycles_completed,
+            cycles_requested,
+            setting,
+            calibration,
+            wear_model,
+            contact_field,
+            paper,
+            before,
+            after,
+            abbott_before: _,
+            abbott_after: _,
+            volume_check,
+            wear,
+            sim,
+            ideal_model,
+            cycles: _,
+            probe,
+            timings,
+            outputs,
+        } = summary;
+        FinishReport {
+            dir: dir.to_owned(),
+            model,
+            partial,
+            cycles_completed,
+            cycles_requested,
+            setting,
+            calibration,
+            wear_model,
+            contact_field,
+            paper,
+            before,
+            after,
+            volume_check,
+            wear,
+            sim,
+            ideal_model,
+            probe,
+            timings,
+            outputs,
+        }
+    }
+}
+
 impl FinishSummary {
     /// Reads `path` (a finish.json); an error names the file and the field.
     pub fn read(path: &Path) -> Result<Self> {
@@ -307,5 +398,129 @@ impl FinishSummary {
                 path.display()
             )
         })
+    }
+}
+
+/// A finish.json for the tests of its readers (the page, the node's report).
+#[cfg(test)]
+pub(crate) mod example {
+    use super::FinishSummary;
+    use crate::setting::{BarrelMachine, Media, Workpiece};
+    use serde_json::{json, Value};
+
+    /// Surface parameters: Sa, Sq, Spk as given, the others 1.
+    pub(crate) fn params(sa: f64, sq: f64, spk: f64) -> Value {
+        json!({"Sa": sa, "Sq": sq, "Spk": spk, "Sp": 1.0, "Sv": 1.0, "Sz": 1.0, "Ssk": 1.0,
+               "Sku": 1.0, "Sdq": 1.0, "Sk": 1.0, "Svk": 1.0, "Smr1": 1.0, "Smr2": 1.0})
+    }
+
+    pub(crate) fn cycle(n: usize, acceleration_factor: f64, sa: f64) -> Value {
+        json!({
+            "cycle": n, "dir": format!("cycle_{n:02}"), "command": "liggghts", "triangles": 800,
+            "mesh_block_stride": 1, "passes": 3, "steps_per_pass": 200, "timestep_s": 1.8e-7,
+            "simulated_s": 1e-4, "engine_s": 2.0, "engine_cpu_s": 1.0,
+            "cost_per_triangle_step_s": 1e-8, "cpu_per_triangle_step_s": 5e-9,
+            "acceleration_factor": acceleration_factor, "wear_scale": 1.0, "target_reached": false,
+            "k_finnie_equivalent_per_pa": 1e-12,
+            "volume_check": {"liggghts_um3": 1.0, "grid_um3": 1.0, "unmapped_um3": 0.0,
+                             "relative_error": 1e-15},
+            "archard_volume_um3": 0.5, "contacts": {}, "contact_field": null,
+            "after": params(sa, 1.6, 1.2),
+        })
+    }
+
+    /// The fields every finish.json has, the curves straight lines.
+    pub(crate) fn minimal() -> Value {
+        let curve = |scale: f64| {
+            json!({
+                "material_ratio_pct": (0..=100).map(|k| k as f64).collect::<Vec<_>>(),
+                "height_um": (0..=100).map(|k| scale * (50.0 - k as f64) / 25.0).collect::<Vec<_>>(),
+            })
+        };
+        json!({
+            "model": "out/demo/panorama.x3p", "cycles_completed": 0, "cycles_requested": 1,
+            "before": params(1.3157, 1.64, 1.51), "after": params(1.2692, 1.57, 1.10),
+            "abbott_before": curve(1.0), "abbott_after": curve(0.9),
+            "timings": {"engine_s": 0.0, "total_s": 1.0},
+        })
+    }
+
+    pub(crate) fn typed(v: Value) -> FinishSummary {
+        serde_json::from_value(v).expect("a finish.json")
+    }
+
+    pub(crate) fn summary() -> FinishSummary {
+        let mut s = minimal();
+        let extra = json!({
+            "cycles_completed": 2, "cycles_requested": 3, "partial": true,
+            "setting": {
+                "patch": {"pitch_um": [0.5, 0.5], "size_um": [20.0, 15.0], "rows_cols": [30, 40],
+                          "in_model_rows_cols_origin": [0, 0], "meshed_area_rows_cols": [48, 58],
+                          "guard_band_um": 45.0, "boundary": "guard band", "levelled": "plane",
+                          "filled_samples": 0},
+                "media": Media::default(),
+                "workpiece": Workpiece::default(),
+                "machine": BarrelMachine::default(),
+                "action": {"media_velocity_m_s": 1.618, "pressure_pa": 3997.19,
+                           "impact_angle_deg": 20.0, "acceleration_m_s2": 133.2, "source": "barrel"},
+                "press_force_n": 0.0358, "k_finnie_per_pa": 1e-10, "archard_k_over_h_per_pa": 5e-14,
+                "process_time_s": 300.0, "timestep_s": 1.8e-7, "ranks": 1, "max_triangles": 20000,
+                "time_budget_s": 60.0, "seed": 1, "wear_depth": "along z",
+                "acceleration": "process time / cycles / simulated time",
+            },
+            "cycles": [cycle(1, 97095.8, 1.3), cycle(2, 37759.5, 1.2)],
+            "timings": {"engine_s": 314.4, "engine_cpu_s": 42.5, "surfstream_overhead_s": 9.6,
+                        "overhead_share_of_engine": 0.0306, "total_s": 324.0, "simulated_s": 0.006},
+            "volume_check": {"relative_error": 2.7e-14, "what": "largest error"},
+            "calibration": {"kind": "Sa before/after", "target_sa_um": 0.5844,
+                            "k_finnie_fitted_per_pa": 9.01e-17},
+            "probe": {"dir": "probe", "engine_s": 1.5, "engine_cpu_s": 0.7, "triangles": 800,
+                      "steps": 400, "cost_per_triangle_step_s": 4.7e-9},
+            "sim": {"finnie_vs_archard": 0.221, "worn_vs_measured_after": null},
+            "wear": {"finnie_volume_um3": 120.0, "archard_volume_um3": 60.0,
+                     "max_depth_um": 0.8, "mean_depth_um": 0.1},
+            "ideal_model": {"source": "graph input 'datum'", "dir": "ideal", "engine_s": 2.0,
+                            "volume_um3": 100.0, "sim_wear_maps": 0.025, "note": "same passes"},
+            "paper": {"before": {"Sa": 1.272}, "after": {"Sa": 0.565}, "process_time_s": 300},
+            "outputs": ["wear.npy", "finish.json"],
+        });
+        for (k, v) in extra.as_object().unwrap() {
+            s[k] = v.clone();
+        }
+        typed(s)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use surfstream_core::record;
+
+    /// The report as the node built it before it was typed: finish.json's value with the
+    /// curves and cycles removed by key, `dir` inserted.
+    fn report_by_key(s: &FinishSummary, dir: &str) -> Value {
+        let mut v = record::to_value(s);
+        let o = v.as_object_mut().expect("finish.json is an object");
+        for k in ["abbott_before", "abbott_after", "cycles"] {
+            assert!(o.remove(k).is_some(), "finish.json has {k}");
+        }
+        o.insert("dir".into(), Value::from(dir));
+        v
+    }
+
+    #[test]
+    fn the_report_is_finish_json_without_curves_and_cycles_plus_the_folder() {
+        for s in [example::summary(), example::typed(example::minimal())] {
+            let typed = record::to_value(&FinishReport::of(s.clone(), "fin"));
+            assert_eq!(typed, report_by_key(&s, "fin"));
+            assert_eq!(
+                serde_json::to_string_pretty(&typed).unwrap(),
+                serde_json::to_string_pretty(&report_by_key(&s, "fin")).unwrap()
+            );
+            // The launcher reads it back as the same record.
+            let back: FinishReport = record::from_value(&typed, "report").unwrap();
+            assert_eq!(back.dir, "fin");
+            assert_eq!(back.before.sa, s.before.sa);
+        }
     }
 }

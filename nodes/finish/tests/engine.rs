@@ -22,8 +22,9 @@ use surfstream_finish::run::{
 };
 use surfstream_finish::script::{self, input_script, Pass, Segment};
 use surfstream_finish::setting::{effective_modulus_pa, BarrelMachine, Media, Workpiece};
+use surfstream_finish::summary::FinishReport;
 use surfstream_finish::vtk::read_vtk;
-use surfstream_finish::{finish, Calibration, FinishOptions, Model};
+use surfstream_finish::{finish_record, Calibration, FinishOptions, Model};
 
 fn engine() -> EngineCommand {
     EngineCommand::locate(1, None).unwrap_or_else(|e| {
@@ -262,7 +263,7 @@ fn a_flat_surface_wears_without_pattern() {
         ..Default::default()
     };
     let stop = AtomicBool::new(false);
-    let s = finish(&model, &opts, tmp.path(), &stop, &mut |l| eprintln!("{l}")).unwrap();
+    let s = finish_record(&model, &opts, tmp.path(), &stop, &mut |l| eprintln!("{l}")).unwrap();
     let wear = surfstream_io::npy::read_npy_f64(tmp.path().join("wear.npy")).unwrap();
     let (r, c) = (wear.rows, wear.cols);
     let total: f64 = wear.data.iter().sum();
@@ -294,7 +295,7 @@ fn a_flat_surface_wears_without_pattern() {
     assert!((even_cols - 0.5).abs() < 0.05 && (even_rows - 0.5).abs() < 0.05);
     // The worn flat stays flat at the scale of the wear: its roughness is a fraction of the
     // mean depth removed plus what the media's tracks leave.
-    assert!(s["volume_check"]["relative_error"].as_f64().unwrap() < 0.005);
+    assert!(s.volume_check.unwrap().relative_error < 0.005);
     for f in [
         "wear.npy",
         "wear_finnie.npy",
@@ -343,33 +344,40 @@ fn a_sinusoidal_surface_loses_its_peaks_first() {
         ..Default::default()
     };
     let stop = AtomicBool::new(false);
-    let s = finish(&model, &opts, tmp.path(), &stop, &mut |l| eprintln!("{l}")).unwrap();
-    let b = &s["before"];
-    let a = &s["after"];
-    let share = |k: &str| 1.0 - a[k].as_f64().unwrap() / b[k].as_f64().unwrap();
+    let rec = finish_record(&model, &opts, tmp.path(), &stop, &mut |l| eprintln!("{l}")).unwrap();
+    // The node's report (run.json) is finish.json without the curves and cycles, plus `dir`:
+    // the typed record against the same value edited by key.
+    let mut by_key = surfstream_core::record::to_value(&rec);
+    for k in ["abbott_before", "abbott_after", "cycles"] {
+        by_key.as_object_mut().unwrap().remove(k).unwrap();
+    }
+    by_key["dir"] = "finish".into();
+    let report = surfstream_core::record::to_value(&FinishReport::of(rec.clone(), "finish"));
+    assert_eq!(
+        serde_json::to_string_pretty(&report).unwrap(),
+        serde_json::to_string_pretty(&by_key).unwrap()
+    );
+    assert!(!report["contact_field"].is_null() && !report["calibration"].is_null());
+    let (b, a) = (&rec.before, &rec.after);
+    let share = |after: f64, before: f64| 1.0 - after / before;
+    let (sa, spk, svk) = (share(a.sa, b.sa), share(a.spk, b.spk), share(a.svk, b.svk));
     eprintln!(
-        "Sa {} -> {}, Spk {} -> {} ({:.2}), Svk {} -> {} ({:.2})",
-        b["Sa"],
-        a["Sa"],
-        b["Spk"],
-        a["Spk"],
-        share("Spk"),
-        b["Svk"],
-        a["Svk"],
-        share("Svk")
+        "Sa {} -> {}, Spk {} -> {} ({spk:.2}), Svk {} -> {} ({svk:.2})",
+        b.sa, a.sa, b.spk, a.spk, b.svk, a.svk
     );
-    assert!(
-        share("Sa") > 0.01,
-        "the calibration did not wear the surface"
-    );
-    assert!(share("Spk") > share("Svk") + 0.05, "peaks did not go first");
+    assert!(sa > 0.01, "the calibration did not wear the surface");
+    assert!(spk > svk + 0.05, "peaks did not go first");
     // The contact field (the default) reaches the target within the tolerance, fitted once.
-    assert_eq!(s["wear_model"], "contact-field");
-    let c = &s["calibration"];
-    assert_eq!(c["reached"], true, "{c}");
-    assert!(c["relative_error"].as_f64().unwrap().abs() * 100.0 <= CALIBRATION_TOLERANCE_PERCENT);
-    let auc = s["contact_field"]["check_mean"]["auc_gap_predicts_worn"]
-        .as_f64()
+    assert_eq!(rec.wear_model.as_deref(), Some("contact-field"));
+    let c = rec.calibration.as_ref().unwrap();
+    assert_eq!(c.reached, Some(true), "{c:?}");
+    assert!(c.relative_error.unwrap().abs() * 100.0 <= CALIBRATION_TOLERANCE_PERCENT);
+    let auc = rec
+        .contact_field
+        .as_ref()
+        .unwrap()
+        .check_mean
+        .auc_gap_predicts_worn
         .unwrap();
     assert!(
         auc > 0.5,
@@ -382,5 +390,5 @@ fn a_sinusoidal_surface_loses_its_peaks_first() {
         Sampling::square(Shape::new(45, 45), pitch).unwrap(),
     )
     .unwrap();
-    assert!((p.sa - a["Sa"].as_f64().unwrap()).abs() < 1e-9);
+    assert!((p.sa - a.sa).abs() < 1e-9);
 }
