@@ -273,40 +273,39 @@ pub fn run(a: FinishArgs) -> Result<()> {
     // Ctrl-C, SIGTERM or SIGHUP sets the runtime's stop flag, which stops the engine; the
     // completed cycles are kept (finish.json says partial); a second signal forces.
     surfstream_runtime::stop::install()?;
-    let summary = surfstream_finish::finish(
+    let summary = surfstream_finish::finish_record(
         &model,
         &o,
         &a.out,
         &surfstream_runtime::ipc::STOP_REQUESTED,
         &mut |l| eprintln!("{l}"),
     )?;
-    let b = &summary["before"];
-    let af = &summary["after"];
+    let (b, af) = (&summary.before, &summary.after);
     println!(
         "finish: {} cycle(s){}; Sa {:.3} -> {:.3} um, Sq {:.3} -> {:.3}, Sz {:.3} -> {:.3}, Spk {:.3} -> {:.3}, Svk {:.3} -> {:.3}; \
          engine {:.1} s, surfstream {:.1} s; {}",
-        summary["cycles_completed"],
-        if summary["partial"].as_bool() == Some(true) { " (partial: stopped)" } else { "" },
-        b["Sa"].as_f64().unwrap_or(f64::NAN),
-        af["Sa"].as_f64().unwrap_or(f64::NAN),
-        b["Sq"].as_f64().unwrap_or(f64::NAN),
-        af["Sq"].as_f64().unwrap_or(f64::NAN),
-        b["Sz"].as_f64().unwrap_or(f64::NAN),
-        af["Sz"].as_f64().unwrap_or(f64::NAN),
-        b["Spk"].as_f64().unwrap_or(f64::NAN),
-        af["Spk"].as_f64().unwrap_or(f64::NAN),
-        b["Svk"].as_f64().unwrap_or(f64::NAN),
-        af["Svk"].as_f64().unwrap_or(f64::NAN),
-        summary["timings"]["engine_s"].as_f64().unwrap_or(0.0),
-        summary["timings"]["surfstream_overhead_s"].as_f64().unwrap_or(0.0),
+        summary.cycles_completed,
+        if summary.partial { " (partial: stopped)" } else { "" },
+        b.sa,
+        af.sa,
+        b.sq,
+        af.sq,
+        b.sz,
+        af.sz,
+        b.spk,
+        af.spk,
+        b.svk,
+        af.svk,
+        summary.timings.engine_s,
+        summary.timings.surfstream_overhead_s,
         a.out.join("finish.json").display()
     );
-    if summary["partial"].as_bool() == Some(true) {
+    if summary.partial {
         let sig = surfstream_runtime::stop::signal().unwrap_or(libc::SIGINT);
         eprintln!(
             "surfstream: finish {}: {} completed cycle(s) kept, outputs marked partial",
             surfstream_runtime::stop::interrupted(sig),
-            summary["cycles_completed"]
+            summary.cycles_completed
         );
         std::process::exit(128 + sig);
     }

@@ -9,7 +9,7 @@
 //! (`fix mesh/surface/stress ... wear finnie`); Archard wear comes from its contact dump
 //! ([`contacts`]). Both are mapped to the grid keeping the volume ([`grid::NodeMap`]), scaled
 //! by the acceleration factor (process time / simulated time) or fitted to a calibration
-//! target, and subtracted; the worn surface is re-meshed for the next cycle ([`process::finish`]).
+//! target, and subtracted; the worn surface is re-meshed for the next cycle ([`process::finish_record`]).
 //!
 //! Plain functions; `node` is the graph node, `surfstream-finish` its process.
 
@@ -31,5 +31,5 @@ pub mod node;
 #[cfg(feature = "node")]
 pub mod ports;
 
-pub use process::{finish, finish_record};
+pub use process::finish_record;
 pub use run::{Calibration, FinishOptions, Model};

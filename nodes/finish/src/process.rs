@@ -1,7 +1,7 @@
 //! The finishing process from start to finish.json, step by step: the set-up (options
 //! checked, the patch cut, the targets), an engine probe, the cycles (a DEM segment, then the
 //! wear model of the run: the sampled map or the contact field), the contact field's final
-//! fit, the ideal model's comparison, the outputs and the summary. [`finish`] runs them in
+//! fit, the ideal model's comparison, the outputs and the summary. [`finish_record`] runs them in
 //! that order; each step is a function of the set-up and the state the cycles carry.
 
 use std::path::Path;
@@ -9,7 +9,6 @@ use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
-use serde_json::Value;
 use surfstream_core::metrology::{level_plane, params, sim, AbbottCurve, Grid};
 use surfstream_core::record;
 use surfstream_core::{Sampling, Shape};
@@ -29,17 +28,6 @@ use crate::summary::{
     CycleVolumeCheck, FinalFit, FinishSetting, FinishSummary, IdealModelRun, PaperValues,
     PatchRecord, ProbeRecord, SimValues, Timings, VolumeCheck, WearVolumes,
 };
-
-/// [`finish_record`] with finish.json's content as a JSON value (what the CLI prints from).
-pub fn finish(
-    model: &Model,
-    opts: &FinishOptions,
-    out_dir: &Path,
-    stop: &AtomicBool,
-    say: &mut dyn FnMut(&str),
-) -> Result<Value> {
-    finish_record(model, opts, out_dir, stop, say).map(|r| record::to_value(&r))
-}
 
 /// Runs the finishing simulation of `model` into `out_dir`; see the crate doc. `say` gets
 /// progress lines (stderr for the CLI). A set `stop` ends the engine; completed cycles are

@@ -191,7 +191,7 @@ pub const DEFAULT_ARCHARD_K_OVER_H_PER_PA: f64 = 5e-14;
 /// s (measured here, docs/finish.md); the real time is measured and reported.
 pub const DEFAULT_COST_PER_TRIANGLE_STEP_S: f64 = 4e-8;
 
-/// One progress report of [`finish`].
+/// One progress report of [`crate::finish_record`].
 #[derive(Debug, Clone)]
 pub struct Progress {
     pub label: String,

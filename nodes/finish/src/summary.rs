@@ -1,4 +1,4 @@
-//! finish.json as typed records: written by [`crate::process::finish`] and read by the run's
+//! finish.json as typed records: written by [`crate::process::finish_record`] and read by the run's
 //! report.html (`launch/src/report/finish.rs`) through the same structs, so the compiler ties
 //! a field's writer to its readers. Only this crate and the launcher's report use them, so they
 //! live here, not in `surfstream_core::record`.
