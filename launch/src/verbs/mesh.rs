@@ -11,12 +11,12 @@ use surfstream_core::frame::to_frame_heights;
 use surfstream_core::raster::{RasterView, Shape};
 use surfstream_mesher::outliers::{find_spikes, OutlierPolicy, OutlierReport};
 use surfstream_mesher::{
-    check_closed, grid_sheet_for, job::DEFAULT_EPSILON_SQ_FRACTION, mesh_height_field, DemEngine,
-    EngineProfile, Epsilon, LengthUnit, MeshError, MeshKind, MeshParams, MissingSamples,
-    ScanPlacement, SolidParams, TargetMethod,
+    grid_sheet_for, job::DEFAULT_EPSILON_SQ_FRACTION, mesh_streaming, DemEngine, EngineProfile,
+    Epsilon, LengthUnit, MeshError, MeshKind, MeshParams, MissingSamples, ScanPlacement,
+    SolidParams, TargetMethod,
 };
 use surfstream_mesher::{
-    mesh_to_tolerance, AdaptiveMesh, MeshCheck, ToleranceReport, ToleranceSettings,
+    mesh_streaming_to_tolerance, MeshCheck, StreamedMesh, ToleranceReport, ToleranceSettings,
 };
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -129,21 +129,19 @@ pub fn run(a: MeshArgs) -> Result<()> {
     }
     let params = mesh_params(&a, profile);
     let t0 = Instant::now();
-    let (m, tolerance) = mesh_model(&a, heights, &at, &params, profile, shape)?;
+    let (mut m, tolerance) = mesh_model(&a, heights, &at, &params, profile, shape)?;
     let mesh_s = t0.elapsed().as_secs_f64();
-    let check = check_closed(&m.mesh);
 
     let ascii = profile.map_or(a.ascii, |p| p.ascii);
-    // The writers add units and offset to the label (stl::stl_header).
+    // The writer adds units and offset to the label (stl::stl_header); the closed-solid check
+    // is made as the triangles pass.
     let label = "surfstream mesh";
+    let mut check = None;
     surfstream_core::fsutil::write_atomic(&a.out, |w| {
-        if ascii {
-            surfstream_mesher::write_stl_ascii(w, &m.mesh, label)?;
-        } else {
-            surfstream_mesher::write_stl_binary(w, &m.mesh, label)?;
-        }
+        check = Some(m.write_stl(w, ascii, label, heights)?);
         Ok(())
     })?;
+    let check = check.ok_or_else(|| anyhow!("{}: nothing written", a.out.display()))?;
     let written = Written {
         surface: &surface,
         profile,
@@ -265,7 +263,10 @@ fn mesh_params(a: &MeshArgs, profile: Option<EngineProfile>) -> MeshParams {
 }
 
 /// The mesh: at a fixed vertical bound when one is given, else the fewest triangles that meet
-/// the tolerance (judged against the measured roughness with --roughness).
+/// the tolerance (judged against the measured roughness with --roughness). Streamed
+/// ([`surfstream_mesher::stream`]): the triangles wait in a spill file in the STL's folder
+/// (created here), so the memory held is a few bytes per sample whatever the triangle count;
+/// [`StreamedMesh::write_stl`] writes them.
 fn mesh_model(
     a: &MeshArgs,
     heights: RasterView<'_, f32>,
@@ -273,7 +274,7 @@ fn mesh_model(
     params: &MeshParams,
     profile: Option<EngineProfile>,
     shape: Shape,
-) -> Result<(AdaptiveMesh, Option<ToleranceReport>)> {
+) -> Result<(StreamedMesh, Option<ToleranceReport>)> {
     let fixed = a.epsilon_um.is_some() || a.epsilon_sq.is_some();
     // An engine that refuses slivers gets the tolerance mesh with its angles bounded.
     let min_angle_deg = profile.map(|p| p.min_angle_deg).filter(|&deg| deg > 0.0);
@@ -287,8 +288,14 @@ fn mesh_model(
     if let Some(px) = a.region_px.filter(|&p| p < 16) {
         bail!("--region-px {px}: expected at least 16 samples");
     }
+    let spill_dir = match a.out.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    std::fs::create_dir_all(spill_dir)
+        .with_context(|| format!("{}: cannot create the folder", spill_dir.display()))?;
     Ok(if fixed {
-        let m = mesh_height_field(heights, at, params)
+        let m = mesh_streaming(heights, at, params, spill_dir)
             .with_context(|| format!("{}", a.file.display()))?;
         (m, None)
     } else {
@@ -312,8 +319,15 @@ fn mesh_model(
             .as_deref()
             .map(|path| roughness_reference(path, a.pitch_um, shape))
             .transpose()?;
-        let (m, r) = mesh_to_tolerance(heights, roughness.as_deref(), at, params, &settings)
-            .with_context(|| format!("{}", a.file.display()))?;
+        let (m, r) = mesh_streaming_to_tolerance(
+            heights,
+            roughness.as_deref(),
+            at,
+            params,
+            &settings,
+            spill_dir,
+        )
+        .with_context(|| format!("{}", a.file.display()))?;
         (m, Some(r))
     })
 }
@@ -331,7 +345,7 @@ struct Written<'a> {
 /// OUT.json beside the STL: the mesh's summary, the input, the checks, the tolerance search.
 fn write_report(
     a: &MeshArgs,
-    m: &AdaptiveMesh,
+    m: &StreamedMesh,
     tolerance: Option<&ToleranceReport>,
     w: &Written,
 ) -> Result<PathBuf> {
@@ -345,7 +359,7 @@ fn write_report(
     } = *w;
     let (pitch_x_um, pitch_y_um) = (surface.pitch_x_um, surface.pitch_y_um);
     let json_path = a.out.with_extension("json");
-    let mut report = m.summary();
+    let mut report = m.summary.to_value();
     let o = report
         .as_object_mut()
         .ok_or_else(|| anyhow!("mesh summary is not an object"))?;
@@ -403,7 +417,7 @@ fn write_report(
 /// The lines the verb prints: the tolerance met (or not), the angles, the mesh.
 fn say_result(
     a: &MeshArgs,
-    m: &AdaptiveMesh,
+    m: &StreamedMesh,
     tolerance: Option<&ToleranceReport>,
     params: &MeshParams,
     profile: Option<EngineProfile>,
@@ -445,7 +459,7 @@ fn say_result(
             eprintln!("mesh: warning: {reason}");
         }
     }
-    let f = &m.fidelity;
+    let (f, c) = (&m.fidelity, &m.counts);
     let bound = match params.epsilon {
         Epsilon::Um(_) => String::new(),
         Epsilon::SqFraction(q) => format!(" = {q} x Sq"),
@@ -453,21 +467,18 @@ fn say_result(
     eprintln!(
         "mesh: {} triangles ({} surface), {} vertices, STL in {}; max vertical error \
          {} um, RMS {} um (bound {} um{bound}{}); {mesh_s:.2} s; wrote {} and {}",
-        m.mesh.triangles.len(),
-        m.surface_triangles,
-        m.mesh.vertices.len(),
+        c.triangles,
+        c.top_triangles,
+        c.vertices,
         if a.units.is_none() && profile.is_none() {
-            format!(
-                "{} (the default; --units m | mm | um)",
-                m.mesh.units.symbol()
-            )
+            format!("{} (the default; --units m | mm | um)", c.units.symbol())
         } else {
-            m.mesh.units.symbol().to_string()
+            c.units.symbol().to_string()
         },
         super::sig(f.error.max_um, 4),
         super::sig(f.error.rms_um, 4),
         super::sig(f.epsilon_um, 4),
-        if m.budget_reached {
+        if m.summary.record.budget_reached {
             ", triangle budget reached"
         } else {
             ""
