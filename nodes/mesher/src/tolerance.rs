@@ -1086,16 +1086,42 @@ fn judge_checkpoint(
     )
 }
 
-/// The adaptive mesh of `heights` with the fewest triangles the search finds within the
-/// tolerance (in memory; `params.epsilon` is replaced by the search's bounds and
-/// `params.max_triangles` bounds the search, not the insertion).
-pub fn mesh_to_tolerance(
+/// A checkpoint's mesh as the search judges it, made in memory or streamed.
+pub(crate) trait CheckpointMesh {
+    /// The mesh on the grid, um relative to the field's z offset (NaN: not covered).
+    fn resampled_um(&self) -> &[f32];
+    fn surface_triangles(&self) -> usize;
+}
+
+impl CheckpointMesh for AdaptiveMesh {
+    fn resampled_um(&self) -> &[f32] {
+        &self.resampled_um
+    }
+    fn surface_triangles(&self) -> usize {
+        self.surface_triangles
+    }
+}
+
+impl CheckpointMesh for StreamedMesh {
+    fn resampled_um(&self) -> &[f32] {
+        &self.resampled_um
+    }
+    fn surface_triangles(&self) -> usize {
+        self.counts.top_triangles
+    }
+}
+
+/// The search of both twins: the set-up, the one insertion order and the judging of every
+/// checkpoint; `mesh_of(plan, p, epsilon_um, blocks)` makes a checkpoint's mesh from the live
+/// blocks (`p.epsilon` is that bound too), in memory or streamed.
+fn search_to_tolerance<M: CheckpointMesh>(
     heights: RasterView<'_, f32>,
     roughness_um: Option<&[f32]>,
     at: &ScanPlacement,
     params: &MeshParams,
     settings: &ToleranceSettings,
-) -> Result<(AdaptiveMesh, ToleranceReport)> {
+    mut mesh_of: impl FnMut(&BlockPlan<'_>, &MeshParams, f64, &[LiveBlock<'_>]) -> Result<M>,
+) -> Result<(M, ToleranceReport)> {
     let SearchSetup {
         sq,
         measured_px,
@@ -1113,16 +1139,13 @@ pub fn mesh_to_tolerance(
         roughness_um,
         bound,
         |eps, live, angles| {
-            let meshed: Vec<_> = live.par_iter().map(LiveBlock::snapshot).collect();
-            let tin = assemble(&plan, &meshed);
-            drop(meshed);
             p.epsilon = Epsilon::Um(eps);
-            let m = finish_adaptive(heights, at, &p, &tin, eps)?;
-            let fits = judge_checkpoint(heights, &m.resampled_um, roughness_um, &regions);
+            let mesh = mesh_of(&plan, &p, eps, live)?;
+            let fits = judge_checkpoint(heights, mesh.resampled_um(), roughness_um, &regions);
             Ok(Trial {
-                surface_triangles: m.surface_triangles,
+                surface_triangles: mesh.surface_triangles(),
                 fits,
-                mesh: m,
+                mesh,
                 angles,
             })
         },
@@ -1134,6 +1157,32 @@ pub fn mesh_to_tolerance(
         regions.len(),
         params.max_triangles,
         &mut order,
+    )
+}
+
+/// The adaptive mesh of `heights` with the fewest triangles the search finds within the
+/// tolerance (in memory; `params.epsilon` is replaced by the search's bounds and
+/// `params.max_triangles` bounds the search, not the insertion). The product is
+/// [`mesh_streaming_to_tolerance`] (the same mesh and report); this twin is its test oracle.
+pub fn mesh_to_tolerance(
+    heights: RasterView<'_, f32>,
+    roughness_um: Option<&[f32]>,
+    at: &ScanPlacement,
+    params: &MeshParams,
+    settings: &ToleranceSettings,
+) -> Result<(AdaptiveMesh, ToleranceReport)> {
+    search_to_tolerance(
+        heights,
+        roughness_um,
+        at,
+        params,
+        settings,
+        |plan, p, eps, live| {
+            let meshed: Vec<_> = live.par_iter().map(LiveBlock::snapshot).collect();
+            let tin = assemble(plan, &meshed);
+            drop(meshed);
+            finish_adaptive(heights, at, p, &tin, eps)
+        },
     )
 }
 
@@ -1216,44 +1265,20 @@ pub fn mesh_streaming_to_tolerance(
     settings: &ToleranceSettings,
     spill_dir: &Path,
 ) -> Result<(StreamedMesh, ToleranceReport)> {
-    let SearchSetup {
-        sq,
-        measured_px,
-        settings,
-        regions,
-        mut p,
-        plan,
-        bound,
-    } = search_setup(heights, roughness_um, at, params, settings)?;
-    let level = field_level(heights, at);
-    let extremes = window_extremes(heights, roughness_um, &regions);
-    let mut order = LiveOrder::new(
-        &plan,
-        extremes,
-        &settings,
+    // The field's level, once (at the first checkpoint, after the set-up's checks).
+    let mut level = None;
+    search_to_tolerance(
+        heights,
         roughness_um,
-        bound,
-        |eps, blocks, angles| {
-            p.epsilon = Epsilon::Um(eps);
-            let m = stream_blocks(heights, at, &p, spill_dir, &plan, level, eps, &|k| {
+        at,
+        params,
+        settings,
+        |plan, p, eps, blocks| {
+            let level = *level.get_or_insert_with(|| field_level(heights, at));
+            stream_blocks(heights, at, p, spill_dir, plan, level, eps, &|k| {
                 blocks[k].snapshot()
-            })?;
-            let fits = judge_checkpoint(heights, &m.resampled_um, roughness_um, &regions);
-            Ok(Trial {
-                surface_triangles: m.counts.top_triangles,
-                fits,
-                mesh: m,
-                angles,
             })
         },
-    );
-    search(
-        sq,
-        measured_px,
-        &settings,
-        regions.len(),
-        params.max_triangles,
-        &mut order,
     )
 }
 
