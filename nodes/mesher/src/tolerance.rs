@@ -857,7 +857,7 @@ fn check_scale(sq_um: f64) -> Result<()> {
 /// The measured Sq the bounds are scaled by (about the least-squares plane, as
 /// [`crate::Epsilon::SqFraction`]) and the measured sample count.
 fn scale_of(heights: RasterView<'_, f32>, at: &ScanPlacement) -> (f64, usize) {
-    let levelled = field_params(heights, at.pitch.x_um(), at.pitch.y_um()).map_or(0.0, |p| p.sq_um);
+    let levelled = field_params(heights, at.pitch).map_or(0.0, |p| p.sq_um);
     let v: Vec<f64> = heights
         .values()
         .iter()
@@ -1016,8 +1016,7 @@ fn angle_bound(s: &ToleranceSettings, at: &ScanPlacement) -> Result<Option<Angle
     }
     Ok(Some(AngleBound {
         min_angle_deg: deg,
-        pitch_x_um: at.pitch.x_um(),
-        pitch_y_um: at.pitch.y_um(),
+        pitch: at.pitch,
     }))
 }
 
