@@ -285,51 +285,66 @@ fn mesh_model(
             p.engine.name()
         );
     }
-    if let Some(px) = a.region_px.filter(|&p| p < 16) {
-        bail!("--region-px {px}: expected at least 16 samples");
-    }
+    let settings = tolerance_settings(a, min_angle_deg)?;
     let spill_dir = match a.out.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
     };
     std::fs::create_dir_all(spill_dir)
         .with_context(|| format!("{}: cannot create the folder", spill_dir.display()))?;
-    Ok(if fixed {
-        let m = mesh_streaming(heights, at, params, spill_dir)
-            .with_context(|| format!("{}", a.file.display()))?;
-        (m, None)
-    } else {
-        let mut tolerance = a.tolerance.unwrap_or_default();
-        if a.roughness.is_none() {
-            // Nothing to judge the roughness against: the report does not claim a bound.
-            tolerance.roughness_pct = None;
+    Ok(match settings {
+        None => {
+            let m = mesh_streaming(heights, at, params, spill_dir)
+                .with_context(|| format!("{}", a.file.display()))?;
+            (m, None)
         }
-        let settings = ToleranceSettings {
-            tolerance,
-            region_px: a.region_px,
-            method: match a.model_method.as_deref() {
-                None | Some("balanced") => surfstream_mesher::tolerance::ModelMethod::Balanced,
-                Some("greedy") => surfstream_mesher::tolerance::ModelMethod::Greedy,
-                Some(other) => bail!("--model-method {other}: expected balanced or greedy"),
-            },
-            min_angle_deg,
-        };
-        let roughness = a
-            .roughness
-            .as_deref()
-            .map(|path| roughness_reference(path, a.pitch_um, shape))
-            .transpose()?;
-        let (m, r) = mesh_streaming_to_tolerance(
-            heights,
-            roughness.as_deref(),
-            at,
-            params,
-            &settings,
-            spill_dir,
-        )
-        .with_context(|| format!("{}", a.file.display()))?;
-        (m, Some(r))
+        Some(settings) => {
+            let roughness = a
+                .roughness
+                .as_deref()
+                .map(|path| roughness_reference(path, a.pitch_um, shape))
+                .transpose()?;
+            let (m, r) = mesh_streaming_to_tolerance(
+                heights,
+                roughness.as_deref(),
+                at,
+                params,
+                &settings,
+                spill_dir,
+            )
+            .with_context(|| format!("{}", a.file.display()))?;
+            (m, Some(r))
+        }
     })
+}
+
+/// The tolerance search's settings from the flags; `None` for a fixed bound (--epsilon-um,
+/// --epsilon-sq).
+fn tolerance_settings(
+    a: &MeshArgs,
+    min_angle_deg: Option<f64>,
+) -> Result<Option<ToleranceSettings>> {
+    if let Some(px) = a.region_px.filter(|&p| p < 16) {
+        bail!("--region-px {px}: expected at least 16 samples");
+    }
+    if a.epsilon_um.is_some() || a.epsilon_sq.is_some() {
+        return Ok(None);
+    }
+    let mut tolerance = a.tolerance.unwrap_or_default();
+    if a.roughness.is_none() {
+        // Nothing to judge the roughness against: the report does not claim a bound.
+        tolerance.roughness_pct = None;
+    }
+    Ok(Some(ToleranceSettings {
+        tolerance,
+        region_px: a.region_px,
+        method: match a.model_method.as_deref() {
+            None | Some("balanced") => surfstream_mesher::tolerance::ModelMethod::Balanced,
+            Some("greedy") => surfstream_mesher::tolerance::ModelMethod::Greedy,
+            Some(other) => bail!("--model-method {other}: expected balanced or greedy"),
+        },
+        min_angle_deg,
+    }))
 }
 
 /// What the report says besides the mesh's own summary.
@@ -600,4 +615,126 @@ fn roughness_reference(path: &Path, pitch_um: Option<f64>, shape: Shape) -> Resu
         );
     }
     Ok(to_frame_heights(&r.heights_um).1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+    use surfstream_mesher::{
+        check_closed, mesh_height_field, mesh_to_tolerance, write_stl_ascii, write_stl_binary,
+    };
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        mesh: MeshArgs,
+    }
+
+    fn args(npy: &Path, stl: &Path, extra: &[&str]) -> MeshArgs {
+        let (npy, stl) = (npy.to_str().unwrap(), stl.to_str().unwrap());
+        let mut all = vec!["mesh", npy, "-o", stl];
+        all.extend_from_slice(extra);
+        Cli::try_parse_from(all).unwrap().mesh
+    }
+
+    /// A wavy 90 x 120 map with a deterministic roughness, one sample not measured, 0.5 x
+    /// 0.6 um pitch, about 40 um up (the verb meshes it about its mean).
+    fn wavy_npy(dir: &Path) -> PathBuf {
+        let (rows, cols) = (90, 120);
+        let mut h: Vec<f64> = (0..rows * cols)
+            .map(|k| {
+                let (y, x) = ((k / cols) as f64, (k % cols) as f64);
+                let noise = ((k * 7919 % 1009) as f64 / 1009.0 - 0.5) * 0.05;
+                40.0 + (x / 9.0).sin() + 0.5 * (y / 13.0).cos() + noise
+            })
+            .collect();
+        h[17 * cols + 33] = f64::NAN;
+        let npy = dir.join("wavy.npy");
+        surfstream_io::npy::write_npy_f64(&npy, &h, rows, cols).unwrap();
+        let geometry = surfstream_io::sidecar::NpyGeometry {
+            pitch_x_um: 0.5,
+            pitch_y_um: 0.6,
+            origin_um: None,
+        };
+        surfstream_io::sidecar::write_sidecar(&npy, &geometry).unwrap();
+        npy
+    }
+
+    /// The verb meshes through the streamed mesher; the in-memory mesher, run on the same
+    /// prepared heights, is the oracle: the same STL bytes and the same statistics, and the
+    /// spill file leaves nothing beside the STL.
+    #[test]
+    fn the_verb_writes_what_the_in_memory_mesher_writes() {
+        let d = tempfile::tempdir().unwrap();
+        let npy = wavy_npy(d.path());
+        let cases: [&[&str]; 3] = [
+            &[],
+            &[
+                "--epsilon-um",
+                "0.05",
+                "--sheet",
+                "--ascii",
+                "--units",
+                "um",
+            ],
+            &[
+                "--tolerance",
+                "sa=0.5,sq=0.5,sz=2",
+                "--model-method",
+                "greedy",
+            ],
+        ];
+        for (k, extra) in cases.into_iter().enumerate() {
+            let out = d.path().join(format!("case{k}/wall.stl"));
+            run(args(&npy, &out, extra)).unwrap();
+
+            let a = args(&npy, &out, extra);
+            let p = prepared_heights(&a).unwrap();
+            let heights = RasterView::new(&p.heights_um, p.shape).unwrap();
+            let pitch =
+                surfstream_core::Pitch::new(p.surface.pitch_x_um, p.surface.pitch_y_um).unwrap();
+            let at = ScanPlacement::new(pitch).with_z_offset(p.z_offset_um);
+            let params = mesh_params(&a, None);
+            let m = match tolerance_settings(&a, None).unwrap() {
+                Some(s) => {
+                    mesh_to_tolerance(heights, None, &at, &params, &s)
+                        .unwrap()
+                        .0
+                }
+                None => mesh_height_field(heights, &at, &params).unwrap(),
+            };
+            let mut want = Vec::new();
+            if a.ascii {
+                write_stl_ascii(&mut want, &m.mesh, "surfstream mesh").unwrap();
+            } else {
+                write_stl_binary(&mut want, &m.mesh, "surfstream mesh").unwrap();
+            }
+            assert!(
+                std::fs::read(&out).unwrap() == want,
+                "case {extra:?}: STL bytes differ"
+            );
+
+            let json: serde_json::Value =
+                serde_json::from_slice(&std::fs::read(out.with_extension("json")).unwrap())
+                    .unwrap();
+            let oracle = m.summary();
+            for key in [
+                "triangles",
+                "vertices",
+                "surface_triangles",
+                "fidelity",
+                "offset_um",
+            ] {
+                assert_eq!(json[key], oracle[key], "case {extra:?}: {key}");
+            }
+            assert_eq!(json["watertight"], check_closed(&m.mesh).watertight);
+            let mut files: Vec<String> = std::fs::read_dir(out.parent().unwrap())
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect();
+            files.sort();
+            assert_eq!(files, ["wall.json", "wall.stl"], "case {extra:?}");
+        }
+    }
 }
