@@ -1185,14 +1185,18 @@ pub fn mesh_to_tolerance(
     )
 }
 
-/// The one insertion order of both searches: the live blocks, the state kept at the last
-/// failing checkpoint, and what makes and judges a mesh from the blocks (`judge`).
+/// The one insertion order of both searches: the live blocks, the steps that made them (to
+/// come back to the last failing checkpoint), and what makes and judges a mesh from the
+/// blocks (`judge`).
 struct LiveOrder<'p, 'a, F> {
     plan: &'p BlockPlan<'a>,
     /// The windows' extremes, vertices from the start ([`window_extremes`]).
     extremes: Vec<u32>,
     live: Vec<LiveBlock<'p>>,
-    kept: Option<Vec<LiveBlock<'p>>>,
+    /// Every refinement the live blocks went through, in order: (bound, balanced).
+    steps: Vec<(f64, bool)>,
+    /// How many of `steps` made the state kept ([`Checkpoints::keep`]).
+    kept: Option<usize>,
     balance: Option<Balance<'a>>,
     bound: Option<AngleBound>,
     judge: F,
@@ -1214,6 +1218,7 @@ impl<'p, 'a, F> LiveOrder<'p, 'a, F> {
             plan,
             extremes,
             live: Vec::new(),
+            steps: Vec::new(),
             kept: None,
             balance: balance_of(settings, roughness_um),
             bound,
@@ -1227,28 +1232,42 @@ where
     F: FnMut(f64, &[LiveBlock<'p>], Option<AngleStats>) -> Result<Trial<M>>,
 {
     fn checkpoint(&mut self, epsilon_um: f64, stage: Stage) -> Result<Trial<M>> {
-        if stage == Stage::Bisect {
-            if let Some(kept) = &self.kept {
-                self.live.clone_from(kept);
-            }
+        if let (Stage::Bisect, Some(kept)) = (stage, self.kept) {
+            self.replay(kept);
         }
         // The curve's points past the chosen mesh continue greedily (module docs).
-        let balance = self.balance.filter(|_| stage != Stage::Curve);
-        let angles = refine_blocks(
-            self.plan,
-            &mut self.live,
-            &self.extremes,
-            epsilon_um,
-            balance,
-            self.bound.as_ref(),
-        );
+        let angles = self.refine(epsilon_um, stage != Stage::Curve);
         (self.judge)(epsilon_um, &self.live, angles)
     }
 
     fn keep(&mut self) {
-        match &mut self.kept {
-            Some(kept) => kept.clone_from(&self.live),
-            None => self.kept = Some(self.live.clone()),
+        self.kept = Some(self.steps.len());
+    }
+}
+
+impl<'p, F> LiveOrder<'p, '_, F> {
+    /// Refines the live blocks to `epsilon_um` (with the block balance when `balanced`), and
+    /// notes the step.
+    fn refine(&mut self, epsilon_um: f64, balanced: bool) -> Option<AngleStats> {
+        self.steps.push((epsilon_um, balanced));
+        refine_blocks(
+            self.plan,
+            &mut self.live,
+            &self.extremes,
+            epsilon_um,
+            self.balance.filter(|_| balanced),
+            self.bound.as_ref(),
+        )
+    }
+
+    /// The live blocks as the first `kept` steps left them, made again from the start: the
+    /// insertion is deterministic, so the same steps give the same blocks, bit for bit,
+    /// without a copy of the blocks held through the search (a third more memory).
+    fn replay(&mut self, kept: usize) {
+        let steps: Vec<(f64, bool)> = self.steps.drain(..).take(kept).collect();
+        self.live.clear();
+        for (epsilon_um, balanced) in steps {
+            self.refine(epsilon_um, balanced);
         }
     }
 }
