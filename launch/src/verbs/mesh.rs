@@ -11,12 +11,12 @@ use surfstream_core::frame::to_frame_heights;
 use surfstream_core::raster::{RasterView, Shape};
 use surfstream_mesher::outliers::{find_spikes, OutlierPolicy, OutlierReport};
 use surfstream_mesher::{
-    check_closed, grid_sheet_for, job::DEFAULT_EPSILON_SQ_FRACTION, mesh_height_field, DemEngine,
-    EngineProfile, Epsilon, LengthUnit, MeshError, MeshKind, MeshParams, MissingSamples,
-    ScanPlacement, SolidParams, TargetMethod,
+    grid_sheet_for, job::DEFAULT_EPSILON_SQ_FRACTION, mesh_streaming, DemEngine, EngineProfile,
+    Epsilon, LengthUnit, MeshError, MeshKind, MeshParams, MissingSamples, ScanPlacement,
+    SolidParams, TargetMethod,
 };
 use surfstream_mesher::{
-    mesh_to_tolerance, AdaptiveMesh, MeshCheck, ToleranceReport, ToleranceSettings,
+    mesh_streaming_to_tolerance, MeshCheck, StreamedMesh, ToleranceReport, ToleranceSettings,
 };
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -129,21 +129,19 @@ pub fn run(a: MeshArgs) -> Result<()> {
     }
     let params = mesh_params(&a, profile);
     let t0 = Instant::now();
-    let (m, tolerance) = mesh_model(&a, heights, &at, &params, profile, shape)?;
+    let (mut m, tolerance) = mesh_model(&a, heights, &at, &params, profile, shape)?;
     let mesh_s = t0.elapsed().as_secs_f64();
-    let check = check_closed(&m.mesh);
 
     let ascii = profile.map_or(a.ascii, |p| p.ascii);
-    // The writers add units and offset to the label (stl::stl_header).
+    // The writer adds units and offset to the label (stl::stl_header); the closed-solid check
+    // is made as the triangles pass.
     let label = "surfstream mesh";
+    let mut check = None;
     surfstream_core::fsutil::write_atomic(&a.out, |w| {
-        if ascii {
-            surfstream_mesher::write_stl_ascii(w, &m.mesh, label)?;
-        } else {
-            surfstream_mesher::write_stl_binary(w, &m.mesh, label)?;
-        }
+        check = Some(m.write_stl(w, ascii, label, heights)?);
         Ok(())
     })?;
+    let check = check.ok_or_else(|| anyhow!("{}: nothing written", a.out.display()))?;
     let written = Written {
         surface: &surface,
         profile,
@@ -265,7 +263,10 @@ fn mesh_params(a: &MeshArgs, profile: Option<EngineProfile>) -> MeshParams {
 }
 
 /// The mesh: at a fixed vertical bound when one is given, else the fewest triangles that meet
-/// the tolerance (judged against the measured roughness with --roughness).
+/// the tolerance (judged against the measured roughness with --roughness). Streamed
+/// ([`surfstream_mesher::stream`]): the triangles wait in a spill file in the STL's folder
+/// (created here), so the memory held is a few bytes per sample whatever the triangle count;
+/// [`StreamedMesh::write_stl`] writes them.
 fn mesh_model(
     a: &MeshArgs,
     heights: RasterView<'_, f32>,
@@ -273,7 +274,7 @@ fn mesh_model(
     params: &MeshParams,
     profile: Option<EngineProfile>,
     shape: Shape,
-) -> Result<(AdaptiveMesh, Option<ToleranceReport>)> {
+) -> Result<(StreamedMesh, Option<ToleranceReport>)> {
     let fixed = a.epsilon_um.is_some() || a.epsilon_sq.is_some();
     // An engine that refuses slivers gets the tolerance mesh with its angles bounded.
     let min_angle_deg = profile.map(|p| p.min_angle_deg).filter(|&deg| deg > 0.0);
@@ -284,38 +285,66 @@ fn mesh_model(
             p.engine.name()
         );
     }
+    let settings = tolerance_settings(a, min_angle_deg)?;
+    let spill_dir = match a.out.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    std::fs::create_dir_all(spill_dir)
+        .with_context(|| format!("{}: cannot create the folder", spill_dir.display()))?;
+    Ok(match settings {
+        None => {
+            let m = mesh_streaming(heights, at, params, spill_dir)
+                .with_context(|| format!("{}", a.file.display()))?;
+            (m, None)
+        }
+        Some(settings) => {
+            let roughness = a
+                .roughness
+                .as_deref()
+                .map(|path| roughness_reference(path, a.pitch_um, shape))
+                .transpose()?;
+            let (m, r) = mesh_streaming_to_tolerance(
+                heights,
+                roughness.as_deref(),
+                at,
+                params,
+                &settings,
+                spill_dir,
+            )
+            .with_context(|| format!("{}", a.file.display()))?;
+            (m, Some(r))
+        }
+    })
+}
+
+/// The tolerance search's settings from the flags; `None` for a fixed bound (--epsilon-um,
+/// --epsilon-sq).
+fn tolerance_settings(
+    a: &MeshArgs,
+    min_angle_deg: Option<f64>,
+) -> Result<Option<ToleranceSettings>> {
     if let Some(px) = a.region_px.filter(|&p| p < 16) {
         bail!("--region-px {px}: expected at least 16 samples");
     }
-    Ok(if fixed {
-        let m = mesh_height_field(heights, at, params)
-            .with_context(|| format!("{}", a.file.display()))?;
-        (m, None)
-    } else {
-        let mut tolerance = a.tolerance.unwrap_or_default();
-        if a.roughness.is_none() {
-            // Nothing to judge the roughness against: the report does not claim a bound.
-            tolerance.roughness_pct = None;
-        }
-        let settings = ToleranceSettings {
-            tolerance,
-            region_px: a.region_px,
-            method: match a.model_method.as_deref() {
-                None | Some("balanced") => surfstream_mesher::tolerance::ModelMethod::Balanced,
-                Some("greedy") => surfstream_mesher::tolerance::ModelMethod::Greedy,
-                Some(other) => bail!("--model-method {other}: expected balanced or greedy"),
-            },
-            min_angle_deg,
-        };
-        let roughness = a
-            .roughness
-            .as_deref()
-            .map(|path| roughness_reference(path, a.pitch_um, shape))
-            .transpose()?;
-        let (m, r) = mesh_to_tolerance(heights, roughness.as_deref(), at, params, &settings)
-            .with_context(|| format!("{}", a.file.display()))?;
-        (m, Some(r))
-    })
+    if a.epsilon_um.is_some() || a.epsilon_sq.is_some() {
+        return Ok(None);
+    }
+    let mut tolerance = a.tolerance.unwrap_or_default();
+    if a.roughness.is_none() {
+        // Nothing to judge the roughness against: the report does not claim a bound.
+        tolerance.roughness_pct = None;
+    }
+    Ok(Some(ToleranceSettings {
+        tolerance,
+        region_px: a.region_px,
+        method: match a.model_method.as_deref() {
+            None | Some("balanced") => surfstream_mesher::tolerance::ModelMethod::Balanced,
+            Some("greedy") => surfstream_mesher::tolerance::ModelMethod::Greedy,
+            Some(other) => bail!("--model-method {other}: expected balanced or greedy"),
+        },
+        min_angle_deg,
+    }))
 }
 
 /// What the report says besides the mesh's own summary.
@@ -331,7 +360,7 @@ struct Written<'a> {
 /// OUT.json beside the STL: the mesh's summary, the input, the checks, the tolerance search.
 fn write_report(
     a: &MeshArgs,
-    m: &AdaptiveMesh,
+    m: &StreamedMesh,
     tolerance: Option<&ToleranceReport>,
     w: &Written,
 ) -> Result<PathBuf> {
@@ -345,7 +374,7 @@ fn write_report(
     } = *w;
     let (pitch_x_um, pitch_y_um) = (surface.pitch_x_um, surface.pitch_y_um);
     let json_path = a.out.with_extension("json");
-    let mut report = m.summary();
+    let mut report = m.summary.to_value();
     let o = report
         .as_object_mut()
         .ok_or_else(|| anyhow!("mesh summary is not an object"))?;
@@ -403,7 +432,7 @@ fn write_report(
 /// The lines the verb prints: the tolerance met (or not), the angles, the mesh.
 fn say_result(
     a: &MeshArgs,
-    m: &AdaptiveMesh,
+    m: &StreamedMesh,
     tolerance: Option<&ToleranceReport>,
     params: &MeshParams,
     profile: Option<EngineProfile>,
@@ -445,7 +474,7 @@ fn say_result(
             eprintln!("mesh: warning: {reason}");
         }
     }
-    let f = &m.fidelity;
+    let (f, c) = (&m.fidelity, &m.counts);
     let bound = match params.epsilon {
         Epsilon::Um(_) => String::new(),
         Epsilon::SqFraction(q) => format!(" = {q} x Sq"),
@@ -453,21 +482,18 @@ fn say_result(
     eprintln!(
         "mesh: {} triangles ({} surface), {} vertices, STL in {}; max vertical error \
          {} um, RMS {} um (bound {} um{bound}{}); {mesh_s:.2} s; wrote {} and {}",
-        m.mesh.triangles.len(),
-        m.surface_triangles,
-        m.mesh.vertices.len(),
+        c.triangles,
+        c.top_triangles,
+        c.vertices,
         if a.units.is_none() && profile.is_none() {
-            format!(
-                "{} (the default; --units m | mm | um)",
-                m.mesh.units.symbol()
-            )
+            format!("{} (the default; --units m | mm | um)", c.units.symbol())
         } else {
-            m.mesh.units.symbol().to_string()
+            c.units.symbol().to_string()
         },
         super::sig(f.error.max_um, 4),
         super::sig(f.error.rms_um, 4),
         super::sig(f.epsilon_um, 4),
-        if m.budget_reached {
+        if m.summary.record.budget_reached {
             ", triangle budget reached"
         } else {
             ""
@@ -589,4 +615,126 @@ fn roughness_reference(path: &Path, pitch_um: Option<f64>, shape: Shape) -> Resu
         );
     }
     Ok(to_frame_heights(&r.heights_um).1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+    use surfstream_mesher::{
+        check_closed, mesh_height_field, mesh_to_tolerance, write_stl_ascii, write_stl_binary,
+    };
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        mesh: MeshArgs,
+    }
+
+    fn args(npy: &Path, stl: &Path, extra: &[&str]) -> MeshArgs {
+        let (npy, stl) = (npy.to_str().unwrap(), stl.to_str().unwrap());
+        let mut all = vec!["mesh", npy, "-o", stl];
+        all.extend_from_slice(extra);
+        Cli::try_parse_from(all).unwrap().mesh
+    }
+
+    /// A wavy 90 x 120 map with a deterministic roughness, one sample not measured, 0.5 x
+    /// 0.6 um pitch, about 40 um up (the verb meshes it about its mean).
+    fn wavy_npy(dir: &Path) -> PathBuf {
+        let (rows, cols) = (90, 120);
+        let mut h: Vec<f64> = (0..rows * cols)
+            .map(|k| {
+                let (y, x) = ((k / cols) as f64, (k % cols) as f64);
+                let noise = ((k * 7919 % 1009) as f64 / 1009.0 - 0.5) * 0.05;
+                40.0 + (x / 9.0).sin() + 0.5 * (y / 13.0).cos() + noise
+            })
+            .collect();
+        h[17 * cols + 33] = f64::NAN;
+        let npy = dir.join("wavy.npy");
+        surfstream_io::npy::write_npy_f64(&npy, &h, rows, cols).unwrap();
+        let geometry = surfstream_io::sidecar::NpyGeometry {
+            pitch_x_um: 0.5,
+            pitch_y_um: 0.6,
+            origin_um: None,
+        };
+        surfstream_io::sidecar::write_sidecar(&npy, &geometry).unwrap();
+        npy
+    }
+
+    /// The verb meshes through the streamed mesher; the in-memory mesher, run on the same
+    /// prepared heights, is the oracle: the same STL bytes and the same statistics, and the
+    /// spill file leaves nothing beside the STL.
+    #[test]
+    fn the_verb_writes_what_the_in_memory_mesher_writes() {
+        let d = tempfile::tempdir().unwrap();
+        let npy = wavy_npy(d.path());
+        let cases: [&[&str]; 3] = [
+            &[],
+            &[
+                "--epsilon-um",
+                "0.05",
+                "--sheet",
+                "--ascii",
+                "--units",
+                "um",
+            ],
+            &[
+                "--tolerance",
+                "sa=0.5,sq=0.5,sz=2",
+                "--model-method",
+                "greedy",
+            ],
+        ];
+        for (k, extra) in cases.into_iter().enumerate() {
+            let out = d.path().join(format!("case{k}/wall.stl"));
+            run(args(&npy, &out, extra)).unwrap();
+
+            let a = args(&npy, &out, extra);
+            let p = prepared_heights(&a).unwrap();
+            let heights = RasterView::new(&p.heights_um, p.shape).unwrap();
+            let pitch =
+                surfstream_core::Pitch::new(p.surface.pitch_x_um, p.surface.pitch_y_um).unwrap();
+            let at = ScanPlacement::new(pitch).with_z_offset(p.z_offset_um);
+            let params = mesh_params(&a, None);
+            let m = match tolerance_settings(&a, None).unwrap() {
+                Some(s) => {
+                    mesh_to_tolerance(heights, None, &at, &params, &s)
+                        .unwrap()
+                        .0
+                }
+                None => mesh_height_field(heights, &at, &params).unwrap(),
+            };
+            let mut want = Vec::new();
+            if a.ascii {
+                write_stl_ascii(&mut want, &m.mesh, "surfstream mesh").unwrap();
+            } else {
+                write_stl_binary(&mut want, &m.mesh, "surfstream mesh").unwrap();
+            }
+            assert!(
+                std::fs::read(&out).unwrap() == want,
+                "case {extra:?}: STL bytes differ"
+            );
+
+            let json: serde_json::Value =
+                serde_json::from_slice(&std::fs::read(out.with_extension("json")).unwrap())
+                    .unwrap();
+            let oracle = m.summary();
+            for key in [
+                "triangles",
+                "vertices",
+                "surface_triangles",
+                "fidelity",
+                "offset_um",
+            ] {
+                assert_eq!(json[key], oracle[key], "case {extra:?}: {key}");
+            }
+            assert_eq!(json["watertight"], check_closed(&m.mesh).watertight);
+            let mut files: Vec<String> = std::fs::read_dir(out.parent().unwrap())
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect();
+            files.sort();
+            assert_eq!(files, ["wall.json", "wall.stl"], "case {extra:?}");
+        }
+    }
 }

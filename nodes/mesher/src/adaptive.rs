@@ -47,6 +47,38 @@ pub struct MeshParams {
     pub block_samples: Option<usize>,
 }
 
+impl MeshParams {
+    /// The vertical bound in um: absolute, or the fraction of the field's Sq (`sq_um`, asked
+    /// only then). Errors: a fraction that is not finite and positive, or an Sq of zero.
+    pub(crate) fn epsilon_um(&self, sq_um: impl FnOnce() -> f64) -> Result<f64> {
+        match self.epsilon {
+            Epsilon::Um(e) => Ok(e),
+            Epsilon::SqFraction(f) => {
+                crate::field::positive_finite("epsilon_sq_fraction", f)?;
+                let sq = sq_um();
+                if sq <= 0.0 {
+                    return Err(MeshError::Incompatible(format!(
+                        "epsilon relative to Sq: the height field's Sq is {sq} um, so the bound \
+                         would be zero; give an absolute epsilon in um"
+                    )));
+                }
+                Ok(f * sq)
+            }
+        }
+    }
+
+    /// The insertion's parameters at the bound `epsilon_um`.
+    pub(crate) fn tin_params(&self, epsilon_um: f64, keep_extremes: bool) -> TinParams {
+        TinParams {
+            epsilon_um,
+            max_triangles: self.max_triangles,
+            missing: self.missing,
+            block_samples: self.block_samples,
+            keep_extremes,
+        }
+    }
+}
+
 /// The fidelity report (issue item 5), in um.
 #[derive(Debug, Clone, Serialize)]
 pub struct Fidelity {
@@ -81,6 +113,8 @@ pub struct AdaptiveMesh {
 /// Meshes `heights` (placed in scan coordinates by `at`) with the greedy error-bounded triangulation and closes it into a solid or keeps
 /// it as a sheet. Errors: bad geometry or parameters, a solid asked with missing samples left as
 /// holes (a solid needs a closed top), or a solid whose top no longer reaches the grid's rim.
+/// In memory: the product is [`crate::mesh_streaming`] (the same mesh and STL bytes in bounded
+/// memory); this twin is the tests' oracle.
 pub fn mesh_height_field(
     heights: RasterView<'_, f32>,
     at: &ScanPlacement,
@@ -98,31 +132,9 @@ pub(crate) fn mesh_height_field_with(
     keep_extremes: bool,
 ) -> Result<AdaptiveMesh> {
     check_adaptive(heights, at, params)?;
-    let epsilon_um = match params.epsilon {
-        Epsilon::Um(e) => e,
-        Epsilon::SqFraction(f) => {
-            crate::field::positive_finite("epsilon_sq_fraction", f)?;
-            let field = field_params(heights, at.pitch.x_um(), at.pitch.y_um());
-            let sq = field.map_or(0.0, |p| p.sq_um);
-            if sq <= 0.0 {
-                return Err(MeshError::Incompatible(format!(
-                    "epsilon relative to Sq: the height field's Sq is {sq} um, so the bound \
-                     would be zero; give an absolute epsilon in um"
-                )));
-            }
-            f * sq
-        }
-    };
-    let tin = triangulate(
-        heights,
-        &TinParams {
-            epsilon_um,
-            max_triangles: params.max_triangles,
-            missing: params.missing,
-            block_samples: params.block_samples,
-            keep_extremes,
-        },
-    )?;
+    let epsilon_um =
+        params.epsilon_um(|| field_params(heights, at.pitch).map_or(0.0, |p| p.sq_um))?;
+    let tin = triangulate(heights, &params.tin_params(epsilon_um, keep_extremes))?;
     finish_adaptive(heights, at, params, &tin, epsilon_um)
 }
 
@@ -161,8 +173,7 @@ pub(crate) fn finish_adaptive(
         .zip(heights_um)
         .map(|(&m, h)| if h.is_nan() { f32::NAN } else { m })
         .collect();
-    let (field_params, mesh_params) =
-        compare(heights, &mesh_at_measured, at.pitch.x_um(), at.pitch.y_um());
+    let (field_params, mesh_params) = compare(heights, &mesh_at_measured, at.pitch);
 
     // Place the vertices as the grid solid does: x, y from the sample's index, z from its
     // height; re-centred from small numbers so that no precision is lost.

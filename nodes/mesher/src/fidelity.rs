@@ -10,7 +10,8 @@
 
 use rayon::prelude::*;
 use surfstream_core::metrology::{fit_plane, params, Grid};
-use surfstream_core::raster::{Raster, RasterView, Shape};
+use surfstream_core::raster::{Raster, RasterView};
+use surfstream_core::{Pitch, Sampling};
 
 /// Areal parameters of one surface, um (Sdr in %): the report's record itself, so the
 /// fidelity written is the one its readers read.
@@ -21,13 +22,8 @@ fn widened(heights: RasterView<'_, f32>) -> Raster<f64> {
     heights.map(|&h| f64::from(h))
 }
 
-fn area_params(
-    levelled_um: &[f64],
-    shape: Shape,
-    pitch_x_um: f64,
-    pitch_y_um: f64,
-) -> Option<AreaParams> {
-    let g = Grid::new(levelled_um, shape.rows, shape.cols, pitch_x_um, pitch_y_um).ok()?;
+fn area_params(levelled_um: &[f64], sampling: Sampling) -> Option<AreaParams> {
+    let g = Grid::of(levelled_um, sampling).ok()?;
     let p = params(&g).ok()?;
     Some(AreaParams {
         sa_um: p.sa,
@@ -37,14 +33,10 @@ fn area_params(
     })
 }
 
-/// The parameters of the height field alone, levelled by its least-squares plane; `None` when
-/// no sample is valid or a pitch is bad.
-pub fn field_params(
-    field: RasterView<'_, f32>,
-    pitch_x_um: f64,
-    pitch_y_um: f64,
-) -> Option<AreaParams> {
-    level_field(field, pitch_x_um, pitch_y_um)?.params
+/// The parameters of the height field alone (samples `pitch` apart), levelled by its
+/// least-squares plane; `None` when no sample is valid.
+pub fn field_params(field: RasterView<'_, f32>, pitch: Pitch) -> Option<AreaParams> {
+    level_field(field, pitch)?.params
 }
 
 /// A height field's least-squares plane and its parameters about that plane: the field's side
@@ -54,8 +46,7 @@ pub fn field_params(
 pub(crate) struct FieldLevel {
     /// z = a + b x + c y (um), as [`fit_plane`] gives it.
     plane: (f64, f64, f64),
-    pitch_um: (f64, f64),
-    shape: Shape,
+    sampling: Sampling,
     /// The field's parameters, levelled by the plane.
     pub(crate) params: Option<AreaParams>,
 }
@@ -91,37 +82,23 @@ fn levelled(
     out
 }
 
-/// The field's plane and levelled parameters; `None` when the field has no valid sample or a
-/// pitch is bad. Holds one f64 copy of the field while it runs.
-pub(crate) fn level_field(
-    field: RasterView<'_, f32>,
-    pitch_x_um: f64,
-    pitch_y_um: f64,
-) -> Option<FieldLevel> {
-    let shape = field.shape();
+/// The field's plane and levelled parameters; `None` when the field has no valid sample.
+/// Holds one f64 copy of the field while it runs.
+pub(crate) fn level_field(field: RasterView<'_, f32>, pitch: Pitch) -> Option<FieldLevel> {
+    let sampling = Sampling::of(field.shape(), pitch);
     let plane = {
         let widened = widened(field);
-        let g = Grid::new(
-            widened.values(),
-            shape.rows,
-            shape.cols,
-            pitch_x_um,
-            pitch_y_um,
-        )
-        .ok()?;
+        let g = Grid::of(widened.values(), sampling).ok()?;
         fit_plane(&g).ok()?
     };
-    let (bx, by) = (plane.1 * pitch_x_um, plane.2 * pitch_y_um);
+    let (bx, by) = (plane.1 * pitch.x_um(), plane.2 * pitch.y_um());
     let params = area_params(
-        &levelled(field.values(), None, shape.cols, plane, bx, by),
-        shape,
-        pitch_x_um,
-        pitch_y_um,
+        &levelled(field.values(), None, sampling.cols(), plane, bx, by),
+        sampling,
     );
     Some(FieldLevel {
         plane,
-        pitch_um: (pitch_x_um, pitch_y_um),
-        shape,
+        sampling,
         params,
     })
 }
@@ -144,29 +121,28 @@ impl FieldLevel {
     }
 
     fn mesh_params_where(&self, mesh_um: &[f32], measured: Option<&[f32]>) -> Option<AreaParams> {
-        if mesh_um.len() != self.shape.len() || measured.is_some_and(|m| m.len() != mesh_um.len()) {
+        let s = self.sampling;
+        if mesh_um.len() != s.shape().len() || measured.is_some_and(|m| m.len() != mesh_um.len()) {
             return None;
         }
-        let (px, py) = self.pitch_um;
-        let (bx, by) = (self.plane.1 * px, self.plane.2 * py);
-        let mesh = levelled(mesh_um, measured, self.shape.cols, self.plane, bx, by);
-        area_params(&mesh, self.shape, px, py)
+        let (bx, by) = (self.plane.1 * s.pitch_x_um(), self.plane.2 * s.pitch_y_um());
+        let mesh = levelled(mesh_um, measured, s.cols(), self.plane, bx, by);
+        area_params(&mesh, s)
     }
 }
 
 /// The parameters of the height field and of the resampled mesh (`mesh_um`, the field's shape,
 /// NaN where the mesh is not compared), both levelled by the height field's least-squares
-/// plane.
+/// plane (samples `pitch` apart).
 pub fn compare(
     field: RasterView<'_, f32>,
     mesh_um: &[f32],
-    pitch_x_um: f64,
-    pitch_y_um: f64,
+    pitch: Pitch,
 ) -> (Option<AreaParams>, Option<AreaParams>) {
     if mesh_um.len() != field.shape().len() {
         return (None, None);
     }
-    match level_field(field, pitch_x_um, pitch_y_um) {
+    match level_field(field, pitch) {
         Some(level) => (level.params, level.mesh_params(mesh_um)),
         None => (None, None),
     }
@@ -175,6 +151,11 @@ pub fn compare(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use surfstream_core::raster::Shape;
+
+    fn pitch(um: f64) -> Pitch {
+        Pitch::square(um).unwrap()
+    }
 
     fn view(h: &[f32], rows: usize, cols: usize) -> RasterView<'_, f32> {
         RasterView::new(h, Shape::new(rows, cols)).unwrap()
@@ -186,7 +167,7 @@ mod tests {
         let tilted: Vec<f32> = (0..w * h)
             .map(|k| (3.0 + 0.01 * (k % w) as f64 - 0.02 * (k / w) as f64) as f32)
             .collect();
-        let (field, mesh) = compare(view(&tilted, h, w), &tilted, 0.5, 0.5);
+        let (field, mesh) = compare(view(&tilted, h, w), &tilted, pitch(0.5));
         let (field, mesh) = (field.unwrap(), mesh.unwrap());
         assert!(field.sq_um < 1e-5 && field.sz_um < 1e-5, "{field:?}");
         assert_eq!(field, mesh);
@@ -199,7 +180,7 @@ mod tests {
         let phase = |k: usize| 2.0 * std::f64::consts::PI * ((k % w) as f64 - centre) / 16.0;
         let sine: Vec<f32> = (0..w * h).map(|k| (a * phase(k).cos()) as f32).collect();
         let half: Vec<f32> = sine.iter().map(|&z| 0.5 * z).collect();
-        let (field, mesh) = compare(view(&sine, h, w), &half, 1.0, 1.0);
+        let (field, mesh) = compare(view(&sine, h, w), &half, pitch(1.0));
         let (field, mesh) = (field.unwrap(), mesh.unwrap());
         assert!((field.sq_um - a / 2f64.sqrt()).abs() < 1e-3, "{field:?}");
         assert!(
@@ -211,7 +192,7 @@ mod tests {
         assert!((mesh.sq_um - 0.5 * field.sq_um).abs() < 1e-3, "{mesh:?}");
         assert!(field.sdr_percent > mesh.sdr_percent && mesh.sdr_percent > 0.0);
         assert_eq!(
-            compare(view(&[f32::NAN; 6], 2, 3), &[0.0; 6], 1.0, 1.0),
+            compare(view(&[f32::NAN; 6], 2, 3), &[0.0; 6], pitch(1.0)),
             (None, None)
         );
     }

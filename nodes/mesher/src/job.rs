@@ -611,7 +611,9 @@ impl MeshJob {
         Ok(Some(r))
     }
 
-    /// Meshes the chosen surface (takes its final frames).
+    /// Meshes the chosen surface (takes its final frames) in memory: the twin of
+    /// [`MeshJob::mesh_to_files`], which the node runs. Only the tests call it, as the oracle
+    /// the streamed files are compared with (the same STL bytes and statistics).
     pub fn mesh(&mut self) -> Result<MeshedSurface> {
         let mut s = self.surface_to_mesh()?;
         let reference = self.roughness_reference(&s)?;
@@ -639,6 +641,8 @@ impl MeshJob {
         Some(report)
     }
 
+    /// The mesh in memory: the engines' grid sheets (bounded by their budgets) for
+    /// [`MeshJob::mesh_to_files`]; every method for [`MeshJob::mesh`], the tests' oracle.
     fn mesh_in_memory(
         &self,
         s: &HeightMap,

@@ -42,14 +42,12 @@ use crate::check::MeshCheck;
 use crate::error::{MeshError, Result};
 use crate::fidelity::{level_field, FieldLevel};
 use crate::field::fill_missing;
-use crate::field::{positive_finite, validate, ScanPlacement};
+use crate::field::{validate, ScanPlacement};
 use crate::geom;
 use crate::solid::{close_top_surface, GridPlacement, SolidParams};
 use crate::stl::StlSink;
-use crate::tin::{
-    grid_rim, on_row, paint_band, BlockPlan, BlockTin, ErrorStats, MissingSamples, TinParams,
-};
-use crate::{Epsilon, MeshKind, MeshParams};
+use crate::tin::{grid_rim, on_row, paint_band, BlockPlan, BlockTin, ErrorStats, MissingSamples};
+use crate::{MeshKind, MeshParams};
 
 /// Rows of blocks meshed (in parallel) and painted (in parallel) at a time. Two keep both
 /// cores busy; more only holds more triangles.
@@ -222,31 +220,9 @@ pub(crate) fn mesh_streaming_with(
     crate::adaptive::check_adaptive(heights, at, params)?;
     // The field's plane and parameters, once (the in-memory mesher computes them twice, the
     // same way); one f64 copy of the field while it runs.
-    let level = level_field(heights, at.pitch.x_um(), at.pitch.y_um());
-    let epsilon_um = match params.epsilon {
-        Epsilon::Um(e) => e,
-        Epsilon::SqFraction(f) => {
-            positive_finite("epsilon_sq_fraction", f)?;
-            let sq = level.and_then(|l| l.params).map_or(0.0, |p| p.sq_um);
-            if sq <= 0.0 {
-                return Err(MeshError::Incompatible(format!(
-                    "epsilon relative to Sq: the height field's Sq is {sq} um, so the bound \
-                     would be zero; give an absolute epsilon in um"
-                )));
-            }
-            f * sq
-        }
-    };
-    let plan = BlockPlan::new(
-        heights,
-        &TinParams {
-            epsilon_um,
-            max_triangles: params.max_triangles,
-            missing: params.missing,
-            block_samples: params.block_samples,
-            keep_extremes,
-        },
-    )?;
+    let level = level_field(heights, at.pitch);
+    let epsilon_um = params.epsilon_um(|| level.and_then(|l| l.params).map_or(0.0, |p| p.sq_um))?;
+    let plan = BlockPlan::new(heights, &params.tin_params(epsilon_um, keep_extremes))?;
     stream_blocks(
         heights,
         at,
@@ -261,7 +237,7 @@ pub(crate) fn mesh_streaming_with(
 
 /// The level of the field, for [`stream_blocks`] (one f64 copy of the field while it runs).
 pub(crate) fn field_level(heights: RasterView<'_, f32>, at: &ScanPlacement) -> Option<FieldLevel> {
-    level_field(heights, at.pitch.x_um(), at.pitch.y_um())
+    level_field(heights, at.pitch)
 }
 
 /// The first pass of the streaming mesher over the blocks of `plan`, each triangulated by

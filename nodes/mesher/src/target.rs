@@ -21,6 +21,7 @@ use std::str::FromStr;
 use serde::{Deserialize, Serialize};
 use surfstream_core::raster::{Raster, RasterView, Shape};
 use surfstream_core::record::{self, GridSheetFidelity, GridSheetRecord};
+use surfstream_core::Pitch;
 
 use crate::error::{MeshError, Result};
 use crate::fidelity::{field_params, AreaParams};
@@ -262,8 +263,8 @@ pub struct TargetMesh {
     pub grid: Shape,
     /// The block means that were meshed, um relative to the input's z offset.
     pub block_means: Raster<f32>,
-    /// Sample spacing of the meshed grid, um (x, y).
-    pub pitch_um: [f64; 2],
+    /// Sample spacing of the meshed grid.
+    pub pitch: Pitch,
     pub quality: ElementQuality,
     /// Sa, Sq, Sz, Sdr of the measured field and of the meshed grid (what averaging cost).
     pub measured: Option<AreaParams>,
@@ -278,7 +279,7 @@ impl TargetMesh {
             kind: "sheet".into(),
             block_stride: self.stride as u64,
             grid_rows_cols: [self.grid.rows as u64, self.grid.cols as u64],
-            meshed_pitch_um: self.pitch_um,
+            meshed_pitch_um: self.pitch.um(),
             element_quality: self.quality,
             fidelity: GridSheetFidelity {
                 measured: self.measured,
@@ -357,12 +358,8 @@ pub fn grid_sheet_for(
     }
     Ok(TargetMesh {
         mesh,
-        measured: field_params(heights, at.pitch.x_um(), at.pitch.y_um()),
-        meshed: field_params(
-            reduced.view(),
-            reduced_at.pitch.x_um(),
-            reduced_at.pitch.y_um(),
-        ),
+        measured: field_params(heights, at.pitch),
+        meshed: field_params(reduced.view(), reduced_at.pitch),
         // Recorded as what was made: the regular grid, whatever the engine's default.
         profile: EngineProfile {
             method: TargetMethod::Grid,
@@ -371,7 +368,7 @@ pub fn grid_sheet_for(
         stride,
         grid: reduced.shape(),
         block_means: reduced,
-        pitch_um: [reduced_at.pitch.x_um(), reduced_at.pitch.y_um()],
+        pitch: reduced_at.pitch,
         quality,
     })
 }

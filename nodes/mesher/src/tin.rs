@@ -96,8 +96,7 @@ pub struct Tin {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AngleBound {
     pub min_angle_deg: f64,
-    pub pitch_x_um: f64,
-    pub pitch_y_um: f64,
+    pub pitch: surfstream_core::Pitch,
 }
 
 /// Rounds of [`Builder::bound_angles`] at most (each treats every triangle below the bound).
@@ -830,7 +829,11 @@ impl Builder<'_> {
     fn min_angle(&self, t: usize, bound: &AngleBound) -> f64 {
         let p = self.tris[t].v.map(|v| {
             let (x, y, z) = self.corner(v);
-            [x as f64 * bound.pitch_x_um, y as f64 * bound.pitch_y_um, z]
+            [
+                x as f64 * bound.pitch.x_um(),
+                y as f64 * bound.pitch.y_um(),
+                z,
+            ]
         });
         geom::min_angle_deg(p)
     }
@@ -2480,8 +2483,7 @@ mod tests {
         }
         let bound = AngleBound {
             min_angle_deg: 12.0,
-            pitch_x_um: 1.0,
-            pitch_y_um: 1.2,
+            pitch: surfstream_core::Pitch::new(1.0, 1.2).unwrap(),
         };
         let before = b.b.tris.len();
         let (added, left) = b.bound_angles(&plan, 0, &[], &bound, true);

@@ -857,7 +857,7 @@ fn check_scale(sq_um: f64) -> Result<()> {
 /// The measured Sq the bounds are scaled by (about the least-squares plane, as
 /// [`crate::Epsilon::SqFraction`]) and the measured sample count.
 fn scale_of(heights: RasterView<'_, f32>, at: &ScanPlacement) -> (f64, usize) {
-    let levelled = field_params(heights, at.pitch.x_um(), at.pitch.y_um()).map_or(0.0, |p| p.sq_um);
+    let levelled = field_params(heights, at.pitch).map_or(0.0, |p| p.sq_um);
     let v: Vec<f64> = heights
         .values()
         .iter()
@@ -1016,8 +1016,7 @@ fn angle_bound(s: &ToleranceSettings, at: &ScanPlacement) -> Result<Option<Angle
     }
     Ok(Some(AngleBound {
         min_angle_deg: deg,
-        pitch_x_um: at.pitch.x_um(),
-        pitch_y_um: at.pitch.y_um(),
+        pitch: at.pitch,
     }))
 }
 
@@ -1086,16 +1085,42 @@ fn judge_checkpoint(
     )
 }
 
-/// The adaptive mesh of `heights` with the fewest triangles the search finds within the
-/// tolerance (in memory; `params.epsilon` is replaced by the search's bounds and
-/// `params.max_triangles` bounds the search, not the insertion).
-pub fn mesh_to_tolerance(
+/// A checkpoint's mesh as the search judges it, made in memory or streamed.
+pub(crate) trait CheckpointMesh {
+    /// The mesh on the grid, um relative to the field's z offset (NaN: not covered).
+    fn resampled_um(&self) -> &[f32];
+    fn surface_triangles(&self) -> usize;
+}
+
+impl CheckpointMesh for AdaptiveMesh {
+    fn resampled_um(&self) -> &[f32] {
+        &self.resampled_um
+    }
+    fn surface_triangles(&self) -> usize {
+        self.surface_triangles
+    }
+}
+
+impl CheckpointMesh for StreamedMesh {
+    fn resampled_um(&self) -> &[f32] {
+        &self.resampled_um
+    }
+    fn surface_triangles(&self) -> usize {
+        self.counts.top_triangles
+    }
+}
+
+/// The search of both twins: the set-up, the one insertion order and the judging of every
+/// checkpoint; `mesh_of(plan, p, epsilon_um, blocks)` makes a checkpoint's mesh from the live
+/// blocks (`p.epsilon` is that bound too), in memory or streamed.
+fn search_to_tolerance<M: CheckpointMesh>(
     heights: RasterView<'_, f32>,
     roughness_um: Option<&[f32]>,
     at: &ScanPlacement,
     params: &MeshParams,
     settings: &ToleranceSettings,
-) -> Result<(AdaptiveMesh, ToleranceReport)> {
+    mut mesh_of: impl FnMut(&BlockPlan<'_>, &MeshParams, f64, &[LiveBlock<'_>]) -> Result<M>,
+) -> Result<(M, ToleranceReport)> {
     let SearchSetup {
         sq,
         measured_px,
@@ -1113,16 +1138,13 @@ pub fn mesh_to_tolerance(
         roughness_um,
         bound,
         |eps, live, angles| {
-            let meshed: Vec<_> = live.par_iter().map(LiveBlock::snapshot).collect();
-            let tin = assemble(&plan, &meshed);
-            drop(meshed);
             p.epsilon = Epsilon::Um(eps);
-            let m = finish_adaptive(heights, at, &p, &tin, eps)?;
-            let fits = judge_checkpoint(heights, &m.resampled_um, roughness_um, &regions);
+            let mesh = mesh_of(&plan, &p, eps, live)?;
+            let fits = judge_checkpoint(heights, mesh.resampled_um(), roughness_um, &regions);
             Ok(Trial {
-                surface_triangles: m.surface_triangles,
+                surface_triangles: mesh.surface_triangles(),
                 fits,
-                mesh: m,
+                mesh,
                 angles,
             })
         },
@@ -1137,14 +1159,44 @@ pub fn mesh_to_tolerance(
     )
 }
 
-/// The one insertion order of both searches: the live blocks, the state kept at the last
-/// failing checkpoint, and what makes and judges a mesh from the blocks (`judge`).
+/// The adaptive mesh of `heights` with the fewest triangles the search finds within the
+/// tolerance (in memory; `params.epsilon` is replaced by the search's bounds and
+/// `params.max_triangles` bounds the search, not the insertion). The product is
+/// [`mesh_streaming_to_tolerance`] (the same mesh and report); this twin is its test oracle.
+pub fn mesh_to_tolerance(
+    heights: RasterView<'_, f32>,
+    roughness_um: Option<&[f32]>,
+    at: &ScanPlacement,
+    params: &MeshParams,
+    settings: &ToleranceSettings,
+) -> Result<(AdaptiveMesh, ToleranceReport)> {
+    search_to_tolerance(
+        heights,
+        roughness_um,
+        at,
+        params,
+        settings,
+        |plan, p, eps, live| {
+            let meshed: Vec<_> = live.par_iter().map(LiveBlock::snapshot).collect();
+            let tin = assemble(plan, &meshed);
+            drop(meshed);
+            finish_adaptive(heights, at, p, &tin, eps)
+        },
+    )
+}
+
+/// The one insertion order of both searches: the live blocks, the steps that made them (to
+/// come back to the last failing checkpoint), and what makes and judges a mesh from the
+/// blocks (`judge`).
 struct LiveOrder<'p, 'a, F> {
     plan: &'p BlockPlan<'a>,
     /// The windows' extremes, vertices from the start ([`window_extremes`]).
     extremes: Vec<u32>,
     live: Vec<LiveBlock<'p>>,
-    kept: Option<Vec<LiveBlock<'p>>>,
+    /// Every refinement the live blocks went through, in order: (bound, balanced).
+    steps: Vec<(f64, bool)>,
+    /// How many of `steps` made the state kept ([`Checkpoints::keep`]).
+    kept: Option<usize>,
     balance: Option<Balance<'a>>,
     bound: Option<AngleBound>,
     judge: F,
@@ -1166,6 +1218,7 @@ impl<'p, 'a, F> LiveOrder<'p, 'a, F> {
             plan,
             extremes,
             live: Vec::new(),
+            steps: Vec::new(),
             kept: None,
             balance: balance_of(settings, roughness_um),
             bound,
@@ -1179,28 +1232,42 @@ where
     F: FnMut(f64, &[LiveBlock<'p>], Option<AngleStats>) -> Result<Trial<M>>,
 {
     fn checkpoint(&mut self, epsilon_um: f64, stage: Stage) -> Result<Trial<M>> {
-        if stage == Stage::Bisect {
-            if let Some(kept) = &self.kept {
-                self.live.clone_from(kept);
-            }
+        if let (Stage::Bisect, Some(kept)) = (stage, self.kept) {
+            self.replay(kept);
         }
         // The curve's points past the chosen mesh continue greedily (module docs).
-        let balance = self.balance.filter(|_| stage != Stage::Curve);
-        let angles = refine_blocks(
-            self.plan,
-            &mut self.live,
-            &self.extremes,
-            epsilon_um,
-            balance,
-            self.bound.as_ref(),
-        );
+        let angles = self.refine(epsilon_um, stage != Stage::Curve);
         (self.judge)(epsilon_um, &self.live, angles)
     }
 
     fn keep(&mut self) {
-        match &mut self.kept {
-            Some(kept) => kept.clone_from(&self.live),
-            None => self.kept = Some(self.live.clone()),
+        self.kept = Some(self.steps.len());
+    }
+}
+
+impl<'p, F> LiveOrder<'p, '_, F> {
+    /// Refines the live blocks to `epsilon_um` (with the block balance when `balanced`), and
+    /// notes the step.
+    fn refine(&mut self, epsilon_um: f64, balanced: bool) -> Option<AngleStats> {
+        self.steps.push((epsilon_um, balanced));
+        refine_blocks(
+            self.plan,
+            &mut self.live,
+            &self.extremes,
+            epsilon_um,
+            self.balance.filter(|_| balanced),
+            self.bound.as_ref(),
+        )
+    }
+
+    /// The live blocks as the first `kept` steps left them, made again from the start: the
+    /// insertion is deterministic, so the same steps give the same blocks, bit for bit,
+    /// without a copy of the blocks held through the search (a third more memory).
+    fn replay(&mut self, kept: usize) {
+        let steps: Vec<(f64, bool)> = self.steps.drain(..).take(kept).collect();
+        self.live.clear();
+        for (epsilon_um, balanced) in steps {
+            self.refine(epsilon_um, balanced);
         }
     }
 }
@@ -1216,44 +1283,20 @@ pub fn mesh_streaming_to_tolerance(
     settings: &ToleranceSettings,
     spill_dir: &Path,
 ) -> Result<(StreamedMesh, ToleranceReport)> {
-    let SearchSetup {
-        sq,
-        measured_px,
-        settings,
-        regions,
-        mut p,
-        plan,
-        bound,
-    } = search_setup(heights, roughness_um, at, params, settings)?;
-    let level = field_level(heights, at);
-    let extremes = window_extremes(heights, roughness_um, &regions);
-    let mut order = LiveOrder::new(
-        &plan,
-        extremes,
-        &settings,
+    // The field's level, once (at the first checkpoint, after the set-up's checks).
+    let mut level = None;
+    search_to_tolerance(
+        heights,
         roughness_um,
-        bound,
-        |eps, blocks, angles| {
-            p.epsilon = Epsilon::Um(eps);
-            let m = stream_blocks(heights, at, &p, spill_dir, &plan, level, eps, &|k| {
+        at,
+        params,
+        settings,
+        |plan, p, eps, blocks| {
+            let level = *level.get_or_insert_with(|| field_level(heights, at));
+            stream_blocks(heights, at, p, spill_dir, plan, level, eps, &|k| {
                 blocks[k].snapshot()
-            })?;
-            let fits = judge_checkpoint(heights, &m.resampled_um, roughness_um, &regions);
-            Ok(Trial {
-                surface_triangles: m.counts.top_triangles,
-                fits,
-                mesh: m,
-                angles,
             })
         },
-    );
-    search(
-        sq,
-        measured_px,
-        &settings,
-        regions.len(),
-        params.max_triangles,
-        &mut order,
     )
 }
 

@@ -300,7 +300,7 @@ fn real_specimen_meets_the_bound() {
         / s.heights_um.iter().filter(|h| h.is_finite()).count() as f64;
     let heights: Vec<f32> = s.heights_um.iter().map(|&h| (h - mean) as f32).collect();
     let map = Map::new(&heights, s.height, s.width, s.pitch_x_um, s.pitch_y_um).with_z_offset(mean);
-    let sq = surfstream_mesher::fidelity::field_params(map.heights, s.pitch_x_um, s.pitch_y_um)
+    let sq = surfstream_mesher::fidelity::field_params(map.heights, map.at.pitch)
         .unwrap()
         .sq_um;
     let epsilon_um = 0.1 * sq;

@@ -14,6 +14,10 @@ const W: usize = 96;
 const H: usize = 72;
 const PITCH_UM: f64 = 3.2;
 
+fn pitch() -> surfstream_core::Pitch {
+    surfstream_core::Pitch::square(PITCH_UM).expect("a positive pitch")
+}
+
 fn ctx(surface: &str, ports: &[(&str, &str)], out_dir: &std::path::Path) -> NodeContext {
     NodeContext {
         graph_name: "surface_choice".into(),
@@ -109,11 +113,9 @@ fn sq_of(report: &serde_json::Value, which: &str) -> f64 {
 fn datum_alone_is_meshed_and_judged_against_the_datum() {
     let dir = tempfile::tempdir().unwrap();
     let (datum, roughness) = datum_and_roughness();
-    let datum_sq = field_params(grid(&datum), PITCH_UM, PITCH_UM)
-        .unwrap()
-        .sq_um;
+    let datum_sq = field_params(grid(&datum), pitch()).unwrap().sq_um;
     let sum: Vec<f32> = datum.iter().zip(&roughness).map(|(d, r)| d + r).collect();
-    let sum_sq = field_params(grid(&sum), PITCH_UM, PITCH_UM).unwrap().sq_um;
+    let sum_sq = field_params(grid(&sum), pitch()).unwrap().sq_um;
 
     let mut node = MesherNode::new(&ctx("datum", &[("datum", "datum")], dir.path())).unwrap();
     send(&mut node, "datum", &frame(FrameKind::Datum, &datum));
@@ -164,9 +166,7 @@ fn datum_alone_is_meshed_and_judged_against_the_datum() {
     );
     end(&mut node, "roughness");
     let r = node.report();
-    let rough_sq = field_params(grid(&roughness), PITCH_UM, PITCH_UM)
-        .unwrap()
-        .sq_um;
+    let rough_sq = field_params(grid(&roughness), pitch()).unwrap().sq_um;
     assert!((sq_of(&r, "field") - rough_sq).abs() < 1e-9, "{r}");
 }
 
