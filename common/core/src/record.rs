@@ -8,10 +8,9 @@
 //! into a value with [`to_value`] before writing it, which keeps that order whatever the
 //! declaration order here (and keeps run.json byte-identical to the `json!` it replaces).
 //!
-//! What stays a JSON value inside a record, and why: the wavelet's final summary (its fields
-//! depend on the method), the feature matchers' diagnostics and scores inside the matcher's
-//! pairs and global solve, the fusion's chunk statistics (a fusion type), the mesher's largest
-//! spikes and target (mesher types), and each node's parameters (the graph file's table). The
+//! What stays a JSON value inside a record, and why: the feature matchers' diagnostics and
+//! scores inside the matcher's pairs and global solve, the fusion's chunk statistics (a fusion
+//! type), and each node's parameters (the graph file's table). The
 //! finishing node's finish.json has its own typed record in its crate
 //! (`surfstream_finish::summary`), the one its writer and report.html use.
 
@@ -455,9 +454,164 @@ pub struct FusionReport {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct WaveletReport {
     pub live_patches: u64,
-    /// The final pass's summary (fields depend on the method; null until the end of scan).
+    /// The final pass's summary (null until the end of scan).
     #[serde(rename = "final")]
-    pub final_pass: Value,
+    pub final_pass: Option<FinalSummary>,
+}
+
+// ---------------------------------------------------------------------------------------
+// The wavelet's separation summary (run.json's `stages.<wavelet>.final`, and the `separate`
+// verb's separate.json): written by `surfstream_wavelet` (which re-exports these under the
+// same names), read by report.html (the level of the PSD's scale).
+
+/// One point of the energy curve.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct EnergyPoint {
+    pub level: usize,
+    /// E(cA_l) / (E(cA_l) + E(details 1..l)), in [0, 1].
+    #[serde(deserialize_with = "nan_if_null")]
+    pub approx_energy_fraction: f64,
+}
+
+/// Reconstruction RMSE of one base (eq. 10).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BaseRmse {
+    pub wavelet: String,
+    pub level: usize,
+    /// sqrt(mean((x - waverec2(wavedec2(x)))^2)) over the valid pixels, um.
+    #[serde(deserialize_with = "nan_if_null")]
+    pub rmse_um: f64,
+}
+
+/// Height statistics of the valid pixels, um (ISO 25178 definitions, no levelling).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct HeightStats {
+    #[serde(deserialize_with = "nan_if_null")]
+    pub mean_um: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub sa_um: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub sq_um: f64,
+    #[serde(deserialize_with = "nan_if_null")]
+    pub sz_um: f64,
+}
+
+/// What pooling did to the height statistics: before, after and after - before.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PoolingBias {
+    pub before: HeightStats,
+    pub after: HeightStats,
+    pub shift: HeightStats,
+}
+
+/// The wavelet separation's choices and their evidence.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SeparationChoices {
+    pub wavelet: String,
+    pub mode: String,
+    pub level: usize,
+    /// The level the energy rule picks (whether or not it was used).
+    pub level_min_energy: Option<usize>,
+    pub energy_curve: Vec<EnergyPoint>,
+    pub energy_curve_note: String,
+    /// Eq. 10 per base, when the base was chosen by it.
+    pub base_rmse: Option<Vec<BaseRmse>>,
+    pub base_rmse_note: Option<String>,
+    /// Pooling block, px.
+    pub pool: usize,
+    pub pool_op: String,
+    pub pooling_bias: Option<PoolingBias>,
+}
+
+/// A wavelet separation: the choices and their evidence, and the level's equivalent cutoff.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct WaveletSummary {
+    #[serde(flatten)]
+    pub choices: SeparationChoices,
+    /// "wavelet".
+    pub method: String,
+    /// Along x, at the map's x pitch.
+    #[serde(deserialize_with = "nan_if_null")]
+    pub equivalent_cutoff_um: f64,
+    /// Along y, only when the y pitch differs from the x pitch.
+    #[serde(
+        default,
+        deserialize_with = "some_nan_if_null",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub equivalent_cutoff_y_um: Option<f64>,
+    pub equivalent_cutoff_definition: String,
+}
+
+/// An ISO 16610 L-filter separation.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FilterSummary {
+    pub method: String,
+    /// lambda_c, um.
+    #[serde(deserialize_with = "nan_if_null")]
+    pub cutoff_um: f64,
+    /// lambda_s, um (none: no S-filter).
+    pub lambda_s_um: Option<f64>,
+    /// [a, b, c] of the plane removed before filtering and added back, um.
+    #[serde(deserialize_with = "nan_array")]
+    pub plane_removed_um: [f64; 3],
+    /// Robust filter only.
+    pub robust_iterations: Option<usize>,
+    pub robust_converged: Option<bool>,
+    pub pool: usize,
+    pub pool_op: String,
+    pub pooling_bias: Option<PoolingBias>,
+}
+
+/// The separation of one map: the wavelet's choices or the filter's. Untagged: a filter
+/// summary lacks the wavelet's keys (`wavelet`, `level`, ...), so it fails the first layout.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum MapSummary {
+    Wavelet(WaveletSummary),
+    Filter(FilterSummary),
+}
+
+impl MapSummary {
+    /// The datum's title in previews.
+    pub fn datum_title(&self) -> String {
+        match self {
+            MapSummary::Wavelet(w) => {
+                format!(
+                    "datum, {} level {} (um)",
+                    w.choices.wavelet, w.choices.level
+                )
+            }
+            MapSummary::Filter(f) => {
+                format!("datum, {} lambda_c {} um (um)", f.method, f.cutoff_um)
+            }
+        }
+    }
+
+    /// The decomposition level (a wavelet separation only).
+    pub fn level(&self) -> Option<usize> {
+        match self {
+            MapSummary::Wavelet(w) => Some(w.choices.level),
+            MapSummary::Filter(_) => None,
+        }
+    }
+}
+
+/// The wavelet node's final pass: the separation's summary with what only the node knows.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FinalSummary {
+    #[serde(flatten)]
+    pub separation: MapSummary,
+    /// Why the level asked for was lowered; absent when it was not.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub warning: Option<String>,
+    pub level_requested: Option<usize>,
+    /// (cols, rows).
+    pub panorama_px: [usize; 2],
+    /// (cols, rows).
+    pub pooled_px: [usize; 2],
+    pub files: Vec<String>,
+    pub streamed: bool,
 }
 
 /// The recorder's report.
@@ -667,8 +821,8 @@ pub struct OutliersRecord {
     #[serde(deserialize_with = "nan_if_null")]
     pub threshold_um: f64,
     pub count: u64,
-    /// The largest spikes (the mesher's own layout).
-    pub largest: Vec<Value>,
+    /// The largest spikes, largest |excess| first.
+    pub largest: Vec<Spike>,
     #[serde(deserialize_with = "nan_if_null")]
     pub sz_um: f64,
     #[serde(deserialize_with = "nan_if_null")]
@@ -678,6 +832,38 @@ pub struct OutliersRecord {
     /// "keep" or "remove".
     pub policy: String,
     pub removed: u64,
+}
+
+/// One spike (an entry of the mesher's `outliers.largest`; the mesher's own type too).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Spike {
+    pub row: usize,
+    pub col: usize,
+    /// Height, um relative to the map's z offset.
+    #[serde(deserialize_with = "nan_if_null")]
+    pub height_um: f64,
+    /// Height above (+) or below (-) the median of its neighbours, um.
+    #[serde(deserialize_with = "nan_if_null")]
+    pub excess_um: f64,
+}
+
+/// The simulator a mesh was made for and what it imports (the mesher's `target`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EngineTargetRecord {
+    /// "liggghts", "mercurydpm", "edem" or "yade".
+    pub engine: String,
+    /// ASCII (true) or binary STL.
+    pub ascii: bool,
+    /// A closed solid (true) or the open surface.
+    pub solid: bool,
+    /// The STL's length unit ("m", "mm", "um").
+    pub units: String,
+    /// "grid" or "adaptive".
+    pub method: String,
+    /// Most surface triangles the engine is given.
+    pub max_triangles: u64,
+    /// Smallest interior angle every triangle must have, degrees.
+    pub min_angle_deg: f64,
 }
 
 /// What an adaptive mesh adds to the mesher's report.
@@ -800,7 +986,7 @@ pub struct MeshReport {
     pub surface: String,
     /// The simulator the mesh was made for (absent: none named).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub target: Option<Value>,
+    pub target: Option<EngineTargetRecord>,
     /// "adaptive" or "grid".
     pub method: String,
     /// The adaptive mesh's or the engine grid sheet's own fields.
@@ -1236,7 +1422,9 @@ mod tests {
         // The grid sheet shares `kind` and `fidelity` with the adaptive part, with other
         // contents: the untagged part must read each layout whole and write it back as it was.
         let mut g = grid_mesh();
-        let extra = json!({ "target": { "engine": "edem" }, "kind": "sheet", "block_stride": 2,
+        let extra = json!({ "target": { "engine": "edem", "ascii": false, "solid": true,
+                "units": "mm", "method": "grid", "max_triangles": 1000000, "min_angle_deg": 1.0 },
+            "kind": "sheet", "block_stride": 2,
             "grid_rows_cols": [2, 3], "meshed_pitch_um": [1.0, 1.0],
             "element_quality": { "min_angle_deg": 45.0, "max_triangles_per_vertex": 6,
                 "duplicate_triangles": 0 },
@@ -1247,6 +1435,12 @@ mod tests {
         }
         let m: MeshReport = from_value(&g, "mesher").unwrap();
         assert!(m.adaptive().is_none());
+        assert_eq!(
+            m.target
+                .as_ref()
+                .map(|t| (t.engine.as_str(), t.max_triangles)),
+            Some(("edem", 1_000_000))
+        );
         let Some(MeshMethodRecord::GridSheet(s)) = &m.method_record else {
             panic!("a grid sheet reads as one: {:?}", m.method_record)
         };
@@ -1297,5 +1491,97 @@ mod tests {
         assert_eq!(p.chosen_alternative, Some(None));
         assert!(p.residual_px.unwrap()[0].is_nan());
         assert_eq!(to_value(&p), solved);
+    }
+
+    #[test]
+    fn the_spikes_read_back_as_spikes_and_write_back_as_they_were() {
+        let mut a = grid_mesh();
+        a["outliers"] = json!({ "rule": "8 sigma", "threshold_um": 0.4, "count": 2,
+            "largest": [{ "row": 12, "col": 17, "height_um": 9.5, "excess_um": 9.0 },
+                { "row": 3, "col": 0, "height_um": null, "excess_um": -2.5 }],
+            "sz_um": 12.0, "sz_without_spikes_um": 3.0, "sz_effect_pct": 300.0,
+            "policy": "remove", "removed": 2 });
+        let m: MeshReport = from_value(&a, "mesher").unwrap();
+        let o = m.outliers.as_ref().unwrap();
+        assert_eq!((o.largest[0].row, o.largest[0].col), (12, 17));
+        assert!(o.largest[1].height_um.is_nan() && o.largest[1].excess_um == -2.5);
+        assert_eq!(to_value(&m), a);
+        // A spike without its position is not a spike.
+        a["outliers"]["largest"][0]
+            .as_object_mut()
+            .unwrap()
+            .remove("row");
+        assert!(from_value::<MeshReport>(&a, "mesher").is_err());
+    }
+
+    fn wavelet_final() -> Value {
+        json!({ "wavelet": "db2", "mode": "symmetric", "level": 3, "level_min_energy": 2,
+            "energy_curve": [{ "level": 1, "approx_energy_fraction": 0.9 },
+                { "level": 2, "approx_energy_fraction": 0.5 }],
+            "energy_curve_note": "n", "base_rmse": [{ "wavelet": "db2", "level": 3,
+                "rmse_um": 1e-15 }], "base_rmse_note": "eq. 10",
+            "pool": 4, "pool_op": "max",
+            "pooling_bias": { "before": { "mean_um": 0.0, "sa_um": 1.0, "sq_um": 1.2,
+                    "sz_um": 8.0 },
+                "after": { "mean_um": 0.5, "sa_um": 0.9, "sq_um": 1.1, "sz_um": 6.0 },
+                "shift": { "mean_um": 0.5, "sa_um": -0.1, "sq_um": -0.1, "sz_um": -2.0 } },
+            "method": "wavelet", "equivalent_cutoff_um": 12.5, "equivalent_cutoff_y_um": null,
+            "equivalent_cutoff_definition": "d", "warning": "lowered",
+            "level_requested": 8, "panorama_px": [40, 30], "pooled_px": [10, 8],
+            "files": ["datum.npy"], "streamed": true })
+    }
+
+    #[test]
+    fn a_wavelet_final_summary_reads_its_level_and_writes_back_as_it_was() {
+        let report = json!({ "live_patches": 3, "final": wavelet_final() });
+        let r: WaveletReport = from_value(&report, "wavelet").unwrap();
+        let f = r.final_pass.as_ref().unwrap();
+        assert_eq!(f.separation.level(), Some(3));
+        let MapSummary::Wavelet(w) = &f.separation else {
+            panic!("a wavelet summary reads as one: {:?}", f.separation)
+        };
+        assert!(w.equivalent_cutoff_y_um.unwrap().is_nan());
+        assert_eq!(w.choices.base_rmse.as_ref().unwrap()[0].wavelet, "db2");
+        assert_eq!(f.panorama_px, [40, 30]);
+        assert_eq!(to_value(&r), report);
+        // Without a y cutoff, a base ranking or a warning, none is written back.
+        let mut plain = wavelet_final();
+        for k in ["equivalent_cutoff_y_um", "warning"] {
+            plain.as_object_mut().unwrap().remove(k);
+        }
+        plain["base_rmse"] = Value::Null;
+        plain["base_rmse_note"] = Value::Null;
+        let f: FinalSummary = from_value(&plain, "final").unwrap();
+        assert!(f.warning.is_none());
+        assert_eq!(to_value(&f), plain);
+        // Before the end of scan the summary is null.
+        let early = json!({ "live_patches": 0, "final": null });
+        let r: WaveletReport = from_value(&early, "wavelet").unwrap();
+        assert!(r.final_pass.is_none());
+        assert_eq!(to_value(&r), early);
+        // A summary without its level is neither layout's.
+        let mut broken = wavelet_final();
+        broken.as_object_mut().unwrap().remove("level");
+        assert!(from_value::<FinalSummary>(&broken, "final").is_err());
+    }
+
+    #[test]
+    fn a_filter_final_summary_reads_as_the_filter_and_has_no_level() {
+        let filter = json!({ "method": "gaussian", "cutoff_um": 80.0, "lambda_s_um": null,
+            "plane_removed_um": [0.1, null, -0.2], "robust_iterations": null,
+            "robust_converged": null, "pool": 4, "pool_op": "mean", "pooling_bias": null,
+            "level_requested": null, "panorama_px": [40, 30], "pooled_px": [10, 8],
+            "files": [], "streamed": false });
+        let f: FinalSummary = from_value(&filter, "final").unwrap();
+        let MapSummary::Filter(s) = &f.separation else {
+            panic!("a filter summary reads as one: {:?}", f.separation)
+        };
+        assert!(s.plane_removed_um[1].is_nan());
+        assert_eq!(f.separation.level(), None);
+        assert_eq!(
+            f.separation.datum_title(),
+            "datum, gaussian lambda_c 80 um (um)"
+        );
+        assert_eq!(to_value(&f), filter);
     }
 }

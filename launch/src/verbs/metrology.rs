@@ -2,13 +2,16 @@
 //! surfaces (ISO 25178 parameters, SIM, SSIM). Thin shells over surfstream_io::formats,
 //! ::metrology and ::similarity.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Result};
 use clap::Args;
+use serde::Serialize;
 use surfstream_core::metrology::{self, Grid, ParamValue};
+use surfstream_core::record;
 use surfstream_core::similarity;
-use surfstream_io::formats::{write_surface, Surface};
+use surfstream_io::formats::{write_surface, Metadata, Surface};
 
 use super::{file_help, load_surface, pitch_text, WRITABLE_WITH_PITCH};
 
@@ -102,6 +105,62 @@ pub struct CompareArgs {
     pub json: bool,
 }
 
+/// `inspect --json`. Written through [`record::to_value`], keys sorted like every JSON
+/// surfstream writes.
+#[derive(Serialize)]
+struct InspectJson<'a> {
+    file: String,
+    rows: usize,
+    cols: usize,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+    points: usize,
+    invalid_points: usize,
+    /// None when no sample is valid.
+    min_um: Option<f64>,
+    max_um: Option<f64>,
+    metadata: &'a Metadata,
+}
+
+/// One file of `params --json` / `--jsonl`: the parameters by name beside the file's fields
+/// (written through [`record::to_value`], keys sorted).
+#[derive(Serialize)]
+struct ParamsJson<'a> {
+    file: &'a str,
+    rows: usize,
+    cols: usize,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+    pitch_assumed: bool,
+    valid_points: usize,
+    /// "plane levelled" or "mean removed".
+    surface: &'static str,
+    /// Each parameter's value (NaN, undefined, e.g. Str when the ACF does not decay inside
+    /// the map, is written as null).
+    #[serde(flatten)]
+    values: BTreeMap<&'static str, f64>,
+    /// Each parameter's unit.
+    units: BTreeMap<&'static str, &'static str>,
+    /// Why some values are undefined; absent when none is.
+    #[serde(skip_serializing_if = "<[String]>::is_empty")]
+    notes: &'a [String],
+}
+
+/// `compare --json`.
+#[derive(Serialize)]
+struct CompareJson {
+    #[serde(rename = "SIM")]
+    sim: f64,
+    #[serde(rename = "SSIM")]
+    ssim: f64,
+    #[serde(rename = "SSIM_windows")]
+    ssim_windows: usize,
+    #[serde(rename = "SSIM_range_um")]
+    ssim_range_um: f64,
+    rms_difference_um: f64,
+    points_compared: usize,
+}
+
 fn grid(s: &Surface) -> Result<Grid<'_>> {
     Ok(Grid::new(
         &s.heights_um,
@@ -126,20 +185,23 @@ pub fn inspect(a: InspectArgs) -> Result<()> {
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &z| {
             (l.min(z), h.max(z))
         });
-    let info = serde_json::json!({
-        "file": a.file.display().to_string(),
-        "rows": s.height,
-        "cols": s.width,
-        "pitch_x_um": s.pitch_x_um,
-        "pitch_y_um": s.pitch_y_um,
-        "points": s.heights_um.len(),
-        "invalid_points": s.invalid_count(),
-        "min_um": if valid.is_empty() { None } else { Some(lo) },
-        "max_um": if valid.is_empty() { None } else { Some(hi) },
-        "metadata": s.metadata,
-    });
     if a.json {
-        println!("{}", serde_json::to_string_pretty(&info)?);
+        let info = InspectJson {
+            file: a.file.display().to_string(),
+            rows: s.height,
+            cols: s.width,
+            pitch_x_um: s.pitch_x_um,
+            pitch_y_um: s.pitch_y_um,
+            points: s.heights_um.len(),
+            invalid_points: s.invalid_count(),
+            min_um: (!valid.is_empty()).then_some(lo),
+            max_um: (!valid.is_empty()).then_some(hi),
+            metadata: &s.metadata,
+        };
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&record::to_value(&info))?
+        );
         return Ok(());
     }
     let m = &s.metadata;
@@ -333,34 +395,23 @@ fn sig6(v: f64) -> String {
 }
 
 fn json_record(r: &ParamsRecord) -> serde_json::Value {
-    let mut m = serde_json::Map::new();
-    m.insert("file".into(), r.file.clone().into());
-    m.insert("rows".into(), r.rows.into());
-    m.insert("cols".into(), r.cols.into());
-    m.insert("pitch_x_um".into(), r.pitch_x_um.into());
-    m.insert("pitch_y_um".into(), r.pitch_y_um.into());
-    m.insert("pitch_assumed".into(), r.pitch_assumed.into());
-    m.insert("valid_points".into(), r.valid_points.into());
-    m.insert(
-        "surface".into(),
-        if r.levelled {
+    record::to_value(&ParamsJson {
+        file: &r.file,
+        rows: r.rows,
+        cols: r.cols,
+        pitch_x_um: r.pitch_x_um,
+        pitch_y_um: r.pitch_y_um,
+        pitch_assumed: r.pitch_assumed,
+        valid_points: r.valid_points,
+        surface: if r.levelled {
             "plane levelled"
         } else {
             "mean removed"
-        }
-        .into(),
-    );
-    let mut units = serde_json::Map::new();
-    for v in &r.values {
-        // NaN (undefined, e.g. Str when the ACF does not decay inside the map) becomes null.
-        m.insert(v.name.into(), serde_json::json!(v.value));
-        units.insert(v.name.into(), v.unit.into());
-    }
-    m.insert("units".into(), units.into());
-    if !r.notes.is_empty() {
-        m.insert("notes".into(), serde_json::json!(r.notes));
-    }
-    serde_json::Value::Object(m)
+        },
+        values: r.values.iter().map(|v| (v.name, v.value)).collect(),
+        units: r.values.iter().map(|v| (v.name, v.unit)).collect(),
+        notes: &r.notes,
+    })
 }
 
 fn csv_field(s: &str) -> String {
@@ -803,9 +854,13 @@ pub fn compare(a: CompareArgs) -> Result<()> {
     let ssim =
         similarity::ssim(&xf, &yf, x.height, x.width, None).map_err(|e| anyhow::anyhow!("{e}"))?;
     if a.json {
-        let v = serde_json::json!({
-            "SIM": sim, "SSIM": ssim.mssim, "SSIM_windows": ssim.windows, "SSIM_range_um": ssim.range_um,
-            "rms_difference_um": rms, "points_compared": n,
+        let v = record::to_value(&CompareJson {
+            sim,
+            ssim: ssim.mssim,
+            ssim_windows: ssim.windows,
+            ssim_range_um: ssim.range_um,
+            rms_difference_um: rms,
+            points_compared: n,
         });
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {

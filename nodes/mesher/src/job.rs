@@ -16,7 +16,7 @@ use surfstream_core::frame::{flags, from_frame_heights, FrameHeader, FrameView, 
 use surfstream_core::fsutil::write_atomic;
 use surfstream_core::raster::{Raster, RasterView, Shape};
 use surfstream_core::record::{
-    self, GridSheetRecord, MeshMethodRecord, MeshReport, OutliersRecord, ToleranceRecord,
+    GridSheetRecord, MeshMethodRecord, MeshReport, OutliersRecord, ToleranceRecord,
 };
 use surfstream_io::npy::{write_npy_abs_f64, write_npy_f64};
 use surfstream_io::sidecar::{write_sidecar, NpyGeometry};
@@ -451,7 +451,7 @@ fn surface_summary(
         grid_px: [u64::from(h.width), u64::from(h.height)],
         pitch_um: [h.pitch_x_um, h.pitch_y_um],
         surface: settings.surface.name().into(),
-        target: settings.target.as_ref().map(record::to_value),
+        target: settings.target.as_ref().map(Into::into),
         method: method_name.into(),
         method_record,
         tolerance,

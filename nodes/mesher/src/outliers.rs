@@ -31,16 +31,9 @@ pub enum OutlierPolicy {
     Remove,
 }
 
-/// One spike.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct Spike {
-    pub row: usize,
-    pub col: usize,
-    /// Height, um relative to the map's z offset.
-    pub height_um: f64,
-    /// Height above (+) or below (-) the median of its neighbours, um.
-    pub excess_um: f64,
-}
+/// One spike: the report's record itself ([`surfstream_core::record::Spike`]), its layout
+/// is all it is.
+pub use surfstream_core::record::Spike;
 
 /// The spikes of a map and their effect on Sz.
 #[derive(Debug, Clone, PartialEq, Serialize)]

@@ -5,16 +5,17 @@
 //! The computation keeps its own types where they carry more than the report (`usize` counts,
 //! the search's state); the ones that are the report's layout and nothing else are the records
 //! themselves (`AreaParams` = [`LevelledParams`], `AngleStats` = [`AngleRecord`],
-//! `ElementQuality`).
+//! `ElementQuality`, `Spike`).
 
 use serde::Serialize;
 use surfstream_core::record::{
-    self, AdaptiveMeshRecord, AngleQuality, CurvePointRecord, MeshFidelity, ModelTolerance,
-    OutliersRecord, RegionFitRecord, ToleranceRecord, VerticalError,
+    self, AdaptiveMeshRecord, AngleQuality, CurvePointRecord, EngineTargetRecord, MeshFidelity,
+    ModelTolerance, OutliersRecord, RegionFitRecord, ToleranceRecord, VerticalError,
 };
 
 use crate::adaptive::{Fidelity, MeshCounts};
 use crate::outliers::OutlierReport;
+use crate::target::EngineProfile;
 use crate::tin::ErrorStats;
 use crate::tolerance::{CurvePoint, RegionFit, Tolerance, ToleranceReport};
 
@@ -149,12 +150,26 @@ impl From<&OutlierReport> for OutliersRecord {
             rule: r.rule.clone(),
             threshold_um: r.threshold_um,
             count: r.count as u64,
-            largest: r.largest.iter().map(record::to_value).collect(),
+            largest: r.largest.clone(),
             sz_um: r.sz_um,
             sz_without_spikes_um: r.sz_without_spikes_um,
             sz_effect_pct: r.sz_effect_pct,
             policy: serde_name(&r.policy),
             removed: r.removed as u64,
+        }
+    }
+}
+
+impl From<&EngineProfile> for EngineTargetRecord {
+    fn from(p: &EngineProfile) -> Self {
+        Self {
+            engine: serde_name(&p.engine),
+            ascii: p.ascii,
+            solid: p.solid,
+            units: serde_name(&p.units),
+            method: serde_name(&p.method),
+            max_triangles: p.max_triangles as u64,
+            min_angle_deg: p.min_angle_deg,
         }
     }
 }

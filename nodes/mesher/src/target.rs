@@ -20,7 +20,7 @@ use std::str::FromStr;
 
 use serde::{Deserialize, Serialize};
 use surfstream_core::raster::{Raster, RasterView, Shape};
-use surfstream_core::record::{self, GridSheetFidelity, GridSheetRecord};
+use surfstream_core::record::{self, EngineTargetRecord, GridSheetFidelity, GridSheetRecord};
 use surfstream_core::Pitch;
 
 use crate::error::{MeshError, Result};
@@ -293,7 +293,10 @@ impl TargetMesh {
     pub fn summary(&self) -> serde_json::Value {
         let mut v = record::to_value(&self.record());
         if let Some(o) = v.as_object_mut() {
-            o.insert("target".into(), record::to_value(&self.profile));
+            o.insert(
+                "target".into(),
+                record::to_value(&EngineTargetRecord::from(&self.profile)),
+            );
             o.insert("method".into(), "grid".into());
         }
         v

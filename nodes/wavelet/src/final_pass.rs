@@ -14,7 +14,9 @@
 //! The in-memory paths hand the sink their whole maps ([`SeparationSink::whole`]).
 
 use anyhow::{anyhow, bail, Result};
-use serde::Serialize;
+/// The summary types are the run record's ([`surfstream_core::record`]): report.html reads
+/// the node's back. They keep their names here.
+pub use surfstream_core::record::{FilterSummary, MapSummary, WaveletSummary};
 use surfstream_core::Sampling;
 
 use crate::live::{final_pass_streams, SeparationSettings};
@@ -23,8 +25,7 @@ use crate::select::SeparationChoices;
 use crate::stream::StreamOptions;
 use crate::{
     analyse, default_level, energy_curve_streamed, level_by_min_energy, pool, pooling_bias,
-    separate_streamed, BaseChoice, LevelChoice, Pooled, PoolingBias, SeparationMethod, Wavelet,
-    DEFAULT_LEVEL,
+    separate_streamed, BaseChoice, LevelChoice, Pooled, SeparationMethod, Wavelet, DEFAULT_LEVEL,
 };
 
 /// How run.json and `separate.json` define the wavelet's equivalent cutoff.
@@ -61,47 +62,6 @@ pub fn push_in_bands<S: SeparationSink + ?Sized>(
     Ok(())
 }
 
-/// What [`separate_map`] reports: the wavelet's choices or the filter's.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-#[serde(untagged)]
-pub enum MapSummary {
-    Wavelet(WaveletSummary),
-    Filter(FilterSummary),
-}
-
-/// A wavelet separation: the choices and their evidence, and the level's equivalent cutoff.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct WaveletSummary {
-    #[serde(flatten)]
-    pub choices: SeparationChoices,
-    /// "wavelet".
-    pub method: &'static str,
-    /// Along x, at the map's x pitch ([`equivalent_cutoff_um`]).
-    pub equivalent_cutoff_um: f64,
-    /// Along y, only when the y pitch differs from the x pitch.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub equivalent_cutoff_y_um: Option<f64>,
-    pub equivalent_cutoff_definition: &'static str,
-}
-
-/// An ISO 16610 L-filter separation.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct FilterSummary {
-    pub method: &'static str,
-    /// lambda_c, µm.
-    pub cutoff_um: f64,
-    /// lambda_s, µm (none: no S-filter).
-    pub lambda_s_um: Option<f64>,
-    /// [a, b, c] of the plane removed before filtering and added back, µm.
-    pub plane_removed_um: [f64; 3],
-    /// Robust filter only.
-    pub robust_iterations: Option<usize>,
-    pub robust_converged: Option<bool>,
-    pub pool: usize,
-    pub pool_op: &'static str,
-    pub pooling_bias: Option<PoolingBias>,
-}
-
 /// The result of [`separate_map`] besides the rows given to the sink.
 #[derive(Debug)]
 pub struct SeparatedMap {
@@ -111,23 +71,6 @@ pub struct SeparatedMap {
     pub pooled: Pooled,
     /// The streamed path ran ([`final_pass_streams`]).
     pub streamed: bool,
-}
-
-impl MapSummary {
-    /// The datum's title in previews.
-    pub fn datum_title(&self) -> String {
-        match self {
-            MapSummary::Wavelet(w) => {
-                format!(
-                    "datum, {} level {} (um)",
-                    w.choices.wavelet, w.choices.level
-                )
-            }
-            MapSummary::Filter(f) => {
-                format!("datum, {} lambda_c {} um (um)", f.method, f.cutoff_um)
-            }
-        }
-    }
 }
 
 /// Separates `heights` (row-major on `grid`, µm relative to the caller's offset, NaN = not
@@ -171,16 +114,16 @@ fn streamed_wavelet(
     let curve = energy_curve_streamed(heights, rows, cols, w, settings.mode, stream)?;
     let pooled = pool(heights, rows, cols, settings.pool_block, settings.pool_op)?;
     let choices = SeparationChoices {
-        wavelet: w.name(),
-        mode: settings.mode.name(),
+        wavelet: w.name().into(),
+        mode: settings.mode.name().into(),
         level,
         level_min_energy: level_by_min_energy(&curve),
         energy_curve: curve,
-        energy_curve_note: crate::select::ENERGY_CURVE_NOTE,
+        energy_curve_note: crate::select::ENERGY_CURVE_NOTE.into(),
         base_rmse: None,
         base_rmse_note: None,
         pool: settings.pool_block,
-        pool_op: settings.pool_op.name(),
+        pool_op: settings.pool_op.name().into(),
         pooling_bias: pooling_bias(heights, &pooled.heights),
     };
     let (summary, warning) = wavelet_summary(choices, settings, w, grid);
@@ -252,14 +195,14 @@ fn filter(
         settings.pool_op,
     )?;
     let summary = MapSummary::Filter(FilterSummary {
-        method: method.name(),
+        method: method.name().into(),
         cutoff_um: method.cutoff_um().unwrap_or(f64::NAN),
         lambda_s_um: settings.lambda_s_um,
         plane_removed_um: s.plane_um,
         robust_iterations: s.robust_iterations.map(|r| r.0),
         robust_converged: s.robust_iterations.map(|r| r.1),
         pool: settings.pool_block,
-        pool_op: settings.pool_op.name(),
+        pool_op: settings.pool_op.name().into(),
         pooling_bias: pooling_bias(heights, &pooled.heights),
     });
     sink.begin(&summary.datum_title())?;
@@ -290,11 +233,11 @@ fn wavelet_summary(
     let warning = requested.and_then(|r| level_lowered_warning(w, r, level, pitch_x_um));
     let summary = MapSummary::Wavelet(WaveletSummary {
         choices,
-        method: "wavelet",
+        method: "wavelet".into(),
         equivalent_cutoff_um: equivalent_cutoff_um(w, level, pitch_x_um),
         equivalent_cutoff_y_um: (pitch_y_um != pitch_x_um)
             .then(|| equivalent_cutoff_um(w, level, pitch_y_um)),
-        equivalent_cutoff_definition: CUTOFF_DEFINITION,
+        equivalent_cutoff_definition: CUTOFF_DEFINITION.into(),
     });
     (summary, warning)
 }

@@ -18,7 +18,6 @@
 use std::path::PathBuf;
 
 use anyhow::{anyhow, bail, Result};
-use serde::Serialize;
 use surfstream_core::canvas::GridRect;
 use surfstream_core::frame::{flags, FrameHeader, FrameKind, FrameView, HeightMap};
 use surfstream_core::raster::{RasterView, Shape};
@@ -27,7 +26,7 @@ use surfstream_io::output::{NpyHeights, OutputWriter, SurfaceOutput, SurfaceStre
 
 use surfstream_core::{Pitch, Sampling};
 
-use crate::final_pass::{push_in_bands, separate_map, MapSummary, SeparatedMap, SeparationSink};
+use crate::final_pass::{push_in_bands, separate_map, SeparatedMap, SeparationSink};
 use crate::method::filter_separation;
 use crate::stream::StreamOptions;
 use crate::{
@@ -522,24 +521,10 @@ pub struct FinalSeparation {
     pub summary: FinalSummary,
 }
 
-/// The final pass's summary: the separation's ([`MapSummary`]) with what only the node
-/// knows. The node reports it as a JSON value (`surfstream_core::record::to_value`), keys
-/// sorted (§6.1 of docs/architecture.md).
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct FinalSummary {
-    #[serde(flatten)]
-    pub separation: MapSummary,
-    /// Why the level asked for was lowered; absent when it was not.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub warning: Option<String>,
-    pub level_requested: Option<usize>,
-    /// (cols, rows).
-    pub panorama_px: [usize; 2],
-    /// (cols, rows).
-    pub pooled_px: [usize; 2],
-    pub files: Vec<String>,
-    pub streamed: bool,
-}
+/// The final pass's summary: the separation's ([`crate::MapSummary`]) with what only the node
+/// knows. A record of the run ([`surfstream_core::record::FinalSummary`]): the node reports
+/// it in its `WaveletReport`, report.html reads it back.
+pub use surfstream_core::record::FinalSummary;
 
 /// What the final pass should produce besides its summary and pooled map.
 #[derive(Debug)]

@@ -15,7 +15,9 @@ use surfstream_io::output::OutputWriter;
 use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
-use crate::live::{final_separation_with, FinalRequest, LiveSeparation, SeparationSettings};
+use crate::live::{
+    final_separation_with, FinalRequest, FinalSummary, LiveSeparation, SeparationSettings,
+};
 use crate::options::WaveletParams;
 use crate::stream::StreamOptions;
 
@@ -36,7 +38,7 @@ pub struct WaveletNode {
     ended: bool,
     done: bool,
     live_patches: u64,
-    summary: serde_json::Value,
+    summary: Option<FinalSummary>,
 }
 
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
@@ -65,7 +67,7 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
         ended: false,
         done: false,
         live_patches: 0,
-        summary: serde_json::Value::Null,
+        summary: None,
     }))
 }
 
@@ -85,7 +87,7 @@ impl WaveletNode {
             },
         };
         let f = final_separation_with(&self.settings, pano, request)?;
-        self.summary = record::to_value(&f.summary);
+        self.summary = Some(f.summary);
         if let Some(datum) = f.datum {
             out.send_frame("datum", datum);
         }

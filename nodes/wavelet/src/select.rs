@@ -17,20 +17,16 @@
 
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
-use serde::Serialize;
+/// The summary types are the run record's ([`surfstream_core::record`]), which report.html
+/// reads back; they keep their names here.
+pub use surfstream_core::record::{
+    BaseRmse, EnergyPoint, HeightStats, PoolingBias, SeparationChoices,
+};
 
 use crate::error::{check_raster, Result, WaveletError};
 use crate::separate::{default_level, fill_invalid};
 use crate::wavelet::{dwt_max_level, Mode, Wavelet};
 use crate::{wavedec2, waverec2};
-
-/// One point of the energy curve.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct EnergyPoint {
-    pub level: usize,
-    /// E(cA_l) / (E(cA_l) + E(details 1..l)), in [0, 1].
-    pub approx_energy_fraction: f64,
-}
 
 /// The approximation's energy proportion at every level `1..=dwt_max_level` of the
 /// plane-levelled, hole-filled map.
@@ -78,15 +74,6 @@ pub fn level_by_min_energy(curve: &[EnergyPoint]) -> Option<usize> {
         .map(|p| p.level)
 }
 
-/// Reconstruction RMSE of one base (eq. 10).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct BaseRmse {
-    pub wavelet: &'static str,
-    pub level: usize,
-    /// sqrt(mean((x - waverec2(wavedec2(x)))^2)) over the valid pixels, um.
-    pub rmse_um: f64,
-}
-
 /// Eq. 10 for every base, each at `level` (default: [`crate::DEFAULT_LEVEL`]) clamped to what
 /// the map supports for that base; bases the map is too small for are left out. Sorted by
 /// RMSE, smallest (the paper's choice) first.
@@ -120,7 +107,7 @@ pub fn rmse_per_base(
             }
         }
         out.push(BaseRmse {
-            wavelet: w.name(),
+            wavelet: w.name().into(),
             level: l,
             rmse_um: (sq / n.max(1) as f64).sqrt(),
         });
@@ -184,15 +171,6 @@ pub(crate) fn plane_coef(heights: &[f32], rows: usize, cols: usize) -> ([f64; 3]
     ([coef[0], coef[1], coef[2]], cx, cy)
 }
 
-/// Height statistics of the valid pixels (ISO 25178 definitions, no levelling).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct HeightStats {
-    pub mean_um: f64,
-    pub sa_um: f64,
-    pub sq_um: f64,
-    pub sz_um: f64,
-}
-
 /// Mean, Sa, Sq, Sz of the finite values; `None` when there is none.
 pub fn height_stats(heights: &[f32]) -> Option<HeightStats> {
     let (n, sum) = heights
@@ -217,14 +195,6 @@ pub fn height_stats(heights: &[f32]) -> Option<HeightStats> {
         sq_um: (sq / n as f64).sqrt(),
         sz_um: hi - lo,
     })
-}
-
-/// What pooling did to the height statistics: before, after and after - before.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct PoolingBias {
-    pub before: HeightStats,
-    pub after: HeightStats,
-    pub shift: HeightStats,
 }
 
 /// Compare a map with its pooled version; `None` if either has no valid pixel.
@@ -308,7 +278,7 @@ pub fn analyse(
             let ranking = rmse_per_base(heights, rows, cols, mode, fixed)?;
             let w = ranking
                 .first()
-                .and_then(|b| Wavelet::by_name(b.wavelet))
+                .and_then(|b| Wavelet::by_name(&b.wavelet))
                 .ok_or(WaveletError::AllNan)?;
             (w, Some(ranking))
         }
@@ -341,16 +311,16 @@ impl Analysis {
     /// The choices and the evidence, for run.json and the `separate` summary.
     pub fn summary(&self) -> SeparationChoices {
         SeparationChoices {
-            wavelet: self.wavelet.name(),
-            mode: self.mode.name(),
+            wavelet: self.wavelet.name().into(),
+            mode: self.mode.name().into(),
             level: self.separation.level,
             level_min_energy: self.level_min_energy,
             energy_curve: self.energy_curve.clone(),
-            energy_curve_note: ENERGY_CURVE_NOTE,
-            base_rmse_note: self.base_rmse.as_ref().map(|_| BASE_RMSE_NOTE),
+            energy_curve_note: ENERGY_CURVE_NOTE.into(),
+            base_rmse_note: self.base_rmse.as_ref().map(|_| BASE_RMSE_NOTE.into()),
             base_rmse: self.base_rmse.clone(),
             pool: self.pool_block,
-            pool_op: self.pool_op.name(),
+            pool_op: self.pool_op.name().into(),
             pooling_bias: self.pooling_bias,
         }
     }
@@ -358,16 +328,16 @@ impl Analysis {
     /// [`Analysis::summary`], the separation and the pooled map, without copying the maps.
     pub fn into_parts(self) -> (SeparationChoices, crate::Separation, crate::Pooled) {
         let choices = SeparationChoices {
-            wavelet: self.wavelet.name(),
-            mode: self.mode.name(),
+            wavelet: self.wavelet.name().into(),
+            mode: self.mode.name().into(),
             level: self.separation.level,
             level_min_energy: self.level_min_energy,
             energy_curve: self.energy_curve,
-            energy_curve_note: ENERGY_CURVE_NOTE,
-            base_rmse_note: self.base_rmse.as_ref().map(|_| BASE_RMSE_NOTE),
+            energy_curve_note: ENERGY_CURVE_NOTE.into(),
+            base_rmse_note: self.base_rmse.as_ref().map(|_| BASE_RMSE_NOTE.into()),
             base_rmse: self.base_rmse,
             pool: self.pool_block,
-            pool_op: self.pool_op.name(),
+            pool_op: self.pool_op.name().into(),
             pooling_bias: self.pooling_bias,
         };
         (choices, self.separation, self.pooled)
@@ -376,26 +346,6 @@ impl Analysis {
 
 pub(crate) const ENERGY_CURVE_NOTE: &str = "approximation energy / total energy per level, after filling holes and removing the least-squares plane (paper Fig. 13)";
 const BASE_RMSE_NOTE: &str = "eq. 10: every base is orthogonal, so this RMSE is floating-point round-off, not a measure of fit";
-
-/// The wavelet separation's choices and their evidence, as run.json's `stages.wavelet.final`
-/// and `separate.json` write them (the streamed pass fills it without an [`Analysis`]).
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct SeparationChoices {
-    pub wavelet: &'static str,
-    pub mode: &'static str,
-    pub level: usize,
-    /// The level the energy rule picks (whether or not it was used).
-    pub level_min_energy: Option<usize>,
-    pub energy_curve: Vec<EnergyPoint>,
-    pub energy_curve_note: &'static str,
-    /// Eq. 10 per base, when the base was chosen by it.
-    pub base_rmse: Option<Vec<BaseRmse>>,
-    pub base_rmse_note: Option<&'static str>,
-    /// Pooling block, px.
-    pub pool: usize,
-    pub pool_op: &'static str,
-    pub pooling_bias: Option<PoolingBias>,
-}
 
 #[cfg(test)]
 mod tests {
