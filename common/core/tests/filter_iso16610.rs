@@ -423,7 +423,13 @@ fn filters_do_not_depend_on_the_thread_count() {
     for threads in [2, 3, 5, 8] {
         let other = run(threads);
         assert!(other.0 == one.0, "form fit differs with {threads} threads");
-        assert!(other.1 == one.1, "Gaussian filter differs with {threads} threads");
-        assert!(other.2 == one.2, "robust Gaussian filter differs with {threads} threads");
+        assert!(
+            other.1 == one.1,
+            "Gaussian filter differs with {threads} threads"
+        );
+        assert!(
+            other.2 == one.2,
+            "robust Gaussian filter differs with {threads} threads"
+        );
     }
 }
