@@ -8,11 +8,11 @@
 //! into a value with [`to_value`] before writing it, which keeps that order whatever the
 //! declaration order here (and keeps run.json byte-identical to the `json!` it replaces).
 //!
-//! What stays a JSON value inside a record, and why: the feature matchers' diagnostics and
-//! scores inside the matcher's pairs and global solve, the fusion's chunk statistics (a fusion
-//! type), and each node's parameters (the graph file's table). The
-//! finishing node's finish.json has its own typed record in its crate
-//! (`surfstream_finish::summary`), the one its writer and report.html use.
+//! What stays a JSON value inside a record, and why: the fusion's chunk statistics (a fusion
+//! type), each node's report inside run.json's `stages` (its reader reads it through its
+//! record) and each node's parameters (the graph file's table). The finishing node's
+//! finish.json has its own typed record in its crate (`surfstream_finish::summary`), the one
+//! its writer and report.html use.
 
 use std::collections::BTreeMap;
 
