@@ -62,6 +62,7 @@ pub mod fidelity;
 pub mod field;
 mod geom;
 pub mod job;
+pub mod map;
 pub mod outliers;
 pub mod report;
 pub mod solid;
@@ -76,6 +77,7 @@ pub use check::{check_closed, MeshCheck};
 pub use error::{MeshError, Result};
 pub use field::{fill_missing, ScanPlacement};
 pub use job::{MeshJob, MeshSettings, MeshedSurface, MesherConfig, StlFormat, SurfaceChoice};
+pub use map::{mesh_map, prepare_heights, MapBound, MapMesh, MapOutcome, MapRequest, MapStats};
 pub use solid::{
     close_top_surface, default_base_depth_um, grid_solid, LengthUnit, SolidMesh, SolidParams,
 };
