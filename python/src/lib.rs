@@ -478,11 +478,11 @@ fn mesh(
     remove_spikes: bool,
 ) -> PyResult<String> {
     use surfstream_core::raster::Shape;
+    use surfstream_mesher::map::MeshOptions;
     use surfstream_mesher::outliers::OutlierPolicy;
     use surfstream_mesher::{
-        job::DEFAULT_EPSILON_SQ_FRACTION, mesh_map, prepare_heights, DemEngine, EngineProfile,
-        Epsilon, LengthUnit, MapBound, MapRequest, MeshError, MeshKind, MeshParams, MissingSamples,
-        SolidParams, Tolerance, ToleranceSettings,
+        mesh_map, prepare_heights, DemEngine, EngineProfile, Epsilon, LengthUnit, MapBound,
+        MapRequest, MeshError, Tolerance, ToleranceSettings,
     };
     let (h, rows, cols) = heights(&heights_um)?;
     let bad = |e: String| Failure::new(Kind::Parameter, e);
@@ -534,26 +534,15 @@ fn mesh(
         }
         _ => MapBound::Fixed,
     };
-    let params = MeshParams {
-        epsilon: fixed.unwrap_or(Epsilon::SqFraction(DEFAULT_EPSILON_SQ_FRACTION)),
+    let params = MeshOptions {
+        fixed,
         max_triangles,
-        kind: if sheet || profile.is_some_and(|p| !p.solid) {
-            MeshKind::Sheet
-        } else {
-            MeshKind::Solid
-        },
-        missing: if holes {
-            MissingSamples::Holes
-        } else {
-            MissingSamples::Fill
-        },
-        solid: SolidParams {
-            units: profile.map_or(units, |p| p.units),
-            base_depth_um,
-            recentre: true,
-        },
-        block_samples: None,
-    };
+        sheet,
+        holes,
+        units,
+        base_depth_um,
+    }
+    .params(profile);
     let policy = if remove_spikes {
         OutlierPolicy::Remove
     } else {

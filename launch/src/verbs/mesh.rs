@@ -7,12 +7,11 @@ use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, ValueEnum};
 use surfstream_core::frame::to_frame_heights;
 use surfstream_core::raster::Shape;
-use surfstream_mesher::map::{MethodStats, PreparedHeights};
+use surfstream_mesher::map::{MeshOptions, MethodStats, PreparedHeights};
 use surfstream_mesher::outliers::OutlierPolicy;
 use surfstream_mesher::{
-    job::DEFAULT_EPSILON_SQ_FRACTION, mesh_map, prepare_heights, DemEngine, EngineProfile, Epsilon,
-    LengthUnit, MapBound, MapMesh, MapRequest, MapStats, MeshKind, MeshParams, MissingSamples,
-    SolidParams, StreamedMesh, TargetMesh, TargetMethod, ToleranceSettings,
+    mesh_map, prepare_heights, DemEngine, EngineProfile, Epsilon, LengthUnit, MapBound, MapMesh,
+    MapRequest, MapStats, MeshParams, StreamedMesh, TargetMesh, TargetMethod, ToleranceSettings,
 };
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -188,35 +187,23 @@ fn prepared_heights(a: &MeshArgs) -> Result<(surfstream_io::formats::Surface, Pr
 
 /// The mesher's parameters from the flags and the engine's profile.
 fn mesh_params(a: &MeshArgs, profile: Option<EngineProfile>) -> MeshParams {
-    let units = match a.units.unwrap_or(Units::Mm) {
-        Units::M => LengthUnit::M,
-        Units::Mm => LengthUnit::Mm,
-        Units::Um => LengthUnit::Um,
-    };
-    MeshParams {
-        epsilon: match (a.epsilon_um, a.epsilon_sq) {
-            (Some(e), _) => Epsilon::Um(e),
-            (None, Some(f)) => Epsilon::SqFraction(f),
-            (None, None) => Epsilon::SqFraction(DEFAULT_EPSILON_SQ_FRACTION),
+    MeshOptions {
+        fixed: match (a.epsilon_um, a.epsilon_sq) {
+            (Some(e), _) => Some(Epsilon::Um(e)),
+            (None, Some(f)) => Some(Epsilon::SqFraction(f)),
+            (None, None) => None,
         },
         max_triangles: a.max_triangles,
-        kind: if a.sheet || profile.is_some_and(|p| !p.solid) {
-            MeshKind::Sheet
-        } else {
-            MeshKind::Solid
+        sheet: a.sheet,
+        holes: a.holes,
+        units: match a.units.unwrap_or(Units::Mm) {
+            Units::M => LengthUnit::M,
+            Units::Mm => LengthUnit::Mm,
+            Units::Um => LengthUnit::Um,
         },
-        missing: if a.holes {
-            MissingSamples::Holes
-        } else {
-            MissingSamples::Fill
-        },
-        solid: SolidParams {
-            units: profile.map_or(units, |p| p.units),
-            base_depth_um: a.base_depth_um,
-            recentre: true,
-        },
-        block_samples: None,
+        base_depth_um: a.base_depth_um,
     }
+    .params(profile)
 }
 
 /// The tolerance search's settings from the flags; `None` for a fixed bound (--epsilon-um,

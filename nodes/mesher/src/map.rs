@@ -18,11 +18,12 @@ use serde_json::{Map, Value};
 use surfstream_core::frame::to_frame_heights;
 use surfstream_core::raster::{RasterView, Shape};
 
+use crate::job::DEFAULT_EPSILON_SQ_FRACTION;
 use crate::outliers::{find_spikes, OutlierPolicy, OutlierReport};
 use crate::{
-    grid_sheet_for, mesh_streaming, mesh_streaming_to_tolerance, EngineProfile, MeshError,
-    MeshParams, ScanPlacement, StreamedMesh, TargetMesh, TargetMethod, ToleranceReport,
-    ToleranceSettings,
+    grid_sheet_for, mesh_streaming, mesh_streaming_to_tolerance, EngineProfile, Epsilon,
+    LengthUnit, MeshError, MeshKind, MeshParams, MissingSamples, ScanPlacement, SolidParams,
+    StreamedMesh, TargetMesh, TargetMethod, ToleranceReport, ToleranceSettings,
 };
 
 /// The heights to mesh: f32 about their mean (so that f32 keeps nanometres however far up
@@ -74,6 +75,48 @@ pub fn prepare_heights(
         shape,
         spikes,
     })
+}
+
+/// The mesh's shape as a caller states it (the verb's flags, Python's arguments).
+#[derive(Debug, Clone, Copy)]
+pub struct MeshOptions {
+    /// A fixed vertical bound (`None`: 0.05 x Sq when a fixed bound is used).
+    pub fixed: Option<Epsilon>,
+    pub max_triangles: Option<usize>,
+    /// The open surface instead of a closed solid.
+    pub sheet: bool,
+    /// Missing samples left as holes (a sheet only).
+    pub holes: bool,
+    pub units: LengthUnit,
+    pub base_depth_um: Option<f64>,
+}
+
+impl MeshOptions {
+    /// The mesher's parameters; an engine's profile sets kind and units.
+    pub fn params(&self, profile: Option<EngineProfile>) -> MeshParams {
+        MeshParams {
+            epsilon: self
+                .fixed
+                .unwrap_or(Epsilon::SqFraction(DEFAULT_EPSILON_SQ_FRACTION)),
+            max_triangles: self.max_triangles,
+            kind: if self.sheet || profile.is_some_and(|p| !p.solid) {
+                MeshKind::Sheet
+            } else {
+                MeshKind::Solid
+            },
+            missing: if self.holes {
+                MissingSamples::Holes
+            } else {
+                MissingSamples::Fill
+            },
+            solid: SolidParams {
+                units: profile.map_or(self.units, |p| p.units),
+                base_depth_um: self.base_depth_um,
+                recentre: true,
+            },
+            block_samples: None,
+        }
+    }
 }
 
 /// How the surface is meshed (an engine's grid profile overrides both).
@@ -128,6 +171,8 @@ pub struct MapStats {
 /// What the method adds to [`MapStats`].
 #[derive(Debug, Clone, Serialize)]
 #[serde(untagged)]
+// One value per map meshed: the variants' sizes do not matter.
+#[allow(clippy::large_enum_variant)]
 pub enum MethodStats {
     Model(ModelStats),
     Grid(GridStats),
@@ -178,6 +223,7 @@ impl MapStats {
 }
 
 /// The mesh made, for the caller's own lines.
+#[allow(clippy::large_enum_variant)]
 pub enum MapMesh {
     Model(StreamedMesh),
     Grid(TargetMesh),
@@ -353,4 +399,133 @@ fn grid_target(
         mesh: MapMesh::Grid(t),
         stats,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{check_closed, mesh_height_field, write_stl_binary, DemEngine};
+    use surfstream_core::Pitch;
+
+    /// A tilted wavy 40 x 50 map about 30 um up, one sample not measured, one spike.
+    fn map() -> (Vec<f64>, Shape) {
+        let shape = Shape::new(40, 50);
+        let mut h: Vec<f64> = (0..shape.rows * shape.cols)
+            .map(|k| {
+                let (y, x) = ((k / shape.cols) as f64, (k % shape.cols) as f64);
+                30.0 + 0.01 * x + (x / 5.0).sin() + 0.3 * (y / 7.0).cos()
+            })
+            .collect();
+        h[7 * shape.cols + 9] = f64::NAN;
+        h[20 * shape.cols + 25] += 40.0;
+        (h, shape)
+    }
+
+    fn options() -> MeshOptions {
+        MeshOptions {
+            fixed: Some(Epsilon::Um(0.02)),
+            max_triangles: None,
+            sheet: false,
+            holes: false,
+            units: LengthUnit::Mm,
+            base_depth_um: None,
+        }
+    }
+
+    /// The streamed model written by `mesh_map` is the in-memory mesher's (the oracle) byte
+    /// for byte, its statistics carry the oracle's counts and checks, and the spill leaves
+    /// nothing beside the STL.
+    #[test]
+    fn the_model_is_the_in_memory_meshers() {
+        let d = tempfile::tempdir().unwrap();
+        let (h, shape) = map();
+        let p = prepare_heights(&h, shape, OutlierPolicy::Keep).unwrap();
+        assert_eq!(p.spikes.count, 1);
+        let pitch = Pitch::new(0.5, 0.7).unwrap();
+        let stl = d.path().join("m/w.stl");
+        let params = options().params(None);
+        let out = mesh_map(&MapRequest {
+            heights: &p,
+            pitch,
+            params: params.clone(),
+            profile: None,
+            bound: MapBound::Fixed,
+            roughness_um: None,
+            ascii: false,
+            stl: &stl,
+            input: None,
+        })
+        .unwrap();
+        let at = ScanPlacement::new(pitch).with_z_offset(p.z_offset_um);
+        let view = RasterView::new(&p.heights_um, shape).unwrap();
+        let m = mesh_height_field(view, &at, &params).unwrap();
+        let mut want = Vec::new();
+        write_stl_binary(&mut want, &m.mesh, "surfstream mesh").unwrap();
+        assert!(std::fs::read(&stl).unwrap() == want, "STL bytes differ");
+        let json = out.stats.to_json().unwrap();
+        let oracle = m.summary();
+        for key in ["triangles", "vertices", "fidelity", "offset_um"] {
+            assert_eq!(json[key], oracle[key], "{key}");
+        }
+        assert_eq!(json["watertight"], check_closed(&m.mesh).watertight);
+        assert_eq!(json["outliers"]["count"], 1);
+        assert_eq!(json["stl"], "w.stl");
+        assert!(json.get("input").is_none() && json.get("grid_px").is_none());
+        let files: Vec<_> = std::fs::read_dir(stl.parent().unwrap()).unwrap().collect();
+        assert_eq!(files.len(), 1);
+    }
+
+    /// An engine's grid: the STL `grid_sheet_for` makes, its counts in the statistics; a
+    /// fixed bound with an engine that bounds angles is refused; so is an infinite sample.
+    #[test]
+    fn grid_targets_and_refusals() {
+        let d = tempfile::tempdir().unwrap();
+        let (h, shape) = map();
+        let p = prepare_heights(&h, shape, OutlierPolicy::Remove).unwrap();
+        assert!(p.heights_um[20 * shape.cols + 25].is_nan());
+        let pitch = Pitch::square(1.0).unwrap();
+        let mut profile = EngineProfile::with_budget(DemEngine::Yade, None);
+        profile.method = TargetMethod::Grid;
+        let stl = d.path().join("y.stl");
+        let request = |profile, bound| MapRequest {
+            heights: &p,
+            pitch,
+            params: options().params(Some(profile)),
+            profile: Some(profile),
+            bound,
+            roughness_um: None,
+            ascii: false,
+            stl: &stl,
+            input: Some(("in.npy".into(), "npy".into())),
+        };
+        let out = mesh_map(&request(profile, MapBound::Fixed)).unwrap();
+        let at = ScanPlacement::new(pitch).with_z_offset(p.z_offset_um);
+        let t = grid_sheet_for(
+            RasterView::new(&p.heights_um, shape).unwrap(),
+            &at,
+            &profile,
+        )
+        .unwrap();
+        let json = out.stats.to_json().unwrap();
+        assert_eq!(json["triangles"], t.mesh.triangles.len());
+        assert_eq!(json["measured_grid_rows_cols"][1], shape.cols);
+        assert_eq!(json["input"], "in.npy");
+        assert!(std::fs::metadata(&stl).unwrap().len() > 0);
+
+        let liggghts = EngineProfile::with_budget(DemEngine::Liggghts, None);
+        let e = mesh_map(&request(liggghts, MapBound::Fixed)).err().unwrap();
+        assert!(
+            e.to_string().contains("needs the model from a tolerance"),
+            "{e}"
+        );
+
+        let mut inf = h.clone();
+        inf[3] = f64::INFINITY;
+        let e = prepare_heights(&inf, shape, OutlierPolicy::Keep)
+            .err()
+            .unwrap();
+        assert!(e.downcast_ref::<MeshError>().is_some(), "{e}");
+        let nan = vec![f64::NAN; 6];
+        assert!(prepare_heights(&nan, Shape::new(2, 3), OutlierPolicy::Keep).is_err());
+    }
 }
