@@ -37,6 +37,7 @@ use surfstream_core::record::{
     DeviationRecord, FusionReport, JudgedPct, MeshReport, RegionDeviation, RegionRecord, RunRecord,
     StageDeviation, StageGrid, Table6Record,
 };
+use surfstream_core::Pitch;
 use surfstream_io::formats::{x3p, Metadata, Surface};
 use surfstream_io::npy::NpyRows;
 use surfstream_runtime::graph::GraphFile;
@@ -146,7 +147,7 @@ impl RowSource for NpySource {
 /// The panorama's geometry (origin, pitch) as the fusion node reported it.
 struct Geometry {
     origin_um: (f64, f64),
-    pitch_um: (f64, f64),
+    pitch: Pitch,
 }
 
 fn geometry(run: &RunRecord) -> Result<Geometry> {
@@ -155,7 +156,8 @@ fn geometry(run: &RunRecord) -> Result<Geometry> {
         .and_then(|f| f.panorama)
         .context("no node report carries the panorama geometry (origin, pitch)")?;
     Ok(Geometry {
-        pitch_um: (g.pitch_x_um, g.pitch_y_um),
+        pitch: Pitch::new(g.pitch_x_um, g.pitch_y_um)
+            .context("run.json: stages.<fusion>.panorama's pitch")?,
         // Without a finite origin there are no tile footprints, only the whole map.
         origin_um: (g.origin_x_um, g.origin_y_um),
     })
@@ -177,7 +179,7 @@ fn regions(run: &RunRecord, geometry: &Geometry, panorama: Shape) -> Vec<Region>
                 format!("S{}", k + 1),
                 (x, y),
                 geometry.origin_um,
-                geometry.pitch_um,
+                geometry.pitch,
                 tile,
                 panorama,
             ));
@@ -256,12 +258,12 @@ fn model_stages(out: &Path, panorama: Shape) -> Result<Vec<StreamedStage<'static
     Ok(stages)
 }
 
-/// run.json's record of one stage's verdict; `pitch_um` is the measured (panorama) pitch,
+/// run.json's record of one stage's verdict; `pitch` is the measured (panorama) pitch,
 /// `residuals` the pointwise residual per region (percent of Sq; stages on the measured grid).
 /// Also whether it leaves the table passing (a stage not judged does not count).
 fn stage_record(
     s: &StageVerdict,
-    pitch_um: (f64, f64),
+    pitch: Pitch,
     rule: &StageRule,
     residuals: &[Option<f64>],
 ) -> (StageDeviation, bool) {
@@ -310,8 +312,8 @@ fn stage_record(
         rows: s.grid.rows,
         cols: s.grid.cols,
         cell_px: s.cell_px,
-        pitch_x_um: pitch_um.0 * s.cell_px as f64,
-        pitch_y_um: pitch_um.1 * s.cell_px as f64,
+        pitch_x_um: pitch.x_um() * s.cell_px as f64,
+        pitch_y_um: pitch.y_um() * s.cell_px as f64,
         name: if s.cell_px == 1 {
             "panorama grid".to_string()
         } else {
@@ -347,8 +349,8 @@ fn write_x3p(out: &Path, pano: &mut NpySource, geometry: &Geometry) -> Result<()
     let surface = Surface {
         width: shape.cols,
         height: shape.rows,
-        pitch_x_um: geometry.pitch_um.0,
-        pitch_y_um: geometry.pitch_um.1,
+        pitch_x_um: geometry.pitch.x_um(),
+        pitch_y_um: geometry.pitch.y_um(),
         heights_um: Vec::new(),
         metadata: Metadata {
             format: "npy".into(),
@@ -373,13 +375,7 @@ fn evaluate(
     let regions = regions(run, geometry, shape);
     let info = mesh_info(run);
     let mut stages = model_stages(out, shape)?;
-    let table = Table6::judge_streamed(
-        pano,
-        geometry.pitch_um,
-        &mut stages,
-        &regions,
-        threshold_pct,
-    )?;
+    let table = Table6::judge_streamed(pano, geometry.pitch, &mut stages, &regions, threshold_pct)?;
     // The mesh is judged at the model's tolerance when it was made from one.
     let model_limits = info.tolerance.unwrap_or([threshold_pct; 3]);
     let meshed_pooled = info.surface.as_deref() == Some("pooled");
@@ -411,7 +407,7 @@ fn evaluate(
         } else {
             Vec::new()
         };
-        let (v, ok) = stage_record(s, geometry.pitch_um, &rule, &residuals);
+        let (v, ok) = stage_record(s, geometry.pitch, &rule, &residuals);
         pass &= ok;
         out_stages.insert(s.stage.clone(), v);
     }
@@ -433,7 +429,7 @@ fn evaluate(
             )];
             let t = Table6::judge_streamed(
                 &mut measured,
-                geometry.pitch_um,
+                geometry.pitch,
                 &mut st,
                 &regions,
                 threshold_pct,
@@ -451,7 +447,7 @@ fn evaluate(
                 note: "the roughness the simulator sees: mesh minus datum against the measured roughness",
             };
             for s in &t.stages {
-                let (v, ok) = stage_record(s, geometry.pitch_um, &rule, &residuals);
+                let (v, ok) = stage_record(s, geometry.pitch, &rule, &residuals);
                 pass &= ok;
                 out_stages.insert(s.stage.clone(), v);
             }

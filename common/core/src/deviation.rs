@@ -20,6 +20,7 @@ use rayon::prelude::*;
 
 use crate::metrology::{self, Grid, Params, ParamsByRows};
 use crate::raster::{Raster, RasterView, Shape};
+use crate::Pitch;
 
 /// The parameters Table 6 judges.
 pub const JUDGED: [&str; 3] = ["Sa", "Sq", "Sz"];
@@ -85,14 +86,14 @@ impl Region {
         name: String,
         tile_origin_um: (f64, f64),
         panorama_origin_um: (f64, f64),
-        pitch_um: (f64, f64),
+        pitch: Pitch,
         tile: Shape,
         panorama: Shape,
     ) -> Option<Self> {
-        let col0 = ((tile_origin_um.0 - panorama_origin_um.0) / pitch_um.0)
+        let col0 = ((tile_origin_um.0 - panorama_origin_um.0) / pitch.x_um())
             .round()
             .max(0.0) as usize;
-        let row0 = ((tile_origin_um.1 - panorama_origin_um.1) / pitch_um.1)
+        let row0 = ((tile_origin_um.1 - panorama_origin_um.1) / pitch.y_um())
             .round()
             .max(0.0) as usize;
         if col0 >= panorama.cols || row0 >= panorama.rows {
@@ -546,7 +547,7 @@ impl Table6 {
     /// passes).
     pub fn judge_streamed(
         measured: &mut dyn RowSource,
-        pitch_um: (f64, f64),
+        pitch: Pitch,
         stages: &mut [StreamedStage],
         regions: &[Region],
         threshold_pct: f64,
@@ -557,7 +558,7 @@ impl Table6 {
         for stage in stages.iter() {
             check_stage_grid(stage.name, stage.cell_px, stage.heights_um.shape(), shape)?;
         }
-        let (px, py) = pitch_um;
+        let (px, py) = (pitch.x_um(), pitch.y_um());
         let mut streams: Vec<RegionStream> = Vec::new();
         for (s, stage) in stages.iter().enumerate() {
             let cell = stage.cell_px.max(1);
@@ -742,7 +743,7 @@ mod tests {
             "S2".into(),
             (25.0, 20.0),
             (10.0, 10.0),
-            (0.5, 0.5),
+            Pitch::square(0.5).unwrap(),
             tile,
             pano,
         );
@@ -760,7 +761,7 @@ mod tests {
             "S3".into(),
             (50.0, 0.0),
             (10.0, 10.0),
-            (0.5, 0.5),
+            Pitch::square(0.5).unwrap(),
             tile,
             pano,
         );
@@ -1059,7 +1060,7 @@ mod tests {
         ];
         let streamed = Table6::judge_streamed(
             &mut RasterRows(z.view()),
-            (0.8, 0.7),
+            Pitch::new(0.8, 0.7).unwrap(),
             &mut stages,
             &regions,
             5.0,
@@ -1094,7 +1095,7 @@ mod tests {
         )];
         let e = Table6::judge_streamed(
             &mut RasterRows(z.view()),
-            (1.0, 1.0),
+            Pitch::square(1.0).unwrap(),
             &mut bad,
             &regions,
             5.0,

@@ -390,3 +390,46 @@ for name, sigma in (('old', {lc} / 0.5 / (2 * np.sqrt(2 * np.log(2)))), ('fixed'
         "old sigma: {old} vs {want_old}"
     );
 }
+
+/// The filters and the form fit give the same bits whatever the number of threads: their sums
+/// over rayon's work are added in a fixed order. (Before, rayon's reduce paired partial sums as
+/// the threads happened to split the work, and a filtered map's last bits changed from run to
+/// run.)
+#[test]
+fn filters_do_not_depend_on_the_thread_count() {
+    let grid = Sampling::new(Shape::new(700, 900), 0.8, 0.7).unwrap();
+    let mut z = map(grid, |x, y| {
+        50.0 + 2.0 * (0.013 * x).sin() + 0.7 * (0.021 * y + 0.3).cos() + 1e-3 * x * y.sqrt()
+    });
+    for k in (0..z.len()).step_by(97) {
+        z[k] = f32::NAN;
+    }
+    let bits32 = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>();
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let form = fit_polynomial(&z, grid, 2).unwrap();
+            let mut bits: Vec<u64> = form.coefficients.iter().map(|c| c.to_bits()).collect();
+            bits.push(form.residual_rms_um.to_bits());
+            let smooth = gaussian_filter(&z, grid, 80.0).unwrap();
+            let robust = robust_gaussian_filter(&z, grid, &RobustSettings::new(80.0)).unwrap();
+            (bits, bits32(&smooth), bits32(&robust.mean))
+        })
+    };
+    let one = run(1);
+    for threads in [2, 3, 5, 8] {
+        let other = run(threads);
+        assert!(other.0 == one.0, "form fit differs with {threads} threads");
+        assert!(
+            other.1 == one.1,
+            "Gaussian filter differs with {threads} threads"
+        );
+        assert!(
+            other.2 == one.2,
+            "robust Gaussian filter differs with {threads} threads"
+        );
+    }
+}

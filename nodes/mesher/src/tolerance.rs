@@ -1267,6 +1267,9 @@ impl<'p, F> LiveOrder<'p, '_, F> {
         let steps: Vec<(f64, bool)> = self.steps.drain(..).take(kept).collect();
         self.live.clear();
         for (epsilon_um, balanced) in steps {
+            // Each replayed step is as long as the search's own steps, which beat between
+            // checkpoints: the graph's stall guard must see the replay progress.
+            surfstream_core::liveness::beat();
             self.refine(epsilon_um, balanced);
         }
     }

@@ -282,12 +282,21 @@ fn dec_step(
                 .enumerate()
                 .map(|(t, (((a, h), v), d))| {
                     k.dec_rows(&rows, k0 + t * sub, a, Some([&mut *h, &mut *v, &mut *d]));
-                    (sq(a), sq(h) + sq(v) + sq(d))
+                    // Row by row: a task's rows depend on the thread count.
+                    let rows_of = |x: &[f64]| x.chunks(c2).map(sq).collect::<Vec<f64>>();
+                    let (hr, vr, dr) = (rows_of(h), rows_of(v), rows_of(d));
+                    let details = (hr.iter().zip(&vr).zip(&dr)).map(|((h, v), d)| h + v + d);
+                    rows_of(a)
+                        .into_iter()
+                        .zip(details)
+                        .collect::<Vec<(f64, f64)>>()
                 })
-                // Added in band order: rayon's reduce would pair the bands as the threads
-                // split the work, and the energy's last bits would vary run to run.
-                .collect::<Vec<(f64, f64)>>()
+                // Each row's energy added in row order: rayon's reduce would pair partial sums
+                // as the threads split the work (and a task's rows follow the thread count),
+                // so the energy's last bits would vary from run to run and machine to machine.
+                .collect::<Vec<Vec<(f64, f64)>>>()
                 .into_iter()
+                .flatten()
                 .fold((0.0, 0.0), |x, y| (x.0 + y.0, x.1 + y.1));
             energy.approx += ea;
             energy.details += ed;

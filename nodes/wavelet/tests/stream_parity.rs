@@ -200,3 +200,46 @@ fn energy_curve_agrees_to_round_off() {
         }
     }
 }
+
+/// The energy curves (in memory and streamed) are the same bits whatever the number of
+/// threads: their sums over rayon's work are added in a fixed order (rayon's reduce paired
+/// them as the threads split the work, so the curve's last bits changed from run to run).
+#[test]
+fn energy_curves_do_not_depend_on_the_thread_count() {
+    let (rows, cols) = (600, 517);
+    let h = surface(rows, cols, 11, &[3, 400]);
+    let w = Wavelet::by_name("sym5").expect("listed");
+    let opts = StreamOptions {
+        band_rows: Some(64),
+        ..StreamOptions::default()
+    };
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .expect("pool");
+        pool.install(|| {
+            let curve = |c: Vec<surfstream_wavelet::EnergyPoint>| {
+                c.iter()
+                    .map(|p| p.approx_energy_fraction.to_bits())
+                    .collect::<Vec<u64>>()
+            };
+            let a = energy_curve(&h, rows, cols, &w, Mode::Symmetric).expect("curve");
+            let b =
+                energy_curve_streamed(&h, rows, cols, &w, Mode::Symmetric, &opts).expect("curve");
+            (curve(a), curve(b))
+        })
+    };
+    let one = run(1);
+    for threads in [2, 3, 8] {
+        let other = run(threads);
+        assert!(
+            other.0 == one.0,
+            "in-memory curve differs with {threads} threads"
+        );
+        assert!(
+            other.1 == one.1,
+            "streamed curve differs with {threads} threads"
+        );
+    }
+}
