@@ -11,7 +11,6 @@
 
 use std::path::PathBuf;
 
-use anyhow::anyhow;
 use numpy::ndarray::Array2;
 use numpy::{IntoPyArray, PyArray2, PyReadonlyArray2};
 use pyo3::prelude::*;
@@ -24,8 +23,8 @@ use surfstream_core::{Sampling, Shape};
 use surfstream_io::formats::{read_surface, write_surface, Metadata, Surface};
 use surfstream_io::preview::{encode_map_png, robust_range_um};
 use surfstream_wavelet::{
-    analyse, equivalent_cutoff_um, filter_separation, level_lowered_warning, BaseChoice,
-    LevelChoice, Mode, PoolOp, SeparationMethod, DEFAULT_LEVEL,
+    separate_map, BaseChoice, LevelChoice, MapSummary, Mode, PoolOp, SeparationMethod,
+    SeparationSettings, SeparationSink, StreamOptions,
 };
 
 /// Which `surfstream` exception (pysrc/surfstream/_errors.py) an error becomes.
@@ -356,7 +355,38 @@ fn robust_gaussian<'py>(
     Ok((to_numpy(py, out, rows, cols)?, it, conv))
 }
 
-/// Datum / roughness separation, the `separate` verb's code paths: (datum um absolute,
+/// The datum and roughness of [`separate_map`] kept whole, for numpy.
+#[derive(Default)]
+struct WholeMaps {
+    datum: Vec<f32>,
+    roughness: Vec<f32>,
+}
+
+impl SeparationSink for WholeMaps {
+    fn begin(&mut self, _datum_title: &str) -> anyhow::Result<()> {
+        Ok(())
+    }
+    fn push_rows(&mut self, datum: &[f32], roughness: &[f32]) -> anyhow::Result<()> {
+        self.datum.extend_from_slice(datum);
+        self.roughness.extend_from_slice(roughness);
+        Ok(())
+    }
+    fn whole(&mut self, datum: Vec<f32>, roughness: Vec<f32>, _cols: usize) -> anyhow::Result<()> {
+        (self.datum, self.roughness) = (datum, roughness);
+        Ok(())
+    }
+}
+
+/// `separate`'s summary: [`separate_map`]'s ([`MapSummary`], `separate.json`'s keys) and the
+/// offset its heights are relative to.
+#[derive(serde::Serialize)]
+struct SeparationSummary {
+    #[serde(flatten)]
+    separation: MapSummary,
+    z_offset_um: f64,
+}
+
+/// Datum / roughness separation, the `separate` verb's function ([`separate_map`]): (datum um absolute,
 /// roughness um, summary JSON, warnings).
 #[pyfunction]
 #[pyo3(signature = (heights_um, pitch_x_um, pitch_y_um, method="wavelet", wavelet="sym5", level="8", mode="symmetric", cutoff_um=None, lambda_s_um=None))]
@@ -385,67 +415,35 @@ fn separate<'py>(
     let base: BaseChoice = wavelet.parse().map_err(|e| bad(format!("wavelet {e}")))?;
     let level: LevelChoice = level.parse().map_err(|e| bad(format!("level {e}")))?;
     let mode: Mode = mode.parse().map_err(|e| bad(format!("mode {e}")))?;
+    // The verb's defaults for what Python does not return (the pooled map), so that the
+    // summary is the verb's and the node's.
+    let settings = SeparationSettings {
+        method,
+        lambda_s_um,
+        base,
+        level,
+        mode,
+        pool_block: 4,
+        pool_op: PoolOp::Max,
+    };
     let (datum, roughness, summary, warnings) = py.detach(|| -> Result<_, Failure> {
         let grid = filter_grid(rows, cols, pitch_x_um, pitch_y_um)?;
-        let (offset, h32) = to_frame_heights(h);
-        let mut warnings = Vec::new();
-        let (datum, roughness, summary) = if method == SeparationMethod::Wavelet {
-            let (sep, wavelet, min_energy) = match (base, level) {
-                // A named base at a given level: the separation alone (what `analyse` runs
-                // after its choices), without the energy curve or pooling.
-                (BaseChoice::Named(w), LevelChoice::Fixed(_) | LevelChoice::Default) => {
-                    let l = match level {
-                        LevelChoice::Fixed(l) => Some(l),
-                        _ => None,
-                    };
-                    let s = surfstream_wavelet::separate(&h32, rows, cols, &w, mode, l)
-                        .map_err(|e| Failure::new(Kind::Other, e))?;
-                    (s, w, None)
-                }
-                _ => {
-                    let an = analyse(&h32, rows, cols, base, level, mode, 1, PoolOp::Max)
-                        .map_err(|e| Failure::of(Kind::Other, anyhow!(e)))?;
-                    (an.separation, an.wavelet, an.level_min_energy)
-                }
-            };
-            let used = sep.level;
-            let requested = match level {
-                LevelChoice::Fixed(l) => Some(l),
-                LevelChoice::Default => Some(DEFAULT_LEVEL),
-                LevelChoice::MinEnergy => None,
-            };
-            if let Some(w) =
-                requested.and_then(|r| level_lowered_warning(&wavelet, r, used, pitch_x_um))
-            {
-                warnings.push(w);
-            }
-            let summary = serde_json::json!({
-                "method": "wavelet",
-                "wavelet": wavelet.name(),
-                "level": used,
-                "level_min_energy": min_energy,
-                "mode": mode.name(),
-                "equivalent_cutoff_um": equivalent_cutoff_um(&wavelet, used, pitch_x_um),
-                "z_offset_um": offset,
-            });
-            (sep.datum, sep.roughness, summary)
-        } else {
-            let f = filter_separation(&h32, grid, method, lambda_s_um).map_err(filter_failure)?;
-            let summary = serde_json::json!({
-                "method": method.name(),
-                "cutoff_um": method.cutoff_um(),
-                "lambda_s_um": lambda_s_um,
-                "plane_removed_um": f.plane_um,
-                "robust_iterations": f.robust_iterations.map(|r| r.0),
-                "robust_converged": f.robust_iterations.map(|r| r.1),
-                "z_offset_um": offset,
-            });
-            (f.datum, f.roughness, summary)
-        };
+        let (z_offset_um, h32) = to_frame_heights(h);
+        // The verb's and the wavelet node's function: it chooses the path (streamed for a
+        // named wavelet at a fixed / default level) and the rows come back whole.
+        let mut sink = WholeMaps::default();
+        let map = separate_map(&settings, &h32, &grid, &StreamOptions::default(), &mut sink)
+            .map_err(|e| Failure::of(Kind::Other, e))?;
+        drop(h32);
+        let summary = serde_json::to_string(&SeparationSummary {
+            separation: map.summary,
+            z_offset_um,
+        })
+        .map_err(|e| Failure::new(Kind::Other, e))?;
         // The datum comes back absolute (f64), the roughness as the difference (no offset).
-        let datum = from_frame_heights(offset, &datum);
-        let roughness: Vec<f64> = roughness.iter().map(|&r| f64::from(r)).collect();
-        Ok((datum, roughness, summary.to_string(), warnings))
+        let datum = from_frame_heights(z_offset_um, &sink.datum);
+        let roughness: Vec<f64> = sink.roughness.iter().map(|&r| f64::from(r)).collect();
+        Ok((datum, roughness, summary, map.warning.into_iter().collect()))
     })?;
     Ok((
         to_numpy(py, datum, rows, cols)?,
@@ -455,10 +453,11 @@ fn separate<'py>(
     ))
 }
 
-/// Meshes the heights as an STL at `path` (the `mesh` verb's steps); returns the statistics
-/// as JSON and the warnings.
+/// Meshes the heights as an STL at `path`: the `mesh` verb's function
+/// ([`surfstream_mesher::mesh_map`], streamed); returns its statistics as JSON (the verb's
+/// OUT.json without the input file).
 #[pyfunction]
-#[pyo3(signature = (path, heights_um, pitch_x_um, pitch_y_um, target=None, tolerance_um=None, tolerance_sq=None, max_triangles=None, sheet=false, holes=false, ascii=false, units="mm", base_depth_um=None))]
+#[pyo3(signature = (path, heights_um, pitch_x_um, pitch_y_um, target=None, tolerance_um=None, tolerance_sq=None, max_triangles=None, sheet=false, holes=false, ascii=false, units="mm", base_depth_um=None, tolerance=None, remove_spikes=false))]
 #[allow(clippy::too_many_arguments)]
 fn mesh(
     py: Python<'_>,
@@ -475,12 +474,15 @@ fn mesh(
     ascii: bool,
     units: &str,
     base_depth_um: Option<f64>,
+    tolerance: Option<&str>,
+    remove_spikes: bool,
 ) -> PyResult<String> {
-    use surfstream_core::raster::{RasterView, Shape};
+    use surfstream_core::raster::Shape;
+    use surfstream_mesher::map::MeshOptions;
+    use surfstream_mesher::outliers::OutlierPolicy;
     use surfstream_mesher::{
-        check_closed, grid_sheet_for, job::DEFAULT_EPSILON_SQ_FRACTION, mesh_height_field,
-        DemEngine, EngineProfile, Epsilon, LengthUnit, MeshKind, MeshParams, MissingSamples,
-        ScanPlacement, SolidParams, TargetMethod,
+        mesh_map, prepare_heights, DemEngine, EngineProfile, Epsilon, LengthUnit, MapBound,
+        MapRequest, MeshError, Tolerance, ToleranceSettings,
     };
     let (h, rows, cols) = heights(&heights_um)?;
     let bad = |e: String| Failure::new(Kind::Parameter, e);
@@ -493,112 +495,88 @@ fn mesh(
             return Err(bad(format!("units {other:?}: expected \"m\", \"mm\" or \"um\"")).into())
         }
     };
-    if tolerance_um.is_some() && tolerance_sq.is_some() {
-        return Err(bad("give tolerance_um or tolerance_sq, not both".into()).into());
+    let fixed = match (tolerance_um, tolerance_sq) {
+        (Some(_), Some(_)) => {
+            return Err(bad("give tolerance_um or tolerance_sq, not both".into()).into())
+        }
+        (Some(e), None) => Some(Epsilon::Um(e)),
+        (None, Some(f)) => Some(Epsilon::SqFraction(f)),
+        (None, None) => None,
+    };
+    let tolerance: Option<Tolerance> = tolerance
+        .map(|t| t.parse().map_err(|e| bad(format!("tolerance {t:?}: {e}"))))
+        .transpose()?;
+    if tolerance.is_some() && fixed.is_some() {
+        return Err(bad("give tolerance or tolerance_um / tolerance_sq, not both".into()).into());
     }
     if holes && !sheet {
         return Err(bad("holes=True needs sheet=True (a solid is closed)".into()).into());
     }
+    let profile = engine.map(|e| EngineProfile::with_budget(e, max_triangles));
+    // A tolerance when asked for, or when the engine bounds the smallest angle (as the verb);
+    // else the fixed bound (default 0.05 x Sq).
+    let bound = match (tolerance, fixed) {
+        (Some(t), _) => MapBound::Tolerance(ToleranceSettings {
+            tolerance: Tolerance {
+                roughness_pct: None,
+                ..t
+            },
+            ..ToleranceSettings::default()
+        }),
+        (None, None) if profile.is_some_and(|p| p.min_angle_deg > 0.0) => {
+            MapBound::Tolerance(ToleranceSettings {
+                tolerance: Tolerance {
+                    roughness_pct: None,
+                    ..Tolerance::default()
+                },
+                ..ToleranceSettings::default()
+            })
+        }
+        _ => MapBound::Fixed,
+    };
+    let params = MeshOptions {
+        fixed,
+        max_triangles,
+        sheet,
+        holes,
+        units,
+        base_depth_um,
+    }
+    .params(profile);
+    let policy = if remove_spikes {
+        OutlierPolicy::Remove
+    } else {
+        OutlierPolicy::Keep
+    };
     let json = py.detach(|| -> Result<String, Failure> {
         filter_grid(rows, cols, pitch_x_um, pitch_y_um)?;
-        if !h.iter().any(|z| z.is_finite()) {
-            return Err(Failure::new(Kind::Other, "no measured sample (all NaN)"));
-        }
-        // Only NaN marks a missing sample: an infinity is refused, as the CLI does.
-        if let Some(k) = h.iter().position(|z| z.is_infinite()) {
-            let e = surfstream_mesher::MeshError::InfiniteSample {
-                row: k / cols,
-                col: k % cols,
-                value: h[k] as f32,
-            };
-            return Err(Failure::new(Kind::Parameter, e));
-        }
-        let (z_offset_um, h32) = to_frame_heights(h);
-        let view = RasterView::new(&h32, Shape::new(rows, cols))
-            .map_err(|e| Failure::new(Kind::Other, e))?;
         let pitch = surfstream_core::Pitch::new(pitch_x_um, pitch_y_um)
             .map_err(|e| Failure::new(Kind::Parameter, e))?;
-        let at = ScanPlacement::new(pitch).with_z_offset(z_offset_um);
-        let profile = engine.map(|e| EngineProfile::with_budget(e, max_triangles));
-        let write = |w: &mut dyn std::io::Write,
-                     m: &surfstream_mesher::SolidMesh,
-                     ascii: bool,
-                     label: &str| {
-            if ascii {
-                surfstream_mesher::write_stl_ascii(w, m, label)
+        // The mesher's own refusals (an infinite sample, a bound out of range) are the
+        // caller's parameters; the rest (nothing measured, a file) are not.
+        let fail = |e: anyhow::Error| {
+            let kind = if e.downcast_ref::<MeshError>().is_some() {
+                Kind::Parameter
             } else {
-                surfstream_mesher::write_stl_binary(w, m, label)
-            }
+                Kind::Other
+            };
+            Failure::of(kind, e)
         };
-        let fail = |e: anyhow::Error| Failure::of(Kind::Other, e);
-        if let Some(p) = profile.filter(|p| p.method == TargetMethod::Grid) {
-            let t = grid_sheet_for(view, &at, &p).map_err(|e| Failure::new(Kind::Other, e))?;
-            let label = format!("surfstream mesh for {}", p.engine.name());
-            surfstream_core::fsutil::write_atomic(&path, |w| {
-                Ok(write(w, &t.mesh, p.ascii, &label)?)
-            })
-            .map_err(fail)?;
-            let mut report = t.summary();
-            if let Some(o) = report.as_object_mut() {
-                o.insert("stl".into(), serde_json::json!(path.display().to_string()));
-                o.insert(
-                    "triangles".into(),
-                    serde_json::json!(t.mesh.triangles.len()),
-                );
-                o.insert("units".into(), serde_json::json!(p.units));
-                o.insert("offset_um".into(), serde_json::json!(t.mesh.offset_um));
-            }
-            return Ok(report.to_string());
-        }
-        let params = MeshParams {
-            epsilon: match (tolerance_um, tolerance_sq) {
-                (Some(e), _) => Epsilon::Um(e),
-                (None, Some(f)) => Epsilon::SqFraction(f),
-                (None, None) => Epsilon::SqFraction(DEFAULT_EPSILON_SQ_FRACTION),
-            },
-            max_triangles,
-            kind: if sheet || profile.is_some_and(|p| !p.solid) {
-                MeshKind::Sheet
-            } else {
-                MeshKind::Solid
-            },
-            missing: if holes {
-                MissingSamples::Holes
-            } else {
-                MissingSamples::Fill
-            },
-            solid: SolidParams {
-                units: profile.map_or(units, |p| p.units),
-                base_depth_um,
-                recentre: true,
-            },
-            block_samples: None,
-        };
-        let m =
-            mesh_height_field(view, &at, &params).map_err(|e| Failure::new(Kind::Parameter, e))?;
-        let check = check_closed(&m.mesh);
-        let ascii = profile.map_or(ascii, |p| p.ascii);
-        surfstream_core::fsutil::write_atomic(&path, |w| {
-            Ok(write(w, &m.mesh, ascii, "surfstream mesh")?)
+        let prepared = prepare_heights(h, Shape::new(rows, cols), policy).map_err(fail)?;
+        let outcome = mesh_map(&MapRequest {
+            heights: &prepared,
+            pitch,
+            params,
+            profile,
+            bound,
+            roughness_um: None,
+            ascii,
+            stl: &path,
+            input: None,
         })
         .map_err(fail)?;
-        let mut report = m.summary();
-        if let Some(o) = report.as_object_mut() {
-            o.insert("stl".into(), serde_json::json!(path.display().to_string()));
-            o.insert(
-                "format".into(),
-                serde_json::json!(if ascii { "ascii" } else { "binary" }),
-            );
-            if let Some(p) = profile {
-                o.insert("target".into(), serde_json::json!(p));
-            }
-            o.insert("watertight".into(), serde_json::json!(check.watertight));
-            o.insert(
-                "consistently_oriented".into(),
-                serde_json::json!(check.consistently_oriented),
-            );
-        }
-        Ok(report.to_string())
+        let stats = outcome.stats.to_json().map_err(fail)?;
+        Ok(stats.to_string())
     })?;
     Ok(json)
 }

@@ -363,6 +363,45 @@ def test_mesh_writes_a_watertight_stl(tmp_path):
     assert math.isclose(float(m.extents[0]), 89 * 2.0, rel_tol=1e-6)
 
 
+@needs_cli
+@needs_specimens
+@pytest.mark.parametrize(
+    "py_kw, cli_args",
+    [
+        ({"tolerance_sq": 0.05, "sheet": True, "units": "um"}, ["--epsilon-sq", "0.05", "--sheet", "--units", "um"]),
+        ({"tolerance": "sa=1,sq=1,sz=3", "remove_spikes": True}, ["--tolerance", "sa=1,sq=1,sz=3", "--remove-spikes"]),
+        ({"target": "yade"}, ["--target", "yade"]),
+    ],
+)
+def test_mesh_is_the_verbs(tmp_path, py_kw, cli_args):
+    """Python's mesh and `surfstream mesh` are one function: the same STL bytes and the same
+    statistics (the verb's OUT.json adds the input file and its format; mesh_s is a time)."""
+    path = SPECIMENS / "x3p-2.x3p"
+    cli("mesh", path, *cli_args, "-o", tmp_path / "cli" / "m.stl")
+    stats = ss.read(path).mesh(tmp_path / "py" / "m.stl", **py_kw)
+    assert (tmp_path / "py" / "m.stl").read_bytes() == (tmp_path / "cli" / "m.stl").read_bytes()
+    want = json.loads((tmp_path / "cli" / "m.json").read_text())
+    for d in (want, stats):
+        d.pop("mesh_s")
+    assert want.pop("input") == str(path) and want.pop("input_format")
+    assert stats == want
+    assert sorted(p.name for p in (tmp_path / "py").iterdir()) == ["m.stl"]
+
+
+@needs_cli
+@needs_specimens
+def test_separate_summary_is_the_verbs(tmp_path):
+    path = SPECIMENS / "x3p-2.x3p"
+    cli("separate", path, "--level", "3", "-o", tmp_path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ss.SurfstreamWarning)
+        d, _ = ss.read(path).separate(level=3)
+    want = json.loads((tmp_path / "separate.json").read_text())
+    got = d.metadata["separation"]
+    assert got == {k: want[k] for k in got}
+    assert {"energy_curve", "equivalent_cutoff_um", "pooling_bias", "z_offset_um"} <= set(got)
+
+
 # -- notebook --------------------------------------------------------------------------------------
 
 

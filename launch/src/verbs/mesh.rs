@@ -2,21 +2,16 @@
 //! statistics in `OUT.json` beside it.
 
 use std::path::{Path, PathBuf};
-use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, ValueEnum};
-use serde_json::json;
 use surfstream_core::frame::to_frame_heights;
-use surfstream_core::raster::{RasterView, Shape};
-use surfstream_mesher::outliers::{find_spikes, OutlierPolicy, OutlierReport};
+use surfstream_core::raster::Shape;
+use surfstream_mesher::map::{MeshOptions, MethodStats, PreparedHeights};
+use surfstream_mesher::outliers::OutlierPolicy;
 use surfstream_mesher::{
-    grid_sheet_for, job::DEFAULT_EPSILON_SQ_FRACTION, mesh_streaming, DemEngine, EngineProfile,
-    Epsilon, LengthUnit, MeshError, MeshKind, MeshParams, MissingSamples, ScanPlacement,
-    SolidParams, TargetMethod,
-};
-use surfstream_mesher::{
-    mesh_streaming_to_tolerance, MeshCheck, StreamedMesh, ToleranceReport, ToleranceSettings,
+    mesh_map, prepare_heights, DemEngine, EngineProfile, Epsilon, LengthUnit, MapBound, MapMesh,
+    MapRequest, MapStats, MeshParams, StreamedMesh, TargetMesh, TargetMethod, ToleranceSettings,
 };
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -106,17 +101,9 @@ pub struct MeshArgs {
 
 pub fn run(a: MeshArgs) -> Result<()> {
     check_stl_name(&a.out)?;
-    let Prepared {
-        surface,
-        heights_um,
-        z_offset_um,
-        shape,
-        spikes,
-    } = prepared_heights(&a)?;
-    let heights = RasterView::new(&heights_um, shape)?;
+    let (surface, prepared) = prepared_heights(&a)?;
     let pitch = surfstream_core::Pitch::new(surface.pitch_x_um, surface.pitch_y_um)
         .map_err(|e| anyhow!("{}: {e}", a.file.display()))?;
-    let at = ScanPlacement::new(pitch).with_z_offset(z_offset_um);
     let profile = a.target.map(|engine| {
         let mut p = EngineProfile::with_budget(engine, a.max_triangles);
         if a.grid {
@@ -124,87 +111,62 @@ pub fn run(a: MeshArgs) -> Result<()> {
         }
         p
     });
-    if let Some(profile) = profile.filter(|p| p.method == TargetMethod::Grid) {
-        return write_grid_target(&a, &surface.metadata.format, heights, &at, &profile);
-    }
     let params = mesh_params(&a, profile);
-    let t0 = Instant::now();
-    let (mut m, tolerance) = mesh_model(&a, heights, &at, &params, profile, shape)?;
-    let mesh_s = t0.elapsed().as_secs_f64();
-
-    let ascii = profile.map_or(a.ascii, |p| p.ascii);
-    // The writer adds units and offset to the label (stl::stl_header); the closed-solid check
-    // is made as the triangles pass.
-    let label = "surfstream mesh";
-    let mut check = None;
-    surfstream_core::fsutil::write_atomic(&a.out, |w| {
-        check = Some(m.write_stl(w, ascii, label, heights)?);
-        Ok(())
-    })?;
-    let check = check.ok_or_else(|| anyhow!("{}: nothing written", a.out.display()))?;
-    let written = Written {
-        surface: &surface,
-        profile,
-        ascii,
-        check,
-        mesh_s,
-        spikes: &spikes,
+    // An engine's grid takes no bound (clap refuses one with --grid).
+    let grid = profile.is_some_and(|p| p.method == TargetMethod::Grid);
+    let settings = if grid { None } else { tolerance_settings(&a)? };
+    let bound = match settings {
+        None => MapBound::Fixed,
+        Some(s) => MapBound::Tolerance(s),
     };
-    let json_path = write_report(&a, &m, tolerance.as_ref(), &written)?;
-    say_result(
-        &a,
-        &m,
-        tolerance.as_ref(),
-        &params,
+    let roughness = match (&a.roughness, bound, grid) {
+        (Some(path), MapBound::Tolerance(_), false) => {
+            Some(roughness_reference(path, a.pitch_um, prepared.shape)?)
+        }
+        _ => None,
+    };
+    let outcome = mesh_map(&MapRequest {
+        heights: &prepared,
+        pitch,
+        params: params.clone(),
         profile,
-        mesh_s,
-        &json_path,
-    );
+        bound,
+        roughness_um: roughness.as_deref(),
+        ascii: a.ascii,
+        stl: &a.out,
+        input: Some((
+            a.file.display().to_string(),
+            surface.metadata.format.clone(),
+        )),
+    })
+    .with_context(|| format!("{}", a.file.display()))?;
+    let json_path = a.out.with_extension("json");
+    let report = outcome.stats.to_json()?;
+    surfstream_core::fsutil::write_atomic(&json_path, |w| {
+        serde_json::to_writer_pretty(w, &report)
+            .map_err(|e| anyhow!("{}: {e}", json_path.display()))
+    })?;
+    match &outcome.mesh {
+        MapMesh::Model(m) => say_result(&a, m, &outcome.stats, &params, profile, &json_path),
+        MapMesh::Grid(t) => say_grid(&a, t, &json_path),
+    }
     Ok(())
 }
 
-/// The heights to mesh: the file read (its mask applied), refused when nothing is measured or
-/// a sample is infinite, as f32 about their mean, spikes found (and removed on request).
-struct Prepared {
-    surface: surfstream_io::formats::Surface,
-    heights_um: Vec<f32>,
-    z_offset_um: f64,
-    shape: Shape,
-    spikes: OutlierReport,
-}
-
-fn prepared_heights(a: &MeshArgs) -> Result<Prepared> {
+/// The file read (its mask applied) and its heights prepared for the mesher
+/// ([`prepare_heights`]); spikes said (and removed on request).
+fn prepared_heights(a: &MeshArgs) -> Result<(surfstream_io::formats::Surface, PreparedHeights)> {
     let mut surface = super::load_surface(&a.file, a.pitch_um, "mesh", true)?.surface;
     a.mask.apply(&a.file, &mut surface)?;
-    // Heights as f32 relative to their mean, so that f32 keeps nanometres however far up the
-    // z axis the part sits; the mean goes into z_offset_um and comes back in the offset.
-    if !surface.heights_um.iter().any(|h| h.is_finite()) {
-        bail!("{}: no measured sample (all NaN)", a.file.display());
-    }
-    // Only NaN marks a missing sample: an infinity is refused (before it enters the mean).
-    if let Some(k) = surface.heights_um.iter().position(|h| h.is_infinite()) {
-        let cols = surface.width.max(1);
-        let value = surface.heights_um[k] as f32;
-        return Err(MeshError::InfiniteSample {
-            row: k / cols,
-            col: k % cols,
-            value,
-        })
-        .with_context(|| format!("{}", a.file.display()));
-    }
-    let (z_offset_um, mut heights_um) = to_frame_heights(&surface.heights_um);
-    let shape = Shape::new(surface.height, surface.width);
     let policy = if a.remove_spikes {
         OutlierPolicy::Remove
     } else {
         OutlierPolicy::Keep
     };
-    let (spikes, spike_at) = find_spikes(RasterView::new(&heights_um, shape)?, policy);
-    if a.remove_spikes {
-        for &k in &spike_at {
-            heights_um[k] = f32::NAN;
-        }
-    }
+    let shape = Shape::new(surface.height, surface.width);
+    let prepared = prepare_heights(&surface.heights_um, shape, policy)
+        .with_context(|| format!("{}", a.file.display()))?;
+    let spikes = &prepared.spikes;
     if spikes.count > 0 {
         eprintln!(
             "mesh: {} spike(s) (largest {:+.3} um at row {} col {}; they add {:+.2} % to Sz): {}",
@@ -220,110 +182,33 @@ fn prepared_heights(a: &MeshArgs) -> Result<Prepared> {
             }
         );
     }
-    Ok(Prepared {
-        surface,
-        heights_um,
-        z_offset_um,
-        shape,
-        spikes,
-    })
+    Ok((surface, prepared))
 }
 
 /// The mesher's parameters from the flags and the engine's profile.
 fn mesh_params(a: &MeshArgs, profile: Option<EngineProfile>) -> MeshParams {
-    let units = match a.units.unwrap_or(Units::Mm) {
-        Units::M => LengthUnit::M,
-        Units::Mm => LengthUnit::Mm,
-        Units::Um => LengthUnit::Um,
-    };
-    MeshParams {
-        epsilon: match (a.epsilon_um, a.epsilon_sq) {
-            (Some(e), _) => Epsilon::Um(e),
-            (None, Some(f)) => Epsilon::SqFraction(f),
-            (None, None) => Epsilon::SqFraction(DEFAULT_EPSILON_SQ_FRACTION),
+    MeshOptions {
+        fixed: match (a.epsilon_um, a.epsilon_sq) {
+            (Some(e), _) => Some(Epsilon::Um(e)),
+            (None, Some(f)) => Some(Epsilon::SqFraction(f)),
+            (None, None) => None,
         },
         max_triangles: a.max_triangles,
-        kind: if a.sheet || profile.is_some_and(|p| !p.solid) {
-            MeshKind::Sheet
-        } else {
-            MeshKind::Solid
+        sheet: a.sheet,
+        holes: a.holes,
+        units: match a.units.unwrap_or(Units::Mm) {
+            Units::M => LengthUnit::M,
+            Units::Mm => LengthUnit::Mm,
+            Units::Um => LengthUnit::Um,
         },
-        missing: if a.holes {
-            MissingSamples::Holes
-        } else {
-            MissingSamples::Fill
-        },
-        solid: SolidParams {
-            units: profile.map_or(units, |p| p.units),
-            base_depth_um: a.base_depth_um,
-            recentre: true,
-        },
-        block_samples: None,
+        base_depth_um: a.base_depth_um,
     }
-}
-
-/// The mesh: at a fixed vertical bound when one is given, else the fewest triangles that meet
-/// the tolerance (judged against the measured roughness with --roughness). Streamed
-/// ([`surfstream_mesher::stream`]): the triangles wait in a spill file in the STL's folder
-/// (created here), so the memory held is a few bytes per sample whatever the triangle count;
-/// [`StreamedMesh::write_stl`] writes them.
-fn mesh_model(
-    a: &MeshArgs,
-    heights: RasterView<'_, f32>,
-    at: &ScanPlacement,
-    params: &MeshParams,
-    profile: Option<EngineProfile>,
-    shape: Shape,
-) -> Result<(StreamedMesh, Option<ToleranceReport>)> {
-    let fixed = a.epsilon_um.is_some() || a.epsilon_sq.is_some();
-    // An engine that refuses slivers gets the tolerance mesh with its angles bounded.
-    let min_angle_deg = profile.map(|p| p.min_angle_deg).filter(|&deg| deg > 0.0);
-    if let (true, Some(p), Some(_)) = (fixed, profile, min_angle_deg) {
-        bail!(
-            "--target {} needs the model from a tolerance (its smallest angle is bounded \
-             there) or --grid; remove --epsilon-um / --epsilon-sq",
-            p.engine.name()
-        );
-    }
-    let settings = tolerance_settings(a, min_angle_deg)?;
-    let spill_dir = match a.out.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    std::fs::create_dir_all(spill_dir)
-        .with_context(|| format!("{}: cannot create the folder", spill_dir.display()))?;
-    Ok(match settings {
-        None => {
-            let m = mesh_streaming(heights, at, params, spill_dir)
-                .with_context(|| format!("{}", a.file.display()))?;
-            (m, None)
-        }
-        Some(settings) => {
-            let roughness = a
-                .roughness
-                .as_deref()
-                .map(|path| roughness_reference(path, a.pitch_um, shape))
-                .transpose()?;
-            let (m, r) = mesh_streaming_to_tolerance(
-                heights,
-                roughness.as_deref(),
-                at,
-                params,
-                &settings,
-                spill_dir,
-            )
-            .with_context(|| format!("{}", a.file.display()))?;
-            (m, Some(r))
-        }
-    })
+    .params(profile)
 }
 
 /// The tolerance search's settings from the flags; `None` for a fixed bound (--epsilon-um,
-/// --epsilon-sq).
-fn tolerance_settings(
-    a: &MeshArgs,
-    min_angle_deg: Option<f64>,
-) -> Result<Option<ToleranceSettings>> {
+/// --epsilon-sq). The smallest angle comes from the engine's profile ([`mesh_map`]).
+fn tolerance_settings(a: &MeshArgs) -> Result<Option<ToleranceSettings>> {
     if let Some(px) = a.region_px.filter(|&p| p < 16) {
         bail!("--region-px {px}: expected at least 16 samples");
     }
@@ -343,102 +228,24 @@ fn tolerance_settings(
             Some("greedy") => surfstream_mesher::tolerance::ModelMethod::Greedy,
             Some(other) => bail!("--model-method {other}: expected balanced or greedy"),
         },
-        min_angle_deg,
+        min_angle_deg: None,
     }))
-}
-
-/// What the report says besides the mesh's own summary.
-struct Written<'a> {
-    surface: &'a surfstream_io::formats::Surface,
-    profile: Option<EngineProfile>,
-    ascii: bool,
-    check: MeshCheck,
-    mesh_s: f64,
-    spikes: &'a OutlierReport,
-}
-
-/// OUT.json beside the STL: the mesh's summary, the input, the checks, the tolerance search.
-fn write_report(
-    a: &MeshArgs,
-    m: &StreamedMesh,
-    tolerance: Option<&ToleranceReport>,
-    w: &Written,
-) -> Result<PathBuf> {
-    let Written {
-        surface,
-        profile,
-        ascii,
-        ref check,
-        mesh_s,
-        spikes,
-    } = *w;
-    let (pitch_x_um, pitch_y_um) = (surface.pitch_x_um, surface.pitch_y_um);
-    let json_path = a.out.with_extension("json");
-    let mut report = m.summary.to_value();
-    let o = report
-        .as_object_mut()
-        .ok_or_else(|| anyhow!("mesh summary is not an object"))?;
-    o.insert("input".into(), json!(a.file.display().to_string()));
-    o.insert("input_format".into(), json!(surface.metadata.format));
-    o.remove("grid_px");
-    o.insert(
-        "grid_rows_cols".into(),
-        json!([surface.height, surface.width]),
-    );
-    o.insert("pitch_um".into(), json!([pitch_x_um, pitch_y_um]));
-    o.insert("stl".into(), json!(file_name(&a.out)));
-    o.insert(
-        "format".into(),
-        json!(if ascii { "ascii" } else { "binary" }),
-    );
-    if let Some(p) = profile {
-        o.insert("target".into(), json!(p));
-    }
-    o.insert("watertight".into(), json!(check.watertight));
-    o.insert(
-        "consistently_oriented".into(),
-        json!(check.consistently_oriented),
-    );
-    o.insert(
-        "degenerate_triangles".into(),
-        json!(check.degenerate_triangles),
-    );
-    o.insert(
-        "duplicate_triangles".into(),
-        json!(check.duplicate_triangles),
-    );
-    o.insert("mesh_s".into(), json!(mesh_s));
-    if let Some(r) = tolerance {
-        o.insert("tolerance".into(), json!(r));
-        if let Some(q) = &r.angles {
-            o.insert(
-                "element_quality".into(),
-                json!({
-                    "min_angle_deg": q.min_angle_deg,
-                    "min_angle_bound_deg": q.bound_deg,
-                    "below_bound": q.below_bound,
-                }),
-            );
-        }
-    }
-    o.insert("outliers".into(), json!(spikes));
-    surfstream_core::fsutil::write_atomic(&json_path, |w| {
-        serde_json::to_writer_pretty(w, &report)
-            .map_err(|e| anyhow!("{}: {e}", json_path.display()))
-    })?;
-    Ok(json_path)
 }
 
 /// The lines the verb prints: the tolerance met (or not), the angles, the mesh.
 fn say_result(
     a: &MeshArgs,
     m: &StreamedMesh,
-    tolerance: Option<&ToleranceReport>,
+    stats: &MapStats,
     params: &MeshParams,
     profile: Option<EngineProfile>,
-    mesh_s: f64,
     json_path: &Path,
 ) {
+    let mesh_s = stats.mesh_s;
+    let tolerance = match &stats.method {
+        MethodStats::Model(s) => s.tolerance.as_ref(),
+        MethodStats::Grid(_) => None,
+    };
     if let Some(r) = tolerance {
         let worst = r.region_fits.first();
         eprintln!(
@@ -503,63 +310,9 @@ fn say_result(
     );
 }
 
-/// `--target` for an engine that wants a regular-grid sheet: block-averaged to the engine's
-/// triangle budget, elements checked against its limits, written in its format and units.
-fn write_grid_target(
-    a: &MeshArgs,
-    input_format: &str,
-    heights: RasterView<'_, f32>,
-    at: &ScanPlacement,
-    profile: &EngineProfile,
-) -> Result<()> {
-    let t0 = Instant::now();
-    let t =
-        grid_sheet_for(heights, at, profile).with_context(|| format!("{}", a.file.display()))?;
-    let mesh_s = t0.elapsed().as_secs_f64();
-    let label = format!("surfstream mesh for {}", profile.engine.name());
-    surfstream_core::fsutil::write_atomic(&a.out, |w| {
-        if profile.ascii {
-            surfstream_mesher::write_stl_ascii(w, &t.mesh, &label)?;
-        } else {
-            surfstream_mesher::write_stl_binary(w, &t.mesh, &label)?;
-        }
-        Ok(())
-    })?;
-    let json_path = a.out.with_extension("json");
-    let mut report = t.summary();
-    let o = report
-        .as_object_mut()
-        .ok_or_else(|| anyhow!("mesh summary is not an object"))?;
-    for (key, value) in [
-        ("input", json!(a.file.display().to_string())),
-        ("input_format", json!(input_format)),
-        (
-            "format",
-            json!(if profile.ascii { "ascii" } else { "binary" }),
-        ),
-        ("units", json!(profile.units)),
-        ("stl", json!(file_name(&a.out))),
-        ("triangles", json!(t.mesh.triangles.len())),
-        ("surface_triangles", json!(t.mesh.triangles.len())),
-        (
-            "measured_grid_rows_cols",
-            json!([heights.rows(), heights.cols()]),
-        ),
-        ("pitch_um", json!([at.pitch.x_um(), at.pitch.y_um()])),
-        ("offset_um", json!(t.mesh.offset_um)),
-        (
-            "offset_rule",
-            json!("scan_um = vertex * um_per_unit + offset_um"),
-        ),
-        ("filled_samples", json!(t.mesh.filled_samples)),
-        ("mesh_s", json!(mesh_s)),
-    ] {
-        o.insert(key.into(), value);
-    }
-    surfstream_core::fsutil::write_atomic(&json_path, |w| {
-        serde_json::to_writer_pretty(w, &report)
-            .map_err(|e| anyhow!("{}: {e}", json_path.display()))
-    })?;
+/// The line for an engine's regular-grid sheet.
+fn say_grid(a: &MeshArgs, t: &TargetMesh, json_path: &Path) {
+    let profile = &t.profile;
     eprintln!(
         "mesh: {} triangles for {} ({} sheet in {}, {} x {} grid (rows x cols){}); smallest angle {:.1} deg; {} and {}",
         t.mesh.triangles.len(),
@@ -577,7 +330,6 @@ fn write_grid_target(
         a.out.display(),
         json_path.display()
     );
-    Ok(())
 }
 
 /// `mesh` writes STL: an output named otherwise (`-o k.obj`) is refused, not filled with STL.
@@ -593,12 +345,6 @@ pub(super) fn check_stl_name(out: &Path) -> Result<()> {
         );
     }
     Ok(())
-}
-
-fn file_name(p: &Path) -> String {
-    p.file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default()
 }
 
 /// The measured roughness that judges the roughness the mesh carries: the same grid as the
@@ -621,8 +367,10 @@ fn roughness_reference(path: &Path, pitch_um: Option<f64>, shape: Shape) -> Resu
 mod tests {
     use super::*;
     use clap::Parser;
+    use surfstream_core::raster::RasterView;
     use surfstream_mesher::{
         check_closed, mesh_height_field, mesh_to_tolerance, write_stl_ascii, write_stl_binary,
+        ScanPlacement,
     };
 
     #[derive(Parser)]
@@ -690,13 +438,13 @@ mod tests {
             run(args(&npy, &out, extra)).unwrap();
 
             let a = args(&npy, &out, extra);
-            let p = prepared_heights(&a).unwrap();
+            let (surface, p) = prepared_heights(&a).unwrap();
             let heights = RasterView::new(&p.heights_um, p.shape).unwrap();
             let pitch =
-                surfstream_core::Pitch::new(p.surface.pitch_x_um, p.surface.pitch_y_um).unwrap();
+                surfstream_core::Pitch::new(surface.pitch_x_um, surface.pitch_y_um).unwrap();
             let at = ScanPlacement::new(pitch).with_z_offset(p.z_offset_um);
             let params = mesh_params(&a, None);
-            let m = match tolerance_settings(&a, None).unwrap() {
+            let m = match tolerance_settings(&a).unwrap() {
                 Some(s) => {
                     mesh_to_tolerance(heights, None, &at, &params, &s)
                         .unwrap()

@@ -32,7 +32,9 @@
 //!   spilled to an unnamed file, the check settled block by block); the node and the `mesh`
 //!   verb use them (and [`mesh_streaming_to_tolerance`]). The streamed path is the product:
 //!   the in-memory [`mesh_height_field`], [`mesh_to_tolerance`] and [`MeshJob::mesh`] remain
-//!   as the tests' oracle (and for the Python binding and the examples, which hold small maps).
+//!   as the tests' oracle (and for the examples, which hold small maps).
+//! - [`map`]: one map meshed to STL with typed statistics ([`mesh_map`]), the steps the
+//!   `mesh` verb and the Python binding share.
 //! - In a graph ([`job`]): [`MeshJob`] takes the final frame of the chosen surface
 //!   ([`SurfaceChoice`]: pooled, panorama, datum, roughness, or datum + roughness summed), and
 //!   meshes it once every input has ended its scan; `node` is the process shell around it.
@@ -62,6 +64,7 @@ pub mod fidelity;
 pub mod field;
 mod geom;
 pub mod job;
+pub mod map;
 pub mod outliers;
 pub mod report;
 pub mod solid;
@@ -76,6 +79,7 @@ pub use check::{check_closed, MeshCheck};
 pub use error::{MeshError, Result};
 pub use field::{fill_missing, ScanPlacement};
 pub use job::{MeshJob, MeshSettings, MeshedSurface, MesherConfig, StlFormat, SurfaceChoice};
+pub use map::{mesh_map, prepare_heights, MapBound, MapMesh, MapOutcome, MapRequest, MapStats};
 pub use solid::{
     close_top_surface, default_base_depth_um, grid_solid, LengthUnit, SolidMesh, SolidParams,
 };

@@ -260,6 +260,8 @@ class Surface:
         ascii: bool = False,
         units: str = "mm",
         base_depth_um: Optional[float] = None,
+        tolerance: Optional[str] = None,
+        remove_spikes: bool = False,
     ) -> Dict[str, Any]:
         """Writes an error-bounded triangle mesh of the map as STL (``surfstream mesh``):
         every measured sample within ``tolerance_um`` (um) of the mesh vertically, or
@@ -267,7 +269,12 @@ class Surface:
         "edem" | "yade" sets format, kind, units and triangle budget for that DEM engine.
         Otherwise a closed solid (``sheet=True``: the open surface; ``holes=True`` keeps
         missing samples as holes), binary STL (``ascii=True`` for ASCII) in ``units`` "m" |
-        "mm" | "um". Returns the statistics (triangles, max/RMS vertical error um, offset)."""
+        "mm" | "um". ``tolerance="sa=1,sq=1,sz=3"`` (percent, the verb's ``--tolerance``)
+        asks instead for the fewest triangles that keep Sa, Sq and Sz within it in every
+        window (also the default for ``target="liggghts"``, whose angles are bounded);
+        ``remove_spikes=True`` treats isolated spikes as not measured. The verb's function
+        (streamed): returns its ``OUT.json`` statistics (triangles, max/RMS vertical error um,
+        offset, checks, spikes, the search with a tolerance), without ``input``."""
         out = _native.mesh(
             os.fspath(path),
             *self._args(),
@@ -280,6 +287,8 @@ class Surface:
             ascii=bool(ascii),
             units=str(units),
             base_depth_um=None if base_depth_um is None else float(base_depth_um),
+            tolerance=None if tolerance is None else str(tolerance),
+            remove_spikes=bool(remove_spikes),
         )
         result: Dict[str, Any] = json.loads(out)
         return result
