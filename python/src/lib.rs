@@ -575,8 +575,11 @@ fn mesh(
             input: None,
         })
         .map_err(fail)?;
-        let stats = outcome.stats.to_json().map_err(fail)?;
-        Ok(stats.to_string())
+        let mut stats = outcome.stats;
+        // Python's callers get the STL's path as they gave it (OUT.json, beside the STL,
+        // names the file alone).
+        stats.stl = path.display().to_string();
+        Ok(stats.to_json().map_err(fail)?.to_string())
     })?;
     Ok(json)
 }

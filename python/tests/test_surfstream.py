@@ -384,6 +384,7 @@ def test_mesh_is_the_verbs(tmp_path, py_kw, cli_args):
     for d in (want, stats):
         d.pop("mesh_s")
     assert want.pop("input") == str(path) and want.pop("input_format")
+    assert want.pop("stl") == "m.stl" and stats.pop("stl") == str(tmp_path / "py" / "m.stl")
     assert stats == want
     assert sorted(p.name for p in (tmp_path / "py").iterdir()) == ["m.stl"]
 

@@ -346,8 +346,9 @@ fn model(
     };
     let settings = match (r.bound, r.profile, min_angle_deg) {
         (MapBound::Fixed, Some(p), Some(_)) => bail!(
-            "--target {} needs the model from a tolerance (its smallest angle is bounded \
-             there) or --grid; remove --epsilon-um / --epsilon-sq",
+            "target {} needs the model from a tolerance (its smallest angle is bounded \
+             there) or its regular grid, not a fixed vertical bound (the verb's --epsilon-um / \
+             --epsilon-sq, Python's tolerance_um / tolerance_sq)",
             p.engine.name()
         ),
         (MapBound::Fixed, _, _) => None,
