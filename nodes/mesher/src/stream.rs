@@ -357,24 +357,7 @@ pub(crate) fn stream_blocks(
     }
     let place = VertexPlacement::new(params, at, shape, min_um, max_um);
     let walls = if params.kind == MeshKind::Solid {
-        if !all_kept {
-            return Err(MeshError::Incompatible(
-                "the mesh's top does not reach the whole rim of the grid; cannot close it".into(),
-            ));
-        }
-        let rim = grid_rim(|s| used.get(s), shape);
-        let mut vertices: Vec<[f64; 3]> = rim
-            .iter()
-            .map(|&s| place.vertex(s as usize, filled[s as usize]))
-            .collect();
-        let boundary: Vec<u32> = (0..rim.len() as u32).collect();
-        let mut triangles = Vec::new();
-        close_top_surface(&mut vertices, &mut triangles, &boundary, place.base_z())?;
-        Some(Walls {
-            rim,
-            vertices,
-            triangles,
-        })
+        Some(solid_walls(all_kept, &used, shape, &place, filled)?)
     } else {
         None
     };
@@ -442,6 +425,35 @@ pub(crate) fn stream_blocks(
         walls,
         topology,
         top_z_positive,
+    })
+}
+
+/// The side walls and base that close the top surface into a solid, along the rim of the
+/// samples the top uses; refused when the top does not reach the whole rim (`all_kept`).
+fn solid_walls(
+    all_kept: bool,
+    used: &Bits,
+    shape: Shape,
+    place: &VertexPlacement,
+    filled: &[f32],
+) -> Result<Walls> {
+    if !all_kept {
+        return Err(MeshError::Incompatible(
+            "the mesh's top does not reach the whole rim of the grid; cannot close it".into(),
+        ));
+    }
+    let rim = grid_rim(|s| used.get(s), shape);
+    let mut vertices: Vec<[f64; 3]> = rim
+        .iter()
+        .map(|&s| place.vertex(s as usize, filled[s as usize]))
+        .collect();
+    let boundary: Vec<u32> = (0..rim.len() as u32).collect();
+    let mut triangles = Vec::new();
+    close_top_surface(&mut vertices, &mut triangles, &boundary, place.base_z())?;
+    Ok(Walls {
+        rim,
+        vertices,
+        triangles,
     })
 }
 
