@@ -13,7 +13,7 @@ use surfstream_core::metrology::{level_plane, params, sim, AbbottCurve, Grid};
 use surfstream_core::record;
 use surfstream_core::{Sampling, Shape};
 
-use crate::engine::EngineCommand;
+use crate::engine::{EngineCommand, EngineProgress};
 use crate::field::{self, impact_rate_per_m2_s, ApproachDistribution, FieldGrid, WearTable};
 use crate::grid::{crop, volume_um3, Patch};
 use crate::run::{
@@ -21,7 +21,7 @@ use crate::run::{
     SegmentPlan, SegmentResult, SurfaceParams, WearModel, CALIBRATION_TOLERANCE_PERCENT,
     DEFAULT_K_FINNIE_PER_PA, DEFAULT_K_FINNIE_SAMPLED_MAP_PER_PA, MAX_FIELD_SCALE,
 };
-use crate::script;
+use crate::script::{self, Segment};
 use crate::setting::Action;
 use crate::summary::{
     AbbottSummary, CalibrationSummary, CheckMean, ContactFieldSummary, CycleField, CycleRecord,
@@ -462,8 +462,7 @@ fn run_cycle(
         cost_per_triangle_step_s: st.cost,
         ..setup.plan()
     };
-    let cycles = opts.cycles;
-    let mut last_say = Instant::now();
+    let mut progress = progress_lines(say, "cycle", c, opts.cycles, true);
     let r = run_segment(
         &seg_plan,
         &st.h,
@@ -471,21 +470,10 @@ fn run_cycle(
         setup.patch.crop,
         &dir,
         stop,
-        &mut |p, seg| {
-            if last_say.elapsed().as_secs_f64() >= 2.0 || p.steps_done == p.steps_total {
-                last_say = Instant::now();
-                say(&Progress {
-                    label: "cycle".into(),
-                    cycle: c,
-                    cycles,
-                    engine: p,
-                    simulated_s: p.steps_done as f64 * seg.timestep_s,
-                    segment_simulated_s: seg.simulated_time_s(),
-                }
-                .line());
-            }
-        },
+        &mut progress,
     )?;
+    // The progress lines borrow `say`; it speaks again below.
+    drop(progress);
     st.count_engine(&r, CostEstimate::Update);
     if r.stopped {
         st.partial = true;
@@ -743,6 +731,32 @@ fn final_field_fit(
     Ok(final_fit)
 }
 
+/// The engine's progress as `say` lines, at most one every 2 s (and the last step's, with
+/// `at_end`): what a segment's run reports, labelled `label` (cycle `cycle` of `cycles`).
+fn progress_lines<'a>(
+    say: &'a mut dyn FnMut(&str),
+    label: &'static str,
+    cycle: usize,
+    cycles: usize,
+    at_end: bool,
+) -> impl FnMut(EngineProgress, &Segment) + 'a {
+    let mut last_say = Instant::now();
+    move |p, seg| {
+        if last_say.elapsed().as_secs_f64() >= 2.0 || (at_end && p.steps_done == p.steps_total) {
+            last_say = Instant::now();
+            say(&Progress {
+                label: label.into(),
+                cycle,
+                cycles,
+                engine: p,
+                simulated_s: p.steps_done as f64 * seg.timestep_s,
+                segment_simulated_s: seg.simulated_time_s(),
+            }
+            .line());
+        }
+    }
+}
+
 /// The paper's comparison: the ideal model (form only) under the same first segment, its
 /// wear map against the model's by SIM.
 fn ideal_comparison(
@@ -773,7 +787,7 @@ fn ideal_comparison(
     // Cropped now: the borrow of `st` must end before the segment is counted into it.
     let a = patch.cropped(hifi_map);
     let dir = setup.out_dir.join("ideal");
-    let mut last_say = Instant::now();
+    let mut progress = progress_lines(say, "ideal model", 1, 1, false);
     let r = run_segment(
         &SegmentPlan {
             seed: opts.seed,
@@ -786,21 +800,10 @@ fn ideal_comparison(
         patch.crop,
         &dir,
         stop,
-        &mut |p, seg| {
-            if last_say.elapsed().as_secs_f64() >= 2.0 {
-                last_say = Instant::now();
-                say(&Progress {
-                    label: "ideal model".into(),
-                    cycle: 1,
-                    cycles: 1,
-                    engine: p,
-                    simulated_s: p.steps_done as f64 * seg.timestep_s,
-                    segment_simulated_s: seg.simulated_time_s(),
-                }
-                .line());
-            }
-        },
+        &mut progress,
     )?;
+    // The progress lines borrow `say`; it speaks again below.
+    drop(progress);
     st.count_engine(&r, CostEstimate::Keep);
     if r.stopped {
         st.partial = true;

@@ -238,6 +238,13 @@ pub struct MapOutcome {
 /// Meshes `r.heights` as `r` says, writes the STL at `r.stl` and returns the mesh and its
 /// statistics.
 pub fn mesh_map(r: &MapRequest) -> Result<MapOutcome> {
+    // The statistics name the STL by its file name: a path without one is refused first.
+    if r.stl.file_name().is_none() {
+        bail!(
+            "{}: expected a path ending in the STL's file name",
+            r.stl.display()
+        );
+    }
     let p = r.heights;
     let heights = RasterView::new(&p.heights_um, p.shape)?;
     let at = ScanPlacement::new(r.pitch).with_z_offset(p.z_offset_um);
@@ -312,6 +319,7 @@ fn stats(
         summary,
         input: r.input.as_ref().map(|i| i.0.clone()),
         input_format: r.input.as_ref().map(|i| i.1.clone()),
+        // Present: mesh_map checked it.
         stl: r
             .stl
             .file_name()

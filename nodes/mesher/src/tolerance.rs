@@ -1249,6 +1249,9 @@ impl<'p, F> LiveOrder<'p, '_, F> {
     /// Refines the live blocks to `epsilon_um` (with the block balance when `balanced`), and
     /// notes the step.
     fn refine(&mut self, epsilon_um: f64, balanced: bool) -> Option<AngleStats> {
+        // Every refinement, the search's own and the bisection's replayed ones, shows the
+        // graph's stall guard that the mesher is making progress.
+        surfstream_core::liveness::beat();
         self.steps.push((epsilon_um, balanced));
         refine_blocks(
             self.plan,
@@ -1267,9 +1270,6 @@ impl<'p, F> LiveOrder<'p, '_, F> {
         let steps: Vec<(f64, bool)> = self.steps.drain(..).take(kept).collect();
         self.live.clear();
         for (epsilon_um, balanced) in steps {
-            // Each replayed step is as long as the search's own steps, which beat between
-            // checkpoints: the graph's stall guard must see the replay progress.
-            surfstream_core::liveness::beat();
             self.refine(epsilon_um, balanced);
         }
     }
