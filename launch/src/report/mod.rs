@@ -32,7 +32,7 @@ use std::path::Path;
 
 use anyhow::{anyhow, Context, Result};
 use rayon::prelude::*;
-use surfstream_core::record::{self, RunRecord, WaveletReport};
+use surfstream_core::record::{RunRecord, WaveletReport};
 
 use html::{esc, um};
 use surfaces::Surfaces;
@@ -143,12 +143,11 @@ pub fn render(run: &RunRecord, out: &Path) -> Result<String> {
     };
     let distribution = || {
         let p = surfaces.panorama.as_ref()?;
-        // The wavelet's level (a filter separation has none): the first stage whose report
-        // reads as the wavelet's.
-        let level = run.stages.values().find_map(|v| {
-            let w: WaveletReport = record::from_value(v, "wavelet").ok()?;
-            w.final_pass?.separation.level().map(|l| l as u64)
-        });
+        // The wavelet's level (a filter separation has none).
+        let level = run
+            .stage::<WaveletReport>()
+            .and_then(|w| w.final_pass?.separation.level())
+            .map(|l| l as u64);
         let scale = level.map(|l| (l, 2f64.powi(l as i32) * p.pitch_x_um / p.block as f64));
         Some(format!(
             "<section id=\"distribution\"><h2>Height distribution and power spectral density \
