@@ -25,6 +25,8 @@ pub mod outputs {
     pub const WEAR: &str = "wear.npy";
     pub const WEAR_FINNIE: &str = "wear_finnie.npy";
     pub const WEAR_ARCHARD: &str = "wear_archard.npy";
+    /// The ideal model's predicted wear (with an ideal model and a prediction).
+    pub const WEAR_IDEAL: &str = "wear_ideal.npy";
     pub const WORN: &str = "worn.npy";
     pub const WORN_X3P: &str = "worn.x3p";
     pub const ORIGINAL: &str = "original.npy";
@@ -99,6 +101,16 @@ pub struct FinishOptions {
     /// Real process time the run stands for, s (the paper: 5 min).
     pub process_time_s: f64,
     pub calibrate: Option<Calibration>,
+    /// When the calibration's Sa holds, s (None: the process time).
+    pub calibrate_at_s: Option<f64>,
+    /// Times of the prediction's series, s (None: [`crate::predict::series_times_s`]).
+    pub series_s: Option<Vec<f64>>,
+    /// Interval of the wear maps written over the process, s (None: a tenth of the process
+    /// time).
+    pub wear_map_every_s: Option<f64>,
+    /// A measured after-finish scan on the model's grid: SIM between it and the predicted
+    /// worn surface (not a calibration target).
+    pub after: Option<Model>,
     /// Most triangles of the patch's mesh.
     pub max_triangles: usize,
     pub ranks: usize,
@@ -163,6 +175,10 @@ impl Default for FinishOptions {
             archard_k_over_h_per_pa: DEFAULT_ARCHARD_K_OVER_H_PER_PA,
             process_time_s: 300.0,
             calibrate: None,
+            calibrate_at_s: None,
+            series_s: None,
+            wear_map_every_s: None,
+            after: None,
             max_triangles: 20_000,
             ranks: 1,
             hostfile: None,
