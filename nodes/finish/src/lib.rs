@@ -20,6 +20,7 @@ pub mod field;
 pub mod grid;
 pub mod html;
 pub mod laws;
+pub mod machine;
 pub mod predict;
 pub mod process;
 pub mod run;
