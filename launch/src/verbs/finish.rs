@@ -89,6 +89,21 @@ pub struct FinishArgs {
     /// rotation-rpm or media-diameter-mm); each runs in full into OUT/sweep_NAME_V.
     #[arg(long, value_name = "NAME=V1,V2,...")]
     pub sweep: Option<String>,
+    /// The part's material: aluminium (the paper's part) or steel (default: the DEM wall as
+    /// steel, Archard K/H 5e-14 1/Pa).
+    #[arg(long, value_name = "aluminium|steel")]
+    pub part_material: Option<String>,
+    /// Run the machine first (the macro run: the paper's centrifugal barrel in LIGGGHTS);
+    /// its contacts on the part give the prediction's impact and sliding rates.
+    #[arg(long = "macro")]
+    pub macro_run: bool,
+    /// Simulated time the macro run records after settling, s (default 2).
+    #[arg(long)]
+    pub macro_record_s: Option<f64>,
+    /// A macro run's record instead of running it: a finish.json with `macro`, or the
+    /// record itself.
+    #[arg(long, value_name = "FILE")]
+    pub macro_record: Option<PathBuf>,
     /// Skip the ideal model's run (the paper's comparison) for an out dir with a datum.
     #[arg(long)]
     pub no_ideal: bool,
@@ -197,6 +212,20 @@ fn inputs(a: &FinishArgs) -> Result<(Model, Option<Model>)> {
     Ok((model, ideal))
 }
 
+/// A macro run's record: a finish.json's `macro`, or the record itself.
+fn read_macro(path: &Path) -> Result<surfstream_finish::machine::MacroContacts> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| anyhow!("--macro-record {}: cannot read: {e}", path.display()))?;
+    let v: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|e| anyhow!("--macro-record {}: not JSON: {e}", path.display()))?;
+    let record = match v.get("macro") {
+        Some(m) if !m.is_null() => m.clone(),
+        _ => v,
+    };
+    surfstream_core::record::from_value(&record, &format!("--macro-record {}", path.display()))
+        .map_err(|e| anyhow!(e))
+}
+
 fn parse_pair(s: &str, what: &str) -> Result<Vec<f64>> {
     s.split(',')
         .map(|v| {
@@ -272,6 +301,39 @@ pub fn run(a: FinishArgs) -> Result<()> {
             None,
             Some((model.pitch_x_um, model.pitch_y_um)),
         )?);
+    }
+    if let Some(name) = &a.part_material {
+        let pm = surfstream_finish::setting::PartMaterial::preset(name)
+            .map_err(|e| anyhow!("--part-material: {e}"))?;
+        o.workpiece = pm.workpiece();
+        o.archard_k_over_h_per_pa = surfstream_finish::run::ARCHARD_K / pm.hardness_pa;
+        o.part_material = Some(pm);
+    }
+    if a.macro_run {
+        let mut m = surfstream_finish::machine::MachineSetting {
+            seed: a.seed,
+            ..Default::default()
+        };
+        if let Some(pm) = &o.part_material {
+            m.part_material = pm.clone();
+        }
+        // The paper's senses: revolution clockwise (negative about +z), rotation counter.
+        if let Some(x) = a.revolution_rpm {
+            m.revolution_rpm = -x.abs();
+        }
+        if let Some(x) = a.rotation_rpm {
+            m.rotation_rpm = x.abs();
+        }
+        if let Some(d) = a.media_diameter_mm {
+            m.media.diameter_mm = d;
+        }
+        if let Some(s) = a.macro_record_s {
+            m.record_s = s;
+        }
+        o.machine_run = Some(m);
+    }
+    if let Some(f) = &a.macro_record {
+        o.macro_contacts = Some(read_macro(f)?);
     }
     let sweep = a
         .sweep

@@ -729,7 +729,8 @@ pub fn field_section(s: &FinishSummary) -> String {
 }
 
 /// A series point's parameters for the page's plots and tables.
-const SERIES_PARAMETERS: [(&str, fn(&SeriesPoint) -> f64); 6] = [
+type SeriesParameter = (&'static str, fn(&SeriesPoint) -> f64);
+const SERIES_PARAMETERS: [SeriesParameter; 6] = [
     ("Sa", |p| p.sa),
     ("Sq", |p| p.sq),
     ("Sz", |p| p.sz),
@@ -843,7 +844,8 @@ fn baselines_table(s: &FinishSummary, b: &crate::summary::Baselines) -> String {
 <th>constant wear</th><th>plateau cut</th><th>noise of the prediction</th><th>paper after (5 min)</th></tr>",
     );
     let noise = b.noise.as_ref();
-    let rows: [(&str, fn(&SurfaceParams) -> f64, Option<f64>); 6] = [
+    type Row = (&'static str, fn(&SurfaceParams) -> f64, Option<f64>);
+    let rows: [Row; 6] = [
         ("Sa", |p| p.sa, None),
         ("Sq", |p| p.sq, noise.map(|n| n.sq)),
         ("Sz", |p| p.sz, noise.map(|n| n.sz)),

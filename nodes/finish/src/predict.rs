@@ -96,7 +96,12 @@ pub struct Prediction {
 pub const WEAR_MAPS_DIR: &str = "wear_maps";
 
 /// The parameters compared with the baselines, and their fields.
-const COMPARED: [(&str, fn(&SurfaceParams) -> f64, fn(&PredictionNoise) -> f64); 5] = [
+type Compared = (
+    &'static str,
+    fn(&SurfaceParams) -> f64,
+    fn(&PredictionNoise) -> f64,
+);
+const COMPARED: [Compared; 5] = [
     ("Sq", |p| p.sq, |n| n.sq),
     ("Sz", |p| p.sz, |n| n.sz),
     ("Spk", |p| p.spk, |n| n.spk),

@@ -17,6 +17,7 @@ use crate::engine::{EngineCommand, EngineProgress};
 use crate::field::{self, impact_rate_per_m2_s, ApproachDistribution, FieldGrid, WearTable};
 use crate::grid::{crop, volume_um3, Patch};
 use crate::laws::{self, ImpactLaw, SlidingLaw, WearLaw};
+use crate::machine::MacroContacts;
 use crate::predict::{self, Prediction, PredictionInput};
 use crate::run::{
     outputs, run_segment, surface_params, timestep_s, Calibration, FinishOptions, Model, Progress,
@@ -42,7 +43,8 @@ pub fn finish_record(
     say: &mut dyn FnMut(&str),
 ) -> Result<FinishSummary> {
     let t_start = Instant::now();
-    let setup = Setup::new(model, opts, out_dir, say)?;
+    let macro_run = macro_contacts(opts, out_dir, stop, say)?;
+    let setup = Setup::new(model, opts, out_dir, macro_run.as_ref(), say)?;
     let mut st = State::new(&setup);
     // Planning passes within the budget needs the engine's cost on this machine now (a busy
     // machine makes it several times the quiet estimate): a probe of two passes measures it.
@@ -67,7 +69,7 @@ pub fn finish_record(
     let ideal_run = ideal_comparison(&setup, &mut st, scale, stop, say)?;
     let crops = write_outputs(&setup, &st)?;
     let total_s = t_start.elapsed().as_secs_f64();
-    let record = summary(
+    let mut record = summary(
         &setup,
         st,
         &crops,
@@ -77,6 +79,9 @@ pub fn finish_record(
         probe,
         total_s,
     )?;
+    // Set here: the macro run is made before the set-up, the material is the options'.
+    record.macro_run = macro_run;
+    record.part_material = opts.part_material.clone();
     // Written as a JSON value: its keys sorted, as finish.json has always had them.
     let summary = record::to_value(&record);
     let path = out_dir.join(outputs::SUMMARY);
@@ -141,6 +146,7 @@ impl<'a> Setup<'a> {
         model: &'a Model,
         opts: &'a FinishOptions,
         out_dir: &'a Path,
+        macro_run: Option<&MacroContacts>,
         say: &mut dyn FnMut(&str),
     ) -> Result<Self> {
         let (k_finnie, action) = checked_options(opts)?;
@@ -226,13 +232,13 @@ impl<'a> Setup<'a> {
         };
         let cell_area_um2 = patch.sampling.pitch().cell_area_um2();
         let aim_area_um2 = cell_area_um2 * (patch.crop.rows * patch.crop.cols) as f64;
-        let impact_rate = impact_rate_per_m2_s(&opts.media, &action);
+        let ProcessRates {
+            impact_rate,
+            sliding_work,
+            sliding_forces_n,
+            rates_from,
+        } = ProcessRates::of(opts, &action, press_force_n, macro_run);
         let impacts_process = impact_rate * aim_area_um2 * 1e-12 * opts.process_time_s;
-        // The sliding contacts' rates from the barrel kinematics: Coulomb friction at the limit
-        // over the bed's pressure at the media speed, pressed by the press force.
-        let sliding_work = opts.media.friction * action.pressure_pa * action.media_velocity_m_s;
-        let sliding_forces_n = vec![press_force_n];
-        let rates_from = "the barrel kinematics (assumptions, docs/finish.md): impacts once per diameter travelled by the bed's contact layer; sliding work = friction x pressure x media speed, each sliding contact pressed by the press force".to_string();
         let sliding = SlidingLaw::new(
             opts.archard_k_over_h_per_pa,
             sliding_work,
@@ -346,6 +352,95 @@ impl<'a> Setup<'a> {
     fn sa_of_crop(&self, z: &[f64]) -> Result<f64> {
         predict::sa_of_crop(&self.patch, z)
     }
+}
+
+/// The rates the prediction's laws run at, and where they come from.
+struct ProcessRates {
+    /// Contacts (impacts) per m^2 of the part and s.
+    impact_rate: f64,
+    /// Sliding work per m^2 of the part and s, J/(m^2 s).
+    sliding_work: f64,
+    /// The sliding contacts' normal forces (equal weights), N.
+    sliding_forces_n: Vec<f64>,
+    rates_from: String,
+}
+
+impl ProcessRates {
+    /// From the macro run's contacts on the part when there is one (what softening keeps:
+    /// the contact rate, the sliding work, the enduring contacts' forces), else from the
+    /// barrel kinematics' assumptions.
+    fn of(
+        opts: &FinishOptions,
+        action: &Action,
+        press_force_n: f64,
+        macro_run: Option<&MacroContacts>,
+    ) -> Self {
+        match macro_run {
+            Some(m) => {
+                let c = &m.contacts;
+                let f = c.enduring_normal_force_n;
+                let forces: Vec<f64> = [f.p10, f.p50, f.p90]
+                    .into_iter()
+                    .filter(|x| x.is_finite() && *x > 0.0)
+                    .collect();
+                ProcessRates {
+                    impact_rate: c.rate_per_mm2_s * 1e6,
+                    sliding_work: c.sliding_work_j_per_mm2_s * 1e6,
+                    sliding_forces_n: if forces.is_empty() {
+                        vec![press_force_n]
+                    } else {
+                        forces
+                    },
+                    rates_from: format!(
+                        "the macro run (finish.json macro: {} media, {} s simulated on the part's central region): contacts per area and s, sliding work per area and s, the enduring contacts' normal force p10/p50/p90",
+                        m.media_count, m.simulated_s
+                    ),
+                }
+            }
+            None => ProcessRates {
+                impact_rate: impact_rate_per_m2_s(&opts.media, action),
+                // Coulomb friction at the limit over the bed's pressure at the media speed.
+                sliding_work: opts.media.friction * action.pressure_pa * action.media_velocity_m_s,
+                sliding_forces_n: vec![press_force_n],
+                rates_from: "the barrel kinematics (assumptions, docs/finish.md; no macro run): impacts once per diameter travelled by the bed's contact layer; sliding work = friction x pressure x media speed, each sliding contact pressed by the press force".into(),
+            },
+        }
+    }
+}
+
+/// The macro run's record: run now (`machine_run`, into OUT/macro), given, or none.
+fn macro_contacts(
+    opts: &FinishOptions,
+    out_dir: &Path,
+    stop: &AtomicBool,
+    say: &mut dyn FnMut(&str),
+) -> Result<Option<MacroContacts>> {
+    if let Some(m) = &opts.macro_contacts {
+        return Ok(Some(m.clone()));
+    }
+    let Some(setting) = &opts.machine_run else {
+        return Ok(None);
+    };
+    let engine = EngineCommand::locate(opts.ranks, opts.hostfile.clone())?;
+    let mut last = Instant::now();
+    let m =
+        crate::machine::run_machine(setting, &out_dir.join("macro"), &engine, stop, &mut |p| {
+            if last.elapsed().as_secs_f64() >= 2.0 {
+                last = Instant::now();
+                say(&format!("finish: {}", p.line()));
+            }
+        })?;
+    let c = &m.contacts;
+    say(&format!(
+        "finish: macro run: {} media, {:.2} s recorded: {:.3e} contacts per mm^2 and s, sliding work {:.3e} J/(mm^2 s), enduring normal force p50 {:.4} N, tangential speed p50 {:.3} m/s",
+        m.media_count,
+        m.simulated_s,
+        c.rate_per_mm2_s,
+        c.sliding_work_j_per_mm2_s,
+        c.enduring_normal_force_n.p50,
+        c.tangential_speed_m_s.p50
+    ));
+    Ok(Some(m))
 }
 
 /// The Finnie constant and the machine's action, from options that are checked here.
@@ -1234,6 +1329,8 @@ fn summary(
         fitted: fitted_names(target_sa.is_some(), prediction.is_some(), opts.wear_model),
         wear_maps: prediction.map(|p| p.wear_maps.clone()),
         sweep: None,
+        macro_run: None,
+        part_material: None,
     })
 }
 

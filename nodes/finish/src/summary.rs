@@ -16,8 +16,9 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use crate::field::{ApproachDistribution, Extrapolation, FieldCheck, WearTable};
+use crate::machine::MacroContacts;
 use crate::run::SurfaceParams;
-use crate::setting::{Action, BarrelMachine, Media, Workpiece};
+use crate::setting::{Action, BarrelMachine, Media, PartMaterial, Workpiece};
 
 /// finish.json.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -81,6 +82,12 @@ pub struct FinishSummary {
     /// Settings compared with one calibration (`--sweep`; null without one).
     #[serde(default)]
     pub sweep: Option<Sweep>,
+    /// The macro run's contacts on the part (null: the rates from the kinematics).
+    #[serde(rename = "macro", default)]
+    pub macro_run: Option<MacroContacts>,
+    /// The part's material when given (null: `setting.workpiece` and the default K/H).
+    #[serde(default)]
+    pub part_material: Option<PartMaterial>,
 }
 
 /// One time of the prediction (`series[]`): the worn patch's parameters, um, and its
@@ -449,7 +456,8 @@ pub struct Timings {
 }
 
 /// The finish node's report (run.json `stages.<id>`, `nodes/<id>.json`): finish.json without
-/// its bulky parts (the Abbott curves and the per-cycle records, which stay in finish.json),
+/// its bulky parts (the Abbott curves, the per-cycle records and the macro run with its contact
+/// samples, which stay in finish.json),
 /// plus the node's folder. Built by [`FinishReport::of`], which names every field of
 /// [`FinishSummary`], so a field added there must be placed here (or left out) to compile.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -498,6 +506,8 @@ pub struct FinishReport {
     pub wear_maps: Option<WearMaps>,
     #[serde(default)]
     pub sweep: Option<Sweep>,
+    #[serde(default)]
+    pub part_material: Option<PartMaterial>,
 }
 
 impl FinishReport {
@@ -532,6 +542,8 @@ impl FinishReport {
             fitted,
             wear_maps,
             sweep,
+            macro_run: _,
+            part_material,
         } = summary;
         FinishReport {
             dir: dir.to_owned(),
@@ -559,6 +571,7 @@ impl FinishReport {
             fitted,
             wear_maps,
             sweep,
+            part_material,
         }
     }
 }
@@ -729,7 +742,7 @@ mod tests {
     fn report_by_key(s: &FinishSummary, dir: &str) -> Value {
         let mut v = record::to_value(s);
         let o = v.as_object_mut().expect("finish.json is an object");
-        for k in ["abbott_before", "abbott_after", "cycles"] {
+        for k in ["abbott_before", "abbott_after", "cycles", "macro"] {
             assert!(o.remove(k).is_some(), "finish.json has {k}");
         }
         o.insert("dir".into(), Value::from(dir));

@@ -42,11 +42,20 @@ impl SweepParameter {
         }
     }
 
+    /// Sets the value in `o`, and in its macro run (the paper's senses: revolution clockwise,
+    /// rotation counter-clockwise), which then runs again for the setting.
     fn set(self, o: &mut FinishOptions, v: f64) {
         match self {
             SweepParameter::RevolutionRpm => o.machine.revolution_rpm = v,
             SweepParameter::RotationRpm => o.machine.counter_rotation_rpm = v,
             SweepParameter::MediaDiameterMm => o.media.diameter_mm = v,
+        }
+        if let Some(m) = &mut o.machine_run {
+            match self {
+                SweepParameter::RevolutionRpm => m.revolution_rpm = -v.abs(),
+                SweepParameter::RotationRpm => m.rotation_rpm = v.abs(),
+                SweepParameter::MediaDiameterMm => m.media.diameter_mm = v,
+            }
         }
     }
 }
