@@ -19,6 +19,7 @@ pub mod engine;
 pub mod field;
 pub mod grid;
 pub mod html;
+pub mod machine;
 pub mod passes;
 pub mod process;
 pub mod run;
