@@ -21,6 +21,7 @@ pub mod grid;
 pub mod html;
 pub mod laws;
 pub mod machine;
+pub mod passes;
 pub mod predict;
 pub mod process;
 pub mod run;
