@@ -878,6 +878,7 @@ fn baselines_table(s: &FinishSummary, b: &crate::summary::Baselines) -> String {
         .ok();
     }
     h += "</table>";
+    h += &at_calibration_time(s, b);
     let say = |what: &str, list: &[String]| -> String {
         if noise.is_none() {
             format!("{what}: no noise estimate (one cycle: no second DEM sample). ")
@@ -904,6 +905,57 @@ fn baselines_table(s: &FinishSummary, b: &crate::summary::Baselines) -> String {
         noise.map_or("–".into(), |n| html_escape(&n.from)),
     )
     .ok();
+    h
+}
+
+/// The prediction and both baselines at the calibration time (where all three have the same
+/// Sa) beside the paper's part after 5 min, when the calibration time is not the process
+/// time (else the table above is that).
+fn at_calibration_time(s: &FinishSummary, b: &crate::summary::Baselines) -> String {
+    let Some(t) = s.wear_laws.as_ref().map(|l| l.calibration_time_s) else {
+        return String::new();
+    };
+    let at = |series: &[SeriesPoint]| {
+        series
+            .iter()
+            .find(|p| (p.time_s - t).abs() <= 1e-9 * t.max(1.0))
+            .cloned()
+    };
+    let last = s.series.last().map(|p| p.time_s);
+    let (Some(p), Some(c), Some(q)) = (
+        at(&s.series),
+        at(&b.constant_wear.series),
+        at(&b.plateau.series),
+    ) else {
+        return String::new();
+    };
+    if last.is_some_and(|l| (l - t).abs() <= 1e-9 * t.max(1.0)) {
+        return String::new();
+    }
+    let mut h = format!(
+        "<table><tr><th class=\"k\">at the calibration time, {t:.0} s</th><th>prediction (DEM)</th>\
+<th>constant wear</th><th>plateau cut</th><th>paper after (5 min)</th></tr>"
+    );
+    for (name, f) in &SERIES_PARAMETERS {
+        let paper = PAPER_AFTER
+            .iter()
+            .find(|(k, _)| k == name)
+            .map_or(String::new(), |(_, v)| format!("{v:.3}"));
+        let mark = if p.fitted.iter().any(|x| x == name) {
+            " (fitted)"
+        } else {
+            ""
+        };
+        write!(
+            h,
+            "<tr><td class=\"k\">{name} (µm)</td><td>{}{mark}</td><td>{}</td><td>{}</td><td>{paper}</td></tr>",
+            num(f(&p), 3),
+            num(f(&c), 3),
+            num(f(&q), 3)
+        )
+        .ok();
+    }
+    h += "</table>";
     h
 }
 
