@@ -481,7 +481,65 @@ pub struct MicroRun {
     pub stopped: bool,
 }
 
+/// What finish.json records of a cycle's micro passes ([`MicroRun::record`]): the maps
+/// left out.
+#[derive(Debug, Clone, Serialize)]
+pub struct MicroRecord {
+    pub model: PatchModel,
+    pub impacts: usize,
+    pub sliding: usize,
+    pub timestep_s: f64,
+    pub simulated_s: f64,
+    pub triangles: usize,
+    pub triangle_steps: f64,
+    pub engine_s: f64,
+    pub engine_cpu_s: f64,
+    pub loop_s: f64,
+    pub cpu_per_triangle_step_s: f64,
+    pub finnie_volume_um3: f64,
+    pub archard_volume_um3: f64,
+    pub volume_relative_error: f64,
+    pub impact_contacts: ContactSummary,
+    pub sliding_contacts: ContactSummary,
+    pub processes: Vec<GroupRecord>,
+    pub stopped: bool,
+}
+
 impl MicroRun {
+    pub fn record(&self) -> MicroRecord {
+        let impacts = self
+            .passes
+            .iter()
+            .filter(|p| matches!(p.load, MicroLoad::Impact))
+            .count();
+        let steps: usize = self.passes.iter().map(|p| p.steps).sum();
+        let ts = self.triangle_steps();
+        MicroRecord {
+            model: self.model.clone(),
+            impacts,
+            sliding: self.passes.len() - impacts,
+            timestep_s: self.timestep_s,
+            simulated_s: steps as f64 * self.timestep_s,
+            triangles: self.triangles,
+            triangle_steps: ts,
+            engine_s: self.engine_s,
+            engine_cpu_s: self.engine_cpu_s,
+            loop_s: self.loop_s(),
+            cpu_per_triangle_step_s: if ts > 0.0 {
+                self.engine_cpu_s / ts
+            } else {
+                0.0
+            },
+            finnie_volume_um3: self.finnie_liggghts_volume_um3,
+            archard_volume_um3: self.archard_volume_um3,
+            volume_relative_error: self.volume_relative_error(),
+            impact_contacts: self.impact_contacts.clone(),
+            sliding_contacts: self.sliding_contacts.clone(),
+            processes: self.groups.clone(),
+            stopped: self.stopped,
+        }
+    }
+
     /// LIGGGHTS' loop time over all the processes, s.
     pub fn loop_s(&self) -> f64 {
         self.groups.iter().map(|g| g.loop_s).sum()

@@ -454,6 +454,14 @@ fn a_cycle_wears_the_same_for_any_number_of_jobs() {
         assert_eq!(r.unmapped_volume_um3, 0.0);
         let archard_grid = volume_um3(&r.archard_um, at.pitch());
         assert!((archard_grid / r.archard_volume_um3 - 1.0).abs() < 1e-9);
+        let rec = r.record();
+        assert_eq!(rec.impacts + rec.sliding, 8);
+        assert!(rec.impacts > 0 && rec.sliding > 0);
+        assert_eq!(rec.processes.len(), r.groups.len());
+        assert!(rec.loop_s > 0.0 && rec.loop_s <= rec.engine_s * jobs as f64 + 1e-9);
+        let json = serde_json::to_value(&rec).unwrap();
+        assert!(json["model"]["max_error_over_sq"].is_number());
+        assert!(json["model"]["surface_triangles"].is_number());
         for g in &r.groups {
             assert!(tmp
                 .path()
