@@ -10,8 +10,8 @@
 //!   degrees coplanar, so that a face contact on one suppresses the others
 //!   (`FixContactHistoryMesh::coplanarContactAlready`) and the edges and corners between them
 //!   are no contacts (`SurfaceMesh::handleSharedEdge`). On a flat meshed with slightly
-//!   non-coplanar small triangles, the default (0.256 deg) gives 231 contacts and 137 x the
-//!   Hertz force at 1 um overlap; 1 deg gives one contact (tests/micro.rs).
+//!   non-coplanar small triangles, the default (0.256 deg) gives 104 contacts and 80 x the
+//!   Hertz force at 2 um overlap; 1 deg gives one contact, 0.998 x Hertz (tests/micro.rs).
 //! - **Contacts from the macro statistics.** Each pass is one [`ContactSample`] of the
 //!   machine's run drawn at random: an impact at its normal and tangential speed (Finnie wear,
 //!   LIGGGHTS' per-triangle output), or an enduring sliding contact pressed by its normal
@@ -44,25 +44,19 @@ use crate::engine::{run_engine, EngineCommand, EngineProgress};
 use crate::grid::{triangle_volumes_to_samples, volume_um3, NodeMap, Window, MESH_SHIFT_M};
 use crate::script::{self, micro_script, MicroLoad, MicroPass, MicroSegment};
 use crate::setting::{
-    effective_modulus_pa, hertz_contact_time_s, rayleigh_time_s, Media, Workpiece,
+    effective_modulus_pa, hertz_contact_time_s, rayleigh_time_s, Media, PartMaterial, Workpiece,
 };
 use crate::vtk::read_vtk;
 
 /// The `curvature` given to the patch's mesh, degrees (see the module doc).
 pub const DEFAULT_CURVATURE_DEG: f64 = 1.0;
-/// Passes per engine process (fixed, so the wear does not depend on `--jobs`).
-pub const DEFAULT_PASSES_PER_ENGINE: usize = 4;
+/// Engine processes a cycle's passes are split into ([`passes_per_engine`]): fixed, so the
+/// wear does not depend on `--jobs`; each process pays LIGGGHTS' set-up (reading the STL and
+/// building the mesh's topology; docs/finish.md measures it).
+pub const DEFAULT_ENGINE_PROCESSES: usize = 4;
 
-/// One contact of the machine's (macro) run on the part, as the micro passes use it.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct ContactSample {
-    pub normal_speed_m_s: f64,
-    pub tangential_speed_m_s: f64,
-    pub normal_force_n: f64,
-    pub duration_s: f64,
-    /// An enduring (sliding) contact rather than an impact.
-    pub enduring: bool,
-}
+/// The contacts the passes draw: [`crate::machine::MacroContacts::samples`].
+pub use crate::machine::ContactSample;
 
 /// The patch model's fidelity: the tolerance mesh judged at the measured points of the
 /// evaluated patch (finish.json `patch.model`).
@@ -94,6 +88,17 @@ pub struct ModelMesh {
     pub sampling: Sampling,
     pub bounds_m: [[f64; 2]; 3],
     pub model: PatchModel,
+}
+
+impl MicroPlan {
+    pub fn workpiece(&self) -> Workpiece {
+        self.part.workpiece()
+    }
+
+    /// Archard's K / H, 1/Pa.
+    pub fn archard_k_over_h_per_pa(&self) -> f64 {
+        self.archard_k / self.part.hardness_pa
+    }
 }
 
 impl ModelMesh {
@@ -321,11 +326,13 @@ fn write_ascii_stl(w: &mut dyn std::io::Write, triangles: &[[[f64; 3]; 3]]) -> s
 /// What a cycle's micro passes are made of.
 #[derive(Debug, Clone)]
 pub struct MicroPlan {
+    /// The media at their real stiffness (the macro run's are softened).
     pub media: Media,
-    pub workpiece: Workpiece,
+    /// The part: its elasticity is the wall's, its hardness Archard's H.
+    pub part: PartMaterial,
     pub k_finnie_per_pa: f64,
-    /// Archard's K / H, 1/Pa (the part's hardness from the setting).
-    pub archard_k_over_h_per_pa: f64,
+    /// Archard's dimensionless wear coefficient K (V = K / H F s).
+    pub archard_k: f64,
     pub curvature_deg: f64,
     pub passes: usize,
     pub seed: u64,
@@ -387,7 +394,7 @@ pub fn plan_micro_passes(
         }
     }
     let r = plan.media.radius_m();
-    let k_hertz = 4.0 / 3.0 * effective_modulus_pa(&plan.media, &plan.workpiece) * r.sqrt();
+    let k_hertz = 4.0 / 3.0 * effective_modulus_pa(&plan.media, &plan.workpiece()) * r.sqrt();
     let mut rng = ChaCha8Rng::seed_from_u64(plan.seed);
     let mut out = Vec::with_capacity(plan.passes);
     for _ in 0..plan.passes {
@@ -422,7 +429,7 @@ pub fn plan_micro_passes(
             // Upstream of the aim point by the flight.
             let (x0, y0) = (ax - dx * vt * flight_s, ay - dy * vt * flight_s);
             let z0 = mesh.touch_height_m(ax, ay, r) + gap;
-            let t = flight_s + 1.5 * hertz_contact_time_s(&plan.media, &plan.workpiece, vn);
+            let t = flight_s + 1.5 * hertz_contact_time_s(&plan.media, &plan.workpiece(), vn);
             out.push(MicroPass {
                 start_m: [x0, y0, z0],
                 velocity_m_s: [vt * dx, vt * dy, -vn],
@@ -442,6 +449,9 @@ pub struct GroupRecord {
     pub passes: usize,
     pub steps: usize,
     pub engine_s: f64,
+    /// LIGGGHTS' own loop time (the sum of its "Loop time of" lines), s: the stepping,
+    /// without the set-up (reading the STL, the mesh's topology, the neighbour lists).
+    pub loop_s: f64,
     pub command: String,
 }
 
@@ -471,7 +481,70 @@ pub struct MicroRun {
     pub stopped: bool,
 }
 
+/// What finish.json records of a cycle's micro passes ([`MicroRun::record`]): the maps
+/// left out.
+#[derive(Debug, Clone, Serialize)]
+pub struct MicroRecord {
+    pub model: PatchModel,
+    pub impacts: usize,
+    pub sliding: usize,
+    pub timestep_s: f64,
+    pub simulated_s: f64,
+    pub triangles: usize,
+    pub triangle_steps: f64,
+    pub engine_s: f64,
+    pub engine_cpu_s: f64,
+    pub loop_s: f64,
+    pub cpu_per_triangle_step_s: f64,
+    pub finnie_volume_um3: f64,
+    pub archard_volume_um3: f64,
+    pub volume_relative_error: f64,
+    pub impact_contacts: ContactSummary,
+    pub sliding_contacts: ContactSummary,
+    pub processes: Vec<GroupRecord>,
+    pub stopped: bool,
+}
+
 impl MicroRun {
+    pub fn record(&self) -> MicroRecord {
+        let impacts = self
+            .passes
+            .iter()
+            .filter(|p| matches!(p.load, MicroLoad::Impact))
+            .count();
+        let steps: usize = self.passes.iter().map(|p| p.steps).sum();
+        let ts = self.triangle_steps();
+        MicroRecord {
+            model: self.model.clone(),
+            impacts,
+            sliding: self.passes.len() - impacts,
+            timestep_s: self.timestep_s,
+            simulated_s: steps as f64 * self.timestep_s,
+            triangles: self.triangles,
+            triangle_steps: ts,
+            engine_s: self.engine_s,
+            engine_cpu_s: self.engine_cpu_s,
+            loop_s: self.loop_s(),
+            cpu_per_triangle_step_s: if ts > 0.0 {
+                self.engine_cpu_s / ts
+            } else {
+                0.0
+            },
+            finnie_volume_um3: self.finnie_liggghts_volume_um3,
+            archard_volume_um3: self.archard_volume_um3,
+            volume_relative_error: self.volume_relative_error(),
+            impact_contacts: self.impact_contacts.clone(),
+            sliding_contacts: self.sliding_contacts.clone(),
+            processes: self.groups.clone(),
+            stopped: self.stopped,
+        }
+    }
+
+    /// LIGGGHTS' loop time over all the processes, s.
+    pub fn loop_s(&self) -> f64 {
+        self.groups.iter().map(|g| g.loop_s).sum()
+    }
+
     pub fn triangle_steps(&self) -> f64 {
         self.triangles as f64 * self.passes.iter().map(|p| p.steps).sum::<usize>() as f64
     }
@@ -529,6 +602,8 @@ pub fn run_micro_passes(
     if plan.jobs == 0 {
         bail!("--jobs 0: expected at least one engine process");
     }
+    plan.part.check()?;
+    plan.media.validate()?;
     let mesh = mesh_model(
         heights_um,
         at,
@@ -549,7 +624,7 @@ pub fn run_micro_passes(
             to_m((aim_window.row0 + aim_window.rows - 1) as f64 * py, 1),
         ],
     );
-    let dt = micro_timestep_s(&plan.media, &plan.workpiece, samples);
+    let dt = micro_timestep_s(&plan.media, &plan.workpiece(), samples);
     let passes = plan_micro_passes(samples, plan, &mesh, aim, dt)?;
     let groups = group_passes(&passes, plan.passes_per_engine);
     let segments: Vec<(PathBuf, MicroSegment)> = groups
@@ -563,7 +638,7 @@ pub fn run_micro_passes(
                     mesh_bounds_m: mesh.bounds_m,
                     triangles: mesh.triangles_m.len(),
                     media: plan.media,
-                    workpiece: plan.workpiece,
+                    workpiece: plan.workpiece(),
                     k_finnie_per_pa: plan.k_finnie_per_pa,
                     timestep_s: dt,
                     curvature_deg: plan.curvature_deg,
@@ -619,6 +694,7 @@ pub fn run_micro_passes(
             passes: seg.passes.len(),
             steps: seg.total_steps(),
             engine_s: r.wall_s,
+            loop_s: loop_time_s(&gdir.join(script::LOG)),
             command: r.command.clone(),
         });
         if r.stopped {
@@ -627,7 +703,7 @@ pub fn run_micro_passes(
         }
         let (points, summary) = archard_from_dump(
             &gdir.join(script::CONTACTS),
-            plan.archard_k_over_h_per_pa,
+            plan.archard_k_over_h_per_pa(),
             plan.contact_every as f64 * dt,
         )?;
         let _ = std::fs::remove_file(gdir.join(script::CONTACTS));
@@ -651,6 +727,24 @@ pub fn run_micro_passes(
     }
     run.finnie_grid_volume_um3 = volume_um3(&run.finnie_um, at.pitch());
     Ok(run)
+}
+
+/// The sum of the "Loop time of T on N procs" lines of a LIGGGHTS log, s (0 without a log).
+pub fn loop_time_s(log: &Path) -> f64 {
+    std::fs::read_to_string(log)
+        .map(|t| {
+            t.lines()
+                .filter_map(|l| l.strip_prefix("Loop time of "))
+                .filter_map(|l| l.split_whitespace().next()?.parse::<f64>().ok())
+                .sum()
+        })
+        .unwrap_or(0.0)
+}
+
+/// Passes per engine process so that `passes` make `processes` processes (at least one
+/// pass each): fixed by the plan, not by `--jobs`, so the wear is the same for any jobs.
+pub fn passes_per_engine(passes: usize, processes: usize) -> usize {
+    passes.div_ceil(processes.max(1)).max(1)
 }
 
 fn add(acc: &mut [f64], x: &[f64]) {

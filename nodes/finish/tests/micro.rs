@@ -18,10 +18,13 @@ use surfstream_finish::contacts::archard_from_dump;
 use surfstream_finish::engine::{run_engine, EngineCommand};
 use surfstream_finish::grid::{mesh_patch, volume_um3, Window};
 use surfstream_finish::passes::{
-    mesh_model, run_micro_passes, ContactSample, MicroPlan, ModelMesh, DEFAULT_CURVATURE_DEG,
+    mesh_model, passes_per_engine, run_micro_passes, ContactSample, MicroPlan, ModelMesh,
+    DEFAULT_CURVATURE_DEG, DEFAULT_ENGINE_PROCESSES,
 };
 use surfstream_finish::script::{self, micro_script, MicroLoad, MicroPass, MicroSegment};
-use surfstream_finish::setting::{effective_modulus_pa, hertz_contact_time_s, Media, Workpiece};
+use surfstream_finish::setting::{
+    effective_modulus_pa, hertz_contact_time_s, Media, PartMaterial, Workpiece,
+};
 use surfstream_finish::vtk::read_vtk;
 
 fn engine() -> EngineCommand {
@@ -32,10 +35,7 @@ fn engine() -> EngineCommand {
 
 /// An aluminium part (the paper's), against the ceramic media.
 fn aluminium() -> Workpiece {
-    Workpiece {
-        youngs_modulus_pa: 7.0e10,
-        poisson_ratio: 0.33,
-    }
+    PartMaterial::aluminium().workpiece()
 }
 
 /// A flat with a 2 nm random roughness, 1 um pitch, meshed by the tolerance mesher.
@@ -402,9 +402,9 @@ fn a_cycle_wears_the_same_for_any_number_of_jobs() {
     ];
     let plan = |jobs| MicroPlan {
         media: Media::default(),
-        workpiece: aluminium(),
+        part: PartMaterial::aluminium(),
         k_finnie_per_pa: 1e-10,
-        archard_k_over_h_per_pa: 1e-13,
+        archard_k: 1e-4,
         curvature_deg: DEFAULT_CURVATURE_DEG,
         passes: 8,
         seed: 3,
@@ -454,6 +454,14 @@ fn a_cycle_wears_the_same_for_any_number_of_jobs() {
         assert_eq!(r.unmapped_volume_um3, 0.0);
         let archard_grid = volume_um3(&r.archard_um, at.pitch());
         assert!((archard_grid / r.archard_volume_um3 - 1.0).abs() < 1e-9);
+        let rec = r.record();
+        assert_eq!(rec.impacts + rec.sliding, 8);
+        assert!(rec.impacts > 0 && rec.sliding > 0);
+        assert_eq!(rec.processes.len(), r.groups.len());
+        assert!(rec.loop_s > 0.0 && rec.loop_s <= rec.engine_s * jobs as f64 + 1e-9);
+        let json = serde_json::to_value(&rec).unwrap();
+        assert!(json["model"]["max_error_over_sq"].is_number());
+        assert!(json["model"]["surface_triangles"].is_number());
         for g in &r.groups {
             assert!(tmp
                 .path()
@@ -467,4 +475,101 @@ fn a_cycle_wears_the_same_for_any_number_of_jobs() {
     assert_eq!(runs[0].finnie_um, runs[1].finnie_um);
     assert_eq!(runs[0].archard_um, runs[1].archard_um);
     assert_eq!(runs[0].passes, runs[1].passes);
+}
+
+/// The micro cost on a real surface (not in CI: `FINISH_BENCH_MODEL=FILE cargo test --release
+/// -p surfstream-finish --test micro -- --ignored --nocapture bench`): a 300 um patch meshed
+/// by the tolerance mesher, 8 passes (contact samples representative of the scaled drum run
+/// in issue 38, not drawn from a machine run), at --jobs 1 and 2; one sliding pass at 1 and
+/// 2 ranks; the contacts per medium on the real patch at two curvatures.
+#[test]
+#[ignore]
+fn bench_micro_cycle() {
+    let path = std::env::var("FINISH_BENCH_MODEL").expect("FINISH_BENCH_MODEL=FILE");
+    let s = surfstream_io::formats::read_surface(Path::new(&path)).unwrap();
+    let model = Sampling::new(Shape::new(s.height, s.width), s.pitch_x_um, s.pitch_y_um).unwrap();
+    let patch =
+        surfstream_finish::grid::Patch::cut(&s.heights_um, model, 300.0, 300.0, 45.0).unwrap();
+    let samples = [
+        (0.011, 0.30, 0.017, true),
+        (0.005, 0.20, 0.010, true),
+        (0.020, 0.45, 0.030, true),
+        (0.050, 0.30, 0.0, false),
+        (0.200, 0.50, 0.0, false),
+    ]
+    .map(|(vn, vt, f, enduring)| ContactSample {
+        normal_speed_m_s: vn,
+        tangential_speed_m_s: vt,
+        normal_force_n: f,
+        duration_s: 1e-3,
+        enduring,
+    });
+    let plan = |jobs, passes, curvature| MicroPlan {
+        media: Media::default(),
+        part: PartMaterial::aluminium(),
+        k_finnie_per_pa: 2e-12,
+        archard_k: 1e-4,
+        curvature_deg: curvature,
+        passes,
+        seed: 5,
+        jobs,
+        passes_per_engine: passes_per_engine(passes, DEFAULT_ENGINE_PROCESSES),
+        contact_every: 5,
+        max_slide_m: 50e-6,
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let stop = AtomicBool::new(false);
+    let go = |e: &EngineCommand, p: &MicroPlan, samples: &[ContactSample], name: &str| {
+        let t = std::time::Instant::now();
+        let r = run_micro_passes(
+            e,
+            p,
+            samples,
+            &patch.heights_um,
+            patch.sampling,
+            patch.crop,
+            20_000,
+            &tmp.path().join(name),
+            &stop,
+            &mut |_| {},
+        )
+        .unwrap();
+        let total = t.elapsed().as_secs_f64();
+        eprintln!(
+            "{name}: {} triangles, max error {:.4} Sq ({:.4} um, Sq {:.4} um, tolerance met {:?}), {} passes, {} groups, dt {:.3e} s, \
+             engine {:.2} s wall / {:.2} s CPU (LIGGGHTS' loops {:.2} s), total {total:.2} s, {:.3e} triangle-steps: {:.3e} s CPU and {:.3e} s loop per triangle-step, {:.2} s wall per pass; \
+             Finnie {:.4e} um^3, Archard {:.4e} um^3, contacts per snapshot at most {} (impacts) / {} (sliding)",
+            r.triangles,
+            r.model.max_error_over_sq,
+            r.model.max_error_um,
+            r.model.sq_um,
+            r.model.tolerance_met,
+            r.passes.len(),
+            r.groups.len(),
+            r.timestep_s,
+            r.engine_s,
+            r.engine_cpu_s,
+            r.loop_s(),
+            r.triangle_steps(),
+            r.engine_cpu_s / r.triangle_steps(),
+            r.loop_s() / r.triangle_steps(),
+            r.engine_s / r.passes.len() as f64,
+            r.finnie_liggghts_volume_um3,
+            r.archard_volume_um3,
+            r.impact_contacts.max_contacts_per_snapshot,
+            r.sliding_contacts.max_contacts_per_snapshot,
+        );
+        r
+    };
+    let one = engine();
+    let a = go(&one, &plan(1, 16, DEFAULT_CURVATURE_DEG), &samples, "jobs1");
+    let b = go(&one, &plan(2, 16, DEFAULT_CURVATURE_DEG), &samples, "jobs2");
+    assert_eq!(a.finnie_um, b.finnie_um);
+    assert_eq!(a.archard_um, b.archard_um);
+    let sliding = [samples[0]];
+    go(&one, &plan(1, 1, DEFAULT_CURVATURE_DEG), &sliding, "ranks1");
+    let two = EngineCommand::locate(2, None).unwrap();
+    go(&two, &plan(1, 1, DEFAULT_CURVATURE_DEG), &sliding, "ranks2");
+    go(&one, &plan(1, 1, 10.0), &sliding, "curvature10");
+    go(&one, &plan(1, 1, 0.256235), &sliding, "curvature_default");
 }
