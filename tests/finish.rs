@@ -64,6 +64,30 @@ fn finish_a_height_map_writes_wear_worn_surface_script_log_and_summary() {
     assert!(s["volume_check"]["relative_error"].as_f64().unwrap() < 0.005);
     assert!(s["calibration"]["k_finnie_fitted_per_pa"].as_f64().unwrap() > 0.0);
     assert!(s["timings"]["engine_s"].as_f64().unwrap() > 0.0);
+    // The prediction (issue 38): at least 5 times up to the process time, what was fitted
+    // named, both no-DEM baselines with the parameters of `after`, labels on stdout.
+    let series = s["series"].as_array().unwrap();
+    assert!(series.len() >= 5, "{series:?}");
+    assert_eq!(series.last().unwrap()["time_s"], 300.0);
+    for k in ["time_s", "Sa", "Sq", "Sz", "Spk", "Svk", "Sk"] {
+        assert!(series[0][k].as_f64().unwrap() > 0.0, "series[0].{k}");
+    }
+    assert_eq!(series.last().unwrap()["Sa"], s["after"]["Sa"]);
+    let fitted: Vec<&str> = s["fitted"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f.as_str().unwrap())
+        .collect();
+    assert!(fitted.contains(&"calibration.fit.scale"), "{fitted:?}");
+    for b in ["constant_wear", "plateau"] {
+        for k in ["Sa", "Sq", "Sz", "Spk", "Svk"] {
+            assert!(s["baselines"][b]["after"][k].as_f64().unwrap() > 0.0, "{b}.{k}");
+        }
+        assert_eq!(s["baselines"][b]["series"].as_array().unwrap().len(), series.len());
+    }
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("(fitted)") && stdout.contains("(prediction)"), "{stdout}");
     for f in [
         "wear.npy",
         "wear_finnie.npy",

@@ -146,7 +146,7 @@ enum Command {
     Mesh(verbs::mesh::MeshArgs),
     /// Finishing simulation on LIGGGHTS: a patch of FILE (or of a run's out dir) worn by
     /// media over cycles; wear maps, worn surface, finish.json, finish.html.
-    Finish(verbs::finish::FinishArgs),
+    Finish(Box<verbs::finish::FinishArgs>),
 }
 
 fn main() -> ExitCode {
@@ -290,7 +290,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             verbs::one_file(&a.file, "mesh")?;
             done(verbs::mesh::run(a))
         }
-        Command::Finish(a) => done(verbs::finish::run(a)),
+        Command::Finish(a) => done(verbs::finish::run(*a)),
     }
 }
 

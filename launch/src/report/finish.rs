@@ -140,6 +140,7 @@ fn render(dir: &Path, rel: &str) -> Result<String> {
         "<h3>Parameters (µm)</h3><table><tr><th class=\"k\">param</th><th>model before</th>\
          <th>predicted after</th><th>paper before</th><th>paper after 5 min</th></tr>"
     );
+    let sa_fitted = s.series.last().is_some_and(|p| !p.fitted.is_empty());
     for (k, bv, av) in [
         ("Sa", b.sa, a.sa),
         ("Sq", b.sq, a.sq),
@@ -150,12 +151,16 @@ fn render(dir: &Path, rel: &str) -> Result<String> {
     ] {
         let _ = write!(
             h,
-            "<tr><td class=\"k\">{k}</td><td>{bv:.3}</td><td>{av:.3}</td><td>{}</td><td>{}</td></tr>",
+            "<tr><td class=\"k\">{k}</td><td>{bv:.3}</td><td>{av:.3}{}</td><td>{}</td><td>{}</td></tr>",
+            if k == "Sa" && sa_fitted { " (fitted)" } else { "" },
             paper("before", k),
             paper("after", k)
         );
     }
     h.push_str("</table>");
+    // The predictions versus time beside the no-DEM baselines, what was fitted (the finish
+    // crate's own section of finish.html).
+    h.push_str(&surfstream_finish::html::predictions_section(&s));
     // The calibration table.
     if let Some(c) = &s.calibration {
         let opt = |v: Option<f64>, dp: usize| v.map_or("–".into(), |x| format!("{x:.dp$}"));

@@ -70,6 +70,40 @@ pub struct FinishArgs {
     /// Sa is reduced by the same ratio), or a measured after-finish scan of the same area.
     #[arg(long, value_name = "SA_BEFORE,SA_AFTER | FILE")]
     pub calibrate: Option<String>,
+    /// When the calibration's Sa holds, s (default: the process time; e.g. 300 with
+    /// --process-time-s 600 to predict 10 min from the paper's 5-min Sa).
+    #[arg(long)]
+    pub calibrate_at_s: Option<f64>,
+    /// Times of the predicted series, s (default: the paper's 1, 2, 3, 5, 10 min up to the
+    /// process time and its fifths).
+    #[arg(long, value_name = "T1,T2,...")]
+    pub series_s: Option<String>,
+    /// Interval of the wear maps over the process, s (default: a tenth of the process time).
+    #[arg(long)]
+    pub wear_map_every_s: Option<f64>,
+    /// A measured after-finish scan of the same area on the model's grid: SIM between it and
+    /// the predicted worn surface (the paper's SIM against the real part).
+    #[arg(long, value_name = "FILE")]
+    pub after: Option<PathBuf>,
+    /// Settings to compare with one calibration: NAME=V1,V2,... (revolution-rpm,
+    /// rotation-rpm or media-diameter-mm); each runs in full into OUT/sweep_NAME_V.
+    #[arg(long, value_name = "NAME=V1,V2,...")]
+    pub sweep: Option<String>,
+    /// The part's material: aluminium (the paper's part) or steel (default: the DEM wall as
+    /// steel, Archard K/H 5e-14 1/Pa).
+    #[arg(long, value_name = "aluminium|steel")]
+    pub part_material: Option<String>,
+    /// Run the machine first (the macro run: the paper's centrifugal barrel in LIGGGHTS);
+    /// its contacts on the part give the prediction's impact and sliding rates.
+    #[arg(long = "macro")]
+    pub macro_run: bool,
+    /// Simulated time the macro run records after settling, s (default 2).
+    #[arg(long)]
+    pub macro_record_s: Option<f64>,
+    /// A macro run's record instead of running it: a finish.json with `macro`, or the
+    /// record itself.
+    #[arg(long, value_name = "FILE")]
+    pub macro_record: Option<PathBuf>,
     /// Skip the ideal model's run (the paper's comparison) for an out dir with a datum.
     #[arg(long)]
     pub no_ideal: bool,
@@ -178,6 +212,20 @@ fn inputs(a: &FinishArgs) -> Result<(Model, Option<Model>)> {
     Ok((model, ideal))
 }
 
+/// A macro run's record: a finish.json's `macro`, or the record itself.
+fn read_macro(path: &Path) -> Result<surfstream_finish::machine::MacroContacts> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| anyhow!("--macro-record {}: cannot read: {e}", path.display()))?;
+    let v: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|e| anyhow!("--macro-record {}: not JSON: {e}", path.display()))?;
+    let record = match v.get("macro") {
+        Some(m) if !m.is_null() => m.clone(),
+        _ => v,
+    };
+    surfstream_core::record::from_value(&record, &format!("--macro-record {}", path.display()))
+        .map_err(|e| anyhow!(e))
+}
+
 fn parse_pair(s: &str, what: &str) -> Result<Vec<f64>> {
     s.split(',')
         .map(|v| {
@@ -242,6 +290,56 @@ pub fn run(a: FinishArgs) -> Result<()> {
     if let Some(t) = a.process_time_s {
         o.process_time_s = t;
     }
+    o.calibrate_at_s = a.calibrate_at_s;
+    o.wear_map_every_s = a.wear_map_every_s;
+    if let Some(t) = &a.series_s {
+        o.series_s = Some(parse_pair(t, "--series-s")?);
+    }
+    if let Some(f) = &a.after {
+        o.after = Some(read_model(
+            f,
+            None,
+            Some((model.pitch_x_um, model.pitch_y_um)),
+        )?);
+    }
+    if let Some(name) = &a.part_material {
+        let pm = surfstream_finish::setting::PartMaterial::preset(name)
+            .map_err(|e| anyhow!("--part-material: {e}"))?;
+        o.workpiece = pm.workpiece();
+        o.archard_k_over_h_per_pa = surfstream_finish::run::ARCHARD_K / pm.hardness_pa;
+        o.part_material = Some(pm);
+    }
+    if a.macro_run {
+        let mut m = surfstream_finish::machine::MachineSetting {
+            seed: a.seed,
+            ..Default::default()
+        };
+        if let Some(pm) = &o.part_material {
+            m.part_material = pm.clone();
+        }
+        // The paper's senses: revolution clockwise (negative about +z), rotation counter.
+        if let Some(x) = a.revolution_rpm {
+            m.revolution_rpm = -x.abs();
+        }
+        if let Some(x) = a.rotation_rpm {
+            m.rotation_rpm = x.abs();
+        }
+        if let Some(d) = a.media_diameter_mm {
+            m.media.diameter_mm = d;
+        }
+        if let Some(s) = a.macro_record_s {
+            m.record_s = s;
+        }
+        o.machine_run = Some(m);
+    }
+    if let Some(f) = &a.macro_record {
+        o.macro_contacts = Some(read_macro(f)?);
+    }
+    let sweep = a
+        .sweep
+        .as_deref()
+        .map(surfstream_finish::sweep::SweepSpec::parse)
+        .transpose()?;
     o.wear_model = surfstream_finish::run::WearModel::parse(&a.wear_model)
         .map_err(|e| anyhow!("--wear-model: {e}"))?;
     if let Some(t) = a.max_triangles {
@@ -273,21 +371,73 @@ pub fn run(a: FinishArgs) -> Result<()> {
     // Ctrl-C, SIGTERM or SIGHUP sets the runtime's stop flag, which stops the engine; the
     // completed cycles are kept (finish.json says partial); a second signal forces.
     surfstream_runtime::stop::install()?;
-    let summary = surfstream_finish::finish_record(
-        &model,
-        &o,
-        &a.out,
-        &surfstream_runtime::ipc::STOP_REQUESTED,
-        &mut |l| eprintln!("{l}"),
-    )?;
+    let stop = &surfstream_runtime::ipc::STOP_REQUESTED;
+    let say = &mut |l: &str| eprintln!("{l}");
+    let summary = match &sweep {
+        Some(spec) => surfstream_finish::sweep::finish_sweep(&model, &o, spec, &a.out, stop, say)?,
+        None => surfstream_finish::finish_record(&model, &o, &a.out, stop, say)?,
+    };
     let (b, af) = (&summary.before, &summary.after);
+    // "after" is the series' last point (the process time): fitted when the calibration holds there.
+    let sa_fitted = summary.series.last().is_some_and(|p| !p.fitted.is_empty());
+    for p in &summary.series {
+        println!(
+            "finish: predicted at {:.0} s: Sa {:.3}{} um, Sq {:.3}, Sz {:.3}, Spk {:.3}, Svk {:.3}, Sk {:.3} ({})",
+            p.time_s,
+            p.sa,
+            if p.fitted.is_empty() { "" } else { " (fitted)" },
+            p.sq,
+            p.sz,
+            p.spk,
+            p.svk,
+            p.sk,
+            if p.fitted.is_empty() { "prediction" } else { "prediction; Sa fitted" }
+        );
+    }
+    if let Some(bl) = &summary.baselines {
+        for (name, base) in [
+            ("constant wear", &bl.constant_wear),
+            ("plateau cut", &bl.plateau),
+        ] {
+            println!(
+                "finish: baseline {name} (no DEM, same Sa): Sq {:.3}, Sz {:.3}, Spk {:.3}, Svk {:.3} um; prediction within noise of it in: {}",
+                base.after.sq,
+                base.after.sz,
+                base.after.spk,
+                base.after.svk,
+                if bl.noise.is_none() { "no noise estimate (one cycle)".to_string() } else if base.within_noise.is_empty() { "none".to_string() } else { base.within_noise.join(", ") }
+            );
+        }
+    }
+    if let Some(sw) = &summary.sweep {
+        for st in &sw.settings {
+            println!(
+                "finish: sweep {} = {}{}: Sa {:.3}, Sq {:.3}, Sz {:.3} um after the process ({})",
+                sw.parameter,
+                st.value,
+                if st.calibrated_here {
+                    " (calibrated)"
+                } else {
+                    ""
+                },
+                st.after.sa,
+                st.after.sq,
+                st.after.sz,
+                st.dir
+            );
+        }
+    }
+    if !summary.fitted.is_empty() {
+        println!("finish: fitted: {}", summary.fitted.join(", "));
+    }
     println!(
-        "finish: {} cycle(s){}; Sa {:.3} -> {:.3} um, Sq {:.3} -> {:.3}, Sz {:.3} -> {:.3}, Spk {:.3} -> {:.3}, Svk {:.3} -> {:.3}; \
+        "finish: {} cycle(s){}; Sa {:.3} -> {:.3}{} um, Sq {:.3} -> {:.3}, Sz {:.3} -> {:.3}, Spk {:.3} -> {:.3}, Svk {:.3} -> {:.3}; \
          engine {:.1} s, surfstream {:.1} s; {}",
         summary.cycles_completed,
         if summary.partial { " (partial: stopped)" } else { "" },
         b.sa,
         af.sa,
+        if sa_fitted { " (fitted)" } else { "" },
         b.sq,
         af.sq,
         b.sz,

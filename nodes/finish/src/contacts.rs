@@ -37,6 +37,11 @@ pub struct ContactSummary {
     pub clipped_negative_normal_forces: usize,
     pub max_normal_force_n: f64,
     pub total_volume_m3: f64,
+    /// Most contacts of the medium in one snapshot (one per medium when the mesh's triangles
+    /// are one surface to LIGGGHTS, [`crate::passes`]).
+    pub max_contacts_per_snapshot: usize,
+    /// Largest sum of the normal forces of one snapshot, N.
+    pub max_snapshot_normal_force_n: f64,
 }
 
 /// Reads a `dump local` file of [`CONTACT_COLUMNS`] columns and returns the Archard volume of
@@ -69,6 +74,8 @@ pub fn archard_from_dump(
             )
         })?;
         summary.snapshots += 1;
+        summary.max_contacts_per_snapshot = summary.max_contacts_per_snapshot.max(count);
+        let mut snapshot_force = 0.0;
         // Skip to the ENTRIES line (box bounds in between).
         loop {
             let l = lines
@@ -103,8 +110,11 @@ pub fn archard_from_dump(
             summary.samples += 1;
             summary.max_normal_force_n = summary.max_normal_force_n.max(w.normal_force_n);
             summary.total_volume_m3 += w.volume_m3;
+            snapshot_force += w.normal_force_n;
             out.push(w);
         }
+        summary.max_snapshot_normal_force_n =
+            summary.max_snapshot_normal_force_n.max(snapshot_force);
     }
     Ok((out, summary))
 }
@@ -178,6 +188,8 @@ mod tests {
         .unwrap();
         let (w, s) = archard_from_dump(&p, 1.0, 1.0).unwrap();
         assert_eq!((w.len(), s.snapshots), (2, 2));
+        assert_eq!(s.max_contacts_per_snapshot, 2);
+        assert!((s.max_snapshot_normal_force_n - 6.0).abs() < 1e-12);
         assert!((s.total_volume_m3 - 12.0).abs() < 1e-12);
         std::fs::write(&p, "ITEM: NUMBER OF ENTRIES\n1\nITEM: ENTRIES a\n1 2 3\n").unwrap();
         let e = archard_from_dump(&p, 1.0, 1.0).unwrap_err().to_string();

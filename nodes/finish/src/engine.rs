@@ -106,9 +106,39 @@ pub struct EngineRun {
     pub command: String,
 }
 
+/// How a run is watched: its name in messages and the stall time.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EngineWatch {
+    /// Named in every message about the run ("cycle 3", "the machine run in OUT/macro").
+    pub name: String,
+    /// No line on the engine's stdout or stderr for this long: the engine is stalled (stopped,
+    /// hung, swapping), killed and named, s.
+    pub stall_s: f64,
+}
+
+/// The default stall time, s: LIGGGHTS prints a thermo line every few hundred steps (a few
+/// seconds on a loaded machine), so two minutes of silence is not slowness.
+/// `SURFSTREAM_ENGINE_STALL_S` overrides it.
+pub const DEFAULT_STALL_S: f64 = 120.0;
+
+impl Default for EngineWatch {
+    fn default() -> Self {
+        let stall_s = std::env::var("SURFSTREAM_ENGINE_STALL_S")
+            .ok()
+            .and_then(|v| v.parse::<f64>().ok())
+            .filter(|v| v.is_finite() && *v > 0.0)
+            .unwrap_or(DEFAULT_STALL_S);
+        EngineWatch {
+            name: "the engine run".into(),
+            stall_s,
+        }
+    }
+}
+
 /// Runs the engine in `dir` on `input`, writing `log`; `steps_per_pass` and `passes` turn the
 /// thermo steps into progress, reported through `progress` about every `report_every`. A set
-/// `stop` ends the engine (SIGTERM, then SIGKILL) and returns with `stopped`.
+/// `stop` ends the engine (SIGTERM, then SIGKILL) and returns with `stopped`. Watched as
+/// [`run_engine_watched`] with the default [`EngineWatch`] named after `dir`.
 #[allow(clippy::too_many_arguments)]
 pub fn run_engine(
     engine: &EngineCommand,
@@ -120,17 +150,45 @@ pub fn run_engine(
     stop: &AtomicBool,
     progress: &mut dyn FnMut(EngineProgress),
 ) -> Result<EngineRun> {
+    let watch = EngineWatch {
+        name: format!("the engine run in {}", dir.display()),
+        ..EngineWatch::default()
+    };
+    run_engine_watched(
+        engine,
+        dir,
+        input,
+        log,
+        steps_per_pass,
+        passes,
+        stop,
+        &mut |p| progress(p),
+        &watch,
+    )
+}
+
+/// [`run_engine`] under the nodes' discipline: the engine (and mpirun's ranks) in its own
+/// process group, killed with this process (PR_SET_PDEATHSIG), the whole group stopped on
+/// `stop` (SIGTERM, SIGCONT, then SIGKILL after 3 s), a stall watch on its output
+/// (`watch.stall_s` of silence: killed, and the error names `watch.name`), and a failure's
+/// error with the exit status and the log's last ERROR line.
+#[allow(clippy::too_many_arguments)]
+pub fn run_engine_watched(
+    engine: &EngineCommand,
+    dir: &Path,
+    input: &str,
+    log: &str,
+    steps_per_pass: usize,
+    passes: usize,
+    stop: &AtomicBool,
+    progress: &mut dyn FnMut(EngineProgress),
+    watch: &EngineWatch,
+) -> Result<EngineRun> {
     let argv = engine.argv(input, log);
     let cpu0 = children_cpu_s();
     let t0 = Instant::now();
-    let mut child = Command::new(&argv[0])
-        .args(&argv[1..])
-        .current_dir(dir)
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .with_context(|| format!("cannot start {}", argv.join(" ")))?;
+    let mut child = spawn_in_own_group(&argv, dir, engine.ranks > 1)?;
+    let group = child.id() as i32;
     let stdout = child.stdout.take().ok_or_else(|| anyhow!("no stdout"))?;
     let stderr = child.stderr.take().ok_or_else(|| anyhow!("no stderr"))?;
     // Lines come through a channel so that the stop flag is polled even while the engine is
@@ -156,27 +214,24 @@ pub fn run_engine(
     let mut last_error = None;
     let mut tail: Vec<String> = Vec::new();
     let mut stopped = false;
+    let mut stalled = None;
+    let mut last_line = Instant::now();
     let steps_total = steps_per_pass * passes;
     let status = loop {
         // A launched node's stall watch: the engine is working.
         surfstream_core::liveness::beat();
         if stop.load(Ordering::SeqCst) && !stopped {
             stopped = true;
-            // SAFETY: signalling the child we started, by its pid.
-            unsafe {
-                libc::kill(child.id() as i32, libc::SIGTERM);
-            }
-            let t = Instant::now();
-            while t.elapsed() < Duration::from_secs(3) {
-                if child.try_wait()?.is_some() {
-                    break;
-                }
-                std::thread::sleep(Duration::from_millis(50));
-            }
-            let _ = child.kill();
+            stop_group(group, &mut child)?;
+        }
+        let silent_s = last_line.elapsed().as_secs_f64();
+        if stalled.is_none() && !stopped && silent_s > watch.stall_s {
+            stalled = Some(silent_s);
+            stop_group(group, &mut child)?;
         }
         match rx.recv_timeout(Duration::from_millis(200)) {
             Ok(line) => {
+                last_line = Instant::now();
                 if let Some(rest) = line.strip_prefix("surfstream pass ") {
                     if let Some(k) = rest.split_whitespace().next().and_then(|w| w.parse().ok()) {
                         pass = k;
@@ -218,12 +273,21 @@ pub fn run_engine(
             Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break child.wait()?,
         }
     };
+    // Whatever is left of the group (mpirun's ranks) goes with the engine.
+    kill_group(group, libc::SIGKILL);
     let _ = err_lines.join();
     let wall_s = t0.elapsed().as_secs_f64();
     let cpu_s = children_cpu_s() - cpu0;
     let command = argv.join(" ");
-    // A terminal's Ctrl-C reaches the engine too (same process group): it may have died
-    // before the flag was seen here.
+    let log_path = dir.join(log);
+    if let Some(silent_s) = stalled {
+        bail!(
+            "LIGGGHTS stalled in {}: no output for {silent_s:.0} s (stall time {} s; SURFSTREAM_ENGINE_STALL_S sets it), killed after {wall_s:.0} s{}\n(command: {command})",
+            watch.name,
+            watch.stall_s,
+            log_note(&log_path),
+        );
+    }
     if stopped || stop.load(Ordering::SeqCst) {
         return Ok(EngineRun {
             wall_s,
@@ -232,14 +296,16 @@ pub fn run_engine(
             command,
         });
     }
-    if !status.success() {
-        let why = last_error.unwrap_or_else(|| {
+    let log_error = last_log_error(&log_path);
+    if !status.success() || last_error.is_some() {
+        let why = log_error.or(last_error).unwrap_or_else(|| {
             let t = tail.len().saturating_sub(6);
             format!("last output:\n{}", tail[t..].join("\n"))
         });
         bail!(
-            "LIGGGHTS failed in {} ({status}): {why}\n(command: {command}; see {}/{log})",
-            dir.display(),
+            "LIGGGHTS failed in {} ({status}): {why}{}\n(command: {command}; folder {})",
+            watch.name,
+            log_note(&log_path),
             dir.display()
         );
     }
@@ -249,6 +315,82 @@ pub fn run_engine(
         stopped: false,
         command,
     })
+}
+
+/// Starts `argv` in `dir` as the leader of a new process group, to die with this process:
+/// PR_SET_PDEATHSIG (SIGKILL for the engine itself; SIGTERM for mpirun, which passes it to
+/// its ranks before it exits). The death signal follows the thread that started the child,
+/// which is this one, and it waits for the child before it returns.
+fn spawn_in_own_group(argv: &[String], dir: &Path, mpirun: bool) -> Result<std::process::Child> {
+    use std::os::unix::process::CommandExt;
+    let death = if mpirun { libc::SIGTERM } else { libc::SIGKILL };
+    // SAFETY: the pre_exec closure only makes async-signal-safe system calls.
+    let parent = unsafe { libc::getpid() };
+    let mut cmd = Command::new(&argv[0]);
+    cmd.args(&argv[1..])
+        .current_dir(dir)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    unsafe {
+        cmd.pre_exec(move || {
+            if libc::setpgid(0, 0) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            if libc::prctl(libc::PR_SET_PDEATHSIG, death as libc::c_ulong, 0, 0, 0) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            // The parent died before prctl: nobody would send the signal.
+            if libc::getppid() != parent {
+                libc::_exit(1);
+            }
+            Ok(())
+        });
+    }
+    cmd.spawn()
+        .with_context(|| format!("cannot start {} in {}", argv.join(" "), dir.display()))
+}
+
+/// Signals the process group `group` (ignoring a group already gone).
+fn kill_group(group: i32, signal: i32) {
+    // SAFETY: signalling the group of the child this module started (its pid is the group id).
+    unsafe {
+        libc::kill(-group, signal);
+    }
+}
+
+/// SIGTERM (and SIGCONT, for a stopped engine) to the group, SIGKILL after 3 s.
+fn stop_group(group: i32, child: &mut std::process::Child) -> Result<()> {
+    kill_group(group, libc::SIGTERM);
+    kill_group(group, libc::SIGCONT);
+    let t = Instant::now();
+    while t.elapsed() < Duration::from_secs(3) {
+        if child.try_wait()?.is_some() {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    kill_group(group, libc::SIGKILL);
+    Ok(())
+}
+
+/// The last line of the log that starts with ERROR.
+fn last_log_error(path: &Path) -> Option<String> {
+    let text = std::fs::read(path).ok()?;
+    String::from_utf8_lossy(&text)
+        .lines()
+        .rev()
+        .find(|l| l.starts_with("ERROR"))
+        .map(str::to_string)
+}
+
+/// "; see LOG" when the log exists, "; no log was written (LOG)" when it does not.
+fn log_note(path: &Path) -> String {
+    if path.is_file() {
+        format!("; see {}", path.display())
+    } else {
+        format!("; no log was written ({} does not exist)", path.display())
+    }
 }
 
 /// User + system CPU time of the waited-for children of this process, s.

@@ -289,7 +289,28 @@ impl WearTable {
         }
         self.dem_volume_beyond_reach_um3 += beyond;
         self.impacts += impacts;
-        // The beyond-reach volume goes to the reachable bins in proportion to their wear.
+        self.update_wear_per_contact(cell_area_um2);
+        Ok(())
+    }
+
+    /// Pools `other` (binned over the same reach, cells of `cell_area_um2`) into this table,
+    /// as if its segments had been added here.
+    pub fn merge(&mut self, other: &WearTable, cell_area_um2: f64) {
+        for (b, o) in self.bins.iter_mut().zip(&other.bins) {
+            b.cells += o.cells;
+            b.expected_contacts += o.expected_contacts;
+            b.dem_depth_sum_um += o.dem_depth_sum_um;
+            b.dem_worn_cells += o.dem_worn_cells;
+        }
+        self.impacts += other.impacts;
+        self.dem_volume_beyond_reach_um3 += other.dem_volume_beyond_reach_um3;
+        self.dem_volume_um3 += other.dem_volume_um3;
+        self.update_wear_per_contact(cell_area_um2);
+    }
+
+    /// Each bin's wear per expected contact, the DEM's volume beyond reach given to the
+    /// reachable bins in proportion to their wear.
+    fn update_wear_per_contact(&mut self, cell_area_um2: f64) {
         let inside: f64 = self.bins.iter().map(|b| b.dem_depth_sum_um).sum();
         let factor = if inside > 0.0 {
             self.dem_volume_um3 / (inside * cell_area_um2)
@@ -303,7 +324,6 @@ impl WearTable {
                 0.0
             };
         }
-        Ok(())
     }
 
     /// Expected wear depth of a cell at `gap_um` per impact aimed over the patch, um.
@@ -704,6 +724,19 @@ mod tests {
             (model_volume / dem_volume - 1.0).abs() < 1e-12,
             "{model_volume} vs {dem_volume}"
         );
+        // Two segments merged as tables are the two added to one table.
+        let mut both = WearTable::empty(d.max_um());
+        both.add_segment(&d, &gap, &dem, 17, p * p).unwrap();
+        both.add_segment(&d, &gap, &dem, 17, p * p).unwrap();
+        let mut merged = t.clone();
+        merged.merge(&t, p * p);
+        for (a, b) in merged.bins.iter().zip(&both.bins) {
+            assert!(
+                (a.wear_per_contact_um - b.wear_per_contact_um).abs()
+                    <= 1e-12 * b.wear_per_contact_um.abs()
+            );
+        }
+        assert_eq!(merged.impacts, both.impacts);
         // The extrapolation removes exactly the depth it records, and wears peaks first.
         let mut h = z.clone();
         let mut wear = vec![0.0; h.len()];

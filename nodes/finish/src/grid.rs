@@ -286,6 +286,73 @@ impl NodeMap {
     }
 }
 
+/// Triangle volumes (m^3) to depth along z on the samples of `sampling` (um), for a mesh whose
+/// vertices are samples of that grid (the tolerance mesh, [`crate::passes`]): each triangle's
+/// volume is spread evenly over the samples its footprint covers (corners and edges
+/// included), so a large triangle's wear covers its area, not only its three corners, and the
+/// total is kept exactly. `offset_um` turns a vertex (m) into patch coordinates (um):
+/// um = m * 1e6 + offset. Returns the depth map and the volume of triangles that cover no
+/// sample of the grid (off the grid: should be zero).
+pub fn triangle_volumes_to_samples(
+    sampling: Sampling,
+    offset_um: [f64; 3],
+    triangles: &[[[f64; 3]; 3]],
+    volume_m3: &[f64],
+) -> (Vec<f64>, f64) {
+    let (rows, cols) = (sampling.rows(), sampling.cols());
+    let (px, py) = (sampling.pitch_x_um(), sampling.pitch_y_um());
+    let cell = sampling.pitch().cell_area_um2();
+    let mut depth = vec![0.0; rows * cols];
+    let mut unmapped = 0.0;
+    let mut inside = Vec::new();
+    for (t, &v) in triangles.iter().zip(volume_m3) {
+        if v == 0.0 {
+            continue;
+        }
+        // Corners in sample units (col, row).
+        let q = t.map(|p| {
+            (
+                (p[0] * 1e6 + offset_um[0]) / px,
+                (p[1] * 1e6 + offset_um[1]) / py,
+            )
+        });
+        let det = (q[1].0 - q[0].0) * (q[2].1 - q[0].1) - (q[2].0 - q[0].0) * (q[1].1 - q[0].1);
+        inside.clear();
+        if det.abs() > 1e-12 {
+            let lo_c = q.iter().map(|p| p.0).fold(f64::INFINITY, f64::min);
+            let hi_c = q.iter().map(|p| p.0).fold(f64::NEG_INFINITY, f64::max);
+            let lo_r = q.iter().map(|p| p.1).fold(f64::INFINITY, f64::min);
+            let hi_r = q.iter().map(|p| p.1).fold(f64::NEG_INFINITY, f64::max);
+            let c0 = (lo_c - 1e-6).ceil().max(0.0) as usize;
+            let r0 = (lo_r - 1e-6).ceil().max(0.0) as usize;
+            let c1 = ((hi_c + 1e-6).floor().max(-1.0) + 1.0) as usize;
+            let r1 = ((hi_r + 1e-6).floor().max(-1.0) + 1.0) as usize;
+            // Barycentric test with a tolerance of 1e-6 sample: corners and edges count.
+            let eps = 1e-6 * det.abs();
+            for r in r0..r1.min(rows) {
+                for c in c0..c1.min(cols) {
+                    let (x, y) = (c as f64, r as f64);
+                    let w1 = (x - q[0].0) * (q[2].1 - q[0].1) - (q[2].0 - q[0].0) * (y - q[0].1);
+                    let w2 = (q[1].0 - q[0].0) * (y - q[0].1) - (x - q[0].0) * (q[1].1 - q[0].1);
+                    let (w1, w2) = (w1 * det.signum(), w2 * det.signum());
+                    if w1 >= -eps && w2 >= -eps && w1 + w2 <= det.abs() + eps {
+                        inside.push(r * cols + c);
+                    }
+                }
+            }
+        }
+        if inside.is_empty() {
+            unmapped += v;
+            continue;
+        }
+        let d = v * 1e18 / (inside.len() as f64 * cell);
+        for &k in &inside {
+            depth[k] += d;
+        }
+    }
+    (depth, unmapped)
+}
+
 /// Volume of a depth map (um) over samples of `pitch` (um^2 per sample), um^3.
 pub fn volume_um3(depth_um: &[f64], pitch: Pitch) -> f64 {
     depth_um.iter().sum::<f64>() * pitch.x_um() * pitch.y_um()
@@ -324,6 +391,38 @@ mod tests {
         let p = Patch::cut(&z, model, 150.0, 100.0, 20.0).unwrap();
         assert_eq!((p.in_model.row0, p.in_model.col0), (0, 0));
         assert_eq!((p.sampling.rows(), p.sampling.cols()), (60, 80));
+    }
+
+    #[test]
+    fn triangle_volumes_cover_their_footprint_and_keep_their_total() {
+        // Two triangles over a 5 x 5 grid at 2 um (offset 3 um in x): the lower-right half
+        // and the upper-left half of the square, sharing the diagonal.
+        let at = Sampling::square(Shape::new(5, 5), 2.0).unwrap();
+        let off = [3.0, 0.0, 0.0];
+        let m = |c: f64, r: f64| [(c * 2.0 - 3.0) * 1e-6, r * 2.0 * 1e-6, 0.0];
+        let tris = [
+            [m(0.0, 0.0), m(4.0, 0.0), m(4.0, 4.0)],
+            [m(0.0, 0.0), m(4.0, 4.0), m(0.0, 4.0)],
+        ];
+        let (d, unmapped) = triangle_volumes_to_samples(at, off, &tris, &[1.5e-18, 0.0]);
+        assert_eq!(unmapped, 0.0);
+        // The first triangle covers the 15 samples with col >= row, evenly.
+        let per = 1.5 / (15.0 * 4.0);
+        for r in 0..5 {
+            for c in 0..5 {
+                let want = if c >= r { per } else { 0.0 };
+                assert!(
+                    (d[r * 5 + c] - want).abs() < 1e-15,
+                    "({r}, {c}) {}",
+                    d[r * 5 + c]
+                );
+            }
+        }
+        assert!((volume_um3(&d, at.pitch()) - 1.5).abs() < 1e-12);
+        // A triangle off the grid is counted as unmapped.
+        let far = [[m(10.0, 10.0), m(12.0, 10.0), m(12.0, 12.0)]];
+        let (_, unmapped) = triangle_volumes_to_samples(at, off, &far, &[2e-18]);
+        assert_eq!(unmapped, 2e-18);
     }
 
     #[test]

@@ -16,7 +16,7 @@ use anyhow::{anyhow, Context, Result};
 use base64::Engine;
 
 use crate::run::SurfaceParams;
-use crate::summary::{AbbottSummary, FinishSummary};
+use crate::summary::{AbbottSummary, FinishSummary, SeriesPoint};
 
 /// The paper's measured part before and after 5 min of finishing, um.
 pub const PAPER_BEFORE: [(&str, f64); 3] = [("Sa", 1.272), ("Sq", 1.624), ("Sz", 15.262)];
@@ -25,17 +25,23 @@ pub const PAPER_AFTER: [(&str, f64); 3] = [("Sa", 0.565), ("Sq", 0.708), ("Sz", 
 const GREY: &str = "#9a9a9a";
 const RED: &str = "#c0392b";
 const BLUE: &str = "#1f5fa8";
+const GREEN: &str = "#2e8b57";
+const PURPLE: &str = "#7d3c98";
+/// Colours of a sweep's settings, in order.
+const SWEEP_COLOURS: [&str; 6] = [RED, BLUE, GREEN, PURPLE, "#d68910", "#117a65"];
 
+#[allow(clippy::too_many_arguments)]
 pub fn write_report(
     path: &Path,
     summary: &FinishSummary,
     original: &[f64],
     worn: &[f64],
     wear: &[f64],
+    ideal_wear: Option<&[f64]>,
     rows: usize,
     cols: usize,
 ) -> Result<()> {
-    let html = render(summary, original, worn, wear, rows, cols)?;
+    let html = render(summary, original, worn, wear, ideal_wear, rows, cols)?;
     let mut f =
         std::fs::File::create(path).with_context(|| format!("{}: cannot write", path.display()))?;
     f.write_all(html.as_bytes())
@@ -290,12 +296,14 @@ fn abbott_figures(summary: &FinishSummary, level_shift_um: f64) -> [String; 3] {
     [abbott_svg, abbott_peak_svg, abbott_diff_svg]
 }
 
-/// The page as a string (the file writer above and the tests share it).
+/// The page as a string (the file writer above and the tests share it); `ideal_wear` is the
+/// ideal model's predicted wear on the same patch, drawn beside the high-fidelity one.
 pub fn render(
     summary: &FinishSummary,
     original: &[f64],
     worn: &[f64],
     wear: &[f64],
+    ideal_wear: Option<&[f64]>,
     rows: usize,
     cols: usize,
 ) -> Result<String> {
@@ -314,6 +322,8 @@ pub fn render(
     let setting = setting_table(summary);
     let cycles = cycles_table(summary);
     let field = field_section(summary);
+    let predictions = predictions_section(summary);
+    let ideal_maps = ideal_maps(summary, wear, ideal_wear, rows, cols)?;
     let partial = summary.partial;
     let (sa_b, sa_a) = (finite(summary.before.sa), finite(summary.after.sa));
     let headline = match (sa_b, sa_a) {
@@ -368,8 +378,9 @@ The worn surface is re-levelled after wear, so original − worn differs from th
 zero at the right (valleys). The worn surface is re-levelled after wear; that shift \
 ({level_shift_um:+.4} µm) is taken out here.</figcaption></figure></div>\
 <h2>Roughness parameters (µm, Ssk/Sku dimensionless, Smr %)</h2>\
-<table><tr><th class=\"k\">param</th><th>before</th><th>after</th><th>change</th>\
+<table><tr><th class=\"k\">param</th><th>before</th><th>predicted after</th><th>change</th>\
 <th>paper before</th><th>paper after (5 min)</th></tr>{params}</table>\
+{predictions}{ideal_maps}\
 <h2>Contact field and calibration</h2>{field}\
 <h2>Cycles</h2>{cycles}</body></html>"
     )
@@ -556,16 +567,19 @@ fn timing_rows(s: &FinishSummary) -> String {
     );
     right += &calibration_row(s);
     right += &row(
-        "SIM model vs ideal",
-        num(s.ideal_model.as_ref().and_then(|i| i.sim_wear_maps), 3),
-        "paper's eq. 12 between the wear maps of the model and of the form-only model".into(),
+        "SIM between the ideal and high-fidelity predictions",
+        num(s.ideal_model.as_ref().and_then(|i| i.sim_predictions), 3),
+        format!(
+            "paper's eq. 12 between the predicted wear maps of the two models (first cycle's DEM maps: {}); not against the real part",
+            num(s.ideal_model.as_ref().and_then(|i| i.sim_wear_maps), 3)
+        ),
     );
     let sim = s.sim.as_ref();
     right += &row(
         "SIM Finnie vs Archard",
         num(sim.and_then(|s| s.finnie_vs_archard), 3),
         format!(
-            "SIM worn vs measured after: {}",
+            "SIM predicted worn vs measured after-finish scan (--after): {}",
             num(sim.and_then(|s| s.worn_vs_measured_after), 3)
         ),
     );
@@ -714,6 +728,357 @@ pub fn field_section(s: &FinishSummary) -> String {
     t
 }
 
+/// A series point's parameters for the page's plots and tables.
+type SeriesParameter = (&'static str, fn(&SeriesPoint) -> f64);
+const SERIES_PARAMETERS: [SeriesParameter; 6] = [
+    ("Sa", |p| p.sa),
+    ("Sq", |p| p.sq),
+    ("Sz", |p| p.sz),
+    ("Spk", |p| p.spk),
+    ("Svk", |p| p.svk),
+    ("Sk", |p| p.sk),
+];
+
+/// (time in min, value) of a series.
+fn curve(points: &[SeriesPoint], f: fn(&SeriesPoint) -> f64) -> Vec<(f64, f64)> {
+    points.iter().map(|p| (p.time_s / 60.0, f(p))).collect()
+}
+
+/// The predictions versus process time (finish.json `series`), the no-DEM baselines beside
+/// them with the prediction's noise, what was fitted, and the sweep's settings.
+pub fn predictions_section(s: &FinishSummary) -> String {
+    if s.series.is_empty() {
+        return "<h2>Predictions</h2><p>No prediction (the sampled map, no completed cycle, or stopped).</p>".into();
+    }
+    let mut h = String::from("<h2>Predictions versus process time</h2>");
+    let fitted = if s.fitted.is_empty() {
+        "nothing (the constants as given)".to_string()
+    } else {
+        s.fitted
+            .iter()
+            .map(|f| html_escape(f))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    if let Some(l) = &s.wear_laws {
+        write!(
+            h,
+            "<p>Wear laws: Finnie for impacts at {} per m² and s, Archard for sliding at {} J/(m² s) (the impacts removed {:.1} % of the volume); rates from {}. One scale on both laws: {} ({}). <b>Fitted</b>: {fitted}. Every other number on this page is a <b>prediction</b> or an input.</p>",
+            sci(l.impact_rate_per_m2_s),
+            sci(l.sliding_work_j_per_m2_s),
+            l.impact_share_of_volume * 100.0,
+            html_escape(&l.rates_from),
+            sci(l.scale),
+            html_escape(&l.scale_is),
+        )
+        .ok();
+    }
+    let base = s.baselines.as_ref();
+    // Sa, Sq, Sz versus time: the prediction, the two baselines.
+    let mut plots = String::from("<div class=\"row\">");
+    for (name, f) in &SERIES_PARAMETERS[..3] {
+        let pred = curve(&s.series, *f);
+        let cw = base
+            .map(|b| curve(&b.constant_wear.series, *f))
+            .unwrap_or_default();
+        let pl = base
+            .map(|b| curve(&b.plateau.series, *f))
+            .unwrap_or_default();
+        let mut series = vec![Series::line(&pred, RED, 2.0, "prediction (DEM)")];
+        if base.is_some() {
+            series.push(Series::dashed(&cw, BLUE, 1.5, "constant wear"));
+            series.push(Series::dashed(&pl, GREEN, 1.5, "plateau cut"));
+        }
+        let svg = Plot {
+            title: format!("{name} versus process time"),
+            xlabel: "process time (min)",
+            ylabel: "µm",
+            series,
+            ..Plot::default()
+        }
+        .svg();
+        write!(plots, "<figure>{svg}</figure>").ok();
+    }
+    plots += "</div>";
+    h += &plots;
+    h += "<table><tr><th>time (s)</th>";
+    for (name, _) in SERIES_PARAMETERS {
+        write!(h, "<th>{name} (µm)</th>").ok();
+    }
+    h += "<th class=\"k\">label</th></tr>";
+    for p in &s.series {
+        write!(h, "<tr><td>{}</td>", num(p.time_s, 0)).ok();
+        for (name, f) in SERIES_PARAMETERS {
+            let mark = if p.fitted.iter().any(|x| x == name) {
+                " (fitted)"
+            } else {
+                ""
+            };
+            write!(h, "<td>{}{mark}</td>", num(f(p), 3)).ok();
+        }
+        write!(
+            h,
+            "<td class=\"k\">{}</td></tr>",
+            if p.fitted.is_empty() {
+                "prediction".to_string()
+            } else {
+                format!("prediction; {} fitted", p.fitted.join(", "))
+            }
+        )
+        .ok();
+    }
+    h += "</table>";
+    if let Some(b) = base {
+        h += &baselines_table(s, b);
+    }
+    h += &sweep_plots(s);
+    h
+}
+
+/// The prediction after the process time beside both baselines and the paper, with the
+/// noise and where the prediction is within it of a baseline.
+fn baselines_table(s: &FinishSummary, b: &crate::summary::Baselines) -> String {
+    let mut h = String::from(
+        "<h3>What the DEM adds: the no-DEM baselines at the same Sa</h3>\
+<table><tr><th class=\"k\">after the process time</th><th>prediction (DEM)</th>\
+<th>constant wear</th><th>plateau cut</th><th>noise of the prediction</th><th>paper after (5 min)</th></tr>",
+    );
+    let noise = b.noise.as_ref();
+    type Row = (&'static str, fn(&SurfaceParams) -> f64, Option<f64>);
+    let rows: [Row; 6] = [
+        ("Sa", |p| p.sa, None),
+        ("Sq", |p| p.sq, noise.map(|n| n.sq)),
+        ("Sz", |p| p.sz, noise.map(|n| n.sz)),
+        ("Spk", |p| p.spk, noise.map(|n| n.spk)),
+        ("Svk", |p| p.svk, noise.map(|n| n.svk)),
+        ("Sk", |p| p.sk, noise.map(|n| n.sk)),
+    ];
+    for (name, f, n) in rows {
+        let paper = PAPER_AFTER
+            .iter()
+            .find(|(k, _)| *k == name)
+            .map_or(String::new(), |(_, v)| format!("{v:.3}"));
+        let within = |list: &[String]| {
+            if list.iter().any(|x| x == name) {
+                " ≈"
+            } else {
+                ""
+            }
+        };
+        write!(
+            h,
+            "<tr><td class=\"k\">{name} (µm)</td><td>{}</td><td>{}{}</td><td>{}{}</td><td>{}</td><td>{paper}</td></tr>",
+            num(f(&s.after), 3),
+            num(f(&b.constant_wear.after), 3),
+            within(&b.constant_wear.within_noise),
+            num(f(&b.plateau.after), 3),
+            within(&b.plateau.within_noise),
+            n.map_or("–".into(), |v| format!("± {v:.3}")),
+        )
+        .ok();
+    }
+    h += "</table>";
+    h += &at_calibration_time(s, b);
+    let say = |what: &str, list: &[String]| -> String {
+        if noise.is_none() {
+            format!("{what}: no noise estimate (one cycle: no second DEM sample). ")
+        } else if list.is_empty() {
+            format!("{what}: the prediction differs from it by more than the noise in every parameter. ")
+        } else {
+            format!(
+                "{what}: the prediction is <b>within noise</b> of it in {} (≈): there the DEM adds nothing measurable. ",
+                list.join(", ")
+            )
+        }
+    };
+    write!(
+        h,
+        "<p>{}{}Constant wear: {} (fitted {} = {}). Plateau: {} (fitted {} = {}). Noise: {}.</p>",
+        say("Constant wear", &b.constant_wear.within_noise),
+        say("Plateau cut", &b.plateau.within_noise),
+        html_escape(&b.constant_wear.what),
+        html_escape(&b.constant_wear.fitted_parameter),
+        sci(b.constant_wear.fitted_value),
+        html_escape(&b.plateau.what),
+        html_escape(&b.plateau.fitted_parameter),
+        num(b.plateau.fitted_value, 4),
+        noise.map_or("–".into(), |n| html_escape(&n.from)),
+    )
+    .ok();
+    h
+}
+
+/// The prediction and both baselines at the calibration time (where all three have the same
+/// Sa) beside the paper's part after 5 min, when the calibration time is not the process
+/// time (else the table above is that).
+fn at_calibration_time(s: &FinishSummary, b: &crate::summary::Baselines) -> String {
+    let Some(t) = s.wear_laws.as_ref().map(|l| l.calibration_time_s) else {
+        return String::new();
+    };
+    let at = |series: &[SeriesPoint]| {
+        series
+            .iter()
+            .find(|p| (p.time_s - t).abs() <= 1e-9 * t.max(1.0))
+            .cloned()
+    };
+    let last = s.series.last().map(|p| p.time_s);
+    let (Some(p), Some(c), Some(q)) = (
+        at(&s.series),
+        at(&b.constant_wear.series),
+        at(&b.plateau.series),
+    ) else {
+        return String::new();
+    };
+    if last.is_some_and(|l| (l - t).abs() <= 1e-9 * t.max(1.0)) {
+        return String::new();
+    }
+    let mut h = format!(
+        "<table><tr><th class=\"k\">at the calibration time, {t:.0} s</th><th>prediction (DEM)</th>\
+<th>constant wear</th><th>plateau cut</th><th>paper after (5 min)</th></tr>"
+    );
+    for (name, f) in &SERIES_PARAMETERS {
+        let paper = PAPER_AFTER
+            .iter()
+            .find(|(k, _)| k == name)
+            .map_or(String::new(), |(_, v)| format!("{v:.3}"));
+        let mark = if p.fitted.iter().any(|x| x == name) {
+            " (fitted)"
+        } else {
+            ""
+        };
+        write!(
+            h,
+            "<tr><td class=\"k\">{name} (µm)</td><td>{}{mark}</td><td>{}</td><td>{}</td><td>{paper}</td></tr>",
+            num(f(&p), 3),
+            num(f(&c), 3),
+            num(f(&q), 3)
+        )
+        .ok();
+    }
+    h += "</table>";
+    h
+}
+
+/// Sa, Sq, Sz versus time for each setting of a sweep (one calibration, on the base).
+fn sweep_plots(s: &FinishSummary) -> String {
+    let Some(sw) = &s.sweep else {
+        return String::new();
+    };
+    let mut h = format!(
+        "<h3>Sweep of {}: one calibration, every setting predicted</h3><p>{}</p><div class=\"row\">",
+        html_escape(&sw.parameter),
+        html_escape(&sw.note)
+    );
+    let labels: Vec<String> = sw
+        .settings
+        .iter()
+        .map(|st| {
+            format!(
+                "{} = {}{}",
+                sw.parameter,
+                st.value,
+                if st.calibrated_here {
+                    " (calibrated)"
+                } else {
+                    ""
+                }
+            )
+        })
+        .collect();
+    for (name, f) in &SERIES_PARAMETERS[..3] {
+        let curves: Vec<Vec<(f64, f64)>> =
+            sw.settings.iter().map(|st| curve(&st.series, *f)).collect();
+        let series = curves
+            .iter()
+            .zip(&labels)
+            .enumerate()
+            .map(|(k, (c, l))| Series::line(c, SWEEP_COLOURS[k % SWEEP_COLOURS.len()], 2.0, l))
+            .collect();
+        let svg = Plot {
+            title: format!("{name} versus process time"),
+            xlabel: "process time (min)",
+            ylabel: "µm",
+            series,
+            ..Plot::default()
+        }
+        .svg();
+        write!(h, "<figure>{svg}</figure>").ok();
+    }
+    h += "</div><table><tr><th class=\"k\">setting</th><th>Sa after (µm)</th><th>Sq</th><th>Sz</th><th class=\"k\">folder</th></tr>";
+    for (st, l) in sw.settings.iter().zip(&labels) {
+        write!(
+            h,
+            "<tr><td class=\"k\">{}</td><td>{}</td><td>{}</td><td>{}</td><td class=\"k\">{}</td></tr>",
+            html_escape(l),
+            num(st.after.sa, 3),
+            num(st.after.sq, 3),
+            num(st.after.sz, 3),
+            html_escape(&st.dir)
+        )
+        .ok();
+    }
+    h += "</table>";
+    h
+}
+
+/// The paper's comparison: the high-fidelity and the ideal model's predicted wear maps side
+/// by side, on one colour scale, with the SIM between them named as what it is.
+fn ideal_maps(
+    s: &FinishSummary,
+    wear: &[f64],
+    ideal_wear: Option<&[f64]>,
+    rows: usize,
+    cols: usize,
+) -> Result<String> {
+    let (Some(iw), Some(run)) = (ideal_wear, s.ideal_model.as_ref()) else {
+        return Ok(String::new());
+    };
+    if iw.len() != rows * cols {
+        return Err(anyhow!(
+            "finish.html: the ideal model's wear map holds {} values, expected {rows} x {cols}",
+            iw.len()
+        ));
+    }
+    let pitch = s
+        .setting
+        .as_ref()
+        .map(|st| st.patch.pitch_um[0])
+        .filter(|p| *p > 0.0)
+        .unwrap_or(1.0);
+    let hi = finite_max(wear).max(finite_max(iw)).max(1e-12);
+    let a = map_figure(
+        wear,
+        rows,
+        cols,
+        pitch,
+        (0.0, hi),
+        Ramp::Heat,
+        "wear depth along z (µm)",
+        rows / 2,
+    )?;
+    let b = map_figure(
+        iw,
+        rows,
+        cols,
+        pitch,
+        (0.0, hi),
+        Ramp::Heat,
+        "wear depth along z (µm)",
+        rows / 2,
+    )?;
+    let measured = s.sim.as_ref().and_then(|x| x.worn_vs_measured_after);
+    Ok(format!(
+        "<h2>The paper's comparison: ideal (datum) and high-fidelity model in the same setting</h2>\
+<div class=\"row\"><figure>{a}<figcaption>High-fidelity model: predicted wear over the process.</figcaption></figure>\
+<figure>{b}<figcaption>Ideal (form-only) model: predicted wear, same laws, rates and scale.</figcaption></figure></div>\
+<p>SIM between the ideal and high-fidelity predictions: <b>{}</b> (between their first cycle's DEM maps: {}). \
+SIM against a measured after-finish scan: {}.</p>",
+        num(run.sim_predictions, 3),
+        num(run.sim_wear_maps, 3),
+        measured.map_or("none given (--after FILE)".into(), |m| format!("{m:.3} (the predicted worn surface vs the scan)")),
+    ))
+}
+
 /// A parameter's name and its field in [`SurfaceParams`].
 type Parameter = (&'static str, fn(&SurfaceParams) -> f64);
 
@@ -736,6 +1101,10 @@ const PARAMETERS: [Parameter; 13] = [
 
 pub fn parameter_table(s: &FinishSummary) -> String {
     let mut out = String::new();
+    let sa_fitted = s
+        .series
+        .last()
+        .is_some_and(|p| p.fitted.iter().any(|f| f == "Sa"));
     for (key, field) in PARAMETERS {
         let b = finite(field(&s.before));
         let a = finite(field(&s.after));
@@ -757,7 +1126,10 @@ pub fn parameter_table(s: &FinishSummary) -> String {
             out,
             "<tr><td class=\"k\">{key}</td><td>{}</td><td>{}</td><td>{change}</td><td>{}</td><td>{}</td></tr>",
             b.map_or("–".into(), |v| format!("{v:.3}")),
-            a.map_or("–".into(), |v| format!("{v:.3}")),
+            a.map_or("–".into(), |v| format!(
+                "{v:.3}{}",
+                if key == "Sa" && sa_fitted { " (fitted)" } else { "" }
+            )),
             paper(&PAPER_BEFORE),
             paper(&PAPER_AFTER)
         )
@@ -1245,7 +1617,7 @@ mod tests {
         // must come out non-zero at the peaks.
         let wear: Vec<f64> = original.iter().map(|&h| (h - 1.0).max(0.0) * 0.5).collect();
         let worn: Vec<f64> = original.iter().zip(&wear).map(|(h, w)| h - w).collect();
-        render(summary, &original, &worn, &wear, rows, cols).expect("page renders")
+        render(summary, &original, &worn, &wear, None, rows, cols).expect("page renders")
     }
 
     #[test]
@@ -1295,8 +1667,9 @@ mod tests {
             "9.010e-17",
             "partial",
             "includes a cost probe of 1.5 s",
-            "<td>0.025</td>",
-            "SIM worn vs measured after: –",
+            "<td>0.031</td>",
+            "first cycle's DEM maps: 0.025",
+            "SIM predicted worn vs measured after-finish scan (--after): –",
             "120 µm³",
             "<td>1.300</td><td>1.200</td>",
         ] {
@@ -1325,6 +1698,51 @@ mod tests {
     }
 
     #[test]
+    fn predictions_are_labelled_beside_their_baselines_and_the_sweep_is_plotted() {
+        let s = crate::summary::example::predicted();
+        let (rows, cols) = (8, 8);
+        let ideal = vec![0.1; rows * cols];
+        let original = vec![0.0; rows * cols];
+        let html = render(
+            &s,
+            &original,
+            &original,
+            &original,
+            Some(&ideal),
+            rows,
+            cols,
+        )
+        .unwrap();
+        for needle in [
+            "Predictions versus process time",
+            "<b>Fitted</b>: calibration.fit.scale, series[time_s = calibration time].Sa",
+            "Sa versus process time",
+            "Sq versus process time",
+            "Sz versus process time",
+            ">prediction (DEM)</text>",
+            ">constant wear</text>",
+            ">plateau cut</text>",
+            "<td>0.740 (fitted)</td>",
+            "prediction; Sa fitted",
+            "within noise</b> of it in Sq",
+            "Plateau cut: the prediction differs from it by more than the noise",
+            "± 0.050",
+            // The parameter table's after column: Sa fitted (the calibration holds at the end).
+            "<td class=\"k\">Sa</td><td>1.316</td><td>0.740 (fitted)</td>",
+            "Sweep of revolution-rpm",
+            ">revolution-rpm = 300 (calibrated)</text>",
+            ">revolution-rpm = 200</text>",
+            "SIM between the ideal and high-fidelity predictions: <b>0.031</b>",
+            "none given (--after FILE)",
+        ] {
+            assert!(html.contains(needle), "page lacks {needle:?}");
+        }
+        // Five predicted times, each labelled; the high-fidelity and ideal maps side by side.
+        assert_eq!(html.matches("<td class=\"k\">prediction").count(), 5);
+        assert!(html.contains("Ideal (form-only) model: predicted wear"));
+    }
+
+    #[test]
     fn a_summary_without_a_setting_or_calibration_still_renders() {
         let s = typed(minimal());
         let html = page(&s, 8, 8);
@@ -1335,7 +1753,7 @@ mod tests {
             html.contains("<td>– mm, – kg/m³</td>"),
             "absent setting as –"
         );
-        assert!(render(&s, &[0.0; 3], &[0.0; 4], &[0.0; 4], 2, 2).is_err());
+        assert!(render(&s, &[0.0; 3], &[0.0; 4], &[0.0; 4], None, 2, 2).is_err());
     }
 
     #[test]
@@ -1361,8 +1779,22 @@ mod rerender {
         let dir = std::path::PathBuf::from(std::env::var("FINISH_OUT").expect("FINISH_OUT"));
         let s = crate::summary::FinishSummary::read(&dir.join("finish.json")).unwrap();
         let rd = |f: &str| surfstream_io::npy::read_npy_f64(dir.join(f)).unwrap();
-        let (o, w, f) = (rd("original.npy"), rd("worn.npy"), rd("wear_finnie.npy"));
+        let (o, w, f) = (rd("original.npy"), rd("worn.npy"), rd("wear.npy"));
+        let ideal = dir
+            .join("wear_ideal.npy")
+            .is_file()
+            .then(|| rd("wear_ideal.npy").data);
         let out = std::path::PathBuf::from(std::env::var("FINISH_HTML").expect("FINISH_HTML"));
-        super::write_report(&out, &s, &o.data, &w.data, &f.data, o.rows, o.cols).unwrap();
+        super::write_report(
+            &out,
+            &s,
+            &o.data,
+            &w.data,
+            &f.data,
+            ideal.as_deref(),
+            o.rows,
+            o.cols,
+        )
+        .unwrap();
     }
 }

@@ -19,11 +19,16 @@ pub mod engine;
 pub mod field;
 pub mod grid;
 pub mod html;
+pub mod laws;
+pub mod machine;
+pub mod passes;
+pub mod predict;
 pub mod process;
 pub mod run;
 pub mod script;
 pub mod setting;
 pub mod summary;
+pub mod sweep;
 pub mod vtk;
 
 #[cfg(feature = "node")]

@@ -9,13 +9,16 @@ use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
-use surfstream_core::metrology::{level_plane, params, sim, AbbottCurve, Grid};
+use surfstream_core::metrology::{level_plane, sim, AbbottCurve, Grid};
 use surfstream_core::record;
 use surfstream_core::{Sampling, Shape};
 
 use crate::engine::{EngineCommand, EngineProgress};
 use crate::field::{self, impact_rate_per_m2_s, ApproachDistribution, FieldGrid, WearTable};
 use crate::grid::{crop, volume_um3, Patch};
+use crate::laws::{self, ImpactLaw, SlidingLaw, WearLaw};
+use crate::machine::MacroContacts;
+use crate::predict::{self, Prediction, PredictionInput};
 use crate::run::{
     outputs, run_segment, surface_params, timestep_s, Calibration, FinishOptions, Model, Progress,
     SegmentPlan, SegmentResult, SurfaceParams, WearModel, CALIBRATION_TOLERANCE_PERCENT,
@@ -26,7 +29,7 @@ use crate::setting::Action;
 use crate::summary::{
     AbbottSummary, CalibrationSummary, CheckMean, ContactFieldSummary, CycleField, CycleRecord,
     CycleVolumeCheck, FinalFit, FinishSetting, FinishSummary, IdealModelRun, PaperValues,
-    PatchRecord, ProbeRecord, SimValues, Timings, VolumeCheck, WearVolumes,
+    PatchRecord, ProbeRecord, SimValues, Timings, VolumeCheck, WearLawsRecord, WearVolumes,
 };
 
 /// Runs the finishing simulation of `model` into `out_dir`; see the crate doc. `say` gets
@@ -40,7 +43,8 @@ pub fn finish_record(
     say: &mut dyn FnMut(&str),
 ) -> Result<FinishSummary> {
     let t_start = Instant::now();
-    let setup = Setup::new(model, opts, out_dir, say)?;
+    let macro_run = macro_contacts(opts, out_dir, stop, say)?;
+    let setup = Setup::new(model, opts, out_dir, macro_run.as_ref(), say)?;
     let mut st = State::new(&setup);
     // Planning passes within the budget needs the engine's cost on this machine now (a busy
     // machine makes it several times the quiet estimate): a probe of two passes measures it.
@@ -57,11 +61,27 @@ pub fn finish_record(
     if stop.load(std::sync::atomic::Ordering::Relaxed) {
         st.partial = true;
     }
-    let final_fit = final_field_fit(&setup, &mut st, stop, say)?;
-    let ideal_run = ideal_comparison(&setup, &mut st, stop, say)?;
+    let (final_fit, prediction) = match final_prediction(&setup, &mut st, stop, say)? {
+        Some((f, p)) => (f, Some(p)),
+        None => (None, None),
+    };
+    let scale = prediction.as_ref().map(|p| p.scale);
+    let ideal_run = ideal_comparison(&setup, &mut st, scale, stop, say)?;
     let crops = write_outputs(&setup, &st)?;
     let total_s = t_start.elapsed().as_secs_f64();
-    let record = summary(&setup, st, &crops, final_fit, ideal_run, probe, total_s)?;
+    let mut record = summary(
+        &setup,
+        st,
+        &crops,
+        final_fit,
+        prediction.as_ref(),
+        ideal_run,
+        probe,
+        total_s,
+    )?;
+    // Set here: the macro run is made before the set-up, the material is the options'.
+    record.macro_run = macro_run;
+    record.part_material = opts.part_material.clone();
     // Written as a JSON value: its keys sorted, as finish.json has always had them.
     let summary = record::to_value(&record);
     let path = out_dir.join(outputs::SUMMARY);
@@ -75,6 +95,7 @@ pub fn finish_record(
         &crops.original,
         &crops.worn,
         &crops.finnie,
+        crops.ideal_wear.as_deref(),
         rows,
         cols,
     )?;
@@ -110,6 +131,13 @@ struct Setup<'a> {
     aim_area_um2: f64,
     impact_rate: f64,
     impacts_process: f64,
+    /// The sliding (Archard) law with its rates, and where the rates come from.
+    sliding: SlidingLaw,
+    sliding_forces_n: Vec<f64>,
+    rates_from: String,
+    /// When the calibration's Sa holds, and the times of the series, s.
+    calibration_time_s: f64,
+    series_times_s: Vec<f64>,
 }
 
 impl<'a> Setup<'a> {
@@ -118,6 +146,7 @@ impl<'a> Setup<'a> {
         model: &'a Model,
         opts: &'a FinishOptions,
         out_dir: &'a Path,
+        macro_run: Option<&MacroContacts>,
         say: &mut dyn FnMut(&str),
     ) -> Result<Self> {
         let (k_finnie, action) = checked_options(opts)?;
@@ -159,8 +188,8 @@ impl<'a> Setup<'a> {
 
         let (original_crop, before) =
             surface_params(&patch.cropped(&patch.heights_um), patch.crop_sampling())?;
-        let measured_after = match &opts.calibrate {
-            Some(Calibration::Measured(m)) => {
+        let measured_after = match (&opts.calibrate, &opts.after) {
+            (_, Some(m)) | (Some(Calibration::Measured(m)), None) => {
                 if (m.rows, m.cols) != (model.rows, model.cols) {
                     bail!(
                         "{}: the measured after-finish scan is {} x {} (rows x cols); the model is {} x {}",
@@ -188,7 +217,11 @@ impl<'a> Setup<'a> {
                     _ => *after_um,
                 })
             }
-            Some(Calibration::Measured(_)) => measured_after.as_ref().map(|(_, p)| p.sa),
+            Some(Calibration::Measured(m)) => {
+                let w = patch.in_model;
+                let inner = crop(&crop(&m.heights_um, m.cols, w), w.cols, patch.crop);
+                Some(surface_params(&inner, patch.crop_sampling())?.1.sa)
+            }
         };
 
         let press_force_n = press_force_n(opts, &action);
@@ -199,8 +232,40 @@ impl<'a> Setup<'a> {
         };
         let cell_area_um2 = patch.sampling.pitch().cell_area_um2();
         let aim_area_um2 = cell_area_um2 * (patch.crop.rows * patch.crop.cols) as f64;
-        let impact_rate = impact_rate_per_m2_s(&opts.media, &action);
+        let ProcessRates {
+            impact_rate,
+            sliding_work,
+            sliding_forces_n,
+            rates_from,
+        } = ProcessRates::of(opts, &action, press_force_n, macro_run);
         let impacts_process = impact_rate * aim_area_um2 * 1e-12 * opts.process_time_s;
+        let sliding = SlidingLaw::new(
+            opts.archard_k_over_h_per_pa,
+            sliding_work,
+            &sliding_forces_n,
+            &opts.media,
+            &opts.workpiece,
+        );
+        let calibration_time_s = opts.calibrate_at_s.unwrap_or(opts.process_time_s);
+        if !(calibration_time_s > 0.0 && calibration_time_s <= opts.process_time_s) {
+            bail!(
+                "--calibrate-at-s {calibration_time_s}: expected seconds in (0, the process time {}]",
+                opts.process_time_s
+            );
+        }
+        let mut series_times_s =
+            laws::series_times_s(opts.process_time_s, opts.series_s.as_deref())?;
+        series_times_s.extend([calibration_time_s, opts.process_time_s]);
+        series_times_s.sort_by(|a, b| a.total_cmp(b));
+        series_times_s.dedup_by(|a, b| (*a - *b).abs() <= 1e-9 * b.abs().max(1.0));
+        if let Some(e) = opts.wear_map_every_s {
+            if !(e.is_finite() && e > 0.0 && e <= opts.process_time_s) {
+                bail!(
+                    "--wear-map-every-s {e}: expected seconds in (0, the process time {}]",
+                    opts.process_time_s
+                );
+            }
+        }
         Ok(Self {
             model,
             opts,
@@ -222,7 +287,45 @@ impl<'a> Setup<'a> {
             aim_area_um2,
             impact_rate,
             impacts_process,
+            sliding,
+            sliding_forces_n,
+            rates_from,
+            calibration_time_s,
+            series_times_s,
         })
+    }
+
+    /// The prediction's laws with the DEM's wear-per-contact `table`: impacts (Finnie) at
+    /// the process's rate on the evaluated patch, sliding (Archard).
+    fn laws(&self, table: &WearTable) -> Vec<WearLaw> {
+        vec![
+            WearLaw::Impacts(ImpactLaw {
+                dist: self.dist,
+                table: table.clone(),
+                impacts_per_s: self.impacts_process / self.opts.process_time_s,
+            }),
+            WearLaw::Sliding(self.sliding.clone()),
+        ]
+    }
+
+    /// The scale at which the laws with `table` reach `target_sa_um` at the calibration
+    /// time, from the original surface.
+    fn fit(
+        &self,
+        table: &WearTable,
+        target_sa_um: f64,
+        stop: &AtomicBool,
+    ) -> Result<(f64, bool, field::Extrapolation)> {
+        laws::fit_scale(
+            &self.patch.heights_um,
+            self.field_grid,
+            &self.laws(table),
+            self.calibration_time_s,
+            MAX_FIELD_SCALE,
+            target_sa_um,
+            stop,
+            |z| self.sa_of_crop(z),
+        )
     }
 
     /// The segments' common inputs; each segment sets its seed, budget and cost.
@@ -247,33 +350,97 @@ impl<'a> Setup<'a> {
 
     /// Sa of the evaluated patch of `z`, levelled.
     fn sa_of_crop(&self, z: &[f64]) -> Result<f64> {
-        let c = self.patch.cropped(z);
-        let g = Grid::of(&c, self.patch.crop_sampling())?;
-        let l = level_plane(&g)?;
-        let g = Grid::of(&l, self.patch.crop_sampling())?;
-        Ok(params(&g)?.sa)
+        predict::sa_of_crop(&self.patch, z)
     }
+}
 
-    /// A contact-field fit of the tables so far from the original surface (see [`FieldFit`]).
-    fn field_fit(
-        &self,
-        cycle: usize,
-        table: &WearTable,
-        target_sa_um: f64,
-        stop: &AtomicBool,
-    ) -> Result<FieldFit> {
-        FieldFit::from_original(
-            cycle,
-            &self.patch.heights_um,
-            self.field_grid,
-            &self.dist,
-            table,
-            self.impacts_process * MAX_FIELD_SCALE,
-            target_sa_um,
-            stop,
-            |z| self.sa_of_crop(z),
-        )
+/// The rates the prediction's laws run at, and where they come from.
+struct ProcessRates {
+    /// Contacts (impacts) per m^2 of the part and s.
+    impact_rate: f64,
+    /// Sliding work per m^2 of the part and s, J/(m^2 s).
+    sliding_work: f64,
+    /// The sliding contacts' normal forces (equal weights), N.
+    sliding_forces_n: Vec<f64>,
+    rates_from: String,
+}
+
+impl ProcessRates {
+    /// From the macro run's contacts on the part when there is one (what softening keeps:
+    /// the contact rate, the sliding work, the enduring contacts' forces), else from the
+    /// barrel kinematics' assumptions.
+    fn of(
+        opts: &FinishOptions,
+        action: &Action,
+        press_force_n: f64,
+        macro_run: Option<&MacroContacts>,
+    ) -> Self {
+        match macro_run {
+            Some(m) => {
+                let c = &m.contacts;
+                let f = c.enduring_normal_force_n;
+                let forces: Vec<f64> = [f.p10, f.p50, f.p90]
+                    .into_iter()
+                    .filter(|x| x.is_finite() && *x > 0.0)
+                    .collect();
+                ProcessRates {
+                    impact_rate: c.rate_per_mm2_s * 1e6,
+                    sliding_work: c.sliding_work_j_per_mm2_s * 1e6,
+                    sliding_forces_n: if forces.is_empty() {
+                        vec![press_force_n]
+                    } else {
+                        forces
+                    },
+                    rates_from: format!(
+                        "the macro run (finish.json macro: {} media, {} s simulated on the part's central region): contacts per area and s, sliding work per area and s, the enduring contacts' normal force p10/p50/p90",
+                        m.media_count, m.simulated_s
+                    ),
+                }
+            }
+            None => ProcessRates {
+                impact_rate: impact_rate_per_m2_s(&opts.media, action),
+                // Coulomb friction at the limit over the bed's pressure at the media speed.
+                sliding_work: opts.media.friction * action.pressure_pa * action.media_velocity_m_s,
+                sliding_forces_n: vec![press_force_n],
+                rates_from: "the barrel kinematics (assumptions, docs/finish.md; no macro run): impacts once per diameter travelled by the bed's contact layer; sliding work = friction x pressure x media speed, each sliding contact pressed by the press force".into(),
+            },
+        }
     }
+}
+
+/// The macro run's record: run now (`machine_run`, into OUT/macro), given, or none.
+fn macro_contacts(
+    opts: &FinishOptions,
+    out_dir: &Path,
+    stop: &AtomicBool,
+    say: &mut dyn FnMut(&str),
+) -> Result<Option<MacroContacts>> {
+    if let Some(m) = &opts.macro_contacts {
+        return Ok(Some(m.clone()));
+    }
+    let Some(setting) = &opts.machine_run else {
+        return Ok(None);
+    };
+    let engine = EngineCommand::locate(opts.ranks, opts.hostfile.clone())?;
+    let mut last = Instant::now();
+    let m =
+        crate::machine::run_machine(setting, &out_dir.join("macro"), &engine, stop, &mut |p| {
+            if last.elapsed().as_secs_f64() >= 2.0 {
+                last = Instant::now();
+                say(&format!("finish: {}", p.line()));
+            }
+        })?;
+    let c = &m.contacts;
+    say(&format!(
+        "finish: macro run: {} media, {:.2} s recorded: {:.3e} contacts per mm^2 and s, sliding work {:.3e} J/(mm^2 s), enduring normal force p50 {:.4} N, tangential speed p50 {:.3} m/s",
+        m.media_count,
+        m.simulated_s,
+        c.rate_per_mm2_s,
+        c.sliding_work_j_per_mm2_s,
+        c.enduring_normal_force_n.p50,
+        c.tangential_speed_m_s.p50
+    ));
+    Ok(Some(m))
 }
 
 /// The Finnie constant and the machine's action, from options that are checked here.
@@ -343,9 +510,12 @@ struct State {
     /// The contact field's wear-per-contact table, pooled over the cycles.
     table: WearTable,
     provisional_scale: Option<f64>,
-    last_fit: Option<FieldFit>,
-    /// Each cycle's Archard map and the impacts one of its passes stands for.
-    archard_sampled: Vec<(Vec<f64>, f64)>,
+    /// Each cycle's own wear-per-contact table (the prediction's noise: odd vs even).
+    cycle_tables: Vec<WearTable>,
+    /// The predicted impact (Finnie) part of `finnie_total` (the contact field).
+    impact_total: Option<Vec<f64>>,
+    /// The ideal model's predicted wear on the evaluated patch.
+    ideal_wear: Option<Vec<f64>>,
     checks: Vec<field::FieldCheck>,
 }
 
@@ -366,8 +536,9 @@ impl State {
             sim_time_total: 0.0,
             table: WearTable::empty(setup.dist.max_um()),
             provisional_scale: None,
-            last_fit: None,
-            archard_sampled: Vec::new(),
+            cycle_tables: Vec::new(),
+            impact_total: None,
+            ideal_wear: None,
             checks: Vec::new(),
         }
     }
@@ -619,33 +790,28 @@ fn contact_field_wear(
     own.add_segment(dist, &gap_crop, &dem_crop, dem_passes, setup.cell_area_um2)?;
     st.table
         .add_segment(dist, &gap_crop, &dem_crop, dem_passes, setup.cell_area_um2)?;
+    st.cycle_tables.push(own.clone());
     let impacts_cycle = setup.impacts_process / opts.cycles as f64;
     // The scale that steers the next segments' surfaces: refitted on the tables
     // so far over the whole process (the final fit, once, uses every table).
     if let Some(t) = setup.target_sa {
-        let fit = setup.field_fit(c, &st.table, t, stop)?;
-        st.provisional_scale = Some(fit.impacts / setup.impacts_process);
-        // After the last cycle this is the final fit (same tables): kept.
-        st.last_fit = Some(fit);
+        st.provisional_scale = Some(setup.fit(&st.table, t, stop)?.0);
     }
     let scale = st.provisional_scale.unwrap_or(1.0);
     // The next segment's surface: the model's estimate at the end of this cycle's
     // share of the process, from the original with the tables so far.
     let mut h_next = patch.heights_um.clone();
     let mut w_next = vec![0.0; h_next.len()];
-    let e = field::extrapolate(
+    let e = laws::advance(
         &mut h_next,
         &mut w_next,
         setup.field_grid,
-        dist,
-        &st.table,
-        impacts_cycle * c as f64,
+        &setup.laws(&st.table),
+        opts.process_time_s * c as f64 / opts.cycles as f64,
         scale,
     );
     st.h = h_next;
     st.finnie_total = w_next;
-    st.archard_sampled
-        .push((r.archard_um.clone(), impacts_cycle / dem_passes as f64));
     say(&format!(
         "finish: cycle {c}: contact field: AUC {:.3} (gap ranks the DEM's worn cells), {:.1} % of the DEM wear within reach; {} extrapolation steps",
         check.auc_gap_predicts_worn,
@@ -674,61 +840,115 @@ fn contact_field_wear(
     })
 }
 
-/// The contact field's final fit, once, with every cycle's table, from the original
-/// surface over the whole process time; without a target the cycles' wear stands (k as
-/// given). The Archard map is rebuilt at the final scale.
-fn final_field_fit(
+/// The prediction (crate::predict): the laws with every cycle's table, their one scale fitted
+/// once to the target at the calibration time (or 1 without a target), the series, the wear
+/// maps and the baselines; the surface at the process time becomes the run's worn surface.
+/// None with the sampled map, without a completed cycle, or when stopped.
+fn final_prediction(
     setup: &Setup,
     st: &mut State,
     stop: &AtomicBool,
     say: &mut dyn FnMut(&str),
-) -> Result<Option<FinalFit>> {
+) -> Result<Option<(Option<FinalFit>, Prediction)>> {
     let completed = st.cycles.len();
-    if setup.opts.wear_model != WearModel::ContactField || completed == 0 {
+    if setup.opts.wear_model != WearModel::ContactField || completed == 0 || st.partial {
         return Ok(None);
     }
-    let (k_finnie, impacts_process) = (setup.k_finnie, setup.impacts_process);
-    let mut final_fit = None;
-    let mut scale = st.provisional_scale.unwrap_or(1.0);
-    if let (Some(t), false) = (setup.target_sa, st.partial) {
-        let fit = match st.last_fit.take().filter(|f| f.cycle == completed) {
-            Some(f) => f,
-            None => setup.field_fit(completed, &st.table, t, stop)?,
+    let halves = (st.cycle_tables.len() >= 2).then(|| {
+        let half = |parity: usize| {
+            let mut t = WearTable::empty(setup.dist.max_um());
+            for ct in st.cycle_tables.iter().skip(parity).step_by(2) {
+                t.merge(ct, setup.cell_area_um2);
+            }
+            setup.laws(&t)
         };
-        let FieldFit {
-            heights_um: h0,
-            wear_um: w0,
-            impacts: used,
-            extrapolation: e,
-            reached,
-            ..
-        } = fit;
-        scale = used / impacts_process;
-        st.h = h0;
-        st.finnie_total = w0;
-        let sa = setup.sa_of_crop(&st.h)?;
-        let err = sa / t - 1.0;
+        [half(0), half(1)]
+    });
+    let input = PredictionInput {
+        patch: &setup.patch,
+        original_um: &setup.patch.heights_um,
+        grid: setup.field_grid,
+        laws: setup.laws(&st.table),
+        halves,
+        calibration_time_s: setup.calibration_time_s,
+        process_time_s: setup.opts.process_time_s,
+        target_sa_um: setup.target_sa,
+        times_s: setup.series_times_s.clone(),
+        wear_map_every_s: setup
+            .opts
+            .wear_map_every_s
+            .unwrap_or(setup.opts.process_time_s / 10.0),
+        reach_um: setup.dist.max_um().max(
+            setup
+                .sliding
+                .contact_depths_um
+                .iter()
+                .cloned()
+                .fold(0.0, f64::max),
+        ),
+        out_dir: setup.out_dir,
+    };
+    let p = predict::predict(&input, stop)?;
+    if stop.load(std::sync::atomic::Ordering::Relaxed) {
+        st.partial = true;
+    }
+    let k_finnie = setup.k_finnie;
+    let final_fit = match (setup.target_sa, p.fit.clone()) {
+        (Some(t), Some(e)) => {
+            let sa = p
+                .series
+                .iter()
+                .find(|q| (q.time_s - setup.calibration_time_s).abs() <= 1e-9 * q.time_s.max(1.0))
+                .map_or(f64::NAN, |q| q.sa);
+            let err = sa / t - 1.0;
+            let reached = p.reached.unwrap_or(false);
+            say(&format!(
+                "finish: one wear scale fitted on Sa at {} s: {:.4e} (k_finnie {:.3e} 1/Pa, Archard K/H {:.3e} 1/Pa: fitted); Sa {sa:.4} um (fitted) for the target {t:.4} ({:+.2} %){}",
+                setup.calibration_time_s,
+                p.scale,
+                k_finnie * p.scale,
+                setup.sliding.k_over_h_per_pa * p.scale,
+                err * 100.0,
+                if reached { "" } else { ": target NOT reached" }
+            ));
+            Some(FinalFit {
+                scale: p.scale,
+                k_finnie_fitted_per_pa: k_finnie * p.scale,
+                archard_k_over_h_fitted_per_pa: Some(setup.sliding.k_over_h_per_pa * p.scale),
+                calibration_time_s: Some(setup.calibration_time_s),
+                sa_after_um: sa,
+                relative_error: err,
+                reached: reached && err.abs() * 100.0 <= CALIBRATION_TOLERANCE_PERCENT,
+                extrapolation: e,
+            })
+        }
+        _ => None,
+    };
+    for q in &p.series {
         say(&format!(
-            "finish: contact field fitted once over {} impacts on the patch: scale {scale:.4e} (k_finnie {:.3e} 1/Pa), Sa {sa:.4} um for the target {t:.4} ({:+.2} %){}",
-            impacts_process,
-            k_finnie * scale,
-            err * 100.0,
-            if reached { "" } else { ": target NOT reached" }
+            "finish: predicted at {:.0} s: Sa {:.3}{} Sq {:.3} Sz {:.3} Spk {:.3} Svk {:.3} um (prediction{})",
+            q.time_s,
+            q.sa,
+            if q.fitted.iter().any(|f| f == "Sa") { " (fitted)" } else { "" },
+            q.sq,
+            q.sz,
+            q.spk,
+            q.svk,
+            if q.fitted.is_empty() { "" } else { "; Sa fitted" }
         ));
-        final_fit = Some(FinalFit {
-            scale,
-            k_finnie_fitted_per_pa: k_finnie * scale,
-            sa_after_um: sa,
-            relative_error: err,
-            reached: reached && err.abs() * 100.0 <= CALIBRATION_TOLERANCE_PERCENT,
-            extrapolation: e,
-        });
     }
-    st.archard_total = vec![0.0; st.h.len()];
-    for (map, factor) in &st.archard_sampled {
-        add_scaled(&mut st.archard_total, map, factor * scale);
-    }
-    Ok(final_fit)
+    st.h = p.worn.heights_um.clone();
+    st.finnie_total = p.worn.wear_um.clone();
+    st.impact_total = Some(p.worn.impact_wear_um.clone());
+    // The predicted sliding (Archard) part: the total less the impacts'.
+    st.archard_total = p
+        .worn
+        .wear_um
+        .iter()
+        .zip(&p.worn.impact_wear_um)
+        .map(|(a, b)| a - b)
+        .collect();
+    Ok(Some((final_fit, p)))
 }
 
 /// The engine's progress as `say` lines, at most one every 2 s (and the last step's, with
@@ -758,10 +978,13 @@ fn progress_lines<'a>(
 }
 
 /// The paper's comparison: the ideal model (form only) under the same first segment, its
-/// wear map against the model's by SIM.
+/// DEM wear map against the model's by SIM; with a prediction, the ideal model's own
+/// prediction (its DEM table, the same laws, rates and scale: the same setting) over the
+/// process time, its wear map against the high-fidelity prediction's by SIM.
 fn ideal_comparison(
     setup: &Setup,
     st: &mut State,
+    scale: Option<f64>,
     stop: &AtomicBool,
     say: &mut dyn FnMut(&str),
 ) -> Result<Option<IdealModelRun>> {
@@ -812,15 +1035,51 @@ fn ideal_comparison(
     let b = patch.cropped(&r.finnie_um);
     let s = sim(&a, &b).unwrap_or(f64::NAN);
     say(&format!(
-        "finish: SIM(wear map of the model, wear map of the ideal model) = {s:.3}"
+        "finish: SIM between the first cycle's DEM wear maps of the high-fidelity and the ideal model = {s:.3}"
     ));
+    // The ideal model's prediction in the same setting: its own DEM table, the same laws.
+    let sim_predictions = match (scale, st.impact_total.is_some()) {
+        (Some(scale), true) => {
+            let gap = field::ball_gap_um(&levelled, patch.sampling, setup.field_grid.radius_um);
+            let mut table = WearTable::empty(setup.dist.max_um());
+            table.add_segment(
+                &setup.dist,
+                &patch.cropped(&gap),
+                &b,
+                r.segment.passes.len(),
+                setup.cell_area_um2,
+            )?;
+            let mut h = levelled.clone();
+            let mut w = vec![0.0; h.len()];
+            laws::advance(
+                &mut h,
+                &mut w,
+                setup.field_grid,
+                &setup.laws(&table),
+                opts.process_time_s,
+                scale,
+            );
+            let ideal_wear = patch.cropped(&w);
+            let hifi_wear = patch.cropped(&st.finnie_total);
+            let s2 = sim(&hifi_wear, &ideal_wear).unwrap_or(f64::NAN);
+            say(&format!(
+                "finish: SIM between the ideal and high-fidelity predictions (wear maps over {} s) = {s2:.3}",
+                opts.process_time_s
+            ));
+            st.ideal_wear = Some(ideal_wear);
+            s2.is_finite().then_some(s2)
+        }
+        _ => None,
+    };
     Ok(Some(IdealModelRun {
         source: ideal.source.clone(),
         dir: "ideal".into(),
         engine_s: r.engine_s,
         volume_um3: r.grid_volume_um3,
         sim_wear_maps: s.is_finite().then_some(s),
-        note: "SIM (eq. 12) between the first cycle's Finnie map on the model and on the ideal model, same passes".into(),
+        note: "sim_wear_maps: SIM (eq. 12) between the first cycle's DEM Finnie maps on the high-fidelity model and on the ideal model, same passes; sim_predictions: SIM between the ideal and high-fidelity predictions (their predicted wear maps over the process time, each model's own DEM table, the same laws, rates and fitted scale). Neither is the paper's SIM1/SIM2, which compare with an image of the real finished part: that is sim.worn_vs_measured_after, with --after FILE".into(),
+        sim_predictions,
+        wear_map: st.ideal_wear.as_ref().map(|_| outputs::WEAR_IDEAL.to_string()),
     }))
 }
 
@@ -831,6 +1090,8 @@ struct Crops {
     worn: Vec<f64>,
     original: Vec<f64>,
     after: SurfaceParams,
+    /// The ideal model's predicted wear (with an ideal model and a prediction).
+    ideal_wear: Option<Vec<f64>>,
 }
 
 /// Outputs on the crop: the wear maps, the worn and original surfaces (.npy with their
@@ -855,9 +1116,16 @@ fn write_outputs(setup: &Setup, st: &State) -> Result<Crops> {
         surfstream_io::sidecar::write_sidecar(&path, &geometry)
     };
     write(outputs::WEAR, &finnie_crop)?;
-    write(outputs::WEAR_FINNIE, &finnie_crop)?;
+    let impact_crop = st.impact_total.as_ref().map(|w| patch.cropped(w));
+    write(
+        outputs::WEAR_FINNIE,
+        impact_crop.as_deref().unwrap_or(&finnie_crop),
+    )?;
     write(outputs::WEAR_ARCHARD, &archard_crop)?;
     write(outputs::WORN, &worn_crop)?;
+    if let Some(w) = &st.ideal_wear {
+        write(outputs::WEAR_IDEAL, w)?;
+    }
     write(outputs::ORIGINAL, &setup.original_crop)?;
     let x3p = surfstream_io::formats::Surface {
         width: cols,
@@ -878,15 +1146,18 @@ fn write_outputs(setup: &Setup, st: &State) -> Result<Crops> {
         worn: worn_crop,
         original: setup.original_crop.clone(),
         after,
+        ideal_wear: st.ideal_wear.clone(),
     })
 }
 
 /// finish.json's record of the whole process.
+#[allow(clippy::too_many_arguments)]
 fn summary(
     setup: &Setup,
     st: State,
     crops: &Crops,
     final_fit: Option<FinalFit>,
+    prediction: Option<&Prediction>,
     ideal_run: Option<IdealModelRun>,
     probe: Option<ProbeRecord>,
     total_s: f64,
@@ -1036,7 +1307,56 @@ fn summary(
         },
         outputs: [outputs::WEAR, outputs::WEAR_FINNIE, outputs::WEAR_ARCHARD, outputs::WORN, outputs::WORN_X3P, outputs::ORIGINAL, outputs::SUMMARY, outputs::HTML].map(String::from).into(),
         cycles: st.cycles,
+        wear_laws: prediction.map(|p| WearLawsRecord {
+            impact_rate_per_m2_s: setup.impact_rate,
+            sliding_work_j_per_m2_s: setup.sliding.sliding_work_j_per_m2_s,
+            sliding_normal_forces_n: setup.sliding_forces_n.clone(),
+            sliding_contact_depths_um: setup.sliding.contact_depths_um.clone(),
+            archard_k_over_h_per_pa: setup.sliding.k_over_h_per_pa,
+            k_finnie_per_pa: k_finnie,
+            scale: p.scale,
+            scale_is: if target_sa.is_some() {
+                format!("fitted once: Sa of the prediction = the target at {} s", setup.calibration_time_s)
+            } else {
+                "1: the constants as given (no calibration)".into()
+            },
+            calibration_time_s: setup.calibration_time_s,
+            rates_from: setup.rates_from.clone(),
+            impact_share_of_volume: p.impact_share,
+        }),
+        series: prediction.map(|p| p.series.clone()).unwrap_or_default(),
+        baselines: prediction.map(|p| p.baselines.clone()),
+        fitted: fitted_names(target_sa.is_some(), prediction.is_some(), opts.wear_model),
+        wear_maps: prediction.map(|p| p.wear_maps.clone()),
+        sweep: None,
+        macro_run: None,
+        part_material: None,
     })
+}
+
+/// The finish.json paths of every fitted quantity: with a target, the one scale on both
+/// laws (and the constants it makes) and Sa at the calibration time; the baselines' own
+/// parameter (fitted to the prediction's Sa) whenever there is a prediction.
+fn fitted_names(calibrated: bool, predicted: bool, model: WearModel) -> Vec<String> {
+    let mut v: Vec<&str> = Vec::new();
+    if calibrated && predicted {
+        v.extend([
+            "calibration.fit.scale",
+            "calibration.k_finnie_fitted_per_pa",
+            "calibration.fit.archard_k_over_h_fitted_per_pa",
+            "wear_laws.scale",
+            "series[time_s = calibration time].Sa",
+        ]);
+    } else if calibrated && model == WearModel::SampledMap {
+        v.push("calibration.k_finnie_fitted_per_pa");
+    }
+    if predicted {
+        v.extend([
+            "baselines.constant_wear.fitted_value",
+            "baselines.plateau.fitted_value",
+        ]);
+    }
+    v.into_iter().map(String::from).collect()
 }
 
 /// Sa of the crop of `h - s * wear` (levelled).
@@ -1089,55 +1409,6 @@ fn fit_scale(patch: &Patch, h: &[f64], wear: &[f64], target: f64) -> Result<(f64
         prev = s;
     }
     Ok((best.0, false))
-}
-
-/// A fit of the contact field's scale: the worn surface it ends on and what it took.
-struct FieldFit {
-    cycle: usize,
-    heights_um: Vec<f64>,
-    wear_um: Vec<f64>,
-    impacts: f64,
-    extrapolation: field::Extrapolation,
-    reached: bool,
-}
-
-impl FieldFit {
-    /// Wears a copy of the original surface along the contact field until the crop's Sa
-    /// reaches `target_sa_um` (or `max_impacts`): the fit of the tables so far.
-    #[allow(clippy::too_many_arguments)]
-    fn from_original(
-        cycle: usize,
-        original_um: &[f64],
-        g: field::FieldGrid,
-        dist: &field::ApproachDistribution,
-        table: &field::WearTable,
-        max_impacts: f64,
-        target_sa_um: f64,
-        stop: &std::sync::atomic::AtomicBool,
-        sa_of_crop: impl FnMut(&[f64]) -> Result<f64>,
-    ) -> Result<Self> {
-        let mut heights_um = original_um.to_vec();
-        let mut wear_um = vec![0.0; original_um.len()];
-        let (impacts, extrapolation, reached) = field::wear_to_target(
-            &mut heights_um,
-            &mut wear_um,
-            g,
-            dist,
-            table,
-            max_impacts,
-            target_sa_um,
-            stop,
-            sa_of_crop,
-        )?;
-        Ok(Self {
-            cycle,
-            heights_um,
-            wear_um,
-            impacts,
-            extrapolation,
-            reached,
-        })
-    }
 }
 
 fn add_scaled(acc: &mut [f64], x: &[f64], s: f64) {

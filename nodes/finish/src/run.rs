@@ -25,6 +25,8 @@ pub mod outputs {
     pub const WEAR: &str = "wear.npy";
     pub const WEAR_FINNIE: &str = "wear_finnie.npy";
     pub const WEAR_ARCHARD: &str = "wear_archard.npy";
+    /// The ideal model's predicted wear (with an ideal model and a prediction).
+    pub const WEAR_IDEAL: &str = "wear_ideal.npy";
     pub const WORN: &str = "worn.npy";
     pub const WORN_X3P: &str = "worn.x3p";
     pub const ORIGINAL: &str = "original.npy";
@@ -99,6 +101,24 @@ pub struct FinishOptions {
     /// Real process time the run stands for, s (the paper: 5 min).
     pub process_time_s: f64,
     pub calibrate: Option<Calibration>,
+    /// When the calibration's Sa holds, s (None: the process time).
+    pub calibrate_at_s: Option<f64>,
+    /// Times of the prediction's series, s (None: [`crate::predict::series_times_s`]).
+    pub series_s: Option<Vec<f64>>,
+    /// Interval of the wear maps written over the process, s (None: a tenth of the process
+    /// time).
+    pub wear_map_every_s: Option<f64>,
+    /// A measured after-finish scan on the model's grid: SIM between it and the predicted
+    /// worn surface (not a calibration target).
+    pub after: Option<Model>,
+    /// The macro run (the machine at the media scale, [`crate::machine`]) first; its contact
+    /// statistics give the prediction's impact and sliding rates. None: the rates from the
+    /// barrel kinematics' assumptions (or `macro_contacts`).
+    pub machine_run: Option<crate::machine::MachineSetting>,
+    /// A macro run's record given (e.g. read from a previous finish.json's `macro`).
+    pub macro_contacts: Option<crate::machine::MacroContacts>,
+    /// The part's material (recorded; `workpiece` and `archard_k_over_h_per_pa` follow it).
+    pub part_material: Option<crate::setting::PartMaterial>,
     /// Most triangles of the patch's mesh.
     pub max_triangles: usize,
     pub ranks: usize,
@@ -163,6 +183,13 @@ impl Default for FinishOptions {
             archard_k_over_h_per_pa: DEFAULT_ARCHARD_K_OVER_H_PER_PA,
             process_time_s: 300.0,
             calibrate: None,
+            calibrate_at_s: None,
+            series_s: None,
+            wear_map_every_s: None,
+            after: None,
+            machine_run: None,
+            macro_contacts: None,
+            part_material: None,
             max_triangles: 20_000,
             ranks: 1,
             hostfile: None,
@@ -187,6 +214,9 @@ pub const MAX_FIELD_SCALE: f64 = 1e8;
 /// Archard K / H when none is given, 1/Pa: K = 1e-4 (a mild abrasive regime) over H = 2 GPa
 /// (hardened steel), a textbook order of magnitude, not fitted.
 pub const DEFAULT_ARCHARD_K_OVER_H_PER_PA: f64 = 5e-14;
+/// Archard's dimensionless K with a part material's hardness (K / H): the same mild
+/// abrasive regime as [`DEFAULT_ARCHARD_K_OVER_H_PER_PA`], a textbook order, not fitted.
+pub const ARCHARD_K: f64 = 1e-4;
 /// Planning estimate of LIGGGHTS' cost per triangle and step with one medium over the patch,
 /// s (measured here, docs/finish.md); the real time is measured and reported.
 pub const DEFAULT_COST_PER_TRIANGLE_STEP_S: f64 = 4e-8;

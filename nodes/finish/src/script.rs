@@ -228,6 +228,178 @@ pub fn input_script(seg: &Segment) -> String {
     s
 }
 
+/// How a micro pass loads the patch.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum MicroLoad {
+    /// A free impact: the sphere flies at its velocity, strikes, rebounds; Finnie wear.
+    Impact,
+    /// An enduring sliding contact: the sphere is pressed by `press_force_n` (`fix addforce`,
+    /// its normal motion integrated under that load and the contact) while its velocity along
+    /// the part is prescribed (`fix move linear vx vy NULL`: no spin, so the slip is the
+    /// prescribed speed); Archard wear from the contact dump.
+    Sliding { press_force_n: f64 },
+}
+
+/// One pass of a micro segment.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct MicroPass {
+    /// Centre of the sphere when it is created, m.
+    pub start_m: [f64; 3],
+    pub velocity_m_s: [f64; 3],
+    pub steps: usize,
+    pub load: MicroLoad,
+}
+
+/// A micro segment's script: the patch (the tolerance mesh) and passes of either kind. The
+/// passes of one engine process are all of one kind (their wear is read from one output).
+#[derive(Debug, Clone, Serialize)]
+pub struct MicroSegment {
+    /// Bounding box of the wall mesh, m: [[x0, x1], [y0, y1], [z0, z1]].
+    pub mesh_bounds_m: [[f64; 2]; 3],
+    pub triangles: usize,
+    pub media: Media,
+    pub workpiece: Workpiece,
+    /// Finnie's constant, 1/Pa (LIGGGHTS' `k_finnie`).
+    pub k_finnie_per_pa: f64,
+    pub timestep_s: f64,
+    /// The mesh's `curvature`, degrees: neighbouring triangles within this angle are one
+    /// surface to LIGGGHTS (one contact per medium on them, edges and corners between them
+    /// not contacts); `curvature_tolerant yes` lets it exceed the mesh's smallest angle.
+    pub curvature_deg: f64,
+    pub passes: Vec<MicroPass>,
+    /// Contacts are dumped every this many steps (the Archard sampling and the contact
+    /// statistics).
+    pub contact_every: usize,
+    pub thermo_every: usize,
+}
+
+impl MicroSegment {
+    pub fn total_steps(&self) -> usize {
+        self.passes.iter().map(|p| p.steps).sum()
+    }
+
+    pub fn simulated_time_s(&self) -> f64 {
+        self.total_steps() as f64 * self.timestep_s
+    }
+}
+
+/// The input script of a micro segment, reading [`STL`] and writing [`WEAR_VTK`] (Finnie, per
+/// triangle) and [`CONTACTS`] (every contact every `contact_every` steps).
+pub fn micro_script(seg: &MicroSegment) -> String {
+    let [[x0, x1], [y0, y1], [z0, z1]] = seg.mesh_bounds_m;
+    let r = seg.media.radius_m();
+    let margin = r + 1e-4;
+    let skin = 2e-5;
+    let one = seg.triangles + 1000;
+    let (m, w) = (&seg.media, &seg.workpiece);
+    let (e, mu, k) = (m.restitution, m.friction, seg.k_finnie_per_pa);
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "# surfstream finish: micro passes on the patch's tolerance mesh (LIGGGHTS 3.8).\n\
+         # Rerun: liggghts -in {INPUT}\n\
+         # Patch: {STL} ({} triangles, m); media: {} mm spheres, {} passes, dt = {:e} s.\n\
+         atom_style granular\n\
+         atom_modify map array sort 0 0.0\n\
+         boundary f f f\n\
+         newton off\n\
+         communicate single vel yes\n\
+         units si\n\
+         region domain block {:e} {:e} {:e} {:e} {:e} {:e} units box\n\
+         create_box 2 domain\n\
+         neighbor {skin:e} bin\n\
+         neigh_modify delay 0 one {one} page {}\n\
+         hard_particles yes\n\
+         # type 1: media, type 2: the part (its real stiffness)\n\
+         fix m1 all property/global youngsModulus peratomtype {:e} {:e}\n\
+         fix m2 all property/global poissonsRatio peratomtype {} {}\n\
+         fix m3 all property/global coefficientRestitution peratomtypepair 2 {e} {e} {e} {e}\n\
+         fix m4 all property/global coefficientFriction peratomtypepair 2 {mu} {mu} {mu} {mu}\n\
+         fix m5 all property/global k_finnie peratomtypepair 2 {k:e} {k:e} {k:e} {k:e}\n\
+         pair_style gran model hertz tangential history\n\
+         pair_coeff * *\n\
+         timestep {:e}\n\
+         # curvature: the patch's triangles within {} deg of each other are one surface (one\n\
+         # contact per medium, not one per triangle)\n\
+         fix wall all mesh/surface/stress file {STL} type 2 curvature {} curvature_tolerant yes wear finnie\n\
+         fix walls all wall/gran model hertz tangential history mesh n_meshes 1 meshes wall\n\
+         compute wc all wall/gran/local pos vel id force\n\
+         dump dc all local {} {CONTACTS} {}\n\
+         thermo_style custom step atoms ke cpu\n\
+         thermo {}\n\
+         thermo_modify lost ignore norm no",
+        seg.triangles,
+        m.diameter_mm,
+        seg.passes.len(),
+        seg.timestep_s,
+        x0 - margin,
+        x1 + margin,
+        y0 - margin,
+        y1 + margin,
+        z0 - 1e-5,
+        z1 + 4.0 * r + 1e-4,
+        one * 10,
+        m.youngs_modulus_pa,
+        w.youngs_modulus_pa,
+        m.poisson_ratio,
+        w.poisson_ratio,
+        seg.timestep_s,
+        seg.curvature_deg,
+        seg.curvature_deg,
+        seg.contact_every,
+        (1..=crate::contacts::CONTACT_COLUMNS)
+            .map(|i| format!("c_wc[{i}]"))
+            .collect::<Vec<_>>()
+            .join(" "),
+        seg.thermo_every,
+    );
+    let n = seg.passes.len();
+    for (i, p) in seg.passes.iter().enumerate() {
+        let [x, y, z] = p.start_m;
+        let [vx, vy, vz] = p.velocity_m_s;
+        let _ = writeln!(
+            s,
+            "print \"surfstream pass {} of {n}\"\n\
+             create_atoms 1 single {x:e} {y:e} {z:e} units box\n\
+             set group all diameter {:e} density {} vx {vx:e} vy {vy:e} vz {vz:e}",
+            i + 1,
+            2.0 * r,
+            m.density_kg_m3,
+        );
+        match p.load {
+            MicroLoad::Impact => {
+                let _ = writeln!(
+                    s,
+                    "fix integrate all nve/sphere\nrun {} post no\nunfix integrate",
+                    p.steps
+                );
+            }
+            MicroLoad::Sliding { press_force_n } => {
+                let _ = writeln!(
+                    s,
+                    "fix press all addforce 0 0 {:e}\n\
+                     fix slide all move linear {vx:e} {vy:e} NULL\n\
+                     run {} post no\n\
+                     unfix slide\n\
+                     unfix press",
+                    -press_force_n, p.steps
+                );
+            }
+        }
+        if i + 1 < n {
+            let _ = writeln!(s, "delete_atoms group all");
+        }
+    }
+    let _ = writeln!(
+        s,
+        "dump dm all mesh/vtk 1 {WEAR_VTK} output face area wear wall\n\
+         run 0\n\
+         print \"surfstream segment done\""
+    );
+    s
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -51,6 +51,82 @@ impl Default for Workpiece {
     }
 }
 
+/// The part's material: the wall's elasticity in LIGGGHTS and the hardness of Archard's law.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PartMaterial {
+    /// The preset's name, or "custom".
+    pub name: String,
+    pub youngs_modulus_pa: f64,
+    pub poisson_ratio: f64,
+    /// Indentation hardness H of Archard's law V = K / H F s, Pa.
+    pub hardness_pa: f64,
+}
+
+impl Default for PartMaterial {
+    fn default() -> Self {
+        PartMaterial::aluminium()
+    }
+}
+
+impl PartMaterial {
+    /// The paper's part, an aluminium alloy sheet: E 70 GPa, nu 0.33, H 1.0 GPa (about
+    /// 100 HV, a 6061-T6-like alloy; textbook values, the paper gives no grade).
+    pub fn aluminium() -> Self {
+        PartMaterial {
+            name: "aluminium".into(),
+            youngs_modulus_pa: 7.0e10,
+            poisson_ratio: 0.33,
+            hardness_pa: 1.0e9,
+        }
+    }
+
+    /// Steel: E 210 GPa, nu 0.3, H 2 GPa (about 200 HV; the first sessions' hard-coded part).
+    pub fn steel() -> Self {
+        PartMaterial {
+            name: "steel".into(),
+            youngs_modulus_pa: 2.1e11,
+            poisson_ratio: 0.3,
+            hardness_pa: 2.0e9,
+        }
+    }
+
+    /// The presets by name: `aluminium` (also `aluminum`) or `steel`.
+    pub fn preset(name: &str) -> Result<Self> {
+        match name {
+            "aluminium" | "aluminum" => Ok(Self::aluminium()),
+            "steel" => Ok(Self::steel()),
+            _ => bail!("part material {name:?}: expected aluminium or steel (or give its modulus, Poisson ratio and hardness)"),
+        }
+    }
+
+    /// The wall's elasticity for the DEM.
+    pub fn workpiece(&self) -> Workpiece {
+        Workpiece {
+            youngs_modulus_pa: self.youngs_modulus_pa,
+            poisson_ratio: self.poisson_ratio,
+        }
+    }
+
+    pub fn check(&self) -> Result<()> {
+        for (field, v) in [
+            ("youngs_modulus_pa", self.youngs_modulus_pa),
+            ("hardness_pa", self.hardness_pa),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                bail!("part_material.{field} = {v}: expected a finite number > 0");
+            }
+        }
+        if !(0.0..0.5).contains(&self.poisson_ratio) {
+            bail!(
+                "part_material.poisson_ratio = {}: expected 0 <= nu < 0.5",
+                self.poisson_ratio
+            );
+        }
+        Ok(())
+    }
+}
+
 /// A centrifugal barrel machine: barrels on a turret.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct BarrelMachine {

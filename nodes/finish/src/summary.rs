@@ -16,8 +16,9 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use crate::field::{ApproachDistribution, Extrapolation, FieldCheck, WearTable};
+use crate::machine::MacroContacts;
 use crate::run::SurfaceParams;
-use crate::setting::{Action, BarrelMachine, Media, Workpiece};
+use crate::setting::{Action, BarrelMachine, Media, PartMaterial, Workpiece};
 
 /// finish.json.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -62,6 +63,151 @@ pub struct FinishSummary {
     pub timings: Timings,
     #[serde(default)]
     pub outputs: Vec<String>,
+    /// The wear laws of the prediction and where their rates come from.
+    #[serde(default)]
+    pub wear_laws: Option<WearLawsRecord>,
+    /// The prediction versus process time (at least 5 times, the process time last).
+    #[serde(default)]
+    pub series: Vec<SeriesPoint>,
+    /// The no-DEM baselines at the same removal (null when no prediction was made).
+    #[serde(default)]
+    pub baselines: Option<Baselines>,
+    /// The names (finish.json paths) of every fitted quantity; everything else is a
+    /// prediction or an input.
+    #[serde(default)]
+    pub fitted: Vec<String>,
+    /// The wear maps written at intervals of the process time.
+    #[serde(default)]
+    pub wear_maps: Option<WearMaps>,
+    /// Settings compared with one calibration (`--sweep`; null without one).
+    #[serde(default)]
+    pub sweep: Option<Sweep>,
+    /// The macro run's contacts on the part (null: the rates from the kinematics).
+    #[serde(rename = "macro", default)]
+    pub macro_run: Option<MacroContacts>,
+    /// The part's material when given (null: `setting.workpiece` and the default K/H).
+    #[serde(default)]
+    pub part_material: Option<PartMaterial>,
+}
+
+/// One time of the prediction (`series[]`): the worn patch's parameters, um, and its
+/// Abbott curve (101 points, material ratio 0..100 %).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SeriesPoint {
+    pub time_s: f64,
+    #[serde(rename = "Sa")]
+    pub sa: f64,
+    #[serde(rename = "Sq")]
+    pub sq: f64,
+    #[serde(rename = "Sz")]
+    pub sz: f64,
+    #[serde(rename = "Spk")]
+    pub spk: f64,
+    #[serde(rename = "Svk")]
+    pub svk: f64,
+    #[serde(rename = "Sk")]
+    pub sk: f64,
+    pub abbott: AbbottSummary,
+    /// Which of this point's values were fitted (["Sa"] at the calibration time); the
+    /// others are predictions.
+    #[serde(default)]
+    pub fitted: Vec<String>,
+}
+
+/// The laws of the prediction (`wear_laws`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct WearLawsRecord {
+    /// Impacts per m^2 and s on the part (Finnie with the DEM's wear per contact).
+    pub impact_rate_per_m2_s: f64,
+    /// Sliding work per m^2 and s on the part (Archard), J/(m^2 s).
+    pub sliding_work_j_per_m2_s: f64,
+    /// Normal forces of the sliding contacts (equal weights), N, and the ball's Hertz
+    /// approach under each, um.
+    pub sliding_normal_forces_n: Vec<f64>,
+    pub sliding_contact_depths_um: Vec<f64>,
+    /// Archard's K/H and Finnie's k at scale 1, 1/Pa.
+    pub archard_k_over_h_per_pa: f64,
+    pub k_finnie_per_pa: f64,
+    /// The one scale on both laws (fitted, or 1 for the constants as given).
+    pub scale: f64,
+    pub scale_is: String,
+    /// When the calibration's Sa holds, s.
+    pub calibration_time_s: f64,
+    /// Where the rates come from (the macro run, or the barrel kinematics as assumed).
+    pub rates_from: String,
+    /// Share of the predicted volume each law removed over the process.
+    pub impact_share_of_volume: f64,
+}
+
+/// The wear maps over time (`wear_maps`): `dir/<file>` per time.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct WearMaps {
+    pub every_s: f64,
+    pub dir: String,
+    pub files: Vec<String>,
+    pub note: String,
+}
+
+/// One no-DEM baseline (`baselines.constant_wear`, `baselines.plateau`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Baseline {
+    pub what: String,
+    /// The parameter fitted to the same Sa as the prediction at the calibration time.
+    pub fitted_parameter: String,
+    pub fitted_value: f64,
+    pub after: SurfaceParams,
+    pub series: Vec<SeriesPoint>,
+    /// Parameters (Sq, Sz, Spk, Svk, Sk) where the prediction lies within the noise of
+    /// this baseline after the process time: there the DEM adds nothing measurable.
+    pub within_noise: Vec<String>,
+}
+
+/// The noise of the prediction after the process time: the prediction from the tables of
+/// the odd cycles against the even cycles' (different engine seeds), each fitted to the
+/// same Sa (`baselines.noise`), um.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct PredictionNoise {
+    #[serde(rename = "Sq")]
+    pub sq: f64,
+    #[serde(rename = "Sz")]
+    pub sz: f64,
+    #[serde(rename = "Spk")]
+    pub spk: f64,
+    #[serde(rename = "Svk")]
+    pub svk: f64,
+    #[serde(rename = "Sk")]
+    pub sk: f64,
+    pub from: String,
+}
+
+/// The baselines (`baselines`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Baselines {
+    pub constant_wear: Baseline,
+    pub plateau: Baseline,
+    /// Null with fewer than two cycles (no second sample of the DEM's table).
+    #[serde(default)]
+    pub noise: Option<PredictionNoise>,
+}
+
+/// A sweep (`sweep`): the base run calibrated once, every other setting predicted with its
+/// fitted constants.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Sweep {
+    pub parameter: String,
+    pub settings: Vec<SweepSetting>,
+    pub note: String,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SweepSetting {
+    pub value: f64,
+    /// The setting's folder (its own finish.json), "." for the base run.
+    pub dir: String,
+    /// True for the setting the constants were fitted on.
+    pub calibrated_here: bool,
+    pub after: SurfaceParams,
+    pub series: Vec<SeriesPoint>,
 }
 
 /// The patch meshed and worn (`setting.patch`).
@@ -102,8 +248,15 @@ pub struct FinishSetting {
 /// The contact field's final fit over every cycle's table (`calibration.fit`).
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct FinalFit {
+    /// The one scale on both wear laws (fitted).
     pub scale: f64,
     pub k_finnie_fitted_per_pa: f64,
+    /// Archard's K/H x the scale, 1/Pa (fitted; absent before the sliding law).
+    #[serde(default)]
+    pub archard_k_over_h_fitted_per_pa: Option<f64>,
+    /// When the fitted Sa holds, s (absent before: the process time).
+    #[serde(default)]
+    pub calibration_time_s: Option<f64>,
     pub sa_after_um: f64,
     pub relative_error: f64,
     pub reached: bool,
@@ -220,6 +373,12 @@ pub struct IdealModelRun {
     pub volume_um3: f64,
     pub sim_wear_maps: Option<f64>,
     pub note: String,
+    /// SIM between the ideal and high-fidelity predictions (null without a prediction).
+    #[serde(default)]
+    pub sim_predictions: Option<f64>,
+    /// The ideal model's predicted wear map in OUT (null without a prediction).
+    #[serde(default)]
+    pub wear_map: Option<String>,
 }
 
 /// A cycle's volume check: LIGGGHTS' sum of wear x area against the grid's.
@@ -297,7 +456,8 @@ pub struct Timings {
 }
 
 /// The finish node's report (run.json `stages.<id>`, `nodes/<id>.json`): finish.json without
-/// its bulky parts (the Abbott curves and the per-cycle records, which stay in finish.json),
+/// its bulky parts (the Abbott curves, the per-cycle records and the macro run with its contact
+/// samples, which stay in finish.json),
 /// plus the node's folder. Built by [`FinishReport::of`], which names every field of
 /// [`FinishSummary`], so a field added there must be placed here (or left out) to compile.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -334,6 +494,20 @@ pub struct FinishReport {
     pub timings: Timings,
     #[serde(default)]
     pub outputs: Vec<String>,
+    #[serde(default)]
+    pub wear_laws: Option<WearLawsRecord>,
+    #[serde(default)]
+    pub series: Vec<SeriesPoint>,
+    #[serde(default)]
+    pub baselines: Option<Baselines>,
+    #[serde(default)]
+    pub fitted: Vec<String>,
+    #[serde(default)]
+    pub wear_maps: Option<WearMaps>,
+    #[serde(default)]
+    pub sweep: Option<Sweep>,
+    #[serde(default)]
+    pub part_material: Option<PartMaterial>,
 }
 
 impl FinishReport {
@@ -362,6 +536,14 @@ impl FinishReport {
             probe,
             timings,
             outputs,
+            wear_laws,
+            series,
+            baselines,
+            fitted,
+            wear_maps,
+            sweep,
+            macro_run: _,
+            part_material,
         } = summary;
         FinishReport {
             dir: dir.to_owned(),
@@ -383,6 +565,13 @@ impl FinishReport {
             probe,
             timings,
             outputs,
+            wear_laws,
+            series,
+            baselines,
+            fitted,
+            wear_maps,
+            sweep,
+            part_material,
         }
     }
 }
@@ -407,6 +596,7 @@ pub(crate) mod example {
     use super::FinishSummary;
     use crate::setting::{BarrelMachine, Media, Workpiece};
     use serde_json::{json, Value};
+    use surfstream_core::record;
 
     /// Surface parameters: Sa, Sq, Spk as given, the others 1.
     pub(crate) fn params(sa: f64, sq: f64, spk: f64) -> Value {
@@ -445,6 +635,56 @@ pub(crate) mod example {
         })
     }
 
+    /// A series point at `t` s with Sa `sa` (Sq = 1.25 Sa, Sz = 10 Sa, ...).
+    pub(crate) fn point(t: f64, sa: f64, fitted: bool) -> Value {
+        json!({"time_s": t, "Sa": sa, "Sq": 1.25 * sa, "Sz": 10.0 * sa, "Spk": 0.8 * sa,
+               "Svk": 1.1 * sa, "Sk": 3.0 * sa,
+               "abbott": {"material_ratio_pct": [0.0, 50.0, 100.0], "height_um": [sa, 0.0, -sa]},
+               "fitted": if fitted { vec!["Sa"] } else { vec![] }})
+    }
+
+    /// A prediction: the series, the laws, both baselines with a noise, the fitted list.
+    pub(crate) fn predicted() -> FinishSummary {
+        let mut s = record::to_value(&summary());
+        let series = |k: f64| -> Vec<Value> {
+            [60.0, 120.0, 180.0, 240.0, 300.0]
+                .iter()
+                .enumerate()
+                .map(|(i, t)| point(*t, k * (1.3 - 0.14 * i as f64), false))
+                .collect()
+        };
+        let mut dem = series(1.0);
+        dem[4] = point(300.0, 0.74, true);
+        let baseline = |what: &str, sq: f64, within: Vec<&str>| {
+            json!({"what": what, "fitted_parameter": "p", "fitted_value": 0.5,
+                   "after": params(0.74, sq, 0.4), "series": series(1.0), "within_noise": within})
+        };
+        let extra = json!({
+            "series": dem,
+            "after": params(0.74, 0.93, 0.4),
+            "fitted": ["calibration.fit.scale", "series[time_s = calibration time].Sa"],
+            "wear_laws": {"impact_rate_per_m2_s": 6.72e7, "sliding_work_j_per_m2_s": 1884.0,
+                          "sliding_normal_forces_n": [0.0358], "sliding_contact_depths_um": [0.05],
+                          "archard_k_over_h_per_pa": 5e-14, "k_finnie_per_pa": 6e-12, "scale": 2.5,
+                          "scale_is": "fitted once", "calibration_time_s": 300.0,
+                          "rates_from": "the barrel kinematics", "impact_share_of_volume": 0.25},
+            "baselines": {"constant_wear": baseline("constant", 1.6, vec!["Sq"]),
+                          "plateau": baseline("plateau", 1.9, vec![]),
+                          "noise": {"Sq": 0.05, "Sz": 0.3, "Spk": 0.1, "Svk": 0.1, "Sk": 0.2,
+                                    "from": "odd vs even cycles"}},
+            "sweep": {"parameter": "revolution-rpm", "note": "one calibration",
+                      "settings": [
+                          {"value": 200.0, "dir": "sweep_revolution-rpm_200", "calibrated_here": false,
+                           "after": params(0.9, 1.1, 0.5), "series": series(1.2)},
+                          {"value": 300.0, "dir": ".", "calibrated_here": true,
+                           "after": params(0.74, 0.93, 0.4), "series": series(1.0)}]},
+        });
+        for (k, v) in extra.as_object().unwrap() {
+            s[k] = v.clone();
+        }
+        typed(s)
+    }
+
     pub(crate) fn typed(v: Value) -> FinishSummary {
         serde_json::from_value(v).expect("a finish.json")
     }
@@ -480,7 +720,8 @@ pub(crate) mod example {
             "wear": {"finnie_volume_um3": 120.0, "archard_volume_um3": 60.0,
                      "max_depth_um": 0.8, "mean_depth_um": 0.1},
             "ideal_model": {"source": "graph input 'datum'", "dir": "ideal", "engine_s": 2.0,
-                            "volume_um3": 100.0, "sim_wear_maps": 0.025, "note": "same passes"},
+                            "volume_um3": 100.0, "sim_wear_maps": 0.025, "note": "same passes",
+                            "sim_predictions": 0.031, "wear_map": "wear_ideal.npy"},
             "paper": {"before": {"Sa": 1.272}, "after": {"Sa": 0.565}, "process_time_s": 300},
             "outputs": ["wear.npy", "finish.json"],
         });
@@ -501,7 +742,7 @@ mod tests {
     fn report_by_key(s: &FinishSummary, dir: &str) -> Value {
         let mut v = record::to_value(s);
         let o = v.as_object_mut().expect("finish.json is an object");
-        for k in ["abbott_before", "abbott_after", "cycles"] {
+        for k in ["abbott_before", "abbott_after", "cycles", "macro"] {
             assert!(o.remove(k).is_some(), "finish.json has {k}");
         }
         o.insert("dir".into(), Value::from(dir));
@@ -510,7 +751,11 @@ mod tests {
 
     #[test]
     fn the_report_is_finish_json_without_curves_and_cycles_plus_the_folder() {
-        for s in [example::summary(), example::typed(example::minimal())] {
+        for s in [
+            example::summary(),
+            example::typed(example::minimal()),
+            example::predicted(),
+        ] {
             let typed = record::to_value(&FinishReport::of(s.clone(), "fin"));
             assert_eq!(typed, report_by_key(&s, "fin"));
             assert_eq!(

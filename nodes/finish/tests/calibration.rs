@@ -135,3 +135,104 @@ fn the_recorded_wear_table_calibrates_a_demo_like_patch_to_the_papers_sa() {
     };
     assert!(reach(&h) > reach(&z), "{} vs {}", reach(&h), reach(&z));
 }
+
+/// The prediction on a demo-like patch with the DEM's recorded table (impacts) and the
+/// sliding law, fitted once on Sa: a different macro run (sliding work, forces of the
+/// enduring contacts) gives another prediction at the same Sa, and both differ from the
+/// plateau baseline; the series is monotone in time.
+#[test]
+fn the_prediction_follows_the_macro_statistics_and_not_only_the_calibration() {
+    use surfstream_finish::laws::{
+        advance, fit_scale, plateau_cut, plateau_level_for_sa, series, series_times_s, ImpactLaw,
+        SlidingLaw, WearLaw,
+    };
+    let text = std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/demo_wear_table.json"),
+    )
+    .unwrap();
+    let table: WearTable = serde_json::from_str(&text).unwrap();
+    let media = Media::default();
+    let part = Workpiece::default();
+    let action = BarrelMachine::default()
+        .action(&media, DEFAULT_IMPACT_ANGLE_DEG)
+        .unwrap();
+    let press = media.load_n(action.pressure_pa) + media.mass_kg() * action.acceleration_m_s2;
+    let dist = ApproachDistribution::of(&media, &part, &action, press);
+    let (n, guard, pitch) = (160usize, 30usize, 0.8148);
+    let side = n + 2 * guard;
+    let z = demo_like(side, side, pitch, 1.316);
+    let crop = |f: &[f64]| -> Vec<f64> {
+        (guard..guard + n)
+            .flat_map(|r| f[r * side + guard..r * side + guard + n].to_vec())
+            .collect()
+    };
+    let at = |rows: usize, cols: usize| Sampling::square(Shape::new(rows, cols), pitch).unwrap();
+    let params = |f: &[f64]| surface_params(&crop(f), at(n, n)).unwrap().1;
+    let target = params(&z).sa * 0.565 / 1.272;
+    let g = FieldGrid {
+        sampling: at(side, side),
+        radius_um: media.radius_m() * 1e6,
+    };
+    let impacts_per_s = impact_rate_per_m2_s(&media, &action) * (n as f64 * pitch).powi(2) * 1e-12;
+    // Two macro runs: (sliding work J/(m^2 s), enduring normal forces N).
+    let laws_of = |work: f64, forces: &[f64]| {
+        vec![
+            WearLaw::Impacts(ImpactLaw {
+                dist,
+                table: table.clone(),
+                impacts_per_s,
+            }),
+            WearLaw::Sliding(SlidingLaw::new(5e-14, work, forces, &media, &part)),
+        ]
+    };
+    let stop = std::sync::atomic::AtomicBool::new(false);
+    let predict = |laws: &[WearLaw]| {
+        let (s, ok, _) =
+            fit_scale(&z, g, laws, 300.0, 1e8, target, &stop, |f| Ok(params(f).sa)).unwrap();
+        assert!(ok, "target not reached");
+        let (mut h, mut w) = (z.clone(), vec![0.0; z.len()]);
+        advance(&mut h, &mut w, g, laws, 300.0, s);
+        (s, params(&h))
+    };
+    let a = laws_of(1.9e3, &[0.036]);
+    let (s_a, p_a) = predict(&a);
+    let (s_b, p_b) = predict(&laws_of(5.0e3, &[0.005, 0.017, 0.05]));
+    eprintln!(
+        "scale {s_a:.3e} vs {s_b:.3e}; Sq {:.4} vs {:.4}, Sz {:.4} vs {:.4}, Spk {:.4} vs {:.4}",
+        p_a.sq, p_b.sq, p_a.sz, p_b.sz, p_a.spk, p_b.spk
+    );
+    assert!((p_a.sa / target - 1.0).abs() < 1e-3 && (p_b.sa / target - 1.0).abs() < 1e-3);
+    assert!((s_a / s_b - 1.0).abs() > 0.05, "{s_a} {s_b}");
+    assert!(
+        (p_a.sq - p_b.sq).abs() > 1e-4 || (p_a.sz - p_b.sz).abs() > 1e-3,
+        "the same surface from two macro runs"
+    );
+    // The plateau baseline at the same Sa: another surface.
+    let level = plateau_level_for_sa(&z, target, |f| Ok(params(f).sa))
+        .unwrap()
+        .unwrap();
+    let p_plateau = params(&plateau_cut(&z, level).0);
+    assert!((p_plateau.sa / target - 1.0).abs() < 1e-6);
+    assert!(
+        (p_plateau.sz - p_a.sz).abs() > 0.1,
+        "{} vs {}",
+        p_plateau.sz,
+        p_a.sz
+    );
+    // The series falls with time and meets the fit at 300 s.
+    let times = series_times_s(600.0, None).unwrap();
+    let mut sa = vec![];
+    series(&z, g, &a, s_a, &times, |_, w| {
+        sa.push(params(&w.heights_um).sa);
+        Ok(())
+    })
+    .unwrap();
+    assert!(sa.windows(2).all(|p| p[1] < p[0]), "{sa:?}");
+    let at_300 = times.iter().position(|t| *t == 300.0).unwrap();
+    // The series stops at every time (other step boundaries than the fit): close, not equal.
+    assert!(
+        (sa[at_300] / target - 1.0).abs() < 1e-2,
+        "{} vs {target}",
+        sa[at_300]
+    );
+}
