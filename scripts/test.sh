@@ -21,8 +21,8 @@ if [ ${#missing[@]} -gt 0 ]; then
 fi
 
 VENV=.test-venv
-if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import mcap, trimesh, numpy, pywt, surfalize, h5py, scipy, zarr' 2>/dev/null; then
-    echo "test.sh: creating $VENV (mcap, trimesh, numpy, PyWavelets, surfalize, h5py, scipy, zarr)"
+if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import mcap, trimesh, numpy, pywt, surfalize, h5py, scipy, zarr, websockets' 2>/dev/null; then
+    echo "test.sh: creating $VENV (mcap, trimesh, numpy, PyWavelets, surfalize, h5py, scipy, zarr, websockets)"
     python3 -m venv "$VENV"
     "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check --only-binary=:all: \
         -r scripts/test-requirements.txt

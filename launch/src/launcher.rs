@@ -62,6 +62,7 @@ fn prepare(graph: &mut GraphFile, staged: &outdir::StagedOut) -> Result<Vec<Node
     let budget = contexts.first().and_then(|c| c.memory.budget_bytes);
     surfstream_runtime::memory::return_freed_buffers(budget);
     crate::progress::attach_observer(&mut contexts);
+    crate::live::attach(&mut contexts);
     write_resolved(&staged.staging, &contexts)?;
     Ok(contexts)
 }
@@ -187,7 +188,9 @@ pub fn run_in_process(
     let progress = crate::progress::Progress::start(&contexts);
     let mut threads = Vec::new();
     for c in &contexts {
-        let built = if crate::progress::is_observer(&c.node_kind) {
+        let built = if crate::live::is_observer(&c.node_kind) {
+            crate::live::observer(c)
+        } else if crate::progress::is_observer(&c.node_kind) {
             Ok(progress.observer())
         } else {
             nodes::build(c)
@@ -356,7 +359,12 @@ pub fn launch(
         let mut spawn_error = None;
         let progress = crate::progress::Progress::start(&contexts);
         let mut observer = None;
+        let mut live_observer = None;
         for (c, bin) in contexts.iter().zip(&binaries) {
+            if crate::live::is_observer(&c.node_kind) {
+                live_observer = Some(crate::live::spawn_ipc_observer(c.clone(), cfg.clone())?);
+                continue;
+            }
             if crate::progress::is_observer(&c.node_kind) {
                 // A launcher thread, not a process (see progress.rs).
                 observer = Some(crate::progress::spawn_ipc_observer(
@@ -416,6 +424,9 @@ pub fn launch(
             ipc::STOP_REQUESTED.store(true, std::sync::atomic::Ordering::Relaxed);
         }
         if let Some(o) = observer {
+            let _ = o.join();
+        }
+        if let Some(o) = live_observer {
             let _ = o.join();
         }
         progress.finish();

@@ -4,6 +4,7 @@
 mod compare_fusion;
 mod deviation;
 mod launcher;
+mod live;
 mod nodes;
 mod outdir;
 mod progress;
@@ -64,6 +65,8 @@ struct GraphArgs {
     tolerance: Option<String>,
     #[command(flatten)]
     verdict: VerdictArgs,
+    #[command(flatten)]
+    view: live::ViewArgs,
 }
 
 /// How the end of a graph run is judged and told.
@@ -131,6 +134,8 @@ enum Command {
         force: bool,
         #[command(flatten)]
         verdict: VerdictArgs,
+        #[command(flatten)]
+        view: live::ViewArgs,
     },
     /// Show a height-map file's metadata, shape, pitch and invalid count.
     Inspect(verbs::metrology::InspectArgs),
@@ -177,7 +182,10 @@ fn main() -> ExitCode {
             return ExitCode::FAILURE;
         }
     }
-    match dispatch(cli) {
+    let outcome = dispatch(cli);
+    // The live view (if any) shows the verdict, and stays as long as --view-linger-s says.
+    live::end(outcome.as_ref().map(|_| ()));
+    match outcome {
         Ok(code) => code,
         Err(e) => {
             eprintln!("surfstream: error: {e:#}");
@@ -195,6 +203,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             let out = graph.graph.out_dir.clone();
             note_replaced_run(&a, &out);
             let claim = graph_claim(&graph, &a.graph, a.force);
+            live::start(&a.view, &out)?;
             launcher::launch(graph, &a.graph, deviation, &claim)?;
             // The nodes' stderr went to logs/: their warnings reach the user here too.
             relay_node_warnings(&out);
@@ -206,6 +215,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             let out = graph.graph.out_dir.clone();
             note_replaced_run(&a, &out);
             let claim = graph_claim(&graph, &a.graph, a.force);
+            live::start(&a.view, &out)?;
             launcher::run_in_process(graph, &a.graph, deviation, &claim)?;
             tell_verdict(&out, a.verdict, started)
         }
@@ -222,6 +232,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             pitch_um,
             force,
             verdict,
+            view,
         } => {
             let started = std::time::Instant::now();
             refuse_single_file_scan(&scan)?;
@@ -262,6 +273,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                 apply_tolerance(&mut graph, t, "stitch pipeline")?;
             }
             claim.inputs.extend(outdir::inputs_of(&graph, &out));
+            live::start(&view, &out)?;
             launcher::run_in_process(graph, &scan, deviation, &claim)?;
             tell_verdict(&out, verdict, started)
         }

@@ -60,9 +60,10 @@ impl Layout {
     }
 }
 
-/// True for the observer's context or report: not part of the user's graph.
+/// True for an observer's context or report (this printer's or the live view's,
+/// [`crate::live`]): not part of the user's graph.
 pub fn is_observer(kind: &str) -> bool {
-    kind == OBSERVER_KIND
+    kind == OBSERVER_KIND || crate::live::is_observer(kind)
 }
 
 /// Removes the observer's report (run.json describes the user's graph only).

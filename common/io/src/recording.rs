@@ -1025,8 +1025,9 @@ fn finite_or_zero(v: f64) -> f64 {
     }
 }
 
-/// The JSON message of a frame (see [`FRAME_JSON_SCHEMA`]) into `out`.
-fn encode_frame_json(h: &FrameHeader, heights: &[f32], out: &mut Vec<u8>) -> Result<()> {
+/// The JSON message of a frame (see [`FRAME_JSON_SCHEMA`]) into `out` (also the live
+/// Foxglove bridge's `foxglove.Grid` messages).
+pub fn encode_frame_json(h: &FrameHeader, heights: &[f32], out: &mut Vec<u8>) -> Result<()> {
     use base64::Engine as _;
     use serde_json::json;
     let message = json!({

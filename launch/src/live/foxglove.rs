@@ -1,0 +1,506 @@
+//! The live stream over the Foxglove WebSocket protocol (`foxglove.websocket.v1`,
+//! https://github.com/foxglove/ws-protocol/blob/main/docs/spec.md): the subscribe / message
+//! flow a viewer needs, on tungstenite (the `foxglove` crate's server would add ~130 crates,
+//! tokio and prost among them, for the same four channels; this one adds tungstenite's ~30).
+//!
+//! Channels, all JSON-encoded with JSON Schema schemas, like the recorder's MCAP:
+//! - `/tiles` (`foxglove.Grid`): the newest tile at full resolution, the recorder's exact
+//!   message ([`surfstream_io::recording::encode_frame_json`]);
+//! - `/panorama/patches` (`foxglove.Grid`): the newest preview patch of the panorama;
+//! - `/panorama/preview` (`foxglove.CompressedImage`): the whole preview as a PNG;
+//! - `/tiles/boxes` (`foxglove.SceneUpdate`): every tile's box at its registered position,
+//!   coloured by placement, and its planned position as a flat outline.
+//!
+//! Latest wins per client: a client that reads slowly gets the newest message of each channel
+//! when it is ready (the skipped ones counted in the state's drops); nothing waits on it.
+
+use std::net::{TcpListener, TcpStream};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, Result};
+use base64::Engine as _;
+use serde_json::{json, Value};
+use surfstream_core::frame::HeightMap;
+use surfstream_io::recording::{encode_frame_json, FRAME_JSON_SCHEMA, SCAN_FRAME_ID};
+use tungstenite::handshake::server::{ErrorResponse, Request, Response};
+use tungstenite::{Message, WebSocket};
+
+use super::state::{LiveState, Placement};
+use super::Shared;
+
+/// The protocol's subprotocol name.
+pub const SUBPROTOCOL: &str = "foxglove.websocket.v1";
+/// Clients served at once.
+const MAX_CLIENTS: usize = 8;
+/// How long a client's read waits before the sender looks at the state again.
+const POLL: Duration = Duration::from_millis(50);
+const WRITE_TIMEOUT: Duration = Duration::from_secs(10);
+/// The whole-preview image at most this often per client.
+const IMAGE_INTERVAL: Duration = Duration::from_millis(500);
+
+/// The advertised channels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Channel {
+    Tiles = 1,
+    Patches = 2,
+    Preview = 3,
+    Boxes = 4,
+}
+
+const CHANNELS: [Channel; 4] = [
+    Channel::Tiles,
+    Channel::Patches,
+    Channel::Preview,
+    Channel::Boxes,
+];
+
+impl Channel {
+    fn from_id(id: u64) -> Option<Channel> {
+        CHANNELS.into_iter().find(|c| *c as u64 == id)
+    }
+    fn topic(self) -> &'static str {
+        match self {
+            Channel::Tiles => "/tiles",
+            Channel::Patches => "/panorama/patches",
+            Channel::Preview => "/panorama/preview",
+            Channel::Boxes => "/tiles/boxes",
+        }
+    }
+    fn schema_name(self) -> &'static str {
+        match self {
+            Channel::Tiles | Channel::Patches => "foxglove.Grid",
+            Channel::Preview => "foxglove.CompressedImage",
+            Channel::Boxes => "foxglove.SceneUpdate",
+        }
+    }
+    fn schema(self) -> &'static str {
+        match self {
+            Channel::Tiles | Channel::Patches => FRAME_JSON_SCHEMA,
+            Channel::Preview => COMPRESSED_IMAGE_SCHEMA,
+            Channel::Boxes => SCENE_UPDATE_SCHEMA,
+        }
+    }
+}
+
+/// JSON Schema of `foxglove.CompressedImage` (the properties this bridge sends).
+const COMPRESSED_IMAGE_SCHEMA: &str = r#"{"title": "foxglove.CompressedImage", "type": "object",
+ "description": "The panorama preview: heights as viridis over its robust range (see frame_id)",
+ "properties": {
+  "timestamp": {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}},
+  "frame_id": {"type": "string"},
+  "data": {"type": "string", "contentEncoding": "base64"},
+  "format": {"type": "string"}}}"#;
+
+/// JSON Schema of `foxglove.SceneUpdate` (the properties this bridge sends).
+const SCENE_UPDATE_SCHEMA: &str = r#"{"title": "foxglove.SceneUpdate", "type": "object",
+ "description": "Tile boxes at their registered positions (metres, scan frame), coloured by placement: green registration, amber weak link, red stage fallback; grey outlines at the stage's planned positions",
+ "properties": {
+  "deletions": {"type": "array", "items": {"type": "object"}},
+  "entities": {"type": "array", "items": {"title": "foxglove.SceneEntity", "type": "object",
+   "properties": {
+    "timestamp": {"type": "object"}, "frame_id": {"type": "string"}, "id": {"type": "string"},
+    "lifetime": {"type": "object"}, "frame_locked": {"type": "boolean"},
+    "metadata": {"type": "array"}, "cubes": {"type": "array"}, "lines": {"type": "array"}}}}}}"#;
+
+/// Serves Foxglove clients on a thread of its own (one thread per client).
+pub fn spawn(listener: TcpListener, shared: Arc<Shared>) -> Result<()> {
+    let clients = Arc::new(std::sync::atomic::AtomicUsize::new(0));
+    std::thread::Builder::new()
+        .name("live-foxglove".into())
+        .spawn(move || {
+            use std::sync::atomic::Ordering::SeqCst;
+            for stream in listener.incoming() {
+                let Ok(stream) = stream else { continue };
+                if clients.load(SeqCst) >= MAX_CLIENTS {
+                    continue; // dropped: the client sees the connection close
+                }
+                clients.fetch_add(1, SeqCst);
+                let (mine, count) = (shared.clone(), clients.clone());
+                let spawned = std::thread::Builder::new()
+                    .name("live-foxglove-client".into())
+                    .spawn(move || {
+                        let _ = serve(stream, &mine);
+                        count.fetch_sub(1, SeqCst);
+                    });
+                if spawned.is_err() {
+                    clients.fetch_sub(1, SeqCst);
+                }
+            }
+        })
+        .map(|_| ())
+        .map_err(|e| anyhow!("cannot start the Foxglove server thread: {e}"))
+}
+
+/// Accepts the handshake only with the protocol's subprotocol, and selects it.
+#[allow(clippy::result_large_err)] // tungstenite's callback signature
+fn select_subprotocol(
+    req: &Request,
+    mut resp: Response,
+) -> std::result::Result<Response, ErrorResponse> {
+    let offered = req
+        .headers()
+        .get_all("sec-websocket-protocol")
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(','))
+        .any(|p| p.trim() == SUBPROTOCOL);
+    if !offered {
+        let mut e = ErrorResponse::new(Some(format!(
+            "this server speaks the WebSocket subprotocol {SUBPROTOCOL} only"
+        )));
+        *e.status_mut() = tungstenite::http::StatusCode::BAD_REQUEST;
+        return Err(e);
+    }
+    if let Ok(v) = SUBPROTOCOL.parse() {
+        resp.headers_mut().insert("sec-websocket-protocol", v);
+    }
+    Ok(resp)
+}
+
+/// What a client was last sent, per channel (the state's version of it).
+#[derive(Default)]
+struct Sent {
+    /// subscription id by channel
+    subscriptions: Vec<(u32, Channel)>,
+    tile: u64,
+    patch: u64,
+    boxes: u64,
+    canvas: u64,
+    image_at: Option<Instant>,
+}
+
+fn serve(stream: TcpStream, shared: &Shared) -> Result<()> {
+    stream.set_write_timeout(Some(WRITE_TIMEOUT))?;
+    stream.set_read_timeout(Some(Duration::from_secs(5)))?;
+    let mut ws = tungstenite::accept_hdr(stream, select_subprotocol)
+        .map_err(|e| anyhow!("Foxglove handshake: {e}"))?;
+    ws.get_ref().set_read_timeout(Some(POLL))?;
+    shared.update(|s| s.viewers.foxglove_clients += 1);
+    let served = stream_to(&mut ws, shared);
+    shared.update(|s| s.viewers.foxglove_clients = s.viewers.foxglove_clients.saturating_sub(1));
+    served
+}
+
+fn stream_to(ws: &mut WebSocket<TcpStream>, shared: &Shared) -> Result<()> {
+    send_text(ws, &server_info())?;
+    send_text(ws, &advertise())?;
+    let mut sent = Sent::default();
+    loop {
+        match ws.read() {
+            Ok(Message::Text(t)) => on_client_message(t.as_str(), &mut sent, ws)?,
+            Ok(Message::Close(_)) => return Ok(()),
+            Ok(_) => {}
+            Err(tungstenite::Error::Io(e))
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                ) => {}
+            Err(e) => return Err(anyhow!("Foxglove client: {e}")),
+        }
+        send_updates(ws, shared, &mut sent)?;
+    }
+}
+
+fn send_text(ws: &mut WebSocket<TcpStream>, v: &Value) -> Result<()> {
+    ws.send(Message::Text(v.to_string().into()))
+        .map_err(|e| anyhow!("Foxglove client: {e}"))
+}
+
+fn server_info() -> Value {
+    json!({
+        "op": "serverInfo",
+        "name": format!("surfstream {}", env!("CARGO_PKG_VERSION")),
+        "capabilities": [],
+        "supportedEncodings": [],
+        "metadata": {},
+        "sessionId": format!("{}", surfstream_core::frame::monotonic_ns()),
+    })
+}
+
+fn advertise() -> Value {
+    let channels: Vec<Value> = CHANNELS
+        .iter()
+        .map(|c| {
+            json!({
+                "id": *c as u64,
+                "topic": c.topic(),
+                "encoding": "json",
+                "schemaName": c.schema_name(),
+                "schema": c.schema(),
+                "schemaEncoding": "jsonschema",
+            })
+        })
+        .collect();
+    json!({"op": "advertise", "channels": channels})
+}
+
+/// `subscribe` / `unsubscribe`; anything else is answered with a status warning.
+fn on_client_message(text: &str, sent: &mut Sent, ws: &mut WebSocket<TcpStream>) -> Result<()> {
+    let v: Value = serde_json::from_str(text).unwrap_or(Value::Null);
+    match v.get("op").and_then(Value::as_str) {
+        Some("subscribe") => {
+            for s in v["subscriptions"].as_array().into_iter().flatten() {
+                let (Some(id), Some(ch)) = (
+                    s["id"].as_u64().and_then(|i| u32::try_from(i).ok()),
+                    s["channelId"].as_u64().and_then(Channel::from_id),
+                ) else {
+                    send_text(
+                        ws,
+                        &status(
+                            1,
+                            "subscribe: expected {id, channelId} of an advertised channel",
+                        ),
+                    )?;
+                    continue;
+                };
+                if sent.subscriptions.iter().any(|(i, _)| *i == id) {
+                    send_text(ws, &status(1, &format!("subscription id {id} is in use")))?;
+                    continue;
+                }
+                sent.subscriptions.push((id, ch));
+                // A new subscriber gets the newest message at once.
+                match ch {
+                    Channel::Tiles => sent.tile = 0,
+                    Channel::Patches => sent.patch = 0,
+                    Channel::Preview => sent.canvas = 0,
+                    Channel::Boxes => sent.boxes = 0,
+                }
+            }
+        }
+        Some("unsubscribe") => {
+            let ids: Vec<u64> = v["subscriptionIds"]
+                .as_array()
+                .into_iter()
+                .flatten()
+                .filter_map(Value::as_u64)
+                .collect();
+            sent.subscriptions
+                .retain(|(i, _)| !ids.contains(&u64::from(*i)));
+        }
+        _ => send_text(
+            ws,
+            &status(
+                1,
+                "unsupported message: this server is read-only (subscribe, unsubscribe)",
+            ),
+        )?,
+    }
+    Ok(())
+}
+
+fn status(level: u8, message: &str) -> Value {
+    json!({"op": "status", "level": level, "message": message})
+}
+
+/// Sends each subscribed channel's newest message when it changed since the last one sent.
+fn send_updates(ws: &mut WebSocket<TcpStream>, shared: &Shared, sent: &mut Sent) -> Result<()> {
+    if sent.subscriptions.is_empty() {
+        return Ok(());
+    }
+    let subscribed = |c: Channel| {
+        sent.subscriptions
+            .iter()
+            .find(|(_, s)| *s == c)
+            .map(|s| s.0)
+    };
+    let mut out: Vec<(u32, Vec<u8>)> = Vec::new();
+    let mut skipped = 0u64;
+    {
+        let s = shared.lock();
+        let mut newest =
+            |sub: Option<u32>, version: u64, last: &mut u64, map: Option<&Arc<HeightMap>>| {
+                if let (Some(id), Some(m)) = (sub, map) {
+                    if version != *last {
+                        if *last > 0 {
+                            skipped += version.saturating_sub(*last + 1);
+                        }
+                        *last = version;
+                        let mut buf = Vec::new();
+                        if encode_frame_json(&m.header, &m.heights, &mut buf).is_ok() {
+                            out.push((id, buf));
+                        }
+                    }
+                }
+            };
+        newest(
+            subscribed(Channel::Tiles),
+            s.tile_version,
+            &mut sent.tile,
+            s.newest_tile.as_ref(),
+        );
+        newest(
+            subscribed(Channel::Patches),
+            s.canvas_version,
+            &mut sent.patch,
+            s.newest_patch.as_ref(),
+        );
+        if let Some(id) = subscribed(Channel::Boxes) {
+            if s.boxes_version != sent.boxes {
+                sent.boxes = s.boxes_version;
+                out.push((id, scene_update(&s).to_string().into_bytes()));
+            }
+        }
+        let image_due = sent.image_at.is_none_or(|t| t.elapsed() >= IMAGE_INTERVAL);
+        if let (Some(id), true) = (subscribed(Channel::Preview), image_due) {
+            if s.canvas_version != sent.canvas && !s.canvas.is_empty() {
+                sent.canvas = s.canvas_version;
+                sent.image_at = Some(Instant::now());
+                let c = &s.canvas;
+                let (h, rows, cols) = (c.heights.clone(), c.rows, c.cols);
+                drop(s);
+                if let Some(m) = preview_image(&h, rows, cols) {
+                    out.push((id, m.to_string().into_bytes()));
+                }
+            }
+        }
+    }
+    if skipped > 0 {
+        shared.lock().drops.foxglove_messages_skipped += skipped;
+    }
+    for (id, payload) in out {
+        ws.send(Message::Binary(message_data(id, &payload).into()))
+            .map_err(|e| anyhow!("Foxglove client: {e}"))?;
+    }
+    Ok(())
+}
+
+/// The protocol's binary Message Data: opcode 1, subscription id, receive time (ns), payload.
+pub fn message_data(subscription: u32, payload: &[u8]) -> Vec<u8> {
+    let mut m = Vec::with_capacity(13 + payload.len());
+    m.push(0x01);
+    m.extend_from_slice(&subscription.to_le_bytes());
+    m.extend_from_slice(&surfstream_core::frame::monotonic_ns().to_le_bytes());
+    m.extend_from_slice(payload);
+    m
+}
+
+fn stamp() -> Value {
+    let ns = surfstream_core::frame::monotonic_ns();
+    json!({"sec": ns / 1_000_000_000, "nsec": ns % 1_000_000_000})
+}
+
+fn preview_image(heights: &[f32], rows: usize, cols: usize) -> Option<Value> {
+    let range = surfstream_io::preview::robust_range_um(heights)?;
+    let m = surfstream_io::preview::encode_map_png(heights, rows, cols, 2048, range).ok()?;
+    Some(json!({
+        "timestamp": stamp(),
+        "frame_id": SCAN_FRAME_ID,
+        "data": base64::engine::general_purpose::STANDARD.encode(&m.png),
+        "format": "png",
+    }))
+}
+
+/// Every tile's box (1 um thick, at its registered position) and its planned outline, in
+/// metres in the scan frame.
+pub fn scene_update(s: &LiveState) -> Value {
+    let quaternion = json!({"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0});
+    let mut entities = Vec::new();
+    for t in s.tiles.values() {
+        let (Some(w), Some(h)) = (t.width_um, t.height_um) else {
+            continue;
+        };
+        let mut cubes = Vec::new();
+        let mut lines = Vec::new();
+        if let (Some(x), Some(y)) = (t.x_um, t.y_um) {
+            let (r, g, b) = match t.placement {
+                Some(Placement::StageFallback) => (0.86, 0.15, 0.15),
+                Some(Placement::WeakLink) => (0.95, 0.65, 0.1),
+                _ => (0.2, 0.7, 0.3),
+            };
+            cubes.push(json!({
+                "pose": {"position": {"x": (x + w / 2.0) * 1e-6, "y": (y + h / 2.0) * 1e-6, "z": 0.0},
+                         "orientation": quaternion},
+                "size": {"x": w * 1e-6, "y": h * 1e-6, "z": 1e-6},
+                "color": {"r": r, "g": g, "b": b, "a": 0.35},
+            }));
+        }
+        if let (Some(x), Some(y)) = (t.stage_x_um, t.stage_y_um) {
+            let p =
+                |dx: f64, dy: f64| json!({"x": (x + dx) * 1e-6, "y": (y + dy) * 1e-6, "z": 0.0});
+            lines.push(json!({
+                "type": 1, // LINE_LOOP
+                "pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": quaternion},
+                "thickness": 2.0,
+                "scale_invariant": true,
+                "points": [p(0.0, 0.0), p(w, 0.0), p(w, h), p(0.0, h)],
+                "color": {"r": 0.5, "g": 0.5, "b": 0.5, "a": 1.0},
+                "colors": [],
+                "indices": [],
+            }));
+        }
+        entities.push(json!({
+            "timestamp": stamp(),
+            "frame_id": SCAN_FRAME_ID,
+            "id": format!("tile-{}", t.index),
+            "lifetime": {"sec": 0, "nsec": 0},
+            "frame_locked": false,
+            "metadata": [
+                {"key": "placement", "value": format!("{:?}", t.placement)},
+                {"key": "ncc", "value": t.ncc.map_or("-".into(), |n| format!("{n:.3}"))},
+            ],
+            "arrows": [], "cubes": cubes, "spheres": [], "cylinders": [], "lines": lines,
+            "triangles": [], "texts": [], "models": [],
+        }));
+    }
+    json!({"deletions": [], "entities": entities})
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn message_data_is_opcode_subscription_time_payload() {
+        let m = message_data(7, b"{}");
+        assert_eq!(m[0], 1);
+        assert_eq!(u32::from_le_bytes(m[1..5].try_into().unwrap()), 7);
+        assert!(u64::from_le_bytes(m[5..13].try_into().unwrap()) > 0);
+        assert_eq!(&m[13..], b"{}");
+    }
+
+    #[test]
+    fn the_advertisement_names_every_channel_with_its_schema() {
+        let a = advertise();
+        let ch = a["channels"].as_array().unwrap();
+        assert_eq!(ch.len(), 4);
+        assert_eq!(ch[0]["topic"], "/tiles");
+        assert_eq!(ch[0]["schemaName"], "foxglove.Grid");
+        for c in ch {
+            let schema: Value = serde_json::from_str(c["schema"].as_str().unwrap()).unwrap();
+            assert_eq!(schema["title"], c["schemaName"]);
+        }
+    }
+
+    #[test]
+    fn tile_boxes_sit_at_their_registered_position_in_metres() {
+        let mut s = LiveState::new("g", vec![(0, 0)], false);
+        let mut tile = HeightMap {
+            header: surfstream_core::frame::FrameHeader {
+                width: 10,
+                height: 20,
+                pitch_x_um: 1.0,
+                pitch_y_um: 1.0,
+                origin_x_um: 100.0,
+                ..Default::default()
+            },
+            heights: vec![0.0; 200],
+        };
+        tile.header.kind = surfstream_core::frame::FrameKind::Tile as u32;
+        s.on_tile(tile);
+        let r = surfstream_core::frame::TileRegistration {
+            x_um: 102.0,
+            placed_by: surfstream_core::frame::placed_by::STAGE,
+            ..Default::default()
+        };
+        s.on_registration(&r, Instant::now());
+        let u = scene_update(&s);
+        let e = &u["entities"][0];
+        assert_eq!(e["id"], "tile-0");
+        let cube = &e["cubes"][0];
+        assert!((cube["pose"]["position"]["x"].as_f64().unwrap() - 107e-6).abs() < 1e-12);
+        assert!((cube["size"]["y"].as_f64().unwrap() - 20e-6).abs() < 1e-12);
+        assert_eq!(cube["color"]["r"], 0.86);
+        assert!((e["lines"][0]["points"][1]["x"].as_f64().unwrap() - 110e-6).abs() < 1e-12);
+    }
+}

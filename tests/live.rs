@@ -1,0 +1,353 @@
+//! The live view (issue 34), end to end: the demo graph at the instrument's pace (`stage.pacing`
+//! real time, 3 x 3 fields; 256 px tiles keep it cheap) with `--view`, watched by a headless
+//! Chromium while it scans, and with `--foxglove`, watched by a WebSocket client speaking the
+//! Foxglove protocol (the Python `websockets` package of the test venv).
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::TcpStream;
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use surfstream_e2e::{python, surfstream};
+
+const CHROMIUM: &str = "/usr/bin/chromium";
+
+/// A run started in the background, its stderr collected (and echoed to the test log).
+struct Run {
+    child: Child,
+    stderr: Arc<Mutex<String>>,
+}
+
+impl Run {
+    fn start(out: &Path, rows: u32, field_time_s: f64, extra: &[&str]) -> Run {
+        let mut cmd = surfstream();
+        cmd.args(["launch", "launch/graphs/demo.toml", "-o"])
+            .arg(out)
+            .args(["--set", &format!("stage.rows={rows}")])
+            .args(["--set", "stage.cols=3", "--set", "stage.tile_px=256"])
+            .args(["--set", "stage.pacing=\"realtime\""])
+            .args(["--set", &format!("stage.field_time_s={field_time_s}")])
+            .args(extra)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped());
+        let mut child = cmd.spawn().expect("start surfstream launch");
+        let stderr = Arc::new(Mutex::new(String::new()));
+        let pipe = child.stderr.take().expect("stderr");
+        let sink = stderr.clone();
+        std::thread::spawn(move || {
+            for line in BufReader::new(pipe).lines().map_while(Result::ok) {
+                eprintln!("| {line}");
+                let mut s = sink.lock().unwrap();
+                s.push_str(&line);
+                s.push('\n');
+            }
+        });
+        Run { child, stderr }
+    }
+
+    /// The URL printed after `prefix` on stderr (waits up to 60 s).
+    fn url(&mut self, prefix: &str) -> String {
+        let deadline = Instant::now() + Duration::from_secs(60);
+        loop {
+            if let Some(url) = self
+                .stderr
+                .lock()
+                .unwrap()
+                .lines()
+                .find_map(|l| l.split(prefix).nth(1))
+                .and_then(|rest| rest.split_whitespace().next())
+            {
+                return url.to_string();
+            }
+            assert!(
+                self.child.try_wait().unwrap().is_none(),
+                "the run ended before printing '{prefix}':\n{}",
+                self.stderr.lock().unwrap()
+            );
+            assert!(Instant::now() < deadline, "no '{prefix}' line within 60 s");
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    /// Waits for the process; returns its stdout (the verdict).
+    fn wait(mut self) -> (std::process::ExitStatus, String) {
+        let mut stdout = String::new();
+        if let Some(mut s) = self.child.stdout.take() {
+            let _ = s.read_to_string(&mut stdout);
+        }
+        (self.child.wait().expect("wait"), stdout)
+    }
+}
+
+/// `METHOD path` on the live server: status and body (raw bytes sent as given).
+fn request(url: &str, raw: &str) -> (u16, Vec<u8>) {
+    let host = url
+        .trim_start_matches("http://")
+        .trim_end_matches('/')
+        .to_string();
+    let mut s = TcpStream::connect(&host).expect("connect to the live view");
+    s.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
+    s.write_all(raw.replace("{host}", &host).as_bytes())
+        .unwrap();
+    let mut reply = Vec::new();
+    let _ = s.read_to_end(&mut reply);
+    let head_end = reply
+        .windows(4)
+        .position(|w| w == b"\r\n\r\n")
+        .unwrap_or(reply.len());
+    let head = String::from_utf8_lossy(&reply[..head_end]).to_string();
+    let status = head
+        .split(' ')
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or_else(|| panic!("no status line in {head:?}"));
+    (status, reply[(head_end + 4).min(reply.len())..].to_vec())
+}
+
+fn get(url: &str, path: &str) -> (u16, Vec<u8>) {
+    request(
+        url,
+        &format!("GET {path} HTTP/1.1\r\nHost: {{host}}\r\nConnection: close\r\n\r\n"),
+    )
+}
+
+fn state(url: &str) -> serde_json::Value {
+    let (status, body) = get(url, "/state.json");
+    assert_eq!(status, 200);
+    serde_json::from_slice(&body).expect("state.json is JSON")
+}
+
+/// Headless Chromium: a screenshot of `url` and its DOM after load.
+fn chromium(url: &str, screenshot: &Path) -> String {
+    let profile = tempfile::tempdir().unwrap();
+    let out = Command::new(CHROMIUM)
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-quic",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--hide-scrollbars",
+            "--window-size=1400,1000",
+        ])
+        .arg(format!("--user-data-dir={}", profile.path().display()))
+        .arg(format!("--screenshot={}", screenshot.display()))
+        .arg("--dump-dom")
+        .arg(url)
+        .stderr(Stdio::null())
+        .output()
+        .expect("start chromium");
+    assert!(out.status.success(), "chromium failed: {:?}", out.status);
+    String::from_utf8_lossy(&out.stdout).to_string()
+}
+
+/// Elements of the DOM carrying `attr` (`data-tile="..."`).
+fn count_attr(dom: &str, attr: &str) -> usize {
+    dom.matches(&format!("{attr}=\"")).count()
+}
+
+/// The value of `attr` on the body element.
+fn body_attr(dom: &str, attr: &str) -> Option<String> {
+    let body = &dom[dom.find("<body")?..];
+    let body = &body[..body.find('>')?];
+    let at = body.find(&format!("{attr}=\""))? + attr.len() + 2;
+    Some(body[at..at + body[at..].find('"')?].to_string())
+}
+
+#[test]
+fn the_live_page_shows_the_tiles_registered_so_far_and_then_the_final_verdict() {
+    if !Path::new(CHROMIUM).exists() {
+        eprintln!("SKIPPED: {CHROMIUM} is not installed (CI installs the Debian package chromium)");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    // 2 s per field: Chromium on a loaded 2-core machine needs seconds to start.
+    let mut run = Run::start(&out, 3, 2.0, &["--view", "--view-linger-s", "60"]);
+    let url = run.url("live view at ");
+    assert!(url.starts_with("http://127.0.0.1:"), "{url}");
+
+    // Mid-scan: some but not all of the 9 tiles registered.
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let before = loop {
+        let s = state(&url);
+        assert_eq!(s["tiles_planned"], 9);
+        let n = s["tiles_registered"].as_u64().unwrap();
+        if (2..9).contains(&n) {
+            assert_eq!(s["verdict"], serde_json::Value::Null, "no verdict mid-scan");
+            break n;
+        }
+        assert!(n < 9, "the scan finished before the test saw it mid-way");
+        assert!(Instant::now() < deadline, "no tile registered within 120 s");
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let shot = dir.path().join("live.png");
+    let dom = chromium(&url, &shot);
+    let after = state(&url)["tiles_registered"].as_u64().unwrap();
+    let boxes = count_attr(&dom, "data-tile");
+    let served: usize = body_attr(&dom, "data-tiles-registered")
+        .expect("the page says how many tiles it drew")
+        .parse()
+        .unwrap();
+    eprintln!("tiles registered: {before} before the page, {boxes} boxes on it, {after} after");
+    assert_eq!(
+        boxes, served,
+        "one box per registered tile of the state the page was served with"
+    );
+    assert!(
+        before as usize <= boxes && boxes as u64 <= after,
+        "{before} <= {boxes} <= {after}"
+    );
+    assert!(boxes < 9, "the page was taken mid-scan");
+    // Every box is a placement class the legend names.
+    assert_eq!(
+        dom.matches("class=\"tile registration\"").count()
+            + dom.matches("class=\"tile weak_link\"").count()
+            + dom.matches("class=\"tile stage_fallback\"").count(),
+        boxes
+    );
+    let png = std::fs::read(&shot).expect("the screenshot");
+    assert!(png.starts_with(b"\x89PNG\r\n\x1a\n") && png.len() > 10_000);
+    if let Ok(keep) = std::env::var("SURFSTREAM_LIVE_SCREENSHOT") {
+        std::fs::copy(&shot, &keep).expect("copy the screenshot");
+    }
+
+    // Hostile or malformed requests get a 4xx; the run goes on.
+    let status = |raw: &str| request(&url, raw).0;
+    assert_eq!(status("GARBAGE\r\n\r\n"), 400);
+    assert_eq!(status("GET /../../etc/passwd HTTP/1.1\r\n\r\n"), 404);
+    assert_eq!(status("GET /logs/stage.stderr HTTP/1.1\r\n\r\n"), 404);
+    assert_eq!(
+        status("POST /stop HTTP/1.1\r\nContent-Length: 0\r\n\r\n"),
+        403
+    );
+    assert_eq!(status("DELETE /state.json HTTP/1.1\r\n\r\n"), 405);
+    assert_eq!(
+        status("GET /state.json HTTP/1.1\r\nHost: rebind.example:80\r\n\r\n"),
+        421
+    );
+    assert_eq!(
+        status(&format!("GET /{} HTTP/1.1\r\n\r\n", "a".repeat(20_000))),
+        431
+    );
+    assert_eq!(
+        get(&url, "/report.html").0,
+        404,
+        "no report before the run ended"
+    );
+
+    // After the run: the final verdict, the CLI's own, and the report.
+    let deadline = Instant::now() + Duration::from_secs(300);
+    let fin = loop {
+        let s = state(&url);
+        if !s["verdict"].is_null() {
+            break s;
+        }
+        assert!(Instant::now() < deadline, "no verdict within 300 s");
+        std::thread::sleep(Duration::from_millis(250));
+    };
+    assert_eq!(fin["tiles_registered"], 9);
+    assert!(fin["run_ended"].as_bool().unwrap());
+    let verdict = fin["verdict"].as_str().unwrap().to_string();
+    let dom = chromium(&url, &dir.path().join("final.png"));
+    assert_eq!(
+        body_attr(&dom, "data-verdict").as_deref(),
+        Some(verdict.as_str())
+    );
+    assert_eq!(count_attr(&dom, "data-tile"), 9);
+    let (status, report) = get(&url, "/report.html");
+    assert_eq!(status, 200);
+    assert_eq!(report, std::fs::read(out.join("report.html")).unwrap());
+    // Stop the linger (Ctrl-C ends it) and compare with what the CLI printed.
+    unsafe {
+        libc::kill(run.child.id() as libc::pid_t, libc::SIGINT);
+    }
+    let (exit, stdout) = run.wait();
+    assert!(exit.success(), "{exit:?}");
+    let failures = fin["failures"].as_array().unwrap();
+    assert_eq!(verdict == "PASS", failures.is_empty(), "{failures:?}");
+    let text = fin["verdict_text"].as_str().unwrap();
+    // The same lines as the CLI's verdict (whose first line adds the wall time).
+    let tail = |t: &str| t.lines().skip(1).map(str::to_string).collect::<Vec<_>>();
+    assert_eq!(tail(text), tail(stdout.trim_end()));
+}
+
+/// A Foxglove WebSocket client: subscribes to every channel and prints, as JSON, the first
+/// `/tiles` message it receives.
+const FOXGLOVE_CLIENT: &str = r#"
+import asyncio, json, struct, sys, base64
+import websockets
+
+async def main(url):
+    async with websockets.connect(url, subprotocols=["foxglove.websocket.v1"], max_size=None) as ws:
+        assert ws.subprotocol == "foxglove.websocket.v1", ws.subprotocol
+        info = json.loads(await ws.recv())
+        assert info["op"] == "serverInfo", info
+        adv = json.loads(await ws.recv())
+        assert adv["op"] == "advertise", adv
+        channels = {c["id"]: c for c in adv["channels"]}
+        await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+            {"id": 10 + i, "channelId": c} for i, c in enumerate(channels)]}))
+        by_sub = {10 + i: channels[c] for i, c in enumerate(channels)}
+        seen = set()
+        while True:
+            m = await ws.recv()
+            if isinstance(m, str):
+                continue
+            op, sub, t_ns = struct.unpack_from("<BIQ", m, 0)
+            assert op == 1, op
+            ch = by_sub[sub]
+            seen.add(ch["topic"])
+            if ch["topic"] == "/tiles":
+                grid = json.loads(m[13:])
+                cells = base64.b64decode(grid["data"])
+                print(json.dumps({
+                    "schemaName": ch["schemaName"], "encoding": ch["encoding"],
+                    "column_count": grid["column_count"], "row_stride": grid["row_stride"],
+                    "cell_bytes": len(cells), "kind": grid["surfstream"]["kind"],
+                    "tile_index": grid["surfstream"]["tile_index"],
+                    "height": grid["surfstream"]["height"], "fields": grid["fields"],
+                    "topics": sorted(seen)}))
+                return
+
+asyncio.run(asyncio.wait_for(main(sys.argv[1]), 120))
+"#;
+
+#[test]
+fn a_foxglove_client_receives_tile_grids_during_the_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut run = Run::start(&dir.path().join("out"), 2, 1.0, &["--foxglove"]);
+    let url = run.url("Foxglove live stream at ");
+    assert!(url.starts_with("ws://127.0.0.1:"), "{url}");
+    let client = Command::new(python())
+        .arg("-c")
+        .arg(FOXGLOVE_CLIENT)
+        .arg(&url)
+        .output()
+        .expect("start the Python WebSocket client");
+    let during = run.child.try_wait().unwrap().is_none();
+    assert!(
+        client.status.success(),
+        "the client failed:\n{}",
+        String::from_utf8_lossy(&client.stderr)
+    );
+    let got: serde_json::Value =
+        serde_json::from_slice(&client.stdout).expect("the client's JSON line");
+    eprintln!("first /tiles message: {got}");
+    assert!(during, "the tile arrived while the run was still going");
+    assert_eq!(got["schemaName"], "foxglove.Grid");
+    assert_eq!(got["encoding"], "json");
+    assert_eq!(got["kind"], 1, "a tile frame");
+    assert_eq!(got["column_count"], 256);
+    assert_eq!(got["height"], 256);
+    assert_eq!(got["row_stride"], 256 * 4);
+    assert_eq!(got["cell_bytes"], 256 * 256 * 4);
+    assert_eq!(got["fields"][0]["name"], "height_um");
+    let (exit, _) = run.wait();
+    assert!(exit.success(), "{exit:?}");
+}
