@@ -274,8 +274,10 @@ fn run_macro_only(a: &FinishArgs) -> Result<()> {
         },
     )?;
     let json = a.out.join("macro.json");
-    let text = serde_json::to_string_pretty(&serde_json::json!({ "setting": setting, "macro": m }))?;
-    std::fs::write(&json, text + "\n").map_err(|e| anyhow!("{}: cannot write: {e}", json.display()))?;
+    let text =
+        serde_json::to_string_pretty(&serde_json::json!({ "setting": setting, "macro": m }))?;
+    std::fs::write(&json, text + "\n")
+        .map_err(|e| anyhow!("{}: cannot write: {e}", json.display()))?;
     let c = &m.contacts;
     println!(
         "finish --macro-only: {} media, {:.3} s recorded{}; {} contacts on {:.1} mm^2 ({:.3} /mm^2/s), \
