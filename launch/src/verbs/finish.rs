@@ -103,7 +103,7 @@ pub struct FinishArgs {
     #[arg(long)]
     pub pitch_um: Option<f64>,
     #[command(flatten)]
-    pub machine: MachineArgs,
+    pub machine: Box<MachineArgs>,
 }
 
 /// The machine at the media scale (docs/finish.md, "The machine (macro scale)"): these build a
