@@ -35,10 +35,10 @@
 //!
 //! Softening: the media are soft (the paper's EDEM run: dt 1.5e-5 s at 20 % of the Rayleigh
 //! time, which for 3 mm media of 2500 kg/m^3 means E of about 3e7 Pa). Checked against four
-//! times the stiffness (tests/machine.rs), softened media keep the sliding speeds, the sliding
-//! work and impact energy per area and time and the loads of enduring contacts; not the count
-//! of contacts (stiffer media chatter into more, shorter ones), the impacts' approach speeds,
-//! their forces or durations: [`Softening`] says so in the record.
+//! times the stiffness (tests/machine.rs), softened media keep the sliding speeds and the
+//! sliding work and impact energy per area and time; not the count of contacts (stiffer media
+//! chatter into more, shorter ones), the impacts' approach speeds, their forces or durations,
+//! nor the enduring contacts' loads: [`Softening`] says so in the record.
 //!
 //! Other machine kinds would enter as other [`MachineKind`]s with their own wall motion and
 //! the same contact recording: a vibratory bowl as a torus-shaped mesh under `fix move/mesh
@@ -510,13 +510,13 @@ impl Softening {
                 "tangential_speed_m_s",
                 "sliding_work_j_per_mm2_s",
                 "impact_energy_j_per_mm2_s",
-                "enduring_normal_force_n",
             ]
             .map(String::from)
             .to_vec(),
             not_trusted: [
                 "rate_per_mm2_s (stiffer media chatter: more, shorter contacts)",
                 "impact_normal_speed_m_s",
+                "enduring_normal_force_n (which contacts endure depends on E)",
                 "normal_force_n of impacts and impact peak forces",
                 "duration_s",
             ]

@@ -116,7 +116,8 @@ fn the_macro_statistics_are_stable_across_seeds_and_softenings() {
     );
     // Four times stiffer: what the record trusts (Softening::trusted) stays; the count of
     // contacts does not (stiffer media chatter: more, shorter contacts), nor the impacts'
-    // median approach speed.
+    // median approach speed, nor the enduring contacts' load (which contacts count as
+    // enduring depends on the Hertz time, hence on E: 14 % and 31 % apart in two runs).
     rel(
         "softenings: tangential speed p50",
         a.tangential_speed_m_s.p50,
@@ -135,15 +136,11 @@ fn the_macro_statistics_are_stable_across_seeds_and_softenings() {
         c.impact_energy_j_per_mm2_s,
         0.10,
     );
-    rel(
-        "softenings: enduring force p50",
-        a.enduring_normal_force_n.p50,
-        c.enduring_normal_force_n.p50,
-        0.25,
-    );
+
     eprintln!(
-        "softenings, not trusted: rate {:.3} vs {:.3}, impact speed p50 {:.4} vs {:.4}, duration p50 {:.2e} vs {:.2e} s",
+        "softenings, not trusted: rate {:.3} vs {:.3}, impact speed p50 {:.4} vs {:.4}, enduring force p50 {:.4} vs {:.4} N, duration p50 {:.2e} vs {:.2e} s",
         a.rate_per_mm2_s, c.rate_per_mm2_s, a.impact_normal_speed_m_s.p50, c.impact_normal_speed_m_s.p50,
+        a.enduring_normal_force_n.p50, c.enduring_normal_force_n.p50,
         a.duration_s.p50, c.duration_s.p50
     );
 }
