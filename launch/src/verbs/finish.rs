@@ -5,6 +5,9 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, bail, Result};
 use clap::Args;
+use surfstream_finish::engine::EngineCommand;
+use surfstream_finish::machine::{run_machine, MachineKind, MachineSetting, PartSpec, SpeedFrame};
+use surfstream_finish::setting::PartMaterial;
 use surfstream_finish::{Calibration, FinishOptions, Model};
 
 #[derive(Args)]
@@ -133,6 +136,211 @@ pub struct FinishArgs {
     /// Sample spacing, um, for files without a lateral calibration (.npy).
     #[arg(long)]
     pub pitch_um: Option<f64>,
+    #[command(flatten)]
+    pub machine: Box<MachineArgs>,
+}
+
+/// The machine at the media scale (docs/finish.md, "The machine (macro scale)"): these build a
+/// `MachineSetting`; --revolution-rpm and --rotation-rpm above set its speeds too (revolution
+/// clockwise, rotation counter-clockwise in --rotation-frame, as the paper states them).
+#[derive(Args, Default)]
+pub struct MachineArgs {
+    /// The machine as a TOML file of MachineSetting's fields (the flags below override it).
+    #[arg(long, value_name = "FILE.toml")]
+    pub machine: Option<PathBuf>,
+    /// Machine kind: centrifugal-barrel (vibratory and drag: not implemented).
+    #[arg(long, value_name = "KIND")]
+    pub machine_kind: Option<String>,
+    /// Distance of the drum's axis from the turret's, mm (the paper: 135).
+    #[arg(long)]
+    pub turret_radius_mm: Option<f64>,
+    /// Inner radius of the drum, mm (default 30: an assumption).
+    #[arg(long)]
+    pub drum_radius_mm: Option<f64>,
+    /// Inner length of the drum along its axis, mm (default 60: an assumption).
+    #[arg(long)]
+    pub drum_height_mm: Option<f64>,
+    /// The frame of --rotation-rpm: turret (default: relative to the turret) or lab.
+    #[arg(long, value_name = "turret|lab")]
+    pub rotation_frame: Option<String>,
+    /// Bulk volume of the media over the drum's volume (the paper: 0.7).
+    #[arg(long)]
+    pub fill: Option<f64>,
+    /// Young's modulus of the media in the macro run, Pa (default 3e7: softened to the
+    /// paper's time step, 1.5e-5 s).
+    #[arg(long)]
+    pub macro_media_modulus_pa: Option<f64>,
+    /// Media Poisson ratio (0.25).
+    #[arg(long)]
+    pub media_poisson: Option<f64>,
+    /// Media coefficient of restitution (0.6).
+    #[arg(long)]
+    pub media_restitution: Option<f64>,
+    /// Media friction coefficient (0.3).
+    #[arg(long)]
+    pub media_friction: Option<f64>,
+    /// The part's material: aluminium (default, the paper's part) or steel.
+    #[arg(long, value_name = "aluminium|steel")]
+    pub part_material: Option<String>,
+    /// The part's Young's modulus, Pa (overrides the preset's).
+    #[arg(long)]
+    pub part_modulus_pa: Option<f64>,
+    /// The part's Poisson ratio (overrides the preset's).
+    #[arg(long)]
+    pub part_poisson: Option<f64>,
+    /// The part's hardness, Pa (Archard's H; overrides the preset's).
+    #[arg(long)]
+    pub part_hardness_pa: Option<f64>,
+    /// The part in the drum: a plate W,L mm (along the wall, along the axis; default 12,12).
+    #[arg(long, value_name = "W,L")]
+    pub part_plate_mm: Option<String>,
+    /// Simulated settling time of the macro run, s (0.5).
+    #[arg(long)]
+    pub settle_s: Option<f64>,
+    /// Simulated time recorded after settling, s (2).
+    #[arg(long)]
+    pub record_s: Option<f64>,
+    /// Run the machine only: OUT/macro/ (script, log, contact dump) and OUT/macro.json.
+    #[arg(long)]
+    pub macro_only: bool,
+}
+
+/// The machine setting of the command line: `--machine FILE` or the defaults, then each flag.
+pub fn machine_setting(a: &FinishArgs) -> Result<MachineSetting> {
+    let m = &a.machine;
+    let mut s = match &m.machine {
+        Some(p) => {
+            let text = std::fs::read_to_string(p)
+                .map_err(|e| anyhow!("--machine {}: cannot read: {e}", p.display()))?;
+            toml::from_str::<MachineSetting>(&text)
+                .map_err(|e| anyhow!("--machine {}: {e}", p.display()))?
+        }
+        None => MachineSetting::default(),
+    };
+    if let Some(k) = &m.machine_kind {
+        s.kind = MachineKind::parse(k).map_err(|e| anyhow!("--machine-kind: {e}"))?;
+    }
+    if let Some(f) = &m.rotation_frame {
+        s.rotation_frame = SpeedFrame::parse(f).map_err(|e| anyhow!("--rotation-frame: {e}"))?;
+    }
+    if let Some(x) = a.revolution_rpm {
+        s.revolution_rpm = -x;
+    }
+    if let Some(x) = a.rotation_rpm {
+        s.rotation_rpm = x;
+    }
+    let set = |dst: &mut f64, v: Option<f64>| {
+        if let Some(v) = v {
+            *dst = v;
+        }
+    };
+    set(&mut s.turret_radius_mm, m.turret_radius_mm);
+    set(&mut s.drum_radius_mm, m.drum_radius_mm);
+    set(&mut s.drum_height_mm, m.drum_height_mm);
+    set(&mut s.fill_fraction, m.fill);
+    set(&mut s.media.diameter_mm, a.media_diameter_mm);
+    set(&mut s.media.density_kg_m3, a.media_density_kg_m3);
+    set(&mut s.media.youngs_modulus_pa, m.macro_media_modulus_pa);
+    set(&mut s.media.poisson_ratio, m.media_poisson);
+    set(&mut s.media.restitution, m.media_restitution);
+    set(&mut s.media.friction, m.media_friction);
+    s.part_material = part_material(m, s.part_material)?;
+    if let Some(p) = &m.part_plate_mm {
+        match parse_pair(p, "--part-plate-mm")?.as_slice() {
+            [w, l] => {
+                s.part = PartSpec::Plate {
+                    width_mm: *w,
+                    length_mm: *l,
+                }
+            }
+            _ => bail!("--part-plate-mm {p:?}: expected W,L in mm"),
+        }
+    }
+    set(&mut s.settle_s, m.settle_s);
+    set(&mut s.record_s, m.record_s);
+    s.seed = a.seed;
+    s.check()?;
+    Ok(s)
+}
+
+/// The part's material: `start` (the --machine file's or the default, aluminium), the preset
+/// of --part-material, then --part-modulus-pa, --part-poisson, --part-hardness-pa.
+pub fn part_material(m: &MachineArgs, start: PartMaterial) -> Result<PartMaterial> {
+    let mut p = match &m.part_material {
+        Some(name) => PartMaterial::preset(name).map_err(|e| anyhow!("--part-material: {e}"))?,
+        None => start,
+    };
+    let custom =
+        m.part_modulus_pa.is_some() || m.part_poisson.is_some() || m.part_hardness_pa.is_some();
+    for (dst, v) in [
+        (&mut p.youngs_modulus_pa, m.part_modulus_pa),
+        (&mut p.poisson_ratio, m.part_poisson),
+        (&mut p.hardness_pa, m.part_hardness_pa),
+    ] {
+        if let Some(v) = v {
+            *dst = v;
+        }
+    }
+    if custom {
+        p.name = format!("{} (modified)", p.name);
+    }
+    p.check()?;
+    Ok(p)
+}
+
+/// `--macro-only`: the machine run alone, into OUT/macro and OUT/macro.json.
+fn run_macro_only(a: &FinishArgs) -> Result<()> {
+    let setting = machine_setting(a)?;
+    let engine = EngineCommand::locate(a.ranks, a.hostfile.clone())?;
+    crate::outdir::create_marked(&a.out)?;
+    surfstream_runtime::stop::install()?;
+    let mut last = std::time::Instant::now() - std::time::Duration::from_secs(10);
+    let m = run_machine(
+        &setting,
+        &a.out.join("macro"),
+        &engine,
+        &surfstream_runtime::ipc::STOP_REQUESTED,
+        &mut |p| {
+            if last.elapsed().as_secs_f64() >= 5.0 {
+                last = std::time::Instant::now();
+                eprintln!("{}", p.line());
+            }
+        },
+    )?;
+    let json = a.out.join("macro.json");
+    let text =
+        serde_json::to_string_pretty(&serde_json::json!({ "setting": setting, "macro": m }))?;
+    std::fs::write(&json, text + "\n")
+        .map_err(|e| anyhow!("{}: cannot write: {e}", json.display()))?;
+    let c = &m.contacts;
+    println!(
+        "finish --macro-only: {} media, {:.3} s recorded{}; {} contacts on {:.1} mm^2 ({:.3} /mm^2/s), \
+         normal speed p50 {:.4} m/s, tangential p50 {:.4} m/s, normal force p50 {:.4} N, \
+         sliding work {:.3e} J/mm^2/s; engine {:.1} s ({:.2e} s per particle-step); {}",
+        m.media_count,
+        m.simulated_s,
+        if m.partial { " (partial: stopped)" } else { "" },
+        c.count,
+        m.region_area_mm2,
+        c.rate_per_mm2_s,
+        c.normal_speed_m_s.p50,
+        c.tangential_speed_m_s.p50,
+        c.normal_force_n.p50,
+        c.sliding_work_j_per_mm2_s,
+        m.cost.engine_s,
+        m.cost.per_particle_step_s,
+        json.display()
+    );
+    if m.partial {
+        let sig = surfstream_runtime::stop::signal().unwrap_or(libc::SIGINT);
+        eprintln!(
+            "surfstream: finish --macro-only {}: {:.3} s of recording kept, macro.json marked partial",
+            surfstream_runtime::stop::interrupted(sig),
+            m.simulated_s
+        );
+        std::process::exit(128 + sig);
+    }
+    Ok(())
 }
 
 fn read_model(path: &Path, pitch_um: Option<f64>, pitch_like: Option<(f64, f64)>) -> Result<Model> {
@@ -243,6 +451,11 @@ pub fn run(a: FinishArgs) -> Result<()> {
         force: a.force,
     };
     crate::outdir::check_ours(&a.out, &claim)?;
+    if a.machine.macro_only {
+        return run_macro_only(&a);
+    }
+    // The part's material reaches the patch's DEM too.
+    let part = part_material(&a.machine, PartMaterial::default())?;
     let (model, ideal) = inputs(&a)?;
     crate::outdir::create_marked(&a.out)?;
     let mut o = FinishOptions {
@@ -256,6 +469,7 @@ pub fn run(a: FinishArgs) -> Result<()> {
         media_velocity_m_s: a.media_velocity_m_s,
         pressure_pa: a.pressure_pa,
         ideal,
+        workpiece: part.workpiece(),
         ..Default::default()
     };
     if let Some(p) = &a.patch_um {

@@ -169,8 +169,8 @@ pub fn run_engine(
 
 /// [`run_engine`] under the nodes' discipline: the engine (and mpirun's ranks) in its own
 /// process group, killed with this process (PR_SET_PDEATHSIG), the whole group stopped on
-/// `stop` (SIGTERM, SIGCONT, then SIGKILL after 3 s), a stall watch on its output
-/// (`watch.stall_s` of silence: killed, and the error names `watch.name`), and a failure's
+/// `stop` ([`stop_group`]), a stall watch (`watch.stall_s` with neither a line of output nor
+/// CPU time spent by the group: killed, and the error names `watch.name`), and a failure's
 /// error with the exit status and the log's last ERROR line.
 #[allow(clippy::too_many_arguments)]
 pub fn run_engine_watched(
@@ -216,18 +216,30 @@ pub fn run_engine_watched(
     let mut stopped = false;
     let mut stalled = None;
     let mut last_line = Instant::now();
+    let mut last_cpu_check = Instant::now();
+    let mut group_cpu = 0u64;
     let steps_total = steps_per_pass * passes;
     let status = loop {
         // A launched node's stall watch: the engine is working.
         surfstream_core::liveness::beat();
         if stop.load(Ordering::SeqCst) && !stopped {
             stopped = true;
-            stop_group(group, &mut child)?;
+            stop_group(group, &mut child, engine.ranks > 1)?;
+        }
+        // Alive: a new line, or CPU time spent by the group (LIGGGHTS' stdout is a pipe, so
+        // its lines come in blocks; a stopped or sleeping engine spends none).
+        if last_cpu_check.elapsed() >= Duration::from_secs(1) {
+            last_cpu_check = Instant::now();
+            let cpu = group_cpu_ticks(group);
+            if cpu > group_cpu {
+                group_cpu = cpu;
+                last_line = Instant::now();
+            }
         }
         let silent_s = last_line.elapsed().as_secs_f64();
         if stalled.is_none() && !stopped && silent_s > watch.stall_s {
             stalled = Some(silent_s);
-            stop_group(group, &mut child)?;
+            stop_group(group, &mut child, engine.ranks > 1)?;
         }
         match rx.recv_timeout(Duration::from_millis(200)) {
             Ok(line) => {
@@ -359,19 +371,50 @@ fn kill_group(group: i32, signal: i32) {
     }
 }
 
-/// SIGTERM (and SIGCONT, for a stopped engine) to the group, SIGKILL after 3 s.
-fn stop_group(group: i32, child: &mut std::process::Child) -> Result<()> {
-    kill_group(group, libc::SIGTERM);
-    kill_group(group, libc::SIGCONT);
-    let t = Instant::now();
-    while t.elapsed() < Duration::from_secs(3) {
-        if child.try_wait()?.is_some() {
-            break;
+/// Stops the group: SIGKILL for the engine alone (LIGGGHTS answers SIGTERM by writing a
+/// restart file into the folder); for mpirun, SIGTERM (and SIGCONT, for a stopped engine) so
+/// that it passes the signal to its ranks, then SIGKILL after 3 s.
+fn stop_group(group: i32, child: &mut std::process::Child, mpirun: bool) -> Result<()> {
+    if mpirun {
+        kill_group(group, libc::SIGTERM);
+        kill_group(group, libc::SIGCONT);
+        let t = Instant::now();
+        while t.elapsed() < Duration::from_secs(3) {
+            if child.try_wait()?.is_some() {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(50));
         }
-        std::thread::sleep(Duration::from_millis(50));
     }
     kill_group(group, libc::SIGKILL);
     Ok(())
+}
+
+/// User + system CPU ticks of the live processes of group `group` (from /proc).
+fn group_cpu_ticks(group: i32) -> u64 {
+    let Ok(dir) = std::fs::read_dir("/proc") else {
+        return 0;
+    };
+    let group = group.to_string();
+    dir.flatten()
+        .filter(|d| {
+            d.file_name()
+                .to_string_lossy()
+                .bytes()
+                .all(|b| b.is_ascii_digit())
+        })
+        .filter_map(|d| std::fs::read_to_string(d.path().join("stat")).ok())
+        .filter_map(|stat| {
+            // pid (comm) state ppid pgrp session tty tpgid flags minflt cminflt majflt
+            // cmajflt utime stime ...
+            let rest = stat.rsplit_once(") ")?.1;
+            let w: Vec<&str> = rest.split_whitespace().collect();
+            if w.get(2) != Some(&group.as_str()) {
+                return None;
+            }
+            Some(w.get(11)?.parse::<u64>().ok()? + w.get(12)?.parse::<u64>().ok()?)
+        })
+        .sum()
 }
 
 /// The last line of the log that starts with ERROR.
