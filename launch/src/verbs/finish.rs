@@ -92,17 +92,10 @@ pub struct FinishArgs {
     /// rotation-rpm or media-diameter-mm); each runs in full into OUT/sweep_NAME_V.
     #[arg(long, value_name = "NAME=V1,V2,...")]
     pub sweep: Option<String>,
-    /// The part's material: aluminium (the paper's part) or steel (default: the DEM wall as
-    /// steel, Archard K/H 5e-14 1/Pa).
-    #[arg(long, value_name = "aluminium|steel")]
-    pub part_material: Option<String>,
     /// Run the machine first (the macro run: the paper's centrifugal barrel in LIGGGHTS);
     /// its contacts on the part give the prediction's impact and sliding rates.
     #[arg(long = "macro")]
     pub macro_run: bool,
-    /// Simulated time the macro run records after settling, s (default 2).
-    #[arg(long)]
-    pub macro_record_s: Option<f64>,
     /// A macro run's record instead of running it: a finish.json with `macro`, or the
     /// record itself.
     #[arg(long, value_name = "FILE")]
@@ -516,35 +509,13 @@ pub fn run(a: FinishArgs) -> Result<()> {
             Some((model.pitch_x_um, model.pitch_y_um)),
         )?);
     }
-    if let Some(name) = &a.part_material {
-        let pm = surfstream_finish::setting::PartMaterial::preset(name)
-            .map_err(|e| anyhow!("--part-material: {e}"))?;
-        o.workpiece = pm.workpiece();
-        o.archard_k_over_h_per_pa = surfstream_finish::run::ARCHARD_K / pm.hardness_pa;
-        o.part_material = Some(pm);
-    }
+    // One part material (--part-material and its overrides, aluminium by default) for the
+    // macro run, the patch's DEM wall and Archard's K/H.
+    o.archard_k_over_h_per_pa = surfstream_finish::run::ARCHARD_K / part.hardness_pa;
+    o.part_material = Some(part.clone());
     if a.macro_run {
-        let mut m = surfstream_finish::machine::MachineSetting {
-            seed: a.seed,
-            ..Default::default()
-        };
-        if let Some(pm) = &o.part_material {
-            m.part_material = pm.clone();
-        }
-        // The paper's senses: revolution clockwise (negative about +z), rotation counter.
-        if let Some(x) = a.revolution_rpm {
-            m.revolution_rpm = -x.abs();
-        }
-        if let Some(x) = a.rotation_rpm {
-            m.rotation_rpm = x.abs();
-        }
-        if let Some(d) = a.media_diameter_mm {
-            m.media.diameter_mm = d;
-        }
-        if let Some(s) = a.macro_record_s {
-            m.record_s = s;
-        }
-        o.machine_run = Some(m);
+        // The machine flags (--machine FILE, --record-s, ...) as `--macro-only` reads them.
+        o.machine_run = Some(machine_setting(&a)?);
     }
     if let Some(f) = &a.macro_record {
         o.macro_contacts = Some(read_macro(f)?);
