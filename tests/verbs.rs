@@ -1,18 +1,14 @@
 //! The single-file verbs, run as a user runs them: the release `surfstream` binary on the real
-//! instrument files in ../shared/specimens and on files the verbs write for each other.
+//! instrument files in tests/data/specimens and on files the verbs write for each other.
 
 use std::path::{Path, PathBuf};
 
 use serde_json::Value;
 use surfstream_e2e::{read_json, run, stderr, surfstream};
 
-/// A real instrument file: ../shared/specimens beside the repository, or the folder
-/// SURFSTREAM_SPECIMENS names (a git worktree elsewhere).
+/// A real instrument file: tests/data/specimens, or the folder SURFSTREAM_SPECIMENS names.
 fn specimen(name: &str) -> PathBuf {
-    std::env::var_os("SURFSTREAM_SPECIMENS")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| surfstream_e2e::repo_root().join("../shared/specimens"))
-        .join(name)
+    surfstream_e2e::specimen(name)
 }
 
 /// Runs `surfstream ARGS`, asserts success, returns stdout.
