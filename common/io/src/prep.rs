@@ -354,10 +354,11 @@ fn solve(mut a: Vec<Vec<f64>>, mut b: Vec<f64>) -> Option<Vec<f64>> {
         }
         a.swap(col, p);
         b.swap(col, p);
+        let pivot_row = a[col].clone();
         for r in col + 1..n {
-            let f = a[r][col] / a[col][col];
-            for c in col..n {
-                a[r][c] -= f * a[col][c];
+            let f = a[r][col] / pivot_row[col];
+            for (x, p) in a[r].iter_mut().zip(&pivot_row).skip(col) {
+                *x -= f * p;
             }
             b[r] -= f * b[col];
         }
@@ -424,10 +425,10 @@ fn level(s: &Surface, form: Form) -> Result<(Surface, Done)> {
     }
 }
 
-/// Sphere: `x^2 + y^2 + z^2 + D x + E y + F z + G = 0`; cylinder (axis x): `y^2 + z^2 + E y
-/// + F z + G = 0` (axis y: x instead of y); algebraic least squares (Kasa), coordinates about
-/// the map's centre and mean height. The residual is the height minus the surface's cap on the
-/// side of the data.
+/// Sphere: `x^2 + y^2 + z^2 + D x + E y + F z + G = 0`; cylinder (axis x):
+/// `y^2 + z^2 + E y + F z + G = 0` (axis y: x instead of y); algebraic least squares (Kasa),
+/// coordinates about the map's centre and mean height. The residual is the height minus the
+/// surface's cap on the side of the data.
 fn level_quadric(s: &Surface, form: Form, valid: usize) -> Result<(Surface, Done)> {
     if valid < 5 {
         bail!("{valid} measured points: a sphere or cylinder fit needs at least 5");
@@ -1026,9 +1027,7 @@ mod tests {
     #[test]
     fn sphere_and_cylinder_forms_come_out() {
         let r = 500.0;
-        let sph = |x: f64, y: f64| {
-            ((r * r - (x - 30.0).powi(2) - (y - 20.0).powi(2)) as f64).sqrt() + 7.0
-        };
+        let sph = |x: f64, y: f64| (r * r - (x - 30.0).powi(2) - (y - 20.0).powi(2)).sqrt() + 7.0;
         let s = surface(41, 61, sph, 1.0, 1.0);
         let (t, d) = p("level", "sphere").apply(&s).unwrap();
         assert!(t.heights_um.iter().all(|z| z.abs() < 1e-6), "{}", d.summary);

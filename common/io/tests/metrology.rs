@@ -88,7 +88,7 @@ fn parity_with_surfalize_real_and_synthetic() {
         let s = read_surface(&path).unwrap();
         assert_eq!(s.invalid_count(), 0, "{name} is NaN-free");
         cases.push(Case {
-            name: name.into(),
+            name,
             z: s.heights_um,
             rows: s.height,
             cols: s.width,
