@@ -27,7 +27,7 @@ CLI = Path(os.environ.get("SURFSTREAM_CLI", REPO / "target" / "release" / "surfs
 
 def specimen(name):
     """A real instrument file: $SURFSTREAM_SPECIMENS when it holds it, else the repository's."""
-    return next((d / name for d in SPECIMEN_DIRS if (d / name).is_file()), specimen(name))
+    return next((d / name for d in SPECIMEN_DIRS if (d / name).is_file()), SPECIMENS / name)
 
 
 SPECIMEN_FILES = sorted(
@@ -542,3 +542,44 @@ def test_run_a_graph_with_overrides(tmp_path, monkeypatch):
     got = pano.params()
     for n in ("Sa", "Sq", "Sz", "Sdr"):
         assert close(got[n], ref[n]), n
+
+
+# -- pre-processing (surfstream prep) ----------------------------------------------------------
+
+
+def test_prep_methods_return_new_surfaces_keeping_pitch_and_nan():
+    y, x = np.mgrid[0:40, 0:60]
+    z = 3.0 + 0.02 * x - 0.05 * y + 1e-3 * x * y
+    s = ss.Surface(z, pitch_um=(0.5, 0.25))
+    lv = s.level_form("poly=2")
+    assert lv is not s and lv.pitch_um == s.pitch_um
+    assert np.nanmax(np.abs(lv.heights)) < 1e-6
+    c = s.crop(x=(10, 30), y=(5, None))
+    assert c.shape == (35, 20) and c.pitch_um == (0.5, 0.25)
+    assert np.array_equal(c.heights, z[5:, 10:30])
+    r = s.rotate(90)
+    assert r.shape == (60, 40) and r.pitch_um == (0.25, 0.5)
+    holed = z.copy()
+    holed[10:20, 20:35] = np.nan
+    f = ss.Surface(holed, 1.0).fill()
+    assert not np.isnan(f.heights).any()
+    # A harmonic interpolation keeps a plane; this one has a small x*y term (also harmonic).
+    assert np.abs(f.heights - z).max() < 1e-6
+    assert f.metadata["prep"][0]["points_filled"] == 150
+    t = ss.Surface(z, 1.0).threshold(1.0, 1.0)
+    assert t.invalid_count == t.metadata["prep"][0]["points_removed"] > 0
+    hp = s.filter(l=5.0)
+    assert abs(float(np.nanmean(hp.heights))) < 1e-3
+    chained = s.prep("level plane", ("crop", "x=0:30,y=0:20"))
+    assert chained.shape == (20, 30) and len(chained.metadata["prep"]) == 2
+    with pytest.raises(ss.ParameterError, match="expected plane"):
+        s.level_form("cone")
+
+
+@needs_specimens
+def test_prep_level_matches_surfalize():
+    surfalize = pytest.importorskip("surfalize")
+    path = specimen("x3p-2.x3p")
+    ours = ss.read(path).level_form("plane").heights
+    ref = surfalize.Surface.load(str(path)).level().data
+    assert np.abs(ours - ref).max() < 2e-5
