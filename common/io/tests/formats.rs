@@ -1,5 +1,5 @@
 //! Readers on the real specimens (../shared/specimens, reference values in its README), on
-//! DATX files written by ../shared/bench/make_synthetic_datx.py, and on every trap of
+//! DATX files written by tests/data/make_synthetic_datx.py, and on every trap of
 //! ../shared/notes/formats.md; corrupt, truncated and lying files give clear errors.
 
 use std::io::{Cursor, Write};
@@ -849,7 +849,8 @@ print(json.dumps({"shape": list(d.shape), "sx": s.step_x, "sy": s.step_y,
 
 fn synthetic_datx() -> (tempfile::TempDir, Vec<PathBuf>) {
     let dir = tempfile::tempdir().unwrap();
-    let script = repo_root().join("../shared/bench/make_synthetic_datx.py");
+    // The project's bench kit's generator, kept in the repository (tests/data/README.md).
+    let script = repo_root().join("tests/data/make_synthetic_datx.py");
     let out = python_ok(|c| {
         c.arg(&script).arg(dir.path());
     });
