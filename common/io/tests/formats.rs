@@ -1,4 +1,4 @@
-//! Readers on the real specimens (../shared/specimens, reference values in its README), on
+//! Readers on the real specimens (tests/data/specimens, reference values in its README), on
 //! DATX files written by tests/data/make_synthetic_datx.py, and on every trap of
 //! ../shared/notes/formats.md; corrupt, truncated and lying files give clear errors.
 
