@@ -37,7 +37,8 @@ cargo test --release --workspace
 
 # The Python package (python/, pyo3 + maturin from PyPI): installed into the test venv as a
 # user installs it (pip install ./python, a release build sharing target/) and tested with
-# pytest against the CLI binary just built and ../shared/specimens.
+# pytest against the CLI binary just built and the specimens in tests/data/specimens
+# (SURFSTREAM_SPECIMENS, when set, is looked in first).
 "$SURFSTREAM_PYTHON" -c 'import pytest' 2>/dev/null ||
     "$SURFSTREAM_PYTHON" -m pip install --quiet --disable-pip-version-check 'pytest==9.2.0'
 "$SURFSTREAM_PYTHON" -m pip install --quiet --disable-pip-version-check ./python

@@ -11,13 +11,9 @@ fn stdout(out: &Output) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
-/// A real instrument file: ../shared/specimens beside the repository, or the folder
-/// SURFSTREAM_SPECIMENS names (a git worktree elsewhere).
+/// A real instrument file: tests/data/specimens, or the folder SURFSTREAM_SPECIMENS names.
 fn specimen(name: &str) -> PathBuf {
-    std::env::var_os("SURFSTREAM_SPECIMENS")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| surfstream_e2e::repo_root().join("../shared/specimens"))
-        .join(name)
+    surfstream_e2e::specimen(name)
 }
 
 fn s(p: &Path) -> &str {

@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::{read_json, repo_root, run, stderr, surfstream};
+use crate::{read_json, run, stderr, surfstream};
 
 /// Meshes the specimen `x3p-2.x3p` with `mesh --target ENGINE --max-triangles BUDGET` into
 /// `dir/wall.stl`; returns the mesh JSON (its target and format checked) and the triangles.
@@ -12,7 +12,7 @@ pub fn mesh_specimen_for(
     engine: &str,
     max_triangles: usize,
 ) -> (serde_json::Value, Vec<Triangle>) {
-    let specimen = repo_root().join("../shared/specimens/x3p-2.x3p");
+    let specimen = crate::specimen("x3p-2.x3p");
     let stl = dir.join("wall.stl");
     let mut cmd = surfstream();
     cmd.arg("mesh")

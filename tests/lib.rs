@@ -38,6 +38,29 @@ pub fn repo_root() -> PathBuf {
         .to_path_buf()
 }
 
+/// A real instrument file: the folder SURFSTREAM_SPECIMENS names when it holds `name`, else the
+/// repository's own copy in tests/data/specimens (its README gives each file's source and
+/// licence). Panics, naming both places, when neither has it.
+pub fn specimen(name: &str) -> PathBuf {
+    optional_specimen(name).unwrap_or_else(|| {
+        panic!(
+            "specimen {name} missing: neither in tests/data/specimens nor in \
+             $SURFSTREAM_SPECIMENS"
+        )
+    })
+}
+
+/// A specimen found in SURFSTREAM_SPECIMENS or tests/data/specimens, or None: for the files
+/// whose licence keeps them out of the repository (tests/data/specimens/README.md), which a
+/// test reads only where they are at hand.
+pub fn optional_specimen(name: &str) -> Option<PathBuf> {
+    std::env::var_os("SURFSTREAM_SPECIMENS")
+        .map(|d| PathBuf::from(d).join(name))
+        .into_iter()
+        .chain([repo_root().join("tests/data/specimens").join(name)])
+        .find(|p| p.is_file())
+}
+
 pub fn surfstream() -> Command {
     let mut c = Command::new(bin_dir().join("surfstream"));
     c.current_dir(repo_root());

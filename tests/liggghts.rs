@@ -292,7 +292,7 @@ fn the_liggghts_grid_stays_an_option() {
     let stl = dir.path().join("grid.stl");
     let mut cmd = surfstream();
     cmd.arg("mesh")
-        .arg(surfstream_e2e::repo_root().join("../shared/specimens/x3p-2.x3p"))
+        .arg(surfstream_e2e::specimen("x3p-2.x3p"))
         .args([
             "--target",
             "liggghts",

@@ -26,21 +26,12 @@ use surfstream_core::metrology::{
     AllParams, ArealPsd, Grid,
 };
 use surfstream_core::raster::{RasterView, Shape};
-use surfstream_e2e::{python, repo_root, run, stderr, surfstream};
+use surfstream_e2e::{python, run, stderr, surfstream};
 use surfstream_io::formats::read_surface;
 use surfstream_io::npy::write_npy_f64;
 
 fn specimen(name: &str) -> PathBuf {
-    let dir = std::env::var_os("SURFSTREAM_SPECIMENS")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| repo_root().join("../shared/specimens"));
-    let p = dir.join(name);
-    assert!(
-        p.exists(),
-        "specimen {} missing (set SURFSTREAM_SPECIMENS)",
-        p.display()
-    );
-    p
+    surfstream_e2e::specimen(name)
 }
 
 /// A deterministic hash in [0, 1) (splitmix64).
@@ -190,9 +181,14 @@ fn surfalize_values(cases: &[Case], dir: &Path) -> Value {
 #[test]
 fn parity_with_surfalize_on_every_shared_parameter() {
     let mut cases = Vec::new();
-    for name in ["metropro-1.dat", "x3p-2.x3p", "sur-uncompressed.sur"] {
+    // surfalize refuses NaN: the NaN-free specimens (sur-uncompressed.sur, GPL-3, only where
+    // SURFSTREAM_SPECIMENS holds it).
+    let mut files = vec![specimen("metropro-1.dat"), specimen("x3p-2.x3p")];
+    files.extend(surfstream_e2e::optional_specimen("sur-uncompressed.sur"));
+    for path in files {
+        let name = path.file_name().unwrap().to_string_lossy().into_owned();
         // Our readers (surfalize reads MetroPro 8x too tall, see the specimens README).
-        let s = read_surface(&specimen(name)).unwrap();
+        let s = read_surface(&path).unwrap();
         assert_eq!(s.invalid_count(), 0, "{name}");
         let g = Grid::new(&s.heights_um, s.height, s.width, s.pitch_x_um, s.pitch_y_um).unwrap();
         cases.push(Case {
@@ -638,7 +634,7 @@ fn cli_ok(args: &[&str]) -> (String, String) {
 #[test]
 fn params_verb_batches_files_into_csv_and_json_lines() {
     let a = specimen("x3p-2.x3p");
-    let b = specimen("sur-uncompressed.sur");
+    let b = specimen("sur-2.sur");
     let (a, b) = (a.to_str().unwrap(), b.to_str().unwrap());
     let d = tempfile::tempdir().unwrap();
     let csv = d.path().join("new/params.csv");

@@ -1,18 +1,14 @@
 //! The single-file verbs, run as a user runs them: the release `surfstream` binary on the real
-//! instrument files in ../shared/specimens and on files the verbs write for each other.
+//! instrument files in tests/data/specimens and on files the verbs write for each other.
 
 use std::path::{Path, PathBuf};
 
 use serde_json::Value;
 use surfstream_e2e::{read_json, run, stderr, surfstream};
 
-/// A real instrument file: ../shared/specimens beside the repository, or the folder
-/// SURFSTREAM_SPECIMENS names (a git worktree elsewhere).
+/// A real instrument file: tests/data/specimens, or the folder SURFSTREAM_SPECIMENS names.
 fn specimen(name: &str) -> PathBuf {
-    std::env::var_os("SURFSTREAM_SPECIMENS")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| surfstream_e2e::repo_root().join("../shared/specimens"))
-        .join(name)
+    surfstream_e2e::specimen(name)
 }
 
 /// Runs `surfstream ARGS`, asserts success, returns stdout.
@@ -215,4 +211,264 @@ fn single_file_verbs_refuse_bad_input_by_name() {
     let err = fails(&["mesh", s(&dat), "--epsilon-um=-1", "--out", s(&stl)]);
     assert!(err.contains("epsilon"), "{err}");
     assert!(!stl.exists());
+}
+
+/// Runs a Python check (the test venv: numpy, scipy, surfalize) with `args`; asserts it
+/// prints "ok".
+fn python_check(script: &str, args: &[&Path]) {
+    let out = std::process::Command::new(surfstream_e2e::python())
+        .arg("-c")
+        .arg(script)
+        .args(args)
+        .output()
+        .expect("python runs");
+    assert!(
+        out.status.success() && String::from_utf8_lossy(&out.stdout).trim() == "ok",
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+#[test]
+fn prep_levels_like_surfalize_and_fits_polynomials_like_numpy() {
+    let d = tempfile::tempdir().unwrap();
+    let x3p = specimen("x3p-2.x3p");
+    let plane = d.path().join("plane.npy");
+    let text = ok(&["prep", s(&x3p), s(&plane), "--level", "plane"]);
+    assert!(
+        text.contains("level plane: least-squares polynomial of order 1"),
+        "{text}"
+    );
+    assert!(text.contains("650 rows x 650 cols"), "{text}");
+    // surfalize 0.19.2's level() on the same file (its reader agrees with ours on x3p).
+    python_check(
+        r#"
+import sys, numpy as np, surfalize
+ours = np.load(sys.argv[2])
+ref = surfalize.Surface.load(sys.argv[1]).level().data
+assert ours.shape == ref.shape, (ours.shape, ref.shape)
+d = np.abs(ours - ref)
+assert d.max() < 2e-5, d.max()  # um; heights span 0.55 um, the fit runs in f32 about the mean
+print("ok")
+"#,
+        &[&x3p, &plane],
+    );
+    // Polynomial order 3 on the MetroPro specimen against numpy's least squares on the full
+    // basis x^i y^j, i + j <= 3 (the heights from our own .npy: surfalize reads MetroPro 8x).
+    let dat = specimen("metropro-1.dat");
+    let (raw, poly) = (d.path().join("raw.npy"), d.path().join("poly.npy"));
+    ok(&["convert", s(&dat), "-o", s(&raw)]);
+    ok(&["prep", s(&dat), s(&poly), "--level", "poly=3"]);
+    python_check(
+        r#"
+import sys, numpy as np
+z = np.load(sys.argv[1]); ours = np.load(sys.argv[2]); p = 1.09825203
+r, c = z.shape
+y, x = np.mgrid[0:r, 0:c]
+x = x * p; y = y * p
+m = np.isfinite(z)
+xs, ys = x.max(), y.max()
+A = np.stack([(x[m]/xs)**i * (y[m]/ys)**j for i in range(4) for j in range(4) if i + j <= 3], 1)
+coef, *_ = np.linalg.lstsq(A, z[m], rcond=None)
+ref = np.full(z.shape, np.nan); ref[m] = z[m] - A @ coef
+assert np.array_equal(np.isnan(ours), np.isnan(ref))
+d = np.nanmax(np.abs(ours - ref))
+assert d < 2e-5, d
+print("ok")
+"#,
+        &[&raw, &poly],
+    );
+}
+
+#[test]
+fn prep_gaussian_at_a_cutoff_matches_scipy_inside_the_edges() {
+    // ISO 16610-61 at lambda_c = 25 um on the anisotropic x3p-2 (0.128 x 0.315 um): the S-L
+    // surface against scipy.ndimage.gaussian_filter with sigma = alpha lambda_c / sqrt(2 pi)
+    // per axis, compared where the kernel's support lies inside the map (the edges are
+    // where the implementations differ by design: ours renormalises, scipy reflects).
+    let d = tempfile::tempdir().unwrap();
+    let x3p = specimen("x3p-2.x3p");
+    let (raw, rough) = (d.path().join("raw.npy"), d.path().join("rough.npy"));
+    ok(&["convert", s(&x3p), "-o", s(&raw)]);
+    let text = ok(&["prep", s(&x3p), s(&rough), "--filter", "l=25um"]);
+    assert!(text.contains("filter gaussian,l=25um"), "{text}");
+    python_check(
+        r#"
+import sys, math, numpy as np
+from scipy import ndimage
+z = np.load(sys.argv[1]); ours = np.load(sys.argv[2])
+px, py, lc = 0.12765651, 0.314582114, 25.0
+alpha = math.sqrt(math.log(2) / math.pi)
+sx, sy = alpha * lc / math.sqrt(2 * math.pi) / px, alpha * lc / math.sqrt(2 * math.pi) / py
+zc = z - z.mean()
+mean = ndimage.gaussian_filter(zc, sigma=(sy, sx), mode="reflect", truncate=lc / (alpha * lc / math.sqrt(2 * math.pi)))
+ref = zc - mean
+mx, my = int(math.ceil(lc / px)), int(math.ceil(lc / py))
+a, b = ours[my:-my, mx:-mx], ref[my:-my, mx:-mx]
+assert a.size > 50000, a.shape
+d = np.abs(a - b).max()
+assert d < 1e-4 * (z.max() - z.min()), d
+# and it is a high-pass: the long wavelengths are gone
+assert abs(np.nanmean(ours)) < 1e-3
+print("ok")
+"#,
+        &[&raw, &rough],
+    );
+}
+
+#[test]
+fn prep_crop_keeps_pitch_and_origin_and_fill_solves_laplace() {
+    let d = tempfile::tempdir().unwrap();
+    let x3p = specimen("x3p-2.x3p");
+    let cut = d.path().join("cut.x3p");
+    let text = ok(&["prep", s(&x3p), s(&cut), "--crop", "x=10:110,y=20:70"]);
+    assert!(text.contains("50 x 100 (rows x cols) kept"), "{text}");
+    let a: Value = serde_json::from_str(&ok(&["inspect", s(&x3p), "--json"])).unwrap();
+    let b: Value = serde_json::from_str(&ok(&["inspect", s(&cut), "--json"])).unwrap();
+    assert_eq!(
+        (b["rows"].as_u64(), b["cols"].as_u64()),
+        (Some(50), Some(100))
+    );
+    assert_eq!(a["pitch_x_um"], b["pitch_x_um"]);
+    assert_eq!(a["pitch_y_um"], b["pitch_y_um"]);
+    let origin = |v: &Value, k: usize| {
+        v["metadata"]["stage_position_um"][k]
+            .as_f64()
+            .unwrap_or(0.0)
+    };
+    let px = a["pitch_x_um"].as_f64().unwrap();
+    let py = a["pitch_y_um"].as_f64().unwrap();
+    assert!(
+        (origin(&b, 0) - origin(&a, 0) - 10.0 * px).abs() < 1e-9,
+        "{b}"
+    );
+    assert!(
+        (origin(&b, 1) - origin(&a, 1) - 20.0 * py).abs() < 1e-9,
+        "{b}"
+    );
+    // The heights: surfalize's read of the source, sliced.
+    python_check(
+        r#"
+import sys, numpy as np, surfalize
+src = surfalize.Surface.load(sys.argv[1]).data[20:70, 10:110]
+cut = surfalize.Surface.load(sys.argv[2]).data
+assert cut.shape == (50, 100) and np.abs(cut - src).max() < 1e-9
+print("ok")
+"#,
+        &[&x3p, &cut],
+    );
+
+    // Fill: a masked region of the real MetroPro map (one hole inside, one on the edge)
+    // against scipy's sparse solve of the same discrete Laplace problem (4 neighbours,
+    // measured points fixed, only the neighbours inside the map at its edge).
+    let dat = specimen("metropro-1.dat");
+    let (raw, holed, filled) = (
+        d.path().join("raw.npy"),
+        d.path().join("holed.npy"),
+        d.path().join("filled.npy"),
+    );
+    ok(&["convert", s(&dat), "-o", s(&raw)]);
+    python_check(
+        r#"
+import sys, numpy as np
+z = np.load(sys.argv[1])
+z[100:130, 200:260] = np.nan
+z[0:12, 500:540] = np.nan
+np.save(sys.argv[2], z)
+print("ok")
+"#,
+        &[&raw, &holed],
+    );
+    let text = ok(&[
+        "prep",
+        s(&holed),
+        s(&filled),
+        "--pitch-um",
+        "1.09825203",
+        "--fill",
+        "laplace",
+    ]);
+    assert!(
+        text.contains("2280 not-measured points given the Laplace"),
+        "{text}"
+    );
+    assert!(text.contains("converged"), "{text}");
+    python_check(
+        r#"
+import sys, numpy as np
+from scipy.sparse import lil_matrix
+from scipy.sparse.linalg import spsolve
+z = np.load(sys.argv[1]); ours = np.load(sys.argv[2])
+r, c = z.shape
+holes = np.argwhere(np.isnan(z))
+idx = {(int(i), int(j)): k for k, (i, j) in enumerate(holes)}
+A = lil_matrix((len(holes), len(holes))); b = np.zeros(len(holes))
+for k, (i, j) in enumerate(holes):
+    nb = [(i + di, j + dj) for di, dj in ((0, 1), (0, -1), (1, 0), (-1, 0)) if 0 <= i + di < r and 0 <= j + dj < c]
+    A[k, k] = len(nb)
+    for q in nb:
+        if q in idx: A[k, idx[q]] -= 1
+        else: b[k] += z[q]
+x = spsolve(A.tocsr(), b)
+ref = z.copy(); ref[tuple(holes.T)] = x
+assert not np.isnan(ours).any()
+m = ~np.isnan(z)
+assert np.array_equal(ours[m], z[m])
+d = np.abs(ours - ref).max()
+assert d < 1e-6, d
+print("ok")
+"#,
+        &[&holed, &filled],
+    );
+}
+
+#[test]
+fn prep_threshold_outliers_rotate_count_and_refuse_clearly() {
+    let d = tempfile::tempdir().unwrap();
+    let sur = specimen("sur-2.sur");
+    let out = d.path().join("t.npy");
+    let js = ok(&[
+        "prep",
+        s(&sur),
+        s(&out),
+        "--json",
+        "--threshold",
+        "1,2",
+        "--outliers",
+        "median,3",
+        "--rotate",
+        "90",
+    ]);
+    let v: Value = serde_json::from_str(&js).unwrap();
+    // 484 x 563 with 117 not measured: at most 1 % and 2 % of 272375 measured points (by
+    // value: heights equal to a threshold's are kept, and these are integer steps).
+    let t = v["steps"][0]["points_removed"].as_u64().unwrap();
+    assert!(t > 0 && t <= 2723 + 5447, "{js}");
+    assert!(v["steps"][1]["points_removed"].as_u64().is_some());
+    assert_eq!(
+        (v["rows"].as_u64(), v["cols"].as_u64()),
+        (Some(563), Some(484))
+    );
+    let removed: u64 = (0..2)
+        .map(|k| v["steps"][k]["points_removed"].as_u64().unwrap())
+        .sum();
+    assert_eq!(v["invalid_points"].as_u64(), Some(117 + removed), "{js}");
+    // Bad input: named, nothing written.
+    let never = d.path().join("never.npy");
+    for (args, want) in [
+        (vec!["--level", "cone"], "expected plane, poly=N"),
+        (vec!["--filter", "l=-5um"], "positive length"),
+        (vec!["--crop", "x=600:700"], "leave nothing"),
+        (vec!["--smooth", "3"], "unknown step"),
+        (vec!["plane"], "is not a step"),
+    ] {
+        let mut a = vec!["prep", s(&sur), s(&never)];
+        a.extend(args);
+        let err = fails(&a);
+        assert!(err.contains(want), "{a:?}: {err}");
+        assert!(!never.exists());
+    }
+    let err = fails(&["prep", s(&sur), "x.png", "--level", "plane"]);
+    assert!(err.contains("prep writes .x3p"), "{err}");
 }

@@ -145,6 +145,9 @@ enum Command {
     Convert(verbs::metrology::ConvertArgs),
     /// Compare two height maps or images: SIM, SSIM, RMS difference.
     Compare(verbs::metrology::CompareArgs),
+    /// Pre-process a height map: level, filter, crop, rotate, fill, threshold, outliers, in
+    /// the order given: prep IN OUT --level plane --filter l=80um.
+    Prep(verbs::prep::PrepArgs),
     /// Separate one height map into datum and roughness (2-D wavelet decomposition).
     Separate(verbs::separate::SeparateArgs),
     /// Mesh one height map with a bounded vertical error and write STL.
@@ -288,6 +291,10 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             let out = verbs::convert_output(a.out.take(), a.output.take())?;
             a.out = Some(out);
             done(verbs::metrology::convert(a))
+        }
+        Command::Prep(a) => {
+            verbs::one_file(&a.input, "prep")?;
+            done(verbs::prep::run(a))
         }
         Command::Compare(a) => {
             verbs::one_file(&a.a, "compare")?;

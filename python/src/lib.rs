@@ -210,6 +210,52 @@ fn write(
     Ok(())
 }
 
+/// The pre-processing steps of `surfstream prep` (surfstream_io::prep), each `(name, arg)`
+/// in the verb's words, in order: (heights, pitch x, pitch y, what each step did as JSON).
+#[pyfunction]
+#[allow(clippy::type_complexity)]
+fn prep<'py>(
+    py: Python<'py>,
+    heights_um: PyReadonlyArray2<'py, f64>,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+    steps: Vec<(String, String)>,
+) -> PyResult<(Bound<'py, PyArray2<f64>>, f64, f64, String)> {
+    let (h, rows, cols) = heights(&heights_um)?;
+    let out = py.detach(|| -> Result<_, Failure> {
+        filter_grid(rows, cols, pitch_x_um, pitch_y_um)?;
+        let steps = steps
+            .iter()
+            .map(|(n, a)| surfstream_io::prep::Step::parse(n, a))
+            .collect::<anyhow::Result<Vec<_>>>()
+            .map_err(|e| Failure::new(Kind::Parameter, format!("{e:#}")))?;
+        let s = Surface {
+            width: cols,
+            height: rows,
+            pitch_x_um,
+            pitch_y_um,
+            heights_um: h.to_vec(),
+            metadata: Metadata {
+                format: "python".into(),
+                pitch_known: true,
+                ..Metadata::default()
+            },
+        };
+        let (out, done) = surfstream_io::prep::run(&s, &steps)
+            .map_err(|e| Failure::new(Kind::Other, format!("{e:#}")))?;
+        let done = serde_json::to_string(&done).map_err(|e| Failure::new(Kind::Other, e))?;
+        Ok((out, done))
+    })?;
+    let (s, done) = out;
+    let (px, py_) = (s.pitch_x_um, s.pitch_y_um);
+    Ok((
+        to_numpy(py, s.heights_um, s.height, s.width)?,
+        px,
+        py_,
+        done,
+    ))
+}
+
 /// ISO 25178 parameters: [(name, value, unit, family)], the CLI's order and units.
 #[pyfunction]
 #[pyo3(signature = (heights_um, pitch_x_um, pitch_y_um, all=false, pruning_pct=5.0))]
@@ -651,6 +697,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(remove_form, m)?)?;
     m.add_function(wrap_pyfunction!(gaussian, m)?)?;
     m.add_function(wrap_pyfunction!(robust_gaussian, m)?)?;
+    m.add_function(wrap_pyfunction!(prep, m)?)?;
     m.add_function(wrap_pyfunction!(separate, m)?)?;
     m.add_function(wrap_pyfunction!(mesh, m)?)?;
     m.add_function(wrap_pyfunction!(abbott, m)?)?;

@@ -2,8 +2,9 @@
 references (the specimens' published values, numpy, PyWavelets, trimesh), and its promises:
 round trips, NaN, exceptions with the CLI's messages, no copies where promised.
 
-Paths: the repository is two folders up; the specimens are ../shared/specimens beside it
-($SURFSTREAM_SPECIMENS overrides); the CLI is $SURFSTREAM_CLI or target/release/surfstream.
+Paths: the repository is two folders up; the specimens are its tests/data/specimens (a folder
+$SURFSTREAM_SPECIMENS names is looked in first); the CLI is $SURFSTREAM_CLI or
+target/release/surfstream.
 """
 
 import json
@@ -19,12 +20,25 @@ import pytest
 import surfstream as ss
 
 REPO = Path(__file__).resolve().parents[2]
-SPECIMENS = Path(os.environ.get("SURFSTREAM_SPECIMENS", REPO.parent / "shared" / "specimens"))
+SPECIMENS = REPO / "tests" / "data" / "specimens"
+SPECIMEN_DIRS = [Path(d) for d in [os.environ.get("SURFSTREAM_SPECIMENS")] if d] + [SPECIMENS]
 CLI = Path(os.environ.get("SURFSTREAM_CLI", REPO / "target" / "release" / "surfstream"))
 
+
+def specimen(name):
+    """A real instrument file: $SURFSTREAM_SPECIMENS when it holds it, else the repository's."""
+    return next((d / name for d in SPECIMEN_DIRS if (d / name).is_file()), SPECIMENS / name)
+
+
 SPECIMEN_FILES = sorted(
-    p.name for p in SPECIMENS.glob("*") if p.is_file() and p.suffix.lower().lstrip(".") in ss.READABLE_EXTENSIONS
-) if SPECIMENS.is_dir() else []
+    {
+        p.name
+        for d in SPECIMEN_DIRS
+        if d.is_dir()
+        for p in d.glob("*")
+        if p.is_file() and p.suffix.lower().lstrip(".") in ss.READABLE_EXTENSIONS
+    }
+)
 
 needs_specimens = pytest.mark.skipif(not SPECIMEN_FILES, reason=f"no specimens at {SPECIMENS}")
 needs_cli = pytest.mark.skipif(not CLI.is_file(), reason=f"no CLI binary at {CLI} (cargo build --release)")
@@ -61,7 +75,7 @@ def close(a, b, rel=1e-9):
 @pytest.mark.parametrize("name", SPECIMEN_FILES)
 @pytest.mark.parametrize("all_", [False, True])
 def test_params_match_cli(name, all_):
-    path = SPECIMENS / name
+    path = specimen(name)
     args = ["params", "--json", path] + (["--all"] if all_ else [])
     ref = json.loads(cli(*args).stdout)
     s = ss.read(path)
@@ -80,18 +94,20 @@ def test_params_match_cli(name, all_):
 @needs_cli
 @needs_specimens
 def test_level_matches_cli_level():
-    path = SPECIMENS / "x3p-2.x3p"
+    path = specimen("x3p-2.x3p")
     ref = json.loads(cli("params", "--json", "--level", path).stdout)
     got = ss.read(path).level().params()
     for n in got:
         assert close(got[n], ref[n]), n
 
 
-# Published values (../shared/specimens/README.md: SurfaceTopography's test, surfalize 0.19.2):
+# Published values (tests/data/specimens/README.md: SurfaceTopography's test, surfalize 0.19.2):
 # an independent check of the readers, not of our own numbers.
 REFERENCE_SQ = {
     "metropro-1.dat": (0.07528822204734589, 50.10827568297134, 51.47133201226055),
     "x3p-2.x3p": (0.0772803327, -0.314420687, 0.239915513),
+    "sur-2.sur": (0.017517881243588176, 8.9120001041465, 10.38800012139518),
+    # Not in the repository (GPL-3, LGPL-3): checked where $SURFSTREAM_SPECIMENS holds them.
     "sur-uncompressed.sur": (0.119146667, -0.29729292, 0.329202298),
     "sample4_bin.x3p": (610537.577, -808000, 1048000),
 }
@@ -100,10 +116,10 @@ REFERENCE_SQ = {
 @needs_specimens
 @pytest.mark.parametrize("name", sorted(REFERENCE_SQ))
 def test_read_matches_published_reference(name):
-    if not (SPECIMENS / name).is_file():
-        pytest.skip(f"{name} not in {SPECIMENS}")
+    if not specimen(name).is_file():
+        pytest.skip(f"{name} not in {SPECIMEN_DIRS}")
     sq, lo, hi = REFERENCE_SQ[name]
-    s = ss.read(SPECIMENS / name)
+    s = ss.read(specimen(name))
     h = s.heights[np.isfinite(s.heights)]
     assert math.isclose(s.params()["Sq"], sq, rel_tol=1e-7)
     assert math.isclose(float(np.sqrt(np.mean((h - h.mean()) ** 2))), sq, rel_tol=1e-7)
@@ -151,10 +167,11 @@ def test_nan_points_are_left_out():
 
 @needs_specimens
 def test_specimen_invalid_points_are_nan():
-    s = ss.read(SPECIMENS / "sample4_bin.x3p")
-    assert s.shape == (4, 4) and s.invalid_count == 1
-    if (SPECIMENS / "sur-3.sur").is_file():
-        assert ss.read(SPECIMENS / "sur-3.sur").invalid_count == 233009
+    assert ss.read(specimen("sur-2.sur")).invalid_count == 117
+    assert ss.read(specimen("sur-3.sur")).invalid_count == 233009
+    if specimen("sample4_bin.x3p").is_file():
+        s = ss.read(specimen("sample4_bin.x3p"))
+        assert s.shape == (4, 4) and s.invalid_count == 1
 
 
 # -- round trips --------------------------------------------------------------------------------
@@ -162,7 +179,7 @@ def test_specimen_invalid_points_are_nan():
 
 @needs_specimens
 def test_round_trip_x3p_and_npy(tmp_path):
-    s = ss.read(SPECIMENS / "x3p-2.x3p")
+    s = ss.read(specimen("x3p-2.x3p"))
     s.write(tmp_path / "a.x3p")
     b = ss.read(tmp_path / "a.x3p")
     assert b.shape == s.shape and b.pitch_um == s.pitch_um
@@ -281,7 +298,7 @@ def test_arrays_cross_without_copies():
 
 @needs_specimens
 def test_read_hands_over_the_reader_buffer():
-    h = ss.read(SPECIMENS / "x3p-2.x3p").heights
+    h = ss.read(specimen("x3p-2.x3p")).heights
     assert h.dtype == np.float64 and h.flags.c_contiguous
     assert not h.flags.owndata and h.base is not None
 
@@ -293,7 +310,7 @@ def test_read_hands_over_the_reader_buffer():
 @needs_specimens
 @pytest.mark.parametrize("method", ["wavelet", "gaussian", "robust-gaussian"])
 def test_separate_matches_cli(tmp_path, method):
-    path = SPECIMENS / "x3p-2.x3p"
+    path = specimen("x3p-2.x3p")
     extra = [] if method == "wavelet" else ["--cutoff-um", "25"]
     cli("separate", path, "--method", method, *extra, "-o", tmp_path)
     s = ss.read(path)
@@ -376,7 +393,7 @@ def test_mesh_writes_a_watertight_stl(tmp_path):
 def test_mesh_is_the_verbs(tmp_path, py_kw, cli_args):
     """Python's mesh and `surfstream mesh` are one function: the same STL bytes and the same
     statistics (the verb's OUT.json adds the input file and its format; mesh_s is a time)."""
-    path = SPECIMENS / "x3p-2.x3p"
+    path = specimen("x3p-2.x3p")
     cli("mesh", path, *cli_args, "-o", tmp_path / "cli" / "m.stl")
     stats = ss.read(path).mesh(tmp_path / "py" / "m.stl", **py_kw)
     assert (tmp_path / "py" / "m.stl").read_bytes() == (tmp_path / "cli" / "m.stl").read_bytes()
@@ -392,7 +409,7 @@ def test_mesh_is_the_verbs(tmp_path, py_kw, cli_args):
 @needs_cli
 @needs_specimens
 def test_separate_summary_is_the_verbs(tmp_path):
-    path = SPECIMENS / "x3p-2.x3p"
+    path = specimen("x3p-2.x3p")
     cli("separate", path, "--level", "3", "-o", tmp_path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ss.SurfstreamWarning)
@@ -484,7 +501,7 @@ def test_docs_example_runs(tmp_path, monkeypatch):
     doc = (REPO / "docs" / "python.md").read_text()
     code = doc.split("```python\n", 1)[1].split("```", 1)[0]
     monkeypatch.chdir(tmp_path)
-    code = code.replace('"measurement.x3p"', repr(str(SPECIMENS / "x3p-2.x3p")))
+    code = code.replace('"measurement.x3p"', repr(str(specimen("x3p-2.x3p"))))
     exec(compile(code, "docs/python.md", "exec"), {})
     assert (tmp_path / "datum.stl").stat().st_size > 84
     assert ss.read(tmp_path / "datum.x3p").shape == (650, 650)
@@ -525,3 +542,44 @@ def test_run_a_graph_with_overrides(tmp_path, monkeypatch):
     got = pano.params()
     for n in ("Sa", "Sq", "Sz", "Sdr"):
         assert close(got[n], ref[n]), n
+
+
+# -- pre-processing (surfstream prep) ----------------------------------------------------------
+
+
+def test_prep_methods_return_new_surfaces_keeping_pitch_and_nan():
+    y, x = np.mgrid[0:40, 0:60]
+    z = 3.0 + 0.02 * x - 0.05 * y + 1e-3 * x * y
+    s = ss.Surface(z, pitch_um=(0.5, 0.25))
+    lv = s.level_form("poly=2")
+    assert lv is not s and lv.pitch_um == s.pitch_um
+    assert np.nanmax(np.abs(lv.heights)) < 1e-6
+    c = s.crop(x=(10, 30), y=(5, None))
+    assert c.shape == (35, 20) and c.pitch_um == (0.5, 0.25)
+    assert np.array_equal(c.heights, z[5:, 10:30])
+    r = s.rotate(90)
+    assert r.shape == (60, 40) and r.pitch_um == (0.25, 0.5)
+    holed = z.copy()
+    holed[10:20, 20:35] = np.nan
+    f = ss.Surface(holed, 1.0).fill()
+    assert not np.isnan(f.heights).any()
+    # A harmonic interpolation keeps a plane; this one has a small x*y term (also harmonic).
+    assert np.abs(f.heights - z).max() < 1e-6
+    assert f.metadata["prep"][0]["points_filled"] == 150
+    t = ss.Surface(z, 1.0).threshold(1.0, 1.0)
+    assert t.invalid_count == t.metadata["prep"][0]["points_removed"] > 0
+    hp = s.filter(l=5.0)
+    assert abs(float(np.nanmean(hp.heights))) < 1e-3
+    chained = s.prep("level plane", ("crop", "x=0:30,y=0:20"))
+    assert chained.shape == (20, 30) and len(chained.metadata["prep"]) == 2
+    with pytest.raises(ss.ParameterError, match="expected plane"):
+        s.level_form("cone")
+
+
+@needs_specimens
+def test_prep_level_matches_surfalize():
+    surfalize = pytest.importorskip("surfalize")
+    path = specimen("x3p-2.x3p")
+    ours = ss.read(path).level_form("plane").heights
+    ref = surfalize.Surface.load(str(path)).level().data
+    assert np.abs(ours - ref).max() < 2e-5

@@ -4,6 +4,7 @@
 pub mod formats;
 pub mod npy;
 pub mod output;
+pub mod prep;
 pub mod preview;
 pub mod recording;
 pub mod sidecar;

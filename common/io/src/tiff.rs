@@ -1,5 +1,6 @@
 //! Float32 TIFF out: one grey channel of heights in micrometres, what ImageJ/Fiji,
-//! MountainsMap and Python's tifffile open as a height image.
+//! MountainsMap and Python's tifffile open as a height image; and TIFF in ([`parse`]): ours
+//! with its pitch and unit, any other single-channel uncompressed height TIFF with a warning.
 //!
 //! Baseline TIFF 6.0, little-endian, uncompressed, `SampleFormat = 3` (IEEE float),
 //! `BitsPerSample = 32`, strips of whole rows; the first stored row is surfstream's row 0.
@@ -13,7 +14,7 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 
-use crate::formats::Surface;
+use crate::formats::{Metadata, Surface};
 
 /// Rows per strip: strips of about 64 KiB, as libtiff writes them.
 fn rows_per_strip(cols: usize) -> usize {
@@ -155,6 +156,266 @@ pub fn write(path: &Path, s: &Surface) -> Result<()> {
     })
 }
 
+/// One IFD entry: (type, count, the 4 value bytes or the offset).
+type Entry = (u16, u32, [u8; 4]);
+
+/// Reads a TIFF image of heights: the first IFD, one sample per pixel, uncompressed strips,
+/// IEEE float (32 / 64 bit) or integer (8 / 16 / 32 bit, signed or not), either byte order.
+/// The pitch and height unit are those of surfstream's `ImageDescription` JSON when it is
+/// there; else the pitch from `XResolution` / `YResolution` with `ResolutionUnit` inch or cm,
+/// and heights read as um with a warning (a plain TIFF has no height unit); without a
+/// resolution unit the pitch is unknown (1 um, `pitch_known` false).
+pub fn parse(data: &[u8]) -> Result<Surface> {
+    let le = match data.get(..4) {
+        Some(b"II*\0") => true,
+        Some(b"MM\0*") => false,
+        Some(b"II+\0") | Some(b"MM\0+") => bail!("BigTIFF is not read: save a classic TIFF"),
+        _ => bail!("not a TIFF file (expected the magic 'II*\\0' or 'MM\\0*')"),
+    };
+    let u16_at = |o: usize| -> Result<u16> {
+        let b: [u8; 2] = data
+            .get(o..o + 2)
+            .and_then(|b| b.try_into().ok())
+            .with_context(|| format!("file truncated at byte {o} (a 16-bit field)"))?;
+        Ok(if le {
+            u16::from_le_bytes(b)
+        } else {
+            u16::from_be_bytes(b)
+        })
+    };
+    let u32_at = |o: usize| -> Result<u32> {
+        let b: [u8; 4] = data
+            .get(o..o + 4)
+            .and_then(|b| b.try_into().ok())
+            .with_context(|| format!("file truncated at byte {o} (a 32-bit field)"))?;
+        Ok(if le {
+            u32::from_le_bytes(b)
+        } else {
+            u32::from_be_bytes(b)
+        })
+    };
+    let ifd = u32_at(4)? as usize;
+    let n = u16_at(ifd)? as usize;
+    let mut tags = std::collections::BTreeMap::<u16, Entry>::new();
+    for k in 0..n {
+        let e = ifd + 2 + 12 * k;
+        let value: [u8; 4] = data
+            .get(e + 8..e + 12)
+            .and_then(|b| b.try_into().ok())
+            .with_context(|| format!("IFD entry {k} truncated"))?;
+        tags.insert(u16_at(e)?, (u16_at(e + 2)?, u32_at(e + 4)?, value));
+    }
+    let word = |v: [u8; 4], typ: u16| -> u32 {
+        match (typ, le) {
+            (3, true) => u16::from_le_bytes([v[0], v[1]]) as u32,
+            (3, false) => u16::from_be_bytes([v[0], v[1]]) as u32,
+            (_, true) => u32::from_le_bytes(v),
+            (_, false) => u32::from_be_bytes(v),
+        }
+    };
+    // The values of a SHORT / LONG tag (inline when they fit in 4 bytes).
+    let values = |tag: u16| -> Result<Option<Vec<u64>>> {
+        let Some(&(typ, count, v)) = tags.get(&tag) else {
+            return Ok(None);
+        };
+        let size = match typ {
+            3 => 2,
+            4 => 4,
+            _ => bail!("tag {tag}: type {typ}, expected SHORT (3) or LONG (4)"),
+        };
+        let count = count as usize;
+        if count == 0 {
+            bail!("tag {tag}: no values");
+        }
+        if count * size <= 4 {
+            return Ok(Some(
+                (0..count)
+                    .map(|k| {
+                        let mut b = [0u8; 4];
+                        b[..size].copy_from_slice(&v[k * size..(k + 1) * size]);
+                        u64::from(word(b, typ))
+                    })
+                    .collect(),
+            ));
+        }
+        let at = word(v, 4) as usize;
+        if data.len() < at || (data.len() - at) / size < count {
+            bail!("tag {tag}: {count} values at byte {at} run past the end of the file");
+        }
+        (0..count)
+            .map(|k| {
+                Ok(if size == 2 {
+                    u64::from(u16_at(at + 2 * k)?)
+                } else {
+                    u64::from(u32_at(at + 4 * k)?)
+                })
+            })
+            .collect::<Result<Vec<u64>>>()
+            .map(Some)
+    };
+    let one = |tag: u16, name: &str, default: Option<u64>| -> Result<u64> {
+        match values(tag)? {
+            Some(v) => Ok(v[0]),
+            None => default.with_context(|| format!("no {name} (tag {tag})")),
+        }
+    };
+    let cols = one(256, "ImageWidth", None)? as usize;
+    let rows = one(257, "ImageLength", None)? as usize;
+    let bits = one(258, "BitsPerSample", Some(1))?;
+    let compression = one(259, "Compression", Some(1))?;
+    let samples = one(277, "SamplesPerPixel", Some(1))?;
+    let format = one(339, "SampleFormat", Some(1))?;
+    if compression != 1 {
+        bail!("Compression {compression}: only uncompressed TIFF (Compression 1) is read");
+    }
+    if samples != 1 {
+        bail!("SamplesPerPixel {samples}: a height map has one sample per pixel (a colour image is not heights)");
+    }
+    if tags.contains_key(&322) {
+        bail!("a tiled TIFF (TileWidth): only strips are read");
+    }
+    let bytes_per = match (format, bits) {
+        (3, 32) | (1, 32) | (2, 32) => 4,
+        (3, 64) => 8,
+        (1, 16) | (2, 16) => 2,
+        (1, 8) | (2, 8) => 1,
+        _ => bail!(
+            "SampleFormat {format} with BitsPerSample {bits}: expected float 32/64 bit or integers of 8/16/32 bit"
+        ),
+    };
+    if rows == 0 || cols == 0 {
+        bail!("an empty image ({rows} x {cols}, rows x cols)");
+    }
+    let points = rows
+        .checked_mul(cols)
+        .filter(|p| p.checked_mul(bytes_per).is_some_and(|b| b <= data.len()))
+        .with_context(|| {
+            format!(
+                "ImageLength {rows} x ImageWidth {cols} x {bytes_per} bytes is more than the file's {} bytes",
+                data.len()
+            )
+        })?;
+    let offsets = values(273)?.context("no StripOffsets (tag 273)")?;
+    let counts = values(279)?.context("no StripByteCounts (tag 279)")?;
+    if offsets.len() != counts.len() {
+        bail!(
+            "{} StripOffsets but {} StripByteCounts",
+            offsets.len(),
+            counts.len()
+        );
+    }
+    let mut raw = Vec::with_capacity(points * bytes_per);
+    for (&o, &c) in offsets.iter().zip(&counts) {
+        let (o, c) = (o as usize, c as usize);
+        let strip = data.get(o..o.saturating_add(c)).with_context(|| {
+            format!("a strip of {c} bytes at byte {o} runs past the end of the file")
+        })?;
+        raw.extend_from_slice(strip);
+    }
+    if raw.len() < points * bytes_per {
+        bail!(
+            "the strips hold {} bytes, expected {rows} x {cols} x {bytes_per}",
+            raw.len()
+        );
+    }
+    raw.truncate(points * bytes_per);
+    let heights: Vec<f64> = raw
+        .chunks_exact(bytes_per)
+        .map(|b| {
+            let mut a = [0u8; 8];
+            a[..bytes_per].copy_from_slice(b);
+            if !le {
+                a[..bytes_per].reverse();
+            }
+            match (format, bytes_per) {
+                (3, 4) => f64::from(f32::from_le_bytes([a[0], a[1], a[2], a[3]])),
+                (3, _) => f64::from_le_bytes(a),
+                (2, 4) => f64::from(i32::from_le_bytes([a[0], a[1], a[2], a[3]])),
+                (2, 2) => f64::from(i16::from_le_bytes([a[0], a[1]])),
+                (2, _) => f64::from(a[0] as i8),
+                (_, 4) => f64::from(u32::from_le_bytes([a[0], a[1], a[2], a[3]])),
+                (_, 2) => f64::from(u16::from_le_bytes([a[0], a[1]])),
+                _ => f64::from(a[0]),
+            }
+        })
+        .collect();
+    let description = tags.get(&270).and_then(|&(typ, count, v)| {
+        let at = word(v, 4) as usize;
+        let bytes = if count <= 4 {
+            v.get(..count as usize)?
+        } else {
+            data.get(at..at.checked_add(count as usize)?)?
+        };
+        (typ == 2).then(|| {
+            String::from_utf8_lossy(bytes)
+                .trim_end_matches('\0')
+                .to_string()
+        })
+    });
+    let ours = description
+        .as_deref()
+        .and_then(|d| serde_json::from_str::<serde_json::Value>(d).ok())
+        .filter(|j| j.get("pitch_um").is_some() && j.get("height_unit").is_some());
+    let mut metadata = Metadata {
+        format: "tif".into(),
+        ..Metadata::default()
+    };
+    let (mut pitch_x_um, mut pitch_y_um) = (1.0, 1.0);
+    if let Some(j) = &ours {
+        let get = |k: &str| {
+            j["pitch_um"][k]
+                .as_f64()
+                .filter(|v| v.is_finite() && *v > 0.0)
+        };
+        let (Some(x), Some(y)) = (get("x"), get("y")) else {
+            bail!("ImageDescription: pitch_um.x / .y are not positive numbers");
+        };
+        (pitch_x_um, pitch_y_um) = (x, y);
+        metadata.pitch_known = j["pitch_known"].as_bool().unwrap_or(true);
+        if j["height_unit"].as_str() != Some("um") {
+            bail!(
+                "ImageDescription: height_unit {}, expected \"um\"",
+                j["height_unit"]
+            );
+        }
+        if let Some(w) = j["writer"].as_str() {
+            metadata.extra.insert("writer".into(), w.to_string());
+        }
+    } else {
+        let rational = |tag: u16| -> Option<f64> {
+            let &(typ, _, v) = tags.get(&tag)?;
+            let at = word(v, 4) as usize;
+            (typ == 5).then_some(())?;
+            let (n, d) = (u32_at(at).ok()?, u32_at(at + 4).ok()?);
+            (n > 0 && d > 0).then(|| f64::from(n) / f64::from(d))
+        };
+        let unit_um = match one(296, "ResolutionUnit", Some(2))? {
+            2 => Some(25_400.0),
+            3 => Some(10_000.0),
+            _ => None,
+        };
+        if let (Some(u), Some(xr), Some(yr)) = (unit_um, rational(282), rational(283)) {
+            (pitch_x_um, pitch_y_um) = (u / xr, u / yr);
+            metadata.pitch_known = true;
+        }
+        metadata.warnings.push(
+            "a TIFF without surfstream's description carries no height unit: heights read as um"
+                .into(),
+        );
+        if let Some(d) = description.filter(|d| !d.is_empty()) {
+            metadata.extra.insert("description".into(), d);
+        }
+    }
+    Ok(Surface {
+        width: cols,
+        height: rows,
+        pitch_x_um,
+        pitch_y_um,
+        heights_um: heights,
+        metadata,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -236,6 +497,23 @@ mod tests {
             assert_eq!(v[rows * cols - 1], heights[rows * cols - 1] as f32);
             let j: serde_json::Value = serde_json::from_str(&desc).unwrap();
             assert_eq!(j["pitch_um"]["y"], 2.2797945189999997);
+            // And our reader: pitch exact, heights as f32, NaN kept.
+            let back = parse(&std::fs::read(&p).unwrap()).unwrap();
+            assert_eq!((back.height, back.width), (rows, cols));
+            assert_eq!(
+                (back.pitch_x_um, back.pitch_y_um),
+                (0.5, 2.2797945189999997)
+            );
+            assert!(back.metadata.pitch_known && back.metadata.warnings.is_empty());
+            for (a, b) in back.heights_um.iter().zip(&heights) {
+                assert!(a.is_nan() && b.is_nan() || *a == f64::from(*b as f32));
+            }
+            // Every truncation fails cleanly.
+            let bytes = std::fs::read(&p).unwrap();
+            // (The last 4 bytes, the next-IFD pointer, are not needed.)
+            for cut in [0, 4, 7, 9, bytes.len() / 2, bytes.len() - 6] {
+                assert!(parse(&bytes[..cut]).is_err(), "cut at {cut}");
+            }
         }
     }
 

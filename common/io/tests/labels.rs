@@ -233,6 +233,43 @@ fn x3p_record2_is_iso8601_and_claims_nothing_it_does_not_know() {
     let first = std::fs::read(&p).unwrap();
     write_surface(&p, &s).unwrap();
     assert!(first == std::fs::read(&p).unwrap());
+    // No required element is left empty (SurfaceTopography 1.27 fails on an empty <Model>).
+    for name in ["Creator", "Manufacturer", "Model", "Serial", "Version"] {
+        assert!(!tag(&xml, name).trim().is_empty(), "<{name}> empty: {xml}");
+    }
+    // The instruments' own date forms are read as the dates they are: a .plu's asctime.
+    s.metadata.date = Some("Fri Mar 10 16:35:59 2023\0\0".into());
+    s.metadata.instrument = None;
+    s.metadata.extra.insert("creator".into(), "J. Doe".into());
+    write_surface(&p, &s).unwrap();
+    let xml = x3p_main_xml(&p);
+    assert_eq!(tag(&xml, "Date"), "2023-03-10T16:35:59");
+    assert_eq!(tag(&xml, "Creator"), "J. Doe");
+    assert_eq!(tag(&xml, "Manufacturer"), "not available");
+    let back = read_surface(&p).unwrap();
+    assert_eq!(back.metadata.instrument, None);
+}
+
+#[test]
+fn instrument_date_forms_become_iso8601() {
+    use surfstream_io::formats::x3p::iso8601_date;
+    for (text, want) in [
+        ("2021-03-04 10:23:05", Some("2021-03-04T10:23:05")),
+        ("2021-03-04", Some("2021-03-04T00:00:00")),
+        ("Fri Mar 10 16:35:59 2023", Some("2023-03-10T16:35:59")),
+        ("Mon Jan  2 08:05:00 2023\n", Some("2023-01-02T08:05:00")),
+        ("10 Mar 2023 16:35:59", Some("2023-03-10T16:35:59")),
+        ("March 10, 2023 16:35", Some("2023-03-10T16:35:00")),
+        ("10.03.2023 16:35:59", Some("2023-03-10T16:35:59")),
+        ("2023/03/10 16:35:59", Some("2023-03-10T16:35:59")),
+        // Day or month first? Not guessed.
+        ("04/03/2021 10:23", None),
+        ("Fri Feb 30 25:00:00 2023", None),
+        ("yesterday", None),
+        ("", None),
+    ] {
+        assert_eq!(iso8601_date(text).as_deref(), want, "{text:?}");
+    }
 }
 
 #[test]
@@ -302,12 +339,16 @@ z = np.frombuffer(b[start:], "<f4").reshape(yres, xres) * 1e6
 assert (yres, xres) == ref.shape and kv["ZUnits"] == "m" and kv["XYUnits"] == "m"
 assert abs(float(kv["XReal"]) / xres * 1e6 - 0.127656509837346) < 1e-9
 assert np.array_equal(np.isnan(z), np.isnan(ref)) and np.nanmax(np.abs(z - ref)) < 1e-4
+# A TIFF of another writer (tifffile, big-endian, pitch as px/cm) for our reader.
+tifffile.imwrite(sys.argv[4], ref.astype(">f4"), byteorder=">",
+                 resolution=(1e4 / 0.127656509837346, 1e4 / 0.314582113527746), resolutionunit="CENTIMETER")
 print("ok")
 "#;
+    let foreign = d.path().join("foreign.tif");
     let out = std::process::Command::new(support::python())
         .arg("-c")
         .arg(script)
-        .args([&tif, &gsf, &npy])
+        .args([&tif, &gsf, &npy, &foreign])
         .output()
         .unwrap();
     assert!(
@@ -316,4 +357,50 @@ print("ok")
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr)
     );
+    // What convert writes, our reader reads: the same rows x cols, pitch and not-measured
+    // points, heights to float32.
+    for p in [&tif, &gsf] {
+        let back = read_surface(p).unwrap();
+        assert_eq!((back.height, back.width), (s.height, s.width), "{p:?}");
+        assert!(
+            (back.pitch_x_um - s.pitch_x_um).abs() < 1e-9 * s.pitch_x_um,
+            "{p:?}"
+        );
+        assert!(
+            (back.pitch_y_um - s.pitch_y_um).abs() < 1e-9 * s.pitch_y_um,
+            "{p:?}"
+        );
+        same_heights(&back.heights_um, &s.heights_um, 1e-5);
+        assert!(
+            back.metadata.warnings.is_empty(),
+            "{:?}",
+            back.metadata.warnings
+        );
+    }
+    let back = read_surface(&tif).unwrap();
+    assert_eq!(
+        back.pitch_x_um, s.pitch_x_um,
+        "our description keeps the pitch exactly"
+    );
+    // tifffile's TIFF: the pitch from its resolution (u32 rationals: ~1e-7), heights as um
+    // with a warning (a plain TIFF has no height unit).
+    let f = read_surface(&foreign).unwrap();
+    assert_eq!((f.height, f.width), (s.height, s.width));
+    assert!(f.metadata.pitch_known);
+    assert!(
+        (f.pitch_x_um - s.pitch_x_um).abs() < 1e-6 * s.pitch_x_um,
+        "{}",
+        f.pitch_x_um
+    );
+    assert!(
+        (f.pitch_y_um - s.pitch_y_um).abs() < 1e-6 * s.pitch_y_um,
+        "{}",
+        f.pitch_y_um
+    );
+    same_heights(&f.heights_um, &s.heights_um, 1e-5);
+    assert!(f
+        .metadata
+        .warnings
+        .iter()
+        .any(|w| w.contains("no height unit")));
 }

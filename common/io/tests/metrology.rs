@@ -8,7 +8,7 @@ use surfstream_core::metrology::{
     fit_plane, level_plane, params, rms_difference, sim, Grid, Params,
 };
 mod support;
-use support::{python, specimen};
+use support::{optional_specimen, python, specimen};
 use surfstream_io::formats::read_surface;
 use surfstream_io::npy::write_npy_f64;
 
@@ -79,11 +79,16 @@ fn check(ours: &Params, theirs: &serde_json::Value, what: &str) {
 #[test]
 fn parity_with_surfalize_real_and_synthetic() {
     let mut cases = Vec::new();
-    for name in ["metropro-1.dat", "x3p-2.x3p", "sur-uncompressed.sur"] {
-        let s = read_surface(&specimen(name)).unwrap();
+    // surfalize refuses NaN: the NaN-free specimens (sur-uncompressed.sur, GPL-3, only where
+    // SURFSTREAM_SPECIMENS holds it).
+    let mut files = vec![specimen("metropro-1.dat"), specimen("x3p-2.x3p")];
+    files.extend(optional_specimen("sur-uncompressed.sur"));
+    for path in files {
+        let name = path.file_name().unwrap().to_string_lossy().into_owned();
+        let s = read_surface(&path).unwrap();
         assert_eq!(s.invalid_count(), 0, "{name} is NaN-free");
         cases.push(Case {
-            name: name.into(),
+            name,
             z: s.heights_um,
             rows: s.height,
             cols: s.width,
@@ -260,14 +265,20 @@ fn frame_heights_keep_the_parameters_of_the_readers_f64() {
     // is ~0 on symmetric surfaces, within 1e-6 absolute); the plain f32 of the absolute heights
     // (no offset) does not on MetroPro's ~50 um heights, which is why frames carry the offset.
     use surfstream_io::formats::from_frame_heights;
-    for name in [
-        "metropro-1.dat",
-        "x3p-2.x3p",
-        "sample4_bin.x3p",
-        "sur-uncompressed.sur",
-        "sur-3.sur",
-    ] {
-        let s = read_surface(&specimen(name)).unwrap();
+    let mut files: Vec<_> = ["metropro-1.dat", "x3p-2.x3p", "sur-2.sur", "sur-3.sur"]
+        .map(specimen)
+        .into();
+    // Not in the repository (licences): read where SURFSTREAM_SPECIMENS holds them.
+    files.extend(
+        ["sample4_bin.x3p", "sur-uncompressed.sur"]
+            .map(optional_specimen)
+            .into_iter()
+            .flatten(),
+    );
+    for path in files {
+        let name = path.file_name().unwrap().to_string_lossy().into_owned();
+        let name = name.as_str();
+        let s = read_surface(&path).unwrap();
         let grid = |z: &[f64]| {
             params(&Grid::new(z, s.height, s.width, s.pitch_x_um, s.pitch_y_um).unwrap()).unwrap()
         };

@@ -5,6 +5,7 @@
 pub mod finish;
 pub mod mesh;
 pub mod metrology;
+pub mod prep;
 pub mod separate;
 
 use std::path::{Path, PathBuf};

@@ -314,10 +314,10 @@ fn r_and_map_on_a_hand_made_example() {
 /// apart, at a known sub-pixel offset (bilinear resampling of the specimen for b).
 fn specimen_pair(step: f64, shift: [f64; 2]) -> (Vec<f32>, Vec<f32>, usize, usize, [f64; 2]) {
     let path =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/specimens/metropro-1.dat");
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/specimens/metropro-1.dat");
     let s = surfstream_io::formats::read_surface(&path).unwrap_or_else(|e| {
         panic!(
-            "{}: {e:#} (the test needs the shared specimens)",
+            "{}: {e:#} (the test reads tests/data/specimens)",
             path.display()
         )
     });

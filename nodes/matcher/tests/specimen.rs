@@ -1,4 +1,4 @@
-//! Known shifts on tiles cut from real measured surfaces (../shared/specimens, or
+//! Known shifts on tiles cut from real measured surfaces (tests/data/specimens, or
 //! SURFSTREAM_SPECIMENS): the periodic x3p-2.x3p grating at its anisotropic pitch (0.128 x
 //! 0.315 um) and the smooth metropro-1.dat, 10 % and 15 % overlaps of 220 px tiles, stage
 //! errors up to 3 px, per-tile piston and tilt. Every pair must be answered within 0.5 px or
@@ -14,20 +14,16 @@ use surfstream_matcher::{PhaseCorrelator, PhaseParams};
 const TILE: usize = 220;
 
 fn specimen(name: &str) -> PathBuf {
-    let dir = std::env::var_os("SURFSTREAM_SPECIMENS")
-        .map(PathBuf::from)
+    std::env::var_os("SURFSTREAM_SPECIMENS")
+        .map(|d| PathBuf::from(d).join(name))
+        .into_iter()
+        .chain([Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../tests/data/specimens")
+            .join(name)])
+        .find(|p| p.is_file())
         .unwrap_or_else(|| {
-            Path::new(env!("CARGO_MANIFEST_DIR"))
-                .join("../..")
-                .join("../shared/specimens")
-        });
-    let p = dir.join(name);
-    assert!(
-        p.exists(),
-        "specimen {} missing: these tests need ../shared/specimens (or SURFSTREAM_SPECIMENS)",
-        p.display()
-    );
-    p
+            panic!("specimen {name} missing: neither in tests/data/specimens nor in $SURFSTREAM_SPECIMENS")
+        })
 }
 
 /// The tile whose pixel (0, 0) is the specimen's (x0, y0), plus a piston and a height change

@@ -293,7 +293,7 @@ fn units_and_offset_round_trip() {
 #[test]
 fn real_specimen_meets_the_bound() {
     let path =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/specimens/metropro-1.dat");
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/specimens/metropro-1.dat");
     let s = surfstream_io::formats::read_surface(&path)
         .unwrap_or_else(|e| panic!("the real specimen must be readable: {e:#}"));
     let mean = s.heights_um.iter().filter(|h| h.is_finite()).sum::<f64>()

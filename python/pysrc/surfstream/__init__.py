@@ -208,6 +208,72 @@ class Surface:
         )
         return self._like(mean, robust={"iterations": it, "converged": conv})
 
+    # -- pre-processing (surfstream prep) -----------------------------------------------
+    def prep(self, *steps: Union[str, Tuple[str, str]]) -> "Surface":
+        """The steps of ``surfstream prep``, in order, as ``"level plane"``, ``"filter l=80um"``
+        or ``("crop", "x=0:100,y=0:50")``: a new Surface (pitch and NaN mask carried; a
+        quarter turn swaps the pitch). What each step did (counts included) is in the result's
+        metadata under ``prep``. The methods below are one step each."""
+        pairs: List[Tuple[str, str]] = []
+        for st in steps:
+            if isinstance(st, str):
+                name, _, arg = st.strip().lstrip("-").partition(" ")
+                pairs.append((name, arg.strip()))
+            else:
+                name, arg = st
+                pairs.append((str(name), str(arg)))
+        h, px, py, done = _native.prep(*self._args(), pairs)
+        m = dict(self._metadata)
+        m["prep"] = list(m.get("prep", [])) + json.loads(done)
+        return Surface(h, (px, py), m)
+
+    def level_form(self, form: str = "plane") -> "Surface":
+        """Removes a least-squares form: ``"plane"``, ``"poly=N"`` (N = 0..10), ``"sphere"``,
+        ``"cylinder=x"`` or ``"cylinder=y"`` (``surfstream prep --level``)."""
+        return self.prep(("level", form))
+
+    def filter(self, l: Optional[Any] = None, s: Optional[Any] = None, robust: bool = False) -> "Surface":
+        """ISO 16610 filtering (``prep --filter``): with ``l`` (lambda_c) the S-L surface,
+        primary minus its Gaussian (``robust=True``: ISO 16610-71) L-filter mean; ``s``
+        (lambda_s) alone, the primary surface. Lengths in um, or strings with a unit
+        ("0.08mm")."""
+        parts = ["robust" if robust else "gaussian"]
+        if l is not None:
+            parts.append(f"l={l}")
+        if s is not None:
+            parts.append(f"s={s}")
+        return self.prep(("filter", ",".join(parts)))
+
+    def crop(self, x: Tuple[Any, Any] = (0, None), y: Tuple[Any, Any] = (0, None)) -> "Surface":
+        """Columns ``x = (start, end)`` and rows ``y`` (pixels, end not included; or lengths
+        with a unit, "5um"); ``None`` = to the edge. Pitch kept."""
+        def rng(r: Tuple[Any, Any], n: int) -> str:
+            a, b = r
+            return f"{0 if a is None else a}:{n if b is None else b}"
+        rows, cols = self.shape
+        return self.prep(("crop", f"x={rng(x, cols)},y={rng(y, rows)}"))
+
+    def rotate(self, degrees: float) -> "Surface":
+        """Counter-clockwise (x towards y): 90-degree steps exact, other angles bilinear on a
+        square pitch (bounding box, corners not measured)."""
+        return self.prep(("rotate", repr(float(degrees))))
+
+    def fill(self, method: str = "laplace") -> "Surface":
+        """The not-measured points filled: ``"laplace"`` (harmonic interpolation of the
+        measured ones)."""
+        return self.prep(("fill", method))
+
+    def threshold(self, lower_pct: float = 0.5, upper_pct: Optional[float] = None) -> "Surface":
+        """Drops the lowest ``lower_pct`` % and highest ``upper_pct`` % (default: the same) of
+        the measured points (material ratio); they become NaN."""
+        hi = lower_pct if upper_pct is None else upper_pct
+        return self.prep(("threshold", f"{float(lower_pct)!r},{float(hi)!r}"))
+
+    def remove_outliers(self, n_sigma: float = 3.0, method: str = "mean") -> "Surface":
+        """Points farther than ``n_sigma`` standard deviations from the mean (``"mean"``: Sq)
+        or the median (``"median"``: 1.4826 MAD) become NaN, one pass."""
+        return self.prep(("outliers", f"{method},{float(n_sigma)!r}"))
+
     def separate(
         self,
         method: str = "wavelet",

@@ -129,13 +129,15 @@ pub enum Format {
     Sdf,
     Tmd,
     Al3d,
+    /// TIFF: ours (float32 um, pitch in the description) or another height TIFF.
+    Tif,
 }
 
 /// Every extension [`Format::from_path`] accepts (lower case, no dot), for messages that list
 /// them: keep in step with its match.
 pub const EXTENSIONS: &[&str] = &[
     "npy", "datx", "dat", "x3p", "sur", "xyz", "txt", "csv", "asc", "plu", "vk4", "opd", "zmg",
-    "nms", "gsf", "gwy", "sdf", "tmd", "al3d",
+    "nms", "gsf", "gwy", "sdf", "tmd", "al3d", "tif", "tiff",
 ];
 
 impl Format {
@@ -163,8 +165,9 @@ impl Format {
             "sdf" => Format::Sdf,
             "tmd" => Format::Tmd,
             "al3d" => Format::Al3d,
+            "tif" | "tiff" => Format::Tif,
             other => bail!(
-                "{}: unsupported height-map format '.{other}' (expected .npy, .datx, .dat, .x3p, .sur, .xyz/.txt/.csv/.asc, .plu, .vk4, .opd, .zmg, .nms, .gsf, .gwy, .sdf, .tmd, .al3d)",
+                "{}: unsupported height-map format '.{other}' (expected .npy, .datx, .dat, .x3p, .sur, .xyz/.txt/.csv/.asc, .plu, .vk4, .opd, .zmg, .nms, .gsf, .gwy, .sdf, .tmd, .al3d, .tif/.tiff)",
                 path.display()
             ),
         })
@@ -205,6 +208,7 @@ pub fn parse_surface(data: &[u8], format: Format) -> Result<Surface> {
         Format::Sdf => sdf::parse(data)?,
         Format::Tmd => tmd::parse(data)?,
         Format::Al3d => al3d::parse(data)?,
+        Format::Tif => crate::tiff::parse(data)?,
         Format::Npy => bail!(".npy is read from a path (read_surface)"),
     };
     debug_assert_eq!(s.heights_um.len(), s.width * s.height);

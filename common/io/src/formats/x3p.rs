@@ -815,9 +815,12 @@ fn finish(
 ) -> Surface {
     let r2 = child(root, "Record2");
     let instrument = r2.and_then(|r| {
+        // "not available" is what writers (Digital Surf's, ours) put in a required element
+        // they have nothing for: not a part of the instrument's name.
         let parts: Vec<String> = ["Manufacturer", "Model", "Version"]
             .iter()
             .filter_map(|p| text_of(r, &["Instrument", p]))
+            .filter(|t| t != NOT_AVAILABLE)
             .collect();
         (!parts.is_empty()).then(|| parts.join(" "))
     });
@@ -825,7 +828,9 @@ fn finish(
         format: "x3p".into(),
         pitch_known: true,
         instrument,
-        serial: r2.and_then(|r| text_of(r, &["Instrument", "Serial"])),
+        serial: r2
+            .and_then(|r| text_of(r, &["Instrument", "Serial"]))
+            .filter(|t| t != NOT_AVAILABLE),
         date: r2.and_then(|r| text_of(r, &["Date"])),
         ..Metadata::default()
     };
@@ -959,7 +964,7 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
         Some(None) => (
             UNKNOWN_DATE.to_string(),
             format!(
-                "; Date not known (1970-01-01 stands for unknown): the source's date {:?} is not ISO 8601",
+                "; Date not known (1970-01-01 stands for unknown): the source's date {:?} is not a date form read here (ISO 8601, asctime, day-first dotted)",
                 m.date.as_deref().unwrap_or_default()
             ),
         ),
@@ -979,8 +984,14 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
             "; CalibrationDate not known".to_string(),
         ),
     };
-    let instrument = xml_escape(m.instrument.as_deref().unwrap_or("unknown"));
-    let serial = xml_escape(m.serial.as_deref().unwrap_or(""));
+    // Every Record2 element the schema requires holds text: an empty <Model/> breaks readers
+    // (SurfaceTopography 1.27 fails on it); "not available" as Digital Surf's writer says it.
+    let instrument = xml_escape(m.instrument.as_deref().unwrap_or(NOT_AVAILABLE));
+    let serial = xml_escape(m.serial.as_deref().unwrap_or(NOT_AVAILABLE));
+    let creator = xml_escape(&match m.extra.get("creator") {
+        Some(c) if !c.trim().is_empty() => c.trim().to_string(),
+        _ => format!("surfstream {}", env!("CARGO_PKG_VERSION")),
+    });
     let source = if m.format.is_empty() || m.format == "x3p" {
         String::new()
     } else {
@@ -1020,12 +1031,12 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
   </Record1>
   <Record2>
     <Date>{date}</Date>
-    <Creator>surfstream {version}</Creator>
+    <Creator>{creator}</Creator>
     <Instrument>
       <Manufacturer>{instrument}</Manufacturer>
-      <Model></Model>
+      <Model>{NOT_AVAILABLE}</Model>
       <Serial>{serial}</Serial>
-      <Version></Version>
+      <Version>{NOT_AVAILABLE}</Version>
     </Instrument>
     <CalibrationDate>{calibration}</CalibrationDate>
     <ProbingSystem>
@@ -1056,18 +1067,92 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
         oy = oy * 1e-6,
         date = xml_escape(&date),
         calibration = xml_escape(&calibration),
-        version = env!("CARGO_PKG_VERSION"),
         w = s.width,
         h = s.height,
         md5 = data_md5,
     )
 }
 
-/// `text` as an ISO 8601 date-time when it is one already ("2021-03-04T10:23:00", with a
-/// space for the T, with or without seconds or zone) or a bare date; None otherwise (a
+/// What the writer puts in a required Record2 element it has nothing for.
+const NOT_AVAILABLE: &str = "not available";
+
+/// `text` as an ISO 8601 date-time: one already ("2021-03-04T10:23:00", with a space for the
+/// T, with or without seconds or zone), a bare date, or one of the instruments' unambiguous
+/// forms: C's asctime ("Fri Mar 10 16:35:59 2023", Sensofar .plu), "10 Mar 2023 16:35:59",
+/// "2023/03/10 16:35:59" and the day-first dotted "10.03.2023 16:35[:59]"; None otherwise (a
 /// "12/03/2021" is not guessed: day and month would be).
-fn iso8601_date(text: &str) -> Option<String> {
-    let t = text.trim();
+pub fn iso8601_date(text: &str) -> Option<String> {
+    let t = text.trim().trim_end_matches('\0').trim();
+    iso8601_as_is(t).or_else(|| instrument_date(t))
+}
+
+/// The instruments' date forms of [`iso8601_date`], as "YYYY-MM-DDTHH:MM:SS".
+fn instrument_date(t: &str) -> Option<String> {
+    const MONTHS: [&str; 12] = [
+        "jan", "feb", "mar", "apr", "may", "jun", "jul", "aug", "sep", "oct", "nov", "dec",
+    ];
+    let month_of = |w: &str| {
+        let w = w.to_ascii_lowercase();
+        (w.len() >= 3)
+            .then(|| MONTHS.iter().position(|m| w.starts_with(m)))
+            .flatten()
+            .map(|k| k as u32 + 1)
+    };
+    let is_time = |w: &str| w.contains(':') && w.split(':').all(|p| p.parse::<u32>().is_ok());
+    let time_of = |w: &str| -> Option<String> {
+        let p: Vec<u32> = w
+            .split(':')
+            .map(|p| p.parse().ok())
+            .collect::<Option<_>>()?;
+        let (h, m, s) = match p[..] {
+            [h, m] => (h, m, 0),
+            [h, m, s] => (h, m, s),
+            _ => return None,
+        };
+        (h < 24 && m < 60 && s < 61).then(|| format!("{h:02}:{m:02}:{s:02}"))
+    };
+    let words: Vec<&str> = t.split_whitespace().collect();
+    let time = words
+        .iter()
+        .find(|w| is_time(w))
+        .map_or(Some("00:00:00".to_string()), |w| time_of(w))?;
+    let rest: Vec<&str> = words.iter().copied().filter(|w| !is_time(w)).collect();
+    let (year, month, day): (u32, u32, u32) =
+        if let Some(k) = rest.iter().position(|w| month_of(w).is_some()) {
+            // asctime "Fri Mar 10 ... 2023" or "10 Mar 2023": the numbers are the day and the year.
+            let nums: Vec<u32> = rest
+                .iter()
+                .enumerate()
+                .filter(|&(i, _)| i != k)
+                .filter_map(|(_, w)| w.trim_end_matches(',').parse().ok())
+                .collect();
+            let (day, year) = match nums[..] {
+                [a, b] if b >= 1000 => (a, b),
+                [a, b] if a >= 1000 => (b, a),
+                _ => return None,
+            };
+            (year, month_of(rest[k])?, day)
+        } else if let [d] = rest[..] {
+            let dotted: Vec<&str> = d.split('.').collect();
+            let slashed: Vec<&str> = d.split('/').collect();
+            match (&dotted[..], &slashed[..]) {
+                ([dd, mm, yyyy], _) if yyyy.len() == 4 => {
+                    (yyyy.parse().ok()?, mm.parse().ok()?, dd.parse().ok()?)
+                }
+                (_, [yyyy, mm, dd]) if yyyy.len() == 4 => {
+                    (yyyy.parse().ok()?, mm.parse().ok()?, dd.parse().ok()?)
+                }
+                _ => return None,
+            }
+        } else {
+            return None;
+        };
+    ((1..=12).contains(&month) && (1..=31).contains(&day) && (1000..10000).contains(&year))
+        .then(|| format!("{year:04}-{month:02}-{day:02}T{time}"))
+}
+
+/// [`iso8601_date`] for text already in ISO 8601.
+fn iso8601_as_is(t: &str) -> Option<String> {
     let b = t.as_bytes();
     let digits = |r: std::ops::Range<usize>| {
         b.get(r.clone())

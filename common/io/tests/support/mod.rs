@@ -1,5 +1,6 @@
 //! What the io integration tests share: the repository root, the real specimens in
-//! ../shared/specimens, and the test environment's Python (scripts/test.sh makes it).
+//! tests/data/specimens (SURFSTREAM_SPECIMENS looked in first), and the test environment's
+//! Python (scripts/test.sh makes it).
 
 #![allow(dead_code)] // each test file uses its own part
 
@@ -13,17 +14,26 @@ pub fn repo_root() -> PathBuf {
         .to_path_buf()
 }
 
+/// A real instrument file: the folder SURFSTREAM_SPECIMENS names when it holds `name`, else the
+/// repository's own copy in tests/data/specimens (its README gives each file's source and
+/// licence).
 pub fn specimen(name: &str) -> PathBuf {
-    let dir = std::env::var_os("SURFSTREAM_SPECIMENS")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| repo_root().join("../shared/specimens"));
-    let p = dir.join(name);
-    assert!(
-        p.exists(),
-        "specimen {} missing: the golden tests need ../shared/specimens",
-        p.display()
-    );
-    p
+    optional_specimen(name).unwrap_or_else(|| {
+        panic!(
+            "specimen {name} missing: neither in tests/data/specimens nor in $SURFSTREAM_SPECIMENS"
+        )
+    })
+}
+
+/// A specimen that is not in the repository (its licence does not fit: see
+/// tests/data/specimens/README.md): Some only when SURFSTREAM_SPECIMENS holds it; a test that
+/// needs it says "skipped" when it is None.
+pub fn optional_specimen(name: &str) -> Option<PathBuf> {
+    std::env::var_os("SURFSTREAM_SPECIMENS")
+        .map(|d| PathBuf::from(d).join(name))
+        .into_iter()
+        .chain([repo_root().join("tests/data/specimens").join(name)])
+        .find(|p| p.is_file())
 }
 
 /// The test venv's Python (scripts/test.sh makes it); fails loudly when missing.
