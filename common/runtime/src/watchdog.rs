@@ -611,14 +611,18 @@ mod tests {
             ctx("wavelet", &[("fusion", "panorama")]),
         ];
         let peers = Peers::of(&graph, &graph[1]);
+        let watched = |p: Progress| -> Vec<PathBuf> {
+            let nodes = p.nodes.lock().unwrap();
+            nodes.iter().map(|n| n.heartbeat.clone()).collect()
+        };
         assert_eq!(peers.consumers["panorama"], ["mesher", "wavelet"]);
-        assert_eq!(peers.consumers("panorama").heartbeats.len(), 2);
+        assert_eq!(watched(peers.consumers("panorama")).len(), 2);
         assert_eq!(
-            peers.node("stage").heartbeats,
+            watched(peers.node("stage")),
             [heartbeat_path(Path::new("/o"), "stage")]
         );
-        assert_eq!(peers.all().heartbeats.len(), 3, "every node but fusion");
-        assert!(peers.consumers("preview").heartbeats.is_empty());
+        assert_eq!(watched(peers.all()).len(), 3, "every node but fusion");
+        assert!(watched(peers.consumers("preview")).is_empty());
     }
 
     #[test]
