@@ -246,9 +246,9 @@ pub fn create_marked(out: &Path) -> Result<()> {
 fn write_marker(dir: &Path) -> Result<()> {
     let path = dir.join(MARKER);
     let mut file = create_new_file(&path, "the run marker")?;
-    write!(
+    writeln!(
         file,
-        "This folder was made by surfstream {}: a later run into it replaces it whole.\n",
+        "This folder was made by surfstream {}: a later run into it replaces it whole.",
         env!("CARGO_PKG_VERSION")
     )
     .with_context(|| format!("{}: cannot write the run marker", path.display()))
@@ -379,7 +379,7 @@ fn check_replaceable(out: &Path) -> Result<()> {
     }
     // SAFETY: geteuid has no preconditions.
     let me = unsafe { libc::geteuid() };
-    let sticky = pmeta.mode() & libc::S_ISVTX as u32 != 0;
+    let sticky = pmeta.mode() & libc::S_ISVTX != 0;
     if sticky && me != 0 && meta.uid() != me && pmeta.uid() != me {
         bail!(
             "{}: the out dir belongs to uid {} in a sticky folder, so it cannot be replaced by you: choose another -o",
