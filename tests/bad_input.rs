@@ -715,3 +715,77 @@ fn a_full_stdout_or_stderr_is_a_clean_exit() {
         .unwrap();
     assert_eq!(o.status.code(), Some(1));
 }
+
+/// Single-file verbs touch nothing of the user's (issue 36): `convert a.x3p -o a.x3p` rewrote
+/// its input, `convert p.npy -o p.npy` its sidecar, `mesh ... -o notes.stl` replaced a file,
+/// `separate p.npy -o sf` wrote into a user's folder. Now an input is never overwritten, an
+/// existing file or a non-empty folder only with `--force`, each refused before any work.
+#[test]
+fn single_file_verbs_overwrite_nothing_without_force_and_never_an_input() {
+    let d = tempfile::tempdir().unwrap();
+    let p = |name: &str| d.path().join(name);
+    let s = |path: &Path| path.to_str().unwrap().to_string();
+    let heights: Vec<f64> = (0..64 * 64)
+        .map(|i| ((i % 64) as f64 * 0.3).sin())
+        .collect();
+    surfstream_io::npy::write_npy_f64(p("p.npy"), &heights, 64, 64).unwrap();
+    let convert = |args: &[&str]| {
+        let mut c = surfstream();
+        c.args(["convert", &s(&p("p.npy")), "--pitch-um", "1"])
+            .args(args);
+        run(c)
+    };
+    // The input itself, or its sidecar through a .npy output of the same name: refused, even
+    // with --force.
+    for force in [&[][..], &["--force"][..]] {
+        let mut args = vec!["-o".to_string(), s(&p("p.npy"))];
+        args.extend(force.iter().map(|f| f.to_string()));
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        let o = convert(&args);
+        assert!(!o.status.success(), "convert onto its input succeeded");
+        assert!(
+            stderr(&o).contains("an input is never overwritten"),
+            "{}",
+            stderr(&o)
+        );
+    }
+    // An existing file: refused, then replaced with --force.
+    write(&p("notes.x3p"), "my notes");
+    let o = convert(&["-o", &s(&p("notes.x3p"))]);
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).contains("notes.x3p exists") && stderr(&o).contains("--force"),
+        "{}",
+        stderr(&o)
+    );
+    assert_eq!(std::fs::read_to_string(p("notes.x3p")).unwrap(), "my notes");
+    let o = convert(&["-o", &s(&p("notes.x3p")), "--force"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    // mesh: the STL and its OUT.json.
+    write(&p("m.json"), "my notes");
+    let mut c = surfstream();
+    c.args(["mesh", &s(&p("notes.x3p")), "-o", &s(&p("m.stl"))]);
+    let o = run(c);
+    assert!(
+        !o.status.success() && stderr(&o).contains("m.json exists"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(!p("m.stl").exists());
+    // separate: a folder that exists and holds files is not the verb's to write into.
+    std::fs::create_dir(p("sf")).unwrap();
+    write(&p("sf/thesis.txt"), "years of work");
+    let mut c = surfstream();
+    c.args(["separate", &s(&p("notes.x3p")), "-o", &s(&p("sf"))]);
+    let o = run(c);
+    assert!(
+        !o.status.success() && stderr(&o).contains("not empty") && stderr(&o).contains("--force"),
+        "{}",
+        stderr(&o)
+    );
+    assert_eq!(
+        std::fs::read_dir(p("sf")).unwrap().count(),
+        1,
+        "separate wrote into the user's folder"
+    );
+}

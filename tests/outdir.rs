@@ -106,3 +106,121 @@ fn a_symlinked_out_dir_is_refused() {
         .is_symlink());
     assert!(names(&real).is_empty());
 }
+
+/// A throwaway second user for the hostile-neighbour checks (made with `useradd`, removed
+/// again when the test made it); `None` (with the reason printed) unless the test runs as
+/// root on a machine with useradd and runuser.
+struct Neighbour {
+    name: &'static str,
+    made: bool,
+}
+
+impl Neighbour {
+    fn get() -> Option<Self> {
+        // SAFETY: geteuid has no preconditions.
+        if unsafe { libc::geteuid() } != 0 {
+            eprintln!(
+                "SKIPPED second-user part: the test does not run as root (cannot create a user)"
+            );
+            return None;
+        }
+        let name = "ssneighbour36";
+        let exists = std::process::Command::new("id")
+            .arg("-u")
+            .arg(name)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success());
+        let made = !exists
+            && std::process::Command::new("useradd")
+                .args(["--no-create-home", "--shell", "/usr/sbin/nologin", name])
+                .status()
+                .is_ok_and(|s| s.success());
+        if !exists && !made {
+            eprintln!("SKIPPED second-user part: useradd is not available or failed");
+            return None;
+        }
+        Some(Self { name, made })
+    }
+
+    /// Runs `sh -c script` as the neighbour.
+    fn sh(&self, script: &str) {
+        let ok = std::process::Command::new("runuser")
+            .args(["-u", self.name, "--", "sh", "-c", script])
+            .status()
+            .is_ok_and(|s| s.success());
+        assert!(ok, "as {}: {script}", self.name);
+    }
+}
+
+impl Drop for Neighbour {
+    fn drop(&mut self) {
+        if self.made {
+            let _ = std::process::Command::new("userdel")
+                .arg(self.name)
+                .status();
+        }
+    }
+}
+
+/// The out dir's lock is never followed nor another user's (issue 36): `ln -s precious.txt
+/// out.lock; surfstream run G -o out` wrote the pid into precious.txt. Now a link planted as
+/// the lock is refused and its target untouched; as root, the same for a link and a lock file
+/// a second user planted in a shared sticky folder (the victim's `run` wrote through them).
+#[test]
+fn a_lock_planted_as_a_link_or_by_another_user_is_refused_and_its_target_untouched() {
+    let dir = tempfile::tempdir().unwrap();
+    let precious = dir.path().join("precious.txt");
+    std::fs::write(&precious, "years of work").unwrap();
+    std::os::unix::fs::symlink(&precious, dir.path().join("out.lock")).unwrap();
+    let o = small_demo(&dir.path().join("out"), &[]);
+    assert!(
+        !o.status.success(),
+        "a run through a planted lock link succeeded"
+    );
+    let err = stderr(&o);
+    assert!(
+        err.contains("out.lock") && err.contains("symbolic link"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read_to_string(&precious).unwrap(), "years of work");
+    assert_eq!(names(dir.path()), ["out.lock", "precious.txt"], "{err}");
+
+    let Some(neighbour) = Neighbour::get() else {
+        return;
+    };
+    use std::os::unix::fs::PermissionsExt;
+    // A folder every user may write into, like /tmp: the neighbour plants, root runs.
+    std::fs::set_permissions(dir.path(), std::fs::Permissions::from_mode(0o755)).unwrap();
+    let shared = dir.path().join("shared");
+    std::fs::create_dir(&shared).unwrap();
+    std::fs::set_permissions(&shared, std::fs::Permissions::from_mode(0o1777)).unwrap();
+    let thesis = dir.path().join("thesis.txt");
+    std::fs::write(&thesis, "the victim's thesis").unwrap();
+    neighbour.sh(&format!(
+        "ln -s {} {}/a.lock && echo 4242 > {}/b.lock",
+        thesis.display(),
+        shared.display(),
+        shared.display()
+    ));
+    for (out, what) in [("a", "symbolic link"), ("b", "not by you")] {
+        let o = small_demo(&shared.join(out), &[]);
+        assert!(!o.status.success(), "run -o shared/{out} succeeded");
+        let err = stderr(&o);
+        assert!(
+            err.contains(&format!("{out}.lock"))
+                && (err.contains(what) || err.contains("Permission denied")),
+            "{err}"
+        );
+    }
+    assert_eq!(
+        std::fs::read_to_string(&thesis).unwrap(),
+        "the victim's thesis"
+    );
+    assert_eq!(
+        std::fs::read_to_string(shared.join("b.lock")).unwrap(),
+        "4242\n"
+    );
+    assert_eq!(names(&shared), ["a.lock", "b.lock"]);
+}

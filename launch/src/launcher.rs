@@ -541,24 +541,32 @@ fn supervise(
             watchdog::heartbeat_path(&c.out_dir, &c.node_id),
         );
     }
-    // Readiness: every node attached all its channels.
-    let deadline = Instant::now() + Duration::from_secs_f64(graph.graph.startup_timeout_s + 5.0);
+    // Readiness: every node attached all its channels. Judged by progress (issue 36): a node
+    // becoming ready, or any node beating, is progress; a slow start on a loaded machine is
+    // waited for, a stopped node is named by the stall watch.
+    let limit = Duration::from_secs_f64(graph.graph.startup_timeout_s + 5.0);
     let mut ready_count = 0u64;
+    let mut last_ready = Instant::now();
     while ready_count < contexts.len() as u64 {
-        if Instant::now() > deadline {
+        let alive = |id: &str| running.iter().any(|r| r.id == id && !r.exited);
+        if watch.all_silent_for(alive).min(last_ready.elapsed()) > limit {
             bail!(
-                "only {ready_count} of {} nodes became ready within {:.0} s",
+                "only {ready_count} of {} nodes became ready, and no node made progress for {:.0} s ([graph] startup_timeout_s + 5 s)",
                 contexts.len(),
-                graph.graph.startup_timeout_s + 5.0
+                limit.as_secs_f64()
             );
         }
+        let before = ready_count;
         ready
             .timed_wait(|e| ready_count += e.count, Duration::from_millis(50))
             .map(|_| ())
             .or_else(ipc::retry_if_interrupted)
             .map_err(|e| anyhow!("ready wait failed: {e:?}"))?;
+        if ready_count > before {
+            last_ready = Instant::now();
+        }
         while let Ok(ev) = rx.try_recv() {
-            handle(ev, running, &watch)?;
+            handle(ev, contexts, running, rx, &watch)?;
         }
         stopping()?;
         check_stalls(&watch, running)?;
@@ -573,7 +581,7 @@ fn supervise(
     );
     while running.iter().any(|r| !r.exited) {
         match rx.recv_timeout(STOP_POLL) {
-            Ok(ev) => handle(ev, running, &watch)?,
+            Ok(ev) => handle(ev, contexts, running, rx, &watch)?,
             Err(RecvTimeoutError::Timeout) => {
                 stopping()?;
                 check_stalls(&watch, running)?
@@ -604,7 +612,14 @@ fn check_stalls(watch: &StallWatch, running: &[Running]) -> Result<()> {
     Ok(())
 }
 
-fn handle(ev: Event, running: &mut [Running], watch: &StallWatch) -> Result<()> {
+/// A node exit seen by the supervisor: a failure is named through [`blame`].
+fn handle(
+    ev: Event,
+    contexts: &[NodeContext],
+    running: &mut [Running],
+    rx: &Receiver<Event>,
+    watch: &StallWatch,
+) -> Result<()> {
     match ev {
         Event::Exited { id, status } => {
             let r = running
@@ -612,42 +627,201 @@ fn handle(ev: Event, running: &mut [Running], watch: &StallWatch) -> Result<()> 
                 .find(|r| r.id == id)
                 .ok_or_else(|| anyhow!("unknown node '{id}' exited"))?;
             r.exited = true;
-            if !status.success() {
-                // A sender that gave up on a full queue is not the culprit: the receiver that
-                // stopped draining is (it beats no more, or its process is stopped).
-                let (id, kind) = (r.id.clone(), r.kind.clone());
-                let alive = |n: &str| n != id && running.iter().any(|r| r.id == n && !r.exited);
-                let stalled = watch
-                    .silent_longer_than(STALL_HINT, alive)
-                    .filter(|s| s.stopped || s.silent_for >= watch.timeout() / 2);
-                let r = running
-                    .iter()
-                    .find(|r| r.id == id)
-                    .ok_or_else(|| anyhow!("unknown node '{id}' exited"))?;
-                if let Some(stall) = stalled {
-                    bail!(
-                        "stalled: {stall}, so node '{id}' (surfstream-{kind}) {} waiting for it; last lines of its stderr ({}):{}",
-                        describe_exit(&status),
-                        r.log.display(),
-                        stderr_tail(&r.log, 12)
-                    );
-                }
+            if status.success() {
+                return Ok(());
+            }
+            // A sender that gave up on a full queue is not the culprit: the receiver that
+            // stopped draining is (it beats no more, or its process is stopped).
+            let alive = |n: &str| n != id && running.iter().any(|r| r.id == n && !r.exited);
+            let stalled = watch
+                .silent_longer_than(STALL_HINT, alive)
+                .filter(|s| s.stopped || s.silent_for >= watch.timeout() / 2);
+            if let Some(stall) = stalled {
+                let r = failure_of(running, &id, status)?;
                 bail!(
-                    "node '{}' (surfstream-{}) {}; last lines of its stderr ({}):{}",
+                    "stalled: {stall}, so node '{}' (surfstream-{}) {} waiting for it; last lines of its stderr ({}):{}",
                     r.id,
                     r.kind,
-                    describe_exit(&status),
+                    describe_exit(&r.status),
                     r.log.display(),
-                    stderr_tail(&r.log, 12)
+                    r.tail
                 );
             }
-            Ok(())
+            Err(blame(
+                failure_of(running, &id, status)?,
+                contexts,
+                running,
+                rx,
+            ))
         }
     }
 }
 
-/// SIGTERM to every node still running, SIGKILL after a grace period.
-fn stop_all(running: &mut [Running], rx: &Receiver<Event>) {
+/// A node that ended with an error, as the supervisor saw it.
+struct Failure {
+    id: String,
+    kind: String,
+    status: std::process::ExitStatus,
+    log: PathBuf,
+    /// The last lines of its stderr.
+    tail: String,
+    /// It ended after the supervisor had told every node to stop.
+    after_stop: bool,
+}
+
+fn failure_of(running: &[Running], id: &str, status: std::process::ExitStatus) -> Result<Failure> {
+    let r = running
+        .iter()
+        .find(|r| r.id == id)
+        .ok_or_else(|| anyhow!("unknown node '{id}' exited"))?;
+    Ok(Failure {
+        id: r.id.clone(),
+        kind: r.kind.clone(),
+        status,
+        log: r.log.clone(),
+        tail: stderr_tail(&r.log, 12),
+        after_stop: false,
+    })
+}
+
+/// What a node says when it fails because another node failed first: its upstream is gone,
+/// a downstream node left or stopped draining, the graph is being stopped.
+const CONSEQUENCES: &[&str] = &[
+    "is gone before end of scan",
+    "a lossless channel must not drop",
+    "send failed (a subscriber",
+    "still attached after this node finished",
+    "stopped by a termination request",
+    "did not appear, and node",
+    "subscribers attached, and they made no progress",
+    "the launcher did not say 'go'",
+];
+
+/// How near a failure is to the cause (issue 36: the record names the first cause, ordered by
+/// causality, not by who reported first): 0 an error of the operating system (a full disk,
+/// a permission: exit status 74 or an `os error` in the node's last words), 1 a node's own
+/// error or a signal the supervisor did not send, 2 a consequence of another node's failure
+/// ([`CONSEQUENCES`]), 3 a node that ended after the supervisor stopped the graph.
+fn cause_rank(f: &Failure) -> u8 {
+    let no_space = f.status.code() == Some(surfstream_runtime::stdio::EXIT_NO_SPACE);
+    if no_space || f.tail.contains("(os error ") || f.tail.contains("No space left on device") {
+        0
+    } else if f.after_stop {
+        3
+    } else if CONSEQUENCES.iter().any(|c| f.tail.contains(c)) {
+        2
+    } else {
+        1
+    }
+}
+
+/// How long the supervisor waits, after a failure that is a consequence, for the failure it
+/// is a consequence of (a node whose publisher is gone is on its way out).
+const CAUSE_WAIT: Duration = Duration::from_secs(10);
+
+/// Names the cause of a failed graph: gathers the exits of the other nodes (waiting, after a
+/// consequence, up to [`CAUSE_WAIT`] for a node's own failure), stops the rest, and returns
+/// the failure nearest the cause ([`cause_rank`]); among equals the upstream one (the order
+/// of the graph, whose wiring has no cycle), then the first seen.
+fn blame(
+    first: Failure,
+    contexts: &[NodeContext],
+    running: &mut [Running],
+    rx: &Receiver<Event>,
+) -> anyhow::Error {
+    let mut failures = vec![first];
+    let waited = Instant::now();
+    while failures.iter().map(cause_rank).min() == Some(2)
+        && running.iter().any(|r| !r.exited)
+        && waited.elapsed() < CAUSE_WAIT
+    {
+        if let Ok(Event::Exited { id, status }) = rx.recv_timeout(STOP_POLL) {
+            if let Some(r) = running.iter_mut().find(|r| r.id == id) {
+                r.exited = true;
+            }
+            if !status.success() {
+                if let Ok(f) = failure_of(running, &id, status) {
+                    failures.push(f);
+                }
+            }
+        }
+        if stop::signal().is_some() {
+            break;
+        }
+    }
+    for (id, status) in stop_all(running, rx) {
+        if let Ok(mut f) = failure_of(running, &id, status) {
+            f.after_stop = true;
+            failures.push(f);
+        }
+    }
+    let depth = upstream_order(contexts);
+    let position = |id: &str| depth.get(id).copied().unwrap_or(usize::MAX);
+    let (k, _) = failures
+        .iter()
+        .enumerate()
+        .min_by_key(|(k, f)| (cause_rank(f), position(&f.id), *k))
+        .unwrap_or((0, &failures[0]));
+    let cause = failures.swap_remove(k);
+    let mut also: Vec<String> = failures
+        .iter()
+        .filter(|f| !f.after_stop)
+        .map(|f| format!("'{}'", f.id))
+        .collect();
+    also.dedup();
+    anyhow!(
+        "node '{}' (surfstream-{}) {}; last lines of its stderr ({}):{}{}",
+        cause.id,
+        cause.kind,
+        describe_exit(&cause.status),
+        cause.log.display(),
+        cause.tail,
+        if also.is_empty() {
+            String::new()
+        } else {
+            format!(
+                "\n  (failed after it, as a consequence: {})",
+                also.join(", ")
+            )
+        }
+    )
+}
+
+/// Each node's distance from the sources (0 for a source, 1 + the deepest producer
+/// otherwise): upstream first.
+fn upstream_order(contexts: &[NodeContext]) -> BTreeMap<String, usize> {
+    let mut depth: BTreeMap<String, usize> = BTreeMap::new();
+    // The wiring is acyclic (checked when read), so as many passes as nodes settle it.
+    for _ in 0..contexts.len() {
+        for c in contexts {
+            let d = c
+                .inputs
+                .iter()
+                .map(|i| depth.get(&i.from_node).map_or(0, |d| d + 1))
+                .max()
+                .unwrap_or(0);
+            depth.insert(c.node_id.clone(), d);
+        }
+    }
+    depth
+}
+
+/// SIGTERM to every node still running, SIGKILL after a grace period. Returns the nodes that
+/// ended with an error meanwhile (those that had already failed on their own among them).
+fn stop_all(
+    running: &mut [Running],
+    rx: &Receiver<Event>,
+) -> Vec<(String, std::process::ExitStatus)> {
+    let mut failed = Vec::new();
+    let mut seen = |running: &mut [Running], ev: Event| {
+        let Event::Exited { id, status } = ev;
+        if let Some(r) = running.iter_mut().find(|r| r.id == id) {
+            r.exited = true;
+        }
+        if !status.success() {
+            failed.push((id, status));
+        }
+    };
     for r in running.iter().filter(|r| !r.exited) {
         iceoryx2_free::signal(r.pid, libc::SIGTERM);
     }
@@ -657,10 +831,8 @@ fn stop_all(running: &mut [Running], rx: &Receiver<Event>) {
         if left.is_zero() {
             break;
         }
-        if let Ok(Event::Exited { id, .. }) = rx.recv_timeout(left) {
-            if let Some(r) = running.iter_mut().find(|r| r.id == id) {
-                r.exited = true;
-            }
+        if let Ok(ev) = rx.recv_timeout(left) {
+            seen(running, ev);
         }
     }
     for r in running.iter().filter(|r| !r.exited) {
@@ -671,14 +843,11 @@ fn stop_all(running: &mut [Running], rx: &Receiver<Event>) {
     while running.iter().any(|r| !r.exited) {
         let left = deadline.saturating_duration_since(Instant::now());
         match rx.recv_timeout(left) {
-            Ok(Event::Exited { id, .. }) => {
-                if let Some(r) = running.iter_mut().find(|r| r.id == id) {
-                    r.exited = true;
-                }
-            }
+            Ok(ev) => seen(running, ev),
             Err(_) => break,
         }
     }
+    failed
 }
 
 fn read_reports(out: &Path, contexts: &[NodeContext]) -> Result<Vec<NodeReport>> {
@@ -698,4 +867,49 @@ fn read_reports(out: &Path, contexts: &[NodeContext]) -> Result<Vec<NodeReport>>
         .iter()
         .filter_map(|c| reports.remove(&c.node_id))
         .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn failure(id: &str, code: i32, tail: &str, after_stop: bool) -> Failure {
+        Failure {
+            id: id.into(),
+            kind: id.into(),
+            // A wait status: the exit code in the second byte.
+            status: std::process::ExitStatus::from_raw(code << 8),
+            log: PathBuf::new(),
+            tail: tail.into(),
+            after_stop,
+        }
+    }
+
+    /// An OS error beats a node's own error, which beats a consequence, which beats a node the
+    /// supervisor stopped (issue 36: a full disk was blamed on "producer ... is gone").
+    #[test]
+    fn causes_rank_before_their_consequences() {
+        let gone = failure(
+            "recorder",
+            1,
+            "input 'registrations': producer matcher/registrations is gone before end of scan",
+            false,
+        );
+        let dropped = failure(
+            "stage",
+            1,
+            "output 'tiles': message 3 reached 2 of 3 subscribers: a lossless channel must not drop",
+            false,
+        );
+        let own = failure("wavelet", 1, "bad level", false);
+        let full = failure("fusion", 74, "(no output on stderr)", false);
+        let enospc = failure("matcher", 1, "No space left on device (os error 28)", false);
+        let stopped = failure("mesher", 1, "bad level", true);
+        assert_eq!(cause_rank(&full), 0);
+        assert_eq!(cause_rank(&enospc), 0);
+        assert_eq!(cause_rank(&own), 1);
+        assert_eq!(cause_rank(&gone), 2);
+        assert_eq!(cause_rank(&dropped), 2);
+        assert_eq!(cause_rank(&stopped), 3);
+    }
 }

@@ -142,16 +142,16 @@ enum Command {
     /// ISO 25178 parameters of height-map files (--all: the full set; --json/--csv/--jsonl).
     Params(verbs::metrology::ParamsArgs),
     /// Convert a height-map file to another format (by extension): convert IN -o OUT.
-    Convert(verbs::metrology::ConvertArgs),
+    Convert(ConvertCmd),
     /// Compare two height maps or images: SIM, SSIM, RMS difference.
     Compare(verbs::metrology::CompareArgs),
     /// Pre-process a height map: level, filter, crop, rotate, fill, threshold, outliers, in
     /// the order given: prep IN OUT --level plane --filter l=80um.
     Prep(verbs::prep::PrepArgs),
     /// Separate one height map into datum and roughness (2-D wavelet decomposition).
-    Separate(verbs::separate::SeparateArgs),
+    Separate(SeparateCmd),
     /// Mesh one height map with a bounded vertical error and write STL.
-    Mesh(verbs::mesh::MeshArgs),
+    Mesh(MeshCmd),
     /// Finishing simulation on LIGGGHTS: a patch of FILE (or of a run's out dir) worn by
     /// media over cycles; wear maps, worn surface, finish.json, finish.html.
     Finish(Box<verbs::finish::FinishArgs>),
@@ -285,10 +285,13 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             done(verbs::metrology::inspect(a))
         }
         Command::Params(a) => done(verbs::metrology::params(a)),
-        Command::Convert(a) if a.input.is_dir() => done(verbs::metrology::convert_folder(a)),
-        Command::Convert(mut a) => {
+        Command::Convert(ConvertCmd { a, .. }) if a.input.is_dir() => {
+            done(verbs::metrology::convert_folder(a))
+        }
+        Command::Convert(ConvertCmd { mut a, overwrite }) => {
             verbs::one_file(&a.input, "convert")?;
             let out = verbs::convert_output(a.out.take(), a.output.take())?;
+            verbs::claim_output_files("convert", &[&a.input], &[&out], overwrite)?;
             a.out = Some(out);
             done(verbs::metrology::convert(a))
         }
@@ -301,16 +304,47 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             verbs::one_file(&a.b, "compare")?;
             done(verbs::metrology::compare(a))
         }
-        Command::Separate(a) => {
+        Command::Separate(SeparateCmd { a, overwrite }) => {
             verbs::one_file(&a.file, "separate")?;
+            verbs::claim_output_folder("separate", &[&a.file], &a.out, overwrite)?;
             done(verbs::separate::run(a))
         }
-        Command::Mesh(a) => {
+        Command::Mesh(MeshCmd { a, overwrite }) => {
             verbs::one_file(&a.file, "mesh")?;
+            let json = a.out.with_extension("json");
+            verbs::claim_output_files("mesh", &[&a.file], &[&a.out, &json], overwrite)?;
             done(verbs::mesh::run(a))
         }
         Command::Finish(a) => done(verbs::finish::run(*a)),
     }
+}
+
+/// `convert` with `--force` (issue 36: an existing output or an input is never replaced
+/// silently).
+#[derive(Args)]
+struct ConvertCmd {
+    #[command(flatten)]
+    a: verbs::metrology::ConvertArgs,
+    #[command(flatten)]
+    overwrite: verbs::Overwrite,
+}
+
+/// `separate` with `--force` (it writes into a new or empty folder unless told).
+#[derive(Args)]
+struct SeparateCmd {
+    #[command(flatten)]
+    a: verbs::separate::SeparateArgs,
+    #[command(flatten)]
+    overwrite: verbs::Overwrite,
+}
+
+/// `mesh` with `--force` (the STL and its OUT.json).
+#[derive(Args)]
+struct MeshCmd {
+    #[command(flatten)]
+    a: verbs::mesh::MeshArgs,
+    #[command(flatten)]
+    overwrite: verbs::Overwrite,
 }
 
 /// What a graph run reads (so its out dir may not replace it) and `--force`.

@@ -46,6 +46,10 @@ pub fn registry() -> NodeRegistry {
     NodeRegistry::new(KINDS.iter().map(|(ports, _)| *ports))
         .with_output_files("recorder", &["path"])
         .with_output_files("mesher", &["file"])
+        // Checked when the graph is read: no two outputs, and none of the run's own files.
+        .with_output_default("recorder", "path", "recording.mcap")
+        .with_output_default("mesher", "file", "surface.stl")
+        .with_reserved_outputs(crate::outdir::RESERVED_NAMES)
 }
 
 /// The logic of `ctx`'s node kind, for a run in threads.

@@ -34,6 +34,33 @@ pub const FAILED: &str = "FAILED";
 /// is created, so every committed or failed run carries it).
 pub const MARKER: &str = ".surfstream-run";
 
+/// Names in an out dir that belong to the run itself or to a node's fixed outputs: no output
+/// parameter of a graph may take one (a trailing `*` makes a prefix; checked when the graph is
+/// read, [`surfstream_runtime::graph::NodeRegistry::with_reserved_outputs`]).
+pub const RESERVED_NAMES: &[&str] = &[
+    "run.json",
+    FAILED,
+    MARKER,
+    surfstream_runtime::shell::RESOLVED_GRAPH,
+    "logs",
+    "nodes",
+    "report*",
+    "panorama.*",
+    "datum.*",
+    "roughness.*",
+    "pooled.*",
+    "mesh_resampled.*",
+    "truth.json",
+    "scan.toml",
+    "finish.json",
+    "finish.html",
+    ".failure-reserve",
+];
+
+/// Written into the staging folder of a run that completed but could not be moved into place:
+/// the user was pointed to it, so a later run into the same out dir keeps it (issue 36).
+pub const COMPLETE_NOT_MOVED: &str = "COMPLETE-NOT-MOVED";
+
 /// What a run folder made by an earlier surfstream (before the marker) always holds.
 const LEGACY_MARKER: &str = surfstream_runtime::shell::RESOLVED_GRAPH;
 
@@ -218,14 +245,76 @@ pub fn create_marked(out: &Path) -> Result<()> {
 
 fn write_marker(dir: &Path) -> Result<()> {
     let path = dir.join(MARKER);
-    std::fs::write(
-        &path,
-        format!(
-            "This folder was made by surfstream {}: a later run into it replaces it whole.\n",
-            env!("CARGO_PKG_VERSION")
-        ),
+    let mut file = create_new_file(&path, "the run marker")?;
+    writeln!(
+        file,
+        "This folder was made by surfstream {}: a later run into it replaces it whole.",
+        env!("CARGO_PKG_VERSION")
     )
     .with_context(|| format!("{}: cannot write the run marker", path.display()))
+}
+
+/// Creates `path`, which must not exist: never through a symbolic link (O_NOFOLLOW), never an
+/// existing file (O_EXCL). For files a run creates in a folder the user named (issue 36).
+pub fn create_new_file(path: &Path, what: &str) -> Result<File> {
+    use std::os::unix::fs::OpenOptionsExt;
+    File::options()
+        .write(true)
+        .create_new(true)
+        .custom_flags(libc::O_NOFOLLOW | libc::O_CLOEXEC)
+        .open(path)
+        .map_err(|e| match e.kind() {
+            std::io::ErrorKind::AlreadyExists => anyhow!(
+                "{}: cannot create {what}: something of that name is already there (a file or a symbolic link that surfstream did not make); remove it or choose another folder",
+                path.display()
+            ),
+            _ => anyhow!("{}: cannot create {what}: {e}", path.display()),
+        })
+}
+
+/// Opens (or creates, mode 0600) a file of this user's that may exist already, such as the
+/// out dir's lock: never through a symbolic link (O_NOFOLLOW), and refused unless it is a
+/// regular file owned by this user (issue 36: a lock planted as a link to a user's file made
+/// the run truncate that file).
+fn open_own_file(path: &Path, what: &str) -> Result<File> {
+    use std::os::unix::fs::OpenOptionsExt;
+    let file = File::options()
+        .create(true)
+        .truncate(false)
+        .read(true)
+        .write(true)
+        .mode(0o600)
+        .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK | libc::O_CLOEXEC)
+        .open(path)
+        .map_err(|e| {
+            if e.raw_os_error() == Some(libc::ELOOP) {
+                anyhow!(
+                    "{}: {what} is a symbolic link; surfstream does not follow it (it would write into the file it points to): remove it, or choose another --out",
+                    path.display()
+                )
+            } else {
+                anyhow!("{}: cannot open {what}: {e}", path.display())
+            }
+        })?;
+    let meta = file
+        .metadata()
+        .with_context(|| format!("{}: cannot read {what}", path.display()))?;
+    if !meta.file_type().is_file() {
+        bail!(
+            "{}: {what} is not a regular file (a folder, FIFO or device is there): remove it, or choose another --out",
+            path.display()
+        );
+    }
+    // SAFETY: geteuid has no preconditions.
+    let me = unsafe { libc::geteuid() };
+    if meta.uid() != me {
+        bail!(
+            "{}: {what} is owned by uid {}, not by you (uid {me}): another user's file is never used; remove it, or choose another --out",
+            path.display(),
+            meta.uid()
+        );
+    }
+    Ok(file)
 }
 
 /// Locks `out`, removes stale staging folders of killed runs, and creates this run's staging
@@ -235,6 +324,7 @@ pub fn stage(out: &Path, claim: &Claim) -> Result<StagedOut> {
     let lock = OutDirLock::take(&sibling(&final_dir, ".lock")?, &final_dir)?;
     // Checked again under the lock: another run may have committed meanwhile.
     check_ours(&final_dir, claim)?;
+    check_replaceable(&final_dir)?;
     let stale = remove_stale_staging(&final_dir);
     if stale > 0 {
         eprintln!(
@@ -256,8 +346,54 @@ pub fn stage(out: &Path, claim: &Claim) -> Result<StagedOut> {
     })
 }
 
+/// Checks, before any work, that a finished run could be moved into `out` (issue 36: a
+/// read-only or unmovable out dir was found only after the whole pipeline): its parent is
+/// writable, and an existing `out` is neither a mount point nor, in a sticky folder, another
+/// user's (neither can be renamed).
+fn check_replaceable(out: &Path) -> Result<()> {
+    use std::ffi::CString;
+    use std::os::unix::ffi::OsStrExt;
+    let parent = out
+        .parent()
+        .ok_or_else(|| anyhow!("{}: an out dir needs a parent folder", out.display()))?;
+    let c = CString::new(parent.as_os_str().as_bytes())
+        .map_err(|_| anyhow!("{}: a path with a NUL byte", parent.display()))?;
+    // SAFETY: a valid NUL-terminated path; access only reads it.
+    if unsafe { libc::access(c.as_ptr(), libc::W_OK | libc::X_OK) } != 0 {
+        bail!(
+            "{}: the out dir's folder is not writable ({}): a run writes beside its out dir and moves its result into place; choose another -o",
+            parent.display(),
+            std::io::Error::last_os_error()
+        );
+    }
+    let Ok(meta) = std::fs::symlink_metadata(out) else {
+        return Ok(()); // no out dir yet
+    };
+    let pmeta =
+        std::fs::metadata(parent).with_context(|| format!("{}: cannot read", parent.display()))?;
+    if meta.dev() != pmeta.dev() {
+        bail!(
+            "{}: the out dir is a mount point; a run replaces its out dir by renaming, which a mount point cannot be: name a folder inside it with -o",
+            out.display()
+        );
+    }
+    // SAFETY: geteuid has no preconditions.
+    let me = unsafe { libc::geteuid() };
+    let sticky = pmeta.mode() & libc::S_ISVTX != 0;
+    if sticky && me != 0 && meta.uid() != me && pmeta.uid() != me {
+        bail!(
+            "{}: the out dir belongs to uid {} in a sticky folder, so it cannot be replaced by you: choose another -o",
+            out.display(),
+            meta.uid()
+        );
+    }
+    Ok(())
+}
+
 /// Removes `OUT.staging-*` beside `out` that carry the run marker (a user's folder of that
-/// name is left alone). Only for the holder of `out`'s lock: no live run writes there.
+/// name is left alone), except those of completed runs that could not be moved
+/// ([`COMPLETE_NOT_MOVED`]), which are named. Only for the holder of `out`'s lock: no live run
+/// writes there.
 fn remove_stale_staging(out: &Path) -> usize {
     let (Some(parent), Some(name)) = (out.parent(), out.file_name()) else {
         return 0;
@@ -270,6 +406,17 @@ fn remove_stale_staging(out: &Path) -> usize {
         .flatten()
         .filter(|e| e.file_name().to_string_lossy().starts_with(&prefix))
         .filter(|e| e.file_type().is_ok_and(|t| t.is_dir()) && e.path().join(MARKER).is_file())
+        .filter(|e| {
+            let complete = e.path().join(COMPLETE_NOT_MOVED).is_file();
+            if complete {
+                eprintln!(
+                    "surfstream: kept {}: a completed run that could not be moved into {} (move or remove it yourself)",
+                    e.path().display(),
+                    out.display()
+                );
+            }
+            !complete
+        })
         .filter(|e| std::fs::remove_dir_all(e.path()).is_ok())
         .count()
 }
@@ -311,9 +458,21 @@ impl StagedOut {
         Ok(())
     }
 
-    /// The run is complete: it replaces the out dir (and whatever run was there).
+    /// The run is complete: it replaces the out dir (and whatever run was there). When it
+    /// cannot be moved, the staging folder is marked complete ([`COMPLETE_NOT_MOVED`]) so no
+    /// later run removes it.
     pub fn commit(self) -> Result<PathBuf> {
-        replace_dir(&self.staging, &self.final_dir)?;
+        if let Err(e) = replace_dir(&self.staging, &self.final_dir) {
+            let mark = self.staging.join(COMPLETE_NOT_MOVED);
+            if let Ok(mut f) = create_new_file(&mark, "the completed-run mark") {
+                let _ = writeln!(
+                    f,
+                    "This run completed but could not be moved into {}: {e:#}\nsurfstream keeps this folder.",
+                    self.final_dir.display()
+                );
+            }
+            return Err(e);
+        }
         Ok(self.final_dir.clone())
     }
 
@@ -427,13 +586,7 @@ struct OutDirLock {
 impl OutDirLock {
     fn take(path: &Path, out: &Path) -> Result<Self> {
         loop {
-            let mut file = File::options()
-                .create(true)
-                .truncate(false)
-                .read(true)
-                .write(true)
-                .open(path)
-                .with_context(|| format!("{}: cannot open the out dir's lock", path.display()))?;
+            let mut file = open_own_file(path, "the out dir's lock")?;
             // SAFETY: flock on a file descriptor we own.
             if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } != 0 {
                 let mut owner = String::new();
@@ -516,6 +669,108 @@ mod tests {
             .map(|e| e.file_name().to_string_lossy().to_string())
             .collect();
         assert_eq!(names, ["out"], "staging, replaced run or lock left behind");
+    }
+
+    #[test]
+    fn a_lock_that_is_a_link_or_not_a_regular_file_is_refused_and_its_target_untouched() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("out");
+        let precious = dir.path().join("precious.txt");
+        std::fs::write(&precious, "years of work").unwrap();
+        let lock = dir.path().join("out.lock");
+        std::os::unix::fs::symlink(&precious, &lock).unwrap();
+        let e = format!(
+            "{:#}",
+            stage(&out, &Claim::default()).err().expect("refused")
+        );
+        assert!(e.contains("out.lock") && e.contains("symbolic link"), "{e}");
+        assert_eq!(std::fs::read_to_string(&precious).unwrap(), "years of work");
+        // A dangling link: its target is never created.
+        std::fs::remove_file(&lock).unwrap();
+        let target = dir.path().join("created-through-the-link");
+        std::os::unix::fs::symlink(&target, &lock).unwrap();
+        assert!(stage(&out, &Claim::default()).is_err());
+        assert!(!target.exists(), "the lock was created through a link");
+        // A folder in its place.
+        std::fs::remove_file(&lock).unwrap();
+        std::fs::create_dir(&lock).unwrap();
+        let e = format!(
+            "{:#}",
+            stage(&out, &Claim::default()).err().expect("refused")
+        );
+        assert!(e.contains("out.lock"), "{e}");
+        assert!(!out.exists(), "a refused run created the out dir");
+    }
+
+    #[test]
+    fn a_run_marker_planted_as_a_link_is_refused_not_followed() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("out");
+        std::fs::create_dir(&out).unwrap();
+        let precious = dir.path().join("precious.txt");
+        std::fs::write(&precious, "years of work").unwrap();
+        // An empty folder becomes a run folder by its marker: a dangling link there is refused.
+        let target = dir.path().join("through-the-marker");
+        std::os::unix::fs::symlink(&target, out.join(MARKER)).unwrap();
+        assert!(create_marked(&out).is_err());
+        assert!(!target.exists());
+        assert_eq!(std::fs::read_to_string(&precious).unwrap(), "years of work");
+    }
+
+    /// Mounts a 1 MiB tmpfs at `at` (root only); unmounted when dropped.
+    struct Mounted(PathBuf);
+    impl Mounted {
+        fn at(at: &Path) -> Option<Self> {
+            let ok = std::process::Command::new("mount")
+                .args(["-t", "tmpfs", "-o", "size=1m", "tmpfs"])
+                .arg(at)
+                .stderr(std::process::Stdio::null())
+                .status()
+                .is_ok_and(|s| s.success());
+            if !ok {
+                eprintln!(
+                    "SKIPPED: cannot mount a tmpfs (needs root) to make an unmovable out dir"
+                );
+            }
+            ok.then(|| Self(at.to_path_buf()))
+        }
+    }
+    impl Drop for Mounted {
+        fn drop(&mut self) {
+            let _ = std::process::Command::new("umount").arg(&self.0).status();
+        }
+    }
+
+    #[test]
+    fn an_unmovable_out_dir_is_refused_before_work_and_a_completed_unmoved_run_is_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("out");
+        std::fs::create_dir(&out).unwrap();
+        let staged = stage(&out, &Claim::default()).unwrap();
+        std::fs::write(staged.staging.join("panorama.npy"), "result").unwrap();
+        let staging = staged.staging.clone();
+        // The out dir becomes unmovable while the run runs.
+        let Some(_mount) = Mounted::at(&out) else {
+            staged.discard();
+            return;
+        };
+        assert!(staged.commit().is_err(), "moved onto a mount point");
+        assert!(staging.join(COMPLETE_NOT_MOVED).is_file());
+        // Known before any work now, and the completed run is kept, not removed as stale.
+        std::fs::write(out.join(MARKER), "").unwrap();
+        let e = format!(
+            "{:#}",
+            stage(&out, &Claim::default()).err().expect("refused")
+        );
+        assert!(e.contains("mount point"), "{e}");
+        assert_eq!(
+            std::fs::read_to_string(staging.join("panorama.npy")).unwrap(),
+            "result"
+        );
+        let other = dir.path().join("other");
+        assert_eq!(remove_stale_staging(&out), 0);
+        assert!(staging.is_dir(), "a completed run was removed");
+        stage(&other, &Claim::default()).unwrap().discard();
     }
 
     #[test]

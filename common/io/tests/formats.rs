@@ -1237,3 +1237,35 @@ fn datx_lying_dataspace_is_a_clear_error() {
         assert!(err.contains("/MetaData: declares"), "{err}");
     }
 }
+
+/// Inputs that lie (issue 36): an X3P with two descriptions and a MetroPro file whose
+/// wavelength is negative (which flipped every height's sign) are refused, naming what.
+#[test]
+fn two_main_xml_and_a_negative_wavelength_are_refused() {
+    let mut parts = x3p_parts(&specimen("sample4_bin.x3p"));
+    let main = parts
+        .iter()
+        .find(|(n, _)| n == "main.xml")
+        .expect("main.xml")
+        .1
+        .clone();
+    parts.push(("copy/main.xml".to_string(), main));
+    let e = format!(
+        "{:#}",
+        parse_surface(&x3p_from_parts(&parts), Format::X3p).expect_err("two main.xml read")
+    );
+    assert!(
+        e.contains("2 main.xml entries") && e.contains("copy/main.xml"),
+        "{e}"
+    );
+
+    let mut dat = std::fs::read(specimen("metropro-1.dat")).unwrap();
+    let wavelength = f32::from_be_bytes(dat[168..172].try_into().unwrap());
+    assert!(wavelength > 0.0);
+    dat[168..172].copy_from_slice(&(-wavelength).to_be_bytes());
+    let e = format!(
+        "{:#}",
+        parse_surface(&dat, Format::MetroPro).expect_err("a negative wavelength was read")
+    );
+    assert!(e.contains("wavelength_in") && e.contains("positive"), "{e}");
+}

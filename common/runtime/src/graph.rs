@@ -101,6 +101,11 @@ pub struct NodeRegistry {
     kinds: Vec<NodePorts>,
     /// (kind, parameter) pairs that name a file the node writes: relative to the out dir.
     output_files: Vec<(&'static str, &'static str)>,
+    /// (kind, parameter, the name written when the parameter is not given).
+    output_defaults: Vec<(&'static str, &'static str, &'static str)>,
+    /// Names in the out dir no node output may take (the run's own files); a trailing `*`
+    /// makes a prefix.
+    reserved_outputs: Vec<&'static str>,
 }
 
 impl NodeRegistry {
@@ -108,7 +113,39 @@ impl NodeRegistry {
         Self {
             kinds: kinds.into_iter().collect(),
             output_files: Vec::new(),
+            output_defaults: Vec::new(),
+            reserved_outputs: Vec::new(),
         }
+    }
+
+    /// Declares the file a node of `kind` writes when its output parameter `param` is not
+    /// given, so two nodes that would write one file are found when the graph is read.
+    pub fn with_output_default(
+        mut self,
+        kind: &'static str,
+        param: &'static str,
+        default: &'static str,
+    ) -> Self {
+        self.output_defaults.push((kind, param, default));
+        self
+    }
+
+    /// Declares names of the out dir that no node output may take: the run's record, its
+    /// marker, its logs, the fixed outputs of the nodes (issue 36: a recorder writing
+    /// `run.json` lost the recording). A trailing `*` makes a prefix (`report*`).
+    pub fn with_reserved_outputs(mut self, names: &[&'static str]) -> Self {
+        self.reserved_outputs.extend_from_slice(names);
+        self
+    }
+
+    fn reserved(&self, first: &str) -> Option<&'static str> {
+        self.reserved_outputs
+            .iter()
+            .copied()
+            .find(|r| match r.strip_suffix('*') {
+                Some(prefix) => first.starts_with(prefix),
+                None => first == *r,
+            })
     }
 
     /// Declares parameters of `kind` that name a file the node writes. The graph is refused
@@ -180,11 +217,20 @@ pub fn check_duration_s(what: &str, seconds: f64) -> Result<()> {
     Ok(())
 }
 
-/// Checks that `value` names a file inside the out dir: relative, no `..`, not empty.
+/// Checks that `value` names a file inside the out dir: relative, no `..`, not empty, not
+/// the out dir itself (`.`).
 pub fn check_relative_output(value: &str) -> std::result::Result<(), String> {
     let path = Path::new(value);
     if value.is_empty() {
         return Err("expected a file name relative to the out dir, got an empty name".into());
+    }
+    if !path
+        .components()
+        .any(|c| matches!(c, std::path::Component::Normal(_)))
+    {
+        return Err(format!(
+            "{value:?} names the out dir itself, not a file in it: give a file name"
+        ));
     }
     if path.is_absolute() {
         return Err(format!(
@@ -342,6 +388,73 @@ impl GraphFile {
         Ok(graph)
     }
 
+    /// The files the nodes' output parameters name (given, or the kind's default), each as its
+    /// path components inside the out dir: (node id, kind, parameter, name, components).
+    fn output_names<'a>(
+        &'a self,
+        registry: &NodeRegistry,
+    ) -> Vec<(&'a NodeEntry, &'static str, String, Vec<String>)> {
+        let mut names = Vec::new();
+        for n in &self.nodes {
+            for &(_, param) in registry.output_files.iter().filter(|(k, _)| *k == n.node) {
+                let given = n.params.get(param).and_then(|v| v.as_str());
+                let default = registry
+                    .output_defaults
+                    .iter()
+                    .find(|(k, p, _)| *k == n.node && *p == param)
+                    .map(|(_, _, d)| *d);
+                let Some(name) = given.or(default) else {
+                    continue;
+                };
+                let parts = Path::new(name)
+                    .components()
+                    .filter_map(|c| match c {
+                        std::path::Component::Normal(s) => Some(s.to_string_lossy().to_string()),
+                        _ => None,
+                    })
+                    .collect();
+                names.push((n, param, name.to_string(), parts));
+            }
+        }
+        names
+    }
+
+    /// Refuses output names that would overwrite the run's own files or each other (issue
+    /// 36), before any process starts, naming the node and the field.
+    fn check_output_names(&self, origin: &str, registry: &NodeRegistry) -> Result<()> {
+        let names = self.output_names(registry);
+        for (n, param, name, parts) in &names {
+            let Some(first) = parts.first() else {
+                continue;
+            };
+            if let Some(r) = registry.reserved(first) {
+                bail!(
+                    "{origin}: node '{}' ({}): params.{param} = {name:?}: {:?} is a name the run itself writes in its out dir ({}): choose another name",
+                    n.id,
+                    n.node,
+                    r.trim_end_matches('*'),
+                    registry.reserved_outputs.join(", ")
+                );
+            }
+        }
+        for (k, (n, param, name, parts)) in names.iter().enumerate() {
+            for (m, p2, name2, parts2) in &names[..k] {
+                let shorter = parts.len().min(parts2.len());
+                if parts[..shorter] == parts2[..shorter] {
+                    bail!(
+                        "{origin}: node '{}' ({}): params.{param} = {name:?} collides with node '{}' ({}) params.{p2} = {name2:?}{}: two outputs would write one file; give each its own name",
+                        n.id,
+                        n.node,
+                        m.id,
+                        m.node,
+                        if m.params.contains_key(*p2) { "" } else { " (its default)" }
+                    );
+                }
+            }
+        }
+        Ok(())
+    }
+
     /// Checks names, kinds (those of `registry`) and wiring.
     pub fn validate(&self, origin: &str, registry: &NodeRegistry) -> Result<()> {
         let valid_name = |s: &str| {
@@ -417,6 +530,7 @@ impl GraphFile {
                 })?;
             }
         }
+        self.check_output_names(origin, registry)?;
         for n in &self.nodes {
             let ins = registry
                 .ports(&n.node)
@@ -889,6 +1003,61 @@ inputs = { tiles = "stage/tiles", panorama = "fusion/panorama" }
         let mut g = GraphFile::parse(DEMO, "demo.toml", &registry()).unwrap();
         g.apply_override("rec.path=/tmp/elsewhere.mcap").unwrap();
         assert!(g.validate("demo.toml", &registry()).is_err());
+    }
+
+    #[test]
+    fn output_names_that_collide_or_take_the_runs_own_files_are_refused() {
+        let reg = registry()
+            .with_output_default("recorder", "path", "recording.mcap")
+            .with_reserved_outputs(&["run.json", "FAILED", "logs", "report*"]);
+        let with_path = |path: &str| {
+            DEMO.replace(
+                "inputs = { tiles = \"stage/tiles\", panorama = \"fusion/panorama\" }",
+                &format!(
+                    "inputs = {{ tiles = \"stage/tiles\", panorama = \"fusion/panorama\" }}\nparams = {{ path = {path:?} }}"
+                ),
+            )
+        };
+        for (bad, why) in [
+            ("run.json", "a name the run itself writes"),
+            ("FAILED", "a name the run itself writes"),
+            ("./report.html", "a name the run itself writes"),
+            ("logs/stage.stderr", "a name the run itself writes"),
+            (".", "names the out dir itself"),
+            ("./.", "names the out dir itself"),
+        ] {
+            let e = GraphFile::parse(&with_path(bad), "g.toml", &reg)
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("g.toml")
+                    && e.contains("node 'rec'")
+                    && e.contains("params.path")
+                    && e.contains(why),
+                "{bad}: {e}"
+            );
+        }
+        GraphFile::parse(&with_path("tiles.mcap"), "g.toml", &reg).unwrap();
+        // Two recorders: one with the default name, one naming it (or a folder above it).
+        let second = |path: Option<&str>| {
+            format!(
+                "{}\n[[node]]\nid = \"rec2\"\nnode = \"recorder\"\ninputs = {{ tiles = \"stage/tiles\" }}\n{}",
+                DEMO,
+                path.map(|p| format!("params = {{ path = {p:?} }}\n")).unwrap_or_default()
+            )
+        };
+        for clash in [None, Some("recording.mcap"), Some("./recording.mcap")] {
+            let e = GraphFile::parse(&second(clash), "g.toml", &reg)
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("node 'rec2'")
+                    && e.contains("collides with node 'rec'")
+                    && e.contains("(its default)"),
+                "{clash:?}: {e}"
+            );
+        }
+        GraphFile::parse(&second(Some("other.mcap")), "g.toml", &reg).unwrap();
     }
 
     #[test]

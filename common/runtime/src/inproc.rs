@@ -221,9 +221,15 @@ pub fn run_graph_supervised(
         if let Some(sig) = crate::stop::signal() {
             return Err(crate::stop::interrupted(sig));
         }
+        // An error of the operating system (a full disk) is the cause before any other.
         let root = errors
             .iter()
-            .position(|(_, e)| e.downcast_ref::<Consequence>().is_none())
+            .position(|(_, e)| crate::stdio::is_no_space(e))
+            .or_else(|| {
+                errors
+                    .iter()
+                    .position(|(_, e)| e.downcast_ref::<Consequence>().is_none())
+            })
             .unwrap_or(0);
         let (id, e) = errors.swap_remove(root);
         bail!("node '{id}' failed: {e:#}");

@@ -410,17 +410,30 @@ impl InPort {
     }
 }
 
-/// How the process learns it may start and tells it is ready (only under the launcher).
+/// How the process learns it may start and tells it is ready (only under the launcher), and
+/// the other nodes by whose progress its waits are judged.
 pub struct LauncherLink {
     pub ready_service: String,
     pub go_service: String,
+    pub peers: crate::watchdog::Peers,
 }
 
-/// Names of the launcher's control services of a graph.
+/// Names of the launcher's control services of a graph (no peers: every wait is judged by its
+/// own length; see [`LauncherLink::watching`]).
 pub fn launcher_link(graph: &str) -> LauncherLink {
     LauncherLink {
         ready_service: service_name(graph, "launcher", "ready"),
         go_service: service_name(graph, "launcher", "go"),
+        peers: crate::watchdog::Peers::default(),
+    }
+}
+
+impl LauncherLink {
+    /// Judges this node's waits by the heartbeats of `peers` (issue 36: liveness, not
+    /// wall-clock limits).
+    pub fn watching(mut self, peers: crate::watchdog::Peers) -> Self {
+        self.peers = peers;
+        self
     }
 }
 
@@ -435,17 +448,19 @@ pub fn run_node(
 ) -> Result<NodeReport> {
     let node = create_node(cfg, &format!("{}/{}", ctx.graph_name, ctx.node_id))?;
     let startup = Startup::of(ctx);
+    let no_peers = crate::watchdog::Peers::default();
+    let peers = launcher.map_or(&no_peers, |l| &l.peers);
     let mut outs = ctx
         .outputs
         .iter()
-        .map(|o| open_output(&node, ctx, o, &startup))
+        .map(|o| open_output(&node, ctx, o, &startup, peers))
         .collect::<Result<Vec<_>>>()?;
     let ins = ctx
         .inputs
         .iter()
-        .map(|i| open_input(&node, ctx, i, &startup))
+        .map(|i| open_input(&node, ctx, i, &startup, peers))
         .collect::<Result<Vec<_>>>()?;
-    LosslessHandshake::await_subscribers(&mut outs, &startup)?;
+    LosslessHandshake::await_subscribers(&mut outs, &startup, peers)?;
     if let Some(link) = launcher {
         join_launcher(&node, link, ctx.inputs.is_empty(), &startup)?;
     }
@@ -453,29 +468,32 @@ pub fn run_node(
     // Leave inputs, then hold outputs: samples in flight (and a panorama in a freshly grown
     // segment) stay readable until consumed.
     drop(ins);
-    hold_until_subscribers_left(&node, ctx, &outs)?;
+    hold_until_subscribers_left(&node, ctx, &outs, peers)?;
     Ok(NodeReport::finished(ctx, stats, logic))
 }
 
-/// The startup budget: attach, handshake and readiness share one deadline.
+/// The startup budget (issue 36): a startup wait fails when the nodes it waits on made no
+/// progress (no heartbeat) for `startup_timeout_s`, so a slow start on a loaded machine is
+/// waited for and a stopped or hung peer is not. Without peers (no launcher) the wait's own
+/// length is the measure.
 struct Startup {
     timeout: Duration,
-    deadline: Instant,
 }
 
 impl Startup {
     fn of(ctx: &NodeContext) -> Self {
-        let timeout = Duration::from_secs_f64(ctx.startup_timeout_s);
         Self {
-            timeout,
-            deadline: Instant::now() + timeout,
+            timeout: Duration::from_secs_f64(ctx.startup_timeout_s),
         }
     }
-    fn expired(&self) -> bool {
-        Instant::now() > self.deadline
+    /// The deadline of one short step begun now (opening a service another process is
+    /// creating at the same moment).
+    fn deadline(&self) -> Instant {
+        Instant::now() + self.timeout
     }
-    fn left(&self) -> Duration {
-        self.deadline.saturating_duration_since(Instant::now())
+    /// Whether the peers of `progress` made no progress for the startup timeout.
+    fn expired(&self, progress: &crate::watchdog::Progress) -> bool {
+        progress.silent_longer_than(self.timeout)
     }
     fn seconds(&self) -> f64 {
         self.timeout.as_secs_f64()
@@ -535,25 +553,29 @@ impl LosslessHandshake {
 
     /// Step 3, publisher side: waits until every lossless output has heard "ready" from all
     /// the subscribers the graph wired to it.
-    fn await_subscribers(outs: &mut [OutPort], startup: &Startup) -> Result<()> {
+    fn await_subscribers(
+        outs: &mut [OutPort],
+        startup: &Startup,
+        peers: &crate::watchdog::Peers,
+    ) -> Result<()> {
         for o in outs {
             let Some(listener) = o.ready_listener.take() else {
                 continue;
             };
+            let progress = peers.consumers(&o.port);
             let mut ready = 0u64;
             while ready < o.expected as u64 {
                 check_stop()?;
-                let left = startup.left();
-                if left.is_zero() {
+                if startup.expired(&progress) {
                     bail!(
-                        "output '{}': only {ready} of {} subscribers attached within {:.0} s",
+                        "output '{}': only {ready} of {} subscribers attached, and they made no progress for {:.0} s ([graph] startup_timeout_s)",
                         o.port,
                         o.expected,
                         startup.seconds()
                     );
                 }
                 listener
-                    .timed_wait(|e| ready += e.count, left.min(Duration::from_millis(100)))
+                    .timed_wait(|e| ready += e.count, Duration::from_millis(100))
                     .map(|_| ())
                     .or_else(retry_if_interrupted)
                     .map_err(|e| anyhow!("output '{}': ready wait failed: {e:?}", o.port))?;
@@ -570,17 +592,23 @@ fn open_output(
     ctx: &NodeContext,
     o: &OutputSpec,
     startup: &Startup,
+    peers: &crate::watchdog::Peers,
 ) -> Result<OutPort> {
-    let deadline = startup.deadline;
+    let deadline = startup.deadline();
     let name = ctx.service_name(&ctx.node_id, &o.port);
     let ready_service = open_events(node, &LosslessHandshake::ready_service(&name), deadline)?;
     let ready_listener = LosslessHandshake::listen(&ready_service, &name, o.delivery)?;
     let backpressure = Duration::from_secs_f64(ctx.backpressure_timeout_s);
+    let receivers = peers.consumers(&o.port);
     let handler = move |info: &BackpressureInfo| {
         // Blocked by a full downstream queue is not a stall of this node: keep beating, so the
         // launcher names the receiver that does not drain.
         crate::watchdog::beat();
-        if info.elapsed_time > backpressure {
+        // A receiver that keeps beating is slow, not stuck (issue 36): the send fails only
+        // after its receivers made no progress for the backpressure timeout.
+        if info.elapsed_time > backpressure
+            && receivers.silent_for().min(info.elapsed_time) > backpressure
+        {
             BackpressureAction::DiscardDataAndFail
         } else {
             BackpressureAction::Retry
@@ -643,8 +671,9 @@ fn open_input(
     ctx: &NodeContext,
     i: &InputSpec,
     startup: &Startup,
+    peers: &crate::watchdog::Peers,
 ) -> Result<InPort> {
-    let deadline = startup.deadline;
+    let deadline = startup.deadline();
     let name = ctx.service_name(&i.from_node, &i.from_port);
     let receiver = match i.kind {
         PortKind::Frames => {
@@ -676,14 +705,17 @@ fn open_input(
         listener,
         _wake_service: wake_service,
     };
-    // Startup only: wait (politely) for the producer's publisher to exist.
+    // Startup only: wait (politely) for the producer's publisher to exist, as long as the
+    // producer makes progress.
+    let producer = peers.node(&i.from_node);
     while port.publishers_now() == 0 {
         check_stop()?;
-        if startup.expired() {
+        if startup.expired(&producer) {
             bail!(
-                "input '{}': producer {} did not appear within {:.0} s",
+                "input '{}': producer {} did not appear, and node '{}' made no progress for {:.0} s ([graph] startup_timeout_s)",
                 i.port,
                 i.topic(),
+                i.from_node,
                 startup.seconds()
             );
         }
@@ -691,7 +723,7 @@ fn open_input(
     }
     port.update_connections()?;
     if i.delivery == Delivery::Lossless {
-        LosslessHandshake::announce(node, &name, deadline)?;
+        LosslessHandshake::announce(node, &name, startup.deadline())?;
     }
     Ok(port)
 }
@@ -704,12 +736,12 @@ fn join_launcher(
     is_source: bool,
     startup: &Startup,
 ) -> Result<()> {
-    let go_service = open_events(node, &link.go_service, startup.deadline)?;
+    let go_service = open_events(node, &link.go_service, startup.deadline())?;
     let go = go_service
         .listener_builder()
         .create()
         .map_err(|e| anyhow!("{}: cannot create listener: {e:?}", link.go_service))?;
-    let ready_service = open_events(node, &link.ready_service, startup.deadline)?;
+    let ready_service = open_events(node, &link.ready_service, startup.deadline())?;
     ready_service
         .notifier_builder()
         .create()
@@ -717,12 +749,14 @@ fn join_launcher(
         .notify()
         .map_err(|e| anyhow!("{}: notify failed: {e:?}", link.ready_service))?;
     if is_source {
+        // The launcher says "go" when every node is ready: wait as long as the graph starts up.
+        let graph = link.peers.all();
         let mut started = false;
         while !started {
             check_stop()?;
-            if startup.expired() {
+            if startup.expired(&graph) {
                 bail!(
-                    "the launcher did not say 'go' within {:.0} s",
+                    "the launcher did not say 'go', and no node of the graph made progress for {:.0} s ([graph] startup_timeout_s)",
                     startup.seconds()
                 );
             }
@@ -829,21 +863,24 @@ fn check_producers_alive(ins: &[InPort], ended: &[bool]) -> Result<()> {
 }
 
 /// Keeps the lossless publishers alive until every subscriber has left, so nothing in flight
-/// is lost when this process exits. Bounded: a subscriber still attached after twice the
-/// backpressure timeout is stalled (the launcher's stall watch normally names it first).
+/// is lost when this process exits. Bounded by liveness (issue 36): a subscriber still at work
+/// (beating) is waited for however long it takes; the wait fails when the subscribers made
+/// no progress for twice the backpressure timeout (the launcher's stall watch normally names
+/// a stuck one first). Without peers (no launcher), after twice the backpressure timeout.
 fn hold_until_subscribers_left(
     node: &Node<ipc::Service>,
     ctx: &NodeContext,
     outs: &[OutPort],
+    peers: &crate::watchdog::Peers,
 ) -> Result<()> {
     let limit = Duration::from_secs_f64(2.0 * ctx.backpressure_timeout_s);
-    let deadline = Instant::now() + limit;
     for o in outs.iter().filter(|o| o.delivery == Delivery::Lossless) {
+        let subscribers = peers.consumers(&o.port);
         while o.subscribers_now() > 0 {
             check_stop()?;
-            if Instant::now() > deadline {
+            if subscribers.silent_longer_than(limit) {
                 bail!(
-                    "output '{}': {} subscriber(s) still attached {:.0} s after this node finished: a downstream node does not drain",
+                    "output '{}': {} subscriber(s) still attached after this node finished, and they made no progress for {:.0} s: a downstream node does not drain",
                     o.port,
                     o.subscribers_now(),
                     limit.as_secs_f64()

@@ -30,12 +30,20 @@ pub fn write_report(out_dir: &Path, report: &NodeReport) -> Result<()> {
     })
 }
 
-/// Reads the resolved graph and returns the context of `node_id`.
-pub fn load_context(graph: &Path, node_id: &str) -> Result<NodeContext> {
+/// Reads the resolved graph: every node's context.
+pub fn load_graph(graph: &Path) -> Result<Vec<NodeContext>> {
     let text = std::fs::read_to_string(graph)
         .with_context(|| format!("{}: cannot read resolved graph", graph.display()))?;
-    let all: Vec<NodeContext> = serde_json::from_str(&text)
-        .map_err(|e| anyhow!("{}: not a resolved graph: {e}", graph.display()))?;
+    serde_json::from_str(&text)
+        .map_err(|e| anyhow!("{}: not a resolved graph: {e}", graph.display()))
+}
+
+/// Reads the resolved graph and returns the context of `node_id`.
+pub fn load_context(graph: &Path, node_id: &str) -> Result<NodeContext> {
+    context_in(load_graph(graph)?, graph, node_id)
+}
+
+fn context_in(all: Vec<NodeContext>, graph: &Path, node_id: &str) -> Result<NodeContext> {
     all.into_iter()
         .find(|c| c.node_id == node_id)
         .ok_or_else(|| anyhow!("{}: no node with id {node_id:?}", graph.display()))
@@ -105,7 +113,10 @@ fn run(kind: &str, build: fn(&NodeContext) -> Result<Box<dyn NodeLogic + Send>>)
     ctrlc::set_handler(|| ipc::STOP_REQUESTED.store(true, std::sync::atomic::Ordering::Relaxed))
         .map_err(|e| anyhow!("cannot install the termination handler: {e}"))?;
     ipc::validate_prefix(&args.domain)?;
-    let ctx = load_context(&args.graph, &args.node)?;
+    let all = load_graph(&args.graph)?;
+    let ctx = context_in(all.clone(), &args.graph, &args.node)?;
+    // Its waits are judged by the progress of the nodes it waits on (issue 36).
+    let peers = crate::watchdog::Peers::of(&all, &ctx);
     crate::memory::return_freed_buffers(ctx.memory.budget_bytes);
     if ctx.node_kind != kind {
         bail!(
@@ -120,7 +131,7 @@ fn run(kind: &str, build: fn(&NodeContext) -> Result<Box<dyn NodeLogic + Send>>)
     }
     let mut logic = build(&ctx)?;
     let cfg = ipc::domain_config(&args.domain)?;
-    let link = ipc::launcher_link(&ctx.graph_name);
+    let link = ipc::launcher_link(&ctx.graph_name).watching(peers);
     let report = ipc::run_node(&ctx, logic.as_mut(), &cfg, args.launched.then_some(&link))
         .with_context(|| format!("node '{}'", ctx.node_id))?;
     write_report(&ctx.out_dir, &report)

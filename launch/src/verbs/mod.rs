@@ -430,3 +430,114 @@ mod tests {
         assert!(mesh::check_stl_name(Path::new("k")).is_err());
     }
 }
+
+/// `--force` of the single-file verbs (issue 36: `convert a.x3p -o a.x3p` rewrote its input,
+/// `mesh ... -o notes.stl` replaced a file, `separate p.npy -o sf` wrote into a user's folder).
+#[derive(clap::Args, Clone, Copy, Debug, Default)]
+pub struct Overwrite {
+    /// Replace output files that exist already (an input is never replaced).
+    #[arg(long)]
+    pub force: bool,
+}
+
+/// The files `path` stands for: itself, and a `.npy`'s pitch sidecar.
+fn with_sidecar(path: &Path) -> Vec<PathBuf> {
+    let mut all = vec![path.to_path_buf()];
+    let is_npy = path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("npy"));
+    if is_npy {
+        all.push(surfstream_io::sidecar::sidecar_path(path));
+    }
+    all
+}
+
+/// The same file (both exist and are one inode), or the same path.
+fn same_file(a: &Path, b: &Path) -> bool {
+    use std::os::unix::fs::MetadataExt;
+    match (std::fs::metadata(a), std::fs::metadata(b)) {
+        (Ok(x), Ok(y)) => x.dev() == y.dev() && x.ino() == y.ino(),
+        _ => a == b,
+    }
+}
+
+/// Checks, before any work, that the single-file verb `verb` may write `outputs` (each with
+/// its sidecar): none is an input (or an input's sidecar), whatever `--force` says; none
+/// exists unless `--force`; none is a folder, FIFO or device.
+pub fn claim_output_files(
+    verb: &str,
+    inputs: &[&Path],
+    outputs: &[&Path],
+    overwrite: Overwrite,
+) -> Result<()> {
+    let inputs: Vec<PathBuf> = inputs.iter().flat_map(|p| with_sidecar(p)).collect();
+    for out in outputs.iter().flat_map(|p| with_sidecar(p)) {
+        if let Some(input) = inputs.iter().find(|i| same_file(i, &out)) {
+            bail!(
+                "{verb}: {} is {}: an input is never overwritten; choose another -o",
+                out.display(),
+                if *input == out {
+                    "the input".to_string()
+                } else {
+                    format!("the input {}", input.display())
+                }
+            );
+        }
+        let Ok(meta) = std::fs::symlink_metadata(&out) else {
+            continue;
+        };
+        if !meta.file_type().is_file() {
+            bail!(
+                "{verb}: {} exists and is not a regular file (a folder, link, FIFO or device): choose another -o",
+                out.display()
+            );
+        }
+        if !overwrite.force {
+            bail!(
+                "{verb}: {} exists: pass --force to replace it, or choose another -o",
+                out.display()
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Checks, before any work, that the verb may write into the folder `dir`: a new or empty
+/// folder, or with `--force` an existing one; never a folder that is or holds an input.
+pub fn claim_output_folder(
+    verb: &str,
+    inputs: &[&Path],
+    dir: &Path,
+    overwrite: Overwrite,
+) -> Result<()> {
+    let Ok(meta) = std::fs::symlink_metadata(dir) else {
+        return Ok(()); // the verb makes it
+    };
+    if !meta.is_dir() {
+        bail!(
+            "{verb}: {} exists and is not a folder: choose another -o",
+            dir.display()
+        );
+    }
+    let canon = dir.canonicalize().unwrap_or_else(|_| dir.to_path_buf());
+    for input in inputs {
+        if input.canonicalize().is_ok_and(|i| i.starts_with(&canon)) {
+            bail!(
+                "{verb}: the output folder {} holds the input {}: choose another -o",
+                dir.display(),
+                input.display()
+            );
+        }
+    }
+    let empty = std::fs::read_dir(dir)
+        .with_context(|| format!("{}: cannot read", dir.display()))?
+        .next()
+        .is_none();
+    if !empty && !overwrite.force {
+        bail!(
+            "{verb}: {} is a folder that exists and is not empty (surfstream did not make it for this run): pass --force to write into it, or choose a new folder with -o",
+            dir.display()
+        );
+    }
+    Ok(())
+}

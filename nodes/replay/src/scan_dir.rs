@@ -539,7 +539,15 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         .finish()
         .with_context(|| format!("{m}: [scan] mask_exclude"))?;
     let (rows, cols, _) = shape.ok_or_else(|| anyhow!("{m}: no tiles"))?;
-    if let Some((px, py, _)) = file_pitch {
+    if let Some((px, py, first)) = file_pitch {
+        // The manifest's range holds whichever source the pitch comes from (issue 36).
+        for (field, v) in [("pitch_x_um", px), ("pitch_y_um", py)] {
+            if !(MIN_PITCH_UM..=MAX_PITCH_UM).contains(&v) {
+                bail!(
+                    "{m}: {first}: the tile file's {field} = {v:e}, and [scan] gives none: expected a pitch between {MIN_PITCH_UM} and {MAX_PITCH_UM} um (an optical profiler's field is sampled at 0.01-100 um)"
+                );
+            }
+        }
         scan.pitch_x_um = px;
         scan.pitch_y_um = py;
     }

@@ -68,6 +68,10 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
             bail!("field '{name}' is {v}, expected a finite non-zero number");
         }
     }
+    // A negative wavelength would flip every height's sign (issue 36).
+    if wavelength_m < 0.0 {
+        bail!("field 'wavelength_in' is {wavelength_m} m, expected a positive wavelength");
+    }
     let start = header_size
         .checked_add(ac_n_bytes)
         .ok_or_else(|| anyhow::anyhow!("header_size + ac_n_bytes overflows"))?;

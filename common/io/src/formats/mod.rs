@@ -183,7 +183,9 @@ pub fn is_surface_file(path: &Path) -> bool {
 pub fn read_surface(path: &Path) -> Result<Surface> {
     let format = Format::from_path(path)?;
     if format == Format::Npy {
-        return read_npy_surface(path).map(invalid_if_not_finite);
+        let s = read_npy_surface(path).map(invalid_if_not_finite)?;
+        check_pitch(&s).with_context(|| format!("{}", path.display()))?;
+        return Ok(s);
     }
     let data = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
     parse_surface(&data, format).with_context(|| format!("{}", path.display()))
@@ -212,7 +214,27 @@ pub fn parse_surface(data: &[u8], format: Format) -> Result<Surface> {
         Format::Npy => bail!(".npy is read from a path (read_surface)"),
     };
     debug_assert_eq!(s.heights_um.len(), s.width * s.height);
+    check_pitch(&s)?;
     Ok(invalid_if_not_finite(s))
+}
+
+/// The lateral pitch every reader may return, um: 1 pm .. 1 m (issue 36: an X3P `Increment`
+/// of 1e300, a MetroPro `lateral_res` or SUR spacing of 1e30 were read and failed far from
+/// the cause).
+pub const PITCH_RANGE_UM: (f64, f64) = (1e-6, 1e6);
+
+/// Refuses a pitch outside [`PITCH_RANGE_UM`], naming the axis and the value (the caller adds
+/// the file).
+fn check_pitch(s: &Surface) -> Result<()> {
+    let (lo, hi) = PITCH_RANGE_UM;
+    for (field, v) in [("pitch_x_um", s.pitch_x_um), ("pitch_y_um", s.pitch_y_um)] {
+        if !(v >= lo && v <= hi) {
+            bail!(
+                "the file's lateral calibration gives {field} = {v:e}: expected a pitch between {lo:e} um (1 pm) and {hi:e} um (1 m); the file's spacing field is corrupt or in another unit"
+            );
+        }
+    }
+    Ok(())
 }
 
 /// Every reader's one convention for invalid points: NaN. Some writers store them as +-inf
@@ -336,4 +358,59 @@ fn read_npy_surface(path: &Path) -> Result<Surface> {
         heights_um: a.data,
         metadata,
     })
+}
+
+#[cfg(test)]
+mod pitch_tests {
+    use super::*;
+
+    fn surface(pitch_x_um: f64, pitch_y_um: f64) -> Surface {
+        Surface {
+            width: 3,
+            height: 2,
+            pitch_x_um,
+            pitch_y_um,
+            heights_um: vec![0.0, 1.0, 2.0, 3.0, 4.0, 5.0],
+            metadata: Metadata {
+                pitch_known: true,
+                ..Metadata::default()
+            },
+        }
+    }
+
+    /// A file whose lateral calibration lies (issue 36: an X3P Increment of 1e300 or 1e-300,
+    /// a spacing of 1e30) is refused when read, naming the file, the axis and the value; 1 pm
+    /// and 1 m themselves are read.
+    #[test]
+    fn a_pitch_outside_1_pm_to_1_m_is_refused_naming_the_file_and_the_field() {
+        let dir = tempfile::tempdir().unwrap();
+        for (px, py, field) in [
+            (1e300, 1.0, "pitch_x_um = "),
+            (1.0, 1e-300, "pitch_y_um = "),
+            (1e30, 1e30, "pitch_x_um = "),
+        ] {
+            for ext in ["x3p", "gsf", "npy"] {
+                let path = dir.path().join(format!("lies.{ext}"));
+                write_surface(&path, &surface(px, py)).unwrap();
+                let e = format!(
+                    "{:#}",
+                    read_surface(&path).expect_err("a lying pitch was read")
+                );
+                assert!(
+                    e.contains(&format!("lies.{ext}")) && e.contains(field) && e.contains("1 pm"),
+                    "{ext} {px} {py}: {e}"
+                );
+            }
+        }
+        for pitch in [PITCH_RANGE_UM.0, PITCH_RANGE_UM.1, 0.8148] {
+            let path = dir.path().join("fine.x3p");
+            write_surface(&path, &surface(pitch, pitch)).unwrap();
+            let s = read_surface(&path).unwrap();
+            assert!(
+                (s.pitch_x_um / pitch - 1.0).abs() < 1e-9,
+                "{pitch}: {}",
+                s.pitch_x_um
+            );
+        }
+    }
 }

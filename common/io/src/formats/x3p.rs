@@ -252,12 +252,26 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
         .filter_map(|n| n.ok())
         .map(|n| n.into_owned())
         .collect();
-    // main.xml may sit in a sub-folder: take the shallowest one.
-    let main_name = names
+    // main.xml may sit in a sub-folder; two descriptions are an ambiguity, not a choice
+    // (issue 36: the second was read silently).
+    let mains: Vec<&String> = names
         .iter()
         .filter(|n| *n == "main.xml" || n.ends_with("/main.xml"))
-        .min_by_key(|n| n.matches('/').count())
-        .cloned()
+        .collect();
+    if mains.len() > 1 {
+        bail!(
+            "the archive holds {} main.xml entries ({}): expected one description",
+            mains.len(),
+            mains
+                .iter()
+                .map(|n| format!("'{n}'"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
+    let main_name = mains
+        .first()
+        .map(|n| n.to_string())
         .context("no main.xml in the archive")?;
     let folder = &main_name[..main_name.len() - "main.xml".len()];
     let xml_bytes = read_entry(&mut zip, &main_name, MAX_XML_BYTES)?;
