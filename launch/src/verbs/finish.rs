@@ -39,6 +39,10 @@ pub struct FinishArgs {
     /// Media passes per segment (default: as many as the budget allows).
     #[arg(long)]
     pub passes: Option<usize>,
+    /// Engine processes at once for a cycle's micro passes (with a macro run's contact
+    /// samples); the wear does not depend on it.
+    #[arg(long, default_value_t = 1)]
+    pub jobs: usize,
     /// Diameter of the spherical media, mm (default 3, the paper's ceramic media).
     #[arg(long)]
     pub media_diameter_mm: Option<f64>,
@@ -455,6 +459,7 @@ pub fn run(a: FinishArgs) -> Result<()> {
         time_budget_s: a.time_budget_s,
         cycles: a.cycles,
         passes: a.passes,
+        jobs: a.jobs,
         guard_um: a.guard_um,
         ranks: a.ranks,
         hostfile: a.hostfile.clone(),

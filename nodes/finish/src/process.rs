@@ -17,7 +17,11 @@ use crate::engine::{EngineCommand, EngineProgress};
 use crate::field::{self, impact_rate_per_m2_s, ApproachDistribution, FieldGrid, WearTable};
 use crate::grid::{crop, volume_um3, Patch};
 use crate::laws::{self, ImpactLaw, SlidingLaw, WearLaw};
-use crate::machine::MacroContacts;
+use crate::machine::{ContactSample, MacroContacts};
+use crate::passes::{
+    passes_per_engine, run_micro_passes, MicroPlan, MicroRun, PatchModel, DEFAULT_CURVATURE_DEG,
+    DEFAULT_ENGINE_PROCESSES,
+};
 use crate::predict::{self, Prediction, PredictionInput};
 use crate::run::{
     outputs, run_segment, surface_params, timestep_s, Calibration, FinishOptions, Model, Progress,
@@ -29,7 +33,8 @@ use crate::setting::Action;
 use crate::summary::{
     AbbottSummary, CalibrationSummary, CheckMean, ContactFieldSummary, CycleField, CycleRecord,
     CycleVolumeCheck, FinalFit, FinishSetting, FinishSummary, IdealModelRun, PaperValues,
-    PatchRecord, ProbeRecord, SimValues, Timings, VolumeCheck, WearLawsRecord, WearVolumes,
+    PatchRecord, PatchSummary, ProbeRecord, SimValues, Timings, VolumeCheck, WearLawsRecord,
+    WearVolumes,
 };
 
 /// Runs the finishing simulation of `model` into `out_dir`; see the crate doc. `say` gets
@@ -48,9 +53,10 @@ pub fn finish_record(
     let mut st = State::new(&setup);
     // Planning passes within the budget needs the engine's cost on this machine now (a busy
     // machine makes it several times the quiet estimate): a probe of two passes measures it.
-    let probe = match opts.passes {
-        None => Some(probe(&setup, &mut st, stop, say)?),
-        Some(_) => None,
+    // (The micro passes are planned by count, not by the budget: no probe.)
+    let probe = match (opts.passes, setup.samples.is_empty()) {
+        (None, true) => Some(probe(&setup, &mut st, stop, say)?),
+        _ => None,
     };
     for c in 1..=opts.cycles {
         if st.partial || !run_cycle(&setup, &mut st, c, stop, say)? {
@@ -82,6 +88,7 @@ pub fn finish_record(
     // Set here: the macro run is made before the set-up, the material is the options'.
     record.macro_run = macro_run;
     record.part_material = opts.part_material.clone();
+    record.cycle_path = Some(setup.cycle_path().into());
     // Written as a JSON value: its keys sorted, as finish.json has always had them.
     let summary = record::to_value(&record);
     let path = out_dir.join(outputs::SUMMARY);
@@ -138,7 +145,12 @@ struct Setup<'a> {
     /// When the calibration's Sa holds, and the times of the series, s.
     calibration_time_s: f64,
     series_times_s: Vec<f64>,
+    /// The macro run's contact samples (empty: the cycles run the one-medium segment).
+    samples: Vec<ContactSample>,
 }
+
+/// Micro passes per cycle when `--passes` is not given (they are planned by count).
+pub const DEFAULT_MICRO_PASSES: usize = 16;
 
 impl<'a> Setup<'a> {
     /// Checks the options, cuts the patch, says what will run, and reads the targets.
@@ -292,7 +304,40 @@ impl<'a> Setup<'a> {
             rates_from,
             calibration_time_s,
             series_times_s,
+            samples: macro_run.map(|m| m.samples.clone()).unwrap_or_default(),
         })
+    }
+
+    /// finish.json `cycle_path`: which path the cycles ran.
+    fn cycle_path(&self) -> &'static str {
+        if self.samples.is_empty() {
+            "one-medium segment on the block-averaged grid mesh (no contact samples: no macro run or --macro-record)"
+        } else {
+            "micro passes: the patch meshed by the tolerance mesher, passes drawn from the macro run's contact samples (Finnie impacts, Archard sliding)"
+        }
+    }
+
+    /// A cycle's micro passes (cycle `c`): the options' media, part, constants and jobs.
+    fn micro_plan(&self, c: usize) -> MicroPlan {
+        let opts = self.opts;
+        let part = opts.part_material.clone().unwrap_or_default();
+        let passes = opts.passes.unwrap_or(DEFAULT_MICRO_PASSES);
+        let side_um = (self.patch.crop.cols as f64 * self.patch.sampling.pitch_x_um())
+            .min(self.patch.crop.rows as f64 * self.patch.sampling.pitch_y_um());
+        MicroPlan {
+            media: opts.media,
+            archard_k: opts.archard_k_over_h_per_pa * part.hardness_pa,
+            part,
+            k_finnie_per_pa: self.k_finnie,
+            curvature_deg: DEFAULT_CURVATURE_DEG,
+            passes,
+            seed: opts.seed.wrapping_add(c as u64 - 1),
+            jobs: opts.jobs,
+            passes_per_engine: passes_per_engine(passes, DEFAULT_ENGINE_PROCESSES),
+            contact_every: 5,
+            // Half the evaluated patch's smaller side: the track stays on the patch.
+            max_slide_m: 0.5 * side_um * 1e-6,
+        }
     }
 
     /// The prediction's laws with the DEM's wear-per-contact `table`: impacts (Finnie) at
@@ -517,6 +562,8 @@ struct State {
     /// The ideal model's predicted wear on the evaluated patch.
     ideal_wear: Option<Vec<f64>>,
     checks: Vec<field::FieldCheck>,
+    /// The first micro cycle's patch model (finish.json `patch.model`).
+    patch_model: Option<PatchModel>,
 }
 
 impl State {
@@ -540,6 +587,7 @@ impl State {
             impact_total: None,
             ideal_wear: None,
             checks: Vec::new(),
+            patch_model: None,
         }
     }
 
@@ -633,19 +681,51 @@ fn run_cycle(
         cost_per_triangle_step_s: st.cost,
         ..setup.plan()
     };
-    let mut progress = progress_lines(say, "cycle", c, opts.cycles, true);
-    let r = run_segment(
-        &seg_plan,
-        &st.h,
-        setup.patch.sampling,
-        setup.patch.crop,
-        &dir,
-        stop,
-        &mut progress,
-    )?;
-    // The progress lines borrow `say`; it speaks again below.
-    drop(progress);
-    st.count_engine(&r, CostEstimate::Update);
+    let r = if setup.samples.is_empty() {
+        let mut progress = progress_lines(say, "cycle", c, opts.cycles, true);
+        let r = run_segment(
+            &seg_plan,
+            &st.h,
+            setup.patch.sampling,
+            setup.patch.crop,
+            &dir,
+            stop,
+            &mut progress,
+        )?;
+        // The progress lines borrow `say`; it speaks again below.
+        drop(progress);
+        st.count_engine(&r, CostEstimate::Update);
+        CycleRun::of_segment(r)
+    } else {
+        let mut last = Instant::now();
+        let m = run_micro_passes(
+            &setup.engine,
+            &setup.micro_plan(c),
+            &setup.samples,
+            &st.h,
+            setup.patch.sampling,
+            setup.patch.crop,
+            opts.max_triangles,
+            &dir,
+            stop,
+            &mut |p| {
+                if last.elapsed().as_secs_f64() >= 2.0 {
+                    last = Instant::now();
+                    say(&format!(
+                        "finish: cycle {c}/{}: micro passes, engine process {}/{}: step {}/{}",
+                        opts.cycles,
+                        p.group + 1,
+                        p.groups,
+                        p.engine.steps_done,
+                        p.engine.steps_total
+                    ));
+                }
+            },
+        )?;
+        st.engine_s += m.engine_s;
+        st.engine_cpu_s += m.engine_cpu_s;
+        CycleRun::of_micro(m)
+    };
     if r.stopped {
         st.partial = true;
         say(&format!(
@@ -654,7 +734,7 @@ fn run_cycle(
         ));
         return Ok(false);
     }
-    let sim_s = r.segment.simulated_time_s();
+    let sim_s = r.simulated_s;
     st.sim_time_total += sim_s;
     if st.first_finnie_map.is_none() {
         st.first_finnie_map = Some(r.finnie_um.clone());
@@ -665,7 +745,7 @@ fn run_cycle(
     };
     let patch = &setup.patch;
     let (_, after_c) = surface_params(&patch.cropped(&st.h), patch.crop_sampling())?;
-    st.worst_volume_error = st.worst_volume_error.max(r.volume_relative_error().abs());
+    st.worst_volume_error = st.worst_volume_error.max(r.volume_relative_error.abs());
     let CycleWear {
         scale,
         reached,
@@ -677,13 +757,13 @@ fn run_cycle(
         "finish: cycle {c}/{} ({}): {} passes, {:.3} ms simulated in {:.1} s; wear x {:.3e}{}; Sa {:.3} um (volume check {:+.2e})",
         opts.cycles,
         opts.wear_model.name(),
-        r.segment.passes.len(),
+        r.passes,
         sim_s * 1e3,
         r.engine_s,
         scale,
         if setup.target_sa.is_some() { format!(" (fitted k_finnie {fitted_k:.3e} 1/Pa{})", if reached { "" } else { ", target NOT reached" }) } else { String::new() },
         after_c.sa,
-        r.volume_relative_error()
+        r.volume_relative_error
     ));
     st.cycles.push(CycleRecord {
         cycle: c,
@@ -691,16 +771,14 @@ fn run_cycle(
         command: r.command.clone(),
         triangles: r.triangles,
         mesh_block_stride: r.mesh_stride,
-        passes: r.segment.passes.len(),
-        steps_per_pass: r.segment.steps_per_pass,
-        timestep_s: r.segment.timestep_s,
+        passes: r.passes,
+        steps_per_pass: r.steps_per_pass,
+        timestep_s: r.timestep_s,
         simulated_s: sim_s,
         engine_s: r.engine_s,
         engine_cpu_s: r.engine_cpu_s,
-        cost_per_triangle_step_s: r.engine_s
-            / (r.triangles as f64 * r.segment.total_steps() as f64),
-        cpu_per_triangle_step_s: r.engine_cpu_s
-            / (r.triangles as f64 * r.segment.total_steps() as f64),
+        cost_per_triangle_step_s: r.engine_s / r.triangle_steps,
+        cpu_per_triangle_step_s: r.engine_cpu_s / r.triangle_steps,
         acceleration_factor: acceleration,
         wear_scale: scale,
         target_reached: reached,
@@ -709,14 +787,109 @@ fn run_cycle(
             liggghts_um3: r.liggghts_volume_um3,
             grid_um3: r.grid_volume_um3,
             unmapped_um3: r.unmapped_volume_um3,
-            relative_error: r.volume_relative_error(),
+            relative_error: r.volume_relative_error,
         },
         archard_volume_um3: volume_um3(&r.archard_um, patch.sampling.pitch()),
-        contacts: record::to_value(&r.contacts),
+        contacts: r.contacts,
         contact_field: cycle_field,
         after: after_c,
+        micro: r.micro,
     });
+    if st.patch_model.is_none() {
+        st.patch_model = r.model;
+    }
     Ok(true)
+}
+
+/// What a cycle's engine run gives the wear models and its record, from either path: the
+/// one-medium segment or the micro passes.
+struct CycleRun {
+    finnie_um: Vec<f64>,
+    archard_um: Vec<f64>,
+    /// Passes in all, and the impacts among them (the contact field's wear per contact).
+    passes: usize,
+    impacts: usize,
+    simulated_s: f64,
+    steps_per_pass: usize,
+    timestep_s: f64,
+    triangle_steps: f64,
+    triangles: usize,
+    mesh_stride: usize,
+    command: String,
+    engine_s: f64,
+    engine_cpu_s: f64,
+    liggghts_volume_um3: f64,
+    grid_volume_um3: f64,
+    unmapped_volume_um3: f64,
+    volume_relative_error: f64,
+    contacts: serde_json::Value,
+    micro: Option<serde_json::Value>,
+    model: Option<PatchModel>,
+    stopped: bool,
+}
+
+impl CycleRun {
+    fn of_segment(r: SegmentResult) -> Self {
+        let steps = r.segment.total_steps();
+        Self {
+            passes: r.segment.passes.len(),
+            impacts: r.segment.passes.len(),
+            simulated_s: r.segment.simulated_time_s(),
+            steps_per_pass: r.segment.steps_per_pass,
+            timestep_s: r.segment.timestep_s,
+            triangle_steps: r.triangles as f64 * steps as f64,
+            triangles: r.triangles,
+            mesh_stride: r.mesh_stride,
+            command: r.command.clone(),
+            engine_s: r.engine_s,
+            engine_cpu_s: r.engine_cpu_s,
+            liggghts_volume_um3: r.liggghts_volume_um3,
+            grid_volume_um3: r.grid_volume_um3,
+            unmapped_volume_um3: r.unmapped_volume_um3,
+            volume_relative_error: r.volume_relative_error(),
+            contacts: record::to_value(&r.contacts),
+            micro: None,
+            model: None,
+            stopped: r.stopped,
+            finnie_um: r.finnie_um,
+            archard_um: r.archard_um,
+        }
+    }
+
+    /// The micro passes: `mesh_stride` 1 (the tolerance mesh, not a block average), the
+    /// command the first engine process's, the contacts the impacts' summary.
+    fn of_micro(m: MicroRun) -> Self {
+        let rec = m.record();
+        let passes = rec.impacts + rec.sliding;
+        let steps: usize = m.passes.iter().map(|p| p.steps).sum();
+        Self {
+            passes,
+            impacts: rec.impacts,
+            simulated_s: rec.simulated_s,
+            steps_per_pass: steps / passes.max(1),
+            timestep_s: rec.timestep_s,
+            triangle_steps: rec.triangle_steps,
+            triangles: rec.triangles,
+            mesh_stride: 1,
+            command: m
+                .groups
+                .first()
+                .map(|g| g.command.clone())
+                .unwrap_or_default(),
+            engine_s: m.engine_s,
+            engine_cpu_s: m.engine_cpu_s,
+            liggghts_volume_um3: m.finnie_liggghts_volume_um3,
+            grid_volume_um3: m.finnie_grid_volume_um3,
+            unmapped_volume_um3: m.unmapped_volume_um3,
+            volume_relative_error: m.volume_relative_error(),
+            contacts: record::to_value(&m.impact_contacts),
+            micro: Some(record::to_value(&rec)),
+            model: Some(m.model),
+            stopped: m.stopped,
+            finnie_um: m.finnie_um,
+            archard_um: m.archard_um,
+        }
+    }
 }
 
 /// The sampled map: the segment's Finnie map, scaled to the cycle's share of the process
@@ -725,7 +898,7 @@ fn sampled_map_wear(
     setup: &Setup,
     st: &mut State,
     c: usize,
-    r: &SegmentResult,
+    r: &CycleRun,
     sim_s: f64,
 ) -> Result<CycleWear> {
     let (opts, patch, k_finnie) = (setup.opts, &setup.patch, setup.k_finnie);
@@ -776,12 +949,13 @@ fn contact_field_wear(
     setup: &Setup,
     st: &mut State,
     c: usize,
-    r: &SegmentResult,
+    r: &CycleRun,
     stop: &AtomicBool,
     say: &mut dyn FnMut(&str),
 ) -> Result<CycleWear> {
     let (opts, patch, dist) = (setup.opts, &setup.patch, &setup.dist);
-    let dem_passes = r.segment.passes.len();
+    // The Finnie map's contacts: the segment's passes, or the micro passes' impacts.
+    let dem_passes = r.impacts;
     let gap = field::ball_gap_um(&st.h, patch.sampling, setup.field_grid.radius_um);
     let gap_crop = patch.cropped(&gap);
     let dem_crop = patch.cropped(&r.finnie_um);
@@ -1331,6 +1505,8 @@ fn summary(
         sweep: None,
         macro_run: None,
         part_material: None,
+        patch: st.patch_model.map(|model| PatchSummary { model }),
+        cycle_path: None,
     })
 }
 

@@ -130,6 +130,8 @@ pub struct FinishOptions {
     pub ideal: Option<Model>,
     /// How the DEM's wear becomes the process's (default: the contact field).
     pub wear_model: WearModel,
+    /// Engine processes at once for a cycle's micro passes (`--jobs`; with contact samples).
+    pub jobs: usize,
 }
 
 /// How a cycle's DEM wear is turned into the wear of its share of the process time.
@@ -197,6 +199,7 @@ impl Default for FinishOptions {
             cost_per_triangle_step_s: DEFAULT_COST_PER_TRIANGLE_STEP_S,
             ideal: None,
             wear_model: WearModel::ContactField,
+            jobs: 1,
         }
     }
 }

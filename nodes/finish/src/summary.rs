@@ -88,6 +88,20 @@ pub struct FinishSummary {
     /// The part's material when given (null: `setting.workpiece` and the default K/H).
     #[serde(default)]
     pub part_material: Option<PartMaterial>,
+    /// The patch as the micro passes meshed it (the first cycle's; null on the one-medium
+    /// segment path).
+    #[serde(default)]
+    pub patch: Option<PatchSummary>,
+    /// Which path the cycles ran: the micro passes from the macro run's contact samples, or
+    /// the one-medium segment on the block-averaged mesh (no contact samples).
+    #[serde(default)]
+    pub cycle_path: Option<String>,
+}
+
+/// finish.json `patch`: the first cycle's patch model (the tolerance mesh and its fidelity).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct PatchSummary {
+    pub model: crate::passes::PatchModel,
 }
 
 /// One time of the prediction (`series[]`): the worn patch's parameters, um, and its
@@ -428,6 +442,9 @@ pub struct CycleRecord {
     /// Null with the sampled map.
     pub contact_field: Option<CycleField>,
     pub after: SurfaceParams,
+    /// The cycle's micro passes (`passes::MicroRecord`); null on the one-medium segment path.
+    #[serde(default)]
+    pub micro: Option<Value>,
 }
 
 /// The probe segment (`probe`).
@@ -508,6 +525,10 @@ pub struct FinishReport {
     pub sweep: Option<Sweep>,
     #[serde(default)]
     pub part_material: Option<PartMaterial>,
+    #[serde(default)]
+    pub patch: Option<PatchSummary>,
+    #[serde(default)]
+    pub cycle_path: Option<String>,
 }
 
 impl FinishReport {
@@ -544,6 +565,8 @@ impl FinishReport {
             sweep,
             macro_run: _,
             part_material,
+            patch,
+            cycle_path,
         } = summary;
         FinishReport {
             dir: dir.to_owned(),
@@ -572,6 +595,8 @@ impl FinishReport {
             wear_maps,
             sweep,
             part_material,
+            patch,
+            cycle_path,
         }
     }
 }

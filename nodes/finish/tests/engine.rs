@@ -393,3 +393,124 @@ fn a_sinusoidal_surface_loses_its_peaks_first() {
     .unwrap();
     assert!((p.sa - a.sa).abs() < 1e-9);
 }
+
+#[test]
+fn with_a_macro_record_the_cycles_run_micro_passes_on_the_tolerance_mesh() {
+    use surfstream_finish::machine::{
+        ContactSample, ContactStatistics, MacroContacts, Percentiles, Softening,
+    };
+    let (rows, cols, pitch) = (40, 40, 4.0);
+    let heights_um: Vec<f64> = (0..rows * cols)
+        .map(|k| {
+            let (x, y) = ((k % cols) as f64 * pitch, (k / cols) as f64 * pitch);
+            2.0 * (std::f64::consts::TAU * x / 60.0).sin()
+                * (std::f64::consts::TAU * y / 60.0).sin()
+        })
+        .collect();
+    let model = Model {
+        heights_um,
+        rows,
+        cols,
+        pitch_x_um: pitch,
+        pitch_y_um: pitch,
+        source: "sine".into(),
+    };
+    let sample = |vn: f64, vt: f64, f: f64, enduring: bool| ContactSample {
+        normal_speed_m_s: vn,
+        tangential_speed_m_s: vt,
+        normal_force_n: f,
+        duration_s: if enduring { 1e-4 } else { 0.0 },
+        enduring,
+    };
+    let p = |v: f64| Percentiles {
+        p10: v,
+        p50: v,
+        p90: v,
+    };
+    // A small macro record written here: the contact rate and sliding work the laws run at,
+    // the samples the micro passes draw.
+    let macro_record = MacroContacts {
+        engine: "liggghts".into(),
+        machine: "test".into(),
+        media_count: 100,
+        simulated_s: 0.1,
+        settle_s: 0.05,
+        timestep_s: 1e-6,
+        region_area_mm2: 1.0,
+        contacts: ContactStatistics {
+            count: 3,
+            impacts: 2,
+            enduring: 1,
+            rate_per_mm2_s: 50.0,
+            enduring_normal_force_n: p(0.02),
+            sliding_work_j_per_mm2_s: 1e-3,
+            ..Default::default()
+        },
+        samples: vec![
+            sample(0.1, 0.3, 0.0, false),
+            sample(0.2, 0.5, 0.0, false),
+            sample(0.01, 0.3, 0.02, true),
+        ],
+        softening: Softening {
+            media_youngs_modulus_pa: 1e8,
+            real_youngs_modulus_pa: 3e11,
+            timestep_s: 1e-6,
+            rayleigh_time_s: 1e-5,
+            trusted: Vec::new(),
+            not_trusted: Vec::new(),
+        },
+        media_lost: 0,
+        partial: false,
+        cost: Default::default(),
+        seed: 1,
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let opts = FinishOptions {
+        patch_um: Some((100.0, 100.0)),
+        guard_um: Some(20.0),
+        cycles: 2,
+        passes: Some(6),
+        jobs: 2,
+        max_triangles: 3_000,
+        macro_contacts: Some(macro_record),
+        ..Default::default()
+    };
+    let stop = AtomicBool::new(false);
+    let rec = finish_record(&model, &opts, tmp.path(), &stop, &mut |l| eprintln!("{l}")).unwrap();
+    assert!(!rec.partial);
+    let text = std::fs::read_to_string(tmp.path().join("finish.json")).unwrap();
+    let json: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let triangles = json["patch"]["model"]["surface_triangles"]
+        .as_u64()
+        .unwrap();
+    assert!(triangles > 0, "{}", json["patch"]);
+    assert!(json["patch"]["model"]["max_error_over_sq"]
+        .as_f64()
+        .unwrap()
+        .is_finite());
+    assert!(json["cycle_path"]
+        .as_str()
+        .unwrap()
+        .starts_with("micro passes"));
+    let cycles = json["cycles"].as_array().unwrap();
+    assert_eq!(cycles.len(), 2);
+    for c in cycles {
+        let m = &c["micro"];
+        assert_eq!(
+            m["impacts"].as_u64().unwrap() + m["sliding"].as_u64().unwrap(),
+            6,
+            "{m}"
+        );
+        assert!(m["processes"].as_array().is_some_and(|p| !p.is_empty()));
+        assert_eq!(c["mesh_block_stride"], 1);
+    }
+    // The micro passes' Finnie map fed the contact field's table: it holds their impacts.
+    let table = &rec.contact_field.as_ref().unwrap().table;
+    let impacts: u64 = cycles
+        .iter()
+        .map(|c| c["micro"]["impacts"].as_u64().unwrap())
+        .sum();
+    assert!(impacts > 0);
+    assert_eq!(table.impacts as u64, impacts);
+    assert!(rec.after.sa < rec.before.sa, "the surface did not wear");
+}
