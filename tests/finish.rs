@@ -82,12 +82,21 @@ fn finish_a_height_map_writes_wear_worn_surface_script_log_and_summary() {
     assert!(fitted.contains(&"calibration.fit.scale"), "{fitted:?}");
     for b in ["constant_wear", "plateau"] {
         for k in ["Sa", "Sq", "Sz", "Spk", "Svk"] {
-            assert!(s["baselines"][b]["after"][k].as_f64().unwrap() > 0.0, "{b}.{k}");
+            assert!(
+                s["baselines"][b]["after"][k].as_f64().unwrap() > 0.0,
+                "{b}.{k}"
+            );
         }
-        assert_eq!(s["baselines"][b]["series"].as_array().unwrap().len(), series.len());
+        assert_eq!(
+            s["baselines"][b]["series"].as_array().unwrap().len(),
+            series.len()
+        );
     }
     let stdout = String::from_utf8_lossy(&o.stdout);
-    assert!(stdout.contains("(fitted)") && stdout.contains("(prediction)"), "{stdout}");
+    assert!(
+        stdout.contains("(fitted)") && stdout.contains("(prediction)"),
+        "{stdout}"
+    );
     for f in [
         "wear.npy",
         "wear_finnie.npy",
