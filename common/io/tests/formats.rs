@@ -1242,7 +1242,7 @@ fn datx_lying_dataspace_is_a_clear_error() {
 /// wavelength is negative (which flipped every height's sign) are refused, naming what.
 #[test]
 fn two_main_xml_and_a_negative_wavelength_are_refused() {
-    let mut parts = x3p_parts(&specimen("sample4_bin.x3p"));
+    let mut parts = x3p_parts(&specimen("x3p-2.x3p"));
     let main = parts
         .iter()
         .find(|(n, _)| n == "main.xml")
