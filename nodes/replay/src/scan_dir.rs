@@ -754,7 +754,7 @@ stage_y_um = 0.0
     fn unsupported_tile_message_lists_every_reader_extension() {
         let list = supported_extensions();
         assert!(
-            list.starts_with(".npy, ") && list.ends_with(" or .al3d"),
+            list.starts_with(".npy, ") && list.ends_with(" or .tiff"),
             "{list}"
         );
         for ext in formats::EXTENSIONS {
