@@ -48,6 +48,7 @@
 pub mod acquire;
 pub mod error;
 pub mod infer;
+pub mod planned;
 mod rng;
 pub mod run;
 pub mod source;
