@@ -236,8 +236,20 @@ pub fn attach(contexts: &mut Vec<NodeContext>) {
         .filter(|c| !crate::progress::is_observer(&c.node_kind))
         .map(|c| (c.node_id.clone(), c.node_kind.clone()))
         .collect();
+    // The source's plan: its grid where its parameters give one, else its count (a
+    // recording's summary), known before its first tile.
+    let planned = layout.total().or_else(|| {
+        let source = contexts.iter().find(|c| c.node_kind == "replay")?;
+        surfstream_replay::planned::planned_tiles(&source.params)
+    });
+    // The pair log of the matcher the observer reads.
+    let pair_log = contexts
+        .iter()
+        .find(|c| c.node_kind == "matcher")
+        .map(|c| surfstream_matcher::pair_log::path(&c.out_dir, &c.node_id));
     live.shared.update(|s| {
         let mut fresh = LiveState::new(&graph, layout.grid, s.stop_allowed);
+        fresh.tiles_planned = planned;
         fresh.viewers = s.viewers;
         fresh.version = s.version + 1;
         *s = fresh;
@@ -254,7 +266,7 @@ pub fn attach(contexts: &mut Vec<NodeContext>) {
     let shared = live.shared.clone();
     let watcher = std::thread::Builder::new()
         .name("live-reports".into())
-        .spawn(move || watch_reports(&shared, &staging, nodes))
+        .spawn(move || watch_reports(&shared, &staging, nodes, pair_log))
         .ok();
     if let Ok(mut w) = live.watcher.lock() {
         *w = watcher;
@@ -292,10 +304,24 @@ fn subscribe(contexts: &mut [NodeContext], kind: &str, port: &str) -> Option<Inp
     })
 }
 
-/// Reads each node's report as it appears in the staging folder (under `launch` each node
-/// writes its own when it finishes; under `run` all are written when the graph ends).
-fn watch_reports(shared: &Shared, staging: &Path, mut nodes: Vec<(String, String)>) {
+/// Reads the matcher's pair log as it grows (each pair as the matcher decides it), and each
+/// node's report as it appears in the staging folder (under `launch` each node writes its own
+/// when it finishes; under `run` all are written when the graph ends).
+fn watch_reports(
+    shared: &Shared,
+    staging: &Path,
+    mut nodes: Vec<(String, String)>,
+    pair_log: Option<PathBuf>,
+) {
+    let mut tail = pair_log.map(surfstream_matcher::pair_log::PairLogTail::new);
     while !nodes.is_empty() && !shared.lock().run_ended {
+        if let Some(t) = &mut tail {
+            match t.read_new() {
+                Ok(pairs) => shared.update(|s| s.on_streaming_pairs(&pairs)),
+                // Written by the matcher only; a bad line is said once, the rest still read.
+                Err(e) => eprintln!("surfstream: live view: {e:#}"),
+            }
+        }
         nodes.retain(|(id, kind)| {
             let path = surfstream_runtime::shell::report_path(staging, id);
             let Ok(text) = std::fs::read_to_string(&path) else {

@@ -14,7 +14,9 @@ use std::time::Instant;
 
 use serde::Serialize;
 use surfstream_core::frame::{flags, placed_by, FrameHeader, HeightMap, TileRegistration};
-use surfstream_core::record::{FusionReport, MatcherReport, MeshReport, RunRecord, WaveletReport};
+use surfstream_core::record::{
+    FusionReport, MatcherPair, MatcherReport, MeshReport, RunRecord, WaveletReport,
+};
 
 /// The preview canvas's longer side, cells: beyond it the canvas halves its resolution.
 pub const CANVAS_MAX_SIDE: usize = 2048;
@@ -26,7 +28,8 @@ pub enum Placement {
     /// By registration against its neighbours (or the first tile, the anchor).
     Registration,
     /// By registration through a link the matcher accepted below its NCC floor (a distinct
-    /// peak on sparse texture): known from the matcher's report, at the end of its scan.
+    /// peak on sparse texture): known from the matcher's pair log as it decides the pair,
+    /// confirmed (or cleared, when the global solve dropped the link) by its report.
     WeakLink,
     /// Where the stage put it: no neighbour link held.
     StageFallback,
@@ -58,7 +61,8 @@ pub struct TileView {
     pub tile_to_panorama_ms: Option<f64>,
 }
 
-/// One neighbour pair, from the matcher's report.
+/// One neighbour pair: the matcher's streaming record from its pair log as it decides the
+/// pair, replaced by the report's (after the global solve) when the matcher finishes.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct PairView {
     pub a: u32,
@@ -71,9 +75,14 @@ pub struct PairView {
     /// b's offset from a by the stage and by the registration, px.
     pub nominal_offset_px: [f64; 2],
     pub offset_px: Option<[f64; 2]>,
-    /// |(p_b - p_a) - offset| in the final solution, px.
+    /// |(p_b - p_a) - offset|, px: in the global solve's solution (the report's), or while
+    /// streaming from the two tiles' registered positions as the view has them.
     pub residual_px: Option<f64>,
+    /// Where `residual_px` comes from: "global_solve" or "streaming_placement".
+    pub residual_of: Option<&'static str>,
     pub reason: Option<String>,
+    /// The record is the report's (the global solve ran), not the streaming one.
+    pub final_solve: bool,
 }
 
 /// One line of the running verdict: a stage that finished.
@@ -290,6 +299,10 @@ pub struct LiveState {
     pub run_ended: bool,
     pub stop_allowed: bool,
     last_preview_sequence: Option<u64>,
+    /// Tiles at either end of an accepted weak link (streaming, then the report's).
+    weak_tiles: std::collections::BTreeSet<u32>,
+    /// The tiles' pitch (x, y), um, from the first tile frame: streaming residuals in px.
+    pitch_um: Option<[f64; 2]>,
 }
 
 impl LiveState {
@@ -318,6 +331,8 @@ impl LiveState {
             run_ended: false,
             stop_allowed,
             last_preview_sequence: None,
+            weak_tiles: Default::default(),
+            pitch_um: None,
         }
     }
 
@@ -344,6 +359,7 @@ impl LiveState {
         t.stage_y_um = Some(h.origin_y_um);
         t.width_um = Some(h.width as f64 * h.pitch_x_um);
         t.height_um = Some(h.height as f64 * h.pitch_y_um);
+        self.pitch_um.get_or_insert([h.pitch_x_um, h.pitch_y_um]);
         self.newest_tile = Some(Arc::new(tile));
         self.tile_version += 1;
         self.boxes_version += 1;
@@ -358,6 +374,7 @@ impl LiveState {
             return;
         }
         let is_final = r.has(flags::FINAL);
+        let weak = self.weak_tiles.contains(&r.tile_index);
         let t = self.tile(r.tile_index);
         let first = t.x_um.is_none();
         if is_final || !t.final_solve {
@@ -367,13 +384,11 @@ impl LiveState {
             t.links_tried = r.links_tried;
             t.links_accepted = r.links_accepted;
             let by_stage = r.placed_by == placed_by::STAGE;
-            // A weak link is known from the matcher's report; keep it unless the solve
-            // changed the placement.
-            t.placement = match (by_stage, t.placement) {
-                (true, _) => Some(Placement::StageFallback),
-                (false, Some(Placement::WeakLink)) => Some(Placement::WeakLink),
-                (false, _) => Some(Placement::Registration),
-            };
+            t.placement = Some(match (by_stage, weak) {
+                (true, _) => Placement::StageFallback,
+                (false, true) => Placement::WeakLink,
+                (false, false) => Placement::Registration,
+            });
             t.final_solve = is_final;
         }
         if first && !is_final {
@@ -402,6 +417,54 @@ impl LiveState {
         self.newest_patch = Some(Arc::new(patch));
         self.canvas_version += 1;
         self.version += 1;
+    }
+
+    /// Pairs the matcher decided while streaming (its pair log, [`surfstream_matcher::pair_log`]):
+    /// shown at once, with their weak links; ignored once its report gave the final pairs.
+    pub fn on_streaming_pairs(&mut self, pairs: &[MatcherPair]) {
+        if pairs.is_empty() || self.pairs.iter().any(|p| p.final_solve) {
+            return;
+        }
+        for p in pairs {
+            if p.accepted && p.accepted_below_min_ncc {
+                for i in [p.a, p.b] {
+                    self.weak_tiles.insert(i);
+                    if let Some(t) = self.tiles.get_mut(&i) {
+                        if t.placement == Some(Placement::Registration) {
+                            t.placement = Some(Placement::WeakLink);
+                        }
+                    }
+                }
+            }
+            self.pairs.push(pair_view(p, false));
+        }
+        self.boxes_version += 1;
+        self.version += 1;
+    }
+
+    /// The pairs with each streaming record's residual from the tiles' positions now.
+    pub fn pair_views(&self) -> Vec<PairView> {
+        let pos = |i: u32| {
+            let t = self.tiles.get(&i)?;
+            Some([t.x_um?, t.y_um?])
+        };
+        self.pairs
+            .iter()
+            .map(|p| {
+                let mut v = p.clone();
+                if !v.final_solve {
+                    v.residual_px = (|| {
+                        let (a, b, off, pitch) =
+                            (pos(p.a)?, pos(p.b)?, p.offset_px?, self.pitch_um?);
+                        let dx = (b[0] - a[0]) / pitch[0] - off[0];
+                        let dy = (b[1] - a[1]) / pitch[1] - off[1];
+                        Some(dx.hypot(dy))
+                    })();
+                    v.residual_of = v.residual_px.map(|_| "streaming_placement");
+                }
+                v
+            })
+            .collect()
     }
 
     /// A node's report (`nodes/<id>.json`), read as the typed record of its kind: a line of
@@ -437,29 +500,14 @@ impl LiveState {
     }
 
     fn apply_matcher(&mut self, m: &MatcherReport) -> (String, Option<bool>) {
-        self.pairs = m
-            .pairs
-            .iter()
-            .map(|p| PairView {
-                a: p.a,
-                b: p.b,
-                direction: p.direction.clone(),
-                ncc: p.ncc,
-                accepted: p.accepted,
-                weak_link: p.accepted_below_min_ncc,
-                kept_by_global_solve: p.kept_by_global_solve,
-                nominal_offset_px: p.nominal_offset_px,
-                offset_px: p.offset_px,
-                residual_px: p.residual_px.map(|[x, y]| x.hypot(y)),
-                reason: p.reason.clone(),
-            })
-            .collect();
+        self.pairs = m.pairs.iter().map(|p| pair_view(p, true)).collect();
         let weak: Vec<(u32, u32)> = m
             .pairs
             .iter()
             .filter(|p| p.accepted_below_min_ncc && p.kept_by_global_solve != Some(false))
             .map(|p| (p.a, p.b))
             .collect();
+        self.weak_tiles = weak.iter().flat_map(|&(a, b)| [a, b]).collect();
         for mt in &m.tiles {
             let by_stage = mt.placement.placed_by == "stage";
             let t = self.tile(mt.index);
@@ -584,7 +632,7 @@ impl LiveState {
             "tiles_planned": self.tiles_planned,
             "tiles_registered": self.tiles_registered(),
             "tiles": self.tiles.values().collect::<Vec<_>>(),
-            "pairs": self.pairs,
+            "pairs": self.pair_views(),
             "stages": self.stages,
             "verdict": self.verdict.as_ref().map(|v| v.verdict),
             "verdict_text": self.verdict.as_ref().map(|v| v.text.as_str()),
@@ -610,6 +658,26 @@ impl LiveState {
             "viewers": self.viewers,
             "version": self.version,
         })
+    }
+}
+
+/// The page's view of a pair record: the streaming one (`final_solve` false) or the report's.
+fn pair_view(p: &MatcherPair, final_solve: bool) -> PairView {
+    let residual_px = p.residual_px.map(|[x, y]| x.hypot(y));
+    PairView {
+        a: p.a,
+        b: p.b,
+        direction: p.direction.clone(),
+        ncc: p.ncc,
+        accepted: p.accepted,
+        weak_link: p.accepted_below_min_ncc,
+        kept_by_global_solve: p.kept_by_global_solve,
+        nominal_offset_px: p.nominal_offset_px,
+        offset_px: p.offset_px,
+        residual_of: residual_px.map(|_| "global_solve"),
+        residual_px,
+        reason: p.reason.clone(),
+        final_solve,
     }
 }
 
@@ -860,6 +928,64 @@ mod tests {
         s.on_node_report("fusion", "fusion", &serde_json::json!({"x": 1}));
         let j = s.snapshot();
         assert_eq!(j["stages"][1]["ok"], false);
+    }
+
+    fn streaming_pair(a: u32, b: u32, offset_px: [f64; 2], weak: bool) -> MatcherPair {
+        serde_json::from_value(serde_json::json!({
+            "a": a, "b": b, "direction": "horizontal", "nominal_offset_px": [45.0, 0.0],
+            "offset_px": offset_px, "ncc": 0.3, "peak_ratio": 4.0, "accepted": true,
+            "reason": null, "accepted_below_min_ncc": weak
+        }))
+        .unwrap()
+    }
+
+    #[test]
+    fn streaming_pairs_show_weak_links_and_residuals_before_the_report() {
+        let mut s = LiveState::new("demo", vec![(0, 0), (0, 1), (0, 2)], false);
+        let mut tile = patch(0, 0, 0.0, 0.0, 50, 40, 0.0);
+        tile.header.kind = FrameKind::Tile as u32;
+        s.on_tile(tile); // pitch 2 um
+        let now = Instant::now();
+        s.on_registration(&registration(0, 0.0, false, 0), now);
+        // The pair arrives before tile 1's registration; a pair with tile 2, after it.
+        s.on_streaming_pairs(&[streaming_pair(0, 1, [45.5, 0.0], true)]);
+        let j = s.snapshot();
+        assert_eq!(j["tiles"][0]["placement"], "weak_link", "at once");
+        assert_eq!(j["pairs"][0]["weak_link"], true);
+        assert_eq!(j["pairs"][0]["final_solve"], false);
+        assert_eq!(j["pairs"][0]["residual_px"], serde_json::Value::Null);
+        s.on_registration(&registration(1, 92.0, false, 0), now);
+        let j = s.snapshot();
+        assert_eq!(j["tiles"][1]["placement"], "weak_link");
+        // (92 - 0) / 2 - 45.5 = 0.5 px, from the streaming placement.
+        assert_eq!(j["pairs"][0]["residual_px"], 0.5);
+        assert_eq!(j["pairs"][0]["residual_of"], "streaming_placement");
+        s.on_registration(&registration(2, 180.0, true, 0), now);
+        s.on_streaming_pairs(&[streaming_pair(1, 2, [44.0, 0.0], false)]);
+        let j = s.snapshot();
+        assert_eq!(j["tiles"][2]["placement"], "stage_fallback");
+        assert_eq!(j["pairs"].as_array().unwrap().len(), 2);
+        assert_eq!(j["pairs"][1]["residual_px"], 0.0);
+        // The report's pairs replace the streaming ones; later log lines change nothing.
+        let mut final_pair = streaming_pair(0, 1, [45.5, 0.0], true);
+        final_pair.kept_by_global_solve = Some(false);
+        final_pair.residual_px = Some([0.3, 0.4]);
+        let report = MatcherReport {
+            method: "phase".into(),
+            tiles: Vec::new(),
+            pairs: vec![final_pair],
+            global: None,
+        };
+        s.apply_matcher(&report);
+        s.on_streaming_pairs(&[streaming_pair(1, 2, [44.0, 0.0], true)]);
+        let j = s.snapshot();
+        assert_eq!(j["pairs"].as_array().unwrap().len(), 1);
+        assert_eq!(j["pairs"][0]["final_solve"], true);
+        assert_eq!(j["pairs"][0]["residual_of"], "global_solve");
+        assert!((j["pairs"][0]["residual_px"].as_f64().unwrap() - 0.5).abs() < 1e-12);
+        // The solve dropped the weak link: its tiles are no longer weak.
+        s.on_registration(&registration(1, 91.0, false, flags::FINAL), now);
+        assert_eq!(s.snapshot()["tiles"][1]["placement"], "registration");
     }
 
     #[test]

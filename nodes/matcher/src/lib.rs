@@ -163,6 +163,7 @@ mod fft2;
 pub mod global;
 pub mod harris;
 mod ncc;
+pub mod pair_log;
 pub mod params;
 pub mod plane;
 pub mod raster;

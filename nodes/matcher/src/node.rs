@@ -10,6 +10,7 @@ use surfstream_core::raster::{Raster, Shape};
 use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
+use crate::pair_log::PairLog;
 use crate::params::MatcherParams;
 use crate::scan::{ScanRegistration, ScanTile};
 
@@ -23,6 +24,10 @@ pub struct MatcherNode {
     done: bool,
     /// The end-of-scan marker's tile index and acquisition time, passed on.
     last: (u32, u64),
+    /// Each pair's streaming record as it is decided (the live view reads it), and how many
+    /// of the scan's pairs it holds.
+    pair_log: PairLog,
+    pairs_logged: usize,
 }
 
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
@@ -32,12 +37,15 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
         .map_err(|e| anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id))?;
     // Placed tiles spill where the run's memory plan says (the out dir, beside the outputs).
     params.spill_dir = Some(ctx.memory.spill_dir.clone());
+    let pair_log = PairLog::new(&ctx.out_dir, &ctx.node_id);
     Ok(Box::new(MatcherNode {
         scan: ScanRegistration::new(params),
         pending: Vec::new(),
         ended: false,
         done: false,
         last: (0, 0),
+        pair_log,
+        pairs_logged: 0,
     }))
 }
 
@@ -80,6 +88,11 @@ impl NodeLogic for MatcherNode {
         for t in std::mem::take(&mut self.pending) {
             let reg = self.scan.register(t).map_err(|e| anyhow!("matcher: {e}"))?;
             out.send_registration(OUT, reg);
+            let pairs = self.scan.streaming_pairs().skip(self.pairs_logged);
+            self.pairs_logged += pairs.len();
+            self.pair_log
+                .append(pairs)
+                .map_err(|e| anyhow!("matcher: {e}"))?;
         }
         if self.ended && !self.done {
             for reg in self.scan.finish().map_err(|e| anyhow!("matcher: {e}"))? {

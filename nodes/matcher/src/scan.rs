@@ -736,6 +736,13 @@ impl ScanRegistration {
         Ok(feature_summary)
     }
 
+    /// Every pair decided so far, in decision order, as streaming recorded it (before the
+    /// global solve): the records the report's `pairs` complete, and the pair log's lines
+    /// ([`crate::pair_log`]).
+    pub fn streaming_pairs(&self) -> impl ExactSizeIterator<Item = &MatcherPair> {
+        self.pairs.iter().map(|p| &p.report)
+    }
+
     /// The run report: the method, per tile and per pair outcomes, and the global solve's
     /// summary (empty until [`ScanRegistration::finish`]).
     pub fn report(&self) -> serde_json::Value {

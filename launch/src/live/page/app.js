@@ -129,16 +129,21 @@ function drawTables(s) {
   pb.replaceChildren();
   for (const p of s.pairs) {
     const r = pb.insertRow();
+    r.dataset.pair = `${p.a}-${p.b}`;
+    r.dataset.weak = p.weak_link;
     cell(r, `${p.a}-${p.b}`);
     cell(r, p.direction);
     cell(r, num(p.ncc, 3));
-    cell(r, num(p.residual_px, 3));
+    cell(r, p.residual_px === null ? '-' : num(p.residual_px, 3) + (p.residual_of === 'global_solve' ? ' (solve)' : ' (streaming)'));
     cell(r, p.offset_px ? `${num(p.offset_px[0] - p.nominal_offset_px[0], 2)}, ${num(p.offset_px[1] - p.nominal_offset_px[1], 2)}` : '-');
     const outcome = !p.accepted ? `refused${p.reason ? ': ' + p.reason : ''}`
       : p.weak_link ? 'weak link' : p.kept_by_global_solve === false ? 'dropped by the solve' : 'accepted';
     cell(r, outcome, p.weak_link ? 'placement-weak_link' : !p.accepted ? 'placement-stage_fallback' : '');
   }
-  $('pairs-note').hidden = s.pairs.length > 0;
+  const final = s.pairs.some((p) => p.final_solve);
+  $('pairs-note').textContent = !s.pairs.length ? 'no pair decided yet'
+    : final ? 'after the end-of-scan solve (the matcher\'s report)'
+    : 'as the matcher decides them; residuals from the streaming placement until the end-of-scan solve';
 }
 
 function render(s) {
