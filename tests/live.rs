@@ -1,7 +1,10 @@
 //! The live view (issue 34), end to end: the demo graph at the instrument's pace (`stage.pacing`
 //! real time, 3 x 3 fields; 256 px tiles keep it cheap) with `--view`, watched by a headless
 //! Chromium while it scans, and with `--foxglove`, watched by a WebSocket client speaking the
-//! Foxglove protocol (the Python `websockets` package of the test venv).
+//! Foxglove protocol (the Python `websockets` package of the test venv). And the two things
+//! a viewer must see before the end: a replayed recording's plan (tiles planned, ETA) from its
+//! first tile, and each pair's registration (NCC, weak link, residual) as the matcher decides
+//! it.
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
@@ -10,7 +13,7 @@ use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use surfstream_e2e::{python, surfstream};
+use surfstream_e2e::{python, run, surfstream};
 
 const CHROMIUM: &str = "/usr/bin/chromium";
 
@@ -29,9 +32,13 @@ impl Run {
             .args(["--set", "stage.cols=3", "--set", "stage.tile_px=256"])
             .args(["--set", "stage.pacing=\"realtime\""])
             .args(["--set", &format!("stage.field_time_s={field_time_s}")])
-            .args(extra)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped());
+            .args(extra);
+        Run::spawn(cmd)
+    }
+
+    /// Starts `cmd` with its stdout and stderr collected.
+    fn spawn(mut cmd: Command) -> Run {
+        cmd.stdout(Stdio::piped()).stderr(Stdio::piped());
         let mut child = cmd.spawn().expect("start surfstream launch");
         let stderr = Arc::new(Mutex::new(String::new()));
         let pipe = child.stderr.take().expect("stderr");
@@ -348,6 +355,245 @@ fn a_foxglove_client_receives_tile_grids_during_the_run() {
     assert_eq!(got["row_stride"], 256 * 4);
     assert_eq!(got["cell_bytes"], 256 * 256 * 4);
     assert_eq!(got["fields"][0]["name"], "height_um");
+    let (exit, _) = run.wait();
+    assert!(exit.success(), "{exit:?}");
+}
+
+/// The page's text of the element with `id` (`<span id="planned">9</span>`).
+fn element_text(dom: &str, id: &str) -> Option<String> {
+    let at = dom.find(&format!("id=\"{id}\""))?;
+    let rest = &dom[at..];
+    let start = rest.find('>')? + 1;
+    let end = rest[start..].find('<')? + start;
+    Some(rest[start..end].to_string())
+}
+
+/// A Foxglove WebSocket client: subscribes to `/progress` and prints its first message.
+const FOXGLOVE_PROGRESS: &str = r#"
+import asyncio, json, struct, sys
+import websockets
+
+async def main(url):
+    async with websockets.connect(url, subprotocols=["foxglove.websocket.v1"], max_size=None) as ws:
+        json.loads(await ws.recv())
+        adv = json.loads(await ws.recv())
+        ch = [c for c in adv["channels"] if c["topic"] == "/progress"][0]
+        await ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": ch["id"]}]}))
+        while True:
+            m = await ws.recv()
+            if isinstance(m, bytes):
+                op, sub, _ = struct.unpack_from("<BIQ", m, 0)
+                msg = json.loads(m[13:])
+                msg["schemaName"] = ch["schemaName"]
+                print(json.dumps(msg))
+                return
+
+asyncio.run(asyncio.wait_for(main(sys.argv[1]), 120))
+"#;
+
+/// Polls `/state.json` until `until` holds (or panics after `secs` seconds).
+fn wait_state(
+    url: &str,
+    secs: u64,
+    what: &str,
+    mut until: impl FnMut(&serde_json::Value) -> bool,
+) -> serde_json::Value {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    loop {
+        let s = state(url);
+        if until(&s) {
+            return s;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{what}: not within {secs} s; last state {s}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+#[test]
+fn a_replayed_recording_shows_its_plan_from_its_first_tile() {
+    let dir = tempfile::tempdir().unwrap();
+    // A recording at the instrument's pace (the demo graph records the stage's tiles).
+    let rec = dir.path().join("rec");
+    let mut cmd = surfstream();
+    cmd.args(["run", "launch/graphs/demo.toml", "-o"])
+        .arg(&rec)
+        .args([
+            "--set",
+            "stage.rows=3",
+            "--set",
+            "stage.cols=3",
+            "--set",
+            "stage.tile_px=256",
+        ])
+        .args([
+            "--set",
+            "stage.pacing=\"realtime\"",
+            "--set",
+            "stage.field_time_s=2.0",
+        ]);
+    let out = run(cmd);
+    assert!(out.status.success());
+    let recording = rec.join("recording.mcap");
+    assert!(recording.is_file());
+
+    // Replayed at its recorded pace, with the page and Foxglove.
+    let mut cmd = surfstream();
+    cmd.args(["launch", "launch/graphs/replay.toml", "-o"])
+        .arg(dir.path().join("replay"))
+        .arg("--set")
+        .arg(format!("stage.path=\"{}\"", recording.display()))
+        .args(["--view", "--foxglove", "--view-linger-s", "60"]);
+    let mut replay = Run::spawn(cmd);
+    let url = replay.url("live view at ");
+    let ws = replay.url("Foxglove live stream at ");
+    // The plan is known as soon as the view has the graph (the recording's summary), before
+    // the replay's first tile, and stays.
+    let first = wait_state(&url, 60, "the graph attached", |s| s["graph"] != "");
+    eprintln!(
+        "first state: {} tiles registered",
+        first["tiles_registered"]
+    );
+    assert_eq!(first["tiles_planned"], 9, "{first}");
+    let mid = wait_state(&url, 120, "two of the nine tiles registered", |s| {
+        assert_eq!(s["tiles_planned"], 9);
+        let n = s["tiles_registered"].as_u64().unwrap();
+        assert!(n < 9, "the replay finished before the test saw it mid-way");
+        n >= 2
+    });
+    assert!(
+        mid["progress"]["eta_s"].as_f64().is_some_and(|e| e > 0.0),
+        "an ETA mid-scan: {mid}"
+    );
+    assert!(mid["progress"]["fields_per_s"]
+        .as_f64()
+        .is_some_and(|f| f > 0.0));
+    let dom = chromium(&url, &dir.path().join("replay.png"));
+    assert_eq!(
+        element_text(&dom, "planned").as_deref(),
+        Some("9"),
+        "done / planned on the page"
+    );
+    assert_ne!(
+        element_text(&dom, "eta").as_deref(),
+        Some("-"),
+        "an ETA on the page"
+    );
+    let client = Command::new(python())
+        .arg("-c")
+        .arg(FOXGLOVE_PROGRESS)
+        .arg(&ws)
+        .output()
+        .expect("start the Python WebSocket client");
+    assert!(
+        client.status.success(),
+        "the client failed:\n{}",
+        String::from_utf8_lossy(&client.stderr)
+    );
+    let progress: serde_json::Value = serde_json::from_slice(&client.stdout).expect("a JSON line");
+    eprintln!("Foxglove /progress: {progress}");
+    assert_eq!(progress["schemaName"], "surfstream.Progress");
+    assert_eq!(progress["tiles_planned"], 9);
+    let fin = wait_state(&url, 300, "the verdict", |s| !s["verdict"].is_null());
+    assert_eq!(fin["tiles_registered"], 9);
+    assert_eq!(fin["progress"]["eta_s"], 0.0);
+    unsafe {
+        libc::kill(replay.child.id() as libc::pid_t, libc::SIGINT);
+    }
+    let (exit, _) = replay.wait();
+    assert!(exit.success(), "{exit:?}");
+}
+
+#[test]
+fn each_pair_and_its_weak_link_show_while_the_matcher_decides_them() {
+    let dir = tempfile::tempdir().unwrap();
+    // An NCC floor no pair reaches: every accepted pair is a distinct peak below it, a weak
+    // link (the others are refused, their tiles placed by the stage).
+    let mut run = Run::start(
+        &dir.path().join("out"),
+        3,
+        2.0,
+        &[
+            "--set",
+            "matcher.min_ncc=0.9999",
+            "--view",
+            "--view-linger-s",
+            "60",
+        ],
+    );
+    let url = run.url("live view at ");
+    let mid = wait_state(&url, 120, "a weak link mid-scan", |s| {
+        let n = s["tiles_registered"].as_u64().unwrap();
+        assert!(n < 9, "the scan finished before a weak link showed: {s}");
+        s["pairs"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|p| p["weak_link"] == true)
+    });
+    // Mid-scan: the matcher has not finished (no report, no end-of-scan solve).
+    assert_eq!(mid["scan_ended"], false);
+    assert!(
+        !mid["stages"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|l| l["stage"] == "matcher"),
+        "the matcher's report is not in yet: {mid}"
+    );
+    let pairs = mid["pairs"].as_array().unwrap();
+    for p in pairs {
+        assert_eq!(p["final_solve"], false, "streaming records: {p}");
+        let ncc = p["ncc"].as_f64().expect("each pair's NCC");
+        assert!(ncc < 0.9999, "{p}");
+        assert_eq!(p["accepted"], p["weak_link"], "accepted = weak here: {p}");
+        if p["accepted"] == false {
+            assert!(p["reason"].as_str().unwrap().contains("below"), "{p}");
+        }
+    }
+    let weak = pairs.iter().find(|p| p["weak_link"] == true).unwrap();
+    let tiles = mid["tiles"].as_array().unwrap();
+    let tile = |i: &serde_json::Value| tiles.iter().find(|t| t["index"] == *i).cloned();
+    // The later tile of the weak pair is registered (the pair placed it) and shown amber.
+    let b = tile(&weak["b"]).expect("the weak pair's later tile is in the state");
+    assert_eq!(b["placement"], "weak_link", "{b}");
+    assert_eq!(weak["residual_of"], "streaming_placement", "{weak}");
+    assert!(weak["residual_px"]
+        .as_f64()
+        .is_some_and(|r| r.is_finite() && r >= 0.0));
+    // Stage fallbacks show as they happen too.
+    assert!(
+        tiles.iter().all(|t| t["placement"].is_null()
+            || t["placement"] == "weak_link"
+            || t["placement"] == "stage_fallback"
+            || t["index"] == 0),
+        "{mid}"
+    );
+
+    // On the page mid-scan: the pairs table and amber boxes.
+    let dom = chromium(&url, &dir.path().join("weak.png"));
+    assert!(
+        dom.matches("data-weak=\"true\"").count() >= 1,
+        "a weak pair's row on the page"
+    );
+    assert!(
+        dom.contains("class=\"tile weak_link\""),
+        "an amber tile box on the page"
+    );
+    assert!(element_text(&dom, "pairs-note")
+        .unwrap()
+        .starts_with("as the matcher decides them"));
+
+    // At the end the report's pairs (the global solve's residuals) replace the streaming ones.
+    let fin = wait_state(&url, 300, "the verdict", |s| !s["verdict"].is_null());
+    let pairs = fin["pairs"].as_array().unwrap();
+    assert!(pairs.iter().all(|p| p["final_solve"] == true), "{fin}");
+    assert!(pairs.iter().any(|p| p["weak_link"] == true));
+    unsafe {
+        libc::kill(run.child.id() as libc::pid_t, libc::SIGINT);
+    }
     let (exit, _) = run.wait();
     assert!(exit.success(), "{exit:?}");
 }

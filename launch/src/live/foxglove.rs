@@ -9,7 +9,10 @@
 //! - `/panorama/patches` (`foxglove.Grid`): the newest preview patch of the panorama;
 //! - `/panorama/preview` (`foxglove.CompressedImage`): the whole preview as a PNG;
 //! - `/tiles/boxes` (`foxglove.SceneUpdate`): every tile's box at its registered position,
-//!   coloured by placement, and its planned position as a flat outline.
+//!   coloured by placement, and its planned position as a flat outline;
+//! - `/progress` (`surfstream.Progress`): tiles registered / planned, fields per second, ETA,
+//!   tile -> panorama latency, pairs decided, weak links, stage fallbacks, the verdict (for
+//!   Foxglove's Raw Messages, Plot and Indicator panels).
 //!
 //! Latest wins per client: a client that reads slowly gets the newest message of each channel
 //! when it is ready (the skipped ones counted in the state's drops); nothing waits on it.
@@ -36,6 +39,8 @@ const MAX_CLIENTS: usize = 8;
 /// How long a client's read waits before the sender looks at the state again.
 const POLL: Duration = Duration::from_millis(50);
 const WRITE_TIMEOUT: Duration = Duration::from_secs(10);
+/// The progress message at most this often per client (the newest state when it goes).
+const PROGRESS_INTERVAL: Duration = Duration::from_millis(200);
 /// The whole-preview image at most this often per client.
 const IMAGE_INTERVAL: Duration = Duration::from_millis(500);
 
@@ -46,13 +51,15 @@ enum Channel {
     Patches = 2,
     Preview = 3,
     Boxes = 4,
+    Progress = 5,
 }
 
-const CHANNELS: [Channel; 4] = [
+const CHANNELS: [Channel; 5] = [
     Channel::Tiles,
     Channel::Patches,
     Channel::Preview,
     Channel::Boxes,
+    Channel::Progress,
 ];
 
 impl Channel {
@@ -65,6 +72,7 @@ impl Channel {
             Channel::Patches => "/panorama/patches",
             Channel::Preview => "/panorama/preview",
             Channel::Boxes => "/tiles/boxes",
+            Channel::Progress => "/progress",
         }
     }
     fn schema_name(self) -> &'static str {
@@ -72,6 +80,7 @@ impl Channel {
             Channel::Tiles | Channel::Patches => "foxglove.Grid",
             Channel::Preview => "foxglove.CompressedImage",
             Channel::Boxes => "foxglove.SceneUpdate",
+            Channel::Progress => "surfstream.Progress",
         }
     }
     fn schema(self) -> &'static str {
@@ -79,6 +88,7 @@ impl Channel {
             Channel::Tiles | Channel::Patches => FRAME_JSON_SCHEMA,
             Channel::Preview => COMPRESSED_IMAGE_SCHEMA,
             Channel::Boxes => SCENE_UPDATE_SCHEMA,
+            Channel::Progress => PROGRESS_SCHEMA,
         }
     }
 }
@@ -102,6 +112,40 @@ const SCENE_UPDATE_SCHEMA: &str = r#"{"title": "foxglove.SceneUpdate", "type": "
     "timestamp": {"type": "object"}, "frame_id": {"type": "string"}, "id": {"type": "string"},
     "lifetime": {"type": "object"}, "frame_locked": {"type": "boolean"},
     "metadata": {"type": "array"}, "cubes": {"type": "array"}, "lines": {"type": "array"}}}}}}"#;
+
+/// JSON Schema of the `/progress` messages ([`progress`]).
+const PROGRESS_SCHEMA: &str = r#"{"title": "surfstream.Progress", "type": "object",
+ "description": "The run's progress, as /state.json has it: tiles registered of planned (null: the source does not say), pace, ETA, tile -> panorama latency, pairs, weak links, stage fallbacks, the verdict (null until the run ended)",
+ "properties": {
+  "timestamp": {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}},
+  "tiles_planned": {"type": ["integer", "null"]},
+  "tiles_registered": {"type": "integer"},
+  "fields_per_s": {"type": ["number", "null"]},
+  "eta_s": {"type": ["number", "null"]},
+  "tile_to_panorama_ms": {"type": ["number", "null"], "description": "the newest tile's"},
+  "pairs": {"type": "integer"},
+  "weak_links": {"type": "integer"},
+  "stage_fallbacks": {"type": "integer"},
+  "scan_ended": {"type": "boolean"},
+  "verdict": {"type": ["string", "null"]}}}"#;
+
+/// The `/progress` message of the state now.
+pub fn progress(s: &LiveState) -> Value {
+    let placed = |p: Placement| s.tiles.values().filter(|t| t.placement == Some(p)).count();
+    json!({
+        "timestamp": stamp(),
+        "tiles_planned": s.tiles_planned,
+        "tiles_registered": s.tiles_registered(),
+        "fields_per_s": s.fields_per_s(),
+        "eta_s": s.eta_s(),
+        "tile_to_panorama_ms": s.tiles.values().rev().find_map(|t| t.tile_to_panorama_ms),
+        "pairs": s.pairs.len(),
+        "weak_links": s.pairs.iter().filter(|p| p.accepted && p.weak_link).count(),
+        "stage_fallbacks": placed(Placement::StageFallback),
+        "scan_ended": s.scan_ended,
+        "verdict": s.verdict.as_ref().map(|v| v.verdict),
+    })
+}
 
 /// Serves Foxglove clients on a thread of its own (one thread per client).
 pub fn spawn(listener: TcpListener, shared: Arc<Shared>) -> Result<()> {
@@ -168,6 +212,8 @@ struct Sent {
     boxes: u64,
     canvas: u64,
     image_at: Option<Instant>,
+    progress: u64,
+    progress_at: Option<Instant>,
 }
 
 fn serve(stream: TcpStream, shared: &Shared) -> Result<()> {
@@ -265,6 +311,7 @@ fn on_client_message(text: &str, sent: &mut Sent, ws: &mut WebSocket<TcpStream>)
                     Channel::Patches => sent.patch = 0,
                     Channel::Preview => sent.canvas = 0,
                     Channel::Boxes => sent.boxes = 0,
+                    Channel::Progress => sent.progress = 0,
                 }
             }
         }
@@ -339,6 +386,16 @@ fn send_updates(ws: &mut WebSocket<TcpStream>, shared: &Shared, sent: &mut Sent)
             if s.boxes_version != sent.boxes {
                 sent.boxes = s.boxes_version;
                 out.push((id, scene_update(&s).to_string().into_bytes()));
+            }
+        }
+        let progress_due = sent
+            .progress_at
+            .is_none_or(|t| t.elapsed() >= PROGRESS_INTERVAL);
+        if let (Some(id), true) = (subscribed(Channel::Progress), progress_due) {
+            if s.version != sent.progress {
+                sent.progress = s.version;
+                sent.progress_at = Some(Instant::now());
+                out.push((id, progress(&s).to_string().into_bytes()));
             }
         }
         let image_due = sent.image_at.is_none_or(|t| t.elapsed() >= IMAGE_INTERVAL);
@@ -463,7 +520,7 @@ mod tests {
     fn the_advertisement_names_every_channel_with_its_schema() {
         let a = advertise();
         let ch = a["channels"].as_array().unwrap();
-        assert_eq!(ch.len(), 4);
+        assert_eq!(ch.len(), 5);
         assert_eq!(ch[0]["topic"], "/tiles");
         assert_eq!(ch[0]["schemaName"], "foxglove.Grid");
         for c in ch {
@@ -502,5 +559,15 @@ mod tests {
         assert!((cube["size"]["y"].as_f64().unwrap() - 20e-6).abs() < 1e-12);
         assert_eq!(cube["color"]["r"], 0.86);
         assert!((e["lines"][0]["points"][1]["x"].as_f64().unwrap() - 110e-6).abs() < 1e-12);
+        let p = progress(&s);
+        assert_eq!(p["tiles_planned"], 1);
+        assert_eq!(p["tiles_registered"], 1);
+        assert_eq!(p["stage_fallbacks"], 1);
+        assert_eq!(p["verdict"], Value::Null);
+        // Every key the message has, the schema declares.
+        let schema: Value = serde_json::from_str(PROGRESS_SCHEMA).unwrap();
+        for k in p.as_object().unwrap().keys() {
+            assert!(schema["properties"].get(k).is_some(), "{k} not in the schema");
+        }
     }
 }
