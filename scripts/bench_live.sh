@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Tile -> panorama latency of the demo (2 x 2 fields of 1024 x 1024 px, one field per second)
 # without the live view, with --view and no page open, and with a headless Chromium showing the
-# page for the whole run (docs/live.md). Prints run.json's latency_ms.tile_to_panorama_patch
-# per run. Usage: scripts/bench_live.sh [REPEATS] (default 3).
+# page for the whole run (docs/live.md). Prints run.json's latency per hop (tile ->
+# registration, registration -> panorama patch, tile -> panorama patch) per run. Usage: scripts/bench_live.sh [REPEATS] (default 3).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 repeats=${1:-3}
@@ -13,9 +13,10 @@ latency() {
     python3 - "$1/run.json" <<'PY'
 import json, sys
 lat = json.load(open(sys.argv[1]))["latency_ms"]
-key = next(k for k in lat if k.startswith("tile_to_panorama"))
-p = lat[key]
-print("%s: p50 %.1f ms, p95 %.1f ms, max %.1f ms (n %d)" % (key, p["p50"], p["p95"], p["max"], p["n"]))
+hops = [("tile_to_registration", lat["tile_to_registration"]),
+        ("registration_to_panorama", lat["hops"]["registration_to_panorama"]),
+        ("tile_to_panorama", lat["tile_to_panorama"])]
+print("; ".join("%s p50 %.1f max %.1f ms (n %d)" % (k, p["p50"], p["max"], p["n"]) for k, p in hops))
 PY
 }
 for i in $(seq "$repeats"); do
