@@ -567,7 +567,10 @@ mod tests {
         // Every key the message has, the schema declares.
         let schema: Value = serde_json::from_str(PROGRESS_SCHEMA).unwrap();
         for k in p.as_object().unwrap().keys() {
-            assert!(schema["properties"].get(k).is_some(), "{k} not in the schema");
+            assert!(
+                schema["properties"].get(k).is_some(),
+                "{k} not in the schema"
+            );
         }
     }
 }
