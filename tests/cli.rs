@@ -307,7 +307,7 @@ fn convert_inspect_and_mesh_follow_one_convention() {
     );
     assert!(!err.contains("unsupported format"), "{err}");
 
-    // mesh: -o into a new folder, the graph's default bound (0.05 Sq), the default unit named
+    // mesh: -o into a new folder, the bound the tolerance search chose, the default unit named
     // in the summary (no warning: nothing was assumed), fixed-precision numbers, and a header
     // that says units and offset once.
     let stl = d.path().join("mesh").join("new").join("m.stl");
@@ -319,7 +319,8 @@ fn convert_inspect_and_mesh_follow_one_convention() {
     let err = stderr(&out);
     assert!(out.status.success(), "{err}");
     assert!(!err.contains("warning"), "{err}");
-    assert!(err.contains(" = 0.05 x Sq"), "{err}");
+    assert!(err.contains(" x Sq, the search's)"), "{err}");
+    assert!(!err.contains(" = 0.05 x Sq"), "{err}");
     assert!(
         err.contains(" vertices, STL in mm (the default; --units m | mm | um);"),
         "{err}"

@@ -25,11 +25,12 @@ pub enum Units {
 pub struct MeshArgs {
     #[arg(help = super::file_help())]
     pub file: PathBuf,
-    /// The model's tolerance per region, percent (default sa=1,sq=1,sz=3,res=50 when no
-    /// epsilon is given, plus rough=5 with --roughness): the fewest triangles whose mesh,
+    /// The model's tolerance per region, percent (default sa=1,sq=1,sz=3,res=20,max=50 when
+    /// no epsilon is given, plus rough=5 with --roughness): the fewest triangles whose mesh,
     /// interpolated at every measured sample, keeps Sa, Sq and Sz within it in every window
-    /// (docs/model.md); res bounds the pointwise residual (% of Sq), rough the roughness the
-    /// mesh carries (% of the measured one); `=off` drops a bound.
+    /// (docs/model.md); res bounds the pointwise residual RMS, max the largest pointwise
+    /// error (% of Sq), rough the roughness the mesh carries (% of the measured one); `=off`
+    /// drops a bound.
     #[arg(long, value_name = "sa=1,sq=1,sz=3", conflicts_with_all = ["epsilon_um", "epsilon_sq"])]
     pub tolerance: Option<surfstream_mesher::Tolerance>,
     /// Side of the windows the tolerance is judged in, samples (default: half the map's
@@ -257,13 +258,16 @@ fn say_result(
             r.triangles_per_measured_px,
             r.curve.len(),
             worst.map_or(String::new(), |w| format!(
-                "; worst of {} regions {}: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %, residual {:.1} % of Sq",
+                "; worst of {} regions {}: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %, residual {:.1} % \
+                 of Sq, max error {} um ({:.1} % of Sq)",
                 r.regions,
                 w.region,
                 w.deviation_pct[0],
                 w.deviation_pct[1],
                 w.deviation_pct[2],
-                w.residual_pct_of_sq
+                w.residual_pct_of_sq,
+                super::sig(w.max_error_um, 3),
+                w.max_error_pct_of_sq,
             ))
         );
         if let Some(q) = &r.angles {
@@ -282,9 +286,20 @@ fn say_result(
         }
     }
     let (f, c) = (&m.fidelity, &m.counts);
-    let bound = match params.epsilon {
-        Epsilon::Um(_) => String::new(),
-        Epsilon::SqFraction(q) => format!(" = {q} x Sq"),
+    // The bound the mesh was made to: the search's choice with a tolerance (the flags' fixed
+    // bound is not used then), else the fixed one.
+    let bound = match (tolerance, params.epsilon) {
+        (Some(r), _) => {
+            let chosen = r.curve.iter().find(|c| c.chosen);
+            chosen.map_or(String::new(), |c| {
+                format!(
+                    " = {} x Sq, the search's",
+                    super::sig(c.epsilon_sq_fraction, 3)
+                )
+            })
+        }
+        (None, Epsilon::Um(_)) => String::new(),
+        (None, Epsilon::SqFraction(q)) => format!(" = {q} x Sq"),
     };
     eprintln!(
         "mesh: {} triangles ({} surface), {} vertices, STL in {}; max vertical error \
@@ -308,6 +323,19 @@ fn say_result(
         a.out.display(),
         json_path.display()
     );
+    if !f.bound_met {
+        eprintln!(
+            "mesh: warning: bound_met: false: the largest vertical error, {} um, is beyond the \
+             bound of {} um{}",
+            super::sig(f.error.max_um, 4),
+            super::sig(f.epsilon_um, 4),
+            if m.summary.record.budget_reached {
+                " (the triangle budget stopped the refinement)"
+            } else {
+                ""
+            }
+        );
+    }
 }
 
 /// The line for an engine's regular-grid sheet.
