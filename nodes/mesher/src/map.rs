@@ -157,6 +157,11 @@ pub struct MapStats {
     pub input: Option<String>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub input_format: Option<String>,
+    /// The form removed from the heights before meshing, when the caller levelled them
+    /// (the verb's `--level`: "least-squares plane", as `params --level`); absent: the mean
+    /// only. The mesh and its tolerance are then of the levelled surface.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub form_removed: Option<&'static str>,
     /// The STL's file name.
     pub stl: String,
     /// "ascii" or "binary".
@@ -328,6 +333,7 @@ fn stats(
         summary,
         input: r.input.as_ref().map(|i| i.0.clone()),
         input_format: r.input.as_ref().map(|i| i.1.clone()),
+        form_removed: None,
         // Present: mesh_map checked it.
         stl: r
             .stl
