@@ -425,7 +425,8 @@ fn mesh_level_removes_the_tilt_and_the_model_keeps_the_roughness() {
             state ^= state >> 7;
             state ^= state << 17;
             let noise = (state >> 11) as f64 / (1u64 << 53) as f64 - 0.5;
-            0.05 * x + 0.03 * y
+            0.05 * x
+                + 0.03 * y
                 + 0.3 * (x * 0.7).sin() * (y * 0.9).cos()
                 + 0.15 * (x * 0.23 + y * 0.31).sin()
                 + 0.1 * noise
@@ -450,19 +451,37 @@ fn mesh_level_removes_the_tilt_and_the_model_keeps_the_roughness() {
     let levelled = d.path().join("levelled.stl");
     let out = run({
         let mut c = surfstream();
-        c.args(["mesh", s(&npy), "--pitch-um", "1", "--level", "-o", s(&levelled)]);
+        c.args([
+            "mesh",
+            s(&npy),
+            "--pitch-um",
+            "1",
+            "--level",
+            "-o",
+            s(&levelled),
+        ]);
         c
     });
     let err = stderr(&out);
     assert!(out.status.success(), "{err}");
-    assert!(err.contains("levelled: the least-squares plane removed"), "{err}");
+    assert!(
+        err.contains("levelled: the least-squares plane removed"),
+        "{err}"
+    );
     assert!(!err.contains("the surface is tilted"), "{err}");
     let json = read_json(&levelled.with_extension("json"));
     assert_eq!(json["form_removed"], "least-squares plane", "{json:#}");
     assert_eq!(json["tolerance"]["met"], true, "{json:#}");
     // The bound is stated, pointwise included, on the levelled surface.
-    assert_eq!(json["tolerance"]["tolerance"]["max_error_pct"], 50.0, "{json:#}");
-    let sdr = |k: &str| json["fidelity"][k]["sdr_percent"].as_f64().unwrap_or(f64::NAN);
+    assert_eq!(
+        json["tolerance"]["tolerance"]["max_error_pct"], 50.0,
+        "{json:#}"
+    );
+    let sdr = |k: &str| {
+        json["fidelity"][k]["sdr_percent"]
+            .as_f64()
+            .unwrap_or(f64::NAN)
+    };
     let (field, mesh) = (sdr("field"), sdr("mesh"));
     assert!(field > 0.5, "{json:#}");
     assert!(
