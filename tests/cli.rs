@@ -307,7 +307,7 @@ fn convert_inspect_and_mesh_follow_one_convention() {
     );
     assert!(!err.contains("unsupported format"), "{err}");
 
-    // mesh: -o into a new folder, the graph's default bound (0.05 Sq), the default unit named
+    // mesh: -o into a new folder, the bound the tolerance search chose, the default unit named
     // in the summary (no warning: nothing was assumed), fixed-precision numbers, and a header
     // that says units and offset once.
     let stl = d.path().join("mesh").join("new").join("m.stl");
@@ -319,7 +319,8 @@ fn convert_inspect_and_mesh_follow_one_convention() {
     let err = stderr(&out);
     assert!(out.status.success(), "{err}");
     assert!(!err.contains("warning"), "{err}");
-    assert!(err.contains(" = 0.05 x Sq"), "{err}");
+    assert!(err.contains(" x Sq, the search's)"), "{err}");
+    assert!(!err.contains(" = 0.05 x Sq"), "{err}");
     assert!(
         err.contains(" vertices, STL in mm (the default; --units m | mm | um);"),
         "{err}"
@@ -405,4 +406,86 @@ fn on_a_terminal_progress_is_a_bar_above_the_lines() {
         "each tile's line once:\n{tty}"
     );
     assert!(tty.contains("verdict: "), "{tty}");
+}
+
+/// `mesh --level` on a tilted plane plus roughness: without it the verb says the surface is
+/// tilted (the tolerance, judged with the mean removed only, would see the tilt); with it the
+/// least-squares plane is removed as `params --level` does, the record says so, the tolerance
+/// is met on the levelled surface and the model keeps Sdr within 5 %.
+#[test]
+fn mesh_level_removes_the_tilt_and_the_model_keeps_the_roughness() {
+    let d = tempfile::tempdir().unwrap();
+    let (rows, cols) = (256usize, 256usize);
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let heights: Vec<f64> = (0..rows * cols)
+        .map(|k| {
+            let (y, x) = ((k / cols) as f64, (k % cols) as f64);
+            // xorshift: deterministic noise of +/-0.05 um.
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            let noise = (state >> 11) as f64 / (1u64 << 53) as f64 - 0.5;
+            0.05 * x
+                + 0.03 * y
+                + 0.3 * (x * 0.7).sin() * (y * 0.9).cos()
+                + 0.15 * (x * 0.23 + y * 0.31).sin()
+                + 0.1 * noise
+        })
+        .collect();
+    let npy = d.path().join("tilted.npy");
+    surfstream_io::npy::write_npy_f64(&npy, &heights, rows, cols).unwrap();
+
+    let raw = d.path().join("raw.stl");
+    let out = run({
+        let mut c = surfstream();
+        c.args(["mesh", s(&npy), "--pitch-um", "1", "-o", s(&raw)]);
+        c
+    });
+    let err = stderr(&out);
+    assert!(out.status.success(), "{err}");
+    assert!(err.contains("the surface is tilted"), "{err}");
+    assert!(err.contains("--level"), "{err}");
+    let json = read_json(&raw.with_extension("json"));
+    assert!(json.get("form_removed").is_none(), "{json:#}");
+
+    let levelled = d.path().join("levelled.stl");
+    let out = run({
+        let mut c = surfstream();
+        c.args([
+            "mesh",
+            s(&npy),
+            "--pitch-um",
+            "1",
+            "--level",
+            "-o",
+            s(&levelled),
+        ]);
+        c
+    });
+    let err = stderr(&out);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("levelled: the least-squares plane removed"),
+        "{err}"
+    );
+    assert!(!err.contains("the surface is tilted"), "{err}");
+    let json = read_json(&levelled.with_extension("json"));
+    assert_eq!(json["form_removed"], "least-squares plane", "{json:#}");
+    assert_eq!(json["tolerance"]["met"], true, "{json:#}");
+    // The bound is stated, pointwise included, on the levelled surface.
+    assert_eq!(
+        json["tolerance"]["tolerance"]["max_error_pct"], 50.0,
+        "{json:#}"
+    );
+    let sdr = |k: &str| {
+        json["fidelity"][k]["sdr_percent"]
+            .as_f64()
+            .unwrap_or(f64::NAN)
+    };
+    let (field, mesh) = (sdr("field"), sdr("mesh"));
+    assert!(field > 0.5, "{json:#}");
+    assert!(
+        ((mesh - field) / field).abs() <= 0.05,
+        "Sdr: mesh {mesh} %, measured {field} %"
+    );
 }

@@ -137,6 +137,19 @@ write_dump all custom final.txt id x y z radius
     )
 }
 
+/// The angle-bounded target's own default tolerance, as the record states it: Sa 1 %, Sq 1 %,
+/// Sz 3 %, residual RMS 50 % of Sq, no pointwise maximum (docs/model.md, "The tolerance per
+/// target"; every other mesh has the default's max error of 50 % of Sq).
+fn assert_states_the_angle_bounded_tolerance(t: &serde_json::Value) {
+    assert_eq!(t["residual_pct"], 50.0, "{t:#}");
+    assert!(t.get("max_error_pct").is_none(), "{t:#}");
+    assert_eq!(
+        [&t["sa_pct"], &t["sq_pct"], &t["sz_pct"]],
+        [1.0, 1.0, 3.0],
+        "{t:#}"
+    );
+}
+
 #[test]
 fn liggghts_imports_the_wall_and_spheres_settle_on_it() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -145,6 +158,7 @@ fn liggghts_imports_the_wall_and_spheres_settle_on_it() {
     // The model from the tolerance, met on the mesh written, angles bounded.
     assert_eq!(report["target"]["method"], "adaptive", "{report:#}");
     assert_eq!(report["tolerance"]["met"], true, "{report:#}");
+    assert_states_the_angle_bounded_tolerance(&report["tolerance"]["tolerance"]);
     let bound = report["target"]["min_angle_deg"].as_f64().unwrap_or(0.0);
     assert!(bound >= 0.5, "{report:#}");
     let smallest = smallest_angle_deg(&mesh);
@@ -220,6 +234,7 @@ fn graph_parameter_target_liggghts_writes_a_tolerance_sheet_liggghts_runs() {
     assert_eq!(mesh["method"], "adaptive");
     assert_eq!(mesh["kind"], "sheet");
     assert_eq!(mesh["tolerance"]["met"], true, "{mesh:#}");
+    assert_states_the_angle_bounded_tolerance(&mesh["tolerance"]["tolerance"]);
     let stl = read_ascii_stl(&out_dir.join("surface.stl"));
     assert_eq!(stl.len() as u64, mesh["triangles"].as_u64().unwrap_or(0));
     assert!(stl.len() <= 400_000);

@@ -363,6 +363,9 @@ fn model_line(run: &RunRecord) -> Option<(String, bool)> {
     if let Some(r) = tol.residual_pct.filter(|r| !r.is_nan()) {
         let _ = write!(extra, ", residual {r} % of Sq");
     }
+    if let Some(r) = tol.max_error_pct.filter(|r| !r.is_nan()) {
+        let _ = write!(extra, ", max error {r} % of Sq");
+    }
     let judges_roughness =
         (t.region_fits.first()).is_some_and(|w| w.roughness_deviation_pct.is_some());
     if let Some(r) = tol
@@ -394,6 +397,18 @@ fn model_line(run: &RunRecord) -> Option<(String, bool)> {
                 d[0], d[1], d[2]
             );
         }
+    }
+    // The largest pointwise error of any region (relative to its Sq), in um too: the
+    // paper's "within 1 um".
+    let pointwise = (t.region_fits.iter())
+        .filter_map(|w| Some((w, w.max_error_um?, w.max_error_pct_of_sq?)))
+        .max_by(|a, b| a.2.total_cmp(&b.2));
+    if let Some((w, um, pct)) = pointwise {
+        let _ = write!(
+            line,
+            "; max pointwise error {um:.3} um ({pct:.1} % of Sq) in {}",
+            w.region
+        );
     }
     // With an engine's angle bound (LIGGGHTS): the smallest angle of the mesh written.
     if let Some(a) = &t.angles {
@@ -610,6 +625,35 @@ mod tests {
         );
         assert!(
             t.contains("roughness Sa +20.17 % beyond the tolerance of 5 %"),
+            "{t}"
+        );
+    }
+
+    /// The pointwise bound is stated with the others, and the largest pointwise error of any
+    /// region (relative to its Sq) is printed in um: the paper's "within 1 um".
+    #[test]
+    fn the_model_line_states_the_pointwise_bound_and_the_largest_error() {
+        let mut run = run_json(true, false);
+        run["stages"]["mesher"]["tolerance"] = json!({
+            "tolerance": { "sa_pct": 1.0, "sq_pct": 1.0, "sz_pct": 3.0, "residual_pct": 20.0,
+                "max_error_pct": 50.0 },
+            "met": true, "surface_triangles": 1200, "triangles_per_measured_px": 0.012,
+            "regions": 5,
+            "region_fits": [
+                { "region": "W1.2", "deviation_pct": [0.5, 0.4, 0.0], "residual_pct_of_sq": 14.0,
+                  "max_error_um": 0.9, "max_error_pct_of_sq": 40.0 },
+                { "region": "W2.1", "deviation_pct": [0.1, 0.1, 0.0], "residual_pct_of_sq": 12.0,
+                  "max_error_um": 0.767, "max_error_pct_of_sq": 44.2 }],
+        });
+        let v = verdict(&record(run), Path::new("/o"), false);
+        let t = &v.text;
+        assert!(v.failures.is_empty(), "{t}");
+        assert!(
+            t.contains("Sz 3 %, residual 20 % of Sq, max error 50 % of Sq per region: met"),
+            "{t}"
+        );
+        assert!(
+            t.contains("; max pointwise error 0.767 um (44.2 % of Sq) in W2.1"),
             "{t}"
         );
     }

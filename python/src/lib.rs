@@ -573,7 +573,7 @@ fn mesh(
             MapBound::Tolerance(ToleranceSettings {
                 tolerance: Tolerance {
                     roughness_pct: None,
-                    ..Tolerance::default()
+                    ..ToleranceSettings::for_target(profile.as_ref()).tolerance
                 },
                 ..ToleranceSettings::default()
             })

@@ -707,6 +707,13 @@ pub struct ModelTolerance {
         skip_serializing_if = "Option::is_none"
     )]
     pub residual_pct: Option<f64>,
+    /// The limit on the largest pointwise |mesh - measurement| (means removed), percent of Sq.
+    #[serde(
+        default,
+        deserialize_with = "some_nan_if_null",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub max_error_pct: Option<f64>,
     /// The limit on the roughness the mesh carries (mesh - datum against the measured
     /// roughness), percent, per parameter.
     #[serde(
@@ -730,6 +737,20 @@ pub struct RegionFitRecord {
     pub deviation_pct: [f64; 3],
     #[serde(deserialize_with = "nan_if_null")]
     pub residual_pct_of_sq: f64,
+    /// The largest pointwise |mesh - measurement| (both means removed), um and percent of the
+    /// measured Sq (records written before the pointwise bound have none).
+    #[serde(
+        default,
+        deserialize_with = "some_nan_if_null",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub max_error_um: Option<f64>,
+    #[serde(
+        default,
+        deserialize_with = "some_nan_if_null",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub max_error_pct_of_sq: Option<f64>,
     /// (model - measured) / measured * 100 of the roughness the mesh carries, Sa, Sq, Sz
     /// (when the roughness is judged).
     #[serde(
@@ -758,6 +779,13 @@ pub struct CurvePointRecord {
     pub worst_sz_pct: f64,
     #[serde(deserialize_with = "nan_if_null")]
     pub worst_residual_pct_of_sq: f64,
+    /// Largest pointwise error over the regions, percent of the region's Sq.
+    #[serde(
+        default,
+        deserialize_with = "some_nan_if_null",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub worst_max_error_pct_of_sq: Option<f64>,
     /// Worst |deviation| of the roughness the mesh carries (when it is judged), percent.
     #[serde(
         default,

@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, ValueEnum};
 use surfstream_core::frame::to_frame_heights;
+use surfstream_core::metrology::{self, Grid};
 use surfstream_core::raster::Shape;
 use surfstream_mesher::map::{MeshOptions, MethodStats, PreparedHeights};
 use surfstream_mesher::outliers::OutlierPolicy;
@@ -25,11 +26,12 @@ pub enum Units {
 pub struct MeshArgs {
     #[arg(help = super::file_help())]
     pub file: PathBuf,
-    /// The model's tolerance per region, percent (default sa=1,sq=1,sz=3,res=50 when no
-    /// epsilon is given, plus rough=5 with --roughness): the fewest triangles whose mesh,
+    /// The model's tolerance per region, percent (default sa=1,sq=1,sz=3,res=20,max=50 when
+    /// no epsilon is given, plus rough=5 with --roughness): the fewest triangles whose mesh,
     /// interpolated at every measured sample, keeps Sa, Sq and Sz within it in every window
-    /// (docs/model.md); res bounds the pointwise residual (% of Sq), rough the roughness the
-    /// mesh carries (% of the measured one); `=off` drops a bound.
+    /// (docs/model.md); res bounds the pointwise residual RMS, max the largest pointwise
+    /// error (% of Sq), rough the roughness the mesh carries (% of the measured one); `=off`
+    /// drops a bound.
     #[arg(long, value_name = "sa=1,sq=1,sz=3", conflicts_with_all = ["epsilon_um", "epsilon_sq"])]
     pub tolerance: Option<surfstream_mesher::Tolerance>,
     /// Side of the windows the tolerance is judged in, samples (default: half the map's
@@ -49,6 +51,11 @@ pub struct MeshArgs {
     /// removal; they are always reported in OUT.json, and kept by default).
     #[arg(long)]
     pub remove_spikes: bool,
+    /// Subtract the least-squares plane first, as `params --level` (the STL is of the levelled
+    /// surface and the tolerance is judged on it); without it only the mean is removed, and a
+    /// tilt then dominates Sq and hides the roughness from the tolerance.
+    #[arg(long)]
+    pub level: bool,
     /// A fixed bound instead of a tolerance: the largest vertical distance between any
     /// measured sample and the mesh, um.
     #[arg(long, conflicts_with = "epsilon_sq")]
@@ -114,7 +121,11 @@ pub fn run(a: MeshArgs) -> Result<()> {
     let params = mesh_params(&a, profile);
     // An engine's grid takes no bound (clap refuses one with --grid).
     let grid = profile.is_some_and(|p| p.method == TargetMethod::Grid);
-    let settings = if grid { None } else { tolerance_settings(&a)? };
+    let settings = if grid {
+        None
+    } else {
+        tolerance_settings(&a, profile.as_ref())?
+    };
     let bound = match settings {
         None => MapBound::Fixed,
         Some(s) => MapBound::Tolerance(s),
@@ -125,7 +136,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
         }
         _ => None,
     };
-    let outcome = mesh_map(&MapRequest {
+    let mut outcome = mesh_map(&MapRequest {
         heights: &prepared,
         pitch,
         params: params.clone(),
@@ -141,6 +152,9 @@ pub fn run(a: MeshArgs) -> Result<()> {
     })
     .with_context(|| format!("{}", a.file.display()))?;
     let json_path = a.out.with_extension("json");
+    if a.level {
+        outcome.stats.form_removed = Some("least-squares plane");
+    }
     let report = outcome.stats.to_json()?;
     surfstream_core::fsutil::write_atomic(&json_path, |w| {
         serde_json::to_writer_pretty(w, &report)
@@ -153,11 +167,49 @@ pub fn run(a: MeshArgs) -> Result<()> {
     Ok(())
 }
 
+/// Below this share of the Sq with the mean removed, the Sq about the least-squares plane says
+/// the surface is tilted (the verb then suggests --level).
+const TILT_SQ_SHARE: f64 = 0.5;
+
 /// The file read (its mask applied) and its heights prepared for the mesher
 /// ([`prepare_heights`]); spikes said (and removed on request).
 fn prepared_heights(a: &MeshArgs) -> Result<(surfstream_io::formats::Surface, PreparedHeights)> {
     let mut surface = super::load_surface(&a.file, a.pitch_um, "mesh", true)?.surface;
     a.mask.apply(&a.file, &mut surface)?;
+    let levelled = Grid::new(
+        &surface.heights_um,
+        surface.height,
+        surface.width,
+        surface.pitch_x_um,
+        surface.pitch_y_um,
+    )
+    .map_err(anyhow::Error::from)
+    .and_then(|g| Ok(metrology::level_plane(&g)?));
+    if a.level {
+        surface.heights_um = levelled.with_context(|| format!("{}: --level", a.file.display()))?;
+        eprintln!(
+            "mesh: levelled: the least-squares plane removed (as params --level); the mesh \
+             and its tolerance are of the levelled surface"
+        );
+    } else if let Ok(levelled) = levelled {
+        // A tilt or form the mean does not remove: the tolerance (mean removed only) is then
+        // judged on it, and the roughness hides under it.
+        let sq = |v: &[f64]| {
+            let m: Vec<f64> = v.iter().copied().filter(|z| !z.is_nan()).collect();
+            let mean = m.iter().sum::<f64>() / m.len().max(1) as f64;
+            (m.iter().map(|z| (z - mean).powi(2)).sum::<f64>() / m.len().max(1) as f64).sqrt()
+        };
+        let (raw, flat) = (sq(&surface.heights_um), sq(&levelled));
+        if flat < TILT_SQ_SHARE * raw {
+            eprintln!(
+                "mesh: note: the surface is tilted: Sq {} um with the mean removed, {} um about \
+                 its least-squares plane; the tolerance is judged with the mean removed only, \
+                 where the tilt hides the roughness: --level removes the plane first",
+                super::sig(raw, 4),
+                super::sig(flat, 4)
+            );
+        }
+    }
     let policy = if a.remove_spikes {
         OutlierPolicy::Remove
     } else {
@@ -207,15 +259,22 @@ fn mesh_params(a: &MeshArgs, profile: Option<EngineProfile>) -> MeshParams {
 }
 
 /// The tolerance search's settings from the flags; `None` for a fixed bound (--epsilon-um,
-/// --epsilon-sq). The smallest angle comes from the engine's profile ([`mesh_map`]).
-fn tolerance_settings(a: &MeshArgs) -> Result<Option<ToleranceSettings>> {
+/// --epsilon-sq). The smallest angle comes from the engine's profile ([`mesh_map`]); without
+/// --tolerance the tolerance is the target's default (an angle-bounded target's has no
+/// pointwise maximum, [`EngineProfile::default_tolerance`]).
+fn tolerance_settings(
+    a: &MeshArgs,
+    profile: Option<&EngineProfile>,
+) -> Result<Option<ToleranceSettings>> {
     if let Some(px) = a.region_px.filter(|&p| p < 16) {
         bail!("--region-px {px}: expected at least 16 samples");
     }
     if a.epsilon_um.is_some() || a.epsilon_sq.is_some() {
         return Ok(None);
     }
-    let mut tolerance = a.tolerance.unwrap_or_default();
+    let mut tolerance = a
+        .tolerance
+        .unwrap_or_else(|| ToleranceSettings::for_target(profile).tolerance);
     if a.roughness.is_none() {
         // Nothing to judge the roughness against: the report does not claim a bound.
         tolerance.roughness_pct = None;
@@ -257,13 +316,16 @@ fn say_result(
             r.triangles_per_measured_px,
             r.curve.len(),
             worst.map_or(String::new(), |w| format!(
-                "; worst of {} regions {}: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %, residual {:.1} % of Sq",
+                "; worst of {} regions {}: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %, residual {:.1} % \
+                 of Sq, max error {} um ({:.1} % of Sq)",
                 r.regions,
                 w.region,
                 w.deviation_pct[0],
                 w.deviation_pct[1],
                 w.deviation_pct[2],
-                w.residual_pct_of_sq
+                w.residual_pct_of_sq,
+                super::sig(w.max_error_um, 3),
+                w.max_error_pct_of_sq,
             ))
         );
         if let Some(q) = &r.angles {
@@ -282,9 +344,20 @@ fn say_result(
         }
     }
     let (f, c) = (&m.fidelity, &m.counts);
-    let bound = match params.epsilon {
-        Epsilon::Um(_) => String::new(),
-        Epsilon::SqFraction(q) => format!(" = {q} x Sq"),
+    // The bound the mesh was made to: the search's choice with a tolerance (the flags' fixed
+    // bound is not used then), else the fixed one.
+    let bound = match (tolerance, params.epsilon) {
+        (Some(r), _) => {
+            let chosen = r.curve.iter().find(|c| c.chosen);
+            chosen.map_or(String::new(), |c| {
+                format!(
+                    " = {} x Sq, the search's",
+                    super::sig(c.epsilon_sq_fraction, 3)
+                )
+            })
+        }
+        (None, Epsilon::Um(_)) => String::new(),
+        (None, Epsilon::SqFraction(q)) => format!(" = {q} x Sq"),
     };
     eprintln!(
         "mesh: {} triangles ({} surface), {} vertices, STL in {}; max vertical error \
@@ -308,6 +381,19 @@ fn say_result(
         a.out.display(),
         json_path.display()
     );
+    if !f.bound_met {
+        eprintln!(
+            "mesh: warning: bound_met: false: the largest vertical error, {} um, is beyond the \
+             bound of {} um{}",
+            super::sig(f.error.max_um, 4),
+            super::sig(f.epsilon_um, 4),
+            if m.summary.record.budget_reached {
+                " (the triangle budget stopped the refinement)"
+            } else {
+                ""
+            }
+        );
+    }
 }
 
 /// The line for an engine's regular-grid sheet.
@@ -444,7 +530,7 @@ mod tests {
                 surfstream_core::Pitch::new(surface.pitch_x_um, surface.pitch_y_um).unwrap();
             let at = ScanPlacement::new(pitch).with_z_offset(p.z_offset_um);
             let params = mesh_params(&a, None);
-            let m = match tolerance_settings(&a).unwrap() {
+            let m = match tolerance_settings(&a, None).unwrap() {
                 Some(s) => {
                     mesh_to_tolerance(heights, None, &at, &params, &s)
                         .unwrap()

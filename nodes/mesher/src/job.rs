@@ -250,7 +250,12 @@ impl MesherConfig {
         }
         let mut tolerance =
             (self.method == "adaptive" && !fixed_bound).then(|| ToleranceSettings {
-                tolerance: self.tolerance.unwrap_or_default(),
+                // Unless stated, the target's own (an angle-bounded one has no pointwise
+                // maximum, [`EngineProfile::default_tolerance`]).
+                tolerance: self.tolerance.unwrap_or_else(|| {
+                    let profile = self.target.map(EngineProfile::for_engine);
+                    ToleranceSettings::for_target(profile.as_ref()).tolerance
+                }),
                 region_px: self.region_px,
                 method: self.model_method,
                 min_angle_deg: None,

@@ -157,6 +157,11 @@ pub struct MapStats {
     pub input: Option<String>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub input_format: Option<String>,
+    /// The form removed from the heights before meshing, when the caller levelled them
+    /// (the verb's `--level`: "least-squares plane", as `params --level`); absent: the mean
+    /// only. The mesh and its tolerance are then of the levelled surface.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub form_removed: Option<&'static str>,
     /// The STL's file name.
     pub stl: String,
     /// "ascii" or "binary".
@@ -245,6 +250,15 @@ pub fn mesh_map(r: &MapRequest) -> Result<MapOutcome> {
             r.stl.display()
         );
     }
+    // Every caller (the verb, Python, the finishing patch) refuses what the verb refuses: an
+    // STL named otherwise (`x.obj`) is not written.
+    if !(r.stl.extension()).is_some_and(|e| e.eq_ignore_ascii_case("stl")) {
+        return Err(MeshError::Incompatible(format!(
+            "{}: mesh writes STL; name the output OUT.stl (the statistics go to OUT.json)",
+            r.stl.display()
+        ))
+        .into());
+    }
     let p = r.heights;
     let heights = RasterView::new(&p.heights_um, p.shape)?;
     let at = ScanPlacement::new(r.pitch).with_z_offset(p.z_offset_um);
@@ -319,6 +333,7 @@ fn stats(
         summary,
         input: r.input.as_ref().map(|i| i.0.clone()),
         input_format: r.input.as_ref().map(|i| i.1.clone()),
+        form_removed: None,
         // Present: mesh_map checked it.
         stl: r
             .stl
@@ -520,6 +535,18 @@ mod tests {
         assert_eq!(json["measured_grid_rows_cols"][1], shape.cols);
         assert_eq!(json["input"], "in.npy");
         assert!(std::fs::metadata(&stl).unwrap().len() > 0);
+
+        // An STL under another name is refused, as the verb refuses it, and nothing written.
+        let obj = d.path().join("x.obj");
+        let e = mesh_map(&MapRequest {
+            stl: &obj,
+            ..request(profile, MapBound::Fixed)
+        })
+        .err()
+        .unwrap();
+        assert!(e.to_string().contains("mesh writes STL"), "{e}");
+        assert!(e.downcast_ref::<MeshError>().is_some(), "{e}");
+        assert!(!obj.exists());
 
         let liggghts = EngineProfile::with_budget(DemEngine::Liggghts, None);
         let e = mesh_map(&request(liggghts, MapBound::Fixed)).err().unwrap();

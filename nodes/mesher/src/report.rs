@@ -86,6 +86,7 @@ impl From<&Tolerance> for ModelTolerance {
             sq_pct: t.sq_pct,
             sz_pct: t.sz_pct,
             residual_pct: t.residual_pct,
+            max_error_pct: t.max_error_pct,
             roughness_pct: t.roughness_pct,
         }
     }
@@ -99,6 +100,8 @@ impl From<&RegionFit> for RegionFitRecord {
             measured_um: f.measured_um,
             deviation_pct: f.deviation_pct,
             residual_pct_of_sq: f.residual_pct_of_sq,
+            max_error_um: Some(f.max_error_um),
+            max_error_pct_of_sq: Some(f.max_error_pct_of_sq),
             roughness_deviation_pct: f.roughness_deviation_pct,
         }
     }
@@ -115,6 +118,7 @@ impl From<&CurvePoint> for CurvePointRecord {
             worst_sq_pct: p.worst_sq_pct,
             worst_sz_pct: p.worst_sz_pct,
             worst_residual_pct_of_sq: p.worst_residual_pct_of_sq,
+            worst_max_error_pct_of_sq: Some(p.worst_max_error_pct_of_sq),
             worst_roughness_pct: p.worst_roughness_pct,
             worst_region: p.worst_region.clone(),
             pass: p.pass,

@@ -27,6 +27,7 @@ use crate::error::{MeshError, Result};
 use crate::fidelity::{field_params, AreaParams};
 use crate::field::ScanPlacement;
 use crate::solid::{grid_solid, LengthUnit, SolidMesh, SolidParams};
+use crate::tolerance::{Tolerance, ANGLE_BOUNDED_TOLERANCE, DEFAULT_TOLERANCE};
 
 /// A discrete-element engine an STL is made for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -100,6 +101,18 @@ impl EngineProfile {
             p.max_triangles = budget;
         }
         p
+    }
+
+    /// The tolerance the engine's model is made to when the caller states none: an
+    /// angle-bounded adaptive mesh (LIGGGHTS) gets [`ANGLE_BOUNDED_TOLERANCE`] (no bound on
+    /// the largest pointwise error: it does not fit the angle bound and the budget), every
+    /// other target [`DEFAULT_TOLERANCE`].
+    pub fn default_tolerance(&self) -> Tolerance {
+        if self.method == TargetMethod::Adaptive && self.min_angle_deg > 0.0 {
+            ANGLE_BOUNDED_TOLERANCE
+        } else {
+            DEFAULT_TOLERANCE
+        }
     }
 
     pub fn for_engine(engine: DemEngine) -> Self {
@@ -395,6 +408,24 @@ mod tests {
         assert!(p.min_angle_deg > 0.256, "LIGGGHTS aborts below 0.256 deg");
         let m = EngineProfile::for_engine(DemEngine::MercuryDpm);
         assert!(!m.ascii, "MercuryDPM reads binary STL only");
+    }
+
+    #[test]
+    fn the_angle_bounded_target_states_its_own_default_tolerance() {
+        // LIGGGHTS: the angle bound and the budget leave no room for the pointwise maximum.
+        let l = EngineProfile::for_engine(DemEngine::Liggghts).default_tolerance();
+        assert_eq!(l, ANGLE_BOUNDED_TOLERANCE);
+        assert_eq!((l.max_error_pct, l.residual_pct), (None, Some(50.0)));
+        assert_eq!((l.sa_pct, l.sq_pct, l.sz_pct), (1.0, 1.0, 3.0));
+        // Every other target (and LIGGGHTS' regular grid) keeps the default's pointwise bound.
+        let edem = EngineProfile::for_engine(DemEngine::Edem).default_tolerance();
+        assert_eq!(edem, DEFAULT_TOLERANCE);
+        assert_eq!(edem.max_error_pct, Some(50.0));
+        let mut grid = EngineProfile::for_engine(DemEngine::Liggghts);
+        grid.method = TargetMethod::Grid;
+        assert_eq!(grid.default_tolerance(), DEFAULT_TOLERANCE);
+        let s = crate::ToleranceSettings::for_target(None);
+        assert_eq!(s.tolerance, DEFAULT_TOLERANCE);
     }
 
     #[test]

@@ -51,6 +51,12 @@ pub struct Tolerance {
     /// peaks and its smoothing cancel in the parameters); this asks for pointwise fidelity too.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub residual_pct: Option<f64>,
+    /// Optional limit on the largest pointwise error |mesh - measurement| (both with the
+    /// region's mean removed), percent of the region's Sq ("max=50": half of Sq, the paper's
+    /// "within 1 um" on a surface of Sq 2 um). The residual RMS bounds the error on average;
+    /// this bounds it everywhere.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_error_pct: Option<f64>,
     /// Limit on Sa, Sq and Sz of the roughness the simulator sees (mesh minus datum) against
     /// the measured roughness, percent ("rough=5"), judged when the measured roughness is wired
     /// to the mesher: on a smooth part the roughness is a small share of the heights, and a
@@ -61,23 +67,43 @@ pub struct Tolerance {
 }
 
 /// The default tolerance: Sa 1 %, Sq 1 %, Sz 3 % (the reference study's Table 6 reached
-/// 0.6 / 0.6 / 2.7 %) and a pointwise residual of at most 50 % of Sq (the mesh explains at
-/// least three quarters of the variance point by point: without it, a coarse mesh whose
-/// blocks are balanced can match Sa and Sq as a statistical twin; docs/model.md has the
-/// numbers). "res=off" drops it.
+/// 0.6 / 0.6 / 2.7 %), a pointwise residual RMS of at most 20 % of Sq and no point farther
+/// than 50 % of Sq from the measurement (without the pointwise bounds a coarse mesh whose
+/// blocks are balanced matches Sa and Sq as a statistical twin while departing by more than
+/// Sq point by point; docs/model.md has the numbers). "res=off", "max=off" drop them.
 pub const DEFAULT_TOLERANCE: Tolerance = Tolerance {
     sa_pct: 1.0,
     sq_pct: 1.0,
     sz_pct: 3.0,
     residual_pct: Some(DEFAULT_RESIDUAL_PCT),
+    max_error_pct: Some(DEFAULT_MAX_ERROR_PCT),
     roughness_pct: Some(DEFAULT_ROUGHNESS_PCT),
 };
+
+/// The default tolerance of a target whose smallest triangle angle is bounded (LIGGGHTS,
+/// [`crate::EngineProfile::default_tolerance`]): Sa 1 %, Sq 1 %, Sz 3 % and a residual RMS
+/// of at most 50 % of Sq, no bound on the largest pointwise error. The angle bound's
+/// refinement and the engine's triangle budget (400 000; what a DEM run can afford) do not
+/// leave room for the pointwise bound: the demo's default model alone has 563 511 surface
+/// triangles, and the specimen at a budget of 30 000 does not meet it (docs/model.md, "The
+/// tolerance per target"). Stated in the model line and the report as any tolerance.
+pub const ANGLE_BOUNDED_TOLERANCE: Tolerance = Tolerance {
+    residual_pct: Some(ANGLE_BOUNDED_RESIDUAL_PCT),
+    max_error_pct: None,
+    ..DEFAULT_TOLERANCE
+};
+
+/// The angle-bounded target's bound on the pointwise residual RMS, percent of Sq.
+pub const ANGLE_BOUNDED_RESIDUAL_PCT: f64 = 50.0;
 
 /// The default limit on the roughness the mesh carries, percent (Table 6's threshold).
 pub const DEFAULT_ROUGHNESS_PCT: f64 = 5.0;
 
-/// The default bound on the pointwise residual, percent of Sq.
-pub const DEFAULT_RESIDUAL_PCT: f64 = 50.0;
+/// The default bound on the pointwise residual RMS, percent of Sq.
+pub const DEFAULT_RESIDUAL_PCT: f64 = 20.0;
+
+/// The default bound on the largest pointwise error, percent of Sq.
+pub const DEFAULT_MAX_ERROR_PCT: f64 = 50.0;
 
 impl Default for Tolerance {
     fn default() -> Self {
@@ -103,7 +129,7 @@ pub fn default_region_px(shape: Shape) -> usize {
 impl FromStr for Tolerance {
     type Err = String;
     /// "sa=1,sq=1,sz=3" (percent; a "%" is allowed; parameters not named keep their default;
-    /// "res=off" drops the residual bound).
+    /// "res=off" drops the residual bound, "max=off" the largest pointwise error's).
     fn from_str(s: &str) -> std::result::Result<Self, String> {
         let mut t = DEFAULT_TOLERANCE;
         for part in s.split(',').map(str::trim).filter(|p| !p.is_empty()) {
@@ -114,10 +140,11 @@ impl FromStr for Tolerance {
             if matches!(v.trim().to_ascii_lowercase().as_str(), "off" | "none") {
                 match key.as_str() {
                     "res" | "residual" => t.residual_pct = None,
+                    "max" => t.max_error_pct = None,
                     "rough" | "roughness" => t.roughness_pct = None,
                     _ => {
                         return Err(format!(
-                            "tolerance {s:?}: {k} = {v}: only res and rough can be off"
+                            "tolerance {s:?}: {k} = {v}: only res, max and rough can be off"
                         ))
                     }
                 }
@@ -139,11 +166,12 @@ impl FromStr for Tolerance {
                 "sq" => t.sq_pct = v,
                 "sz" => t.sz_pct = v,
                 "res" | "residual" => t.residual_pct = Some(v),
+                "max" => t.max_error_pct = Some(v),
                 "rough" | "roughness" => t.roughness_pct = Some(v),
                 other => {
                     return Err(format!(
                         "tolerance {s:?}: unknown parameter {other:?} (known: sa, sq, sz, res, \
-                         rough)"
+                         max, rough)"
                     ))
                 }
             }
@@ -164,6 +192,7 @@ impl<'de> Deserialize<'de> for Tolerance {
                 sq: Option<f64>,
                 sz: Option<f64>,
                 res: Option<f64>,
+                max: Option<f64>,
                 rough: Option<f64>,
             },
         }
@@ -174,12 +203,14 @@ impl<'de> Deserialize<'de> for Tolerance {
                 sq,
                 sz,
                 res,
+                max,
                 rough,
             } => [
                 ("sa", sa),
                 ("sq", sq),
                 ("sz", sz),
                 ("res", res),
+                ("max", max),
                 ("rough", rough),
             ]
             .iter()
@@ -201,6 +232,9 @@ impl std::fmt::Display for Tolerance {
         if let Some(r) = self.residual_pct {
             write!(f, ", residual {r} % of Sq")?;
         }
+        if let Some(r) = self.max_error_pct {
+            write!(f, ", max error {r} % of Sq")?;
+        }
         match self.roughness_pct {
             Some(r) => write!(f, ", roughness {r} %"),
             None => Ok(()),
@@ -221,6 +255,17 @@ pub struct ToleranceSettings {
     /// judged after that, so the mesh written is the one judged. `None`: no bound (LIGGGHTS
     /// needs one, [`crate::target`]).
     pub min_angle_deg: Option<f64>,
+}
+
+impl ToleranceSettings {
+    /// The default settings for a mesh made for `profile` (its default tolerance,
+    /// [`crate::EngineProfile::default_tolerance`]; [`DEFAULT_TOLERANCE`] without one).
+    pub fn for_target(profile: Option<&crate::EngineProfile>) -> Self {
+        Self {
+            tolerance: profile.map_or(DEFAULT_TOLERANCE, |p| p.default_tolerance()),
+            ..Self::default()
+        }
+    }
 }
 
 impl Default for ToleranceSettings {
@@ -321,6 +366,10 @@ pub struct RegionFit {
     pub deviation_pct: [f64; 3],
     /// RMS of the pointwise residual (both means removed), percent of the measured Sq.
     pub residual_pct_of_sq: f64,
+    /// The largest pointwise |mesh - measurement| (both means removed), um and percent of the
+    /// measured Sq.
+    pub max_error_um: f64,
+    pub max_error_pct_of_sq: f64,
     /// Sa, Sq, Sz of the roughness the mesh carries (measured roughness plus the mesh's
     /// pointwise error) against the measured roughness, percent; when the roughness is wired.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -334,12 +383,16 @@ impl RegionFit {
         let residual = t
             .residual_pct
             .map(|l| ("residual", self.residual_pct_of_sq, l * share));
+        let max_error = t
+            .max_error_pct
+            .map(|l| ("max error", self.max_error_pct_of_sq, l * share));
         ["Sa", "Sq", "Sz"]
             .into_iter()
             .zip(self.deviation_pct)
             .zip(limits)
             .map(|((n, d), l)| (n, d, l * share))
             .chain(residual)
+            .chain(max_error)
             .chain(self.roughness_terms(t).map(|(n, d, l)| (n, d, l * share)))
             .filter(|(_, d, l)| d.is_nan() || d.abs() > *l)
             .max_by(|a, b| (a.1.abs() / a.2).total_cmp(&(b.1.abs() / b.2)))
@@ -354,14 +407,19 @@ impl RegionFit {
             .filter_map(move |(k, n)| judged.map(|(d, l)| (n, d[k], l)))
     }
 
-    /// The largest |deviation| / limit over Sa, Sq, Sz (and the roughness's when judged;
-    /// <= 1: within the tolerance).
+    /// The largest |deviation| / limit over Sa, Sq, Sz, the pointwise bounds (and the
+    /// roughness's when judged; <= 1: within the tolerance).
     pub fn worst_ratio(&self, t: &Tolerance) -> f64 {
         let limits = [t.sa_pct, t.sq_pct, t.sz_pct];
+        let pointwise = [
+            t.residual_pct.map(|l| (self.residual_pct_of_sq, l)),
+            t.max_error_pct.map(|l| (self.max_error_pct_of_sq, l)),
+        ];
         self.deviation_pct
             .iter()
             .zip(limits)
             .map(|(&d, l)| (d, l))
+            .chain(pointwise.into_iter().flatten())
             .chain(self.roughness_terms(t).map(|(_, d, l)| (d, l)))
             .map(|(d, l)| {
                 if d.is_finite() {
@@ -487,7 +545,7 @@ fn judge_region(z: &[f32], m: &[f32], cols: usize, r: &Window) -> Option<RegionF
         return None;
     }
     let (mz, mm) = (sz / n as f64, sm / n as f64);
-    let (mut za, mut zq, mut ma, mut mq, mut rq) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    let (mut za, mut zq, mut ma, mut mq, mut rq, mut rmax) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0f64);
     for (zr, mr) in rows {
         for (&a, &b) in zr.iter().zip(mr) {
             if a.is_nan() || b.is_nan() {
@@ -499,6 +557,7 @@ fn judge_region(z: &[f32], m: &[f32], cols: usize, r: &Window) -> Option<RegionF
             ma += db.abs();
             mq += db * db;
             rq += (db - da) * (db - da);
+            rmax = rmax.max((db - da).abs());
         }
     }
     let nf = n as f64;
@@ -511,6 +570,8 @@ fn judge_region(z: &[f32], m: &[f32], cols: usize, r: &Window) -> Option<RegionF
         measured_um: measured,
         deviation_pct: dev.map(|d| if d.is_finite() { d } else { f64::NAN }),
         residual_pct_of_sq: (rq / nf).sqrt() / measured[1] * 100.0,
+        max_error_um: rmax,
+        max_error_pct_of_sq: rmax / measured[1] * 100.0,
         roughness_deviation_pct: None,
     })
 }
@@ -529,6 +590,8 @@ pub struct CurvePoint {
     pub worst_sz_pct: f64,
     /// Largest pointwise residual RMS over the regions, percent of the region's Sq.
     pub worst_residual_pct_of_sq: f64,
+    /// Largest pointwise error over the regions, percent of the region's Sq.
+    pub worst_max_error_pct_of_sq: f64,
     /// Worst |deviation| of the roughness the mesh carries over the regions and Sa, Sq, Sz,
     /// percent, signed as found (when the roughness is judged).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -671,6 +734,10 @@ pub fn search<M>(
                 worst_residual_pct_of_sq: fits
                     .iter()
                     .map(|r| r.residual_pct_of_sq)
+                    .fold(0.0, f64::max),
+                worst_max_error_pct_of_sq: fits
+                    .iter()
+                    .map(|r| r.max_error_pct_of_sq)
                     .fold(0.0, f64::max),
                 worst_roughness_pct: fits
                     .iter()
@@ -1310,8 +1377,14 @@ mod tests {
     #[test]
     fn tolerance_parses_text_and_tables() {
         assert_eq!("".parse::<Tolerance>(), Ok(DEFAULT_TOLERANCE));
-        assert_eq!(DEFAULT_TOLERANCE.residual_pct, Some(50.0));
+        assert_eq!(DEFAULT_TOLERANCE.residual_pct, Some(20.0));
+        assert_eq!(DEFAULT_TOLERANCE.max_error_pct, Some(50.0));
         assert_eq!("res=off".parse::<Tolerance>().unwrap().residual_pct, None);
+        assert_eq!("max=off".parse::<Tolerance>().unwrap().max_error_pct, None);
+        assert_eq!(
+            "max=40".parse::<Tolerance>().unwrap().max_error_pct,
+            Some(40.0)
+        );
         let t: Tolerance = "sa=2, sz=5%".parse().unwrap();
         assert_eq!((t.sa_pct, t.sq_pct, t.sz_pct), (2.0, 1.0, 5.0));
         assert!("sa=0".parse::<Tolerance>().unwrap_err().contains("> 0"));
@@ -1332,6 +1405,8 @@ mod tests {
         assert_eq!(w.t.sq_pct, 0.5);
         let w: W = toml::from_str("t = \"sz=4\"").unwrap();
         assert_eq!(w.t.sz_pct, 4.0);
+        let w: W = toml::from_str("t = { max = 30 }").unwrap();
+        assert_eq!(w.t.max_error_pct, Some(30.0));
     }
 
     #[test]
@@ -1446,5 +1521,25 @@ mod tests {
             assert!((d + 50.0).abs() < 1e-9, "{d}");
         }
         assert!((f.residual_pct_of_sq - 50.0).abs() < 1e-9);
+        // The largest pointwise error: half the largest |z - mean|.
+        let mean = z.iter().map(|&v| f64::from(v)).sum::<f64>() / 400.0;
+        let far = z
+            .iter()
+            .map(|&v| (f64::from(v) - mean).abs())
+            .fold(0.0, f64::max);
+        assert!((f.max_error_um - 0.5 * far).abs() < 1e-6, "{f:?}");
+        assert!((f.max_error_pct_of_sq - f.max_error_um / f.measured_um[1] * 100.0).abs() < 1e-9);
+        let t = DEFAULT_TOLERANCE;
+        let pointwise_only = Tolerance {
+            sa_pct: 100.0,
+            sq_pct: 100.0,
+            sz_pct: 100.0,
+            residual_pct: None,
+            ..t
+        };
+        assert_eq!(
+            f.excess(&pointwise_only, 1.0).map(|e| e.0),
+            Some("max error")
+        );
     }
 }

@@ -297,9 +297,9 @@ fn the_balance_meets_the_tolerance_on_noise_with_fewer_triangles_than_greedy_ins
             (x.sin() * y.cos() + 1.7 * r[k]) as f32
         })
         .collect();
-    let (mg, greedy, dev_g) = model_with(&z, "sa=1,sq=1,sz=3,res=off", None, ModelMethod::Greedy);
-    let (mb, balanced, dev_b) =
-        model_with(&z, "sa=1,sq=1,sz=3,res=off", None, ModelMethod::Balanced);
+    let params_only = "sa=1,sq=1,sz=3,res=off,max=off";
+    let (mg, greedy, dev_g) = model_with(&z, params_only, None, ModelMethod::Greedy);
+    let (mb, balanced, dev_b) = model_with(&z, params_only, None, ModelMethod::Balanced);
     assert!(
         greedy.met && balanced.met,
         "{:?} {:?}",
@@ -314,14 +314,76 @@ fn the_balance_meets_the_tolerance_on_noise_with_fewer_triangles_than_greedy_ins
         mb.surface_triangles,
         mg.surface_triangles
     );
-    // The default residual bound then asks for pointwise fidelity too.
+    // The default pointwise bounds then ask for pointwise fidelity too.
     let (_, bounded, _) = model(&z, "sa=1,sq=1,sz=3", None);
     assert!(bounded.met, "{:?}", bounded.reason);
     assert!(bounded
         .region_fits
         .iter()
-        .all(|f| f.residual_pct_of_sq <= 50.0));
+        .all(|f| f.residual_pct_of_sq <= 20.0 && f.max_error_pct_of_sq <= 50.0));
     assert!(bounded.surface_triangles >= balanced.surface_triangles);
+}
+
+/// The largest |mesh - measurement| and the residual RMS (both means removed), percent of the
+/// measured Sq, over the samples of a window valid in both: judged here, from the triangles.
+fn pointwise_pct(z: &[f32], mesh: &[f64], w: &surfstream_mesher::tolerance::Window) -> [f64; 2] {
+    let mut pairs = Vec::new();
+    for y in w.row0..w.row0 + w.rows {
+        for x in w.col0..w.col0 + w.cols {
+            let (a, b) = (f64::from(z[y * COLS + x]), mesh[y * COLS + x]);
+            if !(a.is_nan() || b.is_nan()) {
+                pairs.push((a, b));
+            }
+        }
+    }
+    let n = pairs.len() as f64;
+    let (ma, mb) = pairs
+        .iter()
+        .fold((0.0, 0.0), |(s, t), (a, b)| (s + a / n, t + b / n));
+    let sq = (pairs.iter().map(|(a, _)| (a - ma).powi(2)).sum::<f64>() / n).sqrt();
+    let d = pairs.iter().map(|(a, b)| (b - mb) - (a - ma));
+    let max = d.clone().fold(0.0f64, |m, e| m.max(e.abs()));
+    let rms = (d.map(|e| e * e).sum::<f64>() / n).sqrt();
+    [max / sq * 100.0, rms / sq * 100.0]
+}
+
+#[test]
+fn the_default_tolerance_bounds_every_point_in_every_window() {
+    // The default (Sa, Sq 1 %, Sz 3 %, residual RMS 20 %, largest error 50 % of Sq): judged
+    // here from the triangles, every window's largest pointwise error is within half its Sq
+    // and the residual within a fifth, where the parameters alone (res=off, max=off) depart
+    // by more: the pointwise bound is what makes the difference.
+    let z = rough();
+    let (m, r, dev) = model(&z, "", None);
+    assert!(r.met, "{:?}", r.reason);
+    assert!(within(dev, &r.tolerance), "{dev:?}");
+    assert_eq!(r.tolerance.max_error_pct, Some(50.0));
+    let mesh = interpolate(&m);
+    let w = surfstream_mesher::tolerance::windows(Shape::new(ROWS, COLS), 48);
+    for win in &w {
+        let [max, rms] = pointwise_pct(&z, &mesh, win);
+        assert!(
+            max <= 50.0 && rms <= 20.0,
+            "{}: max {max} %, RMS {rms} %",
+            win.name
+        );
+        let fit = r.region_fits.iter().find(|f| f.region == win.name).unwrap();
+        assert!(
+            (fit.max_error_pct_of_sq - max).abs() < 0.5,
+            "{fit:?} vs {max}"
+        );
+    }
+    let (loose_m, loose, _) = model(&z, "res=off,max=off", None);
+    let loose_mesh = interpolate(&loose_m);
+    let worst = w
+        .iter()
+        .map(|win| pointwise_pct(&z, &loose_mesh, win)[0])
+        .fold(0.0, f64::max);
+    assert!(
+        worst > 50.0,
+        "the parameters alone already bound every point: {worst} %"
+    );
+    assert!(loose.surface_triangles < r.surface_triangles);
 }
 
 /// A waviness under white noise (um) and its noise (the roughness a separation would find).
