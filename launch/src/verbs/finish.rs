@@ -88,18 +88,20 @@ pub struct FinishArgs {
     /// Interval of the wear maps over the process, s (default: a tenth of the process time).
     #[arg(long)]
     pub wear_map_every_s: Option<f64>,
-    /// A measured after-finish scan of the same area on the model's grid: SIM between it and
-    /// the predicted worn surface (the paper's SIM against the real part).
+    /// A measured after-finish scan of the same area (any mounting: it is registered to the
+    /// model by phase correlation and resampled on its grid): SIM between it and the
+    /// predicted worn surface (the paper's SIM against the real part).
     #[arg(long, value_name = "FILE")]
     pub after: Option<PathBuf>,
     /// Settings to compare with one calibration: NAME=V1,V2,... (revolution-rpm,
     /// rotation-rpm or media-diameter-mm); each runs in full into OUT/sweep_NAME_V.
     #[arg(long, value_name = "NAME=V1,V2,...")]
     pub sweep: Option<String>,
-    /// Run the machine first (the macro run: the paper's centrifugal barrel in LIGGGHTS);
-    /// its contacts on the part give the prediction's impact and sliding rates.
-    #[arg(long = "macro")]
-    pub macro_run: bool,
+    /// Do not run the machine (the macro run: the centrifugal barrel in LIGGGHTS, run by
+    /// default before the cycles): the rates come from the barrel kinematics' assumptions and
+    /// the cycles run the one-medium segment instead of the micro passes.
+    #[arg(long = "no-macro", conflicts_with = "macro_record")]
+    pub no_macro: bool,
     /// A macro run's record instead of running it: a finish.json with `macro`, or the
     /// record itself.
     #[arg(long, value_name = "FILE")]
@@ -154,7 +156,7 @@ pub struct MachineArgs {
     /// Inner radius of the drum, mm (default 30: an assumption).
     #[arg(long)]
     pub drum_radius_mm: Option<f64>,
-    /// Inner length of the drum along its axis, mm (default 60: an assumption).
+    /// Inner length of the drum along its axis, mm (default 30: an assumption).
     #[arg(long)]
     pub drum_height_mm: Option<f64>,
     /// The frame of --rotation-rpm: turret (default: relative to the turret) or lab.
@@ -188,7 +190,7 @@ pub struct MachineArgs {
     /// The part's hardness, Pa (Archard's H; overrides the preset's).
     #[arg(long)]
     pub part_hardness_pa: Option<f64>,
-    /// The part in the drum: a plate W,L mm (along the wall, along the axis; default 12,12).
+    /// The part in the drum: a plate W,L mm (along the wall, along the axis; default 20,20).
     #[arg(long, value_name = "W,L")]
     pub part_plate_mm: Option<String>,
     /// Simulated settling time of the macro run, s (0.5).
@@ -431,6 +433,24 @@ fn read_macro(path: &Path) -> Result<surfstream_finish::machine::MacroContacts> 
         .map_err(|e| anyhow!(e))
 }
 
+/// A measured scan of the finished part registered to the model and resampled on its grid;
+/// the registration is said and recorded.
+fn registered(model: &Model, scan: &Model, role: &str, o: &mut FinishOptions) -> Result<Model> {
+    let (on_model, reg) = surfstream_finish::after::register_after(model, scan, role)?;
+    eprintln!(
+        "finish: {} registered to the model: offset ({:.2}, {:.2}) px = ({:.2}, {:.2}) um, NCC {:.3}, covers {:.1} % of it",
+        scan.source,
+        reg.offset_px[0],
+        reg.offset_px[1],
+        reg.offset_um[0],
+        reg.offset_um[1],
+        reg.ncc,
+        reg.covered_fraction * 100.0
+    );
+    o.after_registrations.push(reg);
+    Ok(on_model)
+}
+
 fn parse_pair(s: &str, what: &str) -> Result<Vec<f64>> {
     s.split(',')
         .map(|v| {
@@ -508,20 +528,20 @@ pub fn run(a: FinishArgs) -> Result<()> {
         o.series_s = Some(parse_pair(t, "--series-s")?);
     }
     if let Some(f) = &a.after {
-        o.after = Some(read_model(
-            f,
-            None,
-            Some((model.pitch_x_um, model.pitch_y_um)),
-        )?);
+        let scan = read_model(f, None, Some((model.pitch_x_um, model.pitch_y_um)))?;
+        o.after = Some(registered(&model, &scan, "after", &mut o)?);
     }
     // One part material (--part-material and its overrides, aluminium by default) for the
     // macro run, the patch's DEM wall and Archard's K/H.
     o.archard_k_over_h_per_pa = surfstream_finish::run::ARCHARD_K / part.hardness_pa;
     o.part_material = Some(part.clone());
-    if a.macro_run {
-        // The machine flags (--machine FILE, --record-s, ...) as `--macro-only` reads them.
-        o.machine_run = Some(machine_setting(&a)?);
-    }
+    // The macro run by default, with the machine flags (--machine FILE, --record-s, ...) as
+    // `--macro-only` reads them; a given record replaces it.
+    o.machine_run = if a.no_macro || a.macro_record.is_some() {
+        None
+    } else {
+        Some(machine_setting(&a)?)
+    };
     if let Some(f) = &a.macro_record {
         o.macro_contacts = Some(read_macro(f)?);
     }
@@ -538,11 +558,8 @@ pub fn run(a: FinishArgs) -> Result<()> {
     if let Some(c) = &a.calibrate {
         let as_file = PathBuf::from(c);
         o.calibrate = Some(if as_file.is_file() {
-            Calibration::Measured(read_model(
-                &as_file,
-                None,
-                Some((model.pitch_x_um, model.pitch_y_um)),
-            )?)
+            let scan = read_model(&as_file, None, Some((model.pitch_x_um, model.pitch_y_um)))?;
+            Calibration::Measured(registered(&model, &scan, "calibration", &mut o)?)
         } else {
             match parse_pair(c, "--calibrate")?.as_slice() {
                 [b, af] => Calibration::Sa {
