@@ -357,3 +357,55 @@ fn the_default_finish_runs_the_machine_then_micro_passes_and_registers_the_after
         assert!(html.contains(want), "finish.html lacks {want:?}");
     }
 }
+
+/// An engine that fails (here a stand-in that writes LIGGGHTS' kind of ERROR line and exits
+/// 1): the command fails naming the error, OUT holds the FAILED record and the engine's script
+/// and log, and none of the outputs (no finish.json beside half a run).
+#[test]
+fn a_failing_engine_leaves_a_failed_record_and_its_logs_not_half_an_output() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("rough.npy");
+    rough_npy(&input);
+    let engine = dir.path().join("liggghts");
+    std::fs::write(
+        &engine,
+        "#!/bin/sh\n# a stand-in engine: arguments -in SCRIPT -log LOG\n\
+         echo 'ERROR: Lost atoms: original 1 current 0 (../thermo.cpp:441)' > \"$4\"\n\
+         cat \"$4\"\nexit 1\n",
+    )
+    .unwrap();
+    std::fs::set_permissions(&engine, std::fs::Permissions::from_mode(0o755)).unwrap();
+    let out = dir.path().join("fin");
+    let mut c = surfstream();
+    c.env("SURFSTREAM_LIGGGHTS", &engine)
+        .args(["finish"])
+        .arg(&input)
+        .args(["--no-macro", "--pitch-um", "3", "--patch-um", "60"])
+        .args(["--cycles", "2", "--passes", "2", "-o"])
+        .arg(&out);
+    let o = run(c);
+    let err = stderr(&o);
+    assert!(!o.status.success(), "{err}");
+    assert!(err.contains("Lost atoms") && err.contains("FAILED"), "{err}");
+    let record = std::fs::read_to_string(out.join("FAILED")).unwrap();
+    assert!(record.contains("Lost atoms"), "{record}");
+    let logs: Vec<String> = std::fs::read_dir(out.join("logs"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+        .collect();
+    assert!(
+        logs.iter().any(|n| n.ends_with("log.liggghts")) && logs.iter().any(|n| n.ends_with("in.liggghts")),
+        "{logs:?}"
+    );
+    for f in ["finish.json", "finish.html", "wear.npy", "worn.x3p"] {
+        assert!(!out.join(f).exists(), "{f} was left in a failed run");
+    }
+    // No staging folder or lock left beside OUT.
+    let beside: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+        .filter(|n| n.starts_with("fin.staging") || n == "fin.lock")
+        .collect();
+    assert!(beside.is_empty(), "{beside:?}");
+}

@@ -288,15 +288,16 @@ pub fn part_material(m: &MachineArgs, start: PartMaterial) -> Result<PartMateria
 }
 
 /// `--macro-only`: the machine run alone, into OUT/macro and OUT/macro.json.
-fn run_macro_only(a: &FinishArgs) -> Result<()> {
+fn run_macro_only(a: &FinishArgs, claim: &crate::outdir::Claim) -> Result<()> {
     let setting = machine_setting(a)?;
     let engine = EngineCommand::locate(a.ranks, a.hostfile.clone())?;
-    crate::outdir::create_marked(&a.out)?;
+    let staged = crate::outdir::stage(&a.out, claim)?;
     surfstream_runtime::stop::install()?;
     let mut last = std::time::Instant::now() - std::time::Duration::from_secs(10);
-    let m = run_machine(
+    let work = staged.staging.clone();
+    let made = run_machine(
         &setting,
-        &a.out.join("macro"),
+        &work.join("macro"),
         &engine,
         &surfstream_runtime::ipc::STOP_REQUESTED,
         &mut |p| {
@@ -305,12 +306,20 @@ fn run_macro_only(a: &FinishArgs) -> Result<()> {
                 eprintln!("{}", p.line());
             }
         },
-    )?;
-    let json = a.out.join("macro.json");
-    let text =
-        serde_json::to_string_pretty(&serde_json::json!({ "setting": setting, "macro": m }))?;
-    std::fs::write(&json, text + "\n")
-        .map_err(|e| anyhow!("{}: cannot write: {e}", json.display()))?;
+    )
+    .and_then(|m| {
+        let json = work.join("macro.json");
+        let text =
+            serde_json::to_string_pretty(&serde_json::json!({ "setting": setting, "macro": m }))?;
+        std::fs::write(&json, text + "\n")
+            .map_err(|e| anyhow!("{}: cannot write: {e}", json.display()))?;
+        Ok(m)
+    });
+    let m = match made {
+        Ok(m) => m,
+        Err(e) => return Err(failed(staged, e)),
+    };
+    let json = staged.commit()?.join("macro.json");
     let c = &m.contacts;
     println!(
         "finish --macro-only: {} media, {:.3} s recorded{}; {} contacts on {:.1} mm^2 ({:.3} /mm^2/s), \
@@ -419,6 +428,52 @@ fn inputs(a: &FinishArgs) -> Result<(Model, Option<Model>)> {
     Ok((model, ideal))
 }
 
+/// A run that failed: before any engine ran (nothing but the staging folder's own files), OUT
+/// stays as it was; after, OUT becomes the failed run, its FAILED record naming the cause and
+/// `logs/` holding every engine's input script and log (`cycle_01_group_01_log.liggghts`).
+fn failed(staged: crate::outdir::StagedOut, e: anyhow::Error) -> anyhow::Error {
+    let produced = std::fs::read_dir(&staged.staging)
+        .map(|d| d.flatten().any(|x| x.path().is_dir()))
+        .unwrap_or(false);
+    if !produced {
+        staged.discard();
+        return e;
+    }
+    let logs = staged.staging.join("logs");
+    if std::fs::create_dir_all(&logs).is_ok() {
+        keep_engine_files(&staged.staging, &staged.staging, &logs, 0);
+    }
+    match staged.fail(&e) {
+        Ok(dir) => anyhow!(
+            "{e:#}\nsurfstream: finish FAILED: {} holds the failure record (FAILED) and the engines' scripts and logs (logs/)",
+            dir.display()
+        ),
+        Err(f) => anyhow!("{e:#} (and the failure record could not be written: {f:#})"),
+    }
+}
+
+/// Copies the engines' input scripts and logs under `dir` into `logs`, named by their path.
+fn keep_engine_files(root: &Path, dir: &Path, logs: &Path, depth: usize) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let p = e.path();
+        let Ok(t) = e.file_type() else { continue };
+        if t.is_dir() && depth < 3 && p != logs {
+            keep_engine_files(root, &p, logs, depth + 1);
+        } else if t.is_file() && depth > 0 {
+            let name = e.file_name().to_string_lossy().to_string();
+            if name.starts_with("log.") || name.starts_with("in.") {
+                if let Ok(rel) = p.strip_prefix(root) {
+                    let flat = rel.to_string_lossy().replace('/', "_");
+                    let _ = std::fs::copy(&p, logs.join(flat));
+                }
+            }
+        }
+    }
+}
+
 /// A macro run's record: a finish.json's `macro`, or the record itself.
 fn read_macro(path: &Path) -> Result<surfstream_finish::machine::MacroContacts> {
     let text = std::fs::read_to_string(path)
@@ -469,12 +524,11 @@ pub fn run(a: FinishArgs) -> Result<()> {
     };
     crate::outdir::check_ours(&a.out, &claim)?;
     if a.machine.macro_only {
-        return run_macro_only(&a);
+        return run_macro_only(&a, &claim);
     }
     // The part's material reaches the patch's DEM too.
     let part = part_material(&a.machine, PartMaterial::default())?;
     let (model, ideal) = inputs(&a)?;
-    crate::outdir::create_marked(&a.out)?;
     let mut o = FinishOptions {
         time_budget_s: a.time_budget_s,
         cycles: a.cycles,
@@ -577,13 +631,23 @@ pub fn run(a: FinishArgs) -> Result<()> {
     // The project's one signal story (surfstream_runtime::stop, as launch/run/stitch):
     // Ctrl-C, SIGTERM or SIGHUP sets the runtime's stop flag, which stops the engine; the
     // completed cycles are kept (finish.json says partial); a second signal forces.
+    // Written into a staging folder beside OUT and moved into place when done (complete, or
+    // partial after a stop): a failed run leaves OUT as its FAILED record and the engine's
+    // logs, never half-written outputs beside an earlier run's (crate::outdir).
+    let staged = crate::outdir::stage(&a.out, &claim)?;
     surfstream_runtime::stop::install()?;
     let stop = &surfstream_runtime::ipc::STOP_REQUESTED;
     let say = &mut |l: &str| eprintln!("{l}");
-    let summary = match &sweep {
-        Some(spec) => surfstream_finish::sweep::finish_sweep(&model, &o, spec, &a.out, stop, say)?,
-        None => surfstream_finish::finish_record(&model, &o, &a.out, stop, say)?,
+    let work = staged.staging.clone();
+    let made = match &sweep {
+        Some(spec) => surfstream_finish::sweep::finish_sweep(&model, &o, spec, &work, stop, say),
+        None => surfstream_finish::finish_record(&model, &o, &work, stop, say),
     };
+    let summary = match made {
+        Ok(s) => s,
+        Err(e) => return Err(failed(staged, e)),
+    };
+    let out = staged.commit()?;
     let (b, af) = (&summary.before, &summary.after);
     // "after" is the series' last point (the process time): fitted when the calibration holds there.
     let sa_fitted = summary.series.last().is_some_and(|p| !p.fitted.is_empty());
@@ -655,7 +719,7 @@ pub fn run(a: FinishArgs) -> Result<()> {
         af.svk,
         summary.timings.engine_s,
         summary.timings.surfstream_overhead_s,
-        a.out.join("finish.json").display()
+        out.join("finish.json").display()
     );
     if summary.partial {
         let sig = surfstream_runtime::stop::signal().unwrap_or(libc::SIGINT);

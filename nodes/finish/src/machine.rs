@@ -196,8 +196,8 @@ pub enum PartSpec {
 }
 
 impl Default for PartSpec {
-    /// 20 x 20 mm (a central region of 17 x 17 mm: some 2 000 contacts in the default 2 s, so
-    /// that two seeds agree within 10 % on the rate): larger than a medium (the 300 um patch is a sample of this surface; a plate
+    /// 20 x 20 mm (a central region of 17 x 17 mm: 2 176 and 2 133 contacts in the default
+    /// 2 s for seeds 1 and 2, rates 2.0 % apart; docs/finish.md): larger than a medium (the 300 um patch is a sample of this surface; a plate
     /// of the patch's size would be smaller than one contact's footprint on a 3 mm medium).
     fn default() -> Self {
         PartSpec::Plate {
