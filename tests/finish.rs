@@ -270,7 +270,7 @@ fn the_default_finish_runs_the_machine_then_micro_passes_and_registers_the_after
     std::fs::write(
         &machine,
         "drum_radius_mm = 15.0\ndrum_height_mm = 24.0\nsettle_s = 0.1\nrecord_s = 0.3\n\
-         [part]\nwidth_mm = 12.0\nlength_mm = 12.0\n",
+         [part]\nshape = \"plate\"\nwidth_mm = 12.0\nlength_mm = 12.0\n",
     )
     .unwrap();
     let out = dir.path().join("fin");
@@ -387,7 +387,10 @@ fn a_failing_engine_leaves_a_failed_record_and_its_logs_not_half_an_output() {
     let o = run(c);
     let err = stderr(&o);
     assert!(!o.status.success(), "{err}");
-    assert!(err.contains("Lost atoms") && err.contains("FAILED"), "{err}");
+    assert!(
+        err.contains("Lost atoms") && err.contains("FAILED"),
+        "{err}"
+    );
     let record = std::fs::read_to_string(out.join("FAILED")).unwrap();
     assert!(record.contains("Lost atoms"), "{record}");
     let logs: Vec<String> = std::fs::read_dir(out.join("logs"))
@@ -395,7 +398,8 @@ fn a_failing_engine_leaves_a_failed_record_and_its_logs_not_half_an_output() {
         .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
         .collect();
     assert!(
-        logs.iter().any(|n| n.ends_with("log.liggghts")) && logs.iter().any(|n| n.ends_with("in.liggghts")),
+        logs.iter().any(|n| n.ends_with("log.liggghts"))
+            && logs.iter().any(|n| n.ends_with("in.liggghts")),
         "{logs:?}"
     );
     for f in ["finish.json", "finish.html", "wear.npy", "worn.x3p"] {
