@@ -55,7 +55,8 @@ pub fn register_after(
         ("x", model.pitch_x_um, after.pitch_x_um),
         ("y", model.pitch_y_um, after.pitch_y_um),
     ] {
-        if !((a - m).abs() <= PITCH_TOLERANCE * m) {
+        // (NaN pitches fail the comparison and are refused too.)
+        if (a - m).abs().partial_cmp(&(PITCH_TOLERANCE * m)) != Some(std::cmp::Ordering::Less) {
             bail!(
                 "{}: pitch {axis} {a} um; the model's is {m} um: expected the same pitch (within {} %) for an after-finish scan of the same area",
                 after.source,
