@@ -2,7 +2,9 @@
 //! (LIGGGHTS, Debian package `liggghts`; scripts/test.sh installs it): a height-map file is
 //! finished into wear maps, a worn surface, finish.json and finish.html; a graph runs the node
 //! after the stitching with the ideal model beside it; a missing engine names its install
-//! command. Few passes: each test takes seconds.
+//! command; the default path, the machine run (a scaled drum) and then the micro passes on
+//! the tolerance mesh, with the ideal model and a shifted after-finish scan registered to the
+//! model. Few passes and short simulated times: each test takes seconds to a minute or two.
 
 use surfstream_e2e::{read_json, repo_root, run, stderr, surfstream};
 
@@ -27,6 +29,8 @@ fn finish_a_height_map_writes_wear_worn_surface_script_log_and_summary() {
     let mut c = surfstream();
     c.args(["finish"])
         .arg(&input)
+        // The one-medium segment on the kinematics' rates (the macro run: its own test).
+        .arg("--no-macro")
         .args([
             "--pitch-um",
             "3",
@@ -151,7 +155,13 @@ fn the_finish_node_runs_after_stitching_beside_the_ideal_model() {
     let mut c = surfstream();
     c.args(["run", "launch/graphs/finish.toml"])
         .args(["--set", "stage.tile_px=256", "--set", "finish.passes=3"])
-        .args(["--set", "finish.patch_um=[60]", "-o"])
+        .args([
+            "--set",
+            "finish.patch_um=[60]",
+            "--set",
+            "finish.macro=false",
+            "-o",
+        ])
         .arg(&out);
     let o = run(c);
     assert!(o.status.success(), "{}", stderr(&o));
@@ -195,7 +205,15 @@ fn ctrl_c_stops_the_engine_and_keeps_completed_cycles_marked_partial() {
     let mut c = surfstream();
     c.args(["finish"])
         .arg(&input)
-        .args(["--pitch-um", "3", "--patch-um", "90", "--cycles", "3"])
+        .args([
+            "--no-macro",
+            "--pitch-um",
+            "3",
+            "--patch-um",
+            "90",
+            "--cycles",
+            "3",
+        ])
         .args(["--passes", "150", "--calibrate", "1.272,0.565", "-o"])
         .arg(&out)
         .stderr(std::process::Stdio::piped());
@@ -223,4 +241,175 @@ fn ctrl_c_stops_the_engine_and_keeps_completed_cycles_marked_partial() {
     assert!(out.join("worn.npy").is_file() && out.join("wear.npy").is_file());
     // The engine of cycle 2 was stopped: its wear was never written.
     assert!(!out.join("cycle_02/wear.vtk").exists());
+}
+
+/// The default `finish`: the macro run first (here a scaled drum: 504 media, 0.3 s recorded),
+/// its contact samples driving micro passes on the tolerance-meshed patch, for the model and
+/// the ideal model alike; a measured after-finish scan, shifted as a re-mounted part is, is
+/// registered to the model. finish.json carries the names the issue fixes.
+#[test]
+fn the_default_finish_runs_the_machine_then_micro_passes_and_registers_the_after_scan() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("rough.npy");
+    rough_npy(&input);
+    // The ideal model: the same grid, form only (flat).
+    let ideal = dir.path().join("ideal.npy");
+    surfstream_io::npy::write_npy_f64(&ideal, &vec![0.0; 50 * 60], 50, 60).unwrap();
+    // The after-finish scan: the surface with its peaks cut, measured 4 px right and 3 px
+    // down of the model's origin (its pixel (0, 0) is the model's (3, 4)), 44 x 52 px.
+    let after = dir.path().join("after.npy");
+    let (rows, cols) = (44, 52);
+    let z: Vec<f64> = (0..rows * cols)
+        .map(|k| {
+            let (x, y) = (((k % cols) + 4) as f64 * 3.0, ((k / cols) + 3) as f64 * 3.0);
+            (1.2 * (x / 17.0).sin() * (y / 23.0).cos() + 0.5 * (x / 5.0 + y / 9.0).sin()).min(1.0)
+        })
+        .collect();
+    surfstream_io::npy::write_npy_f64(&after, &z, rows, cols).unwrap();
+    let machine = dir.path().join("small.toml");
+    std::fs::write(
+        &machine,
+        "drum_radius_mm = 15.0\ndrum_height_mm = 24.0\nsettle_s = 0.1\nrecord_s = 0.3\n\
+         [part]\nshape = \"plate\"\nwidth_mm = 12.0\nlength_mm = 12.0\n",
+    )
+    .unwrap();
+    let out = dir.path().join("fin");
+    let mut c = surfstream();
+    c.args(["finish"])
+        .arg(&input)
+        .args(["--pitch-um", "3", "--patch-um", "60", "--cycles", "2"])
+        .args(["--passes", "4", "--calibrate", "1.272,0.565", "--machine"])
+        .arg(&machine)
+        .arg("--ideal")
+        .arg(&ideal)
+        .arg("--after")
+        .arg(&after)
+        .arg("-o")
+        .arg(&out);
+    let o = run(c);
+    let err = stderr(&o);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("registered to the model"), "{err}");
+    let s = read_json(&out.join("finish.json"));
+    let m = &s["macro"];
+    assert_eq!(m["engine"], "liggghts");
+    assert_eq!(m["media_count"], 504);
+    assert!((m["simulated_s"].as_f64().unwrap() - 0.3).abs() < 1e-3);
+    let c = &m["contacts"];
+    assert!(c["rate_per_mm2_s"].as_f64().unwrap() > 0.0, "{c}");
+    for k in ["normal_speed_m_s", "tangential_speed_m_s", "normal_force_n"] {
+        for p in ["p10", "p50", "p90"] {
+            assert!(c[k][p].as_f64().is_some(), "macro.contacts.{k}.{p}");
+        }
+    }
+    assert!(c["sliding_work_j_per_mm2_s"].as_f64().unwrap() > 0.0);
+    assert!(s["cycle_path"]
+        .as_str()
+        .unwrap()
+        .starts_with("micro passes"));
+    let pm = &s["patch"]["model"];
+    assert!(pm["surface_triangles"].as_u64().unwrap() > 0);
+    assert!(pm["max_error_over_sq"].as_f64().unwrap().is_finite());
+    assert!(s["wear_laws"]["rates_from"]
+        .as_str()
+        .unwrap()
+        .starts_with("the macro run"));
+    // The macro run is engine time of this job; the overhead is what is left.
+    let t = &s["timings"];
+    let macro_s = t["macro_engine_s"].as_f64().unwrap();
+    assert!(
+        macro_s > 0.0 && macro_s < t["engine_s"].as_f64().unwrap(),
+        "{t}"
+    );
+    // The ideal model ran the same micro passes.
+    assert!(out.join("ideal/group_01/in.liggghts").is_file());
+    assert!(
+        !out.join("ideal/in.liggghts").exists(),
+        "the ideal model ran the one-medium segment"
+    );
+    assert!(
+        s["ideal_model"]["sim_wear_maps"].as_f64().is_some(),
+        "{}",
+        s["ideal_model"]
+    );
+    // The after scan: found at its offset, and compared with the prediction.
+    let r = &s["after_registrations"][0];
+    assert_eq!(r["role"], "after");
+    assert!(
+        (r["offset_px"][0].as_f64().unwrap() - 4.0).abs() < 0.2,
+        "{r}"
+    );
+    assert!(
+        (r["offset_px"][1].as_f64().unwrap() - 3.0).abs() < 0.2,
+        "{r}"
+    );
+    assert!(
+        s["sim"]["worn_vs_measured_after"].as_f64().is_some(),
+        "{}",
+        s["sim"]
+    );
+    let html = std::fs::read_to_string(out.join("finish.html")).unwrap();
+    for want in [
+        "The machine (macro run)",
+        "Patch model (first cycle)",
+        "registered to the model",
+    ] {
+        assert!(html.contains(want), "finish.html lacks {want:?}");
+    }
+}
+
+/// An engine that fails (here a stand-in that writes LIGGGHTS' kind of ERROR line and exits
+/// 1): the command fails naming the error, OUT holds the FAILED record and the engine's script
+/// and log, and none of the outputs (no finish.json beside half a run).
+#[test]
+fn a_failing_engine_leaves_a_failed_record_and_its_logs_not_half_an_output() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("rough.npy");
+    rough_npy(&input);
+    let engine = dir.path().join("liggghts");
+    std::fs::write(
+        &engine,
+        "#!/bin/sh\n# a stand-in engine: arguments -in SCRIPT -log LOG\n\
+         echo 'ERROR: Lost atoms: original 1 current 0 (../thermo.cpp:441)' > \"$4\"\n\
+         cat \"$4\"\nexit 1\n",
+    )
+    .unwrap();
+    std::fs::set_permissions(&engine, std::fs::Permissions::from_mode(0o755)).unwrap();
+    let out = dir.path().join("fin");
+    let mut c = surfstream();
+    c.env("SURFSTREAM_LIGGGHTS", &engine)
+        .args(["finish"])
+        .arg(&input)
+        .args(["--no-macro", "--pitch-um", "3", "--patch-um", "60"])
+        .args(["--cycles", "2", "--passes", "2", "-o"])
+        .arg(&out);
+    let o = run(c);
+    let err = stderr(&o);
+    assert!(!o.status.success(), "{err}");
+    assert!(
+        err.contains("Lost atoms") && err.contains("FAILED"),
+        "{err}"
+    );
+    let record = std::fs::read_to_string(out.join("FAILED")).unwrap();
+    assert!(record.contains("Lost atoms"), "{record}");
+    let logs: Vec<String> = std::fs::read_dir(out.join("logs"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+        .collect();
+    assert!(
+        logs.iter().any(|n| n.ends_with("log.liggghts"))
+            && logs.iter().any(|n| n.ends_with("in.liggghts")),
+        "{logs:?}"
+    );
+    for f in ["finish.json", "finish.html", "wear.npy", "worn.x3p"] {
+        assert!(!out.join(f).exists(), "{f} was left in a failed run");
+    }
+    // No staging folder or lock left beside OUT.
+    let beside: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+        .filter(|n| n.starts_with("fin.staging") || n == "fin.lock")
+        .collect();
+    assert!(beside.is_empty(), "{beside:?}");
 }

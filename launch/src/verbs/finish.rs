@@ -88,18 +88,20 @@ pub struct FinishArgs {
     /// Interval of the wear maps over the process, s (default: a tenth of the process time).
     #[arg(long)]
     pub wear_map_every_s: Option<f64>,
-    /// A measured after-finish scan of the same area on the model's grid: SIM between it and
-    /// the predicted worn surface (the paper's SIM against the real part).
+    /// A measured after-finish scan of the same area (any mounting: it is registered to the
+    /// model by phase correlation and resampled on its grid): SIM between it and the
+    /// predicted worn surface (the paper's SIM against the real part).
     #[arg(long, value_name = "FILE")]
     pub after: Option<PathBuf>,
     /// Settings to compare with one calibration: NAME=V1,V2,... (revolution-rpm,
     /// rotation-rpm or media-diameter-mm); each runs in full into OUT/sweep_NAME_V.
     #[arg(long, value_name = "NAME=V1,V2,...")]
     pub sweep: Option<String>,
-    /// Run the machine first (the macro run: the paper's centrifugal barrel in LIGGGHTS);
-    /// its contacts on the part give the prediction's impact and sliding rates.
-    #[arg(long = "macro")]
-    pub macro_run: bool,
+    /// Do not run the machine (the macro run: the centrifugal barrel in LIGGGHTS, run by
+    /// default before the cycles): the rates come from the barrel kinematics' assumptions and
+    /// the cycles run the one-medium segment instead of the micro passes.
+    #[arg(long = "no-macro", conflicts_with = "macro_record")]
+    pub no_macro: bool,
     /// A macro run's record instead of running it: a finish.json with `macro`, or the
     /// record itself.
     #[arg(long, value_name = "FILE")]
@@ -154,7 +156,7 @@ pub struct MachineArgs {
     /// Inner radius of the drum, mm (default 30: an assumption).
     #[arg(long)]
     pub drum_radius_mm: Option<f64>,
-    /// Inner length of the drum along its axis, mm (default 60: an assumption).
+    /// Inner length of the drum along its axis, mm (default 30: an assumption).
     #[arg(long)]
     pub drum_height_mm: Option<f64>,
     /// The frame of --rotation-rpm: turret (default: relative to the turret) or lab.
@@ -188,7 +190,7 @@ pub struct MachineArgs {
     /// The part's hardness, Pa (Archard's H; overrides the preset's).
     #[arg(long)]
     pub part_hardness_pa: Option<f64>,
-    /// The part in the drum: a plate W,L mm (along the wall, along the axis; default 12,12).
+    /// The part in the drum: a plate W,L mm (along the wall, along the axis; default 20,20).
     #[arg(long, value_name = "W,L")]
     pub part_plate_mm: Option<String>,
     /// Simulated settling time of the macro run, s (0.5).
@@ -286,15 +288,16 @@ pub fn part_material(m: &MachineArgs, start: PartMaterial) -> Result<PartMateria
 }
 
 /// `--macro-only`: the machine run alone, into OUT/macro and OUT/macro.json.
-fn run_macro_only(a: &FinishArgs) -> Result<()> {
+fn run_macro_only(a: &FinishArgs, claim: &crate::outdir::Claim) -> Result<()> {
     let setting = machine_setting(a)?;
     let engine = EngineCommand::locate(a.ranks, a.hostfile.clone())?;
-    crate::outdir::create_marked(&a.out)?;
+    let staged = crate::outdir::stage(&a.out, claim)?;
     surfstream_runtime::stop::install()?;
     let mut last = std::time::Instant::now() - std::time::Duration::from_secs(10);
-    let m = run_machine(
+    let work = staged.staging.clone();
+    let made = run_machine(
         &setting,
-        &a.out.join("macro"),
+        &work.join("macro"),
         &engine,
         &surfstream_runtime::ipc::STOP_REQUESTED,
         &mut |p| {
@@ -303,12 +306,20 @@ fn run_macro_only(a: &FinishArgs) -> Result<()> {
                 eprintln!("{}", p.line());
             }
         },
-    )?;
-    let json = a.out.join("macro.json");
-    let text =
-        serde_json::to_string_pretty(&serde_json::json!({ "setting": setting, "macro": m }))?;
-    std::fs::write(&json, text + "\n")
-        .map_err(|e| anyhow!("{}: cannot write: {e}", json.display()))?;
+    )
+    .and_then(|m| {
+        let json = work.join("macro.json");
+        let text =
+            serde_json::to_string_pretty(&serde_json::json!({ "setting": setting, "macro": m }))?;
+        std::fs::write(&json, text + "\n")
+            .map_err(|e| anyhow!("{}: cannot write: {e}", json.display()))?;
+        Ok(m)
+    });
+    let m = match made {
+        Ok(m) => m,
+        Err(e) => return Err(failed(staged, e)),
+    };
+    let json = staged.commit()?.join("macro.json");
     let c = &m.contacts;
     println!(
         "finish --macro-only: {} media, {:.3} s recorded{}; {} contacts on {:.1} mm^2 ({:.3} /mm^2/s), \
@@ -417,6 +428,52 @@ fn inputs(a: &FinishArgs) -> Result<(Model, Option<Model>)> {
     Ok((model, ideal))
 }
 
+/// A run that failed: before any engine ran (nothing but the staging folder's own files), OUT
+/// stays as it was; after, OUT becomes the failed run, its FAILED record naming the cause and
+/// `logs/` holding every engine's input script and log (`cycle_01_group_01_log.liggghts`).
+fn failed(staged: crate::outdir::StagedOut, e: anyhow::Error) -> anyhow::Error {
+    let produced = std::fs::read_dir(&staged.staging)
+        .map(|d| d.flatten().any(|x| x.path().is_dir()))
+        .unwrap_or(false);
+    if !produced {
+        staged.discard();
+        return e;
+    }
+    let logs = staged.staging.join("logs");
+    if std::fs::create_dir_all(&logs).is_ok() {
+        keep_engine_files(&staged.staging, &staged.staging, &logs, 0);
+    }
+    match staged.fail(&e) {
+        Ok(dir) => anyhow!(
+            "{e:#}\nsurfstream: finish FAILED: {} holds the failure record (FAILED) and the engines' scripts and logs (logs/)",
+            dir.display()
+        ),
+        Err(f) => anyhow!("{e:#} (and the failure record could not be written: {f:#})"),
+    }
+}
+
+/// Copies the engines' input scripts and logs under `dir` into `logs`, named by their path.
+fn keep_engine_files(root: &Path, dir: &Path, logs: &Path, depth: usize) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let p = e.path();
+        let Ok(t) = e.file_type() else { continue };
+        if t.is_dir() && depth < 3 && p != logs {
+            keep_engine_files(root, &p, logs, depth + 1);
+        } else if t.is_file() && depth > 0 {
+            let name = e.file_name().to_string_lossy().to_string();
+            if name.starts_with("log.") || name.starts_with("in.") {
+                if let Ok(rel) = p.strip_prefix(root) {
+                    let flat = rel.to_string_lossy().replace('/', "_");
+                    let _ = std::fs::copy(&p, logs.join(flat));
+                }
+            }
+        }
+    }
+}
+
 /// A macro run's record: a finish.json's `macro`, or the record itself.
 fn read_macro(path: &Path) -> Result<surfstream_finish::machine::MacroContacts> {
     let text = std::fs::read_to_string(path)
@@ -429,6 +486,24 @@ fn read_macro(path: &Path) -> Result<surfstream_finish::machine::MacroContacts> 
     };
     surfstream_core::record::from_value(&record, &format!("--macro-record {}", path.display()))
         .map_err(|e| anyhow!(e))
+}
+
+/// A measured scan of the finished part registered to the model and resampled on its grid;
+/// the registration is said and recorded.
+fn registered(model: &Model, scan: &Model, role: &str, o: &mut FinishOptions) -> Result<Model> {
+    let (on_model, reg) = surfstream_finish::after::register_after(model, scan, role)?;
+    eprintln!(
+        "finish: {} registered to the model: offset ({:.2}, {:.2}) px = ({:.2}, {:.2}) um, NCC {:.3}, covers {:.1} % of it",
+        scan.source,
+        reg.offset_px[0],
+        reg.offset_px[1],
+        reg.offset_um[0],
+        reg.offset_um[1],
+        reg.ncc,
+        reg.covered_fraction * 100.0
+    );
+    o.after_registrations.push(reg);
+    Ok(on_model)
 }
 
 fn parse_pair(s: &str, what: &str) -> Result<Vec<f64>> {
@@ -449,12 +524,11 @@ pub fn run(a: FinishArgs) -> Result<()> {
     };
     crate::outdir::check_ours(&a.out, &claim)?;
     if a.machine.macro_only {
-        return run_macro_only(&a);
+        return run_macro_only(&a, &claim);
     }
     // The part's material reaches the patch's DEM too.
     let part = part_material(&a.machine, PartMaterial::default())?;
     let (model, ideal) = inputs(&a)?;
-    crate::outdir::create_marked(&a.out)?;
     let mut o = FinishOptions {
         time_budget_s: a.time_budget_s,
         cycles: a.cycles,
@@ -508,20 +582,20 @@ pub fn run(a: FinishArgs) -> Result<()> {
         o.series_s = Some(parse_pair(t, "--series-s")?);
     }
     if let Some(f) = &a.after {
-        o.after = Some(read_model(
-            f,
-            None,
-            Some((model.pitch_x_um, model.pitch_y_um)),
-        )?);
+        let scan = read_model(f, None, Some((model.pitch_x_um, model.pitch_y_um)))?;
+        o.after = Some(registered(&model, &scan, "after", &mut o)?);
     }
     // One part material (--part-material and its overrides, aluminium by default) for the
     // macro run, the patch's DEM wall and Archard's K/H.
     o.archard_k_over_h_per_pa = surfstream_finish::run::ARCHARD_K / part.hardness_pa;
     o.part_material = Some(part.clone());
-    if a.macro_run {
-        // The machine flags (--machine FILE, --record-s, ...) as `--macro-only` reads them.
-        o.machine_run = Some(machine_setting(&a)?);
-    }
+    // The macro run by default, with the machine flags (--machine FILE, --record-s, ...) as
+    // `--macro-only` reads them; a given record replaces it.
+    o.machine_run = if a.no_macro || a.macro_record.is_some() {
+        None
+    } else {
+        Some(machine_setting(&a)?)
+    };
     if let Some(f) = &a.macro_record {
         o.macro_contacts = Some(read_macro(f)?);
     }
@@ -538,11 +612,8 @@ pub fn run(a: FinishArgs) -> Result<()> {
     if let Some(c) = &a.calibrate {
         let as_file = PathBuf::from(c);
         o.calibrate = Some(if as_file.is_file() {
-            Calibration::Measured(read_model(
-                &as_file,
-                None,
-                Some((model.pitch_x_um, model.pitch_y_um)),
-            )?)
+            let scan = read_model(&as_file, None, Some((model.pitch_x_um, model.pitch_y_um)))?;
+            Calibration::Measured(registered(&model, &scan, "calibration", &mut o)?)
         } else {
             match parse_pair(c, "--calibrate")?.as_slice() {
                 [b, af] => Calibration::Sa {
@@ -560,13 +631,23 @@ pub fn run(a: FinishArgs) -> Result<()> {
     // The project's one signal story (surfstream_runtime::stop, as launch/run/stitch):
     // Ctrl-C, SIGTERM or SIGHUP sets the runtime's stop flag, which stops the engine; the
     // completed cycles are kept (finish.json says partial); a second signal forces.
+    // Written into a staging folder beside OUT and moved into place when done (complete, or
+    // partial after a stop): a failed run leaves OUT as its FAILED record and the engine's
+    // logs, never half-written outputs beside an earlier run's (crate::outdir).
+    let staged = crate::outdir::stage(&a.out, &claim)?;
     surfstream_runtime::stop::install()?;
     let stop = &surfstream_runtime::ipc::STOP_REQUESTED;
     let say = &mut |l: &str| eprintln!("{l}");
-    let summary = match &sweep {
-        Some(spec) => surfstream_finish::sweep::finish_sweep(&model, &o, spec, &a.out, stop, say)?,
-        None => surfstream_finish::finish_record(&model, &o, &a.out, stop, say)?,
+    let work = staged.staging.clone();
+    let made = match &sweep {
+        Some(spec) => surfstream_finish::sweep::finish_sweep(&model, &o, spec, &work, stop, say),
+        None => surfstream_finish::finish_record(&model, &o, &work, stop, say),
     };
+    let summary = match made {
+        Ok(s) => s,
+        Err(e) => return Err(failed(staged, e)),
+    };
+    let out = staged.commit()?;
     let (b, af) = (&summary.before, &summary.after);
     // "after" is the series' last point (the process time): fitted when the calibration holds there.
     let sa_fitted = summary.series.last().is_some_and(|p| !p.fitted.is_empty());
@@ -638,7 +719,7 @@ pub fn run(a: FinishArgs) -> Result<()> {
         af.svk,
         summary.timings.engine_s,
         summary.timings.surfstream_overhead_s,
-        a.out.join("finish.json").display()
+        out.join("finish.json").display()
     );
     if summary.partial {
         let sig = surfstream_runtime::stop::signal().unwrap_or(libc::SIGINT);

@@ -4,6 +4,7 @@
 use anyhow::{bail, Result};
 use serde::Deserialize;
 
+use crate::machine::MachineSetting;
 use crate::run::{Calibration, FinishOptions};
 
 /// The node's graph parameters.
@@ -37,6 +38,18 @@ pub struct FinishConfig {
     /// "contact-field" (default) or "sampled-map".
     #[serde(default)]
     pub wear_model: Option<String>,
+    /// Run the machine first (the macro run, default true, as `surfstream finish`); false:
+    /// the barrel kinematics' rates and the one-medium segment (`--no-macro`).
+    #[serde(default = "default_macro", rename = "macro")]
+    pub macro_run: bool,
+    /// The machine of the macro run: MachineSetting's fields (default the paper's machine,
+    /// as `surfstream finish --machine FILE.toml`).
+    #[serde(default)]
+    pub machine: Option<MachineSetting>,
+}
+
+fn default_macro() -> bool {
+    true
 }
 
 fn default_dir() -> String {
@@ -88,6 +101,17 @@ impl FinishConfig {
             o.wear_model = crate::run::WearModel::parse(m)
                 .map_err(|e| anyhow::anyhow!("params.wear_model: {e}"))?;
         }
+        o.machine_run = if self.macro_run {
+            let mut m = self.machine.clone().unwrap_or_default();
+            // One media size for the machine and the patch.
+            if let Some(d) = self.media_diameter_mm {
+                m.media.diameter_mm = d;
+            }
+            m.check()?;
+            Some(m)
+        } else {
+            None
+        };
         o.media.validate()?;
         Ok(o)
     }

@@ -324,6 +324,7 @@ pub fn render(
     let field = field_section(summary);
     let predictions = predictions_section(summary);
     let ideal_maps = ideal_maps(summary, wear, ideal_wear, rows, cols)?;
+    let scales = scales_section(summary);
     let partial = summary.partial;
     let (sa_b, sa_a) = (finite(summary.before.sa), finite(summary.after.sa));
     let headline = match (sa_b, sa_a) {
@@ -360,7 +361,7 @@ h2{{margin-top:26px;border-bottom:1px solid #ddd}}.warn{{color:#b03a00}}</style>
     .ok();
     write!(
         html,
-        "<h2>Setting, timings and checks</h2><div class=\"row\">{setting}</div>\
+        "<h2>Setting, timings and checks</h2><div class=\"row\">{setting}</div>{scales}\
 <h2>Wear and surface maps</h2><div class=\"row\">\
 <figure>{wear_map}<figcaption>Wear depth along z (Finnie) over the patch, µm. \
 The dashed line marks the profile row below (the row that lost most). Row 0 at the top.</figcaption></figure>\
@@ -386,6 +387,113 @@ zero at the right (valleys). The worn surface is re-levelled after wear; that sh
     )
     .ok();
     Ok(html)
+}
+
+/// The two scales: the macro run's contacts on the part (what the prediction's rates and the
+/// micro passes' samples come from), the patch model the micro passes ran on, which path the
+/// cycles took, and how measured scans were registered.
+fn scales_section(s: &FinishSummary) -> String {
+    let mut h = String::from("<h2>The machine (macro run) and the patch model (micro passes)</h2>");
+    if let Some(p) = &s.cycle_path {
+        let _ = write!(h, "<p>Cycles: {}.</p>", html_escape(p));
+    }
+    let mut row = String::from("<div class=\"row\">");
+    match &s.macro_run {
+        Some(m) => {
+            let c = &m.contacts;
+            let pct = |name: &str, p: &crate::machine::Percentiles, unit: &str, dp: usize| {
+                format!(
+                    "<tr><td class=\"k\">{name}, {unit}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+                    num(p.p10, dp),
+                    num(p.p50, dp),
+                    num(p.p90, dp)
+                )
+            };
+            let _ = write!(
+                row,
+                "<table><tr><th class=\"k\" colspan=\"4\">Macro run ({}, {}): {} media, {} s recorded after {} s settling, dt {:.2e} s{}</th></tr>\
+<tr><th class=\"k\">contacts on the part's central region ({} mm²)</th><th>p10</th><th>p50</th><th>p90</th></tr>{}{}{}{}{}\
+<tr><td class=\"k\">contacts (impacts / enduring)</td><td colspan=\"3\">{} ({} / {}), {} per mm² and s</td></tr>\
+<tr><td class=\"k\">sliding work, J/(mm² s)</td><td colspan=\"3\">{:.3e}</td></tr>\
+<tr><td class=\"k\">impact energy, J/(mm² s)</td><td colspan=\"3\">{:.3e}</td></tr>\
+<tr><td class=\"k\">softened media keep</td><td class=\"t\" colspan=\"3\">{}</td></tr>\
+<tr><td class=\"k\">not kept (from the micro passes)</td><td class=\"t\" colspan=\"3\">{}</td></tr>\
+<tr><td class=\"k\">engine</td><td colspan=\"3\">{} s on {} rank(s), {:.2e} s per particle-step</td></tr></table>",
+                html_escape(&m.engine),
+                html_escape(&m.machine),
+                m.media_count,
+                num(m.simulated_s, 2),
+                num(m.settle_s, 2),
+                m.timestep_s,
+                if m.partial { " <span class=\"warn\">(partial)</span>" } else { "" },
+                num(m.region_area_mm2, 1),
+                pct("normal speed", &c.normal_speed_m_s, "m/s", 4),
+                pct("tangential speed", &c.tangential_speed_m_s, "m/s", 4),
+                pct("normal force", &c.normal_force_n, "N", 4),
+                pct("impact approach speed", &c.impact_normal_speed_m_s, "m/s", 4),
+                pct("enduring contacts' force", &c.enduring_normal_force_n, "N", 4),
+                c.count,
+                c.impacts,
+                c.enduring,
+                num(c.rate_per_mm2_s, 3),
+                c.sliding_work_j_per_mm2_s,
+                c.impact_energy_j_per_mm2_s,
+                html_escape(&m.softening.trusted.join("; ")),
+                html_escape(&m.softening.not_trusted.join("; ")),
+                num(m.cost.engine_s, 1),
+                m.cost.ranks,
+                m.cost.per_particle_step_s,
+            );
+        }
+        None => row.push_str(
+            "<p>No macro run (<code>--no-macro</code>): the rates are the barrel kinematics' assumptions.</p>",
+        ),
+    }
+    if let Some(p) = &s.patch {
+        let m = &p.model;
+        let _ = write!(
+            row,
+            "<table><tr><th class=\"k\" colspan=\"2\">Patch model (first cycle)</th></tr>\
+<tr><td class=\"k\">mesher</td><td class=\"t\">{}</td></tr>\
+<tr><td class=\"k\">surface triangles</td><td>{}</td></tr>\
+<tr><td class=\"k\">max |mesh − measured| / Sq</td><td>{} ({} µm; Sq {} µm)</td></tr>\
+<tr><td class=\"k\">RMS error, µm</td><td>{}</td></tr>\
+<tr><td class=\"k\">tolerance met (Sa, Sq, Sz per region)</td><td>{}</td></tr>\
+<tr><td class=\"k\">smallest angle, °</td><td>{}</td></tr>\
+<tr><td class=\"k\">LIGGGHTS curvature, °</td><td>{}</td></tr></table>",
+            html_escape(&m.mesher),
+            m.surface_triangles,
+            num(m.max_error_over_sq, 3),
+            num(m.max_error_um, 4),
+            num(m.sq_um, 4),
+            num(m.rms_error_um, 4),
+            m.tolerance_met.map_or("not judged".into(), |t| if t {
+                "yes".to_string()
+            } else {
+                "no".to_string()
+            }),
+            num(m.min_angle_deg, 2),
+            num(m.curvature_deg, 1),
+        );
+    }
+    for r in &s.after_registrations {
+        let _ = write!(
+            row,
+            "<table><tr><th class=\"k\" colspan=\"2\">Measured scan ({}) registered to the model</th></tr>\
+<tr><td class=\"k\">file</td><td class=\"t\">{}</td></tr>\
+<tr><td class=\"k\">offset, µm (x, y)</td><td>{}, {}</td></tr>\
+<tr><td class=\"k\">NCC</td><td>{}</td></tr>\
+<tr><td class=\"k\">model covered</td><td>{} %</td></tr></table>",
+            html_escape(&r.role),
+            html_escape(&r.source),
+            num(r.offset_um[0], 2),
+            num(r.offset_um[1], 2),
+            num(r.ncc, 3),
+            num(r.covered_fraction * 100.0, 1),
+        );
+    }
+    row.push_str("</div>");
+    h + &row
 }
 
 fn html_escape(s: &str) -> String {

@@ -1,18 +1,25 @@
 //! surfstream-finish: the finishing simulation, the seed paper's last step, on a real DEM
-//! engine (LIGGGHTS 3.8, started as a process).
+//! engine (LIGGGHTS 3.8, started as a process), at two scales joined by contact statistics.
 //!
-//! A patch of the surface model ([`grid::Patch`]: centred, with a guard band that is meshed
-//! and cropped) is meshed with the project's mesher for LIGGGHTS, and media spheres
-//! ([`setting::Media`], ceramic defaults) are sent over it with the relative velocity and
-//! pressure of a centrifugal barrel machine ([`setting::BarrelMachine::action`], the paper's
-//! 300 r/min at 135 mm). LIGGGHTS computes Finnie wear per triangle
-//! (`fix mesh/surface/stress ... wear finnie`); Archard wear comes from its contact dump
-//! ([`contacts`]). Both are mapped to the grid keeping the volume ([`grid::NodeMap`]), scaled
-//! by the acceleration factor (process time / simulated time) or fitted to a calibration
-//! target, and subtracted; the worn surface is re-meshed for the next cycle ([`process::finish_record`]).
+//! - **Macro** ([`machine`]): the machine (the paper's centrifugal barrel) at the media scale
+//!   in LIGGGHTS, in the drum's frame; the contacts its media make on a part plate become
+//!   [`machine::MacroContacts`] (rates, speeds, forces, sliding work, samples), keeping only
+//!   what softened media keep.
+//! - **Micro** ([`passes`]): a patch of the surface model ([`grid::Patch`], with a guard band
+//!   meshed and cropped) meshed by the project's tolerance mesher, and contacts drawn from the
+//!   macro samples run on it at the media's real stiffness: Finnie wear from LIGGGHTS'
+//!   `fix mesh/surface/stress`, Archard wear from its contact dump ([`contacts`]), both mapped
+//!   to the grid keeping the volume ([`grid::NodeMap`]).
+//! - **Prediction** ([`laws`], [`predict`]): the wear laws at the macro rates with the DEM's
+//!   wear per contact, one scale fitted once ([`process::finish_record`]), the series over the
+//!   process time, the no-DEM baselines, the sweep ([`sweep`]), the paper's comparison with
+//!   the ideal model and a measured after-finish scan registered to the model ([`after`]).
 //!
+//! Without a macro run (`--no-macro`) the rates come from the barrel kinematics' assumptions
+//! ([`setting::BarrelMachine::action`]) and each cycle runs one medium at a time ([`script`]).
 //! Plain functions; `node` is the graph node, `surfstream-finish` its process.
 
+pub mod after;
 pub mod config;
 pub mod contacts;
 pub mod engine;

@@ -150,22 +150,37 @@ pub fn mesh_model(
         surfstream_mesher::outliers::OutlierPolicy::Keep,
     )?;
     let profile = EngineProfile::with_budget(DemEngine::Liggghts, Some(max_triangles));
+    // A plane (the ideal model of a flat part) has no roughness to judge a tolerance by:
+    // it is meshed to a fixed bound of 1 nm instead, which a plane meets with two triangles.
+    let flat = {
+        let g = surfstream_core::metrology::Grid::of(heights_um, at)?;
+        let l = surfstream_core::metrology::level_plane(&g)?;
+        let finite: Vec<f64> = l.into_iter().filter(|v| v.is_finite()).collect();
+        let n = finite.len().max(1) as f64;
+        let mean = finite.iter().sum::<f64>() / n;
+        (finite.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n).sqrt() < 1e-6
+    };
     let params = MeshOptions {
-        fixed: None,
+        fixed: flat.then_some(surfstream_mesher::Epsilon::Um(1e-3)),
         max_triangles: Some(max_triangles),
         sheet: true,
         holes: false,
         units: LengthUnit::M,
         base_depth_um: None,
     }
-    .params(Some(profile));
+    // (A plane needs no angle bound: its greedy mesh is two right triangles.)
+    .params((!flat).then_some(profile));
     let raw_stl = dir.join("patch.model.stl");
     let outcome = mesh_map(&MapRequest {
         heights: &prepared,
         pitch: at.pitch(),
         params,
-        profile: Some(profile),
-        bound: MapBound::Tolerance(ToleranceSettings::default()),
+        profile: (!flat).then_some(profile),
+        bound: if flat {
+            MapBound::Fixed
+        } else {
+            MapBound::Tolerance(ToleranceSettings::default())
+        },
         roughness_um: None,
         ascii: true,
         stl: &raw_stl,

@@ -51,6 +51,12 @@ pub fn finish_record(
     let macro_run = macro_contacts(opts, out_dir, stop, say)?;
     let setup = Setup::new(model, opts, out_dir, macro_run.as_ref(), say)?;
     let mut st = State::new(&setup);
+    // A macro run made now is engine time of this job (a given record is not).
+    if let (Some(m), None) = (&macro_run, &opts.macro_contacts) {
+        st.engine_s += m.cost.engine_s;
+        st.engine_cpu_s += m.cost.engine_cpu_s;
+        st.macro_engine_s = m.cost.engine_s;
+    }
     // Planning passes within the budget needs the engine's cost on this machine now (a busy
     // machine makes it several times the quiet estimate): a probe of two passes measures it.
     // (The micro passes are planned by count, not by the budget: no probe.)
@@ -89,6 +95,7 @@ pub fn finish_record(
     record.macro_run = macro_run;
     record.part_material = opts.part_material.clone();
     record.cycle_path = Some(setup.cycle_path().into());
+    record.after_registrations = opts.after_registrations.clone();
     // Written as a JSON value: its keys sorted, as finish.json has always had them.
     let summary = record::to_value(&record);
     let path = out_dir.join(outputs::SUMMARY);
@@ -211,6 +218,7 @@ impl<'a> Setup<'a> {
                 let w = patch.in_model;
                 let area = crop(&m.heights_um, m.cols, w);
                 let inner = crop(&area, w.cols, patch.crop);
+                covered(m, &inner)?;
                 Some(surface_params(&inner, patch.crop_sampling())?)
             }
             _ => None,
@@ -232,6 +240,7 @@ impl<'a> Setup<'a> {
             Some(Calibration::Measured(m)) => {
                 let w = patch.in_model;
                 let inner = crop(&crop(&m.heights_um, m.cols, w), w.cols, patch.crop);
+                covered(m, &inner)?;
                 Some(surface_params(&inner, patch.crop_sampling())?.1.sa)
             }
         };
@@ -335,8 +344,11 @@ impl<'a> Setup<'a> {
             jobs: opts.jobs,
             passes_per_engine: passes_per_engine(passes, DEFAULT_ENGINE_PROCESSES),
             contact_every: 5,
-            // Half the evaluated patch's smaller side: the track stays on the patch.
-            max_slide_m: 0.5 * side_um * 1e-6,
+            // A tenth of the evaluated patch's smaller side (30 um on a 300 um patch): Archard's
+            // volume is linear in the distance, so a short track measures the wear per metre
+            // slid as well as a long one; at the macro run's slow sliding (p50 0.017 m/s on the
+            // default machine) half the side cost 40 000 steps per pass.
+            max_slide_m: 0.1 * side_um * 1e-6,
         }
     }
 
@@ -397,6 +409,20 @@ impl<'a> Setup<'a> {
     fn sa_of_crop(&self, z: &[f64]) -> Result<f64> {
         predict::sa_of_crop(&self.patch, z)
     }
+}
+
+/// A measured scan's evaluated patch must be measured throughout (a registered scan is
+/// missing where it does not reach the model).
+fn covered(m: &Model, inner: &[f64]) -> Result<()> {
+    let missing = inner.iter().filter(|v| !v.is_finite()).count();
+    if missing > 0 {
+        bail!(
+            "{}: the measured scan, registered to the model, misses {missing} of the evaluated patch's {} samples: expected it to cover the patch (choose --patch-um inside the area both scans hold)",
+            m.source,
+            inner.len()
+        );
+    }
+    Ok(())
 }
 
 /// The rates the prediction's laws run at, and where they come from.
@@ -564,6 +590,8 @@ struct State {
     checks: Vec<field::FieldCheck>,
     /// The first micro cycle's patch model (finish.json `patch.model`).
     patch_model: Option<PatchModel>,
+    /// The macro run's engine wall time when it ran in this job, s (in `engine_s` too).
+    macro_engine_s: f64,
 }
 
 impl State {
@@ -588,6 +616,7 @@ impl State {
             ideal_wear: None,
             checks: Vec::new(),
             patch_model: None,
+            macro_engine_s: 0.0,
         }
     }
 
@@ -1184,24 +1213,46 @@ fn ideal_comparison(
     // Cropped now: the borrow of `st` must end before the segment is counted into it.
     let a = patch.cropped(hifi_map);
     let dir = setup.out_dir.join("ideal");
-    let mut progress = progress_lines(say, "ideal model", 1, 1, false);
-    let r = run_segment(
-        &SegmentPlan {
-            seed: opts.seed,
-            engine_budget_s: (opts.time_budget_s - st.engine_s).max(0.02 * opts.time_budget_s),
-            cost_per_triangle_step_s: st.cost,
-            ..setup.plan()
-        },
-        &levelled,
-        patch.sampling.with_shape(Shape::new(w.rows, w.cols)),
-        patch.crop,
-        &dir,
-        stop,
-        &mut progress,
-    )?;
-    // The progress lines borrow `say`; it speaks again below.
-    drop(progress);
-    st.count_engine(&r, CostEstimate::Keep);
+    let at = patch.sampling.with_shape(Shape::new(w.rows, w.cols));
+    // The same engine path as the model's first cycle: its micro passes from the macro
+    // run's samples (same plan and seed), else the one-medium segment.
+    let r = if setup.samples.is_empty() {
+        let mut progress = progress_lines(say, "ideal model", 1, 1, false);
+        let r = run_segment(
+            &SegmentPlan {
+                seed: opts.seed,
+                engine_budget_s: (opts.time_budget_s - st.engine_s).max(0.02 * opts.time_budget_s),
+                cost_per_triangle_step_s: st.cost,
+                ..setup.plan()
+            },
+            &levelled,
+            at,
+            patch.crop,
+            &dir,
+            stop,
+            &mut progress,
+        )?;
+        // The progress lines borrow `say`; it speaks again below.
+        drop(progress);
+        st.count_engine(&r, CostEstimate::Keep);
+        CycleRun::of_segment(r)
+    } else {
+        let m = run_micro_passes(
+            &setup.engine,
+            &setup.micro_plan(1),
+            &setup.samples,
+            &levelled,
+            at,
+            patch.crop,
+            opts.max_triangles,
+            &dir,
+            stop,
+            &mut |_| {},
+        )?;
+        st.engine_s += m.engine_s;
+        st.engine_cpu_s += m.engine_cpu_s;
+        CycleRun::of_micro(m)
+    };
     if r.stopped {
         st.partial = true;
         return Ok(None);
@@ -1220,7 +1271,7 @@ fn ideal_comparison(
                 &setup.dist,
                 &patch.cropped(&gap),
                 &b,
-                r.segment.passes.len(),
+                r.impacts,
                 setup.cell_area_um2,
             )?;
             let mut h = levelled.clone();
@@ -1477,6 +1528,7 @@ fn summary(
             total_s,
             surfstream_overhead_s: total_s - engine_s,
             overhead_share_of_engine: (engine_s > 0.0).then(|| (total_s - engine_s) / engine_s),
+            macro_engine_s: st.macro_engine_s,
             simulated_s: st.sim_time_total,
         },
         outputs: [outputs::WEAR, outputs::WEAR_FINNIE, outputs::WEAR_ARCHARD, outputs::WORN, outputs::WORN_X3P, outputs::ORIGINAL, outputs::SUMMARY, outputs::HTML].map(String::from).into(),
@@ -1504,6 +1556,7 @@ fn summary(
         wear_maps: prediction.map(|p| p.wear_maps.clone()),
         sweep: None,
         macro_run: None,
+        after_registrations: Vec::new(),
         part_material: None,
         patch: st.patch_model.map(|model| PatchSummary { model }),
         cycle_path: None,

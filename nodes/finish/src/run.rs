@@ -108,12 +108,18 @@ pub struct FinishOptions {
     /// Interval of the wear maps written over the process, s (None: a tenth of the process
     /// time).
     pub wear_map_every_s: Option<f64>,
-    /// A measured after-finish scan on the model's grid: SIM between it and the predicted
-    /// worn surface (not a calibration target).
+    /// A measured after-finish scan on the model's grid (registered to it by
+    /// [`crate::after::register_after`]): SIM between it and the predicted worn surface (not a
+    /// calibration target).
     pub after: Option<Model>,
-    /// The macro run (the machine at the media scale, [`crate::machine`]) first; its contact
-    /// statistics give the prediction's impact and sliding rates. None: the rates from the
-    /// barrel kinematics' assumptions (or `macro_contacts`).
+    /// How the measured scans (`after`, a measured calibration target) were registered to the
+    /// model (finish.json `after_registrations`).
+    pub after_registrations: Vec<crate::after::AfterRegistration>,
+    /// The macro run (the machine at the media scale, [`crate::machine`]) first, by default
+    /// the paper's machine; its contact statistics give the prediction's impact and sliding
+    /// rates and its contact samples the cycles' micro passes. None: the rates from the barrel
+    /// kinematics' assumptions and the one-medium segment (or `macro_contacts` when given,
+    /// which replaces the run).
     pub machine_run: Option<crate::machine::MachineSetting>,
     /// A macro run's record given (e.g. read from a previous finish.json's `macro`).
     pub macro_contacts: Option<crate::machine::MacroContacts>,
@@ -176,22 +182,25 @@ impl Default for FinishOptions {
             cycles: 4,
             passes: None,
             media: Media::default(),
-            workpiece: Workpiece::default(),
+            // The paper's part, aluminium, for the DEM wall and Archard's hardness alike.
+            workpiece: crate::setting::PartMaterial::default().workpiece(),
             machine: BarrelMachine::default(),
             impact_angle_deg: DEFAULT_IMPACT_ANGLE_DEG,
             media_velocity_m_s: None,
             pressure_pa: None,
             k_finnie_per_pa: None,
-            archard_k_over_h_per_pa: DEFAULT_ARCHARD_K_OVER_H_PER_PA,
+            archard_k_over_h_per_pa: ARCHARD_K
+                / crate::setting::PartMaterial::default().hardness_pa,
             process_time_s: 300.0,
             calibrate: None,
             calibrate_at_s: None,
             series_s: None,
             wear_map_every_s: None,
             after: None,
-            machine_run: None,
+            after_registrations: Vec::new(),
+            machine_run: Some(crate::machine::MachineSetting::default()),
             macro_contacts: None,
-            part_material: None,
+            part_material: Some(crate::setting::PartMaterial::default()),
             max_triangles: 20_000,
             ranks: 1,
             hostfile: None,
@@ -214,11 +223,8 @@ pub const DEFAULT_K_FINNIE_PER_PA: f64 = 6e-12;
 pub const DEFAULT_K_FINNIE_SAMPLED_MAP_PER_PA: f64 = 9e-17;
 /// Largest wear scale the contact field's fit tries (x the process's impacts).
 pub const MAX_FIELD_SCALE: f64 = 1e8;
-/// Archard K / H when none is given, 1/Pa: K = 1e-4 (a mild abrasive regime) over H = 2 GPa
-/// (hardened steel), a textbook order of magnitude, not fitted.
-pub const DEFAULT_ARCHARD_K_OVER_H_PER_PA: f64 = 5e-14;
-/// Archard's dimensionless K with a part material's hardness (K / H): the same mild
-/// abrasive regime as [`DEFAULT_ARCHARD_K_OVER_H_PER_PA`], a textbook order, not fitted.
+/// Archard's dimensionless K (K / H with the part material's hardness H: 1e-13 1/Pa for the
+/// default aluminium): a mild abrasive regime, a textbook order, not fitted.
 pub const ARCHARD_K: f64 = 1e-4;
 /// Planning estimate of LIGGGHTS' cost per triangle and step with one medium over the patch,
 /// s (measured here, docs/finish.md); the real time is measured and reported.

@@ -85,6 +85,9 @@ pub struct FinishSummary {
     /// The macro run's contacts on the part (null: the rates from the kinematics).
     #[serde(rename = "macro", default)]
     pub macro_run: Option<MacroContacts>,
+    /// How the measured scans (`--after`, `--calibrate FILE`) were registered to the model.
+    #[serde(default)]
+    pub after_registrations: Vec<crate::after::AfterRegistration>,
     /// The part's material when given (null: `setting.workpiece` and the default K/H).
     #[serde(default)]
     pub part_material: Option<PartMaterial>,
@@ -470,6 +473,9 @@ pub struct Timings {
     pub overhead_share_of_engine: Option<f64>,
     #[serde(default)]
     pub simulated_s: f64,
+    /// The macro run's share of `engine_s` (0 without one, or with a given record), s.
+    #[serde(default)]
+    pub macro_engine_s: f64,
 }
 
 /// The finish node's report (run.json `stages.<id>`, `nodes/<id>.json`): finish.json without
@@ -524,6 +530,8 @@ pub struct FinishReport {
     #[serde(default)]
     pub sweep: Option<Sweep>,
     #[serde(default)]
+    pub after_registrations: Vec<crate::after::AfterRegistration>,
+    #[serde(default)]
     pub part_material: Option<PartMaterial>,
     #[serde(default)]
     pub patch: Option<PatchSummary>,
@@ -564,6 +572,7 @@ impl FinishReport {
             wear_maps,
             sweep,
             macro_run: _,
+            after_registrations,
             part_material,
             patch,
             cycle_path,
@@ -594,6 +603,7 @@ impl FinishReport {
             fitted,
             wear_maps,
             sweep,
+            after_registrations,
             part_material,
             patch,
             cycle_path,

@@ -252,6 +252,8 @@ fn a_flat_surface_wears_without_pattern() {
         patch_um: Some((150.0, 150.0)),
         guard_um: Some(25.0),
         cycles: 1,
+        // The one-medium segment on the kinematics' rates (no macro run).
+        machine_run: None,
         passes: Some(60),
         max_triangles: 6_000,
         impact_angle_deg: 30.0,
@@ -335,6 +337,8 @@ fn a_sinusoidal_surface_loses_its_peaks_first() {
         patch_um: Some((180.0, 180.0)),
         guard_um: Some(20.0),
         cycles: 2,
+        // The one-medium segment on the kinematics' rates (no macro run).
+        machine_run: None,
         passes: Some(12),
         max_triangles: 6_000,
         calibrate: Some(Calibration::Sa {
