@@ -179,7 +179,8 @@ pub fn mesh_model(
         bound: if flat {
             MapBound::Fixed
         } else {
-            MapBound::Tolerance(ToleranceSettings::default())
+            // LIGGGHTS' own default tolerance (its angle-bounded mesh: docs/model.md).
+            MapBound::Tolerance(ToleranceSettings::for_target(Some(&profile)))
         },
         roughness_um: None,
         ascii: true,
