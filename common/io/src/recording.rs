@@ -486,6 +486,8 @@ impl RecordingReader {
     /// Opens a recording for streaming.
     pub fn open(path: impl AsRef<Path>) -> Result<RecordingReader> {
         let path = path.as_ref().to_path_buf();
+        // A folder read as "no such file", a FIFO blocked, /dev/zero never ended (issue 36).
+        crate::input::check_regular_file(&path, "a .mcap recording")?;
         let file = File::open(&path).with_context(|| format!("{}: cannot open", path.display()))?;
         let len = file
             .metadata()
