@@ -7,6 +7,7 @@ mod launcher;
 mod live;
 mod nodes;
 mod outdir;
+mod outdir_space;
 mod progress;
 mod report;
 mod runjson;
