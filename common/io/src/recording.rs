@@ -1972,7 +1972,7 @@ mod tests {
         assert!(e.contains("x.mcap") && e.contains("bad magic"), "{e}");
         let e = read_err(&dir.path().join("missing.mcap"));
         assert!(
-            e.contains("missing.mcap") && e.contains("cannot open"),
+            e.contains("missing.mcap") && e.contains("no such file (expected a .mcap recording)"),
             "{e}"
         );
     }
