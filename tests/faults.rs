@@ -534,6 +534,15 @@ fn a_full_disk_fails_the_run_and_keeps_the_os_reason() {
         "a run on a full disk reported success: {err}"
     );
     assert!(err.contains("No space left on device"), "{err}");
+    // Said before the scan (issue 36): the estimate of the outputs against the free space.
+    let warned = err
+        .find("not enough free space: this run will write about 13.1 MB (262144 measured points x 50 bytes)")
+        .unwrap_or_else(|| panic!("no free-space warning: {err}"));
+    assert!(
+        err.find("tile 0")
+            .is_none_or(|first_tile| warned < first_tile),
+        "the free-space warning came after the scan started: {err}"
+    );
     assert_eq!(out_state(&out), OutState::Failed, "{err}");
     let record = std::fs::read_to_string(out.join("FAILED")).unwrap();
     assert!(record.contains("No space left on device"), "{record}");

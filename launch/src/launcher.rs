@@ -180,7 +180,10 @@ pub fn run_in_process(
 ) -> Result<()> {
     let staged = outdir::stage(&graph.graph.out_dir, claim)?;
     let final_dir = staged.final_dir.clone();
-    let contexts = match prepare(&mut graph, &staged) {
+    // Free space before work (issue 36): an estimate of the outputs against what is free.
+    let contexts = match crate::outdir_space::check(&graph, &staged.staging)
+        .and_then(|()| prepare(&mut graph, &staged))
+    {
         Ok(c) => c,
         Err(e) => return settle(staged, &[], Err(e), Reached::Startup),
     };
@@ -311,7 +314,10 @@ pub fn launch(
     let slot = slots::take()?;
     let staged = outdir::stage(&graph.graph.out_dir, claim)?;
     let final_dir = staged.final_dir.clone();
-    let contexts = match prepare(&mut graph, &staged) {
+    // Free space before work (issue 36): an estimate of the outputs against what is free.
+    let contexts = match crate::outdir_space::check(&graph, &staged.staging)
+        .and_then(|()| prepare(&mut graph, &staged))
+    {
         Ok(c) => c,
         Err(e) => return settle(staged, &[], Err(e), Reached::Startup),
     };

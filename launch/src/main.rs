@@ -7,6 +7,7 @@ mod launcher;
 mod live;
 mod nodes;
 mod outdir;
+mod outdir_space;
 mod progress;
 mod report;
 mod runjson;
@@ -570,18 +571,14 @@ fn check_source_params(c: &surfstream_runtime::graph::NodeContext) -> Result<()>
             if kind == "scan" && file.is_file() {
                 warn_assumed_height_unit(&file);
             }
-            if !file.is_file() {
-                bail!(
-                    "params.path = {:?}: no such file (expected {})",
-                    path.display().to_string(),
-                    if kind == "scan" {
-                        "a scan.toml or its directory"
-                    } else {
-                        "a .mcap recording"
-                    }
-                );
-            }
-            Ok(())
+            // A folder, FIFO or device is named for what it is, not "no such file" (issue 36).
+            let expected = if kind == "scan" {
+                "a scan.toml or its directory"
+            } else {
+                "a .mcap recording"
+            };
+            surfstream_io::input::check_regular_file(&file, expected)
+                .map_err(|e| anyhow!("params.path = {:?}: {e}", path.display().to_string()))
         }
         other => bail!("params.source = {other:?}: expected \"simulated\", \"scan\" or \"mcap\""),
     }
@@ -702,12 +699,10 @@ fn stitch_graph(
     } else {
         scan.to_path_buf()
     };
-    if !path.exists() {
-        bail!(
-            "{}: no such file (expected a scan.toml, its directory, or a .mcap recording)",
-            path.display()
-        );
-    }
+    surfstream_io::input::check_regular_file(
+        &path,
+        "a scan.toml, its directory, or a .mcap recording",
+    )?;
     let path = path
         .canonicalize()
         .with_context(|| format!("{}: cannot resolve path", path.display()))?;

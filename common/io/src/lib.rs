@@ -2,6 +2,7 @@
 //! ([`npy`]), PNG previews ([`preview`]) and MCAP recordings ([`recording`]).
 
 pub mod formats;
+pub mod input;
 pub mod npy;
 pub mod output;
 pub mod prep;

@@ -486,6 +486,8 @@ impl RecordingReader {
     /// Opens a recording for streaming.
     pub fn open(path: impl AsRef<Path>) -> Result<RecordingReader> {
         let path = path.as_ref().to_path_buf();
+        // A folder read as "no such file", a FIFO blocked, /dev/zero never ended (issue 36).
+        crate::input::check_regular_file(&path, "a .mcap recording")?;
         let file = File::open(&path).with_context(|| format!("{}: cannot open", path.display()))?;
         let len = file
             .metadata()
@@ -1970,7 +1972,7 @@ mod tests {
         assert!(e.contains("x.mcap") && e.contains("bad magic"), "{e}");
         let e = read_err(&dir.path().join("missing.mcap"));
         assert!(
-            e.contains("missing.mcap") && e.contains("cannot open"),
+            e.contains("missing.mcap") && e.contains("no such file (expected a .mcap recording)"),
             "{e}"
         );
     }

@@ -31,8 +31,10 @@ const LOSSLESS_DEPTH: usize = 16;
 const HOUSEKEEPING: Duration = Duration::from_millis(500);
 
 type Message = Arc<Output>;
-/// (producer id, output port) -> the consumers' (id, sender).
-type Fanout = BTreeMap<(String, String), Vec<(String, Sender<Message>)>>;
+/// One consumer of an output port: its id, the sender of its queue, its heartbeat.
+type Consumer = (String, Sender<Message>, Arc<Beat>);
+/// (producer id, output port) -> its consumers.
+type Fanout = BTreeMap<(String, String), Vec<Consumer>>;
 
 struct InputChannel {
     port: String,
@@ -44,7 +46,7 @@ struct InputChannel {
 struct OutputChannel {
     port: String,
     delivery: Delivery,
-    txs: Vec<(String, Sender<Message>)>,
+    txs: Vec<Consumer>,
     sequence: u64,
 }
 
@@ -96,6 +98,16 @@ impl Beat {
     fn silent_for(&self) -> Duration {
         Duration::from_nanos(now_ns().saturating_sub(self.0.load(Ordering::Relaxed)))
     }
+    /// How long the node made no progress: its own silence, unless worker threads (a
+    /// computation fanned out with rayon, which beat anonymously) were busy meanwhile.
+    fn no_progress_for(&self) -> Duration {
+        self.silent_for().min(anonymous_silence())
+    }
+}
+
+/// How long since a thread that runs no node last beat.
+fn anonymous_silence() -> Duration {
+    Duration::from_nanos(now_ns().saturating_sub(ANONYMOUS_BEAT.load(Ordering::Relaxed)))
 }
 
 thread_local! {
@@ -140,7 +152,17 @@ pub fn run_graph_supervised(
     // One channel per (consumer, input port); producers keep the senders.
     let mut senders: Fanout = BTreeMap::new();
     let mut receivers: Vec<Vec<InputChannel>> = Vec::new();
-    for n in &nodes {
+    // Every node's heartbeat, made before any thread starts: a sender waiting on a full queue
+    // judges the wait by its consumer's progress (issue 36).
+    let beats: Vec<Arc<Beat>> = nodes
+        .iter()
+        .map(|_| {
+            let b = Arc::new(Beat::default());
+            b.beat();
+            b
+        })
+        .collect();
+    for (n, beat) in nodes.iter().zip(&beats) {
         let mut ins = Vec::new();
         for i in &n.context.inputs {
             let depth = match i.delivery {
@@ -151,7 +173,7 @@ pub fn run_graph_supervised(
             senders
                 .entry((i.from_node.clone(), i.from_port.clone()))
                 .or_default()
-                .push((n.context.node_id.clone(), tx));
+                .push((n.context.node_id.clone(), tx, beat.clone()));
             ins.push(InputChannel {
                 port: i.port.clone(),
                 topic: i.topic(),
@@ -162,7 +184,7 @@ pub fn run_graph_supervised(
         receivers.push(ins);
     }
     let mut handles = Vec::new();
-    for (n, inputs) in nodes.into_iter().zip(receivers) {
+    for ((n, inputs), beat) in nodes.into_iter().zip(receivers).zip(beats) {
         let outputs = n
             .context
             .outputs
@@ -177,8 +199,6 @@ pub fn run_graph_supervised(
             })
             .collect();
         let id = n.context.node_id.clone();
-        let beat = Arc::new(Beat::default());
-        beat.beat();
         let (thread_beat, thread_stop) = (beat.clone(), stop.clone());
         let handle = std::thread::Builder::new()
             .name(id.clone())
@@ -252,8 +272,7 @@ fn watch(handles: &Handles, sup: &Supervision) -> Option<anyhow::Error> {
         if handles.iter().all(|(_, h, _)| h.is_finished()) {
             return None;
         }
-        let anonymous =
-            Duration::from_nanos(now_ns().saturating_sub(ANONYMOUS_BEAT.load(Ordering::Relaxed)));
+        let anonymous = anonymous_silence();
         let stalled = handles
             .iter()
             .filter(|(_, h, _)| !h.is_finished())
@@ -364,12 +383,12 @@ fn send_all(
         let ch = stamp_for_port(ctx, outputs, &port, &mut msg)?;
         let msg = Arc::new(msg);
         let mut delivered = 0;
-        for (consumer, tx) in &ch.txs {
+        for (consumer, tx, consumer_beat) in &ch.txs {
             match ch.delivery {
-                Delivery::Lossless => match send_beating(tx, msg.clone(), timeout) {
+                Delivery::Lossless => match send_beating(tx, msg.clone(), consumer_beat, timeout) {
                     Ok(()) => delivered += 1,
                     Err(SendTimeoutError::Timeout(_)) => bail!(
-                        "output '{port}' -> '{consumer}': downstream queue full for {:.1} s (backpressure timeout)",
+                        "output '{port}' -> '{consumer}': downstream queue full and '{consumer}' made no progress for {:.1} s (backpressure timeout)",
                         timeout.as_secs_f64()
                     ),
                     Err(SendTimeoutError::Disconnected(_)) => {
@@ -389,16 +408,19 @@ fn send_all(
     Ok(())
 }
 
-/// A lossless send that waits up to `timeout` for room, beating while it waits: the sender
-/// of a full queue is alive, the receiver that does not drain is the one to name.
+/// A lossless send that waits for room, beating while it waits: the sender of a full queue is
+/// alive, the receiver that does not drain is the one to name. The wait fails only when the
+/// consumer made no progress (no beat of its own or of its worker threads) for `timeout`: a
+/// slow consumer on a loaded machine is waited for, as under `launch` (issue 36), a stuck one
+/// is not.
 fn send_beating(
     tx: &Sender<Message>,
     mut msg: Message,
+    consumer: &Beat,
     timeout: Duration,
 ) -> std::result::Result<(), SendTimeoutError<Message>> {
-    let deadline = Instant::now() + timeout;
     loop {
-        let left = deadline.saturating_duration_since(Instant::now());
+        let left = timeout.saturating_sub(consumer.no_progress_for());
         match tx.send_timeout(msg, left.min(crate::watchdog::BEAT_PERIOD)) {
             Err(SendTimeoutError::Timeout(m)) if !left.is_zero() => {
                 beat_current();
@@ -480,5 +502,140 @@ mod tests {
             Some(sup),
         );
         assert!(ok.is_ok());
+    }
+
+    /// Sends `count` registrations on "out", then its end marker.
+    struct Burst {
+        count: u32,
+        sent: bool,
+    }
+
+    impl NodeLogic for Burst {
+        fn on_input(&mut self, _: &str, _: Input<'_>, _: &mut Outbox) -> Result<()> {
+            Ok(())
+        }
+        fn on_drained(&mut self, out: &mut Outbox) -> Result<()> {
+            if !self.sent {
+                for k in 0..self.count {
+                    let reg = surfstream_core::TileRegistration {
+                        tile_index: k,
+                        ..Default::default()
+                    };
+                    out.send_registration("out", reg);
+                }
+                out.end_registrations("out", self.count, 0);
+                self.sent = true;
+            }
+            Ok(())
+        }
+        fn finished(&self) -> bool {
+            self.sent
+        }
+    }
+
+    /// Takes `first_call` on its first message (beating every 20 ms through the core's
+    /// liveness hook, or silent), then drains the rest at once.
+    struct SlowFirst {
+        first_call: Duration,
+        beats: bool,
+        seen: u32,
+        ended: bool,
+    }
+
+    impl NodeLogic for SlowFirst {
+        fn on_input(&mut self, _: &str, input: Input<'_>, _: &mut Outbox) -> Result<()> {
+            if input.is_end_of_scan() {
+                self.ended = true;
+                return Ok(());
+            }
+            if self.seen == 0 {
+                let t0 = Instant::now();
+                while t0.elapsed() < self.first_call {
+                    std::thread::sleep(Duration::from_millis(20));
+                    if self.beats {
+                        surfstream_core::liveness::beat();
+                    }
+                }
+            }
+            self.seen += 1;
+            Ok(())
+        }
+        fn on_drained(&mut self, _: &mut Outbox) -> Result<()> {
+            Ok(())
+        }
+        fn finished(&self) -> bool {
+            self.ended
+        }
+        fn report(&self) -> serde_json::Value {
+            serde_json::json!({ "seen": self.seen })
+        }
+    }
+
+    fn wired(backpressure_timeout_s: f64, first_call: Duration, beats: bool) -> Vec<InProcessNode> {
+        use crate::graph::{InputSpec, OutputSpec, PortKind};
+        let ctx = |id: &str| NodeContext {
+            node_id: id.into(),
+            backpressure_timeout_s,
+            ..node(id, None).context
+        };
+        let mut src = ctx("src");
+        src.outputs = vec![OutputSpec {
+            port: "out".into(),
+            kind: PortKind::Registrations,
+            delivery: Delivery::Lossless,
+            subscribers: 1,
+        }];
+        let mut slow = ctx("slow");
+        slow.inputs = vec![InputSpec {
+            port: "in".into(),
+            from_node: "src".into(),
+            from_port: "out".into(),
+            kind: PortKind::Registrations,
+            delivery: Delivery::Lossless,
+            producer_subscribers: 1,
+        }];
+        vec![
+            InProcessNode {
+                context: src,
+                logic: Box::new(Burst {
+                    count: LOSSLESS_DEPTH as u32 + 4,
+                    sent: false,
+                }),
+            },
+            InProcessNode {
+                context: slow,
+                logic: Box::new(SlowFirst {
+                    first_call,
+                    beats,
+                    seen: 0,
+                    ended: false,
+                }),
+            },
+        ]
+    }
+
+    /// Issue 36: under `run` a lossless send blocked by a full queue fails only when its
+    /// consumer made no progress for the backpressure timeout, as under `launch`. A consumer
+    /// that works (and beats) for 4x the timeout on one message is slow, not stuck: every
+    /// message arrives (before, the send failed after the timeout of wall-clock waiting). A
+    /// consumer silent for that long is still named.
+    #[test]
+    fn a_send_waits_for_a_slow_consumer_that_beats_and_fails_for_a_silent_one() {
+        let timeout_s = 1.0;
+        let reports = run_graph(wired(timeout_s, Duration::from_secs(4), true))
+            .expect("a slow consumer that beats is waited for");
+        let seen = reports
+            .iter()
+            .find(|r| r.node_id == "slow")
+            .map(|r| r.report["seen"].as_u64());
+        assert_eq!(seen, Some(Some(LOSSLESS_DEPTH as u64 + 4)), "{reports:?}");
+        let e = run_graph(wired(timeout_s, Duration::from_secs(4), false))
+            .expect_err("a silent consumer was waited for");
+        let e = format!("{e:#}");
+        assert!(
+            e.contains("node 'src' failed")
+                && e.contains("'slow' made no progress for 1.0 s (backpressure timeout)"),
+            "{e}"
+        );
     }
 }

@@ -259,6 +259,7 @@ fn read_manifest(path: &Path) -> Result<Manifest> {
         path.to_path_buf()
     };
     let m = manifest_path.display();
+    surfstream_io::input::check_regular_file(&manifest_path, "a scan.toml or its directory")?;
     let text = std::fs::read_to_string(&manifest_path)
         .with_context(|| format!("{m}: cannot read scan manifest"))?;
     let file: ManifestFile =
@@ -371,8 +372,14 @@ fn read_manifest(path: &Path) -> Result<Manifest> {
 }
 
 /// The tile's file, checked before it is read: it exists, is a regular file inside the scan
-/// directory `dir` (`dir_real` resolved) and of a format the readers know.
-fn checked_tile_file(at: &str, dir: &Path, dir_real: &Path, t: &TileEntry) -> Result<PathBuf> {
+/// directory `dir` (`dir_real` resolved) and of a format the readers know. Returns the path as
+/// the manifest names it and the resolved one.
+fn checked_tile_file(
+    at: &str,
+    dir: &Path,
+    dir_real: &Path,
+    t: &TileEntry,
+) -> Result<(PathBuf, PathBuf)> {
     let tile_path = dir.join(&t.file);
     if !tile_path.exists() {
         bail!("{at}: {}: no such tile file", tile_path.display());
@@ -383,12 +390,8 @@ fn checked_tile_file(at: &str, dir: &Path, dir_real: &Path, t: &TileEntry) -> Re
         .canonicalize()
         .with_context(|| format!("{at}: cannot resolve {}", tile_path.display()))?;
     // A FIFO or a device would block the reader forever (a hang, not an error).
-    if !std::fs::metadata(&real).is_ok_and(|md| md.is_file()) {
-        bail!(
-            "{at}: {}: not a regular file (a FIFO, device or folder): expected a height-map file",
-            tile_path.display()
-        );
-    }
+    surfstream_io::input::check_regular_file(&real, "a height-map file")
+        .with_context(|| format!("{at}: {}", tile_path.display()))?;
     if !real.starts_with(dir_real) {
         bail!(
             "{at}: file = {:?} resolves to {}, outside the scan directory {}: tile files must be inside it",
@@ -403,7 +406,24 @@ fn checked_tile_file(at: &str, dir: &Path, dir_real: &Path, t: &TileEntry) -> Re
             supported_extensions()
         );
     }
-    Ok(tile_path)
+    Ok((tile_path, real))
+}
+
+/// A tile whose every height is NaN (not measured): nothing to register or place, and the
+/// first tile's mean would be the scan's NaN height offset. Named, never placed (issue 36).
+fn refuse_unmeasured_tile(heights_um: &[f64], at: &str, masked: bool) -> Result<()> {
+    if heights_um.iter().all(|z| z.is_nan()) {
+        bail!(
+            "{at}: every one of its {} heights is NaN (not measured{}): expected a tile with measured points",
+            heights_um.len(),
+            if masked {
+                ", after [scan] mask_exclude"
+            } else {
+                ""
+            }
+        );
+    }
+    Ok(())
 }
 
 /// A tile file that carries its own lateral calibration and height unit: its pitch must agree
@@ -472,12 +492,17 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
         .canonicalize()
         .with_context(|| format!("{}: cannot resolve the scan directory", dir.display()))?;
     let mut seen = std::collections::BTreeSet::new();
+    // Resolved tile files: one file listed twice through different names or links would be
+    // placed at two grid positions (the manifest's own names are checked in read_manifest).
+    let mut resolved: std::collections::BTreeMap<PathBuf, (usize, String)> = Default::default();
     let mut tiles = Vec::with_capacity(entries.len());
     let mut z_offset_um: Option<f64> = None;
     let mut shape: Option<(usize, usize, String)> = None;
     // (pitch x, pitch y, file) of the first tile that carries a lateral calibration.
     let mut file_pitch: Option<(f64, f64, String)> = None;
     let mut masks = MaskExclusion::new(&scan.mask_exclude);
+    // The position each tile file stores for its pixel (0, 0), when it stores one.
+    let mut stored_positions: Vec<Option<[f64; 2]>> = Vec::with_capacity(entries.len());
     for (k, t) in entries.into_iter().enumerate() {
         let at = format!("{m}: [[tile]] #{} (file {:?})", k + 1, t.file);
         if t.row >= scan.rows || t.col >= scan.cols {
@@ -497,9 +522,17 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
                 bail!("{at}: {field} = {v}: expected a finite position in micrometres");
             }
         }
-        let tile_path = checked_tile_file(&at, dir, &dir_real, &t)?;
+        let (tile_path, real) = checked_tile_file(&at, dir, &dir_real, &t)?;
+        if let Some((first, name)) = resolved.insert(real.clone(), (k, t.file.clone())) {
+            bail!(
+                "{at}: resolves to {}, the file of [[tile]] #{} (file {name:?}): the same file listed twice (through a link or another path); each field is one file",
+                real.display(),
+                first + 1
+            );
+        }
         let mut surface = formats::read_surface(&tile_path).with_context(|| at.clone())?;
         masks.apply(&mut surface).with_context(|| at.clone())?;
+        refuse_unmeasured_tile(&surface.heights_um, &at, !scan.mask_exclude.is_empty())?;
         let (rows, cols) = (surface.height, surface.width);
         match &shape {
             None => shape = Some((rows, cols, t.file.clone())),
@@ -520,6 +553,7 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
             &mut file_pitch,
             &t.file,
         )?;
+        stored_positions.push(surface.metadata.stage_position_um);
         let carries_units = surface.metadata.pitch_known;
         let file_scale = if carries_units { 1.0 } else { scale };
         let mut heights = surface.heights_um;
@@ -553,6 +587,8 @@ pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
     }
     let scan = scan.resolved().map_err(|e| anyhow!("{m}: [scan] {e}"))?;
     check_pitch_against_truth(&manifest_path, &scan)?;
+    check_grid_against_positions(&m, &tiles)?;
+    check_positions_against_files(&m, &scan, &tiles, &stored_positions, cols, rows)?;
     check_stage_steps(&m, &scan, &tiles, cols, rows)?;
     Ok(ScanDirectory {
         manifest_path,
@@ -623,6 +659,103 @@ fn check_stage_steps(
                     b.file
                 );
                 return Ok(());
+            }
+        }
+    }
+    Ok(())
+}
+
+/// A wrong layout is not a registration (issue 36): x grows with the column and y with the
+/// row (DESIGN §2), so a grid neighbour to the right (below) whose stage position is not
+/// further along x (y) means the manifest's grid and its positions disagree, as when a
+/// serpentine scan is listed as row-by-row. Refused, naming both tiles.
+fn check_grid_against_positions(m: &str, tiles: &[LoadedTile]) -> Result<()> {
+    let at: std::collections::BTreeMap<(usize, usize), &TileEntry> = tiles
+        .iter()
+        .map(|t| ((t.entry.row, t.entry.col), &t.entry))
+        .collect();
+    for (&(r, c), a) in &at {
+        let right = at
+            .get(&(r, c + 1))
+            .map(|b| (b, "x", a.stage_x_um, b.stage_x_um));
+        let below = at
+            .get(&(r + 1, c))
+            .map(|b| (b, "y", a.stage_y_um, b.stage_y_um));
+        for (b, axis, pa, pb) in right.into_iter().chain(below) {
+            if pb <= pa {
+                let (next, field) = if axis == "x" {
+                    (format!("col {}", c + 1), "column")
+                } else {
+                    (format!("row {}", r + 1), "row")
+                };
+                bail!(
+                    "{m}: [[tile]] {:?} (row {r} col {c}) is at stage_{axis}_um = {pa}, and the next {field}'s {:?} ({next}) at {pb}: \
+                     {axis} must grow with the {field}, so the grid and the stage positions disagree (a serpentine scan listed \
+                     row by row, or the other way round?): fix row / col or the positions",
+                    a.file,
+                    b.file
+                );
+            }
+        }
+    }
+    Ok(())
+}
+
+/// A manifest that contradicts its files (issue 36): when every tile file stores where its
+/// pixel (0, 0) is (X3P axis offsets, Gwyddion offsets), each manifest position relative to
+/// the first tile's must agree with the file's within
+/// [`crate::infer::POSITION_TOLERANCE_FIELDS`] of a field. Refused, naming the tile and both.
+/// Files that all store one and the same position carry none (skipped).
+fn check_positions_against_files(
+    m: &str,
+    scan: &ScanSection,
+    tiles: &[LoadedTile],
+    stored: &[Option<[f64; 2]>],
+    width_px: usize,
+    height_px: usize,
+) -> Result<()> {
+    let Some(stored) = stored.iter().copied().collect::<Option<Vec<[f64; 2]>>>() else {
+        return Ok(());
+    };
+    // Files that all say the same place store no position (an X3P writer without one writes
+    // offset 0): nothing to compare.
+    if stored.windows(2).all(|w| w[0] == w[1]) {
+        return Ok(());
+    }
+    let (Some(first), Some(s0)) = (tiles.first(), stored.first()) else {
+        return Ok(());
+    };
+    let field_um = [
+        width_px as f64 * scan.pitch.x_um(),
+        height_px as f64 * scan.pitch.y_um(),
+    ];
+    let limit = crate::infer::POSITION_TOLERANCE_FIELDS;
+    for (t, p) in tiles.iter().zip(&stored).skip(1) {
+        let manifest = [
+            t.entry.stage_x_um - first.entry.stage_x_um,
+            t.entry.stage_y_um - first.entry.stage_y_um,
+        ];
+        let file = [p[0] - s0[0], p[1] - s0[1]];
+        for axis in 0..2 {
+            let off = (manifest[axis] - file[axis]).abs() / field_um[axis];
+            if off > limit {
+                bail!(
+                    "{m}: [[tile]] {:?} (row {} col {}): the manifest puts it at ({:.3}, {:.3}) um from {:?}, \
+                     but the files' own positions put it at ({:.3}, {:.3}) um: {:.0} % of a field off in {}, \
+                     more than {:.0} %: the manifest and the files disagree (check the stage positions, or \
+                     stitch the folder without a manifest to use the files' positions)",
+                    t.entry.file,
+                    t.entry.row,
+                    t.entry.col,
+                    manifest[0],
+                    manifest[1],
+                    first.entry.file,
+                    file[0],
+                    file[1],
+                    off * 100.0,
+                    ["x", "y"][axis],
+                    limit * 100.0
+                );
             }
         }
     }
@@ -799,6 +932,85 @@ stage_y_um = 0.0
             metadata: formats::Metadata::default(),
         };
         formats::write_surface(&dir.join(name), &s).unwrap();
+    }
+
+    /// Issue 36: a wrong layout is refused, not registered. A 2 x 2 serpentine scan listed as
+    /// row by row (row 1's columns swapped against its stage positions), and a manifest whose
+    /// positions contradict the ones its X3P tiles store.
+    #[test]
+    fn a_grid_or_positions_that_contradict_the_scan_are_refused() {
+        let d = tempfile::tempdir().unwrap();
+        let tile = |name: &str, x_um: f64, y_um: f64| {
+            let s = formats::Surface {
+                width: 4,
+                height: 3,
+                pitch_x_um: 1.0,
+                pitch_y_um: 1.0,
+                heights_um: (0..12).map(|i| i as f64 * 0.25).collect(),
+                metadata: formats::Metadata {
+                    stage_position_um: Some([x_um, y_um]),
+                    ..Default::default()
+                },
+            };
+            formats::write_surface(&d.path().join(name), &s).unwrap();
+        };
+        let entry = |file: &str, row: usize, col: usize, x: f64, y: f64| {
+            format!(
+                "[[tile]]\nfile = \"{file}\"\nrow = {row}\ncol = {col}\nstage_x_um = {x:?}\nstage_y_um = {y:?}\n"
+            )
+        };
+        let head = "[scan]\nname = \"t\"\nrows = 2\ncols = 2\n";
+        // Serpentine acquisition: t0 (0,0), t1 (3,0), t2 (3,2), t3 (0,2) at steps 3 / 2 um.
+        for (name, x, y) in [
+            ("t0.x3p", 0.0, 0.0),
+            ("t1.x3p", 3.0, 0.0),
+            ("t2.x3p", 3.0, 2.0),
+            ("t3.x3p", 0.0, 2.0),
+        ] {
+            tile(name, x, y);
+        }
+        let manifest = |entries: &[String]| {
+            let path = d.path().join("scan.toml");
+            std::fs::write(&path, format!("{head}{}", entries.concat())).unwrap();
+            path
+        };
+        // Right: row 1 runs right to left, the grid says so.
+        let right = [
+            entry("t0.x3p", 0, 0, 0.0, 0.0),
+            entry("t1.x3p", 0, 1, 3.0, 0.0),
+            entry("t2.x3p", 1, 1, 3.0, 2.0),
+            entry("t3.x3p", 1, 0, 0.0, 2.0),
+        ];
+        load_scan(&manifest(&right)).expect("a consistent serpentine");
+        // Listed row by row: the third tile at col 0 with the fourth's x to its left.
+        let raster = [
+            entry("t0.x3p", 0, 0, 0.0, 0.0),
+            entry("t1.x3p", 0, 1, 3.0, 0.0),
+            entry("t2.x3p", 1, 0, 3.0, 2.0),
+            entry("t3.x3p", 1, 1, 0.0, 2.0),
+        ];
+        let e = load_scan(&manifest(&raster)).unwrap_err().to_string();
+        assert!(
+            e.contains("\"t2.x3p\" (row 1 col 0)")
+                && e.contains("the grid and the stage positions disagree")
+                && e.contains("serpentine"),
+            "{e}"
+        );
+        // Grid and positions agree with each other, but not with the files' stored positions
+        // (t2 and t3 swapped in the manifest): refused naming the tile and both positions.
+        let swapped = [
+            entry("t0.x3p", 0, 0, 0.0, 0.0),
+            entry("t1.x3p", 0, 1, 3.0, 0.0),
+            entry("t3.x3p", 1, 1, 3.0, 2.0),
+            entry("t2.x3p", 1, 0, 0.0, 2.0),
+        ];
+        let e = load_scan(&manifest(&swapped)).unwrap_err().to_string();
+        assert!(
+            e.contains("[[tile]] \"t3.x3p\" (row 1 col 1)")
+                && e.contains("the manifest and the files disagree")
+                && e.contains("75 % of a field off in x"),
+            "{e}"
+        );
     }
 
     #[test]

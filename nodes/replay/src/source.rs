@@ -378,6 +378,12 @@ fn check_recorded_tile(path: &std::path::Path, topic: &str, k: usize, f: &Height
             h.z_offset_um
         );
     }
+    if f.heights.iter().all(|z| z.is_nan()) {
+        bail!(
+            "{at}: every one of its {} heights is NaN (not measured): expected a tile with measured points",
+            f.heights.len()
+        );
+    }
     let cols = (h.width as usize).max(1);
     let bad = f
         .heights
@@ -403,12 +409,7 @@ fn check_recorded_tile(path: &std::path::Path, topic: &str, k: usize, f: &Height
 
 fn mcap(ctx: &NodeContext, p: McapParams) -> Result<OpenedSource> {
     // A FIFO or a device would block the reader forever.
-    if !std::fs::metadata(&p.path).is_ok_and(|m| m.is_file()) {
-        bail!(
-            "{}: not a regular file: expected a .mcap recording",
-            p.path.display()
-        );
-    }
+    surfstream_io::input::check_regular_file(&p.path, "a .mcap recording")?;
     let rec = read_recording(&p.path)?;
     let mut frames = Vec::new();
     let mut offsets_ns = Vec::new();

@@ -182,6 +182,7 @@ pub fn is_surface_file(path: &Path) -> bool {
 /// Reads any supported height-map file, chosen by extension.
 pub fn read_surface(path: &Path) -> Result<Surface> {
     let format = Format::from_path(path)?;
+    crate::input::check_regular_file(path, "a height-map file")?;
     if format == Format::Npy {
         let s = read_npy_surface(path).map(invalid_if_not_finite)?;
         check_pitch(&s).with_context(|| format!("{}", path.display()))?;

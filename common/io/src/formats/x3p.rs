@@ -75,6 +75,7 @@ fn read_points<R: Read + Seek>(
     let mut entry = zip
         .by_name(name)
         .with_context(|| format!("zip entry '{name}'"))?;
+    check_entry_declares(name, data_bytes, entry.size())?;
     check_entry_can_hold(
         name,
         data_bytes,
@@ -131,6 +132,20 @@ fn read_points<R: Read + Seek>(
             .map_err(|_| anyhow!("zip entry '{name}': the converting thread panicked"))?;
         read.map(|()| (heights, total, md5))
     })
+}
+
+/// Refuses a point data entry whose size in the archive's directory is not the size main.xml's
+/// MatrixDimension implies, before anything is allocated or inflated for it: a 3 MB file that
+/// declares 20 000 x 20 000 points took 30 s and 3 GB before its short data was found.
+fn check_entry_declares(name: &str, data_bytes: usize, declared_bytes: u64) -> Result<()> {
+    if declared_bytes != data_bytes as u64 {
+        bail!(
+            "main.xml: MatrixDimension declares {data_bytes} bytes of point data, but the \
+             archive declares zip entry '{name}' as {declared_bytes} bytes (uncompressed): \
+             expected the two to agree"
+        );
+    }
+    Ok(())
 }
 
 /// Deflate expands at most about 1032:1; a stored entry not at all.
