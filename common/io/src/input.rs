@@ -32,17 +32,29 @@ fn not_regular(md: &std::fs::Metadata) -> Option<&'static str> {
 /// `expected` says what should be there ("a .mcap recording"); the error names the path and what
 /// it is instead: `no such file`, or `a folder, not a regular file`.
 pub fn check_regular_file(path: &Path, expected: &str) -> Result<()> {
+    // The OS error stays in the chain (under the message), so that callers can tell a missing
+    // path from a bad file by its kind (Python's PathError).
     match std::fs::metadata(path) {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            bail!("{}: no such file (expected {expected})", path.display())
-        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(anyhow::Error::new(e).context(
+            format!("{}: no such file (expected {expected})", path.display()),
+        )),
         Err(e) => bail!("{}: cannot read: {e} (expected {expected})", path.display()),
         Ok(md) => match not_regular(&md) {
             None => Ok(()),
-            Some(what) => bail!(
-                "{}: {what}, not a regular file (expected {expected})",
-                path.display()
-            ),
+            Some(what) => {
+                let msg = format!(
+                    "{}: {what}, not a regular file (expected {expected})",
+                    path.display()
+                );
+                if md.is_dir() {
+                    Err(
+                        anyhow::Error::new(std::io::Error::from(std::io::ErrorKind::IsADirectory))
+                            .context(msg),
+                    )
+                } else {
+                    Err(anyhow::anyhow!(msg))
+                }
+            }
         },
     }
 }
