@@ -502,8 +502,12 @@ fn a_replayed_recording_shows_its_plan_from_its_first_tile() {
     unsafe {
         libc::kill(replay.child.id() as libc::pid_t, libc::SIGINT);
     }
+    let console = replay.stderr.clone();
     let (exit, _) = replay.wait();
     assert!(exit.success(), "{exit:?}");
+    // The console's progress lines (printed while the tiles came) count against the plan.
+    let err = console.lock().unwrap().clone();
+    assert!(err.contains("/9 ("), "no 'tile N/9' progress line: {err}");
 }
 
 #[test]

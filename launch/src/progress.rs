@@ -52,11 +52,16 @@ pub struct TileEvent {
 pub struct Layout {
     /// (row, col) by acquisition index.
     pub grid: Vec<(usize, usize)>,
+    /// Tiles the source will send when it does not give a grid (a recording's tile messages,
+    /// [`surfstream_replay::planned::planned_tiles`], as the live view counts them).
+    pub planned: Option<usize>,
 }
 
 impl Layout {
     pub fn total(&self) -> Option<usize> {
-        (!self.grid.is_empty()).then_some(self.grid.len())
+        (!self.grid.is_empty())
+            .then_some(self.grid.len())
+            .or(self.planned)
     }
 }
 
@@ -139,6 +144,7 @@ pub fn layout(contexts: &[NodeContext]) -> Layout {
             }
             Layout {
                 grid: surfstream_replay::serpentine_order(rows, cols),
+                planned: None,
             }
         }
         Some("scan") => src
@@ -147,7 +153,10 @@ pub fn layout(contexts: &[NodeContext]) -> Layout {
             .and_then(|p| p.as_str())
             .map(|p| scan_layout(std::path::Path::new(p)))
             .unwrap_or_default(),
-        _ => Layout::default(),
+        _ => Layout {
+            grid: Vec::new(),
+            planned: surfstream_replay::planned::planned_tiles(&src.params),
+        },
     }
 }
 
@@ -173,6 +182,7 @@ fn scan_layout(path: &std::path::Path) -> Layout {
         .and_then(|t| toml::from_str::<Manifest>(&t).ok())
         .map(|m| Layout {
             grid: m.tile.iter().map(|t| (t.row, t.col)).collect(),
+            planned: None,
         })
         .unwrap_or_default()
 }
@@ -515,6 +525,7 @@ mod tests {
     fn a_final_placement_that_differs_from_the_streaming_line_is_told() {
         let layout = Layout {
             grid: vec![(0, 0), (0, 1)],
+            planned: None,
         };
         let fin = |by_stage| TileEvent {
             index: 1,
