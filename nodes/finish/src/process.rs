@@ -1214,6 +1214,7 @@ fn ideal_comparison(
     let a = patch.cropped(hifi_map);
     let dir = setup.out_dir.join("ideal");
     let at = patch.sampling.with_shape(Shape::new(w.rows, w.cols));
+    let mut ideal_budget = opts.max_triangles;
     // The same engine path as the model's first cycle: its micro passes from the macro
     // run's samples (same plan and seed), else the one-medium segment.
     let r = if setup.samples.is_empty() {
@@ -1237,18 +1238,33 @@ fn ideal_comparison(
         st.count_engine(&r, CostEstimate::Keep);
         CycleRun::of_segment(r)
     } else {
-        let m = run_micro_passes(
-            &setup.engine,
-            &setup.micro_plan(1),
-            &setup.samples,
-            &levelled,
-            at,
-            patch.crop,
-            opts.max_triangles,
-            &dir,
-            stop,
-            &mut |_| {},
-        )?;
+        let run = |budget: usize| {
+            run_micro_passes(
+                &setup.engine,
+                &setup.micro_plan(1),
+                &setup.samples,
+                &levelled,
+                at,
+                patch.crop,
+                budget,
+                &dir,
+                stop,
+                &mut |_| {},
+            )
+        };
+        // A form surface has little Sq, so the tolerance (relative to its own Sq) asks for a
+        // fine mesh: when even the coarsest exceeds the model's budget, it gets four times
+        // the budget once (said here; `ideal_model.mesh_budget_triangles`).
+        let m = match run(opts.max_triangles) {
+            Err(e) if format!("{e:#}").contains("exceeds max_triangles") => {
+                ideal_budget = 4 * opts.max_triangles;
+                say(&format!(
+                    "finish: ideal model: {e:#}; meshing it within {ideal_budget} triangles instead"
+                ));
+                run(ideal_budget)?
+            }
+            r => r?,
+        };
         st.engine_s += m.engine_s;
         st.engine_cpu_s += m.engine_cpu_s;
         CycleRun::of_micro(m)
@@ -1297,6 +1313,7 @@ fn ideal_comparison(
         _ => None,
     };
     Ok(Some(IdealModelRun {
+        mesh_budget_triangles: ideal_budget,
         source: ideal.source.clone(),
         dir: "ideal".into(),
         engine_s: r.engine_s,

@@ -384,6 +384,10 @@ pub struct SimValues {
 /// The ideal model's segment (`ideal_model`).
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct IdealModelRun {
+    /// The triangle budget of the ideal model's patch mesh (the model's, or four times it
+    /// when its tolerance mesh did not fit).
+    #[serde(default)]
+    pub mesh_budget_triangles: usize,
     pub source: String,
     pub dir: String,
     pub engine_s: f64,
