@@ -63,6 +63,10 @@ pub use crate::machine::ContactSample;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PatchModel {
     pub mesher: String,
+    /// The triangle budget it was meshed within (the run's, or four times it for a smooth
+    /// surface whose tolerance mesh did not fit).
+    #[serde(default)]
+    pub budget_triangles: usize,
     /// Triangles of the patch's surface (patch and guard band).
     pub surface_triangles: usize,
     /// max |mesh - measured| over the evaluated patch's samples, each with its mean over the
@@ -231,6 +235,7 @@ pub fn mesh_model(
         bounds_m: [[lo[0], hi[0]], [lo[1], hi[1]], [lo[2], hi[2]]],
         model: PatchModel {
             mesher: "surfstream tolerance mesher (mesh_map, LIGGGHTS profile: sheet in m, 1 deg angle bound)".into(),
+            budget_triangles: max_triangles,
             surface_triangles: triangles_m.len(),
             max_error_over_sq: fit.0,
             max_error_um: fit.1,
@@ -620,14 +625,18 @@ pub fn run_micro_passes(
     }
     plan.part.check()?;
     plan.media.validate()?;
-    let mesh = mesh_model(
-        heights_um,
-        at,
-        aim_window,
-        max_triangles,
-        plan.curvature_deg,
-        dir,
-    )?;
+    let mesh_within =
+        |budget: usize| mesh_model(heights_um, at, aim_window, budget, plan.curvature_deg, dir);
+    // The tolerance is relative to the surface's own Sq: a smooth one (a form model, a
+    // surface worn to plateaus) may need more triangles than the budget even at the coarsest
+    // mesh; it then gets four times the budget once (`patch.model.budget_triangles`).
+    let mesh = match mesh_within(max_triangles) {
+        Err(e) if format!("{e:#}").contains("exceeds max_triangles") => {
+            mesh_within(4 * max_triangles)
+                .with_context(|| format!("{e:#}; and within 4 x the budget"))?
+        }
+        r => r?,
+    };
     let to_m = |um: f64, axis: usize| (um - mesh.offset_um[axis]) * 1e-6;
     let (px, py) = (at.pitch_x_um(), at.pitch_y_um());
     let aim = (

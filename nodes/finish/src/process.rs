@@ -1238,33 +1238,19 @@ fn ideal_comparison(
         st.count_engine(&r, CostEstimate::Keep);
         CycleRun::of_segment(r)
     } else {
-        let run = |budget: usize| {
-            run_micro_passes(
-                &setup.engine,
-                &setup.micro_plan(1),
-                &setup.samples,
-                &levelled,
-                at,
-                patch.crop,
-                budget,
-                &dir,
-                stop,
-                &mut |_| {},
-            )
-        };
-        // A form surface has little Sq, so the tolerance (relative to its own Sq) asks for a
-        // fine mesh: when even the coarsest exceeds the model's budget, it gets four times
-        // the budget once (said here; `ideal_model.mesh_budget_triangles`).
-        let m = match run(opts.max_triangles) {
-            Err(e) if format!("{e:#}").contains("exceeds max_triangles") => {
-                ideal_budget = 4 * opts.max_triangles;
-                say(&format!(
-                    "finish: ideal model: {e:#}; meshing it within {ideal_budget} triangles instead"
-                ));
-                run(ideal_budget)?
-            }
-            r => r?,
-        };
+        let m = run_micro_passes(
+            &setup.engine,
+            &setup.micro_plan(1),
+            &setup.samples,
+            &levelled,
+            at,
+            patch.crop,
+            opts.max_triangles,
+            &dir,
+            stop,
+            &mut |_| {},
+        )?;
+        ideal_budget = m.model.budget_triangles;
         st.engine_s += m.engine_s;
         st.engine_cpu_s += m.engine_cpu_s;
         CycleRun::of_micro(m)

@@ -184,6 +184,7 @@ fn exact_flat(rows: usize, cols: usize, pitch_um: f64) -> ModelMesh {
         sampling: at,
         model: surfstream_finish::passes::PatchModel {
             mesher: "grid".into(),
+            budget_triangles: triangles_m.len(),
             surface_triangles: triangles_m.len(),
             max_error_over_sq: 0.0,
             max_error_um: 0.0,
