@@ -680,6 +680,17 @@ fn probe(
     })
 }
 
+/// Says when a patch was meshed beyond the run's triangle budget (the micro passes' one
+/// fallback for a smooth surface; recorded in `patch.model.budget_triangles`).
+fn say_budget(say: &mut dyn FnMut(&str), what: &str, model: &PatchModel, budget: usize) {
+    if model.budget_triangles > budget {
+        say(&format!(
+            "finish: {what}: warning: the patch's tolerance mesh did not fit {budget} triangles; meshed within {} ({} triangles)",
+            model.budget_triangles, model.surface_triangles
+        ));
+    }
+}
+
 /// What a cycle's wear model made of its segment.
 struct CycleWear {
     scale: f64,
@@ -753,6 +764,7 @@ fn run_cycle(
         )?;
         st.engine_s += m.engine_s;
         st.engine_cpu_s += m.engine_cpu_s;
+        say_budget(say, &format!("cycle {c}"), &m.model, opts.max_triangles);
         CycleRun::of_micro(m)
     };
     if r.stopped {
@@ -1251,6 +1263,7 @@ fn ideal_comparison(
             &mut |_| {},
         )?;
         ideal_budget = m.model.budget_triangles;
+        say_budget(say, "ideal model", &m.model, opts.max_triangles);
         st.engine_s += m.engine_s;
         st.engine_cpu_s += m.engine_cpu_s;
         CycleRun::of_micro(m)
