@@ -234,7 +234,11 @@ pub fn mesh_model(
         sampling: at,
         bounds_m: [[lo[0], hi[0]], [lo[1], hi[1]], [lo[2], hi[2]]],
         model: PatchModel {
-            mesher: "surfstream tolerance mesher (mesh_map, LIGGGHTS profile: sheet in m, 1 deg angle bound)".into(),
+            mesher: if flat {
+                "surfstream mesher (mesh_map) at a fixed bound of 1 nm: a plane has no roughness to judge a tolerance by (sheet in m, no angle bound: two right triangles)".into()
+            } else {
+                "surfstream tolerance mesher (mesh_map, LIGGGHTS profile: sheet in m, 1 deg angle bound)".into()
+            },
             budget_triangles: max_triangles,
             surface_triangles: triangles_m.len(),
             max_error_over_sq: fit.0,
@@ -631,7 +635,12 @@ pub fn run_micro_passes(
     // surface worn to plateaus) may need more triangles than the budget even at the coarsest
     // mesh; it then gets four times the budget once (`patch.model.budget_triangles`).
     let mesh = match mesh_within(max_triangles) {
-        Err(e) if format!("{e:#}").contains("exceeds max_triangles") => {
+        Err(e)
+            if matches!(
+                e.downcast_ref::<surfstream_mesher::MeshError>(),
+                Some(surfstream_mesher::MeshError::CoarsestOverBudget { .. })
+            ) =>
+        {
             mesh_within(4 * max_triangles)
                 .with_context(|| format!("{e:#}; and within 4 x the budget"))?
         }

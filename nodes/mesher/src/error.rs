@@ -42,6 +42,19 @@ pub enum MeshError {
         limit: usize,
     },
 
+    /// A tolerance search's coarsest mesh already needs more surface triangles than the
+    /// budget (a smooth surface: the tolerance is relative to its own Sq). Typed so that a
+    /// caller can give a larger budget without reading the message.
+    #[error(
+        "tolerance {tolerance}: even the coarsest mesh ({triangles} surface triangles) exceeds \
+         max_triangles = {budget}"
+    )]
+    CoarsestOverBudget {
+        tolerance: String,
+        triangles: usize,
+        budget: usize,
+    },
+
     /// A mesh handed to a writer or to [`crate::close_top_surface`] is malformed.
     #[error("invalid mesh: {0}")]
     InvalidMesh(String),

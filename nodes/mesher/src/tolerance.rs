@@ -824,11 +824,11 @@ pub fn search<M>(
         (Some(b), _) => b,
         (None, Some(fb)) => fb,
         (None, None) => {
-            return Err(MeshError::Incompatible(format!(
-                "tolerance {t}: even the coarsest mesh ({} surface triangles) exceeds \
-                 max_triangles = {budget}",
-                curve.first().map_or(0, |c| c.0.surface_triangles)
-            )))
+            return Err(MeshError::CoarsestOverBudget {
+                tolerance: t.to_string(),
+                triangles: curve.first().map_or(0, |c| c.0.surface_triangles),
+                budget,
+            })
         }
     };
     curve[k].0.chosen = true;
