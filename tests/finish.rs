@@ -314,6 +314,30 @@ fn the_default_finish_runs_the_machine_then_micro_passes_and_registers_the_after
         .as_str()
         .unwrap()
         .starts_with("the macro run"));
+    // p(gap) comes from the same contacts the passes draw: its reach is theirs.
+    let cf = &s["contact_field"];
+    let sampled = &cf["approach"]["sampled"];
+    assert!(sampled["contacts"].as_u64().unwrap() > 0, "{cf}");
+    assert!(
+        cf["reach_um"].as_f64().unwrap() >= sampled["max_um"].as_f64().unwrap(),
+        "{cf}"
+    );
+    assert!(cf["approach_model"]
+        .as_str()
+        .unwrap()
+        .starts_with("p(gap) = the share of the macro run's contact samples"));
+    assert!(cf["impact_rate_model"]
+        .as_str()
+        .unwrap()
+        .starts_with("the macro run"));
+    assert!(cf["envelope"]["sa_um"].as_f64().unwrap() > 0.0, "{cf}");
+    // The fit is judged where it holds (the calibration time).
+    let cal = &s["calibration"];
+    assert_eq!(
+        cal["sa_after_um"].as_f64(),
+        cal["fit"]["sa_after_um"].as_f64(),
+        "{cal}"
+    );
     // The macro run is engine time of this job; the overhead is what is left.
     let t = &s["timings"];
     let macro_s = t["macro_engine_s"].as_f64().unwrap();

@@ -590,8 +590,9 @@ pub fn run(a: FinishArgs) -> Result<()> {
     o.archard_k_over_h_per_pa = surfstream_finish::run::ARCHARD_K / part.hardness_pa;
     o.part_material = Some(part.clone());
     // The macro run by default, with the machine flags (--machine FILE, --record-s, ...) as
-    // `--macro-only` reads them; a given record replaces it.
-    o.machine_run = if a.no_macro || a.macro_record.is_some() {
+    // `--macro-only` reads them; a given record replaces it for the base setting (a sweep's
+    // other settings run their own machine).
+    o.machine_run = if a.no_macro {
         None
     } else {
         Some(machine_setting(&a)?)

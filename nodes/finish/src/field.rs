@@ -10,9 +10,12 @@
 //!    O(n) per line (the lower envelope of parabolas); the paraboloid differs from the sphere
 //!    by r^4 / 8R^3, 0.06 um at 200 um from the contact for R = 1.5 mm.
 //! 2. **Approach distribution.** Hertz: a sphere striking at normal speed v_n approaches by
-//!    (15 m v_n^2 / (16 E* sqrt(R)))^(2/5). The impact angle is spread uniformly over
-//!    [0, 2 x the setting's angle] (mean: the setting's angle) at the media speed, and the
-//!    static press of the load is a floor; P(approach > g) is the contact probability p(g).
+//!    (15 m v_n^2 / (16 E* sqrt(R)))^(2/5). With a macro run, each of its contact samples
+//!    (the ones the micro passes draw) has its approach at the real stiffness, and p(g) is
+//!    the share of them beyond g ([`ApproachDistribution::from_samples`]). Without one, the
+//!    impact angle is spread uniformly over [0, 2 x the setting's angle] (mean: the setting's
+//!    angle) at the media speed, and the static press of the load is a floor; P(approach > g)
+//!    is the contact probability p(g).
 //! 3. **Wear per contact** is measured from each DEM segment: the DEM's wear on the cells of a
 //!    gap bin, per impact, divided by the bin's summed contact probability ([`WearTable`]).
 //! 4. **Extrapolation.** The process delivers Gamma impacts per area and second (barrel
@@ -25,6 +28,7 @@ use anyhow::{bail, Result};
 use serde::{Deserialize, Serialize};
 use surfstream_core::Sampling;
 
+use crate::machine::ContactSample;
 use crate::setting::{effective_modulus_pa, Action, Media, Workpiece};
 
 /// The lower envelope of parabolas along one line: out[i] = min_j f[j] + ((i - j) pitch)^2 / 2R
@@ -111,7 +115,12 @@ pub fn ball_gap_um(heights_um: &[f64], at: Sampling, radius_um: f64) -> Vec<f64>
 }
 
 /// The distribution of the media's elastic approach at impact (Hertz), um.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+///
+/// From the barrel kinematics (no macro run: impacts at the media speed, angles uniform on
+/// [0, max], the press load's static approach a floor), or from the macro run's contact
+/// samples ([`SampledApproach`]): then p(gap) is the share of the very contacts the micro
+/// passes are drawn from whose approach exceeds the gap, and the kinematic fields are unused.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 pub struct ApproachDistribution {
     /// Approach of an impact at the full media speed, normal to the part, um.
     pub full_speed_approach_um: f64,
@@ -121,6 +130,25 @@ pub struct ApproachDistribution {
     pub static_approach_um: f64,
     /// Approach at the setting's (mean) impact angle, um (reported).
     pub mean_angle_approach_um: f64,
+    /// When set, p(gap) comes from the macro run's contacts, not from the fields above.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sampled: Option<SampledApproach>,
+}
+
+/// The approaches of the macro run's contacts at the part's real stiffness: an impact's
+/// Hertz approach at its normal speed; an enduring contact's static approach under its
+/// normal force (or its impact approach, if larger).
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct SampledApproach {
+    pub contacts: usize,
+    pub impacts: usize,
+    pub p10_um: f64,
+    pub p50_um: f64,
+    pub p90_um: f64,
+    pub max_um: f64,
+    /// Sorted ascending, um (not written: finish.json has the percentiles).
+    #[serde(skip)]
+    pub approaches_um: Vec<f64>,
 }
 
 /// Hertz approach of a sphere striking a flat at normal speed `v_n` (m/s), um.
@@ -131,6 +159,7 @@ pub fn hertz_approach_um(media: &Media, part: &Workpiece, v_n: f64) -> f64 {
 }
 
 impl ApproachDistribution {
+    /// p(gap) from the barrel kinematics' assumptions (no macro run).
     pub fn of(media: &Media, part: &Workpiece, action: &Action, press_force_n: f64) -> Self {
         let v = action.media_velocity_m_s;
         let e = effective_modulus_pa(media, part);
@@ -146,17 +175,64 @@ impl ApproachDistribution {
                 part,
                 v * action.impact_angle_deg.to_radians().sin(),
             ),
+            sampled: None,
+        }
+    }
+
+    /// p(gap) from the macro run's contacts (`samples`), at the part's real stiffness.
+    pub fn from_samples(media: &Media, part: &Workpiece, samples: &[ContactSample]) -> Self {
+        let e = effective_modulus_pa(media, part);
+        let r = media.radius_m();
+        let mut approaches_um: Vec<f64> = samples
+            .iter()
+            .map(|s| {
+                let impact = hertz_approach_um(media, part, s.normal_speed_m_s);
+                if s.enduring {
+                    let f = s.normal_force_n.max(0.0);
+                    let static_um = (3.0 * f / (4.0 * e * r.sqrt())).powf(2.0 / 3.0) * 1e6;
+                    static_um.max(impact)
+                } else {
+                    impact
+                }
+            })
+            .filter(|a| a.is_finite())
+            .collect();
+        approaches_um.sort_by(f64::total_cmp);
+        let q = crate::machine::Percentiles::of(&approaches_um);
+        ApproachDistribution {
+            sampled: Some(SampledApproach {
+                contacts: approaches_um.len(),
+                impacts: samples.iter().filter(|s| !s.enduring).count(),
+                p10_um: q.p10,
+                p50_um: q.p50,
+                p90_um: q.p90,
+                max_um: approaches_um.last().copied().unwrap_or(0.0),
+                approaches_um,
+            }),
+            ..Default::default()
         }
     }
 
     /// The largest approach, um: cells deeper below the envelope are never touched.
     pub fn max_um(&self) -> f64 {
+        if let Some(sa) = &self.sampled {
+            return sa.max_um;
+        }
         let s = self.max_impact_angle_deg.to_radians().sin();
         (self.full_speed_approach_um * s.powf(0.8)).max(self.static_approach_um)
     }
 
-    /// P(approach > gap): the share of impact angles whose Hertz approach reaches `gap_um`.
+    /// P(approach > gap): the share of the macro run's contacts, or of the impact angles,
+    /// whose approach reaches `gap_um`.
     pub fn probability(&self, gap_um: f64) -> f64 {
+        if let Some(sa) = &self.sampled {
+            let n = sa.approaches_um.len();
+            if n == 0 {
+                return 0.0;
+            }
+            let below = sa.approaches_um.partition_point(|a| *a <= gap_um);
+            return (n - below) as f64 / n as f64;
+        }
         if gap_um <= self.static_approach_um {
             return 1.0;
         }
@@ -414,6 +490,20 @@ pub fn check_field(
 pub struct FieldGrid {
     pub sampling: Sampling,
     pub radius_um: f64,
+    /// Deepest wear of one step, um ([`step_depth_um`]).
+    pub step_depth_um: f64,
+}
+
+/// The step of the extrapolation for contacts that reach `reach_um` below the envelope:
+/// [`STEP_DEPTH_UM`], or half the reach when that is smaller (the macro run's gentle
+/// contacts reach some 0.1 um: a step deeper than the reach would cut below where any
+/// contact goes before the envelope is re-closed).
+pub fn step_depth_um(reach_um: f64) -> f64 {
+    if reach_um.is_finite() && reach_um > 0.0 {
+        STEP_DEPTH_UM.min(0.5 * reach_um)
+    } else {
+        STEP_DEPTH_UM
+    }
 }
 
 /// Deepest wear of one step of the extrapolation, um: small against the approach (about
@@ -456,7 +546,7 @@ fn wear_rates(
 }
 
 /// Wears `heights_um` by `impacts` impacts (each spread over the whole grid by the contact
-/// field) at scale `scale`, re-closing after each step of at most [`STEP_DEPTH_UM`].
+/// field) at scale `scale`, re-closing after each step of at most [`FieldGrid::step_depth_um`].
 /// Adds the removed depth to `wear_um`.
 pub fn extrapolate(
     heights_um: &mut [f64],
@@ -476,7 +566,7 @@ pub fn extrapolate(
         if max_rate <= 0.0 {
             break;
         }
-        let n = left.min(STEP_DEPTH_UM / max_rate);
+        let n = left.min(g.step_depth_um / max_rate);
         for ((h, w), r) in heights_um.iter_mut().zip(wear_um.iter_mut()).zip(&rate) {
             let d = n * r;
             *h -= d;
@@ -527,7 +617,7 @@ pub fn wear_to_target(
         if max_rate <= 0.0 {
             break;
         }
-        let mut n = (max_impacts - used).min(STEP_DEPTH_UM / max_rate);
+        let mut n = (max_impacts - used).min(g.step_depth_um / max_rate);
         let worn = |t: f64, trial: &mut [f64]| {
             for ((o, h), r) in trial.iter_mut().zip(heights_um.iter()).zip(&rate) {
                 *o = h - t * r;
@@ -593,6 +683,44 @@ mod tests {
     }
 
     #[test]
+    fn sampled_contacts_give_the_share_of_them_that_reach_each_gap() {
+        let (media, part) = (Media::default(), Workpiece::default());
+        let impact = |v: f64| ContactSample {
+            normal_speed_m_s: v,
+            tangential_speed_m_s: 0.1,
+            normal_force_n: 0.0,
+            duration_s: 1e-4,
+            enduring: false,
+        };
+        let pressed = ContactSample {
+            normal_speed_m_s: 0.0,
+            normal_force_n: 0.05,
+            enduring: true,
+            ..impact(0.0)
+        };
+        let samples = [impact(0.01), impact(0.1), impact(1.0), pressed];
+        let d = ApproachDistribution::from_samples(&media, &part, &samples);
+        let a = |v: f64| hertz_approach_um(&media, &part, v);
+        let e = effective_modulus_pa(&media, &part);
+        let static_um = (3.0 * 0.05 / (4.0 * e * media.radius_m().sqrt())).powf(2.0 / 3.0) * 1e6;
+        let mut expected = [a(0.01), a(0.1), a(1.0), static_um];
+        expected.sort_by(f64::total_cmp);
+        assert_eq!(d.max_um(), expected[3]);
+        // Just below each approach, one contact more reaches than just above it.
+        for (k, x) in expected.iter().enumerate() {
+            let above = (3 - k) as f64 / 4.0;
+            assert_eq!(d.probability(x * 0.999), above + 0.25, "{k}");
+            assert_eq!(d.probability(x * 1.001), above, "{k}");
+        }
+        assert_eq!(d.probability(0.0), 1.0);
+        let s = d.sampled.as_ref().unwrap();
+        assert_eq!((s.contacts, s.impacts), (4, 3));
+        // The reach sets the step: half of it when it is under twice the default step.
+        assert_eq!(step_depth_um(0.06), 0.03);
+        assert_eq!(step_depth_um(3.0), STEP_DEPTH_UM);
+    }
+
+    #[test]
     fn a_flat_surface_has_a_uniform_contact_field() {
         let (rows, cols) = (40, 50);
         let z = vec![3.25; rows * cols];
@@ -604,6 +732,7 @@ mod tests {
             max_impact_angle_deg: 40.0,
             static_approach_um: 0.05,
             mean_angle_approach_um: 1.0,
+            sampled: None,
         };
         assert!(gap.iter().all(|g| d.probability(*g) == 1.0));
     }
@@ -661,6 +790,7 @@ mod tests {
             max_impact_angle_deg: 40.0,
             static_approach_um: 0.05,
             mean_angle_approach_um: 1.0,
+            sampled: None,
         };
         let p_of = |c: usize| d.probability(row[c]);
         assert_eq!(p_of(200), 1.0);
@@ -696,6 +826,7 @@ mod tests {
             max_impact_angle_deg: 40.0,
             static_approach_um: 0.05,
             mean_angle_approach_um: 1.5,
+            sampled: None,
         };
         // A "DEM" map: wear where the gap is small, some beyond reach too.
         let dem: Vec<f64> = gap
@@ -743,6 +874,7 @@ mod tests {
         let g = FieldGrid {
             sampling: Sampling::square(Shape::new(rows, cols), p).unwrap(),
             radius_um: r,
+            step_depth_um: STEP_DEPTH_UM,
         };
         let e = extrapolate(&mut h, &mut wear, g, &d, &t, 40.0, 1.0);
         let lost: f64 = z.iter().zip(&h).map(|(a, b)| a - b).sum::<f64>() * p * p;
@@ -765,6 +897,7 @@ mod tests {
             max_impact_angle_deg: 40.0,
             static_approach_um: 0.05,
             mean_angle_approach_um: 1.5,
+            sampled: None,
         };
         let dem: Vec<f64> = gap
             .iter()
@@ -781,6 +914,7 @@ mod tests {
         let g = FieldGrid {
             sampling: Sampling::square(Shape::new(rows, cols), p).unwrap(),
             radius_um: r,
+            step_depth_um: STEP_DEPTH_UM,
         };
         let mut h = z.clone();
         let mut w = vec![0.0; h.len()];

@@ -792,11 +792,34 @@ pub fn field_section(s: &FinishSummary) -> String {
     };
     let m = &f.check_mean;
     let ap = f.approach.as_ref();
+    let (approach_label, approach_values) = match ap.and_then(|a| a.sampled.as_ref()) {
+        Some(sa) => (
+            "approach of the macro run's contacts p10 / p50 / p90 / max (µm)",
+            format!(
+                "{} / {} / {} / {}",
+                num(sa.p10_um, 4),
+                num(sa.p50_um, 4),
+                num(sa.p90_um, 4),
+                num(sa.max_um, 4)
+            ),
+        ),
+        None => (
+            "largest / mean-angle / static approach (µm, kinematics)",
+            format!(
+                "{} / {} / {}",
+                num(ap.map(|a| a.full_speed_approach_um), 3),
+                num(ap.map(|a| a.mean_angle_approach_um), 3),
+                num(ap.map(|a| a.static_approach_um), 3)
+            ),
+        ),
+    };
     write!(
         t,
         "<table><tr><th class=\"k\">contact field</th><th>value</th></tr>\
 <tr><td class=\"k\">ball radius (µm)</td><td>{}</td></tr>\
-<tr><td class=\"k\">largest / mean-angle / static approach (µm)</td><td>{} / {} / {}</td></tr>\
+<tr><td class=\"k\">{}</td><td>{}</td></tr>\
+<tr><td class=\"k\">reach below the envelope / step depth (µm)</td><td>{} / {}</td></tr>\
+<tr><td class=\"k\">the envelope's Sa / Sq before (what reach-limited wear tends to, µm)</td><td>{} / {}</td></tr>\
 <tr><td class=\"k\">impacts over the process on the patch</td><td>{}</td></tr>\
 <tr><td class=\"k\">DEM impacts (all cycles)</td><td>{}</td></tr>\
 <tr><td class=\"k\">AUC: the gap ranks the DEM's worn cells (mean of cycles)</td><td>{}</td></tr>\
@@ -804,9 +827,12 @@ pub fn field_section(s: &FinishSummary) -> String {
 <tr><td class=\"k\">cells within reach / worn by the DEM</td><td>{} / {}</td></tr>\
 <tr><td class=\"k\">cells worn after the process</td><td>{}</td></tr></table>",
         num(f.ball_radius_um, 0),
-        num(ap.map(|a| a.full_speed_approach_um), 3),
-        num(ap.map(|a| a.mean_angle_approach_um), 3),
-        num(ap.map(|a| a.static_approach_um), 3),
+        approach_label,
+        approach_values,
+        num(f.reach_um, 3),
+        num(f.step_depth_um, 3),
+        num(f.envelope.as_ref().map(|e| e.sa_um), 3),
+        num(f.envelope.as_ref().map(|e| e.sq_um), 3),
         num(f.impacts_over_process, 0),
         f.table.impacts,
         num(m.auc_gap_predicts_worn, 3),

@@ -5,7 +5,7 @@
 //!
 //! The laws ([`WearLaw`]), summed per cell of the surface (patch and guard band), each
 //! re-evaluated on the surface re-closed with the media's ball after every step of at most
-//! [`field::STEP_DEPTH_UM`] at the deepest cell:
+//! [`FieldGrid::step_depth_um`] at the deepest cell:
 //!
 //! - **Impacts (Finnie)**: `impacts_per_s` on the evaluated patch (the rate the machine
 //!   delivers) x p(gap) x the DEM's wear per contact w(gap) ([`field::WearTable`]).
@@ -29,8 +29,8 @@ use anyhow::{bail, Result};
 use serde::{Deserialize, Serialize};
 
 use crate::field::{
-    self, ball_gap_um, ApproachDistribution, Extrapolation, FieldGrid, WearTable, MAX_STEPS,
-    STALL_SHARE, STALL_STEPS,
+    ball_gap_um, ApproachDistribution, Extrapolation, FieldGrid, WearTable, MAX_STEPS, STALL_SHARE,
+    STALL_STEPS,
 };
 use crate::setting::{effective_modulus_pa, Media, Workpiece};
 
@@ -175,7 +175,7 @@ impl Worn {
 }
 
 /// Wears `w` for `seconds` at `scale` under `laws`, re-closing after every step of at most
-/// [`field::STEP_DEPTH_UM`].
+/// [`FieldGrid::step_depth_um`].
 pub fn advance_worn(
     w: &mut Worn,
     g: FieldGrid,
@@ -193,7 +193,7 @@ pub fn advance_worn(
         if max_rate <= 0.0 {
             break;
         }
-        let n = left.min(field::STEP_DEPTH_UM / max_rate);
+        let n = left.min(g.step_depth_um / max_rate);
         for k in 0..rate.len() {
             let d = n * rate[k];
             w.heights_um[k] -= d;
@@ -267,7 +267,7 @@ pub fn fit_scale(
         if max_rate <= 0.0 {
             break;
         }
-        let mut n = (max_s - used).min(field::STEP_DEPTH_UM / max_rate);
+        let mut n = (max_s - used).min(g.step_depth_um / max_rate);
         let worn = |t: f64, trial: &mut [f64], h: &[f64]| {
             for ((o, hh), r) in trial.iter_mut().zip(h).zip(&rate) {
                 *o = hh - t * r;
@@ -431,6 +431,7 @@ mod tests {
         FieldGrid {
             sampling: Sampling::square(Shape::new(rows, cols), p).unwrap(),
             radius_um: 1500.0,
+            step_depth_um: crate::field::STEP_DEPTH_UM,
         }
     }
 
@@ -454,6 +455,7 @@ mod tests {
             max_impact_angle_deg: 40.0,
             static_approach_um: 0.05,
             mean_angle_approach_um: 1.5,
+            sampled: None,
         }
     }
 

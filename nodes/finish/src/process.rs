@@ -32,9 +32,9 @@ use crate::script::{self, Segment};
 use crate::setting::Action;
 use crate::summary::{
     AbbottSummary, CalibrationSummary, CheckMean, ContactFieldSummary, CycleField, CycleRecord,
-    CycleVolumeCheck, FinalFit, FinishSetting, FinishSummary, IdealModelRun, PaperValues,
-    PatchRecord, PatchSummary, ProbeRecord, SimValues, Timings, VolumeCheck, WearLawsRecord,
-    WearVolumes,
+    CycleVolumeCheck, EnvelopeShape, FinalFit, FinishSetting, FinishSummary, IdealModelRun,
+    PaperValues, PatchRecord, PatchSummary, ProbeRecord, SimValues, Timings, VolumeCheck,
+    WearLawsRecord, WearVolumes,
 };
 
 /// Runs the finishing simulation of `model` into `out_dir`; see the crate doc. `say` gets
@@ -133,6 +133,8 @@ struct Setup<'a> {
     /// The evaluated patch before: levelled heights and parameters.
     original_crop: Vec<f64>,
     before: SurfaceParams,
+    /// The evaluated patch's envelope under the media's ball (levelled), before.
+    envelope: SurfaceParams,
     /// The measured after-finish scan's crop, levelled, and its parameters.
     measured_after: Option<(Vec<f64>, SurfaceParams)>,
     /// The calibration target: Sa after the whole process, um.
@@ -140,6 +142,8 @@ struct Setup<'a> {
     /// The contact-field model (crate::field): the approach distribution, the grid, the
     /// impacts the process makes on the evaluated patch.
     dist: ApproachDistribution,
+    /// The deepest gap any law reaches (impacts' approach, sliding contacts' depth), um.
+    reach_um: f64,
     field_grid: FieldGrid,
     cell_area_um2: f64,
     aim_area_um2: f64,
@@ -207,6 +211,18 @@ impl<'a> Setup<'a> {
 
         let (original_crop, before) =
             surface_params(&patch.cropped(&patch.heights_um), patch.crop_sampling())?;
+        // The patch's envelope under the media's ball: the shape that wear confined near the
+        // envelope keeps (it lowers the envelope, it does not reach below its long waves).
+        let envelope_um: Vec<f64> = field::ball_gap_um(
+            &patch.heights_um,
+            patch.sampling,
+            opts.media.radius_m() * 1e6,
+        )
+        .iter()
+        .zip(&patch.heights_um)
+        .map(|(g, h)| h + g)
+        .collect();
+        let (_, envelope) = surface_params(&patch.cropped(&envelope_um), patch.crop_sampling())?;
         let measured_after = match (&opts.calibrate, &opts.after) {
             (_, Some(m)) | (Some(Calibration::Measured(m)), None) => {
                 if (m.rows, m.cols) != (model.rows, model.cols) {
@@ -246,10 +262,11 @@ impl<'a> Setup<'a> {
         };
 
         let press_force_n = press_force_n(opts, &action);
-        let dist = ApproachDistribution::of(&opts.media, &opts.workpiece, &action, press_force_n);
-        let field_grid = FieldGrid {
-            sampling: patch.sampling,
-            radius_um: opts.media.radius_m() * 1e6,
+        // p(gap) from the same contacts the micro passes are drawn from, when there are any:
+        // the DEM's wear per contact is then divided by the contacts that reach each gap.
+        let dist = match macro_run.filter(|m| !m.samples.is_empty()) {
+            Some(m) => ApproachDistribution::from_samples(&opts.media, &opts.workpiece, &m.samples),
+            None => ApproachDistribution::of(&opts.media, &opts.workpiece, &action, press_force_n),
         };
         let cell_area_um2 = patch.sampling.pitch().cell_area_um2();
         let aim_area_um2 = cell_area_um2 * (patch.crop.rows * patch.crop.cols) as f64;
@@ -267,6 +284,18 @@ impl<'a> Setup<'a> {
             &opts.media,
             &opts.workpiece,
         );
+        let reach_um = dist.max_um().max(
+            sliding
+                .contact_depths_um
+                .iter()
+                .cloned()
+                .fold(0.0, f64::max),
+        );
+        let field_grid = FieldGrid {
+            sampling: patch.sampling,
+            radius_um: opts.media.radius_m() * 1e6,
+            step_depth_um: field::step_depth_um(reach_um),
+        };
         let calibration_time_s = opts.calibrate_at_s.unwrap_or(opts.process_time_s);
         if !(calibration_time_s > 0.0 && calibration_time_s <= opts.process_time_s) {
             bail!(
@@ -300,9 +329,11 @@ impl<'a> Setup<'a> {
             segments: opts.cycles + usize::from(opts.ideal.is_some()),
             original_crop,
             before,
+            envelope,
             measured_after,
             target_sa,
             dist,
+            reach_um,
             field_grid,
             cell_area_um2,
             aim_area_um2,
@@ -357,7 +388,7 @@ impl<'a> Setup<'a> {
     fn laws(&self, table: &WearTable) -> Vec<WearLaw> {
         vec![
             WearLaw::Impacts(ImpactLaw {
-                dist: self.dist,
+                dist: self.dist.clone(),
                 table: table.clone(),
                 impacts_per_s: self.impacts_process / self.opts.process_time_s,
             }),
@@ -1093,14 +1124,7 @@ fn final_prediction(
             .opts
             .wear_map_every_s
             .unwrap_or(setup.opts.process_time_s / 10.0),
-        reach_um: setup.dist.max_um().max(
-            setup
-                .sliding
-                .contact_depths_um
-                .iter()
-                .cloned()
-                .fold(0.0, f64::max),
-        ),
+        reach_um: setup.reach_um,
         out_dir: setup.out_dir,
     };
     let p = predict::predict(&input, stop)?;
@@ -1486,9 +1510,17 @@ fn summary(
                 // Cycles whose constant is not finite were written as null and left out.
                 Some(st.cycles.iter().map(|c| c.k_finnie_equivalent_per_pa).filter(|k| k.is_finite()).sum::<f64>() / completed as f64)
             } else { None },
-            sa_after_um: Some(after.sa),
-            relative_error: target_sa.map(|t| after.sa / t - 1.0),
-            reached: target_sa.map(|t| !partial && (after.sa / t - 1.0).abs() * 100.0 <= CALIBRATION_TOLERANCE_PERCENT),
+            // The fitted Sa holds at the calibration time (--calibrate-at-s), which may be
+            // before the process time: judge the fit there, not at the end.
+            sa_after_um: Some(final_fit.as_ref().map_or(after.sa, |f| f.sa_after_um)),
+            relative_error: match &final_fit {
+                Some(f) => Some(f.relative_error),
+                None => target_sa.map(|t| after.sa / t - 1.0),
+            },
+            reached: match &final_fit {
+                Some(f) => Some(!partial && f.reached),
+                None => target_sa.map(|t| !partial && (after.sa / t - 1.0).abs() * 100.0 <= CALIBRATION_TOLERANCE_PERCENT),
+            },
             fit: final_fit.clone(),
             provisional_scale: st.provisional_scale,
             measured_after: setup.measured_after.as_ref().map(|(_, p)| p.clone()),
@@ -1497,13 +1529,24 @@ fn summary(
         contact_field: (opts.wear_model == WearModel::ContactField).then(|| ContactFieldSummary {
             ball_radius_um: setup.field_grid.radius_um,
             closing: "the surface closed with the paraboloid r^2/2R of the media's radius (separable lower envelope of parabolas, exact, at the model's full resolution, over the patch and its guard band); the sphere differs from it by r^4/8R^3 (0.06 um at 200 um for R = 1.5 mm)".into(),
-            approach: Some(setup.dist),
-            approach_model: "Hertz approach (15 m v_n^2 / (16 E* sqrt R))^(2/5), impact angle uniform on [0, max_impact_angle_deg] at the media speed; the press load's static approach a floor; p(gap) = P(approach > gap)".into(),
+            approach: Some(setup.dist.clone()),
+            approach_model: if setup.dist.sampled.is_some() {
+                "p(gap) = the share of the macro run's contact samples (those the micro passes draw) whose approach at the part's real stiffness exceeds the gap: an impact's Hertz approach (15 m v_n^2 / (16 E* sqrt R))^(2/5) at its normal speed, an enduring contact's static Hertz approach under its normal force (or its impact approach, if larger)".into()
+            } else {
+                "Hertz approach (15 m v_n^2 / (16 E* sqrt R))^(2/5), impact angle uniform on [0, max_impact_angle_deg] at the media speed; the press load's static approach a floor; p(gap) = P(approach > gap) (the barrel kinematics' assumptions: no macro run)".into()
+            },
             impact_rate_per_m2_s: setup.impact_rate,
-            impact_rate_model: "the bed's contact layer holds one medium per 2 sqrt(3) r^2 and each strikes afresh once per diameter travelled at the media speed (an assumption)".into(),
+            impact_rate_model: setup.rates_from.clone(),
             patch_area_um2: setup.aim_area_um2,
             impacts_over_process: setup.impacts_process,
-            step_depth_um: field::STEP_DEPTH_UM,
+            step_depth_um: setup.field_grid.step_depth_um,
+            reach_um: Some(setup.reach_um),
+            envelope: Some(EnvelopeShape {
+                sa_um: setup.envelope.sa,
+                sq_um: setup.envelope.sq,
+                sz_um: setup.envelope.sz,
+                meaning: "the evaluated patch's envelope under the media's ball (the closing, levelled) before finishing: wear confined within reach_um of the envelope lowers it but keeps its long waves, so Sa falls towards this, not to zero".into(),
+            }),
             table: st.table.clone(),
             check_mean: CheckMean {
                 auc_gap_predicts_worn: check_mean(&|c| c.auc_gap_predicts_worn),

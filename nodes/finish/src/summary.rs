@@ -317,6 +317,15 @@ pub struct CheckMean {
     pub dem_worn_cells: Option<f64>,
 }
 
+/// The evaluated patch's envelope under the media's ball (`contact_field.envelope`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EnvelopeShape {
+    pub sa_um: f64,
+    pub sq_um: f64,
+    pub sz_um: f64,
+    pub meaning: String,
+}
+
 /// The contact-field wear model (`contact_field`).
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct ContactFieldSummary {
@@ -336,6 +345,11 @@ pub struct ContactFieldSummary {
     pub impacts_over_process: f64,
     #[serde(default)]
     pub step_depth_um: f64,
+    /// The deepest gap below the envelope any law reaches, um.
+    #[serde(default)]
+    pub reach_um: Option<f64>,
+    #[serde(default)]
+    pub envelope: Option<EnvelopeShape>,
     pub table: WearTable,
     #[serde(default)]
     pub check_mean: CheckMean,

@@ -120,6 +120,11 @@ fn setting_options(
     o.archard_k_over_h_per_pa = laws.archard_k_over_h_per_pa * laws.scale;
     o.calibrate = None;
     o.ideal = None;
+    // A given macro record is of the base setting only: every other setting runs its own
+    // machine (when there is one), or its contacts would be the base's.
+    if o.machine_run.is_some() {
+        o.macro_contacts = None;
+    }
     Ok(o)
 }
 

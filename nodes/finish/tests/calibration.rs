@@ -91,6 +91,7 @@ fn the_recorded_wear_table_calibrates_a_demo_like_patch_to_the_papers_sa() {
     let g = FieldGrid {
         sampling: at(side, side),
         radius_um: media.radius_m() * 1e6,
+        step_depth_um: surfstream_finish::field::STEP_DEPTH_UM,
     };
     let impacts =
         impact_rate_per_m2_s(&media, &action) * (n as f64 * pitch).powi(2) * 1e-12 * 300.0;
@@ -172,13 +173,14 @@ fn the_prediction_follows_the_macro_statistics_and_not_only_the_calibration() {
     let g = FieldGrid {
         sampling: at(side, side),
         radius_um: media.radius_m() * 1e6,
+        step_depth_um: surfstream_finish::field::STEP_DEPTH_UM,
     };
     let impacts_per_s = impact_rate_per_m2_s(&media, &action) * (n as f64 * pitch).powi(2) * 1e-12;
     // Two macro runs: (sliding work J/(m^2 s), enduring normal forces N).
     let laws_of = |work: f64, forces: &[f64]| {
         vec![
             WearLaw::Impacts(ImpactLaw {
-                dist,
+                dist: dist.clone(),
                 table: table.clone(),
                 impacts_per_s,
             }),
