@@ -240,6 +240,19 @@ fn white_noise_within_a_small_budget_names_the_region_and_the_cause() {
     );
     // Sz still holds: the extremes are vertices.
     assert!(dev[2].abs() < 3.0, "{dev:?}");
+    // Below the coarsest mesh: a typed error a caller can act on (finish gives a larger
+    // budget on it), naming both counts.
+    let heights = RasterView::new(&z, Shape::new(ROWS, COLS)).unwrap();
+    let at = ScanPlacement::new(Pitch::new(1.0, 1.0).expect("a positive pitch"));
+    let mut p = params();
+    p.max_triangles = Some(coarsest - 1);
+    let e = mesh_to_tolerance(heights, None, &at, &p, &settings("sa=1,sq=1,sz=3")).unwrap_err();
+    match &e {
+        surfstream_mesher::MeshError::CoarsestOverBudget {
+            triangles, budget, ..
+        } => assert_eq!((*triangles, *budget), (coarsest, coarsest - 1), "{e}"),
+        other => panic!("expected CoarsestOverBudget, got {other}"),
+    }
 }
 
 #[test]
