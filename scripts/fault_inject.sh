@@ -37,14 +37,123 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 N="${1:-10}"
 SEED="${2:-$(date +%s)}"
-cargo build --release --workspace --bins
+[ -n "${NO_BUILD:-}" ] || cargo build --release --workspace --bins
 BIN="$PWD/target/release/surfstream"
 
-if [ -z "${SKIP_KILLS:-}" ] && [ -z "${ONLY_LOAD:-}" ]; then
+if [ -z "${SKIP_KILLS:-}" ] && [ -z "${ONLY_LOAD:-}" ] && [ -z "${ONLY_FINISH:-}" ]; then
   SURFSTREAM_FAULT_RUNS="$N" SURFSTREAM_FAULT_SEED="$SEED" \
     timeout $((N * 60 + 120)) \
     cargo test --release -p surfstream-e2e --test faults -- --nocapture --test-threads 1 \
     faults_leave_one_run
+fi
+
+# ---- part 5: the finish engine (issue 36) ----
+# FINISH_RUNS (default 1) rounds of: SIGKILL and SIGINT to `surfstream finish` while its
+# LIGGGHTS runs (a 50 x 60 px rough patch, --no-macro --cycles 1, a few seconds of engine);
+# an engine that exits 1 (a stand-in on SURFSTREAM_LIGGGHTS); an engine that sleeps (silent:
+# SURFSTREAM_ENGINE_STALL_S=3 must kill and name it); and the demo under `launch` with as many
+# busy loops as cores (not pinned; LOADED_DEMO_ARGS, default tiles of 256 px, fast pacing).
+# After each: no engine process of the run left, OUT either FAILED with logs/ or a complete
+# (possibly partial) finish.json, never neither (for SIGKILL, which nothing can record, OUT is
+# left as it was and no engine survives). ONLY_FINISH=1 runs only this part.
+FINISH_RUNS="${FINISH_RUNS:-1}"
+if [ "$FINISH_RUNS" -gt 0 ] && [ -z "${ONLY_LOAD:-}" ]; then
+  FW="$(mktemp -d /tmp/ss-finish.XXXXXX)"
+  python3 - "$FW/rough.npy" <<'PY'
+import sys, struct, random
+random.seed(5)
+rows, cols = 50, 60
+hdr = "{'descr': '<f8', 'fortran_order': False, 'shape': (%d, %d), }" % (rows, cols)
+hdr += " " * (118 - len(hdr)) + "\n"
+with open(sys.argv[1], "wb") as f:
+    f.write(b"\x93NUMPY\x01\x00" + struct.pack("<H", len(hdr)) + hdr.encode())
+    f.write(struct.pack("<%dd" % (rows * cols), *[random.gauss(0, 1) for _ in range(rows * cols)]))
+PY
+  declare -A ftried fheld
+  fcheck() { # fcheck NAME FUNCTION: the function must succeed
+    local name="$1"; shift
+    ftried[$name]=$(( ${ftried[$name]:-0} + 1 ))
+    local t0=$SECONDS
+    if "$@" >"$FW/$name.log" 2>&1; then
+      fheld[$name]=$(( ${fheld[$name]:-0} + 1 )); echo "finish: $name: held ($((SECONDS - t0)) s)"
+    else echo "finish: $name: FAILED ($((SECONDS - t0)) s):"; tail -8 "$FW/$name.log"; fi
+  }
+  FIN_ARGS=(--no-macro --pitch-um 3 --patch-um 90 --cycles 1 --passes 150 --calibrate 1.272,0.565)
+  # The engine processes working in this run's folder (their cwd under DIR; to detect, not to
+  # kill: other users' engines on the machine are not ours).
+  engines_of() { pgrep -x liggghts | while read -r p; do
+    case "$(readlink "/proc/$p/cwd" 2>/dev/null)" in "$1"/*) echo "$p" ;; esac; done; true; }
+  out_ok() { # FAILED with logs/, or a complete finish.json
+    local o="$1"
+    if [ -f "$o/FAILED" ]; then [ -d "$o/logs" ] && ls "$o/logs" | grep -q liggghts; return; fi
+    [ -f "$o/finish.json" ] && python3 -c "import json,sys; json.load(open(sys.argv[1]))" "$o/finish.json"
+  }
+  signal_mid_engine() { # signal_mid_engine SIG
+    local sig="$1" o; o="$(mktemp -d "$FW/sig.XXXXXX")/out"
+    "$BIN" finish "$FW/rough.npy" "${FIN_ARGS[@]}" -o "$o" 2>"$o.err" & local pid=$!
+    local k
+    for ((k = 0; k < 600; k++)); do # the engine started: a liggghts child of the run
+      [ -n "$(engines_of "$(dirname "$o")")" ] && break; sleep 0.1; done
+    [ -n "$(engines_of "$(dirname "$o")")" ] || { echo "the engine never started"; cat "$o.err"; kill -KILL $pid; return 1; }
+    sleep 1; kill -"$sig" $pid
+    local rc=0; wait $pid || rc=$?
+    sleep 3
+    local left; left="$(engines_of "$(dirname "$o")")"
+    echo "exit $rc; engines left: '${left}'; out: $(ls "$o" 2>/dev/null | tr '\n' ' ')"
+    [ -z "$left" ] || return 1
+    [ "$rc" -ne 0 ] || return 1
+    if [ "$sig" != KILL ]; then out_ok "$o"; return; fi
+    # Nothing can record a SIGKILL: OUT is left as it was (here: never created); what is left
+    # beside it is said, and the next finish into OUT must clear it and complete.
+    echo "beside OUT after SIGKILL: $(ls -a "$(dirname "$o")" | grep -v '^\.*$' | tr '\n' ' ')"
+    [ ! -e "$o/finish.json" ] || out_ok "$o" || return 1
+    "$BIN" finish "$FW/rough.npy" "${FIN_ARGS[@]}" -o "$o" 2>>"$o.err" || { tail -3 "$o.err"; return 1; }
+    echo "the next finish into OUT: exit 0; beside OUT: $(ls -a "$(dirname "$o")" | grep -v '^\.*$' | tr '\n' ' ')"
+    out_ok "$o" && ! ls -d "$o".staging-* "$o.lock" 2>/dev/null
+  }
+  fake_engine() { # fake_engine exit1|sleep
+    local d; d="$(mktemp -d "$FW/fake.XXXXXX")"
+    if [ "$1" = exit1 ]; then
+      printf '#!/bin/sh\necho "ERROR: Lost atoms: original 1 current 0" > "$4"\ncat "$4"\nexit 1\n' > "$d/liggghts"
+    else
+      printf '#!/bin/sh\nexec sleep 600\n' > "$d/liggghts"
+    fi
+    chmod 755 "$d/liggghts"
+    local rc=0
+    PATH="$d:$PATH" SURFSTREAM_ENGINE_STALL_S=3 timeout 120 \
+      "$BIN" finish "$FW/rough.npy" "${FIN_ARGS[@]}" -o "$d/out" 2>"$d/err" || rc=$?
+    sleep 1
+    local left; left="$(pgrep -f -- "sleep 600" | while read -r p; do
+      grep -qa "$d" "/proc/$p/environ" 2>/dev/null && echo "$p"; done; true)"
+    echo "exit $rc; sleeping engines left: '$left'"; tail -3 "$d/err"
+    [ "$rc" -ne 0 ] && [ "$rc" -ne 124 ] && [ -z "$left" ] && [ -f "$d/out/FAILED" ] && out_ok "$d/out"
+  }
+  loaded_demo() {
+    local n; n="$(nproc)"; local lp=()
+    for ((i = 0; i < n; i++)); do sh -c 'while :; do :; done' & lp+=($!); done
+    local rc=0
+    "$BIN" launch launch/graphs/demo.toml ${LOADED_DEMO_ARGS:---set stage.tile_px=256 --set stage.pacing=fast} -o "$FW/demo" || rc=$?
+    kill "${lp[@]}"
+    [ "$rc" -eq 0 ] && [ -f "$FW/demo/run.json" ]
+  }
+  for ((k = 0; k < FINISH_RUNS; k++)); do
+    fcheck sigkill-mid-engine signal_mid_engine KILL
+    fcheck sigint-mid-engine signal_mid_engine INT
+    fcheck engine-exits-1 fake_engine exit1
+    fcheck engine-sleeps fake_engine sleep
+    fcheck loaded-demo loaded_demo
+  done
+  echo
+  echo "| check ($(date -u +%Y-%m-%dT%H:%MZ), load average $(cut -d' ' -f1-3 /proc/loadavg)) | tried | held | failed |"
+  echo "|---|---|---|---|"
+  ff=0
+  for name in sigkill-mid-engine sigint-mid-engine engine-exits-1 engine-sleeps loaded-demo; do
+    t=${ftried[$name]:-0}; h=${fheld[$name]:-0}; ff=$((ff + t - h))
+    echo "| $name | $t | $h | $((t - h)) |"
+  done
+  [ -z "${FINISH_LOGS:-}" ] || cp "$FW"/*.log "$FINISH_LOGS"/
+  rm -rf "$FW"
+  if [ -n "${ONLY_FINISH:-}" ]; then [ $ff -eq 0 ]; exit; fi
 fi
 
 # ---- part 4: a loaded machine (issue 36) ----

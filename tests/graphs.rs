@@ -717,3 +717,98 @@ fn typed_records_round_trip(out: &std::path::Path) {
     // The mesher writes its report as a JSON value; this ties it to the record its readers use.
     same!(MeshReport, &run.stages["mesher"]);
 }
+
+/// Issue 36: a wrong layout is not a registration. A 3 x 3 serpentine folder of tiles (no
+/// positions in the files) stitched without `--serpentine`: row 1 runs right to left, so the
+/// planned overlaps of tiles 3 and 5 with their neighbours do not exist. Before, pair 3-4 was
+/// accepted as a weak distinct peak (NCC 0.20, 8.3 px off the plan), tile 3 was "placed by
+/// registration" about 400 px from its true place, the verdict named tile 5 only, with Table 6
+/// PASS, and report.html showed a green PASS box above a red FAIL box. Now the link is refused
+/// as inconsistent with the layout (pair record, pair log), the verdict fails with the layout
+/// as its first failure and the serpentine hint, and the report shows no PASS. With
+/// `--serpentine` the same folder passes.
+#[test]
+fn a_serpentine_stitched_without_serpentine_fails_with_the_layout_as_its_cause() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = dir.path().join("scan");
+    std::fs::create_dir(&scan).unwrap();
+    write_scan_dir(&scan, 3, 3, 256, Some("um"));
+    std::fs::remove_file(scan.join("scan.toml")).unwrap();
+    let truth = read_json(&scan.join("ground_truth.json"));
+    let pitch = truth["pixel_pitch_um"]["x"].as_f64().unwrap().to_string();
+    let stitch = |out_dir: &Path, serpentine: bool| {
+        let mut cmd = surfstream();
+        cmd.arg("stitch")
+            .arg(&scan)
+            .args(["--grid", "3x3", "--overlap", "20%"])
+            .args(["--pitch-um", &pitch, "--out"])
+            .arg(out_dir);
+        if serpentine {
+            cmd.arg("--serpentine");
+        }
+        run(cmd)
+    };
+    let wrong = dir.path().join("wrong");
+    let out = stitch(&wrong, false);
+    // Outputs written, a failed check: exit 0 without --strict (the CLI's convention).
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), stderr(&out));
+    let verdict = text
+        .lines()
+        .find(|l| l.starts_with("verdict:"))
+        .unwrap_or("");
+    assert!(verdict.starts_with("verdict: FAIL"), "{text}");
+    let layout = text
+        .lines()
+        .find(|l| l.trim_start().starts_with("layout "))
+        .unwrap_or_else(|| panic!("no layout line:\n{text}"));
+    assert!(
+        layout.contains("without --serpentine") && layout.contains("tiles 3-4"),
+        "{layout}"
+    );
+    assert!(!text.contains("  deviation   PASS"), "{text}");
+    let run_json = read_json(&wrong.join("run.json"));
+    let pair = run_json["pairs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|p| p["a"] == 3 && p["b"] == 4)
+        .expect("pair 3-4");
+    assert_eq!(pair["accepted"], false, "{pair}");
+    assert_eq!(pair["layout_inconsistent"]["refused"], true, "{pair}");
+    assert!(
+        pair["reason"].as_str().unwrap().contains("layout"),
+        "{pair}"
+    );
+    // No tile off the layout is "placed by registration": tiles 3 and 5 are the stage's.
+    for k in [3, 5] {
+        assert_eq!(run_json["tiles"][k]["placed_by"], "stage", "tile {k}");
+    }
+    // The live pair log says it too, as the matcher decided it.
+    let log = std::fs::read_to_string(wrong.join("nodes/matcher.pairs.jsonl")).unwrap();
+    let line = log
+        .lines()
+        .find(|l| l.contains("\"a\":3,") && l.contains("\"b\":4,"))
+        .expect("pair 3-4 in the pair log");
+    assert!(line.contains("layout_inconsistent"), "{line}");
+    // report.html: the failures first, and no PASS box at all.
+    let html = std::fs::read_to_string(wrong.join("report.html")).unwrap();
+    let fail = html.find("class=\"verdict fail\"").expect("a FAIL box");
+    assert!(!html.contains("class=\"verdict pass\""), "a PASS box");
+    assert!(html[fail..].contains("wrong layout"));
+
+    // The right layout: every tile registered within half a pixel, PASS.
+    let right = dir.path().join("right");
+    let out = stitch(&right, true);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let run_json = read_json(&right.join("run.json"));
+    let err = max_position_error_px(&run_json, &truth);
+    assert!(err < 0.5, "tile position error {err} px");
+    assert!(run_json["pairs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .all(|p| p.get("layout_inconsistent").is_none()));
+    let html = std::fs::read_to_string(right.join("report.html")).unwrap();
+    assert!(html.contains("class=\"verdict pass\"") && !html.contains("class=\"verdict fail\""));
+}

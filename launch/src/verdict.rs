@@ -97,6 +97,13 @@ pub fn verdict(run: &RunRecord, out: &Path, verbose: bool) -> Verdict {
         tiles.len() - fallback.len(),
         fallback.len()
     );
+    // Links off the layout's plan by more than the stage error: the layout is the cause of
+    // whatever else failed (issue 36), so said and failed first.
+    let layout = layout_line(run);
+    if let Some(line) = &layout {
+        let _ = writeln!(s, "  layout      {line}");
+        failures.push(format!("layout: {line}"));
+    }
     if let Some(line) = surface_line(run) {
         let _ = writeln!(s, "  surface     {line}");
     }
@@ -111,6 +118,14 @@ pub fn verdict(run: &RunRecord, out: &Path, verbose: bool) -> Verdict {
     }
     match run.deviation.as_ref().and_then(deviation_line) {
         Some((line, failed)) => {
+            // Table 6 of a panorama whose registration failed is no pass.
+            let line = match line.strip_prefix("PASS: ") {
+                Some(rest) if layout.is_some() || !fallback.is_empty() => format!(
+                    "within limits, but no PASS (the registration failed: see layout / \
+                     fallback): {rest}"
+                ),
+                _ => line,
+            };
             let _ = writeln!(s, "  deviation   {line}");
             if failed {
                 failures.push(format!("deviation: {line}"));
@@ -128,7 +143,9 @@ pub fn verdict(run: &RunRecord, out: &Path, verbose: bool) -> Verdict {
             list.join(", ")
         );
         let _ = writeln!(s, "  fallback    {line}");
-        let _ = writeln!(s, "  hint        {}", fallback_hint(&fallback, tiles.len()));
+        if layout.is_none() {
+            let _ = writeln!(s, "  hint        {}", fallback_hint(&fallback, tiles.len()));
+        }
         failures.push(format!("fallback: {line}"));
     }
     // Pairs the matcher accepted below its NCC floor because the peak stood out: usually
@@ -195,6 +212,44 @@ fn imprecise_links_line(run: &RunRecord) -> Option<String> {
     })
 }
 
+/// What to check when the layout is wrong (the tiles are not where the grid, overlap and
+/// path put them).
+const LAYOUT_HINT: &str = "check the layout: a serpentine scan stitched without --serpentine \
+     (or with it, when rows all run one way), a wrong --overlap, or the scan.toml's positions";
+
+/// The links whose offset disagrees with the layout's planned offset by more than the stage
+/// error (`pairs[].layout_inconsistent`), with the layout hint: a failure of the run.
+pub fn layout_line(run: &RunRecord) -> Option<String> {
+    let list: Vec<String> = run
+        .pairs
+        .iter()
+        .filter_map(|p| {
+            let m = p.layout_inconsistent?;
+            Some(format!(
+                "tiles {}-{} ({:.1} px off the plan, bound {:.1} px, {})",
+                p.a,
+                p.b,
+                m.shift_px,
+                m.bound_px,
+                if m.refused {
+                    "refused"
+                } else {
+                    "kept, flagged"
+                }
+            ))
+        })
+        .collect();
+    (!list.is_empty()).then(|| {
+        format!(
+            "{} link(s) disagree with the layout's planned offsets by more than the stage error \
+             (matcher stage_sigma_px): the tiles are likely not where the layout puts them: \
+             {LAYOUT_HINT}: {}",
+            list.len(),
+            list.join(", ")
+        )
+    })
+}
+
 /// The likely cause when registration placed few tiles: a layout that does not match the
 /// scan (overlaps computed where the fields do not overlap).
 fn fallback_hint(fallback: &[&TileRecord], tiles: usize) -> String {
@@ -220,9 +275,7 @@ fn fallback_hint(fallback: &[&TileRecord], tiles: usize) -> String {
         );
     }
     format!(
-        "{share} not registered: check the layout: a serpentine scan stitched without \
-         --serpentine (or with it, when rows all run one way), a wrong --overlap, or the \
-         scan.toml's positions; few features in the overlaps is the other cause"
+        "{share} not registered: {LAYOUT_HINT}; few features in the overlaps is the other cause"
     )
 }
 

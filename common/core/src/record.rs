@@ -259,6 +259,11 @@ pub struct MatcherPair {
     /// Accepted as a distinct peak below the matcher's min_ncc (only written when true).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub accepted_below_min_ncc: bool,
+    /// The measured offset disagrees with the layout's planned (nominal) offset by more than
+    /// the stage error allows (only written when true): refused when weak, flagged when
+    /// strong; the verdict fails on it with the layout as the cause (issue 36).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub layout_inconsistent: Option<LayoutMisfit>,
     /// The feature matcher's diagnostics (feature methods only).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub features: Option<FeaturePairRecord>,
@@ -294,6 +299,17 @@ pub struct MatcherPair {
     /// Its worst direction's standard deviation, px: the link's weight in the global solve.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub offset_sd_px: Option<f64>,
+}
+
+/// A link whose offset disagrees with the layout's plan (`pairs[].layout_inconsistent`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LayoutMisfit {
+    /// |measured - nominal offset|, px.
+    pub shift_px: f64,
+    /// The bound it exceeds, px (from the stated stage error, `stage_sigma_px`).
+    pub bound_px: f64,
+    /// Refused (true: a weak link, not used) or only flagged (a strong link, kept).
+    pub refused: bool,
 }
 
 /// Reads a key that is present, null or not: `Some(None)` for null (absent: the default,

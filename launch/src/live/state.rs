@@ -71,6 +71,9 @@ pub struct PairView {
     pub ncc: f64,
     pub accepted: bool,
     pub weak_link: bool,
+    /// The offset disagrees with the layout's plan beyond the stage error (refused or
+    /// flagged: `MatcherPair::layout_inconsistent`).
+    pub layout_inconsistent: bool,
     pub kept_by_global_solve: Option<bool>,
     /// b's offset from a by the stage and by the registration, px.
     pub nominal_offset_px: [f64; 2],
@@ -671,6 +674,7 @@ fn pair_view(p: &MatcherPair, final_solve: bool) -> PairView {
         ncc: p.ncc,
         accepted: p.accepted,
         weak_link: p.accepted_below_min_ncc,
+        layout_inconsistent: p.layout_inconsistent.is_some(),
         kept_by_global_solve: p.kept_by_global_solve,
         nominal_offset_px: p.nominal_offset_px,
         offset_px: p.offset_px,

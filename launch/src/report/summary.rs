@@ -13,8 +13,11 @@ use super::surfaces::Surfaces;
 /// The verdict banner and the facts table.
 pub fn section(run: &RunRecord, surfaces: &Surfaces) -> String {
     let mut h = String::new();
-    verdict(&mut h, run.deviation.as_ref());
-    stage_placed(&mut h, run);
+    // The registration's failures first: a misplaced tile voids Table 6's pass, so a green
+    // PASS is never shown above (or beside) a FAIL (issue 36).
+    let layout = layout_wrong(&mut h, run);
+    let placed = stage_placed(&mut h, run);
+    verdict(&mut h, run.deviation.as_ref(), layout || placed);
     let scan = run.scan.as_ref();
     let mut rows: Vec<(String, Vec<String>)> = Vec::new();
     let mut row = |k: &str, v: String| rows.push((String::new(), vec![esc(k), v]));
@@ -168,9 +171,24 @@ fn mesh(run: &RunRecord) -> Option<String> {
     )))
 }
 
+/// Links off the layout's plan beyond the stage error: the run fails with the layout as the
+/// cause (the verdict's `layout` line). True when shown.
+fn layout_wrong(h: &mut String, run: &RunRecord) -> bool {
+    let Some(line) = crate::verdict::layout_line(run) else {
+        return false;
+    };
+    let _ = write!(
+        h,
+        "<div class=\"verdict fail\"><b>FAIL: wrong layout?</b> {} (Tile layout and pairs \
+         below).</div>",
+        esc(&line)
+    );
+    true
+}
+
 /// Tiles the stage placed (no registration, or one direction only): a banner of their own,
-/// since the run's verdict fails on them whatever Table 6 says.
-fn stage_placed(h: &mut String, run: &RunRecord) {
+/// since the run's verdict fails on them whatever Table 6 says. True when shown.
+fn stage_placed(h: &mut String, run: &RunRecord) -> bool {
     let tiles: Vec<String> = run
         .tiles
         .iter()
@@ -183,7 +201,7 @@ fn stage_placed(h: &mut String, run: &RunRecord) {
         })
         .collect();
     if tiles.is_empty() {
-        return;
+        return false;
     }
     let _ = write!(
         h,
@@ -193,10 +211,13 @@ fn stage_placed(h: &mut String, run: &RunRecord) {
         tiles.len(),
         esc(&tiles.join(", "))
     );
+    true
 }
 
-/// The Table-6 verdict as a banner: pass, or which stage failed where and by how much.
-fn verdict(h: &mut String, dev: Option<&DeviationRecord>) {
+/// The Table-6 verdict as a banner: pass, or which stage failed where and by how much. When
+/// the registration failed (`registration_failed`), a Table 6 within its limits is no PASS:
+/// it judged a panorama with misplaced tiles, and says so in a warning box.
+fn verdict(h: &mut String, dev: Option<&DeviationRecord>, registration_failed: bool) {
     let dev = match dev {
         None => return,
         Some(DeviationRecord::Table(t)) => t,
@@ -225,6 +246,17 @@ fn verdict(h: &mut String, dev: Option<&DeviationRecord>) {
             format!("its tolerance ({})", parts.join(", "))
         }
     };
+    if dev.pass && registration_failed {
+        let _ = write!(
+            h,
+            "<div class=\"verdict warn\"><b>No PASS:</b> Table 6 is within its limits (±{} % \
+             for {}), but it judged a panorama whose registration failed (above): the run \
+             fails.</div>",
+            fixed(e, 1),
+            judged.join(", ")
+        );
+        return;
+    }
     if dev.pass {
         let mesh = dev
             .stages

@@ -143,6 +143,7 @@ mod tests {
             accepted: true,
             reason: None,
             accepted_below_min_ncc: weak,
+            layout_inconsistent: None,
             features: None,
             final_offset_px: None,
             z_samples: None,

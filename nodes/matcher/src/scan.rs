@@ -29,8 +29,8 @@ use std::path::PathBuf;
 use surfstream_core::frame::{flags, placed_by, TileRegistration};
 use surfstream_core::raster::{Raster, RasterView, Shape};
 use surfstream_core::record::{
-    self, DirectionalPair, FeatureSummaryRecord, GlobalSolveRecord, MatcherPair, MatcherReport,
-    MatcherTile, StreamingPlacement, TilePlacement,
+    self, DirectionalPair, FeatureSummaryRecord, GlobalSolveRecord, LayoutMisfit, MatcherPair,
+    MatcherReport, MatcherTile, StreamingPlacement, TilePlacement,
 };
 use surfstream_core::store::{AppendLog, StoreError};
 use surfstream_core::Pitch;
@@ -796,10 +796,31 @@ fn register_link(
             (r, alt, None)
         }
     };
+    let mut r = r;
     let mut report = pair_report(&a.tile, t, nominal, &r, features.as_ref());
-    if features.is_none() && r.offset_px.is_some() && r.ncc < params.phase.min_ncc {
+    let weak = features.is_none() && r.offset_px.is_some() && r.ncc < params.phase.min_ncc;
+    if weak {
         // Accepted as a distinct peak below min_ncc (PhaseParams::min_ncc_distinct): said so.
         report.accepted_below_min_ncc = true;
+    }
+    if let Some(off) = r.offset_px {
+        let misfit = layout_misfit(off, nominal, weak, params.solve.stage_sigma_px);
+        if let Some(m) = misfit.filter(|m| m.refused) {
+            // A weak peak off the plan: more likely an overlap that does not exist (a wrong
+            // layout) than a stage error; not used.
+            r.offset_px = None;
+            report.offset_px = None;
+            report.accepted = false;
+            report.accepted_below_min_ncc = false;
+            report.reason = Some(format!(
+                "a weak peak (NCC {:.3}, below min_ncc {:.2}) {:.1} px from the layout's planned \
+                 offset, more than the stage error allows ({:.1} px = sqrt 2 x stage_sigma_px \
+                 {}): the planned overlap may not exist (check the layout: --serpentine, \
+                 --overlap, scan.toml's positions)",
+                r.ncc, params.phase.min_ncc, m.shift_px, m.bound_px, params.solve.stage_sigma_px
+            ));
+        }
+        report.layout_inconsistent = misfit;
     }
     let stage_vote = (
         1.0,
@@ -834,6 +855,38 @@ fn register_link(
         report,
     );
     (vote, stage_vote, record)
+}
+
+/// How many standard deviations of a pair's stage error (sqrt 2 x `stage_sigma_px`: the
+/// difference of two tiles' errors) a strong link may lie from the layout's planned offset
+/// before it is flagged inconsistent with the layout.
+const LAYOUT_STRONG_SIGMAS: f64 = 3.0;
+
+/// Does the link's measured `offset` (px) disagree with the layout's planned `nominal` offset
+/// by more than the stated stage error (`stage_sigma_px`, one tile's, px) allows? A pair's
+/// offset error is the difference of two tiles' stage errors, sigma sqrt 2. A weak link
+/// (accepted below min_ncc as a distinct peak) gets one such sigma and is refused beyond it:
+/// its only support is standing out, and a false peak on an overlap that does not exist
+/// stands out as well anywhere within the search. A strong link gets three and is kept but
+/// flagged beyond them. `None`: consistent.
+pub fn layout_misfit(
+    offset: [f64; 2],
+    nominal: [f64; 2],
+    weak: bool,
+    stage_sigma_px: f64,
+) -> Option<LayoutMisfit> {
+    let shift_px = (offset[0] - nominal[0]).hypot(offset[1] - nominal[1]);
+    let pair_sigma = std::f64::consts::SQRT_2 * stage_sigma_px;
+    let bound_px = if weak {
+        pair_sigma
+    } else {
+        LAYOUT_STRONG_SIGMAS * pair_sigma
+    };
+    (shift_px > bound_px).then_some(LayoutMisfit {
+        shift_px,
+        bound_px,
+        refused: weak,
+    })
 }
 
 /// Why the final z alignment failed: the solve, or reading a tile back.
@@ -965,6 +1018,7 @@ fn pair_report(
         accepted: r.offset_px.is_some(),
         reason,
         accepted_below_min_ncc: false,
+        layout_inconsistent: None,
         features,
         final_offset_px: None,
         z_samples: None,
@@ -992,5 +1046,35 @@ fn placed_name(how: u32) -> &'static str {
         "stage"
     } else {
         "registration"
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Issue 36: a link off the layout's plan by more than the stated stage error. With
+    /// `stage_sigma_px` 5 a pair's sigma is 7.07 px: a weak link beyond it is refused, a strong
+    /// one is kept up to three of them (21.2 px) and flagged beyond.
+    #[test]
+    fn links_off_the_layouts_plan_beyond_the_stage_error_are_refused_or_flagged() {
+        let nominal = [204.8, 0.0];
+        // The weak false link of a serpentine stitched row by row: (5.25, 6.38) px off.
+        let m = layout_misfit([210.05, 6.38], nominal, true, 5.0).expect("refused");
+        assert!(
+            m.refused && (m.bound_px - 50f64.sqrt()).abs() < 1e-12,
+            "{m:?}"
+        );
+        assert!((m.shift_px - 5.25f64.hypot(6.38)).abs() < 1e-9);
+        // The same offset, strong: within three pair sigmas, consistent.
+        assert_eq!(layout_misfit([210.05, 6.38], nominal, false, 5.0), None);
+        // A weak link within one pair sigma (a true lone pit with a 3 px stage error).
+        assert_eq!(layout_misfit([207.8, -3.0], nominal, true, 5.0), None);
+        // A strong link 22.6 px off: flagged, kept.
+        let m = layout_misfit([204.8, 22.6], nominal, false, 5.0).expect("flagged");
+        assert!(!m.refused && (m.bound_px - 3.0 * 50f64.sqrt()).abs() < 1e-12);
+        // A larger stated stage error widens both bounds.
+        assert_eq!(layout_misfit([204.8, 22.6], nominal, false, 10.0), None);
+        assert_eq!(layout_misfit([210.05, 6.38], nominal, true, 10.0), None);
     }
 }

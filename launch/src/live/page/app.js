@@ -131,14 +131,16 @@ function drawTables(s) {
     const r = pb.insertRow();
     r.dataset.pair = `${p.a}-${p.b}`;
     r.dataset.weak = p.weak_link;
+    r.dataset.layout = p.layout_inconsistent;
     cell(r, `${p.a}-${p.b}`);
     cell(r, p.direction);
     cell(r, num(p.ncc, 3));
     cell(r, p.residual_px === null ? '-' : num(p.residual_px, 3) + (p.residual_of === 'global_solve' ? ' (solve)' : ' (streaming)'));
     cell(r, p.offset_px ? `${num(p.offset_px[0] - p.nominal_offset_px[0], 2)}, ${num(p.offset_px[1] - p.nominal_offset_px[1], 2)}` : '-');
     const outcome = !p.accepted ? `refused${p.reason ? ': ' + p.reason : ''}`
+      : p.layout_inconsistent ? 'INCONSISTENT with the layout (check --serpentine / --overlap)'
       : p.weak_link ? 'weak link' : p.kept_by_global_solve === false ? 'dropped by the solve' : 'accepted';
-    cell(r, outcome, p.weak_link ? 'placement-weak_link' : !p.accepted ? 'placement-stage_fallback' : '');
+    cell(r, outcome, p.weak_link ? 'placement-weak_link' : !p.accepted || p.layout_inconsistent ? 'placement-stage_fallback' : '');
   }
   const final = s.pairs.some((p) => p.final_solve);
   $('pairs-note').textContent = !s.pairs.length ? 'no pair decided yet'
