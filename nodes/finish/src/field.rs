@@ -525,6 +525,10 @@ pub struct Extrapolation {
     pub volume_um3: f64,
     /// Share of the cells worn at all.
     pub worn_cells: f64,
+    /// Stopped at [`MAX_STEPS`] with process time (or impacts) left: the surface is worn
+    /// less than the laws say (said on stderr; never silent).
+    #[serde(default)]
+    pub truncated_at_max_steps: bool,
 }
 
 /// The depth one impact wears at each cell of the current surface (re-closed with the ball),
@@ -576,6 +580,7 @@ pub fn extrapolate(
         left -= n;
         out.steps += 1;
     }
+    out.truncated_at_max_steps = left > 0.0 && out.steps >= MAX_STEPS;
     out.worn_cells =
         wear_um.iter().filter(|w| **w > 0.0).count() as f64 / wear_um.len().max(1) as f64;
     out

@@ -204,6 +204,7 @@ pub fn advance_worn(
         left -= n;
         out.steps += 1;
     }
+    out.truncated_at_max_steps = left > 0.0 && out.steps >= MAX_STEPS;
     out.worn_cells = worn_share(&w.wear_um);
     out
 }
@@ -350,6 +351,7 @@ pub fn series(
         let e = advance_worn(&mut w, g, laws, (t - t_now).max(0.0), scale);
         total.steps += e.steps;
         total.volume_um3 += e.volume_um3;
+        total.truncated_at_max_steps |= e.truncated_at_max_steps;
         t_now = t;
         visit(t, &w)?;
     }
@@ -433,6 +435,24 @@ mod tests {
             radius_um: 1500.0,
             step_depth_um: crate::field::STEP_DEPTH_UM,
         }
+    }
+
+    #[test]
+    fn an_extrapolation_that_runs_out_of_steps_says_so() {
+        let g = grid(8, 8, 1.0);
+        let laws = [WearLaw::Constant {
+            depth_um_per_s: 1.0,
+            reach_um: 1e9,
+        }];
+        // 0.1 um per step: 10 s need 100 steps, 1 000 s need 10 000 (> MAX_STEPS).
+        let mut w = Worn::new(&rough(8, 8));
+        let e = advance_worn(&mut w, g, &laws, 10.0, 1.0);
+        assert!(!e.truncated_at_max_steps, "{e:?}");
+        let mut w = Worn::new(&rough(8, 8));
+        let e = advance_worn(&mut w, g, &laws, 1000.0, 1.0);
+        assert!(e.truncated_at_max_steps && e.steps == MAX_STEPS, "{e:?}");
+        let s = series(&rough(8, 8), g, &laws, 1.0, &[10.0, 1000.0], |_, _| Ok(())).unwrap();
+        assert!(s.truncated_at_max_steps, "{s:?}");
     }
 
     fn rough(rows: usize, cols: usize) -> Vec<f64> {

@@ -1176,6 +1176,13 @@ fn final_prediction(
             if q.fitted.is_empty() { "" } else { "; Sa fitted" }
         ));
     }
+    if p.extrapolation.truncated_at_max_steps {
+        say(&format!(
+            "finish: warning: the prediction stopped at the extrapolation's limit of {} steps in an interval of the series ({} steps in all): the later times are worn less than the laws say (a wear table with a few deep cells of large wear per contact makes the steps small)",
+            field::MAX_STEPS,
+            p.extrapolation.steps
+        ));
+    }
     st.h = p.worn.heights_um.clone();
     st.finnie_total = p.worn.wear_um.clone();
     st.impact_total = Some(p.worn.impact_wear_um.clone());
@@ -1608,6 +1615,7 @@ fn summary(
             calibration_time_s: setup.calibration_time_s,
             rates_from: setup.rates_from.clone(),
             impact_share_of_volume: p.impact_share,
+            extrapolation: Some(p.extrapolation.clone()),
         }),
         series: prediction.map(|p| p.series.clone()).unwrap_or_default(),
         baselines: prediction.map(|p| p.baselines.clone()),

@@ -154,6 +154,10 @@ pub struct WearLawsRecord {
     pub rates_from: String,
     /// Share of the predicted volume each law removed over the process.
     pub impact_share_of_volume: f64,
+    /// The prediction's extrapolation over the process (steps, volume, whether it stopped
+    /// at its step limit).
+    #[serde(default)]
+    pub extrapolation: Option<Extrapolation>,
 }
 
 /// The wear maps over time (`wear_maps`): `dir/<file>` per time.
