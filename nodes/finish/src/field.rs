@@ -158,18 +158,20 @@ pub fn hertz_approach_um(media: &Media, part: &Workpiece, v_n: f64) -> f64 {
     (15.0 * m * v_n * v_n / (16.0 * e * media.radius_m().sqrt())).powf(0.4) * 1e6
 }
 
+/// Hertz approach of a sphere pressed on a flat by `force_n` (N), um: F = 4/3 E* sqrt(R) d^(3/2).
+pub fn hertz_static_approach_um(media: &Media, part: &Workpiece, force_n: f64) -> f64 {
+    let e = effective_modulus_pa(media, part);
+    (3.0 * force_n.max(0.0) / (4.0 * e * media.radius_m().sqrt())).powf(2.0 / 3.0) * 1e6
+}
+
 impl ApproachDistribution {
     /// p(gap) from the barrel kinematics' assumptions (no macro run).
     pub fn of(media: &Media, part: &Workpiece, action: &Action, press_force_n: f64) -> Self {
         let v = action.media_velocity_m_s;
-        let e = effective_modulus_pa(media, part);
-        let r = media.radius_m();
-        // Hertz: F = 4/3 E* sqrt(R) d^(3/2).
-        let static_m = (3.0 * press_force_n.max(0.0) / (4.0 * e * r.sqrt())).powf(2.0 / 3.0);
         ApproachDistribution {
             full_speed_approach_um: hertz_approach_um(media, part, v),
             max_impact_angle_deg: (2.0 * action.impact_angle_deg).min(90.0),
-            static_approach_um: static_m * 1e6,
+            static_approach_um: hertz_static_approach_um(media, part, press_force_n),
             mean_angle_approach_um: hertz_approach_um(
                 media,
                 part,
@@ -181,16 +183,12 @@ impl ApproachDistribution {
 
     /// p(gap) from the macro run's contacts (`samples`), at the part's real stiffness.
     pub fn from_samples(media: &Media, part: &Workpiece, samples: &[ContactSample]) -> Self {
-        let e = effective_modulus_pa(media, part);
-        let r = media.radius_m();
         let mut approaches_um: Vec<f64> = samples
             .iter()
             .map(|s| {
                 let impact = hertz_approach_um(media, part, s.normal_speed_m_s);
                 if s.enduring {
-                    let f = s.normal_force_n.max(0.0);
-                    let static_um = (3.0 * f / (4.0 * e * r.sqrt())).powf(2.0 / 3.0) * 1e6;
-                    static_um.max(impact)
+                    hertz_static_approach_um(media, part, s.normal_force_n).max(impact)
                 } else {
                     impact
                 }

@@ -29,10 +29,10 @@ use anyhow::{bail, Result};
 use serde::{Deserialize, Serialize};
 
 use crate::field::{
-    ball_gap_um, ApproachDistribution, Extrapolation, FieldGrid, WearTable, MAX_STEPS, STALL_SHARE,
-    STALL_STEPS,
+    ball_gap_um, hertz_static_approach_um, ApproachDistribution, Extrapolation, FieldGrid,
+    WearTable, MAX_STEPS, STALL_SHARE, STALL_STEPS,
 };
-use crate::setting::{effective_modulus_pa, Media, Workpiece};
+use crate::setting::{Media, Workpiece};
 
 /// The Finnie part: impacts delivered over the evaluated patch per second, each wearing
 /// p(gap) x w(gap) (the DEM's table).
@@ -64,14 +64,12 @@ impl SlidingLaw {
         media: &Media,
         part: &Workpiece,
     ) -> Self {
-        let e = effective_modulus_pa(media, part);
-        let r = media.radius_m();
         SlidingLaw {
             k_over_h_per_pa,
             sliding_work_j_per_m2_s,
             contact_depths_um: normal_forces_n
                 .iter()
-                .map(|f| (3.0 * f.max(0.0) / (4.0 * e * r.sqrt())).powf(2.0 / 3.0) * 1e6)
+                .map(|f| hertz_static_approach_um(media, part, *f))
                 .collect(),
         }
     }
