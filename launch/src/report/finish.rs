@@ -204,18 +204,20 @@ fn render(dir: &Path, rel: &str) -> Result<String> {
         h.push_str(
             "<h3>Wear per contact measured by the DEM</h3><table><tr><th>gap below the ball's \
              envelope (µm)</th><th>cells</th><th>expected contacts</th><th>DEM worn cells</th>\
-             <th>wear per contact (µm, DEM k)</th></tr>",
+             <th>wear per contact measured (µm, DEM k)</th><th>used (pooled: *)</th></tr>",
         );
         for bin in &cf.table.bins {
             let _ = write!(
                 h,
-                "<tr><td>{:.3}–{:.3}</td><td>{}</td><td>{:.1}</td><td>{}</td><td>{:.3e}</td></tr>",
+                "<tr><td>{:.3}–{:.3}</td><td>{}</td><td>{:.1}</td><td>{}</td><td>{:.3e}</td><td>{:.3e}{}</td></tr>",
                 bin.gap_from_um,
                 bin.gap_to_um,
                 bin.cells,
                 bin.expected_contacts,
                 bin.dem_worn_cells,
-                bin.wear_per_contact_um
+                bin.measured_wear_per_contact_um,
+                bin.wear_per_contact_um,
+                if bin.pooled { " *" } else { "" }
             );
         }
         let _ = write!(

@@ -271,8 +271,16 @@ pub struct WearBin {
     pub dem_depth_sum_um: f64,
     /// Cells the DEM wore (depth > 0).
     pub dem_worn_cells: usize,
-    /// Wear depth per expected contact, um (at the DEM's k): the table's value.
+    /// Wear depth per expected contact, um (at the DEM's k): the table's value, after the
+    /// monotone pooling ([`WearTable::pooled_bins`]).
     pub wear_per_contact_um: f64,
+    /// The same as measured in this bin alone, before pooling, um.
+    #[serde(default)]
+    pub measured_wear_per_contact_um: f64,
+    /// The bin's value is its pooled block's: its own measurement made a deeper cell wear more
+    /// per impact than a shallower one.
+    #[serde(default)]
+    pub pooled: bool,
 }
 
 /// The wear per contact as a function of the gap, measured from DEM segments.
@@ -286,6 +294,14 @@ pub struct WearTable {
     /// so the table reproduces the DEM's volume.
     pub dem_volume_beyond_reach_um3: f64,
     pub dem_volume_um3: f64,
+    /// Bins whose value comes from pooling with a neighbour: the depth worn per impact,
+    /// p(gap) x wear per contact, is made non-increasing in the gap (every contact that reaches
+    /// a cell reaches a shallower cell deeper, so within the contact field's own model a deeper
+    /// cell never wears faster). Measured violations are the DEM's sampling noise in the few
+    /// contacts deep bins hold; left in, they wear valleys as fast as crests and stall the
+    /// smoothing. The pooling keeps the table's volume exactly.
+    #[serde(default)]
+    pub pooled_bins: usize,
 }
 
 /// How well the contact field predicts where the DEM wore (one segment).
@@ -383,7 +399,8 @@ impl WearTable {
     }
 
     /// Each bin's wear per expected contact, the DEM's volume beyond reach given to the
-    /// reachable bins in proportion to their wear.
+    /// reachable bins in proportion to their wear, then pooled so that the mean depth per
+    /// impact of a bin's cells does not rise with the gap ([`WearTable::pooled_bins`]).
     fn update_wear_per_contact(&mut self, cell_area_um2: f64) {
         let inside: f64 = self.bins.iter().map(|b| b.dem_depth_sum_um).sum();
         let factor = if inside > 0.0 {
@@ -391,12 +408,33 @@ impl WearTable {
         } else {
             0.0
         };
+        // Bins that can carry wear: cells in them and contacts reaching them. The others
+        // keep 0 (as before pooling) and do not take part.
+        let carrying: Vec<usize> = (0..self.bins.len())
+            .filter(|&i| self.bins[i].cells > 0 && self.bins[i].expected_contacts > 0.0)
+            .collect();
+        let depth: Vec<f64> = carrying
+            .iter()
+            .map(|&i| self.bins[i].dem_depth_sum_um * factor / self.bins[i].cells as f64)
+            .collect();
+        let weight: Vec<f64> = carrying
+            .iter()
+            .map(|&i| self.bins[i].cells as f64)
+            .collect();
+        let pooled = non_increasing_fit(&depth, &weight);
         for b in &mut self.bins {
-            b.wear_per_contact_um = if b.expected_contacts > 0.0 {
-                b.dem_depth_sum_um * factor / b.expected_contacts
-            } else {
-                0.0
-            };
+            b.wear_per_contact_um = 0.0;
+            b.measured_wear_per_contact_um = 0.0;
+            b.pooled = false;
+        }
+        self.pooled_bins = 0;
+        for ((&i, d), (fit, in_block)) in carrying.iter().zip(&depth).zip(&pooled) {
+            let b = &mut self.bins[i];
+            let per_depth = b.cells as f64 / b.expected_contacts;
+            b.measured_wear_per_contact_um = d * per_depth;
+            b.wear_per_contact_um = fit * per_depth;
+            b.pooled = *in_block;
+            self.pooled_bins += usize::from(*in_block);
         }
     }
 
@@ -407,6 +445,36 @@ impl WearTable {
             None => 0.0,
         }
     }
+}
+
+/// The weighted least-squares fit of `values` that does not increase along the slice (pool
+/// adjacent violators), with, per value, whether it was pooled with a neighbour. Each pooled
+/// block takes its weighted mean, so the weighted sum of the values is kept exactly.
+fn non_increasing_fit(values: &[f64], weights: &[f64]) -> Vec<(f64, bool)> {
+    // Blocks of (weighted mean, weight, members).
+    let mut blocks: Vec<(f64, f64, usize)> = Vec::with_capacity(values.len());
+    for (&v, &w) in values.iter().zip(weights) {
+        blocks.push((v, w, 1));
+        while blocks.len() > 1 {
+            let (m2, w2, n2) = blocks[blocks.len() - 1];
+            let (m1, w1, n1) = blocks[blocks.len() - 2];
+            if m2 <= m1 {
+                break;
+            }
+            blocks.truncate(blocks.len() - 2);
+            let w = w1 + w2;
+            let m = if w > 0.0 {
+                (m1 * w1 + m2 * w2) / w
+            } else {
+                0.5 * (m1 + m2)
+            };
+            blocks.push((m, w, n1 + n2));
+        }
+    }
+    blocks
+        .iter()
+        .flat_map(|&(m, _, n)| std::iter::repeat_n((m, n > 1), n))
+        .collect()
 }
 
 /// The check of one DEM segment against the contact field (on the evaluated patch).
@@ -888,6 +956,86 @@ mod tests {
         let hi = z.iter().cloned().fold(f64::MIN, f64::max);
         let top = z.iter().position(|v| *v == hi).unwrap();
         assert!(wear[top] > 0.0);
+    }
+
+    #[test]
+    fn the_monotone_fit_pools_only_violators_and_keeps_the_weighted_sum() {
+        let fit = non_increasing_fit(
+            &[5.0, 3.0, 4.0, 1.0, 2.0, 2.0],
+            &[1.0, 1.0, 3.0, 2.0, 1.0, 1.0],
+        );
+        let values: Vec<f64> = fit.iter().map(|f| f.0).collect();
+        let pooled: Vec<bool> = fit.iter().map(|f| f.1).collect();
+        // 3 and 4 pool to (3 + 12) / 4; 1, 2, 2 pool to (2 + 2 + 2) / 4.
+        let want = [5.0, 3.75, 3.75, 1.5, 1.5, 1.5];
+        for (v, w) in values.iter().zip(want) {
+            assert!((v - w).abs() < 1e-12, "{values:?}");
+        }
+        assert_eq!(pooled, [false, true, true, true, true, true]);
+        // Already non-increasing: unchanged, nothing pooled.
+        let same = non_increasing_fit(&[4.0, 4.0, 2.0, 0.0], &[1.0, 2.0, 3.0, 4.0]);
+        assert_eq!(
+            same,
+            [(4.0, false), (4.0, false), (2.0, false), (0.0, false)]
+        );
+        assert!(non_increasing_fit(&[], &[]).is_empty());
+    }
+
+    #[test]
+    fn a_table_whose_deep_cells_wore_more_is_pooled_and_keeps_the_dem_volume() {
+        let (rows, cols, p, r) = (60, 70, 2.0, 1500.0);
+        let z = rough(rows, cols);
+        let gap = ball_gap_um(&z, Sampling::square(Shape::new(rows, cols), p).unwrap(), r);
+        let d = ApproachDistribution {
+            full_speed_approach_um: 3.0,
+            max_impact_angle_deg: 40.0,
+            static_approach_um: 0.05,
+            mean_angle_approach_um: 1.5,
+            sampled: None,
+        };
+        // A noisy "DEM": the deepest reachable cells wore twice the crests.
+        let reach = d.max_um();
+        let dem: Vec<f64> = gap
+            .iter()
+            .map(|g| {
+                if *g > 0.75 * reach && *g <= reach {
+                    0.02
+                } else if *g < 0.3 {
+                    0.01
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let mut t = WearTable::empty(reach);
+        t.add_segment(&d, &gap, &dem, 17, p * p).unwrap();
+        assert!(t.pooled_bins > 0, "{t:?}");
+        let per_impact: Vec<f64> = t
+            .bins
+            .iter()
+            .filter(|b| b.cells > 0 && b.expected_contacts > 0.0)
+            .map(|b| b.wear_per_contact_um * b.expected_contacts / b.cells as f64)
+            .collect();
+        assert!(
+            per_impact.windows(2).all(|w| w[1] <= w[0] * (1.0 + 1e-12)),
+            "{per_impact:?}"
+        );
+        // The measured values stay on record and differ where pooled.
+        assert!(t
+            .bins
+            .iter()
+            .any(|b| b.pooled && b.measured_wear_per_contact_um != b.wear_per_contact_um));
+        let dem_volume: f64 = dem.iter().sum::<f64>() * p * p;
+        let model_volume: f64 = gap
+            .iter()
+            .map(|g| 17.0 * t.depth_per_impact_um(&d, *g))
+            .sum::<f64>()
+            * p
+            * p;
+        assert!(
+            (model_volume / dem_volume - 1.0).abs() < 1e-12,
+            "{model_volume} vs {dem_volume}"
+        );
     }
 
     #[test]

@@ -843,22 +843,36 @@ pub fn field_section(s: &FinishSummary) -> String {
     )
     .ok();
     t += "<table><tr><th>gap from (µm)</th><th>to</th><th>cells</th><th>expected contacts</th>\
-<th>DEM worn cells</th><th>DEM depth sum (µm)</th><th>wear per contact (µm, DEM k)</th></tr>";
+<th>DEM worn cells</th><th>DEM depth sum (µm)</th><th>wear per contact measured (µm, DEM k)</th>\
+<th>used (pooled: *)</th></tr>";
     for b in &f.table.bins {
         write!(
             t,
-            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}{}</td></tr>",
             num(b.gap_from_um, 3),
             num(b.gap_to_um, 3),
             b.cells,
             num(b.expected_contacts, 1),
             b.dem_worn_cells,
             num(b.dem_depth_sum_um, 4),
+            sci(b.measured_wear_per_contact_um),
             sci(b.wear_per_contact_um),
+            if b.pooled { " *" } else { "" },
         )
         .ok();
     }
     t += "</table>";
+    if f.table.pooled_bins > 0 {
+        write!(
+            t,
+            "<p class=\"note\">* {} of {} bins pooled with a neighbour so that the depth worn per impact \
+does not rise with the gap (the contact field's own model: a contact that reaches a cell reaches every \
+shallower cell deeper); the pooling keeps the DEM's volume.</p>",
+            f.table.pooled_bins,
+            f.table.bins.len()
+        )
+        .ok();
+    }
     t
 }
 
