@@ -526,7 +526,8 @@ pub fn run(a: FinishArgs) -> Result<()> {
     if a.machine.macro_only {
         return run_macro_only(&a, &claim);
     }
-    // The part's material reaches the patch's DEM too.
+    // One part material (--part-material and its overrides, aluminium by default) for the
+    // macro run, the patch's DEM wall and Archard's K/H.
     let part = part_material(&a.machine, PartMaterial::default())?;
     let (model, ideal) = inputs(&a)?;
     let mut o = FinishOptions {
@@ -541,7 +542,7 @@ pub fn run(a: FinishArgs) -> Result<()> {
         media_velocity_m_s: a.media_velocity_m_s,
         pressure_pa: a.pressure_pa,
         ideal,
-        workpiece: part.workpiece(),
+        part_material: part,
         ..Default::default()
     };
     if let Some(p) = &a.patch_um {
@@ -585,10 +586,6 @@ pub fn run(a: FinishArgs) -> Result<()> {
         let scan = read_model(f, None, Some((model.pitch_x_um, model.pitch_y_um)))?;
         o.after = Some(registered(&model, &scan, "after", &mut o)?);
     }
-    // One part material (--part-material and its overrides, aluminium by default) for the
-    // macro run, the patch's DEM wall and Archard's K/H.
-    o.archard_k_over_h_per_pa = surfstream_finish::run::ARCHARD_K / part.hardness_pa;
-    o.part_material = Some(part.clone());
     // The macro run by default, with the machine flags (--machine FILE, --record-s, ...) as
     // `--macro-only` reads them; a given record replaces it for the base setting (a sweep's
     // other settings run their own machine).

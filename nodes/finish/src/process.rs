@@ -93,7 +93,7 @@ pub fn finish_record(
     )?;
     // Set here: the macro run is made before the set-up, the material is the options'.
     record.macro_run = macro_run;
-    record.part_material = opts.part_material.clone();
+    record.part_material = Some(opts.part_material.clone());
     record.cycle_path = Some(setup.cycle_path().into());
     record.after_registrations = opts.after_registrations.clone();
     // Written as a JSON value: its keys sorted, as finish.json has always had them.
@@ -192,7 +192,7 @@ impl<'a> Setup<'a> {
         .with_context(|| model.source.clone())?;
         let patch = Patch::cut(&model.heights_um, model_at, pw, ph, guard_um)
             .with_context(|| model.source.clone())?;
-        let dt = timestep_s(&opts.media, &opts.workpiece, &action);
+        let dt = timestep_s(&opts.media, &opts.workpiece(), &action);
         say(&format!(
             "finish: patch {} x {} samples ({:.0} x {:.0} um) in a {} x {} area with its guard band, \
              media {} mm at {:.2} m/s, {:.0} Pa, dt {:.2e} s, engine {}",
@@ -265,8 +265,12 @@ impl<'a> Setup<'a> {
         // p(gap) from the same contacts the micro passes are drawn from, when there are any:
         // the DEM's wear per contact is then divided by the contacts that reach each gap.
         let dist = match macro_run.filter(|m| !m.samples.is_empty()) {
-            Some(m) => ApproachDistribution::from_samples(&opts.media, &opts.workpiece, &m.samples),
-            None => ApproachDistribution::of(&opts.media, &opts.workpiece, &action, press_force_n),
+            Some(m) => {
+                ApproachDistribution::from_samples(&opts.media, &opts.workpiece(), &m.samples)
+            }
+            None => {
+                ApproachDistribution::of(&opts.media, &opts.workpiece(), &action, press_force_n)
+            }
         };
         let cell_area_um2 = patch.sampling.pitch().cell_area_um2();
         let aim_area_um2 = cell_area_um2 * (patch.crop.rows * patch.crop.cols) as f64;
@@ -278,11 +282,11 @@ impl<'a> Setup<'a> {
         } = ProcessRates::of(opts, &action, press_force_n, macro_run);
         let impacts_process = impact_rate * aim_area_um2 * 1e-12 * opts.process_time_s;
         let sliding = SlidingLaw::new(
-            opts.archard_k_over_h_per_pa,
+            opts.archard_k_over_h_per_pa(),
             sliding_work,
             &sliding_forces_n,
             &opts.media,
-            &opts.workpiece,
+            &opts.workpiece(),
         );
         let reach_um = dist.max_um().max(
             sliding
@@ -360,13 +364,13 @@ impl<'a> Setup<'a> {
     /// A cycle's micro passes (cycle `c`): the options' media, part, constants and jobs.
     fn micro_plan(&self, c: usize) -> MicroPlan {
         let opts = self.opts;
-        let part = opts.part_material.clone().unwrap_or_default();
+        let part = opts.part_material.clone();
         let passes = opts.passes.unwrap_or(DEFAULT_MICRO_PASSES);
         let side_um = (self.patch.crop.cols as f64 * self.patch.sampling.pitch_x_um())
             .min(self.patch.crop.rows as f64 * self.patch.sampling.pitch_y_um());
         MicroPlan {
             media: opts.media,
-            archard_k: opts.archard_k_over_h_per_pa * part.hardness_pa,
+            archard_k: opts.archard_k_over_h_per_pa() * part.hardness_pa,
             part,
             k_finnie_per_pa: self.k_finnie,
             curvature_deg: DEFAULT_CURVATURE_DEG,
@@ -422,10 +426,10 @@ impl<'a> Setup<'a> {
         SegmentPlan {
             engine: &self.engine,
             media: opts.media,
-            workpiece: opts.workpiece,
+            workpiece: opts.workpiece(),
             action: self.action.clone(),
             k_finnie_per_pa: self.k_finnie,
-            archard_k_over_h_per_pa: opts.archard_k_over_h_per_pa,
+            archard_k_over_h_per_pa: opts.archard_k_over_h_per_pa(),
             max_triangles: opts.max_triangles,
             timestep_s: self.timestep_s,
             passes: opts.passes,
@@ -570,6 +574,16 @@ fn checked_options(opts: &FinishOptions) -> Result<(f64, Action)> {
         );
     }
     opts.media.validate()?;
+    opts.part_material.check()?;
+    if let Some(m) = &opts.machine_run {
+        if m.part_material != opts.part_material {
+            bail!(
+                "the macro run's part material ({:?}) is not the finishing run's ({:?}): one part, one material",
+                m.part_material.name,
+                opts.part_material.name
+            );
+        }
+    }
     let mut action = opts.machine.action(&opts.media, opts.impact_angle_deg)?;
     if opts.media_velocity_m_s.is_some() || opts.pressure_pa.is_some() {
         if let Some(v) = opts.media_velocity_m_s {
@@ -1491,12 +1505,12 @@ fn summary(
                 filled_samples: patch.filled_samples,
             },
             media: opts.media,
-            workpiece: opts.workpiece,
+            workpiece: opts.workpiece(),
             machine: opts.machine,
             action: action.clone(),
             press_force_n: press_force_n(opts, action),
             k_finnie_per_pa: k_finnie,
-            archard_k_over_h_per_pa: opts.archard_k_over_h_per_pa,
+            archard_k_over_h_per_pa: opts.archard_k_over_h_per_pa(),
             process_time_s: opts.process_time_s,
             timestep_s: dt,
             ranks: opts.ranks,
@@ -1710,5 +1724,31 @@ fn fit_scale(patch: &Patch, h: &[f64], wear: &[f64], target: f64) -> Result<(f64
 fn add_scaled(acc: &mut [f64], x: &[f64], s: f64) {
     for (a, v) in acc.iter_mut().zip(x) {
         *a += s * v;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn one_part_one_material_for_the_macro_run_and_the_patch() {
+        let mut o = FinishOptions::default();
+        assert!(checked_options(&o).is_ok());
+        assert_eq!(o.workpiece(), o.part_material.workpiece());
+        assert_eq!(
+            o.archard_k_over_h_per_pa(),
+            crate::run::ARCHARD_K / o.part_material.hardness_pa
+        );
+        // The steel preset reaches the wall and Archard's hardness alike...
+        o.part_material = crate::setting::PartMaterial::preset("steel").unwrap();
+        assert_eq!(o.workpiece(), o.part_material.workpiece());
+        // ...and a macro run left at another material is refused, naming both.
+        let e = checked_options(&o).unwrap_err().to_string();
+        assert!(e.contains("aluminium") && e.contains("steel"), "{e}");
+        if let Some(m) = &mut o.machine_run {
+            m.part_material = o.part_material.clone();
+        }
+        assert!(checked_options(&o).is_ok());
     }
 }

@@ -87,7 +87,6 @@ pub struct FinishOptions {
     /// Passes per segment; None: as many as the budget allows.
     pub passes: Option<usize>,
     pub media: Media,
-    pub workpiece: Workpiece,
     pub machine: BarrelMachine,
     pub impact_angle_deg: f64,
     /// Given directly instead of from the machine.
@@ -96,8 +95,9 @@ pub struct FinishOptions {
     /// Finnie's constant in the DEM, 1/Pa; None: the wear model's default
     /// ([`DEFAULT_K_FINNIE_PER_PA`], [`DEFAULT_K_FINNIE_SAMPLED_MAP_PER_PA`]).
     pub k_finnie_per_pa: Option<f64>,
-    /// Archard's K / H, 1/Pa.
-    pub archard_k_over_h_per_pa: f64,
+    /// Archard's K / H, 1/Pa, when given (a sweep's setting takes the base's fitted one);
+    /// None: [`ARCHARD_K`] over the part's hardness ([`FinishOptions::archard_k_over_h_per_pa`]).
+    pub archard_k_over_h_per_pa: Option<f64>,
     /// Real process time the run stands for, s (the paper: 5 min).
     pub process_time_s: f64,
     pub calibrate: Option<Calibration>,
@@ -123,8 +123,10 @@ pub struct FinishOptions {
     pub machine_run: Option<crate::machine::MachineSetting>,
     /// A macro run's record given (e.g. read from a previous finish.json's `macro`).
     pub macro_contacts: Option<crate::machine::MacroContacts>,
-    /// The part's material (recorded; `workpiece` and `archard_k_over_h_per_pa` follow it).
-    pub part_material: Option<crate::setting::PartMaterial>,
+    /// The part's material: the one source of the DEM wall's E and nu
+    /// ([`FinishOptions::workpiece`]), Archard's hardness, and the macro run's part (a
+    /// `machine_run` with another material is refused).
+    pub part_material: crate::setting::PartMaterial,
     /// Most triangles of the patch's mesh.
     pub max_triangles: usize,
     pub ranks: usize,
@@ -182,15 +184,12 @@ impl Default for FinishOptions {
             cycles: 4,
             passes: None,
             media: Media::default(),
-            // The paper's part, aluminium, for the DEM wall and Archard's hardness alike.
-            workpiece: crate::setting::PartMaterial::default().workpiece(),
             machine: BarrelMachine::default(),
             impact_angle_deg: DEFAULT_IMPACT_ANGLE_DEG,
             media_velocity_m_s: None,
             pressure_pa: None,
             k_finnie_per_pa: None,
-            archard_k_over_h_per_pa: ARCHARD_K
-                / crate::setting::PartMaterial::default().hardness_pa,
+            archard_k_over_h_per_pa: None,
             process_time_s: 300.0,
             calibrate: None,
             calibrate_at_s: None,
@@ -200,7 +199,8 @@ impl Default for FinishOptions {
             after_registrations: Vec::new(),
             machine_run: Some(crate::machine::MachineSetting::default()),
             macro_contacts: None,
-            part_material: Some(crate::setting::PartMaterial::default()),
+            // The paper's part, aluminium, for the DEM wall and Archard's hardness alike.
+            part_material: crate::setting::PartMaterial::default(),
             max_triangles: 20_000,
             ranks: 1,
             hostfile: None,
@@ -210,6 +210,19 @@ impl Default for FinishOptions {
             wear_model: WearModel::ContactField,
             jobs: 1,
         }
+    }
+}
+
+impl FinishOptions {
+    /// The part as the DEM's wall sees it (E, nu of [`FinishOptions::part_material`]).
+    pub fn workpiece(&self) -> Workpiece {
+        self.part_material.workpiece()
+    }
+
+    /// Archard's K / H, 1/Pa: the given one, or [`ARCHARD_K`] over the part's hardness.
+    pub fn archard_k_over_h_per_pa(&self) -> f64 {
+        self.archard_k_over_h_per_pa
+            .unwrap_or(ARCHARD_K / self.part_material.hardness_pa)
     }
 }
 

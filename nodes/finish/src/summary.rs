@@ -88,7 +88,8 @@ pub struct FinishSummary {
     /// How the measured scans (`--after`, `--calibrate FILE`) were registered to the model.
     #[serde(default)]
     pub after_registrations: Vec<crate::after::AfterRegistration>,
-    /// The part's material when given (null: `setting.workpiece` and the default K/H).
+    /// The part's material: the DEM wall's E and nu, Archard's hardness (null only in records
+    /// written before the material was an option).
     #[serde(default)]
     pub part_material: Option<PartMaterial>,
     /// The patch as the micro passes meshed it (the first cycle's; null on the one-medium

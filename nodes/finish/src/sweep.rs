@@ -117,7 +117,7 @@ fn setting_options(
     let mut o = base.clone();
     spec.parameter.set(&mut o, v);
     o.k_finnie_per_pa = Some(laws.k_finnie_per_pa * laws.scale);
-    o.archard_k_over_h_per_pa = laws.archard_k_over_h_per_pa * laws.scale;
+    o.archard_k_over_h_per_pa = Some(laws.archard_k_over_h_per_pa * laws.scale);
     o.calibrate = None;
     o.ideal = None;
     // A given macro record is of the base setting only: every other setting runs its own
