@@ -615,9 +615,133 @@ fn wear_rates(
     max_rate
 }
 
+/// Where a stepped wear stops before its budget is spent: when `sa_of` (Sa of the evaluated
+/// patch of a surface, um) falls to `sa_um` (the step that crosses it cut by bisection: within
+/// a step the wear is linear), when Sa stalls ([`STALL_SHARE`] over [`STALL_STEPS`]), or when
+/// `stop` is set (Ctrl-C).
+pub struct SaTarget<'a> {
+    pub sa_um: f64,
+    pub sa_of: &'a mut dyn FnMut(&[f64]) -> Result<f64>,
+    pub stop: &'a std::sync::atomic::AtomicBool,
+}
+
+/// What [`wear_in_steps`] did: the budget used, the extrapolation, the target reached.
+pub struct Stepped {
+    pub used: f64,
+    pub extrapolation: Extrapolation,
+    pub reached: bool,
+}
+
+/// The one stepping scheme of every prediction. Each step takes the depth rates of the
+/// current surface (`rates` fills them per unit of budget, re-closing the surface, and
+/// returns the largest; a second slice, when given, takes the impacts' share), wears for as
+/// much budget (impacts or seconds) as takes the fastest cell [`FieldGrid::step_depth_um`]
+/// deep, and adds the depth to `wear_um` (and the impacts' to `impact_wear_um`). It ends when
+/// `budget` is spent, nothing wears, [`MAX_STEPS`] are taken, or at the `target`.
+pub fn wear_in_steps(
+    heights_um: &mut [f64],
+    wear_um: &mut [f64],
+    mut impact_wear_um: Option<&mut [f64]>,
+    g: FieldGrid,
+    budget: f64,
+    mut rates: impl FnMut(&[f64], &mut [f64], Option<&mut [f64]>) -> f64,
+    mut target: Option<SaTarget<'_>>,
+) -> Result<Stepped> {
+    let mut left = budget;
+    let mut used = 0.0;
+    let mut out = Extrapolation::default();
+    let cell = g.sampling.pitch().cell_area_um2();
+    let mut rate = vec![0.0; heights_um.len()];
+    let mut impact_rate = impact_wear_um.as_ref().map(|_| vec![0.0; heights_um.len()]);
+    let mut trial = if target.is_some() {
+        vec![0.0; heights_um.len()]
+    } else {
+        Vec::new()
+    };
+    let (sa_start, mut reached) = match target.as_mut() {
+        Some(t) => {
+            let sa = (t.sa_of)(heights_um)?;
+            (sa, sa <= t.sa_um)
+        }
+        None => (f64::NAN, false),
+    };
+    let mut sa_mark = sa_start;
+    while !reached && left > 0.0 && out.steps < MAX_STEPS {
+        if let Some(t) = &target {
+            if t.stop.load(std::sync::atomic::Ordering::Relaxed) {
+                break;
+            }
+        }
+        let max_rate = rates(heights_um, &mut rate, impact_rate.as_deref_mut());
+        if max_rate <= 0.0 {
+            break;
+        }
+        let mut n = left.min(g.step_depth_um / max_rate);
+        let mut sa_step = f64::NAN;
+        if let Some(t) = target.as_mut() {
+            let worn = |n: f64, trial: &mut [f64]| {
+                for ((o, h), r) in trial.iter_mut().zip(heights_um.iter()).zip(&rate) {
+                    *o = h - n * r;
+                }
+            };
+            worn(n, &mut trial);
+            sa_step = (t.sa_of)(&trial)?;
+            if sa_step <= t.sa_um {
+                let (mut a, mut b) = (0.0, n);
+                for _ in 0..30 {
+                    let m = 0.5 * (a + b);
+                    worn(m, &mut trial);
+                    if (t.sa_of)(&trial)? > t.sa_um {
+                        a = m;
+                    } else {
+                        b = m;
+                    }
+                }
+                n = b;
+                reached = true;
+            }
+        }
+        for ((h, w), r) in heights_um.iter_mut().zip(wear_um.iter_mut()).zip(&rate) {
+            let d = n * r;
+            *h -= d;
+            *w += d;
+            out.volume_um3 += d * cell;
+        }
+        if let (Some(iw), Some(ir)) = (impact_wear_um.as_deref_mut(), &impact_rate) {
+            for (w, r) in iw.iter_mut().zip(ir) {
+                *w += n * r;
+            }
+        }
+        left -= n;
+        used += n;
+        out.steps += 1;
+        if let Some(t) = &target {
+            if out.steps % STALL_STEPS == 0 {
+                if sa_mark - sa_step < STALL_SHARE * (sa_start - t.sa_um) {
+                    break;
+                }
+                sa_mark = sa_step;
+            }
+        }
+    }
+    // A fit's budget is a bound, not a time to reach: only a plain extrapolation is truncated.
+    out.truncated_at_max_steps = target.is_none() && left > 0.0 && out.steps >= MAX_STEPS;
+    out.worn_cells = worn_share(wear_um);
+    Ok(Stepped {
+        used,
+        extrapolation: out,
+        reached,
+    })
+}
+
+/// Share of the cells worn at all.
+pub fn worn_share(wear_um: &[f64]) -> f64 {
+    wear_um.iter().filter(|w| **w > 0.0).count() as f64 / wear_um.len().max(1) as f64
+}
+
 /// Wears `heights_um` by `impacts` impacts (each spread over the whole grid by the contact
-/// field) at scale `scale`, re-closing after each step of at most [`FieldGrid::step_depth_um`].
-/// Adds the removed depth to `wear_um`.
+/// field) at scale `scale`, re-closing after each step of at most [`FieldGrid::step_depth_um`]
+/// ([`wear_in_steps`]). Adds the removed depth to `wear_um`.
 pub fn extrapolate(
     heights_um: &mut [f64],
     wear_um: &mut [f64],
@@ -627,38 +751,20 @@ pub fn extrapolate(
     impacts: f64,
     scale: f64,
 ) -> Extrapolation {
-    let mut left = impacts * scale;
-    let mut out = Extrapolation::default();
-    let cell = g.sampling.pitch().cell_area_um2();
-    let mut rate = vec![0.0; heights_um.len()];
-    while left > 0.0 && out.steps < MAX_STEPS {
-        let max_rate = wear_rates(heights_um, g, dist, table, &mut rate);
-        if max_rate <= 0.0 {
-            break;
-        }
-        let n = left.min(g.step_depth_um / max_rate);
-        for ((h, w), r) in heights_um.iter_mut().zip(wear_um.iter_mut()).zip(&rate) {
-            let d = n * r;
-            *h -= d;
-            *w += d;
-            out.volume_um3 += d * cell;
-        }
-        left -= n;
-        out.steps += 1;
+    let rates = |h: &[f64], r: &mut [f64], _: Option<&mut [f64]>| wear_rates(h, g, dist, table, r);
+    match wear_in_steps(heights_um, wear_um, None, g, impacts * scale, rates, None) {
+        Ok(s) => s.extrapolation,
+        // Without a target nothing in the steps can fail.
+        Err(_) => unreachable!("wear_in_steps without a target has no fallible step"),
     }
-    out.truncated_at_max_steps = left > 0.0 && out.steps >= MAX_STEPS;
-    out.worn_cells =
-        wear_um.iter().filter(|w| **w > 0.0).count() as f64 / wear_um.len().max(1) as f64;
-    out
 }
 
 /// Wears `heights_um` with the contact field, step by step as [`extrapolate`] at scale 1,
 /// until `sa_of` (Sa of the evaluated patch of a surface, um) falls to `target_sa_um` or
-/// `max_impacts` are spent; the step that crosses the target is cut by bisection (within a
-/// step the wear is linear). Returns the impacts used (the fitted scale is their ratio to
-/// the process's impacts), the extrapolation, and whether the target was reached. Running
-/// [`extrapolate`] from the same surface with scale = used / N over N impacts takes the
-/// same steps. A set `stop` (Ctrl-C) ends it early, not reached.
+/// `max_impacts` are spent ([`SaTarget`]). Returns the impacts used (the fitted scale is their
+/// ratio to the process's impacts), the extrapolation, and whether the target was reached.
+/// Running [`extrapolate`] from the same surface with scale = used / N over N impacts takes
+/// the same steps. A set `stop` (Ctrl-C) ends it early, not reached.
 #[allow(clippy::too_many_arguments)]
 pub fn wear_to_target(
     heights_um: &mut [f64],
@@ -671,63 +777,22 @@ pub fn wear_to_target(
     stop: &std::sync::atomic::AtomicBool,
     mut sa_of: impl FnMut(&[f64]) -> Result<f64>,
 ) -> Result<(f64, Extrapolation, bool)> {
-    let mut used = 0.0;
-    let mut out = Extrapolation::default();
-    let cell = g.sampling.pitch().cell_area_um2();
-    let mut rate = vec![0.0; heights_um.len()];
-    let mut trial = vec![0.0; heights_um.len()];
-    let sa_start = sa_of(heights_um)?;
-    let mut reached = sa_start <= target_sa_um;
-    let mut sa_mark = sa_start;
-    while !reached
-        && used < max_impacts
-        && out.steps < MAX_STEPS
-        && !stop.load(std::sync::atomic::Ordering::Relaxed)
-    {
-        let max_rate = wear_rates(heights_um, g, dist, table, &mut rate);
-        if max_rate <= 0.0 {
-            break;
-        }
-        let mut n = (max_impacts - used).min(g.step_depth_um / max_rate);
-        let worn = |t: f64, trial: &mut [f64]| {
-            for ((o, h), r) in trial.iter_mut().zip(heights_um.iter()).zip(&rate) {
-                *o = h - t * r;
-            }
-        };
-        worn(n, &mut trial);
-        let sa_step = sa_of(&trial)?;
-        if sa_step <= target_sa_um {
-            let (mut a, mut b) = (0.0, n);
-            for _ in 0..30 {
-                let m = 0.5 * (a + b);
-                worn(m, &mut trial);
-                if sa_of(&trial)? > target_sa_um {
-                    a = m;
-                } else {
-                    b = m;
-                }
-            }
-            n = b;
-            reached = true;
-        }
-        for ((h, w), r) in heights_um.iter_mut().zip(wear_um.iter_mut()).zip(&rate) {
-            let d = n * r;
-            *h -= d;
-            *w += d;
-            out.volume_um3 += d * cell;
-        }
-        used += n;
-        out.steps += 1;
-        if out.steps % STALL_STEPS == 0 {
-            if sa_mark - sa_step < STALL_SHARE * (sa_start - target_sa_um) {
-                break;
-            }
-            sa_mark = sa_step;
-        }
-    }
-    out.worn_cells =
-        wear_um.iter().filter(|w| **w > 0.0).count() as f64 / wear_um.len().max(1) as f64;
-    Ok((used, out, reached))
+    let rates = |h: &[f64], r: &mut [f64], _: Option<&mut [f64]>| wear_rates(h, g, dist, table, r);
+    let target = SaTarget {
+        sa_um: target_sa_um,
+        sa_of: &mut sa_of,
+        stop,
+    };
+    let s = wear_in_steps(
+        heights_um,
+        wear_um,
+        None,
+        g,
+        max_impacts,
+        rates,
+        Some(target),
+    )?;
+    Ok((s.used, s.extrapolation, s.reached))
 }
 
 #[cfg(test)]

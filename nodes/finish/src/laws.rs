@@ -23,14 +23,14 @@
 //! on the surface: wearing at scale s for a time t is wearing at scale 1 for s x t. The fit
 //! ([`fit_scale`]) therefore wears at scale 1 until the calibration target is crossed.
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicBool;
 
 use anyhow::{bail, Result};
 use serde::{Deserialize, Serialize};
 
 use crate::field::{
-    ball_gap_um, hertz_static_approach_um, ApproachDistribution, Extrapolation, FieldGrid,
-    WearTable, MAX_STEPS, STALL_SHARE, STALL_STEPS,
+    ball_gap_um, hertz_static_approach_um, wear_in_steps, worn_share, ApproachDistribution,
+    Extrapolation, FieldGrid, SaTarget, WearTable,
 };
 use crate::setting::{Media, Workpiece};
 
@@ -181,30 +181,19 @@ pub fn advance_worn(
     seconds: f64,
     scale: f64,
 ) -> Extrapolation {
-    let mut left = seconds * scale;
-    let mut out = Extrapolation::default();
-    let cell = g.sampling.pitch().cell_area_um2();
-    let mut rate = vec![0.0; w.heights_um.len()];
-    let mut irate = vec![0.0; w.heights_um.len()];
-    while left > 0.0 && out.steps < MAX_STEPS {
-        let max_rate = depth_rates(&w.heights_um, g, laws, &mut rate, Some(&mut irate));
-        if max_rate <= 0.0 {
-            break;
-        }
-        let n = left.min(g.step_depth_um / max_rate);
-        for k in 0..rate.len() {
-            let d = n * rate[k];
-            w.heights_um[k] -= d;
-            w.wear_um[k] += d;
-            w.impact_wear_um[k] += n * irate[k];
-            out.volume_um3 += d * cell;
-        }
-        left -= n;
-        out.steps += 1;
+    let rates = |h: &[f64], r: &mut [f64], ir: Option<&mut [f64]>| depth_rates(h, g, laws, r, ir);
+    match wear_in_steps(
+        &mut w.heights_um,
+        &mut w.wear_um,
+        Some(&mut w.impact_wear_um),
+        g,
+        seconds * scale,
+        rates,
+        None,
+    ) {
+        Ok(s) => s.extrapolation,
+        Err(_) => unreachable!("wear_in_steps without a target has no fallible step"),
     }
-    out.truncated_at_max_steps = left > 0.0 && out.steps >= MAX_STEPS;
-    out.worn_cells = worn_share(&w.wear_um);
-    out
 }
 
 /// Wears `heights_um` for `seconds` at `scale` under `laws` (as [`advance_worn`]); adds the
@@ -228,10 +217,6 @@ pub fn advance(
     e
 }
 
-fn worn_share(wear_um: &[f64]) -> f64 {
-    wear_um.iter().filter(|w| **w > 0.0).count() as f64 / wear_um.len().max(1) as f64
-}
-
 /// The scale at which the laws bring `sa_of` (Sa of the evaluated patch) of `original_um`
 /// to `target_sa_um` after `at_s` seconds: wears at scale 1 (the crossing step cut by
 /// bisection) and returns used seconds / `at_s`, whether the target was reached, and the
@@ -252,59 +237,22 @@ pub fn fit_scale(
     }
     let mut h = original_um.to_vec();
     let mut wear = vec![0.0; h.len()];
-    let max_s = at_s * max_scale;
-    let mut used = 0.0;
-    let mut out = Extrapolation::default();
-    let cell = g.sampling.pitch().cell_area_um2();
-    let mut rate = vec![0.0; h.len()];
-    let mut trial = vec![0.0; h.len()];
-    let sa_start = sa_of(&h)?;
-    let mut reached = sa_start <= target_sa_um;
-    let mut sa_mark = sa_start;
-    while !reached && used < max_s && out.steps < MAX_STEPS && !stop.load(Ordering::Relaxed) {
-        let max_rate = depth_rates(&h, g, laws, &mut rate, None);
-        if max_rate <= 0.0 {
-            break;
-        }
-        let mut n = (max_s - used).min(g.step_depth_um / max_rate);
-        let worn = |t: f64, trial: &mut [f64], h: &[f64]| {
-            for ((o, hh), r) in trial.iter_mut().zip(h).zip(&rate) {
-                *o = hh - t * r;
-            }
-        };
-        worn(n, &mut trial, &h);
-        let sa_step = sa_of(&trial)?;
-        if sa_step <= target_sa_um {
-            let (mut a, mut b) = (0.0, n);
-            for _ in 0..30 {
-                let m = 0.5 * (a + b);
-                worn(m, &mut trial, &h);
-                if sa_of(&trial)? > target_sa_um {
-                    a = m;
-                } else {
-                    b = m;
-                }
-            }
-            n = b;
-            reached = true;
-        }
-        for ((hh, w), r) in h.iter_mut().zip(wear.iter_mut()).zip(&rate) {
-            let d = n * r;
-            *hh -= d;
-            *w += d;
-            out.volume_um3 += d * cell;
-        }
-        used += n;
-        out.steps += 1;
-        if out.steps % STALL_STEPS == 0 {
-            if sa_mark - sa_step < STALL_SHARE * (sa_start - target_sa_um) {
-                break;
-            }
-            sa_mark = sa_step;
-        }
-    }
-    out.worn_cells = worn_share(&wear);
-    Ok((used / at_s, reached, out))
+    let rates = |h: &[f64], r: &mut [f64], _: Option<&mut [f64]>| depth_rates(h, g, laws, r, None);
+    let target = SaTarget {
+        sa_um: target_sa_um,
+        sa_of: &mut sa_of,
+        stop,
+    };
+    let s = wear_in_steps(
+        &mut h,
+        &mut wear,
+        None,
+        g,
+        at_s * max_scale,
+        rates,
+        Some(target),
+    )?;
+    Ok((s.used / at_s, s.reached, s.extrapolation))
 }
 
 /// The times of the series: the given ones, else the paper's 1, 2, 3, 5 and 10 min up to the
@@ -448,7 +396,10 @@ mod tests {
         assert!(!e.truncated_at_max_steps, "{e:?}");
         let mut w = Worn::new(&rough(8, 8));
         let e = advance_worn(&mut w, g, &laws, 1000.0, 1.0);
-        assert!(e.truncated_at_max_steps && e.steps == MAX_STEPS, "{e:?}");
+        assert!(
+            e.truncated_at_max_steps && e.steps == crate::field::MAX_STEPS,
+            "{e:?}"
+        );
         let s = series(&rough(8, 8), g, &laws, 1.0, &[10.0, 1000.0], |_, _| Ok(())).unwrap();
         assert!(s.truncated_at_max_steps, "{s:?}");
     }
