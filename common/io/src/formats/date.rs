@@ -162,9 +162,8 @@ fn instrument_date(t: &str) -> Option<ReadDate> {
                     let (a, b) = (n[0], n[1]);
                     if a > 12 && b <= 12 {
                         (n[2], b, a)
-                    } else if b > 12 && a <= 12 {
-                        (n[2], a, b)
-                    } else if a == b {
+                    } else if (b > 12 && a <= 12) || a == b {
+                        // Month first, or no matter which.
                         (n[2], a, b)
                     } else if meridiem.is_some() {
                         assumed = Some(format!(

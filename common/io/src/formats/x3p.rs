@@ -1069,10 +1069,13 @@ fn main_xml(
         text(model.as_ref()),
         text(version.as_ref()),
     );
-    let probing_type = match m.extra.get("probing_system").map(String::as_str) {
-        Some(t @ ("Contacting" | "NonContacting" | "Software")) => t,
-        _ => "NonContacting",
-    };
+    // The schema's three types; an optical profiler's is NonContacting.
+    let probing_type = m
+        .extra
+        .get("probing_system")
+        .map(String::as_str)
+        .filter(|t| matches!(*t, "Contacting" | "NonContacting" | "Software"))
+        .unwrap_or("NonContacting");
     let probing_id = text(m.extra.get("probing_identification"));
     let creator = xml_escape(&match m.extra.get("creator") {
         Some(c) if !c.trim().is_empty() => c.trim().to_string(),
