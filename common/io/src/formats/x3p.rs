@@ -883,6 +883,12 @@ fn finish(
                 metadata.extra.insert(key.into(), t);
             }
         }
+        // Our own stand-in for an unknown calibration date (said in our Comment) is not a date.
+        if metadata.extra.get("comment").is_some_and(|c| {
+            c.starts_with("written by surfstream") && c.contains("CalibrationDate not known")
+        }) {
+            metadata.extra.remove("calibration_date");
+        }
     }
     if let Some(rev) = text_of(r1, &["Revision"]) {
         metadata.extra.insert("revision".into(), rev);
