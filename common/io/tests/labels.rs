@@ -228,18 +228,21 @@ fn x3p_record2_is_iso8601_and_claims_nothing_it_does_not_know() {
         comment.contains("read day first") && comment.contains("04/03/2021"),
         "{comment}"
     );
-    // A date that is no form read here: the time of writing (not a silent 1970 stand-in),
-    // said in the comment with the source's text.
+    // A date that is no form read here: 1970-01-01 standing for unknown, never silent: said
+    // in the comment with the source's text (and the file stays the same for the same surface).
     s.metadata.date = Some("the day after the storm".into());
     write_surface(&p, &s).unwrap();
     let xml = x3p_main_xml(&p);
-    assert!(is_iso8601(tag(&xml, "Date")), "{}", tag(&xml, "Date"));
-    assert!(tag(&xml, "Date") > "2020", "{}", tag(&xml, "Date"));
+    assert_eq!(tag(&xml, "Date"), "1970-01-01T00:00:00Z");
     let comment = tag(&xml, "Comment");
     assert!(
-        comment.contains("time of writing") && comment.contains("the day after the storm"),
+        comment.contains("measurement date not known")
+            && comment.contains("the day after the storm"),
         "{comment}"
     );
+    let again = std::fs::read(&p).unwrap();
+    write_surface(&p, &s).unwrap();
+    assert_eq!(std::fs::read(&p).unwrap(), again);
     assert!(is_iso8601(tag(&xml, "CalibrationDate")));
     // No required element is left empty (SurfaceTopography 1.27 fails on an empty <Model>).
     for name in ["Creator", "Manufacturer", "Model", "Serial", "Version"] {

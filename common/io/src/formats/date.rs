@@ -1,5 +1,5 @@
 //! Dates as the instruments write them, read into ISO 8601 for the X3P writer's `Record2`
-//! (issue 35), and the time of writing for a file whose source has no readable date.
+//! (issue 35).
 //!
 //! Read ([`read_date`]): ISO 8601 / RFC 3339 ("2023-03-10T16:35:59", a space for the T,
 //! fractions, a zone "Z", "+01:00", "+0100" or "+01"), a bare date, C's asctime
@@ -263,47 +263,6 @@ fn iso8601_as_is(t: &str) -> Option<String> {
     Some(format!("{}T{}:{seconds}{zone}", &t[..10], &t[11..16]))
 }
 
-/// UTC seconds since 1970 as "YYYY-MM-DDTHH:MM:SSZ" (the civil calendar from the day count,
-/// H. Hinnant's `civil_from_days`).
-pub fn utc_iso8601(unix_seconds: i64) -> String {
-    let days = unix_seconds.div_euclid(86_400);
-    let secs = unix_seconds.rem_euclid(86_400);
-    let z = days + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z.rem_euclid(146_097);
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let day = doy - (153 * mp + 2) / 5 + 1;
-    let month = if mp < 10 { mp + 3 } else { mp - 9 };
-    let year = yoe + era * 400 + i64::from(month <= 2);
-    format!(
-        "{year:04}-{month:02}-{day:02}T{:02}:{:02}:{:02}Z",
-        secs / 3600,
-        secs / 60 % 60,
-        secs % 60
-    )
-}
-
-/// The time a file is written, for a date its source does not give: `SOURCE_DATE_EPOCH`
-/// (seconds since 1970, the reproducible-builds convention) when set and valid, so a rerun
-/// can give the same bytes; else the system clock.
-pub fn writing_time() -> String {
-    writing_time_from(std::env::var("SOURCE_DATE_EPOCH").ok().as_deref())
-}
-
-fn writing_time_from(source_date_epoch: Option<&str>) -> String {
-    let secs = source_date_epoch
-        .and_then(|v| v.trim().parse::<i64>().ok())
-        .filter(|s| (0..253_402_300_800).contains(s))
-        .unwrap_or_else(|| {
-            std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map_or(0, |d| d.as_secs() as i64)
-        });
-    utc_iso8601(secs)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -362,19 +321,5 @@ mod tests {
                 assert_eq!(d.assumed.is_some(), assumed, "{text:?}: {:?}", d.assumed);
             }
         }
-    }
-
-    #[test]
-    fn utc_from_seconds() {
-        assert_eq!(utc_iso8601(0), "1970-01-01T00:00:00Z");
-        assert_eq!(utc_iso8601(1_678_466_159), "2023-03-10T16:35:59Z");
-        assert_eq!(utc_iso8601(951_782_400), "2000-02-29T00:00:00Z");
-        assert_eq!(utc_iso8601(-1), "1969-12-31T23:59:59Z");
-        assert_eq!(
-            writing_time_from(Some("1678466159")),
-            "2023-03-10T16:35:59Z"
-        );
-        // An unusable value falls back to the clock: some date after 2020.
-        assert!(writing_time_from(Some("soon")).as_str() > "2020");
     }
 }

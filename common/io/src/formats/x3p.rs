@@ -883,11 +883,18 @@ fn finish(
                 metadata.extra.insert(key.into(), t);
             }
         }
-        // Our own stand-in for an unknown calibration date (said in our Comment) is not a date.
-        if metadata.extra.get("comment").is_some_and(|c| {
-            c.starts_with("written by surfstream") && c.contains("CalibrationDate not known")
-        }) {
+        // Our own stand-ins for an unknown date (said in our Comment) are not dates.
+        let comment = metadata
+            .extra
+            .get("comment")
+            .filter(|c| c.starts_with("written by surfstream"))
+            .cloned()
+            .unwrap_or_default();
+        if comment.contains("CalibrationDate not known") {
             metadata.extra.remove("calibration_date");
+        }
+        if comment.contains("measurement date not known") {
+            metadata.date = None;
         }
     }
     if let Some(rev) = text_of(r1, &["Revision"]) {
@@ -949,13 +956,8 @@ pub fn encode(s: &Surface) -> Result<Vec<u8>> {
 }
 
 /// [`encode`], and what the user should be told about the file (a source date that could not
-/// be read, and so the time of writing in its place: [`super::date`]).
+/// be read: [`super::date`]).
 pub fn encode_noting(s: &Surface) -> Result<(Vec<u8>, Vec<String>)> {
-    encode_at(s, &super::date::writing_time())
-}
-
-/// [`encode_noting`] with `written_at` the time of writing.
-fn encode_at(s: &Surface, written_at: &str) -> Result<(Vec<u8>, Vec<String>)> {
     let n = checked_size(&[s.width, s.height], "width * height")?;
     if s.heights_um.len() != n || n == 0 {
         bail!(
@@ -981,7 +983,6 @@ fn encode_at(s: &Surface, written_at: &str) -> Result<(Vec<u8>, Vec<String>)> {
         s,
         &md5_hex(&data),
         any_invalid.then(|| md5_hex(&valid)).as_deref(),
-        written_at,
     );
     let mut zw = zip::ZipWriter::new(Cursor::new(Vec::new()));
     let mut put = |name: &str, bytes: &[u8]| put_entry(&mut zw, name, bytes);
@@ -1004,15 +1005,9 @@ fn encode_at(s: &Surface, written_at: &str) -> Result<(Vec<u8>, Vec<String>)> {
 }
 
 /// main.xml of `s` (its size, pitch and metadata; the heights are not read) with the MD5
-/// checksums of data.bin and, when some point is invalid, valid.bin; `written_at` (ISO 8601)
-/// is the Date when the source gives none that can be read. Also returns what the user should
-/// be told (a source date not read, or read with an assumption).
-fn main_xml(
-    s: &Surface,
-    data_md5: &str,
-    valid_md5: Option<&str>,
-    written_at: &str,
-) -> (String, Vec<String>) {
+/// checksums of data.bin and, when some point is invalid, valid.bin. Also returns what the
+/// user should be told (a source date not read, or read with an assumption).
+fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> (String, Vec<String>) {
     let valid_link = match valid_md5 {
         Some(md5) => format!(
             "\n      <ValidPointsLink>bindata/valid.bin</ValidPointsLink>\n      <MD5ChecksumValidPoints>{md5}</MD5ChecksumValidPoints>"
@@ -1023,9 +1018,11 @@ fn main_xml(
     let m = &s.metadata;
     let mut warnings = Vec::new();
     // Record2 holds what the source file said: Date is ISO 8601, the measurement's when it can
-    // be read as a date (issue 35: the instruments' forms, `super::date`); otherwise the time
-    // of writing, said in Comment (and, when the source had a date that could not be read,
-    // in a warning). Never a silent stand-in.
+    // be read as a date (issue 35: the instruments' forms, `super::date`); otherwise 1970-01-01
+    // standing for unknown, said in Comment (and, when the source had a date that could not be
+    // read, in a warning). Not the time of writing: Date is when the surface was measured, and
+    // the same surface must give the same file (a run's panorama.x3p, byte for byte).
+    const UNKNOWN_DATE: &str = "1970-01-01T00:00:00Z";
     let (date, date_note) = match m.date.as_deref().map(|d| (d, super::date::read_date(d))) {
         Some((_, Some(d))) => match d.assumed {
             Some(a) => {
@@ -1038,15 +1035,16 @@ fn main_xml(
         Some((text, None)) => {
             let note = format!(
                 "the source's date {:?} is not a date form read here (ISO 8601 / RFC 3339, asctime, \
-                 '10 Mar 2023', dd.mm.yyyy, dd/mm/yyyy, yyyy/mm/dd): Date is the time of writing, {written_at}",
+                 '10 Mar 2023', dd.mm.yyyy, dd/mm/yyyy, yyyy/mm/dd): measurement date not known (1970-01-01 stands for unknown)",
                 text.trim().trim_end_matches('\0')
             );
             warnings.push(note.clone());
-            (written_at.to_string(), format!("; {note}"))
+            (UNKNOWN_DATE.to_string(), format!("; {note}"))
         }
         None => (
-            written_at.to_string(),
-            "; the source stores no date: Date is the time of writing".to_string(),
+            UNKNOWN_DATE.to_string(),
+            "; the source stores no date: measurement date not known (1970-01-01 stands for unknown)"
+                .to_string(),
         ),
     };
     // CalibrationDate is required by the schema too, and the time of writing would be a false
@@ -1352,7 +1350,6 @@ pub fn write_by_rows(
         s,
         &hex(&data_md5.finalize()),
         any_invalid.then(|| md5_hex(&valid)).as_deref(),
-        &super::date::writing_time(),
     );
     surfstream_core::fsutil::write_atomic(path, |w| {
         let mut zw = zip::ZipWriter::new(w);
@@ -1446,8 +1443,6 @@ mod by_rows_tests {
             metadata: Metadata {
                 format: "npy".into(),
                 pitch_known: true,
-                // A dated source: without one, Date is the time of writing, which may tick
-                // between the two writes.
                 date: Some("2023-03-10 16:35:59".into()),
                 ..Metadata::default()
             },
