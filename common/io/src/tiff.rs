@@ -1,6 +1,7 @@
 //! Float32 TIFF out: one grey channel of heights in micrometres, what ImageJ/Fiji,
 //! MountainsMap and Python's tifffile open as a height image; and TIFF in ([`parse`]): ours
-//! with its pitch and unit, any other single-channel uncompressed height TIFF with a warning.
+//! with its pitch and unit, any other single-channel uncompressed height TIFF (strips or tiles)
+//! with a warning.
 //!
 //! Baseline TIFF 6.0, little-endian, uncompressed, `SampleFormat = 3` (IEEE float),
 //! `BitsPerSample = 32`, strips of whole rows; the first stored row is surfstream's row 0.
@@ -8,6 +9,13 @@
 //! `ResolutionUnit = 3`) and, exactly, in `ImageDescription` as JSON
 //! (`{"pitch_um": {"x": .., "y": ..}, "height_unit": "um", ...}`). NaN marks points not
 //! measured.
+//!
+//! Who reads the pitch (issue 35): tifffile and ImageJ/Fiji take `XResolution` /
+//! `YResolution` with `ResolutionUnit` (ImageJ shows it in cm). Gwyddion (2.62, its generic
+//! `tiffbig` loader) reads no physical size from a plain TIFF at all: the dimensions come from
+//! its import dialog, or from its last settings when run non-interactively (a 512 px map came
+//! in 1 m wide, unitless). Gwyddion users should take `.gsf` (Gwyddion reads its pitch) or
+//! `.x3p`.
 
 use std::io::Write;
 use std::path::Path;
@@ -156,11 +164,96 @@ pub fn write(path: &Path, s: &Surface) -> Result<()> {
     })
 }
 
+/// The pixel bytes of a stripped image, `need` bytes in all, from `StripOffsets` (273) and
+/// `StripByteCounts` (279): `values(tag)` reads a tag, `bytes(offset, count)` the file.
+fn strips<'d>(
+    values: &impl Fn(u16) -> Result<Option<Vec<u64>>>,
+    need: usize,
+    bytes: impl Fn(usize, usize) -> Option<&'d [u8]>,
+) -> Result<Vec<u8>> {
+    let offsets = values(273)?.context("no StripOffsets (tag 273)")?;
+    let counts = values(279)?.context("no StripByteCounts (tag 279)")?;
+    if offsets.len() != counts.len() {
+        bail!(
+            "{} StripOffsets but {} StripByteCounts",
+            offsets.len(),
+            counts.len()
+        );
+    }
+    let mut raw = Vec::with_capacity(need);
+    for (&o, &c) in offsets.iter().zip(&counts) {
+        let (o, c) = (o as usize, c as usize);
+        let strip = bytes(o, c).with_context(|| {
+            format!("a strip of {c} bytes at byte {o} runs past the end of the file")
+        })?;
+        raw.extend_from_slice(strip);
+        if raw.len() >= need {
+            break;
+        }
+    }
+    if raw.len() < need {
+        bail!(
+            "the strips (StripByteCounts, tag 279) hold {} bytes, expected {need} (ImageLength x ImageWidth x bytes per sample)",
+            raw.len()
+        );
+    }
+    Ok(raw)
+}
+
+/// The pixel bytes of a tiled image in row-major order, from `TileWidth` (322), `TileLength`
+/// (323), `TileOffsets` (324) and `TileByteCounts` (325): tiles left to right, then top to
+/// bottom, each `TileWidth x TileLength` samples, the right and bottom ones padded.
+fn tiles<'d>(
+    values: &impl Fn(u16) -> Result<Option<Vec<u64>>>,
+    (rows, cols, bytes_per): (usize, usize, usize),
+    bytes: impl Fn(usize, usize) -> Option<&'d [u8]>,
+) -> Result<Vec<u8>> {
+    let one = |tag: u16, name: &str| -> Result<usize> {
+        let v = values(tag)?.with_context(|| format!("a tiled TIFF without {name} (tag {tag})"))?;
+        Ok(v[0] as usize)
+    };
+    let (tw, tl) = (one(322, "TileWidth")?, one(323, "TileLength")?);
+    // TIFF 6.0: multiples of 16; any positive size is read.
+    if tw == 0 || tl == 0 || tw > 1 << 16 || tl > 1 << 16 {
+        bail!("TileWidth {tw} x TileLength {tl}: expected positive tile sizes up to 65536");
+    }
+    let offsets = values(324)?.context("a tiled TIFF without TileOffsets (tag 324)")?;
+    let counts = values(325)?.context("a tiled TIFF without TileByteCounts (tag 325)")?;
+    let (across, down) = (cols.div_ceil(tw), rows.div_ceil(tl));
+    if offsets.len() != across * down || counts.len() != offsets.len() {
+        bail!(
+            "{} TileOffsets and {} TileByteCounts, expected {across} x {down} = {} tiles of {tw} x {tl} for {rows} x {cols} px",
+            offsets.len(),
+            counts.len(),
+            across * down
+        );
+    }
+    let tile_bytes = tw * tl * bytes_per;
+    let mut raw = vec![0u8; rows * cols * bytes_per];
+    for (k, (&o, &c)) in offsets.iter().zip(&counts).enumerate() {
+        let (o, c) = (o as usize, c as usize);
+        if c < tile_bytes {
+            bail!("tile {k}: TileByteCounts {c}, expected {tile_bytes} ({tw} x {tl} x {bytes_per}; only uncompressed tiles are read)");
+        }
+        let tile = bytes(o, tile_bytes).with_context(|| {
+            format!("tile {k}: {tile_bytes} bytes at byte {o} run past the end of the file")
+        })?;
+        let (r0, c0) = ((k / across) * tl, (k % across) * tw);
+        let width = tw.min(cols - c0) * bytes_per;
+        for r in 0..tl.min(rows - r0) {
+            let to = ((r0 + r) * cols + c0) * bytes_per;
+            raw[to..to + width].copy_from_slice(&tile[r * tw * bytes_per..][..width]);
+        }
+    }
+    Ok(raw)
+}
+
 /// One IFD entry: (type, count, the 4 value bytes or the offset).
 type Entry = (u16, u32, [u8; 4]);
 
-/// Reads a TIFF image of heights: the first IFD, one sample per pixel, uncompressed strips,
-/// IEEE float (32 / 64 bit) or integer (8 / 16 / 32 bit, signed or not), either byte order.
+/// Reads a TIFF image of heights: the first IFD, one sample per pixel, uncompressed strips or
+/// tiles, IEEE float (32 / 64 bit) or integer (8 / 16 / 32 bit, signed or not), either byte
+/// order.
 /// The pitch and height unit are those of surfstream's `ImageDescription` JSON when it is
 /// there; else the pitch from `XResolution` / `YResolution` with `ResolutionUnit` inch or cm,
 /// and heights read as um with a warning (a plain TIFF has no height unit); without a
@@ -271,9 +364,6 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
     if samples != 1 {
         bail!("SamplesPerPixel {samples}: a height map has one sample per pixel (a colour image is not heights)");
     }
-    if tags.contains_key(&322) {
-        bail!("a tiled TIFF (TileWidth): only strips are read");
-    }
     let bytes_per = match (format, bits) {
         (3, 32) | (1, 32) | (2, 32) => 4,
         (3, 64) => 8,
@@ -295,29 +385,16 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
                 data.len()
             )
         })?;
-    let offsets = values(273)?.context("no StripOffsets (tag 273)")?;
-    let counts = values(279)?.context("no StripByteCounts (tag 279)")?;
-    if offsets.len() != counts.len() {
-        bail!(
-            "{} StripOffsets but {} StripByteCounts",
-            offsets.len(),
-            counts.len()
-        );
-    }
-    let mut raw = Vec::with_capacity(points * bytes_per);
-    for (&o, &c) in offsets.iter().zip(&counts) {
-        let (o, c) = (o as usize, c as usize);
-        let strip = data.get(o..o.saturating_add(c)).with_context(|| {
-            format!("a strip of {c} bytes at byte {o} runs past the end of the file")
-        })?;
-        raw.extend_from_slice(strip);
-    }
-    if raw.len() < points * bytes_per {
-        bail!(
-            "the strips hold {} bytes, expected {rows} x {cols} x {bytes_per}",
-            raw.len()
-        );
-    }
+    let raw = if tags.contains_key(&322) || tags.contains_key(&324) {
+        tiles(&values, (rows, cols, bytes_per), |o: usize, c: usize| {
+            data.get(o..o.checked_add(c)?)
+        })?
+    } else {
+        strips(&values, points * bytes_per, |o: usize, c: usize| {
+            data.get(o..o.checked_add(c)?)
+        })?
+    };
+    let mut raw = raw;
     raw.truncate(points * bytes_per);
     let heights: Vec<f64> = raw
         .chunks_exact(bytes_per)

@@ -217,22 +217,33 @@ fn x3p_record2_is_iso8601_and_claims_nothing_it_does_not_know() {
     let back = read_surface(&p).unwrap();
     assert_eq!(back.metadata.instrument.as_deref(), Some("Sensofar Sneox1"));
     assert_eq!(back.metadata.serial, None);
-    // A date that is not ISO 8601 ("04/03/2021": day or month?) is not guessed: the
-    // schema's value stands for unknown, said in the comment with the source's text.
+    // A numeric date whose day and month cannot be told apart ("04/03/2021") is read day
+    // first, and the comment says so (issue 35).
     s.metadata.date = Some("04/03/2021 10:23".into());
     write_surface(&p, &s).unwrap();
     let xml = x3p_main_xml(&p);
-    assert!(is_iso8601(tag(&xml, "Date")), "{}", tag(&xml, "Date"));
+    assert_eq!(tag(&xml, "Date"), "2021-03-04T10:23:00");
     let comment = tag(&xml, "Comment");
     assert!(
-        comment.contains("Date not known") && comment.contains("04/03/2021 10:23"),
+        comment.contains("read day first") && comment.contains("04/03/2021"),
         "{comment}"
     );
-    assert!(is_iso8601(tag(&xml, "CalibrationDate")));
-    // The same surface gives the same file (no time of writing in it).
-    let first = std::fs::read(&p).unwrap();
+    // A date that is no form read here: 1970-01-01 standing for unknown, never silent: said
+    // in the comment with the source's text (and the file stays the same for the same surface).
+    s.metadata.date = Some("the day after the storm".into());
     write_surface(&p, &s).unwrap();
-    assert!(first == std::fs::read(&p).unwrap());
+    let xml = x3p_main_xml(&p);
+    assert_eq!(tag(&xml, "Date"), "1970-01-01T00:00:00Z");
+    let comment = tag(&xml, "Comment");
+    assert!(
+        comment.contains("measurement date not known")
+            && comment.contains("the day after the storm"),
+        "{comment}"
+    );
+    let again = std::fs::read(&p).unwrap();
+    write_surface(&p, &s).unwrap();
+    assert_eq!(std::fs::read(&p).unwrap(), again);
+    assert!(is_iso8601(tag(&xml, "CalibrationDate")));
     // No required element is left empty (SurfaceTopography 1.27 fails on an empty <Model>).
     for name in ["Creator", "Manufacturer", "Model", "Serial", "Version"] {
         assert!(!tag(&xml, name).trim().is_empty(), "<{name}> empty: {xml}");
@@ -262,8 +273,13 @@ fn instrument_date_forms_become_iso8601() {
         ("March 10, 2023 16:35", Some("2023-03-10T16:35:00")),
         ("10.03.2023 16:35:59", Some("2023-03-10T16:35:59")),
         ("2023/03/10 16:35:59", Some("2023-03-10T16:35:59")),
-        // Day or month first? Not guessed.
-        ("04/03/2021 10:23", None),
+        // Day or month first? Read day first (dd/mm/yyyy), and the X3P comment says so.
+        ("04/03/2021 10:23", Some("2021-03-04T10:23:00")),
+        ("10/03/2023 16:35", Some("2023-03-10T16:35:00")),
+        (
+            "2023-03-10T16:35:59+01:00",
+            Some("2023-03-10T16:35:59+01:00"),
+        ),
         ("Fri Feb 30 25:00:00 2023", None),
         ("yesterday", None),
         ("", None),

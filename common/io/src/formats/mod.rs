@@ -10,6 +10,7 @@
 //! the file, and errors name the file, the field and what was expected.
 
 mod bytes;
+pub mod date;
 pub mod datx;
 pub mod metropro;
 pub mod nms;

@@ -864,14 +864,37 @@ fn finish(
         ..Metadata::default()
     };
     if let Some(r) = r2 {
+        // The Instrument's elements one by one too, so an X3P written back keeps them apart
+        // (`instrument` joins them).
         for (key, path) in [
             ("creator", &["Creator"][..]),
             ("comment", &["Comment"][..]),
             ("calibration_date", &["CalibrationDate"][..]),
+            (INSTRUMENT_KEYS[0], &["Instrument", "Manufacturer"][..]),
+            (INSTRUMENT_KEYS[1], &["Instrument", "Model"][..]),
+            (INSTRUMENT_KEYS[2], &["Instrument", "Version"][..]),
+            ("probing_system", &["ProbingSystem", "Type"][..]),
+            (
+                "probing_identification",
+                &["ProbingSystem", "Identification"][..],
+            ),
         ] {
-            if let Some(t) = text_of(r, path) {
+            if let Some(t) = text_of(r, path).filter(|t| t != NOT_AVAILABLE) {
                 metadata.extra.insert(key.into(), t);
             }
+        }
+        // Our own stand-ins for an unknown date (said in our Comment) are not dates.
+        let comment = metadata
+            .extra
+            .get("comment")
+            .filter(|c| c.starts_with("written by surfstream"))
+            .cloned()
+            .unwrap_or_default();
+        if comment.contains("CalibrationDate not known") {
+            metadata.extra.remove("calibration_date");
+        }
+        if comment.contains("measurement date not known") {
+            metadata.date = None;
         }
     }
     if let Some(rev) = text_of(r1, &["Revision"]) {
@@ -929,6 +952,12 @@ fn put_entry<W: Write + Seek>(zw: &mut zip::ZipWriter<W>, name: &str, bytes: &[u
 /// accepts); a colour mask read from an X3P is written back (`Record3/Mask`,
 /// `bindata/mask.png`), so `convert` keeps the labels.
 pub fn encode(s: &Surface) -> Result<Vec<u8>> {
+    Ok(encode_noting(s)?.0)
+}
+
+/// [`encode`], and what the user should be told about the file (a source date that could not
+/// be read: [`super::date`]).
+pub fn encode_noting(s: &Surface) -> Result<(Vec<u8>, Vec<String>)> {
     let n = checked_size(&[s.width, s.height], "width * height")?;
     if s.heights_um.len() != n || n == 0 {
         bail!(
@@ -950,7 +979,7 @@ pub fn encode(s: &Surface) -> Result<Vec<u8>> {
             valid[i / 8] |= 1 << (i % 8);
         }
     }
-    let xml = main_xml(
+    let (xml, warnings) = main_xml(
         s,
         &md5_hex(&data),
         any_invalid.then(|| md5_hex(&valid)).as_deref(),
@@ -969,12 +998,16 @@ pub fn encode(s: &Surface) -> Result<Vec<u8>> {
     if let Some(png) = mask_png(s)? {
         put(MASK_IMAGE, &png)?;
     }
-    Ok(zw.finish().context("finishing the zip")?.into_inner())
+    Ok((
+        zw.finish().context("finishing the zip")?.into_inner(),
+        warnings,
+    ))
 }
 
 /// main.xml of `s` (its size, pitch and metadata; the heights are not read) with the MD5
-/// checksums of data.bin and, when some point is invalid, valid.bin.
-fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
+/// checksums of data.bin and, when some point is invalid, valid.bin. Also returns what the
+/// user should be told (a source date not read, or read with an assumption).
+fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> (String, Vec<String>) {
     let valid_link = match valid_md5 {
         Some(md5) => format!(
             "\n      <ValidPointsLink>bindata/valid.bin</ValidPointsLink>\n      <MD5ChecksumValidPoints>{md5}</MD5ChecksumValidPoints>"
@@ -983,25 +1016,40 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
     };
     let mask = mask_xml(s);
     let m = &s.metadata;
-    // Record2 holds what the source file said, and nothing in its place that it did not:
-    // Date is ISO 8601, the measurement's when it can be read as a date; otherwise the
-    // schema's required value stands for unknown, said in Comment with the source's text.
-    // (Not the time of writing: the same surface must give the same file.)
+    let mut warnings = Vec::new();
+    // Record2 holds what the source file said: Date is ISO 8601, the measurement's when it can
+    // be read as a date (issue 35: the instruments' forms, `super::date`); otherwise 1970-01-01
+    // standing for unknown, said in Comment (and, when the source had a date that could not be
+    // read, in a warning). Not the time of writing: Date is when the surface was measured, and
+    // the same surface must give the same file (a run's panorama.x3p, byte for byte).
     const UNKNOWN_DATE: &str = "1970-01-01T00:00:00Z";
-    let (date, date_note) = match m.date.as_deref().map(iso8601_date) {
-        Some(Some(d)) => (d, String::new()),
-        Some(None) => (
-            UNKNOWN_DATE.to_string(),
-            format!(
-                "; Date not known (1970-01-01 stands for unknown): the source's date {:?} is not a date form read here (ISO 8601, asctime, day-first dotted)",
-                m.date.as_deref().unwrap_or_default()
-            ),
-        ),
+    let (date, date_note) = match m.date.as_deref().map(|d| (d, super::date::read_date(d))) {
+        Some((_, Some(d))) => match d.assumed {
+            Some(a) => {
+                let note = format!("Date {a}");
+                warnings.push(note.clone());
+                (d.iso, format!("; {note}"))
+            }
+            None => (d.iso, String::new()),
+        },
+        Some((text, None)) => {
+            let note = format!(
+                "the source's date {:?} is not a date form read here (ISO 8601 / RFC 3339, asctime, \
+                 '10 Mar 2023', dd.mm.yyyy, dd/mm/yyyy, yyyy/mm/dd): measurement date not known (1970-01-01 stands for unknown)",
+                text.trim().trim_end_matches('\0')
+            );
+            warnings.push(note.clone());
+            (UNKNOWN_DATE.to_string(), format!("; {note}"))
+        }
         None => (
             UNKNOWN_DATE.to_string(),
-            "; Date not known (1970-01-01 stands for unknown): the source stores none".into(),
+            "; the source stores no date: measurement date not known (1970-01-01 stands for unknown)"
+                .to_string(),
         ),
     };
+    // CalibrationDate is required by the schema too, and the time of writing would be a false
+    // claim about a calibration: 1970-01-01 stands for unknown, said in Comment.
+    const UNKNOWN_CALIBRATION: &str = "1970-01-01T00:00:00Z";
     let (calibration, calibration_note) = match m
         .extra
         .get("calibration_date")
@@ -1009,14 +1057,30 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
     {
         Some(d) => (d, String::new()),
         None => (
-            UNKNOWN_DATE.to_string(),
-            "; CalibrationDate not known".to_string(),
+            UNKNOWN_CALIBRATION.to_string(),
+            "; CalibrationDate not known (1970-01-01 stands for unknown)".to_string(),
         ),
     };
     // Every Record2 element the schema requires holds text: an empty <Model/> breaks readers
     // (SurfaceTopography 1.27 fails on it); "not available" as Digital Surf's writer says it.
-    let instrument = xml_escape(m.instrument.as_deref().unwrap_or(NOT_AVAILABLE));
+    // An X3P source's Manufacturer, Model and Version are kept apart; any other source's
+    // instrument name (one string) is the Manufacturer.
+    let [manufacturer, model, version] = instrument_elements(m);
+    let text = |v: Option<&String>| xml_escape(v.map_or(NOT_AVAILABLE, |v| v.as_str()));
     let serial = xml_escape(m.serial.as_deref().unwrap_or(NOT_AVAILABLE));
+    let (manufacturer, model, version) = (
+        text(manufacturer.as_ref()),
+        text(model.as_ref()),
+        text(version.as_ref()),
+    );
+    // The schema's three types; an optical profiler's is NonContacting.
+    let probing_type = m
+        .extra
+        .get("probing_system")
+        .map(String::as_str)
+        .filter(|t| matches!(*t, "Contacting" | "NonContacting" | "Software"))
+        .unwrap_or("NonContacting");
+    let probing_id = text(m.extra.get("probing_identification"));
     let creator = xml_escape(&match m.extra.get("creator") {
         Some(c) if !c.trim().is_empty() => c.trim().to_string(),
         _ => format!("surfstream {}", env!("CARGO_PKG_VERSION")),
@@ -1031,7 +1095,7 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
         env!("CARGO_PKG_VERSION")
     ));
     let [ox, oy] = m.stage_position_um.unwrap_or([0.0, 0.0]);
-    format!(
+    let xml = format!(
         r#"<?xml version="1.0" encoding="UTF-8" standalone="no" ?>
 <p:ISO5436_2 xmlns:p="{NAMESPACE}" xmlns:xsi="http://www.w3.org/2001/XMLSchema-instance" xsi:schemaLocation="{NAMESPACE} {NAMESPACE}/ISO5436_2.xsd">
   <Record1>
@@ -1062,15 +1126,15 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
     <Date>{date}</Date>
     <Creator>{creator}</Creator>
     <Instrument>
-      <Manufacturer>{instrument}</Manufacturer>
-      <Model>{NOT_AVAILABLE}</Model>
+      <Manufacturer>{manufacturer}</Manufacturer>
+      <Model>{model}</Model>
       <Serial>{serial}</Serial>
-      <Version>{NOT_AVAILABLE}</Version>
+      <Version>{version}</Version>
     </Instrument>
     <CalibrationDate>{calibration}</CalibrationDate>
     <ProbingSystem>
-      <Type>NonContacting</Type>
-      <Identification>not available</Identification>
+      <Type>{probing_type}</Type>
+      <Identification>{probing_id}</Identification>
     </ProbingSystem>
     <Comment>{comment}</Comment>
   </Record2>
@@ -1099,134 +1163,34 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> String {
         w = s.width,
         h = s.height,
         md5 = data_md5,
-    )
+    );
+    (xml, warnings)
+}
+
+/// Keys under which the X3P reader keeps `Record2/Instrument`'s Manufacturer, Model, Version.
+const INSTRUMENT_KEYS: [&str; 3] = [
+    "instrument_manufacturer",
+    "instrument_model",
+    "instrument_version",
+];
+
+/// Manufacturer, Model, Version for Record2: the X3P reader's separate elements while they
+/// still make up `instrument` (the name was not changed since), else `instrument` as the
+/// Manufacturer.
+fn instrument_elements(m: &Metadata) -> [Option<String>; 3] {
+    let parts = INSTRUMENT_KEYS.map(|k| m.extra.get(k).cloned());
+    let joined: Vec<&str> = parts.iter().flatten().map(String::as_str).collect();
+    match &m.instrument {
+        Some(name) if !joined.is_empty() && *name == joined.join(" ") => parts,
+        Some(name) => [Some(name.clone()), None, None],
+        None => [None, None, None],
+    }
 }
 
 /// What the writer puts in a required Record2 element it has nothing for.
 const NOT_AVAILABLE: &str = "not available";
 
-/// `text` as an ISO 8601 date-time: one already ("2021-03-04T10:23:00", with a space for the
-/// T, with or without seconds or zone), a bare date, or one of the instruments' unambiguous
-/// forms: C's asctime ("Fri Mar 10 16:35:59 2023", Sensofar .plu), "10 Mar 2023 16:35:59",
-/// "2023/03/10 16:35:59" and the day-first dotted "10.03.2023 16:35[:59]"; None otherwise (a
-/// "12/03/2021" is not guessed: day and month would be).
-pub fn iso8601_date(text: &str) -> Option<String> {
-    let t = text.trim().trim_end_matches('\0').trim();
-    iso8601_as_is(t).or_else(|| instrument_date(t))
-}
-
-/// The instruments' date forms of [`iso8601_date`], as "YYYY-MM-DDTHH:MM:SS".
-fn instrument_date(t: &str) -> Option<String> {
-    const MONTHS: [&str; 12] = [
-        "jan", "feb", "mar", "apr", "may", "jun", "jul", "aug", "sep", "oct", "nov", "dec",
-    ];
-    let month_of = |w: &str| {
-        let w = w.to_ascii_lowercase();
-        (w.len() >= 3)
-            .then(|| MONTHS.iter().position(|m| w.starts_with(m)))
-            .flatten()
-            .map(|k| k as u32 + 1)
-    };
-    let is_time = |w: &str| w.contains(':') && w.split(':').all(|p| p.parse::<u32>().is_ok());
-    let time_of = |w: &str| -> Option<String> {
-        let p: Vec<u32> = w
-            .split(':')
-            .map(|p| p.parse().ok())
-            .collect::<Option<_>>()?;
-        let (h, m, s) = match p[..] {
-            [h, m] => (h, m, 0),
-            [h, m, s] => (h, m, s),
-            _ => return None,
-        };
-        (h < 24 && m < 60 && s < 61).then(|| format!("{h:02}:{m:02}:{s:02}"))
-    };
-    let words: Vec<&str> = t.split_whitespace().collect();
-    let time = words
-        .iter()
-        .find(|w| is_time(w))
-        .map_or(Some("00:00:00".to_string()), |w| time_of(w))?;
-    let rest: Vec<&str> = words.iter().copied().filter(|w| !is_time(w)).collect();
-    let (year, month, day): (u32, u32, u32) =
-        if let Some(k) = rest.iter().position(|w| month_of(w).is_some()) {
-            // asctime "Fri Mar 10 ... 2023" or "10 Mar 2023": the numbers are the day and the year.
-            let nums: Vec<u32> = rest
-                .iter()
-                .enumerate()
-                .filter(|&(i, _)| i != k)
-                .filter_map(|(_, w)| w.trim_end_matches(',').parse().ok())
-                .collect();
-            let (day, year) = match nums[..] {
-                [a, b] if b >= 1000 => (a, b),
-                [a, b] if a >= 1000 => (b, a),
-                _ => return None,
-            };
-            (year, month_of(rest[k])?, day)
-        } else if let [d] = rest[..] {
-            let dotted: Vec<&str> = d.split('.').collect();
-            let slashed: Vec<&str> = d.split('/').collect();
-            match (&dotted[..], &slashed[..]) {
-                ([dd, mm, yyyy], _) if yyyy.len() == 4 => {
-                    (yyyy.parse().ok()?, mm.parse().ok()?, dd.parse().ok()?)
-                }
-                (_, [yyyy, mm, dd]) if yyyy.len() == 4 => {
-                    (yyyy.parse().ok()?, mm.parse().ok()?, dd.parse().ok()?)
-                }
-                _ => return None,
-            }
-        } else {
-            return None;
-        };
-    ((1..=12).contains(&month) && (1..=31).contains(&day) && (1000..10000).contains(&year))
-        .then(|| format!("{year:04}-{month:02}-{day:02}T{time}"))
-}
-
-/// [`iso8601_date`] for text already in ISO 8601.
-fn iso8601_as_is(t: &str) -> Option<String> {
-    let b = t.as_bytes();
-    let digits = |r: std::ops::Range<usize>| {
-        b.get(r.clone())
-            .is_some_and(|s| s.iter().all(u8::is_ascii_digit))
-    };
-    if !(digits(0..4)
-        && b.get(4) == Some(&b'-')
-        && digits(5..7)
-        && b.get(7) == Some(&b'-')
-        && digits(8..10))
-    {
-        return None;
-    }
-    let (month, day): (u32, u32) = (t[5..7].parse().ok()?, t[8..10].parse().ok()?);
-    if !(1..=12).contains(&month) || !(1..=31).contains(&day) {
-        return None;
-    }
-    if b.len() == 10 {
-        return Some(format!("{t}T00:00:00"));
-    }
-    if !matches!(b.get(10), Some(b'T' | b' '))
-        || !digits(11..13)
-        || b.get(13) != Some(&b':')
-        || !digits(14..16)
-    {
-        return None;
-    }
-    let rest = &t[16..];
-    let (seconds, zone) = match rest.strip_prefix(':') {
-        Some(r) if r.len() >= 2 && r[..2].bytes().all(|c| c.is_ascii_digit()) => {
-            let frac_end = r[2..]
-                .find(|c: char| !(c.is_ascii_digit() || c == '.'))
-                .map_or(r.len(), |k| k + 2);
-            (&r[..frac_end], &r[frac_end..])
-        }
-        Some(_) => return None,
-        None => ("00", rest),
-    };
-    let zone_ok = zone.is_empty()
-        || zone == "Z"
-        || (zone.len() == 6
-            && matches!(zone.as_bytes()[0], b'+' | b'-')
-            && zone.as_bytes()[3] == b':');
-    zone_ok.then(|| format!("{}T{}:{seconds}{zone}", &t[..10], &t[11..16]))
-}
+pub use super::date::iso8601_date;
 
 /// Where the writer puts a colour mask's image (x3ptools' and FiX3P's default name).
 const MASK_IMAGE: &str = "bindata/mask.png";
@@ -1303,12 +1267,22 @@ fn mask_png(s: &Surface) -> Result<Option<Vec<u8>>> {
 }
 
 /// Writes `s` as an X3P file, atomically.
+/// What the user should be told about it (see [`encode_noting`]) goes to stderr,
+/// "PATH: warning: ...", as the verbs print a reader's warnings.
 pub fn write(path: &Path, s: &Surface) -> Result<()> {
-    let bytes = encode(s).with_context(|| format!("{}", path.display()))?;
+    let (bytes, warnings) = encode_noting(s).with_context(|| format!("{}", path.display()))?;
     surfstream_core::fsutil::write_atomic(path, |w| {
         w.write_all(&bytes)
             .with_context(|| format!("{}: write failed", path.display()))
-    })
+    })?;
+    tell(path, &warnings);
+    Ok(())
+}
+
+fn tell(path: &Path, warnings: &[String]) {
+    for w in warnings {
+        eprintln!("{}: warning: {w}", path.display());
+    }
 }
 
 /// Writes an X3P of `s`'s size, pitch and metadata (`s.heights_um` is ignored and may be
@@ -1372,7 +1346,7 @@ pub fn write_by_rows(
         row0 += k;
     }
     let deflate = (deflated_size.finish().with_context(ctx)?.0 as f64) < 0.9 * (n * 8) as f64;
-    let xml = main_xml(
+    let (xml, warnings) = main_xml(
         s,
         &hex(&data_md5.finalize()),
         any_invalid.then(|| md5_hex(&valid)).as_deref(),
@@ -1416,7 +1390,9 @@ pub fn write_by_rows(
         zw.finish()
             .with_context(|| format!("{}: finishing the zip", path.display()))?;
         Ok(())
-    })
+    })?;
+    tell(path, &warnings);
+    Ok(())
 }
 
 /// A writer that only counts the bytes.
@@ -1467,6 +1443,7 @@ mod by_rows_tests {
             metadata: Metadata {
                 format: "npy".into(),
                 pitch_known: true,
+                date: Some("2023-03-10 16:35:59".into()),
                 ..Metadata::default()
             },
         };
