@@ -114,14 +114,23 @@ pub fn ball_gap_um(heights_um: &[f64], at: Sampling, radius_um: f64) -> Vec<f64>
         .collect()
 }
 
-/// The distribution of the media's elastic approach at impact (Hertz), um.
-///
-/// From the barrel kinematics (no macro run: impacts at the media speed, angles uniform on
-/// [0, max], the press load's static approach a floor), or from the macro run's contact
-/// samples ([`SampledApproach`]): then p(gap) is the share of the very contacts the micro
-/// passes are drawn from whose approach exceeds the gap, and the kinematic fields are unused.
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
-pub struct ApproachDistribution {
+/// The distribution of the contacts' approach into the part (Hertz), um: p(gap) =
+/// P(approach > gap). finish.json `contact_field.approach` names its `source` and holds only
+/// that source's numbers.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "source", rename_all = "kebab-case", try_from = "ApproachRecord")]
+pub enum ApproachDistribution {
+    /// From the barrel kinematics' assumptions (no macro run): impacts at the media speed,
+    /// angles uniform on [0, max], the press load's static approach a floor.
+    Kinematics(KinematicApproach),
+    /// From the macro run's contact samples: the share of the very contacts the micro passes
+    /// are drawn from whose approach exceeds the gap.
+    MacroSamples(SampledApproach),
+}
+
+/// The approach of the barrel kinematics' impacts ([`ApproachDistribution::Kinematics`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct KinematicApproach {
     /// Approach of an impact at the full media speed, normal to the part, um.
     pub full_speed_approach_um: f64,
     /// Largest impact angle: angles are uniform on [0, this], degrees.
@@ -130,9 +139,6 @@ pub struct ApproachDistribution {
     pub static_approach_um: f64,
     /// Approach at the setting's (mean) impact angle, um (reported).
     pub mean_angle_approach_um: f64,
-    /// When set, p(gap) comes from the macro run's contacts, not from the fields above.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub sampled: Option<SampledApproach>,
 }
 
 /// The approaches of the macro run's contacts at the part's real stiffness: an impact's
@@ -149,6 +155,45 @@ pub struct SampledApproach {
     /// Sorted ascending, um (not written: finish.json has the percentiles).
     #[serde(skip)]
     pub approaches_um: Vec<f64>,
+}
+
+/// `contact_field.approach` as read: tagged by `source`, or (records written before the
+/// source was named) the kinematic fields beside an optional `sampled`.
+#[derive(Deserialize)]
+struct ApproachRecord {
+    source: Option<String>,
+    #[serde(flatten)]
+    kinematics: Option<KinematicApproach>,
+    sampled: Option<SampledApproach>,
+    #[serde(flatten)]
+    macro_samples: Option<SampledApproach>,
+}
+
+impl TryFrom<ApproachRecord> for ApproachDistribution {
+    type Error = String;
+
+    fn try_from(r: ApproachRecord) -> std::result::Result<Self, String> {
+        match r.source.as_deref() {
+            Some("kinematics") => r
+                .kinematics
+                .map(ApproachDistribution::Kinematics)
+                .ok_or_else(|| "approach: source kinematics without its four approaches".into()),
+            Some("macro-samples") => r
+                .macro_samples
+                .map(ApproachDistribution::MacroSamples)
+                .ok_or_else(|| "approach: source macro-samples without its percentiles".into()),
+            Some(other) => Err(format!(
+                "approach: source {other:?}, expected kinematics or macro-samples"
+            )),
+            None => match (r.sampled, r.kinematics) {
+                (Some(s), _) => Ok(ApproachDistribution::MacroSamples(s)),
+                (None, Some(k)) => Ok(ApproachDistribution::Kinematics(k)),
+                (None, None) => {
+                    Err("approach: expected a source (kinematics or macro-samples)".into())
+                }
+            },
+        }
+    }
 }
 
 /// Hertz approach of a sphere striking a flat at normal speed `v_n` (m/s), um.
@@ -168,7 +213,7 @@ impl ApproachDistribution {
     /// p(gap) from the barrel kinematics' assumptions (no macro run).
     pub fn of(media: &Media, part: &Workpiece, action: &Action, press_force_n: f64) -> Self {
         let v = action.media_velocity_m_s;
-        ApproachDistribution {
+        ApproachDistribution::Kinematics(KinematicApproach {
             full_speed_approach_um: hertz_approach_um(media, part, v),
             max_impact_angle_deg: (2.0 * action.impact_angle_deg).min(90.0),
             static_approach_um: hertz_static_approach_um(media, part, press_force_n),
@@ -177,8 +222,7 @@ impl ApproachDistribution {
                 part,
                 v * action.impact_angle_deg.to_radians().sin(),
             ),
-            sampled: None,
-        }
+        })
     }
 
     /// p(gap) from the macro run's contacts (`samples`), at the part's real stiffness.
@@ -197,50 +241,60 @@ impl ApproachDistribution {
             .collect();
         approaches_um.sort_by(f64::total_cmp);
         let q = crate::machine::Percentiles::of(&approaches_um);
-        ApproachDistribution {
-            sampled: Some(SampledApproach {
-                contacts: approaches_um.len(),
-                impacts: samples.iter().filter(|s| !s.enduring).count(),
-                p10_um: q.p10,
-                p50_um: q.p50,
-                p90_um: q.p90,
-                max_um: approaches_um.last().copied().unwrap_or(0.0),
-                approaches_um,
-            }),
-            ..Default::default()
-        }
+        ApproachDistribution::MacroSamples(SampledApproach {
+            contacts: approaches_um.len(),
+            impacts: samples.iter().filter(|s| !s.enduring).count(),
+            p10_um: q.p10,
+            p50_um: q.p50,
+            p90_um: q.p90,
+            max_um: approaches_um.last().copied().unwrap_or(0.0),
+            approaches_um,
+        })
     }
 
     /// The largest approach, um: cells deeper below the envelope are never touched.
     pub fn max_um(&self) -> f64 {
-        if let Some(sa) = &self.sampled {
-            return sa.max_um;
+        match self {
+            ApproachDistribution::MacroSamples(sa) => sa.max_um,
+            ApproachDistribution::Kinematics(k) => {
+                let s = k.max_impact_angle_deg.to_radians().sin();
+                (k.full_speed_approach_um * s.powf(0.8)).max(k.static_approach_um)
+            }
         }
-        let s = self.max_impact_angle_deg.to_radians().sin();
-        (self.full_speed_approach_um * s.powf(0.8)).max(self.static_approach_um)
+    }
+
+    /// The macro run's samples, when p(gap) comes from them.
+    pub fn sampled(&self) -> Option<&SampledApproach> {
+        match self {
+            ApproachDistribution::MacroSamples(sa) => Some(sa),
+            ApproachDistribution::Kinematics(_) => None,
+        }
     }
 
     /// P(approach > gap): the share of the macro run's contacts, or of the impact angles,
     /// whose approach reaches `gap_um`.
     pub fn probability(&self, gap_um: f64) -> f64 {
-        if let Some(sa) = &self.sampled {
-            let n = sa.approaches_um.len();
-            if n == 0 {
-                return 0.0;
+        let k = match self {
+            ApproachDistribution::MacroSamples(sa) => {
+                let n = sa.approaches_um.len();
+                if n == 0 {
+                    return 0.0;
+                }
+                let below = sa.approaches_um.partition_point(|a| *a <= gap_um);
+                return (n - below) as f64 / n as f64;
             }
-            let below = sa.approaches_um.partition_point(|a| *a <= gap_um);
-            return (n - below) as f64 / n as f64;
-        }
-        if gap_um <= self.static_approach_um {
+            ApproachDistribution::Kinematics(k) => k,
+        };
+        if gap_um <= k.static_approach_um {
             return 1.0;
         }
-        let a = self.full_speed_approach_um;
+        let a = k.full_speed_approach_um;
         if a <= 0.0 || gap_um >= a {
             return 0.0;
         }
         // approach(theta) = a sin(theta)^(4/5) >= g  <=>  sin(theta) >= (g / a)^(5/4).
         let theta_min = (gap_um / a).powf(1.25).asin();
-        let theta_max = self.max_impact_angle_deg.to_radians();
+        let theta_max = k.max_impact_angle_deg.to_radians();
         if theta_min >= theta_max {
             0.0
         } else {
@@ -849,7 +903,7 @@ mod tests {
             assert_eq!(d.probability(x * 1.001), above, "{k}");
         }
         assert_eq!(d.probability(0.0), 1.0);
-        let s = d.sampled.as_ref().unwrap();
+        let s = d.sampled().unwrap();
         assert_eq!((s.contacts, s.impacts), (4, 3));
         // The reach sets the step: half of it when it is under twice the default step.
         assert_eq!(step_depth_um(0.06), 0.03);
@@ -863,13 +917,12 @@ mod tests {
         let at = Sampling::new(Shape::new(rows, cols), 1.0, 1.5).unwrap();
         let gap = ball_gap_um(&z, at, 1500.0);
         assert!(gap.iter().all(|g| g.abs() < 1e-9), "{gap:?}");
-        let d = ApproachDistribution {
+        let d = ApproachDistribution::Kinematics(KinematicApproach {
             full_speed_approach_um: 2.0,
             max_impact_angle_deg: 40.0,
             static_approach_um: 0.05,
             mean_angle_approach_um: 1.0,
-            sampled: None,
-        };
+        });
         assert!(gap.iter().all(|g| d.probability(*g) == 1.0));
     }
 
@@ -921,13 +974,12 @@ mod tests {
             assert!(row[c] >= chord, "trough {c}: {} vs {chord}", row[c]);
         }
         // Contact probability falls from crest to trough.
-        let d = ApproachDistribution {
+        let d = ApproachDistribution::Kinematics(KinematicApproach {
             full_speed_approach_um: 2.5,
             max_impact_angle_deg: 40.0,
             static_approach_um: 0.05,
             mean_angle_approach_um: 1.0,
-            sampled: None,
-        };
+        });
         let p_of = |c: usize| d.probability(row[c]);
         assert_eq!(p_of(200), 1.0);
         for c in 200..250 {
@@ -957,13 +1009,12 @@ mod tests {
         let (rows, cols, p, r) = (60, 70, 2.0, 1500.0);
         let z = rough(rows, cols);
         let gap = ball_gap_um(&z, Sampling::square(Shape::new(rows, cols), p).unwrap(), r);
-        let d = ApproachDistribution {
+        let d = ApproachDistribution::Kinematics(KinematicApproach {
             full_speed_approach_um: 3.0,
             max_impact_angle_deg: 40.0,
             static_approach_um: 0.05,
             mean_angle_approach_um: 1.5,
-            sampled: None,
-        };
+        });
         // A "DEM" map: wear where the gap is small, some beyond reach too.
         let dem: Vec<f64> = gap
             .iter()
@@ -1024,6 +1075,55 @@ mod tests {
     }
 
     #[test]
+    fn the_approach_record_names_its_source_and_holds_only_its_numbers() {
+        let kin = ApproachDistribution::Kinematics(KinematicApproach {
+            full_speed_approach_um: 3.0,
+            max_impact_angle_deg: 40.0,
+            static_approach_um: 0.05,
+            mean_angle_approach_um: 1.5,
+        });
+        let sampled = ApproachDistribution::MacroSamples(SampledApproach {
+            contacts: 10,
+            impacts: 4,
+            p10_um: 0.1,
+            p50_um: 0.4,
+            p90_um: 2.0,
+            max_um: 5.0,
+            approaches_um: Vec::new(),
+        });
+        let k = serde_json::to_value(&kin).unwrap();
+        assert_eq!(k["source"], "kinematics");
+        assert!(k.get("p50_um").is_none());
+        let m = serde_json::to_value(&sampled).unwrap();
+        assert_eq!(m["source"], "macro-samples");
+        assert!(m.get("full_speed_approach_um").is_none() && m.get("sampled").is_none());
+        for v in [&kin, &sampled] {
+            let back: ApproachDistribution =
+                serde_json::from_value(serde_json::to_value(v).unwrap()).unwrap();
+            assert_eq!(&back, v);
+        }
+        // Records written before the source was named read as what they were.
+        let old_sampled = serde_json::json!({"full_speed_approach_um": 0.0, "max_impact_angle_deg": 0.0,
+            "static_approach_um": 0.0, "mean_angle_approach_um": 0.0,
+            "sampled": {"contacts": 10, "impacts": 4, "p10_um": 0.1, "p50_um": 0.4, "p90_um": 2.0, "max_um": 5.0}});
+        assert_eq!(
+            serde_json::from_value::<ApproachDistribution>(old_sampled).unwrap(),
+            sampled
+        );
+        let old_kin = serde_json::json!({"full_speed_approach_um": 3.0, "max_impact_angle_deg": 40.0,
+            "static_approach_um": 0.05, "mean_angle_approach_um": 1.5});
+        assert_eq!(
+            serde_json::from_value::<ApproachDistribution>(old_kin).unwrap(),
+            kin
+        );
+        let e =
+            serde_json::from_value::<ApproachDistribution>(serde_json::json!({"source": "guess"}))
+                .unwrap_err()
+                .to_string();
+        assert!(e.contains("guess") && e.contains("macro-samples"), "{e}");
+    }
+
+    #[test]
     fn the_monotone_fit_pools_only_violators_and_keeps_the_weighted_sum() {
         let fit = non_increasing_fit(
             &[5.0, 3.0, 4.0, 1.0, 2.0, 2.0],
@@ -1051,13 +1151,12 @@ mod tests {
         let (rows, cols, p, r) = (60, 70, 2.0, 1500.0);
         let z = rough(rows, cols);
         let gap = ball_gap_um(&z, Sampling::square(Shape::new(rows, cols), p).unwrap(), r);
-        let d = ApproachDistribution {
+        let d = ApproachDistribution::Kinematics(KinematicApproach {
             full_speed_approach_um: 3.0,
             max_impact_angle_deg: 40.0,
             static_approach_um: 0.05,
             mean_angle_approach_um: 1.5,
-            sampled: None,
-        };
+        });
         // A noisy "DEM": the deepest reachable cells wore twice the crests.
         let reach = d.max_um();
         let dem: Vec<f64> = gap
@@ -1108,13 +1207,12 @@ mod tests {
         let (rows, cols, p, r) = (50, 60, 2.0, 1500.0);
         let z = rough(rows, cols);
         let gap = ball_gap_um(&z, Sampling::square(Shape::new(rows, cols), p).unwrap(), r);
-        let d = ApproachDistribution {
+        let d = ApproachDistribution::Kinematics(KinematicApproach {
             full_speed_approach_um: 3.0,
             max_impact_angle_deg: 40.0,
             static_approach_um: 0.05,
             mean_angle_approach_um: 1.5,
-            sampled: None,
-        };
+        });
         let dem: Vec<f64> = gap
             .iter()
             .map(|g| if *g < 1.5 { 0.02 } else { 0.0 })

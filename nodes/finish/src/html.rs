@@ -15,6 +15,7 @@ use std::path::Path;
 use anyhow::{anyhow, Context, Result};
 use base64::Engine;
 
+use crate::field::ApproachDistribution;
 use crate::run::SurfaceParams;
 use crate::summary::{AbbottSummary, FinishSummary, SeriesPoint};
 
@@ -792,8 +793,8 @@ pub fn field_section(s: &FinishSummary) -> String {
     };
     let m = &f.check_mean;
     let ap = f.approach.as_ref();
-    let (approach_label, approach_values) = match ap.and_then(|a| a.sampled.as_ref()) {
-        Some(sa) => (
+    let (approach_label, approach_values) = match ap {
+        Some(ApproachDistribution::MacroSamples(sa)) => (
             "approach of the macro run's contacts p10 / p50 / p90 / max (µm)",
             format!(
                 "{} / {} / {} / {}",
@@ -803,15 +804,16 @@ pub fn field_section(s: &FinishSummary) -> String {
                 num(sa.max_um, 4)
             ),
         ),
-        None => (
+        Some(ApproachDistribution::Kinematics(k)) => (
             "largest / mean-angle / static approach (µm, kinematics)",
             format!(
                 "{} / {} / {}",
-                num(ap.map(|a| a.full_speed_approach_um), 3),
-                num(ap.map(|a| a.mean_angle_approach_um), 3),
-                num(ap.map(|a| a.static_approach_um), 3)
+                num(k.full_speed_approach_um, 3),
+                num(k.mean_angle_approach_um, 3),
+                num(k.static_approach_um, 3)
             ),
         ),
+        None => ("approach (µm)", "–".to_string()),
     };
     write!(
         t,

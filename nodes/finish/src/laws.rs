@@ -372,7 +372,7 @@ pub fn plateau_level_for_sa(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::field::extrapolate;
+    use crate::field::{extrapolate, KinematicApproach};
     use surfstream_core::{Sampling, Shape};
 
     fn grid(rows: usize, cols: usize, p: f64) -> FieldGrid {
@@ -419,13 +419,12 @@ mod tests {
     }
 
     fn dist() -> ApproachDistribution {
-        ApproachDistribution {
+        ApproachDistribution::Kinematics(KinematicApproach {
             full_speed_approach_um: 3.0,
             max_impact_angle_deg: 40.0,
             static_approach_um: 0.05,
             mean_angle_approach_um: 1.5,
-            sampled: None,
-        }
+        })
     }
 
     fn table(z: &[f64], g: FieldGrid) -> WearTable {

@@ -1551,7 +1551,7 @@ fn summary(
             ball_radius_um: setup.field_grid.radius_um,
             closing: "the surface closed with the paraboloid r^2/2R of the media's radius (separable lower envelope of parabolas, exact, at the model's full resolution, over the patch and its guard band); the sphere differs from it by r^4/8R^3 (0.06 um at 200 um for R = 1.5 mm)".into(),
             approach: Some(setup.dist.clone()),
-            approach_model: if setup.dist.sampled.is_some() {
+            approach_model: if setup.dist.sampled().is_some() {
                 "p(gap) = the share of the macro run's contact samples (those the micro passes draw) whose approach at the part's real stiffness exceeds the gap: an impact's Hertz approach (15 m v_n^2 / (16 E* sqrt R))^(2/5) at its normal speed, an enduring contact's static Hertz approach under its normal force (or its impact approach, if larger)".into()
             } else {
                 "Hertz approach (15 m v_n^2 / (16 E* sqrt R))^(2/5), impact angle uniform on [0, max_impact_angle_deg] at the media speed; the press load's static approach a floor; p(gap) = P(approach > gap) (the barrel kinematics' assumptions: no macro run)".into()
