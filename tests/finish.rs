@@ -316,7 +316,8 @@ fn the_default_finish_runs_the_machine_then_micro_passes_and_registers_the_after
         .starts_with("the macro run"));
     // p(gap) comes from the same contacts the passes draw: its reach is theirs.
     let cf = &s["contact_field"];
-    let sampled = &cf["approach"]["sampled"];
+    let sampled = &cf["approach"];
+    assert_eq!(sampled["source"], "macro-samples", "{cf}");
     assert!(sampled["contacts"].as_u64().unwrap() > 0, "{cf}");
     assert!(
         cf["reach_um"].as_f64().unwrap() >= sampled["max_um"].as_f64().unwrap(),
@@ -331,6 +332,16 @@ fn the_default_finish_runs_the_machine_then_micro_passes_and_registers_the_after
         .unwrap()
         .starts_with("the macro run"));
     assert!(cf["envelope"]["sa_um"].as_f64().unwrap() > 0.0, "{cf}");
+    // The table used and the one measured, with the bins the monotone pooling joined.
+    let table = &cf["table"];
+    assert!(table["pooled_bins"].as_u64().is_some(), "{table}");
+    for b in table["bins"].as_array().unwrap() {
+        assert!(
+            b["measured_wear_per_contact_um"].as_f64().unwrap() >= 0.0,
+            "{b}"
+        );
+        assert!(b["pooled"].is_boolean(), "{b}");
+    }
     // The fit is judged where it holds (the calibration time).
     let cal = &s["calibration"];
     assert_eq!(
