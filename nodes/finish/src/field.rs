@@ -335,11 +335,6 @@ pub struct WearBin {
     /// per impact than a shallower one.
     #[serde(default)]
     pub pooled: bool,
-    /// A pooled bin's depth per impact, um, the same at every gap in it: the block's mean. (Its
-    /// wear per contact times p(gap) would fall within the bin and jump back up at the next
-    /// one: a saw tooth the data do not show.) 0 when not pooled.
-    #[serde(default)]
-    pub pooled_depth_per_impact_um: f64,
 }
 
 /// The wear per contact as a function of the gap, measured from DEM segments.
@@ -485,9 +480,7 @@ impl WearTable {
             b.wear_per_contact_um = 0.0;
             b.measured_wear_per_contact_um = 0.0;
             b.pooled = false;
-            b.pooled_depth_per_impact_um = 0.0;
         }
-        let impacts = self.impacts.max(1) as f64;
         self.pooled_bins = 0;
         for ((&i, d), (fit, in_block)) in carrying.iter().zip(&depth).zip(&pooled) {
             let b = &mut self.bins[i];
@@ -495,19 +488,14 @@ impl WearTable {
             b.measured_wear_per_contact_um = d * per_depth;
             b.wear_per_contact_um = fit * per_depth;
             b.pooled = *in_block;
-            if *in_block {
-                b.pooled_depth_per_impact_um = fit / impacts;
-            }
             self.pooled_bins += usize::from(*in_block);
         }
     }
 
-    /// Expected wear depth of a cell at `gap_um` per impact aimed over the patch, um: p(gap) x
-    /// the bin's wear per contact, or a pooled bin's one depth.
+    /// Expected wear depth of a cell at `gap_um` per impact aimed over the patch, um.
     pub fn depth_per_impact_um(&self, dist: &ApproachDistribution, gap_um: f64) -> f64 {
-        match bin_of(gap_um, dist.max_um()).map(|b| &self.bins[b]) {
-            Some(b) if b.pooled => b.pooled_depth_per_impact_um,
-            Some(b) => dist.probability(gap_um) * b.wear_per_contact_um,
+        match bin_of(gap_um, dist.max_um()) {
+            Some(b) => dist.probability(gap_um) * self.bins[b].wear_per_contact_um,
             None => 0.0,
         }
     }
@@ -1196,12 +1184,6 @@ mod tests {
             per_impact.windows(2).all(|w| w[1] <= w[0] * (1.0 + 1e-12)),
             "{per_impact:?}"
         );
-        // Within a pooled bin every gap wears alike (no saw tooth); the depth is the bin's mean.
-        let b = t.bins.iter().find(|b| b.pooled).unwrap();
-        let (lo, hi) = (b.gap_from_um + 1e-9, b.gap_to_um - 1e-9);
-        assert_eq!(t.depth_per_impact_um(&d, lo), t.depth_per_impact_um(&d, hi));
-        let mean = b.wear_per_contact_um * b.expected_contacts / (b.cells as f64 * 17.0);
-        assert!((t.depth_per_impact_um(&d, lo) / mean - 1.0).abs() < 1e-12);
         // The measured values stay on record and differ where pooled.
         assert!(t
             .bins
