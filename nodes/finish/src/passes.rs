@@ -586,6 +586,7 @@ impl MicroRun {
 /// Progress of one engine process of the cycle.
 #[derive(Debug, Clone, Copy)]
 pub struct GroupProgress {
+    /// Which engine process, counted from 1 (of `groups`).
     pub group: usize,
     pub groups: usize,
     pub engine: EngineProgress,

@@ -798,11 +798,7 @@ fn run_cycle(
                     last = Instant::now();
                     say(&format!(
                         "finish: cycle {c}/{}: micro passes, engine process {}/{}: step {}/{}",
-                        opts.cycles,
-                        p.group + 1,
-                        p.groups,
-                        p.engine.steps_done,
-                        p.engine.steps_total
+                        opts.cycles, p.group, p.groups, p.engine.steps_done, p.engine.steps_total
                     ));
                 }
             },
