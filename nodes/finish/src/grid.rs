@@ -290,7 +290,8 @@ impl NodeMap {
 /// vertices are samples of that grid (the tolerance mesh, [`crate::passes`]): each triangle's
 /// volume is spread evenly over the samples its footprint covers (corners and edges
 /// included), so a large triangle's wear covers its area, not only its three corners, and the
-/// total is kept exactly. `offset_um` turns a vertex (m) into patch coordinates (um):
+/// total is kept exactly; a triangle whose footprint holds no sample gives its volume to the
+/// sample nearest its centroid. `offset_um` turns a vertex (m) into patch coordinates (um):
 /// um = m * 1e6 + offset. Returns the depth map and the volume of triangles that cover no
 /// sample of the grid (off the grid: should be zero).
 pub fn triangle_volumes_to_samples(
@@ -342,8 +343,21 @@ pub fn triangle_volumes_to_samples(
             }
         }
         if inside.is_empty() {
-            unmapped += v;
-            continue;
+            // A triangle smaller than a sample spacing between samples (the angle-bounded
+            // mesh of a worn surface inserts vertices off the grid): its volume goes to the
+            // sample nearest its centroid, so the total is kept. Only one off the grid by more
+            // than half a sample is unmapped.
+            let (cc, cr) = (
+                (q[0].0 + q[1].0 + q[2].0) / 3.0,
+                (q[0].1 + q[1].1 + q[2].1) / 3.0,
+            );
+            let on_grid = |x: f64, n: usize| x > -0.5 && x < n as f64 - 0.5;
+            if on_grid(cc, cols) && on_grid(cr, rows) {
+                inside.push(cr.round() as usize * cols + cc.round() as usize);
+            } else {
+                unmapped += v;
+                continue;
+            }
         }
         let d = v * 1e18 / (inside.len() as f64 * cell);
         for &k in &inside {
@@ -423,6 +437,13 @@ mod tests {
         let far = [[m(10.0, 10.0), m(12.0, 10.0), m(12.0, 12.0)]];
         let (_, unmapped) = triangle_volumes_to_samples(at, off, &far, &[2e-18]);
         assert_eq!(unmapped, 2e-18);
+        // A triangle between samples (vertices off the grid, no sample inside) gives its
+        // volume to the sample nearest its centroid: (col 2, row 1).
+        let small = [[m(1.6, 1.2), m(2.4, 1.2), m(2.0, 1.4)]];
+        let (d, unmapped) = triangle_volumes_to_samples(at, off, &small, &[0.8e-18]);
+        assert_eq!(unmapped, 0.0);
+        assert!((d[5 + 2] - 0.8 / 4.0).abs() < 1e-15, "{d:?}");
+        assert!((volume_um3(&d, at.pitch()) - 0.8).abs() < 1e-12);
     }
 
     #[test]
