@@ -669,7 +669,9 @@ pub fn run(a: FinishArgs) -> Result<()> {
             ("plateau cut", &bl.plateau),
         ] {
             println!(
-                "finish: baseline {name} (no DEM, same Sa): Sq {:.3}, Sz {:.3}, Spk {:.3}, Svk {:.3} um; prediction within noise of it in: {}",
+                "finish: baseline {name} (no DEM, {}) after the process: Sa {:.3}, Sq {:.3}, Sz {:.3}, Spk {:.3}, Svk {:.3} um; prediction within noise of it in: {}",
+                if base.reached { "same Sa at the calibration time" } else { "did NOT reach the prediction's Sa at the calibration time: not comparable" },
+                base.after.sa,
                 base.after.sq,
                 base.after.sz,
                 base.after.spk,

@@ -1030,6 +1030,15 @@ fn baselines_table(s: &FinishSummary, b: &crate::summary::Baselines) -> String {
     h += "</table>";
     h += &at_calibration_time(s, b);
     let say = |what: &str, list: &[String]| -> String {
+        let reached = match what {
+            "Constant wear" => b.constant_wear.reached,
+            _ => b.plateau.reached,
+        };
+        if !reached {
+            return format!(
+                "{what} <b>did not reach</b> the prediction's Sa at the calibration time (its fit stalls: a constant rate within a reach that covers almost every cell lowers the surface without smoothing it); its column is not at the same Sa. "
+            );
+        }
         if noise.is_none() {
             format!("{what}: no noise estimate (one cycle: no second DEM sample). ")
         } else if list.is_empty() {
@@ -1890,6 +1899,15 @@ mod tests {
         // Five predicted times, each labelled; the high-fidelity and ideal maps side by side.
         assert_eq!(html.matches("<td class=\"k\">prediction").count(), 5);
         assert!(html.contains("Ideal (form-only) model: predicted wear"));
+        assert!(!html.contains("did not reach"));
+        // A baseline whose fit stalled short of the prediction's Sa says so, not "same Sa".
+        let mut stalled = s.clone();
+        if let Some(b) = &mut stalled.baselines {
+            b.constant_wear.reached = false;
+        }
+        let html = render(&stalled, &original, &original, &original, None, rows, cols).unwrap();
+        assert!(html.contains("Constant wear <b>did not reach</b> the prediction's Sa"));
+        assert!(!html.contains("Constant wear: the prediction"));
     }
 
     #[test]

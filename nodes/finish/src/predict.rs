@@ -272,7 +272,7 @@ fn constant_wear(input: &PredictionInput, sa_cal: f64, stop: &AtomicBool) -> Res
         depth_um_per_s: UNIT_UM_PER_S,
         reach_um: input.reach_um,
     }];
-    let (s, _, _) = laws::fit_scale(
+    let (s, reached, _) = laws::fit_scale(
         input.original_um,
         input.grid,
         &laws_c,
@@ -304,6 +304,7 @@ fn constant_wear(input: &PredictionInput, sa_cal: f64, stop: &AtomicBool) -> Res
         ),
         fitted_parameter: "depth_um_per_s".into(),
         fitted_value: UNIT_UM_PER_S * s,
+        reached,
         after: after.ok_or_else(|| anyhow!("no series time"))?,
         series,
         within_noise: vec![],
@@ -329,6 +330,7 @@ fn plateau(input: &PredictionInput, sa_cal: f64) -> Result<Baseline> {
         what: "a plateau cut: every height above a level cut to it, the removed volume linear in time; no media at all".into(),
         fitted_parameter: "level_um (at the calibration time; the meshed area's heights)".into(),
         fitted_value: level,
+        reached: true,
         after: after.ok_or_else(|| anyhow!("no series time"))?,
         series,
         within_noise: vec![],

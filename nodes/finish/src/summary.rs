@@ -177,11 +177,20 @@ pub struct Baseline {
     /// The parameter fitted to the same Sa as the prediction at the calibration time.
     pub fitted_parameter: String,
     pub fitted_value: f64,
+    /// Whether the fit reached the prediction's Sa at the calibration time. A baseline that
+    /// did not (a constant rate within a reach that covers almost every cell lowers the
+    /// surface without smoothing it: Sa stalls) is not "at the same Sa", and says so.
+    #[serde(default = "reached_by_default")]
+    pub reached: bool,
     pub after: SurfaceParams,
     pub series: Vec<SeriesPoint>,
     /// Parameters (Sq, Sz, Spk, Svk, Sk) where the prediction lies within the noise of
     /// this baseline after the process time: there the DEM adds nothing measurable.
     pub within_noise: Vec<String>,
+}
+
+fn reached_by_default() -> bool {
+    true
 }
 
 /// The noise of the prediction after the process time: the prediction from the tables of
