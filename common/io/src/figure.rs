@@ -561,10 +561,11 @@ impl Panel {
 
     /// A legend entry (colour swatch and text) at row `k` in the panel's top right corner.
     pub fn legend(&self, s: &mut String, k: usize, colour: &str, text: &str) {
-        self.legend_styled(s, k, colour, text, None);
+        self.legend_styled(s, k, colour, text, None, 240.0);
     }
 
-    /// [`Panel::legend`] with a dashed swatch when `dash` is given.
+    /// [`Panel::legend`] with a dashed swatch when `dash` is given, in a box `width` wide (its
+    /// right edge on the panel's).
     pub fn legend_styled(
         &self,
         s: &mut String,
@@ -572,15 +573,16 @@ impl Panel {
         colour: &str,
         text: &str,
         dash: Option<&str>,
+        width: f64,
     ) {
-        let x = self.x + self.w - 240.0;
+        let x = self.x + self.w - width;
         let y = self.y + 10.0 + 18.0 * k as f64;
         let dash = dash.map_or(String::new(), |d| {
             format!(" stroke-dasharray=\"{}\"", esc(d))
         });
         let _ = write!(
             s,
-            "<rect x=\"{:.1}\" y=\"{:.1}\" width=\"240\" height=\"18\" fill=\"#fff\" \
+            "<rect x=\"{:.1}\" y=\"{:.1}\" width=\"{width}\" height=\"18\" fill=\"#fff\" \
              fill-opacity=\"0.85\"/><line x1=\"{:.1}\" y1=\"{:.1}\" x2=\"{:.1}\" y2=\"{:.1}\" \
              stroke=\"{colour}\" stroke-width=\"3\"{dash}/><text x=\"{:.1}\" y=\"{:.1}\" \
              class=\"tick\">{}</text>",

@@ -1525,7 +1525,8 @@ impl Plot<'_> {
     /// legend report.html's charts draw with).
     fn svg(&self) -> String {
         let (w, h) = (self.width, self.height);
-        let (ml, mr, mt, mb) = (58.0, 14.0, 26.0, 42.0);
+        // The left margin holds the tick labels and the y label (52 px left of the panel).
+        let (ml, mr, mt, mb) = (72.0, 14.0, 26.0, 42.0);
         let (pw, ph) = (w - ml - mr, h - mt - mb);
         let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
         for &(x, y) in self.series.iter().flat_map(|s| s.points.iter()) {
@@ -1578,8 +1579,14 @@ impl Plot<'_> {
                 ser.dash.then_some(DASH),
             );
         }
+        // The legend box as wide as its longest label (about 6.5 px a character at 11 px).
+        let legend_w = (self.series.iter())
+            .map(|ser| 40.0 + 6.5 * ser.label.chars().count() as f64)
+            .fold(90.0, f64::max)
+            .min(pw);
         for (k, ser) in self.series.iter().enumerate() {
-            panel.legend_styled(&mut s, k, ser.color, ser.label, ser.dash.then_some(DASH));
+            let dash = ser.dash.then_some(DASH);
+            panel.legend_styled(&mut s, k, ser.color, ser.label, dash, legend_w);
         }
         s.push_str("</svg>");
         s
