@@ -1,6 +1,8 @@
 //! surfstream-io: files in and out: instrument height-map formats ([`formats`]), NumPy arrays
-//! ([`npy`]), PNG previews ([`preview`]) and MCAP recordings ([`recording`]).
+//! ([`npy`]), PNG previews ([`preview`]), the figures' shared drawing helpers ([`figure`]) and MCAP
+//! recordings ([`recording`]).
 
+pub mod figure;
 pub mod formats;
 pub mod input;
 pub mod npy;

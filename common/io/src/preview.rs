@@ -21,11 +21,18 @@
 //!   [`PreviewOptions::min_side_px`] (default 256) is enlarged by an integer factor (nearest
 //!   neighbour), so tiny maps stay visible.
 //! - The file is written atomically ([`surfstream_core::fsutil::write_atomic`]).
+//!
+//! The colour map, the not-measured grey, the ticks and the map PNG are [`crate::figure`]'s
+//! (one colour map and one orientation for every figure), re-exported here.
 
 use std::io::Write;
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
+
+use crate::figure::block_mean;
+// The figure helpers previews draw with, under the names callers know them by.
+pub use crate::figure::{encode_map_png, ticks, viridis, MapPng, NAN_RGB, VIRIDIS};
 
 /// Lower robust percentile of the default colour range, in percent.
 pub const ROBUST_LOW_PERCENT: f64 = 0.5;
@@ -33,8 +40,6 @@ pub const ROBUST_LOW_PERCENT: f64 = 0.5;
 pub const ROBUST_HIGH_PERCENT: f64 = 99.5;
 /// At most this many heights are sorted for the percentiles (a strided subsample beyond).
 pub const PERCENTILE_SAMPLE_LIMIT: usize = 1 << 22;
-/// Colour of not-measured (non-finite) heights.
-pub const NAN_RGB: [u8; 3] = [128, 128, 128];
 
 const BACKGROUND_RGB: [u8; 3] = [255, 255, 255];
 const TEXT_RGB: [u8; 3] = [0, 0, 0];
@@ -476,80 +481,6 @@ fn render_reduced(
     })
 }
 
-/// The map alone (no title, no colour bar), as [`encode_map_png`] returns it.
-#[derive(Debug, Clone, PartialEq)]
-pub struct MapPng {
-    /// An 8-bit indexed PNG: palette entries 0..=254 are viridis from `range_um.0` to
-    /// `range_um.1` (heights outside saturate), entry 255 is [`NAN_RGB`] (not measured).
-    pub png: Vec<u8>,
-    pub rows: usize,
-    pub cols: usize,
-    /// Each pixel is the NaN-aware mean of a `block x block` block of heights.
-    pub block: usize,
-}
-
-/// The height map alone, reduced by NaN-aware block means until its longer side is at most
-/// `max_side_px`, coloured over `range_um` (low, high), as an indexed PNG (a third of the
-/// size of RGB, for pages that inline it). Row 0 at the top, as in [`write_preview_png`].
-pub fn encode_map_png(
-    heights: &[f32],
-    rows: usize,
-    cols: usize,
-    max_side_px: usize,
-    range_um: (f64, f64),
-) -> Result<MapPng> {
-    if rows == 0 || cols == 0 || rows.checked_mul(cols) != Some(heights.len()) {
-        bail!(
-            "height map is {rows} x {cols} but has {} values",
-            heights.len()
-        );
-    }
-    let (lo, hi) = range_um;
-    if !(lo.is_finite() && hi.is_finite() && lo < hi) {
-        bail!("colour range {lo} .. {hi} um is not an increasing pair of finite numbers");
-    }
-    let block = rows.max(cols).div_ceil(max_side_px.max(1)).max(1);
-    let (small, s_rows, s_cols) = if block > 1 {
-        let (m, r, c) = block_mean(heights, rows, cols, block);
-        (std::borrow::Cow::Owned(m), r, c)
-    } else {
-        (std::borrow::Cow::Borrowed(heights), rows, cols)
-    };
-    let index: Vec<u8> = small
-        .iter()
-        .map(|&v| {
-            if v.is_finite() {
-                ((v as f64 - lo) / (hi - lo) * 254.0)
-                    .round()
-                    .clamp(0.0, 254.0) as u8
-            } else {
-                255
-            }
-        })
-        .collect();
-    let mut palette = Vec::with_capacity(256 * 3);
-    for i in 0..255 {
-        palette.extend_from_slice(&viridis(i as f64 / 254.0));
-    }
-    palette.extend_from_slice(&NAN_RGB);
-    let mut png_bytes = Vec::new();
-    {
-        let mut enc = png::Encoder::new(&mut png_bytes, s_cols as u32, s_rows as u32);
-        enc.set_color(png::ColorType::Indexed);
-        enc.set_depth(png::BitDepth::Eight);
-        enc.set_palette(palette);
-        let mut w = enc.write_header().context("PNG encoding failed")?;
-        w.write_image_data(&index).context("PNG encoding failed")?;
-        w.finish().context("PNG encoding failed")?;
-    }
-    Ok(MapPng {
-        png: png_bytes,
-        rows: s_rows,
-        cols: s_cols,
-        block,
-    })
-}
-
 /// The default colour range: the [`ROBUST_LOW_PERCENT`] and [`ROBUST_HIGH_PERCENT`] percentiles
 /// of the finite heights, widened to +- 0.5 um around a flat map. `None` if no height is finite.
 pub fn robust_range_um(heights: &[f32]) -> Option<(f64, f64)> {
@@ -591,79 +522,9 @@ fn percentile(values: &mut [f32], p: f64) -> f64 {
     at_k + frac * (next - at_k)
 }
 
-/// Means of `block x block` blocks of finite values (NaN where a block has none); edge blocks
-/// average what they hold.
-fn block_mean(heights: &[f32], rows: usize, cols: usize, block: usize) -> (Vec<f32>, usize, usize) {
-    let out_rows = rows.div_ceil(block);
-    let out_cols = cols.div_ceil(block);
-    let mut out = Vec::with_capacity(out_rows * out_cols);
-    let mut sum = vec![0.0f64; out_cols];
-    let mut count = vec![0u32; out_cols];
-    for br in 0..out_rows {
-        sum.iter_mut().for_each(|s| *s = 0.0);
-        count.iter_mut().for_each(|n| *n = 0);
-        for r in br * block..((br + 1) * block).min(rows) {
-            let row = &heights[r * cols..(r + 1) * cols];
-            for (c, &v) in row.iter().enumerate() {
-                if v.is_finite() {
-                    sum[c / block] += v as f64;
-                    count[c / block] += 1;
-                }
-            }
-        }
-        out.extend(sum.iter().zip(&count).map(|(&s, &n)| {
-            if n > 0 {
-                (s / n as f64) as f32
-            } else {
-                f32::NAN
-            }
-        }));
-    }
-    (out, out_rows, out_cols)
-}
-
-/// About `n` "nice" tick values (1, 2 or 5 times a power of ten) inside `lo..=hi`, and the
-/// number of decimals their labels need. Shared by the PNG colour bars and report.html's axes.
-pub fn ticks(lo: f64, hi: f64, n: usize) -> (Vec<f64>, usize) {
-    let raw = (hi - lo) / n.max(1) as f64;
-    if !(raw > 0.0 && raw.is_finite()) {
-        return (Vec::new(), 0);
-    }
-    let mag = 10f64.powf(raw.log10().floor());
-    let step = [1.0, 2.0, 5.0, 10.0]
-        .iter()
-        .map(|m| m * mag)
-        .find(|s| *s >= raw * (1.0 - 1e-9))
-        .unwrap_or(10.0 * mag);
-    let decimals = (-(step.log10().floor())).clamp(0.0, 9.0) as usize;
-    let first = (lo / step).ceil() as i64;
-    let last = (hi / step).floor() as i64;
-    ((first..=last).map(|i| i as f64 * step).collect(), decimals)
-}
-
 /// At most about eight nice ticks inside `lo..=hi`, with their labels.
 fn nice_ticks(lo: f64, hi: f64) -> Vec<(f64, String)> {
-    let (values, decimals) = ticks(lo, hi, 8);
-    values
-        .into_iter()
-        .map(|v| {
-            let mut label = format!("{v:.decimals$}");
-            if label.starts_with('-') && label[1..].chars().all(|c| c == '0' || c == '.') {
-                label.remove(0); // "-0.0" -> "0.0"
-            }
-            (v, label)
-        })
-        .collect()
-}
-
-/// Viridis colour of `t` in 0..1 (clamped; NaN gives the first colour).
-pub fn viridis(t: f64) -> [u8; 3] {
-    let i = if t.is_nan() {
-        0.0
-    } else {
-        (t.clamp(0.0, 1.0) * 255.0).round()
-    };
-    VIRIDIS[i as usize]
+    crate::figure::labelled_ticks(lo, hi, 8)
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -824,76 +685,6 @@ const FONT: &[(char, [u8; 7])] = &[
     ('x', [0b00000, 0b00000, 0b10001, 0b01010, 0b00100, 0b01010, 0b10001]),
     ('y', [0b00000, 0b00000, 0b10001, 0b10001, 0b01111, 0b00001, 0b01110]),
     ('z', [0b00000, 0b00000, 0b11111, 0b00010, 0b00100, 0b01000, 0b11111]),
-];
-
-/// Viridis, 256 entries (matplotlib's colour map by Nathaniel J. Smith, Stefan van der Walt and
-/// Eric Firing, released under CC0; rounded to 8 bits).
-#[rustfmt::skip]
-const VIRIDIS: [[u8; 3]; 256] = [
-    [68, 1, 84], [68, 2, 86], [69, 4, 87], [69, 5, 89],
-    [70, 7, 90], [70, 8, 92], [70, 10, 93], [70, 11, 94],
-    [71, 13, 96], [71, 14, 97], [71, 16, 99], [71, 17, 100],
-    [71, 19, 101], [72, 20, 103], [72, 22, 104], [72, 23, 105],
-    [72, 24, 106], [72, 26, 108], [72, 27, 109], [72, 28, 110],
-    [72, 29, 111], [72, 31, 112], [72, 32, 113], [72, 33, 115],
-    [72, 35, 116], [72, 36, 117], [72, 37, 118], [72, 38, 119],
-    [72, 40, 120], [72, 41, 121], [71, 42, 122], [71, 44, 122],
-    [71, 45, 123], [71, 46, 124], [71, 47, 125], [70, 48, 126],
-    [70, 50, 126], [70, 51, 127], [70, 52, 128], [69, 53, 129],
-    [69, 55, 129], [69, 56, 130], [68, 57, 131], [68, 58, 131],
-    [68, 59, 132], [67, 61, 132], [67, 62, 133], [66, 63, 133],
-    [66, 64, 134], [66, 65, 134], [65, 66, 135], [65, 68, 135],
-    [64, 69, 136], [64, 70, 136], [63, 71, 136], [63, 72, 137],
-    [62, 73, 137], [62, 74, 137], [62, 76, 138], [61, 77, 138],
-    [61, 78, 138], [60, 79, 138], [60, 80, 139], [59, 81, 139],
-    [59, 82, 139], [58, 83, 139], [58, 84, 140], [57, 85, 140],
-    [57, 86, 140], [56, 88, 140], [56, 89, 140], [55, 90, 140],
-    [55, 91, 141], [54, 92, 141], [54, 93, 141], [53, 94, 141],
-    [53, 95, 141], [52, 96, 141], [52, 97, 141], [51, 98, 141],
-    [51, 99, 141], [50, 100, 142], [50, 101, 142], [49, 102, 142],
-    [49, 103, 142], [49, 104, 142], [48, 105, 142], [48, 106, 142],
-    [47, 107, 142], [47, 108, 142], [46, 109, 142], [46, 110, 142],
-    [46, 111, 142], [45, 112, 142], [45, 113, 142], [44, 113, 142],
-    [44, 114, 142], [44, 115, 142], [43, 116, 142], [43, 117, 142],
-    [42, 118, 142], [42, 119, 142], [42, 120, 142], [41, 121, 142],
-    [41, 122, 142], [41, 123, 142], [40, 124, 142], [40, 125, 142],
-    [39, 126, 142], [39, 127, 142], [39, 128, 142], [38, 129, 142],
-    [38, 130, 142], [38, 130, 142], [37, 131, 142], [37, 132, 142],
-    [37, 133, 142], [36, 134, 142], [36, 135, 142], [35, 136, 142],
-    [35, 137, 142], [35, 138, 141], [34, 139, 141], [34, 140, 141],
-    [34, 141, 141], [33, 142, 141], [33, 143, 141], [33, 144, 141],
-    [33, 145, 140], [32, 146, 140], [32, 146, 140], [32, 147, 140],
-    [31, 148, 140], [31, 149, 139], [31, 150, 139], [31, 151, 139],
-    [31, 152, 139], [31, 153, 138], [31, 154, 138], [30, 155, 138],
-    [30, 156, 137], [30, 157, 137], [31, 158, 137], [31, 159, 136],
-    [31, 160, 136], [31, 161, 136], [31, 161, 135], [31, 162, 135],
-    [32, 163, 134], [32, 164, 134], [33, 165, 133], [33, 166, 133],
-    [34, 167, 133], [34, 168, 132], [35, 169, 131], [36, 170, 131],
-    [37, 171, 130], [37, 172, 130], [38, 173, 129], [39, 173, 129],
-    [40, 174, 128], [41, 175, 127], [42, 176, 127], [44, 177, 126],
-    [45, 178, 125], [46, 179, 124], [47, 180, 124], [49, 181, 123],
-    [50, 182, 122], [52, 182, 121], [53, 183, 121], [55, 184, 120],
-    [56, 185, 119], [58, 186, 118], [59, 187, 117], [61, 188, 116],
-    [63, 188, 115], [64, 189, 114], [66, 190, 113], [68, 191, 112],
-    [70, 192, 111], [72, 193, 110], [74, 193, 109], [76, 194, 108],
-    [78, 195, 107], [80, 196, 106], [82, 197, 105], [84, 197, 104],
-    [86, 198, 103], [88, 199, 101], [90, 200, 100], [92, 200, 99],
-    [94, 201, 98], [96, 202, 96], [99, 203, 95], [101, 203, 94],
-    [103, 204, 92], [105, 205, 91], [108, 205, 90], [110, 206, 88],
-    [112, 207, 87], [115, 208, 86], [117, 208, 84], [119, 209, 83],
-    [122, 209, 81], [124, 210, 80], [127, 211, 78], [129, 211, 77],
-    [132, 212, 75], [134, 213, 73], [137, 213, 72], [139, 214, 70],
-    [142, 214, 69], [144, 215, 67], [147, 215, 65], [149, 216, 64],
-    [152, 216, 62], [155, 217, 60], [157, 217, 59], [160, 218, 57],
-    [162, 218, 55], [165, 219, 54], [168, 219, 52], [170, 220, 50],
-    [173, 220, 48], [176, 221, 47], [178, 221, 45], [181, 222, 43],
-    [184, 222, 41], [186, 222, 40], [189, 223, 38], [192, 223, 37],
-    [194, 223, 35], [197, 224, 33], [200, 224, 32], [202, 225, 31],
-    [205, 225, 29], [208, 225, 28], [210, 226, 27], [213, 226, 26],
-    [216, 226, 25], [218, 227, 25], [221, 227, 24], [223, 227, 24],
-    [226, 228, 24], [229, 228, 25], [231, 228, 25], [234, 229, 26],
-    [236, 229, 27], [239, 229, 28], [241, 229, 29], [244, 230, 30],
-    [246, 230, 32], [248, 230, 33], [251, 231, 35], [253, 231, 37],
 ];
 
 #[cfg(test)]

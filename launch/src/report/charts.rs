@@ -4,9 +4,9 @@
 use std::fmt::Write as _;
 
 use super::html::{length, um};
-use super::plot::{Axis, Panel};
 use super::surface_stats::{material_ratio_curve, radial_psd, Histogram};
 use super::surfaces::Surface;
+use surfstream_io::figure::{Axis, Panel};
 
 /// Histogram (left, % of points per bin, drawn sideways so both panels share the height axis)
 /// and the Abbott-Firestone curve (right, material ratio in %).

@@ -7,7 +7,7 @@ use std::fmt::Write as _;
 use surfstream_core::record::{CurvePointRecord, MeshReport, RunRecord};
 
 use super::html::esc;
-use super::plot::{Axis, Panel};
+use surfstream_io::figure::{Axis, Panel};
 
 /// LIGGGHTS' cost of one mesh triangle per time step, us: measured with the Debian
 /// `liggghts` 3.8 binary on this project's machine (docs/model.md gives the command and the

@@ -82,6 +82,8 @@ fn render(dir: &Path, rel: &str) -> Result<String> {
     let f = surfstream_finish::html::figures(&s, &original, &worn, &wear, rows, cols)?;
     let mut h = String::new();
     let (b, a) = (&s.before, &s.after);
+    // The folder as it goes into the link's attribute and the text.
+    let rel = esc(rel);
     let _ = write!(
         h,
         "<section id=\"finish\"><h2>Finishing simulation{}</h2>\
@@ -249,5 +251,77 @@ mod tests {
         std::fs::write(f.join("wear.npy"), "").unwrap();
         let s = section_of(&run, dir.path());
         assert!(s.contains("Not shown") && s.contains("finish.json"), "{s}");
+    }
+
+    /// A finish.json with the fields every page needs.
+    fn example_summary() -> FinishSummary {
+        let params = serde_json::json!({"Sa": 1.0, "Sq": 1.0, "Spk": 1.0, "Sp": 1.0, "Sv": 1.0,
+            "Sz": 1.0, "Ssk": 1.0, "Sku": 1.0, "Sdq": 1.0, "Sk": 1.0, "Svk": 1.0, "Smr1": 1.0,
+            "Smr2": 1.0});
+        let curve =
+            serde_json::json!({"material_ratio_pct": [0.0, 100.0], "height_um": [1.0, -1.0]});
+        serde_json::from_value(serde_json::json!({
+            "model": "m.x3p", "cycles_completed": 0, "cycles_requested": 1,
+            "before": params, "after": params, "abbott_before": curve, "abbott_after": curve,
+            "timings": {"engine_s": 0.0, "total_s": 1.0},
+        }))
+        .unwrap()
+    }
+
+    /// Issue 39: report.html's maps and the finishing figures (finish.html's, shown in
+    /// report.html's finishing section) give one normalised height one colour: the same
+    /// palette (viridis, the not-measured grey) and the same colour-bar stops.
+    #[test]
+    fn both_reports_colour_a_normalised_height_alike() {
+        let (rows, cols) = (6, 6);
+        let z: Vec<f64> = (0..rows * cols).map(|i| i as f64 * 0.1).collect();
+        let surface = crate::report::surfaces::Surface {
+            name: "panorama",
+            z: z.clone(),
+            rows,
+            cols,
+            pitch_x_um: 1.0,
+            pitch_y_um: 1.0,
+            block: 1,
+            file_shape: (rows, cols),
+        };
+        let report_map = super::super::maps::figure(&surface, "t", "mean", None, None);
+        let summary = example_summary();
+        let wear = vec![0.0; rows * cols];
+        let f = surfstream_finish::html::figures(&summary, &z, &z, &wear, rows, cols).unwrap();
+        let report = super::super::maps::tests::inline_pngs(&report_map);
+        let finish = super::super::maps::tests::inline_pngs(&f.original_map);
+        assert_eq!(report[0].0.len(), 256 * 3);
+        assert_eq!(report[0].0, finish[0].0, "one palette");
+        for i in [0usize, 100, 254] {
+            let t = i as f64 / 254.0;
+            assert_eq!(
+                report[0].0[i * 3..i * 3 + 3],
+                surfstream_io::figure::viridis(t)
+            );
+        }
+        let stops = surfstream_io::figure::gradient_stops(surfstream_io::figure::viridis);
+        assert!(report_map.contains(&stops) && f.original_map.contains(&stops));
+    }
+
+    /// A folder name with a quote cannot end the link's attribute in report.html.
+    #[test]
+    fn the_link_to_finish_html_is_escaped() {
+        let d = tempfile::tempdir().unwrap();
+        let dir = d.path().join("fin\"x");
+        std::fs::create_dir_all(&dir).unwrap();
+        let summary = example_summary();
+        std::fs::write(
+            dir.join("finish.json"),
+            serde_json::to_string(&summary).unwrap(),
+        )
+        .unwrap();
+        let z: Vec<f64> = (0..16).map(|i| i as f64 * 0.1).collect();
+        for f in ["wear.npy", "original.npy", "worn.npy"] {
+            surfstream_io::npy::write_npy_f64(dir.join(f), &z, 4, 4).unwrap();
+        }
+        let h = render(&dir, "fin\"x").unwrap();
+        assert!(h.contains("<a href=\"fin&quot;x/finish.html\">"), "{h}");
+        assert!(!h.contains("fin\"x"));
     }
 }

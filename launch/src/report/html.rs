@@ -1,31 +1,14 @@
-//! Small HTML / SVG helpers of the report: escaping, tables, number formats, nice axis ticks,
-//! base64 and PNG encoding. Every number a person reads goes through [`fixed`] or [`um`], so
-//! the page uses one precision per quantity.
+//! Small HTML helpers of the report: tables, number formats, base64 and PNG encoding; the
+//! escaping, the fixed-decimals format and the SVG paths are the figures' own
+//! ([`surfstream_io::figure`], shared with finish.html), re-exported. Every number a person
+//! reads goes through [`fixed`] or [`um`], so the page uses one precision per quantity.
 
 use std::fmt::Write as _;
 
 use anyhow::{Context, Result};
 use serde_json::Value;
 
-pub fn esc(s: &str) -> String {
-    s.replace('&', "&amp;")
-        .replace('<', "&lt;")
-        .replace('>', "&gt;")
-        .replace('"', "&quot;")
-}
-
-/// `v` with `decimals` decimals, "-" when not finite; "-0.000" shows as "0.000".
-pub fn fixed(v: f64, decimals: usize) -> String {
-    if !v.is_finite() {
-        return "-".into();
-    }
-    let s = format!("{v:.decimals$}");
-    if s.starts_with('-') && s[1..].chars().all(|c| c == '0' || c == '.') {
-        s[1..].to_string()
-    } else {
-        s
-    }
-}
+pub use surfstream_io::figure::{esc, fixed, path_d};
 
 /// A length in micrometres with a precision that suits its size: "0.0153 um", "1.510 um",
 /// "15.23 um", "1584.8 um".
@@ -132,8 +115,6 @@ pub fn table_raw(head: &[&str], rows: &[(String, Vec<String>)]) -> String {
     s
 }
 
-pub use surfstream_io::preview::ticks;
-
 /// Standard base64 (RFC 4648) with padding.
 pub fn base64(bytes: &[u8]) -> String {
     use base64::Engine as _;
@@ -154,26 +135,10 @@ pub fn png_rgb(rgb: &[u8], width: usize, height: usize) -> Result<Vec<u8>> {
     Ok(out)
 }
 
-/// An SVG polyline's points attribute; `None` points break the line into segments, so the
-/// result is one `d` of a path.
-pub fn path_d(points: impl IntoIterator<Item = Option<(f64, f64)>>) -> String {
-    let mut d = String::new();
-    let mut pen_down = false;
-    for p in points {
-        match p {
-            Some((x, y)) if x.is_finite() && y.is_finite() => {
-                let _ = write!(d, "{}{x:.1},{y:.1}", if pen_down { "L" } else { "M" });
-                pen_down = true;
-            }
-            _ => pen_down = false,
-        }
-    }
-    d
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use surfstream_io::figure::ticks;
 
     #[test]
     fn base64_matches_rfc4648_vectors() {

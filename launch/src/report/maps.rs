@@ -1,17 +1,19 @@
 //! The height maps as figures: the map itself (an indexed PNG from
 //! [`surfstream_io::preview::encode_map_png`]) inside an SVG that draws what a reader needs to
-//! read it: x and y axes in mm or um from the map's top-left corner, a scale bar, the colour
+//! read it: x and y axes in mm or um from the map's top-left corner (row 0 at the top, y
+//! down: the one orientation of [`surfstream_io::figure`]), a scale bar, the colour
 //! bar with its unit and its clipping (the 0.5 / 99.5 percentiles of the map's valid heights,
 //! how many points saturate), the grey of "not measured" and how many points it covers. A
 //! click on the map opens it at full size (the page's script).
 
 use std::fmt::Write as _;
 
-use surfstream_io::preview::{
-    encode_map_png, robust_range_um, viridis, NAN_RGB, ROBUST_HIGH_PERCENT, ROBUST_LOW_PERCENT,
+use surfstream_io::figure::{
+    css_rgb, encode_map_png, esc, fixed, gradient_stops, ticks, viridis, NAN_RGB,
 };
+use surfstream_io::preview::{robust_range_um, ROBUST_HIGH_PERCENT, ROBUST_LOW_PERCENT};
 
-use super::html::{base64, esc, fixed, length, pitch, round_length, ticks, um};
+use super::html::{base64, length, pitch, round_length, um};
 use super::surfaces::Surface;
 
 /// Longest side of an inlined map, px: near the figure's drawn width (860 CSS px), so the
@@ -44,12 +46,8 @@ pub fn figure(
     cut: Option<&Cut>,
     out: Option<&std::path::Path>,
 ) -> String {
-    // y up, as a surface is drawn (row 0 = smallest y at the bottom): the image's rows are
-    // stored top first, so they go in reversed.
-    let values: Vec<f32> = {
-        let v = s.to_f32();
-        v.chunks(s.cols.max(1)).rev().flatten().copied().collect()
-    };
+    // Row 0 at the top (surfstream_io::figure): the rows go in as stored.
+    let values: Vec<f32> = s.to_f32();
     let Some((lo, hi)) = robust_range_um(&values) else {
         return format!(
             "<figure class=\"map\"><figcaption><b>{}</b>: no measured point</figcaption></figure>",
@@ -104,14 +102,7 @@ pub fn figure(
         at.height,
         t = esc(title)
     );
-    for k in 0..=16 {
-        let t = k as f64 / 16.0;
-        let [r, gg, b] = viridis(t);
-        let _ = write!(
-            g,
-            "<stop offset=\"{t:.4}\" stop-color=\"rgb({r},{gg},{b})\"/>"
-        );
-    }
+    g.push_str(&gradient_stops(viridis));
     let (mw, mh) = (at.mw, at.mh);
     let _ = write!(
         g,
@@ -138,7 +129,7 @@ pub fn figure(
 
     let (w_um, h_um) = (at.w_um, at.h_um);
     let caption = format!(
-        "<b>{}</b>: {} x {} px (rows x cols), {} x {} at {} pitch, y up (row 0 at the bottom); heights {}. \
+        "<b>{}</b>: {} x {} px (rows x cols), {} x {} at {} pitch, row 0 at the top (y down from the top edge); heights {}. \
          Colour scale clipped to the {ROBUST_LOW_PERCENT} / {ROBUST_HIGH_PERCENT} percentiles \
          of the measured heights, {} .. {}: {}&nbsp;% of the points lie below and {}&nbsp;% above \
          and take the end colours. Grey: not measured ({} points, {}&nbsp;%). {}\
@@ -233,7 +224,7 @@ impl MapLayout {
         }
     }
 
-    /// x along the bottom, y up the left, from the bottom-left corner (y up).
+    /// x along the bottom, y down the left, from the top-left corner (row 0 at the top).
     fn axes(&self, g: &mut String) {
         let (mw, mh, w_um, h_um) = (self.mw, self.mh, self.w_um, self.h_um);
         let (unit, div) = (self.unit, self.div);
@@ -258,7 +249,7 @@ impl MapLayout {
         );
         let (yt, yd) = ticks(0.0, h_um / div, 8);
         for v in &yt {
-            let y = TOP + mh - v * div / h_um * mh;
+            let y = TOP + v * div / h_um * mh;
             let _ = write!(
                 g,
                 "<line x1=\"{x0:.1}\" y1=\"{y:.1}\" x2=\"{LEFT}\" y2=\"{y:.1}\" stroke=\"#333\"/>\
@@ -307,7 +298,7 @@ impl MapLayout {
     /// The profile cut: a dashed line across the map at its row, labelled.
     fn cut_line(&self, g: &mut String, cut: &Cut, rows: usize) {
         let (mw, mh) = (self.mw, self.mh);
-        let y = TOP + mh - (cut.row as f64 + 0.5) / rows as f64 * mh;
+        let y = TOP + (cut.row as f64 + 0.5) / rows as f64 * mh;
         let _ = write!(
             g,
             "<line x1=\"{LEFT}\" y1=\"{y:.1}\" x2=\"{:.1}\" y2=\"{y:.1}\" stroke=\"#fff\" \
@@ -350,16 +341,91 @@ impl MapLayout {
             );
         }
         let sw_y = bar_top + bar_h + 14.0;
-        let [r, gg, b] = NAN_RGB;
         let _ = write!(
             g,
             "<rect x=\"{bar_x:.1}\" y=\"{sw_y:.1}\" width=\"{bar_w}\" height=\"14\" \
-             fill=\"rgb({r},{gg},{b})\" stroke=\"#333\"/><text x=\"{:.1}\" y=\"{:.1}\" \
+             fill=\"{}\" stroke=\"#333\"/><text x=\"{:.1}\" y=\"{:.1}\" \
              class=\"tick\">not</text><text x=\"{:.1}\" y=\"{:.1}\" class=\"tick\">measured</text></svg>",
+            css_rgb(NAN_RGB),
             bar_x + bar_w + 6.0,
             sw_y + 6.0,
             bar_x + bar_w + 6.0,
             sw_y + 19.0,
         );
+    }
+}
+
+#[cfg(test)]
+pub(super) mod tests {
+    use super::*;
+
+    /// The inline PNGs of a page or figure, decoded: (palette, indices, width).
+    pub(in super::super) fn inline_pngs(html: &str) -> Vec<(Vec<u8>, Vec<u8>, u32)> {
+        use base64::Engine as _;
+        html.match_indices("data:image/png;base64,")
+            .map(|(k, m)| {
+                let rest = &html[k + m.len()..];
+                let bytes = base64::engine::general_purpose::STANDARD
+                    .decode(&rest[..rest.find('"').unwrap()])
+                    .unwrap();
+                let mut reader = png::Decoder::new(std::io::Cursor::new(bytes))
+                    .read_info()
+                    .unwrap();
+                let palette = reader.info().palette.clone().unwrap().to_vec();
+                let mut buf = vec![0; reader.output_buffer_size()];
+                let info = reader.next_frame(&mut buf).unwrap();
+                buf.truncate(info.buffer_size());
+                (palette, buf, info.width)
+            })
+            .collect()
+    }
+
+    /// Issue 39: row 0 at the top, as the instrument and Python's plot() show it, the y axis
+    /// reading 0 at the top edge; the profile cut drawn at its row from the top.
+    #[test]
+    fn maps_draw_row_0_at_the_top() {
+        let (rows, cols) = (4, 4);
+        // Row 0 high, the others low.
+        let z: Vec<f64> = (0..rows * cols)
+            .map(|i| if i < cols { 1.0 } else { 0.0 })
+            .collect();
+        let s = Surface {
+            name: "panorama",
+            z,
+            rows,
+            cols,
+            pitch_x_um: 1.0,
+            pitch_y_um: 1.0,
+            block: 1,
+            file_shape: (rows, cols),
+        };
+        let cut = Cut {
+            row: 0,
+            label: "cut".into(),
+        };
+        let f = figure(&s, "t", "mean", Some(&cut), None);
+        let pngs = inline_pngs(&f);
+        let (_, index, w) = &pngs[0];
+        assert_eq!(*w, 4);
+        assert_eq!(&index[..4], &[254; 4], "row 0 (high) in the top image row");
+        assert_eq!(&index[12..], &[0; 4], "the last row (low) at the bottom");
+        // The y axis: 0 at the top edge of the map (y = TOP).
+        assert!(
+            f.contains(&format!(
+                "x2=\"{LEFT}\" y2=\"{TOP:.1}\" stroke=\"#333\"/><text x=\"{:.1}\" y=\"{:.1}\" \
+                 class=\"tick\" text-anchor=\"end\">0.0</text>",
+                LEFT - 8.0,
+                TOP + 4.0
+            )),
+            "{f}"
+        );
+        // The cut on row 0 lies in the top quarter of the map.
+        let at = MapLayout::of(&s);
+        let y = TOP + 0.5 / rows as f64 * at.mh;
+        assert!(f.contains(&format!(
+            "y1=\"{y:.1}\" x2=\"{:.1}\" y2=\"{y:.1}\" stroke=\"#fff\"",
+            LEFT + at.mw
+        )));
+        assert!(f.contains("row 0 at the top"));
     }
 }

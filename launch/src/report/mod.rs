@@ -18,7 +18,6 @@ mod details;
 mod finish;
 mod html;
 mod maps;
-mod plot;
 mod profile;
 mod summary;
 mod surface_stats;
@@ -276,7 +275,8 @@ mod tests {
     }
 
     /// Issue 26: one labelled set of parameters (which surface, not levelled) with the Sk
-    /// family, the mesh's levelled fidelity labelled as such, maps y up, the 3-D view with
+    /// family, the mesh's levelled fidelity labelled as such, maps with row 0 at the top (issue
+    /// 39: the instrument's and Python's orientation), the 3-D view with
     /// axes and a z scale, the tile caption as y x x, and big maps inline at display size
     /// with the full-size file beside the page.
     #[test]
@@ -320,7 +320,8 @@ mod tests {
         }
         assert!(h.contains("Fidelity of the mesh ("));
         assert!(h.contains("<td>275 x 325</td>"), "mesh grid as rows x cols");
-        assert!(h.contains("y up (row 0 at the bottom)"));
+        assert!(h.contains("row 0 at the top (y down from the top edge)"));
+        assert!(!h.contains("y up"), "one orientation");
         assert!(h.contains("µm (y x x), y down as the stage moves"));
         // The 3-D view: axes and a z scale over the render.
         assert!(h.contains(">x (µm)</text>") && h.contains(">y (µm)</text>") && h.contains(">z "));

@@ -5,8 +5,8 @@
 use std::fmt::Write as _;
 
 use super::html::{length, pitch};
-use super::plot::{Axis, Panel};
 use super::surfaces::Surfaces;
+use surfstream_io::figure::{Axis, Panel};
 
 /// The row the profile runs along, on the panorama as held (block means when decimated).
 pub fn row(s: &Surfaces) -> Option<usize> {
@@ -88,8 +88,8 @@ pub fn section(s: &Surfaces) -> Option<String> {
     }
     g.push_str("</svg>");
     Some(format!(
-        "<figure class=\"wide\">{g}<figcaption>Row {r} of {} (y = {} from the bottom edge, row 0, the dashed \
-         line on the panorama), {} long, {} points at {} pitch; heights relative to the \
+        "<figure class=\"wide\">{g}<figcaption>Row {r} of {} (y = {} down from the top edge, where row 0 is, the \
+         dashed line on the panorama), {} long, {} points at {} pitch; heights relative to the \
          panorama's mean. Gaps: not measured.</figcaption></figure>",
         p.file_shape.0,
         length((r as f64 + 0.5) * pitch_y_um),

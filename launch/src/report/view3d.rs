@@ -3,14 +3,16 @@
 //! stays one file that works offline.
 //!
 //! Orthographic camera 35° above the surface, turned 30° about the vertical from the maps'
-//! bottom edge (the largest y, nearest the viewer); heights exaggerated so the colour range is
+//! bottom edge (the last row, the largest y, nearest the viewer: the maps draw row 0 at the
+//! top, [`surfstream_io::figure`]); heights exaggerated so the colour range is
 //! 5 % of the longer side (the factor is stated); two triangles per grid cell, flat-shaded
 //! (Lambert, light from the far left, above) in the maps' viridis colours, depth-buffered, and
 //! a grey base block under the surface; drawn at twice the size and box-filtered down.
 
 use std::fmt::Write as _;
 
-use surfstream_io::preview::{robust_range_um, viridis};
+use surfstream_io::figure::viridis;
+use surfstream_io::preview::robust_range_um;
 
 use super::html::{base64, esc, fixed, length, png_rgb};
 use super::surfaces::Surface;
@@ -176,10 +178,11 @@ impl Camera {
         cam
     }
 
-    /// World (x right, y away from the viewer, z up: row 0, the maps' bottom edge, in front,
-    /// as the maps are drawn y up) -> (u right, v up, depth toward the viewer).
+    /// World (x right, y toward the viewer, z up: the last row, the maps' bottom edge, in
+    /// front, row 0 at the back, as the maps draw row 0 at the top) -> (u right, v up, depth
+    /// toward the viewer).
     fn project(&self, x: f64, y: f64, zz: f64) -> (f64, f64, f64) {
-        let (xw, yw) = (x - self.cx, self.cy - y);
+        let (xw, yw) = (x - self.cx, y - self.cy);
         let xr = xw * self.ca + yw * self.sa;
         let yr = -xw * self.sa + yw * self.ca;
         (xr, zz * self.ce - yr * self.se, yr * self.ce + zz * self.se)
@@ -198,11 +201,11 @@ impl Camera {
     }
 }
 
-/// Flat Lambert shading, light from the far left (y grows away from the viewer), above.
+/// Flat Lambert shading, light from the far left (y grows toward the viewer), above.
 fn shade(nx: f64, ny: f64, nz: f64) -> f32 {
     // Normalised once, not per drawn cell.
     static LIGHT: std::sync::LazyLock<[f64; 3]> = std::sync::LazyLock::new(|| {
-        let l = [-0.8f64, 1.0, 1.3];
+        let l = [-0.8f64, -1.0, 1.3];
         let n = (l[0] * l[0] + l[1] * l[1] + l[2] * l[2]).sqrt();
         [l[0] / n, l[1] / n, l[2] / n]
     });
@@ -311,33 +314,34 @@ impl ViewGrid {
         side(ras, &edge(&|i| (i, cols - 1), rows), (1.0, 0.0));
     }
 
-    /// Axes along the base's front and left edges, and a z scale bar at the front-left
-    /// corner, as SVG in output pixels.
+    /// Axes along the base's front (y = the map's height) and left edges, and a z scale bar
+    /// at the front-left corner, as SVG in output pixels.
     fn overlay(&self, cam: &Camera) -> String {
         let (w_um, h_um) = (self.cols as f64 * self.dx, self.rows as f64 * self.dy);
         let (base_z, hi, ex) = (self.base_z, self.hi, self.ex);
         let mut overlay = String::new();
         let xs: Vec<(f64, (f64, f64))> = [0.0, 0.5, 1.0]
             .iter()
-            .map(|f| (f * w_um, cam.px(f * w_um, 0.0, base_z)))
+            .map(|f| (f * w_um, cam.px(f * w_um, h_um, base_z)))
             .collect();
         axis(
             &mut overlay,
-            cam.px(0.0, 0.0, base_z),
-            cam.px(w_um, 0.0, base_z),
+            cam.px(0.0, h_um, base_z),
+            cam.px(w_um, h_um, base_z),
             "x (µm)",
             &xs,
             (0.0, 16.0),
             "middle",
         );
-        let ys: Vec<(f64, (f64, f64))> = [0.5, 1.0]
+        // y from the front-left corner (y = h_um, labelled by x) back to row 0 (y = 0).
+        let ys: Vec<(f64, (f64, f64))> = [0.5, 0.0]
             .iter()
             .map(|f| (f * h_um, cam.px(0.0, f * h_um, base_z)))
             .collect();
         axis(
             &mut overlay,
-            cam.px(0.0, 0.0, base_z),
             cam.px(0.0, h_um, base_z),
+            cam.px(0.0, 0.0, base_z),
             "y (µm)",
             &ys,
             (-10.0, 10.0),
@@ -346,8 +350,8 @@ impl ViewGrid {
         // z: a bar of a round height, drawn at the exaggerated scale, labelled in true µm.
         let z_bar = round2((hi - self.lo) / 2.0);
         if z_bar.is_finite() && z_bar > 0.0 {
-            let top = cam.px(0.0, 0.0, hi * ex);
-            let bottom = cam.px(0.0, 0.0, hi * ex - z_bar * ex);
+            let top = cam.px(0.0, h_um, hi * ex);
+            let bottom = cam.px(0.0, h_um, hi * ex - z_bar * ex);
             let x = top.0 - 14.0;
             let _ = write!(
                 overlay,
@@ -480,7 +484,7 @@ pub fn figure(s: &Surface, what: &str) -> Option<String> {
          <img class=\"zoomable view3d\" alt=\"3-D view of the {n}\" \
          data-title=\"3-D view of the {n}\" src=\"data:image/png;base64,{}\">\
          <svg viewBox=\"0 0 {WIDTH} {HEIGHT}\" style=\"position:absolute;left:0;top:0;width:100%;height:100%;pointer-events:none\">{overlay}</svg></div>\
-         <figcaption>The {} ({} x {}, y x x), seen from its front edge (the maps' bottom edge, y = 0) turned \
+         <figcaption>The {} ({} x {}, y x x), seen from its front edge (the maps' bottom edge: the last row, y largest; row 0 at the back) turned \
          {AZIMUTH_DEG}° and {ELEVATION_DEG}° above it; heights exaggerated <b>{} x</b>; \
          colours as in the maps (viridis over the 0.5 / 99.5 percentiles), shaded by a light \
          from the far left; grey: the base block. Drawn from a {} x {} grid{}. Static render, \

@@ -4,6 +4,10 @@
 //! the Abbott-Firestone curves before/after with their difference and a zoom on the peaks, and
 //! the parameters beside the paper's.
 //!
+//! The drawing helpers (escaping, ticks, the viridis colour map, the map PNG, the plot
+//! panels) are [`surfstream_io::figure`]'s, the same as report.html's: one colour for one
+//! normalised height, one tick algorithm, row 0 at the top.
+//!
 //! Every number comes from finish.json's typed record ([`FinishSummary`]), so a renamed field
 //! fails to compile here. A field finish.json holds as null (absent, or a NaN that serde_json
 //! writes as null) prints "–".
@@ -14,6 +18,7 @@ use std::path::Path;
 
 use anyhow::{anyhow, Context, Result};
 use base64::Engine;
+use surfstream_io::figure::{self, esc, labelled_ticks, Axis, Panel};
 
 use crate::field::ApproachDistribution;
 use crate::run::SurfaceParams;
@@ -349,7 +354,8 @@ td,th{{border:1px solid #ccc;padding:3px 8px;text-align:right;font-size:13px}}\
 td.k,th.k{{text-align:left}}td.t{{text-align:left;color:#555;max-width:360px}}\
 .row{{display:flex;gap:22px;flex-wrap:wrap;align-items:flex-start;margin-bottom:18px}}\
 figure{{margin:0;width:min-content}}figcaption{{font-size:13px;color:#555}}\
-h2{{margin-top:26px;border-bottom:1px solid #ddd}}.warn{{color:#b03a00}}</style></head><body>\
+h2{{margin-top:26px;border-bottom:1px solid #ddd}}.warn{{color:#b03a00}}\
+svg .tick{{font-size:11px;fill:#222}}svg .axis{{font-size:12px;fill:#111}}svg .grid{{stroke:#e4e4e4;stroke-width:1}}</style></head><body>\
 <h1>Finishing simulation{}</h1><p><b>{}</b> Model: {}.</p>",
         if partial {
             " <span class=\"warn\">(partial: stopped early)</span>"
@@ -357,7 +363,7 @@ h2{{margin-top:26px;border-bottom:1px solid #ddd}}.warn{{color:#b03a00}}</style>
             ""
         },
         headline,
-        html_escape(&summary.model),
+        esc(&summary.model),
     )
     .ok();
     write!(
@@ -396,7 +402,7 @@ zero at the right (valleys). The worn surface is re-levelled after wear; that sh
 fn scales_section(s: &FinishSummary) -> String {
     let mut h = String::from("<h2>The machine (macro run) and the patch model (micro passes)</h2>");
     if let Some(p) = &s.cycle_path {
-        let _ = write!(h, "<p>Cycles: {}.</p>", html_escape(p));
+        let _ = write!(h, "<p>Cycles: {}.</p>", esc(p));
     }
     let mut row = String::from("<div class=\"row\">");
     match &s.macro_run {
@@ -420,8 +426,8 @@ fn scales_section(s: &FinishSummary) -> String {
 <tr><td class=\"k\">softened media keep</td><td class=\"t\" colspan=\"3\">{}</td></tr>\
 <tr><td class=\"k\">not kept (from the micro passes)</td><td class=\"t\" colspan=\"3\">{}</td></tr>\
 <tr><td class=\"k\">engine</td><td colspan=\"3\">{} s on {} rank(s), {:.2e} s per particle-step</td></tr></table>",
-                html_escape(&m.engine),
-                html_escape(&m.machine),
+                esc(&m.engine),
+                esc(&m.machine),
                 m.media_count,
                 num(m.simulated_s, 2),
                 num(m.settle_s, 2),
@@ -439,8 +445,8 @@ fn scales_section(s: &FinishSummary) -> String {
                 num(c.rate_per_mm2_s, 3),
                 c.sliding_work_j_per_mm2_s,
                 c.impact_energy_j_per_mm2_s,
-                html_escape(&m.softening.trusted.join("; ")),
-                html_escape(&m.softening.not_trusted.join("; ")),
+                esc(&m.softening.trusted.join("; ")),
+                esc(&m.softening.not_trusted.join("; ")),
                 num(m.cost.engine_s, 1),
                 m.cost.ranks,
                 m.cost.per_particle_step_s,
@@ -462,7 +468,7 @@ fn scales_section(s: &FinishSummary) -> String {
 <tr><td class=\"k\">tolerance met (Sa, Sq, Sz per region)</td><td>{}</td></tr>\
 <tr><td class=\"k\">smallest angle, °</td><td>{}</td></tr>\
 <tr><td class=\"k\">LIGGGHTS curvature, °</td><td>{}</td></tr></table>",
-            html_escape(&m.mesher),
+            esc(&m.mesher),
             m.surface_triangles,
             num(m.max_error_over_sq, 3),
             num(m.max_error_um, 4),
@@ -485,8 +491,8 @@ fn scales_section(s: &FinishSummary) -> String {
 <tr><td class=\"k\">offset, µm (x, y)</td><td>{}, {}</td></tr>\
 <tr><td class=\"k\">NCC</td><td>{}</td></tr>\
 <tr><td class=\"k\">model covered</td><td>{} %</td></tr></table>",
-            html_escape(&r.role),
-            html_escape(&r.source),
+            esc(&r.role),
+            esc(&r.source),
             num(r.offset_um[0], 2),
             num(r.offset_um[1], 2),
             num(r.ncc, 3),
@@ -495,12 +501,6 @@ fn scales_section(s: &FinishSummary) -> String {
     }
     row.push_str("</div>");
     h + &row
-}
-
-fn html_escape(s: &str) -> String {
-    s.replace('&', "&amp;")
-        .replace('<', "&lt;")
-        .replace('>', "&gt;")
 }
 
 /// A finite number (finish.json writes NaN and infinities as null, which reads as absent).
@@ -520,7 +520,7 @@ fn sci(x: impl Into<Option<f64>>) -> String {
 
 /// A text, count or flag, escaped, or "–" when absent.
 fn text(v: Option<impl std::fmt::Display>) -> String {
-    v.map_or_else(|| "–".into(), |v| html_escape(&v.to_string()))
+    v.map_or_else(|| "–".into(), |v| esc(&v.to_string()))
 }
 
 /// The setting (media, action, patch, wear model), the timings and the checks as tables.
@@ -719,7 +719,7 @@ fn calibration_row(s: &FinishSummary) -> String {
     };
     row(
         "calibration",
-        html_escape(&cal.kind),
+        esc(&cal.kind),
         format!(
             "target Sa {} µm, reached {} µm{short}; fitted k {} 1/Pa",
             num(cal.target_sa_um, 3),
@@ -906,7 +906,7 @@ pub fn predictions_section(s: &FinishSummary) -> String {
     } else {
         s.fitted
             .iter()
-            .map(|f| html_escape(f))
+            .map(|f| esc(f))
             .collect::<Vec<_>>()
             .join(", ")
     };
@@ -917,9 +917,9 @@ pub fn predictions_section(s: &FinishSummary) -> String {
             sci(l.impact_rate_per_m2_s),
             sci(l.sliding_work_j_per_m2_s),
             l.impact_share_of_volume * 100.0,
-            html_escape(&l.rates_from),
+            esc(&l.rates_from),
             sci(l.scale),
-            html_escape(&l.scale_is),
+            esc(&l.scale_is),
         )
         .ok();
     }
@@ -1055,13 +1055,13 @@ fn baselines_table(s: &FinishSummary, b: &crate::summary::Baselines) -> String {
         "<p>{}{}Constant wear: {} (fitted {} = {}). Plateau: {} (fitted {} = {}). Noise: {}.</p>",
         say("Constant wear", &b.constant_wear.within_noise),
         say("Plateau cut", &b.plateau.within_noise),
-        html_escape(&b.constant_wear.what),
-        html_escape(&b.constant_wear.fitted_parameter),
+        esc(&b.constant_wear.what),
+        esc(&b.constant_wear.fitted_parameter),
         sci(b.constant_wear.fitted_value),
-        html_escape(&b.plateau.what),
-        html_escape(&b.plateau.fitted_parameter),
+        esc(&b.plateau.what),
+        esc(&b.plateau.fitted_parameter),
         num(b.plateau.fitted_value, 4),
-        noise.map_or("–".into(), |n| html_escape(&n.from)),
+        noise.map_or("–".into(), |n| esc(&n.from)),
     )
     .ok();
     h
@@ -1125,8 +1125,8 @@ fn sweep_plots(s: &FinishSummary) -> String {
     };
     let mut h = format!(
         "<h3>Sweep of {}: one calibration, every setting predicted</h3><p>{}</p><div class=\"row\">",
-        html_escape(&sw.parameter),
-        html_escape(&sw.note)
+        esc(&sw.parameter),
+        esc(&sw.note)
     );
     let labels: Vec<String> = sw
         .settings
@@ -1168,11 +1168,11 @@ fn sweep_plots(s: &FinishSummary) -> String {
         write!(
             h,
             "<tr><td class=\"k\">{}</td><td>{}</td><td>{}</td><td>{}</td><td class=\"k\">{}</td></tr>",
-            html_escape(l),
+            esc(l),
             num(st.after.sa, 3),
             num(st.after.sq, 3),
             num(st.after.sz, 3),
-            html_escape(&st.dir)
+            esc(&st.dir)
         )
         .ok();
     }
@@ -1322,7 +1322,7 @@ fn finite_range(z: &[f64]) -> (f64, f64) {
 enum Ramp {
     /// Dark blue -> orange -> pale yellow: zero wear dark, deep wear bright.
     Heat,
-    /// Perceptually even for heights (a 5-stop approximation of viridis).
+    /// Heights: viridis, the colour map of every height map ([`figure::viridis`]).
     Viridis,
 }
 
@@ -1335,90 +1335,18 @@ impl Ramp {
                 (30.0 + 200.0 * t) as u8,
                 (80.0 * (1.0 - t) + 60.0 * t * t) as u8,
             ],
-            Ramp::Viridis => {
-                const STOPS: [[f64; 3]; 5] = [
-                    [68.0, 1.0, 84.0],
-                    [59.0, 82.0, 139.0],
-                    [33.0, 145.0, 140.0],
-                    [94.0, 201.0, 98.0],
-                    [253.0, 231.0, 37.0],
-                ];
-                let f = t * 4.0;
-                let i = (f.floor() as usize).min(3);
-                let u = f - i as f64;
-                let c = |k: usize| (STOPS[i][k] * (1.0 - u) + STOPS[i + 1][k] * u) as u8;
-                [c(0), c(1), c(2)]
-            }
+            Ramp::Viridis => figure::viridis(t),
         }
-    }
-
-    fn hex(self, t: f64) -> String {
-        let [r, g, b] = self.rgb(t);
-        format!("#{r:02x}{g:02x}{b:02x}")
     }
 }
 
-/// `z` (lo .. hi) through `ramp` as PNG bytes; non-finite samples grey.
+/// `z` (lo .. hi) through `ramp` as an indexed PNG at full resolution, row 0 at the top;
+/// non-finite samples in the not-measured grey ([`figure::NAN_RGB`]).
 fn map_png(z: &[f64], rows: usize, cols: usize, lo: f64, hi: f64, ramp: Ramp) -> Result<Vec<u8>> {
-    let mut px = Vec::with_capacity(rows * cols * 3);
-    for &v in z {
-        if v.is_finite() {
-            px.extend_from_slice(&ramp.rgb((v - lo) / (hi - lo)));
-        } else {
-            px.extend_from_slice(&[200, 200, 200]);
-        }
-    }
-    let mut out = Vec::new();
-    {
-        let mut enc = png::Encoder::new(&mut out, cols as u32, rows as u32);
-        enc.set_color(png::ColorType::Rgb);
-        enc.set_depth(png::BitDepth::Eight);
-        let mut w = enc.write_header().map_err(|e| anyhow!("png: {e}"))?;
-        w.write_image_data(&px).map_err(|e| anyhow!("png: {e}"))?;
-    }
-    Ok(out)
-}
-
-/// About `n` round tick values covering lo..hi.
-fn ticks(lo: f64, hi: f64, n: usize) -> Vec<f64> {
-    if !(lo.is_finite() && hi.is_finite()) || hi <= lo {
-        return vec![lo];
-    }
-    let raw = (hi - lo) / n.max(1) as f64;
-    let mag = 10f64.powf(raw.log10().floor());
-    // The round step nearest to the raw one (in ratio), so the count stays near `n`.
-    let step = [1.0, 2.0, 2.5, 5.0, 10.0]
-        .iter()
-        .map(|m| m * mag)
-        .min_by(|a, b| (a / raw).ln().abs().total_cmp(&(b / raw).ln().abs()))
-        .unwrap_or(mag);
-    let mut v = (lo / step).ceil() * step;
-    let mut out = Vec::new();
-    while v <= hi + step * 1e-9 {
-        out.push(if v.abs() < step * 1e-9 { 0.0 } else { v });
-        v += step;
-    }
-    out
-}
-
-/// A tick label with as many decimals as the tick spacing needs.
-fn tick_label(v: f64, spacing: f64) -> String {
-    // The fewest decimals that write the spacing exactly (2.5 needs one, 0.25 two).
-    let dp = (0..6)
-        .find(|&d| {
-            let x = spacing * 10f64.powi(d);
-            (x - x.round()).abs() < 1e-6 * x.abs().max(1.0)
-        })
-        .unwrap_or(6) as usize;
-    format!("{v:.dp$}")
-}
-
-fn spacing(t: &[f64]) -> f64 {
-    if t.len() > 1 {
-        t[1] - t[0]
-    } else {
-        1.0
-    }
+    let z32: Vec<f32> = z.iter().map(|&v| v as f32).collect();
+    let m =
+        figure::encode_map_png_with(&z32, rows, cols, rows.max(cols), (lo, hi), |t| ramp.rgb(t))?;
+    Ok(m.png)
 }
 
 /// A map as SVG: the image with x/y axes in µm, a dashed marker on `mark_row` and a colour bar
@@ -1460,8 +1388,7 @@ style=\"image-rendering:pixelated\" href=\"data:image/png;base64,{b64}\"/>\
         ml + iw
     )
     .ok();
-    let tx = ticks(0.0, wx, 5);
-    for &v in &tx {
+    for (v, label) in labelled_ticks(0.0, wx, 5) {
         let x = ml + v / wx * iw;
         write!(
             s,
@@ -1470,12 +1397,12 @@ style=\"image-rendering:pixelated\" href=\"data:image/png;base64,{b64}\"/>\
             mt + ih,
             mt + ih + 4.0,
             mt + ih + 15.0,
-            tick_label(v, spacing(&tx))
+            label
         )
         .ok();
     }
-    let ty = ticks(0.0, wy, 5);
-    for &v in &ty {
+    // Row 0 at the top: y grows downwards from 0 at the top edge.
+    for (v, label) in labelled_ticks(0.0, wy, 5) {
         let y = mt + v / wy * ih;
         write!(
             s,
@@ -1484,7 +1411,7 @@ style=\"image-rendering:pixelated\" href=\"data:image/png;base64,{b64}\"/>\
             ml - 4.0,
             ml - 6.0,
             y + 4.0,
-            tick_label(v, spacing(&ty))
+            label
         )
         .ok();
     }
@@ -1503,24 +1430,17 @@ style=\"image-rendering:pixelated\" href=\"data:image/png;base64,{b64}\"/>\
         "cb{}",
         COLORBAR_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
     );
-    s += &format!("<defs><linearGradient id=\"{id}\" x1=\"0\" y1=\"1\" x2=\"0\" y2=\"0\">");
-    for k in 0..=16 {
-        let t = k as f64 / 16.0;
-        write!(
-            s,
-            "<stop offset=\"{t:.4}\" stop-color=\"{}\"/>",
-            ramp.hex(t)
-        )
-        .ok();
-    }
+    s += &format!(
+        "<defs><linearGradient id=\"{id}\" x1=\"0\" y1=\"1\" x2=\"0\" y2=\"0\">{}",
+        figure::gradient_stops(|t| ramp.rgb(t))
+    );
     write!(
         s,
         "</linearGradient></defs><g class=\"colorbar\"><rect x=\"{cbx:.1}\" y=\"{mt}\" width=\"{cbw}\" height=\"{ih:.1}\" \
 fill=\"url(#{id})\" stroke=\"#444\"/>"
     )
     .ok();
-    let tc = ticks(lo, hi, 5);
-    for &v in &tc {
+    for (v, label) in labelled_ticks(lo, hi, 5) {
         let y = mt + ih - (v - lo) / (hi - lo) * ih;
         write!(
             s,
@@ -1530,7 +1450,7 @@ fill=\"url(#{id})\" stroke=\"#444\"/>"
             cbx + cbw + 4.0,
             cbx + cbw + 6.0,
             y + 4.0,
-            tick_label(v, spacing(&tc))
+            label
         )
         .ok();
     }
@@ -1610,9 +1530,12 @@ impl Default for Plot<'_> {
 }
 
 impl Plot<'_> {
+    /// The chart on a [`Panel`] of the shared figure helpers (the axes, lines, areas and
+    /// legend report.html's charts draw with).
     fn svg(&self) -> String {
         let (w, h) = (self.width, self.height);
-        let (ml, mr, mt, mb) = (58.0, 14.0, 26.0, 42.0);
+        // The left margin holds the tick labels and the y label (52 px left of the panel).
+        let (ml, mr, mt, mb) = (72.0, 14.0, 26.0, 42.0);
         let (pw, ph) = (w - ml - mr, h - mt - mb);
         let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
         for &(x, y) in self.series.iter().flat_map(|s| s.points.iter()) {
@@ -1637,117 +1560,42 @@ impl Plot<'_> {
             y1 = y0 + 1.0;
         }
         let pad = (y1 - y0) * 0.04;
-        let (y0, y1) = (y0 - pad, y1 + pad);
-        let sx = |x: f64| ml + (x - x0) / (x1 - x0) * pw;
-        let sy = |y: f64| mt + ph - (y - y0) / (y1 - y0) * ph;
+        let panel = Panel {
+            x: ml,
+            y: mt,
+            w: pw,
+            h: ph,
+            xa: Axis::linear(x0, x1, self.xlabel),
+            ya: Axis::linear(y0 - pad, y1 + pad, self.ylabel),
+        };
         let mut s = format!(
             "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" font-size=\"11\">\
-<text x=\"{ml}\" y=\"16\" font-size=\"13\" font-weight=\"bold\">{}</text>\
-<rect x=\"{ml}\" y=\"{mt}\" width=\"{pw}\" height=\"{ph}\" fill=\"#fcfcfc\" stroke=\"#444\"/>",
-            self.title
+<text x=\"{ml}\" y=\"16\" font-size=\"13\" font-weight=\"bold\">{}</text>",
+            esc(&self.title)
         );
-        let tx = ticks(x0, x1, 6);
-        for &v in &tx {
-            let x = sx(v);
-            write!(
-                s,
-                "<line x1=\"{x:.1}\" x2=\"{x:.1}\" y1=\"{mt}\" y2=\"{:.1}\" stroke=\"#e4e4e4\"/>\
-<text x=\"{x:.1}\" y=\"{:.1}\" text-anchor=\"middle\">{}</text>",
-                mt + ph,
-                mt + ph + 14.0,
-                tick_label(v, spacing(&tx))
-            )
-            .ok();
-        }
-        let ty = ticks(y0, y1, 5);
-        for &v in &ty {
-            let y = sy(v);
-            write!(
-                s,
-                "<line x1=\"{ml}\" x2=\"{:.1}\" y1=\"{y:.1}\" y2=\"{y:.1}\" stroke=\"#e4e4e4\"/>\
-<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"end\">{}</text>",
-                ml + pw,
-                ml - 5.0,
-                y + 4.0,
-                tick_label(v, spacing(&ty))
-            )
-            .ok();
-        }
-        write!(
-            s,
-            "<text class=\"xaxis\" x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"middle\" font-size=\"12\">{}</text>\
-<text class=\"yaxis\" x=\"13\" y=\"{:.1}\" text-anchor=\"middle\" font-size=\"12\" transform=\"rotate(-90 13 {:.1})\">{}</text>",
-            ml + pw / 2.0,
-            h - 6.0,
-            self.xlabel,
-            mt + ph / 2.0,
-            mt + ph / 2.0,
-            self.ylabel
-        )
-        .ok();
-        if y0 < 0.0 && y1 > 0.0 {
-            write!(
-                s,
-                "<line x1=\"{ml}\" x2=\"{:.1}\" y1=\"{:.1}\" y2=\"{:.1}\" stroke=\"#888\"/>",
-                ml + pw,
-                sy(0.0),
-                sy(0.0)
-            )
-            .ok();
-        }
+        panel.axes(&mut s, true);
+        panel.zero_line(&mut s);
+        const DASH: &str = "6 4";
         for ser in &self.series {
-            let p: Vec<String> = ser
-                .points
-                .iter()
-                .filter(|(x, y)| x.is_finite() && y.is_finite())
-                .map(|&(x, y)| format!("{:.1},{:.1}", sx(x), sy(y)))
-                .collect();
-            if p.is_empty() {
-                continue;
-            }
             if ser.fill {
-                let base = sy(0.0_f64.clamp(y0, y1));
-                let first = ser.points.first().map_or(x0, |p| p.0);
-                let last = ser.points.last().map_or(x1, |p| p.0);
-                write!(
-                    s,
-                    "<polygon fill=\"{}\" fill-opacity=\"0.3\" stroke=\"none\" points=\"{:.1},{base:.1} {} {:.1},{base:.1}\"/>",
-                    ser.color,
-                    sx(first),
-                    p.join(" "),
-                    sx(last)
-                )
-                .ok();
+                panel.area(&mut s, ser.points, ser.color, 0.3);
             }
-            write!(
-                s,
-                "<polyline fill=\"none\" stroke=\"{}\" stroke-width=\"{}\" stroke-linejoin=\"round\"{} points=\"{}\"/>",
+            panel.line_styled(
+                &mut s,
+                ser.points,
                 ser.color,
                 ser.width,
-                if ser.dash { " stroke-dasharray=\"6 4\"" } else { "" },
-                p.join(" ")
-            )
-            .ok();
+                ser.dash.then_some(DASH),
+            );
         }
-        // Legend, top right inside the frame.
-        let mut ly = mt + 14.0;
-        for ser in &self.series {
-            let lx = ml + pw - 110.0;
-            write!(
-                s,
-                "<line x1=\"{lx:.1}\" x2=\"{:.1}\" y1=\"{:.1}\" y2=\"{:.1}\" stroke=\"{}\" stroke-width=\"{}\"{}/>\
-<text x=\"{:.1}\" y=\"{ly:.1}\">{}</text>",
-                lx + 24.0,
-                ly - 4.0,
-                ly - 4.0,
-                ser.color,
-                ser.width.max(2.0),
-                if ser.dash { " stroke-dasharray=\"6 4\"" } else { "" },
-                lx + 30.0,
-                ser.label
-            )
-            .ok();
-            ly += 15.0;
+        // The legend box as wide as its longest label (about 6.5 px a character at 11 px).
+        let legend_w = (self.series.iter())
+            .map(|ser| 40.0 + 6.5 * ser.label.chars().count() as f64)
+            .fold(90.0, f64::max)
+            .min(pw);
+        for (k, ser) in self.series.iter().enumerate() {
+            let dash = ser.dash.then_some(DASH);
+            panel.legend_styled(&mut s, k, ser.color, ser.label, dash, legend_w);
         }
         s.push_str("</svg>");
         s
@@ -1758,15 +1606,6 @@ impl Plot<'_> {
 mod tests {
     use super::*;
     use crate::summary::example::{minimal, summary, typed};
-
-    #[test]
-    fn ticks_are_round_and_cover_the_range() {
-        let t = ticks(0.0, 299.8, 5);
-        assert_eq!(t, vec![0.0, 50.0, 100.0, 150.0, 200.0, 250.0]);
-        let t = ticks(-0.013, 0.21, 5);
-        assert!(t.first().copied().unwrap() >= -0.013 && t.last().copied().unwrap() <= 0.21);
-        assert!((spacing(&t) - 0.05).abs() < 1e-12, "{t:?}");
-    }
 
     fn page(summary: &FinishSummary, rows: usize, cols: usize) -> String {
         let original: Vec<f64> = (0..rows * cols)
@@ -1908,6 +1747,50 @@ mod tests {
         let html = render(&stalled, &original, &original, &original, None, rows, cols).unwrap();
         assert!(html.contains("Constant wear <b>did not reach</b> the prediction's Sa"));
         assert!(!html.contains("Constant wear: the prediction"));
+    }
+
+    /// Issue 39: file names are escaped with the shared helper, quotes included, so a `"` in
+    /// a name cannot end an attribute or a tag.
+    #[test]
+    fn a_quote_in_a_file_name_is_escaped() {
+        let mut s = summary();
+        s.model = "scans/part \"A\" <1>.x3p".into();
+        let html = page(&s, 8, 8);
+        assert!(
+            html.contains("scans/part &quot;A&quot; &lt;1&gt;.x3p"),
+            "the model's name escaped"
+        );
+        assert!(!html.contains("part \"A\""), "no raw quote from the name");
+    }
+
+    /// Issue 39: the height maps are viridis from the shared table (palette entry i is
+    /// viridis(i / 254), the not-measured entry the shared grey), the colour bar its stops.
+    #[test]
+    fn height_maps_use_the_shared_viridis() {
+        let html = page(&summary(), 8, 8);
+        // The second map (before) is a height map.
+        let pngs: Vec<Vec<u8>> = html
+            .match_indices("data:image/png;base64,")
+            .map(|(k, m)| {
+                let rest = &html[k + m.len()..];
+                base64::engine::general_purpose::STANDARD
+                    .decode(&rest[..rest.find('"').unwrap()])
+                    .unwrap()
+            })
+            .collect();
+        assert_eq!(pngs.len(), 3);
+        let dec = png::Decoder::new(std::io::Cursor::new(&pngs[1]));
+        let reader = dec.read_info().unwrap();
+        let palette = reader.info().palette.clone().unwrap().to_vec();
+        for i in [0usize, 77, 127, 254] {
+            assert_eq!(
+                palette[i * 3..i * 3 + 3],
+                figure::viridis(i as f64 / 254.0),
+                "{i}"
+            );
+        }
+        assert_eq!(palette[255 * 3..], figure::NAN_RGB);
+        assert!(html.contains(&figure::gradient_stops(figure::viridis)));
     }
 
     #[test]
