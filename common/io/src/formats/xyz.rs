@@ -262,8 +262,12 @@ fn header_lines(text: &str) -> (Vec<HeaderLine<'_>>, usize) {
         let body = match l.strip_prefix('#') {
             Some(c) => c.trim(),
             None => {
-                let first = l.split_whitespace().next().unwrap_or("");
-                if first.replace(',', ".").parse::<f64>().is_ok() {
+                // As the 'x y z' reader splits: "1,5e-07" and "100.0,200.0,3" start data.
+                let first = l
+                    .split(|c: char| c.is_whitespace() || c == ',' || c == ';')
+                    .next()
+                    .unwrap_or("");
+                if first.parse::<f64>().is_ok() {
                     return (out, i);
                 }
                 l
@@ -344,10 +348,14 @@ impl GwyddionHeader {
             if !gwyddion_like {
                 return Ok(None);
             }
-            let seen: Vec<String> = lines
+            let mut seen: Vec<String> = lines
                 .iter()
+                .take(8)
                 .map(|h| format!("line {} '{}'", h.line, h.text))
                 .collect();
+            if lines.len() > 8 {
+                seen.push(format!("{} more", lines.len() - 8));
+            }
             let missing = match (w, h) {
                 (Some(f), None) => format!(
                     "'{}' gives the width, but no height line (one of {}) is in the header",
