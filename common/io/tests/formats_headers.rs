@@ -163,6 +163,17 @@ fn gwyddion_header_that_is_not_read_is_refused_not_read_as_xyz() {
         e.contains("'# Breite: 10.000 µm' gives the width") && e.contains("höhe"),
         "{e}"
     );
+    // Width and height read, but a value-unit key not in the tables: named, not guessed.
+    std::fs::write(
+        &p,
+        "# Kanal: Height\n# Breite: 1 um\n# Höhe: 1 um\n# Werte-Einheit: m\n1 2\n3 4\n",
+    )
+    .unwrap();
+    let e = format!("{:#}", read_surface(&p).unwrap_err());
+    assert!(
+        e.contains("no '# Value units:' line") && e.contains("line 4 '# Werte-Einheit: m'"),
+        "{e}"
+    );
     // Gwyddion's XYZ export (Lateral units, three columns) is still 'x y z'.
     std::fs::write(
         &p,

@@ -415,7 +415,15 @@ impl GwyddionHeader {
                 (v.value.to_string(), um)
             }
             None if size_form => bail!(
-                "Gwyddion text header: '# Width:' and '# Height:' but no '# Value units:' line: the height unit is unknown"
+                "Gwyddion text header: '# Width:' and '# Height:' but no '# Value units:' line \
+                 (keys read: {}): the height unit is unknown; header lines: {}",
+                VALUE_UNIT_KEYS.join(", "),
+                lines
+                    .iter()
+                    .take(8)
+                    .map(|h| format!("line {} '{}'", h.line, h.text))
+                    .collect::<Vec<_>>()
+                    .join(", ")
             ),
             None => {
                 warnings.push(
