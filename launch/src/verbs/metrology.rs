@@ -13,7 +13,7 @@ use surfstream_core::record;
 use surfstream_core::similarity;
 use surfstream_io::formats::{write_surface, Metadata, Surface};
 
-use super::{file_help, load_surface, pitch_text, WRITABLE_WITH_PITCH};
+use super::{file_help, load_surface, pitch_text, Loaded, WRITABLE_WITH_PITCH};
 
 #[derive(Args)]
 pub struct InspectArgs {
@@ -97,8 +97,9 @@ pub struct ConvertArgs {
 pub struct CompareArgs {
     /// The first height map (any readable format; e.g. a panorama).
     pub a: PathBuf,
-    /// The second, of the same rows x cols as A (e.g. its datum, or a reference). SIM and
-    /// SSIM are symmetric; the RMS difference is over the points valid in both.
+    /// The second, of the same rows x cols and pitch as A (e.g. its datum, or a reference);
+    /// maps whose pitches differ by more than 1e-6 relative are refused (no resampling).
+    /// SIM and SSIM are symmetric; the RMS difference is over the points valid in both.
     pub b: PathBuf,
     /// Print JSON instead of text.
     #[arg(long)]
@@ -832,10 +833,57 @@ pub fn convert_folder(a: ConvertArgs) -> Result<()> {
     Ok(())
 }
 
+/// Two pitches further apart than this, relative, are not the same pitch for `compare`.
+const COMPARE_PITCH_TOLERANCE: f64 = 1e-6;
+
+/// SIM, SSIM and the RMS difference pair sample (i, j) of one map with sample (i, j) of the
+/// other: the same place on the part only when both maps have the same pitch. Maps whose
+/// pitches (x or y) differ by more than [`COMPARE_PITCH_TOLERANCE`] relative are refused,
+/// naming both files and both pitches: surfstream has no resampling that would bring one map
+/// onto the other's grid. A file without a pitch (a bare .npy) cannot be checked: said on
+/// stderr when the other has one.
+fn check_compare_pitch(pa: &Path, a: &Loaded, pb: &Path, b: &Loaded) -> Result<()> {
+    let (x, y) = (&a.surface, &b.surface);
+    match (a.pitch_assumed, b.pitch_assumed) {
+        (true, true) => return Ok(()),
+        (true, false) | (false, true) => {
+            let bare = if a.pitch_assumed { pa } else { pb };
+            eprintln!(
+                "{}: note: the file carries no pitch; compare cannot check that both maps have \
+                 the same one",
+                bare.display()
+            );
+            return Ok(());
+        }
+        (false, false) => {}
+    }
+    // 9 significant digits: enough to show a 1e-6 difference, not the f32 storage's noise.
+    let g = |v: f64| format!("{v:.8e}").parse::<f64>().unwrap_or(v);
+    let differs = |p: f64, q: f64| (p - q).abs() > COMPARE_PITCH_TOLERANCE * p.abs().max(q.abs());
+    if differs(x.pitch_x_um, y.pitch_x_um) || differs(x.pitch_y_um, y.pitch_y_um) {
+        bail!(
+            "{} has a pitch of {} x {} um (x, y) but {} has {} x {} um (x, y): compare pairs \
+             the samples of both maps point by point, which is the same place only at the same \
+             pitch (they differ by more than {COMPARE_PITCH_TOLERANCE:e} relative); surfstream \
+             has no resampling to put one map on the other's grid: resample one of them to \
+             the other's pitch first (e.g. in Gwyddion), or compare maps of one instrument setting",
+            pa.display(),
+            g(x.pitch_x_um),
+            g(x.pitch_y_um),
+            pb.display(),
+            g(y.pitch_x_um),
+            g(y.pitch_y_um)
+        );
+    }
+    Ok(())
+}
+
 pub fn compare(a: CompareArgs) -> Result<()> {
-    // SIM, SSIM and the RMS difference compare samples, not lengths: no pitch is needed.
-    let x = load_surface(&a.a, None, "compare", false)?.surface;
-    let y = load_surface(&a.b, None, "compare", false)?.surface;
+    // SIM, SSIM and the RMS difference compare samples: both maps must share their pitch.
+    let la = load_surface(&a.a, None, "compare", false)?;
+    let lb = load_surface(&a.b, None, "compare", false)?;
+    check_compare_pitch(&a.a, &la, &a.b, &lb)?;
+    let (x, y) = (la.surface, lb.surface);
     if (x.height, x.width) != (y.height, y.width) {
         bail!(
             "{} is {} x {} px (rows x cols) but {} is {} x {} px: compare needs maps of the same shape",
@@ -885,6 +933,62 @@ mod tests {
             .collect();
         surfstream_io::npy::write_npy_f64(&p, &z, rows, cols).unwrap();
         p
+    }
+
+    fn gsf(dir: &Path, name: &str, pitch_x_um: f64, pitch_y_um: f64) -> PathBuf {
+        let p = dir.join(name);
+        // 12 x 12: SSIM's window is 11 x 11.
+        let heights_um = (0..12 * 12).map(|i| ((i * 7) % 11) as f64 * 0.1).collect();
+        let s = Surface {
+            width: 12,
+            height: 12,
+            pitch_x_um,
+            pitch_y_um,
+            heights_um,
+            metadata: Metadata {
+                pitch_known: true,
+                ..Metadata::default()
+            },
+        };
+        write_surface(&p, &s).unwrap();
+        p
+    }
+
+    fn compare_of(a: &Path, b: &Path) -> Result<()> {
+        compare(CompareArgs {
+            a: a.to_path_buf(),
+            b: b.to_path_buf(),
+            json: true,
+        })
+    }
+
+    #[test]
+    fn compare_refuses_maps_of_different_pitch() {
+        let d = tempfile::tempdir().unwrap();
+        // Issue 35: 295.5 um against 0.0196 um was compared without a word.
+        let coarse = gsf(d.path(), "coarse.gsf", 295.5, 295.5);
+        let fine = gsf(d.path(), "fine.gsf", 0.0196, 0.0196);
+        let e = format!("{:#}", compare_of(&coarse, &fine).unwrap_err());
+        assert!(
+            e.contains("coarse.gsf has a pitch of 295.5 x 295.5 um (x, y)")
+                && e.contains("fine.gsf has 0.0196 x 0.0196 um (x, y)")
+                && e.contains("no resampling"),
+            "{e}"
+        );
+        // Only y differs: refused too.
+        let tall = gsf(d.path(), "tall.gsf", 295.5, 300.0);
+        let e = format!("{:#}", compare_of(&coarse, &tall).unwrap_err());
+        assert!(e.contains("tall.gsf has 295.5 x 300 um"), "{e}");
+        // Within 1e-6 relative (f32 storage round-off): compared.
+        let same = gsf(d.path(), "same.gsf", 295.5 * (1.0 + 2e-7), 295.5);
+        compare_of(&coarse, &same).unwrap();
+        // 1e-5 relative apart: refused.
+        let near = gsf(d.path(), "near.gsf", 295.5 * (1.0 + 1e-5), 295.5);
+        assert!(compare_of(&coarse, &near).is_err());
+        // A file without a pitch cannot be checked: compared (and said on stderr).
+        let bare = npy(d.path(), "bare.npy", 12, 12);
+        compare_of(&coarse, &bare).unwrap();
+        compare_of(&bare, &fine).unwrap();
     }
 
     #[test]

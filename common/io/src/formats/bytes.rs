@@ -72,6 +72,19 @@ impl<'a> Bytes<'a> {
             .trim()
             .to_string())
     }
+
+    /// Like [`Bytes::text`], but a field whose bytes are valid UTF-8 is read as UTF-8: one
+    /// format, two encodings in the wild (Digital Surf writes "µm" as the Latin-1 byte 0xB5,
+    /// surfalize as the UTF-8 pair 0xC2 0xB5). A lone 0xB5 is not valid UTF-8, so Latin-1
+    /// files still read as Latin-1.
+    pub fn text_utf8_or_latin1(&self, offset: usize, len: usize, field: &str) -> Result<String> {
+        let s = self.slice(offset, len, field)?;
+        let end = s.iter().position(|&b| b == 0).unwrap_or(s.len());
+        match std::str::from_utf8(&s[..end]) {
+            Ok(t) => Ok(t.trim().to_string()),
+            Err(_) => self.text(offset, len, field),
+        }
+    }
 }
 
 /// `a * b * c` as usize, or an error naming what overflowed (sizes from headers are untrusted).

@@ -5,7 +5,9 @@
 //! Heights: z = (raw * spacing_z + offset_z) in `unit_step_z`, converted to um. offset_z is taken
 //! in the z step unit, as Gwyddion does; surfalize 0.19.2 adds it unscaled. Relative parameters
 //! (Sq, ...) do not depend on it. When `non_measured_points` == 1, raw == min_point - 2 is
-//! invalid (NaN). Only the first object of a multi-object file is read.
+//! invalid (NaN). Only the first object of a multi-object file is read. The unit fields are
+//! read as UTF-8 when their bytes are valid UTF-8 (surfalize writes "µm" as 0xC2 0xB5), else
+//! as Latin-1 (Digital Surf: the single byte 0xB5).
 
 use std::io::Read;
 
@@ -42,9 +44,9 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
     let spacing_x = b.f32_le(120, "spacing_x")? as f64;
     let spacing_y = b.f32_le(124, "spacing_y")? as f64;
     let spacing_z = b.f32_le(128, "spacing_z")? as f64;
-    let unit_x = b.text(180, 16, "unit_step_x")?;
-    let unit_y = b.text(196, 16, "unit_step_y")?;
-    let unit_z = b.text(212, 16, "unit_step_z")?;
+    let unit_x = b.text_utf8_or_latin1(180, 16, "unit_step_x")?;
+    let unit_y = b.text_utf8_or_latin1(196, 16, "unit_step_y")?;
+    let unit_z = b.text_utf8_or_latin1(212, 16, "unit_step_z")?;
     let offset_z = b.f32_le(474, "offset_z")? as f64;
     let compressed_size = b.u32_le(324, "compressed_data_size")? as usize;
     let comment_len = b.i16_le(334, "length_comment")?;

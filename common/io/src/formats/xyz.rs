@@ -12,8 +12,15 @@
 //! `# Height: 5.678 um`, `# Value units: m`, then one line per row of whitespace-separated
 //! values in the value unit (decimal dot, or comma when exported with the locale's). It is
 //! recognised by its `# Width:` / `# Height:` lines and read as a grid: pitch = width / cols,
-//! height / rows; rows in file order (Gwyddion's first row is its y = 0). A matrix without that
-//! header is refused (its pitch and unit would be guesses).
+//! height / rows; rows in file order (Gwyddion's first row is its y = 0). Gwyddion translates
+//! these keys with the interface (`# Breite:`, `# Höhe:` in German, `# Largeur :` in French...):
+//! every translation in Gwyddion's `po/` is read (see [`WIDTH_KEYS`]). A matrix whose header
+//! gives a pixel size instead (`pixel size=3.69862e-007 m`, or `pixel size x=` / `y=`, with or
+//! without `#`) is read with that pitch; without `# Value units:` its heights are taken as
+//! metres, with a warning. A header that is Gwyddion's (a channel or value-unit key, or
+//! two `# key: <length>` lines) but gives no pitch read here is refused naming its
+//! lines, never read as `x y z`. A matrix without such a header is refused (its pitch and unit
+//! would be guesses). Gwyddion's XYZ export (`# Lateral units:`, three columns) is `x y z`.
 
 use anyhow::{bail, Context, Result};
 
@@ -99,8 +106,8 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
             }
             Some(p) if p.len() > 3 => bail!(
                 "line {}: {} numbers: a matrix of heights, not 'x y z' points; its pitch and height \
-                 unit are not in the file (export it from Gwyddion with the informational header: \
-                 '# Width:', '# Height:', '# Value units:'; or save it as .gsf / .npy)",
+                 unit are not in the file (read are {PITCH_FORMS}; export it from Gwyddion with \
+                 the informational header, or save it as .gsf / .npy)",
                 i + 1,
                 p.len()
             ),
@@ -172,62 +179,271 @@ pub fn parse(data: &[u8]) -> Result<Surface> {
     })
 }
 
+/// Gwyddion's header keys as its text export writes them: the English msgid and every
+/// translation in Gwyddion's `po/*.po` (cs, de, es, fr, it, ko, ru; `de` and `es` leave
+/// "Value units:" untranslated), lower case, without the colon.
+const CHANNEL_KEYS: &[&str] = &[
+    "channel",
+    "kanal",
+    "canal",
+    "canale",
+    "kanál",
+    "канал",
+    "채널",
+];
+const WIDTH_KEYS: &[&str] = &[
+    "width",
+    "breite",
+    "largeur",
+    "anchura",
+    "larghezza",
+    "šířka",
+    "ширина",
+    "폭",
+];
+const HEIGHT_KEYS: &[&str] = &[
+    "height",
+    "höhe",
+    "hauteur",
+    "altura",
+    "altezza",
+    "výška",
+    "высота",
+    "높이",
+];
+const VALUE_UNIT_KEYS: &[&str] = &[
+    "value units",
+    "unités",
+    "unità valore",
+    "jednotky hodnot",
+    "единицы измерения",
+    "값 단위",
+];
+/// Gwyddion's XYZ export ("# Lateral units:"): points, not a matrix; read as `x y z`.
+const LATERAL_UNIT_KEYS: &[&str] = &[
+    "lateral units",
+    "laterale einheiten",
+    "_laterale einheiten",
+    "unités latérales",
+    "unità laterali",
+    "jednotky rozměrů",
+    "единицы горизонтальных размеров",
+];
+/// A pixel size instead of the field's size: `pixel size=3.69862e-007 m` (one value: square
+/// pixels) or one per axis.
+const PIXEL_KEYS: &[&str] = &["pixel size", "pixelsize", "pixel_size"];
+const PIXEL_X_KEYS: &[&str] = &["pixel size x", "x pixel size", "pixel_size_x", "xpixelsize"];
+const PIXEL_Y_KEYS: &[&str] = &["pixel size y", "y pixel size", "pixel_size_y", "ypixelsize"];
+
+/// What the error says is read, when a matrix has no pitch.
+const PITCH_FORMS: &str = "Gwyddion's informational header '# Width: 10.0 µm' and \
+     '# Height: 10.0 µm' (or its translations: Breite/Höhe, Largeur/Hauteur, Anchura/Altura, \
+     Larghezza/Altezza, Šířka/Výška, Ширина/Высота), or a pixel size 'pixel size=3.7e-07 m' \
+     (also 'pixel size x=' / 'pixel size y='), with '# Value units: m' for the heights";
+
+/// One `key: value` or `key=value` line of the header before the data.
+struct HeaderLine<'a> {
+    line: usize,
+    /// Lower case, inner whitespace collapsed, no colon.
+    key: String,
+    text: &'a str,
+    value: &'a str,
+}
+
+/// The header lines (`#` comments and leading text lines) in `key: value` / `key=value`
+/// form, and the index of the first data line (a line starting with a number).
+fn header_lines(text: &str) -> (Vec<HeaderLine<'_>>, usize) {
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let l = line.trim();
+        if l.is_empty() {
+            continue;
+        }
+        let body = match l.strip_prefix('#') {
+            Some(c) => c.trim(),
+            None => {
+                // As the 'x y z' reader splits: "1,5e-07" and "100.0,200.0,3" start data.
+                let first = l
+                    .split(|c: char| c.is_whitespace() || c == ',' || c == ';')
+                    .next()
+                    .unwrap_or("");
+                if first.parse::<f64>().is_ok() {
+                    return (out, i);
+                }
+                l
+            }
+        };
+        let sep = body.find([':', '=']);
+        if let Some(at) = sep {
+            let key = body[..at].split_whitespace().collect::<Vec<_>>().join(" ");
+            out.push(HeaderLine {
+                line: i + 1,
+                key: key.to_lowercase(),
+                text: l,
+                value: body[at + 1..].trim(),
+            });
+        }
+    }
+    let n = text.lines().count();
+    (out, n)
+}
+
+/// `"10.000 µm"` as micrometres (a decimal comma accepted), or None.
+fn length_um(v: &str) -> Option<f64> {
+    let v = v.replace(',', ".");
+    let (num, unit) = v
+        .split_once(char::is_whitespace)
+        .map_or((v.as_str(), ""), |(n, u)| (n, u.trim()));
+    let n: f64 = num
+        .parse()
+        .ok()
+        .filter(|n: &f64| n.is_finite() && *n > 0.0)?;
+    Some(n * super::bytes::length_unit_um(unit)?)
+}
+
 /// The informational header of Gwyddion's text export.
 struct GwyddionHeader {
     channel: Option<String>,
-    width_um: f64,
-    height_um: f64,
+    pitch_x_um: Option<f64>,
+    pitch_y_um: Option<f64>,
+    width_um: Option<f64>,
+    height_um: Option<f64>,
     value_um: f64,
     value_unit: String,
+    /// Index of the first line of the matrix.
+    data_start: usize,
+    warnings: Vec<String>,
 }
 
 impl GwyddionHeader {
-    /// The header when the file's leading `#` lines have Gwyddion's `# Width:` and
-    /// `# Height:`; None when they do not (an `x y z` file).
+    /// The header when the file's leading lines are Gwyddion's (in any of its translations)
+    /// or give a pixel size; None when they do not (an `x y z` file, Gwyddion's XYZ export
+    /// among them). A header that is Gwyddion's but lacks what gives the pitch is an error
+    /// naming the keys, never an `x y z` file.
     fn find(text: &str) -> Result<Option<GwyddionHeader>> {
-        let mut fields = std::collections::BTreeMap::new();
-        for line in text.lines() {
-            let l = line.trim();
-            if l.is_empty() {
-                continue;
-            }
-            let Some(comment) = l.strip_prefix('#') else {
-                break;
-            };
-            if let Some((k, v)) = comment.split_once(':') {
-                fields.insert(k.trim().to_ascii_lowercase(), v.trim().to_string());
-            }
+        let (lines, data_start) = header_lines(text);
+        let find = |keys: &[&str]| lines.iter().find(|h| keys.contains(&h.key.as_str()));
+        let channel = find(CHANNEL_KEYS);
+        let value = find(VALUE_UNIT_KEYS);
+        let lateral = find(LATERAL_UNIT_KEYS);
+        let (w, h) = (find(WIDTH_KEYS), find(HEIGHT_KEYS));
+        let pixel = find(PIXEL_KEYS);
+        let (pixel_x, pixel_y) = (find(PIXEL_X_KEYS), find(PIXEL_Y_KEYS));
+        let first_row = text
+            .lines()
+            .nth(data_start)
+            .map_or(0, |l| l.split_whitespace().count());
+        let has_pixel = pixel.is_some() || pixel_x.is_some() || pixel_y.is_some();
+        if lateral.is_some() && !has_pixel && first_row == 3 {
+            return Ok(None); // Gwyddion's XYZ export: points.
         }
-        let (Some(w), Some(h)) = (fields.get("width"), fields.get("height")) else {
-            return Ok(None);
+        let lengths: Vec<&HeaderLine> = lines
+            .iter()
+            .filter(|h| h.text.starts_with('#') && length_um(h.value).is_some())
+            .collect();
+        let gwyddion_like =
+            lateral.is_none() && (channel.is_some() || value.is_some() || lengths.len() >= 2);
+        let size_form = w.is_some() && h.is_some();
+        if !size_form && !has_pixel {
+            if !gwyddion_like {
+                return Ok(None);
+            }
+            let mut seen: Vec<String> = lines
+                .iter()
+                .take(8)
+                .map(|h| format!("line {} '{}'", h.line, h.text))
+                .collect();
+            if lines.len() > 8 {
+                seen.push(format!("{} more", lines.len() - 8));
+            }
+            let missing = match (w, h) {
+                (Some(f), None) => format!(
+                    "'{}' gives the width, but no height line (one of {}) is in the header",
+                    f.text,
+                    HEIGHT_KEYS.join(", ")
+                ),
+                (None, Some(f)) => format!(
+                    "'{}' gives the height, but no width line (one of {}) is in the header",
+                    f.text,
+                    WIDTH_KEYS.join(", ")
+                ),
+                _ => "no key in it gives the pitch".to_string(),
+            };
+            bail!(
+                "a Gwyddion text header ({}) that is not read: {missing}; read are {PITCH_FORMS} \
+                 (export from Gwyddion with the English interface, or save as .gsf)",
+                seen.join(", ")
+            );
+        }
+        let length = |f: &HeaderLine| -> Result<f64> {
+            length_um(f.value).with_context(|| {
+                format!(
+                    "Gwyddion text header line {} '{}': expected a positive length with a length unit (m, mm, um, nm, ...)",
+                    f.line, f.text
+                )
+            })
         };
-        let length = |name: &str, v: &str| -> Result<f64> {
-            let v = v.replace(',', ".");
-            let (num, unit) = v
-                .split_once(char::is_whitespace)
-                .map_or((v.as_str(), ""), |(n, u)| (n, u.trim()));
-            let n: f64 = num.parse().ok().filter(|n: &f64| n.is_finite() && *n > 0.0).with_context(|| {
-                format!("Gwyddion text header '# {name}: {v}': expected a positive length with a unit")
-            })?;
-            let scale = super::bytes::length_unit_um(unit).with_context(|| {
-                format!("Gwyddion text header '# {name}: {v}': unit '{unit}' is not a length unit (m, mm, um, nm, ...)")
-            })?;
-            Ok(n * scale)
+        let (width_um, height_um) = match (w, h) {
+            (Some(w), Some(h)) => (Some(length(w)?), Some(length(h)?)),
+            _ => (None, None),
         };
-        let width_um = length("Width", w)?;
-        let height_um = length("Height", h)?;
-        let value_unit = fields.get("value units").cloned().context(
-            "Gwyddion text header: '# Width:' and '# Height:' but no '# Value units:' line: the height unit is unknown",
-        )?;
-        let value_um = super::bytes::length_unit_um(&value_unit).with_context(|| {
-            format!("Gwyddion text header '# Value units: {value_unit}': expected a length unit (m, mm, um, nm, ...): not a height map")
-        })?;
+        let both = pixel.map(&length).transpose()?;
+        let pitch_x_um = pixel_x.map(&length).transpose()?.or(both);
+        let pitch_y_um = pixel_y.map(&length).transpose()?.or(both);
+        if !size_form {
+            let (Some(_), Some(_)) = (pitch_x_um, pitch_y_um) else {
+                let (given, other) = if pixel_x.is_some() {
+                    ("x", "y")
+                } else {
+                    ("y", "x")
+                };
+                bail!(
+                    "Gwyddion text header: a pixel size along {given} but none along {other} \
+                     (read are {PITCH_FORMS})"
+                );
+            };
+        }
+        let mut warnings = Vec::new();
+        let (value_unit, value_um) = match value {
+            Some(v) => {
+                let um = super::bytes::length_unit_um(v.value).with_context(|| {
+                    format!(
+                        "Gwyddion text header line {} '{}': expected a length unit (m, mm, um, nm, ...): not a height map",
+                        v.line, v.text
+                    )
+                })?;
+                (v.value.to_string(), um)
+            }
+            None if size_form => bail!(
+                "Gwyddion text header: '# Width:' and '# Height:' but no '# Value units:' line \
+                 (keys read: {}): the height unit is unknown; header lines: {}",
+                VALUE_UNIT_KEYS.join(", "),
+                lines
+                    .iter()
+                    .take(8)
+                    .map(|h| format!("line {} '{}'", h.line, h.text))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+            None => {
+                warnings.push(
+                    "the header gives a pixel size but no value unit ('# Value units:'): heights \
+                     taken as metres, Gwyddion's unit for height data"
+                        .into(),
+                );
+                ("m".to_string(), 1e6)
+            }
+        };
         Ok(Some(GwyddionHeader {
-            channel: fields.get("channel").cloned(),
+            channel: channel.map(|c| c.value.to_string()),
+            pitch_x_um,
+            pitch_y_um,
             width_um,
             height_um,
             value_um,
             value_unit,
+            data_start,
+            warnings,
         }))
     }
 }
@@ -237,7 +453,7 @@ fn parse_gwyddion_matrix(text: &str, h: GwyddionHeader) -> Result<Surface> {
     let mut heights_um = Vec::new();
     let mut cols = 0usize;
     let mut rows = 0usize;
-    for (i, line) in text.lines().enumerate() {
+    for (i, line) in text.lines().enumerate().skip(h.data_start) {
         let l = line.trim();
         if l.is_empty() || l.starts_with('#') {
             continue;
@@ -274,8 +490,27 @@ fn parse_gwyddion_matrix(text: &str, h: GwyddionHeader) -> Result<Surface> {
     let mut metadata = Metadata {
         format: "gwyddion-text".into(),
         pitch_known: true,
+        warnings: h.warnings,
         ..Metadata::default()
     };
+    // The field's size over the matrix's, else the pixel size; both given must agree.
+    let pitch = |size: Option<f64>, n: usize, pixel: Option<f64>, axis: &str| -> Result<f64> {
+        match (size.map(|s| s / n as f64), pixel) {
+            (Some(a), Some(b)) if (a - b).abs() > 1e-6 * a.max(b) => bail!(
+                "Gwyddion text header: the size along {axis} over {n} points gives a pitch of                  {a} um but the pixel size says {b} um"
+            ),
+            (Some(a), _) | (None, Some(a)) => Ok(a),
+            (None, None) => bail!("Gwyddion text header: no pitch along {axis}"),
+        }
+    };
+    let pitch_x_um = pitch(h.width_um, cols, h.pitch_x_um, "x")?;
+    let pitch_y_um = pitch(h.height_um, rows, h.pitch_y_um, "y")?;
+    let from = if h.width_um.is_some() {
+        "width and height"
+    } else {
+        "pixel size"
+    };
+    metadata.extra.insert("pitch_from".into(), from.into());
     if let Some(c) = h.channel {
         metadata.extra.insert("channel".into(), c);
     }
@@ -283,8 +518,8 @@ fn parse_gwyddion_matrix(text: &str, h: GwyddionHeader) -> Result<Surface> {
     Ok(Surface {
         width: cols,
         height: rows,
-        pitch_x_um: h.width_um / cols as f64,
-        pitch_y_um: h.height_um / rows as f64,
+        pitch_x_um,
+        pitch_y_um,
         heights_um,
         metadata,
     })
