@@ -548,6 +548,17 @@ impl RecordingReader {
                 }
                 LinearReadEvent::Record { opcode, data } => (opcode, data),
             };
+            // Only the records this reader uses are parsed: the others (attachments,
+            // metadata, indexes) are skipped unread. mcap 0.26's parser panics on some
+            // malformed ones (an attachment shorter than its own header: "slice index starts
+            // at 32 but ends at 30", found by the fuzzer), and a recording is user input.
+            use mcap::records::op;
+            if !matches!(
+                opcode,
+                op::SCHEMA | op::CHANNEL | op::MESSAGE | op::STATISTICS | op::DATA_END
+            ) {
+                continue;
+            }
             let record = match mcap::parse_record(opcode, data) {
                 Ok(r) => r,
                 Err(e) => {
