@@ -18,3 +18,23 @@ fn an_attachment_shorter_than_its_header_is_refused_not_panicked_on() {
     };
     assert!(e.contains("mcap-short-attachment.mcap"), "{e}");
 }
+
+#[test]
+#[cfg_attr(
+    debug_assertions,
+    ignore = "mcap 0.26 panics on it where overflow checks are on (debug builds): an upstream bug; release builds refuse it"
+)]
+fn a_chunk_record_longer_than_its_chunk_is_refused_not_panicked_on() {
+    // A record inside a chunk claims more bytes than the chunk has left: mcap 0.26's linear
+    // reader subtracts past zero (a panic where overflow checks are on, a wrap where not).
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures/mcap-chunk-length-underflow.mcap");
+    let e = match surfstream_io::recording::read_recording(&path) {
+        Ok(r) => panic!(
+            "read {} messages from a corrupt recording",
+            r.messages.len()
+        ),
+        Err(e) => format!("{e:#}"),
+    };
+    assert!(e.contains("mcap-chunk-length-underflow.mcap"), "{e}");
+}
