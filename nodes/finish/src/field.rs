@@ -1004,9 +1004,13 @@ mod tests {
             .collect()
     }
 
-    #[test]
-    fn the_table_reproduces_the_dem_volume_and_the_extrapolation_conserves_it() {
-        let (rows, cols, p, r) = (60, 70, 2.0, 1500.0);
+    /// A rough surface, its gaps under a ball of `r` um and a kinematic approach of 3 um at most.
+    fn rough_field(
+        rows: usize,
+        cols: usize,
+        p: f64,
+        r: f64,
+    ) -> (Vec<f64>, Vec<f64>, ApproachDistribution) {
         let z = rough(rows, cols);
         let gap = ball_gap_um(&z, Sampling::square(Shape::new(rows, cols), p).unwrap(), r);
         let d = ApproachDistribution::Kinematics(KinematicApproach {
@@ -1015,6 +1019,13 @@ mod tests {
             static_approach_um: 0.05,
             mean_angle_approach_um: 1.5,
         });
+        (z, gap, d)
+    }
+
+    #[test]
+    fn the_table_reproduces_the_dem_volume_and_the_extrapolation_conserves_it() {
+        let (rows, cols, p, r) = (60, 70, 2.0, 1500.0);
+        let (z, gap, d) = rough_field(rows, cols, p, r);
         // A "DEM" map: wear where the gap is small, some beyond reach too.
         let dem: Vec<f64> = gap
             .iter()
@@ -1149,14 +1160,7 @@ mod tests {
     #[test]
     fn a_table_whose_deep_cells_wore_more_is_pooled_and_keeps_the_dem_volume() {
         let (rows, cols, p, r) = (60, 70, 2.0, 1500.0);
-        let z = rough(rows, cols);
-        let gap = ball_gap_um(&z, Sampling::square(Shape::new(rows, cols), p).unwrap(), r);
-        let d = ApproachDistribution::Kinematics(KinematicApproach {
-            full_speed_approach_um: 3.0,
-            max_impact_angle_deg: 40.0,
-            static_approach_um: 0.05,
-            mean_angle_approach_um: 1.5,
-        });
+        let (_, gap, d) = rough_field(rows, cols, p, r);
         // A noisy "DEM": the deepest reachable cells wore twice the crests.
         let reach = d.max_um();
         let dem: Vec<f64> = gap
