@@ -673,9 +673,9 @@ fn wear_rates(
 /// patch of a surface, um) falls to `sa_um` (the step that crosses it cut by bisection: within
 /// a step the wear is linear), when Sa stalls ([`STALL_SHARE`] over [`STALL_STEPS`]), or when
 /// `stop` is set (Ctrl-C).
-pub struct SaTarget<'a> {
+pub struct SaTarget<'a, E = anyhow::Error> {
     pub sa_um: f64,
-    pub sa_of: &'a mut dyn FnMut(&[f64]) -> Result<f64>,
+    pub sa_of: &'a mut dyn FnMut(&[f64]) -> std::result::Result<f64, E>,
     pub stop: &'a std::sync::atomic::AtomicBool,
 }
 
@@ -692,15 +692,17 @@ pub struct Stepped {
 /// much budget (impacts or seconds) as takes the fastest cell [`FieldGrid::step_depth_um`]
 /// deep, and adds the depth to `wear_um` (and the impacts' to `impact_wear_um`). It ends when
 /// `budget` is spent, nothing wears, [`MAX_STEPS`] are taken, or at the `target`.
-pub fn wear_in_steps(
+/// Without a target nothing in it can fail: the caller names `E` as
+/// [`std::convert::Infallible`] ([`wear_in_steps_untargeted`]).
+pub fn wear_in_steps<E>(
     heights_um: &mut [f64],
     wear_um: &mut [f64],
     mut impact_wear_um: Option<&mut [f64]>,
     g: FieldGrid,
     budget: f64,
     mut rates: impl FnMut(&[f64], &mut [f64], Option<&mut [f64]>) -> f64,
-    mut target: Option<SaTarget<'_>>,
-) -> Result<Stepped> {
+    mut target: Option<SaTarget<'_, E>>,
+) -> std::result::Result<Stepped, E> {
     let mut left = budget;
     let mut used = 0.0;
     let mut out = Extrapolation::default();
@@ -788,6 +790,22 @@ pub fn wear_in_steps(
     })
 }
 
+/// [`wear_in_steps`] to the end of `budget`, with no Sa target: infallible by its type.
+pub fn wear_in_steps_untargeted(
+    heights_um: &mut [f64],
+    wear_um: &mut [f64],
+    impact_wear_um: Option<&mut [f64]>,
+    g: FieldGrid,
+    budget: f64,
+    rates: impl FnMut(&[f64], &mut [f64], Option<&mut [f64]>) -> f64,
+) -> Stepped {
+    let none: Option<SaTarget<'_, std::convert::Infallible>> = None;
+    match wear_in_steps(heights_um, wear_um, impact_wear_um, g, budget, rates, none) {
+        Ok(s) => s,
+        Err(never) => match never {},
+    }
+}
+
 /// Share of the cells worn at all.
 pub fn worn_share(wear_um: &[f64]) -> f64 {
     wear_um.iter().filter(|w| **w > 0.0).count() as f64 / wear_um.len().max(1) as f64
@@ -806,11 +824,7 @@ pub fn extrapolate(
     scale: f64,
 ) -> Extrapolation {
     let rates = |h: &[f64], r: &mut [f64], _: Option<&mut [f64]>| wear_rates(h, g, dist, table, r);
-    match wear_in_steps(heights_um, wear_um, None, g, impacts * scale, rates, None) {
-        Ok(s) => s.extrapolation,
-        // Without a target nothing in the steps can fail.
-        Err(_) => unreachable!("wear_in_steps without a target has no fallible step"),
-    }
+    wear_in_steps_untargeted(heights_um, wear_um, None, g, impacts * scale, rates).extrapolation
 }
 
 /// Wears `heights_um` with the contact field, step by step as [`extrapolate`] at scale 1,

@@ -29,8 +29,8 @@ use anyhow::{bail, Result};
 use serde::{Deserialize, Serialize};
 
 use crate::field::{
-    ball_gap_um, hertz_static_approach_um, wear_in_steps, worn_share, ApproachDistribution,
-    Extrapolation, FieldGrid, SaTarget, WearTable,
+    ball_gap_um, hertz_static_approach_um, wear_in_steps, wear_in_steps_untargeted, worn_share,
+    ApproachDistribution, Extrapolation, FieldGrid, SaTarget, WearTable,
 };
 use crate::setting::{Media, Workpiece};
 
@@ -182,18 +182,15 @@ pub fn advance_worn(
     scale: f64,
 ) -> Extrapolation {
     let rates = |h: &[f64], r: &mut [f64], ir: Option<&mut [f64]>| depth_rates(h, g, laws, r, ir);
-    match wear_in_steps(
+    wear_in_steps_untargeted(
         &mut w.heights_um,
         &mut w.wear_um,
         Some(&mut w.impact_wear_um),
         g,
         seconds * scale,
         rates,
-        None,
-    ) {
-        Ok(s) => s.extrapolation,
-        Err(_) => unreachable!("wear_in_steps without a target has no fallible step"),
-    }
+    )
+    .extrapolation
 }
 
 /// Wears `heights_um` for `seconds` at `scale` under `laws` (as [`advance_worn`]); adds the
