@@ -182,17 +182,24 @@ fn instrument_date(t: &str) -> Option<ReadDate> {
         } else {
             return None;
         };
-    let days_in_month = match month {
-        1 | 3 | 5 | 7 | 8 | 10 | 12 => 31,
-        4 | 6 | 9 | 11 => 30,
-        2 if year % 4 == 0 && (year % 100 != 0 || year % 400 == 0) => 29,
-        2 => 28,
-        _ => return None,
-    };
+    let days_in_month = days_in_month(year, month)?;
     ((1..=days_in_month).contains(&day) && (1000..10000).contains(&year)).then(|| ReadDate {
         iso: format!("{year:04}-{month:02}-{day:02}T{time}{zone}"),
         assumed,
     })
+}
+
+/// Days of `month` (1-12) in the Gregorian `year`; None for no month.
+fn days_in_month(year: u32, month: u32) -> Option<u32> {
+    match month {
+        1 | 3 | 5 | 7 | 8 | 10 | 12 => Some(31),
+        4 | 6 | 9 | 11 => Some(30),
+        2 if year.is_multiple_of(4) && (!year.is_multiple_of(100) || year.is_multiple_of(400)) => {
+            Some(29)
+        }
+        2 => Some(28),
+        _ => None,
+    }
 }
 
 /// [`read_date`] for text already in ISO 8601 / RFC 3339.
@@ -215,13 +222,7 @@ fn iso8601_as_is(t: &str) -> Option<String> {
         t[5..7].parse().ok()?,
         t[8..10].parse().ok()?,
     );
-    let days_in_month = match month {
-        1 | 3 | 5 | 7 | 8 | 10 | 12 => 31,
-        4 | 6 | 9 | 11 => 30,
-        2 if year % 4 == 0 && (year % 100 != 0 || year % 400 == 0) => 29,
-        2 => 28,
-        _ => return None,
-    };
+    let days_in_month = days_in_month(year, month)?;
     if !(1..=days_in_month).contains(&day) {
         return None;
     }
