@@ -1029,12 +1029,9 @@ fn baselines_table(s: &FinishSummary, b: &crate::summary::Baselines) -> String {
     }
     h += "</table>";
     h += &at_calibration_time(s, b);
-    let say = |what: &str, list: &[String]| -> String {
-        let reached = match what {
-            "Constant wear" => b.constant_wear.reached,
-            _ => b.plateau.reached,
-        };
-        if !reached {
+    let say = |what: &str, base: &crate::summary::Baseline| -> String {
+        let list = &base.within_noise;
+        if !base.reached {
             return format!(
                 "{what} <b>did not reach</b> the prediction's Sa at the calibration time (its fit stalls: a constant rate within a reach that covers almost every cell lowers the surface without smoothing it); its column is not at the same Sa. "
             );
@@ -1053,8 +1050,8 @@ fn baselines_table(s: &FinishSummary, b: &crate::summary::Baselines) -> String {
     write!(
         h,
         "<p>{}{}Constant wear: {} (fitted {} = {}). Plateau: {} (fitted {} = {}). Noise: {}.</p>",
-        say("Constant wear", &b.constant_wear.within_noise),
-        say("Plateau cut", &b.plateau.within_noise),
+        say("Constant wear", &b.constant_wear),
+        say("Plateau cut", &b.plateau),
         esc(&b.constant_wear.what),
         esc(&b.constant_wear.fitted_parameter),
         sci(b.constant_wear.fitted_value),
