@@ -683,7 +683,7 @@ pub fn run(a: FinishArgs) -> Result<()> {
     if let Some(sw) = &summary.sweep {
         for st in &sw.settings {
             println!(
-                "finish: sweep {} = {}{}: Sa {:.3}, Sq {:.3}, Sz {:.3} um after the process ({})",
+                "finish: sweep {} = {}{}: Sa {}{} at {:.0} s; Sa {:.3}, Sq {:.3}, Sz {:.3} um after the process ({})",
                 sw.parameter,
                 st.value,
                 if st.calibrated_here {
@@ -691,12 +691,19 @@ pub fn run(a: FinishArgs) -> Result<()> {
                 } else {
                     ""
                 },
+                st.sa_compared_um
+                    .map_or("?".to_string(), |sa| format!("{sa:.3}")),
+                st.sa_noise_um
+                    .map(|n| format!(" (noise {n:.3})"))
+                    .unwrap_or_default(),
+                sw.compared_at_s,
                 st.after.sa,
                 st.after.sq,
                 st.after.sz,
                 st.dir
             );
         }
+        println!("finish: sweep: {}", sw.verdict);
     }
     if !summary.fitted.is_empty() {
         println!("finish: fitted: {}", summary.fitted.join(", "));

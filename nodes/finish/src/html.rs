@@ -846,11 +846,11 @@ pub fn field_section(s: &FinishSummary) -> String {
     .ok();
     t += "<table><tr><th>gap from (µm)</th><th>to</th><th>cells</th><th>expected contacts</th>\
 <th>DEM worn cells</th><th>DEM depth sum (µm)</th><th>wear per contact measured (µm, DEM k)</th>\
-<th>used (pooled: *)</th></tr>";
+<th>used (pooled: *)</th><th>depth per impact at the centre (µm, used: continuous)</th></tr>";
     for b in &f.table.bins {
         write!(
             t,
-            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}{}</td></tr>",
+            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}{}</td><td>{}</td></tr>",
             num(b.gap_from_um, 3),
             num(b.gap_to_um, 3),
             b.cells,
@@ -860,6 +860,7 @@ pub fn field_section(s: &FinishSummary) -> String {
             sci(b.measured_wear_per_contact_um),
             sci(b.wear_per_contact_um),
             if b.pooled { " *" } else { "" },
+            sci(b.depth_per_impact_um),
         )
         .ok();
     }
@@ -1160,12 +1161,19 @@ fn sweep_plots(s: &FinishSummary) -> String {
         .svg();
         write!(h, "<figure>{svg}</figure>").ok();
     }
-    h += "</div><table><tr><th class=\"k\">setting</th><th>Sa after (µm)</th><th>Sq</th><th>Sz</th><th class=\"k\">folder</th></tr>";
+    write!(
+        h,
+        "</div><table><tr><th class=\"k\">setting</th><th>Sa at {:.0} s (µm)</th><th>Sa noise there</th><th>Sa after the process</th><th>Sq</th><th>Sz</th><th class=\"k\">folder</th></tr>",
+        sw.compared_at_s
+    )
+    .ok();
     for (st, l) in sw.settings.iter().zip(&labels) {
         write!(
             h,
-            "<tr><td class=\"k\">{}</td><td>{}</td><td>{}</td><td>{}</td><td class=\"k\">{}</td></tr>",
+            "<tr><td class=\"k\">{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td class=\"k\">{}</td></tr>",
             esc(l),
+            num(st.sa_compared_um, 3),
+            st.sa_noise_um.map_or("none (one cycle)".to_string(), |n| num(n, 3)),
             num(st.after.sa, 3),
             num(st.after.sq, 3),
             num(st.after.sz, 3),
@@ -1174,6 +1182,14 @@ fn sweep_plots(s: &FinishSummary) -> String {
         .ok();
     }
     h += "</table>";
+    if !sw.verdict.is_empty() {
+        write!(
+            h,
+            "<p><b>Told apart?</b> {} (a setting's Sa noise: its odd and even cycles' DEM tables' predictions at the same constants; a pair is apart when its difference exceeds the two noises added in quadrature).</p>",
+            esc(&sw.verdict)
+        )
+        .ok();
+    }
     h
 }
 
@@ -1744,6 +1760,28 @@ mod tests {
         let html = render(&stalled, &original, &original, &original, None, rows, cols).unwrap();
         assert!(html.contains("Constant wear <b>did not reach</b> the prediction's Sa"));
         assert!(!html.contains("Constant wear: the prediction"));
+        // An older record's sweep has no noise: said in its column, no verdict claimed.
+        let html = render(&s, &original, &original, &original, None, rows, cols).unwrap();
+        assert!(html.contains("<td>none (one cycle)</td>"));
+        assert!(!html.contains("Told apart?"));
+        // With each setting's Sa noise, the page says which settings the DEM tells apart.
+        let mut told = s.clone();
+        if let Some(sw) = &mut told.sweep {
+            sw.settings
+                .iter_mut()
+                .for_each(|st| st.sa_noise_um = Some(0.05));
+            for (st, sa) in sw.settings.iter_mut().zip([0.9, 0.74]) {
+                st.sa_compared_um = Some(sa);
+            }
+            (sw.comparisons, sw.verdict) =
+                crate::sweep::compare_settings(&sw.parameter, &sw.settings, 300.0, 1.3, None);
+        }
+        let html = render(&told, &original, &original, &original, None, rows, cols).unwrap();
+        assert!(
+            html.contains("<b>Told apart?</b> every pair of settings of revolution-rpm differs in Sa at 300 s by more than its noise: 200 vs 300 (-0.160 um, noise 0.071)"),
+            "{}",
+            &html[html.find("Sweep of").unwrap_or(0)..]
+        );
     }
 
     /// Issue 39: file names are escaped with the shared helper, quotes included, so a `"` in

@@ -178,7 +178,7 @@ pub fn predict(input: &PredictionInput, stop: &AtomicBool) -> Result<Prediction>
         .map(|p| p.sa)
         .ok_or_else(|| anyhow!("the series lacks the calibration time"))?;
     let noise = match &input.halves {
-        Some(h) => Some(noise(input, h, sa_cal, stop)?),
+        Some(h) => Some(noise(input, h, scale, sa_cal, stop)?),
         None => None,
     };
     let within = |p: &SurfaceParams| -> Vec<String> {
@@ -230,15 +230,29 @@ fn write_map(patch: &Patch, path: &Path, z: &[f64]) -> Result<()> {
 }
 
 /// The prediction with each half's laws, fitted to `sa_cal`: the spread of the parameters
-/// after the process time.
+/// after the process time; and, at the prediction's own `scale`, the spread of Sa at the
+/// calibration time.
 fn noise(
     input: &PredictionInput,
     halves: &[Vec<WearLaw>; 2],
+    scale: f64,
     sa_cal: f64,
     stop: &AtomicBool,
 ) -> Result<PredictionNoise> {
     let mut after = Vec::new();
+    let mut sa_at_scale = Vec::new();
     for laws_half in halves {
+        // At the calibration time, not the process time: by then a setting's Sa may sit at
+        // the envelope's floor, where every table gives the same Sa and the spread says nothing.
+        let mut w = Worn::new(input.original_um);
+        laws::advance_worn(
+            &mut w,
+            input.grid,
+            laws_half,
+            input.calibration_time_s,
+            scale,
+        );
+        sa_at_scale.push(sa_of_crop(input.patch, &w.heights_um)?);
         let (s, _, _) = laws::fit_scale(
             input.original_um,
             input.grid,
@@ -255,12 +269,13 @@ fn noise(
     }
     let d = |f: fn(&SurfaceParams) -> f64| (f(&after[0]) - f(&after[1])).abs();
     Ok(PredictionNoise {
+        sa: Some((sa_at_scale[0] - sa_at_scale[1]).abs()),
         sq: d(|p| p.sq),
         sz: d(|p| p.sz),
         spk: d(|p| p.spk),
         svk: d(|p| p.svk),
         sk: d(|p| p.sk),
-        from: "|difference| after the process time between the predictions from the odd and the even cycles' DEM tables (different engine seeds), each fitted to the same Sa".into(),
+        from: "|difference| after the process time between the predictions from the odd and the even cycles' DEM tables (different engine seeds): Sq..Sk after the process time, each fitted to the same Sa; Sa at the calibration time at the prediction's own scale (not refitted)".into(),
     })
 }
 

@@ -198,6 +198,11 @@ fn reached_by_default() -> bool {
 /// same Sa (`baselines.noise`), um.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct PredictionNoise {
+    /// |Sa difference| at the calibration time between the two halves' tables at the
+    /// prediction's own scale (not refitted): how far this setting's Sa depends on which DEM
+    /// segments were drawn (what a sweep's settings are compared by). None in older records.
+    #[serde(rename = "Sa", default, skip_serializing_if = "Option::is_none")]
+    pub sa: Option<f64>,
     #[serde(rename = "Sq")]
     pub sq: f64,
     #[serde(rename = "Sz")]
@@ -228,6 +233,34 @@ pub struct Sweep {
     pub parameter: String,
     pub settings: Vec<SweepSetting>,
     pub note: String,
+    /// The time the settings are compared at (the calibration time), s.
+    #[serde(default)]
+    pub compared_at_s: f64,
+    /// Sa of the ball's envelope of the patch before finishing, um: every setting's Sa falls
+    /// towards it, so settings near it are saturated, not told apart.
+    #[serde(default)]
+    pub envelope_sa_um: Option<f64>,
+    /// Every pair of settings compared by Sa at `compared_at_s` against their noise.
+    #[serde(default)]
+    pub comparisons: Vec<SweepComparison>,
+    /// Which settings the DEM tells apart and which not, in one sentence.
+    #[serde(default)]
+    pub verdict: String,
+}
+
+/// Two settings of a sweep compared by their Sa at the calibration time (`sweep.comparisons`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SweepComparison {
+    /// The two settings' values, lower first.
+    pub values: [f64; 2],
+    /// Sa at the second value minus at the first, um (at `sweep.compared_at_s`).
+    pub sa_difference_um: f64,
+    /// The noise of that difference: the two settings' Sa noises (each the |difference|
+    /// between its halves' predictions, about twice its standard deviation) added in
+    /// quadrature, um. None when a setting has no noise estimate (one cycle).
+    pub noise_um: Option<f64>,
+    /// Whether the difference exceeds its noise (None: no noise estimate).
+    pub apart: Option<bool>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -237,6 +270,12 @@ pub struct SweepSetting {
     pub dir: String,
     /// True for the setting the constants were fitted on.
     pub calibrated_here: bool,
+    /// The setting's Sa at the calibration time (`sweep.compared_at_s`), um.
+    #[serde(default)]
+    pub sa_compared_um: Option<f64>,
+    /// The setting's Sa noise there (`baselines.noise.Sa` of its run), um.
+    #[serde(default)]
+    pub sa_noise_um: Option<f64>,
     pub after: SurfaceParams,
     pub series: Vec<SeriesPoint>,
 }

@@ -12,7 +12,7 @@ use surfstream_core::record;
 
 use crate::process::finish_record;
 use crate::run::{outputs, FinishOptions, Model};
-use crate::summary::{FinishSummary, Sweep, SweepSetting};
+use crate::summary::{FinishSummary, Sweep, SweepComparison, SweepSetting};
 
 /// What a sweep varies.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -128,11 +128,27 @@ fn setting_options(
     Ok(o)
 }
 
-fn setting_of(s: &FinishSummary, value: f64, dir: &str, calibrated_here: bool) -> SweepSetting {
+fn setting_of(
+    s: &FinishSummary,
+    value: f64,
+    dir: &str,
+    calibrated_here: bool,
+    compared_at_s: f64,
+) -> SweepSetting {
     SweepSetting {
         value,
         dir: dir.into(),
         calibrated_here,
+        sa_compared_um: s
+            .series
+            .iter()
+            .find(|p| (p.time_s - compared_at_s).abs() <= 1e-9 * compared_at_s.max(1.0))
+            .map(|p| p.sa),
+        sa_noise_um: s
+            .baselines
+            .as_ref()
+            .and_then(|b| b.noise.as_ref())
+            .and_then(|n| n.sa),
         after: s.after.clone(),
         series: s.series.clone(),
     }
@@ -168,7 +184,10 @@ pub fn finish_sweep(
         others.len()
     ));
     let mut record = finish_record(model, &base_opts, out_dir, stop, say)?;
-    let mut settings = vec![setting_of(&record, base_value, ".", true)];
+    // Settings are compared where the base was calibrated: by the process time their Sa may
+    // all sit at the envelope's floor.
+    let compared_at_s = base.calibrate_at_s.unwrap_or(base.process_time_s);
+    let mut settings = vec![setting_of(&record, base_value, ".", true, compared_at_s)];
     for v in others {
         if record.partial || stop.load(std::sync::atomic::Ordering::Relaxed) {
             break;
@@ -184,16 +203,125 @@ pub fn finish_sweep(
         ));
         let s = finish_record(model, &o, &out_dir.join(&dir), stop, say)?;
         record.partial |= s.partial;
-        settings.push(setting_of(&s, v, &dir, false));
+        settings.push(setting_of(&s, v, &dir, false, compared_at_s));
     }
     settings.sort_by(|a, b| a.value.total_cmp(&b.value));
+    let envelope_sa_um = record
+        .contact_field
+        .as_ref()
+        .and_then(|c| c.envelope.as_ref())
+        .map(|e| e.sa_um);
+    let (comparisons, verdict) = compare_settings(
+        spec.parameter.name(),
+        &settings,
+        compared_at_s,
+        record.before.sa,
+        envelope_sa_um,
+    );
     record.sweep = Some(Sweep {
+        compared_at_s,
+        envelope_sa_um,
         parameter: spec.parameter.name().into(),
         settings,
         note: "the base setting's one scale (both wear laws) fitted once; every other setting run in full (its own DEM segments, rates and tables) with the constants that scale makes: their series are predictions".into(),
+        comparisons,
+        verdict,
     });
     rewrite(out_dir, &record)?;
     Ok(record)
+}
+
+/// Every pair of `settings` (sorted by value) compared by Sa at `time_s` (the calibration
+/// time) against the noise of the difference, and the sentence that says which the DEM tells
+/// apart. A sweep is a basis for choosing only where its settings differ by more than the
+/// DEM's sampling noise, and before they reach the envelope's Sa (`envelope_sa_um`, where every
+/// setting ends): the user must see when they do not.
+pub fn compare_settings(
+    parameter: &str,
+    settings: &[SweepSetting],
+    time_s: f64,
+    before_sa_um: f64,
+    envelope_sa_um: Option<f64>,
+) -> (Vec<SweepComparison>, String) {
+    let mut comparisons = Vec::new();
+    for (i, a) in settings.iter().enumerate() {
+        for b in &settings[i + 1..] {
+            let (Some(sa_a), Some(sa_b)) = (a.sa_compared_um, b.sa_compared_um) else {
+                continue;
+            };
+            let noise_um = match (a.sa_noise_um, b.sa_noise_um) {
+                (Some(x), Some(y)) => Some(x.hypot(y)),
+                _ => None,
+            };
+            let d = sa_b - sa_a;
+            comparisons.push(SweepComparison {
+                values: [a.value, b.value],
+                sa_difference_um: d,
+                noise_um,
+                apart: noise_um.map(|n| d.abs() > n),
+            });
+        }
+    }
+    let pair = |c: &SweepComparison| {
+        format!(
+            "{} vs {} ({:+.3} um{})",
+            c.values[0],
+            c.values[1],
+            c.sa_difference_um,
+            c.noise_um
+                .map(|n| format!(", noise {n:.3}"))
+                .unwrap_or_default()
+        )
+    };
+    let list = |f: &dyn Fn(&SweepComparison) -> bool| {
+        comparisons
+            .iter()
+            .filter(|c| f(c))
+            .map(pair)
+            .collect::<Vec<_>>()
+            .join("; ")
+    };
+    let at = format!("Sa at {time_s:.0} s");
+    let mut verdict = if comparisons.is_empty() {
+        format!("fewer than two settings with {at}: nothing to compare")
+    } else if comparisons.iter().any(|c| c.apart.is_none()) {
+        format!(
+            "no noise estimate for every setting (a run of one cycle has no second DEM table): the differences in {at} ({}) cannot be told from the DEM's sampling noise; run two cycles or more",
+            list(&|_| true)
+        )
+    } else if comparisons.iter().all(|c| c.apart == Some(false)) {
+        format!(
+            "no two settings of {parameter} differ in {at} by more than their noise ({}): this sweep does not tell them apart, it is not yet a basis for choosing",
+            list(&|_| true)
+        )
+    } else {
+        let apart = list(&|c| c.apart == Some(true));
+        let within = list(&|c| c.apart == Some(false));
+        if within.is_empty() {
+            format!("every pair of settings of {parameter} differs in {at} by more than its noise: {apart}")
+        } else {
+            format!("apart by more than their noise in {at}: {apart}; within it (not told apart): {within}")
+        }
+    };
+    // Within a tenth of the way from the start to the envelope's Sa, a setting is saturated:
+    // its small noise there is the floor's, not a precise DEM.
+    if let Some(floor) = envelope_sa_um {
+        let near: Vec<String> = settings
+            .iter()
+            .filter(|st| {
+                st.sa_compared_um
+                    .is_some_and(|sa| sa - floor < 0.1 * (before_sa_um - floor))
+            })
+            .map(|st| st.value.to_string())
+            .collect();
+        if !near.is_empty() {
+            verdict += &format!(
+                ". Near the envelope's Sa ({floor:.3} um, where every setting ends) at {time_s:.0} s: {parameter} = {}; there the settings are saturated, and a small noise is the floor's",
+                near.join(", ")
+            );
+        }
+    }
+    (comparisons, verdict)
 }
 
 /// finish.json and finish.html of `out_dir` again, from `record` and the maps written there.
@@ -231,6 +359,93 @@ fn rewrite(out_dir: &Path, record: &FinishSummary) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn setting(value: f64, sa: f64, noise: Option<f64>) -> SweepSetting {
+        let z = 0.0;
+        let params = crate::run::SurfaceParams {
+            sa: z,
+            sq: z,
+            sp: z,
+            sv: z,
+            sz: z,
+            ssk: z,
+            sku: z,
+            sdq: z,
+            sk: z,
+            spk: z,
+            svk: z,
+            smr1: z,
+            smr2: z,
+        };
+        SweepSetting {
+            value,
+            dir: ".".into(),
+            calibrated_here: false,
+            sa_compared_um: Some(sa),
+            sa_noise_um: noise,
+            after: params,
+            series: vec![],
+        }
+    }
+
+    #[test]
+    fn settings_are_told_apart_only_beyond_their_noise() {
+        // 200 vs 300 r/min apart by 0.2 um with noises 0.03 and 0.04 (quadrature 0.05): apart;
+        // 250 sits within the noise of 300.
+        let s = [
+            setting(200.0, 0.70, Some(0.03)),
+            setting(250.0, 0.54, Some(0.04)),
+            setting(300.0, 0.50, Some(0.04)),
+        ];
+        let (c, verdict) = compare_settings("revolution-rpm", &s, 300.0, 1.3, Some(0.2));
+        assert_eq!(c.len(), 3);
+        assert_eq!(c[0].values, [200.0, 250.0]);
+        assert!((c[0].sa_difference_um + 0.16).abs() < 1e-12);
+        assert!((c[0].noise_um.unwrap() - 0.05).abs() < 1e-12);
+        assert_eq!(c[0].apart, Some(true));
+        assert_eq!(c[2].values, [250.0, 300.0]);
+        assert_eq!(c[2].apart, Some(false));
+        assert!(verdict.contains("in Sa at 300 s"), "{verdict}");
+        assert!(
+            verdict.contains("200 vs 300 (-0.200 um, noise 0.050)"),
+            "{verdict}"
+        );
+        assert!(
+            verdict.contains("within it (not told apart): 250 vs 300"),
+            "{verdict}"
+        );
+        assert!(!verdict.contains("envelope"), "{verdict}");
+        // All within: said as not a basis for choosing.
+        let s = [
+            setting(200.0, 0.50, Some(0.1)),
+            setting(300.0, 0.45, Some(0.1)),
+        ];
+        let (_, verdict) = compare_settings("revolution-rpm", &s, 300.0, 1.3, None);
+        assert!(
+            verdict.contains("not yet a basis for choosing"),
+            "{verdict}"
+        );
+        // A setting without a noise estimate: no claim either way.
+        let s = [setting(200.0, 0.9, None), setting(300.0, 0.45, Some(0.01))];
+        let (c, verdict) = compare_settings("revolution-rpm", &s, 300.0, 1.3, None);
+        assert_eq!(c[0].apart, None);
+        assert!(
+            verdict.contains("cannot be told from the DEM's sampling noise"),
+            "{verdict}"
+        );
+        // A setting at the envelope's Sa is saturated, and said to be: 0.45 is within a tenth
+        // of the way from 1.3 to 0.44.
+        let s = [
+            setting(200.0, 0.45, Some(0.0004)),
+            setting(300.0, 0.60, Some(0.01)),
+        ];
+        let (c, verdict) = compare_settings("revolution-rpm", &s, 300.0, 1.3, Some(0.44));
+        assert_eq!(c[0].apart, Some(true));
+        assert!(
+            verdict.contains("Near the envelope's Sa (0.440 um, where every setting ends) at 300 s: revolution-rpm = 200;"),
+            "{verdict}"
+        );
+    }
 
     #[test]
     fn a_sweep_flag_names_its_parameter_and_values() {
