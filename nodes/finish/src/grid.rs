@@ -292,19 +292,19 @@ impl NodeMap {
 /// included), so a large triangle's wear covers its area, not only its three corners, and the
 /// total is kept exactly; a triangle whose footprint holds no sample gives its volume to the
 /// sample nearest its centroid. `offset_um` turns a vertex (m) into patch coordinates (um):
-/// um = m * 1e6 + offset. Returns the depth map and the volume of triangles that cover no
-/// sample of the grid (off the grid: should be zero).
+/// um = m * 1e6 + offset.
 pub fn triangle_volumes_to_samples(
     sampling: Sampling,
     offset_um: [f64; 3],
     triangles: &[[[f64; 3]; 3]],
     volume_m3: &[f64],
-) -> (Vec<f64>, f64) {
+) -> SampleWear {
     let (rows, cols) = (sampling.rows(), sampling.cols());
     let (px, py) = (sampling.pitch_x_um(), sampling.pitch_y_um());
     let cell = sampling.pitch().cell_area_um2();
     let mut depth = vec![0.0; rows * cols];
     let mut unmapped = 0.0;
+    let mut nearest = 0.0;
     let mut inside = Vec::new();
     for (t, &v) in triangles.iter().zip(volume_m3) {
         if v == 0.0 {
@@ -354,6 +354,7 @@ pub fn triangle_volumes_to_samples(
             let on_grid = |x: f64, n: usize| x > -0.5 && x < n as f64 - 0.5;
             if on_grid(cc, cols) && on_grid(cr, rows) {
                 inside.push(cr.round() as usize * cols + cc.round() as usize);
+                nearest += v;
             } else {
                 unmapped += v;
                 continue;
@@ -364,7 +365,23 @@ pub fn triangle_volumes_to_samples(
             depth[k] += d;
         }
     }
-    (depth, unmapped)
+    SampleWear {
+        depth_um: depth,
+        unmapped_m3: unmapped,
+        to_nearest_sample_m3: nearest,
+    }
+}
+
+/// Triangle wear on the samples ([`triangle_volumes_to_samples`]).
+#[derive(Debug, Clone)]
+pub struct SampleWear {
+    /// Depth along z per sample, um.
+    pub depth_um: Vec<f64>,
+    /// Volume of triangles that cover no sample of the grid (off it: should be zero), m^3.
+    pub unmapped_m3: f64,
+    /// Volume of triangles between samples, given to the sample nearest their centroid, m^3
+    /// (kept in the total; its place is within half a sample).
+    pub to_nearest_sample_m3: f64,
 }
 
 /// Volume of a depth map (um) over samples of `pitch` (um^2 per sample), um^3.
@@ -418,8 +435,10 @@ mod tests {
             [m(0.0, 0.0), m(4.0, 0.0), m(4.0, 4.0)],
             [m(0.0, 0.0), m(4.0, 4.0), m(0.0, 4.0)],
         ];
-        let (d, unmapped) = triangle_volumes_to_samples(at, off, &tris, &[1.5e-18, 0.0]);
+        let mapped = triangle_volumes_to_samples(at, off, &tris, &[1.5e-18, 0.0]);
+        let (d, unmapped) = (mapped.depth_um, mapped.unmapped_m3);
         assert_eq!(unmapped, 0.0);
+        assert_eq!(mapped.to_nearest_sample_m3, 0.0);
         // The first triangle covers the 15 samples with col >= row, evenly.
         let per = 1.5 / (15.0 * 4.0);
         for r in 0..5 {
@@ -435,13 +454,15 @@ mod tests {
         assert!((volume_um3(&d, at.pitch()) - 1.5).abs() < 1e-12);
         // A triangle off the grid is counted as unmapped.
         let far = [[m(10.0, 10.0), m(12.0, 10.0), m(12.0, 12.0)]];
-        let (_, unmapped) = triangle_volumes_to_samples(at, off, &far, &[2e-18]);
+        let unmapped = triangle_volumes_to_samples(at, off, &far, &[2e-18]).unmapped_m3;
         assert_eq!(unmapped, 2e-18);
         // A triangle between samples (vertices off the grid, no sample inside) gives its
         // volume to the sample nearest its centroid: (col 2, row 1).
         let small = [[m(1.6, 1.2), m(2.4, 1.2), m(2.0, 1.4)]];
-        let (d, unmapped) = triangle_volumes_to_samples(at, off, &small, &[0.8e-18]);
+        let mapped = triangle_volumes_to_samples(at, off, &small, &[0.8e-18]);
+        let (d, unmapped) = (mapped.depth_um, mapped.unmapped_m3);
         assert_eq!(unmapped, 0.0);
+        assert_eq!(mapped.to_nearest_sample_m3, 0.8e-18, "counted in the record");
         assert!((d[5 + 2] - 0.8 / 4.0).abs() < 1e-15, "{d:?}");
         assert!((volume_um3(&d, at.pitch()) - 0.8).abs() < 1e-12);
     }

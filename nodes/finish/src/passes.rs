@@ -491,6 +491,8 @@ pub struct MicroRun {
     pub finnie_liggghts_volume_um3: f64,
     pub finnie_grid_volume_um3: f64,
     pub unmapped_volume_um3: f64,
+    /// Volume of triangles between samples given to the nearest sample, um^3.
+    pub to_nearest_sample_um3: f64,
     /// Archard volume from the dumps, um^3 (the grid keeps it exactly).
     pub archard_volume_um3: f64,
     pub sliding_contacts: ContactSummary,
@@ -703,6 +705,7 @@ pub fn run_micro_passes(
         finnie_liggghts_volume_um3: 0.0,
         finnie_grid_volume_um3: 0.0,
         unmapped_volume_um3: 0.0,
+        to_nearest_sample_um3: 0.0,
         archard_volume_um3: 0.0,
         sliding_contacts: ContactSummary::default(),
         impact_contacts: ContactSummary::default(),
@@ -747,10 +750,11 @@ pub fn run_micro_passes(
             let (wear, area) = (vtk.field("wear")?, vtk.field("area")?);
             let volume_m3: Vec<f64> = wear.iter().zip(area).map(|(w, a)| w * a).collect();
             run.finnie_liggghts_volume_um3 += volume_m3.iter().sum::<f64>() * 1e18;
-            let (depth, unmapped) =
+            let mapped =
                 triangle_volumes_to_samples(at, mesh.offset_um, &vtk.triangles, &volume_m3);
-            run.unmapped_volume_um3 += unmapped * 1e18;
-            add(&mut run.finnie_um, &depth);
+            run.unmapped_volume_um3 += mapped.unmapped_m3 * 1e18;
+            run.to_nearest_sample_um3 += mapped.to_nearest_sample_m3 * 1e18;
+            add(&mut run.finnie_um, &mapped.depth_um);
             merge(&mut run.impact_contacts, &summary);
         } else {
             let pts: Vec<(f64, f64, f64)> =

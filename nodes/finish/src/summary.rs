@@ -475,6 +475,10 @@ pub struct CycleVolumeCheck {
     pub liggghts_um3: f64,
     pub grid_um3: f64,
     pub unmapped_um3: f64,
+    /// Volume of triangles lying between samples, given to the sample nearest their
+    /// centroid (kept in `grid_um3`), um^3. None: a block-averaged sheet, or an older record.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub to_nearest_sample_um3: Option<f64>,
     pub relative_error: f64,
 }
 
