@@ -11,9 +11,9 @@ use surfstream_core::record::{
     self, GraphRef, MatcherReport, MeshWritten, MessageCounts, OverPlan, PeakRss, ReplayReport,
     RunRecord, TileRecord,
 };
-use surfstream_runtime::memory::node_shares;
 use surfstream_runtime::graph::GraphFile;
 use surfstream_runtime::latency;
+use surfstream_runtime::memory::node_shares;
 use surfstream_runtime::node::NodeReport;
 
 /// Writes `<out>/run.json` and report.html (the verdict printed at the end reads run.json).
@@ -452,7 +452,13 @@ mod tests {
     #[test]
     fn under_launch_each_node_is_set_against_its_share() {
         // 400 MB: fusion and mesher 100 MB each, stage and recorder 100 MB each.
-        let p = peak_record(Some(30 * MB), &graph_nodes(), Some(400 * MB), "launch", Some(0.4));
+        let p = peak_record(
+            Some(30 * MB),
+            &graph_nodes(),
+            Some(400 * MB),
+            "launch",
+            Some(0.4),
+        );
         assert_eq!(p.shares_bytes["fusion"], 100 * MB);
         assert_eq!(p.shares_bytes["stage"], 100 * MB);
         assert_eq!(p.shares_bytes.values().sum::<u64>(), 400 * MB);

@@ -516,14 +516,19 @@ fn memory_line(run: &RunRecord) -> Option<String> {
             let sum = peak.run_bytes_at_most.map_or(String::new(), |b| {
                 format!(" (all processes together at most {})", mb(b))
             });
-            return Some(format!(
-                "every node within its share of {budget}{sum}"
-            ));
+            return Some(format!("every node within its share of {budget}{sum}"));
         }
         let list: Vec<String> = peak
             .over_plan
             .iter()
-            .map(|o| format!("{} {} (share {})", o.part, mb(o.peak_bytes), mb(o.share_bytes)))
+            .map(|o| {
+                format!(
+                    "{} {} (share {})",
+                    o.part,
+                    mb(o.peak_bytes),
+                    mb(o.share_bytes)
+                )
+            })
             .collect();
         return Some(format!(
             "BEYOND THE PLAN: {} node(s) over their share of {budget}: {}",
@@ -539,7 +544,10 @@ fn memory_line(run: &RunRecord) -> Option<String> {
             mb(o.peak_bytes),
             mb(o.peak_bytes - o.share_bytes)
         ),
-        None => format!("peak {} of one process (every node of `run`), within {budget}", mb(process)),
+        None => format!(
+            "peak {} of one process (every node of `run`), within {budget}",
+            mb(process)
+        ),
     })
 }
 
@@ -858,7 +866,12 @@ mod tests {
         v["peak_rss"]["over_plan"] = json!([{ "part": "run", "peak_bytes": 700_000_000,
             "share_bytes": 500_000_000 }]);
         let out = verdict(&record(v.clone()), Path::new("/o"), false);
-        assert!(out.text.contains("BEYOND THE PLAN: peak 700 MB of one process"), "{}", out.text);
+        assert!(
+            out.text
+                .contains("BEYOND THE PLAN: peak 700 MB of one process"),
+            "{}",
+            out.text
+        );
         assert!(out.text.contains("(200 MB over;"), "{}", out.text);
         // Without a budget: no line.
         v["peak_rss"]["memory_budget_gb"] = Value::Null;

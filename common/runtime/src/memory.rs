@@ -188,7 +188,9 @@ mod tests {
         assert_eq!(p.panorama_chunks_bytes(), Some(1_000_000_000));
         assert_eq!(p.live_mirror_bytes(), None);
         assert_eq!(plan(None, None).panorama_chunks_bytes(), None);
-        let kinds = ["replay", "matcher", "fusion", "wavelet", "mesher", "recorder"];
+        let kinds = [
+            "replay", "matcher", "fusion", "wavelet", "mesher", "recorder",
+        ];
         assert_eq!(p.node_shares_bytes(&kinds), None);
         let p = plan(Some(1_200_000_000), None);
         let shares = p.node_shares_bytes(&kinds).unwrap();

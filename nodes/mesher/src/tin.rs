@@ -2102,7 +2102,12 @@ impl<'a> BlockPlan<'a> {
         let vertex_samples = r.u32s();
         let verts = vertex_samples
             .iter()
-            .map(|&s| ((s as usize % self.cols) as i64, (s as usize / self.cols) as i64))
+            .map(|&s| {
+                (
+                    (s as usize % self.cols) as i64,
+                    (s as usize / self.cols) as i64,
+                )
+            })
             .collect();
         let n = r.len();
         let tris = (0..n)

@@ -40,8 +40,8 @@ use crate::tin::{
     assemble, bound_block_angles, AngleBound, AngleStats, Balance, BlockPlan, BlockTin, LiveBlock,
     TinParams,
 };
-use surfstream_core::store::SpillFile;
 use crate::{AdaptiveMesh, Epsilon, MeshParams};
+use surfstream_core::store::SpillFile;
 
 /// The tolerance, percent of the measured value, per region.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -1232,23 +1232,21 @@ fn search_to_tolerance<M: CheckpointMesh>(
         level,
     } = search_setup(heights, roughness_um, at, params, settings)?;
     let extremes = window_extremes(heights, roughness_um, &regions);
-    let judge = |eps: f64,
-                 blocks: &BlockSource<'_>,
-                 angles: Option<AngleStats>|
-     -> Result<Trial<M>> {
-        p.epsilon = Epsilon::Um(eps);
-        let mut mesh = mesh_of(&plan, &p, eps, level, blocks)?;
-        let fits = judge_checkpoint(heights, mesh.resampled_um(), roughness_um, &regions);
-        if let Some(dir) = spill_dir {
-            mesh.park(dir)?;
-        }
-        Ok(Trial {
-            surface_triangles: mesh.surface_triangles(),
-            fits,
-            mesh,
-            angles,
-        })
-    };
+    let judge =
+        |eps: f64, blocks: &BlockSource<'_>, angles: Option<AngleStats>| -> Result<Trial<M>> {
+            p.epsilon = Epsilon::Um(eps);
+            let mut mesh = mesh_of(&plan, &p, eps, level, blocks)?;
+            let fits = judge_checkpoint(heights, mesh.resampled_um(), roughness_um, &regions);
+            if let Some(dir) = spill_dir {
+                mesh.park(dir)?;
+            }
+            Ok(Trial {
+                surface_triangles: mesh.surface_triangles(),
+                fits,
+                mesh,
+                angles,
+            })
+        };
     let (n, budget) = (regions.len(), params.max_triangles);
     let (mesh, report) = match spill_dir.filter(|_| bound.is_none()) {
         Some(dir) => {
@@ -1257,8 +1255,7 @@ fn search_to_tolerance<M: CheckpointMesh>(
             search(sq, measured_px, &settings, n, budget, &mut order)?
         }
         None => {
-            let mut order =
-                LiveOrder::new(&plan, extremes, &settings, roughness_um, bound, judge);
+            let mut order = LiveOrder::new(&plan, extremes, &settings, roughness_um, bound, judge);
             search(sq, measured_px, &settings, n, budget, &mut order)?
         }
     };
@@ -1436,8 +1433,11 @@ impl SpilledBlocks {
 /// The blocks of the next state as a checkpoint's refinement hands them over, from any thread
 /// (in any order: each block's place is noted).
 struct BlockWriter {
-    inner: Mutex<(SpillFile, u64, Vec<Option<(u64, usize)>>)>,
+    inner: Mutex<Written>,
 }
+
+/// The next state's file, its end, and each block's (offset, length) once written.
+type Written = (SpillFile, u64, Vec<Option<(u64, usize)>>);
 
 impl BlockWriter {
     fn new(spill_dir: &Path, blocks: usize) -> Self {
