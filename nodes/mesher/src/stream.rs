@@ -25,9 +25,9 @@
 //! [`coincident_vertices`].
 //!
 //! What stays per sample: the input (4 B), the f32 mesh-on-grid raster (4 B), one bit, the
-//! filled copy when samples are missing (4 B) and, while the areal parameters are computed
-//! (before meshing for the field, after it for the mesh), one f64 copy (8 B): the project's
-//! metrology takes an f64 grid.
+//! filled copy when samples are missing (4 B) and, while the field's plane is fitted, one f64
+//! copy (8 B); the areal parameters are computed by rows ([`crate::fidelity`]). The tolerance
+//! search parks the raster of every judged mesh in a spill file ([`StreamedMesh::park`]).
 
 use std::collections::HashSet;
 use std::io::Write;
