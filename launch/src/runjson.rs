@@ -8,11 +8,12 @@ use std::time::Duration;
 use anyhow::{anyhow, Result};
 use serde_json::Value;
 use surfstream_core::record::{
-    self, GraphRef, MatcherReport, MeshWritten, MessageCounts, PeakRss, ReplayReport, RunRecord,
-    TileRecord,
+    self, GraphRef, MatcherReport, MeshWritten, MessageCounts, OverPlan, PeakRss, ReplayReport,
+    RunRecord, TileRecord,
 };
 use surfstream_runtime::graph::GraphFile;
 use surfstream_runtime::latency;
+use surfstream_runtime::memory::node_shares;
 use surfstream_runtime::node::NodeReport;
 
 /// Writes `<out>/run.json` and report.html (the verdict printed at the end reads run.json).
@@ -128,26 +129,74 @@ fn read_report<T: for<'de> serde::Deserialize<'de>>(
         .map_err(|e| anyhow!(e))
 }
 
-/// Peak resident memory (VmHWM) of the launcher and of every node as it finished, bytes. Under
-/// `run` the nodes are threads of the launcher's process, so `process_bytes` is the run's
-/// peak; under `launch` each node is its own process and the run held at most the sum.
+/// Peak resident memory (VmHWM) of the launcher and of every node as it finished, bytes, each
+/// against its share of the memory plan. Under `run` the nodes are threads of the launcher's
+/// process, so `process_bytes` is the run's peak and is set against the whole budget; under
+/// `launch` each node is its own process, set against its share, and the run held at most the
+/// sum.
 fn peak_rss(graph: &GraphFile, reports: &[NodeReport], mode: &str) -> PeakRss {
     let launcher = surfstream_runtime::node::peak_rss_bytes();
-    let node_sum: u64 = reports.iter().filter_map(|r| r.peak_rss_bytes).sum();
+    let nodes: Vec<(&str, &str, Option<u64>)> = reports
+        .iter()
+        .map(|r| (r.node_id.as_str(), r.node_kind.as_str(), r.peak_rss_bytes))
+        .collect();
+    let budget = graph.graph.memory_budget_gb.map(|gb| (gb * 1e9) as u64);
+    peak_record(launcher, &nodes, budget, mode, graph.graph.memory_budget_gb)
+}
+
+/// [`peak_rss`] from its figures: the launcher's peak, each node's (id, kind, peak), the budget.
+fn peak_record(
+    launcher: Option<u64>,
+    nodes: &[(&str, &str, Option<u64>)],
+    budget_bytes: Option<u64>,
+    mode: &str,
+    memory_budget_gb: Option<f64>,
+) -> PeakRss {
+    let node_sum: u64 = nodes.iter().filter_map(|n| n.2).sum();
     let run_peak = if mode == "launch" {
         launcher.map(|l| l + node_sum)
     } else {
         launcher
     };
+    let kinds: Vec<&str> = nodes.iter().map(|n| n.1).collect();
+    let shares: Vec<u64> = budget_bytes
+        .map(|b| node_shares(b, &kinds))
+        .unwrap_or_default();
+    let over_plan = match (budget_bytes, mode) {
+        (None, _) => Vec::new(),
+        (Some(b), "run") => launcher
+            .filter(|&p| p > b)
+            .map(|p| OverPlan {
+                part: "run".into(),
+                peak_bytes: p,
+                share_bytes: b,
+            })
+            .into_iter()
+            .collect(),
+        (Some(_), _) => nodes
+            .iter()
+            .zip(&shares)
+            .filter_map(|(n, &share)| {
+                n.2.filter(|&p| p > share).map(|p| OverPlan {
+                    part: n.0.into(),
+                    peak_bytes: p,
+                    share_bytes: share,
+                })
+            })
+            .collect(),
+    };
     PeakRss {
         process_bytes: launcher,
-        nodes_bytes: reports
-            .iter()
-            .map(|r| (r.node_id.clone(), r.peak_rss_bytes))
-            .collect(),
+        nodes_bytes: nodes.iter().map(|n| (n.0.to_string(), n.2)).collect(),
         run_bytes_at_most: run_peak,
-        memory_budget_gb: graph.graph.memory_budget_gb,
-        source: "VmHWM of /proc/self/status, read by each node as it finished and by the launcher after the deviation pass (the report.html written after it is not included)".into(),
+        memory_budget_gb,
+        shares_bytes: nodes
+            .iter()
+            .zip(&shares)
+            .map(|(n, &s)| (n.0.to_string(), s))
+            .collect(),
+        over_plan,
+        source: "VmHWM of /proc/self/status, read by each node as it finished and by the launcher after the deviation pass (the report.html written after it is not included); shares: the memory plan's (surfstream_runtime::memory::node_shares)".into(),
     }
 }
 
@@ -383,4 +432,56 @@ fn test_mesh_report(partial: &Value, merge: fn(&mut Value, &Value)) -> Value {
         );
     }
     m
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MB: u64 = 1_000_000;
+
+    fn graph_nodes() -> Vec<(&'static str, &'static str, Option<u64>)> {
+        vec![
+            ("stage", "replay", Some(40 * MB)),
+            ("fusion", "fusion", Some(200 * MB)),
+            ("mesher", "mesher", Some(90 * MB)),
+            ("recorder", "recorder", None),
+        ]
+    }
+
+    #[test]
+    fn under_launch_each_node_is_set_against_its_share() {
+        // 400 MB: fusion and mesher 100 MB each, stage and recorder 100 MB each.
+        let p = peak_record(
+            Some(30 * MB),
+            &graph_nodes(),
+            Some(400 * MB),
+            "launch",
+            Some(0.4),
+        );
+        assert_eq!(p.shares_bytes["fusion"], 100 * MB);
+        assert_eq!(p.shares_bytes["stage"], 100 * MB);
+        assert_eq!(p.shares_bytes.values().sum::<u64>(), 400 * MB);
+        assert_eq!(
+            p.over_plan,
+            [OverPlan {
+                part: "fusion".into(),
+                peak_bytes: 200 * MB,
+                share_bytes: 100 * MB
+            }]
+        );
+        assert_eq!(p.run_bytes_at_most, Some(360 * MB));
+    }
+
+    #[test]
+    fn under_run_the_one_process_is_set_against_the_budget() {
+        let within = peak_record(Some(390 * MB), &graph_nodes(), Some(400 * MB), "run", None);
+        assert!(within.over_plan.is_empty(), "{:?}", within.over_plan);
+        let over = peak_record(Some(450 * MB), &graph_nodes(), Some(400 * MB), "run", None);
+        assert_eq!(over.over_plan.len(), 1);
+        assert_eq!(over.over_plan[0].part, "run");
+        assert_eq!(over.over_plan[0].share_bytes, 400 * MB);
+        let unplanned = peak_record(Some(450 * MB), &graph_nodes(), None, "run", None);
+        assert!(unplanned.shares_bytes.is_empty() && unplanned.over_plan.is_empty());
+    }
 }

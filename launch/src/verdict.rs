@@ -168,6 +168,9 @@ pub fn verdict(run: &RunRecord, out: &Path, verbose: bool) -> Verdict {
     if let Some(line) = imprecise_links_line(run) {
         let _ = writeln!(s, "  imprecise   {line}");
     }
+    if let Some(line) = memory_line(run) {
+        let _ = writeln!(s, "  memory      {line}");
+    }
     let _ = writeln!(s, "  outputs     {}", outputs_line(run, out));
     if verbose {
         s.push_str(&latency_table(&run.latency_ms));
@@ -496,6 +499,58 @@ fn model_line(run: &RunRecord) -> Option<(String, bool)> {
     Some((line, failed))
 }
 
+/// Megabytes (10^6 bytes) with no decimals: "612 MB".
+fn mb(bytes: u64) -> String {
+    format!("{} MB", count(bytes.div_ceil(1_000_000)))
+}
+
+/// With a memory budget: the peak against the plan (run.json's `peak_rss`), naming every part
+/// that went beyond its share (a node under `launch`, the one process under `run`). Not a
+/// failed check: the outputs do not depend on the budget; the line says the plan was not kept.
+fn memory_line(run: &RunRecord) -> Option<String> {
+    let peak = run.peak_rss.as_ref()?;
+    let gb = peak.memory_budget_gb?;
+    let budget = format!("the {gb} GB budget");
+    if run.mode == "launch" {
+        if peak.over_plan.is_empty() {
+            let sum = peak.run_bytes_at_most.map_or(String::new(), |b| {
+                format!(" (all processes together at most {})", mb(b))
+            });
+            return Some(format!("every node within its share of {budget}{sum}"));
+        }
+        let list: Vec<String> = peak
+            .over_plan
+            .iter()
+            .map(|o| {
+                format!(
+                    "{} {} (share {})",
+                    o.part,
+                    mb(o.peak_bytes),
+                    mb(o.share_bytes)
+                )
+            })
+            .collect();
+        return Some(format!(
+            "BEYOND THE PLAN: {} node(s) over their share of {budget}: {}",
+            list.len(),
+            list.join(", ")
+        ));
+    }
+    let process = peak.process_bytes?;
+    Some(match peak.over_plan.first() {
+        Some(o) => format!(
+            "BEYOND THE PLAN: peak {} of one process (every node of `run`), over {budget} \
+             ({} over; `launch` gives each node's peak against its share)",
+            mb(o.peak_bytes),
+            mb(o.peak_bytes - o.share_bytes)
+        ),
+        None => format!(
+            "peak {} of one process (every node of `run`), within {budget}",
+            mb(process)
+        ),
+    })
+}
+
 fn outputs_line(run: &RunRecord, out: &Path) -> String {
     let files: Vec<&str> = run.files.iter().map(String::as_str).collect();
     let key: Vec<&str> = [
@@ -780,6 +835,48 @@ mod tests {
         );
         let v = verdict(&record(run_json(true, false)), Path::new("/o"), false);
         assert!(!v.text.contains("imprecise"), "{}", v.text);
+    }
+
+    #[test]
+    fn a_node_beyond_its_share_of_the_budget_is_named_but_does_not_fail() {
+        let mut v = run_json(true, false);
+        v["mode"] = json!("launch");
+        v["peak_rss"] = json!({ "process_bytes": 30_000_000,
+            "nodes_bytes": { "mesher": 612_400_000, "fusion": 90_000_000 },
+            "run_bytes_at_most": 732_400_000, "memory_budget_gb": 0.5,
+            "shares_bytes": { "mesher": 125_000_000, "fusion": 125_000_000 },
+            "over_plan": [{ "part": "mesher", "peak_bytes": 612_400_000,
+                "share_bytes": 125_000_000 }],
+            "source": "" });
+        let out = verdict(&record(v.clone()), Path::new("/o"), false);
+        assert!(out.failures.is_empty(), "{:?}", out.failures);
+        assert!(
+            out.text.contains(
+                "memory      BEYOND THE PLAN: 1 node(s) over their share of the 0.5 GB budget: \
+                 mesher 613 MB (share 125 MB)"
+            ),
+            "{}",
+            out.text
+        );
+        v["peak_rss"]["over_plan"] = json!([]);
+        let out = verdict(&record(v.clone()), Path::new("/o"), false);
+        assert!(out.text.contains("memory      every node within its share of the 0.5 GB budget (all processes together at most 733 MB)"), "{}", out.text);
+        v["mode"] = json!("run");
+        v["peak_rss"]["process_bytes"] = json!(700_000_000);
+        v["peak_rss"]["over_plan"] = json!([{ "part": "run", "peak_bytes": 700_000_000,
+            "share_bytes": 500_000_000 }]);
+        let out = verdict(&record(v.clone()), Path::new("/o"), false);
+        assert!(
+            out.text
+                .contains("BEYOND THE PLAN: peak 700 MB of one process"),
+            "{}",
+            out.text
+        );
+        assert!(out.text.contains("(200 MB over;"), "{}", out.text);
+        // Without a budget: no line.
+        v["peak_rss"]["memory_budget_gb"] = Value::Null;
+        let out = verdict(&record(v), Path::new("/o"), false);
+        assert!(!out.text.contains("memory "), "{}", out.text);
     }
 
     #[test]

@@ -1231,8 +1231,27 @@ pub struct PeakRss {
     pub nodes_bytes: BTreeMap<String, Option<u64>>,
     pub run_bytes_at_most: Option<u64>,
     pub memory_budget_gb: Option<f64>,
+    /// Each node's share of the budget by node id (the memory plan's
+    /// `node_shares_bytes`), bytes; empty without a budget.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub shares_bytes: BTreeMap<String, u64>,
+    /// What went beyond the plan, one entry per node over its share (under `launch`) or the
+    /// run's one process over the whole budget (under `run`, where every node's figure is
+    /// that process's peak); empty when everything kept to the plan or without a budget.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub over_plan: Vec<OverPlan>,
     /// How the figures were measured.
     pub source: String,
+}
+
+/// One part of a run whose peak memory went beyond its share of the plan (run.json's
+/// `peak_rss.over_plan`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct OverPlan {
+    /// A node id, or "run" for the one process of `surfstream run`.
+    pub part: String,
+    pub peak_bytes: u64,
+    pub share_bytes: u64,
 }
 
 /// run.json.

@@ -106,6 +106,44 @@ impl MemoryPlan {
     pub fn live_mirror_bytes(&self) -> Option<u64> {
         self.budget_bytes.map(|b| b / Self::CHUNK_SHARE_OF_BUDGET)
     }
+
+    /// Each node's share of the budget, for the nodes of a graph by kind (`kinds`, in the
+    /// graph's order), bytes: what its process may hold at its peak under `launch`, the figure
+    /// run.json's `peak_rss` sets each node's peak against. [`node_shares`]; `None` without a
+    /// budget.
+    pub fn node_shares_bytes(&self, kinds: &[&str]) -> Option<Vec<u64>> {
+        self.budget_bytes.map(|b| node_shares(b, kinds))
+    }
+}
+
+/// Node kinds that hold a planned share of their own: the fusion (its panorama chunks), the
+/// wavelet (its live mirror) and the mesher (the tolerance search, its insertion order spilled
+/// between checkpoints), a quarter of the budget each ([`MemoryPlan::CHUNK_SHARE_OF_BUDGET`]).
+pub const NODES_WITH_A_QUARTER: [&str; 3] = ["fusion", "wavelet", "mesher"];
+
+/// The budget shared among the nodes of a graph (`kinds`): a quarter to each fusion, wavelet
+/// and mesher node ([`NODES_WITH_A_QUARTER`]; a graph with two of one kind splits its
+/// quarter), and what is left split evenly among the other nodes (the source, the matcher, the
+/// recorder, ...). The shares add up to the budget (less rounding) whatever the graph holds.
+pub fn node_shares(budget_bytes: u64, kinds: &[&str]) -> Vec<u64> {
+    let quarter = budget_bytes / MemoryPlan::CHUNK_SHARE_OF_BUDGET;
+    let count = |k: &str| kinds.iter().filter(|&&x| x == k).count() as u64;
+    let planned: Vec<&str> = NODES_WITH_A_QUARTER
+        .into_iter()
+        .filter(|k| count(k) > 0)
+        .collect();
+    let others = kinds.iter().filter(|k| !planned.contains(k)).count() as u64;
+    let left = budget_bytes.saturating_sub(quarter * planned.len() as u64);
+    kinds
+        .iter()
+        .map(|k| {
+            if planned.contains(k) {
+                quarter / count(k)
+            } else {
+                left / others.max(1)
+            }
+        })
+        .collect()
 }
 
 /// MemAvailable of a /proc/meminfo text, in bytes.
@@ -150,6 +188,27 @@ mod tests {
         assert_eq!(p.panorama_chunks_bytes(), Some(1_000_000_000));
         assert_eq!(p.live_mirror_bytes(), None);
         assert_eq!(plan(None, None).panorama_chunks_bytes(), None);
+        let kinds = [
+            "replay", "matcher", "fusion", "wavelet", "mesher", "recorder",
+        ];
+        assert_eq!(p.node_shares_bytes(&kinds), None);
+        let p = plan(Some(1_200_000_000), None);
+        let shares = p.node_shares_bytes(&kinds).unwrap();
+        assert_eq!(
+            shares,
+            [
+                100_000_000,
+                100_000_000,
+                300_000_000,
+                300_000_000,
+                300_000_000,
+                100_000_000
+            ]
+        );
+        assert_eq!(shares.iter().sum::<u64>(), 1_200_000_000);
+        // Without a mesher its quarter goes to the others; two fusions split theirs.
+        let shares = node_shares(1_200_000_000, &["replay", "fusion", "fusion"]);
+        assert_eq!(shares, [900_000_000, 150_000_000, 150_000_000]);
         let p = MemoryPlan::resolve(Some(7), "out".into());
         assert_eq!((p.budget_bytes, p.spill_dir), (Some(7), "out".into()));
     }

@@ -8,8 +8,7 @@
 //! sees only what the mesh changed. Missing samples (NaN) are left out; Sdr counts only grid
 //! cells with four measured corners.
 
-use rayon::prelude::*;
-use surfstream_core::metrology::{fit_plane, params, Grid};
+use surfstream_core::metrology::{fit_plane, Grid, Params, ParamsByRows};
 use surfstream_core::raster::{Raster, RasterView};
 use surfstream_core::{Pitch, Sampling};
 
@@ -22,15 +21,13 @@ fn widened(heights: RasterView<'_, f32>) -> Raster<f64> {
     heights.map(|&h| f64::from(h))
 }
 
-fn area_params(levelled_um: &[f64], sampling: Sampling) -> Option<AreaParams> {
-    let g = Grid::of(levelled_um, sampling).ok()?;
-    let p = params(&g).ok()?;
-    Some(AreaParams {
+fn area_params(p: Params) -> AreaParams {
+    AreaParams {
         sa_um: p.sa,
         sq_um: p.sq,
         sz_um: p.sz,
         sdr_percent: if p.sdr.is_nan() { 0.0 } else { p.sdr },
-    })
+    }
 }
 
 /// The parameters of the height field alone (samples `pitch` apart), levelled by its
@@ -51,39 +48,52 @@ pub(crate) struct FieldLevel {
     pub(crate) params: Option<AreaParams>,
 }
 
-/// `z` widened to f64 minus the plane, row by row (in place), evaluated as
-/// [`surfstream_core::metrology::level_plane`] does.
-/// With `measured`, only where it is not NaN (NaN elsewhere).
-fn levelled(
+/// The parameters of `z` widened to f64 minus the plane (evaluated as
+/// [`surfstream_core::metrology::level_plane`] does; with `measured`, only where it is not
+/// NaN), levelled one row at a time and fed to [`ParamsByRows`] twice: the same bits as
+/// [`surfstream_core::metrology::params`] of the whole levelled copy, holding one row of it.
+fn levelled_params(
     z: &[f32],
     measured: Option<&[f32]>,
-    cols: usize,
+    sampling: Sampling,
     plane: (f64, f64, f64),
     bx: f64,
     by: f64,
-) -> Vec<f64> {
-    let mut out: Vec<f64> = match measured {
-        None => z.iter().map(|&h| f64::from(h)).collect(),
-        Some(m) => z
-            .iter()
-            .zip(m)
-            .map(|(&h, m)| if m.is_nan() { f64::NAN } else { f64::from(h) })
-            .collect(),
+) -> Option<AreaParams> {
+    let cols = sampling.cols();
+    if cols == 0 || z.len() != sampling.shape().len() {
+        return None;
+    }
+    let mut by_rows = ParamsByRows::new(cols, sampling.pitch_x_um(), sampling.pitch_y_um()).ok()?;
+    let mut row: Vec<f64> = Vec::with_capacity(cols);
+    let level = |r: usize, row: &mut Vec<f64>| {
+        row.clear();
+        let base = plane.0 + by * r as f64;
+        let k = r * cols;
+        row.extend(z[k..k + cols].iter().enumerate().map(|(i, &h)| {
+            let h = match measured {
+                Some(m) if m[k + i].is_nan() => f64::NAN,
+                _ => f64::from(h),
+            };
+            h - (base + bx * i as f64)
+        }));
     };
-    let a = plane.0;
-    out.par_chunks_mut(cols.max(1))
-        .enumerate()
-        .for_each(|(r, row)| {
-            let base = a + by * r as f64;
-            for (i, z) in row.iter_mut().enumerate() {
-                *z -= base + bx * i as f64;
-            }
-        });
-    out
+    let rows = sampling.rows();
+    for r in 0..rows {
+        level(r, &mut row);
+        by_rows.push_first(&row).ok()?;
+    }
+    by_rows.end_first();
+    for r in 0..rows {
+        level(r, &mut row);
+        by_rows.push_second(&row).ok()?;
+    }
+    by_rows.finish().ok().map(area_params)
 }
 
 /// The field's plane and levelled parameters; `None` when the field has no valid sample.
-/// Holds one f64 copy of the field while it runs.
+/// Holds one f64 copy of the field while the plane is fitted; the parameters are computed by
+/// rows ([`levelled_params`]).
 pub(crate) fn level_field(field: RasterView<'_, f32>, pitch: Pitch) -> Option<FieldLevel> {
     let sampling = Sampling::of(field.shape(), pitch);
     let plane = {
@@ -92,10 +102,7 @@ pub(crate) fn level_field(field: RasterView<'_, f32>, pitch: Pitch) -> Option<Fi
         fit_plane(&g).ok()?
     };
     let (bx, by) = (plane.1 * pitch.x_um(), plane.2 * pitch.y_um());
-    let params = area_params(
-        &levelled(field.values(), None, sampling.cols(), plane, bx, by),
-        sampling,
-    );
+    let params = levelled_params(field.values(), None, sampling, plane, bx, by);
     Some(FieldLevel {
         plane,
         sampling,
@@ -126,8 +133,7 @@ impl FieldLevel {
             return None;
         }
         let (bx, by) = (self.plane.1 * s.pitch_x_um(), self.plane.2 * s.pitch_y_um());
-        let mesh = levelled(mesh_um, measured, s.cols(), self.plane, bx, by);
-        area_params(&mesh, s)
+        levelled_params(mesh_um, measured, s, self.plane, bx, by)
     }
 }
 

@@ -25,9 +25,9 @@
 //! [`coincident_vertices`].
 //!
 //! What stays per sample: the input (4 B), the f32 mesh-on-grid raster (4 B), one bit, the
-//! filled copy when samples are missing (4 B) and, while the areal parameters are computed
-//! (before meshing for the field, after it for the mesh), one f64 copy (8 B): the project's
-//! metrology takes an f64 grid.
+//! filled copy when samples are missing (4 B) and, while the field's plane is fitted, one f64
+//! copy (8 B); the areal parameters are computed by rows ([`crate::fidelity`]). The tolerance
+//! search parks the raster of every judged mesh in a spill file ([`StreamedMesh::park`]).
 
 use std::collections::HashSet;
 use std::io::Write;
@@ -35,7 +35,7 @@ use std::path::Path;
 
 use rayon::prelude::*;
 use surfstream_core::raster::{RasterView, Shape};
-use surfstream_core::store::AppendLog;
+use surfstream_core::store::{AppendLog, SpillFile};
 
 use crate::adaptive::{adaptive_summary, Fidelity, MeshCounts, VertexPlacement};
 use crate::check::MeshCheck;
@@ -82,6 +82,8 @@ pub struct StreamedMesh {
     /// The mesh re-sampled on the grid, um relative to the field's z offset (NaN: not covered):
     /// what [`crate::AdaptiveMesh::resampled_um`] holds.
     pub resampled_um: Vec<f32>,
+    /// `resampled_um` while it waits in a spill file ([`StreamedMesh::park`]): its length.
+    parked: Option<(SpillFile, usize)>,
     /// The statistics [`crate::AdaptiveMesh::record`] gives.
     pub summary: crate::report::AdaptiveSummary,
     pub fidelity: Fidelity,
@@ -231,7 +233,8 @@ pub(crate) fn mesh_streaming_with(
         &plan,
         level,
         epsilon_um,
-        &|k| plan.mesh(k),
+        true,
+        &|k| Ok(plan.mesh(k)),
     )
 }
 
@@ -243,7 +246,10 @@ pub(crate) fn field_level(heights: RasterView<'_, f32>, at: &ScanPlacement) -> O
 /// The first pass of the streaming mesher over the blocks of `plan`, each triangulated by
 /// `mesh_block(k)` (the plan's own greedy insertion, or a snapshot of a block refined step by
 /// step); `epsilon_um` is the bound they were made at, `level` the field's
-/// ([`field_level`]).
+/// ([`field_level`]). Without `mesh_fidelity` the mesh's areal parameters are left out
+/// (`fidelity.mesh` is `None` until [`StreamedMesh::measure_mesh`]): the tolerance search
+/// judges its checkpoints by regions and needs them only for the mesh it keeps, and they take
+/// an f64 copy of the grid.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn stream_blocks(
     heights: RasterView<'_, f32>,
@@ -253,7 +259,8 @@ pub(crate) fn stream_blocks(
     plan: &BlockPlan<'_>,
     level: Option<FieldLevel>,
     epsilon_um: f64,
-    mesh_block: &(dyn Fn(usize) -> BlockTin + Sync),
+    mesh_fidelity: bool,
+    mesh_block: &(dyn Fn(usize) -> Result<BlockTin> + Sync),
 ) -> Result<StreamedMesh> {
     let shape = heights.shape();
     let (rows, cols) = (shape.rows, shape.cols);
@@ -279,8 +286,8 @@ pub(crate) fn stream_blocks(
         let j1 = (j0 + BANDS_AT_ONCE).min(nby);
         let parts: Vec<BlockPart> = (j0 * nbx..j1 * nbx)
             .into_par_iter()
-            .map(|k| block_part(plan, k, mesh_block(k), valid))
-            .collect();
+            .map(|k| Ok(block_part(plan, k, mesh_block(k)?, valid)))
+            .collect::<Result<_>>()?;
         // Bands in order: their triangles (block order) and rows.
         let mut bands = Vec::with_capacity(j1 - j0);
         let mut parts = parts.into_iter();
@@ -397,7 +404,9 @@ pub(crate) fn stream_blocks(
         error,
         bound_met: error.max_um <= epsilon_um,
         field: level.and_then(|l| l.params),
-        mesh: level.and_then(|l| l.mesh_params_at_measured(&resampled_um, heights.values())),
+        mesh: level
+            .filter(|_| mesh_fidelity)
+            .and_then(|l| l.mesh_params_at_measured(&resampled_um, heights.values())),
     };
     let summary = adaptive_summary(
         params.kind,
@@ -417,6 +426,7 @@ pub(crate) fn stream_blocks(
     Ok(StreamedMesh {
         counts,
         resampled_um,
+        parked: None,
         summary,
         fidelity,
         spill,
@@ -544,6 +554,45 @@ fn on_grid_row(key: u128, y: usize, cols: usize) -> bool {
 }
 
 impl StreamedMesh {
+    /// Moves the mesh on the grid (4 B per sample) to an unnamed spill file in `spill_dir`
+    /// and frees it: the tolerance search keeps its best mesh while it makes the next one.
+    /// [`StreamedMesh::unpark`] reads it back, the same bits.
+    pub(crate) fn park(&mut self, spill_dir: &Path) -> Result<()> {
+        if self.parked.is_some() {
+            return Ok(());
+        }
+        let mut file = SpillFile::new(Some(spill_dir.to_path_buf()));
+        for (k, part) in self.resampled_um.chunks(SPILL_BATCH_VALUES).enumerate() {
+            let at = (k * SPILL_BATCH_VALUES * 4) as u64;
+            file.write_at(at, &surfstream_core::store::encode(part))?;
+        }
+        self.parked = Some((file, self.resampled_um.len()));
+        self.resampled_um = Vec::new();
+        Ok(())
+    }
+
+    /// The mesh on the grid back in memory after [`StreamedMesh::park`].
+    pub(crate) fn unpark(&mut self) -> Result<()> {
+        let Some((file, len)) = self.parked.take() else {
+            return Ok(());
+        };
+        let mut values = Vec::with_capacity(len);
+        for at in (0..len).step_by(SPILL_BATCH_VALUES) {
+            let n = SPILL_BATCH_VALUES.min(len - at);
+            values.extend(file.read_values::<f32>((at * 4) as u64, n)?);
+        }
+        self.resampled_um = values;
+        Ok(())
+    }
+
+    /// The mesh's areal parameters at the measured samples of `measured` (the field), levelled
+    /// by the field's plane `level`, when [`stream_blocks`] left them out.
+    pub(crate) fn measure_mesh(&mut self, level: Option<FieldLevel>, measured: &[f32]) {
+        self.fidelity.mesh =
+            level.and_then(|l| l.mesh_params_at_measured(&self.resampled_um, measured));
+        self.summary.record.fidelity = (&self.fidelity).into();
+    }
+
     /// The second pass: writes the STL (binary or `ascii`) from the spill file, the same bytes
     /// as the in-memory writers give for [`crate::mesh_height_field`]'s mesh, and returns the
     /// closed-solid check of what was written. `heights` must be the field given to

@@ -1641,12 +1641,137 @@ impl LiveBlock<'_> {
         self.stats_cache.flatten()
     }
 
+    /// The block's triangulation as it stands, the block given up (no copy).
+    pub(crate) fn into_tin(self) -> BlockTin {
+        BlockTin {
+            vertex_samples: self.b.vertex_samples,
+            tris: self.b.tris,
+            budget_reached: self.budget_reached,
+        }
+    }
+
     /// The block's triangulation as it stands.
     pub(crate) fn snapshot(&self) -> BlockTin {
         BlockTin {
             vertex_samples: self.b.vertex_samples.clone(),
             tris: self.b.tris.clone(),
             budget_reached: self.budget_reached,
+        }
+    }
+}
+
+/// Bytes of a [`LiveBlock`] as [`LiveBlock::encode`] writes it: little-endian, private to
+/// the run (the search's block store, [`crate::tolerance`]).
+struct Bytes<'b> {
+    b: &'b [u8],
+    at: usize,
+}
+
+impl Bytes<'_> {
+    fn take<const N: usize>(&mut self) -> [u8; N] {
+        let mut a = [0u8; N];
+        a.copy_from_slice(&self.b[self.at..self.at + N]);
+        self.at += N;
+        a
+    }
+    fn u8(&mut self) -> u8 {
+        self.take::<1>()[0]
+    }
+    fn u32(&mut self) -> u32 {
+        u32::from_le_bytes(self.take())
+    }
+    fn u64(&mut self) -> u64 {
+        u64::from_le_bytes(self.take())
+    }
+    fn f64(&mut self) -> f64 {
+        f64::from_bits(self.u64())
+    }
+    fn len(&mut self) -> usize {
+        self.u64() as usize
+    }
+    fn u32s(&mut self) -> Vec<u32> {
+        let n = self.len();
+        (0..n).map(|_| self.u32()).collect()
+    }
+}
+
+fn put_u32s(out: &mut Vec<u8>, v: &[u32]) {
+    out.extend_from_slice(&(v.len() as u64).to_le_bytes());
+    for x in v {
+        out.extend_from_slice(&x.to_le_bytes());
+    }
+}
+
+impl LiveBlock<'_> {
+    /// The block's whole state as bytes, for [`BlockPlan::decode`]: what the next refinement
+    /// reads (triangles with their candidates and stamps, the queue in its order, the settled
+    /// samples, the mesh on the block's samples, the shared sides' vertices, the cached
+    /// statistics), so that a decoded block refines to the same triangles, bit for bit, as
+    /// the block kept in memory. The vertices' coordinates are derived from their samples;
+    /// scratch buffers are not kept (every insertion clears them).
+    pub(crate) fn encode(&self, out: &mut Vec<u8>) {
+        let b = &self.b;
+        out.extend_from_slice(&b.epsilon_um.to_bits().to_le_bytes());
+        out.push(u8::from(b.scanning));
+        out.push(u8::from(self.budget_reached));
+        out.extend_from_slice(&b.epoch.to_le_bytes());
+        match &b.mesh_local {
+            None => out.push(0),
+            Some(m) => {
+                out.push(1);
+                out.extend_from_slice(&(m.len() as u64).to_le_bytes());
+                for v in m {
+                    out.extend_from_slice(&v.to_bits().to_le_bytes());
+                }
+            }
+        }
+        out.extend_from_slice(&(b.settled.len() as u64).to_le_bytes());
+        for chunk in b.settled.chunks(8) {
+            let byte = chunk
+                .iter()
+                .enumerate()
+                .fold(0u8, |a, (i, &s)| a | (u8::from(s) << i));
+            out.push(byte);
+        }
+        put_u32s(out, &b.vertex_samples);
+        out.extend_from_slice(&(b.tris.len() as u64).to_le_bytes());
+        for t in &b.tris {
+            for x in t.v.iter().chain(&t.n) {
+                out.extend_from_slice(&x.to_le_bytes());
+            }
+            out.extend_from_slice(&t.stamp.to_le_bytes());
+            out.extend_from_slice(&t.candidate.to_le_bytes());
+            out.extend_from_slice(&t.err.to_bits().to_le_bytes());
+            out.push(u8::from(t.spans_missing));
+        }
+        put_u32s(out, &b.mark);
+        out.extend_from_slice(&(b.queue.top as u64).to_le_bytes());
+        let used: Vec<(usize, &Vec<(u32, u32)>)> = b
+            .queue
+            .buckets
+            .iter()
+            .enumerate()
+            .filter(|(_, q)| !q.is_empty())
+            .collect();
+        out.extend_from_slice(&(used.len() as u64).to_le_bytes());
+        for (i, q) in used {
+            out.extend_from_slice(&(i as u64).to_le_bytes());
+            out.extend_from_slice(&(q.len() as u64).to_le_bytes());
+            for (t, stamp) in q {
+                out.extend_from_slice(&t.to_le_bytes());
+                out.extend_from_slice(&stamp.to_le_bytes());
+            }
+        }
+        put_u32s(out, &self.border);
+        match self.stats_cache {
+            None => out.push(0),
+            Some(None) => out.push(1),
+            Some(Some(s)) => {
+                out.push(2);
+                for v in [s.mean, s.sa, s.sq] {
+                    out.extend_from_slice(&v.to_bits().to_le_bytes());
+                }
+            }
         }
     }
 }
@@ -1954,6 +2079,96 @@ impl<'a> BlockPlan<'a> {
             border,
             budget_reached: false,
             stats_cache: None,
+        }
+    }
+
+    /// Block `k` as [`LiveBlock::encode`] wrote it (`bytes` from this plan's block `k`).
+    pub(crate) fn decode(&self, k: usize, bytes: &[u8]) -> LiveBlock<'_> {
+        let (block, _) = self.block(k);
+        let bw = block.x1 - block.x0 + 1;
+        let bh = block.y1 - block.y0 + 1;
+        let mut r = Bytes { b: bytes, at: 0 };
+        let epsilon_um = r.f64();
+        let scanning = r.u8() == 1;
+        let budget_reached = r.u8() == 1;
+        let epoch = r.u32();
+        let mesh_local = (r.u8() == 1).then(|| {
+            let n = r.len();
+            (0..n).map(|_| r.f64()).collect::<Vec<f64>>()
+        });
+        let n = r.len();
+        let packed: Vec<u8> = (0..n.div_ceil(8)).map(|_| r.u8()).collect();
+        let settled: Vec<bool> = (0..n).map(|i| packed[i / 8] >> (i % 8) & 1 == 1).collect();
+        let vertex_samples = r.u32s();
+        let verts = vertex_samples
+            .iter()
+            .map(|&s| {
+                (
+                    (s as usize % self.cols) as i64,
+                    (s as usize / self.cols) as i64,
+                )
+            })
+            .collect();
+        let n = r.len();
+        let tris = (0..n)
+            .map(|_| {
+                let v = [r.u32(), r.u32(), r.u32()];
+                let nb = [r.u32(), r.u32(), r.u32()];
+                Tri {
+                    v,
+                    n: nb,
+                    stamp: r.u32(),
+                    candidate: r.u32(),
+                    err: r.f64(),
+                    spans_missing: r.u8() == 1,
+                }
+            })
+            .collect();
+        let mark = r.u32s();
+        let top = r.len();
+        let mut buckets = vec![Vec::new(); BUCKETS];
+        for _ in 0..r.len() {
+            let i = r.len();
+            let n = r.len();
+            buckets[i] = (0..n).map(|_| (r.u32(), r.u32())).collect();
+        }
+        let border = r.u32s();
+        let stats_cache = match r.u8() {
+            0 => None,
+            1 => Some(None),
+            _ => Some(Some(BlockStats {
+                mean: r.f64(),
+                sa: r.f64(),
+                sq: r.f64(),
+            })),
+        };
+        debug_assert_eq!(r.at, bytes.len());
+        LiveBlock {
+            b: Builder {
+                width: self.cols,
+                block,
+                bw,
+                z: &self.filled,
+                valid: self.valid.as_deref(),
+                measured: self.measured.as_deref(),
+                mesh_local,
+                settled,
+                verts,
+                vertex_samples,
+                tris,
+                queue: BucketQueue { buckets, top },
+                epsilon_um,
+                scanning,
+                small: bw < SMALL_SIDE && bh < SMALL_SIDE,
+                mark,
+                epoch,
+                cavity: Vec::new(),
+                rim: Vec::new(),
+                fresh: Vec::new(),
+            },
+            border,
+            budget_reached,
+            stats_cache,
         }
     }
 

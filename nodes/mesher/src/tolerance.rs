@@ -23,8 +23,9 @@
 //! tolerance so that regions the windows do not match exactly (Table 6's tile footprints)
 //! keep a margin.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::str::FromStr;
+use std::sync::{Arc, Mutex};
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -32,13 +33,15 @@ use surfstream_core::raster::{RasterView, Shape};
 
 use crate::adaptive::{check_adaptive, finish_adaptive};
 use crate::error::{MeshError, Result};
-use crate::fidelity::field_params;
+use crate::fidelity::FieldLevel;
 use crate::field::ScanPlacement;
 use crate::stream::{field_level, stream_blocks, StreamedMesh};
 use crate::tin::{
-    assemble, bound_block_angles, AngleBound, AngleStats, Balance, BlockPlan, LiveBlock, TinParams,
+    assemble, bound_block_angles, AngleBound, AngleStats, Balance, BlockPlan, BlockTin, LiveBlock,
+    TinParams,
 };
 use crate::{AdaptiveMesh, Epsilon, MeshParams};
+use surfstream_core::store::SpillFile;
 
 /// The tolerance, percent of the measured value, per region.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -922,18 +925,22 @@ fn check_scale(sq_um: f64) -> Result<()> {
 }
 
 /// The measured Sq the bounds are scaled by (about the least-squares plane, as
-/// [`crate::Epsilon::SqFraction`]) and the measured sample count.
-fn scale_of(heights: RasterView<'_, f32>, at: &ScanPlacement) -> (f64, usize) {
-    let levelled = field_params(heights, at.pitch).map_or(0.0, |p| p.sq_um);
-    let v: Vec<f64> = heights
-        .values()
-        .iter()
-        .filter(|h| !h.is_nan())
-        .map(|&h| f64::from(h))
-        .collect();
-    let mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
-    let about_mean =
-        (v.iter().map(|h| (h - mean).powi(2)).sum::<f64>() / v.len().max(1) as f64).sqrt();
+/// [`crate::Epsilon::SqFraction`]), the measured sample count and the field's level (its
+/// plane and parameters, [`field_level`]: the streamed mesh's fidelity uses it).
+fn scale_of(heights: RasterView<'_, f32>, at: &ScanPlacement) -> (f64, usize, Option<FieldLevel>) {
+    let level = field_level(heights, at);
+    let levelled = level.and_then(|l| l.params).map_or(0.0, |p| p.sq_um);
+    // The measured samples, in order, twice (no f64 copy of the map).
+    let v = || {
+        heights
+            .values()
+            .iter()
+            .filter(|h| !h.is_nan())
+            .map(|&h| f64::from(h))
+    };
+    let n = v().count();
+    let mean = v().sum::<f64>() / n.max(1) as f64;
+    let about_mean = (v().map(|h| (h - mean).powi(2)).sum::<f64>() / n.max(1) as f64).sqrt();
     // A plane has no Sq about its plane but the f32 rounding: scale by its Sq about the mean
     // (what the regions judge), which the first, coarsest mesh then meets.
     let sq = if levelled > 1e-6 * about_mean {
@@ -941,7 +948,7 @@ fn scale_of(heights: RasterView<'_, f32>, at: &ScanPlacement) -> (f64, usize) {
     } else {
         about_mean
     };
-    (sq, v.len())
+    (sq, n, level)
 }
 
 /// The settings with the window side resolved for `shape`, and the windows.
@@ -1098,6 +1105,9 @@ struct SearchSetup<'a> {
     plan: BlockPlan<'a>,
     /// The angle bound every checkpoint's mesh is refined to (an engine's; `None`: none).
     bound: Option<AngleBound>,
+    /// The field's plane and parameters, computed once before the order's plan (which
+    /// holds a filled copy of the field) exists.
+    level: Option<FieldLevel>,
 }
 
 fn search_setup<'a>(
@@ -1115,7 +1125,7 @@ fn search_setup<'a>(
             heights.values().len()
         )));
     }
-    let (sq, measured_px) = scale_of(heights, at);
+    let (sq, measured_px, level) = scale_of(heights, at);
     let (settings, regions) = settings_for(settings, heights.shape());
     let mut p = params.clone();
     p.max_triangles = None;
@@ -1132,6 +1142,7 @@ fn search_setup<'a>(
         p,
         plan,
         bound,
+        level,
     })
 }
 
@@ -1157,6 +1168,11 @@ pub(crate) trait CheckpointMesh {
     /// The mesh on the grid, um relative to the field's z offset (NaN: not covered).
     fn resampled_um(&self) -> &[f32];
     fn surface_triangles(&self) -> usize;
+    /// Once judged, what need not stay in memory while the search goes on goes to a spill
+    /// file in `spill_dir` (nothing for a mesh in memory).
+    fn park(&mut self, _spill_dir: &Path) -> Result<()> {
+        Ok(())
+    }
 }
 
 impl CheckpointMesh for AdaptiveMesh {
@@ -1175,19 +1191,36 @@ impl CheckpointMesh for StreamedMesh {
     fn surface_triangles(&self) -> usize {
         self.counts.top_triangles
     }
+    fn park(&mut self, spill_dir: &Path) -> Result<()> {
+        StreamedMesh::park(self, spill_dir)
+    }
 }
 
+/// Block `k` of a checkpoint's mesh, refined to the checkpoint's bound (from any thread).
+type BlockSource<'s> = dyn Fn(usize) -> Result<BlockTin> + Sync + 's;
+
 /// The search of both twins: the set-up, the one insertion order and the judging of every
-/// checkpoint; `mesh_of(plan, p, epsilon_um, blocks)` makes a checkpoint's mesh from the live
-/// blocks (`p.epsilon` is that bound too), in memory or streamed.
+/// checkpoint; `mesh_of(plan, p, epsilon_um, blocks)` makes a checkpoint's mesh from its
+/// blocks (`blocks(k)`, each called once; `p.epsilon` is that bound too), in memory or
+/// streamed. With `spill_dir` the insertion order lives in spill files there between
+/// checkpoints ([`SpilledOrder`]) and each judged mesh is parked there
+/// ([`CheckpointMesh::park`]); without it, or with an angle bound (its refinement crosses
+/// blocks), the live blocks stay in memory ([`LiveOrder`]).
 fn search_to_tolerance<M: CheckpointMesh>(
     heights: RasterView<'_, f32>,
     roughness_um: Option<&[f32]>,
     at: &ScanPlacement,
     params: &MeshParams,
     settings: &ToleranceSettings,
-    mut mesh_of: impl FnMut(&BlockPlan<'_>, &MeshParams, f64, &[LiveBlock<'_>]) -> Result<M>,
-) -> Result<(M, ToleranceReport)> {
+    spill_dir: Option<&Path>,
+    mut mesh_of: impl FnMut(
+        &BlockPlan<'_>,
+        &MeshParams,
+        f64,
+        Option<FieldLevel>,
+        &BlockSource<'_>,
+    ) -> Result<M>,
+) -> Result<(M, ToleranceReport, Option<FieldLevel>)> {
     let SearchSetup {
         sq,
         measured_px,
@@ -1196,34 +1229,37 @@ fn search_to_tolerance<M: CheckpointMesh>(
         mut p,
         plan,
         bound,
+        level,
     } = search_setup(heights, roughness_um, at, params, settings)?;
     let extremes = window_extremes(heights, roughness_um, &regions);
-    let mut order = LiveOrder::new(
-        &plan,
-        extremes,
-        &settings,
-        roughness_um,
-        bound,
-        |eps, live, angles| {
+    let judge =
+        |eps: f64, blocks: &BlockSource<'_>, angles: Option<AngleStats>| -> Result<Trial<M>> {
             p.epsilon = Epsilon::Um(eps);
-            let mesh = mesh_of(&plan, &p, eps, live)?;
+            let mut mesh = mesh_of(&plan, &p, eps, level, blocks)?;
             let fits = judge_checkpoint(heights, mesh.resampled_um(), roughness_um, &regions);
+            if let Some(dir) = spill_dir {
+                mesh.park(dir)?;
+            }
             Ok(Trial {
                 surface_triangles: mesh.surface_triangles(),
                 fits,
                 mesh,
                 angles,
             })
-        },
-    );
-    search(
-        sq,
-        measured_px,
-        &settings,
-        regions.len(),
-        params.max_triangles,
-        &mut order,
-    )
+        };
+    let (n, budget) = (regions.len(), params.max_triangles);
+    let (mesh, report) = match spill_dir.filter(|_| bound.is_none()) {
+        Some(dir) => {
+            let balance = balance_of(&settings, roughness_um);
+            let mut order = SpilledOrder::new(&plan, extremes, balance, dir, judge);
+            search(sq, measured_px, &settings, n, budget, &mut order)?
+        }
+        None => {
+            let mut order = LiveOrder::new(&plan, extremes, &settings, roughness_um, bound, judge);
+            search(sq, measured_px, &settings, n, budget, &mut order)?
+        }
+    };
+    Ok((mesh, report, level))
 }
 
 /// The adaptive mesh of `heights` with the fewest triangles the search finds within the
@@ -1243,13 +1279,18 @@ pub fn mesh_to_tolerance(
         at,
         params,
         settings,
-        |plan, p, eps, live| {
-            let meshed: Vec<_> = live.par_iter().map(LiveBlock::snapshot).collect();
+        None,
+        |plan, p, eps, _, blocks| {
+            let meshed = (0..plan.block_count())
+                .into_par_iter()
+                .map(blocks)
+                .collect::<Result<Vec<_>>>()?;
             let tin = assemble(plan, &meshed);
             drop(meshed);
             finish_adaptive(heights, at, p, &tin, eps)
         },
     )
+    .map(|(mesh, report, _)| (mesh, report))
 }
 
 /// The one insertion order of both searches: the live blocks, the steps that made them (to
@@ -1279,7 +1320,7 @@ impl<'p, 'a, F> LiveOrder<'p, 'a, F> {
         judge: F,
     ) -> Self
     where
-        F: FnMut(f64, &[LiveBlock<'p>], Option<AngleStats>) -> Result<Trial<M>>,
+        F: FnMut(f64, &BlockSource<'_>, Option<AngleStats>) -> Result<Trial<M>>,
     {
         Self {
             plan,
@@ -1294,9 +1335,9 @@ impl<'p, 'a, F> LiveOrder<'p, 'a, F> {
     }
 }
 
-impl<'p, M, F> Checkpoints<M> for LiveOrder<'p, '_, F>
+impl<M, F> Checkpoints<M> for LiveOrder<'_, '_, F>
 where
-    F: FnMut(f64, &[LiveBlock<'p>], Option<AngleStats>) -> Result<Trial<M>>,
+    F: FnMut(f64, &BlockSource<'_>, Option<AngleStats>) -> Result<Trial<M>>,
 {
     fn checkpoint(&mut self, epsilon_um: f64, stage: Stage) -> Result<Trial<M>> {
         if let (Stage::Bisect, Some(kept)) = (stage, self.kept) {
@@ -1304,7 +1345,8 @@ where
         }
         // The curve's points past the chosen mesh continue greedily (module docs).
         let angles = self.refine(epsilon_um, stage != Stage::Curve);
-        (self.judge)(epsilon_um, &self.live, angles)
+        let live = &self.live;
+        (self.judge)(epsilon_um, &|k| Ok(live[k].snapshot()), angles)
     }
 
     fn keep(&mut self) {
@@ -1343,8 +1385,10 @@ impl<'p, F> LiveOrder<'p, '_, F> {
 }
 
 /// [`mesh_to_tolerance`] through the streaming mesher ([`crate::stream`]): each checkpoint's
-/// mesh holds its triangles in a spill file in `spill_dir`; at most three are alive at once
-/// (the chosen or the last failing one, the current, and the live insertion order).
+/// mesh holds its triangles in a spill file in `spill_dir`, and so do, between checkpoints,
+/// the insertion order ([`SpilledOrder`]) and the meshes kept (their mesh on the grid); in
+/// memory are the rows of blocks being refined and streamed, and the mesh being judged. The
+/// mesh's areal parameters (an f64 copy of the grid) are computed once, for the mesh kept.
 pub fn mesh_streaming_to_tolerance(
     heights: RasterView<'_, f32>,
     roughness_um: Option<&[f32]>,
@@ -1353,21 +1397,161 @@ pub fn mesh_streaming_to_tolerance(
     settings: &ToleranceSettings,
     spill_dir: &Path,
 ) -> Result<(StreamedMesh, ToleranceReport)> {
-    // The field's level, once (at the first checkpoint, after the set-up's checks).
-    let mut level = None;
-    search_to_tolerance(
+    let (mut mesh, report, level) = search_to_tolerance(
         heights,
         roughness_um,
         at,
         params,
         settings,
-        |plan, p, eps, blocks| {
-            let level = *level.get_or_insert_with(|| field_level(heights, at));
-            stream_blocks(heights, at, p, spill_dir, plan, level, eps, &|k| {
-                blocks[k].snapshot()
-            })
+        Some(spill_dir),
+        |plan, p, eps, level, blocks| {
+            stream_blocks(heights, at, p, spill_dir, plan, level, eps, false, blocks)
         },
-    )
+    )?;
+    mesh.unpark()?;
+    mesh.measure_mesh(level, heights.values());
+    Ok((mesh, report))
+}
+
+/// One state of the insertion order on disk: every block as [`LiveBlock::encode`] wrote it,
+/// in an unnamed spill file (gone when dropped), read back block by block.
+struct SpilledBlocks {
+    file: SpillFile,
+    /// Per block: byte offset and length.
+    at: Vec<(u64, usize)>,
+}
+
+impl SpilledBlocks {
+    fn read(&self, k: usize) -> Result<Vec<u8>> {
+        let (offset, len) = self.at[k];
+        let mut bytes = vec![0u8; len];
+        self.file.read_at(offset, &mut bytes)?;
+        Ok(bytes)
+    }
+}
+
+/// The blocks of the next state as a checkpoint's refinement hands them over, from any thread
+/// (in any order: each block's place is noted).
+struct BlockWriter {
+    inner: Mutex<Written>,
+}
+
+/// The next state's file, its end, and each block's (offset, length) once written.
+type Written = (SpillFile, u64, Vec<Option<(u64, usize)>>);
+
+impl BlockWriter {
+    fn new(spill_dir: &Path, blocks: usize) -> Self {
+        let file = SpillFile::new(Some(spill_dir.to_path_buf()));
+        Self {
+            inner: Mutex::new((file, 0, vec![None; blocks])),
+        }
+    }
+
+    fn write(&self, k: usize, block: &LiveBlock<'_>) -> Result<()> {
+        let mut bytes = Vec::new();
+        block.encode(&mut bytes);
+        let mut g = self.inner.lock().unwrap_or_else(|e| e.into_inner());
+        let (file, end, at) = &mut *g;
+        file.write_at(*end, &bytes)?;
+        at[k] = Some((*end, bytes.len()));
+        *end += bytes.len() as u64;
+        Ok(())
+    }
+
+    fn finish(self) -> Result<SpilledBlocks> {
+        let (file, _, at) = self.inner.into_inner().unwrap_or_else(|e| e.into_inner());
+        let at = at
+            .into_iter()
+            .enumerate()
+            .map(|(k, a)| {
+                a.ok_or_else(|| {
+                    MeshError::Incompatible(format!("block {k} of the insertion order not refined"))
+                })
+            })
+            .collect::<Result<_>>()?;
+        Ok(SpilledBlocks { file, at })
+    }
+}
+
+/// The one insertion order of the streamed search, kept on disk between checkpoints: a
+/// checkpoint reads every block of the state it starts from ([`SpilledBlocks`]), refines it
+/// (and balances it) to the checkpoint's bound while the streaming mesher takes its rows of
+/// blocks, writes the refined block to the next state and hands its triangles over. Memory
+/// holds the rows of blocks in flight, not the order; the failing checkpoint a bisection
+/// starts from is a state kept on disk ([`Checkpoints::keep`]), not made again by replaying
+/// the refinements as [`LiveOrder`] does. The same blocks bit for bit as [`LiveOrder`]'s:
+/// an encoded block is the whole state its refinement reads.
+struct SpilledOrder<'p, 'a, F> {
+    plan: &'p BlockPlan<'a>,
+    extremes: Vec<u32>,
+    balance: Option<Balance<'a>>,
+    spill_dir: PathBuf,
+    /// The state after the last checkpoint, and the one kept for a bisection.
+    current: Option<Arc<SpilledBlocks>>,
+    kept: Option<Arc<SpilledBlocks>>,
+    judge: F,
+}
+
+impl<'p, 'a, F> SpilledOrder<'p, 'a, F> {
+    fn new(
+        plan: &'p BlockPlan<'a>,
+        extremes: Vec<u32>,
+        balance: Option<Balance<'a>>,
+        spill_dir: &Path,
+        judge: F,
+    ) -> Self {
+        Self {
+            plan,
+            extremes,
+            balance,
+            spill_dir: spill_dir.to_path_buf(),
+            current: None,
+            kept: None,
+            judge,
+        }
+    }
+}
+
+impl<M, F> Checkpoints<M> for SpilledOrder<'_, '_, F>
+where
+    F: FnMut(f64, &BlockSource<'_>, Option<AngleStats>) -> Result<Trial<M>>,
+{
+    fn checkpoint(&mut self, epsilon_um: f64, stage: Stage) -> Result<Trial<M>> {
+        surfstream_core::liveness::beat();
+        let from = match (stage, &self.kept) {
+            (Stage::Bisect, Some(kept)) => Some(Arc::clone(kept)),
+            _ => self.current.clone(),
+        };
+        // The curve's points past the chosen mesh continue greedily (module docs).
+        let balance = self.balance.filter(|_| stage != Stage::Curve);
+        let plan = self.plan;
+        let sides = plan.sides_at(epsilon_um);
+        let extremes = &self.extremes;
+        let next = BlockWriter::new(&self.spill_dir, plan.block_count());
+        let refine = |k: usize| -> Result<BlockTin> {
+            let mut b = match &from {
+                Some(state) => plan.decode(k, &state.read(k)?),
+                None => {
+                    let mut b = plan.start(&sides, k);
+                    b.insert_samples(plan, k, extremes);
+                    b
+                }
+            };
+            b.refine(plan, &sides, k);
+            if let Some(target) = balance {
+                b.balance(plan, target);
+            }
+            next.write(k, &b)?;
+            Ok(b.into_tin())
+        };
+        let trial = (self.judge)(epsilon_um, &refine, None)?;
+        self.current = Some(Arc::new(next.finish()?));
+        Ok(trial)
+    }
+
+    fn keep(&mut self) {
+        self.kept = self.current.clone();
+    }
 }
 
 #[cfg(test)]
