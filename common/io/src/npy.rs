@@ -17,6 +17,7 @@ use std::io::Write;
 use std::path::Path;
 
 use anyhow::{anyhow, bail, Context, Result};
+use surfstream_core::fsutil::OutputSet;
 
 /// The magic string every `.npy` file starts with.
 const MAGIC: &[u8; 6] = b"\x93NUMPY";
@@ -85,7 +86,40 @@ pub fn write_npy_abs_f64(
 // ---------------------------------------------------------------------------------------------
 // Writing
 
+/// [`write_npy_f64`] as one file of `set`: it appears with the set's other files on
+/// [`OutputSet::commit`].
+pub fn write_npy_f64_into(
+    set: &mut OutputSet,
+    path: impl AsRef<Path>,
+    data: &[f64],
+    rows: usize,
+    cols: usize,
+) -> Result<()> {
+    write_npy_to(
+        Some(set),
+        path.as_ref(),
+        data,
+        rows,
+        cols,
+        "<f8",
+        |v, out| out.extend_from_slice(&v.to_le_bytes()),
+    )
+}
+
 fn write_npy<T: Copy>(
+    path: &Path,
+    data: &[T],
+    rows: usize,
+    cols: usize,
+    descr: &str,
+    put: impl Fn(T, &mut Vec<u8>),
+) -> Result<()> {
+    write_npy_to(None, path, data, rows, cols, descr, put)
+}
+
+/// Writes the array atomically on its own, or into `set`.
+fn write_npy_to<T: Copy>(
+    set: Option<&mut OutputSet>,
     path: &Path,
     data: &[T],
     rows: usize,
@@ -105,7 +139,7 @@ fn write_npy<T: Copy>(
     let header = header_block(&format!(
         "{{'descr': '{descr}', 'fortran_order': False, 'shape': ({rows}, {cols}), }}"
     ));
-    surfstream_core::fsutil::write_atomic(path, |w| {
+    let fill = |w: &mut std::io::BufWriter<std::fs::File>| {
         w.write_all(&header)
             .with_context(|| format!("{}: write failed", path.display()))?;
         let mut buf = Vec::with_capacity(8192 * 8);
@@ -121,7 +155,11 @@ fn write_npy<T: Copy>(
                 .with_context(|| format!("{}: write failed", path.display()))?;
         }
         Ok(())
-    })
+    };
+    match set {
+        Some(set) => set.write(path, fill),
+        None => surfstream_core::fsutil::write_atomic(path, fill),
+    }
 }
 
 /// Magic, version, header length and the padded dict: version 1.0 when the header fits its
@@ -167,6 +205,10 @@ pub struct NpyRowWriter {
     /// float64 (else float32).
     f64: bool,
     buf: Vec<u8>,
+    /// Bytes handed to the file so far, and up to where its write-back was started
+    /// ([`surfstream_core::fsutil::start_writeback`]); `None`: write-back left to the kernel.
+    bytes_written: u64,
+    writeback_from: Option<u64>,
 }
 
 impl NpyRowWriter {
@@ -201,6 +243,8 @@ impl NpyRowWriter {
             rows_written: 0,
             f64,
             buf: Vec::new(),
+            bytes_written: 0,
+            writeback_from: Some(0),
         };
         let descr = if f64 { "<f8" } else { "<f4" };
         let header = header_block(&format!(
@@ -276,7 +320,26 @@ impl NpyRowWriter {
             .as_mut()
             .ok_or_else(|| anyhow!("{}: already finished", self.path.display()))?;
         out.write_all(bytes)
-            .with_context(|| format!("{}: write failed", self.tmp.display()))
+            .with_context(|| format!("{}: write failed", self.tmp.display()))?;
+        self.bytes_written += bytes.len() as u64;
+        // The data reach the disk while the rows are still being computed: the sync at the
+        // end then waits for the last few MiB only.
+        if let Some(from) = self.writeback_from {
+            let in_file = self.bytes_written - out.buffer().len() as u64;
+            if in_file >= from + surfstream_core::fsutil::WRITEBACK_CHUNK_BYTES {
+                surfstream_core::fsutil::start_writeback(out.get_ref(), from, in_file - from);
+                self.writeback_from = Some(in_file);
+            }
+        }
+        Ok(())
+    }
+
+    /// Leaves the write-back to the kernel's own schedule (outputs that are never synced:
+    /// [`surfstream_core::fsutil::Durability::NoSync`]); by default it is started every
+    /// [`surfstream_core::fsutil::WRITEBACK_CHUNK_BYTES`] written.
+    pub fn without_writeback(mut self) -> Self {
+        self.writeback_from = None;
+        self
     }
 
     /// Rows written so far.
@@ -286,18 +349,7 @@ impl NpyRowWriter {
 
     /// Checks that every row arrived, then moves the file into place.
     pub fn finish(mut self) -> Result<()> {
-        if self.rows_written != self.rows {
-            bail!(
-                "{}: {} of {} rows written",
-                self.path.display(),
-                self.rows_written,
-                self.rows
-            );
-        }
-        let out = self
-            .out
-            .take()
-            .ok_or_else(|| anyhow!("{}: already finished", self.path.display()))?;
+        let out = self.complete()?;
         let result = (|| {
             let file = out
                 .into_inner()
@@ -311,6 +363,39 @@ impl NpyRowWriter {
             let _ = std::fs::remove_file(&self.tmp);
         }
         result
+    }
+}
+
+impl NpyRowWriter {
+    /// The buffered file, once every row arrived.
+    fn complete(&mut self) -> Result<std::io::BufWriter<std::fs::File>> {
+        if self.rows_written != self.rows {
+            bail!(
+                "{}: {} of {} rows written",
+                self.path.display(),
+                self.rows_written,
+                self.rows
+            );
+        }
+        self.out
+            .take()
+            .ok_or_else(|| anyhow!("{}: already finished", self.path.display()))
+    }
+
+    /// Checks that every row arrived and hands the file to `set`, which moves it into place
+    /// with the set's other files ([`OutputSet::commit`]).
+    pub fn finish_into(mut self, set: &mut OutputSet) -> Result<()> {
+        let out = self.complete()?;
+        match out.into_inner() {
+            Ok(file) => {
+                set.stage(self.tmp.clone(), self.path.clone(), file);
+                Ok(())
+            }
+            Err(e) => {
+                let _ = std::fs::remove_file(&self.tmp);
+                bail!("{}: write failed: {e}", self.tmp.display())
+            }
+        }
     }
 }
 
@@ -403,7 +488,79 @@ fn excerpt(text: &str) -> String {
     }
 }
 
+/// Opens `path` and reads and parses its header only: the file positioned at the data, its
+/// length, the header.
+fn open_header(path: &Path) -> Result<(std::fs::File, u64, Header)> {
+    use std::io::Read;
+    let mut file =
+        std::fs::File::open(path).with_context(|| format!("{}: cannot read", path.display()))?;
+    let len = file
+        .metadata()
+        .with_context(|| format!("{}: cannot read", path.display()))?
+        .len();
+    // Magic, version and the header length, then the whole header.
+    let mut head = vec![0u8; 12.min(len as usize)];
+    file.read_exact(&mut head)
+        .with_context(|| format!("{}: cannot read", path.display()))?;
+    let header_len = match head.get(6) {
+        Some(1) => head
+            .get(8..10)
+            .map(|b| u16::from_le_bytes([b[0], b[1]]) as usize + 10),
+        Some(2 | 3) => head
+            .get(8..12)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize + 12),
+        _ => None,
+    };
+    let mut bytes = head;
+    if let Some(total) = header_len.filter(|&t| t as u64 <= len && t > bytes.len()) {
+        let mut rest = vec![0u8; total - bytes.len()];
+        file.read_exact(&mut rest)
+            .with_context(|| format!("{}: cannot read", path.display()))?;
+        bytes.extend_from_slice(&rest);
+    }
+    let header = parse_header(&bytes).map_err(|e| anyhow!("{}: {e}", path.display()))?;
+    Ok((file, len, header))
+}
+
+/// The common case read without a copy: a C-order little-endian array of exactly `T`'s
+/// float type, of the right length, read straight into its values. `None` for any other file
+/// (the general path then reads it, or names what is wrong with it).
+fn read_native<T: Element>(path: &Path) -> Result<Option<NpyArray<T>>> {
+    use std::io::Read;
+    if cfg!(target_endian = "big") {
+        return Ok(None);
+    }
+    let Ok((mut file, len, header)) = open_header(path) else {
+        return Ok(None);
+    };
+    let (rows, cols) = (header.rows, header.cols);
+    let n = rows * cols; // checked in parse_header
+    let native = header.dtype.kind == Kind::Float
+        && header.dtype.size == std::mem::size_of::<T>()
+        && !header.dtype.big_endian
+        && !(header.fortran_order && rows > 1 && cols > 1)
+        && len.checked_sub(header.data_offset as u64) == Some((n * header.dtype.size) as u64);
+    if !native {
+        return Ok(None);
+    }
+    let mut data = vec![T::from_f32(0.0); n];
+    // SAFETY: T is f32 or f64 (the only Element types whose size matches a float dtype), plain
+    // values for which every bit pattern is valid; the byte view covers exactly `data`.
+    let bytes = unsafe {
+        std::slice::from_raw_parts_mut(
+            data.as_mut_ptr().cast::<u8>(),
+            std::mem::size_of_val(&data[..]),
+        )
+    };
+    file.read_exact(bytes)
+        .with_context(|| format!("{}: cannot read", path.display()))?;
+    Ok(Some(NpyArray { data, rows, cols }))
+}
+
 fn read_as<T: Element>(path: &Path) -> Result<NpyArray<T>> {
+    if let Some(a) = read_native(path)? {
+        return Ok(a);
+    }
     let bytes = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
     let header = parse_header(&bytes).map_err(|e| anyhow!("{}: {e}", path.display()))?;
     let Header {
@@ -1324,35 +1481,8 @@ impl NpyRows {
     /// exactly the header plus the data. Fortran-order arrays are refused (a row of them is
     /// scattered over the whole file).
     pub fn open(path: impl AsRef<Path>) -> Result<Self> {
-        use std::io::Read;
         let path = path.as_ref();
-        let mut file = std::fs::File::open(path)
-            .with_context(|| format!("{}: cannot read", path.display()))?;
-        let len = file
-            .metadata()
-            .with_context(|| format!("{}: cannot read", path.display()))?
-            .len();
-        // Magic, version and the header length, then the whole header.
-        let mut head = vec![0u8; 12.min(len as usize)];
-        file.read_exact(&mut head)
-            .with_context(|| format!("{}: cannot read", path.display()))?;
-        let header_len = match head.get(6) {
-            Some(1) => head
-                .get(8..10)
-                .map(|b| u16::from_le_bytes([b[0], b[1]]) as usize + 10),
-            Some(2 | 3) => head
-                .get(8..12)
-                .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize + 12),
-            _ => None,
-        };
-        let mut bytes = head;
-        if let Some(total) = header_len.filter(|&t| t as u64 <= len && t > bytes.len()) {
-            let mut rest = vec![0u8; total - bytes.len()];
-            file.read_exact(&mut rest)
-                .with_context(|| format!("{}: cannot read", path.display()))?;
-            bytes.extend_from_slice(&rest);
-        }
-        let header = parse_header(&bytes).map_err(|e| anyhow!("{}: {e}", path.display()))?;
+        let (file, len, header) = open_header(path)?;
         let (rows, cols) = (header.rows, header.cols);
         if header.fortran_order && rows > 1 && cols > 1 {
             bail!(

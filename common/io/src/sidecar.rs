@@ -47,6 +47,23 @@ pub fn sidecar_path(npy: &Path) -> PathBuf {
 
 /// Writes `npy`'s sidecar (atomically).
 pub fn write_sidecar(npy: &Path, g: &NpyGeometry) -> Result<()> {
+    write_sidecar_to(None, npy, g)
+}
+
+/// Writes `npy`'s sidecar as one file of `set` (it appears on the set's commit).
+pub fn write_sidecar_into(
+    set: &mut surfstream_core::fsutil::OutputSet,
+    npy: &Path,
+    g: &NpyGeometry,
+) -> Result<()> {
+    write_sidecar_to(Some(set), npy, g)
+}
+
+fn write_sidecar_to(
+    set: Option<&mut surfstream_core::fsutil::OutputSet>,
+    npy: &Path,
+    g: &NpyGeometry,
+) -> Result<()> {
     for (field, v) in [("pitch x", g.pitch_x_um), ("pitch y", g.pitch_y_um)] {
         if !(v.is_finite() && v > 0.0) {
             bail!(
@@ -71,13 +88,17 @@ pub fn write_sidecar(npy: &Path, g: &NpyGeometry) -> Result<()> {
     }
     let path = sidecar_path(npy);
     let text = serde_json::to_string_pretty(&doc)?;
-    surfstream_core::fsutil::write_atomic(&path, |w| {
+    let fill = |w: &mut std::io::BufWriter<std::fs::File>| {
         use std::io::Write;
         w.write_all(text.as_bytes())
             .with_context(|| format!("{}: write failed", path.display()))?;
         w.write_all(b"\n")?;
         Ok(())
-    })
+    };
+    match set {
+        Some(set) => set.write(&path, fill),
+        None => surfstream_core::fsutil::write_atomic(&path, fill),
+    }
 }
 
 /// Removes a sidecar left by an earlier file of the same name (a `.npy` written without a

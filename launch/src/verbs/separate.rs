@@ -10,6 +10,11 @@
 //! into `--out`. `--method gaussian | robust-gaussian --cutoff-um L` separates by an ISO 16610
 //! L-filter instead. datum.npy and roughness.npy are written row by row as the separation
 //! gives them.
+//!
+//! The outputs are one [`OutputSet`]: every file is written under its temporary name and
+//! they appear together, synced at one point (the files' data, whose write-back starts as
+//! the rows are written, then the renames and the folder once); `--no-sync` skips the sync
+//! for scratch outputs.
 
 use std::path::PathBuf;
 
@@ -17,11 +22,11 @@ use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 use serde::Serialize;
 use surfstream_core::frame::{from_frame_heights, to_frame_heights};
-use surfstream_core::fsutil::write_atomic;
+use surfstream_core::fsutil::{Durability, OutputSet};
 use surfstream_core::{Sampling, Shape};
 use surfstream_io::formats::Surface;
-use surfstream_io::npy::{write_npy_f64, NpyRowWriter};
-use surfstream_io::sidecar::{write_sidecar, NpyGeometry};
+use surfstream_io::npy::{write_npy_f64_into, NpyRowWriter};
+use surfstream_io::sidecar::{write_sidecar_into, NpyGeometry};
 
 use super::{file_help, load_surface, pitch_text, sig};
 use surfstream_wavelet::{
@@ -68,6 +73,11 @@ pub struct SeparateArgs {
     /// Output directory (created if needed).
     #[arg(short = 'o', long)]
     pub out: PathBuf,
+    /// Do not sync the outputs to the disk (scratch outputs): they still appear whole or not
+    /// at all, but a power cut soon after the run may lose them. By default the run returns
+    /// once every file is on the disk.
+    #[arg(long = "no-sync")]
+    pub no_sync: bool,
     #[command(flatten)]
     pub mask: super::MaskArgs,
 }
@@ -177,21 +187,31 @@ pub fn run(a: SeparateArgs) -> Result<()> {
         .with_context(|| format!("{}: pitch", a.file.display()))?;
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("{}: cannot create the output directory", a.out.display()))?;
-    // The same separation as the pipeline's final pass (streamed where the node streams);
-    // level stores beyond a few MiB spill into the output folder, as the node's do.
+    // The same separation as the pipeline's final pass (streamed where the node streams).
+    // The whole map is in memory here, so a level store as large as the map (f32) stays in
+    // memory too (at most two are held at once); larger ones spill into the output folder,
+    // as the node's do.
     let stream = StreamOptions {
         spill_dir: Some(a.out.clone()),
+        memory_store_max_bytes: std::mem::size_of_val(&heights[..])
+            .max(StreamOptions::default().memory_store_max_bytes),
         ..StreamOptions::default()
     };
-    let mut sink = NpyPair::new(&a.out, z_offset_um, grid.rows(), grid.cols());
+    let durability = if a.no_sync {
+        Durability::NoSync
+    } else {
+        Durability::Synced
+    };
+    let mut outputs = OutputSet::new(durability);
+    let mut sink = NpyPair::new(&a.out, z_offset_um, grid.rows(), grid.cols(), durability);
     let map = separate_map(&settings, &heights, &grid, &stream, &mut sink)
         .with_context(|| format!("{}: separation", a.file.display()))?;
     drop(heights);
-    sink.finish()?;
+    sink.finish_into(&mut outputs)?;
     if let Some(w) = &map.warning {
         eprintln!("{}: {w}", a.file.display());
     }
-    write_pooled(&a, &s, z_offset_um, &map.pooled)?;
+    write_pooled(&mut outputs, &a, &s, z_offset_um, &map.pooled)?;
     let line = summary_line(&map.summary);
     let pooled = [map.pooled.rows, map.pooled.cols];
     let pooled_pitch_um = [s.pitch_x_um * a.pool as f64, s.pitch_y_um * a.pool as f64];
@@ -207,11 +227,12 @@ pub fn run(a: SeparateArgs) -> Result<()> {
         files: FILES,
     };
     let json = serde_json::to_string_pretty(&serde_json::to_value(&record)?)?;
-    write_atomic(&a.out.join("separate.json"), |w| {
+    outputs.write(&a.out.join("separate.json"), |w| {
         use std::io::Write;
         w.write_all(json.as_bytes())?;
         Ok(())
     })?;
+    outputs.commit()?;
     println!(
         "{}: {} rows x {} cols, pitch {}, {line}; wrote datum.npy, roughness.npy, pooled.npy \
          ({} rows x {} cols, pitch {}), each with its pitch sidecar NAME.npy.json, and separate.json to {}",
@@ -234,37 +255,49 @@ struct NpyPair {
     z_offset_um: f64,
     rows: usize,
     cols: usize,
+    durability: Durability,
     writers: Option<(NpyRowWriter, NpyRowWriter)>,
 }
 
 impl NpyPair {
-    fn new(dir: &std::path::Path, z_offset_um: f64, rows: usize, cols: usize) -> Self {
+    fn new(
+        dir: &std::path::Path,
+        z_offset_um: f64,
+        rows: usize,
+        cols: usize,
+        durability: Durability,
+    ) -> Self {
         Self {
             dir: dir.to_path_buf(),
             z_offset_um,
             rows,
             cols,
+            durability,
             writers: None,
         }
     }
 
-    /// Moves both files into place (every row must have arrived).
-    fn finish(&mut self) -> Result<()> {
+    /// Hands both files to `outputs` (every row must have arrived).
+    fn finish_into(&mut self, outputs: &mut OutputSet) -> Result<()> {
         let (d, r) = self
             .writers
             .take()
             .ok_or_else(|| anyhow!("{}: no datum was written", self.dir.display()))?;
-        d.finish()?;
-        r.finish()
+        d.finish_into(outputs)?;
+        r.finish_into(outputs)
     }
 }
 
 impl SeparationSink for NpyPair {
     fn begin(&mut self, _datum_title: &str) -> Result<()> {
-        self.writers = Some((
-            NpyRowWriter::create_f64(self.dir.join("datum.npy"), self.rows, self.cols)?,
-            NpyRowWriter::create_f32(self.dir.join("roughness.npy"), self.rows, self.cols)?,
-        ));
+        let mut datum = NpyRowWriter::create_f64(self.dir.join("datum.npy"), self.rows, self.cols)?;
+        let mut roughness =
+            NpyRowWriter::create_f32(self.dir.join("roughness.npy"), self.rows, self.cols)?;
+        if self.durability == Durability::NoSync {
+            datum = datum.without_writeback();
+            roughness = roughness.without_writeback();
+        }
+        self.writers = Some((datum, roughness));
         Ok(())
     }
 
@@ -278,9 +311,17 @@ impl SeparationSink for NpyPair {
     }
 }
 
-/// pooled.npy (absolute f64) and the pitch sidecar NAME.npy.json of every .npy.
-fn write_pooled(a: &SeparateArgs, s: &Surface, z_offset_um: f64, pooled: &Pooled) -> Result<()> {
-    write_npy_f64(
+/// pooled.npy (absolute f64) and the pitch sidecar NAME.npy.json of every .npy, into
+/// `outputs`.
+fn write_pooled(
+    outputs: &mut OutputSet,
+    a: &SeparateArgs,
+    s: &Surface,
+    z_offset_um: f64,
+    pooled: &Pooled,
+) -> Result<()> {
+    write_npy_f64_into(
+        outputs,
         a.out.join("pooled.npy"),
         &from_frame_heights(z_offset_um, &pooled.heights),
         pooled.rows,
@@ -296,7 +337,7 @@ fn write_pooled(a: &SeparateArgs, s: &Surface, z_offset_um: f64, pooled: &Pooled
         ("roughness.npy", 1.0),
         ("pooled.npy", a.pool as f64),
     ] {
-        write_sidecar(&a.out.join(name), &at(scale))?;
+        write_sidecar_into(outputs, &a.out.join(name), &at(scale))?;
     }
     Ok(())
 }
@@ -351,6 +392,7 @@ mod tests {
             pool_op: "max".into(),
             pitch_um: Some(0.5),
             out: out.clone(),
+            no_sync: false,
         })
         .unwrap();
         for (name, pitch, shape) in [
@@ -414,6 +456,7 @@ mod tests {
                 pool_op: "max".into(),
                 pitch_um: Some(0.5),
                 out: out.clone(),
+                no_sync: level == "auto",
             })
             .unwrap();
             let oracle = analyse(
