@@ -97,9 +97,21 @@ surface = \"pooled\"",
         grid.target.unwrap().method,
         surfstream_mesher::TargetMethod::Grid
     );
+    // A bad choice is refused as the graph file is read, with the allowed values named.
     for (bad, says) in [
-        ("format = \"obj\"", "format = \"obj\""),
-        ("method = \"poisson\"", "method = \"poisson\""),
+        ("format = \"obj\"", "expected `binary` or `ascii`"),
+        ("method = \"poisson\"", "expected `adaptive` or `grid`"),
+        ("units = \"furlong\"", "`m`, `mm`, `um`"),
+        ("model_method = \"fast\"", "expected `balanced` or `greedy`"),
+    ] {
+        let table: toml::Table = toml::from_str(bad).unwrap();
+        let e = surfstream_runtime::graph::params_from_table::<MesherConfig>(&table)
+            .err()
+            .unwrap();
+        let key = bad.split(' ').next().unwrap();
+        assert!(e.starts_with(key) && e.contains(says), "{bad}: {e}");
+    }
+    for (bad, says) in [
         ("epsilon_um = 0.1\nepsilon_sq_fraction = 0.1", "not both"),
         ("epsilon_um = 0.1\ntolerance = \"sa=1\"", "not both"),
         ("method = \"grid\"\ntolerance = \"sa=1\"", "needs method"),
