@@ -653,10 +653,7 @@ fn mesh(
         let mut input = prepared.into_input(pitch);
         input.roughness_um = roughness.as_deref();
         // The verb's label, so that the STL bytes are the verb's.
-        let label = match settings.grid_target() {
-            Some(p) => format!("surfstream mesh for {}", p.engine.name()),
-            None => "surfstream mesh".to_string(),
-        };
+        let label = settings.map_stl_label();
         let outputs = MeshOutputs {
             stl: &path,
             resampled_npy: None,

@@ -125,10 +125,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
     };
     let mut input = prepared.into_input(pitch);
     input.roughness_um = roughness.as_deref();
-    let label = match settings.grid_target() {
-        Some(p) => format!("surfstream mesh for {}", p.engine.name()),
-        None => "surfstream mesh".to_string(),
-    };
+    let label = settings.map_stl_label();
     let outputs = MeshOutputs {
         stl: &a.out,
         resampled_npy: None,

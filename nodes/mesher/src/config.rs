@@ -241,6 +241,15 @@ impl MeshSettings {
         self.level.then_some(LEAST_SQUARES_PLANE)
     }
 
+    /// The STL header's label of a map meshed outside a graph (the `mesh` verb and Python
+    /// write the same bytes): "surfstream mesh", "for ENGINE" with an engine's grid.
+    pub fn map_stl_label(&self) -> String {
+        match self.grid_target() {
+            Some(p) => format!("surfstream mesh for {}", p.engine.name()),
+            None => "surfstream mesh".to_string(),
+        }
+    }
+
     /// The engine's regular grid, when the target asks for it.
     pub fn grid_target(&self) -> Option<EngineProfile> {
         self.target.filter(|p| p.method == TargetMethod::Grid)
