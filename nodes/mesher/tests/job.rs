@@ -246,3 +246,41 @@ fn end_of_scan_without_a_final_frame_is_an_error() {
     let e = job.mesh().err().unwrap().to_string();
     assert!(e.contains("without a final 'surface' frame"), "{e}");
 }
+
+/// `level = true`: the node removes the least-squares plane before meshing, as
+/// `params --level` and `mesh --level`; the record says so and the mesh is of the levelled
+/// surface (a tilted wave meshes with far fewer triangles than its tilt needs).
+#[test]
+fn level_removes_the_plane_and_the_record_says_so() {
+    let tilted: Vec<f32> = wavy(0.05)
+        .iter()
+        .enumerate()
+        .map(|(k, &z)| z + 0.4 * (k % COLS) as f32 - 0.3 * (k / COLS) as f32)
+        .collect();
+    let run = |text: &str, name: &str| {
+        let mut job = MeshJob::new(config(text).settings().unwrap());
+        job.accept(
+            "surface",
+            frame(FrameKind::Panorama, flags::FINAL, tilted.clone()).view(),
+        );
+        assert!(job.accept("surface", eos().view()));
+        let dir = tempfile::tempdir().unwrap();
+        let stl = dir.path().join(format!("{name}.stl"));
+        let npy = dir.path().join("r.npy");
+        let files = job.mesh_to_files(&stl, &npy).unwrap();
+        let resampled = surfstream_io::npy::read_npy_f64(&npy).unwrap().data;
+        let (lo, hi) = resampled
+            .iter()
+            .fold((f64::MAX, f64::MIN), |(a, b), &z| (a.min(z), b.max(z)));
+        (record::to_value(&files.summary), hi - lo)
+    };
+    let (flat, flat_range_um) = run("level = true\nepsilon_um = 0.01", "flat");
+    let (raw, raw_range_um) = run("epsilon_um = 0.01", "raw");
+    assert_eq!(flat["form_removed"], "least-squares plane", "{flat:#}");
+    assert!(raw.get("form_removed").is_none(), "{raw:#}");
+    // The plane removed: the meshed heights span the wave (0.05 x 1.3 um peak to peak at
+    // most), not the tilt's 22.5 um.
+    assert!(raw_range_um > 20.0, "{raw_range_um}");
+    assert!(flat_range_um < 0.2, "{flat_range_um}");
+    assert_eq!(flat["fidelity"]["bound_met"], true);
+}
