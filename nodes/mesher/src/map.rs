@@ -251,9 +251,9 @@ pub fn mesh_surface(
     };
     let mesh_s = t0.elapsed().as_secs_f64();
     let counts = match &made {
-        MeshMade::Model(m) => m.counts.clone(),
+        MeshMade::Model(m) => m.counts,
         MeshMade::Grid(t) => MeshCounts::of(&t.mesh),
-        MeshMade::FullGrid(g) => g.counts.clone(),
+        MeshMade::FullGrid(g) => g.counts,
     };
     let mut report = mesh_report(&counts, &check, method.as_ref(), &context);
     report.mesh_s = Some(mesh_s);
