@@ -1035,9 +1035,10 @@ pub struct MeshReport {
     pub base_depth_um: Option<f64>,
     pub watertight: bool,
     pub consistently_oriented: bool,
-    #[serde(default)]
+    /// Degenerate and duplicate triangles the closed-solid check found (absent: none).
+    #[serde(default, skip_serializing_if = "is_zero")]
     pub degenerate_triangles: u64,
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "is_zero")]
     pub duplicate_triangles: u64,
     /// [cols, rows] of the grid meshed.
     pub grid_px: [u64; 2],
