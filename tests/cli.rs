@@ -336,11 +336,8 @@ fn convert_inspect_and_mesh_follow_one_convention() {
     );
     assert_eq!(header.matches("units=").count(), 1, "{header:?}");
     let json = read_json(&stl.with_extension("json"));
-    assert_eq!(
-        json["grid_rows_cols"],
-        serde_json::json!([480, 640]),
-        "{json}"
-    );
+    // [cols, rows], as run.json's mesher record.
+    assert_eq!(json["grid_px"], serde_json::json!([640, 480]), "{json}");
 }
 
 /// `stitch` of a scan directory: progress lines take the grid from scan.toml, the verdict

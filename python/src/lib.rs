@@ -499,11 +499,12 @@ fn separate<'py>(
     ))
 }
 
-/// Meshes the heights as an STL at `path`: the `mesh` verb's function
-/// ([`surfstream_mesher::mesh_map`], streamed); returns its statistics as JSON (the verb's
+/// Meshes the heights as an STL at `path`: the `mesh` verb's function, with its names and
+/// defaults ([`surfstream_mesher::MesherConfig`], checked by the mesher, then
+/// [`surfstream_mesher::mesh_surface`], streamed); returns its record as JSON (the verb's
 /// OUT.json without the input file).
 #[pyfunction]
-#[pyo3(signature = (path, heights_um, pitch_x_um, pitch_y_um, target=None, tolerance_um=None, tolerance_sq=None, max_triangles=None, sheet=false, holes=false, ascii=false, units="mm", base_depth_um=None, tolerance=None, remove_spikes=false))]
+#[pyo3(signature = (path, heights_um, pitch_x_um, pitch_y_um, tolerance=None, epsilon_um=None, epsilon_sq=None, level=false, target=None, grid=false, max_triangles=None, region_px=None, model_method="balanced", roughness_um=None, remove_spikes=false, sheet=false, holes=false, ascii=false, units=None, base_depth_um=None))]
 #[allow(clippy::too_many_arguments)]
 fn mesh(
     py: Python<'_>,
@@ -511,95 +512,135 @@ fn mesh(
     heights_um: PyReadonlyArray2<'_, f64>,
     pitch_x_um: f64,
     pitch_y_um: f64,
+    tolerance: Option<&str>,
+    epsilon_um: Option<f64>,
+    epsilon_sq: Option<f64>,
+    level: bool,
     target: Option<&str>,
-    tolerance_um: Option<f64>,
-    tolerance_sq: Option<f64>,
+    grid: bool,
     max_triangles: Option<usize>,
+    region_px: Option<usize>,
+    model_method: &str,
+    roughness_um: Option<PyReadonlyArray2<'_, f64>>,
+    remove_spikes: bool,
     sheet: bool,
     holes: bool,
     ascii: bool,
-    units: &str,
+    units: Option<&str>,
     base_depth_um: Option<f64>,
-    tolerance: Option<&str>,
-    remove_spikes: bool,
 ) -> PyResult<String> {
     use surfstream_core::raster::Shape;
-    use surfstream_mesher::map::MeshOptions;
     use surfstream_mesher::outliers::OutlierPolicy;
     use surfstream_mesher::{
-        mesh_map, prepare_heights, DemEngine, EngineProfile, Epsilon, LengthUnit, MapBound,
-        MapRequest, MeshError, Tolerance, ToleranceSettings,
+        mesh_surface, parse_choice, prepare_heights, MeshError, MeshKind, MeshMethod, MeshOutputs,
+        MesherConfig, MissingSamples, StlFormat, Tolerance,
     };
     let (h, rows, cols) = heights(&heights_um)?;
-    let bad = |e: String| Failure::new(Kind::Parameter, e);
-    let engine: Option<DemEngine> = target.map(str::parse).transpose().map_err(bad)?;
-    let units = match units.to_ascii_lowercase().as_str() {
-        "m" => LengthUnit::M,
-        "mm" => LengthUnit::Mm,
-        "um" => LengthUnit::Um,
-        other => {
-            return Err(bad(format!("units {other:?}: expected \"m\", \"mm\" or \"um\"")).into())
-        }
-    };
-    let fixed = match (tolerance_um, tolerance_sq) {
-        (Some(_), Some(_)) => {
-            return Err(bad("give tolerance_um or tolerance_sq, not both".into()).into())
-        }
-        (Some(e), None) => Some(Epsilon::Um(e)),
-        (None, Some(f)) => Some(Epsilon::SqFraction(f)),
-        (None, None) => None,
-    };
-    let tolerance: Option<Tolerance> = tolerance
-        .map(|t| t.parse().map_err(|e| bad(format!("tolerance {t:?}: {e}"))))
-        .transpose()?;
-    if tolerance.is_some() && fixed.is_some() {
-        return Err(bad("give tolerance or tolerance_um / tolerance_sq, not both".into()).into());
+    let bad = |e: String| PyErr::from(Failure::new(Kind::Parameter, e));
+    // What the verb's flags refuse together (clap's conflicts), named as Python names them.
+    let conflicts = [
+        (
+            epsilon_um.is_some() && epsilon_sq.is_some(),
+            "give epsilon_um or epsilon_sq, not both",
+        ),
+        (
+            tolerance.is_some() && (epsilon_um.is_some() || epsilon_sq.is_some()),
+            "give tolerance or a fixed bound (epsilon_um / epsilon_sq), not both",
+        ),
+        (
+            holes && !sheet,
+            "holes=True needs sheet=True (a solid is closed)",
+        ),
+        (
+            grid && target.is_none(),
+            "grid=True needs a target (the engine's regular grid)",
+        ),
+        (
+            grid && (tolerance.is_some() || epsilon_um.is_some() || epsilon_sq.is_some()),
+            "grid=True meshes the engine's regular grid: no tolerance or fixed bound",
+        ),
+        (
+            target.is_some() && (sheet || holes || ascii || units.is_some()),
+            "target sets the kind, format and units: remove sheet / holes / ascii / units",
+        ),
+        (
+            roughness_um.is_some() && (epsilon_um.is_some() || epsilon_sq.is_some()),
+            "roughness_um is judged by the tolerance, not by a fixed bound",
+        ),
+    ];
+    if let Some((_, why)) = conflicts.iter().find(|(c, _)| *c) {
+        return Err(bad(why.to_string()));
     }
-    if holes && !sheet {
-        return Err(bad("holes=True needs sheet=True (a solid is closed)".into()).into());
-    }
-    let profile = engine.map(|e| EngineProfile::with_budget(e, max_triangles));
-    // A tolerance when asked for, or when the engine bounds the smallest angle (as the verb);
-    // else the fixed bound (default 0.05 x Sq).
-    let bound = match (tolerance, fixed) {
-        (Some(t), _) => MapBound::Tolerance(ToleranceSettings {
-            tolerance: Tolerance {
-                roughness_pct: None,
-                ..t
-            },
-            ..ToleranceSettings::default()
-        }),
-        (None, None) if profile.is_some_and(|p| p.min_angle_deg > 0.0) => {
-            MapBound::Tolerance(ToleranceSettings {
-                tolerance: Tolerance {
-                    roughness_pct: None,
-                    ..ToleranceSettings::for_target(profile.as_ref()).tolerance
-                },
-                ..ToleranceSettings::default()
-            })
-        }
-        _ => MapBound::Fixed,
-    };
-    let params = MeshOptions {
-        fixed,
-        max_triangles,
-        sheet,
-        holes,
-        units,
+    let config = MesherConfig {
+        units: units
+            .map(|u| parse_choice("units", &u.to_ascii_lowercase()))
+            .transpose()
+            .map_err(bad)?
+            .unwrap_or_default(),
+        format: if ascii {
+            StlFormat::Ascii
+        } else {
+            StlFormat::Binary
+        },
         base_depth_um,
-    }
-    .params(profile);
-    let policy = if remove_spikes {
-        OutlierPolicy::Remove
-    } else {
-        OutlierPolicy::Keep
+        method: if grid {
+            MeshMethod::Grid
+        } else {
+            MeshMethod::Adaptive
+        },
+        epsilon_um,
+        epsilon_sq_fraction: epsilon_sq,
+        max_triangles,
+        tolerance: tolerance
+            .map(|t| {
+                t.parse::<Tolerance>()
+                    .map_err(|e| bad(format!("tolerance = {t:?}: {e}")))
+            })
+            .transpose()?,
+        region_px,
+        model_method: parse_choice("model_method", model_method).map_err(bad)?,
+        outliers: if remove_spikes {
+            OutlierPolicy::Remove
+        } else {
+            OutlierPolicy::Keep
+        },
+        level,
+        kind: if sheet {
+            MeshKind::Sheet
+        } else {
+            MeshKind::Solid
+        },
+        missing: if holes {
+            MissingSamples::Holes
+        } else {
+            MissingSamples::Fill
+        },
+        target: target
+            .map(|t| parse_choice("target", &t.to_ascii_lowercase()))
+            .transpose()
+            .map_err(bad)?,
+        ..MesherConfig::default()
+    };
+    let settings = config.settings().map_err(bad)?;
+    let roughness = match &roughness_um {
+        Some(r) => {
+            let (r, r_rows, r_cols) = heights(r)?;
+            if (r_rows, r_cols) != (rows, cols) {
+                return Err(bad(format!(
+                    "roughness_um is {r_rows} x {r_cols} (rows x cols); the heights are {rows} x \
+                     {cols}: expected the same grid"
+                )));
+            }
+            Some(to_frame_heights(r).1)
+        }
+        None => None,
     };
     let json = py.detach(|| -> Result<String, Failure> {
         filter_grid(rows, cols, pitch_x_um, pitch_y_um)?;
         let pitch = surfstream_core::Pitch::new(pitch_x_um, pitch_y_um)
             .map_err(|e| Failure::new(Kind::Parameter, e))?;
-        // The mesher's own refusals (an infinite sample, a bound out of range) are the
-        // caller's parameters; the rest (nothing measured, a file) are not.
+        // The mesher's own refusals (an infinite sample, a bound out of range, an STL named
+        // otherwise) are the caller's parameters; the rest (nothing measured, a file) are not.
         let fail = |e: anyhow::Error| {
             let kind = if e.downcast_ref::<MeshError>().is_some() {
                 Kind::Parameter
@@ -608,24 +649,21 @@ fn mesh(
             };
             Failure::of(kind, e)
         };
-        let prepared = prepare_heights(h, Shape::new(rows, cols), policy).map_err(fail)?;
-        let outcome = mesh_map(&MapRequest {
-            heights: &prepared,
-            pitch,
-            params,
-            profile,
-            bound,
-            roughness_um: None,
-            ascii,
+        let prepared = prepare_heights(h, Shape::new(rows, cols)).map_err(fail)?;
+        let mut input = prepared.into_input(pitch);
+        input.roughness_um = roughness.as_deref();
+        // The verb's label, so that the STL bytes are the verb's.
+        let label = settings.map_stl_label();
+        let outputs = MeshOutputs {
             stl: &path,
-            input: None,
-        })
-        .map_err(fail)?;
-        let mut stats = outcome.stats;
+            resampled_npy: None,
+            stl_label: &label,
+        };
+        let mut outcome = mesh_surface(&settings, input, &outputs).map_err(fail)?;
         // Python's callers get the STL's path as they gave it (OUT.json, beside the STL,
         // names the file alone).
-        stats.stl = path.display().to_string();
-        Ok(stats.to_json().map_err(fail)?.to_string())
+        outcome.report.file = path.display().to_string();
+        serde_json::to_string(&outcome.report).map_err(|e| Failure::new(Kind::Other, e))
     })?;
     Ok(json)
 }

@@ -370,9 +370,10 @@ def test_filters_and_form():
 
 def test_mesh_writes_a_watertight_stl(tmp_path):
     z = np.random.default_rng(4).normal(size=(80, 90)) * 0.2
-    stats = ss.Surface(z, 2.0).mesh(tmp_path / "s.stl", tolerance_um=0.05, units="um")
+    stats = ss.Surface(z, 2.0).mesh(tmp_path / "s.stl", epsilon_um=0.05, units="um")
     assert (tmp_path / "s.stl").stat().st_size > 84
     assert stats["watertight"] is True and stats["triangles"] > 0
+    assert stats["fidelity"]["error"]["max_um"] <= 0.05 + 1e-9
     trimesh = pytest.importorskip("trimesh")
     m = trimesh.load(tmp_path / "s.stl")
     assert m.is_watertight and len(m.faces) == stats["triangles"]
@@ -380,19 +381,49 @@ def test_mesh_writes_a_watertight_stl(tmp_path):
     assert math.isclose(float(m.extents[0]), 89 * 2.0, rel_tol=1e-6)
 
 
+def test_mesh_takes_the_verbs_names_and_refuses_what_it_refuses(tmp_path):
+    z = np.random.default_rng(5).normal(size=(64, 64)) * 0.2
+    s = ss.Surface(z, 1.0)
+    # The default is the verb's: the tolerance search, not a fixed bound.
+    stats = s.mesh(tmp_path / "d.stl")
+    assert stats["tolerance"]["tolerance"]["max_error_pct"] == 50.0
+    # The old names still work, with a warning, and mean the fixed bound.
+    with pytest.warns(DeprecationWarning, match="epsilon_um"):
+        old = s.mesh(tmp_path / "o.stl", tolerance_um=0.05)
+    assert "tolerance" not in old and old["fidelity"]["epsilon_um"] == 0.05
+    for kw, says in [
+        ({"units": "furlong"}, "units"),
+        ({"model_method": "fast"}, "model_method"),
+        ({"target": "ansys"}, "target"),
+        ({"holes": True}, "sheet=True"),
+        ({"tolerance": "sa=1", "epsilon_um": 0.1}, "not both"),
+        ({"target": "yade", "units": "mm"}, "target sets"),
+        ({"grid": True}, "needs a target"),
+        ({"region_px": 4}, "region_px"),
+    ]:
+        with pytest.raises(ss.ParameterError, match=says):
+            s.mesh(tmp_path / "x.stl", **kw)
+    # An STL named otherwise is refused, naming the path, and nothing written.
+    with pytest.raises(ss.ParameterError, match=r"x\.obj: mesh writes STL; expected a path ending in \.stl"):
+        s.mesh(tmp_path / "x.obj")
+    assert not (tmp_path / "x.obj").exists()
+
+
 @needs_cli
 @needs_specimens
 @pytest.mark.parametrize(
     "py_kw, cli_args",
     [
-        ({"tolerance_sq": 0.05, "sheet": True, "units": "um"}, ["--epsilon-sq", "0.05", "--sheet", "--units", "um"]),
+        ({}, []),
+        ({"level": True}, ["--level"]),
+        ({"epsilon_sq": 0.05, "sheet": True, "units": "um"}, ["--epsilon-sq", "0.05", "--sheet", "--units", "um"]),
         ({"tolerance": "sa=1,sq=1,sz=3", "remove_spikes": True}, ["--tolerance", "sa=1,sq=1,sz=3", "--remove-spikes"]),
         ({"target": "yade"}, ["--target", "yade"]),
     ],
 )
 def test_mesh_is_the_verbs(tmp_path, py_kw, cli_args):
     """Python's mesh and `surfstream mesh` are one function: the same STL bytes and the same
-    statistics (the verb's OUT.json adds the input file and its format; mesh_s is a time)."""
+    record (the verb's OUT.json adds the input file and its format; mesh_s is a time)."""
     path = specimen("x3p-2.x3p")
     cli("mesh", path, *cli_args, "-o", tmp_path / "cli" / "m.stl")
     stats = ss.read(path).mesh(tmp_path / "py" / "m.stl", **py_kw)
@@ -401,8 +432,12 @@ def test_mesh_is_the_verbs(tmp_path, py_kw, cli_args):
     for d in (want, stats):
         d.pop("mesh_s")
     assert want.pop("input") == str(path) and want.pop("input_format")
-    assert want.pop("stl") == "m.stl" and stats.pop("stl") == str(tmp_path / "py" / "m.stl")
+    assert want.pop("file") == "m.stl" and stats.pop("file") == str(tmp_path / "py" / "m.stl")
     assert stats == want
+    if py_kw.get("level"):
+        assert stats["form_removed"] == "least-squares plane"
+    else:
+        assert "form_removed" not in stats
     assert sorted(p.name for p in (tmp_path / "py").iterdir()) == ["m.stl"]
 
 

@@ -996,16 +996,29 @@ pub enum MeshMethodRecord {
 /// The mesher's report.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MeshReport {
-    /// The STL, relative to the out dir.
+    /// The STL, relative to the out dir (a graph), its file name (the `mesh` verb) or its path
+    /// as given (Python).
+    #[serde(alias = "stl")]
     pub file: String,
-    /// The mesh re-sampled on the grid it meshed (`.npy`).
-    #[serde(default)]
+    /// The input file and its format (the `mesh` verb; absent in a graph).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub input: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub input_format: Option<String>,
+    /// The mesh re-sampled on the grid it meshed (`.npy`; a graph's).
+    #[serde(default, skip_serializing_if = "String::is_empty")]
     pub resampled: String,
     /// The graph channel each input port read.
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub sources: BTreeMap<String, String>,
+    /// When the meshed frame was acquired and the STL written (ns, a graph's; absent: 0).
+    #[serde(default, skip_serializing_if = "is_zero")]
     pub t_acquired_ns: u64,
+    #[serde(default, skip_serializing_if = "is_zero")]
     pub t_written_ns: u64,
+    /// Seconds spent meshing (not writing).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mesh_s: Option<f64>,
     #[serde(default)]
     pub live_frames_skipped: u64,
     /// "binary" or "ascii".
@@ -1022,12 +1035,22 @@ pub struct MeshReport {
     pub base_depth_um: Option<f64>,
     pub watertight: bool,
     pub consistently_oriented: bool,
+    /// Degenerate and duplicate triangles the closed-solid check found (absent: none).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub degenerate_triangles: u64,
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub duplicate_triangles: u64,
     /// [cols, rows] of the grid meshed.
     pub grid_px: [u64; 2],
     #[serde(deserialize_with = "nan_array")]
     pub pitch_um: [f64; 2],
-    /// The surface meshed ("panorama", "pooled", ...).
+    /// The surface meshed ("panorama", "pooled", ...; absent: a map from a file).
+    #[serde(default, skip_serializing_if = "String::is_empty")]
     pub surface: String,
+    /// The form removed before meshing ("least-squares plane"; absent: the mean only). The
+    /// mesh and its tolerance are then of the levelled surface.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub form_removed: Option<String>,
     /// The simulator the mesh was made for (absent: none named).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub target: Option<EngineTargetRecord>,
@@ -1040,6 +1063,10 @@ pub struct MeshReport {
     pub tolerance: Option<ToleranceRecord>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub outliers: Option<OutliersRecord>,
+}
+
+fn is_zero(v: &u64) -> bool {
+    *v == 0
 }
 
 impl MeshReport {

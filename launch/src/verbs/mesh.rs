@@ -8,11 +8,15 @@ use clap::{Args, ValueEnum};
 use surfstream_core::frame::to_frame_heights;
 use surfstream_core::metrology::{self, Grid};
 use surfstream_core::raster::Shape;
-use surfstream_mesher::map::{MeshOptions, MethodStats, PreparedHeights};
+use surfstream_core::record::OutliersRecord;
+use surfstream_mesher::config::check_stl_path;
+use surfstream_mesher::map::PreparedHeights;
 use surfstream_mesher::outliers::OutlierPolicy;
+use surfstream_mesher::tolerance::ModelMethod;
 use surfstream_mesher::{
-    mesh_map, prepare_heights, DemEngine, EngineProfile, Epsilon, LengthUnit, MapBound, MapMesh,
-    MapRequest, MapStats, MeshParams, StreamedMesh, TargetMesh, TargetMethod, ToleranceSettings,
+    mesh_surface, parse_choice, prepare_heights, DemEngine, Epsilon, LengthUnit, MeshKind,
+    MeshMade, MeshMethod, MeshOutcome, MeshOutputs, MeshSettings, MesherConfig, MissingSamples,
+    StlFormat, StreamedMesh, TargetMesh,
 };
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -40,8 +44,9 @@ pub struct MeshArgs {
     pub region_px: Option<usize>,
     /// How the tolerance search's insertion order is made: "balanced" (default: greedy plus
     /// a per-block Sa/Sq balance) or "greedy" (the pointwise bound only); docs/model.md.
-    #[arg(long, value_name = "balanced|greedy")]
-    pub model_method: Option<String>,
+    #[arg(long, value_name = "balanced|greedy", default_value = "balanced",
+          value_parser = |s: &str| parse_choice::<ModelMethod>("--model-method", s))]
+    pub model_method: ModelMethod,
     /// The map's measured roughness (e.g. a run's roughness.npy, on the same grid): the
     /// tolerance then also judges the roughness the mesh carries (mesh minus datum) against it,
     /// within `rough` (default 5 %), as the graphs do (docs/model.md).
@@ -108,63 +113,94 @@ pub struct MeshArgs {
 
 pub fn run(a: MeshArgs) -> Result<()> {
     check_stl_name(&a.out)?;
+    let settings = config(&a)
+        .settings()
+        .map_err(|e| anyhow!("{}: {e}", a.file.display()))?;
     let (surface, prepared) = prepared_heights(&a)?;
     let pitch = surfstream_core::Pitch::new(surface.pitch_x_um, surface.pitch_y_um)
         .map_err(|e| anyhow!("{}: {e}", a.file.display()))?;
-    let profile = a.target.map(|engine| {
-        let mut p = EngineProfile::with_budget(engine, a.max_triangles);
-        if a.grid {
-            p.method = TargetMethod::Grid;
-        }
-        p
-    });
-    let params = mesh_params(&a, profile);
-    // An engine's grid takes no bound (clap refuses one with --grid).
-    let grid = profile.is_some_and(|p| p.method == TargetMethod::Grid);
-    let settings = if grid {
-        None
-    } else {
-        tolerance_settings(&a, profile.as_ref())?
-    };
-    let bound = match settings {
-        None => MapBound::Fixed,
-        Some(s) => MapBound::Tolerance(s),
-    };
-    let roughness = match (&a.roughness, bound, grid) {
-        (Some(path), MapBound::Tolerance(_), false) => {
-            Some(roughness_reference(path, a.pitch_um, prepared.shape)?)
-        }
+    let roughness = match (&a.roughness, settings.tolerance) {
+        (Some(path), Some(_)) => Some(roughness_reference(path, a.pitch_um, prepared.shape)?),
         _ => None,
     };
-    let mut outcome = mesh_map(&MapRequest {
-        heights: &prepared,
-        pitch,
-        params: params.clone(),
-        profile,
-        bound,
-        roughness_um: roughness.as_deref(),
-        ascii: a.ascii,
+    let mut input = prepared.into_input(pitch);
+    input.roughness_um = roughness.as_deref();
+    let label = settings.map_stl_label();
+    let outputs = MeshOutputs {
         stl: &a.out,
-        input: Some((
-            a.file.display().to_string(),
-            surface.metadata.format.clone(),
-        )),
-    })
-    .with_context(|| format!("{}", a.file.display()))?;
-    let json_path = a.out.with_extension("json");
+        resampled_npy: None,
+        stl_label: &label,
+    };
     if a.level {
-        outcome.stats.form_removed = Some("least-squares plane");
+        eprintln!(
+            "mesh: levelled: the least-squares plane removed (as params --level); the mesh \
+             and its tolerance are of the levelled surface"
+        );
     }
-    let report = outcome.stats.to_json()?;
+    let mut outcome = mesh_surface(&settings, input, &outputs)
+        .with_context(|| format!("{}", a.file.display()))?;
+    say_spikes(&a, outcome.report.outliers.as_ref());
+    outcome.report.input = Some(a.file.display().to_string());
+    outcome.report.input_format = Some(surface.metadata.format.clone());
+    let json_path = a.out.with_extension("json");
+    let report = surfstream_core::record::to_value(&outcome.report);
     surfstream_core::fsutil::write_atomic(&json_path, |w| {
         serde_json::to_writer_pretty(w, &report)
             .map_err(|e| anyhow!("{}: {e}", json_path.display()))
     })?;
-    match &outcome.mesh {
-        MapMesh::Model(m) => say_result(&a, m, &outcome.stats, &params, profile, &json_path),
-        MapMesh::Grid(t) => say_grid(&a, t, &json_path),
+    match &outcome.made {
+        MeshMade::Model(m) => say_result(&a, m, &outcome, &settings, &json_path),
+        MeshMade::Grid(t) => say_grid(&a, t, &json_path),
+        MeshMade::FullGrid(_) => {}
     }
     Ok(())
+}
+
+/// The mesher's config from the flags: the verb states the graph's parameters, typed, and
+/// the mesher checks them ([`MesherConfig::settings`]).
+pub fn config(a: &MeshArgs) -> MesherConfig {
+    MesherConfig {
+        units: match a.units.unwrap_or(Units::Mm) {
+            Units::M => LengthUnit::M,
+            Units::Mm => LengthUnit::Mm,
+            Units::Um => LengthUnit::Um,
+        },
+        format: if a.ascii {
+            StlFormat::Ascii
+        } else {
+            StlFormat::Binary
+        },
+        base_depth_um: a.base_depth_um,
+        method: if a.grid {
+            MeshMethod::Grid
+        } else {
+            MeshMethod::Adaptive
+        },
+        epsilon_um: a.epsilon_um,
+        epsilon_sq_fraction: a.epsilon_sq,
+        max_triangles: a.max_triangles,
+        tolerance: a.tolerance,
+        region_px: a.region_px,
+        model_method: a.model_method,
+        outliers: if a.remove_spikes {
+            OutlierPolicy::Remove
+        } else {
+            OutlierPolicy::Keep
+        },
+        level: a.level,
+        kind: if a.sheet {
+            MeshKind::Sheet
+        } else {
+            MeshKind::Solid
+        },
+        missing: if a.holes {
+            MissingSamples::Holes
+        } else {
+            MissingSamples::Fill
+        },
+        target: a.target,
+        ..MesherConfig::default()
+    }
 }
 
 /// Below this share of the Sq with the mean removed, the Sq about the least-squares plane says
@@ -172,10 +208,22 @@ pub fn run(a: MeshArgs) -> Result<()> {
 const TILT_SQ_SHARE: f64 = 0.5;
 
 /// The file read (its mask applied) and its heights prepared for the mesher
-/// ([`prepare_heights`]); spikes said (and removed on request).
+/// ([`prepare_heights`]); a tilt the mean does not remove is said.
 fn prepared_heights(a: &MeshArgs) -> Result<(surfstream_io::formats::Surface, PreparedHeights)> {
     let mut surface = super::load_surface(&a.file, a.pitch_um, "mesh", true)?.surface;
     a.mask.apply(&a.file, &mut surface)?;
+    if !a.level {
+        say_tilt(&surface);
+    }
+    let shape = Shape::new(surface.height, surface.width);
+    let prepared = prepare_heights(&surface.heights_um, shape)
+        .with_context(|| format!("{}", a.file.display()))?;
+    Ok((surface, prepared))
+}
+
+/// A tilt or form the mean does not remove: the tolerance (mean removed only) is then judged
+/// on it, and the roughness hides under it.
+fn say_tilt(surface: &surfstream_io::formats::Surface) {
     let levelled = Grid::new(
         &surface.heights_um,
         surface.height,
@@ -185,126 +233,58 @@ fn prepared_heights(a: &MeshArgs) -> Result<(surfstream_io::formats::Surface, Pr
     )
     .map_err(anyhow::Error::from)
     .and_then(|g| Ok(metrology::level_plane(&g)?));
-    if a.level {
-        surface.heights_um = levelled.with_context(|| format!("{}: --level", a.file.display()))?;
-        eprintln!(
-            "mesh: levelled: the least-squares plane removed (as params --level); the mesh \
-             and its tolerance are of the levelled surface"
-        );
-    } else if let Ok(levelled) = levelled {
-        // A tilt or form the mean does not remove: the tolerance (mean removed only) is then
-        // judged on it, and the roughness hides under it.
-        let sq = |v: &[f64]| {
-            let m: Vec<f64> = v.iter().copied().filter(|z| !z.is_nan()).collect();
-            let mean = m.iter().sum::<f64>() / m.len().max(1) as f64;
-            (m.iter().map(|z| (z - mean).powi(2)).sum::<f64>() / m.len().max(1) as f64).sqrt()
-        };
-        let (raw, flat) = (sq(&surface.heights_um), sq(&levelled));
-        if flat < TILT_SQ_SHARE * raw {
-            eprintln!(
-                "mesh: note: the surface is tilted: Sq {} um with the mean removed, {} um about \
-                 its least-squares plane; the tolerance is judged with the mean removed only, \
-                 where the tilt hides the roughness: --level removes the plane first",
-                super::sig(raw, 4),
-                super::sig(flat, 4)
-            );
-        }
-    }
-    let policy = if a.remove_spikes {
-        OutlierPolicy::Remove
-    } else {
-        OutlierPolicy::Keep
+    let Ok(levelled) = levelled else { return };
+    let sq = |v: &[f64]| {
+        let m: Vec<f64> = v.iter().copied().filter(|z| !z.is_nan()).collect();
+        let mean = m.iter().sum::<f64>() / m.len().max(1) as f64;
+        (m.iter().map(|z| (z - mean).powi(2)).sum::<f64>() / m.len().max(1) as f64).sqrt()
     };
-    let shape = Shape::new(surface.height, surface.width);
-    let prepared = prepare_heights(&surface.heights_um, shape, policy)
-        .with_context(|| format!("{}", a.file.display()))?;
-    let spikes = &prepared.spikes;
-    if spikes.count > 0 {
+    let (raw, flat) = (sq(&surface.heights_um), sq(&levelled));
+    if flat < TILT_SQ_SHARE * raw {
         eprintln!(
-            "mesh: {} spike(s) (largest {:+.3} um at row {} col {}; they add {:+.2} % to Sz): {}",
-            spikes.count,
-            spikes.largest[0].excess_um,
-            spikes.largest[0].row,
-            spikes.largest[0].col,
-            spikes.sz_effect_pct,
-            if a.remove_spikes {
-                "removed (--remove-spikes)"
-            } else {
-                "kept as measured (--remove-spikes to remove them)"
-            }
+            "mesh: note: the surface is tilted: Sq {} um with the mean removed, {} um about \
+             its least-squares plane; the tolerance is judged with the mean removed only, \
+             where the tilt hides the roughness: --level removes the plane first",
+            super::sig(raw, 4),
+            super::sig(flat, 4)
         );
     }
-    Ok((surface, prepared))
 }
 
-/// The mesher's parameters from the flags and the engine's profile.
-fn mesh_params(a: &MeshArgs, profile: Option<EngineProfile>) -> MeshParams {
-    MeshOptions {
-        fixed: match (a.epsilon_um, a.epsilon_sq) {
-            (Some(e), _) => Some(Epsilon::Um(e)),
-            (None, Some(f)) => Some(Epsilon::SqFraction(f)),
-            (None, None) => None,
-        },
-        max_triangles: a.max_triangles,
-        sheet: a.sheet,
-        holes: a.holes,
-        units: match a.units.unwrap_or(Units::Mm) {
-            Units::M => LengthUnit::M,
-            Units::Mm => LengthUnit::Mm,
-            Units::Um => LengthUnit::Um,
-        },
-        base_depth_um: a.base_depth_um,
-    }
-    .params(profile)
-}
-
-/// The tolerance search's settings from the flags; `None` for a fixed bound (--epsilon-um,
-/// --epsilon-sq). The smallest angle comes from the engine's profile ([`mesh_map`]); without
-/// --tolerance the tolerance is the target's default (an angle-bounded target's has no
-/// pointwise maximum, [`EngineProfile::default_tolerance`]).
-fn tolerance_settings(
-    a: &MeshArgs,
-    profile: Option<&EngineProfile>,
-) -> Result<Option<ToleranceSettings>> {
-    if let Some(px) = a.region_px.filter(|&p| p < 16) {
-        bail!("--region-px {px}: expected at least 16 samples");
-    }
-    if a.epsilon_um.is_some() || a.epsilon_sq.is_some() {
-        return Ok(None);
-    }
-    let mut tolerance = a
-        .tolerance
-        .unwrap_or_else(|| ToleranceSettings::for_target(profile).tolerance);
-    if a.roughness.is_none() {
-        // Nothing to judge the roughness against: the report does not claim a bound.
-        tolerance.roughness_pct = None;
-    }
-    Ok(Some(ToleranceSettings {
-        tolerance,
-        region_px: a.region_px,
-        method: match a.model_method.as_deref() {
-            None | Some("balanced") => surfstream_mesher::tolerance::ModelMethod::Balanced,
-            Some("greedy") => surfstream_mesher::tolerance::ModelMethod::Greedy,
-            Some(other) => bail!("--model-method {other}: expected balanced or greedy"),
-        },
-        min_angle_deg: None,
-    }))
+/// The spikes found, kept or removed.
+fn say_spikes(a: &MeshArgs, spikes: Option<&OutliersRecord>) {
+    let Some(spikes) = spikes.filter(|s| s.count > 0) else {
+        return;
+    };
+    let Some(largest) = spikes.largest.first() else {
+        return;
+    };
+    eprintln!(
+        "mesh: {} spike(s) (largest {:+.3} um at row {} col {}; they add {:+.2} % to Sz): {}",
+        spikes.count,
+        largest.excess_um,
+        largest.row,
+        largest.col,
+        spikes.sz_effect_pct,
+        if a.remove_spikes {
+            "removed (--remove-spikes)"
+        } else {
+            "kept as measured (--remove-spikes to remove them)"
+        }
+    );
 }
 
 /// The lines the verb prints: the tolerance met (or not), the angles, the mesh.
 fn say_result(
     a: &MeshArgs,
     m: &StreamedMesh,
-    stats: &MapStats,
-    params: &MeshParams,
-    profile: Option<EngineProfile>,
+    outcome: &MeshOutcome,
+    settings: &MeshSettings,
     json_path: &Path,
 ) {
-    let mesh_s = stats.mesh_s;
-    let tolerance = match &stats.method {
-        MethodStats::Model(s) => s.tolerance.as_ref(),
-        MethodStats::Grid(_) => None,
-    };
+    let mesh_s = outcome.report.mesh_s.unwrap_or(0.0);
+    let tolerance = outcome.tolerance.as_ref();
+    let profile = settings.target;
     if let Some(r) = tolerance {
         let worst = r.region_fits.first();
         eprintln!(
@@ -346,7 +326,8 @@ fn say_result(
     let (f, c) = (&m.fidelity, &m.counts);
     // The bound the mesh was made to: the search's choice with a tolerance (the flags' fixed
     // bound is not used then), else the fixed one.
-    let bound = match (tolerance, params.epsilon) {
+    let epsilon = settings.adaptive.as_ref().map(|p| p.epsilon);
+    let bound = match (tolerance, epsilon) {
         (Some(r), _) => {
             let chosen = r.curve.iter().find(|c| c.chosen);
             chosen.map_or(String::new(), |c| {
@@ -356,8 +337,8 @@ fn say_result(
                 )
             })
         }
-        (None, Epsilon::Um(_)) => String::new(),
-        (None, Epsilon::SqFraction(q)) => format!(" = {q} x Sq"),
+        (None, Some(Epsilon::SqFraction(q))) => format!(" = {q} x Sq"),
+        (None, _) => String::new(),
     };
     eprintln!(
         "mesh: {} triangles ({} surface), {} vertices, STL in {}; max vertical error \
@@ -418,19 +399,10 @@ fn say_grid(a: &MeshArgs, t: &TargetMesh, json_path: &Path) {
     );
 }
 
-/// `mesh` writes STL: an output named otherwise (`-o k.obj`) is refused, not filled with STL.
+/// `mesh` writes STL: an output named otherwise (`-o k.obj`) is refused, not filled with STL
+/// (the mesher's own rule, [`check_stl_path`]).
 pub(super) fn check_stl_name(out: &Path) -> Result<()> {
-    let ext = out
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(str::to_ascii_lowercase);
-    if ext.as_deref() != Some("stl") {
-        bail!(
-            "{}: mesh writes STL; name the output OUT.stl (the statistics go to OUT.json)",
-            out.display()
-        );
-    }
-    Ok(())
+    check_stl_path(out).map_err(|e| anyhow!(e))
 }
 
 /// The measured roughness that judges the roughness the mesh carries: the same grid as the
@@ -529,8 +501,9 @@ mod tests {
             let pitch =
                 surfstream_core::Pitch::new(surface.pitch_x_um, surface.pitch_y_um).unwrap();
             let at = ScanPlacement::new(pitch).with_z_offset(p.z_offset_um);
-            let params = mesh_params(&a, None);
-            let m = match tolerance_settings(&a, None).unwrap() {
+            let settings = config(&a).settings().unwrap();
+            let params = settings.adaptive.clone().unwrap();
+            let m = match settings.tolerance {
                 Some(s) => {
                     mesh_to_tolerance(heights, None, &at, &params, &s)
                         .unwrap()

@@ -1,7 +1,7 @@
 //! A cycle's passes on the high-fidelity model (the micro scale, issue 38).
 //!
 //! - **The model.** The patch is meshed by the project's tolerance mesher
-//!   ([`surfstream_mesher::mesh_map`], LIGGGHTS' profile: ASCII sheet in m, 1 deg angle bound),
+//!   ([`surfstream_mesher::mesh_surface`], LIGGGHTS' profile: ASCII sheet in m, 1 deg angle bound),
 //!   the model the rest of the pipeline builds and judges, not a block-averaged grid. Its
 //!   fidelity on the evaluated patch is [`PatchModel`] (finish.json `patch.model`).
 //! - **One contact per medium.** LIGGGHTS takes every triangle a sphere overlaps as a full
@@ -33,10 +33,9 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use surfstream_core::raster::Shape;
 use surfstream_core::Sampling;
-use surfstream_mesher::map::MeshOptions;
 use surfstream_mesher::{
-    mesh_map, prepare_heights, DemEngine, EngineProfile, LengthUnit, MapBound, MapMesh, MapRequest,
-    ToleranceSettings,
+    mesh_surface, prepare_heights, DemEngine, LengthUnit, MeshKind, MeshMade, MeshOutputs,
+    MesherConfig, StlFormat,
 };
 
 use crate::contacts::{archard_from_dump, ContactSummary};
@@ -148,12 +147,8 @@ pub fn mesh_model(
 ) -> Result<ModelMesh> {
     std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
     let shape = Shape::new(at.rows(), at.cols());
-    let prepared = prepare_heights(
-        heights_um,
-        shape,
-        surfstream_mesher::outliers::OutlierPolicy::Keep,
-    )?;
-    let profile = EngineProfile::with_budget(DemEngine::Liggghts, Some(max_triangles));
+    let prepared = prepare_heights(heights_um, shape)?;
+    let measured_um = prepared.heights_um.clone();
     // A plane (the ideal model of a flat part) has no roughness to judge a tolerance by:
     // it is meshed to a fixed bound of 1 nm instead, which a plane meets with two triangles.
     let flat = {
@@ -164,35 +159,36 @@ pub fn mesh_model(
         let mean = finite.iter().sum::<f64>() / n;
         (finite.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n).sqrt() < 1e-6
     };
-    let params = MeshOptions {
-        fixed: flat.then_some(surfstream_mesher::Epsilon::Um(1e-3)),
-        max_triangles: Some(max_triangles),
-        sheet: true,
-        holes: false,
-        units: LengthUnit::M,
-        base_depth_um: None,
-    }
-    // (A plane needs no angle bound: its greedy mesh is two right triangles.)
-    .params((!flat).then_some(profile));
+    let config = if flat {
+        // (A plane needs no angle bound: its greedy mesh is two right triangles.)
+        MesherConfig {
+            epsilon_um: Some(1e-3),
+            max_triangles: Some(max_triangles),
+            kind: MeshKind::Sheet,
+            units: LengthUnit::M,
+            format: StlFormat::Ascii,
+            ..MesherConfig::default()
+        }
+    } else {
+        // LIGGGHTS' own default tolerance (its angle-bounded mesh: docs/model.md).
+        MesherConfig {
+            target: Some(DemEngine::Liggghts),
+            max_triangles: Some(max_triangles),
+            ..MesherConfig::default()
+        }
+    };
+    let settings = config
+        .settings()
+        .map_err(|e| anyhow!("the patch's mesher: {e}"))?;
     let raw_stl = dir.join("patch.model.stl");
-    let outcome = mesh_map(&MapRequest {
-        heights: &prepared,
-        pitch: at.pitch(),
-        params,
-        profile: (!flat).then_some(profile),
-        bound: if flat {
-            MapBound::Fixed
-        } else {
-            // LIGGGHTS' own default tolerance (its angle-bounded mesh: docs/model.md).
-            MapBound::Tolerance(ToleranceSettings::for_target(Some(&profile)))
-        },
-        roughness_um: None,
-        ascii: true,
+    let outputs = MeshOutputs {
         stl: &raw_stl,
-        input: None,
-    })
-    .context("meshing the patch with the tolerance mesher")?;
-    let MapMesh::Model(mesh) = &outcome.mesh else {
+        resampled_npy: None,
+        stl_label: "surfstream mesh",
+    };
+    let outcome = mesh_surface(&settings, prepared.into_input(at.pitch()), &outputs)
+        .context("meshing the patch with the tolerance mesher")?;
+    let MeshMade::Model(mesh) = &outcome.made else {
         bail!("the tolerance mesher returned a grid for LIGGGHTS' adaptive profile");
     };
     let mut offset_um = mesh.counts.offset_um;
@@ -221,23 +217,22 @@ pub fn mesh_model(
             hi[k] = hi[k].max(v[k]);
         }
     }
-    let (tolerance_met, min_angle_deg) = match &outcome.stats.method {
-        surfstream_mesher::map::MethodStats::Model(m) => (
-            m.tolerance.as_ref().map(|t| t.met),
-            m.element_quality.as_ref().map(|q| q.min_angle_deg),
-        ),
-        surfstream_mesher::map::MethodStats::Grid(_) => (None, None),
-    };
-    let fit = fidelity(&prepared.heights_um, &mesh.resampled_um, at.cols(), region)?;
+    let tolerance_met = outcome.report.tolerance.as_ref().map(|t| t.met);
+    let min_angle_deg = outcome
+        .report
+        .adaptive()
+        .and_then(|a| a.element_quality.as_ref())
+        .map(|q| q.min_angle_deg);
+    let fit = fidelity(&measured_um, &mesh.resampled_um, at.cols(), region)?;
     Ok(ModelMesh {
         offset_um,
         sampling: at,
         bounds_m: [[lo[0], hi[0]], [lo[1], hi[1]], [lo[2], hi[2]]],
         model: PatchModel {
             mesher: if flat {
-                "surfstream mesher (mesh_map) at a fixed bound of 1 nm: a plane has no roughness to judge a tolerance by (sheet in m, no angle bound: two right triangles)".into()
+                "surfstream mesher (mesh_surface) at a fixed bound of 1 nm: a plane has no roughness to judge a tolerance by (sheet in m, no angle bound: two right triangles)".into()
             } else {
-                "surfstream tolerance mesher (mesh_map, LIGGGHTS profile: sheet in m, 1 deg angle bound)".into()
+                "surfstream tolerance mesher (mesh_surface, LIGGGHTS profile: sheet in m, 1 deg angle bound)".into()
             },
             budget_triangles: max_triangles,
             surface_triangles: triangles_m.len(),

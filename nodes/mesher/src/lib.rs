@@ -33,8 +33,11 @@
 //!   verb use them (and [`mesh_streaming_to_tolerance`]). The streamed path is the product:
 //!   the in-memory [`mesh_height_field`], [`mesh_to_tolerance`] and [`MeshJob::mesh`] remain
 //!   as the tests' oracle (and for the examples, which hold small maps).
-//! - [`map`]: one map meshed to STL with typed statistics ([`mesh_map`]), the steps the
-//!   `mesh` verb and the Python binding share.
+//! - One front door ([`config`]): [`MesherConfig`] (a graph's params, the `mesh` verb's flags,
+//!   Python's keywords; every choice an enum) checked into the one [`MeshSettings`]; one entry
+//!   point ([`map`]: [`mesh_surface`]) that the node, the verb and Python call; one record,
+//!   `surfstream_core::record::MeshReport` (run.json's `stages.mesher`, the verb's OUT.json,
+//!   Python's dict).
 //! - In a graph ([`job`]): [`MeshJob`] takes the final frame of the chosen surface
 //!   ([`SurfaceChoice`]: pooled, panorama, datum, roughness, or datum + roughness summed), and
 //!   meshes it once every input has ended its scan; `node` is the process shell around it.
@@ -59,6 +62,7 @@
 
 pub mod adaptive;
 pub mod check;
+pub mod config;
 pub mod error;
 pub mod fidelity;
 pub mod field;
@@ -76,10 +80,11 @@ pub mod tolerance;
 
 pub use adaptive::{mesh_height_field, AdaptiveMesh, Epsilon, MeshCounts, MeshKind, MeshParams};
 pub use check::{check_closed, MeshCheck};
+pub use config::{parse_choice, MeshMethod, MeshSettings, MesherConfig, StlFormat, SurfaceChoice};
 pub use error::{MeshError, Result};
 pub use field::{fill_missing, ScanPlacement};
-pub use job::{MeshJob, MeshSettings, MeshedSurface, MesherConfig, StlFormat, SurfaceChoice};
-pub use map::{mesh_map, prepare_heights, MapBound, MapMesh, MapOutcome, MapRequest, MapStats};
+pub use job::{MeshJob, MeshedSurface};
+pub use map::{mesh_surface, prepare_heights, MeshInput, MeshMade, MeshOutcome, MeshOutputs};
 pub use solid::{
     close_top_surface, default_base_depth_um, grid_solid, LengthUnit, SolidMesh, SolidParams,
 };

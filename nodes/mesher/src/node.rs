@@ -11,9 +11,10 @@ use surfstream_core::record::{self, MeshReport};
 use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
-use crate::job::{MeshJob, MesherConfig};
+use crate::config::MesherConfig;
+use crate::job::MeshJob;
 
-pub use crate::job::SurfaceChoice;
+pub use crate::config::SurfaceChoice;
 
 /// The mesh re-sampled on the meshed grid, absolute heights (um, f64), beside the STL.
 pub const MESH_RESAMPLED: &str = "mesh_resampled.npy";

@@ -13,7 +13,15 @@ use surfstream_core::record::{
     ModelTolerance, OutliersRecord, RegionFitRecord, ToleranceRecord, VerticalError,
 };
 
+use std::collections::BTreeMap;
+
+use surfstream_core::raster::Shape;
+use surfstream_core::record::{GridSheetRecord, MeshMethodRecord, MeshReport};
+
 use crate::adaptive::{Fidelity, MeshCounts};
+use crate::check::MeshCheck;
+use crate::config::MeshSettings;
+use crate::field::ScanPlacement;
 use crate::outliers::OutlierReport;
 use crate::target::EngineProfile;
 use crate::tin::ErrorStats;
@@ -184,4 +192,107 @@ pub(crate) fn tolerance_parts(r: &ToleranceReport) -> (ToleranceRecord, Option<A
     let record = ToleranceRecord::from(r);
     let quality = record.angles.as_ref().map(AngleQuality::from);
     (record, quality)
+}
+
+/// What a method adds to the mesher's report.
+// One value per mesh made: the variants' sizes do not matter.
+#[allow(clippy::large_enum_variant)]
+#[derive(Debug, Clone, PartialEq)]
+pub enum MethodSummary {
+    /// An adaptive mesh: its statistics and the tolerance search's record.
+    Adaptive {
+        summary: AdaptiveSummary,
+        tolerance: Option<ToleranceRecord>,
+    },
+    /// An engine's regular-grid sheet.
+    GridSheet(GridSheetRecord),
+}
+
+/// An adaptive mesh's statistics with the tolerance search's report ("tolerance") and, with
+/// an angle bound (an engine's target), the element quality of the mesh written
+/// ("element_quality", as the grid targets report it).
+pub(crate) fn adaptive_method(
+    mut summary: AdaptiveSummary,
+    report: Option<&ToleranceReport>,
+) -> MethodSummary {
+    let tolerance = report.map(|r| {
+        let (record, quality) = tolerance_parts(r);
+        summary.record.element_quality = quality;
+        record
+    });
+    MethodSummary::Adaptive { summary, tolerance }
+}
+
+/// What the report says beside the mesh itself: the settings, the grid meshed and where it
+/// came from, the spikes found.
+pub(crate) struct ReportContext<'a> {
+    pub settings: &'a MeshSettings,
+    pub shape: Shape,
+    pub at: &'a ScanPlacement,
+    pub t_acquired_ns: u64,
+    /// "panorama", ... (empty: a map from a file).
+    pub surface: &'a str,
+    pub outliers: &'a OutlierReport,
+}
+
+/// The mesher's one record, of a mesh in memory or streamed to its file. The caller fills in
+/// what only it knows: the node its files, wiring and times (`file`, `resampled`, `sources`,
+/// `t_written_ns`, `live_frames_skipped`), the verb its input file.
+pub(crate) fn mesh_report(
+    counts: &MeshCounts,
+    check: &MeshCheck,
+    method: Option<&MethodSummary>,
+    c: &ReportContext<'_>,
+) -> MeshReport {
+    let settings = c.settings;
+    // An adaptive mesh's own sizes stand for the mesh's (they are the same mesh's).
+    let (counts, units) = match method {
+        Some(MethodSummary::Adaptive { summary, .. }) => {
+            (&summary.counts, summary.counts.units.symbol())
+        }
+        _ => (counts, settings.solid.units.symbol()),
+    };
+    let (method_name, method_record, tolerance) = match method {
+        Some(MethodSummary::Adaptive { summary, tolerance }) => (
+            "adaptive",
+            Some(MeshMethodRecord::Adaptive(summary.record.clone())),
+            tolerance.clone(),
+        ),
+        Some(MethodSummary::GridSheet(g)) => {
+            ("grid", Some(MeshMethodRecord::GridSheet(g.clone())), None)
+        }
+        None => ("grid", None, None),
+    };
+    MeshReport {
+        file: String::new(),
+        resampled: String::new(),
+        sources: BTreeMap::new(),
+        t_acquired_ns: c.t_acquired_ns,
+        t_written_ns: 0,
+        live_frames_skipped: 0,
+        format: settings.format.name().into(),
+        units: units.into(),
+        offset_um: counts.offset_um,
+        triangles: counts.triangles as u64,
+        top_triangles: counts.top_triangles as u64,
+        vertices: counts.vertices as u64,
+        filled_samples: counts.filled_samples as u64,
+        base_depth_um: Some(counts.base_depth_um),
+        watertight: check.watertight,
+        consistently_oriented: check.consistently_oriented,
+        degenerate_triangles: check.degenerate_triangles as u64,
+        duplicate_triangles: check.duplicate_triangles as u64,
+        grid_px: [c.shape.cols as u64, c.shape.rows as u64],
+        pitch_um: [c.at.pitch.x_um(), c.at.pitch.y_um()],
+        surface: c.surface.into(),
+        form_removed: settings.form_removed().map(Into::into),
+        input: None,
+        input_format: None,
+        mesh_s: None,
+        target: settings.target.as_ref().map(Into::into),
+        method: method_name.into(),
+        method_record,
+        tolerance,
+        outliers: Some(c.outliers.into()),
+    }
 }

@@ -97,9 +97,21 @@ surface = \"pooled\"",
         grid.target.unwrap().method,
         surfstream_mesher::TargetMethod::Grid
     );
+    // A bad choice is refused as the graph file is read, with the allowed values named.
     for (bad, says) in [
-        ("format = \"obj\"", "format = \"obj\""),
-        ("method = \"poisson\"", "method = \"poisson\""),
+        ("format = \"obj\"", "expected `binary` or `ascii`"),
+        ("method = \"poisson\"", "expected `adaptive` or `grid`"),
+        ("units = \"furlong\"", "`m`, `mm`, `um`"),
+        ("model_method = \"fast\"", "expected `balanced` or `greedy`"),
+    ] {
+        let table: toml::Table = toml::from_str(bad).unwrap();
+        let e = surfstream_runtime::graph::params_from_table::<MesherConfig>(&table)
+            .err()
+            .unwrap();
+        let key = bad.split(' ').next().unwrap();
+        assert!(e.starts_with(key) && e.contains(says), "{bad}: {e}");
+    }
+    for (bad, says) in [
         ("epsilon_um = 0.1\nepsilon_sq_fraction = 0.1", "not both"),
         ("epsilon_um = 0.1\ntolerance = \"sa=1\"", "not both"),
         ("method = \"grid\"\ntolerance = \"sa=1\"", "needs method"),
@@ -233,4 +245,42 @@ fn end_of_scan_without_a_final_frame_is_an_error() {
     assert!(job.accept("surface", eos().view()));
     let e = job.mesh().err().unwrap().to_string();
     assert!(e.contains("without a final 'surface' frame"), "{e}");
+}
+
+/// `level = true`: the node removes the least-squares plane before meshing, as
+/// `params --level` and `mesh --level`; the record says so and the mesh is of the levelled
+/// surface (a tilted wave meshes with far fewer triangles than its tilt needs).
+#[test]
+fn level_removes_the_plane_and_the_record_says_so() {
+    let tilted: Vec<f32> = wavy(0.05)
+        .iter()
+        .enumerate()
+        .map(|(k, &z)| z + 0.4 * (k % COLS) as f32 - 0.3 * (k / COLS) as f32)
+        .collect();
+    let run = |text: &str, name: &str| {
+        let mut job = MeshJob::new(config(text).settings().unwrap());
+        job.accept(
+            "surface",
+            frame(FrameKind::Panorama, flags::FINAL, tilted.clone()).view(),
+        );
+        assert!(job.accept("surface", eos().view()));
+        let dir = tempfile::tempdir().unwrap();
+        let stl = dir.path().join(format!("{name}.stl"));
+        let npy = dir.path().join("r.npy");
+        let files = job.mesh_to_files(&stl, &npy).unwrap();
+        let resampled = surfstream_io::npy::read_npy_f64(&npy).unwrap().data;
+        let (lo, hi) = resampled
+            .iter()
+            .fold((f64::MAX, f64::MIN), |(a, b), &z| (a.min(z), b.max(z)));
+        (record::to_value(&files.summary), hi - lo)
+    };
+    let (flat, flat_range_um) = run("level = true\nepsilon_um = 0.01", "flat");
+    let (raw, raw_range_um) = run("epsilon_um = 0.01", "raw");
+    assert_eq!(flat["form_removed"], "least-squares plane", "{flat:#}");
+    assert!(raw.get("form_removed").is_none(), "{raw:#}");
+    // The plane removed: the meshed heights span the wave (0.05 x 1.3 um peak to peak at
+    // most), not the tilt's 22.5 um.
+    assert!(raw_range_um > 20.0, "{raw_range_um}");
+    assert!(flat_range_um < 0.2, "{flat_range_um}");
+    assert_eq!(flat["fidelity"]["bound_met"], true);
 }

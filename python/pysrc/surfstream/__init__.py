@@ -317,44 +317,80 @@ class Surface:
     def mesh(
         self,
         path: PathLike,
+        tolerance: Optional[str] = None,
+        epsilon_um: Optional[float] = None,
+        epsilon_sq: Optional[float] = None,
+        level: bool = False,
         target: Optional[str] = None,
-        tolerance_um: Optional[float] = None,
-        tolerance_sq: Optional[float] = None,
+        grid: bool = False,
         max_triangles: Optional[int] = None,
+        region_px: Optional[int] = None,
+        model_method: str = "balanced",
+        roughness: Optional["Surface"] = None,
+        remove_spikes: bool = False,
         sheet: bool = False,
         holes: bool = False,
         ascii: bool = False,
-        units: str = "mm",
+        units: Optional[str] = None,
         base_depth_um: Optional[float] = None,
-        tolerance: Optional[str] = None,
-        remove_spikes: bool = False,
+        **deprecated: Any,
     ) -> Dict[str, Any]:
-        """Writes an error-bounded triangle mesh of the map as STL (``surfstream mesh``):
-        every measured sample within ``tolerance_um`` (um) of the mesh vertically, or
-        ``tolerance_sq`` x Sq (default 0.05 x Sq). ``target`` = "liggghts" | "mercurydpm" |
-        "edem" | "yade" sets format, kind, units and triangle budget for that DEM engine.
+        """Writes the map's triangle mesh as STL at ``path`` (it must end in ``.stl``):
+        ``surfstream mesh`` with the same names and defaults, the same function (the mesher's
+        one entry point) and the same record (the verb's ``OUT.json`` without ``input``).
+
+        By default the fewest triangles that keep Sa, Sq, Sz, the residual and the largest
+        pointwise error within the model's tolerance in every window (``tolerance``, the
+        verb's ``--tolerance`` text, e.g. ``"sa=1,sq=1,sz=3,res=20,max=50"``; the target's
+        own default without it). ``epsilon_um`` / ``epsilon_sq`` give a fixed vertical bound
+        instead (um, or x Sq). ``level=True`` removes the least-squares plane first, as
+        ``mesh --level`` and ``params(level=True)``. ``target`` = "liggghts" | "mercurydpm" |
+        "edem" | "yade" sets format, kind, units and triangle budget (``grid=True``: the
+        engine's regular grid); ``max_triangles`` bounds the search; ``roughness`` (a
+        Surface on the same grid) makes the tolerance judge the roughness the mesh carries.
         Otherwise a closed solid (``sheet=True``: the open surface; ``holes=True`` keeps
-        missing samples as holes), binary STL (``ascii=True`` for ASCII) in ``units`` "m" |
-        "mm" | "um". ``tolerance="sa=1,sq=1,sz=3"`` (percent, the verb's ``--tolerance``)
-        asks instead for the fewest triangles that keep Sa, Sq and Sz within it in every
-        window (also the default for ``target="liggghts"``, whose angles are bounded);
-        ``remove_spikes=True`` treats isolated spikes as not measured. The verb's function
-        (streamed): returns its ``OUT.json`` statistics (triangles, max/RMS vertical error um,
-        offset, checks, spikes, the search with a tolerance), without ``input``."""
+        missing samples as holes), binary STL (``ascii=True``) in ``units`` "m" | "mm"
+        (default) | "um". ``remove_spikes=True`` treats isolated spikes as not measured.
+        What the verb refuses is refused (``ParameterError``). The old ``tolerance_um`` /
+        ``tolerance_sq`` still work, with a ``DeprecationWarning``."""
+        for old, new in (("tolerance_um", "epsilon_um"), ("tolerance_sq", "epsilon_sq")):
+            if old in deprecated:
+                warnings.warn(
+                    f"mesh({old}=...) is now {new}= (the verb's --{new.replace('_', '-')})",
+                    DeprecationWarning,
+                    stacklevel=2,
+                )
+                value = deprecated.pop(old)
+                if new == "epsilon_um":
+                    epsilon_um = value if epsilon_um is None else epsilon_um
+                else:
+                    epsilon_sq = value if epsilon_sq is None else epsilon_sq
+        if deprecated:
+            raise TypeError(f"mesh() got unexpected keyword arguments {sorted(deprecated)}")
+        if roughness is not None and tuple(roughness.shape) != tuple(self.shape):
+            raise ParameterError(
+                f"roughness is {roughness.shape[0]} x {roughness.shape[1]} (rows x cols); the map is "
+                f"{self.shape[0]} x {self.shape[1]}: expected the same grid"
+            )
         out = _native.mesh(
             os.fspath(path),
             *self._args(),
-            target=target,
-            tolerance_um=None if tolerance_um is None else float(tolerance_um),
-            tolerance_sq=None if tolerance_sq is None else float(tolerance_sq),
+            tolerance=None if tolerance is None else str(tolerance),
+            epsilon_um=None if epsilon_um is None else float(epsilon_um),
+            epsilon_sq=None if epsilon_sq is None else float(epsilon_sq),
+            level=bool(level),
+            target=None if target is None else str(target),
+            grid=bool(grid),
             max_triangles=None if max_triangles is None else int(max_triangles),
+            region_px=None if region_px is None else int(region_px),
+            model_method=str(model_method),
+            roughness_um=None if roughness is None else roughness._heights,
+            remove_spikes=bool(remove_spikes),
             sheet=bool(sheet),
             holes=bool(holes),
             ascii=bool(ascii),
-            units=str(units),
+            units=None if units is None else str(units),
             base_depth_um=None if base_depth_um is None else float(base_depth_um),
-            tolerance=None if tolerance is None else str(tolerance),
-            remove_spikes=bool(remove_spikes),
         )
         result: Dict[str, Any] = json.loads(out)
         return result
