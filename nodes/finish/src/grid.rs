@@ -462,7 +462,10 @@ mod tests {
         let mapped = triangle_volumes_to_samples(at, off, &small, &[0.8e-18]);
         let (d, unmapped) = (mapped.depth_um, mapped.unmapped_m3);
         assert_eq!(unmapped, 0.0);
-        assert_eq!(mapped.to_nearest_sample_m3, 0.8e-18, "counted in the record");
+        assert_eq!(
+            mapped.to_nearest_sample_m3, 0.8e-18,
+            "counted in the record"
+        );
         assert!((d[5 + 2] - 0.8 / 4.0).abs() < 1e-15, "{d:?}");
         assert!((volume_um3(&d, at.pitch()) - 0.8).abs() < 1e-12);
     }
