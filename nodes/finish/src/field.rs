@@ -335,16 +335,6 @@ pub struct WearBin {
     /// per impact than a shallower one.
     #[serde(default)]
     pub pooled: bool,
-    /// The depth one impact wears at the bin's centre gap, um (at the DEM's k), as the
-    /// prediction uses it: the pooled values joined linearly from centre to centre (flat
-    /// before the first, down to 0 at the reach after the last), so the rate is continuous and
-    /// never rises with the gap, scaled by one factor that keeps the DEM's volume.
-    #[serde(default)]
-    pub depth_per_impact_um: f64,
-    /// Sum over the bin's cells' of their weights on this bin's centre in that linear
-    /// interpolation (what the volume factor is made of).
-    #[serde(default)]
-    pub hat_weight_sum: f64,
 }
 
 /// The wear per contact as a function of the gap, measured from DEM segments.
@@ -395,24 +385,6 @@ fn bin_of(gap_um: f64, reach_um: f64) -> Option<usize> {
     Some(((gap_um / reach_um * BINS as f64) as usize).min(BINS - 1))
 }
 
-/// The linear interpolation between the bins' centres at `gap_um` (within the reach): up to
-/// two (bin, weight) pairs. Flat before the first centre; from the last centre down to 0 at
-/// the reach, where no contact reaches.
-fn hat_weights(gap_um: f64, reach_um: f64) -> [(usize, f64); 2] {
-    let u = gap_um / reach_um * BINS as f64 - 0.5;
-    if u <= 0.0 {
-        return [(0, 1.0), (0, 0.0)];
-    }
-    let last = BINS - 1;
-    if u >= last as f64 {
-        let t = ((BINS as f64 - 0.5 - u) / 0.5).clamp(0.0, 1.0);
-        return [(last, t), (last, 0.0)];
-    }
-    let k = u.floor() as usize;
-    let t = u - k as f64;
-    [(k, 1.0 - t), (k + 1, t)]
-}
-
 impl WearTable {
     pub fn empty(reach_um: f64) -> Self {
         WearTable {
@@ -455,9 +427,6 @@ impl WearTable {
                     bin.expected_contacts += dist.probability(*g) * impacts as f64;
                     bin.dem_depth_sum_um += w;
                     bin.dem_worn_cells += usize::from(*w > 0.0);
-                    for (k, h) in hat_weights(*g, reach) {
-                        self.bins[k].hat_weight_sum += h;
-                    }
                 }
                 None => beyond += w * cell_area_um2,
             }
@@ -476,7 +445,6 @@ impl WearTable {
             b.expected_contacts += o.expected_contacts;
             b.dem_depth_sum_um += o.dem_depth_sum_um;
             b.dem_worn_cells += o.dem_worn_cells;
-            b.hat_weight_sum += o.hat_weight_sum;
         }
         self.impacts += other.impacts;
         self.dem_volume_beyond_reach_um3 += other.dem_volume_beyond_reach_um3;
@@ -522,79 +490,14 @@ impl WearTable {
             b.pooled = *in_block;
             self.pooled_bins += usize::from(*in_block);
         }
-        self.update_continuous_depth(&carrying, &pooled);
     }
 
-    /// The continuous form of the pooled table ([`WearBin::depth_per_impact_um`]): the pooled
-    /// mean depth per impact of each carrying bin set at its centre; a bin that carries none
-    /// takes the value joined linearly from its carrying neighbours (the last one's beyond
-    /// the deepest), so the knots stay non-increasing; then one factor makes the sum over the
-    /// measured cells the DEM's volume (the hat weights' sums are the cells' share of each
-    /// knot). A step in the rate at a bin's edge would gather heights into terraces (docs/
-    /// finish.md), the per-bin shape p(gap) x w made a saw tooth at every edge.
-    fn update_continuous_depth(&mut self, carrying: &[usize], pooled: &[(f64, bool)]) {
-        for b in &mut self.bins {
-            b.depth_per_impact_um = 0.0;
-        }
-        if carrying.is_empty() || self.impacts == 0 {
-            return;
-        }
-        let per_impact = 1.0 / self.impacts as f64;
-        let mut knot = vec![f64::NAN; self.bins.len()];
-        for (&i, (fit, _)) in carrying.iter().zip(pooled) {
-            knot[i] = fit * per_impact;
-        }
-        let first = carrying[0];
-        let last = carrying[carrying.len() - 1];
-        for k in 0..knot.len() {
-            if !knot[k].is_nan() {
-                continue;
-            }
-            knot[k] = if k < first {
-                knot[first]
-            } else if k > last {
-                knot[last]
-            } else {
-                // Between two carrying bins: joined linearly (centres are evenly spaced).
-                let lo = carrying
-                    .iter()
-                    .rev()
-                    .find(|&&i| i < k)
-                    .copied()
-                    .unwrap_or(first);
-                let hi = carrying.iter().find(|&&i| i > k).copied().unwrap_or(last);
-                let t = (k - lo) as f64 / (hi - lo).max(1) as f64;
-                knot[lo] * (1.0 - t) + knot[hi] * t
-            };
-        }
-        let target: f64 = carrying
-            .iter()
-            .zip(pooled)
-            .map(|(&i, (fit, _))| fit * per_impact * self.bins[i].cells as f64)
-            .sum();
-        let made: f64 = knot
-            .iter()
-            .zip(&self.bins)
-            .map(|(v, b)| v * b.hat_weight_sum)
-            .sum();
-        // Older tables carry no hat weights: their knots are used as they are.
-        let factor = if made > 0.0 { target / made } else { 1.0 };
-        for (b, v) in self.bins.iter_mut().zip(&knot) {
-            b.depth_per_impact_um = v * factor;
-        }
-    }
-
-    /// Expected wear depth of a cell at `gap_um` per impact aimed over the patch, um: the
-    /// continuous, non-increasing form of the pooled table ([`WearBin::depth_per_impact_um`]).
+    /// Expected wear depth of a cell at `gap_um` per impact aimed over the patch, um.
     pub fn depth_per_impact_um(&self, dist: &ApproachDistribution, gap_um: f64) -> f64 {
-        let reach = dist.max_um();
-        if bin_of(gap_um, reach).is_none() || self.bins.len() != BINS {
-            return 0.0;
+        match bin_of(gap_um, dist.max_um()) {
+            Some(b) => dist.probability(gap_um) * self.bins[b].wear_per_contact_um,
+            None => 0.0,
         }
-        hat_weights(gap_um, reach)
-            .iter()
-            .map(|&(k, h)| h * self.bins[k].depth_per_impact_um)
-            .sum()
     }
 }
 
@@ -1298,27 +1201,6 @@ mod tests {
         assert!(
             per_impact.windows(2).all(|w| w[1] <= w[0] * (1.0 + 1e-12)),
             "{per_impact:?}"
-        );
-        // The depth per impact used is continuous and never rises with the gap: no step at a
-        // bin's edge, no saw tooth within a bin (the earlier p(gap) x w per bin had both).
-        let n = 2400;
-        let used: Vec<f64> = (0..=n)
-            .map(|k| t.depth_per_impact_um(&d, reach * k as f64 / n as f64))
-            .collect();
-        assert!(
-            used.windows(2).all(|w| w[1] <= w[0] * (1.0 + 1e-12)),
-            "the depth per impact rises somewhere: {used:?}"
-        );
-        let jump = used.windows(2).map(|w| w[0] - w[1]).fold(0.0, f64::max);
-        assert!(
-            used[0] > 0.0 && jump < 0.02 * used[0],
-            "a step of {jump} against {}",
-            used[0]
-        );
-        assert_eq!(
-            *used.last().unwrap(),
-            0.0,
-            "no contact reaches the reach itself"
         );
         // The measured values stay on record and differ where pooled.
         assert!(t
