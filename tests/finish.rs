@@ -341,19 +341,7 @@ fn the_default_finish_runs_the_machine_then_micro_passes_and_registers_the_after
             "{b}"
         );
         assert!(b["pooled"].is_boolean(), "{b}");
-        assert!(b["depth_per_impact_um"].as_f64().unwrap() >= 0.0, "{b}");
     }
-    // The rate used never rises with the gap (the continuous form of the pooled table).
-    let used: Vec<f64> = table["bins"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|b| b["depth_per_impact_um"].as_f64().unwrap())
-        .collect();
-    assert!(
-        used.windows(2).all(|w| w[1] <= w[0] * (1.0 + 1e-12)),
-        "{used:?}"
-    );
     // The micro passes' volume check says how much wear went to the nearest sample.
     for c in s["cycles"].as_array().unwrap() {
         let v = &c["volume_check"];

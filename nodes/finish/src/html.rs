@@ -846,11 +846,11 @@ pub fn field_section(s: &FinishSummary) -> String {
     .ok();
     t += "<table><tr><th>gap from (µm)</th><th>to</th><th>cells</th><th>expected contacts</th>\
 <th>DEM worn cells</th><th>DEM depth sum (µm)</th><th>wear per contact measured (µm, DEM k)</th>\
-<th>used (pooled: *)</th><th>depth per impact at the centre (µm, used: continuous)</th></tr>";
+<th>used (pooled: *)</th></tr>";
     for b in &f.table.bins {
         write!(
             t,
-            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}{}</td><td>{}</td></tr>",
+            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}{}</td></tr>",
             num(b.gap_from_um, 3),
             num(b.gap_to_um, 3),
             b.cells,
@@ -860,7 +860,6 @@ pub fn field_section(s: &FinishSummary) -> String {
             sci(b.measured_wear_per_contact_um),
             sci(b.wear_per_contact_um),
             if b.pooled { " *" } else { "" },
-            sci(b.depth_per_impact_um),
         )
         .ok();
     }
