@@ -415,6 +415,43 @@ mod tests {
         Ok(h.iter().map(|v| (v - m).abs()).sum::<f64>() / h.len() as f64)
     }
 
+    #[test]
+    fn a_constant_rate_where_the_ball_touches_smooths_but_one_over_the_whole_surface_does_not() {
+        // The constant-wear baseline: the cells within one step of the envelope (the ones
+        // the ball touches) lose peaks first and reach half the Sa; the same rate on every
+        // cell only lowers the surface, and its Sa never falls. The largest scale, 30, is
+        // 9 um of depth (90 steps): the rough surface spans 7 um.
+        let (rows, cols) = (30, 40);
+        let g = grid(rows, cols, 2.0);
+        let z = rough(rows, cols);
+        let (sa0, stop) = (sa(&z).unwrap(), AtomicBool::new(false));
+        let touched = [WearLaw::Constant {
+            depth_um_per_s: 1e-3,
+            reach_um: g.step_depth_um,
+        }];
+        let (s, reached, e) =
+            fit_scale(&z, g, &touched, 300.0, 30.0, 0.5 * sa0, &stop, sa).unwrap();
+        assert!(reached && s > 0.0 && !e.truncated_at_max_steps, "{s} {e:?}");
+        let mut w = Worn::new(&z);
+        advance_worn(&mut w, g, &touched, 300.0, s);
+        let sa_after = sa(&w.heights_um).unwrap();
+        assert!(
+            (sa_after - 0.5 * sa0).abs() < 0.05 * sa0,
+            "{sa_after} vs {}",
+            0.5 * sa0
+        );
+        // The lowest cell is untouched: only what the ball reaches wears.
+        let lowest = (0..z.len()).min_by(|a, b| z[*a].total_cmp(&z[*b])).unwrap();
+        assert_eq!(w.wear_um[lowest], 0.0);
+        let everywhere = [WearLaw::Constant {
+            depth_um_per_s: 1e-3,
+            reach_um: 1e9,
+        }];
+        let (_, reached, _) =
+            fit_scale(&z, g, &everywhere, 300.0, 30.0, 0.5 * sa0, &stop, sa).unwrap();
+        assert!(!reached);
+    }
+
     fn dist() -> ApproachDistribution {
         ApproachDistribution::Kinematics(KinematicApproach {
             full_speed_approach_um: 3.0,

@@ -71,8 +71,9 @@ pub struct PredictionInput<'a> {
     /// The series' times (ascending, the calibration and the process time among them).
     pub times_s: Vec<f64>,
     pub wear_map_every_s: f64,
-    /// The constant-wear baseline wears every cell within this of the ball's envelope, um.
-    pub reach_um: f64,
+    /// The constant-wear baseline wears the cells the ball touches: those within this of the
+    /// ball's envelope (one step of the extrapolation), um.
+    pub touch_um: f64,
     pub out_dir: &'a Path,
 }
 
@@ -279,13 +280,15 @@ fn noise(
     })
 }
 
-/// A constant depth rate on every cell within the reach of the ball's envelope, fitted to
-/// `sa_cal` at the calibration time.
+/// A constant depth rate on every cell the ball touches (within [`PredictionInput::touch_um`]
+/// of its envelope, re-closed every step), fitted to `sa_cal` at the calibration time. Where
+/// the DEM's table makes the rate depend on the gap below the envelope, this one is the same
+/// on every touched cell and nothing below: what the DEM adds is the difference.
 fn constant_wear(input: &PredictionInput, sa_cal: f64, stop: &AtomicBool) -> Result<Baseline> {
     const UNIT_UM_PER_S: f64 = 1e-3;
     let laws_c = [WearLaw::Constant {
         depth_um_per_s: UNIT_UM_PER_S,
-        reach_um: input.reach_um,
+        reach_um: input.touch_um,
     }];
     let (s, reached, _) = laws::fit_scale(
         input.original_um,
@@ -314,8 +317,8 @@ fn constant_wear(input: &PredictionInput, sa_cal: f64, stop: &AtomicBool) -> Res
     )?;
     Ok(Baseline {
         what: format!(
-            "a constant wear rate on every cell within {:.3} um of the ball-closed surface (the media's reach), re-closed every step: no DEM, no contact probability",
-            input.reach_um
+            "a constant wear rate on every cell the ball-closed surface touches (within {:.3} um of it, one step of the extrapolation), re-closed every step: no DEM, no contact probability",
+            input.touch_um
         ),
         fitted_parameter: "depth_um_per_s".into(),
         fitted_value: UNIT_UM_PER_S * s,

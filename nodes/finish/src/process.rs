@@ -1138,7 +1138,7 @@ fn final_prediction(
             .opts
             .wear_map_every_s
             .unwrap_or(setup.opts.process_time_s / 10.0),
-        reach_um: setup.reach_um,
+        touch_um: setup.field_grid.step_depth_um,
         out_dir: setup.out_dir,
     };
     let p = predict::predict(&input, stop)?;
