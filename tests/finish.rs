@@ -60,6 +60,8 @@ fn finish_a_height_map_writes_wear_worn_surface_script_log_and_summary() {
         .as_str()
         .unwrap()
         .contains("centrifugal barrel"));
+    // No macro run: the barrel's assumed action sets the passes, and says so.
+    assert_eq!(s["setting"]["action_used"], true);
     for k in ["Sa", "Sq", "Sz", "Spk", "Svk", "Sk"] {
         assert!(s["before"][k].as_f64().unwrap() > 0.0, "before.{k}");
         assert!(s["after"][k].as_f64().unwrap() > 0.0, "after.{k}");
@@ -332,6 +334,19 @@ fn the_default_finish_runs_the_machine_then_micro_passes_and_registers_the_after
         .unwrap()
         .starts_with("the macro run"));
     assert!(cf["envelope"]["sa_um"].as_f64().unwrap() > 0.0, "{cf}");
+    // The passes drew the macro run's contacts: the barrel's assumed speed and pressure are
+    // labelled as not used, and the time step is the passes' own.
+    let st = &s["setting"];
+    assert_eq!(st["action_used"], false, "{st}");
+    assert!(st["contacts_from"]
+        .as_str()
+        .unwrap()
+        .starts_with("the macro run's"));
+    assert_eq!(st["timestep_s"], s["cycles"][0]["timestep_s"], "{st}");
+    assert!(
+        err.contains("contacts drawn from the macro run's") && !err.contains("m/s, 3997 Pa"),
+        "{err}"
+    );
     // The table used and the one measured, with the bins the monotone pooling joined.
     let table = &cf["table"];
     assert!(table["pooled_bins"].as_u64().is_some(), "{table}");
@@ -392,6 +407,7 @@ fn the_default_finish_runs_the_machine_then_micro_passes_and_registers_the_after
     for want in [
         "The machine (macro run)",
         "Patch model (first cycle)",
+        "media velocity (assumed, not used)",
         "registered to the model",
     ] {
         assert!(html.contains(want), "finish.html lacks {want:?}");

@@ -572,8 +572,18 @@ fn setting_rows(s: &FinishSummary) -> String {
             num(m.map(|m| m.friction), 2)
         ),
     );
+    // With a macro run the passes draw its contacts: the barrel's assumed speed and pressure
+    // are shown as what they are, not as the run's.
+    let assumed = st.is_some_and(|st| !st.action_used);
+    if let Some(st) = st.filter(|st| !st.contacts_from.is_empty()) {
+        left += &row("contacts", "drawn".into(), esc(&st.contacts_from));
+    }
     left += &row(
-        "media velocity",
+        if assumed {
+            "media velocity (assumed, not used)"
+        } else {
+            "media velocity"
+        },
         format!("{} m/s", num(a.map(|a| a.media_velocity_m_s), 3)),
         format!(
             "impact angle {}°; {}",
@@ -582,7 +592,11 @@ fn setting_rows(s: &FinishSummary) -> String {
         ),
     );
     left += &row(
-        "pressure",
+        if assumed {
+            "pressure (assumed, not used)"
+        } else {
+            "pressure"
+        },
         format!("{} Pa", num(a.map(|a| a.pressure_pa), 0)),
         format!(
             "acceleration {} m/s²; press force on the patch {} N",

@@ -123,6 +123,10 @@ struct Setup<'a> {
     out_dir: &'a Path,
     engine: EngineCommand,
     action: Action,
+    /// The micro passes' time step when they draw the macro run's contacts.
+    micro_timestep_s: Option<f64>,
+    /// `setting.contacts_from`.
+    contacts_from: String,
     k_finnie: f64,
     /// The patch (meshed area with its guard band) and the guard's width, um.
     patch: Patch,
@@ -193,9 +197,40 @@ impl<'a> Setup<'a> {
         let patch = Patch::cut(&model.heights_um, model_at, pw, ph, guard_um)
             .with_context(|| model.source.clone())?;
         let dt = timestep_s(&opts.media, &opts.workpiece(), &action);
+        // With a macro run the micro passes draw its contacts (and take their own time step
+        // from them): the barrel's assumed speed and pressure are then not used, and neither
+        // the console nor finish.json may show them as the run's.
+        let drawn = macro_run
+            .filter(|m| !m.samples.is_empty() && opts.wear_model == WearModel::ContactField);
+        let (micro_timestep_s, contacts_from, contacts_line) = match drawn {
+            Some(m) => {
+                let c = &m.contacts;
+                (
+                    Some(crate::passes::micro_timestep_s(&opts.media, &opts.workpiece(), &m.samples)),
+                    format!(
+                        "the macro run's {} contact samples on the part (each micro pass draws one: an impact at its normal and tangential speed, or an enduring contact at its normal force and sliding speed); `action` and `press_force_n` are the barrel kinematics' assumptions and are not used by this run",
+                        m.samples.len()
+                    ),
+                    format!(
+                        "contacts drawn from the macro run's {} samples (impact normal speed p50 {:.3} m/s, enduring force p50 {:.4} N)",
+                        m.samples.len(),
+                        c.impact_normal_speed_m_s.p50,
+                        c.enduring_normal_force_n.p50
+                    ),
+                )
+            }
+            None => (
+                None,
+                "the barrel kinematics' assumptions (`action`, `press_force_n`; no macro run's contacts)".into(),
+                format!(
+                    "media at {:.2} m/s, {:.0} Pa (assumed: no macro run)",
+                    action.media_velocity_m_s, action.pressure_pa
+                ),
+            ),
+        };
         say(&format!(
             "finish: patch {} x {} samples ({:.0} x {:.0} um) in a {} x {} area with its guard band, \
-             media {} mm at {:.2} m/s, {:.0} Pa, dt {:.2e} s, engine {}",
+             media {} mm, {contacts_line}, dt {:.2e} s, engine {}",
             patch.crop.rows,
             patch.crop.cols,
             patch.crop.cols as f64 * patch.sampling.pitch_x_um(),
@@ -203,9 +238,7 @@ impl<'a> Setup<'a> {
             patch.sampling.rows(),
             patch.sampling.cols(),
             opts.media.diameter_mm,
-            action.media_velocity_m_s,
-            action.pressure_pa,
-            dt,
+            micro_timestep_s.unwrap_or(dt),
             engine.argv(script::INPUT, script::LOG).join(" ")
         ));
 
@@ -330,6 +363,8 @@ impl<'a> Setup<'a> {
             patch,
             guard_um,
             timestep_s: dt,
+            micro_timestep_s,
+            contacts_from,
             segments: opts.cycles + usize::from(opts.ideal.is_some()),
             original_crop,
             before,
@@ -1458,7 +1493,7 @@ fn summary(
     let (k_finnie, target_sa, dt, guard) = (
         setup.k_finnie,
         setup.target_sa,
-        setup.timestep_s,
+        setup.micro_timestep_s.unwrap_or(setup.timestep_s),
         setup.guard_um,
     );
     let (rows, cols) = (patch.crop.rows, patch.crop.cols);
@@ -1507,6 +1542,8 @@ fn summary(
             media: opts.media,
             workpiece: opts.workpiece(),
             machine: opts.machine,
+            contacts_from: setup.contacts_from.clone(),
+            action_used: setup.micro_timestep_s.is_none(),
             action: action.clone(),
             press_force_n: press_force_n(opts, action),
             k_finnie_per_pa: k_finnie,

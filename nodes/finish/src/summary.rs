@@ -301,11 +301,19 @@ pub struct FinishSetting {
     pub media: Media,
     pub workpiece: Workpiece,
     pub machine: BarrelMachine,
+    /// Where the micro passes' contacts come from, and whether `action` and `press_force_n`
+    /// (the barrel kinematics' assumptions) were used at all.
+    #[serde(default)]
+    pub contacts_from: String,
+    /// Whether `action` and `press_force_n` set the passes (false: the macro run's contacts did).
+    #[serde(default = "used")]
+    pub action_used: bool,
     pub action: Action,
     pub press_force_n: f64,
     pub k_finnie_per_pa: f64,
     pub archard_k_over_h_per_pa: f64,
     pub process_time_s: f64,
+    /// The micro passes' time step (from the contacts they draw), s.
     pub timestep_s: f64,
     pub ranks: usize,
     pub max_triangles: usize,
@@ -313,6 +321,10 @@ pub struct FinishSetting {
     pub seed: u64,
     pub wear_depth: String,
     pub acceleration: String,
+}
+
+fn used() -> bool {
+    true
 }
 
 /// The contact field's final fit over every cycle's table (`calibration.fit`).
