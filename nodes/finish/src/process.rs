@@ -524,8 +524,16 @@ impl ProcessRates {
                     .into_iter()
                     .filter(|x| x.is_finite() && *x > 0.0)
                     .collect();
+                // The Finnie table is the DEM's wear per impact pass (a contact that does not
+                // endure), so the rate that multiplies it counts those alone: an enduring
+                // contact wears through the sliding work, and is not an impact as well.
+                let impact_share = if c.count > 0 {
+                    c.impacts as f64 / c.count as f64
+                } else {
+                    1.0
+                };
                 ProcessRates {
-                    impact_rate: c.rate_per_mm2_s * 1e6,
+                    impact_rate: c.rate_per_mm2_s * impact_share * 1e6,
                     sliding_work: c.sliding_work_j_per_mm2_s * 1e6,
                     sliding_forces_n: if forces.is_empty() {
                         vec![press_force_n]
@@ -533,8 +541,9 @@ impl ProcessRates {
                         forces
                     },
                     rates_from: format!(
-                        "the macro run (finish.json macro: {} media, {} s simulated on the part's central region): contacts per area and s, sliding work per area and s, the enduring contacts' normal force p10/p50/p90",
-                        m.media_count, m.simulated_s
+                        "the macro run (finish.json macro: {} media, {} s simulated on the part's central region): impacts (the {} of {} contacts that do not endure) per area and s, {:.4} of {:.4} contacts per mm^2 and s, for the Finnie law; the sliding work per area and s for the Archard law, placed by the enduring contacts' normal force p10/p50/p90. Under the macro run's softening the sliding work is trusted, the impact rate and the enduring forces are not (macro.softening; docs/finish.md): the one fitted scale absorbs a common factor, not their ratio",
+                        m.media_count, m.simulated_s, c.impacts, c.count,
+                        c.rate_per_mm2_s * impact_share, c.rate_per_mm2_s
                     ),
                 }
             }
@@ -573,10 +582,12 @@ fn macro_contacts(
         })?;
     let c = &m.contacts;
     say(&format!(
-        "finish: macro run: {} media, {:.2} s recorded: {:.3e} contacts per mm^2 and s, sliding work {:.3e} J/(mm^2 s), enduring normal force p50 {:.4} N, tangential speed p50 {:.3} m/s",
+        "finish: macro run: {} media, {:.2} s recorded: {:.3e} contacts per mm^2 and s ({} of {} impacts), sliding work {:.3e} J/(mm^2 s), enduring normal force p50 {:.4} N, tangential speed p50 {:.3} m/s",
         m.media_count,
         m.simulated_s,
         c.rate_per_mm2_s,
+        c.impacts,
+        c.count,
         c.sliding_work_j_per_mm2_s,
         c.enduring_normal_force_n.p50,
         c.tangential_speed_m_s.p50
