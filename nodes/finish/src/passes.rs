@@ -416,9 +416,16 @@ pub fn plan_micro_passes(
     let r = plan.media.radius_m();
     let k_hertz = 4.0 / 3.0 * effective_modulus_pa(&plan.media, &plan.workpiece()) * r.sqrt();
     let mut rng = ChaCha8Rng::seed_from_u64(plan.seed);
+    let (impacts, enduring): (Vec<ContactSample>, Vec<ContactSample>) =
+        samples.iter().partition(|s| !s.enduring);
+    let (n_impacts, n_sliding) = pass_kinds(plan.passes, impacts.len(), enduring.len());
     let mut out = Vec::with_capacity(plan.passes);
-    for _ in 0..plan.passes {
-        let s = samples[rng.gen_range(0..samples.len())];
+    // Impacts first, then sliding passes; each kind drawn uniformly from its own samples.
+    let draws = (0..n_impacts)
+        .map(|_| &impacts)
+        .chain((0..n_sliding).map(|_| &enduring));
+    for from in draws {
+        let s = from[rng.gen_range(0..from.len())];
         let phi: f64 = rng.gen_range(0.0..std::f64::consts::TAU);
         let ax = rng.gen_range(aim.0[0]..=aim.0[1]);
         let ay = rng.gen_range(aim.1[0]..=aim.1[1]);
@@ -460,6 +467,28 @@ pub fn plan_micro_passes(
     }
     Ok(out)
 }
+
+/// Of `passes` per cycle, how many are impacts and how many sliding passes, given the
+/// macro run's impact and enduring samples: a fixed share, not the machine's mix. Only the
+/// impacts make the prediction's DEM table (the Finnie wear per impact pass, times the
+/// machine's impact rate); the sliding law's volume is the macro run's sliding work, and its
+/// passes check that volume and show where it goes. An impact costs about a tenth of a
+/// sliding pass's steps (the default machine: ~200 against ~2 000), so the budget buys
+/// impacts: one pass in [`SLIDING_PASS_EVERY`] slides (at least one when there are both).
+pub fn pass_kinds(passes: usize, impact_samples: usize, enduring_samples: usize) -> (usize, usize) {
+    match (impact_samples, enduring_samples) {
+        (0, _) => (0, passes),
+        (_, 0) => (passes, 0),
+        _ if passes < 2 => (passes, 0),
+        _ => {
+            let sliding = (passes / SLIDING_PASS_EVERY).max(1);
+            (passes - sliding, sliding)
+        }
+    }
+}
+
+/// One pass in this many is a sliding pass ([`pass_kinds`]).
+pub const SLIDING_PASS_EVERY: usize = 8;
 
 /// One engine process of a cycle: passes of one kind.
 #[derive(Debug, Clone, Serialize)]
@@ -890,6 +919,16 @@ mod tests {
                 MicroLoad::Sliding { press_force_n: 1.0 }
             },
         }
+    }
+
+    #[test]
+    fn the_budget_buys_impacts_and_keeps_one_sliding_pass_in_eight() {
+        assert_eq!(pass_kinds(32, 900, 1200), (28, 4));
+        assert_eq!(pass_kinds(6, 2, 1), (5, 1));
+        // Only one kind in the machine's run: every pass is of that kind.
+        assert_eq!(pass_kinds(6, 0, 3), (0, 6));
+        assert_eq!(pass_kinds(6, 3, 0), (6, 0));
+        assert_eq!(pass_kinds(1, 3, 3), (1, 0));
     }
 
     #[test]

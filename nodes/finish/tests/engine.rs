@@ -520,6 +520,9 @@ fn with_a_macro_record_the_cycles_run_micro_passes_on_the_tolerance_mesh() {
     // The Finnie law's rate counts the impacts (2 of the 3 contacts): the enduring one wears
     // through the sliding work, not as an impact too.
     let rate = json["wear_laws"]["impact_rate_per_m2_s"].as_f64().unwrap();
-    assert!((rate / (50.0 * 2.0 / 3.0 * 1e6) - 1.0).abs() < 1e-12, "{rate}");
+    assert!(
+        (rate / (50.0 * 2.0 / 3.0 * 1e6) - 1.0).abs() < 1e-12,
+        "{rate}"
+    );
     assert_eq!(json["setting"]["action_used"], false);
 }
