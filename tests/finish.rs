@@ -334,6 +334,14 @@ fn the_default_finish_runs_the_machine_then_micro_passes_and_registers_the_after
         .unwrap()
         .starts_with("the macro run"));
     assert!(cf["envelope"]["sa_um"].as_f64().unwrap() > 0.0, "{cf}");
+    // Each cycle's sliding passes: the DEM's Archard volume beside K/H F s on a flat.
+    for c in s["cycles"].as_array().unwrap() {
+        let m = &c["micro"];
+        if m["sliding"].as_u64().unwrap() > 0 {
+            assert!(m["archard_over_flat"].as_f64().unwrap() > 0.0, "{m}");
+            assert!(m["archard_flat_um3"].as_f64().unwrap() > 0.0, "{m}");
+        }
+    }
     // The passes drew the macro run's contacts: the barrel's assumed speed and pressure are
     // labelled as not used, and the time step is the passes' own.
     let st = &s["setting"];

@@ -487,6 +487,21 @@ pub fn pass_kinds(passes: usize, impact_samples: usize, enduring_samples: usize)
     }
 }
 
+/// Archard's volume on a flat for the sliding passes among `passes`: K/H x F_n x the slide
+/// each is commanded (its speed along the part x its steps x `timestep_s`), m^3.
+pub fn archard_flat_m3(passes: &[MicroPass], k_over_h_per_pa: f64, timestep_s: f64) -> f64 {
+    passes
+        .iter()
+        .map(|p| match p.load {
+            MicroLoad::Sliding { press_force_n } => {
+                let [vx, vy, _] = p.velocity_m_s;
+                k_over_h_per_pa * press_force_n * vx.hypot(vy) * p.steps as f64 * timestep_s
+            }
+            MicroLoad::Impact => 0.0,
+        })
+        .sum()
+}
+
 /// One pass in this many is a sliding pass ([`pass_kinds`]).
 pub const SLIDING_PASS_EVERY: usize = 8;
 
@@ -519,6 +534,9 @@ pub struct MicroRun {
     pub to_nearest_sample_um3: f64,
     /// Archard volume from the dumps, um^3 (the grid keeps it exactly).
     pub archard_volume_um3: f64,
+    /// K/H x F_n x the commanded slide of the completed sliding passes, um^3: Archard on a
+    /// flat, for the DEM's volume on the rough patch to be compared with.
+    pub archard_flat_um3: f64,
     pub sliding_contacts: ContactSummary,
     pub impact_contacts: ContactSummary,
     pub model: PatchModel,
@@ -549,6 +567,12 @@ pub struct MicroRecord {
     pub cpu_per_triangle_step_s: f64,
     pub finnie_volume_um3: f64,
     pub archard_volume_um3: f64,
+    /// K/H x F_n x the commanded slide of the sliding passes, um^3 (Archard on a flat).
+    pub archard_flat_um3: f64,
+    /// The DEM's Archard volume on the rough patch over the flat one: below 1 where the
+    /// sliding medium hops from peak to peak instead of staying in contact (None: no
+    /// sliding pass).
+    pub archard_over_flat: Option<f64>,
     pub volume_relative_error: f64,
     pub impact_contacts: ContactSummary,
     pub sliding_contacts: ContactSummary,
@@ -583,6 +607,9 @@ impl MicroRun {
             },
             finnie_volume_um3: self.finnie_liggghts_volume_um3,
             archard_volume_um3: self.archard_volume_um3,
+            archard_flat_um3: self.archard_flat_um3,
+            archard_over_flat: (self.archard_flat_um3 > 0.0)
+                .then(|| self.archard_volume_um3 / self.archard_flat_um3),
             volume_relative_error: self.volume_relative_error(),
             impact_contacts: self.impact_contacts.clone(),
             sliding_contacts: self.sliding_contacts.clone(),
@@ -731,6 +758,7 @@ pub fn run_micro_passes(
         unmapped_volume_um3: 0.0,
         to_nearest_sample_um3: 0.0,
         archard_volume_um3: 0.0,
+        archard_flat_um3: 0.0,
         sliding_contacts: ContactSummary::default(),
         impact_contacts: ContactSummary::default(),
         model: mesh.model.clone(),
@@ -785,6 +813,8 @@ pub fn run_micro_passes(
                 points.iter().map(|c| (c.x_m, c.y_m, c.volume_m3)).collect();
             add(&mut run.archard_um, &nodes.point_volumes_to_depth(&pts));
             run.archard_volume_um3 += summary.total_volume_m3 * 1e18;
+            run.archard_flat_um3 +=
+                archard_flat_m3(&seg.passes, plan.archard_k_over_h_per_pa(), dt) * 1e18;
             merge(&mut run.sliding_contacts, &summary);
         }
     }
