@@ -365,6 +365,18 @@ pub struct MicroPlan {
     pub max_slide_m: f64,
 }
 
+/// Periods of the normal oscillation a sliding pass is pressed in place before it slides.
+pub const SETTLE_PERIODS: f64 = 3.0;
+
+/// Period of the normal oscillation of a medium pressed by `force_n` on a flat of Hertz
+/// constant `k_hertz` (4/3 E* sqrt(R)), s: 2 pi sqrt(m / (dF/d delta)) at the static overlap.
+pub fn normal_period_s(media: &Media, k_hertz: f64, force_n: f64) -> f64 {
+    let f = force_n.max(1e-9);
+    // dF/d(delta) at the static overlap (F / K)^(2/3).
+    let stiffness = 1.5 * k_hertz.powf(2.0 / 3.0) * f.powf(1.0 / 3.0);
+    std::f64::consts::TAU * (media.mass_kg() / stiffness).sqrt()
+}
+
 /// The time step of `samples` at the real stiffness: a fifth of the media's Rayleigh time,
 /// at least 50 steps per Hertz impact at the fastest sampled normal speed and 50 per period
 /// of the normal oscillation under the largest sampled load.
@@ -373,11 +385,7 @@ pub fn micro_timestep_s(media: &Media, part: &Workpiece, samples: &[ContactSampl
     let k_hertz = 4.0 / 3.0 * effective_modulus_pa(media, part) * media.radius_m().sqrt();
     for s in samples {
         if s.enduring {
-            let f = s.normal_force_n.max(1e-9);
-            // dF/d(delta) at the static overlap (F / K)^(2/3).
-            let stiffness = 1.5 * k_hertz.powf(2.0 / 3.0) * f.powf(1.0 / 3.0);
-            let period = std::f64::consts::TAU * (media.mass_kg() / stiffness).sqrt();
-            dt = dt.min(period / 50.0);
+            dt = dt.min(normal_period_s(media, k_hertz, s.normal_force_n) / 50.0);
         } else {
             dt = dt.min(hertz_contact_time_s(media, part, s.normal_speed_m_s) / 50.0);
         }
@@ -441,12 +449,19 @@ pub fn plan_micro_passes(
             let z0 = mesh.touch_height_m(x0, y0, r) - (s.normal_force_n / k_hertz).powf(2.0 / 3.0);
             // A contact that does not slide wears nothing by Archard: a few steps.
             let t = if vt > 0.0 { slide / vt } else { 0.0 };
+            // The start is the static overlap on a flat; on the rough patch the sphere then
+            // rings about its equilibrium, and a slide of about one period (30 um at the
+            // default machine's speeds) would average the ringing, not the load (Archard 1.37
+            // x K/H F s on the wavy test patch). Pressed in place for SETTLE_PERIODS periods
+            // of the normal oscillation first (the restitution damps it to ~5 %).
+            let period = normal_period_s(&plan.media, k_hertz, s.normal_force_n);
             out.push(MicroPass {
                 start_m: [x0, y0, z0],
                 velocity_m_s: [vt * dx, vt * dy, -vn],
                 steps: ((t / timestep_s).ceil() as usize).max(10),
                 load: MicroLoad::Sliding {
                     press_force_n: s.normal_force_n,
+                    settle_steps: (SETTLE_PERIODS * period / timestep_s).ceil() as usize,
                 },
             });
         } else {
@@ -493,7 +508,7 @@ pub fn archard_flat_m3(passes: &[MicroPass], k_over_h_per_pa: f64, timestep_s: f
     passes
         .iter()
         .map(|p| match p.load {
-            MicroLoad::Sliding { press_force_n } => {
+            MicroLoad::Sliding { press_force_n, .. } => {
                 let [vx, vy, _] = p.velocity_m_s;
                 k_over_h_per_pa * press_force_n * vx.hypot(vy) * p.steps as f64 * timestep_s
             }
@@ -587,7 +602,7 @@ impl MicroRun {
             .iter()
             .filter(|p| matches!(p.load, MicroLoad::Impact))
             .count();
-        let steps: usize = self.passes.iter().map(|p| p.steps).sum();
+        let steps: usize = self.passes.iter().map(MicroPass::engine_steps).sum();
         let ts = self.triangle_steps();
         MicroRecord {
             model: self.model.clone(),
@@ -624,7 +639,12 @@ impl MicroRun {
     }
 
     pub fn triangle_steps(&self) -> f64 {
-        self.triangles as f64 * self.passes.iter().map(|p| p.steps).sum::<usize>() as f64
+        self.triangles as f64
+            * self
+                .passes
+                .iter()
+                .map(MicroPass::engine_steps)
+                .sum::<usize>() as f64
     }
 
     pub fn volume_relative_error(&self) -> f64 {
@@ -719,7 +739,7 @@ pub fn run_micro_passes(
         .iter()
         .enumerate()
         .map(|(i, g)| {
-            let steps: usize = g.iter().map(|p| p.steps).sum();
+            let steps: usize = g.iter().map(MicroPass::engine_steps).sum();
             (
                 dir.join(format!("group_{:02}", i + 1)),
                 MicroSegment {
@@ -946,7 +966,10 @@ mod tests {
             load: if impact {
                 MicroLoad::Impact
             } else {
-                MicroLoad::Sliding { press_force_n: 1.0 }
+                MicroLoad::Sliding {
+                    press_force_n: 1.0,
+                    settle_steps: 0,
+                }
             },
         }
     }

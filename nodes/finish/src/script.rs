@@ -237,8 +237,13 @@ pub enum MicroLoad {
     /// An enduring sliding contact: the sphere is pressed by `press_force_n` (`fix addforce`,
     /// its normal motion integrated under that load and the contact) while its velocity along
     /// the part is prescribed (`fix move linear vx vy NULL`: no spin, so the slip is the
-    /// prescribed speed); Archard wear from the contact dump.
-    Sliding { press_force_n: f64 },
+    /// prescribed speed); Archard wear from the contact dump. It is first pressed in place for
+    /// `settle_steps` (`fix move linear 0 0 NULL`: no slip, so no Archard wear) so that it
+    /// slides at its load, not ringing about it.
+    Sliding {
+        press_force_n: f64,
+        settle_steps: usize,
+    },
 }
 
 /// One pass of a micro segment.
@@ -274,9 +279,19 @@ pub struct MicroSegment {
     pub thermo_every: usize,
 }
 
+impl MicroPass {
+    /// The engine steps the pass takes: its own and a sliding pass's settling in place.
+    pub fn engine_steps(&self) -> usize {
+        match self.load {
+            MicroLoad::Sliding { settle_steps, .. } => self.steps + settle_steps,
+            MicroLoad::Impact => self.steps,
+        }
+    }
+}
+
 impl MicroSegment {
     pub fn total_steps(&self) -> usize {
-        self.passes.iter().map(|p| p.steps).sum()
+        self.passes.iter().map(MicroPass::engine_steps).sum()
     }
 
     pub fn simulated_time_s(&self) -> f64 {
@@ -375,15 +390,26 @@ pub fn micro_script(seg: &MicroSegment) -> String {
                     p.steps
                 );
             }
-            MicroLoad::Sliding { press_force_n } => {
+            MicroLoad::Sliding {
+                press_force_n,
+                settle_steps,
+            } => {
+                let _ = writeln!(s, "fix press all addforce 0 0 {:e}", -press_force_n);
+                if settle_steps > 0 {
+                    let _ = writeln!(
+                        s,
+                        "fix settle all move linear 0 0 NULL\n\
+                         run {settle_steps} post no\n\
+                         unfix settle"
+                    );
+                }
                 let _ = writeln!(
                     s,
-                    "fix press all addforce 0 0 {:e}\n\
-                     fix slide all move linear {vx:e} {vy:e} NULL\n\
+                    "fix slide all move linear {vx:e} {vy:e} NULL\n\
                      run {} post no\n\
                      unfix slide\n\
                      unfix press",
-                    -press_force_n, p.steps
+                    p.steps
                 );
             }
         }

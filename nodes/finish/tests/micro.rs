@@ -238,6 +238,7 @@ fn a_sphere_slid_under_load_wears_the_archard_volume() {
         steps,
         load: MicroLoad::Sliding {
             press_force_n: force,
+            settle_steps: 0,
         },
     };
     let seg = segment(&mesh, media, part, dt, DEFAULT_CURVATURE_DEG, vec![pass]);
@@ -457,12 +458,12 @@ fn a_cycle_wears_the_same_for_any_number_of_jobs() {
         assert!((archard_grid / r.archard_volume_um3 - 1.0).abs() < 1e-9);
         let rec = r.record();
         // The DEM's Archard volume on the wavy patch against K/H F s on a flat (1.0015 on the
-        // exact flat, a_sphere_slid_under_load_wears_the_archard_volume): recorded, of the
-        // same order. Measured 1.37 on this coarse mesh (354 triangles, up to 12 contacts at
-        // once): more than on the flat, not yet explained (docs/finish.md).
+        // exact flat, a_sphere_slid_under_load_wears_the_archard_volume): within 10 %. Each
+        // sliding pass settles in place first; without it the sphere rang about its load
+        // through the short slide and this was 1.37 (1.06 with it).
         let over_flat = rec.archard_over_flat.unwrap();
         eprintln!("Archard on the patch / on a flat: {over_flat:.4}");
-        assert!(over_flat > 0.2 && over_flat < 3.0, "{over_flat}");
+        assert!((over_flat - 1.0).abs() < 0.1, "{over_flat}");
         assert_eq!(rec.impacts + rec.sliding, 8);
         assert!(rec.impacts > 0 && rec.sliding > 0);
         assert_eq!(rec.processes.len(), r.groups.len());
