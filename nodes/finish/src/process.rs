@@ -428,11 +428,12 @@ impl<'a> Setup<'a> {
     /// the process's rate on the evaluated patch, sliding (Archard).
     fn laws(&self, table: &WearTable) -> Vec<WearLaw> {
         vec![
-            WearLaw::Impacts(ImpactLaw {
-                dist: self.dist.clone(),
-                table: table.clone(),
-                impacts_per_s: self.impacts_process / self.opts.process_time_s,
-            }),
+            WearLaw::Impacts(ImpactLaw::volume_per_impact(
+                self.dist.clone(),
+                table.clone(),
+                self.impacts_process / self.opts.process_time_s,
+                self.aim_area_um2,
+            )),
             WearLaw::Sliding(self.sliding.clone()),
         ]
     }

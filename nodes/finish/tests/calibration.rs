@@ -183,6 +183,7 @@ fn the_prediction_follows_the_macro_statistics_and_not_only_the_calibration() {
                 dist: dist.clone(),
                 table: table.clone(),
                 impacts_per_s,
+                mean_depth_per_impact_um: None,
             }),
             WearLaw::Sliding(SlidingLaw::new(5e-14, work, forces, &media, &part)),
         ]
