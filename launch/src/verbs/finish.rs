@@ -49,7 +49,8 @@ pub struct FinishArgs {
     /// Density of the media, kg/m^3 (default 2500, ceramic).
     #[arg(long)]
     pub media_density_kg_m3: Option<f64>,
-    /// Young's modulus of the media, Pa (default 1e11, ceramic; the part: 2.1e11, steel).
+    /// Young's modulus of the media in the micro passes, Pa (default 1e11: real ceramic media;
+    /// the macro run's softened one is --macro-media-modulus-pa).
     #[arg(long)]
     pub media_modulus_pa: Option<f64>,
     /// Relative media velocity, m/s (default: from the barrel kinematics).
@@ -553,15 +554,12 @@ pub fn run(a: FinishArgs) -> Result<()> {
             _ => bail!("--patch-um {p:?}: expected W or W,H in um"),
         });
     }
-    if let Some(d) = a.media_diameter_mm {
-        o.media.diameter_mm = d;
-    }
-    if let Some(d) = a.media_density_kg_m3 {
-        o.media.density_kg_m3 = d;
-    }
-    if let Some(e) = a.media_modulus_pa {
-        o.media.youngs_modulus_pa = e;
-    }
+    // One media for the macro run and the micro passes (the flags and --machine FILE set
+    // both); only the stiffness differs: the macro run's softened, the passes' real.
+    let machine = machine_setting(&a)?;
+    o.media = machine
+        .media
+        .at_modulus(a.media_modulus_pa.unwrap_or(o.media.youngs_modulus_pa));
     if let Some(x) = a.impact_angle_deg {
         o.impact_angle_deg = x;
     }
@@ -589,11 +587,7 @@ pub fn run(a: FinishArgs) -> Result<()> {
     // The macro run by default, with the machine flags (--machine FILE, --record-s, ...) as
     // `--macro-only` reads them; a given record replaces it for the base setting (a sweep's
     // other settings run their own machine).
-    o.machine_run = if a.no_macro {
-        None
-    } else {
-        Some(machine_setting(&a)?)
-    };
+    o.machine_run = (!a.no_macro).then_some(machine);
     if let Some(f) = &a.macro_record {
         o.macro_contacts = Some(read_macro(f)?);
     }

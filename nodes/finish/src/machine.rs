@@ -59,7 +59,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::engine::{run_engine_watched, EngineCommand, EngineRun, EngineWatch};
-use crate::setting::PartMaterial;
+use crate::setting::{Media, PartMaterial};
 
 /// File names inside the macro run's folder.
 pub mod files {
@@ -157,6 +157,35 @@ pub const REAL_MEDIA_YOUNGS_MODULUS_PA: f64 = 1.0e11;
 pub const RAYLEIGH_SHARE: f64 = 0.2;
 
 impl MediaSpec {
+    /// The same media at another stiffness: the micro passes' media (the real modulus, where
+    /// the macro run's is softened). One media, two stiffnesses: every other property is the
+    /// macro run's.
+    pub fn at_modulus(&self, youngs_modulus_pa: f64) -> Media {
+        Media {
+            diameter_mm: self.diameter_mm,
+            density_kg_m3: self.density_kg_m3,
+            youngs_modulus_pa,
+            poisson_ratio: self.poisson_ratio,
+            restitution: self.restitution,
+            friction: self.friction,
+        }
+    }
+
+    /// The first property (not the modulus) in which `m` is not these media, as
+    /// "name: macro run's vs micro passes'".
+    pub fn differs_from(&self, m: &Media) -> Option<String> {
+        [
+            ("diameter_mm", self.diameter_mm, m.diameter_mm),
+            ("density_kg_m3", self.density_kg_m3, m.density_kg_m3),
+            ("poisson_ratio", self.poisson_ratio, m.poisson_ratio),
+            ("restitution", self.restitution, m.restitution),
+            ("friction", self.friction, m.friction),
+        ]
+        .into_iter()
+        .find(|(_, a, b)| a != b)
+        .map(|(name, a, b)| format!("{name} {a} in the macro run vs {b} in the micro passes"))
+    }
+
     pub fn radius_m(&self) -> f64 {
         self.diameter_mm * 0.5e-3
     }

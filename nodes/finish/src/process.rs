@@ -632,6 +632,12 @@ fn checked_options(opts: &FinishOptions) -> Result<(f64, Action)> {
                 opts.part_material.name
             );
         }
+        // The media strike the part in the macro run and in the micro passes: one media (the
+        // micro passes at the real stiffness, the macro run softened), or the contacts the
+        // passes draw would be another media's.
+        if let Some(d) = m.media.differs_from(&opts.media) {
+            bail!("the macro run's media are not the micro passes': {d}: one media, two stiffnesses (set the media once, e.g. --media-friction, for both)");
+        }
     }
     let mut action = opts.machine.action(&opts.media, opts.impact_angle_deg)?;
     if opts.media_velocity_m_s.is_some() || opts.pressure_pa.is_some() {
@@ -1801,5 +1807,26 @@ mod tests {
             m.part_material = o.part_material.clone();
         }
         assert!(checked_options(&o).is_ok());
+    }
+
+    #[test]
+    fn one_media_for_the_macro_run_and_the_micro_passes_at_two_stiffnesses() {
+        let mut o = FinishOptions::default();
+        // The defaults: the same media, softened in the macro run only.
+        let m = o.machine_run.clone().unwrap();
+        assert_ne!(m.media.youngs_modulus_pa, o.media.youngs_modulus_pa);
+        assert!(checked_options(&o).is_ok());
+        // Friction set for one scale only is refused, naming the property and both values.
+        o.media.friction = 0.5;
+        let e = checked_options(&o).unwrap_err().to_string();
+        assert!(e.contains("friction 0.3 in the macro run vs 0.5"), "{e}");
+        // The micro passes' media made from the macro run's at the real stiffness agree.
+        o.media = m.media.at_modulus(o.media.youngs_modulus_pa);
+        assert!(checked_options(&o).is_ok());
+        assert_eq!(o.media.friction, 0.3);
+        assert_eq!(
+            o.media.youngs_modulus_pa,
+            crate::setting::Media::default().youngs_modulus_pa
+        );
     }
 }
