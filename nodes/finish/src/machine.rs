@@ -530,7 +530,7 @@ pub struct Softening {
 }
 
 impl Softening {
-    fn of(setting: &MachineSetting) -> Self {
+    pub(crate) fn of(setting: &MachineSetting) -> Self {
         Softening {
             media_youngs_modulus_pa: setting.media.youngs_modulus_pa,
             real_youngs_modulus_pa: REAL_MEDIA_YOUNGS_MODULUS_PA,
@@ -579,6 +579,10 @@ pub struct MacroContacts {
     pub partial: bool,
     pub cost: MacroCost,
     pub seed: u64,
+    /// The media the run used (softened): a record given back (`--macro-record`) is checked
+    /// against the micro passes' media. Absent in records written before it was kept.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub media: Option<MediaSpec>,
 }
 
 /// What the macro run cost.
@@ -1349,6 +1353,7 @@ fn summarise(
             command: run.command.clone(),
         },
         seed: s.seed,
+        media: Some(s.media),
     })
 }
 

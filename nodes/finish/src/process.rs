@@ -639,6 +639,11 @@ fn checked_options(opts: &FinishOptions) -> Result<(f64, Action)> {
             bail!("the macro run's media are not the micro passes': {d}: one media, two stiffnesses (set the media once, e.g. --media-friction, for both)");
         }
     }
+    if let Some(media) = opts.macro_contacts.as_ref().and_then(|m| m.media.as_ref()) {
+        if let Some(d) = media.differs_from(&opts.media) {
+            bail!("the given macro record's media are not the micro passes': {d} (record with the same media, or set the passes' media to the record's)");
+        }
+    }
     let mut action = opts.machine.action(&opts.media, opts.impact_angle_deg)?;
     if opts.media_velocity_m_s.is_some() || opts.pressure_pa.is_some() {
         if let Some(v) = opts.media_velocity_m_s {
@@ -1827,6 +1832,29 @@ mod tests {
         assert_eq!(
             o.media.youngs_modulus_pa,
             crate::setting::Media::default().youngs_modulus_pa
+        );
+        // A given macro record says its media: another media's record is refused, a record
+        // from before the media were kept (none) is taken as it is.
+        let mut rec: MacroContacts = serde_json::from_value(serde_json::json!({
+            "engine": "liggghts", "machine": "centrifugal-barrel", "media_count": 1,
+            "simulated_s": 1.0, "settle_s": 0.1, "timestep_s": 1e-5, "region_area_mm2": 1.0,
+            "contacts": crate::machine::ContactStatistics::default(), "samples": [],
+            "softening": crate::machine::Softening::of(&m), "media_lost": 0, "partial": false,
+            "cost": crate::machine::MacroCost::default(), "seed": 1
+        }))
+        .unwrap();
+        assert!(rec.media.is_none());
+        o.machine_run = None;
+        o.macro_contacts = Some(rec.clone());
+        assert!(checked_options(&o).is_ok());
+        let mut other = m.media;
+        other.diameter_mm = 5.0;
+        rec.media = Some(other);
+        o.macro_contacts = Some(rec);
+        let e = checked_options(&o).unwrap_err().to_string();
+        assert!(
+            e.contains("macro record") && e.contains("diameter_mm 5 in the macro run vs 3"),
+            "{e}"
         );
     }
 }

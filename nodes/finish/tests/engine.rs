@@ -467,6 +467,7 @@ fn with_a_macro_record_the_cycles_run_micro_passes_on_the_tolerance_mesh() {
         partial: false,
         cost: Default::default(),
         seed: 1,
+        media: None,
     };
     let tmp = tempfile::tempdir().unwrap();
     let opts = FinishOptions {
