@@ -23,8 +23,7 @@ pub struct FinishArgs {
     /// are replaced). The input's own folder is never accepted as OUT.
     #[arg(long)]
     pub force: bool,
-    /// Patch size, um: W or W,H (default: a centred square meshed at full resolution within
-    /// --max-triangles).
+    /// Patch size, um: W or W,H (default: a centred square of 100 x 100 samples).
     #[arg(long, value_name = "W[,H]")]
     pub patch_um: Option<String>,
     /// Guard band around the patch, meshed and cropped, um (default 15 % of the patch).
@@ -113,7 +112,8 @@ pub struct FinishArgs {
     /// The ideal model for a height-map input (a file on the same grid).
     #[arg(long)]
     pub ideal: Option<PathBuf>,
-    /// Triangles of the patch's mesh.
+    /// The most triangles the patch's mesh may use (default 60 000); the tolerance mesher
+    /// uses the fewest that meet the patch's bounds (finish.json patch.model).
     #[arg(long)]
     pub max_triangles: Option<usize>,
     /// MPI ranks (mpirun -np N liggghts).

@@ -33,6 +33,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use surfstream_core::raster::Shape;
 use surfstream_core::Sampling;
+use surfstream_mesher::tolerance::{Tolerance, ANGLE_BOUNDED_TOLERANCE};
 use surfstream_mesher::{
     mesh_surface, prepare_heights, DemEngine, LengthUnit, MeshKind, MeshMade, MeshOutputs,
     MesherConfig, StlFormat,
@@ -57,6 +58,80 @@ pub const DEFAULT_ENGINE_PROCESSES: usize = 4;
 /// The contacts the passes draw: [`crate::machine::MacroContacts::samples`].
 pub use crate::machine::ContactSample;
 
+/// How a patch the micro passes strike is meshed (always LIGGGHTS' profile: ASCII sheet in
+/// m, 1 deg angle bound). One pointwise bound in um for every surface of a run, set by the
+/// measured model: half its Sq on the patch (the model's default, the paper's "within
+/// 1 um"); what else is judged depends on what the surface is.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum PatchFidelity {
+    /// The measured model (cycle 1): LIGGGHTS' statistical tolerance (Sa/Sq/Sz 1/1/3 %,
+    /// residual 50 % of Sq) and no point farther than `max_error_um` from the measurement.
+    Measured { max_error_um: f64 },
+    /// A worn surface the laws predicted (cycles 2..): the same statistical tolerance,
+    /// relative to its own Sq, and the measured model's pointwise bound in um.
+    Worn { max_error_um: f64 },
+    /// A form (the ideal model): the pointwise bound alone; its Sa/Sq/Sz are the form's, and
+    /// 1 % of a form's small Sq cost the demo's datum 69 011 triangles for nothing the DEM
+    /// sees.
+    Form { max_error_um: f64 },
+    /// LIGGGHTS' statistical tolerance alone, no pointwise bound (the profile's default:
+    /// synthetic surfaces of the engine's checks).
+    Statistical,
+}
+
+impl PatchFidelity {
+    /// The pointwise bound of a run whose measured patch has `sq_um`.
+    pub fn bound_for(sq_um: f64) -> f64 {
+        surfstream_mesher::tolerance::DEFAULT_MAX_ERROR_PCT / 100.0 * sq_um
+    }
+
+    pub fn max_error_um(self) -> Option<f64> {
+        match self {
+            PatchFidelity::Measured { max_error_um }
+            | PatchFidelity::Worn { max_error_um }
+            | PatchFidelity::Form { max_error_um } => Some(max_error_um),
+            PatchFidelity::Statistical => None,
+        }
+    }
+
+    /// The mesher's tolerance for a surface of `sq_um` (about its mean, the meshed area). The
+    /// mesher bounds the error as a share of each region's Sq: the bound in um is that share
+    /// of the whole area's Sq, exact on the whole area and in proportion to a window's Sq in
+    /// the window (on a homogeneous surface within a few percent; `patch.model.max_error_um`
+    /// is measured on the evaluated patch either way).
+    fn tolerance(self, sq_um: f64) -> Tolerance {
+        let max_error_pct = self.max_error_um().map(|b| 100.0 * b / sq_um.max(1e-12));
+        match self {
+            PatchFidelity::Measured { .. }
+            | PatchFidelity::Worn { .. }
+            | PatchFidelity::Statistical => Tolerance {
+                max_error_pct,
+                ..ANGLE_BOUNDED_TOLERANCE
+            },
+            // Statistics not judged (100 %: any mesh within the pointwise bound keeps a
+            // form's Sa and Sq far closer than that).
+            PatchFidelity::Form { .. } => Tolerance {
+                sa_pct: 100.0,
+                sq_pct: 100.0,
+                sz_pct: 100.0,
+                residual_pct: None,
+                max_error_pct,
+                roughness_pct: None,
+            },
+        }
+    }
+
+    fn describe(self) -> String {
+        let b = self.max_error_um().unwrap_or(f64::NAN);
+        match self {
+            PatchFidelity::Statistical => "LIGGGHTS' statistical tolerance: Sa/Sq/Sz 1/1/3 %, residual 50 % of Sq per region, no pointwise bound".into(),
+            PatchFidelity::Measured { .. } => format!("measured model: Sa/Sq/Sz 1/1/3 %, residual 50 % of Sq per region, no point farther than {b:.3} um (half the patch's Sq)"),
+            PatchFidelity::Worn { .. } => format!("worn surface: Sa/Sq/Sz 1/1/3 %, residual 50 % of its own Sq per region, no point farther than {b:.3} um (the measured model's bound)"),
+            PatchFidelity::Form { .. } => format!("form (ideal model): no point farther than {b:.3} um (the measured model's bound); a form's Sa/Sq/Sz not judged"),
+        }
+    }
+}
+
 /// The patch model's fidelity: the tolerance mesh judged at the measured points of the
 /// evaluated patch (finish.json `patch.model`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -79,6 +154,12 @@ pub struct PatchModel {
     pub min_angle_deg: Option<f64>,
     /// The mesh's `curvature` in LIGGGHTS, degrees.
     pub curvature_deg: f64,
+    /// What the mesh was judged by ([`PatchFidelity`]): the surface's kind and its bounds.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub fidelity: String,
+    /// The pointwise bound the mesher was given, um (absent: none, records before it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_error_bound_um: Option<f64>,
 }
 
 /// The patch's tolerance mesh, as LIGGGHTS reads it.
@@ -142,6 +223,7 @@ pub fn mesh_model(
     at: Sampling,
     region: Window,
     max_triangles: usize,
+    judged_as: PatchFidelity,
     curvature_deg: f64,
     dir: &Path,
 ) -> Result<ModelMesh> {
@@ -154,10 +236,7 @@ pub fn mesh_model(
     let flat = {
         let g = surfstream_core::metrology::Grid::of(heights_um, at)?;
         let l = surfstream_core::metrology::level_plane(&g)?;
-        let finite: Vec<f64> = l.into_iter().filter(|v| v.is_finite()).collect();
-        let n = finite.len().max(1) as f64;
-        let mean = finite.iter().sum::<f64>() / n;
-        (finite.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n).sqrt() < 1e-6
+        rms_about_mean(&l) < 1e-6
     };
     let config = if flat {
         // (A plane needs no angle bound: its greedy mesh is two right triangles.)
@@ -170,10 +249,11 @@ pub fn mesh_model(
             ..MesherConfig::default()
         }
     } else {
-        // LIGGGHTS' own default tolerance (its angle-bounded mesh: docs/model.md).
+        // LIGGGHTS' angle-bounded mesh, judged as the surface's kind asks (PatchFidelity).
         MesherConfig {
             target: Some(DemEngine::Liggghts),
             max_triangles: Some(max_triangles),
+            tolerance: Some(judged_as.tolerance(rms_about_mean(heights_um))),
             ..MesherConfig::default()
         }
     };
@@ -234,6 +314,12 @@ pub fn mesh_model(
             } else {
                 "surfstream tolerance mesher (mesh_surface, LIGGGHTS profile: sheet in m, 1 deg angle bound)".into()
             },
+            fidelity: if flat {
+                String::new()
+            } else {
+                judged_as.describe()
+            },
+            max_error_bound_um: judged_as.max_error_um().filter(|_| !flat),
             budget_triangles: max_triangles,
             surface_triangles: triangles_m.len(),
             max_error_over_sq: fit.0,
@@ -246,6 +332,14 @@ pub fn mesh_model(
         },
         triangles_m,
     })
+}
+
+/// RMS of the finite values about their mean (0 for none).
+fn rms_about_mean(v: &[f64]) -> f64 {
+    let finite: Vec<f64> = v.iter().copied().filter(|v| v.is_finite()).collect();
+    let n = finite.len().max(1) as f64;
+    let mean = finite.iter().sum::<f64>() / n;
+    (finite.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n).sqrt()
 }
 
 /// (max |e| / Sq, max |e|, rms e, Sq) of mesh vs heights on `region`, each about its mean.
@@ -694,6 +788,7 @@ pub fn run_micro_passes(
     at: Sampling,
     aim_window: Window,
     max_triangles: usize,
+    fidelity: PatchFidelity,
     dir: &Path,
     stop: &AtomicBool,
     progress: &mut dyn FnMut(GroupProgress),
@@ -703,8 +798,17 @@ pub fn run_micro_passes(
     }
     plan.part.check()?;
     plan.media.validate()?;
-    let mesh_within =
-        |budget: usize| mesh_model(heights_um, at, aim_window, budget, plan.curvature_deg, dir);
+    let mesh_within = |budget: usize| {
+        mesh_model(
+            heights_um,
+            at,
+            aim_window,
+            budget,
+            fidelity,
+            plan.curvature_deg,
+            dir,
+        )
+    };
     // The tolerance is relative to the surface's own Sq: a smooth one (a form model, a
     // surface worn to plateaus) may need more triangles than the budget even at the coarsest
     // mesh; it then gets four times the budget once (`patch.model.budget_triangles`).
@@ -1018,8 +1122,16 @@ mod tests {
             cols: 32,
         };
         let dir = tempfile::tempdir().unwrap();
-        let m = mesh_model(&z, at, region, 4000, 1.0, dir.path()).unwrap();
+        let bound_um = PatchFidelity::bound_for(0.5);
+        let fidelity = PatchFidelity::Measured {
+            max_error_um: bound_um,
+        };
+        let m = mesh_model(&z, at, region, 4000, fidelity, 1.0, dir.path()).unwrap();
         assert!(dir.path().join(script::STL).is_file());
+        // The pointwise bound holds at the measured points of the evaluated patch.
+        assert_eq!(m.model.max_error_bound_um, Some(bound_um));
+        assert!(m.model.max_error_um <= 1.1 * bound_um, "{:?}", m.model);
+        assert_eq!(m.model.tolerance_met, Some(true), "{:?}", m.model);
         assert_eq!(m.model.surface_triangles, m.triangles_m.len());
         assert!(m.triangles_m.len() < 2 * 47 * 47, "{}", m.triangles_m.len());
         assert!(

@@ -19,8 +19,8 @@ use crate::grid::{crop, volume_um3, Patch};
 use crate::laws::{self, ImpactLaw, SlidingLaw, WearLaw};
 use crate::machine::{ContactSample, MacroContacts};
 use crate::passes::{
-    passes_per_engine, run_micro_passes, MicroPlan, MicroRun, PatchModel, DEFAULT_CURVATURE_DEG,
-    DEFAULT_ENGINE_PROCESSES,
+    passes_per_engine, run_micro_passes, MicroPlan, MicroRun, PatchFidelity, PatchModel,
+    DEFAULT_CURVATURE_DEG, DEFAULT_ENGINE_PROCESSES,
 };
 use crate::predict::{self, Prediction, PredictionInput};
 use crate::run::{
@@ -170,6 +170,12 @@ struct Setup<'a> {
 pub const DEFAULT_MICRO_PASSES: usize = 32;
 
 impl<'a> Setup<'a> {
+    /// The pointwise bound of every patch the micro passes strike, um: half the measured
+    /// patch's Sq ([`PatchFidelity::bound_for`]).
+    fn patch_bound_um(&self) -> f64 {
+        PatchFidelity::bound_for(self.before.sq)
+    }
+
     /// Checks the options, cuts the patch, says what will run, and reads the targets.
     fn new(
         model: &'a Model,
@@ -183,8 +189,8 @@ impl<'a> Setup<'a> {
         std::fs::create_dir_all(out_dir)
             .with_context(|| format!("{}: cannot create", out_dir.display()))?;
 
-        // The patch: default a square meshed at full resolution within the triangle budget.
-        let side_samples = ((opts.max_triangles as f64 / 2.0).sqrt()).floor().max(4.0);
+        // The patch: default a square of DEFAULT_PATCH_SIDE_SAMPLES a side.
+        let side_samples = crate::run::DEFAULT_PATCH_SIDE_SAMPLES as f64;
         let (pw, ph) = opts.patch_um.unwrap_or((
             (side_samples * model.pitch_x_um).min(model.cols as f64 * model.pitch_x_um * 0.7),
             (side_samples * model.pitch_y_um).min(model.rows as f64 * model.pitch_y_um * 0.7),
@@ -851,6 +857,17 @@ fn run_cycle(
             setup.patch.sampling,
             setup.patch.crop,
             opts.max_triangles,
+            // Cycle 1 strikes the measured model; later cycles the laws' worn surface, held
+            // to the same pointwise bound in um.
+            if c == 1 {
+                PatchFidelity::Measured {
+                    max_error_um: setup.patch_bound_um(),
+                }
+            } else {
+                PatchFidelity::Worn {
+                    max_error_um: setup.patch_bound_um(),
+                }
+            },
             &dir,
             stop,
             &mut |p| {
@@ -1363,6 +1380,9 @@ fn ideal_comparison(
             at,
             patch.crop,
             opts.max_triangles,
+            PatchFidelity::Form {
+                max_error_um: setup.patch_bound_um(),
+            },
             &dir,
             stop,
             &mut |_| {},

@@ -73,11 +73,19 @@ pub enum Calibration {
     Measured(Model),
 }
 
+/// The patch mesh's triangle budget: the demo's 300 um patch (with its guard band) at the
+/// measured model's pointwise bound needs 42 609 (docs/finish.md); LIGGGHTS' cost is about
+/// linear in it.
+pub const DEFAULT_MAX_TRIANGLES: usize = 60_000;
+
+/// The default patch's side, samples (81 um at the Zygo's 0.8148 um pitch).
+pub const DEFAULT_PATCH_SIDE_SAMPLES: usize = 100;
+
 /// The settings of a finishing run; [`FinishOptions::default`] is the paper's setting.
 #[derive(Debug, Clone)]
 pub struct FinishOptions {
-    /// Patch (width, height), um; None: a centred square as large as the triangle budget
-    /// meshes at full resolution.
+    /// Patch (width, height), um; None: a centred square of [`DEFAULT_PATCH_SIDE_SAMPLES`]
+    /// samples a side.
     pub patch_um: Option<(f64, f64)>,
     /// Guard band around the patch, um; None: 15 % of the patch's larger side.
     pub guard_um: Option<f64>,
@@ -201,7 +209,7 @@ impl Default for FinishOptions {
             macro_contacts: None,
             // The paper's part, aluminium, for the DEM wall and Archard's hardness alike.
             part_material: crate::setting::PartMaterial::default(),
-            max_triangles: 20_000,
+            max_triangles: DEFAULT_MAX_TRIANGLES,
             ranks: 1,
             hostfile: None,
             seed: 1,

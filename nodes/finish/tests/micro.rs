@@ -19,7 +19,7 @@ use surfstream_finish::engine::{run_engine, EngineCommand};
 use surfstream_finish::grid::{mesh_patch, volume_um3, Window};
 use surfstream_finish::passes::{
     mesh_model, passes_per_engine, run_micro_passes, ContactSample, MicroPlan, ModelMesh,
-    DEFAULT_CURVATURE_DEG, DEFAULT_ENGINE_PROCESSES,
+    PatchFidelity, DEFAULT_CURVATURE_DEG, DEFAULT_ENGINE_PROCESSES,
 };
 use surfstream_finish::script::{self, micro_script, MicroLoad, MicroPass, MicroSegment};
 use surfstream_finish::setting::{
@@ -57,7 +57,16 @@ fn noisy_flat(dir: &Path, n: usize, curvature_deg: f64) -> ModelMesh {
         rows: n,
         cols: n,
     };
-    mesh_model(&z, at, all, 4 * n * n, curvature_deg, dir).unwrap()
+    mesh_model(
+        &z,
+        at,
+        all,
+        4 * n * n,
+        PatchFidelity::Statistical,
+        curvature_deg,
+        dir,
+    )
+    .unwrap()
 }
 
 fn segment(
@@ -193,6 +202,8 @@ fn exact_flat(rows: usize, cols: usize, pitch_um: f64) -> ModelMesh {
             tolerance_met: None,
             min_angle_deg: None,
             curvature_deg: DEFAULT_CURVATURE_DEG,
+            fidelity: String::new(),
+            max_error_bound_um: None,
         },
         triangles_m,
     }
@@ -428,6 +439,7 @@ fn a_cycle_wears_the_same_for_any_number_of_jobs() {
             at,
             aim,
             20_000,
+            PatchFidelity::Statistical,
             &tmp.path().join(format!("j{jobs}")),
             &stop,
             &mut |_| {},
@@ -538,6 +550,7 @@ fn bench_micro_cycle() {
             patch.sampling,
             patch.crop,
             20_000,
+            PatchFidelity::Statistical,
             &tmp.path().join(name),
             &stop,
             &mut |_| {},
