@@ -800,6 +800,13 @@ fn say_budget(say: &mut dyn FnMut(&str), what: &str, model: &PatchModel, budget:
             model.budget_triangles, model.surface_triangles
         ));
     }
+    // The DEM then strikes a coarser surface than the bound asks: said, not hidden.
+    if model.tolerance_met == Some(false) {
+        say(&format!(
+            "finish: {what}: warning: the patch's mesh does not meet its bounds within {} triangles ({}; max error {:.3} um on the evaluated patch): raise --max-triangles",
+            model.budget_triangles, model.fidelity, model.max_error_um
+        ));
+    }
 }
 
 /// What a cycle's wear model made of its segment.
