@@ -465,7 +465,8 @@ fn scales_section(s: &FinishSummary) -> String {
 <tr><td class=\"k\">surface triangles</td><td>{}</td></tr>\
 <tr><td class=\"k\">max |mesh − measured| / Sq</td><td>{} ({} µm; Sq {} µm)</td></tr>\
 <tr><td class=\"k\">RMS error, µm</td><td>{}</td></tr>\
-<tr><td class=\"k\">tolerance met (Sa, Sq, Sz per region)</td><td>{}</td></tr>\
+<tr><td class=\"k\">judged by</td><td class=\"t\">{}</td></tr>\
+<tr><td class=\"k\">tolerance met (Sa, Sq, Sz and the pointwise bound per region)</td><td>{}</td></tr>\
 <tr><td class=\"k\">smallest angle, °</td><td>{}</td></tr>\
 <tr><td class=\"k\">LIGGGHTS curvature, °</td><td>{}</td></tr></table>",
             esc(&m.mesher),
@@ -474,6 +475,11 @@ fn scales_section(s: &FinishSummary) -> String {
             num(m.max_error_um, 4),
             num(m.sq_um, 4),
             num(m.rms_error_um, 4),
+            esc(if m.fidelity.is_empty() {
+                "the mesher's (above)"
+            } else {
+                &m.fidelity
+            }),
             m.tolerance_met.map_or("not judged".into(), |t| if t {
                 "yes".to_string()
             } else {
