@@ -846,7 +846,12 @@ pub struct ToleranceRecord {
     pub tolerance: ModelTolerance,
     pub target_share: f64,
     pub region_px: u64,
+    /// Regions judged: the whole map, the windows and the tile footprints.
     pub regions: u64,
+    /// Of those, Table 6's tile regions (S1...; 0: not known to the mesher, or written before
+    /// it judged them).
+    #[serde(default)]
+    pub footprints: u64,
     pub measured_px: u64,
     pub met: bool,
     pub surface_triangles: u64,
