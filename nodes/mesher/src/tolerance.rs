@@ -978,7 +978,8 @@ fn settings_for(
                 .is_some_and(|end| end <= shape.cols);
         if !fits {
             return Err(MeshError::Incompatible(format!(
-                "footprint {} ({} x {} at row {}, col {}): expected a non-empty rectangle                  within the {shape} map",
+                "footprint {} ({} x {} at row {}, col {}): expected a non-empty rectangle \
+                 within the {shape} map",
                 f.name, f.rows, f.cols, f.row0, f.col0
             )));
         }

@@ -211,5 +211,8 @@ fn a_footprint_beyond_the_map_is_refused_by_name() {
         ..footprint()
     };
     let e = mesh_to_tolerance(heights, None, &at, &params(), &settings(), &[off]).unwrap_err();
-    assert!(e.to_string().contains("footprint S1"), "{e}");
+    assert!(
+        e.to_string().contains("footprint S1") && e.to_string().contains("rectangle within the"),
+        "{e}"
+    );
 }
