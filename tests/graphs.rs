@@ -321,6 +321,74 @@ fn demo_launch_run_and_replay_agree_and_match_the_truth() {
     );
 }
 
+/// Issue 33: the demo's tolerance search judges Table 6's tile regions (from the fusion's
+/// panorama.tiles.json) beside its windows, under Table 6's names and on the same rectangles:
+/// the mesher's Sa, Sq, Sz and residual per tile region are Table 6's. The model line still
+/// says met, Table 6 PASS.
+#[test]
+fn the_demo_models_search_judges_table_6s_tile_regions() {
+    let dir = tempfile::tempdir().unwrap();
+    let out_dir = dir.path().join("out");
+    let out = run({
+        let mut cmd = surfstream();
+        cmd.args([
+            "run",
+            "launch/graphs/demo.toml",
+            "--set",
+            "stage.pacing=fast",
+            "--out",
+        ])
+        .arg(&out_dir);
+        cmd
+    });
+    assert!(out.status.success(), "demo run failed:\n{}", stderr(&out));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let line = |name: &str| {
+        (stdout.lines())
+            .find(|l| l.trim_start().starts_with(name))
+            .unwrap_or_else(|| panic!("no {name} line:\n{stdout}"))
+            .to_string()
+    };
+    assert!(line("model").contains("per region: met at"), "{stdout}");
+    assert!(line("deviation").contains("PASS"), "{stdout}");
+    assert!(stdout.contains("verdict: PASS"), "{stdout}");
+
+    let run_json = read_json(&out_dir.join("run.json"));
+    let t = &run_json["stages"]["mesher"]["tolerance"];
+    assert_eq!(t["footprints"], 4, "{t}");
+    let fits: Vec<&Value> = t["region_fits"].as_array().unwrap().iter().collect();
+    assert_eq!(t["regions"].as_u64(), Some(fits.len() as u64));
+    let table6 = &run_json["deviation"]["stages"]["mesh"]["regions"];
+    let tiles: Vec<&String> = (table6.as_object().unwrap().keys())
+        .filter(|k| k.starts_with('S'))
+        .collect();
+    assert_eq!(tiles.len(), 4, "{table6}");
+    for name in tiles {
+        let fit = (fits.iter())
+            .find(|f| f["region"] == name.as_str())
+            .unwrap_or_else(|| panic!("{name} not judged by the search: {t}"));
+        let r = &table6[name.as_str()];
+        for (k, p) in ["Sa", "Sq", "Sz"].iter().enumerate() {
+            let (a, b) = (
+                fit["deviation_pct"][k].as_f64().unwrap(),
+                r["deviation_pct"][p].as_f64().unwrap(),
+            );
+            assert!(
+                (a - b).abs() < 0.01,
+                "{name} {p}: search {a} %, Table 6 {b} %"
+            );
+        }
+        let (a, b) = (
+            fit["residual_pct_of_sq"].as_f64().unwrap(),
+            r["residual_rms_pct_of_sq"].as_f64().unwrap(),
+        );
+        assert!(
+            (a - b).abs() < 0.01,
+            "{name} residual: search {a} %, Table 6 {b} %"
+        );
+    }
+}
+
 /// A simulated scan directory (`rows` x `cols` tiles of `tile_px`) in a fresh temp dir, whose
 /// tiles `prepare` may rewrite, stitched by `surfstream stitch ARGS`; returns the temp dir
 /// (holding `scan/` and `out/`) and run.json.

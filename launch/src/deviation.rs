@@ -30,7 +30,8 @@ use std::path::Path;
 
 use anyhow::{anyhow, bail, Context, Result};
 use surfstream_core::deviation::{
-    residual_pct_of_sq, Region, RowSource, StageVerdict, StreamedStage, Table6, JUDGED,
+    residual_pct_of_sq, tile_regions, Region, RowSource, StageVerdict, StreamedStage, Table6,
+    JUDGED,
 };
 use surfstream_core::raster::Shape;
 use surfstream_core::record::{
@@ -169,21 +170,9 @@ fn regions(run: &RunRecord, geometry: &Geometry, panorama: Shape) -> Vec<Region>
     if let Some(scan) = &run.scan {
         let (tw, th) = scan.tile_px();
         let tile = Shape { rows: th, cols: tw };
-        let origin_known = geometry.origin_um.0.is_finite() && geometry.origin_um.1.is_finite();
-        for (k, t) in run.tiles.iter().enumerate().filter(|_| origin_known) {
-            let Some(p) = &t.placement else {
-                continue;
-            };
-            let (x, y) = (p.x_um, p.y_um);
-            out.extend(Region::tile_footprint(
-                format!("S{}", k + 1),
-                (x, y),
-                geometry.origin_um,
-                geometry.pitch,
-                tile,
-                panorama,
-            ));
-        }
+        let tiles =
+            (run.tiles.iter()).map(|t| t.placement.as_ref().map(|p| ((p.x_um, p.y_um), tile)));
+        out = tile_regions(tiles, geometry.origin_um, geometry.pitch, panorama);
     }
     out.push(Region::whole(panorama));
     out

@@ -441,9 +441,14 @@ fn model_line(run: &RunRecord) -> Option<(String, bool)> {
     );
     if let Some(w) = t.region_fits.first() {
         let d = w.deviation_pct;
+        // The tile regions (S1...) are Table 6's, judged by the search beside its windows.
+        let tiles = match t.footprints {
+            0 => String::new(),
+            n => format!(" (Table 6's {n} tile regions among them)"),
+        };
         let _ = write!(
             line,
-            "; worst of {} regions {}: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %, residual {:.1} % of Sq",
+            "; worst of {} regions{tiles} {}: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %, residual {:.1} % of Sq",
             t.regions, w.region, d[0], d[1], d[2], w.residual_pct_of_sq,
         );
         if let Some(d) = w.roughness_deviation_pct {
@@ -702,6 +707,32 @@ mod tests {
         assert!(t.contains("beyond max_triangles = 2000"), "{t}");
         assert!(
             t.contains("3 spike(s) (they add +12.50 % to Sz), kept as measured"),
+            "{t}"
+        );
+    }
+
+    /// A tile region (Table 6's S3) as the search's worst region is named so, and the line
+    /// says the tile regions were judged.
+    #[test]
+    fn the_model_line_names_a_tile_region_as_the_worst() {
+        let mut run = run_json(true, false);
+        run["stages"]["mesher"]["tolerance"] = json!({
+            "tolerance": { "sa_pct": 1.0, "sq_pct": 1.0, "sz_pct": 3.0 },
+            "met": false, "surface_triangles": 1200, "triangles_per_measured_px": 0.012,
+            "regions": 21, "footprints": 4,
+            "region_fits": [{ "region": "S3", "deviation_pct": [-1.29, -0.8, 0.0],
+                "residual_pct_of_sq": 18.0 }],
+            "reason": "region S3: Sa -1.29 % beyond the tolerance of 1 %: the next finer mesh needs 5000 surface triangles, beyond max_triangles = 2000",
+        });
+        let v = verdict(&record(run), Path::new("/o"), false);
+        let t = &v.text;
+        assert_eq!(v.failures.len(), 1, "{t}");
+        assert!(
+            t.contains("worst of 21 regions (Table 6's 4 tile regions among them) S3: Sa -1.29 %"),
+            "{t}"
+        );
+        assert!(
+            t.contains("(region S3: Sa -1.29 % beyond the tolerance of 1 %"),
             "{t}"
         );
     }

@@ -67,6 +67,37 @@ pub struct Region {
     pub cols: usize,
 }
 
+/// Table 6's tile regions: the k-th tile (in index order) that has a position is "S<k+1>",
+/// its footprint on the panorama ([`Region::tile_footprint`]; tiles without a position keep
+/// their number); none without a finite panorama origin. `tiles`: pixel (0, 0) of each tile
+/// (um) and its size. The launcher's Table 6 and the mesher's tolerance search both take
+/// their tile regions from here, so the two judge the same rectangles under the same names.
+pub fn tile_regions(
+    tiles: impl IntoIterator<Item = Option<((f64, f64), Shape)>>,
+    panorama_origin_um: (f64, f64),
+    pitch: Pitch,
+    panorama: Shape,
+) -> Vec<Region> {
+    if !(panorama_origin_um.0.is_finite() && panorama_origin_um.1.is_finite()) {
+        return Vec::new();
+    }
+    tiles
+        .into_iter()
+        .enumerate()
+        .filter_map(|(k, t)| {
+            let (origin, tile) = t?;
+            Region::tile_footprint(
+                format!("S{}", k + 1),
+                origin,
+                panorama_origin_um,
+                pitch,
+                tile,
+                panorama,
+            )
+        })
+        .collect()
+}
+
 impl Region {
     /// The whole surface, named "panorama".
     pub fn whole(shape: Shape) -> Self {
@@ -766,6 +797,21 @@ mod tests {
             pano,
         );
         assert_eq!(outside, None);
+    }
+
+    /// Table 6's names: the k-th tile is S<k+1> whether or not the tiles before it have a
+    /// position; without a finite panorama origin there are none.
+    #[test]
+    fn tile_regions_are_numbered_by_tile_and_need_an_origin() {
+        let (pano, tile, pitch) = (shape(40, 60), shape(30, 40), Pitch::square(0.5).unwrap());
+        let tiles = [None, Some(((10.0, 10.0), tile)), Some(((25.0, 20.0), tile))];
+        let r = tile_regions(tiles, (10.0, 10.0), pitch, pano);
+        let names: Vec<(&str, usize, usize)> = r
+            .iter()
+            .map(|r| (r.name.as_str(), r.row0, r.col0))
+            .collect();
+        assert_eq!(names, [("S2", 0, 0), ("S3", 20, 30)]);
+        assert!(tile_regions(tiles, (f64::NAN, 10.0), pitch, pano).is_empty());
     }
 
     #[test]

@@ -419,6 +419,31 @@ pub struct PanoramaSummary {
     pub invalid_px: usize,
 }
 
+/// The fusion's `panorama.tiles.json` beside panorama.npy ([`PanoramaTiles`]).
+pub const PANORAMA_TILES: &str = "panorama.tiles.json";
+
+/// Where every tile lies on the final panorama (the fusion's [`PANORAMA_TILES`], written with
+/// panorama.npy before the final panorama is sent): the panorama's grid and each placed
+/// tile's final position and size. The mesher reads it to judge Table 6's tile regions
+/// (`surfstream_core::deviation::tile_regions`) in its tolerance search.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PanoramaTiles {
+    pub panorama: PanoramaSummary,
+    /// In tile index order.
+    pub tiles: Vec<PlacedTile>,
+}
+
+/// One tile of [`PanoramaTiles`]: pixel (0, 0) in scan coordinates (um, the final
+/// registration's) and its size.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PlacedTile {
+    pub index: u32,
+    pub x_um: f64,
+    pub y_um: f64,
+    pub width_px: usize,
+    pub height_px: usize,
+}
+
 /// SSIM of one overlap (the fusion's `fusion_pairs`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct PairQuality {
@@ -821,7 +846,12 @@ pub struct ToleranceRecord {
     pub tolerance: ModelTolerance,
     pub target_share: f64,
     pub region_px: u64,
+    /// Regions judged: the whole map, the windows and the tile footprints.
     pub regions: u64,
+    /// Of those, Table 6's tile regions (S1...; 0: not known to the mesher, or written before
+    /// it judged them).
+    #[serde(default)]
+    pub footprints: u64,
     pub measured_px: u64,
     pub met: bool,
     pub surface_triangles: u64,

@@ -505,7 +505,7 @@ mod tests {
             let params = settings.adaptive.clone().unwrap();
             let m = match settings.tolerance {
                 Some(s) => {
-                    mesh_to_tolerance(heights, None, &at, &params, &s)
+                    mesh_to_tolerance(heights, None, &at, &params, &s, &[])
                         .unwrap()
                         .0
                 }

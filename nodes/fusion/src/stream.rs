@@ -24,7 +24,7 @@ use std::path::PathBuf;
 use anyhow::{anyhow, bail, Result};
 use surfstream_core::frame::{flags, FrameHeader, FrameKind, HeightMap, TileRegistration};
 use surfstream_core::raster::{RasterView, Shape};
-use surfstream_core::record::PanoramaSummary;
+use surfstream_core::record::{PanoramaSummary, PanoramaTiles, PlacedTile, PANORAMA_TILES};
 use surfstream_core::{Pitch, Sampling};
 use surfstream_io::output::{NpyHeights, OutputWriter, SurfaceOutput};
 
@@ -366,6 +366,17 @@ impl StreamingFusion {
         let (rows, cols) = (r.heights.rows(), r.heights.cols());
         let at =
             Sampling::of(r.heights.shape(), r.pitch).with_origin(r.origin_x_um, r.origin_y_um)?;
+        let invalid = r.heights.values().iter().filter(|z| z.is_nan()).count();
+        let summary = PanoramaSummary {
+            width_px: cols,
+            height_px: rows,
+            origin_x_um: at.origin_x_um(),
+            origin_y_um: at.origin_y_um(),
+            pitch_x_um: at.pitch_x_um(),
+            pitch_y_um: at.pitch_y_um(),
+            z_offset_um: r.z_offset_um,
+            invalid_px: invalid,
+        };
         if let Some(w) = files {
             // The pitch travels with panorama.npy (its sidecar panorama.npy.json).
             w.set_pitch_um(at.pitch_x_um(), at.pitch_y_um());
@@ -387,18 +398,11 @@ impl StreamingFusion {
                     r.z_offset_um,
                 )?);
             }
+            // Where each tile lies, for the mesher's tolerance search (Table 6's regions),
+            // before the final panorama that starts it is sent.
+            write_panorama_tiles(w.dir(), summary, &footprints)?;
+            written.push(PANORAMA_TILES.into());
         }
-        let invalid = r.heights.values().iter().filter(|z| z.is_nan()).count();
-        let summary = PanoramaSummary {
-            width_px: cols,
-            height_px: rows,
-            origin_x_um: at.origin_x_um(),
-            origin_y_um: at.origin_y_um(),
-            pitch_x_um: at.pitch_x_um(),
-            pitch_y_um: at.pitch_y_um(),
-            z_offset_um: r.z_offset_um,
-            invalid_px: invalid,
-        };
         let header = FrameHeader {
             kind: FrameKind::Panorama as u32,
             flags: flags::FINAL,
@@ -440,6 +444,32 @@ fn decimate(header: &FrameHeader, heights: &[f32], step: usize) -> HeightMap {
         header: hd,
         heights: out,
     }
+}
+
+/// `panorama.tiles.json` ([`PanoramaTiles`]) in `dir`: the final panorama's grid and every
+/// tile's final position and size, in tile index order.
+fn write_panorama_tiles(
+    dir: &std::path::Path,
+    panorama: PanoramaSummary,
+    footprints: &[TileFootprint],
+) -> Result<()> {
+    let mut tiles: Vec<PlacedTile> = footprints
+        .iter()
+        .map(|f| PlacedTile {
+            index: f.index,
+            x_um: f.x_um,
+            y_um: f.y_um,
+            width_px: f.cols,
+            height_px: f.rows,
+        })
+        .collect();
+    tiles.sort_by_key(|t| t.index);
+    let record = PanoramaTiles { panorama, tiles };
+    let path = dir.join(PANORAMA_TILES);
+    surfstream_core::fsutil::write_atomic(&path, |w| {
+        serde_json::to_writer_pretty(&mut *w, &record)?;
+        Ok(())
+    })
 }
 
 #[cfg(test)]
@@ -505,7 +535,17 @@ mod tests {
         assert_eq!(done.panorama.header.width, 48);
         assert!(done.panorama.header.has(flags::FINAL));
         assert!(!done.report.rerendered);
-        assert_eq!(done.report.files, ["panorama.npy", "panorama.png"]);
+        assert_eq!(
+            done.report.files,
+            ["panorama.npy", "panorama.png", PANORAMA_TILES]
+        );
+        let text = std::fs::read_to_string(dir.path().join(PANORAMA_TILES)).unwrap();
+        let tiles: PanoramaTiles = serde_json::from_str(&text).unwrap();
+        assert_eq!(tiles.panorama, done.report.summary);
+        let at: Vec<(u32, f64, usize, usize)> = (tiles.tiles.iter())
+            .map(|t| (t.index, t.x_um, t.width_px, t.height_px))
+            .collect();
+        assert_eq!(at, [(0, 0.0, 32, 24), (1, 8.0, 32, 24)]);
         assert_eq!(done.report.pairs.len(), 1);
     }
 

@@ -7,19 +7,20 @@
 //! Live frames are counted and skipped: a mesh is made once, from the exact final surface.
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
-use anyhow::{anyhow, bail, Result};
+use anyhow::{anyhow, bail, Context, Result};
+use surfstream_core::deviation::tile_regions;
 use surfstream_core::frame::{flags, from_frame_heights, FrameHeader, FrameView, HeightMap};
 use surfstream_core::raster::{Raster, RasterView, Shape};
-use surfstream_core::record::MeshReport;
+use surfstream_core::record::{MeshReport, PanoramaTiles, PANORAMA_TILES};
 
 use crate::config::{MeshSettings, StlFormat, SurfaceChoice};
 use crate::map::{mesh_surface, prepare_surface, tolerance_for, MeshInput, MeshOutputs};
 use crate::outliers::OutlierReport;
 use crate::report::{adaptive_method, mesh_report, MethodSummary, ReportContext};
 use crate::target::block_values_on_grid;
-use crate::tolerance::mesh_to_tolerance;
+use crate::tolerance::{mesh_to_tolerance, Window};
 use crate::{
     check_closed, grid_sheet_for, grid_solid, mesh_height_field, stl, MeshCheck, MeshCounts,
     ScanPlacement, SolidMesh,
@@ -96,6 +97,8 @@ pub struct MeshJob {
     live_frames: u64,
     /// The measured roughness is wired: the tolerance judges the roughness the mesh carries.
     roughness_reference: bool,
+    /// The fusion's tile placements ([`PANORAMA_TILES`]), read when the surface is meshed.
+    tiles_file: Option<PathBuf>,
 }
 
 impl MeshJob {
@@ -106,7 +109,34 @@ impl MeshJob {
             ended: BTreeSet::new(),
             live_frames: 0,
             roughness_reference: false,
+            tiles_file: None,
         }
+    }
+
+    /// Judges Table 6's tile regions in the tolerance search too, from the fusion's tile
+    /// placements at `path` ([`PANORAMA_TILES`] in the out dir; written before the final
+    /// panorama is sent): when the file exists and the surface lies on the panorama's grid
+    /// ([`tile_footprints`]). Without it, the windows alone.
+    pub fn with_tile_footprints(mut self, path: PathBuf) -> Self {
+        self.tiles_file = Some(path);
+        self
+    }
+
+    /// The tile footprints on the surface's grid (empty: no file, no tolerance, another grid).
+    fn footprints(&self, shape: Shape, at: &ScanPlacement) -> Result<Vec<Window>> {
+        let path = match &self.tiles_file {
+            Some(p) if self.settings.tolerance.is_some() && p.exists() => p,
+            _ => return Ok(Vec::new()),
+        };
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("mesher: {}: cannot read", path.display()))?;
+        let tiles: PanoramaTiles = serde_json::from_str(&text).map_err(|e| {
+            anyhow!(
+                "mesher: {}: {e}: expected the fusion's tile placements ({PANORAMA_TILES})",
+                path.display()
+            )
+        })?;
+        Ok(tile_footprints(&tiles, shape, at))
     }
 
     /// Waits for the measured roughness on the input `roughness` too, and judges the
@@ -204,6 +234,7 @@ impl MeshJob {
         let shape = Shape::new(h.height as usize, h.width as usize);
         let at = ScanPlacement::of_frame(&h).map_err(|e| anyhow!("mesher: {e}"))?;
         let outliers = prepare_surface(&self.settings, &mut s.heights, shape, &at)?;
+        let footprints = self.footprints(shape, &at)?;
         let heights = RasterView::new(&s.heights, shape).map_err(|e| anyhow!("mesher: {e}"))?;
         let (solid, adaptive, resampled) =
             match (&self.settings.adaptive, self.settings.grid_target()) {
@@ -219,7 +250,8 @@ impl MeshJob {
                     let (m, report) = match &tolerance {
                         Some(t) => {
                             let reference = reference.as_ref().map(|r| &r.heights[..]);
-                            let (m, r) = mesh_to_tolerance(heights, reference, &at, p, t)?;
+                            let (m, r) =
+                                mesh_to_tolerance(heights, reference, &at, p, t, &footprints)?;
                             (m, Some(r))
                         }
                         None => (mesh_height_field(heights, &at, p)?, None),
@@ -253,10 +285,13 @@ impl MeshJob {
         let s = self.surface_to_mesh()?;
         let reference = self.roughness_reference(&s)?;
         let h = s.header;
+        let shape = Shape::new(h.height as usize, h.width as usize);
+        let at = ScanPlacement::of_frame(&h).map_err(|e| anyhow!("mesher: {e}"))?;
         let input = MeshInput {
             heights_um: s.heights,
-            shape: Shape::new(h.height as usize, h.width as usize),
-            at: ScanPlacement::of_frame(&h).map_err(|e| anyhow!("mesher: {e}"))?,
+            shape,
+            footprints: self.footprints(shape, &at)?,
+            at,
             roughness_um: reference.as_ref().map(|r| &r.heights[..]),
             t_acquired_ns: h.t_acquired_ns,
             surface: self.settings.surface.name(),
@@ -274,6 +309,36 @@ impl MeshJob {
             check: outcome.check,
         })
     }
+}
+
+/// Table 6's tile regions (S1, S2, ..., [`tile_regions`]) as the tolerance search's regions,
+/// when the surface (`shape`, `at`) lies on the grid of the panorama `tiles` describes; none
+/// otherwise (a pooled map, or another panorama).
+pub fn tile_footprints(tiles: &PanoramaTiles, shape: Shape, at: &ScanPlacement) -> Vec<Window> {
+    let p = &tiles.panorama;
+    let same_grid = (p.height_px, p.width_px) == (shape.rows, shape.cols)
+        && p.pitch_x_um == at.pitch.x_um()
+        && p.pitch_y_um == at.pitch.y_um()
+        && p.origin_x_um == at.origin_x_um
+        && p.origin_y_um == at.origin_y_um;
+    if !same_grid {
+        return Vec::new();
+    }
+    let placed = (tiles.tiles.iter()).map(|t| {
+        let size = Shape::new(t.height_px, t.width_px);
+        Some(((t.x_um, t.y_um), size))
+    });
+    let origin = (at.origin_x_um, at.origin_y_um);
+    tile_regions(placed, origin, at.pitch, shape)
+        .into_iter()
+        .map(|r| Window {
+            name: r.name,
+            row0: r.row0,
+            col0: r.col0,
+            rows: r.rows,
+            cols: r.cols,
+        })
+        .collect()
 }
 
 /// Two final frames must share one grid (size, pitch, origin) to be combined sample by sample.

@@ -29,6 +29,7 @@ use crate::config::{check_stl_path, MeshSettings, StlFormat};
 use crate::outliers::{find_spikes, OutlierPolicy, OutlierReport};
 use crate::report::{adaptive_method, mesh_report, MethodSummary, ReportContext};
 use crate::target::block_values_on_grid;
+use crate::tolerance::Window;
 use crate::{
     grid_sheet_for, grid_streaming, mesh_streaming, mesh_streaming_to_tolerance, EngineProfile,
     MeshCheck, MeshCounts, MeshError, ScanPlacement, StreamedGrid, StreamedMesh, TargetMesh,
@@ -83,6 +84,7 @@ impl PreparedHeights {
             shape: self.shape,
             at: ScanPlacement::new(pitch).with_z_offset(self.z_offset_um),
             roughness_um: None,
+            footprints: Vec::new(),
             t_acquired_ns: 0,
             surface: "",
         }
@@ -98,6 +100,10 @@ pub struct MeshInput<'a> {
     /// The measured roughness on the same grid (relative to its mean): the tolerance then
     /// also judges the roughness the mesh carries; `None`: that bound is not claimed.
     pub roughness_um: Option<&'a [f32]>,
+    /// Table 6's tile regions on this grid (S1, S2, ...: [`crate::job::tile_footprints`]),
+    /// judged by the tolerance search beside its windows; empty: not known (a map from a
+    /// file, Python), the windows alone.
+    pub footprints: Vec<Window>,
     /// When the surface's frame was acquired (ns; 0: not from a frame).
     pub t_acquired_ns: u64,
     /// The surface's name in the report ("panorama", ...; empty: a map from a file).
@@ -237,6 +243,7 @@ pub fn mesh_surface(
                         at,
                         params,
                         &t,
+                        &input.footprints,
                         spill_dir,
                     )?;
                     (m, Some(r))

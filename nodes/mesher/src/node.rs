@@ -7,7 +7,7 @@
 
 use anyhow::{anyhow, bail, Result};
 use surfstream_core::frame::monotonic_ns;
-use surfstream_core::record::{self, MeshReport};
+use surfstream_core::record::{self, MeshReport, PANORAMA_TILES};
 use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
@@ -48,7 +48,8 @@ impl MesherNode {
             .iter()
             .map(|i| (i.port.clone(), format!("{}/{}", i.from_node, i.from_port)))
             .collect();
-        let mut job = MeshJob::new(settings);
+        // Table 6's tile regions, from the fusion's tile placements in the out dir.
+        let mut job = MeshJob::new(settings).with_tile_footprints(ctx.out_dir.join(PANORAMA_TILES));
         if wired.contains(&"roughness") && config.surface == SurfaceChoice::Panorama {
             job = job.with_roughness_reference();
         }

@@ -143,6 +143,7 @@ impl From<&ToleranceReport> for ToleranceRecord {
             target_share: r.target_share,
             region_px: r.region_px as u64,
             regions: r.regions as u64,
+            footprints: r.footprints as u64,
             measured_px: r.measured_px as u64,
             met: r.met,
             surface_triangles: r.surface_triangles as u64,

@@ -154,7 +154,7 @@ fn the_angle_bound_removes_the_slivers_and_keeps_the_tolerance() {
     let at = ScanPlacement::new(Pitch::new(PITCH[0], PITCH[1]).expect("a positive pitch"));
     // Without the bound this surface's model has slivers: the test can fail.
     let (plain, plain_report) =
-        mesh_to_tolerance(heights, None, &at, &params(), &settings(None)).unwrap();
+        mesh_to_tolerance(heights, None, &at, &params(), &settings(None), &[]).unwrap();
     let (plain_min, plain_below) = smallest_angle(&plain);
     assert!(plain_report.met && plain_report.angles.is_none());
     assert!(
@@ -162,8 +162,15 @@ fn the_angle_bound_removes_the_slivers_and_keeps_the_tolerance() {
         "the surface must make slivers without the bound: smallest angle {plain_min}"
     );
 
-    let (m, r) =
-        mesh_to_tolerance(heights, None, &at, &params(), &settings(Some(BOUND_DEG))).unwrap();
+    let (m, r) = mesh_to_tolerance(
+        heights,
+        None,
+        &at,
+        &params(),
+        &settings(Some(BOUND_DEG)),
+        &[],
+    )
+    .unwrap();
     let (min, below) = smallest_angle(&m);
     assert_eq!(below, 0, "smallest angle {min} deg");
     assert!(min >= BOUND_DEG, "{min}");
@@ -197,6 +204,7 @@ fn the_angle_bound_removes_the_slivers_and_keeps_the_tolerance() {
         &at,
         &params(),
         &settings(Some(BOUND_DEG)),
+        &[],
         dir.path(),
     )
     .unwrap();

@@ -284,3 +284,86 @@ fn level_removes_the_plane_and_the_record_says_so() {
     assert!(flat_range_um < 0.2, "{flat_range_um}");
     assert_eq!(flat["fidelity"]["bound_met"], true);
 }
+
+/// The fusion's tile placements (panorama.tiles.json) for the test frame's grid: two tiles of
+/// 24 x 24 px, the second 20 px to the right (its footprint clipped to the map's 40 columns).
+fn panorama_tiles(origin_x_um: f64) -> record::PanoramaTiles {
+    let tile = |index: u32, x_um: f64| record::PlacedTile {
+        index,
+        x_um,
+        y_um: 20.0,
+        width_px: 24,
+        height_px: 24,
+    };
+    record::PanoramaTiles {
+        panorama: record::PanoramaSummary {
+            width_px: COLS,
+            height_px: ROWS,
+            origin_x_um,
+            origin_y_um: 20.0,
+            pitch_x_um: 2.0,
+            pitch_y_um: 3.0,
+            z_offset_um: 500.0,
+            invalid_px: 0,
+        },
+        tiles: vec![tile(0, 10.0), tile(1, 10.0 + 20.0 * 2.0)],
+    }
+}
+
+/// Meshes the test panorama with the tile placements `tiles` (as text) in the out dir.
+fn mesh_with_tiles(tiles: Option<&str>) -> anyhow::Result<serde_json::Value> {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join(record::PANORAMA_TILES);
+    if let Some(text) = tiles {
+        std::fs::write(&path, text).unwrap();
+    }
+    let mut job =
+        MeshJob::new(config("region_px = 16").settings().unwrap()).with_tile_footprints(path);
+    job.accept(
+        "surface",
+        frame(FrameKind::Panorama, flags::FINAL, wavy(1.0)).view(),
+    );
+    assert!(job.accept("surface", eos().view()));
+    let files = job.mesh_to_files(
+        &dir.path().join("surface.stl"),
+        &dir.path().join("mesh_resampled.npy"),
+    )?;
+    Ok(record::to_value(&files.summary.tolerance))
+}
+
+/// Table 6's tile regions from the fusion's tile placements are judged as regions, named as
+/// Table 6 names them; on another grid, or without the file, the windows alone.
+#[test]
+fn the_tile_footprints_from_the_fusion_are_judged_as_regions() {
+    let text = serde_json::to_string(&panorama_tiles(10.0)).unwrap();
+    let t = mesh_with_tiles(Some(&text)).unwrap();
+    assert_eq!(t["met"], true, "{t}");
+    assert_eq!(t["footprints"], 2, "{t}");
+    let names: Vec<&str> = (t["region_fits"].as_array().unwrap().iter())
+        .map(|r| r["region"].as_str().unwrap())
+        .collect();
+    assert!(names.contains(&"S1") && names.contains(&"S2"), "{names:?}");
+    // The second footprint, clipped to the map: 24 x 20 px (rows x cols) at col 20.
+    let s2 = (t["region_fits"].as_array().unwrap().iter())
+        .find(|r| r["region"] == "S2")
+        .unwrap();
+    assert_eq!(s2["samples"], 24 * 20);
+    let windows_only = t["regions"].as_u64().unwrap() - 2;
+
+    // Another grid (the panorama placed elsewhere) or no file: the windows alone.
+    let other = serde_json::to_string(&panorama_tiles(12.0)).unwrap();
+    for t in [
+        mesh_with_tiles(Some(&other)).unwrap(),
+        mesh_with_tiles(None).unwrap(),
+    ] {
+        assert_eq!(t["footprints"], 0, "{t}");
+        assert_eq!(t["regions"].as_u64(), Some(windows_only), "{t}");
+    }
+    // A file that is not the fusion's placements is an error naming it.
+    let e = mesh_with_tiles(Some("{\"tiles\": 3}")).unwrap_err();
+    let e = format!("{e:#}");
+    assert!(
+        e.contains(record::PANORAMA_TILES) && e.contains("tile placements"),
+        "{e}"
+    );
+}

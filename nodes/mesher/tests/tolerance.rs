@@ -138,7 +138,7 @@ fn model_with(
         method,
         ..settings(t)
     };
-    let (m, r) = mesh_to_tolerance(heights, None, &at, &p, &s).unwrap();
+    let (m, r) = mesh_to_tolerance(heights, None, &at, &p, &s, &[]).unwrap();
     let mesh = interpolate(&m);
     let valid: Vec<bool> = z
         .iter()
@@ -246,7 +246,8 @@ fn white_noise_within_a_small_budget_names_the_region_and_the_cause() {
     let at = ScanPlacement::new(Pitch::new(1.0, 1.0).expect("a positive pitch"));
     let mut p = params();
     p.max_triangles = Some(coarsest - 1);
-    let e = mesh_to_tolerance(heights, None, &at, &p, &settings("sa=1,sq=1,sz=3")).unwrap_err();
+    let e =
+        mesh_to_tolerance(heights, None, &at, &p, &settings("sa=1,sq=1,sz=3"), &[]).unwrap_err();
     match &e {
         surfstream_mesher::MeshError::CoarsestOverBudget {
             triangles, budget, ..
@@ -277,10 +278,10 @@ fn the_streamed_search_chooses_the_same_mesh() {
     let heights = RasterView::new(&z, Shape::new(ROWS, COLS)).unwrap();
     let at = ScanPlacement::new(Pitch::new(1.0, 1.0).expect("a positive pitch"));
     let s = settings("sa=1,sq=1,sz=3");
-    let (m, r) = mesh_to_tolerance(heights, None, &at, &params(), &s).unwrap();
+    let (m, r) = mesh_to_tolerance(heights, None, &at, &params(), &s, &[]).unwrap();
     let dir = tempfile::tempdir().unwrap();
     let (sm, sr) =
-        mesh_streaming_to_tolerance(heights, None, &at, &params(), &s, dir.path()).unwrap();
+        mesh_streaming_to_tolerance(heights, None, &at, &params(), &s, &[], dir.path()).unwrap();
     assert_eq!(sm.counts.top_triangles, m.surface_triangles);
     assert_eq!(sr.curve, r.curve);
     assert_eq!(sm.resampled_um.len(), m.resampled_um.len());
@@ -291,6 +292,7 @@ fn the_streamed_search_chooses_the_same_mesh() {
         &at,
         &params(),
         &settings("sa=0.2,sq=0.2,sz=1"),
+        &[],
     )
     .unwrap();
     assert!(tight.surface_triangles >= r.surface_triangles || !tight.met);
@@ -419,7 +421,7 @@ fn a_bisected_checkpoint_passes_with_fewer_triangles_than_the_coarse_one_above_i
     let heights = RasterView::new(&z, Shape::new(ROWS, COLS)).unwrap();
     let at = ScanPlacement::new(Pitch::new(1.0, 1.0).expect("a positive pitch"));
     let s = settings("sa=1,sq=1,sz=3");
-    let (m, r) = mesh_to_tolerance(heights, Some(&g), &at, &params(), &s).unwrap();
+    let (m, r) = mesh_to_tolerance(heights, Some(&g), &at, &params(), &s, &[]).unwrap();
     assert!(r.met, "{:?}", r.reason);
     let coarse: Vec<f64> = surfstream_mesher::tolerance::checkpoint_fractions().collect();
     let is_coarse = |f: f64| coarse.iter().any(|c| (c - f).abs() < 1e-12);
@@ -472,7 +474,8 @@ fn a_bisected_checkpoint_passes_with_fewer_triangles_than_the_coarse_one_above_i
     // The streamed search makes the same checkpoints and writes the same mesh.
     let dir = tempfile::tempdir().unwrap();
     let (sm, sr) =
-        mesh_streaming_to_tolerance(heights, Some(&g), &at, &params(), &s, dir.path()).unwrap();
+        mesh_streaming_to_tolerance(heights, Some(&g), &at, &params(), &s, &[], dir.path())
+            .unwrap();
     assert_eq!(sr.curve, r.curve);
     assert_eq!(sm.counts.top_triangles, m.surface_triangles);
     assert_eq!(sm.resampled_um, m.resampled_um);
