@@ -311,6 +311,8 @@ pub(crate) fn std_from_angular(a: &[(f64, f64)]) -> f64 {
 pub fn spatial_params(g: &Grid) -> Result<SpatialParams, MetrologyError> {
     let acf = Acf::of(g)?;
     let (sal, str_) = acf.sal_str(ACF_THRESHOLD);
+    // The lag plane (twice the map) goes before the spectrum is made.
+    drop(acf);
     let std = std_from_angular(&angular_amplitude(g, STD_STEP_DEG)?);
     Ok(SpatialParams { sal, str_, std })
 }
