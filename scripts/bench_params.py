@@ -9,7 +9,8 @@ same array, so both see the same machine load.
 volumes, Smr(c), Smc(mr), Spd Spc S5p S5v S10z): `surfstream params FILE --all --jsonl` (the
 whole process: reading the .npy, all 35 parameters, printing) against the same parameters from
 one fresh surfalize Surface (its caches shared between parameters, as a user gets them), one
-repeat per round each; medians over the rounds, the ratio, and the largest relative difference
+repeat per round each; medians over the rounds, the ratio (and its min-max over the rounds),
+our process's peak RSS against the input array's size, and the largest relative difference
 of each value. Needs `cargo build --release -p surfstream`.
 
 Without --all: the nine height and hybrid parameters (../shared/bench/params_anchor.py's own
@@ -82,10 +83,17 @@ def surfalize_all(z):
 
 
 def ours_all(binary, path):
+    """Wall time, the values, and the process's peak RSS in bytes (os.wait4's ru_maxrss)."""
     t0 = time.perf_counter()
-    out = subprocess.run([binary, "params", path, "--all", "--pitch-um", "1", "--jsonl"], check=True,
-                         capture_output=True, text=True).stdout
-    return time.perf_counter() - t0, json.loads(out.strip().splitlines()[-1])
+    p = subprocess.Popen([binary, "params", path, "--all", "--pitch-um", "1", "--jsonl"],
+                         stdout=subprocess.PIPE, text=True)
+    out = p.stdout.read()
+    _, status, usage = os.wait4(p.pid, 0)
+    dt = time.perf_counter() - t0
+    p.returncode = os.waitstatus_to_exitcode(status)
+    if p.returncode != 0:
+        sys.exit(f"{binary} params {path} --all: exit {p.returncode}")
+    return dt, json.loads(out.strip().splitlines()[-1]), usage.ru_maxrss * 1024
 
 
 def main_all(a, target):
@@ -94,14 +102,17 @@ def main_all(a, target):
         sys.exit(f"{binary} missing: cargo build --release -p surfstream")
     z = np.load(a.input)
     ts = {"surfalize": [], "ours": []}
+    rss_all = []
     worst = {}
     for r in range(a.rounds):
         t, theirs = surfalize_all(z)
         ts["surfalize"].append(t)
         print(json.dumps({"round": r, "what": "surfalize", "s": t, "load": os.getloadavg()}), flush=True)
-        t, o = ours_all(binary, a.input)
+        t, o, rss = ours_all(binary, a.input)
         ts["ours"].append(t)
-        print(json.dumps({"round": r, "what": "ours params --all", "s": t, "load": os.getloadavg()}), flush=True)
+        rss_all.append(rss)
+        print(json.dumps({"round": r, "what": "ours params --all", "s": t, "peak_rss_mib": rss / 2**20,
+                          "load": os.getloadavg()}), flush=True)
         for k, v in theirs.items():
             w = o.get(k)
             if k == "Std":  # surfalize measures towards -y (row 0 on top): 180 - ours
@@ -115,6 +126,10 @@ def main_all(a, target):
     print(f"\n{z.shape[0]} x {z.shape[1]}, {len(SHARED) + 2} shared parameters, median of {a.rounds} rounds, interleaved:")
     print(f"  surfalize {med['surfalize']:.2f} s, ours (params --all, whole process) {med['ours']:.2f} s:"
           f" ours {med['surfalize'] / med['ours']:.1f}x faster")
+    ratios = [s / o for s, o in zip(ts["surfalize"], ts["ours"])]
+    print(f"  ratio per round: min {min(ratios):.1f}x, max {max(ratios):.1f}x")
+    print(f"  ours peak RSS {max(rss_all) / 2**20:.0f} MiB = {max(rss_all) / z.nbytes:.2f}x the input's"
+          f" {z.nbytes / 2**20:.0f} MiB (float64 array)")
     print("  largest relative difference per parameter: " +
           ", ".join(f"{k} {v:.1e}" if isinstance(v, float) else f"{k} {v}" for k, v in worst.items()))
 
