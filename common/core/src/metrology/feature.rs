@@ -315,7 +315,7 @@ fn basin_stats<const NEG: bool>(
 }
 
 /// Step 5, saddles between adjacent basins (8-neighbours): min over the border of the higher
-/// height, as each basin's map of neighbour -> saddle.
+/// height, as each basin's list of (neighbour, saddle), one entry per neighbour.
 /// Blocks of rows collect their pairs in a map (a border repeats one pair many times), so
 /// only distinct pairs per block are sorted.
 fn saddles<const NEG: bool>(
@@ -324,7 +324,7 @@ fn saddles<const NEG: bool>(
     rows: usize,
     cols: usize,
     m: usize,
-) -> Vec<FxHashMap<u32, f64>> {
+) -> Vec<Vec<(u32, f64)>> {
     let at = |r: isize, c: isize| cell(r, c, rows, cols);
     const ROWS_PER_BLOCK: usize = 32;
     let mut pairs: Vec<(u64, f64)> = (0..rows.div_ceil(ROWS_PER_BLOCK))
@@ -361,11 +361,22 @@ fn saddles<const NEG: bool>(
         .collect();
     pairs.par_sort_unstable_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)));
     pairs.dedup_by_key(|p| p.0);
-    let mut adj: Vec<FxHashMap<u32, f64>> = vec![FxHashMap::default(); m + 1];
+    let split = |k: u64| ((k >> 32) as usize, (k & 0xffff_ffff) as usize);
+    let mut degree = vec![0u32; m + 1];
+    for &(k, _) in &pairs {
+        let (a, b) = split(k);
+        degree[a] += 1;
+        degree[b] += 1;
+    }
+    let mut adj: Vec<Vec<(u32, f64)>> = degree
+        .iter()
+        .map(|&d| Vec::with_capacity(d as usize))
+        .collect();
+    drop(degree);
     for &(k, s) in &pairs {
-        let (a, b) = ((k >> 32) as u32, (k & 0xffff_ffff) as u32);
-        adj[a as usize].insert(b, s);
-        adj[b as usize].insert(a, s);
+        let (a, b) = split(k);
+        adj[a].push((b as u32, s));
+        adj[b].push((a as u32, s));
     }
     drop(pairs);
     adj
@@ -379,86 +390,128 @@ struct Pruned {
     merged_into: Vec<u32>,
 }
 
+/// The basin `x` has merged into (path halving; `merged_into` keeps every basin's root).
+fn merged_root(merged_into: &mut [u32], mut x: u32) -> u32 {
+    while merged_into[x as usize] != x {
+        let p = merged_into[merged_into[x as usize] as usize];
+        merged_into[x as usize] = p;
+        x = p;
+    }
+    x
+}
+
 /// Step 6, Wolf pruning: the basin of the smallest depth (lowest saddle - pit) below
 /// `threshold` merges into its neighbour over that saddle, until none is left.
+///
+/// The neighbour lists are lazy: a merge appends the merged basin's list to the survivor's
+/// and leaves the other basins' entries pointing at it; an entry means its neighbour's root
+/// ([`merged_root`]), the saddle between two basins is the lowest of their entries for each
+/// other, and an entry to the basin itself is internal. That is the map of neighbour ->
+/// saddle a merge would otherwise rewrite in every neighbour (min of the two saddles), read
+/// when needed: a list is compacted (roots, one entry per neighbour at its lowest saddle)
+/// when it is rescanned or has doubled. The lowest saddle and its neighbour per basin are
+/// kept as before (ties: lowest label).
 fn wolf_prune(
-    mut adj: Vec<FxHashMap<u32, f64>>,
+    mut adj: Vec<Vec<(u32, f64)>>,
     crit: &mut [(f64, usize)],
     threshold: f64,
     m: usize,
 ) -> Pruned {
     let mut min_saddle = vec![f64::INFINITY; m + 1];
     let mut min_nb = vec![0u32; m + 1];
-    let rescan = |adj: &FxHashMap<u32, f64>| {
+    let lowest = |list: &[(u32, f64)]| {
         let mut best = (f64::INFINITY, 0u32);
-        for (&nb, &s) in adj {
-            // Lowest saddle, then lowest label: independent of the map's iteration order.
+        for &(nb, s) in list {
+            // Lowest saddle, then lowest label: independent of the list's order.
             if s < best.0 || (s == best.0 && nb < best.1) {
                 best = (s, nb);
             }
         }
         best
     };
+    // Every list starts compact (one entry per neighbour).
     for r in 1..=m {
-        let (s, nb) = rescan(&adj[r]);
+        let (s, nb) = lowest(&adj[r]);
         min_saddle[r] = s;
         min_nb[r] = nb;
     }
+    let mut clean_len: Vec<u32> = adj.iter().map(|l| l.len() as u32).collect();
+    let mut merged_into: Vec<u32> = (0..=m as u32).collect();
+    // Roots, without `x` itself, one entry per root at its lowest saddle.
+    let compact = |list: &mut Vec<(u32, f64)>, x: u32, merged_into: &mut [u32]| {
+        for e in list.iter_mut() {
+            e.0 = merged_root(merged_into, e.0);
+        }
+        list.retain(|e| e.0 != x);
+        list.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)));
+        list.dedup_by_key(|e| e.0);
+    };
     let mut version = vec![0u32; m + 1];
     let mut alive = vec![true; m + 1];
-    let mut merged_into: Vec<u32> = (0..=m as u32).collect();
+    // Only depths below the threshold are queued: the loop would stop at the first other.
+    // (As the loop's `h >= threshold` test: a NaN depth or threshold queues.)
+    let queued = |h: f64| {
+        !matches!(
+            h.partial_cmp(&threshold),
+            Some(Ordering::Greater | Ordering::Equal)
+        )
+    };
     let mut heap: BinaryHeap<Reverse<(Key, u32, u32)>> = (1..=m)
-        .map(|r| Reverse((Key(min_saddle[r] - crit[r].0), r as u32, 0)))
+        .map(|r| (min_saddle[r] - crit[r].0, r))
+        .filter(|&(h, _)| queued(h))
+        .map(|(h, r)| Reverse((Key(h), r as u32, 0)))
         .collect();
-    while let Some(Reverse((Key(h), r, ver))) = heap.pop() {
+    let mut moved_list: Vec<(u32, f64)> = Vec::new();
+    while let Some(Reverse((Key(_), r, ver))) = heap.pop() {
         let ru = r as usize;
         if !alive[ru] || ver != version[ru] {
             continue;
         }
-        if h >= threshold {
-            break;
-        }
         let nb = min_nb[ru];
         let nbu = nb as usize;
-        let mut radj = std::mem::take(&mut adj[ru]);
-        radj.remove(&nb);
-        adj[nbu].remove(&r);
+        // r's neighbours but nb (and r), at their lowest saddle to r.
+        moved_list.clear();
+        moved_list.append(&mut adj[ru]);
+        adj[ru] = Vec::new();
+        compact(&mut moved_list, r, &mut merged_into);
+        moved_list.retain(|e| e.0 != nb);
         let mut moved = (f64::INFINITY, 0u32);
-        for (&other, &s) in &radj {
-            let combined = match adj[nbu].get(&other) {
-                Some(&e) if e <= s => e,
-                _ => s,
-            };
-            adj[nbu].insert(other, combined);
-            let oa = &mut adj[other as usize];
-            oa.remove(&r);
-            oa.insert(nb, combined);
+        for &(other, s) in &moved_list {
             if min_nb[other as usize] == r {
                 min_nb[other as usize] = nb;
             }
-            if combined < moved.0 || (combined == moved.0 && other < moved.1) {
-                moved = (combined, other);
+            // The saddle nb - other becomes min(nb's, s): below nb's lowest only when s is.
+            if s < moved.0 || (s == moved.0 && other < moved.1) {
+                moved = (s, other);
             }
         }
+        adj[nbu].extend_from_slice(&moved_list);
         if crit[ru].0 < crit[nbu].0 {
             crit[nbu] = crit[ru];
         }
         alive[ru] = false;
         merged_into[ru] = nb;
         if min_nb[nbu] == r {
-            let (s, b) = rescan(&adj[nbu]);
+            compact(&mut adj[nbu], nb, &mut merged_into);
+            clean_len[nbu] = adj[nbu].len() as u32;
+            let (s, b) = lowest(&adj[nbu]);
             min_saddle[nbu] = s;
             min_nb[nbu] = b;
-        } else if moved.0 < min_saddle[nbu] {
-            min_saddle[nbu] = moved.0;
-            min_nb[nbu] = moved.1;
+        } else {
+            if moved.0 < min_saddle[nbu] {
+                min_saddle[nbu] = moved.0;
+                min_nb[nbu] = moved.1;
+            }
+            if adj[nbu].len() > 2 * clean_len[nbu] as usize + 8 {
+                compact(&mut adj[nbu], nb, &mut merged_into);
+                clean_len[nbu] = adj[nbu].len() as u32;
+            }
         }
         version[nbu] += 1;
-        heap.push(Reverse((
-            Key(min_saddle[nbu] - crit[nbu].0),
-            nb,
-            version[nbu],
-        )));
+        let h = min_saddle[nbu] - crit[nbu].0;
+        if queued(h) {
+            heap.push(Reverse((Key(h), nb, version[nbu])));
+        }
     }
     drop(heap);
     Pruned {
