@@ -10,8 +10,8 @@ volumes, Smr(c), Smc(mr), Spd Spc S5p S5v S10z): `surfstream params FILE --all -
 whole process: reading the .npy, all 35 parameters, printing) against the same parameters from
 one fresh surfalize Surface (its caches shared between parameters, as a user gets them), one
 repeat per round each; medians over the rounds, the ratio (and its min-max over the rounds),
-our process's peak RSS against the input array's size, and the largest relative difference
-of each value. Needs `cargo build --release -p surfstream`.
+our process's peak RSS (GNU /usr/bin/time) against the input array's size, and the largest
+relative difference of each value. Needs `cargo build --release -p surfstream`.
 
 Without --all: the nine height and hybrid parameters (../shared/bench/params_anchor.py's own
 timing function) against common/examples/metrology_bench.
@@ -83,17 +83,15 @@ def surfalize_all(z):
 
 
 def ours_all(binary, path):
-    """Wall time, the values, and the process's peak RSS in bytes (os.wait4's ru_maxrss)."""
+    """Wall time, the values, and the process's peak RSS in bytes, from GNU time's %M: a
+    child's own ru_maxrss would count this Python process's pages (fork's copy of the page
+    tables, kept in the high-water mark across exec)."""
     t0 = time.perf_counter()
-    p = subprocess.Popen([binary, "params", path, "--all", "--pitch-um", "1", "--jsonl"],
-                         stdout=subprocess.PIPE, text=True)
-    out = p.stdout.read()
-    _, status, usage = os.wait4(p.pid, 0)
+    p = subprocess.run(["/usr/bin/time", "-f", "%M", binary, "params", path, "--all", "--pitch-um", "1",
+                        "--jsonl"], check=True, capture_output=True, text=True)
     dt = time.perf_counter() - t0
-    p.returncode = os.waitstatus_to_exitcode(status)
-    if p.returncode != 0:
-        sys.exit(f"{binary} params {path} --all: exit {p.returncode}")
-    return dt, json.loads(out.strip().splitlines()[-1]), usage.ru_maxrss * 1024
+    rss = int(p.stderr.strip().splitlines()[-1]) * 1024
+    return dt, json.loads(p.stdout.strip().splitlines()[-1]), rss
 
 
 def main_all(a, target):
