@@ -9,8 +9,9 @@ same array, so both see the same machine load.
 volumes, Smr(c), Smc(mr), Spd Spc S5p S5v S10z): `surfstream params FILE --all --jsonl` (the
 whole process: reading the .npy, all 35 parameters, printing) against the same parameters from
 one fresh surfalize Surface (its caches shared between parameters, as a user gets them), one
-repeat per round each; medians over the rounds, the ratio, and the largest relative difference
-of each value. Needs `cargo build --release -p surfstream`.
+repeat per round each; medians over the rounds, the ratio (and its min-max over the rounds),
+our process's peak RSS (GNU /usr/bin/time) against the input array's size, and the largest
+relative difference of each value. Needs `cargo build --release -p surfstream`.
 
 Without --all: the nine height and hybrid parameters (../shared/bench/params_anchor.py's own
 timing function) against common/examples/metrology_bench.
@@ -82,10 +83,15 @@ def surfalize_all(z):
 
 
 def ours_all(binary, path):
+    """Wall time, the values, and the process's peak RSS in bytes, from GNU time's %M: a
+    child's own ru_maxrss would count this Python process's pages (fork's copy of the page
+    tables, kept in the high-water mark across exec)."""
     t0 = time.perf_counter()
-    out = subprocess.run([binary, "params", path, "--all", "--pitch-um", "1", "--jsonl"], check=True,
-                         capture_output=True, text=True).stdout
-    return time.perf_counter() - t0, json.loads(out.strip().splitlines()[-1])
+    p = subprocess.run(["/usr/bin/time", "-f", "%M", binary, "params", path, "--all", "--pitch-um", "1",
+                        "--jsonl"], check=True, capture_output=True, text=True)
+    dt = time.perf_counter() - t0
+    rss = int(p.stderr.strip().splitlines()[-1]) * 1024
+    return dt, json.loads(p.stdout.strip().splitlines()[-1]), rss
 
 
 def main_all(a, target):
@@ -94,14 +100,17 @@ def main_all(a, target):
         sys.exit(f"{binary} missing: cargo build --release -p surfstream")
     z = np.load(a.input)
     ts = {"surfalize": [], "ours": []}
+    rss_all = []
     worst = {}
     for r in range(a.rounds):
         t, theirs = surfalize_all(z)
         ts["surfalize"].append(t)
         print(json.dumps({"round": r, "what": "surfalize", "s": t, "load": os.getloadavg()}), flush=True)
-        t, o = ours_all(binary, a.input)
+        t, o, rss = ours_all(binary, a.input)
         ts["ours"].append(t)
-        print(json.dumps({"round": r, "what": "ours params --all", "s": t, "load": os.getloadavg()}), flush=True)
+        rss_all.append(rss)
+        print(json.dumps({"round": r, "what": "ours params --all", "s": t, "peak_rss_mib": rss / 2**20,
+                          "load": os.getloadavg()}), flush=True)
         for k, v in theirs.items():
             w = o.get(k)
             if k == "Std":  # surfalize measures towards -y (row 0 on top): 180 - ours
@@ -115,6 +124,10 @@ def main_all(a, target):
     print(f"\n{z.shape[0]} x {z.shape[1]}, {len(SHARED) + 2} shared parameters, median of {a.rounds} rounds, interleaved:")
     print(f"  surfalize {med['surfalize']:.2f} s, ours (params --all, whole process) {med['ours']:.2f} s:"
           f" ours {med['surfalize'] / med['ours']:.1f}x faster")
+    ratios = [s / o for s, o in zip(ts["surfalize"], ts["ours"])]
+    print(f"  ratio per round: min {min(ratios):.1f}x, max {max(ratios):.1f}x")
+    print(f"  ours peak RSS {max(rss_all) / 2**20:.0f} MiB = {max(rss_all) / z.nbytes:.2f}x the input's"
+          f" {z.nbytes / 2**20:.0f} MiB (float64 array)")
     print("  largest relative difference per parameter: " +
           ", ".join(f"{k} {v:.1e}" if isinstance(v, float) else f"{k} {v}" for k, v in worst.items()))
 

@@ -117,10 +117,14 @@ pub fn all_params(g: &Grid) -> Result<AllParams, MetrologyError> {
 
 /// Every parameter of `g`, Wolf pruning at `pruning_pct` % of Sz.
 pub fn all_params_pruned(g: &Grid, pruning_pct: f64) -> Result<AllParams, MetrologyError> {
-    // The FFT family is parallel inside; the sort and the segmentation run beside it.
-    let ((basic, curve), (spatial, feature)) = rayon::join(
+    // Two phases, so that the two largest working sets are never held at once: the FFT
+    // family alone (its half spectrum is twice the map; parallel inside), then the two
+    // segmentations (a label per pixel each, side by side) beside the order statistics and
+    // the height parameters (both small).
+    let spatial = spatial_params(g);
+    let ((basic, curve), feature) = rayon::join(
         || rayon::join(|| params(g), || AbbottCurve::of(g)),
-        || rayon::join(|| spatial_params(g), || feature_params(g, pruning_pct)),
+        || feature_params(g, pruning_pct),
     );
     let curve = curve?;
     Ok(AllParams {

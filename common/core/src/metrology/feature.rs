@@ -100,15 +100,6 @@ impl Ord for Key {
     }
 }
 
-fn find(parent: &mut [u32], mut a: u32) -> u32 {
-    while parent[a as usize] != a {
-        let p = parent[parent[a as usize] as usize];
-        parent[a as usize] = p;
-        a = p;
-    }
-    a
-}
-
 /// Index of (r, c) in a `rows` x `cols` grid, `None` outside it.
 fn cell(r: isize, c: isize, rows: usize, cols: usize) -> Option<usize> {
     if r < 0 || c < 0 || r >= rows as isize || c >= cols as isize {
@@ -118,16 +109,38 @@ fn cell(r: isize, c: isize, rows: usize, cols: usize) -> Option<usize> {
     }
 }
 
-/// Step 1, steepest descent: each pixel's drain (itself for a sink; u32::MAX for a gap).
-fn drains(d: &[f64], rows: usize, cols: usize) -> Vec<u32> {
+/// Height `i` of the map being segmented: `z` itself (dales) or `-z` (hills, NEG), negated on
+/// the fly rather than copied (negation is exact: the same bits as an inverted copy).
+#[inline(always)]
+fn h<const NEG: bool>(z: &[f64], i: usize) -> f64 {
+    if NEG {
+        -z[i]
+    } else {
+        z[i]
+    }
+}
+
+/// The one u32 per pixel of the segmentation, in turn its drain, its sink's union-find
+/// parent and its label (labels and indices < 2^30, see [`MAX_POINTS`]).
+const GAP: u32 = u32::MAX;
+/// A sink; the low bits are its union-find parent (itself at first).
+const SINK: u32 = 1 << 30;
+/// Labelled; the low bits are the label.
+const LAB: u32 = 1 << 31;
+const LOW: u32 = SINK - 1;
+/// The largest map the segmentation labels (pixel indices and labels in 30 bits).
+pub const MAX_POINTS: usize = LOW as usize;
+
+/// Step 1, steepest descent: each pixel's drain (`SINK | itself` for a sink; [`GAP`] for a gap).
+fn drains<const NEG: bool>(z: &[f64], rows: usize, cols: usize) -> Vec<u32> {
     let at = |r: isize, c: isize| cell(r, c, rows, cols);
     let mut drain = vec![0u32; rows * cols];
     drain.par_chunks_mut(cols).enumerate().for_each(|(r, out)| {
         for (c, o) in out.iter_mut().enumerate() {
             let i = r * cols + c;
-            let z = d[i];
-            if z.is_nan() {
-                *o = u32::MAX;
+            let zi = h::<NEG>(z, i);
+            if zi.is_nan() {
+                *o = GAP;
                 continue;
             }
             let (mut lo, mut li) = (f64::INFINITY, i);
@@ -144,7 +157,7 @@ fn drains(d: &[f64], rows: usize, cols: usize) -> Vec<u32> {
                     i + w,
                     i + w + 1,
                 ] {
-                    let v = d[j];
+                    let v = h::<NEG>(z, j);
                     if v < lo {
                         lo = v;
                         li = j;
@@ -153,7 +166,7 @@ fn drains(d: &[f64], rows: usize, cols: usize) -> Vec<u32> {
             } else {
                 for (dy, dx) in OFFSETS {
                     if let Some(j) = at(r as isize + dy, c as isize + dx) {
-                        let v = d[j];
+                        let v = h::<NEG>(z, j);
                         if v < lo {
                             lo = v;
                             li = j;
@@ -161,68 +174,92 @@ fn drains(d: &[f64], rows: usize, cols: usize) -> Vec<u32> {
                     }
                 }
             }
-            *o = if lo < z { li as u32 } else { i as u32 };
+            *o = if lo < zi { li as u32 } else { SINK | i as u32 };
         }
     });
     drain
 }
 
-/// Steps 2-3: sinks, 8-connected, numbered by their first pixel in scan order (1-based),
-/// and every pixel labelled with its sink's number (0: a gap). Returns the labels and the
-/// number of basins.
-fn label_basins(drain: Vec<u32>, rows: usize, cols: usize) -> (Vec<u32>, usize) {
+/// The union-find root of sink `a` (path halving); stops early at a labelled sink, whose
+/// index it returns.
+fn sink_root(v: &mut [u32], mut a: usize) -> usize {
+    loop {
+        let e = v[a];
+        if e & LAB != 0 {
+            return a;
+        }
+        let p = (e & LOW) as usize;
+        if p == a {
+            return a;
+        }
+        let pe = v[p];
+        if pe & LAB != 0 {
+            return p;
+        }
+        v[a] = pe;
+        a = (pe & LOW) as usize;
+    }
+}
+
+/// Steps 2-3, in place on the drains: sinks, 8-connected, numbered by their first pixel in
+/// scan order (1-based), and every pixel labelled with its sink's number (0: a gap). Returns
+/// the labels and the number of basins.
+fn label_basins(mut v: Vec<u32>, rows: usize, cols: usize) -> (Vec<u32>, usize) {
     let n = rows * cols;
     let at = |r: isize, c: isize| cell(r, c, rows, cols);
-    let mut parent: Vec<u32> = (0..n as u32).collect();
+    let is_sink = |e: u32| e != GAP && e & SINK != 0;
+    // 2. Union of adjacent sinks, the lower index the root: a component's root is its first
+    // pixel in scan order.
     for i in 0..n {
-        if drain[i] != i as u32 {
+        if !is_sink(v[i]) {
             continue;
         }
         let (r, c) = ((i / cols) as isize, (i % cols) as isize);
         for (dy, dx) in [(-1, -1), (-1, 0), (-1, 1), (0, -1)] {
             if let Some(j) = at(r + dy, c + dx) {
-                if drain[j] == j as u32 {
-                    let (a, b) = (find(&mut parent, i as u32), find(&mut parent, j as u32));
+                if is_sink(v[j]) {
+                    let (a, b) = (sink_root(&mut v, i), sink_root(&mut v, j));
                     if a != b {
                         let (lo, hi) = if a < b { (a, b) } else { (b, a) };
-                        parent[hi as usize] = lo;
+                        v[hi] = SINK | lo as u32;
                     }
                 }
             }
         }
     }
-    let mut label = vec![0u32; n];
+    // Roots numbered in scan order (a root precedes the rest of its component).
     let mut count = 0u32;
     for i in 0..n {
-        if drain[i] == i as u32 {
-            let root = find(&mut parent, i as u32) as usize;
-            if label[root] == 0 {
-                count += 1;
-                label[root] = count;
-            }
-            label[i] = label[root];
+        if !is_sink(v[i]) {
+            continue;
         }
+        let root = sink_root(&mut v, i);
+        if v[root] & LAB == 0 {
+            count += 1;
+            v[root] = LAB | count;
+        }
+        v[i] = v[root];
     }
-    drop(parent);
     // 3. Every pixel takes its sink's label (paths strictly descend: follow and memoise).
     let mut path = Vec::new();
     for i in 0..n {
-        if label[i] != 0 || drain[i] == u32::MAX {
+        if v[i] == GAP || v[i] & LAB != 0 {
             continue;
         }
         let mut j = i;
-        while label[j] == 0 {
+        while v[j] & LAB == 0 {
             path.push(j);
-            j = drain[j] as usize;
+            j = v[j] as usize;
         }
-        let l = label[j];
+        let l = v[j];
         for &p in &path {
-            label[p] = l;
+            v[p] = l;
         }
         path.clear();
     }
-    drop(drain);
-    (label, count as usize)
+    v.par_iter_mut()
+        .for_each(|e| *e = if *e == GAP { 0 } else { *e & !LAB });
+    (v, count as usize)
 }
 
 /// Per basin (index = label): its pit.
@@ -236,9 +273,15 @@ struct Basins {
 }
 
 /// Step 4: per basin, the pit, the pixel count and whether it is incomplete.
-fn basin_stats(d: &[f64], label: &[u32], rows: usize, cols: usize, m: usize) -> Basins {
+fn basin_stats<const NEG: bool>(
+    z: &[f64],
+    label: &[u32],
+    rows: usize,
+    cols: usize,
+    m: usize,
+) -> Basins {
     let at = |r: isize, c: isize| cell(r, c, rows, cols);
-    let any_gap = d.par_iter().any(|v| v.is_nan());
+    let any_gap = z.par_iter().any(|v| v.is_nan());
     let mut crit = vec![(f64::INFINITY, usize::MAX); m + 1];
     let mut area = vec![0usize; m + 1];
     let mut incomplete = vec![false; m + 1];
@@ -250,14 +293,15 @@ fn basin_stats(d: &[f64], label: &[u32], rows: usize, cols: usize, m: usize) -> 
                 continue;
             }
             area[l] += 1;
-            if d[i] < crit[l].0 {
-                crit[l] = (d[i], i);
+            let zi = h::<NEG>(z, i);
+            if zi < crit[l].0 {
+                crit[l] = (zi, i);
             }
             let on_border = r == 0 || c == 0 || r + 1 == rows || c + 1 == cols;
             let beside_gap = any_gap
                 && OFFSETS
                     .iter()
-                    .any(|&(dy, dx)| d[at(r as isize + dy, c as isize + dx).unwrap_or(i)].is_nan());
+                    .any(|&(dy, dx)| z[at(r as isize + dy, c as isize + dx).unwrap_or(i)].is_nan());
             if on_border || beside_gap {
                 incomplete[l] = true;
             }
@@ -271,16 +315,16 @@ fn basin_stats(d: &[f64], label: &[u32], rows: usize, cols: usize, m: usize) -> 
 }
 
 /// Step 5, saddles between adjacent basins (8-neighbours): min over the border of the higher
-/// height, as each basin's map of neighbour -> saddle.
+/// height, as each basin's list of (neighbour, saddle), one entry per neighbour.
 /// Blocks of rows collect their pairs in a map (a border repeats one pair many times), so
 /// only distinct pairs per block are sorted.
-fn saddles(
-    d: &[f64],
+fn saddles<const NEG: bool>(
+    z: &[f64],
     label: &[u32],
     rows: usize,
     cols: usize,
     m: usize,
-) -> Vec<FxHashMap<u32, f64>> {
+) -> Vec<Vec<(u32, f64)>> {
     let at = |r: isize, c: isize| cell(r, c, rows, cols);
     const ROWS_PER_BLOCK: usize = 32;
     let mut pairs: Vec<(u64, f64)> = (0..rows.div_ceil(ROWS_PER_BLOCK))
@@ -299,7 +343,7 @@ fn saddles(
                             let lb = label[j];
                             if lb != 0 && lb != la {
                                 let (a, b) = if la < lb { (la, lb) } else { (lb, la) };
-                                let s = d[i].max(d[j]);
+                                let s = h::<NEG>(z, i).max(h::<NEG>(z, j));
                                 map.entry(((a as u64) << 32) | b as u64)
                                     .and_modify(|v| {
                                         if s < *v {
@@ -317,11 +361,22 @@ fn saddles(
         .collect();
     pairs.par_sort_unstable_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)));
     pairs.dedup_by_key(|p| p.0);
-    let mut adj: Vec<FxHashMap<u32, f64>> = vec![FxHashMap::default(); m + 1];
+    let split = |k: u64| ((k >> 32) as usize, (k & 0xffff_ffff) as usize);
+    let mut degree = vec![0u32; m + 1];
+    for &(k, _) in &pairs {
+        let (a, b) = split(k);
+        degree[a] += 1;
+        degree[b] += 1;
+    }
+    let mut adj: Vec<Vec<(u32, f64)>> = degree
+        .iter()
+        .map(|&d| Vec::with_capacity(d as usize))
+        .collect();
+    drop(degree);
     for &(k, s) in &pairs {
-        let (a, b) = ((k >> 32) as u32, (k & 0xffff_ffff) as u32);
-        adj[a as usize].insert(b, s);
-        adj[b as usize].insert(a, s);
+        let (a, b) = split(k);
+        adj[a].push((b as u32, s));
+        adj[b].push((a as u32, s));
     }
     drop(pairs);
     adj
@@ -335,86 +390,128 @@ struct Pruned {
     merged_into: Vec<u32>,
 }
 
+/// The basin `x` has merged into (path halving; `merged_into` keeps every basin's root).
+fn merged_root(merged_into: &mut [u32], mut x: u32) -> u32 {
+    while merged_into[x as usize] != x {
+        let p = merged_into[merged_into[x as usize] as usize];
+        merged_into[x as usize] = p;
+        x = p;
+    }
+    x
+}
+
 /// Step 6, Wolf pruning: the basin of the smallest depth (lowest saddle - pit) below
 /// `threshold` merges into its neighbour over that saddle, until none is left.
+///
+/// The neighbour lists are lazy: a merge appends the merged basin's list to the survivor's
+/// and leaves the other basins' entries pointing at it; an entry means its neighbour's root
+/// ([`merged_root`]), the saddle between two basins is the lowest of their entries for each
+/// other, and an entry to the basin itself is internal. That is the map of neighbour ->
+/// saddle a merge would otherwise rewrite in every neighbour (min of the two saddles), read
+/// when needed: a list is compacted (roots, one entry per neighbour at its lowest saddle)
+/// when it is rescanned or has doubled. The lowest saddle and its neighbour per basin are
+/// kept as before (ties: lowest label).
 fn wolf_prune(
-    mut adj: Vec<FxHashMap<u32, f64>>,
+    mut adj: Vec<Vec<(u32, f64)>>,
     crit: &mut [(f64, usize)],
     threshold: f64,
     m: usize,
 ) -> Pruned {
     let mut min_saddle = vec![f64::INFINITY; m + 1];
     let mut min_nb = vec![0u32; m + 1];
-    let rescan = |adj: &FxHashMap<u32, f64>| {
+    let lowest = |list: &[(u32, f64)]| {
         let mut best = (f64::INFINITY, 0u32);
-        for (&nb, &s) in adj {
-            // Lowest saddle, then lowest label: independent of the map's iteration order.
+        for &(nb, s) in list {
+            // Lowest saddle, then lowest label: independent of the list's order.
             if s < best.0 || (s == best.0 && nb < best.1) {
                 best = (s, nb);
             }
         }
         best
     };
+    // Every list starts compact (one entry per neighbour).
     for r in 1..=m {
-        let (s, nb) = rescan(&adj[r]);
+        let (s, nb) = lowest(&adj[r]);
         min_saddle[r] = s;
         min_nb[r] = nb;
     }
+    let mut clean_len: Vec<u32> = adj.iter().map(|l| l.len() as u32).collect();
+    let mut merged_into: Vec<u32> = (0..=m as u32).collect();
+    // Roots, without `x` itself, one entry per root at its lowest saddle.
+    let compact = |list: &mut Vec<(u32, f64)>, x: u32, merged_into: &mut [u32]| {
+        for e in list.iter_mut() {
+            e.0 = merged_root(merged_into, e.0);
+        }
+        list.retain(|e| e.0 != x);
+        list.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)));
+        list.dedup_by_key(|e| e.0);
+    };
     let mut version = vec![0u32; m + 1];
     let mut alive = vec![true; m + 1];
-    let mut merged_into: Vec<u32> = (0..=m as u32).collect();
+    // Only depths below the threshold are queued: the loop would stop at the first other.
+    // (As the loop's `h >= threshold` test: a NaN depth or threshold queues.)
+    let queued = |h: f64| {
+        !matches!(
+            h.partial_cmp(&threshold),
+            Some(Ordering::Greater | Ordering::Equal)
+        )
+    };
     let mut heap: BinaryHeap<Reverse<(Key, u32, u32)>> = (1..=m)
-        .map(|r| Reverse((Key(min_saddle[r] - crit[r].0), r as u32, 0)))
+        .map(|r| (min_saddle[r] - crit[r].0, r))
+        .filter(|&(h, _)| queued(h))
+        .map(|(h, r)| Reverse((Key(h), r as u32, 0)))
         .collect();
-    while let Some(Reverse((Key(h), r, ver))) = heap.pop() {
+    let mut moved_list: Vec<(u32, f64)> = Vec::new();
+    while let Some(Reverse((Key(_), r, ver))) = heap.pop() {
         let ru = r as usize;
         if !alive[ru] || ver != version[ru] {
             continue;
         }
-        if h >= threshold {
-            break;
-        }
         let nb = min_nb[ru];
         let nbu = nb as usize;
-        let mut radj = std::mem::take(&mut adj[ru]);
-        radj.remove(&nb);
-        adj[nbu].remove(&r);
+        // r's neighbours but nb (and r), at their lowest saddle to r.
+        moved_list.clear();
+        moved_list.append(&mut adj[ru]);
+        adj[ru] = Vec::new();
+        compact(&mut moved_list, r, &mut merged_into);
+        moved_list.retain(|e| e.0 != nb);
         let mut moved = (f64::INFINITY, 0u32);
-        for (&other, &s) in &radj {
-            let combined = match adj[nbu].get(&other) {
-                Some(&e) if e <= s => e,
-                _ => s,
-            };
-            adj[nbu].insert(other, combined);
-            let oa = &mut adj[other as usize];
-            oa.remove(&r);
-            oa.insert(nb, combined);
+        for &(other, s) in &moved_list {
             if min_nb[other as usize] == r {
                 min_nb[other as usize] = nb;
             }
-            if combined < moved.0 || (combined == moved.0 && other < moved.1) {
-                moved = (combined, other);
+            // The saddle nb - other becomes min(nb's, s): below nb's lowest only when s is.
+            if s < moved.0 || (s == moved.0 && other < moved.1) {
+                moved = (s, other);
             }
         }
+        adj[nbu].extend_from_slice(&moved_list);
         if crit[ru].0 < crit[nbu].0 {
             crit[nbu] = crit[ru];
         }
         alive[ru] = false;
         merged_into[ru] = nb;
         if min_nb[nbu] == r {
-            let (s, b) = rescan(&adj[nbu]);
+            compact(&mut adj[nbu], nb, &mut merged_into);
+            clean_len[nbu] = adj[nbu].len() as u32;
+            let (s, b) = lowest(&adj[nbu]);
             min_saddle[nbu] = s;
             min_nb[nbu] = b;
-        } else if moved.0 < min_saddle[nbu] {
-            min_saddle[nbu] = moved.0;
-            min_nb[nbu] = moved.1;
+        } else {
+            if moved.0 < min_saddle[nbu] {
+                min_saddle[nbu] = moved.0;
+                min_nb[nbu] = moved.1;
+            }
+            if adj[nbu].len() > 2 * clean_len[nbu] as usize + 8 {
+                compact(&mut adj[nbu], nb, &mut merged_into);
+                clean_len[nbu] = adj[nbu].len() as u32;
+            }
         }
         version[nbu] += 1;
-        heap.push(Reverse((
-            Key(min_saddle[nbu] - crit[nbu].0),
-            nb,
-            version[nbu],
-        )));
+        let h = min_saddle[nbu] - crit[nbu].0;
+        if queued(h) {
+            heap.push(Reverse((Key(h), nb, version[nbu])));
+        }
     }
     drop(heap);
     Pruned {
@@ -426,15 +523,33 @@ fn wolf_prune(
 
 /// Watershed + Wolf pruning of the dales of `d` (NaN = gap); the significant motifs.
 /// `sz` is the range of the valid heights (the pruning reference).
+///
+/// # Panics
+/// On more than [`MAX_POINTS`] points ([`feature_params`] returns an error instead).
 pub fn segment_dales(d: &[f64], rows: usize, cols: usize, pruning_pct: f64, sz: f64) -> Vec<Motif> {
-    let drain = drains(d, rows, cols);
+    segment::<false>(d, rows, cols, pruning_pct, sz)
+}
+
+/// [`segment_dales`] of `z` (NEG false) or of `-z` (NEG true: the hills).
+fn segment<const NEG: bool>(
+    z: &[f64],
+    rows: usize,
+    cols: usize,
+    pruning_pct: f64,
+    sz: f64,
+) -> Vec<Motif> {
+    assert!(
+        rows * cols <= MAX_POINTS,
+        "segmentation of {rows} x {cols} points: at most {MAX_POINTS} (feature_params checks)"
+    );
+    let drain = drains::<NEG>(z, rows, cols);
     let (label, m) = label_basins(drain, rows, cols);
     let Basins {
         mut crit,
         area,
         incomplete,
-    } = basin_stats(d, &label, rows, cols, m);
-    let adj = saddles(d, &label, rows, cols, m);
+    } = basin_stats::<NEG>(z, &label, rows, cols, m);
+    let adj = saddles::<NEG>(z, &label, rows, cols, m);
     let Pruned {
         min_saddle,
         alive,
@@ -465,7 +580,7 @@ pub fn segment_dales(d: &[f64], rows: usize, cols: usize, pruning_pct: f64, sz: 
         }
         let x = root[l as usize] as usize;
         if significant(x) {
-            let depth = min_saddle[x] - d[i];
+            let depth = min_saddle[x] - h::<NEG>(z, i);
             if depth > 0.0 {
                 volume[x] += depth;
             }
@@ -518,12 +633,16 @@ pub fn feature_params(g: &Grid, pruning_pct: f64) -> Result<FeatureParams, Metro
     }
     let mean_z = super::height_params_mean(g)?;
     let sz = hi - lo;
-    let inverted: Vec<f64> = z.par_iter().map(|&v| -v).collect();
+    if z.len() > MAX_POINTS {
+        return Err(MetrologyError::TooManyPoints {
+            points: z.len(),
+            max: MAX_POINTS,
+        });
+    }
     let (hills, dales) = rayon::join(
-        || segment_dales(&inverted, rows, cols, pruning_pct, sz),
-        || segment_dales(z, rows, cols, pruning_pct, sz),
+        || segment::<true>(z, rows, cols, pruning_pct, sz),
+        || segment::<false>(z, rows, cols, pruning_pct, sz),
     );
-    drop(inverted);
     let (px, py) = (g.pitch_x_um(), g.pitch_y_um());
     let curvature = |i: usize| -> Option<f64> {
         let (r, c) = (i / cols, i % cols);

@@ -145,29 +145,152 @@ fn sorted_valid(g: &Grid) -> Result<(Vec<f64>, f64), MetrologyError> {
     Ok((v, mean))
 }
 
+/// The `samples` (>= 2) material ratios of the curve, %: equally spaced, 0 and 100 exact.
+fn ratios(samples: usize) -> Vec<f64> {
+    let samples = samples.max(2);
+    let step = 100.0 / (samples - 1) as f64;
+    let mut mr: Vec<f64> = (0..samples).map(|i| i as f64 * step).collect();
+    mr[samples - 1] = 100.0;
+    mr
+}
+
+/// The two order statistics (ranks, ascending) of `n` heights the curve interpolates at
+/// material ratio `m` %, and the fraction between them: quantile q = 1 - m/100, virtual
+/// index q (n - 1) (numpy's "linear").
+fn sample_ranks(m: f64, n: usize) -> (usize, usize, f64) {
+    let q = 1.0 - m / 100.0;
+    let idx = q * (n - 1) as f64;
+    let lo = (idx.floor() as usize).min(n - 1);
+    let hi = (lo + 1).min(n - 1);
+    (lo, hi, idx - lo as f64)
+}
+
+/// Buckets of [`order_statistics`]' histogram.
+const BUCKETS: usize = 1 << 20;
+
+/// The values at `ranks` (ascending, distinct, each < `n`) in the ascending order of
+/// `f64::total_cmp` of the `n` valid (non-NaN) values of `z`: what a full sort would hold
+/// there. One pass counts the values in equal-width buckets of their range (a bucket's
+/// values are all below the next bucket's: the bucket index is monotone in the value, and
+/// -0 and +0 share one); a second gathers the values of the buckets holding a wanted rank,
+/// which are then sorted by `total_cmp` (a few per rank instead of the whole map).
+pub(crate) fn order_statistics(z: &[f64], n: usize, ranks: &[usize]) -> Vec<f64> {
+    let (lo, hi) = z
+        .par_iter()
+        .filter(|v| !v.is_nan())
+        .fold(
+            || (f64::INFINITY, f64::NEG_INFINITY),
+            |(a, b), &v| (a.min(v), b.max(v)),
+        )
+        .reduce(
+            || (f64::INFINITY, f64::NEG_INFINITY),
+            |(a, b), (c, d)| (a.min(c), b.max(d)),
+        );
+    let scale = BUCKETS as f64 / (hi - lo);
+    // A zero or infinite range: one bucket (then all the values are gathered).
+    let one = !(scale.is_finite() && scale > 0.0);
+    let bucket = |v: f64| -> usize {
+        if one {
+            0
+        } else {
+            (((v - lo) * scale) as usize).min(BUCKETS - 1)
+        }
+    };
+    let parts = rayon::current_num_threads().max(1);
+    let chunk = z.len().div_ceil(parts).max(1);
+    let count = z
+        .par_chunks(chunk)
+        .map(|part| {
+            let mut c = vec![0u32; BUCKETS];
+            for &v in part {
+                if !v.is_nan() {
+                    c[bucket(v)] += 1;
+                }
+            }
+            c
+        })
+        .reduce_with(|mut a, b| {
+            for (x, y) in a.iter_mut().zip(&b) {
+                *x += y;
+            }
+            a
+        })
+        .unwrap_or_else(|| vec![0u32; BUCKETS]);
+    // The buckets holding a wanted rank, with their first and end ranks.
+    let mut wanted = vec![false; BUCKETS];
+    let mut spans: Vec<(usize, usize)> = Vec::new();
+    let (mut start, mut r) = (0usize, 0usize);
+    for (b, &c) in count.iter().enumerate() {
+        let end = start + c as usize;
+        if r < ranks.len() && ranks[r] < end {
+            wanted[b] = true;
+            spans.push((start, end));
+            while r < ranks.len() && ranks[r] < end {
+                r += 1;
+            }
+        }
+        start = end;
+    }
+    debug_assert_eq!(start, n);
+    drop(count);
+    let mut gathered: Vec<f64> = z
+        .par_iter()
+        .copied()
+        .filter(|&v| !v.is_nan() && wanted[bucket(v)])
+        .collect();
+    gathered.par_sort_unstable_by(f64::total_cmp);
+    // Rank k of a wanted bucket [s, e) sits at k - s after the values gathered before it.
+    let (mut offset, mut r) = (0usize, 0usize);
+    let mut out = Vec::with_capacity(ranks.len());
+    for (s, e) in spans {
+        while r < ranks.len() && ranks[r] < e {
+            out.push(gathered[offset + ranks[r] - s]);
+            r += 1;
+        }
+        offset += e - s;
+    }
+    out
+}
+
 impl AbbottCurve {
     /// The curve of the valid heights of `g` about their mean.
+    ///
+    /// Only the order statistics the samples use are found ([`order_statistics`]), not the
+    /// whole sort: the same values, without a sorted copy of the map.
     pub fn of(g: &Grid) -> Result<Self, MetrologyError> {
-        let (sorted, mean) = sorted_valid(g)?;
-        Ok(Self::from_sorted(&sorted, mean, CURVE_SAMPLES))
+        let mean = super::height_params_mean(g)?;
+        let n = g.heights_um.par_iter().filter(|z| !z.is_nan()).count();
+        if n == 0 {
+            return Err(MetrologyError::NoValidPoint);
+        }
+        let samples = CURVE_SAMPLES;
+        let mut ranks: Vec<usize> = vec![0, n - 1];
+        for m in ratios(samples) {
+            let (lo, hi, _) = sample_ranks(m, n);
+            ranks.extend([lo, hi]);
+        }
+        ranks.sort_unstable();
+        ranks.dedup();
+        let values = order_statistics(g.heights_um, n, &ranks);
+        let at = |k: usize| values[ranks.partition_point(|&r| r < k)];
+        Ok(Self::from_order(n, &at, mean, samples))
     }
 
     /// The curve from heights sorted ascending, about `mean`, with `samples` >= 2 points.
     pub fn from_sorted(sorted: &[f64], mean: f64, samples: usize) -> Self {
+        Self::from_order(sorted.len(), &|k| sorted[k], mean, samples)
+    }
+
+    /// The curve from `n` heights whose k-th smallest is `at(k)` (only the ranks of
+    /// [`sample_ranks`], 0 and n - 1 are asked).
+    fn from_order(n: usize, at: &dyn Fn(usize) -> f64, mean: f64, samples: usize) -> Self {
         let samples = samples.max(2);
-        let n = sorted.len();
-        let step = 100.0 / (samples - 1) as f64;
-        let mut mr: Vec<f64> = (0..samples).map(|i| i as f64 * step).collect();
-        mr[samples - 1] = 100.0;
+        let mr = ratios(samples);
         let height: Vec<f64> = mr
             .iter()
             .map(|&m| {
-                // Quantile q = 1 - m/100, virtual index q (n - 1) (numpy's "linear").
-                let q = 1.0 - m / 100.0;
-                let idx = q * (n - 1) as f64;
-                let lo = (idx.floor() as usize).min(n - 1);
-                let hi = (lo + 1).min(n - 1);
-                lerp(sorted[lo], sorted[hi], idx - lo as f64) - mean
+                let (lo, hi, t) = sample_ranks(m, n);
+                lerp(at(lo), at(hi), t) - mean
             })
             .collect();
         // Heights ascending with their ratios, for mr(c) (the curve descends in mr).
@@ -177,8 +300,8 @@ impl AbbottCurve {
             line_slope_um_per_pct: f64::NAN,
             line_intercept_um: f64::NAN,
             core_start_pct: f64::NAN,
-            max_um: sorted[n - 1] - mean,
-            min_um: sorted[0] - mean,
+            max_um: at(n - 1) - mean,
+            min_um: at(0) - mean,
         };
         c.fit_line();
         c
@@ -353,6 +476,70 @@ pub fn functional_params(g: &Grid) -> Result<FunctionalParams, MetrologyError> {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
+    /// The bucketed order statistics are the full sort's, bit for bit: ties, -0 and +0,
+    /// NaN left out, a constant map (zero range), an infinite range.
+    #[test]
+    fn order_statistics_are_the_sorts() {
+        let mut state = 0x2545_F491_4F6C_DD1D_u64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        let mut v: Vec<f64> = (0..200_000)
+            .map(|i| match i % 5 {
+                0 => (next() % 41) as f64 - 20.0,
+                1 => f64::NAN,
+                2 if i % 10 == 2 => -0.0,
+                2 => 0.0,
+                _ => (next() as f64 / u64::MAX as f64 - 0.3) * 1e-3,
+            })
+            .collect();
+        let check = |v: &[f64]| {
+            let mut sorted: Vec<f64> = v.iter().copied().filter(|z| !z.is_nan()).collect();
+            sorted.sort_by(f64::total_cmp);
+            let n = sorted.len();
+            let ranks: Vec<usize> = (0..n).step_by(7).chain([n - 1]).collect();
+            let got = order_statistics(v, n, &ranks);
+            let want: Vec<u64> = ranks.iter().map(|&k| sorted[k].to_bits()).collect();
+            assert_eq!(got.iter().map(|x| x.to_bits()).collect::<Vec<_>>(), want);
+        };
+        check(&v);
+        check(&[3.5; 1000]);
+        check(&[0.0, -0.0, 0.0, -0.0, f64::NAN]);
+        v.push(f64::INFINITY);
+        v.push(f64::NEG_INFINITY);
+        check(&v);
+    }
+
+    /// The curve from the order statistics is the curve from the full sort.
+    #[test]
+    fn curve_of_grid_is_the_sorted_curve() {
+        let (rows, cols) = (97, 131);
+        let z: Vec<f64> = (0..rows * cols)
+            .map(|i| {
+                let (r, c) = ((i / cols) as f64, (i % cols) as f64);
+                if i % 17 == 3 {
+                    f64::NAN
+                } else {
+                    (r * 0.37).sin() * 2.0 + (c * 0.11).cos() + ((i * 7919) % 101) as f64 * 1e-3
+                }
+            })
+            .collect();
+        let g = Grid::new(&z, rows, cols, 0.5, 0.7).unwrap();
+        let (sorted, mean) = sorted_valid(&g).unwrap();
+        let a = AbbottCurve::of(&g).unwrap();
+        let b = AbbottCurve::from_sorted(&sorted, mean, CURVE_SAMPLES);
+        let bits = |x: &[f64]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&a.height_um), bits(&b.height_um));
+        assert_eq!(a.params(), b.params());
+        assert_eq!(a.max_um.to_bits(), b.max_um.to_bits());
+        assert_eq!(a.min_um.to_bits(), b.min_um.to_bits());
+    }
+
     /// The radix sort gives the order of `f64::total_cmp` (signs, zeros, infinities,
     /// subnormals, ties), so the material ratio curve is the comparison sort's.
     #[test]

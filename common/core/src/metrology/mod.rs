@@ -118,6 +118,10 @@ pub enum MetrologyError {
     Shape(#[from] ShapeError),
     #[error("no valid (non-NaN) height")]
     NoValidPoint,
+    #[error(
+        "feature parameters: the map has {points} points, the segmentation labels at most {max}"
+    )]
+    TooManyPoints { points: usize, max: usize },
     #[error(transparent)]
     Param(#[from] ParamError),
     #[error("the two maps differ in shape: {a_rows} x {a_cols} vs {b_rows} x {b_cols}")]

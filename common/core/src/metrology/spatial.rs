@@ -27,7 +27,7 @@
 use rayon::prelude::*;
 use serde::Serialize;
 
-use super::spectrum::{correlation_half_plane, spectrum2};
+use super::spectrum::{correlation_half_plane, spectrum2_of};
 use super::{Grid, MetrologyError};
 
 /// ISO 25178-3 default threshold of Sal / Str.
@@ -61,6 +61,33 @@ pub(crate) fn centred(g: &Grid) -> Result<(Vec<f64>, usize), MetrologyError> {
     Ok((c, n))
 }
 
+/// [`centred`] without holding it: its rows written on demand, with the valid count.
+struct CentredRows<'a> {
+    z: &'a [f64],
+    cols: usize,
+    mean: f64,
+    valid: usize,
+}
+
+impl<'a> CentredRows<'a> {
+    fn of(g: &Grid<'a>) -> Result<Self, MetrologyError> {
+        Ok(Self {
+            z: g.heights_um,
+            cols: g.cols(),
+            mean: super::height_params_mean(g)?,
+            valid: g.heights_um.par_iter().filter(|z| !z.is_nan()).count(),
+        })
+    }
+
+    /// Row r of [`centred`]'s field into `buf` (cols values).
+    fn row(&self, r: usize, buf: &mut [f64]) {
+        let (cols, mean) = (self.cols, self.mean);
+        for (o, &z) in buf.iter_mut().zip(&self.z[r * cols..(r + 1) * cols]) {
+            *o = if z.is_nan() { 0.0 } else { z - mean };
+        }
+    }
+}
+
 /// The autocorrelation function over lags ty = -(rows-1)..=(rows-1), tx = -(cols-1)..=(cols-1)
 /// (um^2); stored as the half plane ty >= 0 (f_ACF(-t) = f_ACF(t)).
 #[derive(Debug, Clone)]
@@ -75,9 +102,10 @@ pub struct Acf {
 impl Acf {
     /// The ACF of `g` (see the module documentation).
     pub fn of(g: &Grid) -> Result<Self, MetrologyError> {
-        let (c, n) = centred(g)?;
+        let c = CentredRows::of(g)?;
+        let n = c.valid;
         let (rows, cols) = (g.rows(), g.cols());
-        let mut half = correlation_half_plane(&c, rows, cols);
+        let mut half = correlation_half_plane(&|r, buf: &mut [f64]| c.row(r, buf), rows, cols);
         let w = 2 * cols - 1;
         if n == rows * cols {
             half.par_chunks_mut(w).enumerate().for_each(|(ty, row)| {
@@ -87,11 +115,12 @@ impl Acf {
                 }
             });
         } else {
-            let mask: Vec<f64> = g
-                .heights_um
-                .par_iter()
-                .map(|z| if z.is_nan() { 0.0 } else { 1.0 })
-                .collect();
+            let z = g.heights_um;
+            let mask = |r: usize, buf: &mut [f64]| {
+                for (o, &z) in buf.iter_mut().zip(&z[r * cols..(r + 1) * cols]) {
+                    *o = if z.is_nan() { 0.0 } else { 1.0 };
+                }
+            };
             let pairs = correlation_half_plane(&mask, rows, cols);
             half.par_iter_mut()
                 .zip(pairs.par_iter())
@@ -149,10 +178,16 @@ impl Acf {
         let (ry, rx) = (self.rows as isize - 1, self.cols as isize - 1);
         let (h, w) = ((2 * ry + 1) as usize, (2 * rx + 1) as usize);
         let idx = |y: isize, x: isize| (y + ry) as usize * w + (x + rx) as usize;
-        // 0 = unseen, 1 = region, 2 = edge.
-        let mut state = vec![0u8; h * w];
+        // Seen (in the region or on its edge), one bit per lag.
+        let mut seen = vec![0u64; (h * w).div_ceil(64)];
+        let mut see = |i: usize| {
+            let (word, bit) = (i / 64, 1u64 << (i % 64));
+            let new = seen[word] & bit == 0;
+            seen[word] |= bit;
+            new
+        };
         let mut stack = vec![(0isize, 0isize)];
-        state[idx(0, 0)] = 1;
+        see(idx(0, 0));
         let mut edges = Vec::new();
         let mut touches = false;
         while let Some((y, x)) = stack.pop() {
@@ -164,15 +199,12 @@ impl Acf {
                 if ny.abs() > ry || nx.abs() > rx {
                     continue;
                 }
-                let i = idx(ny, nx);
-                if state[i] != 0 {
+                if !see(idx(ny, nx)) {
                     continue;
                 }
                 if self.at(ny, nx) > thr {
-                    state[i] = 1;
                     stack.push((ny, nx));
                 } else {
-                    state[i] = 2;
                     edges.push((ny, nx));
                 }
             }
@@ -209,9 +241,9 @@ impl Acf {
 /// The angular amplitude density in bins of `step_deg` (lower edges 0..180), from the DFT of
 /// the centred (mean-filled) heights.
 pub fn angular_amplitude(g: &Grid, step_deg: f64) -> Result<Vec<(f64, f64)>, MetrologyError> {
-    let (c, _) = centred(g)?;
+    let c = CentredRows::of(g)?;
     Ok(angular_from_spectrum(
-        &spectrum2(&c, g.rows(), g.cols()),
+        &spectrum2_of(&|r, buf: &mut [f64]| c.row(r, buf), g.rows(), g.cols()),
         g,
         step_deg,
     ))
@@ -279,6 +311,8 @@ pub(crate) fn std_from_angular(a: &[(f64, f64)]) -> f64 {
 pub fn spatial_params(g: &Grid) -> Result<SpatialParams, MetrologyError> {
     let acf = Acf::of(g)?;
     let (sal, str_) = acf.sal_str(ACF_THRESHOLD);
+    // The lag plane (twice the map) goes before the spectrum is made.
+    drop(acf);
     let std = std_from_angular(&angular_amplitude(g, STD_STEP_DEG)?);
     Ok(SpatialParams { sal, str_, std })
 }
