@@ -848,9 +848,9 @@ pub struct ToleranceRecord {
     pub region_px: u64,
     /// Regions judged: the whole map, the windows and the tile footprints.
     pub regions: u64,
-    /// Of those, Table 6's tile regions (S1...; 0: not known to the mesher, or written before
-    /// it judged them).
-    #[serde(default)]
+    /// Of those, Table 6's tile regions (S1...; 0, not written: not known to the mesher, or a
+    /// record from before it judged them: old records round-trip unchanged).
+    #[serde(default, skip_serializing_if = "is_zero")]
     pub footprints: u64,
     pub measured_px: u64,
     pub met: bool,
