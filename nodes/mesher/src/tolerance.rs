@@ -612,6 +612,10 @@ pub struct CurvePoint {
     pub chosen: bool,
 }
 
+fn no_footprints(n: &usize) -> bool {
+    *n == 0
+}
+
 fn worst_signed(fits: &[RegionFit], k: usize) -> f64 {
     fits.iter()
         .map(|f| f.deviation_pct[k])
@@ -627,7 +631,9 @@ pub struct ToleranceReport {
     pub region_px: usize,
     /// Regions judged: the whole map, the windows and the footprints.
     pub regions: usize,
-    /// Of those, the tile footprints (Table 6's S1...; 0: none given).
+    /// Of those, the tile footprints (Table 6's S1...; 0, not written: none given, as the
+    /// record [`surfstream_core::record::ToleranceRecord`] writes it).
+    #[serde(skip_serializing_if = "no_footprints")]
     pub footprints: usize,
     pub measured_px: usize,
     /// The tolerance holds in every region at the chosen mesh.
