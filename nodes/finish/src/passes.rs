@@ -1106,6 +1106,52 @@ mod tests {
     }
 
     #[test]
+    fn a_form_is_meshed_to_the_bound_in_um_not_to_its_own_small_sq() {
+        // A smooth form (the ideal model): its own Sq is small, and 1 % of it in Sa/Sq/Sz
+        // costs triangles the DEM does not need; the form is held to the measured model's
+        // bound in um instead.
+        let (rows, cols) = (64, 64);
+        let z: Vec<f64> = (0..rows * cols)
+            .map(|k| {
+                let (x, y) = ((k % cols) as f64, (k / cols) as f64);
+                2e-4 * ((x - 30.0).powi(2) + 0.5 * (y - 20.0).powi(2)) + 0.3 * (x / 25.0).sin()
+            })
+            .collect();
+        let at = Sampling::square(Shape::new(rows, cols), 1.0).unwrap();
+        let region = Window {
+            row0: 8,
+            col0: 8,
+            rows: 48,
+            cols: 48,
+        };
+        let bound_um = 0.05;
+        let dir = tempfile::tempdir().unwrap();
+        let form = PatchFidelity::Form {
+            max_error_um: bound_um,
+        };
+        let f = mesh_model(&z, at, region, 20_000, form, 1.0, dir.path()).unwrap();
+        let s = mesh_model(
+            &z,
+            at,
+            region,
+            20_000,
+            PatchFidelity::Statistical,
+            1.0,
+            dir.path(),
+        )
+        .unwrap();
+        assert!(f.model.max_error_um <= 1.1 * bound_um, "{:?}", f.model);
+        assert_eq!(f.model.max_error_bound_um, Some(bound_um));
+        assert!(f.model.fidelity.starts_with("form"), "{}", f.model.fidelity);
+        assert!(
+            4 * f.triangles_m.len() < s.triangles_m.len(),
+            "form {} vs statistical {} triangles",
+            f.triangles_m.len(),
+            s.triangles_m.len()
+        );
+    }
+
+    #[test]
     fn the_model_mesh_is_judged_at_the_measured_points() {
         let (rows, cols) = (48, 48);
         let z: Vec<f64> = (0..rows * cols)
