@@ -46,7 +46,7 @@
 //! finisher as a static tub with the part (on its holder) driven along a circle by `fix
 //! move/mesh rotate` (and its own spin superposed). Neither is implemented.
 
-use std::collections::HashMap;
+use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::io::BufRead;
 use std::path::Path;
@@ -1091,7 +1091,10 @@ fn read_dump(path: &Path, s: &MachineSetting, g: &Geometry) -> Result<Tally> {
         Err(e) => return Err(e).with_context(|| format!("{}: cannot read", path.display())),
     };
     let dt_sample = s.contact_every_steps as f64 * s.timestep();
-    let mut open: HashMap<u64, Open> = HashMap::new();
+    // Ordered by the medium's id: contacts that end in the same snapshot close in one order on
+    // every run (a HashMap's order is per process: the samples' order, and so the micro
+    // passes drawn from them, differed between two runs of the same command).
+    let mut open: BTreeMap<u64, Open> = BTreeMap::new();
     let mut lines = std::io::BufReader::new(file).lines();
     let mut line_no = 0usize;
     let mut next = |what: &str| -> Result<Option<String>> {
@@ -1169,7 +1172,7 @@ impl Tally {
         &mut self,
         step: u64,
         rows: &[Row],
-        open: &mut HashMap<u64, Open>,
+        open: &mut BTreeMap<u64, Open>,
         s: &MachineSetting,
         g: &Geometry,
         dt_sample: f64,
@@ -1481,6 +1484,57 @@ mod tests {
         )
         .unwrap();
         assert_ne!(other, media);
+    }
+
+    #[test]
+    fn contacts_that_end_together_close_in_the_mediums_order_on_every_read() {
+        // The samples' order picks the micro passes (a seeded draw by index): two reads of
+        // one dump must give one order.
+        let s = MachineSetting::default();
+        let g = Geometry::of(&s);
+        let y = 0.5 * (g.region_y_m[0] + g.region_y_m[1]);
+        let z = 0.5 * (g.region_z_m[0] + g.region_z_m[1]);
+        let (x, cx) = (g.plate_x_m, g.plate_x_m - s.media.radius_m());
+        let ids = [9u64, 3, 7, 1, 5, 8, 2, 6, 4];
+        let mut dump = String::new();
+        // Every medium on the plate in one snapshot, none in the next, long after: all end
+        // together.
+        for (step, on) in [(100u64, true), (1_000_000, false)] {
+            let rows: Vec<String> = ids
+                .iter()
+                .filter(|_| on)
+                .map(|&id| {
+                    let f = id as f64 * 0.01;
+                    format!(
+                        "{x} {y} {z} {cx} {y} {z} 0 0 0 0.1 0.2 0 0 0 {id} {} 0 0",
+                        -f
+                    )
+                })
+                .collect();
+            let _ = write!(
+                dump,
+                "ITEM: TIMESTEP\n{step}\nITEM: NUMBER OF ENTRIES\n{}\nITEM: ENTRIES\n",
+                rows.len()
+            );
+            for r in rows {
+                dump.push_str(&r);
+                dump.push('\n');
+            }
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("contacts.dump");
+        std::fs::write(&path, dump).unwrap();
+        let forces = |t: Tally| -> Vec<f64> { t.closed.iter().map(|(o, _)| o.sum_fn).collect() };
+        let mut sorted = ids;
+        sorted.sort_unstable();
+        let expected: Vec<f64> = sorted.iter().map(|&id| id as f64 * 0.01).collect();
+        for _ in 0..3 {
+            let got = forces(read_dump(&path, &s, &g).unwrap());
+            assert_eq!(got.len(), ids.len());
+            for (a, b) in got.iter().zip(&expected) {
+                assert!((a - b).abs() < 1e-12, "{got:?} vs {expected:?}");
+            }
+        }
     }
 
     #[test]
