@@ -123,10 +123,19 @@ impl PatchFidelity {
 
     fn describe(self) -> String {
         let b = self.max_error_um().unwrap_or(f64::NAN);
+        // The statistical part read from the tolerance the mesher is given, not restated.
+        let t = ANGLE_BOUNDED_TOLERANCE;
+        let stats = format!(
+            "Sa/Sq/Sz {}/{}/{} %, residual {} %",
+            t.sa_pct,
+            t.sq_pct,
+            t.sz_pct,
+            t.residual_pct.unwrap_or(f64::NAN)
+        );
         match self {
-            PatchFidelity::Statistical => "LIGGGHTS' statistical tolerance: Sa/Sq/Sz 1/1/3 %, residual 50 % of Sq per region, no pointwise bound".into(),
-            PatchFidelity::Measured { .. } => format!("measured model: Sa/Sq/Sz 1/1/3 %, residual 50 % of Sq per region, no point farther than {b:.3} um (half the patch's Sq)"),
-            PatchFidelity::Worn { .. } => format!("worn surface: Sa/Sq/Sz 1/1/3 %, residual 50 % of its own Sq per region, no point farther than {b:.3} um (the measured model's bound)"),
+            PatchFidelity::Statistical => format!("LIGGGHTS' statistical tolerance: {stats} of Sq per region, no pointwise bound"),
+            PatchFidelity::Measured { .. } => format!("measured model: {stats} of Sq per region, no point farther than {b:.3} um (half the patch's Sq)"),
+            PatchFidelity::Worn { .. } => format!("worn surface: {stats} of its own Sq per region, no point farther than {b:.3} um (the measured model's bound)"),
             PatchFidelity::Form { .. } => format!("form (ideal model): no point farther than {b:.3} um (the measured model's bound); a form's Sa/Sq/Sz not judged"),
         }
     }
