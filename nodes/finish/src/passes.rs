@@ -31,6 +31,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
+use surfstream_core::metrology::{height_params, level_plane, Grid};
 use surfstream_core::raster::Shape;
 use surfstream_core::Sampling;
 use surfstream_mesher::tolerance::{Tolerance, ANGLE_BOUNDED_TOLERANCE};
@@ -242,11 +243,9 @@ pub fn mesh_model(
     let measured_um = prepared.heights_um.clone();
     // A plane (the ideal model of a flat part) has no roughness to judge a tolerance by:
     // it is meshed to a fixed bound of 1 nm instead, which a plane meets with two triangles.
-    let flat = {
-        let g = surfstream_core::metrology::Grid::of(heights_um, at)?;
-        let l = surfstream_core::metrology::level_plane(&g)?;
-        rms_about_mean(&l) < 1e-6
-    };
+    let g = Grid::of(heights_um, at)?;
+    let sq_um = height_params(&g)?[1];
+    let flat = height_params(&Grid::of(&level_plane(&g)?, at)?)?[1] < 1e-6;
     let config = if flat {
         // (A plane needs no angle bound: its greedy mesh is two right triangles.)
         MesherConfig {
@@ -262,7 +261,7 @@ pub fn mesh_model(
         MesherConfig {
             target: Some(DemEngine::Liggghts),
             max_triangles: Some(max_triangles),
-            tolerance: Some(judged_as.tolerance(rms_about_mean(heights_um))),
+            tolerance: Some(judged_as.tolerance(sq_um)),
             ..MesherConfig::default()
         }
     };
@@ -341,14 +340,6 @@ pub fn mesh_model(
         },
         triangles_m,
     })
-}
-
-/// RMS of the finite values about their mean (0 for none).
-fn rms_about_mean(v: &[f64]) -> f64 {
-    let finite: Vec<f64> = v.iter().copied().filter(|v| v.is_finite()).collect();
-    let n = finite.len().max(1) as f64;
-    let mean = finite.iter().sum::<f64>() / n;
-    (finite.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n).sqrt()
 }
 
 /// (max |e| / Sq, max |e|, rms e, Sq) of mesh vs heights on `region`, each about its mean.
