@@ -27,11 +27,8 @@ use surfstream_finish::setting::{
 };
 use surfstream_finish::vtk::read_vtk;
 
-fn engine() -> EngineCommand {
-    EngineCommand::locate(1, None).unwrap_or_else(|e| {
-        panic!("{e} (these tests need the real engine; scripts/test.sh installs it)")
-    })
-}
+mod support;
+use support::{analytic_finnie_m3, engine};
 
 /// An aluminium part (the paper's), against the ceramic media.
 fn aluminium() -> Workpiece {
@@ -270,37 +267,6 @@ fn a_sphere_slid_under_load_wears_the_archard_volume() {
     let depth = mesh.node_map().point_volumes_to_depth(&pts);
     let grid = volume_um3(&depth, mesh.sampling.pitch()) * 1e-18;
     assert!((grid / s.total_volume_m3 - 1.0).abs() < 1e-9);
-}
-
-/// Finnie's angle function as LIGGGHTS codes it (mesh_module_stress.cpp).
-fn finnie_f(gamma: f64) -> f64 {
-    let (s, c) = gamma.sin_cos();
-    if 3.0 * s > c {
-        c * c / 3.0
-    } else {
-        2.0 * s * c - 3.0 * s * s
-    }
-}
-
-/// Finnie volume of one frictionless elastic Hertz impact (tests/engine.rs has the
-/// derivation): 2 k |v| |F| f(gamma) dt over the loading half.
-fn analytic_finnie_m3(media: &Media, part: &Workpiece, k: f64, vt: f64, vn0: f64) -> f64 {
-    let m = media.mass_kg();
-    let kk = 4.0 / 3.0 * effective_modulus_pa(media, part) * media.radius_m().sqrt();
-    let dmax = (5.0 * m * vn0 * vn0 / (4.0 * kk)).powf(0.4);
-    let n = 200_000;
-    let mut v = 0.0;
-    for i in 0..n {
-        let th = (i as f64 + 0.5) / n as f64 * std::f64::consts::FRAC_PI_2;
-        let d = dmax * th.sin();
-        let dd = dmax * th.cos() * std::f64::consts::FRAC_PI_2 / n as f64;
-        let vn = (vn0 * vn0 - 4.0 * kk / (5.0 * m) * d.powf(2.5))
-            .max(1e-300)
-            .sqrt();
-        let f = kk * d.powf(1.5);
-        v += 2.0 * k * vt.hypot(vn) * f * finnie_f(vn.atan2(vt)) * dd / vn;
-    }
-    v
 }
 
 #[test]
