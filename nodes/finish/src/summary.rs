@@ -276,6 +276,12 @@ pub struct SweepSetting {
     /// The setting's Sa noise there (`baselines.noise.Sa` of its run), um.
     #[serde(default)]
     pub sa_noise_um: Option<f64>,
+    /// The Sa its macro run's impact count stands for there, um: the impact rate is counted
+    /// from `macro.contacts.impacts` impacts, a relative error of 1/sqrt(N) were they
+    /// independent (media contacts cluster: a floor), and a rate off by a share e wears as
+    /// the time t (1 + e) does, so Sa moves by |dSa/dt| t e. Null without a macro run.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sa_macro_noise_um: Option<f64>,
     pub after: SurfaceParams,
     pub series: Vec<SeriesPoint>,
 }

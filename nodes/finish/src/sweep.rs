@@ -12,7 +12,7 @@ use surfstream_core::record;
 
 use crate::process::finish_record;
 use crate::run::{outputs, FinishOptions, Model};
-use crate::summary::{FinishSummary, Sweep, SweepComparison, SweepSetting};
+use crate::summary::{FinishSummary, SeriesPoint, Sweep, SweepComparison, SweepSetting};
 
 /// What a sweep varies.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -149,9 +149,36 @@ fn setting_of(
             .as_ref()
             .and_then(|b| b.noise.as_ref())
             .and_then(|n| n.sa),
+        sa_macro_noise_um: s
+            .macro_run
+            .as_ref()
+            .and_then(|m| macro_counting_noise_um(m.contacts.impacts, &s.series, compared_at_s)),
         after: s.after.clone(),
         series: s.series.clone(),
     }
+}
+
+/// The Sa at `time_s` that the counting noise of `impacts` macro-run impacts stands for
+/// (`SweepSetting::sa_macro_noise_um`): the process's impact rate is N impacts over the
+/// recording, so it is known to 1/sqrt(N) at best, and a rate off by a share e wears by
+/// `time_s` what the true rate wears by `time_s` (1 + e). dSa/dt is the series' slope across
+/// `time_s` (between the points either side of it). None without impacts or a slope.
+pub fn macro_counting_noise_um(impacts: usize, series: &[SeriesPoint], time_s: f64) -> Option<f64> {
+    if impacts == 0 {
+        return None;
+    }
+    let tol = 1e-9 * time_s.max(1.0);
+    let before = series.iter().rfind(|p| p.time_s < time_s - tol);
+    let at = series.iter().find(|p| (p.time_s - time_s).abs() <= tol);
+    let after = series.iter().find(|p| p.time_s > time_s + tol);
+    let (a, b) = match (before, at, after) {
+        (Some(a), _, Some(b)) => (a, b),
+        (Some(a), Some(b), None) | (None, Some(a), Some(b)) => (a, b),
+        _ => return None,
+    };
+    let slope_um_per_s = (b.sa - a.sa) / (b.time_s - a.time_s);
+    let e = 1.0 / (impacts as f64).sqrt();
+    Some(slope_um_per_s.abs() * time_s * e).filter(|n| n.is_finite())
 }
 
 /// Runs the base setting (calibrated as `base` says) into `out_dir`, then every other value of
@@ -249,8 +276,21 @@ pub fn compare_settings(
             let (Some(sa_a), Some(sa_b)) = (a.sa_compared_um, b.sa_compared_um) else {
                 continue;
             };
+            // The DEM tables' noise of both settings and, where they ran the machine, their
+            // macro runs' counting noise, added in quadrature.
             let noise_um = match (a.sa_noise_um, b.sa_noise_um) {
-                (Some(x), Some(y)) => Some(x.hypot(y)),
+                (Some(x), Some(y)) => Some(
+                    [
+                        x,
+                        y,
+                        a.sa_macro_noise_um.unwrap_or(0.0),
+                        b.sa_macro_noise_um.unwrap_or(0.0),
+                    ]
+                    .iter()
+                    .map(|n| n * n)
+                    .sum::<f64>()
+                    .sqrt(),
+                ),
                 _ => None,
             };
             let d = sa_b - sa_a;
@@ -383,9 +423,55 @@ mod tests {
             calibrated_here: false,
             sa_compared_um: Some(sa),
             sa_noise_um: noise,
+            sa_macro_noise_um: None,
             after: params,
             series: vec![],
         }
+    }
+
+    fn point(time_s: f64, sa: f64) -> SeriesPoint {
+        SeriesPoint {
+            time_s,
+            sa,
+            sq: sa,
+            sz: sa,
+            spk: sa,
+            svk: sa,
+            sk: sa,
+            abbott: crate::summary::AbbottSummary {
+                material_ratio_pct: vec![],
+                height_um: vec![],
+            },
+            fitted: vec![],
+        }
+    }
+
+    #[test]
+    fn the_macro_runs_impact_count_stands_for_the_sa_its_rate_error_wears() {
+        // Sa falls 0.2 um between 240 and 360 s: 1/600 um/s across 300 s. 400 impacts: a
+        // rate known to 5 %, 15 s of process at 300 s, 0.025 um of Sa.
+        let series = [point(240.0, 0.9), point(300.0, 0.8), point(360.0, 0.7)];
+        let n = macro_counting_noise_um(400, &series, 300.0).unwrap();
+        assert!((n - 0.025).abs() < 1e-12, "{n}");
+        // At the series' last point the slope is the one before it.
+        let n = macro_counting_noise_um(400, &series, 360.0).unwrap();
+        assert!((n - 360.0 / 600.0 * 0.05).abs() < 1e-12, "{n}");
+        // No impacts, or a time with no slope across it: no estimate.
+        assert_eq!(macro_counting_noise_um(0, &series, 300.0), None);
+        assert_eq!(macro_counting_noise_um(400, &series[..1], 240.0), None);
+        // A pair apart on the tables' noise alone is within it once the counting noise is
+        // added: 0.05 apart, tables 0.03 each (0.042), counting 0.03 each (0.06 in all).
+        let mut s = [
+            setting(200.0, 0.65, Some(0.03)),
+            setting(300.0, 0.60, Some(0.03)),
+        ];
+        let (c, _) = compare_settings("revolution-rpm", &s, 300.0, 1.3, None);
+        assert_eq!(c[0].apart, Some(true));
+        s.iter_mut()
+            .for_each(|st| st.sa_macro_noise_um = Some(0.03));
+        let (c, verdict) = compare_settings("revolution-rpm", &s, 300.0, 1.3, None);
+        assert!((c[0].noise_um.unwrap() - 0.06).abs() < 1e-12);
+        assert_eq!(c[0].apart, Some(false), "{verdict}");
     }
 
     #[test]
