@@ -1091,12 +1091,7 @@ fn at_calibration_time(s: &FinishSummary, b: &crate::summary::Baselines) -> Stri
     let Some(t) = s.wear_laws.as_ref().map(|l| l.calibration_time_s) else {
         return String::new();
     };
-    let at = |series: &[SeriesPoint]| {
-        series
-            .iter()
-            .find(|p| (p.time_s - t).abs() <= 1e-9 * t.max(1.0))
-            .cloned()
-    };
+    let at = |series: &[SeriesPoint]| SeriesPoint::at(series, t).cloned();
     let last = s.series.last().map(|p| p.time_s);
     let (Some(p), Some(c), Some(q)) = (
         at(&s.series),
@@ -1105,7 +1100,7 @@ fn at_calibration_time(s: &FinishSummary, b: &crate::summary::Baselines) -> Stri
     ) else {
         return String::new();
     };
-    if last.is_some_and(|l| (l - t).abs() <= 1e-9 * t.max(1.0)) {
+    if last.is_some_and(|l| crate::summary::same_time_s(l, t)) {
         return String::new();
     }
     let mut h = format!(

@@ -320,7 +320,7 @@ pub fn series_times_s(process_time_s: f64, given: Option<&[f64]>) -> Result<Vec<
             .collect(),
     };
     t.sort_by(|a, b| a.total_cmp(b));
-    t.dedup_by(|a, b| (*a - *b).abs() <= 1e-9 * b.abs().max(1.0));
+    t.dedup_by(|a, b| crate::summary::same_time_s(*a, *b));
     Ok(t)
 }
 

@@ -137,8 +137,8 @@ pub fn predict(input: &PredictionInput, stop: &AtomicBool) -> Result<Prediction>
     let map_times: Vec<f64> = (1..=n_maps).map(|k| k as f64 * every).collect();
     let mut all: Vec<f64> = input.times_s.iter().chain(&map_times).cloned().collect();
     all.sort_by(|a, b| a.total_cmp(b));
-    all.dedup_by(|a, b| (*a - *b).abs() <= 1e-9 * b.abs().max(1.0));
-    let near = |a: f64, b: f64| (a - b).abs() <= 1e-9 * b.abs().max(1.0);
+    all.dedup_by(|a, b| crate::summary::same_time_s(*a, *b));
+    let near = crate::summary::same_time_s;
     let maps_dir = input.out_dir.join(WEAR_MAPS_DIR);
     std::fs::create_dir_all(&maps_dir)
         .map_err(|e| anyhow!("{}: cannot create: {e}", maps_dir.display()))?;

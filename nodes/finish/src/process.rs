@@ -352,7 +352,7 @@ impl<'a> Setup<'a> {
             laws::series_times_s(opts.process_time_s, opts.series_s.as_deref())?;
         series_times_s.extend([calibration_time_s, opts.process_time_s]);
         series_times_s.sort_by(|a, b| a.total_cmp(b));
-        series_times_s.dedup_by(|a, b| (*a - *b).abs() <= 1e-9 * b.abs().max(1.0));
+        series_times_s.dedup_by(|a, b| crate::summary::same_time_s(*a, *b));
         if let Some(e) = opts.wear_map_every_s {
             if !(e.is_finite() && e > 0.0 && e <= opts.process_time_s) {
                 bail!(
@@ -1232,10 +1232,7 @@ fn final_prediction(
     let k_finnie = setup.k_finnie;
     let final_fit = match (setup.target_sa, p.fit.clone()) {
         (Some(t), Some(e)) => {
-            let sa = p
-                .series
-                .iter()
-                .find(|q| (q.time_s - setup.calibration_time_s).abs() <= 1e-9 * q.time_s.max(1.0))
+            let sa = crate::summary::SeriesPoint::at(&p.series, setup.calibration_time_s)
                 .map_or(f64::NAN, |q| q.sa);
             let err = sa / t - 1.0;
             let reached = p.reached.unwrap_or(false);

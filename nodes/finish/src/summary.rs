@@ -108,6 +108,12 @@ pub struct PatchSummary {
     pub model: crate::passes::PatchModel,
 }
 
+/// Two process times the same: the series' times are sums and products of the user's, a
+/// relative 1e-9 apart at most.
+pub fn same_time_s(a: f64, b: f64) -> bool {
+    (a - b).abs() <= 1e-9 * b.abs().max(1.0)
+}
+
 /// One time of the prediction (`series[]`): the worn patch's parameters, um, and its
 /// Abbott curve (101 points, material ratio 0..100 %).
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -130,6 +136,13 @@ pub struct SeriesPoint {
     /// others are predictions.
     #[serde(default)]
     pub fitted: Vec<String>,
+}
+
+impl SeriesPoint {
+    /// The point of `series` at `time_s`, if there is one.
+    pub fn at(series: &[SeriesPoint], time_s: f64) -> Option<&SeriesPoint> {
+        series.iter().find(|p| same_time_s(p.time_s, time_s))
+    }
 }
 
 /// The laws of the prediction (`wear_laws`).

@@ -12,7 +12,9 @@ use surfstream_core::record;
 
 use crate::process::finish_record;
 use crate::run::{outputs, FinishOptions, Model};
-use crate::summary::{FinishSummary, SeriesPoint, Sweep, SweepComparison, SweepSetting};
+use crate::summary::{
+    same_time_s, FinishSummary, SeriesPoint, Sweep, SweepComparison, SweepSetting,
+};
 
 /// What a sweep varies.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -139,11 +141,7 @@ fn setting_of(
         value,
         dir: dir.into(),
         calibrated_here,
-        sa_compared_um: s
-            .series
-            .iter()
-            .find(|p| (p.time_s - compared_at_s).abs() <= 1e-9 * compared_at_s.max(1.0))
-            .map(|p| p.sa),
+        sa_compared_um: SeriesPoint::at(&s.series, compared_at_s).map(|p| p.sa),
         sa_noise_um: s
             .baselines
             .as_ref()
@@ -167,10 +165,13 @@ pub fn macro_counting_noise_um(impacts: usize, series: &[SeriesPoint], time_s: f
     if impacts == 0 {
         return None;
     }
-    let tol = 1e-9 * time_s.max(1.0);
-    let before = series.iter().rfind(|p| p.time_s < time_s - tol);
-    let at = series.iter().find(|p| (p.time_s - time_s).abs() <= tol);
-    let after = series.iter().find(|p| p.time_s > time_s + tol);
+    let at = SeriesPoint::at(series, time_s);
+    let before = series
+        .iter()
+        .rfind(|p| p.time_s < time_s && !same_time_s(p.time_s, time_s));
+    let after = series
+        .iter()
+        .find(|p| p.time_s > time_s && !same_time_s(p.time_s, time_s));
     let (a, b) = match (before, at, after) {
         (Some(a), _, Some(b)) => (a, b),
         (Some(a), Some(b), None) | (None, Some(a), Some(b)) => (a, b),
@@ -280,16 +281,9 @@ pub fn compare_settings(
             // macro runs' counting noise, added in quadrature.
             let noise_um = match (a.sa_noise_um, b.sa_noise_um) {
                 (Some(x), Some(y)) => Some(
-                    [
-                        x,
-                        y,
-                        a.sa_macro_noise_um.unwrap_or(0.0),
-                        b.sa_macro_noise_um.unwrap_or(0.0),
-                    ]
-                    .iter()
-                    .map(|n| n * n)
-                    .sum::<f64>()
-                    .sqrt(),
+                    x.hypot(y)
+                        .hypot(a.sa_macro_noise_um.unwrap_or(0.0))
+                        .hypot(b.sa_macro_noise_um.unwrap_or(0.0)),
                 ),
                 _ => None,
             };
