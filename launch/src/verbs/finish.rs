@@ -687,9 +687,12 @@ pub fn run(a: FinishArgs) -> Result<()> {
                 },
                 st.sa_compared_um
                     .map_or("?".to_string(), |sa| format!("{sa:.3}")),
-                st.sa_noise_um
-                    .map(|n| format!(" (noise {n:.3})"))
-                    .unwrap_or_default(),
+                match (st.sa_noise_um, st.sa_macro_noise_um) {
+                    (Some(n), Some(m)) => format!(" (noise {n:.3} tables, {m:.3} macro counting)"),
+                    (Some(n), None) => format!(" (noise {n:.3})"),
+                    (None, Some(m)) => format!(" (macro counting noise {m:.3})"),
+                    (None, None) => String::new(),
+                },
                 sw.compared_at_s,
                 st.after.sa,
                 st.after.sq,

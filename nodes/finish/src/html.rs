@@ -1177,17 +1177,18 @@ fn sweep_plots(s: &FinishSummary) -> String {
     }
     write!(
         h,
-        "</div><table><tr><th class=\"k\">setting</th><th>Sa at {:.0} s (µm)</th><th>Sa noise there</th><th>Sa after the process</th><th>Sq</th><th>Sz</th><th class=\"k\">folder</th></tr>",
+        "</div><table><tr><th class=\"k\">setting</th><th>Sa at {:.0} s (µm)</th><th>Sa noise there (tables)</th><th>macro counting noise (floor)</th><th>Sa after the process</th><th>Sq</th><th>Sz</th><th class=\"k\">folder</th></tr>",
         sw.compared_at_s
     )
     .ok();
     for (st, l) in sw.settings.iter().zip(&labels) {
         write!(
             h,
-            "<tr><td class=\"k\">{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td class=\"k\">{}</td></tr>",
+            "<tr><td class=\"k\">{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td class=\"k\">{}</td></tr>",
             esc(l),
             num(st.sa_compared_um, 3),
             st.sa_noise_um.map_or("none (one cycle)".to_string(), |n| num(n, 3)),
+            st.sa_macro_noise_um.map_or("none".to_string(), |n| num(n, 3)),
             num(st.after.sa, 3),
             num(st.after.sq, 3),
             num(st.after.sz, 3),
@@ -1199,7 +1200,7 @@ fn sweep_plots(s: &FinishSummary) -> String {
     if !sw.verdict.is_empty() {
         write!(
             h,
-            "<p><b>Told apart?</b> {} (a setting's Sa noise: its odd and even cycles' DEM tables' predictions at the same constants; a pair is apart when its difference exceeds the two noises added in quadrature).</p>",
+            "<p><b>Told apart?</b> {} (a setting's Sa noise: its odd and even cycles' DEM tables' predictions at the same constants, and the macro run's counting noise |dSa/dt| t / sqrt(impacts), a floor since media contacts cluster; a pair is apart when its difference exceeds both settings' noises added in quadrature).</p>",
             esc(&sw.verdict)
         )
         .ok();
@@ -1787,14 +1788,20 @@ mod tests {
             for (st, sa) in sw.settings.iter_mut().zip([0.9, 0.74]) {
                 st.sa_compared_um = Some(sa);
             }
+            // The macro run's counting noise has its own column and joins the pair's noise.
+            sw.settings[0].sa_macro_noise_um = Some(0.0123);
             (sw.comparisons, sw.verdict) =
                 crate::sweep::compare_settings(&sw.parameter, &sw.settings, 300.0, 1.3, None);
         }
         let html = render(&told, &original, &original, &original, None, rows, cols).unwrap();
         assert!(
-            html.contains("<b>Told apart?</b> every pair of settings of revolution-rpm differs in Sa at 300 s by more than its noise: 200 vs 300 (-0.160 um, noise 0.071)"),
+            html.contains("<b>Told apart?</b> every pair of settings of revolution-rpm differs in Sa at 300 s by more than its noise: 200 vs 300 (-0.160 um, noise 0.072)"),
             "{}",
             &html[html.find("Sweep of").unwrap_or(0)..]
+        );
+        assert!(
+            html.contains("<td>0.012</td>"),
+            "the macro counting noise has a column"
         );
     }
 
