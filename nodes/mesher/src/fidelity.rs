@@ -8,18 +8,13 @@
 //! sees only what the mesh changed. Missing samples (NaN) are left out; Sdr counts only grid
 //! cells with four measured corners.
 
-use surfstream_core::metrology::{fit_plane, Grid, Params, ParamsByRows};
-use surfstream_core::raster::{Raster, RasterView};
+use surfstream_core::metrology::{fit_plane_f32, Params, ParamsByRows};
+use surfstream_core::raster::RasterView;
 use surfstream_core::{Pitch, Sampling};
 
 /// Areal parameters of one surface, um (Sdr in %): the report's record itself, so the
 /// fidelity written is the one its readers read.
 pub use surfstream_core::record::LevelledParams as AreaParams;
-
-/// `heights` widened to f64 as a metrology grid's samples.
-fn widened(heights: RasterView<'_, f32>) -> Raster<f64> {
-    heights.map(|&h| f64::from(h))
-}
 
 fn area_params(p: Params) -> AreaParams {
     AreaParams {
@@ -41,7 +36,7 @@ pub fn field_params(field: RasterView<'_, f32>, pitch: Pitch) -> Option<AreaPara
 /// without holding both surfaces in f64 at once.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct FieldLevel {
-    /// z = a + b x + c y (um), as [`fit_plane`] gives it.
+    /// z = a + b x + c y (um), as [`fit_plane_f32`] gives it.
     plane: (f64, f64, f64),
     sampling: Sampling,
     /// The field's parameters, levelled by the plane.
@@ -92,15 +87,11 @@ fn levelled_params(
 }
 
 /// The field's plane and levelled parameters; `None` when the field has no valid sample.
-/// Holds one f64 copy of the field while the plane is fitted; the parameters are computed by
+/// The plane is fitted on the float32 field itself (no copy); the parameters are computed by
 /// rows ([`levelled_params`]).
 pub(crate) fn level_field(field: RasterView<'_, f32>, pitch: Pitch) -> Option<FieldLevel> {
     let sampling = Sampling::of(field.shape(), pitch);
-    let plane = {
-        let widened = widened(field);
-        let g = Grid::of(widened.values(), sampling).ok()?;
-        fit_plane(&g).ok()?
-    };
+    let plane = fit_plane_f32(field.values(), sampling).ok()?;
     let (bx, by) = (plane.1 * pitch.x_um(), plane.2 * pitch.y_um());
     let params = levelled_params(field.values(), None, sampling, plane, bx, by);
     Some(FieldLevel {

@@ -610,11 +610,39 @@ pub fn params(g: &Grid) -> Result<Params, MetrologyError> {
 /// The least-squares plane z = a + b x + c y through the valid points (x = col * pitch_x,
 /// y = row * pitch_y, um), as (a, b, c); fitted on centred coordinates for conditioning.
 pub fn fit_plane(g: &Grid) -> Result<(f64, f64, f64), MetrologyError> {
+    fit_plane_rows(g.heights_um, g.sampling)
+}
+
+/// [`fit_plane`] of float32 heights on `sampling`, without a float64 copy of the map (the
+/// mesher fits the whole panorama's plane). The same sums in the same order: each height is
+/// widened exactly, so the plane is the one [`fit_plane`] gives the widened map, to the bit.
+pub fn fit_plane_f32(
+    heights_um: &[f32],
+    sampling: Sampling,
+) -> Result<(f64, f64, f64), MetrologyError> {
+    let shape = sampling.shape();
+    if shape.checked_len() != Some(heights_um.len()) {
+        return Err(ShapeError::Length {
+            shape,
+            expected: shape.len(),
+            found: heights_um.len(),
+        }
+        .into());
+    }
+    fit_plane_rows(heights_um, sampling)
+}
+
+fn fit_plane_rows<T: Copy + Into<f64> + Sync>(
+    heights_um: &[T],
+    sampling: Sampling,
+) -> Result<(f64, f64, f64), MetrologyError> {
+    let cols = sampling.cols();
+    let row_of = |r: usize| &heights_um[r * cols..(r + 1) * cols];
     // Pass 1: count and the sums of z, x, y over the valid points.
-    let [n, sz, sx, sy] = row_sums(g.rows(), |r| {
-        let row = g.row(r);
+    let [n, sz, sx, sy] = row_sums(sampling.rows(), |r| {
+        let row = row_of(r);
         let [n, sz, sx] = lanes(row.len(), |i| {
-            let z = row[i];
+            let z: f64 = row[i].into();
             let ok = !z.is_nan();
             [keep(ok, 1.0), keep(ok, z), keep(ok, i as f64)]
         });
@@ -625,11 +653,11 @@ pub fn fit_plane(g: &Grid) -> Result<(f64, f64, f64), MetrologyError> {
     }
     let (zmean, xm, ym) = (sz / n, sx / n, sy / n);
     // Pass 2: centred second moments and cross products.
-    let [sxx, sxy, syy, sxz, syz] = row_sums(g.rows(), |r| {
-        let row = g.row(r);
+    let [sxx, sxy, syy, sxz, syz] = row_sums(sampling.rows(), |r| {
+        let row = row_of(r);
         let y = r as f64 - ym;
         lanes(row.len(), |i| {
-            let z = row[i];
+            let z: f64 = row[i].into();
             let ok = !z.is_nan();
             let x = keep(ok, i as f64 - xm);
             let yv = keep(ok, y);
@@ -650,7 +678,7 @@ pub fn fit_plane(g: &Grid) -> Result<(f64, f64, f64), MetrologyError> {
         (0.0, 0.0)
     };
     // Per-pixel slopes to per-um slopes; intercept at pixel (0, 0).
-    let (b, c) = (bx / g.pitch_x_um(), by / g.pitch_y_um());
+    let (b, c) = (bx / sampling.pitch_x_um(), by / sampling.pitch_y_um());
     let a = zmean - bx * xm - by * ym;
     Ok((a, b, c))
 }
@@ -889,5 +917,37 @@ impl ParamsByRows {
             sdq,
             sdr,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The mesher fits the panorama's plane on its float32 heights: the same plane, to the
+    /// bit, as the float64 fit of the widened map (NaN holes and an odd width included).
+    #[test]
+    fn the_float32_plane_is_the_widened_maps_plane() {
+        let (rows, cols) = (37, 53);
+        let heights: Vec<f32> = (0..rows * cols)
+            .map(|k| {
+                let (r, c) = ((k / cols) as f32, (k % cols) as f32);
+                if k % 17 == 3 {
+                    f32::NAN
+                } else {
+                    0.3 + 0.011 * c - 0.007 * r + (0.9 * c).sin() * (0.4 * r).cos()
+                }
+            })
+            .collect();
+        let sampling = Sampling::new(Shape::new(rows, cols), 0.8148, 0.75).unwrap();
+        let widened: Vec<f64> = heights.iter().map(|&h| f64::from(h)).collect();
+        let wide = fit_plane(&Grid::of(&widened, sampling).unwrap()).unwrap();
+        let narrow = fit_plane_f32(&heights, sampling).unwrap();
+        assert_eq!(wide.0.to_bits(), narrow.0.to_bits());
+        assert_eq!(wide.1.to_bits(), narrow.1.to_bits());
+        assert_eq!(wide.2.to_bits(), narrow.2.to_bits());
+        assert!((wide.1 - 0.011 / 0.8148).abs() < 2e-3, "{wide:?}");
+        // A length that does not fill the sampling is refused, not read past.
+        assert!(fit_plane_f32(&heights[1..], sampling).is_err());
     }
 }
