@@ -141,6 +141,21 @@ pub struct Grid<'a> {
     sampling: Sampling,
 }
 
+/// Errors unless `len` samples fill `sampling`'s shape (an empty shape is allowed: its
+/// parameters are [`MetrologyError::NoValidPoint`], unlike [`Shape::check`]).
+fn fills(sampling: Sampling, len: usize) -> Result<(), MetrologyError> {
+    let shape = sampling.shape();
+    if shape.checked_len() == Some(len) {
+        return Ok(());
+    }
+    Err(ShapeError::Length {
+        shape,
+        expected: shape.len(),
+        found: len,
+    }
+    .into())
+}
+
 impl<'a> Grid<'a> {
     /// `rows x cols` heights at the given pitch (the pitch checked by [`Sampling::new`]).
     pub fn new(
@@ -157,15 +172,7 @@ impl<'a> Grid<'a> {
     /// Heights on `sampling`; errors unless they fill its shape (an empty map is a map: its
     /// parameters are [`MetrologyError::NoValidPoint`]).
     pub fn of(heights_um: &'a [f64], sampling: Sampling) -> Result<Self, MetrologyError> {
-        let shape = sampling.shape();
-        if shape.checked_len() != Some(heights_um.len()) {
-            return Err(ShapeError::Length {
-                shape,
-                expected: shape.len(),
-                found: heights_um.len(),
-            }
-            .into());
-        }
+        fills(sampling, heights_um.len())?;
         Ok(Self {
             heights_um,
             sampling,
@@ -620,15 +627,7 @@ pub fn fit_plane_f32(
     heights_um: &[f32],
     sampling: Sampling,
 ) -> Result<(f64, f64, f64), MetrologyError> {
-    let shape = sampling.shape();
-    if shape.checked_len() != Some(heights_um.len()) {
-        return Err(ShapeError::Length {
-            shape,
-            expected: shape.len(),
-            found: heights_um.len(),
-        }
-        .into());
-    }
+    fills(sampling, heights_um.len())?;
     fit_plane_rows(heights_um, sampling)
 }
 
