@@ -2,6 +2,9 @@
 //!
 //! The tests start the release binaries (`cargo build --release` first; `scripts/test.sh`
 //! does both), as a user would.
+//!
+//! Not for: unit tests, which live beside the code in each crate; these tests check what a
+//! user sees (processes, files, exit status, messages), so they need the built binaries.
 
 pub mod dem;
 

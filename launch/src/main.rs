@@ -1,5 +1,11 @@
 //! `surfstream`: start a node graph as processes (`launch`) or threads (`run`), or stitch a
-//! scan directory or recording in one go (`stitch`).
+//! scan directory or recording in one go (`stitch`); the single-file verbs ([`verbs`]); after a
+//! run, run.json, Table 6 from the output files, report.html and the verdict.
+//!
+//! Not for: algorithms. Each computation lives in a library (surfstream-core, surfstream-io,
+//! the node crates) that the verbs and the Python package call alike; this crate parses
+//! arguments, starts and supervises nodes, and assembles and presents what they wrote
+//! (docs/architecture.md §4, §7).
 
 mod compare_fusion;
 mod deviation;

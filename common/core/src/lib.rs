@@ -1,11 +1,17 @@
 //! surfstream-core: the types and small algorithms every surfstream crate shares, with no
-//! transport and no file formats: the frame ([`frame`]), the one raster type ([`raster`]) and
-//! the growing canvas built on it ([`canvas`]),
-//! the tile plane correction ([`plane`]), atomic output files ([`fsutil`]), ISO 25178
-//! parameters ([`metrology`]), image similarity ([`similarity`]), FFT sizes ([`fft`]), ISO 16610 filters and form removal ([`filter`]) and the
-//! AVX2 dispatch of hot loops ([`simd`]); the model-vs-measurement table (Table 6,
-//! [`deviation`]); spill files for data that need not stay in memory ([`store`]); the typed run.json and node
-//! reports ([`record`]).
+//! transport and no file formats: the frame ([`frame`]), the one raster type ([`raster`]), its
+//! sampling and checked pitch ([`sampling`]) and the growing canvas built on it ([`canvas`]),
+//! the tile plane correction ([`plane`]), ISO 25178 parameters ([`metrology`]), ISO 16610
+//! filters and form removal ([`filter`]), image similarity ([`similarity`]), the
+//! model-vs-measurement table (Table 6, [`deviation`]), FFT sizes ([`fft`]), the AVX2 dispatch
+//! of hot loops ([`simd`]), atomic output files ([`fsutil`]), spill files for data that need
+//! not stay in memory ([`store`]), the typed run.json and node reports ([`record`]) and
+//! heartbeats from long computations ([`liveness`]).
+//!
+//! Not for: moving data between processes (surfstream-runtime), reading or writing file
+//! formats (surfstream-io), or an algorithm only one node uses (that node's crate). What lives
+//! here is shared by several crates, so a change here is a change for all of them
+//! (docs/architecture.md §1, §12).
 
 pub mod canvas;
 pub mod deviation;

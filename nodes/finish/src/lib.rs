@@ -18,6 +18,9 @@
 //! Without a macro run (`--no-macro`) the rates come from the barrel kinematics' assumptions
 //! ([`setting::BarrelMachine::action`]) and each cycle runs one medium at a time ([`script`]).
 //! Plain functions; `node` is the graph node, `surfstream-finish` its process.
+//!
+//! Not for: meshing (it calls surfstream-mesher) or contact physics of its own: LIGGGHTS does
+//! the DEM; this crate writes its inputs, runs it, reads its outputs and turns them into wear.
 
 pub mod after;
 pub mod config;

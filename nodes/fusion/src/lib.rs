@@ -42,6 +42,9 @@
 //! Heights are f32 um, row-major, NaN = not measured; x grows with columns, y with rows. Bad
 //! input (wrong payload length, zero size, non-finite numbers, infinite heights, pitch <= 0)
 //! is a [`FusionError`] naming the field, never a panic.
+//!
+//! Not for: measuring where tiles sit (surfstream-matcher sends positions and planes) or
+//! separating the panorama into datum and roughness (surfstream-wavelet).
 
 pub mod chunks;
 mod error;

@@ -5,8 +5,9 @@
 //! a nominal stage position (a few pixels off), its own piston and tilt, noise and NaN
 //! dropouts. This crate measures where a tile really sits relative to a placed neighbour, and
 //! how to bring its heights to its neighbours' level. Plain functions over borrowed rasters,
-//! and one stateful type for a whole scan ([`ScanRegistration`]): no IPC, no globals; the only
-//! file read is an optional truth file for scoring feature matches.
+//! and one stateful type for a whole scan ([`ScanRegistration`]): no IPC, no globals; the files
+//! it touches are an optional truth file for scoring feature matches, the spill of the placed
+//! tiles it does not keep resident and the pair log (`nodes/<id>.pairs.jsonl`, [`pair_log`]).
 //!
 //! Conventions (DESIGN.md §2): heights are f32 micrometres, row-major, rows grow with y,
 //! columns with x, NaN = not measured. Offsets are `[x, y]` in pixels: the position of tile
@@ -155,6 +156,11 @@
 //! at 30 % overlap (the wide-strip layouts, horizontal neighbours, are the slower ones). The
 //! 2-thread pool was no faster there. [`register_pair`] builds the plans and buffers per call:
 //! under 1 ms more.
+//!
+//! # Not for
+//!
+//! Blending the tiles or writing the panorama (surfstream-fusion): this crate measures where
+//! each tile sits and how to level it, and says so in its registrations and report.
 
 pub mod detector;
 pub mod efficiency;

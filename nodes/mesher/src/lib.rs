@@ -59,6 +59,10 @@
 //! assert_eq!(stl.len() as u64, surfstream_mesher::stl::binary_stl_len(solid.triangles.len()));
 //! # Ok::<(), surfstream_mesher::MeshError>(())
 //! ```
+//!
+//! Not for: choosing or separating the surface (surfstream-wavelet makes the datum and
+//! roughness it may mesh), nor for running a DEM engine: the engines import the STL, and
+//! surfstream-finish runs LIGGGHTS on it.
 
 pub mod adaptive;
 pub mod check;

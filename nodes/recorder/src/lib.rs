@@ -4,6 +4,9 @@
 //!
 //! [`RecordingSession`] owns the file, the channels and the decision to finish; `node` is the
 //! process shell that maps the graph's messages to it.
+//!
+//! Not for: reading recordings back (surfstream-io's `recording` reads them, the replay node
+//! replays them) or choosing what is recorded (the graph's wiring does).
 
 pub mod node;
 pub mod ports;

@@ -44,6 +44,10 @@
 //! assert_eq!(truth.pairs.len(), 4);
 //! # Ok::<(), surfstream_replay::ReplayError>(())
 //! ```
+//!
+//! Not for: registering, blending or judging the tiles (the matcher onwards), nor for parsing
+//! instrument files (surfstream-io reads them; this crate lays them out as a scan and sends
+//! them).
 
 pub mod acquire;
 pub mod error;

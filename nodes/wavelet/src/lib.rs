@@ -1,5 +1,5 @@
 //! surfstream-wavelet: the algorithms of the wavelet node, as plain functions over in-memory
-//! row-major rasters (no IPC, no files, no globals).
+//! row-major rasters (no IPC, no globals; files only for spills, below).
 //!
 //! * [`wavedec2`] / [`waverec2`]: multilevel 2-D discrete wavelet transform with PyWavelets'
 //!   semantics (coefficient layout, lengths, border modes, odd-size trimming), for the
@@ -39,6 +39,12 @@
 //! assert_eq!((p.rows, p.cols), (16, 20));
 //! # Ok::<(), surfstream_wavelet::WaveletError>(())
 //! ```
+//!
+//! Not for: the ISO 16610 filters themselves (surfstream-core's `filter`; this crate runs them
+//! as separation methods), meshing (surfstream-mesher) or judging the model against the
+//! measurement (Table 6, surfstream-core's `deviation`). Files only where memory is bounded:
+//! the streamed pass keeps levels larger than 8 MiB in spill files and hands its outputs row by
+//! row to a [`SeparationSink`], and the live mirror spills chunks under a memory budget.
 
 mod dwt;
 mod error;
