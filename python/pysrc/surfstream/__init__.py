@@ -471,9 +471,10 @@ class Surface:
 
 def read(path: PathLike, pitch_um: Optional[Pitch] = None) -> Surface:
     """Reads a height-map file (any format the CLI reads: .datx .dat .x3p .sur .plu .vk4
-    .opd .zmg .nms .gsf .gwy .sdf .tmd .al3d .xyz/.txt/.csv/.asc .npy) into a Surface, heights
-    in um. ``pitch_um`` is for files that carry no pitch (.npy); without it such files get
-    1 um with a warning, and giving it for a file that has one is an error (as the CLI).
+    .opd .zmg .nms .gsf .gwy .sdf .tmd .al3d .frt .mnt .di .spm .xyz/.txt/.csv/.asc .npy) into
+    a Surface, heights in um. ``pitch_um`` is for files that carry no pitch (.npy); without it
+    such files get 1 um with a warning, and giving it for a file that has one is an error (as
+    the CLI).
 
     Raises PathError (missing path), FormatError (unsupported extension or a file its reader
     refuses), with the CLI's message. Reader warnings become SurfstreamWarning.

@@ -44,6 +44,12 @@ impl<'a> Bytes<'a> {
     pub fn f32_be(&self, o: usize, f: &str) -> Result<f32> {
         Ok(f32::from_be_bytes(self.array(o, f)?))
     }
+    pub fn u16_le(&self, o: usize, f: &str) -> Result<u16> {
+        Ok(u16::from_le_bytes(self.array(o, f)?))
+    }
+    pub fn u64_le(&self, o: usize, f: &str) -> Result<u64> {
+        Ok(u64::from_le_bytes(self.array(o, f)?))
+    }
     pub fn i16_le(&self, o: usize, f: &str) -> Result<i16> {
         Ok(i16::from_le_bytes(self.array(o, f)?))
     }

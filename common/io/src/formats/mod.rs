@@ -29,6 +29,11 @@ pub mod gwy;
 pub mod sdf;
 pub mod tmd;
 
+// Issue 35, "Formats": FRT MicroProf, MountainsMap documents, Bruker Nanoscope.
+pub mod di;
+pub mod frt;
+pub mod mnt;
+
 use std::collections::BTreeMap;
 use std::path::Path;
 
@@ -52,7 +57,7 @@ pub struct Surface {
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
 pub struct Metadata {
     /// Reader that produced the surface: "npy", "datx", "metropro", "x3p", "sur", "xyz",
-    /// "plu", "vk4", "opd", "zmg".
+    /// "plu", "vk4", "opd", "zmg", "frt", "mnt", ...
     pub format: String,
     /// False when the file carries no lateral calibration (e.g. .npy): pitch is then 1 um
     /// unless the caller supplies one.
@@ -130,6 +135,11 @@ pub enum Format {
     Sdf,
     Tmd,
     Al3d,
+    // Issue 35.
+    Frt,
+    Mnt,
+    /// Bruker / Veeco Nanoscope (`.di`, `.spm`).
+    Di,
     /// TIFF: ours (float32 um, pitch in the description) or another height TIFF.
     Tif,
 }
@@ -138,7 +148,7 @@ pub enum Format {
 /// them: keep in step with its match.
 pub const EXTENSIONS: &[&str] = &[
     "npy", "datx", "dat", "x3p", "sur", "xyz", "txt", "csv", "asc", "plu", "vk4", "opd", "zmg",
-    "nms", "gsf", "gwy", "sdf", "tmd", "al3d", "tif", "tiff",
+    "nms", "gsf", "gwy", "sdf", "tmd", "al3d", "frt", "mnt", "di", "spm", "tif", "tiff",
 ];
 
 impl Format {
@@ -166,9 +176,12 @@ impl Format {
             "sdf" => Format::Sdf,
             "tmd" => Format::Tmd,
             "al3d" => Format::Al3d,
+            "frt" => Format::Frt,
+            "mnt" => Format::Mnt,
+            "di" | "spm" => Format::Di,
             "tif" | "tiff" => Format::Tif,
             other => bail!(
-                "{}: unsupported height-map format '.{other}' (expected .npy, .datx, .dat, .x3p, .sur, .xyz/.txt/.csv/.asc, .plu, .vk4, .opd, .zmg, .nms, .gsf, .gwy, .sdf, .tmd, .al3d, .tif/.tiff)",
+                "{}: unsupported height-map format '.{other}' (expected .npy, .datx, .dat, .x3p, .sur, .xyz/.txt/.csv/.asc, .plu, .vk4, .opd, .zmg, .nms, .gsf, .gwy, .sdf, .tmd, .al3d, .frt, .mnt, .di/.spm, .tif/.tiff)",
                 path.display()
             ),
         })
@@ -212,6 +225,9 @@ pub fn parse_surface(data: &[u8], format: Format) -> Result<Surface> {
         Format::Sdf => sdf::parse(data)?,
         Format::Tmd => tmd::parse(data)?,
         Format::Al3d => al3d::parse(data)?,
+        Format::Frt => frt::parse(data)?,
+        Format::Mnt => mnt::parse(data)?,
+        Format::Di => di::parse(data)?,
         Format::Tif => crate::tiff::parse(data)?,
         Format::Npy => bail!(".npy is read from a path (read_surface)"),
     };
