@@ -128,7 +128,8 @@ fn run_prints_progress_and_a_verdict_and_strict_fails_on_a_failed_check() {
     let sa = run_json["deviation"]["stages"]["pooled"]["regions"]["panorama"]["measured"]["Sa"]
         .as_f64()
         .unwrap();
-    assert!(text.contains(&format!("Sa {sa:.3} um")), "{text}");
+    let sa_text = surfstream_core::units::height(sa);
+    assert!(text.contains(&format!("Sa {sa_text},")), "{text}");
     assert!(
         !text.contains("latency"),
         "latency only with --verbose:\n{text}"

@@ -5,7 +5,8 @@
 //! parameters ([`metrology`]), image similarity ([`similarity`]), FFT sizes ([`fft`]), ISO 16610 filters and form removal ([`filter`]) and the
 //! AVX2 dispatch of hot loops ([`simd`]); the model-vs-measurement table (Table 6,
 //! [`deviation`]); spill files for data that need not stay in memory ([`store`]); the typed run.json and node
-//! reports ([`record`]).
+//! reports ([`record`]); numbers as a person reads them: significant figures, heights in nm
+//! below 1 µm ([`units`]).
 
 pub mod canvas;
 pub mod deviation;
@@ -22,6 +23,7 @@ pub mod sampling;
 pub mod simd;
 pub mod similarity;
 pub mod store;
+pub mod units;
 
 pub use frame::{flags, FrameHeader, FrameKind, FrameView, HeightMap, TileRegistration};
 pub use plane::PlaneCorrection;
