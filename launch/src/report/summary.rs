@@ -364,9 +364,9 @@ pub fn key_parameters(s: &Surfaces) -> String {
     // The first nine from Params::named (in its order), then the Sk family. Each cell carries
     // its unit: heights have 3 significant figures and read in nm below 1 µm.
     type Get = Option<fn(&FunctionalParams) -> f64>;
-    let (height, ratio, pct): (fn(f64) -> String, fn(f64) -> String, fn(f64) -> String) =
-        (um, |v| sig(v, 3), percent);
-    let what: [(&str, &str, fn(f64) -> String, Get); 14] = [
+    type Show = fn(f64) -> String;
+    let (height, ratio, pct): (Show, Show, Show) = (um, |v| sig(v, 3), percent);
+    let what: [(&str, &str, Show, Get); 14] = [
         ("Sa", "arithmetic mean height", height, None),
         ("Sq", "root mean square height", height, None),
         ("Sp", "maximum peak height", height, None),
