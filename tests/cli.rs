@@ -128,7 +128,8 @@ fn run_prints_progress_and_a_verdict_and_strict_fails_on_a_failed_check() {
     let sa = run_json["deviation"]["stages"]["pooled"]["regions"]["panorama"]["measured"]["Sa"]
         .as_f64()
         .unwrap();
-    assert!(text.contains(&format!("Sa {sa:.3} um")), "{text}");
+    let sa_text = surfstream_core::units::height(sa);
+    assert!(text.contains(&format!("Sa {sa_text},")), "{text}");
     assert!(
         !text.contains("latency"),
         "latency only with --verbose:\n{text}"
@@ -374,6 +375,32 @@ fn stitch_shows_progress_from_the_manifest_and_warns_of_an_assumed_height_unit()
     let text = stdout(&out);
     assert!(text.contains("1 x 2 tiles (rows x cols)"), "{text}");
     assert!(text.contains("verdict: "), "{text}");
+    // --height-unit states the unit of a folder of tiles without scan.toml (the Python
+    // stitch(arrays, height_unit=) test runs it); a scan with its manifest says it there, and
+    // an unknown unit is refused before anything runs.
+    for (unit, said) in [
+        (
+            "nm",
+            "has its own manifest: state the unit there ([scan] height_unit)",
+        ),
+        (
+            "inch",
+            "--height-unit \"inch\": expected one of um, nm, mm, m",
+        ),
+    ] {
+        let out = run({
+            let mut c = surfstream();
+            c.arg("stitch")
+                .arg(&scan)
+                .args(["--height-unit", unit, "-o"])
+                .arg(dir.path().join(unit));
+            c
+        });
+        let err = stderr(&out);
+        assert_eq!(out.status.code(), Some(1), "{err}");
+        assert!(err.contains(said), "{err}");
+        assert!(!dir.path().join(unit).exists(), "{err}");
+    }
 }
 
 /// On a terminal the progress lines come with an indicatif bar (and its ETA) that is cleared

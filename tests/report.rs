@@ -118,10 +118,18 @@ fn report_is_one_self_contained_page_with_every_section() {
     } else {
         "<div class=\"verdict fail\"><b>FAIL</b>"
     }));
-    // Key parameters of the panorama with fixed precision (3 decimals in um).
-    assert!(
-        html.contains("<td class=\"k\"><b>Sa</b></td><td>arithmetic mean height</td><td>µm</td>")
-    );
+    // Key parameters of the panorama with 3 significant figures and their unit (nm below
+    // 1 µm).
+    let sa_row = "<td class=\"k\"><b>Sa</b></td><td>arithmetic mean height</td><td>";
+    let sa = html
+        .split_once(sa_row)
+        .and_then(|(_, rest)| rest.split_once("</td>"))
+        .map(|(cell, _)| cell)
+        .expect("the key parameters' Sa row");
+    let (number, unit) = sa.split_once(' ').expect("a value and its unit");
+    assert!(unit == "µm" || unit == "nm", "{sa}");
+    let figures = number.trim_start_matches(['-', '0', '.']).replace('.', "");
+    assert_eq!(figures.len(), 3, "3 significant figures: {sa}");
     // Four maps as inline PNGs inside SVG figures with axes, colour bar and "not measured".
     for name in ["panorama", "datum", "roughness", "pooled"] {
         assert!(

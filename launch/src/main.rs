@@ -135,6 +135,11 @@ enum Command {
         /// sidecar); refused when it disagrees with the tiles' own (the rule of every verb).
         #[arg(long, requires = "grid")]
         pitch_um: Option<f64>,
+        /// For a folder of tiles without scan.toml: the unit of heights in tiles that carry
+        /// none (.npy, .xyz): um, nm, mm or m (written to the inferred scan.toml's [scan]
+        /// height_unit; without it such heights are taken as um, with a warning).
+        #[arg(long, value_name = "UNIT")]
+        height_unit: Option<String>,
         /// Replace an existing output directory even though it is not a surfstream run (its
         /// files are deleted). The scan's own folder is never accepted as OUT.
         #[arg(long)]
@@ -240,12 +245,30 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             overlap,
             serpentine,
             pitch_um,
+            height_unit,
             force,
             verdict,
             view,
         } => {
             let started = std::time::Instant::now();
             refuse_single_file_scan(&scan)?;
+            let inferred = grid.is_some() || (scan.is_dir() && !scan.join("scan.toml").exists());
+            if let Some(unit) = &height_unit {
+                if surfstream_replay::scan_dir::unit_scale(unit).is_none() {
+                    bail!(
+                        "--height-unit {unit:?}: expected one of {}",
+                        surfstream_replay::scan_dir::HEIGHT_UNITS
+                    );
+                }
+                if !inferred {
+                    bail!(
+                        "--height-unit is for a folder of tiles without scan.toml; {} has its \
+                         own manifest: state the unit there ([scan] height_unit)",
+                        scan.display()
+                    );
+                }
+            }
+            let height_unit = height_unit.as_deref();
             // The scan's folder (or the recording) is never the out dir nor inside it.
             let scan_input = if scan.is_dir() {
                 scan.clone()
@@ -268,10 +291,13 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                 claim.force = false;
             }
             let scan = match (grid, overlap) {
-                (Some(g), Some(o)) => infer_scan(&scan, &out, g, o, serpentine, pitch_um)?,
+                (Some(g), Some(o)) => {
+                    let layout = (g, o, serpentine);
+                    infer_scan(&scan, &out, layout, pitch_um, height_unit)?
+                }
                 // A folder of tiles without a manifest: the layout from the files' stage positions.
                 (None, None) if scan.is_dir() && !scan.join("scan.toml").exists() => {
-                    infer_scan_from_positions(&scan, &out, pitch_um)?
+                    infer_scan_from_positions(&scan, &out, pitch_um, height_unit)?
                 }
                 _ => scan,
             };
@@ -624,10 +650,13 @@ fn warn_assumed_height_unit(manifest: &std::path::Path) {
 fn infer_scan(
     dir: &std::path::Path,
     out: &std::path::Path,
-    grid: surfstream_replay::infer::TileGrid,
-    overlap: surfstream_replay::infer::Overlap,
-    serpentine: bool,
+    (grid, overlap, serpentine): (
+        surfstream_replay::infer::TileGrid,
+        surfstream_replay::infer::Overlap,
+        bool,
+    ),
     pitch_um: Option<f64>,
+    height_unit: Option<&str>,
 ) -> Result<PathBuf> {
     if !dir.is_dir() {
         anyhow::bail!("{}: --grid needs a folder of tiles", dir.display());
@@ -645,7 +674,7 @@ fn infer_scan(
         overlap_y: overlap.0,
         serpentine,
     };
-    let text = surfstream_replay::infer::infer_manifest(dir, &layout, pitch_um)?;
+    let text = surfstream_replay::infer::infer_manifest(dir, &layout, pitch_um, height_unit)?;
     let manifest = write_inferred_manifest(out, &text)?;
     eprintln!(
         "stitch: {} tiles as {} x {} (rows x cols){}, inferred manifest {}",
@@ -664,9 +693,10 @@ fn infer_scan_from_positions(
     dir: &std::path::Path,
     out: &std::path::Path,
     pitch_um: Option<f64>,
+    height_unit: Option<&str>,
 ) -> Result<PathBuf> {
     let (text, rows, cols) =
-        surfstream_replay::infer::infer_manifest_from_positions(dir, pitch_um)?;
+        surfstream_replay::infer::infer_manifest_from_positions(dir, pitch_um, height_unit)?;
     let manifest = write_inferred_manifest(out, &text)?;
     eprintln!(
         "stitch: {} tiles as {rows} x {cols} (rows x cols) from the stage positions in the files, \

@@ -4,8 +4,9 @@
 //! limit) and the tiles placed by stage fallback. Built from run.json alone, so it says
 //! exactly what the file says; latency tables only with `--verbose` (and in report.html).
 //!
-//! Numbers: heights in um with 3 decimals, positions in um with 2, percentages with 2, times
-//! in ms with 2: never scientific notation.
+//! Numbers: heights with 3 significant figures, in nm below 1 um ([`surfstream_core::units`]:
+//! a smooth map's Sa reads "5.12 nm", not "0.005 um"); deviations in % with 2 decimals,
+//! times in ms with 2.
 
 use std::fmt::Write as _;
 use std::path::Path;
@@ -28,9 +29,9 @@ pub struct Verdict {
     pub failures: Vec<String>,
 }
 
-/// A height (or length) in um with fixed precision: "1.384 um".
+/// A height (or length) with 3 significant figures, nm below 1 um: "1.38 um", "5.12 nm".
 pub fn um(v: f64) -> String {
-    format!("{v:.3} um")
+    surfstream_core::units::height(v)
 }
 
 /// A count with thin grouping for readability: 27850 -> "27 850".
@@ -464,10 +465,11 @@ fn model_line(run: &RunRecord) -> Option<(String, bool)> {
     let pointwise = (t.region_fits.iter())
         .filter_map(|w| Some((w, w.max_error_um?, w.max_error_pct_of_sq?)))
         .max_by(|a, b| a.2.total_cmp(&b.2));
-    if let Some((w, um, pct)) = pointwise {
+    if let Some((w, error_um, pct)) = pointwise {
         let _ = write!(
             line,
-            "; max pointwise error {um:.3} um ({pct:.1} % of Sq) in {}",
+            "; max pointwise error {} ({pct:.1} % of Sq) in {}",
+            um(error_um),
             w.region
         );
     }
@@ -639,11 +641,16 @@ mod tests {
     }
 
     #[test]
-    fn a_passing_run_names_parameters_mesh_and_outputs_in_fixed_precision() {
+    fn a_passing_run_names_parameters_mesh_and_outputs_in_significant_figures() {
         let v = verdict(&record(run_json(true, false)), Path::new("/o"), false);
         assert!(v.failures.is_empty(), "{:?}", v.failures);
         let t = &v.text;
-        assert!(t.contains("Sa 1.363 um, Sq 1.700 um, Sz 14.190 um"), "{t}");
+        assert!(t.contains("Sa 1.36 um, Sq 1.70 um, Sz 14.2 um"), "{t}");
+        // The mesh's max error and bound below 1 um: in nm.
+        assert!(
+            t.contains("max vertical error 79.9 nm (bound 80.0 nm)"),
+            "{t}"
+        );
         assert!(
             t.contains("of panorama.npy, 487 x 486 px (rows x cols), mean removed"),
             "{t}"
@@ -792,7 +799,7 @@ mod tests {
             "{t}"
         );
         assert!(
-            t.contains("; max pointwise error 0.767 um (44.2 % of Sq) in W2.1"),
+            t.contains("; max pointwise error 767 nm (44.2 % of Sq) in W2.1"),
             "{t}"
         );
     }
@@ -916,7 +923,9 @@ mod tests {
         assert_eq!(count(999), "999");
         assert_eq!(count(1000), "1 000");
         assert_eq!(count(1234567), "1 234 567");
-        assert_eq!(um(1.3630563293), "1.363 um");
+        assert_eq!(um(1.3630563293), "1.36 um");
+        // A MetroPro 3 x 3's Sa read "0.005 um" at three decimals.
+        assert_eq!(um(0.0051234), "5.12 nm");
     }
 
     #[test]

@@ -167,7 +167,12 @@ fn filter_grid(
 /// Reads a height-map file: (heights um, pitch x um, pitch y um, metadata as JSON).
 #[pyfunction]
 fn read(py: Python<'_>, path: PathBuf) -> PyResult<(Bound<'_, PyArray2<f64>>, f64, f64, String)> {
-    let s = py.detach(|| read_surface(&path).map_err(read_failure))?;
+    // A folder: the CLI's message, naming `read` (PathError).
+    let s = py.detach(|| {
+        surfstream_io::input::not_a_folder(&path, "read")
+            .and_then(|()| read_surface(&path))
+            .map_err(read_failure)
+    })?;
     let meta = serde_json::to_string(&s.metadata).map_err(|e| Failure::new(Kind::Other, e))?;
     let (px, py_) = (s.pitch_x_um, s.pitch_y_um);
     Ok((
@@ -435,7 +440,7 @@ struct SeparationSummary {
 /// Datum / roughness separation, the `separate` verb's function ([`separate_map`]): (datum um absolute,
 /// roughness um, summary JSON, warnings).
 #[pyfunction]
-#[pyo3(signature = (heights_um, pitch_x_um, pitch_y_um, method="wavelet", wavelet="sym5", level="8", mode="symmetric", cutoff_um=None, lambda_s_um=None))]
+#[pyo3(signature = (heights_um, pitch_x_um, pitch_y_um, method="wavelet", wavelet="sym5", level=None, mode="symmetric", cutoff_um=None, lambda_s_um=None))]
 #[allow(clippy::too_many_arguments, clippy::type_complexity)]
 fn separate<'py>(
     py: Python<'py>,
@@ -444,7 +449,7 @@ fn separate<'py>(
     pitch_y_um: f64,
     method: &str,
     wavelet: &str,
-    level: &str,
+    level: Option<&str>,
     mode: &str,
     cutoff_um: Option<f64>,
     lambda_s_um: Option<f64>,
@@ -459,7 +464,11 @@ fn separate<'py>(
     let method = SeparationMethod::parse(method, cutoff_um).map_err(bad)?;
     // One parser per option, shared with the CLI and the wavelet node.
     let base: BaseChoice = wavelet.parse().map_err(|e| bad(format!("wavelet {e}")))?;
-    let level: LevelChoice = level.parse().map_err(|e| bad(format!("level {e}")))?;
+    // None: 8, or the deepest level that fits the map, silently (the verb's default).
+    let level: LevelChoice = match level {
+        Some(level) => level.parse().map_err(|e| bad(format!("level {e}")))?,
+        None => LevelChoice::Default,
+    };
     let mode: Mode = mode.parse().map_err(|e| bad(format!("mode {e}")))?;
     // The verb's defaults for what Python does not return (the pooled map), so that the
     // summary is the verb's and the node's.
@@ -720,6 +729,13 @@ fn preview_png<'py>(
     Ok(png.map(|(bytes, (lo, hi))| (PyBytes::new(py, &bytes), lo, hi)))
 }
 
+/// A height in um as the CLI prints it: 3 significant figures, nm below 1 um
+/// (surfstream_core::units::height: "5.12 nm", "1.27 um"), for the reprs.
+#[pyfunction]
+fn height_text(v_um: f64) -> String {
+    surfstream_core::units::height(v_um)
+}
+
 /// Every extension the readers take (lower case, no dot).
 #[pyfunction]
 fn readable_extensions() -> Vec<&'static str> {
@@ -742,6 +758,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(psd, m)?)?;
     m.add_function(wrap_pyfunction!(preview_png, m)?)?;
     m.add_function(wrap_pyfunction!(readable_extensions, m)?)?;
+    m.add_function(wrap_pyfunction!(height_text, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
 }

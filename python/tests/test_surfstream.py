@@ -232,6 +232,25 @@ def test_missing_path_raises_path_error_with_cli_message(tmp_path):
 
 
 @needs_cli
+def test_a_folder_raises_path_error_with_the_cli_message(tmp_path):
+    with pytest.raises(ss.PathError) as e:
+        ss.read(tmp_path)
+    msg = str(e.value)
+    assert msg.startswith(f"{tmp_path}: is a folder; read takes one height-map file (.npy"), msg
+    assert "unsupported" not in msg
+    # The CLI's verbs say the same, naming themselves.
+    assert cli_error("inspect", tmp_path) == msg.replace("; read takes", "; inspect takes")
+
+
+def test_the_namespace_is_the_api():
+    names = dir(ss)
+    for stray in ("Any", "Dict", "np", "os", "json", "html", "warnings", "b64encode"):
+        assert stray not in names
+    assert set(ss.__all__) <= set(names) and "read" in names and "Surface" in names
+    assert all(hasattr(ss, n) for n in ss.__all__)
+
+
+@needs_cli
 def test_unsupported_format_raises_format_error_with_cli_message(tmp_path):
     f = tmp_path / "map.foo"
     f.write_bytes(b"\x00" * 64)
@@ -343,7 +362,12 @@ def test_wavelet_datum_against_pywavelets():
 def test_level_lowered_warns():
     s = ss.Surface(np.random.default_rng(2).normal(size=(64, 64)), 1.0)
     with pytest.warns(ss.SurfstreamWarning):
-        s.separate(level=8)
+        explicit, _ = s.separate(level=8)
+    # The default (8, or the deepest level that fits) is lowered silently, to the same level.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ss.SurfstreamWarning)
+        default, _ = s.separate()
+    assert default.metadata["separation"]["level"] == explicit.metadata["separation"]["level"] < 8
 
 
 def test_filters_and_form():
@@ -464,7 +488,13 @@ def test_repr_html_has_shape_pitch_parameters_and_image():
     p = s.params()
     assert "30 x 40 (rows x cols)" in h and "0.5 x 0.25 um" in h
     for k in ("Sa", "Sq", "Sz"):
-        assert f"{p[k]:.6g} um" in h
+        assert f">{k}</th><td style='text-align:left'>{ss._native.height_text(p[k])}</td>" in h
+    # Heights below 1 um in nm, 3 significant figures (a MetroPro 3 x 3 read "0.005 um"):
+    # +-5.12 nm in a checkerboard has Sa = Sq = 5.12 nm, Sz = 10.24 nm.
+    z = np.where(np.indices((6, 6)).sum(axis=0) % 2 == 0, 0.00512, -0.00512)
+    h = ss.Surface(z, 1.0)._repr_html_()
+    for k, text in (("Sa", "5.12 nm"), ("Sq", "5.12 nm"), ("Sz", "10.2 nm")):
+        assert f">{k}</th><td style='text-align:left'>{text}</td>" in h, h
     assert "data:image/png;base64," in h
     png = s.preview_png()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
@@ -498,7 +528,14 @@ def test_stitch_arrays_with_a_grid(tmp_path, monkeypatch):
     spec = spec / spec.std()
     tile, step = 240, 180  # 25 % overlap
     tiles = [spec[r * step : r * step + tile, c * step : c * step + tile] for r in range(2) for c in range(2)]
-    res = ss.stitch(tiles, out=tmp_path / "out", grid=(2, 2), overlap=0.25, pitch_um=0.5)
+    # Arrays carry no unit: without height_unit they are taken as um, said.
+    with pytest.warns(ss.SurfstreamWarning, match="heights taken as um"):
+        ss.stitch(tiles, out=tmp_path / "assumed", grid=(2, 2), overlap=0.25, pitch_um=0.5)
+    # Stated (here in nm): no warning, and the panorama is in um.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ss.SurfstreamWarning)
+        nm = [t * 1000.0 for t in tiles]
+        res = ss.stitch(nm, out=tmp_path / "out", grid=(2, 2), overlap=0.25, pitch_um=0.5, height_unit="nm")
     pano, regs = res
     assert isinstance(pano, ss.Surface)
     assert pano.pitch_um == (0.5, 0.5)

@@ -5,8 +5,9 @@
 //! filters and form removal ([`filter`]), image similarity ([`similarity`]), the
 //! model-vs-measurement table (Table 6, [`deviation`]), FFT sizes ([`fft`]), the AVX2 dispatch
 //! of hot loops ([`simd`]), atomic output files ([`fsutil`]), spill files for data that need
-//! not stay in memory ([`store`]), the typed run.json and node reports ([`record`]) and
-//! heartbeats from long computations ([`liveness`]).
+//! not stay in memory ([`store`]), the typed run.json and node reports ([`record`]),
+//! heartbeats from long computations ([`liveness`]) and numbers as a person reads them:
+//! significant figures, heights in nm below 1 µm ([`units`]).
 //!
 //! Not for: moving data between processes (surfstream-runtime), reading or writing file
 //! formats (surfstream-io), or an algorithm only one node uses (that node's crate). What lives
@@ -28,6 +29,7 @@ pub mod sampling;
 pub mod simd;
 pub mod similarity;
 pub mod store;
+pub mod units;
 
 pub use frame::{flags, FrameHeader, FrameKind, FrameView, HeightMap, TileRegistration};
 pub use plane::PlaneCorrection;

@@ -59,6 +59,42 @@ pub fn check_regular_file(path: &Path, expected: &str) -> Result<()> {
     }
 }
 
+/// The readable extensions as every message lists them: ".npy, .datx, ...".
+pub fn readable_list() -> String {
+    crate::formats::EXTENSIONS
+        .iter()
+        .map(|e| format!(".{e}"))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// Refuses a folder given where `taker` (a verb, Python's `read`) reads one height-map file:
+/// "DIR: is a folder; inspect takes one height-map file (.npy, ...)", with `stitch` named when
+/// it holds a scan.toml, instead of the extension's "unsupported format '.'". The CLI's verbs,
+/// [`crate::formats::read_surface`] and Python say it with this one message. The error is an
+/// `IsADirectory` I/O error (Python's PathError).
+pub fn not_a_folder(path: &Path, taker: &str) -> Result<()> {
+    if !path.is_dir() {
+        return Ok(());
+    }
+    let hint = if path.join("scan.toml").is_file() {
+        format!(
+            " (it holds a scan: stitch it with `surfstream stitch {} -o OUT`)",
+            path.display()
+        )
+    } else {
+        String::new()
+    };
+    // An I/O error of kind IsADirectory that is the message itself (no ": is a directory"
+    // appended by `{:#}`).
+    let msg = format!(
+        "{}: is a folder; {taker} takes one height-map file ({}){hint}",
+        path.display(),
+        readable_list()
+    );
+    Err(std::io::Error::new(std::io::ErrorKind::IsADirectory, msg).into())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -96,5 +132,30 @@ mod tests {
             );
             assert!(e.starts_with(&path.display().to_string()), "{e}");
         }
+    }
+
+    #[test]
+    fn a_folder_is_named_with_what_reads_one_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let e = not_a_folder(dir.path(), "read").unwrap_err();
+        let text = format!("{e:#}");
+        assert!(
+            text.starts_with(&format!(
+                "{}: is a folder; read takes one height-map file (.npy, .datx",
+                dir.path().display()
+            )) && text.ends_with(".tiff)"),
+            "{text}"
+        );
+        let io = e.chain().find_map(|c| c.downcast_ref::<std::io::Error>());
+        assert_eq!(
+            io.map(std::io::Error::kind),
+            Some(std::io::ErrorKind::IsADirectory)
+        );
+        std::fs::write(dir.path().join("scan.toml"), "").unwrap();
+        let text = not_a_folder(dir.path(), "read").unwrap_err().to_string();
+        assert!(text.contains("stitch it with `surfstream stitch"), "{text}");
+        let file = dir.path().join("scan.toml");
+        assert!(not_a_folder(&file, "read").is_ok());
+        assert!(not_a_folder(&dir.path().join("none.x3p"), "read").is_ok());
     }
 }

@@ -131,8 +131,9 @@ pub(super) fn binned_material_ratio_curve(
 }
 
 /// The radially averaged PSD, log-log, against wavelength (long wavelengths left).
-/// `wavelet_scale_um`: the scale of the wavelet level that split datum from roughness.
-pub fn psd(s: &Surface, wavelet_scale: Option<(u64, f64)>) -> Option<String> {
+/// `wavelet_cutoff`: the wavelet level that split datum from roughness and its equivalent
+/// cutoff (µm, run.json's `equivalent_cutoff_um`).
+pub fn psd(s: &Surface, wavelet_cutoff: Option<(u64, f64)>) -> Option<String> {
     let bins = radial_psd(&s.z, s.rows, s.cols, s.pitch_x_um, s.pitch_y_um, 48);
     let pts: Vec<(f64, f64)> = bins
         .iter()
@@ -189,26 +190,28 @@ pub fn psd(s: &Surface, wavelet_scale: Option<(u64, f64)>) -> Option<String> {
             length(2.0 * s.pitch_x_um.max(s.pitch_y_um)),
         );
     }
-    if let Some((level, scale_um)) = wavelet_scale {
-        let x = panel.px(scale_um);
+    if let Some((level, cutoff_um)) = wavelet_cutoff {
+        let x = panel.px(cutoff_um);
+        // 4 significant figures, as the separate verb and the level warning state it.
+        let cutoff = format!("{} µm", super::html::sig(cutoff_um, 4));
         if (panel.x..=panel.x + panel.w).contains(&x) {
             let _ = write!(
                 g,
                 "<line x1=\"{x:.1}\" y1=\"{:.1}\" x2=\"{x:.1}\" y2=\"{:.1}\" stroke=\"#e4572e\" \
                  stroke-dasharray=\"6,4\" stroke-width=\"1.5\"/><text x=\"{:.1}\" y=\"{:.1}\" \
-                 class=\"tick\" fill=\"#e4572e\">2^{level} px = {}</text>",
+                 class=\"tick\" fill=\"#e4572e\">level {level}: {}</text>",
                 panel.y,
                 panel.y + panel.h,
                 x + 4.0,
                 panel.y + 16.0,
-                length(scale_um)
+                cutoff
             );
             let _ = write!(
                 note,
-                " Dashed: the scale of wavelet level {level} (2^{level} pitches = {}), where \
-                 the datum / roughness separation splits the surface (approximately: a \
-                 wavelet band is an octave wide).",
-                length(scale_um)
+                " Dashed: the equivalent cutoff of wavelet level {level} ({cutoff}, where the \
+                 datum passes 50 % amplitude; run.json's equivalent_cutoff_um): longer \
+                 wavelengths go to the datum, shorter to the roughness (the transition is \
+                 about an octave wide).",
             );
         }
     }
@@ -223,4 +226,41 @@ pub fn psd(s: &Surface, wavelet_scale: Option<(u64, f64)>) -> Option<String> {
         length(wl_hi),
         um(2.0 * s.pitch_x_um.max(s.pitch_y_um)),
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_psd_marks_the_wavelet_level_at_its_equivalent_cutoff() {
+        // 512 x 512 at 0.8148 um: wavelengths from ~1.6 to ~420 um, the demo's 208.9 um cutoff
+        // among them (the level's 2^7 pitches would be 104.3 um).
+        let (rows, cols, pitch) = (512, 512, 0.8148);
+        let z: Vec<f64> = (0..rows * cols)
+            .map(|i| {
+                let (r, c) = ((i / cols) as f64, (i % cols) as f64);
+                (c * 0.37).sin() + (r * 0.11).cos() * 2.0 + (r * c * 0.001).sin()
+            })
+            .collect();
+        let s = Surface {
+            name: "panorama",
+            z,
+            rows,
+            cols,
+            pitch_x_um: pitch,
+            pitch_y_um: pitch,
+            block: 1,
+            file_shape: (rows, cols),
+        };
+        let f = psd(&s, Some((7, 208.861))).unwrap();
+        assert!(f.contains(">level 7: 208.9 µm</text>"), "{f}");
+        assert!(
+            f.contains(
+                "equivalent cutoff of wavelet level 7 (208.9 µm, where the datum passes 50 %"
+            ),
+            "{f}"
+        );
+        assert!(!f.contains("104.3"), "{f}");
+    }
 }

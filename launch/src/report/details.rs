@@ -9,8 +9,9 @@ use serde_json::Value;
 use surfstream_core::record::{
     LevelledParams, MatcherPair, MeshReport, Percentiles, RunRecord, ScanRecord, TileRecord,
 };
+use surfstream_core::units::percent;
 
-use super::html::{esc, fixed, num, table, table_raw, um};
+use super::html::{esc, fixed, num, pitch, table, table_raw, um};
 
 /// Stage vs registered tile positions (an SVG to scale) and a table per tile.
 pub fn tile_layout(run: &RunRecord) -> String {
@@ -189,7 +190,7 @@ pub fn mesh(run: &RunRecord) -> String {
             // The mesher's grid_px is [cols, rows].
             format!("{} x {}", m.grid_px[1], m.grid_px[0]),
         ),
-        ("pitch", um(m.pitch_um[0])),
+        ("pitch", pitch(m.pitch_um[0])),
         ("base depth", m.base_depth_um.map(um).unwrap_or("-".into())),
         (
             "not-measured samples filled",
@@ -230,13 +231,7 @@ pub fn mesh(run: &RunRecord) -> String {
                 };
                 let show = |v: Option<f64>| {
                     v.filter(|x| !x.is_nan())
-                        .map(|x| {
-                            if *label == "Sdr" {
-                                format!("{} %", fixed(x, 3))
-                            } else {
-                                um(x)
-                            }
-                        })
+                        .map(|x| if *label == "Sdr" { percent(x) } else { um(x) })
                         .unwrap_or("-".into())
                 };
                 vec![

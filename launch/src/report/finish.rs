@@ -15,7 +15,7 @@ use serde_json::Value;
 use surfstream_core::record::RunRecord;
 use surfstream_finish::summary::FinishSummary;
 
-use super::html::esc;
+use super::html::{esc, um};
 
 /// The folders of `out` where a finish node wrote: its `dir` parameter (run.json
 /// `parameters.ID.dir`, "finish" by default) holding finish.json and wear.npy; in name order.
@@ -87,7 +87,7 @@ fn render(dir: &Path, rel: &str) -> Result<String> {
     let _ = write!(
         h,
         "<section id=\"finish\"><h2>Finishing simulation{}</h2>\
-         <p class=\"sub\">{} of {} cycle(s), wear model {}; Sa {:.3} → {:.3} µm. \
+         <p class=\"sub\">{} of {} cycle(s), wear model {}; Sa {} → {}. \
          The page of this run alone: <a href=\"{rel}/finish.html\">{rel}/finish.html</a>; \
          the numbers: <code>{rel}/finish.json</code> (docs/finish.md).</p>",
         if s.partial {
@@ -98,8 +98,8 @@ fn render(dir: &Path, rel: &str) -> Result<String> {
         s.cycles_completed,
         s.cycles_requested,
         esc(s.wear_model.as_deref().unwrap_or("sampled-map")),
-        b.sa,
-        a.sa,
+        um(b.sa),
+        um(a.sa),
     );
     let _ = write!(
         h,

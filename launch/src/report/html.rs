@@ -1,7 +1,8 @@
 //! Small HTML helpers of the report: tables, number formats, base64 and PNG encoding; the
 //! escaping, the fixed-decimals format and the SVG paths are the figures' own
 //! ([`surfstream_io::figure`], shared with finish.html), re-exported. Every number a person
-//! reads goes through [`fixed`] or [`um`], so the page uses one precision per quantity.
+//! reads goes through [`fixed`], [`um`] or [`sig`], so the page uses one precision per
+//! quantity; heights have significant figures ([`surfstream_core::units`]).
 
 use std::fmt::Write as _;
 
@@ -10,20 +11,17 @@ use serde_json::Value;
 
 pub use surfstream_io::figure::{esc, fixed, path_d};
 
-/// A length in micrometres with a precision that suits its size: "0.0153 um", "1.510 um",
-/// "15.23 um", "1584.8 um".
+pub use surfstream_core::units::sig;
+
+/// A height (or length) in micrometres with 3 significant figures, nm below 1 µm: "15.3 nm",
+/// "1.51 µm", "15.2 µm", "1585 µm" ([`surfstream_core::units::height_unicode`]); "-" where
+/// not finite.
 pub fn um(v: f64) -> String {
-    let a = v.abs();
-    let d = if a < 0.1 {
-        4
-    } else if a < 10.0 {
-        3
-    } else if a < 100.0 {
-        2
+    if v.is_finite() {
+        surfstream_core::units::height_unicode(v)
     } else {
-        1
-    };
-    format!("{} µm", fixed(v, d))
+        "-".into()
+    }
 }
 
 /// A pitch in um: four decimals (0.8148 µm), the precision instruments state it with.
@@ -54,7 +52,7 @@ pub fn round_length(v_um: f64) -> String {
     format!("{s} {unit}")
 }
 
-/// A length in um shown in mm when it is long: "1.585 mm" or "812.3 µm".
+/// A length in um shown in mm when it is long: "1.585 mm" or "812 µm".
 pub fn length(v_um: f64) -> String {
     if v_um.abs() >= 1000.0 {
         format!("{} mm", fixed(v_um / 1000.0, 3))
@@ -156,10 +154,11 @@ mod tests {
     }
 
     #[test]
-    fn numbers_have_fixed_precision() {
-        assert_eq!(um(1.3630563293), "1.363 µm");
-        assert_eq!(um(15.2321), "15.23 µm");
-        assert_eq!(um(0.015255), "0.0153 µm");
+    fn numbers_have_one_precision_per_quantity() {
+        assert_eq!(um(1.3630563293), "1.36 µm");
+        assert_eq!(um(15.2321), "15.2 µm");
+        assert_eq!(um(0.015255), "15.3 nm");
+        assert_eq!(um(f64::NAN), "-");
         assert_eq!(length(1584.83), "1.585 mm");
         assert_eq!(fixed(-0.0001, 2), "0.00");
         assert_eq!(signed(-0.04, 1), "0.0");

@@ -31,7 +31,7 @@ use std::path::Path;
 
 use anyhow::{anyhow, Context, Result};
 use rayon::prelude::*;
-use surfstream_core::record::{RunRecord, WaveletReport};
+use surfstream_core::record::{MapSummary, RunRecord, WaveletReport};
 
 use html::{esc, um};
 use surfaces::Surfaces;
@@ -142,12 +142,15 @@ pub fn render(run: &RunRecord, out: &Path) -> Result<String> {
     };
     let distribution = || {
         let p = surfaces.panorama.as_ref()?;
-        // The wavelet's level (a filter separation has none).
-        let level = run
+        // The wavelet's level and its equivalent cutoff, as run.json and the verb state it
+        // (a filter separation has neither).
+        let scale = run
             .stage::<WaveletReport>()
-            .and_then(|w| w.final_pass?.separation.level())
-            .map(|l| l as u64);
-        let scale = level.map(|l| (l, 2f64.powi(l as i32) * p.pitch_x_um / p.block as f64));
+            .and_then(|w| match w.final_pass?.separation {
+                MapSummary::Wavelet(w) => Some((w.choices.level as u64, w.equivalent_cutoff_um)),
+                MapSummary::Filter(_) => None,
+            })
+            .filter(|(_, cutoff_um)| cutoff_um.is_finite());
         Some(format!(
             "<section id=\"distribution\"><h2>Height distribution and power spectral density \
              (panorama)</h2><div class=\"pair\">{}{}</div></section>\n",
@@ -266,12 +269,13 @@ mod tests {
         assert!(h.contains("1 of 1 placed by the stage position"));
         // The failure row: stage, region, parameter, measured, model, deviation.
         assert!(h.contains(
-            "<tr class=\"fail\"><td class=\"k\">pooled</td><td>S1</td><td>Sa</td><td>2.000 µm</td><td>2.500 µm</td><td>+25.00 %</td></tr>"
+            "<tr class=\"fail\"><td class=\"k\">pooled</td><td>S1</td><td>Sa</td><td>2.00 µm</td><td>2.50 µm</td><td>+25.00 %</td></tr>"
         ));
         assert!(h.contains("<summary>Full table: 9 rows"));
         assert!(h.contains("a → b"));
         assert!(!h.contains("t_acquired_ns"), "internal fields are hidden");
-        assert!(h.contains("<td>0.990 µm</td>"));
+        // Below 1 µm in nm, 3 significant figures.
+        assert!(h.contains("<td>990 nm</td>"));
     }
 
     /// Issue 26: one labelled set of parameters (which surface, not levelled) with the Sk

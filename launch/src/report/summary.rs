@@ -6,8 +6,9 @@ use std::fmt::Write as _;
 
 use surfstream_core::metrology::{FunctionalParams, Params};
 use surfstream_core::record::{DeviationRecord, MeshReport, RunRecord, ScanRecord};
+use surfstream_core::units::percent;
 
-use super::html::{esc, fixed, length, pitch, signed, table_raw, um};
+use super::html::{esc, fixed, length, pitch, sig, signed, table_raw, um};
 use super::surfaces::Surfaces;
 
 /// The verdict banner and the facts table.
@@ -360,43 +361,49 @@ pub fn key_parameters(s: &Surfaces) -> String {
     if cols.is_empty() {
         return String::new();
     }
-    // The first nine from Params::named (in its order), then the Sk family.
+    // The first nine from Params::named (in its order), then the Sk family. Each cell carries
+    // its unit: heights have 3 significant figures and read in nm below 1 µm.
     type Get = Option<fn(&FunctionalParams) -> f64>;
-    let what: [(&str, &str, &str, usize, Get); 14] = [
-        ("Sa", "arithmetic mean height", "µm", 3, None),
-        ("Sq", "root mean square height", "µm", 3, None),
-        ("Sp", "maximum peak height", "µm", 3, None),
-        ("Sv", "maximum pit depth", "µm", 3, None),
-        ("Sz", "maximum height", "µm", 3, None),
-        ("Ssk", "skewness", "", 3, None),
-        ("Sku", "kurtosis", "", 3, None),
-        ("Sdq", "root mean square gradient", "", 4, None),
-        ("Sdr", "developed interfacial area ratio", "%", 2, None),
+    type Show = fn(f64) -> String;
+    let (height, ratio, pct): (Show, Show, Show) = (um, |v| sig(v, 3), percent);
+    let what: [(&str, &str, Show, Get); 14] = [
+        ("Sa", "arithmetic mean height", height, None),
+        ("Sq", "root mean square height", height, None),
+        ("Sp", "maximum peak height", height, None),
+        ("Sv", "maximum pit depth", height, None),
+        ("Sz", "maximum height", height, None),
+        ("Ssk", "skewness", ratio, None),
+        ("Sku", "kurtosis", ratio, None),
+        ("Sdq", "root mean square gradient", ratio, None),
+        ("Sdr", "developed interfacial area ratio", pct, None),
         (
             "Sk",
             "core height (Sk family, ISO 25178-2)",
-            "µm",
-            3,
+            height,
             Some(|f| f.sk),
         ),
-        ("Spk", "reduced peak height", "µm", 3, Some(|f| f.spk)),
-        ("Svk", "reduced valley depth", "µm", 3, Some(|f| f.svk)),
-        ("Smr1", "peak material ratio", "%", 2, Some(|f| f.smr1)),
-        ("Smr2", "valley material ratio", "%", 2, Some(|f| f.smr2)),
+        ("Spk", "reduced peak height", height, Some(|f| f.spk)),
+        ("Svk", "reduced valley depth", height, Some(|f| f.svk)),
+        ("Smr1", "peak material ratio", pct, Some(|f| f.smr1)),
+        ("Smr2", "valley material ratio", pct, Some(|f| f.smr2)),
     ];
-    let mut head = vec!["parameter", "", "unit"];
+    let mut head = vec!["parameter", ""];
     head.extend(cols.iter().map(|c| c.0));
     let rows: Vec<(String, Vec<String>)> = what
         .iter()
         .enumerate()
-        .map(|(i, (name, long, unit, d, get))| {
-            let mut r = vec![format!("<b>{name}</b>"), esc(long), unit.to_string()];
+        .map(|(i, (name, long, show, get))| {
+            let mut r = vec![format!("<b>{name}</b>"), esc(long)];
             for (_, p, f) in &cols {
                 let v = match get {
                     None => p.map(|p| p.named()[i].1),
                     Some(get) => f.as_ref().map(get),
                 };
-                r.push(v.map(|v| fixed(v, *d)).unwrap_or_else(|| "-".into()));
+                r.push(
+                    v.filter(|v| v.is_finite())
+                        .map(show)
+                        .map_or_else(|| "-".into(), |t| esc(&t)),
+                );
             }
             (String::new(), r)
         })

@@ -7,23 +7,24 @@ use std::fmt::Write as _;
 
 use surfstream_core::metrology::Params;
 use surfstream_core::record::{DeviationRecord, StageDeviation};
+use surfstream_core::units::percent;
 
-use super::html::{esc, fixed, pitch, signed, table_raw, um};
+use super::html::{esc, fixed, pitch, sig, signed, table_raw, um};
 
 /// Table 6's stages by name.
 type Stages = std::collections::BTreeMap<String, StageDeviation>;
 
 const PARAMS: [&str; 9] = ["Sa", "Sq", "Sp", "Sv", "Sz", "Ssk", "Sku", "Sdq", "Sdr"];
 
-/// A parameter value with its unit's precision ("-" where not measured).
+/// A parameter value with 3 significant figures and its unit, heights in nm below 1 µm ("-"
+/// where not measured).
 fn value(p: &str, params: &Option<Params>) -> String {
     let v = params.and_then(|m| m.by_name(p)).filter(|v| v.is_finite());
     match v {
         None => "-".into(),
         Some(x) => match p {
-            "Ssk" | "Sku" => fixed(x, 3),
-            "Sdq" => fixed(x, 4),
-            "Sdr" => format!("{} %", fixed(x, 2)),
+            "Ssk" | "Sku" | "Sdq" => sig(x, 3),
+            "Sdr" => percent(x),
             _ => um(x),
         },
     }

@@ -9,6 +9,7 @@ use surfstream_core::frame::to_frame_heights;
 use surfstream_core::metrology::{self, Grid};
 use surfstream_core::raster::Shape;
 use surfstream_core::record::OutliersRecord;
+use surfstream_core::units::height;
 use surfstream_mesher::config::check_stl_path;
 use surfstream_mesher::map::PreparedHeights;
 use surfstream_mesher::outliers::OutlierPolicy;
@@ -242,11 +243,11 @@ fn say_tilt(surface: &surfstream_io::formats::Surface) {
     let (raw, flat) = (sq(&surface.heights_um), sq(&levelled));
     if flat < TILT_SQ_SHARE * raw {
         eprintln!(
-            "mesh: note: the surface is tilted: Sq {} um with the mean removed, {} um about \
-             its least-squares plane; the tolerance is judged with the mean removed only, \
-             where the tilt hides the roughness: --level removes the plane first",
-            super::sig(raw, 4),
-            super::sig(flat, 4)
+            "mesh: note: the surface is tilted: Sq {} with the mean removed, {} about its \
+             least-squares plane; the tolerance is judged with the mean removed only, where \
+             the tilt hides the roughness: --level removes the plane first",
+            height(raw),
+            height(flat)
         );
     }
 }
@@ -260,9 +261,10 @@ fn say_spikes(a: &MeshArgs, spikes: Option<&OutliersRecord>) {
         return;
     };
     eprintln!(
-        "mesh: {} spike(s) (largest {:+.3} um at row {} col {}; they add {:+.2} % to Sz): {}",
+        "mesh: {} spike(s) (largest {}{} at row {} col {}; they add {:+.2} % to Sz): {}",
         spikes.count,
-        largest.excess_um,
+        if largest.excess_um > 0.0 { "+" } else { "" },
+        height(largest.excess_um),
         largest.row,
         largest.col,
         spikes.sz_effect_pct,
@@ -297,14 +299,14 @@ fn say_result(
             r.curve.len(),
             worst.map_or(String::new(), |w| format!(
                 "; worst of {} regions {}: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %, residual {:.1} % \
-                 of Sq, max error {} um ({:.1} % of Sq)",
+                 of Sq, max error {} ({:.1} % of Sq)",
                 r.regions,
                 w.region,
                 w.deviation_pct[0],
                 w.deviation_pct[1],
                 w.deviation_pct[2],
                 w.residual_pct_of_sq,
-                super::sig(w.max_error_um, 3),
+                height(w.max_error_um),
                 w.max_error_pct_of_sq,
             ))
         );
@@ -342,7 +344,7 @@ fn say_result(
     };
     eprintln!(
         "mesh: {} triangles ({} surface), {} vertices, STL in {}; max vertical error \
-         {} um, RMS {} um (bound {} um{bound}{}); {mesh_s:.2} s; wrote {} and {}",
+         {}, RMS {} (bound {}{bound}{}); {mesh_s:.2} s; wrote {} and {}",
         c.triangles,
         c.top_triangles,
         c.vertices,
@@ -351,9 +353,9 @@ fn say_result(
         } else {
             c.units.symbol().to_string()
         },
-        super::sig(f.error.max_um, 4),
-        super::sig(f.error.rms_um, 4),
-        super::sig(f.epsilon_um, 4),
+        height(f.error.max_um),
+        height(f.error.rms_um),
+        height(f.epsilon_um),
         if m.summary.record.budget_reached {
             ", triangle budget reached"
         } else {
@@ -364,10 +366,10 @@ fn say_result(
     );
     if !f.bound_met {
         eprintln!(
-            "mesh: warning: bound_met: false: the largest vertical error, {} um, is beyond the \
-             bound of {} um{}",
-            super::sig(f.error.max_um, 4),
-            super::sig(f.epsilon_um, 4),
+            "mesh: warning: bound_met: false: the largest vertical error, {}, is beyond the \
+             bound of {}{}",
+            height(f.error.max_um),
+            height(f.epsilon_um),
             if m.summary.record.budget_reached {
                 " (the triangle budget stopped the refinement)"
             } else {

@@ -11,6 +11,7 @@ use serde::Serialize;
 use surfstream_core::metrology::{self, Grid, ParamValue};
 use surfstream_core::record;
 use surfstream_core::similarity;
+use surfstream_core::units::{self, sig};
 use surfstream_io::formats::{write_surface, Metadata, Surface};
 
 use super::{file_help, load_surface, pitch_text, Loaded, WRITABLE_WITH_PITCH};
@@ -230,7 +231,7 @@ pub fn inspect(a: InspectArgs) -> Result<()> {
         s.heights_um.len()
     );
     if !valid.is_empty() {
-        println!("heights     {lo:.4} .. {hi:.4} um");
+        println!("heights     {} .. {}", units::height(lo), units::height(hi));
     }
     if let Some(mask) = &m.mask {
         print_mask_regions(mask, !a.mask.mask_exclude.is_empty());
@@ -379,7 +380,20 @@ fn feature_notes(values: &[ParamValue], levelled: bool, pruning_pct: f64) -> Vec
     }]
 }
 
-/// A number with 6 significant digits, fixed-point where that reads well.
+/// A parameter as the text output shows it, (value, unit): 3 significant figures, heights and
+/// lengths in um read in nm below 1 um ("5.12", "nm"), as the verdict and report.html print
+/// them ([`surfstream_core::units`]). `--json`, `--jsonl` and `--csv` keep the numbers.
+fn param_text(value: f64, unit: &str) -> (String, String) {
+    if unit == "um" && value.is_finite() {
+        let t = units::height(value);
+        if let Some((number, unit)) = t.split_once(' ') {
+            return (number.to_string(), unit.to_string());
+        }
+    }
+    (sig(value, units::HEIGHT_DIGITS), unit.to_string())
+}
+
+/// A number with 6 significant digits, fixed-point where that reads well (the CSV's).
 fn sig6(v: f64) -> String {
     if v.is_nan() {
         return "NaN".into();
@@ -519,7 +533,8 @@ fn render(records: &[ParamsRecord], a: &ParamsArgs) -> Result<String> {
                     family = v.family;
                     writeln!(out, "  {family}")?;
                 }
-                writeln!(out, "    {:<12} {:>14} {}", v.name, sig6(v.value), v.unit)?;
+                let (value, unit) = param_text(v.value, v.unit);
+                writeln!(out, "    {:<12} {value:>10} {unit}", v.name)?;
             }
             if r.valid_points < r.rows * r.cols {
                 writeln!(out, "  (over the valid points; Sdq and Sdr use only differences and cells whose points are all valid)")?;
@@ -651,7 +666,8 @@ fn render_table(records: &[ParamsRecord]) -> String {
             }
             .into(),
         ];
-        row.extend(r.values.iter().map(|v| sig6(v.value)));
+        // In the header's unit (a column is one unit), 3 significant figures.
+        row.extend(r.values.iter().map(|v| sig(v.value, units::HEIGHT_DIGITS)));
         rows.push(row);
     }
     let ncol = rows.iter().map(Vec::len).max().unwrap_or(0);
@@ -914,10 +930,12 @@ pub fn compare(a: CompareArgs) -> Result<()> {
     } else {
         println!("SIM   {sim:.6} (normalised cross-correlation, eq. 12)");
         println!(
-            "SSIM  {:.6} ({} windows, L = {:.4} um)",
-            ssim.mssim, ssim.windows, ssim.range_um
+            "SSIM  {:.6} ({} windows, L = {})",
+            ssim.mssim,
+            ssim.windows,
+            units::height(ssim.range_um)
         );
-        println!("RMS   {rms:.6} um over {n} points valid in both");
+        println!("RMS   {} over {n} points valid in both", units::height(rms));
     }
     Ok(())
 }

@@ -51,22 +51,9 @@ pub const WRITABLE: &[&str] = surfstream_io::formats::WRITABLE;
 pub const WRITABLE_WITH_PITCH: &[&str] = &["x3p", "gsf", "tif", "tiff"];
 
 /// `v` with `digits` significant digits (fixed-point where it reads well): how every verb
-/// prints a pitch or a bound ("2.280", "0.001000").
-pub fn sig(v: f64, digits: usize) -> String {
-    if !v.is_finite() {
-        return format!("{v}");
-    }
-    if v == 0.0 {
-        return "0".into();
-    }
-    let e = v.abs().log10().floor() as i32;
-    if (-5..7).contains(&e) {
-        let decimals = (digits as i32 - 1 - e).max(0) as usize;
-        format!("{v:.decimals$}")
-    } else {
-        format!("{v:.*e}", digits.saturating_sub(1))
-    }
-}
+/// prints a pitch or a bound ("2.280", "0.001000"); core's, so the verdict and the report
+/// agree ([`surfstream_core::units`]).
+pub use surfstream_core::units::sig;
 
 /// A pitch as every verb prints it: "2.280 um", or "2.280 x 1.000 um" (x, y) when they
 /// differ; 4 significant digits.
@@ -202,23 +189,10 @@ fn natural_cmp(a: &str, b: &str) -> std::cmp::Ordering {
 }
 
 /// `path` must be one existing file: a folder or a missing path is named as such, not as an
-/// "unsupported format '.'".
+/// "unsupported format '.'" (the folder's message is the readers' and Python's:
+/// [`surfstream_io::input::not_a_folder`]).
 pub fn one_file(path: &Path, verb: &str) -> Result<()> {
-    if path.is_dir() {
-        let hint = if path.join("scan.toml").is_file() {
-            format!(
-                " (it holds a scan: stitch it with `surfstream stitch {} -o OUT`)",
-                path.display()
-            )
-        } else {
-            String::new()
-        };
-        bail!(
-            "{}: is a folder; {verb} takes one height-map file ({}){hint}",
-            path.display(),
-            readable_list()
-        );
-    }
+    surfstream_io::input::not_a_folder(path, verb)?;
     if !path.exists() {
         bail!("{}: no such file", path.display());
     }
@@ -233,13 +207,7 @@ pub fn file_help() -> &'static str {
 }
 
 /// The readable extensions, as every message lists them.
-pub fn readable_list() -> String {
-    surfstream_io::formats::EXTENSIONS
-        .iter()
-        .map(|e| format!(".{e}"))
-        .collect::<Vec<_>>()
-        .join(", ")
-}
+pub use surfstream_io::input::readable_list;
 
 /// The output of `convert`: `-o OUT`, or the older second positional argument (with a
 /// deprecation warning); its extension must be one `convert` writes.

@@ -30,8 +30,8 @@ use surfstream_io::sidecar::{write_sidecar_into, NpyGeometry};
 
 use super::{file_help, load_surface, pitch_text, sig};
 use surfstream_wavelet::{
-    separate_map, MapSummary, Pooled, SeparationMethod, SeparationSettings, SeparationSink,
-    StreamOptions,
+    separate_map, LevelChoice, MapSummary, Pooled, SeparationMethod, SeparationSettings,
+    SeparationSink, StreamOptions,
 };
 
 #[derive(Args)]
@@ -52,10 +52,11 @@ pub struct SeparateArgs {
     /// RMSE, the paper's eq. 10; note that it ranks floating-point round-off).
     #[arg(long, default_value = "sym5")]
     pub wavelet: String,
-    /// Decomposition level (clamped to the largest useful level of the map), or "auto": the
-    /// minimum of the approximation's energy proportion after plane levelling (paper Fig. 13).
-    #[arg(long, default_value = "8")]
-    pub level: String,
+    /// Decomposition level, or "auto": the minimum of the approximation's energy proportion
+    /// after plane levelling (paper Fig. 13). Default: 8, or the deepest level that fits the
+    /// map when 8 does not; a level given that does not fit is lowered with a warning.
+    #[arg(long)]
+    pub level: Option<String>,
     /// Border extension: symmetric (PyWavelets' default) or periodization.
     #[arg(long, default_value = "symmetric")]
     pub mode: String,
@@ -133,7 +134,10 @@ fn settings(a: &SeparateArgs) -> Result<SeparationSettings> {
         method,
         lambda_s_um,
         base: a.wavelet.parse().map_err(|e| anyhow!("--wavelet {e}"))?,
-        level: a.level.parse().map_err(|e| anyhow!("--level {e}"))?,
+        level: match &a.level {
+            Some(level) => level.parse().map_err(|e| anyhow!("--level {e}"))?,
+            None => LevelChoice::Default,
+        },
         mode: a.mode.parse().map_err(|e| anyhow!("--mode {e}"))?,
         pool_block: a.pool,
         pool_op: a.pool_op.parse().map_err(|e| anyhow!("--pool-op {e}"))?,
@@ -386,7 +390,7 @@ mod tests {
             cutoff_um: None,
             lambda_s_um: None,
             wavelet: "sym5".into(),
-            level: "2".into(),
+            level: Some("2".into()),
             mode: "symmetric".into(),
             pool: 4,
             pool_op: "max".into(),
@@ -450,7 +454,7 @@ mod tests {
                 cutoff_um: None,
                 lambda_s_um: None,
                 wavelet: "sym5".into(),
-                level: level.into(),
+                level: Some(level.into()),
                 mode: "symmetric".into(),
                 pool: 4,
                 pool_op: "max".into(),

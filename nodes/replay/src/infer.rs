@@ -226,6 +226,7 @@ fn manifest_text(
     rows: usize,
     cols: usize,
     pitch: Option<Pitch>,
+    height_unit: Option<&str>,
     tiles: &[Placed],
 ) -> Result<String> {
     let name = dir
@@ -246,6 +247,9 @@ fn manifest_text(
     if let Some(p) = pitch {
         toml += &format!("pitch_x_um = {}\npitch_y_um = {}\n", p.x_um(), p.y_um());
     }
+    if let Some(unit) = height_unit {
+        toml += &format!("height_unit = {unit:?}\n");
+    }
     for t in tiles {
         let real = t
             .file
@@ -264,13 +268,19 @@ fn manifest_text(
 }
 
 /// The `scan.toml` text for the tiles of `dir` laid out as `layout`. `pitch_um` is needed only
-/// for files that carry no lateral calibration (.npy). When every file stores its position
+/// for files that carry no lateral calibration (.npy); `height_unit` ("um", "nm", "mm", "m")
+/// states the unit of such files' heights (`[scan] height_unit`; checked when it is loaded). When every file stores its position
 /// (X3P axis offsets, Gwyddion offsets), each must agree with its place on the grid within
 /// [`POSITION_TOLERANCE_FIELDS`] of a field (relative to the first tile), and the stored
 /// positions, more exact than the nominal grid, go into the manifest. Errors name the folder or
 /// the file and what disagrees: the number of files and the grid, tile shapes, a file without
 /// pitch and no `pitch_um`, a stored position off the grid.
-pub fn infer_manifest(dir: &Path, layout: &GridLayout, pitch_um: Option<f64>) -> Result<String> {
+pub fn infer_manifest(
+    dir: &Path,
+    layout: &GridLayout,
+    pitch_um: Option<f64>,
+    height_unit: Option<&str>,
+) -> Result<String> {
     let tiles = read_tiles(dir)?;
     let wanted = layout.rows * layout.cols;
     if tiles.len() != wanted {
@@ -365,6 +375,7 @@ pub fn infer_manifest(dir: &Path, layout: &GridLayout, pitch_um: Option<f64>) ->
         layout.rows,
         layout.cols,
         pitch_um.map(|_| pitch),
+        height_unit,
         &placed,
     )
 }
@@ -391,6 +402,7 @@ fn cluster(values: &[f64], gap_um: f64) -> (Vec<usize>, usize) {
 pub fn infer_manifest_from_positions(
     dir: &Path,
     pitch_um: Option<f64>,
+    height_unit: Option<&str>,
 ) -> Result<(String, usize, usize)> {
     let tiles = read_tiles(dir)?;
     let Some(stored) = stored_positions(&tiles) else {
@@ -457,7 +469,15 @@ pub fn infer_manifest_from_positions(
         tiles[0].rows,
         tiles[0].cols
     );
-    let text = manifest_text(&comment, dir, rows, cols, pitch_um.map(|_| pitch), &placed)?;
+    let text = manifest_text(
+        &comment,
+        dir,
+        rows,
+        cols,
+        pitch_um.map(|_| pitch),
+        height_unit,
+        &placed,
+    )?;
     Ok((text, rows, cols))
 }
 
@@ -537,7 +557,7 @@ mod tests {
             gsf(&dir.path().join(format!("t_{}.gsf", i + 1)), Some(at));
             want.push((*row, *col, at[0], at[1]));
         }
-        let (text, rows, cols) = infer_manifest_from_positions(dir.path(), None).unwrap();
+        let (text, rows, cols) = infer_manifest_from_positions(dir.path(), None, None).unwrap();
         assert_eq!((rows, cols), (2, 3));
         let got = tiles_of(&text);
         for (g, w) in got.iter().zip(&want) {
@@ -555,7 +575,7 @@ mod tests {
             overlap_y: 0.25,
             serpentine: true,
         };
-        let text = infer_manifest(dir.path(), &layout, None).unwrap();
+        let text = infer_manifest(dir.path(), &layout, None, None).unwrap();
         assert!(text.contains("the files' own"), "{text}");
         assert_eq!(tiles_of(&text), got);
         // Without --serpentine the fourth tile is 6 um (1.5 fields) off: an error naming it.
@@ -567,6 +587,7 @@ mod tests {
                     serpentine: false,
                     ..layout
                 },
+                None,
                 None
             )
             .unwrap_err()
@@ -585,6 +606,7 @@ mod tests {
                     cols: 2,
                     ..layout
                 },
+                None,
                 None
             )
             .unwrap_err()
@@ -599,6 +621,7 @@ mod tests {
                     overlap_x: 0.5,
                     ..layout
                 },
+                None,
                 None
             )
             .unwrap_err()
@@ -621,11 +644,16 @@ mod tests {
             overlap_y: 0.25,
             serpentine: false,
         };
-        let text = infer_manifest(dir.path(), &layout, Some(1.0)).unwrap();
+        let text = infer_manifest(dir.path(), &layout, Some(1.0), None).unwrap();
         assert!(text.contains("pitch_x_um = 1\n"), "{text}");
+        assert!(!text.contains("height_unit"), "{text}");
+        // A stated height unit goes into [scan] (the loader applies and checks it).
+        let text = infer_manifest(dir.path(), &layout, Some(1.0), Some("nm")).unwrap();
+        let scan = text.split("[[tile]]").next().unwrap_or_default();
+        assert!(scan.contains("height_unit = \"nm\"\n"), "{text}");
         let e = format!(
             "{:#}",
-            infer_manifest(dir.path(), &layout, Some(0.8)).unwrap_err()
+            infer_manifest(dir.path(), &layout, Some(0.8), None).unwrap_err()
         );
         assert!(
             e.contains("t_0.gsf") && e.contains("1 x 1 um") && e.contains("--pitch-um 0.8"),
@@ -641,7 +669,7 @@ mod tests {
         }
         let e = format!(
             "{:#}",
-            infer_manifest_from_positions(dir.path(), None).unwrap_err()
+            infer_manifest_from_positions(dir.path(), None, None).unwrap_err()
         );
         assert!(
             e.contains("do not all store a stage position") && e.contains("--grid"),
@@ -651,7 +679,7 @@ mod tests {
         for i in 0..4 {
             gsf(&dir.path().join(format!("t_{i}.gsf")), Some([0.0, 0.0]));
         }
-        assert!(infer_manifest_from_positions(dir.path(), None).is_err());
+        assert!(infer_manifest_from_positions(dir.path(), None, None).is_err());
         // Two tiles at one place.
         for (i, at) in [[0.0, 0.0], [3.0, 0.0], [0.0, 2.25], [0.1, 0.1]]
             .into_iter()
@@ -661,7 +689,7 @@ mod tests {
         }
         let e = format!(
             "{:#}",
-            infer_manifest_from_positions(dir.path(), None).unwrap_err()
+            infer_manifest_from_positions(dir.path(), None, None).unwrap_err()
         );
         assert!(
             e.contains("two tiles at one place") || e.contains("does not"),
@@ -678,7 +706,7 @@ mod tests {
             overlap_y: 0.25,
             serpentine: false,
         };
-        let text = infer_manifest(dir.path(), &layout, None).unwrap();
+        let text = infer_manifest(dir.path(), &layout, None, None).unwrap();
         assert!(text.contains("nominal"), "{text}");
         assert_eq!(
             tiles_of(&text),

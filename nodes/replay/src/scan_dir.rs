@@ -152,8 +152,11 @@ fn supported_extensions() -> String {
     }
 }
 
-/// Heights in the manifest's unit -> um.
-fn unit_scale(unit: &str) -> Option<f64> {
+/// The height units `[scan] height_unit` (and `stitch --height-unit`) accept.
+pub const HEIGHT_UNITS: &str = "um, nm, mm, m";
+
+/// Heights in the manifest's unit -> um ([`HEIGHT_UNITS`]); `None` for another unit.
+pub fn unit_scale(unit: &str) -> Option<f64> {
     Some(match unit {
         "um" | "µm" => 1.0,
         "nm" => 1e-3,
@@ -294,7 +297,7 @@ fn read_manifest(path: &Path) -> Result<Manifest> {
     };
     let scale = unit_scale(&scan.height_unit).ok_or_else(|| {
         anyhow!(
-            "{m}: [scan] height_unit = {:?}: expected one of um, nm, mm, m",
+            "{m}: [scan] height_unit = {:?}: expected one of {HEIGHT_UNITS}",
             scan.height_unit
         )
     })?;

@@ -25,7 +25,7 @@ use crate::select::SeparationChoices;
 use crate::stream::StreamOptions;
 use crate::{
     analyse, default_level, energy_curve_streamed, level_by_min_energy, pool, pooling_bias,
-    separate_streamed, BaseChoice, LevelChoice, Pooled, SeparationMethod, Wavelet, DEFAULT_LEVEL,
+    separate_streamed, BaseChoice, LevelChoice, Pooled, SeparationMethod, Wavelet,
 };
 
 /// How run.json and `separate.json` define the wavelet's equivalent cutoff.
@@ -215,8 +215,9 @@ fn filter(
     })
 }
 
-/// The wavelet's choices with its equivalent cutoff and, when the level asked for (or the
-/// default) was lowered, why.
+/// The wavelet's choices with its equivalent cutoff and, when a level asked for explicitly
+/// was lowered, why. The default is min([`crate::DEFAULT_LEVEL`], the deepest level that fits the
+/// map), chosen silently: a map too small for level 8 is no mistake of the user's.
 fn wavelet_summary(
     choices: SeparationChoices,
     settings: &SeparationSettings,
@@ -225,12 +226,10 @@ fn wavelet_summary(
 ) -> (MapSummary, Option<String>) {
     let level = choices.level;
     let (pitch_x_um, pitch_y_um) = (grid.pitch_x_um(), grid.pitch_y_um());
-    let requested = match settings.level {
-        LevelChoice::Fixed(l) => Some(l),
-        LevelChoice::Default => Some(DEFAULT_LEVEL),
-        LevelChoice::MinEnergy => None,
+    let warning = match settings.level {
+        LevelChoice::Fixed(requested) => level_lowered_warning(w, requested, level, pitch_x_um),
+        LevelChoice::Default | LevelChoice::MinEnergy => None,
     };
-    let warning = requested.and_then(|r| level_lowered_warning(w, r, level, pitch_x_um));
     let summary = MapSummary::Wavelet(WaveletSummary {
         choices,
         method: "wavelet".into(),

@@ -1017,6 +1017,14 @@ mod tests {
             .unwrap()
             .to_string();
         assert!(text.contains("level 9 lowered to"), "{text}");
+        // The default level (8) does not fit either: lowered silently, same cutoff convention.
+        s.level = LevelChoice::Default;
+        let default = final_separation(&s, &pano, None).unwrap();
+        assert!(json_of(&default.summary)["warning"].is_null());
+        assert_eq!(
+            json_of(&default.summary)["level"],
+            json_of(&lowered.summary)["level"]
+        );
     }
 
     #[test]

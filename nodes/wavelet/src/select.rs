@@ -225,7 +225,8 @@ pub enum BaseChoice {
 pub enum LevelChoice {
     /// This level, clamped to what the map supports ([`crate::default_level`]).
     Fixed(usize),
-    /// [`crate::DEFAULT_LEVEL`] (8), clamped likewise.
+    /// [`crate::DEFAULT_LEVEL`] (8), clamped likewise and silently: the deepest level that
+    /// fits when 8 does not (an explicit level that does not fit is warned about).
     Default,
     /// Minimum of the approximation's energy proportion (Fig. 13).
     MinEnergy,

@@ -278,7 +278,7 @@ class Surface:
         self,
         method: str = "wavelet",
         wavelet: str = "sym5",
-        level: Union[int, str] = 8,
+        level: Union[int, str, None] = None,
         mode: str = "symmetric",
         cutoff_um: Optional[float] = None,
         lambda_s_um: Optional[float] = None,
@@ -287,8 +287,9 @@ class Surface:
         datum absolute in um, roughness = heights - datum in um.
 
         ``method="wavelet"``: the approximation of a 2-D DWT (PyWavelets semantics) at
-        ``level`` (an int, clamped to the largest useful level with a warning, or "auto": the
-        minimum of the energy proportion), base ``wavelet`` (db1..db10, sym2..sym10,
+        ``level`` (None: 8, or the deepest level that fits the map; an int, clamped to the
+        largest useful level with a warning; or "auto": the minimum of the energy
+        proportion), base ``wavelet`` (db1..db10, sym2..sym10,
         coif1..coif5 or "auto"), border ``mode`` ("symmetric" | "periodization").
         ``method="gaussian" | "robust-gaussian"``: the ISO 16610 L-filter with cutoff
         ``cutoff_um`` (um), optional S-filter ``lambda_s_um``. The choices made (level used,
@@ -298,7 +299,7 @@ class Surface:
             *self._args(),
             method=str(method),
             wavelet=str(wavelet),
-            level=str(level),
+            level=None if level is None else str(level),
             mode=str(mode),
             cutoff_um=None if cutoff_um is None else float(cutoff_um),
             lambda_s_um=None if lambda_s_um is None else float(lambda_s_um),
@@ -423,10 +424,12 @@ class Surface:
         img = ""
         if n_bad < r * c:
             p = self.params()
-            rows += [(k, f"{p[k]:.6g} um") for k in ("Sa", "Sq", "Sz")]
+            # Heights as the CLI's verdict prints them: 3 significant figures, nm below 1 um.
+            rows += [(k, _native.height_text(p[k])) for k in ("Sa", "Sq", "Sz")]
             png = _native.preview_png(self._heights, 256)
             if png is not None:
                 data, lo, hi = png
+                span = f"{_native.height_text(lo)} .. {_native.height_text(hi)}"
                 # Drawn at the map's physical aspect (the pitch may differ along x and y).
                 w_um, h_um = c * self._pitch_um[0], r * self._pitch_um[1]
                 scale = 256.0 / max(w_um, h_um)
@@ -434,8 +437,8 @@ class Surface:
                 img = (
                     f'<img src="data:image/png;base64,{b64encode(bytes(data)).decode()}" '
                     f'style="image-rendering:pixelated;width:{w_px}px;height:{h_px}px" '
-                    f'title="viridis {lo:.4g} .. {hi:.4g} um"/>'
-                    f'<div style="font-size:smaller">{lo:.4g} .. {hi:.4g} um</div>'
+                    f'title="viridis {span}"/>'
+                    f'<div style="font-size:smaller">{span}</div>'
                 )
         fmt = self._metadata.get("format")
         if fmt:
@@ -476,8 +479,8 @@ def read(path: PathLike, pitch_um: Optional[Pitch] = None) -> Surface:
     such files get 1 um with a warning, and giving it for a file that has one is an error (as
     the CLI).
 
-    Raises PathError (missing path), FormatError (unsupported extension or a file its reader
-    refuses), with the CLI's message. Reader warnings become SurfstreamWarning.
+    Raises PathError (missing path, or a folder), FormatError (unsupported extension or a
+    file its reader refuses), with the CLI's message. Reader warnings become SurfstreamWarning.
     """
     p = os.fspath(path)
     heights, px, py, meta_json = _native.read(p)
@@ -510,3 +513,9 @@ def plot_psd(surface: Surface, ax: Any = None, **kwargs: Any) -> Any:
 
 
 __all__ += ["plot", "plot_abbott", "plot_psd"]
+
+
+def __dir__() -> List[str]:
+    """The public names only: ``dir(surfstream)`` (and tab completion) shows the API, not the
+    modules and typing names this one imports (np, os, json, Any, Dict, ...)."""
+    return sorted(__all__ + ["__version__"])

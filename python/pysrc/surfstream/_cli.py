@@ -164,6 +164,7 @@ def stitch(
     overlap: Optional[float] = None,
     serpentine: bool = False,
     pitch_um: Optional[float] = None,
+    height_unit: Optional[str] = None,
 ) -> RunResult:
     """Stitches a scan with the default pipeline (``surfstream stitch``): registration,
     fusion, wavelet separation, mesh; returns ``RunResult`` (``panorama, registrations =
@@ -173,7 +174,9 @@ def stitch(
     tiles (with ``grid``, or tiles that store their stage positions); or a sequence of tile
     files, Surfaces or 2-D arrays in acquisition order with ``grid=(rows, cols)`` and
     ``overlap`` (fraction of a field, e.g. 0.2); arrays need ``pitch_um``; they are written
-    (files linked) into ``OUT.tiles/`` beside the out dir. ``out``: the out dir (default: a
+    (files linked) into ``OUT.tiles/`` beside the out dir. ``height_unit``: the unit of the
+    heights of arrays and of tile files that carry none (.npy, .xyz): "um", "nm", "mm" or "m"
+    (``stitch --height-unit``; without it they are taken as um, with a warning). ``out``: the out dir (default: a
     new temporary folder). ``method``: auto | phase | harris | sift. ``set``: as for
     :func:`run`.
     """
@@ -219,6 +222,8 @@ def stitch(
             args.append("--serpentine")
     if pitch_um is not None:
         args += ["--pitch-um", repr(float(pitch_um))]
+    if height_unit is not None:
+        args += ["--height-unit", str(height_unit)]
     if method is not None:
         args += ["--method", str(method)]
     args += ["-o", str(out_p)] + _sets(set)

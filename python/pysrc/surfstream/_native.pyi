@@ -34,7 +34,7 @@ def separate(
     pitch_y_um: float,
     method: str = "wavelet",
     wavelet: str = "sym5",
-    level: str = "8",
+    level: Optional[str] = None,
     mode: str = "symmetric",
     cutoff_um: Optional[float] = None,
     lambda_s_um: Optional[float] = None,
@@ -68,3 +68,4 @@ def prep(
     heights_um: F64, pitch_x_um: float, pitch_y_um: float, steps: List[Tuple[str, str]]
 ) -> Tuple[F64, float, float, str]: ...
 def readable_extensions() -> List[str]: ...
+def height_text(v_um: float) -> str: ...

@@ -193,8 +193,10 @@ pub fn is_surface_file(path: &Path) -> bool {
     Format::from_path(path).is_ok()
 }
 
-/// Reads any supported height-map file, chosen by extension.
+/// Reads any supported height-map file, chosen by extension (a folder is named as one:
+/// [`crate::input::not_a_folder`]).
 pub fn read_surface(path: &Path) -> Result<Surface> {
+    crate::input::not_a_folder(path, "reading")?;
     let format = Format::from_path(path)?;
     crate::input::check_regular_file(path, "a height-map file")?;
     if format == Format::Npy {
