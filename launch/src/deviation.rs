@@ -181,7 +181,7 @@ fn regions(run: &RunRecord, geometry: &Geometry, panorama: Shape) -> Vec<Region>
 /// mesh_resampled - datum, row by row: the roughness the simulator sees (the model on the
 /// panorama grid minus the datum the separation found).
 struct DiffSource {
-    a: NpySource,
+    a: PlaneSource<NpySource>,
     b: NpySource,
     scratch: Vec<f64>,
 }
@@ -200,11 +200,85 @@ impl RowSource for DiffSource {
     }
 }
 
+/// A raster with a plane's slopes taken off (`sign` -1) or put back (+1): it adds `sign` times
+/// `bx` x col plus `by` x row (heights per pixel step). The mean does not matter: Table 6
+/// removes each region's own.
+struct PlaneSource<S> {
+    inner: S,
+    slopes_per_px: (f64, f64),
+    sign: f64,
+}
+
+impl<S: RowSource> RowSource for PlaneSource<S> {
+    fn shape(&self) -> Shape {
+        self.inner.shape()
+    }
+    fn read_rows(&mut self, row0: usize, rows: usize, out: &mut Vec<f64>) -> Result<(), String> {
+        self.inner.read_rows(row0, rows, out)?;
+        let cols = self.inner.shape().cols.max(1);
+        let (bx, by) = self.slopes_per_px;
+        for (r, row) in out.chunks_mut(cols).enumerate() {
+            let base = by * (row0 + r) as f64;
+            for (i, z) in row.iter_mut().enumerate() {
+                *z += self.sign * (base + bx * i as f64);
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The least-squares plane's slopes (height per column, per row) over the valid points of a
+/// raster read by bands of rows: the plane `params --level` and the mesher's `level` remove
+/// (the same fit; summed here from centred moments, so equal to rounding).
+fn plane_slopes_per_px(src: &mut dyn RowSource) -> Result<(f64, f64)> {
+    let shape = src.shape();
+    let (cx, cy) = (shape.cols as f64 / 2.0, shape.rows as f64 / 2.0);
+    // n, sums of x, y, z, xx, xy, yy, xz, yz about the centre (x = col, y = row).
+    let mut m = [0.0f64; 9];
+    let mut band = Vec::new();
+    const BAND_ROWS: usize = 256;
+    for row0 in (0..shape.rows).step_by(BAND_ROWS) {
+        let rows = BAND_ROWS.min(shape.rows - row0);
+        src.read_rows(row0, rows, &mut band)
+            .map_err(|e| anyhow::anyhow!("panorama.npy: {e}"))?;
+        for (r, row) in band.chunks(shape.cols.max(1)).enumerate() {
+            let y = (row0 + r) as f64 - cy;
+            for (i, &z) in row.iter().enumerate() {
+                if z.is_finite() {
+                    let x = i as f64 - cx;
+                    for (acc, v) in
+                        m.iter_mut()
+                            .zip([1.0, x, y, z, x * x, x * y, y * y, x * z, y * z])
+                    {
+                        *acc += v;
+                    }
+                }
+            }
+        }
+    }
+    let [n, sx, sy, sz, sxx, sxy, syy, sxz, syz] = m;
+    anyhow::ensure!(
+        n >= 3.0,
+        "panorama.npy: fewer than 3 measured points, no plane to level by"
+    );
+    let (vxx, vxy, vyy) = (sxx - sx * sx / n, sxy - sx * sy / n, syy - sy * sy / n);
+    let (vxz, vyz) = (sxz - sx * sz / n, syz - sy * sz / n);
+    let det = vxx * vyy - vxy * vxy;
+    anyhow::ensure!(
+        det.abs() > 0.0,
+        "panorama.npy: the measured points are on a line, no plane to level by"
+    );
+    Ok(((vxz * vyy - vyz * vxy) / det, (vyz * vxx - vxz * vxy) / det))
+}
+
 /// What the mesher reported in run.json: the surface it meshed and its tolerance (percent:
 /// Sa, Sq, Sz), when it made the model from one.
 struct MeshInfo {
     surface: Option<String>,
     tolerance: Option<[f64; 3]>,
+    /// The mesher removed the least-squares plane first (`form_removed`): the STL and
+    /// mesh_resampled.npy are of the levelled surface.
+    levelled: bool,
 }
 
 fn mesh_info(run: &RunRecord) -> MeshInfo {
@@ -212,6 +286,7 @@ fn mesh_info(run: &RunRecord) -> MeshInfo {
     let tolerance = (m.as_ref().and_then(|m| m.tolerance.as_ref()))
         .map(|t| [t.tolerance.sa_pct, t.tolerance.sq_pct, t.tolerance.sz_pct]);
     MeshInfo {
+        levelled: m.as_ref().is_some_and(|m| m.form_removed.is_some()),
         surface: m.map(|m| m.surface),
         tolerance,
     }
@@ -360,11 +435,52 @@ fn evaluate(
     pano: &mut NpySource,
     geometry: &Geometry,
 ) -> Result<Table6Record> {
-    let shape = pano.shape();
-    let regions = regions(run, geometry, shape);
+    let regions = regions(run, geometry, pano.shape());
     let info = mesh_info(run);
-    let mut stages = model_stages(out, shape)?;
-    let table = Table6::judge_streamed(pano, geometry.pitch, &mut stages, &regions, threshold_pct)?;
+    judge_out_dir(out, &regions, &info, threshold_pct, pano, geometry)
+}
+
+/// Table 6 of the out dir's rasters in `regions`, the mesh judged as `info` says it was made.
+fn judge_out_dir(
+    out: &Path,
+    regions: &[Region],
+    info: &MeshInfo,
+    threshold_pct: f64,
+    pano: &mut NpySource,
+    geometry: &Geometry,
+) -> Result<Table6Record> {
+    let shape = pano.shape();
+    // A levelled mesh (the mesher's `level`) is judged against the levelled panorama: the
+    // tolerance was met on the roughness, not on the tilt (issue 33). The other stages keep
+    // the panorama as measured.
+    let pano_path = out.join("panorama.npy");
+    let slopes = if info.levelled {
+        Some(plane_slopes_per_px(&mut NpySource::open(&pano_path)?)?)
+    } else {
+        None
+    };
+    let levelled_pano = || -> Result<PlaneSource<NpySource>> {
+        Ok(PlaneSource {
+            inner: NpySource::open(&pano_path)?,
+            slopes_per_px: slopes.unwrap_or((0.0, 0.0)),
+            sign: -1.0,
+        })
+    };
+    let (mut levelled_mesh, mut stages): (Vec<_>, Vec<_>) = model_stages(out, shape)?
+        .into_iter()
+        .partition(|s| slopes.is_some() && s.name == MESH_STAGE);
+    let mut table =
+        Table6::judge_streamed(pano, geometry.pitch, &mut stages, regions, threshold_pct)?;
+    if !levelled_mesh.is_empty() {
+        let t = Table6::judge_streamed(
+            &mut levelled_pano()?,
+            geometry.pitch,
+            &mut levelled_mesh,
+            regions,
+            threshold_pct,
+        )?;
+        table.stages.extend(t.stages);
+    }
     // The mesh is judged at the model's tolerance when it was made from one.
     let model_limits = info.tolerance.unwrap_or([threshold_pct; 3]);
     let meshed_pooled = info.surface.as_deref() == Some("pooled");
@@ -374,7 +490,11 @@ fn evaluate(
     for s in &table.stages {
         let rule = match s.stage.as_str() {
             MESH_STAGE => StageRule {
-                measured: "panorama.npy",
+                measured: if slopes.is_some() {
+                    "panorama.npy less its least-squares plane"
+                } else {
+                    "panorama.npy"
+                },
                 limits: model_limits,
                 judged: true,
                 note: "the STL's surface interpolated on the grid it meshed",
@@ -392,7 +512,11 @@ fn evaluate(
         };
         let residuals = if s.cell_px == 1 && s.stage == MESH_STAGE {
             let mut m = NpySource::open(&mesh_path)?;
-            residual_pct_of_sq(pano, &mut m, &regions)?
+            if slopes.is_some() {
+                residual_pct_of_sq(&mut levelled_pano()?, &mut m, regions)?
+            } else {
+                residual_pct_of_sq(pano, &mut m, regions)?
+            }
         } else {
             Vec::new()
         };
@@ -402,13 +526,20 @@ fn evaluate(
     }
     // The roughness the simulator sees: mesh - datum against the measured roughness, on the
     // panorama grid. Unlike datum + roughness (the panorama by construction) it can fail.
+    // A levelled mesh gets the plane back first: datum and roughness are of the panorama as
+    // measured.
+    let mesh_as_measured = |a: NpySource| PlaneSource {
+        inner: a,
+        slopes_per_px: slopes.unwrap_or((0.0, 0.0)),
+        sign: 1.0,
+    };
     let (datum, rough) = (out.join("datum.npy"), out.join("roughness.npy"));
     if datum.exists() && rough.exists() && mesh_path.exists() {
         let mut measured = NpySource::open(&rough)?;
         let a = NpySource::open(&mesh_path)?;
         if a.shape() == shape && measured.shape() == shape {
             let diff = DiffSource {
-                a,
+                a: mesh_as_measured(a),
                 b: NpySource::open(&datum)?,
                 scratch: Vec::new(),
             };
@@ -420,15 +551,15 @@ fn evaluate(
                 &mut measured,
                 geometry.pitch,
                 &mut st,
-                &regions,
+                regions,
                 threshold_pct,
             )?;
             let mut model = DiffSource {
-                a: NpySource::open(&mesh_path)?,
+                a: mesh_as_measured(NpySource::open(&mesh_path)?),
                 b: NpySource::open(&datum)?,
                 scratch: Vec::new(),
             };
-            let residuals = residual_pct_of_sq(&mut measured, &mut model, &regions)?;
+            let residuals = residual_pct_of_sq(&mut measured, &mut model, regions)?;
             let rule = StageRule {
                 measured: "roughness.npy",
                 limits: [threshold_pct; 3],
@@ -463,7 +594,7 @@ fn evaluate(
 }
 
 /// How Table 6 is computed, as run.json states it.
-const CONVENTIONS: &str = "ISO 25178 over points valid in both maps, mean removed, no levelling; each stage on its own grid at its own pitch (grid); deviation = (model - measured) / measured * 100; the mesh passes when |deviation| <= the model's tolerance (else the threshold) for Sa, Sq, Sz, the other stages at the threshold; residual_rms_pct_of_sq = RMS of the pointwise difference (means removed) / measured Sq * 100; a stage with judged = false is reported, not counted";
+const CONVENTIONS: &str = "ISO 25178 over points valid in both maps, mean removed, no levelling (but a mesh made levelled, the mesher's form_removed, is compared with the panorama less the same least-squares plane, and gets the plane back for the roughness stage); each stage on its own grid at its own pitch (grid); deviation = (model - measured) / measured * 100; the mesh passes when |deviation| <= the model's tolerance (else the threshold) for Sa, Sq, Sz, the other stages at the threshold; residual_rms_pct_of_sq = RMS of the pointwise difference (means removed) / measured Sq * 100; a stage with judged = false is reported, not counted";
 
 /// Adds "deviation" (Table 6) to run.json and writes panorama.x3p when the out dir holds a
 /// panorama. An output that cannot be written (panorama.x3p on a full disk) fails the run;
@@ -497,6 +628,80 @@ pub fn attach(out: &Path, run: &mut RunRecord, threshold_percent: f64) -> Result
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A mesh the mesher made levelled (its `level`: the least-squares plane removed) is
+    /// judged against the panorama less that plane, and its roughness stage gets the plane
+    /// back: a perfect levelled model passes every stage. Judged as a mesh of the raw heights
+    /// (the rule before), the same files fail by the tilt.
+    #[test]
+    fn a_levelled_mesh_is_judged_on_the_levelled_panorama() {
+        let dir = tempfile::tempdir().unwrap();
+        let (rows, cols) = (60usize, 80usize);
+        let (bx, by) = (0.05, -0.03); // um per pixel: 4 and 1.8 um over the map
+        let rough = |r: usize, c: usize| {
+            let (y, x) = (r as f64, c as f64);
+            0.3 * (x * 0.7).sin() * (y * 0.9).cos() + 0.15 * (x * 0.23 + y * 0.31).sin()
+        };
+        let at = |f: &dyn Fn(usize, usize) -> f64| -> Vec<f64> {
+            (0..rows * cols).map(|k| f(k / cols, k % cols)).collect()
+        };
+        let tilt = |r: usize, c: usize| bx * c as f64 + by * r as f64;
+        let pano = at(&|r, c| tilt(r, c) + rough(r, c) + 7.0);
+        // The mesher's levelled surface: the panorama less its own least-squares plane (the
+        // roughness is not exactly orthogonal to a plane, so take the fitted one).
+        let write = |name: &str, v: &[f64]| {
+            surfstream_io::npy::write_npy_f64(dir.path().join(name), v, rows, cols).unwrap()
+        };
+        write("panorama.npy", &pano);
+        let (fx, fy) =
+            plane_slopes_per_px(&mut NpySource::open(&dir.path().join("panorama.npy")).unwrap())
+                .unwrap();
+        assert!(
+            (fx - bx).abs() < 2e-3 && (fy - by).abs() < 2e-3,
+            "{fx} {fy}"
+        );
+        let mesh = at(&|r, c| pano[r * cols + c] - fx * c as f64 - fy * r as f64 + 0.9);
+        write("mesh_resampled.npy", &mesh);
+        let datum = at(&|r, c| tilt(r, c) + 7.0);
+        write("datum.npy", &datum);
+        write(
+            "roughness.npy",
+            &at(&|r, c| pano[r * cols + c] - datum[r * cols + c]),
+        );
+        let geometry = Geometry {
+            origin_um: (0.0, 0.0),
+            pitch: Pitch::new(1.0, 1.0).unwrap(),
+        };
+        let regions = [Region::whole(Shape { rows, cols })];
+        let judge = |levelled: bool| {
+            let info = MeshInfo {
+                surface: Some("panorama".into()),
+                tolerance: Some([1.0, 1.0, 3.0]),
+                levelled,
+            };
+            let mut pano = NpySource::open(&dir.path().join("panorama.npy")).unwrap();
+            judge_out_dir(dir.path(), &regions, &info, 5.0, &mut pano, &geometry).unwrap()
+        };
+        let t = judge(true);
+        let mesh = &t.stages[MESH_STAGE];
+        assert_eq!(mesh.measured, "panorama.npy less its least-squares plane");
+        assert!(t.pass, "{:?}", t.stages);
+        for stage in [MESH_STAGE, DEM_ROUGHNESS_STAGE] {
+            let s = &t.stages[stage];
+            let region = &s.regions["panorama"];
+            assert!(region.pass, "{stage}: {region:?}");
+            for name in JUDGED {
+                let d = region.deviation_pct[name];
+                assert!(d.is_some_and(|d| d.abs() < 1e-6), "{stage} {name}: {d:?}");
+            }
+            let residual = region.residual_rms_pct_of_sq.unwrap();
+            assert!(residual < 1e-6, "{stage}: residual {residual} % of Sq");
+        }
+        // The same mesh taken for one of the raw heights fails by the tilt.
+        let raw = judge(false);
+        assert!(!raw.stages[MESH_STAGE].regions["panorama"].pass);
+        assert!(!raw.pass);
+    }
 
     #[test]
     fn settings_from_graph_text_and_set() {
