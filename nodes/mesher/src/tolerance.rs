@@ -1815,6 +1815,78 @@ mod tests {
         assert!(with_g.contains(&(12 * 40 + 3)) && !e.contains(&(12 * 40 + 3)));
     }
 
+    /// A map whose right half is three times as rough: the blocks only in windows of the
+    /// right half take a coarser bound (their regions' smallest Sq over the left's), the
+    /// blocks in a window of the left half keep the search's bound.
+    #[test]
+    fn blocks_whose_regions_have_a_larger_sq_take_a_coarser_bound() {
+        let shape = Shape::new(64, 128);
+        let z: Vec<f32> = (0..shape.len())
+            .map(|k| {
+                let (y, x) = ((k / 128) as f32, (k % 128) as f32);
+                let a = if x >= 64.0 { 3.0 } else { 1.0 };
+                a * ((x * 1.3).sin() * (y * 0.7).cos())
+            })
+            .collect();
+        let view = RasterView::new(&z, shape).unwrap();
+        let plan = BlockPlan::new(
+            view,
+            &TinParams {
+                epsilon_um: 1.0,
+                max_triangles: None,
+                missing: crate::tin::MissingSamples::Fill,
+                block_samples: Some(16),
+                keep_extremes: true,
+            },
+        )
+        .unwrap();
+        let regions = windows(shape, 32);
+        let scales = block_bound_scales(view, &plan, &regions);
+        assert_eq!(scales.len(), plan.block_count());
+        for (k, &f) in scales.iter().enumerate() {
+            let (b, _) = plan.block(k);
+            if b.x1 <= 64 {
+                assert!((f - 1.0).abs() < 0.1, "block {k} at x {}: {f}", b.x0);
+            } else if b.x0 >= 80 {
+                // The whole map (Sq about sqrt(5) x the left half's) is the smallest region
+                // these blocks lie in.
+                assert!(f > 2.0 && f < 2.5, "block {k} at x {}: {f}", b.x0);
+            }
+            assert!(f >= 1.0, "{f}");
+        }
+        // The whole map alone: one region, one bound.
+        let whole = block_bound_scales(view, &plan, &regions[..1]);
+        assert!(whole.iter().all(|&f| f == 1.0), "{whole:?}");
+    }
+
+    /// The search's pass: the largest error at all of its limit, the rest at 90 %.
+    #[test]
+    fn the_largest_error_is_judged_at_all_of_its_limit() {
+        let shape = Shape::new(20, 20);
+        let z: Vec<f32> = (0..400).map(|k| ((k * 37 % 11) as f32) - 5.0).collect();
+        let r = windows(shape, 10);
+        let t = Tolerance {
+            sa_pct: 100.0,
+            sq_pct: 100.0,
+            sz_pct: 100.0,
+            residual_pct: None,
+            ..DEFAULT_TOLERANCE
+        };
+        // One sample off by 0.95 x the limit (0.5 x Sq).
+        let sq = judge_regions(&z, &z, None, shape, &r[..1])[0].measured_um[1];
+        let mut m = z.clone();
+        m[7] += (0.95 * 0.5 * sq) as f32;
+        let f = &judge_regions(&z, &m, None, shape, &r[..1])[0];
+        assert!(
+            f.max_error_pct_of_sq > 45.0 && f.max_error_pct_of_sq < 50.0,
+            "{f:?}"
+        );
+        assert_eq!(f.excess(&t, TARGET_SHARE).map(|e| e.0), Some("max error"));
+        assert!(f
+            .excess_at(&t, TARGET_SHARE, MAX_ERROR_TARGET_SHARE)
+            .is_none());
+    }
+
     #[test]
     fn windows_cover_the_map_at_half_steps() {
         let w = windows(Shape::new(100, 60), 40);
