@@ -334,22 +334,17 @@ fn say_result(
             // mesh's bound is then the coarsest block's, the search's the finest's.
             chosen.map_or(String::new(), |c| {
                 let per_block = f.epsilon_um > c.epsilon_um * (1.0 + 1e-9);
+                let finest = if per_block {
+                    format!(
+                        " where the regions' Sq is largest, {} um where it is smallest",
+                        super::sig(c.epsilon_um, 4)
+                    )
+                } else {
+                    String::new()
+                };
                 format!(
-                    "{} = {} x Sq{}, the search's",
-                    if per_block {
-                        format!(
-                            " in the blocks of the largest regions' Sq, {} um",
-                            super::sig(c.epsilon_um, 4)
-                        )
-                    } else {
-                        String::new()
-                    },
-                    super::sig(c.epsilon_sq_fraction, 3),
-                    if per_block {
-                        " in those of the smallest"
-                    } else {
-                        ""
-                    }
+                    "{finest} = {} x Sq, the search's",
+                    super::sig(c.epsilon_sq_fraction, 3)
                 )
             })
         }
