@@ -94,7 +94,7 @@ pub const DEFAULT_TOLERANCE: Tolerance = Tolerance {
 /// [`crate::EngineProfile::default_tolerance`]): Sa 1 %, Sq 1 %, Sz 3 % and a residual RMS
 /// of at most 50 % of Sq, no bound on the largest pointwise error. The angle bound's
 /// refinement and the engine's triangle budget (400 000; what a DEM run can afford) do not
-/// leave room for the pointwise bound: the demo's default model alone has 563 511 surface
+/// leave room for the pointwise bound: the demo's default model alone has 470 175 surface
 /// triangles, and the specimen at a budget of 30 000 does not meet it (docs/model.md, "The
 /// tolerance per target"). Stated in the model line and the report as any tolerance.
 pub const ANGLE_BOUNDED_TOLERANCE: Tolerance = Tolerance {
