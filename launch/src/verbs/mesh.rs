@@ -332,9 +332,20 @@ fn say_result(
     let bound = match (tolerance, epsilon) {
         (Some(r), _) => {
             let chosen = r.curve.iter().find(|c| c.chosen);
+            // Blocks whose regions all have a larger Sq take a coarser bound (issue 33): the
+            // mesh's bound is then the coarsest block's, the search's the finest's.
             chosen.map_or(String::new(), |c| {
+                let per_block = f.epsilon_um > c.epsilon_um * (1.0 + 1e-9);
+                let finest = if per_block {
+                    format!(
+                        " where the regions' Sq is largest, {} um where it is smallest",
+                        super::sig(c.epsilon_um, 4)
+                    )
+                } else {
+                    String::new()
+                };
                 format!(
-                    " = {} x Sq, the search's",
+                    "{finest} = {} x Sq, the search's",
                     super::sig(c.epsilon_sq_fraction, 3)
                 )
             })

@@ -1356,6 +1356,10 @@ pub(crate) struct BlockPlan<'a> {
     epsilon_um: f64,
     max_triangles: usize,
     keep_extremes: bool,
+    /// Per block (row-major), the factor its insertion bound is of the step's bound (empty:
+    /// 1 everywhere): the tolerance search gives a block whose judged regions all have a
+    /// larger Sq a coarser bound ([`BlockPlan::with_bound_scales`]).
+    bound_scale: Vec<f64>,
 }
 
 /// The vertices of the shared block sides at one bound.
@@ -1441,9 +1445,10 @@ impl LiveBlock<'_> {
         let mut border = plan.border(sides, k);
         border.sort_unstable();
         border.dedup();
-        self.b.set_epsilon(sides.epsilon_um);
+        let epsilon_um = plan.block_epsilon(sides, k);
+        self.b.set_epsilon(epsilon_um);
         self.insert_border(&border);
-        self.budget_reached |= self.b.refine(sides.epsilon_um, plan.max_triangles);
+        self.budget_reached |= self.b.refine(epsilon_um, plan.max_triangles);
     }
 
     /// Inserts the samples of `samples` that lie inside block `k`, not on its sides (a
@@ -1947,14 +1952,48 @@ impl<'a> BlockPlan<'a> {
             epsilon_um: params.epsilon_um,
             max_triangles: params.max_triangles.unwrap_or(usize::MAX),
             keep_extremes: params.keep_extremes,
+            bound_scale: Vec::new(),
         };
         plan.sides = plan.sides_at(params.epsilon_um);
         Ok(plan)
     }
 
-    /// The shared sides simplified at `epsilon_um`: vertical ones (x = xs[i], 0 < i < nbx)
-    /// per block row, horizontal ones (y = ys[j]) per block column. A smaller bound keeps
-    /// every vertex a larger one kept ([`simplify_border`]).
+    /// The plan with block `k`'s insertion bound `scales[k]` times the step's bound, and
+    /// every shared side's the smaller of its two blocks' (so that both blocks keep their
+    /// bound along it). Errors: not one finite factor > 0 per block.
+    pub(crate) fn with_bound_scales(mut self, scales: Vec<f64>) -> Result<Self> {
+        if scales.len() != self.block_count() || !scales.iter().all(|s| s.is_finite() && *s > 0.0) {
+            return Err(MeshError::Incompatible(format!(
+                "expected {} finite bound factors > 0, one per block, got {}",
+                self.block_count(),
+                scales.len()
+            )));
+        }
+        self.bound_scale = scales;
+        self.sides = self.sides_at(self.epsilon_um);
+        Ok(self)
+    }
+
+    /// Block `k`'s factor of the step's bound.
+    fn bound_scale(&self, k: usize) -> f64 {
+        self.bound_scale.get(k).copied().unwrap_or(1.0)
+    }
+
+    /// Block `k`'s insertion bound at the step of `sides`, um.
+    pub(crate) fn block_epsilon(&self, sides: &Sides, k: usize) -> f64 {
+        sides.epsilon_um * self.bound_scale(k)
+    }
+
+    /// The largest factor of the step's bound any block has (1 without factors): every
+    /// sample is within that times the step's bound.
+    pub(crate) fn largest_bound_scale(&self) -> f64 {
+        self.bound_scale.iter().copied().fold(1.0, f64::max)
+    }
+
+    /// The shared sides simplified at `epsilon_um` (times the smaller bound factor of the
+    /// two blocks each one separates): vertical ones (x = xs[i], 0 < i < nbx) per block row,
+    /// horizontal ones (y = ys[j]) per block column. A smaller bound keeps every vertex a
+    /// larger one kept ([`simplify_border`]).
     pub(crate) fn sides_at(&self, epsilon_um: f64) -> Sides {
         let (nbx, nby) = self.blocks_x_y();
         let (xs, ys, cols) = (&self.xs, &self.ys, self.cols);
@@ -1963,12 +2002,14 @@ impl<'a> BlockPlan<'a> {
         for j in 0..nby {
             for i in 1..nbx {
                 let line: Vec<usize> = (ys[j]..=ys[j + 1]).map(|y| y * cols + xs[i]).collect();
+                let k = j * nbx + i;
+                let scale = self.bound_scale(k - 1).min(self.bound_scale(k));
                 simplify_border(
                     &line,
                     &self.filled,
                     self.valid.as_deref(),
                     self.measured.as_deref(),
-                    epsilon_um,
+                    epsilon_um * scale,
                     &mut vertical[j * (nbx + 1) + i],
                 );
             }
@@ -1976,12 +2017,14 @@ impl<'a> BlockPlan<'a> {
         for j in 1..nby {
             for i in 0..nbx {
                 let line: Vec<usize> = (xs[i]..=xs[i + 1]).map(|x| ys[j] * cols + x).collect();
+                let k = j * nbx + i;
+                let scale = self.bound_scale(k - nbx).min(self.bound_scale(k));
                 simplify_border(
                     &line,
                     &self.filled,
                     self.valid.as_deref(),
                     self.measured.as_deref(),
-                    epsilon_um,
+                    epsilon_um * scale,
                     &mut horizontal[j * nbx + i],
                 );
             }
@@ -2068,7 +2111,7 @@ impl<'a> BlockPlan<'a> {
             block,
             shared,
             &border,
-            sides.epsilon_um,
+            self.block_epsilon(sides, k),
             self.keep_extremes,
             true,
         );
@@ -2184,7 +2227,7 @@ impl<'a> BlockPlan<'a> {
             block,
             shared,
             &border,
-            self.epsilon_um,
+            self.epsilon_um * self.bound_scale(k),
             self.max_triangles,
             self.keep_extremes,
         )
@@ -2549,6 +2592,77 @@ mod tests {
             .map(|t| {
                 let p = t.map(|v| {
                     let s = tin.vertex_samples[v as usize] as i64;
+                    (s % cols as i64, s / cols as i64)
+                });
+                orient(p[0], p[1], p[2])
+            })
+            .sum();
+        assert_eq!(area2, 2 * (rows as i64 - 1) * (cols as i64 - 1));
+    }
+
+    /// Per-block bounds: every sample within its own block's bound (the shared sides within
+    /// the smaller of their two), the mesh still conforming (the grid covered exactly once),
+    /// fewer triangles where the bound is coarser, and a factor per block or an error.
+    #[test]
+    fn each_block_meets_its_own_bound_and_the_mesh_stays_conforming() {
+        let (rows, cols) = (50, 61);
+        let z = lcg_field(rows, cols, 11);
+        let view = RasterView::new(&z, Shape::new(rows, cols)).unwrap();
+        let uniform = BlockPlan::new(view, &params_at(0.8, 16)).unwrap();
+        let n = uniform.block_count();
+        assert!(BlockPlan::new(view, &params_at(0.8, 16))
+            .unwrap()
+            .with_bound_scales(vec![1.0; n + 1])
+            .is_err());
+        assert!(BlockPlan::new(view, &params_at(0.8, 16))
+            .unwrap()
+            .with_bound_scales(vec![0.0; n])
+            .is_err());
+        // The right half of the blocks at three times the bound.
+        let (nbx, _) = uniform.blocks_x_y();
+        let scales: Vec<f64> = (0..n)
+            .map(|k| if k % nbx >= nbx / 2 { 3.0 } else { 1.0 })
+            .collect();
+        let scaled = BlockPlan::new(view, &params_at(0.8, 16))
+            .unwrap()
+            .with_bound_scales(scales.clone())
+            .unwrap();
+        assert_eq!(scaled.largest_bound_scale(), 3.0);
+        let bounds = [0.8, 0.3, 0.1];
+        let (fine, coarse) = (
+            refined(&uniform, &bounds, None),
+            refined(&scaled, &bounds, None),
+        );
+        let (mesh, err) = resample_with_error(&coarse, &z);
+        assert_eq!(err.uncovered, 0);
+        assert!(err.max_um <= 0.3, "{}", err.max_um);
+        // Each sample within the bound of every block that holds it (a side: the smaller).
+        let mut coarser_used = 0.0f64;
+        for y in 0..rows {
+            for x in 0..cols {
+                let s = y * cols + x;
+                let bound = (0..n)
+                    .filter(|&k| {
+                        let (b, _) = scaled.block(k);
+                        (b.x0..=b.x1).contains(&x) && (b.y0..=b.y1).contains(&y)
+                    })
+                    .map(|k| 0.1 * scales[k])
+                    .fold(f64::INFINITY, f64::min);
+                let e = (f64::from(mesh[s]) - f64::from(z[s])).abs();
+                assert!(e <= bound * (1.0 + 1e-6), "sample {s}: {e} > {bound}");
+                if bound > 0.1 {
+                    coarser_used = coarser_used.max(e);
+                }
+            }
+        }
+        assert!(coarser_used > 0.1, "{coarser_used}");
+        assert!(coarse.triangles.len() < fine.triangles.len());
+        let area2: i64 = coarse
+            .triangles
+            .iter()
+            .map(|t| {
+                let p = t.map(|v| {
+                    let s = coarse.vertex_samples[v as usize] as i64;
                     (s % cols as i64, s / cols as i64)
                 });
                 orient(p[0], p[1], p[2])
