@@ -981,7 +981,11 @@ inputs = { tiles = "stage/tiles", panorama = "fusion/panorama" }
         assert_eq!(g.output_choice(), OutputChoice::Model);
         g.set_output_choice(OutputChoice::Full);
         assert_eq!(g.output_choice(), OutputChoice::Full);
-        for bad in ["set = \"small\"", "keep = \"model\""] {
+        // The error names the file, the line with the key and what is expected.
+        for (bad, said) in [
+            ("set = \"small\"", "expected `model` or `full`"),
+            ("keep = \"model\"", "expected `set`"),
+        ] {
             let e = GraphFile::parse(
                 &format!("{DEMO}\n[outputs]\n{bad}\n"),
                 "demo.toml",
@@ -989,7 +993,10 @@ inputs = { tiles = "stage/tiles", panorama = "fusion/panorama" }
             )
             .unwrap_err()
             .to_string();
-            assert!(e.contains("demo.toml") && e.contains("outputs"), "{e}");
+            assert!(
+                e.contains("demo.toml") && e.contains(bad) && e.contains(said),
+                "{e}"
+            );
         }
     }
 
