@@ -136,7 +136,13 @@ print("numpy ok")
                 .unwrap_or(0)
         })
         .sum();
-    assert_eq!(rm["outputs"]["removed_bytes"].as_u64(), Some(bytes));
+    // The same files of the full run: equal but for the recording, whose JSON carries the
+    // run's own times (its compressed size moves by some bytes).
+    let said = rm["outputs"]["removed_bytes"].as_u64().unwrap();
+    assert!(
+        said.abs_diff(bytes) < 10_000 && said > 1_000_000,
+        "removed_bytes {said}, the full run's same files {bytes}"
+    );
 
     // The same model: the STL and Table 6 do not depend on the set.
     assert!(
