@@ -531,6 +531,12 @@ fn stitch_keeps_absolute_heights_of_a_part_far_up_the_z_axis() {
         tiles_mean = valid.iter().sum::<f64>() / valid.len() as f64;
     });
     for f in ["panorama.npy", "datum.npy", "pooled.npy"] {
+        // The tiles carry a z offset: float32 would lose its digits, the files stay float64.
+        let bytes = std::fs::read(dir.path().join("out").join(f)).unwrap();
+        assert!(
+            String::from_utf8_lossy(&bytes[..128]).contains("'descr': '<f8'"),
+            "{f}: expected float64"
+        );
         let a = surfstream_io::npy::read_npy_f64(dir.path().join("out").join(f)).unwrap();
         let valid: Vec<f64> = a.data.iter().copied().filter(|z| z.is_finite()).collect();
         let mean = valid.iter().sum::<f64>() / valid.len() as f64;

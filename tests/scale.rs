@@ -76,7 +76,7 @@ import sys, numpy as np, zarr
 z = zarr.open_array(sys.argv[1] + "/panorama.zarr", mode="r")
 npy = np.load(sys.argv[1] + "/panorama.npy")
 assert z.shape == npy.shape, (z.shape, npy.shape)
-assert z.dtype == np.float64, z.dtype
+assert z.dtype == npy.dtype == np.float32, (z.dtype, npy.dtype)  # no z offset: float32 exactly
 a = z[:]
 assert np.array_equal(a, npy, equal_nan=True), "zarr and npy differ"
 assert np.isnan(npy).any() and np.isfinite(npy).sum() > 0.9 * npy.size

@@ -596,20 +596,28 @@ fn judge_out_dir(
 /// How Table 6 is computed, as run.json states it.
 const CONVENTIONS: &str = "ISO 25178 over points valid in both maps, mean removed, no levelling (but a mesh made levelled, the mesher's form_removed, is compared with the panorama less the same least-squares plane, and gets the plane back for the roughness stage); each stage on its own grid at its own pitch (grid); deviation = (model - measured) / measured * 100; the mesh passes when |deviation| <= the model's tolerance (else the threshold) for Sa, Sq, Sz, the other stages at the threshold; residual_rms_pct_of_sq = RMS of the pointwise difference (means removed) / measured Sq * 100; a stage with judged = false is reported, not counted";
 
-/// Adds "deviation" (Table 6) to run.json and writes panorama.x3p when the out dir holds a
-/// panorama. An output that cannot be written (panorama.x3p on a full disk) fails the run;
-/// a Table 6 that cannot be computed is recorded in run.json (and on stderr).
-pub fn attach(out: &Path, run: &mut RunRecord, threshold_percent: f64) -> Result<()> {
+/// Adds "deviation" (Table 6) to run.json and, when `with_x3p` (the full output set), writes
+/// panorama.x3p when the out dir holds a panorama. An output that cannot be written
+/// (panorama.x3p on a full disk) fails the run; a Table 6 that cannot be computed is recorded
+/// in run.json (and on stderr).
+pub fn attach(
+    out: &Path,
+    run: &mut RunRecord,
+    threshold_percent: f64,
+    with_x3p: bool,
+) -> Result<()> {
     if !out.join("panorama.npy").exists() {
         return Ok(());
     }
     let inputs = NpySource::open(&out.join("panorama.npy")).and_then(|p| Ok((p, geometry(run)?)));
     let entry = match inputs {
         Ok((mut pano, geometry)) => {
-            write_x3p(out, &mut pano, &geometry)?;
-            run.files.push("panorama.x3p".into());
-            run.files.sort();
-            run.files.dedup();
+            if with_x3p {
+                write_x3p(out, &mut pano, &geometry)?;
+                run.files.push("panorama.x3p".into());
+                run.files.sort();
+                run.files.dedup();
+            }
             evaluate(out, run, threshold_percent, &mut pano, &geometry)
                 .map(|t| DeviationRecord::Table(Box::new(t)))
         }

@@ -29,6 +29,7 @@ use surfstream_runtime::watchdog::{self, StallWatch};
 use surfstream_runtime::{ipc, shell, slots, stop};
 
 use crate::deviation;
+use crate::outputs::RunOutputs;
 use crate::{nodes, outdir, runjson};
 
 /// How long stopped nodes get to exit after SIGTERM before SIGKILL.
@@ -49,9 +50,15 @@ mod iceoryx2_free {
 
 /// Resolves the graph into the run's staging folder and writes the resolved form there; the
 /// out dir itself is not touched until the run is complete (see [`outdir`]).
-fn prepare(graph: &mut GraphFile, staged: &outdir::StagedOut) -> Result<Vec<NodeContext>> {
+fn prepare(
+    graph: &mut GraphFile,
+    staged: &outdir::StagedOut,
+) -> Result<(Vec<NodeContext>, RunOutputs)> {
     reserve_failure_room(&staged.staging);
-    staged.carry_inputs(graph)?;
+    let outputs = RunOutputs {
+        choice: graph.output_choice(),
+        carried: staged.carry_inputs(graph)?,
+    };
     graph.graph.out_dir = staged.staging.clone();
     let scan_id = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
@@ -64,7 +71,7 @@ fn prepare(graph: &mut GraphFile, staged: &outdir::StagedOut) -> Result<Vec<Node
     crate::progress::attach_observer(&mut contexts);
     crate::live::attach(&mut contexts);
     write_resolved(&staged.staging, &contexts)?;
-    Ok(contexts)
+    Ok((contexts, outputs))
 }
 
 fn write_resolved(dir: &Path, contexts: &[NodeContext]) -> Result<()> {
@@ -181,7 +188,7 @@ pub fn run_in_process(
     let staged = outdir::stage(&graph.graph.out_dir, claim)?;
     let final_dir = staged.final_dir.clone();
     // Free space before work (issue 36): an estimate of the outputs against what is free.
-    let contexts = match crate::outdir_space::check(&graph, &staged.staging)
+    let (contexts, outputs) = match crate::outdir_space::check(&graph, &staged.staging)
         .and_then(|()| prepare(&mut graph, &staged))
     {
         Ok(c) => c,
@@ -228,13 +235,16 @@ pub fn run_in_process(
         for r in &reports {
             shell::write_report(&graph.graph.out_dir, r)?;
         }
-        finish(&graph, origin, &reports, "run", started, deviation)?;
+        finish(
+            &graph, origin, &reports, "run", started, deviation, &outputs,
+        )?;
         stop::check()
     });
     settle(staged, &contexts, outcome, Reached::Scan)
 }
 
-/// Writes run.json (and report.html, panorama.x3p); the verdict (main.rs) reads run.json.
+/// Writes run.json (and report.html, panorama.x3p), then leaves the output set's files; the
+/// verdict (main.rs) reads run.json.
 fn finish(
     graph: &GraphFile,
     origin: &Path,
@@ -242,8 +252,15 @@ fn finish(
     mode: &str,
     started: Instant,
     deviation: deviation::Settings,
+    outputs: &RunOutputs,
 ) -> Result<()> {
-    runjson::write(graph, origin, reports, mode, started.elapsed(), deviation)
+    let how = runjson::RunEnd {
+        mode,
+        elapsed: started.elapsed(),
+        deviation,
+        outputs,
+    };
+    runjson::write(graph, origin, reports, &how)
 }
 
 enum Event {
@@ -315,7 +332,7 @@ pub fn launch(
     let staged = outdir::stage(&graph.graph.out_dir, claim)?;
     let final_dir = staged.final_dir.clone();
     // Free space before work (issue 36): an estimate of the outputs against what is free.
-    let contexts = match crate::outdir_space::check(&graph, &staged.staging)
+    let (contexts, outputs) = match crate::outdir_space::check(&graph, &staged.staging)
         .and_then(|()| prepare(&mut graph, &staged))
     {
         Ok(c) => c,
@@ -451,7 +468,9 @@ pub fn launch(
     let outcome = result.and_then(|()| {
         stop::check()?;
         let reports = read_reports(&out, &contexts)?;
-        finish(&graph, origin, &reports, "launch", started, deviation)?;
+        finish(
+            &graph, origin, &reports, "launch", started, deviation, &outputs,
+        )?;
         stop::check()
     });
     settle(staged, &contexts, outcome, reached)

@@ -14,6 +14,7 @@ mod live;
 mod nodes;
 mod outdir;
 mod outdir_space;
+mod outputs;
 mod progress;
 mod report;
 mod runjson;
@@ -25,6 +26,7 @@ use std::process::ExitCode;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
+use surfstream_core::record::OutputChoice;
 use surfstream_runtime::graph::GraphFile;
 
 #[derive(Parser)]
@@ -70,6 +72,11 @@ struct GraphArgs {
     /// mesher node.
     #[arg(long, value_name = "sa=1,sq=1,sz=3")]
     tolerance: Option<String>,
+    /// Which files the run keeps: model (the STL, run.json, report.html and the small
+    /// records; no height-map arrays, previews or recording) or full (every file, the
+    /// default). Overrides the graph's [outputs] set (docs/outputs.md).
+    #[arg(long, value_name = "model|full")]
+    outputs: Option<OutputChoice>,
     #[command(flatten)]
     verdict: VerdictArgs,
     #[command(flatten)]
@@ -110,6 +117,10 @@ enum Command {
         /// (default 50, % of Sq), rough (default 5); `=off` drops a bound (docs/model.md).
         #[arg(long, value_name = "sa=1,sq=1,sz=3")]
         tolerance: Option<String>,
+        /// Which files the run keeps: model (the STL, run.json, report.html and the small
+        /// records) or full (every file, the default) (docs/outputs.md).
+        #[arg(long, value_name = "model|full")]
+        outputs: Option<OutputChoice>,
         /// Registration method of the matcher: auto | phase | harris | sift (auto = the best
         /// available, phase correlation; the same as `--set matcher.method=...`).
         #[arg(long, value_name = "METHOD")]
@@ -239,6 +250,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             out,
             set,
             tolerance,
+            outputs,
             method,
             compare_fusion,
             grid,
@@ -307,6 +319,9 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
             let (mut graph, deviation) = stitch_graph(&scan, out.clone(), &set, method.as_deref())?;
             if let Some(t) = &tolerance {
                 apply_tolerance(&mut graph, t, "stitch pipeline")?;
+            }
+            if let Some(o) = outputs {
+                graph.set_output_choice(o);
             }
             claim.inputs.extend(outdir::inputs_of(&graph, &out));
             live::start(&view, &out)?;
@@ -510,6 +525,9 @@ fn load_graph(a: &GraphArgs) -> Result<(GraphFile, deviation::Settings)> {
     }
     if let Some(t) = &a.tolerance {
         apply_tolerance(&mut graph, t, &origin)?;
+    }
+    if let Some(o) = a.outputs {
+        graph.set_output_choice(o);
     }
     graph.validate(&a.graph.display().to_string(), &registry)?;
     check_node_params(&graph, &origin)?;

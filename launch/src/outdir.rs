@@ -424,10 +424,15 @@ fn remove_stale_staging(out: &Path) -> usize {
 impl StagedOut {
     /// Copies files that the graph reads from inside the out dir (an inferred `scan.toml`, a
     /// recording replayed into its own folder) into the staging folder, so the committed run
-    /// still holds them. Node parameters name such files as strings.
-    pub fn carry_inputs(&self, graph: &surfstream_runtime::graph::GraphFile) -> Result<()> {
+    /// still holds them. Node parameters name such files as strings. Returns their paths
+    /// relative to the out dir: files the run did not make (the model output set keeps them).
+    pub fn carry_inputs(
+        &self,
+        graph: &surfstream_runtime::graph::GraphFile,
+    ) -> Result<Vec<String>> {
+        let mut carried = Vec::new();
         let Ok(out) = self.final_dir.canonicalize() else {
-            return Ok(()); // no out dir yet: nothing to carry
+            return Ok(carried); // no out dir yet: nothing to carry
         };
         for n in &graph.nodes {
             for v in n.params.values() {
@@ -453,9 +458,10 @@ impl StagedOut {
                         to.display()
                     )
                 })?;
+                carried.push(rel.to_string_lossy().to_string());
             }
         }
-        Ok(())
+        Ok(carried)
     }
 
     /// The run is complete: it replaces the out dir (and whatever run was there). When it

@@ -8,23 +8,38 @@ use std::time::Duration;
 use anyhow::{anyhow, Result};
 use serde_json::Value;
 use surfstream_core::record::{
-    self, GraphRef, MatcherReport, MeshWritten, MessageCounts, OverPlan, PeakRss, ReplayReport,
-    RunRecord, TileRecord,
+    self, GraphRef, MatcherReport, MeshWritten, MessageCounts, OutputChoice, OverPlan, PeakRss,
+    ReplayReport, RunRecord, TileRecord,
 };
 use surfstream_runtime::graph::GraphFile;
 use surfstream_runtime::latency;
 use surfstream_runtime::memory::node_shares;
 use surfstream_runtime::node::NodeReport;
 
-/// Writes `<out>/run.json` and report.html (the verdict printed at the end reads run.json).
+/// How a run ended: what run.json says of it besides the nodes' reports.
+pub struct RunEnd<'a> {
+    /// "launch" or "run".
+    pub mode: &'a str,
+    pub elapsed: Duration,
+    pub deviation: crate::deviation::Settings,
+    pub outputs: &'a crate::outputs::RunOutputs,
+}
+
+/// Writes `<out>/run.json` and report.html (the verdict printed at the end reads run.json),
+/// then removes what the output set does not keep (after Table 6 and the report read it):
+/// run.json lists the files that stay.
 pub fn write(
     graph: &GraphFile,
     origin: &Path,
     reports: &[NodeReport],
-    mode: &str,
-    elapsed: Duration,
-    deviation: crate::deviation::Settings,
+    end: &RunEnd<'_>,
 ) -> Result<()> {
+    let RunEnd {
+        mode,
+        elapsed,
+        deviation,
+        outputs,
+    } = *end;
     let out = &graph.graph.out_dir;
     let by_kind = |k: &str| reports.iter().find(|r| r.node_kind == k).map(|r| &r.report);
     let replay: Option<ReplayReport> = read_report(reports, "replay")?;
@@ -98,11 +113,17 @@ pub fn write(
         stages,
         parameters,
         files,
+        outputs: None,
         elapsed_s: elapsed.as_secs_f64(),
         deviation: None,
         peak_rss: None,
     };
-    crate::deviation::attach(out, &mut run, deviation.threshold_percent)?;
+    let full = outputs.choice == OutputChoice::Full;
+    crate::deviation::attach(out, &mut run, deviation.threshold_percent, full)?;
+    let removals = crate::outputs::plan(out, outputs.choice, &outputs.carried)?;
+    run.files
+        .retain(|f| !crate::outputs::is_removed(f, &removals));
+    run.outputs = Some(crate::outputs::record(outputs.choice, &removals));
     // After the deviation pass, which loads whole rasters in the launcher.
     run.peak_rss = Some(peak_rss(graph, reports, mode));
     let path = out.join("run.json");
@@ -112,7 +133,7 @@ pub fn write(
         serde_json::to_writer_pretty(w, &value).map_err(|e| anyhow!("{}: {e}", path.display()))
     })?;
     crate::report::write(out)?;
-    Ok(())
+    crate::outputs::remove(out, &removals)
 }
 
 /// The report of the first node of `kind` as its record; a report that does not read as its

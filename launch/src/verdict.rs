@@ -13,7 +13,8 @@ use std::path::Path;
 
 use serde_json::Value;
 use surfstream_core::record::{
-    DeviationRecord, LatencySummary, MeshReport, Percentiles, RunRecord, Table6Record, TileRecord,
+    DeviationRecord, LatencySummary, MeshReport, OutputChoice, Percentiles, RunRecord,
+    Table6Record, TileRecord,
 };
 
 /// Exit code of a run whose outputs were written but a check failed under `--strict`
@@ -577,8 +578,16 @@ fn outputs_line(run: &RunRecord, out: &Path) -> String {
         .filter(|f| f.ends_with(".stl"))
         .map(|f| format!("; STL {}", out.join(f).display()))
         .unwrap_or_default();
+    let set = match &run.outputs {
+        Some(o) if o.set == OutputChoice::Model => format!(
+            "; output set model: {} files of arrays, previews and recordings removed ({:.1} MB; --outputs full keeps them)",
+            o.removed.len(),
+            o.removed_bytes as f64 / 1e6
+        ),
+        _ => String::new(),
+    };
     format!(
-        "{} ({} files: {}){stl}",
+        "{} ({} files: {}){stl}{set}",
         out.display(),
         files.len(),
         key.join(", ")

@@ -1311,6 +1311,58 @@ pub struct OverPlan {
     pub share_bytes: u64,
 }
 
+/// Which files a graph run keeps in its out dir (`--outputs`, a graph's `[outputs] set`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum OutputChoice {
+    /// The model and what reads it: the STL, run.json, report.html with report_maps/, the
+    /// small JSON records, logs; without the height-map arrays (.npy, .zarr, .x3p, the
+    /// previews) and the recording (.mcap).
+    Model,
+    /// Every file the run writes.
+    #[default]
+    Full,
+}
+
+impl OutputChoice {
+    /// Its name as written: "model" or "full".
+    pub fn name(self) -> &'static str {
+        match self {
+            OutputChoice::Model => "model",
+            OutputChoice::Full => "full",
+        }
+    }
+}
+
+impl std::fmt::Display for OutputChoice {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for OutputChoice {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "model" => Ok(OutputChoice::Model),
+            "full" => Ok(OutputChoice::Full),
+            _ => Err(format!(
+                "{s:?}: expected \"model\" (the STL, run.json, report.html and the small records) or \"full\" (every file)"
+            )),
+        }
+    }
+}
+
+/// run.json's `outputs`: the set the run kept and what it removed of its own files at the end
+/// (the arrays Table 6 and report.html read before they went).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct OutputsRecord {
+    pub set: OutputChoice,
+    /// Paths relative to the out dir, sorted (a folder such as panorama.zarr by its name).
+    pub removed: Vec<String>,
+    pub removed_bytes: u64,
+}
+
 /// run.json.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RunRecord {
@@ -1329,8 +1381,12 @@ pub struct RunRecord {
     pub stages: BTreeMap<String, Value>,
     /// Each node's parameters as run.
     pub parameters: BTreeMap<String, Value>,
-    /// Every file of the out dir, sorted.
+    /// Every file of the out dir, sorted (report.html and report_maps/ come after it).
     pub files: Vec<String>,
+    /// The output set and what it removed (absent in run.json written before issue 35: read
+    /// as the full set).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub outputs: Option<OutputsRecord>,
     pub elapsed_s: f64,
     /// Table 6 (absent when no panorama was written).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -1703,5 +1759,28 @@ mod tests {
             "datum, gaussian lambda_c 80 um (um)"
         );
         assert_eq!(to_value(&f), filter);
+    }
+
+    #[test]
+    fn output_choice_reads_its_two_names_and_run_json_without_outputs_is_full() {
+        assert_eq!("model".parse::<OutputChoice>(), Ok(OutputChoice::Model));
+        assert_eq!("full".parse::<OutputChoice>(), Ok(OutputChoice::Full));
+        let e = "small".parse::<OutputChoice>().unwrap_err();
+        assert!(
+            e.contains("\"small\"") && e.contains("model") && e.contains("full"),
+            "{e}"
+        );
+        let rec = OutputsRecord {
+            set: OutputChoice::Model,
+            removed: vec!["panorama.npy".into()],
+            removed_bytes: 8,
+        };
+        let v = to_value(&rec);
+        assert_eq!(
+            v,
+            json!({ "set": "model", "removed": ["panorama.npy"], "removed_bytes": 8 })
+        );
+        assert_eq!(from_value::<OutputsRecord>(&v, "outputs"), Ok(rec));
+        assert_eq!(OutputChoice::default(), OutputChoice::Full);
     }
 }

@@ -83,6 +83,31 @@ pub fn write_npy_abs_f64(
     })
 }
 
+/// Whether absolute heights `f64::from(z) + z_offset_um` of f32 frame heights `z` are exactly
+/// f32 values: with no offset they are the frame's own f32 heights, so a float32 file holds
+/// them without loss (half the bytes of float64). With an offset the sum has more digits than
+/// an f32 keeps: float64.
+pub fn absolute_fits_f32(z_offset_um: f64) -> bool {
+    z_offset_um == 0.0
+}
+
+/// Writes f32 frame heights as absolute heights: float32 (`<f4`) when they are exactly f32
+/// ([`absolute_fits_f32`]: no offset), else float64 as [`write_npy_abs_f64`]. Either way every
+/// reader of ours, and numpy, reads the same absolute heights.
+pub fn write_npy_abs(
+    path: impl AsRef<Path>,
+    data: &[f32],
+    rows: usize,
+    cols: usize,
+    z_offset_um: f64,
+) -> Result<()> {
+    if absolute_fits_f32(z_offset_um) {
+        write_npy_f32(path, data, rows, cols)
+    } else {
+        write_npy_abs_f64(path, data, rows, cols, z_offset_um)
+    }
+}
+
 // ---------------------------------------------------------------------------------------------
 // Writing
 
@@ -223,6 +248,18 @@ impl NpyRowWriter {
         Self::create(path.as_ref(), rows, cols, true)
     }
 
+    /// A file of absolute heights from f32 frame heights relative to `z_offset_um`
+    /// (rows go in with [`NpyRowWriter::push_abs`]): float32 when no offset is added
+    /// ([`absolute_fits_f32`]), else float64; the bytes of [`write_npy_abs`].
+    pub fn create_abs(
+        path: impl AsRef<Path>,
+        rows: usize,
+        cols: usize,
+        z_offset_um: f64,
+    ) -> Result<Self> {
+        Self::create(path.as_ref(), rows, cols, !absolute_fits_f32(z_offset_um))
+    }
+
     fn create(path: &Path, rows: usize, cols: usize, f64: bool) -> Result<Self> {
         if rows == 0 || cols == 0 || rows.checked_mul(cols).is_none() {
             bail!("{}: cannot write a {rows} x {cols} array", path.display());
@@ -273,6 +310,21 @@ impl NpyRowWriter {
                 .flat_map(|&v| (f64::from(v) + z_offset_um).to_le_bytes()),
         );
         self.flush_buf(values.len())
+    }
+
+    /// Whole rows of f32 frame heights as absolute heights into a file made by
+    /// [`NpyRowWriter::create_abs`] with the same `z_offset_um`.
+    pub fn push_abs(&mut self, values: &[f32], z_offset_um: f64) -> Result<()> {
+        if self.f64 {
+            self.push_abs_f64(values, z_offset_um)
+        } else if absolute_fits_f32(z_offset_um) {
+            self.push_f32(values)
+        } else {
+            bail!(
+                "{}: heights with an offset of {z_offset_um} um pushed into a float32 file made for no offset",
+                self.path.display()
+            )
+        }
     }
 
     /// Whole rows of f64 values (float64 files).

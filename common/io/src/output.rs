@@ -4,9 +4,11 @@
 //! crash never leaves a half-written file.
 //!
 //! Heights arrive as frames carry them: f32 relative to an f64 `z_offset_um` (DESIGN §2). A
-//! surface with an absolute position (panorama, datum, pooled map) is written as absolute f64
-//! so the file loses neither the offset nor the f32's precision near zero; a surface that is
-//! relative by nature (roughness) stays f32 as computed.
+//! surface with an absolute position (panorama, datum, pooled map) is written as absolute
+//! heights: float32 when the frame carries no offset (its f32 heights are then the absolute
+//! heights exactly: half the bytes, nothing lost), float64 when it does, so the file loses
+//! neither the offset nor the f32's precision near zero ([`crate::npy::absolute_fits_f32`]).
+//! A surface that is relative by nature (roughness) stays f32 as computed.
 //!
 //! Every `.npy` surface gets its pitch sidecar `<name>.npy.json` ([`crate::sidecar`]) once the
 //! writer knows the pitch ([`OutputWriter::set_geometry`]), so `params`, `separate` or `mesh`
@@ -19,15 +21,16 @@ use surfstream_core::frame::from_frame_heights;
 use surfstream_core::raster::RasterView;
 
 use crate::formats::{Metadata, Surface};
-use crate::npy::{write_npy_abs_f64, write_npy_f32, write_npy_f64, NpyRowWriter};
+use crate::npy::{write_npy_abs, write_npy_f32, write_npy_f64, NpyRowWriter};
 use crate::preview::{write_preview_png, PreviewBuilder, PreviewOptions};
 use crate::sidecar::{remove_stale_sidecar, write_sidecar, NpyGeometry};
 
 /// How a surface's numbers go into its `.npy`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum NpyHeights {
-    /// float64, the frame heights plus `z_offset_um`: absolute heights.
-    AbsoluteF64,
+    /// Absolute heights, the frame heights plus `z_offset_um`: float32 when the offset is 0
+    /// (exact), else float64 ([`crate::npy::write_npy_abs`]).
+    Absolute,
     /// float32, the frame heights as they are (relative; the offset is not added).
     RelativeF32,
 }
@@ -104,8 +107,8 @@ impl OutputWriter {
         let values = s.heights.values();
         let npy = format!("{}.npy", s.name);
         match s.npy {
-            NpyHeights::AbsoluteF64 => {
-                write_npy_abs_f64(self.dir.join(&npy), values, rows, cols, s.z_offset_um)?
+            NpyHeights::Absolute => {
+                write_npy_abs(self.dir.join(&npy), values, rows, cols, s.z_offset_um)?
             }
             NpyHeights::RelativeF32 => write_npy_f32(self.dir.join(&npy), values, rows, cols)?,
         }
@@ -171,7 +174,7 @@ impl SurfaceStream {
     /// The next whole rows of frame heights (um relative to the offset, NaN = not measured).
     pub fn push_rows(&mut self, heights: &[f32]) -> Result<()> {
         match self.npy_heights {
-            NpyHeights::AbsoluteF64 => self.npy.push_abs_f64(heights, self.z_offset_um)?,
+            NpyHeights::Absolute => self.npy.push_abs(heights, self.z_offset_um)?,
             NpyHeights::RelativeF32 => self.npy.push_f32(heights)?,
         }
         self.preview.push_rows(heights)
@@ -193,7 +196,7 @@ impl OutputWriter {
         check_name(name)?;
         let path = self.dir.join(format!("{name}.npy"));
         let writer = match npy {
-            NpyHeights::AbsoluteF64 => NpyRowWriter::create_f64(path, rows, cols)?,
+            NpyHeights::Absolute => NpyRowWriter::create_abs(path, rows, cols, z_offset_um)?,
             NpyHeights::RelativeF32 => NpyRowWriter::create_f32(path, rows, cols)?,
         };
         let opts = PreviewOptions {
@@ -253,7 +256,7 @@ mod tests {
             name: "datum",
             heights: r.view(),
             z_offset_um: 100.0,
-            npy: NpyHeights::AbsoluteF64,
+            npy: NpyHeights::Absolute,
             title: "datum (um)",
             x3p_pitch_um: Some((0.5, 0.5)),
         })
@@ -307,6 +310,43 @@ mod tests {
             .is_err());
     }
 
+    /// The dtype a `.npy` file's header names.
+    fn descr(path: &Path) -> String {
+        let bytes = std::fs::read(path).unwrap();
+        let text = String::from_utf8_lossy(&bytes[..128.min(bytes.len())]).into_owned();
+        let at = text.find("'descr': '").unwrap() + "'descr': '".len();
+        text[at..at + 3].to_string()
+    }
+
+    #[test]
+    fn absolute_heights_are_float32_without_an_offset_and_float64_with_one() {
+        let dir = tempfile::tempdir().unwrap();
+        let h = vec![0.1f32, -7.25e-3, f32::NAN, 1234.567];
+        let r = Raster::new(h.clone(), Shape::new(2, 2)).unwrap();
+        let mut w = OutputWriter::new(dir.path());
+        for (name, z) in [("none", 0.0), ("up", 25_000.125)] {
+            w.write_surface(&SurfaceOutput {
+                name,
+                heights: r.view(),
+                z_offset_um: z,
+                npy: NpyHeights::Absolute,
+                title: "t (um)",
+                x3p_pitch_um: None,
+            })
+            .unwrap();
+        }
+        assert_eq!(descr(&dir.path().join("none.npy")), "<f4");
+        assert_eq!(descr(&dir.path().join("up.npy")), "<f8");
+        // Both read back as the absolute heights f64::from(z) + offset, bit for bit.
+        for (name, z) in [("none", 0.0), ("up", 25_000.125)] {
+            let back = crate::npy::read_npy_f64(dir.path().join(format!("{name}.npy"))).unwrap();
+            for (b, &v) in back.data.iter().zip(&h) {
+                let want = f64::from(v) + z;
+                assert!(b.to_bits() == want.to_bits() || (b.is_nan() && want.is_nan()));
+            }
+        }
+    }
+
     #[test]
     fn streamed_surfaces_equal_whole_ones() {
         let dir = tempfile::tempdir().unwrap();
@@ -326,22 +366,23 @@ mod tests {
         let r = Raster::new(h.clone(), Shape::new(rows, cols)).unwrap();
         let mut whole = OutputWriter::new(&whole_dir);
         let mut streamed = OutputWriter::new(&rows_dir);
-        for (name, npy) in [
-            ("datum", NpyHeights::AbsoluteF64),
-            ("roughness", NpyHeights::RelativeF32),
+        for (name, npy, z) in [
+            ("datum", NpyHeights::Absolute, 250.5),
+            ("datum0", NpyHeights::Absolute, 0.0),
+            ("roughness", NpyHeights::RelativeF32, 250.5),
         ] {
             whole
                 .write_surface(&SurfaceOutput {
                     name,
                     heights: r.view(),
-                    z_offset_um: 250.5,
+                    z_offset_um: z,
                     npy,
                     title: "t (um)",
                     x3p_pitch_um: None,
                 })
                 .unwrap();
             let mut s = streamed
-                .begin_surface(name, rows, cols, 250.5, npy, "t (um)")
+                .begin_surface(name, rows, cols, z, npy, "t (um)")
                 .unwrap();
             for band in h.chunks(17 * cols) {
                 s.push_rows(band).unwrap();
@@ -350,6 +391,8 @@ mod tests {
             streamed.finish_surface(s).unwrap();
         }
         assert_eq!(whole.files(), streamed.files());
+        assert_eq!(descr(&rows_dir.join("datum0.npy")), "<f4");
+        assert_eq!(descr(&rows_dir.join("datum.npy")), "<f8");
         for f in whole.files() {
             let a = std::fs::read(whole_dir.join(f)).unwrap();
             let b = std::fs::read(rows_dir.join(f)).unwrap();

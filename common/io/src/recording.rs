@@ -1663,6 +1663,54 @@ mod tests {
         assert_eq!(got.messages[1].message, Recorded::Registration(r));
     }
 
+    /// Issue 35: recordings are written with zstd chunks, and a recording whose chunks are
+    /// not compressed (another writer's) reads to the same messages.
+    #[test]
+    fn zstd_chunks_are_written_and_uncompressed_ones_read_the_same() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("rec.mcap");
+        sample(&path, (300, 200));
+        let bytes = std::fs::read(&path).expect("read");
+        let summary = mcap::Summary::read(&bytes)
+            .expect("summary")
+            .expect("has a summary");
+        assert!(!summary.chunk_indexes.is_empty());
+        for c in &summary.chunk_indexes {
+            assert_eq!(c.compression, "zstd");
+            assert!(c.compressed_size < c.uncompressed_size, "{c:?}");
+        }
+        // The same messages through the mcap crate's writer without compression.
+        let plain = dir.path().join("plain.mcap");
+        let mut w = mcap::WriteOptions::new()
+            .compression(None)
+            .create(BufWriter::new(File::create(&plain).expect("create")))
+            .expect("writer");
+        for m in mcap::MessageStream::new(&bytes).expect("messages") {
+            w.write(&m.expect("message")).expect("write");
+        }
+        w.finish().expect("finish");
+        drop(w);
+        let plain_bytes = std::fs::read(&plain).expect("read");
+        let plain_summary = mcap::Summary::read(&plain_bytes)
+            .expect("summary")
+            .expect("has a summary");
+        assert!(plain_summary
+            .chunk_indexes
+            .iter()
+            .all(|c| c.compression.is_empty()));
+        let (a, b) = (
+            read_recording(&path).expect("zstd recording"),
+            read_recording(&plain).expect("uncompressed recording"),
+        );
+        // NaN heights: compared by their printed form (NaN != NaN).
+        assert_eq!(format!("{:?}", a.messages), format!("{:?}", b.messages));
+        assert_eq!(
+            a.messages.len(),
+            6,
+            "3 frames, 2 registrations, the end marker"
+        );
+    }
+
     #[test]
     fn new_recordings_are_json_with_json_schemas() {
         let dir = tempfile::tempdir().expect("tempdir");

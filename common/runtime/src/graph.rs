@@ -274,6 +274,31 @@ pub struct GraphFile {
     /// it; the graph keeps it so the launcher reads it from the parsed file.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub deviation: Option<toml::Table>,
+    /// `[outputs]`: which files the run keeps (`set = "model"` or `"full"`, the default); the
+    /// launcher's, like `[deviation]` (`--outputs` overrides it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub outputs: Option<OutputsSection>,
+}
+
+/// A graph's `[outputs]` table.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OutputsSection {
+    /// "model": the STL, run.json, report.html and the small records; "full": every file.
+    #[serde(default)]
+    pub set: surfstream_core::record::OutputChoice,
+}
+
+impl GraphFile {
+    /// The output set the graph asks for (the full set when it has no `[outputs]`).
+    pub fn output_choice(&self) -> surfstream_core::record::OutputChoice {
+        self.outputs.as_ref().map(|o| o.set).unwrap_or_default()
+    }
+
+    /// Sets the output set (`--outputs`), over the graph's `[outputs]`.
+    pub fn set_output_choice(&mut self, set: surfstream_core::record::OutputChoice) {
+        self.outputs = Some(OutputsSection { set });
+    }
 }
 
 /// A resolved input: where it comes from.
@@ -940,6 +965,39 @@ inputs = { tiles = "stage/tiles", panorama = "fusion/panorama" }
         .unwrap_err()
         .to_string();
         assert!(e.contains("inputs.tiles is missing"), "{e}");
+    }
+
+    #[test]
+    fn reads_the_outputs_table() {
+        use surfstream_core::record::OutputChoice;
+        let g = GraphFile::parse(DEMO, "demo.toml", &registry()).unwrap();
+        assert_eq!(g.output_choice(), OutputChoice::Full);
+        let mut g = GraphFile::parse(
+            &format!("{DEMO}\n[outputs]\nset = \"model\"\n"),
+            "demo.toml",
+            &registry(),
+        )
+        .unwrap();
+        assert_eq!(g.output_choice(), OutputChoice::Model);
+        g.set_output_choice(OutputChoice::Full);
+        assert_eq!(g.output_choice(), OutputChoice::Full);
+        // The error names the file, the line with the key and what is expected.
+        for (bad, said) in [
+            ("set = \"small\"", "expected `model` or `full`"),
+            ("keep = \"model\"", "expected `set`"),
+        ] {
+            let e = GraphFile::parse(
+                &format!("{DEMO}\n[outputs]\n{bad}\n"),
+                "demo.toml",
+                &registry(),
+            )
+            .unwrap_err()
+            .to_string();
+            assert!(
+                e.contains("demo.toml") && e.contains(bad) && e.contains(said),
+                "{e}"
+            );
+        }
     }
 
     #[test]

@@ -19,9 +19,10 @@ use super::surfaces::Surface;
 /// Longest side of an inlined map, px: near the figure's drawn width (860 CSS px), so the
 /// page stays small (the demo's report: 11 MB with 2048 px maps inline).
 const INLINE_SIDE_PX: usize = 800;
-/// Longest side of the full-size map a click opens (`report_maps/NAME.png` beside the page):
-/// the demo panorama (1946 px) at full resolution.
-const MAX_SIDE_PX: usize = 2048;
+/// Longest side of the larger map a click opens (`report_maps/NAME.png` beside the page):
+/// sized for a screen (issue 35: a 20 x 20 scan's maps at 2048 px were 30 MB); a larger map is
+/// drawn from block means, its every height stays in `NAME.npy`.
+const MAX_SIDE_PX: usize = 1600;
 /// Folder, beside report.html, of the full-size maps.
 pub const ZOOM_DIR: &str = "report_maps";
 /// Width of the map inside the figure (SVG user units = CSS px at full width).
@@ -60,6 +61,7 @@ pub fn figure(
         .filter(|_| s.rows.max(s.cols) > INLINE_SIDE_PX)
         .and_then(|dir| {
             let m = encode_map_png(&values, s.rows, s.cols, MAX_SIDE_PX, (lo, hi)).ok()?;
+            let block = m.block * s.block;
             let rel = format!("{ZOOM_DIR}/{}.png", s.name);
             let path = dir.join(&rel);
             surfstream_core::fsutil::write_atomic(&path, |w| {
@@ -68,7 +70,7 @@ pub fn figure(
                 Ok(())
             })
             .ok()?;
-            Some((rel, m.rows, m.cols))
+            Some((rel, m.rows, m.cols, block))
         });
     let map = match encode_map_png(&values, s.rows, s.cols, INLINE_SIDE_PX, (lo, hi)) {
         Ok(m) => m,
@@ -109,7 +111,7 @@ pub fn figure(
         "</linearGradient></defs><image class=\"zoomable\" x=\"{LEFT}\" y=\"{TOP}\" \
          width=\"{mw:.1}\" height=\"{mh:.1}\" preserveAspectRatio=\"none\" \
          style=\"image-rendering:pixelated\" data-title=\"{t}\"{full_attr} \
-         href=\"data:image/png;base64,{}\"><title>click for full size ({} x {} px, rows x cols)</title></image>\
+         href=\"data:image/png;base64,{}\"><title>click to enlarge ({} x {} px, rows x cols)</title></image>\
          <rect x=\"{LEFT}\" y=\"{TOP}\" width=\"{mw:.1}\" height=\"{mh:.1}\" fill=\"none\" \
          stroke=\"#333\" stroke-width=\"1\"/>",
         base64(&map.png),
@@ -164,9 +166,15 @@ pub fn figure(
             String::new()
         },
         match &full {
-            Some((rel, r, c)) => format!(
+            Some((rel, r, c, 1)) => format!(
                 "Click the map for full size: {r} x {c} px, the file {} beside this page.",
                 esc(rel)
+            ),
+            Some((rel, r, c, k)) => format!(
+                "Click the map for a larger view: {r} x {c} px, each the mean of {k} x {k} \
+                 heights, the file {} beside this page (every height: {}.npy).",
+                esc(rel),
+                esc(s.name)
             ),
             None => "Click the map for full size.".into(),
         }
@@ -427,5 +435,40 @@ pub(super) mod tests {
             LEFT + at.mw
         )));
         assert!(f.contains("row 0 at the top"));
+    }
+
+    /// Issue 35: the map a click opens is sized for a screen, at most 1600 px on its long
+    /// side, from block means of the map (a map up to 1600 px stays at full size).
+    #[test]
+    fn the_larger_map_is_at_most_1600_px() {
+        let d = tempfile::tempdir().unwrap();
+        for (rows, cols, want, block) in
+            [(1500, 1700, (750, 850), 2), (1000, 1600, (1000, 1600), 1)]
+        {
+            let z: Vec<f64> = (0..rows * cols).map(|i| (i % 977) as f64 * 1e-3).collect();
+            let s = Surface {
+                name: "panorama",
+                z,
+                rows,
+                cols,
+                pitch_x_um: 1.0,
+                pitch_y_um: 1.0,
+                block: 1,
+                file_shape: (rows, cols),
+            };
+            let f = figure(&s, "t", "mean", None, Some(d.path()));
+            let png = std::fs::read(d.path().join("report_maps/panorama.png")).unwrap();
+            let reader = png::Decoder::new(std::io::Cursor::new(png))
+                .read_info()
+                .unwrap();
+            let info = reader.info();
+            assert_eq!((info.height as usize, info.width as usize), want);
+            if block > 1 {
+                assert!(f.contains("each the mean of 2 x 2 heights"), "{f}");
+                assert!(f.contains("(every height: panorama.npy)"));
+            } else {
+                assert!(f.contains("Click the map for full size: 1000 x 1600 px"));
+            }
+        }
     }
 }

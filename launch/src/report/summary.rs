@@ -429,7 +429,7 @@ pub fn outputs(run: &RunRecord) -> String {
     let describe = |f: &str| -> &str {
         match f {
             "panorama.npy" => {
-                "stitched height map, absolute heights in µm (float64, NaN = not measured)"
+                "stitched height map, absolute heights in µm (float32, float64 when the tiles carry a z offset; NaN = not measured)"
             }
             "panorama.x3p" => {
                 "the panorama as ISO 25178-72 X3P (MountainsMap, Gwyddion, surfalize)"

@@ -390,7 +390,7 @@ fn inputs(a: &FinishArgs) -> Result<(Model, Option<Model>)> {
             .find(|p| p.is_file())
             .ok_or_else(|| {
                 anyhow!(
-                    "{}: no panorama.x3p, panorama.npy or pooled.npy: give a run's out dir or a height-map file",
+                    "{}: no panorama.x3p, panorama.npy or pooled.npy: give a run's out dir or a height-map file (a run with --outputs model keeps none: run it with --outputs full)",
                     dir.display()
                 )
             })?;

@@ -384,13 +384,13 @@ impl StreamingFusion {
                 name: "panorama",
                 heights: r.heights.view(),
                 z_offset_um: r.z_offset_um,
-                npy: NpyHeights::AbsoluteF64,
+                npy: NpyHeights::Absolute,
                 title: "panorama (um)",
                 x3p_pitch_um: None,
             })?;
             written = w.files().to_vec();
             if self.zarr_min_px.is_some_and(|min| rows * cols >= min) {
-                written.push(crate::zarr::write_zarr_abs_f64(
+                written.push(crate::zarr::write_zarr_abs(
                     w.dir(),
                     "panorama",
                     r.heights.values(),

@@ -8,11 +8,11 @@
 //! implementation would add about a hundred crates to the build for that.
 //!
 //! Layout of `NAME.zarr/`:
-//! - `zarr.json`: `shape` [rows, cols], `data_type` "float64" (absolute heights in um, as in
-//!   `panorama.npy`), `chunk_grid` regular with `chunk_shape` [[`ZARR_CHUNK_PX`]; 2],
+//! - `zarr.json`: `shape` [rows, cols], `data_type` "float32" or "float64" (absolute heights
+//!   in um, the dtype of `panorama.npy`: float32 when the frames carry no z offset), `chunk_grid` regular with `chunk_shape` [[`ZARR_CHUNK_PX`]; 2],
 //!   `fill_value` "NaN" (not measured), `dimension_names` ["y", "x"] (row index grows with
 //!   y), and `attributes` with the pitch and the scan position of pixel (0, 0) in um.
-//! - `c/<i>/<j>`: chunk (row block i, column block j), `ZARR_CHUNK_PX^2` little-endian f64,
+//! - `c/<i>/<j>`: chunk (row block i, column block j), `ZARR_CHUNK_PX^2` little-endian values,
 //!   row-major; edge chunks are padded with NaN to the full chunk shape, as the spec asks.
 //!   Chunks with no measured pixel are not written (they read as the fill value).
 //!
@@ -30,9 +30,10 @@ pub const ZARR_CHUNK_PX: usize = 512;
 
 /// Writes `dir/NAME.zarr` from f32 frame heights (row-major, relative to `z_offset_um`,
 /// sampled as `at` says: its shape, and the pitch and origin written to the attributes) as
-/// absolute float64 heights `f64::from(z) + z_offset_um`, the same values as the `.npy`.
-/// Returns the store's name.
-pub fn write_zarr_abs_f64(
+/// absolute heights `f64::from(z) + z_offset_um`, the same values and dtype as the `.npy`
+/// (float32 without an offset, [`surfstream_io::npy::absolute_fits_f32`]). Returns the store's
+/// name.
+pub fn write_zarr_abs(
     dir: &Path,
     name: &str,
     heights: &[f32],
@@ -57,11 +58,12 @@ pub fn write_zarr_abs_f64(
     std::fs::create_dir_all(&partial)
         .with_context(|| format!("{}: cannot create", partial.display()))?;
     let c = ZARR_CHUNK_PX;
+    let f32_data = surfstream_io::npy::absolute_fits_f32(z_offset_um);
     let meta = json!({
         "zarr_format": 3,
         "node_type": "array",
         "shape": [rows, cols],
-        "data_type": "float64",
+        "data_type": if f32_data { "float32" } else { "float64" },
         "chunk_grid": {"name": "regular", "configuration": {"chunk_shape": [c, c]}},
         "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
         "fill_value": "NaN",
@@ -93,11 +95,15 @@ pub fn write_zarr_abs_f64(
                     let v = if r < rows && col < cols {
                         let z = heights[r * cols + col];
                         measured |= !z.is_nan();
-                        f64::from(z) + z_offset_um
+                        z
                     } else {
-                        f64::NAN
+                        f32::NAN
                     };
-                    buf.extend_from_slice(&v.to_le_bytes());
+                    if f32_data {
+                        buf.extend_from_slice(&v.to_le_bytes());
+                    } else {
+                        buf.extend_from_slice(&(f64::from(v) + z_offset_um).to_le_bytes());
+                    }
                 }
             }
             if !measured {
@@ -136,7 +142,7 @@ mod tests {
             .unwrap()
             .with_origin(1.0, -2.0)
             .unwrap();
-        let name = write_zarr_abs_f64(dir.path(), "p", &h, &at, 100.0).unwrap();
+        let name = write_zarr_abs(dir.path(), "p", &h, &at, 100.0).unwrap();
         let store = dir.path().join(name);
         let meta: serde_json::Value =
             serde_json::from_slice(&std::fs::read(store.join("zarr.json")).unwrap()).unwrap();
@@ -153,5 +159,16 @@ mod tests {
             "an all-NaN chunk is the fill value"
         );
         assert!(!dir.path().join("p.zarr.partial").exists());
+        assert_eq!(meta["data_type"], json!("float64"));
+        // Without an offset the heights are f32 exactly: a float32 store, as panorama.npy.
+        let name = write_zarr_abs(dir.path(), "q", &h, &at, 0.0).unwrap();
+        let store = dir.path().join(name);
+        let meta: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(store.join("zarr.json")).unwrap()).unwrap();
+        assert_eq!(meta["data_type"], json!("float32"));
+        let chunk = std::fs::read(store.join("c/0/0")).unwrap();
+        assert_eq!(chunk.len(), ZARR_CHUNK_PX * ZARR_CHUNK_PX * 4);
+        assert_eq!(f32::from_le_bytes(chunk[4..8].try_into().unwrap()), 1.5);
+        assert!(f32::from_le_bytes(chunk[..4].try_into().unwrap()).is_nan());
     }
 }

@@ -22,7 +22,7 @@ use surfstream_core::frame::to_frame_heights;
 use surfstream_core::metrology::{self, Grid};
 use surfstream_core::raster::{RasterView, Shape};
 use surfstream_core::record::MeshReport;
-use surfstream_io::npy::write_npy_abs_f64;
+use surfstream_io::npy::write_npy_abs;
 use surfstream_io::sidecar::{write_sidecar, NpyGeometry};
 
 use crate::config::{check_stl_path, MeshSettings, StlFormat};
@@ -333,7 +333,7 @@ fn write_resampled(
     let Some(path) = out.resampled_npy else {
         return Ok(());
     };
-    write_npy_abs_f64(path, resampled_um, shape.rows, shape.cols, at.z_offset_um)?;
+    write_npy_abs(path, resampled_um, shape.rows, shape.cols, at.z_offset_um)?;
     let geometry = NpyGeometry {
         pitch_x_um: at.pitch.x_um(),
         pitch_y_um: at.pitch.y_um(),

@@ -119,7 +119,7 @@ fn main() -> Result<()> {
             let shape = Shape::new(rows, cols);
             let pooled_shape = Shape::new(a.pooled.rows, a.pooled.cols);
             for (name, values, shape, npy) in [
-                ("datum", &a.separation.datum, shape, NpyHeights::AbsoluteF64),
+                ("datum", &a.separation.datum, shape, NpyHeights::Absolute),
                 (
                     "roughness",
                     &a.separation.roughness,
@@ -130,7 +130,7 @@ fn main() -> Result<()> {
                     "pooled",
                     &a.pooled.heights,
                     pooled_shape,
-                    NpyHeights::AbsoluteF64,
+                    NpyHeights::Absolute,
                 ),
             ] {
                 w.write_surface(&SurfaceOutput {

@@ -641,7 +641,7 @@ fn finish_final(
             name: "pooled",
             heights: RasterView::new(&pooled.heights, Shape::new(pooled.rows, pooled.cols))?,
             z_offset_um: h.z_offset_um,
-            npy: NpyHeights::AbsoluteF64,
+            npy: NpyHeights::Absolute,
             title: &format!("pooled {block}x{block} (um)"),
             x3p_pitch_um: None,
         })?;
@@ -727,7 +727,7 @@ impl SeparationSink for FinalSink<'_> {
             self.h.z_offset_um,
         );
         self.streams = Some((
-            fw.begin_surface("datum", rows, cols, z, NpyHeights::AbsoluteF64, datum_title)?,
+            fw.begin_surface("datum", rows, cols, z, NpyHeights::Absolute, datum_title)?,
             fw.begin_surface(
                 "roughness",
                 rows,
@@ -1072,7 +1072,7 @@ mod tests {
     ) -> Result<()> {
         let shape = Shape::new(h.height as usize, h.width as usize);
         for (name, values, npy, title) in [
-            ("datum", datum, NpyHeights::AbsoluteF64, title),
+            ("datum", datum, NpyHeights::Absolute, title),
             (
                 "roughness",
                 roughness,
@@ -1153,7 +1153,7 @@ mod tests {
                 )
                 .unwrap(),
                 z_offset_um: pano.header.z_offset_um,
-                npy: NpyHeights::AbsoluteF64,
+                npy: NpyHeights::Absolute,
                 title: "pooled 4x4 (um)",
                 x3p_pitch_um: None,
             })
