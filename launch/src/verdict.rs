@@ -297,11 +297,16 @@ fn table6(run: &RunRecord) -> Option<&Table6Record> {
     }
 }
 
-/// Sa, Sq, Sz of the measured panorama: Table 6's "measured" for the whole-panorama region.
+/// Sa, Sq, Sz of the measured panorama: Table 6's "measured" for the whole-panorama region,
+/// from a stage compared with the panorama as measured when there is one (a levelled mesh is
+/// compared with the levelled panorama, and the line then says so).
 fn surface_line(run: &RunRecord) -> Option<String> {
     let dev = table6(run)?;
-    let measured =
-        (dev.stages.values()).find_map(|st| st.regions.get("panorama").and_then(|r| r.measured))?;
+    let mut stages: Vec<_> = dev.stages.values().collect();
+    stages.sort_by_key(|st| st.measured != dev.measured);
+    let (measured, file) = stages.iter().find_map(|st| {
+        (st.regions.get("panorama").and_then(|r| r.measured)).map(|m| (m, st.measured.as_str()))
+    })?;
     let p = |k: &str| finite(measured.by_name(k)).map(|v| format!("{k} {}", um(v)));
     let params: Vec<String> = ["Sa", "Sq", "Sz"].iter().filter_map(|k| p(k)).collect();
     if params.is_empty() {
@@ -312,9 +317,8 @@ fn surface_line(run: &RunRecord) -> Option<String> {
         .map(|r| format!(", {} x {} px", r.rows, r.cols))
         .unwrap_or_default();
     Some(format!(
-        "{} of {}{shape} (rows x cols), mean removed",
+        "{} of {file}{shape} (rows x cols), mean removed",
         params.join(", "),
-        dev.measured
     ))
 }
 
