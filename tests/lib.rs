@@ -82,6 +82,23 @@ pub fn run(mut cmd: Command) -> Output {
     out
 }
 
+/// The demo graph in one process (`run`), 2 x 2 fields of 256 px, as fast as possible, into
+/// `out`, with `extra` arguments; asserts it succeeded.
+pub fn small_demo(out: &Path, extra: &[&str]) {
+    let mut cmd = surfstream();
+    cmd.args(["run", "launch/graphs/demo.toml", "--out"])
+        .arg(out)
+        .args([
+            "--set",
+            "stage.pacing=\"fast\"",
+            "--set",
+            "stage.tile_px=256",
+        ])
+        .args(extra);
+    let o = run(cmd);
+    assert!(o.status.success(), "{}", stderr(&o));
+}
+
 pub fn stderr(out: &Output) -> String {
     String::from_utf8_lossy(&out.stderr).to_string()
 }

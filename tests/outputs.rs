@@ -8,22 +8,6 @@ use std::path::Path;
 use serde_json::Value;
 use surfstream_e2e::*;
 
-/// The demo graph in one process, 2 x 2 fields of 256 px, as fast as possible.
-fn small_demo(out: &Path, extra: &[&str]) {
-    let mut cmd = surfstream();
-    cmd.args(["run", "launch/graphs/demo.toml", "--out"])
-        .arg(out)
-        .args([
-            "--set",
-            "stage.pacing=\"fast\"",
-            "--set",
-            "stage.tile_px=256",
-        ])
-        .args(extra);
-    let o = run(cmd);
-    assert!(o.status.success(), "{}", stderr(&o));
-}
-
 /// The dtype a `.npy` header names ("<f4", "<f8").
 fn descr(path: &Path) -> String {
     let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));

@@ -7,24 +7,9 @@
 use std::path::Path;
 use std::process::Command;
 
-use surfstream_e2e::{read_json, run, stderr, surfstream};
+use surfstream_e2e::{read_json, small_demo};
 
 const CHROMIUM: &str = "/usr/bin/chromium";
-
-/// A small real run: 2 x 2 fields of 256 px, as fast as possible.
-fn small_run(out: &Path) {
-    let mut cmd = surfstream();
-    cmd.args(["run", "launch/graphs/demo.toml", "--out"])
-        .arg(out)
-        .args([
-            "--set",
-            "stage.pacing=\"fast\"",
-            "--set",
-            "stage.tile_px=256",
-        ]);
-    let o = run(cmd);
-    assert!(o.status.success(), "{}", stderr(&o));
-}
 
 /// Headless Chromium with a fresh profile and nothing that reaches the network.
 fn chromium(profile: &Path) -> Command {
@@ -53,7 +38,7 @@ fn chromium(profile: &Path) -> Command {
 fn report_is_one_self_contained_page_with_every_section() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");
-    small_run(&out);
+    small_demo(&out, &[]);
     let html = std::fs::read_to_string(out.join("report.html")).expect("report.html written");
     let run_json = read_json(&out.join("run.json"));
     let files: Vec<&str> = run_json["files"]

@@ -215,8 +215,11 @@ impl<S: RowSource> RowSource for PlaneSource<S> {
     }
     fn read_rows(&mut self, row0: usize, rows: usize, out: &mut Vec<f64>) -> Result<(), String> {
         self.inner.read_rows(row0, rows, out)?;
-        let cols = self.inner.shape().cols.max(1);
         let (bx, by) = self.slopes_per_px;
+        if bx == 0.0 && by == 0.0 {
+            return Ok(()); // a mesh of the heights as measured: nothing to add
+        }
+        let cols = self.inner.shape().cols.max(1);
         for (r, row) in out.chunks_mut(cols).enumerate() {
             let base = by * (row0 + r) as f64;
             for (i, z) in row.iter_mut().enumerate() {

@@ -314,24 +314,24 @@ fn height_image(b: &Bytes, multi: &Block) -> Result<Image> {
     )
 }
 
-fn body_u32(b: &Bytes, block: &Block, offset: usize, field: &str) -> Result<u32> {
-    if offset + 4 > block.len {
+/// The file offset of `field`, `size` bytes at `offset` into `block`'s body, when it lies
+/// within the block.
+fn in_body(block: &Block, offset: usize, size: usize, field: &str) -> Result<usize> {
+    if offset + size > block.len {
         bail!(
             "field '{field}' lies at byte {offset} of a block of {} bytes",
             block.len
         );
     }
-    b.u32_le(block.start + offset, field)
+    Ok(block.start + offset)
+}
+
+fn body_u32(b: &Bytes, block: &Block, offset: usize, field: &str) -> Result<u32> {
+    b.u32_le(in_body(block, offset, 4, field)?, field)
 }
 
 fn body_f64(b: &Bytes, block: &Block, offset: usize, field: &str) -> Result<f64> {
-    if offset + 8 > block.len {
-        bail!(
-            "field '{field}' lies at byte {offset} of a block of {} bytes",
-            block.len
-        );
-    }
-    b.f64_le(block.start + offset, field)
+    b.f64_le(in_body(block, offset, 8, field)?, field)
 }
 
 /// Block 0x008e starts with the serial number: a u32 length, then that many bytes of text.
