@@ -190,6 +190,43 @@ pub struct GraphSection {
     pub stall_timeout_s: f64,
 }
 
+impl GraphSection {
+    /// The `[graph]` values' own checks (names, durations, budget), where the graph file is read
+    /// and again after a `--set graph.KEY=VALUE`.
+    pub fn check(&self, origin: &str) -> Result<()> {
+        if !valid_name(&self.name) {
+            bail!(
+                "{origin}: [graph] name = {:?}: expected 1-64 characters of [A-Za-z0-9_-]",
+                self.name
+            );
+        }
+        for (field, seconds) in [
+            ("backpressure_timeout_s", self.backpressure_timeout_s),
+            ("startup_timeout_s", self.startup_timeout_s),
+            ("stall_timeout_s", self.stall_timeout_s),
+        ] {
+            check_duration_s(&format!("[graph] {field}"), seconds)
+                .map_err(|e| anyhow!("{origin}: {e}"))?;
+        }
+        if let Some(gb) = self.memory_budget_gb {
+            if !(gb > 0.0 && gb.is_finite()) {
+                bail!(
+                    "{origin}: [graph] memory_budget_gb = {gb}: expected a positive number of GB"
+                );
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A graph or node name: 1-64 characters of [A-Za-z0-9_-].
+fn valid_name(s: &str) -> bool {
+    !s.is_empty()
+        && s.len() <= 64
+        && s.chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+}
+
 fn default_out_dir() -> PathBuf {
     PathBuf::from("out")
 }
@@ -201,6 +238,14 @@ fn default_startup_timeout_s() -> f64 {
 }
 fn default_stall_timeout_s() -> f64 {
     crate::watchdog::DEFAULT_STALL_TIMEOUT_S
+}
+
+/// A `--set` VALUE: a TOML value when it reads as one, else the text as a string.
+fn toml_value(value: &str) -> toml::Value {
+    toml::from_str::<toml::Table>(&format!("v = {value}"))
+        .ok()
+        .and_then(|mut t| t.remove("v"))
+        .unwrap_or_else(|| toml::Value::String(value.to_string()))
 }
 
 /// The longest duration a graph may ask for (timeouts, the stage's field time): 30 days. Longer
@@ -482,33 +527,7 @@ impl GraphFile {
 
     /// Checks names, kinds (those of `registry`) and wiring.
     pub fn validate(&self, origin: &str, registry: &NodeRegistry) -> Result<()> {
-        let valid_name = |s: &str| {
-            !s.is_empty()
-                && s.len() <= 64
-                && s.chars()
-                    .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
-        };
-        if !valid_name(&self.graph.name) {
-            bail!(
-                "{origin}: [graph] name = {:?}: expected 1-64 characters of [A-Za-z0-9_-]",
-                self.graph.name
-            );
-        }
-        for (field, seconds) in [
-            ("backpressure_timeout_s", self.graph.backpressure_timeout_s),
-            ("startup_timeout_s", self.graph.startup_timeout_s),
-            ("stall_timeout_s", self.graph.stall_timeout_s),
-        ] {
-            check_duration_s(&format!("[graph] {field}"), seconds)
-                .map_err(|e| anyhow!("{origin}: {e}"))?;
-        }
-        if let Some(gb) = self.graph.memory_budget_gb {
-            if !(gb > 0.0 && gb.is_finite()) {
-                bail!(
-                    "{origin}: [graph] memory_budget_gb = {gb}: expected a positive number of GB"
-                );
-            }
-        }
+        self.graph.check(origin)?;
         if self.nodes.is_empty() {
             bail!("{origin}: no [[node]] entries: a graph needs at least one node");
         }
@@ -698,6 +717,24 @@ impl GraphFile {
         None
     }
 
+    /// `--set graph.KEY=VALUE`: any `[graph]` setting, read as the graph file would read it
+    /// (VALUE as a TOML value, else as a string) and checked as the graph file is.
+    fn override_graph_setting(&mut self, assignment: &str, key: &str, value: &str) -> Result<()> {
+        let mut table = toml::Table::try_from(&self.graph)
+            .map_err(|e| anyhow!("--set {assignment:?}: cannot represent [graph]: {e}"))?;
+        table.insert(key.to_string(), toml_value(value));
+        let graph: GraphSection = table.try_into().map_err(|e| {
+            anyhow!(
+                "--set {assignment:?}: [graph] {key} = {value}: {e} (the [graph] settings: name, \
+                 out_dir, backpressure_timeout_s, startup_timeout_s, memory_budget_gb, \
+                 stall_timeout_s)"
+            )
+        })?;
+        graph.check(&format!("--set {assignment:?}"))?;
+        self.graph = graph;
+        Ok(())
+    }
+
     /// Applies `--set NODE.PARAM=VALUE`; VALUE is read as a TOML value, else as a string.
     pub fn apply_override(&mut self, assignment: &str) -> Result<()> {
         let (key, value) = assignment
@@ -706,14 +743,8 @@ impl GraphFile {
         let (node_id, param) = key
             .split_once('.')
             .ok_or_else(|| anyhow!("--set {assignment:?}: expected NODE.PARAM=VALUE"))?;
-        if node_id == "graph" && param == "memory_budget_gb" {
-            let gb = value.trim().parse::<f64>().map_err(|_| {
-                anyhow!(
-                    "--set {assignment:?}: expected a number of GB, e.g. graph.memory_budget_gb=4"
-                )
-            })?;
-            self.graph.memory_budget_gb = Some(gb);
-            return Ok(());
+        if node_id == "graph" {
+            return self.override_graph_setting(assignment, param, value);
         }
         let node = self
             .nodes
@@ -722,11 +753,7 @@ impl GraphFile {
             .ok_or_else(|| {
                 anyhow!("--set {assignment:?}: the graph has no node with id {node_id:?}")
             })?;
-        let parsed: toml::Value = toml::from_str::<toml::Table>(&format!("v = {value}"))
-            .ok()
-            .and_then(|mut t| t.remove("v"))
-            .unwrap_or_else(|| toml::Value::String(value.to_string()));
-        node.params.insert(param.to_string(), parsed);
+        node.params.insert(param.to_string(), toml_value(value));
         Ok(())
     }
 
@@ -914,6 +941,21 @@ inputs = { tiles = "stage/tiles", panorama = "fusion/panorama" }
         g.apply_override("graph.memory_budget_gb=0.5").unwrap();
         assert_eq!(g.graph.memory_budget_gb, Some(0.5));
         assert!(g.apply_override("graph.memory_budget_gb=lots").is_err());
+        // Every [graph] setting can be set, and is checked as the graph file's would be.
+        g.apply_override("graph.stall_timeout_s=3600").unwrap();
+        assert_eq!(g.graph.stall_timeout_s, 3600.0);
+        let e = g
+            .apply_override("graph.stall_timeout_s=-1")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("stall_timeout_s = -1"), "{e}");
+        assert_eq!(
+            g.graph.stall_timeout_s, 3600.0,
+            "a refused value changes nothing"
+        );
+        let e = g.apply_override("graph.nope=1").unwrap_err().to_string();
+        assert!(e.contains("nope") && e.contains("stall_timeout_s"), "{e}");
+        assert!(g.apply_override("graph.memory_budget_gb=-2").is_err());
         let bad = DEMO.replace("out_dir = \"out/demo\"", "memory_budget_gb = -1");
         let e = GraphFile::parse(&bad, "g.toml", &registry())
             .unwrap_err()

@@ -563,6 +563,8 @@ impl StreamedMesh {
         }
         let mut file = SpillFile::new(Some(spill_dir.to_path_buf()));
         for (k, part) in self.resampled_um.chunks(SPILL_BATCH_VALUES).enumerate() {
+            // GBs to a busy disk at 20 x 20: alive between batches.
+            surfstream_core::liveness::beat();
             let at = (k * SPILL_BATCH_VALUES * 4) as u64;
             file.write_at(at, &surfstream_core::store::encode(part))?;
         }
@@ -578,6 +580,7 @@ impl StreamedMesh {
         };
         let mut values = Vec::with_capacity(len);
         for at in (0..len).step_by(SPILL_BATCH_VALUES) {
+            surfstream_core::liveness::beat();
             let n = SPILL_BATCH_VALUES.min(len - at);
             values.extend(file.read_values::<f32>((at * 4) as u64, n)?);
         }

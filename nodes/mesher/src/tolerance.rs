@@ -476,6 +476,9 @@ pub fn judge_regions(
     regions
         .par_iter()
         .filter_map(|r| {
+            // A 20 x 20 scan's windows take minutes to judge under load: each window says the
+            // node is alive (from rayon's workers: the stall watch counts those beats).
+            surfstream_core::liveness::beat();
             let mut fit = judge_region(measured_um, mesh_um, shape.cols, r)?;
             fit.roughness_deviation_pct = roughness_um
                 .and_then(|g| roughness_deviation(measured_um, mesh_um, g, shape.cols, r));
@@ -1897,6 +1900,29 @@ mod tests {
             .iter()
             .all(|r| r.row0 + r.rows <= 100 && r.col0 + r.cols <= 60));
         assert_eq!(windows(Shape::new(30, 30), 40).len(), 1);
+    }
+
+    static JUDGE_BEATS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+
+    #[test]
+    fn judging_says_alive_for_every_window() {
+        // A 20 x 20 run's judging outlasted the 60 s stall watch without a beat (its rayon
+        // workers judged silently while the node's thread waited): each window beats now.
+        surfstream_core::liveness::set_hook(|| {
+            JUDGE_BEATS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        });
+        let shape = Shape::new(100, 60);
+        let z: Vec<f32> = (0..6000).map(|k| ((k * 37 % 11) as f32) - 5.0).collect();
+        let regions = windows(shape, 40);
+        let before = JUDGE_BEATS.load(std::sync::atomic::Ordering::Relaxed);
+        let fits = judge_regions(&z, &z, None, shape, &regions);
+        let beats = JUDGE_BEATS.load(std::sync::atomic::Ordering::Relaxed) - before;
+        assert_eq!(fits.len(), regions.len());
+        assert!(
+            beats >= regions.len(),
+            "{beats} beats for {} windows",
+            regions.len()
+        );
     }
 
     #[test]
