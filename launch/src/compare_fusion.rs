@@ -88,12 +88,6 @@ fn read_json(path: &Path) -> Result<Value> {
     serde_json::from_str(&text).with_context(|| format!("{}: not valid JSON", path.display()))
 }
 
-fn num(v: &Value, path: &Path, field: &str) -> Result<f64> {
-    v.pointer(field)
-        .and_then(Value::as_f64)
-        .ok_or_else(|| anyhow!("{}: field {field} missing or not a number", path.display()))
-}
-
 fn score(method: &'static str, dir: &Path, truth: Option<&Truth>) -> Result<Row> {
     let fpath = dir.join("nodes").join("fusion.json");
     let node: surfstream_runtime::node::NodeReport = serde_json::from_value(read_json(&fpath)?)
@@ -139,11 +133,20 @@ impl Truth {
         if !spec.exists() || !gt.exists() {
             return Ok(None);
         }
-        let g = read_json(&gt)?;
-        let origin0_px = [
-            num(&g, &gt, "/tiles/0/true_origin_px/0")?,
-            num(&g, &gt, "/tiles/0/true_origin_px/1")?,
-        ];
+        let text = std::fs::read_to_string(&gt)
+            .with_context(|| format!("{}: cannot read", gt.display()))?;
+        let truth: surfstream_core::record::TruthRecord = serde_json::from_str(&text)
+            .with_context(|| {
+                format!(
+                    "{}: not a truth file (tiles[].true_origin_px)",
+                    gt.display()
+                )
+            })?;
+        let origin0_px = truth
+            .tiles
+            .first()
+            .map(|t| t.true_origin_px)
+            .with_context(|| format!("{}: tiles: expected at least one tile", gt.display()))?;
         let specimen = surfstream_io::npy::read_npy(&spec)?;
         Ok(Some(Truth {
             specimen,

@@ -8,8 +8,8 @@ use std::time::Duration;
 use anyhow::{anyhow, Result};
 use serde_json::Value;
 use surfstream_core::record::{
-    self, GraphRef, MatcherReport, MeshWritten, MessageCounts, OutputChoice, OverPlan, PeakRss,
-    ReplayReport, RunRecord, TileRecord,
+    self, GraphRef, MatcherReport, MeshReport, MessageCounts, NodeRecord, OutputChoice, OverPlan,
+    PeakRss, ReplayReport, RunRecord, TileRecord,
 };
 use surfstream_runtime::graph::GraphFile;
 use surfstream_runtime::latency;
@@ -41,9 +41,8 @@ pub fn write(
         outputs,
     } = *end;
     let out = &graph.graph.out_dir;
-    let by_kind = |k: &str| reports.iter().find(|r| r.node_kind == k).map(|r| &r.report);
-    let replay: Option<ReplayReport> = read_report(reports, "replay")?;
-    let matcher: Option<MatcherReport> = read_report(reports, "matcher")?;
+    let replay: Option<ReplayReport> = read_report(reports)?;
+    let matcher: Option<MatcherReport> = read_report(reports)?;
 
     // Tiles: stage facts from the source, placement from the matcher, joined on index.
     let mut tiles: BTreeMap<u32, TileRecord> = replay
@@ -62,11 +61,9 @@ pub fn write(
             tile.placement = Some(t.placement.clone());
         }
     }
-    // The mesher's report is read for its two times only (its other fields depend on the
-    // target and are shown as they are).
-    let mesh_done = by_kind("mesher")
-        .and_then(|m| record::from_value::<MeshWritten>(m, "mesher").ok())
-        .map(|m| (m.t_acquired_ns, m.t_written_ns));
+    // The mesher's report is read for its two times only (the stages keep every report as
+    // the node wrote it).
+    let mesh_done = read_report::<MeshReport>(reports)?.map(|m| (m.t_acquired_ns, m.t_written_ns));
     let messages = reports
         .iter()
         .map(|r| {
@@ -136,15 +133,12 @@ pub fn write(
     crate::outputs::remove(out, &removals)
 }
 
-/// The report of the first node of `kind` as its record; a report that does not read as its
-/// record is a bug in that node, named.
-fn read_report<T: for<'de> serde::Deserialize<'de>>(
-    reports: &[NodeReport],
-    kind: &str,
-) -> Result<Option<T>> {
+/// The report of the first node of `T`'s kind as its record; a report that does not read as
+/// its record is a bug in that node, named.
+fn read_report<T: NodeRecord>(reports: &[NodeReport]) -> Result<Option<T>> {
     reports
         .iter()
-        .find(|r| r.node_kind == kind && !r.report.is_null())
+        .find(|r| r.node_kind == T::NODE_KIND && !r.report.is_null())
         .map(|r| record::from_value(&r.report, &format!("node '{}' report", r.node_id)))
         .transpose()
         .map_err(|e| anyhow!(e))

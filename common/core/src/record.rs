@@ -6,7 +6,8 @@
 //! Key order: serde_json is built without `preserve_order`, so a JSON object is a sorted map
 //! and every file surfstream wrote so far lists its keys alphabetically. Writers turn a record
 //! into a value with [`to_value`] before writing it, which keeps that order whatever the
-//! declaration order here (and keeps run.json byte-identical to the `json!` it replaces).
+//! declaration order here (and keeps run.json byte-identical to the untyped values it
+//! replaced).
 //!
 //! What stays a JSON value inside a record, and why: the fusion's chunk statistics (a fusion
 //! type), each node's report inside run.json's `stages` (its reader reads it through its
@@ -30,6 +31,38 @@ pub fn to_value<T: Serialize>(record: &T) -> Value {
 /// A record read back from a JSON value, the error naming what was expected.
 pub fn from_value<T: for<'de> Deserialize<'de>>(value: &Value, what: &str) -> Result<T, String> {
     T::deserialize(value).map_err(|e| format!("{what}: {e}"))
+}
+
+/// A node's report record, with the kind of node that writes it: a reader finds a node's
+/// report by the record it wants (`read_report::<ReplayReport>`), and the node's port
+/// declaration names its kind by the same constant, so the kind is spelled once.
+pub trait NodeRecord: for<'de> Deserialize<'de> {
+    /// The node kind (the graph file's `node = "..."`).
+    const NODE_KIND: &'static str;
+}
+
+impl NodeRecord for ReplayReport {
+    const NODE_KIND: &'static str = "replay";
+}
+
+impl NodeRecord for MatcherReport {
+    const NODE_KIND: &'static str = "matcher";
+}
+
+impl NodeRecord for FusionReport {
+    const NODE_KIND: &'static str = "fusion";
+}
+
+impl NodeRecord for WaveletReport {
+    const NODE_KIND: &'static str = "wavelet";
+}
+
+impl NodeRecord for MeshReport {
+    const NODE_KIND: &'static str = "mesher";
+}
+
+impl NodeRecord for RecorderReport {
+    const NODE_KIND: &'static str = "recorder";
 }
 
 /// Reads an f64 that serde_json wrote as `null` (NaN and infinities) back as NaN.
@@ -661,14 +694,6 @@ pub struct RecorderReport {
     pub file: Option<String>,
     /// Messages written per topic.
     pub messages: BTreeMap<String, u64>,
-}
-
-/// The two times the mesher's report carries for the latency table: the causing tile's
-/// acquisition and the STL written (CLOCK_MONOTONIC, ns).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct MeshWritten {
-    pub t_acquired_ns: u64,
-    pub t_written_ns: u64,
 }
 
 // ---------------------------------------------------------------------------------------
@@ -1407,6 +1432,70 @@ impl RunRecord {
     pub fn stage<T: for<'de> Deserialize<'de>>(&self) -> Option<T> {
         self.stages.values().find_map(|v| T::deserialize(v).ok())
     }
+}
+
+// ---------------------------------------------------------------------------------------
+// truth.json / ground_truth.json: where a simulated scan's tiles truly are
+
+/// An (x, y) pair.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Xy {
+    /// Along x (columns).
+    pub x: f64,
+    /// Along y (rows).
+    pub y: f64,
+}
+
+/// One tile's truth: written by the simulated stage (`surfstream_replay::GroundTruth`, as
+/// truth.json) and, in the same layout, by `bench/make_tiles.py` (ground_truth.json); read by
+/// the matcher's scorer (`surfstream_io::truth::ScanTruth`) and the fusion comparison.
+/// Fields in the order the stage has always written them (truth.json is written straight
+/// from the struct, not through [`to_value`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TileTruth {
+    /// Acquisition index.
+    pub index: usize,
+    /// Grid row.
+    pub row: usize,
+    /// Grid column.
+    pub col: usize,
+    /// Commanded position of pixel (0, 0), specimen px `[x, y]`.
+    pub nominal_origin_px: [f64; 2],
+    /// The same in um: what the stage reports.
+    pub stage_position_um: [f64; 2],
+    /// True position of pixel (0, 0), specimen px `[x, y]`.
+    pub true_origin_px: [f64; 2],
+    /// The same in um (NaN when read from a make_tiles.py file, which does not write it).
+    #[serde(default = "nan_pair", deserialize_with = "nan_pair_if_null")]
+    pub true_origin_um: [f64; 2],
+    /// `true_origin_px - nominal_origin_px`.
+    pub stage_error_px: [f64; 2],
+    /// Piston, um.
+    pub piston: f64,
+    /// Tilt along x (height change across the tile), um.
+    pub tilt_x: f64,
+    /// Tilt along y, um.
+    pub tilt_y: f64,
+}
+
+fn nan_pair() -> [f64; 2] {
+    [f64::NAN; 2]
+}
+
+fn nan_pair_if_null<'de, D: Deserializer<'de>>(d: D) -> Result<[f64; 2], D::Error> {
+    Ok(Option::<[f64; 2]>::deserialize(d)?.unwrap_or_else(nan_pair))
+}
+
+/// What surfstream reads of a truth file (truth.json, ground_truth.json): the pitch and the
+/// tiles; the other keys (the conventions, the grid, the degradations, the pairs) are for
+/// people, the Python scorer and the writer's own record.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+pub struct TruthRecord {
+    /// Pixel pitch in micrometres (absent in a file that does not say it).
+    #[serde(default)]
+    pub pixel_pitch_um: Option<Xy>,
+    /// Tiles in acquisition order.
+    pub tiles: Vec<TileTruth>,
 }
 
 #[cfg(test)]

@@ -12,15 +12,76 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
+use serde::Serialize;
 use surfstream_core::metrology::{height_params, hybrid_params, level_plane, params, Grid};
 use surfstream_io::formats::read_surface;
 
-fn stats(mut t: Vec<f64>) -> serde_json::Value {
-    t.sort_by(f64::total_cmp);
-    serde_json::json!({"median_s": t[t.len() / 2], "min_s": t[0], "max_s": t[t.len() - 1], "n": t.len()})
+/// The times of one measurement, s.
+#[derive(Serialize)]
+struct Stats {
+    median_s: f64,
+    min_s: f64,
+    max_s: f64,
+    n: usize,
 }
 
-fn time<T>(reps: usize, mut f: impl FnMut() -> Result<T>) -> Result<(serde_json::Value, T)> {
+fn stats(mut t: Vec<f64>) -> Stats {
+    t.sort_by(f64::total_cmp);
+    Stats {
+        median_s: t[t.len() / 2],
+        min_s: t[0],
+        max_s: t[t.len() - 1],
+        n: t.len(),
+    }
+}
+
+/// One JSON line: `what` was measured on `file`, and the measurement's own fields.
+#[derive(Serialize)]
+struct Line<'a, M: Serialize> {
+    what: &'static str,
+    file: &'a str,
+    rayon_threads: usize,
+    #[serde(flatten)]
+    measured: M,
+}
+
+impl<M: Serialize> Line<'_, M> {
+    /// Printed through a JSON value: keys sorted, as the lines have always had them.
+    fn print(&self) -> Result<()> {
+        println!("{}", serde_json::to_value(self)?);
+        Ok(())
+    }
+}
+
+#[derive(Serialize)]
+struct ParamsTimes<P: Serialize> {
+    rows: usize,
+    cols: usize,
+    all_9_params: Stats,
+    height_7: Stats,
+    sdq_sdr: Stats,
+    level_and_all_9: Stats,
+    params: P,
+}
+
+#[derive(Serialize)]
+struct FamilyTimes {
+    basic_9: Stats,
+    functional: Stats,
+    acf_sal_str: Stats,
+    spatial: Stats,
+    feature: Stats,
+    all: Stats,
+}
+
+#[derive(Serialize)]
+struct ReadTimes {
+    rows: usize,
+    cols: usize,
+    read: Stats,
+}
+
+fn time<T>(reps: usize, mut f: impl FnMut() -> Result<T>) -> Result<(Stats, T)> {
     let mut last = f()?;
     let mut ts = Vec::with_capacity(reps);
     for _ in 0..reps {
@@ -48,11 +109,21 @@ fn main() -> Result<()> {
                 let l = level_plane(&g)?;
                 Ok(params(&Grid::of(&l, g.sampling())?)?)
             })?;
-            println!(
-                "{}",
-                serde_json::json!({"what": "params", "file": file, "rows": s.height, "cols": s.width,
-                    "rayon_threads": threads, "all_9_params": all9, "height_7": heights7, "sdq_sdr": hybrid2, "level_and_all_9": lev, "params": p})
-            );
+            Line {
+                what: "params",
+                file,
+                rayon_threads: threads,
+                measured: ParamsTimes {
+                    rows: s.height,
+                    cols: s.width,
+                    all_9_params: all9,
+                    height_7: heights7,
+                    sdq_sdr: hybrid2,
+                    level_and_all_9: lev,
+                    params: p,
+                },
+            }
+            .print()?;
         }
         Some("families") => {
             // Where the time of `params --all` goes: each family alone, then all together.
@@ -67,12 +138,20 @@ fn main() -> Result<()> {
             let (spatial, _) = time(reps, || Ok(m::spatial_params(&g)?))?;
             let (feature, _) = time(reps, || Ok(m::feature_params(&g, 5.0)?))?;
             let (all, _) = time(reps, || Ok(m::all_params(&g)?))?;
-            println!(
-                "{}",
-                serde_json::json!({"what": "families", "file": file, "rayon_threads": threads,
-                    "basic_9": basic, "functional": functional, "acf_sal_str": acf, "spatial": spatial,
-                    "feature": feature, "all": all})
-            );
+            Line {
+                what: "families",
+                file,
+                rayon_threads: threads,
+                measured: FamilyTimes {
+                    basic_9: basic,
+                    functional,
+                    acf_sal_str: acf,
+                    spatial,
+                    feature,
+                    all,
+                },
+            }
+            .print()?;
         }
         Some("read") => {
             let reps: usize = std::env::var("SURFSTREAM_REPS")
@@ -82,11 +161,17 @@ fn main() -> Result<()> {
                 .unwrap_or(9);
             for file in &args[1..] {
                 let (t, s) = time(reps, || read_surface(Path::new(file)))?;
-                println!(
-                    "{}",
-                    serde_json::json!({"what": "read", "file": file, "rows": s.height, "cols": s.width,
-                        "rayon_threads": threads, "read": t})
-                );
+                Line {
+                    what: "read",
+                    file,
+                    rayon_threads: threads,
+                    measured: ReadTimes {
+                        rows: s.height,
+                        cols: s.width,
+                        read: t,
+                    },
+                }
+                .print()?;
             }
         }
         Some("make-sur") => {

@@ -52,6 +52,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{anyhow, bail, Context, Result};
 use mcap::records::{MessageHeader, Record};
 use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
+use serde::Serialize;
 
 use surfstream_core::frame::{
     FrameHeader, FrameKind, HeightMap, TileRegistration, FRAME_TYPE_NAME, REGISTRATION_TYPE_NAME,
@@ -1018,17 +1019,6 @@ pub const REGISTRATION_JSON_SCHEMA: &str = concat!(
 "#
 );
 
-/// An f64 as JSON: a number (serde_json writes the shortest digits that read back exactly), or
-/// one of the strings "NaN", "inf", "-inf".
-fn json_f64(v: f64) -> serde_json::Value {
-    match serde_json::Number::from_f64(v) {
-        Some(n) => serde_json::Value::Number(n),
-        None if v.is_nan() => "NaN".into(),
-        None if v > 0.0 => "inf".into(),
-        None => "-inf".into(),
-    }
-}
-
 /// For display fields Foxglove needs as numbers.
 fn finite_or_zero(v: f64) -> f64 {
     if v.is_finite() {
@@ -1038,46 +1028,175 @@ fn finite_or_zero(v: f64) -> f64 {
     }
 }
 
+/// A JSON number, or the text "NaN" / "inf" / "-inf" where JSON has no number (the schemas
+/// declare these fields `["number", "string"]`).
+#[derive(Debug, Clone, Copy)]
+pub struct JsonF64(pub f64);
+
+impl Serialize for JsonF64 {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        let v = self.0;
+        if v.is_finite() {
+            s.serialize_f64(v)
+        } else if v.is_nan() {
+            s.serialize_str("NaN")
+        } else if v > 0.0 {
+            s.serialize_str("inf")
+        } else {
+            s.serialize_str("-inf")
+        }
+    }
+}
+
+// Foxglove's well-known message parts (also the live bridge's). Fields in key order: the
+// messages have always listed their keys sorted.
+
+/// `foxglove.Time`.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct FoxgloveTime {
+    pub nsec: u64,
+    pub sec: u64,
+}
+
+impl FoxgloveTime {
+    pub fn from_ns(ns: u64) -> Self {
+        FoxgloveTime {
+            nsec: ns % 1_000_000_000,
+            sec: ns / 1_000_000_000,
+        }
+    }
+}
+
+/// `foxglove.Vector3` (m).
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Vector3 {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+}
+
+/// `foxglove.Quaternion`.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Quaternion {
+    pub w: f64,
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+}
+
+impl Quaternion {
+    pub const IDENTITY: Quaternion = Quaternion {
+        w: 1.0,
+        x: 0.0,
+        y: 0.0,
+        z: 0.0,
+    };
+}
+
+/// `foxglove.Pose`.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Pose {
+    pub orientation: Quaternion,
+    pub position: Vector3,
+}
+
+/// `foxglove.Vector2` (m).
+#[derive(Debug, Clone, Copy, Serialize)]
+struct Vector2 {
+    x: f64,
+    y: f64,
+}
+
+/// `foxglove.PackedElementField`.
+#[derive(Debug, Clone, Copy, Serialize)]
+struct PackedElementField {
+    name: &'static str,
+    offset: u32,
+    #[serde(rename = "type")]
+    numeric_type: u64,
+}
+
+/// A frame's `foxglove.Grid` without its `data` (appended after, see [`encode_frame_json`]).
+#[derive(Serialize)]
+struct GridMessage {
+    cell_size: Vector2,
+    cell_stride: u32,
+    column_count: u32,
+    fields: [PackedElementField; 1],
+    frame_id: &'static str,
+    pose: Pose,
+    row_stride: u64,
+    surfstream: FrameFields,
+    timestamp: FoxgloveTime,
+}
+
+/// The frame header as the `surfstream` member of a frame message (in key order).
+#[derive(Serialize)]
+struct FrameFields {
+    flags: u32,
+    height: u32,
+    kind: u32,
+    origin_x_um: JsonF64,
+    origin_y_um: JsonF64,
+    pitch_x_um: JsonF64,
+    pitch_y_um: JsonF64,
+    scan_id: u64,
+    sequence: u64,
+    t_acquired_ns: u64,
+    t_sent_ns: u64,
+    tile_col: u32,
+    tile_index: u32,
+    tile_row: u32,
+    width: u32,
+    z_offset_um: JsonF64,
+}
+
 /// The JSON message of a frame (see [`FRAME_JSON_SCHEMA`]) into `out` (also the live
 /// Foxglove bridge's `foxglove.Grid` messages).
 pub fn encode_frame_json(h: &FrameHeader, heights: &[f32], out: &mut Vec<u8>) -> Result<()> {
     use base64::Engine as _;
-    use serde_json::json;
-    let message = json!({
-        "timestamp": {"sec": h.t_sent_ns / 1_000_000_000, "nsec": h.t_sent_ns % 1_000_000_000},
-        "frame_id": SCAN_FRAME_ID,
-        "pose": {
-            "position": {
-                "x": finite_or_zero(h.origin_x_um * 1e-6),
-                "y": finite_or_zero(h.origin_y_um * 1e-6),
-                "z": finite_or_zero(h.z_offset_um * 1e-6),
+    let message = GridMessage {
+        cell_size: Vector2 {
+            x: finite_or_zero(h.pitch_x_um * 1e-6),
+            y: finite_or_zero(h.pitch_y_um * 1e-6),
+        },
+        cell_stride: 4,
+        column_count: h.width,
+        fields: [PackedElementField {
+            name: HEIGHT_FIELD,
+            offset: 0,
+            numeric_type: NUMERIC_TYPE_FLOAT32,
+        }],
+        frame_id: SCAN_FRAME_ID,
+        pose: Pose {
+            orientation: Quaternion::IDENTITY,
+            position: Vector3 {
+                x: finite_or_zero(h.origin_x_um * 1e-6),
+                y: finite_or_zero(h.origin_y_um * 1e-6),
+                z: finite_or_zero(h.z_offset_um * 1e-6),
             },
-            "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
         },
-        "column_count": h.width,
-        "cell_size": {"x": finite_or_zero(h.pitch_x_um * 1e-6), "y": finite_or_zero(h.pitch_y_um * 1e-6)},
-        "row_stride": h.width as u64 * 4,
-        "cell_stride": 4,
-        "fields": [{"name": HEIGHT_FIELD, "offset": 0, "type": NUMERIC_TYPE_FLOAT32}],
-        "surfstream": {
-            "kind": h.kind,
-            "flags": h.flags,
-            "scan_id": h.scan_id,
-            "sequence": h.sequence,
-            "tile_index": h.tile_index,
-            "tile_row": h.tile_row,
-            "tile_col": h.tile_col,
-            "width": h.width,
-            "height": h.height,
-            "pitch_x_um": json_f64(h.pitch_x_um),
-            "pitch_y_um": json_f64(h.pitch_y_um),
-            "origin_x_um": json_f64(h.origin_x_um),
-            "origin_y_um": json_f64(h.origin_y_um),
-            "z_offset_um": json_f64(h.z_offset_um),
-            "t_acquired_ns": h.t_acquired_ns,
-            "t_sent_ns": h.t_sent_ns,
+        row_stride: h.width as u64 * 4,
+        surfstream: FrameFields {
+            flags: h.flags,
+            height: h.height,
+            kind: h.kind,
+            origin_x_um: JsonF64(h.origin_x_um),
+            origin_y_um: JsonF64(h.origin_y_um),
+            pitch_x_um: JsonF64(h.pitch_x_um),
+            pitch_y_um: JsonF64(h.pitch_y_um),
+            scan_id: h.scan_id,
+            sequence: h.sequence,
+            t_acquired_ns: h.t_acquired_ns,
+            t_sent_ns: h.t_sent_ns,
+            tile_col: h.tile_col,
+            tile_index: h.tile_index,
+            tile_row: h.tile_row,
+            width: h.width,
+            z_offset_um: JsonF64(h.z_offset_um),
         },
-    });
+        timestamp: FoxgloveTime::from_ns(h.t_sent_ns),
+    };
     out.clear();
     serde_json::to_writer(&mut *out, &message)
         .map_err(|e| anyhow!("cannot encode a frame message: {e}"))?;
@@ -1098,25 +1217,45 @@ pub fn encode_frame_json(h: &FrameHeader, heights: &[f32], out: &mut Vec<u8>) ->
     Ok(())
 }
 
+/// A registration's JSON message (see [`REGISTRATION_JSON_SCHEMA`]), in key order.
+#[derive(Serialize)]
+struct RegistrationMessage {
+    flags: u32,
+    links_accepted: u32,
+    links_tried: u32,
+    piston_um: JsonF64,
+    placed_by: u32,
+    quality: JsonF64,
+    scan_id: u64,
+    sequence: u64,
+    t_acquired_ns: u64,
+    t_sent_ns: u64,
+    tile_index: u32,
+    tilt_x_um_per_px: JsonF64,
+    tilt_y_um_per_px: JsonF64,
+    x_um: JsonF64,
+    y_um: JsonF64,
+}
+
 /// The JSON message of a registration (see [`REGISTRATION_JSON_SCHEMA`]).
 fn encode_registration_json(r: &TileRegistration) -> Result<Vec<u8>> {
-    let message = serde_json::json!({
-        "scan_id": r.scan_id,
-        "sequence": r.sequence,
-        "tile_index": r.tile_index,
-        "placed_by": r.placed_by,
-        "flags": r.flags,
-        "links_accepted": r.links_accepted,
-        "links_tried": r.links_tried,
-        "x_um": json_f64(r.x_um),
-        "y_um": json_f64(r.y_um),
-        "piston_um": json_f64(r.piston_um),
-        "tilt_x_um_per_px": json_f64(r.tilt_x_um_per_px),
-        "tilt_y_um_per_px": json_f64(r.tilt_y_um_per_px),
-        "quality": json_f64(r.quality),
-        "t_acquired_ns": r.t_acquired_ns,
-        "t_sent_ns": r.t_sent_ns,
-    });
+    let message = RegistrationMessage {
+        flags: r.flags,
+        links_accepted: r.links_accepted,
+        links_tried: r.links_tried,
+        piston_um: JsonF64(r.piston_um),
+        placed_by: r.placed_by,
+        quality: JsonF64(r.quality),
+        scan_id: r.scan_id,
+        sequence: r.sequence,
+        t_acquired_ns: r.t_acquired_ns,
+        t_sent_ns: r.t_sent_ns,
+        tile_index: r.tile_index,
+        tilt_x_um_per_px: JsonF64(r.tilt_x_um_per_px),
+        tilt_y_um_per_px: JsonF64(r.tilt_y_um_per_px),
+        x_um: JsonF64(r.x_um),
+        y_um: JsonF64(r.y_um),
+    };
     serde_json::to_vec(&message).map_err(|e| anyhow!("cannot encode a registration: {e}"))
 }
 
@@ -1762,6 +1901,72 @@ mod tests {
             serde_json::from_slice(&encode_registration_json(&registration(2)).expect("encode"))
                 .expect("registration JSON");
         check(&reg_schema, &r);
+    }
+
+    /// An f64 as the messages wrote it before they were typed (`json!`).
+    fn old_f64(v: f64) -> serde_json::Value {
+        match serde_json::Number::from_f64(v) {
+            Some(n) => serde_json::Value::Number(n),
+            None if v.is_nan() => "NaN".into(),
+            None if v > 0.0 => "inf".into(),
+            None => "-inf".into(),
+        }
+    }
+
+    #[test]
+    fn typed_messages_are_byte_identical_to_the_json_values_they_replace() {
+        use serde_json::json;
+        let mut f = frame(3, 3, 2, true);
+        f.header.origin_x_um = f64::NAN;
+        f.header.origin_y_um = f64::NEG_INFINITY;
+        f.header.z_offset_um = 0.1 + 0.2;
+        f.header.pitch_y_um = -0.0;
+        let h = &f.header;
+        let fz = finite_or_zero;
+        let old = json!({
+            "timestamp": {"sec": h.t_sent_ns / 1_000_000_000, "nsec": h.t_sent_ns % 1_000_000_000},
+            "frame_id": SCAN_FRAME_ID,
+            "pose": {
+                "position": {"x": fz(h.origin_x_um * 1e-6), "y": fz(h.origin_y_um * 1e-6),
+                             "z": fz(h.z_offset_um * 1e-6)},
+                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+            },
+            "column_count": h.width,
+            "cell_size": {"x": fz(h.pitch_x_um * 1e-6), "y": fz(h.pitch_y_um * 1e-6)},
+            "row_stride": h.width as u64 * 4,
+            "cell_stride": 4,
+            "fields": [{"name": HEIGHT_FIELD, "offset": 0, "type": NUMERIC_TYPE_FLOAT32}],
+            "surfstream": {
+                "kind": h.kind, "flags": h.flags, "scan_id": h.scan_id, "sequence": h.sequence,
+                "tile_index": h.tile_index, "tile_row": h.tile_row, "tile_col": h.tile_col,
+                "width": h.width, "height": h.height,
+                "pitch_x_um": old_f64(h.pitch_x_um), "pitch_y_um": old_f64(h.pitch_y_um),
+                "origin_x_um": old_f64(h.origin_x_um), "origin_y_um": old_f64(h.origin_y_um),
+                "z_offset_um": old_f64(h.z_offset_um),
+                "t_acquired_ns": h.t_acquired_ns, "t_sent_ns": h.t_sent_ns,
+            },
+        });
+        let mut buf = Vec::new();
+        encode_frame_json(h, &f.heights, &mut buf).unwrap();
+        let text = String::from_utf8(buf).unwrap();
+        let old = old.to_string();
+        assert_eq!(text[..old.len() - 1], old[..old.len() - 1]);
+        assert!(text[old.len() - 1..].starts_with(",\"data\":\""), "{text}");
+
+        let mut r = registration(4);
+        r.quality = f64::NAN;
+        r.x_um = f64::INFINITY;
+        r.y_um = 1e300;
+        let old = json!({
+            "scan_id": r.scan_id, "sequence": r.sequence, "tile_index": r.tile_index,
+            "placed_by": r.placed_by, "flags": r.flags, "links_accepted": r.links_accepted,
+            "links_tried": r.links_tried, "x_um": old_f64(r.x_um), "y_um": old_f64(r.y_um),
+            "piston_um": old_f64(r.piston_um), "tilt_x_um_per_px": old_f64(r.tilt_x_um_per_px),
+            "tilt_y_um_per_px": old_f64(r.tilt_y_um_per_px), "quality": old_f64(r.quality),
+            "t_acquired_ns": r.t_acquired_ns, "t_sent_ns": r.t_sent_ns,
+        });
+        let typed = encode_registration_json(&r).unwrap();
+        assert_eq!(String::from_utf8(typed).unwrap(), old.to_string());
     }
 
     #[test]

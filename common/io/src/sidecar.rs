@@ -23,7 +23,8 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
-use serde_json::{json, Value};
+use serde::Serialize;
+use serde_json::Value;
 
 /// The value of the `sidecar` key this module writes.
 pub const SIDECAR_TAG: &str = "surfstream npy geometry 1";
@@ -59,6 +60,25 @@ pub fn write_sidecar_into(
     write_sidecar_to(Some(set), npy, g)
 }
 
+/// The sidecar as written. Fields in key order: the file has always listed its keys sorted.
+#[derive(Serialize)]
+struct SidecarFile<'a> {
+    array: String,
+    axes: &'a str,
+    height_unit: &'a str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    origin_um: Option<PointUm>,
+    pitch_um: PointUm,
+    sidecar: &'a str,
+}
+
+/// An (x, y) pair in um.
+#[derive(Serialize)]
+struct PointUm {
+    x: f64,
+    y: f64,
+}
+
 fn write_sidecar_to(
     set: Option<&mut surfstream_core::fsutil::OutputSet>,
     npy: &Path,
@@ -76,16 +96,17 @@ fn write_sidecar_to(
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
-    let mut doc = json!({
-        "sidecar": SIDECAR_TAG,
-        "array": array,
-        "pitch_um": { "x": g.pitch_x_um, "y": g.pitch_y_um },
-        "height_unit": "um",
-        "axes": "first axis = rows = y (row 0 = smallest y), second axis = cols = x",
-    });
-    if let (Some([x, y]), Some(o)) = (g.origin_um, doc.as_object_mut()) {
-        o.insert("origin_um".into(), json!({ "x": x, "y": y }));
-    }
+    let doc = SidecarFile {
+        array,
+        axes: "first axis = rows = y (row 0 = smallest y), second axis = cols = x",
+        height_unit: "um",
+        origin_um: g.origin_um.map(|[x, y]| PointUm { x, y }),
+        pitch_um: PointUm {
+            x: g.pitch_x_um,
+            y: g.pitch_y_um,
+        },
+        sidecar: SIDECAR_TAG,
+    };
     let path = sidecar_path(npy);
     let text = serde_json::to_string_pretty(&doc)?;
     let fill = |w: &mut std::io::BufWriter<std::fs::File>| {
@@ -176,6 +197,32 @@ pub fn read_sidecar(npy: &Path) -> Result<Option<NpyGeometry>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_typed_sidecar_is_byte_identical_to_the_json_value_it_replaces() {
+        let d = tempfile::tempdir().unwrap();
+        let npy = d.path().join("a.npy");
+        for origin_um in [None, Some([10.0, -3.5])] {
+            let g = NpyGeometry {
+                pitch_x_um: 2.2797945189999997,
+                pitch_y_um: 0.5,
+                origin_um,
+            };
+            write_sidecar(&npy, &g).unwrap();
+            let mut old = serde_json::json!({
+                "sidecar": SIDECAR_TAG,
+                "array": "a.npy",
+                "pitch_um": { "x": g.pitch_x_um, "y": g.pitch_y_um },
+                "height_unit": "um",
+                "axes": "first axis = rows = y (row 0 = smallest y), second axis = cols = x",
+            });
+            if let Some([x, y]) = origin_um {
+                old["origin_um"] = serde_json::json!({ "x": x, "y": y });
+            }
+            let old = serde_json::to_string_pretty(&old).unwrap() + "\n";
+            assert_eq!(std::fs::read_to_string(sidecar_path(&npy)).unwrap(), old);
+        }
+    }
 
     #[test]
     fn round_trip_and_named_errors() {

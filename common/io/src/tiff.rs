@@ -39,6 +39,24 @@ fn rational(v: f64) -> (u32, u32) {
     (num, den as u32)
 }
 
+/// surfstream's `ImageDescription` as written. Fields in key order (the text has always listed
+/// its keys sorted).
+#[derive(serde::Serialize)]
+struct TiffDescription<'a> {
+    axes: &'a str,
+    height_unit: &'a str,
+    pitch_known: bool,
+    pitch_um: PitchUm,
+    writer: &'a str,
+}
+
+/// The pitch in um: x = spacing of the columns, y = of the rows.
+#[derive(serde::Serialize)]
+struct PitchUm {
+    x: f64,
+    y: f64,
+}
+
 /// Writes `s` as a float32 TIFF (see the module doc).
 pub fn write(path: &Path, s: &Surface) -> Result<()> {
     let (rows, cols) = (s.height, s.width);
@@ -56,14 +74,16 @@ pub fn write(path: &Path, s: &Surface) -> Result<()> {
             path.display()
         );
     }
-    let description = serde_json::json!({
-        "pitch_um": { "x": s.pitch_x_um, "y": s.pitch_y_um },
-        "pitch_known": s.metadata.pitch_known,
-        "height_unit": "um",
-        "axes": "row 0 = first stored row = smallest y",
-        "writer": concat!("surfstream ", env!("CARGO_PKG_VERSION")),
-    })
-    .to_string();
+    let description = serde_json::to_string(&TiffDescription {
+        axes: "row 0 = first stored row = smallest y",
+        height_unit: "um",
+        pitch_known: s.metadata.pitch_known,
+        pitch_um: PitchUm {
+            x: s.pitch_x_um,
+            y: s.pitch_y_um,
+        },
+        writer: concat!("surfstream ", env!("CARGO_PKG_VERSION")),
+    })?;
     let mut desc = description.into_bytes();
     desc.push(0);
 
@@ -574,6 +594,15 @@ mod tests {
             assert_eq!(v[rows * cols - 1], heights[rows * cols - 1] as f32);
             let j: serde_json::Value = serde_json::from_str(&desc).unwrap();
             assert_eq!(j["pitch_um"]["y"], 2.2797945189999997);
+            // The typed description writes the text the JSON value it replaces wrote.
+            let before_typed = serde_json::json!({
+                "pitch_um": { "x": s.pitch_x_um, "y": s.pitch_y_um },
+                "pitch_known": true,
+                "height_unit": "um",
+                "axes": "row 0 = first stored row = smallest y",
+                "writer": concat!("surfstream ", env!("CARGO_PKG_VERSION")),
+            });
+            assert_eq!(desc, before_typed.to_string());
             // And our reader: pitch exact, heights as f32, NaN kept.
             let back = parse(&std::fs::read(&p).unwrap()).unwrap();
             assert_eq!((back.height, back.width), (rows, cols));

@@ -4,7 +4,8 @@
 //! output this reader is tested on). The one reader of that file: the matcher scores feature
 //! matches with it, the benchmarks and tests score registrations.
 //!
-//! Only `tiles[].index` and `tiles[].true_origin_px` (`[x, y]`, px) are read; a pair's true
+//! The file is read as `surfstream_core::record::TruthRecord` (the writer's tile record);
+//! only `tiles[].index` and `tiles[].true_origin_px` (`[x, y]`, px) are used; a pair's true
 //! offset is `true_origin_px[b] - true_origin_px[a]`, the same definition as the file's
 //! `pairs[].true_offset_px`, for any two tiles.
 
@@ -40,9 +41,11 @@ impl std::fmt::Display for TruthError {
             TruthError::Read { path, source } => {
                 write!(f, "{}: cannot read: {source}", path.display())
             }
-            TruthError::Json { path, source } => {
-                write!(f, "{}: not JSON: {source}", path.display())
-            }
+            TruthError::Json { path, source } => write!(
+                f,
+                "{}: not a truth file (tiles[] with index, true_origin_px, ...): {source}",
+                path.display()
+            ),
             TruthError::Field {
                 path,
                 field,
@@ -86,38 +89,21 @@ impl ScanTruth {
 
     /// Parses the text of a truth file (`path` only names it in errors).
     pub fn parse(text: &str, path: &Path) -> Result<ScanTruth, TruthError> {
-        let v: serde_json::Value =
+        let record: surfstream_core::record::TruthRecord =
             serde_json::from_str(text).map_err(|source| TruthError::Json {
                 path: path.to_path_buf(),
                 source,
             })?;
-        let field = |field: String, expected: &'static str| TruthError::Field {
-            path: path.to_path_buf(),
-            field,
-            expected,
-        };
-        let tiles = v
-            .get("tiles")
-            .and_then(|t| t.as_array())
-            .ok_or_else(|| field("tiles".into(), "an array of tiles"))?;
         let mut origins_px = BTreeMap::new();
-        for (k, t) in tiles.iter().enumerate() {
-            let index = t
-                .get("index")
-                .and_then(|i| i.as_u64())
-                .ok_or_else(|| field(format!("tiles[{k}].index"), "a non-negative integer"))?;
-            let o = t
-                .get("true_origin_px")
-                .and_then(|o| o.as_array())
-                .filter(|o| o.len() == 2)
-                .and_then(|o| Some([o[0].as_f64()?, o[1].as_f64()?]))
-                .filter(|o| o.iter().all(|c| c.is_finite()))
-                .ok_or_else(|| {
-                    field(
-                        format!("tiles[{k}].true_origin_px"),
-                        "two finite numbers [x, y] in px",
-                    )
-                })?;
+        for (k, t) in record.tiles.iter().enumerate() {
+            let (index, o) = (t.index as u64, t.true_origin_px);
+            if !o.iter().all(|c| c.is_finite()) {
+                return Err(TruthError::Field {
+                    path: path.to_path_buf(),
+                    field: format!("tiles[{k}].true_origin_px"),
+                    expected: "two finite numbers [x, y] in px",
+                });
+            }
             if origins_px.insert(index, o).is_some() {
                 return Err(TruthError::Duplicate {
                     path: path.to_path_buf(),

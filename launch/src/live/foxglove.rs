@@ -23,12 +23,18 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Result};
 use base64::Engine as _;
-use serde_json::{json, Value};
+use serde::Serialize;
 use surfstream_core::frame::HeightMap;
-use surfstream_io::recording::{encode_frame_json, FRAME_JSON_SCHEMA, SCAN_FRAME_ID};
+use surfstream_io::recording::{
+    encode_frame_json, FoxgloveTime, Pose, Quaternion, Vector3, FRAME_JSON_SCHEMA, SCAN_FRAME_ID,
+};
 use tungstenite::handshake::server::{ErrorResponse, Request, Response};
 use tungstenite::{Message, WebSocket};
 
+use super::messages::{
+    ChannelAd, ClientOp, Color, CompressedImage, CubePrimitive, Empty, KeyValuePair, LinePrimitive,
+    Progress, SceneEntity, SceneUpdate, ServerOp,
+};
 use super::state::{LiveState, Placement};
 use super::Shared;
 
@@ -130,21 +136,27 @@ const PROGRESS_SCHEMA: &str = r#"{"title": "surfstream.Progress", "type": "objec
   "verdict": {"type": ["string", "null"]}}}"#;
 
 /// The `/progress` message of the state now.
-pub fn progress(s: &LiveState) -> Value {
+pub fn progress(s: &LiveState) -> Progress {
     let placed = |p: Placement| s.tiles.values().filter(|t| t.placement == Some(p)).count();
-    json!({
-        "timestamp": stamp(),
-        "tiles_planned": s.tiles_planned,
-        "tiles_registered": s.tiles_registered(),
-        "fields_per_s": s.fields_per_s(),
-        "eta_s": s.eta_s(),
-        "tile_to_panorama_ms": s.tiles.values().rev().find_map(|t| t.tile_to_panorama_ms),
-        "pairs": s.pairs.len(),
-        "weak_links": s.pairs.iter().filter(|p| p.accepted && p.weak_link).count(),
-        "stage_fallbacks": placed(Placement::StageFallback),
-        "scan_ended": s.scan_ended,
-        "verdict": s.verdict.as_ref().map(|v| v.verdict),
-    })
+    Progress {
+        timestamp: stamp(),
+        tiles_planned: s.tiles_planned,
+        tiles_registered: s.tiles_registered(),
+        fields_per_s: s.fields_per_s(),
+        eta_s: s.eta_s(),
+        tile_to_panorama_ms: s.tiles.values().rev().find_map(|t| t.tile_to_panorama_ms),
+        pairs: s.pairs.len(),
+        weak_links: s.pairs.iter().filter(|p| p.accepted && p.weak_link).count(),
+        stage_fallbacks: placed(Placement::StageFallback),
+        scan_ended: s.scan_ended,
+        verdict: s.verdict.as_ref().map(|v| v.verdict),
+    }
+}
+
+/// A message's JSON text (a typed message always serializes: string keys, no custom
+/// serializer that fails; an empty object if one ever did, never a panic).
+fn json_bytes<T: Serialize>(message: &T) -> Vec<u8> {
+    serde_json::to_vec(message).unwrap_or_else(|_| b"{}".to_vec())
 }
 
 /// Serves Foxglove clients on a thread of its own (one thread per client).
@@ -248,48 +260,45 @@ fn stream_to(ws: &mut WebSocket<TcpStream>, shared: &Shared) -> Result<()> {
     }
 }
 
-fn send_text(ws: &mut WebSocket<TcpStream>, v: &Value) -> Result<()> {
-    ws.send(Message::Text(v.to_string().into()))
+fn send_text(ws: &mut WebSocket<TcpStream>, op: &ServerOp) -> Result<()> {
+    let text = serde_json::to_string(op).map_err(|e| anyhow!("Foxglove message: {e}"))?;
+    ws.send(Message::Text(text.into()))
         .map_err(|e| anyhow!("Foxglove client: {e}"))
 }
 
-fn server_info() -> Value {
-    json!({
-        "op": "serverInfo",
-        "name": format!("surfstream {}", env!("CARGO_PKG_VERSION")),
-        "capabilities": [],
-        "supportedEncodings": [],
-        "metadata": {},
-        "sessionId": format!("{}", surfstream_core::frame::monotonic_ns()),
-    })
+fn server_info() -> ServerOp {
+    ServerOp::ServerInfo {
+        name: format!("surfstream {}", env!("CARGO_PKG_VERSION")),
+        capabilities: [],
+        supported_encodings: [],
+        metadata: Empty {},
+        session_id: format!("{}", surfstream_core::frame::monotonic_ns()),
+    }
 }
 
-fn advertise() -> Value {
-    let channels: Vec<Value> = CHANNELS
+fn advertise() -> ServerOp {
+    let channels = CHANNELS
         .iter()
-        .map(|c| {
-            json!({
-                "id": *c as u64,
-                "topic": c.topic(),
-                "encoding": "json",
-                "schemaName": c.schema_name(),
-                "schema": c.schema(),
-                "schemaEncoding": "jsonschema",
-            })
+        .map(|c| ChannelAd {
+            id: *c as u64,
+            topic: c.topic(),
+            encoding: "json",
+            schema_name: c.schema_name(),
+            schema: c.schema(),
+            schema_encoding: "jsonschema",
         })
         .collect();
-    json!({"op": "advertise", "channels": channels})
+    ServerOp::Advertise { channels }
 }
 
 /// `subscribe` / `unsubscribe`; anything else is answered with a status warning.
 fn on_client_message(text: &str, sent: &mut Sent, ws: &mut WebSocket<TcpStream>) -> Result<()> {
-    let v: Value = serde_json::from_str(text).unwrap_or(Value::Null);
-    match v.get("op").and_then(Value::as_str) {
-        Some("subscribe") => {
-            for s in v["subscriptions"].as_array().into_iter().flatten() {
+    match serde_json::from_str::<ClientOp>(text) {
+        Ok(ClientOp::Subscribe { subscriptions }) => {
+            for sub in subscriptions {
                 let (Some(id), Some(ch)) = (
-                    s["id"].as_u64().and_then(|i| u32::try_from(i).ok()),
-                    s["channelId"].as_u64().and_then(Channel::from_id),
+                    sub.id.and_then(|i| u32::try_from(i).ok()),
+                    sub.channel_id.and_then(Channel::from_id),
                 ) else {
                     send_text(
                         ws,
@@ -315,29 +324,28 @@ fn on_client_message(text: &str, sent: &mut Sent, ws: &mut WebSocket<TcpStream>)
                 }
             }
         }
-        Some("unsubscribe") => {
-            let ids: Vec<u64> = v["subscriptionIds"]
-                .as_array()
-                .into_iter()
-                .flatten()
-                .filter_map(Value::as_u64)
-                .collect();
+        Ok(ClientOp::Unsubscribe { subscription_ids }) => {
             sent.subscriptions
-                .retain(|(i, _)| !ids.contains(&u64::from(*i)));
+                .retain(|(i, _)| !subscription_ids.contains(&u64::from(*i)));
         }
-        _ => send_text(
+        Err(e) => send_text(
             ws,
             &status(
                 1,
-                "unsupported message: this server is read-only (subscribe, unsubscribe)",
+                &format!(
+                    "unsupported message ({e}): this server is read-only (subscribe, unsubscribe)"
+                ),
             ),
         )?,
     }
     Ok(())
 }
 
-fn status(level: u8, message: &str) -> Value {
-    json!({"op": "status", "level": level, "message": message})
+fn status(level: u8, message: &str) -> ServerOp {
+    ServerOp::Status {
+        level,
+        message: message.to_owned(),
+    }
 }
 
 /// Sends each subscribed channel's newest message when it changed since the last one sent.
@@ -385,7 +393,7 @@ fn send_updates(ws: &mut WebSocket<TcpStream>, shared: &Shared, sent: &mut Sent)
         if let Some(id) = subscribed(Channel::Boxes) {
             if s.boxes_version != sent.boxes {
                 sent.boxes = s.boxes_version;
-                out.push((id, scene_update(&s).to_string().into_bytes()));
+                out.push((id, json_bytes(&scene_update(&s))));
             }
         }
         let progress_due = sent
@@ -395,7 +403,7 @@ fn send_updates(ws: &mut WebSocket<TcpStream>, shared: &Shared, sent: &mut Sent)
             if s.version != sent.progress {
                 sent.progress = s.version;
                 sent.progress_at = Some(Instant::now());
-                out.push((id, progress(&s).to_string().into_bytes()));
+                out.push((id, json_bytes(&progress(&s))));
             }
         }
         let image_due = sent.image_at.is_none_or(|t| t.elapsed() >= IMAGE_INTERVAL);
@@ -407,7 +415,7 @@ fn send_updates(ws: &mut WebSocket<TcpStream>, shared: &Shared, sent: &mut Sent)
                 let (h, rows, cols) = (c.heights.clone(), c.rows, c.cols);
                 drop(s);
                 if let Some(m) = preview_image(&h, rows, cols) {
-                    out.push((id, m.to_string().into_bytes()));
+                    out.push((id, json_bytes(&m)));
                 }
             }
         }
@@ -432,26 +440,24 @@ pub fn message_data(subscription: u32, payload: &[u8]) -> Vec<u8> {
     m
 }
 
-fn stamp() -> Value {
-    let ns = surfstream_core::frame::monotonic_ns();
-    json!({"sec": ns / 1_000_000_000, "nsec": ns % 1_000_000_000})
+fn stamp() -> FoxgloveTime {
+    FoxgloveTime::from_ns(surfstream_core::frame::monotonic_ns())
 }
 
-fn preview_image(heights: &[f32], rows: usize, cols: usize) -> Option<Value> {
+fn preview_image(heights: &[f32], rows: usize, cols: usize) -> Option<CompressedImage> {
     let range = surfstream_io::preview::robust_range_um(heights)?;
     let m = surfstream_io::preview::encode_map_png(heights, rows, cols, 2048, range).ok()?;
-    Some(json!({
-        "timestamp": stamp(),
-        "frame_id": SCAN_FRAME_ID,
-        "data": base64::engine::general_purpose::STANDARD.encode(&m.png),
-        "format": "png",
-    }))
+    Some(CompressedImage {
+        timestamp: stamp(),
+        frame_id: SCAN_FRAME_ID,
+        data: base64::engine::general_purpose::STANDARD.encode(&m.png),
+        format: "png",
+    })
 }
 
 /// Every tile's box (1 um thick, at its registered position) and its planned outline, in
 /// metres in the scan frame.
-pub fn scene_update(s: &LiveState) -> Value {
-    let quaternion = json!({"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0});
+pub fn scene_update(s: &LiveState) -> SceneUpdate {
     let mut entities = Vec::new();
     for t in s.tiles.values() {
         let (Some(w), Some(h)) = (t.width_um, t.height_um) else {
@@ -465,47 +471,88 @@ pub fn scene_update(s: &LiveState) -> Value {
                 Some(Placement::WeakLink) => (0.95, 0.65, 0.1),
                 _ => (0.2, 0.7, 0.3),
             };
-            cubes.push(json!({
-                "pose": {"position": {"x": (x + w / 2.0) * 1e-6, "y": (y + h / 2.0) * 1e-6, "z": 0.0},
-                         "orientation": quaternion},
-                "size": {"x": w * 1e-6, "y": h * 1e-6, "z": 1e-6},
-                "color": {"r": r, "g": g, "b": b, "a": 0.35},
-            }));
+            cubes.push(CubePrimitive {
+                pose: Pose {
+                    position: Vector3 {
+                        x: (x + w / 2.0) * 1e-6,
+                        y: (y + h / 2.0) * 1e-6,
+                        z: 0.0,
+                    },
+                    orientation: Quaternion::IDENTITY,
+                },
+                size: Vector3 {
+                    x: w * 1e-6,
+                    y: h * 1e-6,
+                    z: 1e-6,
+                },
+                color: Color { r, g, b, a: 0.35 },
+            });
         }
         if let (Some(x), Some(y)) = (t.stage_x_um, t.stage_y_um) {
-            let p =
-                |dx: f64, dy: f64| json!({"x": (x + dx) * 1e-6, "y": (y + dy) * 1e-6, "z": 0.0});
-            lines.push(json!({
-                "type": 1, // LINE_LOOP
-                "pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": quaternion},
-                "thickness": 2.0,
-                "scale_invariant": true,
-                "points": [p(0.0, 0.0), p(w, 0.0), p(w, h), p(0.0, h)],
-                "color": {"r": 0.5, "g": 0.5, "b": 0.5, "a": 1.0},
-                "colors": [],
-                "indices": [],
-            }));
+            let p = |dx: f64, dy: f64| Vector3 {
+                x: (x + dx) * 1e-6,
+                y: (y + dy) * 1e-6,
+                z: 0.0,
+            };
+            lines.push(LinePrimitive {
+                line_type: 1, // LINE_LOOP
+                pose: Pose {
+                    position: Vector3 {
+                        x: 0.0,
+                        y: 0.0,
+                        z: 0.0,
+                    },
+                    orientation: Quaternion::IDENTITY,
+                },
+                thickness: 2.0,
+                scale_invariant: true,
+                points: vec![p(0.0, 0.0), p(w, 0.0), p(w, h), p(0.0, h)],
+                color: Color {
+                    r: 0.5,
+                    g: 0.5,
+                    b: 0.5,
+                    a: 1.0,
+                },
+                colors: [],
+                indices: [],
+            });
         }
-        entities.push(json!({
-            "timestamp": stamp(),
-            "frame_id": SCAN_FRAME_ID,
-            "id": format!("tile-{}", t.index),
-            "lifetime": {"sec": 0, "nsec": 0},
-            "frame_locked": false,
-            "metadata": [
-                {"key": "placement", "value": format!("{:?}", t.placement)},
-                {"key": "ncc", "value": t.ncc.map_or("-".into(), |n| format!("{n:.3}"))},
+        entities.push(SceneEntity {
+            timestamp: stamp(),
+            frame_id: SCAN_FRAME_ID,
+            id: format!("tile-{}", t.index),
+            lifetime: FoxgloveTime::from_ns(0),
+            frame_locked: false,
+            metadata: vec![
+                KeyValuePair {
+                    key: "placement",
+                    value: format!("{:?}", t.placement),
+                },
+                KeyValuePair {
+                    key: "ncc",
+                    value: t.ncc.map_or("-".into(), |n| format!("{n:.3}")),
+                },
             ],
-            "arrows": [], "cubes": cubes, "spheres": [], "cylinders": [], "lines": lines,
-            "triangles": [], "texts": [], "models": [],
-        }));
+            arrows: [],
+            cubes,
+            spheres: [],
+            cylinders: [],
+            lines,
+            triangles: [],
+            texts: [],
+            models: [],
+        });
     }
-    json!({"deletions": [], "entities": entities})
+    SceneUpdate {
+        deletions: [],
+        entities,
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use serde_json::Value;
 
     #[test]
     fn message_data_is_opcode_subscription_time_payload() {
@@ -518,7 +565,7 @@ mod tests {
 
     #[test]
     fn the_advertisement_names_every_channel_with_its_schema() {
-        let a = advertise();
+        let a = serde_json::to_value(advertise()).unwrap();
         let ch = a["channels"].as_array().unwrap();
         assert_eq!(ch.len(), 5);
         assert_eq!(ch[0]["topic"], "/tiles");
@@ -551,7 +598,7 @@ mod tests {
             ..Default::default()
         };
         s.on_registration(&r, Instant::now());
-        let u = scene_update(&s);
+        let u = serde_json::to_value(scene_update(&s)).unwrap();
         let e = &u["entities"][0];
         assert_eq!(e["id"], "tile-0");
         let cube = &e["cubes"][0];
@@ -559,7 +606,7 @@ mod tests {
         assert!((cube["size"]["y"].as_f64().unwrap() - 20e-6).abs() < 1e-12);
         assert_eq!(cube["color"]["r"], 0.86);
         assert!((e["lines"][0]["points"][1]["x"].as_f64().unwrap() - 110e-6).abs() < 1e-12);
-        let p = progress(&s);
+        let p = serde_json::to_value(progress(&s)).unwrap();
         assert_eq!(p["tiles_planned"], 1);
         assert_eq!(p["tiles_registered"], 1);
         assert_eq!(p["stage_fallbacks"], 1);

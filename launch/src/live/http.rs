@@ -284,7 +284,7 @@ impl Server {
             ("/", true) | ("/index.html", true) => self.index(),
             ("/app.js", true) => asset("text/javascript; charset=utf-8", APP_JS),
             ("/style.css", true) => asset("text/css; charset=utf-8", STYLE_CSS),
-            ("/state.json", true) => json(&self.shared.lock().snapshot()),
+            ("/state.json", true) => json(self.shared.lock().snapshot_text()),
             ("/preview.png", true) => self.preview_png(),
             ("/tile.png", true) => self.tile_png(),
             ("/report.html", true) => self.out_file("report.html", "text/html; charset=utf-8"),
@@ -296,7 +296,7 @@ impl Server {
     /// The page, with the current state inlined so that it draws at once (and a page saved
     /// or dumped shows the state it was served with).
     fn index(&self) -> Response {
-        let state = self.shared.lock().snapshot().to_string();
+        let state = self.shared.lock().snapshot_text();
         // JSON inside <script>: "</" must not close the element.
         let state = state.replace("</", "<\\/");
         Response {
@@ -405,7 +405,7 @@ impl Server {
                     }
                     continue;
                 }
-                (s.snapshot().to_string(), s.version, s.run_ended)
+                (s.snapshot_text(), s.version, s.run_ended)
             };
             if seen != u64::MAX && version > seen + 1 {
                 self.shared.lock().drops.page_updates_skipped += version - seen - 1;
@@ -433,11 +433,11 @@ fn asset(content_type: &'static str, text: &str) -> Response {
     }
 }
 
-fn json(v: &serde_json::Value) -> Response {
+fn json(text: String) -> Response {
     Response {
         status: 200,
         content_type: "application/json",
-        body: v.to_string().into_bytes(),
+        body: text.into_bytes(),
         extra: Vec::new(),
     }
 }

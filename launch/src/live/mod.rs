@@ -19,6 +19,7 @@
 
 pub mod foxglove;
 pub mod http;
+pub mod messages;
 pub mod state;
 
 use std::net::{SocketAddr, TcpListener};

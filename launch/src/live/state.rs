@@ -15,7 +15,7 @@ use std::time::Instant;
 use serde::Serialize;
 use surfstream_core::frame::{flags, placed_by, FrameHeader, HeightMap, TileRegistration};
 use surfstream_core::record::{
-    FusionReport, MatcherPair, MatcherReport, MeshReport, RunRecord, WaveletReport,
+    FusionReport, MatcherPair, MatcherReport, MeshReport, NodeRecord, RunRecord, WaveletReport,
 };
 
 /// The preview canvas's longer side, cells: beyond it the canvas halves its resolution.
@@ -473,19 +473,16 @@ impl LiveState {
     /// A node's report (`nodes/<id>.json`), read as the typed record of its kind: a line of
     /// the running verdict; the matcher's also gives the pairs and the weak links.
     pub fn on_node_report(&mut self, node_id: &str, kind: &str, report: &serde_json::Value) {
+        fn read<T: NodeRecord>(report: &serde_json::Value) -> Option<T> {
+            <T as serde::Deserialize>::deserialize(report).ok()
+        }
         let line = match kind {
-            "matcher" => serde_json::from_value::<MatcherReport>(report.clone())
-                .ok()
-                .map(|m| self.apply_matcher(&m)),
-            "fusion" => serde_json::from_value::<FusionReport>(report.clone())
-                .ok()
-                .map(|f| fusion_line(&f)),
-            "wavelet" => serde_json::from_value::<WaveletReport>(report.clone())
-                .ok()
-                .map(|w| wavelet_line(&w)),
-            "mesher" => serde_json::from_value::<MeshReport>(report.clone())
-                .ok()
-                .map(|m| mesh_line(&m)),
+            MatcherReport::NODE_KIND => {
+                read::<MatcherReport>(report).map(|m| self.apply_matcher(&m))
+            }
+            FusionReport::NODE_KIND => read::<FusionReport>(report).map(|f| fusion_line(&f)),
+            WaveletReport::NODE_KIND => read::<WaveletReport>(report).map(|w| wavelet_line(&w)),
+            MeshReport::NODE_KIND => read::<MeshReport>(report).map(|m| mesh_line(&m)),
             _ => Some((format!("{kind} finished"), None)),
         };
         let (text, ok) = line.unwrap_or_else(|| {
@@ -609,7 +606,7 @@ impl LiveState {
     }
 
     /// `/state.json`.
-    pub fn snapshot(&self) -> serde_json::Value {
+    pub fn snapshot(&self) -> StateJson<'_> {
         let lat: Vec<f64> = self
             .tiles
             .values()
@@ -620,48 +617,105 @@ impl LiveState {
             .values()
             .rev()
             .find_map(|t| t.tile_to_panorama_ms);
-        let canvas = (!self.canvas.is_empty()).then(|| {
-            serde_json::json!({
-                "x0_um": self.canvas.x0_um,
-                "y0_um": self.canvas.y0_um,
-                "width_um": self.canvas.cols as f64 * self.canvas.cell_x_um,
-                "height_um": self.canvas.rows as f64 * self.canvas.cell_y_um,
-                "cell_um": self.canvas.cell_x_um,
-                "version": self.canvas_version,
-            })
+        let canvas = (!self.canvas.is_empty()).then(|| CanvasJson {
+            x0_um: self.canvas.x0_um,
+            y0_um: self.canvas.y0_um,
+            width_um: self.canvas.cols as f64 * self.canvas.cell_x_um,
+            height_um: self.canvas.rows as f64 * self.canvas.cell_y_um,
+            cell_um: self.canvas.cell_x_um,
+            version: self.canvas_version,
         });
-        serde_json::json!({
-            "graph": self.graph,
-            "tiles_planned": self.tiles_planned,
-            "tiles_registered": self.tiles_registered(),
-            "tiles": self.tiles.values().collect::<Vec<_>>(),
-            "pairs": self.pair_views(),
-            "stages": self.stages,
-            "verdict": self.verdict.as_ref().map(|v| v.verdict),
-            "verdict_text": self.verdict.as_ref().map(|v| v.text.as_str()),
-            "failures": self.verdict.as_ref().map(|v| v.failures.as_slice()),
-            "report": self.verdict.as_ref().is_some_and(|v| v.report),
-            "progress": {
-                "elapsed_s": self.started.elapsed().as_secs_f64(),
-                "fields_per_s": self.fields_per_s(),
-                "eta_s": self.eta_s(),
-                "tile_to_panorama_ms": {
-                    "newest": newest,
-                    "p50": percentile(&lat, 0.5),
-                    "max": lat.iter().copied().reduce(f64::max),
-                    "n": lat.len(),
+        StateJson {
+            graph: &self.graph,
+            tiles_planned: self.tiles_planned,
+            tiles_registered: self.tiles_registered(),
+            tiles: self.tiles.values().collect(),
+            pairs: self.pair_views(),
+            stages: &self.stages,
+            verdict: self.verdict.as_ref().map(|v| v.verdict),
+            verdict_text: self.verdict.as_ref().map(|v| v.text.as_str()),
+            failures: self.verdict.as_ref().map(|v| v.failures.as_slice()),
+            report: self.verdict.as_ref().is_some_and(|v| v.report),
+            progress: ProgressJson {
+                elapsed_s: self.started.elapsed().as_secs_f64(),
+                fields_per_s: self.fields_per_s(),
+                eta_s: self.eta_s(),
+                tile_to_panorama_ms: LatencyJson {
+                    newest,
+                    p50: percentile(&lat, 0.5),
+                    max: lat.iter().copied().reduce(f64::max),
+                    n: lat.len(),
                 },
             },
-            "canvas": canvas,
-            "newest_tile": self.newest_tile.as_ref().map(|t| t.header.tile_index),
-            "scan_ended": self.scan_ended,
-            "run_ended": self.run_ended,
-            "stop_allowed": self.stop_allowed,
-            "drops": self.drops,
-            "viewers": self.viewers,
-            "version": self.version,
-        })
+            canvas,
+            newest_tile: self.newest_tile.as_ref().map(|t| t.header.tile_index),
+            scan_ended: self.scan_ended,
+            run_ended: self.run_ended,
+            stop_allowed: self.stop_allowed,
+            drops: self.drops,
+            viewers: self.viewers,
+            version: self.version,
+        }
     }
+
+    /// `/state.json` as text (a typed record of string keys always serializes; `{}` if it
+    /// ever did not, never a panic in the server).
+    pub fn snapshot_text(&self) -> String {
+        serde_json::to_string(&self.snapshot()).unwrap_or_else(|_| "{}".into())
+    }
+}
+
+/// `/state.json`: what the page draws.
+#[derive(Debug, Serialize)]
+pub struct StateJson<'a> {
+    pub graph: &'a str,
+    pub tiles_planned: Option<usize>,
+    pub tiles_registered: usize,
+    pub tiles: Vec<&'a TileView>,
+    pub pairs: Vec<PairView>,
+    pub stages: &'a [StageLine],
+    pub verdict: Option<&'static str>,
+    pub verdict_text: Option<&'a str>,
+    pub failures: Option<&'a [String]>,
+    pub report: bool,
+    pub progress: ProgressJson,
+    pub canvas: Option<CanvasJson>,
+    pub newest_tile: Option<u32>,
+    pub scan_ended: bool,
+    pub run_ended: bool,
+    pub stop_allowed: bool,
+    pub drops: Drops,
+    pub viewers: Viewers,
+    pub version: u64,
+}
+
+/// `/state.json` `progress`.
+#[derive(Debug, Serialize)]
+pub struct ProgressJson {
+    pub elapsed_s: f64,
+    pub fields_per_s: Option<f64>,
+    pub eta_s: Option<f64>,
+    pub tile_to_panorama_ms: LatencyJson,
+}
+
+/// Tile -> panorama latency over the tiles so far, ms.
+#[derive(Debug, Serialize)]
+pub struct LatencyJson {
+    pub newest: Option<f64>,
+    pub p50: Option<f64>,
+    pub max: Option<f64>,
+    pub n: usize,
+}
+
+/// `/state.json` `canvas`: where the preview sits, um, and its version.
+#[derive(Debug, Serialize)]
+pub struct CanvasJson {
+    pub x0_um: f64,
+    pub y0_um: f64,
+    pub width_um: f64,
+    pub height_um: f64,
+    pub cell_um: f64,
+    pub version: u64,
 }
 
 /// The page's view of a pair record: the streaming one (`final_solve` false) or the report's.
@@ -758,6 +812,10 @@ fn mesh_line(m: &MeshReport) -> (String, Option<bool>) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn snap(s: &LiveState) -> serde_json::Value {
+        serde_json::to_value(s.snapshot()).unwrap()
+    }
     use surfstream_core::frame::FrameKind;
 
     fn patch(index: u32, seq: u64, x: f64, y: f64, w: u32, h: u32, value: f32) -> HeightMap {
@@ -862,7 +920,7 @@ mod tests {
         s.on_preview(patch(0, 0, 0.0, 0.0, 4, 4, 1.0));
         // Sequence 3 after 0: two patches were replaced before the view read them.
         s.on_preview(patch(1, 3, 8.0, 0.0, 4, 4, 1.0));
-        let j = s.snapshot();
+        let j = snap(&s);
         assert_eq!(j["tiles_planned"], 3);
         assert_eq!(j["tiles_registered"], 2);
         assert_eq!(j["verdict"], serde_json::Value::Null);
@@ -883,13 +941,13 @@ mod tests {
         // The end-of-scan solve's placement replaces the streaming one, not the reverse.
         s.on_registration(&registration(1, 91.0, false, flags::FINAL), now);
         s.on_registration(&registration(1, 50.0, true, 0), now);
-        let j = s.snapshot();
+        let j = snap(&s);
         assert_eq!(j["tiles"][1]["x_um"], 91.0);
         assert_eq!(j["tiles"][1]["placement"], "registration");
         assert_eq!(j["tiles"][1]["final_solve"], true);
 
         s.on_run_failed("interrupted");
-        assert_eq!(s.snapshot()["verdict"], "FAIL");
+        assert_eq!(snap(&s)["verdict"], "FAIL");
     }
 
     #[test]
@@ -917,7 +975,7 @@ mod tests {
             "global": null
         });
         s.on_node_report("matcher", "matcher", &report);
-        let j = s.snapshot();
+        let j = snap(&s);
         assert_eq!(j["tiles"][0]["placement"], "weak_link");
         assert_eq!(j["tiles"][1]["placement"], "weak_link");
         assert_eq!(j["pairs"][0]["ncc"], 0.4);
@@ -930,7 +988,7 @@ mod tests {
         assert!(line.contains("1 weak link"), "{line}");
         // A report that does not read as its kind's is said, not hidden.
         s.on_node_report("fusion", "fusion", &serde_json::json!({"x": 1}));
-        let j = s.snapshot();
+        let j = snap(&s);
         assert_eq!(j["stages"][1]["ok"], false);
     }
 
@@ -953,20 +1011,20 @@ mod tests {
         s.on_registration(&registration(0, 0.0, false, 0), now);
         // The pair arrives before tile 1's registration; a pair with tile 2, after it.
         s.on_streaming_pairs(&[streaming_pair(0, 1, [45.5, 0.0], true)]);
-        let j = s.snapshot();
+        let j = snap(&s);
         assert_eq!(j["tiles"][0]["placement"], "weak_link", "at once");
         assert_eq!(j["pairs"][0]["weak_link"], true);
         assert_eq!(j["pairs"][0]["final_solve"], false);
         assert_eq!(j["pairs"][0]["residual_px"], serde_json::Value::Null);
         s.on_registration(&registration(1, 92.0, false, 0), now);
-        let j = s.snapshot();
+        let j = snap(&s);
         assert_eq!(j["tiles"][1]["placement"], "weak_link");
         // (92 - 0) / 2 - 45.5 = 0.5 px, from the streaming placement.
         assert_eq!(j["pairs"][0]["residual_px"], 0.5);
         assert_eq!(j["pairs"][0]["residual_of"], "streaming_placement");
         s.on_registration(&registration(2, 180.0, true, 0), now);
         s.on_streaming_pairs(&[streaming_pair(1, 2, [44.0, 0.0], false)]);
-        let j = s.snapshot();
+        let j = snap(&s);
         assert_eq!(j["tiles"][2]["placement"], "stage_fallback");
         assert_eq!(j["pairs"].as_array().unwrap().len(), 2);
         assert_eq!(j["pairs"][1]["residual_px"], 0.0);
@@ -982,14 +1040,14 @@ mod tests {
         };
         s.apply_matcher(&report);
         s.on_streaming_pairs(&[streaming_pair(1, 2, [44.0, 0.0], true)]);
-        let j = s.snapshot();
+        let j = snap(&s);
         assert_eq!(j["pairs"].as_array().unwrap().len(), 1);
         assert_eq!(j["pairs"][0]["final_solve"], true);
         assert_eq!(j["pairs"][0]["residual_of"], "global_solve");
         assert!((j["pairs"][0]["residual_px"].as_f64().unwrap() - 0.5).abs() < 1e-12);
         // The solve dropped the weak link: its tiles are no longer weak.
         s.on_registration(&registration(1, 91.0, false, flags::FINAL), now);
-        assert_eq!(s.snapshot()["tiles"][1]["placement"], "registration");
+        assert_eq!(snap(&s)["tiles"][1]["placement"], "registration");
     }
 
     #[test]

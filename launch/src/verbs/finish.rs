@@ -288,6 +288,14 @@ pub fn part_material(m: &MachineArgs, start: PartMaterial) -> Result<PartMateria
     Ok(p)
 }
 
+/// OUT/macro.json of `--macro-only`: the machine's setting and its run's contacts.
+#[derive(serde::Serialize)]
+struct MacroOnlyJson<'a> {
+    setting: &'a MachineSetting,
+    #[serde(rename = "macro")]
+    macro_run: &'a surfstream_finish::machine::MacroContacts,
+}
+
 /// `--macro-only`: the machine run alone, into OUT/macro and OUT/macro.json.
 fn run_macro_only(a: &FinishArgs, claim: &crate::outdir::Claim) -> Result<()> {
     let setting = machine_setting(a)?;
@@ -310,8 +318,12 @@ fn run_macro_only(a: &FinishArgs, claim: &crate::outdir::Claim) -> Result<()> {
     )
     .and_then(|m| {
         let json = work.join("macro.json");
-        let text =
-            serde_json::to_string_pretty(&serde_json::json!({ "setting": setting, "macro": m }))?;
+        // Through a JSON value: every level's keys sorted, as the file has always had them.
+        let record = serde_json::to_value(MacroOnlyJson {
+            setting: &setting,
+            macro_run: &m,
+        })?;
+        let text = serde_json::to_string_pretty(&record)?;
         std::fs::write(&json, text + "\n")
             .map_err(|e| anyhow!("{}: cannot write: {e}", json.display()))?;
         Ok(m)

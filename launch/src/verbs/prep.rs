@@ -87,6 +87,19 @@ pub fn parse_steps(words: &[String]) -> Result<Vec<Step>> {
     Ok(steps)
 }
 
+/// `prep --json`: what was read and written, and the steps done.
+#[derive(serde::Serialize)]
+struct PrepJson<'a> {
+    input: String,
+    output: String,
+    rows: usize,
+    cols: usize,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+    invalid_points: usize,
+    steps: &'a [prep::Done],
+}
+
 pub fn run(a: PrepArgs) -> Result<()> {
     let steps = parse_steps(&a.steps)?;
     let ext = a
@@ -121,16 +134,17 @@ pub fn run(a: PrepArgs) -> Result<()> {
     let (out, done) = prep::run(&s, &steps).with_context(|| format!("{}", a.input.display()))?;
     write_surface(&a.output, &out)?;
     if a.json {
-        let v = serde_json::json!({
-            "input": a.input.display().to_string(),
-            "output": a.output.display().to_string(),
-            "rows": out.height,
-            "cols": out.width,
-            "pitch_x_um": out.pitch_x_um,
-            "pitch_y_um": out.pitch_y_um,
-            "invalid_points": out.invalid_count(),
-            "steps": done,
-        });
+        // Through a JSON value: its keys sorted, as the output has always had them.
+        let v = serde_json::to_value(PrepJson {
+            input: a.input.display().to_string(),
+            output: a.output.display().to_string(),
+            rows: out.height,
+            cols: out.width,
+            pitch_x_um: out.pitch_x_um,
+            pitch_y_um: out.pitch_y_um,
+            invalid_points: out.invalid_count(),
+            steps: &done,
+        })?;
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
         for d in &done {

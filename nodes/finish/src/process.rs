@@ -32,9 +32,9 @@ use crate::script::{self, Segment};
 use crate::setting::Action;
 use crate::summary::{
     AbbottSummary, CalibrationSummary, CheckMean, ContactFieldSummary, CycleField, CycleRecord,
-    CycleVolumeCheck, EnvelopeShape, FinalFit, FinishSetting, FinishSummary, IdealModelRun,
-    PaperValues, PatchRecord, PatchSummary, ProbeRecord, SimValues, Timings, VolumeCheck,
-    WearLawsRecord, WearVolumes,
+    CycleVolumeCheck, EnvelopeShape, FinalFit, FinishFacts, FinishSetting, FinishSummary,
+    IdealModelRun, PaperValues, PatchRecord, PatchSummary, ProbeRecord, SimValues, Timings,
+    VolumeCheck, WearLawsRecord, WearVolumes,
 };
 
 /// Runs the finishing simulation of `model` into `out_dir`; see the crate doc. `say` gets
@@ -1571,7 +1571,8 @@ fn summary(
         (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
     };
     let (engine_s, engine_cpu_s) = (st.engine_s, st.engine_cpu_s);
-    Ok(FinishSummary {
+    let (abbott_before, abbott_after) = (abbott(original_crop)?, abbott(worn_crop)?);
+    let facts = FinishFacts {
         model: model.source.clone(),
         partial,
         cycles_completed: completed,
@@ -1670,8 +1671,6 @@ fn summary(
         }),
         before: setup.before.clone(),
         after: after.clone(),
-        abbott_before: abbott(original_crop)?,
-        abbott_after: abbott(worn_crop)?,
         volume_check: Some(VolumeCheck {
             relative_error: st.worst_volume_error,
             what: "largest |grid volume / LIGGGHTS' sum of wear x area - 1| over the cycles".into(),
@@ -1698,7 +1697,6 @@ fn summary(
             simulated_s: st.sim_time_total,
         },
         outputs: [outputs::WEAR, outputs::WEAR_FINNIE, outputs::WEAR_ARCHARD, outputs::WORN, outputs::WORN_X3P, outputs::ORIGINAL, outputs::SUMMARY, outputs::HTML].map(String::from).into(),
-        cycles: st.cycles,
         wear_laws: prediction.map(|p| WearLawsRecord {
             impact_rate_per_m2_s: setup.impact_rate,
             sliding_work_j_per_m2_s: setup.sliding.sliding_work_j_per_m2_s,
@@ -1722,11 +1720,17 @@ fn summary(
         fitted: fitted_names(target_sa.is_some(), prediction.is_some(), opts.wear_model),
         wear_maps: prediction.map(|p| p.wear_maps.clone()),
         sweep: None,
-        macro_run: None,
         after_registrations: Vec::new(),
         part_material: None,
         patch: st.patch_model.map(|model| PatchSummary { model }),
         cycle_path: None,
+    };
+    Ok(FinishSummary {
+        facts,
+        abbott_before,
+        abbott_after,
+        cycles: st.cycles,
+        macro_run: None,
     })
 }
 

@@ -20,9 +20,26 @@ use crate::machine::MacroContacts;
 use crate::run::SurfaceParams;
 use crate::setting::{Action, BarrelMachine, Media, PartMaterial, Workpiece};
 
-/// finish.json.
+/// finish.json: the run's facts (also the node's report, [`FinishReport`]) and its bulky parts.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct FinishSummary {
+    /// Everything finish.json shares with the node's report (flattened: the same top-level
+    /// keys as ever).
+    #[serde(flatten)]
+    pub facts: FinishFacts,
+    pub abbott_before: AbbottSummary,
+    pub abbott_after: AbbottSummary,
+    #[serde(default)]
+    pub cycles: Vec<CycleRecord>,
+    /// The macro run's contacts on the part (null: the rates from the kinematics).
+    #[serde(rename = "macro", default)]
+    pub macro_run: Option<MacroContacts>,
+}
+
+/// finish.json without the Abbott curves, the per-cycle records and the macro run with its
+/// contact samples: what the node reports (run.json `stages.<id>`, [`FinishReport`]).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct FinishFacts {
     /// The model's source (file or out dir).
     pub model: String,
     #[serde(default)]
@@ -44,8 +61,6 @@ pub struct FinishSummary {
     pub paper: Option<PaperValues>,
     pub before: SurfaceParams,
     pub after: SurfaceParams,
-    pub abbott_before: AbbottSummary,
-    pub abbott_after: AbbottSummary,
     #[serde(default)]
     pub volume_check: Option<VolumeCheck>,
     #[serde(default)]
@@ -55,8 +70,6 @@ pub struct FinishSummary {
     /// The ideal model's run (null without one, or when the run stopped early).
     #[serde(default)]
     pub ideal_model: Option<IdealModelRun>,
-    #[serde(default)]
-    pub cycles: Vec<CycleRecord>,
     /// The probe segment that measured the engine's cost (null when the passes were given).
     #[serde(default)]
     pub probe: Option<ProbeRecord>,
@@ -82,9 +95,6 @@ pub struct FinishSummary {
     /// Settings compared with one calibration (`--sweep`; null without one).
     #[serde(default)]
     pub sweep: Option<Sweep>,
-    /// The macro run's contacts on the part (null: the rates from the kinematics).
-    #[serde(rename = "macro", default)]
-    pub macro_run: Option<MacroContacts>,
     /// How the measured scans (`--after`, `--calibrate FILE`) were registered to the model.
     #[serde(default)]
     pub after_registrations: Vec<crate::after::AfterRegistration>,
@@ -100,6 +110,21 @@ pub struct FinishSummary {
     /// the one-medium segment on the block-averaged mesh (no contact samples).
     #[serde(default)]
     pub cycle_path: Option<String>,
+}
+
+// finish.json's readers (the page, the report, the sweep) read the facts as the summary's own
+// fields: `summary.before` is `summary.facts.before`.
+impl std::ops::Deref for FinishSummary {
+    type Target = FinishFacts;
+    fn deref(&self) -> &FinishFacts {
+        &self.facts
+    }
+}
+
+impl std::ops::DerefMut for FinishSummary {
+    fn deref_mut(&mut self) -> &mut FinishFacts {
+        &mut self.facts
+    }
 }
 
 /// finish.json `patch`: the first cycle's patch model (the tolerance mesh and its fidelity).
@@ -584,136 +609,35 @@ pub struct Timings {
     pub macro_engine_s: f64,
 }
 
-/// The finish node's report (run.json `stages.<id>`, `nodes/<id>.json`): finish.json without
-/// its bulky parts (the Abbott curves, the per-cycle records and the macro run with its contact
-/// samples, which stay in finish.json),
-/// plus the node's folder. Built by [`FinishReport::of`], which names every field of
-/// [`FinishSummary`], so a field added there must be placed here (or left out) to compile.
+/// The finish node's report (run.json `stages.<id>`, `nodes/<id>.json`): finish.json's facts
+/// (without the Abbott curves, the per-cycle records and the macro run, which stay in
+/// finish.json) plus the node's folder.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct FinishReport {
     /// The node's folder under the run's out dir, holding finish.json.
     pub dir: String,
-    pub model: String,
-    #[serde(default)]
-    pub partial: bool,
-    pub cycles_completed: usize,
-    pub cycles_requested: usize,
-    #[serde(default)]
-    pub setting: Option<FinishSetting>,
-    #[serde(default)]
-    pub calibration: Option<CalibrationSummary>,
-    #[serde(default)]
-    pub wear_model: Option<String>,
-    #[serde(default)]
-    pub contact_field: Option<ContactFieldSummary>,
-    #[serde(default)]
-    pub paper: Option<PaperValues>,
-    pub before: SurfaceParams,
-    pub after: SurfaceParams,
-    #[serde(default)]
-    pub volume_check: Option<VolumeCheck>,
-    #[serde(default)]
-    pub wear: Option<WearVolumes>,
-    #[serde(default)]
-    pub sim: Option<SimValues>,
-    #[serde(default)]
-    pub ideal_model: Option<IdealModelRun>,
-    #[serde(default)]
-    pub probe: Option<ProbeRecord>,
-    pub timings: Timings,
-    #[serde(default)]
-    pub outputs: Vec<String>,
-    #[serde(default)]
-    pub wear_laws: Option<WearLawsRecord>,
-    #[serde(default)]
-    pub series: Vec<SeriesPoint>,
-    #[serde(default)]
-    pub baselines: Option<Baselines>,
-    #[serde(default)]
-    pub fitted: Vec<String>,
-    #[serde(default)]
-    pub wear_maps: Option<WearMaps>,
-    #[serde(default)]
-    pub sweep: Option<Sweep>,
-    #[serde(default)]
-    pub after_registrations: Vec<crate::after::AfterRegistration>,
-    #[serde(default)]
-    pub part_material: Option<PartMaterial>,
-    #[serde(default)]
-    pub patch: Option<PatchSummary>,
-    #[serde(default)]
-    pub cycle_path: Option<String>,
+    #[serde(flatten)]
+    pub facts: FinishFacts,
 }
 
 impl FinishReport {
     /// The report of the run that wrote `summary` into the node's folder `dir`.
     pub fn of(summary: FinishSummary, dir: &str) -> Self {
-        // No `..`: every field of finish.json is either reported or left out here by name.
-        let FinishSummary {
-            model,
-            partial,
-            cycles_completed,
-            cycles_requested,
-            setting,
-            calibration,
-            wear_model,
-            contact_field,
-            paper,
-            before,
-            after,
-            abbott_before: _,
-            abbott_after: _,
-            volume_check,
-            wear,
-            sim,
-            ideal_model,
-            cycles: _,
-            probe,
-            timings,
-            outputs,
-            wear_laws,
-            series,
-            baselines,
-            fitted,
-            wear_maps,
-            sweep,
-            macro_run: _,
-            after_registrations,
-            part_material,
-            patch,
-            cycle_path,
-        } = summary;
         FinishReport {
             dir: dir.to_owned(),
-            model,
-            partial,
-            cycles_completed,
-            cycles_requested,
-            setting,
-            calibration,
-            wear_model,
-            contact_field,
-            paper,
-            before,
-            after,
-            volume_check,
-            wear,
-            sim,
-            ideal_model,
-            probe,
-            timings,
-            outputs,
-            wear_laws,
-            series,
-            baselines,
-            fitted,
-            wear_maps,
-            sweep,
-            after_registrations,
-            part_material,
-            patch,
-            cycle_path,
+            facts: summary.facts,
         }
+    }
+}
+
+impl surfstream_core::record::NodeRecord for FinishReport {
+    const NODE_KIND: &'static str = "finish";
+}
+
+impl std::ops::Deref for FinishReport {
+    type Target = FinishFacts;
+    fn deref(&self) -> &FinishFacts {
+        &self.facts
     }
 }
 

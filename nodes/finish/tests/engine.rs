@@ -259,7 +259,7 @@ fn a_flat_surface_wears_without_pattern() {
     assert!((even_cols - 0.5).abs() < 0.05 && (even_rows - 0.5).abs() < 0.05);
     // The worn flat stays flat at the scale of the wear: its roughness is a fraction of the
     // mean depth removed plus what the media's tracks leave.
-    assert!(s.volume_check.unwrap().relative_error < 0.005);
+    assert!(s.volume_check.as_ref().unwrap().relative_error < 0.005);
     for f in [
         "wear.npy",
         "wear_finnie.npy",

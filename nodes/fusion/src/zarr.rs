@@ -22,11 +22,63 @@
 use std::path::Path;
 
 use anyhow::{Context, Result};
-use serde_json::json;
+use serde::Serialize;
 use surfstream_core::Sampling;
 
 /// Chunk side of the written array, px.
 pub const ZARR_CHUNK_PX: usize = 512;
+
+/// zarr.json of the panorama's array (Zarr v3 array metadata).
+#[derive(Serialize)]
+struct ZarrArrayMeta {
+    zarr_format: u32,
+    node_type: &'static str,
+    shape: [usize; 2],
+    data_type: &'static str,
+    chunk_grid: Named<ChunkShape>,
+    chunk_key_encoding: Named<Separator>,
+    fill_value: &'static str,
+    codecs: [Named<Endian>; 1],
+    dimension_names: [&'static str; 2],
+    attributes: Attributes,
+}
+
+/// Zarr's `{"name": .., "configuration": {..}}` of a grid, key encoding or codec.
+#[derive(Serialize)]
+struct Named<C> {
+    name: &'static str,
+    configuration: C,
+}
+
+#[derive(Serialize)]
+struct ChunkShape {
+    chunk_shape: [usize; 2],
+}
+
+#[derive(Serialize)]
+struct Separator {
+    separator: &'static str,
+}
+
+#[derive(Serialize)]
+struct Endian {
+    endian: &'static str,
+}
+
+#[derive(Serialize)]
+struct Attributes {
+    surfstream: PanoramaAttributes,
+}
+
+/// What surfstream adds to the array: what the heights are, the pitch and origin, um.
+#[derive(Serialize)]
+struct PanoramaAttributes {
+    what: &'static str,
+    pitch_x_um: f64,
+    pitch_y_um: f64,
+    origin_x_um: f64,
+    origin_y_um: f64,
+}
 
 /// Writes `dir/NAME.zarr` from f32 frame heights (row-major, relative to `z_offset_um`,
 /// sampled as `at` says: its shape, and the pitch and origin written to the attributes) as
@@ -59,26 +111,40 @@ pub fn write_zarr_abs(
         .with_context(|| format!("{}: cannot create", partial.display()))?;
     let c = ZARR_CHUNK_PX;
     let f32_data = surfstream_io::npy::absolute_fits_f32(z_offset_um);
-    let meta = json!({
-        "zarr_format": 3,
-        "node_type": "array",
-        "shape": [rows, cols],
-        "data_type": if f32_data { "float32" } else { "float64" },
-        "chunk_grid": {"name": "regular", "configuration": {"chunk_shape": [c, c]}},
-        "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
-        "fill_value": "NaN",
-        "codecs": [{"name": "bytes", "configuration": {"endian": "little"}}],
-        "dimension_names": ["y", "x"],
-        "attributes": {
-            "surfstream": {
-                "what": "panorama: absolute heights in um, NaN = not measured, row index grows with y",
-                "pitch_x_um": at.pitch_x_um(),
-                "pitch_y_um": at.pitch_y_um(),
-                "origin_x_um": at.origin_x_um(),
-                "origin_y_um": at.origin_y_um(),
-            }
+    let meta = ZarrArrayMeta {
+        zarr_format: 3,
+        node_type: "array",
+        shape: [rows, cols],
+        data_type: if f32_data { "float32" } else { "float64" },
+        chunk_grid: Named {
+            name: "regular",
+            configuration: ChunkShape {
+                chunk_shape: [c, c],
+            },
         },
-    });
+        chunk_key_encoding: Named {
+            name: "default",
+            configuration: Separator { separator: "/" },
+        },
+        fill_value: "NaN",
+        codecs: [Named {
+            name: "bytes",
+            configuration: Endian { endian: "little" },
+        }],
+        dimension_names: ["y", "x"],
+        attributes: Attributes {
+            surfstream: PanoramaAttributes {
+                what:
+                    "panorama: absolute heights in um, NaN = not measured, row index grows with y",
+                pitch_x_um: at.pitch_x_um(),
+                pitch_y_um: at.pitch_y_um(),
+                origin_x_um: at.origin_x_um(),
+                origin_y_um: at.origin_y_um(),
+            },
+        },
+    };
+    // Through a JSON value: its keys sorted, as the file has always had them.
+    let meta = serde_json::to_value(&meta)?;
     let meta_path = partial.join("zarr.json");
     std::fs::write(&meta_path, serde_json::to_vec_pretty(&meta)?)
         .with_context(|| format!("{}: write failed", meta_path.display()))?;
@@ -130,7 +196,41 @@ pub fn write_zarr_abs(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use serde_json::json;
     use surfstream_core::Shape;
+
+    #[test]
+    fn the_typed_metadata_is_byte_identical_to_the_json_value_it_replaces() {
+        let dir = tempfile::tempdir().unwrap();
+        let at = Sampling::new(Shape::new(2, 3), 0.5, 0.25)
+            .unwrap()
+            .with_origin(1.0, -2.0)
+            .unwrap();
+        let name = write_zarr_abs(dir.path(), "p", &[0.0; 6], &at, 100.0).unwrap();
+        let c = ZARR_CHUNK_PX;
+        let old = json!({
+            "zarr_format": 3,
+            "node_type": "array",
+            "shape": [2, 3],
+            "data_type": "float64",
+            "chunk_grid": {"name": "regular", "configuration": {"chunk_shape": [c, c]}},
+            "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
+            "fill_value": "NaN",
+            "codecs": [{"name": "bytes", "configuration": {"endian": "little"}}],
+            "dimension_names": ["y", "x"],
+            "attributes": {
+                "surfstream": {
+                    "what": "panorama: absolute heights in um, NaN = not measured, row index grows with y",
+                    "pitch_x_um": 0.5,
+                    "pitch_y_um": 0.25,
+                    "origin_x_um": 1.0,
+                    "origin_y_um": -2.0,
+                }
+            },
+        });
+        let text = std::fs::read(dir.path().join(name).join("zarr.json")).unwrap();
+        assert_eq!(text, serde_json::to_vec_pretty(&old).unwrap());
+    }
 
     #[test]
     fn chunks_are_padded_and_empty_ones_left_out() {

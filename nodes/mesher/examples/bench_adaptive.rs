@@ -79,22 +79,30 @@ fn main() -> Result<()> {
             n += 1;
         }
     }
-    println!(
-        "{}",
-        serde_json::json!({
-            "file": args[0], "grid": [a.cols, a.rows], "step_um": step_um,
-            "epsilon_um": epsilon_um,
-            "median_s": times[times.len() / 2], "min_s": times[0], "all_s": times,
-            "cpu_median_s": cpu[cpu.len() / 2],
-            "rayon_threads": rayon::current_num_threads(),
-            "triangles": m.mesh.triangles.len(), "surface_triangles": m.surface_triangles,
-            "max_err_um": m.fidelity.error.max_um, "rms_err_um": m.fidelity.error.rms_um,
-            "max_err_vs_f64_input_um": max64, "rms_err_vs_f64_input_um": (sum2 / n.max(1) as f64).sqrt(),
-            "bound_met": m.fidelity.bound_met,
-            "watertight": c.watertight, "consistently_oriented": c.consistently_oriented,
-            "degenerate": c.degenerate_triangles, "duplicate": c.duplicate_triangles,
-        })
-    );
+    let line = BenchLine {
+        file: &args[0],
+        grid: [a.cols, a.rows],
+        step_um,
+        epsilon_um,
+        median_s: times[times.len() / 2],
+        min_s: times[0],
+        all_s: &times,
+        cpu_median_s: cpu[cpu.len() / 2],
+        rayon_threads: rayon::current_num_threads(),
+        triangles: m.mesh.triangles.len(),
+        surface_triangles: m.surface_triangles,
+        max_err_um: m.fidelity.error.max_um,
+        rms_err_um: m.fidelity.error.rms_um,
+        max_err_vs_f64_input_um: max64,
+        rms_err_vs_f64_input_um: (sum2 / n.max(1) as f64).sqrt(),
+        bound_met: m.fidelity.bound_met,
+        watertight: c.watertight,
+        consistently_oriented: c.consistently_oriented,
+        degenerate: c.degenerate_triangles,
+        duplicate: c.duplicate_triangles,
+    };
+    // Through a JSON value: keys sorted, as the line has always had them.
+    println!("{}", serde_json::to_value(line)?);
     Ok(())
 }
 
@@ -111,4 +119,29 @@ fn cpu_s() -> f64 {
         .filter_map(|x| x.parse().ok())
         .collect();
     f.iter().sum::<f64>() / 100.0
+}
+
+/// The one JSON line this prints.
+#[derive(serde::Serialize)]
+struct BenchLine<'a> {
+    file: &'a str,
+    grid: [usize; 2],
+    step_um: f64,
+    epsilon_um: f64,
+    median_s: f64,
+    min_s: f64,
+    all_s: &'a [f64],
+    cpu_median_s: f64,
+    rayon_threads: usize,
+    triangles: usize,
+    surface_triangles: usize,
+    max_err_um: f64,
+    rms_err_um: f64,
+    max_err_vs_f64_input_um: f64,
+    rms_err_vs_f64_input_um: f64,
+    bound_met: bool,
+    watertight: bool,
+    consistently_oriented: bool,
+    degenerate: usize,
+    duplicate: usize,
 }

@@ -135,17 +135,34 @@ fn main() -> Result<()> {
     };
     let peak = vm_hwm_bytes();
     let samples = (rows * cols) as f64;
-    println!(
-        "{}",
-        serde_json::json!({
-            "rows": rows, "cols": cols, "mode": args[2],
-            "triangles": triangles, "triangles_per_sample": triangles as f64 / samples,
-            "watertight": watertight,
-            "peak_rss_mb": peak as f64 / 1e6,
-            "peak_bytes_per_sample": peak as f64 / samples,
-            "before_meshing_bytes_per_sample": input_bytes as f64 / samples,
-            "wall_s": t0.elapsed().as_secs_f64(),
-        })
-    );
+    let line = MemoryLine {
+        rows,
+        cols,
+        mode: &args[2],
+        triangles,
+        triangles_per_sample: triangles as f64 / samples,
+        watertight,
+        peak_rss_mb: peak as f64 / 1e6,
+        peak_bytes_per_sample: peak as f64 / samples,
+        before_meshing_bytes_per_sample: input_bytes as f64 / samples,
+        wall_s: t0.elapsed().as_secs_f64(),
+    };
+    // Through a JSON value: keys sorted, as the line has always had them.
+    println!("{}", serde_json::to_value(line)?);
     Ok(())
+}
+
+/// The one JSON line this prints.
+#[derive(serde::Serialize)]
+struct MemoryLine<'a> {
+    rows: usize,
+    cols: usize,
+    mode: &'a str,
+    triangles: usize,
+    triangles_per_sample: f64,
+    watertight: bool,
+    peak_rss_mb: f64,
+    peak_bytes_per_sample: f64,
+    before_meshing_bytes_per_sample: f64,
+    wall_s: f64,
 }

@@ -100,7 +100,7 @@ fn main() -> anyhow::Result<()> {
             serde_json::to_string_pretty(&truth)?,
         )?;
         for (name, pick_true) in [("run_true.json", true), ("run_nominal.json", false)] {
-            let run_tiles: Vec<serde_json::Value> = plan
+            let run_tiles: Vec<RunTile> = plan
                 .tiles
                 .iter()
                 .map(|t| {
@@ -109,20 +109,42 @@ fn main() -> anyhow::Result<()> {
                     } else {
                         t.stage_position_um
                     };
-                    serde_json::json!({
-                        "index": t.index, "row": t.row, "col": t.col,
-                        "stage_x_um": t.stage_position_um[0], "stage_y_um": t.stage_position_um[1],
-                        "x_um": p[0], "y_um": p[1],
-                        "placed_by": if pick_true { "registration" } else { "stage" },
-                    })
+                    RunTile {
+                        index: t.index,
+                        row: t.row,
+                        col: t.col,
+                        stage_x_um: t.stage_position_um[0],
+                        stage_y_um: t.stage_position_um[1],
+                        x_um: p[0],
+                        y_um: p[1],
+                        placed_by: if pick_true { "registration" } else { "stage" },
+                    }
                 })
                 .collect();
-            std::fs::write(
-                dir.join(name),
-                serde_json::to_string_pretty(&serde_json::json!({ "tiles": run_tiles }))?,
-            )?;
+            // Through a JSON value: keys sorted, as these files have always had them.
+            let run = serde_json::to_value(RunTiles { tiles: run_tiles })?;
+            std::fs::write(dir.join(name), serde_json::to_string_pretty(&run)?)?;
         }
         println!("wrote {}", dir.display());
     }
     Ok(())
+}
+
+/// A tile of run_true.json / run_nominal.json: run.json's tile fields a scorer reads.
+#[derive(serde::Serialize)]
+struct RunTile {
+    index: usize,
+    row: usize,
+    col: usize,
+    stage_x_um: f64,
+    stage_y_um: f64,
+    x_um: f64,
+    y_um: f64,
+    placed_by: &'static str,
+}
+
+/// run_true.json / run_nominal.json: a run.json with its tiles only.
+#[derive(serde::Serialize)]
+struct RunTiles {
+    tiles: Vec<RunTile>,
 }

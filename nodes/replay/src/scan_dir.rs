@@ -611,13 +611,17 @@ fn check_pitch_against_truth(manifest: &Path, scan: &ScanSection) -> Result<()> 
     let Ok(text) = std::fs::read_to_string(&truth) else {
         return Ok(());
     };
-    let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) else {
+    let Ok(truth_record) = serde_json::from_str::<surfstream_core::record::TruthRecord>(&text)
+    else {
         return Ok(()); // not ours to judge; the matcher's scorer names a bad file
     };
-    for (axis, manifest_pitch) in [("x", scan.pitch.x_um()), ("y", scan.pitch.y_um())] {
-        let Some(truth_pitch) = v["pixel_pitch_um"][axis].as_f64() else {
-            continue;
-        };
+    let Some(pitch) = truth_record.pixel_pitch_um else {
+        return Ok(());
+    };
+    for (axis, manifest_pitch, truth_pitch) in [
+        ("x", scan.pitch.x_um(), pitch.x),
+        ("y", scan.pitch.y_um(), pitch.y),
+    ] {
         if truth_pitch > 0.0 && !same_pitch(manifest_pitch, truth_pitch) {
             bail!(
                 "{}: [scan] pitch_{axis}_um = {manifest_pitch} but {} says the tiles were made at {truth_pitch} um: manifest and tiles disagree (fix the manifest's pitch)",

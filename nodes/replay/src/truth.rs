@@ -1,7 +1,9 @@
 //! The ground truth of a simulated scan, in the layout of `bench/make_tiles.py`'s
 //! `ground_truth.json` so that `bench/score_registration.py` scores a surfstream run against it.
-//! This is the writer; the one reader of the file (the matcher's scoring, the benchmarks) is
-//! [`surfstream_io::truth::ScanTruth`], and a test below reads what this writes with it.
+//! This is the writer. Its tiles and pitch are `surfstream_core::record`'s [`TileTruth`] and
+//! [`Xy`], which every reader (the matcher's scoring, [`surfstream_io::truth::ScanTruth`]; the
+//! fusion comparison; the manifest's pitch check) reads back through
+//! `surfstream_core::record::TruthRecord`; a test below reads what this writes with it.
 //!
 //! The scorer reads `pixel_pitch_um.{x,y}`, `tiles[].index`, `tiles[].true_origin_px` and
 //! `pairs[].{a,b,true_offset_px}`; everything else is for people and other tools. Field names
@@ -9,18 +11,10 @@
 //! micrometres, as the conventions block says).
 
 use serde::Serialize;
+pub use surfstream_core::record::{TileTruth, Xy};
 
 use crate::specimen::SpecimenParams;
 use crate::stage::{ScanPlan, StageParams};
-
-/// An (x, y) pair.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct Xy {
-    /// Along x (columns).
-    pub x: f64,
-    /// Along y (rows).
-    pub y: f64,
-}
 
 /// The conventions block: how to read the numbers.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -98,33 +92,6 @@ pub struct SpecimenTruth {
     /// differ only by waviness and form.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub roughness_period_px: Option<usize>,
-}
-
-/// One tile's truth.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct TileTruth {
-    /// Acquisition index.
-    pub index: usize,
-    /// Grid row.
-    pub row: usize,
-    /// Grid column.
-    pub col: usize,
-    /// Commanded position of pixel (0, 0), specimen px `[x, y]`.
-    pub nominal_origin_px: [f64; 2],
-    /// The same in um: what the stage reports.
-    pub stage_position_um: [f64; 2],
-    /// True position of pixel (0, 0), specimen px `[x, y]`.
-    pub true_origin_px: [f64; 2],
-    /// The same in um.
-    pub true_origin_um: [f64; 2],
-    /// `true_origin_px - nominal_origin_px`.
-    pub stage_error_px: [f64; 2],
-    /// Piston, um.
-    pub piston: f64,
-    /// Tilt along x (height change across the tile), um.
-    pub tilt_x: f64,
-    /// Tilt along y, um.
-    pub tilt_y: f64,
 }
 
 /// A pair of grid neighbours, `b` right of or below `a`.

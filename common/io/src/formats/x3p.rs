@@ -19,6 +19,7 @@ use md5::{Digest, Md5};
 
 use super::bytes::checked_size;
 use super::{Metadata, Surface};
+use crate::figure::esc;
 
 const NAMESPACE: &str = "http://www.opengps.eu/2008/ISO5436_2";
 /// main.xml larger than this is not a description but an attack.
@@ -913,13 +914,6 @@ fn finish(
     }
 }
 
-fn xml_escape(s: &str) -> String {
-    s.replace('&', "&amp;")
-        .replace('<', "&lt;")
-        .replace('>', "&gt;")
-        .replace('"', "&quot;")
-}
-
 /// Adds `name` to the archive deflated when that saves at least 10 %, else stored (every zip
 /// reader accepts both). Measured f64 heights barely deflate (a 1024^2 map by ~5 % at best,
 /// and level 1 can even grow it), while inflating costs a reader ~30 ms; NaN borders and flat
@@ -1066,8 +1060,8 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> (String, Ve
     // An X3P source's Manufacturer, Model and Version are kept apart; any other source's
     // instrument name (one string) is the Manufacturer.
     let [manufacturer, model, version] = instrument_elements(m);
-    let text = |v: Option<&String>| xml_escape(v.map_or(NOT_AVAILABLE, |v| v.as_str()));
-    let serial = xml_escape(m.serial.as_deref().unwrap_or(NOT_AVAILABLE));
+    let text = |v: Option<&String>| esc(v.map_or(NOT_AVAILABLE, |v| v.as_str()));
+    let serial = esc(m.serial.as_deref().unwrap_or(NOT_AVAILABLE));
     let (manufacturer, model, version) = (
         text(manufacturer.as_ref()),
         text(model.as_ref()),
@@ -1081,7 +1075,7 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> (String, Ve
         .filter(|t| matches!(*t, "Contacting" | "NonContacting" | "Software"))
         .unwrap_or("NonContacting");
     let probing_id = text(m.extra.get("probing_identification"));
-    let creator = xml_escape(&match m.extra.get("creator") {
+    let creator = esc(&match m.extra.get("creator") {
         Some(c) if !c.trim().is_empty() => c.trim().to_string(),
         _ => format!("surfstream {}", env!("CARGO_PKG_VERSION")),
     });
@@ -1090,7 +1084,7 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> (String, Ve
     } else {
         format!(" from a .{} file", m.format)
     };
-    let comment = xml_escape(&format!(
+    let comment = esc(&format!(
         "written by surfstream {}{source}{date_note}{calibration_note}",
         env!("CARGO_PKG_VERSION")
     ));
@@ -1158,8 +1152,8 @@ fn main_xml(s: &Surface, data_md5: &str, valid_md5: Option<&str>) -> (String, Ve
         py = s.pitch_y_um * 1e-6,
         ox = ox * 1e-6,
         oy = oy * 1e-6,
-        date = xml_escape(&date),
-        calibration = xml_escape(&calibration),
+        date = esc(&date),
+        calibration = esc(&calibration),
         w = s.width,
         h = s.height,
         md5 = data_md5,
@@ -1214,7 +1208,7 @@ fn mask_xml(s: &Surface) -> String {
                 format!(
                     "\n        <Annotation color=\"{}\">{}</Annotation>",
                     r.colour,
-                    xml_escape(a)
+                    esc(a)
                 )
             })
         })
