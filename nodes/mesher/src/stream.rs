@@ -85,7 +85,7 @@ pub struct StreamedMesh {
     /// `resampled_um` while it waits in a spill file ([`StreamedMesh::park`]): its length.
     parked: Option<(SpillFile, usize)>,
     /// The statistics [`crate::AdaptiveMesh::record`] gives.
-    pub summary: crate::report::AdaptiveSummary,
+    pub summary: crate::adaptive::AdaptiveSummary,
     pub fidelity: Fidelity,
     /// The kept top triangles, three grid sample indices each, in order from offset 0.
     spill: AppendLog<u32>,
