@@ -604,59 +604,32 @@ impl StreamedMesh {
         header_text: &str,
         heights: RasterView<'_, f32>,
     ) -> Result<MeshCheck> {
-        let filled: &[f32] = match &self.filled {
-            Filled::Input => heights.values(),
-            Filled::Owned(v) => v,
-        };
-        if filled.len() != self.resampled_um.len() {
-            return Err(MeshError::Incompatible(format!(
-                "write_stl: the height field has {} samples, the mesh was made from {}",
-                filled.len(),
-                self.resampled_um.len()
-            )));
-        }
-        let mut out = StlSink::new(
+        let filled = self.filled.heights(heights, self.resampled_um.len())?;
+        let place = &self.place;
+        let spill = &self.spill;
+        let mut steps = spill_steps(self.counts.top_triangles);
+        let (degenerate, volume6) = write_solid(
             w,
             ascii,
-            self.counts.units,
-            self.counts.offset_um,
             header_text,
-            self.counts.triangles as u32,
+            &self.counts,
+            || {
+                let Some((offset, n)) = steps.next() else {
+                    return Ok(None);
+                };
+                let samples = spill.read(offset, 3 * n)?;
+                Ok(Some(
+                    samples
+                        .par_chunks_exact(3)
+                        .map(|r| {
+                            let t = [r[0], r[1], r[2]];
+                            (t.map(|s| place.vertex(s as usize, filled[s as usize])), t)
+                        })
+                        .collect(),
+                ))
+            },
+            self.walls.as_ref(),
         )?;
-        let (mut degenerate, mut volume6) = (0usize, 0.0f64);
-        let place = &self.place;
-        for read in spill_steps(self.counts.top_triangles) {
-            surfstream_core::liveness::beat();
-            let (offset, n) = read;
-            let samples = self.spill.read(offset, 3 * n)?;
-            let corners: Vec<([[f64; 3]; 3], [u32; 3])> = samples
-                .par_chunks_exact(3)
-                .map(|r| {
-                    let t = [r[0], r[1], r[2]];
-                    (t.map(|s| place.vertex(s as usize, filled[s as usize])), t)
-                })
-                .collect();
-            let (d, v) = shape_terms(&corners);
-            degenerate += d;
-            volume6 += v;
-            for (c, _) in &corners {
-                out.push(*c)?;
-            }
-        }
-        if let Some(walls) = &self.walls {
-            let corners: Vec<([[f64; 3]; 3], [u32; 3])> = walls
-                .triangles
-                .iter()
-                .map(|t| (t.map(|v| walls.vertices[v as usize]), *t))
-                .collect();
-            let (d, v) = shape_terms(&corners);
-            degenerate += d;
-            volume6 += v;
-            for (c, _) in &corners {
-                out.push(*c)?;
-            }
-        }
-        out.finish()?;
         let coincident = self.coincident_vertices(heights.shape(), filled);
         Ok(self.topology.check(degenerate, volume6, coincident))
     }
@@ -903,57 +876,29 @@ impl StreamedGrid {
         header_text: &str,
         heights: RasterView<'_, f32>,
     ) -> Result<MeshCheck> {
-        let filled: &[f32] = match &self.filled {
-            Filled::Input => heights.values(),
-            Filled::Owned(v) => v,
-        };
         let (rows, cols) = (self.shape.rows, self.shape.cols);
-        if filled.len() != rows * cols {
-            return Err(MeshError::Incompatible(format!(
-                "write_stl: the height field has {} samples, the mesh was made from {}",
-                filled.len(),
-                rows * cols
-            )));
-        }
-        let mut out = StlSink::new(
-            w,
-            ascii,
-            self.counts.units,
-            self.counts.offset_um,
-            header_text,
-            self.counts.triangles as u32,
-        )?;
-        let (mut degenerate, mut volume6) = (0usize, 0.0f64);
+        let filled = self.filled.heights(heights, rows * cols)?;
         let g = &self.place;
         let vertex = |s: u32| {
             let s = s as usize;
             g.place(s / cols, s % cols, filled[s])
         };
-        for i in 0..rows - 1 {
-            let corners: Vec<([[f64; 3]; 3], [u32; 3])> = (0..cols - 1)
-                .into_par_iter()
-                .flat_map_iter(|j| cell_triangles(i, j, cols).map(|t| (t.map(vertex), t)))
-                .collect();
-            let (d, v) = shape_terms(&corners);
-            degenerate += d;
-            volume6 += v;
-            for (c, _) in &corners {
-                out.push(*c)?;
-            }
-        }
-        let walls: Vec<([[f64; 3]; 3], [u32; 3])> = self
-            .walls
-            .triangles
-            .iter()
-            .map(|t| (t.map(|v| self.walls.vertices[v as usize]), *t))
-            .collect();
-        let (d, v) = shape_terms(&walls);
-        degenerate += d;
-        volume6 += v;
-        for (c, _) in &walls {
-            out.push(*c)?;
-        }
-        out.finish()?;
+        let mut cell_rows = 0..rows - 1;
+        let (degenerate, volume6) = write_solid(
+            w,
+            ascii,
+            header_text,
+            &self.counts,
+            || {
+                Ok(cell_rows.next().map(|i| {
+                    (0..cols - 1)
+                        .into_par_iter()
+                        .flat_map_iter(|j| cell_triangles(i, j, cols).map(|t| (t.map(vertex), t)))
+                        .collect()
+                }))
+            },
+            Some(&self.walls),
+        )?;
         let base = &self.walls.vertices[self.walls.rim.len()..];
         let coincident = coincident_vertices(
             self.shape,
@@ -968,6 +913,73 @@ impl StreamedGrid {
         );
         Ok(self.topology.check(degenerate, volume6, coincident))
     }
+}
+
+impl Filled {
+    /// The heights the vertices take, given the input `heights` passed back to the writer;
+    /// refused when their count is not the `samples` the mesh was made from.
+    fn heights<'a>(&'a self, heights: RasterView<'a, f32>, samples: usize) -> Result<&'a [f32]> {
+        let filled: &[f32] = match self {
+            Filled::Input => heights.values(),
+            Filled::Owned(v) => v,
+        };
+        if filled.len() != samples {
+            return Err(MeshError::Incompatible(format!(
+                "write_stl: the height field has {} samples, the mesh was made from {samples}",
+                filled.len()
+            )));
+        }
+        Ok(filled)
+    }
+}
+
+/// One streamed solid's top triangles in groups: placed corners and sample indices.
+type PlacedTriangles = Vec<([[f64; 3]; 3], [u32; 3])>;
+
+/// The second pass of both streamed solids: the STL (binary or `ascii`) of the top's triangles
+/// as `next_top` hands them over, group by group, then the walls and the base; returns the
+/// degenerate triangles and six times the signed volume (as [`crate::check_closed`] counts
+/// them).
+fn write_solid(
+    w: &mut dyn Write,
+    ascii: bool,
+    header_text: &str,
+    counts: &MeshCounts,
+    mut next_top: impl FnMut() -> Result<Option<PlacedTriangles>>,
+    walls: Option<&Walls>,
+) -> Result<(usize, f64)> {
+    let mut out = StlSink::new(
+        w,
+        ascii,
+        counts.units,
+        counts.offset_um,
+        header_text,
+        counts.triangles as u32,
+    )?;
+    let (mut degenerate, mut volume6) = (0usize, 0.0f64);
+    let mut write = |corners: &PlacedTriangles| -> Result<()> {
+        let (d, v) = shape_terms(corners);
+        degenerate += d;
+        volume6 += v;
+        for (c, _) in corners {
+            out.push(*c)?;
+        }
+        Ok(())
+    };
+    while let Some(corners) = next_top()? {
+        surfstream_core::liveness::beat();
+        write(&corners)?;
+    }
+    if let Some(walls) = walls {
+        let corners: PlacedTriangles = walls
+            .triangles
+            .iter()
+            .map(|t| (t.map(|v| walls.vertices[v as usize]), *t))
+            .collect();
+        write(&corners)?;
+    }
+    out.finish()?;
+    Ok((degenerate, volume6))
 }
 
 /// Degenerate triangles and six times the signed volume of `triangles` (as
