@@ -15,7 +15,7 @@ use surfstream_core::record::{
 use std::collections::BTreeMap;
 
 use surfstream_core::raster::Shape;
-use surfstream_core::record::{GridSheetRecord, MeshMethodRecord, MeshReport};
+use surfstream_core::record::{FormPlane, GridSheetRecord, MeshMethodRecord, MeshReport};
 
 use crate::adaptive::{serde_name, AdaptiveSummary, Fidelity, MeshCounts};
 use crate::check::MeshCheck;
@@ -196,6 +196,8 @@ pub(crate) struct ReportContext<'a> {
     /// "panorama", ... (empty: a map from a file).
     pub surface: &'a str,
     pub outliers: &'a OutlierReport,
+    /// The plane removed before meshing (with `settings.level`).
+    pub form_plane: Option<FormPlane>,
 }
 
 /// The mesher's one record, of a mesh in memory or streamed to its file. The caller fills in
@@ -249,6 +251,7 @@ pub(crate) fn mesh_report(
         pitch_um: [c.at.pitch.x_um(), c.at.pitch.y_um()],
         surface: c.surface.into(),
         form_removed: settings.form_removed().map(Into::into),
+        form_plane: c.form_plane,
         input: None,
         input_format: None,
         mesh_s: None,
