@@ -35,8 +35,8 @@ use surfstream_core::deviation::{
 };
 use surfstream_core::raster::Shape;
 use surfstream_core::record::{
-    DeviationRecord, FusionReport, JudgedPct, MeshReport, RegionDeviation, RegionRecord, RunRecord,
-    StageDeviation, StageGrid, Table6Record,
+    DeviationRecord, FormPlane, FusionReport, JudgedPct, MeshReport, RegionDeviation, RegionRecord,
+    RunRecord, StageDeviation, StageGrid, Table6Record,
 };
 use surfstream_core::Pitch;
 use surfstream_io::formats::{x3p, Metadata, Surface};
@@ -282,6 +282,9 @@ struct MeshInfo {
     /// The mesher removed the least-squares plane first (`form_removed`): the STL and
     /// mesh_resampled.npy are of the levelled surface.
     levelled: bool,
+    /// The plane it removed (`form_plane`; absent from reports before it was recorded: then
+    /// Table 6 fits the panorama's own).
+    form_plane: Option<FormPlane>,
 }
 
 fn mesh_info(run: &RunRecord) -> MeshInfo {
@@ -290,6 +293,7 @@ fn mesh_info(run: &RunRecord) -> MeshInfo {
         .map(|t| [t.tolerance.sa_pct, t.tolerance.sq_pct, t.tolerance.sz_pct]);
     MeshInfo {
         levelled: m.as_ref().is_some_and(|m| m.form_removed.is_some()),
+        form_plane: m.as_ref().and_then(|m| m.form_plane),
         surface: m.map(|m| m.surface),
         tolerance,
     }
@@ -457,10 +461,15 @@ fn judge_out_dir(
     // tolerance was met on the roughness, not on the tilt (issue 33). The other stages keep
     // the panorama as measured.
     let pano_path = out.join("panorama.npy");
-    let slopes = if info.levelled {
-        Some(plane_slopes_per_px(&mut NpySource::open(&pano_path)?)?)
-    } else {
-        None
+    // The plane the mesher removed, per panorama pixel, so that the mesh and the panorama
+    // are levelled by one plane; a report without it: the panorama's own fit.
+    let slopes = match (info.levelled, info.form_plane) {
+        (false, _) => None,
+        (true, Some(p)) => Some((
+            p.slope_x_um_per_um * geometry.pitch.x_um(),
+            p.slope_y_um_per_um * geometry.pitch.y_um(),
+        )),
+        (true, None) => Some(plane_slopes_per_px(&mut NpySource::open(&pano_path)?)?),
     };
     let levelled_pano = || -> Result<PlaneSource<NpySource>> {
         Ok(PlaneSource {
@@ -684,15 +693,17 @@ mod tests {
             pitch: Pitch::new(1.0, 1.0).unwrap(),
         };
         let regions = [Region::whole(Shape { rows, cols })];
-        let judge = |levelled: bool| {
+        let judge_with = |levelled: bool, form_plane: Option<FormPlane>| {
             let info = MeshInfo {
                 surface: Some("panorama".into()),
                 tolerance: Some([1.0, 1.0, 3.0]),
                 levelled,
+                form_plane,
             };
             let mut pano = NpySource::open(&dir.path().join("panorama.npy")).unwrap();
             judge_out_dir(dir.path(), &regions, &info, 5.0, &mut pano, &geometry).unwrap()
         };
+        let judge = |levelled: bool| judge_with(levelled, None);
         let t = judge(true);
         let mesh = &t.stages[MESH_STAGE];
         assert_eq!(mesh.measured, "panorama.npy less its least-squares plane");
@@ -712,6 +723,18 @@ mod tests {
         let raw = judge(false);
         assert!(!raw.stages[MESH_STAGE].regions["panorama"].pass);
         assert!(!raw.pass);
+        // The plane the mesher recorded is the one Table 6 levels by: the fitted plane gives
+        // the same table, a plane of half the tilt fails it.
+        let plane = |f: f64| FormPlane {
+            z_um: 0.0,
+            slope_x_um_per_um: f * fx,
+            slope_y_um_per_um: f * fy,
+        };
+        let recorded = judge_with(true, Some(plane(1.0)));
+        assert!(recorded.pass, "{:?}", recorded.stages);
+        assert_eq!(recorded.stages[MESH_STAGE], t.stages[MESH_STAGE]);
+        let wrong = judge_with(true, Some(plane(0.5)));
+        assert!(!wrong.stages[MESH_STAGE].regions["panorama"].pass);
     }
 
     #[test]

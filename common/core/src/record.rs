@@ -1048,6 +1048,16 @@ pub enum MeshMethodRecord {
     GridSheet(GridSheetRecord),
 }
 
+/// The least-squares plane the mesher removed before meshing: z = `z_um` + `slope_x_um_per_um`
+/// x + `slope_y_um_per_um` y, x and y in um from sample (0, 0) of the grid meshed along its
+/// columns and rows, z absolute (um, the surface frame's z offset included).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FormPlane {
+    pub z_um: f64,
+    pub slope_x_um_per_um: f64,
+    pub slope_y_um_per_um: f64,
+}
+
 /// The mesher's report.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MeshReport {
@@ -1106,6 +1116,10 @@ pub struct MeshReport {
     /// mesh and its tolerance are then of the levelled surface.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub form_removed: Option<String>,
+    /// The plane removed (with `form_removed`): Table 6 levels the panorama by it instead of
+    /// fitting its own (absent: none removed, or a report from before it was recorded).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub form_plane: Option<FormPlane>,
     /// The simulator the mesh was made for (absent: none named).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub target: Option<EngineTargetRecord>,

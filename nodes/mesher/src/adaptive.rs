@@ -6,9 +6,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{MeshError, Result};
 use crate::fidelity::{compare, field_params, AreaParams};
-use crate::report::{serde_name, AdaptiveSummary, OFFSET_RULE};
 use surfstream_core::raster::RasterView;
-use surfstream_core::record::AdaptiveMeshRecord;
+use surfstream_core::record::{self, AdaptiveMeshRecord};
 
 use crate::field::{validate, ScanPlacement};
 use crate::solid::{close_top_surface, default_base_depth_um, SolidMesh, SolidParams};
@@ -410,5 +409,42 @@ pub(crate) fn adaptive_summary(
             fidelity: fidelity.into(),
             element_quality: None,
         },
+    }
+}
+
+/// How `offset_um` maps the STL's vertices to scan coordinates (the report's `offset_rule`).
+pub const OFFSET_RULE: &str = "scan_um = vertex * um_per_unit + offset_um";
+
+/// The name serde gives a unit-like enum value ("solid", "fill", "keep"), the one the report
+/// has always carried.
+pub(crate) fn serde_name<T: Serialize>(v: &T) -> String {
+    match record::to_value(v) {
+        serde_json::Value::String(s) => s,
+        other => other.to_string(),
+    }
+}
+
+/// An adaptive mesh's statistics: the sizes (they stand among the report's common fields) and
+/// the adaptive mesh's own part.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AdaptiveSummary {
+    pub counts: MeshCounts,
+    pub record: AdaptiveMeshRecord,
+}
+
+impl AdaptiveSummary {
+    /// As a JSON object: the record and the sizes it is written with (the mesh verb's
+    /// report starts from it).
+    pub fn to_value(&self) -> serde_json::Value {
+        let mut v = record::to_value(&self.record);
+        if let Some(o) = v.as_object_mut() {
+            let c = &self.counts;
+            o.insert("units".into(), c.units.symbol().into());
+            o.insert("offset_um".into(), record::to_value(&c.offset_um));
+            o.insert("triangles".into(), c.triangles.into());
+            o.insert("vertices".into(), c.vertices.into());
+            o.insert("base_depth_um".into(), record::to_value(&c.base_depth_um));
+        }
+        v
     }
 }

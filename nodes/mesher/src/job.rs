@@ -13,7 +13,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use surfstream_core::deviation::tile_regions;
 use surfstream_core::frame::{flags, from_frame_heights, FrameHeader, FrameView, HeightMap};
 use surfstream_core::raster::{Raster, RasterView, Shape};
-use surfstream_core::record::{MeshReport, PanoramaTiles, PANORAMA_TILES};
+use surfstream_core::record::{FormPlane, MeshReport, PanoramaTiles, PANORAMA_TILES};
 
 use crate::config::{MeshSettings, StlFormat, SurfaceChoice};
 use crate::map::{mesh_surface, prepare_surface, tolerance_for, MeshInput, MeshOutputs};
@@ -46,6 +46,8 @@ pub struct MeshedSurface {
     pub at: ScanPlacement,
     /// The spikes found before meshing.
     pub outliers: OutlierReport,
+    /// The plane removed before meshing (with `level`).
+    pub form_plane: Option<FormPlane>,
 }
 
 impl MeshedSurface {
@@ -69,6 +71,7 @@ impl MeshedSurface {
             t_acquired_ns: h.t_acquired_ns,
             surface: settings.surface.name(),
             outliers: &self.outliers,
+            form_plane: self.form_plane,
         };
         mesh_report(
             &MeshCounts::of(&self.solid),
@@ -233,7 +236,7 @@ impl MeshJob {
         let h = s.header;
         let shape = Shape::new(h.height as usize, h.width as usize);
         let at = ScanPlacement::of_frame(&h).map_err(|e| anyhow!("mesher: {e}"))?;
-        let outliers = prepare_surface(&self.settings, &mut s.heights, shape, &at)?;
+        let (outliers, form_plane) = prepare_surface(&self.settings, &mut s.heights, shape, &at)?;
         let footprints = self.footprints(shape, &at)?;
         let heights = RasterView::new(&s.heights, shape).map_err(|e| anyhow!("mesher: {e}"))?;
         let (solid, adaptive, resampled) =
@@ -272,6 +275,7 @@ impl MeshJob {
             header: h,
             at,
             outliers,
+            form_plane,
         })
     }
 

@@ -18,10 +18,12 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
+use rayon::prelude::*;
 use surfstream_core::frame::to_frame_heights;
-use surfstream_core::metrology::{self, Grid};
+use surfstream_core::metrology;
 use surfstream_core::raster::{RasterView, Shape};
-use surfstream_core::record::MeshReport;
+use surfstream_core::record::{FormPlane, MeshReport};
+use surfstream_core::Sampling;
 use surfstream_io::npy::write_npy_abs;
 use surfstream_io::sidecar::{write_sidecar, NpyGeometry};
 
@@ -144,39 +146,59 @@ pub struct MeshOutcome {
     pub tolerance: Option<ToleranceReport>,
 }
 
-/// The heights the method meshes: levelled when the settings say so, spikes found (and
-/// removed on request). The in-memory oracle ([`crate::MeshJob::mesh`]) prepares the same way.
+/// The heights the method meshes: levelled when the settings say so (the plane removed is
+/// returned), spikes found (and removed on request). The in-memory oracle
+/// ([`crate::MeshJob::mesh`]) prepares the same way.
 pub(crate) fn prepare_surface(
     settings: &MeshSettings,
-    heights_um: &mut Vec<f32>,
+    heights_um: &mut [f32],
     shape: Shape,
     at: &ScanPlacement,
-) -> Result<OutlierReport> {
+) -> Result<(OutlierReport, Option<FormPlane>)> {
     if heights_um.len() != shape.rows * shape.cols {
         bail!(
             "the surface holds {} heights, its shape says {shape}",
             heights_um.len()
         );
     }
-    if settings.level {
-        let wide: Vec<f64> = heights_um.iter().map(|&z| f64::from(z)).collect();
-        let g = Grid::new(
-            &wide,
-            shape.rows,
-            shape.cols,
-            at.pitch.x_um(),
-            at.pitch.y_um(),
-        )?;
-        let levelled = metrology::level_plane(&g).context("level (the least-squares plane)")?;
-        *heights_um = levelled.iter().map(|&z| z as f32).collect();
-    }
+    let form_plane = if settings.level {
+        Some(level_in_place(heights_um, shape, at)?)
+    } else {
+        None
+    };
     let (report, spikes) = find_spikes(RasterView::new(heights_um, shape)?, settings.outliers);
     if settings.outliers == OutlierPolicy::Remove {
         for k in spikes {
             heights_um[k] = f32::NAN;
         }
     }
-    Ok(report)
+    Ok((report, form_plane))
+}
+
+/// Removes the least-squares plane from `heights_um` in place: the bits of
+/// [`metrology::level_plane`] on an f64 copy rounded back to f32 (the plane fitted on the f32
+/// heights themselves, [`metrology::fit_plane_f32`], is the one the widened copy gives, and
+/// each sample is levelled by the same f64 expression), without the two f64 copies (16 B per
+/// sample) that took. Returns the plane removed.
+fn level_in_place(heights_um: &mut [f32], shape: Shape, at: &ScanPlacement) -> Result<FormPlane> {
+    let sampling = Sampling::new(shape, at.pitch.x_um(), at.pitch.y_um())?;
+    let (a, b, c) = metrology::fit_plane_f32(heights_um, sampling)
+        .context("level (the least-squares plane)")?;
+    let (bx, by) = (b * sampling.pitch_x_um(), c * sampling.pitch_y_um());
+    heights_um
+        .par_chunks_mut(shape.cols.max(1))
+        .enumerate()
+        .for_each(|(r, row)| {
+            let base = a + by * r as f64;
+            for (i, z) in row.iter_mut().enumerate() {
+                *z = (f64::from(*z) - (base + bx * i as f64)) as f32;
+            }
+        });
+    Ok(FormPlane {
+        z_um: a + at.z_offset_um,
+        slope_x_um_per_um: b,
+        slope_y_um_per_um: c,
+    })
 }
 
 /// The tolerance the search meets: without the measured roughness there is nothing to judge
@@ -207,7 +229,8 @@ pub fn mesh_surface(
         }
     }
     let shape = input.shape;
-    let outliers = prepare_surface(settings, &mut input.heights_um, shape, &input.at)?;
+    let (outliers, form_plane) =
+        prepare_surface(settings, &mut input.heights_um, shape, &input.at)?;
     let heights = RasterView::new(&input.heights_um, shape)?;
     let at = &input.at;
     let spill_dir = match out.stl.parent() {
@@ -224,6 +247,7 @@ pub fn mesh_surface(
         t_acquired_ns: input.t_acquired_ns,
         surface: input.surface,
         outliers: &outliers,
+        form_plane,
     };
     let t0 = Instant::now();
     let (made, check, method, tolerance) = match (&settings.adaptive, settings.grid_target()) {
@@ -416,6 +440,38 @@ mod tests {
 
     /// Levelled: the plane is gone from the meshed heights (the mesh of a tilted plane is two
     /// triangles flat at the mean) and the record says which form was removed.
+    /// Levelling in place gives the bits the f64 copy and `level_plane` gave (rounded to
+    /// f32), on a tilted wavy map with missing samples and a non-square pitch.
+    #[test]
+    fn level_in_place_is_level_plane_to_the_bit() {
+        let shape = Shape::new(37, 53);
+        let h: Vec<f32> = (0..shape.len())
+            .map(|k| {
+                let (i, j) = ((k / shape.cols) as f32, (k % shape.cols) as f32);
+                if k % 97 == 5 {
+                    f32::NAN
+                } else {
+                    12.5 + 0.31 * j - 0.17 * i + (0.7 * j).sin() * (0.3 * i).cos()
+                }
+            })
+            .collect();
+        let at = ScanPlacement::new(Pitch::new(0.8, 1.3).unwrap());
+        let wide: Vec<f64> = h.iter().map(|&z| f64::from(z)).collect();
+        let g = metrology::Grid::new(&wide, shape.rows, shape.cols, 0.8, 1.3).unwrap();
+        let expected: Vec<f32> = metrology::level_plane(&g)
+            .unwrap()
+            .iter()
+            .map(|&z| z as f32)
+            .collect();
+        let mut levelled = h.clone();
+        level_in_place(&mut levelled, shape, &at).unwrap();
+        assert!(levelled
+            .iter()
+            .zip(&expected)
+            .all(|(a, b)| a.to_bits() == b.to_bits()));
+        assert!(levelled.iter().zip(&h).any(|(a, b)| a != b));
+    }
+
     #[test]
     fn level_removes_the_plane_before_meshing() {
         let d = tempfile::tempdir().unwrap();
@@ -442,6 +498,13 @@ mod tests {
             Some("least-squares plane")
         );
         assert!(raw.report.form_removed.is_none());
+        // The plane removed is recorded (Table 6 levels the panorama by it): the map's own
+        // slopes, 0.3 um per column and -0.2 per row at a 1 um pitch.
+        assert!(raw.report.form_plane.is_none());
+        let plane = flat.report.form_plane.expect("the plane removed");
+        assert!((plane.slope_x_um_per_um - 0.3).abs() < 1e-6, "{plane:?}");
+        assert!((plane.slope_y_um_per_um + 0.2).abs() < 1e-6, "{plane:?}");
+        assert!((plane.z_um - 5.0).abs() < 1e-4, "{plane:?}");
         let z_range = |o: &MeshOutcome| match &o.made {
             MeshMade::Model(m) => {
                 let r = &m.resampled_um;

@@ -7,18 +7,17 @@
 //! themselves (`AreaParams` = [`LevelledParams`], `AngleStats` = [`AngleRecord`],
 //! `ElementQuality`, `Spike`).
 
-use serde::Serialize;
 use surfstream_core::record::{
-    self, AdaptiveMeshRecord, AngleQuality, CurvePointRecord, EngineTargetRecord, MeshFidelity,
-    ModelTolerance, OutliersRecord, RegionFitRecord, ToleranceRecord, VerticalError,
+    AngleQuality, CurvePointRecord, EngineTargetRecord, MeshFidelity, ModelTolerance,
+    OutliersRecord, RegionFitRecord, ToleranceRecord, VerticalError,
 };
 
 use std::collections::BTreeMap;
 
 use surfstream_core::raster::Shape;
-use surfstream_core::record::{GridSheetRecord, MeshMethodRecord, MeshReport};
+use surfstream_core::record::{FormPlane, GridSheetRecord, MeshMethodRecord, MeshReport};
 
-use crate::adaptive::{Fidelity, MeshCounts};
+use crate::adaptive::{serde_name, AdaptiveSummary, Fidelity, MeshCounts};
 use crate::check::MeshCheck;
 use crate::config::MeshSettings;
 use crate::field::ScanPlacement;
@@ -26,43 +25,6 @@ use crate::outliers::OutlierReport;
 use crate::target::EngineProfile;
 use crate::tin::ErrorStats;
 use crate::tolerance::{CurvePoint, RegionFit, Tolerance, ToleranceReport};
-
-/// How `offset_um` maps the STL's vertices to scan coordinates (the report's `offset_rule`).
-pub const OFFSET_RULE: &str = "scan_um = vertex * um_per_unit + offset_um";
-
-/// The name serde gives a unit-like enum value ("solid", "fill", "keep"), the one the report
-/// has always carried.
-pub(crate) fn serde_name<T: Serialize>(v: &T) -> String {
-    match record::to_value(v) {
-        serde_json::Value::String(s) => s,
-        other => other.to_string(),
-    }
-}
-
-/// An adaptive mesh's statistics: the sizes (they stand among the report's common fields) and
-/// the adaptive mesh's own part.
-#[derive(Debug, Clone, PartialEq)]
-pub struct AdaptiveSummary {
-    pub counts: MeshCounts,
-    pub record: AdaptiveMeshRecord,
-}
-
-impl AdaptiveSummary {
-    /// As a JSON object: the record and the sizes it is written with (the mesh verb's
-    /// report starts from it).
-    pub fn to_value(&self) -> serde_json::Value {
-        let mut v = record::to_value(&self.record);
-        if let Some(o) = v.as_object_mut() {
-            let c = &self.counts;
-            o.insert("units".into(), c.units.symbol().into());
-            o.insert("offset_um".into(), record::to_value(&c.offset_um));
-            o.insert("triangles".into(), c.triangles.into());
-            o.insert("vertices".into(), c.vertices.into());
-            o.insert("base_depth_um".into(), record::to_value(&c.base_depth_um));
-        }
-        v
-    }
-}
 
 impl From<&ErrorStats> for VerticalError {
     fn from(e: &ErrorStats) -> Self {
@@ -234,6 +196,8 @@ pub(crate) struct ReportContext<'a> {
     /// "panorama", ... (empty: a map from a file).
     pub surface: &'a str,
     pub outliers: &'a OutlierReport,
+    /// The plane removed before meshing (with `settings.level`).
+    pub form_plane: Option<FormPlane>,
 }
 
 /// The mesher's one record, of a mesh in memory or streamed to its file. The caller fills in
@@ -287,6 +251,7 @@ pub(crate) fn mesh_report(
         pitch_um: [c.at.pitch.x_um(), c.at.pitch.y_um()],
         surface: c.surface.into(),
         form_removed: settings.form_removed().map(Into::into),
+        form_plane: c.form_plane,
         input: None,
         input_format: None,
         mesh_s: None,

@@ -24,10 +24,13 @@
 //! are checked among such triangles; coincident f32 vertices by the monotonic argument in
 //! [`coincident_vertices`].
 //!
-//! What stays per sample: the input (4 B), the f32 mesh-on-grid raster (4 B), one bit, the
-//! filled copy when samples are missing (4 B) and, while the field's plane is fitted, one f64
-//! copy (8 B); the areal parameters are computed by rows ([`crate::fidelity`]). The tolerance
-//! search parks the raster of every judged mesh in a spill file ([`StreamedMesh::park`]).
+//! What stays per sample: the input (4 B), the f32 mesh-on-grid raster (4 B), one bit, and
+//! while the blocks are meshed the plan's filled copy when samples are missing (4 B); the
+//! field's plane is fitted on the f32 field and the areal parameters are computed by rows
+//! ([`crate::fidelity`]). A mesh keeps no filled copy: the writer fills the field again
+//! ([`fill_missing`], the same bits as the plan's), so the meshes the tolerance search holds
+//! (the best and the last failing one) hold nothing per sample but their raster, which the
+//! search parks in a spill file ([`StreamedMesh::park`]).
 
 use std::collections::HashSet;
 use std::io::Write;
@@ -85,12 +88,11 @@ pub struct StreamedMesh {
     /// `resampled_um` while it waits in a spill file ([`StreamedMesh::park`]): its length.
     parked: Option<(SpillFile, usize)>,
     /// The statistics [`crate::AdaptiveMesh::record`] gives.
-    pub summary: crate::report::AdaptiveSummary,
+    pub summary: crate::adaptive::AdaptiveSummary,
     pub fidelity: Fidelity,
     /// The kept top triangles, three grid sample indices each, in order from offset 0.
     spill: AppendLog<u32>,
     place: VertexPlacement,
-    filled: Filled,
     /// The walls and base in local indices: the first `rim.len()` vertices are the rim's top
     /// vertices (grid samples `rim`), then its base vertices and the base's centre.
     walls: Option<Walls>,
@@ -99,7 +101,7 @@ pub struct StreamedMesh {
     top_z_positive: bool,
 }
 
-/// The heights the vertices take (the input, with missing samples filled).
+/// The heights the full grid's vertices take (the input, with missing samples filled).
 enum Filled {
     /// Nothing was missing: the input is borrowed again at write time (passed back in).
     Input,
@@ -221,7 +223,7 @@ pub(crate) fn mesh_streaming_with(
 ) -> Result<StreamedMesh> {
     crate::adaptive::check_adaptive(heights, at, params)?;
     // The field's plane and parameters, once (the in-memory mesher computes them twice, the
-    // same way); one f64 copy of the field while it runs.
+    // same way), by rows.
     let level = level_field(heights, at.pitch);
     let epsilon_um = params.epsilon_um(|| level.and_then(|l| l.params).map_or(0.0, |p| p.sq_um))?;
     let plan = BlockPlan::new(heights, &params.tin_params(epsilon_um, keep_extremes))?;
@@ -238,7 +240,7 @@ pub(crate) fn mesh_streaming_with(
     )
 }
 
-/// The level of the field, for [`stream_blocks`] (one f64 copy of the field while it runs).
+/// The level of the field, for [`stream_blocks`] (fitted on the f32 field, by rows).
 pub(crate) fn field_level(heights: RasterView<'_, f32>, at: &ScanPlacement) -> Option<FieldLevel> {
     level_field(heights, at.pitch)
 }
@@ -248,8 +250,8 @@ pub(crate) fn field_level(heights: RasterView<'_, f32>, at: &ScanPlacement) -> O
 /// step); `epsilon_um` is the bound they were made at, `level` the field's
 /// ([`field_level`]). Without `mesh_fidelity` the mesh's areal parameters are left out
 /// (`fidelity.mesh` is `None` until [`StreamedMesh::measure_mesh`]): the tolerance search
-/// judges its checkpoints by regions and needs them only for the mesh it keeps, and they take
-/// an f64 copy of the grid.
+/// judges its checkpoints by regions and needs them only for the mesh it keeps (two passes over
+/// the grid by rows).
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn stream_blocks(
     heights: RasterView<'_, f32>,
@@ -417,10 +419,6 @@ pub(crate) fn stream_blocks(
         &fidelity,
     );
     let top_z_positive = place.vertex(0, min_um as f32)[2] as f32 > place.base_z() as f32;
-    let filled = match &plan.filled {
-        std::borrow::Cow::Borrowed(_) => Filled::Input,
-        std::borrow::Cow::Owned(v) => Filled::Owned(v.clone()),
-    };
     // Only the used samples' bits were needed; the spill and the walls carry the rest.
     drop(used);
     Ok(StreamedMesh {
@@ -431,7 +429,6 @@ pub(crate) fn stream_blocks(
         fidelity,
         spill,
         place,
-        filled,
         walls,
         topology,
         top_z_positive,
@@ -607,59 +604,37 @@ impl StreamedMesh {
         header_text: &str,
         heights: RasterView<'_, f32>,
     ) -> Result<MeshCheck> {
-        let filled: &[f32] = match &self.filled {
-            Filled::Input => heights.values(),
-            Filled::Owned(v) => v,
-        };
-        if filled.len() != self.resampled_um.len() {
-            return Err(MeshError::Incompatible(format!(
-                "write_stl: the height field has {} samples, the mesh was made from {}",
-                filled.len(),
-                self.resampled_um.len()
-            )));
-        }
-        let mut out = StlSink::new(
+        // The heights the vertices take, filled again as the plan filled them (the same
+        // samples, the same bits): a mesh does not keep a filled copy of the field while the
+        // tolerance search holds it (two of them, beside the search's own).
+        let (filled, _) = fill_missing(heights)?;
+        same_samples(&filled, self.resampled_um.len())?;
+        let filled: &[f32] = &filled;
+        let place = &self.place;
+        let spill = &self.spill;
+        let mut steps = spill_steps(self.counts.top_triangles);
+        let (degenerate, volume6) = write_solid(
             w,
             ascii,
-            self.counts.units,
-            self.counts.offset_um,
             header_text,
-            self.counts.triangles as u32,
+            &self.counts,
+            || {
+                let Some((offset, n)) = steps.next() else {
+                    return Ok(None);
+                };
+                let samples = spill.read(offset, 3 * n)?;
+                Ok(Some(
+                    samples
+                        .par_chunks_exact(3)
+                        .map(|r| {
+                            let t = [r[0], r[1], r[2]];
+                            (t.map(|s| place.vertex(s as usize, filled[s as usize])), t)
+                        })
+                        .collect(),
+                ))
+            },
+            self.walls.as_ref(),
         )?;
-        let (mut degenerate, mut volume6) = (0usize, 0.0f64);
-        let place = &self.place;
-        for read in spill_steps(self.counts.top_triangles) {
-            surfstream_core::liveness::beat();
-            let (offset, n) = read;
-            let samples = self.spill.read(offset, 3 * n)?;
-            let corners: Vec<([[f64; 3]; 3], [u32; 3])> = samples
-                .par_chunks_exact(3)
-                .map(|r| {
-                    let t = [r[0], r[1], r[2]];
-                    (t.map(|s| place.vertex(s as usize, filled[s as usize])), t)
-                })
-                .collect();
-            let (d, v) = shape_terms(&corners);
-            degenerate += d;
-            volume6 += v;
-            for (c, _) in &corners {
-                out.push(*c)?;
-            }
-        }
-        if let Some(walls) = &self.walls {
-            let corners: Vec<([[f64; 3]; 3], [u32; 3])> = walls
-                .triangles
-                .iter()
-                .map(|t| (t.map(|v| walls.vertices[v as usize]), *t))
-                .collect();
-            let (d, v) = shape_terms(&corners);
-            degenerate += d;
-            volume6 += v;
-            for (c, _) in &corners {
-                out.push(*c)?;
-            }
-        }
-        out.finish()?;
         let coincident = self.coincident_vertices(heights.shape(), filled);
         Ok(self.topology.check(degenerate, volume6, coincident))
     }
@@ -906,57 +881,29 @@ impl StreamedGrid {
         header_text: &str,
         heights: RasterView<'_, f32>,
     ) -> Result<MeshCheck> {
-        let filled: &[f32] = match &self.filled {
-            Filled::Input => heights.values(),
-            Filled::Owned(v) => v,
-        };
         let (rows, cols) = (self.shape.rows, self.shape.cols);
-        if filled.len() != rows * cols {
-            return Err(MeshError::Incompatible(format!(
-                "write_stl: the height field has {} samples, the mesh was made from {}",
-                filled.len(),
-                rows * cols
-            )));
-        }
-        let mut out = StlSink::new(
-            w,
-            ascii,
-            self.counts.units,
-            self.counts.offset_um,
-            header_text,
-            self.counts.triangles as u32,
-        )?;
-        let (mut degenerate, mut volume6) = (0usize, 0.0f64);
+        let filled = self.filled.heights(heights, rows * cols)?;
         let g = &self.place;
         let vertex = |s: u32| {
             let s = s as usize;
             g.place(s / cols, s % cols, filled[s])
         };
-        for i in 0..rows - 1 {
-            let corners: Vec<([[f64; 3]; 3], [u32; 3])> = (0..cols - 1)
-                .into_par_iter()
-                .flat_map_iter(|j| cell_triangles(i, j, cols).map(|t| (t.map(vertex), t)))
-                .collect();
-            let (d, v) = shape_terms(&corners);
-            degenerate += d;
-            volume6 += v;
-            for (c, _) in &corners {
-                out.push(*c)?;
-            }
-        }
-        let walls: Vec<([[f64; 3]; 3], [u32; 3])> = self
-            .walls
-            .triangles
-            .iter()
-            .map(|t| (t.map(|v| self.walls.vertices[v as usize]), *t))
-            .collect();
-        let (d, v) = shape_terms(&walls);
-        degenerate += d;
-        volume6 += v;
-        for (c, _) in &walls {
-            out.push(*c)?;
-        }
-        out.finish()?;
+        let mut cell_rows = 0..rows - 1;
+        let (degenerate, volume6) = write_solid(
+            w,
+            ascii,
+            header_text,
+            &self.counts,
+            || {
+                Ok(cell_rows.next().map(|i| {
+                    (0..cols - 1)
+                        .into_par_iter()
+                        .flat_map_iter(|j| cell_triangles(i, j, cols).map(|t| (t.map(vertex), t)))
+                        .collect()
+                }))
+            },
+            Some(&self.walls),
+        )?;
         let base = &self.walls.vertices[self.walls.rim.len()..];
         let coincident = coincident_vertices(
             self.shape,
@@ -971,6 +918,80 @@ impl StreamedGrid {
         );
         Ok(self.topology.check(degenerate, volume6, coincident))
     }
+}
+
+impl Filled {
+    /// The heights the vertices take, given the input `heights` passed back to the writer;
+    /// refused when their count is not the `samples` the mesh was made from.
+    fn heights<'a>(&'a self, heights: RasterView<'a, f32>, samples: usize) -> Result<&'a [f32]> {
+        let filled: &[f32] = match self {
+            Filled::Input => heights.values(),
+            Filled::Owned(v) => v,
+        };
+        same_samples(filled, samples)?;
+        Ok(filled)
+    }
+}
+
+/// Refuses a height field handed to a writer whose sample count is not the `samples` the
+/// mesh was made from.
+fn same_samples(filled: &[f32], samples: usize) -> Result<()> {
+    if filled.len() != samples {
+        return Err(MeshError::Incompatible(format!(
+            "write_stl: the height field has {} samples, the mesh was made from {samples}",
+            filled.len()
+        )));
+    }
+    Ok(())
+}
+
+/// One streamed solid's top triangles in groups: placed corners and sample indices.
+type PlacedTriangles = Vec<([[f64; 3]; 3], [u32; 3])>;
+
+/// The second pass of both streamed solids: the STL (binary or `ascii`) of the top's triangles
+/// as `next_top` hands them over, group by group, then the walls and the base; returns the
+/// degenerate triangles and six times the signed volume (as [`crate::check_closed`] counts
+/// them).
+fn write_solid(
+    w: &mut dyn Write,
+    ascii: bool,
+    header_text: &str,
+    counts: &MeshCounts,
+    mut next_top: impl FnMut() -> Result<Option<PlacedTriangles>>,
+    walls: Option<&Walls>,
+) -> Result<(usize, f64)> {
+    let mut out = StlSink::new(
+        w,
+        ascii,
+        counts.units,
+        counts.offset_um,
+        header_text,
+        counts.triangles as u32,
+    )?;
+    let (mut degenerate, mut volume6) = (0usize, 0.0f64);
+    let mut write = |corners: &PlacedTriangles| -> Result<()> {
+        let (d, v) = shape_terms(corners);
+        degenerate += d;
+        volume6 += v;
+        for (c, _) in corners {
+            out.push(*c)?;
+        }
+        Ok(())
+    };
+    while let Some(corners) = next_top()? {
+        surfstream_core::liveness::beat();
+        write(&corners)?;
+    }
+    if let Some(walls) = walls {
+        let corners: PlacedTriangles = walls
+            .triangles
+            .iter()
+            .map(|t| (t.map(|v| walls.vertices[v as usize]), *t))
+            .collect();
+        write(&corners)?;
+    }
+    out.finish()?;
+    Ok((degenerate, volume6))
 }
 
 /// Degenerate triangles and six times the signed volume of `triangles` (as

@@ -1527,7 +1527,7 @@ impl<'p, F> LiveOrder<'p, '_, F> {
 /// mesh holds its triangles in a spill file in `spill_dir`, and so do, between checkpoints,
 /// the insertion order ([`SpilledOrder`]) and the meshes kept (their mesh on the grid); in
 /// memory are the rows of blocks being refined and streamed, and the mesh being judged. The
-/// mesh's areal parameters (an f64 copy of the grid) are computed once, for the mesh kept.
+/// mesh's areal parameters (by rows) are computed once, for the mesh kept.
 pub fn mesh_streaming_to_tolerance(
     heights: RasterView<'_, f32>,
     roughness_um: Option<&[f32]>,
