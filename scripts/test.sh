@@ -5,9 +5,12 @@
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
-# Debian packages the tests drive for real: the DEM engines our STL must import, and the
-# browser that renders report.html (tests/report.rs).
+# Debian packages the tests drive for real: the DEM engines our STL must import, the
+# browser that renders report.html (tests/report.rs), and Gwyddion, an independent reader of
+# our X3P, GSF and TIFF (common/io/tests/writers_read_back.rs; `--convert-to-gwy` runs
+# without a display, no xvfb needed).
 missing=()
+command -v gwyddion >/dev/null || missing+=(gwyddion)
 command -v liggghts >/dev/null || missing+=(liggghts)
 command -v mpirun >/dev/null || missing+=(openmpi-bin)
 command -v yade >/dev/null || missing+=(yade)
@@ -21,13 +24,19 @@ if [ ${#missing[@]} -gt 0 ]; then
 fi
 
 VENV=.test-venv
-if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import mcap, trimesh, numpy, pywt, surfalize, h5py, scipy, zarr, websockets' 2>/dev/null; then
-    echo "test.sh: creating $VENV (mcap, trimesh, numpy, PyWavelets, surfalize, h5py, scipy, zarr, websockets)"
+if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import mcap, trimesh, numpy, pywt, surfalize, h5py, scipy, zarr, websockets, SurfaceTopography' 2>/dev/null; then
+    echo "test.sh: creating $VENV (mcap, trimesh, numpy, PyWavelets, surfalize, h5py, scipy, zarr, websockets, SurfaceTopography)"
     python3 -m venv "$VENV"
     "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check --only-binary=:all: \
         -r scripts/test-requirements.txt
 fi
 export SURFSTREAM_PYTHON="$PWD/$VENV/bin/python"
+# The independent readers of our written files, installed above: the tests that use them
+# fail, not skip, when one is missing.
+export SURFSTREAM_SURFTOPO_PYTHON="$SURFSTREAM_PYTHON"
+SURFSTREAM_GWYDDION="$(command -v gwyddion)"
+export SURFSTREAM_GWYDDION
+export SURFSTREAM_REQUIRE_INDEPENDENT_READERS=1
 
 cargo build --release --workspace --bins
 # PyWavelets parity goldens (every base, mode, odd/even size, level) for nodes/wavelet's tests.

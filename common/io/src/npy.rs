@@ -56,31 +56,12 @@ pub fn read_npy_f64(path: impl AsRef<Path>) -> Result<NpyArray<f64>> {
 
 /// Writes `data` (row-major, `rows * cols` values) as a little-endian float32 `.npy` file.
 pub fn write_npy_f32(path: impl AsRef<Path>, data: &[f32], rows: usize, cols: usize) -> Result<()> {
-    write_npy(path.as_ref(), data, rows, cols, "<f4", |v, out| {
-        out.extend_from_slice(&v.to_le_bytes())
-    })
+    write_values(None, path.as_ref(), data, rows, cols, |v| v)
 }
 
 /// Writes `data` (row-major, `rows * cols` values) as a little-endian float64 `.npy` file.
 pub fn write_npy_f64(path: impl AsRef<Path>, data: &[f64], rows: usize, cols: usize) -> Result<()> {
-    write_npy(path.as_ref(), data, rows, cols, "<f8", |v, out| {
-        out.extend_from_slice(&v.to_le_bytes())
-    })
-}
-
-/// Writes f32 frame heights as absolute float64 heights (`f64::from(z) + z_offset_um`, the
-/// values [`surfstream_core::frame::from_frame_heights`] gives), converting as it writes: no
-/// f64 copy of the whole raster is made.
-pub fn write_npy_abs_f64(
-    path: impl AsRef<Path>,
-    data: &[f32],
-    rows: usize,
-    cols: usize,
-    z_offset_um: f64,
-) -> Result<()> {
-    write_npy(path.as_ref(), data, rows, cols, "<f8", |v, out| {
-        out.extend_from_slice(&(f64::from(v) + z_offset_um).to_le_bytes())
-    })
+    write_values(None, path.as_ref(), data, rows, cols, |v| v)
 }
 
 /// Whether absolute heights `f64::from(z) + z_offset_um` of f32 frame heights `z` are exactly
@@ -92,8 +73,10 @@ pub fn absolute_fits_f32(z_offset_um: f64) -> bool {
 }
 
 /// Writes f32 frame heights as absolute heights: float32 (`<f4`) when they are exactly f32
-/// ([`absolute_fits_f32`]: no offset), else float64 as [`write_npy_abs_f64`]. Either way every
-/// reader of ours, and numpy, reads the same absolute heights.
+/// ([`absolute_fits_f32`]: no offset), else float64 `f64::from(z) + z_offset_um` (the values
+/// [`surfstream_core::frame::from_frame_heights`] gives), converted as they are written: no
+/// f64 copy of the whole raster is made. Either way every reader of ours, and numpy, reads the
+/// same absolute heights.
 pub fn write_npy_abs(
     path: impl AsRef<Path>,
     data: &[f32],
@@ -104,7 +87,9 @@ pub fn write_npy_abs(
     if absolute_fits_f32(z_offset_um) {
         write_npy_f32(path, data, rows, cols)
     } else {
-        write_npy_abs_f64(path, data, rows, cols, z_offset_um)
+        write_values(None, path.as_ref(), data, rows, cols, |v| {
+            f64::from(v) + z_offset_um
+        })
     }
 }
 
@@ -120,37 +105,47 @@ pub fn write_npy_f64_into(
     rows: usize,
     cols: usize,
 ) -> Result<()> {
-    write_npy_to(
-        Some(set),
-        path.as_ref(),
-        data,
-        rows,
-        cols,
-        "<f8",
-        |v, out| out.extend_from_slice(&v.to_le_bytes()),
-    )
+    write_values(Some(set), path.as_ref(), data, rows, cols, |v| v)
 }
 
-fn write_npy<T: Copy>(
-    path: &Path,
-    data: &[T],
-    rows: usize,
-    cols: usize,
-    descr: &str,
-    put: impl Fn(T, &mut Vec<u8>),
-) -> Result<()> {
-    write_npy_to(None, path, data, rows, cols, descr, put)
+/// The float types a file is written in: the dtype its header names and its bytes.
+trait NpyFloat: Copy {
+    const DESCR: &'static str;
+    const IS_F64: bool;
+    fn put_le(self, out: &mut Vec<u8>);
 }
 
-/// Writes the array atomically on its own, or into `set`.
-fn write_npy_to<T: Copy>(
+impl NpyFloat for f32 {
+    const DESCR: &'static str = "<f4";
+    const IS_F64: bool = false;
+    fn put_le(self, out: &mut Vec<u8>) {
+        out.extend_from_slice(&self.to_le_bytes())
+    }
+}
+
+impl NpyFloat for f64 {
+    const DESCR: &'static str = "<f8";
+    const IS_F64: bool = true;
+    fn put_le(self, out: &mut Vec<u8>) {
+        out.extend_from_slice(&self.to_le_bytes())
+    }
+}
+
+/// The `numpy.save` header dict of a C-order `rows x cols` array of `descr`.
+fn header_dict(descr: &str, rows: usize, cols: usize) -> String {
+    format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': ({rows}, {cols}), }}")
+}
+
+/// Writes `value(v)` of every value of `data` as an `E` array, atomically on its own or into
+/// `set`: the one body of every whole-array writer, so the header's dtype and the bytes written
+/// cannot disagree.
+fn write_values<T: Copy, E: NpyFloat>(
     set: Option<&mut OutputSet>,
     path: &Path,
     data: &[T],
     rows: usize,
     cols: usize,
-    descr: &str,
-    put: impl Fn(T, &mut Vec<u8>),
+    value: impl Fn(T) -> E,
 ) -> Result<()> {
     let expected = rows.checked_mul(cols);
     if expected != Some(data.len()) {
@@ -161,9 +156,7 @@ fn write_npy_to<T: Copy>(
             rows as u128 * cols as u128
         );
     }
-    let header = header_block(&format!(
-        "{{'descr': '{descr}', 'fortran_order': False, 'shape': ({rows}, {cols}), }}"
-    ));
+    let header = header_block(&header_dict(E::DESCR, rows, cols));
     let fill = |w: &mut std::io::BufWriter<std::fs::File>| {
         w.write_all(&header)
             .with_context(|| format!("{}: write failed", path.display()))?;
@@ -174,7 +167,7 @@ fn write_npy_to<T: Copy>(
             }
             buf.clear();
             for &v in chunk {
-                put(v, &mut buf);
+                value(v).put_le(&mut buf);
             }
             w.write_all(&buf)
                 .with_context(|| format!("{}: write failed", path.display()))?;
@@ -215,7 +208,7 @@ fn header_block(dict: &str) -> Vec<u8> {
 }
 
 /// Writes a 2-D `.npy` file row by row, for maps that are never whole in memory: the same
-/// bytes as [`write_npy_f32`] / [`write_npy_f64`] / [`write_npy_abs_f64`] give. The data go to
+/// bytes as [`write_npy_f32`] / [`write_npy_f64`] / [`write_npy_abs`] give. The data go to
 /// `<path>.partial`, renamed into place by [`NpyRowWriter::finish`] once every row arrived;
 /// dropped unfinished (an error on the way), the partial file is removed: a reader never sees
 /// a half-written file.
@@ -283,33 +276,21 @@ impl NpyRowWriter {
             bytes_written: 0,
             writeback_from: Some(0),
         };
-        let descr = if f64 { "<f8" } else { "<f4" };
-        let header = header_block(&format!(
-            "{{'descr': '{descr}', 'fortran_order': False, 'shape': ({rows}, {cols}), }}"
-        ));
+        let descr = if f64 { f64::DESCR } else { f32::DESCR };
+        let header = header_block(&header_dict(descr, rows, cols));
         w.write(&header)?;
         Ok(w)
     }
 
     /// Whole rows of f32 values (float32 files).
     pub fn push_f32(&mut self, values: &[f32]) -> Result<()> {
-        self.check(values.len(), false)?;
-        self.buf.clear();
-        self.buf.extend(values.iter().flat_map(|v| v.to_le_bytes()));
-        self.flush_buf(values.len())
+        self.push_values(values, |v| v)
     }
 
     /// Whole rows of f32 frame heights written as absolute float64 heights,
-    /// `f64::from(z) + z_offset_um` (float64 files; as [`write_npy_abs_f64`]).
+    /// `f64::from(z) + z_offset_um` (float64 files; as [`write_npy_abs`] with an offset).
     pub fn push_abs_f64(&mut self, values: &[f32], z_offset_um: f64) -> Result<()> {
-        self.check(values.len(), true)?;
-        self.buf.clear();
-        self.buf.extend(
-            values
-                .iter()
-                .flat_map(|&v| (f64::from(v) + z_offset_um).to_le_bytes()),
-        );
-        self.flush_buf(values.len())
+        self.push_values(values, |v| f64::from(v) + z_offset_um)
     }
 
     /// Whole rows of f32 frame heights as absolute heights into a file made by
@@ -329,9 +310,20 @@ impl NpyRowWriter {
 
     /// Whole rows of f64 values (float64 files).
     pub fn push_f64(&mut self, values: &[f64]) -> Result<()> {
-        self.check(values.len(), true)?;
+        self.push_values(values, |v| v)
+    }
+
+    /// Whole rows of `value(v)`, into a file of `E`'s dtype: the one body of every push.
+    fn push_values<T: Copy, E: NpyFloat>(
+        &mut self,
+        values: &[T],
+        value: impl Fn(T) -> E,
+    ) -> Result<()> {
+        self.check(values.len(), E::IS_F64)?;
         self.buf.clear();
-        self.buf.extend(values.iter().flat_map(|v| v.to_le_bytes()));
+        for &v in values {
+            value(v).put_le(&mut self.buf);
+        }
         self.flush_buf(values.len())
     }
 
@@ -1057,7 +1049,7 @@ mod tests {
         let mut v2 = v.clone();
         v2[4] = f32::NAN;
         write_npy_f32(dir.path().join("a.npy"), &v2, rows, cols).unwrap();
-        write_npy_abs_f64(dir.path().join("b.npy"), &v2, rows, cols, 123.25).unwrap();
+        write_npy_abs(dir.path().join("b.npy"), &v2, rows, cols, 123.25).unwrap();
         let f64s: Vec<f64> = v.iter().map(|&x| f64::from(x) / 3.0).collect();
         write_npy_f64(dir.path().join("c.npy"), &f64s, rows, cols).unwrap();
         let mut a = NpyRowWriter::create_f32(dir.path().join("a2.npy"), rows, cols).unwrap();

@@ -4,7 +4,8 @@
 //! SurfaceTopography (`SURFSTREAM_SURFTOPO_PYTHON`, a Python with SurfaceTopography), the X3P,
 //! GSF and TIFF by Gwyddion (`SURFSTREAM_GWYDDION`, its `gwyddion` binary, run headless with
 //! `--convert-to-gwy`, the .gwy read back by our reader). Without the variable those tests
-//! print SKIPPED and pass.
+//! print SKIPPED and pass, unless `SURFSTREAM_REQUIRE_INDEPENDENT_READERS=1` (scripts/test.sh,
+//! which installs both readers, sets it): then a reader not named is a failure.
 
 mod support;
 
@@ -250,11 +251,22 @@ fn a_tiled_float_tiff_is_read_and_a_bad_one_named() {
     );
 }
 
-/// A program named by `var`, or None after printing SKIPPED.
+/// Set to 1 where the independent readers are installed (scripts/test.sh): a test whose
+/// reader is not named then fails instead of skipping, so CI cannot pass without them.
+const REQUIRE_READERS: &str = "SURFSTREAM_REQUIRE_INDEPENDENT_READERS";
+
+/// A program named by `var`, or None after printing SKIPPED (a panic under
+/// [`REQUIRE_READERS`]).
 fn program(var: &str, test: &str) -> Option<PathBuf> {
     match std::env::var_os(var) {
         Some(p) if !p.is_empty() => Some(PathBuf::from(p)),
         _ => {
+            let required = std::env::var_os(REQUIRE_READERS).is_some_and(|v| v == "1");
+            assert!(
+                !required,
+                "{test}: {var} is not set, but {REQUIRE_READERS}=1 says the independent readers \
+                 are installed (scripts/test.sh sets both)"
+            );
             eprintln!("SKIPPED {test}: {var} is not set");
             None
         }

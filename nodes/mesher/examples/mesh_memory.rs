@@ -80,7 +80,7 @@ fn main() -> Result<()> {
                     heights,
                 )?);
             } else {
-                surfstream_io::npy::write_npy_abs_f64(&npy, &m.resampled_um, rows, cols, 100.0)?;
+                surfstream_io::npy::write_npy_abs(&npy, &m.resampled_um, rows, cols, 100.0)?;
                 surfstream_core::fsutil::write_atomic(&stl, |w| {
                     check = Some(m.write_stl(w, false, "surfstream surface", heights)?);
                     Ok(())
@@ -108,7 +108,7 @@ fn main() -> Result<()> {
             let check = if discard {
                 g.write_stl(&mut std::io::sink(), false, "surfstream surface", heights)?
             } else {
-                surfstream_io::npy::write_npy_abs_f64(&npy, &heights_um, rows, cols, 100.0)?;
+                surfstream_io::npy::write_npy_abs(&npy, &heights_um, rows, cols, 100.0)?;
                 let mut check = None;
                 surfstream_core::fsutil::write_atomic(&stl, |w| {
                     check = Some(g.write_stl(w, false, "surfstream surface", heights)?);
