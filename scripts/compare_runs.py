@@ -24,7 +24,7 @@ import sys
 # and the run's random scan id.
 TIMING = {
     "scan_id", "chunk_budget_bytes", "available_bytes", "elapsed_s", "latency_ms", "peak_rss", "peak_rss_bytes",
-    "t_acquired_ns", "t_written_ns", "t_finished_ns", "stats", "live_patches",
+    "t_acquired_ns", "t_written_ns", "t_finished_ns", "stats", "live_patches", "mesh_s",
     "live_frames_skipped", "messages",
 }
 SKIP_PREFIX = ("logs/",)

@@ -617,7 +617,7 @@ impl LiveState {
             .values()
             .rev()
             .find_map(|t| t.tile_to_panorama_ms);
-        let canvas = (!self.canvas.is_empty()).then(|| CanvasJson {
+        let canvas = (!self.canvas.is_empty()).then_some(CanvasJson {
             x0_um: self.canvas.x0_um,
             y0_um: self.canvas.y0_um,
             width_um: self.canvas.cols as f64 * self.canvas.cell_x_um,
