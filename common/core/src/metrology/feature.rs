@@ -86,17 +86,51 @@ const OFFSETS: [(isize, isize); 8] = [
     (1, 1),
 ];
 
-#[derive(Clone, Copy, PartialEq)]
-struct Key(f64);
-impl Eq for Key {}
-impl PartialOrd for Key {
-    fn partial_cmp(&self, o: &Self) -> Option<Ordering> {
-        Some(self.cmp(o))
-    }
+/// Wolf pruning's queue of (depth, basin, version), smallest first in the order of
+/// (depth by `f64::total_cmp`, basin, version): each entry one u128 whose integer order is
+/// that order (cheaper to compare than the tuple), the entries queued at the start sorted once
+/// and read in order, the entries pushed later in a binary heap, the smaller of the two heads
+/// popped. The same pops, in the same order, as one heap of the tuples.
+struct DepthQueue {
+    sorted: Vec<u128>,
+    head: usize,
+    pushed: BinaryHeap<Reverse<u128>>,
 }
-impl Ord for Key {
-    fn cmp(&self, o: &Self) -> Ordering {
-        self.0.total_cmp(&o.0)
+
+impl DepthQueue {
+    fn entry(depth: f64, basin: u32, version: u32) -> u128 {
+        // total_cmp's key (flip the magnitude bits of negatives), then the sign bit flipped so
+        // that unsigned order is its signed order.
+        let b = depth.to_bits() as i64;
+        let key = ((b ^ ((((b >> 63) as u64) >> 1) as i64)) as u64) ^ (1 << 63);
+        ((key as u128) << 64) | ((basin as u128) << 32) | version as u128
+    }
+
+    fn of(mut initial: Vec<u128>) -> Self {
+        initial.par_sort_unstable();
+        Self {
+            sorted: initial,
+            head: 0,
+            pushed: BinaryHeap::new(),
+        }
+    }
+
+    fn push(&mut self, e: u128) {
+        self.pushed.push(Reverse(e));
+    }
+
+    /// The smallest entry's (basin, version).
+    fn pop(&mut self) -> Option<(u32, u32)> {
+        let from_sorted = self.sorted.get(self.head).copied();
+        let e = match (from_sorted, self.pushed.peek()) {
+            (Some(a), Some(&Reverse(b))) if b < a => self.pushed.pop().map(|Reverse(b)| b),
+            (Some(a), _) => {
+                self.head += 1;
+                Some(a)
+            }
+            (None, _) => self.pushed.pop().map(|Reverse(b)| b),
+        }?;
+        Some(((e >> 32) as u32, e as u32))
     }
 }
 
@@ -456,13 +490,15 @@ fn wolf_prune(
             Some(Ordering::Greater | Ordering::Equal)
         )
     };
-    let mut heap: BinaryHeap<Reverse<(Key, u32, u32)>> = (1..=m)
-        .map(|r| (min_saddle[r] - crit[r].0, r))
-        .filter(|&(h, _)| queued(h))
-        .map(|(h, r)| Reverse((Key(h), r as u32, 0)))
-        .collect();
+    let mut queue = DepthQueue::of(
+        (1..=m)
+            .map(|r| (min_saddle[r] - crit[r].0, r))
+            .filter(|&(h, _)| queued(h))
+            .map(|(h, r)| DepthQueue::entry(h, r as u32, 0))
+            .collect(),
+    );
     let mut moved_list: Vec<(u32, f64)> = Vec::new();
-    while let Some(Reverse((Key(_), r, ver))) = heap.pop() {
+    while let Some((r, ver)) = queue.pop() {
         let ru = r as usize;
         if !alive[ru] || ver != version[ru] {
             continue;
@@ -510,10 +546,10 @@ fn wolf_prune(
         version[nbu] += 1;
         let h = min_saddle[nbu] - crit[nbu].0;
         if queued(h) {
-            heap.push(Reverse((Key(h), nb, version[nbu])));
+            queue.push(DepthQueue::entry(h, nb, version[nbu]));
         }
     }
-    drop(heap);
+    drop(queue);
     Pruned {
         min_saddle,
         alive,
@@ -674,4 +710,86 @@ pub fn feature_params(g: &Grid, pruning_pct: f64) -> Result<FeatureParams, Metro
         svd: dales.len() as f64 / area,
         svc: mean(dales.iter().filter_map(|m| curvature(m.critical_index))),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(Clone, Copy, PartialEq)]
+    struct Key(f64);
+    impl Eq for Key {}
+    impl PartialOrd for Key {
+        fn partial_cmp(&self, o: &Self) -> Option<Ordering> {
+            Some(self.cmp(o))
+        }
+    }
+    impl Ord for Key {
+        fn cmp(&self, o: &Self) -> Ordering {
+            self.0.total_cmp(&o.0)
+        }
+    }
+
+    /// The packed queue pops what one heap of (total_cmp depth, basin, version) tuples pops,
+    /// in the same order, pushes interleaved with pops: negative, -0 and +0, equal depths,
+    /// infinities and NaN included.
+    #[test]
+    fn depth_queue_pops_as_the_tuple_heap() {
+        let mut state = 0x9E37_79B9_7F4A_7C15_u64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        let special = [
+            0.0,
+            -0.0,
+            -1.5,
+            1.5,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+            1e-300,
+        ];
+        let depth = |n: u64| {
+            if n % 5 == 0 {
+                special[(n / 5 % special.len() as u64) as usize]
+            } else {
+                ((n >> 20) % 1000) as f64 / 8.0 - 40.0
+            }
+        };
+        let initial: Vec<(f64, u32)> = (0..2000u32).map(|b| (depth(next()), b % 700)).collect();
+        let mut heap: BinaryHeap<Reverse<(Key, u32, u32)>> = initial
+            .iter()
+            .map(|&(d, b)| Reverse((Key(d), b, 0)))
+            .collect();
+        let mut queue = DepthQueue::of(
+            initial
+                .iter()
+                .map(|&(d, b)| DepthQueue::entry(d, b, 0))
+                .collect(),
+        );
+        let mut popped = 0;
+        loop {
+            let want = heap.pop().map(|Reverse((_, b, v))| (b, v));
+            let got = queue.pop();
+            assert_eq!(got, want, "pop {popped}");
+            if want.is_none() {
+                break;
+            }
+            popped += 1;
+            let n = next();
+            if n % 3 != 0 && popped < 3000 {
+                let (d, b, v) = (
+                    depth(next()),
+                    (n >> 8) as u32 % 700,
+                    1 + (n >> 40) as u32 % 9,
+                );
+                heap.push(Reverse((Key(d), b, v)));
+                queue.push(DepthQueue::entry(d, b, v));
+            }
+        }
+        assert!(popped > 3000);
+    }
 }
