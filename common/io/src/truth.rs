@@ -21,7 +21,7 @@ pub enum TruthError {
     },
     Json {
         path: PathBuf,
-        source: serde_json::Error,
+        source: serde_path_to_error::Error<serde_json::Error>,
     },
     Field {
         path: PathBuf,
@@ -41,10 +41,15 @@ impl std::fmt::Display for TruthError {
             TruthError::Read { path, source } => {
                 write!(f, "{}: cannot read: {source}", path.display())
             }
+            TruthError::Json { path, source } if source.inner().is_syntax() || source.inner().is_eof() => {
+                write!(f, "{}: not JSON: {}", path.display(), source.inner())
+            }
             TruthError::Json { path, source } => write!(
                 f,
-                "{}: not a truth file (tiles[] with index, true_origin_px, ...): {source}",
-                path.display()
+                "{}: not a truth file (tiles[] with index, row, col, true_origin_px, ...): at {}: {}",
+                path.display(),
+                source.path(),
+                source.inner()
             ),
             TruthError::Field {
                 path,
@@ -89,11 +94,14 @@ impl ScanTruth {
 
     /// Parses the text of a truth file (`path` only names it in errors).
     pub fn parse(text: &str, path: &Path) -> Result<ScanTruth, TruthError> {
+        // Through serde_path_to_error so that a refused field is named by its place in the
+        // file (`tiles[0]: missing field ...`), not only by line and column.
         let record: surfstream_core::record::TruthRecord =
-            serde_json::from_str(text).map_err(|source| TruthError::Json {
-                path: path.to_path_buf(),
-                source,
-            })?;
+            serde_path_to_error::deserialize(&mut serde_json::Deserializer::from_str(text))
+                .map_err(|source| TruthError::Json {
+                    path: path.to_path_buf(),
+                    source,
+                })?;
         let mut origins_px = BTreeMap::new();
         for (k, t) in record.tiles.iter().enumerate() {
             let (index, o) = (t.index as u64, t.true_origin_px);

@@ -539,7 +539,19 @@ fn malformed_input_is_a_clear_error() {
         .unwrap_err()
         .to_string();
     assert!(
-        e.contains("gt.json") && e.contains("tiles[0].true_origin_px"),
+        e.contains("gt.json") && e.contains("at tiles[0]: missing field"),
+        "{e}"
+    );
+    // A tile whose origin is not two numbers is named by its place in the file.
+    let tile = "\"index\": 0, \"row\": 0, \"col\": 0, \"nominal_origin_px\": [0, 0], \"stage_position_um\": [0, 0], \"stage_error_px\": [0, 0], \"piston\": 0, \"tilt_x\": 0, \"tilt_y\": 0";
+    let e = ScanTruth::parse(
+        &format!("{{\"tiles\": [{{{tile}, \"true_origin_px\": [1, 2]}}, {{{tile}, \"true_origin_px\": [\"a\", 2]}}]}}"),
+        path,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("gt.json") && e.contains("tiles[1].true_origin_px[0]"),
         "{e}"
     );
     let e = ScanTruth::parse("not json", path).unwrap_err().to_string();
@@ -547,7 +559,7 @@ fn malformed_input_is_a_clear_error() {
     let e = ScanTruth::parse("{}", path).unwrap_err().to_string();
     assert!(e.contains("tiles"), "{e}");
     let t = ScanTruth::parse(
-        "{\"tiles\": [{\"index\": 0, \"true_origin_px\": [1, 2]}, {\"index\": 1, \"true_origin_px\": [11.5, 1]}]}",
+        &format!("{{\"tiles\": [{{{tile}, \"true_origin_px\": [1, 2]}}, {{{}, \"true_origin_px\": [11.5, 1]}}]}}", tile.replace("\"index\": 0", "\"index\": 1")),
         path,
     )
     .unwrap();
