@@ -213,3 +213,44 @@ fn a_graphs_outputs_table_chooses_the_set_and_a_model_run_keeps_what_it_did_not_
     assert!(stderr(&o).contains("model"), "{}", stderr(&o));
     assert!(!dir.path().join("bad").exists());
 }
+
+#[test]
+fn compare_fusion_keeps_the_chosen_output_set_for_every_method() {
+    // `stitch --compare-fusion` stitches once per fusion method: each run keeps the set
+    // `--outputs` chose, as a plain stitch does (it used to ignore the flag).
+    let dir = tempfile::tempdir().unwrap();
+    let (scan, out) = (dir.path().join("scan"), dir.path().join("out"));
+    std::fs::create_dir(&scan).unwrap();
+    write_scan_dir(&scan, 1, 2, 256, Some("um"));
+    let o = run({
+        let mut c = surfstream();
+        c.arg("stitch").arg(&scan).arg("-o").arg(&out);
+        c.args(["--compare-fusion", "--outputs", "model"]);
+        c
+    });
+    assert!(o.status.success(), "compare-fusion failed:\n{}", stderr(&o));
+    for m in ["average", "gradual", "wavelet"] {
+        let r = read_json(&out.join(m).join("run.json"));
+        assert_eq!(r["outputs"]["set"], "model", "{m}");
+        assert!(out.join(m).join("surface.stl").is_file(), "{m}");
+        assert!(!out.join(m).join("panorama.npy").exists(), "{m}");
+    }
+
+    // With the specimen beside the scan, the height error needs each panorama.npy: the model
+    // set is refused before anything runs, naming the files and the way out.
+    std::fs::write(scan.join("specimen.npy"), b"not read").unwrap();
+    let out2 = dir.path().join("out2");
+    let o = run({
+        let mut c = surfstream();
+        c.arg("stitch").arg(&scan).arg("-o").arg(&out2);
+        c.args(["--compare-fusion", "--outputs", "model"]);
+        c
+    });
+    let e = stderr(&o);
+    assert!(!o.status.success());
+    assert!(
+        e.contains("specimen.npy") && e.contains("--outputs full"),
+        "{e}"
+    );
+    assert!(!out2.join("average").exists(), "nothing run: {e}");
+}

@@ -17,14 +17,26 @@ use anyhow::{anyhow, bail, Context, Result};
 use serde_json::Value;
 use surfstream_core::metrology::{level_plane, Grid, MetrologyError};
 use surfstream_core::raster::Shape;
-use surfstream_core::record::{self, FusionReport, RunRecord};
+use surfstream_core::record::{self, FusionReport, OutputChoice, RunRecord};
 use surfstream_core::similarity::ssim;
+
+use surfstream_runtime::graph::GraphFile;
 
 use crate::{launcher, stitch_graph};
 
 const METHODS: [&str; 3] = ["average", "gradual", "wavelet"];
 
-pub fn run(scan: &Path, out: &Path, set: &[String], method: Option<&str>) -> Result<()> {
+/// How each method's stitch is set up: the command line's `--set`, `--method`, and what
+/// `--tolerance` / `--outputs` do to a graph (`prepare`, applied to every method's graph).
+pub struct Methods<'a> {
+    pub set: &'a [String],
+    pub method: Option<&'a str>,
+    pub outputs: Option<OutputChoice>,
+    pub prepare: &'a dyn Fn(&mut GraphFile) -> Result<()>,
+}
+
+pub fn run(scan: &Path, out: &Path, how: &Methods) -> Result<()> {
+    let (set, method) = (how.set, how.method);
     if let Some(s) = set
         .iter()
         .find(|s| s.trim_start().starts_with("fusion.method"))
@@ -37,13 +49,22 @@ pub fn run(scan: &Path, out: &Path, set: &[String], method: Option<&str>) -> Res
         scan.parent()
             .map_or_else(|| PathBuf::from("."), Path::to_path_buf)
     };
+    if Truth::present(&scan_dir) && how.outputs == Some(OutputChoice::Model) {
+        bail!(
+            "--compare-fusion --outputs model: {} holds specimen.npy and ground_truth.json, and \
+             the height error against the specimen reads each method's panorama.npy, which the \
+             model set does not keep: use --outputs full (the default)",
+            scan_dir.display()
+        );
+    }
     let truth = Truth::load(&scan_dir)?;
     let mut rows = Vec::new();
     for m in METHODS {
         let dir = out.join(m);
         let mut set_m = set.to_vec();
         set_m.push(format!("fusion.method={m}"));
-        let (graph, deviation) = stitch_graph(scan, dir.clone(), &set_m, method)?;
+        let (mut graph, deviation) = stitch_graph(scan, dir.clone(), &set_m, method)?;
+        (how.prepare)(&mut graph)?;
         let claim = crate::outdir::Claim {
             inputs: crate::outdir::inputs_of(&graph, &dir),
             force: false,
@@ -125,12 +146,17 @@ struct Truth {
 }
 
 impl Truth {
+    /// The scan directory holds the specimen and its truth (make_tiles.py's files).
+    fn present(scan_dir: &Path) -> bool {
+        scan_dir.join("specimen.npy").exists() && scan_dir.join("ground_truth.json").exists()
+    }
+
     fn load(scan_dir: &Path) -> Result<Option<Truth>> {
         let (spec, gt) = (
             scan_dir.join("specimen.npy"),
             scan_dir.join("ground_truth.json"),
         );
-        if !spec.exists() || !gt.exists() {
+        if !Self::present(scan_dir) {
             return Ok(None);
         }
         let text = std::fs::read_to_string(&gt)

@@ -314,7 +314,23 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
                 _ => scan,
             };
             if compare_fusion {
-                return done(compare_fusion::run(&scan, &out, &set, method.as_deref()));
+                // Each method's graph gets the same --tolerance and --outputs as a plain stitch.
+                let prepare = |graph: &mut GraphFile| -> Result<()> {
+                    if let Some(t) = &tolerance {
+                        apply_tolerance(graph, t, "stitch pipeline")?;
+                    }
+                    if let Some(o) = outputs {
+                        graph.set_output_choice(o);
+                    }
+                    Ok(())
+                };
+                let methods = compare_fusion::Methods {
+                    set: &set,
+                    method: method.as_deref(),
+                    outputs,
+                    prepare: &prepare,
+                };
+                return done(compare_fusion::run(&scan, &out, &methods));
             }
             let (mut graph, deviation) = stitch_graph(&scan, out.clone(), &set, method.as_deref())?;
             if let Some(t) = &tolerance {
