@@ -220,6 +220,70 @@ def delatin(pano: np.ndarray, regions: list[dict]) -> dict:
             "pass": passes_pointwise(w)}
 
 
+def delatin_at_equal_fidelity(pano: np.ndarray, regions: list[dict], roughness: np.ndarray | None = None) -> dict:
+    """The fewest triangles pydelatin needs to meet the whole default tolerance (Sa/Sq 1 %,
+    Sz 3 %, residual 20 %, max error 50 % of Sq), judged like ours: its one uniform bound
+    searched from 0.5 x the smallest region Sq (x 0.8 down to the first passing bound, or
+    x 1.25 up to the first failing one), then bisected geometrically six times between the
+    last failing and the first passing bound. With `roughness` (the run's roughness.npy) the
+    roughness the mesh carries (roughness + mesh - panorama) must also keep Sa, Sq and Sz
+    within 5 % in every region, as the default holds ours to. `search_seconds` is every
+    Delatin call of the search (what a user who must find the bound pays), `seconds` the
+    passing mesh's alone."""
+    from pydelatin import Delatin
+
+    sq = min(params(pano[r["row0"]:r["row0"] + r["rows"], r["col0"]:r["col0"] + r["cols"]])[1] for r in regions)
+    z = filled(pano)
+    rows, cols = z.shape
+    spent = 0.0
+    tried = []
+
+    def at(bound: float) -> dict:
+        nonlocal spent
+        t0 = time.perf_counter()
+        tin = Delatin(z, width=cols, height=rows, max_error=bound)
+        seconds = time.perf_counter() - t0
+        spent += seconds
+        v, f = np.asarray(tin.vertices, dtype=np.float64), np.asarray(tin.triangles)
+        v[:, 1] = rows - 1 - v[:, 1]  # pydelatin's y runs up from the last row
+        model = rasterize(v[:, :2], v[:, 2], f, z.shape)
+        w = judge(pano, model, regions)
+        ok = passes_pointwise(w)
+        if roughness is not None:
+            rw = judge(roughness, roughness + model - pano, regions)
+            w["roughness"] = max((rw[k] for k in ("Sa", "Sq", "Sz")), key=abs)
+            ok = ok and abs(w["roughness"]) <= ROUGHNESS_LIMIT
+        w = {k: float(v) for k, v in w.items()}
+        r = {"bound_um": float(bound), "triangles": int(len(f)), "seconds": seconds, "worst": w, "pass": bool(ok)}
+        tried.append(r)
+        return r
+
+    b0 = 0.5 * sq * POINTWISE["max_error"] / 50.0
+    first = at(b0)
+    fail, ok = (None, first) if first["pass"] else (first, None)
+    step = 1.25 if first["pass"] else 0.8
+    b = b0
+    for _ in range(25):
+        if (ok is not None and fail is not None) or b < 0.004 * b0:
+            break
+        b *= step
+        r = at(b)
+        if r["pass"]:
+            ok = r if ok is None or r["bound_um"] > ok["bound_um"] else ok
+        else:
+            fail = r if fail is None or r["bound_um"] < fail["bound_um"] else fail
+    if ok is None:
+        return {"met": False, "tried": tried, "search_seconds": spent}
+    for _ in range(6 if fail is not None else 0):
+        r = at(float(np.sqrt(ok["bound_um"] * fail["bound_um"])))
+        if r["pass"]:
+            ok = r
+        else:
+            fail = r
+    best = min((r for r in tried if r["pass"]), key=lambda r: r["triangles"])
+    return {"met": True, **best, "search_seconds": spent, "meshes": len(tried)}
+
+
 RESIDUAL_LIMIT = 50.0  # the residual bound (% of Sq) the quadric search was measured at (session 3)
 
 
@@ -499,6 +563,9 @@ def main() -> int:
         um_per_unit = {"m": 1e6, "mm": 1e3, "um": 1.0}[mesher.get("units", "mm")]
         stl_judge = judge_stl(o / "surface.stl", pano, pitch, um_per_unit, regions)
         delatin_row = delatin(pano, regions) if a.delatin else None
+        rough_path = o / "roughness.npy"
+        delatin_equal = (delatin_at_equal_fidelity(pano, regions, np.load(rough_path).astype(np.float64)
+                                                   if rough_path.exists() else None) if a.delatin else None)
         p4, p4_tri = paper[4]
         rows.append({
             "set": name,
@@ -516,6 +583,7 @@ def main() -> int:
             "quadric": quadric,
             "stl_judge": stl_judge,
             "delatin": delatin_row,
+            "delatin_equal_fidelity": delatin_equal,
             "mesh_seconds": mesher.get("mesh_s"),
         })
     (a.out / f"bench_model{suffix}.json").write_text(json.dumps(rows, indent=1))
@@ -544,6 +612,24 @@ def main() -> int:
               f"{j['max_error']:.1f} ({j['max_error_um']:.4g}) | {j['surface_triangles']} ({j['surface_triangles'] / mp:.3f}) | "
               f"{'yes' if passes_pointwise(j) and j['uncovered_px'] == 0 else 'no'} {dtext}| "
               f"{r['mesh_seconds'] if r['mesh_seconds'] is not None else float('nan'):.2f} |")
+    if any(r["delatin_equal_fidelity"] for r in rows):
+        print()
+        print("At equal fidelity: the fewest triangles pydelatin needs to meet the same default tolerance on the same "
+              "regions, the roughness it carries within 5 % included (its one bound searched: delatin_at_equal_fidelity), beside ours:")
+        print()
+        print("| set | ours: surface tri (per measured px) | pydelatin at equal fidelity: tri (per px), bound um | ours / pydelatin triangles | "
+              "our mesher s | pydelatin s: the passing mesh / the whole search (meshes) |")
+        print("|---|---|---|---|---|---|")
+        for r in rows:
+            j, e, mp = r["stl_judge"], r["delatin_equal_fidelity"], r["measured_px"]
+            ms = r["mesh_seconds"] if r["mesh_seconds"] is not None else float("nan")
+            if not e["met"]:
+                print(f"| {r['set']} | {j['surface_triangles']} ({j['surface_triangles'] / mp:.3f}) | not met down to "
+                      f"{min(t['bound_um'] for t in e['tried']):.4g} um | - | {ms:.2f} | - / {e['search_seconds']:.2f} |")
+                continue
+            print(f"| {r['set']} | {j['surface_triangles']} ({j['surface_triangles'] / mp:.3f}) | {e['triangles']} "
+                  f"({e['triangles'] / mp:.3f}), {e['bound_um']:.4g} | {j['surface_triangles'] / e['triangles']:.2f} | "
+                  f"{ms:.2f} | {e['seconds']:.2f} / {e['search_seconds']:.2f} ({e['meshes']}) |")
     if any(r["quadric"] for r in rows):
         print()
         print("Surface triangles per measured px at the tolerance (Sa 1 %, Sq 1 %, Sz 3 %, residual <= 50 % of Sq for ours and quadric):")
