@@ -23,8 +23,9 @@
 //! mesher has them from the fusion's `panorama.tiles.json`): every footprint is then judged
 //! with the same criteria at every checkpoint, so the mesh chosen meets Table 6's regions too,
 //! not only the windows near them (issue 33: on real scans a mesh that passed its windows
-//! failed Table 6 with Sa -1.29 % in S5). The search aims at [`TARGET_SHARE`] of the
-//! tolerance, a margin for regions it does not judge (without footprints, Table 6's), and at
+//! failed Table 6 with Sa -1.29 % in S5). Without footprints the search aims at
+//! [`TARGET_SHARE`] of the tolerance, a margin for the regions it does not judge (Table 6's);
+//! with them at [`FOOTPRINT_TARGET_SHARE`] (all of it: every judged region is its own); and at
 //! all of the largest pointwise error's limit ([`MAX_ERROR_TARGET_SHARE`]: the insertion's
 //! bound is exact at the samples). With that limit, each block's bound is the search's times
 //! the smallest Sq of the regions it overlaps over the smallest of any block
@@ -121,9 +122,24 @@ impl Default for Tolerance {
     }
 }
 
-/// Share of the tolerance the search aims at (the rest is margin for regions it does not
-/// judge: without footprints, Table 6's tile regions).
+/// Share of the tolerance the search aims at when it does not know the tile footprints (the
+/// rest is margin for the regions it does not judge: Table 6's).
 pub const TARGET_SHARE: f64 = 0.9;
+
+/// Share of the tolerance the search aims at when the tile footprints are among its regions:
+/// all of it. Table 6 judges the same regions on the same resampled mesh, so a margin there
+/// buys only triangles (on the demo 0.9 gave 471 063 surface triangles where 1.0 meets every
+/// region with fewer; docs/model.md).
+pub const FOOTPRINT_TARGET_SHARE: f64 = 1.0;
+
+/// The share of the tolerance the search aims at, knowing `footprints` tile footprints.
+pub fn target_share(footprints: usize) -> f64 {
+    if footprints == 0 {
+        TARGET_SHARE
+    } else {
+        FOOTPRINT_TARGET_SHARE
+    }
+}
 
 /// Share of the largest pointwise error's limit the search aims at: all of it. The greedy
 /// insertion's bound holds exactly at every measured sample of a block (the balance only
@@ -629,7 +645,7 @@ pub struct CurvePoint {
     pub worst_roughness_pct: Option<f64>,
     /// The region with the largest deviation relative to its limit.
     pub worst_region: String,
-    /// Every region within [`TARGET_SHARE`] of the tolerance (its largest pointwise error
+    /// Every region within the search's share of the tolerance ([`target_share`]; its largest pointwise error
     /// within [`MAX_ERROR_TARGET_SHARE`] of that limit).
     pub pass: bool,
     /// Beyond `max_triangles` (not kept).
@@ -683,7 +699,11 @@ const FINEST_SQ_FRACTION: f64 = 0.004;
 /// First (coarsest) bound and the step between checkpoints.
 const COARSEST_SQ_FRACTION: f64 = 2.0;
 const STEP: f64 = 0.8;
-/// Points the curve should have at least (finer meshes are added after a pass).
+/// Points of the series above the coarsest bound worth judging the curve shows (its coarse
+/// side, [`Aim::coarsest_sq_fraction`]).
+const COARSE_CURVE_POINTS: usize = 3;
+/// Points the curve should have at least (finer meshes are added after a pass when the
+/// series has no coarse side).
 const MIN_CURVE_POINTS: usize = 6;
 /// Points the curve keeps at most (the chosen mesh, the first and the last always).
 const MAX_CURVE_POINTS: usize = 10;
@@ -702,8 +722,10 @@ pub struct Trial<M> {
 pub enum Stage {
     /// Before a mesh has passed: a candidate for the model.
     Search,
-    /// After: a finer point for the fidelity-cost curve only (the insertion continues
-    /// greedily, without the block balance: what more triangles buy pointwise).
+    /// A point of the fidelity-cost curve, meshed greedily (without the block balance): past
+    /// the chosen mesh (what more triangles buy pointwise) or, from a restarted order, above
+    /// the coarsest bound worth judging ([`Aim::coarsest_sq_fraction`]: what fewer triangles
+    /// cost). One that passes is a candidate as any.
     Curve,
     /// A bound between the last failing checkpoint and the first passing one, refined (with
     /// the balance) from the state the order had at the failing one ([`Checkpoints::keep`]):
@@ -719,6 +741,9 @@ pub trait Checkpoints<M> {
     fn checkpoint(&mut self, epsilon_um: f64, stage: Stage) -> Result<Trial<M>>;
     /// Keeps the order's state as it stands (a failing checkpoint a bisection starts from).
     fn keep(&mut self);
+    /// Forgets the order's state, kept or not: the next checkpoint refines from the first
+    /// samples (the curve's coarse side, once the search is done).
+    fn restart(&mut self);
 }
 
 /// Bisection steps at most between the last failing and the first passing checkpoint.
@@ -727,11 +752,33 @@ const MAX_BISECTIONS: usize = 4;
 /// failing one.
 const BISECT_WITHIN: f64 = 0.05;
 
-/// The bounds the search walks through, as fractions of Sq: 2, 1.6, 1.28, ... down to
-/// [`FINEST_SQ_FRACTION`].
-pub fn checkpoint_fractions() -> impl Iterator<Item = f64> {
-    std::iter::successors(Some(COARSEST_SQ_FRACTION), |f| Some(f * STEP))
-        .take_while(|&f| f >= FINEST_SQ_FRACTION)
+/// The bounds the search walks through, as fractions of Sq: one geometric series (each 0.8 x
+/// the one before) through `coarsest`, from its largest member of at most 2 down to
+/// [`FINEST_SQ_FRACTION`]. The members above `coarsest` are the fidelity-cost curve's cheap
+/// side (meshed greedily, [`Stage::Curve`]); the search's candidates start at `coarsest`.
+pub fn checkpoint_fractions(coarsest: f64) -> impl Iterator<Item = f64> {
+    let mut first = if coarsest.is_finite() && coarsest > 0.0 {
+        coarsest.min(COARSEST_SQ_FRACTION)
+    } else {
+        COARSEST_SQ_FRACTION
+    };
+    while first / STEP <= COARSEST_SQ_FRACTION {
+        first /= STEP;
+    }
+    std::iter::successors(Some(first), |f| Some(f * STEP)).take_while(|&f| f >= FINEST_SQ_FRACTION)
+}
+
+/// Where the search starts and what it aims at.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Aim {
+    /// Share of the tolerance every region must be within ([`target_share`]).
+    pub share: f64,
+    /// The coarsest bound worth judging, fraction of Sq: with a limit on the largest pointwise
+    /// error, the bound at which the tightest block's insertion just meets it (a coarser
+    /// checkpoint departs by its bound at some sample and cannot pass; judging those cost
+    /// seven meshes on the demo, and each one's block balance added samples the finer mesh
+    /// kept). Without one, [`COARSEST_SQ_FRACTION`].
+    pub coarsest_sq_fraction: f64,
 }
 
 /// The search (module docs): `order.checkpoint(epsilon_um, stage)` refines the one insertion
@@ -741,6 +788,7 @@ pub fn search<M>(
     sq_um: f64,
     measured_px: usize,
     settings: &ToleranceSettings,
+    aim: Aim,
     regions: usize,
     max_triangles: Option<usize>,
     order: &mut impl Checkpoints<M>,
@@ -761,10 +809,9 @@ pub fn search<M>(
         let mut fits = trial.fits;
         fits.sort_by(|a, b| b.worst_ratio(&t).total_cmp(&a.worst_ratio(&t)));
         let pass = !fits.is_empty()
-            && fits.iter().all(|r| {
-                r.excess_at(&t, TARGET_SHARE, MAX_ERROR_TARGET_SHARE)
-                    .is_none()
-            });
+            && fits
+                .iter()
+                .all(|r| r.excess_at(&t, aim.share, MAX_ERROR_TARGET_SHARE).is_none());
         let over = trial.surface_triangles > budget;
         curve.push((
             CurvePoint {
@@ -806,7 +853,14 @@ pub fn search<M>(
     let mut fallback: Option<(usize, M)> = None;
     // The last failing checkpoint (bound fraction, curve index), its state kept by `order`.
     let mut last_fail: Option<(f64, usize)> = None;
-    let mut fractions = checkpoint_fractions();
+    // The series' members above the coarsest bound worth judging are not refined on the way
+    // (each step adds the blocks' shared sides at its bound, and the balance its samples,
+    // which every finer mesh keeps: 450 061 surface triangles on the demo where starting at
+    // the coarsest worth judging gives 439 519); they are the curve's cheap side, made after.
+    let coarse_side: Vec<f64> = checkpoint_fractions(aim.coarsest_sq_fraction)
+        .take_while(|&f| f > aim.coarsest_sq_fraction * (1.0 + 1e-9))
+        .collect();
+    let mut fractions = checkpoint_fractions(aim.coarsest_sq_fraction).skip(coarse_side.len());
     for f in fractions.by_ref() {
         let (pass, over, mesh) = run(order, f, Stage::Search, &mut curve)?;
         if over {
@@ -821,8 +875,8 @@ pub fn search<M>(
         order.keep();
         last_fail = Some((f, k));
     }
-    // A few finer meshes for the curve when the search stopped early.
-    if best.is_some() {
+    // A few finer meshes for the curve when the search stopped early and has no coarse side.
+    if best.is_some() && coarse_side.is_empty() {
         for f in fractions {
             if curve.len() >= MIN_CURVE_POINTS {
                 break;
@@ -865,13 +919,45 @@ pub fn search<M>(
             }
         }
     }
+    // The curve's coarse side: an insertion order from the start, greedy, through the
+    // coarsest bounds of the series (coarse meshes are cheap: on the demo the three have at
+    // most a fifth of the chosen mesh's triangles, where the finer points the curve had
+    // before up to 3.6 x). A point that passes with fewer triangles is a candidate as any;
+    // when the first candidate was already beyond `max_triangles`, the whole side is walked
+    // and its finest mesh within the budget is kept.
+    let within_budget_only = best.is_none() && fallback.is_none();
+    if !coarse_side.is_empty() && (best.is_some() || within_budget_only) {
+        order.restart();
+        let points = if within_budget_only {
+            coarse_side.len()
+        } else {
+            COARSE_CURVE_POINTS
+        };
+        for f in coarse_side.into_iter().take(points) {
+            let (pass, over, mesh) = run(order, f, Stage::Curve, &mut curve)?;
+            if over {
+                break;
+            }
+            let k = curve.len() - 1;
+            let n = curve[k].0.surface_triangles;
+            match (mesh, &best) {
+                (Some(m), Some((b, _))) if pass && n < curve[*b].0.surface_triangles => {
+                    best = Some((k, m))
+                }
+                (Some(m), None) if pass => best = Some((k, m)),
+                (Some(m), None) => fallback = Some((k, m)),
+                _ => {}
+            }
+        }
+    }
     let (k, mesh) = match (best, fallback) {
         (Some(b), _) => b,
         (None, Some(fb)) => fb,
         (None, None) => {
             return Err(MeshError::CoarsestOverBudget {
                 tolerance: t.to_string(),
-                triangles: curve.first().map_or(0, |c| c.0.surface_triangles),
+                // The coarsest mesh tried (the coarse side is walked last).
+                triangles: curve.iter().map(|c| c.0.surface_triangles).min().unwrap_or(0),
                 budget,
             })
         }
@@ -914,7 +1000,7 @@ pub fn search<M>(
         mesh,
         ToleranceReport {
             tolerance: t,
-            target_share: TARGET_SHARE,
+            target_share: aim.share,
             region_px,
             regions,
             footprints: 0,
@@ -1174,6 +1260,8 @@ struct SearchSetup<'a> {
     /// The field's plane and parameters, computed once before the order's plan (which
     /// holds a filled copy of the field) exists.
     level: Option<FieldLevel>,
+    /// The coarsest bound the search judges ([`Aim::coarsest_sq_fraction`]).
+    coarsest_sq_fraction: f64,
 }
 
 fn search_setup<'a>(
@@ -1200,9 +1288,15 @@ fn search_setup<'a>(
         p.block_samples = Some(balance_block_px(&settings));
     }
     let mut plan = order_plan(heights, &p, sq)?;
-    if settings.tolerance.max_error_pct.is_some() {
-        let scales = block_bound_scales(heights, &plan, &regions);
+    let mut coarsest_sq_fraction = COARSEST_SQ_FRACTION;
+    if let Some(max_error_pct) = settings.tolerance.max_error_pct {
+        let (scales, smallest_sq_um) = block_bound_scales(heights, &plan, &regions);
         plan = plan.with_bound_scales(scales)?;
+        // The tightest block's bound is the search's (scale 1): it meets its regions'
+        // limit, max_error_pct of their Sq, at this fraction of the map's Sq.
+        if let Some(s) = smallest_sq_um {
+            coarsest_sq_fraction = max_error_pct / 100.0 * MAX_ERROR_TARGET_SHARE * s / sq;
+        }
     }
     let bound = angle_bound(&settings, at)?;
     Ok(SearchSetup {
@@ -1214,6 +1308,7 @@ fn search_setup<'a>(
         plan,
         bound,
         level,
+        coarsest_sq_fraction,
     })
 }
 
@@ -1240,12 +1335,13 @@ fn region_sq_um(z: &[f32], cols: usize, r: &Window) -> Option<f64> {
 /// largest pointwise error and the residual are judged per region as shares of that
 /// region's Sq, so a block whose regions all have a larger Sq meets them at a coarser bound
 /// in um; the blocks in the region of the smallest Sq keep the search's bound. (Before, one
-/// bound for the whole map, set by the smallest window's Sq.)
+/// bound for the whole map, set by the smallest window's Sq.) With the scales, that smallest
+/// Sq, um (None: no region has one).
 fn block_bound_scales(
     heights: RasterView<'_, f32>,
     plan: &BlockPlan<'_>,
     regions: &[Window],
-) -> Vec<f64> {
+) -> (Vec<f64>, Option<f64>) {
     let (z, cols) = (heights.values(), heights.shape().cols);
     let sqs: Vec<Option<f64>> = regions
         .par_iter()
@@ -1268,12 +1364,13 @@ fn block_bound_scales(
         })
         .collect();
     let Some(base) = smallest.iter().flatten().copied().reduce(f64::min) else {
-        return vec![1.0; smallest.len()];
+        return (vec![1.0; smallest.len()], None);
     };
-    smallest
+    let scales = smallest
         .into_iter()
         .map(|sq| sq.map_or(1.0, |sq| sq / base))
-        .collect()
+        .collect();
+    (scales, Some(base))
 }
 
 /// The regions of one checkpoint's mesh (`resampled_um`, on the grid of `heights`), the
@@ -1362,6 +1459,7 @@ fn search_to_tolerance<M: CheckpointMesh>(
         plan,
         bound,
         level,
+        coarsest_sq_fraction,
     } = search_setup(heights, roughness_um, at, params, settings, footprints)?;
     let extremes = window_extremes(heights, roughness_um, &regions);
     let judge =
@@ -1382,15 +1480,19 @@ fn search_to_tolerance<M: CheckpointMesh>(
             })
         };
     let (n, budget) = (regions.len(), params.max_triangles);
+    let aim = Aim {
+        share: target_share(footprints.len()),
+        coarsest_sq_fraction,
+    };
     let (mesh, mut report) = match spill_dir.filter(|_| bound.is_none()) {
         Some(dir) => {
             let balance = balance_of(&settings, roughness_um);
             let mut order = SpilledOrder::new(&plan, extremes, balance, dir, judge);
-            search(sq, measured_px, &settings, n, budget, &mut order)?
+            search(sq, measured_px, &settings, aim, n, budget, &mut order)?
         }
         None => {
             let mut order = LiveOrder::new(&plan, extremes, &settings, roughness_um, bound, judge);
-            search(sq, measured_px, &settings, n, budget, &mut order)?
+            search(sq, measured_px, &settings, aim, n, budget, &mut order)?
         }
     };
     report.footprints = footprints.len();
@@ -1490,6 +1592,12 @@ where
 
     fn keep(&mut self) {
         self.kept = Some(self.steps.len());
+    }
+
+    fn restart(&mut self) {
+        self.live.clear();
+        self.steps.clear();
+        self.kept = None;
     }
 }
 
@@ -1693,6 +1801,11 @@ where
     fn keep(&mut self) {
         self.kept = self.current.clone();
     }
+
+    fn restart(&mut self) {
+        self.current = None;
+        self.kept = None;
+    }
 }
 
 #[cfg(test)]
@@ -1844,7 +1957,7 @@ mod tests {
         )
         .unwrap();
         let regions = windows(shape, 32);
-        let scales = block_bound_scales(view, &plan, &regions);
+        let (scales, _) = block_bound_scales(view, &plan, &regions);
         assert_eq!(scales.len(), plan.block_count());
         for (k, &f) in scales.iter().enumerate() {
             let (b, _) = plan.block(k);
@@ -1858,7 +1971,7 @@ mod tests {
             assert!(f >= 1.0, "{f}");
         }
         // The whole map alone: one region, one bound.
-        let whole = block_bound_scales(view, &plan, &regions[..1]);
+        let (whole, _) = block_bound_scales(view, &plan, &regions[..1]);
         assert!(whole.iter().all(|&f| f == 1.0), "{whole:?}");
     }
 
