@@ -552,21 +552,26 @@ fn load_graph(a: &GraphArgs) -> Result<(GraphFile, deviation::Settings)> {
 
 /// `--tolerance`: checked, then set on every mesher node of the graph.
 fn apply_tolerance(graph: &mut GraphFile, tolerance: &str, origin: &str) -> Result<()> {
+    use surfstream_core::record::{MeshReport, NodeRecord};
     tolerance
         .parse::<surfstream_mesher::Tolerance>()
         .map_err(|e| anyhow!("--tolerance: {e}"))?;
-    let meshers: Vec<String> = graph
+    let mut meshers = 0;
+    for n in graph
         .nodes
-        .iter()
-        .filter(|n| n.node == "mesher")
-        .map(|n| n.id.clone())
-        .collect();
-    if meshers.is_empty() {
-        bail!("--tolerance: {origin} has no mesher node");
+        .iter_mut()
+        .filter(|n| n.node == <MeshReport as NodeRecord>::NODE_KIND)
+    {
+        // Written as given (run.json's parameters show the user's text), under the key the
+        // mesher's config reads.
+        n.params.insert(
+            surfstream_mesher::MesherConfig::TOLERANCE_KEY.into(),
+            toml::Value::String(tolerance.into()),
+        );
+        meshers += 1;
     }
-    for id in meshers {
-        let value = toml::Value::String(tolerance.to_string());
-        graph.apply_override(&format!("{id}.tolerance={value}"))?;
+    if meshers == 0 {
+        bail!("--tolerance: {origin} has no mesher node");
     }
     check_node_params(graph, origin)
 }
