@@ -772,7 +772,7 @@ fn typed_records_round_trip(out: &std::path::Path) {
     };
     let text = std::fs::read_to_string(out.join("run.json")).expect("run.json");
     let run: RunRecord = serde_json::from_str(&text).expect("run.json reads as a RunRecord");
-    let again = serde_json::to_string_pretty(&record::to_value(&run)).expect("serialize");
+    let again = serde_json::to_string_pretty(&record::to_value(&run).unwrap()).expect("serialize");
     assert!(
         again == text,
         "run.json written back from its record differs"
@@ -780,7 +780,7 @@ fn typed_records_round_trip(out: &std::path::Path) {
     macro_rules! same {
         ($t:ty, $v:expr) => {{
             let r: $t = record::from_value($v, stringify!($t)).expect("reads as its record");
-            assert_eq!(&record::to_value(&r), $v, "{}", stringify!($t));
+            assert_eq!(&record::to_value(&r).unwrap(), $v, "{}", stringify!($t));
         }};
     }
     same!(ReplayReport, &run.stages["stage"]);

@@ -300,7 +300,7 @@ mod tests {
         };
         let node = serde_json::json!({ "node_id": "fusion", "node_kind": "fusion",
             "stats": { "received": {}, "sent": {}, "deliveries": {} },
-            "report": record::to_value(&report), "t_finished_ns": 1 });
+            "report": record::to_value(&report).unwrap(), "t_finished_ns": 1 });
         let d = tempfile::tempdir().unwrap();
         std::fs::create_dir(d.path().join("nodes")).unwrap();
         std::fs::write(d.path().join("nodes/fusion.json"), node.to_string()).unwrap();

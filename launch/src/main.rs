@@ -552,21 +552,26 @@ fn load_graph(a: &GraphArgs) -> Result<(GraphFile, deviation::Settings)> {
 
 /// `--tolerance`: checked, then set on every mesher node of the graph.
 fn apply_tolerance(graph: &mut GraphFile, tolerance: &str, origin: &str) -> Result<()> {
+    use surfstream_core::record::{MeshReport, NodeRecord};
     tolerance
         .parse::<surfstream_mesher::Tolerance>()
         .map_err(|e| anyhow!("--tolerance: {e}"))?;
-    let meshers: Vec<String> = graph
+    let mut meshers = 0;
+    for n in graph
         .nodes
-        .iter()
-        .filter(|n| n.node == "mesher")
-        .map(|n| n.id.clone())
-        .collect();
-    if meshers.is_empty() {
-        bail!("--tolerance: {origin} has no mesher node");
+        .iter_mut()
+        .filter(|n| n.node == <MeshReport as NodeRecord>::NODE_KIND)
+    {
+        // Written as given (run.json's parameters show the user's text), under the key the
+        // mesher's config reads.
+        n.params.insert(
+            surfstream_mesher::MesherConfig::TOLERANCE_KEY.into(),
+            toml::Value::String(tolerance.into()),
+        );
+        meshers += 1;
     }
-    for id in meshers {
-        let value = toml::Value::String(tolerance.to_string());
-        graph.apply_override(&format!("{id}.tolerance={value}"))?;
+    if meshers == 0 {
+        bail!("--tolerance: {origin} has no mesher node");
     }
     check_node_params(graph, origin)
 }
@@ -599,55 +604,16 @@ fn check_node_params(graph: &GraphFile, origin: &str) -> Result<()> {
     Ok(())
 }
 
-/// The replay node's parameters, cheaply: the simulated stage's plan and specimen settings
-/// (not the specimen itself), the pacing, and that a scan or recording path exists.
+/// The replay node's parameters, cheaply, through the node's own [`surfstream_replay::Config`]:
+/// the simulated stage's plan and specimen settings (not the specimen itself), the pacing, and
+/// that a scan or recording path is a regular file.
 fn check_source_params(c: &surfstream_runtime::graph::NodeContext) -> Result<()> {
-    let p = &c.params;
-    let text = |k: &str, default: &str| -> Result<String> {
-        match p.get(k) {
-            None => Ok(default.to_string()),
-            Some(v) => v
-                .as_str()
-                .map(str::to_string)
-                .ok_or_else(|| anyhow!("params.{k} = {v}: expected a string")),
-        }
-    };
-    let seconds = match p.get("field_time_s") {
-        None => 1.0,
-        Some(v) => v
-            .as_float()
-            .or_else(|| v.as_integer().map(|i| i as f64))
-            .ok_or_else(|| anyhow!("params.field_time_s = {v}: expected seconds"))?,
-    };
-    match text("source", "")?.as_str() {
-        "simulated" => {
-            // The node's own split and checks (one place: surfstream_replay::source).
-            surfstream_replay::source::SimulatedParams::from_table(p)?.check()?;
-            Ok(())
-        }
-        kind @ ("scan" | "mcap") => {
-            let path = PathBuf::from(text("path", "")?);
-            let pacing = text("pacing", if kind == "scan" { "fast" } else { "original" })?;
-            surfstream_replay::Pacing::from_name(&pacing, seconds).map_err(|e| anyhow!("{e}"))?;
-            let file = if kind == "scan" && path.is_dir() {
-                path.join("scan.toml")
-            } else {
-                path.clone()
-            };
-            if kind == "scan" && file.is_file() {
-                warn_assumed_height_unit(&file);
-            }
-            // A folder, FIFO or device is named for what it is, not "no such file" (issue 36).
-            let expected = if kind == "scan" {
-                "a scan.toml or its directory"
-            } else {
-                "a .mcap recording"
-            };
-            surfstream_io::input::check_regular_file(&file, expected)
-                .map_err(|e| anyhow!("params.path = {:?}: {e}", path.display().to_string()))
-        }
-        other => bail!("params.source = {other:?}: expected \"simulated\", \"scan\" or \"mcap\""),
+    let config = surfstream_replay::Config::from_table(&c.params)?;
+    config.check()?;
+    if let surfstream_replay::Config::Scan(scan) = &config {
+        warn_assumed_height_unit(&scan.manifest());
     }
+    Ok(())
 }
 
 /// A scan.toml without `height_unit` whose tiles carry no unit (.npy, .xyz): the reader

@@ -26,6 +26,7 @@ use std::os::unix::fs::MetadataExt;
 use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, bail, Context, Result};
+use surfstream_core::record::{NodeRecord, ReplayReport};
 
 /// Name of the failure record in a failed run's folder.
 pub const FAILED: &str = "FAILED";
@@ -207,6 +208,12 @@ pub fn inputs_of(graph: &surfstream_runtime::graph::GraphFile, out: &Path) -> Ve
     let out = absolute(out).ok().and_then(|o| o.canonicalize().ok());
     let mut inputs = Vec::new();
     for n in &graph.nodes {
+        // A scan source's tiles lie beside its manifest (the replay's own reading of it).
+        let scan_source = n.node == <ReplayReport as NodeRecord>::NODE_KIND
+            && matches!(
+                surfstream_replay::Config::from_table(&n.params),
+                Ok(surfstream_replay::Config::Scan(_))
+            );
         for v in n.params.values() {
             let Some(path) = v
                 .as_str()
@@ -216,10 +223,7 @@ pub fn inputs_of(graph: &surfstream_runtime::graph::GraphFile, out: &Path) -> Ve
                 continue;
             };
             let inside_out = out.as_deref().is_some_and(|o| path.starts_with(o));
-            if path.is_file()
-                && !inside_out
-                && n.params.get("source").and_then(|s| s.as_str()) == Some("scan")
-            {
+            if path.is_file() && !inside_out && scan_source {
                 if let Some(dir) = path.parent() {
                     inputs.push(dir.to_path_buf());
                 }

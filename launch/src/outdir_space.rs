@@ -13,6 +13,8 @@
 use std::path::Path;
 
 use anyhow::{bail, Result};
+use surfstream_core::record::{NodeRecord, ReplayReport};
+use surfstream_replay::Config;
 use surfstream_runtime::graph::GraphFile;
 
 /// Bytes a run writes per measured point of its tiles (measured, see the module text).
@@ -23,35 +25,29 @@ pub const BYTES_PER_TILE_POINT: u64 = 50;
 /// `None` when no source can be estimated (the check is then skipped and said so).
 pub fn tile_points(graph: &GraphFile) -> Option<u64> {
     let mut total = None::<u64>;
-    for n in graph.nodes.iter().filter(|n| n.node == "replay") {
-        let p = &n.params;
-        let points = match p.get("source").and_then(|v| v.as_str()) {
-            Some("simulated") => {
-                let plan = surfstream_replay::source::SimulatedParams::from_table(p)
-                    .ok()?
-                    .check()
-                    .ok()?;
+    for n in graph
+        .nodes
+        .iter()
+        .filter(|n| n.node == <ReplayReport as NodeRecord>::NODE_KIND)
+    {
+        let points = match Config::from_table(&n.params).ok()? {
+            Config::Simulated(p) => {
+                let plan = p.check().ok()?;
                 (plan.tiles.len() as u64)
                     .saturating_mul(plan.tile_width_px as u64)
                     .saturating_mul(plan.tile_height_px as u64)
             }
-            Some("scan") => scan_bytes(Path::new(p.get("path")?.as_str()?))? / 4,
-            Some("mcap") => std::fs::metadata(p.get("path")?.as_str()?).ok()?.len() / 4,
-            _ => return None,
+            Config::Scan(s) => scan_bytes(&s.manifest())? / 4,
+            Config::Mcap(m) => std::fs::metadata(&m.path).ok()?.len() / 4,
         };
         total = Some(total.unwrap_or(0).saturating_add(points));
     }
     total
 }
 
-/// The bytes of the tile files a scan manifest (or its folder) lists.
-fn scan_bytes(path: &Path) -> Option<u64> {
-    let manifest = if path.is_dir() {
-        path.join("scan.toml")
-    } else {
-        path.to_path_buf()
-    };
-    let text = std::fs::read_to_string(&manifest).ok()?;
+/// The bytes of the tile files a scan manifest lists.
+fn scan_bytes(manifest: &Path) -> Option<u64> {
+    let text = std::fs::read_to_string(manifest).ok()?;
     let table: toml::Table = text.parse().ok()?;
     let dir = manifest.parent()?;
     let dir = match table

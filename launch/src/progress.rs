@@ -129,16 +129,14 @@ pub fn layout(contexts: &[NodeContext]) -> Layout {
     let Some(src) = contexts.iter().find(|c| c.node_kind == "replay") else {
         return Layout::default();
     };
-    let int = |k: &str, default: usize| {
-        src.params
-            .get(k)
-            .and_then(|v| v.as_integer())
-            .map_or(default, |v| v.max(0) as usize)
+    // The node's own reading of its parameters; a table it refuses has no layout (the
+    // launcher's check names what is wrong).
+    let Ok(config) = surfstream_replay::Config::from_table(&src.params) else {
+        return Layout::default();
     };
-    match src.params.get("source").and_then(|v| v.as_str()) {
-        Some("simulated") => {
-            let defaults = surfstream_replay::StageParams::default();
-            let (rows, cols) = (int("rows", defaults.rows), int("cols", defaults.cols));
+    match &config {
+        surfstream_replay::Config::Simulated(p) => {
+            let (rows, cols) = (p.stage.rows, p.stage.cols);
             if rows.saturating_mul(cols) > surfstream_replay::stage::MAX_TILES {
                 return Layout::default();
             }
@@ -147,21 +145,16 @@ pub fn layout(contexts: &[NodeContext]) -> Layout {
                 planned: None,
             }
         }
-        Some("scan") => src
-            .params
-            .get("path")
-            .and_then(|p| p.as_str())
-            .map(|p| scan_layout(std::path::Path::new(p)))
-            .unwrap_or_default(),
-        _ => Layout {
+        surfstream_replay::Config::Scan(s) => scan_layout(&s.manifest()),
+        surfstream_replay::Config::Mcap(_) => Layout {
             grid: Vec::new(),
-            planned: surfstream_replay::planned::planned_tiles(&src.params),
+            planned: surfstream_replay::planned::planned_tiles(&config),
         },
     }
 }
 
 /// The `[[tile]]` rows and cols of a scan.toml (the loader checks the rest when the run starts).
-fn scan_layout(path: &std::path::Path) -> Layout {
+fn scan_layout(manifest: &std::path::Path) -> Layout {
     #[derive(serde::Deserialize)]
     struct Tile {
         row: usize,
@@ -172,11 +165,6 @@ fn scan_layout(path: &std::path::Path) -> Layout {
         #[serde(default)]
         tile: Vec<Tile>,
     }
-    let manifest = if path.is_dir() {
-        path.join("scan.toml")
-    } else {
-        path.to_path_buf()
-    };
     std::fs::read_to_string(manifest)
         .ok()
         .and_then(|t| toml::from_str::<Manifest>(&t).ok())

@@ -6,6 +6,7 @@ use std::path::Path;
 use std::time::Duration;
 
 use anyhow::{anyhow, Result};
+#[cfg(test)]
 use serde_json::Value;
 use surfstream_core::record::{
     self, GraphRef, MatcherReport, MeshReport, MessageCounts, NodeRecord, OutputChoice, OverPlan,
@@ -85,13 +86,8 @@ pub fn write(
     let parameters = graph
         .nodes
         .iter()
-        .map(|n| {
-            (
-                n.id.clone(),
-                serde_json::to_value(&n.params).unwrap_or(Value::Null),
-            )
-        })
-        .collect();
+        .map(|n| Ok((n.id.clone(), record::to_value(&n.params)?)))
+        .collect::<Result<_, record::RecordError>>()?;
     let mut files = list_files(out)?;
     files.push("run.json".into());
     files.sort();
@@ -125,7 +121,7 @@ pub fn write(
     run.peak_rss = Some(peak_rss(graph, reports, mode));
     let path = out.join("run.json");
     // Through a JSON value: its keys come out sorted, as in every run.json so far.
-    let value = record::to_value(&run);
+    let value = record::to_value(&run)?;
     surfstream_core::fsutil::write_atomic(&path, |w| {
         serde_json::to_writer_pretty(w, &value).map_err(|e| anyhow!("{}: {e}", path.display()))
     })?;

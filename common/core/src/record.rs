@@ -22,10 +22,23 @@ use serde_json::Value;
 
 use crate::metrology::Params;
 
+/// A record that could not be written as JSON (a map with keys that are not strings, a custom
+/// `Serialize` that failed): an error, so a report never turns into `null` unnoticed.
+#[derive(Debug, thiserror::Error)]
+#[error("record {record} cannot be written as JSON: {source}")]
+pub struct RecordError {
+    /// The record's type, as Rust names it.
+    pub record: &'static str,
+    #[source]
+    pub source: serde_json::Error,
+}
+
 /// A record as a JSON value with its keys sorted (how every report and run.json is written).
-pub fn to_value<T: Serialize>(record: &T) -> Value {
-    // Serializing these structs cannot fail (string keys, no custom serializers that error).
-    serde_json::to_value(record).unwrap_or(Value::Null)
+pub fn to_value<T: Serialize + ?Sized>(record: &T) -> Result<Value, RecordError> {
+    serde_json::to_value(record).map_err(|source| RecordError {
+        record: std::any::type_name::<T>(),
+        source,
+    })
 }
 
 /// A record read back from a JSON value, the error naming what was expected.
@@ -1555,7 +1568,7 @@ mod tests {
             },
             placement: Some(placement()),
         };
-        let v = to_value(&t);
+        let v = to_value(&t).unwrap();
         let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
         assert_eq!(
             keys,
@@ -1588,7 +1601,7 @@ mod tests {
         let alone = json!({"index": 0, "row": 0, "col": 0, "stage_x_um": 0.0, "stage_y_um": 0.0});
         let t: TileRecord = from_value(&alone, "tile").unwrap();
         assert!(t.placement.is_none());
-        assert_eq!(to_value(&t), alone);
+        assert_eq!(to_value(&t).unwrap(), alone);
     }
 
     #[test]
@@ -1599,7 +1612,7 @@ mod tests {
         let s: ScanRecord = from_value(&v, "scan").unwrap();
         assert_eq!(s.grid(), None);
         assert_eq!(s.tile_px(), (8, 6));
-        assert_eq!(to_value(&s), v);
+        assert_eq!(to_value(&s).unwrap(), v);
         let mut bad = v.clone();
         bad["tiles"] = json!("four");
         let e = from_value::<ScanRecord>(&bad, "run.json scan").unwrap_err();
@@ -1640,11 +1653,11 @@ mod tests {
         );
         assert_eq!(t.stages["mesh"].limits_pct.get("Sz"), Some(3.0));
         // Written back: the same value (NaN as null).
-        assert_eq!(to_value(&d), v);
+        assert_eq!(to_value(&d).unwrap(), v);
         let e = json!({ "error": "panorama.npy: no such file" });
         let d: DeviationRecord = from_value(&e, "deviation").unwrap();
         assert!(matches!(&d, DeviationRecord::NotComputed { error } if error.contains("no such")));
-        assert_eq!(to_value(&d), e);
+        assert_eq!(to_value(&d).unwrap(), e);
         // A table missing a field is not silently read as something else.
         let mut bad = v.clone();
         bad.as_object_mut().unwrap().remove("stages");
@@ -1666,7 +1679,7 @@ mod tests {
         let g = grid_mesh();
         let m: MeshReport = from_value(&g, "mesher").unwrap();
         assert!(m.adaptive().is_none() && m.tolerance.is_none() && m.outliers.is_none());
-        assert_eq!(to_value(&m), g);
+        assert_eq!(to_value(&m).unwrap(), g);
         let mut a = grid_mesh();
         let extra = json!({ "method": "adaptive", "kind": "solid", "offset_rule": "r",
             "surface_triangles": 8, "missing_samples": 0, "missing": "fill",
@@ -1689,7 +1702,7 @@ mod tests {
         let f = m.adaptive().unwrap().fidelity;
         assert!(f.error.max_um.is_nan() && f.mesh.unwrap().sdr_percent.is_nan());
         assert!(m.tolerance.as_ref().unwrap().region_fits[0].measured_um[2].is_nan());
-        assert_eq!(to_value(&m), a);
+        assert_eq!(to_value(&m).unwrap(), a);
         // Not a mesher's report: no triangles.
         let mut other = grid_mesh();
         other.as_object_mut().unwrap().remove("triangles");
@@ -1728,7 +1741,7 @@ mod tests {
             (2, 6)
         );
         assert!(s.fidelity.meshed_grid.is_none());
-        assert_eq!(to_value(&m), g);
+        assert_eq!(to_value(&m).unwrap(), g);
         // An adaptive mesh with an angle bound carries the element quality of the bound.
         let mut a = grid_mesh();
         let extra = json!({ "method": "adaptive", "kind": "sheet", "offset_rule": "r",
@@ -1744,7 +1757,7 @@ mod tests {
         let m: MeshReport = from_value(&a, "mesher").unwrap();
         let q = m.adaptive().and_then(|r| r.element_quality);
         assert_eq!(q.map(|q| q.min_angle_bound_deg), Some(1.0));
-        assert_eq!(to_value(&m), a);
+        assert_eq!(to_value(&m).unwrap(), a);
     }
 
     #[test]
@@ -1756,7 +1769,7 @@ mod tests {
             "peak_ratio": 1.1, "accepted": false, "reason": "low NCC" });
         let p: MatcherPair = from_value(&streamed, "pair").unwrap();
         assert!(!p.accepted_below_min_ncc && p.kept_by_global_solve.is_none());
-        assert_eq!(to_value(&p), streamed);
+        assert_eq!(to_value(&p).unwrap(), streamed);
         let mut solved = streamed.clone();
         for (k, v) in json!({ "final_offset_px": [900.5, 0.25], "z_samples": 40,
             "alternatives_px": [[900.0, 0.0], [880.0, 1.0]], "chosen_alternative": null,
@@ -1769,7 +1782,7 @@ mod tests {
         let p: MatcherPair = from_value(&solved, "pair").unwrap();
         assert_eq!(p.chosen_alternative, Some(None));
         assert!(p.residual_px.unwrap()[0].is_nan());
-        assert_eq!(to_value(&p), solved);
+        assert_eq!(to_value(&p).unwrap(), solved);
     }
 
     #[test]
@@ -1784,7 +1797,7 @@ mod tests {
         let o = m.outliers.as_ref().unwrap();
         assert_eq!((o.largest[0].row, o.largest[0].col), (12, 17));
         assert!(o.largest[1].height_um.is_nan() && o.largest[1].excess_um == -2.5);
-        assert_eq!(to_value(&m), a);
+        assert_eq!(to_value(&m).unwrap(), a);
         // A spike without its position is not a spike.
         a["outliers"]["largest"][0]
             .as_object_mut()
@@ -1822,7 +1835,7 @@ mod tests {
         assert!(w.equivalent_cutoff_y_um.unwrap().is_nan());
         assert_eq!(w.choices.base_rmse.as_ref().unwrap()[0].wavelet, "db2");
         assert_eq!(f.panorama_px, [40, 30]);
-        assert_eq!(to_value(&r), report);
+        assert_eq!(to_value(&r).unwrap(), report);
         // Without a y cutoff, a base ranking or a warning, none is written back.
         let mut plain = wavelet_final();
         for k in ["equivalent_cutoff_y_um", "warning"] {
@@ -1832,12 +1845,12 @@ mod tests {
         plain["base_rmse_note"] = Value::Null;
         let f: FinalSummary = from_value(&plain, "final").unwrap();
         assert!(f.warning.is_none());
-        assert_eq!(to_value(&f), plain);
+        assert_eq!(to_value(&f).unwrap(), plain);
         // Before the end of scan the summary is null.
         let early = json!({ "live_patches": 0, "final": null });
         let r: WaveletReport = from_value(&early, "wavelet").unwrap();
         assert!(r.final_pass.is_none());
-        assert_eq!(to_value(&r), early);
+        assert_eq!(to_value(&r).unwrap(), early);
         // A summary without its level is neither layout's.
         let mut broken = wavelet_final();
         broken.as_object_mut().unwrap().remove("level");
@@ -1861,7 +1874,7 @@ mod tests {
             f.separation.datum_title(),
             "datum, gaussian lambda_c 80 um (um)"
         );
-        assert_eq!(to_value(&f), filter);
+        assert_eq!(to_value(&f).unwrap(), filter);
     }
 
     #[test]
@@ -1878,12 +1891,31 @@ mod tests {
             removed: vec!["panorama.npy".into()],
             removed_bytes: 8,
         };
-        let v = to_value(&rec);
+        let v = to_value(&rec).unwrap();
         assert_eq!(
             v,
             json!({ "set": "model", "removed": ["panorama.npy"], "removed_bytes": 8 })
         );
         assert_eq!(from_value::<OutputsRecord>(&v, "outputs"), Ok(rec));
         assert_eq!(OutputChoice::default(), OutputChoice::Full);
+    }
+
+    /// A map keyed by numbers pairs cannot be a JSON object; a custom `Serialize` may fail.
+    #[test]
+    fn a_record_that_cannot_be_serialized_is_an_error_not_null() {
+        let by_pair: BTreeMap<(u32, u32), f64> = [((0, 1), 2.0)].into_iter().collect();
+        let e = to_value(&by_pair).unwrap_err();
+        assert!(e.to_string().contains("BTreeMap"), "{e}");
+        assert!(e.to_string().contains("key must be a string"), "{e}");
+
+        struct Refuses;
+        impl Serialize for Refuses {
+            fn serialize<S: serde::Serializer>(&self, _: S) -> Result<S::Ok, S::Error> {
+                Err(serde::ser::Error::custom("no JSON for this one"))
+            }
+        }
+        let e = to_value(&Refuses).unwrap_err();
+        assert!(e.to_string().contains("Refuses"), "{e}");
+        assert!(e.to_string().contains("no JSON for this one"), "{e}");
     }
 }

@@ -369,7 +369,7 @@ fn run_node(
         logic.on_drained(&mut outbox)?;
         send_all(&ctx, &mut outputs, &mut outbox, &mut stats, timeout)?;
     }
-    Ok(NodeReport::finished(&ctx, stats, logic.as_ref()))
+    NodeReport::finished(&ctx, stats, logic.as_ref())
 }
 
 fn send_all(
@@ -566,8 +566,8 @@ mod tests {
         fn finished(&self) -> bool {
             self.ended
         }
-        fn report(&self) -> serde_json::Value {
-            serde_json::json!({ "seen": self.seen })
+        fn report(&self) -> anyhow::Result<serde_json::Value> {
+            Ok(serde_json::json!({ "seen": self.seen }))
         }
     }
 
@@ -637,5 +637,41 @@ mod tests {
                 && e.contains("'slow' made no progress for 1.0 s (backpressure timeout)"),
             "{e}"
         );
+    }
+
+    /// A node whose report cannot be written as JSON (a map keyed by pairs): the run fails
+    /// naming the node and the record, instead of recording `null` for it.
+    struct UnwritableReport;
+
+    impl NodeLogic for UnwritableReport {
+        fn on_input(&mut self, _: &str, _: Input<'_>, _: &mut Outbox) -> Result<()> {
+            Ok(())
+        }
+        fn on_drained(&mut self, _: &mut Outbox) -> Result<()> {
+            Ok(())
+        }
+        fn finished(&self) -> bool {
+            true
+        }
+        fn report(&self) -> Result<serde_json::Value> {
+            let by_pair: std::collections::BTreeMap<(u32, u32), f64> =
+                [((0, 1), 1.0)].into_iter().collect();
+            Ok(surfstream_core::record::to_value(&by_pair)?)
+        }
+    }
+
+    #[test]
+    fn a_report_that_cannot_be_written_fails_the_node_by_name() {
+        let n = InProcessNode {
+            logic: Box::new(UnwritableReport),
+            ..node("reporter", None)
+        };
+        let e = format!("{:#}", run_graph(vec![n]).unwrap_err());
+        assert!(e.contains("node 'reporter' failed"), "{e}");
+        assert!(
+            e.contains("the test node's report cannot be written"),
+            "{e}"
+        );
+        assert!(e.contains("key must be a string"), "{e}");
     }
 }

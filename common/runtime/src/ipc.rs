@@ -469,7 +469,7 @@ pub fn run_node(
     // segment) stay readable until consumed.
     drop(ins);
     hold_until_subscribers_left(&node, ctx, &outs, peers)?;
-    Ok(NodeReport::finished(ctx, stats, logic))
+    NodeReport::finished(ctx, stats, logic)
 }
 
 /// The startup budget (issue 36): a startup wait fails when the nodes it waits on made no

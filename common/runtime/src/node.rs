@@ -10,6 +10,7 @@
 use std::collections::BTreeMap;
 use std::time::Instant;
 
+use anyhow::Context;
 use serde::{Deserialize, Serialize};
 
 use surfstream_core::frame::{monotonic_ns, FrameHeader, FrameView, HeightMap, TileRegistration};
@@ -187,9 +188,10 @@ pub trait NodeLogic {
     /// Everything final is out, every output port closed: the node may exit.
     fn finished(&self) -> bool;
 
-    /// Node-specific facts for run.json (positions, qualities, files written, ...).
-    fn report(&self) -> serde_json::Value {
-        serde_json::Value::Null
+    /// Node-specific facts for run.json (positions, qualities, files written, ...). An error
+    /// (a record that cannot be written as JSON) fails the node instead of writing `null`.
+    fn report(&self) -> anyhow::Result<serde_json::Value> {
+        Ok(serde_json::Value::Null)
     }
 }
 
@@ -276,20 +278,24 @@ pub fn peak_rss_bytes() -> Option<u64> {
 }
 
 impl NodeReport {
-    /// The report of a node that has just finished.
+    /// The report of a node that has just finished; its logic's report failing is the node's
+    /// failure (both transports name the node's id around this error).
     pub fn finished(
         ctx: &crate::graph::NodeContext,
         stats: NodeStats,
         logic: &dyn NodeLogic,
-    ) -> Self {
-        NodeReport {
+    ) -> anyhow::Result<Self> {
+        let report = logic
+            .report()
+            .with_context(|| format!("the {} node's report cannot be written", ctx.node_kind))?;
+        Ok(NodeReport {
             node_id: ctx.node_id.clone(),
             node_kind: ctx.node_kind.clone(),
             stats,
-            report: logic.report(),
+            report,
             t_finished_ns: monotonic_ns(),
             peak_rss_bytes: peak_rss_bytes(),
-        }
+        })
     }
 }
 

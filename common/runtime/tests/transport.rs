@@ -84,8 +84,8 @@ impl NodeLogic for Sink {
     fn finished(&self) -> bool {
         self.ended
     }
-    fn report(&self) -> serde_json::Value {
-        serde_json::json!({ "seen": self.seen })
+    fn report(&self) -> anyhow::Result<serde_json::Value> {
+        Ok(serde_json::json!({ "seen": self.seen }))
     }
 }
 

@@ -241,7 +241,8 @@ pub fn attach(contexts: &mut Vec<NodeContext>) {
     // recording's summary), known before its first tile.
     let planned = layout.total().or_else(|| {
         let source = contexts.iter().find(|c| c.node_kind == "replay")?;
-        surfstream_replay::planned::planned_tiles(&source.params)
+        let config = surfstream_replay::Config::from_table(&source.params).ok()?;
+        surfstream_replay::planned::planned_tiles(&config)
     });
     // The pair log of the matcher the observer reads.
     let pair_log = contexts

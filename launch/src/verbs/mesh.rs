@@ -144,7 +144,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
     outcome.report.input = Some(a.file.display().to_string());
     outcome.report.input_format = Some(surface.metadata.format.clone());
     let json_path = a.out.with_extension("json");
-    let report = surfstream_core::record::to_value(&outcome.report);
+    let report = surfstream_core::record::to_value(&outcome.report)?;
     surfstream_core::fsutil::write_atomic(&json_path, |w| {
         serde_json::to_writer_pretty(w, &report)
             .map_err(|e| anyhow!("{}: {e}", json_path.display()))
@@ -538,7 +538,7 @@ mod tests {
             let json: serde_json::Value =
                 serde_json::from_slice(&std::fs::read(out.with_extension("json")).unwrap())
                     .unwrap();
-            let oracle = m.summary();
+            let oracle = m.summary().unwrap();
             for key in [
                 "triangles",
                 "vertices",

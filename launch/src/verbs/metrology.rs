@@ -202,7 +202,7 @@ pub fn inspect(a: InspectArgs) -> Result<()> {
         };
         println!(
             "{}",
-            serde_json::to_string_pretty(&record::to_value(&info))?
+            serde_json::to_string_pretty(&record::to_value(&info)?)?
         );
         return Ok(());
     }
@@ -409,7 +409,7 @@ fn sig6(v: f64) -> String {
     }
 }
 
-fn json_record(r: &ParamsRecord) -> serde_json::Value {
+fn json_record(r: &ParamsRecord) -> Result<serde_json::Value, record::RecordError> {
     record::to_value(&ParamsJson {
         file: &r.file,
         rows: r.rows,
@@ -441,7 +441,10 @@ fn render(records: &[ParamsRecord], a: &ParamsArgs) -> Result<String> {
     use std::fmt::Write as _;
     let mut out = String::new();
     if a.json {
-        let v: Vec<_> = records.iter().map(json_record).collect();
+        let v = records
+            .iter()
+            .map(json_record)
+            .collect::<Result<Vec<_>, _>>()?;
         let doc = if v.len() == 1 {
             v.into_iter().next().unwrap_or_default()
         } else {
@@ -451,7 +454,7 @@ fn render(records: &[ParamsRecord], a: &ParamsArgs) -> Result<String> {
         out.push('\n');
     } else if a.jsonl {
         for r in records {
-            writeln!(out, "{}", serde_json::to_string(&json_record(r))?)?;
+            writeln!(out, "{}", serde_json::to_string(&json_record(r)?)?)?;
         }
     } else if a.csv {
         let mut head = vec![
@@ -925,7 +928,7 @@ pub fn compare(a: CompareArgs) -> Result<()> {
             ssim_range_um: ssim.range_um,
             rms_difference_um: rms,
             points_compared: n,
-        });
+        })?;
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
         println!("SIM   {sim:.6} (normalised cross-correlation, eq. 12)");

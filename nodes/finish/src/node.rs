@@ -107,8 +107,8 @@ impl NodeLogic for FinishNode {
         self.done
     }
 
-    fn report(&self) -> serde_json::Value {
-        surfstream_core::record::to_value(&self.report)
+    fn report(&self) -> anyhow::Result<serde_json::Value> {
+        Ok(surfstream_core::record::to_value(&self.report)?)
     }
 }
 

@@ -97,7 +97,7 @@ pub fn finish_record(
     record.cycle_path = Some(setup.cycle_path().into());
     record.after_registrations = opts.after_registrations.clone();
     // Written as a JSON value: its keys sorted, as finish.json has always had them.
-    let summary = record::to_value(&record);
+    let summary = record::to_value(&record)?;
     let path = out_dir.join(outputs::SUMMARY);
     surfstream_core::fsutil::write_atomic(&path, |w| {
         serde_json::to_writer_pretty(w, &summary).map_err(|e| anyhow!("{}: {e}", path.display()))
@@ -853,7 +853,7 @@ fn run_cycle(
         // The progress lines borrow `say`; it speaks again below.
         drop(progress);
         st.count_engine(&r, CostEstimate::Update);
-        CycleRun::of_segment(r)
+        CycleRun::of_segment(r)?
     } else {
         let mut last = Instant::now();
         let m = run_micro_passes(
@@ -890,7 +890,7 @@ fn run_cycle(
         st.engine_s += m.engine_s;
         st.engine_cpu_s += m.engine_cpu_s;
         say_budget(say, &format!("cycle {c}"), &m.model, opts.max_triangles);
-        CycleRun::of_micro(m)
+        CycleRun::of_micro(m)?
     };
     if r.stopped {
         st.partial = true;
@@ -997,9 +997,9 @@ struct CycleRun {
 }
 
 impl CycleRun {
-    fn of_segment(r: SegmentResult) -> Self {
+    fn of_segment(r: SegmentResult) -> Result<Self, record::RecordError> {
         let steps = r.segment.total_steps();
-        Self {
+        Ok(Self {
             passes: r.segment.passes.len(),
             impacts: r.segment.passes.len(),
             simulated_s: r.segment.simulated_time_s(),
@@ -1016,22 +1016,22 @@ impl CycleRun {
             unmapped_volume_um3: r.unmapped_volume_um3,
             to_nearest_sample_um3: None,
             volume_relative_error: r.volume_relative_error(),
-            contacts: record::to_value(&r.contacts),
+            contacts: record::to_value(&r.contacts)?,
             micro: None,
             model: None,
             stopped: r.stopped,
             finnie_um: r.finnie_um,
             archard_um: r.archard_um,
-        }
+        })
     }
 
     /// The micro passes: `mesh_stride` 1 (the tolerance mesh, not a block average), the
     /// command the first engine process's, the contacts the impacts' summary.
-    fn of_micro(m: MicroRun) -> Self {
+    fn of_micro(m: MicroRun) -> Result<Self, record::RecordError> {
         let rec = m.record();
         let passes = rec.impacts + rec.sliding;
         let steps: usize = m.passes.iter().map(|p| p.steps).sum();
-        Self {
+        Ok(Self {
             passes,
             impacts: rec.impacts,
             simulated_s: rec.simulated_s,
@@ -1052,13 +1052,13 @@ impl CycleRun {
             unmapped_volume_um3: m.unmapped_volume_um3,
             to_nearest_sample_um3: Some(m.to_nearest_sample_um3),
             volume_relative_error: m.volume_relative_error(),
-            contacts: record::to_value(&m.impact_contacts),
-            micro: Some(record::to_value(&rec)),
+            contacts: record::to_value(&m.impact_contacts)?,
+            micro: Some(record::to_value(&rec)?),
             model: Some(m.model),
             stopped: m.stopped,
             finnie_um: m.finnie_um,
             archard_um: m.archard_um,
-        }
+        })
     }
 }
 
@@ -1374,7 +1374,7 @@ fn ideal_comparison(
         // The progress lines borrow `say`; it speaks again below.
         drop(progress);
         st.count_engine(&r, CostEstimate::Keep);
-        CycleRun::of_segment(r)
+        CycleRun::of_segment(r)?
     } else {
         let m = run_micro_passes(
             &setup.engine,
@@ -1395,7 +1395,7 @@ fn ideal_comparison(
         say_budget(say, "ideal model", &m.model, opts.max_triangles);
         st.engine_s += m.engine_s;
         st.engine_cpu_s += m.engine_cpu_s;
-        CycleRun::of_micro(m)
+        CycleRun::of_micro(m)?
     };
     if r.stopped {
         st.partial = true;

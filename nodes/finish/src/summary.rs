@@ -710,7 +710,7 @@ pub(crate) mod example {
 
     /// A prediction: the series, the laws, both baselines with a noise, the fitted list.
     pub(crate) fn predicted() -> FinishSummary {
-        let mut s = record::to_value(&summary());
+        let mut s = record::to_value(&summary()).unwrap();
         let series = |k: f64| -> Vec<Value> {
             [60.0, 120.0, 180.0, 240.0, 300.0]
                 .iter()
@@ -805,7 +805,7 @@ mod tests {
     /// The report as the node built it before it was typed: finish.json's value with the
     /// curves and cycles removed by key, `dir` inserted.
     fn report_by_key(s: &FinishSummary, dir: &str) -> Value {
-        let mut v = record::to_value(s);
+        let mut v = record::to_value(s).unwrap();
         let o = v.as_object_mut().expect("finish.json is an object");
         for k in ["abbott_before", "abbott_after", "cycles", "macro"] {
             assert!(o.remove(k).is_some(), "finish.json has {k}");
@@ -821,7 +821,7 @@ mod tests {
             example::typed(example::minimal()),
             example::predicted(),
         ] {
-            let typed = record::to_value(&FinishReport::of(s.clone(), "fin"));
+            let typed = record::to_value(&FinishReport::of(s.clone(), "fin")).unwrap();
             assert_eq!(typed, report_by_key(&s, "fin"));
             assert_eq!(
                 serde_json::to_string_pretty(&typed).unwrap(),

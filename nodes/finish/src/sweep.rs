@@ -360,7 +360,7 @@ pub fn compare_settings(
 
 /// finish.json and finish.html of `out_dir` again, from `record` and the maps written there.
 fn rewrite(out_dir: &Path, record: &FinishSummary) -> Result<()> {
-    let value = record::to_value(record);
+    let value = record::to_value(record)?;
     let path = out_dir.join(outputs::SUMMARY);
     surfstream_core::fsutil::write_atomic(&path, |w| {
         serde_json::to_writer_pretty(w, &value).map_err(|e| anyhow!("{}: {e}", path.display()))

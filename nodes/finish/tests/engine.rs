@@ -314,12 +314,13 @@ fn a_sinusoidal_surface_loses_its_peaks_first() {
     // The node's report (run.json) is finish.json without the curves, cycles and macro run,
     // plus `dir`:
     // the typed record against the same value edited by key.
-    let mut by_key = surfstream_core::record::to_value(&rec);
+    let mut by_key = surfstream_core::record::to_value(&rec).unwrap();
     for k in ["abbott_before", "abbott_after", "cycles", "macro"] {
         by_key.as_object_mut().unwrap().remove(k).unwrap();
     }
     by_key["dir"] = "finish".into();
-    let report = surfstream_core::record::to_value(&FinishReport::of(rec.clone(), "finish"));
+    let report =
+        surfstream_core::record::to_value(&FinishReport::of(rec.clone(), "finish")).unwrap();
     assert_eq!(
         serde_json::to_string_pretty(&report).unwrap(),
         serde_json::to_string_pretty(&by_key).unwrap()

@@ -153,9 +153,9 @@ impl NodeLogic for FusionNode {
         self.result.is_some()
     }
 
-    fn report(&self) -> serde_json::Value {
+    fn report(&self) -> anyhow::Result<serde_json::Value> {
         let r = self.result.as_ref();
-        record::to_value(&FusionReport {
+        Ok(record::to_value(&FusionReport {
             method: self.fusion.settings().method.name().into(),
             patches: self.patches,
             panorama: r.map(|r| r.summary),
@@ -167,8 +167,8 @@ impl NodeLogic for FusionNode {
             memory: FusionMemory {
                 chunk_px: crate::CHUNK_PX,
                 chunk_budget_bytes: self.chunk_budget_bytes.map(|b| b as u64),
-                chunks: record::to_value(&self.fusion.chunk_stats()),
+                chunks: record::to_value(&self.fusion.chunk_stats())?,
             },
-        })
+        })?)
     }
 }

@@ -234,7 +234,7 @@ fn streamed_3x3_scan_ends_bit_identical_to_batch() {
             "{method}: nodes did not finish"
         );
         assert!(live > 0, "{method}: no live patches were published");
-        let report = fusion.report();
+        let report = fusion.report().unwrap();
         assert_eq!(report["rerendered_from_final_registrations"], true);
         let pairs = report["fusion_pairs"].as_array().expect("fusion_pairs");
         assert_eq!(

@@ -108,7 +108,7 @@ impl NodeLogic for MatcherNode {
         self.done
     }
 
-    fn report(&self) -> serde_json::Value {
-        self.scan.report()
+    fn report(&self) -> anyhow::Result<serde_json::Value> {
+        Ok(self.scan.report()?)
     }
 }

@@ -745,7 +745,7 @@ impl ScanRegistration {
 
     /// The run report: the method, per tile and per pair outcomes, and the global solve's
     /// summary (empty until [`ScanRegistration::finish`]).
-    pub fn report(&self) -> serde_json::Value {
+    pub fn report(&self) -> Result<serde_json::Value, record::RecordError> {
         record::to_value(&MatcherReport {
             method: self.method().into(),
             tiles: self.tiles_report.clone(),

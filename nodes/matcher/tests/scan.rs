@@ -112,7 +112,7 @@ fn tiles_are_placed_by_registration_relative_to_the_first_tile() {
         [finals[0].x_um, finals[0].y_um],
         [streaming[0].x_um, streaming[0].y_um]
     );
-    let report = scan.report();
+    let report = scan.report().unwrap();
     assert_eq!(report["method"], "phase");
     assert_eq!(report["pairs"].as_array().map(Vec::len), Some(4));
     assert_eq!(report["global"]["tiles_placed_by_stage"], 0);
@@ -150,7 +150,7 @@ fn a_tile_without_a_trustworthy_link_is_placed_by_the_stage_and_flagged() {
     assert_eq!(finals[3].placed_by, placed_by::STAGE);
     assert_eq!(finals[3].flags, flags::FINAL | flags::PLACED_BY_STAGE);
     assert!(finals[..3].iter().all(|r| r.flags == flags::FINAL));
-    assert_eq!(scan.report()["global"]["tiles_placed_by_stage"], 1);
+    assert_eq!(scan.report().unwrap()["global"]["tiles_placed_by_stage"], 1);
 }
 
 /// Rough at a tenth of the amplitude above row `y0`; below it a texture periodic along x
@@ -187,7 +187,7 @@ fn an_ambiguous_pair_between_placed_tiles_is_resolved_at_finish() {
         assert_eq!(reg.placed_by, placed_by::REGISTRATION, "{reg:?}");
     }
     scan.finish().expect("finish");
-    let report = scan.report();
+    let report = scan.report().unwrap();
     let pairs = report["pairs"].as_array().expect("pairs");
     let p23 = pairs
         .iter()
@@ -265,7 +265,7 @@ fn placed_tiles_leave_memory_and_the_final_planes_read_them_back_exactly() {
     let regs = scan.finish().expect("finish");
     // The z alignment over the spilled tiles equals the in-memory solve over the originals
     // at the same positions (tile 0 is the gauge; 2 is the matcher's sampling stride).
-    let report = scan.report();
+    let report = scan.report().unwrap();
     let pairs: Vec<(usize, usize)> = report["pairs"]
         .as_array()
         .expect("pairs")

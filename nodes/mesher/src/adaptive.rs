@@ -343,7 +343,7 @@ impl VertexPlacement {
 
 impl AdaptiveMesh {
     /// The statistics written to run.json (everything but the file names).
-    pub fn record(&self) -> AdaptiveSummary {
+    pub fn record(&self) -> Result<AdaptiveSummary, record::RecordError> {
         adaptive_summary(
             self.kind,
             &MeshCounts::of(&self.mesh),
@@ -355,8 +355,8 @@ impl AdaptiveMesh {
     }
 
     /// [`AdaptiveMesh::record`] as a JSON object (the mesh verb's OUT.json starts from it).
-    pub fn summary(&self) -> serde_json::Value {
-        self.record().to_value()
+    pub fn summary(&self) -> Result<serde_json::Value, record::RecordError> {
+        self.record()?.to_value()
     }
 }
 
@@ -396,20 +396,20 @@ pub(crate) fn adaptive_summary(
     missing: MissingSamples,
     budget_reached: bool,
     fidelity: &Fidelity,
-) -> AdaptiveSummary {
-    AdaptiveSummary {
+) -> Result<AdaptiveSummary, record::RecordError> {
+    Ok(AdaptiveSummary {
         counts: *mesh,
         record: AdaptiveMeshRecord {
-            kind: serde_name(&kind),
+            kind: serde_name(&kind)?,
             offset_rule: OFFSET_RULE.into(),
             surface_triangles: mesh.top_triangles as u64,
             missing_samples: missing_samples as u64,
-            missing: serde_name(&missing),
+            missing: serde_name(&missing)?,
             budget_reached,
             fidelity: fidelity.into(),
             element_quality: None,
         },
-    }
+    })
 }
 
 /// How `offset_um` maps the STL's vertices to scan coordinates (the report's `offset_rule`).
@@ -417,11 +417,11 @@ pub const OFFSET_RULE: &str = "scan_um = vertex * um_per_unit + offset_um";
 
 /// The name serde gives a unit-like enum value ("solid", "fill", "keep"), the one the report
 /// has always carried.
-pub(crate) fn serde_name<T: Serialize>(v: &T) -> String {
-    match record::to_value(v) {
+pub(crate) fn serde_name<T: Serialize>(v: &T) -> Result<String, record::RecordError> {
+    Ok(match record::to_value(v)? {
         serde_json::Value::String(s) => s,
         other => other.to_string(),
-    }
+    })
 }
 
 /// An adaptive mesh's statistics: the sizes (they stand among the report's common fields) and
@@ -435,16 +435,16 @@ pub struct AdaptiveSummary {
 impl AdaptiveSummary {
     /// As a JSON object: the record and the sizes it is written with (the mesh verb's
     /// report starts from it).
-    pub fn to_value(&self) -> serde_json::Value {
-        let mut v = record::to_value(&self.record);
+    pub fn to_value(&self) -> Result<serde_json::Value, record::RecordError> {
+        let mut v = record::to_value(&self.record)?;
         if let Some(o) = v.as_object_mut() {
             let c = &self.counts;
             o.insert("units".into(), c.units.symbol().into());
-            o.insert("offset_um".into(), record::to_value(&c.offset_um));
+            o.insert("offset_um".into(), record::to_value(&c.offset_um)?);
             o.insert("triangles".into(), c.triangles.into());
             o.insert("vertices".into(), c.vertices.into());
-            o.insert("base_depth_um".into(), record::to_value(&c.base_depth_um));
+            o.insert("base_depth_um".into(), record::to_value(&c.base_depth_um)?);
         }
-        v
+        Ok(v)
     }
 }

@@ -273,6 +273,10 @@ pub fn check_stl_path(stl: &Path) -> std::result::Result<(), String> {
 }
 
 impl MesherConfig {
+    /// The graph key of [`MesherConfig::tolerance`], for the launcher's `--tolerance`, which
+    /// sets it on every mesher node (the mesher's lib has no TOML: the launcher writes it).
+    pub const TOLERANCE_KEY: &'static str = "tolerance";
+
     /// The checked settings; the error says which parameter is wrong and what was expected.
     pub fn settings(&self) -> std::result::Result<MeshSettings, String> {
         check_stl_path(Path::new(&self.file)).map_err(|e| format!("file = {e}"))?;
@@ -406,6 +410,14 @@ impl MesherConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_tolerance_key_is_the_one_the_config_reads() {
+        let mut t = toml::Table::new();
+        t.insert(MesherConfig::TOLERANCE_KEY.into(), "sa=2,sq=2,sz=5".into());
+        let c: MesherConfig = toml::from_str(&toml::to_string(&t).unwrap()).unwrap();
+        assert_eq!(c.tolerance, Some("sa=2,sq=2,sz=5".parse().unwrap()));
+    }
 
     /// A choice given as text is refused with its key and the allowed values, as a graph
     /// file's value is.

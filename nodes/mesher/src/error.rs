@@ -68,6 +68,10 @@ pub enum MeshError {
     #[error("the mesher's triangles (12 bytes each): {0}")]
     Spill(#[from] surfstream_core::store::StoreError),
 
+    /// A report record that cannot be written as JSON.
+    #[error(transparent)]
+    Record(#[from] surfstream_core::record::RecordError),
+
     /// Writing the STL stream failed.
     #[error("writing STL: {0}")]
     Io(#[from] std::io::Error),

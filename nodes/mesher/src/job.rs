@@ -13,7 +13,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use surfstream_core::deviation::tile_regions;
 use surfstream_core::frame::{flags, from_frame_heights, FrameHeader, FrameView, HeightMap};
 use surfstream_core::raster::{Raster, RasterView, Shape};
-use surfstream_core::record::{FormPlane, MeshReport, PanoramaTiles, PANORAMA_TILES};
+use surfstream_core::record::{FormPlane, MeshReport, PanoramaTiles, RecordError, PANORAMA_TILES};
 
 use crate::config::{MeshSettings, StlFormat, SurfaceChoice};
 use crate::map::{mesh_surface, prepare_surface, tolerance_for, MeshInput, MeshOutputs};
@@ -61,7 +61,7 @@ impl MeshedSurface {
     }
 
     /// The record for run.json (the caller adds files, wiring and times).
-    pub fn summary(&self, settings: &MeshSettings) -> MeshReport {
+    pub fn summary(&self, settings: &MeshSettings) -> Result<MeshReport, RecordError> {
         let h = &self.header;
         let shape = Shape::new(h.height as usize, h.width as usize);
         let context = ReportContext {
@@ -259,7 +259,7 @@ impl MeshJob {
                         }
                         None => (mesh_height_field(heights, &at, p)?, None),
                     };
-                    let summary = adaptive_method(m.record(), report.as_ref());
+                    let summary = adaptive_method(m.record()?, report.as_ref());
                     (m.mesh, Some(summary), Some(m.resampled_um))
                 }
             };

@@ -286,7 +286,7 @@ pub fn mesh_surface(
         MeshMade::Grid(t) => MeshCounts::of(&t.mesh),
         MeshMade::FullGrid(g) => g.counts,
     };
-    let mut report = mesh_report(&counts, &check, method.as_ref(), &context);
+    let mut report = mesh_report(&counts, &check, method.as_ref(), &context)?;
     report.mesh_s = Some(mesh_s);
     report.file = out
         .stl
@@ -424,8 +424,8 @@ mod tests {
         let mut want = Vec::new();
         write_stl_binary(&mut want, &m.mesh, "surfstream mesh").unwrap();
         assert!(std::fs::read(&stl).unwrap() == want, "STL bytes differ");
-        let json = surfstream_core::record::to_value(&out.report);
-        let oracle = m.summary();
+        let json = surfstream_core::record::to_value(&out.report).unwrap();
+        let oracle = m.summary().unwrap();
         for key in ["triangles", "vertices", "fidelity", "offset_um"] {
             assert_eq!(json[key], oracle[key], "{key}");
         }
@@ -546,7 +546,7 @@ mod tests {
         assert!(spikeless.heights_um[20 * shape.cols + 25].is_nan());
         let view = RasterView::new(&spikeless.heights_um, shape).unwrap();
         let t = grid_sheet_for(view, &spikeless.at, &profile).unwrap();
-        let json = surfstream_core::record::to_value(&out.report);
+        let json = surfstream_core::record::to_value(&out.report).unwrap();
         assert_eq!(json["triangles"], t.mesh.triangles.len());
         assert_eq!(json["method"], "grid");
         assert_eq!(json["outliers"]["removed"], 1);

@@ -101,9 +101,9 @@ impl NodeLogic for MesherNode {
         self.done
     }
 
-    fn report(&self) -> serde_json::Value {
+    fn report(&self) -> anyhow::Result<serde_json::Value> {
         // Null until the mesh is written; its times are lifted into run.json's latency_ms by
         // the launcher.
-        record::to_value(&self.summary)
+        Ok(record::to_value(&self.summary)?)
     }
 }

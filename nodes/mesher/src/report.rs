@@ -15,7 +15,9 @@ use surfstream_core::record::{
 use std::collections::BTreeMap;
 
 use surfstream_core::raster::Shape;
-use surfstream_core::record::{FormPlane, GridSheetRecord, MeshMethodRecord, MeshReport};
+use surfstream_core::record::{
+    FormPlane, GridSheetRecord, MeshMethodRecord, MeshReport, RecordError,
+};
 
 use crate::adaptive::{serde_name, AdaptiveSummary, Fidelity, MeshCounts};
 use crate::check::MeshCheck;
@@ -119,9 +121,10 @@ impl From<&ToleranceReport> for ToleranceRecord {
     }
 }
 
-impl From<&OutlierReport> for OutliersRecord {
-    fn from(r: &OutlierReport) -> Self {
-        Self {
+impl TryFrom<&OutlierReport> for OutliersRecord {
+    type Error = RecordError;
+    fn try_from(r: &OutlierReport) -> Result<Self, RecordError> {
+        Ok(Self {
             rule: r.rule.clone(),
             threshold_um: r.threshold_um,
             count: r.count as u64,
@@ -129,23 +132,24 @@ impl From<&OutlierReport> for OutliersRecord {
             sz_um: r.sz_um,
             sz_without_spikes_um: r.sz_without_spikes_um,
             sz_effect_pct: r.sz_effect_pct,
-            policy: serde_name(&r.policy),
+            policy: serde_name(&r.policy)?,
             removed: r.removed as u64,
-        }
+        })
     }
 }
 
-impl From<&EngineProfile> for EngineTargetRecord {
-    fn from(p: &EngineProfile) -> Self {
-        Self {
-            engine: serde_name(&p.engine),
+impl TryFrom<&EngineProfile> for EngineTargetRecord {
+    type Error = RecordError;
+    fn try_from(p: &EngineProfile) -> Result<Self, RecordError> {
+        Ok(Self {
+            engine: serde_name(&p.engine)?,
             ascii: p.ascii,
             solid: p.solid,
-            units: serde_name(&p.units),
-            method: serde_name(&p.method),
+            units: serde_name(&p.units)?,
+            method: serde_name(&p.method)?,
             max_triangles: p.max_triangles as u64,
             min_angle_deg: p.min_angle_deg,
-        }
+        })
     }
 }
 
@@ -208,7 +212,7 @@ pub(crate) fn mesh_report(
     check: &MeshCheck,
     method: Option<&MethodSummary>,
     c: &ReportContext<'_>,
-) -> MeshReport {
+) -> Result<MeshReport, RecordError> {
     let settings = c.settings;
     // An adaptive mesh's own sizes stand for the mesh's (they are the same mesh's).
     let (counts, units) = match method {
@@ -228,7 +232,7 @@ pub(crate) fn mesh_report(
         }
         None => ("grid", None, None),
     };
-    MeshReport {
+    Ok(MeshReport {
         file: String::new(),
         resampled: String::new(),
         sources: BTreeMap::new(),
@@ -255,10 +259,14 @@ pub(crate) fn mesh_report(
         input: None,
         input_format: None,
         mesh_s: None,
-        target: settings.target.as_ref().map(Into::into),
+        target: settings
+            .target
+            .as_ref()
+            .map(TryInto::try_into)
+            .transpose()?,
         method: method_name.into(),
         method_record,
         tolerance,
-        outliers: Some(c.outliers.into()),
-    }
+        outliers: Some(c.outliers.try_into()?),
+    })
 }

@@ -417,7 +417,7 @@ pub(crate) fn stream_blocks(
         params.missing,
         budget_reached,
         &fidelity,
-    );
+    )?;
     let top_z_positive = place.vertex(0, min_um as f32)[2] as f32 > place.base_z() as f32;
     // Only the used samples' bits were needed; the spill and the walls carry the rest.
     drop(used);

@@ -303,16 +303,16 @@ impl TargetMesh {
 
     /// [`TargetMesh::record`] with the engine and the method, as a JSON object (the mesh
     /// verb's and the Python binding's report start from it).
-    pub fn summary(&self) -> serde_json::Value {
-        let mut v = record::to_value(&self.record());
+    pub fn summary(&self) -> Result<serde_json::Value, record::RecordError> {
+        let mut v = record::to_value(&self.record())?;
         if let Some(o) = v.as_object_mut() {
             o.insert(
                 "target".into(),
-                record::to_value(&EngineTargetRecord::from(&self.profile)),
+                record::to_value(&EngineTargetRecord::try_from(&self.profile)?)?,
             );
             o.insert("method".into(), "grid".into());
         }
-        v
+        Ok(v)
     }
 }
 

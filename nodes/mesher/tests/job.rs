@@ -178,7 +178,7 @@ fn meshes_the_sum_once_both_inputs_have_ended() {
         assert!((r - sum).abs() <= 0.02 + 1e-4, "{r} vs {sum}");
     }
     // The report as it is written (a JSON object).
-    let summary = record::to_value(&m.summary(job.settings()));
+    let summary = record::to_value(&m.summary(job.settings()).unwrap()).unwrap();
     assert_eq!(summary["method"], "adaptive");
     assert_eq!(summary["surface"], "datum+roughness");
     assert_eq!(summary["grid_px"], serde_json::json!([COLS, ROWS]));
@@ -211,7 +211,7 @@ fn a_wired_roughness_is_awaited_and_judged() {
     );
     assert!(job.accept("roughness", eos().view()));
     let m = job.mesh().unwrap();
-    let summary = record::to_value(&m.summary(job.settings()));
+    let summary = record::to_value(&m.summary(job.settings()).unwrap()).unwrap();
     let report = &summary["tolerance"];
     let fits = report["region_fits"].as_array().unwrap();
     assert!(!fits.is_empty());
@@ -233,7 +233,7 @@ fn grid_method_resamples_to_the_samples_themselves() {
     assert!(job.accept("surface", eos().view()));
     let m = job.mesh().unwrap();
     assert!(m.adaptive.is_none());
-    assert_eq!(m.summary(job.settings()).method, "grid");
+    assert_eq!(m.summary(job.settings()).unwrap().method, "grid");
     for (&r, &z) in m.resampled_um.values().iter().zip(&h) {
         assert_eq!(r, f64::from(z) + 500.0);
     }
@@ -272,7 +272,7 @@ fn level_removes_the_plane_and_the_record_says_so() {
         let (lo, hi) = resampled
             .iter()
             .fold((f64::MAX, f64::MIN), |(a, b), &z| (a.min(z), b.max(z)));
-        (record::to_value(&files.summary), hi - lo)
+        (record::to_value(&files.summary).unwrap(), hi - lo)
     };
     let (flat, flat_range_um) = run("level = true\nepsilon_um = 0.01", "flat");
     let (raw, raw_range_um) = run("epsilon_um = 0.01", "raw");
@@ -328,7 +328,7 @@ fn mesh_with_tiles(tiles: Option<&str>) -> anyhow::Result<serde_json::Value> {
         &dir.path().join("surface.stl"),
         &dir.path().join("mesh_resampled.npy"),
     )?;
-    Ok(record::to_value(&files.summary.tolerance))
+    Ok(record::to_value(&files.summary.tolerance).unwrap())
 }
 
 /// Table 6's tile regions from the fusion's tile placements are judged as regions, named as

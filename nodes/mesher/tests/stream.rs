@@ -65,7 +65,7 @@ fn in_memory(
         write_stl_binary(&mut stl, &m.mesh, LABEL).unwrap();
     }
     let check = check_closed(&m.mesh);
-    (stl, m.summary(), m.resampled_um, check, m.mesh)
+    (stl, m.summary().unwrap(), m.resampled_um, check, m.mesh)
 }
 
 fn streamed(
@@ -78,7 +78,12 @@ fn streamed(
     let mut m = mesh_streaming(heights, at, p, dir.path()).unwrap();
     let mut stl = Vec::new();
     let check = m.write_stl(&mut stl, ascii, LABEL, heights).unwrap();
-    (stl, m.summary.to_value(), m.resampled_um.clone(), check)
+    (
+        stl,
+        m.summary.to_value().unwrap(),
+        m.resampled_um.clone(),
+        check,
+    )
 }
 
 fn bits(v: &[f32]) -> Vec<u32> {
@@ -372,8 +377,8 @@ fn mesh_to_files_matches_the_in_memory_job() {
             ..files.summary.clone()
         };
         assert_eq!(
-            record::to_value(&streamed),
-            record::to_value(&m.summary(&settings)),
+            record::to_value(&streamed).unwrap(),
+            record::to_value(&m.summary(&settings).unwrap()).unwrap(),
             "{text}"
         );
         assert_eq!(files.check.watertight, m.check.watertight, "{text}");

@@ -121,7 +121,7 @@ fn datum_alone_is_meshed_and_judged_against_the_datum() {
     send(&mut node, "datum", &frame(FrameKind::Datum, &datum));
     end(&mut node, "datum");
     assert!(node.finished());
-    let wall = node.report();
+    let wall = node.report().unwrap();
     assert_eq!(wall["surface"], "datum");
     assert_eq!(wall["sources"]["datum"], "wavelet/datum");
     assert!((sq_of(&wall, "field") - datum_sq).abs() < 1e-9, "{wall}");
@@ -143,7 +143,7 @@ fn datum_alone_is_meshed_and_judged_against_the_datum() {
     );
     end(&mut node, "roughness");
     assert!(node.finished());
-    let full = node.report();
+    let full = node.report().unwrap();
     assert!((sq_of(&full, "field") - sum_sq).abs() < 1e-9, "{full}");
     assert!(full["fidelity"]["bound_met"].as_bool().unwrap());
     // The smooth datum is a coarse wall: far fewer triangles at the same bound.
@@ -165,7 +165,7 @@ fn datum_alone_is_meshed_and_judged_against_the_datum() {
         &frame(FrameKind::Roughness, &roughness),
     );
     end(&mut node, "roughness");
-    let r = node.report();
+    let r = node.report().unwrap();
     let rough_sq = field_params(grid(&roughness), pitch()).unwrap().sq_um;
     assert!((sq_of(&r, "field") - rough_sq).abs() < 1e-9, "{r}");
 }

@@ -208,7 +208,7 @@ fn white_noise_within_a_small_budget_names_the_region_and_the_cause() {
         let v = serde_json::to_value(report).unwrap();
         let rec: surfstream_core::record::ToleranceRecord =
             surfstream_core::record::from_value(&v, "tolerance").unwrap();
-        assert_eq!(surfstream_core::record::to_value(&rec), v);
+        assert_eq!(surfstream_core::record::to_value(&rec).unwrap(), v);
     }
     assert!(!r.met);
     let reason = r.reason.unwrap();

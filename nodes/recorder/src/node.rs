@@ -82,7 +82,7 @@ impl NodeLogic for RecorderNode {
         self.finished
     }
 
-    fn report(&self) -> serde_json::Value {
-        self.session.report()
+    fn report(&self) -> anyhow::Result<serde_json::Value> {
+        Ok(self.session.report()?)
     }
 }

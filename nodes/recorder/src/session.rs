@@ -100,7 +100,7 @@ impl RecordingSession {
     }
 
     /// The file name and the messages written per topic, for run.json.
-    pub fn report(&self) -> serde_json::Value {
+    pub fn report(&self) -> Result<serde_json::Value, record::RecordError> {
         let topics: BTreeMap<_, _> = self
             .channels
             .values()

@@ -54,7 +54,7 @@ fn records_every_input_and_finishes_when_all_have_ended() {
     assert!(s.finish_when_all_ended().unwrap());
     assert!(s.finish_when_all_ended().unwrap());
     assert!(s.record("tiles", Input::Frame(tile.view()), 40).is_err());
-    let report = s.report();
+    let report = s.report().unwrap();
     assert_eq!(report["file"], "run.mcap");
     assert_eq!(report["messages"]["stage/tiles"], 2);
     assert_eq!(report["messages"]["matcher/registrations"], 1);

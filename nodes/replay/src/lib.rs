@@ -50,6 +50,7 @@
 //! them).
 
 pub mod acquire;
+pub mod config;
 pub mod error;
 pub mod infer;
 pub mod planned;
@@ -61,6 +62,7 @@ pub mod stage;
 pub mod truth;
 
 pub use acquire::{acquire_tile, sample_bicubic};
+pub use config::{Config, PacingChoice};
 pub use error::{ReplayError, Result};
 pub use run::{DueTile, Pacing, StageRun, TileSource};
 pub use specimen::{

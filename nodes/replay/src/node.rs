@@ -117,11 +117,11 @@ impl NodeLogic for ReplayNode {
         self.done
     }
 
-    fn report(&self) -> serde_json::Value {
-        record::to_value(&ReplayReport {
+    fn report(&self) -> anyhow::Result<serde_json::Value> {
+        Ok(record::to_value(&ReplayReport {
             scan: self.scan.clone(),
             tiles: self.tiles.clone(),
             sent: BTreeMap::from([(PORT.to_string(), self.run.sent() as u64)]),
-        })
+        })?)
     }
 }

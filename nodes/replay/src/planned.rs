@@ -16,10 +16,7 @@ use mcap::records::Record;
 use mcap::sans_io::{SummaryReadEvent, SummaryReader, SummaryReaderOptions};
 use surfstream_core::frame::flags;
 
-use crate::source::SimulatedParams;
-
-/// The recording's tile topic when the graph names none (as [`crate::source`] reads it).
-const DEFAULT_TOPIC: &str = "stage/tiles";
+use crate::config::Config;
 
 /// The largest chunk read to look at a recording's last tile message (the recorder writes
 /// 4 MiB chunks; a larger one is not ours to decompress for a display).
@@ -27,23 +24,14 @@ const MAX_CHUNK_BYTES: u64 = 256 * 1024 * 1024;
 
 /// Tiles the replay node with these parameters will send, when the source says before it
 /// runs.
-pub fn planned_tiles(params: &toml::Table) -> Option<usize> {
-    let path = || params.get("path").and_then(|p| p.as_str()).map(Path::new);
-    match params.get("source").and_then(|v| v.as_str())? {
-        "simulated" => {
-            let p = SimulatedParams::from_table(params).ok()?;
+pub fn planned_tiles(config: &Config) -> Option<usize> {
+    match config {
+        Config::Simulated(p) => {
             let n = p.stage.rows.checked_mul(p.stage.cols)?;
             (n <= crate::stage::MAX_TILES).then_some(n)
         }
-        "scan" => manifest_tiles(path()?),
-        "mcap" => {
-            let topic = params
-                .get("topic")
-                .and_then(|t| t.as_str())
-                .unwrap_or(DEFAULT_TOPIC);
-            recorded_tiles(path()?, topic).ok().flatten()
-        }
-        _ => None,
+        Config::Scan(s) => manifest_tiles(&s.path),
+        Config::Mcap(m) => recorded_tiles(&m.path, &m.topic).ok().flatten(),
     }
 }
 
@@ -173,6 +161,10 @@ mod tests {
     use surfstream_core::frame::{FrameHeader, FrameKind};
     use surfstream_io::recording::Recorder;
 
+    fn planned(params: &toml::Table) -> Option<usize> {
+        planned_tiles(&Config::from_table(params).ok()?)
+    }
+
     fn tile(index: u32) -> (FrameHeader, Vec<f32>) {
         let h = FrameHeader {
             kind: FrameKind::Tile as u32,
@@ -224,12 +216,12 @@ mod tests {
         let mut params = toml::Table::new();
         params.insert("source".into(), "mcap".into());
         params.insert("path".into(), with.display().to_string().into());
-        assert_eq!(planned_tiles(&params), Some(5));
+        assert_eq!(planned(&params), Some(5));
         // Not a recording: no count (the node's own open says what is wrong).
         let junk = dir.path().join("junk.mcap");
         std::fs::write(&junk, b"not an mcap").unwrap();
         params.insert("path".into(), junk.display().to_string().into());
-        assert_eq!(planned_tiles(&params), None);
+        assert_eq!(planned(&params), None);
         assert!(recorded_tiles(dir.path(), "stage/tiles").is_err());
     }
 
@@ -246,11 +238,11 @@ mod tests {
         let mut params = toml::Table::new();
         params.insert("source".into(), "scan".into());
         params.insert("path".into(), dir.path().display().to_string().into());
-        assert_eq!(planned_tiles(&params), Some(2));
+        assert_eq!(planned(&params), Some(2));
         let mut sim = toml::Table::new();
         sim.insert("source".into(), "simulated".into());
         sim.insert("rows".into(), 3.into());
         sim.insert("cols".into(), 4.into());
-        assert_eq!(planned_tiles(&sim), Some(12));
+        assert_eq!(planned(&sim), Some(12));
     }
 }

@@ -40,27 +40,10 @@ pub const MAX_FIELD_TIME_S: f64 = 30.0 * 24.0 * 3600.0;
 
 impl Pacing {
     /// The pacing a graph names: "fast", "realtime" (one field every `field_time_s`) or
-    /// "original" (a recording's own timing). The error says what was expected.
+    /// "original" (a recording's own timing). The error says what was expected. The names and
+    /// the bound are [`crate::config::PacingChoice`]'s.
     pub fn from_name(name: &str, field_time_s: f64) -> Result<Pacing, String> {
-        Ok(match name {
-            "fast" => Pacing::Fast,
-            "realtime" => {
-                // Bounded: 1e20 s does not fit a Duration (it panicked), and no stage takes
-                // a month per field.
-                if !(field_time_s > 0.0 && field_time_s <= MAX_FIELD_TIME_S) {
-                    return Err(format!(
-                        "field_time_s = {field_time_s}: expected seconds > 0 and at most {MAX_FIELD_TIME_S} (30 days)"
-                    ));
-                }
-                Pacing::Fixed(Duration::from_secs_f64(field_time_s))
-            }
-            "original" => Pacing::Original,
-            other => {
-                return Err(format!(
-                    "pacing = {other:?}: expected \"realtime\" (field_time_s per field), \"fast\", or \"original\" (recordings)"
-                ))
-            }
-        })
+        crate::config::PacingChoice::from_name(name)?.pacing(field_time_s)
     }
 }
 

@@ -167,7 +167,10 @@ fn simulated_source_from_graph_params() {
 
     let e = open_source(&context("source = \"simulated\"\npacing = \"slow\""));
     let e = e.err().unwrap().to_string();
-    assert!(e.starts_with("node 'stage': pacing = \"slow\""), "{e}");
+    assert!(
+        e.contains("node 'stage': pacing = \"slow\": expected"),
+        "{e}"
+    );
     let e = open_source(&context("rows = 1")).err().unwrap().to_string();
     assert!(e.contains("params.source is missing"), "{e}");
     let e = open_source(&context("source = \"tape\""))

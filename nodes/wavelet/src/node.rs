@@ -166,10 +166,10 @@ impl NodeLogic for WaveletNode {
         self.done
     }
 
-    fn report(&self) -> serde_json::Value {
-        record::to_value(&WaveletReport {
+    fn report(&self) -> anyhow::Result<serde_json::Value> {
+        Ok(record::to_value(&WaveletReport {
             live_patches: self.live_patches,
             final_pass: self.summary.clone(),
-        })
+        })?)
     }
 }

@@ -753,7 +753,7 @@ mod tests {
             1e-300,
         ];
         let depth = |n: u64| {
-            if n % 5 == 0 {
+            if n.is_multiple_of(5) {
                 special[(n / 5 % special.len() as u64) as usize]
             } else {
                 ((n >> 20) % 1000) as f64 / 8.0 - 40.0
