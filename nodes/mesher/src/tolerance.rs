@@ -957,9 +957,13 @@ pub fn search<M>(
             return Err(MeshError::CoarsestOverBudget {
                 tolerance: t.to_string(),
                 // The coarsest mesh tried (the coarse side is walked last).
-                triangles: curve.iter().map(|c| c.0.surface_triangles).min().unwrap_or(0),
+                triangles: curve
+                    .iter()
+                    .map(|c| c.0.surface_triangles)
+                    .min()
+                    .unwrap_or(0),
                 budget,
-            })
+            });
         }
     };
     curve[k].0.chosen = true;
