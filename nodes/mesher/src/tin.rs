@@ -439,16 +439,19 @@ impl Builder<'_> {
         match self.valid {
             None => for_each_row(a, b, cc, |y, lo, hi| {
                 let row = (y * w) as usize;
-                let lrow = ((y - by0) * bw - bx0) as usize;
+                // Signed: negative on a block's rows when it starts right of column 0 (the
+                // index, lrow + x with x >= bx0, is not; a usize here wrapped, which debug
+                // builds refuse).
+                let lrow = (y - by0) * bw - bx0;
                 let mut zp = plane.at(lo, y);
                 for x in lo..=hi {
                     let s = row + x as usize;
                     if let Some(m) = self.mesh_local.as_mut() {
-                        m[lrow + x as usize] = zp;
+                        m[(lrow + x) as usize] = zp;
                     }
                     let e = (f64::from(self.z[s]) - zp).abs();
                     if e > best.0
-                        && !self.settled[lrow + x as usize]
+                        && !self.settled[(lrow + x) as usize]
                         && self.measured.is_none_or(|m| m[s])
                     {
                         best = (e, s as u32);
@@ -464,10 +467,10 @@ impl Builder<'_> {
                     .any(|&v| !valid[self.vertex_samples[v as usize] as usize]);
                 for_each_row(a, b, cc, |y, lo, hi| {
                     let row = (y * w) as usize;
-                    let lrow = ((y - by0) * bw - bx0) as usize;
+                    let lrow = (y - by0) * bw - bx0;
                     for x in lo..=hi {
                         let s = row + x as usize;
-                        if self.settled[lrow + x as usize] {
+                        if self.settled[(lrow + x) as usize] {
                             continue;
                         }
                         if missing_corner {
@@ -564,9 +567,9 @@ impl Builder<'_> {
                 (c[1].0, c[1].1),
                 (c[2].0, c[2].1),
                 |y, lo, hi| {
-                    let lrow = ((y - by0) * bw - bx0) as usize;
+                    let lrow = (y - by0) * bw - bx0;
                     for x in lo..=hi {
-                        m[lrow + x as usize] = plane.at(x, y);
+                        m[(lrow + x) as usize] = plane.at(x, y);
                     }
                     true
                 },
@@ -632,9 +635,9 @@ impl Builder<'_> {
                 (c[1].0, c[1].1),
                 (c[2].0, c[2].1),
                 |y, lo, hi| {
-                    let lrow = ((y - by0) * bw - bx0) as usize;
+                    let lrow = (y - by0) * bw - bx0;
                     for x in lo..=hi {
-                        let (l, s) = (lrow + x as usize, (y * w + x) as usize);
+                        let (l, s) = ((lrow + x) as usize, (y * w + x) as usize);
                         if self.settled[l] || !self.is_measured(s) {
                             continue;
                         }
