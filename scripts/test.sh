@@ -37,6 +37,15 @@ export SURFSTREAM_SURFTOPO_PYTHON="$SURFSTREAM_PYTHON"
 SURFSTREAM_GWYDDION="$(command -v gwyddion)"
 export SURFSTREAM_GWYDDION
 export SURFSTREAM_REQUIRE_INDEPENDENT_READERS=1
+# The specimens the tests need are in tests/data/specimens; a few real files whose licences
+# keep them out of the repository (GPL-3 / LGPL-3: tests/data/specimens/README.md) are checked
+# too when a specimen folder is beside the clone (../shared/specimens, as on CI) or named by
+# SURFSTREAM_SPECIMENS; without one those few tests say they skipped.
+if [ -z "${SURFSTREAM_SPECIMENS:-}" ] && [ -d ../shared/specimens ]; then
+    SURFSTREAM_SPECIMENS="$(cd ../shared/specimens && pwd)"
+    export SURFSTREAM_SPECIMENS
+    echo "test.sh: also checking the specimens in $SURFSTREAM_SPECIMENS"
+fi
 
 cargo build --release --workspace --bins
 # PyWavelets parity goldens (every base, mode, odd/even size, level) for nodes/wavelet's tests.
