@@ -6,7 +6,8 @@
 //! How: one error-bounded greedy insertion order ([`crate::tin`]) on the full-resolution grid,
 //! every block's peak and valley inserted first ([`crate::tin::TinParams::keep_extremes`]: a
 //! region's Sz is then exact or within the bound), refined through a geometric series of
-//! bounds epsilon = 2, 1.6, 1.28, ... x Sq, each step's blocks balanced against the
+//! bounds epsilon (x 0.8 each) from the coarsest worth judging ([`Aim`]: where the largest
+//! pointwise error's limit can be met; 2 x Sq without one), each step's blocks balanced against the
 //! measurement (their Sa, Sq, mean and, when the measured roughness is given, the Sa and Sq of
 //! the roughness the mesh carries); each checkpoint is judged per region ([`judge_regions`]).
 //! Between the last failing and the first passing checkpoint the bound is bisected
