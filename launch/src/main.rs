@@ -26,7 +26,7 @@ use std::process::ExitCode;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
-use surfstream_core::record::OutputChoice;
+use surfstream_core::record::{NodeRecord, OutputChoice, RecorderReport, ReplayReport};
 use surfstream_runtime::graph::GraphFile;
 
 #[derive(Parser)]
@@ -552,7 +552,7 @@ fn load_graph(a: &GraphArgs) -> Result<(GraphFile, deviation::Settings)> {
 
 /// `--tolerance`: checked, then set on every mesher node of the graph.
 fn apply_tolerance(graph: &mut GraphFile, tolerance: &str, origin: &str) -> Result<()> {
-    use surfstream_core::record::{MeshReport, NodeRecord};
+    use surfstream_core::record::MeshReport;
     tolerance
         .parse::<surfstream_mesher::Tolerance>()
         .map_err(|e| anyhow!("--tolerance: {e}"))?;
@@ -586,8 +586,8 @@ fn check_node_params(graph: &GraphFile, origin: &str) -> Result<()> {
     for c in &contexts {
         let at = || format!("{origin}: node '{}' ({})", c.node_id, c.node_kind);
         match c.node_kind.as_str() {
-            "replay" => check_source_params(c).with_context(at)?,
-            "recorder" => {
+            ReplayReport::NODE_KIND => check_source_params(c).with_context(at)?,
+            RecorderReport::NODE_KIND => {
                 for (k, v) in &c.params {
                     if k != "path" || !v.is_str() {
                         bail!(

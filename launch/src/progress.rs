@@ -21,6 +21,7 @@ use std::time::{Duration, Instant};
 use anyhow::Result;
 use crossbeam_channel::{unbounded, Receiver, Sender};
 use surfstream_core::frame::{flags, placed_by};
+use surfstream_core::record::{NodeRecord, ReplayReport};
 use surfstream_runtime::graph::{InputSpec, NodeContext, PortKind};
 use surfstream_runtime::node::{Input, NodeLogic, NodeReport, Outbox};
 
@@ -126,7 +127,10 @@ pub fn attach_observer(contexts: &mut Vec<NodeContext>) -> bool {
 /// The grid of the graph's source node: the simulated stage's serpentine, or a scan
 /// directory's `[[tile]]` list.
 pub fn layout(contexts: &[NodeContext]) -> Layout {
-    let Some(src) = contexts.iter().find(|c| c.node_kind == "replay") else {
+    let Some(src) = contexts
+        .iter()
+        .find(|c| c.node_kind == ReplayReport::NODE_KIND)
+    else {
         return Layout::default();
     };
     // The node's own reading of its parameters; a table it refuses has no layout (the

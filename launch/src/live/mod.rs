@@ -30,6 +30,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context, Result};
 use surfstream_core::frame::flags;
+use surfstream_core::record::{FusionReport, MatcherReport, NodeRecord, ReplayReport};
 use surfstream_runtime::graph::{InputSpec, NodeContext, PortKind};
 use surfstream_runtime::node::{Input, NodeLogic, NodeReport, Outbox};
 
@@ -207,9 +208,13 @@ pub fn is_observer(kind: &str) -> bool {
 
 /// The inputs the observer reads: (producer kind, port, delivery of interest).
 const WATCHED: [(&str, &str, PortKind); 3] = [
-    ("replay", "tiles", PortKind::Frames),
-    ("matcher", "registrations", PortKind::Registrations),
-    ("fusion", "preview", PortKind::Frames),
+    (ReplayReport::NODE_KIND, "tiles", PortKind::Frames),
+    (
+        MatcherReport::NODE_KIND,
+        "registrations",
+        PortKind::Registrations,
+    ),
+    (FusionReport::NODE_KIND, "preview", PortKind::Frames),
 ];
 
 /// Adds the live observer to resolved contexts when a view is running (else nothing): it
