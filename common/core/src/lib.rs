@@ -15,6 +15,7 @@
 //! (docs/architecture.md §1, §12).
 
 pub mod canvas;
+pub mod choice;
 pub mod deviation;
 pub mod fft;
 pub mod filter;

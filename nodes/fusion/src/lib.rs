@@ -47,6 +47,7 @@
 //! separating the panorama into datum and roughness (surfstream-wavelet).
 
 pub mod chunks;
+pub mod config;
 mod error;
 mod input;
 pub mod method;
@@ -57,6 +58,7 @@ pub mod stream;
 pub mod zarr;
 
 pub use chunks::{ChunkStats, TileSpill, CHUNK_BYTES, CHUNK_PX};
+pub use config::{FusionConfig, ZarrChoice};
 pub use error::{FusionError, Result};
 pub use input::{BlendParams, PlaneCorrection, TileInput};
 pub use method::{fuse_wavelet, fuse_wavelet_in, FusionMethod, WaveletFusion};

@@ -54,6 +54,15 @@ impl FusionMethod {
     }
 }
 
+impl std::str::FromStr for FusionMethod {
+    type Err = String;
+    /// A graph-file name (ASCII case and surrounding blanks ignored).
+    fn from_str(s: &str) -> Result<Self, String> {
+        Self::by_name(s)
+            .ok_or_else(|| format!("{s:?}: expected \"gradual\", \"average\" or \"wavelet\""))
+    }
+}
+
 impl fmt::Display for FusionMethod {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(self.name())

@@ -3,54 +3,17 @@
 //! panorama, written to the out dir.
 
 use anyhow::{anyhow, bail, Result};
-use serde::Deserialize;
 use surfstream_core::frame::flags;
 use surfstream_core::record::{self, FusionMemory, FusionReport};
 use surfstream_io::output::OutputWriter;
 use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
+use crate::config::FusionConfig;
 use crate::stream::{FinalPanorama, FinalReport, FusionSettings, StreamingFusion};
-use crate::{FusionMethod, WaveletFusion};
 
 const PANORAMA: &str = "panorama";
 const PREVIEW: &str = "preview";
-
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct Params {
-    /// "gradual" (the paper's gradual in-and-out, eq. 5), "average" (eq. 4) or "wavelet"
-    /// (eq. 6).
-    #[serde(default = "gradual")]
-    method: String,
-    /// Wavelet of the wavelet fusion (default sym5).
-    wavelet: Option<String>,
-    /// Decomposition levels of the wavelet fusion (default 2, clamped to the overlap).
-    wavelet_level: Option<usize>,
-    /// Weight ramp length from a tile's border, px. Default: half the tile.
-    ramp_px: Option<f64>,
-    /// Write panorama.npy and panorama.png into the out dir.
-    #[serde(default = "yes")]
-    write_files: bool,
-    /// Also write panorama.zarr (Zarr v3, chunked): "auto" (panoramas of at least
-    /// `ZARR_AUTO_MIN_PX`), "always" or "never".
-    #[serde(default = "auto")]
-    zarr: String,
-}
-
-/// Panoramas from this size (64 Mi px, a 512 MiB f64 .npy) get a panorama.zarr with "auto".
-pub const ZARR_AUTO_MIN_PX: usize = 1 << 26;
-
-fn auto() -> String {
-    "auto".into()
-}
-
-fn gradual() -> String {
-    "gradual".into()
-}
-fn yes() -> bool {
-    true
-}
 
 pub struct FusionNode {
     fusion: StreamingFusion,
@@ -62,47 +25,30 @@ pub struct FusionNode {
     result: Option<FinalReport>,
 }
 
+/// The node's parameters checked as [`build`] checks them, with nothing built.
+pub fn check(ctx: &NodeContext) -> Result<()> {
+    settings(ctx).map(drop)
+}
+
+fn settings(ctx: &NodeContext) -> Result<(FusionConfig, FusionSettings)> {
+    let config: FusionConfig = ctx.params()?;
+    let settings = config
+        .settings()
+        .map_err(|e| anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id))?;
+    Ok((config, settings))
+}
+
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
-    let p: Params = ctx.params()?;
-    let at = format!("graph '{}', node '{}'", ctx.graph_name, ctx.node_id);
-    let Some(method) = FusionMethod::by_name(&p.method) else {
-        bail!(
-            "{at}: method = {:?}: expected \"gradual\", \"average\" or \"wavelet\"",
-            p.method
-        );
-    };
-    let mut wavelet = WaveletFusion::default();
-    if let Some(name) = &p.wavelet {
-        wavelet.wavelet = name.parse().map_err(|e| anyhow!("{at}: wavelet = {e}"))?;
-    }
-    if let Some(level) = p.wavelet_level {
-        if !(1..=surfstream_wavelet::MAX_LEVEL).contains(&level) {
-            let max = surfstream_wavelet::MAX_LEVEL;
-            bail!("{at}: wavelet_level = {level}: expected 1..={max}");
-        }
-        wavelet.level = level;
-    }
-    if let Some(r) = p.ramp_px.filter(|r| !(r.is_finite() && *r > 0.0)) {
-        bail!("{at}: ramp_px = {r}: expected > 0 px");
-    }
-    let mut fusion = StreamingFusion::new(FusionSettings {
-        method,
-        wavelet,
-        ramp_px: p.ramp_px,
-    });
+    let (config, settings) = settings(ctx)?;
+    let mut fusion = StreamingFusion::new(settings);
     let memory = &ctx.memory;
     let chunk_budget_bytes = memory.panorama_chunks_bytes().map(|b| b as usize);
     fusion.set_memory_budget(chunk_budget_bytes, Some(memory.spill_dir.clone()));
-    fusion.set_zarr_min_px(match p.zarr.as_str() {
-        "auto" => Some(ZARR_AUTO_MIN_PX),
-        "always" => Some(0),
-        "never" => None,
-        other => bail!("{at}: zarr = {other:?}: expected \"auto\", \"always\" or \"never\""),
-    });
+    fusion.set_zarr_min_px(config.zarr.min_px());
     Ok(Box::new(FusionNode {
         fusion,
         chunk_budget_bytes,
-        files: p.write_files.then(|| OutputWriter::new(&ctx.out_dir)),
+        files: config.write_files.then(|| OutputWriter::new(&ctx.out_dir)),
         tiles_ended: false,
         registrations_ended: false,
         patches: 0,

@@ -189,7 +189,7 @@ pub use global::{
     PlaneTiles, SolveError, SolveParams,
 };
 pub use harris::{harris_corners, Corner, HarrisParams};
-pub use params::{MatcherParams, RegistrationMethod};
+pub use params::{MatcherConfig, RegistrationMethod};
 pub use plane::{
     estimate_plane, estimate_plane_report, fit_plane, PlaneCorrection, PlaneError, PlaneEstimate,
     PlaneModel,

@@ -11,7 +11,7 @@ use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
 use crate::pair_log::PairLog;
-use crate::params::MatcherParams;
+use crate::params::MatcherConfig;
 use crate::scan::{ScanRegistration, ScanTile};
 
 const OUT: &str = "registrations";
@@ -30,11 +30,20 @@ pub struct MatcherNode {
     pairs_logged: usize,
 }
 
-pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
-    let p: MatcherParams = ctx.params()?;
-    let mut params = p
+/// The node's parameters checked as [`build`] checks them, with nothing built.
+pub fn check(ctx: &NodeContext) -> Result<()> {
+    scan_params(ctx).map(drop)
+}
+
+fn scan_params(ctx: &NodeContext) -> Result<crate::ScanParams> {
+    let config: MatcherConfig = ctx.params()?;
+    config
         .scan_params(&ctx.out_dir)
-        .map_err(|e| anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id))?;
+        .map_err(|e| anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id))
+}
+
+pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
+    let mut params = scan_params(ctx)?;
     // Placed tiles spill where the run's memory plan says (the out dir, beside the outputs).
     params.spill_dir = Some(ctx.memory.spill_dir.clone());
     let pair_log = PairLog::new(&ctx.out_dir, &ctx.node_id);

@@ -1,5 +1,7 @@
-//! The matcher node's parameters as a graph file gives them ([`MatcherParams`]), checked and
-//! turned into the library's [`ScanParams`], so the node only maps frames to calls.
+//! The matcher's one front door: [`MatcherConfig`], its parameters as a graph file gives them
+//! (typed: the method is a [`RegistrationMethod`], refused with the key and the allowed
+//! spellings when unknown), checked and turned into the library's [`ScanParams`], so the node
+//! only maps frames to calls.
 
 use std::path::Path;
 use std::str::FromStr;
@@ -11,9 +13,10 @@ use crate::scan::ScanParams;
 use crate::{FeatureMethod, FeatureParams};
 
 /// How each tile is registered against its neighbours.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum RegistrationMethod {
     /// Phase correlation with NCC-verified candidates ("auto" or "phase").
+    #[default]
     Phase,
     /// The reference study's Harris + NCC feature matcher.
     Harris,
@@ -38,13 +41,13 @@ impl FromStr for RegistrationMethod {
 }
 
 /// The matcher node's `params` table.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct MatcherParams {
+pub struct MatcherConfig {
     /// Registration method: "auto" (= "phase": phase correlation with NCC-verified
-    /// candidates), "harris" or "sift" (the reference study's feature matchers).
-    #[serde(default = "auto")]
-    pub method: String,
+    /// candidates, the default), "harris" or "sift" (the reference study's feature matchers).
+    #[serde(default, deserialize_with = "surfstream_core::choice::from_text")]
+    pub method: RegistrationMethod,
     /// Lowest NCC of the overlap at the chosen shift for a link to be trusted.
     pub min_ncc: Option<f64>,
     /// A round peak whose NCC is below `min_ncc` but at least this, and well above every
@@ -66,15 +69,15 @@ pub struct MatcherParams {
     pub truth: Option<String>,
 }
 
-fn auto() -> String {
-    "auto".into()
-}
+impl MatcherConfig {
+    /// The key of [`MatcherConfig::method`] in a graph's `params` (the `stitch` verb's
+    /// `--method` sets it).
+    pub const METHOD_KEY: &'static str = "method";
 
-impl MatcherParams {
     /// The scan's parameters, defaults where a value is not given; `out_dir` anchors a
     /// relative `truth`. Refuses an unknown method and out-of-range values.
     pub fn scan_params(&self, out_dir: &Path) -> Result<ScanParams, InputError> {
-        let features = match self.method.parse::<RegistrationMethod>()? {
+        let features = match self.method {
             RegistrationMethod::Phase => None,
             RegistrationMethod::Harris => Some(FeatureParams::for_method(FeatureMethod::Harris)),
             RegistrationMethod::Sift => Some(FeatureParams::for_method(FeatureMethod::Sift)),
@@ -124,16 +127,10 @@ impl MatcherParams {
 mod tests {
     use super::*;
 
-    fn params(method: &str) -> MatcherParams {
-        MatcherParams {
-            method: method.into(),
-            min_ncc: None,
-            min_ncc_distinct: None,
-            lucas_kanade: None,
-            max_shift_px: None,
-            stage_sigma_px: None,
-            outlier_px: None,
-            truth: None,
+    fn params(method: &str) -> MatcherConfig {
+        MatcherConfig {
+            method: method.parse().unwrap(),
+            ..MatcherConfig::default()
         }
     }
 
@@ -142,7 +139,15 @@ mod tests {
         let dir = Path::new("out");
         assert!(params("auto").scan_params(dir).unwrap().features.is_none());
         assert!(params("sift").scan_params(dir).unwrap().features.is_some());
-        assert!(params("fft").scan_params(dir).is_err());
+        assert!("fft".parse::<RegistrationMethod>().is_err());
+        let from = |t: &str| -> Result<MatcherConfig, String> {
+            serde_json::from_str(t).map_err(|e| e.to_string())
+        };
+        assert_eq!(from("{}").unwrap().method, RegistrationMethod::Phase);
+        let harris = from(r#"{"method": "harris"}"#).unwrap();
+        assert_eq!(harris.method, RegistrationMethod::Harris);
+        let e = from(r#"{"method": "fft"}"#).unwrap_err();
+        assert!(e.contains("\"fft\": expected \"auto\", \"phase\""), "{e}");
         let mut p = params("phase");
         p.outlier_px = Some(0.0);
         assert!(p.scan_params(dir).is_err());

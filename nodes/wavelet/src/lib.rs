@@ -70,9 +70,9 @@ pub use live::{
 };
 pub use method::{
     equivalent_cutoff_um, filter_separation, level_lowered_warning, FilterSeparation,
-    SeparationMethod,
+    SeparationKind, SeparationMethod,
 };
-pub use options::{OptionError, WaveletParams};
+pub use options::{default_base, OptionError, WaveletConfig};
 pub use pool::{pool, PoolOp, Pooled};
 pub use select::{
     analyse, energy_curve, height_stats, level_by_min_energy, pooling_bias, rmse_per_base,

@@ -37,6 +37,45 @@ pub enum SeparationMethod {
     RobustGaussian { cutoff_um: f64 },
 }
 
+/// A separation method by name, before its cutoff is known (a graph's `method`, the
+/// `separate` verb's `--method`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum SeparationKind {
+    /// The paper's wavelet low-pass (default).
+    #[default]
+    Wavelet,
+    /// ISO 16610-61 Gaussian L-filter.
+    Gaussian,
+    /// ISO 16610-71 robust Gaussian regression filter.
+    RobustGaussian,
+}
+
+impl SeparationKind {
+    /// "wavelet", "gaussian" or "robust-gaussian".
+    pub fn name(self) -> &'static str {
+        match self {
+            SeparationKind::Wavelet => "wavelet",
+            SeparationKind::Gaussian => "gaussian",
+            SeparationKind::RobustGaussian => "robust-gaussian",
+        }
+    }
+}
+
+impl std::str::FromStr for SeparationKind {
+    type Err = String;
+    /// A name, ASCII case and surrounding blanks ignored.
+    fn from_str(s: &str) -> Result<Self, String> {
+        [
+            SeparationKind::Wavelet,
+            SeparationKind::Gaussian,
+            SeparationKind::RobustGaussian,
+        ]
+        .into_iter()
+        .find(|k| k.name().eq_ignore_ascii_case(s.trim()))
+        .ok_or_else(|| format!("{s:?}: expected \"wavelet\", \"gaussian\" or \"robust-gaussian\""))
+    }
+}
+
 impl SeparationMethod {
     /// "wavelet", "gaussian" or "robust-gaussian".
     pub fn name(&self) -> &'static str {
@@ -50,6 +89,13 @@ impl SeparationMethod {
     /// The method by name; `cutoff_um` is required by the filters and refused by the wavelet.
     /// The error says what was expected (the caller names the field).
     pub fn parse(name: &str, cutoff_um: Option<f64>) -> Result<Self, String> {
+        let kind = name.parse().map_err(|e| format!("method = {e}"))?;
+        Self::with_cutoff(kind, cutoff_um)
+    }
+
+    /// The method of this kind; `cutoff_um` is required by the filters and refused by the
+    /// wavelet.
+    pub fn with_cutoff(kind: SeparationKind, cutoff_um: Option<f64>) -> Result<Self, String> {
         let cutoff = |c: Option<f64>| match c {
             Some(c) if c.is_finite() && c > 0.0 => Ok(c),
             Some(c) => Err(format!(
@@ -57,23 +103,20 @@ impl SeparationMethod {
             )),
             None => Err(format!(
                 "cutoff_um missing: method \"{}\" needs the L-filter's cutoff wavelength in µm",
-                name.trim()
+                kind.name()
             )),
         };
-        match name.trim().to_ascii_lowercase().as_str() {
-            "wavelet" => match cutoff_um {
+        match kind {
+            SeparationKind::Wavelet => match cutoff_um {
                 None => Ok(SeparationMethod::Wavelet),
                 Some(_) => Err("cutoff_um: applies to method \"gaussian\" or \"robust-gaussian\"; the wavelet's cutoff follows from its level".into()),
             },
-            "gaussian" => Ok(SeparationMethod::Gaussian {
+            SeparationKind::Gaussian => Ok(SeparationMethod::Gaussian {
                 cutoff_um: cutoff(cutoff_um)?,
             }),
-            "robust-gaussian" => Ok(SeparationMethod::RobustGaussian {
+            SeparationKind::RobustGaussian => Ok(SeparationMethod::RobustGaussian {
                 cutoff_um: cutoff(cutoff_um)?,
             }),
-            _ => Err(format!(
-                "method = {name:?}: expected \"wavelet\", \"gaussian\" or \"robust-gaussian\""
-            )),
         }
     }
 

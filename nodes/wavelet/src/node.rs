@@ -18,7 +18,7 @@ use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 use crate::live::{
     final_separation_with, FinalRequest, FinalSummary, LiveSeparation, SeparationSettings,
 };
-use crate::options::WaveletParams;
+use crate::options::WaveletConfig;
 use crate::stream::StreamOptions;
 
 pub struct WaveletNode {
@@ -41,10 +41,21 @@ pub struct WaveletNode {
     summary: Option<FinalSummary>,
 }
 
+/// The node's parameters checked as [`build`] checks them, with nothing built.
+pub fn check(ctx: &NodeContext) -> Result<()> {
+    settings(ctx).map(drop)
+}
+
+fn settings(ctx: &NodeContext) -> Result<(WaveletConfig, SeparationSettings)> {
+    let config: WaveletConfig = ctx.params()?;
+    let settings = config
+        .settings()
+        .map_err(|e| anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id))?;
+    Ok((config, settings))
+}
+
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
-    let p: WaveletParams = ctx.params()?;
-    let at = format!("graph '{}', node '{}'", ctx.graph_name, ctx.node_id);
-    let settings = p.settings().map_err(|e| anyhow!("{at}: {e}"))?;
+    let (p, settings) = settings(ctx)?;
     let wired = |port: &str| {
         ctx.outputs
             .iter()

@@ -1,6 +1,6 @@
 //! The separation's options as text (a graph file's params, the `separate` verb's flags): one
 //! parser per option, so the node and the verb accept and refuse the same spellings, and the
-//! wavelet node's parameters ([`WaveletParams`]) built from them.
+//! wavelet node's parameters ([`WaveletConfig`]) parsed by them.
 //!
 //! Every parser trims and ignores ASCII case. The error names what was expected; the caller
 //! prefixes where the value came from (`--level`, `graph 'g', node 'w': level = `).
@@ -9,9 +9,10 @@ use std::fmt;
 use std::str::FromStr;
 
 use serde::Deserialize;
+use surfstream_core::choice::{from_number_or_text, from_text, from_text_opt};
 
 use crate::live::SeparationSettings;
-use crate::{BaseChoice, LevelChoice, Mode, PoolOp, SeparationMethod, Wavelet};
+use crate::{BaseChoice, LevelChoice, Mode, PoolOp, SeparationKind, SeparationMethod, Wavelet};
 
 /// A value an option does not accept.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -92,83 +93,72 @@ impl FromStr for PoolOp {
     }
 }
 
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct WaveletParams {
-    /// "wavelet" (the paper), "gaussian" (ISO 16610-61) or "robust-gaussian" (ISO 16610-71).
-    #[serde(default = "wavelet")]
-    pub method: String,
+/// The wavelet node's `params` table (typed: each choice is parsed by its option's parser
+/// above when the graph is read, and refused with its key). `None`: the default.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct WaveletConfig {
+    /// "wavelet" (the paper; default), "gaussian" (ISO 16610-61) or "robust-gaussian"
+    /// (ISO 16610-71).
+    #[serde(deserialize_with = "from_text")]
+    pub method: SeparationKind,
     /// The L-filter's cutoff wavelength lambda_c, µm (filter methods only).
     pub cutoff_um: Option<f64>,
     /// The S-filter's cutoff lambda_s, µm (filter methods only; none by default).
     pub lambda_s_um: Option<f64>,
-    /// A base name, or "auto": minimum reconstruction RMSE (eq. 10; it ranks round-off).
-    #[serde(default = "sym5")]
-    pub wavelet: String,
+    /// A base name (default sym5), or "auto": minimum reconstruction RMSE (eq. 10; it ranks
+    /// round-off).
+    #[serde(deserialize_with = "from_text_opt")]
+    pub wavelet: Option<BaseChoice>,
     /// Decomposition level of the datum (clamped to the largest useful level of the
     /// panorama), or "auto": minimum approximation energy proportion (Fig. 13).
-    pub level: Option<LevelParam>,
-    #[serde(default = "symmetric")]
-    pub mode: String,
+    #[serde(deserialize_with = "from_number_or_text")]
+    pub level: LevelChoice,
+    /// "symmetric" (default) or "periodization".
+    #[serde(deserialize_with = "from_text")]
+    pub mode: Mode,
     /// Pooling block, px.
-    #[serde(default = "four")]
     pub pool: usize,
-    /// "max" (the paper) or "mean".
-    #[serde(default = "max")]
-    pub pool_op: String,
+    /// "max" (the paper; default) or "mean".
+    #[serde(deserialize_with = "from_text")]
+    pub pool_op: PoolOp,
     /// Publish live (preview) patches while tiles arrive.
-    #[serde(default = "yes")]
     pub live: bool,
     /// Context around the changed region for a live patch, px.
-    #[serde(default = "margin")]
     pub live_margin_px: usize,
-    #[serde(default = "yes")]
     pub write_files: bool,
 }
 
-/// A level as a TOML number or a string ("auto").
-#[derive(Deserialize)]
-#[serde(untagged)]
-pub enum LevelParam {
-    Level(usize),
-    Named(String),
+impl Default for WaveletConfig {
+    fn default() -> Self {
+        Self {
+            method: SeparationKind::default(),
+            cutoff_um: None,
+            lambda_s_um: None,
+            wavelet: None,
+            level: LevelChoice::Default,
+            mode: Mode::default(),
+            pool: 4,
+            pool_op: PoolOp::Max,
+            live: true,
+            live_margin_px: 256,
+            write_files: true,
+        }
+    }
 }
 
-fn wavelet() -> String {
-    "wavelet".into()
-}
-fn sym5() -> String {
-    "sym5".into()
-}
-fn symmetric() -> String {
-    "symmetric".into()
-}
-fn four() -> usize {
-    4
-}
-fn max() -> String {
-    "max".into()
-}
-fn yes() -> bool {
-    true
-}
-fn margin() -> usize {
-    256
+/// The base when none is named: sym5 (the paper's).
+pub fn default_base() -> Result<Wavelet, String> {
+    Wavelet::by_name("sym5").ok_or_else(|| "the built-in wavelet sym5 is missing".into())
 }
 
-impl WaveletParams {
+impl WaveletConfig {
     /// The separation these parameters ask for; the error names the parameter.
     pub fn settings(&self) -> Result<SeparationSettings, String> {
-        let level = match &self.level {
-            None => Ok(LevelChoice::Default),
-            Some(LevelParam::Level(l)) => l.to_string().parse(),
-            Some(LevelParam::Named(n)) => n.parse(),
-        }
-        .map_err(|e| format!("level = {e}"))?;
         if self.pool == 0 {
             return Err("pool = 0: expected a block size of at least 1 px".into());
         }
-        let method = SeparationMethod::parse(&self.method, self.cutoff_um)?;
+        let method = SeparationMethod::with_cutoff(self.method, self.cutoff_um)?;
         let lambda_s_um = match (self.lambda_s_um, method.cutoff_um()) {
             (None, _) => None,
             (Some(ls), Some(lc)) if ls.is_finite() && ls > 0.0 && ls < lc => Some(ls),
@@ -183,14 +173,18 @@ impl WaveletParams {
                 )
             }
         };
+        let base = match self.wavelet {
+            Some(b) => b,
+            None => BaseChoice::Named(default_base()?),
+        };
         Ok(SeparationSettings {
             method,
             lambda_s_um,
-            base: self.wavelet.parse().map_err(|e| format!("wavelet = {e}"))?,
-            level,
-            mode: self.mode.parse().map_err(|e| format!("mode = {e}"))?,
+            base,
+            level: self.level,
+            mode: self.mode,
             pool_block: self.pool,
-            pool_op: self.pool_op.parse().map_err(|e| format!("pool_op = {e}"))?,
+            pool_op: self.pool_op,
         })
     }
 }
@@ -225,7 +219,7 @@ mod tests {
 
     #[test]
     fn node_params_become_settings_or_name_the_bad_one() {
-        let p = |toml: &str| -> WaveletParams { serde_json::from_str(toml).expect("params") };
+        let p = |json: &str| -> WaveletConfig { serde_json::from_str(json).expect("params") };
         let s = p(r#"{"level": 6, "pool_op": "Mean"}"#).settings().unwrap();
         assert_eq!(s.level, LevelChoice::Fixed(6));
         assert_eq!((s.pool_block, s.pool_op), (4, PoolOp::Mean));
@@ -249,12 +243,24 @@ mod tests {
                 .base,
             BaseChoice::MinRmse
         );
+        // A choice is refused when read (the graph's reader prefixes its key).
+        for (bad, says) in [
+            (r#"{"level": 0}"#, "\"0\": expected a decomposition level"),
+            (r#"{"level": -2}"#, "\"-2\": expected a decomposition level"),
+            (r#"{"mode": "zero"}"#, "\"zero\": expected \"symmetric\""),
+            (r#"{"wavelet": "haar"}"#, "\"haar\": expected db1"),
+            (
+                r#"{"method": "median"}"#,
+                "\"median\": expected \"wavelet\"",
+            ),
+            (r#"{"pool_op": "min"}"#, "\"min\": expected"),
+            (r#"{"colour": 1}"#, "unknown field"),
+        ] {
+            let e = serde_json::from_str::<WaveletConfig>(bad).unwrap_err();
+            assert!(e.to_string().contains(says), "{bad}: {e}");
+        }
         for (bad, field) in [
-            (r#"{"level": 0}"#, "level = "),
             (r#"{"pool": 0}"#, "pool = 0"),
-            (r#"{"mode": "zero"}"#, "mode = "),
-            (r#"{"wavelet": "haar"}"#, "wavelet = "),
-            (r#"{"method": "median"}"#, "method = "),
             (r#"{"method": "gaussian"}"#, "cutoff_um"),
             (r#"{"method": "gaussian", "cutoff_um": 0}"#, "cutoff_um = 0"),
             (r#"{"cutoff_um": 80}"#, "cutoff_um"),
