@@ -26,7 +26,7 @@ use std::process::ExitCode;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
-use surfstream_core::record::{NodeRecord, OutputChoice, RecorderReport, ReplayReport};
+use surfstream_core::record::{NodeRecord, OutputChoice, ReplayReport};
 use surfstream_runtime::graph::GraphFile;
 
 #[derive(Parser)]
@@ -576,74 +576,23 @@ fn apply_tolerance(graph: &mut GraphFile, tolerance: &str, origin: &str) -> Resu
     check_node_params(graph, origin)
 }
 
-/// Every node's parameters checked the way the node will check them, before anything is
-/// started or written (the out dir is not touched): a typo fails here, not after "launched
-/// graph" with a half-prepared out dir. Nodes whose construction has no side effects are
-/// built and dropped; the source is checked without generating its specimen or reading its
-/// tiles; the recorder (which creates its file when built) by its one key.
+/// Every node's parameters checked the way the node will check them (each kind's `check`),
+/// before anything is started or written (the out dir is not touched): a typo fails here,
+/// not after "launched graph" with a half-prepared out dir.
 fn check_node_params(graph: &GraphFile, origin: &str) -> Result<()> {
     let contexts = graph.resolve(0, &nodes::registry())?;
     for c in &contexts {
-        let at = || format!("{origin}: node '{}' ({})", c.node_id, c.node_kind);
-        match c.node_kind.as_str() {
-            ReplayReport::NODE_KIND => check_source_params(c).with_context(at)?,
-            RecorderReport::NODE_KIND => {
-                for (k, v) in &c.params {
-                    if k != "path" || !v.is_str() {
-                        bail!(
-                            "{}: params.{k} = {v}: the recorder takes only path = \"FILE.mcap\"",
-                            at()
-                        );
-                    }
-                }
+        // The nodes' own errors name the graph, the node and the field; the source's name
+        // the file.
+        nodes::check(c).with_context(|| {
+            if c.node_kind == ReplayReport::NODE_KIND {
+                format!("{origin}: node '{}' ({})", c.node_id, c.node_kind)
+            } else {
+                origin.to_string()
             }
-            // The nodes' own errors name the graph, the node and the field.
-            _ => drop(nodes::build(c).with_context(|| origin.to_string())?),
-        }
+        })?;
     }
     Ok(())
-}
-
-/// The replay node's parameters, cheaply, through the node's own [`surfstream_replay::Config`]:
-/// the simulated stage's plan and specimen settings (not the specimen itself), the pacing, and
-/// that a scan or recording path is a regular file.
-fn check_source_params(c: &surfstream_runtime::graph::NodeContext) -> Result<()> {
-    let config = surfstream_replay::Config::from_table(&c.params)?;
-    config.check()?;
-    if let surfstream_replay::Config::Scan(scan) = &config {
-        warn_assumed_height_unit(&scan.manifest());
-    }
-    Ok(())
-}
-
-/// A scan.toml without `height_unit` whose tiles carry no unit (.npy, .xyz): the reader
-/// takes their heights as um; say so (a unit is never assumed silently).
-fn warn_assumed_height_unit(manifest: &std::path::Path) {
-    let Some(m) = std::fs::read_to_string(manifest)
-        .ok()
-        .and_then(|t| t.parse::<toml::Table>().ok())
-    else {
-        return; // the loader names what is wrong with it
-    };
-    if m.get("scan").and_then(|s| s.get("height_unit")).is_some() {
-        return;
-    }
-    let unitless = m
-        .get("tile")
-        .and_then(|t| t.as_array())
-        .into_iter()
-        .flatten()
-        .filter_map(|t| t.get("file").and_then(|f| f.as_str()))
-        .any(|f| {
-            let f = f.to_ascii_lowercase();
-            f.ends_with(".npy") || f.ends_with(".xyz")
-        });
-    if unitless {
-        eprintln!(
-            "stitch: warning: {}: no [scan] height_unit and the tiles carry none (.npy/.xyz): heights taken as um",
-            manifest.display()
-        );
-    }
 }
 
 /// Writes OUT/scan.toml for a folder of tiles laid out as the user says, and returns its path.
@@ -780,8 +729,20 @@ inputs = {{ surface = "fusion/panorama", roughness = "wavelet/roughness" }}
     let registry = nodes::registry();
     let mut graph = GraphFile::parse(&text, "stitch pipeline", &registry)?;
     if let Some(m) = method {
-        // A string, whatever it looks like: the matcher validates the name.
-        graph.apply_override(&format!("matcher.method={}", toml::Value::String(m.into())))?;
+        use surfstream_matcher::{MatcherConfig, RegistrationMethod};
+        m.parse::<RegistrationMethod>()
+            .map_err(|e| anyhow!("--method {e}"))?;
+        // Written as given (run.json's parameters show the user's text), under the key the
+        // matcher's config reads.
+        let matcher = graph
+            .nodes
+            .iter_mut()
+            .find(|n| n.node == <surfstream_core::record::MatcherReport as NodeRecord>::NODE_KIND)
+            .ok_or_else(|| anyhow!("--method: the stitch pipeline has no matcher"))?;
+        matcher.params.insert(
+            MatcherConfig::METHOD_KEY.into(),
+            toml::Value::String(m.into()),
+        );
     }
     // make_tiles.py's ground truth beside scan.toml: the matcher scores feature matches
     // against it (r and MAP in run.json); `--set matcher.truth=...` still overrides.

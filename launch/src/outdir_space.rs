@@ -45,24 +45,12 @@ pub fn tile_points(graph: &GraphFile) -> Option<u64> {
     total
 }
 
-/// The bytes of the tile files a scan manifest lists.
+/// The bytes of the tile files a scan manifest lists (read by the replay's own loader).
 fn scan_bytes(manifest: &Path) -> Option<u64> {
-    let text = std::fs::read_to_string(manifest).ok()?;
-    let table: toml::Table = text.parse().ok()?;
-    let dir = manifest.parent()?;
-    let dir = match table
-        .get("scan")
-        .and_then(|s| s.get("tile_dir"))
-        .and_then(|t| t.as_str())
-    {
-        Some(t) => dir.join(t),
-        None => dir.to_path_buf(),
-    };
-    let tiles = table.get("tile")?.as_array()?;
+    let listing = surfstream_replay::scan_dir::ManifestListing::read(manifest).ok()?;
     let mut bytes = 0u64;
-    for t in tiles {
-        let file = t.get("file")?.as_str()?;
-        bytes = bytes.saturating_add(std::fs::metadata(dir.join(file)).ok()?.len());
+    for file in &listing.tile_files {
+        bytes = bytes.saturating_add(std::fs::metadata(file).ok()?.len());
     }
     Some(bytes)
 }

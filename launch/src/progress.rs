@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 use anyhow::Result;
 use crossbeam_channel::{unbounded, Receiver, Sender};
 use surfstream_core::frame::{flags, placed_by};
-use surfstream_core::record::{NodeRecord, ReplayReport};
+use surfstream_core::record::{MatcherReport, NodeRecord, ReplayReport};
 use surfstream_runtime::graph::{InputSpec, NodeContext, PortKind};
 use surfstream_runtime::node::{Input, NodeLogic, NodeReport, Outbox};
 
@@ -86,7 +86,7 @@ pub fn attach_observer(contexts: &mut Vec<NodeContext>) -> bool {
         return false; // a user's node has the id: no progress rather than a clash
     }
     let Some(k) = contexts.iter().position(|c| {
-        c.node_kind == "matcher" && c.outputs.iter().any(|o| o.port == REGISTRATIONS)
+        c.node_kind == MatcherReport::NODE_KIND && c.outputs.iter().any(|o| o.port == REGISTRATIONS)
     }) else {
         return false;
     };

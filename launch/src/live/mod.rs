@@ -245,14 +245,16 @@ pub fn attach(contexts: &mut Vec<NodeContext>) {
     // The source's plan: its grid where its parameters give one, else its count (a
     // recording's summary), known before its first tile.
     let planned = layout.total().or_else(|| {
-        let source = contexts.iter().find(|c| c.node_kind == "replay")?;
+        let source = contexts
+            .iter()
+            .find(|c| c.node_kind == ReplayReport::NODE_KIND)?;
         let config = surfstream_replay::Config::from_table(&source.params).ok()?;
         surfstream_replay::planned::planned_tiles(&config)
     });
     // The pair log of the matcher the observer reads.
     let pair_log = contexts
         .iter()
-        .find(|c| c.node_kind == "matcher")
+        .find(|c| c.node_kind == MatcherReport::NODE_KIND)
         .map(|c| surfstream_matcher::pair_log::path(&c.out_dir, &c.node_id));
     live.shared.update(|s| {
         let mut fresh = LiveState::new(&graph, layout.grid, s.stop_allowed);

@@ -26,6 +26,11 @@ pub struct FinishNode {
     report: Option<FinishReport>,
 }
 
+/// The node's parameters checked as [`build`] checks them (building starts no engine).
+pub fn check(ctx: &NodeContext) -> Result<()> {
+    FinishNode::new(ctx).map(drop)
+}
+
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
     Ok(Box::new(FinishNode::new(ctx)?))
 }

@@ -78,7 +78,7 @@ impl Default for MesherConfig {
             units: LengthUnit::default(),
             format: StlFormat::default(),
             base_depth_um: None,
-            file: "surface.stl".into(),
+            file: Self::DEFAULT_FILE.into(),
             method: MeshMethod::default(),
             epsilon_um: None,
             epsilon_sq_fraction: None,
@@ -276,6 +276,11 @@ impl MesherConfig {
     /// The graph key of [`MesherConfig::tolerance`], for the launcher's `--tolerance`, which
     /// sets it on every mesher node (the mesher's lib has no TOML: the launcher writes it).
     pub const TOLERANCE_KEY: &'static str = "tolerance";
+    /// The key of [`MesherConfig::file`] (the graph reader keeps every output file inside
+    /// the out dir, and no two alike).
+    pub const FILE_KEY: &'static str = "file";
+    /// [`MesherConfig::file`] when not given.
+    pub const DEFAULT_FILE: &'static str = "surface.stl";
 
     /// The checked settings; the error says which parameter is wrong and what was expected.
     pub fn settings(&self) -> std::result::Result<MeshSettings, String> {

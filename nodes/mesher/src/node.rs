@@ -30,6 +30,12 @@ pub struct MesherNode {
     summary: Option<MeshReport>,
 }
 
+/// The node's parameters and wiring checked as [`build`] checks them (nothing is read or
+/// written either way).
+pub fn check(ctx: &NodeContext) -> Result<()> {
+    MesherNode::new(ctx).map(drop)
+}
+
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
     Ok(Box::new(MesherNode::new(ctx)?))
 }

@@ -10,25 +10,37 @@ use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
 use crate::RecordingSession;
 
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct Params {
-    /// Recording file, relative to the out dir.
-    #[serde(default = "default_path")]
-    path: PathBuf,
+/// The recorder's `params` table.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RecorderConfig {
+    /// Recording file, relative to the out dir (default recording.mcap).
+    pub path: PathBuf,
 }
 
-fn default_path() -> PathBuf {
-    PathBuf::from("recording.mcap")
+impl RecorderConfig {
+    /// The key of [`RecorderConfig::path`] (the graph reader keeps every output file inside
+    /// the out dir, and no two alike).
+    pub const PATH_KEY: &'static str = "path";
+    /// [`RecorderConfig::path`] when not given.
+    pub const DEFAULT_PATH: &'static str = "recording.mcap";
 }
 
-pub struct RecorderNode {
-    session: RecordingSession,
-    finished: bool,
+impl Default for RecorderConfig {
+    fn default() -> Self {
+        Self {
+            path: PathBuf::from(Self::DEFAULT_PATH),
+        }
+    }
 }
 
-pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
-    let p: Params = ctx.params()?;
+/// The node's parameters and wiring checked as [`build`] checks them, with no file created.
+pub fn check(ctx: &NodeContext) -> Result<()> {
+    config(ctx).map(drop)
+}
+
+fn config(ctx: &NodeContext) -> Result<RecorderConfig> {
+    let p: RecorderConfig = ctx.params()?;
     if ctx.inputs.is_empty() {
         bail!(
             "graph '{}', node '{}': a recorder needs at least one input",
@@ -51,6 +63,16 @@ pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
             ctx.node_id
         )
     })?;
+    Ok(p)
+}
+
+pub struct RecorderNode {
+    session: RecordingSession,
+    finished: bool,
+}
+
+pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
+    let p = config(ctx)?;
     let path = ctx.out_dir.join(&p.path);
     let session = RecordingSession::create(&path, &ctx.graph_name, &ctx.inputs)?;
     Ok(Box::new(RecorderNode {

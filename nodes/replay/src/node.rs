@@ -27,6 +27,25 @@ pub struct ReplayNode {
     tiles: Vec<SourceTile>,
 }
 
+/// The node's parameters checked cheaply, before anything is started: the simulated stage's
+/// plan and specimen settings (not the specimen itself), the pacing, that a scan or recording
+/// path is a regular file, and a scan's manifest as its loader reads it (no tile is read). A
+/// scan whose heights will be taken as um is said here, once.
+pub fn check(ctx: &NodeContext) -> Result<()> {
+    let config = crate::Config::from_table(&ctx.params)?;
+    config.check()?;
+    if let crate::Config::Scan(scan) = &config {
+        let listing = crate::scan_dir::ManifestListing::read(&scan.manifest())?;
+        if listing.heights_assumed_um() {
+            eprintln!(
+                "stitch: warning: {}: no [scan] height_unit and the tiles carry none (.npy/.xyz): heights taken as um",
+                listing.path.display()
+            );
+        }
+    }
+    Ok(())
+}
+
 /// Builds the node from its graph parameters.
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
     let source = open_source(ctx)?;

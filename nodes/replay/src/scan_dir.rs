@@ -473,6 +473,47 @@ fn check_file_calibration(
     Ok(())
 }
 
+/// A scan manifest as [`load_scan`] reads and checks it, before any tile is read: what the
+/// launcher needs to know of a scan before it starts (the tiles' bytes for the out dir's
+/// space, whether heights will be taken as um).
+#[derive(Debug, Clone)]
+pub struct ManifestListing {
+    /// The manifest file.
+    pub path: PathBuf,
+    /// Each tile's file, where the loader will open it (not yet checked).
+    pub tile_files: Vec<PathBuf>,
+    /// `[scan] height_unit` is given.
+    pub height_unit_given: bool,
+}
+
+impl ManifestListing {
+    /// `path`: a scan.toml or the folder holding one. The error is the loader's.
+    pub fn read(path: &Path) -> Result<Self> {
+        let manifest = read_manifest(path)?;
+        let manifest_dir = manifest.path.parent().unwrap_or(Path::new("."));
+        let dir = match &manifest.tile_dir {
+            Some(t) => manifest_dir.join(t),
+            None => manifest_dir.to_path_buf(),
+        };
+        Ok(Self {
+            tile_files: manifest.tiles.iter().map(|t| dir.join(&t.file)).collect(),
+            height_unit_given: manifest.unit_given,
+            path: manifest.path,
+        })
+    }
+
+    /// No `height_unit` in the manifest, and a tile's format carries none (.npy, .xyz): the
+    /// loader takes those heights as um (said, never assumed silently).
+    pub fn heights_assumed_um(&self) -> bool {
+        !self.height_unit_given
+            && self.tile_files.iter().any(|f| {
+                f.extension()
+                    .and_then(|e| e.to_str())
+                    .is_some_and(|e| e.eq_ignore_ascii_case("npy") || e.eq_ignore_ascii_case("xyz"))
+            })
+    }
+}
+
 /// Reads `scan.toml` (or a directory holding one) and every tile it lists.
 pub fn load_scan(path: &Path) -> Result<ScanDirectory> {
     let Manifest {
