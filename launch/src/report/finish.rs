@@ -6,25 +6,26 @@
 //! (the same as its finish.html), from wear.npy, original.npy and worn.npy in the node's
 //! folder.
 
-use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, Result};
-use serde_json::Value;
+use serde::Deserialize;
 use surfstream_core::record::RunRecord;
-use surfstream_finish::summary::FinishSummary;
+use surfstream_finish::summary::{FinishReport, FinishSummary};
 
 use super::html::{esc, um};
 
-/// The folders of `out` where a finish node wrote: its `dir` parameter (run.json
-/// `parameters.ID.dir`, "finish" by default) holding finish.json and wear.npy; in name order.
-fn finish_dirs(parameters: &BTreeMap<String, Value>, out: &Path) -> Vec<PathBuf> {
+/// The folders of `out` where a finish node wrote: each finish node's folder as its report
+/// says (run.json `stages.ID`, a [`FinishReport`]) and "finish" (the default, and the
+/// `finish` verb's), holding finish.json and wear.npy; in name order.
+fn finish_dirs(run: &RunRecord, out: &Path) -> Vec<PathBuf> {
     let mut names: Vec<String> = vec!["finish".into()];
     names.extend(
-        parameters
+        run.stages
             .values()
-            .filter_map(|v| v["dir"].as_str().map(String::from)),
+            .filter_map(|v| FinishReport::deserialize(v).ok())
+            .map(|r| r.dir),
     );
     names.sort();
     names.dedup();
@@ -37,13 +38,13 @@ fn finish_dirs(parameters: &BTreeMap<String, Value>, out: &Path) -> Vec<PathBuf>
 
 /// The section, or "" when the run has no finish output.
 pub fn section(run: &RunRecord, out: &Path) -> String {
-    section_of(&run.parameters, out)
+    section_of(run, out)
 }
 
 /// The section for a run whose nodes' parameters are `parameters`.
-fn section_of(parameters: &BTreeMap<String, Value>, out: &Path) -> String {
+fn section_of(run: &RunRecord, out: &Path) -> String {
     let mut h = String::new();
-    for dir in finish_dirs(parameters, out) {
+    for dir in finish_dirs(run, out) {
         let rel = dir.strip_prefix(out).unwrap_or(&dir).display().to_string();
         match render(&dir, &rel) {
             Ok(s) => h.push_str(&s),
@@ -239,7 +240,9 @@ mod tests {
     #[test]
     fn a_run_without_finish_output_has_no_section_and_a_broken_one_says_why() {
         let dir = tempfile::tempdir().unwrap();
-        let run = BTreeMap::from([("fin".to_string(), serde_json::json!({"dir": "f2"}))]);
+        let report = FinishReport::of(example_summary(), "f2");
+        let stage = surfstream_core::record::to_value(&report).unwrap();
+        let run = crate::runjson::test_record(serde_json::json!({"stages": {"fin": stage}}));
         assert_eq!(section_of(&run, dir.path()), "");
         // A node's record (nodes/finish.json) is not a finish output.
         std::fs::create_dir_all(dir.path().join("nodes")).unwrap();
