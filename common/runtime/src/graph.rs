@@ -410,6 +410,19 @@ impl NodeContext {
         })
     }
 
+    /// The node's parameters as its typed config `T`, and the settings `settle` checks them
+    /// into (the errors name the graph and the node; `settle`'s name the key). Each node's
+    /// `check` and `build` start here.
+    pub fn settings<T: serde::de::DeserializeOwned, S>(
+        &self,
+        settle: impl FnOnce(&T) -> std::result::Result<S, String>,
+    ) -> Result<(T, S)> {
+        let config: T = self.params()?;
+        let settings = settle(&config)
+            .map_err(|e| anyhow!("graph '{}', node '{}': {e}", self.graph_name, self.node_id))?;
+        Ok((config, settings))
+    }
+
     /// The iceoryx2 service name of one of this node's output ports.
     pub fn service_name(&self, node_id: &str, port: &str) -> String {
         service_name(&self.graph_name, node_id, port)

@@ -2,7 +2,7 @@
 //! placed tile's panorama patch (and its decimated preview), and at end of scan the final
 //! panorama, written to the out dir.
 
-use anyhow::{anyhow, bail, Result};
+use anyhow::{bail, Result};
 use surfstream_core::frame::flags;
 use surfstream_core::record::{self, FusionMemory, FusionReport};
 use surfstream_io::output::OutputWriter;
@@ -10,7 +10,7 @@ use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
 use crate::config::FusionConfig;
-use crate::stream::{FinalPanorama, FinalReport, FusionSettings, StreamingFusion};
+use crate::stream::{FinalPanorama, FinalReport, StreamingFusion};
 
 const PANORAMA: &str = "panorama";
 const PREVIEW: &str = "preview";
@@ -27,19 +27,11 @@ pub struct FusionNode {
 
 /// The node's parameters checked as [`build`] checks them, with nothing built.
 pub fn check(ctx: &NodeContext) -> Result<()> {
-    settings(ctx).map(drop)
-}
-
-fn settings(ctx: &NodeContext) -> Result<(FusionConfig, FusionSettings)> {
-    let config: FusionConfig = ctx.params()?;
-    let settings = config
-        .settings()
-        .map_err(|e| anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id))?;
-    Ok((config, settings))
+    ctx.settings(FusionConfig::settings).map(drop)
 }
 
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
-    let (config, settings) = settings(ctx)?;
+    let (config, settings) = ctx.settings(FusionConfig::settings)?;
     let mut fusion = StreamingFusion::new(settings);
     let memory = &ctx.memory;
     let chunk_budget_bytes = memory.panorama_chunks_bytes().map(|b| b as usize);

@@ -36,10 +36,8 @@ pub fn check(ctx: &NodeContext) -> Result<()> {
 }
 
 fn scan_params(ctx: &NodeContext) -> Result<crate::ScanParams> {
-    let config: MatcherConfig = ctx.params()?;
-    config
-        .scan_params(&ctx.out_dir)
-        .map_err(|e| anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id))
+    let scan_params = |c: &MatcherConfig| c.scan_params(&ctx.out_dir).map_err(|e| e.to_string());
+    Ok(ctx.settings(scan_params)?.1)
 }
 
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {

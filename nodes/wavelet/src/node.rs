@@ -43,19 +43,11 @@ pub struct WaveletNode {
 
 /// The node's parameters checked as [`build`] checks them, with nothing built.
 pub fn check(ctx: &NodeContext) -> Result<()> {
-    settings(ctx).map(drop)
-}
-
-fn settings(ctx: &NodeContext) -> Result<(WaveletConfig, SeparationSettings)> {
-    let config: WaveletConfig = ctx.params()?;
-    let settings = config
-        .settings()
-        .map_err(|e| anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id))?;
-    Ok((config, settings))
+    ctx.settings(WaveletConfig::settings).map(drop)
 }
 
 pub fn build(ctx: &NodeContext) -> Result<Box<dyn NodeLogic + Send>> {
-    let (p, settings) = settings(ctx)?;
+    let (p, settings) = ctx.settings(WaveletConfig::settings)?;
     let wired = |port: &str| {
         ctx.outputs
             .iter()
