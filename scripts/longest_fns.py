@@ -49,7 +49,9 @@ def functions(path, text):
         if i <= skip_to:
             continue
         if line.strip().startswith("#[cfg(test)]"):
-            skip_to = close_of(code, i)
+            # A test-only item: a module or function (to its brace), or a `use` (its line).
+            end = close_of(code, i)
+            skip_to = end if end is not None else i + 1
             continue
         m = FN.match(line)
         if not m:
