@@ -103,21 +103,37 @@ print("zarr ok", z.shape, z.chunks)
 /// pointwise bound) stays within 1.5 x the budget in every node's record (under `run` each
 /// node's figure is the one process's peak when that node finished), run.json sets the peaks
 /// against the plan's shares, and the verdict says whether the plan was kept. 4 x 4 tiles
-/// (14.3 Mpx), not the issue's 6 x 6: a 6 x 6 `run` took 9.6 min on the loaded 2-core machine
-/// (over the ~4 min a test may take) and, at 977 MB, does not yet keep 1.5 x the budget
-/// (docs/benchmarks.md, "The tolerance search in bounded memory").
+/// (14.3 Mpx); the issue's own 6 x 6 is the next test.
 #[test]
 fn a_four_by_four_run_stays_within_one_and_a_half_times_its_budget() {
+    demo_within_budget("four", 4);
+}
+
+/// Issue 37 at its own size: the 6 x 6 demo (31.8 Mpx) at `memory_budget_gb=0.5` stays
+/// within 1.5 x the budget in every node's record and in the process's peak: 590 and 591 MB
+/// measured, against 743 and 769 MB before a finished node's freed pages went back to the
+/// system, the live passes were banded and the mesher's spike search stopped copying the
+/// map. Not timed: 2 to 6 min on the shared 2-core machine.
+#[test]
+fn a_six_by_six_run_stays_within_one_and_a_half_times_its_budget() {
+    demo_within_budget("six", 6);
+}
+
+/// The demo at `side` x `side` tiles under `run` at `memory_budget_gb=0.5`: every node's peak
+/// and the process's within 1.5 x the budget, the shares, the verdict's line, the tolerance
+/// met.
+fn demo_within_budget(name: &str, side: usize) {
     const BUDGET_BYTES: u64 = 500_000_000;
     let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("four");
+    let out = dir.path().join(name);
+    let (rows, cols) = (format!("stage.rows={side}"), format!("stage.cols={side}"));
     let out_run = run({
         let mut c = surfstream();
         c.args(["run", "launch/graphs/demo.toml", "--out"])
             .arg(&out);
         for s in [
-            "stage.rows=4",
-            "stage.cols=4",
+            rows.as_str(),
+            cols.as_str(),
             "stage.pacing=fast",
             "graph.memory_budget_gb=0.5",
         ] {

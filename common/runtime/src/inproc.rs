@@ -369,7 +369,13 @@ fn run_node(
         logic.on_drained(&mut outbox)?;
         send_all(&ctx, &mut outputs, &mut outbox, &mut stats, timeout)?;
     }
-    NodeReport::finished(&ctx, stats, logic.as_ref())
+    let report = NodeReport::finished(&ctx, stats, logic.as_ref());
+    // The node's state and queues go now, not when the thread is joined, and under a budget
+    // their freed pages go back to the system: the nodes still running (the mesher's phase
+    // after the fusion and the wavelet) then fit in what the finished ones held.
+    drop((logic, inputs, outputs, outbox));
+    crate::memory::release_freed_pages(ctx.memory.budget_bytes);
+    report
 }
 
 fn send_all(

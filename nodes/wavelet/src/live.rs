@@ -319,6 +319,9 @@ pub struct LiveSeparation {
     mirror: Option<PanoramaMirror>,
     /// Mirror chunks kept in memory and the spill folder for the rest (under a budget).
     mirror_limit: Option<(usize, PathBuf)>,
+    /// Bytes one live pass may hold (under a budget, the mirror's share): a larger changed
+    /// region is served in bands of rows over several passes ([`live_band_rows`]).
+    pass_limit_bytes: Option<usize>,
     /// Grid region changed since the last live pass.
     dirty: Option<GridRect>,
     /// Latest tile and oldest acquisition time among the patches not yet served.
@@ -339,19 +342,25 @@ impl LiveSeparation {
             margin_px,
             mirror: None,
             mirror_limit: None,
+            pass_limit_bytes: None,
             dirty: None,
             trace: None,
         })
     }
 
     /// Keep at most `bytes` of the mirror in memory; the rest goes to an unnamed file in
-    /// `spill_dir` (see `ChunkedHeights`). Bit-exact: live passes are the same.
+    /// `spill_dir` (see `ChunkedHeights`): bit-exact, the mirror reads back the same. One live
+    /// pass then also holds about `bytes` at most: a changed region larger than that is served
+    /// in bands of rows, one band per pass ([`live_band_rows`]); each band's window has its own
+    /// margin of context, so live values near a band's edge may differ from one whole pass's
+    /// (as they differ with how the patches coalesce), the final pass not at all.
     pub fn limit_mirror(&mut self, bytes: u64, spill_dir: PathBuf) {
         let chunks = (bytes / MIRROR_CHUNK_BYTES).max(1) as usize;
         if let Some(m) = &mut self.mirror {
             m.heights.set_limit(chunks, spill_dir.clone());
         }
         self.mirror_limit = Some((chunks, spill_dir));
+        self.pass_limit_bytes = Some(usize::try_from(bytes).unwrap_or(usize::MAX));
     }
 
     /// Frees the mirror (a whole f32 copy of the panorama) once the final panorama is here
@@ -392,7 +401,7 @@ impl LiveSeparation {
     /// there is nothing to publish: no change, an all-NaN window, or a window too small for
     /// even level 1 (the final pass covers it).
     pub fn live_pass(&mut self) -> Result<Option<LivePatches>> {
-        let (Some(m), Some(dirty), Some((tile, t_acq))) =
+        let (Some(m), Some(mut dirty), Some((tile, t_acq))) =
             (&mut self.mirror, self.dirty.take(), self.trace.take())
         else {
             return Ok(None);
@@ -405,6 +414,21 @@ impl LiveSeparation {
             }
             None => self.margin_px,
         };
+        // Under a budget a pass separates a band of the changed rows; the rest stays changed
+        // (with its trace) for the next pass. Under `pacing = fast` the changed region grows
+        // to most of the panorama while the wavelet catches up, and a pass holds about 12
+        // bytes per pixel of it (the window's heights, the datum and roughness rows): 381 MB
+        // for the whole 6 x 6 demo, beside the fusion's chunks and the mirror.
+        if let Some(band) = self
+            .pass_limit_bytes
+            .map(|limit| live_band_rows(limit, dirty.cols() + 2 * margin))
+            .filter(|&band| band < dirty.rows())
+        {
+            let split = dirty.y0 + band as i64;
+            self.dirty = Some(GridRect { y0: split, ..dirty });
+            self.trace = Some((tile, t_acq));
+            dirty.y1 = split;
+        }
         let Some(window) = m
             .extent
             .and_then(|e| dirty.expand(margin as i64).intersect(&e))
@@ -464,6 +488,9 @@ impl LiveSeparation {
                 .map_err(|e| anyhow!("wavelet: live {} separation: {e}", self.method.name()))?;
             (crop(&s.datum), crop(&s.roughness))
         };
+        // The window's heights are not needed past the separation (the pooled map reads its
+        // own blocks below): not held beside them.
+        drop(heights);
         let stamp = |mut h: FrameHeader| {
             h.flags |= flags::PREVIEW;
             h.tile_index = tile;
@@ -508,6 +535,17 @@ impl LiveSeparation {
         }))
     }
 }
+
+/// Rows of the changed region one live pass takes under `limit_bytes`, for a window `cols`
+/// wide: about 12 bytes per pixel are held (the window's f32 heights, the datum and roughness
+/// rows), and a band is at least [`MIN_LIVE_BAND_ROWS`] (a pass makes progress, and the
+/// default level's decomposition fits in it).
+fn live_band_rows(limit_bytes: usize, cols: usize) -> usize {
+    (limit_bytes / (12 * cols.max(1))).max(MIN_LIVE_BAND_ROWS)
+}
+
+/// The fewest changed rows a banded live pass takes.
+const MIN_LIVE_BAND_ROWS: usize = 256;
 
 /// What the final pass publishes (flag FINAL) and reports.
 #[derive(Debug, Clone)]
@@ -985,6 +1023,27 @@ mod tests {
         live.apply_patch(&c.header, &c.heights).unwrap();
         live.release_mirror();
         assert!(!live.has_changes());
+        assert!(live.live_pass().unwrap().is_none());
+    }
+
+    #[test]
+    fn under_a_limit_a_large_changed_region_is_served_in_bands_of_rows() {
+        let mut live = LiveSeparation::new(&settings(), 8).unwrap();
+        // 40 px wide windows (24 + 2 x 8 margin): a band is the smallest, 256 rows.
+        let band = MIN_LIVE_BAND_ROWS;
+        live.limit_mirror(12 * 40 * band as u64 / 2, std::env::temp_dir());
+        let a = patch(0, 0, 24, 600, surface);
+        live.apply_patch(&a.header, &a.heights).unwrap();
+        let mut rows = Vec::new();
+        while live.has_changes() {
+            let p = live.live_pass().unwrap().expect("a live pass");
+            let d = p.datum.header;
+            assert_eq!(d.width, 24);
+            assert_eq!((d.tile_index, d.t_acquired_ns), (3, 77));
+            rows.push((d.origin_y_um, d.height));
+        }
+        // Three passes, top to bottom, that cover the region once.
+        assert_eq!(rows, [(20.0, 256), (148.0, 256), (276.0, 88)]);
         assert!(live.live_pass().unwrap().is_none());
     }
 

@@ -162,7 +162,9 @@ impl NodeLogic for WaveletNode {
     }
 
     fn has_pending_work(&self) -> bool {
-        self.ended && !self.done
+        // Under a budget a large changed region is served in bands, one per pass: the next
+        // band goes out without waiting for input.
+        (self.ended && !self.done) || (self.publish_live && self.live.has_changes())
     }
 
     fn finished(&self) -> bool {
