@@ -291,17 +291,6 @@ pub struct ToleranceSettings {
     pub min_angle_deg: Option<f64>,
 }
 
-impl ToleranceSettings {
-    /// The default settings for a mesh made for `profile` (its default tolerance,
-    /// [`crate::EngineProfile::default_tolerance`]; [`DEFAULT_TOLERANCE`] without one).
-    pub fn for_target(profile: Option<&crate::EngineProfile>) -> Self {
-        Self {
-            tolerance: profile.map_or(DEFAULT_TOLERANCE, |p| p.default_tolerance()),
-            ..Self::default()
-        }
-    }
-}
-
 impl Default for ToleranceSettings {
     fn default() -> Self {
         Self {
