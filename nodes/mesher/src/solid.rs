@@ -263,7 +263,7 @@ pub fn grid_solid(
 }
 
 /// Where the vertices of the full-grid solid go ([`grid_solid`]; also the streamed grid,
-/// [`crate::stream`]): one copy, so both place every vertex on the same f64.
+/// module `stream`): one copy, so both place every vertex on the same f64.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct GridPlacement {
     at: ScanPlacement,
