@@ -1,19 +1,20 @@
 #!/usr/bin/env python3
 """The module graph of one crate's src/*.rs (issue 39): prints it and its cycles.
 
-Reads every `use crate::...` tree and every `crate::x` path in code (comments and
-string literals removed first) of each top-level module `src/<name>.rs`. A path
-`crate::Name` where `Name` is re-exported by lib.rs (`pub use module::{Name, ...}`)
-counts as an import of the module that defines it. lib.rs itself (it re-exports
-everything) and main.rs are not nodes.
+Reads every `use crate::...` tree and every `crate::x` path of each top-level module
+`src/<name>.rs`, in its code and in its doc comments (a doc link [`crate::x`] ties the
+text to x's path as an import does; issue 39 counts them). Plain comments and string
+literals are removed first. A path `crate::Name` where `Name` is re-exported by lib.rs
+(`pub use module::{Name, ...}`) counts as an import of the module that defines it.
+lib.rs itself (it re-exports everything) and main.rs are not nodes.
 
-  --docs     also count doc-comment links ([`crate::x`]) as edges
-  --no-tests leave out `#[cfg(test)] mod tests { ... }` blocks
+  --code-only leave out doc-comment links ([`crate::x`])
+  --no-tests  leave out `#[cfg(test)] mod tests { ... }` blocks
 
 Exits 1 when the graph has a cycle (a strongly connected component of more than
 one module, or a module importing itself), 0 otherwise.
 
-Usage: scripts/module_graph.py [--docs] [--no-tests] [SRC_DIR]
+Usage: scripts/module_graph.py [--code-only] [--no-tests] [SRC_DIR]
 (default SRC_DIR: nodes/mesher/src beside this script's repository)
 """
 
@@ -223,7 +224,7 @@ def layers(graph):
 
 def main(argv):
     args = [a for a in argv if not a.startswith("--")]
-    docs = "--docs" in argv
+    docs = "--code-only" not in argv
     no_tests = "--no-tests" in argv
     here = os.path.dirname(os.path.abspath(__file__))
     src = args[0] if args else os.path.join(here, "..", "nodes", "mesher", "src")
