@@ -112,7 +112,7 @@ pub struct AdaptiveMesh {
 /// Meshes `heights` (placed in scan coordinates by `at`) with the greedy error-bounded triangulation and closes it into a solid or keeps
 /// it as a sheet. Errors: bad geometry or parameters, a solid asked with missing samples left as
 /// holes (a solid needs a closed top), or a solid whose top no longer reaches the grid's rim.
-/// In memory: the product is [`crate::mesh_streaming`] (the same mesh and STL bytes in bounded
+/// In memory: the product is `stream::mesh_streaming` (the same mesh and STL bytes in bounded
 /// memory); this twin is the tests' oracle.
 pub fn mesh_height_field(
     heights: RasterView<'_, f32>,

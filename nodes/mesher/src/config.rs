@@ -2,7 +2,7 @@
 //! verb's flags and Python's keywords all state them (typed: every choice is an enum, so a bad
 //! value is refused by serde with the key and the allowed values named), and
 //! [`MesherConfig::settings`], which checks them together into the one [`MeshSettings`] that
-//! [`crate::map::mesh_surface`] meshes with.
+//! `map::mesh_surface` meshes with.
 //!
 //! Nothing here meshes; nothing here reads a file.
 
@@ -216,7 +216,7 @@ impl SurfaceChoice {
     }
 }
 
-/// The checked settings of a mesher: what [`crate::map::mesh_surface`] meshes with, whoever
+/// The checked settings of a mesher: what `map::mesh_surface` meshes with, whoever
 /// stated them.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MeshSettings {

@@ -55,7 +55,7 @@ pub enum MeshError {
         budget: usize,
     },
 
-    /// A mesh handed to a writer or to [`crate::close_top_surface`] is malformed.
+    /// A mesh handed to a writer or to `solid::close_top_surface` is malformed.
     #[error("invalid mesh: {0}")]
     InvalidMesh(String),
 

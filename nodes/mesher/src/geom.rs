@@ -40,7 +40,7 @@ pub(crate) fn unit_normal(a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> [f64; 3] {
 }
 
 /// The smallest interior angle of triangle `p`, degrees (0 for a degenerate one): what the DEM
-/// engines check at import ([`crate::target`]).
+/// engines check at import (module `target`).
 pub(crate) fn min_angle_deg(p: [[f64; 3]; 3]) -> f64 {
     let mut min = f64::INFINITY;
     for k in 0..3 {

@@ -1,6 +1,6 @@
 //! The mesher's one entry point: [`mesh_surface`] meshes one surface with the one
 //! [`MeshSettings`] and writes its STL (and, for a graph, the mesh re-sampled on the grid),
-//! returning the one record, [`MeshReport`]. The graph's node ([`crate::MeshJob`]), the
+//! returning the one record, [`MeshReport`]. The graph's node (`job::MeshJob`), the
 //! `surfstream mesh` verb and the Python binding all call it, so none of them can drift.
 //!
 //! The steps, in order: the STL's name checked (`x.obj` is refused by every caller); the form
@@ -102,7 +102,7 @@ pub struct MeshInput<'a> {
     /// The measured roughness on the same grid (relative to its mean): the tolerance then
     /// also judges the roughness the mesh carries; `None`: that bound is not claimed.
     pub roughness_um: Option<&'a [f32]>,
-    /// Table 6's tile regions on this grid (S1, S2, ...: [`crate::job::tile_footprints`]),
+    /// Table 6's tile regions on this grid (S1, S2, ...: `job::tile_footprints`),
     /// judged by the tolerance search beside its windows; empty: not known (a map from a
     /// file, Python), the windows alone.
     pub footprints: Vec<Window>,
@@ -148,7 +148,7 @@ pub struct MeshOutcome {
 
 /// The heights the method meshes: levelled when the settings say so (the plane removed is
 /// returned), spikes found (and removed on request). The in-memory oracle
-/// ([`crate::MeshJob::mesh`]) prepares the same way.
+/// (`job::MeshJob::mesh`) prepares the same way.
 pub(crate) fn prepare_surface(
     settings: &MeshSettings,
     heights_um: &mut [f32],

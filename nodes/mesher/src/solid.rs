@@ -263,7 +263,7 @@ pub fn grid_solid(
 }
 
 /// Where the vertices of the full-grid solid go ([`grid_solid`]; also the streamed grid,
-/// [`crate::stream`]): one copy, so both place every vertex on the same f64.
+/// module `stream`): one copy, so both place every vertex on the same f64.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct GridPlacement {
     at: ScanPlacement,
@@ -504,36 +504,4 @@ pub fn close_top_surface(
         triangles.push([centre, base(k + 1), base(k)]);
     }
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn rejects_a_clockwise_rim() {
-        let mut v = vec![
-            [0.0, 0.0, 1.0],
-            [1.0, 0.0, 1.0],
-            [1.0, 1.0, 1.0],
-            [0.0, 1.0, 1.0],
-        ];
-        let mut t = vec![[0, 1, 2], [0, 2, 3]];
-        assert!(close_top_surface(&mut v.clone(), &mut t.clone(), &[0, 3, 2, 1], 0.0).is_err());
-        assert!(close_top_surface(&mut v.clone(), &mut t.clone(), &[0, 1, 2, 3], 1.0).is_err());
-        assert!(close_top_surface(&mut v.clone(), &mut t.clone(), &[0, 1, 2, 9], 0.0).is_err());
-        close_top_surface(&mut v, &mut t, &[0, 1, 2, 3], 0.0).unwrap();
-        assert_eq!((v.len(), t.len()), (9, 2 + 12));
-        let check = crate::check_closed(&SolidMesh {
-            vertices: v,
-            triangles: t,
-            offset_um: [0.0; 3],
-            units: LengthUnit::Um,
-            filled_samples: 0,
-            top_triangles: 2,
-            base_depth_um: 1.0,
-        });
-        assert!(check.watertight && check.consistently_oriented);
-        assert!((check.signed_volume - 1.0).abs() < 1e-12);
-    }
 }

@@ -27,7 +27,7 @@ use crate::error::{MeshError, Result};
 use crate::fidelity::{field_params, AreaParams};
 use crate::field::ScanPlacement;
 use crate::solid::{grid_solid, LengthUnit, SolidMesh, SolidParams};
-use crate::tolerance::{Tolerance, ANGLE_BOUNDED_TOLERANCE, DEFAULT_TOLERANCE};
+use crate::tolerance::{Tolerance, ToleranceSettings, ANGLE_BOUNDED_TOLERANCE, DEFAULT_TOLERANCE};
 
 /// A discrete-element engine an STL is made for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -156,6 +156,17 @@ impl EngineProfile {
                 max_triangles: 20_000,
                 min_angle_deg: 1.0,
             },
+        }
+    }
+}
+
+impl ToleranceSettings {
+    /// The default settings for a mesh made for `profile` (its default tolerance,
+    /// [`EngineProfile::default_tolerance`]; [`DEFAULT_TOLERANCE`] without one).
+    pub fn for_target(profile: Option<&EngineProfile>) -> Self {
+        Self {
+            tolerance: profile.map_or(DEFAULT_TOLERANCE, |p| p.default_tolerance()),
+            ..Self::default()
         }
     }
 }
@@ -424,7 +435,7 @@ mod tests {
         let mut grid = EngineProfile::for_engine(DemEngine::Liggghts);
         grid.method = TargetMethod::Grid;
         assert_eq!(grid.default_tolerance(), DEFAULT_TOLERANCE);
-        let s = crate::ToleranceSettings::for_target(None);
+        let s = ToleranceSettings::for_target(None);
         assert_eq!(s.tolerance, DEFAULT_TOLERANCE);
     }
 

@@ -62,7 +62,7 @@ pub struct TinParams {
     pub block_samples: Option<usize>,
     /// Make each block's highest and lowest measured sample (off its shared sides) a vertex
     /// before the error-driven insertion, so that a region's peak and valley, which carry Sz,
-    /// sit exactly on the mesh whatever the bound ([`crate::tolerance`]).
+    /// sit exactly on the mesh whatever the bound (module `tolerance`).
     pub keep_extremes: bool,
 }
 
@@ -92,7 +92,7 @@ pub struct Tin {
 }
 
 /// The smallest interior angle every triangle must have, measured in x, y, z (um) with the
-/// grid's pitches: LIGGGHTS refuses slivers at import ([`crate::target`]).
+/// grid's pitches: LIGGGHTS refuses slivers at import (module `target`).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AngleBound {
     pub min_angle_deg: f64,
@@ -1374,7 +1374,7 @@ pub(crate) struct Sides {
 }
 
 /// A block kept alive from one bound to the next finer one: one greedy insertion order,
-/// refined step by step, so that a series of bounds costs about one mesh ([`crate::tolerance`]).
+/// refined step by step, so that a series of bounds costs about one mesh (module `tolerance`).
 /// Cloned to bisect between two checkpoints from the coarser one's state.
 #[derive(Clone)]
 pub(crate) struct LiveBlock<'a> {
@@ -1522,7 +1522,7 @@ impl LiveBlock<'_> {
         (out, left)
     }
 
-    /// Balances the block's Sa and Sq (module [`crate::tolerance`]): while the mesh's Sa or
+    /// Balances the block's Sa and Sq (module `tolerance`): while the mesh's Sa or
     /// Sq over the block's measured samples (each about its own mean) is off the
     /// measurement's by more than `target`, inserts a batch of the samples that pull it back:
     /// where the mesh is farther from the mean than the measurement when it over-shoots (the
@@ -1669,7 +1669,7 @@ impl LiveBlock<'_> {
 }
 
 /// Bytes of a [`LiveBlock`] as [`LiveBlock::encode`] writes it: little-endian, private to
-/// the run (the search's block store, [`crate::tolerance`]).
+/// the run (the search's block store, module `tolerance`).
 struct Bytes<'b> {
     b: &'b [u8],
     at: usize,

@@ -93,7 +93,7 @@ pub const DEFAULT_TOLERANCE: Tolerance = Tolerance {
 };
 
 /// The default tolerance of a target whose smallest triangle angle is bounded (LIGGGHTS,
-/// [`crate::EngineProfile::default_tolerance`]): Sa 1 %, Sq 1 %, Sz 3 % and a residual RMS
+/// `target::EngineProfile::default_tolerance`): Sa 1 %, Sq 1 %, Sz 3 % and a residual RMS
 /// of at most 50 % of Sq, no bound on the largest pointwise error. The angle bound's
 /// refinement and the engine's triangle budget (400 000; what a DEM run can afford) do not
 /// leave room for the pointwise bound: the demo's default model alone has 470 175 surface
@@ -287,19 +287,8 @@ pub struct ToleranceSettings {
     /// The smallest interior angle every triangle must have, degrees (x, y, z): each
     /// checkpoint's mesh is refined until it holds ([`crate::tin::bound_block_angles`]) and
     /// judged after that, so the mesh written is the one judged. `None`: no bound (LIGGGHTS
-    /// needs one, [`crate::target`]).
+    /// needs one, module `target`).
     pub min_angle_deg: Option<f64>,
-}
-
-impl ToleranceSettings {
-    /// The default settings for a mesh made for `profile` (its default tolerance,
-    /// [`crate::EngineProfile::default_tolerance`]; [`DEFAULT_TOLERANCE`] without one).
-    pub fn for_target(profile: Option<&crate::EngineProfile>) -> Self {
-        Self {
-            tolerance: profile.map_or(DEFAULT_TOLERANCE, |p| p.default_tolerance()),
-            ..Self::default()
-        }
-    }
 }
 
 impl Default for ToleranceSettings {
@@ -1233,7 +1222,7 @@ fn balance_of<'r>(s: &ToleranceSettings, roughness_um: Option<&'r [f32]>) -> Opt
 
 /// The angle bound the settings ask for, on the map's pitches. Errors: a bound outside
 /// 0..30 deg (Ruppert's refinement ends for bounds up to about 20.7 deg; LIGGGHTS needs
-/// 0.26, [`crate::target`]).
+/// 0.26, module `target`).
 fn angle_bound(s: &ToleranceSettings, at: &ScanPlacement) -> Result<Option<AngleBound>> {
     let Some(deg) = s.min_angle_deg else {
         return Ok(None);
