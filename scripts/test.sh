@@ -47,6 +47,10 @@ if [ -z "${SURFSTREAM_SPECIMENS:-}" ] && [ -d ../shared/specimens ]; then
     echo "test.sh: also checking the specimens in $SURFSTREAM_SPECIMENS"
 fi
 
+# The mesher's modules import downwards only (docs/architecture.md §11): a cycle fails here.
+"$SURFSTREAM_PYTHON" scripts/module_graph.py nodes/mesher/src >/dev/null ||
+    { echo "test.sh: nodes/mesher/src has an import cycle (python3 scripts/module_graph.py nodes/mesher/src)"; exit 1; }
+
 cargo build --release --workspace --bins
 # PyWavelets parity goldens (every base, mode, odd/even size, level) for nodes/wavelet's tests.
 "$SURFSTREAM_PYTHON" scripts/gen_wavelet_golden.py target/wavelet-golden
