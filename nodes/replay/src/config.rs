@@ -39,17 +39,25 @@ pub enum PacingChoice {
     Original,
 }
 
-impl PacingChoice {
-    /// The choice a name gives; the error says what was expected.
-    pub fn from_name(name: &str) -> Result<Self, String> {
+impl std::str::FromStr for PacingChoice {
+    type Err = String;
+    fn from_str(name: &str) -> Result<Self, String> {
         match name {
             "realtime" => Ok(Self::Realtime),
             "fast" => Ok(Self::Fast),
             "original" => Ok(Self::Original),
             other => Err(format!(
-                "pacing = {other:?}: expected \"realtime\" (field_time_s per field), \"fast\", or \"original\" (recordings)"
+                "{other:?}: expected \"realtime\" (field_time_s per field), \"fast\", or \"original\" (recordings)"
             )),
         }
+    }
+}
+
+impl PacingChoice {
+    /// The choice a name gives; the error names the key and what was expected (the same
+    /// words for every source).
+    pub fn from_name(name: &str) -> Result<Self, String> {
+        name.parse().map_err(|e| format!("pacing = {e}"))
     }
 
     /// The run's pacing: real time at `field_time_s` per field, bounded (1e20 s does not fit
@@ -109,7 +117,10 @@ pub struct ScanConfig {
     /// `path`: a scan.toml or the folder holding one.
     pub path: PathBuf,
     /// `pacing`: "fast" (default), "realtime" or "original".
-    #[serde(default = "PacingChoice::fast")]
+    #[serde(
+        default = "PacingChoice::fast",
+        deserialize_with = "surfstream_core::choice::from_text"
+    )]
     pub pacing: PacingChoice,
     /// `field_time_s`: seconds per field under real-time pacing (default 1).
     #[serde(default = "default_field_time_s")]
@@ -145,7 +156,10 @@ pub struct McapConfig {
     pub topic: String,
     /// `pacing`: "original" (default), "fast" or "realtime" (one field per second: a
     /// recording takes no `field_time_s`).
-    #[serde(default = "PacingChoice::original")]
+    #[serde(
+        default = "PacingChoice::original",
+        deserialize_with = "surfstream_core::choice::from_text"
+    )]
     pub pacing: PacingChoice,
 }
 
@@ -390,8 +404,9 @@ mod tests {
             "{no_path}"
         );
         let slow = e("source = \"scan\"\npath = \"d\"\npacing = \"slow\"");
+        // The same words whichever the source.
         assert!(
-            slow.contains("params.pacing") && slow.contains("`slow`"),
+            slow.contains("params.pacing: \"slow\": expected \"realtime\""),
             "{slow}"
         );
         let slow = e("source = \"simulated\"\npacing = \"slow\"");
