@@ -54,12 +54,12 @@ pub struct SeparationSettings {
 }
 
 impl SeparationSettings {
-    /// The base of live passes: the named one, sym5 when the final base is chosen by RMSE
+    /// The base of live passes: the named one, the default (sym5) when the final base is chosen by RMSE
     /// (ranking every base per live window would cost 23 separations).
     pub fn live_wavelet(&self) -> Result<Wavelet> {
         match self.base {
             BaseChoice::Named(w) => Ok(w),
-            BaseChoice::MinRmse => Wavelet::by_name("sym5").ok_or_else(|| anyhow!("sym5 missing")),
+            BaseChoice::MinRmse => crate::options::default_base().map_err(|e| anyhow!(e)),
         }
     }
 
