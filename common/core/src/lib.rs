@@ -6,7 +6,8 @@
 //! model-vs-measurement table (Table 6, [`deviation`]), FFT sizes ([`fft`]), the AVX2 dispatch
 //! of hot loops ([`simd`]), atomic output files ([`fsutil`]), spill files for data that need
 //! not stay in memory ([`store`]), the typed run.json and node reports ([`record`]),
-//! heartbeats from long computations ([`liveness`]) and numbers as a person reads them:
+//! heartbeats from long computations ([`liveness`]), order statistics without a sorted copy
+//! ([`order`]) and numbers as a person reads them:
 //! significant figures, heights in nm below 1 µm ([`units`]).
 //!
 //! Not for: moving data between processes (surfstream-runtime), reading or writing file
@@ -23,6 +24,7 @@ pub mod frame;
 pub mod fsutil;
 pub mod liveness;
 pub mod metrology;
+pub mod order;
 pub mod plane;
 pub mod raster;
 pub mod record;

@@ -236,100 +236,16 @@ pub fn find_spikes(
     (report, spikes)
 }
 
-/// The median of |r| over the values of `residual` that are not NaN (the element at index
-/// n / 2 of their sorted magnitudes, as `select_nth_unstable_by(n / 2, f32::total_cmp)` of
-/// a copy gives it), without the copy: the magnitudes' bit patterns order as the values do
-/// (sign cleared, no NaN), so the element is found by counting them, by their high 16 bits
-/// and then by the low 16 bits within its bin. `None`: no value.
+/// The median of |r| over the values of `residual` that are not NaN (core's
+/// [`surfstream_core::order::median_magnitude`]: no copy of the field). `None`: no value.
 fn median_abs(residual: &[f32]) -> Option<f32> {
-    const BINS: usize = 1 << 16;
-    const CHUNK: usize = 1 << 16;
-    let bits = |v: f32| v.abs().to_bits();
-    let count = |high: Option<u32>| -> Vec<u64> {
-        residual
-            .par_chunks(CHUNK)
-            .fold(
-                || vec![0u64; BINS],
-                |mut hist, values| {
-                    for &v in values.iter().filter(|v| !v.is_nan()) {
-                        let b = bits(v);
-                        match high {
-                            None => hist[(b >> 16) as usize] += 1,
-                            Some(h) if b >> 16 == h => hist[(b & 0xffff) as usize] += 1,
-                            Some(_) => {}
-                        }
-                    }
-                    hist
-                },
-            )
-            .reduce(
-                || vec![0u64; BINS],
-                |mut a, b| {
-                    a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
-                    a
-                },
-            )
-    };
-    // The bin holding the element of rank `k` (0-based), and its rank within the bin.
-    let find = |hist: &[u64], k: u64| -> (u32, u64) {
-        let mut below = 0;
-        for (bin, &n) in hist.iter().enumerate() {
-            if k < below + n {
-                return (bin as u32, k - below);
-            }
-            below += n;
-        }
-        (BINS as u32 - 1, 0) // unreachable: k < the total
-    };
-    let high = count(None);
-    let n: u64 = high.iter().sum();
-    if n == 0 {
-        return None;
-    }
-    let (h, k) = find(&high, n / 2);
-    let (l, _) = find(&count(Some(h)), k);
-    Some(f32::from_bits((h << 16) | l))
+    surfstream_core::order::median_magnitude(residual.len(), |i| residual[i])
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use surfstream_core::raster::Shape;
-
-    #[test]
-    fn the_median_magnitude_is_the_sorted_copys() {
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut next = || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            state
-        };
-        for n in [1usize, 2, 3, 10, 1000, 200_001] {
-            let mut v: Vec<f32> = (0..n)
-                .map(|_| match next() % 23 {
-                    0 => f32::NAN,
-                    1 => 0.0,
-                    2 => -0.0,
-                    3 => f32::INFINITY,
-                    4 => 1.5,
-                    _ => (next() % 2_000_001) as f32 * 1e-3 - 1e3,
-                })
-                .collect();
-            v[0] = 0.25;
-            let mut abs: Vec<f32> = v.iter().filter(|r| !r.is_nan()).map(|r| r.abs()).collect();
-            let k = abs.len() / 2;
-            let (_, m, _) = abs.select_nth_unstable_by(k, f32::total_cmp);
-            let m = *m;
-            assert_eq!(
-                median_abs(&v).map(f32::to_bits),
-                Some(m.to_bits()),
-                "n = {n}"
-            );
-        }
-        assert_eq!(median_abs(&[f32::NAN, f32::NAN]), None);
-        assert_eq!(median_abs(&[]), None);
-    }
 
     #[test]
     fn an_isolated_spike_is_found_and_a_scratch_is_not() {

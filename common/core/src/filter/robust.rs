@@ -68,18 +68,15 @@ pub struct RobustFit {
 
 /// The median of `|z - m|` over the points where both are finite; 0 if there are none.
 fn median_abs_residual(heights: &[f32], mean: &[f32]) -> f64 {
-    let mut r: Vec<f32> = heights
-        .par_iter()
-        .zip(mean)
-        .filter(|(z, m)| z.is_finite() && m.is_finite())
-        .map(|(z, m)| (z - m).abs())
-        .collect();
-    if r.is_empty() {
-        return 0.0;
-    }
-    let mid = r.len() / 2;
-    let (_, m, _) = r.select_nth_unstable_by(mid, f32::total_cmp);
-    f64::from(*m)
+    let residual = |i: usize| {
+        let (z, m) = (heights[i], mean[i]);
+        if z.is_finite() && m.is_finite() {
+            z - m
+        } else {
+            f32::NAN
+        }
+    };
+    crate::order::median_magnitude(heights.len().min(mean.len()), residual).map_or(0.0, f64::from)
 }
 
 /// The ISO 16610-71 robust Gaussian regression filter (zeroth order; module doc) of `heights`.
