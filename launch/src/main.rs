@@ -26,7 +26,7 @@ use std::process::ExitCode;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
-use surfstream_core::record::{NodeRecord, OutputChoice, ReplayReport};
+use surfstream_core::record::{NodeRecord, OutputChoice};
 use surfstream_runtime::graph::GraphFile;
 
 #[derive(Parser)]
@@ -582,15 +582,9 @@ fn apply_tolerance(graph: &mut GraphFile, tolerance: &str, origin: &str) -> Resu
 fn check_node_params(graph: &GraphFile, origin: &str) -> Result<()> {
     let contexts = graph.resolve(0, &nodes::registry())?;
     for c in &contexts {
-        // The nodes' own errors name the graph, the node and the field; the source's name
-        // the file.
-        nodes::check(c).with_context(|| {
-            if c.node_kind == ReplayReport::NODE_KIND {
-                format!("{origin}: node '{}' ({})", c.node_id, c.node_kind)
-            } else {
-                origin.to_string()
-            }
-        })?;
+        // The nodes' own errors name the graph, the node and the field: the graph file's
+        // name goes before them.
+        nodes::check(c).with_context(|| origin.to_string())?;
     }
     Ok(())
 }

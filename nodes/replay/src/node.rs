@@ -15,7 +15,7 @@ use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
 use crate::run::StageRun;
-use crate::source::open_source;
+use crate::source::{err_in, open_source};
 use crate::truth_for;
 
 const PORT: &str = "tiles";
@@ -32,8 +32,9 @@ pub struct ReplayNode {
 /// path is a regular file, and a scan's manifest as its loader reads it (no tile is read). A
 /// scan whose heights will be taken as um is said here, once.
 pub fn check(ctx: &NodeContext) -> Result<()> {
-    let config = crate::Config::from_table(&ctx.params)?;
-    config.check()?;
+    // Errors name the graph and the node as every node's do (the launcher adds the file).
+    let config = crate::Config::from_table(&ctx.params).map_err(|e| err_in(ctx, e))?;
+    config.check().map_err(|e| err_in(ctx, e))?;
     if let crate::Config::Scan(scan) = &config {
         let listing = crate::scan_dir::ManifestListing::read(&scan.manifest())?;
         if listing.heights_assumed_um() {

@@ -46,7 +46,8 @@ pub fn open_source(ctx: &NodeContext) -> Result<OpenedSource> {
     }
 }
 
-fn err_in(ctx: &NodeContext, e: impl std::fmt::Display) -> anyhow::Error {
+/// `e` as said by this node: "graph 'G', node 'N': e".
+pub(crate) fn err_in(ctx: &NodeContext, e: impl std::fmt::Display) -> anyhow::Error {
     anyhow!("graph '{}', node '{}': {e}", ctx.graph_name, ctx.node_id)
 }
 
