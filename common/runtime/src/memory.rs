@@ -44,12 +44,10 @@ fn set_mmap_threshold(_bytes: usize) -> bool {
 /// Under a memory budget, hand the free pages of every malloc arena back to the system now
 /// (glibc's `malloc_trim(0)`). The mmap threshold above returns large buffers on free, but the
 /// smaller blocks a phase frees stay resident in the arenas of the threads that used them, and
-/// an arena shrinks only from its top: under `run` the finished nodes' arenas kept about
-/// 118 MB the mesher's phase then sat on top of (the 6 x 6 demo at 0.5 GB: 687 MB of RSS in
-/// the mesher's phase, 570 MB right after `malloc_trim(0)` was called in the running process
-/// from gdb; the run's peak 655 MB with this call as each node of `run` finishes, against
-/// 743 and 769 MB without). Called when a node of `run` finishes ([`crate::inproc`]).
-/// Returns whether memory was released (false off glibc, or without a budget).
+/// an arena shrinks only from its top, so a finished node's arenas would stay under the next
+/// node's peak (measured on the 6 x 6 demo: docs/benchmarks.md, "The 6 x 6 within 1.5 x the
+/// budget"). Called when a node of `run` finishes ([`crate::inproc`]). Returns whether memory was
+/// released (false off glibc, or without a budget).
 pub fn release_freed_pages(budget_bytes: Option<u64>) -> bool {
     if budget_bytes.is_none() {
         return false;
