@@ -413,7 +413,7 @@ fn level(s: &Surface, form: Form) -> Result<(Surface, Done)> {
                 Done {
                     summary: format!(
                         "{name}: least-squares polynomial of order {order} removed over {valid} measured points, residual RMS {} um",
-                        crate::prep::sig(f.residual_rms_um)
+                        sig(f.residual_rms_um)
                     ),
                     step: name,
                     points_removed: 0,

@@ -237,7 +237,7 @@ fn default_startup_timeout_s() -> f64 {
     30.0
 }
 fn default_stall_timeout_s() -> f64 {
-    crate::watchdog::DEFAULT_STALL_TIMEOUT_S
+    60.0
 }
 
 /// A `--set` VALUE: a TOML value when it reads as one, else the text as a string.

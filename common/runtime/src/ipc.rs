@@ -1047,19 +1047,6 @@ fn release_pages(values: &mut [f32]) {
     }
 }
 
-/// Convenience for a node binary: context check of the domain prefix format.
-pub fn validate_prefix(prefix: &str) -> Result<()> {
-    if prefix.is_empty()
-        || prefix.len() > 32
-        || !prefix
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || c == '_')
-    {
-        bail!("--domain {prefix:?}: expected 1-32 characters of [A-Za-z0-9_]");
-    }
-    Ok(())
-}
-
 #[cfg(test)]
 mod release_tests {
     use super::*;

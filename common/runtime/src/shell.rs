@@ -112,7 +112,7 @@ fn run(kind: &str, build: fn(&NodeContext) -> Result<Box<dyn NodeLogic + Send>>)
     // SIGTERM / SIGINT: finish the current step, then leave through the normal error path.
     ctrlc::set_handler(|| ipc::STOP_REQUESTED.store(true, std::sync::atomic::Ordering::Relaxed))
         .map_err(|e| anyhow!("cannot install the termination handler: {e}"))?;
-    ipc::validate_prefix(&args.domain)?;
+    crate::slots::validate_prefix(&args.domain)?;
     let all = load_graph(&args.graph)?;
     let ctx = context_in(all.clone(), &args.graph, &args.node)?;
     // Its waits are judged by the progress of the nodes it waits on (issue 36).

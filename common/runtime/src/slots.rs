@@ -112,6 +112,20 @@ pub fn lock_path(k: usize) -> Result<PathBuf> {
     Ok(user_dir()?.join(format!("slot-{k}.lock")))
 }
 
+/// An iceoryx2 domain prefix (`--domain`, a slot's `ss<K>_<nonce>_`): 1-32 characters of
+/// [A-Za-z0-9_].
+pub fn validate_prefix(prefix: &str) -> Result<()> {
+    if prefix.is_empty()
+        || prefix.len() > 32
+        || !prefix
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_')
+    {
+        bail!("--domain {prefix:?}: expected 1-32 characters of [A-Za-z0-9_]");
+    }
+    Ok(())
+}
+
 /// The slot number of a domain `ss<K>_<nonce>_`.
 pub fn index_of(domain: &str) -> Option<usize> {
     domain.strip_prefix("ss")?.split('_').next()?.parse().ok()
@@ -196,7 +210,7 @@ pub fn take() -> Result<Slot> {
             .lines()
             .next()
             .map(str::trim)
-            .filter(|p| index_of(p) == Some(k) && crate::ipc::validate_prefix(p).is_ok())
+            .filter(|p| index_of(p) == Some(k) && validate_prefix(p).is_ok())
             .map(str::to_string);
         let prefix = format!("ss{k}_{:08x}_", nonce());
         file.set_len(0)

@@ -27,9 +27,6 @@ use anyhow::{bail, Result};
 /// How often a node touches its heartbeat at most.
 pub const BEAT_PERIOD: Duration = Duration::from_millis(250);
 
-/// Default of `[graph] stall_timeout_s`.
-pub const DEFAULT_STALL_TIMEOUT_S: f64 = 60.0;
-
 /// The heartbeat file of `node_id` in a run's out dir.
 pub fn heartbeat_path(out_dir: &Path, node_id: &str) -> PathBuf {
     out_dir.join("logs").join(format!("{node_id}.alive"))

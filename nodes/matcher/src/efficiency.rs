@@ -27,6 +27,25 @@ pub struct RankedMatch {
 
 pub use surfstream_core::record::MatchQuality;
 
+use crate::feature_match::FeatureRegistration;
+
+// The figures judge the matcher's output: this module imports feature_match, never the
+// other way round.
+impl FeatureRegistration {
+    /// r and AP of the two-way matches against a true offset (see the module documentation).
+    pub fn quality(&self, true_offset_px: [f64; 2], tolerance_px: f64) -> MatchQuality {
+        let ranked: Vec<RankedMatch> = self
+            .matches
+            .iter()
+            .map(|m| RankedMatch {
+                displacement_px: m.displacement_px,
+                score: m.score,
+            })
+            .collect();
+        match_quality(&ranked, true_offset_px, tolerance_px)
+    }
+}
+
 /// Whether a displacement is within `tolerance_px` of the truth.
 pub fn is_correct(displacement_px: [f64; 2], true_offset_px: [f64; 2], tolerance_px: f64) -> bool {
     let dx = displacement_px[0] - true_offset_px[0];
@@ -87,7 +106,7 @@ pub const CORRECT_MATCH_TOLERANCE_PX: f64 = 1.0;
 /// A pair whose tiles the file does not list gets `None`. Errors name the file.
 pub fn score_feature_pairs(
     truth_path: &std::path::Path,
-    pairs: &[(u64, u64, &crate::feature_match::FeatureRegistration)],
+    pairs: &[(u64, u64, &FeatureRegistration)],
 ) -> Result<(Vec<Option<MatchQuality>>, FeatureSummaryRecord), surfstream_io::truth::TruthError> {
     let truth = surfstream_io::truth::ScanTruth::read(truth_path)?;
     let per_pair: Vec<Option<MatchQuality>> = pairs

@@ -858,7 +858,7 @@ impl FeatureRegistration {
     /// `truth` is given, r and AP against it.
     pub fn report(
         &self,
-        truth: Option<&crate::efficiency::MatchQuality>,
+        truth: Option<&surfstream_core::record::MatchQuality>,
     ) -> surfstream_core::record::FeaturePairRecord {
         surfstream_core::record::FeaturePairRecord {
             method: self.method.name().to_string(),
@@ -872,22 +872,5 @@ impl FeatureRegistration {
             reason: self.reason(),
             truth: truth.copied(),
         }
-    }
-
-    /// r and AP of the two-way matches against a true offset (see [`crate::efficiency`]).
-    pub fn quality(
-        &self,
-        true_offset_px: [f64; 2],
-        tolerance_px: f64,
-    ) -> crate::efficiency::MatchQuality {
-        let ranked: Vec<crate::efficiency::RankedMatch> = self
-            .matches
-            .iter()
-            .map(|m| crate::efficiency::RankedMatch {
-                displacement_px: m.displacement_px,
-                score: m.score,
-            })
-            .collect();
-        crate::efficiency::match_quality(&ranked, true_offset_px, tolerance_px)
     }
 }

@@ -38,15 +38,6 @@ pub enum Pacing {
 /// The longest time per field a simulated stage may take (30 days, as the graph's timeouts).
 pub const MAX_FIELD_TIME_S: f64 = 30.0 * 24.0 * 3600.0;
 
-impl Pacing {
-    /// The pacing a graph names: "fast", "realtime" (one field every `field_time_s`) or
-    /// "original" (a recording's own timing). The error says what was expected. The names and
-    /// the bound are [`crate::config::PacingChoice`]'s.
-    pub fn from_name(name: &str, field_time_s: f64) -> Result<Pacing, String> {
-        crate::config::PacingChoice::from_name(name)?.pacing(field_time_s)
-    }
-}
-
 /// One tile handed to the graph.
 pub struct DueTile {
     pub frame: HeightMap,

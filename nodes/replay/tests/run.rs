@@ -6,8 +6,8 @@ use std::time::{Duration, Instant};
 use surfstream_core::frame::{FrameHeader, HeightMap};
 use surfstream_replay::source::open_source;
 use surfstream_replay::{
-    acquire_tile, generate_specimen, plan_scan, Pacing, SpecimenParams, StageParams, StageRun,
-    TileSource,
+    acquire_tile, generate_specimen, plan_scan, Pacing, PacingChoice, SpecimenParams, StageParams,
+    StageRun, TileSource,
 };
 use surfstream_runtime::graph::NodeContext;
 
@@ -119,15 +119,18 @@ fn fast_pacing_is_always_due_and_an_empty_run_is_done() {
 
 #[test]
 fn pacing_names_are_checked() {
-    assert_eq!(Pacing::from_name("fast", 0.0), Ok(Pacing::Fast));
+    let from_name = |name: &str, field_time_s: f64| {
+        PacingChoice::from_name(name).and_then(|c| c.pacing(field_time_s))
+    };
+    assert_eq!(from_name("fast", 0.0), Ok(Pacing::Fast));
     assert_eq!(
-        Pacing::from_name("realtime", 0.5),
+        from_name("realtime", 0.5),
         Ok(Pacing::Fixed(Duration::from_millis(500)))
     );
-    assert!(Pacing::from_name("realtime", 0.0)
+    assert!(from_name("realtime", 0.0)
         .unwrap_err()
         .contains("field_time_s = 0"));
-    assert!(Pacing::from_name("slow", 1.0)
+    assert!(from_name("slow", 1.0)
         .unwrap_err()
         .contains("expected \"realtime\""));
 }

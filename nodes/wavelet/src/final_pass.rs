@@ -19,8 +19,8 @@ use anyhow::{anyhow, bail, Result};
 pub use surfstream_core::record::{FilterSummary, MapSummary, WaveletSummary};
 use surfstream_core::Sampling;
 
-use crate::live::{final_pass_streams, SeparationSettings};
 use crate::method::{equivalent_cutoff_um, filter_separation, level_lowered_warning};
+use crate::options::{final_pass_streams, SeparationSettings};
 use crate::select::SeparationChoices;
 use crate::stream::StreamOptions;
 use crate::{

@@ -65,14 +65,16 @@ pub use final_pass::{
     separate_map, FilterSummary, MapSummary, SeparatedMap, SeparationSink, WaveletSummary,
 };
 pub use live::{
-    final_pass_streams, final_separation, final_separation_with, FinalRequest, FinalSeparation,
-    FinalSummary, LivePatches, LiveSeparation, SeparationSettings,
+    final_separation, final_separation_with, FinalRequest, FinalSeparation, FinalSummary,
+    LivePatches, LiveSeparation,
 };
 pub use method::{
     equivalent_cutoff_um, filter_separation, level_lowered_warning, FilterSeparation,
     SeparationKind, SeparationMethod,
 };
-pub use options::{default_base, OptionError, WaveletConfig};
+pub use options::{
+    default_base, final_pass_streams, OptionError, SeparationSettings, WaveletConfig,
+};
 pub use pool::{pool, PoolOp, Pooled};
 pub use select::{
     analyse, energy_curve, height_stats, level_by_min_energy, pooling_bias, rmse_per_base,

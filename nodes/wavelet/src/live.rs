@@ -28,49 +28,13 @@ use surfstream_core::{Pitch, Sampling};
 
 use crate::final_pass::{push_in_bands, separate_map, SeparatedMap, SeparationSink};
 use crate::method::filter_separation;
+use crate::options::SeparationSettings;
 use crate::stream::StreamOptions;
-use crate::{
-    default_level, pool, separate_streamed, BaseChoice, LevelChoice, Mode, PoolOp,
-    SeparationMethod, Wavelet,
-};
+use crate::{default_level, pool, separate_streamed, Mode, PoolOp, SeparationMethod, Wavelet};
 
 /// Largest mirror the live pass keeps, px (as the fusion's canvas limit): a patch whose
 /// position is absurd (a wrong unit) is refused instead of exhausting memory.
 const MAX_MIRROR_PX: usize = 1 << 31;
-
-/// How the panorama is separated and pooled.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct SeparationSettings {
-    /// Wavelet (base, level, mode below) or an ISO 16610 L-filter.
-    pub method: SeparationMethod,
-    /// S-filter cutoff, µm (filter methods only).
-    pub lambda_s_um: Option<f64>,
-    pub base: BaseChoice,
-    pub level: LevelChoice,
-    pub mode: Mode,
-    /// Pooling block, px (>= 1).
-    pub pool_block: usize,
-    pub pool_op: PoolOp,
-}
-
-impl SeparationSettings {
-    /// The base of live passes: the named one, the default (sym5) when the final base is chosen by RMSE
-    /// (ranking every base per live window would cost 23 separations).
-    pub fn live_wavelet(&self) -> Result<Wavelet> {
-        match self.base {
-            BaseChoice::Named(w) => Ok(w),
-            BaseChoice::MinRmse => crate::options::default_base().map_err(|e| anyhow!(e)),
-        }
-    }
-
-    /// The level asked for, when it is a fixed one (live passes use it; the default otherwise).
-    pub fn fixed_level(&self) -> Option<usize> {
-        match self.level {
-            LevelChoice::Fixed(l) => Some(l),
-            _ => None,
-        }
-    }
-}
 
 /// The panorama as far as patches told it, on the grid of the first patch.
 #[derive(Debug)]
@@ -576,8 +540,6 @@ pub struct FinalRequest<'a> {
     pub stream: StreamOptions,
 }
 
-pub use crate::final_pass::CUTOFF_DEFINITION;
-
 /// [`final_separation_with`] building both frames, level stores beside the files.
 pub fn final_separation(
     settings: &SeparationSettings,
@@ -598,15 +560,6 @@ pub fn final_separation(
             stream,
         },
     )
-}
-
-/// Whether the final pass streams ([`crate::separate_streamed`]): a named wavelet at a fixed
-/// or the default level. Choosing the base by RMSE (every base over the whole map), the level
-/// by minimum energy, and the ISO filter methods (FFT) keep the in-memory path.
-pub fn final_pass_streams(settings: &SeparationSettings) -> bool {
-    matches!(settings.method, SeparationMethod::Wavelet)
-        && matches!(settings.base, BaseChoice::Named(_))
-        && matches!(settings.level, LevelChoice::Fixed(_) | LevelChoice::Default)
 }
 
 /// The exact separation of the final panorama ([`separate_map`], the `separate` verb's code
@@ -819,7 +772,8 @@ impl SeparationSink for Files<'_, '_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::analyse;
+    use crate::options::final_pass_streams;
+    use crate::{analyse, BaseChoice, LevelChoice};
     use serde_json::json;
 
     fn json_of(s: &FinalSummary) -> serde_json::Value {

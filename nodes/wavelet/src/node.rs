@@ -15,10 +15,8 @@ use surfstream_io::output::OutputWriter;
 use surfstream_runtime::graph::NodeContext;
 use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 
-use crate::live::{
-    final_separation_with, FinalRequest, FinalSummary, LiveSeparation, SeparationSettings,
-};
-use crate::options::WaveletConfig;
+use crate::live::{final_separation_with, FinalRequest, FinalSummary, LiveSeparation};
+use crate::options::{SeparationSettings, WaveletConfig};
 use crate::stream::StreamOptions;
 
 pub struct WaveletNode {

@@ -11,7 +11,6 @@ use std::str::FromStr;
 use serde::Deserialize;
 use surfstream_core::choice::{from_number_or_text, from_text, from_text_opt};
 
-use crate::live::SeparationSettings;
 use crate::{BaseChoice, LevelChoice, Mode, PoolOp, SeparationKind, SeparationMethod, Wavelet};
 
 /// A value an option does not accept.
@@ -187,6 +186,49 @@ impl WaveletConfig {
             pool_op: self.pool_op,
         })
     }
+}
+
+/// How the panorama is separated and pooled.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SeparationSettings {
+    /// Wavelet (base, level, mode below) or an ISO 16610 L-filter.
+    pub method: SeparationMethod,
+    /// S-filter cutoff, µm (filter methods only).
+    pub lambda_s_um: Option<f64>,
+    pub base: BaseChoice,
+    pub level: LevelChoice,
+    pub mode: Mode,
+    /// Pooling block, px (>= 1).
+    pub pool_block: usize,
+    pub pool_op: PoolOp,
+}
+
+impl SeparationSettings {
+    /// The base of live passes: the named one, the default (sym5) when the final base is chosen by RMSE
+    /// (ranking every base per live window would cost 23 separations).
+    pub fn live_wavelet(&self) -> anyhow::Result<Wavelet> {
+        match self.base {
+            BaseChoice::Named(w) => Ok(w),
+            BaseChoice::MinRmse => default_base().map_err(|e| anyhow::anyhow!(e)),
+        }
+    }
+
+    /// The level asked for, when it is a fixed one (live passes use it; the default otherwise).
+    pub fn fixed_level(&self) -> Option<usize> {
+        match self.level {
+            LevelChoice::Fixed(l) => Some(l),
+            _ => None,
+        }
+    }
+}
+
+/// Whether the final pass streams ([`crate::separate_streamed`]): a named wavelet at a fixed
+/// or the default level. Choosing the base by RMSE (every base over the whole map), the level
+/// by minimum energy, and the ISO filter methods (FFT) keep the in-memory path.
+pub fn final_pass_streams(settings: &SeparationSettings) -> bool {
+    matches!(settings.method, SeparationMethod::Wavelet)
+        && matches!(settings.base, BaseChoice::Named(_))
+        && matches!(settings.level, LevelChoice::Fixed(_) | LevelChoice::Default)
 }
 
 #[cfg(test)]
