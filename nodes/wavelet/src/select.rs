@@ -151,19 +151,34 @@ fn levelled(heights: &[f32], rows: usize, cols: usize) -> Result<Vec<f64>> {
 /// The least-squares plane of the valid pixels: `([a, b, c], cx, cy)` for
 /// `a + b (x - cx) + c (y - cy)`.
 pub(crate) fn plane_coef(heights: &[f32], rows: usize, cols: usize) -> ([f64; 3], f64, f64) {
-    // Normal equations in centred coordinates (well conditioned for any map size).
+    // Normal equations in centred coordinates (well conditioned for any map size), from each
+    // row's sums (count, sum of x, of x^2, of z, of x z over its valid pixels): the rows in
+    // parallel, added in row order, so the plane has the same bits whatever the thread count.
     let (cx, cy) = ((cols as f64 - 1.0) / 2.0, (rows as f64 - 1.0) / 2.0);
+    let per_row: Vec<[f64; 5]> = heights
+        .par_chunks(cols.max(1))
+        .take(rows)
+        .map(|row| {
+            let mut s = [0.0f64; 5];
+            for (c, &z) in row.iter().enumerate() {
+                if z.is_finite() {
+                    let (x, z) = (c as f64 - cx, f64::from(z));
+                    s[0] += 1.0;
+                    s[1] += x;
+                    s[2] += x * x;
+                    s[3] += z;
+                    s[4] += x * z;
+                }
+            }
+            s
+        })
+        .collect();
     let mut m = Matrix3::<f64>::zeros();
     let mut v = Vector3::<f64>::zeros();
-    for r in 0..rows {
-        for c in 0..cols {
-            let z = heights[r * cols + c];
-            if z.is_finite() {
-                let p = Vector3::new(1.0, c as f64 - cx, r as f64 - cy);
-                m += p * p.transpose();
-                v += p * f64::from(z);
-            }
-        }
+    for (r, [n, sx, sxx, sz, sxz]) in per_row.into_iter().enumerate() {
+        let y = r as f64 - cy;
+        m += Matrix3::new(n, sx, n * y, sx, sxx, sx * y, n * y, sx * y, n * y * y);
+        v += Vector3::new(sz, sxz, sz * y);
     }
     // A single valid row or column leaves the plane undetermined: level by the mean instead.
     let coef = m.lu().solve(&v).filter(|s| s.iter().all(|x| x.is_finite()));
@@ -171,24 +186,46 @@ pub(crate) fn plane_coef(heights: &[f32], rows: usize, cols: usize) -> ([f64; 3]
     ([coef[0], coef[1], coef[2]], cx, cy)
 }
 
+/// Values per part of [`height_stats`]' parallel sums: parts of a fixed size, added in order,
+/// so the statistics have the same bits whatever the thread count.
+const STATS_PART: usize = 1 << 16;
+
 /// Mean, Sa, Sq, Sz of the finite values; `None` when there is none.
 pub fn height_stats(heights: &[f32]) -> Option<HeightStats> {
-    let (n, sum) = heights
-        .iter()
-        .filter(|z| z.is_finite())
-        .fold((0usize, 0.0f64), |(n, s), &z| (n + 1, s + f64::from(z)));
+    let counts: Vec<(usize, f64)> = heights
+        .par_chunks(STATS_PART)
+        .map(|part| {
+            part.iter()
+                .filter(|z| z.is_finite())
+                .fold((0usize, 0.0f64), |(n, s), &z| (n + 1, s + f64::from(z)))
+        })
+        .collect();
+    let (n, sum) = counts
+        .into_iter()
+        .fold((0usize, 0.0f64), |(n, s), (k, t)| (n + k, s + t));
     if n == 0 {
         return None;
     }
     let mean = sum / n as f64;
-    let (mut sa, mut sq, mut lo, mut hi) = (0.0f64, 0.0f64, f64::INFINITY, f64::NEG_INFINITY);
-    for &z in heights.iter().filter(|z| z.is_finite()) {
-        let d = f64::from(z) - mean;
-        sa += d.abs();
-        sq += d * d;
-        lo = lo.min(d);
-        hi = hi.max(d);
-    }
+    let parts: Vec<[f64; 4]> = heights
+        .par_chunks(STATS_PART)
+        .map(|part| {
+            let mut p = [0.0f64, 0.0, f64::INFINITY, f64::NEG_INFINITY];
+            for &z in part.iter().filter(|z| z.is_finite()) {
+                let d = f64::from(z) - mean;
+                p[0] += d.abs();
+                p[1] += d * d;
+                p[2] = p[2].min(d);
+                p[3] = p[3].max(d);
+            }
+            p
+        })
+        .collect();
+    let [sa, sq, lo, hi] = parts
+        .into_iter()
+        .fold([0.0f64, 0.0, f64::INFINITY, f64::NEG_INFINITY], |a, p| {
+            [a[0] + p[0], a[1] + p[1], a[2].min(p[2]), a[3].max(p[3])]
+        });
     Some(HeightStats {
         mean_um: mean,
         sa_um: sa / n as f64,
@@ -352,6 +389,34 @@ const BASE_RMSE_NOTE: &str = "eq. 10: every base is orthogonal, so this RMSE is 
 mod tests {
     use super::*;
     use crate::{pool, PoolOp};
+
+    /// The plane from the rows' sums is the plane through the valid pixels, and the plane and
+    /// the statistics have the same bits on one thread as on four.
+    #[test]
+    fn plane_and_stats_are_exact_and_do_not_depend_on_the_thread_count() {
+        let (rows, cols) = (300, 257);
+        let mut h: Vec<f32> = (0..rows * cols)
+            .map(|k| {
+                let (x, y) = ((k % cols) as f32, (k / cols) as f32);
+                2.0 + 0.5 * x - 0.25 * y
+            })
+            .collect();
+        for k in (0..h.len()).step_by(7) {
+            h[k] = f32::NAN;
+        }
+        let ([a, b, c], cx, cy) = plane_coef(&h, rows, cols);
+        assert!((a - (2.0 + 0.5 * cx - 0.25 * cy)).abs() < 1e-6, "{a}");
+        assert!((b - 0.5).abs() < 1e-9 && (c + 0.25).abs() < 1e-9, "{b} {c}");
+        let on = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| (plane_coef(&h, rows, cols), height_stats(&h)))
+        };
+        let (one, four) = (on(1), on(4));
+        assert_eq!(format!("{one:?}"), format!("{four:?}"));
+    }
 
     /// A plane plus a long wave plus fine texture: the energy left in the approximation drops
     /// while the levels strip texture, and rises again when the long wave leaks into details.
