@@ -19,7 +19,7 @@ use std::time::Instant;
 
 use anyhow::{anyhow, bail, Result};
 use support::{median, Scan};
-use surfstream_matcher::efficiency::{aggregate, match_quality, MatchQuality, RankedMatch};
+use surfstream_matcher::efficiency::{aggregate, MatchQuality};
 use surfstream_matcher::{register_pair_features, FeatureMethod, FeatureParams, ScanTruth};
 
 #[derive(Default)]
@@ -97,20 +97,12 @@ fn main() -> Result<()> {
                 let true_off = truth
                     .true_offset_px(a as u64, b as u64)
                     .ok_or_else(|| anyhow!("{}: no truth for tile pair", dir.display()))?;
-                let ranked: Vec<RankedMatch> = f
-                    .matches
-                    .iter()
-                    .map(|m| RankedMatch {
-                        displacement_px: m.displacement_px,
-                        score: m.score,
-                    })
-                    .collect();
                 let s = stats
                     .entry((method.name().to_string(), texture.clone()))
                     .or_default();
                 s.pairs += 1;
                 s.ms.push(ms);
-                s.qualities.push(match_quality(&ranked, true_off, 1.0));
+                s.qualities.push(f.quality(true_off, 1.0));
                 if let Some(r) = f.rotation_deg {
                     s.rotations_deg.push(r.abs());
                 }
