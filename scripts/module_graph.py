@@ -6,7 +6,8 @@ Reads every `use crate::...` tree and every `crate::x` path of each top-level mo
 text to x's path as an import does; issue 39 counts them). Plain comments and string
 literals are removed first. A path `crate::Name` where `Name` is re-exported by lib.rs
 (`pub use module::{Name, ...}`) counts as an import of the module that defines it.
-lib.rs itself (it re-exports everything) and main.rs are not nodes.
+lib.rs itself (it re-exports everything) and main.rs are not nodes (main.rs is the root
+of a crate without lib.rs).
 
   --code-only leave out doc-comment links ([`crate::x`])
   --no-tests  leave out `#[cfg(test)] mod tests { ... }` blocks
@@ -162,7 +163,9 @@ def edges_of(code, modules, reexp):
             t = resolve(seg, modules, reexp)
             if t:
                 out.setdefault(t, set()).add(seg)
-    for m in re.finditer(r"\bcrate::(" + IDENT + ")", code):
+    # `$crate::` is a macro_rules path: it names the crate root wherever the macro expands,
+    # not an import of the module the macro is written in.
+    for m in re.finditer(r"(?<!\$)\bcrate::(" + IDENT + ")", code):
         if any(a <= m.start() < b for a, b in spans):
             continue
         seg = m.group(1)
@@ -230,7 +233,9 @@ def main(argv):
     src = args[0] if args else os.path.join(here, "..", "nodes", "mesher", "src")
     files = sorted(f for f in os.listdir(src) if f.endswith(".rs"))
     modules = {f[:-3] for f in files} - {"lib", "main"}
-    with open(os.path.join(src, "lib.rs")) as fh:
+    # A library's root is lib.rs; a binary-only crate's (the launcher) is main.rs.
+    root = "lib.rs" if os.path.exists(os.path.join(src, "lib.rs")) else "main.rs"
+    with open(os.path.join(src, root)) as fh:
         reexp = reexports(strip_code(fh.read(), False), modules)
 
     graph, via = {}, {}
