@@ -1,8 +1,8 @@
 //! The finishing simulation's section of report.html, for a graph with a `finish` node
 //! (launch/graphs/finish.toml): the wear map, the worn against the original profile, the
 //! Abbott-Firestone curves before/after, the parameters beside the paper's and the
-//! calibration table. finish.json is read through the finish crate's typed records
-//! ([`surfstream_finish::summary::FinishSummary`]); the figures are the finish crate's own
+//! calibration table. finish.json is read through its typed record, core's
+//! ([`surfstream_core::record::finish::FinishSummary`]); the figures are the finish crate's own
 //! (the same as its finish.html), from wear.npy, original.npy and worn.npy in the node's
 //! folder.
 
@@ -11,8 +11,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, Result};
 use serde::Deserialize;
+use surfstream_core::record::finish::{FinishReport, FinishSummary};
 use surfstream_core::record::RunRecord;
-use surfstream_finish::summary::{FinishReport, FinishSummary};
 
 use super::html::{esc, um};
 
