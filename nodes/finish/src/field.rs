@@ -12,7 +12,7 @@
 //! 2. **Approach distribution.** Hertz: a sphere striking at normal speed v_n approaches by
 //!    (15 m v_n^2 / (16 E* sqrt(R)))^(2/5). With a macro run, each of its contact samples
 //!    (the ones the micro passes draw) has its approach at the real stiffness, and p(g) is
-//!    the share of them beyond g ([`ApproachDistribution::from_samples`]). Without one, the
+//!    the share of them beyond g ([`ApproachPhysics::from_samples`]). Without one, the
 //!    impact angle is spread uniformly over [0, 2 x the setting's angle] (mean: the setting's
 //!    angle) at the media speed, and the static press of the load is a floor; P(approach > g)
 //!    is the contact probability p(g).
