@@ -11,9 +11,11 @@
 //!
 //! What stays a JSON value inside a record, and why: the fusion's chunk statistics (a fusion
 //! type), each node's report inside run.json's `stages` (its reader reads it through its
-//! record) and each node's parameters (the graph file's table). The finishing node's
-//! finish.json has its own typed record in its crate (`surfstream_finish::summary`), the one
-//! its writer and report.html use.
+//! record) and each node's parameters (the graph file's table).
+//!
+//! Every record the project writes is here: the finishing node's finish.json and its report
+//! too, in [`finish`] (with the plain data types they carry: the setting, the macro run's
+//! contacts, the contact field), which its writer, finish.html and report.html read.
 
 use std::collections::BTreeMap;
 
@@ -21,6 +23,8 @@ use serde::{Deserialize, Deserializer, Serialize};
 use serde_json::Value;
 
 use crate::metrology::Params;
+
+pub mod finish;
 
 /// A record that could not be written as JSON (a map with keys that are not strings, a custom
 /// `Serialize` that failed): an error, so a report never turns into `null` unnoticed.

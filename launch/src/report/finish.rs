@@ -1,8 +1,8 @@
 //! The finishing simulation's section of report.html, for a graph with a `finish` node
 //! (launch/graphs/finish.toml): the wear map, the worn against the original profile, the
 //! Abbott-Firestone curves before/after, the parameters beside the paper's and the
-//! calibration table. finish.json is read through the finish crate's typed records
-//! ([`surfstream_finish::summary::FinishSummary`]); the figures are the finish crate's own
+//! calibration table. finish.json is read through its typed record, core's
+//! ([`surfstream_core::record::finish::FinishSummary`]); the figures are the finish crate's own
 //! (the same as its finish.html), from wear.npy, original.npy and worn.npy in the node's
 //! folder.
 
@@ -11,29 +11,43 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, Result};
 use serde::Deserialize;
+use serde_json::Value;
+use surfstream_core::record::finish::{FinishReport, FinishSummary};
 use surfstream_core::record::RunRecord;
-use surfstream_finish::summary::{FinishReport, FinishSummary};
 
 use super::html::{esc, um};
 
+/// Whether a stage's report is a finish node's: run.json keys its stages by node id, not by
+/// kind, and of the node reports (every one a record of `surfstream_core::record`) only the
+/// finish node's has finish.json's `cycles_requested`.
+fn is_finish_stage(report: &Value) -> bool {
+    report.get("cycles_requested").is_some()
+}
+
 /// The folders of `out` where a finish node wrote: each finish node's folder as its report
 /// says (run.json `stages.ID`, a [`FinishReport`]) and "finish" (the default, and the
-/// `finish` verb's), holding finish.json and wear.npy; in name order.
-fn finish_dirs(run: &RunRecord, out: &Path) -> Vec<PathBuf> {
+/// `finish` verb's), holding finish.json and wear.npy; in name order. With them, each finish
+/// stage whose report does not read as a [`FinishReport`], named with serde's message (its
+/// folder is not known, so it is not shown, and the section says so).
+fn finish_dirs(run: &RunRecord, out: &Path) -> (Vec<PathBuf>, Vec<String>) {
     let mut names: Vec<String> = vec!["finish".into()];
-    names.extend(
-        run.stages
-            .values()
-            .filter_map(|v| FinishReport::deserialize(v).ok())
-            .map(|r| r.dir),
-    );
+    let mut unread = Vec::new();
+    for (id, report) in run.stages.iter().filter(|(_, v)| is_finish_stage(v)) {
+        match FinishReport::deserialize(report) {
+            Ok(r) => names.push(r.dir),
+            Err(e) => unread.push(format!(
+                "run.json stages.{id}: not a finish report this surfstream reads: {e}"
+            )),
+        }
+    }
     names.sort();
     names.dedup();
-    names
+    let dirs = names
         .into_iter()
         .map(|n| out.join(n))
         .filter(|d| d.join("finish.json").is_file() && d.join("wear.npy").is_file())
-        .collect()
+        .collect();
+    (dirs, unread)
 }
 
 /// The section, or "" when the run has no finish output.
@@ -44,18 +58,23 @@ pub fn section(run: &RunRecord, out: &Path) -> String {
 /// The section for a run whose nodes' parameters are `parameters`.
 fn section_of(run: &RunRecord, out: &Path) -> String {
     let mut h = String::new();
-    for dir in finish_dirs(run, out) {
+    let not_shown = |h: &mut String, why: &str| {
+        let _ = writeln!(
+            h,
+            "<section id=\"finish\"><h2>Finishing simulation</h2>\
+             <p class=\"bad\">Not shown: {}</p></section>",
+            esc(why)
+        );
+    };
+    let (dirs, unread) = finish_dirs(run, out);
+    for why in &unread {
+        not_shown(&mut h, why);
+    }
+    for dir in dirs {
         let rel = dir.strip_prefix(out).unwrap_or(&dir).display().to_string();
         match render(&dir, &rel) {
             Ok(s) => h.push_str(&s),
-            Err(e) => {
-                let _ = writeln!(
-                    h,
-                    "<section id=\"finish\"><h2>Finishing simulation</h2>\
-                     <p class=\"bad\">Not shown: {}</p></section>",
-                    esc(&format!("{e:#}"))
-                );
-            }
+            Err(e) => not_shown(&mut h, &format!("{e:#}")),
         }
     }
     h
@@ -254,6 +273,24 @@ mod tests {
         std::fs::write(f.join("wear.npy"), "").unwrap();
         let s = section_of(&run, dir.path());
         assert!(s.contains("Not shown") && s.contains("finish.json"), "{s}");
+    }
+
+    /// A finish stage whose report does not read is named with serde's message, not dropped;
+    /// another node's stage is not a finish stage.
+    #[test]
+    fn a_finish_stage_whose_report_does_not_read_says_so() {
+        let dir = tempfile::tempdir().unwrap();
+        let run = crate::runjson::test_record(serde_json::json!({"stages": {
+            "fin": {"dir": "f2", "cycles_requested": 1},
+            "mesher": {"t_acquired_ns": 1, "t_written_ns": 2},
+        }}));
+        let (dirs, unread) = finish_dirs(&run, dir.path());
+        assert!(dirs.is_empty());
+        assert_eq!(unread.len(), 1, "{unread:?}");
+        assert!(unread[0].contains("stages.fin"), "{unread:?}");
+        assert!(unread[0].contains("missing field"), "{unread:?}");
+        let s = section_of(&run, dir.path());
+        assert!(s.contains("Not shown") && s.contains("stages.fin"), "{s}");
     }
 
     /// A finish.json with the fields every page needs.

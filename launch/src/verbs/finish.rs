@@ -7,7 +7,7 @@ use anyhow::{anyhow, bail, Result};
 use clap::Args;
 use surfstream_finish::engine::EngineCommand;
 use surfstream_finish::machine::{run_machine, MachineKind, MachineSetting, PartSpec, SpeedFrame};
-use surfstream_finish::setting::PartMaterial;
+use surfstream_finish::setting::{PartMaterial, PartMaterialPhysics};
 use surfstream_finish::{Calibration, FinishOptions, Model};
 
 #[derive(Args)]

@@ -6,38 +6,18 @@
 //! not cover are missing (NaN), and the patch must lie inside what it covers.
 
 use anyhow::{bail, Result};
-use serde::{Deserialize, Serialize};
 use surfstream_core::raster::RasterView;
 use surfstream_core::Shape;
 use surfstream_matcher::register::{register_pair, PhaseParams};
 
 use crate::run::Model;
 
+/// finish.json `after_registrations[]` is core's record.
+pub use surfstream_core::record::finish::AfterRegistration;
+
 /// Pitches further apart than this (relative) are refused: the scan would need resampling in
 /// scale, which a measurement of the same area on the same instrument does not.
 pub const PITCH_TOLERANCE: f64 = 0.01;
-
-/// How the after-finish scan was placed on the model (finish.json `after_registration`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct AfterRegistration {
-    /// The scan's file.
-    pub source: String,
-    /// What it is for: "after" (`--after`, SIM against the prediction) or "calibration"
-    /// (`--calibrate FILE`, the target's Sa).
-    pub role: String,
-    /// The scan's pixel (0, 0) minus the model's, px (x, y) of the model's grid.
-    pub offset_px: [f64; 2],
-    /// The same in um.
-    pub offset_um: [f64; 2],
-    /// NCC of the levelled heights at the offset (the worn surface against the unworn: the
-    /// valleys the finishing keeps correlate, the peaks it cuts do not).
-    pub ncc: f64,
-    /// The scan's shape (rows, cols) before resampling.
-    pub scan_shape: [usize; 2],
-    /// Share of the model's samples the registered scan covers.
-    pub covered_fraction: f64,
-    pub method: String,
-}
 
 /// Smallest NCC accepted for an after-finish scan: a finishing step lowers the correlation
 /// with the original (its peaks are cut), so below the tiles' 0.5; unrelated surfaces

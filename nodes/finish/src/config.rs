@@ -6,6 +6,7 @@ use serde::Deserialize;
 
 use crate::machine::MachineSetting;
 use crate::run::{Calibration, FinishOptions};
+use crate::setting::MediaPhysics;
 
 /// The node's graph parameters.
 #[derive(Debug, Clone, Deserialize)]

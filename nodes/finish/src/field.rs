@@ -12,7 +12,7 @@
 //! 2. **Approach distribution.** Hertz: a sphere striking at normal speed v_n approaches by
 //!    (15 m v_n^2 / (16 E* sqrt(R)))^(2/5). With a macro run, each of its contact samples
 //!    (the ones the micro passes draw) has its approach at the real stiffness, and p(g) is
-//!    the share of them beyond g ([`ApproachDistribution::from_samples`]). Without one, the
+//!    the share of them beyond g ([`ApproachPhysics::from_samples`]). Without one, the
 //!    impact angle is spread uniformly over [0, 2 x the setting's angle] (mean: the setting's
 //!    angle) at the media speed, and the static press of the load is a floor; P(approach > g)
 //!    is the contact probability p(g).
@@ -25,11 +25,17 @@
 //!    k) is fitted once to the calibration target ([`fit_scale`]).
 
 use anyhow::{bail, Result};
-use serde::{Deserialize, Serialize};
 use surfstream_core::Sampling;
 
-use crate::machine::ContactSample;
-use crate::setting::{effective_modulus_pa, Action, Media, Workpiece};
+use crate::machine::{ContactSample, Percentiles, PercentilesOf};
+use crate::setting::{effective_modulus_pa, Action, Media, MediaPhysics, Workpiece};
+
+/// The contact field's records (finish.json `contact_field`, a cycle's `contact_field`) are
+/// core's; their physics is here ([`ApproachPhysics`], [`WearTablePhysics`]).
+pub use surfstream_core::record::finish::{
+    ApproachDistribution, Extrapolation, FieldCheck, KinematicApproach, SampledApproach, WearBin,
+    WearTable,
+};
 
 /// The lower envelope of parabolas along one line: out[i] = min_j f[j] + ((i - j) pitch)^2 / 2R
 /// (Felzenszwalb and Huttenlocher's distance transform; exact, O(n)).
@@ -114,88 +120,6 @@ pub fn ball_gap_um(heights_um: &[f64], at: Sampling, radius_um: f64) -> Vec<f64>
         .collect()
 }
 
-/// The distribution of the contacts' approach into the part (Hertz), um: p(gap) =
-/// P(approach > gap). finish.json `contact_field.approach` names its `source` and holds only
-/// that source's numbers.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "source", rename_all = "kebab-case", try_from = "ApproachRecord")]
-pub enum ApproachDistribution {
-    /// From the barrel kinematics' assumptions (no macro run): impacts at the media speed,
-    /// angles uniform on [0, max], the press load's static approach a floor.
-    Kinematics(KinematicApproach),
-    /// From the macro run's contact samples: the share of the very contacts the micro passes
-    /// are drawn from whose approach exceeds the gap.
-    MacroSamples(SampledApproach),
-}
-
-/// The approach of the barrel kinematics' impacts ([`ApproachDistribution::Kinematics`]).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct KinematicApproach {
-    /// Approach of an impact at the full media speed, normal to the part, um.
-    pub full_speed_approach_um: f64,
-    /// Largest impact angle: angles are uniform on [0, this], degrees.
-    pub max_impact_angle_deg: f64,
-    /// The static approach under the press load: every reachable cell within it is touched.
-    pub static_approach_um: f64,
-    /// Approach at the setting's (mean) impact angle, um (reported).
-    pub mean_angle_approach_um: f64,
-}
-
-/// The approaches of the macro run's contacts at the part's real stiffness: an impact's
-/// Hertz approach at its normal speed; an enduring contact's static approach under its
-/// normal force (or its impact approach, if larger).
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
-pub struct SampledApproach {
-    pub contacts: usize,
-    pub impacts: usize,
-    pub p10_um: f64,
-    pub p50_um: f64,
-    pub p90_um: f64,
-    pub max_um: f64,
-    /// Sorted ascending, um (not written: finish.json has the percentiles).
-    #[serde(skip)]
-    pub approaches_um: Vec<f64>,
-}
-
-/// `contact_field.approach` as read: tagged by `source`, or (records written before the
-/// source was named) the kinematic fields beside an optional `sampled`.
-#[derive(Deserialize)]
-struct ApproachRecord {
-    source: Option<String>,
-    #[serde(flatten)]
-    kinematics: Option<KinematicApproach>,
-    sampled: Option<SampledApproach>,
-    #[serde(flatten)]
-    macro_samples: Option<SampledApproach>,
-}
-
-impl TryFrom<ApproachRecord> for ApproachDistribution {
-    type Error = String;
-
-    fn try_from(r: ApproachRecord) -> std::result::Result<Self, String> {
-        match r.source.as_deref() {
-            Some("kinematics") => r
-                .kinematics
-                .map(ApproachDistribution::Kinematics)
-                .ok_or_else(|| "approach: source kinematics without its four approaches".into()),
-            Some("macro-samples") => r
-                .macro_samples
-                .map(ApproachDistribution::MacroSamples)
-                .ok_or_else(|| "approach: source macro-samples without its percentiles".into()),
-            Some(other) => Err(format!(
-                "approach: source {other:?}, expected kinematics or macro-samples"
-            )),
-            None => match (r.sampled, r.kinematics) {
-                (Some(s), _) => Ok(ApproachDistribution::MacroSamples(s)),
-                (None, Some(k)) => Ok(ApproachDistribution::Kinematics(k)),
-                (None, None) => {
-                    Err("approach: expected a source (kinematics or macro-samples)".into())
-                }
-            },
-        }
-    }
-}
-
 /// Hertz approach of a sphere striking a flat at normal speed `v_n` (m/s), um.
 pub fn hertz_approach_um(media: &Media, part: &Workpiece, v_n: f64) -> f64 {
     let e = effective_modulus_pa(media, part);
@@ -209,9 +133,25 @@ pub fn hertz_static_approach_um(media: &Media, part: &Workpiece, force_n: f64) -
     (3.0 * force_n.max(0.0) / (4.0 * e * media.radius_m().sqrt())).powf(2.0 / 3.0) * 1e6
 }
 
-impl ApproachDistribution {
+/// The approach distribution's physics (the record, [`ApproachDistribution`], is core's):
+/// p(gap) made from Hertz approaches and evaluated.
+pub trait ApproachPhysics: Sized {
     /// p(gap) from the barrel kinematics' assumptions (no macro run).
-    pub fn of(media: &Media, part: &Workpiece, action: &Action, press_force_n: f64) -> Self {
+    fn of(media: &Media, part: &Workpiece, action: &Action, press_force_n: f64) -> Self;
+
+    /// p(gap) from the macro run's contacts (`samples`), at the part's real stiffness.
+    fn from_samples(media: &Media, part: &Workpiece, samples: &[ContactSample]) -> Self;
+
+    /// The largest approach, um: cells deeper below the envelope are never touched.
+    fn max_um(&self) -> f64;
+
+    /// P(approach > gap): the share of the macro run's contacts, or of the impact angles,
+    /// whose approach reaches `gap_um`.
+    fn probability(&self, gap_um: f64) -> f64;
+}
+
+impl ApproachPhysics for ApproachDistribution {
+    fn of(media: &Media, part: &Workpiece, action: &Action, press_force_n: f64) -> Self {
         let v = action.media_velocity_m_s;
         ApproachDistribution::Kinematics(KinematicApproach {
             full_speed_approach_um: hertz_approach_um(media, part, v),
@@ -225,8 +165,7 @@ impl ApproachDistribution {
         })
     }
 
-    /// p(gap) from the macro run's contacts (`samples`), at the part's real stiffness.
-    pub fn from_samples(media: &Media, part: &Workpiece, samples: &[ContactSample]) -> Self {
+    fn from_samples(media: &Media, part: &Workpiece, samples: &[ContactSample]) -> Self {
         let mut approaches_um: Vec<f64> = samples
             .iter()
             .map(|s| {
@@ -240,7 +179,7 @@ impl ApproachDistribution {
             .filter(|a| a.is_finite())
             .collect();
         approaches_um.sort_by(f64::total_cmp);
-        let q = crate::machine::Percentiles::of(&approaches_um);
+        let q = Percentiles::of(&approaches_um);
         ApproachDistribution::MacroSamples(SampledApproach {
             contacts: approaches_um.len(),
             impacts: samples.iter().filter(|s| !s.enduring).count(),
@@ -252,8 +191,7 @@ impl ApproachDistribution {
         })
     }
 
-    /// The largest approach, um: cells deeper below the envelope are never touched.
-    pub fn max_um(&self) -> f64 {
+    fn max_um(&self) -> f64 {
         match self {
             ApproachDistribution::MacroSamples(sa) => sa.max_um,
             ApproachDistribution::Kinematics(k) => {
@@ -263,17 +201,7 @@ impl ApproachDistribution {
         }
     }
 
-    /// The macro run's samples, when p(gap) comes from them.
-    pub fn sampled(&self) -> Option<&SampledApproach> {
-        match self {
-            ApproachDistribution::MacroSamples(sa) => Some(sa),
-            ApproachDistribution::Kinematics(_) => None,
-        }
-    }
-
-    /// P(approach > gap): the share of the macro run's contacts, or of the impact angles,
-    /// whose approach reaches `gap_um`.
-    pub fn probability(&self, gap_um: f64) -> f64 {
+    fn probability(&self, gap_um: f64) -> f64 {
         let k = match self {
             ApproachDistribution::MacroSamples(sa) => {
                 let n = sa.approaches_um.len();
@@ -312,69 +240,6 @@ pub fn impact_rate_per_m2_s(media: &Media, action: &Action) -> f64 {
     layer_per_m2 * action.media_velocity_m_s / (2.0 * r)
 }
 
-/// One gap bin of the wear-per-contact table.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-pub struct WearBin {
-    pub gap_from_um: f64,
-    pub gap_to_um: f64,
-    /// Cells of the evaluated patch in the bin (summed over the segments pooled).
-    pub cells: usize,
-    /// Summed contact probability of those cells x impacts: the expected contacts.
-    pub expected_contacts: f64,
-    /// DEM wear depth summed over the bin's cells, um (at the DEM's k).
-    pub dem_depth_sum_um: f64,
-    /// Cells the DEM wore (depth > 0).
-    pub dem_worn_cells: usize,
-    /// Wear depth per expected contact, um (at the DEM's k): the table's value, after the
-    /// monotone pooling ([`WearTable::pooled_bins`]).
-    pub wear_per_contact_um: f64,
-    /// The same as measured in this bin alone, before pooling, um.
-    #[serde(default)]
-    pub measured_wear_per_contact_um: f64,
-    /// The bin's value is its pooled block's: its own measurement made a deeper cell wear more
-    /// per impact than a shallower one.
-    #[serde(default)]
-    pub pooled: bool,
-}
-
-/// The wear per contact as a function of the gap, measured from DEM segments.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-pub struct WearTable {
-    pub bins: Vec<WearBin>,
-    /// DEM impacts (passes) the table was measured from.
-    pub impacts: usize,
-    /// DEM wear volume on cells the contact field says no impact reaches (gap beyond the
-    /// largest approach), um^3: spread over the reachable bins in proportion to their wear
-    /// so the table reproduces the DEM's volume.
-    pub dem_volume_beyond_reach_um3: f64,
-    pub dem_volume_um3: f64,
-    /// Bins whose value comes from pooling with a neighbour: the depth worn per impact,
-    /// p(gap) x wear per contact, is made non-increasing in the gap (every contact that reaches
-    /// a cell reaches a shallower cell deeper, so within the contact field's own model a deeper
-    /// cell never wears faster). Measured violations are the DEM's sampling noise in the few
-    /// contacts deep bins hold; left in, they wear valleys as fast as crests and stall the
-    /// smoothing. The pooling keeps the table's volume exactly.
-    #[serde(default)]
-    pub pooled_bins: usize,
-}
-
-/// How well the contact field predicts where the DEM wore (one segment).
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-pub struct FieldCheck {
-    /// P(gap of a DEM-worn cell < gap of an unworn cell), ties half: 1 = the gap ranks every
-    /// worn cell first, 0.5 = no better than chance.
-    pub auc_gap_predicts_worn: f64,
-    /// Share of the DEM's wear volume on cells the contact field reaches (p > 0).
-    pub dem_volume_within_reach: f64,
-    /// Share of the cells the contact field reaches (p > 0).
-    pub cells_within_reach: f64,
-    /// Share of the cells the DEM wore.
-    pub dem_worn_cells: f64,
-    /// Median gap of the DEM-worn cells and of all cells, um.
-    pub median_gap_worn_um: f64,
-    pub median_gap_all_um: f64,
-}
-
 /// Bins of the gap: `BINS` equal bins over [0, the largest approach].
 pub const BINS: usize = 12;
 
@@ -385,8 +250,33 @@ fn bin_of(gap_um: f64, reach_um: f64) -> Option<usize> {
     Some(((gap_um / reach_um * BINS as f64) as usize).min(BINS - 1))
 }
 
-impl WearTable {
-    pub fn empty(reach_um: f64) -> Self {
+/// The wear table's measurement from DEM segments and its use (the record, [`WearTable`], is
+/// core's).
+pub trait WearTablePhysics {
+    /// A table of [`BINS`] empty bins over [0, `reach_um`].
+    fn empty(reach_um: f64) -> Self;
+
+    /// Adds a DEM segment: `impacts` passes gave `dem_depth_um` on cells of gap `gap_um`
+    /// (same length, the evaluated patch), each cell `cell_area_um2`.
+    fn add_segment(
+        &mut self,
+        dist: &ApproachDistribution,
+        gap_um: &[f64],
+        dem_depth_um: &[f64],
+        impacts: usize,
+        cell_area_um2: f64,
+    ) -> Result<()>;
+
+    /// Pools `other` (binned over the same reach, cells of `cell_area_um2`) into this table,
+    /// as if its segments had been added here.
+    fn merge(&mut self, other: &WearTable, cell_area_um2: f64);
+
+    /// Expected wear depth of a cell at `gap_um` per impact aimed over the patch, um.
+    fn depth_per_impact_um(&self, dist: &ApproachDistribution, gap_um: f64) -> f64;
+}
+
+impl WearTablePhysics for WearTable {
+    fn empty(reach_um: f64) -> Self {
         WearTable {
             bins: (0..BINS)
                 .map(|b| WearBin {
@@ -399,9 +289,7 @@ impl WearTable {
         }
     }
 
-    /// Adds a DEM segment: `impacts` passes gave `dem_depth_um` on cells of gap `gap_um`
-    /// (same length, the evaluated patch), each cell `cell_area_um2`.
-    pub fn add_segment(
+    fn add_segment(
         &mut self,
         dist: &ApproachDistribution,
         gap_um: &[f64],
@@ -433,13 +321,11 @@ impl WearTable {
         }
         self.dem_volume_beyond_reach_um3 += beyond;
         self.impacts += impacts;
-        self.update_wear_per_contact(cell_area_um2);
+        update_wear_per_contact(self, cell_area_um2);
         Ok(())
     }
 
-    /// Pools `other` (binned over the same reach, cells of `cell_area_um2`) into this table,
-    /// as if its segments had been added here.
-    pub fn merge(&mut self, other: &WearTable, cell_area_um2: f64) {
+    fn merge(&mut self, other: &WearTable, cell_area_um2: f64) {
         for (b, o) in self.bins.iter_mut().zip(&other.bins) {
             b.cells += o.cells;
             b.expected_contacts += o.expected_contacts;
@@ -449,55 +335,54 @@ impl WearTable {
         self.impacts += other.impacts;
         self.dem_volume_beyond_reach_um3 += other.dem_volume_beyond_reach_um3;
         self.dem_volume_um3 += other.dem_volume_um3;
-        self.update_wear_per_contact(cell_area_um2);
+        update_wear_per_contact(self, cell_area_um2);
     }
 
-    /// Each bin's wear per expected contact, the DEM's volume beyond reach given to the
-    /// reachable bins in proportion to their wear, then pooled so that the mean depth per
-    /// impact of a bin's cells does not rise with the gap ([`WearTable::pooled_bins`]).
-    fn update_wear_per_contact(&mut self, cell_area_um2: f64) {
-        let inside: f64 = self.bins.iter().map(|b| b.dem_depth_sum_um).sum();
-        let factor = if inside > 0.0 {
-            self.dem_volume_um3 / (inside * cell_area_um2)
-        } else {
-            0.0
-        };
-        // Bins that can carry wear: cells in them and contacts reaching them. The others
-        // keep 0 (as before pooling) and do not take part.
-        let carrying: Vec<usize> = (0..self.bins.len())
-            .filter(|&i| self.bins[i].cells > 0 && self.bins[i].expected_contacts > 0.0)
-            .collect();
-        let depth: Vec<f64> = carrying
-            .iter()
-            .map(|&i| self.bins[i].dem_depth_sum_um * factor / self.bins[i].cells as f64)
-            .collect();
-        let weight: Vec<f64> = carrying
-            .iter()
-            .map(|&i| self.bins[i].cells as f64)
-            .collect();
-        let pooled = non_increasing_fit(&depth, &weight);
-        for b in &mut self.bins {
-            b.wear_per_contact_um = 0.0;
-            b.measured_wear_per_contact_um = 0.0;
-            b.pooled = false;
-        }
-        self.pooled_bins = 0;
-        for ((&i, d), (fit, in_block)) in carrying.iter().zip(&depth).zip(&pooled) {
-            let b = &mut self.bins[i];
-            let per_depth = b.cells as f64 / b.expected_contacts;
-            b.measured_wear_per_contact_um = d * per_depth;
-            b.wear_per_contact_um = fit * per_depth;
-            b.pooled = *in_block;
-            self.pooled_bins += usize::from(*in_block);
-        }
-    }
-
-    /// Expected wear depth of a cell at `gap_um` per impact aimed over the patch, um.
-    pub fn depth_per_impact_um(&self, dist: &ApproachDistribution, gap_um: f64) -> f64 {
+    fn depth_per_impact_um(&self, dist: &ApproachDistribution, gap_um: f64) -> f64 {
         match bin_of(gap_um, dist.max_um()) {
             Some(b) => dist.probability(gap_um) * self.bins[b].wear_per_contact_um,
             None => 0.0,
         }
+    }
+}
+
+/// Each bin's wear per expected contact, the DEM's volume beyond reach given to the
+/// reachable bins in proportion to their wear, then pooled so that the mean depth per
+/// impact of a bin's cells does not rise with the gap ([`WearTable::pooled_bins`]).
+fn update_wear_per_contact(table: &mut WearTable, cell_area_um2: f64) {
+    let inside: f64 = table.bins.iter().map(|b| b.dem_depth_sum_um).sum();
+    let factor = if inside > 0.0 {
+        table.dem_volume_um3 / (inside * cell_area_um2)
+    } else {
+        0.0
+    };
+    // Bins that can carry wear: cells in them and contacts reaching them. The others
+    // keep 0 (as before pooling) and do not take part.
+    let carrying: Vec<usize> = (0..table.bins.len())
+        .filter(|&i| table.bins[i].cells > 0 && table.bins[i].expected_contacts > 0.0)
+        .collect();
+    let depth: Vec<f64> = carrying
+        .iter()
+        .map(|&i| table.bins[i].dem_depth_sum_um * factor / table.bins[i].cells as f64)
+        .collect();
+    let weight: Vec<f64> = carrying
+        .iter()
+        .map(|&i| table.bins[i].cells as f64)
+        .collect();
+    let pooled = non_increasing_fit(&depth, &weight);
+    for b in &mut table.bins {
+        b.wear_per_contact_um = 0.0;
+        b.measured_wear_per_contact_um = 0.0;
+        b.pooled = false;
+    }
+    table.pooled_bins = 0;
+    for ((&i, d), (fit, in_block)) in carrying.iter().zip(&depth).zip(&pooled) {
+        let b = &mut table.bins[i];
+        let per_depth = b.cells as f64 / b.expected_contacts;
+        b.measured_wear_per_contact_um = d * per_depth;
+        b.wear_per_contact_um = fit * per_depth;
+        b.pooled = *in_block;
+        table.pooled_bins += usize::from(*in_block);
     }
 }
 
@@ -636,20 +521,6 @@ pub const MAX_STEPS: usize = 5_000;
 /// e.g. a form the ball follows).
 pub const STALL_SHARE: f64 = 0.002;
 pub const STALL_STEPS: usize = 100;
-
-/// What an extrapolation did.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-pub struct Extrapolation {
-    pub steps: usize,
-    /// Volume removed, um^3 (= the sum of the applied depths x cell area).
-    pub volume_um3: f64,
-    /// Share of the cells worn at all.
-    pub worn_cells: f64,
-    /// Stopped at [`MAX_STEPS`] with process time (or impacts) left: the surface is worn
-    /// less than the laws say (said on stderr; never silent).
-    #[serde(default)]
-    pub truncated_at_max_steps: bool,
-}
 
 /// The depth one impact wears at each cell of the current surface (re-closed with the ball),
 /// into `rate`; returns the largest.

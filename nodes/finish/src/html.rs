@@ -22,7 +22,9 @@ use surfstream_io::figure::{self, esc, labelled_ticks, Axis, Panel};
 
 use crate::field::ApproachDistribution;
 use crate::run::SurfaceParams;
-use crate::summary::{AbbottSummary, FinishSummary, SeriesPoint};
+use surfstream_core::record::finish::{
+    same_time_s, AbbottSummary, Baseline, Baselines, FinishSummary, SeriesPoint,
+};
 
 /// The paper's measured part before and after 5 min of finishing, um.
 pub const PAPER_BEFORE: [(&str, f64); 3] = [("Sa", 1.272), ("Sq", 1.624), ("Sz", 15.262)];
@@ -1007,7 +1009,7 @@ pub fn predictions_section(s: &FinishSummary) -> String {
 
 /// The prediction after the process time beside both baselines and the paper, with the
 /// noise and where the prediction is within it of a baseline.
-fn baselines_table(s: &FinishSummary, b: &crate::summary::Baselines) -> String {
+fn baselines_table(s: &FinishSummary, b: &Baselines) -> String {
     let mut h = String::from(
         "<h3>What the DEM adds: the no-DEM baselines at the same Sa</h3>\
 <table><tr><th class=\"k\">after the process time</th><th>prediction (DEM)</th>\
@@ -1049,7 +1051,7 @@ fn baselines_table(s: &FinishSummary, b: &crate::summary::Baselines) -> String {
     }
     h += "</table>";
     h += &at_calibration_time(s, b);
-    let say = |what: &str, base: &crate::summary::Baseline| -> String {
+    let say = |what: &str, base: &Baseline| -> String {
         let list = &base.within_noise;
         if !base.reached {
             return format!(
@@ -1087,7 +1089,7 @@ fn baselines_table(s: &FinishSummary, b: &crate::summary::Baselines) -> String {
 /// The prediction and both baselines at the calibration time (where all three have the same
 /// Sa) beside the paper's part after 5 min, when the calibration time is not the process
 /// time (else the table above is that).
-fn at_calibration_time(s: &FinishSummary, b: &crate::summary::Baselines) -> String {
+fn at_calibration_time(s: &FinishSummary, b: &Baselines) -> String {
     let Some(t) = s.wear_laws.as_ref().map(|l| l.calibration_time_s) else {
         return String::new();
     };
@@ -1100,7 +1102,7 @@ fn at_calibration_time(s: &FinishSummary, b: &crate::summary::Baselines) -> Stri
     ) else {
         return String::new();
     };
-    if last.is_some_and(|l| crate::summary::same_time_s(l, t)) {
+    if last.is_some_and(|l| same_time_s(l, t)) {
         return String::new();
     }
     let mut h = format!(
@@ -1633,7 +1635,7 @@ impl Plot<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::summary::example::{minimal, summary, typed};
+    use crate::example::{minimal, summary, typed};
 
     fn page(summary: &FinishSummary, rows: usize, cols: usize) -> String {
         let original: Vec<f64> = (0..rows * cols)
@@ -1725,7 +1727,7 @@ mod tests {
 
     #[test]
     fn predictions_are_labelled_beside_their_baselines_and_the_sweep_is_plotted() {
-        let s = crate::summary::example::predicted();
+        let s = crate::example::predicted();
         let (rows, cols) = (8, 8);
         let ideal = vec![0.1; rows * cols];
         let original = vec![0.0; rows * cols];
@@ -1884,7 +1886,8 @@ mod rerender {
     #[ignore]
     fn rerender_an_out_dir() {
         let dir = std::path::PathBuf::from(std::env::var("FINISH_OUT").expect("FINISH_OUT"));
-        let s = crate::summary::FinishSummary::read(&dir.join("finish.json")).unwrap();
+        let s =
+            surfstream_core::record::finish::FinishSummary::read(&dir.join("finish.json")).unwrap();
         let rd = |f: &str| surfstream_io::npy::read_npy_f64(dir.join(f)).unwrap();
         let (o, w, f) = (rd("original.npy"), rd("worn.npy"), rd("wear.npy"));
         let ideal = dir

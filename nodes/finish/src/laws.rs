@@ -30,7 +30,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::field::{
     ball_gap_um, hertz_static_approach_um, wear_in_steps, wear_in_steps_untargeted, worn_share,
-    ApproachDistribution, Extrapolation, FieldGrid, SaTarget, WearTable,
+    ApproachDistribution, Extrapolation, FieldGrid, SaTarget, WearTable, WearTablePhysics,
 };
 use crate::setting::{Media, Workpiece};
 
@@ -320,7 +320,7 @@ pub fn series_times_s(process_time_s: f64, given: Option<&[f64]>) -> Result<Vec<
             .collect(),
     };
     t.sort_by(|a, b| a.total_cmp(b));
-    t.dedup_by(|a, b| crate::summary::same_time_s(*a, *b));
+    t.dedup_by(|a, b| surfstream_core::record::finish::same_time_s(*a, *b));
     Ok(t)
 }
 
@@ -416,7 +416,7 @@ pub fn plateau_level_for_sa(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::field::{extrapolate, KinematicApproach};
+    use crate::field::{extrapolate, ApproachPhysics, KinematicApproach};
     use surfstream_core::{Sampling, Shape};
 
     fn grid(rows: usize, cols: usize, p: f64) -> FieldGrid {

@@ -16,7 +16,7 @@
 //!   the ideal model and a measured after-finish scan registered to the model ([`after`]).
 //!
 //! Without a macro run (`--no-macro`) the rates come from the barrel kinematics' assumptions
-//! ([`setting::BarrelMachine::action`]) and each cycle runs one medium at a time ([`script`]).
+//! ([`setting::BarrelKinematics::action`]) and each cycle runs one medium at a time ([`script`]).
 //! Plain functions; `node` is the graph node, `surfstream-finish` its process.
 //!
 //! Not for: meshing (it calls surfstream-mesher) or contact physics of its own: LIGGGHTS does
@@ -26,6 +26,8 @@ pub mod after;
 pub mod config;
 pub mod contacts;
 pub mod engine;
+#[cfg(test)]
+pub(crate) mod example;
 pub mod field;
 pub mod grid;
 pub mod html;
@@ -37,7 +39,6 @@ pub mod process;
 pub mod run;
 pub mod script;
 pub mod setting;
-pub mod summary;
 pub mod sweep;
 pub mod vtk;
 

@@ -59,7 +59,13 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::engine::{run_engine_watched, EngineCommand, EngineRun, EngineWatch};
-use crate::setting::{Media, PartMaterial};
+use crate::setting::{PartMaterial, PartMaterialPhysics};
+
+/// The macro run's records (finish.json `macro`) are core's; their physics is here
+/// ([`MediaSpecPhysics`], [`PercentilesOf`]).
+pub use surfstream_core::record::finish::{
+    ContactSample, ContactStatistics, MacroContacts, MacroCost, MediaSpec, Percentiles, Softening,
+};
 
 /// File names inside the macro run's folder.
 pub mod files {
@@ -118,101 +124,49 @@ impl SpeedFrame {
     }
 }
 
-/// The media of the macro run: spheres, softened (see the module's documentation).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct MediaSpec {
-    pub diameter_mm: f64,
-    pub density_kg_m3: f64,
-    /// Young's modulus used in the macro run, Pa (softened).
-    pub youngs_modulus_pa: f64,
-    pub poisson_ratio: f64,
-    /// Coefficient of restitution (media-media and media-wall).
-    pub restitution: f64,
-    /// Coulomb friction (media-media and media-wall).
-    pub friction: f64,
-}
-
-impl Default for MediaSpec {
-    /// The paper's 3 mm media, softened to its EDEM time step: E = 3e7 Pa gives a Rayleigh
-    /// time of 7.4e-5 s, of which 20 % is 1.48e-5 s (the paper: 1.5e-5 s). Density 2500 kg/m^3,
-    /// nu 0.25, restitution 0.6, friction 0.3: catalogue values for ceramic media, not
-    /// measured.
-    fn default() -> Self {
-        MediaSpec {
-            diameter_mm: 3.0,
-            density_kg_m3: 2500.0,
-            youngs_modulus_pa: 3.0e7,
-            poisson_ratio: 0.25,
-            restitution: 0.6,
-            friction: 0.3,
-        }
-    }
-}
-
 /// The stiffness of real ceramic media, Pa, recorded beside the softened one.
 pub const REAL_MEDIA_YOUNGS_MODULUS_PA: f64 = 1.0e11;
 
 /// Share of the Rayleigh time taken as the time step (the paper's 20 %).
 pub const RAYLEIGH_SHARE: f64 = 0.2;
 
-impl MediaSpec {
-    /// The same media at another stiffness: the micro passes' media (the real modulus, where
-    /// the macro run's is softened). One media, two stiffnesses: every other property is the
-    /// macro run's.
-    pub fn at_modulus(&self, youngs_modulus_pa: f64) -> Media {
-        Media {
-            diameter_mm: self.diameter_mm,
-            density_kg_m3: self.density_kg_m3,
-            youngs_modulus_pa,
-            poisson_ratio: self.poisson_ratio,
-            restitution: self.restitution,
-            friction: self.friction,
-        }
-    }
+/// The macro run's media as spheres (the record, [`MediaSpec`], is core's).
+pub trait MediaSpecPhysics {
+    fn radius_m(&self) -> f64;
+    fn volume_m3(&self) -> f64;
+    fn mass_kg(&self) -> f64;
+    /// Rayleigh time, s.
+    fn rayleigh_time_s(&self) -> f64;
+}
 
-    /// The first property (not the modulus) in which `m` is not these media, as
-    /// "name: macro run's vs micro passes'".
-    pub fn differs_from(&self, m: &Media) -> Option<String> {
-        [
-            ("diameter_mm", self.diameter_mm, m.diameter_mm),
-            ("density_kg_m3", self.density_kg_m3, m.density_kg_m3),
-            ("poisson_ratio", self.poisson_ratio, m.poisson_ratio),
-            ("restitution", self.restitution, m.restitution),
-            ("friction", self.friction, m.friction),
-        ]
-        .into_iter()
-        .find(|(_, a, b)| a != b)
-        .map(|(name, a, b)| format!("{name} {a} in the macro run vs {b} in the micro passes"))
-    }
-
-    pub fn radius_m(&self) -> f64 {
+impl MediaSpecPhysics for MediaSpec {
+    fn radius_m(&self) -> f64 {
         self.diameter_mm * 0.5e-3
     }
 
-    pub fn volume_m3(&self) -> f64 {
+    fn volume_m3(&self) -> f64 {
         4.0 / 3.0 * std::f64::consts::PI * self.radius_m().powi(3)
     }
 
-    pub fn mass_kg(&self) -> f64 {
+    fn mass_kg(&self) -> f64 {
         self.density_kg_m3 * self.volume_m3()
     }
 
-    /// Rayleigh time, s.
-    pub fn rayleigh_time_s(&self) -> f64 {
+    fn rayleigh_time_s(&self) -> f64 {
         let g = self.youngs_modulus_pa / (2.0 * (1.0 + self.poisson_ratio));
         std::f64::consts::PI * self.radius_m() * (self.density_kg_m3 / g).sqrt()
             / (0.1631 * self.poisson_ratio + 0.8766)
     }
+}
 
-    fn check(&self) -> Result<()> {
-        positive("media.diameter_mm", self.diameter_mm)?;
-        positive("media.density_kg_m3", self.density_kg_m3)?;
-        positive("media.youngs_modulus_pa", self.youngs_modulus_pa)?;
-        within("media.poisson_ratio", self.poisson_ratio, 0.0, 0.4999)?;
-        within("media.restitution", self.restitution, 1e-3, 1.0)?;
-        within("media.friction", self.friction, 0.0, 10.0)
-    }
+/// Refuses media that cannot run, naming the field.
+fn check_media(media: &MediaSpec) -> Result<()> {
+    positive("media.diameter_mm", media.diameter_mm)?;
+    positive("media.density_kg_m3", media.density_kg_m3)?;
+    positive("media.youngs_modulus_pa", media.youngs_modulus_pa)?;
+    within("media.poisson_ratio", media.poisson_ratio, 0.0, 0.4999)?;
+    within("media.restitution", media.restitution, 1e-3, 1.0)?;
+    within("media.friction", media.friction, 0.0, 10.0)
 }
 
 /// The part in the drum.
@@ -341,7 +295,7 @@ impl MachineSetting {
         }
         within("fill_fraction", self.fill_fraction, 1e-3, 1.0)?;
         within("bulk_packing", self.bulk_packing, 0.05, 0.64)?;
-        self.media.check()?;
+        check_media(&self.media)?;
         self.part_material.check()?;
         let PartSpec::Plate {
             width_mm,
@@ -434,17 +388,14 @@ impl MachineSetting {
     }
 }
 
-/// p10, p50 and p90 of a sample.
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
-pub struct Percentiles {
-    pub p10: f64,
-    pub p50: f64,
-    pub p90: f64,
+/// The percentiles of a sample (the record, [`Percentiles`], is core's).
+pub trait PercentilesOf {
+    /// Linear interpolation between order statistics; NaN for an empty sample.
+    fn of(values: &[f64]) -> Self;
 }
 
-impl Percentiles {
-    /// Linear interpolation between order statistics; NaN for an empty sample.
-    pub fn of(values: &[f64]) -> Self {
+impl PercentilesOf for Percentiles {
+    fn of(values: &[f64]) -> Self {
         let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
         v.sort_by(f64::total_cmp);
         let q = |p: f64| -> f64 {
@@ -464,73 +415,13 @@ impl Percentiles {
     }
 }
 
-/// One contact of a medium on the part, as the micro run draws it.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct ContactSample {
-    /// Approach speed along the part's normal at the contact's first sample, m/s.
-    pub normal_speed_m_s: f64,
-    /// Mean sliding speed of the medium's centre relative to the part over the contact, m/s.
-    pub tangential_speed_m_s: f64,
-    /// Mean normal force over the contact, N (the quasi-static load of an enduring contact).
-    pub normal_force_n: f64,
-    /// Samples x dump interval, s (softened media: not the real duration).
-    pub duration_s: f64,
-    /// Longer than twice the Hertz impact time at its approach speed: pressed and sliding,
-    /// not a bounce.
-    pub enduring: bool,
+/// What softened media keep, for a setting (the record, [`Softening`], is core's).
+pub(crate) trait SofteningOf {
+    fn of(setting: &MachineSetting) -> Self;
 }
 
-/// The contact statistics on the part's central region.
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
-pub struct ContactStatistics {
-    /// Contacts begun during the recording.
-    pub count: usize,
-    pub impacts: usize,
-    pub enduring: usize,
-    /// New contacts per mm^2 of the region and s.
-    pub rate_per_mm2_s: f64,
-    /// The next three over the contact samples in the region (time-weighted: each dump of a
-    /// contact is one sample): |normal speed|, m/s.
-    pub normal_speed_m_s: Percentiles,
-    /// Sliding speed of the medium's centre relative to the part, m/s.
-    pub tangential_speed_m_s: Percentiles,
-    /// Normal force, N (clipped at 0).
-    pub normal_force_n: Percentiles,
-    /// Approach speed of the impacts (contacts that are not enduring) at their first sample,
-    /// m/s.
-    pub impact_normal_speed_m_s: Percentiles,
-    /// Mean normal force of each enduring contact (what softening keeps), N.
-    pub enduring_normal_force_n: Percentiles,
-    /// Duration of each contact, s (softened media: not the real one).
-    pub duration_s: Percentiles,
-    /// Sum over samples of F_n |v_t| dt per mm^2 and s, J/(mm^2 s).
-    pub sliding_work_j_per_mm2_s: f64,
-    /// Sum over contacts of m v_n^2 / 2 at their first sample per mm^2 and s, J/(mm^2 s).
-    pub impact_energy_j_per_mm2_s: f64,
-    /// Share of samples whose tangential force is within 5 % of the Coulomb limit (sliding,
-    /// not rolling or sticking).
-    pub coulomb_limit_share: f64,
-    /// Contact samples read in the region.
-    pub samples: usize,
-}
-
-/// What the softened media keep, stated in the record.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Softening {
-    /// The media's Young's modulus in the macro run, Pa.
-    pub media_youngs_modulus_pa: f64,
-    /// Real ceramic media, Pa (the micro run's stiffness).
-    pub real_youngs_modulus_pa: f64,
-    pub timestep_s: f64,
-    pub rayleigh_time_s: f64,
-    /// Taken from the macro run.
-    pub trusted: Vec<String>,
-    /// Not taken: they depend on the stiffness; the micro run makes them at the real one.
-    pub not_trusted: Vec<String>,
-}
-
-impl Softening {
-    pub(crate) fn of(setting: &MachineSetting) -> Self {
+impl SofteningOf for Softening {
+    fn of(setting: &MachineSetting) -> Self {
         Softening {
             media_youngs_modulus_pa: setting.media.youngs_modulus_pa,
             real_youngs_modulus_pa: REAL_MEDIA_YOUNGS_MODULUS_PA,
@@ -554,51 +445,6 @@ impl Softening {
             .to_vec(),
         }
     }
-}
-
-/// The macro run's record (finish.json `macro`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct MacroContacts {
-    /// "liggghts".
-    pub engine: String,
-    pub machine: String,
-    pub media_count: usize,
-    /// Recorded simulated time (after settling), s.
-    pub simulated_s: f64,
-    pub settle_s: f64,
-    pub timestep_s: f64,
-    /// The region the statistics are per area of, mm^2.
-    pub region_area_mm2: f64,
-    pub contacts: ContactStatistics,
-    /// A uniform reservoir of the contacts (at most `samples_kept`).
-    pub samples: Vec<ContactSample>,
-    pub softening: Softening,
-    /// Media that left the drum (lost by LIGGGHTS: a leak in the walls).
-    pub media_lost: usize,
-    /// Stopped before the end: the statistics cover `simulated_s` only.
-    pub partial: bool,
-    pub cost: MacroCost,
-    pub seed: u64,
-    /// The media the run used (softened): a record given back (`--macro-record`) is checked
-    /// against the micro passes' media. Absent in records written before it was kept.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub media: Option<MediaSpec>,
-}
-
-/// What the macro run cost.
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
-pub struct MacroCost {
-    pub ranks: usize,
-    pub engine_s: f64,
-    pub engine_cpu_s: f64,
-    /// LIGGGHTS' own "Loop time" summed over its runs, s.
-    pub loop_s: f64,
-    pub steps: usize,
-    /// Loop time / (media x steps), s.
-    pub per_particle_step_s: f64,
-    /// Loop time / simulated time (settling and recording), s per s.
-    pub per_simulated_s: f64,
-    pub command: String,
 }
 
 /// Progress of the macro run.

@@ -12,7 +12,7 @@ use surfstream_runtime::node::{Input, NodeLogic, Outbox};
 pub use crate::config::FinishConfig;
 use crate::process::finish_record;
 use crate::run::{FinishOptions, Model};
-use crate::summary::FinishReport;
+use surfstream_core::record::finish::FinishReport;
 
 pub struct FinishNode {
     config: FinishConfig,

@@ -30,7 +30,7 @@ use std::time::Instant;
 use anyhow::{anyhow, bail, Context, Result};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 use surfstream_core::metrology::{height_params, level_plane, Grid};
 use surfstream_core::raster::Shape;
 use surfstream_core::Sampling;
@@ -45,9 +45,13 @@ use crate::engine::{run_engine, EngineCommand, EngineProgress};
 use crate::grid::{triangle_volumes_to_samples, volume_um3, NodeMap, Window, MESH_SHIFT_M};
 use crate::script::{self, micro_script, MicroLoad, MicroPass, MicroSegment};
 use crate::setting::{
-    effective_modulus_pa, hertz_contact_time_s, rayleigh_time_s, Media, PartMaterial, Workpiece,
+    effective_modulus_pa, hertz_contact_time_s, rayleigh_time_s, Media, MediaPhysics, PartMaterial,
+    PartMaterialPhysics, Workpiece,
 };
 use crate::vtk::read_vtk;
+
+/// finish.json `patch.model` is core's record.
+pub use surfstream_core::record::finish::PatchModel;
 
 /// The `curvature` given to the patch's mesh, degrees (see the module doc).
 pub const DEFAULT_CURVATURE_DEG: f64 = 1.0;
@@ -140,36 +144,6 @@ impl PatchFidelity {
             PatchFidelity::Form { .. } => format!("form (ideal model): no point farther than {b:.3} um (the measured model's bound); a form's Sa/Sq/Sz not judged"),
         }
     }
-}
-
-/// The patch model's fidelity: the tolerance mesh judged at the measured points of the
-/// evaluated patch (finish.json `patch.model`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct PatchModel {
-    pub mesher: String,
-    /// The triangle budget it was meshed within (the run's, or four times it for a smooth
-    /// surface whose tolerance mesh did not fit).
-    #[serde(default)]
-    pub budget_triangles: usize,
-    /// Triangles of the patch's surface (patch and guard band).
-    pub surface_triangles: usize,
-    /// max |mesh - measured| over the evaluated patch's samples, each with its mean over the
-    /// patch removed, divided by the patch's Sq.
-    pub max_error_over_sq: f64,
-    pub max_error_um: f64,
-    pub rms_error_um: f64,
-    pub sq_um: f64,
-    /// The mesher's tolerance verdict (Sa, Sq, Sz per region) and its smallest angle.
-    pub tolerance_met: Option<bool>,
-    pub min_angle_deg: Option<f64>,
-    /// The mesh's `curvature` in LIGGGHTS, degrees.
-    pub curvature_deg: f64,
-    /// What the mesh was judged by ([`PatchFidelity`]): the surface's kind and its bounds.
-    #[serde(default, skip_serializing_if = "String::is_empty")]
-    pub fidelity: String,
-    /// The pointwise bound the mesher was given, um (absent: none, records before it).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub max_error_bound_um: Option<f64>,
 }
 
 /// The patch's tolerance mesh, as LIGGGHTS reads it.

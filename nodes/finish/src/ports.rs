@@ -3,7 +3,7 @@
 use surfstream_core::record::NodeRecord;
 use surfstream_runtime::graph::{InputDef, NodePorts, PortKind};
 
-use crate::summary::FinishReport;
+use surfstream_core::record::finish::FinishReport;
 
 /// A sink: the surface to finish (the pooled map or the panorama), and optionally the datum,
 /// the ideal (form-only) model that the paper's comparison runs beside it.

@@ -13,7 +13,9 @@ use crate::field::{Extrapolation, FieldGrid};
 use crate::grid::Patch;
 use crate::laws::{self, WearLaw, Worn};
 use crate::run::{surface_params, SurfaceParams, MAX_FIELD_SCALE};
-use crate::summary::{AbbottSummary, Baseline, Baselines, PredictionNoise, SeriesPoint, WearMaps};
+use surfstream_core::record::finish::{
+    same_time_s, AbbottSummary, Baseline, Baselines, PredictionNoise, SeriesPoint, WearMaps,
+};
 
 /// Sa of the evaluated patch of `z` (patch and guard band), levelled by its plane, um.
 pub fn sa_of_crop(patch: &Patch, z: &[f64]) -> Result<f64> {
@@ -137,8 +139,8 @@ pub fn predict(input: &PredictionInput, stop: &AtomicBool) -> Result<Prediction>
     let map_times: Vec<f64> = (1..=n_maps).map(|k| k as f64 * every).collect();
     let mut all: Vec<f64> = input.times_s.iter().chain(&map_times).cloned().collect();
     all.sort_by(|a, b| a.total_cmp(b));
-    all.dedup_by(|a, b| crate::summary::same_time_s(*a, *b));
-    let near = crate::summary::same_time_s;
+    all.dedup_by(|a, b| same_time_s(*a, *b));
+    let near = same_time_s;
     let maps_dir = input.out_dir.join(WEAR_MAPS_DIR);
     std::fs::create_dir_all(&maps_dir)
         .map_err(|e| anyhow!("{}: cannot create: {e}", maps_dir.display()))?;

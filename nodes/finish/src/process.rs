@@ -14,7 +14,10 @@ use surfstream_core::record;
 use surfstream_core::{Sampling, Shape};
 
 use crate::engine::{EngineCommand, EngineProgress};
-use crate::field::{self, impact_rate_per_m2_s, ApproachDistribution, FieldGrid, WearTable};
+use crate::field::{
+    self, impact_rate_per_m2_s, ApproachDistribution, ApproachPhysics, FieldGrid, WearTable,
+    WearTablePhysics,
+};
 use crate::grid::{crop, volume_um3, Patch};
 use crate::laws::{self, ImpactLaw, SlidingLaw, WearLaw};
 use crate::machine::{ContactSample, MacroContacts};
@@ -29,8 +32,8 @@ use crate::run::{
     DEFAULT_K_FINNIE_PER_PA, DEFAULT_K_FINNIE_SAMPLED_MAP_PER_PA, MAX_FIELD_SCALE,
 };
 use crate::script::{self, Segment};
-use crate::setting::Action;
-use crate::summary::{
+use crate::setting::{Action, BarrelKinematics, MediaPhysics, PartMaterialPhysics};
+use surfstream_core::record::finish::{
     AbbottSummary, CalibrationSummary, CheckMean, ContactFieldSummary, CycleField, CycleRecord,
     CycleVolumeCheck, EnvelopeShape, FinalFit, FinishFacts, FinishSetting, FinishSummary,
     IdealModelRun, PaperValues, PatchRecord, PatchSummary, ProbeRecord, SimValues, Timings,
@@ -352,7 +355,7 @@ impl<'a> Setup<'a> {
             laws::series_times_s(opts.process_time_s, opts.series_s.as_deref())?;
         series_times_s.extend([calibration_time_s, opts.process_time_s]);
         series_times_s.sort_by(|a, b| a.total_cmp(b));
-        series_times_s.dedup_by(|a, b| crate::summary::same_time_s(*a, *b));
+        series_times_s.dedup_by(|a, b| surfstream_core::record::finish::same_time_s(*a, *b));
         if let Some(e) = opts.wear_map_every_s {
             if !(e.is_finite() && e > 0.0 && e <= opts.process_time_s) {
                 bail!(
@@ -1232,8 +1235,11 @@ fn final_prediction(
     let k_finnie = setup.k_finnie;
     let final_fit = match (setup.target_sa, p.fit.clone()) {
         (Some(t), Some(e)) => {
-            let sa = crate::summary::SeriesPoint::at(&p.series, setup.calibration_time_s)
-                .map_or(f64::NAN, |q| q.sa);
+            let sa = surfstream_core::record::finish::SeriesPoint::at(
+                &p.series,
+                setup.calibration_time_s,
+            )
+            .map_or(f64::NAN, |q| q.sa);
             let err = sa / t - 1.0;
             let reached = p.reached.unwrap_or(false);
             say(&format!(
@@ -1867,7 +1873,7 @@ mod tests {
             "engine": "liggghts", "machine": "centrifugal-barrel", "media_count": 1,
             "simulated_s": 1.0, "settle_s": 0.1, "timestep_s": 1e-5, "region_area_mm2": 1.0,
             "contacts": crate::machine::ContactStatistics::default(), "samples": [],
-            "softening": crate::machine::Softening::of(&m), "media_lost": 0, "partial": false,
+            "softening": <crate::machine::Softening as crate::machine::SofteningOf>::of(&m), "media_lost": 0, "partial": false,
             "cost": crate::machine::MacroCost::default(), "seed": 1
         }))
         .unwrap();

@@ -6,7 +6,6 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 
 use anyhow::{bail, Context, Result};
-use serde::Serialize;
 use surfstream_core::metrology::{functional_params, level_plane, params, Grid};
 use surfstream_core::Sampling;
 
@@ -15,10 +14,13 @@ use crate::engine::{run_engine, EngineCommand, EngineProgress};
 use crate::grid::{mesh_patch, volume_um3};
 use crate::script::{self, input_script, plan_passes, AimArea, Segment};
 use crate::setting::{
-    hertz_contact_time_s, rayleigh_time_s, Action, BarrelMachine, Media, Workpiece,
-    DEFAULT_IMPACT_ANGLE_DEG,
+    hertz_contact_time_s, rayleigh_time_s, Action, BarrelMachine, Media, MediaPhysics,
+    PartMaterialPhysics, Workpiece, DEFAULT_IMPACT_ANGLE_DEG,
 };
 use crate::vtk::read_vtk;
+
+/// finish.json's surface parameters (`before`, `after`, ...) are core's record.
+pub use surfstream_core::record::finish::SurfaceParams;
 
 /// The files a finish writes into its output folder.
 pub mod outputs {
@@ -279,37 +281,6 @@ impl Progress {
             e.eta_s.map_or("?".to_string(), |s| format!("{s:.0} s")),
         )
     }
-}
-
-/// ISO 25178 parameters of a (cropped) surface, levelled by its plane.
-#[derive(Debug, Clone, Serialize, serde::Deserialize)]
-pub struct SurfaceParams {
-    #[serde(rename = "Sa")]
-    pub sa: f64,
-    #[serde(rename = "Sq")]
-    pub sq: f64,
-    #[serde(rename = "Sp")]
-    pub sp: f64,
-    #[serde(rename = "Sv")]
-    pub sv: f64,
-    #[serde(rename = "Sz")]
-    pub sz: f64,
-    #[serde(rename = "Ssk")]
-    pub ssk: f64,
-    #[serde(rename = "Sku")]
-    pub sku: f64,
-    #[serde(rename = "Sdq")]
-    pub sdq: f64,
-    #[serde(rename = "Sk")]
-    pub sk: f64,
-    #[serde(rename = "Spk")]
-    pub spk: f64,
-    #[serde(rename = "Svk")]
-    pub svk: f64,
-    #[serde(rename = "Smr1")]
-    pub smr1: f64,
-    #[serde(rename = "Smr2")]
-    pub smr2: f64,
 }
 
 /// The levelled heights and parameters of `z` (rows x cols).

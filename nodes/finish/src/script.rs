@@ -20,7 +20,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
-use crate::setting::{Action, Media, Workpiece};
+use crate::setting::{Action, Media, MediaPhysics, Workpiece};
 
 /// File names inside a segment's folder.
 pub const INPUT: &str = "in.liggghts";
@@ -429,7 +429,7 @@ pub fn micro_script(seg: &MicroSegment) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::setting::BarrelMachine;
+    use crate::setting::{BarrelKinematics, BarrelMachine};
 
     #[test]
     fn passes_land_on_the_patch_and_the_script_names_every_pass() {

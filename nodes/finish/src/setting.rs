@@ -1,114 +1,31 @@
 //! The setting of a finishing simulation: the media, the workpiece, and the machine's action on
 //! the part (relative media velocity and pressure), derived from centrifugal barrel kinematics
-//! or given directly. Every default is stated here and recorded in finish.json.
+//! or given directly. The setting's types, with every default stated, are finish.json's records
+//! (`surfstream_core::record::finish`, re-exported here); their physics is here, as extension
+//! traits: [`MediaPhysics`], [`PartMaterialPhysics`], [`BarrelKinematics`].
 
 use anyhow::{bail, Result};
-use serde::{Deserialize, Serialize};
 
-/// The grinding media: spheres.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Media {
-    pub diameter_mm: f64,
-    pub density_kg_m3: f64,
-    pub youngs_modulus_pa: f64,
-    pub poisson_ratio: f64,
-    /// Media-part coefficient of restitution (LIGGGHTS' Hertz damping).
-    pub restitution: f64,
-    /// Media-part Coulomb friction coefficient.
-    pub friction: f64,
-}
+pub use surfstream_core::record::finish::{Action, BarrelMachine, Media, PartMaterial, Workpiece};
 
-impl Default for Media {
-    /// Ceramic (alumina-silica) media of the paper's 3 mm size. The paper states the size
-    /// only; density, modulus, Poisson ratio, restitution and friction are typical catalogue
-    /// values for fused ceramic media, not measured here.
-    fn default() -> Self {
-        Media {
-            diameter_mm: 3.0,
-            density_kg_m3: 2500.0,
-            youngs_modulus_pa: 1.0e11,
-            poisson_ratio: 0.25,
-            restitution: 0.6,
-            friction: 0.3,
-        }
-    }
-}
-
-/// The finished part's material (the wall in LIGGGHTS).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Workpiece {
-    pub youngs_modulus_pa: f64,
-    pub poisson_ratio: f64,
-}
-
-impl Default for Workpiece {
-    /// Steel.
-    fn default() -> Self {
-        Workpiece {
-            youngs_modulus_pa: 2.1e11,
-            poisson_ratio: 0.3,
-        }
-    }
-}
-
-/// The part's material: the wall's elasticity in LIGGGHTS and the hardness of Archard's law.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct PartMaterial {
-    /// The preset's name, or "custom".
-    pub name: String,
-    pub youngs_modulus_pa: f64,
-    pub poisson_ratio: f64,
-    /// Indentation hardness H of Archard's law V = K / H F s, Pa.
-    pub hardness_pa: f64,
-}
-
-impl Default for PartMaterial {
-    fn default() -> Self {
-        PartMaterial::aluminium()
-    }
-}
-
-impl PartMaterial {
-    /// The paper's part, an aluminium alloy sheet: E 70 GPa, nu 0.33, H 1.0 GPa (about
-    /// 100 HV, a 6061-T6-like alloy; textbook values, the paper gives no grade).
-    pub fn aluminium() -> Self {
-        PartMaterial {
-            name: "aluminium".into(),
-            youngs_modulus_pa: 7.0e10,
-            poisson_ratio: 0.33,
-            hardness_pa: 1.0e9,
-        }
-    }
-
-    /// Steel: E 210 GPa, nu 0.3, H 2 GPa (about 200 HV; the first sessions' hard-coded part).
-    pub fn steel() -> Self {
-        PartMaterial {
-            name: "steel".into(),
-            youngs_modulus_pa: 2.1e11,
-            poisson_ratio: 0.3,
-            hardness_pa: 2.0e9,
-        }
-    }
-
-    /// The presets by name: `aluminium` (also `aluminum`) or `steel`.
-    pub fn preset(name: &str) -> Result<Self> {
-        match name {
-            "aluminium" | "aluminum" => Ok(Self::aluminium()),
-            "steel" => Ok(Self::steel()),
-            _ => bail!("part material {name:?}: expected aluminium or steel (or give its modulus, Poisson ratio and hardness)"),
-        }
-    }
-
+/// The part's material as the DEM's wall and a checked setting.
+pub trait PartMaterialPhysics {
     /// The wall's elasticity for the DEM.
-    pub fn workpiece(&self) -> Workpiece {
+    fn workpiece(&self) -> Workpiece;
+
+    /// Refuses a material that cannot run, naming the field.
+    fn check(&self) -> Result<()>;
+}
+
+impl PartMaterialPhysics for PartMaterial {
+    fn workpiece(&self) -> Workpiece {
         Workpiece {
             youngs_modulus_pa: self.youngs_modulus_pa,
             poisson_ratio: self.poisson_ratio,
         }
     }
 
-    pub fn check(&self) -> Result<()> {
+    fn check(&self) -> Result<()> {
         for (field, v) in [
             ("youngs_modulus_pa", self.youngs_modulus_pa),
             ("hardness_pa", self.hardness_pa),
@@ -127,59 +44,13 @@ impl PartMaterial {
     }
 }
 
-/// A centrifugal barrel machine: barrels on a turret.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct BarrelMachine {
-    /// Turret revolution, r/min.
-    pub revolution_rpm: f64,
-    /// Distance of the barrel's axis from the turret's axis, mm.
-    pub revolution_radius_mm: f64,
-    /// Barrel rotation relative to the turret, r/min, opposite to the revolution.
-    pub counter_rotation_rpm: f64,
-    /// Inner radius of the barrel, mm (not given by the paper: an assumption).
-    pub barrel_radius_mm: f64,
-    /// Depth of media above the part, mm (an assumption).
-    pub bed_depth_mm: f64,
-    /// Volume fraction of media in the bed (random packing of spheres).
-    pub packing_fraction: f64,
-}
-
-impl Default for BarrelMachine {
-    /// The paper's machine: 300 r/min revolution at 135 mm, 300 r/min counter-rotation; the
-    /// barrel radius (50 mm), bed depth (20 mm) and packing (0.6) are assumptions.
-    fn default() -> Self {
-        BarrelMachine {
-            revolution_rpm: 300.0,
-            revolution_radius_mm: 135.0,
-            counter_rotation_rpm: 300.0,
-            barrel_radius_mm: 50.0,
-            bed_depth_mm: 20.0,
-            packing_fraction: 0.6,
-        }
-    }
-}
-
-/// What the machine does to the part, as the DEM patch sees it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Action {
-    /// Speed of the media relative to the part, m/s.
-    pub media_velocity_m_s: f64,
-    /// Angle of the media's velocity to the part's plane, degrees (glancing impacts).
-    pub impact_angle_deg: f64,
-    /// Contact pressure of the media bed on the part, Pa.
-    pub pressure_pa: f64,
-    /// Body acceleration of the media toward the part, m/s^2 (the centrifugal field).
-    pub acceleration_m_s2: f64,
-    /// How the numbers were obtained.
-    pub source: String,
-}
-
 /// Default angle between the media's velocity and the part's plane: the bed slides along the
 /// part, with a glancing normal component (an assumption; the DEM of the whole barrel would
 /// give a distribution).
 pub const DEFAULT_IMPACT_ANGLE_DEG: f64 = 20.0;
 
-impl BarrelMachine {
+/// The centrifugal barrel's kinematics: what the machine does to the part.
+pub trait BarrelKinematics {
     /// The relative velocity and pressure from the kinematics.
     ///
     /// With the barrel counter-rotating at `counter_rotation_rpm` relative to the turret, the
@@ -187,7 +58,11 @@ impl BarrelMachine {
     /// the barrel at the counter-rotation rate omega: the media bed, which follows the field,
     /// slides past the barrel wall and the part held near it at v = omega * r_barrel. The bed
     /// presses on the part with p = packing * density * Omega^2 R * bed depth.
-    pub fn action(&self, media: &Media, impact_angle_deg: f64) -> Result<Action> {
+    fn action(&self, media: &Media, impact_angle_deg: f64) -> Result<Action>;
+}
+
+impl BarrelKinematics for BarrelMachine {
+    fn action(&self, media: &Media, impact_angle_deg: f64) -> Result<Action> {
         for (name, v) in [
             ("revolution_rpm", self.revolution_rpm),
             ("revolution_radius_mm", self.revolution_radius_mm),
@@ -226,17 +101,28 @@ impl BarrelMachine {
     }
 }
 
-impl Media {
-    pub fn radius_m(&self) -> f64 {
+/// The media as spheres: their size, mass and load, and a checked setting.
+pub trait MediaPhysics {
+    fn radius_m(&self) -> f64;
+    fn mass_kg(&self) -> f64;
+    /// Refuses media that cannot run, naming the field.
+    fn validate(&self) -> Result<()>;
+    /// The normal load one medium carries: the pressure over its share of a hexagonally packed
+    /// layer (2 sqrt(3) r^2), N.
+    fn load_n(&self, pressure_pa: f64) -> f64;
+}
+
+impl MediaPhysics for Media {
+    fn radius_m(&self) -> f64 {
         self.diameter_mm * 0.5e-3
     }
 
-    pub fn mass_kg(&self) -> f64 {
+    fn mass_kg(&self) -> f64 {
         let r = self.radius_m();
         self.density_kg_m3 * 4.0 / 3.0 * std::f64::consts::PI * r * r * r
     }
 
-    pub fn validate(&self) -> Result<()> {
+    fn validate(&self) -> Result<()> {
         for (name, v) in [
             ("diameter_mm", self.diameter_mm),
             ("density_kg_m3", self.density_kg_m3),
@@ -265,9 +151,7 @@ impl Media {
         Ok(())
     }
 
-    /// The normal load one medium carries: the pressure over its share of a hexagonally packed
-    /// layer (2 sqrt(3) r^2), N.
-    pub fn load_n(&self, pressure_pa: f64) -> f64 {
+    fn load_n(&self, pressure_pa: f64) -> f64 {
         let r = self.radius_m();
         pressure_pa * 2.0 * 3f64.sqrt() * r * r
     }

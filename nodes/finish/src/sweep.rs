@@ -12,7 +12,7 @@ use surfstream_core::record;
 
 use crate::process::finish_record;
 use crate::run::{outputs, FinishOptions, Model};
-use crate::summary::{
+use surfstream_core::record::finish::{
     same_time_s, FinishSummary, SeriesPoint, Sweep, SweepComparison, SweepSetting,
 };
 
@@ -432,7 +432,7 @@ mod tests {
             spk: sa,
             svk: sa,
             sk: sa,
-            abbott: crate::summary::AbbottSummary {
+            abbott: surfstream_core::record::finish::AbbottSummary {
                 material_ratio_pct: vec![],
                 height_um: vec![],
             },

@@ -8,10 +8,12 @@
 use surfstream_core::{Sampling, Shape};
 use surfstream_finish::field::{
     ball_gap_um, extrapolate, impact_rate_per_m2_s, wear_to_target, ApproachDistribution,
-    FieldGrid, WearTable,
+    ApproachPhysics, FieldGrid, WearTable,
 };
 use surfstream_finish::run::{surface_params, CALIBRATION_TOLERANCE_PERCENT};
-use surfstream_finish::setting::{BarrelMachine, Media, Workpiece, DEFAULT_IMPACT_ANGLE_DEG};
+use surfstream_finish::setting::{
+    BarrelKinematics, BarrelMachine, Media, MediaPhysics, Workpiece, DEFAULT_IMPACT_ANGLE_DEG,
+};
 
 /// A rough surface: random-phase waves with amplitudes falling as 1/wavelength^-1 between
 /// 6 and 150 um, scaled to Sa = `sa_um` (deterministic).

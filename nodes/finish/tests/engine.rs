@@ -13,6 +13,7 @@
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
 
+use surfstream_core::record::finish::FinishReport;
 use surfstream_core::{Pitch, Sampling, Shape};
 use surfstream_finish::engine::{run_engine, EngineCommand};
 use surfstream_finish::grid::{mesh_patch, volume_um3, Window};
@@ -21,8 +22,7 @@ use surfstream_finish::run::{
     run_segment, surface_params, timestep_s, SegmentPlan, CALIBRATION_TOLERANCE_PERCENT,
 };
 use surfstream_finish::script::{self, input_script, Pass, Segment};
-use surfstream_finish::setting::{BarrelMachine, Media, Workpiece};
-use surfstream_finish::summary::FinishReport;
+use surfstream_finish::setting::{BarrelKinematics, BarrelMachine, Media, MediaPhysics, Workpiece};
 use surfstream_finish::vtk::read_vtk;
 use surfstream_finish::{finish_record, Calibration, FinishOptions, Model};
 

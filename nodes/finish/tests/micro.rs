@@ -23,7 +23,8 @@ use surfstream_finish::passes::{
 };
 use surfstream_finish::script::{self, micro_script, MicroLoad, MicroPass, MicroSegment};
 use surfstream_finish::setting::{
-    effective_modulus_pa, hertz_contact_time_s, Media, PartMaterial, Workpiece,
+    effective_modulus_pa, hertz_contact_time_s, Media, MediaPhysics, PartMaterial,
+    PartMaterialPhysics, Workpiece,
 };
 use surfstream_finish::vtk::read_vtk;
 

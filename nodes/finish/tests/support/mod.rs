@@ -2,7 +2,7 @@
 //! integrated analytically to check LIGGGHTS' wear against.
 
 use surfstream_finish::engine::EngineCommand;
-use surfstream_finish::setting::{effective_modulus_pa, Media, Workpiece};
+use surfstream_finish::setting::{effective_modulus_pa, Media, MediaPhysics, Workpiece};
 
 pub fn engine() -> EngineCommand {
     EngineCommand::locate(1, None).unwrap_or_else(|e| {
