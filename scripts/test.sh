@@ -47,9 +47,14 @@ if [ -z "${SURFSTREAM_SPECIMENS:-}" ] && [ -d ../shared/specimens ]; then
     echo "test.sh: also checking the specimens in $SURFSTREAM_SPECIMENS"
 fi
 
-# The mesher's modules import downwards only (docs/architecture.md §11): a cycle fails here.
+# Every crate's modules import downwards only (docs/architecture.md §11): a cycle in the code
+# fails here; the mesher's doc links and tests too.
 "$SURFSTREAM_PYTHON" scripts/module_graph.py nodes/mesher/src >/dev/null ||
     { echo "test.sh: nodes/mesher/src has an import cycle (python3 scripts/module_graph.py nodes/mesher/src)"; exit 1; }
+for src in common/*/src nodes/*/src launch/src python/src; do
+    "$SURFSTREAM_PYTHON" scripts/module_graph.py --code-only --no-tests "$src" >/dev/null ||
+        { echo "test.sh: $src has an import cycle (python3 scripts/module_graph.py --code-only --no-tests $src)"; exit 1; }
+done
 
 cargo build --release --workspace --bins
 # PyWavelets parity goldens (every base, mode, odd/even size, level) for nodes/wavelet's tests.

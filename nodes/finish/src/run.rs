@@ -124,7 +124,7 @@ pub struct FinishOptions {
     pub after: Option<Model>,
     /// How the measured scans (`after`, a measured calibration target) were registered to the
     /// model (finish.json `after_registrations`).
-    pub after_registrations: Vec<crate::after::AfterRegistration>,
+    pub after_registrations: Vec<surfstream_core::record::finish::AfterRegistration>,
     /// The macro run (the machine at the media scale, [`crate::machine`]) first, by default
     /// the paper's machine; its contact statistics give the prediction's impact and sliding
     /// rates and its contact samples the cycles' micro passes. None: the rates from the barrel
