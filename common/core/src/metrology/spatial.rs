@@ -27,10 +27,13 @@
 use std::sync::atomic::{AtomicU64, Ordering as AtomicOrdering};
 
 use rayon::prelude::*;
+use rustfft::num_complex::Complex;
 use serde::Serialize;
 
-use super::spectrum::{correlation_half_plane, spectrum2_of};
+use super::spectrum::{correlation_half_plane, correlation_window, spectrum2_blocks};
 use super::{Grid, MetrologyError};
+use crate::fft::fast_len;
+use realfft::RealFftPlanner;
 
 /// ISO 25178-3 default threshold of Sal / Str.
 pub const ACF_THRESHOLD: f64 = 0.2;
@@ -91,28 +94,57 @@ impl<'a> CentredRows<'a> {
 }
 
 /// The autocorrelation function over lags ty = -(rows-1)..=(rows-1), tx = -(cols-1)..=(cols-1)
-/// (um^2); stored as the half plane ty >= 0 (f_ACF(-t) = f_ACF(t)).
+/// (um^2); stored as the half plane ty >= 0 (f_ACF(-t) = f_ACF(t)), or only its lags |ty| <=
+/// wy, |tx| <= wx (a window: see [`spatial_params`]).
 #[derive(Debug, Clone)]
 pub struct Acf {
     pub rows: usize,
     pub cols: usize,
     pub pitch_x_um: f64,
     pub pitch_y_um: f64,
+    /// The lags held: |ty| <= wy, |tx| <= wx (rows - 1, cols - 1: the whole plane).
+    wy: usize,
+    wx: usize,
     half: Vec<f64>,
 }
 
+/// The window of lags [`spatial_params`] tries first, as a fraction of the lag plane's half
+/// extents: a region of f_ACF > 0.2 f_ACF(0) within an eighth of the map (Sal well below the
+/// field, the usual case) is found without the whole plane.
+const WINDOW_FRACTION: usize = 8;
+/// Blocks of half-spectrum columns the window's transforms are made in (each row's FFT is
+/// made this many times): the block is 2 x the map / this.
+const WINDOW_BLOCKS: usize = 8;
+/// Blocks of Std's spectrum (the map / this at a time).
+const STD_BLOCKS: usize = 4;
+/// Below this many points the whole lag plane is made at once (its memory is small).
+const WINDOW_MIN_POINTS: usize = 1 << 18;
+
 impl Acf {
-    /// The ACF of `g` (see the module documentation).
+    /// The ACF of `g` (see the module documentation), the whole lag plane.
     pub fn of(g: &Grid) -> Result<Self, MetrologyError> {
+        Self::of_lags(g, None)
+    }
+
+    /// The ACF of `g` at lags |ty| <= `wy`, |tx| <= `wx` only (`None`: all), the same values
+    /// bit for bit as [`Acf::of`]'s at those lags; made in `WINDOW_BLOCKS` column blocks.
+    fn of_lags(g: &Grid, window: Option<(usize, usize)>) -> Result<Self, MetrologyError> {
         let c = CentredRows::of(g)?;
         let n = c.valid;
         let (rows, cols) = (g.rows(), g.cols());
-        let mut half = correlation_half_plane(&|r, buf: &mut [f64]| c.row(r, buf), rows, cols);
-        let w = 2 * cols - 1;
+        let (wy, wx) = window.map_or((rows - 1, cols - 1), |(wy, wx)| {
+            (wy.min(rows - 1), wx.min(cols - 1))
+        });
+        let sums = |row: &(dyn Fn(usize, &mut [f64]) + Sync)| match window {
+            None => correlation_half_plane(&row, rows, cols),
+            Some(_) => correlation_window(&row, rows, cols, (wy, wx), WINDOW_BLOCKS),
+        };
+        let mut half = sums(&|r, buf: &mut [f64]| c.row(r, buf));
+        let w = 2 * wx + 1;
         if n == rows * cols {
             half.par_chunks_mut(w).enumerate().for_each(|(ty, row)| {
                 for (i, v) in row.iter_mut().enumerate() {
-                    let tx = (i as isize - (cols as isize - 1)).unsigned_abs();
+                    let tx = (i as isize - wx as isize).unsigned_abs();
                     *v /= ((rows - ty) * (cols - tx)) as f64;
                 }
             });
@@ -123,7 +155,7 @@ impl Acf {
                     *o = if z.is_nan() { 0.0 } else { 1.0 };
                 }
             };
-            let pairs = correlation_half_plane(&mask, rows, cols);
+            let pairs = sums(&mask);
             half.par_iter_mut()
                 .zip(pairs.par_iter())
                 .for_each(|(v, &k)| {
@@ -136,18 +168,27 @@ impl Acf {
             cols,
             pitch_x_um: g.pitch_x_um(),
             pitch_y_um: g.pitch_y_um(),
+            wy,
+            wx,
             half,
         })
     }
 
-    /// f_ACF at lag (ty rows, tx cols); NaN outside the lag plane.
+    /// Whether every lag of the plane is held.
+    fn whole(&self) -> bool {
+        self.wy + 1 == self.rows && self.wx + 1 == self.cols
+    }
+
+    /// f_ACF at lag (ty rows, tx cols); NaN outside the lag plane (and outside the window
+    /// held, which the region search never reads: see `region_edges`).
     pub fn at(&self, ty: isize, tx: isize) -> f64 {
         let (ty, tx) = if ty < 0 { (-ty, -tx) } else { (ty, tx) };
-        let (r, c) = (self.rows as isize, self.cols as isize);
-        if ty >= r || tx <= -c || tx >= c {
+        let (wy, wx) = (self.wy as isize, self.wx as isize);
+        if ty > wy || tx < -wx || tx > wx {
+            debug_assert!(self.whole(), "lag ({ty}, {tx}) read outside the window");
             return f64::NAN;
         }
-        self.half[ty as usize * (2 * self.cols - 1) + (tx + c - 1) as usize]
+        self.half[ty as usize * (2 * self.wx + 1) + (tx + wx) as usize]
     }
 
     fn bilinear(&self, y: f64, x: f64) -> f64 {
@@ -173,11 +214,23 @@ impl Acf {
 
     /// (Sal um, Str) at threshold `s` (fraction of f_ACF(0)).
     pub fn sal_str(&self, s: f64) -> (f64, f64) {
+        // The whole plane always holds its region.
+        self.sal_str_within(s).unwrap_or((f64::NAN, f64::NAN))
+    }
+
+    /// [`Acf::sal_str`], or `None` when the region reaches the border of the window held
+    /// inside the plane (the lags beyond it would be needed).
+    fn sal_str_within(&self, s: f64) -> Option<(f64, f64)> {
         let thr = s * self.at(0, 0);
         if thr.is_nan() {
-            return (f64::NAN, f64::NAN);
+            return Some((f64::NAN, f64::NAN));
         }
-        let (edges, touches) = self.region_edges(thr);
+        let (edges, touches) = self.region_edges(thr)?;
+        Some(self.sal_str_of(thr, &edges, touches))
+    }
+
+    /// Sal and Str from the region's edges (see [`Acf::region_edges`]).
+    fn sal_str_of(&self, thr: f64, edges: &[(isize, isize)], touches: bool) -> (f64, f64) {
         if edges.is_empty() {
             return (f64::NAN, f64::NAN);
         }
@@ -215,11 +268,15 @@ impl Acf {
     }
 
     /// The lags just outside the region of lags connected to 0 (4-neighbours) where f_ACF >
-    /// `thr`, and whether the region reaches the border of the lag plane.
-    fn region_edges(&self, thr: f64) -> (Vec<(isize, isize)>, bool) {
+    /// `thr`, and whether the region reaches the border of the lag plane; `None` when it
+    /// reaches the border of the window held inside the plane (a region lag there may have
+    /// neighbours beyond it). Lags inside the window's border have their neighbours inside
+    /// the window, so a `Some` result read only lags held, the values the whole plane has.
+    fn region_edges(&self, thr: f64) -> Option<(Vec<(isize, isize)>, bool)> {
         let (ry, rx) = (self.rows as isize - 1, self.cols as isize - 1);
-        let (h, w) = ((2 * ry + 1) as usize, (2 * rx + 1) as usize);
-        let idx = |y: isize, x: isize| (y + ry) as usize * w + (x + rx) as usize;
+        let (wy, wx) = (self.wy as isize, self.wx as isize);
+        let (h, w) = ((2 * wy + 1) as usize, (2 * wx + 1) as usize);
+        let idx = |y: isize, x: isize| (y + wy) as usize * w + (x + wx) as usize;
         // Seen (in the region or on its edge), one bit per lag.
         let mut seen = vec![0u64; (h * w).div_ceil(64)];
         let mut see = |i: usize| {
@@ -233,6 +290,9 @@ impl Acf {
         let mut edges = Vec::new();
         let mut touches = false;
         while let Some((y, x)) = stack.pop() {
+            if (wy < ry && y.abs() >= wy) || (wx < rx && x.abs() >= wx) {
+                return None;
+            }
             if y.abs() == ry || x.abs() == rx {
                 touches = true;
             }
@@ -251,7 +311,7 @@ impl Acf {
                 }
             }
         }
-        (edges, touches)
+        Some((edges, touches))
     }
 
     /// The decay length (um) along the ray from lag 0 to lag `e`, `dist` um long: the first
@@ -294,66 +354,88 @@ fn floor_lag(v: f64) -> f64 {
 }
 
 /// The angular amplitude density in bins of `step_deg` (lower edges 0..180), from the DFT of
-/// the centred (mean-filled) heights.
+/// the centred (mean-filled) heights, made in `STD_BLOCKS` blocks of columns (the same sums:
+/// each row's bins are added to in ascending kx, block after block).
 pub fn angular_amplitude(g: &Grid, step_deg: f64) -> Result<Vec<(f64, f64)>, MetrologyError> {
     let c = CentredRows::of(g)?;
-    Ok(angular_from_spectrum(
-        &spectrum2_of(&|r, buf: &mut [f64]| c.row(r, buf), g.rows(), g.cols()),
-        g,
-        step_deg,
-    ))
+    let (rows, cols) = (g.rows(), g.cols());
+    let bins = angular_bins(step_deg);
+    let mut per_row = vec![0.0; rows * bins];
+    spectrum2_blocks(
+        &|r, buf: &mut [f64]| c.row(r, buf),
+        rows,
+        cols,
+        STD_BLOCKS,
+        |k0, bw, block| {
+            per_row
+                .par_chunks_mut(bins)
+                .zip(block.par_chunks(bw))
+                .enumerate()
+                .for_each(|(ky, (acc, row))| {
+                    add_angular_row(g, ky, k0, row, step_deg, acc);
+                });
+        },
+    );
+    Ok(angular_total(&per_row, bins, step_deg))
 }
 
-pub(crate) fn angular_from_spectrum(
-    spec: &[rustfft::num_complex::Complex<f64>],
+/// The number of angular bins of `step_deg` over 180 degrees.
+fn angular_bins(step_deg: f64) -> usize {
+    (180.0 / step_deg).ceil() as usize
+}
+
+/// Adds |F| of the half-spectrum samples (ky, k0..k0 + row.len()) to their angular bins in
+/// `acc`, in ascending kx.
+fn add_angular_row(
     g: &Grid,
+    ky: usize,
+    k0: usize,
+    row: &[Complex<f64>],
     step_deg: f64,
-) -> Vec<(f64, f64)> {
-    let (rows, cols) = (g.rows(), g.cols());
-    let h = cols / 2 + 1;
-    let bins = (180.0 / step_deg).ceil() as usize;
-    let per_row: Vec<Vec<f64>> = (0..rows)
-        .into_par_iter()
-        .map(|ky| {
-            let mut acc = vec![0.0; bins];
-            let bin = |kx: usize| angular_bin(g, ky, kx, step_deg, bins);
-            // Along a row the angle is monotone in kx (fy fixed, fx growing): a run of equal
-            // bins is found by galloping and bisection, so atan2 is evaluated about twice per
-            // bin boundary crossed instead of once per sample. The sums are the same, taken in
-            // the same order (kx ascending within the row).
-            let mut k = 0;
-            while k < h {
-                let b = bin(k);
-                let (mut last, mut step) = (k, 1);
-                let mut beyond = loop {
-                    let t = last + step;
-                    if t >= h {
-                        break h;
-                    }
-                    if bin(t) != b {
-                        break t;
-                    }
-                    last = t;
-                    step *= 2;
-                };
-                while beyond - last > 1 {
-                    let mid = last + (beyond - last) / 2;
-                    if bin(mid) == b {
-                        last = mid;
-                    } else {
-                        beyond = mid;
-                    }
-                }
-                for kx in k..=last {
-                    acc[b] += angular_weight(cols, kx) * spec[ky * h + kx].norm();
-                }
-                k = last + 1;
+    acc: &mut [f64],
+) {
+    let cols = g.cols();
+    let bins = acc.len();
+    let end = k0 + row.len();
+    let bin = |kx: usize| angular_bin(g, ky, kx, step_deg, bins);
+    // Along a row the angle is monotone in kx (fy fixed, fx growing): a run of equal bins is
+    // found by galloping and bisection, so atan2 is evaluated about twice per bin boundary
+    // crossed instead of once per sample. The sums are the same, taken in the same order (kx
+    // ascending within the row).
+    let mut k = k0;
+    while k < end {
+        let b = bin(k);
+        let (mut last, mut step) = (k, 1);
+        let mut beyond = loop {
+            let t = last + step;
+            if t >= end {
+                break end;
             }
-            acc
-        })
-        .collect();
+            if bin(t) != b {
+                break t;
+            }
+            last = t;
+            step *= 2;
+        };
+        while beyond - last > 1 {
+            let mid = last + (beyond - last) / 2;
+            if bin(mid) == b {
+                last = mid;
+            } else {
+                beyond = mid;
+            }
+        }
+        for kx in k..=last {
+            acc[b] += angular_weight(cols, kx) * row[kx - k0].norm();
+        }
+        k = last + 1;
+    }
+}
+
+/// The rows' bins summed in row order, with their lower edges.
+fn angular_total(per_row: &[f64], bins: usize, step_deg: f64) -> Vec<(f64, f64)> {
     let mut total = vec![0.0; bins];
-    for row in &per_row {
+    for row in per_row.chunks(bins) {
         for (t, v) in total.iter_mut().zip(row) {
             *t += v;
         }
@@ -403,18 +485,144 @@ pub(crate) fn std_from_angular(a: &[(f64, f64)]) -> f64 {
 }
 
 /// Sal, Str and Std of `g`.
+///
+/// Memory: the whole lag plane is twice the map; on maps of `WINDOW_MIN_POINTS` or more the
+/// lags within an eighth of the plane's extents are made first (in column blocks, below the
+/// map's own size at any moment), and the whole plane only when the region of f_ACF > 0.2
+/// f_ACF(0) reaches that window's border (a long correlation, a strong lay). Either way the
+/// same values, bit for bit.
 pub fn spatial_params(g: &Grid) -> Result<SpatialParams, MetrologyError> {
-    let acf = Acf::of(g)?;
-    let (sal, str_) = acf.sal_str(ACF_THRESHOLD);
-    // The lag plane (twice the map) goes before the spectrum is made.
-    drop(acf);
+    let window = (g.rows() * g.cols() >= WINDOW_MIN_POINTS).then(|| {
+        (
+            (g.rows() - 1) / WINDOW_FRACTION,
+            (g.cols() - 1) / WINDOW_FRACTION,
+        )
+    });
+    let (sal, str_) = sal_str_in(g, window)?;
     let std = std_from_angular(&angular_amplitude(g, STD_STEP_DEG)?);
     Ok(SpatialParams { sal, str_, std })
+}
+
+/// Sal and Str from the lags of `window` when they hold the region, otherwise (or without a
+/// window) from the whole plane.
+fn sal_str_in(g: &Grid, window: Option<(usize, usize)>) -> Result<(f64, f64), MetrologyError> {
+    if let Some(w) = window {
+        // A tilted or strongly laid map's region runs out of the window along an axis: known
+        // from two 1-D passes, instead of the window's whole work being made and declined.
+        if !axes_reach(g, w, ACF_THRESHOLD)? {
+            if let Some(v) = Acf::of_lags(g, Some(w))?.sal_str_within(ACF_THRESHOLD) {
+                return Ok(v);
+            }
+        }
+    }
+    Ok(Acf::of(g)?.sal_str(ACF_THRESHOLD))
+}
+
+/// Whether f_ACF stays above `s` f_ACF(0) along the tx axis out to lag `wx` or along the ty
+/// axis out to `wy`: then the region reaches the window's border and the window would
+/// decline. Only a hint (its sums are made in another order than the ACF's own, so a lag
+/// within rounding of the threshold may go either way, and a region leaving the window off
+/// the axes is not seen): it picks the path, never the values. Maps with gaps: false.
+fn axes_reach(g: &Grid, (wy, wx): (usize, usize), s: f64) -> Result<bool, MetrologyError> {
+    let c = CentredRows::of(g)?;
+    let (rows, cols) = (g.rows(), g.cols());
+    if c.valid != rows * cols {
+        return Ok(false);
+    }
+    // f_ACF(lag) = S(lag) / pairs, S from the summed power of the 1-D transforms.
+    let reaches = |sums: Vec<f64>, n: usize, other: usize, w: usize| {
+        let f = |t: usize| sums[t] / ((n - t) * other) as f64;
+        let thr = s * f(0);
+        w > 0 && (1..=w.min(n - 1)).all(|t| f(t) > thr)
+    };
+    let along_x = axis_sums(rows.div_ceil(AXIS_BLOCK), cols, |b, lines| {
+        let r0 = b * AXIS_BLOCK;
+        let n = AXIS_BLOCK.min(rows - r0);
+        for (j, line) in lines.chunks_mut(cols).take(n).enumerate() {
+            c.row(r0 + j, line);
+        }
+        n
+    });
+    if reaches(along_x, cols, rows, wx) {
+        return Ok(true);
+    }
+    // Columns in blocks too: each row's few adjacent values read together.
+    let z = g.heights_um;
+    let along_y = axis_sums(cols.div_ceil(AXIS_BLOCK), rows, |b, lines| {
+        let k0 = b * AXIS_BLOCK;
+        let n = AXIS_BLOCK.min(cols - k0);
+        for r in 0..rows {
+            for (j, &v) in z[r * cols + k0..r * cols + k0 + n].iter().enumerate() {
+                lines[j * rows + r] = v - c.mean;
+            }
+        }
+        n
+    });
+    Ok(reaches(along_y, rows, cols, wy))
+}
+
+/// Lines per task of [`axis_sums`].
+const AXIS_BLOCK: usize = 8;
+
+/// The linear autocorrelation sums of sequences of `len` values, summed over them: lags
+/// 0..len. Task k's sequences (up to `AXIS_BLOCK`, `len` values each, one after the other)
+/// are written by `fill(k, lines)`, which returns how many; tasks 0..`tasks`.
+fn axis_sums(
+    tasks: usize,
+    len: usize,
+    fill: impl Fn(usize, &mut [f64]) -> usize + Sync,
+) -> Vec<f64> {
+    let q = fast_len(2 * len - 1);
+    let mut planner = RealFftPlanner::<f64>::new();
+    let (r2c, c2r) = (planner.plan_fft_forward(q), planner.plan_fft_inverse(q));
+    let h = r2c.complex_len();
+    let power = (0..tasks)
+        .into_par_iter()
+        .fold(
+            || {
+                let lines = vec![0.0; AXIS_BLOCK * len];
+                (
+                    vec![0.0; h],
+                    lines,
+                    vec![0.0; q],
+                    vec![Complex::default(); h],
+                    r2c.make_scratch_vec(),
+                )
+            },
+            |(mut acc, mut lines, mut buf, mut spec, mut scratch), k| {
+                let n = fill(k, &mut lines);
+                for line in lines.chunks(len).take(n) {
+                    buf[..len].copy_from_slice(line);
+                    buf[len..].fill(0.0);
+                    // Lengths are the planner's own: cannot fail.
+                    let _ = r2c.process_with_scratch(&mut buf, &mut spec, &mut scratch);
+                    for (a, v) in acc.iter_mut().zip(&spec) {
+                        *a += v.norm_sqr();
+                    }
+                }
+                (acc, lines, buf, spec, scratch)
+            },
+        )
+        .map(|(acc, ..)| acc)
+        .reduce(
+            || vec![0.0; h],
+            |mut a, b| {
+                a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
+                a
+            },
+        );
+    let mut spec: Vec<Complex<f64>> = power.iter().map(|&p| Complex::new(p, 0.0)).collect();
+    let mut out = vec![0.0; q];
+    let _ = c2r.process(&mut spec, &mut out);
+    out.truncate(len);
+    out.iter_mut().for_each(|v| *v /= q as f64);
+    out
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::metrology::spectrum::spectrum2_of;
 
     /// Heights of a wavy, tilted surface with noise (xorshift), rows x cols.
     fn surface(rows: usize, cols: usize, tilt: f64, seed: u64) -> Vec<f64> {
@@ -495,7 +703,7 @@ mod tests {
             let g = Grid::new(&z, rows, cols, px, py).unwrap();
             let acf = Acf::of(&g).unwrap();
             let thr = ACF_THRESHOLD * acf.at(0, 0);
-            let (edges, touches) = acf.region_edges(thr);
+            let (edges, touches) = acf.region_edges(thr).unwrap();
             assert!(!edges.is_empty());
             let full: Vec<f64> = edges
                 .iter()
@@ -518,6 +726,143 @@ mod tests {
         assert!(
             touched >= 1,
             "no case reached the border: the early exit went untested"
+        );
+    }
+
+    /// White noise smoothed by a 5 x 5 box (correlated over a few points only).
+    fn short_correlation(rows: usize, cols: usize, seed: u64) -> Vec<f64> {
+        let noise = surface(rows, cols, 0.0, seed)
+            .iter()
+            .enumerate()
+            .map(|(k, v)| (v * 1e4 + k as f64 * 0.618).sin())
+            .collect::<Vec<_>>();
+        (0..rows * cols)
+            .map(|k| {
+                let (r, c) = ((k / cols) as isize, (k % cols) as isize);
+                let mut sum = 0.0;
+                for dy in -2..=2 {
+                    for dx in -2..=2 {
+                        let (y, x) = (
+                            (r + dy).clamp(0, rows as isize - 1),
+                            (c + dx).clamp(0, cols as isize - 1),
+                        );
+                        sum += noise[y as usize * cols + x as usize];
+                    }
+                }
+                sum
+            })
+            .collect()
+    }
+
+    /// A surface with gaps: every `every`-th point NaN, and a hole.
+    fn with_gaps(mut z: Vec<f64>, rows: usize, cols: usize, every: usize) -> Vec<f64> {
+        for (k, v) in z.iter_mut().enumerate() {
+            let (r, c) = (k / cols, k % cols);
+            if k % every == 3 || (r > rows / 3 && r < rows / 2 && c > cols / 4 && c < cols / 3) {
+                *v = f64::NAN;
+            }
+        }
+        z
+    }
+
+    /// The windowed ACF holds the whole plane's values at its lags, bit for bit: full and
+    /// gappy maps, odd and even sizes, windows of one lag up to beyond the plane, 1 to 9
+    /// column blocks.
+    #[test]
+    fn window_lags_are_the_whole_planes() {
+        for &(rows, cols, gaps) in &[
+            (40, 52, false),
+            (37, 29, true),
+            (64, 64, false),
+            (33, 80, true),
+        ] {
+            let z = surface(rows, cols, 0.01, (rows + cols) as u64);
+            let z = if gaps { with_gaps(z, rows, cols, 7) } else { z };
+            let g = Grid::new(&z, rows, cols, 0.8, 1.1).unwrap();
+            let whole = Acf::of(&g).unwrap();
+            for (wy, wx) in [
+                (0, 0),
+                (3, 5),
+                (rows / 8, cols / 8),
+                (rows - 2, 1),
+                (rows + 4, cols + 4),
+            ] {
+                let win = Acf::of_lags(&g, Some((wy, wx))).unwrap();
+                let (wy, wx) = (wy.min(rows - 1) as isize, wx.min(cols - 1) as isize);
+                for ty in -wy..=wy {
+                    for tx in -wx..=wx {
+                        assert_eq!(
+                            win.at(ty, tx).to_bits(),
+                            whole.at(ty, tx).to_bits(),
+                            "{rows} x {cols} gaps {gaps}, window {wy} x {wx}, lag ({ty}, {tx})"
+                        );
+                    }
+                }
+            }
+            let c = CentredRows::of(&g).unwrap();
+            let row = |r: usize, buf: &mut [f64]| c.row(r, buf);
+            let plane = correlation_half_plane(&row, rows, cols);
+            for blocks in [1, 3, 9] {
+                let win = correlation_window(&row, rows, cols, (rows - 1, cols - 1), blocks);
+                let same = win
+                    .iter()
+                    .zip(&plane)
+                    .all(|(a, b)| a.to_bits() == b.to_bits());
+                assert!(
+                    same && win.len() == plane.len(),
+                    "{rows} x {cols}, {blocks} blocks"
+                );
+            }
+        }
+    }
+
+    /// Sal and Str from a window that holds the region are the whole plane's, bit for bit; a
+    /// window the region reaches the border of declines, and `sal_str_in` then gives the
+    /// whole plane's.
+    #[test]
+    fn window_sal_str_is_the_whole_planes_or_declines() {
+        let (mut held, mut declined) = (0, 0);
+        for &(rows, cols, tilt, gaps) in &[
+            (96, 96, -1.0, false),
+            (90, 120, -1.0, true),
+            (96, 96, 0.0, false),
+            (96, 96, 0.08, false),
+            (80, 64, 0.05, true),
+        ] {
+            // tilt -1: the short correlation.
+            let z = if tilt < 0.0 {
+                short_correlation(rows, cols, 5 + cols as u64)
+            } else {
+                surface(rows, cols, tilt, 11 + rows as u64)
+            };
+            let z = if gaps {
+                with_gaps(z, rows, cols, 11)
+            } else {
+                z
+            };
+            let g = Grid::new(&z, rows, cols, 1.0, 0.7).unwrap();
+            let (sal, str_) = Acf::of(&g).unwrap().sal_str(ACF_THRESHOLD);
+            let window = ((rows - 1) / WINDOW_FRACTION, (cols - 1) / WINDOW_FRACTION);
+            match Acf::of_lags(&g, Some(window))
+                .unwrap()
+                .sal_str_within(ACF_THRESHOLD)
+            {
+                Some((a, b)) => {
+                    held += 1;
+                    assert_eq!((a.to_bits(), b.to_bits()), (sal.to_bits(), str_.to_bits()));
+                }
+                None => declined += 1,
+            }
+            let (a, b) = sal_str_in(&g, Some(window)).unwrap();
+            assert_eq!(
+                (a.to_bits(), b.to_bits()),
+                (sal.to_bits(), str_.to_bits()),
+                "{rows} x {cols} tilt {tilt} gaps {gaps}"
+            );
+        }
+        assert!(
+            held >= 1 && declined >= 1,
+            "held {held}, declined {declined}"
         );
     }
 

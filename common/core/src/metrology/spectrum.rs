@@ -129,33 +129,16 @@ pub(crate) fn correlation_half_plane(
     rows: usize,
     cols: usize,
 ) -> Vec<f64> {
-    let p = fast_len(2 * rows - 1);
-    let q = fast_len(2 * cols - 1);
-    let mut rp = RealFftPlanner::<f64>::new();
-    let r2c = rp.plan_fft_forward(q);
-    let c2r: Arc<dyn ComplexToReal<f64>> = rp.plan_fft_inverse(q);
-    let h = r2c.complex_len();
-    let mut spec = rows_forward(row, rows, cols, &r2c);
-    let mut cp = FftPlanner::<f64>::new();
-    let fwd = cp.plan_fft_forward(p);
-    let inv = cp.plan_fft_inverse(p);
-    let sl = fwd
-        .get_inplace_scratch_len()
-        .max(inv.get_inplace_scratch_len());
-    // Along columns: forward, |X|^2, inverse; lags ty = 0..rows are the first rows entries.
+    let plans = CorrelationPlans::new(rows, cols);
+    let (h, q) = (plans.h, plans.q);
+    let mut spec = rows_forward(row, rows, cols, &plans.r2c);
     for_column_blocks(
         &mut spec,
         rows,
         h,
-        p,
-        |_, buf, scratch| {
-            fwd.process_with_scratch(buf, scratch);
-            for v in buf.iter_mut() {
-                *v = C::new(v.norm_sqr(), 0.0);
-            }
-            inv.process_with_scratch(buf, scratch);
-        },
-        sl,
+        plans.p,
+        plans.column(),
+        plans.scratch_len,
     );
     let w = 2 * cols - 1;
     // Row ty of sums (w reals) ends before row ty of the spectrum (2h reals) does: w < 2h
@@ -163,7 +146,6 @@ pub(crate) fn correlation_half_plane(
     // sums are written, in order, so a write never lands on an unread spectrum value.
     debug_assert!(w < 2 * h);
     let mut out = complex_as_reals(spec);
-    let scale = 1.0 / (p as f64 * q as f64);
     const ROWS_PER_BLOCK: usize = 64;
     let mut block = vec![C::default(); ROWS_PER_BLOCK.min(rows) * h];
     for ty0 in (0..rows).step_by(ROWS_PER_BLOCK) {
@@ -172,11 +154,121 @@ pub(crate) fn correlation_half_plane(
             let at = 2 * (ty0 * h + k);
             *v = C::new(out[at], out[at + 1]);
         }
-        out[ty0 * w..(ty0 + nb) * w]
-            .par_chunks_mut(w)
-            .zip(block[..nb * h].par_chunks(h))
+        plans.inverse_rows(
+            &block[..nb * h],
+            &mut out[ty0 * w..(ty0 + nb) * w],
+            cols - 1,
+        );
+    }
+    drop(block);
+    out.truncate(rows * w);
+    debug_assert_eq!(q, plans.c2r.len());
+    out
+}
+
+/// [`correlation_half_plane`]'s sums for the lags ty = 0..=`wy`, tx = -`wx`..=`wx` only:
+/// (wy + 1) x (2 wx + 1), row-major, tx = 0 at column wx; the same values bit for bit (the
+/// same transforms of the same rows and columns), without ever holding the whole half
+/// spectrum: its columns are made in `blocks` blocks, every row transformed again for each
+/// (see [`for_spectrum_column_blocks`]), and only the first wy + 1 rows of each block's
+/// column transforms are kept. The peak is one block (2 x the map / `blocks`) plus the kept
+/// rows ((wy + 1) / rows x 2 x the map).
+pub(crate) fn correlation_window(
+    row: &(impl Fn(usize, &mut [f64]) + Sync),
+    rows: usize,
+    cols: usize,
+    (wy, wx): (usize, usize),
+    blocks: usize,
+) -> Vec<f64> {
+    let (wy, wx) = (wy.min(rows - 1), wx.min(cols - 1));
+    let plans = CorrelationPlans::new(rows, cols);
+    let h = plans.h;
+    let mut kept = vec![C::default(); (wy + 1) * h];
+    for_spectrum_column_blocks(
+        row,
+        rows,
+        cols,
+        &plans.r2c,
+        blocks,
+        (plans.p, plans.column(), plans.scratch_len),
+        |k0, bw, block| {
+            for ty in 0..=wy {
+                kept[ty * h + k0..ty * h + k0 + bw].copy_from_slice(&block[ty * bw..(ty + 1) * bw]);
+            }
+        },
+    );
+    let w = 2 * wx + 1;
+    let mut out = vec![0.0; (wy + 1) * w];
+    plans.inverse_rows(&kept, &mut out, wx);
+    out
+}
+
+/// The transforms of the linear correlation of a rows x cols field: real FFTs of q =
+/// fast_len(2 cols - 1) along rows (h = q/2 + 1 columns of the half spectrum), complex FFTs
+/// of p = fast_len(2 rows - 1) along columns.
+struct CorrelationPlans {
+    p: usize,
+    q: usize,
+    h: usize,
+    r2c: Arc<dyn RealToComplex<f64>>,
+    c2r: Arc<dyn ComplexToReal<f64>>,
+    fwd: Arc<dyn Fft<f64>>,
+    inv: Arc<dyn Fft<f64>>,
+    scratch_len: usize,
+}
+
+impl CorrelationPlans {
+    fn new(rows: usize, cols: usize) -> Self {
+        let p = fast_len(2 * rows - 1);
+        let q = fast_len(2 * cols - 1);
+        let mut rp = RealFftPlanner::<f64>::new();
+        let r2c = rp.plan_fft_forward(q);
+        let c2r = rp.plan_fft_inverse(q);
+        let h = r2c.complex_len();
+        let mut cp = FftPlanner::<f64>::new();
+        let fwd = cp.plan_fft_forward(p);
+        let inv = cp.plan_fft_inverse(p);
+        let scratch_len = fwd
+            .get_inplace_scratch_len()
+            .max(inv.get_inplace_scratch_len());
+        Self {
+            p,
+            q,
+            h,
+            r2c,
+            c2r,
+            fwd,
+            inv,
+            scratch_len,
+        }
+    }
+
+    /// Along a column: forward, |X|^2, inverse; lags ty = 0..rows are the first rows entries.
+    fn column(&self) -> impl Fn(usize, &mut [C], &mut [C]) + Sync + '_ {
+        |_, buf, scratch| {
+            self.fwd.process_with_scratch(buf, scratch);
+            for v in buf.iter_mut() {
+                *v = C::new(v.norm_sqr(), 0.0);
+            }
+            self.inv.process_with_scratch(buf, scratch);
+        }
+    }
+
+    /// The sums of each lag row ty from its half spectrum along rows (`src`, rows of h), into
+    /// `out`'s rows of 2 `wx` + 1 (tx = -wx..=wx), rows in parallel.
+    fn inverse_rows(&self, src: &[C], out: &mut [f64], wx: usize) {
+        let (h, q) = (self.h, self.q);
+        let scale = 1.0 / (self.p as f64 * q as f64);
+        out.par_chunks_mut(2 * wx + 1)
+            .zip(src.par_chunks(h))
             .for_each_init(
-                || (vec![C::default(); h], vec![0.0; q], c2r.make_scratch_vec()),
+                || {
+                    (
+                        vec![C::default(); h],
+                        vec![0.0; q],
+                        self.c2r.make_scratch_vec(),
+                    )
+                },
                 |(sbuf, rbuf, scratch), (o, src)| {
                     sbuf.copy_from_slice(src);
                     // The spectrum of a real sequence: DC (and Nyquist) are real; drop rounding
@@ -185,9 +277,9 @@ pub(crate) fn correlation_half_plane(
                     if q.is_multiple_of(2) {
                         sbuf[h - 1].im = 0.0;
                     }
-                    let _ = c2r.process_with_scratch(sbuf, rbuf, scratch);
+                    let _ = self.c2r.process_with_scratch(sbuf, rbuf, scratch);
                     for (i, v) in o.iter_mut().enumerate() {
-                        let tx = i as isize - (cols as isize - 1);
+                        let tx = i as isize - wx as isize;
                         let j = if tx >= 0 {
                             tx as usize
                         } else {
@@ -198,8 +290,73 @@ pub(crate) fn correlation_half_plane(
                 },
             );
     }
-    out.truncate(rows * w);
-    out
+}
+
+/// The 2-D transform of the field whose rows `row` writes (real FFTs of `r2c.len()` along
+/// rows, then `column` on each column gathered into a zeroed buffer of `col_len`, its first
+/// `rows` values kept), handed over in blocks of half-spectrum columns: `take(k0, bw, block)`
+/// gets columns k0..k0 + bw as rows x bw, row-major, blocks in ascending k0. The values are
+/// [`rows_forward`] + [`for_column_blocks`]'s bit for bit (each row and each column goes
+/// through the same transform); the whole rows x h spectrum is never held, at the cost of
+/// every row's FFT once per block.
+fn for_spectrum_column_blocks(
+    row: &(impl Fn(usize, &mut [f64]) + Sync),
+    rows: usize,
+    cols: usize,
+    r2c: &Arc<dyn RealToComplex<f64>>,
+    blocks: usize,
+    (col_len, column, scratch_len): (usize, impl Fn(usize, &mut [C], &mut [C]) + Sync, usize),
+    mut take: impl FnMut(usize, usize, &[C]),
+) {
+    let (q, h) = (r2c.len(), r2c.complex_len());
+    // Whole column tasks per block (see BLOCK).
+    let bw_max = h.div_ceil(blocks.max(1)).div_ceil(BLOCK) * BLOCK;
+    let mut block = vec![C::default(); rows * bw_max.min(h)];
+    let mut k0 = 0;
+    while k0 < h {
+        let bw = bw_max.min(h - k0);
+        let part = &mut block[..rows * bw];
+        part.par_chunks_mut(bw).enumerate().for_each_init(
+            || (vec![0.0; q], vec![C::default(); h], r2c.make_scratch_vec()),
+            |(buf, spec_row, scratch), (r, out)| {
+                row(r, &mut buf[..cols]);
+                buf[cols..].fill(0.0);
+                // Lengths are the planner's own: cannot fail.
+                let _ = r2c.process_with_scratch(buf, spec_row, scratch);
+                out.copy_from_slice(&spec_row[k0..k0 + bw]);
+            },
+        );
+        for_column_blocks(part, rows, bw, col_len, &column, scratch_len);
+        take(k0, bw, part);
+        k0 += bw;
+    }
+}
+
+/// [`spectrum2_of`] in blocks of columns (see [`for_spectrum_column_blocks`]): the same
+/// values, `take(k0, bw, block)` per block, peak one block (the map / `blocks`).
+pub(crate) fn spectrum2_blocks(
+    row: &(impl Fn(usize, &mut [f64]) + Sync),
+    rows: usize,
+    cols: usize,
+    blocks: usize,
+    take: impl FnMut(usize, usize, &[C]),
+) {
+    let r2c = RealFftPlanner::<f64>::new().plan_fft_forward(cols);
+    let fwd: Arc<dyn Fft<f64>> = FftPlanner::new().plan_fft_forward(rows);
+    let sl = fwd.get_inplace_scratch_len();
+    for_spectrum_column_blocks(
+        row,
+        rows,
+        cols,
+        &r2c,
+        blocks,
+        (
+            rows,
+            |_, buf: &mut [C], scratch: &mut [C]| fwd.process_with_scratch(buf, scratch),
+            sl,
+        ),
+        take,
+    );
 }
 
 /// The same allocation seen as its real and imaginary parts, interleaved.
