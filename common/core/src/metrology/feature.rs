@@ -154,6 +154,32 @@ fn h<const NEG: bool>(z: &[f64], i: usize) -> f64 {
     }
 }
 
+/// No pixel (a pit not yet found, a basin without neighbours' saddle).
+const NO_PIXEL: u32 = u32::MAX;
+
+/// The height of pixel `i` as [`h`] reads it; +infinity for [`NO_PIXEL`].
+#[inline(always)]
+fn height_at<const NEG: bool>(z: &[f64], i: u32) -> f64 {
+    if i == NO_PIXEL {
+        f64::INFINITY
+    } else {
+        h::<NEG>(z, i as usize)
+    }
+}
+
+/// A neighbour list entry: the neighbouring basin and the pixel whose height is the saddle
+/// between the two (see [`saddles`]).
+type Neighbour = (u32, u32);
+
+/// A pair of adjacent basins (a << 32 | b, a < b) and the pixel of its saddle; packed, 12
+/// bytes (there are a few per basin).
+#[derive(Clone, Copy)]
+#[repr(C, packed(4))]
+struct SaddlePair {
+    key: u64,
+    pixel: u32,
+}
+
 /// The one u32 per pixel of the segmentation, in turn its drain, its sink's union-find
 /// parent and its label (labels and indices < 2^30, see [`MAX_POINTS`]).
 const GAP: u32 = u32::MAX;
@@ -296,17 +322,20 @@ fn label_basins(mut v: Vec<u32>, rows: usize, cols: usize) -> (Vec<u32>, usize) 
     (v, count as usize)
 }
 
-/// Per basin (index = label): its pit.
+/// Per basin (index = label): its pit. Indices, not heights, are kept (the height is read
+/// from the map when wanted: the same value, a third of the memory per basin).
 struct Basins {
-    /// The pit: value and first index in scan order.
-    crit: Vec<(f64, usize)>,
-    /// Pixels.
-    area: Vec<usize>,
+    /// The pit: its first index in scan order.
+    crit: Vec<u32>,
+    /// Pixels (< 2^30, see [`MAX_POINTS`]).
+    area: Vec<u32>,
     /// On the map's border or beside a gap: not a whole motif.
     incomplete: Vec<bool>,
 }
 
-/// Step 4: per basin, the pit, the pixel count and whether it is incomplete.
+/// Step 4: per basin, the pit, the pixel count and whether it is incomplete. Bands of rows in
+/// parallel (one per thread), merged in band order: the pit is still the first lowest pixel
+/// in scan order, the counts are integers.
 fn basin_stats<const NEG: bool>(
     z: &[f64],
     label: &[u32],
@@ -314,12 +343,46 @@ fn basin_stats<const NEG: bool>(
     cols: usize,
     m: usize,
 ) -> Basins {
-    let at = |r: isize, c: isize| cell(r, c, rows, cols);
     let any_gap = z.par_iter().any(|v| v.is_nan());
-    let mut crit = vec![(f64::INFINITY, usize::MAX); m + 1];
-    let mut area = vec![0usize; m + 1];
+    let bands = rayon::current_num_threads().clamp(1, rows.max(1));
+    let band_rows = rows.div_ceil(bands);
+    let parts: Vec<Basins> = (0..bands)
+        .into_par_iter()
+        .map(|b| {
+            let r1 = ((b + 1) * band_rows).min(rows);
+            basin_stats_of_rows::<NEG>(z, label, (rows, cols), b * band_rows..r1, m, any_gap)
+        })
+        .collect();
+    let mut parts = parts.into_iter();
+    let Some(mut all) = parts.next() else {
+        return basin_stats_of_rows::<NEG>(z, label, (rows, cols), 0..0, m, any_gap);
+    };
+    for part in parts {
+        for l in 1..=m {
+            if height_at::<NEG>(z, part.crit[l]) < height_at::<NEG>(z, all.crit[l]) {
+                all.crit[l] = part.crit[l];
+            }
+            all.area[l] += part.area[l];
+            all.incomplete[l] |= part.incomplete[l];
+        }
+    }
+    all
+}
+
+/// [`basin_stats`] of the rows `band` alone.
+fn basin_stats_of_rows<const NEG: bool>(
+    z: &[f64],
+    label: &[u32],
+    (rows, cols): (usize, usize),
+    band: std::ops::Range<usize>,
+    m: usize,
+    any_gap: bool,
+) -> Basins {
+    let at = |r: isize, c: isize| cell(r, c, rows, cols);
+    let mut crit = vec![NO_PIXEL; m + 1];
+    let mut area = vec![0u32; m + 1];
     let mut incomplete = vec![false; m + 1];
-    for r in 0..rows {
+    for r in band {
         for c in 0..cols {
             let i = r * cols + c;
             let l = label[i] as usize;
@@ -327,9 +390,8 @@ fn basin_stats<const NEG: bool>(
                 continue;
             }
             area[l] += 1;
-            let zi = h::<NEG>(z, i);
-            if zi < crit[l].0 {
-                crit[l] = (zi, i);
+            if h::<NEG>(z, i) < height_at::<NEG>(z, crit[l]) {
+                crit[l] = i as u32;
             }
             let on_border = r == 0 || c == 0 || r + 1 == rows || c + 1 == cols;
             let beside_gap = any_gap
@@ -349,22 +411,23 @@ fn basin_stats<const NEG: bool>(
 }
 
 /// Step 5, saddles between adjacent basins (8-neighbours): min over the border of the higher
-/// height, as each basin's list of (neighbour, saddle), one entry per neighbour.
-/// Blocks of rows collect their pairs in a map (a border repeats one pair many times), so
-/// only distinct pairs per block are sorted.
+/// height, as each basin's list of (neighbour, saddle pixel), one entry per neighbour, in
+/// ascending neighbour. Blocks of rows collect their pairs in a map (a border repeats one
+/// pair many times), so only distinct pairs per block are sorted.
 fn saddles<const NEG: bool>(
     z: &[f64],
     label: &[u32],
     rows: usize,
     cols: usize,
     m: usize,
-) -> Vec<Vec<(u32, f64)>> {
+) -> Vec<Vec<Neighbour>> {
     let at = |r: isize, c: isize| cell(r, c, rows, cols);
+    let height = |i: u32| h::<NEG>(z, i as usize);
     const ROWS_PER_BLOCK: usize = 32;
-    let mut pairs: Vec<(u64, f64)> = (0..rows.div_ceil(ROWS_PER_BLOCK))
+    let mut pairs: Vec<SaddlePair> = (0..rows.div_ceil(ROWS_PER_BLOCK))
         .into_par_iter()
         .flat_map_iter(|b| {
-            let mut map: FxHashMap<u64, f64> = FxHashMap::default();
+            let mut map: FxHashMap<u64, u32> = FxHashMap::default();
             for r in b * ROWS_PER_BLOCK..((b + 1) * ROWS_PER_BLOCK).min(rows) {
                 for c in 0..cols {
                     let i = r * cols + c;
@@ -377,10 +440,15 @@ fn saddles<const NEG: bool>(
                             let lb = label[j];
                             if lb != 0 && lb != la {
                                 let (a, b) = if la < lb { (la, lb) } else { (lb, la) };
-                                let s = h::<NEG>(z, i).max(h::<NEG>(z, j));
+                                // The higher of the two (either on a tie: the same height).
+                                let s = if height(j as u32) > height(i as u32) {
+                                    j
+                                } else {
+                                    i
+                                } as u32;
                                 map.entry(((a as u64) << 32) | b as u64)
                                     .and_modify(|v| {
-                                        if s < *v {
+                                        if height(s) < height(*v) {
                                             *v = s
                                         }
                                     })
@@ -391,26 +459,34 @@ fn saddles<const NEG: bool>(
                 }
             }
             map.into_iter()
+                .map(|(key, pixel)| SaddlePair { key, pixel })
         })
         .collect();
-    pairs.par_sort_unstable_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)));
-    pairs.dedup_by_key(|p| p.0);
+    // A pair met in two blocks keeps its lower saddle.
+    pairs.par_sort_unstable_by_key(|p| p.key);
+    pairs.dedup_by(|later, kept| {
+        let same = { later.key } == { kept.key };
+        if same && height(later.pixel) < height(kept.pixel) {
+            kept.pixel = later.pixel;
+        }
+        same
+    });
     let split = |k: u64| ((k >> 32) as usize, (k & 0xffff_ffff) as usize);
     let mut degree = vec![0u32; m + 1];
-    for &(k, _) in &pairs {
-        let (a, b) = split(k);
+    for p in &pairs {
+        let (a, b) = split(p.key);
         degree[a] += 1;
         degree[b] += 1;
     }
-    let mut adj: Vec<Vec<(u32, f64)>> = degree
+    let mut adj: Vec<Vec<Neighbour>> = degree
         .iter()
         .map(|&d| Vec::with_capacity(d as usize))
         .collect();
     drop(degree);
-    for &(k, s) in &pairs {
-        let (a, b) = split(k);
-        adj[a].push((b as u32, s));
-        adj[b].push((a as u32, s));
+    for p in &pairs {
+        let (a, b) = split(p.key);
+        adj[a].push((b as u32, p.pixel));
+        adj[b].push((a as u32, p.pixel));
     }
     drop(pairs);
     adj
@@ -445,17 +521,21 @@ fn merged_root(merged_into: &mut [u32], mut x: u32) -> u32 {
 /// when needed: a list is compacted (roots, one entry per neighbour at its lowest saddle)
 /// when it is rescanned or has doubled. The lowest saddle and its neighbour per basin are
 /// kept as before (ties: lowest label).
-fn wolf_prune(
-    mut adj: Vec<Vec<(u32, f64)>>,
-    crit: &mut [(f64, usize)],
+fn wolf_prune<const NEG: bool>(
+    z: &[f64],
+    mut adj: Vec<Vec<Neighbour>>,
+    crit: &mut [u32],
     threshold: f64,
     m: usize,
 ) -> Pruned {
+    let height = |i: u32| h::<NEG>(z, i as usize);
+    let pit = |i: u32| height_at::<NEG>(z, i);
     let mut min_saddle = vec![f64::INFINITY; m + 1];
     let mut min_nb = vec![0u32; m + 1];
-    let lowest = |list: &[(u32, f64)]| {
+    let lowest = |list: &[Neighbour]| {
         let mut best = (f64::INFINITY, 0u32);
-        for &(nb, s) in list {
+        for &(nb, pixel) in list {
+            let s = height(pixel);
             // Lowest saddle, then lowest label: independent of the list's order.
             if s < best.0 || (s == best.0 && nb < best.1) {
                 best = (s, nb);
@@ -472,12 +552,12 @@ fn wolf_prune(
     let mut clean_len: Vec<u32> = adj.iter().map(|l| l.len() as u32).collect();
     let mut merged_into: Vec<u32> = (0..=m as u32).collect();
     // Roots, without `x` itself, one entry per root at its lowest saddle.
-    let compact = |list: &mut Vec<(u32, f64)>, x: u32, merged_into: &mut [u32]| {
+    let compact = |list: &mut Vec<Neighbour>, x: u32, merged_into: &mut [u32]| {
         for e in list.iter_mut() {
             e.0 = merged_root(merged_into, e.0);
         }
         list.retain(|e| e.0 != x);
-        list.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)));
+        list.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(height(a.1).total_cmp(&height(b.1))));
         list.dedup_by_key(|e| e.0);
     };
     let mut version = vec![0u32; m + 1];
@@ -492,12 +572,12 @@ fn wolf_prune(
     };
     let mut queue = DepthQueue::of(
         (1..=m)
-            .map(|r| (min_saddle[r] - crit[r].0, r))
+            .map(|r| (min_saddle[r] - pit(crit[r]), r))
             .filter(|&(h, _)| queued(h))
             .map(|(h, r)| DepthQueue::entry(h, r as u32, 0))
             .collect(),
     );
-    let mut moved_list: Vec<(u32, f64)> = Vec::new();
+    let mut moved_list: Vec<Neighbour> = Vec::new();
     while let Some((r, ver)) = queue.pop() {
         let ru = r as usize;
         if !alive[ru] || ver != version[ru] {
@@ -512,7 +592,8 @@ fn wolf_prune(
         compact(&mut moved_list, r, &mut merged_into);
         moved_list.retain(|e| e.0 != nb);
         let mut moved = (f64::INFINITY, 0u32);
-        for &(other, s) in &moved_list {
+        for &(other, pixel) in &moved_list {
+            let s = height(pixel);
             if min_nb[other as usize] == r {
                 min_nb[other as usize] = nb;
             }
@@ -522,7 +603,7 @@ fn wolf_prune(
             }
         }
         adj[nbu].extend_from_slice(&moved_list);
-        if crit[ru].0 < crit[nbu].0 {
+        if pit(crit[ru]) < pit(crit[nbu]) {
             crit[nbu] = crit[ru];
         }
         alive[ru] = false;
@@ -544,7 +625,7 @@ fn wolf_prune(
             }
         }
         version[nbu] += 1;
-        let h = min_saddle[nbu] - crit[nbu].0;
+        let h = min_saddle[nbu] - pit(crit[nbu]);
         if queued(h) {
             queue.push(DepthQueue::entry(h, nb, version[nbu]));
         }
@@ -590,7 +671,7 @@ fn segment<const NEG: bool>(
         min_saddle,
         alive,
         merged_into,
-    } = wolf_prune(adj, &mut crit, pruning_pct / 100.0 * sz, m);
+    } = wolf_prune::<NEG>(z, adj, &mut crit, pruning_pct / 100.0 * sz, m);
     // 7. Roots, their areas and incompleteness.
     let mut root = vec![0u32; m + 1];
     for (r, out) in root.iter_mut().enumerate().skip(1) {
@@ -600,7 +681,7 @@ fn segment<const NEG: bool>(
         }
         *out = x;
     }
-    let mut root_area = vec![0usize; m + 1];
+    let mut root_area = vec![0u32; m + 1];
     let mut root_incomplete = vec![false; m + 1];
     for r in 1..=m {
         let x = root[r] as usize;
@@ -625,8 +706,8 @@ fn segment<const NEG: bool>(
     (1..=m)
         .filter(|&x| significant(x))
         .map(|x| Motif {
-            critical_index: crit[x].1,
-            area_px: root_area[x],
+            critical_index: crit[x] as usize,
+            area_px: root_area[x] as usize,
             volume_um_px: volume[x],
         })
         .collect()
@@ -656,14 +737,24 @@ fn top_five_mean(mut v: Vec<f64>) -> f64 {
 pub fn feature_params(g: &Grid, pruning_pct: f64) -> Result<FeatureParams, MetrologyError> {
     let z = g.heights_um;
     let (rows, cols) = (g.rows(), g.cols());
-    let (mut lo, mut hi, mut valid) = (f64::INFINITY, f64::NEG_INFINITY, 0usize);
-    for &v in z {
-        if !v.is_nan() {
-            lo = lo.min(v);
-            hi = hi.max(v);
-            valid += 1;
-        }
-    }
+    // (min, max and a count: the same in any order.)
+    let (lo, hi, valid) = z
+        .par_chunks(1 << 16)
+        .map(|part| {
+            let (mut lo, mut hi, mut valid) = (f64::INFINITY, f64::NEG_INFINITY, 0usize);
+            for &v in part {
+                if !v.is_nan() {
+                    lo = lo.min(v);
+                    hi = hi.max(v);
+                    valid += 1;
+                }
+            }
+            (lo, hi, valid)
+        })
+        .reduce(
+            || (f64::INFINITY, f64::NEG_INFINITY, 0),
+            |a, b| (a.0.min(b.0), a.1.max(b.1), a.2 + b.2),
+        );
     if valid == 0 {
         return Err(MetrologyError::NoValidPoint);
     }
@@ -675,10 +766,10 @@ pub fn feature_params(g: &Grid, pruning_pct: f64) -> Result<FeatureParams, Metro
             max: MAX_POINTS,
         });
     }
-    let (hills, dales) = rayon::join(
-        || segment::<true>(z, rows, cols, pruning_pct, sz),
-        || segment::<false>(z, rows, cols, pruning_pct, sz),
-    );
+    // One after the other, not side by side: each holds a label per pixel (half the map) and
+    // its basins' neighbour lists; together they were 2.5 x the map (parallel inside each).
+    let hills = segment::<true>(z, rows, cols, pruning_pct, sz);
+    let dales = segment::<false>(z, rows, cols, pruning_pct, sz);
     let (px, py) = (g.pitch_x_um(), g.pitch_y_um());
     let curvature = |i: usize| -> Option<f64> {
         let (r, c) = (i / cols, i % cols);
