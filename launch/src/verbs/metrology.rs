@@ -550,7 +550,20 @@ fn render(records: &[ParamsRecord], a: &ParamsArgs) -> Result<String> {
     Ok(out)
 }
 
+/// Buffers of 1 MiB and more straight from the kernel and back to it when freed. glibc's
+/// default threshold slides up to the largest buffer freed (32 MiB), after which the feature
+/// segmentations' map-sized working sets come from the heap and stay there: `params --all`
+/// of a 4096^2 map peaked 11 % higher (301 against 271 MB; the same values either way).
+fn large_buffers_from_the_kernel() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets an allocator parameter; called before the work starts.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 1 << 20);
+    }
+}
+
 pub fn params(a: ParamsArgs) -> Result<()> {
+    large_buffers_from_the_kernel();
     if !(a.pruning_pct.is_finite() && a.pruning_pct >= 0.0) {
         bail!(
             "--pruning-pct {}: expected a finite number >= 0",

@@ -117,15 +117,12 @@ pub fn all_params(g: &Grid) -> Result<AllParams, MetrologyError> {
 
 /// Every parameter of `g`, Wolf pruning at `pruning_pct` % of Sz.
 pub fn all_params_pruned(g: &Grid, pruning_pct: f64) -> Result<AllParams, MetrologyError> {
-    // Two phases, so that the two largest working sets are never held at once: the FFT
-    // family alone (its half spectrum is twice the map; parallel inside), then the two
-    // segmentations (a label per pixel each, side by side) beside the order statistics and
-    // the height parameters (both small).
+    // Three phases, so that no two working sets are held at once (each is parallel inside):
+    // the FFT family (see `spatial_params` for its memory), the order statistics beside the
+    // height parameters, then the two segmentations (one after the other).
     let spatial = spatial_params(g);
-    let ((basic, curve), feature) = rayon::join(
-        || rayon::join(|| params(g), || AbbottCurve::of(g)),
-        || feature_params(g, pruning_pct),
-    );
+    let (basic, curve) = rayon::join(|| params(g), || AbbottCurve::of(g));
+    let feature = feature_params(g, pruning_pct);
     let curve = curve?;
     Ok(AllParams {
         basic: basic?,
