@@ -120,6 +120,17 @@ const STD_BLOCKS: usize = 4;
 /// Below this many points the whole lag plane is made at once (its memory is small).
 const WINDOW_MIN_POINTS: usize = 1 << 18;
 
+/// f_ACF at each lag of `half` (sums over the valid pairs) from its number of pairs, NaN
+/// where there is none. `count` turns a held pair count into a whole number.
+fn divide_by_pairs<K: Copy + Sync>(half: &mut [f64], pairs: &[K], count: impl Fn(K) -> f64 + Sync) {
+    half.par_iter_mut()
+        .zip(pairs.par_iter())
+        .for_each(|(v, &k)| {
+            let k = count(k);
+            *v = if k >= 1.0 { *v / k } else { f64::NAN };
+        });
+}
+
 impl Acf {
     /// The ACF of `g` (see the module documentation), the whole lag plane.
     pub fn of(g: &Grid) -> Result<Self, MetrologyError> {
@@ -139,16 +150,20 @@ impl Acf {
             None => correlation_half_plane(&row, rows, cols),
             Some(_) => correlation_window(&row, rows, cols, (wy, wx), WINDOW_BLOCKS),
         };
-        let mut half = sums(&|r, buf: &mut [f64]| c.row(r, buf));
         let w = 2 * wx + 1;
-        if n == rows * cols {
+        let half = if n == rows * cols {
+            let mut half = sums(&|r, buf: &mut [f64]| c.row(r, buf));
             half.par_chunks_mut(w).enumerate().for_each(|(ty, row)| {
                 for (i, v) in row.iter_mut().enumerate() {
                     let tx = (i as isize - wx as isize).unsigned_abs();
                     *v /= ((rows - ty) * (cols - tx)) as f64;
                 }
             });
+            half
         } else {
+            // The pairs per lag first, kept as whole counts (u32 when a count, at most
+            // rows x cols, fits: half the f64 plane's memory), so that two f64 planes are
+            // not held at once.
             let z = g.heights_um;
             let mask = |r: usize, buf: &mut [f64]| {
                 for (o, &z) in buf.iter_mut().zip(&z[r * cols..(r + 1) * cols]) {
@@ -156,13 +171,21 @@ impl Acf {
                 }
             };
             let pairs = sums(&mask);
-            half.par_iter_mut()
-                .zip(pairs.par_iter())
-                .for_each(|(v, &k)| {
-                    let k = k.round();
-                    *v = if k >= 1.0 { *v / k } else { f64::NAN };
-                });
-        }
+            let row = |r: usize, buf: &mut [f64]| c.row(r, buf);
+            if rows * cols <= u32::MAX as usize {
+                let counts: Vec<u32> = pairs
+                    .into_par_iter()
+                    .map(|k| k.round().max(0.0) as u32)
+                    .collect();
+                let mut half = sums(&row);
+                divide_by_pairs(&mut half, &counts, f64::from);
+                half
+            } else {
+                let mut half = sums(&row);
+                divide_by_pairs(&mut half, &pairs, |k| k.round());
+                half
+            }
+        };
         Ok(Self {
             rows,
             cols,
