@@ -737,28 +737,12 @@ fn top_five_mean(mut v: Vec<f64>) -> f64 {
 pub fn feature_params(g: &Grid, pruning_pct: f64) -> Result<FeatureParams, MetrologyError> {
     let z = g.heights_um;
     let (rows, cols) = (g.rows(), g.cols());
-    // (min, max and a count: the same in any order.)
-    let (lo, hi, valid) = z
-        .par_chunks(1 << 16)
-        .map(|part| {
-            let (mut lo, mut hi, mut valid) = (f64::INFINITY, f64::NEG_INFINITY, 0usize);
-            for &v in part {
-                if !v.is_nan() {
-                    lo = lo.min(v);
-                    hi = hi.max(v);
-                    valid += 1;
-                }
-            }
-            (lo, hi, valid)
-        })
-        .reduce(
-            || (f64::INFINITY, f64::NEG_INFINITY, 0),
-            |a, b| (a.0.min(b.0), a.1.max(b.1), a.2 + b.2),
-        );
-    if valid == 0 {
-        return Err(MetrologyError::NoValidPoint);
-    }
-    let mean_z = super::height_params_mean(g)?;
+    let super::HeightSummary {
+        valid,
+        lo,
+        hi,
+        mean: mean_z,
+    } = super::height_summary(g)?;
     let sz = hi - lo;
     if z.len() > MAX_POINTS {
         return Err(MetrologyError::TooManyPoints {

@@ -580,14 +580,35 @@ pub fn height_params(g: &Grid) -> Result<[f64; 7], MetrologyError> {
     heights_from(g, &pass_independent(g, false))
 }
 
-/// The mean of the valid heights, exactly as the height parameters take it.
-pub(crate) fn height_params_mean(g: &Grid) -> Result<f64, MetrologyError> {
+/// The valid heights' count, lowest and highest (um) and mean (um, exactly as the height
+/// parameters take it).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct HeightSummary {
+    pub valid: usize,
+    pub lo: f64,
+    pub hi: f64,
+    pub mean: f64,
+}
+
+/// [`HeightSummary`] of `g`: the height parameters' two passes, without their moments.
+pub(crate) fn height_summary(g: &Grid) -> Result<HeightSummary, MetrologyError> {
     let p1 = pass_independent(g, false);
     let (n, sum) = (p1.sums[0], p1.sums[1]);
     if n == 0.0 {
         return Err(MetrologyError::NoValidPoint);
     }
-    Ok(pass_central(g, n, sum / n).0)
+    Ok(HeightSummary {
+        // A count of at most the map's points, exact in f64.
+        valid: n as usize,
+        lo: p1.lo,
+        hi: p1.hi,
+        mean: pass_central(g, n, sum / n).0,
+    })
+}
+
+/// The mean of the valid heights, exactly as the height parameters take it.
+pub(crate) fn height_params_mean(g: &Grid) -> Result<f64, MetrologyError> {
+    Ok(height_summary(g)?.mean)
 }
 
 /// Sdq and Sdr (%). NaN when no difference / no whole cell is valid.

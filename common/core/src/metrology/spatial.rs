@@ -30,10 +30,10 @@ use rayon::prelude::*;
 use rustfft::num_complex::Complex;
 use serde::Serialize;
 
-use super::spectrum::{correlation_half_plane, correlation_window, spectrum2_blocks};
+use super::spectrum::{
+    axis_sums, correlation_half_plane, correlation_window, spectrum2_blocks, AXIS_BLOCK,
+};
 use super::{Grid, MetrologyError};
-use crate::fft::fast_len;
-use realfft::RealFftPlanner;
 
 /// ISO 25178-3 default threshold of Sal / Str.
 pub const ACF_THRESHOLD: f64 = 0.2;
@@ -56,14 +56,13 @@ pub struct SpatialParams {
 
 /// The heights centred on the mean of the valid points, gaps 0, with the valid count.
 pub(crate) fn centred(g: &Grid) -> Result<(Vec<f64>, usize), MetrologyError> {
-    let mean = super::height_params_mean(g)?;
+    let super::HeightSummary { mean, valid, .. } = super::height_summary(g)?;
     let c: Vec<f64> = g
         .heights_um
         .par_iter()
         .map(|&z| if z.is_nan() { 0.0 } else { z - mean })
         .collect();
-    let n = g.heights_um.par_iter().filter(|z| !z.is_nan()).count();
-    Ok((c, n))
+    Ok((c, valid))
 }
 
 /// [`centred`] without holding it: its rows written on demand, with the valid count.
@@ -76,11 +75,12 @@ struct CentredRows<'a> {
 
 impl<'a> CentredRows<'a> {
     fn of(g: &Grid<'a>) -> Result<Self, MetrologyError> {
+        let super::HeightSummary { mean, valid, .. } = super::height_summary(g)?;
         Ok(Self {
             z: g.heights_um,
             cols: g.cols(),
-            mean: super::height_params_mean(g)?,
-            valid: g.heights_um.par_iter().filter(|z| !z.is_nan()).count(),
+            mean,
+            valid,
         })
     }
 
@@ -134,13 +134,16 @@ fn divide_by_pairs<K: Copy + Sync>(half: &mut [f64], pairs: &[K], count: impl Fn
 impl Acf {
     /// The ACF of `g` (see the module documentation), the whole lag plane.
     pub fn of(g: &Grid) -> Result<Self, MetrologyError> {
-        Self::of_lags(g, None)
+        Self::of_lags(g, &CentredRows::of(g)?, None)
     }
 
     /// The ACF of `g` at lags |ty| <= `wy`, |tx| <= `wx` only (`None`: all), the same values
     /// bit for bit as [`Acf::of`]'s at those lags; made in `WINDOW_BLOCKS` column blocks.
-    fn of_lags(g: &Grid, window: Option<(usize, usize)>) -> Result<Self, MetrologyError> {
-        let c = CentredRows::of(g)?;
+    fn of_lags(
+        g: &Grid,
+        c: &CentredRows,
+        window: Option<(usize, usize)>,
+    ) -> Result<Self, MetrologyError> {
         let n = c.valid;
         let (rows, cols) = (g.rows(), g.cols());
         let (wy, wx) = window.map_or((rows - 1, cols - 1), |(wy, wx)| {
@@ -380,7 +383,11 @@ fn floor_lag(v: f64) -> f64 {
 /// the centred (mean-filled) heights, made in `STD_BLOCKS` blocks of columns (the same sums:
 /// each row's bins are added to in ascending kx, block after block).
 pub fn angular_amplitude(g: &Grid, step_deg: f64) -> Result<Vec<(f64, f64)>, MetrologyError> {
-    let c = CentredRows::of(g)?;
+    Ok(angular_amplitude_of(g, &CentredRows::of(g)?, step_deg))
+}
+
+/// [`angular_amplitude`] of `g`'s centred rows `c`.
+fn angular_amplitude_of(g: &Grid, c: &CentredRows, step_deg: f64) -> Vec<(f64, f64)> {
     let (rows, cols) = (g.rows(), g.cols());
     let bins = angular_bins(step_deg);
     let mut per_row = vec![0.0; rows * bins];
@@ -399,7 +406,7 @@ pub fn angular_amplitude(g: &Grid, step_deg: f64) -> Result<Vec<(f64, f64)>, Met
                 });
         },
     );
-    Ok(angular_total(&per_row, bins, step_deg))
+    angular_total(&per_row, bins, step_deg)
 }
 
 /// The number of angular bins of `step_deg` over 180 degrees.
@@ -521,24 +528,30 @@ pub fn spatial_params(g: &Grid) -> Result<SpatialParams, MetrologyError> {
             (g.cols() - 1) / WINDOW_FRACTION,
         )
     });
-    let (sal, str_) = sal_str_in(g, window)?;
-    let std = std_from_angular(&angular_amplitude(g, STD_STEP_DEG)?);
+    // The mean and valid count once for the three transforms.
+    let c = CentredRows::of(g)?;
+    let (sal, str_) = sal_str_in(g, &c, window)?;
+    let std = std_from_angular(&angular_amplitude_of(g, &c, STD_STEP_DEG));
     Ok(SpatialParams { sal, str_, std })
 }
 
 /// Sal and Str from the lags of `window` when they hold the region, otherwise (or without a
 /// window) from the whole plane.
-fn sal_str_in(g: &Grid, window: Option<(usize, usize)>) -> Result<(f64, f64), MetrologyError> {
+fn sal_str_in(
+    g: &Grid,
+    c: &CentredRows,
+    window: Option<(usize, usize)>,
+) -> Result<(f64, f64), MetrologyError> {
     if let Some(w) = window {
         // A tilted or strongly laid map's region runs out of the window along an axis: known
         // from two 1-D passes, instead of the window's whole work being made and declined.
-        if !axes_reach(g, w, ACF_THRESHOLD)? {
-            if let Some(v) = Acf::of_lags(g, Some(w))?.sal_str_within(ACF_THRESHOLD) {
+        if !axes_reach(g, c, w, ACF_THRESHOLD) {
+            if let Some(v) = Acf::of_lags(g, c, Some(w))?.sal_str_within(ACF_THRESHOLD) {
                 return Ok(v);
             }
         }
     }
-    Ok(Acf::of(g)?.sal_str(ACF_THRESHOLD))
+    Ok(Acf::of_lags(g, c, None)?.sal_str(ACF_THRESHOLD))
 }
 
 /// Whether f_ACF stays above `s` f_ACF(0) along the tx axis out to lag `wx` or along the ty
@@ -546,11 +559,10 @@ fn sal_str_in(g: &Grid, window: Option<(usize, usize)>) -> Result<(f64, f64), Me
 /// decline. Only a hint (its sums are made in another order than the ACF's own, so a lag
 /// within rounding of the threshold may go either way, and a region leaving the window off
 /// the axes is not seen): it picks the path, never the values. Maps with gaps: false.
-fn axes_reach(g: &Grid, (wy, wx): (usize, usize), s: f64) -> Result<bool, MetrologyError> {
-    let c = CentredRows::of(g)?;
+fn axes_reach(g: &Grid, c: &CentredRows, (wy, wx): (usize, usize), s: f64) -> bool {
     let (rows, cols) = (g.rows(), g.cols());
     if c.valid != rows * cols {
-        return Ok(false);
+        return false;
     }
     // f_ACF(lag) = S(lag) / pairs, S from the summed power of the 1-D transforms.
     let reaches = |sums: Vec<f64>, n: usize, other: usize, w: usize| {
@@ -567,7 +579,7 @@ fn axes_reach(g: &Grid, (wy, wx): (usize, usize), s: f64) -> Result<bool, Metrol
         n
     });
     if reaches(along_x, cols, rows, wx) {
-        return Ok(true);
+        return true;
     }
     // Columns in blocks too: each row's few adjacent values read together.
     let z = g.heights_um;
@@ -581,65 +593,7 @@ fn axes_reach(g: &Grid, (wy, wx): (usize, usize), s: f64) -> Result<bool, Metrol
         }
         n
     });
-    Ok(reaches(along_y, rows, cols, wy))
-}
-
-/// Lines per task of [`axis_sums`].
-const AXIS_BLOCK: usize = 8;
-
-/// The linear autocorrelation sums of sequences of `len` values, summed over them: lags
-/// 0..len. Task k's sequences (up to `AXIS_BLOCK`, `len` values each, one after the other)
-/// are written by `fill(k, lines)`, which returns how many; tasks 0..`tasks`.
-fn axis_sums(
-    tasks: usize,
-    len: usize,
-    fill: impl Fn(usize, &mut [f64]) -> usize + Sync,
-) -> Vec<f64> {
-    let q = fast_len(2 * len - 1);
-    let mut planner = RealFftPlanner::<f64>::new();
-    let (r2c, c2r) = (planner.plan_fft_forward(q), planner.plan_fft_inverse(q));
-    let h = r2c.complex_len();
-    let power = (0..tasks)
-        .into_par_iter()
-        .fold(
-            || {
-                let lines = vec![0.0; AXIS_BLOCK * len];
-                (
-                    vec![0.0; h],
-                    lines,
-                    vec![0.0; q],
-                    vec![Complex::default(); h],
-                    r2c.make_scratch_vec(),
-                )
-            },
-            |(mut acc, mut lines, mut buf, mut spec, mut scratch), k| {
-                let n = fill(k, &mut lines);
-                for line in lines.chunks(len).take(n) {
-                    buf[..len].copy_from_slice(line);
-                    buf[len..].fill(0.0);
-                    // Lengths are the planner's own: cannot fail.
-                    let _ = r2c.process_with_scratch(&mut buf, &mut spec, &mut scratch);
-                    for (a, v) in acc.iter_mut().zip(&spec) {
-                        *a += v.norm_sqr();
-                    }
-                }
-                (acc, lines, buf, spec, scratch)
-            },
-        )
-        .map(|(acc, ..)| acc)
-        .reduce(
-            || vec![0.0; h],
-            |mut a, b| {
-                a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
-                a
-            },
-        );
-    let mut spec: Vec<Complex<f64>> = power.iter().map(|&p| Complex::new(p, 0.0)).collect();
-    let mut out = vec![0.0; q];
-    let _ = c2r.process(&mut spec, &mut out);
-    out.truncate(len);
-    out.iter_mut().for_each(|v| *v /= q as f64);
-    out
+    reaches(along_y, rows, cols, wy)
 }
 
 #[cfg(test)]
@@ -810,7 +764,7 @@ mod tests {
                 (rows - 2, 1),
                 (rows + 4, cols + 4),
             ] {
-                let win = Acf::of_lags(&g, Some((wy, wx))).unwrap();
+                let win = Acf::of_lags(&g, &CentredRows::of(&g).unwrap(), Some((wy, wx))).unwrap();
                 let (wy, wx) = (wy.min(rows - 1) as isize, wx.min(cols - 1) as isize);
                 for ty in -wy..=wy {
                     for tx in -wx..=wx {
@@ -866,7 +820,7 @@ mod tests {
             let g = Grid::new(&z, rows, cols, 1.0, 0.7).unwrap();
             let (sal, str_) = Acf::of(&g).unwrap().sal_str(ACF_THRESHOLD);
             let window = ((rows - 1) / WINDOW_FRACTION, (cols - 1) / WINDOW_FRACTION);
-            match Acf::of_lags(&g, Some(window))
+            match Acf::of_lags(&g, &CentredRows::of(&g).unwrap(), Some(window))
                 .unwrap()
                 .sal_str_within(ACF_THRESHOLD)
             {
@@ -876,7 +830,7 @@ mod tests {
                 }
                 None => declined += 1,
             }
-            let (a, b) = sal_str_in(&g, Some(window)).unwrap();
+            let (a, b) = sal_str_in(&g, &CentredRows::of(&g).unwrap(), Some(window)).unwrap();
             assert_eq!(
                 (a.to_bits(), b.to_bits()),
                 (sal.to_bits(), str_.to_bits()),

@@ -130,7 +130,7 @@ pub(crate) fn correlation_half_plane(
     cols: usize,
 ) -> Vec<f64> {
     let plans = CorrelationPlans::new(rows, cols);
-    let (h, q) = (plans.h, plans.q);
+    let h = plans.h;
     let mut spec = rows_forward(row, rows, cols, &plans.r2c);
     for_column_blocks(
         &mut spec,
@@ -162,7 +162,6 @@ pub(crate) fn correlation_half_plane(
     }
     drop(block);
     out.truncate(rows * w);
-    debug_assert_eq!(q, plans.c2r.len());
     out
 }
 
@@ -367,4 +366,62 @@ fn complex_as_reals(v: Vec<C>) -> Vec<f64> {
     // allocation of `cap` complexes is the allocation (same size, same alignment) of 2 cap
     // f64, its first 2 len initialised; ownership moves (ManuallyDrop: no double free).
     unsafe { Vec::from_raw_parts(ptr.cast::<f64>(), 2 * len, 2 * cap) }
+}
+
+/// Lines per task of [`axis_sums`].
+pub(crate) const AXIS_BLOCK: usize = 8;
+
+/// The linear autocorrelation sums of sequences of `len` values, summed over them: lags
+/// 0..len. Task k's sequences (up to `AXIS_BLOCK`, `len` values each, one after the other)
+/// are written by `fill(k, lines)`, which returns how many; tasks 0..`tasks`.
+pub(crate) fn axis_sums(
+    tasks: usize,
+    len: usize,
+    fill: impl Fn(usize, &mut [f64]) -> usize + Sync,
+) -> Vec<f64> {
+    let q = fast_len(2 * len - 1);
+    let mut planner = RealFftPlanner::<f64>::new();
+    let (r2c, c2r) = (planner.plan_fft_forward(q), planner.plan_fft_inverse(q));
+    let h = r2c.complex_len();
+    let power = (0..tasks)
+        .into_par_iter()
+        .fold(
+            || {
+                let lines = vec![0.0; AXIS_BLOCK * len];
+                (
+                    vec![0.0; h],
+                    lines,
+                    vec![0.0; q],
+                    vec![Complex::default(); h],
+                    r2c.make_scratch_vec(),
+                )
+            },
+            |(mut acc, mut lines, mut buf, mut spec, mut scratch), k| {
+                let n = fill(k, &mut lines);
+                for line in lines.chunks(len).take(n) {
+                    buf[..len].copy_from_slice(line);
+                    buf[len..].fill(0.0);
+                    // Lengths are the planner's own: cannot fail.
+                    let _ = r2c.process_with_scratch(&mut buf, &mut spec, &mut scratch);
+                    for (a, v) in acc.iter_mut().zip(&spec) {
+                        *a += v.norm_sqr();
+                    }
+                }
+                (acc, lines, buf, spec, scratch)
+            },
+        )
+        .map(|(acc, ..)| acc)
+        .reduce(
+            || vec![0.0; h],
+            |mut a, b| {
+                a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
+                a
+            },
+        );
+    let mut spec: Vec<Complex<f64>> = power.iter().map(|&p| Complex::new(p, 0.0)).collect();
+    let mut out = vec![0.0; q];
+    let _ = c2r.process(&mut spec, &mut out);
+    out.truncate(len);
+    out.iter_mut().for_each(|v| *v /= q as f64);
+    out
 }
