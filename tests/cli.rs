@@ -471,6 +471,21 @@ fn mesh_level_removes_the_tilt_and_the_model_keeps_the_roughness() {
     assert!(err.contains("--level"), "{err}");
     let json = read_json(&raw.with_extension("json"));
     assert!(json.get("form_removed").is_none(), "{json:#}");
+    // The STL keeps the tilt, but the tolerance is judged without the plane (form before
+    // roughness): met there, the plane stated, and the model keeps the roughness's Sdr.
+    assert_eq!(json["tolerance"]["met"], true, "{json:#}");
+    let plane = &json["tolerance"]["judged_plane"];
+    let slope = |k: &str| plane[k].as_f64().unwrap_or(f64::NAN);
+    assert!(
+        (slope("slope_x_um_per_um") - 0.05).abs() < 2e-3
+            && (slope("slope_y_um_per_um") - 0.03).abs() < 2e-3,
+        "{json:#}"
+    );
+    assert!(
+        err.contains("judged about its least-squares plane"),
+        "{err}"
+    );
+    sdr_within_5_pct(&json);
 
     let levelled = d.path().join("levelled.stl");
     let out = run({
@@ -501,6 +516,11 @@ fn mesh_level_removes_the_tilt_and_the_model_keeps_the_roughness() {
         json["tolerance"]["tolerance"]["max_error_pct"], 50.0,
         "{json:#}"
     );
+    sdr_within_5_pct(&json);
+}
+
+/// The mesh's Sdr (about the field's plane) within 5 % of the measured one, in a mesh record.
+fn sdr_within_5_pct(json: &serde_json::Value) {
     let sdr = |k: &str| {
         json["fidelity"][k]["sdr_percent"]
             .as_f64()

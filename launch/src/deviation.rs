@@ -285,6 +285,10 @@ struct MeshInfo {
     /// The plane it removed (`form_plane`; absent from reports before it was recorded: then
     /// Table 6 fits the panorama's own).
     form_plane: Option<FormPlane>,
+    /// The plane the tolerance judged every region without (`tolerance.judged_plane`), the
+    /// mesh being of the heights as measured: Table 6 judges the mesh stage without it too,
+    /// the panorama and the mesh alike (issue 33: form before roughness).
+    judged_plane: Option<FormPlane>,
 }
 
 fn mesh_info(run: &RunRecord) -> MeshInfo {
@@ -294,6 +298,7 @@ fn mesh_info(run: &RunRecord) -> MeshInfo {
     MeshInfo {
         levelled: m.as_ref().is_some_and(|m| m.form_removed.is_some()),
         form_plane: m.as_ref().and_then(|m| m.form_plane),
+        judged_plane: (m.as_ref().and_then(|m| m.tolerance.as_ref())).and_then(|t| t.judged_plane),
         surface: m.map(|m| m.surface),
         tolerance,
     }
@@ -463,13 +468,29 @@ fn judge_out_dir(
     let pano_path = out.join("panorama.npy");
     // The plane the mesher removed, per panorama pixel, so that the mesh and the panorama
     // are levelled by one plane; a report without it: the panorama's own fit.
-    let slopes = match (info.levelled, info.form_plane) {
-        (false, _) => None,
-        (true, Some(p)) => Some((
+    let per_px = |p: FormPlane| {
+        (
             p.slope_x_um_per_um * geometry.pitch.x_um(),
             p.slope_y_um_per_um * geometry.pitch.y_um(),
-        )),
-        (true, None) => Some(plane_slopes_per_px(&mut NpySource::open(&pano_path)?)?),
+        )
+    };
+    let slopes = match (info.levelled, info.form_plane, info.judged_plane) {
+        (false, _, None) => None,
+        (false, _, Some(p)) | (true, Some(p), _) => Some(per_px(p)),
+        (true, None, _) => Some(plane_slopes_per_px(&mut NpySource::open(&pano_path)?)?),
+    };
+    // A mesh of the heights as measured judged without the tolerance's plane carries the
+    // plane: it is levelled like the panorama (a levelled mesh has none to remove, and gets
+    // it back for the roughness stage below).
+    let mesh_carries_plane = !info.levelled && slopes.is_some();
+    let mesh_judged = |a: NpySource| PlaneSource {
+        inner: a,
+        slopes_per_px: if mesh_carries_plane {
+            slopes.unwrap_or((0.0, 0.0))
+        } else {
+            (0.0, 0.0)
+        },
+        sign: -1.0,
     };
     let levelled_pano = || -> Result<PlaneSource<NpySource>> {
         Ok(PlaneSource {
@@ -481,6 +502,15 @@ fn judge_out_dir(
     let (mut levelled_mesh, mut stages): (Vec<_>, Vec<_>) = model_stages(out, shape)?
         .into_iter()
         .partition(|s| slopes.is_some() && s.name == MESH_STAGE);
+    if mesh_carries_plane && !levelled_mesh.is_empty() {
+        levelled_mesh = vec![StreamedStage::pooled(
+            MESH_STAGE,
+            Box::new(mesh_judged(NpySource::open(
+                &out.join("mesh_resampled.npy"),
+            )?)),
+            shape,
+        )];
+    }
     let mut table =
         Table6::judge_streamed(pano, geometry.pitch, &mut stages, regions, threshold_pct)?;
     if !levelled_mesh.is_empty() {
@@ -502,7 +532,9 @@ fn judge_out_dir(
     for s in &table.stages {
         let rule = match s.stage.as_str() {
             MESH_STAGE => StageRule {
-                measured: if slopes.is_some() {
+                measured: if mesh_carries_plane {
+                    "panorama.npy less the tolerance's least-squares plane (the mesh too)"
+                } else if slopes.is_some() {
                     "panorama.npy less its least-squares plane"
                 } else {
                     "panorama.npy"
@@ -523,7 +555,7 @@ fn judge_out_dir(
             },
         };
         let residuals = if s.cell_px == 1 && s.stage == MESH_STAGE {
-            let mut m = NpySource::open(&mesh_path)?;
+            let mut m = mesh_judged(NpySource::open(&mesh_path)?);
             if slopes.is_some() {
                 residual_pct_of_sq(&mut levelled_pano()?, &mut m, regions)?
             } else {
@@ -542,7 +574,11 @@ fn judge_out_dir(
     // measured.
     let mesh_as_measured = |a: NpySource| PlaneSource {
         inner: a,
-        slopes_per_px: slopes.unwrap_or((0.0, 0.0)),
+        slopes_per_px: if mesh_carries_plane {
+            (0.0, 0.0)
+        } else {
+            slopes.unwrap_or((0.0, 0.0))
+        },
         sign: 1.0,
     };
     let (datum, rough) = (out.join("datum.npy"), out.join("roughness.npy"));
@@ -606,7 +642,7 @@ fn judge_out_dir(
 }
 
 /// How Table 6 is computed, as run.json states it.
-const CONVENTIONS: &str = "ISO 25178 over points valid in both maps, mean removed, no levelling (but a mesh made levelled, the mesher's form_removed, is compared with the panorama less the same least-squares plane, and gets the plane back for the roughness stage); each stage on its own grid at its own pitch (grid); deviation = (model - measured) / measured * 100; the mesh passes when |deviation| <= the model's tolerance (else the threshold) for Sa, Sq, Sz, the other stages at the threshold; residual_rms_pct_of_sq = RMS of the pointwise difference (means removed) / measured Sq * 100; a stage with judged = false is reported, not counted";
+const CONVENTIONS: &str = "ISO 25178 over points valid in both maps, mean removed, no levelling (but the mesh stage: a mesh made levelled, the mesher's form_removed, is compared with the panorama less the same least-squares plane, and gets the plane back for the roughness stage; a mesh whose tolerance was judged without the panorama's least-squares plane, tolerance.judged_plane, is compared with the panorama less that plane, the mesh less it too); each stage on its own grid at its own pitch (grid); deviation = (model - measured) / measured * 100; the mesh passes when |deviation| <= the model's tolerance (else the threshold) for Sa, Sq, Sz, the other stages at the threshold; residual_rms_pct_of_sq = RMS of the pointwise difference (means removed) / measured Sq * 100; a stage with judged = false is reported, not counted";
 
 /// Adds "deviation" (Table 6) to run.json and, when `with_x3p` (the full output set), writes
 /// panorama.x3p when the out dir holds a panorama. An output that cannot be written
@@ -699,6 +735,7 @@ mod tests {
                 tolerance: Some([1.0, 1.0, 3.0]),
                 levelled,
                 form_plane,
+                judged_plane: None,
             };
             let mut pano = NpySource::open(&dir.path().join("panorama.npy")).unwrap();
             judge_out_dir(dir.path(), &regions, &info, 5.0, &mut pano, &geometry).unwrap()
@@ -735,6 +772,82 @@ mod tests {
         assert_eq!(recorded.stages[MESH_STAGE], t.stages[MESH_STAGE]);
         let wrong = judge_with(true, Some(plane(0.5)));
         assert!(!wrong.stages[MESH_STAGE].regions["panorama"].pass);
+    }
+
+    /// A mesh of the heights as measured (tilt kept in the STL) whose tolerance was judged
+    /// without the panorama's plane (`tolerance.judged_plane`): Table 6 levels the panorama
+    /// and the mesh by that plane, so a mesh that loses a tenth of the roughness fails
+    /// where, about the mean alone, the tilt hides it; the roughness stage takes the mesh as
+    /// it is (no plane to give back).
+    #[test]
+    fn a_mesh_judged_without_the_plane_is_levelled_with_the_panorama() {
+        let (rows, cols) = (60usize, 80usize);
+        let (bx, by) = (0.05, -0.03);
+        let rough = |r: usize, c: usize| {
+            let (y, x) = (r as f64, c as f64);
+            0.3 * (x * 0.7).sin() * (y * 0.9).cos() + 0.15 * (x * 0.23 + y * 0.31).sin()
+        };
+        let at = |f: &dyn Fn(usize, usize) -> f64| -> Vec<f64> {
+            (0..rows * cols).map(|k| f(k / cols, k % cols)).collect()
+        };
+        let tilt = |r: usize, c: usize| bx * c as f64 + by * r as f64;
+        let geometry = Geometry {
+            origin_um: (0.0, 0.0),
+            pitch: Pitch::new(1.0, 1.0).unwrap(),
+        };
+        let regions = [Region::whole(Shape { rows, cols })];
+        let judge = |roughness_kept: f64, judged_plane: bool| {
+            let dir = tempfile::tempdir().unwrap();
+            let write = |name: &str, v: &[f64]| {
+                surfstream_io::npy::write_npy_f64(dir.path().join(name), v, rows, cols).unwrap()
+            };
+            write("panorama.npy", &at(&|r, c| tilt(r, c) + rough(r, c) + 7.0));
+            let (fx, fy) = plane_slopes_per_px(
+                &mut NpySource::open(&dir.path().join("panorama.npy")).unwrap(),
+            )
+            .unwrap();
+            write(
+                "mesh_resampled.npy",
+                &at(&|r, c| tilt(r, c) + roughness_kept * rough(r, c) + 7.9),
+            );
+            write("datum.npy", &at(&|r, c| tilt(r, c) + 7.0));
+            write("roughness.npy", &at(&rough));
+            let info = MeshInfo {
+                surface: Some("panorama".into()),
+                tolerance: Some([1.0, 1.0, 3.0]),
+                levelled: false,
+                form_plane: None,
+                judged_plane: judged_plane.then_some(FormPlane {
+                    z_um: 7.0,
+                    slope_x_um_per_um: fx,
+                    slope_y_um_per_um: fy,
+                }),
+            };
+            let mut pano = NpySource::open(&dir.path().join("panorama.npy")).unwrap();
+            judge_out_dir(dir.path(), &regions, &info, 5.0, &mut pano, &geometry).unwrap()
+        };
+        let same = judge(1.0, true);
+        assert_eq!(
+            same.stages[MESH_STAGE].measured,
+            "panorama.npy less the tolerance's least-squares plane (the mesh too)"
+        );
+        assert!(same.pass, "{:?}", same.stages);
+        for stage in [MESH_STAGE, DEM_ROUGHNESS_STAGE] {
+            let region = &same.stages[stage].regions["panorama"];
+            for name in JUDGED {
+                let d = region.deviation_pct[name];
+                assert!(d.is_some_and(|d| d.abs() < 1e-6), "{stage} {name}: {d:?}");
+            }
+        }
+        // A tenth of the roughness lost: about the mean the tilt hides it, without the plane
+        // it fails (Sa and Sq about -10 %).
+        let about_mean = judge(0.9, false);
+        assert!(about_mean.stages[MESH_STAGE].regions["panorama"].pass);
+        let levelled = judge(0.9, true);
+        let region = &levelled.stages[MESH_STAGE].regions["panorama"];
+        assert!(!region.pass, "{region:?}");
+        let sq = region.deviation_pct["Sq"].unwrap();
+        assert!((sq + 10.0).abs() < 1.0, "Sq {sq} %");
     }
 
     #[test]

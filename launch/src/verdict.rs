@@ -452,9 +452,15 @@ fn model_line(run: &RunRecord) -> Option<(String, bool)> {
             0 => String::new(),
             n => format!(" (Table 6's {n} tile regions among them)"),
         };
+        // Judged less the field's plane (form before roughness), as Table 6's mesh stage.
+        let form = if t.judged_plane.is_some() {
+            " less the least-squares plane"
+        } else {
+            ""
+        };
         let _ = write!(
             line,
-            "; worst of {} regions{tiles} {}: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %, residual {:.1} % of Sq",
+            "; worst of {} regions{tiles}{form} {}: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %, residual {:.1} % of Sq",
             t.regions, w.region, d[0], d[1], d[2], w.residual_pct_of_sq,
         );
         if let Some(d) = w.roughness_deviation_pct {

@@ -909,6 +909,12 @@ pub struct ToleranceRecord {
     /// The angle bound's refinement of the chosen mesh (an engine's bound, e.g. LIGGGHTS').
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub angles: Option<AngleRecord>,
+    /// The form every region was judged without: the measured field's least-squares plane
+    /// (`params --level`'s), subtracted from the measurement and the mesh alike, so a tilt
+    /// does not hide the roughness from the bounds; Table 6 judges the mesh stage the same
+    /// way. Absent: a record from before (regions judged about their mean only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub judged_plane: Option<FormPlane>,
 }
 
 /// What the angle bound did to the chosen mesh (the mesher's `tolerance.angles`).

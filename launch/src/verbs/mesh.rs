@@ -222,8 +222,8 @@ fn prepared_heights(a: &MeshArgs) -> Result<(surfstream_io::formats::Surface, Pr
     Ok((surface, prepared))
 }
 
-/// A tilt or form the mean does not remove: the tolerance (mean removed only) is then judged
-/// on it, and the roughness hides under it.
+/// A tilt the mean does not remove: said, with what the tolerance and the STL do with it
+/// (the tolerance is judged about the plane, the STL keeps it unless levelled).
 fn say_tilt(surface: &surfstream_io::formats::Surface) {
     let levelled = Grid::new(
         &surface.heights_um,
@@ -244,8 +244,9 @@ fn say_tilt(surface: &surfstream_io::formats::Surface) {
     if flat < TILT_SQ_SHARE * raw {
         eprintln!(
             "mesh: note: the surface is tilted: Sq {} with the mean removed, {} about its \
-             least-squares plane; the tolerance is judged with the mean removed only, where \
-             the tilt hides the roughness: --level removes the plane first",
+             least-squares plane; the tolerance is judged about its least-squares plane (the \
+             roughness's Sq, not the tilt's) and the STL keeps the tilt: --level removes the \
+             plane from the STL too",
             height(raw),
             height(flat)
         );
@@ -298,9 +299,14 @@ fn say_result(
             r.triangles_per_measured_px,
             r.curve.len(),
             worst.map_or(String::new(), |w| format!(
-                "; worst of {} regions {}: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %, residual {:.1} % \
+                "; worst of {} regions{} {}: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %, residual {:.1} % \
                  of Sq, max error {} ({:.1} % of Sq)",
                 r.regions,
+                if r.judged_plane.is_some() {
+                    " (less the least-squares plane)"
+                } else {
+                    ""
+                },
                 w.region,
                 w.deviation_pct[0],
                 w.deviation_pct[1],

@@ -102,6 +102,25 @@ pub(crate) fn level_field(field: RasterView<'_, f32>, pitch: Pitch) -> Option<Fi
 }
 
 impl FieldLevel {
+    /// The plane on the grid (height at sample (0, 0), step per column and per row): the
+    /// form the tolerance judges every region without.
+    pub(crate) fn grid_plane(&self) -> crate::tolerance::GridPlane {
+        crate::tolerance::GridPlane {
+            at_origin_um: self.plane.0,
+            per_col_um: self.plane.1 * self.sampling.pitch_x_um(),
+            per_row_um: self.plane.2 * self.sampling.pitch_y_um(),
+        }
+    }
+
+    /// The plane as the record states it (absolute z at sample (0, 0), slopes per um).
+    pub(crate) fn form_plane(&self, z_offset_um: f64) -> surfstream_core::record::FormPlane {
+        surfstream_core::record::FormPlane {
+            z_um: self.plane.0 + z_offset_um,
+            slope_x_um_per_um: self.plane.1,
+            slope_y_um_per_um: self.plane.2,
+        }
+    }
+
     /// The parameters of `mesh_um` (the field's shape, NaN where not compared) levelled by
     /// the field's plane.
     pub(crate) fn mesh_params(&self, mesh_um: &[f32]) -> Option<AreaParams> {

@@ -117,6 +117,7 @@ impl From<&ToleranceReport> for ToleranceRecord {
             region_fits: r.region_fits.iter().map(Into::into).collect(),
             curve: r.curve.iter().map(Into::into).collect(),
             angles: r.angles,
+            judged_plane: r.judged_plane,
         }
     }
 }

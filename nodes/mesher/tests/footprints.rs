@@ -8,7 +8,7 @@
 use surfstream_core::deviation::{Measured, ModelStage, Region, Table6};
 use surfstream_core::raster::{RasterView, Shape};
 use surfstream_core::Pitch;
-use surfstream_mesher::tolerance::{judge_regions, windows, Window, DEFAULT_TOLERANCE};
+use surfstream_mesher::tolerance::{judge_regions, windows, GridPlane, Window, DEFAULT_TOLERANCE};
 use surfstream_mesher::{
     mesh_streaming_to_tolerance, mesh_to_tolerance, AdaptiveMesh, Epsilon, LengthUnit, MeshKind,
     MeshParams, MissingSamples, ScanPlacement, SolidParams, ToleranceReport, ToleranceSettings,
@@ -81,10 +81,28 @@ fn search(z: &[f32], footprints: &[Window]) -> (AdaptiveMesh, ToleranceReport) {
     mesh_to_tolerance(heights, None, &at, &params(), &settings(), footprints).unwrap()
 }
 
-/// Table 6's Sa, Sq, Sz deviations (%) of the mesh in the footprint (Table 6's code, f64).
-fn table6_in_footprint(z: &[f32], m: &AdaptiveMesh) -> [f64; 3] {
-    let measured: Vec<f64> = z.iter().map(|&v| f64::from(v)).collect();
-    let model: Vec<f64> = m.resampled_um.iter().map(|&v| f64::from(v)).collect();
+/// The plane the search judged its regions without, on the tests' grid.
+fn judged_plane(r: &ToleranceReport) -> GridPlane {
+    let p = r.judged_plane.expect("the plane judged without is stated");
+    GridPlane::of_record(&p, Pitch::new(1.0, 1.0).unwrap(), 0.0)
+}
+
+/// Table 6's Sa, Sq, Sz deviations (%) of the mesh in the footprint (Table 6's code, f64),
+/// both less the plane the search judged without, as the graph's Table 6 has them.
+fn table6_in_footprint(z: &[f32], m: &AdaptiveMesh, plane: &GridPlane) -> [f64; 3] {
+    let less_plane = |v: &[f32]| -> Vec<f64> {
+        (v.iter().enumerate())
+            .map(|(k, &h)| {
+                let (row, col) = (k / N, k % N);
+                f64::from(h)
+                    - (plane.at_origin_um
+                        + plane.per_col_um * col as f64
+                        + plane.per_row_um * row as f64)
+            })
+            .collect()
+    };
+    let measured = less_plane(z);
+    let model = less_plane(&m.resampled_um);
     let shape = Shape::new(N, N);
     let f = footprint();
     let region = Region {
@@ -140,13 +158,14 @@ fn a_footprint_between_the_windows_is_met_when_the_search_judges_it() {
         None,
         Shape::new(N, N),
         std::slice::from_ref(&f),
+        Some(judged_plane(&blind)),
     )[0];
     let (param, d, limit) = fit.excess(&t, 1.0).expect("the footprint fails");
     eprintln!(
         "windows alone, {} surface triangles: S1 {param} {d:+.2} % (limit {limit} %), {fit:?}",
         blind.surface_triangles
     );
-    let dev = table6_in_footprint(&z, &blind_mesh);
+    let dev = table6_in_footprint(&z, &blind_mesh, &judged_plane(&blind));
     eprintln!(
         "windows alone: Table 6 in S1: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %",
         dev[0], dev[1], dev[2]
@@ -173,11 +192,12 @@ fn a_footprint_between_the_windows_is_met_when_the_search_judges_it() {
             &mesh.resampled_um,
             None,
             Shape::new(N, N),
-            std::slice::from_ref(&f)
+            std::slice::from_ref(&f),
+            Some(judged_plane(&r)),
         )[0],
         s1
     );
-    let dev = table6_in_footprint(&z, &mesh);
+    let dev = table6_in_footprint(&z, &mesh, &judged_plane(&r));
     eprintln!(
         "with S1, {} surface triangles: Table 6 in S1: Sa {:+.2} %, Sq {:+.2} %, Sz {:+.2} %",
         r.surface_triangles, dev[0], dev[1], dev[2]
