@@ -101,11 +101,49 @@ pub(crate) fn level_field(field: RasterView<'_, f32>, pitch: Pitch) -> Option<Fi
     })
 }
 
+/// The form every region is judged without: the measured field's least-squares plane on the
+/// grid, `z = at_origin_um + per_col_um * col + per_row_um * row` (um, relative to the
+/// heights' own zero), the form `params --level` removes. Subtracted from the measurement and
+/// the mesh alike, so a tilt does not dominate a region's Sa and Sq and hide its roughness
+/// from the bounds (issue 33: form before roughness). The mesh is made of the heights as
+/// they are (a triangle interpolates a plane exactly, so the plane changes no error), and the
+/// STL keeps the tilt unless the settings level it.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct GridPlane {
+    pub at_origin_um: f64,
+    pub per_col_um: f64,
+    pub per_row_um: f64,
+}
+
+impl GridPlane {
+    /// The plane a record states (`tolerance::ToleranceReport::judged_plane`) on a grid of `pitch`
+    /// whose heights are relative to `z_offset_um`.
+    pub fn of_record(
+        p: &surfstream_core::record::FormPlane,
+        pitch: surfstream_core::Pitch,
+        z_offset_um: f64,
+    ) -> Self {
+        Self {
+            at_origin_um: p.z_um - z_offset_um,
+            per_col_um: p.slope_x_um_per_um * pitch.x_um(),
+            per_row_um: p.slope_y_um_per_um * pitch.y_um(),
+        }
+    }
+
+    /// The plane's height at the start of `row`, and its step per column.
+    pub(crate) fn row(&self, row: usize) -> (f64, f64) {
+        (
+            self.at_origin_um + self.per_row_um * row as f64,
+            self.per_col_um,
+        )
+    }
+}
+
 impl FieldLevel {
     /// The plane on the grid (height at sample (0, 0), step per column and per row): the
     /// form the tolerance judges every region without.
-    pub(crate) fn grid_plane(&self) -> crate::tolerance::GridPlane {
-        crate::tolerance::GridPlane {
+    pub(crate) fn grid_plane(&self) -> GridPlane {
+        GridPlane {
             at_origin_um: self.plane.0,
             per_col_um: self.plane.1 * self.sampling.pitch_x_um(),
             per_row_um: self.plane.2 * self.sampling.pitch_y_um(),
