@@ -310,11 +310,12 @@ fn convert_inspect_and_mesh_follow_one_convention() {
 
     // mesh: -o into a new folder, the bound the tolerance search chose, the default unit named
     // in the summary (no warning: nothing was assumed), fixed-precision numbers, and a header
-    // that says units and offset once.
+    // that says units and offset once. (The file is tilted: judged on its roughness, without
+    // the plane, its model needs 27 328 surface triangles, so the budget leaves room.)
     let stl = d.path().join("mesh").join("new").join("m.stl");
     let out = run({
         let mut c = surfstream();
-        c.args(["mesh", s(&dat), "--max-triangles", "20000", "-o", s(&stl)]);
+        c.args(["mesh", s(&dat), "--max-triangles", "40000", "-o", s(&stl)]);
         c
     });
     let err = stderr(&out);
