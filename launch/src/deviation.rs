@@ -685,6 +685,28 @@ pub fn attach(
 mod tests {
     use super::*;
 
+    /// The tilted panoramas of the levelling tests: a plane of 0.05 and -0.03 um per pixel (4
+    /// and 1.8 um over the map) under a roughness of about 0.2 um.
+    const TILTED_ROWS: usize = 60;
+    const TILTED_COLS: usize = 80;
+    const TILT_PER_PX: (f64, f64) = (0.05, -0.03);
+
+    fn tilted_roughness(r: usize, c: usize) -> f64 {
+        let (y, x) = (r as f64, c as f64);
+        0.3 * (x * 0.7).sin() * (y * 0.9).cos() + 0.15 * (x * 0.23 + y * 0.31).sin()
+    }
+
+    fn tilt_at(r: usize, c: usize) -> f64 {
+        TILT_PER_PX.0 * c as f64 + TILT_PER_PX.1 * r as f64
+    }
+
+    /// `f` at every pixel of the tilted tests' grid, row-major.
+    fn on_tilted_grid(f: &dyn Fn(usize, usize) -> f64) -> Vec<f64> {
+        (0..TILTED_ROWS * TILTED_COLS)
+            .map(|k| f(k / TILTED_COLS, k % TILTED_COLS))
+            .collect()
+    }
+
     /// A mesh the mesher made levelled (its `level`: the least-squares plane removed) is
     /// judged against the panorama less that plane, and its roughness stage gets the plane
     /// back: a perfect levelled model passes every stage. Judged as a mesh of the raw heights
@@ -692,16 +714,9 @@ mod tests {
     #[test]
     fn a_levelled_mesh_is_judged_on_the_levelled_panorama() {
         let dir = tempfile::tempdir().unwrap();
-        let (rows, cols) = (60usize, 80usize);
-        let (bx, by) = (0.05, -0.03); // um per pixel: 4 and 1.8 um over the map
-        let rough = |r: usize, c: usize| {
-            let (y, x) = (r as f64, c as f64);
-            0.3 * (x * 0.7).sin() * (y * 0.9).cos() + 0.15 * (x * 0.23 + y * 0.31).sin()
-        };
-        let at = |f: &dyn Fn(usize, usize) -> f64| -> Vec<f64> {
-            (0..rows * cols).map(|k| f(k / cols, k % cols)).collect()
-        };
-        let tilt = |r: usize, c: usize| bx * c as f64 + by * r as f64;
+        let (rows, cols) = (TILTED_ROWS, TILTED_COLS);
+        let (bx, by) = TILT_PER_PX;
+        let (rough, tilt, at) = (tilted_roughness, tilt_at, on_tilted_grid);
         let pano = at(&|r, c| tilt(r, c) + rough(r, c) + 7.0);
         // The mesher's levelled surface: the panorama less its own least-squares plane (the
         // roughness is not exactly orthogonal to a plane, so take the fitted one).
@@ -781,16 +796,8 @@ mod tests {
     /// it is (no plane to give back).
     #[test]
     fn a_mesh_judged_without_the_plane_is_levelled_with_the_panorama() {
-        let (rows, cols) = (60usize, 80usize);
-        let (bx, by) = (0.05, -0.03);
-        let rough = |r: usize, c: usize| {
-            let (y, x) = (r as f64, c as f64);
-            0.3 * (x * 0.7).sin() * (y * 0.9).cos() + 0.15 * (x * 0.23 + y * 0.31).sin()
-        };
-        let at = |f: &dyn Fn(usize, usize) -> f64| -> Vec<f64> {
-            (0..rows * cols).map(|k| f(k / cols, k % cols)).collect()
-        };
-        let tilt = |r: usize, c: usize| bx * c as f64 + by * r as f64;
+        let (rows, cols) = (TILTED_ROWS, TILTED_COLS);
+        let (rough, tilt, at) = (tilted_roughness, tilt_at, on_tilted_grid);
         let geometry = Geometry {
             origin_um: (0.0, 0.0),
             pitch: Pitch::new(1.0, 1.0).unwrap(),

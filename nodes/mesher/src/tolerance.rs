@@ -716,7 +716,7 @@ const STEP: f64 = 0.8;
 /// side, [`Aim::coarsest_sq_fraction`]).
 const COARSE_CURVE_POINTS: usize = 3;
 /// Points the curve should have at least (finer meshes are added after a pass when the
-/// series has no coarse side).
+/// search and the coarse side have fewer).
 const MIN_CURVE_POINTS: usize = 6;
 /// Points the curve keeps at most (the chosen mesh, the first and the last always).
 const MAX_CURVE_POINTS: usize = 10;
@@ -972,10 +972,12 @@ pub fn search<M>(
             _ => fractions.find(|&g| g < f * (1.0 - 1e-9)),
         };
     }
-    // A few finer meshes for the curve when the search stopped early and has no coarse side.
-    if best.is_some() && coarse_side.is_empty() {
+    // A few finer meshes for the curve when the search stopped early (the coarse side's
+    // points, made last, counted in).
+    if best.is_some() {
+        let coarse_points = COARSE_CURVE_POINTS.min(coarse_side.len());
         for f in fractions {
-            if curve.len() >= MIN_CURVE_POINTS {
+            if curve.len() + coarse_points >= MIN_CURVE_POINTS {
                 break;
             }
             let (_, over, _) = run(order, f, Stage::Curve, &mut curve)?;
