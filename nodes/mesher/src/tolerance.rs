@@ -746,9 +746,10 @@ pub enum Stage {
     Bisect,
     /// The same bound again, from the state the last checkpoint left, with the block
     /// balance: that checkpoint's greedy mesh failed Sa, Sq, Sz or the roughness somewhere.
-    /// The other checkpoints are greedy: where the pointwise bounds bind, the greedy mesh
-    /// meets the statistics too, and the balance's samples were triangles it did not need
-    /// (the demo: 438 701 balanced where the greedy order meets the tolerance at ~380 000).
+    /// With the largest pointwise error bounded the other checkpoints are greedy: where the
+    /// pointwise bounds bind, the greedy mesh meets the statistics too, and the balance's
+    /// samples were triangles it did not need (the demo: 438 701 balanced where the greedy
+    /// order meets the tolerance at 381 401).
     Balance,
 }
 
@@ -757,8 +758,8 @@ pub trait Checkpoints<M> {
     /// Refines the order down to `epsilon_um` and judges the mesh: from where it stands
     /// (a finer bound than the last, or the same for [`Stage::Balance`]) for
     /// [`Stage::Search`], [`Stage::Curve`] and [`Stage::Balance`], from the kept state for
-    /// [`Stage::Bisect`]; balanced for [`Stage::Balance`] only.
-    fn checkpoint(&mut self, epsilon_um: f64, stage: Stage) -> Result<Trial<M>>;
+    /// [`Stage::Bisect`]; with the block balance when `balanced` (and the order has one).
+    fn checkpoint(&mut self, epsilon_um: f64, stage: Stage, balanced: bool) -> Result<Trial<M>>;
     /// Keeps the order's state as it stands (a failing checkpoint a bisection starts from).
     fn keep(&mut self);
     /// Forgets the order's state, kept or not: the next checkpoint refines from the first
@@ -868,10 +869,11 @@ pub fn search<M>(
     let judge_one = |order: &mut dyn Checkpoints<M>,
                      f: f64,
                      stage: Stage,
+                     balanced: bool,
                      curve: &mut Vec<Judged>|
      -> Result<(bool, bool, Option<M>)> {
         surfstream_core::liveness::beat();
-        let trial = order.checkpoint(f * sq_um, stage)?;
+        let trial = order.checkpoint(f * sq_um, stage, balanced)?;
         let mut fits = trial.fits;
         fits.sort_by(|a, b| b.worst_ratio(&t).total_cmp(&a.worst_ratio(&t)));
         let pass = !fits.is_empty()
@@ -912,17 +914,21 @@ pub fn search<M>(
         ));
         Ok((pass, over, (!over).then_some(trial.mesh)))
     };
-    // Each checkpoint greedy first; balanced at the same bound (a second mesh judged) only
-    // when the greedy one fails a statistic, which the balance pulls back and a finer bound
-    // alone may not.
+    // With the largest pointwise error bounded (the default), each checkpoint is greedy
+    // first and balanced at the same bound (a second mesh judged) only when the greedy one
+    // fails a statistic, which the balance pulls back and a finer bound alone may not.
+    // Without that bound (an angle-bounded engine's tolerance, coarse meshes that are
+    // statistical twins of the surface) every checkpoint but the curve's is balanced.
     let balances = settings.method == ModelMethod::Balanced;
+    let greedy_first = balances && t.max_error_pct.is_some();
     let run = |order: &mut dyn Checkpoints<M>,
                f: f64,
                stage: Stage,
                curve: &mut Vec<Judged>|
      -> Result<(bool, bool, Option<M>)> {
-        let (pass, over, mesh) = judge_one(order, f, stage, curve)?;
-        let rebalance = balances
+        let balanced = balances && !greedy_first && stage != Stage::Curve;
+        let (pass, over, mesh) = judge_one(order, f, stage, balanced, curve)?;
+        let rebalance = greedy_first
             && stage != Stage::Curve
             && !pass
             && !over
@@ -931,7 +937,7 @@ pub fn search<M>(
                 .is_some_and(|c| statistics_fail(&c.1, &t, aim.share));
         if rebalance {
             drop(mesh);
-            return judge_one(order, f, Stage::Balance, curve);
+            return judge_one(order, f, Stage::Balance, true, curve);
         }
         Ok((pass, over, mesh))
     };
@@ -1712,12 +1718,11 @@ impl<M, F> Checkpoints<M> for LiveOrder<'_, '_, F>
 where
     F: FnMut(f64, &BlockSource<'_>, Option<AngleStats>) -> Result<Trial<M>>,
 {
-    fn checkpoint(&mut self, epsilon_um: f64, stage: Stage) -> Result<Trial<M>> {
+    fn checkpoint(&mut self, epsilon_um: f64, stage: Stage, balanced: bool) -> Result<Trial<M>> {
         if let (Stage::Bisect, Some(kept)) = (stage, self.kept) {
             self.replay(kept);
         }
-        // Balanced only when the greedy mesh at this bound failed a statistic (Stage::Balance).
-        let angles = self.refine(epsilon_um, stage == Stage::Balance);
+        let angles = self.refine(epsilon_um, balanced);
         let live = &self.live;
         (self.judge)(epsilon_um, &|k| Ok(live[k].snapshot()), angles)
     }
@@ -1897,14 +1902,13 @@ impl<M, F> Checkpoints<M> for SpilledOrder<'_, '_, F>
 where
     F: FnMut(f64, &BlockSource<'_>, Option<AngleStats>) -> Result<Trial<M>>,
 {
-    fn checkpoint(&mut self, epsilon_um: f64, stage: Stage) -> Result<Trial<M>> {
+    fn checkpoint(&mut self, epsilon_um: f64, stage: Stage, balanced: bool) -> Result<Trial<M>> {
         surfstream_core::liveness::beat();
         let from = match (stage, &self.kept) {
             (Stage::Bisect, Some(kept)) => Some(Arc::clone(kept)),
             _ => self.current.clone(),
         };
-        // Balanced only when the greedy mesh at this bound failed a statistic (Stage::Balance).
-        let balance = self.balance.filter(|_| stage == Stage::Balance);
+        let balance = self.balance.filter(|_| balanced);
         let plan = self.plan;
         let sides = plan.sides_at(epsilon_um);
         let extremes = &self.extremes;
