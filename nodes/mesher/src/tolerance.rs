@@ -414,23 +414,38 @@ impl RegionFit {
         share: f64,
         max_error_share: f64,
     ) -> Option<(&'static str, f64, f64)> {
+        self.failing(t, share, max_error_share)
+            .max_by(|a, b| (a.1.abs() / a.2).total_cmp(&(b.1.abs() / b.2)))
+    }
+
+    /// The statistics' terms (Sa, Sq, Sz and the roughness's when judged) and the pointwise
+    /// ones (residual, largest error), as (name, value, limit) at the shares of
+    /// [`RegionFit::excess_at`], that fail here (a NaN value fails).
+    fn failing(
+        &self,
+        t: &Tolerance,
+        share: f64,
+        max_error_share: f64,
+    ) -> impl Iterator<Item = (&'static str, f64, f64)> + '_ {
         let limits = [t.sa_pct, t.sq_pct, t.sz_pct];
         let residual = t
             .residual_pct
-            .map(|l| ("residual", self.residual_pct_of_sq, l * share));
+            .map(|l| (RESIDUAL, self.residual_pct_of_sq, l * share));
         let max_error = t
             .max_error_pct
-            .map(|l| ("max error", self.max_error_pct_of_sq, l * max_error_share));
+            .map(|l| (MAX_ERROR, self.max_error_pct_of_sq, l * max_error_share));
         ["Sa", "Sq", "Sz"]
             .into_iter()
             .zip(self.deviation_pct)
             .zip(limits)
-            .map(|((n, d), l)| (n, d, l * share))
+            .map(move |((n, d), l)| (n, d, l * share))
             .chain(residual)
             .chain(max_error)
-            .chain(self.roughness_terms(t).map(|(n, d, l)| (n, d, l * share)))
+            .chain(
+                self.roughness_terms(t)
+                    .map(move |(n, d, l)| (n, d, l * share)),
+            )
             .filter(|(_, d, l)| d.is_nan() || d.abs() > *l)
-            .max_by(|a, b| (a.1.abs() / a.2).total_cmp(&(b.1.abs() / b.2)))
     }
 
     /// The roughness's (name, deviation, limit), when it is judged.
@@ -781,14 +796,17 @@ const POINTWISE_STEP_MARGIN: f64 = 0.998;
 /// what the block balance pulls back and a finer bound alone may not).
 fn statistics_fail(fits: &[RegionFit], t: &Tolerance, share: f64) -> bool {
     fits.iter().any(|r| {
-        RegionFit {
-            residual_pct_of_sq: 0.0,
-            max_error_pct_of_sq: 0.0,
-            ..r.clone()
-        }
-        .excess_at(t, share, MAX_ERROR_TARGET_SHARE)
-        .is_some()
+        r.failing(t, share, MAX_ERROR_TARGET_SHARE)
+            .any(|(name, _, _)| !is_pointwise(name))
     })
+}
+
+/// The pointwise terms' names in [`RegionFit::excess_at`]: they follow the insertion's bound.
+const RESIDUAL: &str = "residual";
+const MAX_ERROR: &str = "max error";
+
+fn is_pointwise(name: &str) -> bool {
+    name == RESIDUAL || name == MAX_ERROR
 }
 
 /// Where a failing checkpoint (at bound fraction `f`, its regions `fits`) would meet its
@@ -801,19 +819,11 @@ fn pointwise_step(f: f64, fits: &[RegionFit], t: &Tolerance, share: f64) -> Opti
     if statistics_fail(fits, t, share) {
         return None;
     }
-    let mut ratio = f64::INFINITY;
-    for r in fits {
-        let terms = [
-            t.residual_pct.map(|l| (r.residual_pct_of_sq, l * share)),
-            t.max_error_pct
-                .map(|l| (r.max_error_pct_of_sq, l * MAX_ERROR_TARGET_SHARE)),
-        ];
-        for (value, limit) in terms.into_iter().flatten() {
-            if value > limit {
-                ratio = ratio.min(limit / value);
-            }
-        }
-    }
+    let ratio = (fits.iter())
+        .flat_map(|r| r.failing(t, share, MAX_ERROR_TARGET_SHARE))
+        .filter(|&(name, value, _)| is_pointwise(name) && value > 0.0)
+        .map(|(_, value, limit)| limit / value)
+        .fold(f64::INFINITY, f64::min);
     ratio
         .is_finite()
         .then_some(f * ratio * POINTWISE_STEP_MARGIN)
