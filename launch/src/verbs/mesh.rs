@@ -225,22 +225,30 @@ fn prepared_heights(a: &MeshArgs) -> Result<(surfstream_io::formats::Surface, Pr
 /// A tilt the mean does not remove: said, with what the tolerance and the STL do with it
 /// (the tolerance is judged about the plane, the STL keeps it unless levelled).
 fn say_tilt(surface: &surfstream_io::formats::Surface) {
-    let levelled = Grid::new(
+    let grid = Grid::new(
         &surface.heights_um,
         surface.height,
         surface.width,
         surface.pitch_x_um,
         surface.pitch_y_um,
-    )
-    .map_err(anyhow::Error::from)
-    .and_then(|g| Ok(metrology::level_plane(&g)?));
-    let Ok(levelled) = levelled else { return };
-    let sq = |v: &[f64]| {
-        let m: Vec<f64> = v.iter().copied().filter(|z| !z.is_nan()).collect();
-        let mean = m.iter().sum::<f64>() / m.len().max(1) as f64;
-        (m.iter().map(|z| (z - mean).powi(2)).sum::<f64>() / m.len().max(1) as f64).sqrt()
+    );
+    let Ok(Ok((a, b, c))) = grid.map(|g| metrology::fit_plane(&g)) else {
+        return;
     };
-    let (raw, flat) = (sq(&surface.heights_um), sq(&levelled));
+    let (bx, by) = (b * surface.pitch_x_um, c * surface.pitch_y_um);
+    let cols = surface.width.max(1);
+    let measured = || {
+        surface
+            .heights_um
+            .iter()
+            .copied()
+            .enumerate()
+            .filter(|(_, z)| !z.is_nan())
+    };
+    let raw = sq_about_mean(|| measured().map(|(_, z)| z));
+    let flat = sq_about_mean(|| {
+        measured().map(|(k, z)| z - (a + by * (k / cols) as f64 + bx * (k % cols) as f64))
+    });
     if flat < TILT_SQ_SHARE * raw {
         eprintln!(
             "mesh: note: the surface is tilted: Sq {} with the mean removed, {} about its \
@@ -251,6 +259,13 @@ fn say_tilt(surface: &surfstream_io::formats::Surface) {
             height(flat)
         );
     }
+}
+
+/// The Sq of `values()` about their mean: two passes over them, no copy.
+fn sq_about_mean<I: Iterator<Item = f64>>(values: impl Fn() -> I) -> f64 {
+    let (n, sum) = values().fold((0usize, 0.0), |(n, s), z| (n + 1, s + z));
+    let mean = sum / n.max(1) as f64;
+    (values().map(|z| (z - mean).powi(2)).sum::<f64>() / n.max(1) as f64).sqrt()
 }
 
 /// The spikes found, kept or removed.

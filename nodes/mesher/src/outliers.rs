@@ -79,13 +79,52 @@ fn neighbours(z: &[f32], rows: usize, cols: usize, r: usize, c: usize) -> Option
         return None;
     }
     let v = &mut v[..n];
-    v.sort_unstable_by(f32::total_cmp);
+    if n == 8 {
+        // Nearly every sample has all eight: a sorting network (no NaN here, so min / max
+        // order them as the sort does; a -0 and a +0 may trade places, equal as heights).
+        sort8(v);
+    } else {
+        v.sort_unstable_by(f32::total_cmp);
+    }
     let median = if n % 2 == 1 {
         v[n / 2]
     } else {
         0.5 * (v[n / 2 - 1] + v[n / 2])
     };
     Some((median, v[0], v[n - 1]))
+}
+
+/// Knuth's 19-comparator network for eight values (six layers).
+const SORT8: [(usize, usize); 19] = [
+    (0, 2),
+    (1, 3),
+    (4, 6),
+    (5, 7),
+    (0, 4),
+    (1, 5),
+    (2, 6),
+    (3, 7),
+    (0, 1),
+    (2, 3),
+    (4, 5),
+    (6, 7),
+    (2, 4),
+    (3, 5),
+    (1, 4),
+    (3, 6),
+    (1, 2),
+    (3, 4),
+    (5, 6),
+];
+
+/// Sorts eight values, none NaN, ascending.
+#[inline(always)]
+fn sort8(v: &mut [f32]) {
+    for (i, j) in SORT8 {
+        let (a, b) = (v[i], v[j]);
+        v[i] = a.min(b);
+        v[j] = a.max(b);
+    }
 }
 
 /// Finds the spikes of `heights` (NaN = not measured): the report and the spikes' sample
@@ -245,6 +284,21 @@ fn median_abs(residual: &[f32]) -> Option<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_network_sorts_every_order_of_eight() {
+        // The 0-1 principle: a network that sorts every 0/1 input sorts every input.
+        for bits in 0u32..256 {
+            let mut v: Vec<f32> = (0..8).map(|k| ((bits >> k) & 1) as f32).collect();
+            let mut want = v.clone();
+            want.sort_unstable_by(f32::total_cmp);
+            sort8(&mut v);
+            assert_eq!(v, want, "{bits:08b}");
+        }
+        let mut v = [3.5, -1.0, 2.25, 8.0, -7.5, 0.5, 2.25, 1e-3];
+        sort8(&mut v);
+        assert_eq!(v, [-7.5, -1.0, 1e-3, 0.5, 2.25, 2.25, 3.5, 8.0]);
+    }
     use surfstream_core::raster::Shape;
 
     #[test]

@@ -524,7 +524,8 @@ pub(crate) struct RegionJudge<'a> {
 }
 
 impl<'a> RegionJudge<'a> {
-    pub(crate) fn new(
+    #[cfg(test)]
+    fn new(
         measured_um: &'a [f32],
         roughness_um: Option<&'a [f32]>,
         shape: Shape,
@@ -532,6 +533,26 @@ impl<'a> RegionJudge<'a> {
         form: Option<GridPlane>,
     ) -> Self {
         Self::over(measured_um, None, roughness_um, shape, regions, form)
+    }
+
+    /// [`RegionJudge::new`] with the measurement's side already computed
+    /// (`measured_moments` of the same regions without a mesh).
+    fn with_measured(
+        measured_um: &'a [f32],
+        roughness_um: Option<&'a [f32]>,
+        shape: Shape,
+        regions: &'a [Window],
+        form: Option<GridPlane>,
+        measured: Vec<(Moments, Moments)>,
+    ) -> Self {
+        Self {
+            z: measured_um,
+            g: roughness_um,
+            shape,
+            regions,
+            form: form.unwrap_or_default(),
+            measured,
+        }
     }
 
     /// The measurement's side over the samples measured in `z` and, with `mesh`, covered by
@@ -740,6 +761,12 @@ impl Moments {
 
     fn mean(&self) -> f64 {
         self.sum.iter().sum::<f64>() / self.count() as f64
+    }
+
+    /// The Sq of a series with samples and a spread (None: none, or a constant).
+    fn sq_um(&self) -> Option<f64> {
+        let sq = (self.count() > 0).then(|| self.params()[1])?;
+        (sq.is_finite() && sq > 0.0).then_some(sq)
     }
 
     /// Sa, Sq, Sz.
@@ -1772,6 +1799,9 @@ struct SearchSetup<'a> {
     coarsest_sq_fraction: f64,
     /// The form every region is judged without (the field's plane; None: none).
     form: Option<GridPlane>,
+    /// The measurement's side of every region ([`RegionJudge`]), which also gives the
+    /// regions' Sq the blocks' bounds scale by.
+    measured: Vec<(Moments, Moments)>,
 }
 
 fn search_setup<'a>(
@@ -1798,10 +1828,18 @@ fn search_setup<'a>(
         p.block_samples = Some(balance_block_px(&settings));
     }
     let mut plan = order_plan(heights, &p, sq)?;
+    let measured = measured_moments(
+        heights.values(),
+        None,
+        roughness_um,
+        heights.shape(),
+        &regions,
+        &form.unwrap_or_default(),
+    );
     let mut coarsest_sq_fraction = COARSEST_SQ_FRACTION;
     if let Some(max_error_pct) = settings.tolerance.max_error_pct {
-        let (scales, smallest_sq_um) =
-            block_bound_scales(heights, &plan, &regions, &form.unwrap_or_default());
+        let sqs: Vec<Option<f64>> = measured.iter().map(|(zs, _)| zs.sq_um()).collect();
+        let (scales, smallest_sq_um) = block_bound_scales(&plan, &regions, &sqs);
         plan = plan.with_bound_scales(scales)?;
         // The tightest block's bound is the search's (scale 1): it meets its regions'
         // limit, max_error_pct of their Sq, at this fraction of the map's Sq.
@@ -1821,30 +1859,8 @@ fn search_setup<'a>(
         level,
         coarsest_sq_fraction,
         form,
+        measured,
     })
-}
-
-/// The measured Sq of a region (less `form` and the mean, over its measured samples, as
-/// [`judge_regions`] has it); None without a measured sample.
-fn region_sq_um(z: &[f32], cols: usize, r: &Window, form: &GridPlane) -> Option<f64> {
-    let samples = || {
-        (r.row0..r.row0 + r.rows).flat_map(move |y| {
-            let (start, step) = form.row(y);
-            let k = y * cols + r.col0;
-            z[k..k + r.cols]
-                .iter()
-                .enumerate()
-                .filter(|(_, v)| !v.is_nan())
-                .map(move |(i, &v)| f64::from(v) - (start + step * (r.col0 + i) as f64))
-        })
-    };
-    let n = samples().count();
-    if n == 0 {
-        return None;
-    }
-    let mean = samples().sum::<f64>() / n as f64;
-    let sq = (samples().map(|v| (v - mean) * (v - mean)).sum::<f64>() / n as f64).sqrt();
-    (sq.is_finite() && sq > 0.0).then_some(sq)
 }
 
 /// Per block of `plan`, the factor of the search's bound its insertion takes: the smallest
@@ -1855,22 +1871,16 @@ fn region_sq_um(z: &[f32], cols: usize, r: &Window, form: &GridPlane) -> Option<
 /// bound for the whole map, set by the smallest window's Sq.) With the scales, that smallest
 /// Sq, um (None: no region has one).
 fn block_bound_scales(
-    heights: RasterView<'_, f32>,
     plan: &BlockPlan<'_>,
     regions: &[Window],
-    form: &GridPlane,
+    sqs: &[Option<f64>],
 ) -> (Vec<f64>, Option<f64>) {
-    let (z, cols) = (heights.values(), heights.shape().cols);
-    let sqs: Vec<Option<f64>> = regions
-        .par_iter()
-        .map(|r| region_sq_um(z, cols, r, form))
-        .collect();
     let smallest: Vec<Option<f64>> = (0..plan.block_count())
         .map(|k| {
             let (b, _) = plan.block(k);
             regions
                 .iter()
-                .zip(&sqs)
+                .zip(sqs)
                 .filter(|(r, _)| {
                     r.col0 <= b.x1
                         && b.x0 < r.col0 + r.cols
@@ -1962,14 +1972,16 @@ fn search_to_tolerance<M: CheckpointMesh>(
         level,
         coarsest_sq_fraction,
         form,
+        measured,
     } = search_setup(heights, roughness_um, at, params, settings, footprints)?;
     let extremes = window_extremes(heights, roughness_um, &regions, &form.unwrap_or_default());
-    let region_judge = RegionJudge::new(
+    let region_judge = RegionJudge::with_measured(
         heights.values(),
         roughness_um,
         heights.shape(),
         &regions,
         form,
+        measured,
     );
     let judge =
         |eps: f64, blocks: &BlockSource<'_>, angles: Option<AngleStats>| -> Result<Trial<M>> {
@@ -2465,7 +2477,13 @@ mod tests {
         )
         .unwrap();
         let regions = windows(shape, 32);
-        let (scales, _) = block_bound_scales(view, &plan, &regions, &GridPlane::default());
+        let sqs_of = |regions: &[Window]| -> Vec<Option<f64>> {
+            measured_moments(&z, None, None, shape, regions, &GridPlane::default())
+                .iter()
+                .map(|(zs, _)| zs.sq_um())
+                .collect()
+        };
+        let (scales, _) = block_bound_scales(&plan, &regions, &sqs_of(&regions));
         assert_eq!(scales.len(), plan.block_count());
         for (k, &f) in scales.iter().enumerate() {
             let (b, _) = plan.block(k);
@@ -2479,7 +2497,7 @@ mod tests {
             assert!(f >= 1.0, "{f}");
         }
         // The whole map alone: one region, one bound.
-        let (whole, _) = block_bound_scales(view, &plan, &regions[..1], &GridPlane::default());
+        let (whole, _) = block_bound_scales(&plan, &regions[..1], &sqs_of(&regions[..1]));
         assert!(whole.iter().all(|&f| f == 1.0), "{whole:?}");
     }
 
