@@ -512,7 +512,7 @@ pub fn judge_regions(
 /// Sq, Sz, and the measured roughness's) computed once, since it is the same at every
 /// checkpoint wherever the mesh covers every measured sample of the region (a mesh always
 /// does; a region where it does not is judged over the samples valid in both, the same sums).
-pub(crate) struct RegionJudge<'a> {
+pub struct RegionJudge<'a> {
     z: &'a [f32],
     g: Option<&'a [f32]>,
     shape: Shape,
@@ -524,8 +524,9 @@ pub(crate) struct RegionJudge<'a> {
 }
 
 impl<'a> RegionJudge<'a> {
-    #[cfg(test)]
-    fn new(
+    /// The measurement's side of `regions` (of the field `measured_um` of `shape`, with its
+    /// roughness when given), judged less `form`.
+    pub fn new(
         measured_um: &'a [f32],
         roughness_um: Option<&'a [f32]>,
         shape: Shape,
@@ -580,7 +581,7 @@ impl<'a> RegionJudge<'a> {
     /// Every region of the mesh `mesh_um` (on the measurement's grid) with a measured sample
     /// it covers: Sa, Sq, Sz of both, less the plane and each one's mean, the pointwise
     /// residual and largest error, and the roughness's deviations ([`judge_regions`]).
-    pub(crate) fn judge(&self, mesh_um: &[f32]) -> Vec<RegionFit> {
+    pub fn judge(&self, mesh_um: &[f32]) -> Vec<RegionFit> {
         let (z, g, cols) = (self.z, self.g, self.shape.cols);
         let firsts = sweep(
             self.regions,
@@ -810,12 +811,14 @@ impl MeshSums {
     }
 }
 
-/// `visit(lane, column, column as f64)` over a row of `cols`, in lane-sized runs (the column
-/// as f64 counted, not converted: exact, and cheaper than a u64 conversion per sample).
+/// `visit(lane, column, column as f64)` over the columns `from..to` of a row (`from` a
+/// multiple of [`LANES`]), in lane-sized runs (the column as f64 counted, not converted per
+/// sample: exact, and cheaper than a u64 conversion).
 #[inline(always)]
-fn each_lane(cols: usize, mut visit: impl FnMut(usize, usize, f64)) {
-    let full = cols / LANES * LANES;
-    let (mut i0, mut x) = (0, 0.0);
+fn each_lane(from: usize, to: usize, mut visit: impl FnMut(usize, usize, f64)) {
+    debug_assert_eq!(from % LANES, 0);
+    let full = from + (to - from) / LANES * LANES;
+    let (mut i0, mut x) = (from, from as f64);
     while i0 < full {
         for l in 0..LANES {
             visit(l, i0 + l, x + l as f64);
@@ -823,16 +826,25 @@ fn each_lane(cols: usize, mut visit: impl FnMut(usize, usize, f64)) {
         i0 += LANES;
         x += LANES as f64;
     }
-    for (l, i) in (full..cols).enumerate() {
+    for (l, i) in (full..to).enumerate() {
         visit(l, i, x + l as f64);
     }
 }
 
+/// Columns per stretch of a row that the mesh's passes check for a missing sample: a stretch
+/// with none (nearly all: the missing samples lie along the scan's edges) takes the loop
+/// without the selects, the same sums.
+const STRETCH: usize = 64;
+
 /// One row's first pass over a series of a region: `value(i, x)` is whether column `i` counts
 /// and its value.
 #[inline(always)]
-fn first_row(m: &mut Moments, cols: usize, value: impl Fn(usize, f64) -> (bool, f64)) {
-    each_lane(cols, |l, i, x| {
+fn first_row(
+    m: &mut Moments,
+    (from, to): (usize, usize),
+    value: impl Fn(usize, f64) -> (bool, f64),
+) {
+    each_lane(from, to, |l, i, x| {
         let (ok, v) = value(i, x);
         m.first(l, ok, v);
     });
@@ -840,8 +852,12 @@ fn first_row(m: &mut Moments, cols: usize, value: impl Fn(usize, f64) -> (bool, 
 
 /// One row's second pass over a series: `value(i, x)` less its mean already.
 #[inline(always)]
-fn second_row(m: &mut Moments, cols: usize, value: impl Fn(usize, f64) -> (bool, f64)) {
-    each_lane(cols, |l, i, x| {
+fn second_row(
+    m: &mut Moments,
+    (from, to): (usize, usize),
+    value: impl Fn(usize, f64) -> (bool, f64),
+) {
+    each_lane(from, to, |l, i, x| {
         let (ok, d) = value(i, x);
         m.second(l, ok, d);
     });
@@ -862,11 +878,11 @@ fn measured_moments(
     let valid = |k: usize| !z[k].is_nan() && mesh.is_none_or(|m| !m[k].is_nan());
     let firsts = sweep(regions, shape.rows, MeshSums::EMPTY, |acc, j, y| {
         let (k, start, step, w) = row_of(cols, &regions[j], form, y);
-        first_row(&mut acc.ms, w, |i, x| {
+        first_row(&mut acc.ms, (0, w), |i, x| {
             (valid(k + i), f64::from(z[k + i]) - (start + step * x))
         });
         if let Some(g) = g {
-            first_row(&mut acc.cs, w, |i, _| {
+            first_row(&mut acc.cs, (0, w), |i, _| {
                 (valid(k + i) && !g[k + i].is_nan(), f64::from(g[k + i]))
             });
         }
@@ -875,12 +891,12 @@ fn measured_moments(
     let seconds = sweep(regions, shape.rows, MeshSums::EMPTY, |acc, j, y| {
         let (k, start, step, w) = row_of(cols, &regions[j], form, y);
         let (mz, mg) = means[j];
-        second_row(&mut acc.ms, w, |i, x| {
+        second_row(&mut acc.ms, (0, w), |i, x| {
             let d = f64::from(z[k + i]) - (start + step * x) - mz;
             (valid(k + i), d)
         });
         if let Some(g) = g {
-            second_row(&mut acc.cs, w, |i, _| {
+            second_row(&mut acc.cs, (0, w), |i, _| {
                 (valid(k + i) && !g[k + i].is_nan(), f64::from(g[k + i]) - mg)
             });
         }
@@ -902,8 +918,7 @@ fn any_nan(v: &[f32]) -> bool {
 }
 
 /// The mesh's first pass over one row of a region: its heights less the plane, and the
-/// roughness it carries (`g + m - z`), over the samples valid in both (all three). A row with
-/// no sample missing (nearly all of them) takes the loop without the selects: the same sums.
+/// roughness it carries (`g + m - z`), over the samples valid in both (all three).
 #[inline(always)]
 fn mesh_first(
     acc: &mut MeshSums,
@@ -914,38 +929,36 @@ fn mesh_first(
     step: f64,
 ) {
     let w = zr.len().min(mr.len());
-    let clean = !(any_nan(zr) || any_nan(mr) || gr.is_some_and(any_nan));
-    match (gr, clean) {
-        (Some(gr), true) => {
-            let (mut ms, mut cs) = (acc.ms, acc.cs);
-            let gr = &gr[..w];
-            each_lane(w, |l, i, x| {
+    let (mut ms, mut cs) = (acc.ms, acc.cs);
+    for from in (0..w).step_by(STRETCH) {
+        let to = (from + STRETCH).min(w);
+        let clean = !(any_nan(&zr[from..to])
+            || any_nan(&mr[from..to])
+            || gr.is_some_and(|g| any_nan(&g[from..to])));
+        match (gr, clean) {
+            (Some(gr), true) => each_lane(from, to, |l, i, x| {
                 let (a, b) = (f64::from(zr[i]), f64::from(mr[i]));
                 ms.first(l, true, b - (start + step * x));
                 cs.first(l, true, f64::from(gr[i]) + b - a);
-            });
-            (acc.ms, acc.cs) = (ms, cs);
-        }
-        (None, true) => {
-            let mut ms = acc.ms;
-            each_lane(w, |l, i, x| {
+            }),
+            (None, true) => each_lane(from, to, |l, i, x| {
                 ms.first(l, true, f64::from(mr[i]) - (start + step * x))
-            });
-            acc.ms = ms;
-        }
-        (_, false) => {
-            let ok = |i: usize| !(zr[i].is_nan() || mr[i].is_nan());
-            first_row(&mut acc.ms, w, |i, x| {
-                (ok(i), f64::from(mr[i]) - (start + step * x))
-            });
-            if let Some(gr) = gr {
-                first_row(&mut acc.cs, w, |i, _| {
-                    let carried = f64::from(gr[i]) + f64::from(mr[i]) - f64::from(zr[i]);
-                    (ok(i) && !gr[i].is_nan(), carried)
+            }),
+            (_, false) => {
+                let ok = |i: usize| !(zr[i].is_nan() || mr[i].is_nan());
+                first_row(&mut ms, (from, to), |i, x| {
+                    (ok(i), f64::from(mr[i]) - (start + step * x))
                 });
+                if let Some(gr) = gr {
+                    first_row(&mut cs, (from, to), |i, _| {
+                        let carried = f64::from(gr[i]) + f64::from(mr[i]) - f64::from(zr[i]);
+                        (ok(i) && !gr[i].is_nan(), carried)
+                    });
+                }
             }
         }
     }
+    (acc.ms, acc.cs) = (ms, cs);
 }
 
 /// The mesh's second pass over one row, `means` = (measured, mesh, carried roughness).
@@ -961,7 +974,6 @@ fn mesh_second(
 ) {
     let [mz, mm, mc] = means;
     let w = zr.len().min(mr.len());
-    let clean = !(any_nan(zr) || any_nan(mr) || gr.is_some_and(any_nan));
     let mut sums = *acc;
     // The residual and the mesh's heights at column i (`ok`: both measured there).
     let residual = |sums: &mut MeshSums, l: usize, ok: bool, a: f32, b: f32, x: f64| {
@@ -972,28 +984,33 @@ fn mesh_second(
         sums.rq[l] += e * e;
         sums.rmax[l] = if e > sums.rmax[l] { e } else { sums.rmax[l] };
     };
-    match (gr, clean) {
-        (Some(gr), true) => {
-            let gr = &gr[..w];
-            each_lane(w, |l, i, x| {
+    for from in (0..w).step_by(STRETCH) {
+        let to = (from + STRETCH).min(w);
+        let clean = !(any_nan(&zr[from..to])
+            || any_nan(&mr[from..to])
+            || gr.is_some_and(|g| any_nan(&g[from..to])));
+        match (gr, clean) {
+            (Some(gr), true) => each_lane(from, to, |l, i, x| {
                 let (a, b) = (zr[i], mr[i]);
                 residual(&mut sums, l, true, a, b, x);
                 let carried = f64::from(gr[i]) + f64::from(b) - f64::from(a);
                 sums.cs.second(l, true, carried - mc);
-            });
-        }
-        (None, true) => each_lane(w, |l, i, x| residual(&mut sums, l, true, zr[i], mr[i], x)),
-        (_, false) => {
-            each_lane(w, |l, i, x| {
-                let (a, b) = (zr[i], mr[i]);
-                residual(&mut sums, l, !(a.is_nan() || b.is_nan()), a, b, x);
-            });
-            if let Some(gr) = gr {
-                let ok = |i: usize| !(zr[i].is_nan() || mr[i].is_nan() || gr[i].is_nan());
-                second_row(&mut sums.cs, w, |i, _| {
-                    let carried = f64::from(gr[i]) + f64::from(mr[i]) - f64::from(zr[i]);
-                    (ok(i), carried - mc)
+            }),
+            (None, true) => each_lane(from, to, |l, i, x| {
+                residual(&mut sums, l, true, zr[i], mr[i], x)
+            }),
+            (_, false) => {
+                each_lane(from, to, |l, i, x| {
+                    let (a, b) = (zr[i], mr[i]);
+                    residual(&mut sums, l, !(a.is_nan() || b.is_nan()), a, b, x);
                 });
+                if let Some(gr) = gr {
+                    let ok = |i: usize| !(zr[i].is_nan() || mr[i].is_nan() || gr[i].is_nan());
+                    second_row(&mut sums.cs, (from, to), |i, _| {
+                        let carried = f64::from(gr[i]) + f64::from(mr[i]) - f64::from(zr[i]);
+                        (ok(i), carried - mc)
+                    });
+                }
             }
         }
     }
