@@ -583,22 +583,16 @@ impl<'a> RegionJudge<'a> {
     /// residual and largest error, and the roughness's deviations ([`judge_regions`]).
     pub fn judge(&self, mesh_um: &[f32]) -> Vec<RegionFit> {
         let (z, g, cols) = (self.z, self.g, self.shape.cols);
-        let firsts = sweep(
-            self.regions,
-            self.shape.rows,
-            MeshSums::EMPTY,
-            |acc, j, y| {
-                let (k, start, step, w) = row_of(cols, &self.regions[j], &self.form, y);
-                mesh_first(
-                    acc,
-                    &z[k..k + w],
-                    &mesh_um[k..k + w],
-                    g.map(|g| &g[k..k + w]),
-                    start,
-                    step,
-                );
-            },
-        );
+        // Row y of region j: the measurement, the mesh, the roughness; the plane there.
+        let row = |j: usize, y: usize| {
+            let (k, start, step, w) = row_of(cols, &self.regions[j], &self.form, y);
+            let rows = (&z[k..k + w], &mesh_um[k..k + w], g.map(|g| &g[k..k + w]));
+            (rows, start, step)
+        };
+        let firsts = sweep(self.regions, self.shape.rows, |acc, j, y| {
+            let ((zr, mr, gr), start, step) = row(j, y);
+            mesh_first(acc, zr, mr, gr, start, step);
+        });
         // A region the mesh leaves a measured sample of uncovered: its measured side again
         // over the samples both have (a mesh covers the field; this is for a caller's mesh).
         let partial: Vec<usize> = (0..self.regions.len())
@@ -618,23 +612,10 @@ impl<'a> RegionJudge<'a> {
         let means: Vec<[f64; 3]> = (measured.iter().zip(&firsts))
             .map(|((zs, _), f)| [zs.mean(), f.ms.mean(), f.cs.mean()])
             .collect();
-        let seconds = sweep(
-            self.regions,
-            self.shape.rows,
-            MeshSums::EMPTY,
-            |acc, j, y| {
-                let (k, start, step, w) = row_of(cols, &self.regions[j], &self.form, y);
-                mesh_second(
-                    acc,
-                    &z[k..k + w],
-                    &mesh_um[k..k + w],
-                    g.map(|g| &g[k..k + w]),
-                    start,
-                    step,
-                    means[j],
-                );
-            },
-        );
+        let seconds = sweep(self.regions, self.shape.rows, |acc, j, y| {
+            let ((zr, mr, gr), start, step) = row(j, y);
+            mesh_second(acc, zr, mr, gr, start, step, means[j]);
+        });
         (self
             .regions
             .iter()
@@ -658,9 +639,9 @@ const BAND_ROWS: usize = 16;
 fn sweep(
     regions: &[Window],
     rows: usize,
-    empty: MeshSums,
     visit: impl Fn(&mut MeshSums, usize, usize) + Sync,
 ) -> Vec<MeshSums> {
+    let empty = MeshSums::EMPTY;
     let partial: Vec<Vec<(usize, MeshSums)>> = (0..rows.div_ceil(BAND_ROWS))
         .into_par_iter()
         .map(|b| {
@@ -836,30 +817,19 @@ fn each_lane(from: usize, to: usize, mut visit: impl FnMut(usize, usize, f64)) {
 /// without the selects, the same sums.
 const STRETCH: usize = 64;
 
-/// One row's first pass over a series of a region: `value(i, x)` is whether column `i` counts
-/// and its value.
+/// One row's pass over a series of a region: `value(i, x)` is whether column `i` counts and
+/// its value (less the mean in the second pass), added by `add` ([`Moments::first`] or
+/// [`Moments::second`]).
 #[inline(always)]
-fn first_row(
+fn along_row(
     m: &mut Moments,
     (from, to): (usize, usize),
+    add: impl Fn(&mut Moments, usize, bool, f64),
     value: impl Fn(usize, f64) -> (bool, f64),
 ) {
     each_lane(from, to, |l, i, x| {
         let (ok, v) = value(i, x);
-        m.first(l, ok, v);
-    });
-}
-
-/// One row's second pass over a series: `value(i, x)` less its mean already.
-#[inline(always)]
-fn second_row(
-    m: &mut Moments,
-    (from, to): (usize, usize),
-    value: impl Fn(usize, f64) -> (bool, f64),
-) {
-    each_lane(from, to, |l, i, x| {
-        let (ok, d) = value(i, x);
-        m.second(l, ok, d);
+        add(m, l, ok, v);
     });
 }
 
@@ -876,27 +846,27 @@ fn measured_moments(
 ) -> Vec<(Moments, Moments)> {
     let cols = shape.cols;
     let valid = |k: usize| !z[k].is_nan() && mesh.is_none_or(|m| !m[k].is_nan());
-    let firsts = sweep(regions, shape.rows, MeshSums::EMPTY, |acc, j, y| {
+    let firsts = sweep(regions, shape.rows, |acc, j, y| {
         let (k, start, step, w) = row_of(cols, &regions[j], form, y);
-        first_row(&mut acc.ms, (0, w), |i, x| {
+        along_row(&mut acc.ms, (0, w), Moments::first, |i, x| {
             (valid(k + i), f64::from(z[k + i]) - (start + step * x))
         });
         if let Some(g) = g {
-            first_row(&mut acc.cs, (0, w), |i, _| {
+            along_row(&mut acc.cs, (0, w), Moments::first, |i, _| {
                 (valid(k + i) && !g[k + i].is_nan(), f64::from(g[k + i]))
             });
         }
     });
     let means: Vec<(f64, f64)> = firsts.iter().map(|f| (f.ms.mean(), f.cs.mean())).collect();
-    let seconds = sweep(regions, shape.rows, MeshSums::EMPTY, |acc, j, y| {
+    let seconds = sweep(regions, shape.rows, |acc, j, y| {
         let (k, start, step, w) = row_of(cols, &regions[j], form, y);
         let (mz, mg) = means[j];
-        second_row(&mut acc.ms, (0, w), |i, x| {
+        along_row(&mut acc.ms, (0, w), Moments::second, |i, x| {
             let d = f64::from(z[k + i]) - (start + step * x) - mz;
             (valid(k + i), d)
         });
         if let Some(g) = g {
-            second_row(&mut acc.cs, (0, w), |i, _| {
+            along_row(&mut acc.cs, (0, w), Moments::second, |i, _| {
                 (valid(k + i) && !g[k + i].is_nan(), f64::from(g[k + i]) - mg)
             });
         }
@@ -917,6 +887,23 @@ fn any_nan(v: &[f32]) -> bool {
     v.iter().fold(false, |a, x| a | x.is_nan())
 }
 
+/// The stretches of [`STRETCH`] columns of a row of `w` (from, to) and whether none of the
+/// three rows misses a sample there.
+fn stretches<'r>(
+    w: usize,
+    zr: &'r [f32],
+    mr: &'r [f32],
+    gr: Option<&'r [f32]>,
+) -> impl Iterator<Item = (usize, usize, bool)> + 'r {
+    (0..w).step_by(STRETCH).map(move |from| {
+        let to = (from + STRETCH).min(w);
+        let clean = !(any_nan(&zr[from..to])
+            || any_nan(&mr[from..to])
+            || gr.is_some_and(|g| any_nan(&g[from..to])));
+        (from, to, clean)
+    })
+}
+
 /// The mesh's first pass over one row of a region: its heights less the plane, and the
 /// roughness it carries (`g + m - z`), over the samples valid in both (all three).
 #[inline(always)]
@@ -930,11 +917,7 @@ fn mesh_first(
 ) {
     let w = zr.len().min(mr.len());
     let (mut ms, mut cs) = (acc.ms, acc.cs);
-    for from in (0..w).step_by(STRETCH) {
-        let to = (from + STRETCH).min(w);
-        let clean = !(any_nan(&zr[from..to])
-            || any_nan(&mr[from..to])
-            || gr.is_some_and(|g| any_nan(&g[from..to])));
+    for (from, to, clean) in stretches(w, zr, mr, gr) {
         match (gr, clean) {
             (Some(gr), true) => each_lane(from, to, |l, i, x| {
                 let (a, b) = (f64::from(zr[i]), f64::from(mr[i]));
@@ -946,11 +929,11 @@ fn mesh_first(
             }),
             (_, false) => {
                 let ok = |i: usize| !(zr[i].is_nan() || mr[i].is_nan());
-                first_row(&mut ms, (from, to), |i, x| {
+                along_row(&mut ms, (from, to), Moments::first, |i, x| {
                     (ok(i), f64::from(mr[i]) - (start + step * x))
                 });
                 if let Some(gr) = gr {
-                    first_row(&mut cs, (from, to), |i, _| {
+                    along_row(&mut cs, (from, to), Moments::first, |i, _| {
                         let carried = f64::from(gr[i]) + f64::from(mr[i]) - f64::from(zr[i]);
                         (ok(i) && !gr[i].is_nan(), carried)
                     });
@@ -984,11 +967,7 @@ fn mesh_second(
         sums.rq[l] += e * e;
         sums.rmax[l] = if e > sums.rmax[l] { e } else { sums.rmax[l] };
     };
-    for from in (0..w).step_by(STRETCH) {
-        let to = (from + STRETCH).min(w);
-        let clean = !(any_nan(&zr[from..to])
-            || any_nan(&mr[from..to])
-            || gr.is_some_and(|g| any_nan(&g[from..to])));
+    for (from, to, clean) in stretches(w, zr, mr, gr) {
         match (gr, clean) {
             (Some(gr), true) => each_lane(from, to, |l, i, x| {
                 let (a, b) = (zr[i], mr[i]);
@@ -1006,7 +985,7 @@ fn mesh_second(
                 });
                 if let Some(gr) = gr {
                     let ok = |i: usize| !(zr[i].is_nan() || mr[i].is_nan() || gr[i].is_nan());
-                    second_row(&mut sums.cs, (from, to), |i, _| {
+                    along_row(&mut sums.cs, (from, to), Moments::second, |i, _| {
                         let carried = f64::from(gr[i]) + f64::from(mr[i]) - f64::from(zr[i]);
                         (ok(i), carried - mc)
                     });
