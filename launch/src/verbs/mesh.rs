@@ -53,6 +53,16 @@ pub struct MeshArgs {
     /// within `rough` (default 5 %), as the graphs do (docs/model.md).
     #[arg(long, value_name = "FILE", conflicts_with_all = ["epsilon_um", "epsilon_sq"])]
     pub roughness: Option<PathBuf>,
+    /// The fusion's tile placements for a panorama (a run's panorama.tiles.json; by default
+    /// NAME.tiles.json beside NAME.npy when it exists): the tolerance then also judges every
+    /// tile's footprint (Table 6's S1, S2, ...), as the graph's mesher does, and aims at all
+    /// of the tolerance instead of 90 % of it.
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["epsilon_um", "epsilon_sq", "no_tiles"])]
+    pub tiles: Option<PathBuf>,
+    /// Do not read NAME.tiles.json beside the input: the windows alone, at 90 % of the
+    /// tolerance (the margin for the tile regions not judged).
+    #[arg(long)]
+    pub no_tiles: bool,
     /// Treat isolated spikes as not measured before meshing (ISO 25178-3 style outlier
     /// removal; they are always reported in OUT.json, and kept by default).
     #[arg(long)]
@@ -126,6 +136,9 @@ pub fn run(a: MeshArgs) -> Result<()> {
     };
     let mut input = prepared.into_input(pitch);
     input.roughness_um = roughness.as_deref();
+    if settings.tolerance.is_some() {
+        input.footprints = tile_footprints_of(&a, input.shape, pitch)?;
+    }
     let label = settings.map_stl_label();
     let outputs = MeshOutputs {
         stl: &a.out,
@@ -155,6 +168,64 @@ pub fn run(a: MeshArgs) -> Result<()> {
         MeshMade::FullGrid(_) => {}
     }
     Ok(())
+}
+
+/// The tile footprints the tolerance judges too: from `--tiles`, or NAME.tiles.json beside
+/// NAME.npy (the fusion writes panorama.tiles.json beside panorama.npy), said on stderr; none
+/// with `--no-tiles` or without such a file. Errors: a file that is not the fusion's tile
+/// placements, or (given with `--tiles`) one of another grid than the input's.
+fn tile_footprints_of(
+    a: &MeshArgs,
+    shape: Shape,
+    pitch: surfstream_core::Pitch,
+) -> Result<Vec<surfstream_mesher::tolerance::Window>> {
+    let beside = a.file.with_extension("tiles.json");
+    let path = match (&a.tiles, a.no_tiles) {
+        (Some(p), _) => p.clone(),
+        (None, false) if beside.is_file() => beside,
+        _ => return Ok(Vec::new()),
+    };
+    let text = std::fs::read_to_string(&path)
+        .with_context(|| format!("{}: cannot read the tile placements", path.display()))?;
+    let tiles: surfstream_core::record::PanoramaTiles =
+        serde_json::from_str(&text).map_err(|e| {
+            anyhow!(
+                "{}: {e}: expected the fusion's tile placements (panorama.tiles.json)",
+                path.display()
+            )
+        })?;
+    let p = &tiles.panorama;
+    // The .npy carries no origin: the panorama's, where its grid is the input's.
+    let at = surfstream_mesher::ScanPlacement::new(pitch).with_origin(p.origin_x_um, p.origin_y_um);
+    let footprints = surfstream_mesher::job::tile_footprints(&tiles, shape, &at);
+    if footprints.is_empty() {
+        let grid = format!(
+            "{} x {} px at {} x {} um",
+            p.height_px, p.width_px, p.pitch_x_um, p.pitch_y_um
+        );
+        if a.tiles.is_some() {
+            bail!(
+                "{}: the tile placements are of a {grid} panorama (rows x cols), {} is {} x {} px at {} x {} um: expected the placements of this map",
+                path.display(),
+                a.file.display(),
+                shape.rows,
+                shape.cols,
+                pitch.x_um(),
+                pitch.y_um()
+            );
+        }
+        eprintln!(
+            "mesh: note: {} is of another grid ({grid}): its tile footprints are not judged",
+            path.display()
+        );
+        return Ok(Vec::new());
+    }
+    eprintln!(
+        "mesh: judging the {} tile footprints of {} too (Table 6's regions): the search aims at all of the tolerance (--no-tiles: the windows alone, at 90 %)",
+        footprints.len(),
+        path.display()
+    );
+    Ok(footprints)
 }
 
 /// The mesher's config from the flags: the verb states the graph's parameters, typed, and
@@ -499,6 +570,78 @@ mod tests {
         };
         surfstream_io::sidecar::write_sidecar(&npy, &geometry).unwrap();
         npy
+    }
+
+    /// The fusion's tile placements beside NAME.npy (or given) put Table 6's tile regions
+    /// among the regions the tolerance judges; `--no-tiles` leaves them out; placements of
+    /// another grid are refused when given and passed over (said) when found beside.
+    #[test]
+    fn the_tile_placements_beside_a_panorama_are_judged_too() {
+        let d = tempfile::tempdir().unwrap();
+        let npy = wavy_npy(d.path());
+        let placements = |width_px: usize| surfstream_core::record::PanoramaTiles {
+            panorama: surfstream_core::record::PanoramaSummary {
+                width_px,
+                height_px: 90,
+                origin_x_um: 10.0,
+                origin_y_um: 20.0,
+                pitch_x_um: 0.5,
+                pitch_y_um: 0.6,
+                z_offset_um: 0.0,
+                invalid_px: 1,
+            },
+            tiles: [(0, 10.0), (1, 35.0)]
+                .map(|(index, x_um)| surfstream_core::record::PlacedTile {
+                    index,
+                    x_um,
+                    y_um: 20.0,
+                    width_px: 70,
+                    height_px: 90,
+                })
+                .to_vec(),
+        };
+        let write = |path: &Path, width_px: usize| {
+            std::fs::write(path, serde_json::to_string(&placements(width_px)).unwrap()).unwrap()
+        };
+        let beside = d.path().join("wavy.tiles.json");
+        write(&beside, 120);
+        let stl = d.path().join("out/wall.stl");
+        let pitch = surfstream_core::Pitch::new(0.5, 0.6).unwrap();
+        let shape = Shape::new(90, 120);
+        let found = tile_footprints_of(&args(&npy, &stl, &[]), shape, pitch).unwrap();
+        let spans: Vec<(usize, usize)> = found.iter().map(|w| (w.col0, w.cols)).collect();
+        assert_eq!(spans, [(0, 70), (50, 70)], "{found:?}");
+        assert!(
+            found.iter().all(|w| (w.row0, w.rows) == (0, 90)),
+            "{found:?}"
+        );
+        let off = tile_footprints_of(&args(&npy, &stl, &["--no-tiles"]), shape, pitch).unwrap();
+        assert!(off.is_empty());
+        // The verb end to end: the record says how many footprints were judged.
+        run(args(&npy, &stl, &["--tolerance", "sa=1,sq=1,sz=3"])).unwrap();
+        let record: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(stl.with_extension("json")).unwrap())
+                .unwrap();
+        assert_eq!(
+            record["tolerance"]["footprints"], 2,
+            "{}",
+            record["tolerance"]
+        );
+        // Another grid: refused when given, passed over when found beside.
+        let other = d.path().join("other.tiles.json");
+        write(&other, 121);
+        let given = other.to_str().unwrap();
+        let e = tile_footprints_of(&args(&npy, &stl, &["--tiles", given]), shape, pitch)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("other.tiles.json") && e.contains("expected the placements"),
+            "{e}"
+        );
+        write(&beside, 121);
+        assert!(tile_footprints_of(&args(&npy, &stl, &[]), shape, pitch)
+            .unwrap()
+            .is_empty());
     }
 
     /// The verb meshes through the streamed mesher; the in-memory mesher, run on the same
