@@ -190,7 +190,7 @@ fn tile_footprints_of(
     let tiles: surfstream_core::record::PanoramaTiles =
         serde_json::from_str(&text).map_err(|e| {
             anyhow!(
-                "{}: {e}: expected the fusion's tile placements (panorama.tiles.json)",
+                "{}: {e}: expected the fusion's tile placements (panorama.tiles.json; --no-tiles meshes without them)",
                 path.display()
             )
         })?;

@@ -601,10 +601,11 @@ impl<'a> RegionJudge<'a> {
                 firsts[j].ms.count() != zs.count() || firsts[j].cs.count() != gs.count()
             })
             .collect();
-        let mut measured = self.measured.clone();
+        let mut measured = std::borrow::Cow::Borrowed(&self.measured[..]);
         if !partial.is_empty() {
             let some: Vec<Window> = partial.iter().map(|&j| self.regions[j].clone()).collect();
             let again = measured_moments(z, Some(mesh_um), g, self.shape, &some, &self.form);
+            let measured = measured.to_mut();
             for (&j, m) in partial.iter().zip(again) {
                 measured[j] = m;
             }
@@ -619,7 +620,7 @@ impl<'a> RegionJudge<'a> {
         (self
             .regions
             .iter()
-            .zip(&measured)
+            .zip(measured.iter())
             .zip(firsts.iter().zip(seconds)))
         .filter(|((_, (zs, _)), _)| zs.count() > 0)
         .map(|((r, (zs, gs)), (first, second))| region_fit(r, zs, gs, first, &second, g.is_some()))
