@@ -2629,18 +2629,7 @@ mod tests {
                 a * ((x * 1.3).sin() * (y * 0.7).cos())
             })
             .collect();
-        let view = RasterView::new(&z, shape).unwrap();
-        let plan = BlockPlan::new(
-            view,
-            &TinParams {
-                epsilon_um: 1.0,
-                max_triangles: None,
-                missing: crate::tin::MissingSamples::Fill,
-                block_samples: Some(16),
-                keep_extremes: true,
-            },
-        )
-        .unwrap();
+        let plan = plan_of_16(&z, shape);
         let regions = windows(shape, 32);
         let sqs_of = |regions: &[Window]| -> Vec<Option<f64>> {
             measured_moments(&z, None, None, shape, regions, &GridPlane::default())
@@ -2894,15 +2883,10 @@ mod tests {
         );
     }
 
-    #[test]
-    fn the_balance_reaches_the_blocks_that_meet_the_failing_regions_only() {
-        // 49 x 50 samples in blocks of 16: block sides at x 0, 16, 32, 49 and y 0, 16, 32, 48.
-        let shape = Shape::new(49, 50);
-        let z: Vec<f32> = (0..shape.rows * shape.cols)
-            .map(|s| ((s % 7) as f32) * 0.1)
-            .collect();
-        let view = RasterView::new(&z, shape).unwrap();
-        let plan = BlockPlan::new(
+    /// The block plan of `z` in blocks of 16 samples (bound 1 um, missing samples filled).
+    fn plan_of_16(z: &[f32], shape: Shape) -> BlockPlan<'_> {
+        let view = RasterView::new(z, shape).unwrap();
+        BlockPlan::new(
             view,
             &TinParams {
                 epsilon_um: 1.0,
@@ -2912,7 +2896,17 @@ mod tests {
                 keep_extremes: true,
             },
         )
-        .unwrap();
+        .unwrap()
+    }
+
+    #[test]
+    fn the_balance_reaches_the_blocks_that_meet_the_failing_regions_only() {
+        // 49 x 50 samples in blocks of 16: block sides at x 0, 16, 32, 49 and y 0, 16, 32, 48.
+        let shape = Shape::new(49, 50);
+        let z: Vec<f32> = (0..shape.rows * shape.cols)
+            .map(|s| ((s % 7) as f32) * 0.1)
+            .collect();
+        let plan = plan_of_16(&z, shape);
         let n = plan.block_count();
         let window = |name: &str, row0, col0, rows, cols| Window {
             name: name.into(),
@@ -2992,12 +2986,7 @@ mod tests {
             },
             calls: Vec::new(),
         };
-        let aim = Aim {
-            share: TARGET_SHARE,
-            coarsest_sq_fraction: 0.5,
-        };
-        let settings = ToleranceSettings::default();
-        let (_, report) = search(1.0, 1_000_000, &settings, aim, 2, None, &mut order).unwrap();
+        let report = search_from_half_sq(&mut order, 2);
         assert!(report.met, "{report:?}");
         assert_eq!(report.surface_triangles, 106_000);
         let calls: Vec<(Stage, Balanced)> =
@@ -3013,6 +3002,18 @@ mod tests {
             order.calls
         );
         assert!(order.calls[..3].iter().all(|c| c.0 == order.calls[0].0));
+    }
+
+    /// The search at the default tolerance and the verb's share over `regions` regions of a
+    /// map of Sq 1 um, its candidates from 0.5 x Sq.
+    fn search_from_half_sq(order: &mut impl Checkpoints<()>, regions: usize) -> ToleranceReport {
+        let aim = Aim {
+            share: TARGET_SHARE,
+            coarsest_sq_fraction: 0.5,
+        };
+        let settings = ToleranceSettings::default();
+        let (_, report) = search(1.0, 1_000_000, &settings, aim, regions, None, order).unwrap();
+        report
     }
 
     /// An insertion order whose checkpoints are given by a rule: (triangles, fits) per
@@ -3067,12 +3068,7 @@ mod tests {
             },
             calls: Vec::new(),
         };
-        let aim = Aim {
-            share: TARGET_SHARE,
-            coarsest_sq_fraction: 0.5,
-        };
-        let settings = ToleranceSettings::default();
-        let (_, report) = search(1.0, 1_000_000, &settings, aim, 1, None, &mut order).unwrap();
+        let report = search_from_half_sq(&mut order, 1);
         assert!(report.met, "{report:?}");
         assert_eq!(report.surface_triangles, 115_000);
         let stages: Vec<Stage> = order.calls.iter().map(|c| c.1).collect();
