@@ -1236,6 +1236,18 @@ impl Balanced {
         }
     }
 
+    /// What a refinement of `plan`'s blocks balances, `full` being the order's full balance:
+    /// the target and the blocks, or `None` when it balances nothing (both orders).
+    fn step<'r>(
+        &self,
+        full: Option<Balance<'r>>,
+        plan: &BlockPlan<'_>,
+        regions: &[Window],
+    ) -> Option<BalanceStep<'r>> {
+        full.filter(|_| self.any())
+            .map(|full| (self.target(full), Arc::new(self.blocks(plan, regions))))
+    }
+
     /// The region names of both (`Regions`), not near.
     fn with(self, other: Balanced) -> Balanced {
         let names_of = |b: Balanced| match b {
@@ -1307,7 +1319,7 @@ fn balance_for(fits: &[RegionFit], t: &Tolerance, share: f64, near: bool) -> Bal
         .iter()
         .filter(|r| {
             r.failing(t, share, MAX_ERROR_TARGET_SHARE)
-                .any(|(name, _, _)| !is_pointwise(name) && !name.ends_with("Sz"))
+                .any(|(name, _, _)| !is_pointwise(name) && !is_range(name))
         })
         .map(|r| r.region.clone())
         .collect();
@@ -1317,6 +1329,12 @@ fn balance_for(fits: &[RegionFit], t: &Tolerance, share: f64, near: bool) -> Bal
 /// The pointwise terms' names in [`RegionFit::excess_at`]: they follow the insertion's bound.
 const RESIDUAL: &str = "residual";
 const MAX_ERROR: &str = "max error";
+
+/// Sz of the heights or of the roughness in [`RegionFit::excess_at`]: the range, set by the
+/// extremes, which the block balance does not aim at.
+fn is_range(name: &str) -> bool {
+    name == "Sz" || name == "roughness Sz"
+}
 
 fn is_pointwise(name: &str) -> bool {
     name == RESIDUAL || name == MAX_ERROR
@@ -2255,12 +2273,7 @@ where
         if let (Stage::Bisect, Some(kept)) = (stage, self.kept) {
             self.replay(kept);
         }
-        let step = self.balance.filter(|_| balanced.any()).map(|full| {
-            (
-                balanced.target(full),
-                Arc::new(balanced.blocks(self.plan, self.regions)),
-            )
-        });
+        let step = balanced.step(self.balance, self.plan, self.regions);
         let angles = self.refine(epsilon_um, step);
         let live = &self.live;
         (self.judge)(epsilon_um, &|k| Ok(live[k].snapshot()), angles)
@@ -2457,8 +2470,7 @@ where
             _ => self.current.clone(),
         };
         let plan = self.plan;
-        let blocks = balanced.blocks(plan, self.regions);
-        let balance = self.balance.map(|full| balanced.target(full));
+        let step = balanced.step(self.balance, plan, self.regions);
         let sides = plan.sides_at(epsilon_um);
         let extremes = &self.extremes;
         let next = BlockWriter::new(&self.spill_dir, plan.block_count());
@@ -2472,8 +2484,8 @@ where
                 }
             };
             b.refine(plan, &sides, k);
-            if let Some(target) = balance.filter(|_| blocks[k]) {
-                b.balance(plan, target);
+            if let Some((target, _)) = step.as_ref().filter(|(_, blocks)| blocks[k]) {
+                b.balance(plan, *target);
             }
             next.write(k, &b)?;
             Ok(b.into_tin())
