@@ -411,16 +411,10 @@ fn basin_stats_of_rows<const NEG: bool>(
 }
 
 /// Step 5, saddles between adjacent basins (8-neighbours): min over the border of the higher
-/// height, as each basin's list of (neighbour, saddle pixel), one entry per neighbour, in
-/// ascending neighbour. Blocks of rows collect their pairs in a map (a border repeats one
-/// pair many times), so only distinct pairs per block are sorted.
-fn saddles<const NEG: bool>(
-    z: &[f64],
-    label: &[u32],
-    rows: usize,
-    cols: usize,
-    m: usize,
-) -> Vec<Vec<Neighbour>> {
+/// height, one per pair of basins, sorted by the pair (see [`NeighbourLists::of_pairs`]).
+/// Blocks of rows collect their pairs in a map (a border repeats one pair many times), so
+/// only distinct pairs per block are sorted.
+fn saddles<const NEG: bool>(z: &[f64], label: &[u32], rows: usize, cols: usize) -> Vec<SaddlePair> {
     let at = |r: isize, c: isize| cell(r, c, rows, cols);
     let height = |i: u32| h::<NEG>(z, i as usize);
     const ROWS_PER_BLOCK: usize = 32;
@@ -471,25 +465,124 @@ fn saddles<const NEG: bool>(
         }
         same
     });
-    let split = |k: u64| ((k >> 32) as usize, (k & 0xffff_ffff) as usize);
-    let mut degree = vec![0u32; m + 1];
-    for p in &pairs {
-        let (a, b) = split(p.key);
-        degree[a] += 1;
-        degree[b] += 1;
+    pairs
+}
+
+/// No segment after this one in its chain.
+const END: u32 = u32::MAX;
+
+/// The basins' neighbour lists of [`wolf_prune`] in one store: each basin's first list is a
+/// segment of it, in basin order (compressed sparse rows); a merge links the merged basin's
+/// segments behind the survivor's instead of copying them. Nothing grows while pruning (a
+/// compacted list is written back into its own segments): with a `Vec` per basin, joined
+/// lists reallocated and the pruning grew its lists by about three quarters (of a
+/// 4096^2 roughness map's 37 MB), besides a header and an allocation per basin.
+struct NeighbourLists {
+    entries: Vec<Neighbour>,
+    /// Segment `s` may hold `entries[start[s]..start[s + 1]]`.
+    start: Vec<usize>,
+    /// The entries in use in segment `s`, from its start.
+    used: Vec<u32>,
+    /// The next segment of the chain, [`END`] after the last.
+    next: Vec<u32>,
+    /// Per basin, the last segment of its chain (the first is the basin's own).
+    last: Vec<u32>,
+    /// Per basin, the entries in its chain (< 2^32: a chain is compacted before it holds
+    /// more than twice its distinct neighbours and a few, and basins are < 2^30).
+    len: Vec<u32>,
+}
+
+impl NeighbourLists {
+    /// The lists of the distinct `pairs` (sorted by key): one entry per pair in each of its
+    /// two basins' lists, in ascending neighbour.
+    fn of_pairs(pairs: &[SaddlePair], m: usize) -> Self {
+        let split = |k: u64| ((k >> 32) as usize, (k & 0xffff_ffff) as usize);
+        let mut used = vec![0u32; m + 1];
+        for p in pairs {
+            let (a, b) = split(p.key);
+            used[a] += 1;
+            used[b] += 1;
+        }
+        let mut start = Vec::with_capacity(m + 2);
+        let mut at = 0usize;
+        start.push(at);
+        for &d in &used {
+            at += d as usize;
+            start.push(at);
+        }
+        let mut entries = vec![(0u32, 0u32); at];
+        used.fill(0);
+        for p in pairs {
+            let (a, b) = split(p.key);
+            entries[start[a] + used[a] as usize] = (b as u32, p.pixel);
+            used[a] += 1;
+            entries[start[b] + used[b] as usize] = (a as u32, p.pixel);
+            used[b] += 1;
+        }
+        NeighbourLists {
+            entries,
+            start,
+            len: used.clone(),
+            used,
+            next: vec![END; m + 1],
+            last: (0..=m as u32).collect(),
+        }
     }
-    let mut adj: Vec<Vec<Neighbour>> = degree
-        .iter()
-        .map(|&d| Vec::with_capacity(d as usize))
-        .collect();
-    drop(degree);
-    for p in &pairs {
-        let (a, b) = split(p.key);
-        adj[a].push((b as u32, p.pixel));
-        adj[b].push((a as u32, p.pixel));
+
+    fn len(&self, basin: u32) -> usize {
+        self.len[basin as usize] as usize
     }
-    drop(pairs);
-    adj
+
+    /// The entries of `basin`'s list, segment by segment.
+    fn entries(&self, basin: u32) -> impl Iterator<Item = Neighbour> + '_ {
+        let mut s = basin;
+        std::iter::from_fn(move || {
+            (s != END).then(|| {
+                let su = s as usize;
+                s = self.next[su];
+                &self.entries[self.start[su]..][..self.used[su] as usize]
+            })
+        })
+        .flatten()
+        .copied()
+    }
+
+    /// `basin`'s list becomes `list`, which is no longer than it (a compacted copy): written
+    /// into its segments in order, the chain cut after the last one used.
+    fn replace(&mut self, basin: u32, list: &[Neighbour]) {
+        let mut rest = list;
+        let mut s = basin;
+        loop {
+            let su = s as usize;
+            let n = (self.start[su + 1] - self.start[su]).min(rest.len());
+            self.entries[self.start[su]..][..n].copy_from_slice(&rest[..n]);
+            self.used[su] = n as u32;
+            rest = &rest[n..];
+            if rest.is_empty() || self.next[su] == END {
+                self.next[su] = END;
+                self.last[basin as usize] = s;
+                break;
+            }
+            s = self.next[su];
+        }
+        debug_assert!(
+            rest.is_empty(),
+            "a replacement list is longer than the list"
+        );
+        self.len[basin as usize] = list.len() as u32;
+    }
+
+    /// `merged`'s list joins the end of `survivor`'s (and is no longer its own).
+    fn join(&mut self, survivor: u32, merged: u32) {
+        let (su, mu) = (survivor as usize, merged as usize);
+        if self.len[mu] == 0 {
+            return;
+        }
+        self.next[self.last[su] as usize] = merged;
+        self.last[su] = self.last[mu];
+        self.len[su] += self.len[mu];
+        self.len[mu] = 0;
+    }
 }
 
 /// What Wolf pruning leaves: per basin whether it survives, where it merged, its lowest
@@ -523,7 +616,7 @@ fn merged_root(merged_into: &mut [u32], mut x: u32) -> u32 {
 /// kept as before (ties: lowest label).
 fn wolf_prune<const NEG: bool>(
     z: &[f64],
-    mut adj: Vec<Vec<Neighbour>>,
+    mut lists: NeighbourLists,
     crit: &mut [u32],
     threshold: f64,
     m: usize,
@@ -532,9 +625,9 @@ fn wolf_prune<const NEG: bool>(
     let pit = |i: u32| height_at::<NEG>(z, i);
     let mut min_saddle = vec![f64::INFINITY; m + 1];
     let mut min_nb = vec![0u32; m + 1];
-    let lowest = |list: &[Neighbour]| {
+    let lowest = |list: &mut dyn Iterator<Item = Neighbour>| {
         let mut best = (f64::INFINITY, 0u32);
-        for &(nb, pixel) in list {
+        for (nb, pixel) in list {
             let s = height(pixel);
             // Lowest saddle, then lowest label: independent of the list's order.
             if s < best.0 || (s == best.0 && nb < best.1) {
@@ -545,20 +638,30 @@ fn wolf_prune<const NEG: bool>(
     };
     // Every list starts compact (one entry per neighbour).
     for r in 1..=m {
-        let (s, nb) = lowest(&adj[r]);
+        let (s, nb) = lowest(&mut lists.entries(r as u32));
         min_saddle[r] = s;
         min_nb[r] = nb;
     }
-    let mut clean_len: Vec<u32> = adj.iter().map(|l| l.len() as u32).collect();
+    let mut clean_len: Vec<u32> = (0..=m as u32).map(|r| lists.len(r) as u32).collect();
     let mut merged_into: Vec<u32> = (0..=m as u32).collect();
     // Roots, without `x` itself, one entry per root at its lowest saddle.
-    let compact = |list: &mut Vec<Neighbour>, x: u32, merged_into: &mut [u32]| {
+    let compacted = |list: &mut Vec<Neighbour>, x: u32, merged_into: &mut [u32]| {
         for e in list.iter_mut() {
             e.0 = merged_root(merged_into, e.0);
         }
         list.retain(|e| e.0 != x);
         list.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(height(a.1).total_cmp(&height(b.1))));
         list.dedup_by_key(|e| e.0);
+    };
+    // `x`'s list compacted, left in `scratch` too.
+    let compact = |lists: &mut NeighbourLists,
+                   x: u32,
+                   merged_into: &mut [u32],
+                   scratch: &mut Vec<Neighbour>| {
+        scratch.clear();
+        scratch.extend(lists.entries(x));
+        compacted(scratch, x, merged_into);
+        lists.replace(x, scratch);
     };
     let mut version = vec![0u32; m + 1];
     let mut alive = vec![true; m + 1];
@@ -578,6 +681,7 @@ fn wolf_prune<const NEG: bool>(
             .collect(),
     );
     let mut moved_list: Vec<Neighbour> = Vec::new();
+    let mut compact_list: Vec<Neighbour> = Vec::new();
     while let Some((r, ver)) = queue.pop() {
         let ru = r as usize;
         if !alive[ru] || ver != version[ru] {
@@ -587,9 +691,8 @@ fn wolf_prune<const NEG: bool>(
         let nbu = nb as usize;
         // r's neighbours but nb (and r), at their lowest saddle to r.
         moved_list.clear();
-        moved_list.append(&mut adj[ru]);
-        adj[ru] = Vec::new();
-        compact(&mut moved_list, r, &mut merged_into);
+        moved_list.extend(lists.entries(r));
+        compacted(&mut moved_list, r, &mut merged_into);
         moved_list.retain(|e| e.0 != nb);
         let mut moved = (f64::INFINITY, 0u32);
         for &(other, pixel) in &moved_list {
@@ -602,16 +705,17 @@ fn wolf_prune<const NEG: bool>(
                 moved = (s, other);
             }
         }
-        adj[nbu].extend_from_slice(&moved_list);
+        lists.replace(r, &moved_list);
+        lists.join(nb, r);
         if pit(crit[ru]) < pit(crit[nbu]) {
             crit[nbu] = crit[ru];
         }
         alive[ru] = false;
         merged_into[ru] = nb;
         if min_nb[nbu] == r {
-            compact(&mut adj[nbu], nb, &mut merged_into);
-            clean_len[nbu] = adj[nbu].len() as u32;
-            let (s, b) = lowest(&adj[nbu]);
+            compact(&mut lists, nb, &mut merged_into, &mut compact_list);
+            clean_len[nbu] = lists.len(nb) as u32;
+            let (s, b) = lowest(&mut compact_list.iter().copied());
             min_saddle[nbu] = s;
             min_nb[nbu] = b;
         } else {
@@ -619,9 +723,9 @@ fn wolf_prune<const NEG: bool>(
                 min_saddle[nbu] = moved.0;
                 min_nb[nbu] = moved.1;
             }
-            if adj[nbu].len() > 2 * clean_len[nbu] as usize + 8 {
-                compact(&mut adj[nbu], nb, &mut merged_into);
-                clean_len[nbu] = adj[nbu].len() as u32;
+            if lists.len(nb) > 2 * clean_len[nbu] as usize + 8 {
+                compact(&mut lists, nb, &mut merged_into, &mut compact_list);
+                clean_len[nbu] = lists.len(nb) as u32;
             }
         }
         version[nbu] += 1;
@@ -659,19 +763,26 @@ fn segment<const NEG: bool>(
         rows * cols <= MAX_POINTS,
         "segmentation of {rows} x {cols} points: at most {MAX_POINTS} (feature_params checks)"
     );
-    let drain = drains::<NEG>(z, rows, cols);
-    let (label, m) = label_basins(drain, rows, cols);
+    let (label, m) = label_basins(drains::<NEG>(z, rows, cols), rows, cols);
     let Basins {
         mut crit,
         area,
         incomplete,
     } = basin_stats::<NEG>(z, &label, rows, cols, m);
-    let adj = saddles::<NEG>(z, &label, rows, cols, m);
+    let pairs = saddles::<NEG>(z, &label, rows, cols);
+    // The pruning does not read the labels (half the map's size): they are made again for
+    // the volumes, the same labels (the same steps on the same heights), so that the labels,
+    // the neighbour lists and the pruning's queue are never held at once (on a 4096^2
+    // roughness map the segmentation's peak was the three together, 2.1 x the map).
+    drop(label);
+    let lists = NeighbourLists::of_pairs(&pairs, m);
+    drop(pairs);
     let Pruned {
         min_saddle,
         alive,
         merged_into,
-    } = wolf_prune::<NEG>(z, adj, &mut crit, pruning_pct / 100.0 * sz, m);
+    } = wolf_prune::<NEG>(z, lists, &mut crit, pruning_pct / 100.0 * sz, m);
+    let (label, _) = label_basins(drains::<NEG>(z, rows, cols), rows, cols);
     // 7. Roots, their areas and incompleteness.
     let mut root = vec![0u32; m + 1];
     for (r, out) in root.iter_mut().enumerate().skip(1) {
@@ -866,5 +977,79 @@ mod tests {
             }
         }
         assert!(popped > 3000);
+    }
+
+    /// The one-store lists hold what a `Vec` per basin holds through merges: made from the
+    /// pairs (both directions, ascending), a merged basin's list (compacted to a shorter one
+    /// first, or emptied) joined behind the survivor's, the survivor's own list replaced by
+    /// shorter ones, over random graphs and merge orders.
+    #[test]
+    fn neighbour_lists_hold_what_a_list_per_basin_holds() {
+        let mut state = 0x2545_F491_4F6C_DD1D_u64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        for _ in 0..200 {
+            let m = 1 + (next() % 40) as usize;
+            let mut keys: Vec<u64> = (0..next() % 120)
+                .filter_map(|_| {
+                    let a = 1 + next() % m as u64;
+                    let b = 1 + next() % m as u64;
+                    (a != b).then(|| (a.min(b) << 32) | a.max(b))
+                })
+                .collect();
+            keys.sort_unstable();
+            keys.dedup();
+            let pairs: Vec<SaddlePair> = keys
+                .iter()
+                .map(|&key| SaddlePair {
+                    key,
+                    pixel: (next() % 1000) as u32,
+                })
+                .collect();
+            let mut model: Vec<Vec<Neighbour>> = vec![Vec::new(); m + 1];
+            for p in &pairs {
+                let (a, b) = ((p.key >> 32) as usize, (p.key & 0xffff_ffff) as usize);
+                model[a].push((b as u32, p.pixel));
+                model[b].push((a as u32, p.pixel));
+            }
+            for l in &mut model {
+                l.sort_unstable();
+            }
+            let mut lists = NeighbourLists::of_pairs(&pairs, m);
+            // A merged basin's segments are the survivor's: only its length is its own (0).
+            let same = |lists: &NeighbourLists, model: &[Vec<Neighbour>], alive: &[u32]| {
+                (0..=m as u32).all(|b| {
+                    let got: Vec<Neighbour> = lists.entries(b).collect();
+                    let whole = got == model[b as usize] && lists.len(b) == got.len();
+                    whole || (!alive.contains(&b) && lists.len(b) == 0)
+                })
+            };
+            let mut alive: Vec<u32> = (0..=m as u32).collect();
+            assert!(same(&lists, &model, &alive));
+            alive.remove(0);
+            while alive.len() > 1 {
+                let r = alive.swap_remove((next() % alive.len() as u64) as usize);
+                let nb = alive[(next() % alive.len() as u64) as usize];
+                // A shorter list for the merged basin (a compaction), then the join.
+                let mut shorter = std::mem::take(&mut model[r as usize]);
+                shorter.truncate((next() % (shorter.len() as u64 + 1)) as usize);
+                lists.replace(r, &shorter);
+                lists.join(nb, r);
+                model[nb as usize].extend_from_slice(&shorter);
+                // Sometimes the survivor's own list replaced by a shorter one.
+                if next() % 3 == 0 {
+                    let keep = (next() % (model[nb as usize].len() as u64 + 1)) as usize;
+                    let mut l = model[nb as usize][..keep].to_vec();
+                    l.reverse();
+                    lists.replace(nb, &l);
+                    model[nb as usize] = l;
+                }
+                assert!(same(&lists, &model, &alive));
+            }
+        }
     }
 }
