@@ -513,7 +513,7 @@ fn separate<'py>(
 /// [`surfstream_mesher::mesh_surface`], streamed); returns its record as JSON (the verb's
 /// OUT.json without the input file).
 #[pyfunction]
-#[pyo3(signature = (path, heights_um, pitch_x_um, pitch_y_um, tolerance=None, epsilon_um=None, epsilon_sq=None, level=false, target=None, grid=false, max_triangles=None, region_px=None, model_method="balanced", roughness_um=None, remove_spikes=false, sheet=false, holes=false, ascii=false, units=None, base_depth_um=None))]
+#[pyo3(signature = (path, heights_um, pitch_x_um, pitch_y_um, tolerance=None, epsilon_um=None, epsilon_sq=None, level=false, target=None, grid=false, max_triangles=None, region_px=None, model_method="balanced", roughness_um=None, remove_spikes=false, sheet=false, holes=false, ascii=false, units=None, base_depth_um=None, curve=true))]
 #[allow(clippy::too_many_arguments)]
 fn mesh(
     py: Python<'_>,
@@ -537,6 +537,7 @@ fn mesh(
     ascii: bool,
     units: Option<&str>,
     base_depth_um: Option<f64>,
+    curve: bool,
 ) -> PyResult<String> {
     use surfstream_core::raster::Shape;
     use surfstream_mesher::outliers::OutlierPolicy;
@@ -575,6 +576,10 @@ fn mesh(
         (
             roughness_um.is_some() && (epsilon_um.is_some() || epsilon_sq.is_some()),
             "roughness_um is judged by the tolerance, not by a fixed bound",
+        ),
+        (
+            !curve && (grid || epsilon_um.is_some() || epsilon_sq.is_some()),
+            "curve=False is the tolerance search's: not with grid=True or a fixed bound",
         ),
     ];
     if let Some((_, why)) = conflicts.iter().find(|(c, _)| *c) {
@@ -628,6 +633,7 @@ fn mesh(
             .map(|t| parse_choice("target", &t.to_ascii_lowercase()))
             .transpose()
             .map_err(bad)?,
+        curve,
         ..MesherConfig::default()
     };
     let settings = config.settings().map_err(bad)?;

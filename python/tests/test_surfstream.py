@@ -443,6 +443,7 @@ def test_mesh_takes_the_verbs_names_and_refuses_what_it_refuses(tmp_path):
         ({"epsilon_sq": 0.05, "sheet": True, "units": "um"}, ["--epsilon-sq", "0.05", "--sheet", "--units", "um"]),
         ({"tolerance": "sa=1,sq=1,sz=3", "remove_spikes": True}, ["--tolerance", "sa=1,sq=1,sz=3", "--remove-spikes"]),
         ({"target": "yade"}, ["--target", "yade"]),
+        ({"curve": False}, ["--no-curve"]),
     ],
 )
 def test_mesh_is_the_verbs(tmp_path, py_kw, cli_args):

@@ -63,6 +63,11 @@ pub struct MeshArgs {
     /// tolerance (the margin for the tile regions not judged).
     #[arg(long)]
     pub no_tiles: bool,
+    /// Only the tolerance search's own meshes: the fidelity-cost curve in OUT.json is then
+    /// those (3 on the demo) instead of at least 6, so less time (the search's mesh is
+    /// written; the curve's coarse points are not tried).
+    #[arg(long, conflicts_with_all = ["epsilon_um", "epsilon_sq", "grid"])]
+    pub no_curve: bool,
     /// Treat isolated spikes as not measured before meshing (ISO 25178-3 style outlier
     /// removal; they are always reported in OUT.json, and kept by default).
     #[arg(long)]
@@ -271,6 +276,7 @@ pub fn config(a: &MeshArgs) -> MesherConfig {
             MissingSamples::Fill
         },
         target: a.target,
+        curve: !a.no_curve,
         ..MesherConfig::default()
     }
 }

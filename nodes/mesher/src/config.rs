@@ -70,6 +70,9 @@ pub struct MesherConfig {
     /// ([`crate::target`]); sets the format, units, kind, method and triangle budget
     /// (`max_triangles` still lowers the budget).
     pub target: Option<DemEngine>,
+    /// With a tolerance: make the fidelity-cost curve's own meshes (default true; false: the
+    /// curve is the search's meshes alone: fewer meshes made, [`ToleranceSettings::curve`]).
+    pub curve: bool,
 }
 
 impl Default for MesherConfig {
@@ -92,6 +95,7 @@ impl Default for MesherConfig {
             missing: MissingSamples::default(),
             surface: SurfaceChoice::default(),
             target: None,
+            curve: true,
         }
     }
 }
@@ -327,6 +331,7 @@ impl MesherConfig {
             region_px: self.region_px,
             method: self.model_method,
             min_angle_deg: None,
+            curve: self.curve,
         });
         let adaptive = match self.method {
             MeshMethod::Grid => None,

@@ -291,6 +291,13 @@ pub struct ToleranceSettings {
     /// judged after that, so the mesh written is the one judged. `None`: no bound (LIGGGHTS
     /// needs one, module `target`).
     pub min_angle_deg: Option<f64>,
+    /// Whether the fidelity-cost curve (the report's `tolerance.curve`) gets meshes of its
+    /// own: its coarse side (the bounds above the coarsest worth judging, from a restarted
+    /// order) and finer points when the search stopped early. Off, the curve is the search's
+    /// meshes alone (3 of the demo's 6) and the search's mesh is written; on (the default),
+    /// a coarse point that passes with fewer triangles would be written instead. A search
+    /// whose first candidate is over `max_triangles` walks the coarse side either way.
+    pub curve: bool,
 }
 
 impl Default for ToleranceSettings {
@@ -300,6 +307,7 @@ impl Default for ToleranceSettings {
             region_px: None,
             method: ModelMethod::default(),
             min_angle_deg: None,
+            curve: true,
         }
     }
 }
@@ -1535,7 +1543,7 @@ pub fn search<M>(
     }
     // A few finer meshes for the curve when the search stopped early (the coarse side's
     // points, made last, counted in).
-    if best.is_some() {
+    if best.is_some() && settings.curve {
         let coarse_points = COARSE_CURVE_POINTS.min(coarse_side.len());
         for f in fractions {
             if curve.len() + coarse_points >= MIN_CURVE_POINTS {
@@ -1593,7 +1601,8 @@ pub fn search<M>(
     // when the first candidate was already beyond `max_triangles`, the whole side is walked
     // and its finest mesh within the budget is kept.
     let within_budget_only = best.is_none() && fallback.is_none();
-    if !coarse_side.is_empty() && (best.is_some() || within_budget_only) {
+    let curve_side = best.is_some() && settings.curve;
+    if !coarse_side.is_empty() && (curve_side || within_budget_only) {
         order.restart();
         let points = if within_budget_only {
             coarse_side.len()

@@ -510,3 +510,50 @@ fn a_bisected_checkpoint_passes_with_fewer_triangles_than_the_coarse_one_above_i
     assert_eq!(sm.counts.top_triangles, m.surface_triangles);
     assert_eq!(sm.resampled_um, m.resampled_um);
 }
+
+#[test]
+fn without_the_curve_the_search_writes_the_same_mesh_from_its_own_meshes() {
+    // The default tolerance (a pointwise limit, so the series has a coarse side above the
+    // coarsest bound worth judging): with `curve` off the curve's own meshes (the coarse side,
+    // finer points) are not made; what is left is the search's checkpoints, the same ones,
+    // and the same mesh is chosen and written.
+    let z = rough();
+    let heights = RasterView::new(&z, Shape::new(ROWS, COLS)).unwrap();
+    let at = ScanPlacement::new(Pitch::new(1.0, 1.0).expect("a positive pitch"));
+    let on = settings("");
+    let off = ToleranceSettings { curve: false, ..on };
+    let (m_on, r_on) = mesh_to_tolerance(heights, None, &at, &params(), &on, &[]).unwrap();
+    let (m_off, r_off) = mesh_to_tolerance(heights, None, &at, &params(), &off, &[]).unwrap();
+    assert!(
+        r_on.met && r_off.met,
+        "{:?} {:?}",
+        r_on.reason,
+        r_off.reason
+    );
+    assert!(
+        r_on.curve.len() >= 6 && r_off.curve.len() < r_on.curve.len(),
+        "{} and {} points",
+        r_on.curve.len(),
+        r_off.curve.len()
+    );
+    let chosen = r_on.curve.iter().find(|c| c.chosen).unwrap();
+    let coarser = |c: &&surfstream_mesher::tolerance::CurvePoint| {
+        c.epsilon_sq_fraction > chosen.epsilon_sq_fraction
+    };
+    // The points left are the search's: each one as the full curve has it, none coarser
+    // than the coarsest the search judged.
+    for p in &r_off.curve {
+        assert!(r_on.curve.contains(p), "{p:?} not in {:?}", r_on.curve);
+    }
+    assert!(r_on.curve.iter().filter(coarser).count() > r_off.curve.iter().filter(coarser).count());
+    assert_eq!(r_off.curve.iter().find(|c| c.chosen), Some(chosen));
+    assert_eq!(m_off.surface_triangles, m_on.surface_triangles);
+    assert_eq!(m_off.resampled_um, m_on.resampled_um);
+    assert_eq!(r_off.region_fits, r_on.region_fits);
+    // The streamed search likewise.
+    let dir = tempfile::tempdir().unwrap();
+    let (sm, sr) =
+        mesh_streaming_to_tolerance(heights, None, &at, &params(), &off, &[], dir.path()).unwrap();
+    assert_eq!(sr.curve, r_off.curve);
+    assert_eq!(sm.resampled_um, m_on.resampled_um);
+}

@@ -334,6 +334,7 @@ class Surface:
         ascii: bool = False,
         units: Optional[str] = None,
         base_depth_um: Optional[float] = None,
+        curve: bool = True,
         **deprecated: Any,
     ) -> Dict[str, Any]:
         """Writes the map's triangle mesh as STL at ``path`` (it must end in ``.stl``):
@@ -352,6 +353,8 @@ class Surface:
         Otherwise a closed solid (``sheet=True``: the open surface; ``holes=True`` keeps
         missing samples as holes), binary STL (``ascii=True``) in ``units`` "m" | "mm"
         (default) | "um". ``remove_spikes=True`` treats isolated spikes as not measured.
+        ``curve=False`` (``mesh --no-curve``) makes only the tolerance search's own meshes:
+        the record's fidelity-cost curve is then those, in less time.
         What the verb refuses is refused (``ParameterError``). The old ``tolerance_um`` /
         ``tolerance_sq`` still work, with a ``DeprecationWarning``."""
         for old, new in (("tolerance_um", "epsilon_um"), ("tolerance_sq", "epsilon_sq")):
@@ -392,6 +395,7 @@ class Surface:
             ascii=bool(ascii),
             units=None if units is None else str(units),
             base_depth_um=None if base_depth_um is None else float(base_depth_um),
+            curve=bool(curve),
         )
         result: Dict[str, Any] = json.loads(out)
         return result
