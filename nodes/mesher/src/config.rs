@@ -429,6 +429,18 @@ mod tests {
         assert_eq!(c.tolerance, Some("sa=2,sq=2,sz=5".parse().unwrap()));
     }
 
+    /// A graph's `curve = false` reaches the search; without the key the curve is made.
+    #[test]
+    fn the_curve_key_reaches_the_search() {
+        let curve = |text: &str| {
+            let c: MesherConfig = toml::from_str(text).unwrap();
+            c.settings().unwrap().tolerance.map(|t| t.curve)
+        };
+        assert_eq!(curve(""), Some(true));
+        assert_eq!(curve("curve = false"), Some(false));
+        assert!(toml::from_str::<MesherConfig>("curve = \"off\"").is_err());
+    }
+
     /// A choice given as text is refused with its key and the allowed values, as a graph
     /// file's value is.
     #[test]
