@@ -653,14 +653,19 @@ fn wolf_prune<const NEG: bool>(
         list.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(height(a.1).total_cmp(&height(b.1))));
         list.dedup_by_key(|e| e.0);
     };
+    // A compacted copy of `x`'s list in `scratch`.
+    let copy_compacted =
+        |lists: &NeighbourLists, x: u32, merged_into: &mut [u32], scratch: &mut Vec<Neighbour>| {
+            scratch.clear();
+            scratch.extend(lists.entries(x));
+            compacted(scratch, x, merged_into);
+        };
     // `x`'s list compacted, left in `scratch` too.
     let compact = |lists: &mut NeighbourLists,
                    x: u32,
                    merged_into: &mut [u32],
                    scratch: &mut Vec<Neighbour>| {
-        scratch.clear();
-        scratch.extend(lists.entries(x));
-        compacted(scratch, x, merged_into);
+        copy_compacted(lists, x, merged_into, scratch);
         lists.replace(x, scratch);
     };
     let mut version = vec![0u32; m + 1];
@@ -690,9 +695,7 @@ fn wolf_prune<const NEG: bool>(
         let nb = min_nb[ru];
         let nbu = nb as usize;
         // r's neighbours but nb (and r), at their lowest saddle to r.
-        moved_list.clear();
-        moved_list.extend(lists.entries(r));
-        compacted(&mut moved_list, r, &mut merged_into);
+        copy_compacted(&lists, r, &mut merged_into, &mut moved_list);
         moved_list.retain(|e| e.0 != nb);
         let mut moved = (f64::INFINITY, 0u32);
         for &(other, pixel) in &moved_list {
