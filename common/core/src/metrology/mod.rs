@@ -124,6 +124,10 @@ pub enum MetrologyError {
     TooManyPoints { points: usize, max: usize },
     #[error(transparent)]
     Param(#[from] ParamError),
+    /// The autocorrelation of a large map is made through spill files (see spatial.rs): what
+    /// failed, with the folder (the error's text: this enum is `Clone` and `PartialEq`).
+    #[error("autocorrelation: {0}")]
+    Spill(String),
     #[error("the two maps differ in shape: {a_rows} x {a_cols} vs {b_rows} x {b_cols}")]
     ShapeMismatch {
         a_rows: usize,
@@ -131,6 +135,12 @@ pub enum MetrologyError {
         b_rows: usize,
         b_cols: usize,
     },
+}
+
+impl From<crate::store::StoreError> for MetrologyError {
+    fn from(e: crate::store::StoreError) -> Self {
+        Self::Spill(e.to_string())
+    }
 }
 
 /// A height map borrowed for computing: row-major heights (um, NaN = not measured) and their

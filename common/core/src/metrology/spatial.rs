@@ -31,7 +31,8 @@ use rustfft::num_complex::Complex;
 use serde::Serialize;
 
 use super::spectrum::{
-    axis_sums, correlation_half_plane, correlation_window, spectrum2_blocks, AXIS_BLOCK,
+    axis_sums, correlation_half_plane, correlation_window, spectrum2_blocks, SpilledCorrelation,
+    AXIS_BLOCK, SPILL_BAND_ROWS, SPILL_BLOCK_BYTES,
 };
 use super::{Grid, MetrologyError};
 
@@ -117,6 +118,10 @@ const WINDOW_FRACTION: usize = 8;
 const WINDOW_BLOCKS: usize = 8;
 /// Blocks of Std's spectrum (the map / this at a time).
 const STD_BLOCKS: usize = 4;
+/// When only Sal is wanted (the region reaches the plane's border), the rays to the edge lags
+/// nearest to 0 followed in full before the others are followed in parallel, each only as far
+/// as it can still be the shortest.
+const RAYS_IN_FULL: usize = 64;
 /// Below this many points the whole lag plane is made at once (its memory is small).
 const WINDOW_MIN_POINTS: usize = 1 << 18;
 
@@ -278,14 +283,13 @@ impl Acf {
         // same minimum as over every ray in full.
         let mut by_dist: Vec<(f64, (isize, isize))> = edges.iter().map(|&e| (dist(e), e)).collect();
         by_dist.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
-        const FIRST: usize = 64;
         let mut lo = f64::INFINITY;
-        for &(d, e) in by_dist.iter().take(FIRST) {
+        for &(d, e) in by_dist.iter().take(RAYS_IN_FULL) {
             lo = lo.min(self.decay_length(e, d, thr, lo));
         }
         // Lengths are >= 0: their bits order as they do.
         let best = AtomicU64::new(lo.to_bits());
-        by_dist.par_iter().skip(FIRST).for_each(|&(d, e)| {
+        by_dist.par_iter().skip(RAYS_IN_FULL).for_each(|&(d, e)| {
             let bound = f64::from_bits(best.load(AtomicOrdering::Relaxed));
             let len = self.decay_length(e, d, thr, bound);
             best.fetch_min(len.to_bits(), AtomicOrdering::Relaxed);
@@ -295,49 +299,11 @@ impl Acf {
 
     /// The lags just outside the region of lags connected to 0 (4-neighbours) where f_ACF >
     /// `thr`, and whether the region reaches the border of the lag plane; `None` when it
-    /// reaches the border of the window held inside the plane (a region lag there may have
-    /// neighbours beyond it). Lags inside the window's border have their neighbours inside
-    /// the window, so a `Some` result read only lags held, the values the whole plane has.
+    /// reaches the border of the window held inside the plane (see [`region_edges_where`]).
     fn region_edges(&self, thr: f64) -> Option<(Vec<(isize, isize)>, bool)> {
-        let (ry, rx) = (self.rows as isize - 1, self.cols as isize - 1);
-        let (wy, wx) = (self.wy as isize, self.wx as isize);
-        let (h, w) = ((2 * wy + 1) as usize, (2 * wx + 1) as usize);
-        let idx = |y: isize, x: isize| (y + wy) as usize * w + (x + wx) as usize;
-        // Seen (in the region or on its edge), one bit per lag.
-        let mut seen = vec![0u64; (h * w).div_ceil(64)];
-        let mut see = |i: usize| {
-            let (word, bit) = (i / 64, 1u64 << (i % 64));
-            let new = seen[word] & bit == 0;
-            seen[word] |= bit;
-            new
-        };
-        let mut stack = vec![(0isize, 0isize)];
-        see(idx(0, 0));
-        let mut edges = Vec::new();
-        let mut touches = false;
-        while let Some((y, x)) = stack.pop() {
-            if (wy < ry && y.abs() >= wy) || (wx < rx && x.abs() >= wx) {
-                return None;
-            }
-            if y.abs() == ry || x.abs() == rx {
-                touches = true;
-            }
-            for (dy, dx) in [(-1, 0), (1, 0), (0, -1), (0, 1)] {
-                let (ny, nx) = (y + dy, x + dx);
-                if ny.abs() > ry || nx.abs() > rx {
-                    continue;
-                }
-                if !see(idx(ny, nx)) {
-                    continue;
-                }
-                if self.at(ny, nx) > thr {
-                    stack.push((ny, nx));
-                } else {
-                    edges.push((ny, nx));
-                }
-            }
-        }
-        Some((edges, touches))
+        region_edges_where(self.rows, self.cols, (self.wy, self.wx), |y, x| {
+            self.at(y, x) > thr
+        })
     }
 
     /// The decay length (um) along the ray from lag 0 to lag `e`, `dist` um long: the first
@@ -377,6 +343,62 @@ fn floor_lag(v: f64) -> f64 {
     } else {
         t
     }
+}
+
+/// The lags just outside the region of lags connected to 0 (4-neighbours) where `above`
+/// holds, of a rows x cols map's lag plane, and whether the region reaches the border of the
+/// plane; `None` when it reaches the border of the window |ty| <= `wy`, |tx| <= `wx` held
+/// inside the plane (a region lag there may have neighbours beyond it). Lags inside the
+/// window's border have their neighbours inside the window, so a `Some` result asked `above`
+/// only of lags held.
+fn region_edges_where(
+    rows: usize,
+    cols: usize,
+    (wy, wx): (usize, usize),
+    above: impl Fn(isize, isize) -> bool,
+) -> Option<(Vec<(isize, isize)>, bool)> {
+    let (ry, rx) = (rows as isize - 1, cols as isize - 1);
+    let (wy, wx) = (wy as isize, wx as isize);
+    let (h, w) = ((2 * wy + 1) as usize, (2 * wx + 1) as usize);
+    let idx = |y: isize, x: isize| (y + wy) as usize * w + (x + wx) as usize;
+    // Seen (in the region or on its edge), one bit per lag.
+    let mut seen = vec![0u64; (h * w).div_ceil(64)];
+    let mut see = |i: usize| {
+        let (word, bit) = (i / 64, 1u64 << (i % 64));
+        let new = seen[word] & bit == 0;
+        seen[word] |= bit;
+        new
+    };
+    // Lags to visit as i32 pairs (a lag plane's extents fit): a long correlation's region is
+    // much of the plane, and so may this stack be.
+    let mut stack = vec![(0i32, 0i32)];
+    see(idx(0, 0));
+    let mut edges = Vec::new();
+    let mut touches = false;
+    while let Some((y, x)) = stack.pop() {
+        let (y, x) = (y as isize, x as isize);
+        if (wy < ry && y.abs() >= wy) || (wx < rx && x.abs() >= wx) {
+            return None;
+        }
+        if y.abs() == ry || x.abs() == rx {
+            touches = true;
+        }
+        for (dy, dx) in [(-1, 0), (1, 0), (0, -1), (0, 1)] {
+            let (ny, nx) = (y + dy, x + dx);
+            if ny.abs() > ry || nx.abs() > rx {
+                continue;
+            }
+            if !see(idx(ny, nx)) {
+                continue;
+            }
+            if above(ny, nx) {
+                stack.push((ny as i32, nx as i32));
+            } else {
+                edges.push((ny, nx));
+            }
+        }
+    }
+    Some((edges, touches))
 }
 
 /// The angular amplitude density in bins of `step_deg` (lower edges 0..180), from the DFT of
@@ -551,7 +573,168 @@ fn sal_str_in(
             }
         }
     }
-    Ok(Acf::of_lags(g, c, None)?.sal_str(ACF_THRESHOLD))
+    match window {
+        // The whole plane is twice the map: not held on a large map.
+        Some(_) => sal_str_spilled(g, c, ACF_THRESHOLD, spill_block_cols(g.rows())),
+        None => Ok(Acf::of_lags(g, c, None)?.sal_str(ACF_THRESHOLD)),
+    }
+}
+
+/// Spectrum columns per block of [`SpilledCorrelation`] for a map of `rows` rows: a block
+/// of about `SPILL_BLOCK_BYTES`.
+fn spill_block_cols(rows: usize) -> usize {
+    let p = crate::fft::fast_len(2 * rows - 1);
+    (SPILL_BLOCK_BYTES / (p * std::mem::size_of::<Complex<f64>>())).max(1)
+}
+
+/// [`Acf::of`]`(g)?.sal_str(s)` (the same values, bit for bit) without the lag plane in
+/// memory: its sums are made through spill files (see [`SpilledCorrelation`]) and read back
+/// twice, a band of lag rows at a time: once for which lags are above the threshold (a bit
+/// each), whose region and edges are then found as on the plane itself, and once for the
+/// lags the rays to those edges can read (see [`rays_window`]). Memory: the bits, a band,
+/// a block of columns and that window (an eighth of the plane or less unless a long,
+/// isotropic correlation fills the plane without reaching its border).
+fn sal_str_spilled(
+    g: &Grid,
+    c: &CentredRows,
+    s: f64,
+    block_cols: usize,
+) -> Result<(f64, f64), MetrologyError> {
+    let (rows, cols) = (g.rows(), g.cols());
+    let sums = SpilledCorrelation::new(
+        &|r, buf: &mut [f64]| c.row(r, buf),
+        rows,
+        cols,
+        block_cols,
+        None,
+    )?;
+    let z = g.heights_um;
+    let pairs = if c.valid == rows * cols {
+        None
+    } else {
+        let mask = |r: usize, buf: &mut [f64]| {
+            for (o, &z) in buf.iter_mut().zip(&z[r * cols..(r + 1) * cols]) {
+                *o = if z.is_nan() { 0.0 } else { 1.0 };
+            }
+        };
+        Some(SpilledCorrelation::new(
+            &mask, rows, cols, block_cols, None,
+        )?)
+    };
+    // f_ACF at the lags ty = 0..=wy, tx = -wx..=wx, handed to `take(ty0, band)` a band of
+    // rows at a time (the division of `Acf::of_lags`).
+    let acf_bands = |(wy, wx): (usize, usize),
+                     take: &mut dyn FnMut(usize, &[f64])|
+     -> Result<(), MetrologyError> {
+        let w = 2 * wx + 1;
+        let mut sum_bands = sums.lag_bands(wx);
+        let mut pair_bands = pairs.as_ref().map(|p| p.lag_bands(wx));
+        for ty0 in (0..=wy).step_by(SPILL_BAND_ROWS) {
+            let nb = SPILL_BAND_ROWS.min(wy + 1 - ty0);
+            let band = sum_bands.read(ty0, nb)?;
+            match pair_bands.as_mut() {
+                None => {
+                    for (j, row) in band.chunks_mut(w).enumerate() {
+                        for (i, v) in row.iter_mut().enumerate() {
+                            let tx = (i as isize - wx as isize).unsigned_abs();
+                            *v /= ((rows - (ty0 + j)) * (cols - tx)) as f64;
+                        }
+                    }
+                }
+                Some(pair_bands) => {
+                    let k = pair_bands.read(ty0, nb)?;
+                    divide_by_pairs(band, &*k, |k| k.round());
+                }
+            }
+            take(ty0, band);
+        }
+        Ok(())
+    };
+    // Pass 1: the lags of the half plane above the threshold.
+    let (ry, rx) = (rows - 1, cols - 1);
+    let w = 2 * cols - 1;
+    let mut above = vec![0u64; (rows * w).div_ceil(64)];
+    let mut thr = f64::NAN;
+    acf_bands((ry, rx), &mut |ty0, band| {
+        if ty0 == 0 {
+            thr = s * band[rx];
+        }
+        for (k, &v) in band.iter().enumerate() {
+            if v > thr {
+                let i = ty0 * w + k;
+                above[i / 64] |= 1 << (i % 64);
+            }
+        }
+    })?;
+    if thr.is_nan() {
+        return Ok((f64::NAN, f64::NAN));
+    }
+    let is_above = |y: isize, x: isize| {
+        let (y, x) = if y < 0 { (-y, -x) } else { (y, x) };
+        let i = y as usize * w + (x + rx as isize) as usize;
+        above[i / 64] & (1 << (i % 64)) != 0
+    };
+    let Some((edges, touches)) = region_edges_where(rows, cols, (ry, rx), is_above) else {
+        // The window is the whole plane: its border is the plane's.
+        return Ok((f64::NAN, f64::NAN));
+    };
+    drop(above);
+    // Pass 2: the lags the rays read.
+    let (px, py) = (g.pitch_x_um(), g.pitch_y_um());
+    let (wy, wx) = rays_window(&edges, touches, (px, py), (rows, cols));
+    let ww = 2 * wx + 1;
+    let mut half = vec![0.0; (wy + 1) * ww];
+    acf_bands((wy, wx), &mut |ty0, band| {
+        half[ty0 * ww..ty0 * ww + band.len()].copy_from_slice(band);
+    })?;
+    let acf = Acf {
+        rows,
+        cols,
+        pitch_x_um: px,
+        pitch_y_um: py,
+        wy,
+        wx,
+        half,
+    };
+    Ok(acf.sal_str_of(thr, &edges, touches))
+}
+
+/// The window |ty| <= wy, |tx| <= wx of the lags [`Acf::sal_str_of`]'s rays to `edges` can
+/// read. Every ray in full (`!touches`): a ray to e samples the segment from 0 to e, its
+/// bilinear corners within |ty| <= max(|ey|, 1). Only the shortest (`touches`): the
+/// `RAYS_IN_FULL` nearest rays in full, within the `RAYS_IN_FULL`-th smallest distance d of
+/// 0; every other ray is left once a sample is at or beyond the bound, which is at most the
+/// nearest ray's length (<= its distance <= d), so its samples lie within d plus one step
+/// (half a diagonal pitch) of 0, their corners one lag further.
+fn rays_window(
+    edges: &[(isize, isize)],
+    touches: bool,
+    (px, py): (f64, f64),
+    (rows, cols): (usize, usize),
+) -> (usize, usize) {
+    let clamp = |wy: usize, wx: usize| (wy.min(rows - 1), wx.min(cols - 1));
+    if edges.is_empty() {
+        return clamp(1, 1);
+    }
+    if !touches {
+        let reach = |f: fn(&(isize, isize)) -> isize| {
+            edges
+                .iter()
+                .map(|e| f(e).unsigned_abs())
+                .max()
+                .unwrap_or(0)
+                .max(1)
+        };
+        return clamp(reach(|e| e.0), reach(|e| e.1));
+    }
+    let mut d: Vec<f64> = edges
+        .iter()
+        .map(|&(ey, ex)| ((ey as f64 * py).powi(2) + (ex as f64 * px).powi(2)).sqrt())
+        .collect();
+    let k = RAYS_IN_FULL.min(d.len()) - 1;
+    let (_, &mut dk, _) = d.select_nth_unstable_by(k, f64::total_cmp);
+    let r_um = dk + px.max(py);
+    clamp((r_um / py) as usize + 2, (r_um / px) as usize + 2)
 }
 
 /// Whether f_ACF stays above `s` f_ACF(0) along the tx axis out to lag `wx` or along the ty
@@ -703,6 +886,66 @@ mod tests {
         assert!(
             touched >= 1,
             "no case reached the border: the early exit went untested"
+        );
+    }
+
+    /// Sal and Str through the spill files are the whole plane's in memory, to the bit: on
+    /// regions that reach the border (tilted) and that do not, short and long correlations,
+    /// maps with gaps, bands and column blocks that do not divide the plane, and a flat map
+    /// (no threshold). The rays read only the window they were given (`Acf::at` asserts it in
+    /// debug builds).
+    #[test]
+    fn spilled_sal_str_is_the_whole_planes() {
+        let mut kinds = (0, 0);
+        let flat = vec![2.5; 70 * 90];
+        let cases: Vec<(usize, usize, f64, f64, Vec<f64>)> = vec![
+            (150, 97, 1.0, 0.7, surface(150, 97, 0.08, 3)),
+            (97, 150, 0.5, 1.5, surface(97, 150, 0.0, 5)),
+            (130, 130, 0.8, 0.8, short_correlation(130, 130, 9)),
+            (
+                129,
+                71,
+                1.0,
+                1.0,
+                with_gaps(surface(129, 71, 0.05, 11), 129, 71, 7),
+            ),
+            (
+                80,
+                140,
+                1.2,
+                0.9,
+                with_gaps(short_correlation(80, 140, 13), 80, 140, 5),
+            ),
+            (70, 90, 1.0, 1.0, flat),
+        ];
+        for (rows, cols, px, py, z) in &cases {
+            let (rows, cols) = (*rows, *cols);
+            let g = Grid::new(z, rows, cols, *px, *py).unwrap();
+            let acf = Acf::of(&g).unwrap();
+            let whole = acf.sal_str(ACF_THRESHOLD);
+            let c = CentredRows::of(&g).unwrap();
+            for block_cols in [8, 24, 1 << 20] {
+                let spilled = sal_str_spilled(&g, &c, ACF_THRESHOLD, block_cols).unwrap();
+                assert_eq!(
+                    (spilled.0.to_bits(), spilled.1.to_bits()),
+                    (whole.0.to_bits(), whole.1.to_bits()),
+                    "{rows} x {cols}, blocks of {block_cols}: {spilled:?} vs {whole:?}"
+                );
+            }
+            let thr = ACF_THRESHOLD * acf.at(0, 0);
+            if let Some((edges, touches)) = acf.region_edges(thr) {
+                if !edges.is_empty() {
+                    if touches {
+                        kinds.0 += 1
+                    } else {
+                        kinds.1 += 1
+                    }
+                }
+            }
+        }
+        assert!(
+            kinds.0 >= 1 && kinds.1 >= 1,
+            "regions reaching the border and not: {kinds:?}"
         );
     }
 

@@ -16,6 +16,7 @@ use rustfft::num_complex::Complex;
 use rustfft::{Fft, FftPlanner};
 
 use crate::fft::fast_len;
+use crate::store::{SpillFile, StoreError};
 
 type C = Complex<f64>;
 
@@ -70,19 +71,31 @@ fn rows_forward(
     cols: usize,
     r2c: &Arc<dyn RealToComplex<f64>>,
 ) -> Vec<C> {
-    let q = r2c.len();
-    let h = r2c.complex_len();
-    let mut spec = vec![C::default(); rows * h];
-    spec.par_chunks_mut(h).enumerate().for_each_init(
-        || (vec![0.0; q], r2c.make_scratch_vec()),
-        |(buf, scratch), (r, out)| {
-            row(r, &mut buf[..cols]);
-            buf[cols..].fill(0.0);
-            // Lengths are the planner's own: cannot fail.
-            let _ = r2c.process_with_scratch(buf, out, scratch);
-        },
-    );
+    let mut spec = vec![C::default(); rows * r2c.complex_len()];
+    rows_forward_into(row, 0, cols, r2c, &mut spec);
     spec
+}
+
+/// [`rows_forward`] of the rows r0.. that `out` holds (whole rows of q/2 + 1).
+fn rows_forward_into(
+    row: &(impl Fn(usize, &mut [f64]) + Sync),
+    r0: usize,
+    cols: usize,
+    r2c: &Arc<dyn RealToComplex<f64>>,
+    out: &mut [C],
+) {
+    let q = r2c.len();
+    out.par_chunks_mut(r2c.complex_len())
+        .enumerate()
+        .for_each_init(
+            || (vec![0.0; q], r2c.make_scratch_vec()),
+            |(buf, scratch), (r, out)| {
+                row(r0 + r, &mut buf[..cols]);
+                buf[cols..].fill(0.0);
+                // Lengths are the planner's own: cannot fail.
+                let _ = r2c.process_with_scratch(buf, out, scratch);
+            },
+        );
 }
 
 /// A slice as the rows of a `cols` wide field.
@@ -200,6 +213,148 @@ pub(crate) fn correlation_window(
     let mut out = vec![0.0; (wy + 1) * w];
     plans.inverse_rows(&kept, &mut out, wx);
     out
+}
+
+/// [`correlation_half_plane`]'s sums without the half spectrum in memory (it is twice the
+/// map): the row transforms are written to a spill file in blocks of `block_cols` spectrum
+/// columns (each block rows x width, contiguous), each block's column transforms are made in
+/// memory and written back over it, and [`SpilledCorrelation::lag_bands`] reads the lag rows back
+/// a band at a time, as often as asked. The same transforms of the same rows and columns:
+/// the same values bit for bit. Memory: one block and one band.
+pub(crate) struct SpilledCorrelation {
+    plans: CorrelationPlans,
+    rows: usize,
+    cols: usize,
+    block_cols: usize,
+    file: SpillFile,
+}
+
+/// Lag rows per band of [`SpilledCorrelation`] (and rows per write of its row transforms).
+pub(crate) const SPILL_BAND_ROWS: usize = 64;
+/// The size a block of [`SpilledCorrelation`]'s spectrum columns aims at (bytes).
+pub(crate) const SPILL_BLOCK_BYTES: usize = 16 << 20;
+
+/// A block of complex values as the bytes a spill file holds (the file is the run's own,
+/// read back by this process: native layout).
+fn complex_bytes(v: &[C]) -> &[u8] {
+    // SAFETY: Complex<f64> is #[repr(C)] { re: f64, im: f64 }, no padding: 16 initialised
+    // bytes per value; u8 has alignment 1.
+    unsafe { std::slice::from_raw_parts(v.as_ptr().cast::<u8>(), std::mem::size_of_val(v)) }
+}
+
+fn complex_bytes_mut(v: &mut [C]) -> &mut [u8] {
+    // SAFETY: as in `complex_bytes`; every byte pattern is a valid f64.
+    unsafe { std::slice::from_raw_parts_mut(v.as_mut_ptr().cast::<u8>(), std::mem::size_of_val(v)) }
+}
+
+impl SpilledCorrelation {
+    /// The spilled transforms of the rows x cols field whose rows `row` writes, in blocks of
+    /// `block_cols` spectrum columns (rounded up to whole column tasks), in a spill file in
+    /// `folder` (`None`: the system's temporary folder).
+    pub(crate) fn new(
+        row: &(impl Fn(usize, &mut [f64]) + Sync),
+        rows: usize,
+        cols: usize,
+        block_cols: usize,
+        folder: Option<std::path::PathBuf>,
+    ) -> Result<Self, StoreError> {
+        let plans = CorrelationPlans::new(rows, cols);
+        let h = plans.h;
+        let block_cols = block_cols.max(1).div_ceil(BLOCK) * BLOCK;
+        let mut this = Self {
+            plans,
+            rows,
+            cols,
+            block_cols,
+            file: SpillFile::new(folder),
+        };
+        // The row transforms, a band of rows at a time, each band's share of every block
+        // written where that block keeps those rows.
+        let band_rows = SPILL_BAND_ROWS.min(rows);
+        let mut band = vec![C::default(); band_rows * h];
+        let mut part = vec![C::default(); band_rows * block_cols.min(h)];
+        let blocks: Vec<(usize, usize)> = this.blocks().collect();
+        for r0 in (0..rows).step_by(band_rows) {
+            let nb = band_rows.min(rows - r0);
+            rows_forward_into(row, r0, cols, &this.plans.r2c, &mut band[..nb * h]);
+            for &(k0, bw) in &blocks {
+                for (o, src) in part[..nb * bw].chunks_mut(bw).zip(band[..nb * h].chunks(h)) {
+                    o.copy_from_slice(&src[k0..k0 + bw]);
+                }
+                let at = this.offset(k0, bw, r0);
+                this.file.write_at(at, complex_bytes(&part[..nb * bw]))?;
+            }
+        }
+        drop((band, part));
+        // Each block's columns: forward, |X|^2, inverse, in place in the file.
+        let mut block = vec![C::default(); rows * block_cols.min(h)];
+        for &(k0, bw) in &blocks {
+            let part = &mut block[..rows * bw];
+            let at = this.offset(k0, bw, 0);
+            this.file.read_at(at, complex_bytes_mut(part))?;
+            let p = &this.plans;
+            for_column_blocks(part, rows, bw, p.p, p.column(), p.scratch_len);
+            this.file.write_at(at, complex_bytes(part))?;
+        }
+        Ok(this)
+    }
+
+    /// The blocks of spectrum columns: (first column, width).
+    fn blocks(&self) -> impl Iterator<Item = (usize, usize)> {
+        let (h, bw) = (self.plans.h, self.block_cols);
+        (0..h).step_by(bw).map(move |k0| (k0, bw.min(h - k0)))
+    }
+
+    /// Where row r of the block of columns k0.. (`bw` wide) is in the file (bytes): blocks
+    /// one after the other, each rows x bw.
+    fn offset(&self, k0: usize, bw: usize, r: usize) -> u64 {
+        ((k0 * self.rows + r * bw) * std::mem::size_of::<C>()) as u64
+    }
+
+    /// A reader of the sums of lag rows in bands, tx = -`wx`..=`wx` (see [`LagBands::read`]).
+    pub(crate) fn lag_bands(&self, wx: usize) -> LagBands<'_> {
+        let h = self.plans.h;
+        let wx = wx.min(self.cols - 1);
+        let band_rows = SPILL_BAND_ROWS.min(self.rows);
+        LagBands {
+            of: self,
+            wx,
+            spec: vec![C::default(); band_rows * h],
+            part: vec![C::default(); band_rows * self.block_cols.min(h)],
+            out: vec![0.0; band_rows * (2 * wx + 1)],
+        }
+    }
+}
+
+/// Bands of lag rows read back from a [`SpilledCorrelation`], with their buffers.
+pub(crate) struct LagBands<'a> {
+    of: &'a SpilledCorrelation,
+    wx: usize,
+    spec: Vec<C>,
+    part: Vec<C>,
+    out: Vec<f64>,
+}
+
+impl LagBands<'_> {
+    /// The sums of lag rows ty0..ty0 + nb (nb <= [`SPILL_BAND_ROWS`], ty0 + nb <= rows),
+    /// tx = -wx..=wx: nb rows of 2 wx + 1, row-major, tx = 0 at column wx (the values
+    /// [`correlation_window`] has there).
+    pub(crate) fn read(&mut self, ty0: usize, nb: usize) -> Result<&mut [f64], StoreError> {
+        let of = self.of;
+        let h = of.plans.h;
+        let w = 2 * self.wx + 1;
+        for (k0, bw) in of.blocks() {
+            let part = &mut self.part[..nb * bw];
+            of.file
+                .read_at(of.offset(k0, bw, ty0), complex_bytes_mut(part))?;
+            for (o, src) in self.spec[..nb * h].chunks_mut(h).zip(part.chunks(bw)) {
+                o[k0..k0 + bw].copy_from_slice(src);
+            }
+        }
+        of.plans
+            .inverse_rows(&self.spec[..nb * h], &mut self.out[..nb * w], self.wx);
+        Ok(&mut self.out[..nb * w])
+    }
 }
 
 /// The transforms of the linear correlation of a rows x cols field: real FFTs of q =
