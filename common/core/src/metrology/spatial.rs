@@ -540,9 +540,11 @@ pub(crate) fn std_from_angular(a: &[(f64, f64)]) -> f64 {
 ///
 /// Memory: the whole lag plane is twice the map; on maps of `WINDOW_MIN_POINTS` or more the
 /// lags within an eighth of the plane's extents are made first (in column blocks, below the
-/// map's own size at any moment), and the whole plane only when the region of f_ACF > 0.2
-/// f_ACF(0) reaches that window's border (a long correlation, a strong lay). Either way the
-/// same values, bit for bit.
+/// map's own size at any moment), and when the region of f_ACF > 0.2 f_ACF(0) reaches that
+/// window's border (a long correlation, a strong lay, a tilt) the whole plane is made through
+/// spill files in the system's temporary folder (`TMPDIR`; unnamed, gone at exit) and read
+/// back in bands, never held (see [`sal_str_spilled`]). Either way the same values, bit for
+/// bit.
 pub fn spatial_params(g: &Grid) -> Result<SpatialParams, MetrologyError> {
     let window = (g.rows() * g.cols() >= WINDOW_MIN_POINTS).then(|| {
         (
