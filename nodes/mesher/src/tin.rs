@@ -2102,8 +2102,10 @@ impl<'a> BlockPlan<'a> {
     }
 
     /// Starts block `k` for step-by-step refinement at the bound of `sides` (the first step:
-    /// border, peak and valley, every triangle scanned; then [`LiveBlock::refine`]).
-    pub(crate) fn start(&self, sides: &Sides, k: usize) -> LiveBlock<'_> {
+    /// border, peak and valley, every triangle scanned; then [`LiveBlock::refine`]);
+    /// `track_mesh`: its scans keep the mesh's height at every sample, which
+    /// [`LiveBlock::balance`] reads (an order never balanced need not: the same triangles).
+    pub(crate) fn start(&self, sides: &Sides, k: usize, track_mesh: bool) -> LiveBlock<'_> {
         let (block, shared) = self.block(k);
         let mut border = self.border(sides, k);
         let b = start_block(
@@ -2116,7 +2118,7 @@ impl<'a> BlockPlan<'a> {
             &border,
             self.block_epsilon(sides, k),
             self.keep_extremes,
-            true,
+            track_mesh,
         );
         border.sort_unstable();
         border.dedup();
@@ -2554,7 +2556,7 @@ mod tests {
             let sides = plan.sides_at(e);
             if live.is_empty() {
                 live = (0..plan.block_count())
-                    .map(|k| plan.start(&sides, k))
+                    .map(|k| plan.start(&sides, k, true))
                     .collect();
             }
             for (k, b) in live.iter_mut().enumerate() {
@@ -2799,7 +2801,7 @@ mod tests {
         let z = lcg_field(rows, cols, 5);
         let heights = RasterView::new(&z, Shape::new(rows, cols)).unwrap();
         let plan = BlockPlan::new(heights, &params_at(0.5, 64)).unwrap();
-        let mut b = plan.start(&plan.sides_at(0.5), 0);
+        let mut b = plan.start(&plan.sides_at(0.5), 0, true);
         // Finer bounds insert more vertices on the shared sides, several per call.
         for e in [0.4, 0.3, 0.2, 0.1] {
             b.refine(&plan, &plan.sides_at(e), 0);

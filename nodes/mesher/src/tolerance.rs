@@ -1288,8 +1288,15 @@ pub trait Checkpoints<M> {
     /// Keeps the order's state as it stands (a failing checkpoint a bisection starts from).
     fn keep(&mut self);
     /// Forgets the order's state, kept or not: the next checkpoint refines from the first
-    /// samples (the curve's coarse side, once the search is done).
+    /// samples (the curve's coarse side, once the search is done: never balanced, so its
+    /// blocks need not keep the mesh's heights that only the balance reads).
     fn restart(&mut self);
+    /// Moves a judged mesh the search keeps while it makes the next (its best, its fallback)
+    /// out of memory, where the order spills ([`CheckpointMesh::park`]); a mesh dropped once
+    /// judged is never written.
+    fn park(&mut self, _mesh: &mut M) -> Result<()> {
+        Ok(())
+    }
 }
 
 /// Bisection steps at most between the last failing and the first passing checkpoint.
@@ -1509,6 +1516,15 @@ pub fn search<M>(
     // triangles over the whole series, so it is walked, not bisected from the start).
     let mut best: Option<(usize, M)> = None;
     let mut fallback: Option<(usize, M)> = None;
+    // The meshes kept go out of memory (where the order spills) before the next is made;
+    // those dropped once judged are never written.
+    let park_kept =
+        |order: &mut dyn Checkpoints<M>, kept: [&mut Option<(usize, M)>; 2]| -> Result<()> {
+            for (_, m) in kept.into_iter().flatten() {
+                order.park(m)?;
+            }
+            Ok(())
+        };
     // The last failing checkpoint (bound fraction, curve index), its state kept by `order`.
     let mut last_fail: Option<(f64, usize)> = None;
     // The series' members above the coarsest bound worth judging are not refined on the way
@@ -1521,6 +1537,7 @@ pub fn search<M>(
     let mut fractions = checkpoint_fractions(aim.coarsest_sq_fraction).skip(coarse_side.len());
     let mut next = fractions.next();
     while let Some(f) = next {
+        park_kept(order, [&mut best, &mut fallback])?;
         let (pass, over, mesh) = run(order, f, Stage::Search, &mut curve)?;
         if over {
             break;
@@ -1549,6 +1566,7 @@ pub fn search<M>(
             if curve.len() + coarse_points >= MIN_CURVE_POINTS {
                 break;
             }
+            park_kept(order, [&mut best, &mut fallback])?;
             let (_, over, _) = run(order, f, Stage::Curve, &mut curve)?;
             if over {
                 break;
@@ -1576,6 +1594,7 @@ pub fn search<M>(
             let mid = pointwise_step(lo_f, &curve[lo_k].1, &t, aim.share)
                 .filter(|&p| p > hi_f && p < lo_f)
                 .unwrap_or_else(|| (lo_f * hi_f).sqrt());
+            park_kept(order, [&mut best, &mut fallback])?;
             let (pass, _, mesh) = run(order, mid, Stage::Bisect, &mut curve)?;
             let k = curve.len() - 1;
             let n = count(&curve, k);
@@ -1610,6 +1629,7 @@ pub fn search<M>(
             COARSE_CURVE_POINTS
         };
         for f in coarse_side.into_iter().take(points) {
+            park_kept(order, [&mut best, &mut fallback])?;
             let (pass, over, mesh) = run(order, f, Stage::Curve, &mut curve)?;
             if over {
                 break;
@@ -1830,13 +1850,14 @@ fn refine_blocks<'p>(
     epsilon_um: f64,
     balance: Option<(Balance<'_>, &[bool])>,
     angles: Option<&AngleBound>,
+    track_mesh: bool,
 ) -> Option<AngleStats> {
     let sides = plan.sides_at(epsilon_um);
     if live.is_empty() {
         *live = (0..plan.block_count())
             .into_par_iter()
             .map(|k| {
-                let mut b = plan.start(&sides, k);
+                let mut b = plan.start(&sides, k, track_mesh);
                 b.insert_samples(plan, k, extremes);
                 b
             })
@@ -2143,11 +2164,8 @@ fn search_to_tolerance<M: CheckpointMesh>(
             // The mesh's bound: its coarsest block's (every sample is within it).
             let mesh_eps = eps * plan.largest_bound_scale();
             p.epsilon = Epsilon::Um(mesh_eps);
-            let mut mesh = mesh_of(&plan, &p, mesh_eps, level, blocks)?;
+            let mesh = mesh_of(&plan, &p, mesh_eps, level, blocks)?;
             let fits = region_judge.judge(mesh.resampled_um());
-            if let Some(dir) = spill_dir {
-                mesh.park(dir)?;
-            }
             Ok(Trial {
                 surface_triangles: mesh.surface_triangles(),
                 fits,
@@ -2176,6 +2194,7 @@ fn search_to_tolerance<M: CheckpointMesh>(
                 bound,
                 judge,
             );
+            order.park_dir = spill_dir.map(Path::to_path_buf);
             search(sq, measured_px, &settings, aim, n, budget, &mut order)?
         }
     };
@@ -2239,6 +2258,10 @@ struct LiveOrder<'p, 'a, F> {
     kept: Option<usize>,
     balance: Option<Balance<'a>>,
     bound: Option<AngleBound>,
+    /// Whether new blocks keep the mesh's heights (not after [`Checkpoints::restart`]).
+    track_mesh: bool,
+    /// Where kept meshes are parked ([`Checkpoints::park`]; none: they stay in memory).
+    park_dir: Option<PathBuf>,
     judge: F,
 }
 
@@ -2264,12 +2287,14 @@ impl<'p, 'a, F> LiveOrder<'p, 'a, F> {
             kept: None,
             balance: balance_of(settings, roughness_um),
             bound,
+            track_mesh: true,
+            park_dir: None,
             judge,
         }
     }
 }
 
-impl<M, F> Checkpoints<M> for LiveOrder<'_, '_, F>
+impl<M: CheckpointMesh, F> Checkpoints<M> for LiveOrder<'_, '_, F>
 where
     F: FnMut(f64, &BlockSource<'_>, Option<AngleStats>) -> Result<Trial<M>>,
 {
@@ -2296,6 +2321,14 @@ where
         self.live.clear();
         self.steps.clear();
         self.kept = None;
+        self.track_mesh = false;
+    }
+
+    fn park(&mut self, mesh: &mut M) -> Result<()> {
+        match &self.park_dir {
+            Some(dir) => mesh.park(dir),
+            None => Ok(()),
+        }
     }
 }
 
@@ -2313,6 +2346,11 @@ impl<'p, 'a, F> LiveOrder<'p, 'a, F> {
             epsilon_um,
             balanced.as_ref().map(|(b, blocks)| (*b, blocks.as_slice())),
             self.bound.as_ref(),
+            self.track_mesh,
+        );
+        debug_assert!(
+            self.track_mesh || balanced.is_none(),
+            "a restarted order balanced"
         );
         self.steps.push((epsilon_um, balanced));
         angles
@@ -2438,6 +2476,8 @@ struct SpilledOrder<'p, 'a, F> {
     /// The state after the last checkpoint, and the one kept for a bisection.
     current: Option<Arc<SpilledBlocks>>,
     kept: Option<Arc<SpilledBlocks>>,
+    /// Whether new blocks keep the mesh's heights (not after [`Checkpoints::restart`]).
+    track_mesh: bool,
     judge: F,
 }
 
@@ -2458,12 +2498,13 @@ impl<'p, 'a, F> SpilledOrder<'p, 'a, F> {
             spill_dir: spill_dir.to_path_buf(),
             current: None,
             kept: None,
+            track_mesh: true,
             judge,
         }
     }
 }
 
-impl<M, F> Checkpoints<M> for SpilledOrder<'_, '_, F>
+impl<M: CheckpointMesh, F> Checkpoints<M> for SpilledOrder<'_, '_, F>
 where
     F: FnMut(f64, &BlockSource<'_>, Option<AngleStats>) -> Result<Trial<M>>,
 {
@@ -2482,12 +2523,14 @@ where
         let step = balanced.step(self.balance, plan, self.regions);
         let sides = plan.sides_at(epsilon_um);
         let extremes = &self.extremes;
+        let track_mesh = self.track_mesh;
+        debug_assert!(track_mesh || step.is_none(), "a restarted order balanced");
         let next = BlockWriter::new(&self.spill_dir, plan.block_count());
         let refine = |k: usize| -> Result<BlockTin> {
             let mut b = match &from {
                 Some(state) => plan.decode(k, &state.read(k)?),
                 None => {
-                    let mut b = plan.start(&sides, k);
+                    let mut b = plan.start(&sides, k, track_mesh);
                     b.insert_samples(plan, k, extremes);
                     b
                 }
@@ -2511,6 +2554,11 @@ where
     fn restart(&mut self) {
         self.current = None;
         self.kept = None;
+        self.track_mesh = false;
+    }
+
+    fn park(&mut self, mesh: &mut M) -> Result<()> {
+        mesh.park(&self.spill_dir)
     }
 }
 
