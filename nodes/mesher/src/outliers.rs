@@ -194,7 +194,10 @@ fn residual_row(z: &[f32], rows: usize, cols: usize, r: usize, out: &mut [f32]) 
             v[6][l] = down[x];
             v[7][l] = down[x + 1];
         }
-        let missing = v.iter().flatten().fold(false, |a, h| a | h.is_nan());
+        let mut missing = false;
+        for lane in &v {
+            missing |= lane.iter().fold(false, |a, h| a | h.is_nan());
+        }
         if missing {
             for (l, o) in out[c..c + RUN].iter_mut().enumerate() {
                 residual_at(z, rows, cols, r, c + l, o);

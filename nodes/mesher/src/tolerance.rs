@@ -1884,35 +1884,70 @@ fn window_extremes(
     regions: &[Window],
     form: &GridPlane,
 ) -> Vec<u32> {
-    let (z, cols) = (heights.values(), heights.shape().cols);
+    let (z, shape) = (heights.values(), heights.shape());
+    let cols = shape.cols;
     // The heights' extremes less the plane the regions are judged without (their Sz's).
     let fields: Vec<(&[f32], GridPlane)> = std::iter::once((z, *form))
         .chain(roughness_um.map(|g| (g, GridPlane::default())))
         .collect();
-    let mut out: Vec<u32> = regions
-        .par_iter()
-        .flat_map_iter(|r| {
-            fields.iter().flat_map(move |(f, form)| {
-                let (mut lo, mut hi) = ((f64::INFINITY, None), (f64::NEG_INFINITY, None));
-                for y in r.row0..r.row0 + r.rows {
-                    let (start, step) = form.row(y);
-                    for s in y * cols + r.col0..y * cols + r.col0 + r.cols {
-                        if z[s].is_nan() || f[s].is_nan() {
-                            continue;
+    // A sample's value is the same in every region (one plane), and the regions overlap
+    // five-fold: the columns where regions start or end cut each row into cells, each cell's
+    // extremes are found once (first occurrences, in scan order), and a region's are its
+    // cells' taken in row-major order with the same strict comparisons: the samples a scan of
+    // the region itself finds.
+    let mut cuts: Vec<usize> = regions
+        .iter()
+        .flat_map(|r| [r.col0, r.col0 + r.cols])
+        .collect();
+    cuts.sort_unstable();
+    cuts.dedup();
+    let cells = cuts.len().saturating_sub(1);
+    let cell_of = |col: usize| cuts.binary_search(&col).unwrap_or_else(|i| i);
+    type Extreme = (f64, Option<u32>);
+    let mut out = Vec::new();
+    for (f, form) in &fields {
+        let per_cell: Vec<(Extreme, Extreme)> = (0..shape.rows)
+            .into_par_iter()
+            .flat_map_iter(|y| {
+                let (start, step) = form.row(y);
+                let cuts = &cuts;
+                (0..cells).map(move |c| {
+                    let (mut lo, mut hi) = ((f64::INFINITY, None), (f64::NEG_INFINITY, None));
+                    // The column as f64 counted (exact), not converted per sample.
+                    let mut x = cuts[c] as f64;
+                    for s in y * cols + cuts[c]..y * cols + cuts[c + 1] {
+                        if !(z[s].is_nan() || f[s].is_nan()) {
+                            let v = f64::from(f[s]) - (start + step * x);
+                            if v < lo.0 {
+                                lo = (v, Some(s as u32));
+                            }
+                            if v > hi.0 {
+                                hi = (v, Some(s as u32));
+                            }
                         }
-                        let v = f64::from(f[s]) - (start + step * (s - y * cols) as f64);
-                        if v < lo.0 {
-                            lo = (v, Some(s as u32));
-                        }
-                        if v > hi.0 {
-                            hi = (v, Some(s as u32));
-                        }
+                        x += 1.0;
+                    }
+                    (lo, hi)
+                })
+            })
+            .collect();
+        for r in regions {
+            let (c0, c1) = (cell_of(r.col0), cell_of(r.col0 + r.cols));
+            let (mut lo, mut hi): (Extreme, Extreme) =
+                ((f64::INFINITY, None), (f64::NEG_INFINITY, None));
+            for y in r.row0..r.row0 + r.rows {
+                for &(l, h) in &per_cell[y * cells + c0..y * cells + c1] {
+                    if l.0 < lo.0 {
+                        lo = l;
+                    }
+                    if h.0 > hi.0 {
+                        hi = h;
                     }
                 }
-                [lo.1, hi.1].into_iter().flatten()
-            })
-        })
-        .collect();
+            }
+            out.extend([lo.1, hi.1].into_iter().flatten());
+        }
+    }
     out.sort_unstable();
     out.dedup();
     out
@@ -2657,6 +2692,100 @@ mod tests {
         // A mesh equal to the measurement carries the roughness exactly.
         let same = &judge_regions(&form, &form, Some(&rough), shape, &r[..1], None)[0];
         assert_eq!(same.roughness_deviation_pct, Some([0.0; 3]));
+    }
+
+    /// [`window_extremes`] as it was: every region scanned on its own (the oracle).
+    fn window_extremes_by_region(
+        heights: RasterView<'_, f32>,
+        roughness_um: Option<&[f32]>,
+        regions: &[Window],
+        form: &GridPlane,
+    ) -> Vec<u32> {
+        let (z, cols) = (heights.values(), heights.shape().cols);
+        // The heights' extremes less the plane the regions are judged without (their Sz's).
+        let fields: Vec<(&[f32], GridPlane)> = std::iter::once((z, *form))
+            .chain(roughness_um.map(|g| (g, GridPlane::default())))
+            .collect();
+        let mut out: Vec<u32> = regions
+            .par_iter()
+            .flat_map_iter(|r| {
+                fields.iter().flat_map(move |(f, form)| {
+                    let (mut lo, mut hi) = ((f64::INFINITY, None), (f64::NEG_INFINITY, None));
+                    for y in r.row0..r.row0 + r.rows {
+                        let (start, step) = form.row(y);
+                        for s in y * cols + r.col0..y * cols + r.col0 + r.cols {
+                            if z[s].is_nan() || f[s].is_nan() {
+                                continue;
+                            }
+                            let v = f64::from(f[s]) - (start + step * (s - y * cols) as f64);
+                            if v < lo.0 {
+                                lo = (v, Some(s as u32));
+                            }
+                            if v > hi.0 {
+                                hi = (v, Some(s as u32));
+                            }
+                        }
+                    }
+                    [lo.1, hi.1].into_iter().flatten()
+                })
+            })
+            .collect();
+        out.sort_unstable();
+        out.dedup();
+        out
+    }
+
+    /// The cells' extremes are the samples a scan of each region finds: overlapping windows
+    /// and footprints at odd offsets, ties (first occurrences), missing samples, a plane.
+    #[test]
+    fn cell_extremes_are_each_regions_own() {
+        let shape = Shape::new(37, 53);
+        let mut state = 7u32;
+        let z: Vec<f32> = (0..shape.len())
+            .map(|_| {
+                state = state.wrapping_mul(1_103_515_245).wrapping_add(12345);
+                match (state >> 8) % 17 {
+                    0 => f32::NAN,
+                    1 | 2 => 1.0,
+                    _ => ((state >> 16) % 64) as f32 * 0.25,
+                }
+            })
+            .collect();
+        let g: Vec<f32> = z
+            .iter()
+            .map(|v| if *v == 1.0 { f32::NAN } else { 0.5 - v })
+            .collect();
+        let view = RasterView::new(&z, shape).unwrap();
+        let mut regions = windows(shape, 16);
+        for (row0, col0, rows, cols) in [
+            (3, 5, 20, 31),
+            (0, 50, 37, 3),
+            (10, 0, 0, 7),
+            (36, 1, 1, 52),
+        ] {
+            regions.push(Window {
+                name: format!("S{row0}.{col0}"),
+                row0,
+                col0,
+                rows,
+                cols,
+            });
+        }
+        for form in [
+            GridPlane::default(),
+            GridPlane {
+                at_origin_um: 0.3,
+                per_col_um: 0.013,
+                per_row_um: -0.021,
+            },
+        ] {
+            for rough in [None, Some(g.as_slice())] {
+                assert_eq!(
+                    window_extremes(view, rough, &regions, &form),
+                    window_extremes_by_region(view, rough, &regions, &form)
+                );
+            }
+        }
     }
 
     #[test]
