@@ -136,6 +136,36 @@ fn divide_by_pairs<K: Copy + Sync>(half: &mut [f64], pairs: &[K], count: impl Fn
         });
 }
 
+/// f_ACF of a map without gaps at the lags of `rows_of_lags` (rows of 2 `wx` + 1, tx =
+/// -wx..=wx, the first at lag row `ty0`) from their sums: each divided by its number of
+/// pairs, (rows - ty) (cols - |tx|).
+fn divide_by_full_pairs(
+    rows_of_lags: &mut [f64],
+    ty0: usize,
+    wx: usize,
+    (rows, cols): (usize, usize),
+) {
+    rows_of_lags
+        .par_chunks_mut(2 * wx + 1)
+        .enumerate()
+        .for_each(|(j, row)| {
+            for (i, v) in row.iter_mut().enumerate() {
+                let tx = (i as isize - wx as isize).unsigned_abs();
+                *v /= ((rows - (ty0 + j)) * (cols - tx)) as f64;
+            }
+        });
+}
+
+/// The rows of `g`'s validity mask (1 measured, 0 not), whose correlation counts the pairs.
+fn mask_rows<'a>(g: &Grid<'a>) -> impl Fn(usize, &mut [f64]) + Sync + 'a {
+    let (z, cols) = (g.heights_um, g.cols());
+    move |r, buf| {
+        for (o, &z) in buf.iter_mut().zip(&z[r * cols..(r + 1) * cols]) {
+            *o = if z.is_nan() { 0.0 } else { 1.0 };
+        }
+    }
+}
+
 impl Acf {
     /// The ACF of `g` (see the module documentation), the whole lag plane.
     pub fn of(g: &Grid) -> Result<Self, MetrologyError> {
@@ -158,27 +188,15 @@ impl Acf {
             None => correlation_half_plane(&row, rows, cols),
             Some(_) => correlation_window(&row, rows, cols, (wy, wx), WINDOW_BLOCKS),
         };
-        let w = 2 * wx + 1;
         let half = if n == rows * cols {
             let mut half = sums(&|r, buf: &mut [f64]| c.row(r, buf));
-            half.par_chunks_mut(w).enumerate().for_each(|(ty, row)| {
-                for (i, v) in row.iter_mut().enumerate() {
-                    let tx = (i as isize - wx as isize).unsigned_abs();
-                    *v /= ((rows - ty) * (cols - tx)) as f64;
-                }
-            });
+            divide_by_full_pairs(&mut half, 0, wx, (rows, cols));
             half
         } else {
             // The pairs per lag first, kept as whole counts (u32 when a count, at most
             // rows x cols, fits: half the f64 plane's memory), so that two f64 planes are
             // not held at once.
-            let z = g.heights_um;
-            let mask = |r: usize, buf: &mut [f64]| {
-                for (o, &z) in buf.iter_mut().zip(&z[r * cols..(r + 1) * cols]) {
-                    *o = if z.is_nan() { 0.0 } else { 1.0 };
-                }
-            };
-            let pairs = sums(&mask);
+            let pairs = sums(&mask_rows(g));
             let row = |r: usize, buf: &mut [f64]| c.row(r, buf);
             if rows * cols <= u32::MAX as usize {
                 let counts: Vec<u32> = pairs
@@ -610,15 +628,10 @@ fn sal_str_spilled(
         block_cols,
         None,
     )?;
-    let z = g.heights_um;
     let pairs = if c.valid == rows * cols {
         None
     } else {
-        let mask = |r: usize, buf: &mut [f64]| {
-            for (o, &z) in buf.iter_mut().zip(&z[r * cols..(r + 1) * cols]) {
-                *o = if z.is_nan() { 0.0 } else { 1.0 };
-            }
-        };
+        let mask = mask_rows(g);
         Some(SpilledCorrelation::new(
             &mask, rows, cols, block_cols, None,
         )?)
@@ -628,21 +641,13 @@ fn sal_str_spilled(
     let acf_bands = |(wy, wx): (usize, usize),
                      take: &mut dyn FnMut(usize, &[f64])|
      -> Result<(), MetrologyError> {
-        let w = 2 * wx + 1;
         let mut sum_bands = sums.lag_bands(wx);
         let mut pair_bands = pairs.as_ref().map(|p| p.lag_bands(wx));
         for ty0 in (0..=wy).step_by(SPILL_BAND_ROWS) {
             let nb = SPILL_BAND_ROWS.min(wy + 1 - ty0);
             let band = sum_bands.read(ty0, nb)?;
             match pair_bands.as_mut() {
-                None => {
-                    for (j, row) in band.chunks_mut(w).enumerate() {
-                        for (i, v) in row.iter_mut().enumerate() {
-                            let tx = (i as isize - wx as isize).unsigned_abs();
-                            *v /= ((rows - (ty0 + j)) * (cols - tx)) as f64;
-                        }
-                    }
-                }
+                None => divide_by_full_pairs(band, ty0, wx, (rows, cols)),
                 Some(pair_bands) => {
                     let k = pair_bands.read(ty0, nb)?;
                     divide_by_pairs(band, &*k, |k| k.round());
